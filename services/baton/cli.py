@@ -1,0 +1,63 @@
+"""The ``baton`` command: one subcommand a program.
+
+Each program has a ``cli`` module with ``register(subparsers)``, which adds
+its parser (every option with its help) and sets ``run(args) -> int``. Heavy
+imports (MAVSDK, matplotlib) happen inside ``run``, so ``--help`` is fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# Subcommand modules, in the order `baton --help` lists them.
+PROGRAMS = [
+    "baton.sim_vehicle.cli",
+    "baton.drone.cli",
+    "baton.controller.cli",
+    "baton.link.cli",
+    "baton.testbed.cli",
+    "baton.bench.cli",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``baton`` with every available subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="baton",
+        description="Transparent handover of automated drone missions between edge controllers.",
+    )
+    parser.add_argument(
+        "--log-level",
+        default="info",
+        choices=["debug", "info", "warning", "error"],
+        help="structured (JSON) log level on stderr (default: info)",
+    )
+    subparsers = parser.add_subparsers(dest="program", metavar="PROGRAM", required=True)
+    for name in PROGRAMS:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name is not None and name.startswith(exc.name):
+                continue  # that program is not built yet
+            raise
+        module.register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``baton`` console script."""
+    from baton import logs
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logs.configure(args.log_level)
+    try:
+        return int(args.run(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,279 @@
+"""The testbed configuration: one typed, validated model for every program.
+
+One YAML file lists every endpoint, as the paper's testbed did: the drone
+service, the controllers with their ring order, locations and ranges, the
+initial master and the flush limit. Programs load it with ``load_config`` and
+pass the model down; nothing else reads files or the environment for settings.
+
+Sizes accept units (``2MB``, ``512KiB``, ``0``); MB means 2**20 bytes, as in
+DESIGN.md's performance model. Rates accept ``25Mbit``; Mbit means 10**6 bits.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Any
+
+import yaml
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+_SIZE_UNITS = {
+    "": 1,
+    "b": 1,
+    "k": 2**10,
+    "kb": 2**10,
+    "kib": 2**10,
+    "m": 2**20,
+    "mb": 2**20,
+    "mib": 2**20,
+    "g": 2**30,
+    "gb": 2**30,
+    "gib": 2**30,
+}
+_RATE_UNITS = {
+    "": 1,
+    "bit": 1,
+    "bps": 1,
+    "kbit": 10**3,
+    "kbps": 10**3,
+    "mbit": 10**6,
+    "mbps": 10**6,
+    "gbit": 10**9,
+    "gbps": 10**9,
+}
+_TIME_UNITS = {"": 1.0, "s": 1.0, "ms": 1e-3, "us": 1e-6}
+_NUMBER_WITH_UNIT = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*([a-zA-Z/]*)\s*$")
+
+
+def _parse_with_units(value: Any, units: dict[str, Any], what: str, example: str) -> float:
+    if isinstance(value, bool):
+        raise ValueError(f"expected {what} like {example!r}, got {value!r}")
+    if isinstance(value, int | float):
+        return float(value)
+    match = _NUMBER_WITH_UNIT.match(str(value))
+    unit = match.group(2).lower() if match else None
+    if match is None or unit not in units:
+        known = ", ".join(u for u in units if u)
+        raise ValueError(f"expected {what} like {example!r} (units: {known}), got {value!r}")
+    return float(match.group(1)) * units[unit]
+
+
+def parse_size(value: Any) -> int:
+    """Bytes from ``2MB``, ``512KiB``, ``1048576`` or ``0`` (MB = 2**20 bytes)."""
+    size = _parse_with_units(value, _SIZE_UNITS, "a size", "2MB")
+    if size < 0:
+        raise ValueError(f"a size must be >= 0, got {value!r}")
+    return int(size)
+
+
+def parse_rate(value: Any) -> float:
+    """Bits per second from ``25Mbit``, ``54Mbps`` or ``25e6``."""
+    rate = _parse_with_units(value, _RATE_UNITS, "a bandwidth", "25Mbit")
+    if rate <= 0:
+        raise ValueError(f"a bandwidth must be > 0, got {value!r}")
+    return rate
+
+
+def parse_duration(value: Any) -> float:
+    """Seconds from ``20ms``, ``0.02``, ``1s``."""
+    seconds = _parse_with_units(value, _TIME_UNITS, "a duration", "20ms")
+    if seconds < 0:
+        raise ValueError(f"a duration must be >= 0, got {value!r}")
+    return seconds
+
+
+def parse_address(value: Any) -> str:
+    """A ``host:port`` string with a port in 0..65535."""
+    text = str(value).strip()
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"expected host:port like '127.0.0.1:7100', got {value!r}")
+    return text
+
+
+Size = Annotated[int, BeforeValidator(parse_size)]
+Rate = Annotated[float, BeforeValidator(parse_rate)]
+Duration = Annotated[float, BeforeValidator(parse_duration)]
+Address = Annotated[str, BeforeValidator(parse_address)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Location(_Model):
+    """A ground location (a controller's antenna, the drone's home)."""
+
+    latitude_deg: float = Field(ge=-90, le=90)
+    longitude_deg: float = Field(ge=-180, le=180)
+    altitude_m: float = 0.0
+
+
+class LinkSpec(_Model):
+    """Emulated link characteristics, per direction (see ``baton link``)."""
+
+    latency: Duration = 0.0
+    bandwidth: Rate | None = None  # None: unlimited
+
+    @property
+    def emulated(self) -> bool:
+        """Whether this link adds any delay at all."""
+        return self.latency > 0 or self.bandwidth is not None
+
+
+class DroneConfig(_Model):
+    """The drone service."""
+
+    address: Address = "127.0.0.1:50051"
+    vehicle_url: str = "udpin://127.0.0.1:14540"
+    home: Location = Location(latitude_deg=47.397742, longitude_deg=8.545594, altitude_m=488.0)
+
+
+class ControllerConfig(_Model):
+    """One mission controller."""
+
+    id: int = Field(ge=0, le=2**31 - 1)
+    address: Address
+    # How the other controllers reach this one (a link emulator in the
+    # testbed); defaults to ``address``.
+    peer_address: Address | None = None
+    # How this controller reaches the drone; defaults to ``drone.address``.
+    drone_address: Address | None = None
+    location: Location | None = None
+    range_m: float | None = Field(default=None, gt=0)
+
+    @property
+    def reach(self) -> str:
+        """The address peers use for this controller."""
+        return self.peer_address or self.address
+
+
+class BatonConfig(_Model):
+    """The whole testbed: drone, controllers, ring, protocol parameters."""
+
+    drone: DroneConfig = DroneConfig()
+    controllers: list[ControllerConfig] = Field(min_length=1)
+    # Ring order by controller id; defaults to the order of ``controllers``.
+    ring: list[int] | None = None
+    initial_master: int | None = None
+    flush_limit: Size = 2 * 2**20
+    speedup: float = Field(default=1.0, gt=0, le=1000)
+    controller_link: LinkSpec = LinkSpec()
+    drone_link: LinkSpec = LinkSpec()
+
+    @field_validator("controllers")
+    @classmethod
+    def _unique_ids(cls, controllers: list[ControllerConfig]) -> list[ControllerConfig]:
+        seen: set[int] = set()
+        for c in controllers:
+            if c.id in seen:
+                raise ValueError(f"controller id {c.id} appears twice; give each a unique id")
+            seen.add(c.id)
+        return controllers
+
+    @model_validator(mode="after")
+    def _ring_and_master(self) -> BatonConfig:
+        ids = [c.id for c in self.controllers]
+        if self.ring is not None and sorted(self.ring) != sorted(ids):
+            raise ValueError(
+                f"ring {self.ring} must list every controller id exactly once: {sorted(ids)}"
+            )
+        if self.initial_master is not None and self.initial_master not in ids:
+            raise ValueError(
+                f"initial_master {self.initial_master} is not a controller id; use one of {ids}"
+            )
+        return self
+
+    @property
+    def ring_order(self) -> list[int]:
+        """Controller ids in ring order."""
+        return list(self.ring) if self.ring is not None else [c.id for c in self.controllers]
+
+    @property
+    def master_id(self) -> int:
+        """The initial master: configured, else the first in ring order (the paper's n_0)."""
+        return self.initial_master if self.initial_master is not None else self.ring_order[0]
+
+    def controller(self, cid: int) -> ControllerConfig:
+        """The controller with id ``cid``; KeyError naming the known ids otherwise."""
+        for c in self.controllers:
+            if c.id == cid:
+                return c
+        raise KeyError(f"no controller with id {cid}; known ids: {self.ring_order}")
+
+    def successor(self, cid: int) -> int:
+        """The next controller in the ring (Algorithm 1's nxtid)."""
+        order = self.ring_order
+        return order[(order.index(cid) + 1) % len(order)]
+
+    def predecessor(self, cid: int) -> int:
+        """The previous controller in the ring (Algorithm 1's prvid)."""
+        order = self.ring_order
+        return order[(order.index(cid) - 1) % len(order)]
+
+    def hops(self, src: int, dst: int) -> int:
+        """Hops along the ring from ``src`` to ``dst``."""
+        order = self.ring_order
+        return (order.index(dst) - order.index(src)) % len(order)
+
+    def drone_address_for(self, cid: int) -> str:
+        """Where controller ``cid`` reaches the drone."""
+        return self.controller(cid).drone_address or self.drone.address
+
+
+class ConfigError(ValueError):
+    """A configuration file that cannot be used; the message names file, field and fix."""
+
+
+def _field_path(loc: tuple[int | str, ...]) -> str:
+    path = ""
+    for part in loc:
+        path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
+    return path or "(top level)"
+
+
+def format_validation_error(source: str, error: ValidationError) -> str:
+    """One line per problem: ``FILE: FIELD: what is wrong``."""
+    lines = []
+    for problem in error.errors():
+        field = _field_path(tuple(problem["loc"]))
+        msg = problem["msg"].removeprefix("Value error, ")
+        if problem["type"] == "extra_forbidden":
+            msg = "unknown field; remove it or check its spelling"
+        elif problem["type"] == "missing":
+            msg = "required field is missing; add it"
+        lines.append(f"{source}: {field}: {msg}")
+    return "\n".join(lines)
+
+
+def parse_config(data: Any, source: str = "<config>") -> BatonConfig:
+    """Validates a parsed YAML document; ConfigError says what to fix."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: (top level): expected a mapping of fields, got {data!r}")
+    try:
+        return BatonConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(source, exc)) from None
+
+
+def load_config(path: str | Path) -> BatonConfig:
+    """Reads and validates a testbed YAML file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the configuration file: {exc.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    return parse_config(data, str(path))

@@ -1,0 +1,1 @@
+"""gRPC plumbing shared by every baton service: channels, servers, status errors."""

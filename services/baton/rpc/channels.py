@@ -1,0 +1,50 @@
+"""The one place that creates gRPC channels, with the project's options.
+
+Log messages and pictures are far larger than gRPC's 4 MB default, so every
+channel and server raises the message limits explicitly; keepalive detects a
+dead peer on a long-lived ring or Connect stream within seconds.
+"""
+
+from __future__ import annotations
+
+import grpc
+
+# A picture at the largest resolution is 8192*8192*3 bytes (192 MiB) plus its
+# header; the ring additionally slices log messages into frames (see ring.py),
+# so this bound is for single replies only.
+MAX_MESSAGE_BYTES = 256 * 1024 * 1024
+
+CHANNEL_OPTIONS: list[tuple[str, int | str]] = [
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.keepalive_time_ms", 10_000),
+    ("grpc.keepalive_timeout_ms", 5_000),
+    ("grpc.keepalive_permit_without_calls", 1),
+    ("grpc.http2.max_pings_without_data", 0),
+    # Reconnect quickly after a peer restarts; the caller adds its own back-off.
+    ("grpc.initial_reconnect_backoff_ms", 100),
+    ("grpc.min_reconnect_backoff_ms", 100),
+    ("grpc.max_reconnect_backoff_ms", 2_000),
+    ("grpc.enable_retries", 0),
+]
+
+SERVER_OPTIONS: list[tuple[str, int | str]] = [
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.keepalive_time_ms", 10_000),
+    ("grpc.keepalive_timeout_ms", 5_000),
+    ("grpc.keepalive_permit_without_calls", 1),
+    ("grpc.http2.min_ping_interval_without_data_ms", 5_000),
+    ("grpc.http2.max_pings_without_data", 0),
+    ("grpc.so_reuseport", 0),
+]
+
+
+def aio_channel(address: str) -> grpc.aio.Channel:
+    """An insecure asyncio channel to ``host:port`` with the project's options."""
+    return grpc.aio.insecure_channel(address, options=CHANNEL_OPTIONS)
+
+
+def sync_channel(address: str) -> grpc.Channel:
+    """A blocking channel to ``host:port`` with the project's options."""
+    return grpc.insecure_channel(address, options=CHANNEL_OPTIONS)
