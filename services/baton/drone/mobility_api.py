@@ -1,0 +1,46 @@
+"""What the drone service needs from a vehicle backend (MAVSDK in practice).
+
+The drone service dispatches ``/baton.v1.Mobility/*`` calls to an object with
+one coroutine per RPC of the Mobility service, named as in the proto, taking
+the request message and returning the reply message. A failure is raised as
+``baton.rpc.errors.StatusError`` with the right status code and, for
+autopilot refusals, MAVSDK's own reason in the message.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from baton.v1 import drone_api_pb2 as api
+
+
+class MobilityBackend(Protocol):
+    """One coroutine per Mobility RPC, plus connection management."""
+
+    url: str
+
+    async def start(self) -> None:
+        """Starts connecting to the vehicle; returns without waiting for it."""
+
+    async def close(self) -> None:
+        """Releases the connection."""
+
+    @property
+    def connected(self) -> bool:
+        """Whether an autopilot is connected now (heartbeats arriving)."""
+
+    async def Arm(self, request: api.ArmRequest) -> api.ArmReply: ...
+    async def Disarm(self, request: api.DisarmRequest) -> api.DisarmReply: ...
+    async def Takeoff(self, request: api.TakeoffRequest) -> api.TakeoffReply: ...
+    async def Goto(self, request: api.GotoRequest) -> api.GotoReply: ...
+    async def SetSpeed(self, request: api.SetSpeedRequest) -> api.SetSpeedReply: ...
+    async def Hold(self, request: api.HoldRequest) -> api.HoldReply: ...
+    async def Land(self, request: api.LandRequest) -> api.LandReply: ...
+    async def ReturnToLaunch(
+        self, request: api.ReturnToLaunchRequest
+    ) -> api.ReturnToLaunchReply: ...
+    async def GetPosition(self, request: api.GetPositionRequest) -> api.GetPositionReply: ...
+    async def GetHome(self, request: api.GetHomeRequest) -> api.GetHomeReply: ...
+    async def GetFlightState(
+        self, request: api.GetFlightStateRequest
+    ) -> api.GetFlightStateReply: ...
