@@ -36,6 +36,9 @@ class LogEntry(_message.Message):
     METHOD_FIELD_NUMBER: _builtins.int
     REPLY_FIELD_NUMBER: _builtins.int
     REQUEST_DIGEST_FIELD_NUMBER: _builtins.int
+    REQUEST_FIELD_NUMBER: _builtins.int
+    STATUS_CODE_FIELD_NUMBER: _builtins.int
+    STATUS_MESSAGE_FIELD_NUMBER: _builtins.int
     reqnr: _builtins.int
     """The request number."""
     method: _builtins.str
@@ -44,6 +47,14 @@ class LogEntry(_message.Message):
     """The serialized reply."""
     request_digest: _builtins.bytes
     """SHA-256 of method and serialized request: the determinism guard."""
+    request: _builtins.bytes
+    """The serialized request, so that a determinism failure can show it."""
+    status_code: _builtins.int
+    """The gRPC status code of the call (0 = OK). A failed drone call is logged
+    too, so every replica's mission program sees the same failure.
+    """
+    status_message: _builtins.str
+    """The status message of a failed call."""
     def __init__(
         self,
         *,
@@ -51,10 +62,13 @@ class LogEntry(_message.Message):
         method: _builtins.str = ...,
         reply: _builtins.bytes = ...,
         request_digest: _builtins.bytes = ...,
+        request: _builtins.bytes = ...,
+        status_code: _builtins.int = ...,
+        status_message: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request_digest", b"request_digest"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request", b"request", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
