@@ -37,8 +37,8 @@ def generate(out_dir: Path, root: Path = PROTO_ROOT) -> list[Path]:
         f"-I{include}",
         f"--python_out={out_dir}",
         f"--grpc_python_out={out_dir}",
-        f"--mypy_out={out_dir}",
-        f"--mypy_grpc_out={out_dir}",
+        f"--mypy_out=quiet:{out_dir}",
+        f"--mypy_grpc_out=quiet:{out_dir}",
         *(str(p) for p in proto_files(root)),
     ]
     if protoc.main(args) != 0:

@@ -24,27 +24,31 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13\x62\x61ton/v1/ring.proto\x12\x08\x62\x61ton.v1\"\x8e\x01\n\x08LogEntry\x12\r\n\x05reqnr\x18\x01 \x01(\x04\x12\x0e\n\x06method\x18\x02 \x01(\t\x12\r\n\x05reply\x18\x03 \x01(\x0c\x12\x16\n\x0erequest_digest\x18\x04 \x01(\x0c\x12\x0f\n\x07request\x18\x05 \x01(\x0c\x12\x13\n\x0bstatus_code\x18\x06 \x01(\x05\x12\x16\n\x0estatus_message\x18\x07 \x01(\t\"\x86\x01\n\nLogMessage\x12\r\n\x05lognr\x18\x01 \x01(\x04\x12\x0e\n\x06origin\x18\x02 \x01(\x05\x12\x10\n\x08handover\x18\x03 \x01(\x08\x12#\n\x07\x65ntries\x18\x04 \x03(\x0b\x32\x12.baton.v1.LogEntry\x12\x0e\n\x06sender\x18\x05 \x01(\x05\x12\x12\n\ncreated_at\x18\x06 \x01(\x01\"]\n\x08LogFrame\x12\r\n\x05lognr\x18\x01 \x01(\x04\x12\x13\n\x0btotal_bytes\x18\x02 \x01(\x04\x12\x0e\n\x06offset\x18\x03 \x01(\x04\x12\x0c\n\x04\x64\x61ta\x18\x04 \x01(\x0c\x12\x0f\n\x07\x66rom_id\x18\x05 \x01(\x05\";\n\x06LogAck\x12\r\n\x05lognr\x18\x01 \x01(\x04\x12\r\n\x05hello\x18\x02 \x01(\x08\x12\x13\n\x0breceiver_id\x18\x03 \x01(\x05\"\x1c\n\x1aGetControllerStatusRequest\"_\n\nPeerStatus\x12\n\n\x02id\x18\x01 \x01(\x05\x12\x0f\n\x07\x61\x64\x64ress\x18\x02 \x01(\t\x12\x11\n\tstream_up\x18\x03 \x01(\x08\x12\x0f\n\x07unacked\x18\x04 \x01(\x04\x12\x10\n\x08\x63onnects\x18\x05 \x01(\x04\"\xdf\x02\n\x10\x43ontrollerStatus\x12\n\n\x02id\x18\x01 \x01(\x05\x12\r\n\x05state\x18\x02 \x01(\t\x12\x0e\n\x06master\x18\x03 \x01(\x08\x12\r\n\x05reqnr\x18\x04 \x01(\x04\x12\r\n\x05lognr\x18\x05 \x01(\x04\x12\x11\n\tlog_bytes\x18\x06 \x01(\x04\x12\x13\n\x0blog_entries\x18\x07 \x01(\x04\x12\x14\n\x0cqueue_length\x18\x08 \x01(\x04\x12#\n\x05peers\x18\t \x03(\x0b\x32\x14.baton.v1.PeerStatus\x12\x13\n\x0bpredecessor\x18\n \x01(\x05\x12\x11\n\tsuccessor\x18\x0b \x01(\x05\x12\x0f\n\x07mission\x18\x0c \x01(\t\x12\x15\n\rmission_error\x18\r \x01(\t\x12\x10\n\x08replayed\x18\x0e \x01(\x04\x12\x0f\n\x07invoked\x18\x0f \x01(\x04\x12\x13\n\x0breply_chain\x18\x10 \x01(\x0c\x12\x17\n\x0f\x64rone_connected\x18\x11 \x01(\x08\x32\x94\x01\n\x0e\x43ontrollerRing\x12\x33\n\x07LogRing\x12\x12.baton.v1.LogFrame\x1a\x10.baton.v1.LogAck(\x01\x30\x01\x12M\n\tGetStatus\x12$.baton.v1.GetControllerStatusRequest\x1a\x1a.baton.v1.ControllerStatusb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x13\x62\x61ton/v1/ring.proto\x12\x08\x62\x61ton.v1\"3\n\x12MissionDoneRequest\x12\x0e\n\x06\x66\x61iled\x18\x01 \x01(\x08\x12\r\n\x05\x65rror\x18\x02 \x01(\t\"2\n\x10MissionDoneReply\x12\x0f\n\x07\x66lushed\x18\x01 \x01(\x08\x12\r\n\x05lognr\x18\x02 \x01(\x04\"\x8e\x01\n\x08LogEntry\x12\r\n\x05reqnr\x18\x01 \x01(\x04\x12\x0e\n\x06method\x18\x02 \x01(\t\x12\r\n\x05reply\x18\x03 \x01(\x0c\x12\x16\n\x0erequest_digest\x18\x04 \x01(\x0c\x12\x0f\n\x07request\x18\x05 \x01(\x0c\x12\x13\n\x0bstatus_code\x18\x06 \x01(\x05\x12\x16\n\x0estatus_message\x18\x07 \x01(\t\"\x86\x01\n\nLogMessage\x12\r\n\x05lognr\x18\x01 \x01(\x04\x12\x0e\n\x06origin\x18\x02 \x01(\x05\x12\x10\n\x08handover\x18\x03 \x01(\x08\x12#\n\x07\x65ntries\x18\x04 \x03(\x0b\x32\x12.baton.v1.LogEntry\x12\x0e\n\x06sender\x18\x05 \x01(\x05\x12\x12\n\ncreated_at\x18\x06 \x01(\x01\"]\n\x08LogFrame\x12\r\n\x05lognr\x18\x01 \x01(\x04\x12\x13\n\x0btotal_bytes\x18\x02 \x01(\x04\x12\x0e\n\x06offset\x18\x03 \x01(\x04\x12\x0c\n\x04\x64\x61ta\x18\x04 \x01(\x0c\x12\x0f\n\x07\x66rom_id\x18\x05 \x01(\x05\";\n\x06LogAck\x12\r\n\x05lognr\x18\x01 \x01(\x04\x12\r\n\x05hello\x18\x02 \x01(\x08\x12\x13\n\x0breceiver_id\x18\x03 \x01(\x05\"\x1c\n\x1aGetControllerStatusRequest\"_\n\nPeerStatus\x12\n\n\x02id\x18\x01 \x01(\x05\x12\x0f\n\x07\x61\x64\x64ress\x18\x02 \x01(\t\x12\x11\n\tstream_up\x18\x03 \x01(\x08\x12\x0f\n\x07unacked\x18\x04 \x01(\x04\x12\x10\n\x08\x63onnects\x18\x05 \x01(\x04\"\xdf\x02\n\x10\x43ontrollerStatus\x12\n\n\x02id\x18\x01 \x01(\x05\x12\r\n\x05state\x18\x02 \x01(\t\x12\x0e\n\x06master\x18\x03 \x01(\x08\x12\r\n\x05reqnr\x18\x04 \x01(\x04\x12\r\n\x05lognr\x18\x05 \x01(\x04\x12\x11\n\tlog_bytes\x18\x06 \x01(\x04\x12\x13\n\x0blog_entries\x18\x07 \x01(\x04\x12\x14\n\x0cqueue_length\x18\x08 \x01(\x04\x12#\n\x05peers\x18\t \x03(\x0b\x32\x14.baton.v1.PeerStatus\x12\x13\n\x0bpredecessor\x18\n \x01(\x05\x12\x11\n\tsuccessor\x18\x0b \x01(\x05\x12\x0f\n\x07mission\x18\x0c \x01(\t\x12\x15\n\rmission_error\x18\r \x01(\t\x12\x10\n\x08replayed\x18\x0e \x01(\x04\x12\x0f\n\x07invoked\x18\x0f \x01(\x04\x12\x13\n\x0breply_chain\x18\x10 \x01(\x0c\x12\x17\n\x0f\x64rone_connected\x18\x11 \x01(\x08\x32\xdd\x01\n\x0e\x43ontrollerRing\x12\x33\n\x07LogRing\x12\x12.baton.v1.LogFrame\x1a\x10.baton.v1.LogAck(\x01\x30\x01\x12M\n\tGetStatus\x12$.baton.v1.GetControllerStatusRequest\x1a\x1a.baton.v1.ControllerStatus\x12G\n\x0bMissionDone\x12\x1c.baton.v1.MissionDoneRequest\x1a\x1a.baton.v1.MissionDoneReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'baton.v1.ring_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_LOGENTRY']._serialized_start=34
-  _globals['_LOGENTRY']._serialized_end=176
-  _globals['_LOGMESSAGE']._serialized_start=179
-  _globals['_LOGMESSAGE']._serialized_end=313
-  _globals['_LOGFRAME']._serialized_start=315
-  _globals['_LOGFRAME']._serialized_end=408
-  _globals['_LOGACK']._serialized_start=410
-  _globals['_LOGACK']._serialized_end=469
-  _globals['_GETCONTROLLERSTATUSREQUEST']._serialized_start=471
-  _globals['_GETCONTROLLERSTATUSREQUEST']._serialized_end=499
-  _globals['_PEERSTATUS']._serialized_start=501
-  _globals['_PEERSTATUS']._serialized_end=596
-  _globals['_CONTROLLERSTATUS']._serialized_start=599
-  _globals['_CONTROLLERSTATUS']._serialized_end=950
-  _globals['_CONTROLLERRING']._serialized_start=953
-  _globals['_CONTROLLERRING']._serialized_end=1101
+  _globals['_MISSIONDONEREQUEST']._serialized_start=33
+  _globals['_MISSIONDONEREQUEST']._serialized_end=84
+  _globals['_MISSIONDONEREPLY']._serialized_start=86
+  _globals['_MISSIONDONEREPLY']._serialized_end=136
+  _globals['_LOGENTRY']._serialized_start=139
+  _globals['_LOGENTRY']._serialized_end=281
+  _globals['_LOGMESSAGE']._serialized_start=284
+  _globals['_LOGMESSAGE']._serialized_end=418
+  _globals['_LOGFRAME']._serialized_start=420
+  _globals['_LOGFRAME']._serialized_end=513
+  _globals['_LOGACK']._serialized_start=515
+  _globals['_LOGACK']._serialized_end=574
+  _globals['_GETCONTROLLERSTATUSREQUEST']._serialized_start=576
+  _globals['_GETCONTROLLERSTATUSREQUEST']._serialized_end=604
+  _globals['_PEERSTATUS']._serialized_start=606
+  _globals['_PEERSTATUS']._serialized_end=701
+  _globals['_CONTROLLERSTATUS']._serialized_start=704
+  _globals['_CONTROLLERSTATUS']._serialized_end=1055
+  _globals['_CONTROLLERRING']._serialized_start=1058
+  _globals['_CONTROLLERRING']._serialized_end=1279
 # @@protoc_insertion_point(module_scope)

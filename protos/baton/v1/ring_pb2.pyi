@@ -27,6 +27,58 @@ else:
 DESCRIPTOR: _descriptor.FileDescriptor
 
 @_typing.final
+class MissionDoneRequest(_message.Message):
+    """The mission program says it has ended."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    FAILED_FIELD_NUMBER: _builtins.int
+    ERROR_FIELD_NUMBER: _builtins.int
+    failed: _builtins.bool
+    """True if the program ended with an error."""
+    error: _builtins.str
+    """The error, if any."""
+    def __init__(
+        self,
+        *,
+        failed: _builtins.bool = ...,
+        error: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["error", b"error", "failed", b"failed"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___MissionDoneRequest: _TypeAlias = MissionDoneRequest  # noqa: Y015
+
+@_typing.final
+class MissionDoneReply(_message.Message):
+    """What the controller did."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    FLUSHED_FIELD_NUMBER: _builtins.int
+    LOGNR_FIELD_NUMBER: _builtins.int
+    flushed: _builtins.bool
+    """True if the master flushed a log message because of this call."""
+    lognr: _builtins.int
+    """The controller's log number after the call."""
+    def __init__(
+        self,
+        *,
+        flushed: _builtins.bool = ...,
+        lognr: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["flushed", b"flushed", "lognr", b"lognr"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___MissionDoneReply: _TypeAlias = MissionDoneReply  # noqa: Y015
+
+@_typing.final
 class LogEntry(_message.Message):
     """One logged drone-API call: Algorithm 1's log entry."""
 

@@ -45,6 +45,11 @@ class ControllerRingStub:
                 request_serializer=baton_dot_v1_dot_ring__pb2.GetControllerStatusRequest.SerializeToString,
                 response_deserializer=baton_dot_v1_dot_ring__pb2.ControllerStatus.FromString,
                 _registered_method=True)
+        self.MissionDone = channel.unary_unary(
+                '/baton.v1.ControllerRing/MissionDone',
+                request_serializer=baton_dot_v1_dot_ring__pb2.MissionDoneRequest.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_ring__pb2.MissionDoneReply.FromString,
+                _registered_method=True)
 
 
 class ControllerRingServicer:
@@ -65,6 +70,15 @@ class ControllerRingServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def MissionDone(self, request, context):
+        """The local mission program has ended. On the master this flushes what the
+        log still holds (below the flush limit), so that every replica can replay
+        the mission to its end. Idempotent; the SDK calls it when a mission closes.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_ControllerRingServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -77,6 +91,11 @@ def add_ControllerRingServicer_to_server(servicer, server):
                     servicer.GetStatus,
                     request_deserializer=baton_dot_v1_dot_ring__pb2.GetControllerStatusRequest.FromString,
                     response_serializer=baton_dot_v1_dot_ring__pb2.ControllerStatus.SerializeToString,
+            ),
+            'MissionDone': grpc.unary_unary_rpc_method_handler(
+                    servicer.MissionDone,
+                    request_deserializer=baton_dot_v1_dot_ring__pb2.MissionDoneRequest.FromString,
+                    response_serializer=baton_dot_v1_dot_ring__pb2.MissionDoneReply.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -134,6 +153,33 @@ class ControllerRing:
             '/baton.v1.ControllerRing/GetStatus',
             baton_dot_v1_dot_ring__pb2.GetControllerStatusRequest.SerializeToString,
             baton_dot_v1_dot_ring__pb2.ControllerStatus.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def MissionDone(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/baton.v1.ControllerRing/MissionDone',
+            baton_dot_v1_dot_ring__pb2.MissionDoneRequest.SerializeToString,
+            baton_dot_v1_dot_ring__pb2.MissionDoneReply.FromString,
             options,
             channel_credentials,
             insecure,

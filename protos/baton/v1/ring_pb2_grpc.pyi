@@ -45,6 +45,11 @@ class ControllerRingStub:
     """The stream of log messages from a predecessor (or an old master)."""
     GetStatus: _grpc.UnaryUnaryMultiCallable[_ring_pb2.GetControllerStatusRequest, _ring_pb2.ControllerStatus]
     """The controller's state."""
+    MissionDone: _grpc.UnaryUnaryMultiCallable[_ring_pb2.MissionDoneRequest, _ring_pb2.MissionDoneReply]
+    """The local mission program has ended. On the master this flushes what the
+    log still holds (below the flush limit), so that every replica can replay
+    the mission to its end. Idempotent; the SDK calls it when a mission closes.
+    """
 
 @_typing.type_check_only
 class ControllerRingAsyncStub(ControllerRingStub):
@@ -55,6 +60,11 @@ class ControllerRingAsyncStub(ControllerRingStub):
     """The stream of log messages from a predecessor (or an old master)."""
     GetStatus: _aio.UnaryUnaryMultiCallable[_ring_pb2.GetControllerStatusRequest, _ring_pb2.ControllerStatus]  # type: ignore[assignment]
     """The controller's state."""
+    MissionDone: _aio.UnaryUnaryMultiCallable[_ring_pb2.MissionDoneRequest, _ring_pb2.MissionDoneReply]  # type: ignore[assignment]
+    """The local mission program has ended. On the master this flushes what the
+    log still holds (below the flush limit), so that every replica can replay
+    the mission to its end. Idempotent; the SDK calls it when a mission closes.
+    """
 
 class ControllerRingServicer(metaclass=_abc_1.ABCMeta):
     """The mission controller's ring service."""
@@ -74,5 +84,16 @@ class ControllerRingServicer(metaclass=_abc_1.ABCMeta):
         context: _ServicerContext,
     ) -> _typing.Union[_ring_pb2.ControllerStatus, _abc.Awaitable[_ring_pb2.ControllerStatus]]:
         """The controller's state."""
+
+    @_abc_1.abstractmethod
+    def MissionDone(
+        self,
+        request: _ring_pb2.MissionDoneRequest,
+        context: _ServicerContext,
+    ) -> _typing.Union[_ring_pb2.MissionDoneReply, _abc.Awaitable[_ring_pb2.MissionDoneReply]]:
+        """The local mission program has ended. On the master this flushes what the
+        log still holds (below the flush limit), so that every replica can replay
+        the mission to its end. Idempotent; the SDK calls it when a mission closes.
+        """
 
 def add_ControllerRingServicer_to_server(servicer: ControllerRingServicer, server: _typing.Union[_grpc.Server, _aio.Server]) -> None: ...
