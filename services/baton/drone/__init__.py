@@ -1,0 +1,1 @@
+"""The drone service: the master's drone-API calls, each executed once."""

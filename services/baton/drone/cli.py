@@ -1,0 +1,183 @@
+"""``baton drone``: the drone service on the drone's companion computer."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from baton.drone.camera import DEFAULT_RESOLUTION
+
+
+def _controller_ids(text: str) -> tuple[int, ...]:
+    try:
+        ids = tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated controller ids like '0,1,2', got {text!r}"
+        ) from None
+    if not ids or len(set(ids)) != len(ids) or min(ids) < 0:
+        raise argparse.ArgumentTypeError(
+            f"expected distinct non-negative controller ids like '0,1,2', got {text!r}"
+        )
+    return ids
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    from baton.drone.camera import parse_resolution
+
+    try:
+        return parse_resolution(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _address(text: str) -> str:
+    from baton.config import parse_address
+
+    try:
+        return parse_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Adds ``baton drone`` and its options."""
+    width, height = DEFAULT_RESOLUTION
+    parser = subparsers.add_parser(
+        "drone",
+        help="the drone service: executes the master controller's drone-API calls",
+        description="Serves baton.v1.Drone (Invoke, Connect, Handover, GetStatus) in front of "
+        "a MAVLink vehicle (MAVSDK) and a local camera image source. Flags override the "
+        "values of --config.",
+    )
+    parser.add_argument(
+        "--config",
+        metavar="FILE",
+        help="testbed YAML (baton.config): drone address, vehicle URL, controllers, "
+        "initial master, speed-up",
+    )
+    parser.add_argument(
+        "--address",
+        type=_address,
+        help="HOST:PORT to serve on; port 0 picks a free port (default: config, else "
+        "127.0.0.1:50051)",
+    )
+    parser.add_argument(
+        "--address-file",
+        metavar="PATH",
+        help="write the bound HOST:PORT to this file once serving (useful with port 0)",
+    )
+    parser.add_argument(
+        "--vehicle-url",
+        metavar="URL",
+        help="MAVSDK connection URL of the autopilot, e.g. udpout://127.0.0.1:14550 "
+        "(default: config, else udpin://127.0.0.1:14540)",
+    )
+    parser.add_argument(
+        "--controllers",
+        type=_controller_ids,
+        metavar="IDS",
+        help="comma-separated controller ids that may become master, e.g. 0,1,2 "
+        "(default: the config's controllers, else 0)",
+    )
+    parser.add_argument(
+        "--initial-master",
+        type=int,
+        metavar="ID",
+        help="the first master (default: config's initial_master, else the first controller)",
+    )
+    parser.add_argument(
+        "--handover-file",
+        metavar="FILE",
+        help="handover script: lines 'REQNR ID' = hand over to controller ID right after "
+        "serving request REQNR ('#' comments and blank lines allowed)",
+    )
+    parser.add_argument(
+        "--image",
+        metavar="FILE",
+        help="serve this image file for every picture instead of a generated PPM",
+    )
+    parser.add_argument(
+        "--resolution",
+        type=_resolution,
+        default=DEFAULT_RESOLUTION,
+        metavar="WxH",
+        help=f"initial resolution of generated pictures, 16..8192 per side "
+        f"(default: {width}x{height}, about 1 MB)",
+    )
+    parser.add_argument(
+        "--speedup",
+        type=float,
+        metavar="X",
+        help="simulation speed-up of the vehicle, for the logs and status "
+        "(default: config, else 1)",
+    )
+    parser.add_argument(
+        "--cache-window",
+        type=int,
+        default=None,
+        metavar="K",
+        help="replies kept for duplicate requests (default: 16; see baton/drone/dedupe.py)",
+    )
+    parser.set_defaults(run=run)
+
+
+def settings_from_args(args: argparse.Namespace) -> object:
+    """DroneSettings from flags over the optional configuration file."""
+    from baton.config import load_config
+    from baton.drone.dedupe import DEFAULT_WINDOW
+    from baton.drone.master import load_handover_script
+    from baton.drone.service import DroneSettings
+
+    address, vehicle_url, speedup = "127.0.0.1:50051", "udpin://127.0.0.1:14540", 1.0
+    controllers: tuple[int, ...] = (0,)
+    initial_master: int | None = None
+    if args.config:
+        config = load_config(args.config)
+        address, vehicle_url = config.drone.address, config.drone.vehicle_url
+        controllers = tuple(config.ring_order)
+        initial_master, speedup = config.master_id, config.speedup
+    controllers = args.controllers or controllers
+    if args.initial_master is not None:
+        initial_master = args.initial_master
+    if initial_master is not None and initial_master not in controllers:
+        raise ValueError(
+            f"--initial-master {initial_master} is not one of the controllers {list(controllers)}"
+        )
+    if args.speedup is not None and not 0 < args.speedup <= 1000:
+        raise ValueError(f"--speedup must be in (0, 1000], got {args.speedup}")
+    if args.cache_window is not None and args.cache_window < 1:
+        raise ValueError(f"--cache-window must be >= 1, got {args.cache_window}")
+    script = load_handover_script(args.handover_file, controllers) if args.handover_file else {}
+    return DroneSettings(
+        address=args.address or address,
+        vehicle_url=args.vehicle_url or vehicle_url,
+        controllers=controllers,
+        initial_master=initial_master,
+        handover_script=script,
+        image_file=args.image,
+        resolution=args.resolution,
+        speedup=args.speedup if args.speedup is not None else speedup,
+        cache_window=args.cache_window or DEFAULT_WINDOW,
+        address_file=args.address_file,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Runs the drone service until SIGINT/SIGTERM."""
+    import asyncio
+
+    from baton.config import ConfigError
+    from baton.drone.master import HandoverScriptError
+    from baton.drone.mobility import MavsdkMobility
+    from baton.drone.service import DroneSettings, serve
+    from baton.rpc.server import run_until_signalled
+
+    try:
+        settings = settings_from_args(args)
+    except (ConfigError, HandoverScriptError, ValueError) as exc:
+        print(f"baton drone: {exc}", file=sys.stderr)
+        return 2
+    assert isinstance(settings, DroneSettings)
+    vehicle = MavsdkMobility(settings.vehicle_url)
+    return asyncio.run(run_until_signalled(lambda stop: serve(settings, vehicle, stop)))

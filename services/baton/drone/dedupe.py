@@ -1,0 +1,97 @@
+"""The drone's reply cache: duplicate request numbers are answered, not re-executed.
+
+How long a reply is kept, and why that is enough: only the master may
+invoke, and the master's request numbers are strictly sequential (a new
+request must be ``last_reqnr + 1``). So the only duplicates the drone can
+ever see are
+
+- a retry of the last request by the master (its reply was lost), and
+- the request the old master had in flight at a handover (footnote 2 of the
+  paper): the drone executed request k and switched masters before the old
+  master had the reply; the new master replays the log it received, reaches
+  k without a logged reply, and re-sends k.
+
+Both are within the last one or two request numbers served. The cache keeps
+the last ``window`` replies (16 by default) — several times the worst case,
+so that a new master that re-sends a short tail of requests still gets
+cached answers — and evicts the oldest beyond that, which bounds memory to
+``window`` replies (16 pictures of ~1 MB at the default resolution).
+
+A request that failed after it was accepted (unknown method, bad payload,
+vehicle not connected, autopilot refusal) is served too: its status is
+cached like a reply, so a duplicate sees the same failure and every
+replica's mission program sees it (ring.proto logs failed calls). Only the
+protocol's own rejections (not the master, wrong reqnr) leave the request
+number unused.
+
+A duplicate must be the same request: the cache keeps a digest of the method
+and the serialized request, and a re-sent reqnr with another digest is a
+mission program that diverged, which the drone refuses rather than answer
+with a reply to a different question.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+from dataclasses import dataclass
+
+from baton.rpc.errors import StatusError
+
+DEFAULT_WINDOW = 16
+
+
+def request_digest(method: str, payload: bytes) -> bytes:
+    """SHA-256 of the method name and the serialized request (ring.proto's request_digest)."""
+    return hashlib.sha256(method.encode() + b"\0" + payload).digest()
+
+
+@dataclass(frozen=True)
+class CachedReply:
+    """One served request, as the cache remembers it."""
+
+    reqnr: int
+    method: str
+    digest: bytes
+    reply: bytes
+    # The failure, if the request failed; None for a reply.
+    error: StatusError | None = None
+
+
+class ReplyCache:
+    """The last ``window`` replies by request number."""
+
+    def __init__(self, window: int = DEFAULT_WINDOW) -> None:
+        if window < 1:
+            raise ValueError(f"the reply cache window must be >= 1, got {window}")
+        self.window = window
+        self._entries: OrderedDict[int, CachedReply] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, reqnr: object) -> bool:
+        return reqnr in self._entries
+
+    def get(self, reqnr: int) -> CachedReply | None:
+        """The cached reply of ``reqnr``, or None if it was never served or was evicted."""
+        return self._entries.get(reqnr)
+
+    def store(
+        self,
+        reqnr: int,
+        method: str,
+        digest: bytes,
+        reply: bytes,
+        error: StatusError | None = None,
+    ) -> None:
+        """Remembers a served request (reply or failure); evicts the oldest beyond the window."""
+        self._entries[reqnr] = CachedReply(reqnr, method, digest, reply, error)
+        self._entries.move_to_end(reqnr)
+        while len(self._entries) > self.window:
+            self._entries.popitem(last=False)
+
+    @property
+    def reqnrs(self) -> list[int]:
+        """The cached request numbers, oldest first."""
+        return list(self._entries)

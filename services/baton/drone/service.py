@@ -1,0 +1,415 @@
+"""The Drone gRPC service: Invoke for the master, Connect, Handover, GetStatus.
+
+The drone executes one request at a time, in reqnr order, for the master
+only (Section 4 of the paper). ``_lock`` is that single line of execution: a
+request is checked and executed under it, and a handover takes it too, so a
+switch always falls between two requests and every request is answered by
+the master that was master when it was executed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import sys
+import time
+from collections.abc import AsyncIterator, Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import grpc
+from baton.drone.camera import DEFAULT_RESOLUTION, Camera
+from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, ReplyCache, request_digest
+from baton.drone.dispatch import Dispatcher
+from baton.drone.master import MasterSelection, ScriptedHandover
+from baton.drone.mobility_api import MobilityBackend
+from baton.logs import get_logger
+from baton.rpc.errors import StatusError, abort_with
+from baton.rpc.server import BatonServer
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2, drone_pb2_grpc
+
+# A status read must not hang on a vehicle that stopped answering.
+_STATUS_READ_TIMEOUT_S = 1.0
+
+
+async def latest_position(vehicle: MobilityBackend) -> api.Position:
+    """The vehicle's position, or an all-zero Position if it is not known now."""
+    if not vehicle.connected:
+        return api.Position()
+    try:
+        reply = await asyncio.wait_for(
+            vehicle.GetPosition(api.GetPositionRequest()), _STATUS_READ_TIMEOUT_S
+        )
+    except (StatusError, TimeoutError):
+        return api.Position()
+    return reply.position
+
+
+class DroneService(drone_pb2_grpc.DroneServicer):
+    """The drone middleware of drone.proto, over a vehicle backend and a camera."""
+
+    def __init__(
+        self,
+        vehicle: MobilityBackend,
+        camera: Camera,
+        masters: MasterSelection,
+        script: Mapping[int, ScriptedHandover] | None = None,
+        cache_window: int = DEFAULT_WINDOW,
+    ) -> None:
+        self.vehicle = vehicle
+        self.camera = camera
+        self.masters = masters
+        self.script = dict(script or {})
+        self.cache = ReplyCache(cache_window)
+        self.dispatcher = Dispatcher({"Mobility": vehicle, "Camera": camera})
+        self.last_reqnr = 0
+        self.executed = 0
+        self.duplicates = 0
+        self.rejected = 0
+        self.audit: list[drone_pb2.AuditEntry] = []
+        self._lock = asyncio.Lock()
+        self.log = get_logger("drone").bind(
+            context=lambda: {"master": self.masters.master, "last_reqnr": self.last_reqnr}
+        )
+
+    async def Invoke(
+        self, request: drone_pb2.InvokeRequest, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.InvokeReply:
+        """Executes one drone-API call for the master, or answers it from the reply cache."""
+        received_at = time.time()
+        try:
+            return await self.invoke(request, received_at)
+        except StatusError as err:
+            self.rejected += 1
+            self.log.warning(
+                "invoke rejected",
+                controller=request.controller_id,
+                reqnr=request.reqnr,
+                method=request.method,
+                code=err.code.name,
+                reason=err.message,
+            )
+            await abort_with(context, err)
+
+    async def invoke(
+        self, request: drone_pb2.InvokeRequest, received_at: float
+    ) -> drone_pb2.InvokeReply:
+        """Invoke without gRPC: the reply, or StatusError saying why not.
+
+        Two kinds of failure: the protocol's rejections (not the master,
+        wrong reqnr, a duplicate that differs) leave the reqnr unused and
+        carry ``baton-master`` / ``baton-after-reqnr`` metadata; a request
+        that fails after its reqnr was accepted (bad method or payload,
+        vehicle down, autopilot refusal) is served with that failure, which
+        is cached and given again to a duplicate (see dedupe.py).
+        """
+        cid, reqnr, method = request.controller_id, request.reqnr, request.method
+        async with self._lock:
+            if cid != self.masters.master:
+                raise self.masters.not_master_error(cid, self.last_reqnr, f"Invoke reqnr {reqnr}")
+            self.masters.note_request(cid, received_at)
+            digest = request_digest(method, request.payload)
+            cached = self.cache.get(reqnr)
+            if cached is not None:
+                return self._answer_duplicate(request, digest, cached)
+            if reqnr != self.last_reqnr + 1:
+                raise self._bad_reqnr(reqnr)
+            try:
+                reply = await self._execute(request)
+            except StatusError as err:
+                self._served(request, digest, b"", received_at, err)
+                raise
+            self._served(request, digest, reply, received_at)
+            return drone_pb2.InvokeReply(reqnr=reqnr, payload=reply)
+
+    def _answer_duplicate(
+        self, request: drone_pb2.InvokeRequest, digest: bytes, cached: CachedReply
+    ) -> drone_pb2.InvokeReply:
+        if cached.digest != digest:
+            raise StatusError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"reqnr {request.reqnr} was served as {cached.method} (request digest "
+                f"{cached.digest.hex()[:16]}) but is re-sent as {request.method} (digest "
+                f"{digest.hex()[:16]}): the mission program diverged",
+                metadata=self._after_metadata(),
+            )
+        self.duplicates += 1
+        self.log.info(
+            "duplicate answered from cache",
+            controller=request.controller_id,
+            reqnr=request.reqnr,
+            method=request.method,
+            failed=cached.error is not None,
+        )
+        if cached.error is not None:
+            raise StatusError(
+                cached.error.code,
+                cached.error.message,
+                metadata=(*cached.error.metadata, ("baton-duplicate", "true")),
+            )
+        return drone_pb2.InvokeReply(reqnr=request.reqnr, payload=cached.reply, duplicate=True)
+
+    def _after_metadata(self) -> tuple[tuple[str, str], ...]:
+        return (
+            ("baton-master", str(self.masters.master)),
+            ("baton-after-reqnr", str(self.last_reqnr)),
+        )
+
+    def _bad_reqnr(self, reqnr: int) -> StatusError:
+        # FAILED_PRECONDITION, not OUT_OF_RANGE: which numbers are acceptable
+        # depends on the drone's state (the last reqnr served, what is still
+        # cached), and the caller fixes it by resynchronising from the
+        # metadata, not by changing a value that is wrong in itself. reqnr 0
+        # can never be right, so it is INVALID_ARGUMENT.
+        if reqnr == 0:
+            return StatusError(
+                grpc.StatusCode.INVALID_ARGUMENT, "reqnr 0 is not a request number; they start at 1"
+            )
+        oldest = self.cache.reqnrs[0] if len(self.cache) else None
+        cached = f"; replies cached for reqnr {oldest}..{self.last_reqnr}" if oldest else ""
+        return StatusError(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            f"expected reqnr {self.last_reqnr + 1} (or a cached duplicate), got {reqnr}{cached}",
+            metadata=self._after_metadata(),
+        )
+
+    async def _execute(self, request: drone_pb2.InvokeRequest) -> bytes:
+        route = self.dispatcher.route(request.method)
+        message = route.parse(request.payload)
+        if route.service == "Mobility" and not self.vehicle.connected:
+            raise StatusError(
+                grpc.StatusCode.UNAVAILABLE,
+                f"{request.method}: the vehicle at {self.vehicle.url} is not connected",
+            )
+        handler = self.dispatcher.handler(route)
+        try:
+            reply = await handler(message)
+        except StatusError:
+            raise
+        except Exception as exc:
+            self.log.error("handler failed", method=request.method, exc_info=True)
+            raise StatusError(
+                grpc.StatusCode.INTERNAL, f"{request.method} failed on the drone: {exc!r}"
+            ) from exc
+        payload = reply.SerializeToString()
+        log = self.log.debug if route.is_read else self.log.info
+        log(
+            "executed",
+            controller=request.controller_id,
+            reqnr=request.reqnr,
+            method=request.method,
+            reply_bytes=len(payload),
+        )
+        return payload
+
+    def _served(
+        self,
+        request: drone_pb2.InvokeRequest,
+        digest: bytes,
+        reply: bytes,
+        received_at: float,
+        error: StatusError | None = None,
+    ) -> None:
+        """Books a served request, then applies the script's handover after it."""
+        reqnr = request.reqnr
+        self.cache.store(reqnr, request.method, digest, reply, error)
+        self.last_reqnr = reqnr
+        # ``executed`` counts replies; a failed request counts as rejected
+        # (in Invoke) but is audited, so the audit's reqnrs have no gaps.
+        if error is None:
+            self.executed += 1
+        self.audit.append(
+            drone_pb2.AuditEntry(
+                reqnr=reqnr,
+                method=request.method,
+                controller_id=request.controller_id,
+                received_at=received_at,
+                reply_bytes=len(reply),
+            )
+        )
+        scripted = self.script.get(reqnr)
+        if scripted is None:
+            return
+        if scripted.new_master == self.masters.master:
+            self.log.warning(
+                "scripted handover skipped: already the master",
+                new_master=scripted.new_master,
+                after_reqnr=reqnr,
+                script_line=scripted.line,
+            )
+            return
+        self.masters.switch(scripted.new_master, reqnr, "script")
+
+    async def Connect(
+        self, request: drone_pb2.ConnectRequest, context: grpc.aio.ServicerContext
+    ) -> AsyncIterator[drone_pb2.DroneEvent]:
+        """The master's event stream: Connected, then a HandoverNotice at the switch."""
+        cid = request.controller_id
+        try:
+            stream = self.masters.attach(cid, self.last_reqnr)
+        except StatusError as err:
+            self.log.warning("connect rejected", controller=cid, reason=err.message)
+            await abort_with(context, err)
+        self.log.info("master connected", controller=cid)
+        try:
+            if cid == self.masters.master:
+                yield drone_pb2.DroneEvent(
+                    connected=drone_pb2.Connected(master=cid, last_reqnr=self.last_reqnr)
+                )
+            while True:
+                notice = self.masters.pending_notice(cid)
+                if notice is not None:
+                    yield drone_pb2.DroneEvent(handover=notice)
+                    self.masters.delivered(cid, notice)
+                    self.log.info(
+                        "handover notice delivered",
+                        controller=cid,
+                        new_master=notice.new_master,
+                        after_reqnr=notice.after_reqnr,
+                    )
+                    return
+                if stream.superseded:
+                    return
+                await stream.wake.wait()
+                stream.wake.clear()
+        finally:
+            self.masters.detach(stream)
+            self.log.info("connect stream ended", controller=cid)
+
+    async def Handover(
+        self, request: drone_pb2.HandoverRequest, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.HandoverReply:
+        """Switches the master after the request being served, if any.
+
+        INVALID_ARGUMENT for an unknown id; FAILED_PRECONDITION if the id
+        already is the master (not a silent no-op: a caller asking for a
+        switch should learn that none happened).
+        """
+        try:
+            self.masters.check_known(request.new_master)
+            async with self._lock:
+                record = self.masters.switch(request.new_master, self.last_reqnr, "rpc")
+        except StatusError as err:
+            self.log.warning("handover rejected", new_master=request.new_master, reason=err.message)
+            await abort_with(context, err)
+        return drone_pb2.HandoverReply(
+            old_master=record.old_master,
+            new_master=record.new_master,
+            after_reqnr=record.after_reqnr,
+        )
+
+    async def GetStatus(
+        self, request: drone_pb2.GetDroneStatusRequest, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.DroneStatus:
+        """The drone's state, counters, handovers and (if asked) the command audit."""
+        return await self.status(request.include_audit)
+
+    async def status(self, include_audit: bool = False) -> drone_pb2.DroneStatus:
+        """GetStatus without gRPC."""
+        status = drone_pb2.DroneStatus(
+            master=self.masters.master,
+            last_reqnr=self.last_reqnr,
+            executed=self.executed,
+            duplicates=self.duplicates,
+            rejected=self.rejected,
+            vehicle_connected=self.vehicle.connected,
+            vehicle_url=self.vehicle.url,
+            position=await latest_position(self.vehicle),
+            handovers=self.masters.handovers,
+            master_connected=self.masters.master_connected,
+            controllers=self.masters.controllers,
+        )
+        if self.vehicle.connected:
+            try:
+                status.flight_state.CopyFrom(
+                    await asyncio.wait_for(
+                        self.vehicle.GetFlightState(api.GetFlightStateRequest()),
+                        _STATUS_READ_TIMEOUT_S,
+                    )
+                )
+            except (StatusError, TimeoutError):
+                pass  # unknown now: left empty
+        if include_audit:
+            status.audit.extend(self.audit)
+        return status
+
+
+@dataclass(frozen=True)
+class DroneSettings:
+    """Everything ``baton drone`` needs, from flags or the testbed configuration."""
+
+    address: str = "127.0.0.1:50051"
+    vehicle_url: str = "udpin://127.0.0.1:14540"
+    controllers: tuple[int, ...] = (0,)
+    initial_master: int | None = None
+    handover_script: Mapping[int, ScriptedHandover] = field(default_factory=dict)
+    image_file: str | None = None
+    resolution: tuple[int, int] = DEFAULT_RESOLUTION
+    speedup: float = 1.0
+    cache_window: int = DEFAULT_WINDOW
+    address_file: str | None = None
+
+    @property
+    def master(self) -> int:
+        """The initial master: given, else the first controller."""
+        return self.initial_master if self.initial_master is not None else self.controllers[0]
+
+
+def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneService:
+    """The Drone servicer for ``settings`` over ``vehicle``."""
+
+    async def position() -> api.Position:
+        return await latest_position(vehicle)
+
+    camera = Camera(position, settings.image_file, settings.resolution)
+    masters = MasterSelection(settings.controllers, settings.master)
+    return DroneService(vehicle, camera, masters, settings.handover_script, settings.cache_window)
+
+
+def write_address_file(path: str, address: str) -> None:
+    """Writes ``address`` so that a reader never sees a partial file."""
+    target = Path(path)
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+    tmp.write_text(address + "\n")
+    tmp.replace(target)
+
+
+async def serve(
+    settings: DroneSettings,
+    vehicle: MobilityBackend,
+    stop: asyncio.Event,
+    on_listening: Callable[[str], None] | None = None,
+) -> int:
+    """Runs the drone service until ``stop`` is set."""
+    service = build_service(settings, vehicle)
+    server = BatonServer(
+        settings.address, [drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name]
+    )
+    drone_pb2_grpc.add_DroneServicer_to_server(service, server.server)
+    await vehicle.start()
+    await server.start()
+    log = get_logger("drone")
+    log.info(
+        "listening",
+        address=server.address,
+        vehicle_url=vehicle.url,
+        controllers=list(settings.controllers),
+        master=settings.master,
+        scripted_handovers=len(settings.handover_script),
+        speedup=settings.speedup,
+    )
+    print(json.dumps({"event": "listening", "address": server.address}), flush=True)
+    if settings.address_file:
+        write_address_file(settings.address_file, server.address)
+    if on_listening is not None:
+        on_listening(server.address)
+    try:
+        await stop.wait()
+    finally:
+        await server.stop()
+        await vehicle.close()
+        log.info("stopped", executed=service.executed, last_reqnr=service.last_reqnr)
+    sys.stdout.flush()
+    return 0

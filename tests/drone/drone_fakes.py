@@ -1,0 +1,97 @@
+"""An in-process stand-in for the MAVSDK backend: enough state to see commands land."""
+
+from __future__ import annotations
+
+import grpc
+from baton.rpc.errors import StatusError
+from baton.v1 import drone_api_pb2 as api
+
+HOME = api.Position(
+    latitude_deg=47.397742, longitude_deg=8.545594, absolute_altitude_m=488.0, relative_altitude_m=0
+)
+
+
+class FakeMobility:
+    """Implements MobilityBackend; moves instantly and counts every call."""
+
+    def __init__(self, url: str = "fake://vehicle", connected: bool = True) -> None:
+        self.url = url
+        self.is_connected = connected
+        self.calls: list[str] = []
+        self.armed = False
+        self.position = api.Position()
+        self.position.CopyFrom(HOME)
+
+    @property
+    def connected(self) -> bool:
+        return self.is_connected
+
+    async def start(self) -> None:
+        pass
+
+    async def close(self) -> None:
+        pass
+
+    def _call(self, name: str) -> None:
+        self.calls.append(name)
+
+    async def Arm(self, request: api.ArmRequest) -> api.ArmReply:
+        self._call("Arm")
+        self.armed = True
+        return api.ArmReply()
+
+    async def Disarm(self, request: api.DisarmRequest) -> api.DisarmReply:
+        self._call("Disarm")
+        self.armed = False
+        return api.DisarmReply()
+
+    async def Takeoff(self, request: api.TakeoffRequest) -> api.TakeoffReply:
+        self._call("Takeoff")
+        if not self.armed:
+            raise StatusError(grpc.StatusCode.ABORTED, "Takeoff: command denied (not armed)")
+        self.position.relative_altitude_m = request.altitude_m
+        return api.TakeoffReply()
+
+    async def Goto(self, request: api.GotoRequest) -> api.GotoReply:
+        self._call("Goto")
+        self.position.latitude_deg = request.latitude_deg
+        self.position.longitude_deg = request.longitude_deg
+        self.position.relative_altitude_m = request.relative_altitude_m
+        return api.GotoReply()
+
+    async def SetSpeed(self, request: api.SetSpeedRequest) -> api.SetSpeedReply:
+        self._call("SetSpeed")
+        return api.SetSpeedReply()
+
+    async def Hold(self, request: api.HoldRequest) -> api.HoldReply:
+        self._call("Hold")
+        return api.HoldReply()
+
+    async def Land(self, request: api.LandRequest) -> api.LandReply:
+        self._call("Land")
+        self.position.relative_altitude_m = 0
+        return api.LandReply()
+
+    async def ReturnToLaunch(self, request: api.ReturnToLaunchRequest) -> api.ReturnToLaunchReply:
+        self._call("ReturnToLaunch")
+        self.position.CopyFrom(HOME)
+        return api.ReturnToLaunchReply()
+
+    async def GetPosition(self, request: api.GetPositionRequest) -> api.GetPositionReply:
+        self._call("GetPosition")
+        return api.GetPositionReply(position=self.position)
+
+    async def GetHome(self, request: api.GetHomeRequest) -> api.GetHomeReply:
+        self._call("GetHome")
+        return api.GetHomeReply(home=HOME)
+
+    async def GetFlightState(self, request: api.GetFlightStateRequest) -> api.GetFlightStateReply:
+        self._call("GetFlightState")
+        return api.GetFlightStateReply(
+            armed=self.armed,
+            in_air=self.position.relative_altitude_m > 0,
+            flight_mode="HOLD",
+            battery_percent=100.0,
+            ready=True,
+            landed_state="IN_AIR" if self.position.relative_altitude_m > 0 else "ON_GROUND",
+        )

@@ -1,0 +1,151 @@
+"""Unit tests of the drone's pieces: reply cache, handover script, dispatch, camera."""
+
+from __future__ import annotations
+
+import grpc
+import pytest
+from baton.drone.camera import Camera, image_size, parse_resolution
+from baton.drone.dedupe import ReplyCache, request_digest
+from baton.drone.dispatch import Dispatcher, drone_api_routes
+from baton.drone.master import HandoverScriptError, load_handover_script, parse_handover_script
+from baton.rpc.errors import StatusError
+from baton.v1 import drone_api_pb2 as api
+from drone_fakes import FakeMobility
+
+ALL_METHODS = sorted(drone_api_routes())
+
+
+def test_reply_cache_keeps_the_last_window_only() -> None:
+    cache = ReplyCache(window=3)
+    for reqnr in range(1, 11):
+        cache.store(reqnr, "/m", request_digest("/m", b"%d" % reqnr), b"r%d" % reqnr)
+    assert cache.reqnrs == [8, 9, 10]
+    assert cache.get(7) is None
+    hit = cache.get(9)
+    assert hit is not None and hit.reply == b"r9" and hit.digest == request_digest("/m", b"9")
+
+
+def test_reply_cache_rejects_an_empty_window() -> None:
+    with pytest.raises(ValueError, match="window"):
+        ReplyCache(window=0)
+
+
+def test_request_digest_separates_method_and_payload() -> None:
+    assert request_digest("/a", b"bc") != request_digest("/ab", b"c")
+
+
+def test_handover_script_parses_comments_and_blank_lines() -> None:
+    script = parse_handover_script("# header\n\n5 1  # to one\n 9 2\n", "h.txt", [0, 1, 2])
+    assert {k: (v.new_master, v.line) for k, v in script.items()} == {5: (1, 3), 9: (2, 4)}
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("5 1\nfive 1\n", r"h\.txt:2: expected 'REQNR CONTROLLER_ID'"),
+        ("5\n", r"h\.txt:1: expected"),
+        ("5 1 2\n", r"h\.txt:1: expected"),
+        ("\n\n5 7\n", r"h\.txt:3: unknown controller id 7; known ids: \[0, 1, 2\]"),
+        ("0 1\n", r"h\.txt:1: request numbers start at 1"),
+        ("5 1\n5 2\n", r"h\.txt:2: reqnr 5 already has a handover \(line 1\)"),
+        ("-3 1\n", r"h\.txt:1: expected"),
+    ],
+)
+def test_handover_script_errors_name_file_and_line(text: str, message: str) -> None:
+    with pytest.raises(HandoverScriptError, match=message):
+        parse_handover_script(text, "h.txt", [0, 1, 2])
+
+
+def test_handover_script_missing_file(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(HandoverScriptError, match="cannot read"):
+        load_handover_script(tmp_path / "nope", [0])
+
+
+def test_routes_cover_every_drone_api_method() -> None:
+    services = {name.split("/")[1] for name in ALL_METHODS}
+    assert services == {"baton.v1.Mobility", "baton.v1.Camera", "baton.v1.Clock"}
+    assert "/baton.v1.Mobility/GetPosition" in ALL_METHODS
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+async def test_dispatch_of_every_method(method: str) -> None:
+    camera = Camera(_zero_position, resolution=(16, 16))
+    dispatcher = Dispatcher({"Mobility": FakeMobility(), "Camera": camera})
+    route = dispatcher.routes[method]
+    if route.service == "Clock":
+        with pytest.raises(StatusError) as info:
+            dispatcher.route(method)
+        assert info.value.code == grpc.StatusCode.UNIMPLEMENTED
+        assert "Clock is answered by the controller" in info.value.message
+        return
+    assert dispatcher.route(method) is route
+    request = route.request_type()
+    if method.endswith("/SetResolution"):
+        request = api.SetResolutionRequest(width=32, height=16)
+    elif method.endswith("/Takeoff"):
+        await dispatcher.handler(dispatcher.route("/baton.v1.Mobility/Arm"))(api.ArmRequest())
+    parsed = route.parse(request.SerializeToString())
+    reply = await dispatcher.handler(route)(parsed)
+    assert isinstance(reply, route.reply_type)
+
+
+def test_dispatch_unknown_method_and_bad_payload() -> None:
+    dispatcher = Dispatcher({})
+    with pytest.raises(StatusError) as info:
+        dispatcher.route("/baton.v1.Mobility/Fly")
+    assert info.value.code == grpc.StatusCode.UNIMPLEMENTED
+    route = dispatcher.route("/baton.v1.Mobility/Takeoff")
+    with pytest.raises(StatusError) as info:
+        route.parse(b"\xff\xff\xff")
+    assert info.value.code == grpc.StatusCode.INVALID_ARGUMENT
+
+
+async def _zero_position() -> api.Position:
+    return api.Position(latitude_deg=1.5)
+
+
+async def test_generated_picture_is_about_one_megabyte_and_varies() -> None:
+    camera = Camera(_zero_position)
+    first = await camera.TakePicture(api.TakePictureRequest())
+    second = await camera.TakePicture(api.TakePictureRequest())
+    header = b"P6\n640 546\n255\n"
+    assert first.image.startswith(header)
+    assert len(first.image) == len(header) + 640 * 546 * 3  # 1,048,320 pixel bytes
+    assert (first.width, first.height, first.format) == (640, 546, "ppm")
+    assert (first.sequence, second.sequence) == (1, 2)
+    assert first.image != second.image
+    assert first.position.latitude_deg == 1.5
+
+
+@pytest.mark.parametrize(("width", "height"), [(16, 16), (17, 31), (1920, 1080)])
+async def test_set_resolution_resizes_generated_pictures(width: int, height: int) -> None:
+    camera = Camera(_zero_position)
+    reply = await camera.SetResolution(api.SetResolutionRequest(width=width, height=height))
+    assert (reply.width, reply.height) == (width, height)
+    picture = await camera.TakePicture(api.TakePictureRequest())
+    assert image_size(picture.image) == (width, height)
+    assert len(picture.image) == len(b"P6\n%d %d\n255\n" % (width, height)) + width * height * 3
+
+
+@pytest.mark.parametrize(("width", "height"), [(15, 100), (100, 8193), (0, 0)])
+async def test_set_resolution_out_of_range(width: int, height: int) -> None:
+    camera = Camera(_zero_position)
+    with pytest.raises(StatusError) as info:
+        await camera.SetResolution(api.SetResolutionRequest(width=width, height=height))
+    assert info.value.code == grpc.StatusCode.INVALID_ARGUMENT
+
+
+async def test_static_image_file(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "shot.ppm"
+    path.write_bytes(b"P6\n20 10\n255\n" + bytes(600))
+    camera = Camera(_zero_position, image_file=path)
+    picture = await camera.TakePicture(api.TakePictureRequest())
+    assert picture.image == path.read_bytes()
+    assert (picture.format, picture.width, picture.height) == ("ppm", 20, 10)
+
+
+def test_parse_resolution() -> None:
+    assert parse_resolution("640x546") == (640, 546)
+    for bad in ("640", "axb", "8x8", "9000x100"):
+        with pytest.raises(ValueError):
+            parse_resolution(bad)
