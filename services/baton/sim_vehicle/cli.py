@@ -1,0 +1,153 @@
+"""``baton sim-vehicle``: run one or more simulated multicopters."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any
+
+DEFAULT_HOME = "47.397742,8.545594,488.0"  # PX4 SITL's default home (Zurich)
+
+
+def parse_home(text: str) -> tuple[float, float, float]:
+    """``LAT,LON,ALT`` (degrees, degrees, metres AMSL) as a checked tuple."""
+    parts = text.split(",")
+    try:
+        lat, lon, alt = (float(part) for part in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected LAT,LON,ALT like {DEFAULT_HOME!r}, got {text!r}"
+        ) from None
+    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+        raise argparse.ArgumentTypeError(f"latitude/longitude out of range in {text!r}")
+    return lat, lon, alt
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
+def register(subparsers: Any) -> None:
+    """Adds the ``sim-vehicle`` subcommand."""
+    parser = subparsers.add_parser(
+        "sim-vehicle",
+        help="a simulated MAVLink multicopter (PX4 dialect) for MAVSDK",
+        description=(
+            "Runs a simulated multicopter that MAVSDK connects to like PX4 SITL. "
+            "Prints one JSON line {event: listening, url, port} per vehicle on stdout."
+        ),
+    )
+    parser.add_argument(
+        "--host", default="127.0.0.1", help="address to bind the UDP port on (default: 127.0.0.1)"
+    )
+    parser.add_argument(
+        "--port",
+        type=int,
+        default=0,
+        help="UDP port to listen on; 0 (the default) lets the kernel pick a free one",
+    )
+    parser.add_argument(
+        "--home",
+        type=parse_home,
+        default=parse_home(DEFAULT_HOME),
+        help=f"home position LAT,LON,ALT (degrees, degrees, metres AMSL; default {DEFAULT_HOME})",
+    )
+    parser.add_argument(
+        "--system-id",
+        type=int,
+        default=1,
+        help="MAVLink system id of the first vehicle (default 1)",
+    )
+    parser.add_argument(
+        "--count",
+        type=int,
+        default=1,
+        help="how many vehicles to run, each on its own port with the next system id (default 1)",
+    )
+    parser.add_argument(
+        "--speedup",
+        type=_positive,
+        default=1.0,
+        help="simulated time runs this many times faster than wall time, as SITL's speed factor "
+        "(default 1)",
+    )
+    parser.add_argument(
+        "--speed",
+        type=_positive,
+        default=5.0,
+        help="default horizontal cruise speed, m/s (default 5; DO_CHANGE_SPEED changes it)",
+    )
+    parser.add_argument(
+        "--climb-rate", type=_positive, default=3.0, help="climb and descent rate, m/s (default 3)"
+    )
+    parser.add_argument(
+        "--url-file",
+        type=Path,
+        help="write the MAVLink URL (one line per vehicle) to this file, atomically",
+    )
+    parser.set_defaults(run=run)
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Writes ``text`` to ``path`` so a reader sees all of it or nothing."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    with os.fdopen(fd, "w") as out:
+        out.write(text)
+    os.replace(tmp, path)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Runs the vehicles until SIGTERM or SIGINT; exit code 0."""
+    from baton import logs
+    from baton.sim_vehicle.kinematics import FlightParams, GeoPoint
+    from baton.sim_vehicle.server import SimVehicle
+
+    log = logs.get_logger("sim_vehicle")
+    if args.count < 1 or not 1 <= args.system_id <= 256 - args.count:
+        log.error("bad --count/--system-id", count=args.count, system_id=args.system_id)
+        return 2
+    params = FlightParams(
+        climb_rate_m_s=args.climb_rate,
+        descent_rate_m_s=args.climb_rate,
+        cruise_speed_m_s=args.speed,
+    )
+    stop = threading.Event()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: stop.set())
+    vehicles = []
+    try:
+        for index in range(args.count):
+            port = args.port + index if args.port else 0
+            vehicle = SimVehicle(
+                GeoPoint(*args.home),
+                system_id=args.system_id + index,
+                host=args.host,
+                port=port,
+                speedup=args.speedup,
+                params=params,
+            )
+            vehicle.start()
+            vehicles.append(vehicle)
+            event = {"event": "listening", "url": vehicle.url, "port": vehicle.port}
+            if args.count > 1:
+                event["system_id"] = vehicle.system_id
+            print(json.dumps(event), flush=True)
+        if args.url_file is not None:
+            write_atomically(args.url_file, "".join(f"{v.url}\n" for v in vehicles))
+        stop.wait()
+        log.info("signalled, stopping")
+    finally:
+        for vehicle in vehicles:
+            vehicle.stop()
+    sys.stdout.flush()
+    return 0

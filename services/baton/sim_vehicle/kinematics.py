@@ -1,0 +1,276 @@
+"""The sim vehicle's physics: a point that climbs, flies straight and lands.
+
+Pure and deterministic: no sockets, no clocks. The MAVLink server feeds it
+commands and calls ``step(dt)`` with simulated seconds (wall seconds times the
+speed-up), so every manoeuvre can be tested by stepping it by hand.
+
+Positions are kept in metres north / east / up of a fixed local origin (the
+initial home on the ground) and converted to WGS84 with an equirectangular
+approximation, which is exact enough for missions a few kilometres wide.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, replace
+
+EARTH_RADIUS_M = 6_371_000.0
+# How close (metres) counts as "at the target", so float noise cannot keep the
+# vehicle hovering a millimetre short forever.
+ARRIVAL_TOLERANCE_M = 0.01
+
+
+@dataclass(frozen=True)
+class GeoPoint:
+    """A WGS84 position with altitude above mean sea level."""
+
+    latitude_deg: float
+    longitude_deg: float
+    altitude_amsl_m: float
+
+
+@dataclass(frozen=True)
+class LocalPoint:
+    """Metres north, east and up of the local origin."""
+
+    north_m: float
+    east_m: float
+    up_m: float
+
+    def horizontal_distance_to(self, other: LocalPoint) -> float:
+        """Metres between the two points, ignoring altitude."""
+        return math.hypot(other.north_m - self.north_m, other.east_m - self.east_m)
+
+
+class Phase(enum.Enum):
+    """What the vehicle is doing; the server maps it to a PX4 flight mode."""
+
+    ON_GROUND = "on_ground"
+    TAKEOFF = "takeoff"
+    HOLD = "hold"
+    GOTO = "goto"
+    LAND = "land"
+    RETURN = "return"  # flying home before it lands
+
+
+class Refused(Exception):
+    """A command the vehicle cannot follow in its current state."""
+
+
+@dataclass(frozen=True)
+class FlightParams:
+    """Rates of the simulated airframe, in simulated time."""
+
+    climb_rate_m_s: float = 3.0
+    descent_rate_m_s: float = 3.0
+    cruise_speed_m_s: float = 5.0
+    takeoff_altitude_m: float = 2.5  # PX4's MIS_TAKEOFF_ALT default
+    # Percent of battery used per simulated second while armed.
+    battery_drain_pct_s: float = 0.02
+
+
+class LocalFrame:
+    """Converts between WGS84 and metres around a fixed origin."""
+
+    def __init__(self, origin: GeoPoint) -> None:
+        self.origin = origin
+        self._m_per_deg_lat = math.radians(1.0) * EARTH_RADIUS_M
+        self._m_per_deg_lon = self._m_per_deg_lat * math.cos(math.radians(origin.latitude_deg))
+
+    def to_local(self, point: GeoPoint) -> LocalPoint:
+        """The point in metres of this frame."""
+        return LocalPoint(
+            north_m=(point.latitude_deg - self.origin.latitude_deg) * self._m_per_deg_lat,
+            east_m=(point.longitude_deg - self.origin.longitude_deg) * self._m_per_deg_lon,
+            up_m=point.altitude_amsl_m - self.origin.altitude_amsl_m,
+        )
+
+    def to_geo(self, point: LocalPoint) -> GeoPoint:
+        """The point in WGS84."""
+        return GeoPoint(
+            latitude_deg=self.origin.latitude_deg + point.north_m / self._m_per_deg_lat,
+            longitude_deg=self.origin.longitude_deg + point.east_m / self._m_per_deg_lon,
+            altitude_amsl_m=self.origin.altitude_amsl_m + point.up_m,
+        )
+
+
+def _approach(current: float, target: float, max_step: float) -> float:
+    """``current`` moved towards ``target`` by at most ``max_step``."""
+    if abs(target - current) <= max_step:
+        return target
+    return current + math.copysign(max_step, target - current)
+
+
+class Kinematics:
+    """The vehicle's state machine and motion; one instance per vehicle.
+
+    Commands raise ``Refused`` with a reason when the state does not allow
+    them (arm in the air, goto on the ground, ...); ``step`` advances time.
+    """
+
+    def __init__(self, home: GeoPoint, params: FlightParams | None = None) -> None:
+        self.frame = LocalFrame(home)
+        self.params = params or FlightParams()
+        self.speed_m_s = self.params.cruise_speed_m_s
+        self.takeoff_altitude_m = self.params.takeoff_altitude_m
+        self.position = LocalPoint(0.0, 0.0, 0.0)
+        self.home = self.position
+        self.velocity = LocalPoint(0.0, 0.0, 0.0)  # m/s, per axis
+        self.heading_deg = 0.0
+        self.armed = False
+        self.phase = Phase.ON_GROUND
+        self.target: LocalPoint | None = None
+        self.battery_pct = 100.0
+        self.time_s = 0.0
+
+    # --- what the server reports -------------------------------------------------
+
+    @property
+    def in_air(self) -> bool:
+        """Off the ground (including while taking off and landing)."""
+        return self.phase is not Phase.ON_GROUND
+
+    @property
+    def relative_altitude_m(self) -> float:
+        """Height above home."""
+        return self.position.up_m - self.home.up_m
+
+    def geo_position(self) -> GeoPoint:
+        """Where the vehicle is, in WGS84."""
+        return self.frame.to_geo(self.position)
+
+    def geo_home(self) -> GeoPoint:
+        """Where home is, in WGS84."""
+        return self.frame.to_geo(self.home)
+
+    # --- commands ----------------------------------------------------------------
+
+    def arm(self) -> None:
+        """Arms on the ground; home becomes the current position, as on PX4."""
+        if self.armed:
+            return
+        if self.phase is not Phase.ON_GROUND:
+            raise Refused("cannot arm in the air")
+        self.armed = True
+        self.home = self.position
+
+    def disarm(self, force: bool = False) -> None:
+        """Disarms on the ground (anywhere if forced: the vehicle then drops)."""
+        if not self.armed:
+            return
+        if self.phase is not Phase.ON_GROUND and not force:
+            raise Refused("cannot disarm in the air")
+        self.armed = False
+        self._touch_down()
+
+    def takeoff(self, altitude_m: float | None = None) -> None:
+        """Climbs straight up to ``altitude_m`` above home (default: the takeoff altitude)."""
+        if not self.armed:
+            raise Refused("not armed")
+        altitude = self.takeoff_altitude_m if altitude_m is None else altitude_m
+        if not math.isfinite(altitude) or altitude <= 0:
+            raise Refused(f"bad takeoff altitude {altitude}")
+        self.target = replace(self.position, up_m=self.home.up_m + altitude)
+        self.phase = Phase.TAKEOFF
+
+    def goto(self, target: LocalPoint, speed_m_s: float | None = None) -> None:
+        """Flies straight to ``target`` (horizontally at the cruise speed) and holds."""
+        if self.phase is Phase.ON_GROUND:
+            raise Refused("on the ground: take off first")
+        if speed_m_s is not None and speed_m_s > 0:
+            self.set_speed(speed_m_s)
+        self.target = replace(target, up_m=max(target.up_m, self.home.up_m))
+        self.phase = Phase.GOTO
+
+    def goto_geo(self, target: GeoPoint, speed_m_s: float | None = None) -> None:
+        """``goto`` with a WGS84 target (altitude AMSL)."""
+        self.goto(self.frame.to_local(target), speed_m_s)
+
+    def hold(self) -> None:
+        """Stops where it is (in the air); nothing changes on the ground."""
+        if self.phase is not Phase.ON_GROUND:
+            self.phase = Phase.HOLD
+            self.target = None
+
+    def land(self) -> None:
+        """Descends where it is and disarms on the ground."""
+        if self.phase is Phase.ON_GROUND:
+            return
+        self.phase = Phase.LAND
+        self.target = None
+
+    def return_to_launch(self) -> None:
+        """Flies home at the current altitude, then lands."""
+        if self.phase is Phase.ON_GROUND:
+            raise Refused("on the ground")
+        self.target = replace(self.home, up_m=self.position.up_m)
+        self.phase = Phase.RETURN
+
+    def set_speed(self, speed_m_s: float) -> None:
+        """Sets the horizontal cruise speed of this and later gotos."""
+        if not math.isfinite(speed_m_s) or speed_m_s <= 0:
+            raise Refused(f"bad speed {speed_m_s}")
+        self.speed_m_s = speed_m_s
+
+    # --- time --------------------------------------------------------------------
+
+    def step(self, dt: float) -> None:
+        """Advances the simulation by ``dt`` simulated seconds."""
+        if dt <= 0:
+            return
+        self.time_s += dt
+        if self.armed:
+            self.battery_pct = max(0.0, self.battery_pct - self.params.battery_drain_pct_s * dt)
+        before = self.position
+        if self.phase is Phase.TAKEOFF:
+            assert self.target is not None
+            if self._move_towards(self.target, dt):
+                self.hold()
+        elif self.phase is Phase.GOTO:
+            assert self.target is not None
+            if self._move_towards(self.target, dt):
+                self.hold()
+        elif self.phase is Phase.RETURN:
+            assert self.target is not None
+            if self._move_towards(self.target, dt):
+                self.land()
+        elif self.phase is Phase.LAND:
+            ground = 0.0
+            up = max(ground, self.position.up_m - self.params.descent_rate_m_s * dt)
+            self.position = replace(self.position, up_m=up)
+            if up <= ground:
+                self.armed = False  # PX4 disarms shortly after touching down
+                self._touch_down()
+        self.velocity = LocalPoint(
+            (self.position.north_m - before.north_m) / dt,
+            (self.position.east_m - before.east_m) / dt,
+            (self.position.up_m - before.up_m) / dt,
+        )
+
+    def _move_towards(self, target: LocalPoint, dt: float) -> bool:
+        """One step towards ``target``; True once there."""
+        here = self.position
+        distance = here.horizontal_distance_to(target)
+        north, east = target.north_m, target.east_m
+        reach = self.speed_m_s * dt
+        if distance > reach:
+            fraction = reach / distance
+            north = here.north_m + (target.north_m - here.north_m) * fraction
+            east = here.east_m + (target.east_m - here.east_m) * fraction
+        if distance > ARRIVAL_TOLERANCE_M:
+            self.heading_deg = (
+                math.degrees(math.atan2(target.east_m - here.east_m, target.north_m - here.north_m))
+                % 360.0
+            )
+        up = _approach(here.up_m, target.up_m, self.params.climb_rate_m_s * dt)
+        self.position = LocalPoint(north, east, up)
+        return (
+            self.position.horizontal_distance_to(target) <= ARRIVAL_TOLERANCE_M
+            and abs(self.position.up_m - target.up_m) <= ARRIVAL_TOLERANCE_M
+        )
+
+    def _touch_down(self) -> None:
+        self.position = replace(self.position, up_m=0.0)
+        self.phase = Phase.ON_GROUND
+        self.target = None

@@ -1,0 +1,582 @@
+"""The sim vehicle's MAVLink side: a UDP server speaking the PX4 dialect.
+
+MAVSDK connects with ``udpout://127.0.0.1:PORT`` exactly as to PX4 SITL. The
+vehicle binds a port (0 by default, so the kernel picks a free one: UDP
+listeners let a second process bind a taken port silently, see DESIGN.md) and
+learns each ground station's address from the first packet it sends; MAVSDK
+sends its own heartbeat as soon as the connection is added, so discovery is
+immediate. Packets for another system id are ignored, so vehicles never
+answer each other's ground stations.
+
+The set of messages and commands is the one DESIGN.md found sufficient for
+MAVSDK 4.x (heartbeat with the PX4 custom mode, SYS_STATUS, position, home,
+extended state, GPS, battery; arm, takeoff, land, mode, reposition, speed,
+RTL, message requests and intervals; the parameter protocol for
+MIS_TAKEOFF_ALT). Unknown commands get COMMAND_ACK UNSUPPORTED.
+
+Everything runs on one thread per vehicle, so ``SimVehicle`` works the same
+in the ``baton sim-vehicle`` process and inside a test.
+"""
+
+from __future__ import annotations
+
+import math
+import select
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from baton import logs
+from baton.sim_vehicle.kinematics import FlightParams, GeoPoint, Kinematics, Phase, Refused
+from pymavlink.dialects.v20 import common as mavlink
+
+# Physics and scheduling tick, in wall seconds.
+TICK_S = 0.02
+# A ground station that has sent nothing for this long is dropped.
+PEER_TIMEOUT_S = 10.0
+
+# PX4 custom mode: main mode in bits 16..23, sub mode in bits 24..31.
+PX4_MAIN_MANUAL, PX4_MAIN_POSCTL, PX4_MAIN_AUTO = 1, 3, 4
+PX4_AUTO_READY, PX4_AUTO_TAKEOFF, PX4_AUTO_LOITER = 1, 2, 3
+PX4_AUTO_MISSION, PX4_AUTO_RTL, PX4_AUTO_LAND = 4, 5, 6
+
+_MODE_OF_PHASE = {
+    Phase.ON_GROUND: (PX4_MAIN_AUTO, PX4_AUTO_LOITER),
+    Phase.TAKEOFF: (PX4_MAIN_AUTO, PX4_AUTO_TAKEOFF),
+    Phase.HOLD: (PX4_MAIN_AUTO, PX4_AUTO_LOITER),
+    Phase.GOTO: (PX4_MAIN_AUTO, PX4_AUTO_LOITER),  # PX4 flies a reposition in Hold
+    Phase.LAND: (PX4_MAIN_AUTO, PX4_AUTO_LAND),
+    Phase.RETURN: (PX4_MAIN_AUTO, PX4_AUTO_RTL),
+}
+_MODE_NAMES = {
+    PX4_AUTO_TAKEOFF: "TAKEOFF",
+    PX4_AUTO_LOITER: "HOLD",
+    PX4_AUTO_RTL: "RETURN_TO_LAUNCH",
+    PX4_AUTO_LAND: "LAND",
+}
+
+# Sensors reported present, enabled and healthy, so MAVSDK's health checks
+# (gyro/accel/mag calibration, local and global position) all pass.
+_SENSORS = (
+    mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG
+    | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+    | mavlink.MAV_SYS_STATUS_SENSOR_GPS
+    | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
+)
+
+# Telemetry a ground station gets without asking: message id -> wall interval (s).
+DEFAULT_INTERVALS_S = {
+    mavlink.MAVLINK_MSG_ID_HEARTBEAT: 0.1,
+    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 0.05,
+    mavlink.MAVLINK_MSG_ID_SYS_STATUS: 0.5,
+    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 0.2,
+    mavlink.MAVLINK_MSG_ID_HOME_POSITION: 1.0,
+    mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 0.2,
+    mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE: 0.1,
+}
+MIN_INTERVAL_S = 0.01  # a requested rate above 100 Hz is capped
+
+PARAM_TAKEOFF_ALT = "MIS_TAKEOFF_ALT"
+FORCE_DISARM_MAGIC = 21196
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """A snapshot of the vehicle, for tests and log lines."""
+
+    system_id: int
+    armed: bool
+    mode: str
+    phase: str
+    in_air: bool
+    latitude_deg: float
+    longitude_deg: float
+    altitude_amsl_m: float
+    relative_altitude_m: float
+    home: GeoPoint
+    speed_m_s: float
+    battery_pct: float
+    time_s: float
+    peers: int
+
+    def as_fields(self) -> dict[str, Any]:
+        """The state as flat log fields."""
+        return {
+            "system_id": self.system_id,
+            "armed": self.armed,
+            "mode": self.mode,
+            "phase": self.phase,
+            "in_air": self.in_air,
+            "lat": round(self.latitude_deg, 7),
+            "lon": round(self.longitude_deg, 7),
+            "rel_alt_m": round(self.relative_altitude_m, 2),
+            "sim_time_s": round(self.time_s, 2),
+        }
+
+
+class _PeerSink:
+    """The file pymavlink writes to: every known ground station gets each packet."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.peers: dict[tuple[str, int], float] = {}  # address -> last heard (monotonic)
+
+    def write(self, data: bytes) -> None:
+        for address in list(self.peers):
+            try:
+                self.sock.sendto(data, address)
+            except OSError:
+                self.peers.pop(address, None)
+
+
+class SimVehicle:
+    """One simulated multicopter behind a MAVLink UDP port.
+
+    ``start()`` binds and starts the vehicle's thread, ``stop()`` ends it,
+    ``state()`` is a snapshot readable from any thread, ``url`` is what a
+    MAVSDK client connects to.
+    """
+
+    def __init__(
+        self,
+        home: GeoPoint,
+        *,
+        system_id: int = 1,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        speedup: float = 1.0,
+        params: FlightParams | None = None,
+        on_state: Callable[[VehicleState], None] | None = None,
+    ) -> None:
+        if speedup <= 0 or not math.isfinite(speedup):
+            raise ValueError(f"speedup must be > 0, got {speedup}")
+        if not 1 <= system_id <= 255:
+            raise ValueError(f"system id must be in 1..255, got {system_id}")
+        self.system_id = system_id
+        self.speedup = speedup
+        self._host, self._requested_port = host, port
+        self._kinematics = Kinematics(home, params)
+        self._on_state = on_state
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._sock: socket.socket | None = None
+        self._sink: _PeerSink | None = None
+        self._mav: mavlink.MAVLink | None = None
+        self._intervals = dict(DEFAULT_INTERVALS_S)
+        self._next_due: dict[int, float] = {}
+        self._last_reported: tuple[Any, ...] | None = None
+        self.port = 0
+        self._log = logs.get_logger("sim_vehicle", system_id=system_id)
+
+    # --- lifecycle ---------------------------------------------------------------
+
+    @property
+    def url(self) -> str:
+        """The MAVLink URL a MAVSDK client should use."""
+        return f"udpout://{self._host}:{self.port}"
+
+    def start(self) -> None:
+        """Binds the port and starts the vehicle's thread."""
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind((self._host, self._requested_port))
+        self.port = sock.getsockname()[1]
+        self._sock = sock
+        self._sink = _PeerSink(sock)
+        self._mav = mavlink.MAVLink(self._sink, srcSystem=self.system_id, srcComponent=1)
+        self._mav.robust_parsing = True
+        self._thread = threading.Thread(
+            target=self._run, name=f"sim-vehicle-{self.system_id}", daemon=True
+        )
+        self._thread.start()
+        self._log.info("vehicle listening", url=self.url, speedup=self.speedup)
+
+    def stop(self) -> None:
+        """Stops the thread and closes the port; idempotent."""
+        self._stopping.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+            self._log.info("vehicle stopped")
+
+    def __enter__(self) -> SimVehicle:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def state(self) -> VehicleState:
+        """A consistent snapshot of the vehicle."""
+        with self._lock:
+            return self._snapshot()
+
+    def _snapshot(self) -> VehicleState:
+        k = self._kinematics
+        here = k.geo_position()
+        return VehicleState(
+            system_id=self.system_id,
+            armed=k.armed,
+            mode=_MODE_NAMES[_MODE_OF_PHASE[k.phase][1]],
+            phase=k.phase.value,
+            in_air=k.in_air,
+            latitude_deg=here.latitude_deg,
+            longitude_deg=here.longitude_deg,
+            altitude_amsl_m=here.altitude_amsl_m,
+            relative_altitude_m=k.relative_altitude_m,
+            home=k.geo_home(),
+            speed_m_s=k.speed_m_s,
+            battery_pct=k.battery_pct,
+            time_s=k.time_s,
+            peers=len(self._sink.peers) if self._sink else 0,
+        )
+
+    # --- the vehicle's thread ------------------------------------------------------
+
+    def _run(self) -> None:
+        assert self._sock is not None
+        last = next_tick = time.monotonic()
+        while not self._stopping.is_set():
+            timeout = max(0.0, next_tick - time.monotonic())
+            readable, _, _ = select.select([self._sock], [], [], timeout)
+            if readable:
+                try:
+                    data, address = self._sock.recvfrom(65535)
+                except OSError:
+                    continue
+                with self._lock:
+                    self._receive(data, address)
+            now = time.monotonic()
+            if now >= next_tick:
+                with self._lock:
+                    self._kinematics.step((now - last) * self.speedup)
+                    last = now
+                    self._send_due(now)
+                    self._report_if_changed()
+                next_tick = max(next_tick + TICK_S, now)
+
+    def _report_if_changed(self) -> None:
+        k = self._kinematics
+        key = (k.armed, k.phase, k.speed_m_s, len(self._sink.peers) if self._sink else 0)
+        if key != self._last_reported:
+            self._last_reported = key
+            snapshot = self._snapshot()
+            self._log.info("vehicle state", **snapshot.as_fields(), peers=snapshot.peers)
+            if self._on_state is not None:
+                self._on_state(snapshot)
+
+    def _receive(self, data: bytes, address: tuple[str, int]) -> None:
+        assert self._mav is not None and self._sink is not None
+        self._sink.peers[address] = time.monotonic()
+        try:
+            messages = self._mav.parse_buffer(data) or []
+        except mavlink.MAVError as exc:
+            self._log.debug("bad packet", peer=f"{address[0]}:{address[1]}", error=str(exc))
+            return
+        for msg in messages:
+            target = getattr(msg, "target_system", 0)
+            if target not in (0, self.system_id):
+                continue  # another vehicle's traffic
+            self._handle(msg)
+
+    # --- telemetry -----------------------------------------------------------------
+
+    def _send_due(self, now: float) -> None:
+        assert self._sink is not None
+        for address, heard in list(self._sink.peers.items()):
+            if now - heard > PEER_TIMEOUT_S:
+                del self._sink.peers[address]
+        if not self._sink.peers:
+            return
+        for msg_id, interval in self._intervals.items():
+            if interval <= 0:
+                continue
+            if now >= self._next_due.get(msg_id, 0.0):
+                self._send_message(msg_id)
+                self._next_due[msg_id] = now + interval
+
+    def _custom_mode(self) -> int:
+        main, sub = _MODE_OF_PHASE[self._kinematics.phase]
+        return (main << 16) | (sub << 24)
+
+    def _send_message(self, msg_id: int) -> bool:
+        """Sends one message by id; False if this vehicle cannot produce it."""
+        assert self._mav is not None
+        k, mav = self._kinematics, self._mav
+        boot_ms = int(k.time_s * 1000) & 0xFFFFFFFF
+        here = k.geo_position()
+        if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+            if k.armed:
+                base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+            status = mavlink.MAV_STATE_ACTIVE if k.armed else mavlink.MAV_STATE_STANDBY
+            mav.heartbeat_send(
+                mavlink.MAV_TYPE_QUADROTOR,
+                mavlink.MAV_AUTOPILOT_PX4,
+                base,
+                self._custom_mode(),
+                status,
+            )
+        elif msg_id == mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
+            mav.global_position_int_send(
+                boot_ms,
+                round(here.latitude_deg * 1e7),
+                round(here.longitude_deg * 1e7),
+                round(here.altitude_amsl_m * 1000),
+                round(k.relative_altitude_m * 1000),
+                round(k.velocity.north_m * 100),
+                round(k.velocity.east_m * 100),
+                round(-k.velocity.up_m * 100),
+                round(k.heading_deg * 100) % 36000,
+            )
+        elif msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
+            mav.sys_status_send(
+                _SENSORS,
+                _SENSORS,
+                _SENSORS,
+                100,
+                16000,
+                1000,
+                round(k.battery_pct),
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
+        elif msg_id == mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
+            landed = {
+                Phase.ON_GROUND: mavlink.MAV_LANDED_STATE_ON_GROUND,
+                Phase.TAKEOFF: mavlink.MAV_LANDED_STATE_TAKEOFF,
+                Phase.LAND: mavlink.MAV_LANDED_STATE_LANDING,
+            }.get(k.phase, mavlink.MAV_LANDED_STATE_IN_AIR)
+            mav.extended_sys_state_send(mavlink.MAV_VTOL_STATE_MC, landed)
+        elif msg_id == mavlink.MAVLINK_MSG_ID_HOME_POSITION:
+            home = k.geo_home()
+            local = k.frame.to_local(home)
+            mav.home_position_send(
+                round(home.latitude_deg * 1e7),
+                round(home.longitude_deg * 1e7),
+                round(home.altitude_amsl_m * 1000),
+                local.north_m,
+                local.east_m,
+                -local.up_m,
+                [1.0, 0.0, 0.0, 0.0],
+                0.0,
+                0.0,
+                0.0,
+                int(k.time_s * 1e6),
+            )
+        elif msg_id == mavlink.MAVLINK_MSG_ID_GPS_RAW_INT:
+            ground_speed = math.hypot(k.velocity.north_m, k.velocity.east_m)
+            mav.gps_raw_int_send(
+                int(k.time_s * 1e6),
+                mavlink.GPS_FIX_TYPE_3D_FIX,
+                round(here.latitude_deg * 1e7),
+                round(here.longitude_deg * 1e7),
+                round(here.altitude_amsl_m * 1000),
+                70,  # eph, cm
+                100,  # epv, cm
+                round(ground_speed * 100),
+                round(k.heading_deg * 100) % 36000,
+                12,
+            )
+        elif msg_id == mavlink.MAVLINK_MSG_ID_BATTERY_STATUS:
+            mav.battery_status_send(
+                0,
+                mavlink.MAV_BATTERY_FUNCTION_ALL,
+                mavlink.MAV_BATTERY_TYPE_LIPO,
+                2500,
+                [4000, 4000, 4000, 4000] + [65535] * 6,
+                1000,
+                -1,
+                -1,
+                round(k.battery_pct),
+            )
+        elif msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:
+            yaw = math.radians(((k.heading_deg + 180.0) % 360.0) - 180.0)
+            mav.attitude_send(boot_ms, 0.0, 0.0, yaw, 0.0, 0.0, 0.0)
+        elif msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            capabilities = (
+                mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+                | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+            )
+            mav.autopilot_version_send(
+                capabilities, 0x010F0000, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.system_id
+            )
+        else:
+            return False
+        return True
+
+    # --- incoming messages -----------------------------------------------------------
+
+    def _handle(self, msg: Any) -> None:
+        kind = msg.get_type()
+        if kind == "COMMAND_LONG":
+            params = [msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6]
+            self._command(msg, msg.command, params, msg.param7, frame=None, x=None, y=None)
+        elif kind == "COMMAND_INT":
+            params = [msg.param1, msg.param2, msg.param3, msg.param4, math.nan, math.nan]
+            self._command(msg, msg.command, params, msg.z, frame=msg.frame, x=msg.x, y=msg.y)
+        elif kind in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET"):
+            self._param(msg, kind)
+
+    def _command(
+        self,
+        msg: Any,
+        command: int,
+        p: list[float],
+        p7: float,
+        frame: int | None,
+        x: int | None,
+        y: int | None,
+    ) -> None:
+        """Runs one COMMAND_LONG / COMMAND_INT and acknowledges it."""
+        assert self._mav is not None
+        k = self._kinematics
+        result = mavlink.MAV_RESULT_ACCEPTED
+        after_ack: Callable[[], object] | None = None
+        try:
+            if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+                if p[0] >= 0.5:
+                    k.arm()
+                else:
+                    k.disarm(force=round(p[1]) == FORCE_DISARM_MAGIC)
+            elif command == mavlink.MAV_CMD_NAV_TAKEOFF:
+                # param7 is the AMSL altitude; NaN means "use MIS_TAKEOFF_ALT".
+                altitude = p7 - k.geo_home().altitude_amsl_m if math.isfinite(p7) else None
+                k.takeoff(altitude)
+            elif command == mavlink.MAV_CMD_NAV_LAND:
+                k.land()
+            elif command == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+                k.return_to_launch()
+            elif command == mavlink.MAV_CMD_DO_SET_MODE:
+                self._set_mode(round(p[1]), round(p[2]))
+            elif command == mavlink.MAV_CMD_DO_REPOSITION:
+                k.goto_geo(self._reposition_target(p, p7, frame, x, y), speed_m_s=p[0])
+            elif command == mavlink.MAV_CMD_DO_CHANGE_SPEED:
+                if p[1] > 0:
+                    k.set_speed(p[1])
+            elif command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+                result = self._set_interval(round(p[0]), p[1])
+            elif command in (
+                mavlink.MAV_CMD_REQUEST_MESSAGE,
+                mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+            ):
+                msg_id = (
+                    round(p[0])
+                    if command == mavlink.MAV_CMD_REQUEST_MESSAGE
+                    else mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+                )
+                if msg_id in self._intervals or msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+                    after_ack = lambda: self._send_message(msg_id)  # noqa: E731
+                else:
+                    result = mavlink.MAV_RESULT_UNSUPPORTED
+            else:
+                result = mavlink.MAV_RESULT_UNSUPPORTED
+        except Refused as refusal:
+            result = mavlink.MAV_RESULT_DENIED
+            self._log.info("command denied", command=command, reason=str(refusal))
+        self._mav.command_ack_send(
+            command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+        )
+        if after_ack is not None:
+            after_ack()
+        # Right after each reply, so MAVSDK sees the new mode and armed state
+        # without waiting for the next periodic heartbeat.
+        self._send_message(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
+        self._report_if_changed()
+
+    def _set_mode(self, main: int, sub: int) -> None:
+        k = self._kinematics
+        if main != PX4_MAIN_AUTO:
+            raise Refused(f"mode {main}/{sub} not supported by the sim vehicle")
+        if sub == PX4_AUTO_LOITER:
+            k.hold()
+        elif sub == PX4_AUTO_LAND:
+            k.land()
+        elif sub == PX4_AUTO_RTL:
+            k.return_to_launch()
+        elif sub == PX4_AUTO_TAKEOFF:
+            k.takeoff()
+        elif sub == PX4_AUTO_READY:
+            return
+        else:
+            raise Refused(f"auto sub mode {sub} not supported by the sim vehicle")
+
+    def _reposition_target(
+        self, p: list[float], p7: float, frame: int | None, x: int | None, y: int | None
+    ) -> GeoPoint:
+        k = self._kinematics
+        here = k.geo_position()
+        if x is not None and y is not None:
+            latitude, longitude = x / 1e7, y / 1e7
+        else:
+            latitude, longitude = p[4], p[5]
+        relative_frames = (
+            mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+            mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+        )
+        altitude = p7
+        if math.isfinite(altitude) and frame in relative_frames:
+            altitude += k.geo_home().altitude_amsl_m
+        # NaN fields mean "keep the current value", as in the MAVLink spec.
+        return GeoPoint(
+            latitude if math.isfinite(latitude) and (x is None or x != 0) else here.latitude_deg,
+            longitude if math.isfinite(longitude) and (y is None or y != 0) else here.longitude_deg,
+            altitude if math.isfinite(altitude) else here.altitude_amsl_m,
+        )
+
+    def _set_interval(self, msg_id: int, interval_us: float) -> int:
+        if msg_id not in self._intervals and msg_id not in DEFAULT_INTERVALS_S:
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        if interval_us < 0:
+            self._intervals[msg_id] = 0.0  # disabled
+        elif interval_us == 0:
+            self._intervals[msg_id] = DEFAULT_INTERVALS_S[msg_id]
+        else:
+            self._intervals[msg_id] = max(MIN_INTERVAL_S, interval_us / 1e6)
+        self._next_due.pop(msg_id, None)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    # --- parameters -----------------------------------------------------------------
+
+    def _param(self, msg: Any, kind: str) -> None:
+        if kind == "PARAM_SET":
+            name = _param_name(msg.param_id)
+            if name != PARAM_TAKEOFF_ALT:
+                return  # PX4 stays silent about unknown parameters
+            if math.isfinite(msg.param_value) and msg.param_value > 0:
+                self._kinematics.takeoff_altitude_m = float(msg.param_value)
+        elif kind == "PARAM_REQUEST_READ":
+            name = _param_name(msg.param_id)
+            if name != PARAM_TAKEOFF_ALT and msg.param_index != 0:
+                return
+        self._send_param()
+
+    def _send_param(self) -> None:
+        assert self._mav is not None
+        self._mav.param_value_send(
+            PARAM_TAKEOFF_ALT.encode(),
+            self._kinematics.takeoff_altitude_m,
+            mavlink.MAV_PARAM_TYPE_REAL32,
+            1,
+            0,
+        )
+
+
+def _param_name(raw: str | bytes) -> str:
+    text = raw.decode(errors="replace") if isinstance(raw, bytes) else raw
+    return text.rstrip("\x00")
