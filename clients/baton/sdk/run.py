@@ -1,0 +1,83 @@
+"""Runs a mission file against a controller: ``python -m baton.sdk.run FILE ADDRESS [k=v ...]``.
+
+A mission file defines ``mission(drone, **params)``. Parameters given as
+``key=value`` are passed by name, converted to the type of the function's
+default for that parameter. The process exits 0 when the mission returns, 1
+with the error when it raises, and always tells the controller it ended.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import inspect
+import sys
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from baton.sdk.drone import Drone, connect
+
+
+def load_mission(path: str) -> Callable[..., Any]:
+    """The ``mission`` function of a mission file."""
+    file = Path(path)
+    spec = importlib.util.spec_from_file_location(f"baton_mission_{file.stem}", file)
+    if spec is None or spec.loader is None or not file.is_file():
+        raise SystemExit(f"{path}: not a readable Python file")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    mission = getattr(module, "mission", None)
+    if not callable(mission):
+        raise SystemExit(f"{path}: defines no function `mission(drone, **params)`")
+    return mission
+
+
+def parse_params(mission: Callable[..., Any], pairs: list[str]) -> dict[str, Any]:
+    """``key=value`` strings, typed like the defaults of ``mission``'s parameters."""
+    signature = inspect.signature(mission)
+    params: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or key not in signature.parameters or key == "drone":
+            known = [name for name in signature.parameters if name != "drone"]
+            raise SystemExit(f"mission parameter {pair!r}: expected key=value with key in {known}")
+        default = signature.parameters[key].default
+        kind = type(default) if default is not inspect.Parameter.empty else str
+        try:
+            params[key] = kind(value) if kind is not bool else value.lower() in ("1", "true", "yes")
+        except ValueError:
+            raise SystemExit(
+                f"mission parameter {key}: {value!r} is not a {kind.__name__}"
+            ) from None
+    return params
+
+
+def run(path: str, address: str, pairs: list[str]) -> int:
+    """Runs the mission; returns the process exit code."""
+    mission = load_mission(path)
+    params = parse_params(mission, pairs)
+    drone: Drone = connect(address)
+    try:
+        mission(drone, **params)
+    except Exception as exc:
+        traceback.print_exc()
+        drone.close(error=f"{type(exc).__name__}: {exc}")
+        return 1
+    drone.close()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point."""
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("mission", help="the mission file (defines mission(drone, **params))")
+    parser.add_argument("controller", help="the local controller, host:port")
+    parser.add_argument("params", nargs="*", help="mission parameters as key=value")
+    args = parser.parse_args(argv)
+    return run(args.mission, args.controller, args.params)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,58 @@
+"""Typed results of drone-API calls."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from baton.v1 import drone_api_pb2 as api
+
+
+@dataclass(frozen=True)
+class Position:
+    """A position: latitude/longitude in degrees, altitudes in metres."""
+
+    latitude_deg: float
+    longitude_deg: float
+    absolute_altitude_m: float = 0.0
+    relative_altitude_m: float = 0.0
+
+    @classmethod
+    def from_proto(cls, p: api.Position) -> Position:
+        """From the wire message."""
+        return cls(p.latitude_deg, p.longitude_deg, p.absolute_altitude_m, p.relative_altitude_m)
+
+
+@dataclass(frozen=True)
+class FlightState:
+    """Armed, in air, flight mode, battery and readiness."""
+
+    armed: bool
+    in_air: bool
+    flight_mode: str
+    landed_state: str
+    battery_percent: float
+    ready: bool
+
+    @classmethod
+    def from_proto(cls, r: api.GetFlightStateReply) -> FlightState:
+        """From the wire message."""
+        return cls(r.armed, r.in_air, r.flight_mode, r.landed_state, r.battery_percent, r.ready)
+
+
+@dataclass(frozen=True)
+class Picture:
+    """An image from the drone's camera."""
+
+    image: bytes
+    format: str
+    width: int
+    height: int
+    position: Position
+    sequence: int
+
+    @classmethod
+    def from_proto(cls, r: api.TakePictureReply) -> Picture:
+        """From the wire message."""
+        return cls(
+            r.image, r.format, r.width, r.height, Position.from_proto(r.position), r.sequence
+        )

@@ -1,0 +1,99 @@
+"""Runs one controller process: its gRPC server, its node and its mission program."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import sys
+from pathlib import Path
+
+from baton.config import BatonConfig
+from baton.controller.node import ControllerNode
+from baton.controller.service import PROXIED_SERVICES, ControllerRingService, DroneApiProxy
+from baton.rpc.server import BatonServer, run_until_signalled
+from baton.v1 import ring_pb2_grpc
+
+
+def write_atomically(path: str, text: str) -> None:
+    """Writes ``text`` to ``path`` so that readers never see half of it."""
+    tmp = Path(f"{path}.tmp{os.getpid()}")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+class ControllerApp:
+    """A controller's server, node and (optional) mission program subprocess."""
+
+    def __init__(
+        self,
+        config: BatonConfig,
+        cid: int,
+        mission: str | None = None,
+        mission_args: list[str] | None = None,
+    ) -> None:
+        self.config = config
+        self.node = ControllerNode(config, cid)
+        names = [f"baton.v1.{name}" for name in PROXIED_SERVICES] + ["baton.v1.ControllerRing"]
+        self.server = BatonServer(config.controller(cid).address, names)
+        self.server.server.add_generic_rpc_handlers((DroneApiProxy(self.node),))
+        ring_pb2_grpc.add_ControllerRingServicer_to_server(
+            ControllerRingService(self.node), self.server.server
+        )
+        self.mission = mission
+        self.mission_args = mission_args or []
+        self.mission_process: asyncio.subprocess.Process | None = None
+        self._watcher: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        """Serves, starts the protocol, and launches the mission program if there is one."""
+        await self.server.start()
+        await self.node.start()
+        if self.mission:
+            self.mission_process = await asyncio.create_subprocess_exec(
+                sys.executable,
+                "-m",
+                "baton.sdk.run",
+                self.mission,
+                self.server.address,
+                *self.mission_args,
+            )
+            self._watcher = asyncio.create_task(self._watch_mission(self.mission_process))
+
+    async def _watch_mission(self, process: asyncio.subprocess.Process) -> None:
+        code = await process.wait()
+        error = "" if code == 0 else f"mission program exited with code {code}"
+        await self.node.mission_done(failed=code != 0, error=error)
+
+    async def stop(self) -> None:
+        """Stops the mission program, the node and the server."""
+        if self.mission_process is not None and self.mission_process.returncode is None:
+            self.mission_process.terminate()
+            await self.mission_process.wait()
+        await self.node.stop()
+        await self.server.stop()
+
+
+async def serve(
+    config: BatonConfig,
+    cid: int,
+    mission: str | None,
+    mission_args: list[str],
+    address_file: str | None,
+) -> int:
+    """Runs a controller until SIGTERM or SIGINT."""
+    app = ControllerApp(config, cid, mission, mission_args)
+
+    async def main(stop: asyncio.Event) -> int:
+        await app.start()
+        print(
+            json.dumps({"event": "listening", "id": cid, "address": app.server.address}),
+            flush=True,
+        )
+        if address_file:
+            write_atomically(address_file, app.server.address)
+        await stop.wait()
+        await app.stop()
+        return 0
+
+    return await run_until_signalled(main)

@@ -1,0 +1,61 @@
+"""``baton controller``: one mission controller of the ring."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Adds ``baton controller``."""
+    parser = subparsers.add_parser(
+        "controller",
+        help="run a mission controller (Algorithm 1)",
+        description=(
+            "Runs one mission controller: serves the drone API (Mobility, Camera, Clock) to its "
+            "local mission program, logs and circulates the master's replies along the ring, "
+            "replays them, and takes over when the drone hands over."
+        ),
+    )
+    parser.add_argument("--id", type=int, required=True, help="this controller's id in the config")
+    parser.add_argument(
+        "--config", required=True, help="testbed YAML: drone, controllers, ring, flush limit"
+    )
+    parser.add_argument(
+        "--flush-limit",
+        help="override the config's flush limit, bytes with units (0, 512KB, 2MB)",
+    )
+    parser.add_argument(
+        "--mission", help="a mission file (defines mission(drone, **params)) to run on start"
+    )
+    parser.add_argument(
+        "--mission-arg",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a parameter of the mission function; repeatable",
+    )
+    parser.add_argument(
+        "--address-file", help="write the address this controller listens on to this file"
+    )
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Loads and checks the configuration, then serves."""
+    from baton.config import ConfigError, load_config, parse_size
+    from baton.controller.app import serve
+
+    try:
+        config = load_config(args.config)
+        if args.flush_limit is not None:
+            config = config.model_copy(update={"flush_limit": parse_size(args.flush_limit)})
+        config.controller(args.id)
+    except (ConfigError, ValueError) as exc:
+        print(f"baton controller: {exc}", file=sys.stderr)
+        return 2
+    except KeyError as exc:
+        print(f"baton controller: --id {args.id}: {exc.args[0]}", file=sys.stderr)
+        return 2
+    return asyncio.run(serve(config, args.id, args.mission, args.mission_arg, args.address_file))

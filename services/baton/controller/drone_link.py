@@ -1,0 +1,111 @@
+"""The master's connection to the drone: the Connect stream and Invoke calls.
+
+Opened when the controller becomes ACTIVE and closed when it stops being
+ACTIVE (DESIGN.md, protocol note 5); the time from opening to the drone's
+first event is T_conn. A handover notice on the stream, or an Invoke rejected
+because another controller is now master, reaches the controller through
+``on_notice``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Callable
+
+import grpc
+
+from baton.logs import BoundLogger
+from baton.rpc.channels import aio_channel
+from baton.v1 import drone_pb2, drone_pb2_grpc
+
+NoticeCallback = Callable[[int, int], None]  # (new_master, after_reqnr)
+
+
+def notice_from_rejection(error: grpc.aio.AioRpcError) -> tuple[int, int] | None:
+    """(new master, after reqnr) from an Invoke rejected because another controller is master."""
+    if error.code() is not grpc.StatusCode.FAILED_PRECONDITION:
+        return None
+    metadata = {key: value for key, value in (error.trailing_metadata() or ())}
+    master = metadata.get("baton-master")
+    if master is None:
+        return None
+    return int(str(master)), int(str(metadata.get("baton-after-reqnr", "0")))
+
+
+class DroneSession:
+    """One ACTIVE period's connection to the drone service."""
+
+    def __init__(
+        self, controller_id: int, address: str, on_notice: NoticeCallback, log: BoundLogger
+    ) -> None:
+        self.controller_id = controller_id
+        self.address = address
+        self._on_notice = on_notice
+        self._log = log
+        self._channel = aio_channel(address)
+        self._stub = drone_pb2_grpc.DroneStub(self._channel)
+        self.connected = asyncio.Event()
+        self.t_conn_s: float | None = None
+        self.opened_at = time.monotonic()
+        self._events: asyncio.Task[None] | None = None
+
+    def open(self) -> None:
+        """Starts connecting; ``connected`` is set when the drone's first event arrives."""
+        self._events = asyncio.create_task(self._follow_events(), name="drone-events")
+
+    async def _follow_events(self) -> None:
+        backoff = 0.05
+        while True:
+            try:
+                call = self._stub.Connect(
+                    drone_pb2.ConnectRequest(controller_id=self.controller_id),
+                    wait_for_ready=True,
+                )
+                async for event in call:
+                    if event.HasField("connected"):
+                        if self.t_conn_s is None:
+                            self.t_conn_s = time.monotonic() - self.opened_at
+                        self.connected.set()
+                        self._log.info(
+                            "drone connected",
+                            t_conn_ms=round((self.t_conn_s or 0) * 1000, 3),
+                            drone_last_reqnr=event.connected.last_reqnr,
+                        )
+                    elif event.HasField("handover"):
+                        notice = event.handover
+                        self._on_notice(notice.new_master, notice.after_reqnr)
+                        return
+                raise ConnectionError("drone ended the Connect stream without a handover notice")
+            except asyncio.CancelledError:
+                raise
+            except grpc.aio.AioRpcError as exc:
+                rejected = notice_from_rejection(exc)
+                if rejected is not None:
+                    self._on_notice(*rejected)
+                    return
+                self._log.warning(
+                    "drone stream down; reconnecting", code=exc.code().name, detail=exc.details()
+                )
+            except ConnectionError as exc:
+                self._log.warning("drone stream down; reconnecting", error=str(exc))
+            self.connected.clear()
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, 1.0)
+
+    async def invoke(self, reqnr: int, method: str, payload: bytes) -> drone_pb2.InvokeReply:
+        """Sends request ``reqnr``; raises grpc.aio.AioRpcError with the drone's status."""
+        request = drone_pb2.InvokeRequest(
+            controller_id=self.controller_id, reqnr=reqnr, method=method, payload=payload
+        )
+        reply: drone_pb2.InvokeReply = await self._stub.Invoke(request, wait_for_ready=True)
+        return reply
+
+    async def close(self) -> None:
+        """Closes the stream and the channel."""
+        if self._events is not None:
+            self._events.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._events
+        await self._channel.close()

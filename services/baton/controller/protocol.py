@@ -1,0 +1,290 @@
+"""Algorithm 1 of the paper as a pure state machine: messages in, effects out.
+
+No sockets, no tasks, no clocks: the controller runtime (``node.py``) feeds
+events in (a drone reply, a handover notice, a log message, a replayed call)
+and carries out the effects that come back (send a log message, open or close
+the drone connection). Every corner of the protocol is therefore testable by
+feeding events in a chosen order (``tests/controller/test_protocol.py``).
+
+Names follow Algorithm 1: ``state``, ``master``, ``reqnr``, ``lognr``,
+``log``, ``logQ`` (``log_queue``), ``nxtid`` (``successor``), flush limit.
+Where DESIGN.md reads the paper's text over its pseudo-code, the method says so.
+"""
+
+from __future__ import annotations
+
+import enum
+import hashlib
+import time
+from dataclasses import dataclass, field
+
+from baton.v1 import ring_pb2
+
+
+class State(enum.Enum):
+    """The controller states of the paper's Figure 3."""
+
+    ACTIVE = "ACTIVE"
+    PASSIVE = "PASSIVE"
+    REPLAY = "REPLAY"
+
+
+@dataclass(frozen=True)
+class SendLog:
+    """Effect: send ``message`` to controller ``dest`` over the ring RPC."""
+
+    dest: int
+    message: ring_pb2.LogMessage
+
+
+@dataclass(frozen=True)
+class ConnectDrone:
+    """Effect: open the drone connection (connectToDrone in Algorithm 1)."""
+
+
+@dataclass(frozen=True)
+class DisconnectDrone:
+    """Effect: close the drone connection (the controller stopped being ACTIVE)."""
+
+
+Effect = SendLog | ConnectDrone | DisconnectDrone
+
+
+class NonDeterminismError(Exception):
+    """The mission program asked for something other than what the log holds."""
+
+    def __init__(self, reqnr: int, logged: ring_pb2.LogEntry, method: str, request: bytes) -> None:
+        self.reqnr = reqnr
+        self.logged_method = logged.method
+        self.logged_request = bytes(logged.request)
+        self.method = method
+        self.request = request
+        super().__init__(
+            f"non-deterministic mission program at request {reqnr}: the log holds "
+            f"{logged.method} {_show(logged.request)} but this program asks "
+            f"{method} {_show(request)}"
+        )
+
+
+class ProtocolError(Exception):
+    """A message that breaks the protocol's invariants (a bug or a misconfiguration)."""
+
+
+def _show(payload: bytes) -> str:
+    text = bytes(payload).hex()
+    return f"(request bytes {text[:96]}{'...' if len(text) > 96 else ''})"
+
+
+def request_digest(method: str, request: bytes) -> bytes:
+    """SHA-256 over the method name and the serialized request: the determinism guard."""
+    return hashlib.sha256(method.encode() + b"\0" + bytes(request)).digest()
+
+
+def entry_size(entry: ring_pb2.LogEntry) -> int:
+    """Bytes that ``entry`` adds to a serialized log message (field tag and length included)."""
+    return ring_pb2.LogMessage(entries=[entry]).ByteSize()
+
+
+@dataclass
+class Log:
+    """The master's log: entries since the last flush, and their serialized size."""
+
+    entries: list[ring_pb2.LogEntry] = field(default_factory=list)
+    size: int = 0
+
+    def append(self, entry: ring_pb2.LogEntry) -> None:
+        """Adds an entry (Algorithm 1, line 15)."""
+        self.entries.append(entry)
+        self.size += entry_size(entry)
+
+    def take(self) -> list[ring_pb2.LogEntry]:
+        """Empties the log and returns what it held."""
+        entries, self.entries, self.size = self.entries, [], 0
+        return entries
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+
+class ControllerProtocol:
+    """One controller's Algorithm 1 state.
+
+    ``ring`` is the ring order of controller ids; ``flush_limit`` is f in
+    bytes (0 flushes after every call); ``initial_master`` is the paper's n_0.
+    """
+
+    def __init__(self, cid: int, ring: list[int], flush_limit: int, initial_master: int) -> None:
+        if cid not in ring:
+            raise ValueError(f"controller {cid} is not in the ring {ring}")
+        if flush_limit < 0:
+            raise ValueError(f"flush limit must be >= 0 bytes, got {flush_limit}")
+        self.id = cid
+        self.ring = list(ring)
+        self.flush_limit = flush_limit
+        position = ring.index(cid)
+        self.predecessor = ring[(position - 1) % len(ring)]  # prvid
+        self.successor = ring[(position + 1) % len(ring)]  # nxtid
+        # Lines 2-10.
+        self.reqnr = 0
+        self.lognr = 0
+        self.log = Log()
+        self.log_queue: dict[int, ring_pb2.LogMessage] = {}  # logQ, ordered by lognr
+        self.master = cid == initial_master
+        self.state = State.ACTIVE if self.master else State.PASSIVE
+        # Log numbers received over the ring, so that a message re-sent after a
+        # reconnect is neither forwarded nor handled twice.
+        self._received: set[int] = set()
+        self.replayed = 0
+        self.invoked = 0
+
+    # -- lines 1-11 -------------------------------------------------------------
+
+    def start(self) -> list[Effect]:
+        """Initialization: the initial master connects to the drone (line 7)."""
+        return [ConnectDrone()] if self.state is State.ACTIVE else []
+
+    # -- lines 12-23: invocation while ACTIVE -----------------------------------
+
+    def on_reply(self, entry: ring_pb2.LogEntry) -> list[Effect]:
+        """Logs the drone's reply to request reqnr + 1 and flushes at the limit."""
+        if self.state is not State.ACTIVE:
+            raise ProtocolError(f"controller {self.id} got a drone reply while {self.state.value}")
+        if entry.reqnr != self.reqnr + 1:
+            raise ProtocolError(f"reply for request {entry.reqnr}, expected {self.reqnr + 1}")
+        self.log.append(entry)
+        self.reqnr = entry.reqnr
+        self.invoked += 1
+        if self.log.size >= self.flush_limit:
+            return [self._flush()]
+        return []
+
+    def _flush(self) -> SendLog:
+        self.lognr += 1
+        message = self._message(self.lognr, origin=self.id, handover=False)
+        return SendLog(self.successor, message)
+
+    def _message(self, lognr: int, origin: int, handover: bool) -> ring_pb2.LogMessage:
+        return ring_pb2.LogMessage(
+            lognr=lognr,
+            origin=origin,
+            handover=handover,
+            entries=self.log.take(),
+            sender=self.id,
+            created_at=time.time(),
+        )
+
+    def on_mission_done(self) -> list[Effect]:
+        """Flushes what the master's log still holds once its mission program has ended.
+
+        Not in Algorithm 1, whose missions never end: without it the replicas
+        would wait forever for the last entries below the flush limit.
+        """
+        if self.state is State.ACTIVE and self.log:
+            return [self._flush()]
+        return []
+
+    # -- lines 24-29: the drone's handover notice --------------------------------
+
+    def on_handover_notice(self, new_master: int) -> list[Effect]:
+        """Hands the unflushed log to the new master directly, with the handover flag.
+
+        A notice that arrives while a call is in flight (footnote 2) is handled
+        the same way: the in-flight call's reply, if it comes later, is not
+        logged here (the runtime discards it), and the new master re-sends that
+        request number, which the drone answers from its reply cache.
+        """
+        if self.state is not State.ACTIVE:
+            # A repeated notice (e.g. from an Invoke rejection after the stream's).
+            return []
+        if new_master == self.id or new_master not in self.ring:
+            raise ProtocolError(f"handover notice names controller {new_master}")
+        self.state, self.master = State.PASSIVE, False
+        self.lognr += 1
+        message = self._message(self.lognr, origin=new_master, handover=True)
+        return [DisconnectDrone(), SendLog(new_master, message)]
+
+    # -- lines 30-47: a log message arrives --------------------------------------
+
+    def on_log(self, message: ring_pb2.LogMessage) -> list[Effect]:
+        """Forwards on receipt, then handles the message in order or queues it.
+
+        Differs from the pseudo-code as DESIGN.md says: a message that arrives
+        in order while the controller is not PASSIVE is queued (line 44 would
+        drop it), and a message already seen (a re-send after a reconnect) is
+        ignored whole. Messages with a log number already handled (the old
+        master's own handover message coming back, footnote 3) are forwarded
+        but not handled.
+        """
+        if message.lognr in self._received:
+            return []
+        self._received.add(message.lognr)
+        effects: list[Effect] = []
+        # Lines 31-33: forward (a handover message travels on as a normal one).
+        if message.handover or message.origin != self.successor:
+            forwarded = ring_pb2.LogMessage()
+            forwarded.CopyFrom(message)
+            forwarded.handover = False
+            effects.append(SendLog(self.successor, forwarded))
+        if message.lognr <= self.lognr:
+            return effects  # already handled (footnote 3)
+        self.log_queue[message.lognr] = message
+        effects.extend(self._drain())
+        return effects
+
+    def _drain(self) -> list[Effect]:
+        """Handles queued messages while PASSIVE and the next one is there (lines 34-43, 57-59)."""
+        effects: list[Effect] = []
+        while self.state is State.PASSIVE and (self.lognr + 1) in self.log_queue:
+            effects.extend(self._handle(self.log_queue.pop(self.lognr + 1)))
+        if self.state is State.PASSIVE and self.master and not self.log_queue:
+            # The master's own log ran out with nothing queued: lines 54-56.
+            self.state = State.ACTIVE
+            effects.append(ConnectDrone())
+        return effects
+
+    def _handle(self, message: ring_pb2.LogMessage) -> list[Effect]:
+        """Lines 35-43 for an in-order message on a PASSIVE controller."""
+        self.lognr = message.lognr
+        if message.entries and message.entries[0].reqnr != self.reqnr + 1:
+            raise ProtocolError(
+                f"log message {message.lognr} starts at request {message.entries[0].reqnr}, "
+                f"controller {self.id} expects {self.reqnr + 1}"
+            )
+        for entry in message.entries:
+            self.log.append(entry)
+        if message.handover:
+            self.master = True
+        if self.log:
+            self.state = State.REPLAY
+        return []
+
+    # -- lines 48-63: invocation while REPLAY ------------------------------------
+
+    def replay(self, method: str, request: bytes) -> tuple[ring_pb2.LogEntry, list[Effect]]:
+        """The logged reply to the mission program's next call, without drone contact.
+
+        Raises NonDeterminismError if the program asks for something else than
+        the logged request.
+        """
+        if self.state is not State.REPLAY:
+            raise ProtocolError(f"replay while {self.state.value}")
+        entry = self.log.entries[0]
+        if entry.request_digest != request_digest(method, request):
+            raise NonDeterminismError(entry.reqnr, entry, method, request)
+        self.log.entries.pop(0)
+        self.log.size -= entry_size(entry)
+        self.reqnr = entry.reqnr
+        self.replayed += 1
+        effects: list[Effect] = []
+        if not self.log:
+            # End of the replayed log: lines 51-60.
+            self.state = State.PASSIVE
+            effects.extend(self._drain())
+        return entry, effects
+
+    # -- observation --------------------------------------------------------------
+
+    @property
+    def answerable(self) -> bool:
+        """Whether a mission call can be answered now (ACTIVE or REPLAY); else it is held."""
+        return self.state is not State.PASSIVE

@@ -1,0 +1,247 @@
+"""The log ring: LogRing streams between controllers, of any message size.
+
+A log message can be far larger than one gRPC message (64 MB and more), so it
+travels as ``LogFrame`` slices of its serialized form (``FRAME_BYTES`` each)
+and is acknowledged whole. Each destination has one ``PeerLink``: a stream
+opened once and kept, re-opened with back-off when it breaks (the successor
+restarted, a link dropped). On every new stream the receiver first says the
+highest log number it has handled, and the sender re-sends what it sent since
+then and was not acknowledged; the receiver ignores what it already has
+(``ControllerProtocol.on_log``), so nothing is lost and nothing is handled twice.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass
+
+import grpc
+
+from baton.logs import BoundLogger
+from baton.rpc.channels import aio_channel
+from baton.v1 import ring_pb2, ring_pb2_grpc
+
+FRAME_BYTES = 1 << 20
+BACKOFF_INITIAL_S = 0.05
+BACKOFF_MAX_S = 2.0
+
+
+def frames(message: ring_pb2.LogMessage, from_id: int) -> list[ring_pb2.LogFrame]:
+    """Slices a serialized log message into frames (at least one, even when empty)."""
+    data = message.SerializeToString()
+    total = len(data)
+    return [
+        ring_pb2.LogFrame(
+            lognr=message.lognr,
+            total_bytes=total,
+            offset=offset,
+            data=data[offset : offset + FRAME_BYTES],
+            from_id=from_id,
+        )
+        for offset in range(0, max(total, 1), FRAME_BYTES)
+    ]
+
+
+class Reassembler:
+    """Puts frames back together into whole log messages, checking their order."""
+
+    def __init__(self) -> None:
+        self._lognr: int | None = None
+        self._parts: list[bytes] = []
+        self._received = 0
+
+    def add(self, frame: ring_pb2.LogFrame) -> ring_pb2.LogMessage | None:
+        """Adds a frame; returns the message when its last frame arrived."""
+        if frame.offset == 0:
+            self._lognr, self._parts, self._received = frame.lognr, [], 0
+        elif frame.lognr != self._lognr or frame.offset != self._received:
+            raise ValueError(
+                f"frame of log message {frame.lognr} at offset {frame.offset} does not follow "
+                f"message {self._lognr} at offset {self._received}"
+            )
+        self._parts.append(frame.data)
+        self._received += len(frame.data)
+        if self._received < frame.total_bytes:
+            return None
+        if self._received > frame.total_bytes:
+            raise ValueError(f"log message {frame.lognr} overran its {frame.total_bytes} bytes")
+        message = ring_pb2.LogMessage.FromString(b"".join(self._parts))
+        self._lognr, self._parts, self._received = None, [], 0
+        return message
+
+
+@dataclass
+class PeerCounters:
+    """What a PeerLink has done, for GetStatus and the benchmarks."""
+
+    connects: int = 0
+    sent_messages: int = 0
+    sent_bytes: int = 0
+    acked: int = 0
+
+
+class PeerLink:
+    """The kept LogRing stream from this controller to one peer.
+
+    ``send`` never blocks the caller (the mission program's call returns while
+    the message travels). Messages are kept until acknowledged and re-sent on a
+    new stream; ``history`` keeps every message sent, so that a peer that
+    restarted with nothing can be given all of it again.
+    """
+
+    def __init__(self, my_id: int, peer_id: int, address: str, log: BoundLogger) -> None:
+        self.my_id = my_id
+        self.peer_id = peer_id
+        self.address = address
+        self._log = log.bind(peer=peer_id)
+        self._history: dict[int, ring_pb2.LogMessage] = {}
+        self._unacked: dict[int, ring_pb2.LogMessage] = {}
+        self._wakeup = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+        self.stream_up = False
+        self.counters = PeerCounters()
+        self.on_delivered: Callable[[int, int, float], None] | None = None
+
+    def start(self) -> None:
+        """Starts keeping the stream."""
+        if self._task is None:
+            self._task = asyncio.create_task(self._run(), name=f"ring-{self.peer_id}")
+
+    async def stop(self) -> None:
+        """Stops the stream task."""
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+
+    def send(self, message: ring_pb2.LogMessage) -> None:
+        """Queues ``message`` for the peer."""
+        self._history[message.lognr] = message
+        self._unacked[message.lognr] = message
+        self._wakeup.set()
+        self.start()
+
+    @property
+    def unacked(self) -> int:
+        """Messages sent and not yet acknowledged."""
+        return len(self._unacked)
+
+    async def _run(self) -> None:
+        backoff = BACKOFF_INITIAL_S
+        while True:
+            try:
+                await self._stream_once()
+                backoff = BACKOFF_INITIAL_S
+            except asyncio.CancelledError:
+                raise
+            except grpc.aio.AioRpcError as exc:
+                self._log.warning(
+                    "ring stream down; reconnecting",
+                    code=exc.code().name,
+                    detail=exc.details(),
+                    retry_in_s=backoff,
+                )
+            except Exception as exc:
+                self._log.error("ring stream failed; reconnecting", error=repr(exc), exc_info=True)
+            self.stream_up = False
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, BACKOFF_MAX_S)
+
+    async def _stream_once(self) -> None:
+        async with aio_channel(self.address) as channel:
+            stub = ring_pb2_grpc.ControllerRingStub(channel)
+            call = stub.LogRing(wait_for_ready=True)
+            hello = await call.read()
+            if hello is grpc.aio.EOF or not hello.hello:
+                raise ConnectionError(f"peer {self.peer_id} did not greet the ring stream")
+            self.stream_up = True
+            self.counters.connects += 1
+            self._log.info("ring stream up", peer_lognr=hello.lognr)
+            # Whatever the peer does not hold yet is re-sent (a restarted peer
+            # holds nothing and gets the whole history).
+            for lognr, message in self._history.items():
+                if lognr > hello.lognr:
+                    self._unacked.setdefault(lognr, message)
+            acks = asyncio.create_task(self._read_acks(call))
+            try:
+                sent: set[int] = set()
+                while True:
+                    pending = [n for n in sorted(self._unacked) if n not in sent]
+                    if not pending:
+                        self._wakeup.clear()
+                        waiter = asyncio.create_task(self._wakeup.wait())
+                        done, _ = await asyncio.wait(
+                            {waiter, acks}, return_when=asyncio.FIRST_COMPLETED
+                        )
+                        waiter.cancel()
+                        if acks in done:
+                            acks.result()  # raises the stream's error
+                            raise ConnectionError(f"peer {self.peer_id} closed the ring stream")
+                        continue
+                    for lognr in pending:
+                        await self._write(call, self._unacked[lognr])
+                        sent.add(lognr)
+            finally:
+                acks.cancel()
+                call.cancel()
+
+    async def _write(self, call: grpc.aio.StreamStreamCall, message: ring_pb2.LogMessage) -> None:
+        for frame in frames(message, self.my_id):
+            await call.write(frame)
+            self.counters.sent_bytes += len(frame.data)
+        self.counters.sent_messages += 1
+
+    async def _read_acks(self, call: grpc.aio.StreamStreamCall) -> None:
+        async for ack in _acks(call):
+            message = self._unacked.pop(ack.lognr, None)
+            self.counters.acked += 1
+            if message is not None and self.on_delivered is not None:
+                self.on_delivered(self.peer_id, ack.lognr, time.time())
+
+
+async def _acks(call: grpc.aio.StreamStreamCall) -> AsyncIterator[ring_pb2.LogAck]:
+    while True:
+        ack = await call.read()
+        if ack is grpc.aio.EOF:
+            return
+        yield ack
+
+
+class RingReceiver:
+    """The receiving end of LogRing streams: reassembles frames, hands messages on, acks."""
+
+    def __init__(
+        self,
+        my_id: int,
+        current_lognr: Callable[[], int],
+        deliver: Callable[[ring_pb2.LogMessage], Awaitable[None]],
+        log: BoundLogger,
+    ) -> None:
+        self.my_id = my_id
+        self._current_lognr = current_lognr
+        self._deliver = deliver
+        self._log = log
+
+    async def serve(self, context: grpc.aio.ServicerContext) -> None:
+        """Runs one incoming stream until the sender closes it."""
+        await context.write(
+            ring_pb2.LogAck(lognr=self._current_lognr(), hello=True, receiver_id=self.my_id)
+        )
+        reassembler = Reassembler()
+        while True:
+            frame = await context.read()
+            if frame is grpc.aio.EOF:
+                return
+            try:
+                message = reassembler.add(frame)
+            except ValueError as exc:
+                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
+                return
+            if message is None:
+                continue
+            await self._deliver(message)
+            await context.write(ring_pb2.LogAck(lognr=message.lognr, receiver_id=self.my_id))

@@ -1,0 +1,150 @@
+"""The controller's gRPC face: the drone-API proxy and the ControllerRing service.
+
+The proxy serves the same Mobility, Camera and Clock services as the drone,
+built from the proto descriptors with one generic handler, so a method added
+to the contract is proxied without code here. Request and reply stay
+serialized end to end: the controller logs and forwards bytes.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Awaitable, Callable
+
+import grpc
+from google.protobuf import message as protobuf_message
+
+from baton.controller.node import CLOCK_SLEEP, ControllerNode
+from baton.controller.ring import RingReceiver
+from baton.rpc.errors import StatusError, abort_with
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import ring_pb2, ring_pb2_grpc
+
+_STATUS_BY_CODE = {code.value[0]: code for code in grpc.StatusCode}
+PROXIED_SERVICES = ("Mobility", "Camera", "Clock")
+
+
+def proxied_methods() -> dict[str, type[protobuf_message.Message]]:
+    """Full gRPC method name -> request message class, for every drone-API method."""
+    methods: dict[str, type[protobuf_message.Message]] = {}
+    for service_name in PROXIED_SERVICES:
+        service = api.DESCRIPTOR.services_by_name[service_name]
+        for method in service.methods:
+            request_class = getattr(api, method.input_type.name)
+            methods[f"/{service.full_name}/{method.name}"] = request_class
+    return methods
+
+
+def status_of(code: int) -> grpc.StatusCode:
+    """The grpc.StatusCode with numeric value ``code``."""
+    return _STATUS_BY_CODE.get(code, grpc.StatusCode.UNKNOWN)
+
+
+class DroneApiProxy(grpc.GenericRpcHandler):
+    """Answers the local mission program's drone-API calls through the controller."""
+
+    def __init__(self, node: ControllerNode) -> None:
+        self._node = node
+        self._methods = proxied_methods()
+
+    def service(
+        self, handler_call_details: grpc.HandlerCallDetails
+    ) -> grpc.RpcMethodHandler | None:
+        """The raw-bytes handler of a drone-API method, None for other methods."""
+        method = handler_call_details.method
+        request_class = self._methods.get(method)
+        if request_class is None:
+            return None
+        return grpc.unary_unary_rpc_method_handler(self._handler(method, request_class))
+
+    def _handler(
+        self, method: str, request_class: type[protobuf_message.Message]
+    ) -> Callable[[bytes, grpc.aio.ServicerContext], Awaitable[bytes]]:
+        async def handle(request: bytes, context: grpc.aio.ServicerContext) -> bytes:
+            try:
+                parsed = request_class.FromString(request)
+            except protobuf_message.DecodeError as exc:
+                await context.abort(
+                    grpc.StatusCode.INVALID_ARGUMENT,
+                    f"{method}: payload is not a {request_class.__name__}: {exc}",
+                )
+            try:
+                if method == CLOCK_SLEEP:
+                    return await self._sleep(parsed)
+                entry = await self._node.call(method, request)
+            except StatusError as exc:
+                await abort_with(context, exc)
+            if entry.status_code != 0:
+                await context.abort(status_of(entry.status_code), entry.status_message)
+            return bytes(entry.reply)
+
+        return handle
+
+    async def _sleep(self, request: protobuf_message.Message) -> bytes:
+        assert isinstance(request, api.SleepRequest)
+        seconds = request.seconds
+        if not math.isfinite(seconds) or seconds < 0:
+            raise StatusError(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"Clock.Sleep: seconds must be finite and >= 0, got {seconds}",
+            )
+        await self._node.sleep(seconds)
+        return api.SleepReply().SerializeToString()
+
+
+class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
+    """LogRing, GetStatus and MissionDone of one controller."""
+
+    def __init__(self, node: ControllerNode) -> None:
+        self._node = node
+        self._receiver = RingReceiver(node.id, lambda: node.protocol.lognr, node.on_log, node.log)
+
+    async def LogRing(self, request_iterator: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[override]
+        """Receives log messages from a predecessor or an old master, acknowledging each."""
+        await self._receiver.serve(context)
+
+    async def GetStatus(
+        self, request: ring_pb2.GetControllerStatusRequest, context: grpc.aio.ServicerContext
+    ) -> ring_pb2.ControllerStatus:
+        """The controller's state, counters and peer streams."""
+        return controller_status(self._node)
+
+    async def MissionDone(
+        self, request: ring_pb2.MissionDoneRequest, context: grpc.aio.ServicerContext
+    ) -> ring_pb2.MissionDoneReply:
+        """The local mission program ended; the master flushes its last log entries."""
+        flushed = await self._node.mission_done(request.failed, request.error)
+        return ring_pb2.MissionDoneReply(flushed=flushed, lognr=self._node.protocol.lognr)
+
+
+def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
+    """A ControllerStatus snapshot of ``node``."""
+    p = node.protocol
+    return ring_pb2.ControllerStatus(
+        id=node.id,
+        state=p.state.value,
+        master=p.master,
+        reqnr=p.reqnr,
+        lognr=p.lognr,
+        log_bytes=p.log.size,
+        log_entries=len(p.log),
+        queue_length=len(p.log_queue),
+        peers=[
+            ring_pb2.PeerStatus(
+                id=pid,
+                address=link.address,
+                stream_up=link.stream_up,
+                unacked=link.unacked,
+                connects=link.counters.connects,
+            )
+            for pid, link in sorted(node.peers.items())
+        ],
+        predecessor=p.predecessor,
+        successor=p.successor,
+        mission=node.mission,
+        mission_error=node.mission_error,
+        replayed=p.replayed,
+        invoked=p.invoked,
+        reply_chain=node.reply_chain,
+        drone_connected=node.drone_connected,
+    )
