@@ -1,0 +1,203 @@
+"""``baton link``: run one link emulator in front of a TCP service.
+
+    baton link --listen 127.0.0.1:0 --target 127.0.0.1:7100 --latency 20ms --bandwidth 25Mbit
+
+prints ``{"event": "listening", "address": "127.0.0.1:N"}`` on stdout once it
+accepts connections, logs its counters periodically and on exit, and exits
+cleanly on SIGTERM or SIGINT.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from baton.config import LinkSpec, parse_address, parse_duration, parse_rate
+
+UNLIMITED = ("unlimited", "none")
+
+
+def _option_type(parse: Callable[[str], Any], name: str) -> Callable[[str], Any]:
+    """An argparse type whose error is the parser's own message (with its example)."""
+
+    def convert(text: str) -> Any:
+        try:
+            return parse(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    convert.__name__ = name
+    return convert
+
+
+def _parse_bandwidth(text: str) -> float:
+    # inf, not None: None means "option not given" (inherit --bandwidth).
+    return math.inf if text.strip().lower() in UNLIMITED else parse_rate(text)
+
+
+_address = _option_type(parse_address, "address")
+_duration = _option_type(parse_duration, "duration")
+_bandwidth = _option_type(_parse_bandwidth, "bandwidth")
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Adds ``baton link``."""
+    parser = subparsers.add_parser(
+        "link",
+        help="TCP proxy that emulates a link's latency and bandwidth",
+        description=(
+            "Forwards every connection accepted on --listen to --target, delaying each "
+            "direction like a serial line of the given bandwidth followed by the given "
+            "latency (a transfer of S bytes takes latency + 8*S/bandwidth). "
+            "'up' is client -> target, 'down' is target -> client."
+        ),
+    )
+    parser.add_argument(
+        "--listen",
+        type=_address,
+        default="127.0.0.1:0",
+        metavar="HOST:PORT",
+        help="address to accept connections on; port 0 picks a free one (default: 127.0.0.1:0)",
+    )
+    parser.add_argument(
+        "--target",
+        type=_address,
+        required=True,
+        metavar="HOST:PORT",
+        help="address every connection is forwarded to",
+    )
+    parser.add_argument(
+        "--latency",
+        type=_duration,
+        default=0.0,
+        metavar="DURATION",
+        help="one-way delay in both directions, e.g. 20ms (default: 0)",
+    )
+    parser.add_argument(
+        "--bandwidth",
+        type=_bandwidth,
+        default=None,
+        metavar="RATE",
+        help="rate in both directions, e.g. 25Mbit, or 'unlimited' (default: unlimited)",
+    )
+    for direction, what in (("up", "client -> target"), ("down", "target -> client")):
+        parser.add_argument(
+            f"--{direction}-latency",
+            type=_duration,
+            default=None,
+            metavar="DURATION",
+            help=f"one-way delay {what}; overrides --latency",
+        )
+        parser.add_argument(
+            f"--{direction}-bandwidth",
+            type=_bandwidth,
+            default=None,
+            metavar="RATE",
+            help=f"rate {what}, or 'unlimited'; overrides --bandwidth",
+        )
+    parser.add_argument(
+        "--off",
+        action="store_true",
+        help="no emulation: pass bytes straight through (cannot be combined with shaping options)",
+    )
+    parser.add_argument(
+        "--address-file",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="also write the listening address to this file (atomically) once listening",
+    )
+    parser.add_argument(
+        "--report-interval",
+        type=_duration,
+        default=10.0,
+        metavar="DURATION",
+        help="log the counters this often when they changed; 0 logs them only on exit "
+        "(default: 10s)",
+    )
+    parser.set_defaults(run=run, link_parser=parser)
+
+
+def link_specs(args: argparse.Namespace) -> tuple[LinkSpec, LinkSpec]:
+    """The (up, down) link specs the options describe."""
+    shaping = [
+        "latency",
+        "bandwidth",
+        "up_latency",
+        "up_bandwidth",
+        "down_latency",
+        "down_bandwidth",
+    ]
+    if args.off:
+        given = [f"--{name.replace('_', '-')}" for name in shaping if getattr(args, name)]
+        if given:
+            args.link_parser.error(f"--off passes bytes straight through; drop {', '.join(given)}")
+        return LinkSpec(), LinkSpec()
+    specs = []
+    for direction in ("up", "down"):
+        latency = getattr(args, f"{direction}_latency")
+        bandwidth = getattr(args, f"{direction}_bandwidth")
+        if bandwidth is None:
+            bandwidth = args.bandwidth
+        specs.append(
+            LinkSpec(
+                latency=args.latency if latency is None else latency,
+                bandwidth=None if bandwidth == math.inf else bandwidth,
+            )
+        )
+    return specs[0], specs[1]
+
+
+def write_address_file(path: Path, address: str) -> None:
+    """Writes ``address`` so that a reader never sees a partial file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(address + "\n")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def run(args: argparse.Namespace) -> int:
+    """Runs the link until SIGTERM or SIGINT."""
+    import asyncio
+
+    from baton.link.proxy import LinkProxy
+    from baton.rpc.server import run_until_signalled
+
+    up, down = link_specs(args)
+
+    async def serve(stop: asyncio.Event) -> int:
+        proxy = LinkProxy(args.listen, args.target, up, down)
+        try:
+            await proxy.start()
+        except OSError as exc:
+            proxy.log.error(f"cannot listen on {args.listen}: {exc.strerror or exc}")
+            return 1
+        if args.address_file is not None:
+            write_address_file(args.address_file, proxy.address)
+        print(json.dumps({"event": "listening", "address": proxy.address}), flush=True)
+        try:
+            reported = proxy.counters.as_fields()
+            interval = args.report_interval or None
+            while not stop.is_set():
+                try:
+                    await asyncio.wait_for(stop.wait(), interval)
+                except TimeoutError:
+                    if proxy.counters.as_fields() != reported:
+                        reported = proxy.counters.as_fields()
+                        proxy.log.info("link counters", **reported)
+        finally:
+            await proxy.stop()  # logs the final counters
+        return 0
+
+    return asyncio.run(run_until_signalled(serve))

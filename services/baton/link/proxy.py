@@ -1,0 +1,290 @@
+"""The link emulator: a TCP proxy that delays and rate-limits each direction.
+
+Every accepted connection is forwarded to one target. Each direction reads
+chunks from its source while its in-flight amount is below a bound (so a
+64 MB transfer holds a few MB at most, and the sender feels backpressure),
+asks its ``SerialLine`` when each chunk arrives, and writes it to the sink
+at that time. End of stream and resets travel the same way, behind the data
+sent before them: a half-close stays a half-close, a reset becomes a reset.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import socket
+import struct
+from collections import deque
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from baton.config import LinkSpec
+from baton.link.shaper import SerialLine
+from baton.logs import get_logger
+
+# Bytes asked of the source per read.
+READ_BYTES = 64 << 10
+
+
+class _Signal(enum.Enum):
+    EOF = "eof"  # the source half-closed: pass the half-close on
+    RESET = "reset"  # the source failed: reset the sink and drop the connection
+
+
+@dataclass
+class LinkCounters:
+    """What a link has carried since it started."""
+
+    connections: int = 0  # accepted from clients
+    active: int = 0  # open now
+    failed: int = 0  # accepted, but the target refused or was unreachable
+    bytes_up: int = 0  # client -> target, delivered
+    bytes_down: int = 0  # target -> client, delivered
+    peak_in_flight: int = 0  # most bytes one direction held at once (the buffering bound)
+
+    def as_fields(self) -> dict[str, int]:
+        """The counters as log fields."""
+        return asdict(self)
+
+
+def _split_address(address: str) -> tuple[str, int]:
+    host, _, port = address.rpartition(":")
+    return host.strip("[]"), int(port)
+
+
+def reset_connection(writer: asyncio.StreamWriter) -> None:
+    """Closes a connection with a TCP reset, so the peer sees a reset, not an end of stream."""
+    sock = writer.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    writer.transport.abort()
+
+
+class _Direction:
+    """One direction of one connection: source -> serial line -> sink."""
+
+    def __init__(
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        spec: LinkSpec,
+        on_delivered: Callable[[int], None],
+        on_in_flight: Callable[[int], None],
+    ) -> None:
+        self.reader = reader
+        self.writer = writer
+        self.line = SerialLine(spec)
+        self.in_flight = 0
+        self._on_delivered = on_delivered
+        self._on_in_flight = on_in_flight
+        self._pending: deque[tuple[float, bytes | _Signal]] = deque()
+        self._arrived = asyncio.Event()
+        self._room = asyncio.Event()
+        self._room.set()
+
+    def _enqueue(self, arrival: float, item: bytes | _Signal) -> None:
+        self._pending.append((arrival, item))
+        self._arrived.set()
+
+    async def _receive(self) -> None:
+        loop = asyncio.get_running_loop()
+        bound = self.line.max_in_flight
+        while True:
+            # Backpressure: stop reading while the line holds enough to stay busy.
+            while self.in_flight >= bound:
+                self._room.clear()
+                await self._room.wait()
+            try:
+                data = await self.reader.read(READ_BYTES)
+            except (ConnectionError, OSError):
+                self._enqueue(self.line.close_time(loop.time()), _Signal.RESET)
+                return
+            now = loop.time()
+            if not data:
+                self._enqueue(self.line.close_time(now), _Signal.EOF)
+                return
+            self.in_flight += len(data)
+            self._on_in_flight(self.in_flight)
+            offset = 0
+            for arrival, length in self.line.segments(now, len(data)):
+                self._enqueue(arrival, data[offset : offset + length])
+                offset += length
+
+    async def _deliver(self) -> _Signal:
+        """Writes each segment at its arrival time; returns how the stream ended."""
+        loop = asyncio.get_running_loop()
+        while True:
+            while not self._pending:
+                self._arrived.clear()
+                await self._arrived.wait()
+            arrival, item = self._pending[0]
+            delay = arrival - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+                continue
+            if isinstance(item, _Signal):
+                self._pending.popleft()
+                if item is _Signal.EOF and self.writer.can_write_eof():
+                    self.writer.write_eof()
+                return item
+            # Everything due by now goes out in one write.
+            now = loop.time()
+            batch = []
+            while self._pending and self._pending[0][0] <= now:
+                head = self._pending[0][1]
+                if isinstance(head, _Signal):
+                    break
+                batch.append(head)
+                self._pending.popleft()
+            size = sum(map(len, batch))
+            self.writer.write(b"".join(batch))
+            await self.writer.drain()
+            self._on_delivered(size)
+            self.in_flight -= size
+            self._room.set()
+
+    async def run(self) -> _Signal:
+        """Forwards until the source ends; RESET also when the sink fails."""
+        receiving = asyncio.create_task(self._receive())
+        try:
+            return await self._deliver()
+        except (ConnectionError, OSError):
+            return _Signal.RESET
+        finally:
+            receiving.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await receiving
+
+
+class LinkProxy:
+    """A TCP proxy from ``listen`` to ``target`` that emulates a link.
+
+    ``up`` shapes client -> target, ``down`` target -> client. Use inside one
+    event loop: ``await proxy.start()``, then connect to ``proxy.address``;
+    ``await proxy.stop()`` closes the listener and every connection.
+    """
+
+    def __init__(self, listen: str, target: str, up: LinkSpec, down: LinkSpec) -> None:
+        self.listen = listen
+        self.target = target
+        self.up = up
+        self.down = down
+        self.counters = LinkCounters()
+        self.address = listen
+        self.log = get_logger("link").bind(target=target)
+        self._server: asyncio.Server | None = None
+        self._connections: set[asyncio.Task[None]] = set()
+        self._writers: set[asyncio.StreamWriter] = set()
+
+    async def start(self) -> None:
+        """Starts listening; ``address`` then holds the bound port."""
+        host, port = _split_address(self.listen)
+        self._server = await asyncio.start_server(
+            self._serve, host, port, limit=READ_BYTES, reuse_address=True
+        )
+        bound_port = self._server.sockets[0].getsockname()[1]
+        self.address = f"{self.listen.rpartition(':')[0]}:{bound_port}"
+        self.log = self.log.bind(listen=self.address)
+        self.log.info(
+            "link listening",
+            up=self.up.model_dump(),
+            down=self.down.model_dump(),
+        )
+
+    async def stop(self) -> None:
+        """Closes the listener, resets open connections and logs the counters."""
+        if self._server is not None:
+            self._server.close()
+        for writer in list(self._writers):
+            reset_connection(writer)
+        for task in list(self._connections):
+            task.cancel()
+        await asyncio.gather(*self._connections, return_exceptions=True)
+        if self._server is not None:
+            await self._server.wait_closed()
+            self._server = None
+        self.log.info("link stopped", **self.counters.as_fields())
+
+    async def __aenter__(self) -> LinkProxy:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: Any) -> None:
+        await self.stop()
+
+    async def _serve(
+        self, client_reader: asyncio.StreamReader, client: asyncio.StreamWriter
+    ) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        self._connections.add(task)
+        self._writers.add(client)
+        self.counters.connections += 1
+        self.counters.active += 1
+        peer = client.get_extra_info("peername")
+        try:
+            try:
+                host, port = _split_address(self.target)
+                target_reader, target = await asyncio.open_connection(host, port, limit=READ_BYTES)
+            except OSError as exc:
+                self.counters.failed += 1
+                self.log.warning("target unreachable; resetting the client", error=str(exc))
+                reset_connection(client)
+                return
+            self._writers.add(target)
+            try:
+                await self._forward(client_reader, client, target_reader, target)
+            except asyncio.CancelledError:
+                # stop() ends connections this way; asyncio's server callback would
+                # report a cancelled handler as an error, so it ends quietly here.
+                return
+            finally:
+                self._writers.discard(target)
+        finally:
+            self._writers.discard(client)
+            self.counters.active -= 1
+            self.log.debug("connection closed", peer=str(peer))
+
+    def _count_up(self, size: int) -> None:
+        self.counters.bytes_up += size
+
+    def _count_down(self, size: int) -> None:
+        self.counters.bytes_down += size
+
+    def _note_in_flight(self, size: int) -> None:
+        self.counters.peak_in_flight = max(self.counters.peak_in_flight, size)
+
+    async def _forward(
+        self,
+        client_reader: asyncio.StreamReader,
+        client: asyncio.StreamWriter,
+        target_reader: asyncio.StreamReader,
+        target: asyncio.StreamWriter,
+    ) -> None:
+        up = _Direction(client_reader, target, self.up, self._count_up, self._note_in_flight)
+        down = _Direction(target_reader, client, self.down, self._count_down, self._note_in_flight)
+        tasks = {asyncio.create_task(up.run()), asyncio.create_task(down.run())}
+        try:
+            pending = tasks
+            while pending:
+                done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
+                if any(t.result() is _Signal.RESET for t in done):
+                    # A reset on either side (or a sink that went away) ends both directions.
+                    reset_connection(client)
+                    reset_connection(target)
+                    break
+            else:
+                # Both sides half-closed and all data arrived: close normally.
+                client.close()
+                target.close()
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            if client.transport.is_closing() is False:
+                reset_connection(client)
+            if target.transport.is_closing() is False:
+                reset_connection(target)
