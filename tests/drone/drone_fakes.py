@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import grpc
+
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
 

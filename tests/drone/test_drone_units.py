@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import grpc
 import pytest
+from drone_fakes import FakeMobility
+
 from baton.drone.camera import Camera, image_size, parse_resolution
 from baton.drone.dedupe import ReplyCache, request_digest
 from baton.drone.dispatch import Dispatcher, drone_api_routes
 from baton.drone.master import HandoverScriptError, load_handover_script, parse_handover_script
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
-from drone_fakes import FakeMobility
 
 ALL_METHODS = sorted(drone_api_routes())
 

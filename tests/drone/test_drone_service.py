@@ -1,0 +1,263 @@
+"""The Drone service over real gRPC channels, with the fake vehicle in-process."""
+
+from __future__ import annotations
+
+import asyncio
+
+import grpc
+import pytest
+from drone_harness import DroneUnderTest, start_drone
+from google.protobuf.message import Message
+
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2
+
+POSITION = "/baton.v1.Mobility/GetPosition"
+ARM = "/baton.v1.Mobility/Arm"
+TAKEOFF = "/baton.v1.Mobility/Takeoff"
+
+
+def invoke(
+    cid: int, reqnr: int, method: str, request: Message | None = None
+) -> drone_pb2.InvokeRequest:
+    payload = request.SerializeToString() if request is not None else b""
+    return drone_pb2.InvokeRequest(controller_id=cid, reqnr=reqnr, method=method, payload=payload)
+
+
+async def expect_error(call, code: grpc.StatusCode) -> grpc.aio.AioRpcError:  # type: ignore[no-untyped-def]
+    with pytest.raises(grpc.aio.AioRpcError) as info:
+        await call
+    assert info.value.code() == code, info.value.details()
+    return info.value
+
+
+def trailing(error: grpc.aio.AioRpcError) -> dict[str, str]:
+    return {k: v for k, v in (error.trailing_metadata() or ())}
+
+
+async def test_master_invokes_in_order(drone: DroneUnderTest) -> None:
+    reply = await drone.stub.Invoke(invoke(0, 1, POSITION))
+    assert reply.reqnr == 1 and not reply.duplicate
+    assert api.GetPositionReply.FromString(reply.payload).position.latitude_deg == pytest.approx(
+        47.397742
+    )
+    await drone.stub.Invoke(invoke(0, 2, ARM))
+    await drone.stub.Invoke(invoke(0, 3, TAKEOFF, api.TakeoffRequest(altitude_m=10)))
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest(include_audit=True))
+    assert (status.last_reqnr, status.executed, status.master) == (3, 3, 0)
+    assert [a.method for a in status.audit] == [POSITION, ARM, TAKEOFF]
+    assert status.position.relative_altitude_m == 10
+    assert status.flight_state.armed and status.flight_state.in_air
+    assert list(status.controllers) == [0, 1, 2]
+    assert status.vehicle_connected and status.vehicle_url == "fake://vehicle"
+
+
+async def test_non_master_is_refused_with_master_metadata(drone: DroneUnderTest) -> None:
+    await drone.stub.Invoke(invoke(0, 1, POSITION))
+    error = await expect_error(
+        drone.stub.Invoke(invoke(2, 2, ARM)), grpc.StatusCode.FAILED_PRECONDITION
+    )
+    assert "master is controller 0" in (error.details() or "")
+    assert trailing(error) == {"baton-master": "0", "baton-after-reqnr": "1"}
+    assert "Arm" not in drone.vehicle.calls
+    assert (await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())).rejected == 1
+
+
+async def test_duplicate_answered_from_cache_and_executed_once(drone: DroneUnderTest) -> None:
+    first = await drone.stub.Invoke(invoke(0, 1, ARM))
+    again = await drone.stub.Invoke(invoke(0, 1, ARM))
+    assert again.duplicate and again.payload == first.payload and again.reqnr == 1
+    assert drone.vehicle.calls.count("Arm") == 1
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest(include_audit=True))
+    assert (status.executed, status.duplicates, len(status.audit)) == (1, 1, 1)
+
+
+async def test_duplicate_with_another_request_is_refused(drone: DroneUnderTest) -> None:
+    await drone.stub.Invoke(invoke(0, 1, ARM))
+    error = await expect_error(
+        drone.stub.Invoke(invoke(0, 1, POSITION)), grpc.StatusCode.FAILED_PRECONDITION
+    )
+    assert "served as /baton.v1.Mobility/Arm" in (error.details() or "")
+    assert "re-sent as /baton.v1.Mobility/GetPosition" in (error.details() or "")
+
+
+@pytest.mark.parametrize("reqnr", [2, 5])
+async def test_wrong_reqnr_names_the_expected_one(drone: DroneUnderTest, reqnr: int) -> None:
+    error = await expect_error(
+        drone.stub.Invoke(invoke(0, reqnr, POSITION)), grpc.StatusCode.FAILED_PRECONDITION
+    )
+    assert "expected reqnr 1" in (error.details() or "")
+    assert trailing(error)["baton-after-reqnr"] == "0"
+
+
+async def test_reqnr_zero_is_invalid(drone: DroneUnderTest) -> None:
+    await expect_error(drone.stub.Invoke(invoke(0, 0, POSITION)), grpc.StatusCode.INVALID_ARGUMENT)
+
+
+@pytest.mark.parametrize(
+    ("method", "payload", "code", "detail"),
+    [
+        ("/baton.v1.Mobility/Fly", b"", grpc.StatusCode.UNIMPLEMENTED, "unknown drone-API method"),
+        ("/baton.v1.Clock/Now", b"", grpc.StatusCode.UNIMPLEMENTED, "Clock is answered by"),
+        (
+            TAKEOFF,
+            b"\xff\xff",
+            grpc.StatusCode.INVALID_ARGUMENT,
+            "is not a baton.v1.TakeoffRequest",
+        ),
+        (
+            "/baton.v1.Camera/SetResolution",
+            api.SetResolutionRequest(width=8, height=8).SerializeToString(),
+            grpc.StatusCode.INVALID_ARGUMENT,
+            "width 8 is out of range",
+        ),
+        (TAKEOFF, b"", grpc.StatusCode.ABORTED, "not armed"),
+    ],
+)
+async def test_failed_requests_use_their_reqnr_and_replay_their_failure(
+    drone: DroneUnderTest, method: str, payload: bytes, code: grpc.StatusCode, detail: str
+) -> None:
+    request = drone_pb2.InvokeRequest(controller_id=0, reqnr=1, method=method, payload=payload)
+    error = await expect_error(drone.stub.Invoke(request), code)
+    assert detail in (error.details() or "")
+    assert "baton-master" not in trailing(error)
+    again = await expect_error(drone.stub.Invoke(request), code)
+    assert again.details() == error.details() and trailing(again)["baton-duplicate"] == "true"
+    assert (await drone.stub.Invoke(invoke(0, 2, POSITION))).reqnr == 2
+
+
+async def test_vehicle_not_connected_is_unavailable(drone: DroneUnderTest) -> None:
+    drone.vehicle.is_connected = False
+    await expect_error(drone.stub.Invoke(invoke(0, 1, POSITION)), grpc.StatusCode.UNAVAILABLE)
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    assert not status.vehicle_connected and status.position.latitude_deg == 0
+
+
+async def test_take_picture_through_invoke(drone: DroneUnderTest) -> None:
+    reply = await drone.stub.Invoke(invoke(0, 1, "/baton.v1.Camera/TakePicture"))
+    picture = api.TakePictureReply.FromString(reply.payload)
+    assert (picture.width, picture.height, picture.sequence) == (64, 48, 1)
+    assert len(picture.image) == len(b"P6\n64 48\n255\n") + 64 * 48 * 3
+    assert picture.position.latitude_deg == pytest.approx(47.397742)
+
+
+async def next_event(stream) -> drone_pb2.DroneEvent:  # type: ignore[no-untyped-def]
+    return await asyncio.wait_for(stream.read(), 5)
+
+
+async def test_connect_only_for_the_master(drone: DroneUnderTest) -> None:
+    error = await expect_error(
+        drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=1)).read(),
+        grpc.StatusCode.FAILED_PRECONDITION,
+    )
+    assert trailing(error)["baton-master"] == "0"
+    await expect_error(
+        drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=9)).read(),
+        grpc.StatusCode.INVALID_ARGUMENT,
+    )
+
+
+async def test_handover_rpc_notifies_the_connected_master(drone: DroneUnderTest) -> None:
+    stream = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0))
+    event = await next_event(stream)
+    assert event.connected == drone_pb2.Connected(master=0, last_reqnr=0)
+    assert (await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())).master_connected
+    await drone.stub.Invoke(invoke(0, 1, POSITION))
+    reply = await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=2))
+    assert reply == drone_pb2.HandoverReply(old_master=0, new_master=2, after_reqnr=1)
+    event = await next_event(stream)
+    assert event.handover == drone_pb2.HandoverNotice(old_master=0, new_master=2, after_reqnr=1)
+    assert await next_event(stream) is grpc.aio.EOF
+    await expect_error(
+        drone.stub.Invoke(invoke(0, 2, POSITION)), grpc.StatusCode.FAILED_PRECONDITION
+    )
+    await drone.stub.Invoke(invoke(2, 2, POSITION))
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    record = status.handovers[0]
+    assert (record.old_master, record.new_master, record.after_reqnr, record.trigger) == (
+        0,
+        2,
+        1,
+        "rpc",
+    )
+    assert record.first_request_at >= record.decided_at > 0
+    assert record.delay_s == pytest.approx(record.first_request_at - record.decided_at)
+
+
+async def test_handover_rpc_bad_targets(drone: DroneUnderTest) -> None:
+    await expect_error(
+        drone.stub.Handover(drone_pb2.HandoverRequest(new_master=7)),
+        grpc.StatusCode.INVALID_ARGUMENT,
+    )
+    await expect_error(
+        drone.stub.Handover(drone_pb2.HandoverRequest(new_master=0)),
+        grpc.StatusCode.FAILED_PRECONDITION,
+    )
+
+
+async def test_scripted_handover_after_the_right_request() -> None:
+    drone, server = await start_drone(script="# after 2 to 1\n2 1\n")
+    try:
+        stream = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0))
+        assert (await next_event(stream)).HasField("connected")
+        await drone.stub.Invoke(invoke(0, 1, POSITION))
+        # The reply of the scripted request still goes to the old master.
+        reply = await drone.stub.Invoke(invoke(0, 2, ARM))
+        assert reply.reqnr == 2 and not reply.duplicate
+        event = await next_event(stream)
+        assert event.handover == drone_pb2.HandoverNotice(old_master=0, new_master=1, after_reqnr=2)
+        # The new master re-sends the request in flight at the handover: cached.
+        again = await drone.stub.Invoke(invoke(1, 2, ARM))
+        assert again.duplicate and drone.vehicle.calls.count("Arm") == 1
+        status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert status.master == 1 and status.handovers[0].trigger == "script"
+        assert status.handovers[0].delay_s > 0
+    finally:
+        await server.stop(0)
+
+
+async def test_notice_waits_for_a_disconnected_old_master(drone: DroneUnderTest) -> None:
+    await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1))
+    stream = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0))
+    event = await next_event(stream)
+    assert event.handover == drone_pb2.HandoverNotice(old_master=0, new_master=1, after_reqnr=0)
+    assert await next_event(stream) is grpc.aio.EOF
+    # Delivered once: the next Connect of the old master is refused.
+    await expect_error(
+        drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0)).read(),
+        grpc.StatusCode.FAILED_PRECONDITION,
+    )
+
+
+async def test_reconnect_supersedes_the_old_stream(drone: DroneUnderTest) -> None:
+    first = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0))
+    assert (await next_event(first)).HasField("connected")
+    second = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0))
+    assert (await next_event(second)).HasField("connected")
+    assert await next_event(first) is grpc.aio.EOF
+    await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1))
+    assert (await next_event(second)).HasField("handover")
+
+
+async def test_handover_waits_for_the_request_being_served(drone: DroneUnderTest) -> None:
+    gate = asyncio.Event()
+    original = drone.vehicle.Arm
+
+    async def slow_arm(request: api.ArmRequest) -> api.ArmReply:
+        await gate.wait()
+        return await original(request)
+
+    drone.vehicle.Arm = slow_arm  # type: ignore[method-assign]
+    arm = asyncio.ensure_future(drone.stub.Invoke(invoke(0, 1, ARM)))
+    deadline = asyncio.get_running_loop().time() + 5
+    while not drone.service._lock.locked():
+        assert asyncio.get_running_loop().time() < deadline, "Arm never started"
+        await asyncio.sleep(0.01)
+    handover = asyncio.ensure_future(drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1)))
+    # A negative can only be watched for a while: long enough for a
+    # handover that skipped the lock to have finished.
+    await asyncio.sleep(0.1)
+    assert not handover.done()
+    gate.set()
+    assert (await arm).reqnr == 1
+    assert (await handover).after_reqnr == 1
