@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import grpc
+
 from baton import logs
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api

@@ -29,9 +29,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from pymavlink.dialects.v20 import common as mavlink
+
 from baton import logs
 from baton.sim_vehicle.kinematics import FlightParams, GeoPoint, Kinematics, Phase, Refused
-from pymavlink.dialects.v20 import common as mavlink
 
 # Physics and scheduling tick, in wall seconds.
 TICK_S = 0.02

@@ -1,0 +1,156 @@
+"""The sim vehicle's physics, stepped by hand."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from baton.sim_vehicle.kinematics import (
+    FlightParams,
+    GeoPoint,
+    Kinematics,
+    LocalFrame,
+    LocalPoint,
+    Phase,
+    Refused,
+)
+
+HOME = GeoPoint(47.397742, 8.545594, 488.0)
+
+
+def run(k: Kinematics, seconds: float, dt: float = 0.05) -> None:
+    for _ in range(round(seconds / dt)):
+        k.step(dt)
+
+
+def airborne(altitude: float = 10.0) -> Kinematics:
+    k = Kinematics(HOME)
+    k.arm()
+    k.takeoff(altitude)
+    run(k, altitude / k.params.climb_rate_m_s + 0.5)
+    assert k.phase is Phase.HOLD
+    return k
+
+
+def test_local_frame_round_trip_and_scale() -> None:
+    frame = LocalFrame(HOME)
+    point = LocalPoint(50.0, -30.0, 10.0)
+    back = frame.to_local(frame.to_geo(point))
+    assert back.north_m == pytest.approx(50.0)
+    assert back.east_m == pytest.approx(-30.0)
+    assert back.up_m == pytest.approx(10.0)
+    # One degree of latitude is about 111.2 km.
+    north = frame.to_geo(LocalPoint(111_195.0, 0.0, 0.0))
+    assert north.latitude_deg - HOME.latitude_deg == pytest.approx(1.0, abs=1e-3)
+
+
+def test_takeoff_climbs_at_the_climb_rate_then_holds() -> None:
+    k = Kinematics(HOME, FlightParams(climb_rate_m_s=2.0))
+    k.arm()
+    k.takeoff(10.0)
+    assert k.phase is Phase.TAKEOFF and k.in_air
+    run(k, 2.5)
+    assert k.relative_altitude_m == pytest.approx(5.0)
+    assert k.velocity.up_m == pytest.approx(2.0)
+    run(k, 3.0)
+    assert k.relative_altitude_m == pytest.approx(10.0)
+    assert k.phase is Phase.HOLD
+
+
+def test_takeoff_defaults_to_the_takeoff_altitude_parameter() -> None:
+    k = Kinematics(HOME)
+    k.takeoff_altitude_m = 4.0
+    k.arm()
+    k.takeoff()
+    run(k, 5.0)
+    assert k.relative_altitude_m == pytest.approx(4.0)
+
+
+def test_goto_flies_straight_at_the_cruise_speed() -> None:
+    k = airborne()
+    target = LocalPoint(30.0, 40.0, 10.0)  # 50 m away
+    k.goto(target)
+    run(k, 5.0)
+    assert k.position.horizontal_distance_to(LocalPoint(0, 0, 10)) == pytest.approx(25.0)
+    assert math.degrees(math.atan2(40, 30)) == pytest.approx(k.heading_deg)
+    run(k, 5.5)
+    assert k.position.horizontal_distance_to(target) < 0.02
+    assert k.phase is Phase.HOLD
+
+
+def test_set_speed_changes_the_cruise_speed() -> None:
+    k = airborne()
+    k.set_speed(10.0)
+    k.goto(LocalPoint(100.0, 0.0, 10.0))
+    run(k, 2.0)
+    assert k.position.north_m == pytest.approx(20.0)
+    with pytest.raises(Refused):
+        k.set_speed(0.0)
+
+
+def test_goto_geo_uses_amsl_altitude() -> None:
+    k = airborne()
+    k.goto_geo(GeoPoint(HOME.latitude_deg, HOME.longitude_deg, HOME.altitude_amsl_m + 16.0))
+    run(k, 3.0)
+    assert k.relative_altitude_m == pytest.approx(16.0)
+    assert k.geo_position().altitude_amsl_m == pytest.approx(504.0)
+
+
+def test_land_descends_and_disarms_on_the_ground() -> None:
+    k = airborne(9.0)
+    k.land()
+    assert k.phase is Phase.LAND
+    run(k, 1.0)
+    assert k.relative_altitude_m == pytest.approx(6.0)
+    run(k, 2.5)
+    assert k.phase is Phase.ON_GROUND and not k.armed and not k.in_air
+    assert k.relative_altitude_m == 0.0
+
+
+def test_return_to_launch_flies_home_then_lands() -> None:
+    k = airborne()
+    k.goto(LocalPoint(50.0, 0.0, 10.0))
+    run(k, 11.0)
+    k.return_to_launch()
+    assert k.phase is Phase.RETURN
+    run(k, 10.5)
+    assert k.phase is Phase.LAND
+    assert k.position.horizontal_distance_to(k.home) < 0.02
+    run(k, 4.0)
+    assert k.phase is Phase.ON_GROUND and not k.armed
+
+
+def test_hold_stops_a_goto() -> None:
+    k = airborne()
+    k.goto(LocalPoint(100.0, 0.0, 10.0))
+    run(k, 2.0)
+    k.hold()
+    stopped = k.position
+    run(k, 2.0)
+    assert k.position == stopped and k.phase is Phase.HOLD
+
+
+def test_refusals() -> None:
+    k = Kinematics(HOME)
+    with pytest.raises(Refused, match="not armed"):
+        k.takeoff(10.0)
+    with pytest.raises(Refused, match="take off first"):
+        k.goto(LocalPoint(1.0, 1.0, 10.0))
+    with pytest.raises(Refused):
+        k.return_to_launch()
+    k = airborne()
+    with pytest.raises(Refused, match="disarm in the air"):
+        k.disarm()
+    k.disarm(force=True)
+    assert not k.armed and k.phase is Phase.ON_GROUND
+
+
+def test_arming_sets_home_and_battery_drains_only_when_armed() -> None:
+    k = Kinematics(HOME, FlightParams(battery_drain_pct_s=1.0))
+    run(k, 1.0)
+    assert k.battery_pct == 100.0
+    k.arm()
+    run(k, 2.0)
+    assert k.battery_pct == pytest.approx(98.0)
+    assert k.geo_home() == HOME
