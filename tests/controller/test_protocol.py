@@ -1,0 +1,225 @@
+"""Algorithm 1's state machine, driven by messages in chosen orders (no sockets)."""
+
+from __future__ import annotations
+
+import pytest
+
+from baton.controller.protocol import (
+    ConnectDrone,
+    ControllerProtocol,
+    DisconnectDrone,
+    NonDeterminismError,
+    ProtocolError,
+    SendLog,
+    State,
+    request_digest,
+)
+from baton.v1 import ring_pb2
+
+GET = "/baton.v1.Mobility/GetPosition"
+PICTURE = "/baton.v1.Camera/TakePicture"
+
+
+def entry(
+    reqnr: int, method: str = GET, reply: bytes = b"", request: bytes = b""
+) -> ring_pb2.LogEntry:
+    return ring_pb2.LogEntry(
+        reqnr=reqnr,
+        method=method,
+        reply=reply or f"reply {reqnr}".encode(),
+        request=request,
+        request_digest=request_digest(method, request),
+    )
+
+
+def message(
+    lognr: int, origin: int, reqnrs: range | list[int], handover: bool = False, sender: int = -1
+) -> ring_pb2.LogMessage:
+    return ring_pb2.LogMessage(
+        lognr=lognr,
+        origin=origin,
+        handover=handover,
+        entries=[entry(n) for n in reqnrs],
+        sender=origin if sender < 0 else sender,
+    )
+
+
+def sends(effects: list) -> list[tuple[int, int, bool]]:
+    return [
+        (e.dest, e.message.lognr, e.message.handover) for e in effects if isinstance(e, SendLog)
+    ]
+
+
+def replay_all(p: ControllerProtocol) -> list:
+    effects: list = []
+    while p.state is State.REPLAY:
+        _, more = p.replay(GET, b"")
+        effects.extend(more)
+    return effects
+
+
+def test_initial_master_is_active_and_connects_the_others_passive() -> None:
+    master = ControllerProtocol(0, [0, 1, 2], 0, initial_master=0)
+    other = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
+    assert (master.state, master.master, master.start()) == (State.ACTIVE, True, [ConnectDrone()])
+    assert (other.state, other.master, other.start()) == (State.PASSIVE, False, [])
+    assert (other.predecessor, other.successor) == (0, 2)
+
+
+def test_flush_limit_zero_flushes_after_every_reply() -> None:
+    p = ControllerProtocol(0, [0, 1], 0, initial_master=0)
+    for n in (1, 2, 3):
+        assert sends(p.on_reply(entry(n))) == [(1, n, False)]
+    assert (p.reqnr, p.lognr, len(p.log)) == (3, 3, 0)
+
+
+def test_flush_limit_in_bytes_lets_the_log_exceed_it_by_one_entry() -> None:
+    p = ControllerProtocol(0, [0, 1], flush_limit=1000, initial_master=0)
+    assert p.on_reply(entry(1, reply=b"x" * 400)) == []
+    assert p.on_reply(entry(2, reply=b"x" * 400)) == []
+    effects = p.on_reply(entry(3, reply=b"x" * 5000))  # the paper's "e", a picture
+    (flush,) = [e for e in effects if isinstance(e, SendLog)]
+    assert [x.reqnr for x in flush.message.entries] == [1, 2, 3]
+    assert flush.message.ByteSize() > 1000 + 5000
+    assert p.log.size == 0
+
+
+def test_reply_for_the_wrong_request_number_is_a_protocol_error() -> None:
+    p = ControllerProtocol(0, [0, 1], 0, initial_master=0)
+    with pytest.raises(ProtocolError, match="expected 1"):
+        p.on_reply(entry(2))
+
+
+def test_handover_notice_sends_unflushed_log_to_new_master_with_its_id_as_origin() -> None:
+    p = ControllerProtocol(0, [0, 1, 2, 3], flush_limit=10**6, initial_master=0)
+    p.on_reply(entry(1))
+    p.on_reply(entry(2))
+    effects = p.on_handover_notice(2)
+    assert effects[0] == DisconnectDrone()
+    (send,) = [e for e in effects if isinstance(e, SendLog)]
+    assert (send.dest, send.message.lognr, send.message.origin, send.message.handover) == (
+        2,
+        1,
+        2,
+        True,
+    )
+    assert [x.reqnr for x in send.message.entries] == [1, 2]
+    assert (p.state, p.master, p.lognr) == (State.PASSIVE, False, 1)
+    assert p.on_handover_notice(2) == []  # a repeated notice changes nothing
+
+
+def test_passive_controller_replays_an_in_order_message_and_forwards_it() -> None:
+    p = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
+    effects = p.on_log(message(1, origin=0, reqnrs=[1, 2]))
+    assert sends(effects) == [(2, 1, False)]
+    assert p.state is State.REPLAY
+    reply, _ = p.replay(GET, b"")
+    assert reply.reqnr == 1 and p.reqnr == 1
+    _, effects = p.replay(GET, b"")
+    assert p.state is State.PASSIVE and p.reqnr == 2 and effects == []
+
+
+def test_message_is_not_forwarded_to_its_origin() -> None:
+    p = ControllerProtocol(2, [0, 1, 2], 0, initial_master=0)
+    assert sends(p.on_log(message(1, origin=0, reqnrs=[1]))) == []
+
+
+def test_in_order_message_during_replay_is_queued_not_dropped() -> None:
+    """DESIGN.md note 1: line 44 would drop lognr = lognr + 1 arriving in REPLAY."""
+    p = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
+    p.on_log(message(1, origin=0, reqnrs=[1]))
+    p.on_log(message(2, origin=0, reqnrs=[2]))  # arrives while replaying 1
+    p.on_log(message(3, origin=0, reqnrs=[3]))
+    assert p.state is State.REPLAY and sorted(p.log_queue) == [2, 3]
+    replies = [p.replay(GET, b"")[0].reqnr for _ in range(3)]
+    assert replies == [1, 2, 3]
+    assert (p.state, p.lognr, p.log_queue) == (State.PASSIVE, 3, {})
+
+
+def test_handover_message_overtaking_earlier_flushes_waits_for_them() -> None:
+    new = ControllerProtocol(2, [0, 1, 2, 3], 0, initial_master=0)
+    # Flushes 1 and 2 travel around the ring (0 -> 1 -> 2); the handover
+    # message 3 goes straight from 0 to 2 and arrives first.
+    effects = new.on_log(message(3, origin=2, reqnrs=[3], handover=True, sender=0))
+    assert sends(effects) == [(3, 3, False)]  # forwarded at once, as a normal message
+    assert new.state is State.PASSIVE and not new.master and list(new.log_queue) == [3]
+    new.on_log(message(2, origin=0, reqnrs=[2]))
+    assert new.state is State.PASSIVE  # still missing 1
+    new.on_log(message(1, origin=0, reqnrs=[1]))
+    assert new.state is State.REPLAY
+    effects = replay_all(new)
+    assert new.master and new.state is State.ACTIVE and ConnectDrone() in effects
+    assert (new.reqnr, new.lognr) == (3, 3)
+
+
+def test_new_master_with_empty_handover_log_goes_active_at_once() -> None:
+    new = ControllerProtocol(1, [0, 1], 0, initial_master=0)
+    effects = new.on_log(message(1, origin=1, reqnrs=[], handover=True, sender=0))
+    assert new.state is State.ACTIVE and new.master
+    assert ConnectDrone() in effects and sends(effects) == [(0, 1, False)]
+
+
+def test_old_master_forwards_its_own_handover_message_back_but_ignores_it() -> None:
+    """Footnote 3: the old master gets the message back and skips it by lognr."""
+    old = ControllerProtocol(0, [0, 1, 2, 3], 0, initial_master=0)
+    old.on_reply(entry(1))
+    old.on_handover_notice(2)  # lognr 2: the handover message, origin 2
+    back = message(2, origin=2, reqnrs=[], sender=3)
+    effects = old.on_log(back)
+    assert sends(effects) == [(1, 2, False)]  # controller 1 still needs it
+    assert old.state is State.PASSIVE and old.log_queue == {} and old.lognr == 2
+
+
+def test_replicated_message_resent_after_reconnect_is_ignored_whole() -> None:
+    p = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
+    p.on_log(message(1, origin=0, reqnrs=[1]))
+    assert p.on_log(message(1, origin=0, reqnrs=[1])) == []
+
+
+def test_empty_non_handover_message_lets_the_queue_drain() -> None:
+    """The pseudo-code stays PASSIVE after an empty in-order message and never looks at logQ."""
+    p = ControllerProtocol(3, [0, 1, 2, 3], 0, initial_master=0)
+    p.on_log(message(2, origin=1, reqnrs=[1]))  # the new master's first flush, early
+    p.on_log(message(1, origin=1, reqnrs=[], sender=1))  # the (empty) handover message, forwarded
+    assert p.state is State.REPLAY and p.lognr == 2
+
+
+def test_handover_during_an_in_flight_call_leaves_the_reply_to_the_new_master() -> None:
+    """Footnote 2: the notice overtakes the reply of request 3."""
+    old = ControllerProtocol(0, [0, 1], flush_limit=10**6, initial_master=0)
+    new = ControllerProtocol(1, [0, 1], flush_limit=10**6, initial_master=0)
+    old.on_reply(entry(1))
+    old.on_reply(entry(2))
+    # Request 3 is in flight; the drone served it and then sent the notice.
+    (send,) = [e for e in old.on_handover_notice(1) if isinstance(e, SendLog)]
+    with pytest.raises(ProtocolError):
+        old.on_reply(entry(3))  # the runtime discards it instead
+    new.on_log(send.message)
+    replay_all(new)
+    assert new.state is State.ACTIVE and new.reqnr == 2  # re-sends 3; the drone's cache answers
+    flush = new.on_reply(entry(3))
+    assert flush == []  # below the limit: stays in the new master's log
+    assert [x.reqnr for x in new.log.entries] == [3]
+
+
+def test_determinism_guard_shows_both_requests() -> None:
+    p = ControllerProtocol(1, [0, 1], 0, initial_master=0)
+    p.on_log(message(1, origin=0, reqnrs=[1]))
+    with pytest.raises(NonDeterminismError) as caught:
+        p.replay(PICTURE, b"\x08\x01")
+    text = str(caught.value)
+    assert "request 1" in text and GET in text and PICTURE in text and "0801" in text
+    assert p.state is State.REPLAY and p.reqnr == 0  # nothing consumed
+
+
+def test_message_skipping_a_request_number_is_a_protocol_error() -> None:
+    p = ControllerProtocol(1, [0, 1], 0, initial_master=0)
+    with pytest.raises(ProtocolError, match="starts at request 5"):
+        p.on_log(message(1, origin=0, reqnrs=[5]))
+
+
+def test_mission_done_flushes_the_masters_last_entries() -> None:
+    p = ControllerProtocol(0, [0, 1], flush_limit=10**6, initial_master=0)
+    p.on_reply(entry(1))
+    assert sends(p.on_mission_done()) == [(1, 1, False)]
+    assert p.on_mission_done() == []
