@@ -89,7 +89,7 @@ class Ring:
         return p.state is State.REPLAY or (p.state is State.ACTIVE)
 
     def do_link(self, key: tuple[int, int]) -> None:
-        src, dst = key
+        _, dst = key
         self.apply(dst, self.p[dst].on_log(self.links[key].popleft()))
 
     def do_notice(self, cid: int) -> None:

@@ -102,7 +102,7 @@ async def test_a_64_mb_log_message_passes_the_ring() -> None:
 
 async def test_successor_restart_loses_nothing() -> None:
     address = f"127.0.0.1:{free_port()}"
-    server, receiver = await start_receiver(address)
+    server, _ = await start_receiver(address)
     link = PeerLink(0, 1, address, LOG)
     try:
         link.send(big_message(1, 10))
