@@ -16,6 +16,7 @@ from pathlib import Path
 
 import grpc
 import numpy as np
+
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
 

@@ -13,11 +13,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import grpc
-from baton.rpc.errors import StatusError
-from baton.v1 import drone_api_pb2 as api
 from google.protobuf import message_factory
 from google.protobuf.descriptor import ServiceDescriptor
 from google.protobuf.message import DecodeError, Message
+
+from baton.rpc.errors import StatusError
+from baton.v1 import drone_api_pb2 as api
 
 # Services the drone answers itself; Clock is answered by the controller so
 # that every replica of a mission program reads the same (logged) time.

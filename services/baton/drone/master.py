@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import grpc
+
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_pb2

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import grpc
+
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
 from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, ReplyCache, request_digest
 from baton.drone.dispatch import Dispatcher

