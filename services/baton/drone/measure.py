@@ -1,0 +1,117 @@
+"""Measures a running drone service: T_conn, Invoke round trips, picture round trips.
+
+    python -m baton.drone.measure --address HOST:PORT [--controller ID] [--calls 1000]
+
+The measuring controller becomes the master (through the Handover RPC if
+needed) and continues from the drone's last reqnr; the drone's own counters
+and audit then include these calls. Prints one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import statistics
+import time
+
+from baton.rpc.channels import aio_channel
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2, drone_pb2_grpc
+
+
+def percentile(samples: list[float], q: float) -> float:
+    """The q-th percentile (nearest rank) of ``samples``."""
+    ordered = sorted(samples)
+    return ordered[min(len(ordered) - 1, max(0, round(q / 100 * len(ordered)) - 1))]
+
+
+def summary_ms(samples: list[float]) -> dict[str, float]:
+    """p50 / p99 / mean / max of durations in seconds, as milliseconds."""
+    return {
+        "n": len(samples),
+        "p50_ms": round(percentile(samples, 50) * 1e3, 3),
+        "p99_ms": round(percentile(samples, 99) * 1e3, 3),
+        "mean_ms": round(statistics.fmean(samples) * 1e3, 3),
+        "max_ms": round(max(samples) * 1e3, 3),
+    }
+
+
+async def measure(address: str, controller: int, calls: int, pictures: int, connects: int) -> dict:
+    """Runs the three measurements against the drone at ``address``."""
+    channel = aio_channel(address)
+    stub = drone_pb2_grpc.DroneStub(channel)
+    status = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    if status.master != controller:
+        await stub.Handover(drone_pb2.HandoverRequest(new_master=controller))
+    reqnr = status.last_reqnr
+
+    async def connect(connect_stub: drone_pb2_grpc.DroneStub) -> float:
+        start = time.perf_counter()
+        stream = connect_stub.Connect(drone_pb2.ConnectRequest(controller_id=controller))
+        event = await stream.read()
+        elapsed = time.perf_counter() - start
+        assert event.HasField("connected"), event
+        stream.cancel()
+        return elapsed
+
+    # T_conn as a controller that becomes ACTIVE sees it: a new channel (TCP
+    # and HTTP/2 set-up) until the first event; and on an open channel.
+    t_conn_new, t_conn_open = [], []
+    for _ in range(connects):
+        fresh = aio_channel(address)
+        t_conn_new.append(await connect(drone_pb2_grpc.DroneStub(fresh)))
+        await fresh.close()
+        t_conn_open.append(await connect(stub))
+
+    async def invoke(method: str, payload: bytes = b"") -> drone_pb2.InvokeReply:
+        nonlocal reqnr
+        reqnr += 1
+        return await stub.Invoke(
+            drone_pb2.InvokeRequest(
+                controller_id=controller, reqnr=reqnr, method=method, payload=payload
+            )
+        )
+
+    for _ in range(20):  # warm up the channel and the drone's telemetry path
+        await invoke("/baton.v1.Mobility/GetPosition")
+    position = []
+    for _ in range(calls):
+        start = time.perf_counter()
+        await invoke("/baton.v1.Mobility/GetPosition")
+        position.append(time.perf_counter() - start)
+
+    picture, picture_bytes = [], 0
+    for _ in range(pictures):
+        start = time.perf_counter()
+        reply = await invoke("/baton.v1.Camera/TakePicture")
+        picture.append(time.perf_counter() - start)
+        picture_bytes = len(api.TakePictureReply.FromString(reply.payload).image)
+    await channel.close()
+    return {
+        "address": address,
+        "t_conn_new_channel": summary_ms(t_conn_new),
+        "t_conn_open_channel": summary_ms(t_conn_open),
+        "invoke_get_position": summary_ms(position),
+        "invoke_take_picture": {**summary_ms(picture), "image_bytes": picture_bytes},
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m baton.drone.measure``."""
+    parser = argparse.ArgumentParser(prog="python -m baton.drone.measure", description=__doc__)
+    parser.add_argument("--address", required=True, help="HOST:PORT of a running drone service")
+    parser.add_argument("--controller", type=int, default=0, help="controller id to measure as")
+    parser.add_argument("--calls", type=int, default=1000, help="GetPosition calls (default 1000)")
+    parser.add_argument("--pictures", type=int, default=20, help="TakePicture calls (default 20)")
+    parser.add_argument("--connects", type=int, default=20, help="Connect set-ups (default 20)")
+    args = parser.parse_args(argv)
+    result = asyncio.run(
+        measure(args.address, args.controller, args.calls, args.pictures, args.connects)
+    )
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
