@@ -150,3 +150,39 @@ def test_parse_resolution() -> None:
     for bad in ("640", "axb", "8x8", "9000x100"):
         with pytest.raises(ValueError):
             parse_resolution(bad)
+
+
+def _drone_args(*argv: str):  # type: ignore[no-untyped-def]
+    from baton.cli import build_parser
+
+    return build_parser().parse_args(["drone", *argv])
+
+
+def test_cli_settings_from_flags_and_config(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from baton.drone.cli import settings_from_args
+
+    config = tmp_path / "testbed.yaml"
+    config.write_text(
+        "drone: {address: '127.0.0.1:7000', vehicle_url: 'udpout://127.0.0.1:9'}\n"
+        "controllers:\n  - {id: 3, address: '127.0.0.1:7003'}\n"
+        "  - {id: 4, address: '127.0.0.1:7004'}\ninitial_master: 4\nspeedup: 5\n"
+    )
+    settings = settings_from_args(_drone_args("--config", str(config), "--resolution", "32x16"))
+    assert (settings.address, settings.vehicle_url) == ("127.0.0.1:7000", "udpout://127.0.0.1:9")
+    assert (settings.controllers, settings.master, settings.speedup) == ((3, 4), 4, 5.0)
+    assert settings.resolution == (32, 16)
+    flags = settings_from_args(_drone_args("--controllers", "0,1,2", "--address", "127.0.0.1:0"))
+    assert (flags.controllers, flags.master, flags.address) == ((0, 1, 2), 0, "127.0.0.1:0")
+
+
+def test_cli_rejects_bad_handover_file_and_master(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from baton.drone.cli import settings_from_args
+
+    script = tmp_path / "h.txt"
+    script.write_text("3 1\n4 9\n")
+    with pytest.raises(HandoverScriptError, match=r"h\.txt:2: unknown controller id 9"):
+        settings_from_args(_drone_args("--controllers", "0,1", "--handover-file", str(script)))
+    with pytest.raises(ValueError, match="--initial-master 5"):
+        settings_from_args(_drone_args("--controllers", "0,1", "--initial-master", "5"))
+    with pytest.raises(SystemExit):
+        _drone_args("--controllers", "0,0")

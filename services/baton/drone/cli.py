@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
 
 from baton.drone.camera import DEFAULT_RESOLUTION
+
+if TYPE_CHECKING:
+    from baton.drone.service import DroneSettings
 
 
 def _controller_ids(text: str) -> tuple[int, ...]:
@@ -122,7 +126,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.set_defaults(run=run)
 
 
-def settings_from_args(args: argparse.Namespace) -> object:
+def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     """DroneSettings from flags over the optional configuration file."""
     from baton.config import load_config
     from baton.drone.dedupe import DEFAULT_WINDOW
@@ -170,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     from baton.config import ConfigError
     from baton.drone.master import HandoverScriptError
     from baton.drone.mobility import MavsdkMobility
-    from baton.drone.service import DroneSettings, serve
+    from baton.drone.service import serve
     from baton.rpc.server import run_until_signalled
 
     try:
@@ -178,6 +182,5 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigError, HandoverScriptError, ValueError) as exc:
         print(f"baton drone: {exc}", file=sys.stderr)
         return 2
-    assert isinstance(settings, DroneSettings)
     vehicle = MavsdkMobility(settings.vehicle_url)
     return asyncio.run(run_until_signalled(lambda stop: serve(settings, vehicle, stop)))
