@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import AsyncIterator
+from pathlib import Path
 
 import pytest
+
+# The suite runs with --import-mode=importlib, which does not put test folders
+# on sys.path; the link tests share their endpoints from this folder.
+sys.path.insert(0, str(Path(__file__).parent))
+
 from link_endpoints import Echo, Sink
 
 
