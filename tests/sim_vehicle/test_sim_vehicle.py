@@ -11,11 +11,14 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 import grpc
 import pytest
 from pymavlink import mavutil
-from sim_process import SimProcess, eventually, start_sim
 
 from baton.drone.mobility import MavsdkMobility
 from baton.rpc.errors import StatusError
+from baton.sim_vehicle.kinematics import GeoPoint
+from baton.sim_vehicle.server import SimVehicle
 from baton.v1 import drone_api_pb2 as api
+
+from .sim_process import SimProcess, eventually, start_sim
 
 HOME = (47.397742, 8.545594, 488.0)
 METRES_PER_DEG_LAT = 111_194.9
@@ -230,3 +233,46 @@ async def test_bad_arguments_are_invalid(call: str, request_: object, field: str
         await getattr(mobility, call)(request_)
     assert error.value.code is grpc.StatusCode.INVALID_ARGUMENT
     assert field in error.value.message
+
+
+async def test_speed_hold_and_return_to_launch_in_process() -> None:
+    """The in-process SimVehicle API, flown through the other Mobility commands."""
+    vehicle = SimVehicle(GeoPoint(*HOME), speedup=20)
+    vehicle.start()
+    mobility = await connected_mobility(vehicle.url)
+    try:
+
+        async def phase(name: str) -> bool:
+            return vehicle.state().phase == name
+
+        await mobility.Arm(api.ArmRequest())
+        await mobility.Takeoff(api.TakeoffRequest(altitude_m=5))
+        await eventually(lambda: phase("hold"), "holding after takeoff")
+        assert vehicle.state().relative_altitude_m == pytest.approx(5.0)
+
+        await mobility.SetSpeed(api.SetSpeedRequest(speed_m_s=8))
+        assert vehicle.state().speed_m_s == pytest.approx(8.0)
+        far_lat = HOME[0] + 500 / METRES_PER_DEG_LAT
+        await mobility.Goto(
+            api.GotoRequest(latitude_deg=far_lat, longitude_deg=HOME[1], relative_altitude_m=5)
+        )
+
+        async def on_the_way() -> bool:
+            return vehicle.state().phase == "goto" and vehicle.state().latitude_deg > HOME[0]
+
+        await eventually(on_the_way, "flying the goto")
+        await mobility.Hold(api.HoldRequest())
+        await eventually(lambda: phase("hold"), "holding mid-way")
+        assert HOME[0] < vehicle.state().latitude_deg < far_lat
+
+        await mobility.ReturnToLaunch(api.ReturnToLaunchRequest())
+        assert (await flight_state(mobility)).flight_mode in ("HOLD", "RETURN_TO_LAUNCH")
+
+        async def home_and_down() -> bool:
+            state = vehicle.state()
+            return not state.armed and state.latitude_deg == pytest.approx(HOME[0], abs=1e-7)
+
+        await eventually(home_and_down, "back home, landed, disarmed")
+    finally:
+        await mobility.close()
+        vehicle.stop()
