@@ -226,8 +226,8 @@ class LinkProxy:
         self.counters.active += 1
         peer = client.get_extra_info("peername")
         try:
+            host, port = _split_address(self.target)
             try:
-                host, port = _split_address(self.target)
                 target_reader, target = await asyncio.open_connection(host, port, limit=READ_BYTES)
             except OSError as exc:
                 self.counters.failed += 1
@@ -237,13 +237,14 @@ class LinkProxy:
             self._writers.add(target)
             try:
                 await self._forward(client_reader, client, target_reader, target)
-            except asyncio.CancelledError:
-                # stop() ends connections this way; asyncio's server callback would
-                # report a cancelled handler as an error, so it ends quietly here.
-                return
             finally:
                 self._writers.discard(target)
+        except asyncio.CancelledError:
+            # stop() ends connections this way; asyncio's server callback would
+            # report a cancelled handler as an error, so it ends quietly here.
+            reset_connection(client)
         finally:
+            self._connections.discard(task)
             self._writers.discard(client)
             self.counters.active -= 1
             self.log.debug("connection closed", peer=str(peer))
@@ -284,7 +285,6 @@ class LinkProxy:
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
-            if client.transport.is_closing() is False:
-                reset_connection(client)
-            if target.transport.is_closing() is False:
-                reset_connection(target)
+            for writer in (client, target):
+                if not writer.transport.is_closing():
+                    reset_connection(writer)
