@@ -3,8 +3,9 @@
 Take off to ``altitude_m``, visit a ``grid`` x ``grid`` grid of waypoints
 ``spacing_m`` apart (a serpentine, starting above home) at ``speed_m_s``,
 polling the position every ``poll_s`` seconds, take a picture at each
-waypoint, and land. Run it with ``baton controller --mission`` or as its own
-process with ``python -m baton.sdk.run examples/grid_mission.py HOST:PORT``.
+waypoint, and land. Run it with ``baton controller --mission
+examples/grid_mission.py`` or as its own process with ``python -m
+baton.sdk.run examples/grid_mission.py HOST:PORT [grid=3 ...]``.
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ def mission(
         while distance_m(drone.mobility.position(), target) > arrive_m:
             drone.clock.sleep(poll_s)
         picture = drone.camera.take_picture()
+        if distance_m(picture.position, target) > 2 * arrive_m:
+            raise RuntimeError(f"picture {picture.sequence} taken away from waypoint {k}")
         print(
             f"waypoint {k} of {len(targets)}: picture {picture.sequence} "
             f"({len(picture.image)} bytes)",

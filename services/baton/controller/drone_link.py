@@ -20,6 +20,9 @@ from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
+# Longest a call in flight at close may take to finish (a large picture on a slow link).
+CLOSE_GRACE_S = 60.0
+
 NoticeCallback = Callable[[int, int], None]  # (new_master, after_reqnr)
 
 
@@ -103,9 +106,13 @@ class DroneSession:
         return reply
 
     async def close(self) -> None:
-        """Closes the stream and the channel."""
+        """Closes the stream, then the channel once calls in flight have their replies.
+
+        A call in flight at a handover (footnote 2) must complete normally: its
+        reply is then discarded by the controller, not torn down mid-call.
+        """
         if self._events is not None:
             self._events.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._events
-        await self._channel.close()
+        await self._channel.close(grace=CLOSE_GRACE_S)

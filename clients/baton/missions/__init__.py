@@ -1,0 +1,1 @@
+"""Mission programs that ship with baton (the paper's grid mission)."""

@@ -1,0 +1,1 @@
+"""The local testbed: every part as a process on loopback, supervised, with a report."""

@@ -1,0 +1,285 @@
+"""The local testbed: sim vehicle, drone service, links and controllers on loopback.
+
+``LocalTestbed`` starts every part as a real process (``baton sim-vehicle``,
+``baton drone``, ``baton link`` on every link, ``baton controller`` with the
+mission program), writes the testbed configuration they all read, follows the
+mission through the services' status RPCs, and stops everything. The tests,
+``baton testbed`` and the benchmarks all run missions through it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import grpc
+import yaml
+
+from baton.config import BatonConfig, LinkSpec, parse_config
+from baton.missions import grid as grid_mission
+from baton.rpc.channels import aio_channel
+from baton.testbed.supervisor import Supervisor, baton_argv
+from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
+
+GRID_MISSION = Path(grid_mission.__file__)
+
+# The paper's links: 20 ms and 25 Mbit/s between controllers; WiFi to the drone.
+PAPER_CONTROLLER_LINK = LinkSpec(latency=0.020, bandwidth=25e6)
+WIFI_DRONE_LINK = LinkSpec(latency=0.002, bandwidth=20e6)
+
+
+@dataclass(frozen=True)
+class MissionPlan:
+    """The grid mission's parameters (``baton.missions.grid.mission``)."""
+
+    grid: int = 5
+    spacing_m: float = 50.0
+    altitude_m: float = 10.0
+    speed_m_s: float = 5.0
+    poll_s: float = 1.0
+
+    def args(self) -> list[str]:
+        """``--mission-arg`` values for ``baton controller``."""
+        return [f"{name}={value}" for name, value in self.__dict__.items()]
+
+
+@dataclass(frozen=True)
+class TestbedPlan:
+    """What to run: controllers, protocol parameters, handovers, links, mission."""
+
+    __test__ = False  # not a pytest test class, despite its name
+
+    controllers: int = 3
+    flush_limit: int = 2 * 2**20
+    handovers: tuple[tuple[int, int], ...] = ()  # (after reqnr, new master)
+    speedup: float = 10.0
+    mission: MissionPlan = MissionPlan()
+    mission_file: Path = GRID_MISSION
+    emulate_links: bool = True
+    controller_link: LinkSpec = PAPER_CONTROLLER_LINK
+    drone_link: LinkSpec = WIFI_DRONE_LINK
+    base_config: BatonConfig | None = None  # a full testbed file, when given
+    resolution: str | None = None
+
+
+def free_port() -> int:
+    """A TCP port free on loopback now (the caller binds it soon after)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _link_args(spec: LinkSpec) -> list[str]:
+    if not spec.emulated:
+        return ["--off"]
+    args = ["--latency", f"{spec.latency}s"]
+    if spec.bandwidth is not None:
+        args += ["--bandwidth", f"{spec.bandwidth}bit"]
+    return args
+
+
+def handover_file_text(handovers: tuple[tuple[int, int], ...]) -> str:
+    """The drone's handover script: ``reqnr mid`` lines."""
+    return "".join(f"{reqnr} {mid}\n" for reqnr, mid in handovers)
+
+
+@dataclass
+class Snapshot:
+    """The drone's and every controller's status at one moment."""
+
+    drone: drone_pb2.DroneStatus
+    controllers: dict[int, ring_pb2.ControllerStatus] = field(default_factory=dict)
+
+    @property
+    def missions_ended(self) -> bool:
+        """Every controller's mission program has ended (done or failed)."""
+        return all(c.mission in ("done", "failed") for c in self.controllers.values())
+
+    @property
+    def pictures(self) -> int:
+        """Pictures the drone has taken."""
+        return sum(1 for a in self.drone.audit if a.method.endswith("/TakePicture"))
+
+
+class LocalTestbed:
+    """Every part of one testbed run, as supervised processes."""
+
+    def __init__(self, plan: TestbedPlan, workdir: Path) -> None:
+        self.plan = plan
+        self.workdir = workdir
+        self.supervisor = Supervisor(workdir / "logs")
+        self.config: BatonConfig | None = None
+        self.config_path = workdir / "testbed.yaml"
+        self._channels: list[grpc.aio.Channel] = []
+        self.drone_stub: drone_pb2_grpc.DroneStub | None = None
+        self.controller_stubs: dict[int, ring_pb2_grpc.ControllerRingStub] = {}
+
+    # -- start ----------------------------------------------------------------------
+
+    async def start(self) -> BatonConfig:
+        """Starts every part; returns the configuration they run with."""
+        plan = self.plan
+        vehicle_url = await self._start_vehicle()
+        base = plan.base_config
+        if base is not None:
+            ids = base.ring_order
+            own = {c.id: c.address for c in base.controllers}
+            drone_address = base.drone.address
+        else:
+            ids = list(range(plan.controllers))
+            own = {cid: f"127.0.0.1:{free_port()}" for cid in ids}
+            drone_address = f"127.0.0.1:{free_port()}"
+        controllers = []
+        for cid in ids:
+            entry: dict[str, Any] = {"id": cid, "address": own[cid]}
+            if plan.emulate_links:
+                entry["peer_address"] = await self._start_link(
+                    f"link-ring-{cid}", own[cid], plan.controller_link
+                )
+                entry["drone_address"] = await self._start_link(
+                    f"link-drone-{cid}", drone_address, plan.drone_link
+                )
+            if base is not None:
+                original = base.controller(cid)
+                if original.location is not None:
+                    entry["location"] = original.location.model_dump()
+                if original.range_m is not None:
+                    entry["range_m"] = original.range_m
+            controllers.append(entry)
+        document: dict[str, Any] = {
+            "drone": {"address": drone_address, "vehicle_url": vehicle_url},
+            "controllers": controllers,
+            "ring": ids,
+            "initial_master": base.master_id if base is not None else ids[0],
+            "flush_limit": plan.flush_limit,
+            "speedup": plan.speedup,
+        }
+        self.config_path.write_text(yaml.safe_dump(document, sort_keys=False))
+        self.config = parse_config(document, str(self.config_path))
+        await self._start_drone()
+        await self._start_controllers()
+        return self.config
+
+    async def _start_vehicle(self) -> str:
+        ready = self.workdir / "vehicle.url"
+        argv = baton_argv(
+            "sim-vehicle", "--speedup", str(self.plan.speedup), "--url-file", str(ready)
+        )
+        if self.plan.base_config is not None:
+            home = self.plan.base_config.drone.home
+            argv += ["--home", f"{home.latitude_deg},{home.longitude_deg},{home.altitude_m}"]
+        return (await self.supervisor.start_ready("sim-vehicle", argv, ready)).splitlines()[0]
+
+    async def _start_link(self, name: str, target: str, spec: LinkSpec) -> str:
+        ready = self.workdir / f"{name}.address"
+        argv = baton_argv(
+            "link", "--listen", "127.0.0.1:0", "--target", target, *_link_args(spec)
+        ) + ["--address-file", str(ready)]
+        return await self.supervisor.start_ready(name, argv, ready)
+
+    async def _start_drone(self) -> None:
+        assert self.config is not None
+        script = self.workdir / "handovers.txt"
+        script.write_text(handover_file_text(self.plan.handovers))
+        ready = self.workdir / "drone.address"
+        argv = baton_argv(
+            "drone",
+            "--config",
+            str(self.config_path),
+            "--handover-file",
+            str(script),
+            "--address-file",
+            str(ready),
+        )
+        if self.plan.resolution:
+            argv += ["--resolution", self.plan.resolution]
+        address = await self.supervisor.start_ready("drone", argv, ready)
+        channel = aio_channel(address)
+        self._channels.append(channel)
+        self.drone_stub = drone_pb2_grpc.DroneStub(channel)
+
+    async def _start_controllers(self) -> None:
+        assert self.config is not None
+        parts = []
+        for cid in self.config.ring_order:
+            ready = self.workdir / f"controller-{cid}.address"
+            argv = baton_argv(
+                "controller",
+                "--id",
+                str(cid),
+                "--config",
+                str(self.config_path),
+                "--mission",
+                str(self.plan.mission_file),
+                "--address-file",
+                str(ready),
+            )
+            for arg in self.plan.mission.args():
+                argv += ["--mission-arg", arg]
+            parts.append(await self.supervisor.start(f"controller-{cid}", argv, ready))
+        for cid, part in zip(self.config.ring_order, parts, strict=True):
+            address = await self.supervisor.wait_ready(part)
+            channel = aio_channel(address)
+            self._channels.append(channel)
+            self.controller_stubs[cid] = ring_pb2_grpc.ControllerRingStub(channel)
+
+    # -- follow -----------------------------------------------------------------------
+
+    async def snapshot(self, audit: bool = True) -> Snapshot:
+        """The drone's and every controller's status now."""
+        assert self.drone_stub is not None
+        drone = await self.drone_stub.GetStatus(
+            drone_pb2.GetDroneStatusRequest(include_audit=audit), timeout=10
+        )
+        snapshot = Snapshot(drone)
+        for cid, stub in self.controller_stubs.items():
+            snapshot.controllers[cid] = await stub.GetStatus(
+                ring_pb2.GetControllerStatusRequest(), timeout=10
+            )
+        return snapshot
+
+    async def run_mission(
+        self,
+        timeout: float,
+        progress: Callable[[Snapshot], None] | None = None,
+        period: float = 0.5,
+    ) -> Snapshot:
+        """Waits until every mission program has ended; raises if a part dies or time runs out."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            self.supervisor.check()
+            snapshot = await self.snapshot()
+            if progress is not None:
+                progress(snapshot)
+            if snapshot.missions_ended:
+                return snapshot
+            if loop.time() > deadline:
+                states = {
+                    cid: (c.state, c.mission, c.reqnr) for cid, c in snapshot.controllers.items()
+                }
+                raise TimeoutError(
+                    f"mission not finished after {timeout:.0f} s; controllers: {states}"
+                )
+            await asyncio.sleep(period)
+
+    async def stop(self) -> None:
+        """Stops every process and closes the status channels."""
+        for channel in self._channels:
+            await channel.close()
+        await self.supervisor.stop_all()
+
+    async def __aenter__(self) -> LocalTestbed:
+        try:
+            await self.start()
+        except BaseException:
+            await self.stop()
+            raise
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()

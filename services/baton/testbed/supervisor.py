@@ -1,0 +1,172 @@
+"""Starting, watching and stopping baton's processes: one way, for the testbed and the tests.
+
+Each part (sim vehicle, drone service, controllers, links) is a real process
+of the ``baton`` command. Its output goes to a log file; it announces where it
+listens by writing a ready file (``--address-file`` / ``--url-file``).
+``Supervisor`` waits for those files with a deadline, notices when a part
+dies (and shows its last log lines), and stops everything on exit, SIGKILL
+after a grace period, so no process is left behind.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+class PartDied(RuntimeError):
+    """A supervised process exited when it should not have."""
+
+    def __init__(self, part: ManagedProcess) -> None:
+        self.part = part
+        tail = "\n".join(f"    {line}" for line in part.tail(15))
+        super().__init__(
+            f"{part.name} exited with code {part.returncode}; its last log lines "
+            f"({part.log_path}):\n{tail}"
+        )
+
+
+class PartNotReady(RuntimeError):
+    """A supervised process did not announce itself in time."""
+
+
+@dataclass
+class ManagedProcess:
+    """One process of the testbed."""
+
+    name: str
+    argv: list[str]
+    log_path: Path
+    ready_file: Path | None = None
+    expect_exit: bool = False
+    process: asyncio.subprocess.Process | None = None
+    ready_text: str = ""
+    _log_handle: object = field(default=None, repr=False)
+
+    @property
+    def returncode(self) -> int | None:
+        """The exit code, or None while running."""
+        return None if self.process is None else self.process.returncode
+
+    def tail(self, lines: int = 15) -> list[str]:
+        """The last lines of the process's log."""
+        try:
+            text = self.log_path.read_text(errors="replace")
+        except OSError:
+            return []
+        return text.splitlines()[-lines:]
+
+
+def baton_argv(*args: str) -> list[str]:
+    """The command line of a ``baton`` subcommand, with this interpreter."""
+    return [sys.executable, "-m", "baton.cli", *args]
+
+
+class Supervisor:
+    """Starts processes, waits until they are ready, and stops them all."""
+
+    def __init__(self, workdir: Path) -> None:
+        self.workdir = workdir
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self.parts: dict[str, ManagedProcess] = {}
+
+    async def start(
+        self,
+        name: str,
+        argv: Sequence[str],
+        ready_file: Path | None = None,
+        expect_exit: bool = False,
+    ) -> ManagedProcess:
+        """Starts ``argv`` as part ``name``; its stdout and stderr go to ``workdir/name.log``."""
+        if ready_file is not None:
+            with contextlib.suppress(FileNotFoundError):
+                ready_file.unlink()
+        part = ManagedProcess(
+            name, list(argv), self.workdir / f"{name}.log", ready_file, expect_exit
+        )
+        handle = part.log_path.open("wb")
+        part._log_handle = handle
+        part.process = await asyncio.create_subprocess_exec(
+            *argv,
+            stdin=asyncio.subprocess.DEVNULL,
+            stdout=handle,
+            stderr=asyncio.subprocess.STDOUT,
+            start_new_session=True,  # Ctrl-C in a terminal reaches the supervisor only
+        )
+        self.parts[name] = part
+        return part
+
+    async def wait_ready(self, part: ManagedProcess, timeout: float = 30.0) -> str:
+        """The content of the part's ready file, once written; raises if it dies or is late."""
+        assert part.ready_file is not None
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            if part.ready_file.exists():
+                text = part.ready_file.read_text().strip()
+                if text:
+                    part.ready_text = text
+                    return text
+            if part.returncode is not None:
+                raise PartDied(part)
+            if loop.time() > deadline:
+                tail = "\n".join(part.tail(10))
+                raise PartNotReady(f"{part.name} not ready after {timeout:.0f} s; log:\n{tail}")
+            await asyncio.sleep(0.02)
+
+    async def start_ready(
+        self, name: str, argv: Sequence[str], ready_file: Path, timeout: float = 30.0
+    ) -> str:
+        """Starts a part and waits for its ready file; returns what it announced."""
+        part = await self.start(name, argv, ready_file)
+        return await self.wait_ready(part, timeout)
+
+    def check(self) -> None:
+        """Raises PartDied for the first part that exited unexpectedly."""
+        for part in self.parts.values():
+            if part.returncode is not None and not (part.expect_exit and part.returncode == 0):
+                raise PartDied(part)
+
+    async def wait_exit(self, name: str, timeout: float) -> int:
+        """Waits for part ``name`` to exit by itself; returns its code."""
+        part = self.parts[name]
+        assert part.process is not None
+        return await asyncio.wait_for(part.process.wait(), timeout)
+
+    async def stop_part(self, name: str, grace: float = 5.0) -> int | None:
+        """SIGTERM, then SIGKILL after ``grace`` seconds; returns the exit code."""
+        part = self.parts[name]
+        process = part.process
+        if process is None:
+            return None
+        if process.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                process.send_signal(signal.SIGTERM)
+            try:
+                await asyncio.wait_for(process.wait(), grace)
+            except TimeoutError:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(process.pid, signal.SIGKILL)
+                await process.wait()
+        handle = part._log_handle
+        if handle is not None:
+            handle.close()  # type: ignore[attr-defined]
+            part._log_handle = None
+        return process.returncode
+
+    async def stop_all(self, grace: float = 5.0) -> None:
+        """Stops every part, the most recently started first."""
+        for name in reversed(list(self.parts)):
+            await self.stop_part(name, grace)
+
+    async def __aenter__(self) -> Supervisor:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop_all()
