@@ -177,8 +177,15 @@ class LocalTestbed:
     async def _start_link(self, name: str, target: str, spec: LinkSpec) -> str:
         ready = self.workdir / f"{name}.address"
         argv = baton_argv(
-            "link", "--listen", "127.0.0.1:0", "--target", target, *_link_args(spec)
-        ) + ["--address-file", str(ready)]
+            "link",
+            "--listen",
+            "127.0.0.1:0",
+            "--target",
+            target,
+            *_link_args(spec),
+            "--address-file",
+            str(ready),
+        )
         return await self.supervisor.start_ready(name, argv, ready)
 
     async def _start_drone(self) -> None:
