@@ -320,6 +320,8 @@ class ControllerStatus(_message.Message):
     INVOKED_FIELD_NUMBER: _builtins.int
     REPLY_CHAIN_FIELD_NUMBER: _builtins.int
     DRONE_CONNECTED_FIELD_NUMBER: _builtins.int
+    HANDOVERS_FIELD_NUMBER: _builtins.int
+    T_CONN_S_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
     state: _builtins.str
@@ -356,6 +358,14 @@ class ControllerStatus(_message.Message):
     def peers(self) -> _containers.RepeatedCompositeFieldContainer[Global___PeerStatus]:
         """The successor and the other peers this controller streams to."""
 
+    @_builtins.property
+    def handovers(self) -> _containers.RepeatedCompositeFieldContainer[Global___ControllerHandover]:
+        """Every handover this controller took part in, in order."""
+
+    @_builtins.property
+    def t_conn_s(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
+        """T_conn of each drone connection this controller opened, seconds."""
+
     def __init__(
         self,
         *,
@@ -376,11 +386,55 @@ class ControllerStatus(_message.Message):
         invoked: _builtins.int = ...,
         reply_chain: _builtins.bytes = ...,
         drone_connected: _builtins.bool = ...,
+        handovers: _abc.Iterable[Global___ControllerHandover] | None = ...,
+        t_conn_s: _abc.Iterable[_builtins.float] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["drone_connected", b"drone_connected", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "state", b"state", "successor", b"successor"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["drone_connected", b"drone_connected", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___ControllerStatus: _TypeAlias = ControllerStatus  # noqa: Y015
+
+@_typing.final
+class ControllerHandover(_message.Message):
+    """A handover as one controller saw it."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    ROLE_FIELD_NUMBER: _builtins.int
+    PEER_FIELD_NUMBER: _builtins.int
+    LOGNR_FIELD_NUMBER: _builtins.int
+    REQNR_FIELD_NUMBER: _builtins.int
+    LOG_BYTES_FIELD_NUMBER: _builtins.int
+    AT_FIELD_NUMBER: _builtins.int
+    role: _builtins.str
+    """"old": this controller handed over; "new": it took over."""
+    peer: _builtins.int
+    """The other controller (the new master, or the old one)."""
+    lognr: _builtins.int
+    """The handover message's log number."""
+    reqnr: _builtins.int
+    """This controller's reqnr at that moment."""
+    log_bytes: _builtins.int
+    """Bytes of log the handover message carried (the unflushed log)."""
+    at: _builtins.float
+    """When (Unix seconds, wall clock)."""
+    def __init__(
+        self,
+        *,
+        role: _builtins.str = ...,
+        peer: _builtins.int = ...,
+        lognr: _builtins.int = ...,
+        reqnr: _builtins.int = ...,
+        log_bytes: _builtins.int = ...,
+        at: _builtins.float = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["at", b"at", "log_bytes", b"log_bytes", "lognr", b"lognr", "peer", b"peer", "reqnr", b"reqnr", "role", b"role"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___ControllerHandover: _TypeAlias = ControllerHandover  # noqa: Y015

@@ -120,6 +120,12 @@ class ControllerNode:
         return self._drone is not None and self._drone.connected.is_set()
 
     @property
+    def all_t_conn_s(self) -> list[float]:
+        """T_conn of every drone connection so far, the open one included."""
+        current = self._drone.t_conn_s if self._drone is not None else None
+        return self.t_conn_s + ([current] if current is not None else [])
+
+    @property
     def reply_chain(self) -> bytes:
         """SHA-256 chain over every reply the mission program has seen, in order."""
         return self._reply_chain.digest()

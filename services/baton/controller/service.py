@@ -147,4 +147,16 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         invoked=p.invoked,
         reply_chain=node.reply_chain,
         drone_connected=node.drone_connected,
+        handovers=[
+            ring_pb2.ControllerHandover(
+                role=h.role,
+                peer=h.peer,
+                lognr=h.lognr,
+                reqnr=h.reqnr,
+                log_bytes=h.log_bytes,
+                at=h.at,
+            )
+            for h in node.handovers
+        ],
+        t_conn_s=node.all_t_conn_s,
     )
