@@ -158,6 +158,9 @@ class LocalTestbed:
             "flush_limit": plan.flush_limit,
             "speedup": plan.speedup,
         }
+        if plan.emulate_links:
+            document["controller_link"] = plan.controller_link.model_dump()
+            document["drone_link"] = plan.drone_link.model_dump()
         self.config_path.write_text(yaml.safe_dump(document, sort_keys=False))
         self.config = parse_config(document, str(self.config_path))
         await self._start_drone()

@@ -1,0 +1,199 @@
+"""``baton testbed``: the whole system on one machine, with one command."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+import tempfile
+from pathlib import Path
+
+DEFAULT_HANDOVER_REQNRS = (90, 180, 270)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Adds ``baton testbed``."""
+    parser = subparsers.add_parser(
+        "testbed",
+        help="run the paper's grid mission on a local testbed and report",
+        description=(
+            "Starts the sim vehicle, the drone service, N controllers each running the paper's "
+            "grid mission, and a link emulator on every link, as processes on loopback; runs the "
+            "mission with the given handovers; prints a summary and writes a JSON report. "
+            "'baton testbed report --config FILE' instead follows a testbed running elsewhere "
+            "(the compose testbed) and writes the same report."
+        ),
+    )
+    parser.add_argument(
+        "action",
+        nargs="?",
+        choices=["run", "report"],
+        default="run",
+        help="run (default): start and run a local testbed; report: follow one started elsewhere",
+    )
+    parser.add_argument(
+        "--controllers", type=int, default=3, help="controllers in the ring (default 3)"
+    )
+    parser.add_argument(
+        "--flush-limit",
+        default="2MB",
+        help="log flush limit with units: 0, 512KB, 2MB (default 2MB)",
+    )
+    parser.add_argument(
+        "--handover",
+        action="append",
+        default=[],
+        metavar="REQNR:MID",
+        help="hand over to controller MID right after request REQNR; repeatable "
+        f"(default: after requests {', '.join(map(str, DEFAULT_HANDOVER_REQNRS))} to the next "
+        "controller each time)",
+    )
+    parser.add_argument(
+        "--handover-file", help="handovers as 'REQNR MID' lines (the drone's format)"
+    )
+    parser.add_argument("--no-handovers", action="store_true", help="run without any handover")
+    parser.add_argument(
+        "--config", help="a full testbed YAML (endpoints, ring, initial master, locations, links)"
+    )
+    parser.add_argument(
+        "--speedup",
+        type=float,
+        default=10.0,
+        help="simulation speed-up, vehicle and clocks (default 10)",
+    )
+    parser.add_argument(
+        "--grid", type=int, default=5, help="grid size: GRID x GRID waypoints (default 5)"
+    )
+    parser.add_argument(
+        "--spacing", type=float, default=50.0, help="waypoint spacing, m (default 50)"
+    )
+    parser.add_argument(
+        "--altitude", type=float, default=10.0, help="mission altitude, m (default 10)"
+    )
+    parser.add_argument("--speed", type=float, default=5.0, help="flying speed, m/s (default 5)")
+    parser.add_argument(
+        "--poll", type=float, default=1.0, help="position poll period, mission s (default 1)"
+    )
+    parser.add_argument(
+        "--link-latency", default="20ms", help="controller-to-controller latency (default 20ms)"
+    )
+    parser.add_argument(
+        "--link-bandwidth",
+        default="25Mbit",
+        help="controller-to-controller bandwidth (default 25Mbit)",
+    )
+    parser.add_argument(
+        "--drone-link-latency",
+        default="2ms",
+        help="controller-to-drone latency, WiFi-like (default 2ms)",
+    )
+    parser.add_argument(
+        "--drone-link-bandwidth",
+        default="20Mbit",
+        help="controller-to-drone bandwidth (default 20Mbit)",
+    )
+    parser.add_argument("--no-links", action="store_true", help="no link emulation: plain loopback")
+    parser.add_argument(
+        "--report",
+        "--out",
+        dest="report",
+        default="reports/testbed-report.json",
+        help="where to write the JSON report (default reports/testbed-report.json)",
+    )
+    parser.add_argument(
+        "--workdir", help="folder for logs and generated files (default: a new temp folder)"
+    )
+    parser.add_argument(
+        "--timeout", type=float, default=600.0, help="give up after this many seconds (default 600)"
+    )
+    parser.add_argument(
+        "--wait", action="store_true", help="(report) wait for the services to come up and finish"
+    )
+    parser.set_defaults(run=run)
+
+
+def _fail(message: str) -> int:
+    print(f"baton testbed: {message}", file=sys.stderr)
+    return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    """Validates the options, then runs or follows the testbed."""
+    from baton.config import (
+        ConfigError,
+        LinkSpec,
+        load_config,
+        parse_duration,
+        parse_rate,
+        parse_size,
+    )
+    from baton.drone.master import HandoverScriptError, parse_handover_script
+    from baton.testbed.local import MissionPlan, TestbedPlan
+    from baton.testbed.run import follow_remote, run_local
+
+    try:
+        base = load_config(args.config) if args.config else None
+    except ConfigError as exc:
+        return _fail(str(exc))
+    ids = base.ring_order if base is not None else list(range(args.controllers))
+    if base is None and args.controllers < 1:
+        return _fail(f"--controllers must be >= 1, got {args.controllers}")
+    try:
+        flush_limit = parse_size(args.flush_limit)
+        controller_link = LinkSpec(
+            latency=parse_duration(args.link_latency), bandwidth=parse_rate(args.link_bandwidth)
+        )
+        drone_link = LinkSpec(
+            latency=parse_duration(args.drone_link_latency),
+            bandwidth=parse_rate(args.drone_link_bandwidth),
+        )
+    except ValueError as exc:
+        return _fail(f"bad option value: {exc}")
+    if base is not None and args.flush_limit == "2MB":
+        flush_limit = base.flush_limit
+    handovers: list[tuple[int, int]] = []
+    try:
+        for text in args.handover:
+            reqnr, sep, mid = text.partition(":")
+            if not sep or not reqnr.isdigit() or not mid.isdigit():
+                raise HandoverScriptError(f"--handover {text!r}: expected REQNR:MID, e.g. 90:1")
+            handovers.append((int(reqnr), int(mid)))
+        script = "".join(f"{r} {m}\n" for r, m in handovers)
+        if args.handover_file:
+            script += Path(args.handover_file).read_text()
+        scripted = parse_handover_script(script, args.handover_file or "--handover", ids)
+    except (HandoverScriptError, OSError) as exc:
+        return _fail(str(exc))
+    handovers = sorted((reqnr, h.new_master) for reqnr, h in scripted.items())
+    if not handovers and not args.no_handovers and len(ids) > 1:
+        handovers = [
+            (reqnr, ids[(k + 1) % len(ids)]) for k, reqnr in enumerate(DEFAULT_HANDOVER_REQNRS)
+        ]
+    for name in ("speedup", "grid", "spacing", "altitude", "speed", "poll", "timeout"):
+        if getattr(args, name) <= 0:
+            return _fail(f"--{name} must be > 0, got {getattr(args, name)}")
+    mission = MissionPlan(args.grid, args.spacing, args.altitude, args.speed, args.poll)
+    report_path = Path(args.report)
+    if args.action == "report":
+        if base is None:
+            return _fail("report needs --config FILE: the testbed to follow")
+        return asyncio.run(follow_remote(base, args.grid, report_path, args.timeout, handovers))
+    plan = TestbedPlan(
+        controllers=len(ids),
+        flush_limit=flush_limit,
+        handovers=tuple(handovers),
+        speedup=base.speedup if base is not None and args.speedup == 10.0 else args.speedup,
+        mission=mission,
+        emulate_links=not args.no_links,
+        controller_link=controller_link,
+        drone_link=drone_link,
+        base_config=base,
+    )
+    workdir = (
+        Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-testbed-"))
+    )
+    try:
+        return asyncio.run(run_local(plan, workdir, report_path, args.timeout))
+    except KeyboardInterrupt:
+        print("baton testbed: interrupted; every process stopped", file=sys.stderr)
+        return 130

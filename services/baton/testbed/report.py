@@ -1,0 +1,197 @@
+"""The testbed report: what happened in a mission, checked against the drone's audit.
+
+``build_report`` turns the final status of the drone and of every controller
+into one JSON document (format ``baton.testbed.report/1``, described in the
+README), and ``summary_table`` prints it for a person. The same report comes
+out of the local testbed and of the compose testbed.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Any
+
+from baton.config import BatonConfig
+from baton.testbed.local import Snapshot
+
+REPORT_FORMAT = "baton.testbed.report/1"
+
+
+def t_log(size_bytes: float, latency_s: float, bandwidth_bps: float | None) -> float:
+    """The paper's T_log(s) = l + s/b (s in bits)."""
+    transfer = 0.0 if bandwidth_bps is None else size_bytes * 8 / bandwidth_bps
+    return latency_s + transfer
+
+
+def model_worst_case_s(
+    hops: int,
+    flush_limit: int,
+    largest_entry: int,
+    t_conn_s: float,
+    latency_s: float,
+    bandwidth_bps: float | None,
+) -> float:
+    """Section 4: T_max = T_log(0) + h * T_log(f + e) + T_conn."""
+    return (
+        t_log(0, latency_s, bandwidth_bps)
+        + hops * t_log(flush_limit + largest_entry, latency_s, bandwidth_bps)
+        + t_conn_s
+    )
+
+
+def build_report(
+    config: BatonConfig,
+    snapshot: Snapshot,
+    grid: int,
+    duration_s: float,
+    planned_handovers: list[tuple[int, int]],
+) -> dict[str, Any]:
+    """The report of one mission run."""
+    drone = snapshot.drone
+    audit = list(drone.audit)
+    executed = [a.reqnr for a in audit]
+    counts = Counter(executed)
+    exactly_once = all(n == 1 for n in counts.values()) and sorted(counts) == list(
+        range(1, drone.last_reqnr + 1)
+    )
+    pictures = sum(1 for a in audit if a.method.endswith("/TakePicture"))
+    chains = {c.reply_chain for c in snapshot.controllers.values()}
+    reqnrs = {c.reqnr for c in snapshot.controllers.values()}
+    consistent = len(chains) == 1 and reqnrs == {drone.last_reqnr}
+    completed = bool(snapshot.controllers) and all(
+        c.mission == "done" for c in snapshot.controllers.values()
+    )
+    largest_entry = max((a.reply_bytes for a in audit), default=0)
+    t_conns = [t for c in snapshot.controllers.values() for t in c.t_conn_s]
+    t_conn = sum(t_conns) / len(t_conns) if t_conns else 0.0
+    link = config.controller_link
+    handovers = []
+    for record in drone.handovers:
+        old = snapshot.controllers.get(record.old_master)
+        moved = 0
+        if old is not None:
+            moved = next(
+                (
+                    h.log_bytes
+                    for h in old.handovers
+                    if h.role == "old"
+                    and h.peer == record.new_master
+                    and h.reqnr <= record.after_reqnr
+                ),
+                0,
+            )
+        hops = config.hops(record.old_master, record.new_master)
+        handovers.append(
+            {
+                "from": record.old_master,
+                "to": record.new_master,
+                "after_reqnr": record.after_reqnr,
+                "hops": hops,
+                "trigger": record.trigger,
+                "log_bytes": moved,
+                "delay_s": round(record.delay_s, 6),
+                "model_worst_case_s": round(
+                    model_worst_case_s(
+                        hops,
+                        config.flush_limit,
+                        largest_entry,
+                        t_conn,
+                        link.latency,
+                        link.bandwidth,
+                    ),
+                    6,
+                ),
+            }
+        )
+    happened = [(h["after_reqnr"], h["to"]) for h in handovers]
+    return {
+        "format": REPORT_FORMAT,
+        "completed": completed,
+        "duration_s": round(duration_s, 3),
+        "mission": {
+            "grid": grid,
+            "waypoints": grid * grid,
+            # The mission checks its position at every picture, so a picture is a visit.
+            "waypoints_visited": pictures,
+            "pictures": pictures,
+            "invocations": drone.last_reqnr,
+        },
+        "setup": {
+            "controllers": len(config.controllers),
+            "ring": config.ring_order,
+            "initial_master": config.master_id,
+            "flush_limit_bytes": config.flush_limit,
+            "speedup": config.speedup,
+            "controller_link": {"latency_s": link.latency, "bandwidth_bps": link.bandwidth},
+            "t_conn_mean_s": round(t_conn, 6),
+            "largest_entry_bytes": largest_entry,
+        },
+        "handovers": handovers,
+        "handovers_planned": [list(h) for h in planned_handovers],
+        "handovers_missed": [list(h) for h in planned_handovers if tuple(h) not in happened],
+        "drone": {
+            "master": drone.master,
+            "last_reqnr": drone.last_reqnr,
+            "executed": drone.executed,
+            "duplicates": drone.duplicates,
+            "rejected": drone.rejected,
+        },
+        "controllers": [
+            {
+                "id": cid,
+                "state": c.state,
+                "master": c.master,
+                "reqnr": c.reqnr,
+                "lognr": c.lognr,
+                "log_bytes": c.log_bytes,
+                "queue_length": c.queue_length,
+                "mission": c.mission,
+                "mission_error": c.mission_error,
+                "invoked": c.invoked,
+                "replayed": c.replayed,
+                "reply_chain": c.reply_chain.hex(),
+            }
+            for cid, c in sorted(snapshot.controllers.items())
+        ],
+        "replicas_consistent": consistent,
+        "exactly_once": exactly_once,
+    }
+
+
+def summary_table(report: dict[str, Any]) -> str:
+    """The report as a few aligned tables for the terminal."""
+    mission = report["mission"]
+    drone = report["drone"]
+    lines = [
+        f"mission {'COMPLETED' if report['completed'] else 'NOT COMPLETED'} in "
+        f"{report['duration_s']:.1f} s: {mission['waypoints_visited']}/{mission['waypoints']} "
+        f"waypoints, {mission['pictures']} pictures, {mission['invocations']} invocations",
+        f"drone: executed {drone['executed']}, duplicates {drone['duplicates']}, "
+        f"rejected {drone['rejected']}; exactly once: {report['exactly_once']}; "
+        f"replicas consistent: {report['replicas_consistent']}",
+        "",
+        f"{'handover':>8} {'from':>4} {'to':>3} {'after':>6} {'hops':>4} {'log bytes':>10} "
+        f"{'delay s':>8} {'model s':>8}",
+    ]
+    for k, h in enumerate(report["handovers"], start=1):
+        lines.append(
+            f"{k:>8} {h['from']:>4} {h['to']:>3} {h['after_reqnr']:>6} {h['hops']:>4} "
+            f"{h['log_bytes']:>10} {h['delay_s']:>8.3f} {h['model_worst_case_s']:>8.3f}"
+        )
+    for missed in report["handovers_missed"]:
+        lines.append(
+            f"  planned handover {missed[0]}:{missed[1]} did not happen (mission too short?)"
+        )
+    lines += [
+        "",
+        f"{'controller':>10} {'state':>8} {'master':>6} {'reqnr':>6} {'lognr':>6} {'replayed':>8} "
+        f"{'invoked':>7} {'mission':>8}",
+    ]
+    for c in report["controllers"]:
+        lines.append(
+            f"{c['id']:>10} {c['state']:>8} {'yes' if c['master'] else 'no':>6} {c['reqnr']:>6} "
+            f"{c['lognr']:>6} {c['replayed']:>8} {c['invoked']:>7} {c['mission']:>8}"
+        )
+        if c["mission_error"]:
+            lines.append(f"{'':>10} error: {c['mission_error']}")
+    return "\n".join(lines)

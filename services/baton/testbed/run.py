@@ -1,0 +1,147 @@
+"""``baton testbed``: run the paper's mission on the local testbed, show progress, report.
+
+Also ``baton testbed report``: follow a testbed that runs elsewhere (the
+compose testbed) through its status RPCs and write the same report.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from baton.config import BatonConfig
+from baton.rpc.channels import aio_channel
+from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
+from baton.testbed.report import build_report, summary_table
+from baton.testbed.supervisor import PartDied, PartNotReady
+from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
+
+
+class Progress:
+    """One status line a second: waypoint k of n, the master, each controller's state."""
+
+    def __init__(self, waypoints: int, planned_handovers: int, stream: Any = sys.stdout) -> None:
+        self.waypoints = waypoints
+        self.planned = planned_handovers
+        self.stream = stream
+        self.started = time.monotonic()
+        self._last = 0.0
+
+    def __call__(self, snapshot: Snapshot) -> None:
+        now = time.monotonic()
+        if now - self._last < 1.0:
+            return
+        self._last = now
+        states = " ".join(
+            f"c{cid}:{c.state[0]}{'*' if c.master else ''}@{c.reqnr}"
+            for cid, c in sorted(snapshot.controllers.items())
+        )
+        print(
+            f"[{now - self.started:6.1f}s] waypoint {snapshot.pictures}/{self.waypoints} | "
+            f"master {snapshot.drone.master} | reqnr {snapshot.drone.last_reqnr} | "
+            f"handovers {len(snapshot.drone.handovers)}/{self.planned} | {states}",
+            file=self.stream,
+            flush=True,
+        )
+
+
+def write_report(report: dict[str, Any], path: Path) -> None:
+    """Writes the report JSON (creating the folder)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=2) + "\n")
+
+
+async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout: float) -> int:
+    """Runs one mission on the local testbed; returns the exit code."""
+    print(
+        f"baton testbed: {plan.controllers} controllers, flush limit {plan.flush_limit} bytes, handovers "
+        f"{', '.join(f'{r}:{m}' for r, m in plan.handovers) or 'none'}, speed-up {plan.speedup}x; "
+        f"logs in {workdir / 'logs'}",
+        flush=True,
+    )
+    started = time.monotonic()
+    testbed = LocalTestbed(plan, workdir)
+    try:
+        config = await testbed.start()
+        (workdir / "pids.json").write_text(
+            json.dumps(
+                {name: p.process.pid for name, p in testbed.supervisor.parts.items() if p.process}
+            )
+        )
+        progress = Progress(plan.mission.grid**2, len(plan.handovers))
+        snapshot = await testbed.run_mission(timeout, progress)
+    except (PartDied, PartNotReady) as exc:
+        print(f"baton testbed: FAILED: {exc}", file=sys.stderr, flush=True)
+        return 1
+    except TimeoutError as exc:
+        print(f"baton testbed: FAILED: {exc}", file=sys.stderr, flush=True)
+        return 1
+    finally:
+        await testbed.stop()
+    report = build_report(
+        config, snapshot, plan.mission.grid, time.monotonic() - started, list(plan.handovers)
+    )
+    write_report(report, report_path)
+    print(summary_table(report), flush=True)
+    print(f"report: {report_path}", flush=True)
+    ok = report["completed"] and report["exactly_once"] and report["replicas_consistent"]
+    return 0 if ok and not report["handovers_missed"] else 1
+
+
+async def follow_remote(
+    config: BatonConfig,
+    grid: int,
+    report_path: Path,
+    timeout: float,
+    handovers: list[tuple[int, int]],
+) -> int:
+    """Waits for a testbed running elsewhere to finish its mission, then reports."""
+    started = time.monotonic()
+    drone_channel = aio_channel(config.drone.address)
+    channels = {c.id: aio_channel(c.reach) for c in config.controllers}
+    drone = drone_pb2_grpc.DroneStub(drone_channel)
+    rings = {cid: ring_pb2_grpc.ControllerRingStub(ch) for cid, ch in channels.items()}
+    progress = Progress(grid * grid, len(handovers))
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    try:
+        while True:
+            try:
+                snapshot = Snapshot(
+                    await drone.GetStatus(
+                        drone_pb2.GetDroneStatusRequest(include_audit=True),
+                        timeout=10,
+                        wait_for_ready=True,
+                    )
+                )
+                for cid, stub in rings.items():
+                    snapshot.controllers[cid] = await stub.GetStatus(
+                        ring_pb2.GetControllerStatusRequest(), timeout=10, wait_for_ready=True
+                    )
+            except Exception as exc:  # a service still starting: keep waiting
+                if loop.time() > deadline:
+                    print(f"baton testbed report: FAILED: {exc}", file=sys.stderr)
+                    return 1
+                await asyncio.sleep(1.0)
+                continue
+            progress(snapshot)
+            if snapshot.missions_ended:
+                break
+            if loop.time() > deadline:
+                print("baton testbed report: FAILED: mission not finished in time", file=sys.stderr)
+                return 1
+            await asyncio.sleep(0.5)
+    finally:
+        await drone_channel.close()
+        for channel in channels.values():
+            await channel.close()
+    report = build_report(config, snapshot, grid, time.monotonic() - started, handovers)
+    write_report(report, report_path)
+    print(summary_table(report), flush=True)
+    return (
+        0 if report["completed"] and report["exactly_once"] and report["replicas_consistent"] else 1
+    )
