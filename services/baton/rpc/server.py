@@ -11,9 +11,10 @@ import signal
 from collections.abc import Awaitable, Callable, Iterable
 
 import grpc
-from baton.rpc.channels import SERVER_OPTIONS
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
+
+from baton.rpc.channels import SERVER_OPTIONS
 
 
 class BatonServer:

@@ -58,7 +58,8 @@ def write_report(report: dict[str, Any], path: Path) -> None:
 async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout: float) -> int:
     """Runs one mission on the local testbed; returns the exit code."""
     print(
-        f"baton testbed: {plan.controllers} controllers, flush limit {plan.flush_limit} bytes, handovers "
+        f"baton testbed: {plan.controllers} controllers, flush limit {plan.flush_limit} bytes, "
+        "handovers "
         f"{', '.join(f'{r}:{m}' for r, m in plan.handovers) or 'none'}, speed-up {plan.speedup}x; "
         f"logs in {workdir / 'logs'}",
         flush=True,
