@@ -1,0 +1,169 @@
+"""`baton testbed` end to end: the README's main command, its report, and its failure modes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from baton.testbed.local import LocalTestbed, MissionPlan, TestbedPlan
+from baton.testbed.report import build_report
+from baton.v1 import drone_pb2
+
+SMALL = ["--grid", "2", "--spacing", "20", "--altitude", "5", "--speedup", "20"]
+
+
+def baton(*args: str) -> list[str]:
+    return [sys.executable, "-m", "baton.cli", *args]
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # A zombie has exited; only its parent has not reaped it yet.
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+async def test_report_agrees_with_the_drones_own_audit(tmp_path: Path) -> None:
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=0,
+        handovers=((8, 1), (16, 2), (24, 0)),
+        speedup=20.0,
+        mission=MissionPlan(grid=2, spacing_m=20.0, altitude_m=5.0),
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        snapshot = await testbed.run_mission(240)
+        assert testbed.config is not None and testbed.drone_stub is not None
+        report = build_report(testbed.config, snapshot, 2, 1.0, list(plan.handovers))
+        # Asked again, independently of the snapshot the report was built from.
+        audit = await testbed.drone_stub.GetStatus(
+            drone_pb2.GetDroneStatusRequest(include_audit=True)
+        )
+    reqnrs = [a.reqnr for a in audit.audit]
+    assert report["completed"] and report["exactly_once"] and report["replicas_consistent"]
+    assert report["mission"]["invocations"] == audit.last_reqnr == len(reqnrs) == len(set(reqnrs))
+    assert (
+        report["mission"]["pictures"]
+        == 4
+        == sum(a.method.endswith("TakePicture") for a in audit.audit)
+    )
+    assert report["drone"]["executed"] == audit.executed
+    assert report["drone"]["duplicates"] == audit.duplicates
+    assert [(h["after_reqnr"], h["to"]) for h in report["handovers"]] == [
+        (h.after_reqnr, h.new_master) for h in audit.handovers
+    ]
+    for h in report["handovers"]:
+        assert h["delay_s"] > 0 and h["model_worst_case_s"] > 0
+    assert report["handovers_missed"] == []
+
+
+def test_the_cli_runs_a_mission_with_links_and_writes_the_report(tmp_path: Path) -> None:
+    report_path = tmp_path / "report.json"
+    result = subprocess.run(
+        baton(
+            "testbed",
+            *SMALL,
+            "--handover",
+            "8:1",
+            "--handover",
+            "16:2",
+            "--handover",
+            "24:0",
+            "--flush-limit",
+            "2MB",
+            "--report",
+            str(report_path),
+            "--workdir",
+            str(tmp_path / "w"),
+        ),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "mission COMPLETED" in result.stdout
+    assert "waypoint 4/4" in result.stdout  # live progress
+    report = json.loads(report_path.read_text())
+    assert report["format"] == "baton.testbed.report/1"
+    assert report["mission"]["waypoints_visited"] == 4
+    assert len(report["handovers"]) == 3
+    # 20 ms / 25 Mbit/s between controllers: the model counts at least one hop's latency.
+    assert all(h["model_worst_case_s"] >= 0.04 for h in report["handovers"])
+    assert report["setup"]["controller_link"] == {"latency_s": 0.02, "bandwidth_bps": 25e6}
+
+
+def test_a_killed_controller_fails_the_run_and_leaves_no_process(tmp_path: Path) -> None:
+    workdir = tmp_path / "w"
+    process = subprocess.Popen(
+        baton(
+            "testbed",
+            "--grid",
+            "4",
+            "--speedup",
+            "5",
+            "--no-links",
+            "--workdir",
+            str(workdir),
+            "--report",
+            str(tmp_path / "r.json"),
+        ),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        pids_file = workdir / "pids.json"
+        deadline = time.monotonic() + 120
+        while not pids_file.exists():
+            assert process.poll() is None, process.communicate()
+            assert time.monotonic() < deadline, "testbed did not start"
+            time.sleep(0.1)
+        pids = json.loads(pids_file.read_text())
+        os.kill(pids["controller-1"], signal.SIGKILL)
+        out, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 1, out + err
+    assert "controller-1 exited with code -9" in err
+    deadline = time.monotonic() + 10
+    while any(alive(pid) for pid in pids.values()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert [name for name, pid in pids.items() if alive(pid)] == []
+
+
+def test_a_bad_testbed_file_names_the_field_and_the_fix(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(
+        "controllers:\n  - {id: 0, address: 127.0.0.1:7100}\n  - {id: 0, address: nowhere}\n"
+        "flush_limit: 2 parsecs\n"
+    )
+    result = subprocess.run(
+        baton("testbed", "--config", str(bad)), capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 2
+    assert (
+        f"{bad}: controllers[1].address: expected host:port like '127.0.0.1:7100'" in result.stderr
+    )
+    assert f"{bad}: flush_limit: expected a size like '2MB'" in result.stderr
+
+
+def test_bad_options_are_refused_with_a_clear_message() -> None:
+    for args, message in [
+        (["--handover", "9"], "expected REQNR:MID"),
+        (["--handover", "9:7"], "unknown controller id 7"),
+        (["--flush-limit", "lots"], "expected a size like '2MB'"),
+        (["--grid", "0"], "--grid must be > 0"),
+    ]:
+        result = subprocess.run(baton("testbed", *args), capture_output=True, text=True, timeout=60)
+        assert result.returncode == 2 and message in result.stderr, (args, result.stderr)
