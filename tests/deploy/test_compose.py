@@ -1,0 +1,366 @@
+"""The compose testbed, checked without Docker.
+
+The compose file, the testbed configuration its containers mount, the netem
+entrypoint, the Dockerfile and the Makefile must agree with each other and with
+the real ``baton`` command line: these tests parse all of them and compare.
+``netem.sh`` itself runs here with stand-ins for ``ip`` and ``tc``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+import pytest
+import yaml
+
+from baton.cli import build_parser
+from baton.config import BatonConfig, LinkSpec, load_config, parse_duration, parse_rate
+from baton.drone.master import parse_handover_script
+
+REPO = Path(__file__).resolve().parents[2]
+DEPLOY = REPO / "deploy"
+CONFIG_IN_CONTAINER = "/etc/baton/testbed.yaml"
+HANDOVERS_IN_CONTAINER = "/etc/baton/handovers.txt"
+SOURCE_IN_CONTAINER = "/opt/baton"  # the Dockerfile's WORKDIR, where it copies the repository
+CONTROLLER_SERVICES = ["controller-0", "controller-1", "controller-2"]
+
+
+def _expand(text: str) -> str:
+    """Compose's ``${VAR:-default}`` interpolation, with every variable unset."""
+    return re.sub(r"\$\{[A-Za-z_][A-Za-z0-9_]*:?-([^}]*)\}", r"\1", text)
+
+
+def _load_compose() -> dict[str, Any]:
+    return yaml.safe_load(_expand((DEPLOY / "docker-compose.yml").read_text()))
+
+
+COMPOSE = _load_compose()
+SERVICES: dict[str, dict[str, Any]] = COMPOSE["services"]
+CONFIG: BatonConfig = load_config(DEPLOY / "testbed.yaml")
+
+
+def _argv(value: str | list[str] | None) -> list[str]:
+    if value is None:
+        return []
+    return shlex.split(value) if isinstance(value, str) else [str(v) for v in value]
+
+
+def _command(service: str) -> list[str]:
+    return _argv(SERVICES[service].get("command"))
+
+
+def _option(argv: list[str], name: str) -> str:
+    """The value after ``name`` in ``argv``; fails the test if it is missing."""
+    assert name in argv, f"{name} missing from {argv}"
+    return argv[argv.index(name) + 1]
+
+
+def _host_port(address: str) -> tuple[str, int]:
+    host, _, port = address.rpartition(":")
+    return host, int(port)
+
+
+def _names_of(service: str) -> set[str]:
+    """Every name a service answers to: its own and its network aliases."""
+    names = {service}
+    networks = SERVICES[service].get("networks") or {}
+    if isinstance(networks, dict):
+        for spec in networks.values():
+            names.update((spec or {}).get("aliases", []))
+    return names
+
+
+def _networks_of(service: str) -> set[str]:
+    return set(SERVICES[service].get("networks") or [])
+
+
+def _networks_resolving(service: str, name: str) -> list[str]:
+    """The networks on which ``name`` resolves to ``service`` (a service name: all of them)."""
+    networks = SERVICES[service]["networks"]
+    return sorted(
+        str(network)
+        for network, spec in networks.items()
+        if name == service or name in (spec or {}).get("aliases", [])
+    )
+
+
+def _subnet(network: str) -> str:
+    return str(COMPOSE["networks"][network]["ipam"]["config"][0]["subnet"])
+
+
+def _shaping(service: str) -> dict[str, tuple[str, str]]:
+    """``--shape SUBNET DELAY RATE`` of a service's netem.sh entrypoint, by subnet."""
+    entry = _argv(SERVICES[service].get("entrypoint"))
+    assert entry and entry[0].endswith("/deploy/netem.sh"), f"{service}: entrypoint {entry}"
+    assert entry[-1] == "--", f"{service}: the entrypoint must end with '--' before the command"
+    shapes = {}
+    for i, arg in enumerate(entry):
+        if arg == "--shape":
+            subnet, delay, rate = entry[i + 1 : i + 4]
+            shapes[subnet] = (delay, rate)
+    return shapes
+
+
+def _assert_shaped_like(service: str, network: str, spec: LinkSpec, what: str) -> None:
+    shapes = _shaping(service)
+    subnet = _subnet(network)
+    assert subnet in shapes, f"{service} does not shape the {network} network ({subnet})"
+    delay, rate = shapes[subnet]
+    assert parse_duration(delay) == pytest.approx(spec.latency), (
+        f"{service}: netem delay {delay} on {network}, but testbed.yaml's {what}.latency "
+        f"is {spec.latency} s"
+    )
+    expected = "unlimited" if spec.bandwidth is None else spec.bandwidth
+    got = "unlimited" if rate == "unlimited" else parse_rate(rate)
+    assert got == expected, f"{service}: netem rate {rate}, but {what}.bandwidth is {expected}"
+    assert "NET_ADMIN" in SERVICES[service].get("cap_add", []), f"{service}: tc needs NET_ADMIN"
+
+
+# -- the compose file -----------------------------------------------------------------
+
+
+def test_services_are_all_there() -> None:
+    assert set(SERVICES) >= {"sim-vehicle", "px4-sitl", "drone", "report", *CONTROLLER_SERVICES}
+    assert "sitl" in SERVICES["px4-sitl"]["profiles"]
+    assert ":" in SERVICES["px4-sitl"]["image"] and not SERVICES["px4-sitl"]["image"].endswith(
+        ":latest"
+    ), "pin the SITL image's tag"
+
+
+@pytest.mark.parametrize("service", sorted(SERVICES))
+def test_service_has_an_image_or_a_build_and_known_dependencies(service: str) -> None:
+    spec = SERVICES[service]
+    assert "image" in spec or "build" in spec
+    depends = spec.get("depends_on") or []
+    unknown = set(depends) - set(SERVICES)
+    assert not unknown, f"{service} depends on unknown services {unknown}"
+    for network in _networks_of(service):
+        assert network in COMPOSE["networks"], f"{service}: unknown network {network}"
+
+
+BATON_SERVICES = sorted(s for s in SERVICES if _command(s)[:1] == ["baton"])
+
+
+@pytest.mark.parametrize("service", BATON_SERVICES)
+def test_baton_command_parses(service: str) -> None:
+    argv = _command(service)[1:]
+    try:
+        build_parser().parse_args(argv)
+    except SystemExit as exc:  # argparse printed the reason on stderr
+        pytest.fail(f"{service}: `baton {shlex.join(argv)}` does not parse (exit {exc.code})")
+
+
+@pytest.mark.parametrize("service", BATON_SERVICES)
+def test_baton_services_mount_the_testbed_config(service: str) -> None:
+    argv = _command(service)
+    if "--config" in argv:
+        assert _option(argv, "--config") == CONFIG_IN_CONTAINER
+        mounts = SERVICES[service]["volumes"]
+        assert f"./testbed.yaml:{CONFIG_IN_CONTAINER}:ro" in mounts
+    if "--handover-file" in argv:
+        assert _option(argv, "--handover-file") == HANDOVERS_IN_CONTAINER
+        assert f"./handovers.txt:{HANDOVERS_IN_CONTAINER}:ro" in SERVICES[service]["volumes"]
+
+
+def test_drone_and_report_share_a_valid_handover_script() -> None:
+    assert _option(_command("drone"), "--handover-file") == HANDOVERS_IN_CONTAINER
+    assert _option(_command("report"), "--handover-file") == HANDOVERS_IN_CONTAINER
+    script = (DEPLOY / "handovers.txt").read_text()
+    handovers = parse_handover_script(script, "deploy/handovers.txt", CONFIG.ring_order)
+    assert handovers, "the compose testbed should hand over"
+
+
+def test_report_follows_the_mission_the_controllers_run() -> None:
+    grids = {_option(_command(s), "--mission-arg") for s in CONTROLLER_SERVICES}
+    assert grids == {f"grid={_option(_command('report'), '--grid')}"}
+
+
+# -- the testbed configuration against the services -----------------------------------
+
+
+def test_every_controller_has_a_service_with_its_id() -> None:
+    ids = {int(_option(_command(s), "--id")): s for s in CONTROLLER_SERVICES}
+    assert sorted(ids) == sorted(CONFIG.ring_order)
+    for cid, service in ids.items():
+        assert service == f"controller-{cid}"
+
+
+@pytest.mark.parametrize("service", CONTROLLER_SERVICES)
+def test_controller_addresses_agree_with_compose(service: str) -> None:
+    argv = _command(service)
+    controller = CONFIG.controller(int(_option(argv, "--id")))
+    host, port = _host_port(controller.address)
+    # The controller binds `address`: all interfaces, or a name of its own container.
+    assert host == "0.0.0.0" or host in _names_of(service)
+    reach_host, reach_port = _host_port(controller.reach)
+    assert reach_host in _names_of(service), f"peers reach {service} at {controller.reach}"
+    assert reach_port == port
+    # Ring traffic must take the ring network, the one shaped like controller_link: the
+    # service name would resolve on the wifi network too, so peers use the ring alias.
+    assert _networks_resolving(service, reach_host) == ["ring"], (
+        f"peers reach {service} as {reach_host!r}, which is not a name only on the ring network"
+    )
+    drone_host, _ = _host_port(CONFIG.drone_address_for(controller.id))
+    assert drone_host in _names_of("drone")
+    assert _networks_of(service) >= {"ring", "wifi"}
+
+
+@pytest.mark.parametrize("service", CONTROLLER_SERVICES)
+def test_controller_runs_the_grid_mission(service: str) -> None:
+    argv = _command(service)
+    mission = Path(_option(argv, "--mission"))
+    workdir = Path(SERVICES[service]["working_dir"])
+    assert workdir == Path(SOURCE_IN_CONTAINER)
+    assert (REPO / mission).is_file(), f"{mission} is not in the repository"
+    assert mission.name == "grid_mission.py"
+
+
+def test_drone_address_agrees_with_compose() -> None:
+    argv = _command("drone")
+    host, port = _host_port(CONFIG.drone.address)
+    assert host in _names_of("drone"), "controllers reach the drone by its service name"
+    bind_host, bind_port = _host_port(_option(argv, "--address"))
+    assert (bind_host, bind_port) == ("0.0.0.0", port)
+    assert _networks_of("drone") >= {"wifi", "autopilot"}
+    health = SERVICES["drone"]["healthcheck"]["test"]
+    assert health[-1] == f"127.0.0.1:{port}"
+
+
+def test_vehicle_url_points_at_the_sim_vehicle() -> None:
+    sim = _command("sim-vehicle")
+    assert _option(sim, "--host") == "0.0.0.0"
+    url = urlsplit(CONFIG.drone.vehicle_url)
+    assert url.scheme == "udpout"
+    assert url.hostname == "sim-vehicle" and url.port == int(_option(sim, "--port"))
+    # Compose passes the same URL unless BATON_VEHICLE_URL selects PX4 SITL.
+    assert _option(_command("drone"), "--vehicle-url") == CONFIG.drone.vehicle_url
+    assert float(_option(sim, "--speedup")) == CONFIG.speedup
+    assert _networks_of("sim-vehicle") & _networks_of("drone")
+
+
+def test_px4_sitl_sends_mavlink_to_the_drone() -> None:
+    sitl = SERVICES["px4-sitl"]
+    assert set(_argv(sitl["command"])) <= _names_of("drone")
+    assert _networks_of("px4-sitl") & _networks_of("drone")
+    home = CONFIG.drone.home
+    env = sitl["environment"]
+    assert float(env["PX4_HOME_LAT"]) == home.latitude_deg
+    assert float(env["PX4_HOME_LON"]) == home.longitude_deg
+    assert float(env["PX4_HOME_ALT"]) == home.altitude_m
+
+
+# -- netem ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("service", CONTROLLER_SERVICES)
+def test_controller_links_are_shaped_like_the_config(service: str) -> None:
+    _assert_shaped_like(service, "ring", CONFIG.controller_link, "controller_link")
+    _assert_shaped_like(service, "wifi", CONFIG.drone_link, "drone_link")
+
+
+def test_drone_link_is_shaped_like_the_config() -> None:
+    _assert_shaped_like("drone", "wifi", CONFIG.drone_link, "drone_link")
+    assert _subnet("autopilot") not in _shaping("drone"), "the autopilot link is not WiFi"
+
+
+def _fake_tools(bin_dir: Path, log: Path) -> None:
+    """``ip`` answers with one route per subnet; ``tc`` records its arguments."""
+    bin_dir.mkdir()
+    routes = "".join(
+        f'  {_subnet(n)}) echo "{_subnet(n)} dev eth{i} proto kernel scope link" ;;\n'
+        for i, n in enumerate(sorted(COMPOSE["networks"]))
+    )
+    (bin_dir / "ip").write_text(f'#!/bin/sh\nfor last; do :; done\ncase "$last" in\n{routes}esac\n')
+    (bin_dir / "tc").write_text(f'#!/bin/sh\necho "$*" >> "{log}"\n')
+    for tool in ("ip", "tc"):
+        (bin_dir / tool).chmod(0o755)
+
+
+def test_netem_sh_shapes_each_interface_then_runs_the_service(tmp_path: Path) -> None:
+    log = tmp_path / "tc.log"
+    _fake_tools(tmp_path / "bin", log)
+    entry = _argv(SERVICES["controller-0"]["entrypoint"])
+    env = {**os.environ, "PATH": f"{tmp_path / 'bin'}:{os.environ['PATH']}"}
+    done = subprocess.run(
+        ["sh", str(DEPLOY / "netem.sh"), *entry[1:], "echo", "service", "started"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == "service started\n"
+    eth = {n: f"eth{i}" for i, n in enumerate(sorted(COMPOSE["networks"]))}
+    ring, wifi = CONFIG.controller_link, CONFIG.drone_link
+    assert log.read_text().splitlines() == [
+        f"qdisc replace dev {eth['ring']} root netem delay 20ms rate 25mbit",
+        f"qdisc replace dev {eth['wifi']} root netem delay 2ms rate 20mbit",
+    ]
+    assert (ring.latency, ring.bandwidth, wifi.latency, wifi.bandwidth) == (0.02, 25e6, 0.002, 20e6)
+
+
+def test_netem_sh_refuses_a_subnet_it_is_not_on(tmp_path: Path) -> None:
+    _fake_tools(tmp_path / "bin", tmp_path / "tc.log")
+    env = {**os.environ, "PATH": f"{tmp_path / 'bin'}:{os.environ['PATH']}"}
+    done = subprocess.run(
+        ["sh", str(DEPLOY / "netem.sh"), "--shape", "10.9.9.0/24", "1ms", "1mbit", "--", "true"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
+    assert done.returncode == 1
+    assert "no interface on 10.9.9.0/24" in done.stderr
+    assert not (tmp_path / "tc.log").exists()
+
+
+# -- the image ----------------------------------------------------------------------------
+
+
+def _dockerfile_runs() -> list[str]:
+    text = (DEPLOY / "Dockerfile").read_text().replace("\\\n", " ")
+    return [line.split(None, 1)[1] for line in text.splitlines() if line.startswith("RUN ")]
+
+
+def _make_recipe(target: str) -> list[str]:
+    """The recipe lines ``make TARGET`` runs, following its prerequisites in the Makefile."""
+    text = (REPO / "Makefile").read_text()
+    variables = dict(re.findall(r"^([A-Z]+) [?:]?= ?(.*)$", text, re.M))
+    rules: dict[str, tuple[list[str], list[str]]] = {}
+    current: list[str] = []
+    for line in text.splitlines():
+        rule = re.match(r"^([^\s#.][^:=]*):(?!=)(.*)$", line)
+        if rule:
+            current = []
+            rules[rule.group(1).strip()] = (rule.group(2).split(), current)
+        elif line.startswith("\t"):
+            current.append(line.strip().lstrip("@"))
+    prerequisites, recipe = rules[target]
+    lines = []
+    for name in prerequisites:
+        resolved = re.sub(r"\$\((\w+)\)", lambda m: variables[m.group(1)], name)
+        for key, (_, body) in rules.items():
+            if re.sub(r"\$\((\w+)\)", lambda m: variables[m.group(1)], key) == resolved:
+                lines += body
+    return lines + recipe
+
+
+def test_dockerfile_installs_with_the_makefile_install_target() -> None:
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    assert re.search(r"^FROM python:3\.11-slim\s*$", dockerfile, re.M)
+    assert any("iproute2" in run for run in _dockerfile_runs()), "tc comes with iproute2"
+    installs = [run for run in _dockerfile_runs() if run.startswith("make install")]
+    assert len(installs) == 1, "the image installs baton with `make install`, as the README does"
+    assert re.search(r"^ENV PATH=/opt/venv/bin:", dockerfile, re.M)
+    assert installs[0] == "make install VENV=/opt/venv"
+    # ... and `make install` is the editable install with the dev extra.
+    pip = [line for line in _make_recipe("install") if " -m pip install " in line]
+    assert pip[-1] == "$(BIN)/python -m pip install --quiet -e '.[dev]'"
