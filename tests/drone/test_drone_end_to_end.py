@@ -201,10 +201,10 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
         c2.reqnr += 1  # a failed request is served too: its reqnr is used
     with pytest.raises(grpc.RpcError) as bad:
         testbed.stub.Invoke(
-            drone_pb2.InvokeRequest(controller_id=2, reqnr=99, method="/x"), timeout=5
+            drone_pb2.InvokeRequest(controller_id=2, reqnr=0, method="/x"), timeout=5
         )
-    assert bad.value.code() == grpc.StatusCode.FAILED_PRECONDITION
-    assert "expected reqnr 13" in (bad.value.details() or "")
+    assert bad.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "they start at 1" in (bad.value.details() or "")
 
     status = testbed.status(audit=True)
     assert status.master == 2 and status.last_reqnr == 12 and status.duplicates == 1

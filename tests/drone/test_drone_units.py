@@ -6,8 +6,9 @@ import grpc
 import pytest
 from drone_fakes import FakeMobility
 
+from baton.digest import request_digest
 from baton.drone.camera import Camera, image_size, parse_resolution
-from baton.drone.dedupe import ReplyCache, request_digest
+from baton.drone.dedupe import ReplyCache
 from baton.drone.dispatch import Dispatcher, drone_api_routes
 from baton.drone.master import HandoverScriptError, load_handover_script, parse_handover_script
 from baton.rpc.errors import StatusError

@@ -346,6 +346,17 @@ class ControllerNode:
                 )
             except grpc.aio.AioRpcError as exc:
                 notice = notice_from_rejection(exc)
+                if notice is not None and notice[0] == self.id:
+                    # The drone knows us as master yet refused the request
+                    # number: the log and the drone disagree. Stop, loudly.
+                    self._fail(
+                        StatusError(
+                            grpc.StatusCode.INTERNAL,
+                            f"controller {self.id}: the drone refused request {reqnr} "
+                            f"({method}): {exc.details()}",
+                        )
+                    )
+                    return None
                 if notice is not None:
                     await self.on_handover_notice(*notice)
                     return None

@@ -14,10 +14,10 @@ Where DESIGN.md reads the paper's text over its pseudo-code, the method says so.
 from __future__ import annotations
 
 import enum
-import hashlib
 import time
 from dataclasses import dataclass, field
 
+from baton.digest import request_digest
 from baton.v1 import ring_pb2
 
 
@@ -73,11 +73,6 @@ class ProtocolError(Exception):
 def _show(payload: bytes) -> str:
     text = bytes(payload).hex()
     return f"(request bytes {text[:96]}{'...' if len(text) > 96 else ''})"
-
-
-def request_digest(method: str, request: bytes) -> bytes:
-    """SHA-256 over the method name and the serialized request: the determinism guard."""
-    return hashlib.sha256(method.encode() + b"\0" + bytes(request)).digest()
 
 
 def entry_size(entry: ring_pb2.LogEntry) -> int:

@@ -1,9 +1,10 @@
 """The drone's reply cache: duplicate request numbers are answered, not re-executed.
 
 How long a reply is kept, and why that is enough: only the master may
-invoke, and the master's request numbers are strictly sequential (a new
-request must be ``last_reqnr + 1``). So the only duplicates the drone can
-ever see are
+invoke, and the master's request numbers strictly increase (a new request
+must be above ``last_reqnr``; numbers may be skipped, because the controller
+answers Clock calls itself and logs ``Clock.Now`` under a request number of
+its own). So the only duplicates the drone can ever see are
 
 - a retry of the last request by the master (its reply was lost), and
 - the request the old master had in flight at a handover (footnote 2 of the
@@ -32,18 +33,12 @@ with a reply to a different question.
 
 from __future__ import annotations
 
-import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass
 
 from baton.rpc.errors import StatusError
 
 DEFAULT_WINDOW = 16
-
-
-def request_digest(method: str, payload: bytes) -> bytes:
-    """SHA-256 of the method name and the serialized request (ring.proto's request_digest)."""
-    return hashlib.sha256(method.encode() + b"\0" + payload).digest()
 
 
 @dataclass(frozen=True)

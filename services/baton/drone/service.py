@@ -20,8 +20,9 @@ from pathlib import Path
 
 import grpc
 
+from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
-from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, ReplyCache, request_digest
+from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, ReplyCache
 from baton.drone.dispatch import Dispatcher
 from baton.drone.master import MasterSelection, ScriptedHandover
 from baton.drone.mobility_api import MobilityBackend
@@ -115,7 +116,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             cached = self.cache.get(reqnr)
             if cached is not None:
                 return self._answer_duplicate(request, digest, cached)
-            if reqnr != self.last_reqnr + 1:
+            if reqnr <= self.last_reqnr:
                 raise self._bad_reqnr(reqnr)
             try:
                 reply = await self._execute(request)
@@ -172,7 +173,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         cached = f"; replies cached for reqnr {oldest}..{self.last_reqnr}" if oldest else ""
         return StatusError(
             grpc.StatusCode.FAILED_PRECONDITION,
-            f"expected reqnr {self.last_reqnr + 1} (or a cached duplicate), got {reqnr}{cached}",
+            f"expected a reqnr above {self.last_reqnr} (or a cached duplicate), "
+            f"got {reqnr}{cached}",
             metadata=self._after_metadata(),
         )
 
