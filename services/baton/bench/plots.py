@@ -1,0 +1,83 @@
+"""The benchmark figures (matplotlib, Agg backend: no display needed)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt
+
+from baton.bench.model import MB
+
+
+def plot_timeline(
+    reqnrs: Sequence[int],
+    inter_arrival_s: Sequence[float],
+    log_bytes: Sequence[int],
+    handovers: Sequence[int],
+    flush_limit: int,
+    path: Path,
+) -> None:
+    """Figure 5: request inter-arrival time and the master's log size over reqnr."""
+    fig, ax = plt.subplots(figsize=(10, 4.5))
+    ax.plot(reqnrs, inter_arrival_s, color="tab:red", linewidth=1, label="inter-arrival time")
+    ax.set_xlabel("request number (reqnr)")
+    ax.set_ylabel("inter-arrival time at the drone (s)", color="tab:red")
+    log_axis = ax.twinx()
+    log_axis.plot(
+        reqnrs, [b / MB for b in log_bytes], color="tab:blue", linewidth=1, label="master's log"
+    )
+    log_axis.set_ylabel("master's log size (MB)", color="tab:blue")
+    for k, reqnr in enumerate(handovers):
+        ax.axvline(
+            reqnr, color="black", linestyle="--", linewidth=1, label="handover" if k == 0 else None
+        )
+    ax.set_title(f"Request inter-arrival time and log growth (flush limit {flush_limit / MB:g} MB)")
+    lines = ax.get_legend_handles_labels()
+    more = log_axis.get_legend_handles_labels()
+    ax.legend(lines[0] + more[0], lines[1] + more[1], loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_worst_case(rows: Sequence[dict[str, Any]], path: Path) -> None:
+    """Figure 6: measured worst-case handover delay (mean, min-max) and the model, per hop count."""
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, hops in enumerate(sorted({r["hops"] for r in rows})):
+        mine = sorted((r for r in rows if r["hops"] == hops), key=lambda r: r["flush_limit"])
+        x = [r["flush_limit"] / MB for r in mine]
+        mean = [r["mean_s"] for r in mine]
+        low = [r["mean_s"] - r["min_s"] for r in mine]
+        high = [r["max_s"] - r["mean_s"] for r in mine]
+        color = colors[k % len(colors)]
+        ax.errorbar(
+            x,
+            mean,
+            yerr=[low, high],
+            color=color,
+            marker="o",
+            capsize=3,
+            label=f"{hops} hop{'s' if hops > 1 else ''}: measured",
+        )
+        ax.plot(
+            x,
+            [r["model_s"] for r in mine],
+            color=color,
+            linestyle="--",
+            label=f"{hops} hop{'s' if hops > 1 else ''}: model",
+        )
+    ax.set_xlabel("flush limit (MB)")
+    ax.set_ylabel("handover delay (s)")
+    ax.set_title("Worst-case handover delay, six controllers")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

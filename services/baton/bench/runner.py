@@ -1,0 +1,112 @@
+"""Running testbed missions for the benchmarks, and reading the results back.
+
+One place for what every benchmark does around a run: start the local
+testbed, print progress lines while the mission runs, turn the drone's audit
+into the calls the model works on, and describe the machine it ran on.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from baton.bench.model import Call
+from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
+
+
+def say(text: str) -> None:
+    """One progress line on stdout."""
+    print(f"[{time.strftime('%H:%M:%S')}] {text}", flush=True)
+
+
+async def run_plan(plan: TestbedPlan, workdir: Path, timeout: float, label: str) -> Snapshot:
+    """Runs one mission on a fresh local testbed; prints progress as requests arrive."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    seen = {"reqnr": -1, "handovers": -1}
+
+    def progress(snapshot: Snapshot) -> None:
+        drone = snapshot.drone
+        if (drone.last_reqnr, len(drone.handovers)) != (seen["reqnr"], seen["handovers"]):
+            seen["reqnr"], seen["handovers"] = drone.last_reqnr, len(drone.handovers)
+            done = sum(1 for h in drone.handovers if h.delay_s > 0)
+            say(
+                f"{label}: reqnr {drone.last_reqnr}, master {drone.master}, "
+                f"handovers {done}/{len(plan.handovers)}"
+            )
+
+    say(f"{label}: starting {plan.controllers} controllers in {workdir}")
+    async with LocalTestbed(plan, workdir) as testbed:
+        snapshot = await testbed.run_mission(timeout, progress, period=1.0)
+    failed = {
+        cid: c.mission_error for cid, c in snapshot.controllers.items() if c.mission != "done"
+    }
+    if failed:
+        raise RuntimeError(f"{label}: mission failed on controllers {failed}")
+    return snapshot
+
+
+def audit_calls(snapshot: Snapshot, request_bytes: Mapping[int, int] | None = None) -> list[Call]:
+    """The drone's audit as model calls, in reqnr order (request sizes where known)."""
+    sizes = request_bytes or {}
+    return [
+        Call(a.reqnr, a.method, a.reply_bytes, sizes.get(a.reqnr, 0))
+        for a in sorted(snapshot.drone.audit, key=lambda a: a.reqnr)
+    ]
+
+
+def t_conn_samples(snapshot: Snapshot) -> list[float]:
+    """Every drone connection set-up time the controllers measured, seconds."""
+    return [t for c in snapshot.controllers.values() for t in c.t_conn_s]
+
+
+def handover_delays(snapshot: Snapshot) -> dict[int, float]:
+    """Measured handover delay by the reqnr it came after (decision -> first request)."""
+    return {h.after_reqnr: h.delay_s for h in snapshot.drone.handovers}
+
+
+def spread(samples: Sequence[float]) -> dict[str, float]:
+    """Mean, min and max of ``samples``."""
+    return {
+        "mean": statistics.fmean(samples),
+        "min": min(samples),
+        "max": max(samples),
+        "n": len(samples),
+    }
+
+
+def machine() -> dict[str, Any]:
+    """What the numbers were measured on."""
+    cpu = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import os
+
+    return {
+        "nproc": os.cpu_count(),
+        "cpu": cpu,
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+    }
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Writes ``data`` as indented JSON."""
+    path.write_text(json.dumps(data, indent=2) + "\n")
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    """A GitHub markdown table."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
