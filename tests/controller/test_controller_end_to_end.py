@@ -76,3 +76,31 @@ async def test_six_controllers_handovers_over_one_three_and_five_hops(tmp_path: 
     )
     snapshot = await fly(tmp_path, plan)
     assert snapshot.drone.master == 3
+
+
+@pytest.mark.parametrize("order", ["notice-first", "reply-first"])
+async def test_handover_while_a_call_is_in_flight_both_orders(tmp_path: Path, order: str) -> None:
+    """Footnote 2, forced: the drone holds back the reply (or the notice) at every handover."""
+    plan = TestbedPlan(
+        controllers=2,
+        flush_limit=0,
+        handovers=((8, 1), (16, 0), (24, 1)),
+        speedup=20.0,
+        mission=SMALL_GRID,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+        drone_args=("--force-race", order, "--race-delay", "0.3"),
+    )
+    snapshot = await fly(tmp_path, plan)
+    old_master_logs = "".join(
+        (tmp_path / "logs" / f"controller-{cid}.log").read_text() for cid in (0, 1)
+    )
+    discarded = old_master_logs.count("reply discarded after handover")
+    if order == "notice-first":
+        # Each old master dropped its in-flight reply; each new master re-sent
+        # that request and the drone answered it from its cache.
+        assert discarded == 3
+        assert snapshot.drone.duplicates == 3
+    else:
+        assert discarded == 0
+        assert snapshot.drone.duplicates == 0

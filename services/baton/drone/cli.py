@@ -117,6 +117,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "(default: config, else 1)",
     )
     parser.add_argument(
+        "--force-race",
+        choices=["notice-first", "reply-first"],
+        help="fault injection for tests: at every scripted handover, hold back the reply "
+        "(notice-first) or the handover notice (reply-first) for --race-delay seconds, so "
+        "the race of footnote 2 goes the chosen way (default: no hold-back)",
+    )
+    parser.add_argument(
+        "--race-delay",
+        type=float,
+        default=0.2,
+        help="seconds the other message is held back under --force-race (default 0.2)",
+    )
+    parser.add_argument(
         "--cache-window",
         type=int,
         default=None,
@@ -131,7 +144,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     from baton.config import load_config
     from baton.drone.dedupe import DEFAULT_WINDOW
     from baton.drone.master import load_handover_script
-    from baton.drone.service import DroneSettings
+    from baton.drone.service import DroneSettings, Race
 
     address, vehicle_url, speedup = "127.0.0.1:50051", "udpin://127.0.0.1:14540", 1.0
     controllers: tuple[int, ...] = (0,)
@@ -150,6 +163,8 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         )
     if args.speedup is not None and not 0 < args.speedup <= 1000:
         raise ValueError(f"--speedup must be in (0, 1000], got {args.speedup}")
+    if not 0 <= args.race_delay <= 60:
+        raise ValueError(f"--race-delay must be in 0..60 seconds, got {args.race_delay}")
     if args.cache_window is not None and args.cache_window < 1:
         raise ValueError(f"--cache-window must be >= 1, got {args.cache_window}")
     script = load_handover_script(args.handover_file, controllers) if args.handover_file else {}
@@ -164,6 +179,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         speedup=args.speedup if args.speedup is not None else speedup,
         cache_window=args.cache_window or DEFAULT_WINDOW,
         address_file=args.address_file,
+        race=Race(args.force_race, args.race_delay) if args.force_race else None,
     )
 
 

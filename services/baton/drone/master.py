@@ -134,7 +134,9 @@ class MasterSelection:
             metadata=(("baton-master", str(self.master)), ("baton-after-reqnr", str(last_reqnr))),
         )
 
-    def switch(self, new_master: int, after_reqnr: int, trigger: str) -> drone_pb2.HandoverRecord:
+    def switch(
+        self, new_master: int, after_reqnr: int, trigger: str, notice_delay_s: float = 0.0
+    ) -> drone_pb2.HandoverRecord:
         """Makes ``new_master`` the master and owes the old master a notice.
 
         The caller holds the drone's execution lock, so no request is being
@@ -173,7 +175,10 @@ class MasterSelection:
             old_master_connected=stream is not None,
         )
         if stream is not None:
-            stream.wake.set()
+            if notice_delay_s > 0:  # fault injection: the reply overtakes the notice
+                asyncio.get_running_loop().call_later(notice_delay_s, stream.wake.set)
+            else:
+                stream.wake.set()
         return record
 
     def note_request(self, controller_id: int, received_at: float) -> None:

@@ -59,7 +59,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         masters: MasterSelection,
         script: Mapping[int, ScriptedHandover] | None = None,
         cache_window: int = DEFAULT_WINDOW,
+        race: Race | None = None,
     ) -> None:
+        self.race = race
         self.vehicle = vehicle
         self.camera = camera
         self.masters = masters
@@ -124,7 +126,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 self._served(request, digest, b"", received_at, err)
                 raise
             self._served(request, digest, reply, received_at)
-            return drone_pb2.InvokeReply(reqnr=reqnr, payload=reply)
+        if self.race is not None and self.race.order == "notice-first" and reqnr in self.script:
+            await asyncio.sleep(self.race.delay_s)
+        return drone_pb2.InvokeReply(reqnr=reqnr, payload=reply)
 
     def _answer_duplicate(
         self, request: drone_pb2.InvokeRequest, digest: bytes, cached: CachedReply
@@ -243,7 +247,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 script_line=scripted.line,
             )
             return
-        self.masters.switch(scripted.new_master, reqnr, "script")
+        hold = self.race.delay_s if self.race and self.race.order == "reply-first" else 0.0
+        self.masters.switch(scripted.new_master, reqnr, "script", notice_delay_s=hold)
 
     async def Connect(
         self, request: drone_pb2.ConnectRequest, context: grpc.aio.ServicerContext
@@ -340,6 +345,19 @@ class DroneService(drone_pb2_grpc.DroneServicer):
 
 
 @dataclass(frozen=True)
+class Race:
+    """Forces footnote 2's race one way at scripted handovers (fault injection for tests).
+
+    ``notice-first`` holds the reply of the request after which the drone
+    hands over, so the old master gets the notice while its call is still in
+    flight; ``reply-first`` holds the notice, so the reply is logged first.
+    """
+
+    order: str
+    delay_s: float
+
+
+@dataclass(frozen=True)
 class DroneSettings:
     """Everything ``baton drone`` needs, from flags or the testbed configuration."""
 
@@ -353,6 +371,7 @@ class DroneSettings:
     speedup: float = 1.0
     cache_window: int = DEFAULT_WINDOW
     address_file: str | None = None
+    race: Race | None = None
 
     @property
     def master(self) -> int:
@@ -368,7 +387,9 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
 
     camera = Camera(position, settings.image_file, settings.resolution)
     masters = MasterSelection(settings.controllers, settings.master)
-    return DroneService(vehicle, camera, masters, settings.handover_script, settings.cache_window)
+    return DroneService(
+        vehicle, camera, masters, settings.handover_script, settings.cache_window, settings.race
+    )
 
 
 def write_address_file(path: str, address: str) -> None:

@@ -64,6 +64,8 @@ class TestbedPlan:
     drone_link: LinkSpec = WIFI_DRONE_LINK
     base_config: BatonConfig | None = None  # a full testbed file, when given
     resolution: str | None = None
+    drone_args: tuple[str, ...] = ()  # extra `baton drone` options (e.g. --force-race)
+    mission_args: tuple[str, ...] = ()  # extra mission parameters, key=value
 
 
 def free_port() -> int:
@@ -207,6 +209,7 @@ class LocalTestbed:
         )
         if self.plan.resolution:
             argv += ["--resolution", self.plan.resolution]
+        argv += self.plan.drone_args
         address = await self.supervisor.start_ready("drone", argv, ready)
         channel = aio_channel(address)
         self._channels.append(channel)
@@ -228,7 +231,7 @@ class LocalTestbed:
                 "--address-file",
                 str(ready),
             )
-            for arg in self.plan.mission.args():
+            for arg in [*self.plan.mission.args(), *self.plan.mission_args]:
                 argv += ["--mission-arg", arg]
             parts.append(await self.supervisor.start(f"controller-{cid}", argv, ready))
         for cid, part in zip(self.config.ring_order, parts, strict=True):
