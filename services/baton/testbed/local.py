@@ -231,7 +231,8 @@ class LocalTestbed:
                 "--address-file",
                 str(ready),
             )
-            for arg in [*self.plan.mission.args(), *self.plan.mission_args]:
+            grid_args = self.plan.mission.args() if self.plan.mission_file == GRID_MISSION else []
+            for arg in [*grid_args, *self.plan.mission_args]:
                 argv += ["--mission-arg", arg]
             parts.append(await self.supervisor.start(f"controller-{cid}", argv, ready))
         for cid, part in zip(self.config.ring_order, parts, strict=True):
