@@ -167,3 +167,46 @@ def test_bad_options_are_refused_with_a_clear_message() -> None:
     ]:
         result = subprocess.run(baton("testbed", *args), capture_output=True, text=True, timeout=60)
         assert result.returncode == 2 and message in result.stderr, (args, result.stderr)
+
+
+def test_a_full_testbed_file_drives_the_run(tmp_path: Path) -> None:
+    """examples/testbed.yaml, on free ports: its ring, master and links are used."""
+    import yaml
+
+    from baton.testbed.local import free_port
+
+    example = Path(__file__).parents[2] / "examples" / "testbed.yaml"
+    document = yaml.safe_load(example.read_text())
+    document["drone"]["address"] = f"127.0.0.1:{free_port()}"
+    for controller in document["controllers"]:
+        controller["address"] = f"127.0.0.1:{free_port()}"
+    document["ring"] = [2, 1, 0]
+    document["initial_master"] = 1
+    document["flush_limit"] = 0
+    config = tmp_path / "testbed.yaml"
+    config.write_text(yaml.safe_dump(document))
+    report_path = tmp_path / "report.json"
+    result = subprocess.run(
+        baton(
+            "testbed",
+            "--config",
+            str(config),
+            *SMALL,
+            "--handover",
+            "10:2",
+            "--report",
+            str(report_path),
+            "--workdir",
+            str(tmp_path / "w"),
+        ),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads(report_path.read_text())
+    assert report["setup"]["ring"] == [2, 1, 0] and report["setup"]["initial_master"] == 1
+    assert report["setup"]["flush_limit_bytes"] == 0
+    assert report["setup"]["controller_link"] == {"latency_s": 0.02, "bandwidth_bps": 25e6}
+    (handover,) = report["handovers"]
+    assert (handover["from"], handover["to"], handover["hops"]) == (1, 2, 2)

@@ -7,6 +7,10 @@ import asyncio
 import sys
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from baton.config import LinkSpec
 
 DEFAULT_HANDOVER_REQNRS = (90, 180, 270)
 
@@ -75,22 +79,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--poll", type=float, default=1.0, help="position poll period, mission s (default 1)"
     )
     parser.add_argument(
-        "--link-latency", default="20ms", help="controller-to-controller latency (default 20ms)"
+        "--link-latency",
+        help="controller-to-controller latency (default: the --config file's, else 20ms)",
     )
     parser.add_argument(
         "--link-bandwidth",
-        default="25Mbit",
-        help="controller-to-controller bandwidth (default 25Mbit)",
+        help="controller-to-controller bandwidth (default: the --config file's, else 25Mbit)",
     )
     parser.add_argument(
         "--drone-link-latency",
-        default="2ms",
-        help="controller-to-drone latency, WiFi-like (default 2ms)",
+        help="controller-to-drone latency (default: the --config file's, else 2ms, WiFi-like)",
     )
     parser.add_argument(
         "--drone-link-bandwidth",
-        default="20Mbit",
-        help="controller-to-drone bandwidth (default 20Mbit)",
+        help="controller-to-drone bandwidth (default: the --config file's, else 20Mbit)",
     )
     parser.add_argument("--no-links", action="store_true", help="no link emulation: plain loopback")
     parser.add_argument(
@@ -117,18 +119,26 @@ def _fail(message: str) -> int:
     return 2
 
 
+def _link(latency: str | None, bandwidth: str | None, default: LinkSpec) -> LinkSpec:
+    """A link from the options, each falling back to ``default``'s value."""
+    from baton.config import LinkSpec, parse_duration, parse_rate
+
+    return LinkSpec(
+        latency=default.latency if latency is None else parse_duration(latency),
+        bandwidth=default.bandwidth if bandwidth is None else parse_rate(bandwidth),
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     """Validates the options, then runs or follows the testbed."""
-    from baton.config import (
-        ConfigError,
-        LinkSpec,
-        load_config,
-        parse_duration,
-        parse_rate,
-        parse_size,
-    )
+    from baton.config import ConfigError, load_config, parse_size
     from baton.drone.master import HandoverScriptError, parse_handover_script
-    from baton.testbed.local import MissionPlan, TestbedPlan
+    from baton.testbed.local import (
+        PAPER_CONTROLLER_LINK,
+        WIFI_DRONE_LINK,
+        MissionPlan,
+        TestbedPlan,
+    )
     from baton.testbed.run import follow_remote, run_local
 
     try:
@@ -138,14 +148,15 @@ def run(args: argparse.Namespace) -> int:
     ids = base.ring_order if base is not None else list(range(args.controllers))
     if base is None and args.controllers < 1:
         return _fail(f"--controllers must be >= 1, got {args.controllers}")
+    file_ring = base.controller_link if base is not None and base.controller_link.emulated else None
+    file_drone = base.drone_link if base is not None and base.drone_link.emulated else None
     try:
         flush_limit = parse_size(args.flush_limit)
-        controller_link = LinkSpec(
-            latency=parse_duration(args.link_latency), bandwidth=parse_rate(args.link_bandwidth)
+        controller_link = _link(
+            args.link_latency, args.link_bandwidth, file_ring or PAPER_CONTROLLER_LINK
         )
-        drone_link = LinkSpec(
-            latency=parse_duration(args.drone_link_latency),
-            bandwidth=parse_rate(args.drone_link_bandwidth),
+        drone_link = _link(
+            args.drone_link_latency, args.drone_link_bandwidth, file_drone or WIFI_DRONE_LINK
         )
     except ValueError as exc:
         return _fail(f"bad option value: {exc}")
