@@ -11,7 +11,7 @@ and after a run, what it held at every request.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 from baton.controller.protocol import Log
@@ -98,23 +98,33 @@ def master_log_sizes(
     return points
 
 
-def pick_handovers(
-    points: Sequence[LogPoint], targets: Sequence[float], start: int, end: int
-) -> list[int]:
-    """For each target size, the reqnr in [start, end] whose log size is nearest to it.
+def pick_in_stretch(
+    points: Sequence[LogPoint],
+    target: float,
+    tolerance: float,
+    eligible: Callable[[LogPoint], bool] = lambda p: True,
+    end_margin: int = 2,
+) -> int | None:
+    """A reqnr late in the first stretch of requests with a log within ``tolerance`` of ``target``.
 
-    Targets are taken in order and each pick lies after the previous one, so
-    the handovers keep the order of ``targets`` along the mission.
+    A stretch is a run of consecutive points all near the target. Late in it,
+    the flush that began the stretch has had the most time to travel; a
+    couple of requests before its end (``end_margin``), a run whose timing
+    differs by a request or two still lands in the same stretch. Returns None
+    if no eligible point is near the target.
     """
-    picks: list[int] = []
-    lowest = start
-    for k, target in enumerate(targets):
-        # Leave room for the remaining targets in the window.
-        room = (end - lowest) // (len(targets) - k)
-        window = [p for p in points if lowest <= p.reqnr <= lowest + room]
-        if not window:
-            raise ValueError(f"no request numbers left in [{lowest}, {end}] for target {target}")
-        best = min(window, key=lambda p: (abs(p.size - target), p.reqnr))
-        picks.append(best.reqnr)
-        lowest = best.reqnr + 1
-    return picks
+    stretch: list[LogPoint] = []
+    stretches: list[list[LogPoint]] = []
+    for point in points:
+        if abs(point.size - target) <= tolerance:
+            stretch.append(point)
+        elif stretch:
+            stretches.append(stretch)
+            stretch = []
+    if stretch:
+        stretches.append(stretch)
+    for run in stretches:
+        picks = [p for p in run if eligible(p)]
+        if picks:
+            return picks[max(0, len(picks) - 1 - end_margin)].reqnr
+    return None
