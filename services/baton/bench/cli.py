@@ -1,0 +1,121 @@
+"""``baton bench``: the paper's Section 5.4 measurements on the local testbed.
+
+    baton bench timeline   [--out DIR] [--speedup 10]       # Figure 5
+    baton bench worst-case [--out DIR] [--repeat 3] [--quick]  # Figure 6
+    baton bench micro      [--out DIR] [--quick]            # proxy, replay, ring, T_conn
+
+Each writes its figures, JSON and a markdown table under --out and prints the
+table at the end. See docs/benchmarks.md for the results and their reading.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+from pathlib import Path
+
+from baton.config import parse_size
+
+
+def _size_mb(text: str) -> int:
+    try:
+        return parse_size(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Adds ``baton bench`` and its three benchmarks."""
+    parser = subparsers.add_parser(
+        "bench",
+        help="benchmarks reproducing the paper's Section 5.4",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    benches = parser.add_subparsers(dest="bench", metavar="BENCH", required=True)
+
+    def common(sub: argparse.ArgumentParser) -> None:
+        sub.add_argument(
+            "--out", type=Path, default=Path("out/bench"), help="output folder (default: out/bench)"
+        )
+        sub.add_argument(
+            "--quick", action="store_true", help="a reduced, fast variant (for CI and tests)"
+        )
+
+    timeline = benches.add_parser(
+        "timeline",
+        help="Figure 5: request inter-arrival time and log size, 2 controllers, 3 handovers",
+    )
+    common(timeline)
+    timeline.add_argument(
+        "--speedup",
+        type=float,
+        default=None,
+        help="sim vehicle and mission clock speed-up (default 10, --quick 20); pictures and "
+        "handovers "
+        "still cross the emulated links in real time",
+    )
+    timeline.add_argument(
+        "--flush-limit",
+        type=_size_mb,
+        default=None,
+        help="flush limit, e.g. 2MB (default 2MB, as the paper)",
+    )
+    timeline.set_defaults(run=_run_timeline)
+
+    worst = benches.add_parser(
+        "worst-case",
+        help="Figure 6: worst-case handover delay vs flush limit, 1/3/5 hops, 6 controllers",
+    )
+    common(worst)
+    worst.add_argument(
+        "--repeat", type=int, default=3, help="handovers per (flush limit, hops) point (default 3)"
+    )
+    worst.add_argument(
+        "--flush-limits",
+        default="0,1MB,2MB,3MB,4MB",
+        help="comma-separated flush limits (default 0,1MB,2MB,3MB,4MB)",
+    )
+    worst.add_argument("--hops", default="1,3,5", help="comma-separated hop counts (default 1,3,5)")
+    worst.set_defaults(run=_run_worst_case)
+
+    micro = benches.add_parser(
+        "micro", help="proxy round trip, replay speed, ring throughput, T_conn"
+    )
+    common(micro)
+    micro.set_defaults(run=_run_micro)
+
+
+def _run_timeline(args: argparse.Namespace) -> int:
+    from baton.bench.timeline import TimelineSettings, run_timeline, table
+
+    settings = TimelineSettings.quick() if args.quick else TimelineSettings()
+    settings = settings.with_options(speedup=args.speedup, flush_limit=args.flush_limit)
+    result = asyncio.run(run_timeline(settings, args.out))
+    print(table(result))
+    return 0
+
+
+def _run_worst_case(args: argparse.Namespace) -> int:
+    from baton.bench.worst_case import WorstCaseSettings, run_worst_case, table
+
+    if args.quick:
+        settings = WorstCaseSettings.quick()
+    else:
+        settings = WorstCaseSettings(
+            flush_limits=tuple(_size_mb(s) for s in args.flush_limits.split(",")),
+            hops=tuple(int(h) for h in args.hops.split(",")),
+            repeat=args.repeat,
+        )
+    result = asyncio.run(run_worst_case(settings, args.out))
+    print(table(result["summary"]))
+    return 0
+
+
+def _run_micro(args: argparse.Namespace) -> int:
+    from baton.bench.micro import MicroSettings, run_micro, table
+
+    settings = MicroSettings.quick() if args.quick else MicroSettings()
+    result = asyncio.run(run_micro(settings, args.out))
+    print(table(result))
+    return 0

@@ -1,0 +1,314 @@
+"""``baton bench timeline``: the paper's Figure 5 on the local testbed.
+
+The grid mission (5x5 waypoints, 1 s polls, a picture at each waypoint) with
+two controllers and a 2 MB flush limit. A dry run without handovers gives the
+request sequence; the master's log after every request is computed offline
+from it (``model.master_log_sizes``), and three handovers are placed in the
+core of the mission where the log holds about 0, 1 and 2 MB. The measured run
+then has the drone hand over at those request numbers. The figure shows the
+inter-arrival time of requests at the drone and the master's log size over
+the request number, with the handovers as dashed lines.
+"""
+
+from __future__ import annotations
+
+import csv
+import statistics
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from baton.bench.model import MB, Call, LogPoint, master_log_sizes, pick_in_stretch, t_log
+from baton.bench.runner import audit_calls, machine, markdown_table, run_plan, say, write_json
+from baton.bench.script import GET_POSITION, TAKE_PICTURE
+from baton.testbed.local import MissionPlan, Snapshot, TestbedPlan
+from baton.v1 import drone_api_pb2 as api
+
+_FULL = 123.456789
+# Request sizes of the grid mission's calls that carry arguments (the rest are empty).
+REQUEST_BYTES = {
+    "/baton.v1.Mobility/Goto": api.GotoRequest(
+        latitude_deg=_FULL, longitude_deg=_FULL, relative_altitude_m=_FULL
+    ).ByteSize(),
+    "/baton.v1.Mobility/Takeoff": api.TakeoffRequest(altitude_m=_FULL).ByteSize(),
+    "/baton.v1.Mobility/SetSpeed": api.SetSpeedRequest(speed_m_s=_FULL).ByteSize(),
+}
+
+
+@dataclass(frozen=True)
+class TimelineSettings:
+    """What to run."""
+
+    mission: MissionPlan = field(default_factory=MissionPlan)
+    flush_limit: int = 2 * MB
+    speedup: float = 10.0
+    # 640x540 pixels: a picture of 0.99 MB, so two pictures stay under 2 MB and
+    # the log reaches about 2 MB before the third one flushes it (at f + e),
+    # as in the paper's figure. The default 640x546 is 1 MiB less a few bytes
+    # of log-entry overhead, and two of them plus a few polls cross 2 MB.
+    resolution: str = "640x540"
+    targets: tuple[float, ...] = (0.0, 1.0 * MB, 2.0 * MB)
+    controllers: int = 2
+    tolerance: float = 0.15 * MB  # how near a target the log must be at a handover
+    attempts: int = 3  # measured runs at most, re-placing handovers that missed
+
+    @classmethod
+    def quick(cls) -> TimelineSettings:
+        """A 3x3 grid, 20 m apart, at speed-up 20."""
+        return cls(mission=MissionPlan(grid=3, spacing_m=20.0), speedup=20.0)
+
+    def with_options(self, speedup: float | None, flush_limit: int | None) -> TimelineSettings:
+        """These settings with the command line's speed-up and flush limit, where given."""
+        return replace(
+            self,
+            speedup=self.speedup if speedup is None else speedup,
+            flush_limit=self.flush_limit if flush_limit is None else flush_limit,
+        )
+
+    def plan(self, handovers: tuple[tuple[int, int], ...]) -> TestbedPlan:
+        """The testbed plan with ``handovers``."""
+        return TestbedPlan(
+            controllers=self.controllers,
+            flush_limit=self.flush_limit,
+            handovers=handovers,
+            speedup=self.speedup,
+            mission=self.mission,
+            resolution=self.resolution,
+        )
+
+
+def grid_calls(snapshot: Snapshot) -> list[Call]:
+    """The run's calls, with the grid mission's request sizes."""
+    calls = audit_calls(snapshot)
+    return [replace(c, request_bytes=REQUEST_BYTES.get(c.method, 0)) for c in calls]
+
+
+def core_range(calls: list[Call]) -> tuple[int, int]:
+    """The core of the mission: from the first picture to the last one."""
+    pictures = [c.reqnr for c in calls if c.method == TAKE_PICTURE]
+    if len(pictures) < 2:
+        raise ValueError("the mission took fewer than two pictures")
+    return pictures[0] + 1, pictures[-1] - 1
+
+
+def place_handovers(
+    calls: list[Call],
+    settings: TimelineSettings,
+    kept: Sequence[tuple[int, int]] = (),
+    arrivals: Mapping[int, float] | None = None,
+) -> list[tuple[int, int]]:
+    """Handovers (after reqnr, new master) where the master's log is near each target.
+
+    ``kept`` are handovers already placed well; the rest are placed one after
+    the other, each on the log computed with the handovers before it (a
+    handover empties the master's log). Only position polls are picked: a
+    handover right after a picture lets the drone's notice race the picture's
+    reply (footnote 2), and the old master would hand over a log without it.
+    Given the requests' ``arrivals`` (seconds), polls are preferred where the
+    last flush has had time to cross the link (else a handover at an "empty"
+    log still waits for that flush, the worst case instead of the best).
+    """
+    methods = {c.reqnr: c.method for c in calls}
+
+    def poll(p: LogPoint) -> bool:
+        return methods[p.reqnr] == GET_POSITION
+
+    start, end = core_range(calls)
+    placed = list(kept)
+    for k in range(len(kept), len(settings.targets)):
+        lowest = placed[-1][0] + 1 if placed else start
+        # Leave room for the targets still to place.
+        highest = lowest + (end - lowest) // (len(settings.targets) - k)
+        all_points = master_log_sizes(calls, settings.flush_limit, [r for r, _ in placed])
+        points = [p for p in all_points if lowest <= p.reqnr <= highest]
+        settled = _settled(all_points, arrivals or {}, settings)
+        pick = pick_in_stretch(
+            points,
+            settings.targets[k],
+            settings.tolerance,
+            lambda p, settled=settled: poll(p) and p.reqnr in settled,  # type: ignore[misc]
+        ) or pick_in_stretch(points, settings.targets[k], settings.tolerance, poll)
+        if pick is None:
+            raise ValueError(
+                f"no position poll in reqnr {lowest}..{highest} with a log of about "
+                f"{settings.targets[k] / MB:g} MB"
+            )
+        placed.append((pick, (k + 1) % settings.controllers))
+    return placed
+
+
+def _settled(
+    points: Sequence[LogPoint], arrivals: Mapping[int, float], settings: TimelineSettings
+) -> set[int]:
+    """Reqnrs at which the last flush has crossed the controller link (with room to spare)."""
+    link = settings.plan(()).controller_link
+    settled: set[int] = set()
+    last: LogPoint | None = None
+    for point in points:
+        if point.flushed:
+            last = point
+        if point.reqnr not in arrivals:
+            continue
+        if last is None:
+            settled.add(point.reqnr)
+            continue
+        needed = 1.5 * t_log(last.flushed, link.latency, link.bandwidth or 1e12) + 0.1
+        if arrivals[point.reqnr] - arrivals.get(last.reqnr, 0.0) >= needed:
+            settled.add(point.reqnr)
+    return settled
+
+
+def handover_logs(snapshot: Snapshot, flush_limit: int) -> list[int]:
+    """The master's log size at each of the run's handovers."""
+    handovers = [h.after_reqnr for h in snapshot.drone.handovers]
+    sizes = {
+        p.reqnr: p.size for p in master_log_sizes(grid_calls(snapshot), flush_limit, handovers)
+    }
+    return [sizes[r] for r in handovers]
+
+
+def timeline_rows(snapshot: Snapshot, flush_limit: int) -> list[dict[str, Any]]:
+    """One row per request: arrival, inter-arrival time, the master's log after it."""
+    calls = grid_calls(snapshot)
+    handovers = [h.after_reqnr for h in snapshot.drone.handovers]
+    log = {p.reqnr: p for p in master_log_sizes(calls, flush_limit, handovers)}
+    audit = sorted(snapshot.drone.audit, key=lambda a: a.reqnr)
+    rows = []
+    previous = None
+    for a in audit:
+        rows.append(
+            {
+                "reqnr": a.reqnr,
+                "method": a.method.rsplit("/", 1)[-1],
+                "controller": a.controller_id,
+                "received_at": a.received_at,
+                "inter_arrival_s": (a.received_at - previous) if previous is not None else 0.0,
+                "reply_bytes": a.reply_bytes,
+                "log_bytes": log[a.reqnr].size,
+                "flushed_bytes": log[a.reqnr].flushed,
+                "handover_after": a.reqnr in handovers,
+            }
+        )
+        previous = a.received_at
+    return rows
+
+
+async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
+    """Dry run, placement, measured run; writes timeline.{png,json,csv} under ``out``."""
+    from baton.bench.plots import plot_timeline
+
+    out.mkdir(parents=True, exist_ok=True)
+    runs = out / "timeline-runs"
+    timeout = 600.0
+    reference = await run_plan(settings.plan(()), runs / "dry", timeout, "timeline dry run")
+    dry_requests = len(reference.drone.audit)
+    kept: list[tuple[int, int]] = []
+    attempts = []
+    for attempt in range(1, settings.attempts + 1):
+        arrivals = {a.reqnr: a.received_at for a in reference.drone.audit}
+        handovers = tuple(place_handovers(grid_calls(reference), settings, kept, arrivals))
+        say(f"timeline: attempt {attempt}: handovers (after reqnr, new master) {handovers}")
+        measured = await run_plan(
+            settings.plan(handovers), runs / f"measured-{attempt}", timeout, "timeline"
+        )
+        logs = handover_logs(measured, settings.flush_limit)
+        off = [
+            k
+            for k, (size, target) in enumerate(zip(logs, settings.targets, strict=True))
+            if abs(size - target) > settings.tolerance
+        ]
+        attempts.append({"handovers": handovers, "log_bytes": logs})
+        say(
+            f"timeline: attempt {attempt}: logs at handovers (MB) "
+            f"{[round(b / MB, 2) for b in logs]}"
+        )
+        if not off:
+            break
+        # Handovers shift the rest of the mission (the vehicle flies on while
+        # the mission waits), so later ones are placed again on this run.
+        kept = list(handovers[: off[0]])
+        reference = measured
+    rows = timeline_rows(measured, settings.flush_limit)
+    by_reqnr = {r["reqnr"]: r for r in rows}
+    records = []
+    for target, h in zip(settings.targets, measured.drone.handovers, strict=True):
+        first = h.after_reqnr + 1
+        records.append(
+            {
+                "after_reqnr": h.after_reqnr,
+                "new_master": h.new_master,
+                "target_bytes": target,
+                "log_bytes": by_reqnr[h.after_reqnr]["log_bytes"],
+                "delay_s": h.delay_s,
+                "inter_arrival_s": by_reqnr[first]["inter_arrival_s"] if first in by_reqnr else 0,
+            }
+        )
+    polls = [r["inter_arrival_s"] for r in rows[1:] if r["method"] == "GetPosition"]
+    pictures = [
+        by_reqnr[r["reqnr"] + 1]["inter_arrival_s"]
+        for r in rows
+        if r["method"] == "TakePicture" and r["reqnr"] + 1 in by_reqnr
+    ]
+    result = {
+        "settings": {
+            "mission": settings.mission.__dict__,
+            "flush_limit": settings.flush_limit,
+            "speedup": settings.speedup,
+            "resolution": settings.resolution,
+            "controllers": settings.controllers,
+        },
+        "machine": machine(),
+        "requests": len(rows),
+        "dry_run_requests": dry_requests,
+        "attempts": attempts,
+        "poll_inter_arrival_median_s": statistics.median(polls) if polls else 0.0,
+        "after_picture_inter_arrival_median_s": statistics.median(pictures) if pictures else 0.0,
+        "handovers": records,
+    }
+    write_json(out / "timeline.json", result)
+    with (out / "timeline.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    plot_timeline(
+        [r["reqnr"] for r in rows],
+        [r["inter_arrival_s"] for r in rows],
+        [r["log_bytes"] for r in rows],
+        [h.after_reqnr for h in measured.drone.handovers],
+        settings.flush_limit,
+        out / "timeline.png",
+    )
+    return result
+
+
+def table(result: dict[str, Any]) -> str:
+    """The handovers of the measured run as a markdown table."""
+    rows = [
+        [
+            h["after_reqnr"],
+            h["new_master"],
+            f"{h['target_bytes'] / MB:g}",
+            f"{h['log_bytes'] / MB:.2f}",
+            f"{h['delay_s'] * 1e3:.0f}",
+            f"{h['inter_arrival_s'] * 1e3:.0f}",
+        ]
+        for h in result["handovers"]
+    ]
+    text = markdown_table(
+        [
+            "after reqnr",
+            "new master",
+            "target log (MB)",
+            "log at handover (MB)",
+            "handover delay (ms)",
+            "inter-arrival (ms)",
+        ],
+        rows,
+    )
+    return (
+        text + f"\nrequests: {result['requests']}; median inter-arrival of polls "
+        f"{result['poll_inter_arrival_median_s'] * 1e3:.0f} ms, after a picture "
+        f"{result['after_picture_inter_arrival_median_s'] * 1e3:.0f} ms "
+        f"(speed-up {result['settings']['speedup']:g})\n"
+    )
