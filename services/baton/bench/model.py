@@ -65,6 +65,13 @@ def log_entry(call: Call) -> ring_pb2.LogEntry:
     )
 
 
+def entry_size_of(call: Call) -> int:
+    """Bytes that ``call``'s entry adds to the master's log."""
+    log = Log()
+    log.append(log_entry(call))
+    return log.size
+
+
 @dataclass(frozen=True)
 class LogPoint:
     """The master's log right after request ``reqnr``; ``flushed`` bytes went on the ring."""

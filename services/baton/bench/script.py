@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from baton.bench.model import Call, LogPoint, log_entry, master_log_sizes
+from baton.bench.model import entry_size_of as entry_bytes
 from baton.controller.protocol import Log
 from baton.drone.camera import DEFAULT_RESOLUTION, MIN_SIDE, ppm_header
 from baton.missions import bench as bench_mission
@@ -117,13 +118,6 @@ class ScriptBuilder:
     def script(self) -> str:
         """The ``script`` parameter of the bench mission."""
         return ",".join(self.steps)
-
-
-def entry_bytes(call: Call) -> int:
-    """Bytes that ``call``'s entry adds to the log."""
-    log = Log()
-    log.append(log_entry(call))
-    return log.size
 
 
 @dataclass(frozen=True)

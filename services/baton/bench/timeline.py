@@ -117,9 +117,10 @@ def place_handovers(
     start, end = core_range(calls)
     placed = list(kept)
     for k in range(len(kept), len(settings.targets)):
-        lowest = placed[-1][0] + 1 if placed else start
-        # Leave room for the targets still to place.
-        highest = lowest + (end - lowest) // (len(settings.targets) - k)
+        # Spread the handovers over the core: the k-th in the k-th part of it.
+        part = (end - start) // len(settings.targets)
+        lowest = max(placed[-1][0] + 1 if placed else start, start + k * part)
+        highest = max(lowest, start + (k + 1) * part)
         all_points = master_log_sizes(calls, settings.flush_limit, [r for r, _ in placed])
         points = [p for p in all_points if lowest <= p.reqnr <= highest]
         settled = _settled(all_points, arrivals or {}, settings)

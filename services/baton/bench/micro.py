@@ -1,0 +1,307 @@
+"""``baton bench micro``: the costs the handover model builds on, one at a time.
+
+- **Proxy round trip**: GetPosition through a controller's drone-API proxy
+  (the mission program's path: controller, Invoke, drone, log) against a
+  direct Invoke on the drone, on loopback without link emulation.
+- **Replay speed**: calls per second that Algorithm 1's REPLAY answers from a
+  log (``ControllerProtocol.replay``, the pure state machine).
+- **Ring throughput**: one large log message over a ``PeerLink`` stream
+  through a ``LinkProxy`` of 25 Mbit/s, and unlimited, as a fraction of the
+  link's bandwidth.
+- **T_conn**: the drone's Connect set-up on a new channel and on an open one,
+  and as the testbed's controllers measured it when they became ACTIVE.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import grpc
+
+from baton.bench.model import MB
+from baton.bench.runner import machine, markdown_table, say, t_conn_samples, write_json
+from baton.bench.script import BENCH_MISSION, GET_POSITION, BenchMissionPlan
+from baton.config import LinkSpec
+from baton.controller.protocol import ControllerProtocol, request_digest
+from baton.controller.ring import PeerLink, RingReceiver
+from baton.drone.measure import measure as measure_drone
+from baton.drone.measure import summary_ms
+from baton.link.proxy import LinkProxy
+from baton.logs import get_logger
+from baton.rpc.channels import aio_channel
+from baton.rpc.server import BatonServer
+from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_api_pb2_grpc, ring_pb2, ring_pb2_grpc
+
+LOG = get_logger("bench")
+RING_BANDWIDTH = 25e6
+
+
+@dataclass(frozen=True)
+class MicroSettings:
+    """How much to measure."""
+
+    calls: int = 2000
+    replay_entries: tuple[int, ...] = (10_000, 100_000)
+    ring_bytes: int = 64 * MB
+    connects: int = 50
+
+    @classmethod
+    def quick(cls) -> MicroSettings:
+        """Fewer calls, a 4 MB ring message."""
+        return cls(calls=200, replay_entries=(10_000,), ring_bytes=4 * MB, connects=10)
+
+
+def _rate(samples: list[float]) -> float:
+    return len(samples) / sum(samples) if samples else 0.0
+
+
+async def measure_proxy_and_drone(settings: MicroSettings, workdir: Path) -> dict[str, Any]:
+    """Proxy vs direct GetPosition round trips, and T_conn, on one testbed without links."""
+    plan = TestbedPlan(
+        controllers=2,
+        flush_limit=1024 * MB,  # no flushes during the measurement
+        speedup=1.0,
+        # The controller's own program sleeps, so this process is its only caller.
+        mission=BenchMissionPlan(script="s1000000"),
+        mission_file=BENCH_MISSION,
+        emulate_links=False,
+    )
+    workdir.mkdir(parents=True, exist_ok=True)
+    say("micro: starting a drone and 2 controllers (no link emulation)")
+    async with LocalTestbed(plan, workdir) as testbed:
+        config = testbed.config
+        assert config is not None
+        channel = aio_channel(config.controller(0).address)
+        mobility = drone_api_pb2_grpc.MobilityStub(channel)
+        request = api.GetPositionRequest()
+        for _ in range(50):  # warm up; the first calls wait for the vehicle
+            await mobility.GetPosition(request, wait_for_ready=True, timeout=60)
+        say(f"micro: {settings.calls} GetPosition calls through controller 0's proxy")
+        proxy = []
+        for _ in range(settings.calls):
+            start = time.perf_counter()
+            await mobility.GetPosition(request)
+            proxy.append(time.perf_counter() - start)
+        await channel.close()
+        snapshot = await testbed.snapshot(audit=False)
+        controller_t_conn = t_conn_samples(snapshot)
+        say(f"micro: {settings.calls} direct Invoke calls and {settings.connects} Connects")
+        # As controller 1: the drone hands over to it, and the measurement continues
+        # from the drone's last reqnr.
+        direct = await measure_drone(config.drone.address, 1, settings.calls, 5, settings.connects)
+    proxy_ms = summary_ms(proxy)
+    direct_ms = direct["invoke_get_position"]
+    return {
+        "proxy_get_position": {**proxy_ms, "calls_per_s": _rate(proxy)},
+        "direct_get_position": {
+            **direct_ms,
+            "calls_per_s": 1e3 / direct_ms["mean_ms"] if direct_ms["mean_ms"] else 0.0,
+        },
+        "proxy_overhead_p50_ms": proxy_ms["p50_ms"] - direct_ms["p50_ms"],
+        "direct_take_picture": direct["invoke_take_picture"],
+        "t_conn_new_channel": direct["t_conn_new_channel"],
+        "t_conn_open_channel": direct["t_conn_open_channel"],
+        "t_conn_controllers_ms": [round(t * 1e3, 3) for t in controller_t_conn],
+    }
+
+
+def measure_replay(entries: int) -> dict[str, Any]:
+    """Calls per second that REPLAY answers from a log of ``entries`` position replies."""
+    reply = api.GetPositionReply(
+        position=api.Position(latitude_deg=47.1, longitude_deg=8.5, absolute_altitude_m=500.0)
+    ).SerializeToString()
+    digest = request_digest(GET_POSITION, b"")
+    message = ring_pb2.LogMessage(
+        lognr=1,
+        origin=0,
+        entries=[
+            ring_pb2.LogEntry(reqnr=k, method=GET_POSITION, reply=reply, request_digest=digest)
+            for k in range(1, entries + 1)
+        ],
+    )
+    protocol = ControllerProtocol(1, [0, 1], 0, initial_master=0)
+    protocol.on_log(message)
+    start = time.perf_counter()
+    for _ in range(entries):
+        protocol.replay(GET_POSITION, b"")
+    elapsed = time.perf_counter() - start
+    return {"entries": entries, "seconds": elapsed, "calls_per_s": entries / elapsed}
+
+
+class _Sink(ring_pb2_grpc.ControllerRingServicer):
+    """A ring successor that only receives."""
+
+    def __init__(self) -> None:
+        self.received: dict[int, float] = {}
+        self.arrived = asyncio.Event()
+        self.receiver = RingReceiver(1, lambda: max(self.received, default=0), self._deliver, LOG)
+
+    async def _deliver(self, message: ring_pb2.LogMessage) -> None:
+        self.received.setdefault(message.lognr, time.perf_counter())
+        self.arrived.set()
+
+    async def wait_for(self, lognr: int, timeout: float) -> float:
+        """When log message ``lognr`` arrived (perf_counter seconds)."""
+        async with asyncio.timeout(timeout):
+            while lognr not in self.received:
+                self.arrived.clear()
+                await self.arrived.wait()
+        return self.received[lognr]
+
+    async def LogRing(self, request_iterator: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[override]
+        await self.receiver.serve(context)
+
+
+async def measure_ring(size: int, bandwidth: float | None) -> dict[str, Any]:
+    """One log message of ``size`` bytes over PeerLink -> LinkProxy -> RingReceiver."""
+    sink = _Sink()  # type: ignore[abstract]  # serves LogRing only
+    server = BatonServer("127.0.0.1:0", ["baton.v1.ControllerRing"])
+    ring_pb2_grpc.add_ControllerRingServicer_to_server(sink, server.server)
+    await server.start()
+    spec = LinkSpec(latency=0.020, bandwidth=bandwidth)
+    proxy = LinkProxy("127.0.0.1:0", server.address, spec, spec)
+    await proxy.start()
+    link = PeerLink(0, 1, proxy.address, LOG)
+    try:
+        # A small message first, so the stream is up before the clock starts.
+        link.send(ring_pb2.LogMessage(lognr=1, origin=0))
+        await sink.wait_for(1, 30)
+        message = ring_pb2.LogMessage(
+            lognr=2,
+            origin=0,
+            entries=[ring_pb2.LogEntry(reqnr=1, method=GET_POSITION, reply=b"\1" * size)],
+        )
+        start = time.perf_counter()
+        link.send(message)
+        elapsed = await sink.wait_for(2, 600) - start
+    finally:
+        await link.stop()
+        await proxy.stop()
+        await server.stop(0)
+    throughput = 8 * message.ByteSize() / elapsed
+    # The paper's T_log for this message, to compare with.
+    expected = 0.020 + (8 * message.ByteSize() / bandwidth if bandwidth else 0.0)
+    return {
+        "bytes": message.ByteSize(),
+        "bandwidth_bit_s": bandwidth,
+        "seconds": elapsed,
+        "t_log_s": expected,
+        "throughput_bit_s": throughput,
+        "fraction_of_bandwidth": throughput / bandwidth if bandwidth else None,
+    }
+
+
+async def run_micro(settings: MicroSettings, out: Path) -> dict[str, Any]:
+    """Runs every micro benchmark; writes micro.json and micro.md under ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    proxy = await measure_proxy_and_drone(settings, out / "micro-runs")
+    replay = []
+    for entries in settings.replay_entries:
+        say(f"micro: replaying {entries} logged calls")
+        replay.append(measure_replay(entries))
+    ring = []
+    for bandwidth in (RING_BANDWIDTH, None):
+        say(
+            f"micro: {settings.ring_bytes / MB:g} MB over the ring, link {bandwidth or 'unlimited'}"
+        )
+        ring.append(await measure_ring(settings.ring_bytes, bandwidth))
+    result = {
+        "settings": settings.__dict__,
+        "machine": machine(),
+        "proxy": proxy,
+        "replay": replay,
+        "ring": ring,
+    }
+    write_json(out / "micro.json", result)
+    (out / "micro.md").write_text(table(result))
+    return result
+
+
+def table(result: dict[str, Any]) -> str:
+    """The micro results as markdown tables, with the targets."""
+    p = result["proxy"]
+    rows: list[list[object]] = []
+    for name, key in (
+        ("through controller proxy", "proxy_get_position"),
+        ("direct Invoke", "direct_get_position"),
+    ):
+        s = p[key]
+        rows.append(
+            [
+                f"GetPosition {name}",
+                f"{s['p50_ms']:.3f}",
+                f"{s['p99_ms']:.3f}",
+                f"{s['calls_per_s']:.0f}",
+            ]
+        )
+    text = markdown_table(["round trip", "p50 (ms)", "p99 (ms)", "calls/s"], rows)
+    overhead = p["proxy_overhead_p50_ms"]
+    verdict = "met" if overhead < 1 else "MISSED"
+    text += f"\nproxy overhead at p50: {overhead:.3f} ms (target < 1 ms: {verdict})\n\n"
+    text += markdown_table(
+        ["replayed entries", "seconds", "calls/s", "target > 10,000/s"],
+        [
+            [
+                r["entries"],
+                f"{r['seconds']:.3f}",
+                f"{r['calls_per_s']:.0f}",
+                "met" if r["calls_per_s"] > 10_000 else "MISSED",
+            ]
+            for r in result["replay"]
+        ],
+    )
+    text += "\n" + markdown_table(
+        [
+            "ring message (MB)",
+            "link",
+            "seconds",
+            "T_log (s)",
+            "throughput (Mbit/s)",
+            "of bandwidth",
+        ],
+        [
+            [
+                f"{r['bytes'] / MB:.1f}",
+                f"{r['bandwidth_bit_s'] / 1e6:g} Mbit/s" if r["bandwidth_bit_s"] else "unlimited",
+                f"{r['seconds']:.2f}",
+                f"{r['t_log_s']:.2f}",
+                f"{r['throughput_bit_s'] / 1e6:.1f}",
+                f"{r['fraction_of_bandwidth']:.1%} (target >= 90%)"
+                if r["fraction_of_bandwidth"]
+                else "-",
+            ]
+            for r in result["ring"]
+        ],
+    )
+    controllers = p["t_conn_controllers_ms"]
+    text += "\n" + markdown_table(
+        ["T_conn", "p50 (ms)", "p99 (ms)", "mean (ms)"],
+        [
+            [
+                "Connect on a new channel",
+                p["t_conn_new_channel"]["p50_ms"],
+                p["t_conn_new_channel"]["p99_ms"],
+                p["t_conn_new_channel"]["mean_ms"],
+            ],
+            [
+                "Connect on an open channel",
+                p["t_conn_open_channel"]["p50_ms"],
+                p["t_conn_open_channel"]["p99_ms"],
+                p["t_conn_open_channel"]["mean_ms"],
+            ],
+            [
+                "controllers becoming ACTIVE",
+                f"{statistics.median(controllers):.3f}" if controllers else "-",
+                "-",
+                f"{statistics.fmean(controllers):.3f}" if controllers else "-",
+            ],
+        ],
+    )
+    return text

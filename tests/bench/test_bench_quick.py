@@ -1,0 +1,76 @@
+"""The quick variant of every benchmark runs end to end and writes complete results.
+
+Only the shape is checked (files, every point measured, finite ratios), not
+the timings: those depend on the machine and are what the benchmarks report.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from baton.bench.cli import register
+from baton.bench.micro import MicroSettings, run_micro
+from baton.bench.timeline import TimelineSettings, run_timeline
+from baton.bench.worst_case import WorstCaseSettings, run_worst_case
+
+
+def _png(path: Path) -> bool:
+    return path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+async def test_worst_case_quick(tmp_path: Path) -> None:
+    settings = WorstCaseSettings.quick()
+    result = await run_worst_case(settings, tmp_path)
+    for name in ("worst_case.json", "worst_case.md", "worst_case.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert _png(tmp_path / "worst_case.png")
+    saved = json.loads((tmp_path / "worst_case.json").read_text())
+    rows = saved["summary"]
+    assert {(r["flush_limit"], r["hops"]) for r in rows} == {
+        (f, h) for f in settings.flush_limits for h in settings.hops
+    }
+    for row in rows:
+        assert row["n"] == settings.repeat
+        assert row["mean_s"] > 0 and math.isfinite(row["ratio"])
+        assert row["all_placed_after_flush"], row
+    assert result["summary"] == rows
+    assert "| flush (MB) |" in (tmp_path / "worst_case.md").read_text()
+
+
+async def test_timeline_quick(tmp_path: Path) -> None:
+    result = await run_timeline(TimelineSettings.quick(), tmp_path)
+    for name in ("timeline.json", "timeline.csv", "timeline.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert _png(tmp_path / "timeline.png")
+    lines = (tmp_path / "timeline.csv").read_text().splitlines()
+    assert lines[0].startswith("reqnr,method,controller,received_at,inter_arrival_s")
+    assert len(lines) - 1 == result["requests"]
+    handovers = result["handovers"]
+    assert len(handovers) == 3
+    assert all(h["delay_s"] > 0 for h in handovers)
+    assert [h["after_reqnr"] for h in handovers] == sorted(h["after_reqnr"] for h in handovers)
+
+
+async def test_micro_quick(tmp_path: Path) -> None:
+    result = await run_micro(MicroSettings.quick(), tmp_path)
+    assert (tmp_path / "micro.json").stat().st_size > 0
+    assert "proxy overhead at p50" in (tmp_path / "micro.md").read_text()
+    proxy = result["proxy"]
+    assert proxy["proxy_get_position"]["n"] == MicroSettings.quick().calls
+    assert proxy["direct_get_position"]["calls_per_s"] > 0
+    assert all(r["calls_per_s"] > 0 for r in result["replay"])
+    assert [r["bandwidth_bit_s"] for r in result["ring"]] == [25e6, None]
+    assert all(math.isfinite(r["throughput_bit_s"]) for r in result["ring"])
+
+
+def test_cli_registers_three_benchmarks() -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["bench", "worst-case", "--quick", "--out", "x"])
+    assert args.quick and args.out == Path("x") and callable(args.run)
+    assert parser.parse_args(["bench", "timeline"]).speedup is None
+    assert parser.parse_args(["bench", "micro"]).out == Path("out/bench")

@@ -1,0 +1,138 @@
+"""The paper's model and the offline flush-point computation."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from baton.bench.model import (
+    MB,
+    Call,
+    LogPoint,
+    entry_size_of,
+    master_log_sizes,
+    pick_in_stretch,
+    t_log,
+    t_max,
+)
+from baton.bench.script import (
+    GET_POSITION,
+    TAKE_PICTURE,
+    entry_bytes,
+    picture_reply_bytes,
+    worst_case_script,
+)
+from baton.bench.timeline import TimelineSettings, place_handovers
+from baton.controller.protocol import ControllerProtocol, entry_size
+from baton.v1 import ring_pb2
+
+
+def test_t_log_is_latency_plus_bits_over_bandwidth() -> None:
+    assert t_log(0, 0.020, 25e6) == pytest.approx(0.020)
+    # 1 MB = 2**20 bytes = 8,388,608 bits: 0.3355 s at 25 Mbit/s.
+    assert t_log(MB, 0.020, 25e6) == pytest.approx(0.020 + 8 * 2**20 / 25e6)
+
+
+def test_t_max_adds_one_handover_message_h_log_messages_and_t_conn() -> None:
+    expected = 0.020 + 3 * (0.020 + 8 * (2 * MB + MB) / 25e6) + 0.05
+    assert t_max(2 * MB, MB, 3, 0.05) == pytest.approx(expected)
+    assert t_max(0, 0, 1, 0.0) == pytest.approx(0.040)
+
+
+def test_synthetic_entries_have_the_real_entries_size() -> None:
+    call = Call(7, TAKE_PICTURE, 1000, 12)
+    real = ring_pb2.LogEntry(
+        reqnr=7, method=TAKE_PICTURE, reply=bytes(1000), request_digest=bytes(32), request=bytes(12)
+    )
+    assert entry_size_of(call) == entry_size(real)
+
+
+def test_log_flushes_when_it_reaches_the_limit_and_can_exceed_it_by_one_entry() -> None:
+    calls = [Call(1, GET_POSITION, 40), Call(2, TAKE_PICTURE, 600), Call(3, TAKE_PICTURE, 600)]
+    small, big = entry_size_of(calls[0]), entry_size_of(calls[1])
+    points = master_log_sizes(calls, flush_limit=small + big + 1)
+    assert points[0] == LogPoint(1, small, 0)
+    assert points[1] == LogPoint(2, small + big, 0)
+    # The third entry crosses the limit: the log flushed holds f + e, about.
+    assert points[2] == LogPoint(3, 0, small + 2 * big)
+
+
+def test_flush_limit_zero_flushes_every_entry() -> None:
+    calls = [Call(k, GET_POSITION, 40) for k in range(1, 4)]
+    assert all(p.size == 0 and p.flushed > 0 for p in master_log_sizes(calls, 0))
+
+
+def test_handover_empties_the_log() -> None:
+    calls = [Call(k, TAKE_PICTURE, 100) for k in range(1, 5)]
+    points = master_log_sizes(calls, flush_limit=10**6, handovers=[2])
+    assert [p.size for p in points] == [
+        entry_size_of(calls[0]),
+        2 * entry_size_of(calls[0]),
+        entry_size_of(calls[0]),
+        2 * entry_size_of(calls[0]),
+    ]
+
+
+def test_offline_log_matches_the_protocol_state_machine() -> None:
+    calls = [Call(k, TAKE_PICTURE if k % 3 == 0 else GET_POSITION, 300 * k) for k in range(1, 30)]
+    protocol = ControllerProtocol(0, [0, 1], flush_limit=2000, initial_master=0)
+    from baton.bench.model import log_entry
+
+    for call, point in zip(calls, master_log_sizes(calls, 2000), strict=True):
+        effects = protocol.on_reply(log_entry(call))
+        assert protocol.log.size == point.size
+        assert bool(effects) == bool(point.flushed)
+
+
+def test_pick_in_stretch_picks_late_in_the_first_stretch_near_the_target() -> None:
+    sizes = [0, 0, 900, 1000, 1010, 1020, 1030, 1040, 2000, 1000]
+    points = [LogPoint(k + 1, s, 0) for k, s in enumerate(sizes)]
+    # Stretch near 1000 is reqnr 3..8; two before its end is reqnr 6.
+    assert pick_in_stretch(points, 1000, 100) == 6
+    assert pick_in_stretch(points, 1000, 100, lambda p: p.reqnr <= 4) == 3
+    assert pick_in_stretch(points, 5000, 100) is None
+
+
+@pytest.mark.parametrize("flush_limit", [0, MB, 2 * MB, 3 * MB, 4 * MB])
+def test_worst_case_script_flushes_about_f_plus_e_right_before_each_handover(
+    flush_limit: int,
+) -> None:
+    script = worst_case_script(flush_limit, [1, 3, 5], controllers=6, settle_s=2.0)
+    e = entry_bytes(Call(1000, TAKE_PICTURE, picture_reply_bytes(640, 546)))
+    log = {p.reqnr: p for p in script.predicted_log()}
+    for point in script.points:
+        assert point.after_reqnr == point.picture_reqnr + 1
+        flushed = log[point.picture_reqnr].flushed
+        assert flushed == point.predicted_flush_bytes
+        # Just under f before the picture, so the flush is between f and f + e.
+        # (Entry sizes differ by a byte or two with the reqnr's varint.)
+        assert flushed >= flush_limit
+        assert flush_limit + e - 64 * 1024 < flushed < flush_limit + e + 16
+        # Nothing flushed between the big flush and the handover (f > 0).
+        if flush_limit:
+            assert log[point.after_reqnr].flushed == 0
+    assert [p.hops for p in script.points] == [1, 3, 5]
+    assert [(p.old_master, p.new_master) for p in script.points] == [(0, 1), (1, 4), (4, 3)]
+    assert script.script.count(",s2") == 3
+    assert len(script.calls) == script.points[-1].after_reqnr + 1
+
+
+def test_timeline_places_handovers_on_polls_near_0_1_and_2_mb() -> None:
+    # A synthetic grid run: ten polls between pictures of 0.99 MB, 2 MB flush limit.
+    calls: list[Call] = []
+    for _leg in range(12):
+        for _ in range(10):
+            calls.append(Call(len(calls) + 1, GET_POSITION, 38))
+        calls.append(Call(len(calls) + 1, TAKE_PICTURE, 1_036_900))
+    settings = TimelineSettings()
+    handovers = place_handovers(calls, settings)
+    sizes = {
+        p.reqnr: p.size
+        for p in master_log_sizes(calls, settings.flush_limit, [r for r, _ in handovers])
+    }
+    methods = {c.reqnr: c.method for c in calls}
+    assert [m for _, m in handovers] == [1, 0, 1]
+    for (reqnr, _), target in zip(handovers, settings.targets, strict=True):
+        assert methods[reqnr] == GET_POSITION
+        assert math.isclose(sizes[reqnr], target, abs_tol=settings.tolerance)
