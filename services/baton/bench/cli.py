@@ -1,6 +1,6 @@
 """``baton bench``: the paper's Section 5.4 measurements on the local testbed.
 
-    baton bench timeline   [--out DIR] [--speedup 10]       # Figure 5
+    baton bench timeline   [--out DIR] [--speedup 4]        # Figure 5
     baton bench worst-case [--out DIR] [--repeat 3] [--quick]  # Figure 6
     baton bench micro      [--out DIR] [--quick]            # proxy, replay, ring, T_conn
 
@@ -51,7 +51,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--speedup",
         type=float,
         default=None,
-        help="sim vehicle and mission clock speed-up (default 10, --quick 20); pictures and "
+        help="sim vehicle and mission clock speed-up (default 4, --quick 20); pictures and "
         "handovers "
         "still cross the emulated links in real time",
     )

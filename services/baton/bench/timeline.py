@@ -42,7 +42,10 @@ class TimelineSettings:
 
     mission: MissionPlan = field(default_factory=MissionPlan)
     flush_limit: int = 2 * MB
-    speedup: float = 10.0
+    # Speed-up 4: a 50 m leg still takes 2.5 s of real time, long enough for a
+    # flushed log of f + e (about 1 s over 25 Mbit/s) to arrive before the
+    # handover placed at an "empty" log; at 10 it would still be in flight.
+    speedup: float = 4.0
     # 640x540 pixels: a picture of 0.99 MB, so two pictures stay under 2 MB and
     # the log reaches about 2 MB before the third one flushes it (at f + e),
     # as in the paper's figure. The default 640x546 is 1 MiB less a few bytes
