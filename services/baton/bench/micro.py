@@ -25,7 +25,7 @@ import grpc
 
 from baton.bench.model import MB
 from baton.bench.runner import machine, markdown_table, say, t_conn_samples, write_json
-from baton.bench.script import BENCH_MISSION, GET_POSITION, BenchMissionPlan
+from baton.bench.script import BENCH_MISSION, GET_POSITION, bench_mission_args
 from baton.config import LinkSpec
 from baton.controller.protocol import ControllerProtocol, request_digest
 from baton.controller.ring import PeerLink, RingReceiver
@@ -69,7 +69,7 @@ async def measure_proxy_and_drone(settings: MicroSettings, workdir: Path) -> dic
         flush_limit=1024 * MB,  # no flushes during the measurement
         speedup=1.0,
         # The controller's own program sleeps, so this process is its only caller.
-        mission=BenchMissionPlan(script="s1000000"),
+        mission_args=bench_mission_args("s1000000"),
         mission_file=BENCH_MISSION,
         emulate_links=False,
     )

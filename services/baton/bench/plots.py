@@ -40,7 +40,14 @@ def plot_timeline(
     ax.set_title(f"Request inter-arrival time and log growth (flush limit {flush_limit / MB:g} MB)")
     lines = ax.get_legend_handles_labels()
     more = log_axis.get_legend_handles_labels()
-    ax.legend(lines[0] + more[0], lines[1] + more[1], loc="upper left")
+    ax.legend(
+        lines[0] + more[0],
+        lines[1] + more[1],
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.14),
+        ncol=3,
+        frameon=False,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -22,7 +22,6 @@ from baton.bench.model import entry_size_of as entry_bytes
 from baton.controller.protocol import Log
 from baton.drone.camera import DEFAULT_RESOLUTION, MIN_SIDE, ppm_header
 from baton.missions import bench as bench_mission
-from baton.testbed.local import MissionPlan
 from baton.v1 import drone_api_pb2 as api
 
 BENCH_MISSION = Path(bench_mission.__file__)
@@ -41,15 +40,9 @@ _FULL_POSITION = api.Position(
 FILL_MARGIN = 4096
 
 
-@dataclass(frozen=True)
-class BenchMissionPlan(MissionPlan):
-    """The bench mission's one parameter, in the testbed's mission-plan shape."""
-
-    script: str = "p"
-
-    def args(self) -> list[str]:
-        """``--mission-arg`` values for ``baton controller``."""
-        return [f"script={self.script}"]
+def bench_mission_args(script: str) -> tuple[str, ...]:
+    """The testbed's ``mission_args`` that run ``script`` with the bench mission."""
+    return (f"script={script}",)
 
 
 def position_reply_bytes() -> int:

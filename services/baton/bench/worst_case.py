@@ -29,7 +29,7 @@ from baton.bench.runner import (
 from baton.bench.script import (
     BENCH_MISSION,
     TAKE_PICTURE,
-    BenchMissionPlan,
+    bench_mission_args,
     entry_bytes,
     worst_case_script,
 )
@@ -77,7 +77,7 @@ async def measure_flush_limit(
         flush_limit=flush_limit,
         handovers=script.handovers,
         speedup=1.0,
-        mission=BenchMissionPlan(script=script.script),
+        mission_args=bench_mission_args(script.script),
         mission_file=BENCH_MISSION,
         controller_link=settings.controller_link,
         drone_link=settings.drone_link,
@@ -88,6 +88,11 @@ async def measure_flush_limit(
 
     requests = {c.reqnr: c.request_bytes for c in script.calls}
     calls = audit_calls(snapshot, requests)
+    if len(calls) != len(script.calls):
+        raise RuntimeError(
+            f"{label}: the drone served {len(calls)} requests, the script has "
+            f"{len(script.calls)}; was the bench mission given its script?"
+        )
     actual = {
         p.reqnr: p
         for p in master_log_sizes(calls, flush_limit, [p.after_reqnr for p in script.points])
