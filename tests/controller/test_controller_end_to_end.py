@@ -25,19 +25,24 @@ def assert_mission_promises(snapshot: Snapshot, plan: TestbedPlan) -> None:
     waypoints = plan.mission.grid**2
     for cid, c in snapshot.controllers.items():
         assert c.mission == "done", f"controller {cid}: mission {c.mission}: {c.mission_error}"
-    # Every request number executed exactly once, none skipped.
+    # Every request number executed exactly once, in order; every drone call
+    # the replicas' programs made is in the audit (Clock calls are logged by
+    # the controllers and never reach the drone, hence gaps in the numbers).
     executed = [a.reqnr for a in drone.audit]
-    assert sorted(executed) == list(range(1, drone.last_reqnr + 1))
-    assert len(set(executed)) == len(executed)
+    assert executed == sorted(set(executed))
     assert drone.executed == len(executed)
+    assert {c.drone_calls for c in snapshot.controllers.values()} == {len(executed)}
     # Every waypoint photographed once.
     assert snapshot.pictures == waypoints
     # Every replica's program saw the same replies, and as many as the drone served.
     chains = Counter(c.reply_chain for c in snapshot.controllers.values())
     assert len(chains) == 1, f"replicas diverged: {chains}"
-    assert {c.reqnr for c in snapshot.controllers.values()} == {drone.last_reqnr}
+    assert len({c.reqnr for c in snapshot.controllers.values()}) == 1
     # Every scripted handover happened after the right request, and ended.
-    assert [(h.after_reqnr, h.new_master) for h in drone.handovers] == list(plan.handovers)
+    # (A scripted reqnr that was a Clock call fires after the next drone request.)
+    assert [h.new_master for h in drone.handovers] == [mid for _, mid in plan.handovers]
+    for record, (planned, _) in zip(drone.handovers, plan.handovers, strict=True):
+        assert planned <= record.after_reqnr <= planned + 2
     assert all(h.delay_s > 0 for h in drone.handovers)
     assert [c.master for c in snapshot.controllers.values()].count(True) == 1
 

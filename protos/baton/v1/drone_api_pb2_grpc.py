@@ -709,7 +709,9 @@ class ClockServicer:
 
     def Sleep(self, request, context):
         """Sleeps for the given mission time. Really sleeps while ACTIVE; returns at
-        once in REPLAY.
+        once in REPLAY. Logged (under a request number of its own, which the drone
+        never sees), so a new master does not sleep again what its predecessor
+        already slept.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

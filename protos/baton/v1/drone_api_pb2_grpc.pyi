@@ -256,7 +256,9 @@ class ClockStub:
     def __new__(cls, channel: _aio.Channel) -> ClockAsyncStub: ...
     Sleep: _grpc.UnaryUnaryMultiCallable[_drone_api_pb2.SleepRequest, _drone_api_pb2.SleepReply]
     """Sleeps for the given mission time. Really sleeps while ACTIVE; returns at
-    once in REPLAY.
+    once in REPLAY. Logged (under a request number of its own, which the drone
+    never sees), so a new master does not sleep again what its predecessor
+    already slept.
     """
     Now: _grpc.UnaryUnaryMultiCallable[_drone_api_pb2.NowRequest, _drone_api_pb2.NowReply]
     """The current mission time; logged, so every replica reads the same value."""
@@ -273,7 +275,9 @@ class ClockAsyncStub(ClockStub):
     def __init__(self, channel: _aio.Channel) -> None: ...
     Sleep: _aio.UnaryUnaryMultiCallable[_drone_api_pb2.SleepRequest, _drone_api_pb2.SleepReply]  # type: ignore[assignment]
     """Sleeps for the given mission time. Really sleeps while ACTIVE; returns at
-    once in REPLAY.
+    once in REPLAY. Logged (under a request number of its own, which the drone
+    never sees), so a new master does not sleep again what its predecessor
+    already slept.
     """
     Now: _aio.UnaryUnaryMultiCallable[_drone_api_pb2.NowRequest, _drone_api_pb2.NowReply]  # type: ignore[assignment]
     """The current mission time; logged, so every replica reads the same value."""
@@ -293,7 +297,9 @@ class ClockServicer(metaclass=_abc_1.ABCMeta):
         context: _ServicerContext,
     ) -> _typing.Union[_drone_api_pb2.SleepReply, _abc.Awaitable[_drone_api_pb2.SleepReply]]:
         """Sleeps for the given mission time. Really sleeps while ACTIVE; returns at
-        once in REPLAY.
+        once in REPLAY. Logged (under a request number of its own, which the drone
+        never sees), so a new master does not sleep again what its predecessor
+        already slept.
         """
 
     @_abc_1.abstractmethod

@@ -39,6 +39,7 @@ from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2
 
+CLOCK_SERVICE = "/baton.v1.Clock/"
 CLOCK_SLEEP = "/baton.v1.Clock/Sleep"
 CLOCK_NOW = "/baton.v1.Clock/Now"
 # How long an ACTIVE controller keeps re-sending a request the drone could not
@@ -78,6 +79,7 @@ class ControllerNode:
         self.mission_error = ""
         self._failure: StatusError | None = None
         self._reply_chain = hashlib.sha256()
+        self._drone_calls = 0
         self.handovers: list[HandoverEvent] = []
         self.t_conn_s: list[float] = []
 
@@ -124,6 +126,11 @@ class ControllerNode:
         """T_conn of every drone connection so far, the open one included."""
         current = self._drone.t_conn_s if self._drone is not None else None
         return self.t_conn_s + ([current] if current is not None else [])
+
+    @property
+    def drone_calls(self) -> int:
+        """Calls answered so far that went to the drone (not the Clock)."""
+        return self._drone_calls
 
     @property
     def reply_chain(self) -> bytes:
@@ -260,6 +267,8 @@ class ControllerNode:
             if self.mission == "none":
                 self.mission = "running"
             entry = await self._answer(method, request)
+            if not method.startswith(CLOCK_SERVICE):
+                self._drone_calls += 1
             self._reply_chain.update(
                 entry.reqnr.to_bytes(8, "big")
                 + entry.status_code.to_bytes(4, "big", signed=True)
@@ -268,13 +277,6 @@ class ControllerNode:
             return entry
         finally:
             self._busy = None
-
-    async def sleep(self, seconds: float) -> None:
-        """Clock.Sleep: really sleeps while ACTIVE, returns at once otherwise."""
-        if self._failure is not None:
-            raise self._failure
-        if self.protocol.state is State.ACTIVE:
-            await self.clock.sleep(seconds)
 
     async def _answer(self, method: str, request: bytes) -> ring_pb2.LogEntry:
         while True:
@@ -305,10 +307,13 @@ class ControllerNode:
         """One call while ACTIVE: to the drone (or the clock), logged. None: state changed."""
         reqnr = self.protocol.reqnr + 1
         digest = request_digest(method, request)
-        if method == CLOCK_NOW:
-            reply = api.NowReply(unix_time_s=self.clock.now()).SerializeToString()
+        if method in (CLOCK_NOW, CLOCK_SLEEP):
             entry = ring_pb2.LogEntry(
-                reqnr=reqnr, method=method, reply=reply, request_digest=digest, request=request
+                reqnr=reqnr,
+                method=method,
+                reply=await self._clock_call(method, request),
+                request_digest=digest,
+                request=request,
             )
         else:
             entry_or_none = await self._invoke_drone(reqnr, method, request, digest)
@@ -323,6 +328,18 @@ class ControllerNode:
             return None
         await self._apply(self.protocol.on_reply(entry))
         return entry
+
+    async def _clock_call(self, method: str, request: bytes) -> bytes:
+        """Clock calls are answered here and logged like drone replies.
+
+        Logging Sleep too means a new master replays the sleeps its
+        predecessor already slept instead of sleeping them again; a sleep cut
+        short by a handover is discarded like any reply in flight.
+        """
+        if method == CLOCK_NOW:
+            return api.NowReply(unix_time_s=self.clock.now()).SerializeToString()
+        await self.clock.sleep(api.SleepRequest.FromString(request).seconds)
+        return api.SleepReply().SerializeToString()
 
     async def _invoke_drone(
         self, reqnr: int, method: str, request: bytes, digest: bytes

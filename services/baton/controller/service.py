@@ -70,7 +70,7 @@ class DroneApiProxy(grpc.GenericRpcHandler):
                 )
             try:
                 if method == CLOCK_SLEEP:
-                    return await self._sleep(parsed)
+                    _check_sleep(parsed)
                 entry = await self._node.call(method, request)
             except StatusError as exc:
                 await abort_with(context, exc)
@@ -80,16 +80,15 @@ class DroneApiProxy(grpc.GenericRpcHandler):
 
         return handle
 
-    async def _sleep(self, request: protobuf_message.Message) -> bytes:
-        assert isinstance(request, api.SleepRequest)
-        seconds = request.seconds
-        if not math.isfinite(seconds) or seconds < 0:
-            raise StatusError(
-                grpc.StatusCode.INVALID_ARGUMENT,
-                f"Clock.Sleep: seconds must be finite and >= 0, got {seconds}",
-            )
-        await self._node.sleep(seconds)
-        return api.SleepReply().SerializeToString()
+
+def _check_sleep(request: protobuf_message.Message) -> None:
+    """Clock.Sleep needs a finite, non-negative duration."""
+    assert isinstance(request, api.SleepRequest)
+    if not math.isfinite(request.seconds) or request.seconds < 0:
+        raise StatusError(
+            grpc.StatusCode.INVALID_ARGUMENT,
+            f"Clock.Sleep: seconds must be finite and >= 0, got {request.seconds}",
+        )
 
 
 class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
@@ -147,6 +146,7 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         invoked=p.invoked,
         reply_chain=node.reply_chain,
         drone_connected=node.drone_connected,
+        drone_calls=node.drone_calls,
         handovers=[
             ring_pb2.ControllerHandover(
                 role=h.role,

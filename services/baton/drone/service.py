@@ -65,7 +65,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.vehicle = vehicle
         self.camera = camera
         self.masters = masters
-        self.script = dict(script or {})
+        self.script = dict(script or {})  # pending scripted handovers, by reqnr
+        self._handed_over_after = 0
         self.cache = ReplyCache(cache_window)
         self.dispatcher = Dispatcher({"Mobility": vehicle, "Camera": camera})
         self.last_reqnr = 0
@@ -126,7 +127,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 self._served(request, digest, b"", received_at, err)
                 raise
             self._served(request, digest, reply, received_at)
-        if self.race is not None and self.race.order == "notice-first" and reqnr in self.script:
+        if (
+            self.race is not None
+            and self.race.order == "notice-first"
+            and self._handed_over_after == reqnr
+        ):
             await asyncio.sleep(self.race.delay_s)
         return drone_pb2.InvokeReply(reqnr=reqnr, payload=reply)
 
@@ -236,9 +241,13 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 reply_bytes=len(reply),
             )
         )
-        scripted = self.script.get(reqnr)
-        if scripted is None:
+        # A scripted handover fires after the first request served at or past
+        # its reqnr: request numbers the controllers answer themselves (Clock)
+        # never reach the drone.
+        due = [n for n in self.script if n <= reqnr]
+        if not due:
             return
+        scripted = self.script.pop(min(due))
         if scripted.new_master == self.masters.master:
             self.log.warning(
                 "scripted handover skipped: already the master",
@@ -249,6 +258,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             return
         hold = self.race.delay_s if self.race and self.race.order == "reply-first" else 0.0
         self.masters.switch(scripted.new_master, reqnr, "script", notice_delay_s=hold)
+        self._handed_over_after = reqnr
 
     async def Connect(
         self, request: drone_pb2.ConnectRequest, context: grpc.aio.ServicerContext
