@@ -8,6 +8,8 @@ the same replies, and every scripted handover happened.
 
 from __future__ import annotations
 
+import asyncio
+import json
 from collections import Counter
 from pathlib import Path
 
@@ -109,3 +111,37 @@ async def test_handover_while_a_call_is_in_flight_both_orders(tmp_path: Path, or
     else:
         assert discarded == 0
         assert snapshot.drone.duplicates == 0
+
+
+async def test_a_replica_that_restarts_catches_up_from_its_predecessor(tmp_path: Path) -> None:
+    """A controller restarted mid-mission (state lost) gets the whole log history again."""
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=0,
+        handovers=((8, 1), (30, 0)),
+        speedup=20.0,
+        mission=SMALL_GRID,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        deadline = asyncio.get_running_loop().time() + 120
+        while (await testbed.snapshot(audit=False)).drone.last_reqnr < 14:
+            assert asyncio.get_running_loop().time() < deadline, "mission did not start"
+            await asyncio.sleep(0.05)
+        part = testbed.supervisor.parts["controller-2"]
+        await testbed.supervisor.stop_part("controller-2")
+        assert part.ready_file is not None
+        restarted = await testbed.supervisor.start("controller-2", part.argv, part.ready_file)
+        await testbed.supervisor.wait_ready(restarted)
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    # The predecessor's stream came up twice to a controller holding nothing
+    # (hello lognr 0) and re-sent the whole history the second time.
+    ups = [
+        json.loads(line)
+        for line in (tmp_path / "logs" / "controller-1.log").read_text().splitlines()
+        if '"ring stream up"' in line and '"peer": 2' in line
+    ]
+    assert len(ups) >= 2 and all(up["peer_lognr"] == 0 for up in ups)
+    assert ups[-1]["lognr"] >= 14  # the second time, mid-mission
