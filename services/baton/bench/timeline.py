@@ -13,6 +13,8 @@ the request number, with the handovers as dashed lines.
 from __future__ import annotations
 
 import csv
+import json
+import math
 import statistics
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -163,6 +165,21 @@ def _settled(
     return settled
 
 
+def drone_connected_after(logs: Path, controller: int, since: float) -> float:
+    """When ``controller`` next connected to the drone after ``since`` (its JSON log).
+
+    The handover's own cost, without the mission program's poll sleep that
+    may come before the new master's first request.
+    """
+    for line in (logs / f"controller-{controller}.log").read_text().splitlines():
+        if not line.startswith("{"):
+            continue  # the mission program's own output
+        event = json.loads(line)
+        if event.get("msg") == "drone connected" and event["ts"] >= since:
+            return float(event["ts"])
+    return math.nan
+
+
 def handover_logs(snapshot: Snapshot, flush_limit: int) -> list[int]:
     """The master's log size at each of the run's handovers."""
     handovers = [h.after_reqnr for h in snapshot.drone.handovers]
@@ -213,9 +230,8 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
         arrivals = {a.reqnr: a.received_at for a in reference.drone.audit}
         handovers = tuple(place_handovers(grid_calls(reference), settings, kept, arrivals))
         say(f"timeline: attempt {attempt}: handovers (after reqnr, new master) {handovers}")
-        measured = await run_plan(
-            settings.plan(handovers), runs / f"measured-{attempt}", timeout, "timeline"
-        )
+        workdir = runs / f"measured-{attempt}"
+        measured = await run_plan(settings.plan(handovers), workdir, timeout, "timeline")
         logs = handover_logs(measured, settings.flush_limit)
         off = [
             k
@@ -245,6 +261,8 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
                 "target_bytes": target,
                 "log_bytes": by_reqnr[h.after_reqnr]["log_bytes"],
                 "delay_s": h.delay_s,
+                "ready_s": drone_connected_after(workdir / "logs", h.new_master, h.decided_at)
+                - h.decided_at,
                 "inter_arrival_s": by_reqnr[first]["inter_arrival_s"] if first in by_reqnr else 0,
             }
         )
@@ -301,6 +319,7 @@ def table(result: dict[str, Any]) -> str:
             f"{h['target_bytes'] / MB:g}",
             f"{h['log_bytes'] / MB:.2f}",
             f"{h['delay_s'] * 1e3:.0f}",
+            f"{h['ready_s'] * 1e3:.0f}",
             f"{h['inter_arrival_s'] * 1e3:.0f}",
             f"{h['extra_s'] * 1e3:.0f}",
         ]
@@ -313,6 +332,7 @@ def table(result: dict[str, Any]) -> str:
             "target log (MB)",
             "log at handover (MB)",
             "handover delay (ms)",
+            "new master ACTIVE and connected (ms)",
             "inter-arrival (ms)",
             "extra over a poll (ms)",
         ],
