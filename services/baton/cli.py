@@ -57,6 +57,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.run(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except OSError as exc:  # a port in use, an unreadable file: say so, no traceback
+        print(f"baton {args.program}: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

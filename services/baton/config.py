@@ -251,6 +251,8 @@ def format_validation_error(source: str, error: ValidationError) -> str:
             msg = "unknown field; remove it or check its spelling"
         elif problem["type"] == "missing":
             msg = "required field is missing; add it"
+        elif problem["type"] == "too_short":
+            msg = f"needs at least {problem['ctx']['min_length']} entry; add one"
         lines.append(f"{source}: {field}: {msg}")
     return "\n".join(lines)
 

@@ -50,7 +50,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = load_config(args.config)
         if args.flush_limit is not None:
-            config = config.model_copy(update={"flush_limit": parse_size(args.flush_limit)})
+            try:
+                flush_limit = parse_size(args.flush_limit)
+            except ValueError as exc:
+                raise ValueError(f"--flush-limit: {exc}") from None
+            config = config.model_copy(update={"flush_limit": flush_limit})
         config.controller(args.id)
     except (ConfigError, ValueError) as exc:
         print(f"baton controller: {exc}", file=sys.stderr)

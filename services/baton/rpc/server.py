@@ -28,9 +28,15 @@ class BatonServer:
         reflection.enable_server_reflection(
             [*self.service_names, health.SERVICE_NAME, reflection.SERVICE_NAME], self.server
         )
-        self.port = self.server.add_insecure_port(address)
+        try:
+            self.port = self.server.add_insecure_port(address)
+        except RuntimeError:  # grpcio's way of saying the bind failed
+            self.port = 0
         if self.port == 0:
-            raise OSError(f"cannot bind gRPC server to {address!r}: address in use or invalid")
+            raise OSError(
+                f"cannot serve on {address}: the address is in use or not on this host; "
+                "choose another port (port 0 picks a free one)"
+            )
         host = address.rsplit(":", 1)[0]
         self.address = f"{host}:{self.port}"
 

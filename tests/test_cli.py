@@ -1,0 +1,63 @@
+"""The `baton` command: every program is there, documented, and fails clearly."""
+
+from __future__ import annotations
+
+import argparse
+import socket
+import subprocess
+import sys
+
+import pytest
+
+from baton.cli import build_parser
+
+PROGRAMS = ["sim-vehicle", "drone", "controller", "link", "testbed", "bench"]
+
+
+def baton(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "baton.cli", *args], capture_output=True, text=True, timeout=60
+    )
+
+
+def test_every_program_is_listed() -> None:
+    listed = baton("--help").stdout
+    for program in PROGRAMS:
+        assert program in listed
+
+
+@pytest.mark.parametrize("program", PROGRAMS)
+def test_every_option_has_help(program: str) -> None:
+    result = baton(program, "--help")
+    assert result.returncode == 0, result.stderr
+    subparsers = next(
+        a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)
+    )
+    assert_documented(subparsers.choices[program], f"baton {program}")
+
+
+def assert_documented(parser: argparse.ArgumentParser, name: str) -> None:
+    """Every option of ``parser`` and of its own subcommands has a help text."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub, subparser in action.choices.items():
+                assert_documented(subparser, f"{name} {sub}")
+            continue
+        assert action.help, f"{name} {'/'.join(action.option_strings)} has no help text"
+        for option in action.option_strings:
+            assert option in parser.format_help()
+
+
+def test_a_port_in_use_is_a_clear_error(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        config = tmp_path / "one.yaml"
+        config.write_text(f"controllers: [{{id: 0, address: 127.0.0.1:{port}}}]\n")
+        result = baton("controller", "--id", "0", "--config", str(config))
+    assert result.returncode == 1
+    assert f"baton controller: cannot serve on 127.0.0.1:{port}: the address is in use" in (
+        result.stderr
+    )
+    assert "Traceback" not in result.stderr
