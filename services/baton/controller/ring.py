@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 
@@ -103,7 +102,6 @@ class PeerLink:
         self._task: asyncio.Task[None] | None = None
         self.stream_up = False
         self.counters = PeerCounters()
-        self.on_delivered: Callable[[int, int, float], None] | None = None
 
     def start(self) -> None:
         """Starts keeping the stream."""
@@ -197,10 +195,8 @@ class PeerLink:
 
     async def _read_acks(self, call: grpc.aio.StreamStreamCall) -> None:
         async for ack in _acks(call):
-            message = self._unacked.pop(ack.lognr, None)
+            self._unacked.pop(ack.lognr, None)
             self.counters.acked += 1
-            if message is not None and self.on_delivered is not None:
-                self.on_delivered(self.peer_id, ack.lognr, time.time())
 
 
 async def _acks(call: grpc.aio.StreamStreamCall) -> AsyncIterator[ring_pb2.LogAck]:
