@@ -77,6 +77,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="comma-separated flush limits (default 0,1MB,2MB,3MB,4MB)",
     )
     worst.add_argument("--hops", default="1,3,5", help="comma-separated hop counts (default 1,3,5)")
+    worst.add_argument(
+        "--from-json",
+        type=Path,
+        help="do not run: recompute the model and the report from a saved worst_case.json",
+    )
     worst.set_defaults(run=_run_worst_case)
 
     micro = benches.add_parser(
@@ -97,8 +102,11 @@ def _run_timeline(args: argparse.Namespace) -> int:
 
 
 def _run_worst_case(args: argparse.Namespace) -> int:
-    from baton.bench.worst_case import WorstCaseSettings, run_worst_case, table
+    from baton.bench.worst_case import WorstCaseSettings, report_from_json, run_worst_case, table
 
+    if args.from_json is not None:
+        print(table(report_from_json(args.from_json, args.out)["summary"]))
+        return 0
     if args.quick:
         settings = WorstCaseSettings.quick()
     else:

@@ -10,6 +10,7 @@ T_log(0) + h * T_log(f + e) + T_conn, with T_conn measured in the same run.
 
 from __future__ import annotations
 
+import json
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +24,6 @@ from baton.bench.runner import (
     markdown_table,
     run_plan,
     say,
-    t_conn_samples,
     write_json,
 )
 from baton.bench.script import (
@@ -99,24 +99,13 @@ async def measure_flush_limit(
     }
     largest = max(entry_bytes(c) for c in calls if c.method == TAKE_PICTURE)
     delays = handover_delays(snapshot)
-    t_conn = t_conn_samples(snapshot)
-    t_conn_s = statistics.fmean(t_conn) if t_conn else 0.0
-    link = settings.controller_link
-    bandwidth = link.bandwidth or 1e12
+    # The initial master's first connection is part of the testbed's start,
+    # not of a handover; T_conn in the model is the mean of the others.
+    startup, *handover_t_conn = snapshot.controllers[0].t_conn_s
+    others = [t for cid, c in snapshot.controllers.items() if cid != 0 for t in c.t_conn_s]
     points = []
     for p in script.points:
         flushed = actual[p.picture_reqnr].flushed if p.picture_reqnr in actual else 0
-        measured = delays.get(p.after_reqnr, 0.0)
-        model = t_max(flush_limit, largest, p.hops, t_conn_s, link.latency, bandwidth)
-        # Known terms the paper leaves out: the notice and the first request
-        # each cross the drone link once, and the flushed log was f + e as
-        # actually logged rather than as nominal sizes.
-        extended = (
-            t_log(0, link.latency, bandwidth)
-            + p.hops * t_log(flushed, link.latency, bandwidth)
-            + t_conn_s
-            + 2 * settings.drone_link.latency
-        )
         points.append(
             {
                 "flush_limit": flush_limit,
@@ -126,25 +115,53 @@ async def measure_flush_limit(
                 "new_master": p.new_master,
                 "flushed_bytes": flushed,
                 "placed_after_flush": flushed >= flush_limit and flushed > 0,
-                "delay_s": measured,
-                "model_s": model,
-                "extended_model_s": extended,
+                "delay_s": delays.get(p.after_reqnr, 0.0),
             }
         )
-        say(
-            f"{label}: {p.hops} hop(s) {p.old_master}->{p.new_master} "
-            f"after reqnr {p.after_reqnr}: flushed {flushed / MB:.2f} MB, "
-            f"delay {measured * 1e3:.0f} ms, model {model * 1e3:.0f} ms"
-        )
-    return {
+    run = {
         "flush_limit": flush_limit,
         "largest_entry_bytes": largest,
-        "t_conn_s": t_conn_s,
-        "t_conn_samples_s": t_conn,
+        "t_conn_startup_s": startup,
+        "t_conn_samples_s": handover_t_conn + others,
         "settle_s": settle,
         "requests": len(calls),
         "points": points,
     }
+    apply_model(run, settings)
+    for point in points:
+        say(
+            f"{label}: {point['hops']} hop(s) {point['old_master']}->{point['new_master']} "
+            f"after reqnr {point['after_reqnr']}: flushed {point['flushed_bytes'] / MB:.2f} MB, "
+            f"delay {point['delay_s'] * 1e3:.0f} ms, model {point['model_s'] * 1e3:.0f} ms"
+        )
+    return run
+
+
+def apply_model(run: dict[str, Any], settings: WorstCaseSettings) -> None:
+    """Adds the paper's model (and the extended one) to every point of ``run``."""
+    samples = run["t_conn_samples_s"]
+    t_conn_s = statistics.fmean(samples) if samples else 0.0
+    run["t_conn_s"] = t_conn_s
+    link = settings.controller_link
+    bandwidth = link.bandwidth or 1e12
+    for point in run["points"]:
+        point["model_s"] = t_max(
+            run["flush_limit"],
+            run["largest_entry_bytes"],
+            point["hops"],
+            t_conn_s,
+            link.latency,
+            bandwidth,
+        )
+        # Known terms the paper leaves out: the notice and the first request
+        # each cross the drone link once, and the flushed log was f + e as
+        # actually logged rather than as nominal sizes.
+        point["extended_model_s"] = (
+            t_log(0, link.latency, bandwidth)
+            + point["hops"] * t_log(point["flushed_bytes"], link.latency, bandwidth)
+            + t_conn_s
+            + 2 * settings.drone_link.latency
+        )
 
 
 def entry_bytes_of_full_picture() -> int:
@@ -219,12 +236,19 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 async def run_worst_case(settings: WorstCaseSettings, out: Path) -> dict[str, Any]:
     """Measures every flush limit, writes worst_case.{json,md,png} under ``out``."""
-    from baton.bench.plots import plot_worst_case
-
     out.mkdir(parents=True, exist_ok=True)
     runs = []
     for flush_limit in settings.flush_limits:
         runs.append(await measure_flush_limit(flush_limit, settings, out / "worst-case-runs"))
+    return write_report(runs, settings, out)
+
+
+def write_report(
+    runs: list[dict[str, Any]], settings: WorstCaseSettings, out: Path
+) -> dict[str, Any]:
+    """Writes worst_case.{json,md,png} from measured runs."""
+    from baton.bench.plots import plot_worst_case
+
     rows = summarize(runs)
     result = {
         "settings": {
@@ -243,3 +267,26 @@ async def run_worst_case(settings: WorstCaseSettings, out: Path) -> dict[str, An
     (out / "worst_case.md").write_text(table(rows))
     plot_worst_case(rows, out / "worst_case.png")
     return result
+
+
+def report_from_json(path: Path, out: Path) -> dict[str, Any]:
+    """Recomputes the model and the report of a saved ``worst_case.json`` without running.
+
+    A file saved before ``t_conn_startup_s`` existed has the initial master's
+    start-up connection as its first T_conn sample; it is set apart here.
+    """
+    saved = json.loads(path.read_text())
+    options = saved["settings"]
+    settings = WorstCaseSettings(
+        flush_limits=tuple(options["flush_limits"]),
+        hops=tuple(options["hops"]),
+        repeat=options["repeat"],
+        controller_link=LinkSpec(**options["controller_link"]),
+        drone_link=LinkSpec(**options["drone_link"]),
+    )
+    for run in saved["runs"]:
+        if "t_conn_startup_s" not in run:
+            run["t_conn_startup_s"], *run["t_conn_samples_s"] = run["t_conn_samples_s"]
+        apply_model(run, settings)
+    out.mkdir(parents=True, exist_ok=True)
+    return write_report(saved["runs"], settings, out)
