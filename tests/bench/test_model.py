@@ -136,3 +136,22 @@ def test_timeline_places_handovers_on_polls_near_0_1_and_2_mb() -> None:
     for (reqnr, _), target in zip(handovers, settings.targets, strict=True):
         assert methods[reqnr] == GET_POSITION
         assert math.isclose(sizes[reqnr], target, abs_tol=settings.tolerance)
+
+
+def test_audit_gaps_are_the_controllers_own_clock_calls() -> None:
+    from baton.bench.runner import audit_calls
+    from baton.testbed.local import Snapshot
+    from baton.v1 import drone_pb2
+
+    drone = drone_pb2.DroneStatus(
+        audit=[
+            drone_pb2.AuditEntry(reqnr=1, method=GET_POSITION, reply_bytes=38),
+            drone_pb2.AuditEntry(reqnr=3, method=TAKE_PICTURE, reply_bytes=1000),
+        ]
+    )
+    calls = audit_calls(Snapshot(drone), {3: 0, 2: 11}, {2: "/baton.v1.Clock/Now"})
+    assert calls == [
+        Call(1, GET_POSITION, 38, 0),
+        Call(2, "/baton.v1.Clock/Now", 0, 11),
+        Call(3, TAKE_PICTURE, 1000, 0),
+    ]

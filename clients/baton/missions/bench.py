@@ -5,10 +5,11 @@ The sequence is the ``script`` parameter, comma-separated steps:
 - ``p``: read the position (a small entry in the log);
 - ``c``: take a picture (about 1 MB at the default resolution);
 - ``rWxH``: set the camera resolution to W x H pixels (picture size W*H*3 bytes);
-- ``sX``: sleep X mission seconds (not a drone call: no request number, no log entry);
+- ``sX``: sleep X mission seconds (answered and logged by the controller, not
+  sent to the drone);
 - ``STEP*N``: the step N times.
 
-Every step except a sleep is one request number, so the benchmarks can
+Every step is one request number, so the benchmarks can
 compute offline where the master's log flushes (``baton.bench.script``) and
 script the drone's handovers at exact request numbers.
 """

@@ -51,13 +51,34 @@ async def run_plan(plan: TestbedPlan, workdir: Path, timeout: float, label: str)
     return snapshot
 
 
-def audit_calls(snapshot: Snapshot, request_bytes: Mapping[int, int] | None = None) -> list[Call]:
-    """The drone's audit as model calls, in reqnr order (request sizes where known)."""
+# Request numbers the drone never sees are the controller's own Clock calls
+# (Sleep, logged with its request and an empty reply): a Sleep of one second.
+CLOCK_CALL = ("/baton.v1.Clock/Sleep", 0, 9)
+
+
+def audit_calls(
+    snapshot: Snapshot,
+    request_bytes: Mapping[int, int] | None = None,
+    methods: Mapping[int, str] | None = None,
+) -> list[Call]:
+    """Every request of the run as model calls, in reqnr order.
+
+    The drone's audit gives method and reply size of what it executed; the
+    gaps are calls the controller answered itself (``Clock``), taken from
+    ``methods`` and ``request_bytes`` where known, else as a Clock.Sleep.
+    """
     sizes = request_bytes or {}
-    return [
-        Call(a.reqnr, a.method, a.reply_bytes, sizes.get(a.reqnr, 0))
-        for a in sorted(snapshot.drone.audit, key=lambda a: a.reqnr)
-    ]
+    audit = {a.reqnr: a for a in snapshot.drone.audit}
+    calls = []
+    for reqnr in range(1, max(audit, default=0) + 1):
+        entry = audit.get(reqnr)
+        if entry is not None:
+            calls.append(Call(reqnr, entry.method, entry.reply_bytes, sizes.get(reqnr, 0)))
+        else:
+            method, reply, request = CLOCK_CALL
+            method = (methods or {}).get(reqnr, method)
+            calls.append(Call(reqnr, method, reply, sizes.get(reqnr, request)))
+    return calls
 
 
 def t_conn_samples(snapshot: Snapshot) -> list[float]:

@@ -29,6 +29,7 @@ BENCH_MISSION = Path(bench_mission.__file__)
 GET_POSITION = "/baton.v1.Mobility/GetPosition"
 TAKE_PICTURE = "/baton.v1.Camera/TakePicture"
 SET_RESOLUTION = "/baton.v1.Camera/SetResolution"
+CLOCK_SLEEP = "/baton.v1.Clock/Sleep"
 
 _FULL_POSITION = api.Position(
     latitude_deg=-89.123456789,
@@ -103,9 +104,14 @@ class ScriptBuilder:
         size = resolution_bytes(width, height)
         return self._call(SET_RESOLUTION, size, size)
 
-    def sleep(self, seconds: float) -> None:
-        """A sleep: no request number."""
+    def sleep(self, seconds: float) -> Call:
+        """A sleep: answered and logged by the controller, never sent to the drone."""
         self.steps.append(f"s{seconds:g}")
+        return self._call(
+            CLOCK_SLEEP,
+            api.SleepReply().ByteSize(),
+            api.SleepRequest(seconds=seconds).ByteSize(),
+        )
 
     @property
     def script(self) -> str:
@@ -190,7 +196,7 @@ def worst_case_script(
 
     for hops in hop_sequence:
         add(builder.position())
-        builder.sleep(settle_s)
+        add(builder.sleep(settle_s))
         if flush_limit > 0:
             _fill_to_just_under(builder, log, flush_limit)
             if log.size >= flush_limit:

@@ -86,7 +86,7 @@ class TimelineSettings:
 def grid_calls(snapshot: Snapshot) -> list[Call]:
     """The run's calls, with the grid mission's request sizes."""
     calls = audit_calls(snapshot)
-    return [replace(c, request_bytes=REQUEST_BYTES.get(c.method, 0)) for c in calls]
+    return [replace(c, request_bytes=REQUEST_BYTES.get(c.method, c.request_bytes)) for c in calls]
 
 
 def core_range(calls: list[Call]) -> tuple[int, int]:
@@ -253,7 +253,8 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
     by_reqnr = {r["reqnr"]: r for r in rows}
     records = []
     for target, h in zip(settings.targets, measured.drone.handovers, strict=True):
-        first = h.after_reqnr + 1
+        # The next request the drone saw (Clock calls never reach it).
+        first = min((r for r in by_reqnr if r > h.after_reqnr), default=0)
         records.append(
             {
                 "after_reqnr": h.after_reqnr,

@@ -87,7 +87,7 @@ async def measure_flush_limit(
     snapshot = await run_plan(plan, workdir / f"flush-{flush_limit}", timeout, label)
 
     requests = {c.reqnr: c.request_bytes for c in script.calls}
-    calls = audit_calls(snapshot, requests)
+    calls = audit_calls(snapshot, requests, {c.reqnr: c.method for c in script.calls})
     if len(calls) != len(script.calls):
         raise RuntimeError(
             f"{label}: the drone served {len(calls)} requests, the script has "
