@@ -68,8 +68,9 @@ async def measure_proxy_and_drone(settings: MicroSettings, workdir: Path) -> dic
         controllers=2,
         flush_limit=1024 * MB,  # no flushes during the measurement
         speedup=1.0,
-        # The controller's own program sleeps, so this process is its only caller.
-        mission_args=bench_mission_args("s1000000"),
+        # The controller's own program makes no call and ends, so this process is its
+        # only caller afterwards.
+        mission_args=bench_mission_args(""),
         mission_file=BENCH_MISSION,
         emulate_links=False,
     )
