@@ -18,6 +18,7 @@ from baton.bench.model import (
 )
 from baton.bench.script import (
     GET_POSITION,
+    RACE_SLACK,
     TAKE_PICTURE,
     entry_bytes,
     picture_reply_bytes,
@@ -109,8 +110,11 @@ def test_worst_case_script_flushes_about_f_plus_e_right_before_each_handover(
         # (Entry sizes differ by a byte or two with the reqnr's varint.)
         assert flushed >= flush_limit
         assert flush_limit + e - 64 * 1024 < flushed < flush_limit + e + 16
-        # Nothing flushed between the big flush and the handover (f > 0).
+        # Nothing flushed between the big flush and the handover (f > 0), and
+        # room below f for the handover request's entry should the drone's
+        # notice overtake its reply (footnote 2) and put it in the next log.
         if flush_limit:
+            assert log[point.picture_reqnr - 1].size + RACE_SLACK < flush_limit
             assert log[point.after_reqnr].flushed == 0
     assert [p.hops for p in script.points] == [1, 3, 5]
     assert [(p.old_master, p.new_master) for p in script.points] == [(0, 1), (1, 4), (4, 3)]

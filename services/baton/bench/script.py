@@ -39,6 +39,10 @@ _FULL_POSITION = api.Position(
 )
 # Below this gap to the flush limit a filler picture is not worth a call.
 FILL_MARGIN = 4096
+# Room for one more small entry in the master's log than predicted: when the
+# drone's notice overtakes the reply of the request the handover came after
+# (footnote 2), that request's entry lands in the new master's log instead.
+RACE_SLACK = 512
 
 
 def bench_mission_args(script: str) -> tuple[str, ...]:
@@ -153,11 +157,11 @@ class WorstCaseScript:
 def _fill_to_just_under(builder: ScriptBuilder, log: Log, flush_limit: int) -> None:
     """Adds pictures until one more full picture would cross ``flush_limit``."""
     full = entry_bytes(Call(0, TAKE_PICTURE, picture_reply_bytes(*DEFAULT_RESOLUTION)))
-    while log.size + full < flush_limit:
+    while log.size + full + RACE_SLACK < flush_limit:
         log.append(log_entry(builder.picture()))
     width = DEFAULT_RESOLUTION[0]
     resolution_entries = 2 * entry_bytes(Call(0, SET_RESOLUTION, 8, 8))
-    gap = flush_limit - log.size - resolution_entries - FILL_MARGIN
+    gap = flush_limit - log.size - resolution_entries - RACE_SLACK - FILL_MARGIN
     height = (gap - (full - width * DEFAULT_RESOLUTION[1] * 3)) // (width * 3)
     if height < MIN_SIDE:
         return
@@ -199,8 +203,8 @@ def worst_case_script(
         add(builder.sleep(settle_s))
         if flush_limit > 0:
             _fill_to_just_under(builder, log, flush_limit)
-            if log.size >= flush_limit:
-                raise AssertionError("the fill crossed the flush limit")
+            if log.size + RACE_SLACK >= flush_limit:
+                raise AssertionError("the fill came too close to the flush limit")
         picture = builder.picture()
         flushed = add(picture)
         if not flushed:

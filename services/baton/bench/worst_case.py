@@ -103,9 +103,13 @@ async def measure_flush_limit(
     # not of a handover; T_conn in the model is the mean of the others.
     startup, *handover_t_conn = snapshot.controllers[0].t_conn_s
     others = [t for cid, c in snapshot.controllers.items() if cid != 0 for t in c.t_conn_s]
+    handed_over = handover_log_bytes(workdir / f"flush-{flush_limit}" / "logs")
     points = []
     for p in script.points:
         flushed = actual[p.picture_reqnr].flushed if p.picture_reqnr in actual else 0
+        # What the old master really held when it handed over: right after
+        # its largest flush, at most a small entry or two.
+        held = handed_over.get(p.after_reqnr, -1)
         points.append(
             {
                 "flush_limit": flush_limit,
@@ -114,7 +118,8 @@ async def measure_flush_limit(
                 "old_master": p.old_master,
                 "new_master": p.new_master,
                 "flushed_bytes": flushed,
-                "placed_after_flush": flushed >= flush_limit and flushed > 0,
+                "handover_log_bytes": held,
+                "placed_after_flush": flushed >= flush_limit and flushed > 0 and 0 <= held < 4096,
                 "delay_s": delays.get(p.after_reqnr, 0.0),
             }
         )
@@ -135,6 +140,17 @@ async def measure_flush_limit(
             f"delay {point['delay_s'] * 1e3:.0f} ms, model {point['model_s'] * 1e3:.0f} ms"
         )
     return run
+
+
+def handover_log_bytes(logs: Path) -> dict[int, int]:
+    """The old master's log size at each handover, by the drone's after-reqnr (controller logs)."""
+    held: dict[int, int] = {}
+    for path in sorted(logs.glob("controller-*.log")):
+        for line in path.read_text().splitlines():
+            if line.startswith("{") and '"handing over"' in line:
+                event = json.loads(line)
+                held[int(event["drone_after_reqnr"])] = int(event["log_bytes"])
+    return held
 
 
 def apply_model(run: dict[str, Any], settings: WorstCaseSettings) -> None:
@@ -174,7 +190,7 @@ def entry_bytes_of_full_picture() -> int:
 def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per (flush limit, hops): measured mean/min/max, model, ratio."""
     rows = []
-    for run in runs:
+    for run in sorted(runs, key=lambda r: r["flush_limit"]):
         by_hops: dict[int, list[dict[str, Any]]] = {}
         for point in run["points"]:
             by_hops.setdefault(point["hops"], []).append(point)
