@@ -16,6 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import grpc
+
 from baton.bench.model import MB, master_log_sizes, t_log, t_max
 from baton.bench.runner import (
     audit_calls,
@@ -142,6 +144,17 @@ async def measure_flush_limit(
     return run
 
 
+async def _measure_with_retry(
+    flush_limit: int, settings: WorstCaseSettings, workdir: Path
+) -> dict[str, Any]:
+    """One flush limit; a run that fails (a status call timing out under load) runs once more."""
+    try:
+        return await measure_flush_limit(flush_limit, settings, workdir)
+    except (RuntimeError, TimeoutError, grpc.RpcError) as exc:
+        say(f"worst-case f={flush_limit / MB:g} MB: run failed ({exc!r:.200}); running it again")
+        return await measure_flush_limit(flush_limit, settings, workdir / "retry")
+
+
 def handover_log_bytes(logs: Path) -> dict[int, int]:
     """The old master's log size at each handover, by the drone's after-reqnr (controller logs)."""
     held: dict[int, int] = {}
@@ -255,7 +268,7 @@ async def run_worst_case(settings: WorstCaseSettings, out: Path) -> dict[str, An
     out.mkdir(parents=True, exist_ok=True)
     runs = []
     for flush_limit in settings.flush_limits:
-        runs.append(await measure_flush_limit(flush_limit, settings, out / "worst-case-runs"))
+        runs.append(await _measure_with_retry(flush_limit, settings, out / "worst-case-runs"))
     return write_report(runs, settings, out)
 
 
