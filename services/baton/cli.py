@@ -34,6 +34,12 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["debug", "info", "warning", "error"],
         help="structured (JSON) log level on stderr (default: info)",
     )
+    parser.add_argument(
+        "--die-with-parent",
+        type=int,
+        metavar="PID",
+        help="exit when the parent process PID dies (the testbed starts its parts this way)",
+    )
     subparsers = parser.add_subparsers(dest="program", metavar="PROGRAM", required=True)
     for name in PROGRAMS:
         try:
@@ -49,9 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``baton`` console script."""
     from baton import logs
+    from baton.lifecycle import die_with_parent
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.die_with_parent is not None:
+        die_with_parent(args.die_with_parent)
     logs.configure(args.log_level)
     try:
         return int(args.run(args) or 0)

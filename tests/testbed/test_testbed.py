@@ -130,6 +130,11 @@ def test_a_killed_controller_fails_the_run_and_leaves_no_process(tmp_path: Path)
             assert time.monotonic() < deadline, "testbed did not start"
             time.sleep(0.1)
         pids = json.loads(pids_file.read_text())
+        # The mission programs, children of the controllers, must not outlive them either.
+        for name in [n for n in pids if n.startswith("controller-")]:
+            children = Path(f"/proc/{pids[name]}/task/{pids[name]}/children").read_text().split()
+            pids.update({f"{name}-mission": int(child) for child in children})
+        assert "controller-1-mission" in pids
         os.kill(pids["controller-1"], signal.SIGKILL)
         out, err = process.communicate(timeout=120)
     finally:

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from baton.lifecycle import die_with_parent
 from baton.sdk.drone import Drone, connect
 
 
@@ -75,7 +76,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("mission", help="the mission file (defines mission(drone, **params))")
     parser.add_argument("controller", help="the local controller, host:port")
     parser.add_argument("params", nargs="*", help="mission parameters as key=value")
+    parser.add_argument(
+        "--die-with-parent",
+        type=int,
+        metavar="PID",
+        help="exit when the parent process PID (the controller) dies",
+    )
     args = parser.parse_args(argv)
+    if args.die_with_parent is not None:
+        die_with_parent(args.die_with_parent)
     return run(args.mission, args.controller, args.params)
 
 

@@ -54,6 +54,8 @@ class ControllerApp:
                 sys.executable,
                 "-m",
                 "baton.sdk.run",
+                "--die-with-parent",
+                str(os.getpid()),
                 self.mission,
                 self.server.address,
                 *self.mission_args,

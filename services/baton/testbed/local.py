@@ -267,7 +267,16 @@ class LocalTestbed:
         deadline = loop.time() + timeout
         while True:
             self.supervisor.check()
-            snapshot = await self.snapshot()
+            try:
+                snapshot = await self.snapshot()
+            except grpc.aio.AioRpcError as exc:
+                # A part that stops answering has usually just died: give the
+                # child watcher a moment, then say which one.
+                await asyncio.sleep(0.5)
+                self.supervisor.check()
+                if loop.time() > deadline:
+                    raise TimeoutError(f"status not available: {exc.details()}") from None
+                continue
             if progress is not None:
                 progress(snapshot)
             if snapshot.missions_ended:

@@ -65,7 +65,7 @@ class ManagedProcess:
 
 def baton_argv(*args: str) -> list[str]:
     """The command line of a ``baton`` subcommand, with this interpreter."""
-    return [sys.executable, "-m", "baton.cli", *args]
+    return [sys.executable, "-m", "baton.cli", "--die-with-parent", str(os.getpid()), *args]
 
 
 class Supervisor:

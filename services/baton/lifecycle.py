@@ -1,0 +1,27 @@
+"""Child processes that do not outlive their parent."""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import sys
+
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(parent: int) -> None:
+    """Asks Linux to send this process SIGTERM when its parent, ``parent``, dies.
+
+    Called at start by every process baton starts itself (the testbed's
+    parts, a controller's mission program: ``--die-with-parent PID``), so
+    that a parent killed outright leaves nothing running. Not a
+    ``preexec_fn``: forking a process that runs gRPC threads is unsafe. If
+    the parent died before this process got here, it ends at once. A no-op
+    where there is no prctl.
+    """
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    if os.getppid() != parent:
+        os.kill(os.getpid(), signal.SIGTERM)
