@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import enum
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 from baton.digest import request_digest
@@ -84,7 +85,7 @@ def entry_size(entry: ring_pb2.LogEntry) -> int:
 class Log:
     """The master's log: entries since the last flush, and their serialized size."""
 
-    entries: list[ring_pb2.LogEntry] = field(default_factory=list)
+    entries: deque[ring_pb2.LogEntry] = field(default_factory=deque)
     size: int = 0
 
     def append(self, entry: ring_pb2.LogEntry) -> None:
@@ -94,8 +95,14 @@ class Log:
 
     def take(self) -> list[ring_pb2.LogEntry]:
         """Empties the log and returns what it held."""
-        entries, self.entries, self.size = self.entries, [], 0
+        entries, self.entries, self.size = list(self.entries), deque(), 0
         return entries
+
+    def pop_first(self) -> ring_pb2.LogEntry:
+        """Removes and returns the oldest entry (replay consumes the log from the front)."""
+        entry = self.entries.popleft()
+        self.size -= entry_size(entry)
+        return entry
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -266,8 +273,7 @@ class ControllerProtocol:
         entry = self.log.entries[0]
         if entry.request_digest != request_digest(method, request):
             raise NonDeterminismError(entry.reqnr, entry, method, request)
-        self.log.entries.pop(0)
-        self.log.size -= entry_size(entry)
+        self.log.pop_first()
         self.reqnr = entry.reqnr
         self.replayed += 1
         effects: list[Effect] = []
