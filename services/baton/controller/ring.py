@@ -172,10 +172,12 @@ class PeerLink:
                     if not pending:
                         self._wakeup.clear()
                         waiter = asyncio.create_task(self._wakeup.wait())
-                        done, _ = await asyncio.wait(
-                            {waiter, acks}, return_when=asyncio.FIRST_COMPLETED
-                        )
-                        waiter.cancel()
+                        try:
+                            done, _ = await asyncio.wait(
+                                {waiter, acks}, return_when=asyncio.FIRST_COMPLETED
+                            )
+                        finally:
+                            waiter.cancel()
                         if acks in done:
                             acks.result()  # raises the stream's error
                             raise ConnectionError(f"peer {self.peer_id} closed the ring stream")
