@@ -103,7 +103,8 @@ def test_the_cli_runs_a_mission_with_links_and_writes_the_report(tmp_path: Path)
     assert report["setup"]["controller_link"] == {"latency_s": 0.02, "bandwidth_bps": 25e6}
 
 
-def test_a_killed_controller_fails_the_run_and_leaves_no_process(tmp_path: Path) -> None:
+def start_testbed_cli(tmp_path: Path) -> tuple[subprocess.Popen[str], dict[str, int]]:
+    """A long testbed run; returns it once every part runs, with all their pids."""
     workdir = tmp_path / "w"
     process = subprocess.Popen(
         baton(
@@ -122,19 +123,32 @@ def test_a_killed_controller_fails_the_run_and_leaves_no_process(tmp_path: Path)
         stderr=subprocess.PIPE,
         text=True,
     )
+    pids_file = workdir / "pids.json"
+    deadline = time.monotonic() + 120
+    while not pids_file.exists():
+        if process.poll() is not None or time.monotonic() > deadline:
+            process.kill()
+            raise AssertionError(f"testbed did not start: {process.communicate()}")
+        time.sleep(0.1)
+    pids = json.loads(pids_file.read_text())
+    # The mission programs, children of the controllers, must not outlive them either.
+    for name in [n for n in pids if n.startswith("controller-")]:
+        children = Path(f"/proc/{pids[name]}/task/{pids[name]}/children").read_text().split()
+        pids.update({f"{name}-mission": int(child) for child in children})
+    assert "controller-1-mission" in pids
+    return process, pids
+
+
+def assert_all_gone(pids: dict[str, int]) -> None:
+    deadline = time.monotonic() + 10
+    while any(alive(pid) for pid in pids.values()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert [name for name, pid in pids.items() if alive(pid)] == []
+
+
+def test_a_killed_controller_fails_the_run_and_leaves_no_process(tmp_path: Path) -> None:
+    process, pids = start_testbed_cli(tmp_path)
     try:
-        pids_file = workdir / "pids.json"
-        deadline = time.monotonic() + 120
-        while not pids_file.exists():
-            assert process.poll() is None, process.communicate()
-            assert time.monotonic() < deadline, "testbed did not start"
-            time.sleep(0.1)
-        pids = json.loads(pids_file.read_text())
-        # The mission programs, children of the controllers, must not outlive them either.
-        for name in [n for n in pids if n.startswith("controller-")]:
-            children = Path(f"/proc/{pids[name]}/task/{pids[name]}/children").read_text().split()
-            pids.update({f"{name}-mission": int(child) for child in children})
-        assert "controller-1-mission" in pids
         os.kill(pids["controller-1"], signal.SIGKILL)
         out, err = process.communicate(timeout=120)
     finally:
@@ -142,10 +156,27 @@ def test_a_killed_controller_fails_the_run_and_leaves_no_process(tmp_path: Path)
             process.kill()
     assert process.returncode == 1, out + err
     assert "controller-1 exited with code -9" in err
-    deadline = time.monotonic() + 10
-    while any(alive(pid) for pid in pids.values()) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert [name for name, pid in pids.items() if alive(pid)] == []
+    assert_all_gone(pids)
+
+
+def test_ctrl_c_stops_every_process(tmp_path: Path) -> None:
+    process, pids = start_testbed_cli(tmp_path)
+    try:
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, out + err
+    assert "interrupted; every process stopped" in err
+    assert_all_gone(pids)
+
+
+def test_a_killed_testbed_leaves_no_process(tmp_path: Path) -> None:
+    process, pids = start_testbed_cli(tmp_path)
+    process.kill()  # SIGKILL: no clean-up code runs in the testbed itself
+    process.communicate(timeout=60)
+    assert_all_gone(pids)
 
 
 def test_a_bad_testbed_file_names_the_field_and_the_fix(tmp_path: Path) -> None:
