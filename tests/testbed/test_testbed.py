@@ -139,6 +139,15 @@ def start_testbed_cli(tmp_path: Path) -> tuple[subprocess.Popen[str], dict[str, 
     return process, pids
 
 
+def outcome(process: subprocess.Popen[str]) -> tuple[str, str]:
+    """The run's output once it exits by itself (killed if it does not within 2 minutes)."""
+    try:
+        return process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+
+
 def assert_all_gone(pids: dict[str, int]) -> None:
     deadline = time.monotonic() + 10
     while any(alive(pid) for pid in pids.values()) and time.monotonic() < deadline:
@@ -148,12 +157,8 @@ def assert_all_gone(pids: dict[str, int]) -> None:
 
 def test_a_killed_controller_fails_the_run_and_leaves_no_process(tmp_path: Path) -> None:
     process, pids = start_testbed_cli(tmp_path)
-    try:
-        os.kill(pids["controller-1"], signal.SIGKILL)
-        out, err = process.communicate(timeout=120)
-    finally:
-        if process.poll() is None:
-            process.kill()
+    os.kill(pids["controller-1"], signal.SIGKILL)
+    out, err = outcome(process)
     assert process.returncode == 1, out + err
     assert "controller-1 exited with code -9" in err
     assert_all_gone(pids)
@@ -161,12 +166,8 @@ def test_a_killed_controller_fails_the_run_and_leaves_no_process(tmp_path: Path)
 
 def test_ctrl_c_stops_every_process(tmp_path: Path) -> None:
     process, pids = start_testbed_cli(tmp_path)
-    try:
-        process.send_signal(signal.SIGINT)
-        out, err = process.communicate(timeout=60)
-    finally:
-        if process.poll() is None:
-            process.kill()
+    process.send_signal(signal.SIGINT)
+    out, err = outcome(process)
     assert process.returncode == 130, out + err
     assert "interrupted; every process stopped" in err
     assert_all_gone(pids)
