@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import asyncio
-import socket
 
 import pytest
 
 from baton.controller.ring import FRAME_BYTES, PeerLink, Reassembler, RingReceiver, frames
 from baton.logs import get_logger
 from baton.rpc.server import BatonServer
+from baton.testbed.local import free_port
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
 LOG = get_logger("test")
@@ -78,12 +78,6 @@ async def wait_for(predicate, timeout: float = 20.0) -> None:  # type: ignore[no
     async with asyncio.timeout(timeout):
         while not predicate():
             await asyncio.sleep(0.01)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def test_a_64_mb_log_message_passes_the_ring() -> None:

@@ -10,6 +10,7 @@ mission through the services' status RPCs, and stops everything. The tests,
 from __future__ import annotations
 
 import asyncio
+import random
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -68,11 +69,28 @@ class TestbedPlan:
     mission_args: tuple[str, ...] = ()  # extra mission parameters, key=value
 
 
+# Ports the kernel hands out for port 0 and for outgoing connections; fixed
+# ports are chosen below them, so that no link emulator binding port 0 and no
+# client connection can take a port between choosing it and binding it.
+_EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+_FIXED_PORTS_FROM = 20_000
+
+
 def free_port() -> int:
-    """A TCP port free on loopback now (the caller binds it soon after)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A TCP port free on loopback now, outside the kernel's ephemeral range."""
+    try:
+        ephemeral_low = int(_EPHEMERAL_RANGE.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        ephemeral_low = 32_768
+    for _ in range(200):
+        port = random.randrange(_FIXED_PORTS_FROM, max(ephemeral_low, _FIXED_PORTS_FROM + 1000))
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise OSError(f"no free port on 127.0.0.1 between {_FIXED_PORTS_FROM} and {ephemeral_low}")
 
 
 def _link_args(spec: LinkSpec) -> list[str]:
