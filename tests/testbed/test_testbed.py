@@ -21,6 +21,22 @@ def baton(*args: str) -> list[str]:
     return [sys.executable, "-m", "baton.cli", *args]
 
 
+def run_testbed(tmp_path: Path, *args: str) -> dict:  # type: ignore[type-arg]
+    """Runs `baton testbed ARGS` to the end; expects success and returns its report."""
+    report_path = tmp_path / "report.json"
+    result = subprocess.run(
+        baton("testbed", *args, "--report", str(report_path), "--workdir", str(tmp_path / "w")),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "mission COMPLETED" in result.stdout
+    report: dict = json.loads(report_path.read_text())  # type: ignore[type-arg]
+    report["stdout"] = result.stdout
+    return report
+
+
 def alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -69,32 +85,19 @@ async def test_report_agrees_with_the_drones_own_audit(tmp_path: Path) -> None:
 
 
 def test_the_cli_runs_a_mission_with_links_and_writes_the_report(tmp_path: Path) -> None:
-    report_path = tmp_path / "report.json"
-    result = subprocess.run(
-        baton(
-            "testbed",
-            *SMALL,
-            "--handover",
-            "8:1",
-            "--handover",
-            "16:2",
-            "--handover",
-            "24:0",
-            "--flush-limit",
-            "2MB",
-            "--report",
-            str(report_path),
-            "--workdir",
-            str(tmp_path / "w"),
-        ),
-        capture_output=True,
-        text=True,
-        timeout=300,
+    report = run_testbed(
+        tmp_path,
+        *SMALL,
+        "--handover",
+        "8:1",
+        "--handover",
+        "16:2",
+        "--handover",
+        "24:0",
+        "--flush-limit",
+        "2MB",
     )
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert "mission COMPLETED" in result.stdout
-    assert "waypoint 4/4" in result.stdout  # live progress
-    report = json.loads(report_path.read_text())
+    assert "waypoint 4/4" in report["stdout"]  # live progress
     assert report["format"] == "baton.testbed.report/1"
     assert report["mission"]["waypoints_visited"] == 4
     assert len(report["handovers"]) == 3
@@ -223,26 +226,7 @@ def test_a_full_testbed_file_drives_the_run(tmp_path: Path) -> None:
     document["flush_limit"] = 0
     config = tmp_path / "testbed.yaml"
     config.write_text(yaml.safe_dump(document))
-    report_path = tmp_path / "report.json"
-    result = subprocess.run(
-        baton(
-            "testbed",
-            "--config",
-            str(config),
-            *SMALL,
-            "--handover",
-            "10:2",
-            "--report",
-            str(report_path),
-            "--workdir",
-            str(tmp_path / "w"),
-        ),
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
-    report = json.loads(report_path.read_text())
+    report = run_testbed(tmp_path, "--config", str(config), *SMALL, "--handover", "10:2")
     assert report["setup"]["ring"] == [2, 1, 0] and report["setup"]["initial_master"] == 1
     assert report["setup"]["flush_limit_bytes"] == 0
     assert report["setup"]["controller_link"] == {"latency_s": 0.02, "bandwidth_bps": 25e6}
