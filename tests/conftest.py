@@ -5,10 +5,16 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+
+# Shared test helpers (``autopilots``) live beside this file; --import-mode=importlib
+# does not put test folders on sys.path.
+sys.path.insert(0, str(Path(__file__).parent))
+
+from autopilots import SKIP_REASON, Sitl, sitl_binary
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -44,3 +50,18 @@ def grpcurl() -> Callable[..., str]:
         return done.stdout
 
     return run
+
+
+@pytest.fixture(scope="module")
+def sitl_autopilot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Sitl]:
+    """ArduPilot Copter SITL (``../shared/sitl/arducopter``) for a module's tests.
+
+    Skips with a clear message where the binary is absent (a user's machine);
+    CI has it. Tests that use it are marked ``sitl``.
+    """
+    if sitl_binary() is None:
+        pytest.skip(SKIP_REASON)
+    sitl = Sitl(tmp_path_factory.mktemp("sitl"))
+    sitl.start()
+    yield sitl
+    sitl.stop()

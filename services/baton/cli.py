@@ -14,6 +14,7 @@ import sys
 # Subcommand modules, in the order `baton --help` lists them.
 PROGRAMS = [
     "baton.sim_vehicle.cli",
+    "baton.sitl.cli",
     "baton.drone.cli",
     "baton.controller.cli",
     "baton.link.cli",

@@ -6,7 +6,7 @@ initial master and the flush limit. Programs load it with ``load_config`` and
 pass the model down; nothing else reads files or the environment for settings.
 
 Sizes accept units (``2MB``, ``512KiB``, ``0``); MB means 2**20 bytes, as in
-DESIGN.md's performance model. Rates accept ``25Mbit``; Mbit means 10**6 bits.
+docs/design.md's performance model. Rates accept ``25Mbit``; Mbit means 10**6 bits.
 """
 
 from __future__ import annotations

@@ -125,7 +125,7 @@ def test_message_is_not_forwarded_to_its_origin() -> None:
 
 
 def test_in_order_message_during_replay_is_queued_not_dropped() -> None:
-    """DESIGN.md note 1: line 44 would drop lognr = lognr + 1 arriving in REPLAY."""
+    """docs/design.md note 1: line 44 would drop lognr = lognr + 1 arriving in REPLAY."""
     p = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
     p.on_log(message(1, origin=0, reqnrs=[1]))
     p.on_log(message(2, origin=0, reqnrs=[2]))  # arrives while replaying 1

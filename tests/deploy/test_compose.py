@@ -14,7 +14,7 @@ import shlex
 import subprocess
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import SplitResult, urlsplit
 
 import pytest
 import yaml
@@ -43,6 +43,10 @@ def _load_compose() -> dict[str, Any]:
 COMPOSE = _load_compose()
 SERVICES: dict[str, dict[str, Any]] = COMPOSE["services"]
 CONFIG: BatonConfig = load_config(DEPLOY / "testbed.yaml")
+# The SITL autopilots, each in its own profile: profile -> service.
+SITL_PROFILES = {"px4": "px4-sitl", "ardupilot": "ardupilot-sitl"}
+# The project's ArduPilot SITL build, beside the repository (../shared/sitl/README.md).
+SHARED_SITL = REPO.parent / "shared" / "sitl"
 
 
 def _argv(value: str | list[str] | None) -> list[str]:
@@ -126,11 +130,21 @@ def _assert_shaped_like(service: str, network: str, spec: LinkSpec, what: str) -
 
 
 def test_services_are_all_there() -> None:
-    assert set(SERVICES) >= {"sim-vehicle", "px4-sitl", "drone", "report", *CONTROLLER_SERVICES}
-    assert "sitl" in SERVICES["px4-sitl"]["profiles"]
-    assert ":" in SERVICES["px4-sitl"]["image"] and not SERVICES["px4-sitl"]["image"].endswith(
-        ":latest"
-    ), "pin the SITL image's tag"
+    assert set(SERVICES) >= {
+        "sim-vehicle",
+        "drone",
+        "report",
+        *CONTROLLER_SERVICES,
+        *SITL_PROFILES.values(),
+    }
+
+
+def test_each_sitl_service_has_a_profile_of_its_own() -> None:
+    for profile, service in SITL_PROFILES.items():
+        assert SERVICES[service].get("profiles") == [profile], f"{service} runs in {profile!r} only"
+    always = [s for s in SERVICES if s not in SITL_PROFILES.values()]
+    for service in always:
+        assert not SERVICES[service].get("profiles"), f"{service} must run in every profile"
 
 
 @pytest.mark.parametrize("service", sorted(SERVICES))
@@ -238,21 +252,233 @@ def test_vehicle_url_points_at_the_sim_vehicle() -> None:
     url = urlsplit(CONFIG.drone.vehicle_url)
     assert url.scheme == "udpout"
     assert url.hostname == "sim-vehicle" and url.port == int(_option(sim, "--port"))
-    # Compose passes the same URL unless BATON_VEHICLE_URL selects PX4 SITL.
+    # Compose passes the same URL unless BATON_VEHICLE_URL selects a SITL profile.
     assert _option(_command("drone"), "--vehicle-url") == CONFIG.drone.vehicle_url
     assert float(_option(sim, "--speedup")) == CONFIG.speedup
     assert _networks_of("sim-vehicle") & _networks_of("drone")
 
 
+# -- the SITL profiles ----------------------------------------------------------------
+
+_DOCUMENTED_RUN = re.compile(
+    r"BATON_VEHICLE_URL=(\S+) docker compose -f deploy/docker-compose\.yml --profile (\S+) up"
+)
+
+
+def _documented_vehicle_urls(text: str) -> dict[str, set[str]]:
+    """``--profile P`` -> the BATON_VEHICLE_URLs a text sets on the same command line."""
+    urls: dict[str, set[str]] = {}
+    for url, profile in _DOCUMENTED_RUN.findall(text):
+        urls.setdefault(profile, set()).add(url)
+    return urls
+
+
+README_URLS = _documented_vehicle_urls((DEPLOY / "README.md").read_text())
+
+
+def _vehicle_url(profile: str) -> SplitResult:
+    """The vehicle URL deploy/README.md gives for ``--profile profile``, parsed."""
+    assert profile in README_URLS, f"deploy/README.md shows no command line for --profile {profile}"
+    (url,) = README_URLS[profile]
+    parsed = urlsplit(url)
+    assert parsed.scheme in {"udpin", "udpout", "tcpin", "tcpout"}, f"not a MAVSDK URL: {url}"
+    assert parsed.hostname and parsed.port, f"{url}: host and port, please"
+    return parsed
+
+
+def test_each_sitl_profile_documents_one_vehicle_url() -> None:
+    assert set(README_URLS) == set(SITL_PROFILES), "one command line per SITL profile"
+    for profile, urls in README_URLS.items():
+        assert len(urls) == 1, f"--profile {profile}: deploy/README.md sets {sorted(urls)}"
+    # The compose file's comments show the same command lines.
+    in_compose = _documented_vehicle_urls((DEPLOY / "docker-compose.yml").read_text())
+    assert in_compose == README_URLS
+
+
+def test_drone_takes_its_vehicle_url_from_baton_vehicle_url() -> None:
+    raw = yaml.safe_load((DEPLOY / "docker-compose.yml").read_text())
+    argv = _argv(raw["services"]["drone"]["command"])
+    expected = f"${{BATON_VEHICLE_URL:-{CONFIG.drone.vehicle_url}}}"
+    assert _option(argv, "--vehicle-url") == expected
+    for profile in SITL_PROFILES:
+        url = _vehicle_url(profile).geturl()
+        args = build_parser().parse_args([url if a == expected else a for a in argv[1:]])
+        assert args.vehicle_url == url
+
+
+@pytest.mark.parametrize("service", sorted(SITL_PROFILES.values()))
+def test_sitl_is_on_the_autopilot_network_with_the_drone(service: str) -> None:
+    # Companion computer to flight controller: unshaped, and not on WiFi or the ring.
+    assert _networks_of(service) == {"autopilot"}
+    assert "autopilot" in _networks_of("drone")
+
+
+def test_px4_image_is_a_pinned_release() -> None:
+    image = SERVICES["px4-sitl"]["image"]
+    # The image's CI tags each v* release of the repository without the "v".
+    assert re.fullmatch(r"jonasvautherin/px4-gazebo-headless:\d+\.\d+\.\d+", image), image
+
+
 def test_px4_sitl_sends_mavlink_to_the_drone() -> None:
     sitl = SERVICES["px4-sitl"]
-    assert set(_argv(sitl["command"])) <= _names_of("drone")
-    assert _networks_of("px4-sitl") & _networks_of("drone")
+    # The entrypoint takes [HOST_QGC HOST_API]: PX4 sends to HOST_API on UDP 14540.
+    hosts = _argv(sitl["command"])
+    assert 1 <= len(hosts) <= 2
+    assert set(hosts) <= _names_of("drone")
+    assert "drone" in sitl["depends_on"], "the entrypoint resolves the drone's name at start"
+    url = _vehicle_url("px4")
+    assert (url.scheme, url.hostname, url.port) == ("udpin", "0.0.0.0", 14540)
     home = CONFIG.drone.home
     env = sitl["environment"]
     assert float(env["PX4_HOME_LAT"]) == home.latitude_deg
     assert float(env["PX4_HOME_LON"]) == home.longitude_deg
     assert float(env["PX4_HOME_ALT"]) == home.altitude_m
+
+
+# ArduPilot SITL's options (``arducopter --help``): the short spellings mapped to the long.
+_ARDUCOPTER_ALIASES = {"-M": "--model", "-s": "--speedup", "-O": "--home", "-I": "--instance"}
+_ARDUCOPTER_FLAGS = {"--wipe": "--wipe", "-w": "--wipe"}
+SERIAL_BASE_PORT = 5760  # TCP port of `tcp:0` for instance 0; +10 per instance
+
+
+def _arducopter_options(argv: list[str]) -> dict[str, str]:
+    """``arducopter`` arguments by long option name (flags map to ``""``)."""
+    options: dict[str, str] = {}
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg in _ARDUCOPTER_FLAGS:
+            options[_ARDUCOPTER_FLAGS[arg]] = ""
+            i += 1
+        elif arg.startswith("-I") and len(arg) > 2:  # -I0
+            options["--instance"] = arg[2:]
+            i += 1
+        else:
+            assert arg.startswith("-") and i + 1 < len(argv), f"unexpected SITL argument {arg!r}"
+            options[_ARDUCOPTER_ALIASES.get(arg, arg)] = argv[i + 1]
+            i += 2
+    return options
+
+
+ARDUPILOT_ARGS = _arducopter_options(_command("ardupilot-sitl"))
+
+
+def _serial_tcp_port(serial: int, default_offset: int) -> int:
+    """The TCP port SERIALn listens on: base + offset of ``tcp:OFFSET`` + 10 x instance."""
+    instance = int(ARDUPILOT_ARGS.get("--instance", "0"))
+    spec = ARDUPILOT_ARGS.get(f"--serial{serial}", f"tcp:{default_offset}")
+    kind, offset, *_ = spec.split(":")
+    assert kind == "tcp", f"SERIAL{serial} is {spec!r}, not a TCP port"
+    return SERIAL_BASE_PORT + int(offset) + 10 * instance
+
+
+def _dockerfile_sitl() -> str:
+    return (DEPLOY / "Dockerfile.sitl").read_text().replace("\\\n", " ")
+
+
+def _sitl_copies() -> dict[str, str]:
+    """What Dockerfile.sitl copies from the build context ``sitl``: source -> destination."""
+    copies = re.findall(r"^COPY --from=sitl (\S+) (\S+)\s*$", _dockerfile_sitl(), re.M)
+    return dict(copies)
+
+
+def test_ardupilot_sitl_image_is_built_from_dockerfile_sitl() -> None:
+    spec = SERVICES["ardupilot-sitl"]
+    build = spec["build"]
+    assert (DEPLOY / build["context"] / build["dockerfile"]) == DEPLOY / "Dockerfile.sitl"
+    assert ":" in spec["image"] and "/" not in spec["image"], "a local tag, nothing to pull"
+    # The build context `sitl`: by default the project's SITL folder beside the repository.
+    contexts = build["additional_contexts"]
+    assert set(contexts) == {"sitl"}
+    assert (DEPLOY / contexts["sitl"]).resolve() == SHARED_SITL.resolve()
+    dockerfile = _dockerfile_sitl()
+    assert re.search(r"^FROM \S+:\S+\s*$", dockerfile, re.M), "pin the base image"
+    copies = _sitl_copies()
+    assert set(copies) == {"arducopter", "copter.parm"}
+    entrypoint = re.search(r"^ENTRYPOINT (\[.*\])\s*$", dockerfile, re.M)
+    assert entrypoint and yaml.safe_load(entrypoint.group(1)) == [copies["arducopter"]]
+    assert f"RUN {copies['arducopter']} --help" in dockerfile, "the build tries the binary"
+    assert ARDUPILOT_ARGS["--defaults"] == copies["copter.parm"]
+
+
+def _commented_commands(path: Path, start: str) -> list[str]:
+    """Command lines starting with ``start``, without comment signs and "\\" continuations."""
+    lines = [line.lstrip("#").strip() for line in path.read_text().splitlines()]
+    commands = []
+    for i, line in enumerate(lines):
+        if line.startswith(start):
+            parts = [line]
+            while parts[-1].endswith("\\"):
+                parts[-1] = parts[-1][:-1]
+                i += 1
+                parts.append(lines[i])
+            commands.append(" ".join(" ".join(parts).split()))
+    return commands
+
+
+def test_manual_sitl_build_is_documented_the_same_way() -> None:
+    start = "docker build -f deploy/Dockerfile.sitl"
+    in_readme = _commented_commands(DEPLOY / "README.md", start)
+    assert len(in_readme) == 1
+    assert _commented_commands(DEPLOY / "Dockerfile.sitl", start) == in_readme
+    argv = shlex.split(in_readme[0])
+    assert _option(argv, "--build-context").startswith("sitl=")
+    assert argv[-1] == "deploy", "the compose file builds with deploy/ as context too"
+
+
+def test_readme_shows_the_sitl_command_line_compose_runs() -> None:
+    binary = _sitl_copies()["arducopter"]
+    (shown,) = _commented_commands(DEPLOY / "README.md", f"{binary} ")
+    assert shlex.split(shown) == [binary, *_command("ardupilot-sitl")]
+
+
+def test_shared_sitl_folder_holds_what_dockerfile_sitl_copies() -> None:
+    if not SHARED_SITL.is_dir():
+        pytest.skip(f"no ArduPilot SITL build at {SHARED_SITL} on this machine")
+    for name in _sitl_copies():
+        assert (SHARED_SITL / name).is_file(), f"{SHARED_SITL / name} is missing"
+    assert os.access(SHARED_SITL / "arducopter", os.X_OK)
+
+
+def test_ardupilot_sitl_runs_like_the_local_testbed() -> None:
+    args = ARDUPILOT_ARGS
+    assert args["--model"] == "+"
+    lat, lon, alt, heading = (float(x) for x in args["--home"].split(","))
+    home = CONFIG.drone.home
+    assert (lat, lon, alt) == (home.latitude_deg, home.longitude_deg, home.altitude_m)
+    assert 0 <= heading < 360
+    # SITL's physics and the controllers' mission clocks run at one speed-up.
+    assert float(args["--speedup"]) == CONFIG.speedup
+    # Simulate at once (no ":wait" for a client on SERIAL0), from a fresh eeprom.
+    assert args["--serial0"].startswith("tcp:") and not args["--serial0"].endswith(":wait")
+    assert "--wipe" in args
+
+
+def test_ardupilot_sitl_ports_agree_with_the_vehicle_url() -> None:
+    spec = SERVICES["ardupilot-sitl"]
+    url = _vehicle_url("ardupilot")
+    assert url.scheme == "tcpout", "SITL listens, the drone connects"
+    assert url.hostname in _names_of("ardupilot-sitl")
+    serial0, serial1 = _serial_tcp_port(0, 0), _serial_tcp_port(1, 2)
+    assert url.port == serial0, f"the drone must hold SERIAL0 ({serial0})"
+    exposed = {int(str(port)) for port in spec["expose"]}
+    assert {serial0, serial1} <= exposed
+    # SERIAL1 is published for an independent telemetry monitor (one client per port).
+    published = [str(p).rsplit(":", 2) for p in spec["ports"]]
+    assert [(host, int(target)) for host, _, target in published] == [("127.0.0.1", serial1)]
+    assert serial1 != url.port
+
+
+def test_ardupilot_sitl_arguments_are_known_to_the_binary() -> None:
+    binary = SHARED_SITL / "arducopter"
+    if not binary.is_file():
+        pytest.skip(f"no ArduPilot SITL binary at {binary} on this machine")
+    done = subprocess.run(
+        [str(binary), "--help"], capture_output=True, text=True, timeout=30, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    for option in ARDUPILOT_ARGS:
+        assert re.search(rf"{re.escape(option)}\b", done.stdout), f"arducopter has no {option}"
 
 
 # -- netem ------------------------------------------------------------------------------

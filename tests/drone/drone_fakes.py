@@ -6,6 +6,7 @@ import grpc
 
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2
 
 HOME = api.Position(
     latitude_deg=47.397742, longitude_deg=8.545594, absolute_altitude_m=488.0, relative_altitude_m=0
@@ -26,6 +27,11 @@ class FakeMobility:
     @property
     def connected(self) -> bool:
         return self.is_connected
+
+    def link(self) -> drone_pb2.VehicleLink:
+        if self.is_connected:
+            return drone_pb2.VehicleLink(healthy=True)
+        return drone_pb2.VehicleLink(problem="fake vehicle disconnected")
 
     async def start(self) -> None:
         pass
@@ -94,5 +100,6 @@ class FakeMobility:
             flight_mode="HOLD",
             battery_percent=100.0,
             ready=True,
+            armable=True,
             landed_state="IN_AIR" if self.position.relative_altitude_m > 0 else "ON_GROUND",
         )

@@ -7,12 +7,14 @@ import math
 import subprocess
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
 
 import grpc
 import pytest
+from autopilots import Sitl
 from drone_harness import start_program, stop_program
 from google.protobuf.message import Message
 
@@ -38,7 +40,7 @@ class DroneBed:
         return self.stub.GetStatus(drone_pb2.GetDroneStatusRequest(include_audit=audit), timeout=5)
 
     def wait_until(
-        self, what: str, check: Callable[[drone_pb2.DroneStatus], bool], timeout_s: float = 20
+        self, what: str, check: Callable[[drone_pb2.DroneStatus], bool], timeout_s: float = 60
     ) -> drone_pb2.DroneStatus:
         deadline = time.monotonic() + timeout_s
         while True:
@@ -50,15 +52,20 @@ class DroneBed:
             time.sleep(0.05)
 
 
-@pytest.fixture
-def testbed(tmp_path: Path, vehicle_url: str | None) -> Iterator[DroneBed]:
+@contextmanager
+def drone_bed(
+    tmp_path: Path,
+    url: str | None,
+    speedup: float,
+    handovers: str = "# the master switches after the landing command\n7 1\n",
+) -> Iterator[DroneBed]:
+    """The drone service (and the sim vehicle, when ``url`` is None) as processes."""
     script = tmp_path / "handovers.txt"
-    script.write_text("# the master switches after the landing command\n7 1\n")
+    script.write_text(handovers)
     processes = []
-    url = vehicle_url
-    if url is None:  # the embedded sim vehicle (pytest --vehicle-url URL for a SITL)
+    if url is None:  # the embedded sim vehicle
         sim, url = start_program(
-            ["sim-vehicle", "--speedup", SPEEDUP, "--url-file", str(tmp_path / "url")],
+            ["sim-vehicle", "--speedup", str(speedup), "--url-file", str(tmp_path / "url")],
             tmp_path / "url",
             tmp_path / "sim.log",
         )
@@ -73,7 +80,7 @@ def testbed(tmp_path: Path, vehicle_url: str | None) -> Iterator[DroneBed]:
                 "--controllers=0,1,2",
                 "--initial-master=0",
                 f"--handover-file={script}",
-                f"--speedup={SPEEDUP}",
+                f"--speedup={speedup}",
             ],
             tmp_path / "address",
             tmp_path / "drone.log",
@@ -81,12 +88,42 @@ def testbed(tmp_path: Path, vehicle_url: str | None) -> Iterator[DroneBed]:
         processes.append(drone)
         channel = sync_channel(address)
         bed = DroneBed(address, drone_pb2_grpc.DroneStub(channel), channel, processes)
-        bed.wait_until("vehicle ready", lambda s: s.vehicle_connected and s.flight_state.ready)
+        # ArduPilot arms ~40 s (of its time) after boot: minutes at worst on a loaded box.
+        bed.wait_until("vehicle ready", lambda s: s.vehicle_connected and s.flight_state.ready, 120)
         yield bed
         channel.close()
     finally:
         for process in reversed(processes):
             stop_program(process)
+
+
+# The drone's end-to-end flight on the embedded sim vehicle (or the autopilot
+# at --vehicle-url), and twice in a row on one ArduPilot SITL: the second
+# flight arms after the first one's landing.
+VEHICLES = [
+    "sim",
+    pytest.param("sitl-first-flight", marks=pytest.mark.sitl),
+    pytest.param("sitl-after-landing", marks=pytest.mark.sitl),
+]
+
+
+@pytest.fixture(params=VEHICLES)
+def testbed(
+    request: pytest.FixtureRequest, tmp_path: Path, vehicle_url: str | None
+) -> Iterator[DroneBed]:
+    if request.param == "sim":
+        url, speedup = vehicle_url, float(SPEEDUP)
+    else:
+        sitl: Sitl = request.getfixturevalue("sitl_autopilot")
+        url, speedup = sitl.url, sitl.speedup
+    with drone_bed(tmp_path, url, speedup) as bed:
+        yield bed
+
+
+@pytest.fixture
+def sim_testbed(tmp_path: Path, vehicle_url: str | None) -> Iterator[DroneBed]:
+    with drone_bed(tmp_path, vehicle_url, float(SPEEDUP)) as bed:
+        yield bed
 
 
 class Controller:
@@ -224,7 +261,10 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     assert all(h.delay_s > 0 and h.first_request_at > h.decided_at for h in status.handovers)
 
 
-def test_grpcurl_against_the_running_drone(testbed: DroneBed, grpcurl: Callable[..., str]) -> None:
+def test_grpcurl_against_the_running_drone(
+    sim_testbed: DroneBed, grpcurl: Callable[..., str]
+) -> None:
+    testbed = sim_testbed
     run_grpcurl = grpcurl
     assert set(run_grpcurl(testbed.address, "list").split()) >= {
         "baton.v1.Drone",

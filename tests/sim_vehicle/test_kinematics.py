@@ -7,16 +7,21 @@ import math
 import pytest
 
 from baton.sim_vehicle.kinematics import (
+    NEED_POSITION_ESTIMATE,
+    PREARM_REPORT_PERIOD_S,
     FlightParams,
     GeoPoint,
     Kinematics,
     LocalFrame,
     LocalPoint,
     Phase,
+    PreArmFailed,
     Refused,
 )
 
 HOME = GeoPoint(47.397742, 8.545594, 488.0)
+# Armable at once: the flight tests below are not about the warm-up.
+WARM = FlightParams(warmup_s=0.0)
 
 
 def run(k: Kinematics, seconds: float, dt: float = 0.05) -> None:
@@ -25,7 +30,7 @@ def run(k: Kinematics, seconds: float, dt: float = 0.05) -> None:
 
 
 def airborne(altitude: float = 10.0) -> Kinematics:
-    k = Kinematics(HOME)
+    k = Kinematics(HOME, WARM)
     k.arm()
     k.takeoff(altitude)
     run(k, altitude / k.params.climb_rate_m_s + 0.5)
@@ -46,7 +51,7 @@ def test_local_frame_round_trip_and_scale() -> None:
 
 
 def test_takeoff_climbs_at_the_climb_rate_then_holds() -> None:
-    k = Kinematics(HOME, FlightParams(climb_rate_m_s=2.0))
+    k = Kinematics(HOME, FlightParams(climb_rate_m_s=2.0, warmup_s=0.0))
     k.arm()
     k.takeoff(10.0)
     assert k.phase is Phase.TAKEOFF and k.in_air
@@ -59,7 +64,7 @@ def test_takeoff_climbs_at_the_climb_rate_then_holds() -> None:
 
 
 def test_takeoff_defaults_to_the_takeoff_altitude_parameter() -> None:
-    k = Kinematics(HOME)
+    k = Kinematics(HOME, WARM)
     k.takeoff_altitude_m = 4.0
     k.arm()
     k.takeoff()
@@ -132,7 +137,7 @@ def test_hold_stops_a_goto() -> None:
 
 
 def test_refusals() -> None:
-    k = Kinematics(HOME)
+    k = Kinematics(HOME, WARM)
     with pytest.raises(Refused, match="not armed"):
         k.takeoff(10.0)
     with pytest.raises(Refused, match="take off first"):
@@ -147,10 +152,59 @@ def test_refusals() -> None:
 
 
 def test_arming_sets_home_and_battery_drains_only_when_armed() -> None:
-    k = Kinematics(HOME, FlightParams(battery_drain_pct_s=1.0))
+    k = Kinematics(HOME, FlightParams(battery_drain_pct_s=1.0, warmup_s=0.0))
     run(k, 1.0)
     assert k.battery_pct == 100.0
     k.arm()
     run(k, 2.0)
     assert k.battery_pct == pytest.approx(98.0)
     assert k.geo_home() == HOME
+
+
+def test_not_armable_until_the_estimator_has_warmed_up() -> None:
+    k = Kinematics(HOME, FlightParams(warmup_s=40.0))
+    assert not k.estimator_ready
+    assert k.prearm_failure() == NEED_POSITION_ESTIMATE
+    with pytest.raises(PreArmFailed, match=NEED_POSITION_ESTIMATE) as refused:
+        k.arm()
+    assert isinstance(refused.value, Refused)  # the server DENIES it like any refusal
+    assert not k.armed
+    k.step(39.5)
+    assert not k.estimator_ready
+    with pytest.raises(PreArmFailed):
+        k.arm()
+    k.step(0.5)  # exactly 40 s of simulated time
+    assert k.estimator_ready and k.prearm_failure() is None
+    k.arm()
+    assert k.armed
+
+
+def test_the_default_warmup_is_ten_simulated_seconds() -> None:
+    k = Kinematics(HOME)
+    k.step(9.75)
+    assert not k.estimator_ready
+    k.step(0.25)
+    assert k.estimator_ready
+
+
+def test_prearm_failure_is_reported_at_once_then_every_period() -> None:
+    k = Kinematics(HOME, FlightParams(warmup_s=100.0))
+    assert k.prearm_report_due() == NEED_POSITION_ESTIMATE
+    assert k.prearm_report_due() is None  # once per period, however often asked
+    k.step(PREARM_REPORT_PERIOD_S - 0.5)
+    assert k.prearm_report_due() is None
+    k.step(0.5)
+    assert k.prearm_report_due() == NEED_POSITION_ESTIMATE
+    k.step(PREARM_REPORT_PERIOD_S)
+    assert k.prearm_report_due() == NEED_POSITION_ESTIMATE
+    k.step(100.0 - k.time_s)
+    assert k.estimator_ready
+    k.step(PREARM_REPORT_PERIOD_S)
+    assert k.prearm_report_due() is None  # armable: nothing to say
+
+
+def test_a_warmed_up_vehicle_reports_nothing() -> None:
+    k = Kinematics(HOME, WARM)
+    assert k.estimator_ready and k.prearm_report_due() is None
+    k.arm()
+    assert k.prearm_report_due() is None

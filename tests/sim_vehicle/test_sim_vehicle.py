@@ -3,22 +3,30 @@
 from __future__ import annotations
 
 import asyncio
+import ctypes
 import math
+import os
+import platform
+import signal
 import socket
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
 
 import grpc
 import pytest
-from pymavlink import mavutil
 
 from baton.drone.mobility import MavsdkMobility
 from baton.rpc.errors import StatusError
-from baton.sim_vehicle.kinematics import GeoPoint
+from baton.sim_vehicle.kinematics import FlightParams, GeoPoint
 from baton.sim_vehicle.server import SimVehicle
 from baton.v1 import drone_api_pb2 as api
 
+from .ground_station import GroundStation, mavlink
 from .sim_process import SimProcess, eventually, start_sim
+
+# tgkill(2) by architecture: sends a signal to one thread of a process.
+SYS_TGKILL = {"x86_64": 234, "aarch64": 131}.get(platform.machine(), 234)
 
 HOME = (47.397742, 8.545594, 488.0)
 METRES_PER_DEG_LAT = 111_194.9
@@ -138,6 +146,31 @@ async def test_sigterm_exits_zero_promptly() -> None:
     assert time.monotonic() - started < 1.0
 
 
+async def test_sigterm_taken_by_a_vehicle_thread_still_stops_it() -> None:
+    """The kernel may hand a process's SIGTERM (a dead parent's, say) to any thread.
+
+    Python runs handlers on the main thread only, and a main thread blocked in
+    a lock without a timeout never learns of it: a sim vehicle once outlived
+    its SIGKILLed testbed this way. ``tgkill`` picks the thread here.
+    """
+    vehicle = await start_sim()
+    pid = vehicle.process.pid
+    threads = [int(t) for t in os.listdir(f"/proc/{pid}/task") if int(t) != pid]
+    assert threads, "the sim vehicle runs a thread per vehicle"
+
+    async def main_thread_waits() -> bool:  # in its wait for a signal, not still starting
+        return "futex" in Path(f"/proc/{pid}/task/{pid}/wchan").read_text()
+
+    await eventually(main_thread_waits, "the main thread waiting")
+    libc = ctypes.CDLL(None, use_errno=True)
+    assert libc.syscall(SYS_TGKILL, pid, threads[0], signal.SIGTERM) == 0, ctypes.get_errno()
+    try:
+        assert await asyncio.wait_for(vehicle.process.wait(), 5.0) == 0
+    finally:
+        if vehicle.process.returncode is None:
+            vehicle.process.kill()
+
+
 async def test_url_file_is_written(tmp_path) -> None:  # type: ignore[no-untyped-def]
     path = tmp_path / "vehicle.url"
     vehicle = await start_sim("--url-file", str(path))
@@ -152,38 +185,21 @@ async def _exists(path) -> bool:  # type: ignore[no-untyped-def]
     return bool(path.exists())
 
 
-def _pymavlink_client(port: int) -> mavutil.mavudp:
-    link = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=255)
-    link.mav.heartbeat_send(
-        mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
-    )
-    assert link.recv_match(type="HEARTBEAT", blocking=True, timeout=5) is not None
-    return link
-
-
 async def test_unknown_command_gets_unsupported_and_params_work(sim: SimProcess) -> None:
     def exchange() -> tuple[int, float, float]:
-        link = _pymavlink_client(sim.port)
-        try:
-            link.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_USER_1, 0, 0, 0, 0, 0, 0, 0, 0)
-            ack = link.recv_match(
-                type="COMMAND_ACK",
-                blocking=True,
-                timeout=5,
-                condition=f"COMMAND_ACK.command=={mavutil.mavlink.MAV_CMD_USER_1}",
+        with GroundStation(sim.port) as gcs:
+            gcs.say_hello()
+            ack = gcs.command(mavlink.MAV_CMD_USER_1)
+            gcs.link.mav.param_set_send(
+                1, 1, b"MIS_TAKEOFF_ALT", 7.5, mavlink.MAV_PARAM_TYPE_REAL32
             )
-            link.mav.param_set_send(
-                1, 1, b"MIS_TAKEOFF_ALT", 7.5, mavutil.mavlink.MAV_PARAM_TYPE_REAL32
-            )
-            after_set = link.recv_match(type="PARAM_VALUE", blocking=True, timeout=5)
-            link.mav.param_request_read_send(1, 1, b"MIS_TAKEOFF_ALT", -1)
-            after_read = link.recv_match(type="PARAM_VALUE", blocking=True, timeout=5)
+            after_set = gcs.receive("PARAM_VALUE")
+            gcs.link.mav.param_request_read_send(1, 1, b"MIS_TAKEOFF_ALT", -1)
+            after_read = gcs.receive("PARAM_VALUE")
             return ack.result, after_set.param_value, after_read.param_value
-        finally:
-            link.close()
 
     result, after_set, after_read = await asyncio.to_thread(exchange)
-    assert result == mavutil.mavlink.MAV_RESULT_UNSUPPORTED
+    assert result == mavlink.MAV_RESULT_UNSUPPORTED
     assert after_set == pytest.approx(7.5) and after_read == pytest.approx(7.5)
 
 
@@ -194,7 +210,8 @@ def _unused_udp_port() -> int:
 
 
 async def test_unreachable_vehicle_is_unavailable_at_once() -> None:
-    mobility = MavsdkMobility(f"udpout://127.0.0.1:{_unused_udp_port()}")
+    url = f"udpout://127.0.0.1:{_unused_udp_port()}"
+    mobility = MavsdkMobility(url)
     started = time.monotonic()
     await mobility.start()
     try:
@@ -209,7 +226,7 @@ async def test_unreachable_vehicle_is_unavailable_at_once() -> None:
             with pytest.raises(StatusError) as error:
                 await call()
             assert error.value.code is grpc.StatusCode.UNAVAILABLE
-            assert "not connected" in error.value.message
+            assert url in error.value.message  # which vehicle; the wording is the backend's
         assert time.monotonic() - started < 1.0
     finally:
         await mobility.close()
@@ -276,3 +293,50 @@ async def test_speed_hold_and_return_to_launch_in_process() -> None:
     finally:
         await mobility.close()
         vehicle.stop()
+
+
+async def test_mavsdk_is_ready_only_after_the_warmup() -> None:
+    """MavsdkMobility asks for its streams and waits out the estimator, as with ArduPilot."""
+    warmup_s = 20.0  # 2 s of wall time
+    vehicle = SimVehicle(GeoPoint(*HOME), speedup=10, params=FlightParams(warmup_s=warmup_s))
+    vehicle.start()
+    mobility = MavsdkMobility(vehicle.url)
+    await mobility.start()
+    try:
+        # Connected means position telemetry arrives: MAVSDK asked for it.
+        await eventually(lambda: _connected(mobility), "vehicle connected")
+        with pytest.raises(StatusError) as refused:
+            await mobility.Arm(api.ArmRequest())
+        assert refused.value.code is grpc.StatusCode.FAILED_PRECONDITION
+        seen_not_ready: list[float] = []
+
+        async def ready() -> bool:
+            state = await flight_state(mobility)
+            # Read after the reply: the health it reflects was sent before.
+            sim_time_s = vehicle.state().time_s
+            if state.ready:
+                assert sim_time_s >= warmup_s, "ready before the estimator warmed up"
+            else:
+                seen_not_ready.append(sim_time_s)
+            return state.ready
+
+        await eventually(ready, "ready after the warm-up")
+        assert seen_not_ready and min(seen_not_ready) < warmup_s
+        # Every stream the backend reads was asked for and is streamed.
+        asked = {
+            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,  # position
+            mavlink.MAVLINK_MSG_ID_HOME_POSITION,  # home
+            mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,  # in air, landed state
+            mavlink.MAVLINK_MSG_ID_BATTERY_STATUS,  # battery
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS,  # health
+        }
+        assert asked <= vehicle.streams().keys()
+        await mobility.Arm(api.ArmRequest())
+        await eventually(lambda: _armed(mobility), "armed")
+    finally:
+        await mobility.close()
+        vehicle.stop()
+
+
+async def _connected(mobility: MavsdkMobility) -> bool:
+    return mobility.connected

@@ -232,3 +232,37 @@ def test_a_full_testbed_file_drives_the_run(tmp_path: Path) -> None:
     assert report["setup"]["controller_link"] == {"latency_s": 0.02, "bandwidth_bps": 25e6}
     (handover,) = report["handovers"]
     assert (handover["from"], handover["to"], handover["hops"]) == (1, 2, 2)
+
+
+def test_the_testbed_flies_the_vehicle_its_file_names(tmp_path: Path) -> None:
+    """drone.vehicle_url in the testbed file is flown, not replaced by a sim of its own."""
+    import yaml
+
+    from baton.testbed.local import free_port
+
+    url_file = tmp_path / "external.url"
+    external = subprocess.Popen(
+        baton("sim-vehicle", "--speedup", "20", "--url-file", str(url_file)),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 20
+        while not url_file.exists():
+            assert external.poll() is None and time.monotonic() < deadline
+            time.sleep(0.02)
+        url = url_file.read_text().split()[0]
+        document = {
+            "drone": {"address": f"127.0.0.1:{free_port()}", "vehicle_url": url},
+            "controllers": [{"id": cid, "address": f"127.0.0.1:{free_port()}"} for cid in range(2)],
+            "speedup": 20,
+        }
+        config = tmp_path / "testbed.yaml"
+        config.write_text(yaml.safe_dump(document))
+        report = run_testbed(tmp_path, "--config", str(config), *SMALL, "--no-handovers")
+    finally:
+        external.terminate()
+        external.wait(10)
+    assert report["setup"]["vehicle"]["url"] == url
+    assert not (tmp_path / "w" / "logs" / "sim-vehicle.log").exists()
+    assert "vehicle " + url in report["stdout"]

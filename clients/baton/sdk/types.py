@@ -24,7 +24,7 @@ class Position:
 
 @dataclass(frozen=True)
 class FlightState:
-    """Armed, in air, flight mode, battery and readiness."""
+    """Armed, in air, flight mode, battery, readiness and why not (see drone_api.proto)."""
 
     armed: bool
     in_air: bool
@@ -32,11 +32,26 @@ class FlightState:
     landed_state: str
     battery_percent: float
     ready: bool
+    armable: bool = False
+    not_ready_reason: str = ""
+    autopilot_mode: str = ""
+    autopilot: str = ""
 
     @classmethod
     def from_proto(cls, r: api.GetFlightStateReply) -> FlightState:
         """From the wire message."""
-        return cls(r.armed, r.in_air, r.flight_mode, r.landed_state, r.battery_percent, r.ready)
+        return cls(
+            r.armed,
+            r.in_air,
+            r.flight_mode,
+            r.landed_state,
+            r.battery_percent,
+            r.ready,
+            r.armable,
+            r.not_ready_reason,
+            r.autopilot_mode,
+            r.autopilot,
+        )
 
 
 @dataclass(frozen=True)

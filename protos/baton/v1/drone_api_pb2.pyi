@@ -467,18 +467,44 @@ class GetFlightStateReply(_message.Message):
     BATTERY_PERCENT_FIELD_NUMBER: _builtins.int
     READY_FIELD_NUMBER: _builtins.int
     LANDED_STATE_FIELD_NUMBER: _builtins.int
+    ARMABLE_FIELD_NUMBER: _builtins.int
+    NOT_READY_REASON_FIELD_NUMBER: _builtins.int
+    AUTOPILOT_MODE_FIELD_NUMBER: _builtins.int
+    AUTOPILOT_FIELD_NUMBER: _builtins.int
     armed: _builtins.bool
     """Motors armed."""
     in_air: _builtins.bool
     """Airborne (false while on the ground, landed or taking off from it)."""
     flight_mode: _builtins.str
-    """The autopilot's flight mode as MAVSDK names it (HOLD, TAKEOFF, LAND, ...)."""
+    """The autopilot's flight mode as MAVSDK names it (HOLD, TAKEOFF, LAND, ...);
+    MAVSDK maps ArduPilot's GUIDED to OFFBOARD: autopilot_mode has the real name.
+    """
     battery_percent: _builtins.float
     """Remaining battery, percent in [0, 100]; NaN if unknown."""
     ready: _builtins.bool
-    """Global position and home are known, so the vehicle can be armed and flown."""
+    """The vehicle can be armed and flown to a location now: it has a global
+    position and a home, and its pre-arm checks pass (``armable``). A mission
+    waits for this before its first Arm. Also true while armed and flying.
+    """
     landed_state: _builtins.str
     """The landed state as MAVSDK names it (ON_GROUND, TAKING_OFF, IN_AIR, LANDING)."""
+    armable: _builtins.bool
+    """The autopilot's pre-arm checks pass (MAVLink SYS_STATUS pre-arm bit) and
+    its estimator has a global position: an Arm now would be accepted.
+    """
+    not_ready_reason: _builtins.str
+    """Why the vehicle is not ready, when it is not: the autopilot's own latest
+    "PreArm: ..." message if it sent one, else what is missing (no global
+    position yet, no home yet, pre-arm checks failing). Empty when ready.
+    """
+    autopilot_mode: _builtins.str
+    """The flight mode as the autopilot itself names it (ArduCopter: GUIDED,
+    LAND, BRAKE, ...; PX4: AUTO_LOITER, AUTO_TAKEOFF, ...).
+    """
+    autopilot: _builtins.str
+    """The autopilot's firmware family from its heartbeat: "ArduPilot", "PX4",
+    or the MAV_AUTOPILOT name for others.
+    """
     def __init__(
         self,
         *,
@@ -488,10 +514,14 @@ class GetFlightStateReply(_message.Message):
         battery_percent: _builtins.float = ...,
         ready: _builtins.bool = ...,
         landed_state: _builtins.str = ...,
+        armable: _builtins.bool = ...,
+        not_ready_reason: _builtins.str = ...,
+        autopilot_mode: _builtins.str = ...,
+        autopilot: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["armed", b"armed", "battery_percent", b"battery_percent", "flight_mode", b"flight_mode", "in_air", b"in_air", "landed_state", b"landed_state", "ready", b"ready"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["armable", b"armable", "armed", b"armed", "autopilot", b"autopilot", "autopilot_mode", b"autopilot_mode", "battery_percent", b"battery_percent", "flight_mode", b"flight_mode", "in_air", b"in_air", "landed_state", b"landed_state", "not_ready_reason", b"not_ready_reason", "ready", b"ready"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

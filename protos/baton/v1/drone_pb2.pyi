@@ -377,6 +377,7 @@ class DroneStatus(_message.Message):
     HANDOVERS_FIELD_NUMBER: _builtins.int
     MASTER_CONNECTED_FIELD_NUMBER: _builtins.int
     CONTROLLERS_FIELD_NUMBER: _builtins.int
+    VEHICLE_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -413,6 +414,10 @@ class DroneStatus(_message.Message):
     def controllers(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
         """The controller ids the drone knows."""
 
+    @_builtins.property
+    def vehicle(self) -> Global___VehicleLink:
+        """The link to the autopilot: heartbeats, telemetry age, outages."""
+
     def __init__(
         self,
         *,
@@ -429,11 +434,67 @@ class DroneStatus(_message.Message):
         handovers: _abc.Iterable[Global___HandoverRecord] | None = ...,
         master_connected: _builtins.bool = ...,
         controllers: _abc.Iterable[_builtins.int] | None = ...,
+        vehicle: Global___VehicleLink | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "position", b"position"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "controllers", b"controllers", "duplicates", b"duplicates", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "rejected", b"rejected", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "controllers", b"controllers", "duplicates", b"duplicates", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "rejected", b"rejected", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___DroneStatus: _TypeAlias = DroneStatus  # noqa: Y015
+
+@_typing.final
+class VehicleLink(_message.Message):
+    """The drone service's link to its autopilot, as MAVSDK and the telemetry
+    cache see it. An outage is a period without heartbeats or with position
+    telemetry older than the service's bound; commands and reads are refused
+    with UNAVAILABLE during one.
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    HEALTHY_FIELD_NUMBER: _builtins.int
+    HEARTBEAT_AGE_S_FIELD_NUMBER: _builtins.int
+    POSITION_AGE_S_FIELD_NUMBER: _builtins.int
+    PROBLEM_FIELD_NUMBER: _builtins.int
+    OUTAGE_S_FIELD_NUMBER: _builtins.int
+    OUTAGES_FIELD_NUMBER: _builtins.int
+    STREAM_REQUESTS_FIELD_NUMBER: _builtins.int
+    healthy: _builtins.bool
+    """Heartbeats are arriving and position telemetry is fresh."""
+    heartbeat_age_s: _builtins.float
+    """Wall seconds since the last heartbeat; -1 before the first."""
+    position_age_s: _builtins.float
+    """Wall seconds since the last position sample; -1 before the first."""
+    problem: _builtins.str
+    """What is wrong, for a person ("no heartbeat for 4.2 s", "position 1.6 s
+    old (bound 1.0 s)", "autopilot not found yet"); empty when healthy.
+    """
+    outage_s: _builtins.float
+    """How long the current outage has lasted, wall seconds; 0 when healthy."""
+    outages: _builtins.int
+    """Outages since the service started (each one that ended or goes on)."""
+    stream_requests: _builtins.int
+    """Times the telemetry streams were requested from the autopilot (on
+    connect, after a reconnect, and when a stream stopped while heartbeats
+    kept coming, as after an autopilot reboot).
+    """
+    def __init__(
+        self,
+        *,
+        healthy: _builtins.bool = ...,
+        heartbeat_age_s: _builtins.float = ...,
+        position_age_s: _builtins.float = ...,
+        problem: _builtins.str = ...,
+        outage_s: _builtins.float = ...,
+        outages: _builtins.int = ...,
+        stream_requests: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["healthy", b"healthy", "heartbeat_age_s", b"heartbeat_age_s", "outage_s", b"outage_s", "outages", b"outages", "position_age_s", b"position_age_s", "problem", b"problem", "stream_requests", b"stream_requests"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___VehicleLink: _TypeAlias = VehicleLink  # noqa: Y015

@@ -6,20 +6,13 @@ import asyncio
 import json
 import os
 import sys
-from pathlib import Path
 
 from baton.config import BatonConfig
 from baton.controller.node import ControllerNode
 from baton.controller.service import PROXIED_SERVICES, ControllerRingService, DroneApiProxy
+from baton.lifecycle import write_atomically
 from baton.rpc.server import BatonServer, run_until_signalled
 from baton.v1 import ring_pb2_grpc
-
-
-def write_atomically(path: str, text: str) -> None:
-    """Writes ``text`` to ``path`` so that readers never see half of it."""
-    tmp = Path(f"{path}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    tmp.replace(path)
 
 
 class ControllerApp:

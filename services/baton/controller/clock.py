@@ -2,7 +2,7 @@
 
 With the sim vehicle sped up X times, mission time runs X times faster too, so
 that "poll every second" stays one simulated second and the paper's mission
-keeps its shape (DESIGN.md, "One time scale"). Mission time is counted from
+keeps its shape (docs/design.md, "One time scale"). Mission time is counted from
 midnight UTC of the current day, the same origin on every controller, so the
 time stays plausible and replicas on different nodes agree up to their clocks.
 """

@@ -1,7 +1,7 @@
 """The master's connection to the drone: the Connect stream and Invoke calls.
 
 Opened when the controller becomes ACTIVE and closed when it stops being
-ACTIVE (DESIGN.md, protocol note 5); the time from opening to the drone's
+ACTIVE (docs/design.md, protocol note 5); the time from opening to the drone's
 first event is T_conn. A handover notice on the stream, or an Invoke rejected
 because another controller is now master, reaches the controller through
 ``on_notice``.

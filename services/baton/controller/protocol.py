@@ -8,7 +8,7 @@ feeding events in a chosen order (``tests/controller/test_protocol.py``).
 
 Names follow Algorithm 1: ``state``, ``master``, ``reqnr``, ``lognr``,
 ``log``, ``logQ`` (``log_queue``), ``nxtid`` (``successor``), flush limit.
-Where DESIGN.md reads the paper's text over its pseudo-code, the method says so.
+Where docs/design.md reads the paper's text over its pseudo-code, the method says so.
 """
 
 from __future__ import annotations
@@ -210,7 +210,7 @@ class ControllerProtocol:
     def on_log(self, message: ring_pb2.LogMessage) -> list[Effect]:
         """Forwards on receipt, then handles the message in order or queues it.
 
-        Differs from the pseudo-code as DESIGN.md says: a message that arrives
+        Differs from the pseudo-code as docs/design.md says: a message that arrives
         in order while the controller is not PASSIVE is queued (line 44 would
         drop it), and a message already seen (a re-send after a reconnect) is
         ignored whole. Messages with a log number already handled (the old

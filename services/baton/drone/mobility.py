@@ -2,20 +2,30 @@
 
 One ``Mavsdk`` instance per vehicle (two vehicles with one system id on one
 instance would merge). ``start()`` adds the connection and returns; a
-background task waits for the autopilot, asks for the telemetry rates we read
-(a real ArduPilot streams little until asked), and keeps the latest value of
-each telemetry stream through MAVSDK subscriptions. Reads (GetPosition,
-GetHome, GetFlightState) answer from that cache without touching MAVSDK, so
-they stay fast while commands are pending. Commands go through MAVSDK's
-``ActionAsync``, which runs each call in the loop's default executor; since a
-handful of workers on 2 cores made reads wait behind commands (DESIGN.md),
-the loop gets a larger default executor the first time a backend starts on it.
+background task waits for the autopilot and keeps the latest value of each
+telemetry stream through MAVSDK subscriptions, with the time it arrived.
+Reads (GetPosition, GetHome, GetFlightState) answer from that cache without
+touching MAVSDK, so they stay fast while commands are pending, and refuse
+with UNAVAILABLE while the link is out (``vehicle_state.LinkMonitor``: no
+heartbeat, or a position older than its bound), never serving a dead
+autopilot's last position as fresh. A watchdog asks the autopilot for the
+streams whenever heartbeats arrive without position telemetry: a real
+ArduPilot streams nothing until asked and forgets it on reboot.
+
+Commands go through MAVSDK's ``ActionAsync``, which runs each call in the
+loop's default executor; since a handful of workers on 2 cores made reads wait
+behind commands (docs/design.md), the loop gets a larger default executor the
+first time a backend starts on it. What MAVSDK's Action does not do right on
+ArduPilot is done beside it with raw MAVLink commands (``MavlinkDirect``):
+GUIDED before arming, the cruise speed re-applied after every goto.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import math
+import time
 import weakref
 from collections.abc import AsyncIterator, Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -23,12 +33,27 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import grpc
+from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs
+from baton.drone.vehicle_state import (
+    ARDUPILOT_COMMAND_MODE,
+    PREARM_TEXT_VALID_S,
+    Health,
+    Heartbeat,
+    LinkMonitor,
+    Readiness,
+    is_prearm_text,
+    readiness,
+)
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2
 
 T = TypeVar("T")
+
+# ArduPilot's EKF_STATUS_REPORT (not in the common dialect).
+EKF_STATUS_REPORT_ID = 193
 
 # Workers of the loop's default executor, which MAVSDK's asyncio API uses for
 # every awaited call.
@@ -48,6 +73,7 @@ class TelemetryRates:
     in_air_hz: float = 5.0
     landed_state_hz: float = 5.0
     battery_hz: float = 1.0
+    health_hz: float = 2.0  # SYS_STATUS: GPS health and the pre-arm bit (readiness)
 
 
 def capture_mavsdk_logs() -> None:
@@ -123,23 +149,40 @@ def _position(source: Any) -> api.Position:
 class MavsdkMobility:
     """The Mobility backend for one vehicle at a MAVLink URL (see ``MobilityBackend``)."""
 
+    # How often the watchdog looks at the link.
+    WATCH_PERIOD_S = 0.2
+    # While an outage lasts, it is logged again this often.
+    OUTAGE_LOG_PERIOD_S = 5.0
+
     def __init__(
         self,
         url: str,
         *,
         rates: TelemetryRates | None = None,
         command_timeout_s: float = 10.0,
+        position_max_age_s: float = 1.0,
+        heartbeat_timeout_s: float = 3.0,
     ) -> None:
         self.url = url
         self.rates = rates or TelemetryRates()
         self.command_timeout_s = command_timeout_s
+        self.monitor = LinkMonitor(
+            heartbeat_timeout_s=heartbeat_timeout_s, position_max_age_s=position_max_age_s
+        )
         self._mavsdk: Any = None
         self._action: Any = None
         self._telemetry: Any = None
-        self._connected = False
+        self._direct: Any = None
+        self._system_id = 0
         self._tasks: list[asyncio.Task[None]] = []
         # Latest value of each telemetry stream, by name; filled by subscriptions.
         self._latest: dict[str, Any] = {}
+        self._heartbeat: Heartbeat | None = None
+        self._prearm: tuple[str, float] | None = None  # latest "PreArm: ..." and when
+        # The cruise speed the mission asked for; ArduCopter resets it to
+        # WPNAV_SPEED at every guided reposition, so it is sent after each goto.
+        self._speed_m_s: float | None = None
+        self._outage_logged_at = 0.0
         self._log = logs.get_logger("drone.mobility", vehicle=url)
 
     # --- connection ------------------------------------------------------------------
@@ -166,36 +209,32 @@ class MavsdkMobility:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
-        self._connected = False
+        self._action = None
         if self._mavsdk is not None:
             self._mavsdk.destroy()
             self._mavsdk = None
 
     @property
     def connected(self) -> bool:
-        """Whether an autopilot is connected now (heartbeats arriving)."""
-        return self._connected
+        """Whether the autopilot is there now: heartbeats arriving, position fresh."""
+        return self._action is not None and self.monitor.healthy(time.monotonic())
 
-    async def wait_connected(self, timeout_s: float) -> bool:
-        """Waits until an autopilot is connected; False on timeout (for tests and tools)."""
-        deadline = asyncio.get_running_loop().time() + timeout_s
-        while not self._connected:
-            if asyncio.get_running_loop().time() >= deadline:
-                return False
-            await asyncio.sleep(0.02)
-        return True
+    def link(self) -> drone_pb2.VehicleLink:
+        """The link to the autopilot now, for GetStatus."""
+        return self.monitor.snapshot(self._observe_link())
 
     async def _attach(self) -> None:
         from mavsdk.asyncio.plugins.action import ActionAsync
+        from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
         # A negative timeout waits until an autopilot appears or we are cancelled.
         system = await self._mavsdk.first_autopilot(timeout_s=-1)
         if system is None:
             return  # destroyed while waiting
-        self._action = ActionAsync(system)
-        self._telemetry = TelemetryAsync(system)
-        telemetry = self._telemetry
+        self._system_id = await system.get_system_id()
+        self._telemetry = telemetry = TelemetryAsync(system)
+        self._direct = MavlinkDirectAsync(system)
         for name, stream in (
             ("position", telemetry.subscribe_position),
             ("home", telemetry.subscribe_home),
@@ -204,35 +243,116 @@ class MavsdkMobility:
             ("landed_state", telemetry.subscribe_landed_state),
             ("flight_mode", telemetry.subscribe_flight_mode),
             ("battery", telemetry.subscribe_battery),
-            ("health", telemetry.subscribe_health),
         ):
             self._tasks.append(asyncio.create_task(self._keep_latest(name, stream())))
-        self._tasks.append(asyncio.create_task(self._watch_connection(system)))
-        self._connected = True
-        self._log.info("vehicle connected", system_id=await system.get_system_id())
-        await self._request_rates()
+        self._tasks.append(asyncio.create_task(self._keep_heartbeat()))
+        self._tasks.append(asyncio.create_task(self._keep_sys_status()))
+        self._tasks.append(asyncio.create_task(self._keep_ekf_status()))
+        self._tasks.append(asyncio.create_task(self._keep_status_text()))
+        self._tasks.append(asyncio.create_task(self._watch()))
+        self._action = ActionAsync(system)
+        self._log.info("autopilot found", system_id=self._system_id)
 
     async def _keep_latest(self, name: str, stream: AsyncIterator[Any]) -> None:
         async for value in stream:
             self._latest[name] = value
+            if name == "position":
+                self.monitor.position(time.monotonic())
 
-    async def _watch_connection(self, system: Any) -> None:
-        async for connected in system.is_connected_state():
-            if connected != self._connected:
-                self._log.info("vehicle connection changed", connected=connected)
-            self._connected = connected
-            if connected:
+    async def _keep_heartbeat(self) -> None:
+        """Heartbeats of the autopilot (not of other ground stations): liveness and mode."""
+        async for message in self._direct.subscribe_message("HEARTBEAT"):
+            if message.system_id != self._system_id:
+                continue
+            fields = json.loads(message.fields_json)
+            if fields.get("autopilot") == mavlink.MAV_AUTOPILOT_INVALID:
+                continue  # a ground station, a camera: not the autopilot
+            heartbeat = Heartbeat(
+                autopilot=fields["autopilot"],
+                vehicle_type=fields["type"],
+                base_mode=fields["base_mode"],
+                custom_mode=fields["custom_mode"],
+            )
+            if self._heartbeat is None or heartbeat.custom_mode != self._heartbeat.custom_mode:
+                self._log.info(
+                    "autopilot mode",
+                    autopilot=heartbeat.autopilot_name(),
+                    mode=heartbeat.mode_name(),
+                )
+            self._heartbeat = heartbeat
+            self.monitor.heard(time.monotonic())
+
+    async def _keep_sys_status(self) -> None:
+        """The autopilot's own SYS_STATUS, raw: the sensor and pre-arm bits readiness reads."""
+        async for message in self._direct.subscribe_message("SYS_STATUS"):
+            if message.system_id == self._system_id:
+                self._latest["sys_status"] = json.loads(message.fields_json)
+                self.monitor.status(time.monotonic())
+
+    async def _keep_ekf_status(self) -> None:
+        """ArduPilot's EKF_STATUS_REPORT flags: whether its estimator uses GPS yet."""
+        async for message in self._direct.subscribe_message("EKF_STATUS_REPORT"):
+            if message.system_id == self._system_id:
+                self._latest["ekf_flags"] = int(json.loads(message.fields_json)["flags"])
+
+    async def _keep_status_text(self) -> None:
+        """The autopilot's STATUSTEXT into the log; "PreArm: ..." kept as the not-ready reason."""
+        async for status in self._telemetry.subscribe_status_text():
+            text = status.text
+            severity = status.type.name
+            if severity in ("INFO", "DEBUG", "NOTICE"):
+                self._log.info("autopilot says", text=text, severity=severity)
+            else:
+                self._log.warning("autopilot says", text=text, severity=severity)
+            if is_prearm_text(text):
+                self._prearm = (text, time.monotonic())
+
+    def _observe_link(self) -> float:
+        """Notes (and logs) an outage starting or ending now; returns the time it looked."""
+        now = time.monotonic()
+        outage_since = self.monitor.outage_since
+        change = self.monitor.update(now)
+        if change == "outage":
+            self._log.warning("vehicle link lost", problem=self.monitor.problem(now))
+            self._outage_logged_at = now
+            # What the autopilot said before is no longer known: a rebooted one
+            # has no estimate and is not armable, whatever its last SYS_STATUS
+            # said. Reads wait for fresh values (seen: ready and a 0,0 position
+            # right after a SITL restart).
+            self._latest.clear()
+            self._prearm = None
+        elif change == "recovered" and outage_since is not None:
+            self._log.info("vehicle link back", outage_s=round(now - outage_since, 2))
+        return now
+
+    async def _watch(self) -> None:
+        """Watches the link: logs outages, (re)requests streams when they do not come."""
+        while True:
+            now = self._observe_link()
+            since = self.monitor.outage_since
+            if since is not None and now - self._outage_logged_at >= self.OUTAGE_LOG_PERIOD_S:
+                self._log.warning(
+                    "vehicle link still down",
+                    problem=self.monitor.problem(now),
+                    outage_s=round(now - since, 1),
+                )
+                self._outage_logged_at = now
+            if self.monitor.wants_streams(now):
+                self.monitor.streams_requested(now)
                 await self._request_rates()
+            await asyncio.sleep(self.WATCH_PERIOD_S)
 
     async def _request_rates(self) -> None:
         """Asks for the telemetry we read; an autopilot that refuses one still works."""
         telemetry, rates = self._telemetry, self.rates
+        self._log.info("requesting telemetry streams", request=self.monitor.stream_requests)
         for name, setter, hz in (
             ("position", telemetry.set_rate_position, rates.position_hz),
             ("home", telemetry.set_rate_home, rates.home_hz),
             ("in_air", telemetry.set_rate_in_air, rates.in_air_hz),
             ("landed_state", telemetry.set_rate_landed_state, rates.landed_state_hz),
             ("battery", telemetry.set_rate_battery, rates.battery_hz),
+            ("health", telemetry.set_rate_health, rates.health_hz),
         ):
             if hz <= 0:
                 continue
@@ -240,12 +360,29 @@ class MavsdkMobility:
                 await setter(hz)
             except Exception as exc:  # MAVSDK's TelemetryError, or a lost link
                 self._log.warning("telemetry rate refused", stream=name, hz=hz, error=str(exc))
+        if self._heartbeat is not None and self._heartbeat.is_ardupilot and rates.health_hz > 0:
+            try:  # MAVSDK has no setter for it; readiness reads it on ArduPilot
+                await self._raw_command(
+                    "EKF_STATUS_REPORT rate",
+                    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                    EKF_STATUS_REPORT_ID,
+                    1e6 / rates.health_hz,
+                )
+            except StatusError as exc:
+                self._log.warning("telemetry rate refused", stream="ekf_status", error=str(exc))
 
     # --- helpers -----------------------------------------------------------------------
 
     def _require_connected(self) -> None:
-        if not self._connected or self._action is None:
-            raise StatusError(grpc.StatusCode.UNAVAILABLE, f"vehicle at {self.url} not connected")
+        if self._action is None:
+            raise StatusError(
+                grpc.StatusCode.UNAVAILABLE, f"vehicle at {self.url}: no autopilot found yet"
+            )
+        problem = self.monitor.problem(self._observe_link())
+        if problem:
+            raise StatusError(
+                grpc.StatusCode.UNAVAILABLE, f"vehicle at {self.url} not connected: {problem}"
+            )
 
     async def _command(self, what: str, call: Callable[[], Awaitable[T]]) -> T:
         """Runs one MAVSDK action, mapping its failure to a StatusError."""
@@ -265,6 +402,61 @@ class MavsdkMobility:
                 f"vehicle at {self.url} did not answer {what} within {self.command_timeout_s} s",
             ) from exc
 
+    async def _raw_command(self, what: str, command: int, *params: float) -> None:
+        """Sends COMMAND_LONG to the autopilot and waits for an accepting COMMAND_ACK."""
+        from mavsdk.plugins.mavlink_direct import MavlinkDirectError, MavlinkMessage
+
+        fields: dict[str, Any] = {
+            "target_system": self._system_id,
+            "target_component": mavlink.MAV_COMP_ID_AUTOPILOT1,
+            "command": command,
+            "confirmation": 0,
+        }
+        for index in range(7):
+            fields[f"param{index + 1}"] = params[index] if index < len(params) else 0.0
+        message = MavlinkMessage(
+            message_name="COMMAND_LONG",
+            target_system_id=self._system_id,
+            target_component_id=mavlink.MAV_COMP_ID_AUTOPILOT1,
+            fields_json=json.dumps(fields),
+        )
+        try:
+            ack = await asyncio.wait_for(self._direct.send_command(message), self.command_timeout_s)
+        except (MavlinkDirectError, TimeoutError) as exc:
+            raise StatusError(
+                grpc.StatusCode.UNAVAILABLE,
+                f"vehicle at {self.url} did not acknowledge {what}: {exc}",
+            ) from exc
+        result = json.loads(ack.fields_json or "{}").get("result")
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            entry = mavlink.enums["MAV_RESULT"].get(result) if result is not None else None
+            raise StatusError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"vehicle at {self.url} refused {what}: {entry.name if entry else result}",
+            )
+
+    async def _enter_command_mode(self) -> None:
+        """Puts ArduPilot in GUIDED, where it arms, takes off and flies to a location.
+
+        After a landing ArduCopter sits in LAND; MAVSDK's arm would switch it
+        to "Hold", which is BRAKE on a copter, where it refuses to arm. PX4
+        and the sim vehicle need nothing: MAVSDK picks their modes.
+        """
+        heartbeat = self._heartbeat
+        if heartbeat is None or not heartbeat.is_ardupilot:
+            return
+        if heartbeat.mode_name() == ARDUPILOT_COMMAND_MODE:
+            return
+        number = heartbeat.custom_mode_number(ARDUPILOT_COMMAND_MODE)
+        if number is None:
+            return  # a vehicle type without GUIDED: leave the mode to MAVSDK
+        await self._raw_command(
+            f"mode {ARDUPILOT_COMMAND_MODE}",
+            mavlink.MAV_CMD_DO_SET_MODE,
+            mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            number,
+        )
+
     def _cached(self, name: str) -> Any:
         self._require_connected()
         value = self._latest.get(name)
@@ -274,11 +466,33 @@ class MavsdkMobility:
             )
         return value
 
+    def _readiness(self) -> Readiness:
+        now = time.monotonic()
+        prearm = self._prearm
+        text = prearm[0] if prearm and now - prearm[1] <= PREARM_TEXT_VALID_S else None
+        return readiness(self._health(), bool(self._latest.get("armed")), text)
+
+    def _health(self) -> Health | None:
+        """Health from this autopilot's latest SYS_STATUS; None before one arrived."""
+        fields = self._latest.get("sys_status")
+        if fields is None:
+            return None
+        ekf = self._latest.get("ekf_flags")
+        return Health.from_messages(fields, home_known="home" in self._latest, ekf_flags=ekf)
+
     # --- Mobility RPCs -------------------------------------------------------------------
 
     async def Arm(self, request: api.ArmRequest) -> api.ArmReply:
-        """Arms the motors."""
-        await self._command("arm", lambda: self._action.arm())
+        """Arms the motors (in GUIDED on ArduPilot); a refusal says why the vehicle is not ready."""
+        self._require_connected()
+        try:
+            await self._enter_command_mode()
+            await self._command("arm", lambda: self._action.arm())
+        except StatusError as err:
+            why = self._readiness().reason
+            if why:
+                raise StatusError(err.code, f"{err.message}; not ready: {why}") from err
+            raise
         return api.ArmReply()
 
     async def Disarm(self, request: api.DisarmRequest) -> api.DisarmReply:
@@ -296,7 +510,7 @@ class MavsdkMobility:
         return api.TakeoffReply()
 
     async def Goto(self, request: api.GotoRequest) -> api.GotoReply:
-        """Flies to the location; altitude AMSL = home AMSL + relative altitude."""
+        """Flies to the location at the cruise speed; altitude AMSL = home AMSL + relative."""
         _require_range("latitude_deg", request.latitude_deg, -90.0, 90.0)
         _require_range("longitude_deg", request.longitude_deg, -180.0, 180.0)
         _require_positive("relative_altitude_m", request.relative_altitude_m)
@@ -316,12 +530,30 @@ class MavsdkMobility:
                 request.latitude_deg, request.longitude_deg, absolute, keep_yaw
             ),
         )
+        speed = self._speed_m_s
+        if speed is not None:
+            # The goto is accepted and flying: a refused speed must not make
+            # it look failed (a retry would fly it again), so it is logged.
+            try:
+                await self._command("set speed", lambda: self._action.set_current_speed(speed))
+            except StatusError as err:
+                self._log.warning("cruise speed not applied after goto", reason=err.message)
         return api.GotoReply()
 
     async def SetSpeed(self, request: api.SetSpeedRequest) -> api.SetSpeedReply:
-        """Sets the cruise speed of later gotos."""
+        """Sets the cruise speed of this flight leg (if flying) and of every later goto.
+
+        On the ground it is only kept: ArduCopter refuses DO_CHANGE_SPEED
+        before takeoff, and resets the speed at each reposition anyway, so
+        ``Goto`` sends it after every reposition.
+        """
         _require_positive("speed_m_s", request.speed_m_s)
-        await self._command("set speed", lambda: self._action.set_current_speed(request.speed_m_s))
+        self._require_connected()
+        if self._latest.get("in_air"):
+            await self._command(
+                "set speed", lambda: self._action.set_current_speed(request.speed_m_s)
+            )
+        self._speed_m_s = request.speed_m_s
         return api.SetSpeedReply()
 
     async def Hold(self, request: api.HoldRequest) -> api.HoldReply:
@@ -340,28 +572,44 @@ class MavsdkMobility:
         return api.ReturnToLaunchReply()
 
     async def GetPosition(self, request: api.GetPositionRequest) -> api.GetPositionReply:
-        """The latest position, from the telemetry cache."""
-        return api.GetPositionReply(position=_position(self._cached("position")))
+        """The latest position, from the telemetry cache.
+
+        UNAVAILABLE if stale, or while the estimator has no global position
+        (ArduPilot sends latitude and longitude 0 until its EKF has an origin).
+        """
+        position = self._cached("position")
+        health = self._health()
+        unset = position.latitude_deg == 0 and position.longitude_deg == 0
+        if health is None or not health.is_global_position_ok or unset:
+            raise StatusError(
+                grpc.StatusCode.UNAVAILABLE,
+                f"vehicle at {self.url} has no global position yet: "
+                f"{self._readiness().reason or 'its estimator does not use GPS'}",
+            )
+        return api.GetPositionReply(position=_position(position))
 
     async def GetHome(self, request: api.GetHomeRequest) -> api.GetHomeReply:
-        """The home position, from the telemetry cache."""
+        """The home position, from the telemetry cache (UNAVAILABLE if the link is out)."""
         return api.GetHomeReply(home=_position(self._cached("home")))
 
     async def GetFlightState(self, request: api.GetFlightStateRequest) -> api.GetFlightStateReply:
-        """Armed, in air, mode, battery and readiness, from the telemetry cache."""
+        """Armed, in air, modes, battery, readiness and why not, from the telemetry cache."""
         self._require_connected()
         latest = self._latest
         battery = latest.get("battery")
-        health = latest.get("health")
         mode = latest.get("flight_mode")
         landed = latest.get("landed_state")
+        heartbeat = self._heartbeat
+        ready = self._readiness()
         return api.GetFlightStateReply(
             armed=bool(latest.get("armed", False)),
             in_air=bool(latest.get("in_air", False)),
             flight_mode=mode.name if mode is not None else "UNKNOWN",
             battery_percent=battery.remaining_percent if battery is not None else math.nan,
-            ready=bool(
-                health is not None and health.is_global_position_ok and health.is_home_position_ok
-            ),
+            ready=ready.ready,
             landed_state=landed.name if landed is not None else "UNKNOWN",
+            armable=ready.armable,
+            not_ready_reason=ready.reason,
+            autopilot_mode=heartbeat.mode_name() if heartbeat else "UNKNOWN",
+            autopilot=heartbeat.autopilot_name() if heartbeat else "UNKNOWN",
         )

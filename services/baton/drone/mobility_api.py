@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import Protocol
 
 from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2
 
 
 class MobilityBackend(Protocol):
@@ -27,7 +28,10 @@ class MobilityBackend(Protocol):
 
     @property
     def connected(self) -> bool:
-        """Whether an autopilot is connected now (heartbeats arriving)."""
+        """Whether the autopilot is there now (heartbeats arriving, telemetry fresh)."""
+
+    def link(self) -> drone_pb2.VehicleLink:
+        """The link to the autopilot now: ages, the problem if any, outages."""
 
     async def Arm(self, request: api.ArmRequest) -> api.ArmReply: ...
     async def Disarm(self, request: api.DisarmRequest) -> api.DisarmReply: ...

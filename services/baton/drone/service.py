@@ -11,12 +11,10 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import sys
 import time
 from collections.abc import AsyncIterator, Callable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import grpc
 
@@ -26,6 +24,7 @@ from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, ReplyCache
 from baton.drone.dispatch import Dispatcher
 from baton.drone.master import MasterSelection, ScriptedHandover
 from baton.drone.mobility_api import MobilityBackend
+from baton.lifecycle import write_atomically
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.server import BatonServer
@@ -193,7 +192,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         if route.service == "Mobility" and not self.vehicle.connected:
             raise StatusError(
                 grpc.StatusCode.UNAVAILABLE,
-                f"{request.method}: the vehicle at {self.vehicle.url} is not connected",
+                f"{request.method}: the vehicle at {self.vehicle.url} is not connected: "
+                f"{self.vehicle.link().problem}",
             )
         handler = self.dispatcher.handler(route)
         try:
@@ -338,6 +338,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             handovers=self.masters.handovers,
             master_connected=self.masters.master_connected,
             controllers=self.masters.controllers,
+            vehicle=self.vehicle.link(),
         )
         if self.vehicle.connected:
             try:
@@ -402,14 +403,6 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
     )
 
 
-def write_address_file(path: str, address: str) -> None:
-    """Writes ``address`` so that a reader never sees a partial file."""
-    target = Path(path)
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
-    tmp.write_text(address + "\n")
-    tmp.replace(target)
-
-
 async def serve(
     settings: DroneSettings,
     vehicle: MobilityBackend,
@@ -436,7 +429,7 @@ async def serve(
     )
     print(json.dumps({"event": "listening", "address": server.address}), flush=True)
     if settings.address_file:
-        write_address_file(settings.address_file, server.address)
+        write_atomically(settings.address_file, server.address + "\n")
     if on_listening is not None:
         on_listening(server.address)
     try:

@@ -12,13 +12,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from baton.config import LinkSpec, parse_address, parse_duration, parse_rate
+from baton.lifecycle import write_atomically
 
 UNLIMITED = ("unlimited", "none")
 
@@ -154,19 +153,6 @@ def link_specs(args: argparse.Namespace) -> tuple[LinkSpec, LinkSpec]:
     return specs[0], specs[1]
 
 
-def write_address_file(path: Path, address: str) -> None:
-    """Writes ``address`` so that a reader never sees a partial file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(address + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def run(args: argparse.Namespace) -> int:
     """Runs the link until SIGTERM or SIGINT."""
     import asyncio
@@ -184,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
             proxy.log.error(f"cannot listen on {args.listen}: {exc.strerror or exc}")
             return 1
         if args.address_file is not None:
-            write_address_file(args.address_file, proxy.address)
+            write_atomically(args.address_file, proxy.address + "\n")
         print(json.dumps({"event": "listening", "address": proxy.address}), flush=True)
         try:
             reported = proxy.counters.as_fields()

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
+import math
 import signal
 import sys
-import tempfile
 import threading
 from pathlib import Path
 from typing import Any
+
+from baton.lifecycle import write_atomically
 
 DEFAULT_HOME = "47.397742,8.545594,488.0"  # PX4 SITL's default home (Zurich)
 
@@ -36,13 +37,22 @@ def _positive(text: str) -> float:
     return value
 
 
+def _not_negative(text: str) -> float:
+    value = float(text)
+    if not 0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"must be >= 0 and finite, got {text!r}")
+    return value
+
+
 def register(subparsers: Any) -> None:
     """Adds the ``sim-vehicle`` subcommand."""
     parser = subparsers.add_parser(
         "sim-vehicle",
         help="a simulated MAVLink multicopter (PX4 dialect) for MAVSDK",
         description=(
-            "Runs a simulated multicopter that MAVSDK connects to like PX4 SITL. "
+            "Runs a simulated multicopter that MAVSDK connects to like PX4 SITL. Like a real "
+            "autopilot it streams only HEARTBEAT until asked (MAV_CMD_SET_MESSAGE_INTERVAL, "
+            "MAV_CMD_REQUEST_MESSAGE) and arms only after --warmup. "
             "Prints one JSON line {event: listening, url, port} per vehicle on stdout."
         ),
     )
@@ -90,20 +100,20 @@ def register(subparsers: Any) -> None:
         "--climb-rate", type=_positive, default=3.0, help="climb and descent rate, m/s (default 3)"
     )
     parser.add_argument(
+        "--warmup",
+        type=_not_negative,
+        default=10.0,
+        metavar="SECONDS",
+        help="simulated seconds until the estimator is ready, as a real autopilot's (ArduCopter "
+        "takes ~40 s): before, no home, GPS unhealthy, arming refused with 'PreArm: ...' "
+        "(default 10, 1 s of wall time at --speedup 10; 0 = ready at once)",
+    )
+    parser.add_argument(
         "--url-file",
         type=Path,
         help="write the MAVLink URL (one line per vehicle) to this file, atomically",
     )
     parser.set_defaults(run=run)
-
-
-def write_atomically(path: Path, text: str) -> None:
-    """Writes ``text`` to ``path`` so a reader sees all of it or nothing."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as out:
-        out.write(text)
-    os.replace(tmp, path)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -120,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         climb_rate_m_s=args.climb_rate,
         descent_rate_m_s=args.climb_rate,
         cruise_speed_m_s=args.speed,
+        warmup_s=args.warmup,
     )
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
@@ -144,7 +155,12 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps(event), flush=True)
         if args.url_file is not None:
             write_atomically(args.url_file, "".join(f"{v.url}\n" for v in vehicles))
-        stop.wait()
+        # Wake up now and then: a SIGTERM the kernel hands to a vehicle thread
+        # does not interrupt a main thread blocked in a lock, and Python runs
+        # handlers on the main thread only (seen: a sim vehicle outliving a
+        # SIGKILLed testbed).
+        while not stop.wait(0.2):
+            pass
         log.info("signalled, stopping")
     finally:
         for vehicle in vehicles:

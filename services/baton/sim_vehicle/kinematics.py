@@ -4,6 +4,11 @@ Pure and deterministic: no sockets, no clocks. The MAVLink server feeds it
 commands and calls ``step(dt)`` with simulated seconds (wall seconds times the
 speed-up), so every manoeuvre can be tested by stepping it by hand.
 
+It also keeps the autopilot's estimator warm-up: a real ArduCopter has no home
+for about 20 s after boot and refuses to arm for about 40 s, until its EKF
+uses GPS (../shared/sitl/README.md). Code that waits for "ready" only works
+against a real autopilot if the sim makes it wait too.
+
 Positions are kept in metres north / east / up of a fixed local origin (the
 initial home on the ground) and converted to WGS84 with an equirectangular
 approximation, which is exact enough for missions a few kilometres wide.
@@ -19,6 +24,11 @@ EARTH_RADIUS_M = 6_371_000.0
 # How close (metres) counts as "at the target", so float noise cannot keep the
 # vehicle hovering a millimetre short forever.
 ARRIVAL_TOLERANCE_M = 0.01
+# ArduPilot repeats its pre-arm failure every 30 s (PREARM_DISPLAY_PERIOD)
+# while the vehicle is disarmed and not armable.
+PREARM_REPORT_PERIOD_S = 30.0
+# ArduCopter's words while its EKF does not use GPS yet (AP_Arming_Copter).
+NEED_POSITION_ESTIMATE = "Need Position Estimate"
 
 
 @dataclass(frozen=True)
@@ -58,9 +68,13 @@ class Refused(Exception):
     """A command the vehicle cannot follow in its current state."""
 
 
+class PreArmFailed(Refused):
+    """Arming refused by a pre-arm check; ArduPilot says so as "PreArm: <reason>"."""
+
+
 @dataclass(frozen=True)
 class FlightParams:
-    """Rates of the simulated airframe, in simulated time."""
+    """Rates of the simulated airframe and its autopilot's warm-up, in simulated time."""
 
     climb_rate_m_s: float = 3.0
     descent_rate_m_s: float = 3.0
@@ -68,6 +82,9 @@ class FlightParams:
     takeoff_altitude_m: float = 2.5  # PX4's MIS_TAKEOFF_ALT default
     # Percent of battery used per simulated second while armed.
     battery_drain_pct_s: float = 0.02
+    # Seconds from start until the estimator is ready: GPS healthy, home set,
+    # armable. ArduCopter SITL takes ~40 s; 10 s costs tests 1 s at speed-up 10.
+    warmup_s: float = 10.0
 
 
 class LocalFrame:
@@ -123,6 +140,7 @@ class Kinematics:
         self.target: LocalPoint | None = None
         self.battery_pct = 100.0
         self.time_s = 0.0
+        self._next_prearm_report_s = 0.0
 
     # --- what the server reports -------------------------------------------------
 
@@ -144,14 +162,39 @@ class Kinematics:
         """Where home is, in WGS84."""
         return self.frame.to_geo(self.home)
 
+    @property
+    def estimator_ready(self) -> bool:
+        """Warmed up: the GPS is healthy, home is set and the pre-arm checks pass."""
+        return self.time_s >= self.params.warmup_s
+
+    def prearm_failure(self) -> str | None:
+        """Why arming would be refused now, in ArduCopter's words; None once armable."""
+        return None if self.estimator_ready else NEED_POSITION_ESTIMATE
+
+    def prearm_report_due(self) -> str | None:
+        """The pre-arm failure to announce now, if one is due; it then waits a period.
+
+        Due at the first call and every ``PREARM_REPORT_PERIOD_S`` of simulated
+        time after, while disarmed and not armable, as ArduPilot repeats it:
+        ground stations learn why the vehicle is not ready without trying.
+        """
+        failure = self.prearm_failure()
+        if failure is None or self.armed or self.time_s < self._next_prearm_report_s:
+            return None
+        self._next_prearm_report_s = self.time_s + PREARM_REPORT_PERIOD_S
+        return failure
+
     # --- commands ----------------------------------------------------------------
 
     def arm(self) -> None:
-        """Arms on the ground; home becomes the current position, as on PX4."""
+        """Arms on the ground once warmed up; home becomes the current position, as on PX4."""
         if self.armed:
             return
         if self.phase is not Phase.ON_GROUND:
             raise Refused("cannot arm in the air")
+        failure = self.prearm_failure()
+        if failure is not None:
+            raise PreArmFailed(failure)
         self.armed = True
         self.home = self.position
 

@@ -14,6 +14,27 @@ extended state, GPS, battery; arm, takeoff, land, mode, reposition, speed,
 RTL, message requests and intervals; the parameter protocol for
 MIS_TAKEOFF_ALT). Unknown commands get COMMAND_ACK UNSUPPORTED.
 
+Two habits of a real ArduPilot that the project must not forget, kept here
+(../shared/sitl/README.md):
+
+- Unasked, it streams only HEARTBEAT (plus STATUSTEXT and the replies to
+  commands and parameter requests). Every other message comes only once a
+  ground station asked with MAV_CMD_SET_MESSAGE_INTERVAL, or once per
+  MAV_CMD_REQUEST_MESSAGE. MAVSDK's Telemetry ``set_rate_*`` calls ask for
+  GLOBAL_POSITION_INT (position), HOME_POSITION (home), EXTENDED_SYS_STATE
+  (in air, landed state), BATTERY_STATUS (battery) and SYS_STATUS (health).
+  All ground stations share one set of intervals, as on an autopilot's one
+  UDP port: what one asked for, all get.
+- Until its estimator has warmed up (``FlightParams.warmup_s``) it is not
+  armable: SYS_STATUS has the GPS unhealthy and no pre-arm bit (MAVSDK's
+  ``Health.is_armable`` reads MAV_SYS_STATUS_PREARM_CHECK), HOME_POSITION is
+  not sent, and an arm command is DENIED with a "PreArm: ..." STATUSTEXT,
+  which is also repeated every 30 s of simulated time.
+
+Command parameters may be NaN, MAVLink's "unset": it means the default, and
+a parameter without one makes the command DENIED. One datagram that cannot be
+handled is logged and skipped; the vehicle's thread never dies of it.
+
 Everything runs on one thread per vehicle, so ``SimVehicle`` works the same
 in the ``baton sim-vehicle`` process and inside a test.
 """
@@ -25,6 +46,7 @@ import select
 import socket
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -32,7 +54,14 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs
-from baton.sim_vehicle.kinematics import FlightParams, GeoPoint, Kinematics, Phase, Refused
+from baton.sim_vehicle.kinematics import (
+    FlightParams,
+    GeoPoint,
+    Kinematics,
+    Phase,
+    PreArmFailed,
+    Refused,
+)
 
 # Physics and scheduling tick, in wall seconds.
 TICK_S = 0.02
@@ -60,7 +89,9 @@ _MODE_NAMES = {
 }
 
 # Sensors reported present, enabled and healthy, so MAVSDK's health checks
-# (gyro/accel/mag calibration, local and global position) all pass.
+# (gyro/accel/mag calibration, local and global position) all pass once the
+# estimator is ready; before, the GPS is reported unhealthy (MAVSDK's
+# is_global_position_ok and is_local_position_ok read that bit).
 _SENSORS = (
     mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
     | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
@@ -70,7 +101,8 @@ _SENSORS = (
     | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY
 )
 
-# Telemetry a ground station gets without asking: message id -> wall interval (s).
+# The messages the vehicle streams and their default intervals (wall seconds),
+# used when SET_MESSAGE_INTERVAL asks for interval 0, "the default rate".
 DEFAULT_INTERVALS_S = {
     mavlink.MAVLINK_MSG_ID_HEARTBEAT: 0.1,
     mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 0.05,
@@ -81,6 +113,10 @@ DEFAULT_INTERVALS_S = {
     mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
     mavlink.MAVLINK_MSG_ID_ATTITUDE: 0.1,
 }
+# What a ground station gets without asking: only the heartbeat, as from ArduPilot.
+UNASKED_STREAMS = (mavlink.MAVLINK_MSG_ID_HEARTBEAT,)
+# Messages a REQUEST_MESSAGE can ask for once.
+REQUESTABLE = frozenset(DEFAULT_INTERVALS_S) | {mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION}
 MIN_INTERVAL_S = 0.01  # a requested rate above 100 Hz is capped
 
 PARAM_TAKEOFF_ALT = "MIS_TAKEOFF_ALT"
@@ -101,6 +137,7 @@ class VehicleState:
     altitude_amsl_m: float
     relative_altitude_m: float
     home: GeoPoint
+    armable: bool  # the estimator has warmed up
     speed_m_s: float
     battery_pct: float
     time_s: float
@@ -114,6 +151,7 @@ class VehicleState:
             "mode": self.mode,
             "phase": self.phase,
             "in_air": self.in_air,
+            "armable": self.armable,
             "lat": round(self.latitude_deg, 7),
             "lon": round(self.longitude_deg, 7),
             "rel_alt_m": round(self.relative_altitude_m, 2),
@@ -140,8 +178,8 @@ class SimVehicle:
     """One simulated multicopter behind a MAVLink UDP port.
 
     ``start()`` binds and starts the vehicle's thread, ``stop()`` ends it,
-    ``state()`` is a snapshot readable from any thread, ``url`` is what a
-    MAVSDK client connects to.
+    ``state()`` and ``streams()`` are snapshots readable from any thread,
+    ``url`` is what a MAVSDK client connects to.
     """
 
     def __init__(
@@ -170,7 +208,8 @@ class SimVehicle:
         self._sock: socket.socket | None = None
         self._sink: _PeerSink | None = None
         self._mav: mavlink.MAVLink | None = None
-        self._intervals = dict(DEFAULT_INTERVALS_S)
+        # Message id -> wall interval (s) of what is streamed now; 0 = off.
+        self._intervals = {msg_id: DEFAULT_INTERVALS_S[msg_id] for msg_id in UNASKED_STREAMS}
         self._next_due: dict[int, float] = {}
         self._last_reported: tuple[Any, ...] | None = None
         self.port = 0
@@ -191,7 +230,6 @@ class SimVehicle:
         self._sock = sock
         self._sink = _PeerSink(sock)
         self._mav = mavlink.MAVLink(self._sink, srcSystem=self.system_id, srcComponent=1)
-        self._mav.robust_parsing = True
         self._thread = threading.Thread(
             target=self._run, name=f"sim-vehicle-{self.system_id}", daemon=True
         )
@@ -221,6 +259,11 @@ class SimVehicle:
         with self._lock:
             return self._snapshot()
 
+    def streams(self) -> dict[int, float]:
+        """What is streamed now (message id -> wall interval, s): heartbeat and what was asked."""
+        with self._lock:
+            return {msg_id: every for msg_id, every in self._intervals.items() if every > 0}
+
     def _snapshot(self) -> VehicleState:
         k = self._kinematics
         here = k.geo_position()
@@ -235,6 +278,7 @@ class SimVehicle:
             altitude_amsl_m=here.altitude_amsl_m,
             relative_altitude_m=k.relative_altitude_m,
             home=k.geo_home(),
+            armable=k.estimator_ready,
             speed_m_s=k.speed_m_s,
             battery_pct=k.battery_pct,
             time_s=k.time_s,
@@ -254,8 +298,19 @@ class SimVehicle:
                     data, address = self._sock.recvfrom(65535)
                 except OSError:
                     continue
-                with self._lock:
-                    self._receive(data, address)
+                try:
+                    with self._lock:
+                        self._receive(data, address)
+                except Exception as exc:
+                    # A bug or a datagram nobody foresaw must not silence the
+                    # vehicle: its ground stations would see it die.
+                    where = traceback.extract_tb(exc.__traceback__)[-1]
+                    self._log.warning(
+                        "datagram skipped: handling it failed",
+                        peer=f"{address[0]}:{address[1]}",
+                        error=repr(exc),
+                        at=f"{where.filename}:{where.lineno}",
+                    )
             now = time.monotonic()
             if now >= next_tick:
                 with self._lock:
@@ -267,7 +322,8 @@ class SimVehicle:
 
     def _report_if_changed(self) -> None:
         k = self._kinematics
-        key = (k.armed, k.phase, k.speed_m_s, len(self._sink.peers) if self._sink else 0)
+        peers = len(self._sink.peers) if self._sink else 0
+        key = (k.armed, k.phase, k.speed_m_s, k.estimator_ready, peers)
         if key != self._last_reported:
             self._last_reported = key
             snapshot = self._snapshot()
@@ -278,12 +334,27 @@ class SimVehicle:
     def _receive(self, data: bytes, address: tuple[str, int]) -> None:
         assert self._mav is not None and self._sink is not None
         self._sink.peers[address] = time.monotonic()
+        # A fresh parser per datagram: a datagram holds whole packets, and the
+        # rest of a truncated one would swallow the next datagram's command.
+        parser = mavlink.MAVLink(None, srcSystem=self.system_id, srcComponent=1)
+        parser.robust_parsing = True
         try:
-            messages = self._mav.parse_buffer(data) or []
+            messages = parser.parse_buffer(data) or []
         except mavlink.MAVError as exc:
-            self._log.debug("bad packet", peer=f"{address[0]}:{address[1]}", error=str(exc))
-            return
+            messages = [mavlink.MAVLink_bad_data(data, str(exc))]
+        if parser.buf_len() > 0:
+            messages.append(mavlink.MAVLink_bad_data(data, "truncated packet"))
+        bad = [msg for msg in messages if msg.get_msgId() == mavlink.MAVLINK_MSG_ID_BAD_DATA]
+        if bad:  # not MAVLink, or a bad checksum: one line per datagram, not per byte
+            self._log.warning(
+                "bad data skipped",
+                peer=f"{address[0]}:{address[1]}",
+                pieces=len(bad),
+                reason=bad[0].reason,
+            )
         for msg in messages:
+            if msg.get_msgId() in (mavlink.MAVLINK_MSG_ID_BAD_DATA, mavlink.MAVLINK_MSG_ID_UNKNOWN):
+                continue  # unknown: another dialect's message, nothing for this vehicle
             target = getattr(msg, "target_system", 0)
             if target not in (0, self.system_id):
                 continue  # another vehicle's traffic
@@ -304,6 +375,15 @@ class SimVehicle:
             if now >= self._next_due.get(msg_id, 0.0):
                 self._send_message(msg_id)
                 self._next_due[msg_id] = now + interval
+        # Past the return above: the first report goes to the first ground station.
+        failure = self._kinematics.prearm_report_due()
+        if failure is not None:
+            self._send_prearm_failure(failure)
+
+    def _send_prearm_failure(self, reason: str) -> None:
+        """ArduPilot's way of saying why it will not arm: a CRITICAL "PreArm: ..." text."""
+        assert self._mav is not None
+        self._mav.statustext_send(mavlink.MAV_SEVERITY_CRITICAL, f"PreArm: {reason}".encode())
 
     def _custom_mode(self) -> int:
         main, sub = _MODE_OF_PHASE[self._kinematics.phase]
@@ -340,10 +420,19 @@ class SimVehicle:
                 round(k.heading_deg * 100) % 36000,
             )
         elif msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
+            present = enabled = health = _SENSORS
+            if k.estimator_ready:
+                # Set in all three, as ArduPilot does once its checks pass
+                # (MAVLink: always healthy when armed).
+                present |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+                enabled |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+                health |= mavlink.MAV_SYS_STATUS_PREARM_CHECK
+            else:
+                health &= ~mavlink.MAV_SYS_STATUS_SENSOR_GPS
             mav.sys_status_send(
-                _SENSORS,
-                _SENSORS,
-                _SENSORS,
+                present,
+                enabled,
+                health,
                 100,
                 16000,
                 1000,
@@ -363,6 +452,8 @@ class SimVehicle:
             }.get(k.phase, mavlink.MAV_LANDED_STATE_IN_AIR)
             mav.extended_sys_state_send(mavlink.MAV_VTOL_STATE_MC, landed)
         elif msg_id == mavlink.MAVLINK_MSG_ID_HOME_POSITION:
+            if not k.estimator_ready:
+                return True  # no home yet: ArduPilot sends nothing, even when asked
             home = k.geo_home()
             local = k.frame.to_local(home)
             mav.home_position_send(
@@ -382,7 +473,7 @@ class SimVehicle:
             ground_speed = math.hypot(k.velocity.north_m, k.velocity.east_m)
             mav.gps_raw_int_send(
                 int(k.time_s * 1e6),
-                mavlink.GPS_FIX_TYPE_3D_FIX,
+                mavlink.GPS_FIX_TYPE_3D_FIX if k.estimator_ready else mavlink.GPS_FIX_TYPE_NO_FIX,
                 round(here.latitude_deg * 1e7),
                 round(here.longitude_deg * 1e7),
                 round(here.altitude_amsl_m * 1000),
@@ -451,10 +542,10 @@ class SimVehicle:
         after_ack: Callable[[], object] | None = None
         try:
             if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-                if p[0] >= 0.5:
+                if _required_int(p[0], "param1 (arm)") >= 1:
                     k.arm()
                 else:
-                    k.disarm(force=round(p[1]) == FORCE_DISARM_MAGIC)
+                    k.disarm(force=_int_or(p[1], 0) == FORCE_DISARM_MAGIC)
             elif command == mavlink.MAV_CMD_NAV_TAKEOFF:
                 # param7 is the AMSL altitude; NaN means "use MIS_TAKEOFF_ALT".
                 altitude = p7 - k.geo_home().altitude_amsl_m if math.isfinite(p7) else None
@@ -464,24 +555,27 @@ class SimVehicle:
             elif command == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
                 k.return_to_launch()
             elif command == mavlink.MAV_CMD_DO_SET_MODE:
-                self._set_mode(round(p[1]), round(p[2]))
+                self._set_mode(_required_int(p[1], "param2 (custom mode)"), _int_or(p[2], 0))
             elif command == mavlink.MAV_CMD_DO_REPOSITION:
                 k.goto_geo(self._reposition_target(p, p7, frame, x, y), speed_m_s=p[0])
             elif command == mavlink.MAV_CMD_DO_CHANGE_SPEED:
                 if p[1] > 0:
                     k.set_speed(p[1])
             elif command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-                result = self._set_interval(round(p[0]), p[1])
+                # An unset interval is the default rate (0).
+                result = self._set_interval(
+                    _required_int(p[0], "param1 (message id)"), 0.0 if math.isnan(p[1]) else p[1]
+                )
             elif command in (
                 mavlink.MAV_CMD_REQUEST_MESSAGE,
                 mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
             ):
                 msg_id = (
-                    round(p[0])
+                    _required_int(p[0], "param1 (message id)")
                     if command == mavlink.MAV_CMD_REQUEST_MESSAGE
                     else mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION
                 )
-                if msg_id in self._intervals or msg_id == mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+                if msg_id in REQUESTABLE:
                     after_ack = lambda: self._send_message(msg_id)  # noqa: E731
                 else:
                     result = mavlink.MAV_RESULT_UNSUPPORTED
@@ -490,6 +584,9 @@ class SimVehicle:
         except Refused as refusal:
             result = mavlink.MAV_RESULT_DENIED
             self._log.info("command denied", command=command, reason=str(refusal))
+            if isinstance(refusal, PreArmFailed):
+                # Before the ACK, so the reason is there when the refusal arrives.
+                self._send_prearm_failure(str(refusal))
         self._mav.command_ack_send(
             command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
         )
@@ -541,7 +638,7 @@ class SimVehicle:
         )
 
     def _set_interval(self, msg_id: int, interval_us: float) -> int:
-        if msg_id not in self._intervals and msg_id not in DEFAULT_INTERVALS_S:
+        if msg_id not in DEFAULT_INTERVALS_S:
             return mavlink.MAV_RESULT_UNSUPPORTED
         if interval_us < 0:
             self._intervals[msg_id] = 0.0  # disabled
@@ -576,6 +673,18 @@ class SimVehicle:
             1,
             0,
         )
+
+
+def _int_or(value: float, default: int) -> int:
+    """An integer command parameter; NaN (MAVLink's "unset") gives the default."""
+    return default if not math.isfinite(value) else round(value)
+
+
+def _required_int(value: float, name: str) -> int:
+    """An integer command parameter that has no default: unset (NaN) is refused."""
+    if not math.isfinite(value):
+        raise Refused(f"{name} must be set, got {value}")
+    return round(value)
 
 
 def _param_name(raw: str | bytes) -> str:

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from baton.config import LinkSpec
+    from baton.config import BatonConfig, LinkSpec
 
 DEFAULT_HANDOVER_REQNRS = (90, 180, 270)
 
@@ -64,6 +64,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         type=float,
         default=10.0,
         help="simulation speed-up, vehicle and clocks (default 10)",
+    )
+    parser.add_argument(
+        "--vehicle",
+        metavar="sim|sitl|URL",
+        help="the autopilot: 'sim' starts the embedded sim vehicle, 'sitl' starts ArduPilot "
+        "Copter SITL at the same speed-up, a MAVLink URL (tcpout://HOST:5760, udpin://...) "
+        "flies one that runs already (default: the --config file's drone.vehicle_url if it "
+        "names one, else sim)",
+    )
+    parser.add_argument(
+        "--sitl-binary",
+        metavar="PATH",
+        help="the ArduCopter SITL binary for --vehicle sitl (default: ../shared/sitl/arducopter "
+        "beside the checkout)",
     )
     parser.add_argument(
         "--grid", type=int, default=5, help="grid size: GRID x GRID waypoints (default 5)"
@@ -129,6 +143,36 @@ def _link(latency: str | None, bandwidth: str | None, default: LinkSpec) -> Link
     )
 
 
+def _vehicle(args: argparse.Namespace, base: BatonConfig | None) -> tuple[str, Path | None]:
+    """The planned vehicle ("sim", "sitl" or a URL) and the SITL binary; ValueError says why not."""
+    from baton.sitl.launcher import find_binary
+
+    vehicle = args.vehicle
+    if vehicle is None:
+        named = base is not None and "vehicle_url" in base.drone.model_fields_set
+        vehicle = base.drone.vehicle_url if base is not None and named else "sim"
+    if vehicle not in ("sim", "sitl") and "://" not in vehicle:
+        raise ValueError(
+            f"--vehicle {vehicle!r}: expected sim, sitl or a MAVLink URL like "
+            "tcpout://127.0.0.1:5760"
+        )
+    if args.sitl_binary is not None and vehicle != "sitl":
+        raise ValueError("--sitl-binary is for --vehicle sitl")
+    if vehicle != "sitl":
+        return vehicle, None
+    binary = Path(args.sitl_binary) if args.sitl_binary else find_binary()
+    if binary is None:
+        raise ValueError(
+            "--vehicle sitl: no SITL binary at ../shared/sitl/arducopter; "
+            "pass --sitl-binary PATH (an ArduCopter SITL build)"
+        )
+    if not binary.is_file():
+        raise ValueError(f"--sitl-binary {binary}: no such file")
+    if not 0 < args.speedup <= 100:
+        raise ValueError(f"--speedup {args.speedup:g}: SITL runs at a speed-up in (0, 100]")
+    return vehicle, binary.resolve()
+
+
 def run(args: argparse.Namespace) -> int:
     """Validates the options, then runs or follows the testbed."""
     from baton.config import ConfigError, load_config, parse_size
@@ -183,6 +227,10 @@ def run(args: argparse.Namespace) -> int:
     for name in ("speedup", "grid", "spacing", "altitude", "speed", "poll", "timeout"):
         if getattr(args, name) <= 0:
             return _fail(f"--{name} must be > 0, got {getattr(args, name)}")
+    try:
+        vehicle, sitl_binary = _vehicle(args, base)
+    except ValueError as exc:
+        return _fail(str(exc))
     mission = MissionPlan(args.grid, args.spacing, args.altitude, args.speed, args.poll)
     report_path = Path(args.report)
     if args.action == "report":
@@ -199,6 +247,8 @@ def run(args: argparse.Namespace) -> int:
         controller_link=controller_link,
         drone_link=drone_link,
         base_config=base,
+        vehicle=vehicle,
+        sitl_binary=sitl_binary,
     )
     workdir = (
         Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-testbed-"))

@@ -20,10 +20,10 @@ from typing import Any
 import grpc
 import yaml
 
-from baton.config import BatonConfig, LinkSpec, parse_config
+from baton.config import BatonConfig, DroneConfig, LinkSpec, parse_config
 from baton.missions import grid as grid_mission
 from baton.rpc.channels import aio_channel
-from baton.testbed.supervisor import Supervisor, baton_argv
+from baton.testbed.supervisor import PartNotReady, Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
 GRID_MISSION = Path(grid_mission.__file__)
@@ -67,7 +67,16 @@ class TestbedPlan:
     resolution: str | None = None
     drone_args: tuple[str, ...] = ()  # extra `baton drone` options (e.g. --force-race)
     mission_args: tuple[str, ...] = ()  # extra mission parameters, key=value
+    # The autopilot: "sim" (the embedded sim vehicle), "sitl" (ArduPilot SITL,
+    # started by the testbed at the same speed-up) or the MAVLink URL of one
+    # that runs already.
+    vehicle: str = "sim"
+    sitl_binary: Path | None = None  # default: baton.sitl.launcher.find_binary()
 
+
+# Wall seconds the testbed waits for the vehicle to become ready (armable)
+# before it starts the mission: ArduPilot needs ~45 s of its own time after boot.
+VEHICLE_READY_TIMEOUT_S = 180.0
 
 # Ports the kernel hands out for port 0 and for outgoing connections; fixed
 # ports are chosen below them, so that no link emulator binding port 0 and no
@@ -137,11 +146,19 @@ class LocalTestbed:
         self._channels: list[grpc.aio.Channel] = []
         self.drone_stub: drone_pb2_grpc.DroneStub | None = None
         self.controller_stubs: dict[int, ring_pb2_grpc.ControllerRingStub] = {}
+        # SITL's second MAVLink port (tcp:HOST:PORT), for an independent monitor.
+        self.sitl_monitor_url: str | None = None
 
     # -- start ----------------------------------------------------------------------
 
-    async def start(self) -> BatonConfig:
-        """Starts every part; returns the configuration they run with."""
+    async def start(
+        self, vehicle_wait: Callable[[drone_pb2.DroneStatus], None] | None = None
+    ) -> BatonConfig:
+        """Starts every part; returns the configuration they run with.
+
+        The controllers (and so the mission) start only once the vehicle is
+        ready to arm; ``vehicle_wait`` sees the drone's status meanwhile.
+        """
         plan = self.plan
         vehicle_url = await self._start_vehicle()
         base = plan.base_config
@@ -184,18 +201,33 @@ class LocalTestbed:
         self.config_path.write_text(yaml.safe_dump(document, sort_keys=False))
         self.config = parse_config(document, str(self.config_path))
         await self._start_drone()
+        await self.wait_vehicle_ready(VEHICLE_READY_TIMEOUT_S, vehicle_wait)
         await self._start_controllers()
         return self.config
 
+    def _home(self) -> str:
+        base = self.plan.base_config
+        home = (base.drone if base is not None else DroneConfig()).home
+        return f"{home.latitude_deg},{home.longitude_deg},{home.altitude_m}"
+
     async def _start_vehicle(self) -> str:
+        """Starts the sim vehicle or SITL, as planned; returns the drone's vehicle URL."""
+        vehicle = self.plan.vehicle
+        if vehicle not in ("sim", "sitl"):
+            return vehicle  # an autopilot that runs already
         ready = self.workdir / "vehicle.url"
-        argv = baton_argv(
-            "sim-vehicle", "--speedup", str(self.plan.speedup), "--url-file", str(ready)
-        )
-        if self.plan.base_config is not None:
-            home = self.plan.base_config.drone.home
-            argv += ["--home", f"{home.latitude_deg},{home.longitude_deg},{home.altitude_m}"]
-        return (await self.supervisor.start_ready("sim-vehicle", argv, ready)).splitlines()[0]
+        speedup = str(self.plan.speedup)
+        if vehicle == "sim":
+            argv = baton_argv("sim-vehicle", "--speedup", speedup, "--url-file", str(ready))
+            argv += ["--home", self._home()]
+            return (await self.supervisor.start_ready("sim-vehicle", argv, ready)).splitlines()[0]
+        argv = baton_argv("sitl", "--speedup", speedup, "--home", self._home())
+        argv += ["--workdir", str(self.workdir / "sitl"), "--url-file", str(ready)]
+        if self.plan.sitl_binary is not None:
+            argv += ["--binary", str(self.plan.sitl_binary)]
+        announced = await self.supervisor.start_ready("sitl", argv, ready)
+        url, self.sitl_monitor_url = announced.split()
+        return url
 
     async def _start_link(self, name: str, target: str, spec: LinkSpec) -> str:
         ready = self.workdir / f"{name}.address"
@@ -260,6 +292,31 @@ class LocalTestbed:
             self.controller_stubs[cid] = ring_pb2_grpc.ControllerRingStub(channel)
 
     # -- follow -----------------------------------------------------------------------
+
+    async def wait_vehicle_ready(
+        self,
+        timeout: float,
+        progress: Callable[[drone_pb2.DroneStatus], None] | None = None,
+        period: float = 0.25,
+    ) -> drone_pb2.DroneStatus:
+        """Waits until the drone reports the vehicle connected and ready to arm."""
+        assert self.drone_stub is not None
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            self.supervisor.check()
+            status = await self.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest(), timeout=10)
+            if status.vehicle_connected and status.flight_state.ready:
+                return status
+            if loop.time() > deadline:
+                why = status.vehicle.problem or status.flight_state.not_ready_reason
+                raise PartNotReady(
+                    f"the vehicle at {status.vehicle_url} is not ready after {timeout:.0f} s: "
+                    f"{why or 'no reason given'}"
+                )
+            if progress is not None:
+                progress(status)
+            await asyncio.sleep(period)
 
     async def snapshot(self, audit: bool = True) -> Snapshot:
         """The drone's and every controller's status now."""

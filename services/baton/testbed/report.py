@@ -120,6 +120,13 @@ def build_report(
             "pictures": pictures,
             "invocations": len(audit),
             "calls": max(reqnrs, default=0),
+            # When the drone received each TakePicture (wall clock), for
+            # checking against the autopilot's own telemetry.
+            "picture_requests": [
+                {"reqnr": a.reqnr, "received_at": a.received_at}
+                for a in audit
+                if a.method.endswith("/TakePicture")
+            ],
         },
         "setup": {
             "controllers": len(config.controllers),
@@ -130,6 +137,10 @@ def build_report(
             "controller_link": {"latency_s": link.latency, "bandwidth_bps": link.bandwidth},
             "t_conn_mean_s": round(t_conn, 6),
             "largest_entry_bytes": largest_entry,
+            "vehicle": {
+                "url": drone.vehicle_url,
+                "autopilot": drone.flight_state.autopilot or "unknown",
+            },
         },
         "handovers": handovers,
         "handovers_planned": [list(h) for h in planned_handovers],
@@ -140,6 +151,7 @@ def build_report(
             "executed": drone.executed,
             "duplicates": drone.duplicates,
             "rejected": drone.rejected,
+            "vehicle_outages": drone.vehicle.outages,
         },
         "controllers": [
             {

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from baton.config import BatonConfig
+from baton.lifecycle import write_atomically
 from baton.rpc.channels import aio_channel
 from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
 from baton.testbed.report import build_report, summary_table
@@ -31,19 +32,42 @@ class Progress:
         self.started = time.monotonic()
         self._last = 0.0
 
-    def __call__(self, snapshot: Snapshot) -> None:
+    def _due(self) -> bool:
         now = time.monotonic()
         if now - self._last < 1.0:
-            return
+            return False
         self._last = now
+        return True
+
+    def _stamp(self) -> str:
+        return f"[{time.monotonic() - self.started:6.1f}s]"
+
+    def vehicle_wait(self, drone: drone_pb2.DroneStatus) -> None:
+        """Before the mission: why the vehicle is not ready to arm yet."""
+        if not self._due():
+            return
+        state = drone.flight_state
+        why = drone.vehicle.problem or state.not_ready_reason or "connecting"
+        autopilot = f" ({state.autopilot} {state.autopilot_mode})" if state.autopilot else ""
+        print(
+            f"{self._stamp()} waiting for the vehicle{autopilot}: {why}",
+            file=self.stream,
+            flush=True,
+        )
+
+    def __call__(self, snapshot: Snapshot) -> None:
+        if not self._due():
+            return
         states = " ".join(
             f"c{cid}:{c.state[0]}{'*' if c.master else ''}@{c.reqnr}"
             for cid, c in sorted(snapshot.controllers.items())
         )
+        drone = snapshot.drone
+        vehicle = "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
         print(
-            f"[{now - self.started:6.1f}s] waypoint {snapshot.pictures}/{self.waypoints} | "
-            f"master {snapshot.drone.master} | reqnr {snapshot.drone.last_reqnr} | "
-            f"handovers {len(snapshot.drone.handovers)}/{self.planned} | {states}",
+            f"{self._stamp()} waypoint {snapshot.pictures}/{self.waypoints} | "
+            f"master {drone.master} | reqnr {drone.last_reqnr} | "
+            f"handovers {len(drone.handovers)}/{self.planned} | {states}{vehicle}",
             file=self.stream,
             flush=True,
         )
@@ -60,20 +84,22 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     print(
         f"baton testbed: {plan.controllers} controllers, flush limit {plan.flush_limit} bytes, "
         "handovers "
-        f"{', '.join(f'{r}:{m}' for r, m in plan.handovers) or 'none'}, speed-up {plan.speedup}x; "
+        f"{', '.join(f'{r}:{m}' for r, m in plan.handovers) or 'none'}, speed-up {plan.speedup}x, "
+        f"vehicle {plan.vehicle}; "
         f"logs in {workdir / 'logs'}",
         flush=True,
     )
     started = time.monotonic()
     testbed = LocalTestbed(plan, workdir)
     try:
-        config = await testbed.start()
-        (workdir / "pids.json").write_text(
+        progress = Progress(plan.mission.grid**2, len(plan.handovers))
+        config = await testbed.start(progress.vehicle_wait)
+        write_atomically(
+            workdir / "pids.json",
             json.dumps(
                 {name: p.process.pid for name, p in testbed.supervisor.parts.items() if p.process}
-            )
+            ),
         )
-        progress = Progress(plan.mission.grid**2, len(plan.handovers))
         snapshot = await testbed.run_mission(timeout, progress)
     except (PartDied, PartNotReady) as exc:
         print(f"baton testbed: FAILED: {exc}", file=sys.stderr, flush=True)

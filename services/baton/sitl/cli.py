@@ -1,0 +1,221 @@
+"""``baton sitl``: ArduPilot Copter SITL as a part baton can start, watch and stop.
+
+A thin, supervised wrapper: it picks a free instance, starts ``arducopter``
+in a workdir of its own (it writes ``eeprom.bin`` and ``logs/`` there), waits
+until SERIAL0 listens, announces the MAVLink URLs (``--url-file``: the
+drone service's URL on the first line, the monitor's ``tcp:HOST:PORT`` on the
+second) and passes SITL's output to its own. SIGTERM stops SITL; SITL dies
+with this wrapper (the kernel sends it SIGTERM), so a testbed killed outright
+leaves no autopilot behind.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import ctypes
+import json
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any
+
+from baton.sim_vehicle.cli import DEFAULT_HOME, parse_home
+from baton.sitl.launcher import LISTENING_MARK
+
+# Wall seconds for SITL to open SERIAL0 after it starts (it takes ~0.1 s here).
+START_TIMEOUT_S = 20.0
+# Instances tried when another SITL took the chosen one between the check and the bind.
+START_ATTEMPTS = 3
+
+
+def _speedup(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number like 10, got {text!r}") from None
+    if not 0 < value <= 100:
+        raise argparse.ArgumentTypeError(f"must be in (0, 100], got {text!r}")
+    return value
+
+
+def register(subparsers: Any) -> None:
+    """Adds ``baton sitl``."""
+    parser = subparsers.add_parser(
+        "sitl",
+        help="ArduPilot Copter SITL (the paper's autopilot), supervised",
+        description=(
+            "Starts ArduPilot's Copter SITL binary on a free instance, waits until its "
+            "MAVLink ports listen, and writes the drone service's vehicle URL "
+            "(tcpout://127.0.0.1:5760+10N, SERIAL0) and a monitor address (tcp:127.0.0.1:"
+            "5762+10N, SERIAL1) to --url-file. SIGTERM stops it."
+        ),
+    )
+    parser.add_argument(
+        "--binary",
+        metavar="PATH",
+        help="the arducopter SITL binary (default: ../shared/sitl/arducopter beside the "
+        "checkout, where it exists)",
+    )
+    parser.add_argument(
+        "--defaults",
+        metavar="FILE",
+        help="parameter defaults (default: copter.parm beside the binary, if present)",
+    )
+    parser.add_argument(
+        "--instance",
+        type=int,
+        metavar="N",
+        help="SITL instance -I N (ports 5760+10N..); default: the first whose ports are free",
+    )
+    parser.add_argument(
+        "--speedup",
+        type=_speedup,
+        default=1.0,
+        help="physics runs this many times faster than real time (default 1); give the "
+        "controllers' clocks the same",
+    )
+    parser.add_argument(
+        "--home",
+        type=parse_home,
+        default=parse_home(DEFAULT_HOME),
+        help=f"home LAT,LON,ALT (degrees, degrees, metres AMSL; default {DEFAULT_HOME})",
+    )
+    parser.add_argument(
+        "--workdir",
+        metavar="DIR",
+        help="where SITL writes eeprom.bin and logs/ (default: a new temp folder)",
+    )
+    parser.add_argument(
+        "--url-file",
+        metavar="PATH",
+        help="write the vehicle URL (line 1) and the monitor address (line 2) here once "
+        "SITL listens",
+    )
+    parser.set_defaults(run=run)
+
+
+def _die_with_this_process() -> None:
+    """In the SITL child before exec: SIGTERM when the wrapper dies (no threads here yet)."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def _start(argv: list[str], workdir: Path) -> tuple[subprocess.Popen[str], list[str]]:
+    """Starts SITL; returns it and its output up to the listening line (or its exit)."""
+    process = subprocess.Popen(
+        argv,
+        cwd=workdir,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=_die_with_this_process,  # safe: this wrapper runs no threads
+    )
+    assert process.stdout is not None
+    seen: list[str] = []
+    timer = threading.Timer(START_TIMEOUT_S, process.kill)
+    timer.start()
+    try:
+        for line in process.stdout:
+            seen.append(line.rstrip("\n"))
+            if LISTENING_MARK in line:
+                return process, seen
+    finally:
+        timer.cancel()
+    process.wait()
+    return process, seen
+
+
+def run(args: argparse.Namespace) -> int:
+    """Runs SITL until SIGTERM or until it exits."""
+    from baton.sitl.launcher import SitlPorts, SitlSettings, find_binary, free_instance
+
+    binary = Path(args.binary) if args.binary else find_binary()
+    if binary is None:
+        print(
+            "baton sitl: no SITL binary: ../shared/sitl/arducopter does not exist here; "
+            "pass --binary PATH (an ArduCopter SITL build)",
+            file=sys.stderr,
+        )
+        return 2
+    if not binary.is_file():
+        print(f"baton sitl: --binary {binary}: no such file", file=sys.stderr)
+        return 2
+    if args.defaults and not Path(args.defaults).is_file():
+        print(f"baton sitl: --defaults {args.defaults}: no such file", file=sys.stderr)
+        return 2
+    settings = SitlSettings(
+        binary=binary.resolve(),
+        speedup=args.speedup,
+        home=args.home,
+        defaults=Path(args.defaults).resolve() if args.defaults else None,
+    )
+    workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-sitl-"))
+    workdir.mkdir(parents=True, exist_ok=True)
+    stopping = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        stopping.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    instance = args.instance if args.instance is not None else free_instance()
+    for attempt in range(START_ATTEMPTS):
+        process, seen = _start(settings.argv(instance), workdir)
+        if process.poll() is None:
+            break
+        print("\n".join(seen), flush=True)
+        if args.instance is not None or attempt == START_ATTEMPTS - 1:
+            print(
+                f"baton sitl: SITL exited with {process.returncode} before it listened "
+                f"(instance {instance}, workdir {workdir})",
+                file=sys.stderr,
+            )
+            return 1
+        instance = free_instance(instance + 1)  # taken meanwhile: try the next free one
+    ports = SitlPorts(instance)
+    print("\n".join(seen), flush=True)
+    print(
+        json.dumps(
+            {
+                "event": "listening",
+                "url": ports.vehicle_url,
+                "monitor": f"tcp:{ports.monitor_address}",
+                "instance": instance,
+                "speedup": settings.speedup,
+                "workdir": str(workdir),
+            }
+        ),
+        flush=True,
+    )
+    if args.url_file:
+        from baton.lifecycle import write_atomically
+
+        write_atomically(args.url_file, f"{ports.vehicle_url}\ntcp:{ports.monitor_address}\n")
+    pump = threading.Thread(target=_pump, args=(process,), daemon=True)
+    pump.start()
+    while not stopping.is_set() and process.poll() is None:
+        stopping.wait(0.2)
+    if process.poll() is None:
+        process.terminate()
+        try:
+            process.wait(5)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        return 0
+    print(f"baton sitl: SITL exited with {process.returncode}", file=sys.stderr)
+    return 1 if process.returncode else 0
+
+
+def _pump(process: subprocess.Popen[str]) -> None:
+    """Passes SITL's output on, so it lands in this part's log."""
+    assert process.stdout is not None
+    with contextlib.suppress(ValueError, OSError):
+        for line in process.stdout:
+            sys.stdout.write(line)
+            sys.stdout.flush()
