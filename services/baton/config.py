@@ -50,7 +50,7 @@ _RATE_UNITS = {
     "gbit": 10**9,
     "gbps": 10**9,
 }
-_TIME_UNITS = {"": 1.0, "s": 1.0, "ms": 1e-3, "us": 1e-6}
+_TIME_UNITS = {"": 1.0, "s": 1.0, "ms": 1e-3, "us": 1e-6, "min": 60.0}
 _NUMBER_WITH_UNIT = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*([a-zA-Z/]*)\s*$")
 
 
@@ -169,6 +169,10 @@ class BatonConfig(_Model):
     speedup: float = Field(default=1.0, gt=0, le=1000)
     controller_link: LinkSpec = LinkSpec()
     drone_link: LinkSpec = LinkSpec()
+    # How long an ACTIVE controller keeps re-sending a request that the drone
+    # could not take (drone unreachable, vehicle link down: nothing executed)
+    # before the call fails with UNAVAILABLE; wall time.
+    drone_retry_limit: Duration = 300.0
 
     @field_validator("controllers")
     @classmethod

@@ -9,7 +9,7 @@ from pathlib import Path
 import grpc
 import pytest
 
-from baton.config import parse_config
+from baton.config import LinkSpec, parse_config
 from baton.controller.node import ControllerNode
 from baton.rpc.errors import StatusError
 from baton.sdk.drone import _Caller
@@ -40,6 +40,33 @@ async def test_a_diverging_mission_is_stopped_with_both_requests_shown(tmp_path:
     assert "DroneCallError: Camera.SetResolution failed with FAILED_PRECONDITION" in program_output
     # The drone executed the master's requests only, once each.
     assert [a.reqnr for a in snapshot.drone.audit] == [1, 2, 3]
+
+
+async def test_a_call_the_program_gave_up_on_is_logged_as_it_saw_it(tmp_path: Path) -> None:
+    """Issue 9, defect 1, across processes: a TakePicture whose deadline passed at the drone."""
+    plan = TestbedPlan(
+        controllers=2,
+        flush_limit=0,
+        speedup=20.0,
+        mission_file=MISSIONS / "gives_up.py",
+        # 0.3 s each way: the program's 0.45 s deadline passes while the drone is at it.
+        drone_link=LinkSpec(latency=0.3, bandwidth=None),
+        controller_link=LinkSpec(latency=0.002, bandwidth=None),
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        snapshot = await testbed.run_mission(120)
+    for cid, c in snapshot.controllers.items():
+        assert c.mission == "done", f"controller {cid}: {c.mission_error}"
+        output = (tmp_path / "logs" / f"controller-{cid}.log").read_text()
+        assert "first picture: DEADLINE_EXCEEDED" in output, output
+    # The drone took both pictures, each once: the one the program gave up on
+    # (it reached the camera) and the one it asked for again.
+    audit = [(a.reqnr, a.method.rsplit("/", 1)[1]) for a in snapshot.drone.audit]
+    assert [m for _, m in audit].count("TakePicture") == 2, audit
+    assert len({r for r, _ in audit}) == len(audit)
+    chains = {c.reply_chain for c in snapshot.controllers.values()}
+    assert len(chains) == 1, "the replica saw something else than the master's program"
+    assert {c.drone_calls for c in snapshot.controllers.values()} == {len(audit)}
 
 
 async def test_the_controller_refuses_a_second_concurrent_call() -> None:

@@ -218,6 +218,14 @@ def test_message_skipping_a_request_number_is_a_protocol_error() -> None:
         p.on_log(message(1, origin=0, reqnrs=[5]))
 
 
+def test_a_replica_that_cannot_handle_a_message_still_forwards_it() -> None:
+    """Issue 9, defect 9: the replicas after a failed one must not be starved."""
+    p = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
+    with pytest.raises(ProtocolError) as caught:
+        p.on_log(message(1, origin=0, reqnrs=[5]))
+    assert sends(caught.value.effects) == [(2, 1, False)]
+
+
 def test_mission_done_flushes_the_masters_last_entries() -> None:
     p = ControllerProtocol(0, [0, 1], flush_limit=10**6, initial_master=0)
     p.on_reply(entry(1))

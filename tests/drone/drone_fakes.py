@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+
 import grpc
 
 from baton.rpc.errors import StatusError
@@ -23,6 +25,9 @@ class FakeMobility:
         self.armed = False
         self.position = api.Position()
         self.position.CopyFrom(HOME)
+        # While set and not open, Goto waits for it after it started (the
+        # autopilot's acknowledgement taking its time).
+        self.gate: asyncio.Event | None = None
 
     @property
     def connected(self) -> bool:
@@ -61,6 +66,8 @@ class FakeMobility:
 
     async def Goto(self, request: api.GotoRequest) -> api.GotoReply:
         self._call("Goto")
+        if self.gate is not None:
+            await self.gate.wait()
         self.position.latitude_deg = request.latitude_deg
         self.position.longitude_deg = request.longitude_deg
         self.position.relative_altitude_m = request.relative_altitude_m

@@ -15,6 +15,7 @@ from baton.v1 import drone_pb2
 POSITION = "/baton.v1.Mobility/GetPosition"
 ARM = "/baton.v1.Mobility/Arm"
 TAKEOFF = "/baton.v1.Mobility/Takeoff"
+GOTO = "/baton.v1.Mobility/Goto"
 
 
 def invoke(
@@ -263,3 +264,54 @@ async def test_handover_waits_for_the_request_being_served(drone: DroneUnderTest
     gate.set()
     assert (await arm).reqnr == 1
     assert (await handover).after_reqnr == 1
+
+
+async def until(what: str, check, timeout_s: float = 10.0) -> None:  # type: ignore[no-untyped-def]
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    while not check():
+        assert asyncio.get_running_loop().time() < deadline, f"{what} not within {timeout_s} s"
+        await asyncio.sleep(0.01)
+
+
+async def test_a_call_the_caller_gave_up_on_is_executed_once_and_recorded(
+    drone: DroneUnderTest,
+) -> None:
+    """Issue 9, defect 1: the caller's deadline must not cancel what the vehicle does."""
+    drone.vehicle.gate = asyncio.Event()
+    goto = invoke(0, 1, GOTO, api.GotoRequest(latitude_deg=47.4, longitude_deg=8.5))
+    await expect_error(drone.stub.Invoke(goto, timeout=0.3), grpc.StatusCode.DEADLINE_EXCEEDED)
+    assert drone.vehicle.calls == ["Goto"]  # it reached the vehicle, which is still at it
+    drone.vehicle.gate.set()
+    await until("the request recorded", lambda: drone.service.last_reqnr == 1)
+    again = await drone.stub.Invoke(goto)
+    assert again.duplicate and drone.vehicle.calls == ["Goto"]
+    assert [a.reqnr for a in drone.service.audit] == [1]
+
+
+async def test_a_duplicate_while_the_original_executes_waits_for_its_outcome(
+    drone: DroneUnderTest,
+) -> None:
+    drone.vehicle.gate = asyncio.Event()
+    goto = invoke(0, 1, GOTO, api.GotoRequest(latitude_deg=47.4, longitude_deg=8.5))
+    first = asyncio.ensure_future(drone.stub.Invoke(goto))
+    await until("the original executing", lambda: drone.vehicle.calls == ["Goto"])
+    second = asyncio.ensure_future(drone.stub.Invoke(goto))
+    drone.vehicle.gate.set()
+    replies = await asyncio.gather(first, second)
+    assert sorted(r.duplicate for r in replies) == [False, True]
+    assert drone.vehicle.calls == ["Goto"]
+
+
+async def test_a_failure_that_executed_nothing_leaves_the_reqnr_unused(
+    drone: DroneUnderTest,
+) -> None:
+    """Issue 9, defect 2: "vehicle not connected" is not the request's outcome."""
+    drone.vehicle.is_connected = False
+    takeoff = invoke(0, 1, ARM)
+    error = await expect_error(drone.stub.Invoke(takeoff), grpc.StatusCode.UNAVAILABLE)
+    assert "not connected" in (error.details() or "")
+    assert drone.service.last_reqnr == 0 and not drone.service.audit
+    drone.vehicle.is_connected = True  # the link is back: the same reqnr executes now
+    reply = await drone.stub.Invoke(takeoff)
+    assert not reply.duplicate and drone.vehicle.calls == ["Arm"]
+    assert drone.service.last_reqnr == 1

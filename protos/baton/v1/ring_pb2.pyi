@@ -323,6 +323,7 @@ class ControllerStatus(_message.Message):
     HANDOVERS_FIELD_NUMBER: _builtins.int
     T_CONN_S_FIELD_NUMBER: _builtins.int
     DRONE_CALLS_FIELD_NUMBER: _builtins.int
+    WAITING_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
     state: _builtins.str
@@ -359,6 +360,12 @@ class ControllerStatus(_message.Message):
     """Calls the mission program has had answered that went to the drone (not
     the Clock, which the controller answers and logs itself).
     """
+    waiting: _builtins.str
+    """What the controller has been waiting for, and for how long, when it is
+    stuck on something outside it (the drone unreachable, the vehicle not
+    connected: it re-sends the same request until drone_retry_limit); empty
+    when it is not waiting.
+    """
     @_builtins.property
     def peers(self) -> _containers.RepeatedCompositeFieldContainer[Global___PeerStatus]:
         """The successor and the other peers this controller streams to."""
@@ -394,10 +401,11 @@ class ControllerStatus(_message.Message):
         handovers: _abc.Iterable[Global___ControllerHandover] | None = ...,
         t_conn_s: _abc.Iterable[_builtins.float] | None = ...,
         drone_calls: _builtins.int = ...,
+        waiting: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import grpc
@@ -42,9 +43,57 @@ from baton.v1 import ring_pb2
 CLOCK_SERVICE = "/baton.v1.Clock/"
 CLOCK_SLEEP = "/baton.v1.Clock/Sleep"
 CLOCK_NOW = "/baton.v1.Clock/Now"
-# How long an ACTIVE controller keeps re-sending a request the drone could not
-# be reached for (same reqnr, so the drone's duplicate detection keeps it safe).
-DRONE_RETRY_S = 30.0
+# Re-sending a request the drone could not take (drone unreachable, vehicle
+# link down): the same reqnr, so the drone's duplicate detection keeps it
+# safe, after a pause that doubles up to a cap, for the configuration's
+# drone_retry_limit; the wait is logged again every WAIT_LOG_S.
+RETRY_FIRST_S, RETRY_MAX_S = 0.2, 2.0
+WAIT_LOG_S = 5.0
+
+
+def _given_up(reqnr: int, method: str, request: bytes, code: grpc.StatusCode) -> ring_pb2.LogEntry:
+    """The log entry of a call the mission program gave up on: the status it saw."""
+    return ring_pb2.LogEntry(
+        reqnr=reqnr,
+        method=method,
+        request_digest=request_digest(method, request),
+        request=request,
+        status_code=code.value[0],
+        status_message=f"{method}: the mission program gave up on the call ({code.name}); "
+        "the drone may have executed it",
+    )
+
+
+@dataclass
+class Retry:
+    """Re-sending with back-off for at most ``limit_s`` (wall time)."""
+
+    limit_s: float
+    started: float = field(default_factory=time.monotonic)
+    attempts: int = 0
+    _logged_at: float | None = None
+
+    def waited(self) -> float:
+        """Seconds since the first try."""
+        return time.monotonic() - self.started
+
+    def exhausted(self) -> bool:
+        """The limit has passed."""
+        return self.waited() >= self.limit_s
+
+    def should_log(self) -> bool:
+        """True on the first retry and then every WAIT_LOG_S."""
+        now = time.monotonic()
+        if self._logged_at is None or now - self._logged_at >= WAIT_LOG_S:
+            self._logged_at = now
+            return True
+        return False
+
+    async def pause(self) -> None:
+        """Waits before the next try: RETRY_FIRST_S, doubling up to RETRY_MAX_S."""
+        delay = min(RETRY_MAX_S, RETRY_FIRST_S * 2**self.attempts)
+        self.attempts += 1
+        await asyncio.sleep(min(delay, max(0.0, self.limit_s - self.waited())))
 
 
 @dataclass
@@ -75,8 +124,12 @@ class ControllerNode:
         self._peers: dict[int, PeerLink] = {}
         self._drone: DroneSession | None = None
         self._busy: str | None = None
+        # A call the program gave up on while this controller waited for the log.
+        self._abandoned: tuple[str, bytes, grpc.StatusCode] | None = None
         self.mission = "none"
         self.mission_error = ""
+        # What the controller waits for outside itself, for GetStatus; empty when nothing.
+        self.waiting = ""
         self._failure: StatusError | None = None
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
@@ -210,6 +263,7 @@ class ControllerNode:
             effects = self.protocol.on_log(message)
         except ProtocolError as exc:
             self._fail(StatusError(grpc.StatusCode.INTERNAL, f"controller {self.id}: {exc}"))
+            await self._apply(exc.effects)  # still forward it: the replicas after us go on
             return
         if self.protocol.master and not was_master:
             self._took_over(message)
@@ -250,11 +304,22 @@ class ControllerNode:
 
     # -- the mission program's calls ----------------------------------------------
 
-    async def call(self, method: str, request: bytes) -> ring_pb2.LogEntry:
+    async def call(
+        self,
+        method: str,
+        request: bytes,
+        gave_up: Callable[[], grpc.StatusCode] = lambda: grpc.StatusCode.CANCELLED,
+    ) -> ring_pb2.LogEntry:
         """Answers one drone-API call of the local mission program.
 
         Returns the log entry whose reply (or status) the program must see.
-        Raises StatusError when the call cannot be answered at all.
+        Raises StatusError when the call cannot be answered at all. If the
+        program gives up on the call while the master is at it (a deadline,
+        a cancellation: this coroutine is cancelled), the master logs that
+        failure, ``gave_up()``'s code, as the call's outcome: it is what the
+        program saw, so it is what every replica's program sees, and a new
+        master answers it from the log instead of sending it again. The
+        drone, which may have acted, finishes and records it either way.
         """
         if self._busy is not None:
             raise StatusError(
@@ -266,19 +331,67 @@ class ControllerNode:
         try:
             if self.mission == "none":
                 self.mission = "running"
-            entry = await self._answer(method, request)
-            if not method.startswith(CLOCK_SERVICE):
-                self._drone_calls += 1
-            self._reply_chain.update(
-                entry.reqnr.to_bytes(8, "big")
-                + entry.status_code.to_bytes(4, "big", signed=True)
-                + hashlib.sha256(entry.reply).digest()
-            )
-            return entry
+            await self._settle_abandoned()
+            return await self._answer(method, request, gave_up)
         finally:
             self._busy = None
 
-    async def _answer(self, method: str, request: bytes) -> ring_pb2.LogEntry:
+    async def _settle_abandoned(self) -> None:
+        """Gives the log's entry to a call the program gave up on while this controller waited.
+
+        The program's next call must not take the entry of the one it gave
+        up on. The entry is consumed as it comes: from the log when it is
+        there (and the master's program must have given up on it too, else
+        the deadline made the mission non-deterministic), or, if this
+        controller has become master meanwhile, logged as given up.
+        """
+        while self._abandoned is not None:
+            if self._failure is not None:
+                raise self._failure
+            method, request, code = self._abandoned
+            state = self.protocol.state
+            if state is State.REPLAY:
+                entry = await self._replay(method, request)
+                self._abandoned = None
+                if entry.status_code != code.value[0]:
+                    master_saw = "a reply" if entry.status_code == 0 else str(entry.status_code)
+                    self._fail(
+                        StatusError(
+                            grpc.StatusCode.FAILED_PRECONDITION,
+                            f"controller {self.id}: the mission program gave up on request "
+                            f"{entry.reqnr} ({method}, {code.name}) while this replica waited "
+                            f"for the log, but the master's program got {master_saw}: a "
+                            "deadline on a drone call made the mission non-deterministic",
+                        )
+                    )
+            elif state is State.ACTIVE:
+                self._abandoned = None
+                reqnr = self.protocol.reqnr + 1
+                entry = _given_up(reqnr, method, request, code)
+                effects = self.protocol.on_reply(entry)
+                self._seen(entry)
+                await self._apply(effects)
+            else:
+                await self._changed.wait()
+
+    def _seen(self, entry: ring_pb2.LogEntry) -> None:
+        """Counts the entry the program is answered with into the reply chain.
+
+        Called where the protocol consumes the entry (logged or replayed), not
+        where the program gets it, so a call cancelled after that is counted
+        as on every replica.
+        """
+        if not entry.method.startswith(CLOCK_SERVICE):
+            self._drone_calls += 1
+        self._reply_chain.update(
+            entry.reqnr.to_bytes(8, "big")
+            + entry.status_code.to_bytes(4, "big", signed=True)
+            + hashlib.sha256(entry.reply).digest()
+        )
+
+    async def _answer(
+        self, method: str, request: bytes, gave_up: Callable[[], grpc.StatusCode]
+    ) -> ring_pb2.LogEntry:
         while True:
             if self._failure is not None:
                 raise self._failure
@@ -286,11 +399,15 @@ class ControllerNode:
             if state is State.REPLAY:
                 return await self._replay(method, request)
             if state is State.ACTIVE:
-                entry = await self._invoke(method, request)
+                entry = await self._invoke(method, request, gave_up)
                 if entry is not None:
                     return entry
                 continue
-            await self._changed.wait()
+            try:
+                await self._changed.wait()
+            except asyncio.CancelledError:
+                self._abandoned = (method, request, gave_up())
+                raise
 
     async def _replay(self, method: str, request: bytes) -> ring_pb2.LogEntry:
         try:
@@ -300,34 +417,55 @@ class ControllerNode:
                 StatusError(grpc.StatusCode.FAILED_PRECONDITION, f"controller {self.id}: {exc}")
             )
             raise self._failure or StatusError(grpc.StatusCode.INTERNAL, str(exc)) from None
+        self._seen(entry)
         await self._apply(effects)
         return entry
 
-    async def _invoke(self, method: str, request: bytes) -> ring_pb2.LogEntry | None:
+    async def _invoke(
+        self, method: str, request: bytes, gave_up: Callable[[], grpc.StatusCode]
+    ) -> ring_pb2.LogEntry | None:
         """One call while ACTIVE: to the drone (or the clock), logged. None: state changed."""
         reqnr = self.protocol.reqnr + 1
         digest = request_digest(method, request)
-        if method in (CLOCK_NOW, CLOCK_SLEEP):
-            entry = ring_pb2.LogEntry(
-                reqnr=reqnr,
-                method=method,
-                reply=await self._clock_call(method, request),
-                request_digest=digest,
-                request=request,
-            )
-        else:
-            entry_or_none = await self._invoke_drone(reqnr, method, request, digest)
-            if entry_or_none is None:
-                return None
-            entry = entry_or_none
-        if self.protocol.state is not State.ACTIVE or self.protocol.reqnr + 1 != reqnr:
+        try:
+            if method in (CLOCK_NOW, CLOCK_SLEEP):
+                entry = ring_pb2.LogEntry(
+                    reqnr=reqnr,
+                    method=method,
+                    reply=await self._clock_call(method, request),
+                    request_digest=digest,
+                    request=request,
+                )
+            else:
+                entry_or_none = await self._invoke_drone(reqnr, method, request, digest)
+                if entry_or_none is None:
+                    return None
+                entry = entry_or_none
+        except asyncio.CancelledError:
+            code = gave_up()
+            given_up = _given_up(reqnr, method, request, code)
+            if self._ours_to_log(reqnr):
+                self.log.warning(
+                    "the mission program gave up on a call", reqnr=reqnr, code=code.name
+                )
+                effects = self.protocol.on_reply(given_up)
+                self._seen(given_up)
+                await asyncio.shield(self._apply(effects))
+            raise
+        if not self._ours_to_log(reqnr):
             # A handover notice overtook the reply (footnote 2): the reply is not
             # ours to log. The new master re-sends reqnr and the drone answers
             # it from its reply cache, so the program still sees this reply.
             self.log.info("reply discarded after handover", discarded_reqnr=reqnr)
             return None
-        await self._apply(self.protocol.on_reply(entry))
+        effects = self.protocol.on_reply(entry)
+        self._seen(entry)
+        await self._apply(effects)
         return entry
+
+    def _ours_to_log(self, reqnr: int) -> bool:
+        """Still ACTIVE, with ``reqnr`` the next request to log."""
+        return self.protocol.state is State.ACTIVE and self.protocol.reqnr + 1 == reqnr
 
     async def _clock_call(self, method: str, request: bytes) -> bytes:
         """Clock calls are answered here and logged like drone replies.
@@ -344,7 +482,15 @@ class ControllerNode:
     async def _invoke_drone(
         self, reqnr: int, method: str, request: bytes, digest: bytes
     ) -> ring_pb2.LogEntry | None:
-        deadline = time.monotonic() + DRONE_RETRY_S
+        try:
+            return await self._invoke_drone_retrying(reqnr, method, request, digest)
+        finally:
+            self.waiting = ""
+
+    async def _invoke_drone_retrying(
+        self, reqnr: int, method: str, request: bytes, digest: bytes
+    ) -> ring_pb2.LogEntry | None:
+        retry = Retry(self.config.drone_retry_limit)
         while True:
             drone = self._drone
             if drone is None or self.protocol.state is not State.ACTIVE:
@@ -377,12 +523,30 @@ class ControllerNode:
                 if notice is not None:
                     await self.on_handover_notice(*notice)
                     return None
-                if exc.code() is grpc.StatusCode.UNAVAILABLE and time.monotonic() < deadline:
-                    # The drone could not be reached (or the vehicle is not
-                    # connected yet): re-send the same reqnr, which is safe.
-                    self.log.warning("drone unavailable; retrying", detail=exc.details())
-                    await asyncio.sleep(0.2)
+                if exc.code() is grpc.StatusCode.UNAVAILABLE and not retry.exhausted():
+                    # The drone could not be reached, or its vehicle is not
+                    # connected: nothing was executed, so the same reqnr is
+                    # re-sent (the drone left it unused).
+                    self.waiting = (
+                        f"request {reqnr} ({method}): drone unavailable for "
+                        f"{retry.waited():.0f} s: {exc.details()}"
+                    )
+                    if retry.should_log():
+                        self.log.warning(
+                            "drone unavailable; re-sending",
+                            reqnr=reqnr,
+                            waited_s=round(retry.waited(), 1),
+                            limit_s=retry.limit_s,
+                            detail=exc.details(),
+                        )
+                    await retry.pause()
                     continue
+                if retry.attempts:
+                    self.log.warning(
+                        "drone still unavailable; the call fails",
+                        reqnr=reqnr,
+                        waited_s=round(retry.waited(), 1),
+                    )
                 return ring_pb2.LogEntry(
                     reqnr=reqnr,
                     method=method,

@@ -68,7 +68,16 @@ class NonDeterminismError(Exception):
 
 
 class ProtocolError(Exception):
-    """A message that breaks the protocol's invariants (a bug or a misconfiguration)."""
+    """A message that breaks the protocol's invariants (a bug or a misconfiguration).
+
+    ``effects`` are what must still be carried out (the forward of the
+    message that could not be handled, so the replicas after this one are
+    not starved by its failure).
+    """
+
+    def __init__(self, text: str, effects: list[Effect] | None = None) -> None:
+        super().__init__(text)
+        self.effects: list[Effect] = list(effects or [])
 
 
 def _show(payload: bytes) -> str:
@@ -230,7 +239,10 @@ class ControllerProtocol:
         if message.lognr <= self.lognr:
             return effects  # already handled (footnote 3)
         self.log_queue[message.lognr] = message
-        effects.extend(self._drain())
+        try:
+            effects.extend(self._drain())
+        except ProtocolError as exc:
+            raise ProtocolError(str(exc), effects + exc.effects) from exc
         return effects
 
     def _drain(self) -> list[Effect]:

@@ -71,7 +71,7 @@ class DroneApiProxy(grpc.GenericRpcHandler):
             try:
                 if method == CLOCK_SLEEP:
                     _check_sleep(parsed)
-                entry = await self._node.call(method, request)
+                entry = await self._node.call(method, request, lambda: _gave_up(context))
             except StatusError as exc:
                 await abort_with(context, exc)
             if entry.status_code != 0:
@@ -79,6 +79,14 @@ class DroneApiProxy(grpc.GenericRpcHandler):
             return bytes(entry.reply)
 
         return handle
+
+
+def _gave_up(context: grpc.aio.ServicerContext) -> grpc.StatusCode:
+    """Why the program's call ended early: its deadline passed, or it cancelled."""
+    remaining = context.time_remaining()
+    if remaining is not None and remaining <= 0:
+        return grpc.StatusCode.DEADLINE_EXCEEDED
+    return grpc.StatusCode.CANCELLED
 
 
 def _check_sleep(request: protobuf_message.Message) -> None:
@@ -147,6 +155,7 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         reply_chain=node.reply_chain,
         drone_connected=node.drone_connected,
         drone_calls=node.drone_calls,
+        waiting=node.waiting,
         handovers=[
             ring_pb2.ControllerHandover(
                 role=h.role,

@@ -19,11 +19,12 @@ cached answers — and evicts the oldest beyond that, which bounds memory to
 ``window`` replies (16 pictures of ~1 MB at the default resolution).
 
 A request that failed after it was accepted (unknown method, bad payload,
-vehicle not connected, autopilot refusal) is served too: its status is
+autopilot refusal, no acknowledgement in time) is served too: its status is
 cached like a reply, so a duplicate sees the same failure and every
-replica's mission program sees it (ring.proto logs failed calls). Only the
-protocol's own rejections (not the master, wrong reqnr) leave the request
-number unused.
+replica's mission program sees it (ring.proto logs failed calls). The
+protocol's own rejections (not the master, wrong reqnr) and UNAVAILABLE
+(the vehicle not connected: nothing reached it) leave the request number
+unused, so the master sends the same request again once the vehicle is back.
 
 A duplicate must be the same request: the cache keeps a digest of the method
 and the serialized request, and a re-sent reqnr with another digest is a

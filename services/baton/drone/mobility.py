@@ -123,8 +123,12 @@ def _require_range(name: str, value: float, low: float, high: float) -> None:
 
 def _status_of_action_error(result_name: str) -> grpc.StatusCode:
     """The gRPC code for a MAVSDK ActionResult (by name)."""
-    if result_name in ("NO_SYSTEM", "CONNECTION_ERROR", "TIMEOUT"):
-        return grpc.StatusCode.UNAVAILABLE
+    if result_name == "NO_SYSTEM":
+        return grpc.StatusCode.UNAVAILABLE  # nothing was sent: the request may be sent again
+    if result_name in ("CONNECTION_ERROR", "TIMEOUT"):
+        # Sent, but no acknowledgement: the vehicle may have acted. Not
+        # UNAVAILABLE, which the drone service treats as "nothing executed".
+        return grpc.StatusCode.DEADLINE_EXCEEDED
     if result_name in (
         "BUSY",
         "COMMAND_DENIED",
@@ -398,7 +402,7 @@ class MavsdkMobility:
             ) from exc
         except TimeoutError as exc:
             raise StatusError(
-                grpc.StatusCode.UNAVAILABLE,
+                grpc.StatusCode.DEADLINE_EXCEEDED,  # sent: it may have acted
                 f"vehicle at {self.url} did not answer {what} within {self.command_timeout_s} s",
             ) from exc
 
@@ -424,7 +428,7 @@ class MavsdkMobility:
             ack = await asyncio.wait_for(self._direct.send_command(message), self.command_timeout_s)
         except (MavlinkDirectError, TimeoutError) as exc:
             raise StatusError(
-                grpc.StatusCode.UNAVAILABLE,
+                grpc.StatusCode.DEADLINE_EXCEEDED,  # sent: it may have acted
                 f"vehicle at {self.url} did not acknowledge {what}: {exc}",
             ) from exc
         result = json.loads(ack.fields_json or "{}").get("result")

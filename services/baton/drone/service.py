@@ -15,6 +15,7 @@ import sys
 import time
 from collections.abc import AsyncIterator, Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import grpc
 
@@ -46,6 +47,12 @@ async def latest_position(vehicle: MobilityBackend) -> api.Position:
     except (StatusError, TimeoutError):
         return api.Position()
     return reply.position
+
+
+def _retrieve_exception(task: asyncio.Task[Any]) -> None:
+    """Marks a shielded request's failure as seen when its caller is gone (no asyncio warning)."""
+    if not task.cancelled():
+        task.exception()
 
 
 class DroneService(drone_pb2_grpc.DroneServicer):
@@ -102,13 +109,30 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     ) -> drone_pb2.InvokeReply:
         """Invoke without gRPC: the reply, or StatusError saying why not.
 
-        Two kinds of failure: the protocol's rejections (not the master,
+        Three kinds of failure: the protocol's rejections (not the master,
         wrong reqnr, a duplicate that differs) leave the reqnr unused and
-        carry ``baton-master`` / ``baton-after-reqnr`` metadata; a request
-        that fails after its reqnr was accepted (bad method or payload,
-        vehicle down, autopilot refusal) is served with that failure, which
-        is cached and given again to a duplicate (see dedupe.py).
+        carry ``baton-master`` / ``baton-after-reqnr`` metadata; UNAVAILABLE
+        (the vehicle not connected, no telemetry yet) means nothing was
+        executed, so the reqnr stays unused too and the same request can be
+        sent again; any other failure after the reqnr was accepted (bad
+        method or payload, autopilot refusal, no acknowledgement in time) is
+        served with that failure, which is cached and given again to a
+        duplicate (see dedupe.py).
+
+        A request runs to its end once it is received, whatever its caller
+        does: it is a task of its own that the caller's cancellation (a
+        deadline, a client that gave up) does not reach, so what the vehicle
+        did is always recorded and a re-sent reqnr is answered from the
+        cache, never executed again. A duplicate that arrives meanwhile
+        waits for it (the lock) and gets its outcome.
         """
+        task = asyncio.create_task(self._invoke_to_the_end(request, received_at))
+        task.add_done_callback(_retrieve_exception)
+        return await asyncio.shield(task)
+
+    async def _invoke_to_the_end(
+        self, request: drone_pb2.InvokeRequest, received_at: float
+    ) -> drone_pb2.InvokeReply:
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         async with self._lock:
             if cid != self.masters.master:
@@ -123,7 +147,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             try:
                 reply = await self._execute(request)
             except StatusError as err:
-                self._served(request, digest, b"", received_at, err)
+                if err.code is not grpc.StatusCode.UNAVAILABLE:
+                    self._served(request, digest, b"", received_at, err)
                 raise
             self._served(request, digest, reply, received_at)
         if (

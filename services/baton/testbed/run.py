@@ -64,6 +64,11 @@ class Progress:
         )
         drone = snapshot.drone
         vehicle = "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
+        vehicle += "".join(
+            f" | c{cid} waiting: {c.waiting}"
+            for cid, c in sorted(snapshot.controllers.items())
+            if c.waiting
+        )
         print(
             f"{self._stamp()} waypoint {snapshot.pictures}/{self.waypoints} | "
             f"master {drone.master} | reqnr {drone.last_reqnr} | "
