@@ -136,6 +136,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         metavar="K",
         help="replies kept for duplicate requests (default: 16; see baton/drone/dedupe.py)",
     )
+    parser.add_argument(
+        "--state",
+        metavar="FILE",
+        help="keep the drone's state (master, last request number, reply cache, audit, "
+        "handover-script position, the request being executed) in this SQLite file and "
+        "resume from it at start, so a restart or a kill -9 loses none of it; without it "
+        "the state lives in memory only (see baton/drone/store.py)",
+    )
     parser.set_defaults(run=run)
 
 
@@ -180,6 +188,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         cache_window=args.cache_window or DEFAULT_WINDOW,
         address_file=args.address_file,
         race=Race(args.force_race, args.race_delay) if args.force_race else None,
+        state_file=args.state,
     )
 
 

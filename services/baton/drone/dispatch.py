@@ -45,7 +45,8 @@ class Route:
 
     @property
     def is_read(self) -> bool:
-        """Reads (Get*) are logged at debug level; commands at info."""
+        """Reads (Get*) change nothing: logged at debug level (commands at info), and
+        executed again when a restart cut them off (store.py)."""
         return self.name.startswith("Get")
 
     def parse(self, payload: bytes) -> Message:

@@ -25,6 +25,7 @@ from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, ReplyCache
 from baton.drone.dispatch import Dispatcher
 from baton.drone.master import MasterSelection, ScriptedHandover
 from baton.drone.mobility_api import MobilityBackend
+from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import write_atomically
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
@@ -66,8 +67,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         script: Mapping[int, ScriptedHandover] | None = None,
         cache_window: int = DEFAULT_WINDOW,
         race: Race | None = None,
+        store: DroneStore | None = None,
     ) -> None:
         self.race = race
+        self.store = store
+        self._fired_script: list[int] = []
         self.vehicle = vehicle
         self.camera = camera
         self.masters = masters
@@ -84,6 +88,68 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.log = get_logger("drone").bind(
             context=lambda: {"master": self.masters.master, "last_reqnr": self.last_reqnr}
         )
+        if store is not None:
+            self._restore(store)
+
+    # -- durable state (store.py) ---------------------------------------------------
+
+    def _counters(self) -> Counters:
+        return Counters(
+            master=self.masters.master,
+            last_reqnr=self.last_reqnr,
+            executed=self.executed,
+            duplicates=self.duplicates,
+            rejected=self.rejected,
+            handovers=list(self.masters.handovers),
+            fired_script=list(self._fired_script),
+        )
+
+    def _restore(self, store: DroneStore) -> None:
+        """Resumes from the store: master, counters, replies, audit, script, a request cut off."""
+        state = store.load()
+        if state is None:
+            store.save(self._counters())
+            self.log.info("new state file", path=str(store.path))
+            return
+        c = state.counters
+        self.masters.master = c.master
+        self.masters.handovers[:] = c.handovers
+        self.last_reqnr, self.executed = c.last_reqnr, c.executed
+        self.duplicates, self.rejected = c.duplicates, c.rejected
+        for reply in state.replies:
+            self.cache.store(reply.reqnr, reply.method, reply.digest, reply.reply, reply.error)
+        self.audit = state.audit
+        self._fired_script = list(c.fired_script)
+        for reqnr in c.fired_script:
+            self.script.pop(reqnr, None)
+        self.log.info(
+            "state resumed",
+            path=str(store.path),
+            master=c.master,
+            last_reqnr=c.last_reqnr,
+            cached_replies=len(state.replies),
+            audit=len(state.audit),
+            script_left=len(self.script),
+        )
+        cut = state.executing
+        if cut is None:
+            return
+        route = self.dispatcher.routes.get(cut.method)
+        if route is not None and route.is_read:
+            store.abandon()  # a read changed nothing: the re-sent request executes it again
+            self.log.info("read cut off by the restart: will execute again", reqnr=cut.reqnr)
+            return
+        # The vehicle may have acted on it: at most once, so it is never executed again.
+        error = StatusError(
+            grpc.StatusCode.UNKNOWN,
+            f"{cut.method} (request {cut.reqnr}) was being executed when the drone service "
+            "restarted: the vehicle may have acted on it, so it is not executed again",
+        )
+        request = drone_pb2.InvokeRequest(
+            controller_id=cut.controller_id, reqnr=cut.reqnr, method=cut.method
+        )
+        self.log.warning("request cut off by the restart", reqnr=cut.reqnr, method=cut.method)
+        self._served(request, cut.digest, b"", cut.received_at, error)
 
     async def Invoke(
         self, request: drone_pb2.InvokeRequest, context: grpc.aio.ServicerContext
@@ -144,11 +210,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 return self._answer_duplicate(request, digest, cached)
             if reqnr <= self.last_reqnr:
                 raise self._bad_reqnr(reqnr)
+            if self.store is not None:
+                self.store.begin(Intent(reqnr, method, digest, cid, received_at))
             try:
                 reply = await self._execute(request)
             except StatusError as err:
                 if err.code is not grpc.StatusCode.UNAVAILABLE:
                     self._served(request, digest, b"", received_at, err)
+                elif self.store is not None:
+                    self.store.abandon()
                 raise
             self._served(request, digest, reply, received_at)
         if (
@@ -257,15 +327,22 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         # (in Invoke) but is audited, so the audit's reqnrs have no gaps.
         if error is None:
             self.executed += 1
-        self.audit.append(
-            drone_pb2.AuditEntry(
-                reqnr=reqnr,
-                method=request.method,
-                controller_id=request.controller_id,
-                received_at=received_at,
-                reply_bytes=len(reply),
-            )
+        entry = drone_pb2.AuditEntry(
+            reqnr=reqnr,
+            method=request.method,
+            controller_id=request.controller_id,
+            received_at=received_at,
+            reply_bytes=len(reply),
         )
+        self.audit.append(entry)
+        self._fire_script(reqnr)
+        if self.store is not None:
+            cached = self.cache.get(reqnr)
+            assert cached is not None
+            self.store.served(self._counters(), cached, entry, self.cache.reqnrs[0])
+
+    def _fire_script(self, reqnr: int) -> None:
+        """The handover script's line due after request ``reqnr``, if any."""
         # A scripted handover fires after the first request served at or past
         # its reqnr: request numbers the controllers answer themselves (Clock)
         # never reach the drone.
@@ -273,6 +350,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         if not due:
             return
         scripted = self.script.pop(min(due))
+        self._fired_script.append(min(due))
         if scripted.new_master == self.masters.master:
             self.log.warning(
                 "scripted handover skipped: already the master",
@@ -334,6 +412,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.masters.check_known(request.new_master)
             async with self._lock:
                 record = self.masters.switch(request.new_master, self.last_reqnr, "rpc")
+                if self.store is not None:
+                    self.store.save(self._counters())
         except StatusError as err:
             self.log.warning("handover rejected", new_master=request.new_master, reason=err.message)
             await abort_with(context, err)
@@ -408,6 +488,7 @@ class DroneSettings:
     cache_window: int = DEFAULT_WINDOW
     address_file: str | None = None
     race: Race | None = None
+    state_file: str | None = None  # the durable state (store.py); None: memory only
 
     @property
     def master(self) -> int:
@@ -423,8 +504,15 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
 
     camera = Camera(position, settings.image_file, settings.resolution)
     masters = MasterSelection(settings.controllers, settings.master)
+    store = DroneStore(settings.state_file) if settings.state_file else None
     return DroneService(
-        vehicle, camera, masters, settings.handover_script, settings.cache_window, settings.race
+        vehicle,
+        camera,
+        masters,
+        settings.handover_script,
+        settings.cache_window,
+        settings.race,
+        store,
     )
 
 
@@ -462,6 +550,8 @@ async def serve(
     finally:
         await server.stop()
         await vehicle.close()
+        if service.store is not None:
+            service.store.close()
         log.info("stopped", executed=service.executed, last_reqnr=service.last_reqnr)
     sys.stdout.flush()
     return 0

@@ -248,6 +248,15 @@ class LocalTestbed:
         script = self.workdir / "handovers.txt"
         script.write_text(handover_file_text(self.plan.handovers))
         ready = self.workdir / "drone.address"
+        # A new mission: no state of an earlier run in this workdir (a restarted
+        # drone of this run keeps it: the same argv).
+        state = self.workdir / "drone-state.sqlite"
+        for stale in (
+            state,
+            state.with_name(state.name + "-wal"),
+            state.with_name(state.name + "-shm"),
+        ):
+            stale.unlink(missing_ok=True)
         argv = baton_argv(
             "drone",
             "--config",
@@ -256,6 +265,8 @@ class LocalTestbed:
             str(script),
             "--address-file",
             str(ready),
+            "--state",
+            str(state),
         )
         if self.plan.resolution:
             argv += ["--resolution", self.plan.resolution]

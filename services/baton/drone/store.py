@@ -1,0 +1,241 @@
+"""The drone's durable state: what a restarted drone service must not forget.
+
+The drone service runs on the drone's companion computer, which can crash or
+be restarted mid-mission. What it knows decides what the vehicle does next:
+who the master is, the last request number it served, the replies it must
+give again to a re-sent request (the reply cache), the audit, how far the
+handover script has got, and the request it was executing when it died. All
+of it is kept in one SQLite file (the standard library's), written in the
+same transaction as the request it belongs to, so a kill -9 at any point
+loses nothing that a caller was told.
+
+The request being executed is written first (an *intent*) and cleared with
+its outcome. An intent found at start means the drone died while the vehicle
+may have been acting on it: a read is executed again when it is re-sent (it
+changes nothing), a command is answered with UNKNOWN and never executed a
+second time (at most once, counted at the vehicle).
+
+Durability: WAL with ``synchronous=NORMAL``, which survives the process
+being killed (the operating system keeps what was written); a power cut may
+lose the last transactions. ``synchronous=FULL`` would cost an fsync per
+request.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import grpc
+
+from baton.drone.dedupe import CachedReply
+from baton.rpc.errors import StatusError
+from baton.v1 import drone_pb2
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS state (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    master INTEGER NOT NULL,
+    last_reqnr INTEGER NOT NULL,
+    executed INTEGER NOT NULL,
+    duplicates INTEGER NOT NULL,
+    rejected INTEGER NOT NULL,
+    handovers BLOB NOT NULL,
+    fired_script TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS replies (
+    reqnr INTEGER PRIMARY KEY,
+    method TEXT NOT NULL,
+    digest BLOB NOT NULL,
+    reply BLOB NOT NULL,
+    code INTEGER,
+    message TEXT,
+    metadata TEXT
+);
+CREATE TABLE IF NOT EXISTS audit (reqnr INTEGER PRIMARY KEY, entry BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS executing (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    reqnr INTEGER NOT NULL,
+    method TEXT NOT NULL,
+    digest BLOB NOT NULL,
+    controller_id INTEGER NOT NULL,
+    received_at REAL NOT NULL
+);
+"""
+
+_CODES = {code.value[0]: code for code in grpc.StatusCode}
+
+
+@dataclass
+class Counters:
+    """The drone's counters and position in the mission, as GetStatus shows them."""
+
+    master: int
+    last_reqnr: int = 0
+    executed: int = 0
+    duplicates: int = 0
+    rejected: int = 0
+    handovers: list[drone_pb2.HandoverRecord] = field(default_factory=list)
+    fired_script: list[int] = field(default_factory=list)  # script reqnrs already fired
+
+
+@dataclass(frozen=True)
+class Intent:
+    """A request the drone had started to execute."""
+
+    reqnr: int
+    method: str
+    digest: bytes
+    controller_id: int
+    received_at: float
+
+
+@dataclass
+class DroneState:
+    """Everything the store holds, as loaded at start."""
+
+    counters: Counters
+    replies: list[CachedReply]
+    audit: list[drone_pb2.AuditEntry]
+    executing: Intent | None
+
+
+class DroneStore:
+    """One SQLite file; every write is one transaction."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(self.path, isolation_level=None)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")
+        self._db.executescript(SCHEMA)
+
+    def close(self) -> None:
+        """Closes the file."""
+        self._db.close()
+
+    def load(self) -> DroneState | None:
+        """What was stored; None for a new file."""
+        row = self._db.execute(
+            "SELECT master, last_reqnr, executed, duplicates, rejected, handovers, fired_script "
+            "FROM state WHERE id = 1"
+        ).fetchone()
+        if row is None:
+            return None
+        master, last_reqnr, executed, duplicates, rejected, handovers, fired = row
+        counters = Counters(
+            master,
+            last_reqnr,
+            executed,
+            duplicates,
+            rejected,
+            list(drone_pb2.DroneStatus.FromString(handovers).handovers),
+            list(json.loads(fired)),
+        )
+        replies = [
+            CachedReply(reqnr, method, bytes(digest), bytes(reply), _error(code, message, meta))
+            for reqnr, method, digest, reply, code, message, meta in self._db.execute(
+                "SELECT reqnr, method, digest, reply, code, message, metadata FROM replies "
+                "ORDER BY reqnr"
+            )
+        ]
+        audit = [
+            drone_pb2.AuditEntry.FromString(entry)
+            for (entry,) in self._db.execute("SELECT entry FROM audit ORDER BY reqnr")
+        ]
+        intent = self._db.execute(
+            "SELECT reqnr, method, digest, controller_id, received_at FROM executing WHERE id = 1"
+        ).fetchone()
+        executing = None
+        if intent is not None:
+            reqnr, method, digest, controller_id, received_at = intent
+            executing = Intent(reqnr, method, bytes(digest), controller_id, received_at)
+        return DroneState(counters, replies, audit, executing)
+
+    def begin(self, intent: Intent) -> None:
+        """Notes the request about to be executed."""
+        self._db.execute(
+            "INSERT OR REPLACE INTO executing (id, reqnr, method, digest, controller_id, "
+            "received_at) VALUES (1, ?, ?, ?, ?, ?)",
+            (intent.reqnr, intent.method, intent.digest, intent.controller_id, intent.received_at),
+        )
+
+    def abandon(self) -> None:
+        """The request noted by ``begin`` executed nothing (its reqnr stays unused)."""
+        self._db.execute("DELETE FROM executing")
+
+    def served(
+        self,
+        counters: Counters,
+        reply: CachedReply,
+        audit: drone_pb2.AuditEntry,
+        oldest_cached: int,
+    ) -> None:
+        """A request's outcome, its audit entry and the counters, in one transaction."""
+        error = reply.error
+        with self._transaction():
+            self._db.execute(
+                "INSERT OR REPLACE INTO replies VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (
+                    reply.reqnr,
+                    reply.method,
+                    reply.digest,
+                    reply.reply,
+                    None if error is None else error.code.value[0],
+                    None if error is None else error.message,
+                    None if error is None else json.dumps(list(error.metadata)),
+                ),
+            )
+            self._db.execute("DELETE FROM replies WHERE reqnr < ?", (oldest_cached,))
+            self._db.execute(
+                "INSERT OR REPLACE INTO audit VALUES (?, ?)",
+                (audit.reqnr, audit.SerializeToString()),
+            )
+            self._db.execute("DELETE FROM executing")
+            self._write_counters(counters)
+
+    def save(self, counters: Counters) -> None:
+        """The counters alone (a handover between requests)."""
+        with self._transaction():
+            self._write_counters(counters)
+
+    def _write_counters(self, c: Counters) -> None:
+        handovers = drone_pb2.DroneStatus(handovers=c.handovers).SerializeToString()
+        self._db.execute(
+            "INSERT OR REPLACE INTO state VALUES (1, ?, ?, ?, ?, ?, ?, ?)",
+            (
+                c.master,
+                c.last_reqnr,
+                c.executed,
+                c.duplicates,
+                c.rejected,
+                handovers,
+                json.dumps(sorted(c.fired_script)),
+            ),
+        )
+
+    def _transaction(self) -> _Transaction:
+        return _Transaction(self._db)
+
+
+class _Transaction:
+    """BEGIN ... COMMIT, or ROLLBACK on an exception."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+
+    def __enter__(self) -> None:
+        self._db.execute("BEGIN")
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        self._db.execute("COMMIT" if exc_type is None else "ROLLBACK")
+
+
+def _error(code: int | None, message: str | None, metadata: str | None) -> StatusError | None:
+    if code is None:
+        return None
+    pairs = [(str(k), str(v)) for k, v in json.loads(metadata or "[]")]
+    return StatusError(_CODES[code], message or "", metadata=pairs)

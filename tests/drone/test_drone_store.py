@@ -1,0 +1,103 @@
+"""A restarted drone service resumes from its state file (issue 9, defect 10).
+
+In-process drone services over real gRPC channels, one after the other on
+the same SQLite file; the end-to-end kill -9 mid-mission is in
+``tests/controller/test_faults_mid_mission.py``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import grpc
+from drone_harness import DroneUnderTest, start_drone
+from test_drone_service import ARM, POSITION, TAKEOFF, expect_error, invoke
+
+from baton.digest import request_digest
+from baton.drone.store import DroneStore, Intent
+from baton.rpc.server import BatonServer
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2
+
+SCRIPT = "# after 2 to 1, after 5 to 2\n2 1\n5 2\n"
+
+
+async def restart(
+    previous: tuple[DroneUnderTest, BatonServer] | None, state: Path, script: str = SCRIPT
+) -> tuple[DroneUnderTest, BatonServer]:
+    """Stops the running drone (if any) and starts another on the same state file."""
+    if previous is not None:
+        drone, server = previous
+        await server.stop(0)
+        assert drone.service.store is not None
+        drone.service.store.close()
+    return await start_drone(script=script, state_file=str(state))
+
+
+async def test_a_restarted_drone_resumes_master_requests_cache_audit_and_script(
+    tmp_path: Path,
+) -> None:
+    state = tmp_path / "drone.sqlite"
+    first = await restart(None, state)
+    drone = first[0]
+    await drone.stub.Invoke(invoke(0, 1, POSITION))
+    await drone.stub.Invoke(invoke(0, 2, ARM))  # the script's line "2 1" fires
+    await drone.stub.Invoke(invoke(1, 3, POSITION))
+    second = await restart(first, state)
+    drone = second[0]
+    try:
+        status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest(include_audit=True))
+        assert status.master == 1 and status.last_reqnr == 3 and status.executed == 3
+        assert [a.reqnr for a in status.audit] == [1, 2, 3]
+        assert [(h.old_master, h.new_master, h.after_reqnr) for h in status.handovers] == [
+            (0, 1, 2)
+        ]
+        assert status.handovers[0].delay_s > 0  # the new master's first request, kept too
+        # The request in flight at the handover, re-sent by the new master: from the cache.
+        again = await drone.stub.Invoke(invoke(1, 2, ARM))
+        assert again.duplicate and "Arm" not in drone.vehicle.calls
+        await expect_error(
+            drone.stub.Invoke(invoke(0, 4, POSITION)), grpc.StatusCode.FAILED_PRECONDITION
+        )
+        # The script goes on from where it was: "2 1" is not fired again, "5 2" is.
+        await drone.stub.Invoke(invoke(1, 4, POSITION))
+        await drone.stub.Invoke(invoke(1, 5, POSITION))
+        status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert status.master == 2 and len(status.handovers) == 2
+    finally:
+        await second[1].stop(0)
+
+
+async def test_a_command_cut_off_by_a_restart_is_never_executed_again(tmp_path: Path) -> None:
+    state = tmp_path / "drone.sqlite"
+    first = await restart(None, state, script="")
+    await first[0].stub.Invoke(invoke(0, 1, ARM))
+    takeoff = invoke(0, 2, TAKEOFF, api.TakeoffRequest(altitude_m=10))
+    # What a kill -9 leaves behind in the middle of request 2 (the store's own record).
+    digest = request_digest(TAKEOFF, takeoff.payload)
+    first[0].service.store.begin(Intent(2, TAKEOFF, digest, 0, 1.0))  # type: ignore[union-attr]
+    second = await restart(first, state, script="")
+    drone = second[0]
+    try:
+        error = await expect_error(drone.stub.Invoke(takeoff), grpc.StatusCode.UNKNOWN)
+        assert "the vehicle may have acted" in (error.details() or "")
+        assert "Takeoff" not in drone.vehicle.calls
+        status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest(include_audit=True))
+        assert [a.reqnr for a in status.audit] == [1, 2]
+    finally:
+        await second[1].stop(0)
+
+
+async def test_a_read_cut_off_by_a_restart_is_executed_when_re_sent(tmp_path: Path) -> None:
+    state = tmp_path / "drone.sqlite"
+    store = DroneStore(state)
+    store.close()
+    first = await restart(None, state)
+    first[0].service.store.begin(Intent(1, POSITION, b"d", 0, 1.0))  # type: ignore[union-attr]
+    second = await restart(first, state)
+    drone = second[0]
+    try:
+        reply = await drone.stub.Invoke(invoke(0, 1, POSITION))
+        assert not reply.duplicate and drone.vehicle.calls.count("GetPosition") == 1
+    finally:
+        await second[1].stop(0)
