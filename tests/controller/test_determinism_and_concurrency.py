@@ -8,13 +8,17 @@ from pathlib import Path
 
 import grpc
 import pytest
+from test_controller_end_to_end import FAST_LINK, SMALL_GRID, assert_mission_promises
 
 from baton.config import LinkSpec, parse_config
 from baton.controller.node import ControllerNode
+from baton.rpc.channels import aio_channel
 from baton.rpc.errors import StatusError
 from baton.sdk.drone import _Caller
 from baton.sdk.errors import ConcurrentCallError
 from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_api_pb2_grpc, ring_pb2, ring_pb2_grpc
 
 MISSIONS = Path(__file__).parent / "missions"
 
@@ -69,6 +73,43 @@ async def test_a_call_the_program_gave_up_on_is_logged_as_it_saw_it(tmp_path: Pa
     assert {c.drone_calls for c in snapshot.controllers.values()} == {len(audit)}
 
 
+async def test_an_outsider_calling_the_masters_proxy_is_refused_and_changes_nothing(
+    tmp_path: Path,
+) -> None:
+    """Issue 9, defect 6: only the mission program may call a controller's drone API."""
+    plan = TestbedPlan(
+        controllers=2,
+        flush_limit=0,
+        handovers=((10, 1),),
+        speedup=20.0,
+        mission=SMALL_GRID,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        assert testbed.config is not None
+        deadline = asyncio.get_running_loop().time() + 120
+        while (await testbed.snapshot(audit=False)).drone.last_reqnr < 5:
+            assert asyncio.get_running_loop().time() < deadline, "mission did not start"
+            await asyncio.sleep(0.05)
+        async with aio_channel(testbed.config.controller(0).address) as channel:
+            mobility = drone_api_pb2_grpc.MobilityStub(channel)
+            for _ in range(20):  # a monitoring tool polling the master
+                with pytest.raises(grpc.aio.AioRpcError) as refused:
+                    await mobility.GetHome(api.GetHomeRequest())
+                assert refused.value.code() == grpc.StatusCode.PERMISSION_DENIED
+                assert "mission program only" in (refused.value.details() or "")
+            ring = ring_pb2_grpc.ControllerRingStub(channel)
+            with pytest.raises(grpc.aio.AioRpcError) as refused:
+                await ring.MissionDone(ring_pb2.MissionDoneRequest(failed=True, error="forged"))
+            assert refused.value.code() == grpc.StatusCode.PERMISSION_DENIED
+            status = await ring.GetStatus(ring_pb2.GetControllerStatusRequest())  # open
+            assert status.mission == "running"
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert not any(a.method.endswith("/GetHome") for a in snapshot.drone.audit)
+
+
 async def test_the_controller_refuses_a_second_concurrent_call() -> None:
     config = parse_config(
         {"controllers": [{"id": 0, "address": "127.0.0.1:1"}, {"id": 1, "address": "127.0.0.1:2"}]}
@@ -87,7 +128,7 @@ def test_the_sdk_refuses_a_second_concurrent_call() -> None:
     caller = _Caller()
     entered, release = threading.Event(), threading.Event()
 
-    def slow(request: object, wait_for_ready: bool) -> str:
+    def slow(request: object, wait_for_ready: bool, metadata: object) -> str:
         entered.set()
         release.wait(10)
         return "reply"
@@ -99,4 +140,4 @@ def test_the_sdk_refuses_a_second_concurrent_call() -> None:
         caller("Camera.TakePicture", slow, None)
     release.set()
     worker.join(10)
-    assert caller("Mobility.GetPosition", lambda request, wait_for_ready: "ok", None) == "ok"
+    assert caller("Mobility.GetPosition", lambda request, **options: "ok", None) == "ok"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable
 from types import TracebackType
@@ -10,6 +11,7 @@ from typing import Any, TypeVar
 import grpc
 
 from baton.rpc.channels import sync_channel
+from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
 from baton.sdk.errors import ConcurrentCallError, DroneCallError
 from baton.sdk.types import FlightState, Picture, Position
 from baton.v1 import drone_api_pb2 as api
@@ -21,8 +23,9 @@ ReplyT = TypeVar("ReplyT")
 class _Caller:
     """Makes one call at a time and turns gRPC errors into DroneCallError."""
 
-    def __init__(self) -> None:
+    def __init__(self, metadata: tuple[tuple[str, str], ...] = ()) -> None:
         self._lock = threading.Lock()
+        self.metadata = metadata  # the mission token (baton.rpc.mission), if given
 
     def __call__(self, rpc: str, method: Callable[..., ReplyT], request: Any) -> ReplyT:
         if not self._lock.acquire(blocking=False):
@@ -32,7 +35,7 @@ class _Caller:
             )
         try:
             # No deadline: a PASSIVE controller holds the call until it may answer.
-            return method(request, wait_for_ready=True)
+            return method(request, wait_for_ready=True, metadata=self.metadata)
         except grpc.RpcError as exc:
             code = exc.code() if isinstance(exc, grpc.Call) else grpc.StatusCode.UNKNOWN
             details = (exc.details() if isinstance(exc, grpc.Call) else str(exc)) or ""
@@ -156,7 +159,9 @@ class Drone:
     def __init__(self, address: str) -> None:
         self.address = address
         self._channel = sync_channel(address)
-        call = _Caller()
+        token = os.environ.get(MISSION_TOKEN_ENV)
+        call = _Caller(((MISSION_TOKEN_METADATA, token),) if token else ())
+        self._metadata = call.metadata
         self.mobility = Mobility(self._channel, call)
         self.camera = Camera(self._channel, call)
         self.clock = Clock(self._channel, call)
@@ -166,7 +171,9 @@ class Drone:
         """Tells the controller the mission has ended, then closes the channel."""
         try:
             self._ring.MissionDone(
-                ring_pb2.MissionDoneRequest(failed=bool(error), error=error), timeout=10
+                ring_pb2.MissionDoneRequest(failed=bool(error), error=error),
+                timeout=10,
+                metadata=self._metadata,
             )
         except grpc.RpcError:
             pass  # the controller is gone: nothing left to flush to

@@ -15,6 +15,8 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import secrets
 import statistics
 import time
 from dataclasses import dataclass
@@ -34,6 +36,7 @@ from baton.drone.measure import summary_ms
 from baton.link.proxy import LinkProxy
 from baton.logs import get_logger
 from baton.rpc.channels import aio_channel
+from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
 from baton.rpc.server import BatonServer
 from baton.testbed.local import LocalTestbed, TestbedPlan
 from baton.v1 import drone_api_pb2 as api
@@ -75,6 +78,10 @@ async def measure_proxy_and_drone(settings: MicroSettings, workdir: Path) -> dic
         emulate_links=False,
     )
     workdir.mkdir(parents=True, exist_ok=True)
+    # This process calls controller 0's proxy as its mission program: the
+    # controllers it starts take the token from the environment (rpc/mission.py).
+    token = os.environ.setdefault(MISSION_TOKEN_ENV, secrets.token_urlsafe(18))
+    as_program = ((MISSION_TOKEN_METADATA, token),)
     say("micro: starting a drone and 2 controllers (no link emulation)")
     async with LocalTestbed(plan, workdir) as testbed:
         config = testbed.config
@@ -83,12 +90,14 @@ async def measure_proxy_and_drone(settings: MicroSettings, workdir: Path) -> dic
         mobility = drone_api_pb2_grpc.MobilityStub(channel)
         request = api.GetPositionRequest()
         for _ in range(50):  # warm up; the first calls wait for the vehicle
-            await mobility.GetPosition(request, wait_for_ready=True, timeout=60)
+            await mobility.GetPosition(
+                request, wait_for_ready=True, timeout=60, metadata=as_program
+            )
         say(f"micro: {settings.calls} GetPosition calls through controller 0's proxy")
         proxy = []
         for _ in range(settings.calls):
             start = time.perf_counter()
-            await mobility.GetPosition(request)
+            await mobility.GetPosition(request, metadata=as_program)
             proxy.append(time.perf_counter() - start)
         await channel.close()
         snapshot = await testbed.snapshot(audit=False)

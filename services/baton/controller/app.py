@@ -5,12 +5,14 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import secrets
 import sys
 
 from baton.config import BatonConfig
 from baton.controller.node import ControllerNode
 from baton.controller.service import PROXIED_SERVICES, ControllerRingService, DroneApiProxy
 from baton.lifecycle import write_atomically
+from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.server import BatonServer, run_until_signalled
 from baton.v1 import ring_pb2_grpc
 
@@ -27,11 +29,21 @@ class ControllerApp:
     ) -> None:
         self.config = config
         self.node = ControllerNode(config, cid)
+        # The mission program's token (rpc/mission.py): given in the environment
+        # (a program started by hand), else made up for the program started here.
+        self.token = os.environ.get(MISSION_TOKEN_ENV) or (
+            secrets.token_urlsafe(18) if mission else None
+        )
+        if self.token is None:
+            self.node.log.warning(
+                "no mission token: anyone who reaches this controller can call the drone API "
+                f"through it (set {MISSION_TOKEN_ENV} here and for the mission program)"
+            )
         names = [f"baton.v1.{name}" for name in PROXIED_SERVICES] + ["baton.v1.ControllerRing"]
         self.server = BatonServer(config.controller(cid).address, names)
-        self.server.server.add_generic_rpc_handlers((DroneApiProxy(self.node),))
+        self.server.server.add_generic_rpc_handlers((DroneApiProxy(self.node, self.token),))
         ring_pb2_grpc.add_ControllerRingServicer_to_server(
-            ControllerRingService(self.node), self.server.server
+            ControllerRingService(self.node, self.token), self.server.server
         )
         self.mission = mission
         self.mission_args = mission_args or []
@@ -52,6 +64,7 @@ class ControllerApp:
                 self.mission,
                 self.server.address,
                 *self.mission_args,
+                env={**os.environ, MISSION_TOKEN_ENV: self.token or ""},
             )
             self._watcher = asyncio.create_task(self._watch_mission(self.mission_process))
 

@@ -8,6 +8,7 @@ serialized end to end: the controller logs and forwards bytes.
 
 from __future__ import annotations
 
+import hmac
 import math
 from collections.abc import Awaitable, Callable
 
@@ -17,6 +18,7 @@ from google.protobuf import message as protobuf_message
 from baton.controller.node import CLOCK_SLEEP, ControllerNode
 from baton.controller.ring import RingReceiver
 from baton.rpc.errors import StatusError, abort_with
+from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA, token_in
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
@@ -40,11 +42,34 @@ def status_of(code: int) -> grpc.StatusCode:
     return _STATUS_BY_CODE.get(code, grpc.StatusCode.UNKNOWN)
 
 
-class DroneApiProxy(grpc.GenericRpcHandler):
-    """Answers the local mission program's drone-API calls through the controller."""
+def caller_refused(
+    node_id: int, token: str | None, context: grpc.aio.ServicerContext, what: str
+) -> StatusError | None:
+    """PERMISSION_DENIED unless the caller is the mission program (rpc/mission.py)."""
+    if token is None:
+        return None
+    sent = token_in(context.invocation_metadata())
+    if sent is not None and hmac.compare_digest(sent, token):
+        return None
+    return StatusError(
+        grpc.StatusCode.PERMISSION_DENIED,
+        f"controller {node_id}: {what} is for this controller's mission program only, which "
+        f"sends the {MISSION_TOKEN_METADATA} metadata it was given in {MISSION_TOKEN_ENV}; "
+        f"this call sent {'none' if sent is None else 'another token'}. Nothing was "
+        "changed. GetStatus is open to anyone.",
+    )
 
-    def __init__(self, node: ControllerNode) -> None:
+
+class DroneApiProxy(grpc.GenericRpcHandler):
+    """Answers the local mission program's drone-API calls through the controller.
+
+    With a mission token (``rpc/mission.py``), calls without it are refused
+    before they reach the node: they take no request number and hold no call.
+    """
+
+    def __init__(self, node: ControllerNode, token: str | None = None) -> None:
         self._node = node
+        self._token = token
         self._methods = proxied_methods()
 
     def service(
@@ -61,6 +86,9 @@ class DroneApiProxy(grpc.GenericRpcHandler):
         self, method: str, request_class: type[protobuf_message.Message]
     ) -> Callable[[bytes, grpc.aio.ServicerContext], Awaitable[bytes]]:
         async def handle(request: bytes, context: grpc.aio.ServicerContext) -> bytes:
+            refused = caller_refused(self._node.id, self._token, context, method)
+            if refused is not None:
+                await abort_with(context, refused)
             try:
                 parsed = request_class.FromString(request)
             except protobuf_message.DecodeError as exc:
@@ -102,8 +130,9 @@ def _check_sleep(request: protobuf_message.Message) -> None:
 class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
     """LogRing, GetStatus and MissionDone of one controller."""
 
-    def __init__(self, node: ControllerNode) -> None:
+    def __init__(self, node: ControllerNode, token: str | None = None) -> None:
         self._node = node
+        self._token = token
         self._receiver = RingReceiver(node.id, lambda: node.protocol.lognr, node.on_log, node.log)
 
     async def LogRing(self, request_iterator: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[override]
@@ -120,6 +149,9 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
         self, request: ring_pb2.MissionDoneRequest, context: grpc.aio.ServicerContext
     ) -> ring_pb2.MissionDoneReply:
         """The local mission program ended; the master flushes its last log entries."""
+        refused = caller_refused(self._node.id, self._token, context, "MissionDone")
+        if refused is not None:
+            await abort_with(context, refused)
         flushed = await self._node.mission_done(request.failed, request.error)
         return ring_pb2.MissionDoneReply(flushed=flushed, lognr=self._node.protocol.lognr)
 
