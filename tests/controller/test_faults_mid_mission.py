@@ -25,19 +25,14 @@ from pathlib import Path
 
 import pytest
 from test_controller_end_to_end import FAST_LINK, assert_mission_promises
+from waiting import eventually
 
 from baton.testbed.local import LocalTestbed, MissionPlan, TestbedPlan
+from baton.v1 import drone_pb2, ring_pb2
 
 # Long legs (100 m at 5 m/s: 1 s of wall time at speed-up 20) so that the pause
 # lands while the mission polls the position between two commands.
 LONG_LEGS = MissionPlan(grid=2, spacing_m=100.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
-
-
-async def eventually(what: str, check, timeout_s: float = 60.0) -> None:  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout_s
-    while not await check():
-        assert time.monotonic() < deadline, f"{what} not within {timeout_s} s"
-        await asyncio.sleep(0.02)
 
 
 async def flying_to_the_second_waypoint(testbed: LocalTestbed) -> bool:
@@ -68,7 +63,7 @@ async def test_the_mission_survives_a_vehicle_outage(tmp_path: Path, pause_s: fl
         assert vehicle is not None
 
         await eventually(
-            "the vehicle between waypoints", lambda: flying_to_the_second_waypoint(testbed)
+            lambda: flying_to_the_second_waypoint(testbed), "the vehicle between waypoints"
         )
         os.kill(vehicle.pid, signal.SIGSTOP)
         paused_at = time.monotonic()
@@ -79,7 +74,7 @@ async def test_the_mission_survives_a_vehicle_outage(tmp_path: Path, pause_s: fl
                 master = next(c for c in snapshot.controllers.values() if c.master)
                 return "drone unavailable" in master.waiting and not snapshot.drone.vehicle.healthy
 
-            await eventually("the wait shown in GetStatus", master_says_it_waits, pause_s)
+            await eventually(master_says_it_waits, "the wait shown in GetStatus", pause_s)
             await asyncio.sleep(max(0.0, pause_s - (time.monotonic() - paused_at)))  # the fault
         finally:
             os.kill(vehicle.pid, signal.SIGCONT)
@@ -102,7 +97,7 @@ async def test_the_drone_killed_and_restarted_resumes_the_mission(tmp_path: Path
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         await eventually(
-            "the vehicle between waypoints", lambda: flying_to_the_second_waypoint(testbed)
+            lambda: flying_to_the_second_waypoint(testbed), "the vehicle between waypoints"
         )
         before = (await testbed.snapshot(audit=False)).drone
         assert before.master == 1 and before.last_reqnr < 30
@@ -118,3 +113,39 @@ async def test_the_drone_killed_and_restarted_resumes_the_mission(tmp_path: Path
     assert_mission_promises(snapshot, plan)  # the audit from before the kill included
     log = (tmp_path / "logs" / "drone.log").read_text()
     assert '"state resumed"' in log
+
+
+async def test_a_dead_master_is_a_visible_stall_within_seconds(tmp_path: Path) -> None:
+    """Issue 9, defect 9: a drone whose master holds no stream, a replica whose successor
+    died: said in GetStatus and the logs within seconds, not a silent wait."""
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=0,
+        speedup=20.0,
+        mission=LONG_LEGS,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        assert testbed.drone_stub is not None
+        await eventually(
+            lambda: flying_to_the_second_waypoint(testbed), "the vehicle between waypoints"
+        )
+        master = testbed.supervisor.parts["controller-0"].process
+        assert master is not None
+        os.kill(master.pid, signal.SIGKILL)
+        killed_at = time.monotonic()
+        predecessor = testbed.controller_stubs[2]  # ring 0 -> 1 -> 2 -> 0
+
+        async def both_say_so() -> bool:
+            drone = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+            ring = await predecessor.GetStatus(ring_pb2.GetControllerStatusRequest())
+            return (
+                "controller 0, holds no Connect stream" in drone.waiting
+                and "ring stream to controller 0 down" in ring.waiting
+            )
+
+        await eventually(both_say_so, "the stalls reported", 15)
+        assert time.monotonic() - killed_at < 10
+    assert '"stalled"' in (tmp_path / "logs" / "drone.log").read_text()
+    assert '"stalled"' in (tmp_path / "logs" / "controller-2.log").read_text()

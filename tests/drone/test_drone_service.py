@@ -8,6 +8,7 @@ import grpc
 import pytest
 from drone_harness import DroneUnderTest, start_drone
 from google.protobuf.message import Message
+from waiting import eventually
 
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
@@ -91,6 +92,19 @@ async def test_request_numbers_may_skip_but_never_go_back(drone: DroneUnderTest)
     )
     assert "expected a reqnr above 5" in (error.details() or "")
     assert trailing(error)["baton-after-reqnr"] == "5"
+
+
+async def test_a_request_number_far_ahead_is_refused_and_blocks_nothing(
+    drone: DroneUnderTest,
+) -> None:
+    """Issue 9, defect 5: reqnr 2**64-1 used to be accepted, and every later request refused."""
+    await drone.stub.Invoke(invoke(0, 1, POSITION))
+    error = await expect_error(
+        drone.stub.Invoke(invoke(0, 2**64 - 1, POSITION)), grpc.StatusCode.FAILED_PRECONDITION
+    )
+    assert "more than 1000000 above the last one served (1)" in (error.details() or "")
+    assert (await drone.stub.Invoke(invoke(0, 2, POSITION))).reqnr == 2
+    assert (await drone.stub.Invoke(invoke(0, 1_000_002, POSITION))).reqnr == 1_000_002
 
 
 async def test_reqnr_zero_is_invalid(drone: DroneUnderTest) -> None:
@@ -266,13 +280,6 @@ async def test_handover_waits_for_the_request_being_served(drone: DroneUnderTest
     assert (await handover).after_reqnr == 1
 
 
-async def until(what: str, check, timeout_s: float = 10.0) -> None:  # type: ignore[no-untyped-def]
-    deadline = asyncio.get_running_loop().time() + timeout_s
-    while not check():
-        assert asyncio.get_running_loop().time() < deadline, f"{what} not within {timeout_s} s"
-        await asyncio.sleep(0.01)
-
-
 async def test_a_call_the_caller_gave_up_on_is_executed_once_and_recorded(
     drone: DroneUnderTest,
 ) -> None:
@@ -282,7 +289,7 @@ async def test_a_call_the_caller_gave_up_on_is_executed_once_and_recorded(
     await expect_error(drone.stub.Invoke(goto, timeout=0.3), grpc.StatusCode.DEADLINE_EXCEEDED)
     assert drone.vehicle.calls == ["Goto"]  # it reached the vehicle, which is still at it
     drone.vehicle.gate.set()
-    await until("the request recorded", lambda: drone.service.last_reqnr == 1)
+    await eventually(lambda: drone.service.last_reqnr == 1, "the request recorded")
     again = await drone.stub.Invoke(goto)
     assert again.duplicate and drone.vehicle.calls == ["Goto"]
     assert [a.reqnr for a in drone.service.audit] == [1]
@@ -294,7 +301,7 @@ async def test_a_duplicate_while_the_original_executes_waits_for_its_outcome(
     drone.vehicle.gate = asyncio.Event()
     goto = invoke(0, 1, GOTO, api.GotoRequest(latitude_deg=47.4, longitude_deg=8.5))
     first = asyncio.ensure_future(drone.stub.Invoke(goto))
-    await until("the original executing", lambda: drone.vehicle.calls == ["Goto"])
+    await eventually(lambda: drone.vehicle.calls == ["Goto"], "the original executing")
     second = asyncio.ensure_future(drone.stub.Invoke(goto))
     drone.vehicle.gate.set()
     replies = await asyncio.gather(first, second)

@@ -6,13 +6,11 @@ import asyncio
 import json
 import signal
 import sys
-import time
-from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any
 
-# Wall-clock budget for any one step of a test, generous for a loaded 2-core CI box.
-STEP_TIMEOUT_S = 20.0
+from waiting import STEP_TIMEOUT_S, eventually
+
+__all__ = ["STEP_TIMEOUT_S", "SimProcess", "eventually", "start_sim"]
 
 
 @dataclass
@@ -47,17 +45,3 @@ async def start_sim(*args: str) -> SimProcess:
     event = json.loads(line)
     assert event["event"] == "listening", event
     return SimProcess(process, event["url"], event["port"])
-
-
-async def eventually(
-    check: Callable[[], Awaitable[Any]], what: str, timeout_s: float = STEP_TIMEOUT_S
-) -> Any:
-    """Polls ``check`` until it returns something truthy; fails after the deadline."""
-    deadline = time.monotonic() + timeout_s
-    last: Any = None
-    while time.monotonic() < deadline:
-        last = await check()
-        if last:
-            return last
-        await asyncio.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout_s} s waiting for {what} (last: {last!r})")

@@ -37,7 +37,9 @@ class InvokeRequest(_message.Message):
     controller_id: _builtins.int
     """The calling controller's id."""
     reqnr: _builtins.int
-    """The request number, from 1, one more than the last one served."""
+    """The request number, from 1, above the last one served (by at most
+    1,000,000), or a cached one re-sent.
+    """
     method: _builtins.str
     """Full gRPC name of a drone-API method, e.g. "/baton.v1.Mobility/GetPosition"."""
     payload: _builtins.bytes
@@ -378,6 +380,7 @@ class DroneStatus(_message.Message):
     MASTER_CONNECTED_FIELD_NUMBER: _builtins.int
     CONTROLLERS_FIELD_NUMBER: _builtins.int
     VEHICLE_FIELD_NUMBER: _builtins.int
+    WAITING_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -394,6 +397,10 @@ class DroneStatus(_message.Message):
     """The MAVLink URL in use."""
     master_connected: _builtins.bool
     """Whether the master holds its Connect stream now."""
+    waiting: _builtins.str
+    """What the drone has been waiting for, and for how long, once it lasts 3 s
+    (the master holding no Connect stream); empty when nothing.
+    """
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
         """The vehicle's latest position (zero if unknown)."""
@@ -435,10 +442,11 @@ class DroneStatus(_message.Message):
         master_connected: _builtins.bool = ...,
         controllers: _abc.Iterable[_builtins.int] | None = ...,
         vehicle: Global___VehicleLink | None = ...,
+        waiting: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "controllers", b"controllers", "duplicates", b"duplicates", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "rejected", b"rejected", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "controllers", b"controllers", "duplicates", b"duplicates", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "rejected", b"rejected", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -66,11 +66,15 @@ class DroneServicer:
 
         FAILED_PRECONDITION if the caller is not the master (the message names
         the current master; trailing metadata `baton-master` and
-        `baton-after-reqnr` carry it for programs), or if reqnr is neither the
-        next request number nor a cached one. UNIMPLEMENTED for an unknown
-        method, INVALID_ARGUMENT for a payload that does not parse or a field out
-        of range, UNAVAILABLE if the vehicle is not connected, ABORTED with
-        MAVSDK's reason if the autopilot refused.
+        `baton-after-reqnr` carry it for programs), or if reqnr is neither a
+        cached one (answered again, not executed) nor above the last one served
+        by at most 1,000,000 (numbers skip the controller's own Clock calls).
+        UNIMPLEMENTED for an unknown method, INVALID_ARGUMENT for reqnr 0, a
+        payload that does not parse or a field out of range. UNAVAILABLE if the
+        vehicle is not connected: nothing was executed and the same request may
+        be sent again. ABORTED with MAVSDK's reason if the autopilot refused;
+        DEADLINE_EXCEEDED if it did not acknowledge (it may have acted); UNKNOWN
+        if the drone restarted while executing it (never executed again).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

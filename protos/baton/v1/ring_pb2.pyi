@@ -362,9 +362,10 @@ class ControllerStatus(_message.Message):
     """
     waiting: _builtins.str
     """What the controller has been waiting for, and for how long, when it is
-    stuck on something outside it (the drone unreachable, the vehicle not
-    connected: it re-sends the same request until drone_retry_limit); empty
-    when it is not waiting.
+    stuck on something outside it: the drone unreachable or its vehicle not
+    connected (it re-sends the same request until drone_retry_limit), a log
+    message missing while later ones are queued, the ring stream to its
+    successor down, each after 3 s; empty when it is not waiting.
     """
     @_builtins.property
     def peers(self) -> _containers.RepeatedCompositeFieldContainer[Global___PeerStatus]:

@@ -37,6 +37,7 @@ from baton.controller.protocol import (
 from baton.controller.ring import PeerLink
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
+from baton.stalls import StallWatch
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2
 
@@ -128,8 +129,12 @@ class ControllerNode:
         self._abandoned: tuple[str, bytes, grpc.StatusCode] | None = None
         self.mission = "none"
         self.mission_error = ""
-        # What the controller waits for outside itself, for GetStatus; empty when nothing.
-        self.waiting = ""
+        # A request the drone could not take, being re-sent (see _invoke_drone).
+        self._drone_wait = ""
+        # Stalls the watchdog sees (stalls.py): a missing log message, a ring stream down.
+        self._stalls = StallWatch()
+        self._stalled = ""
+        self._watchdog: asyncio.Task[None] | None = None
         self._failure: StatusError | None = None
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
@@ -146,10 +151,45 @@ class ControllerNode:
         """Opens the stream to the successor and, as the initial master, the drone connection."""
         self.peer(self.protocol.successor).start()
         await self._apply(self.protocol.start())
+        self._watchdog = asyncio.create_task(self._watch(), name="stall-watchdog")
         self.log.info("controller started", master=self.protocol.master)
+
+    @property
+    def waiting(self) -> str:
+        """What the controller is stuck on outside itself, for GetStatus; empty when nothing."""
+        return "; ".join(text for text in (self._drone_wait, self._stalled) if text)
+
+    def stall_conditions(self) -> dict[str, str]:
+        """What holds now that would be a stall if it lasted (stalls.py)."""
+        p = self.protocol
+        holding = {}
+        if p.log_queue and (p.lognr + 1) not in p.log_queue:
+            holding["gap"] = (
+                f"log message {p.lognr + 1} missing while {len(p.log_queue)} later ones "
+                f"are queued (up to {max(p.log_queue)})"
+            )
+        link = self._peers.get(p.successor)
+        if link is not None and not link.stream_up:
+            holding["ring"] = (
+                f"ring stream to controller {p.successor} down "
+                f"({link.unacked} messages not acknowledged)"
+            )
+        return holding
+
+    async def _watch(self) -> None:
+        """Every half second: stalls into the status, and into the log when they begin."""
+        while True:
+            now = time.monotonic()
+            stalls = self._stalls.update(now, self.stall_conditions())
+            self._stalled = "; ".join(stalls)
+            if self._stalls.due_for_log(now, stalls):
+                self.log.warning("stalled", waiting=self._stalled)
+            await asyncio.sleep(0.5)
 
     async def stop(self) -> None:
         """Closes every stream."""
+        if self._watchdog is not None:
+            self._watchdog.cancel()
         if self._drone is not None:
             await self._drone.close()
             self._drone = None
@@ -485,7 +525,7 @@ class ControllerNode:
         try:
             return await self._invoke_drone_retrying(reqnr, method, request, digest)
         finally:
-            self.waiting = ""
+            self._drone_wait = ""
 
     async def _invoke_drone_retrying(
         self, reqnr: int, method: str, request: bytes, digest: bytes
@@ -527,7 +567,7 @@ class ControllerNode:
                     # The drone could not be reached, or its vehicle is not
                     # connected: nothing was executed, so the same reqnr is
                     # re-sent (the drone left it unused).
-                    self.waiting = (
+                    self._drone_wait = (
                         f"request {reqnr} ({method}): drone unavailable for "
                         f"{retry.waited():.0f} s: {exc.details()}"
                     )

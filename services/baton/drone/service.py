@@ -30,6 +30,7 @@ from baton.lifecycle import write_atomically
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.server import BatonServer
+from baton.stalls import StallWatch
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
@@ -48,6 +49,13 @@ async def latest_position(vehicle: MobilityBackend) -> api.Position:
     except (StatusError, TimeoutError):
         return api.Position()
     return reply.position
+
+
+# How far a new request number may be above the last one served. Numbers skip
+# the Clock calls a controller answers itself, never this many; a larger jump
+# is a bug or an attack, and accepting it (2**64 - 1, say) would make every
+# later request look old, so the drone would refuse the mission for good.
+MAX_REQNR_GAP = 1_000_000
 
 
 def _retrieve_exception(task: asyncio.Task[Any]) -> None:
@@ -88,8 +96,25 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.log = get_logger("drone").bind(
             context=lambda: {"master": self.masters.master, "last_reqnr": self.last_reqnr}
         )
+        self._stalls = StallWatch()
+        self.waiting = ""
         if store is not None:
             self._restore(store)
+
+    async def watch(self) -> None:
+        """Every half second: stalls into GetStatus.waiting, and into the log when they begin."""
+        while True:
+            holding = {}
+            if not self.masters.master_connected:
+                holding["master"] = (
+                    f"the master, controller {self.masters.master}, holds no Connect stream"
+                )
+            now = time.monotonic()
+            stalls = self._stalls.update(now, holding)
+            self.waiting = "; ".join(stalls)
+            if self._stalls.due_for_log(now, stalls):
+                self.log.warning("stalled", waiting=self.waiting)
+            await asyncio.sleep(0.5)
 
     # -- durable state (store.py) ---------------------------------------------------
 
@@ -210,6 +235,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 return self._answer_duplicate(request, digest, cached)
             if reqnr <= self.last_reqnr:
                 raise self._bad_reqnr(reqnr)
+            if reqnr > self.last_reqnr + MAX_REQNR_GAP:
+                raise StatusError(
+                    grpc.StatusCode.FAILED_PRECONDITION,
+                    f"reqnr {reqnr} is more than {MAX_REQNR_GAP} above the last one served "
+                    f"({self.last_reqnr}): request numbers skip only the controller's own Clock "
+                    "calls, and a number this far ahead would make every later request look "
+                    "old; refused, nothing executed",
+                    metadata=self._after_metadata(),
+                )
             if self.store is not None:
                 self.store.begin(Intent(reqnr, method, digest, cid, received_at))
             try:
@@ -444,6 +478,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             master_connected=self.masters.master_connected,
             controllers=self.masters.controllers,
             vehicle=self.vehicle.link(),
+            waiting=self.waiting,
         )
         if self.vehicle.connected:
             try:
@@ -545,9 +580,11 @@ async def serve(
         write_atomically(settings.address_file, server.address + "\n")
     if on_listening is not None:
         on_listening(server.address)
+    watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
     try:
         await stop.wait()
     finally:
+        watchdog.cancel()
         await server.stop()
         await vehicle.close()
         if service.store is not None:

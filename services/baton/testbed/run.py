@@ -64,6 +64,7 @@ class Progress:
         )
         drone = snapshot.drone
         vehicle = "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
+        vehicle += f" | drone waiting: {drone.waiting}" if drone.waiting else ""
         vehicle += "".join(
             f" | c{cid} waiting: {c.waiting}"
             for cid, c in sorted(snapshot.controllers.items())
