@@ -105,6 +105,14 @@ async def test_the_drone_killed_and_restarted_resumes_the_mission(tmp_path: Path
         assert part.process is not None and part.ready_file is not None
         os.kill(part.process.pid, signal.SIGKILL)
         await part.process.wait()
+
+        async def master_says_the_drone_is_gone() -> bool:
+            status = await testbed.controller_stubs[1].GetStatus(
+                ring_pb2.GetControllerStatusRequest()
+            )
+            return "the drone" in status.waiting or "no answer yet" in status.waiting
+
+        await eventually(master_says_the_drone_is_gone, "the master's wait shown", 15)
         restarted = await testbed.supervisor.start("drone", part.argv, part.ready_file)
         await testbed.supervisor.wait_ready(restarted)
         after = (await testbed.snapshot(audit=False)).drone

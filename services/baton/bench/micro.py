@@ -15,11 +15,10 @@
 from __future__ import annotations
 
 import asyncio
-import os
 import secrets
 import statistics
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +35,7 @@ from baton.drone.measure import summary_ms
 from baton.link.proxy import LinkProxy
 from baton.logs import get_logger
 from baton.rpc.channels import aio_channel
-from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
+from baton.rpc.mission import MISSION_TOKEN_METADATA
 from baton.rpc.server import BatonServer
 from baton.testbed.local import LocalTestbed, TestbedPlan
 from baton.v1 import drone_api_pb2 as api
@@ -78,9 +77,10 @@ async def measure_proxy_and_drone(settings: MicroSettings, workdir: Path) -> dic
         emulate_links=False,
     )
     workdir.mkdir(parents=True, exist_ok=True)
-    # This process calls controller 0's proxy as its mission program: the
-    # controllers it starts take the token from the environment (rpc/mission.py).
-    token = os.environ.setdefault(MISSION_TOKEN_ENV, secrets.token_urlsafe(18))
+    # This process calls controller 0's proxy as its mission program does, with
+    # the token the controllers are given (rpc/mission.py).
+    token = secrets.token_urlsafe(18)
+    plan = replace(plan, mission_token=token)
     as_program = ((MISSION_TOKEN_METADATA, token),)
     say("micro: starting a drone and 2 controllers (no link emulation)")
     async with LocalTestbed(plan, workdir) as testbed:

@@ -97,12 +97,20 @@ class DroneSession:
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, 1.0)
 
-    async def invoke(self, reqnr: int, method: str, payload: bytes) -> drone_pb2.InvokeReply:
-        """Sends request ``reqnr``; raises grpc.aio.AioRpcError with the drone's status."""
+    async def invoke(
+        self, reqnr: int, method: str, payload: bytes, timeout_s: float | None = None
+    ) -> drone_pb2.InvokeReply:
+        """Sends request ``reqnr``; raises grpc.aio.AioRpcError with the drone's status.
+
+        It waits for the drone to be reachable (``wait_for_ready``) for at
+        most ``timeout_s``, then fails DEADLINE_EXCEEDED.
+        """
         request = drone_pb2.InvokeRequest(
             controller_id=self.controller_id, reqnr=reqnr, method=method, payload=payload
         )
-        reply: drone_pb2.InvokeReply = await self._stub.Invoke(request, wait_for_ready=True)
+        reply: drone_pb2.InvokeReply = await self._stub.Invoke(
+            request, wait_for_ready=True, timeout=timeout_s
+        )
         return reply
 
     async def close(self) -> None:

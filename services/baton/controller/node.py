@@ -135,6 +135,7 @@ class ControllerNode:
         self._stalls = StallWatch()
         self._stalled = ""
         self._watchdog: asyncio.Task[None] | None = None
+        self._in_flight: tuple[int, str] | None = None  # the request the drone has now
         self._failure: StatusError | None = None
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
@@ -168,6 +169,12 @@ class ControllerNode:
                 f"log message {p.lognr + 1} missing while {len(p.log_queue)} later ones "
                 f"are queued (up to {max(p.log_queue)})"
             )
+        drone = self._drone
+        if drone is not None and not drone.connected.is_set():
+            holding["drone"] = f"no Connect stream to the drone at {drone.address}"
+        if self._in_flight is not None:
+            reqnr, method = self._in_flight
+            holding[f"request {reqnr}"] = f"request {reqnr} ({method}) sent, no answer yet"
         link = self._peers.get(p.successor)
         if link is not None and not link.stream_up:
             holding["ring"] = (
@@ -526,6 +533,7 @@ class ControllerNode:
             return await self._invoke_drone_retrying(reqnr, method, request, digest)
         finally:
             self._drone_wait = ""
+            self._in_flight = None
 
     async def _invoke_drone_retrying(
         self, reqnr: int, method: str, request: bytes, digest: bytes
@@ -539,7 +547,9 @@ class ControllerNode:
                 await self._wait_connected(drone)
                 continue
             try:
-                reply = await drone.invoke(reqnr, method, request)
+                self._in_flight = (reqnr, method)
+                budget = max(1.0, retry.limit_s - retry.waited())
+                reply = await drone.invoke(reqnr, method, request, timeout_s=budget)
                 return ring_pb2.LogEntry(
                     reqnr=reqnr,
                     method=method,

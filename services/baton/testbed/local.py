@@ -10,6 +10,7 @@ mission through the services' status RPCs, and stops everything. The tests,
 from __future__ import annotations
 
 import asyncio
+import os
 import random
 import socket
 from collections.abc import Callable
@@ -23,6 +24,7 @@ import yaml
 from baton.config import BatonConfig, DroneConfig, LinkSpec, parse_config
 from baton.missions import grid as grid_mission
 from baton.rpc.channels import aio_channel
+from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.testbed.supervisor import PartNotReady, Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
@@ -67,6 +69,9 @@ class TestbedPlan:
     resolution: str | None = None
     drone_args: tuple[str, ...] = ()  # extra `baton drone` options (e.g. --force-race)
     mission_args: tuple[str, ...] = ()  # extra mission parameters, key=value
+    # The controllers' mission token (baton.rpc.mission), for a caller that acts
+    # as a mission program itself (the micro benchmark); default: each makes one.
+    mission_token: str | None = None
     # The autopilot: "sim" (the embedded sim vehicle), "sitl" (ArduPilot SITL,
     # started by the testbed at the same speed-up) or the MAVLink URL of one
     # that runs already.
@@ -295,7 +300,10 @@ class LocalTestbed:
             grid_args = self.plan.mission.args() if self.plan.mission_file == GRID_MISSION else []
             for arg in [*grid_args, *self.plan.mission_args]:
                 argv += ["--mission-arg", arg]
-            parts.append(await self.supervisor.start(f"controller-{cid}", argv, ready))
+            env = None
+            if self.plan.mission_token is not None:
+                env = {**os.environ, MISSION_TOKEN_ENV: self.plan.mission_token}
+            parts.append(await self.supervisor.start(f"controller-{cid}", argv, ready, env=env))
         for cid, part in zip(self.config.ring_order, parts, strict=True):
             address = await self.supervisor.wait_ready(part)
             channel = aio_channel(address)

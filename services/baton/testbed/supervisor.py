@@ -15,7 +15,7 @@ import contextlib
 import os
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -82,8 +82,12 @@ class Supervisor:
         argv: Sequence[str],
         ready_file: Path | None = None,
         expect_exit: bool = False,
+        env: Mapping[str, str] | None = None,
     ) -> ManagedProcess:
-        """Starts ``argv`` as part ``name``; its stdout and stderr go to ``workdir/name.log``."""
+        """Starts ``argv`` as part ``name``; its stdout and stderr go to ``workdir/name.log``.
+
+        ``env``: its whole environment (default: this process's).
+        """
         if ready_file is not None:
             with contextlib.suppress(FileNotFoundError):
                 ready_file.unlink()
@@ -98,6 +102,7 @@ class Supervisor:
             stdout=handle,
             stderr=asyncio.subprocess.STDOUT,
             start_new_session=True,  # Ctrl-C in a terminal reaches the supervisor only
+            env=env,
         )
         self.parts[name] = part
         return part
