@@ -101,6 +101,9 @@ def parse_address(value: Any) -> str:
 
 
 Size = Annotated[int, BeforeValidator(parse_size)]
+# Room above the flush limit for a log message's last entry (max_log_message),
+# and the Reassembler's default bound.
+MAX_LOG_MESSAGE_DEFAULT = 256 * 2**20
 Rate = Annotated[float, BeforeValidator(parse_rate)]
 Duration = Annotated[float, BeforeValidator(parse_duration)]
 Address = Annotated[str, BeforeValidator(parse_address)]
@@ -173,6 +176,11 @@ class BatonConfig(_Model):
     # could not take (drone unreachable, vehicle link down: nothing executed)
     # before the call fails with UNAVAILABLE; wall time.
     drone_retry_limit: Duration = 300.0
+    # The largest log message a controller accepts from the ring: the flush
+    # limit plus the largest entry (a picture), with room to spare; default
+    # flush_limit + 256 MiB (see ``log_message_cap``). A frame claiming more
+    # is refused before anything is buffered.
+    max_log_message: Size | None = None
 
     @field_validator("controllers")
     @classmethod
@@ -195,7 +203,19 @@ class BatonConfig(_Model):
             raise ValueError(
                 f"initial_master {self.initial_master} is not a controller id; use one of {ids}"
             )
+        if self.max_log_message is not None and self.max_log_message <= self.flush_limit:
+            raise ValueError(
+                f"max_log_message ({self.max_log_message} bytes) must be above flush_limit "
+                f"({self.flush_limit} bytes): a flushed message holds the limit plus one entry"
+            )
         return self
+
+    @property
+    def log_message_cap(self) -> int:
+        """The largest log message accepted from the ring, bytes (max_log_message)."""
+        if self.max_log_message is not None:
+            return self.max_log_message
+        return self.flush_limit + MAX_LOG_MESSAGE_DEFAULT
 
     @property
     def ring_order(self) -> list[int]:

@@ -10,6 +10,7 @@ from baton.controller.protocol import (
     DisconnectDrone,
     NonDeterminismError,
     ProtocolError,
+    SeenNumbers,
     SendLog,
     State,
     request_digest,
@@ -231,3 +232,16 @@ def test_mission_done_flushes_the_masters_last_entries() -> None:
     p.on_reply(entry(1))
     assert sends(p.on_mission_done()) == [(1, 1, False)]
     assert p.on_mission_done() == []
+
+
+def test_seen_log_numbers_stay_a_watermark_when_they_arrive_in_order() -> None:
+    """Issue 9, defect 8: the set of received log numbers grew by one per message."""
+    seen = SeenNumbers()
+    for number in range(1, 10_001):
+        seen.add(number)
+    assert len(seen) == 0 and seen.upto == 10_000 and 10_000 in seen and 10_001 not in seen
+    seen.add(10_003)  # a gap: kept above the watermark until it closes
+    assert 10_003 in seen and 10_002 not in seen and len(seen) == 1
+    seen.add(10_002)
+    seen.add(10_001)
+    assert len(seen) == 0 and seen.upto == 10_003

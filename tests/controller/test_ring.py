@@ -115,3 +115,13 @@ async def test_successor_restart_loses_nothing() -> None:
     finally:
         await link.stop()
         await server.stop(0)
+
+
+def test_a_frame_claiming_more_than_the_limit_is_refused_before_buffering() -> None:
+    """Issue 9, defect 8: the reassembler accepted a frame that claimed any total size."""
+    r = Reassembler(max_bytes=1000)
+    claim = ring_pb2.LogFrame(lognr=3, total_bytes=2**40, offset=0, data=b"x")
+    with pytest.raises(ValueError, match="claims 1099511627776 bytes, above max_log_message"):
+        r.add(claim)
+    message = big_message(4, 900)
+    assert r.add(frames(message, from_id=0)[0]) == message  # within the limit: as before

@@ -67,6 +67,35 @@ class NonDeterminismError(Exception):
         )
 
 
+class SeenNumbers:
+    """A set of positive integers kept as a watermark plus the few above it.
+
+    Every number up to ``upto`` was seen; ``above`` holds those seen beyond
+    a gap. Log messages arrive nearly in order, so this stays a few numbers
+    for a whole mission, where a plain set grew by one per message.
+    """
+
+    def __init__(self) -> None:
+        self.upto = 0
+        self.above: set[int] = set()
+
+    def __contains__(self, number: object) -> bool:
+        return isinstance(number, int) and (number <= self.upto or number in self.above)
+
+    def __len__(self) -> int:
+        """Numbers kept beyond the watermark (what this costs in memory)."""
+        return len(self.above)
+
+    def add(self, number: int) -> None:
+        """Notes ``number``; moves the watermark over every number now contiguous."""
+        if number <= self.upto:
+            return
+        self.above.add(number)
+        while self.upto + 1 in self.above:
+            self.above.remove(self.upto + 1)
+            self.upto += 1
+
+
 class ProtocolError(Exception):
     """A message that breaks the protocol's invariants (a bug or a misconfiguration).
 
@@ -144,7 +173,7 @@ class ControllerProtocol:
         self.state = State.ACTIVE if self.master else State.PASSIVE
         # Log numbers received over the ring, so that a message re-sent after a
         # reconnect is neither forwarded nor handled twice.
-        self._received: set[int] = set()
+        self._received = SeenNumbers()
         self.replayed = 0
         self.invoked = 0
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import grpc
 
+from baton.config import MAX_LOG_MESSAGE_DEFAULT
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.v1 import ring_pb2, ring_pb2_grpc
@@ -45,15 +46,26 @@ def frames(message: ring_pb2.LogMessage, from_id: int) -> list[ring_pb2.LogFrame
 
 
 class Reassembler:
-    """Puts frames back together into whole log messages, checking their order."""
+    """Puts frames back together into whole log messages, checking their order and size.
 
-    def __init__(self) -> None:
+    ``max_bytes`` bounds a message (the configuration's max_log_message): a
+    first frame claiming more is refused before anything is buffered.
+    """
+
+    def __init__(self, max_bytes: int = MAX_LOG_MESSAGE_DEFAULT) -> None:
+        self.max_bytes = max_bytes
         self._lognr: int | None = None
         self._parts: list[bytes] = []
         self._received = 0
 
     def add(self, frame: ring_pb2.LogFrame) -> ring_pb2.LogMessage | None:
         """Adds a frame; returns the message when its last frame arrived."""
+        if frame.total_bytes > self.max_bytes:
+            raise ValueError(
+                f"log message {frame.lognr} claims {frame.total_bytes} bytes, above "
+                f"max_log_message ({self.max_bytes} bytes); raise it in the testbed file if "
+                "missions log larger entries"
+            )
         if frame.offset == 0:
             self._lognr, self._parts, self._received = frame.lognr, [], 0
         elif frame.lognr != self._lognr or frame.offset != self._received:
@@ -218,8 +230,10 @@ class RingReceiver:
         current_lognr: Callable[[], int],
         deliver: Callable[[ring_pb2.LogMessage], Awaitable[None]],
         log: BoundLogger,
+        max_message_bytes: int = MAX_LOG_MESSAGE_DEFAULT,
     ) -> None:
         self.my_id = my_id
+        self.max_message_bytes = max_message_bytes
         self._current_lognr = current_lognr
         self._deliver = deliver
         self._log = log
@@ -229,7 +243,7 @@ class RingReceiver:
         await context.write(
             ring_pb2.LogAck(lognr=self._current_lognr(), hello=True, receiver_id=self.my_id)
         )
-        reassembler = Reassembler()
+        reassembler = Reassembler(self.max_message_bytes)
         while True:
             frame = await context.read()
             if frame is grpc.aio.EOF:

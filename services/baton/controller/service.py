@@ -133,7 +133,13 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
     def __init__(self, node: ControllerNode, token: str | None = None) -> None:
         self._node = node
         self._token = token
-        self._receiver = RingReceiver(node.id, lambda: node.protocol.lognr, node.on_log, node.log)
+        self._receiver = RingReceiver(
+            node.id,
+            lambda: node.protocol.lognr,
+            node.on_log,
+            node.log,
+            node.config.log_message_cap,
+        )
 
     async def LogRing(self, request_iterator: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[override]
         """Receives log messages from a predecessor or an old master, acknowledging each."""
