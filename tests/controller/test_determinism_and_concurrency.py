@@ -9,9 +9,11 @@ from pathlib import Path
 import grpc
 import pytest
 from test_controller_end_to_end import FAST_LINK, SMALL_GRID, assert_mission_promises
+from waiting import eventually
 
 from baton.config import LinkSpec, parse_config
 from baton.controller.node import ControllerNode
+from baton.digest import request_digest
 from baton.rpc.channels import aio_channel
 from baton.rpc.errors import StatusError
 from baton.sdk.drone import _Caller
@@ -122,6 +124,40 @@ async def test_the_controller_refuses_a_second_concurrent_call() -> None:
     assert refused.value.code is grpc.StatusCode.FAILED_PRECONDITION
     assert "concurrent call /baton.v1.Mobility/GetHome" in refused.value.message
     held.cancel()
+
+
+async def test_calls_a_replicas_program_gave_up_on_take_their_own_log_entries() -> None:
+    """A replica's program that gives up twice while the replica waits for the log: its
+    next call gets the third entry, not the first (the master's program gave up too)."""
+    config = parse_config(
+        {"controllers": [{"id": 0, "address": "127.0.0.1:1"}, {"id": 1, "address": "127.0.0.1:2"}]}
+    )
+    node = ControllerNode(config, 1)  # PASSIVE: its calls are held until the log comes
+    position, home = "/baton.v1.Mobility/GetPosition", "/baton.v1.Mobility/GetHome"
+    for method in (position, home):
+        held = asyncio.create_task(node.call(method, b""))
+        await eventually(lambda m=method: node._busy == m, "the call held for the log")
+        held.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await held
+    third = asyncio.create_task(node.call(position, b""))
+    await eventually(lambda: node._busy == position, "the third call held")
+    cancelled = grpc.StatusCode.CANCELLED.value[0]
+    entries = [
+        ring_pb2.LogEntry(
+            reqnr=k, method=m, request_digest=request_digest(m, b""), status_code=code, reply=r
+        )
+        for k, m, code, r in (
+            (1, position, cancelled, b""),
+            (2, home, cancelled, b""),
+            (3, position, 0, b"third"),
+        )
+    ]
+    await node.on_log(ring_pb2.LogMessage(lognr=1, origin=0, entries=entries))
+    entry = await asyncio.wait_for(third, 5)
+    assert entry.reqnr == 3 and entry.reply == b"third"
+    assert node.protocol.reqnr == 3 and node.mission != "failed"
+    await node.stop()
 
 
 def test_the_sdk_refuses_a_second_concurrent_call() -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -125,8 +126,8 @@ class ControllerNode:
         self._peers: dict[int, PeerLink] = {}
         self._drone: DroneSession | None = None
         self._busy: str | None = None
-        # A call the program gave up on while this controller waited for the log.
-        self._abandoned: tuple[str, bytes, grpc.StatusCode] | None = None
+        # Calls the program gave up on while this controller waited for the log, in order.
+        self._abandoned: deque[tuple[str, bytes, grpc.StatusCode]] = deque()
         self.mission = "none"
         self.mission_error = ""
         # A request the drone could not take, being re-sent (see _invoke_drone).
@@ -378,7 +379,11 @@ class ControllerNode:
         try:
             if self.mission == "none":
                 self.mission = "running"
-            await self._settle_abandoned()
+            try:
+                await self._settle_abandoned()
+            except asyncio.CancelledError:
+                self._abandoned.append((method, request, gave_up()))
+                raise
             return await self._answer(method, request, gave_up)
         finally:
             self._busy = None
@@ -392,14 +397,14 @@ class ControllerNode:
         the deadline made the mission non-deterministic), or, if this
         controller has become master meanwhile, logged as given up.
         """
-        while self._abandoned is not None:
+        while self._abandoned:
             if self._failure is not None:
                 raise self._failure
-            method, request, code = self._abandoned
+            method, request, code = self._abandoned[0]
             state = self.protocol.state
             if state is State.REPLAY:
                 entry = await self._replay(method, request)
-                self._abandoned = None
+                self._abandoned.popleft()
                 if entry.status_code != code.value[0]:
                     master_saw = "a reply" if entry.status_code == 0 else str(entry.status_code)
                     self._fail(
@@ -412,7 +417,7 @@ class ControllerNode:
                         )
                     )
             elif state is State.ACTIVE:
-                self._abandoned = None
+                self._abandoned.popleft()
                 reqnr = self.protocol.reqnr + 1
                 entry = _given_up(reqnr, method, request, code)
                 effects = self.protocol.on_reply(entry)
@@ -453,7 +458,7 @@ class ControllerNode:
             try:
                 await self._changed.wait()
             except asyncio.CancelledError:
-                self._abandoned = (method, request, gave_up())
+                self._abandoned.append((method, request, gave_up()))
                 raise
 
     async def _replay(self, method: str, request: bytes) -> ring_pb2.LogEntry:
