@@ -48,9 +48,8 @@ CLOCK_NOW = "/baton.v1.Clock/Now"
 # Re-sending a request the drone could not take (drone unreachable, vehicle
 # link down): the same reqnr, so the drone's duplicate detection keeps it
 # safe, after a pause that doubles up to a cap, for the configuration's
-# drone_retry_limit; the wait is logged again every WAIT_LOG_S.
+# drone_retry_limit; the wait is logged at once and again every 5 s (stalls.py).
 RETRY_FIRST_S, RETRY_MAX_S = 0.2, 2.0
-WAIT_LOG_S = 5.0
 
 
 def _given_up(reqnr: int, method: str, request: bytes, code: grpc.StatusCode) -> ring_pb2.LogEntry:
@@ -73,7 +72,7 @@ class Retry:
     limit_s: float
     started: float = field(default_factory=time.monotonic)
     attempts: int = 0
-    _logged_at: float | None = None
+    _log_watch: StallWatch = field(default_factory=lambda: StallWatch(threshold_s=0.0))
 
     def waited(self) -> float:
         """Seconds since the first try."""
@@ -84,12 +83,10 @@ class Retry:
         return self.waited() >= self.limit_s
 
     def should_log(self) -> bool:
-        """True on the first retry and then every WAIT_LOG_S."""
+        """True on the first retry and then every 5 s (StallWatch's rhythm)."""
         now = time.monotonic()
-        if self._logged_at is None or now - self._logged_at >= WAIT_LOG_S:
-            self._logged_at = now
-            return True
-        return False
+        waits = self._log_watch.update(now, {"retry": "drone unavailable"})
+        return self._log_watch.due_for_log(now, waits)
 
     async def pause(self) -> None:
         """Waits before the next try: RETRY_FIRST_S, doubling up to RETRY_MAX_S."""
