@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import grpc
+import pytest
 from drone_harness import DroneUnderTest, start_drone
 from test_drone_service import ARM, POSITION, TAKEOFF, expect_error, invoke
 
@@ -101,3 +102,10 @@ async def test_a_read_cut_off_by_a_restart_is_executed_when_re_sent(tmp_path: Pa
         assert not reply.duplicate and drone.vehicle.calls.count("GetPosition") == 1
     finally:
         await second[1].stop(0)
+
+
+def test_a_state_file_that_is_not_a_database_is_a_clear_error(tmp_path: Path) -> None:
+    bad = tmp_path / "state.sqlite"
+    bad.write_text("not a database\n" * 100)
+    with pytest.raises(OSError, match=r"drone state file .*state\.sqlite \(--state\): file is not"):
+        DroneStore(bad)
