@@ -21,6 +21,10 @@ async def test_the_controller_serves_reflection_health_and_its_rpcs(
     config = parse_config({"controllers": [{"id": 0, "address": "127.0.0.1:0"}]})
     app = ControllerApp(config, 0)
     await app.server.start()  # no node: nothing connects anywhere
+    # What the drone's grant does at the mission's start (the effects, a drone
+    # connection, are not carried out): master in epoch 1, ACTIVE.
+    app.node.protocol.on_sync(0)
+    app.node.protocol.on_granted(1)
     address = app.server.address
     try:
         listed = set((await asyncio.to_thread(grpcurl, address, "list")).split())
@@ -46,7 +50,7 @@ async def test_the_controller_serves_reflection_health_and_its_rpcs(
         status = json.loads(
             await asyncio.to_thread(grpcurl, address, "baton.v1.ControllerRing/GetStatus")
         )
-        assert status["state"] == "ACTIVE" and status["master"] is True
+        assert status["state"] == "ACTIVE" and status["master"] is True and status["epoch"] == "1"
         # A drone-API call through the proxy: Clock.Now is answered by the controller.
         now = json.loads(await asyncio.to_thread(grpcurl, address, "baton.v1.Clock/Now"))
         assert now["unix_time_s"] > 1.6e9  # grpcurl prints the proto field names

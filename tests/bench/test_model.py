@@ -77,7 +77,9 @@ def test_handover_empties_the_log() -> None:
 
 def test_offline_log_matches_the_protocol_state_machine() -> None:
     calls = [Call(k, TAKE_PICTURE if k % 3 == 0 else GET_POSITION, 300 * k) for k in range(1, 30)]
-    protocol = ControllerProtocol(0, [0, 1], flush_limit=2000, initial_master=0)
+    protocol = ControllerProtocol(0, [0, 1], flush_limit=2000)
+    protocol.on_sync(0)
+    protocol.on_granted(1)  # the drone's word: master in epoch 1, ACTIVE
     from baton.bench.model import log_entry
 
     for call, point in zip(calls, master_log_sizes(calls, 2000), strict=True):

@@ -3,7 +3,10 @@
 Each run flies a small grid (high speed-up) with scripted handovers and then
 checks the paper's promises against the drone's own audit: every request
 executed exactly once, every waypoint photographed once, every replica saw
-the same replies, and every scripted handover happened.
+the same replies, and every scripted handover happened. Exactly once is also
+checked where the side effects happened, trusting no part of baton's
+bookkeeping: the pictures the camera produced and the commands the sim
+vehicle acted on (``baton.testbed.report.check_side_effects``).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import pytest
 
 from baton.config import LinkSpec
 from baton.testbed.local import LocalTestbed, MissionPlan, Snapshot, TestbedPlan
+from baton.testbed.report import NOT_COUNTED, check_side_effects
 
 SMALL_GRID = MissionPlan(grid=2, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
 FAST_LINK = LinkSpec(latency=0.002, bandwidth=None)
@@ -36,6 +40,17 @@ def assert_mission_promises(snapshot: Snapshot, plan: TestbedPlan) -> None:
     assert {c.drone_calls for c in snapshot.controllers.values()} == {len(executed)}
     # Every waypoint photographed once.
     assert snapshot.pictures == waypoints
+    # The same, counted where it happened: one picture per waypoint produced
+    # by the camera; one arm, takeoff and land, and each goto once and in the
+    # grid's order, acted on by the sim vehicle (SITL or an autopilot of its
+    # own counts nothing).
+    effects = check_side_effects(snapshot, plan.mission.grid, plan.mission.spacing_m)
+    assert effects["exactly_once"] is True, effects
+    assert effects["pictures_taken"] == waypoints, effects
+    if plan.vehicle == "sim":
+        assert effects["vehicle_commands"]["goto"] == waypoints, effects
+    else:
+        assert effects["vehicle_commands"] == NOT_COUNTED, effects
     # Every replica's program saw the same replies, and as many as the drone served.
     chains = Counter(c.reply_chain for c in snapshot.controllers.values())
     assert len(chains) == 1, f"replicas diverged: {chains}"

@@ -10,6 +10,7 @@ from baton.controller.protocol import (
     DisconnectDrone,
     NonDeterminismError,
     ProtocolError,
+    Refusal,
     SeenNumbers,
     SendLog,
     State,
@@ -59,23 +60,74 @@ def replay_all(p: ControllerProtocol) -> list:
     return effects
 
 
-def test_initial_master_is_active_and_connects_the_others_passive() -> None:
-    master = ControllerProtocol(0, [0, 1, 2], 0, initial_master=0)
-    other = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
-    assert (master.state, master.master, master.start()) == (State.ACTIVE, True, [ConnectDrone()])
-    assert (other.state, other.master, other.start()) == (State.PASSIVE, False, [])
+def started(
+    cid: int, ring: list[int], flush_limit: int, initial_master: int = 0
+) -> ControllerProtocol:
+    """A controller at the mission's start: the predecessor holds nothing yet, and the
+    drone grants the initial master epoch 1."""
+    p = ControllerProtocol(cid, ring, flush_limit)
+    p.start()
+    p.on_sync(0)
+    if cid == initial_master:
+        p.on_granted(1)
+    return p
+
+
+def test_every_controller_starts_passive_and_asks_the_drone() -> None:
+    master = ControllerProtocol(0, [0, 1, 2], 0)
+    other = ControllerProtocol(1, [0, 1, 2], 0)
+    for p in (master, other):
+        assert (p.state, p.master, p.start()) == (State.PASSIVE, False, [ConnectDrone()])
     assert (other.predecessor, other.successor) == (0, 2)
+    # The drone's grant makes the initial master ACTIVE once its predecessor has
+    # said what it holds (nothing, at the start), in either order.
+    assert master.on_granted(1) == []
+    assert master.state is State.PASSIVE and master.master
+    assert master.on_sync(0) == [ConnectDrone()]
+    assert (master.state, master.epoch) == (State.ACTIVE, 1)
+    assert other.on_sync(0) == [] and other.state is State.PASSIVE
+
+
+def test_a_controller_granted_the_role_after_a_restart_catches_up_first() -> None:
+    """Issue 9, defect 3: never ACTIVE on its own word, never over log numbers in use."""
+    p = ControllerProtocol(1, [0, 1, 2], 0)
+    p.start()
+    assert p.on_granted(4) == []  # the drone says: master, epoch 4
+    assert p.on_sync(3) == []  # the predecessor holds 1..3 and re-sends them
+    # Messages it once created itself come back in the history: handled, not
+    # forwarded again (they have been round).
+    assert sends(p.on_log(message(1, 0, [1]))) == [(2, 1, False)]
+    assert sends(p.on_log(message(2, 1, [2]))) == []
+    replay_all(p)
+    assert p.state is State.PASSIVE and not p.caught_up
+    p.on_log(message(3, 1, [3]))
+    effects = replay_all(p)
+    assert effects == [ConnectDrone()] and p.state is State.ACTIVE
+    assert (p.reqnr, p.lognr, p.epoch) == (3, 3, 4)
+
+
+def test_a_refusal_is_judged_by_the_epoch_it_was_sent_in() -> None:
+    """Issue 9, defect 4: a stale request's refusal never ends the mission."""
+    p = started(0, [0, 1], 0)  # ACTIVE in epoch 1
+    assert p.judge_refusal(1, master=1, epoch=2) is Refusal.HANDED_OVER
+    assert p.judge_refusal(1, master=0, epoch=1) is Refusal.DISAGREE
+    p.on_granted(3)  # the role came back: epoch 3
+    assert p.judge_refusal(1, master=0, epoch=3) is Refusal.STALE
+    assert p.judge_refusal(1, master=1, epoch=4) is Refusal.STALE
+    assert p.judge_refusal(3, master=1, epoch=4) is Refusal.HANDED_OVER
+    p.on_handover_notice(1)
+    assert p.judge_refusal(3, master=1, epoch=4) is Refusal.STALE  # not ACTIVE: nothing to do
 
 
 def test_flush_limit_zero_flushes_after_every_reply() -> None:
-    p = ControllerProtocol(0, [0, 1], 0, initial_master=0)
+    p = started(0, [0, 1], 0)
     for n in (1, 2, 3):
         assert sends(p.on_reply(entry(n))) == [(1, n, False)]
     assert (p.reqnr, p.lognr, len(p.log)) == (3, 3, 0)
 
 
 def test_flush_limit_in_bytes_lets_the_log_exceed_it_by_one_entry() -> None:
-    p = ControllerProtocol(0, [0, 1], flush_limit=1000, initial_master=0)
+    p = started(0, [0, 1], flush_limit=1000)
     assert p.on_reply(entry(1, reply=b"x" * 400)) == []
     assert p.on_reply(entry(2, reply=b"x" * 400)) == []
     effects = p.on_reply(entry(3, reply=b"x" * 5000))  # the paper's "e", a picture
@@ -86,13 +138,13 @@ def test_flush_limit_in_bytes_lets_the_log_exceed_it_by_one_entry() -> None:
 
 
 def test_reply_for_the_wrong_request_number_is_a_protocol_error() -> None:
-    p = ControllerProtocol(0, [0, 1], 0, initial_master=0)
+    p = started(0, [0, 1], 0)
     with pytest.raises(ProtocolError, match="expected 1"):
         p.on_reply(entry(2))
 
 
 def test_handover_notice_sends_unflushed_log_to_new_master_with_its_id_as_origin() -> None:
-    p = ControllerProtocol(0, [0, 1, 2, 3], flush_limit=10**6, initial_master=0)
+    p = started(0, [0, 1, 2, 3], flush_limit=10**6)
     p.on_reply(entry(1))
     p.on_reply(entry(2))
     effects = p.on_handover_notice(2)
@@ -110,7 +162,7 @@ def test_handover_notice_sends_unflushed_log_to_new_master_with_its_id_as_origin
 
 
 def test_passive_controller_replays_an_in_order_message_and_forwards_it() -> None:
-    p = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
+    p = started(1, [0, 1, 2], 0)
     effects = p.on_log(message(1, origin=0, reqnrs=[1, 2]))
     assert sends(effects) == [(2, 1, False)]
     assert p.state is State.REPLAY
@@ -121,13 +173,13 @@ def test_passive_controller_replays_an_in_order_message_and_forwards_it() -> Non
 
 
 def test_message_is_not_forwarded_to_its_origin() -> None:
-    p = ControllerProtocol(2, [0, 1, 2], 0, initial_master=0)
+    p = started(2, [0, 1, 2], 0)
     assert sends(p.on_log(message(1, origin=0, reqnrs=[1]))) == []
 
 
 def test_in_order_message_during_replay_is_queued_not_dropped() -> None:
     """docs/design.md note 1: line 44 would drop lognr = lognr + 1 arriving in REPLAY."""
-    p = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
+    p = started(1, [0, 1, 2], 0)
     p.on_log(message(1, origin=0, reqnrs=[1]))
     p.on_log(message(2, origin=0, reqnrs=[2]))  # arrives while replaying 1
     p.on_log(message(3, origin=0, reqnrs=[3]))
@@ -138,7 +190,7 @@ def test_in_order_message_during_replay_is_queued_not_dropped() -> None:
 
 
 def test_handover_message_overtaking_earlier_flushes_waits_for_them() -> None:
-    new = ControllerProtocol(2, [0, 1, 2, 3], 0, initial_master=0)
+    new = started(2, [0, 1, 2, 3], 0)
     # Flushes 1 and 2 travel around the ring (0 -> 1 -> 2); the handover
     # message 3 goes straight from 0 to 2 and arrives first.
     effects = new.on_log(message(3, origin=2, reqnrs=[3], handover=True, sender=0))
@@ -154,7 +206,7 @@ def test_handover_message_overtaking_earlier_flushes_waits_for_them() -> None:
 
 
 def test_new_master_with_empty_handover_log_goes_active_at_once() -> None:
-    new = ControllerProtocol(1, [0, 1], 0, initial_master=0)
+    new = started(1, [0, 1], 0)
     effects = new.on_log(message(1, origin=1, reqnrs=[], handover=True, sender=0))
     assert new.state is State.ACTIVE and new.master
     assert ConnectDrone() in effects and sends(effects) == [(0, 1, False)]
@@ -162,7 +214,7 @@ def test_new_master_with_empty_handover_log_goes_active_at_once() -> None:
 
 def test_old_master_forwards_its_own_handover_message_back_but_ignores_it() -> None:
     """Footnote 3: the old master gets the message back and skips it by lognr."""
-    old = ControllerProtocol(0, [0, 1, 2, 3], 0, initial_master=0)
+    old = started(0, [0, 1, 2, 3], 0)
     old.on_reply(entry(1))
     old.on_handover_notice(2)  # lognr 2: the handover message, origin 2
     back = message(2, origin=2, reqnrs=[], sender=3)
@@ -172,14 +224,14 @@ def test_old_master_forwards_its_own_handover_message_back_but_ignores_it() -> N
 
 
 def test_replicated_message_resent_after_reconnect_is_ignored_whole() -> None:
-    p = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
+    p = started(1, [0, 1, 2], 0)
     p.on_log(message(1, origin=0, reqnrs=[1]))
     assert p.on_log(message(1, origin=0, reqnrs=[1])) == []
 
 
 def test_empty_non_handover_message_lets_the_queue_drain() -> None:
     """The pseudo-code stays PASSIVE after an empty in-order message and never looks at logQ."""
-    p = ControllerProtocol(3, [0, 1, 2, 3], 0, initial_master=0)
+    p = started(3, [0, 1, 2, 3], 0)
     p.on_log(message(2, origin=1, reqnrs=[1]))  # the new master's first flush, early
     p.on_log(message(1, origin=1, reqnrs=[], sender=1))  # the (empty) handover message, forwarded
     assert p.state is State.REPLAY and p.lognr == 2
@@ -187,8 +239,8 @@ def test_empty_non_handover_message_lets_the_queue_drain() -> None:
 
 def test_handover_during_an_in_flight_call_leaves_the_reply_to_the_new_master() -> None:
     """Footnote 2: the notice overtakes the reply of request 3."""
-    old = ControllerProtocol(0, [0, 1], flush_limit=10**6, initial_master=0)
-    new = ControllerProtocol(1, [0, 1], flush_limit=10**6, initial_master=0)
+    old = started(0, [0, 1], flush_limit=10**6)
+    new = started(1, [0, 1], flush_limit=10**6)
     old.on_reply(entry(1))
     old.on_reply(entry(2))
     # Request 3 is in flight; the drone served it and then sent the notice.
@@ -204,7 +256,7 @@ def test_handover_during_an_in_flight_call_leaves_the_reply_to_the_new_master() 
 
 
 def test_determinism_guard_shows_both_requests() -> None:
-    p = ControllerProtocol(1, [0, 1], 0, initial_master=0)
+    p = started(1, [0, 1], 0)
     p.on_log(message(1, origin=0, reqnrs=[1]))
     with pytest.raises(NonDeterminismError) as caught:
         p.replay(PICTURE, b"\x08\x01")
@@ -214,21 +266,21 @@ def test_determinism_guard_shows_both_requests() -> None:
 
 
 def test_message_skipping_a_request_number_is_a_protocol_error() -> None:
-    p = ControllerProtocol(1, [0, 1], 0, initial_master=0)
+    p = started(1, [0, 1], 0)
     with pytest.raises(ProtocolError, match="starts at request 5"):
         p.on_log(message(1, origin=0, reqnrs=[5]))
 
 
 def test_a_replica_that_cannot_handle_a_message_still_forwards_it() -> None:
     """Issue 9, defect 9: the replicas after a failed one must not be starved."""
-    p = ControllerProtocol(1, [0, 1, 2], 0, initial_master=0)
+    p = started(1, [0, 1, 2], 0)
     with pytest.raises(ProtocolError) as caught:
         p.on_log(message(1, origin=0, reqnrs=[5]))
     assert sends(caught.value.effects) == [(2, 1, False)]
 
 
 def test_mission_done_flushes_the_masters_last_entries() -> None:
-    p = ControllerProtocol(0, [0, 1], flush_limit=10**6, initial_master=0)
+    p = started(0, [0, 1], flush_limit=10**6)
     p.on_reply(entry(1))
     assert sends(p.on_mission_done()) == [(1, 1, False)]
     assert p.on_mission_done() == []
@@ -245,3 +297,13 @@ def test_seen_log_numbers_stay_a_watermark_when_they_arrive_in_order() -> None:
     seen.add(10_002)
     seen.add(10_001)
     assert len(seen) == 0 and seen.upto == 10_003
+
+
+def test_a_handover_message_carries_the_new_masters_epoch() -> None:
+    """A Connect refusal the drone made before it granted that epoch is stale."""
+    old, new = started(0, [0, 1], 0), started(1, [0, 1], 0)
+    (send,) = [e for e in old.on_handover_notice(1, epoch=2) if isinstance(e, SendLog)]
+    assert send.message.epoch == 2 and send.message.handover
+    new.on_log(send.message)
+    assert (new.master, new.epoch) == (True, 2)
+    assert new.connect_refusal_is_stale(1) and not new.connect_refusal_is_stale(2)

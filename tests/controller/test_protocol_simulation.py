@@ -15,13 +15,14 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import pytest
+from test_protocol import started
 
 from baton.controller.protocol import (
     ConnectDrone,
-    ControllerProtocol,
     DisconnectDrone,
     SendLog,
     State,
+    TookOver,
     request_digest,
 )
 from baton.v1 import ring_pb2
@@ -54,7 +55,7 @@ class Ring:
     def __init__(self, n: int, flush: int, handovers: dict[int, int], calls: int, seed: int):
         self.rng = random.Random(seed)
         self.ids = list(range(n))
-        self.p = {i: ControllerProtocol(i, self.ids, flush, initial_master=0) for i in self.ids}
+        self.p = {i: started(i, self.ids, flush) for i in self.ids}
         self.links: dict[tuple[int, int], deque[ring_pb2.LogMessage]] = {}
         self.drone = Drone(0, handovers)
         self.program = program(calls)
@@ -68,7 +69,7 @@ class Ring:
             if isinstance(e, SendLog):
                 self.links.setdefault((cid, e.dest), deque()).append(e.message)
             else:
-                assert isinstance(e, ConnectDrone | DisconnectDrone)
+                assert isinstance(e, ConnectDrone | DisconnectDrone | TookOver)
 
     def step(self) -> bool:
         choices = []

@@ -6,6 +6,7 @@ import asyncio
 
 import pytest
 
+from baton.controller.history import LogHistory
 from baton.controller.ring import FRAME_BYTES, PeerLink, Reassembler, RingReceiver, frames
 from baton.logs import get_logger
 from baton.rpc.server import BatonServer
@@ -52,7 +53,11 @@ class Receiver(ring_pb2_grpc.ControllerRingServicer):
     def __init__(self) -> None:
         self.messages: list[ring_pb2.LogMessage] = []
         self.arrived = asyncio.Event()
-        self.receiver = RingReceiver(1, self.lognr, self.deliver, LOG)
+        self.syncs: list[tuple[int, int]] = []
+        self.receiver = RingReceiver(1, self.lognr, self.deliver, LOG, synced=self.synced)
+
+    async def synced(self, from_id: int, holds_lognr: int) -> None:
+        self.syncs.append((from_id, holds_lognr))
 
     def lognr(self) -> int:
         return max((m.lognr for m in self.messages), default=0)
@@ -94,27 +99,41 @@ async def test_a_64_mb_log_message_passes_the_ring() -> None:
         await server.stop(0)
 
 
-async def test_successor_restart_loses_nothing() -> None:
+async def test_successor_restart_loses_nothing(tmp_path) -> None:  # type: ignore[no-untyped-def]
     address = f"127.0.0.1:{free_port()}"
-    server, _ = await start_receiver(address)
-    link = PeerLink(0, 1, address, LOG)
+    server, first = await start_receiver(address)
+    history = LogHistory(str(tmp_path))
+    link = PeerLink(0, 1, address, LOG, history)
+
+    def send(message: ring_pb2.LogMessage) -> None:
+        history.add(message)  # as the node does with every message it sends or receives
+        link.send(message)
+
     try:
-        link.send(big_message(1, 10))
+        send(big_message(1, 10))
         await wait_for(lambda: link.unacked == 0)
+        assert first.syncs == [(0, 1)]  # the stream's first frame: what the sender holds
+        # A message the successor created itself (it came round to us): never sent
+        # to it while it lives, but it is in our history.
+        history.add(ring_pb2.LogMessage(lognr=2, origin=1, handover=True))
         await server.stop(0)
         # Sent while the successor is down: kept until it is back.
-        link.send(big_message(2, 10))
-        link.send(big_message(3, 10))
+        send(big_message(3, 10))
+        send(big_message(4, 10))
         await wait_for(lambda: not link.stream_up)
         assert link.unacked >= 2
         server, restarted = await start_receiver(address)
-        await wait_for(lambda: link.unacked == 0 and len(restarted.messages) == 3)
-        # The restarted successor held nothing (hello lognr 0): it got the whole history.
-        assert [m.lognr for m in restarted.messages] == [1, 2, 3]
+        await wait_for(lambda: link.unacked == 0 and len(restarted.messages) == 4)
+        # The restarted successor held nothing (hello lognr 0): it got the whole
+        # history, its own old message included, as a normal (not handover) one.
+        assert [m.lognr for m in restarted.messages] == [1, 2, 3, 4]
+        assert restarted.messages[1].origin == 1 and not restarted.messages[1].handover
+        assert restarted.syncs == [(0, 4)]
         assert link.counters.connects == 2
     finally:
         await link.stop()
         await server.stop(0)
+        history.close()
 
 
 def test_a_frame_claiming_more_than_the_limit_is_refused_before_buffering() -> None:

@@ -127,10 +127,10 @@ def sim_testbed(tmp_path: Path, vehicle_url: str | None) -> Iterator[DroneBed]:
 
 
 class Controller:
-    """A controller as the drone sees it: an id and the next request number."""
+    """A controller as the drone sees it: an id, its epoch and the next request number."""
 
-    def __init__(self, bed: DroneBed, cid: int, reqnr: int = 1) -> None:
-        self.bed, self.cid, self.reqnr = bed, cid, reqnr
+    def __init__(self, bed: DroneBed, cid: int, reqnr: int = 1, epoch: int = 1) -> None:
+        self.bed, self.cid, self.reqnr, self.epoch = bed, cid, reqnr, epoch
 
     def invoke(self, method: str, request: Message, reply_type: type[M]) -> tuple[M, bool]:
         reply = self.bed.stub.Invoke(
@@ -139,6 +139,7 @@ class Controller:
                 reqnr=self.reqnr,
                 method=method,
                 payload=request.SerializeToString(),
+                epoch=self.epoch,
             ),
             timeout=15,
         )
@@ -157,7 +158,7 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     home = testbed.status().position
     stream = testbed.stub.Connect(drone_pb2.ConnectRequest(controller_id=0), timeout=60)
     first = next(stream)
-    assert first.connected == drone_pb2.Connected(master=0, last_reqnr=0)
+    assert first.connected == drone_pb2.Connected(master=0, last_reqnr=0, epoch=1)
     testbed.wait_until("master connected", lambda s: s.master_connected)
     c0 = Controller(testbed, 0)
 
@@ -196,7 +197,9 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     _, duplicate = c0.invoke("/baton.v1.Mobility/Land", api.LandRequest(), api.LandReply)
     assert not duplicate
     notice = next(stream)
-    assert notice.handover == drone_pb2.HandoverNotice(old_master=0, new_master=1, after_reqnr=7)
+    assert notice.handover == drone_pb2.HandoverNotice(
+        old_master=0, new_master=1, after_reqnr=7, ended_epoch=1, epoch=2
+    )
     assert next(stream, None) is None
 
     with pytest.raises(grpc.RpcError) as refused:
@@ -205,7 +208,7 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     assert dict(refused.value.trailing_metadata())["baton-master"] == "1"
 
     # The new master re-sends the request the old one had in flight: cached.
-    c1 = Controller(testbed, 1, reqnr=7)
+    c1 = Controller(testbed, 1, reqnr=7, epoch=2)
     _, duplicate = c1.invoke("/baton.v1.Mobility/Land", api.LandRequest(), api.LandReply)
     assert duplicate
     testbed.wait_until(
@@ -217,8 +220,8 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     assert position.position.relative_altitude_m < 0.3
 
     reply = testbed.stub.Handover(drone_pb2.HandoverRequest(new_master=2), timeout=5)
-    assert reply == drone_pb2.HandoverReply(old_master=1, new_master=2, after_reqnr=8)
-    c2 = Controller(testbed, 2, reqnr=9)
+    assert reply == drone_pb2.HandoverReply(old_master=1, new_master=2, after_reqnr=8, epoch=3)
+    c2 = Controller(testbed, 2, reqnr=9, epoch=3)
     c2.invoke(
         "/baton.v1.Mobility/GetFlightState", api.GetFlightStateRequest(), api.GetFlightStateReply
     )
@@ -231,7 +234,7 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
         with pytest.raises(grpc.RpcError) as bad:
             testbed.stub.Invoke(
                 drone_pb2.InvokeRequest(
-                    controller_id=2, reqnr=c2.reqnr, method=method, payload=payload
+                    controller_id=2, reqnr=c2.reqnr, method=method, payload=payload, epoch=3
                 ),
                 timeout=5,
             )
@@ -239,7 +242,7 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
         c2.reqnr += 1  # a failed request is served too: its reqnr is used
     with pytest.raises(grpc.RpcError) as bad:
         testbed.stub.Invoke(
-            drone_pb2.InvokeRequest(controller_id=2, reqnr=0, method="/x"), timeout=5
+            drone_pb2.InvokeRequest(controller_id=2, reqnr=0, method="/x", epoch=3), timeout=5
         )
     assert bad.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert "they start at 1" in (bad.value.details() or "")

@@ -20,10 +20,12 @@ GOTO = "/baton.v1.Mobility/Goto"
 
 
 def invoke(
-    cid: int, reqnr: int, method: str, request: Message | None = None
+    cid: int, reqnr: int, method: str, request: Message | None = None, epoch: int = 1
 ) -> drone_pb2.InvokeRequest:
     payload = request.SerializeToString() if request is not None else b""
-    return drone_pb2.InvokeRequest(controller_id=cid, reqnr=reqnr, method=method, payload=payload)
+    return drone_pb2.InvokeRequest(
+        controller_id=cid, reqnr=reqnr, method=method, payload=payload, epoch=epoch
+    )
 
 
 async def expect_error(call, code: grpc.StatusCode) -> grpc.aio.AioRpcError:  # type: ignore[no-untyped-def]
@@ -60,7 +62,7 @@ async def test_non_master_is_refused_with_master_metadata(drone: DroneUnderTest)
         drone.stub.Invoke(invoke(2, 2, ARM)), grpc.StatusCode.FAILED_PRECONDITION
     )
     assert "master is controller 0" in (error.details() or "")
-    assert trailing(error) == {"baton-master": "0", "baton-after-reqnr": "1"}
+    assert trailing(error) == {"baton-master": "0", "baton-epoch": "1", "baton-after-reqnr": "1"}
     assert "Arm" not in drone.vehicle.calls
     assert (await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())).rejected == 1
 
@@ -134,7 +136,9 @@ async def test_reqnr_zero_is_invalid(drone: DroneUnderTest) -> None:
 async def test_failed_requests_use_their_reqnr_and_replay_their_failure(
     drone: DroneUnderTest, method: str, payload: bytes, code: grpc.StatusCode, detail: str
 ) -> None:
-    request = drone_pb2.InvokeRequest(controller_id=0, reqnr=1, method=method, payload=payload)
+    request = drone_pb2.InvokeRequest(
+        controller_id=0, reqnr=1, method=method, payload=payload, epoch=1
+    )
     error = await expect_error(drone.stub.Invoke(request), code)
     assert detail in (error.details() or "")
     assert "baton-master" not in trailing(error)
@@ -177,18 +181,20 @@ async def test_connect_only_for_the_master(drone: DroneUnderTest) -> None:
 async def test_handover_rpc_notifies_the_connected_master(drone: DroneUnderTest) -> None:
     stream = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0))
     event = await next_event(stream)
-    assert event.connected == drone_pb2.Connected(master=0, last_reqnr=0)
+    assert event.connected == drone_pb2.Connected(master=0, last_reqnr=0, epoch=1)
     assert (await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())).master_connected
     await drone.stub.Invoke(invoke(0, 1, POSITION))
     reply = await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=2))
-    assert reply == drone_pb2.HandoverReply(old_master=0, new_master=2, after_reqnr=1)
+    assert reply == drone_pb2.HandoverReply(old_master=0, new_master=2, after_reqnr=1, epoch=2)
     event = await next_event(stream)
-    assert event.handover == drone_pb2.HandoverNotice(old_master=0, new_master=2, after_reqnr=1)
+    assert event.handover == drone_pb2.HandoverNotice(
+        old_master=0, new_master=2, after_reqnr=1, ended_epoch=1, epoch=2
+    )
     assert await next_event(stream) is grpc.aio.EOF
     await expect_error(
         drone.stub.Invoke(invoke(0, 2, POSITION)), grpc.StatusCode.FAILED_PRECONDITION
     )
-    await drone.stub.Invoke(invoke(2, 2, POSITION))
+    await drone.stub.Invoke(invoke(2, 2, POSITION, epoch=2))
     status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
     record = status.handovers[0]
     assert (record.old_master, record.new_master, record.after_reqnr, record.trigger) == (
@@ -222,9 +228,11 @@ async def test_scripted_handover_after_the_right_request() -> None:
         reply = await drone.stub.Invoke(invoke(0, 2, ARM))
         assert reply.reqnr == 2 and not reply.duplicate
         event = await next_event(stream)
-        assert event.handover == drone_pb2.HandoverNotice(old_master=0, new_master=1, after_reqnr=2)
+        assert event.handover == drone_pb2.HandoverNotice(
+            old_master=0, new_master=1, after_reqnr=2, ended_epoch=1, epoch=2
+        )
         # The new master re-sends the request in flight at the handover: cached.
-        again = await drone.stub.Invoke(invoke(1, 2, ARM))
+        again = await drone.stub.Invoke(invoke(1, 2, ARM, epoch=2))
         assert again.duplicate and drone.vehicle.calls.count("Arm") == 1
         status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         assert status.master == 1 and status.handovers[0].trigger == "script"
@@ -237,7 +245,9 @@ async def test_notice_waits_for_a_disconnected_old_master(drone: DroneUnderTest)
     await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1))
     stream = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0))
     event = await next_event(stream)
-    assert event.handover == drone_pb2.HandoverNotice(old_master=0, new_master=1, after_reqnr=0)
+    assert event.handover == drone_pb2.HandoverNotice(
+        old_master=0, new_master=1, after_reqnr=0, ended_epoch=1, epoch=2
+    )
     assert await next_event(stream) is grpc.aio.EOF
     # Delivered once: the next Connect of the old master is refused.
     await expect_error(

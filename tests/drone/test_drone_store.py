@@ -43,7 +43,7 @@ async def test_a_restarted_drone_resumes_master_requests_cache_audit_and_script(
     drone = first[0]
     await drone.stub.Invoke(invoke(0, 1, POSITION))
     await drone.stub.Invoke(invoke(0, 2, ARM))  # the script's line "2 1" fires
-    await drone.stub.Invoke(invoke(1, 3, POSITION))
+    await drone.stub.Invoke(invoke(1, 3, POSITION, epoch=2))
     second = await restart(first, state)
     drone = second[0]
     try:
@@ -55,14 +55,14 @@ async def test_a_restarted_drone_resumes_master_requests_cache_audit_and_script(
         ]
         assert status.handovers[0].delay_s > 0  # the new master's first request, kept too
         # The request in flight at the handover, re-sent by the new master: from the cache.
-        again = await drone.stub.Invoke(invoke(1, 2, ARM))
+        again = await drone.stub.Invoke(invoke(1, 2, ARM, epoch=2))
         assert again.duplicate and "Arm" not in drone.vehicle.calls
         await expect_error(
             drone.stub.Invoke(invoke(0, 4, POSITION)), grpc.StatusCode.FAILED_PRECONDITION
         )
         # The script goes on from where it was: "2 1" is not fired again, "5 2" is.
-        await drone.stub.Invoke(invoke(1, 4, POSITION))
-        await drone.stub.Invoke(invoke(1, 5, POSITION))
+        await drone.stub.Invoke(invoke(1, 4, POSITION, epoch=2))
+        await drone.stub.Invoke(invoke(1, 5, POSITION, epoch=2))
         status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         assert status.master == 2 and len(status.handovers) == 2
     finally:

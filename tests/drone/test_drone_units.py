@@ -11,6 +11,7 @@ from baton.drone.camera import Camera, image_size, parse_resolution
 from baton.drone.dedupe import ReplyCache
 from baton.drone.dispatch import Dispatcher, drone_api_routes
 from baton.drone.master import HandoverScriptError, load_handover_script, parse_handover_script
+from baton.effects import read_effects
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
 
@@ -146,6 +147,27 @@ async def test_static_image_file(tmp_path) -> None:  # type: ignore[no-untyped-d
     assert (picture.format, picture.width, picture.height) == ("ppm", 20, 10)
 
 
+async def test_the_camera_counts_every_picture_it_produced_in_its_effects_file(
+    tmp_path,  # type: ignore[no-untyped-def]
+) -> None:
+    effects = tmp_path / "camera-effects.jsonl"
+    camera = Camera(_zero_position, resolution=(16, 16), effects_file=effects)
+    first = await camera.TakePicture(api.TakePictureRequest())
+    await camera.SetResolution(api.SetResolutionRequest(width=32, height=20))
+    second = await camera.TakePicture(api.TakePictureRequest())
+    assert [
+        (e["seq"], e["effect"], e["resolution"], e["bytes"]) for e in read_effects(effects)
+    ] == [
+        (1, "picture", "16x16", len(first.image)),
+        (2, "picture", "32x20", len(second.image)),
+    ]
+    # A restarted drone's camera continues the count in the same file.
+    restarted = Camera(_zero_position, resolution=(16, 16), effects_file=effects)
+    await restarted.TakePicture(api.TakePictureRequest())
+    assert [e["seq"] for e in read_effects(effects)] == [1, 2, 3]
+    assert (camera.effects.seq, restarted.effects.seq) == (2, 3)
+
+
 def test_parse_resolution() -> None:
     assert parse_resolution("640x546") == (640, 546)
     for bad in ("640", "axb", "8x8", "9000x100"):
@@ -172,6 +194,9 @@ def test_cli_settings_from_flags_and_config(tmp_path) -> None:  # type: ignore[n
     assert (settings.address, settings.vehicle_url) == ("127.0.0.1:7000", "udpout://127.0.0.1:9")
     assert (settings.controllers, settings.master, settings.speedup) == ((3, 4), 4, 5.0)
     assert settings.resolution == (32, 16)
+    assert settings.camera_effects_file is None
+    counted = settings_from_args(_drone_args("--camera-effects-file", str(tmp_path / "c.jsonl")))
+    assert counted.camera_effects_file == str(tmp_path / "c.jsonl")
     flags = settings_from_args(_drone_args("--controllers", "0,1,2", "--address", "127.0.0.1:0"))
     assert (flags.controllers, flags.master, flags.address) == ((0, 1, 2), 0, "127.0.0.1:0")
 

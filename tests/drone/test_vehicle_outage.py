@@ -79,6 +79,7 @@ def invoke(bed: DroneBed, reqnr: int, method: str, request: object) -> drone_pb2
             reqnr=reqnr,
             method=method,
             payload=request.SerializeToString(),  # type: ignore[attr-defined]
+            epoch=1,
         ),
         timeout=15,
     )

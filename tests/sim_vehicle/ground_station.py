@@ -58,21 +58,33 @@ class GroundStation:
         kinds = sorted({m.get_type() for m in self.received})
         raise AssertionError(f"no {kind} within {timeout_s} s; received so far: {kinds}")
 
-    def command(self, command: int, *params: float) -> Any:
-        """Sends COMMAND_LONG (missing parameters 0) and returns its COMMAND_ACK."""
+    def command(self, command: int, *params: float, confirmation: int = 0) -> Any:
+        """Sends COMMAND_LONG (missing parameters 0) and returns its COMMAND_ACK.
+
+        ``confirmation`` > 0 is how a ground station marks a retransmission.
+        """
         assert len(params) <= 7
         padded = [*params, *[0.0] * (7 - len(params))]
-        self.link.mav.command_long_send(self.target_system, 1, command, 0, *padded)
+        self.link.mav.command_long_send(self.target_system, 1, command, confirmation, *padded)
         return self.receive("COMMAND_ACK", lambda ack: ack.command == command)
 
-    def command_int(self, command: int, *params: float) -> Any:
-        """Sends COMMAND_INT with param1..4 (missing ones 0), x = y = 0, z unset; its ACK."""
+    def command_int(
+        self, command: int, *params: float, x: int = 0, y: int = 0, z: float = UNSET
+    ) -> Any:
+        """Sends COMMAND_INT (see ``send_command_int``) and returns its COMMAND_ACK."""
+        self.send_command_int(command, *params, x=x, y=y, z=z)
+        return self.receive("COMMAND_ACK", lambda ack: ack.command == command)
+
+    def send_command_int(
+        self, command: int, *params: float, x: int = 0, y: int = 0, z: float = UNSET
+    ) -> None:
+        """Sends COMMAND_INT (MAV_FRAME_GLOBAL) with param1..4 (missing ones 0), x, y
+        (degrees * 1e7; 0 unset) and z (unset by default), without waiting for its ACK."""
         assert len(params) <= 4
         padded = [*params, *[0.0] * (4 - len(params))]
         self.link.mav.command_int_send(
-            self.target_system, 1, mavlink.MAV_FRAME_GLOBAL, command, 0, 0, *padded, 0, 0, UNSET
+            self.target_system, 1, mavlink.MAV_FRAME_GLOBAL, command, 0, 0, *padded, x, y, z
         )
-        return self.receive("COMMAND_ACK", lambda ack: ack.command == command)
 
     def set_interval(self, msg_id: int, interval_us: float) -> int:
         """MAV_CMD_SET_MESSAGE_INTERVAL; the result of its COMMAND_ACK."""

@@ -86,6 +86,15 @@ def test_grid_mission_checked_against_the_autopilots_telemetry(
     assert report["setup"]["vehicle"]["autopilot"] == AUTOPILOT[vehicle]
     assert [(h["from"], h["to"]) for h in report["handovers"]] == [(0, 1), (1, 2), (2, 0)]
     assert report["mission"]["pictures"] == GRID * GRID
+    # Exactly once where it happened: the camera's pictures; the sim
+    # vehicle's commands (SITL keeps no effects file: not counted).
+    effects = report["side_effects"]
+    assert effects["exactly_once"] is True, effects
+    assert effects["pictures_taken"] == GRID * GRID
+    if vehicle == "sim":
+        assert effects["vehicle_commands"]["goto"] == GRID * GRID
+    else:
+        assert effects["vehicle_commands"] == "not counted"
 
     # Where SITL says home is once armed: the grid's origin.
     assert monitor is not None and monitor.homes, f"no HOME_POSITION from {vehicle}"

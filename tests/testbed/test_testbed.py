@@ -82,6 +82,14 @@ async def test_report_agrees_with_the_drones_own_audit(tmp_path: Path) -> None:
     for h in report["handovers"]:
         assert h["delay_s"] > 0 and h["model_worst_case_s"] > 0
     assert report["handovers_missed"] == []
+    # Counted where it happened, not by the drone: the camera's pictures, the
+    # sim vehicle's commands.
+    effects = report["side_effects"]
+    assert effects["exactly_once"] is True and effects["problems"] == [], effects
+    assert effects["pictures_taken"] == effects["pictures_expected"] == 4
+    once = {name: effects["vehicle_commands"][name] for name in ("arm", "takeoff", "land")}
+    assert once == {"arm": 1, "takeoff": 1, "land": 1}
+    assert effects["vehicle_commands"]["goto"] == 4
 
 
 def test_the_cli_runs_a_mission_with_links_and_writes_the_report(tmp_path: Path) -> None:
@@ -98,6 +106,8 @@ def test_the_cli_runs_a_mission_with_links_and_writes_the_report(tmp_path: Path)
         "2MB",
     )
     assert "waypoint 4/4" in report["stdout"]  # live progress
+    assert "side effects counted: camera 4 pictures; vehicle arm 1," in report["stdout"]
+    assert report["side_effects"]["exactly_once"] is True
     assert report["format"] == "baton.testbed.report/1"
     assert report["mission"]["waypoints_visited"] == 4
     assert len(report["handovers"]) == 3
@@ -264,5 +274,8 @@ def test_the_testbed_flies_the_vehicle_its_file_names(tmp_path: Path) -> None:
         external.terminate()
         external.wait(10)
     assert report["setup"]["vehicle"]["url"] == url
+    # A vehicle the testbed did not start keeps no effects file for it.
+    assert report["side_effects"]["vehicle_commands"] == "not counted"
+    assert report["side_effects"]["pictures_taken"] == 4
     assert not (tmp_path / "w" / "logs" / "sim-vehicle.log").exists()
     assert "vehicle " + url in report["stdout"]

@@ -34,6 +34,7 @@ class InvokeRequest(_message.Message):
     REQNR_FIELD_NUMBER: _builtins.int
     METHOD_FIELD_NUMBER: _builtins.int
     PAYLOAD_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The calling controller's id."""
     reqnr: _builtins.int
@@ -44,6 +45,10 @@ class InvokeRequest(_message.Message):
     """Full gRPC name of a drone-API method, e.g. "/baton.v1.Mobility/GetPosition"."""
     payload: _builtins.bytes
     """The serialized request message of that method."""
+    epoch: _builtins.int
+    """The epoch of the caller's mastership, from its Connect stream's
+    Connected event (1 for the initial master, one more at every switch).
+    """
     def __init__(
         self,
         *,
@@ -51,10 +56,11 @@ class InvokeRequest(_message.Message):
         reqnr: _builtins.int = ...,
         method: _builtins.str = ...,
         payload: _builtins.bytes = ...,
+        epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "method", b"method", "payload", b"payload", "reqnr", b"reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "epoch", b"epoch", "method", b"method", "payload", b"payload", "reqnr", b"reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -154,19 +160,25 @@ class Connected(_message.Message):
 
     MASTER_FIELD_NUMBER: _builtins.int
     LAST_REQNR_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The master as the drone sees it (the caller)."""
     last_reqnr: _builtins.int
     """The last request number the drone has served."""
+    epoch: _builtins.int
+    """The epoch of this mastership: every Invoke of this stream's controller
+    carries it until the drone switches masters.
+    """
     def __init__(
         self,
         *,
         master: _builtins.int = ...,
         last_reqnr: _builtins.int = ...,
+        epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["last_reqnr", b"last_reqnr", "master", b"master"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -181,22 +193,30 @@ class HandoverNotice(_message.Message):
     OLD_MASTER_FIELD_NUMBER: _builtins.int
     NEW_MASTER_FIELD_NUMBER: _builtins.int
     AFTER_REQNR_FIELD_NUMBER: _builtins.int
+    ENDED_EPOCH_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """The controller that was master."""
     new_master: _builtins.int
     """The new master."""
     after_reqnr: _builtins.int
     """The last request number served for the old master."""
+    ended_epoch: _builtins.int
+    """The epoch of the mastership that ended (the old master's)."""
+    epoch: _builtins.int
+    """The new master's epoch."""
     def __init__(
         self,
         *,
         old_master: _builtins.int = ...,
         new_master: _builtins.int = ...,
         after_reqnr: _builtins.int = ...,
+        ended_epoch: _builtins.int = ...,
+        epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "new_master", b"new_master", "old_master", b"old_master"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "ended_epoch", b"ended_epoch", "epoch", b"epoch", "new_master", b"new_master", "old_master", b"old_master"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -233,22 +253,26 @@ class HandoverReply(_message.Message):
     OLD_MASTER_FIELD_NUMBER: _builtins.int
     NEW_MASTER_FIELD_NUMBER: _builtins.int
     AFTER_REQNR_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """The master before the switch."""
     new_master: _builtins.int
     """The master now."""
     after_reqnr: _builtins.int
     """The last request number served before the switch."""
+    epoch: _builtins.int
+    """The new master's epoch."""
     def __init__(
         self,
         *,
         old_master: _builtins.int = ...,
         new_master: _builtins.int = ...,
         after_reqnr: _builtins.int = ...,
+        epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "new_master", b"new_master", "old_master", b"old_master"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "epoch", b"epoch", "new_master", b"new_master", "old_master", b"old_master"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -327,6 +351,7 @@ class HandoverRecord(_message.Message):
     FIRST_REQUEST_AT_FIELD_NUMBER: _builtins.int
     DELAY_S_FIELD_NUMBER: _builtins.int
     TRIGGER_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """Master before."""
     new_master: _builtins.int
@@ -341,6 +366,8 @@ class HandoverRecord(_message.Message):
     """first_request_at - decided_at, seconds; the handover delay. 0 until known."""
     trigger: _builtins.str
     """What triggered it: "script" (the handover file) or "rpc"."""
+    epoch: _builtins.int
+    """The epoch the new master was granted."""
     def __init__(
         self,
         *,
@@ -351,10 +378,11 @@ class HandoverRecord(_message.Message):
         first_request_at: _builtins.float = ...,
         delay_s: _builtins.float = ...,
         trigger: _builtins.str = ...,
+        epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "first_request_at", b"first_request_at", "new_master", b"new_master", "old_master", b"old_master", "trigger", b"trigger"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "new_master", b"new_master", "old_master", b"old_master", "trigger", b"trigger"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -381,6 +409,7 @@ class DroneStatus(_message.Message):
     CONTROLLERS_FIELD_NUMBER: _builtins.int
     VEHICLE_FIELD_NUMBER: _builtins.int
     WAITING_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -400,6 +429,10 @@ class DroneStatus(_message.Message):
     waiting: _builtins.str
     """What the drone has been waiting for, and for how long, once it lasts 3 s
     (the master holding no Connect stream); empty when nothing.
+    """
+    epoch: _builtins.int
+    """The current master's epoch: 1 for the initial master, one more at
+    every switch (never reused, kept across drone restarts).
     """
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
@@ -443,10 +476,11 @@ class DroneStatus(_message.Message):
         controllers: _abc.Iterable[_builtins.int] | None = ...,
         vehicle: Global___VehicleLink | None = ...,
         waiting: _builtins.str = ...,
+        epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "controllers", b"controllers", "duplicates", b"duplicates", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "rejected", b"rejected", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "rejected", b"rejected", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

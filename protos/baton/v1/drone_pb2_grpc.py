@@ -65,12 +65,16 @@ class DroneServicer:
         """Executes one drone-API call for the master controller.
 
         FAILED_PRECONDITION if the caller is not the master (the message names
-        the current master; trailing metadata `baton-master` and
-        `baton-after-reqnr` carry it for programs), or if reqnr is neither a
-        cached one (answered again, not executed) nor above the last one served
-        by at most 1,000,000 (numbers skip the controller's own Clock calls).
-        UNIMPLEMENTED for an unknown method, INVALID_ARGUMENT for reqnr 0, a
-        payload that does not parse or a field out of range. UNAVAILABLE if the
+        the current master; trailing metadata `baton-master`, `baton-epoch` and
+        `baton-after-reqnr` carry it for programs), if the request is stale (its
+        epoch is an earlier mastership of the caller: a request still on the
+        wire from before a handover; `baton-epoch` is above the request's), or
+        if reqnr is neither a cached one (answered again, not executed) nor above
+        the last one served by at most 1,000,000 (numbers skip the controller's
+        own Clock calls). None of these executes anything.
+        UNIMPLEMENTED for an unknown method, INVALID_ARGUMENT for reqnr 0, epoch
+        0 or an epoch the drone never granted, a payload that does not parse or
+        a field out of range. UNAVAILABLE if the
         vehicle is not connected: nothing was executed and the same request may
         be sent again. ABORTED with MAVSDK's reason if the autopilot refused;
         DEADLINE_EXCEEDED if it did not acknowledge (it may have acted); UNKNOWN

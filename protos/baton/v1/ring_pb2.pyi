@@ -138,6 +138,7 @@ class LogMessage(_message.Message):
     ENTRIES_FIELD_NUMBER: _builtins.int
     SENDER_FIELD_NUMBER: _builtins.int
     CREATED_AT_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The log number, from 1."""
     origin: _builtins.int
@@ -150,6 +151,11 @@ class LogMessage(_message.Message):
     """
     created_at: _builtins.float
     """When it was created (Unix seconds, wall clock), for measurements."""
+    epoch: _builtins.int
+    """On a handover message: the new master's epoch, from the drone's notice
+    (0 if unknown), so the new master can tell a Connect refusal the drone
+    made before it granted that epoch from one made after.
+    """
     @_builtins.property
     def entries(self) -> _containers.RepeatedCompositeFieldContainer[Global___LogEntry]:
         """The entries, by increasing reqnr; may be empty."""
@@ -163,10 +169,11 @@ class LogMessage(_message.Message):
         entries: _abc.Iterable[Global___LogEntry] | None = ...,
         sender: _builtins.int = ...,
         created_at: _builtins.float = ...,
+        epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["created_at", b"created_at", "entries", b"entries", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -183,6 +190,8 @@ class LogFrame(_message.Message):
     OFFSET_FIELD_NUMBER: _builtins.int
     DATA_FIELD_NUMBER: _builtins.int
     FROM_ID_FIELD_NUMBER: _builtins.int
+    SYNC_FIELD_NUMBER: _builtins.int
+    HOLDS_LOGNR_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The message's log number (repeated on every frame)."""
     total_bytes: _builtins.int
@@ -193,6 +202,16 @@ class LogFrame(_message.Message):
     """The slice."""
     from_id: _builtins.int
     """The id of the controller at the sending end of this stream."""
+    sync: _builtins.bool
+    """True for the first frame the sender writes on every new stream: it
+    carries no message, only holds_lognr.
+    """
+    holds_lognr: _builtins.int
+    """On the sync frame: the sender holds every log message up to this number
+    and sends those above the receiver's hello next, whatever their origin,
+    so a receiver that restarted with nothing catches up to here (a
+    restarted controller goes ACTIVE on the drone's grant only once it has).
+    """
     def __init__(
         self,
         *,
@@ -201,10 +220,12 @@ class LogFrame(_message.Message):
         offset: _builtins.int = ...,
         data: _builtins.bytes = ...,
         from_id: _builtins.int = ...,
+        sync: _builtins.bool = ...,
+        holds_lognr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["data", b"data", "from_id", b"from_id", "lognr", b"lognr", "offset", b"offset", "total_bytes", b"total_bytes"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["data", b"data", "from_id", b"from_id", "holds_lognr", b"holds_lognr", "lognr", b"lognr", "offset", b"offset", "sync", b"sync", "total_bytes", b"total_bytes"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -324,6 +345,8 @@ class ControllerStatus(_message.Message):
     T_CONN_S_FIELD_NUMBER: _builtins.int
     DRONE_CALLS_FIELD_NUMBER: _builtins.int
     WAITING_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
+    CATCHING_UP_TO_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
     state: _builtins.str
@@ -367,6 +390,14 @@ class ControllerStatus(_message.Message):
     message missing while later ones are queued, the ring stream to its
     successor down, each after 3 s; empty when it is not waiting.
     """
+    epoch: _builtins.int
+    """The drone's epoch of this controller's current or last mastership (0
+    before the drone granted it one).
+    """
+    catching_up_to: _builtins.int
+    """The highest log number the predecessor said it holds on its stream's
+    sync frame, that this controller has not received yet (0 when caught up).
+    """
     @_builtins.property
     def peers(self) -> _containers.RepeatedCompositeFieldContainer[Global___PeerStatus]:
         """The successor and the other peers this controller streams to."""
@@ -403,10 +434,12 @@ class ControllerStatus(_message.Message):
         t_conn_s: _abc.Iterable[_builtins.float] | None = ...,
         drone_calls: _builtins.int = ...,
         waiting: _builtins.str = ...,
+        epoch: _builtins.int = ...,
+        catching_up_to: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "epoch", b"epoch", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

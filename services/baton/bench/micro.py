@@ -136,7 +136,7 @@ def measure_replay(entries: int) -> dict[str, Any]:
             for k in range(1, entries + 1)
         ],
     )
-    protocol = ControllerProtocol(1, [0, 1], 0, initial_master=0)
+    protocol = ControllerProtocol(1, [0, 1], 0)
     protocol.on_log(message)
     start = time.perf_counter()
     for _ in range(entries):

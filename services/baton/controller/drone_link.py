@@ -1,10 +1,12 @@
 """The master's connection to the drone: the Connect stream and Invoke calls.
 
 Opened when the controller becomes ACTIVE and closed when it stops being
-ACTIVE (docs/design.md, protocol note 5); the time from opening to the drone's
-first event is T_conn. A handover notice on the stream, or an Invoke rejected
-because another controller is now master, reaches the controller through
-``on_notice``.
+ACTIVE (docs/design.md, protocol note 5), and once at start to ask the
+drone who the master is; the time from opening to the drone's first event is
+T_conn. The Connected event carries the epoch of the mastership, which every
+Invoke of the session carries; a handover notice on the stream, or a Connect
+refused because another controller is master, reach the controller through
+``DroneEvents``.
 """
 
 from __future__ import annotations
@@ -12,7 +14,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
 
 import grpc
 
@@ -23,30 +26,55 @@ from baton.v1 import drone_pb2, drone_pb2_grpc
 # Longest a call in flight at close may take to finish (a large picture on a slow link).
 CLOSE_GRACE_S = 60.0
 
-NoticeCallback = Callable[[int, int], None]  # (new_master, after_reqnr)
+
+@dataclass(frozen=True)
+class DroneRefusal:
+    """Where the drone stands when it refuses a request or a Connect: its trailing metadata."""
+
+    master: int
+    epoch: int
+    after_reqnr: int
 
 
-def notice_from_rejection(error: grpc.aio.AioRpcError) -> tuple[int, int] | None:
-    """(new master, after reqnr) from an Invoke rejected because another controller is master."""
+def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
+    """The drone's master, epoch and last reqnr from a FAILED_PRECONDITION that names them."""
     if error.code() is not grpc.StatusCode.FAILED_PRECONDITION:
         return None
     metadata = {key: value for key, value in (error.trailing_metadata() or ())}
     master = metadata.get("baton-master")
     if master is None:
         return None
-    return int(str(master)), int(str(metadata.get("baton-after-reqnr", "0")))
+    return DroneRefusal(
+        int(str(master)),
+        int(str(metadata.get("baton-epoch", "0"))),
+        int(str(metadata.get("baton-after-reqnr", "0"))),
+    )
+
+
+class DroneEvents(Protocol):
+    """What a session tells its controller."""
+
+    def granted(self, epoch: int) -> None:
+        """Connected: the drone holds this controller as master in ``epoch``."""
+
+    def notice(self, new_master: int, after_reqnr: int, epoch: int) -> None:
+        """A handover notice on the stream (the stream then ends); ``epoch`` is the new one."""
+
+    def refused(self, refusal: DroneRefusal) -> None:
+        """Connect refused: another controller is master, and no notice is owed to this one."""
 
 
 class DroneSession:
     """One ACTIVE period's connection to the drone service."""
 
     def __init__(
-        self, controller_id: int, address: str, on_notice: NoticeCallback, log: BoundLogger
+        self, controller_id: int, address: str, events: DroneEvents, log: BoundLogger
     ) -> None:
         self.controller_id = controller_id
         self.address = address
-        self._on_notice = on_notice
+        self._events_to = events
         self._log = log
+        self.epoch = 0  # from the Connected event
         self._channel = aio_channel(address)
         self._stub = drone_pb2_grpc.DroneStub(self._channel)
         self.connected = asyncio.Event()
@@ -70,23 +98,26 @@ class DroneSession:
                     if event.HasField("connected"):
                         if self.t_conn_s is None:
                             self.t_conn_s = time.monotonic() - self.opened_at
+                        self.epoch = event.connected.epoch
                         self.connected.set()
                         self._log.info(
                             "drone connected",
                             t_conn_ms=round((self.t_conn_s or 0) * 1000, 3),
                             drone_last_reqnr=event.connected.last_reqnr,
+                            epoch=self.epoch,
                         )
+                        self._events_to.granted(self.epoch)
                     elif event.HasField("handover"):
                         notice = event.handover
-                        self._on_notice(notice.new_master, notice.after_reqnr)
+                        self._events_to.notice(notice.new_master, notice.after_reqnr, notice.epoch)
                         return
                 raise ConnectionError("drone ended the Connect stream without a handover notice")
             except asyncio.CancelledError:
                 raise
             except grpc.aio.AioRpcError as exc:
-                rejected = notice_from_rejection(exc)
-                if rejected is not None:
-                    self._on_notice(*rejected)
+                refusal = refusal_of(exc)
+                if refusal is not None:
+                    self._events_to.refused(refusal)
                     return
                 self._log.warning(
                     "drone stream down; reconnecting", code=exc.code().name, detail=exc.details()
@@ -100,13 +131,17 @@ class DroneSession:
     async def invoke(
         self, reqnr: int, method: str, payload: bytes, timeout_s: float | None = None
     ) -> drone_pb2.InvokeReply:
-        """Sends request ``reqnr``; raises grpc.aio.AioRpcError with the drone's status.
+        """Sends request ``reqnr`` in this session's epoch; raises grpc.aio.AioRpcError.
 
         It waits for the drone to be reachable (``wait_for_ready``) for at
         most ``timeout_s``, then fails DEADLINE_EXCEEDED.
         """
         request = drone_pb2.InvokeRequest(
-            controller_id=self.controller_id, reqnr=reqnr, method=method, payload=payload
+            controller_id=self.controller_id,
+            reqnr=reqnr,
+            method=method,
+            payload=payload,
+            epoch=self.epoch,
         )
         reply: drone_pb2.InvokeReply = await self._stub.Invoke(
             request, wait_for_ready=True, timeout=timeout_s

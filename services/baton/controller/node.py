@@ -16,14 +16,16 @@ import asyncio
 import hashlib
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
+from typing import Any
 
 import grpc
 
 from baton.config import BatonConfig
 from baton.controller.clock import MissionClock
-from baton.controller.drone_link import DroneSession, notice_from_rejection
+from baton.controller.drone_link import DroneRefusal, DroneSession, refusal_of
+from baton.controller.history import LogHistory
 from baton.controller.protocol import (
     ConnectDrone,
     ControllerProtocol,
@@ -31,8 +33,10 @@ from baton.controller.protocol import (
     Effect,
     NonDeterminismError,
     ProtocolError,
+    Refusal,
     SendLog,
     State,
+    TookOver,
     request_digest,
 )
 from baton.controller.ring import PeerLink
@@ -113,9 +117,9 @@ class ControllerNode:
     def __init__(self, config: BatonConfig, cid: int) -> None:
         self.config = config
         self.id = cid
-        self.protocol = ControllerProtocol(
-            cid, config.ring_order, config.flush_limit, config.master_id
-        )
+        self.protocol = ControllerProtocol(cid, config.ring_order, config.flush_limit)
+        # Every log message this controller holds, for a successor that restarts.
+        self.history = LogHistory()
         self.clock = MissionClock(config.speedup)
         self.log = get_logger("controller").bind(context=self._log_context, id=cid)
         # Replaced on every change, so a waiter holds the event of the state it saw.
@@ -151,7 +155,7 @@ class ControllerNode:
         self.peer(self.protocol.successor).start()
         await self._apply(self.protocol.start())
         self._watchdog = asyncio.create_task(self._watch(), name="stall-watchdog")
-        self.log.info("controller started", master=self.protocol.master)
+        self.log.info("controller started; asking the drone who the master is")
 
     @property
     def waiting(self) -> str:
@@ -170,6 +174,15 @@ class ControllerNode:
         drone = self._drone
         if drone is not None and not drone.connected.is_set():
             holding["drone"] = f"no Connect stream to the drone at {drone.address}"
+        if p.master and not p.caught_up:
+            holding["catch-up"] = (
+                f"master by the drone's word (epoch {p.epoch}) but catching up with the ring: "
+                + (
+                    f"handled log message {p.lognr} of {p.catch_up_to}"
+                    if p.catch_up_to is not None
+                    else f"controller {p.predecessor} has not said what it holds"
+                )
+            )
         if self._in_flight is not None:
             reqnr, method = self._in_flight
             holding[f"request {reqnr}"] = f"request {reqnr} ({method}) sent, no answer yet"
@@ -200,12 +213,14 @@ class ControllerNode:
             self._drone = None
         for link in self._peers.values():
             await link.stop()
+        self.history.close()
 
     def peer(self, pid: int) -> PeerLink:
         """The kept stream to controller ``pid``, created on first use."""
         link = self._peers.get(pid)
         if link is None:
-            link = PeerLink(self.id, pid, self.config.controller(pid).reach, self.log)
+            history = self.history if pid == self.protocol.successor else None
+            link = PeerLink(self.id, pid, self.config.controller(pid).reach, self.log, history)
             self._peers[pid] = link
         return link
 
@@ -240,6 +255,7 @@ class ControllerNode:
     async def _apply(self, effects: list[Effect]) -> None:
         for effect in effects:
             if isinstance(effect, SendLog):
+                self.history.add(effect.message)
                 self.peer(effect.dest).send(effect.message)
                 self.log.debug(
                     "log message sent",
@@ -252,6 +268,13 @@ class ControllerNode:
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
                 await self._close_drone()
+            elif isinstance(effect, TookOver):
+                self.handovers.append(
+                    HandoverEvent(
+                        "new", effect.old_master, effect.lognr, effect.reqnr, effect.message_bytes
+                    )
+                )
+                self.log.info("taking over as master", old_master=effect.old_master)
         self._notify()
 
     def _notify(self) -> None:
@@ -262,7 +285,9 @@ class ControllerNode:
         if self._drone is not None:
             return
         address = self.config.drone_address_for(self.id)
-        self._drone = DroneSession(self.id, address, self._on_notice_threadsafe, self.log)
+        events = _SessionEvents(self)
+        self._drone = DroneSession(self.id, address, events, self.log)
+        events.session = self._drone
         self._drone.open()
         self.log.info("connecting to the drone", drone=address)
 
@@ -275,18 +300,64 @@ class ControllerNode:
             # mid-callback; let it finish on its own.
             asyncio.get_running_loop().create_task(drone.close())
 
-    def _on_notice_threadsafe(self, new_master: int, after_reqnr: int) -> None:
-        asyncio.get_running_loop().create_task(self.on_handover_notice(new_master, after_reqnr))
-
     # -- events -----------------------------------------------------------------------
 
-    async def on_handover_notice(self, new_master: int, after_reqnr: int) -> None:
+    async def on_granted(self, session: DroneSession, epoch: int) -> None:
+        """The drone's Connected event: this controller is master in ``epoch``."""
+        if session is not self._drone:
+            return  # a session closed meanwhile
+        was_active = self.protocol.state is State.ACTIVE
+        effects = self.protocol.on_granted(epoch)
+        if not was_active:
+            self.log.info(
+                "the drone says this controller is master",
+                epoch=epoch,
+                caught_up=self.protocol.caught_up,
+            )
+        await self._apply(effects)
+
+    async def on_connect_refused(self, session: DroneSession, refusal: DroneRefusal) -> None:
+        """Connect refused: another controller is master, and no notice is owed to us."""
+        if session is not self._drone:
+            return  # a session closed meanwhile
+        if self.protocol.state is not State.ACTIVE:
+            self.log.info("not the master", master=refusal.master, epoch=refusal.epoch)
+            await self._close_drone()
+            return
+        if self.protocol.connect_refusal_is_stale(refusal.epoch):
+            # Asked before the drone made us master, answered after: ask again.
+            self.log.info("stale Connect refusal; connecting again", epoch=refusal.epoch)
+            await self._close_drone()
+            self._open_drone()
+            return
+        # Made master by a handover message, but the drone moved on meanwhile:
+        # the log goes to the master it names.
+        await self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+
+    async def on_stream_notice(
+        self, session: DroneSession, new_master: int, after_reqnr: int, epoch: int
+    ) -> None:
+        """A handover notice on the Connect stream (the drone owes at most one, the latest)."""
+        if session is not self._drone:
+            return
+        if self.protocol.state is State.ACTIVE:
+            await self.on_handover_notice(new_master, after_reqnr, epoch)
+            return
+        await self._close_drone()  # a notice for a mastership we no longer hold
+
+    async def on_sync(self, from_id: int, holds_lognr: int) -> None:
+        """A ring stream's sync frame: what its sender holds (only the predecessor's counts)."""
+        if from_id != self.protocol.predecessor:
+            return
+        await self._apply(self.protocol.on_sync(holds_lognr))
+
+    async def on_handover_notice(self, new_master: int, after_reqnr: int, epoch: int = 0) -> None:
         """The drone chose another master (Algorithm 1, lines 24-29)."""
         if self.protocol.state is not State.ACTIVE:
             return
         log_bytes = self.protocol.log.size
         try:
-            effects = self.protocol.on_handover_notice(new_master)
+            effects = self.protocol.on_handover_notice(new_master, epoch)
         except ProtocolError as exc:
             self.log.error("bad handover notice", error=str(exc))
             return
@@ -303,15 +374,13 @@ class ControllerNode:
 
     async def on_log(self, message: ring_pb2.LogMessage) -> None:
         """A log message from the ring or from an old master (lines 30-47)."""
-        was_master = self.protocol.master
+        self.history.add(message)
         try:
             effects = self.protocol.on_log(message)
         except ProtocolError as exc:
             self._fail(StatusError(grpc.StatusCode.INTERNAL, f"controller {self.id}: {exc}"))
             await self._apply(exc.effects)  # still forward it: the replicas after us go on
             return
-        if self.protocol.master and not was_master:
-            self._took_over(message)
         self.log.debug(
             "log message received",
             mlognr=message.lognr,
@@ -321,14 +390,6 @@ class ControllerNode:
             entries=len(message.entries),
         )
         await self._apply(effects)
-
-    def _took_over(self, message: ring_pb2.LogMessage) -> None:
-        self.handovers.append(
-            HandoverEvent(
-                "new", message.sender, message.lognr, self.protocol.reqnr, message.ByteSize()
-            )
-        )
-        self.log.info("taking over as master", old_master=message.sender)
 
     async def mission_done(self, failed: bool, error: str) -> bool:
         """The local mission program ended; the master flushes its last entries."""
@@ -548,6 +609,7 @@ class ControllerNode:
             if not drone.connected.is_set():
                 await self._wait_connected(drone)
                 continue
+            sent_epoch = drone.epoch
             try:
                 self._in_flight = (reqnr, method)
                 budget = max(1.0, retry.limit_s - retry.waited())
@@ -560,20 +622,30 @@ class ControllerNode:
                     request=request,
                 )
             except grpc.aio.AioRpcError as exc:
-                notice = notice_from_rejection(exc)
-                if notice is not None and notice[0] == self.id:
-                    # The drone knows us as master yet refused the request
-                    # number: the log and the drone disagree. Stop, loudly.
-                    self._fail(
-                        StatusError(
-                            grpc.StatusCode.INTERNAL,
-                            f"controller {self.id}: the drone refused request {reqnr} "
-                            f"({method}): {exc.details()}",
+                refusal = refusal_of(exc)
+                if refusal is not None:
+                    verdict = self.protocol.judge_refusal(sent_epoch, refusal.master, refusal.epoch)
+                    if verdict is Refusal.DISAGREE:
+                        # The drone knows us as master, in this epoch, yet refused
+                        # the request number: the log and the drone disagree.
+                        self._fail(
+                            StatusError(
+                                grpc.StatusCode.INTERNAL,
+                                f"controller {self.id}: the drone refused request {reqnr} "
+                                f"({method}): {exc.details()}",
+                            )
                         )
-                    )
-                    return None
-                if notice is not None:
-                    await self.on_handover_notice(*notice)
+                    elif verdict is Refusal.HANDED_OVER:
+                        await self.on_handover_notice(
+                            refusal.master, refusal.after_reqnr, refusal.epoch
+                        )
+                    else:
+                        self.log.info(
+                            "stale request refused by the drone",
+                            reqnr=reqnr,
+                            sent_epoch=sent_epoch,
+                            drone_epoch=refusal.epoch,
+                        )
                     return None
                 if exc.code() is grpc.StatusCode.UNAVAILABLE and not retry.exhausted():
                     # The drone could not be reached, or its vehicle is not
@@ -618,3 +690,26 @@ class ControllerNode:
         finally:
             for waiter in waiters:
                 waiter.cancel()
+
+
+class _SessionEvents:
+    """A drone session's events, handed to the node on its event loop with the session."""
+
+    def __init__(self, node: ControllerNode) -> None:
+        self._node = node
+        self.session: DroneSession | None = None
+
+    def _run(self, event: Coroutine[Any, Any, None]) -> None:
+        asyncio.get_running_loop().create_task(event)
+
+    def granted(self, epoch: int) -> None:
+        assert self.session is not None
+        self._run(self._node.on_granted(self.session, epoch))
+
+    def notice(self, new_master: int, after_reqnr: int, epoch: int) -> None:
+        assert self.session is not None
+        self._run(self._node.on_stream_notice(self.session, new_master, after_reqnr, epoch))
+
+    def refused(self, refusal: DroneRefusal) -> None:
+        assert self.session is not None
+        self._run(self._node.on_connect_refused(self.session, refusal))

@@ -48,7 +48,25 @@ class DisconnectDrone:
     """Effect: close the drone connection (the controller stopped being ACTIVE)."""
 
 
-Effect = SendLog | ConnectDrone | DisconnectDrone
+@dataclass(frozen=True)
+class TookOver:
+    """Effect (bookkeeping only): a handover message made this controller master."""
+
+    old_master: int
+    lognr: int
+    reqnr: int
+    message_bytes: int
+
+
+Effect = SendLog | ConnectDrone | DisconnectDrone | TookOver
+
+
+class Refusal(enum.Enum):
+    """What a drone refusal that names a master means to the controller that sent the request."""
+
+    STALE = "stale"  # from an earlier ACTIVE period: ignore it, nothing was executed
+    HANDED_OVER = "handed over"  # another master now: a handover notice
+    DISAGREE = "disagree"  # ourselves, now, refusing the number: the log and drone disagree
 
 
 class NonDeterminismError(Exception):
@@ -150,10 +168,11 @@ class ControllerProtocol:
     """One controller's Algorithm 1 state.
 
     ``ring`` is the ring order of controller ids; ``flush_limit`` is f in
-    bytes (0 flushes after every call); ``initial_master`` is the paper's n_0.
+    bytes (0 flushes after every call). The paper's initial master n_0 is
+    the drone's to say: it grants it epoch 1 (``on_granted``).
     """
 
-    def __init__(self, cid: int, ring: list[int], flush_limit: int, initial_master: int) -> None:
+    def __init__(self, cid: int, ring: list[int], flush_limit: int) -> None:
         if cid not in ring:
             raise ValueError(f"controller {cid} is not in the ring {ring}")
         if flush_limit < 0:
@@ -169,8 +188,19 @@ class ControllerProtocol:
         self.lognr = 0
         self.log = Log()
         self.log_queue: dict[int, ring_pb2.LogMessage] = {}  # logQ, ordered by lognr
-        self.master = cid == initial_master
-        self.state = State.ACTIVE if self.master else State.PASSIVE
+        # Not ACTIVE on our own word (docs/design.md, "Restarts"): every
+        # controller starts PASSIVE and asks the drone, which grants the
+        # initial master epoch 1 at the mission's start, or tells a restarted
+        # controller who the master is now.
+        self.master = False
+        self.state = State.PASSIVE
+        # The drone's epoch of our current or last mastership (0: none yet).
+        self.epoch = 0
+        # The highest log number the predecessor said it holds (its stream's
+        # sync frame); None until it has said. A controller the drone grants
+        # the role goes ACTIVE only once it has handled that much, so that a
+        # restarted one never writes over log numbers the ring already used.
+        self.catch_up_to: int | None = 0 if len(ring) == 1 else None
         # Log numbers received over the ring, so that a message re-sent after a
         # reconnect is neither forwarded nor handled twice.
         self._received = SeenNumbers()
@@ -180,8 +210,67 @@ class ControllerProtocol:
     # -- lines 1-11 -------------------------------------------------------------
 
     def start(self) -> list[Effect]:
-        """Initialization: the initial master connects to the drone (line 7)."""
-        return [ConnectDrone()] if self.state is State.ACTIVE else []
+        """Initialization: every controller asks the drone whether it is the master.
+
+        Line 7 has the initial master connect; here the drone's answer decides
+        (``on_granted``), so a controller restarted mid-mission does not take
+        the role from its configuration.
+        """
+        return [ConnectDrone()]
+
+    # -- the drone's word ---------------------------------------------------------
+
+    def on_granted(self, epoch: int) -> list[Effect]:
+        """The drone's Connected event: this controller is master in ``epoch``.
+
+        After a handover (Algorithm 1) the controller is ACTIVE already and
+        learns its epoch. Otherwise it was not made master by the log: the
+        mission's start, or a restart while the drone held it as master. It
+        becomes ACTIVE once caught up with the ring (``_drain``).
+        """
+        self.epoch = epoch
+        if self.state is State.ACTIVE:
+            return []
+        self.master = True
+        return self._drain()
+
+    def on_sync(self, holds_lognr: int) -> list[Effect]:
+        """The predecessor holds every log message up to ``holds_lognr`` and sends what we lack."""
+        self.catch_up_to = max(self.catch_up_to or 0, holds_lognr)
+        return self._drain()
+
+    @property
+    def caught_up(self) -> bool:
+        """Handled every log message the predecessor said it holds."""
+        return self.catch_up_to is not None and self.lognr >= self.catch_up_to
+
+    def connect_refusal_is_stale(self, epoch: int) -> bool:
+        """Whether a Connect refusal the drone made in ``epoch`` predates our mastership.
+
+        A controller made master by a handover message knows the epoch the
+        drone granted it (the message carries the notice's); a refusal from
+        an earlier epoch (our start-up question answered before the switch,
+        read after it) says nothing about now: connect again.
+        """
+        return epoch < self.epoch
+
+    def judge_refusal(self, sent_epoch: int, master: int, epoch: int) -> Refusal:
+        """What a drone refusal of a request sent in ``sent_epoch`` means (drone.proto).
+
+        The drone names its master and epoch. A refusal of a request from an
+        earlier ACTIVE period (a slow uplink delivered it after the role came
+        back) is STALE: nothing was executed, and it says nothing about now.
+        Another master in our current epoch is a handover notice. Ourselves,
+        in the epoch we sent, refusing the request number: the log and the
+        drone disagree.
+        """
+        if self.state is not State.ACTIVE or sent_epoch != self.epoch:
+            return Refusal.STALE
+        if master != self.id:
+            return Refusal.HANDED_OVER
+        if epoch != sent_epoch:
+            return Refusal.STALE
+        return Refusal.DISAGREE
 
     # -- lines 12-23: invocation while ACTIVE -----------------------------------
 
@@ -225,7 +314,7 @@ class ControllerProtocol:
 
     # -- lines 24-29: the drone's handover notice --------------------------------
 
-    def on_handover_notice(self, new_master: int) -> list[Effect]:
+    def on_handover_notice(self, new_master: int, epoch: int = 0) -> list[Effect]:
         """Hands the unflushed log to the new master directly, with the handover flag.
 
         A notice that arrives while a call is in flight (footnote 2) is handled
@@ -241,6 +330,7 @@ class ControllerProtocol:
         self.state, self.master = State.PASSIVE, False
         self.lognr += 1
         message = self._message(self.lognr, origin=new_master, handover=True)
+        message.epoch = epoch
         return [DisconnectDrone(), SendLog(new_master, message)]
 
     # -- lines 30-47: a log message arrives --------------------------------------
@@ -260,7 +350,9 @@ class ControllerProtocol:
         self._received.add(message.lognr)
         effects: list[Effect] = []
         # Lines 31-33: forward (a handover message travels on as a normal one).
-        if message.handover or message.origin != self.successor:
+        # One of our own messages comes to us only when a predecessor re-sends
+        # its history to us after our restart: it has been round already.
+        if message.handover or message.origin not in (self.id, self.successor):
             forwarded = ring_pb2.LogMessage()
             forwarded.CopyFrom(message)
             forwarded.handover = False
@@ -279,7 +371,7 @@ class ControllerProtocol:
         effects: list[Effect] = []
         while self.state is State.PASSIVE and (self.lognr + 1) in self.log_queue:
             effects.extend(self._handle(self.log_queue.pop(self.lognr + 1)))
-        if self.state is State.PASSIVE and self.master and not self.log_queue:
+        if self.state is State.PASSIVE and self.master and not self.log_queue and self.caught_up:
             # The master's own log ran out with nothing queued: lines 54-56.
             self.state = State.ACTIVE
             effects.append(ConnectDrone())
@@ -295,11 +387,14 @@ class ControllerProtocol:
             )
         for entry in message.entries:
             self.log.append(entry)
+        effects: list[Effect] = []
         if message.handover:
             self.master = True
+            self.epoch = max(self.epoch, message.epoch)
+            effects.append(TookOver(message.sender, message.lognr, self.reqnr, message.ByteSize()))
         if self.log:
             self.state = State.REPLAY
-        return []
+        return effects
 
     # -- lines 48-63: invocation while REPLAY ------------------------------------
 

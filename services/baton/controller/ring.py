@@ -5,9 +5,13 @@ travels as ``LogFrame`` slices of its serialized form (``FRAME_BYTES`` each)
 and is acknowledged whole. Each destination has one ``PeerLink``: a stream
 opened once and kept, re-opened with back-off when it breaks (the successor
 restarted, a link dropped). On every new stream the receiver first says the
-highest log number it has handled, and the sender re-sends what it sent since
-then and was not acknowledged; the receiver ignores what it already has
-(``ControllerProtocol.on_log``), so nothing is lost and nothing is handled twice.
+highest log number it has handled; the sender answers with a sync frame
+saying the highest it holds, then re-sends what it sent and was not
+acknowledged and, to its successor, every message of its history above the
+receiver's number, whatever its origin (a restarted successor holds
+nothing, not even the messages it once created). The receiver ignores what
+it already has (``ControllerProtocol.on_log``), so nothing is lost and
+nothing is handled twice.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from dataclasses import dataclass
 import grpc
 
 from baton.config import MAX_LOG_MESSAGE_DEFAULT
+from baton.controller.history import LogHistory
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.v1 import ring_pb2, ring_pb2_grpc
@@ -98,17 +103,25 @@ class PeerLink:
     """The kept LogRing stream from this controller to one peer.
 
     ``send`` never blocks the caller (the mission program's call returns while
-    the message travels). Messages are kept until acknowledged and re-sent on a
-    new stream; ``history`` keeps every message sent, so that a peer that
-    restarted with nothing can be given all of it again.
+    the message travels). Messages are kept in memory until acknowledged and
+    re-sent on a new stream. The link to the successor also has the
+    controller's ``history`` (on disk), so that a successor that restarted
+    with nothing is given all of it again.
     """
 
-    def __init__(self, my_id: int, peer_id: int, address: str, log: BoundLogger) -> None:
+    def __init__(
+        self,
+        my_id: int,
+        peer_id: int,
+        address: str,
+        log: BoundLogger,
+        history: LogHistory | None = None,
+    ) -> None:
         self.my_id = my_id
         self.peer_id = peer_id
         self.address = address
         self._log = log.bind(peer=peer_id)
-        self._history: dict[int, ring_pb2.LogMessage] = {}
+        self._history = history
         self._unacked: dict[int, ring_pb2.LogMessage] = {}
         self._wakeup = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -130,7 +143,6 @@ class PeerLink:
 
     def send(self, message: ring_pb2.LogMessage) -> None:
         """Queues ``message`` for the peer."""
-        self._history[message.lognr] = message
         self._unacked[message.lognr] = message
         self._wakeup.set()
         self.start()
@@ -170,14 +182,19 @@ class PeerLink:
                 raise ConnectionError(f"peer {self.peer_id} did not greet the ring stream")
             self.stream_up = True
             self.counters.connects += 1
-            self._log.info("ring stream up", peer_lognr=hello.lognr)
-            # Whatever the peer does not hold yet is re-sent (a restarted peer
-            # holds nothing and gets the whole history).
-            for lognr, message in self._history.items():
-                if lognr > hello.lognr:
-                    self._unacked.setdefault(lognr, message)
+            history = self._history
+            holds = history.holds_lognr if history is not None else 0
+            self._log.info("ring stream up", peer_lognr=hello.lognr, holds_lognr=holds)
+            await call.write(ring_pb2.LogFrame(sync=True, holds_lognr=holds, from_id=self.my_id))
             acks = asyncio.create_task(self._read_acks(call))
             try:
+                # Whatever the successor does not hold yet is re-sent from the
+                # history, read back one message at a time (a restarted peer
+                # holds nothing and gets all of it).
+                if history is not None:
+                    for lognr in history.above(hello.lognr):
+                        if lognr not in self._unacked:
+                            await self._write(call, history.get(lognr))
                 sent: set[int] = set()
                 while True:
                     pending = [n for n in sorted(self._unacked) if n not in sent]
@@ -231,11 +248,13 @@ class RingReceiver:
         deliver: Callable[[ring_pb2.LogMessage], Awaitable[None]],
         log: BoundLogger,
         max_message_bytes: int = MAX_LOG_MESSAGE_DEFAULT,
+        synced: Callable[[int, int], Awaitable[None]] | None = None,
     ) -> None:
         self.my_id = my_id
         self.max_message_bytes = max_message_bytes
         self._current_lognr = current_lognr
         self._deliver = deliver
+        self._synced = synced
         self._log = log
 
     async def serve(self, context: grpc.aio.ServicerContext) -> None:
@@ -248,6 +267,10 @@ class RingReceiver:
             frame = await context.read()
             if frame is grpc.aio.EOF:
                 return
+            if frame.sync:
+                if self._synced is not None:
+                    await self._synced(frame.from_id, frame.holds_lognr)
+                continue
             try:
                 message = reassembler.add(frame)
             except ValueError as exc:

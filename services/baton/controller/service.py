@@ -139,6 +139,7 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
             node.on_log,
             node.log,
             node.config.log_message_cap,
+            node.on_sync,
         )
 
     async def LogRing(self, request_iterator: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[override]
@@ -194,6 +195,8 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         drone_connected=node.drone_connected,
         drone_calls=node.drone_calls,
         waiting=node.waiting,
+        epoch=p.epoch,
+        catching_up_to=0 if p.caught_up else (p.catch_up_to or 0),
         handovers=[
             ring_pb2.ControllerHandover(
                 role=h.role,

@@ -6,6 +6,10 @@ picture, a binary PPM (``P6``) of width*height*3 bytes plus its header, about
 resolution (numpy) and each picture stamps its sequence number into a
 copy, so no two pictures are equal and a replayed reply can be told apart
 from a fresh one.
+
+Every picture produced is counted where it is produced, one line in the
+camera's effects file (``baton.effects``, ``baton drone --camera-effects-file``),
+for the testbed's exactly-once check that does not trust the drone's audit.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from pathlib import Path
 import grpc
 import numpy as np
 
+from baton.effects import EffectsFile
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
 
@@ -75,16 +80,22 @@ def image_size(data: bytes) -> tuple[int, int]:
 
 
 class Camera:
-    """The Camera service's two RPCs over a static file or a generated picture."""
+    """The Camera service's two RPCs over a static file or a generated picture.
+
+    ``effects_file``: where each picture produced is counted (seq, time,
+    resolution, bytes); None counts in memory only (``effects.seq``).
+    """
 
     def __init__(
         self,
         position: PositionSource,
         image_file: str | Path | None = None,
         resolution: tuple[int, int] = DEFAULT_RESOLUTION,
+        effects_file: str | Path | None = None,
     ) -> None:
         check_resolution(*resolution)
         self._position = position
+        self.effects = EffectsFile(effects_file)
         self.sequence = 0
         self.resolution = resolution
         self._static: bytes | None = None
@@ -110,7 +121,13 @@ class Camera:
         return self._cached[1]
 
     def picture(self) -> bytes:
-        """The next picture's bytes; advances the sequence number."""
+        """The next picture's bytes, counted in the effects file; advances the sequence number."""
+        image = self._produce()
+        width, height = self.resolution
+        self.effects.record("picture", resolution=f"{width}x{height}", bytes=len(image))
+        return image
+
+    def _produce(self) -> bytes:
         self.sequence += 1
         if self._static is not None:
             return self._static

@@ -110,6 +110,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         f"(default: {width}x{height}, about 1 MB)",
     )
     parser.add_argument(
+        "--camera-effects-file",
+        metavar="PATH",
+        help="append one JSON line per picture the camera produced (seq, time, resolution, "
+        "bytes), flushed at once, for an exactly-once check independent of the drone's audit; "
+        "a restarted drone continues the file (default: none written)",
+    )
+    parser.add_argument(
         "--speedup",
         type=float,
         metavar="X",
@@ -189,6 +196,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         address_file=args.address_file,
         race=Race(args.force_race, args.race_delay) if args.force_race else None,
         state_file=args.state,
+        camera_effects_file=args.camera_effects_file,
     )
 
 

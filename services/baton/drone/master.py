@@ -1,10 +1,10 @@
-"""Which controller is the master, when it changes, and telling the old master.
+"""The handover script, and the Connect streams that tell masters of a switch.
 
 Handover triggers: a handover script (the paper's experiments: ``reqnr mid``
 lines, "hand over to controller mid right after serving request reqnr") and
-the ``Handover`` RPC. Both end in ``MasterSelection.switch``, which the drone
-service calls with its execution lock held, so a switch always falls between
-two requests.
+the ``Handover`` RPC. Both end in ``Sequencer.switch`` (``sequencer.py``),
+which the drone service calls with its execution lock held, so a switch
+always falls between two requests.
 
 The old master learns of a switch from a ``HandoverNotice`` on its Connect
 stream. If it does not hold the stream at that moment the notice waits, and
@@ -16,31 +16,15 @@ metadata of its next Invoke.
 from __future__ import annotations
 
 import asyncio
-import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import grpc
-
-from baton.logs import get_logger
-from baton.rpc.errors import StatusError
-from baton.v1 import drone_pb2
-
-log = get_logger("drone")
+from baton.drone.sequencer import ScriptedHandover, Sequencer
 
 
 class HandoverScriptError(ValueError):
     """A handover script that cannot be used; the message names file and line."""
-
-
-@dataclass(frozen=True)
-class ScriptedHandover:
-    """One line of the handover script: hand over to ``new_master`` after ``after_reqnr``."""
-
-    after_reqnr: int
-    new_master: int
-    line: int
 
 
 def parse_handover_script(
@@ -95,112 +79,25 @@ class MasterStream:
     superseded: bool = False
 
 
-class MasterSelection:
-    """The master, the handover records, and the notices owed to old masters."""
+class MasterStreams:
+    """The open Connect streams, by controller; the sequencer decides who may hold one."""
 
-    def __init__(self, controllers: Iterable[int], initial_master: int) -> None:
-        self.controllers = sorted(set(controllers))
-        if not self.controllers:
-            raise ValueError("the drone needs at least one controller id")
-        if initial_master not in self.controllers:
-            raise ValueError(
-                f"initial master {initial_master} is not a controller id; use one of "
-                f"{self.controllers}"
-            )
-        self.master = initial_master
-        self.handovers: list[drone_pb2.HandoverRecord] = []
-        self._pending: dict[int, drone_pb2.HandoverNotice] = {}
+    def __init__(self, sequencer: Sequencer) -> None:
+        self._sequencer = sequencer
         self._streams: dict[int, MasterStream] = {}
 
     @property
     def master_connected(self) -> bool:
         """Whether the current master holds its Connect stream."""
-        return self.master in self._streams
+        return self._sequencer.master in self._streams
 
-    def check_known(self, controller_id: int) -> None:
-        """INVALID_ARGUMENT unless ``controller_id`` is a known controller."""
-        if controller_id not in self.controllers:
-            raise StatusError(
-                grpc.StatusCode.INVALID_ARGUMENT,
-                f"unknown controller id {controller_id}; known ids: {self.controllers}",
-            )
+    def connected(self, controller_id: int) -> bool:
+        """Whether ``controller_id`` holds a Connect stream now."""
+        return controller_id in self._streams
 
-    def not_master_error(self, controller_id: int, last_reqnr: int, what: str) -> StatusError:
-        """The FAILED_PRECONDITION a non-master gets, with the master in message and metadata."""
-        return StatusError(
-            grpc.StatusCode.FAILED_PRECONDITION,
-            f"{what} refused: controller {controller_id} is not the master; the master is "
-            f"controller {self.master} (last reqnr served {last_reqnr})",
-            metadata=(("baton-master", str(self.master)), ("baton-after-reqnr", str(last_reqnr))),
-        )
-
-    def switch(
-        self, new_master: int, after_reqnr: int, trigger: str, notice_delay_s: float = 0.0
-    ) -> drone_pb2.HandoverRecord:
-        """Makes ``new_master`` the master and owes the old master a notice.
-
-        The caller holds the drone's execution lock, so no request is being
-        served. Raises FAILED_PRECONDITION if ``new_master`` already is the
-        master (a handover to oneself would create a record with no delay
-        to measure and a notice that tells the master nothing).
-        """
-        self.check_known(new_master)
-        old = self.master
-        if new_master == old:
-            raise StatusError(
-                grpc.StatusCode.FAILED_PRECONDITION,
-                f"controller {new_master} already is the master (after reqnr {after_reqnr})",
-            )
-        record = drone_pb2.HandoverRecord(
-            old_master=old,
-            new_master=new_master,
-            after_reqnr=after_reqnr,
-            decided_at=time.time(),
-            trigger=trigger,
-        )
-        self.handovers.append(record)
-        self.master = new_master
-        # A master that got the role back no longer needs the notice of losing it.
-        self._pending.pop(new_master, None)
-        self._pending[old] = drone_pb2.HandoverNotice(
-            old_master=old, new_master=new_master, after_reqnr=after_reqnr
-        )
-        stream = self._streams.get(old)
-        log.info(
-            "handover",
-            old_master=old,
-            new_master=new_master,
-            after_reqnr=after_reqnr,
-            trigger=trigger,
-            old_master_connected=stream is not None,
-        )
-        if stream is not None:
-            if notice_delay_s > 0:  # fault injection: the reply overtakes the notice
-                asyncio.get_running_loop().call_later(notice_delay_s, stream.wake.set)
-            else:
-                stream.wake.set()
-        return record
-
-    def note_request(self, controller_id: int, received_at: float) -> None:
-        """Completes the last handover's record with the new master's first request."""
-        if not self.handovers:
-            return
-        record = self.handovers[-1]
-        if record.new_master == controller_id and record.first_request_at == 0:
-            record.first_request_at = received_at
-            record.delay_s = received_at - record.decided_at
-            log.info(
-                "first request of new master",
-                master=controller_id,
-                after_reqnr=record.after_reqnr,
-                delay_s=round(record.delay_s, 6),
-            )
-
-    def attach(self, controller_id: int, last_reqnr: int) -> MasterStream:
+    def attach(self, controller_id: int) -> MasterStream:
         """Opens a Connect stream for the master, or for an old master owed a notice."""
-        self.check_known(controller_id)
-        if controller_id != self.master and controller_id not in self._pending:
-            raise self.not_master_error(controller_id, last_reqnr, "Connect")
+        self._sequencer.may_connect(controller_id)
         previous = self._streams.get(controller_id)
         if previous is not None:
             # The controller reconnected (its old stream is likely dead): the
@@ -216,11 +113,12 @@ class MasterSelection:
         if self._streams.get(stream.controller_id) is stream:
             del self._streams[stream.controller_id]
 
-    def pending_notice(self, controller_id: int) -> drone_pb2.HandoverNotice | None:
-        """The notice owed to ``controller_id``, if any."""
-        return self._pending.get(controller_id)
-
-    def delivered(self, controller_id: int, notice: drone_pb2.HandoverNotice) -> None:
-        """The notice was written to the stream; it is no longer owed."""
-        if self._pending.get(controller_id) is notice:
-            del self._pending[controller_id]
+    def wake(self, controller_id: int, delay_s: float = 0.0) -> None:
+        """Wakes ``controller_id``'s stream (a notice is owed), after ``delay_s`` if given."""
+        stream = self._streams.get(controller_id)
+        if stream is None:
+            return
+        if delay_s > 0:  # fault injection: the reply overtakes the notice
+            asyncio.get_running_loop().call_later(delay_s, stream.wake.set)
+        else:
+            stream.wake.set()

@@ -42,8 +42,9 @@ async def measure(address: str, controller: int, calls: int, pictures: int, conn
     channel = aio_channel(address)
     stub = drone_pb2_grpc.DroneStub(channel)
     status = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    epoch = status.epoch
     if status.master != controller:
-        await stub.Handover(drone_pb2.HandoverRequest(new_master=controller))
+        epoch = (await stub.Handover(drone_pb2.HandoverRequest(new_master=controller))).epoch
     reqnr = status.last_reqnr
 
     async def connect(connect_stub: drone_pb2_grpc.DroneStub) -> float:
@@ -69,7 +70,7 @@ async def measure(address: str, controller: int, calls: int, pictures: int, conn
         reqnr += 1
         return await stub.Invoke(
             drone_pb2.InvokeRequest(
-                controller_id=controller, reqnr=reqnr, method=method, payload=payload
+                controller_id=controller, reqnr=reqnr, method=method, payload=payload, epoch=epoch
             )
         )
 

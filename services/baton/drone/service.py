@@ -21,10 +21,11 @@ import grpc
 
 from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
-from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, ReplyCache
+from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
 from baton.drone.dispatch import Dispatcher
-from baton.drone.master import MasterSelection, ScriptedHandover
+from baton.drone.master import MasterStreams
 from baton.drone.mobility_api import MobilityBackend
+from baton.drone.sequencer import ScriptedHandover, Sequencer
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import write_atomically
 from baton.logs import get_logger
@@ -51,13 +52,6 @@ async def latest_position(vehicle: MobilityBackend) -> api.Position:
     return reply.position
 
 
-# How far a new request number may be above the last one served. Numbers skip
-# the Clock calls a controller answers itself, never this many; a larger jump
-# is a bug or an attack, and accepting it (2**64 - 1, say) would make every
-# later request look old, so the drone would refuse the mission for good.
-MAX_REQNR_GAP = 1_000_000
-
-
 def _retrieve_exception(task: asyncio.Task[Any]) -> None:
     """Marks a shielded request's failure as seen when its caller is gone (no asyncio warning)."""
     if not task.cancelled():
@@ -65,49 +59,59 @@ def _retrieve_exception(task: asyncio.Task[Any]) -> None:
 
 
 class DroneService(drone_pb2_grpc.DroneServicer):
-    """The drone middleware of drone.proto, over a vehicle backend and a camera."""
+    """The drone middleware of drone.proto, over a vehicle backend and a camera.
+
+    Every decision (who may invoke, in which epoch, which request numbers,
+    duplicates, the script) is the pure ``Sequencer``'s; this class executes
+    what it admits, keeps the Connect streams, and saves the outcome.
+    """
 
     def __init__(
         self,
         vehicle: MobilityBackend,
         camera: Camera,
-        masters: MasterSelection,
-        script: Mapping[int, ScriptedHandover] | None = None,
-        cache_window: int = DEFAULT_WINDOW,
+        sequencer: Sequencer,
         race: Race | None = None,
         store: DroneStore | None = None,
     ) -> None:
         self.race = race
         self.store = store
-        self._fired_script: list[int] = []
         self.vehicle = vehicle
         self.camera = camera
-        self.masters = masters
-        self.script = dict(script or {})  # pending scripted handovers, by reqnr
+        self.seq = sequencer
+        self.streams = MasterStreams(sequencer)
         self._handed_over_after = 0
-        self.cache = ReplyCache(cache_window)
         self.dispatcher = Dispatcher({"Mobility": vehicle, "Camera": camera})
-        self.last_reqnr = 0
-        self.executed = 0
-        self.duplicates = 0
-        self.rejected = 0
-        self.audit: list[drone_pb2.AuditEntry] = []
         self._lock = asyncio.Lock()
         self.log = get_logger("drone").bind(
-            context=lambda: {"master": self.masters.master, "last_reqnr": self.last_reqnr}
+            context=lambda: {
+                "master": self.seq.master,
+                "epoch": self.seq.epoch,
+                "last_reqnr": self.seq.last_reqnr,
+            }
         )
         self._stalls = StallWatch()
         self.waiting = ""
         if store is not None:
             self._restore(store)
 
+    @property
+    def last_reqnr(self) -> int:
+        """The last request number served."""
+        return self.seq.last_reqnr
+
+    @property
+    def audit(self) -> list[drone_pb2.AuditEntry]:
+        """Every served request, in order."""
+        return self.seq.audit
+
     async def watch(self) -> None:
         """Every half second: stalls into GetStatus.waiting, and into the log when they begin."""
         while True:
             holding = {}
-            if not self.masters.master_connected:
+            if not self.streams.master_connected:
                 holding["master"] = (
-                    f"the master, controller {self.masters.master}, holds no Connect stream"
+                    f"the master, controller {self.seq.master}, holds no Connect stream"
                 )
             now = time.monotonic()
             stalls = self._stalls.update(now, holding)
@@ -119,14 +123,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     # -- durable state (store.py) ---------------------------------------------------
 
     def _counters(self) -> Counters:
+        seq = self.seq
         return Counters(
-            master=self.masters.master,
-            last_reqnr=self.last_reqnr,
-            executed=self.executed,
-            duplicates=self.duplicates,
-            rejected=self.rejected,
-            handovers=list(self.masters.handovers),
-            fired_script=list(self._fired_script),
+            master=seq.master,
+            last_reqnr=seq.last_reqnr,
+            executed=seq.executed,
+            duplicates=seq.duplicates,
+            rejected=seq.rejected,
+            handovers=list(seq.handovers),
+            fired_script=list(seq.fired_script),
         )
 
     def _restore(self, store: DroneStore) -> None:
@@ -136,25 +141,26 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             store.save(self._counters())
             self.log.info("new state file", path=str(store.path))
             return
-        c = state.counters
-        self.masters.master = c.master
-        self.masters.handovers[:] = c.handovers
-        self.last_reqnr, self.executed = c.last_reqnr, c.executed
-        self.duplicates, self.rejected = c.duplicates, c.rejected
+        c, seq = state.counters, self.seq
+        seq.master = c.master
+        seq.handovers[:] = c.handovers
+        seq.last_reqnr, seq.executed = c.last_reqnr, c.executed
+        seq.duplicates, seq.rejected = c.duplicates, c.rejected
         for reply in state.replies:
-            self.cache.store(reply.reqnr, reply.method, reply.digest, reply.reply, reply.error)
-        self.audit = state.audit
-        self._fired_script = list(c.fired_script)
+            seq.cache.store(reply.reqnr, reply.method, reply.digest, reply.reply, reply.error)
+        seq.audit[:] = state.audit
+        seq.fired_script[:] = c.fired_script
         for reqnr in c.fired_script:
-            self.script.pop(reqnr, None)
+            seq.script.pop(reqnr, None)
         self.log.info(
             "state resumed",
             path=str(store.path),
             master=c.master,
+            epoch=seq.epoch,
             last_reqnr=c.last_reqnr,
             cached_replies=len(state.replies),
             audit=len(state.audit),
-            script_left=len(self.script),
+            script_left=len(seq.script),
         )
         cut = state.executing
         if cut is None:
@@ -170,11 +176,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             f"{cut.method} (request {cut.reqnr}) was being executed when the drone service "
             "restarted: the vehicle may have acted on it, so it is not executed again",
         )
-        request = drone_pb2.InvokeRequest(
-            controller_id=cut.controller_id, reqnr=cut.reqnr, method=cut.method
-        )
         self.log.warning("request cut off by the restart", reqnr=cut.reqnr, method=cut.method)
-        self._served(request, cut.digest, b"", cut.received_at, error)
+        self._served(
+            cut.controller_id, cut.reqnr, cut.method, cut.digest, b"", cut.received_at, error
+        )
 
     async def Invoke(
         self, request: drone_pb2.InvokeRequest, context: grpc.aio.ServicerContext
@@ -184,11 +189,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         try:
             return await self.invoke(request, received_at)
         except StatusError as err:
-            self.rejected += 1
+            self.seq.rejected += 1
             self.log.warning(
                 "invoke rejected",
                 controller=request.controller_id,
                 reqnr=request.reqnr,
+                request_epoch=request.epoch,
                 method=request.method,
                 code=err.code.name,
                 reason=err.message,
@@ -200,15 +206,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     ) -> drone_pb2.InvokeReply:
         """Invoke without gRPC: the reply, or StatusError saying why not.
 
-        Three kinds of failure: the protocol's rejections (not the master,
-        wrong reqnr, a duplicate that differs) leave the reqnr unused and
-        carry ``baton-master`` / ``baton-after-reqnr`` metadata; UNAVAILABLE
-        (the vehicle not connected, no telemetry yet) means nothing was
-        executed, so the reqnr stays unused too and the same request can be
-        sent again; any other failure after the reqnr was accepted (bad
-        method or payload, autopilot refusal, no acknowledgement in time) is
-        served with that failure, which is cached and given again to a
-        duplicate (see dedupe.py).
+        Three kinds of failure: the sequencer's refusals (not the master, a
+        stale epoch, a wrong reqnr, a duplicate that differs) leave the reqnr
+        unused and carry ``baton-master`` / ``baton-epoch`` /
+        ``baton-after-reqnr`` metadata; UNAVAILABLE (the vehicle not
+        connected, no telemetry yet) means nothing was executed, so the reqnr
+        stays unused too and the same request can be sent again; any other
+        failure after the reqnr was accepted (bad method or payload,
+        autopilot refusal, no acknowledgement in time) is served with that
+        failure, which is cached and given again to a duplicate (dedupe.py).
 
         A request runs to its end once it is received, whatever its caller
         does: it is a task of its own that the caller's cancellation (a
@@ -226,35 +232,30 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     ) -> drone_pb2.InvokeReply:
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         async with self._lock:
-            if cid != self.masters.master:
-                raise self.masters.not_master_error(cid, self.last_reqnr, f"Invoke reqnr {reqnr}")
-            self.masters.note_request(cid, received_at)
             digest = request_digest(method, request.payload)
-            cached = self.cache.get(reqnr)
-            if cached is not None:
-                return self._answer_duplicate(request, digest, cached)
-            if reqnr <= self.last_reqnr:
-                raise self._bad_reqnr(reqnr)
-            if reqnr > self.last_reqnr + MAX_REQNR_GAP:
-                raise StatusError(
-                    grpc.StatusCode.FAILED_PRECONDITION,
-                    f"reqnr {reqnr} is more than {MAX_REQNR_GAP} above the last one served "
-                    f"({self.last_reqnr}): request numbers skip only the controller's own Clock "
-                    "calls, and a number this far ahead would make every later request look "
-                    "old; refused, nothing executed",
-                    metadata=self._after_metadata(),
+            cached = self.seq.admit(cid, request.epoch, reqnr, method, digest)
+            first = self.seq.note_request(cid, received_at)
+            if first is not None:
+                self.log.info(
+                    "first request of new master",
+                    master=cid,
+                    epoch=first.epoch,
+                    after_reqnr=first.after_reqnr,
+                    delay_s=round(first.delay_s, 6),
                 )
+            if cached is not None:
+                return self._answer_duplicate(request, cached)
             if self.store is not None:
                 self.store.begin(Intent(reqnr, method, digest, cid, received_at))
             try:
                 reply = await self._execute(request)
             except StatusError as err:
                 if err.code is not grpc.StatusCode.UNAVAILABLE:
-                    self._served(request, digest, b"", received_at, err)
+                    self._served(cid, reqnr, method, digest, b"", received_at, err)
                 elif self.store is not None:
                     self.store.abandon()
                 raise
-            self._served(request, digest, reply, received_at)
+            self._served(cid, reqnr, method, digest, reply, received_at)
         if (
             self.race is not None
             and self.race.order == "notice-first"
@@ -264,17 +265,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         return drone_pb2.InvokeReply(reqnr=reqnr, payload=reply)
 
     def _answer_duplicate(
-        self, request: drone_pb2.InvokeRequest, digest: bytes, cached: CachedReply
+        self, request: drone_pb2.InvokeRequest, cached: CachedReply
     ) -> drone_pb2.InvokeReply:
-        if cached.digest != digest:
-            raise StatusError(
-                grpc.StatusCode.FAILED_PRECONDITION,
-                f"reqnr {request.reqnr} was served as {cached.method} (request digest "
-                f"{cached.digest.hex()[:16]}) but is re-sent as {request.method} (digest "
-                f"{digest.hex()[:16]}): the mission program diverged",
-                metadata=self._after_metadata(),
-            )
-        self.duplicates += 1
         self.log.info(
             "duplicate answered from cache",
             controller=request.controller_id,
@@ -289,31 +281,6 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 metadata=(*cached.error.metadata, ("baton-duplicate", "true")),
             )
         return drone_pb2.InvokeReply(reqnr=request.reqnr, payload=cached.reply, duplicate=True)
-
-    def _after_metadata(self) -> tuple[tuple[str, str], ...]:
-        return (
-            ("baton-master", str(self.masters.master)),
-            ("baton-after-reqnr", str(self.last_reqnr)),
-        )
-
-    def _bad_reqnr(self, reqnr: int) -> StatusError:
-        # FAILED_PRECONDITION, not OUT_OF_RANGE: which numbers are acceptable
-        # depends on the drone's state (the last reqnr served, what is still
-        # cached), and the caller fixes it by resynchronising from the
-        # metadata, not by changing a value that is wrong in itself. reqnr 0
-        # can never be right, so it is INVALID_ARGUMENT.
-        if reqnr == 0:
-            return StatusError(
-                grpc.StatusCode.INVALID_ARGUMENT, "reqnr 0 is not a request number; they start at 1"
-            )
-        oldest = self.cache.reqnrs[0] if len(self.cache) else None
-        cached = f"; replies cached for reqnr {oldest}..{self.last_reqnr}" if oldest else ""
-        return StatusError(
-            grpc.StatusCode.FAILED_PRECONDITION,
-            f"expected a reqnr above {self.last_reqnr} (or a cached duplicate), "
-            f"got {reqnr}{cached}",
-            metadata=self._after_metadata(),
-        )
 
     async def _execute(self, request: drone_pb2.InvokeRequest) -> bytes:
         route = self.dispatcher.route(request.method)
@@ -347,55 +314,44 @@ class DroneService(drone_pb2_grpc.DroneServicer):
 
     def _served(
         self,
-        request: drone_pb2.InvokeRequest,
+        cid: int,
+        reqnr: int,
+        method: str,
         digest: bytes,
         reply: bytes,
         received_at: float,
         error: StatusError | None = None,
     ) -> None:
-        """Books a served request, then applies the script's handover after it."""
-        reqnr = request.reqnr
-        self.cache.store(reqnr, request.method, digest, reply, error)
-        self.last_reqnr = reqnr
-        # ``executed`` counts replies; a failed request counts as rejected
-        # (in Invoke) but is audited, so the audit's reqnrs have no gaps.
-        if error is None:
-            self.executed += 1
-        entry = drone_pb2.AuditEntry(
-            reqnr=reqnr,
-            method=request.method,
-            controller_id=request.controller_id,
-            received_at=received_at,
-            reply_bytes=len(reply),
-        )
-        self.audit.append(entry)
-        self._fire_script(reqnr)
-        if self.store is not None:
-            cached = self.cache.get(reqnr)
-            assert cached is not None
-            self.store.served(self._counters(), cached, entry, self.cache.reqnrs[0])
-
-    def _fire_script(self, reqnr: int) -> None:
-        """The handover script's line due after request ``reqnr``, if any."""
-        # A scripted handover fires after the first request served at or past
-        # its reqnr: request numbers the controllers answer themselves (Clock)
-        # never reach the drone.
-        due = [n for n in self.script if n <= reqnr]
-        if not due:
-            return
-        scripted = self.script.pop(min(due))
-        self._fired_script.append(min(due))
-        if scripted.new_master == self.masters.master:
+        """Books a served request, saves it, and carries out the script's handover after it."""
+        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, time.time(), error)
+        if served.skipped is not None:
             self.log.warning(
                 "scripted handover skipped: already the master",
-                new_master=scripted.new_master,
+                new_master=served.skipped.new_master,
                 after_reqnr=reqnr,
-                script_line=scripted.line,
+                script_line=served.skipped.line,
             )
-            return
-        hold = self.race.delay_s if self.race and self.race.order == "reply-first" else 0.0
-        self.masters.switch(scripted.new_master, reqnr, "script", notice_delay_s=hold)
-        self._handed_over_after = reqnr
+        if served.handover is not None:
+            hold = self.race.delay_s if self.race and self.race.order == "reply-first" else 0.0
+            self._switched(served.handover, notice_delay_s=hold)
+            self._handed_over_after = reqnr
+        if self.store is not None:
+            self.store.served(
+                self._counters(), served.cached, served.audit, self.seq.cache.reqnrs[0]
+            )
+
+    def _switched(self, record: drone_pb2.HandoverRecord, notice_delay_s: float = 0.0) -> None:
+        """Logs a switch and wakes the old master's stream to carry the notice."""
+        self.log.info(
+            "handover",
+            old_master=record.old_master,
+            new_master=record.new_master,
+            after_reqnr=record.after_reqnr,
+            epoch=record.epoch,
+            trigger=record.trigger,
+            old_master_connected=self.streams.connected(record.old_master),
+        )
+        self.streams.wake(record.old_master, notice_delay_s)
 
     async def Connect(
         self, request: drone_pb2.ConnectRequest, context: grpc.aio.ServicerContext
@@ -403,26 +359,29 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """The master's event stream: Connected, then a HandoverNotice at the switch."""
         cid = request.controller_id
         try:
-            stream = self.masters.attach(cid, self.last_reqnr)
+            stream = self.streams.attach(cid)
         except StatusError as err:
             self.log.warning("connect rejected", controller=cid, reason=err.message)
             await abort_with(context, err)
         self.log.info("master connected", controller=cid)
         try:
-            if cid == self.masters.master:
+            if cid == self.seq.master:
                 yield drone_pb2.DroneEvent(
-                    connected=drone_pb2.Connected(master=cid, last_reqnr=self.last_reqnr)
+                    connected=drone_pb2.Connected(
+                        master=cid, last_reqnr=self.seq.last_reqnr, epoch=self.seq.epoch
+                    )
                 )
             while True:
-                notice = self.masters.pending_notice(cid)
+                notice = self.seq.pending.get(cid)
                 if notice is not None:
                     yield drone_pb2.DroneEvent(handover=notice)
-                    self.masters.delivered(cid, notice)
+                    self.seq.delivered(cid, notice)
                     self.log.info(
                         "handover notice delivered",
                         controller=cid,
                         new_master=notice.new_master,
                         after_reqnr=notice.after_reqnr,
+                        epoch=notice.epoch,
                     )
                     return
                 if stream.superseded:
@@ -430,7 +389,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 await stream.wake.wait()
                 stream.wake.clear()
         finally:
-            self.masters.detach(stream)
+            self.streams.detach(stream)
             self.log.info("connect stream ended", controller=cid)
 
     async def Handover(
@@ -443,9 +402,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         switch should learn that none happened).
         """
         try:
-            self.masters.check_known(request.new_master)
+            self.seq.check_known(request.new_master)
             async with self._lock:
-                record = self.masters.switch(request.new_master, self.last_reqnr, "rpc")
+                record = self.seq.switch(request.new_master, "rpc", time.time())
+                self._switched(record)
                 if self.store is not None:
                     self.store.save(self._counters())
         except StatusError as err:
@@ -455,6 +415,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             old_master=record.old_master,
             new_master=record.new_master,
             after_reqnr=record.after_reqnr,
+            epoch=record.epoch,
         )
 
     async def GetStatus(
@@ -465,18 +426,20 @@ class DroneService(drone_pb2_grpc.DroneServicer):
 
     async def status(self, include_audit: bool = False) -> drone_pb2.DroneStatus:
         """GetStatus without gRPC."""
+        seq = self.seq
         status = drone_pb2.DroneStatus(
-            master=self.masters.master,
-            last_reqnr=self.last_reqnr,
-            executed=self.executed,
-            duplicates=self.duplicates,
-            rejected=self.rejected,
+            master=seq.master,
+            epoch=seq.epoch,
+            last_reqnr=seq.last_reqnr,
+            executed=seq.executed,
+            duplicates=seq.duplicates,
+            rejected=seq.rejected,
             vehicle_connected=self.vehicle.connected,
             vehicle_url=self.vehicle.url,
             position=await latest_position(self.vehicle),
-            handovers=self.masters.handovers,
-            master_connected=self.masters.master_connected,
-            controllers=self.masters.controllers,
+            handovers=seq.handovers,
+            master_connected=self.streams.master_connected,
+            controllers=seq.controllers,
             vehicle=self.vehicle.link(),
             waiting=self.waiting,
         )
@@ -491,7 +454,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             except (StatusError, TimeoutError):
                 pass  # unknown now: left empty
         if include_audit:
-            status.audit.extend(self.audit)
+            status.audit.extend(seq.audit)
         return status
 
 
@@ -524,6 +487,7 @@ class DroneSettings:
     address_file: str | None = None
     race: Race | None = None
     state_file: str | None = None  # the durable state (store.py); None: memory only
+    camera_effects_file: str | None = None  # pictures counted (baton.effects); None: no file
 
     @property
     def master(self) -> int:
@@ -537,18 +501,14 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
     async def position() -> api.Position:
         return await latest_position(vehicle)
 
-    camera = Camera(position, settings.image_file, settings.resolution)
-    masters = MasterSelection(settings.controllers, settings.master)
-    store = DroneStore(settings.state_file) if settings.state_file else None
-    return DroneService(
-        vehicle,
-        camera,
-        masters,
-        settings.handover_script,
-        settings.cache_window,
-        settings.race,
-        store,
+    camera = Camera(
+        position, settings.image_file, settings.resolution, settings.camera_effects_file
     )
+    sequencer = Sequencer(
+        settings.controllers, settings.master, settings.handover_script, settings.cache_window
+    )
+    store = DroneStore(settings.state_file) if settings.state_file else None
+    return DroneService(vehicle, camera, sequencer, settings.race, store)
 
 
 async def serve(
@@ -589,6 +549,6 @@ async def serve(
         await vehicle.close()
         if service.store is not None:
             service.store.close()
-        log.info("stopped", executed=service.executed, last_reqnr=service.last_reqnr)
+        log.info("stopped", executed=service.seq.executed, last_reqnr=service.last_reqnr)
     sys.stdout.flush()
     return 0

@@ -113,12 +113,22 @@ def register(subparsers: Any) -> None:
         type=Path,
         help="write the MAVLink URL (one line per vehicle) to this file, atomically",
     )
+    parser.add_argument(
+        "--effects-file",
+        type=Path,
+        metavar="PATH",
+        help="append one JSON line per flight command a vehicle acted on (seq, time, effect: "
+        "arm, disarm, takeoff, land, return_to_launch, set_mode, goto with its target, set_speed; "
+        "system_id), flushed at once; a retransmission is not counted again; a restarted vehicle "
+        "continues the file (default: none written)",
+    )
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Runs the vehicles until SIGTERM or SIGINT; exit code 0."""
     from baton import logs
+    from baton.effects import EffectsFile
     from baton.sim_vehicle.kinematics import FlightParams, GeoPoint
     from baton.sim_vehicle.server import SimVehicle
 
@@ -136,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
     vehicles = []
+    effects = EffectsFile(args.effects_file)  # one file and sequence for every vehicle
     try:
         for index in range(args.count):
             port = args.port + index if args.port else 0
@@ -146,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
                 port=port,
                 speedup=args.speedup,
                 params=params,
+                effects=effects,
             )
             vehicle.start()
             vehicles.append(vehicle)

@@ -35,6 +35,15 @@ Command parameters may be NaN, MAVLink's "unset": it means the default, and
 a parameter without one makes the command DENIED. One datagram that cannot be
 handled is logged and skipped; the vehicle's thread never dies of it.
 
+Every flight command the vehicle acts on (arm, disarm, takeoff, land, return
+to launch, mode, reposition, speed) is counted where it happens, one line in
+its effects file (``baton.effects``, ``--effects-file``), for the testbed's
+exactly-once check; telemetry requests and parameter writes change no flight
+and are not counted. A retransmission of a command it already acted on is
+acknowledged again but neither acted on nor counted (``retransmissions.py``
+has the rule and its limit; it reads the kernel's arrival stamp of each
+datagram).
+
 Everything runs on one thread per vehicle, so ``SimVehicle`` works the same
 in the ``baton sim-vehicle`` process and inside a test.
 """
@@ -44,6 +53,8 @@ from __future__ import annotations
 import math
 import select
 import socket
+import struct
+import sys
 import threading
 import time
 import traceback
@@ -54,6 +65,7 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs
+from baton.effects import EffectsFile
 from baton.sim_vehicle.kinematics import (
     FlightParams,
     GeoPoint,
@@ -62,6 +74,7 @@ from baton.sim_vehicle.kinematics import (
     PreArmFailed,
     Refused,
 )
+from baton.sim_vehicle.retransmissions import Retransmissions, command_key
 
 # Physics and scheduling tick, in wall seconds.
 TICK_S = 0.02
@@ -118,6 +131,12 @@ UNASKED_STREAMS = (mavlink.MAVLINK_MSG_ID_HEARTBEAT,)
 # Messages a REQUEST_MESSAGE can ask for once.
 REQUESTABLE = frozenset(DEFAULT_INTERVALS_S) | {mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION}
 MIN_INTERVAL_S = 0.01  # a requested rate above 100 Hz is capped
+
+# Linux's SO_TIMESTAMPNS (not in Python's socket module): the kernel stamps
+# each datagram with the wall time it reached the socket, which a vehicle
+# that was stopped or slow to read cannot blur (retransmissions.py uses it).
+_SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("@ll")
 
 PARAM_TAKEOFF_ALT = "MIS_TAKEOFF_ALT"
 FORCE_DISARM_MAGIC = 21196
@@ -179,7 +198,9 @@ class SimVehicle:
 
     ``start()`` binds and starts the vehicle's thread, ``stop()`` ends it,
     ``state()`` and ``streams()`` are snapshots readable from any thread,
-    ``url`` is what a MAVSDK client connects to.
+    ``url`` is what a MAVSDK client connects to. ``effects`` counts the
+    commands it acted on (in memory only unless it has a file; vehicles of
+    one process may share one).
     """
 
     def __init__(
@@ -192,6 +213,7 @@ class SimVehicle:
         speedup: float = 1.0,
         params: FlightParams | None = None,
         on_state: Callable[[VehicleState], None] | None = None,
+        effects: EffectsFile | None = None,
     ) -> None:
         if speedup <= 0 or not math.isfinite(speedup):
             raise ValueError(f"speedup must be > 0, got {speedup}")
@@ -202,6 +224,8 @@ class SimVehicle:
         self._host, self._requested_port = host, port
         self._kinematics = Kinematics(home, params)
         self._on_state = on_state
+        self.effects = effects if effects is not None else EffectsFile(None)
+        self._retransmissions = Retransmissions()
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
@@ -225,6 +249,8 @@ class SimVehicle:
     def start(self) -> None:
         """Binds the port and starts the vehicle's thread."""
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        if sys.platform.startswith("linux"):
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         sock.bind((self._host, self._requested_port))
         self.port = sock.getsockname()[1]
         self._sock = sock
@@ -295,12 +321,12 @@ class SimVehicle:
             readable, _, _ = select.select([self._sock], [], [], timeout)
             if readable:
                 try:
-                    data, address = self._sock.recvfrom(65535)
+                    data, address, arrived_at = _receive_stamped(self._sock)
                 except OSError:
                     continue
                 try:
                     with self._lock:
-                        self._receive(data, address)
+                        self._receive(data, address, arrived_at)
                 except Exception as exc:
                     # A bug or a datagram nobody foresaw must not silence the
                     # vehicle: its ground stations would see it die.
@@ -331,7 +357,7 @@ class SimVehicle:
             if self._on_state is not None:
                 self._on_state(snapshot)
 
-    def _receive(self, data: bytes, address: tuple[str, int]) -> None:
+    def _receive(self, data: bytes, address: tuple[str, int], arrived_at: float) -> None:
         assert self._mav is not None and self._sink is not None
         self._sink.peers[address] = time.monotonic()
         # A fresh parser per datagram: a datagram holds whole packets, and the
@@ -358,7 +384,7 @@ class SimVehicle:
             target = getattr(msg, "target_system", 0)
             if target not in (0, self.system_id):
                 continue  # another vehicle's traffic
-            self._handle(msg)
+            self._handle(msg, arrived_at)
 
     # --- telemetry -----------------------------------------------------------------
 
@@ -514,20 +540,21 @@ class SimVehicle:
 
     # --- incoming messages -----------------------------------------------------------
 
-    def _handle(self, msg: Any) -> None:
+    def _handle(self, msg: Any, arrived_at: float) -> None:
         kind = msg.get_type()
         if kind == "COMMAND_LONG":
             params = [msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6]
-            self._command(msg, msg.command, params, msg.param7, frame=None, x=None, y=None)
+            self._command(msg, arrived_at, msg.command, params, msg.param7, None, None, None)
         elif kind == "COMMAND_INT":
             params = [msg.param1, msg.param2, msg.param3, msg.param4, math.nan, math.nan]
-            self._command(msg, msg.command, params, msg.z, frame=msg.frame, x=msg.x, y=msg.y)
+            self._command(msg, arrived_at, msg.command, params, msg.z, msg.frame, msg.x, msg.y)
         elif kind in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET"):
             self._param(msg, kind)
 
     def _command(
         self,
         msg: Any,
+        arrived_at: float,
         command: int,
         p: list[float],
         p7: float,
@@ -535,32 +562,95 @@ class SimVehicle:
         x: int | None,
         y: int | None,
     ) -> None:
-        """Runs one COMMAND_LONG / COMMAND_INT and acknowledges it."""
+        """Runs one COMMAND_LONG / COMMAND_INT, records the effect, and acknowledges it.
+
+        A retransmission of a command it acted on is acknowledged as that one
+        was (ACCEPTED), and neither acted on nor recorded again.
+        """
         assert self._mav is not None
+        key, confirmation = command_key(msg), getattr(msg, "confirmation", None)
+        copied = self._retransmissions.original(key, confirmation, arrived_at)
+        result = mavlink.MAV_RESULT_ACCEPTED
+        after_ack: Callable[[], object] | None = None
+        if copied is not None:
+            self._log.info(
+                "retransmission recognised: acknowledged, not acted on again",
+                command=command,
+                effect_seq=copied,
+                confirmation=confirmation,
+            )
+        else:
+            result, after_ack, effect = self._act(command, p, p7, frame, x, y)
+            if effect is not None and result == mavlink.MAV_RESULT_ACCEPTED:
+                # Before the ACK: whoever saw it accepted finds it counted.
+                name, fields = effect
+                seq = self.effects.record(name, system_id=self.system_id, **fields)
+                self._retransmissions.acted(key, seq, arrived_at, acked_at=time.time())
+        self._mav.command_ack_send(
+            command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+        )
+        if after_ack is not None:
+            after_ack()
+        # Right after each reply, so MAVSDK sees the new mode and armed state
+        # without waiting for the next periodic heartbeat.
+        self._send_message(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
+        self._report_if_changed()
+
+    def _act(
+        self,
+        command: int,
+        p: list[float],
+        p7: float,
+        frame: int | None,
+        x: int | None,
+        y: int | None,
+    ) -> tuple[int, Callable[[], object] | None, tuple[str, dict[str, Any]] | None]:
+        """Acts on one command: its ACK result, what to send after the ACK, and the
+        flight effect to count (name and fields; None for telemetry requests)."""
         k = self._kinematics
         result = mavlink.MAV_RESULT_ACCEPTED
         after_ack: Callable[[], object] | None = None
+        effect: tuple[str, dict[str, Any]] | None = None
         try:
             if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
                 if _required_int(p[0], "param1 (arm)") >= 1:
                     k.arm()
+                    effect = ("arm", {})
                 else:
-                    k.disarm(force=_int_or(p[1], 0) == FORCE_DISARM_MAGIC)
+                    forced = _int_or(p[1], 0) == FORCE_DISARM_MAGIC
+                    k.disarm(force=forced)
+                    effect = ("disarm", {"forced": forced})
             elif command == mavlink.MAV_CMD_NAV_TAKEOFF:
                 # param7 is the AMSL altitude; NaN means "use MIS_TAKEOFF_ALT".
                 altitude = p7 - k.geo_home().altitude_amsl_m if math.isfinite(p7) else None
                 k.takeoff(altitude)
+                climb = k.takeoff_altitude_m if altitude is None else altitude
+                effect = ("takeoff", {"relative_altitude_m": round(climb, 3)})
             elif command == mavlink.MAV_CMD_NAV_LAND:
                 k.land()
+                effect = ("land", {})
             elif command == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
                 k.return_to_launch()
+                effect = ("return_to_launch", {})
             elif command == mavlink.MAV_CMD_DO_SET_MODE:
-                self._set_mode(_required_int(p[1], "param2 (custom mode)"), _int_or(p[2], 0))
+                main, sub = _required_int(p[1], "param2 (custom mode)"), _int_or(p[2], 0)
+                self._set_mode(main, sub)
+                effect = ("set_mode", {"mode": _MODE_NAMES.get(sub, f"{main}/{sub}")})
             elif command == mavlink.MAV_CMD_DO_REPOSITION:
-                k.goto_geo(self._reposition_target(p, p7, frame, x, y), speed_m_s=p[0])
+                target = self._reposition_target(p, p7, frame, x, y)
+                k.goto_geo(target, speed_m_s=p[0])
+                effect = (
+                    "goto",
+                    {
+                        "latitude_deg": target.latitude_deg,
+                        "longitude_deg": target.longitude_deg,
+                        "altitude_amsl_m": round(target.altitude_amsl_m, 3),
+                    },
+                )
             elif command == mavlink.MAV_CMD_DO_CHANGE_SPEED:
                 if p[1] > 0:
                     k.set_speed(p[1])
+                    effect = ("set_speed", {"speed_m_s": p[1]})
             elif command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
                 # An unset interval is the default rate (0).
                 result = self._set_interval(
@@ -587,15 +677,7 @@ class SimVehicle:
             if isinstance(refusal, PreArmFailed):
                 # Before the ACK, so the reason is there when the refusal arrives.
                 self._send_prearm_failure(str(refusal))
-        self._mav.command_ack_send(
-            command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
-        )
-        if after_ack is not None:
-            after_ack()
-        # Right after each reply, so MAVSDK sees the new mode and armed state
-        # without waiting for the next periodic heartbeat.
-        self._send_message(mavlink.MAVLINK_MSG_ID_HEARTBEAT)
-        self._report_if_changed()
+        return result, after_ack, effect
 
     def _set_mode(self, main: int, sub: int) -> None:
         k = self._kinematics
@@ -673,6 +755,17 @@ class SimVehicle:
             1,
             0,
         )
+
+
+def _receive_stamped(sock: socket.socket) -> tuple[bytes, tuple[str, int], float]:
+    """One datagram, its sender and when it reached the socket (wall clock; the
+    kernel's stamp where there is one, else now)."""
+    data, ancillary, _, address = sock.recvmsg(65535, socket.CMSG_SPACE(_TIMESPEC.size))
+    for level, kind, payload in ancillary:
+        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
+            seconds, nanoseconds = _TIMESPEC.unpack_from(payload)
+            return data, address, seconds + nanoseconds / 1e9
+    return data, address, time.time()
 
 
 def _int_or(value: float, default: int) -> int:

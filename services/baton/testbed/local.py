@@ -5,6 +5,10 @@
 mission program), writes the testbed configuration they all read, follows the
 mission through the services' status RPCs, and stops everything. The tests,
 ``baton testbed`` and the benchmarks all run missions through it.
+
+The sim vehicle and the drone's camera count their side effects in files of
+the workdir (``baton.effects``), which every snapshot reads: the report's
+exactly-once check that does not rest on the drone's own audit.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import grpc
 import yaml
 
 from baton.config import BatonConfig, DroneConfig, LinkSpec, parse_config
+from baton.effects import read_effects
 from baton.missions import grid as grid_mission
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import MISSION_TOKEN_ENV
@@ -68,6 +73,9 @@ class TestbedPlan:
     base_config: BatonConfig | None = None  # a full testbed file, when given
     resolution: str | None = None
     drone_args: tuple[str, ...] = ()  # extra `baton drone` options (e.g. --force-race)
+    # Extra `baton link` options by link name ("link-drone-0", "link-ring-1"),
+    # e.g. an asymmetric link: (("link-drone-0", ("--up-latency", "3s")),).
+    link_args: tuple[tuple[str, tuple[str, ...]], ...] = ()
     mission_args: tuple[str, ...] = ()  # extra mission parameters, key=value
     # The controllers' mission token (baton.rpc.mission), for a caller that acts
     # as a mission program itself (the micro benchmark); default: each makes one.
@@ -78,6 +86,10 @@ class TestbedPlan:
     vehicle: str = "sim"
     sitl_binary: Path | None = None  # default: baton.sitl.launcher.find_binary()
 
+
+# The side effects counted where they happen (baton.effects), in the workdir.
+VEHICLE_EFFECTS_FILE = "vehicle-effects.jsonl"  # commands the sim vehicle acted on
+CAMERA_EFFECTS_FILE = "camera-effects.jsonl"  # pictures the drone's camera produced
 
 # Wall seconds the testbed waits for the vehicle to become ready (armable)
 # before it starts the mission: ArduPilot needs ~45 s of its own time after boot.
@@ -121,12 +133,20 @@ def handover_file_text(handovers: tuple[tuple[int, int], ...]) -> str:
     return "".join(f"{reqnr} {mid}\n" for reqnr, mid in handovers)
 
 
+Effects = list[dict[str, Any]]
+
+
 @dataclass
 class Snapshot:
-    """The drone's and every controller's status at one moment."""
+    """The drone's and every controller's status at one moment, and the side effects
+    counted where they happened: each command the sim vehicle acted on, each picture
+    the camera produced (``baton.effects`` lines; None where nothing counts them:
+    SITL, an autopilot that runs already, the compose testbed)."""
 
     drone: drone_pb2.DroneStatus
     controllers: dict[int, ring_pb2.ControllerStatus] = field(default_factory=dict)
+    vehicle_effects: Effects | None = None
+    camera_effects: Effects | None = None
 
     @property
     def missions_ended(self) -> bool:
@@ -223,8 +243,12 @@ class LocalTestbed:
         ready = self.workdir / "vehicle.url"
         speedup = str(self.plan.speedup)
         if vehicle == "sim":
+            # A new run counts from zero; a restarted vehicle of this run (the
+            # same argv) appends to the same file.
+            effects = self.workdir / VEHICLE_EFFECTS_FILE
+            effects.unlink(missing_ok=True)
             argv = baton_argv("sim-vehicle", "--speedup", speedup, "--url-file", str(ready))
-            argv += ["--home", self._home()]
+            argv += ["--home", self._home(), "--effects-file", str(effects)]
             return (await self.supervisor.start_ready("sim-vehicle", argv, ready)).splitlines()[0]
         argv = baton_argv("sitl", "--speedup", speedup, "--home", self._home())
         argv += ["--workdir", str(self.workdir / "sitl"), "--url-file", str(ready)]
@@ -243,6 +267,7 @@ class LocalTestbed:
             "--target",
             target,
             *_link_args(spec),
+            *dict(self.plan.link_args).get(name, ()),
             "--address-file",
             str(ready),
         )
@@ -253,13 +278,15 @@ class LocalTestbed:
         script = self.workdir / "handovers.txt"
         script.write_text(handover_file_text(self.plan.handovers))
         ready = self.workdir / "drone.address"
-        # A new mission: no state of an earlier run in this workdir (a restarted
-        # drone of this run keeps it: the same argv).
+        # A new mission: no state and no pictures of an earlier run in this
+        # workdir (a restarted drone of this run keeps them: the same argv).
         state = self.workdir / "drone-state.sqlite"
+        camera_effects = self.workdir / CAMERA_EFFECTS_FILE
         for stale in (
             state,
             state.with_name(state.name + "-wal"),
             state.with_name(state.name + "-shm"),
+            camera_effects,
         ):
             stale.unlink(missing_ok=True)
         argv = baton_argv(
@@ -272,6 +299,8 @@ class LocalTestbed:
             str(ready),
             "--state",
             str(state),
+            "--camera-effects-file",
+            str(camera_effects),
         )
         if self.plan.resolution:
             argv += ["--resolution", self.plan.resolution]
@@ -338,7 +367,7 @@ class LocalTestbed:
             await asyncio.sleep(period)
 
     async def snapshot(self, audit: bool = True) -> Snapshot:
-        """The drone's and every controller's status now."""
+        """The drone's and every controller's status now, and the side effects counted."""
         assert self.drone_stub is not None
         drone = await self.drone_stub.GetStatus(
             drone_pb2.GetDroneStatusRequest(include_audit=audit), timeout=10
@@ -348,7 +377,20 @@ class LocalTestbed:
             snapshot.controllers[cid] = await stub.GetStatus(
                 ring_pb2.GetControllerStatusRequest(), timeout=10
             )
+        snapshot.vehicle_effects, snapshot.camera_effects = await asyncio.to_thread(
+            self.counted_effects
+        )
         return snapshot
+
+    def counted_effects(self) -> tuple[Effects | None, Effects | None]:
+        """What the sim vehicle and the camera counted so far (None: this run's vehicle
+        counts nothing: SITL or an autopilot that runs already)."""
+        vehicle = (
+            read_effects(self.workdir / VEHICLE_EFFECTS_FILE)
+            if self.plan.vehicle == "sim"
+            else None
+        )
+        return vehicle, read_effects(self.workdir / CAMERA_EFFECTS_FILE)
 
     async def run_mission(
         self,

@@ -1,9 +1,13 @@
-"""The testbed report: what happened in a mission, checked against the drone's audit.
+"""The testbed report: what happened in a mission, checked against the drone's audit
+and, independently of it, against the side effects counted where they happened.
 
 ``build_report`` turns the final status of the drone and of every controller
 into one JSON document (format ``baton.testbed.report/1``, described in the
 README), and ``summary_table`` prints it for a person. The same report comes
-out of the local testbed and of the compose testbed.
+out of the local testbed and of the compose testbed. ``check_side_effects``
+is the skeptic's exactly-once check: it trusts neither the drone's audit nor
+the controllers, only what the sim vehicle and the camera counted
+(``baton.effects``), held against what the grid mission asks for.
 """
 
 from __future__ import annotations
@@ -12,9 +16,19 @@ from collections import Counter
 from typing import Any
 
 from baton.config import BatonConfig
-from baton.testbed.local import Snapshot
+from baton.missions.grid import waypoints
+from baton.sdk import Position, distance_m, offset
+from baton.testbed.local import Effects, Snapshot
 
 REPORT_FORMAT = "baton.testbed.report/1"
+# What the report says for a part that keeps no effects file (SITL, an
+# autopilot that runs already, the compose testbed).
+NOT_COUNTED = "not counted"
+# The grid mission's commands the vehicle must act on exactly once each.
+ONCE_PER_MISSION = ("arm", "takeoff", "land")
+# How far a goto's target may be from its grid waypoint: the target crosses
+# MAVLink as 1e-7 degrees (about 1 cm).
+GOTO_TOLERANCE_M = 0.5
 
 
 def t_log(size_bytes: float, latency_s: float, bandwidth_bps: float | None) -> float:
@@ -39,14 +53,87 @@ def model_worst_case_s(
     )
 
 
+def check_side_effects(
+    snapshot: Snapshot, grid: int, spacing_m: float | None = None
+) -> dict[str, Any]:
+    """The grid mission's side effects, as the camera and the vehicle counted them.
+
+    Exactly once means: the camera produced one picture per waypoint
+    (``grid``² pictures, each of which the mission checked as taken at its
+    waypoint); the vehicle acted on one arm, one takeoff and one land, and on
+    one goto per waypoint, in the grid's order (a serpentine from the first
+    target, ``spacing_m`` apart; when not given, inferred from the first
+    target and the next one elsewhere). Speed and mode changes are counted
+    and shown, not checked: the drone service sends them as the autopilot
+    needs. ``exactly_once`` is None when neither part counted anything; a
+    part that did not count is ``NOT_COUNTED`` and not held against the run.
+    """
+    problems: list[str] = []
+    expected = grid * grid
+    camera = snapshot.camera_effects
+    pictures: int | str = NOT_COUNTED
+    if camera is not None:
+        pictures = sum(1 for e in camera if e["effect"] == "picture")
+        if pictures != expected:
+            problems.append(
+                f"the camera produced {pictures} pictures; the {grid}x{grid} grid takes {expected}"
+            )
+    vehicle = snapshot.vehicle_effects
+    commands: dict[str, int] | str = NOT_COUNTED
+    if vehicle is not None:
+        counts = Counter(e["effect"] for e in vehicle)
+        commands = dict(sorted(counts.items()))
+        for name in ONCE_PER_MISSION:
+            if counts[name] != 1:
+                problems.append(f"the vehicle acted on {counts[name]} {name} commands, not 1")
+        problems += _goto_problems([e for e in vehicle if e["effect"] == "goto"], grid, spacing_m)
+    return {
+        "pictures_taken": pictures,
+        "pictures_expected": expected,
+        "vehicle_commands": commands,
+        "problems": problems,
+        "exactly_once": None if camera is None and vehicle is None else not problems,
+    }
+
+
+def _goto_problems(gotos: Effects, grid: int, spacing_m: float | None) -> list[str]:
+    """What is wrong with the gotos the vehicle acted on, for a ``grid`` x ``grid`` mission."""
+    targets = [Position(g["latitude_deg"], g["longitude_deg"], 0.0, 0.0) for g in gotos]
+    problems = []
+    repeated = Counter((round(t.latitude_deg, 6), round(t.longitude_deg, 6)) for t in targets)
+    for (lat, lon), times in repeated.items():
+        if times > 1:
+            problems.append(f"the vehicle acted on a goto to {lat}, {lon} {times} times")
+    if len(targets) != grid * grid:
+        problems.append(
+            f"the vehicle acted on {len(targets)} gotos; the {grid}x{grid} grid has "
+            f"{grid * grid} waypoints"
+        )
+    if not targets:
+        return problems
+    if spacing_m is None:  # the grid's second waypoint is one spacing east of its first
+        spacing_m = next(
+            (d for t in targets[1:] if (d := distance_m(targets[0], t)) > GOTO_TOLERANCE_M), 0.0
+        )
+    for k, (target, (north, east)) in enumerate(
+        zip(targets, waypoints(grid, spacing_m), strict=False), start=1
+    ):
+        off = distance_m(target, offset(targets[0], north, east))
+        if off > GOTO_TOLERANCE_M:
+            problems.append(f"goto {k} flew to {off:.1f} m from waypoint {k} of the grid")
+            break  # the first one out of order says it; the rest follow from it
+    return problems
+
+
 def build_report(
     config: BatonConfig,
     snapshot: Snapshot,
     grid: int,
     duration_s: float,
     planned_handovers: list[tuple[int, int]],
+    spacing_m: float | None = None,
 ) -> dict[str, Any]:
-    """The report of one mission run."""
+    """The report of one mission run (``spacing_m``: the grid's, if known)."""
     drone = snapshot.drone
     audit = list(drone.audit)
     executed = [a.reqnr for a in audit]
@@ -172,7 +259,35 @@ def build_report(
         ],
         "replicas_consistent": consistent,
         "exactly_once": exactly_once,
+        "side_effects": check_side_effects(snapshot, grid, spacing_m),
     }
+
+
+def run_succeeded(report: dict[str, Any]) -> bool:
+    """Completed, exactly once by the drone's audit and by the side effects counted
+    (where they were), replicas consistent."""
+    return bool(
+        report["completed"]
+        and report["exactly_once"]
+        and report["side_effects"]["exactly_once"] is not False
+        and report["replicas_consistent"]
+    )
+
+
+def _side_effects_line(effects: dict[str, Any]) -> str:
+    """What the camera and the vehicle counted, in one line."""
+    commands = effects["vehicle_commands"]
+    vehicle = (
+        ", ".join(f"{name} {n}" for name, n in commands.items())
+        if isinstance(commands, dict)
+        else commands
+    )
+    pictures = effects["pictures_taken"]
+    camera = f"{pictures} pictures" if isinstance(pictures, int) else pictures
+    return (
+        f"side effects counted: camera {camera}; "
+        f"vehicle {vehicle or 'nothing'}; exactly once: {effects['exactly_once']}"
+    )
 
 
 def summary_table(report: dict[str, Any]) -> str:
@@ -186,6 +301,8 @@ def summary_table(report: dict[str, Any]) -> str:
         f"drone: executed {drone['executed']}, duplicates {drone['duplicates']}, "
         f"rejected {drone['rejected']}; exactly once: {report['exactly_once']}; "
         f"replicas consistent: {report['replicas_consistent']}",
+        _side_effects_line(report["side_effects"]),
+        *(f"  {problem}" for problem in report["side_effects"]["problems"]),
         "",
         f"{'handover':>8} {'from':>4} {'to':>3} {'after':>6} {'hops':>4} {'log bytes':>10} "
         f"{'delay s':>8} {'model s':>8}",

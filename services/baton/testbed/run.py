@@ -17,7 +17,7 @@ from baton.config import BatonConfig
 from baton.lifecycle import write_atomically
 from baton.rpc.channels import aio_channel
 from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
-from baton.testbed.report import build_report, summary_table
+from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
@@ -116,13 +116,17 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     finally:
         await testbed.stop()
     report = build_report(
-        config, snapshot, plan.mission.grid, time.monotonic() - started, list(plan.handovers)
+        config,
+        snapshot,
+        plan.mission.grid,
+        time.monotonic() - started,
+        list(plan.handovers),
+        plan.mission.spacing_m,
     )
     write_report(report, report_path)
     print(summary_table(report), flush=True)
     print(f"report: {report_path}", flush=True)
-    ok = report["completed"] and report["exactly_once"] and report["replicas_consistent"]
-    return 0 if ok and not report["handovers_missed"] else 1
+    return 0 if run_succeeded(report) and not report["handovers_missed"] else 1
 
 
 async def follow_remote(
@@ -175,6 +179,4 @@ async def follow_remote(
     report = build_report(config, snapshot, grid, time.monotonic() - started, handovers)
     write_report(report, report_path)
     print(summary_table(report), flush=True)
-    return (
-        0 if report["completed"] and report["exactly_once"] and report["replicas_consistent"] else 1
-    )
+    return 0 if run_succeeded(report) else 1

@@ -1,0 +1,303 @@
+"""The drone's decisions as a pure object: who may invoke, which requests, what was served.
+
+No sockets, no tasks, no clock of its own (times are passed in): the drone
+service (``service.py``) asks it whether to execute a request, answer it from
+the reply cache or refuse it, executes what it is told to, and books the
+outcome here; the deterministic simulation (``baton.sim``) drives the same
+object. Everything the drone must not forget lives here, so the durable
+store (``store.py``) saves and restores exactly this.
+
+The rules (docs/design.md, "Epochs" and "Exactly once..."):
+
+- Only the master may invoke, and only in the *epoch* of its mastership:
+  epoch 1 is the initial master's, and every switch grants the new master
+  the next one. A request from an earlier mastership of the same controller
+  (still on the wire when the drone handed the role away and back) is
+  *stale*: refused, never executed, and never mistaken for a program that
+  diverged.
+- Request numbers increase (skipping only the controller's own Clock calls,
+  by less than ``MAX_REQNR_GAP``); a re-sent number is answered from the
+  reply cache if it is the same request, refused if it is another.
+- Every outcome of an accepted request is booked: a reply, or a failure
+  after the request reached the vehicle; UNAVAILABLE (nothing reached the
+  vehicle) is not booked and leaves the number unused.
+- The handover script's line due after a served request switches masters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import grpc
+
+from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, ReplyCache
+from baton.rpc.errors import StatusError
+from baton.v1 import drone_pb2
+
+# How far a new request number may be above the last one served. Numbers skip
+# the Clock calls a controller answers itself, never this many; a larger jump
+# is a bug or an attack, and accepting it (2**64 - 1, say) would make every
+# later request look old, so the drone would refuse the mission for good.
+MAX_REQNR_GAP = 1_000_000
+
+
+@dataclass(frozen=True)
+class ScriptedHandover:
+    """One line of the handover script: hand over to ``new_master`` after ``after_reqnr``."""
+
+    after_reqnr: int
+    new_master: int
+    line: int
+
+
+@dataclass(frozen=True)
+class Served:
+    """What booking a request's outcome led to."""
+
+    audit: drone_pb2.AuditEntry
+    cached: CachedReply
+    # The handover the script fired after it, if any.
+    handover: drone_pb2.HandoverRecord | None = None
+    # A script line that named the master itself (skipped, kept for the log).
+    skipped: ScriptedHandover | None = None
+
+
+class Sequencer:
+    """The drone's master, epoch, request order, reply cache, audit and handover script."""
+
+    def __init__(
+        self,
+        controllers: Iterable[int],
+        initial_master: int,
+        script: Mapping[int, ScriptedHandover] | None = None,
+        cache_window: int = DEFAULT_WINDOW,
+    ) -> None:
+        self.controllers = sorted(set(controllers))
+        if not self.controllers:
+            raise ValueError("the drone needs at least one controller id")
+        if initial_master not in self.controllers:
+            raise ValueError(
+                f"initial master {initial_master} is not a controller id; use one of "
+                f"{self.controllers}"
+            )
+        self.master = initial_master
+        self.handovers: list[drone_pb2.HandoverRecord] = []
+        self.cache = ReplyCache(cache_window)
+        self.last_reqnr = 0
+        self.executed = 0
+        self.duplicates = 0
+        self.rejected = 0
+        self.audit: list[drone_pb2.AuditEntry] = []
+        self.script = dict(script or {})  # pending scripted handovers, by reqnr
+        self.fired_script: list[int] = []
+        # Notices owed to old masters, by controller id.
+        self.pending: dict[int, drone_pb2.HandoverNotice] = {}
+
+    @property
+    def epoch(self) -> int:
+        """The current master's epoch: 1, and one more at every switch."""
+        return len(self.handovers) + 1
+
+    # -- refusals -------------------------------------------------------------------
+
+    def check_known(self, controller_id: int) -> None:
+        """INVALID_ARGUMENT unless ``controller_id`` is a known controller."""
+        if controller_id not in self.controllers:
+            raise StatusError(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"unknown controller id {controller_id}; known ids: {self.controllers}",
+            )
+
+    def where_we_are(self) -> tuple[tuple[str, str], ...]:
+        """The trailing metadata of a refusal: master, epoch, last request served."""
+        return (
+            ("baton-master", str(self.master)),
+            ("baton-epoch", str(self.epoch)),
+            ("baton-after-reqnr", str(self.last_reqnr)),
+        )
+
+    def not_master_error(self, controller_id: int, what: str) -> StatusError:
+        """The FAILED_PRECONDITION a non-master gets, naming the master."""
+        return StatusError(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            f"{what} refused: controller {controller_id} is not the master; the master is "
+            f"controller {self.master} (epoch {self.epoch}, last reqnr served {self.last_reqnr})",
+            metadata=self.where_we_are(),
+        )
+
+    # -- a request arrives ---------------------------------------------------------
+
+    def admit(
+        self, controller_id: int, epoch: int, reqnr: int, method: str, digest: bytes
+    ) -> CachedReply | None:
+        """Decides a request: None to execute it now, a CachedReply to answer it again.
+
+        Raises StatusError when it is refused; nothing is executed then and
+        the request number stays unused.
+        """
+        what = f"Invoke reqnr {reqnr} epoch {epoch}"
+        if controller_id != self.master:
+            raise self.not_master_error(controller_id, what)
+        if epoch == 0 or epoch > self.epoch:
+            raise StatusError(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"{what}: epoch {epoch} was never granted (the current one is {self.epoch}); "
+                "send the epoch of the Connected event of your Connect stream",
+            )
+        if epoch < self.epoch:
+            raise StatusError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"{what} is stale: controller {controller_id} is master in epoch "
+                f"{self.epoch}; a request of an earlier epoch (sent before a switch and "
+                "still on the wire) is never executed",
+                metadata=self.where_we_are(),
+            )
+        cached = self.cache.get(reqnr)
+        if cached is not None:
+            if cached.digest != digest:
+                raise StatusError(
+                    grpc.StatusCode.FAILED_PRECONDITION,
+                    f"reqnr {reqnr} was served as {cached.method} (request digest "
+                    f"{cached.digest.hex()[:16]}) but is re-sent as {method} (digest "
+                    f"{digest.hex()[:16]}): the mission program diverged",
+                    metadata=self.where_we_are(),
+                )
+            self.duplicates += 1
+            return cached
+        if reqnr == 0:
+            # reqnr 0 can never be right, so it is INVALID_ARGUMENT; a number
+            # that is wrong for the drone's state is FAILED_PRECONDITION, fixed
+            # by resynchronising from the metadata.
+            raise StatusError(
+                grpc.StatusCode.INVALID_ARGUMENT, "reqnr 0 is not a request number; they start at 1"
+            )
+        if reqnr <= self.last_reqnr:
+            oldest = self.cache.reqnrs[0] if len(self.cache) else None
+            cached_range = (
+                f"; replies cached for reqnr {oldest}..{self.last_reqnr}" if oldest else ""
+            )
+            raise StatusError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"expected a reqnr above {self.last_reqnr} (or a cached duplicate), "
+                f"got {reqnr}{cached_range}",
+                metadata=self.where_we_are(),
+            )
+        if reqnr > self.last_reqnr + MAX_REQNR_GAP:
+            raise StatusError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"reqnr {reqnr} is more than {MAX_REQNR_GAP} above the last one served "
+                f"({self.last_reqnr}): request numbers skip only the controller's own Clock "
+                "calls, and a number this far ahead would make every later request look "
+                "old; refused, nothing executed",
+                metadata=self.where_we_are(),
+            )
+        return None
+
+    def note_request(
+        self, controller_id: int, received_at: float
+    ) -> drone_pb2.HandoverRecord | None:
+        """Completes the last handover's record with the new master's first request."""
+        if not self.handovers:
+            return None
+        record = self.handovers[-1]
+        if record.new_master != controller_id or record.first_request_at != 0:
+            return None
+        record.first_request_at = received_at
+        record.delay_s = received_at - record.decided_at
+        return record
+
+    def served(
+        self,
+        controller_id: int,
+        reqnr: int,
+        method: str,
+        digest: bytes,
+        reply: bytes,
+        received_at: float,
+        now: float,
+        error: StatusError | None = None,
+    ) -> Served:
+        """Books an accepted request's outcome, then fires the script's line due after it.
+
+        ``received_at`` is when the request arrived (the audit's), ``now``
+        when it was done (a scripted handover is decided then).
+        """
+        self.cache.store(reqnr, method, digest, reply, error)
+        self.last_reqnr = reqnr
+        # ``executed`` counts replies; a failed request counts as rejected
+        # (by the service, which refuses it) but is audited, so the audit's
+        # reqnrs have no gaps.
+        if error is None:
+            self.executed += 1
+        entry = drone_pb2.AuditEntry(
+            reqnr=reqnr,
+            method=method,
+            controller_id=controller_id,
+            received_at=received_at,
+            reply_bytes=len(reply),
+        )
+        self.audit.append(entry)
+        cached = self.cache.get(reqnr)
+        assert cached is not None
+        # A scripted handover fires after the first request served at or past
+        # its reqnr: request numbers the controllers answer themselves (Clock)
+        # never reach the drone.
+        due = [n for n in self.script if n <= reqnr]
+        if not due:
+            return Served(entry, cached)
+        scripted = self.script.pop(min(due))
+        self.fired_script.append(min(due))
+        if scripted.new_master == self.master:
+            return Served(entry, cached, skipped=scripted)
+        return Served(entry, cached, handover=self.switch(scripted.new_master, "script", now))
+
+    # -- masters ----------------------------------------------------------------------
+
+    def switch(self, new_master: int, trigger: str, now: float) -> drone_pb2.HandoverRecord:
+        """Makes ``new_master`` the master in the next epoch; owes the old one a notice.
+
+        Called between two requests (the service holds its execution lock).
+        FAILED_PRECONDITION if ``new_master`` already is the master: a
+        handover to oneself would grant an epoch that fences nothing.
+        """
+        self.check_known(new_master)
+        old = self.master
+        if new_master == old:
+            raise StatusError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"controller {new_master} already is the master (epoch {self.epoch}, after "
+                f"reqnr {self.last_reqnr})",
+            )
+        ended = self.epoch
+        record = drone_pb2.HandoverRecord(
+            old_master=old,
+            new_master=new_master,
+            after_reqnr=self.last_reqnr,
+            decided_at=now,
+            trigger=trigger,
+            epoch=ended + 1,
+        )
+        self.handovers.append(record)
+        self.master = new_master
+        # A master that got the role back no longer needs the notice of losing it.
+        self.pending.pop(new_master, None)
+        self.pending[old] = drone_pb2.HandoverNotice(
+            old_master=old,
+            new_master=new_master,
+            after_reqnr=self.last_reqnr,
+            ended_epoch=ended,
+            epoch=ended + 1,
+        )
+        return record
+
+    def may_connect(self, controller_id: int) -> None:
+        """Raises unless ``controller_id`` may hold a Connect stream (master, or owed a notice)."""
+        self.check_known(controller_id)
+        if controller_id != self.master and controller_id not in self.pending:
+            raise self.not_master_error(controller_id, "Connect")
+
+    def delivered(self, controller_id: int, notice: drone_pb2.HandoverNotice) -> None:
+        """The notice reached its old master; it is no longer owed."""
+        if self.pending.get(controller_id) is notice:
+            del self.pending[controller_id]

@@ -1,0 +1,122 @@
+"""Controllers killed and restarted, and stale requests, across real processes (issue 9).
+
+Defect 3: a controller that was ever master and is restarted with nothing
+used to never catch up (its own messages stop at its predecessor, which
+re-sent only its own history), and a restarted initial master came up
+ACTIVE with reqnr 0 on its own word. Now it starts PASSIVE, asks the drone,
+catches up from its predecessor's history (every message, whatever its
+origin), replays its restarted mission program, and takes its turn as
+master again.
+
+Defect 4: a request still on the wire from an earlier ACTIVE period, that
+reaches the drone after the role came back, used to be refused as "log and
+drone disagree" and stop the mission. Requests carry the epoch of the
+mastership they were sent in; the drone refuses an old epoch as stale,
+executes nothing, and the controller ignores the refusal.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+from pathlib import Path
+
+import pytest
+from test_controller_end_to_end import FAST_LINK, assert_mission_promises
+from test_faults_mid_mission import LONG_LEGS
+from waiting import eventually
+
+from baton.testbed.local import LocalTestbed, TestbedPlan
+
+
+def log_events(tmp_path: Path, part: str) -> list[dict[str, object]]:
+    """The JSON log lines of one part, in order."""
+    text = (tmp_path / "logs" / f"{part}.log").read_text()
+    return [json.loads(line) for line in text.splitlines() if line.startswith("{")]
+
+
+@pytest.mark.parametrize(
+    ("victim", "handovers"),
+    [
+        # The initial master, after it handed over; it is master again later.
+        (0, ((8, 1), (40, 0))),
+        # A passive ex-master (master 8..20), master again later.
+        (1, ((8, 1), (20, 2), (40, 1))),
+    ],
+    ids=["initial-master", "passive-ex-master"],
+)
+async def test_a_killed_ex_master_restarts_catches_up_and_is_master_again(
+    tmp_path: Path, victim: int, handovers: tuple[tuple[int, int], ...]
+) -> None:
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=0,
+        handovers=handovers,
+        speedup=20.0,
+        mission=LONG_LEGS,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    last_before = handovers[-2][0]
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        async def handed_over() -> bool:
+            drone = (await testbed.snapshot(audit=False)).drone
+            return drone.master != victim and drone.last_reqnr > last_before + 2
+
+        await eventually(handed_over, f"controller {victim} no longer master", 120)
+        part = testbed.supervisor.parts[f"controller-{victim}"]
+        assert part.process is not None and part.ready_file is not None
+        os.kill(part.process.pid, signal.SIGKILL)  # its mission program dies with it
+        await part.process.wait()
+        restarted = await testbed.supervisor.start(
+            f"controller-{victim}", part.argv, part.ready_file
+        )
+        await testbed.supervisor.wait_ready(restarted)
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert snapshot.drone.master == victim
+    assert [h.new_master for h in snapshot.drone.handovers] == [mid for _, mid in handovers]
+    # The restarted process (its log is new) started PASSIVE, asked the drone, was told
+    # another is master, caught up and took over again when the drone handed back.
+    after = [e.get("msg") for e in log_events(tmp_path, f"controller-{victim}")]
+    assert "not the master" in after and "taking over as master" in after
+    assert "the drone says this controller is master" not in after
+    status = snapshot.controllers[victim]
+    assert [h.role for h in status.handovers] == ["new"] and status.epoch == len(handovers) + 1
+
+
+async def test_a_stale_request_after_a_hand_back_is_ignored_not_fatal(tmp_path: Path) -> None:
+    """Controller 0's uplink to the drone takes 4 s: its request 4 (Takeoff) is still on the
+    wire when the drone hands over to 1, which flies on past the drone's reply cache (16
+    drone requests; about half the request numbers are Clock calls) and hands back; the
+    old request then arrives from 0, master again in a newer epoch."""
+    plan = TestbedPlan(
+        controllers=2,
+        flush_limit=0,
+        # Arm is request 3; the reply comes first (held notice), so 0 sends 4 at once.
+        handovers=((3, 1), (40, 0), (42, 1)),
+        speedup=20.0,
+        mission=LONG_LEGS,  # request 42 is early in the mission however loaded the machine
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+        drone_args=("--force-race", "reply-first", "--race-delay", "0.3"),
+        link_args=(("link-drone-0", ("--up-latency", "4s")),),
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        snapshot = await testbed.run_mission(300)
+    assert_mission_promises(snapshot, plan)
+    stale = [
+        e
+        for e in log_events(tmp_path, "controller-0")
+        if e.get("msg") == "stale request refused by the drone"
+    ]
+    seen = [(e["reqnr"], e["sent_epoch"], e["drone_epoch"]) for e in stale]
+    # Takeoff, sent in epoch 1, refused in epoch 3 (0 master again); a later one may be
+    # refused after the next switch, once 0 has its notice.
+    assert seen[0] == (4, 1, 3) and all(sent < now for _, sent, now in seen)
+    refused = [e for e in log_events(tmp_path, "drone") if e.get("msg") == "invoke rejected"]
+    assert any("is stale" in str(e["reason"]) for e in refused)
+    takeoffs = [a for a in snapshot.drone.audit if a.method.endswith("/Takeoff")]
+    assert [(a.reqnr, a.controller_id) for a in takeoffs] == [(4, 1)]  # executed once, by 1

@@ -1,0 +1,106 @@
+"""The drone's pure sequencer: masters, epochs, request order, the script (no sockets)."""
+
+from __future__ import annotations
+
+import grpc
+import pytest
+
+from baton.digest import request_digest
+from baton.drone.sequencer import MAX_REQNR_GAP, ScriptedHandover, Sequencer
+from baton.rpc.errors import StatusError
+
+GET = "/baton.v1.Mobility/GetPosition"
+DIGEST = request_digest(GET, b"")
+
+
+def serve(seq: Sequencer, cid: int, epoch: int, reqnr: int) -> None:
+    assert seq.admit(cid, epoch, reqnr, GET, DIGEST) is None
+    seq.served(cid, reqnr, GET, DIGEST, b"reply %d" % reqnr, float(reqnr), now=float(reqnr))
+
+
+def refused(seq: Sequencer, cid: int, epoch: int, reqnr: int) -> StatusError:
+    before = (seq.last_reqnr, seq.executed, len(seq.audit))
+    with pytest.raises(StatusError) as info:
+        seq.admit(cid, epoch, reqnr, GET, DIGEST)
+    assert (seq.last_reqnr, seq.executed, len(seq.audit)) == before  # nothing changed
+    return info.value
+
+
+def test_every_switch_grants_the_next_epoch_and_owes_the_old_master_a_notice() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    assert seq.epoch == 1
+    serve(seq, 0, 1, 1)
+    record = seq.switch(1, "rpc", now=5.0)
+    assert (record.old_master, record.new_master, record.after_reqnr, record.epoch) == (0, 1, 1, 2)
+    notice = seq.pending[0]
+    assert (notice.new_master, notice.ended_epoch, notice.epoch) == (1, 1, 2)
+    seq.switch(0, "rpc", now=6.0)
+    assert seq.epoch == 3 and 0 not in seq.pending and seq.pending[1].ended_epoch == 2
+    with pytest.raises(StatusError) as same:
+        seq.switch(0, "rpc", now=7.0)
+    assert same.value.code is grpc.StatusCode.FAILED_PRECONDITION
+
+
+def test_a_request_from_an_earlier_mastership_is_stale_never_executed() -> None:
+    """Issue 9, defect 4: a request still on the wire when the role came back."""
+    seq = Sequencer([0, 1], initial_master=0)
+    serve(seq, 0, 1, 1)
+    seq.switch(1, "rpc", now=1.0)
+    serve(seq, 1, 2, 2)
+    seq.switch(0, "rpc", now=2.0)  # back to 0, epoch 3
+    stale = refused(seq, 0, 1, 2)
+    assert stale.code is grpc.StatusCode.FAILED_PRECONDITION and "stale" in stale.message
+    assert (
+        dict(stale.metadata)["baton-epoch"] == "3" and dict(stale.metadata)["baton-master"] == "0"
+    )
+    # The same number in the current epoch is answered from the cache.
+    cached = seq.admit(0, 3, 2, GET, DIGEST)
+    assert cached is not None and cached.reply == b"reply 2"
+    serve(seq, 0, 3, 3)
+
+
+@pytest.mark.parametrize("epoch", [0, 4])
+def test_an_epoch_never_granted_is_invalid(epoch: int) -> None:
+    seq = Sequencer([0, 1], initial_master=0)
+    seq.switch(1, "rpc", now=1.0)
+    seq.switch(0, "rpc", now=2.0)
+    assert refused(seq, 0, epoch, 1).code is grpc.StatusCode.INVALID_ARGUMENT
+
+
+def test_a_non_master_is_refused_before_its_epoch_is_looked_at() -> None:
+    seq = Sequencer([0, 1], initial_master=0)
+    error = refused(seq, 1, 0, 1)
+    assert error.code is grpc.StatusCode.FAILED_PRECONDITION
+    assert dict(error.metadata) == {
+        "baton-master": "0",
+        "baton-epoch": "1",
+        "baton-after-reqnr": "0",
+    }
+
+
+def test_request_numbers_increase_by_at_most_the_gap() -> None:
+    seq = Sequencer([0], initial_master=0)
+    serve(seq, 0, 1, 5)  # 1..4 were the controller's own Clock calls
+    assert refused(seq, 0, 1, 4).code is grpc.StatusCode.FAILED_PRECONDITION
+    assert refused(seq, 0, 1, 0).code is grpc.StatusCode.INVALID_ARGUMENT
+    assert refused(seq, 0, 1, 5 + MAX_REQNR_GAP + 1).code is grpc.StatusCode.FAILED_PRECONDITION
+    serve(seq, 0, 1, 5 + MAX_REQNR_GAP)
+    other = request_digest("/baton.v1.Mobility/Arm", b"")
+    with pytest.raises(StatusError, match="diverged"):
+        seq.admit(0, 1, 5, "/baton.v1.Mobility/Arm", other)
+
+
+def test_the_script_fires_after_the_first_request_at_or_past_its_line() -> None:
+    script = {3: ScriptedHandover(3, 1, line=1), 6: ScriptedHandover(6, 1, line=2)}
+    seq = Sequencer([0, 1], initial_master=0, script=script)
+    serve(seq, 0, 1, 2)
+    assert seq.admit(0, 1, 4, GET, DIGEST) is None
+    served = seq.served(0, 4, GET, DIGEST, b"", received_at=3.5, now=4.0)
+    assert served.handover is not None and served.handover.after_reqnr == 4
+    assert (seq.master, seq.epoch, seq.fired_script) == (1, 2, [3])
+    assert seq.admit(1, 2, 6, GET, DIGEST) is None
+    served = seq.served(1, 6, GET, DIGEST, b"", received_at=6.0, now=6.0)
+    assert served.handover is None and served.skipped is not None  # already the master
+    first = seq.handovers[0]
+    assert first.first_request_at == 0
+    assert seq.note_request(1, 9.0) is first and first.delay_s == 5.0
