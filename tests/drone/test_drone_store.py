@@ -15,8 +15,10 @@ from drone_harness import DroneUnderTest, start_drone
 from test_drone_service import ARM, POSITION, TAKEOFF, expect_error, invoke
 
 from baton.digest import request_digest
+from baton.drone.sequencer import AUDIT_IN_MEMORY
 from baton.drone.store import DroneStore, Intent
 from baton.rpc.server import BatonServer
+from baton.testbed.local import drone_status
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -109,3 +111,31 @@ def test_a_state_file_that_is_not_a_database_is_a_clear_error(tmp_path: Path) ->
     bad.write_text("not a database\n" * 100)
     with pytest.raises(OSError, match=r"drone state file .*state\.sqlite \(--state\): file is not"):
         DroneStore(bad)
+
+
+@pytest.mark.parametrize("durable", [True, False], ids=["state-file", "memory-only"])
+async def test_the_audit_is_kept_in_bounded_memory_and_paged(tmp_path: Path, durable: bool) -> None:
+    """Issue 9, defect 8: the audit grew for the whole mission and GetStatus sent all of it."""
+    settings = {"state_file": str(tmp_path / "drone.sqlite")} if durable else {}
+    drone, server = await start_drone(**settings)
+    try:
+        served = AUDIT_IN_MEMORY + 50
+        for reqnr in range(1, served + 1):
+            await drone.service.invoke(invoke(0, reqnr, POSITION), received_at=float(reqnr))
+        assert len(drone.service.seq.audit) == AUDIT_IN_MEMORY  # the newest only
+        status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert not status.audit and status.executed == served
+        assert status.audit_oldest_reqnr == (1 if durable else 51)
+        page = await drone.stub.GetStatus(
+            drone_pb2.GetDroneStatusRequest(include_audit=True, audit_limit=400)
+        )
+        first = status.audit_oldest_reqnr
+        assert [a.reqnr for a in page.audit] == list(range(first, first + 400))
+        assert page.audit_more
+        whole = await drone_status(drone.stub)  # every page, as the testbed reads it
+        assert [a.reqnr for a in whole.audit] == list(range(first, served + 1))
+        assert not whole.audit_more
+    finally:
+        await server.stop(0)
+        if drone.service.store is not None:
+            drone.service.store.close()

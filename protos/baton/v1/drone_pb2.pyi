@@ -285,16 +285,26 @@ class GetDroneStatusRequest(_message.Message):
     DESCRIPTOR: _descriptor.Descriptor
 
     INCLUDE_AUDIT_FIELD_NUMBER: _builtins.int
+    AUDIT_AFTER_REQNR_FIELD_NUMBER: _builtins.int
+    AUDIT_LIMIT_FIELD_NUMBER: _builtins.int
     include_audit: _builtins.bool
-    """Include the audit of executed commands (can be long)."""
+    """Include the audit of executed commands, one page of it."""
+    audit_after_reqnr: _builtins.int
+    """With include_audit: only entries with a reqnr above this one (the last
+    reqnr of the previous page).
+    """
+    audit_limit: _builtins.int
+    """With include_audit: at most this many entries (0: 1,000; at most 10,000)."""
     def __init__(
         self,
         *,
         include_audit: _builtins.bool = ...,
+        audit_after_reqnr: _builtins.int = ...,
+        audit_limit: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["include_audit", b"include_audit"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit_after_reqnr", b"audit_after_reqnr", "audit_limit", b"audit_limit", "include_audit", b"include_audit"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -410,6 +420,8 @@ class DroneStatus(_message.Message):
     VEHICLE_FIELD_NUMBER: _builtins.int
     WAITING_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
+    AUDIT_MORE_FIELD_NUMBER: _builtins.int
+    AUDIT_OLDEST_REQNR_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -434,6 +446,16 @@ class DroneStatus(_message.Message):
     """The current master's epoch: 1 for the initial master, one more at
     every switch (never reused, kept across drone restarts).
     """
+    audit_more: _builtins.bool
+    """With include_audit: more entries follow this page (ask again with
+    audit_after_reqnr set to the last reqnr of this one).
+    """
+    audit_oldest_reqnr: _builtins.int
+    """The oldest reqnr the audit still holds (0: none yet). The drone keeps
+    the last 1,000 entries in memory; with a state file (--state) every
+    entry is on disk, else older ones are dropped (the counters still
+    count them).
+    """
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
         """The vehicle's latest position (zero if unknown)."""
@@ -444,7 +466,9 @@ class DroneStatus(_message.Message):
 
     @_builtins.property
     def audit(self) -> _containers.RepeatedCompositeFieldContainer[Global___AuditEntry]:
-        """Every executed command, in order (if asked for)."""
+        """One page of the executed commands, in order (if asked for): see
+        audit_after_reqnr, audit_limit and audit_more.
+        """
 
     @_builtins.property
     def handovers(self) -> _containers.RepeatedCompositeFieldContainer[Global___HandoverRecord]:
@@ -477,10 +501,12 @@ class DroneStatus(_message.Message):
         vehicle: Global___VehicleLink | None = ...,
         waiting: _builtins.str = ...,
         epoch: _builtins.int = ...,
+        audit_more: _builtins.bool = ...,
+        audit_oldest_reqnr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "rejected", b"rejected", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "rejected", b"rejected", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -26,6 +26,7 @@ The rules (docs/design.md, "Epochs" and "Exactly once..."):
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
@@ -40,6 +41,8 @@ from baton.v1 import drone_pb2
 # is a bug or an attack, and accepting it (2**64 - 1, say) would make every
 # later request look old, so the drone would refuse the mission for good.
 MAX_REQNR_GAP = 1_000_000
+# Audit entries kept in memory, the newest (the durable store keeps them all).
+AUDIT_IN_MEMORY = 1_000
 
 
 @dataclass(frozen=True)
@@ -88,7 +91,8 @@ class Sequencer:
         self.executed = 0
         self.duplicates = 0
         self.rejected = 0
-        self.audit: list[drone_pb2.AuditEntry] = []
+        # The newest served requests; older ones are in the store, if any.
+        self.audit: deque[drone_pb2.AuditEntry] = deque(maxlen=AUDIT_IN_MEMORY)
         self.script = dict(script or {})  # pending scripted handovers, by reqnr
         self.fired_script: list[int] = []
         # Notices owed to old masters, by controller id.

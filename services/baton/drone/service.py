@@ -37,6 +37,8 @@ from baton.v1 import drone_pb2, drone_pb2_grpc
 
 # A status read must not hang on a vehicle that stopped answering.
 _STATUS_READ_TIMEOUT_S = 1.0
+# Audit entries in one GetStatus page: by default, and at most.
+AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
 
 
 async def latest_position(vehicle: MobilityBackend) -> api.Position:
@@ -102,8 +104,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
 
     @property
     def audit(self) -> list[drone_pb2.AuditEntry]:
-        """Every served request, in order."""
-        return self.seq.audit
+        """The newest served requests held in memory, in order."""
+        return list(self.seq.audit)
 
     async def watch(self) -> None:
         """Every half second: stalls into GetStatus.waiting, and into the log when they begin."""
@@ -148,7 +150,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         seq.duplicates, seq.rejected = c.duplicates, c.rejected
         for reply in state.replies:
             seq.cache.store(reply.reqnr, reply.method, reply.digest, reply.reply, reply.error)
-        seq.audit[:] = state.audit
+        seq.audit.extend(state.audit)
         seq.fired_script[:] = c.fired_script
         for reqnr in c.fired_script:
             seq.script.pop(reqnr, None)
@@ -422,10 +424,14 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self, request: drone_pb2.GetDroneStatusRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.DroneStatus:
         """The drone's state, counters, handovers and (if asked) the command audit."""
-        return await self.status(request.include_audit)
+        return await self.status(
+            request.include_audit, request.audit_after_reqnr, request.audit_limit
+        )
 
-    async def status(self, include_audit: bool = False) -> drone_pb2.DroneStatus:
-        """GetStatus without gRPC."""
+    async def status(
+        self, include_audit: bool = False, audit_after_reqnr: int = 0, audit_limit: int = 0
+    ) -> drone_pb2.DroneStatus:
+        """GetStatus without gRPC; the audit one page at a time (in bounded memory)."""
         seq = self.seq
         status = drone_pb2.DroneStatus(
             master=seq.master,
@@ -453,8 +459,18 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 )
             except (StatusError, TimeoutError):
                 pass  # unknown now: left empty
+        if self.store is not None:
+            status.audit_oldest_reqnr = self.store.oldest_audit_reqnr()
+        elif seq.audit:
+            status.audit_oldest_reqnr = seq.audit[0].reqnr
         if include_audit:
-            status.audit.extend(seq.audit)
+            limit = min(audit_limit or AUDIT_PAGE, AUDIT_PAGE_MAX)
+            if self.store is not None:
+                page = self.store.audit_page(audit_after_reqnr, limit + 1)
+            else:
+                page = [e for e in seq.audit if e.reqnr > audit_after_reqnr][: limit + 1]
+            status.audit_more = len(page) > limit
+            status.audit.extend(page[:limit])
         return status
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 import grpc
 
 from baton.drone.dedupe import CachedReply
+from baton.drone.sequencer import AUDIT_IN_MEMORY
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_pb2
 
@@ -147,10 +148,10 @@ class DroneStore:
                 "ORDER BY reqnr"
             )
         ]
-        audit = [
-            drone_pb2.AuditEntry.FromString(entry)
-            for (entry,) in self._db.execute("SELECT entry FROM audit ORDER BY reqnr")
-        ]
+        newest = self._db.execute(
+            "SELECT entry FROM audit ORDER BY reqnr DESC LIMIT ?", (AUDIT_IN_MEMORY,)
+        )
+        audit = [drone_pb2.AuditEntry.FromString(entry) for (entry,) in newest][::-1]
         intent = self._db.execute(
             "SELECT reqnr, method, digest, controller_id, received_at FROM executing WHERE id = 1"
         ).fetchone()
@@ -159,6 +160,19 @@ class DroneStore:
             reqnr, method, digest, controller_id, received_at = intent
             executing = Intent(reqnr, method, bytes(digest), controller_id, received_at)
         return DroneState(counters, replies, audit, executing)
+
+    def audit_page(self, after_reqnr: int, limit: int) -> list[drone_pb2.AuditEntry]:
+        """At most ``limit`` audit entries with a reqnr above ``after_reqnr``, in order."""
+        rows = self._db.execute(
+            "SELECT entry FROM audit WHERE reqnr > ? ORDER BY reqnr LIMIT ?",
+            (after_reqnr, limit),
+        )
+        return [drone_pb2.AuditEntry.FromString(entry) for (entry,) in rows]
+
+    def oldest_audit_reqnr(self) -> int:
+        """The oldest reqnr in the audit; 0 if it is empty."""
+        (oldest,) = self._db.execute("SELECT COALESCE(MIN(reqnr), 0) FROM audit").fetchone()
+        return int(oldest)
 
     def begin(self, intent: Intent) -> None:
         """Notes the request about to be executed."""

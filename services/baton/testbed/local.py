@@ -128,6 +128,22 @@ def _link_args(spec: LinkSpec) -> list[str]:
     return args
 
 
+async def drone_status(
+    stub: drone_pb2_grpc.DroneStub, audit: bool = True, wait_for_ready: bool = False
+) -> drone_pb2.DroneStatus:
+    """The drone's status with, if ``audit``, every audit entry it holds (page by page)."""
+    request = drone_pb2.GetDroneStatusRequest(include_audit=audit)
+    status: drone_pb2.DroneStatus = await stub.GetStatus(
+        request, timeout=10, wait_for_ready=wait_for_ready
+    )
+    while status.audit_more:
+        request.audit_after_reqnr = status.audit[-1].reqnr
+        page = await stub.GetStatus(request, timeout=10, wait_for_ready=wait_for_ready)
+        status.audit.extend(page.audit)
+        status.audit_more = page.audit_more
+    return status
+
+
 def handover_file_text(handovers: tuple[tuple[int, int], ...]) -> str:
     """The drone's handover script: ``reqnr mid`` lines."""
     return "".join(f"{reqnr} {mid}\n" for reqnr, mid in handovers)
@@ -369,9 +385,7 @@ class LocalTestbed:
     async def snapshot(self, audit: bool = True) -> Snapshot:
         """The drone's and every controller's status now, and the side effects counted."""
         assert self.drone_stub is not None
-        drone = await self.drone_stub.GetStatus(
-            drone_pb2.GetDroneStatusRequest(include_audit=audit), timeout=10
-        )
+        drone = await drone_status(self.drone_stub, audit)
         snapshot = Snapshot(drone)
         for cid, stub in self.controller_stubs.items():
             snapshot.controllers[cid] = await stub.GetStatus(

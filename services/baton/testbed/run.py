@@ -16,7 +16,7 @@ from typing import Any
 from baton.config import BatonConfig
 from baton.lifecycle import write_atomically
 from baton.rpc.channels import aio_channel
-from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
+from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan, drone_status
 from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
@@ -148,13 +148,7 @@ async def follow_remote(
     try:
         while True:
             try:
-                snapshot = Snapshot(
-                    await drone.GetStatus(
-                        drone_pb2.GetDroneStatusRequest(include_audit=True),
-                        timeout=10,
-                        wait_for_ready=True,
-                    )
-                )
+                snapshot = Snapshot(await drone_status(drone, wait_for_ready=True))
                 for cid, stub in rings.items():
                     snapshot.controllers[cid] = await stub.GetStatus(
                         ring_pb2.GetControllerStatusRequest(), timeout=10, wait_for_ready=True
