@@ -61,3 +61,20 @@ def test_a_port_in_use_is_a_clear_error(tmp_path) -> None:  # type: ignore[no-un
         result.stderr
     )
     assert "Traceback" not in result.stderr
+
+
+def test_an_unusable_controller_log_file_is_a_clear_error(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    config = tmp_path / "one.yaml"
+    config.write_text("controllers: [{id: 0, address: 127.0.0.1:0}]\n")
+    (tmp_path / "log.sqlite").write_text("not a database")
+    result = baton(
+        "controller",
+        "--id",
+        "0",
+        "--config",
+        str(config),
+        "--log-file",
+        str(tmp_path / "log.sqlite"),
+    )
+    assert result.returncode == 2
+    assert "log.sqlite (--log-file)" in result.stderr and "Traceback" not in result.stderr

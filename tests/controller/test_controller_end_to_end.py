@@ -129,7 +129,8 @@ async def test_handover_while_a_call_is_in_flight_both_orders(tmp_path: Path, or
 
 
 async def test_a_replica_that_restarts_catches_up_from_its_predecessor(tmp_path: Path) -> None:
-    """A controller restarted mid-mission (state lost) gets the whole log history again."""
+    """A controller stopped mid-mission and restarted recovers its log file, and its
+    predecessor gives it the rest."""
     plan = TestbedPlan(
         controllers=3,
         flush_limit=0,
@@ -151,12 +152,13 @@ async def test_a_replica_that_restarts_catches_up_from_its_predecessor(tmp_path:
         await testbed.supervisor.wait_ready(restarted)
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
-    # The predecessor's stream came up twice to a controller holding nothing
-    # (hello lognr 0) and re-sent the whole history the second time.
+    # The predecessor's stream came up twice: to a controller holding nothing at
+    # the start, and, mid-mission, to one that had recovered its log file.
     ups = [
         json.loads(line)
         for line in (tmp_path / "logs" / "controller-1.log").read_text().splitlines()
         if '"ring stream up"' in line and '"peer": 2' in line
     ]
-    assert len(ups) >= 2 and all(up["peer_lognr"] == 0 for up in ups)
-    assert ups[-1]["lognr"] >= 14  # the second time, mid-mission
+    assert len(ups) >= 2 and ups[0]["peer_lognr"] == 0
+    assert ups[-1]["lognr"] >= 14 and ups[-1]["peer_lognr"] >= 14
+    assert '"recovered from the log file"' in (tmp_path / "logs" / "controller-2.log").read_text()

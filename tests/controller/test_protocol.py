@@ -307,3 +307,16 @@ def test_a_handover_message_carries_the_new_masters_epoch() -> None:
     new.on_log(send.message)
     assert (new.master, new.epoch) == (True, 2)
     assert new.connect_refusal_is_stale(1) and not new.connect_refusal_is_stale(2)
+
+
+def test_the_received_watermark_moves_over_a_masters_own_flushes() -> None:
+    """Issue 9, defect 8: it stalled at the first own flush and grew for the rest."""
+    master = started(0, [0, 1], 0)
+    for reqnr in range(1, 6):
+        master.on_reply(entry(reqnr))
+    master.on_handover_notice(1)  # lognr 6: the handover message, comes back later
+    assert master.holds_lognr == 6 and len(master._received) == 0
+    master.on_log(message(6, 1, [], sender=1))  # its handover message, back as a normal one
+    for lognr in range(7, 50):
+        master.on_log(message(lognr, 1, []))
+    assert master.holds_lognr == 49 and len(master._received) == 0

@@ -27,7 +27,7 @@ from test_controller_end_to_end import FAST_LINK, assert_mission_promises
 from test_faults_mid_mission import LONG_LEGS
 from waiting import eventually
 
-from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.testbed.local import LocalTestbed, TestbedPlan, remove_sqlite
 
 
 def log_events(tmp_path: Path, part: str) -> list[dict[str, object]]:
@@ -37,17 +37,18 @@ def log_events(tmp_path: Path, part: str) -> list[dict[str, object]]:
 
 
 @pytest.mark.parametrize(
-    ("victim", "handovers"),
+    ("victim", "handovers", "keeps_its_log"),
     [
-        # The initial master, after it handed over; it is master again later.
-        (0, ((8, 1), (40, 0))),
-        # A passive ex-master (master 8..20), master again later.
-        (1, ((8, 1), (20, 2), (40, 1))),
+        # The initial master, after it handed over, restarted with its log file; it is
+        # master again later.
+        (0, ((8, 1), (40, 0)), True),
+        # A passive ex-master (master 8..20), restarted with nothing; master again later.
+        (1, ((8, 1), (20, 2), (40, 1)), False),
     ],
-    ids=["initial-master", "passive-ex-master"],
+    ids=["initial-master-with-its-log", "passive-ex-master-with-nothing"],
 )
 async def test_a_killed_ex_master_restarts_catches_up_and_is_master_again(
-    tmp_path: Path, victim: int, handovers: tuple[tuple[int, int], ...]
+    tmp_path: Path, victim: int, handovers: tuple[tuple[int, int], ...], keeps_its_log: bool
 ) -> None:
     plan = TestbedPlan(
         controllers=3,
@@ -70,6 +71,8 @@ async def test_a_killed_ex_master_restarts_catches_up_and_is_master_again(
         assert part.process is not None and part.ready_file is not None
         os.kill(part.process.pid, signal.SIGKILL)  # its mission program dies with it
         await part.process.wait()
+        if not keeps_its_log:
+            remove_sqlite(tmp_path / f"controller-{victim}-log.sqlite")
         restarted = await testbed.supervisor.start(
             f"controller-{victim}", part.argv, part.ready_file
         )
@@ -85,6 +88,16 @@ async def test_a_killed_ex_master_restarts_catches_up_and_is_master_again(
     assert "the drone says this controller is master" not in after
     status = snapshot.controllers[victim]
     assert [h.role for h in status.handovers] == ["new"] and status.epoch == len(handovers) + 1
+    # With its log file it recovered what it had, and its predecessor sent only the rest.
+    assert ("recovered from the log file" in after) is keeps_its_log
+    predecessor = (victim - 1) % plan.controllers
+    ups = [
+        e
+        for e in log_events(tmp_path, f"controller-{predecessor}")
+        if e.get("msg") == "ring stream up" and e.get("peer") == victim
+    ]
+    assert len(ups) >= 2  # at the start, and after the restart
+    assert (int(str(ups[-1]["peer_lognr"])) > 0) is keeps_its_log
 
 
 async def test_a_stale_request_after_a_hand_back_is_ignored_not_fatal(tmp_path: Path) -> None:

@@ -102,7 +102,7 @@ async def test_a_64_mb_log_message_passes_the_ring() -> None:
 async def test_successor_restart_loses_nothing(tmp_path) -> None:  # type: ignore[no-untyped-def]
     address = f"127.0.0.1:{free_port()}"
     server, first = await start_receiver(address)
-    history = LogHistory(str(tmp_path))
+    history = LogHistory(tmp_path / "history.sqlite")
     link = PeerLink(0, 1, address, LOG, history)
 
     def send(message: ring_pb2.LogMessage) -> None:

@@ -9,6 +9,7 @@ import secrets
 import sys
 
 from baton.config import BatonConfig
+from baton.controller.history import LogFileError
 from baton.controller.node import ControllerNode
 from baton.controller.service import PROXIED_SERVICES, ControllerRingService, DroneApiProxy
 from baton.lifecycle import write_atomically
@@ -26,9 +27,10 @@ class ControllerApp:
         cid: int,
         mission: str | None = None,
         mission_args: list[str] | None = None,
+        log_file: str | None = None,
     ) -> None:
         self.config = config
-        self.node = ControllerNode(config, cid)
+        self.node = ControllerNode(config, cid, log_file)
         # The mission program's token (rpc/mission.py): given in the environment
         # (a program started by hand), else made up for the program started here.
         self.token = os.environ.get(MISSION_TOKEN_ENV) or (
@@ -88,9 +90,14 @@ async def serve(
     mission: str | None,
     mission_args: list[str],
     address_file: str | None,
+    log_file: str | None = None,
 ) -> int:
     """Runs a controller until SIGTERM or SIGINT."""
-    app = ControllerApp(config, cid, mission, mission_args)
+    try:
+        app = ControllerApp(config, cid, mission, mission_args, log_file)
+    except LogFileError as exc:
+        print(f"baton controller: {exc}", file=sys.stderr)
+        return 2
 
     async def main(stop: asyncio.Event) -> int:
         await app.start()

@@ -39,6 +39,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument(
         "--address-file", help="write the address this controller listens on to this file"
     )
+    parser.add_argument(
+        "--log-file",
+        metavar="FILE",
+        help="keep every log message this controller holds in this SQLite file and recover "
+        "from it on restart (one mission, one file; format in baton/controller/history.py); "
+        "default: a temporary file that goes with the process",
+    )
     parser.set_defaults(run=run)
 
 
@@ -62,4 +69,6 @@ def run(args: argparse.Namespace) -> int:
     except KeyError as exc:
         print(f"baton controller: --id {args.id}: {exc.args[0]}", file=sys.stderr)
         return 2
-    return asyncio.run(serve(config, args.id, args.mission, args.mission_arg, args.address_file))
+    return asyncio.run(
+        serve(config, args.id, args.mission, args.mission_arg, args.address_file, args.log_file)
+    )

@@ -1,47 +1,84 @@
-"""Every log message a controller holds, on disk: what a restarted successor is given again.
+"""Every log message a controller holds, on disk: what it recovers, and gives a successor.
 
 Every controller sees every log number (it received the message, or created
 it), so each one can give its successor the whole log again when the
 successor comes back with nothing (docs/design.md, "Restarts and catch-up").
-The messages are kept in an unnamed temporary file, written once as they
-arrive; memory holds an index of a few numbers per message, not the
-messages (a mission's pictures would be 100 MB and more in every
-controller). The file goes with the process: a restarted controller starts
-with nothing and catches up from its predecessor's history.
+The messages are written once, as they arrive, to a SQLite file; memory
+holds none of them (a mission's pictures are 100 MB and more).
 
-A message is kept as a normal ring message (``handover`` cleared): history
-re-sent to a restarted controller never makes it master; only the drone's
-grant or a handover message still owed to it does.
+With a file of its own (``baton controller --log-file``, which the testbed
+gives every controller), the history outlives the process: a controller
+restarted after a crash recovers what it had from it (``recover``) before
+its predecessor gives it the rest. Without one, the file is a temporary one
+that is unlinked as soon as it is open: it goes with the process.
+
+The format (for ``baton replay`` and the mission report): one table
+``messages(lognr INTEGER PRIMARY KEY, message BLOB)``, each row a serialized
+``baton.v1.LogMessage`` (ring.proto) as the ring carried it, with its
+``handover`` flag cleared: history re-sent to a restarted controller never
+makes it master; only the drone's grant or a handover message still owed to
+it does. WAL journal, ``synchronous=NORMAL``: a kill -9 loses nothing
+written; a power cut may lose the last messages, which the ring gives again.
 """
 
 from __future__ import annotations
 
 import os
+import sqlite3
 import tempfile
 from collections.abc import Iterator
+from pathlib import Path
 
 from baton.controller.protocol import SeenNumbers
 from baton.v1 import ring_pb2
 
 
-class LogHistory:
-    """Log messages by log number, in a temporary file; ``holds_lognr`` is the contiguous top."""
+class LogFileError(OSError):
+    """A log file that cannot be used; the message names it, the flag and the fix."""
 
-    def __init__(self, directory: str | None = None) -> None:
-        self._file = tempfile.TemporaryFile(dir=directory)  # lives as long as the node
-        self._index: dict[int, tuple[int, int]] = {}  # lognr -> (offset, length)
+
+SCHEMA = "CREATE TABLE IF NOT EXISTS messages (lognr INTEGER PRIMARY KEY, message BLOB NOT NULL)"
+
+
+class LogHistory:
+    """Log messages by log number, in SQLite; ``holds_lognr`` is the contiguous top."""
+
+    def __init__(self, path: str | Path | None = None) -> None:
+        self.path = Path(path) if path is not None else None
+        try:
+            if self.path is None:
+                fd, temporary = tempfile.mkstemp(prefix="baton-history-", suffix=".sqlite")
+                os.close(fd)
+                self._db = sqlite3.connect(temporary, isolation_level=None)
+                # No journal file to find by name: the database can be unlinked now.
+                self._db.execute("PRAGMA journal_mode=MEMORY")
+                self._db.execute("PRAGMA synchronous=OFF")
+                self._db.execute(SCHEMA)
+                os.unlink(temporary)
+            else:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                self._db = sqlite3.connect(self.path, isolation_level=None)
+                self._db.execute("PRAGMA journal_mode=WAL")
+                self._db.execute("PRAGMA synchronous=NORMAL")
+                self._db.execute(SCHEMA)
+            self._lognrs = {n for (n,) in self._db.execute("SELECT lognr FROM messages")}
+        except (OSError, sqlite3.Error) as exc:
+            raise LogFileError(
+                f"controller log file {self.path} (--log-file): {exc}; give a writable path"
+            ) from exc
         self._held = SeenNumbers()
-        self.bytes = 0
+        for lognr in sorted(self._lognrs):
+            self._held.add(lognr)
 
     def close(self) -> None:
-        """Drops the file."""
-        self._file.close()
+        """Closes the file (a temporary one is gone with it)."""
+        self._db.close()
 
     def __contains__(self, lognr: object) -> bool:
-        return lognr in self._index
+        return lognr in self._lognrs
 
     def __len__(self) -> int:
-        return len(self._index)
+        return len(self._lognrs)
 
     @property
     def holds_lognr(self) -> int:
@@ -50,27 +87,27 @@ class LogHistory:
 
     def add(self, message: ring_pb2.LogMessage) -> None:
         """Keeps ``message`` unless a message with its log number is held already."""
-        if message.lognr in self._index:
+        if message.lognr in self._lognrs:
             return
         if message.handover:
             kept = ring_pb2.LogMessage()
             kept.CopyFrom(message)
             kept.handover = False
             message = kept
-        data = message.SerializeToString()
-        self._file.seek(0, os.SEEK_END)
-        offset = self._file.tell()
-        self._file.write(data)
-        self._index[message.lognr] = (offset, len(data))
+        self._db.execute(
+            "INSERT INTO messages (lognr, message) VALUES (?, ?)",
+            (message.lognr, message.SerializeToString()),
+        )
+        self._lognrs.add(message.lognr)
         self._held.add(message.lognr)
-        self.bytes += len(data)
 
     def get(self, lognr: int) -> ring_pb2.LogMessage:
         """The message with ``lognr``; KeyError if it is not held."""
-        offset, length = self._index[lognr]
-        self._file.seek(offset)
-        return ring_pb2.LogMessage.FromString(self._file.read(length))
+        row = self._db.execute("SELECT message FROM messages WHERE lognr = ?", (lognr,)).fetchone()
+        if row is None:
+            raise KeyError(lognr)
+        return ring_pb2.LogMessage.FromString(row[0])
 
     def above(self, lognr: int) -> Iterator[int]:
         """The held log numbers above ``lognr``, in order."""
-        return iter(sorted(n for n in self._index if n > lognr))
+        return iter(sorted(n for n in self._lognrs if n > lognr))

@@ -114,12 +114,13 @@ class HandoverEvent:
 class ControllerNode:
     """One mission controller: Algorithm 1 plus its ring streams and drone connection."""
 
-    def __init__(self, config: BatonConfig, cid: int) -> None:
+    def __init__(self, config: BatonConfig, cid: int, log_file: str | None = None) -> None:
         self.config = config
         self.id = cid
         self.protocol = ControllerProtocol(cid, config.ring_order, config.flush_limit)
-        # Every log message this controller holds, for a successor that restarts.
-        self.history = LogHistory()
+        # Every log message this controller holds: what it recovers after a
+        # restart (with a file of its own) and gives a successor that restarts.
+        self.history = LogHistory(log_file)
         self.clock = MissionClock(config.speedup)
         self.log = get_logger("controller").bind(context=self._log_context, id=cid)
         # Replaced on every change, so a waiter holds the event of the state it saw.
@@ -151,11 +152,38 @@ class ControllerNode:
     # -- life cycle -----------------------------------------------------------------
 
     async def start(self) -> None:
-        """Opens the stream to the successor and, as the initial master, the drone connection."""
+        """Recovers the log file, opens the stream to the successor, asks the drone."""
+        self._recover()
         self.peer(self.protocol.successor).start()
         await self._apply(self.protocol.start())
         self._watchdog = asyncio.create_task(self._watch(), name="stall-watchdog")
         self.log.info("controller started; asking the drone who the master is")
+
+    def _recover(self) -> None:
+        """Handles the messages the log file held, as if received: a restart with what it had.
+
+        Their forwards are not sent: the successor says what it lacks when its
+        stream opens, and is given that from the history.
+        """
+        lognrs = list(self.history.above(0))
+        for lognr in lognrs:
+            try:
+                self.protocol.on_log(self.history.get(lognr))
+            except ProtocolError as exc:
+                self._fail(
+                    StatusError(
+                        grpc.StatusCode.DATA_LOSS,
+                        f"controller {self.id}: log file {self.history.path}: {exc}",
+                    )
+                )
+                return
+        if lognrs:
+            self.log.info(
+                "recovered from the log file",
+                path=str(self.history.path),
+                messages=len(lognrs),
+                up_to_lognr=self.protocol.lognr,
+            )
 
     @property
     def waiting(self) -> str:

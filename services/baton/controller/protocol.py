@@ -240,6 +240,11 @@ class ControllerProtocol:
         return self._drain()
 
     @property
+    def holds_lognr(self) -> int:
+        """Every log number up to this one was received (handled, or queued to be)."""
+        return max(self.lognr, self._received.upto)
+
+    @property
     def caught_up(self) -> bool:
         """Handled every log message the predecessor said it holds."""
         return self.catch_up_to is not None and self.lognr >= self.catch_up_to
@@ -289,6 +294,10 @@ class ControllerProtocol:
 
     def _flush(self) -> SendLog:
         self.lognr += 1
+        # Held from now on: the received-numbers watermark moves over our own
+        # flushes (which never come back to us), so it stays a few numbers. A
+        # handover message does come back (footnote 3) and is forwarded then.
+        self._received.add(self.lognr)
         message = self._message(self.lognr, origin=self.id, handover=False)
         return SendLog(self.successor, message)
 

@@ -135,7 +135,7 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
         self._token = token
         self._receiver = RingReceiver(
             node.id,
-            lambda: node.protocol.lognr,
+            lambda: node.protocol.holds_lognr,
             node.on_log,
             node.log,
             node.config.log_message_cap,

@@ -128,6 +128,12 @@ def _link_args(spec: LinkSpec) -> list[str]:
     return args
 
 
+def remove_sqlite(path: Path) -> None:
+    """Deletes a SQLite file of an earlier run, its WAL and shared-memory files too."""
+    for part in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
+        part.unlink(missing_ok=True)
+
+
 async def drone_status(
     stub: drone_pb2_grpc.DroneStub, audit: bool = True, wait_for_ready: bool = False
 ) -> drone_pb2.DroneStatus:
@@ -298,13 +304,8 @@ class LocalTestbed:
         # workdir (a restarted drone of this run keeps them: the same argv).
         state = self.workdir / "drone-state.sqlite"
         camera_effects = self.workdir / CAMERA_EFFECTS_FILE
-        for stale in (
-            state,
-            state.with_name(state.name + "-wal"),
-            state.with_name(state.name + "-shm"),
-            camera_effects,
-        ):
-            stale.unlink(missing_ok=True)
+        remove_sqlite(state)
+        camera_effects.unlink(missing_ok=True)
         argv = baton_argv(
             "drone",
             "--config",
@@ -331,6 +332,10 @@ class LocalTestbed:
         parts = []
         for cid in self.config.ring_order:
             ready = self.workdir / f"controller-{cid}.address"
+            # A new mission: no log of an earlier run (a restarted controller of
+            # this run recovers from it: the same argv).
+            log_file = self.workdir / f"controller-{cid}-log.sqlite"
+            remove_sqlite(log_file)
             argv = baton_argv(
                 "controller",
                 "--id",
@@ -341,6 +346,8 @@ class LocalTestbed:
                 str(self.plan.mission_file),
                 "--address-file",
                 str(ready),
+                "--log-file",
+                str(log_file),
             )
             grid_args = self.plan.mission.args() if self.plan.mission_file == GRID_MISSION else []
             for arg in [*grid_args, *self.plan.mission_args]:
