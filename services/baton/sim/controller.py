@@ -1,0 +1,696 @@
+"""One simulated mission controller: the real ``ControllerProtocol`` and node.py's decisions.
+
+``SimController`` is ``controller/node.py``'s ``ControllerNode`` with the
+asyncio taken out: each method names the node.py function whose decisions
+it copies, and keeps the copy minimal. The protocol (Algorithm 1, epochs,
+grants, sync) is the project's own object; the ring history is the
+project's own ``LogHistory``; ``_given_up`` and the retry constants are
+imported from node.py.
+
+How asyncio maps onto events: node.py's ``_changed`` event (set on every
+``_apply``) becomes ``_notify``, which schedules one ``_pump`` on the next
+turn of the loop; a program call parked in node.py's ``await
+self._changed.wait()`` is ``Phase.WAITING`` and re-runs its loop there.
+A drone call in flight is an ``Invocation`` that a reply, a broken
+connection, a back-off timer or a give-up moves on.
+
+Simplifications: the drone session's events run at once where node.py
+posts them as tasks; the stall watchdog, the status and the logging are
+left out; a program call's deadline is modelled only as the explicit
+give-up fault (``give_up``), not as gRPC deadlines on drone calls (the
+retry limit, node.py's ``drone_retry_limit``, is far beyond any fault).
+"""
+
+from __future__ import annotations
+
+import enum
+from collections import deque
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import grpc
+
+from baton.controller.drone_link import DroneRefusal
+from baton.controller.history import LogHistory
+from baton.controller.node import CLOCK_NOW, CLOCK_SLEEP, RETRY_FIRST_S, RETRY_MAX_S, _given_up
+from baton.controller.protocol import (
+    ConnectDrone,
+    ControllerProtocol,
+    DisconnectDrone,
+    Effect,
+    NonDeterminismError,
+    ProtocolError,
+    Refusal,
+    SendLog,
+    State,
+)
+from baton.digest import request_digest
+from baton.rpc.errors import StatusError
+from baton.sim.drone import Request
+from baton.sim.mission import MissionCall
+from baton.sim.network import DroneLink, RingLink
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import ring_pb2
+
+if TYPE_CHECKING:
+    from baton.sim.world import World
+
+# BatonConfig.drone_retry_limit's default: how long UNAVAILABLE is re-sent.
+DRONE_RETRY_LIMIT_S = 300.0
+# DroneSession._follow_events's reconnect back-off.
+SESSION_BACKOFF_FIRST_S, SESSION_BACKOFF_MAX_S = 0.05, 1.0
+# Clock.Now answers in Unix time; the mission starts here.
+MISSION_START_UNIX = 1.8e9
+
+
+def refusal_from(error: StatusError) -> DroneRefusal | None:
+    """drone_link.refusal_of for the simulated drone's StatusError (its trailing metadata)."""
+    if error.code is not grpc.StatusCode.FAILED_PRECONDITION:
+        return None
+    metadata = dict(error.metadata)
+    master = metadata.get("baton-master")
+    if master is None:
+        return None
+    return DroneRefusal(
+        int(master),
+        int(metadata.get("baton-epoch", "0")),
+        int(metadata.get("baton-after-reqnr", "0")),
+    )
+
+
+class Phase(enum.Enum):
+    """Where the program's current call is parked."""
+
+    RUNNING = "running"  # being worked on in this event
+    WAITING = "waiting"  # held while PASSIVE: node.py awaits _changed
+    INVOKING = "invoking"  # inside node.py's _invoke: the Clock or the drone
+
+
+class Step(enum.Enum):
+    """Where an Invocation is (node.py _invoke and _invoke_drone_retrying)."""
+
+    CLOCK = "clock"  # a Sleep
+    WAIT_CONNECTED = "wait connected"  # _wait_connected
+    WAIT_READY = "wait ready"  # drone.invoke waiting for the channel (wait_for_ready)
+    IN_FLIGHT = "in flight"  # the Invoke is on its way or being executed
+    PAUSE = "pause"  # Retry.pause after UNAVAILABLE
+
+
+@dataclass(eq=False)
+class Invocation:
+    """One call being answered while ACTIVE: its reqnr and where it is."""
+
+    reqnr: int
+    call: MissionCall
+    digest: bytes
+    started: float
+    step: Step = Step.CLOCK
+    sent_epoch: int = 0
+    call_id: int = 0
+    connection: int = 0
+    pauses: int = 0
+
+
+@dataclass(eq=False)
+class Session:
+    """One ACTIVE period's drone session (drone_link.DroneSession)."""
+
+    sid: int
+    epoch: int = 0
+    connected: bool = False
+    closed: bool = False  # _close_drone: its events are no longer followed
+    ended: bool = False  # _follow_events returned (a notice or a refusal)
+    stream: int | None = None  # the connection its Connect stream is on
+    waiting: bool = False  # a Connect waiting for the channel
+    backoff: float = SESSION_BACKOFF_FIRST_S
+
+
+class SimController:
+    """A controller incarnation: protocol, history, ring links, drone session, mission program.
+
+    A restart is a new incarnation with nothing (a fresh protocol, history
+    and program); the killed one keeps what its program saw, for the oracles.
+    """
+
+    def __init__(self, world: World, cid: int, incarnation: int) -> None:
+        self.world = world
+        self.id = cid
+        self.incarnation = incarnation
+        self.alive = True
+        self.protocol = ControllerProtocol(cid, world.ring, world.flush_limit)
+        self.history = LogHistory()
+        self.links: dict[int, RingLink] = {}
+        self.drone_link = DroneLink(world, self)
+        self.session: Session | None = None
+        # The mission program: the next call, the current one, and where it is.
+        self.program = world.program
+        self.pc = 0
+        self.call: MissionCall | None = None
+        self.phase = Phase.RUNNING
+        self.inv: Invocation | None = None
+        self.abandoned: deque[tuple[MissionCall, grpc.StatusCode]] = deque()
+        self.failure: str | None = None
+        self.program_failed = False
+        # What the protocol consumed (node.py _seen) and what the program saw, in order.
+        self.seen: list[tuple[int, int, bytes]] = []
+        self.view: list[tuple[int, bytes]] = []
+        self.done_at: float | None = None
+        self.peak_log_queue = 0
+        # Handover messages it sent: (lognr, new master).
+        self.handed_over: list[tuple[int, int]] = []
+        # Whether the drone has answered its start-up question (granted, refused, a notice).
+        self.answered = False
+        self._pump_due = False
+
+    # -- life cycle (ControllerNode.start / stop) ---------------------------------
+
+    def start(self) -> None:
+        """Opens the stream to the successor and asks the drone (node.py start)."""
+        self.peer(self.protocol.successor).start()
+        self._apply(self.protocol.start())
+
+    def begin_program(self) -> None:
+        """Starts the mission program."""
+        self._schedule_call()
+
+    def kill(self) -> None:
+        """The process dies with everything it held."""
+        self.alive = False
+        self.world.trace(f"controller {self.id} killed")
+        self.drone_link.break_("controller killed")
+        for other in self.world.live_controllers():
+            link = other.links.get(self.id)
+            if link is not None:
+                link.break_("peer killed")
+        self.history.close()
+
+    def close(self) -> None:
+        """Frees the history file at the end of a run."""
+        if self.alive:
+            self.history.close()
+
+    def peer(self, pid: int) -> RingLink:
+        """ControllerNode.peer: the kept stream to ``pid``; the successor's has the history."""
+        link = self.links.get(pid)
+        if link is None:
+            history = self.history if pid == self.protocol.successor else None
+            link = RingLink(self.world, self, pid, history)
+            self.links[pid] = link
+        return link
+
+    # -- effects (ControllerNode._apply) ------------------------------------------
+
+    def _apply(self, effects: list[Effect]) -> None:
+        for effect in effects:
+            if isinstance(effect, SendLog):
+                message = effect.message
+                self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
+                if message.handover:
+                    self.handed_over.append((message.lognr, message.origin))
+                self.history.add(message)
+                self.peer(effect.dest).send(effect.message)
+            elif isinstance(effect, ConnectDrone):
+                self._open_drone()
+            elif isinstance(effect, DisconnectDrone):
+                self._close_drone()
+        self._notify()
+
+    def _notify(self) -> None:
+        """ControllerNode._notify: wakes whatever waits on _changed, on the next loop turn."""
+        if not self._pump_due:
+            self._pump_due = True
+            self.world.loop.after(0.0, self._pump)
+
+    def _pump(self) -> None:
+        self._pump_due = False
+        if not self.alive or self.call is None:
+            return
+        inv = self.inv
+        if inv is not None:
+            if inv.step is Step.WAIT_CONNECTED:
+                self._drone_step(inv)
+            return
+        if self.phase is Phase.WAITING:
+            self._step()
+
+    def _fail(self, text: str) -> None:
+        """ControllerNode._fail: the mission stops on this controller."""
+        if self.failure is None:
+            self.failure = text
+            self.world.trace(f"controller {self.id} FAILED: {text}")
+        self._notify()
+
+    # -- the drone session (ControllerNode._open_drone / _close_drone, DroneSession) --
+
+    def _open_drone(self) -> None:
+        if self.session is not None:
+            return
+        session = Session(self.world.next_id())
+        self.session = session
+        self._connect(session)
+
+    def _close_drone(self) -> None:
+        session, self.session = self.session, None
+        if session is None:
+            return
+        session.closed = True
+        link = self.drone_link
+        if session.stream == link.generation and link.usable():
+            link.to_drone(0, self.world.drone.receive_stream_closed, self.id, session.sid)
+
+    def _connect(self, session: Session) -> None:
+        """DroneSession._follow_events: one Connect, waiting for the channel if it is down."""
+        if not self.alive or session is not self.session or session.ended:
+            return
+        if session.stream is not None or session.waiting:
+            return
+        link = self.drone_link
+        if not link.usable():
+            session.waiting = True
+            link.when_usable(self._channel_ready, session)
+            return
+        session.stream = link.generation
+        link.to_drone(0, self.world.drone.receive_connect, link, session.sid, link.generation)
+
+    def _channel_ready(self, session: Session) -> None:
+        session.waiting = False
+        self._connect(session)
+
+    def _reconnect_later(self, session: Session) -> None:
+        session.stream, session.connected = None, False
+        self.world.loop.after(session.backoff, self._connect, session)
+        session.backoff = min(session.backoff * 2, SESSION_BACKOFF_MAX_S)
+
+    def on_drone_connected(self, sid: int, epoch: int) -> None:
+        """The Connected event: the session's epoch, then node.py's on_granted."""
+        session = self.session
+        if session is None or session.sid != sid:
+            return
+        session.epoch, session.connected = epoch, True
+        self._startup_answer()
+        self.on_granted(epoch)
+
+    def on_drone_notice(self, sid: int, new_master: int, after_reqnr: int, epoch: int) -> None:
+        """A HandoverNotice on the stream, which then ends."""
+        session = self.session
+        if session is None or session.sid != sid:
+            return
+        session.ended, session.stream = True, None
+        self._startup_answer()
+        self.on_stream_notice(new_master, after_reqnr, epoch)
+
+    def on_drone_refused(self, sid: int, error: StatusError) -> None:
+        """Connect refused: node.py's on_connect_refused if it names a master, else reconnect."""
+        session = self.session
+        if session is None or session.sid != sid:
+            return
+        refusal = refusal_from(error)
+        if refusal is None:
+            self._reconnect_later(session)
+            return
+        session.ended, session.stream = True, None
+        self._startup_answer()
+        self.on_connect_refused(refusal)
+
+    def _startup_answer(self) -> None:
+        if not self.answered:
+            self.answered = True
+            self.world.check_start()
+
+    def on_drone_stream_ended(self, sid: int) -> None:
+        """The drone ended the stream without a notice (superseded): reconnect."""
+        session = self.session
+        if session is not None and session.sid == sid:
+            self._reconnect_later(session)
+
+    def on_drone_link_broken(self, connection: int) -> None:
+        """The connection broke: the call in flight fails UNAVAILABLE, the stream reconnects."""
+        if not self.alive:
+            return
+        inv = self.inv
+        if inv is not None and inv.step is Step.IN_FLIGHT and inv.connection == connection:
+            error = StatusError(grpc.StatusCode.UNAVAILABLE, "connection to the drone lost")
+            self._invoke_result(inv, b"", error)
+        session = self.session
+        if session is not None and session.stream == connection:
+            self._reconnect_later(session)
+
+    # -- events (ControllerNode.on_*) ---------------------------------------------
+
+    def on_granted(self, epoch: int) -> None:
+        """ControllerNode.on_granted."""
+        try:
+            effects = self.protocol.on_granted(epoch)
+        except ProtocolError as exc:
+            self._uncaught("on_granted", exc)
+            return
+        self._apply(effects)
+
+    def _uncaught(self, where: str, exc: ProtocolError) -> None:
+        """A ProtocolError that node.py does not catch there: the controller is broken."""
+        self._fail(f"controller {self.id}: ProtocolError escapes node.py {where}: {exc}")
+
+    def on_connect_refused(self, refusal: DroneRefusal) -> None:
+        """ControllerNode.on_connect_refused."""
+        if self.protocol.state is not State.ACTIVE:
+            self._close_drone()
+            return
+        if self.protocol.connect_refusal_is_stale(refusal.epoch):
+            # Asked before the drone made us master, answered after: ask again.
+            self._close_drone()
+            self._open_drone()
+            return
+        self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+
+    def on_stream_notice(self, new_master: int, after_reqnr: int, epoch: int) -> None:
+        """ControllerNode.on_stream_notice."""
+        if self.protocol.state is State.ACTIVE:
+            self.on_handover_notice(new_master, after_reqnr, epoch)
+            return
+        self._close_drone()
+
+    def on_sync(self, from_id: int, holds_lognr: int) -> None:
+        """ControllerNode.on_sync: only the predecessor's sync frame counts."""
+        if not self.alive or from_id != self.protocol.predecessor:
+            return
+        try:
+            effects = self.protocol.on_sync(holds_lognr)
+        except ProtocolError as exc:
+            self._uncaught("on_sync", exc)
+            return
+        self._apply(effects)
+
+    def on_handover_notice(self, new_master: int, after_reqnr: int, epoch: int = 0) -> None:
+        """ControllerNode.on_handover_notice (Algorithm 1, lines 24-29)."""
+        if self.protocol.state is not State.ACTIVE:
+            return
+        try:
+            effects = self.protocol.on_handover_notice(new_master, epoch)
+        except ProtocolError:
+            return
+        self.world.trace(f"controller {self.id} hands over to {new_master}")
+        self._apply(effects)
+
+    def on_log(self, message: ring_pb2.LogMessage) -> None:
+        """ControllerNode.on_log (lines 30-47)."""
+        if not self.alive:
+            return
+        self.world.check_overtaken_handover(self, message)
+        self.history.add(message)
+        try:
+            effects = self.protocol.on_log(message)
+        except ProtocolError as exc:
+            self._fail(f"controller {self.id}: {exc}")
+            self._apply(exc.effects)
+            return
+        self.peak_log_queue = max(self.peak_log_queue, len(self.protocol.log_queue))
+        self._apply(effects)
+
+    # -- the mission program (ControllerNode.call) --------------------------------
+
+    def _schedule_call(self) -> None:
+        if self.pc < len(self.program):
+            think = self.world.rng.uniform(0.0, 0.02)
+            self.world.loop.after(think, self._begin_call, self.pc)
+
+    def _begin_call(self, pc: int) -> None:
+        if not self.alive or self.pc != pc or self.call is not None or self.program_failed:
+            return
+        self.call = self.program[pc]
+        self._step()
+
+    def _step(self) -> None:
+        """node.py call(): _settle_abandoned, then _answer's loop, up to the next wait."""
+        call = self.call
+        assert call is not None
+        self.phase = Phase.RUNNING
+        protocol = self.protocol
+        while self.abandoned:  # _settle_abandoned
+            if self.failure is not None:
+                self._stop()
+                return
+            given_up, code = self.abandoned[0]
+            if protocol.state is State.REPLAY:
+                entry = self._replay(given_up)
+                if entry is None:
+                    self._stop()
+                    return
+                self.abandoned.popleft()
+                if entry.status_code != code.value[0]:
+                    self._fail(
+                        f"controller {self.id}: the mission program gave up on request "
+                        f"{entry.reqnr} ({code.name}) while this replica waited for the log, "
+                        f"but the master's program got status {entry.status_code}"
+                    )
+            elif protocol.state is State.ACTIVE:
+                self.abandoned.popleft()
+                entry = _given_up(protocol.reqnr + 1, given_up.method, given_up.request, code)
+                effects = protocol.on_reply(entry)
+                self._seen(entry)
+                self._apply(effects)
+            else:
+                self.phase = Phase.WAITING
+                return
+        if self.failure is not None:  # _answer
+            self._stop()
+            return
+        if protocol.state is State.REPLAY:
+            replayed = self._replay(call)
+            if replayed is None:
+                self._stop()
+                return
+            self._answered(replayed.status_code, replayed.reply)
+        elif protocol.state is State.ACTIVE:
+            self._invoke(call)
+        else:
+            self.phase = Phase.WAITING
+
+    def _replay(self, call: MissionCall) -> ring_pb2.LogEntry | None:
+        """ControllerNode._replay; None when the program diverged (the mission stops)."""
+        try:
+            entry, effects = self.protocol.replay(call.method, call.request)
+        except NonDeterminismError as exc:
+            self._fail(f"controller {self.id}: {exc}")
+            return None
+        except ProtocolError as exc:
+            self._uncaught("_replay", exc)
+            return None
+        self._seen(entry)
+        self._apply(effects)
+        return entry
+
+    def _seen(self, entry: ring_pb2.LogEntry) -> None:
+        """ControllerNode._seen: the entries the protocol consumed, in order (the reply chain)."""
+        self.seen.append((entry.reqnr, entry.status_code, bytes(entry.reply)))
+
+    def _answered(self, status: int, reply: bytes) -> None:
+        """The program gets its answer (or gives up) and goes on to its next call."""
+        self.view.append((status, bytes(reply)))
+        self.call, self.inv, self.phase = None, None, Phase.RUNNING
+        self.pc += 1
+        if self.pc == len(self.program):
+            self.done_at = self.world.loop.now
+            self._apply(self.protocol.on_mission_done())  # ControllerNode.mission_done
+            self.world.program_done(self)
+        else:
+            self._schedule_call()
+
+    def _stop(self) -> None:
+        """The call raised the mission's failure: the program ends (failed)."""
+        self.program_failed = True
+        self.call, self.inv, self.phase = None, None, Phase.RUNNING
+        self._apply(self.protocol.on_mission_done())
+
+    # -- ACTIVE: the Clock and the drone (ControllerNode._invoke) -----------------
+
+    def _ours_to_log(self, reqnr: int) -> bool:
+        """ControllerNode._ours_to_log: still ACTIVE, with ``reqnr`` the next to log."""
+        return self.protocol.state is State.ACTIVE and self.protocol.reqnr + 1 == reqnr
+
+    def _invoke(self, call: MissionCall) -> None:
+        reqnr = self.protocol.reqnr + 1
+        inv = Invocation(
+            reqnr, call, request_digest(call.method, call.request), self.world.loop.now
+        )
+        self.inv, self.phase = inv, Phase.INVOKING
+        if call.method == CLOCK_NOW:
+            now = MISSION_START_UNIX + self.world.loop.now
+            self._invoked(inv, self._entry(inv, api.NowReply(unix_time_s=now).SerializeToString()))
+        elif call.method == CLOCK_SLEEP:
+            seconds = api.SleepRequest.FromString(call.request).seconds
+            self.world.loop.after(seconds, self._slept, inv)
+        else:
+            self._drone_step(inv)
+
+    def _entry(self, inv: Invocation, reply: bytes) -> ring_pb2.LogEntry:
+        return ring_pb2.LogEntry(
+            reqnr=inv.reqnr,
+            method=inv.call.method,
+            reply=reply,
+            request_digest=inv.digest,
+            request=inv.call.request,
+        )
+
+    def _slept(self, inv: Invocation) -> None:
+        if self.alive and self.inv is inv:
+            self._invoked(inv, self._entry(inv, api.SleepReply().SerializeToString()))
+
+    def _drone_step(self, inv: Invocation) -> None:
+        """One turn of ControllerNode._invoke_drone_retrying's loop, up to the send."""
+        session = self.session
+        if session is None or self.protocol.state is not State.ACTIVE:
+            self._invoked(inv, None)
+            return
+        if not session.connected:
+            inv.step = Step.WAIT_CONNECTED
+            return
+        inv.sent_epoch = session.epoch
+        self._send(inv, inv.pauses)
+
+    def _send(self, inv: Invocation, attempt: int) -> None:
+        """DroneSession.invoke: with wait_for_ready, the call waits for the channel."""
+        if not self.alive or self.inv is not inv or inv.pauses != attempt:
+            return
+        link = self.drone_link
+        if not link.usable():
+            inv.step = Step.WAIT_READY
+            link.when_usable(self._send, inv, attempt)
+            return
+        inv.step = Step.IN_FLIGHT
+        inv.call_id, inv.connection = self.world.next_id(), link.generation
+        call = inv.call
+        request = Request(
+            self.id,
+            inv.sent_epoch,
+            inv.reqnr,
+            call.method,
+            call.request,
+            inv.call_id,
+            link,
+            link.generation,
+        )
+        link.to_drone(len(call.request), self.world.drone.receive_invoke, request)
+
+    def on_invoke_reply(self, call_id: int, payload: bytes, error: StatusError | None) -> None:
+        """The drone's answer to an Invoke (a reply, a refusal, a failure)."""
+        inv = self.inv
+        if inv is None or inv.step is not Step.IN_FLIGHT or inv.call_id != call_id:
+            return  # a call the program gave up on
+        self._invoke_result(inv, payload, error)
+
+    def _invoke_result(self, inv: Invocation, payload: bytes, error: StatusError | None) -> None:
+        """ControllerNode._invoke_drone_retrying after drone.invoke returned or raised."""
+        if error is None:
+            self._invoked(inv, self._entry(inv, payload))
+            return
+        refusal = refusal_from(error)
+        if refusal is not None:
+            verdict = self.protocol.judge_refusal(inv.sent_epoch, refusal.master, refusal.epoch)
+            if verdict is Refusal.DISAGREE:
+                self._fail(
+                    f"controller {self.id}: the drone refused request {inv.reqnr} "
+                    f"({inv.call.method}): {error.message}"
+                )
+            elif verdict is Refusal.HANDED_OVER:
+                self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+            self._invoked(inv, None)
+            return
+        waited = self.world.loop.now - inv.started
+        if error.code is grpc.StatusCode.UNAVAILABLE and waited < DRONE_RETRY_LIMIT_S:
+            # Retry.pause: nothing was executed, the same reqnr goes again.
+            delay = min(RETRY_MAX_S, RETRY_FIRST_S * 2**inv.pauses)
+            inv.pauses += 1
+            inv.step = Step.PAUSE
+            delay = min(delay, max(0.0, DRONE_RETRY_LIMIT_S - waited))
+            self.world.loop.after(delay, self._paused, inv, inv.pauses)
+            return
+        entry = self._entry(inv, b"")
+        entry.status_code = error.code.value[0]
+        entry.status_message = error.message
+        self._invoked(inv, entry)
+
+    def _paused(self, inv: Invocation, pauses: int) -> None:
+        if self.alive and self.inv is inv and inv.pauses == pauses and inv.step is Step.PAUSE:
+            self._drone_step(inv)
+
+    def _invoked(self, inv: Invocation, entry: ring_pb2.LogEntry | None) -> None:
+        """The end of ControllerNode._invoke: log the entry if it is still ours to log."""
+        self.inv = None
+        if entry is None:
+            self._step()  # _answer's loop: the state changed
+            return
+        if not self._ours_to_log(inv.reqnr):
+            # Footnote 2: a handover overtook the reply; the new master re-sends it.
+            self.world.trace(f"controller {self.id} discards the reply to {inv.reqnr}")
+            self._step()
+            return
+        effects = self.protocol.on_reply(entry)
+        self._seen(entry)
+        self._apply(effects)
+        self._answered(entry.status_code, entry.reply)
+
+    # -- the program gives up on a call (a deadline, a cancellation) --------------
+
+    def give_up(self, code: grpc.StatusCode, *, even_if_not_ours: bool = False) -> bool:
+        """The program's call is cancelled; node.py's except CancelledError branches.
+
+        Inside _invoke, the master logs the give-up as the call's outcome if
+        the call is still its to log (``_ours_to_log``); node.py does nothing
+        otherwise (known finding F5), so the fault injector leaves such calls
+        alone unless F5 is allowed (``even_if_not_ours``). A call held while
+        PASSIVE is queued as abandoned (``_abandoned``). False if nothing was
+        cancelled.
+        """
+        call, inv = self.call, self.inv
+        if call is None or not self.alive:
+            return False
+        if inv is not None:
+            if not even_if_not_ours and not self._ours_to_log(inv.reqnr):
+                return False
+            link = self.drone_link
+            if inv.step is Step.IN_FLIGHT and inv.connection == link.generation and link.usable():
+                link.to_drone(0, self.world.drone.receive_cancel, inv.call_id)
+            self.inv = None
+            if self._ours_to_log(inv.reqnr):
+                entry = _given_up(inv.reqnr, call.method, call.request, code)
+                effects = self.protocol.on_reply(entry)
+                self._seen(entry)
+                self.world.given_up[inv.reqnr] = code
+                self._apply(effects)
+            self.world.trace(f"controller {self.id} gives up on request {inv.reqnr} ({code.name})")
+            self._answered(code.value[0], b"")
+            return True
+        if self.phase is Phase.WAITING:
+            self.abandoned.append((call, code))
+            self.world.trace(f"controller {self.id} gives up on call {call.index} while waiting")
+            self._answered(code.value[0], b"")
+            return True
+        return False
+
+    # -- for the fault injector and the oracles -----------------------------------
+
+    @property
+    def done(self) -> bool:
+        """The program answered every call."""
+        return self.pc == len(self.program)
+
+    @property
+    def master_like(self) -> bool:
+        """Master in any sense: issue 10 (failover) is what killing one needs."""
+        p = self.protocol
+        if p.master or p.state is State.ACTIVE or self.world.drone.seq.master == self.id:
+            return True
+        if any(message.handover for message in p.log_queue.values()):
+            return True  # made master by a message it has not handled yet
+        # Its own messages or a handover message not yet taken by their receiver.
+        return any(
+            message.origin == self.id or message.handover
+            for link in self.links.values()
+            for message in link.unacked.values()
+        )
+
+    def waiting_call_reqnr(self) -> int | None:
+        """The reqnr of the call held while PASSIVE, if the program is held."""
+        if self.call is not None and self.inv is None and self.phase is Phase.WAITING:
+            return self.call.reqnr
+        return None

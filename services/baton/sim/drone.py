@@ -1,0 +1,503 @@
+"""The simulated drone: the real ``Sequencer`` over a simulated vehicle and camera.
+
+``SimDrone`` mirrors ``drone/service.py``'s ``DroneService``: one line of
+execution (its lock: requests and Handover calls are taken in arrival
+order, one at a time), every decision asked of the pure ``Sequencer``
+(``admit``, ``served``, ``switch``, ``may_connect``), the request's intent
+kept while it executes, Connect streams that carry the Connected grant
+and the handover notice, and a restart that resumes from the durable
+state exactly as ``DroneService._restore`` does (the reply cache, the
+counters, the audit and the script, not the pending notices; a command
+cut off by the restart is booked UNKNOWN and never executed again, a read
+cut off runs again when re-sent).
+
+``SimVehicle`` and ``SimCamera`` are the ground truth: they record every
+read, flight command and picture they act on, by request, below every
+piece of baton's bookkeeping, as ``baton.effects`` does for the sim vehicle
+and the camera. The oracles count there, not in the audit.
+
+Simplifications: a request takes a drawn time to execute, and a command
+reaches the vehicle at a drawn point inside it (a drone restart before
+that point means the vehicle never saw it); the vehicle's own
+retransmission handling (``sim_vehicle/retransmissions.py``) is not
+modelled; GetStatus is not modelled.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import grpc
+
+from baton.digest import request_digest
+from baton.drone.dedupe import CachedReply
+from baton.drone.dispatch import drone_api_routes
+from baton.drone.sequencer import ScriptedHandover, Sequencer
+from baton.drone.store import Intent
+from baton.rpc.errors import StatusError
+from baton.sim.mission import UNPARSABLE
+from baton.v1 import drone_pb2
+
+if TYPE_CHECKING:
+    from baton.sim.network import DroneLink
+    from baton.sim.world import World
+
+ROUTES = drone_api_routes()
+
+
+@dataclass(frozen=True)
+class Acted:
+    """One thing the vehicle or the camera did: when, for which request, and what it answered."""
+
+    time: float
+    tag: bytes  # the request bytes (unique per mission call for commands and pictures)
+    reqnr: int
+    reply: bytes
+
+
+class SimVehicle:
+    """The autopilot: answers reads, acts on flight commands, and counts both.
+
+    ``connected`` is False during an outage: the drone then refuses every
+    Mobility request UNAVAILABLE without reaching the vehicle.
+    """
+
+    def __init__(self) -> None:
+        self.connected = True
+        self.commands: list[Acted] = []
+        self.reads: dict[int, list[Acted]] = {}
+        self._serial = 0
+
+    def act(self, now: float, reqnr: int, method: str, request: bytes) -> bytes:
+        """A flight command reaches the vehicle; the vehicle acts on it."""
+        self._serial += 1
+        reply = b"%s %s: done #%d" % (method.encode(), request, self._serial)
+        self.commands.append(Acted(now, request, reqnr, reply))
+        return reply
+
+    def read(self, now: float, reqnr: int, method: str) -> bytes:
+        """Telemetry read for request ``reqnr``."""
+        self._serial += 1
+        reply = b"%s @%.6f #%d" % (method.encode(), now, self._serial)
+        self.reads.setdefault(reqnr, []).append(Acted(now, b"", reqnr, reply))
+        return reply
+
+
+class SimCamera:
+    """The camera: takes a picture (a large reply) per request it is given, and counts it."""
+
+    def __init__(self) -> None:
+        self.pictures: list[Acted] = []
+
+    def take(self, now: float, reqnr: int, request: bytes, size: int) -> bytes:
+        """One picture of ``size`` bytes."""
+        head = b"picture for %s #%d;" % (request, len(self.pictures) + 1)
+        reply = head + bytes(max(0, size - len(head)))
+        self.pictures.append(Acted(now, request, reqnr, reply))
+        return reply
+
+
+@dataclass(eq=False)
+class Request:
+    """An Invoke as it reaches the drone; ``link``/``connection`` say where its reply goes."""
+
+    controller_id: int
+    epoch: int
+    reqnr: int
+    method: str
+    payload: bytes
+    call_id: int
+    link: DroneLink | None
+    connection: int
+    received_at: float = 0.0
+
+
+@dataclass(frozen=True)
+class HandoverOrder:
+    """A Handover call (an operator's or a test's): it takes the lock like a request."""
+
+    new_master: int
+
+
+@dataclass(eq=False)
+class Execution:
+    """The request the drone is executing now."""
+
+    request: Request
+    digest: bytes
+    is_read: bool
+    reply: bytes = b""
+    error: StatusError | None = None
+
+
+@dataclass(eq=False)
+class Stream:
+    """One open Connect stream (``master.MasterStream``)."""
+
+    controller_id: int
+    session: int
+    link: DroneLink
+    connection: int
+
+
+@dataclass
+class DroneStats:
+    """What the oracles and the report read besides the ground truth."""
+
+    epoch_owner: dict[int, int] = field(default_factory=dict)
+    epoch_conflicts: list[str] = field(default_factory=list)
+    cut_off: list[Intent] = field(default_factory=list)
+    restarts: int = 0
+    peak_cache: int = 0
+
+
+class SimDrone:
+    """The drone service's decisions over simulated time (``drone/service.py``)."""
+
+    def __init__(
+        self,
+        world: World,
+        controllers: list[int],
+        initial_master: int,
+        script: dict[int, ScriptedHandover],
+        cache_window: int,
+        p_ack_lost: float,
+    ) -> None:
+        self.world = world
+        self.controllers = list(controllers)
+        self.initial_master = initial_master
+        self.script = dict(script)
+        self.cache_window = cache_window
+        self.p_ack_lost = p_ack_lost
+        self.seq = Sequencer(controllers, initial_master, script, cache_window)
+        self.vehicle = SimVehicle()
+        self.camera = SimCamera()
+        self.up = True
+        # Durable (store.py): the request being executed, as its intent.
+        self.intent: Intent | None = None
+        # Volatile: gone at a restart.
+        self.queue: deque[Request | HandoverOrder] = deque()
+        self.busy: Execution | None = None
+        self.streams: dict[int, Stream] = {}
+        self.stats = DroneStats()
+
+    # -- requests -------------------------------------------------------------------
+
+    def receive_invoke(self, request: Request) -> None:
+        """An Invoke arrives; it waits for the lock (FIFO, as asyncio.Lock)."""
+        request.received_at = self.world.loop.now
+        self.queue.append(request)
+        self._next()
+
+    def handover_rpc(self, new_master: int) -> None:
+        """The Handover RPC: takes the lock, then switches (refused if already master)."""
+        if not self.up:
+            return  # the operator's call fails UNAVAILABLE
+        self.queue.append(HandoverOrder(new_master))
+        self._next()
+
+    def _next(self) -> None:
+        while self.up and self.busy is None and self.queue:
+            item = self.queue.popleft()
+            if isinstance(item, HandoverOrder):
+                self._handover(item)
+            else:
+                self._start(item)
+
+    def _start(self, request: Request) -> None:
+        """DroneService._invoke_to_the_end up to the execution."""
+        seq, now = self.seq, self.world.loop.now
+        cid, reqnr, method = request.controller_id, request.reqnr, request.method
+        digest = request_digest(method, request.payload)
+        try:
+            cached = seq.admit(cid, request.epoch, reqnr, method, digest)
+        except StatusError as err:
+            seq.rejected += 1  # DroneService.Invoke
+            self._reply(request, b"", err)
+            return
+        seq.note_request(cid, request.received_at)
+        self._note_epoch(cid, request.epoch, reqnr)
+        if cached is not None:
+            self._answer_duplicate(request, cached)
+            return
+        self.intent = Intent(reqnr, method, digest, cid, request.received_at)
+        route = ROUTES[method]
+        # DroneService._execute: the payload must parse, Mobility needs the vehicle.
+        if request.payload.startswith(UNPARSABLE):
+            bad = StatusError(
+                grpc.StatusCode.INVALID_ARGUMENT, f"payload of {method} does not parse"
+            )
+            self._failed(request, digest, bad)
+            return
+        if route.service == "Mobility" and not self.vehicle.connected:
+            out = StatusError(
+                grpc.StatusCode.UNAVAILABLE, f"{method}: the vehicle is not connected"
+            )
+            self._failed(request, digest, out)
+            return
+        rng = self.world.rng
+        if route.is_read:
+            duration = rng.uniform(0.002, 0.02)
+        elif route.service == "Camera":
+            duration = rng.uniform(0.05, 0.3)
+        else:
+            duration = rng.uniform(0.02, 0.3)
+        execution = Execution(request, digest, route.is_read)
+        self.busy = execution
+        loop = self.world.loop
+        loop.at(now + duration * rng.uniform(0.1, 0.9), self._act, execution)
+        loop.at(now + duration, self._complete, execution)
+
+    def _books(self, error: StatusError) -> bool:
+        """Whether a failure after admission is the request's outcome (_invoke_to_the_end).
+
+        UNAVAILABLE means nothing reached the vehicle: the reqnr stays unused.
+        """
+        return error.code is not grpc.StatusCode.UNAVAILABLE
+
+    def _failed(self, request: Request, digest: bytes, error: StatusError) -> None:
+        if self._books(error):
+            cid, reqnr, method = request.controller_id, request.reqnr, request.method
+            self._served(cid, reqnr, method, digest, b"", error, request.received_at)
+        else:
+            self.intent = None  # store.abandon()
+        self._reply(request, b"", error)
+
+    def _act(self, execution: Execution) -> None:
+        """The command reaches the vehicle (or the camera, or a read is answered)."""
+        if execution is not self.busy:
+            return  # the drone restarted first: the vehicle never saw it
+        request, now = execution.request, self.world.loop.now
+        if execution.is_read:
+            execution.reply = self.vehicle.read(now, request.reqnr, request.method)
+        elif request.method.startswith("/baton.v1.Camera/"):
+            size = self.world.rng.randint(300, 3000)
+            execution.reply = self.camera.take(now, request.reqnr, request.payload, size)
+        else:
+            execution.reply = self.vehicle.act(now, request.reqnr, request.method, request.payload)
+            if self.p_ack_lost and self.world.rng.random() < self.p_ack_lost:
+                execution.error = StatusError(
+                    grpc.StatusCode.DEADLINE_EXCEEDED,
+                    f"{request.method}: no acknowledgement from the vehicle; it may have acted",
+                )
+
+    def _complete(self, execution: Execution) -> None:
+        if execution is not self.busy:
+            return
+        self.busy = None
+        request = execution.request
+        cid, reqnr, method = request.controller_id, request.reqnr, request.method
+        received = request.received_at
+        if execution.error is not None:
+            self._served(cid, reqnr, method, execution.digest, b"", execution.error, received)
+            self._reply(request, b"", execution.error)
+        else:
+            self._served(cid, reqnr, method, execution.digest, execution.reply, None, received)
+            self._reply(request, execution.reply, None)
+        self._next()
+
+    def _served(
+        self,
+        cid: int,
+        reqnr: int,
+        method: str,
+        digest: bytes,
+        reply: bytes,
+        error: StatusError | None,
+        received_at: float,
+    ) -> None:
+        """DroneService._served: books the outcome (the store's transaction), fires the script."""
+        now = self.world.loop.now
+        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, now, error)
+        self.intent = None
+        self.stats.peak_cache = max(self.stats.peak_cache, len(self.seq.cache))
+        if served.handover is not None:
+            self._switched(served.handover)
+
+    def _answer_duplicate(self, request: Request, cached: CachedReply) -> None:
+        if cached.error is not None:
+            error = StatusError(
+                cached.error.code,
+                cached.error.message,
+                metadata=(*cached.error.metadata, ("baton-duplicate", "true")),
+            )
+            self._reply(request, b"", error)
+        else:
+            self._reply(request, cached.reply, None)
+
+    def _reply(self, request: Request, payload: bytes, error: StatusError | None) -> None:
+        link = request.link
+        if link is None:
+            return  # nobody waits for it (a garbled request)
+        link.to_controller(
+            request.connection,
+            len(payload),
+            link.owner.on_invoke_reply,
+            request.call_id,
+            payload,
+            error,
+            stream=False,
+        )
+
+    def _note_epoch(self, cid: int, epoch: int, reqnr: int) -> None:
+        """Oracle 4's record: which controller the drone accepted requests from in each epoch."""
+        owner = self.stats.epoch_owner.setdefault(epoch, cid)
+        if owner != cid:
+            self.stats.epoch_conflicts.append(
+                f"epoch {epoch}: requests of controller {owner} and of controller {cid} "
+                f"(reqnr {reqnr}) accepted"
+            )
+
+    # -- callers that go away ----------------------------------------------------
+
+    def receive_cancel(self, call_id: int) -> None:
+        """The caller cancelled its Invoke (a deadline, a program that gave up)."""
+        for request in self._requests():
+            if request.call_id == call_id:
+                self._caller_gone(request)
+                return
+
+    def _requests(self) -> list[Request]:
+        requests = [item for item in self.queue if isinstance(item, Request)]
+        if self.busy is not None:
+            requests.append(self.busy.request)
+        return requests
+
+    def _caller_gone(self, request: Request) -> None:
+        """Nothing: DroneService.invoke runs the request in a task the caller cannot cancel.
+
+        (Issue 9, defect 1: a received request runs to its end and is booked.)
+        """
+
+    # -- masters and streams -----------------------------------------------------
+
+    def _handover(self, order: HandoverOrder) -> None:
+        try:
+            record = self.seq.switch(order.new_master, "rpc", self.world.loop.now)
+        except StatusError:
+            return
+        self._switched(record)
+
+    def _switched(self, record: drone_pb2.HandoverRecord) -> None:
+        """MasterStreams.wake: the old master's Connect handler resumes on a later loop turn."""
+        self.world.trace(
+            f"drone: master {record.old_master} -> {record.new_master} epoch {record.epoch} "
+            f"after reqnr {record.after_reqnr} ({record.trigger})"
+        )
+        self.world.loop.after(0.0, self._wake, record.old_master)
+
+    def _wake(self, cid: int) -> None:
+        """The Connect handler's loop: deliver the notice owed, then end the stream."""
+        stream = self.streams.get(cid)
+        if stream is None or not self.up:
+            return
+        notice = self.seq.pending.get(cid)
+        if notice is None:
+            return
+        stream.link.to_controller(
+            stream.connection,
+            0,
+            stream.link.owner.on_drone_notice,
+            stream.session,
+            notice.new_master,
+            notice.after_reqnr,
+            notice.epoch,
+            stream=True,
+        )
+        self.seq.delivered(cid, notice)
+        del self.streams[cid]
+
+    def receive_connect(self, link: DroneLink, session: int, connection: int) -> None:
+        """DroneService.Connect: refused, or attached; Connected for the master; a notice owed."""
+        cid = link.owner.id
+        try:
+            self.seq.may_connect(cid)
+        except StatusError as err:
+            link.to_controller(
+                connection, 0, link.owner.on_drone_refused, session, err, stream=True
+            )
+            return
+        previous = self.streams.get(cid)
+        if previous is not None:  # superseded: that stream ends
+            previous.link.to_controller(
+                previous.connection,
+                0,
+                previous.link.owner.on_drone_stream_ended,
+                previous.session,
+                stream=True,
+            )
+        self.streams[cid] = Stream(cid, session, link, connection)
+        if cid == self.seq.master:
+            link.to_controller(
+                connection, 0, link.owner.on_drone_connected, session, self.seq.epoch, stream=True
+            )
+        self._wake(cid)
+
+    def receive_stream_closed(self, cid: int, session: int) -> None:
+        """The controller closed its session's Connect stream."""
+        stream = self.streams.get(cid)
+        if stream is not None and stream.session == session:
+            del self.streams[cid]
+
+    def link_broke(self, cid: int, connection: int) -> None:
+        """A controller's connection broke: its stream ends, its callers are gone."""
+        stream = self.streams.get(cid)
+        if stream is not None and stream.connection == connection:
+            del self.streams[cid]
+        for request in self._requests():
+            if request.controller_id == cid and request.connection == connection:
+                self._caller_gone(request)
+
+    # -- restarts ------------------------------------------------------------------
+
+    def crash(self) -> None:
+        """The drone service dies: calls in flight and streams are lost, the store stays."""
+        self.world.trace(f"drone crashes (executing {self.intent})")
+        self.up = False
+        self.queue.clear()
+        self.busy = None
+        self.streams.clear()
+        for controller in self.world.live_controllers():
+            controller.drone_link.break_("drone restart")
+
+    def restart(self) -> None:
+        """The drone service starts again from its durable state (DroneService._restore)."""
+        self.up = True
+        self.stats.restarts += 1
+        self.seq = self._restored()
+        cut, self.intent = self.intent, None
+        self.world.trace(f"drone restarts (cut off: {cut})")
+        if cut is None:
+            return
+        self.stats.cut_off.append(cut)
+        route = ROUTES.get(cut.method)
+        if route is not None and route.is_read:
+            return  # a read changed nothing: the re-sent request executes it again
+        error = StatusError(
+            grpc.StatusCode.UNKNOWN,
+            f"{cut.method} (request {cut.reqnr}) was being executed when the drone service "
+            "restarted: the vehicle may have acted on it, so it is not executed again",
+        )
+        self._served(
+            cut.controller_id, cut.reqnr, cut.method, cut.digest, b"", error, cut.received_at
+        )
+
+    def _restored(self) -> Sequencer:
+        """A new Sequencer holding what the store keeps (DroneService._restore)."""
+        old = self.seq
+        seq = Sequencer(self.controllers, self.initial_master, self.script, self.cache_window)
+        seq.master = old.master
+        seq.handovers[:] = old.handovers
+        seq.last_reqnr, seq.executed = old.last_reqnr, old.executed
+        seq.duplicates, seq.rejected = old.duplicates, old.rejected
+        for reqnr in old.cache.reqnrs:
+            reply = old.cache.get(reqnr)
+            assert reply is not None
+            seq.cache.store(reply.reqnr, reply.method, reply.digest, reply.reply, reply.error)
+        seq.audit.extend(old.audit)
+        seq.fired_script[:] = old.fired_script
+        for reqnr in old.fired_script:
+            seq.script.pop(reqnr, None)
+        return seq

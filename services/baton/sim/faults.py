@@ -1,0 +1,360 @@
+"""The faults of one seed: what breaks, when, and for how long.
+
+Everything is drawn from the seed when the world is built, except whom a
+kill or a give-up hits, which is drawn when it happens (from the same
+random stream, so a seed still replays exactly). Every fault starts and
+ends inside the fault window ``[0, fault_end]``; after it the network
+delivers everything, every part is up, and the oracles expect the
+mission to finish (liveness).
+
+The default mix (each seed draws its own counts and odds):
+
+- messages: per-message loss (the stream resets and the ring re-sends
+  after the reconnect's hello and sync), duplicates, reordering on some
+  directions, slow and asymmetric directions (``network.Network``);
+- link drops (a ring stream or a drone connection) and partitions (a group
+  of nodes, the drone possibly among them, cut from the rest);
+- kills of a controller that is not master in any sense, restarted with
+  nothing after a while (``killable``); killing the master is issue 10
+  (failover) and only in the mix with ``kill_master`` (expect stalls);
+- drone service restarts (durable state kept, calls in flight lost);
+- vehicle outages (Mobility calls UNAVAILABLE, re-sent by the master);
+- commands whose acknowledgement the vehicle never sends (executed,
+  DEADLINE_EXCEEDED);
+- the mission program giving up on a call: the master's call while it is
+  still the master's to log, or a replica's held call whose give-up the
+  master logged (anything else makes the mission non-deterministic by
+  design: docs/design.md, "Exactly once when callers give up");
+- Handover calls at random moments (``ready_for_handover``), some there
+  and back, one at the end of the mission, besides the drone's scripted
+  handovers (``World``);
+
+Where a known finding (findings.py) would strike, the default mix waits
+or leaves the fault out; ``SimOptions.allow`` lets it in.
+- one garbled Invoke in the master's name and epoch with a request number
+  far ahead (what MAX_REQNR_GAP is for).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import grpc
+
+from baton.controller.protocol import State
+from baton.sim.drone import HandoverOrder, Request
+from baton.sim.mission import GET_POSITION
+from baton.sim.network import DRONE
+
+if TYPE_CHECKING:
+    from baton.sim.controller import SimController
+    from baton.sim.world import World
+
+GIVE_UP_CODES = (grpc.StatusCode.CANCELLED, grpc.StatusCode.DEADLINE_EXCEEDED)
+
+
+@dataclass
+class FaultPlan:
+    """How many faults of each kind this seed has (for the report)."""
+
+    fault_end: float
+    drops: int = 0
+    partitions: int = 0
+    kills: int = 0
+    drone_restarts: int = 0
+    outages: int = 0
+    give_ups: int = 0
+    handovers: int = 0
+    back_to_back: int = 0
+    end_handover: bool = False
+    garbled: bool = False
+
+    def describe(self) -> str:
+        """One line: the counts that are not zero."""
+        parts = [f"window {self.fault_end:.1f}s"]
+        for name in (
+            "drops",
+            "partitions",
+            "kills",
+            "drone_restarts",
+            "outages",
+            "give_ups",
+            "handovers",
+            "back_to_back",
+        ):
+            count = getattr(self, name)
+            if count:
+                parts.append(f"{name} {count}")
+        if self.end_handover:
+            parts.append("handover at the end")
+        if self.garbled:
+            parts.append("garbled request")
+        return ", ".join(parts)
+
+
+def plan_faults(world: World) -> FaultPlan:
+    """Draws this seed's faults and schedules them on the world's loop."""
+    rng, loop = world.rng, world.loop
+    end = rng.uniform(1.0, 6.0)
+    plan = FaultPlan(end)
+
+    def when() -> float:
+        return rng.uniform(0.0, end)
+
+    def until(start: float, longest: float) -> float:
+        return min(end, start + rng.uniform(0.02, longest))
+
+    plan.drops = rng.choice((0, 0, 1, 2, 4, 8))
+    for _ in range(plan.drops):
+        loop.at(when(), drop_link, world)
+    plan.partitions = rng.choice((0, 0, 1, 2))
+    nodes = [*world.ring, DRONE]
+    for _ in range(plan.partitions):
+        group = rng.sample(nodes, rng.randint(1, max(1, len(nodes) // 2)))
+        start = when()
+        loop.at(start, partition, world, group, until(start, 2.0))
+    plan.kills = rng.choice((0, 0, 1, 1, 2, 3))
+    for _ in range(plan.kills):
+        start = when()
+        loop.at(start, kill, world, until(start, 2.0))
+    plan.drone_restarts = rng.choice((0, 0, 0, 1, 2))
+    for _ in range(plan.drone_restarts):
+        start = when()
+        loop.at(start, drone_crash, world, until(start, 1.0))
+    plan.outages = rng.choice((0, 0, 1, 2))
+    for _ in range(plan.outages):
+        start = when()
+        loop.at(start, vehicle_outage, world, until(start, 1.5))
+    plan.give_ups = rng.choice((0, 0, 1, 3, 6))
+    for _ in range(plan.give_ups):
+        loop.at(when(), give_up, world, rng.choice(GIVE_UP_CODES))
+    plan.handovers = rng.choice((0, 1, 2, 4, 6))
+    ids = world.ring
+    for _ in range(plan.handovers):
+        start, target = rng.uniform(0.0, end * 1.5), rng.choice(ids)
+        if rng.random() < 0.3:  # back to back: away and straight back
+            plan.back_to_back += 1
+            loop.at(start, there_and_back, world, target, rng.uniform(0.0, 0.005))
+        else:
+            loop.at(start, handover, world, target)
+    plan.end_handover = rng.random() < 0.3
+    plan.garbled = rng.random() < 0.1
+    if plan.garbled:
+        loop.at(when(), garbled_request, world)
+    loop.at(end, faults_stop, world)
+    return plan
+
+
+def faults_stop(world: World) -> None:
+    """The end of the fault window: the network stops losing and duplicating."""
+    world.faulty = False
+    world.trace("faults stop")
+
+
+def drop_link(world: World) -> None:
+    """One connection drops: a ring stream or a controller's drone connection."""
+    rng, live = world.rng, world.live_controllers()
+    if not live:
+        return
+    controller = rng.choice(live)
+    links = [link for _, link in sorted(controller.links.items()) if not link.protected()]
+    if links and rng.random() < 0.6:
+        rng.choice(links).break_("dropped")
+    else:
+        controller.drone_link.break_("dropped")
+
+
+def partition(world: World, group: list[int], heal_at: float) -> None:
+    """Cuts ``group`` from every other node until ``heal_at``."""
+    others = [n for n in (*world.ring, DRONE) if n not in group]
+    pairs = [(a, b) for a in group for b in others]
+    for a, b in pairs:
+        for x, y in ((a, b), (b, a)):
+            if x != DRONE and y != DRONE:
+                link = world.controller(x).links.get(y)
+                if link is not None and link.protected():
+                    return  # RingLink.protected: not in the default mix
+    world.trace(f"partition {sorted(group)} | {sorted(others)} until {heal_at:.3f}")
+    for a, b in pairs:
+        world.net.cut(a, b)
+    world.loop.at(heal_at, heal, world, pairs)
+
+
+def heal(world: World, pairs: list[tuple[int, int]]) -> None:
+    """Ends a partition."""
+    world.trace(f"partition heals {pairs}")
+    for a, b in pairs:
+        world.net.heal(a, b)
+
+
+def killable(world: World, victim: SimController) -> bool:
+    """Whether the mix may kill ``victim`` now.
+
+    Never a master in any sense (issue 10, failover, is not built; unless
+    ``kill_master``). Then, unless the finding is allowed: one controller
+    down at a time, and the victim's predecessor and successor each hold
+    every message whose origin is the victim or themselves, as a restart
+    needs (F3); no handover message to it waits for its acknowledgement
+    (F9); no scripted or queued Handover names it (F4); its predecessor's
+    stream to it is not protected (F7).
+    """
+    options = world.options
+    if options.kill_master:
+        return True
+    if victim.master_like:
+        return False
+    allow = options.allow
+    predecessor = world.controller(victim.protocol.predecessor)
+    successor = world.controller(victim.protocol.successor)
+    if "F3" not in allow:
+        if any(not c.alive for c in world.controllers.values()):
+            return False
+        by_origin = world.by_origin
+        mine = by_origin.get(victim.id, set())
+        for neighbour in (predecessor, successor):
+            needed = mine | by_origin.get(neighbour.id, set())
+            if any(lognr not in neighbour.history for lognr in needed):
+                return False
+    if "F9" not in allow and _handover_unacked_to(world, victim):
+        return False
+    if "F4" not in allow:
+        drone = world.drone
+        named = {line.new_master for line in drone.seq.script.values()}
+        named |= {item.new_master for item in drone.queue if isinstance(item, HandoverOrder)}
+        if victim.id in named:
+            return False
+    link = predecessor.links.get(victim.id)
+    return link is None or not link.protected()
+
+
+def _handover_unacked_to(world: World, victim: SimController) -> bool:
+    for other in world.controllers.values():
+        link = other.links.get(victim.id)
+        if link is not None and any(m.handover for m in link.unacked.values()):
+            return True
+    return False
+
+
+def kill(world: World, restart_at: float, tries: int = 0) -> None:
+    """Kills a controller the mix may kill (``killable``); it restarts with nothing later.
+
+    Tried again every 20 ms for up to a second while nobody may be killed.
+    """
+    candidates = [c for c in world.live_controllers() if killable(world, c)]
+    if not candidates:
+        if tries < 50:
+            world.loop.after(0.02, kill, world, max(restart_at, world.loop.now + 0.04), tries + 1)
+        return
+    if "F9" in world.options.allow:  # prefer F9's victims: a handover to them not yet acked
+        owed = [c for c in candidates if _handover_unacked_to(world, c)]
+        candidates = owed or candidates
+    victim = world.rng.choice(candidates)
+    victim.kill()
+    world.loop.at(max(restart_at, world.loop.now + 0.01), world.restart_controller, victim.id)
+
+
+def drone_crash(world: World, restart_at: float) -> None:
+    """The drone service dies and comes back from its durable state."""
+    if world.drone.up:
+        world.drone.crash()
+        world.loop.at(restart_at, world.drone.restart)
+
+
+def vehicle_outage(world: World, back_at: float) -> None:
+    """The vehicle link is out until ``back_at``."""
+    world.outages += 1
+    world.drone.vehicle.connected = False
+    world.loop.at(back_at, vehicle_back, world)
+
+
+def vehicle_back(world: World) -> None:
+    """One outage ends (they may overlap)."""
+    world.outages -= 1
+    world.drone.vehicle.connected = world.outages == 0
+
+
+def give_up(world: World, code: grpc.StatusCode) -> None:
+    """A mission program gives up on its current call, where that keeps the mission deterministic.
+
+    The master's call while it is still the master's to log; or a replica's
+    held call whose entry the master logged as given up with the same code,
+    but not the program's last (F8). Allowing F5 adds calls whose reply a
+    handover overtook.
+    """
+    allow = world.options.allow
+    candidates: list[tuple[int, grpc.StatusCode]] = []
+    for c in world.live_controllers():
+        inv = c.inv
+        if inv is not None and ("F5" in allow or c._ours_to_log(inv.reqnr)):
+            candidates.append((c.id, code))
+        reqnr = c.waiting_call_reqnr()
+        if reqnr == len(world.program) and "F8" not in allow:
+            continue
+        if reqnr is not None and reqnr in world.given_up:
+            candidates.append((c.id, world.given_up[reqnr]))
+    if candidates:
+        cid, chosen = world.rng.choice(candidates)
+        world.controller(cid).give_up(chosen, even_if_not_ours="F5" in allow)
+
+
+def ready_for_handover(world: World, new_master: int) -> bool:
+    """Whether the mix may hand over to ``new_master`` now.
+
+    Unless the finding is allowed: the drone's master is ACTIVE with its
+    Connect stream up (so it hands its log over) and no other Handover is
+    queued (F1); the target is alive, not the master, and holds no drone
+    session (its start-up question was answered, and it is not catching up
+    as a granted master) (F4); the programs have started (F1).
+    """
+    allow = world.options.allow
+    drone = world.drone
+    if not drone.up:
+        return False
+    if "F1" not in allow and not world.programs_started:
+        return False
+    if "F1" not in allow:
+        if any(isinstance(item, HandoverOrder) for item in drone.queue):
+            return False
+        master = world.controller(drone.seq.master)
+        session = master.session
+        if not master.alive or master.protocol.state is not State.ACTIVE:
+            return False
+        if session is None or not session.connected:
+            return False
+    if "F4" not in allow:
+        target = world.controller(new_master)
+        if not target.alive or not target.answered or target.session is not None:
+            return False
+    return new_master != drone.seq.master
+
+
+def handover(world: World, new_master: int, tries: int = 0) -> None:
+    """A Handover call, when the mix allows it (tried again every 50 ms for up to 2 s)."""
+    if ready_for_handover(world, new_master):
+        world.drone.handover_rpc(new_master)
+    elif tries < 40:
+        world.loop.after(0.05, handover, world, new_master, tries + 1)
+
+
+def there_and_back(world: World, new_master: int, delay: float) -> None:
+    """Two Handover calls back to back: to ``new_master``, and ``delay`` later back again.
+
+    The second waits until the mix allows it, unless F2 is allowed: then
+    it goes at once, before the old master may have heard of the first.
+    """
+    old = world.drone.seq.master
+    handover(world, new_master)
+    if "F2" in world.options.allow:
+        world.loop.after(delay, world.drone.handover_rpc, old)
+    else:
+        world.loop.after(delay, handover, world, old)
+
+
+def garbled_request(world: World) -> None:
+    """An Invoke in the master's name and epoch, its reqnr far beyond any the master will use."""
+    seq = world.drone.seq
+    if world.drone.up:
+        world.drone.receive_invoke(
+            Request(seq.master, seq.epoch, 2**63, GET_POSITION, b"", -1, None, -1)
+        )

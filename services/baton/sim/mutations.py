@@ -1,0 +1,175 @@
+"""Known defects of issue 9, put back one at a time by patching the running code.
+
+Each mutation replaces a function (or a constant) of the code the
+simulation runs for the duration of a ``with mutated(name):`` block and
+restores it afterwards; no file is edited. Where the defect lived in
+``drone/service.py``, which the simulation mirrors rather than runs, the
+patch goes to the mirror (``SimDrone``), and the docstring says so.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+from baton.controller.protocol import ConnectDrone, ControllerProtocol, Effect, Refusal, State
+from baton.drone import sequencer
+from baton.drone.sequencer import Sequencer
+from baton.rpc.errors import StatusError
+from baton.sim.drone import Request, SimDrone
+from baton.sim.network import RingLink
+from baton.v1 import ring_pb2
+
+MUTATIONS: dict[str, Mutation] = {}
+
+
+@dataclass(frozen=True)
+class Mutation:
+    """A defect: what it was, and the patches that put it back."""
+
+    name: str
+    defect: str
+    patches: Callable[[], list[tuple[Any, str, Any]]]
+
+
+@contextlib.contextmanager
+def mutated(name: str | None) -> Iterator[None]:
+    """Applies mutation ``name`` (None: nothing) for the block."""
+    if name is None:
+        yield
+        return
+    saved = []
+    for target, attribute, value in MUTATIONS[name].patches():
+        saved.append((target, attribute, getattr(target, attribute)))
+        setattr(target, attribute, value)
+    try:
+        yield
+    finally:
+        for target, attribute, value in reversed(saved):
+            setattr(target, attribute, value)
+
+
+def _line44() -> list[tuple[Any, str, Any]]:
+    """Algorithm 1, line 44: a message in order arriving during REPLAY is dropped, not queued."""
+    original = ControllerProtocol.on_log
+
+    def on_log(self: ControllerProtocol, message: ring_pb2.LogMessage) -> list[Effect]:
+        drop = (
+            self.state is State.REPLAY
+            and message.lognr == self.lognr + 1
+            and message.lognr not in self._received
+        )
+        effects = original(self, message)
+        if drop:
+            self.log_queue.pop(message.lognr, None)
+        return effects
+
+    return [(ControllerProtocol, "on_log", on_log)]
+
+
+def _defect1() -> list[tuple[Any, str, Any]]:
+    """Issue 9, defect 1: a caller that goes away cancels the execution; nothing is booked.
+
+    In drone/service.py (which the simulation mirrors): the handler was not
+    shielded, so a gRPC cancellation (a deadline, a dropped connection)
+    cancelled the vehicle call and the bookkeeping with it.
+    """
+
+    def caller_gone(self: SimDrone, request: Request) -> None:
+        if request in self.queue:
+            self.queue.remove(request)
+        elif self.busy is not None and self.busy.request is request:
+            self.busy, self.intent = None, None
+            self.world.loop.after(0.0, self._next)
+
+    return [(SimDrone, "_caller_gone", caller_gone)]
+
+
+def _defect2() -> list[tuple[Any, str, Any]]:
+    """Issue 9, defect 2: UNAVAILABLE (the vehicle not connected) is booked as the outcome.
+
+    In drone/service.py's _invoke_to_the_end (mirrored by SimDrone._books).
+    """
+
+    def books(self: SimDrone, error: StatusError) -> bool:
+        return True
+
+    return [(SimDrone, "_books", books)]
+
+
+def _defect3_active() -> list[tuple[Any, str, Any]]:
+    """Issue 9, defect 3: the configured initial master starts ACTIVE on its own word.
+
+    As protocol.py did before epochs: a restarted initial master came up
+    ACTIVE with reqnr 0 (the simulation's initial master is ring[0]).
+    """
+    original = ControllerProtocol.start
+
+    def start(self: ControllerProtocol) -> list[Effect]:
+        if self.id == self.ring[0]:
+            self.state, self.master, self.catch_up_to = State.ACTIVE, True, 0
+            return [ConnectDrone()]
+        return original(self)
+
+    return [(ControllerProtocol, "start", start)]
+
+
+def _defect3_resend() -> list[tuple[Any, str, Any]]:
+    """Issue 9, defect 3: a predecessor re-sends a restarted successor only others' messages.
+
+    As ring.py did: the successor's own messages stopped at the predecessor
+    and were never given back (patched in RingLink, the mirror of PeerLink).
+    """
+    original = RingLink._history_to_resend
+
+    def history_to_resend(self: RingLink, hello: int) -> list[int]:
+        history = self.history
+        assert history is not None or not original(self, hello)
+        return [n for n in original(self, hello) if history and history.get(n).origin != self.dest]
+
+    return [(RingLink, "_history_to_resend", history_to_resend)]
+
+
+def _defect4() -> list[tuple[Any, str, Any]]:
+    """Issue 9, defect 4: refusals not judged by epoch; any refusal naming us is DISAGREE."""
+
+    def judge_refusal(
+        self: ControllerProtocol, sent_epoch: int, master: int, epoch: int
+    ) -> Refusal:
+        return Refusal.HANDED_OVER if master != self.id else Refusal.DISAGREE
+
+    return [(ControllerProtocol, "judge_refusal", judge_refusal)]
+
+
+def _defect5() -> list[tuple[Any, str, Any]]:
+    """Issue 9, defect 5: no bound on how far a new reqnr may jump."""
+    return [(sequencer, "MAX_REQNR_GAP", 2**80)]
+
+
+def _defect10() -> list[tuple[Any, str, Any]]:
+    """Issue 9, defect 10: a restarted drone service starts as a new drone.
+
+    In drone/service.py's _restore (mirrored by SimDrone._restored): nothing
+    was stored, so master, epoch, reply cache and the request cut off were gone.
+    """
+
+    def restored(self: SimDrone) -> Sequencer:
+        self.intent = None
+        return Sequencer(self.controllers, self.initial_master, self.script, self.cache_window)
+
+    return [(SimDrone, "_restored", restored)]
+
+
+for _mutation in (
+    Mutation("line44", "Algorithm 1 line 44: in-order message dropped during REPLAY", _line44),
+    Mutation("defect1", "drone books nothing when the caller goes away", _defect1),
+    Mutation("defect2", "UNAVAILABLE cached as the request's outcome", _defect2),
+    Mutation("defect3-active", "restarted initial master ACTIVE on its own word", _defect3_active),
+    Mutation("defect3-resend", "predecessor re-sends only others' messages", _defect3_resend),
+    Mutation("defect4", "refusals not judged by epoch", _defect4),
+    Mutation("defect5", "no reqnr gap bound", _defect5),
+    Mutation("defect10", "drone restart forgets its state", _defect10),
+):
+    MUTATIONS[_mutation.name] = _mutation

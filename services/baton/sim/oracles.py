@@ -1,0 +1,209 @@
+"""The oracles: what must hold after a run, judged from the ground truth, not the code's word.
+
+Each oracle reads what the simulation recorded outside the code under
+test: the vehicle's and the camera's own counts, what each mission
+program was answered, which controllers the drone accepted requests from
+in each epoch, and the virtual time at which programs finished.
+
+1. ``at-most-once``: every command and picture acted on at most once
+   (counted by the vehicle and camera, by the mission call's unique
+   request), every read at most once unless a drone restart cut it off.
+2. ``exactly-once``: every drone call a program was answered OK was acted
+   on exactly once, and the reply it got is the one the vehicle or camera
+   produced for it.
+3. ``same-replies``: every incarnation's consumed entries (reqnr, status,
+   reply) and every program's answers are a prefix of the longest, and
+   entry k is request k.
+4. ``one-master-per-epoch``: the drone never accepted requests of two
+   controllers in one epoch.
+5. ``liveness``: after the fault window, every controller's program
+   finished within the quiet bound; ``no-failure``: no controller stopped
+   its mission (a refusal judged DISAGREE, a non-determinism error, a
+   protocol error).
+6. ``bounded``: once finished, every log queue, unacknowledged message,
+   abandoned call and the received-numbers set beyond its watermark is
+   empty, and the drone's reply cache never outgrew its window.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from baton.sim.mission import Kind
+
+if TYPE_CHECKING:
+    from baton.sim.world import World
+
+ORACLES = (
+    "at-most-once",
+    "exactly-once",
+    "same-replies",
+    "one-master-per-epoch",
+    "liveness",
+    "no-failure",
+    "bounded",
+)
+
+
+@dataclass(frozen=True)
+class Violation:
+    """One oracle that failed, and what it saw."""
+
+    oracle: str
+    detail: str
+
+    def __str__(self) -> str:
+        return f"[{self.oracle}] {self.detail}"
+
+
+def check(world: World) -> list[Violation]:
+    """Every oracle over a finished run."""
+    found: list[Violation] = []
+    found += _at_most_once(world)
+    found += _exactly_once(world)
+    found += _same_replies(world)
+    found += [Violation("one-master-per-epoch", c) for c in world.drone.stats.epoch_conflicts]
+    failures = _failures(world)
+    found += failures
+    stalled = _liveness(world)
+    found += stalled
+    if not stalled and not failures:
+        found += _bounded(world)
+    return found
+
+
+def _at_most_once(world: World) -> list[Violation]:
+    drone = world.drone
+    acted = Counter(a.tag for a in (*drone.vehicle.commands, *drone.camera.pictures))
+    found = [
+        Violation("at-most-once", f"{tag!r} acted on {times} times")
+        for tag, times in sorted(acted.items())
+        if times > 1
+    ]
+    cut_reads = Counter(cut.reqnr for cut in drone.stats.cut_off)
+    for reqnr, reads in sorted(drone.vehicle.reads.items()):
+        if reqnr < 2**63 and len(reads) > 1 + cut_reads[reqnr]:
+            found.append(
+                Violation(
+                    "at-most-once",
+                    f"read of request {reqnr} executed {len(reads)} times "
+                    f"({cut_reads[reqnr]} cut off by a drone restart)",
+                )
+            )
+    return found
+
+
+def _exactly_once(world: World) -> list[Violation]:
+    drone = world.drone
+    by_tag: dict[bytes, list[bytes]] = {}
+    for acted in (*drone.vehicle.commands, *drone.camera.pictures):
+        by_tag.setdefault(acted.tag, []).append(acted.reply)
+    found = []
+    reported: set[int] = set()
+    for controller in world.incarnations:
+        for index, (status, reply) in enumerate(controller.view):
+            call = world.program[index]
+            if status != 0 or not call.to_drone or index in reported:
+                continue
+            where = f"call {index} ({call.method}) answered OK at controller {controller.id}"
+            if call.kind is Kind.BAD:
+                problem = "a request the drone cannot parse"
+            elif call.has_effect:
+                replies = by_tag.get(call.request, [])
+                problem = (
+                    ""
+                    if len(replies) == 1 and replies[0] == reply
+                    else f"acted on {len(replies)} times, reply {'not ' * (reply not in replies)}"
+                    "among the vehicle's"
+                )
+            else:
+                reads = [r.reply for r in drone.vehicle.reads.get(call.reqnr, [])]
+                problem = "" if reply in reads else f"reply not among the {len(reads)} reads"
+            if problem:
+                reported.add(index)
+                found.append(Violation("exactly-once", f"{where}: {problem}"))
+    return found
+
+
+def _same_replies(world: World) -> list[Violation]:
+    found = []
+    longest_seen = max((c.seen for c in world.incarnations), key=len)
+    longest_view = max((c.view for c in world.incarnations), key=len)
+    for index, (reqnr, _, _) in enumerate(longest_seen):
+        if reqnr != index + 1:
+            found.append(Violation("same-replies", f"entry {index} is request {reqnr}"))
+            break
+    for controller in world.incarnations:
+        name = f"controller {controller.id} (incarnation {controller.incarnation})"
+        for what, mine, longest in (
+            ("consumed entries", controller.seen, longest_seen),
+            ("program answers", controller.view, longest_view),
+        ):
+            for k, item in enumerate(mine):
+                if item != longest[k]:
+                    found.append(
+                        Violation(
+                            "same-replies",
+                            f"{name}: {what} differ at call {k}: {_brief(item)} vs "
+                            f"{_brief(longest[k])}",
+                        )
+                    )
+                    break
+    return found
+
+
+def _brief(item: tuple[int | bytes, ...]) -> str:
+    return repr(tuple(x[:40] if isinstance(x, bytes) else x for x in item))
+
+
+def _failures(world: World) -> list[Violation]:
+    return [Violation("no-failure", c.failure) for c in world.incarnations if c.failure is not None]
+
+
+def _liveness(world: World) -> list[Violation]:
+    found = []
+    for controller in world.controllers.values():
+        if controller.done_at is not None and controller.done_at <= world.deadline:
+            continue
+        p = controller.protocol
+        found.append(
+            Violation(
+                "liveness",
+                f"controller {controller.id} not done by t={world.deadline:.1f}s "
+                f"(faults ended at {world.plan.fault_end:.1f}s): program at call "
+                f"{controller.pc}/{len(world.program)}, {p.state.value}, master={p.master}, "
+                f"epoch {p.epoch}, reqnr {p.reqnr}, lognr {p.lognr}, queued "
+                f"{sorted(p.log_queue)[:8]}, caught up {p.caught_up} "
+                f"(to {p.catch_up_to}); drone master {world.drone.seq.master} "
+                f"epoch {world.drone.seq.epoch} last reqnr {world.drone.seq.last_reqnr}",
+            )
+        )
+    return found
+
+
+def _bounded(world: World) -> list[Violation]:
+    found = []
+    for controller in world.controllers.values():
+        p = controller.protocol
+        left = {
+            "log queue": len(p.log_queue),
+            "received beyond the watermark": len(p._received),
+            "abandoned calls": len(controller.abandoned),
+            "unflushed log entries": len(p.log),
+        }
+        for dest, link in sorted(controller.links.items()):
+            left[f"unacknowledged to {dest}"] = len(link.unacked)
+        held = {what: n for what, n in left.items() if n}
+        if held:
+            found.append(Violation("bounded", f"controller {controller.id} still holds {held}"))
+    drone = world.drone
+    if drone.stats.peak_cache > drone.cache_window:
+        found.append(
+            Violation(
+                "bounded",
+                f"reply cache held {drone.stats.peak_cache} > window {drone.cache_window}",
+            )
+        )
+    return found

@@ -1,0 +1,309 @@
+"""One seed's world: a ring of controllers, the drone, the network, the faults, the oracles.
+
+``run_seed(seed)`` builds everything from ``random.Random(seed)``: 2 to 8
+controllers in a random ring order (the first is the drone's initial
+master: the ring is a cycle, so this loses nothing), a flush limit of 0
+to 4 KB, the drone's reply cache window, a handover script, a mission
+program and the faults; runs it in virtual time until nothing is left to
+do or the liveness bound passes; and checks the oracles. The same seed
+and options always take the same events in the same order (``Outcome.digest``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import random
+from dataclasses import dataclass, field
+
+import grpc
+
+from baton.drone.dedupe import DEFAULT_WINDOW
+from baton.drone.sequencer import ScriptedHandover
+from baton.sim.controller import SimController
+from baton.sim.drone import SimDrone
+from baton.sim.faults import FaultPlan, handover, plan_faults
+from baton.sim.findings import FINDINGS
+from baton.sim.loop import Loop
+from baton.sim.mission import MissionCall, random_mission
+from baton.sim.mutations import mutated
+from baton.sim.network import DRONE, Network
+from baton.sim.oracles import Violation, check
+from baton.v1.ring_pb2 import LogMessage
+
+# Beyond the fault window, how long the mission may take to finish, at most.
+QUIET_BOUND_S = 60.0
+QUIET_BOUND_PER_CALL_S = 2.0
+MAX_EVENTS = 2_000_000
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """What a run may vary besides the seed (each is a flag of ``python -m baton.sim``)."""
+
+    min_calls: int = 8
+    max_calls: int = 32
+    # Issue 10 (failover) is not built: killing the master may stall the mission.
+    kill_master: bool = False
+    # Known findings (findings.py) whose scenarios this run lets in.
+    allow: frozenset[str] = frozenset()
+    mutation: str | None = None
+    trace: bool = False
+
+    def flags(self) -> str:
+        """The command-line flags that give these options (defaults left out)."""
+        default = SimOptions()
+        parts = []
+        if (self.min_calls, self.max_calls) != (default.min_calls, default.max_calls):
+            parts.append(f"--calls {self.min_calls}-{self.max_calls}")
+        if self.kill_master:
+            parts.append("--kill-master")
+        if self.allow:
+            parts.append(f"--allow {','.join(sorted(self.allow))}")
+        if self.mutation:
+            parts.append(f"--mutation {self.mutation}")
+        return " ".join(parts)
+
+
+@dataclass
+class Outcome:
+    """What one seed did and what the oracles found."""
+
+    seed: int
+    options: SimOptions
+    summary: str
+    faults: str
+    violations: list[Violation]
+    events: int
+    virtual_s: float
+    digest: str
+    known: list[str] = field(default_factory=list)
+    # Peaks over the run: log queue, unacknowledged messages on one stream, reply cache.
+    peaks: dict[str, int] = field(default_factory=dict)
+    trace: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """No oracle fired."""
+        return not self.violations
+
+    @property
+    def failed(self) -> bool:
+        """An oracle fired, and no known finding (findings.py) struck to explain it."""
+        return bool(self.violations) and not self.known
+
+    @property
+    def replay(self) -> str:
+        """The one-line command that replays this seed exactly."""
+        flags = self.options.flags()
+        return f".venv/bin/python -m baton.sim --seed {self.seed}" + (f" {flags}" if flags else "")
+
+    def report(self) -> str:
+        """The seed, its world, the oracles that fired and the replay command."""
+        lines = [f"seed {self.seed}: {self.summary}", f"  faults: {self.faults}"]
+        lines += [f"  {v}" for v in self.violations]
+        lines += [f"  known finding {k}: {FINDINGS[k].title}" for k in self.known]
+        lines.append(f"  replay: {self.replay}")
+        return "\n".join(lines)
+
+
+class World:
+    """Everything one seed simulates."""
+
+    def __init__(self, seed: int, options: SimOptions) -> None:
+        self.seed = seed
+        self.options = options
+        self.rng = rng = random.Random(seed)
+        self.loop = Loop()
+        self._trace: list[str] | None = [] if options.trace else None
+        self._ids = itertools.count(1)
+        n = rng.randint(2, 8)
+        self.ring = list(range(n))
+        rng.shuffle(self.ring)
+        self.flush_limit = rng.choice((0, 0, 64, 256, 1024, 2048, 4096))
+        self.program: tuple[MissionCall, ...] = random_mission(
+            rng, rng.randint(options.min_calls, options.max_calls)
+        )
+        cache_window = rng.choice((1, 2, 4, DEFAULT_WINDOW))
+        script: dict[int, ScriptedHandover] = {}
+        for line in range(rng.choice((0, 0, 1, 2, 4))):
+            reqnr = rng.randint(1, len(self.program))
+            script.setdefault(reqnr, ScriptedHandover(reqnr, rng.choice(self.ring), line + 1))
+        self.faulty = True
+        self.net = Network(self, [*self.ring, DRONE])
+        self.drone = SimDrone(
+            self, self.ring, self.ring[0], script, cache_window, rng.choice((0.0, 0.0, 0.05))
+        )
+        self.outages = 0
+        # Request numbers the master logged as given up, and with which code.
+        self.given_up: dict[int, grpc.StatusCode] = {}
+        # Every log number sent, by the message's origin.
+        self.by_origin: dict[int, set[int]] = {}
+        # Known findings that struck in this run (KNOWN_FINDINGS).
+        self.known: set[str] = set()
+        self.controllers: dict[int, SimController] = {}
+        self.incarnations: list[SimController] = []
+        for cid in sorted(self.ring):
+            self._new_controller(cid)
+        self.plan: FaultPlan = plan_faults(self)
+        self.deadline = (
+            self.plan.fault_end + QUIET_BOUND_S + QUIET_BOUND_PER_CALL_S * len(self.program)
+        )
+        self._end_handover_done = False
+        self.programs_started = False
+        self.summary = (
+            f"{n} controllers, ring {self.ring} (initial master {self.ring[0]}), flush limit "
+            f"{self.flush_limit} B, {len(self.program)} calls, cache window {cache_window}, "
+            f"script {sorted((s.after_reqnr, s.new_master) for s in script.values())}, "
+            f"loss {self.net.p_loss}, dup {self.net.p_dup}"
+        )
+
+    # -- parts ------------------------------------------------------------------------
+
+    def _new_controller(self, cid: int) -> SimController:
+        incarnation = sum(1 for c in self.incarnations if c.id == cid)
+        controller = SimController(self, cid, incarnation)
+        self.controllers[cid] = controller
+        self.incarnations.append(controller)
+        return controller
+
+    def controller(self, cid: int) -> SimController:
+        """The current incarnation of controller ``cid``."""
+        return self.controllers[cid]
+
+    def live_controllers(self) -> list[SimController]:
+        """Controllers that are running now, by id."""
+        return [c for _, c in sorted(self.controllers.items()) if c.alive]
+
+    def restart_controller(self, cid: int) -> None:
+        """Restarts controller ``cid`` with nothing: a fresh protocol, history and program."""
+        if not self.controllers[cid].alive:
+            self.trace(f"controller {cid} restarts")
+            controller = self._new_controller(cid)
+            controller.start()
+            if self.programs_started:
+                controller.begin_program()
+
+    def check_start(self) -> None:
+        """Starts the programs once the ring is connected and every controller asked the drone.
+
+        As the testbed starts a mission once every part is ready. Allowing
+        F4 drops the second condition, F7 the first.
+        """
+        if self.programs_started:
+            return
+        allow, controllers = self.options.allow, self.controllers.values()
+        ring_up = all(c.alive and c.peer(c.protocol.successor).up for c in controllers)
+        if ("F7" in allow or ring_up) and ("F4" in allow or all(c.answered for c in controllers)):
+            self._start_programs()
+
+    def _start_programs(self) -> None:
+        self.programs_started = True
+        self.trace("mission programs start")
+        for controller in self.live_controllers():
+            controller.begin_program()
+
+    def next_id(self) -> int:
+        """A fresh number for sessions and calls."""
+        return next(self._ids)
+
+    def trace(self, text: str) -> None:
+        """Notes an event when tracing (``--trace``)."""
+        if self._trace is not None:
+            self._trace.append(f"{self.loop.now:10.4f}  {text}")
+
+    def check_overtaken_handover(self, controller: SimController, message: LogMessage) -> None:
+        """Notes known finding F7 when it strikes (findings.py).
+
+        The message names ``controller`` as its origin but is not a handover
+        message and was not created by it: a history copy of the handover
+        message its old master still has unacknowledged on the direct link.
+        Taken as a normal message, it makes the direct one a duplicate, and
+        ``controller`` never takes over.
+        """
+        p = controller.protocol
+        if (
+            message.origin != controller.id
+            or message.handover
+            or message.sender == controller.id
+            or message.lognr in p._received
+        ):
+            return
+        sender = self.controllers.get(message.sender)
+        direct = sender.links.get(controller.id) if sender is not None and sender.alive else None
+        if direct is not None and message.lognr in direct.unacked:
+            self.known.add("F7")
+            self.trace(
+                f"F7: controller {controller.id} gets a copy of handover message "
+                f"{message.lognr} before the message itself"
+            )
+
+    def program_done(self, controller: SimController) -> None:
+        """A program finished; the first time, maybe a Handover at the end of the mission."""
+        if self.plan.end_handover and not self._end_handover_done:
+            self._end_handover_done = True
+            others = [cid for cid in self.ring if cid != self.drone.seq.master]
+            handover(self, self.rng.choice(others))
+
+    # -- running ----------------------------------------------------------------------
+
+    def run(self) -> Outcome:
+        """Runs to the end, checks the oracles, frees the history files."""
+        for controller in list(self.controllers.values()):
+            controller.start()
+        self.check_start()
+        try:
+            self.loop.run(self.deadline, MAX_EVENTS)
+            violations = check(self)
+            if self.loop.events >= MAX_EVENTS:
+                violations.append(Violation("liveness", f"more than {MAX_EVENTS} events"))
+        finally:
+            for controller in self.incarnations:
+                controller.close()
+        return Outcome(
+            seed=self.seed,
+            options=self.options,
+            summary=self.summary,
+            faults=self.plan.describe(),
+            violations=violations,
+            events=self.loop.events,
+            virtual_s=self.loop.now,
+            digest=self._digest(),
+            known=sorted(self.known),
+            peaks={
+                "log queue": max(c.peak_log_queue for c in self.incarnations),
+                "unacknowledged": max(
+                    (link.peak_unacked for c in self.incarnations for link in c.links.values()),
+                    default=0,
+                ),
+                "reply cache": self.drone.stats.peak_cache,
+            },
+            trace=self._trace or [],
+        )
+
+    def _digest(self) -> str:
+        """A fingerprint of what happened: what every program saw and what the vehicle did."""
+        h = hashlib.sha256()
+        for controller in self.incarnations:
+            h.update(repr((controller.id, controller.view, controller.done_at)).encode())
+        drone = self.drone
+        h.update(repr([(a.time, a.tag) for a in drone.vehicle.commands]).encode())
+        h.update(repr([(a.time, a.tag) for a in drone.camera.pictures]).encode())
+        h.update(repr((self.loop.events, self.loop.now)).encode())
+        return h.hexdigest()[:16]
+
+
+def run_seed(seed: int, options: SimOptions | None = None) -> Outcome:
+    """Builds and runs the world of ``seed`` (the caller applies ``options.mutation``)."""
+    return World(seed, options or SimOptions()).run()
+
+
+def run_seeds(seeds: range, options: SimOptions | None = None) -> list[Outcome]:
+    """Runs ``seeds`` with ``options.mutation`` applied: a worker process's share of a run.
+
+    Returns the outcomes that failed or that a known finding struck.
+    """
+    options = options or SimOptions()
+    with mutated(options.mutation):
+        outcomes = (run_seed(seed, options) for seed in seeds)
+        return [o for o in outcomes if o.failed or o.known]

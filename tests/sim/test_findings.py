@@ -1,0 +1,68 @@
+"""Bugs the simulation found in the code it runs: one strict xfail each (baton.sim.findings).
+
+Each test lets one finding's scenario into the fault mix (``--allow F3``)
+and expects every seed of its list to pass. They fail today; once a fix
+lands the test passes, strict xfail turns that into a failure, and the
+marker goes. Replay any of them with, e.g.,
+``.venv/bin/python -m baton.sim --seed 76 --allow F3 --trace``.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from baton.controller.protocol import ControllerProtocol, State
+from baton.digest import request_digest
+from baton.sim import SimOptions, run_seed
+from baton.sim.findings import FINDINGS
+from baton.v1 import ring_pb2
+
+# Seeds that show each finding now (ranges where it is frequent, the seeds
+# found for the rare F9). A change elsewhere can move a trajectory: if a
+# list stops failing before the fix, look for new seeds with
+# ``python -m baton.sim --seeds 0-30000 --allow F9``.
+SEEDS: dict[str, range | list[int]] = {
+    "F1": range(100),
+    "F2": range(300),
+    "F3": range(300),
+    "F4": range(600),
+    "F5": range(400),
+    "F7": [168, 776, 840],
+    "F8": [1083, 2377, 4339],
+    "F9": [4653, 9930, 10264, 15549, 15729, 31122, 31946],
+}
+
+
+@pytest.mark.parametrize(
+    "code",
+    [
+        pytest.param(code, marks=pytest.mark.xfail(strict=True, reason=finding.title))
+        for code, finding in FINDINGS.items()
+    ],
+)
+def test_the_scenario_of_a_known_finding_holds_every_oracle(code: str) -> None:
+    options = SimOptions(allow=frozenset({code}))
+    for seed in SEEDS[code]:
+        outcome = run_seed(seed, options)
+        assert outcome.ok and not outcome.known, outcome.report()
+
+
+def _entry(reqnr: int) -> ring_pb2.LogEntry:
+    method = "/baton.v1.Mobility/GetPosition"
+    return ring_pb2.LogEntry(
+        reqnr=reqnr, method=method, reply=b"r", request_digest=request_digest(method, b"")
+    )
+
+
+def test_f6_a_former_master_keeps_its_received_numbers_a_watermark() -> None:
+    """Found by the simulation (F6), fixed in protocol.py _flush: its own flushes count."""
+    p = ControllerProtocol(0, [0, 1, 2], flush_limit=0)
+    p.on_granted(1)
+    p.on_sync(0)
+    assert p.state is State.ACTIVE
+    p.on_reply(_entry(1))  # flushes log message 1, which never comes back
+    p.on_handover_notice(1)  # log message 2, to controller 1
+    p.on_log(ring_pb2.LogMessage(lognr=2, origin=1, sender=0))  # back round (footnote 3)
+    for lognr in range(3, 103):  # the new master's messages come round
+        p.on_log(ring_pb2.LogMessage(lognr=lognr, origin=1, sender=1))
+    assert len(p._received) == 0, f"{len(p._received)} numbers kept beyond the watermark"

@@ -1,0 +1,111 @@
+"""The deterministic simulation (issue 9): many seeds in CI, exact replays, mutations caught.
+
+A failing seed's report ends with the command that replays it exactly,
+e.g. ``.venv/bin/python -m baton.sim --seed 1234``; add ``--trace`` to see
+every event. ``pytest tests/sim -m slow`` runs 100,000 seeds on every core.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import subprocess
+import sys
+
+import pytest
+
+from baton.sim import SimOptions, run_seed
+from baton.sim.cli import main
+from baton.sim.mutations import MUTATIONS, mutated
+from baton.sim.world import Outcome, run_seeds
+
+CI_SEEDS = 4_000
+SLOW_SEEDS = 100_000
+# Each mutation must make some seed fail within this many.
+MUTATION_BUDGET = 300
+
+
+def _failures(outcomes: list[Outcome]) -> str:
+    failed = [o for o in outcomes if o.failed]
+    return f"{len(failed)} seeds failed:\n" + "\n".join(o.report() for o in failed[:10])
+
+
+def test_a_seed_replays_exactly() -> None:
+    first, again = (run_seed(11, SimOptions(trace=True)) for _ in range(2))
+    assert first.trace and first.events > 100
+    assert (again.digest, again.events, again.trace) == (first.digest, first.events, first.trace)
+
+
+def test_a_seed_replays_exactly_in_another_process() -> None:
+    """What the replay line does: a new interpreter, another hash seed, the same run."""
+    outcome = run_seed(11)
+    done = subprocess.run(
+        [sys.executable, "-m", "baton.sim", "--seed", "11"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONHASHSEED": "12345"},
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert f"{outcome.events} events" in done.stdout and outcome.digest in done.stdout
+
+
+def test_ci_seeds_hold_every_oracle(sim_seeds: int | None) -> None:
+    outcomes = [run_seed(seed) for seed in range(sim_seeds or CI_SEEDS)]
+    assert not any(o.failed for o in outcomes), _failures(outcomes)
+    # F7 (findings.py) strikes where the mix cannot keep it out: rarely.
+    struck = [o.seed for o in outcomes if o.known]
+    assert len(struck) <= len(outcomes) // 100, f"known finding struck in seeds {struck}"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(3 * 3600)
+def test_many_seeds_hold_every_oracle(sim_seeds: int | None) -> None:
+    total, chunk = sim_seeds or SLOW_SEEDS, 500
+    chunks = [range(start, min(start + chunk, total)) for start in range(0, total, chunk)]
+    # spawn, not fork: other tests in this process may have gRPC threads running.
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(os.cpu_count() or 1) as pool:
+        outcomes = [o for part in pool.imap_unordered(run_seeds, chunks) for o in part]
+    assert not any(o.failed for o in outcomes), _failures(outcomes)
+    struck = [o.seed for o in outcomes if o.known]
+    assert len(struck) <= total // 100, f"known finding struck in {len(struck)} seeds"
+
+
+def test_the_oracles_catch_every_mutation(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Known defects of issue 9, put back one at a time, each make some seed fail."""
+    rows = []
+    for name, mutation in MUTATIONS.items():
+        for target, attribute, value in mutation.patches():
+            monkeypatch.setattr(target, attribute, value)
+        first: Outcome | None = None
+        tried = 0
+        for seed in range(MUTATION_BUDGET):
+            tried += 1
+            outcome = run_seed(seed, SimOptions(mutation=name))
+            if outcome.failed:
+                first = outcome
+                break
+        monkeypatch.undo()
+        oracles = sorted({v.oracle for v in first.violations}) if first else []
+        rows.append((name, first.seed if first else None, tried, ", ".join(oracles)))
+    table = ["| mutation | first failing seed | seeds tried | oracle that fired |", "|-|-|-|-|"]
+    table += [f"| {name} | {seed} | {tried} | {oracles} |" for name, seed, tried, oracles in rows]
+    print("\n" + "\n".join(table))
+    missed = [name for name, seed, _, _ in rows if seed is None]
+    assert not missed, f"no seed in {MUTATION_BUDGET} caught {missed}"
+    # Undone: the real code passes the same seeds again.
+    assert all(run_seed(seed).ok for _, seed, _, _ in rows if seed is not None)
+
+
+def test_a_failing_seed_prints_the_command_that_replays_it(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with mutated("defect10"):
+        seed = next(s for s in range(MUTATION_BUDGET) if run_seed(s).failed)
+    assert main(["--seed", str(seed), "--mutation", "defect10"]) == 1
+    report = capsys.readouterr().out
+    assert f"replay: .venv/bin/python -m baton.sim --seed {seed} --mutation defect10" in report
+    assert main(["--seed", str(seed)]) == 0
+    assert f"seed {seed}: ok" in capsys.readouterr().out
