@@ -283,7 +283,13 @@ class ControllerNode:
     async def _apply(self, effects: list[Effect]) -> None:
         for effect in effects:
             if isinstance(effect, SendLog):
-                self.history.add(effect.message)
+                if not effect.message.handover:
+                    # A handover message we create enters the history when it
+                    # comes back round (footnote 3), once its new master has it:
+                    # a history copy (flag cleared) re-sent to our successor
+                    # before then could overtake it, and the new master would
+                    # take the copy for a normal message (simulation finding F7).
+                    self.history.add(effect.message)
                 self.peer(effect.dest).send(effect.message)
                 self.log.debug(
                     "log message sent",

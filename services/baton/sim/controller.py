@@ -157,7 +157,6 @@ class SimController:
         self.done_at: float | None = None
         self.peak_log_queue = 0
         # Handover messages it sent: (lognr, new master).
-        self.handed_over: list[tuple[int, int]] = []
         # Whether the drone has answered its start-up question (granted, refused, a notice).
         self.answered = False
         self._pump_due = False
@@ -205,9 +204,8 @@ class SimController:
             if isinstance(effect, SendLog):
                 message = effect.message
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
-                if message.handover:
-                    self.handed_over.append((message.lognr, message.origin))
-                self.history.add(message)
+                if not message.handover:  # it enters the history when it comes back (F7)
+                    self.history.add(message)
                 self.peer(effect.dest).send(effect.message)
             elif isinstance(effect, ConnectDrone):
                 self._open_drone()

@@ -158,7 +158,7 @@ def drop_link(world: World) -> None:
     if not live:
         return
     controller = rng.choice(live)
-    links = [link for _, link in sorted(controller.links.items()) if not link.protected()]
+    links = [link for _, link in sorted(controller.links.items())]
     if links and rng.random() < 0.6:
         rng.choice(links).break_("dropped")
     else:
@@ -169,12 +169,6 @@ def partition(world: World, group: list[int], heal_at: float) -> None:
     """Cuts ``group`` from every other node until ``heal_at``."""
     others = [n for n in (*world.ring, DRONE) if n not in group]
     pairs = [(a, b) for a in group for b in others]
-    for a, b in pairs:
-        for x, y in ((a, b), (b, a)):
-            if x != DRONE and y != DRONE:
-                link = world.controller(x).links.get(y)
-                if link is not None and link.protected():
-                    return  # RingLink.protected: not in the default mix
     world.trace(f"partition {sorted(group)} | {sorted(others)} until {heal_at:.3f}")
     for a, b in pairs:
         world.net.cut(a, b)
@@ -196,8 +190,7 @@ def killable(world: World, victim: SimController) -> bool:
     down at a time, and the victim's predecessor and successor each hold
     every message whose origin is the victim or themselves, as a restart
     needs (F3); no handover message to it waits for its acknowledgement
-    (F9); no scripted or queued Handover names it (F4); its predecessor's
-    stream to it is not protected (F7).
+    (F9); no scripted or queued Handover names it (F4).
     """
     options = world.options
     if options.kill_master:
@@ -224,8 +217,7 @@ def killable(world: World, victim: SimController) -> bool:
         named |= {item.new_master for item in drone.queue if isinstance(item, HandoverOrder)}
         if victim.id in named:
             return False
-    link = predecessor.links.get(victim.id)
-    return link is None or not link.protected()
+    return True
 
 
 def _handover_unacked_to(world: World, victim: SimController) -> bool:

@@ -3,10 +3,13 @@
 The default fault mix keeps each finding's scenario out where it can, so
 that the CI run stays green until they are fixed; ``SimOptions.allow``
 (``python -m baton.sim --allow F3``) puts a scenario back, and
-``tests/sim/test_findings.py`` holds one strict xfail per finding. F7
-cannot be kept out by construction: the simulation recognises it when it
-strikes (``World.check_overtaken_handover``) and reports the seed as a
-known finding rather than a failure.
+``tests/sim/test_findings.py`` holds one strict xfail per finding.
+
+F7 (a history copy of a handover message, its flag cleared, overtook the
+message, so the new master took it for a normal one and never took over)
+was fixed in node.py ``_apply``: a controller's own handover message enters
+its history only when it comes back round. The simulation still watches
+for it (``World.check_overtaken_handover``): if it strikes, the run fails.
 
 F6 (a former master's received log numbers grew by one per message: its
 own flushes never came back, so the watermark stopped below them) was
@@ -79,17 +82,6 @@ FINDINGS = {
             "entry (silently if the request is the same, e.g. polling GetPosition)",
             "node.py _invoke, except CancelledError (only _ours_to_log calls are handled)",
             "give-ups of calls no longer the controller's to log",
-        ),
-        Finding(
-            "F7",
-            "a history copy of a handover message (its flag cleared) overtakes the message: "
-            "the new master takes it for a normal message, ignores the real one as a "
-            "duplicate, and never takes over",
-            "history.py (keeps handover messages as normal ones); ring.py (re-sends the "
-            "history to the successor on every new stream)",
-            "breaking a ring stream whose sender's handover message its new master lacks; "
-            "programs starting before the ring is connected. Still strikes when a stream "
-            "was down at the handover: recognised and reported, not counted as a failure",
         ),
         Finding(
             "F8",

@@ -118,12 +118,7 @@ class Network:
 
     def lose(self, link: RingLink) -> bool:
         """Whether this message is lost (and its stream reset)."""
-        return (
-            self.world.faulty
-            and self.p_loss > 0
-            and self.world.rng.random() < self.p_loss
-            and not link.protected()
-        )
+        return self.world.faulty and self.p_loss > 0 and self.world.rng.random() < self.p_loss
 
     def duplicate(self) -> bool:
         """Whether this message is delivered twice."""
@@ -179,27 +174,6 @@ class RingLink:
         self.generation = self.world.next_id()
         self.world.trace(f"ring {self.owner.id}->{self.dest} down ({why})")
         self._retry()
-
-    def protected(self) -> bool:
-        """Whether the default mix keeps this stream from breaking now (a known finding).
-
-        The history keeps a handover message with its flag cleared and
-        re-sends it to the successor on every new stream; until the new
-        master has the message itself, that copy can race round the ring
-        and reach the new master first (from its predecessor's history),
-        which then takes it for a normal message and never takes over.
-        Allowing F7 lets these streams break like any other.
-        """
-        owner = self.owner
-        if "F7" in self.world.options.allow or self.dest != owner.protocol.successor:
-            return False
-        world = self.world
-        owner.handed_over = [
-            (lognr, new_master)
-            for lognr, new_master in owner.handed_over
-            if lognr not in world.controller(new_master).protocol._received
-        ]
-        return bool(owner.handed_over)
 
     # -- connecting ---------------------------------------------------------------
 

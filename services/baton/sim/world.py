@@ -141,6 +141,7 @@ class World:
         self.by_origin: dict[int, set[int]] = {}
         # Known findings that struck in this run (KNOWN_FINDINGS).
         self.known: set[str] = set()
+        self.regressions: list[Violation] = []  # fixed findings that struck again
         self.controllers: dict[int, SimController] = {}
         self.incarnations: list[SimController] = []
         for cid in sorted(self.ring):
@@ -188,13 +189,13 @@ class World:
         """Starts the programs once the ring is connected and every controller asked the drone.
 
         As the testbed starts a mission once every part is ready. Allowing
-        F4 drops the second condition, F7 the first.
+        F4 drops the second condition.
         """
         if self.programs_started:
             return
         allow, controllers = self.options.allow, self.controllers.values()
         ring_up = all(c.alive and c.peer(c.protocol.successor).up for c in controllers)
-        if ("F7" in allow or ring_up) and ("F4" in allow or all(c.answered for c in controllers)):
+        if ring_up and ("F4" in allow or all(c.answered for c in controllers)):
             self._start_programs()
 
     def _start_programs(self) -> None:
@@ -213,7 +214,7 @@ class World:
             self._trace.append(f"{self.loop.now:10.4f}  {text}")
 
     def check_overtaken_handover(self, controller: SimController, message: LogMessage) -> None:
-        """Notes known finding F7 when it strikes (findings.py).
+        """Fails the run if fixed finding F7 strikes again (findings.py).
 
         The message names ``controller`` as its origin but is not a handover
         message and was not created by it: a history copy of the handover
@@ -232,11 +233,12 @@ class World:
         sender = self.controllers.get(message.sender)
         direct = sender.links.get(controller.id) if sender is not None and sender.alive else None
         if direct is not None and message.lognr in direct.unacked:
-            self.known.add("F7")
-            self.trace(
+            what = (
                 f"F7: controller {controller.id} gets a copy of handover message "
                 f"{message.lognr} before the message itself"
             )
+            self.regressions.append(Violation("handover-overtaken", what))
+            self.trace(what)
 
     def program_done(self, controller: SimController) -> None:
         """A program finished; the first time, maybe a Handover at the end of the mission."""
@@ -254,7 +256,7 @@ class World:
         self.check_start()
         try:
             self.loop.run(self.deadline, MAX_EVENTS)
-            violations = check(self)
+            violations = check(self) + self.regressions
             if self.loop.events >= MAX_EVENTS:
                 violations.append(Violation("liveness", f"more than {MAX_EVENTS} events"))
         finally:
