@@ -595,6 +595,13 @@ class ControllerNode:
                 effects = self.protocol.on_reply(given_up)
                 self._seen(given_up)
                 await asyncio.shield(self._apply(effects))
+            else:
+                # A handover overtook the call: its entry will come in the new
+                # master's log, and the program's next call must not take it
+                # (simulation finding F5). Settled like a call given up while
+                # waiting: if the new master's program got a reply, the deadline
+                # made the mission non-deterministic, and it stops saying so.
+                self._abandoned.append((method, request, code))
             raise
         if not self._ours_to_log(reqnr):
             # A handover notice overtook the reply (footnote 2): the reply is not

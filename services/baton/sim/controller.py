@@ -655,6 +655,8 @@ class SimController:
                 self._seen(entry)
                 self.world.given_up[inv.reqnr] = code
                 self._apply(effects)
+            else:  # node.py: queued as abandoned, settled by the next call (F5)
+                self.abandoned.append((call, code))
             self.world.trace(f"controller {self.id} gives up on request {inv.reqnr} ({code.name})")
             self._answered(code.value[0], b"")
             return True

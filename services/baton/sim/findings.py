@@ -77,10 +77,13 @@ FINDINGS = {
         ),
         Finding(
             "F5",
-            "a program that gives up on a call whose reply a handover overtook loses its "
-            "place: nothing is logged or queued, and its next call takes that call's log "
-            "entry (silently if the request is the same, e.g. polling GetPosition)",
-            "node.py _invoke, except CancelledError (only _ours_to_log calls are handled)",
+            "a program that gives up on a call whose reply a handover overtook: it lost its "
+            "place silently (its next call took that call's log entry); now the call is "
+            "queued as abandoned and the mission stops with a determinism error when the "
+            "new master's program got a reply. Loud, not silent; still a failed mission: a "
+            "deadline racing a handover makes the program non-deterministic",
+            "node.py _invoke, except CancelledError (now queues it in _abandoned); the SDK "
+            "could refuse deadlines on drone calls instead",
             "give-ups of calls no longer the controller's to log",
         ),
         Finding(
