@@ -115,6 +115,8 @@ def test_a_refusal_is_judged_by_the_epoch_it_was_sent_in() -> None:
     assert p.judge_refusal(1, master=0, epoch=3) is Refusal.STALE
     assert p.judge_refusal(1, master=1, epoch=4) is Refusal.STALE
     assert p.judge_refusal(3, master=1, epoch=4) is Refusal.HANDED_OVER
+    # Away to 1 and back in epoch 5 before the notice came (the drone dropped it).
+    assert p.judge_refusal(3, master=0, epoch=5) is Refusal.REGRANTED
     p.on_handover_notice(1)
     assert p.judge_refusal(3, master=1, epoch=4) is Refusal.STALE  # not ACTIVE: nothing to do
 

@@ -23,7 +23,6 @@ from baton.v1 import ring_pb2
 # ``python -m baton.sim --seeds 0-30000 --allow F9``.
 SEEDS: dict[str, range | list[int]] = {
     "F1": range(100),
-    "F2": range(300),
     "F3": range(300),
     "F4": range(600),
     "F5": range(400),
@@ -43,6 +42,15 @@ def test_the_scenario_of_a_known_finding_holds_every_oracle(code: str) -> None:
     options = SimOptions(allow=frozenset({code}))
     for seed in SEEDS[code]:
         outcome = run_seed(seed, options)
+        assert outcome.ok and not outcome.known, outcome.report()
+
+
+def test_f2_a_master_again_in_a_newer_epoch_connects_again() -> None:
+    """Found by the simulation (F2), fixed in protocol.py judge_refusal (REGRANTED): a
+    Handover there and back before the old master heard was a livelock; the scenario is
+    in the default mix now, and these seeds showed it."""
+    for seed in range(300):
+        outcome = run_seed(seed)
         assert outcome.ok and not outcome.known, outcome.report()
 
 

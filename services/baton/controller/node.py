@@ -680,6 +680,14 @@ class ControllerNode:
                         await self.on_handover_notice(
                             refusal.master, refusal.after_reqnr, refusal.epoch
                         )
+                    elif verdict is Refusal.REGRANTED:
+                        self.log.info(
+                            "master again in a newer epoch; connecting again",
+                            sent_epoch=sent_epoch,
+                            drone_epoch=refusal.epoch,
+                        )
+                        await self._close_drone()
+                        self._open_drone()
                     else:
                         self.log.info(
                             "stale request refused by the drone",

@@ -67,6 +67,7 @@ class Refusal(enum.Enum):
     STALE = "stale"  # from an earlier ACTIVE period: ignore it, nothing was executed
     HANDED_OVER = "handed over"  # another master now: a handover notice
     DISAGREE = "disagree"  # ourselves, now, refusing the number: the log and drone disagree
+    REGRANTED = "regranted"  # ourselves in a newer epoch: the role went and came back unheard
 
 
 class NonDeterminismError(Exception):
@@ -267,14 +268,18 @@ class ControllerProtocol:
         back) is STALE: nothing was executed, and it says nothing about now.
         Another master in our current epoch is a handover notice. Ourselves,
         in the epoch we sent, refusing the request number: the log and the
-        drone disagree.
+        drone disagree. Ourselves in a newer epoch than the one we are ACTIVE
+        in: the drone handed the role away and back before its notice reached
+        us (it drops a notice owed to a controller that is master again), so
+        nobody else acted on it: REGRANTED, connect again to learn the epoch
+        (re-sending in the old one would be refused for ever).
         """
         if self.state is not State.ACTIVE or sent_epoch != self.epoch:
             return Refusal.STALE
         if master != self.id:
             return Refusal.HANDED_OVER
-        if epoch != sent_epoch:
-            return Refusal.STALE
+        if epoch > sent_epoch:
+            return Refusal.REGRANTED
         return Refusal.DISAGREE
 
     # -- lines 12-23: invocation while ACTIVE -----------------------------------

@@ -591,6 +591,9 @@ class SimController:
                 )
             elif verdict is Refusal.HANDED_OVER:
                 self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+            elif verdict is Refusal.REGRANTED:  # node.py: connect again to learn the epoch
+                self._close_drone()
+                self._open_drone()
             self._invoked(inv, None)
             return
         waited = self.world.loop.now - inv.started

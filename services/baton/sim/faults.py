@@ -330,17 +330,11 @@ def handover(world: World, new_master: int, tries: int = 0) -> None:
 
 
 def there_and_back(world: World, new_master: int, delay: float) -> None:
-    """Two Handover calls back to back: to ``new_master``, and ``delay`` later back again.
-
-    The second waits until the mix allows it, unless F2 is allowed: then
-    it goes at once, before the old master may have heard of the first.
-    """
+    """Two Handover calls back to back: to ``new_master``, and ``delay`` later back again,
+    at once, before the old master may have heard of the first (F2, fixed)."""
     old = world.drone.seq.master
     handover(world, new_master)
-    if "F2" in world.options.allow:
-        world.loop.after(delay, world.drone.handover_rpc, old)
-    else:
-        world.loop.after(delay, handover, world, old)
+    world.loop.after(delay, world.drone.handover_rpc, old)
 
 
 def garbled_request(world: World) -> None:

@@ -5,6 +5,12 @@ that the CI run stays green until they are fixed; ``SimOptions.allow``
 (``python -m baton.sim --allow F3``) puts a scenario back, and
 ``tests/sim/test_findings.py`` holds one strict xfail per finding.
 
+F2 (a Handover there and back before the old master heard of it: the
+drone drops the notice owed to a controller that is master again, so it
+re-sent in its old epoch, refused as stale, for ever) was fixed in
+protocol.py ``judge_refusal``: ourselves in a newer epoch is REGRANTED, and
+the controller connects again to learn the epoch.
+
 F7 (a history copy of a handover message, its flag cleared, overtook the
 message, so the new master took it for a normal one and never took over)
 was fixed in node.py ``_apply``: a controller's own handover message enters
@@ -44,15 +50,6 @@ FINDINGS = {
             "master's handover message makes a new master connect",
             "Handover calls while the drone's master is not ACTIVE with its stream up, or "
             "while another Handover is queued",
-        ),
-        Finding(
-            "F2",
-            "Handover there and back before the old master heard: Sequencer.switch drops its "
-            "notice, its Connect stream gets no new Connected, and it re-sends with its old "
-            "epoch, refused STALE, at once and forever (a livelock)",
-            "drone/service.py Connect (Connected only when a stream opens); node.py "
-            "_invoke_drone_retrying (STALE: re-send with the session's epoch, no back-off)",
-            "a second Handover before the first one's new master is ACTIVE",
         ),
         Finding(
             "F3",
