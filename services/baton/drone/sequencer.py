@@ -256,6 +256,30 @@ class Sequencer:
             return Served(entry, cached, skipped=scripted)
         return Served(entry, cached, handover=self.switch(scripted.new_master, "script", now))
 
+    # -- a restart ------------------------------------------------------------------
+
+    def resume(
+        self,
+        master: int,
+        handovers: Iterable[drone_pb2.HandoverRecord],
+        counts: tuple[int, int, int, int],
+        replies: Iterable[CachedReply],
+        audit: Iterable[drone_pb2.AuditEntry],
+        fired_script: Iterable[int],
+    ) -> None:
+        """Takes back what the durable store kept: master and handovers (so the epoch),
+        ``counts`` (last reqnr, executed, duplicates, rejected), the reply cache, the
+        newest audit entries, and the script lines already fired."""
+        self.master = master
+        self.handovers[:] = handovers
+        self.last_reqnr, self.executed, self.duplicates, self.rejected = counts
+        for reply in replies:
+            self.cache.store(reply.reqnr, reply.method, reply.digest, reply.reply, reply.error)
+        self.audit.extend(audit)
+        self.fired_script[:] = fired_script
+        for reqnr in self.fired_script:
+            self.script.pop(reqnr, None)
+
     # -- masters ----------------------------------------------------------------------
 
     def switch(self, new_master: int, trigger: str, now: float) -> drone_pb2.HandoverRecord:
@@ -305,3 +329,19 @@ class Sequencer:
         """The notice reached its old master; it is no longer owed."""
         if self.pending.get(controller_id) is notice:
             del self.pending[controller_id]
+
+
+def cut_off_outcome(method: str, reqnr: int, is_read: bool) -> StatusError | None:
+    """What a request the drone was executing when it restarted becomes.
+
+    None for a read: it changed nothing, and the re-sent request executes it
+    again. UNKNOWN for anything else: the vehicle may have acted on it, so
+    it is booked with that failure and never executed a second time.
+    """
+    if is_read:
+        return None
+    return StatusError(
+        grpc.StatusCode.UNKNOWN,
+        f"{method} (request {reqnr}) was being executed when the drone service "
+        "restarted: the vehicle may have acted on it, so it is not executed again",
+    )

@@ -25,7 +25,7 @@ from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
 from baton.drone.dispatch import Dispatcher
 from baton.drone.master import MasterStreams
 from baton.drone.mobility_api import MobilityBackend
-from baton.drone.sequencer import ScriptedHandover, Sequencer
+from baton.drone.sequencer import ScriptedHandover, Sequencer, cut_off_outcome
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import write_atomically
 from baton.logs import get_logger
@@ -144,16 +144,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.log.info("new state file", path=str(store.path))
             return
         c, seq = state.counters, self.seq
-        seq.master = c.master
-        seq.handovers[:] = c.handovers
-        seq.last_reqnr, seq.executed = c.last_reqnr, c.executed
-        seq.duplicates, seq.rejected = c.duplicates, c.rejected
-        for reply in state.replies:
-            seq.cache.store(reply.reqnr, reply.method, reply.digest, reply.reply, reply.error)
-        seq.audit.extend(state.audit)
-        seq.fired_script[:] = c.fired_script
-        for reqnr in c.fired_script:
-            seq.script.pop(reqnr, None)
+        counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
+        seq.resume(c.master, c.handovers, counts, state.replies, state.audit, c.fired_script)
         self.log.info(
             "state resumed",
             path=str(store.path),
@@ -168,16 +160,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         if cut is None:
             return
         route = self.dispatcher.routes.get(cut.method)
-        if route is not None and route.is_read:
-            store.abandon()  # a read changed nothing: the re-sent request executes it again
+        error = cut_off_outcome(cut.method, cut.reqnr, route is not None and route.is_read)
+        if error is None:
+            store.abandon()
             self.log.info("read cut off by the restart: will execute again", reqnr=cut.reqnr)
             return
-        # The vehicle may have acted on it: at most once, so it is never executed again.
-        error = StatusError(
-            grpc.StatusCode.UNKNOWN,
-            f"{cut.method} (request {cut.reqnr}) was being executed when the drone service "
-            "restarted: the vehicle may have acted on it, so it is not executed again",
-        )
         self.log.warning("request cut off by the restart", reqnr=cut.reqnr, method=cut.method)
         self._served(
             cut.controller_id, cut.reqnr, cut.method, cut.digest, b"", cut.received_at, error

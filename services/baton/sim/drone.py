@@ -34,7 +34,7 @@ import grpc
 from baton.digest import request_digest
 from baton.drone.dedupe import CachedReply
 from baton.drone.dispatch import drone_api_routes
-from baton.drone.sequencer import ScriptedHandover, Sequencer
+from baton.drone.sequencer import ScriptedHandover, Sequencer, cut_off_outcome
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.sim.mission import UNPARSABLE
@@ -473,13 +473,9 @@ class SimDrone:
             return
         self.stats.cut_off.append(cut)
         route = ROUTES.get(cut.method)
-        if route is not None and route.is_read:
-            return  # a read changed nothing: the re-sent request executes it again
-        error = StatusError(
-            grpc.StatusCode.UNKNOWN,
-            f"{cut.method} (request {cut.reqnr}) was being executed when the drone service "
-            "restarted: the vehicle may have acted on it, so it is not executed again",
-        )
+        error = cut_off_outcome(cut.method, cut.reqnr, route is not None and route.is_read)
+        if error is None:
+            return  # a read: the re-sent request executes it again
         self._served(
             cut.controller_id, cut.reqnr, cut.method, cut.digest, b"", error, cut.received_at
         )
@@ -488,16 +484,14 @@ class SimDrone:
         """A new Sequencer holding what the store keeps (DroneService._restore)."""
         old = self.seq
         seq = Sequencer(self.controllers, self.initial_master, self.script, self.cache_window)
-        seq.master = old.master
-        seq.handovers[:] = old.handovers
-        seq.last_reqnr, seq.executed = old.last_reqnr, old.executed
-        seq.duplicates, seq.rejected = old.duplicates, old.rejected
-        for reqnr in old.cache.reqnrs:
-            reply = old.cache.get(reqnr)
-            assert reply is not None
-            seq.cache.store(reply.reqnr, reply.method, reply.digest, reply.reply, reply.error)
-        seq.audit.extend(old.audit)
-        seq.fired_script[:] = old.fired_script
-        for reqnr in old.fired_script:
-            seq.script.pop(reqnr, None)
+        replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
+        counts = (old.last_reqnr, old.executed, old.duplicates, old.rejected)
+        seq.resume(
+            old.master,
+            old.handovers,
+            counts,
+            [r for r in replies if r is not None],
+            old.audit,
+            old.fired_script,
+        )
         return seq
