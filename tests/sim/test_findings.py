@@ -26,7 +26,6 @@ SEEDS: dict[str, range | list[int]] = {
     "F3": range(300),
     "F4": range(600),
     "F5": range(400),
-    "F8": [1083, 2377, 4339],
     "F9": [4653, 9930, 10264, 15549, 15729, 31122, 31946],
 }
 
@@ -50,6 +49,14 @@ def test_f2_a_master_again_in_a_newer_epoch_connects_again() -> None:
     Handover there and back before the old master heard was a livelock; the scenario is
     in the default mix now, and these seeds showed it."""
     for seed in range(300):
+        outcome = run_seed(seed)
+        assert outcome.ok and not outcome.known, outcome.report()
+
+
+def test_f8_a_last_call_given_up_while_waiting_is_settled() -> None:
+    """Found by the simulation (F8), fixed in node.py mission_done: these seeds showed it
+    when the scenario was let in; it is in the default mix now."""
+    for seed in (1083, 2377, 4339):
         outcome = run_seed(seed)
         assert outcome.ok and not outcome.known, outcome.report()
 

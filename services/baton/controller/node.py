@@ -130,6 +130,7 @@ class ControllerNode:
         self._busy: str | None = None
         # Calls the program gave up on while this controller waited for the log, in order.
         self._abandoned: deque[tuple[str, bytes, grpc.StatusCode]] = deque()
+        self._settler: asyncio.Task[None] | None = None  # for those left when the program ended
         self.mission = "none"
         self.mission_error = ""
         # A request the drone could not take, being re-sent (see _invoke_drone).
@@ -236,6 +237,8 @@ class ControllerNode:
         """Closes every stream."""
         if self._watchdog is not None:
             self._watchdog.cancel()
+        if self._settler is not None:
+            self._settler.cancel()
         if self._drone is not None:
             await self._drone.close()
             self._drone = None
@@ -433,7 +436,18 @@ class ControllerNode:
         effects = self.protocol.on_mission_done()
         await self._apply(effects)
         self.log.info("mission program ended", failed=failed, flushed=bool(effects))
+        if self._abandoned and self._settler is None:
+            # Its last call was given up while this replica waited: no next
+            # call will settle it, so the entry is consumed here when it comes,
+            # else it would hold REPLAY for ever (simulation finding F8).
+            self._settler = asyncio.create_task(self._settle_after_the_end())
         return bool(effects)
+
+    async def _settle_after_the_end(self) -> None:
+        try:
+            await self._settle_abandoned()
+        except StatusError:
+            pass  # the mission's failure, already recorded by _fail
 
     def _fail(self, error: StatusError) -> None:
         self._failure = error

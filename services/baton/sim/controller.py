@@ -221,7 +221,11 @@ class SimController:
 
     def _pump(self) -> None:
         self._pump_due = False
-        if not self.alive or self.call is None:
+        if not self.alive:
+            return
+        if self.call is None:
+            if self.done and self.abandoned:  # node.py _settle_after_the_end (F8)
+                self._settle()
             return
         inv = self.inv
         if inv is not None:
@@ -423,16 +427,38 @@ class SimController:
         assert call is not None
         self.phase = Phase.RUNNING
         protocol = self.protocol
-        while self.abandoned:  # _settle_abandoned
+        if not self._settle():
             if self.failure is not None:
                 self._stop()
+            else:
+                self.phase = Phase.WAITING
+            return
+        if self.failure is not None:  # _answer
+            self._stop()
+            return
+        if protocol.state is State.REPLAY:
+            replayed = self._replay(call)
+            if replayed is None:
+                self._stop()
                 return
+            self._answered(replayed.status_code, replayed.reply)
+        elif protocol.state is State.ACTIVE:
+            self._invoke(call)
+        else:
+            self.phase = Phase.WAITING
+
+    def _settle(self) -> bool:
+        """node.py _settle_abandoned: True once every abandoned call has its entry;
+        False to wait for the log, or when the mission failed."""
+        protocol = self.protocol
+        while self.abandoned:
+            if self.failure is not None:
+                return False
             given_up, code = self.abandoned[0]
             if protocol.state is State.REPLAY:
                 entry = self._replay(given_up)
                 if entry is None:
-                    self._stop()
-                    return
+                    return False
                 self.abandoned.popleft()
                 if entry.status_code != code.value[0]:
                     self._fail(
@@ -447,21 +473,8 @@ class SimController:
                 self._seen(entry)
                 self._apply(effects)
             else:
-                self.phase = Phase.WAITING
-                return
-        if self.failure is not None:  # _answer
-            self._stop()
-            return
-        if protocol.state is State.REPLAY:
-            replayed = self._replay(call)
-            if replayed is None:
-                self._stop()
-                return
-            self._answered(replayed.status_code, replayed.reply)
-        elif protocol.state is State.ACTIVE:
-            self._invoke(call)
-        else:
-            self.phase = Phase.WAITING
+                return False
+        return True
 
     def _replay(self, call: MissionCall) -> ring_pb2.LogEntry | None:
         """ControllerNode._replay; None when the program diverged (the mission stops)."""

@@ -270,9 +270,9 @@ def give_up(world: World, code: grpc.StatusCode) -> None:
     """A mission program gives up on its current call, where that keeps the mission deterministic.
 
     The master's call while it is still the master's to log; or a replica's
-    held call whose entry the master logged as given up with the same code,
-    but not the program's last (F8). Allowing F5 adds calls whose reply a
-    handover overtook.
+    held call whose entry the master logged as given up with the same code
+    (the program's last too: F8 is fixed). Allowing F5 adds calls whose
+    reply a handover overtook.
     """
     allow = world.options.allow
     candidates: list[tuple[int, grpc.StatusCode]] = []
@@ -281,8 +281,6 @@ def give_up(world: World, code: grpc.StatusCode) -> None:
         if inv is not None and ("F5" in allow or c._ours_to_log(inv.reqnr)):
             candidates.append((c.id, code))
         reqnr = c.waiting_call_reqnr()
-        if reqnr == len(world.program) and "F8" not in allow:
-            continue
         if reqnr is not None and reqnr in world.given_up:
             candidates.append((c.id, world.given_up[reqnr]))
     if candidates:

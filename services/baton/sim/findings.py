@@ -11,6 +11,11 @@ re-sent in its old epoch, refused as stale, for ever) was fixed in
 protocol.py ``judge_refusal``: ourselves in a newer epoch is REGRANTED, and
 the controller connects again to learn the epoch.
 
+F8 (a replica whose program gave up on its last call while waiting never
+settled it, so the entry held REPLAY and every later message queued behind
+it) was fixed in node.py ``mission_done``: what is left abandoned when the
+program ends is settled as the log comes.
+
 F7 (a history copy of a handover message, its flag cleared, overtook the
 message, so the new master took it for a normal one and never took over)
 was fixed in node.py ``_apply``: a controller's own handover message enters
@@ -82,13 +87,6 @@ FINDINGS = {
             "node.py _invoke, except CancelledError (now queues it in _abandoned); the SDK "
             "could refuse deadlines on drone calls instead",
             "give-ups of calls no longer the controller's to log",
-        ),
-        Finding(
-            "F8",
-            "a replica whose program gave up on its last call while waiting never settles it: "
-            "the entry stays in REPLAY and every later message queues behind it",
-            "node.py _settle_abandoned (runs only at the program's next call)",
-            "give-ups of a program's last call",
         ),
         Finding(
             "F9",
