@@ -76,5 +76,21 @@ def test_an_unusable_controller_log_file_is_a_clear_error(tmp_path) -> None:  # 
         "--log-file",
         str(tmp_path / "log.sqlite"),
     )
-    assert result.returncode == 2
+    assert result.returncode == 1  # as for any OSError (baton.cli): one line, no traceback
     assert "log.sqlite (--log-file)" in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("program", "flag", "listen"),
+    [
+        ("sim-vehicle", "--effects-file", ("--port", "0")),
+        ("drone", "--camera-effects-file", ("--address", "127.0.0.1:0")),
+    ],
+)
+def test_an_unwritable_effects_file_is_a_clear_error_at_start(
+    program: str, flag: str, listen: tuple[str, str]
+) -> None:
+    result = baton(program, *listen, flag, "/proc/nope/effects.jsonl")
+    assert result.returncode == 1, result.stderr
+    assert f"/proc/nope/effects.jsonl ({flag})" in result.stderr
+    assert "Traceback" not in result.stderr

@@ -28,15 +28,28 @@ from typing import Any
 
 
 class EffectsFile:
-    """Appends one line per effect to ``path``; with no path, only counts in memory."""
+    """Appends one line per effect to ``path``; with no path, only counts in memory.
 
-    def __init__(self, path: str | Path | None) -> None:
+    A path that cannot be written is an OSError at once, naming the file and
+    ``flag`` (the program's one-line error), not a failure at the first effect.
+    """
+
+    def __init__(self, path: str | Path | None, flag: str = "--effects-file") -> None:
         self.path = Path(path) if path is not None else None
         self._lock = threading.Lock()
         self.seq = 0  # the last sequence number given out
-        if self.path is not None and self.path.exists():
-            self.seq = max((e["seq"] for e in read_effects(self.path)), default=0)
-            self._end_a_torn_line(self.path)
+        if self.path is None:
+            return
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with self.path.open("a", encoding="utf-8"):
+                pass
+        except OSError as exc:
+            raise OSError(
+                f"effects file {self.path} ({flag}): {exc.strerror or exc}; give a writable path"
+            ) from exc
+        self.seq = max((e["seq"] for e in read_effects(self.path)), default=0)
+        self._end_a_torn_line(self.path)
 
     @staticmethod
     def _end_a_torn_line(path: Path) -> None:

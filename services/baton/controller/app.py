@@ -9,7 +9,6 @@ import secrets
 import sys
 
 from baton.config import BatonConfig
-from baton.controller.history import LogFileError
 from baton.controller.node import ControllerNode
 from baton.controller.service import PROXIED_SERVICES, ControllerRingService, DroneApiProxy
 from baton.lifecycle import write_atomically
@@ -93,11 +92,7 @@ async def serve(
     log_file: str | None = None,
 ) -> int:
     """Runs a controller until SIGTERM or SIGINT."""
-    try:
-        app = ControllerApp(config, cid, mission, mission_args, log_file)
-    except LogFileError as exc:
-        print(f"baton controller: {exc}", file=sys.stderr)
-        return 2
+    app = ControllerApp(config, cid, mission, mission_args, log_file)
 
     async def main(stop: asyncio.Event) -> int:
         await app.start()

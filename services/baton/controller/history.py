@@ -32,11 +32,6 @@ from pathlib import Path
 from baton.controller.protocol import SeenNumbers
 from baton.v1 import ring_pb2
 
-
-class LogFileError(OSError):
-    """A log file that cannot be used; the message names it, the flag and the fix."""
-
-
 SCHEMA = "CREATE TABLE IF NOT EXISTS messages (lognr INTEGER PRIMARY KEY, message BLOB NOT NULL)"
 
 
@@ -63,7 +58,7 @@ class LogHistory:
                 self._db.execute(SCHEMA)
             self._lognrs = {n for (n,) in self._db.execute("SELECT lognr FROM messages")}
         except (OSError, sqlite3.Error) as exc:
-            raise LogFileError(
+            raise OSError(
                 f"controller log file {self.path} (--log-file): {exc}; give a writable path"
             ) from exc
         self._held = SeenNumbers()

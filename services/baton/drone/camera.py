@@ -95,7 +95,7 @@ class Camera:
     ) -> None:
         check_resolution(*resolution)
         self._position = position
-        self.effects = EffectsFile(effects_file)
+        self.effects = EffectsFile(effects_file, "--camera-effects-file")
         self.sequence = 0
         self.resolution = resolution
         self._static: bytes | None = None
