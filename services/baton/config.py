@@ -176,6 +176,9 @@ class BatonConfig(_Model):
     # could not take (drone unreachable, vehicle link down: nothing executed)
     # before the call fails with UNAVAILABLE; wall time.
     drone_retry_limit: Duration = 300.0
+    # The drone takes over a master it has not seen (no stream, no request)
+    # for this long, in mission seconds (docs/design.md, "Takeover"); 0: never.
+    takeover_after: Duration = 3.0
     # The largest log message a controller accepts from the ring: the flush
     # limit plus the largest entry (a picture), with room to spare; default
     # flush_limit + 256 MiB (see ``log_message_cap``). A frame claiming more

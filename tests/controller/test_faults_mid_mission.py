@@ -125,7 +125,8 @@ async def test_the_drone_killed_and_restarted_resumes_the_mission(tmp_path: Path
 
 async def test_a_dead_master_is_a_visible_stall_within_seconds(tmp_path: Path) -> None:
     """Issue 9, defect 9: a drone whose master holds no stream, a replica whose successor
-    died: said in GetStatus and the logs within seconds, not a silent wait."""
+    died: said in GetStatus and the logs within seconds, not a silent wait. Takeovers are
+    turned off: the drone would end this stall (test_takeover.py), the stall is tested."""
     plan = TestbedPlan(
         controllers=3,
         flush_limit=0,
@@ -133,6 +134,7 @@ async def test_a_dead_master_is_a_visible_stall_within_seconds(tmp_path: Path) -
         mission=LONG_LEGS,
         controller_link=FAST_LINK,
         drone_link=FAST_LINK,
+        drone_args=("--takeover-after", "0"),
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         assert testbed.drone_stub is not None

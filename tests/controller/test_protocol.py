@@ -322,3 +322,55 @@ def test_the_received_watermark_moves_over_a_masters_own_flushes() -> None:
     for lognr in range(7, 50):
         master.on_log(message(lognr, 1, []))
     assert master.holds_lognr == 49 and len(master._received) == 0
+
+
+def test_the_watermark_is_what_the_masters_predecessor_holds_as_a_request_number() -> None:
+    """Issue 10: the master gives the drone the highest request every controller holds."""
+    master = started(0, [0, 1, 2], 0)
+    for reqnr in (1, 2, 3):
+        master.on_reply(entry(reqnr))  # flushes log messages 1, 2, 3
+    assert master.watermark_reqnr == 0
+    master.on_sync(2)  # controller 2 (and so 1) holds log messages 1..2
+    assert master.watermark_reqnr == 2
+    master.on_sync(3)
+    assert master.watermark_reqnr == 3
+    alone = started(0, [0], 0)
+    alone.on_reply(entry(1))
+    assert alone.watermark_reqnr == 1  # nobody else to hold it
+
+
+def test_a_takeover_grant_goes_active_on_what_the_taker_holds() -> None:
+    """The taker's predecessor may be the lost master: it never says what it holds."""
+    taker = ControllerProtocol(1, [0, 1, 2], 0)
+    taker.start()
+    taker.on_log(message(1, 0, [1, 2]))
+    assert taker.catch_up_to is None and taker.state is State.REPLAY
+    assert taker.on_granted(2, takeover=True) == []
+    assert replay_all(taker) == [ConnectDrone()]
+    assert (taker.state, taker.master, taker.reqnr, taker.epoch) == (State.ACTIVE, True, 2, 2)
+
+
+def test_a_fenced_masters_late_messages_are_dropped_by_the_taker() -> None:
+    taker = ControllerProtocol(1, [0, 1, 2], 0)
+    taker.start()
+    taker.on_log(message(1, 0, [1]))
+    taker.on_granted(2, takeover=True)
+    replay_all(taker)
+    assert taker.state is State.ACTIVE
+    stale = message(2, 0, [2])
+    stale.epoch = 1  # logged by the lost master in its epoch
+    effects = taker.on_log(stale)
+    assert [type(e).__name__ for e in effects] == ["Fenced"] and not sends(effects)
+    assert taker.on_reply(entry(2)) and taker.lognr == 2  # its own message 2 is the ring's
+
+
+def test_a_fenced_master_sends_nothing_and_keeps_the_new_masters_messages() -> None:
+    old = started(0, [0, 1, 2, 3], 2**20)
+    old.on_reply(entry(1))
+    assert len(old.log) == 1
+    newer = message(1, 2, [1, 2])
+    newer.epoch = 2  # a newer master's: we are the fenced one and do not know yet
+    assert sends(old.on_log(newer)) == [(1, 1, False)]  # forwarded, not dropped
+    assert 1 in old.log_queue
+    assert old.on_fenced() == [DisconnectDrone()]
+    assert (old.state, old.master, len(old.log)) == (State.PASSIVE, False, 0)

@@ -18,14 +18,30 @@ from baton.v1 import drone_api_pb2 as api
 ALL_METHODS = sorted(drone_api_routes())
 
 
-def test_reply_cache_keeps_the_last_window_only() -> None:
+def test_reply_cache_keeps_the_last_window_only_below_the_watermark() -> None:
     cache = ReplyCache(window=3)
+    cache.raise_watermark(10)
     for reqnr in range(1, 11):
         cache.store(reqnr, "/m", request_digest("/m", b"%d" % reqnr), b"r%d" % reqnr)
     assert cache.reqnrs == [8, 9, 10]
+    assert cache.retained == (0, 0)
     assert cache.get(7) is None
     hit = cache.get(9)
     assert hit is not None and hit.reply == b"r9" and hit.digest == request_digest("/m", b"9")
+
+
+def test_reply_cache_retains_every_reply_above_the_watermark() -> None:
+    cache = ReplyCache(window=3)
+    for reqnr in range(1, 11):
+        cache.store(reqnr, "/m", request_digest("/m", b"%d" % reqnr), b"r%d" % reqnr)
+    assert cache.reqnrs == list(range(1, 11))  # nobody is known to hold any of them
+    cache.raise_watermark(6)
+    assert cache.reqnrs == [7, 8, 9, 10]  # above it, though beyond the window
+    assert cache.retained == (4, 9)  # b"r7" .. b"r10"
+    cache.raise_watermark(2)  # it never goes down
+    assert cache.watermark == 6
+    cache.raise_watermark(9)
+    assert cache.reqnrs == [8, 9, 10]
 
 
 def test_reply_cache_rejects_an_empty_window() -> None:

@@ -104,3 +104,52 @@ def test_the_script_fires_after_the_first_request_at_or_past_its_line() -> None:
     first = seq.handovers[0]
     assert first.first_request_at == 0
     assert seq.note_request(1, 9.0) is first and first.delay_s == 5.0
+
+
+def test_a_lost_master_is_taken_over_by_the_first_reachable_one_after_it_in_ring_order() -> None:
+    seq = Sequencer([2, 0, 1], initial_master=0)  # ring 2 -> 0 -> 1 -> 2
+    seen = {0: 10.0, 1: 12.0, 2: 12.0}
+    assert seq.takeover_due(12.0, {1, 2}, seen, after_s=3.0) is None  # not yet
+    due = seq.takeover_due(13.0, {1, 2}, seen, after_s=3.0)
+    assert due is not None and (due.new_master, due.lost, due.lost_at) == (1, 0, 10.0)
+    due = seq.takeover_due(13.0, {2}, seen, after_s=3.0)  # 1 is gone too: round to 2
+    assert due is not None and due.new_master == 2
+    assert seq.takeover_due(13.0, set(), seen, after_s=3.0) is None  # nobody to take it
+    assert seq.takeover_due(99.0, {1, 2}, seen, after_s=0.0) is None  # turned off
+    serve(seq, 0, 1, 1)
+    record = seq.switch(1, "lost", now=13.0, takeover=True, lost_at=10.0)
+    assert (record.kind, record.epoch, record.lost_at) == ("takeover", 2, 10.0)
+    assert seq.pending[0].takeover
+    # The fenced master's requests are refused saying so.
+    error = refused(seq, 0, 1, 2)
+    assert ("baton-takeover", "1") in error.metadata
+
+
+def test_a_handover_whose_old_master_dies_before_its_log_left_is_granted_again() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    serve(seq, 0, 1, 1)
+    seq.switch(1, "script", now=20.0)  # cooperative: 1 waits for 0's log
+    seen = {0: 20.5, 1: 30.0, 2: 30.0}
+    assert seq.takeover_due(23.0, {1, 2}, seen, after_s=3.0) is None
+    due = seq.takeover_due(23.5, {1, 2}, seen, after_s=3.0)
+    assert due is not None and (due.new_master, due.lost) == (1, 0)
+    record = seq.switch(1, "lost", now=23.5, takeover=True, lost_at=due.lost_at)
+    assert (record.old_master, record.new_master, record.epoch) == (0, 1, 3)
+    assert seq.pending[0].takeover and seq.pending[0].epoch == 3
+    # Once the new master has sent a request, a handover is not re-granted.
+    seq2 = Sequencer([0, 1], initial_master=0)
+    serve(seq2, 0, 1, 1)
+    seq2.switch(1, "script", now=1.0)
+    seq2.note_request(1, received_at=1.5)
+    assert seq2.takeover_due(9.0, {1}, {0: 1.0, 1: 9.0}, after_s=3.0) is None
+
+
+def test_replies_above_the_masters_watermark_are_retained_past_the_window() -> None:
+    seq = Sequencer([0, 1], initial_master=0, cache_window=2)
+    for reqnr in range(1, 7):
+        serve(seq, 0, 1, reqnr)
+    assert seq.cache.reqnrs == [1, 2, 3, 4, 5, 6]
+    assert seq.admit(0, 1, 7, GET, DIGEST, watermark=4) is None
+    assert seq.cache.reqnrs == [5, 6]
+    assert seq.admit(0, 1, 7, GET, DIGEST, watermark=99) is None  # capped at what was served
+    assert seq.cache.watermark == 6

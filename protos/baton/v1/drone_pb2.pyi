@@ -35,6 +35,7 @@ class InvokeRequest(_message.Message):
     METHOD_FIELD_NUMBER: _builtins.int
     PAYLOAD_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
+    WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The calling controller's id."""
     reqnr: _builtins.int
@@ -49,6 +50,12 @@ class InvokeRequest(_message.Message):
     """The epoch of the caller's mastership, from its Connect stream's
     Connected event (1 for the initial master, one more at every switch).
     """
+    watermark_reqnr: _builtins.int
+    """The replication watermark: the highest request number every
+    reachable controller is known to hold (0: none known). The drone keeps
+    every reply above it, so that a master taking over without the old
+    one's log gets them again; it never goes down.
+    """
     def __init__(
         self,
         *,
@@ -57,10 +64,11 @@ class InvokeRequest(_message.Message):
         method: _builtins.str = ...,
         payload: _builtins.bytes = ...,
         epoch: _builtins.int = ...,
+        watermark_reqnr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "epoch", b"epoch", "method", b"method", "payload", b"payload", "reqnr", b"reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "epoch", b"epoch", "method", b"method", "payload", b"payload", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -195,6 +203,7 @@ class HandoverNotice(_message.Message):
     AFTER_REQNR_FIELD_NUMBER: _builtins.int
     ENDED_EPOCH_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
+    TAKEOVER_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """The controller that was master."""
     new_master: _builtins.int
@@ -205,6 +214,12 @@ class HandoverNotice(_message.Message):
     """The epoch of the mastership that ended (the old master's)."""
     epoch: _builtins.int
     """The new master's epoch."""
+    takeover: _builtins.bool
+    """The mastership was taken over (the old master lost, or an operator's
+    takeover): its unflushed log is not wanted; the new master got those
+    replies from the drone. The old master drops what it has beyond the
+    ring and rejoins as a replica.
+    """
     def __init__(
         self,
         *,
@@ -213,14 +228,129 @@ class HandoverNotice(_message.Message):
         after_reqnr: _builtins.int = ...,
         ended_epoch: _builtins.int = ...,
         epoch: _builtins.int = ...,
+        takeover: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "ended_epoch", b"ended_epoch", "epoch", b"epoch", "new_master", b"new_master", "old_master", b"old_master"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "ended_epoch", b"ended_epoch", "epoch", b"epoch", "new_master", b"new_master", "old_master", b"old_master", "takeover", b"takeover"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___HandoverNotice: _TypeAlias = HandoverNotice  # noqa: Y015
+
+@_typing.final
+class StandbyRequest(_message.Message):
+    """Hold a standby stream."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    CONTROLLER_ID_FIELD_NUMBER: _builtins.int
+    controller_id: _builtins.int
+    """The controller's id; must be a known controller."""
+    def __init__(
+        self,
+        *,
+        controller_id: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___StandbyRequest: _TypeAlias = StandbyRequest  # noqa: Y015
+
+@_typing.final
+class StandbyEvent(_message.Message):
+    """An event on a standby stream."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    HELD_FIELD_NUMBER: _builtins.int
+    TAKE_OVER_FIELD_NUMBER: _builtins.int
+    @_builtins.property
+    def held(self) -> Global___StandbyHeld:
+        """Sent first: the stream is held."""
+
+    @_builtins.property
+    def take_over(self) -> Global___TakeOver:
+        """This controller is master now by takeover: open Connect."""
+
+    def __init__(
+        self,
+        *,
+        held: Global___StandbyHeld | None = ...,
+        take_over: Global___TakeOver | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["event", b"event", "held", b"held", "take_over", b"take_over"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["event", b"event", "held", b"held", "take_over", b"take_over"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType_event: _TypeAlias = _typing.Literal["held", "take_over"]  # noqa: Y015
+    _WhichOneofArgType_event: _TypeAlias = _typing.Literal["event", b"event"]  # noqa: Y015
+    def WhichOneof(self, oneof_group: _WhichOneofArgType_event) -> _WhichOneofReturnType_event | None: ...
+
+Global___StandbyEvent: _TypeAlias = StandbyEvent  # noqa: Y015
+
+@_typing.final
+class StandbyHeld(_message.Message):
+    """The standby stream is held."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    MASTER_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
+    master: _builtins.int
+    """The master now."""
+    epoch: _builtins.int
+    """Its epoch."""
+    def __init__(
+        self,
+        *,
+        master: _builtins.int = ...,
+        epoch: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "master", b"master"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___StandbyHeld: _TypeAlias = StandbyHeld  # noqa: Y015
+
+@_typing.final
+class TakeOver(_message.Message):
+    """The drone made this controller master without the old master's log."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    OLD_MASTER_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
+    AFTER_REQNR_FIELD_NUMBER: _builtins.int
+    WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
+    old_master: _builtins.int
+    """The master that was lost."""
+    epoch: _builtins.int
+    """The epoch granted."""
+    after_reqnr: _builtins.int
+    """The last request number the drone served."""
+    watermark_reqnr: _builtins.int
+    """The replication watermark then: the drone holds every reply above it."""
+    def __init__(
+        self,
+        *,
+        old_master: _builtins.int = ...,
+        epoch: _builtins.int = ...,
+        after_reqnr: _builtins.int = ...,
+        watermark_reqnr: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "epoch", b"epoch", "old_master", b"old_master", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___TakeOver: _TypeAlias = TakeOver  # noqa: Y015
 
 @_typing.final
 class HandoverRequest(_message.Message):
@@ -229,16 +359,20 @@ class HandoverRequest(_message.Message):
     DESCRIPTOR: _descriptor.Descriptor
 
     NEW_MASTER_FIELD_NUMBER: _builtins.int
+    TAKEOVER_FIELD_NUMBER: _builtins.int
     new_master: _builtins.int
     """The new master's controller id; must be a known controller."""
+    takeover: _builtins.bool
+    """Take over: do not wait for the old master's log (it is gone)."""
     def __init__(
         self,
         *,
         new_master: _builtins.int = ...,
+        takeover: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["new_master", b"new_master"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["new_master", b"new_master", "takeover", b"takeover"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -362,6 +496,8 @@ class HandoverRecord(_message.Message):
     DELAY_S_FIELD_NUMBER: _builtins.int
     TRIGGER_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
+    KIND_FIELD_NUMBER: _builtins.int
+    LOST_AT_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """Master before."""
     new_master: _builtins.int
@@ -375,9 +511,20 @@ class HandoverRecord(_message.Message):
     delay_s: _builtins.float
     """first_request_at - decided_at, seconds; the handover delay. 0 until known."""
     trigger: _builtins.str
-    """What triggered it: "script" (the handover file) or "rpc"."""
+    """What triggered it: "script" (the handover file), "rpc" (the Handover
+    call) or "lost" (the drone lost the master: a takeover).
+    """
     epoch: _builtins.int
     """The epoch the new master was granted."""
+    kind: _builtins.str
+    """"cooperative" (the old master sends its log, the paper's handover) or
+    "takeover" (the old master lost; the new master learns the tail from
+    the drone's retained replies).
+    """
+    lost_at: _builtins.float
+    """For a master lost: when the drone last saw it (its stream or a request);
+    decided_at - lost_at is the detection time.
+    """
     def __init__(
         self,
         *,
@@ -389,10 +536,12 @@ class HandoverRecord(_message.Message):
         delay_s: _builtins.float = ...,
         trigger: _builtins.str = ...,
         epoch: _builtins.int = ...,
+        kind: _builtins.str = ...,
+        lost_at: _builtins.float = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "new_master", b"new_master", "old_master", b"old_master", "trigger", b"trigger"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "trigger", b"trigger"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -422,6 +571,11 @@ class DroneStatus(_message.Message):
     EPOCH_FIELD_NUMBER: _builtins.int
     AUDIT_MORE_FIELD_NUMBER: _builtins.int
     AUDIT_OLDEST_REQNR_FIELD_NUMBER: _builtins.int
+    WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
+    RETAINED_REPLIES_FIELD_NUMBER: _builtins.int
+    RETAINED_BYTES_FIELD_NUMBER: _builtins.int
+    REACHABLE_FIELD_NUMBER: _builtins.int
+    TAKEOVER_AFTER_S_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -456,6 +610,13 @@ class DroneStatus(_message.Message):
     entry is on disk, else older ones are dropped (the counters still
     count them).
     """
+    watermark_reqnr: _builtins.int
+    """The replication watermark the master last sent."""
+    retained_replies: _builtins.int
+    """Replies kept above the watermark (for a takeover), and their bytes."""
+    retained_bytes: _builtins.int
+    takeover_after_s: _builtins.float
+    """The master is lost after this long without a stream or a request."""
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
         """The vehicle's latest position (zero if unknown)."""
@@ -482,6 +643,10 @@ class DroneStatus(_message.Message):
     def vehicle(self) -> Global___VehicleLink:
         """The link to the autopilot: heartbeats, telemetry age, outages."""
 
+    @_builtins.property
+    def reachable(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
+        """Controllers holding a standby stream now (reachable), in ring order."""
+
     def __init__(
         self,
         *,
@@ -503,10 +668,15 @@ class DroneStatus(_message.Message):
         epoch: _builtins.int = ...,
         audit_more: _builtins.bool = ...,
         audit_oldest_reqnr: _builtins.int = ...,
+        watermark_reqnr: _builtins.int = ...,
+        retained_replies: _builtins.int = ...,
+        retained_bytes: _builtins.int = ...,
+        reachable: _abc.Iterable[_builtins.int] | None = ...,
+        takeover_after_s: _builtins.float = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "rejected", b"rejected", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -45,6 +45,11 @@ class DroneStub:
                 request_serializer=baton_dot_v1_dot_drone__pb2.ConnectRequest.SerializeToString,
                 response_deserializer=baton_dot_v1_dot_drone__pb2.DroneEvent.FromString,
                 _registered_method=True)
+        self.Standby = channel.unary_stream(
+                '/baton.v1.Drone/Standby',
+                request_serializer=baton_dot_v1_dot_drone__pb2.StandbyRequest.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_drone__pb2.StandbyEvent.FromString,
+                _registered_method=True)
         self.Handover = channel.unary_unary(
                 '/baton.v1.Drone/Handover',
                 request_serializer=baton_dot_v1_dot_drone__pb2.HandoverRequest.SerializeToString,
@@ -93,9 +98,25 @@ class DroneServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Standby(self, request, context):
+        """The stream every controller holds while it runs, master or not
+        (docs/design.md, "Takeover"). The drone counts a controller whose
+        stream is up as reachable; when the master is lost (no stream of its
+        own and no request for the takeover time), it makes the first reachable
+        controller after it in ring order master in a new epoch and says so
+        here (TakeOver); that controller then opens Connect. The first event
+        says who is master now. INVALID_ARGUMENT for an unknown controller id.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def Handover(self, request, context):
         """Switches the master after the request being served (if any) completes.
-        INVALID_ARGUMENT for an unknown controller id.
+        INVALID_ARGUMENT for an unknown controller id. With takeover set, the
+        old master is not asked for its log: the new master learns what it
+        lacks from the drone's retained replies (use it when the old master is
+        gone; the drone does it by itself after the takeover time).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -120,6 +141,11 @@ def add_DroneServicer_to_server(servicer, server):
                     servicer.Connect,
                     request_deserializer=baton_dot_v1_dot_drone__pb2.ConnectRequest.FromString,
                     response_serializer=baton_dot_v1_dot_drone__pb2.DroneEvent.SerializeToString,
+            ),
+            'Standby': grpc.unary_stream_rpc_method_handler(
+                    servicer.Standby,
+                    request_deserializer=baton_dot_v1_dot_drone__pb2.StandbyRequest.FromString,
+                    response_serializer=baton_dot_v1_dot_drone__pb2.StandbyEvent.SerializeToString,
             ),
             'Handover': grpc.unary_unary_rpc_method_handler(
                     servicer.Handover,
@@ -187,6 +213,33 @@ class Drone:
             '/baton.v1.Drone/Connect',
             baton_dot_v1_dot_drone__pb2.ConnectRequest.SerializeToString,
             baton_dot_v1_dot_drone__pb2.DroneEvent.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Standby(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/baton.v1.Drone/Standby',
+            baton_dot_v1_dot_drone__pb2.StandbyRequest.SerializeToString,
+            baton_dot_v1_dot_drone__pb2.StandbyEvent.FromString,
             options,
             channel_credentials,
             insecure,

@@ -62,9 +62,21 @@ class DroneStub:
     connection is up (its set-up time is T_conn); a HandoverNotice follows
     when the drone switches masters, and the stream then ends.
     """
+    Standby: _grpc.UnaryStreamMultiCallable[_drone_pb2.StandbyRequest, _drone_pb2.StandbyEvent]
+    """The stream every controller holds while it runs, master or not
+    (docs/design.md, "Takeover"). The drone counts a controller whose
+    stream is up as reachable; when the master is lost (no stream of its
+    own and no request for the takeover time), it makes the first reachable
+    controller after it in ring order master in a new epoch and says so
+    here (TakeOver); that controller then opens Connect. The first event
+    says who is master now. INVALID_ARGUMENT for an unknown controller id.
+    """
     Handover: _grpc.UnaryUnaryMultiCallable[_drone_pb2.HandoverRequest, _drone_pb2.HandoverReply]
     """Switches the master after the request being served (if any) completes.
-    INVALID_ARGUMENT for an unknown controller id.
+    INVALID_ARGUMENT for an unknown controller id. With takeover set, the
+    old master is not asked for its log: the new master learns what it
+    lacks from the drone's retained replies (use it when the old master is
+    gone; the drone does it by itself after the takeover time).
     """
     GetStatus: _grpc.UnaryUnaryMultiCallable[_drone_pb2.GetDroneStatusRequest, _drone_pb2.DroneStatus]
     """The drone's state, counters and command audit."""
@@ -98,9 +110,21 @@ class DroneAsyncStub(DroneStub):
     connection is up (its set-up time is T_conn); a HandoverNotice follows
     when the drone switches masters, and the stream then ends.
     """
+    Standby: _aio.UnaryStreamMultiCallable[_drone_pb2.StandbyRequest, _drone_pb2.StandbyEvent]  # type: ignore[assignment]
+    """The stream every controller holds while it runs, master or not
+    (docs/design.md, "Takeover"). The drone counts a controller whose
+    stream is up as reachable; when the master is lost (no stream of its
+    own and no request for the takeover time), it makes the first reachable
+    controller after it in ring order master in a new epoch and says so
+    here (TakeOver); that controller then opens Connect. The first event
+    says who is master now. INVALID_ARGUMENT for an unknown controller id.
+    """
     Handover: _aio.UnaryUnaryMultiCallable[_drone_pb2.HandoverRequest, _drone_pb2.HandoverReply]  # type: ignore[assignment]
     """Switches the master after the request being served (if any) completes.
-    INVALID_ARGUMENT for an unknown controller id.
+    INVALID_ARGUMENT for an unknown controller id. With takeover set, the
+    old master is not asked for its log: the new master learns what it
+    lacks from the drone's retained replies (use it when the old master is
+    gone; the drone does it by itself after the takeover time).
     """
     GetStatus: _aio.UnaryUnaryMultiCallable[_drone_pb2.GetDroneStatusRequest, _drone_pb2.DroneStatus]  # type: ignore[assignment]
     """The drone's state, counters and command audit."""
@@ -145,13 +169,31 @@ class DroneServicer(metaclass=_abc_1.ABCMeta):
         """
 
     @_abc_1.abstractmethod
+    def Standby(
+        self,
+        request: _drone_pb2.StandbyRequest,
+        context: _ServicerContext,
+    ) -> _typing.Union[_abc.Iterator[_drone_pb2.StandbyEvent], _abc.AsyncIterator[_drone_pb2.StandbyEvent]]:
+        """The stream every controller holds while it runs, master or not
+        (docs/design.md, "Takeover"). The drone counts a controller whose
+        stream is up as reachable; when the master is lost (no stream of its
+        own and no request for the takeover time), it makes the first reachable
+        controller after it in ring order master in a new epoch and says so
+        here (TakeOver); that controller then opens Connect. The first event
+        says who is master now. INVALID_ARGUMENT for an unknown controller id.
+        """
+
+    @_abc_1.abstractmethod
     def Handover(
         self,
         request: _drone_pb2.HandoverRequest,
         context: _ServicerContext,
     ) -> _typing.Union[_drone_pb2.HandoverReply, _abc.Awaitable[_drone_pb2.HandoverReply]]:
         """Switches the master after the request being served (if any) completes.
-        INVALID_ARGUMENT for an unknown controller id.
+        INVALID_ARGUMENT for an unknown controller id. With takeover set, the
+        old master is not asked for its log: the new master learns what it
+        lacks from the drone's retained replies (use it when the old master is
+        gone; the drone does it by itself after the takeover time).
         """
 
     @_abc_1.abstractmethod

@@ -43,18 +43,40 @@ class ControllerApp:
         names = [f"baton.v1.{name}" for name in PROXIED_SERVICES] + ["baton.v1.ControllerRing"]
         self.server = BatonServer(config.controller(cid).address, names)
         self.server.server.add_generic_rpc_handlers((DroneApiProxy(self.node, self.token),))
-        ring_pb2_grpc.add_ControllerRingServicer_to_server(
-            ControllerRingService(self.node, self.token), self.server.server
-        )
+        self.ring_service = ControllerRingService(self.node, self.token)
+        ring_pb2_grpc.add_ControllerRingServicer_to_server(self.ring_service, self.server.server)
         self.mission = mission
         self.mission_args = mission_args or []
         self.mission_process: asyncio.subprocess.Process | None = None
         self._watcher: asyncio.Task[None] | None = None
+        self.node.on_rejoin = self.rejoin
 
     async def start(self) -> None:
         """Serves, starts the protocol, and launches the mission program if there is one."""
         await self.server.start()
         await self.node.start()
+        await self._launch()
+
+    async def rejoin(self) -> None:
+        """After a takeover fenced us: the program stops, the node resets, the program restarts.
+
+        The program had run ahead of the ring on replies that the new master
+        logs in messages of its own: it replays them from the ring instead.
+        """
+        await self._stop_mission()
+        await self.node.reset()
+        self.ring_service.receiver.drop_streams()
+        await self._launch()
+
+    async def _stop_mission(self) -> None:
+        if self._watcher is not None:
+            self._watcher.cancel()
+            self._watcher = None
+        if self.mission_process is not None and self.mission_process.returncode is None:
+            self.mission_process.terminate()
+            await self.mission_process.wait()
+
+    async def _launch(self) -> None:
         if self.mission:
             self.mission_process = await asyncio.create_subprocess_exec(
                 sys.executable,
@@ -76,9 +98,7 @@ class ControllerApp:
 
     async def stop(self) -> None:
         """Stops the mission program, the node and the server."""
-        if self.mission_process is not None and self.mission_process.returncode is None:
-            self.mission_process.terminate()
-            await self.mission_process.wait()
+        await self._stop_mission()
         await self.node.stop()
         await self.server.stop()
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -34,6 +35,8 @@ class DroneRefusal:
     master: int
     epoch: int
     after_reqnr: int
+    # The refused controller's mastership was taken over (``baton-takeover``).
+    taken_over: bool = False
 
 
 def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
@@ -48,6 +51,7 @@ def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
         int(str(master)),
         int(str(metadata.get("baton-epoch", "0"))),
         int(str(metadata.get("baton-after-reqnr", "0"))),
+        str(metadata.get("baton-takeover", "")) == "1",
     )
 
 
@@ -57,8 +61,8 @@ class DroneEvents(Protocol):
     def granted(self, epoch: int) -> None:
         """Connected: the drone holds this controller as master in ``epoch``."""
 
-    def notice(self, new_master: int, after_reqnr: int, epoch: int) -> None:
-        """A handover notice on the stream (the stream then ends); ``epoch`` is the new one."""
+    def notice(self, notice: drone_pb2.HandoverNotice) -> None:
+        """A handover notice on the stream (the stream then ends)."""
 
     def refused(self, refusal: DroneRefusal) -> None:
         """Connect refused: another controller is master, and no notice is owed to this one."""
@@ -108,8 +112,7 @@ class DroneSession:
                         )
                         self._events_to.granted(self.epoch)
                     elif event.HasField("handover"):
-                        notice = event.handover
-                        self._events_to.notice(notice.new_master, notice.after_reqnr, notice.epoch)
+                        self._events_to.notice(event.handover)
                         return
                 raise ConnectionError("drone ended the Connect stream without a handover notice")
             except asyncio.CancelledError:
@@ -129,7 +132,12 @@ class DroneSession:
             backoff = min(backoff * 2, 1.0)
 
     async def invoke(
-        self, reqnr: int, method: str, payload: bytes, timeout_s: float | None = None
+        self,
+        reqnr: int,
+        method: str,
+        payload: bytes,
+        timeout_s: float | None = None,
+        watermark_reqnr: int = 0,
     ) -> drone_pb2.InvokeReply:
         """Sends request ``reqnr`` in this session's epoch; raises grpc.aio.AioRpcError.
 
@@ -142,6 +150,7 @@ class DroneSession:
             method=method,
             payload=payload,
             epoch=self.epoch,
+            watermark_reqnr=watermark_reqnr,
         )
         reply: drone_pb2.InvokeReply = await self._stub.Invoke(
             request, wait_for_ready=True, timeout=timeout_s
@@ -159,3 +168,68 @@ class DroneSession:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._events
         await self._channel.close(grace=CLOSE_GRACE_S)
+
+
+class DroneStandby:
+    """The standby stream a controller holds to the drone for as long as it runs.
+
+    It is how the drone knows the controller is reachable, and where a
+    TakeOver comes (``on_take_over``). Re-opened with back-off when it
+    breaks; ``up`` says whether it is open now.
+    """
+
+    def __init__(
+        self,
+        controller_id: int,
+        address: str,
+        on_take_over: Callable[[drone_pb2.TakeOver], Awaitable[None]],
+        log: BoundLogger,
+    ) -> None:
+        self.controller_id = controller_id
+        self.address = address
+        self._on_take_over = on_take_over
+        self._log = log
+        self.up = False
+        self._task: asyncio.Task[None] | None = None
+
+    def start(self) -> None:
+        """Starts holding the stream."""
+        if self._task is None:
+            self._task = asyncio.create_task(self._hold(), name="drone-standby")
+
+    async def _hold(self) -> None:
+        backoff = 0.05
+        async with aio_channel(self.address) as channel:
+            stub = drone_pb2_grpc.DroneStub(channel)
+            while True:
+                try:
+                    call = stub.Standby(
+                        drone_pb2.StandbyRequest(controller_id=self.controller_id),
+                        wait_for_ready=True,
+                    )
+                    async for event in call:
+                        if event.HasField("held"):
+                            self.up, backoff = True, 0.05
+                        elif event.HasField("take_over"):
+                            await self._on_take_over(event.take_over)
+                except asyncio.CancelledError:
+                    raise
+                except grpc.aio.AioRpcError as exc:
+                    if self.up:
+                        self._log.warning(
+                            "standby stream to the drone down; reconnecting",
+                            code=exc.code().name,
+                            detail=exc.details(),
+                        )
+                self.up = False
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, 1.0)
+
+    async def stop(self) -> None:
+        """Stops holding it."""
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+        self.up = False

@@ -69,6 +69,12 @@ class LogHistory:
         """Closes the file (a temporary one is gone with it)."""
         self._db.close()
 
+    def clear(self) -> None:
+        """Forgets every message (a controller fenced by a takeover rejoins with nothing)."""
+        self._db.execute("DELETE FROM messages")
+        self._lognrs.clear()
+        self._held = SeenNumbers()
+
     def __contains__(self, lognr: object) -> bool:
         return lognr in self._lognrs
 

@@ -24,13 +24,14 @@ import grpc
 
 from baton.config import BatonConfig
 from baton.controller.clock import MissionClock
-from baton.controller.drone_link import DroneRefusal, DroneSession, refusal_of
+from baton.controller.drone_link import DroneRefusal, DroneSession, DroneStandby, refusal_of
 from baton.controller.history import LogHistory
 from baton.controller.protocol import (
     ConnectDrone,
     ControllerProtocol,
     DisconnectDrone,
     Effect,
+    Fenced,
     NonDeterminismError,
     ProtocolError,
     Refusal,
@@ -44,7 +45,7 @@ from baton.logs import get_logger
 from baton.rpc.errors import StatusError
 from baton.stalls import StallWatch
 from baton.v1 import drone_api_pb2 as api
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 CLOCK_SERVICE = "/baton.v1.Clock/"
 CLOCK_SLEEP = "/baton.v1.Clock/Sleep"
@@ -103,7 +104,10 @@ class Retry:
 class HandoverEvent:
     """A handover as this controller saw it, for the status and the report."""
 
-    role: str  # "old" (we handed over) or "new" (we took over)
+    # "old" (we handed over), "new" (a handover message made us master),
+    # "taker" (the drone made us master by takeover), "fenced" (our
+    # mastership was taken over: we rejoined as a replica).
+    role: str
     peer: int
     lognr: int
     reqnr: int
@@ -145,6 +149,18 @@ class ControllerNode:
         self._drone_calls = 0
         self.handovers: list[HandoverEvent] = []
         self.t_conn_s: list[float] = []
+        # The standby stream: the drone's way to reach us for a takeover.
+        self._standby = DroneStandby(
+            cid, config.drone_address_for(cid), self.on_take_over, self.log
+        )
+        self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
+        self.fenced_messages = 0  # log messages dropped from a fenced master
+        # Bumped when the controller rejoins after being fenced: calls of the
+        # mission program from before then are refused, not answered.
+        self.incarnation = 0
+        self._rejoining = False
+        # Set by the app: stops the mission program, resets, starts it again.
+        self.on_rejoin: Callable[[], Coroutine[Any, Any, None]] | None = None
 
     def _log_context(self) -> dict[str, object]:
         p = self.protocol
@@ -156,6 +172,7 @@ class ControllerNode:
         """Recovers the log file, opens the stream to the successor, asks the drone."""
         self._recover()
         self.peer(self.protocol.successor).start()
+        self._standby.start()
         await self._apply(self.protocol.start())
         self._watchdog = asyncio.create_task(self._watch(), name="stall-watchdog")
         self.log.info("controller started; asking the drone who the master is")
@@ -203,6 +220,11 @@ class ControllerNode:
         drone = self._drone
         if drone is not None and not drone.connected.is_set():
             holding["drone"] = f"no Connect stream to the drone at {drone.address}"
+        if not self._standby.up:
+            holding["standby"] = (
+                f"no standby stream to the drone at {self._standby.address}: the drone "
+                "cannot make this controller master if the master is lost"
+            )
         if p.master and not p.caught_up:
             holding["catch-up"] = (
                 f"master by the drone's word (epoch {p.epoch}) but catching up with the ring: "
@@ -239,12 +261,44 @@ class ControllerNode:
             self._watchdog.cancel()
         if self._settler is not None:
             self._settler.cancel()
+        await self._standby.stop()
         if self._drone is not None:
             await self._drone.close()
             self._drone = None
         for link in self._peers.values():
             await link.stop()
         self.history.close()
+
+    async def reset(self) -> None:
+        """Forgets the log and the mission's progress and starts over as a replica.
+
+        For a controller whose mastership the drone took over: what it
+        logged and flushed beyond what left it is not the ring's (the new
+        master got those replies from the drone, framed in its own log
+        messages), so it keeps nothing and catches up from its predecessor
+        like a controller restarted with nothing. Its mission program must
+        be restarted with it (``on_rejoin``).
+        """
+        self.incarnation += 1
+        await self._close_drone()
+        for link in self._peers.values():
+            await link.stop()
+        self._peers = {}
+        self.history.clear()
+        self.protocol = ControllerProtocol(self.id, self.config.ring_order, self.config.flush_limit)
+        if self._settler is not None:
+            self._settler.cancel()
+            self._settler = None
+        self._abandoned.clear()
+        self.mission, self.mission_error = "none", ""
+        self._failure = None
+        self._drone_wait, self._in_flight, self._busy = "", None, None
+        self._reply_chain = hashlib.sha256()
+        self._drone_calls = 0
+        self._takeover_epoch = 0
+        self.peer(self.protocol.successor).start()
+        await self._apply(self.protocol.start())
+        self.log.info("rejoined as a replica with nothing; catching up from the ring")
 
     def peer(self, pid: int) -> PeerLink:
         """The kept stream to controller ``pid``, created on first use."""
@@ -293,6 +347,7 @@ class ControllerNode:
                     # before then could overtake it, and the new master would
                     # take the copy for a normal message (simulation finding F7).
                     self.history.add(effect.message)
+                    self.peer(self.protocol.successor).holds_changed()
                 self.peer(effect.dest).send(effect.message)
                 self.log.debug(
                     "log message sent",
@@ -305,6 +360,15 @@ class ControllerNode:
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
                 await self._close_drone()
+            elif isinstance(effect, Fenced):
+                self.fenced_messages += 1
+                self.log.warning(
+                    "log message from a fenced master dropped",
+                    mlognr=effect.lognr,
+                    origin=effect.origin,
+                    message_epoch=effect.epoch,
+                    epoch=self.protocol.epoch,
+                )
             elif isinstance(effect, TookOver):
                 self.handovers.append(
                     HandoverEvent(
@@ -344,19 +408,79 @@ class ControllerNode:
         if session is not self._drone:
             return  # a session closed meanwhile
         was_active = self.protocol.state is State.ACTIVE
-        effects = self.protocol.on_granted(epoch)
+        takeover = epoch == self._takeover_epoch
+        effects = self.protocol.on_granted(epoch, takeover)
         if not was_active:
             self.log.info(
                 "the drone says this controller is master",
                 epoch=epoch,
+                takeover=takeover,
                 caught_up=self.protocol.caught_up,
             )
         await self._apply(effects)
+
+    async def on_take_over(self, event: drone_pb2.TakeOver) -> None:
+        """The drone made us master by takeover (standby stream): connect to learn it.
+
+        The old master's log will not come: what we lack above what we hold
+        the drone answers again from its retained replies.
+        """
+        p = self.protocol
+        self._takeover_epoch = event.epoch
+        self.handovers.append(
+            HandoverEvent("taker", event.old_master, p.lognr, p.reqnr, p.log.size)
+        )
+        self.log.warning(
+            "taking over from a lost master",
+            old_master=event.old_master,
+            epoch=event.epoch,
+            drone_after_reqnr=event.after_reqnr,
+            watermark_reqnr=event.watermark_reqnr,
+            holds_reqnr=p.held_reqnr,
+        )
+        # A session of an earlier mastership (or of the start-up question)
+        # would not carry the new epoch: connect again.
+        await self._close_drone()
+        self._open_drone()
+        self._notify()
+
+    async def _fenced(self, new_master: int, epoch: int) -> None:
+        """Our mastership was taken over: stop acting as master, then rejoin as a replica.
+
+        The rejoin (``on_rejoin``, else ``reset``) runs as a task of its own:
+        it stops the mission program, whose call may be the caller here.
+        """
+        if self._rejoining:
+            return
+        self._rejoining = True
+        p = self.protocol
+        self.handovers.append(HandoverEvent("fenced", new_master, p.lognr, p.reqnr, p.log.size))
+        self.log.warning(
+            "fenced: the drone gave our mastership to another controller by takeover; "
+            "dropping what we hold beyond the ring and rejoining as a replica",
+            new_master=new_master,
+            epoch=epoch,
+            unflushed_entries=len(p.log),
+        )
+        await self._apply(p.on_fenced())
+        asyncio.get_running_loop().create_task(self._rejoin())
+
+    async def _rejoin(self) -> None:
+        try:
+            if self.on_rejoin is not None:
+                await self.on_rejoin()
+            else:
+                await self.reset()
+        finally:
+            self._rejoining = False
 
     async def on_connect_refused(self, session: DroneSession, refusal: DroneRefusal) -> None:
         """Connect refused: another controller is master, and no notice is owed to us."""
         if session is not self._drone:
             return  # a session closed meanwhile
+        if refusal.taken_over:
+            await self._fenced(refusal.master, refusal.epoch)
+            return
         if self.protocol.state is not State.ACTIVE:
             self.log.info("not the master", master=refusal.master, epoch=refusal.epoch)
             await self._close_drone()
@@ -372,13 +496,16 @@ class ControllerNode:
         await self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
 
     async def on_stream_notice(
-        self, session: DroneSession, new_master: int, after_reqnr: int, epoch: int
+        self, session: DroneSession, notice: drone_pb2.HandoverNotice
     ) -> None:
         """A handover notice on the Connect stream (the drone owes at most one, the latest)."""
         if session is not self._drone:
             return
+        if notice.takeover:
+            await self._fenced(notice.new_master, notice.epoch)
+            return
         if self.protocol.state is State.ACTIVE:
-            await self.on_handover_notice(new_master, after_reqnr, epoch)
+            await self.on_handover_notice(notice.new_master, notice.after_reqnr, notice.epoch)
             return
         await self._close_drone()  # a notice for a mastership we no longer hold
 
@@ -411,13 +538,15 @@ class ControllerNode:
 
     async def on_log(self, message: ring_pb2.LogMessage) -> None:
         """A log message from the ring or from an old master (lines 30-47)."""
-        self.history.add(message)
         try:
             effects = self.protocol.on_log(message)
         except ProtocolError as exc:
+            self._held(message)
             self._fail(StatusError(grpc.StatusCode.INTERNAL, f"controller {self.id}: {exc}"))
             await self._apply(exc.effects)  # still forward it: the replicas after us go on
             return
+        if not any(isinstance(effect, Fenced) for effect in effects):
+            self._held(message)
         self.log.debug(
             "log message received",
             mlognr=message.lognr,
@@ -427,6 +556,13 @@ class ControllerNode:
             entries=len(message.entries),
         )
         await self._apply(effects)
+
+    def _held(self, message: ring_pb2.LogMessage) -> None:
+        """Keeps a received message in the history; the successor's link says what we hold."""
+        self.history.add(message)
+        link = self._peers.get(self.protocol.successor)
+        if link is not None:
+            link.holds_changed()
 
     async def mission_done(self, failed: bool, error: str) -> bool:
         """The local mission program ended; the master flushes its last entries."""
@@ -482,17 +618,20 @@ class ControllerNode:
                 "a mission program makes one drone call at a time",
             )
         self._busy = method
+        incarnation = self.incarnation
         try:
             if self.mission == "none":
                 self.mission = "running"
             try:
                 await self._settle_abandoned()
             except asyncio.CancelledError:
-                self._abandoned.append((method, request, gave_up()))
+                if incarnation == self.incarnation:
+                    self._abandoned.append((method, request, gave_up()))
                 raise
-            return await self._answer(method, request, gave_up)
+            return await self._answer(method, request, gave_up, incarnation)
         finally:
-            self._busy = None
+            if incarnation == self.incarnation:
+                self._busy = None
 
     async def _settle_abandoned(self) -> None:
         """Gives the log's entry to a call the program gave up on while this controller waited.
@@ -547,10 +686,24 @@ class ControllerNode:
             + hashlib.sha256(entry.reply).digest()
         )
 
+    def _check_incarnation(self, incarnation: int) -> None:
+        """ABORTED for a call of the mission program from before a rejoin."""
+        if incarnation != self.incarnation:
+            raise StatusError(
+                grpc.StatusCode.ABORTED,
+                f"controller {self.id} rejoined as a replica after a takeover: its mission "
+                "program is restarted, and this call of the one before is not answered",
+            )
+
     async def _answer(
-        self, method: str, request: bytes, gave_up: Callable[[], grpc.StatusCode]
+        self,
+        method: str,
+        request: bytes,
+        gave_up: Callable[[], grpc.StatusCode],
+        incarnation: int,
     ) -> ring_pb2.LogEntry:
         while True:
+            self._check_incarnation(incarnation)
             if self._failure is not None:
                 raise self._failure
             state = self.protocol.state
@@ -564,7 +717,8 @@ class ControllerNode:
             try:
                 await self._changed.wait()
             except asyncio.CancelledError:
-                self._abandoned.append((method, request, gave_up()))
+                if incarnation == self.incarnation:
+                    self._abandoned.append((method, request, gave_up()))
                 raise
 
     async def _replay(self, method: str, request: bytes) -> ring_pb2.LogEntry:
@@ -668,7 +822,13 @@ class ControllerNode:
             try:
                 self._in_flight = (reqnr, method)
                 budget = max(1.0, retry.limit_s - retry.waited())
-                reply = await drone.invoke(reqnr, method, request, timeout_s=budget)
+                reply = await drone.invoke(
+                    reqnr,
+                    method,
+                    request,
+                    timeout_s=budget,
+                    watermark_reqnr=self.protocol.watermark_reqnr,
+                )
                 return ring_pb2.LogEntry(
                     reqnr=reqnr,
                     method=method,
@@ -690,6 +850,8 @@ class ControllerNode:
                                 f"({method}): {exc.details()}",
                             )
                         )
+                    elif verdict is Refusal.HANDED_OVER and refusal.taken_over:
+                        await self._fenced(refusal.master, refusal.epoch)
                     elif verdict is Refusal.HANDED_OVER:
                         await self.on_handover_notice(
                             refusal.master, refusal.after_reqnr, refusal.epoch
@@ -769,9 +931,9 @@ class _SessionEvents:
         assert self.session is not None
         self._run(self._node.on_granted(self.session, epoch))
 
-    def notice(self, new_master: int, after_reqnr: int, epoch: int) -> None:
+    def notice(self, notice: drone_pb2.HandoverNotice) -> None:
         assert self.session is not None
-        self._run(self._node.on_stream_notice(self.session, new_master, after_reqnr, epoch))
+        self._run(self._node.on_stream_notice(self.session, notice))
 
     def refused(self, refusal: DroneRefusal) -> None:
         assert self.session is not None

@@ -58,7 +58,16 @@ class TookOver:
     message_bytes: int
 
 
-Effect = SendLog | ConnectDrone | DisconnectDrone | TookOver
+@dataclass(frozen=True)
+class Fenced:
+    """Effect (bookkeeping only): a log message from a master the drone has fenced, dropped."""
+
+    lognr: int
+    origin: int
+    epoch: int
+
+
+Effect = SendLog | ConnectDrone | DisconnectDrone | TookOver | Fenced
 
 
 class Refusal(enum.Enum):
@@ -207,6 +216,15 @@ class ControllerProtocol:
         self._received = SeenNumbers()
         self.replayed = 0
         self.invoked = 0
+        # The replication watermark (docs/design.md, "Takeover"): the highest
+        # request number every reachable controller holds. The predecessor
+        # holding log number L means every controller from us round to it
+        # holds L; ``_ends`` maps the log numbers above the watermark to the
+        # request number held once each is, so the predecessor's word
+        # becomes a request number. The master sends it on every Invoke.
+        self.held_reqnr = 0  # the highest request number this controller holds
+        self.watermark_reqnr = 0
+        self._ends: deque[tuple[int, int]] = deque()
 
     # -- lines 1-11 -------------------------------------------------------------
 
@@ -221,24 +239,43 @@ class ControllerProtocol:
 
     # -- the drone's word ---------------------------------------------------------
 
-    def on_granted(self, epoch: int) -> list[Effect]:
+    def on_granted(self, epoch: int, takeover: bool = False) -> list[Effect]:
         """The drone's Connected event: this controller is master in ``epoch``.
 
         After a handover (Algorithm 1) the controller is ACTIVE already and
         learns its epoch. Otherwise it was not made master by the log: the
-        mission's start, or a restart while the drone held it as master. It
-        becomes ACTIVE once caught up with the ring (``_drain``).
+        mission's start, a restart while the drone held it as master, or a
+        takeover. It becomes ACTIVE once caught up (``_drain``): with the
+        ring, or, in a takeover, with what it holds (its predecessor may be
+        the lost master; the drone answers every request above the
+        watermark again, and the taker, first after the lost master, holds
+        every message that left it).
         """
         self.epoch = epoch
         if self.state is State.ACTIVE:
             return []
         self.master = True
+        if takeover:
+            self.catch_up_to = max(self.catch_up_to or 0, self.holds_lognr)
         return self._drain()
 
     def on_sync(self, holds_lognr: int) -> list[Effect]:
-        """The predecessor holds every log message up to ``holds_lognr`` and sends what we lack."""
+        """The predecessor holds every log message up to ``holds_lognr`` and sends what we lack.
+
+        Also moves the watermark: every controller holds what the predecessor does.
+        """
         self.catch_up_to = max(self.catch_up_to or 0, holds_lognr)
+        while self._ends and self._ends[0][0] <= holds_lognr:
+            self.watermark_reqnr = max(self.watermark_reqnr, self._ends.popleft()[1])
         return self._drain()
+
+    def _held(self, lognr: int, reqnr: int) -> None:
+        """Log message ``lognr`` is held, and with it every request up to ``reqnr``."""
+        self.held_reqnr = max(self.held_reqnr, reqnr)
+        if len(self.ring) == 1:
+            self.watermark_reqnr = self.held_reqnr  # nobody else to hold it
+        else:
+            self._ends.append((lognr, self.held_reqnr))
 
     @property
     def holds_lognr(self) -> int:
@@ -291,7 +328,7 @@ class ControllerProtocol:
         if entry.reqnr != self.reqnr + 1:
             raise ProtocolError(f"reply for request {entry.reqnr}, expected {self.reqnr + 1}")
         self.log.append(entry)
-        self.reqnr = entry.reqnr
+        self.reqnr = self.held_reqnr = entry.reqnr
         self.invoked += 1
         if self.log.size >= self.flush_limit:
             return [self._flush()]
@@ -303,7 +340,9 @@ class ControllerProtocol:
         # flushes (which never come back to us), so it stays a few numbers. A
         # handover message does come back (footnote 3) and is forwarded then.
         self._received.add(self.lognr)
+        self._held(self.lognr, self.reqnr)
         message = self._message(self.lognr, origin=self.id, handover=False)
+        message.epoch = self.epoch  # the mastership it was logged in, for diagnosis
         return SendLog(self.successor, message)
 
     def _message(self, lognr: int, origin: int, handover: bool) -> ring_pb2.LogMessage:
@@ -343,9 +382,23 @@ class ControllerProtocol:
             raise ProtocolError(f"handover notice names controller {new_master}")
         self.state, self.master = State.PASSIVE, False
         self.lognr += 1
+        self._held(self.lognr, self.reqnr)
         message = self._message(self.lognr, origin=new_master, handover=True)
         message.epoch = epoch
         return [DisconnectDrone(), SendLog(new_master, message)]
+
+    def on_fenced(self) -> list[Effect]:
+        """The drone gave our mastership to another controller by takeover.
+
+        Not in Algorithm 1, whose masters never fail: our unflushed log is not
+        wanted (the new master got those replies from the drone), so nothing
+        is sent; we stop acting as master. The runtime then rejoins as a
+        replica with nothing (``ControllerNode.reset``).
+        """
+        was_active = self.state is State.ACTIVE
+        self.state, self.master = State.PASSIVE, False
+        self.log.take()
+        return [DisconnectDrone()] if was_active else []
 
     # -- lines 30-47: a log message arrives --------------------------------------
 
@@ -361,6 +414,15 @@ class ControllerProtocol:
         """
         if message.lognr in self._received:
             return []
+        if self.state is State.ACTIVE and message.lognr > self.lognr and message.epoch < self.epoch:
+            # Only the master creates log numbers above its own. One of an
+            # earlier epoch that comes to us while we are master is from a
+            # master the drone replaced by takeover, which went on (cut off
+            # from the drone) or came back: its log is not the ring's
+            # (docs/design.md, "Takeover"). One of a newer epoch means we are
+            # that fenced master and do not know yet: it is the ring's, and
+            # the drone will tell us.
+            return [Fenced(message.lognr, message.origin, message.epoch)]
         self._received.add(message.lognr)
         effects: list[Effect] = []
         # Lines 31-33: forward (a handover message travels on as a normal one).
@@ -401,6 +463,7 @@ class ControllerProtocol:
             )
         for entry in message.entries:
             self.log.append(entry)
+        self._held(message.lognr, message.entries[-1].reqnr if message.entries else 0)
         effects: list[Effect] = []
         if message.handover:
             self.master = True

@@ -20,6 +20,7 @@ import asyncio
 import contextlib
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
+from typing import Any
 
 import grpc
 
@@ -147,6 +148,15 @@ class PeerLink:
         self._wakeup.set()
         self.start()
 
+    def holds_changed(self) -> None:
+        """The history grew: the successor is told what we hold (a sync frame).
+
+        What the master's predecessor holds, every controller holds: that is
+        the replication watermark the master gives the drone.
+        """
+        if self._history is not None:
+            self._wakeup.set()
+
     @property
     def unacked(self) -> int:
         """Messages sent and not yet acknowledged."""
@@ -186,6 +196,7 @@ class PeerLink:
             holds = history.holds_lognr if history is not None else 0
             self._log.info("ring stream up", peer_lognr=hello.lognr, holds_lognr=holds)
             await call.write(ring_pb2.LogFrame(sync=True, holds_lognr=holds, from_id=self.my_id))
+            synced = holds
             acks = asyncio.create_task(self._read_acks(call))
             try:
                 # Whatever the successor does not hold yet is re-sent from the
@@ -197,9 +208,15 @@ class PeerLink:
                             await self._write(call, history.get(lognr))
                 sent: set[int] = set()
                 while True:
+                    # Cleared before looking, so a wake-up during a write is not lost.
+                    self._wakeup.clear()
+                    if history is not None and history.holds_lognr > synced:
+                        synced = history.holds_lognr
+                        await call.write(
+                            ring_pb2.LogFrame(sync=True, holds_lognr=synced, from_id=self.my_id)
+                        )
                     pending = [n for n in sorted(self._unacked) if n not in sent]
                     if not pending:
-                        self._wakeup.clear()
                         waiter = asyncio.create_task(self._wakeup.wait())
                         try:
                             done, _ = await asyncio.wait(
@@ -256,9 +273,28 @@ class RingReceiver:
         self._deliver = deliver
         self._synced = synced
         self._log = log
+        self._serving: set[asyncio.Task[Any]] = set()
+
+    def drop_streams(self) -> None:
+        """Ends every incoming stream: their senders reconnect and hear our hello again.
+
+        After a rejoin with nothing (``ControllerNode.reset``), a predecessor
+        still streaming to us would never re-send what we dropped.
+        """
+        for task in list(self._serving):
+            task.cancel()
 
     async def serve(self, context: grpc.aio.ServicerContext) -> None:
-        """Runs one incoming stream until the sender closes it."""
+        """Runs one incoming stream until the sender closes it (or ``drop_streams``)."""
+        task = asyncio.current_task()
+        assert task is not None
+        self._serving.add(task)
+        try:
+            await self._serve(context)
+        finally:
+            self._serving.discard(task)
+
+    async def _serve(self, context: grpc.aio.ServicerContext) -> None:
         await context.write(
             ring_pb2.LogAck(lognr=self._current_lognr(), hello=True, receiver_id=self.my_id)
         )

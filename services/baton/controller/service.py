@@ -133,7 +133,7 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
     def __init__(self, node: ControllerNode, token: str | None = None) -> None:
         self._node = node
         self._token = token
-        self._receiver = RingReceiver(
+        self.receiver = RingReceiver(
             node.id,
             lambda: node.protocol.holds_lognr,
             node.on_log,
@@ -144,7 +144,7 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
 
     async def LogRing(self, request_iterator: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[override]
         """Receives log messages from a predecessor or an old master, acknowledging each."""
-        await self._receiver.serve(context)
+        await self.receiver.serve(context)
 
     async def GetStatus(
         self, request: ring_pb2.GetControllerStatusRequest, context: grpc.aio.ServicerContext

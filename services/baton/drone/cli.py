@@ -144,6 +144,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="replies kept for duplicate requests (default: 16; see baton/drone/dedupe.py)",
     )
     parser.add_argument(
+        "--takeover-after",
+        metavar="DURATION",
+        help="take the master over when the drone has not seen it (no stream, no request) "
+        "for this long, in mission seconds, e.g. 3s; 0 never (default: config, else 3s)",
+    )
+    parser.add_argument(
         "--state",
         metavar="FILE",
         help="keep the drone's state (master, last request number, reply cache, audit, "
@@ -156,7 +162,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     """DroneSettings from flags over the optional configuration file."""
-    from baton.config import load_config
+    from baton.config import load_config, parse_duration
     from baton.drone.dedupe import DEFAULT_WINDOW
     from baton.drone.master import load_handover_script
     from baton.drone.service import DroneSettings, Race
@@ -164,11 +170,18 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     address, vehicle_url, speedup = "127.0.0.1:50051", "udpin://127.0.0.1:14540", 1.0
     controllers: tuple[int, ...] = (0,)
     initial_master: int | None = None
+    takeover_after = 3.0
     if args.config:
         config = load_config(args.config)
         address, vehicle_url = config.drone.address, config.drone.vehicle_url
         controllers = tuple(config.ring_order)
         initial_master, speedup = config.master_id, config.speedup
+        takeover_after = config.takeover_after
+    if args.takeover_after is not None:
+        try:
+            takeover_after = parse_duration(args.takeover_after)
+        except ValueError as exc:
+            raise ValueError(f"--takeover-after: {exc}") from None
     controllers = args.controllers or controllers
     if args.initial_master is not None:
         initial_master = args.initial_master
@@ -197,6 +210,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         race=Race(args.force_race, args.race_delay) if args.force_race else None,
         state_file=args.state,
         camera_effects_file=args.camera_effects_file,
+        takeover_after=takeover_after,
     )
 
 

@@ -18,6 +18,15 @@ so that a new master that re-sends a short tail of requests still gets
 cached answers — and evicts the oldest beyond that, which bounds memory to
 ``window`` replies (16 pictures of ~1 MB at the default resolution).
 
+A third kind comes with takeovers (docs/design.md, "Takeover"): a master
+lost with its unflushed log, whose successor re-sends every request above
+what the ring holds. So the cache also *retains* every reply above the
+*watermark*, the highest request number every reachable controller is known
+to hold (the master says it on each Invoke): those are the replies only the
+drone may still have. The watermark trails the master by its unflushed log
+and the messages in flight, so this is bounded by the flush limit plus what
+is in flight, not by the mission.
+
 A request that failed after it was accepted (unknown method, bad payload,
 autopilot refusal, no acknowledgement in time) is served too: its status is
 cached like a reply, so a duplicate sees the same failure and every
@@ -55,12 +64,13 @@ class CachedReply:
 
 
 class ReplyCache:
-    """The last ``window`` replies by request number."""
+    """The last ``window`` replies by request number, and every one above the watermark."""
 
     def __init__(self, window: int = DEFAULT_WINDOW) -> None:
         if window < 1:
             raise ValueError(f"the reply cache window must be >= 1, got {window}")
         self.window = window
+        self.watermark = 0
         self._entries: OrderedDict[int, CachedReply] = OrderedDict()
 
     def __len__(self) -> int:
@@ -84,8 +94,26 @@ class ReplyCache:
         """Remembers a served request (reply or failure); evicts the oldest beyond the window."""
         self._entries[reqnr] = CachedReply(reqnr, method, digest, reply, error)
         self._entries.move_to_end(reqnr)
+        self._evict()
+
+    def raise_watermark(self, reqnr: int) -> None:
+        """Every controller holds the replies up to ``reqnr``: they need not be retained."""
+        if reqnr > self.watermark:
+            self.watermark = reqnr
+            self._evict()
+
+    def _evict(self) -> None:
         while len(self._entries) > self.window:
-            self._entries.popitem(last=False)
+            oldest = next(iter(self._entries))
+            if oldest > self.watermark:
+                return  # retained: only the drone may have it
+            del self._entries[oldest]
+
+    @property
+    def retained(self) -> tuple[int, int]:
+        """Replies above the watermark, kept whatever the window: (count, bytes)."""
+        kept = [entry for entry in self._entries.values() if entry.reqnr > self.watermark]
+        return len(kept), sum(len(entry.reply) for entry in kept)
 
     @property
     def reqnrs(self) -> list[int]:

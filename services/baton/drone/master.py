@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from baton.drone.sequencer import ScriptedHandover, Sequencer
+from baton.v1 import drone_pb2
 
 
 class HandoverScriptError(ValueError):
@@ -91,6 +92,11 @@ class MasterStreams:
         """Whether the current master holds its Connect stream."""
         return self._sequencer.master in self._streams
 
+    @property
+    def holders(self) -> set[int]:
+        """Controllers holding a Connect stream now."""
+        return set(self._streams)
+
     def connected(self, controller_id: int) -> bool:
         """Whether ``controller_id`` holds a Connect stream now."""
         return controller_id in self._streams
@@ -122,3 +128,49 @@ class MasterStreams:
             asyncio.get_running_loop().call_later(delay_s, stream.wake.set)
         else:
             stream.wake.set()
+
+
+@dataclass
+class StandbyStream:
+    """One open Standby stream: events to send, in order."""
+
+    controller_id: int
+    events: asyncio.Queue[drone_pb2.StandbyEvent] = field(default_factory=asyncio.Queue)
+
+
+class StandbyStreams:
+    """The open Standby streams: which controllers the drone can reach now.
+
+    A controller counts as reachable while one of its streams is open; the
+    newest stream of a controller is the one told of a takeover.
+    """
+
+    def __init__(self) -> None:
+        self._streams: dict[int, list[StandbyStream]] = {}
+
+    def attach(self, controller_id: int) -> StandbyStream:
+        """Opens a stream for ``controller_id``."""
+        stream = StandbyStream(controller_id)
+        self._streams.setdefault(controller_id, []).append(stream)
+        return stream
+
+    def detach(self, stream: StandbyStream) -> None:
+        """Forgets a stream that ended."""
+        streams = self._streams.get(stream.controller_id, [])
+        if stream in streams:
+            streams.remove(stream)
+        if not streams:
+            self._streams.pop(stream.controller_id, None)
+
+    @property
+    def reachable(self) -> set[int]:
+        """Controllers holding a stream now."""
+        return set(self._streams)
+
+    def tell(self, controller_id: int, event: drone_pb2.StandbyEvent) -> bool:
+        """Queues ``event`` on the controller's newest stream; False if it holds none."""
+        streams = self._streams.get(controller_id)
+        if not streams:
+            return False
+        streams[-1].events.put_nowait(event)
+        return True

@@ -22,6 +22,11 @@ The rules (docs/design.md, "Epochs" and "Exactly once..."):
   after the request reached the vehicle; UNAVAILABLE (nothing reached the
   vehicle) is not booked and leaves the number unused.
 - The handover script's line due after a served request switches masters.
+- A master lost (no stream and no request for the takeover time) is taken
+  over by the first reachable controller after it in ring order, in a new
+  epoch, without its log (``takeover_due``); the drone answers the new
+  master's re-sent requests from the replies it retains above the
+  watermark (dedupe.py).
 """
 
 from __future__ import annotations
@@ -66,6 +71,15 @@ class Served:
     skipped: ScriptedHandover | None = None
 
 
+@dataclass(frozen=True)
+class TakeoverDue:
+    """``takeover_due``'s verdict: make ``new_master`` master without ``lost``'s log."""
+
+    new_master: int
+    lost: int  # the controller whose log is given up: the master, or a handover's old master
+    lost_at: float  # when the drone last saw it
+
+
 class Sequencer:
     """The drone's master, epoch, request order, reply cache, audit and handover script."""
 
@@ -76,7 +90,9 @@ class Sequencer:
         script: Mapping[int, ScriptedHandover] | None = None,
         cache_window: int = DEFAULT_WINDOW,
     ) -> None:
-        self.controllers = sorted(set(controllers))
+        # In the order given: the ring's, which a takeover follows.
+        self.ring = list(dict.fromkeys(controllers))
+        self.controllers = sorted(self.ring)
         if not self.controllers:
             raise ValueError("the drone needs at least one controller id")
         if initial_master not in self.controllers:
@@ -113,13 +129,21 @@ class Sequencer:
                 f"unknown controller id {controller_id}; known ids: {self.controllers}",
             )
 
-    def where_we_are(self) -> tuple[tuple[str, str], ...]:
-        """The trailing metadata of a refusal: master, epoch, last request served."""
-        return (
+    def where_we_are(self, controller_id: int | None = None) -> tuple[tuple[str, str], ...]:
+        """The trailing metadata of a refusal: master, epoch, last request served.
+
+        ``baton-takeover`` tells a controller that the mastership it lost was
+        taken over (its log is not wanted; it rejoins as a replica).
+        """
+        where: tuple[tuple[str, str], ...] = (
             ("baton-master", str(self.master)),
             ("baton-epoch", str(self.epoch)),
             ("baton-after-reqnr", str(self.last_reqnr)),
         )
+        notice = self.pending.get(controller_id) if controller_id is not None else None
+        if notice is not None and notice.takeover:
+            where += (("baton-takeover", "1"),)
+        return where
 
     def not_master_error(self, controller_id: int, what: str) -> StatusError:
         """The FAILED_PRECONDITION a non-master gets, naming the master."""
@@ -127,18 +151,26 @@ class Sequencer:
             grpc.StatusCode.FAILED_PRECONDITION,
             f"{what} refused: controller {controller_id} is not the master; the master is "
             f"controller {self.master} (epoch {self.epoch}, last reqnr served {self.last_reqnr})",
-            metadata=self.where_we_are(),
+            metadata=self.where_we_are(controller_id),
         )
 
     # -- a request arrives ---------------------------------------------------------
 
     def admit(
-        self, controller_id: int, epoch: int, reqnr: int, method: str, digest: bytes
+        self,
+        controller_id: int,
+        epoch: int,
+        reqnr: int,
+        method: str,
+        digest: bytes,
+        watermark: int = 0,
     ) -> CachedReply | None:
         """Decides a request: None to execute it now, a CachedReply to answer it again.
 
         Raises StatusError when it is refused; nothing is executed then and
-        the request number stays unused.
+        the request number stays unused. The master's ``watermark`` (every
+        reachable controller holds the replies up to it) lets the cache stop
+        retaining them.
         """
         what = f"Invoke reqnr {reqnr} epoch {epoch}"
         if controller_id != self.master:
@@ -157,6 +189,7 @@ class Sequencer:
                 "still on the wire) is never executed",
                 metadata=self.where_we_are(),
             )
+        self.cache.raise_watermark(min(watermark, self.last_reqnr))
         cached = self.cache.get(reqnr)
         if cached is not None:
             if cached.digest != digest:
@@ -282,21 +315,33 @@ class Sequencer:
 
     # -- masters ----------------------------------------------------------------------
 
-    def switch(self, new_master: int, trigger: str, now: float) -> drone_pb2.HandoverRecord:
+    def switch(
+        self,
+        new_master: int,
+        trigger: str,
+        now: float,
+        takeover: bool = False,
+        lost_at: float = 0.0,
+    ) -> drone_pb2.HandoverRecord:
         """Makes ``new_master`` the master in the next epoch; owes the old one a notice.
 
         Called between two requests (the service holds its execution lock).
         FAILED_PRECONDITION if ``new_master`` already is the master: a
-        handover to oneself would grant an epoch that fences nothing.
+        handover to oneself would grant an epoch that fences nothing. A
+        takeover may re-grant the master itself: a new master still waiting
+        for a lost old master's log is told to stop waiting, and the new
+        epoch fences that log if it comes late.
         """
         self.check_known(new_master)
         old = self.master
-        if new_master == old:
+        if new_master == old and not (takeover and self.handovers):
             raise StatusError(
                 grpc.StatusCode.FAILED_PRECONDITION,
                 f"controller {new_master} already is the master (epoch {self.epoch}, after "
                 f"reqnr {self.last_reqnr})",
             )
+        if new_master == old:
+            old = self.handovers[-1].old_master  # the lost one whose log is given up
         ended = self.epoch
         record = drone_pb2.HandoverRecord(
             old_master=old,
@@ -305,6 +350,8 @@ class Sequencer:
             decided_at=now,
             trigger=trigger,
             epoch=ended + 1,
+            kind="takeover" if takeover else "cooperative",
+            lost_at=lost_at,
         )
         self.handovers.append(record)
         self.master = new_master
@@ -316,8 +363,48 @@ class Sequencer:
             after_reqnr=self.last_reqnr,
             ended_epoch=ended,
             epoch=ended + 1,
+            takeover=takeover,
         )
         return record
+
+    def takeover_due(
+        self,
+        now: float,
+        reachable: Iterable[int],
+        last_seen: Mapping[int, float],
+        after_s: float,
+    ) -> TakeoverDue | None:
+        """Whether the master is lost, and who takes over (None: nobody, or not yet).
+
+        ``reachable`` are the controllers holding a stream now, ``last_seen``
+        when each last held one or sent a request. Lost: the master, seen
+        ``after_s`` ago or longer; the first reachable controller after it
+        in ring order takes over (it received every log message that left
+        the master). Also lost: the old master of a cooperative handover
+        whose new master has sent nothing since, when the old master has
+        not been seen for ``after_s`` since the switch (it died before
+        sending its log): the new master is granted again, by takeover.
+        """
+        live = set(reachable)
+        if after_s <= 0:
+            return None
+        master_seen = last_seen.get(self.master, 0.0)
+        if self.master not in live and now - master_seen >= after_s:
+            position = self.ring.index(self.master)
+            for step in range(1, len(self.ring)):
+                candidate = self.ring[(position + step) % len(self.ring)]
+                if candidate in live:
+                    return TakeoverDue(candidate, self.master, master_seen)
+            return None
+        if not self.handovers or self.master not in live:
+            return None
+        last = self.handovers[-1]
+        if last.kind == "takeover" or last.first_request_at or last.new_master != self.master:
+            return None
+        old_seen = max(last_seen.get(last.old_master, 0.0), last.decided_at)
+        if last.old_master not in live and now - old_seen >= after_s:
+            return TakeoverDue(self.master, last.old_master, old_seen)
+        return None
 
     def may_connect(self, controller_id: int) -> None:
         """Raises unless ``controller_id`` may hold a Connect stream (master, or owed a notice)."""

@@ -23,7 +23,7 @@ from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
 from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
 from baton.drone.dispatch import Dispatcher
-from baton.drone.master import MasterStreams
+from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend
 from baton.drone.sequencer import ScriptedHandover, Sequencer, cut_off_outcome
 from baton.drone.store import Counters, DroneStore, Intent
@@ -39,6 +39,14 @@ from baton.v1 import drone_pb2, drone_pb2_grpc
 _STATUS_READ_TIMEOUT_S = 1.0
 # Audit entries in one GetStatus page: by default, and at most.
 AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
+# How often the drone looks whether the master is lost (a fraction of the takeover time).
+_TAKEOVER_TICK_S = 0.05
+# The takeover time never goes below this in wall seconds, however sped up
+# the mission: a stream that breaks and is re-opened at once under load (the
+# controllers re-open within 50 ms to 1 s) must not cost a takeover.
+TAKEOVER_FLOOR_S = 1.0
+# Extra time the controllers get to re-connect after the drone service starts.
+RESTART_GRACE_S = 3.0
 
 
 async def latest_position(vehicle: MobilityBackend) -> api.Position:
@@ -75,13 +83,24 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         sequencer: Sequencer,
         race: Race | None = None,
         store: DroneStore | None = None,
+        takeover_after_s: float = 0.0,
     ) -> None:
         self.race = race
+        # The master is lost after this long (wall seconds) without a stream
+        # or a request; 0: never (only an operator's takeover).
+        self.takeover_after_s = takeover_after_s
         self.store = store
         self.vehicle = vehicle
         self.camera = camera
         self.seq = sequencer
         self.streams = MasterStreams(sequencer)
+        self.standby = StandbyStreams()
+        # When each controller last held a stream or sent a request (time.time()).
+        # At start every one counts as seen RESTART_GRACE_S from now: after a
+        # drone restart the controllers' re-connection back-off has grown.
+        self.last_seen: dict[int, float] = dict.fromkeys(
+            sequencer.controllers, time.time() + RESTART_GRACE_S
+        )
         self._handed_over_after = 0
         self.dispatcher = Dispatcher({"Mobility": vehicle, "Camera": camera})
         self._lock = asyncio.Lock()
@@ -121,6 +140,59 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             if self._stalls.due_for_log(now, stalls):
                 self.log.warning("stalled", waiting=self.waiting)
             await asyncio.sleep(0.5)
+
+    async def watch_master(self) -> None:
+        """Takes the master over when it is lost (``Sequencer.takeover_due``)."""
+        while True:
+            now = time.time()
+            reachable = self.standby.reachable | self.streams.holders
+            for cid in reachable:
+                self.last_seen[cid] = now
+            due = self.seq.takeover_due(now, reachable, self.last_seen, self.takeover_after_s)
+            if due is not None:
+                async with self._lock:
+                    # Re-checked under the lock: a request may have come meanwhile.
+                    now = time.time()
+                    reachable = self.standby.reachable | self.streams.holders
+                    due = self.seq.takeover_due(
+                        now, reachable, self.last_seen, self.takeover_after_s
+                    )
+                    if due is not None:
+                        self._take_over(due.new_master, "lost", now, due.lost_at)
+            await asyncio.sleep(_TAKEOVER_TICK_S)
+
+    def _take_over(
+        self, new_master: int, trigger: str, now: float, lost_at: float = 0.0
+    ) -> drone_pb2.HandoverRecord:
+        """Switches to ``new_master`` by takeover (under the lock) and tells it on its standby."""
+        record = self.seq.switch(new_master, trigger, now, takeover=True, lost_at=lost_at)
+        self._switched(record)
+        if self.store is not None:
+            self.store.save(self._counters())
+        told = self.standby.tell(
+            new_master,
+            drone_pb2.StandbyEvent(
+                take_over=drone_pb2.TakeOver(
+                    old_master=record.old_master,
+                    epoch=record.epoch,
+                    after_reqnr=record.after_reqnr,
+                    watermark_reqnr=self.seq.cache.watermark,
+                )
+            ),
+        )
+        retained, retained_bytes = self.seq.cache.retained
+        self.log.warning(
+            "master lost: taken over" if trigger == "lost" else "takeover",
+            lost=record.old_master,
+            new_master=new_master,
+            epoch=record.epoch,
+            unseen_s=round(now - lost_at, 3) if lost_at else None,
+            watermark_reqnr=self.seq.cache.watermark,
+            retained_replies=retained,
+            retained_bytes=retained_bytes,
+            told_on_standby=told,
+        )
+        return record
 
     # -- durable state (store.py) ---------------------------------------------------
 
@@ -221,8 +293,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     ) -> drone_pb2.InvokeReply:
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         async with self._lock:
+            if cid in self.last_seen:
+                self.last_seen[cid] = received_at
             digest = request_digest(method, request.payload)
-            cached = self.seq.admit(cid, request.epoch, reqnr, method, digest)
+            cached = self.seq.admit(
+                cid, request.epoch, reqnr, method, digest, request.watermark_reqnr
+            )
             first = self.seq.note_request(cid, received_at)
             if first is not None:
                 self.log.info(
@@ -381,6 +457,27 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.streams.detach(stream)
             self.log.info("connect stream ended", controller=cid)
 
+    async def Standby(
+        self, request: drone_pb2.StandbyRequest, context: grpc.aio.ServicerContext
+    ) -> AsyncIterator[drone_pb2.StandbyEvent]:
+        """A controller's standby stream: held while it runs; a TakeOver comes here."""
+        cid = request.controller_id
+        try:
+            self.seq.check_known(cid)
+        except StatusError as err:
+            await abort_with(context, err)
+        stream = self.standby.attach(cid)
+        self.last_seen[cid] = time.time()
+        try:
+            yield drone_pb2.StandbyEvent(
+                held=drone_pb2.StandbyHeld(master=self.seq.master, epoch=self.seq.epoch)
+            )
+            while True:
+                yield await stream.events.get()
+        finally:
+            self.standby.detach(stream)
+            self.last_seen[cid] = time.time()
+
     async def Handover(
         self, request: drone_pb2.HandoverRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.HandoverReply:
@@ -388,15 +485,19 @@ class DroneService(drone_pb2_grpc.DroneServicer):
 
         INVALID_ARGUMENT for an unknown id; FAILED_PRECONDITION if the id
         already is the master (not a silent no-op: a caller asking for a
-        switch should learn that none happened).
+        switch should learn that none happened), unless it is a takeover
+        that re-grants a new master still waiting for a lost one's log.
         """
         try:
             self.seq.check_known(request.new_master)
             async with self._lock:
-                record = self.seq.switch(request.new_master, "rpc", time.time())
-                self._switched(record)
-                if self.store is not None:
-                    self.store.save(self._counters())
+                if request.takeover:
+                    record = self._take_over(request.new_master, "rpc", time.time())
+                else:
+                    record = self.seq.switch(request.new_master, "rpc", time.time())
+                    self._switched(record)
+                    if self.store is not None:
+                        self.store.save(self._counters())
         except StatusError as err:
             self.log.warning("handover rejected", new_master=request.new_master, reason=err.message)
             await abort_with(context, err)
@@ -435,7 +536,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             controllers=seq.controllers,
             vehicle=self.vehicle.link(),
             waiting=self.waiting,
+            watermark_reqnr=seq.cache.watermark,
+            reachable=[c for c in seq.ring if c in self.standby.reachable],
+            takeover_after_s=self.takeover_after_s,
         )
+        status.retained_replies, status.retained_bytes = seq.cache.retained
         if self.vehicle.connected:
             try:
                 status.flight_state.CopyFrom(
@@ -491,6 +596,9 @@ class DroneSettings:
     race: Race | None = None
     state_file: str | None = None  # the durable state (store.py); None: memory only
     camera_effects_file: str | None = None  # pictures counted (baton.effects); None: no file
+    # The master is lost after this long without a stream or a request, in
+    # mission seconds (divided by speedup); 0: never.
+    takeover_after: float = 3.0
 
     @property
     def master(self) -> int:
@@ -511,7 +619,12 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         settings.controllers, settings.master, settings.handover_script, settings.cache_window
     )
     store = DroneStore(settings.state_file) if settings.state_file else None
-    return DroneService(vehicle, camera, sequencer, settings.race, store)
+    takeover_after_s = (
+        max(settings.takeover_after / settings.speedup, TAKEOVER_FLOOR_S)
+        if settings.takeover_after > 0
+        else 0.0
+    )
+    return DroneService(vehicle, camera, sequencer, settings.race, store, takeover_after_s)
 
 
 async def serve(
@@ -544,10 +657,12 @@ async def serve(
     if on_listening is not None:
         on_listening(server.address)
     watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
+    takeovers = asyncio.create_task(service.watch_master(), name="takeover-watch")
     try:
         await stop.wait()
     finally:
         watchdog.cancel()
+        takeovers.cancel()
         await server.stop()
         await vehicle.close()
         if service.store is not None:

@@ -38,6 +38,7 @@ from baton.controller.protocol import (
     ControllerProtocol,
     DisconnectDrone,
     Effect,
+    Fenced,
     NonDeterminismError,
     ProtocolError,
     Refusal,
@@ -206,6 +207,7 @@ class SimController:
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
                 if not message.handover:  # it enters the history when it comes back (F7)
                     self.history.add(message)
+                    self.peer(self.protocol.successor).holds_changed()
                 self.peer(effect.dest).send(effect.message)
             elif isinstance(effect, ConnectDrone):
                 self._open_drone()
@@ -398,15 +400,22 @@ class SimController:
         if not self.alive:
             return
         self.world.check_overtaken_handover(self, message)
-        self.history.add(message)
         try:
             effects = self.protocol.on_log(message)
         except ProtocolError as exc:
+            self._held(message)
             self._fail(f"controller {self.id}: {exc}")
             self._apply(exc.effects)
             return
+        if not any(isinstance(effect, Fenced) for effect in effects):
+            self._held(message)
         self.peak_log_queue = max(self.peak_log_queue, len(self.protocol.log_queue))
         self._apply(effects)
+
+    def _held(self, message: ring_pb2.LogMessage) -> None:
+        """ControllerNode._held: into the history; the successor's link syncs."""
+        self.history.add(message)
+        self.peer(self.protocol.successor).holds_changed()
 
     # -- the mission program (ControllerNode.call) --------------------------------
 
@@ -579,6 +588,7 @@ class SimController:
             inv.call_id,
             link,
             link.generation,
+            watermark=self.protocol.watermark_reqnr,
         )
         link.to_drone(len(call.request), self.world.drone.receive_invoke, request)
 

@@ -112,6 +112,7 @@ class Request:
     link: DroneLink | None
     connection: int
     received_at: float = 0.0
+    watermark: int = 0  # InvokeRequest.watermark_reqnr
 
 
 @dataclass(frozen=True)
@@ -150,7 +151,8 @@ class DroneStats:
     epoch_conflicts: list[str] = field(default_factory=list)
     cut_off: list[Intent] = field(default_factory=list)
     restarts: int = 0
-    peak_cache: int = 0
+    peak_cache: int = 0  # replies at or below the watermark (the window's)
+    peak_retained: int = 0  # replies above it (kept for a takeover)
 
 
 class SimDrone:
@@ -212,7 +214,7 @@ class SimDrone:
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         digest = request_digest(method, request.payload)
         try:
-            cached = seq.admit(cid, request.epoch, reqnr, method, digest)
+            cached = seq.admit(cid, request.epoch, reqnr, method, digest, request.watermark)
         except StatusError as err:
             seq.rejected += 1  # DroneService.Invoke
             self._reply(request, b"", err)
@@ -312,7 +314,9 @@ class SimDrone:
         now = self.world.loop.now
         served = self.seq.served(cid, reqnr, method, digest, reply, received_at, now, error)
         self.intent = None
-        self.stats.peak_cache = max(self.stats.peak_cache, len(self.seq.cache))
+        retained, _ = self.seq.cache.retained
+        self.stats.peak_cache = max(self.stats.peak_cache, len(self.seq.cache) - retained)
+        self.stats.peak_retained = max(self.stats.peak_retained, retained)
         if served.handover is not None:
             self._switched(served.handover)
 

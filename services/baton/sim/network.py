@@ -142,6 +142,7 @@ class RingLink:
         self.unacked: dict[int, ring_pb2.LogMessage] = {}
         self.up = False
         self.generation = 0
+        self._synced = 0  # the last sync frame's holds_lognr
         self._peer: SimController | None = None
         self._started = False
         self._backoff = BACKOFF_INITIAL_S
@@ -223,6 +224,7 @@ class RingLink:
         self._tx_free = self._fifo = self.world.loop.now
         self.connects += 1
         holds = self.history.holds_lognr if self.history is not None else 0
+        self._synced = holds
         self.world.trace(f"ring {self.owner.id}->{self.dest} up (hello {hello}, holds {holds})")
         self.world.check_start()
         self._deliver_later(0, self._sync_frame, holds)
@@ -232,6 +234,15 @@ class RingLink:
         for lognr in sorted(self.unacked):
             self._sent.add(lognr)
             self._write(self.unacked[lognr])
+
+    def holds_changed(self) -> None:
+        """PeerLink.holds_changed: a sync frame when the history's top grew."""
+        if not self.up or self.history is None or not self.owner.alive:
+            return
+        holds = self.history.holds_lognr
+        if holds > self._synced:
+            self._synced = holds
+            self._deliver_later(0, self._sync_frame, holds)
 
     def _history_to_resend(self, hello: int) -> list[int]:
         """History messages the receiver lacks, except those still unacknowledged (ring.py)."""

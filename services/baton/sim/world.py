@@ -279,6 +279,7 @@ class World:
                     default=0,
                 ),
                 "reply cache": self.drone.stats.peak_cache,
+                "retained replies": self.drone.stats.peak_retained,
             },
             trace=self._trace or [],
         )

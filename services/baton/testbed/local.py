@@ -193,6 +193,7 @@ class LocalTestbed:
         self._channels: list[grpc.aio.Channel] = []
         self.drone_stub: drone_pb2_grpc.DroneStub | None = None
         self.controller_stubs: dict[int, ring_pb2_grpc.ControllerRingStub] = {}
+        self.dead: set[int] = set()  # controllers killed on purpose, not restarted
         # SITL's second MAVLink port (tcp:HOST:PORT), for an independent monitor.
         self.sitl_monitor_url: str | None = None
 
@@ -389,12 +390,25 @@ class LocalTestbed:
                 progress(status)
             await asyncio.sleep(period)
 
+    async def kill_controller(self, cid: int) -> None:
+        """kill -9 of controller ``cid`` (its mission program dies with it); it stays dead
+        until ``restart_controller``, and snapshots leave it out meanwhile."""
+        await self.supervisor.kill(f"controller-{cid}")
+        self.dead.add(cid)
+
+    async def restart_controller(self, cid: int) -> None:
+        """Starts a killed controller again, with the same command line (and log file)."""
+        await self.supervisor.restart(f"controller-{cid}")
+        self.dead.discard(cid)
+
     async def snapshot(self, audit: bool = True) -> Snapshot:
-        """The drone's and every controller's status now, and the side effects counted."""
+        """The drone's and every live controller's status now, and the side effects counted."""
         assert self.drone_stub is not None
         drone = await drone_status(self.drone_stub, audit)
         snapshot = Snapshot(drone)
         for cid, stub in self.controller_stubs.items():
+            if cid in self.dead:
+                continue
             snapshot.controllers[cid] = await stub.GetStatus(
                 ring_pb2.GetControllerStatusRequest(), timeout=10
             )

@@ -45,6 +45,8 @@ class ManagedProcess:
     log_path: Path
     ready_file: Path | None = None
     expect_exit: bool = False
+    # Killed on purpose (a fault injected): its exit is not a failure.
+    killed: bool = False
     process: asyncio.subprocess.Process | None = None
     ready_text: str = ""
     _log_handle: object = field(default=None, repr=False)
@@ -135,8 +137,28 @@ class Supervisor:
     def check(self) -> None:
         """Raises PartDied for the first part that exited unexpectedly."""
         for part in self.parts.values():
+            if part.killed:
+                continue
             if part.returncode is not None and not (part.expect_exit and part.returncode == 0):
                 raise PartDied(part)
+
+    async def kill(self, name: str) -> ManagedProcess:
+        """kill -9 of part ``name`` (a fault injected), once it is gone; ``check`` ignores it."""
+        part = self.parts[name]
+        assert part.process is not None
+        part.killed = True
+        with contextlib.suppress(ProcessLookupError):
+            part.process.send_signal(signal.SIGKILL)
+        await part.process.wait()
+        return part
+
+    async def restart(self, name: str) -> ManagedProcess:
+        """Starts a killed part again with its command line; returns once it is ready."""
+        old = self.parts[name]
+        part = await self.start(name, old.argv, old.ready_file, old.expect_exit)
+        if part.ready_file is not None:
+            await self.wait_ready(part)
+        return part
 
     async def wait_exit(self, name: str, timeout: float) -> int:
         """Waits for part ``name`` to exit by itself; returns its code."""

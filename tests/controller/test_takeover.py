@@ -1,0 +1,137 @@
+"""A master killed with kill -9 does not end the mission (issue 10), across real processes.
+
+Before takeovers the drone waited for ever for the dead master (its
+``Handover`` RPC answered OK, and no controller could take over). Now every
+controller holds a standby stream to the drone; the drone, having seen
+neither a stream nor a request of the master for the takeover time, makes
+the first reachable controller after it in ring order master in a new
+epoch. That controller replays what it holds and re-sends the rest, which
+the drone answers from the replies it retained above the master's
+watermark, so nothing is executed twice: counted at the sim vehicle and the
+camera. A killed master that comes back is told it was taken over (fenced),
+drops what it had, and rejoins as a replica with a restarted program.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from test_controller_end_to_end import FAST_LINK, assert_mission_promises
+from test_faults_mid_mission import LONG_LEGS
+from test_restarts_and_epochs import log_events
+from waiting import eventually
+
+from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
+
+
+def takeovers(snapshot: Snapshot) -> list[tuple[int, int, str]]:
+    """(old master, new master, trigger) of every takeover the drone made."""
+    return [
+        (h.old_master, h.new_master, h.trigger)
+        for h in snapshot.drone.handovers
+        if h.kind == "takeover"
+    ]
+
+
+async def kill_the_master_when(
+    testbed: LocalTestbed, victim: int, after_reqnr: int, unflushed: bool
+) -> Snapshot:
+    """Waits until the drone served ``after_reqnr`` (and, if ``unflushed``, the master holds
+    log entries it has not flushed), then kill -9 of the master; the snapshot of then."""
+
+    async def ready() -> bool:
+        snapshot = await testbed.snapshot(audit=False)
+        master = snapshot.controllers[victim]
+        return snapshot.drone.last_reqnr >= after_reqnr and (
+            not unflushed or master.log_entries > 0
+        )
+
+    await eventually(ready, f"request {after_reqnr} served", 120)
+    before = await testbed.snapshot(audit=False)
+    await testbed.kill_controller(victim)
+    return before
+
+
+async def test_a_killed_master_is_taken_over_and_the_mission_completes(tmp_path: Path) -> None:
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=0,
+        speedup=20.0,
+        mission=LONG_LEGS,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        await kill_the_master_when(testbed, 0, 12, unflushed=False)
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == [(0, 1, "lost")]
+    record = snapshot.drone.handovers[0]
+    # Seen last at the kill; taken over after the takeover time (3 s of mission time,
+    # at least 1 s of wall time); the new master's first request came after.
+    assert record.decided_at - record.lost_at >= snapshot.drone.takeover_after_s
+    assert record.first_request_at > record.decided_at
+    assert snapshot.drone.master == 1 and snapshot.drone.epoch == 2
+    roles = [h.role for h in snapshot.controllers[1].handovers]
+    assert roles == ["taker"]
+    assert "master lost: taken over" in [e.get("msg") for e in log_events(tmp_path, "drone")]
+
+
+async def test_the_unflushed_tail_of_a_killed_master_comes_from_the_drone(
+    tmp_path: Path,
+) -> None:
+    """A 2 MB flush limit: the master holds pictures it has not flushed when it is killed.
+    Only the drone has those replies; it retained them (above the watermark) and answers
+    the new master's re-sent requests from them, executing none twice."""
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=2 * 2**20,
+        speedup=20.0,
+        mission=LONG_LEGS,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        before = await kill_the_master_when(testbed, 0, 14, unflushed=True)
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == [(0, 1, "lost")]
+    lost = before.controllers[0]
+    assert lost.log_entries > 0
+    # The requests the dead master had logged and not flushed were answered again by the
+    # drone (duplicates), not executed again.
+    assert snapshot.drone.duplicates >= 1
+    assert before.drone.retained_replies >= 1
+
+
+async def test_a_killed_master_restarted_after_the_takeover_rejoins_as_a_replica(
+    tmp_path: Path,
+) -> None:
+    """It restarts with its log file (which may hold messages that never left it) and
+    asks the drone, which tells it it was taken over; it drops all it had, restarts its
+    program, and catches up from the ring like a controller with nothing."""
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=2 * 2**20,
+        speedup=20.0,
+        mission=LONG_LEGS,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        await kill_the_master_when(testbed, 0, 14, unflushed=True)
+
+        async def taken_over() -> bool:
+            snapshot = await testbed.snapshot(audit=False)
+            return snapshot.drone.master == 1 and snapshot.drone.last_reqnr > 20
+
+        await eventually(taken_over, "controller 1 master and flying", 120)
+        await testbed.restart_controller(0)
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == [(0, 1, "lost")]
+    rejoined = snapshot.controllers[0]
+    assert [h.role for h in rejoined.handovers] == ["fenced"]
+    assert not rejoined.master and rejoined.mission == "done"
+    messages = [e.get("msg") for e in log_events(tmp_path, "controller-0")]
+    assert "rejoined as a replica with nothing; catching up from the ring" in messages
