@@ -91,6 +91,21 @@ def parse_duration(value: Any) -> float:
     return seconds
 
 
+# The detection time never goes below this in wall seconds, however sped up
+# the mission: a stream that breaks and is re-opened at once under load (the
+# parts re-open within 50 ms to 1 s) must not count as a loss.
+DETECTION_FLOOR_S = 1.0
+
+
+def detection_time_s(takeover_after: float, speedup: float) -> float:
+    """Wall seconds after which a master (the drone) or a ring successor (a controller)
+    not seen counts as lost: ``takeover_after`` mission seconds, at least
+    DETECTION_FLOOR_S; 0 when turned off."""
+    if takeover_after <= 0:
+        return 0.0
+    return max(takeover_after / speedup, DETECTION_FLOOR_S)
+
+
 def parse_address(value: Any) -> str:
     """A ``host:port`` string with a port in 0..65535."""
     text = str(value).strip()
@@ -219,6 +234,11 @@ class BatonConfig(_Model):
         if self.max_log_message is not None:
             return self.max_log_message
         return self.flush_limit + MAX_LOG_MESSAGE_DEFAULT
+
+    @property
+    def detection_s(self) -> float:
+        """The detection time in wall seconds (``detection_time_s``)."""
+        return detection_time_s(self.takeover_after, self.speedup)
 
     @property
     def ring_order(self) -> list[int]:

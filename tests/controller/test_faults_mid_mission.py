@@ -126,7 +126,9 @@ async def test_the_drone_killed_and_restarted_resumes_the_mission(tmp_path: Path
 async def test_a_dead_master_is_a_visible_stall_within_seconds(tmp_path: Path) -> None:
     """Issue 9, defect 9: a drone whose master holds no stream, a replica whose successor
     died: said in GetStatus and the logs within seconds, not a silent wait. Takeovers are
-    turned off: the drone would end this stall (test_takeover.py), the stall is tested."""
+    turned off: the drone would end this stall (test_takeover.py), the stall is tested.
+    The replica does not wait (issue 10): it routes the ring around the dead one, and
+    says so."""
     plan = TestbedPlan(
         controllers=3,
         flush_limit=0,
@@ -150,12 +152,14 @@ async def test_a_dead_master_is_a_visible_stall_within_seconds(tmp_path: Path) -
         async def both_say_so() -> bool:
             drone = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
             ring = await predecessor.GetStatus(ring_pb2.GetControllerStatusRequest())
-            return (
-                "controller 0, holds no Connect stream" in drone.waiting
-                and "ring stream to controller 0 down" in ring.waiting
-            )
+            return "controller 0, holds no Connect stream" in drone.waiting and list(
+                ring.routed_around
+            ) == [0]
 
-        await eventually(both_say_so, "the stalls reported", 15)
+        await eventually(both_say_so, "the stall and the route around it reported", 15)
         assert time.monotonic() - killed_at < 10
     assert '"stalled"' in (tmp_path / "logs" / "drone.log").read_text()
-    assert '"stalled"' in (tmp_path / "logs" / "controller-2.log").read_text()
+    assert (
+        "ring successor unreachable; routing around it"
+        in (tmp_path / "logs" / "controller-2.log").read_text()
+    )

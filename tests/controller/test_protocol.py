@@ -374,3 +374,17 @@ def test_a_fenced_master_sends_nothing_and_keeps_the_new_masters_messages() -> N
     assert 1 in old.log_queue
     assert old.on_fenced() == [DisconnectDrone()]
     assert (old.state, old.master, len(old.log)) == (State.PASSIVE, False, 0)
+
+
+def test_a_message_numbered_like_ours_from_a_newer_epoch_means_we_must_rejoin() -> None:
+    """A takeover's framing of the same replies: ours (never left a dead master) is not
+    the ring's, and nothing past that number can be trusted."""
+    old = started(0, [0, 1, 2], 2**20)
+    old.on_reply(entry(1))
+    old.on_handover_notice(1, epoch=2)  # handover message 1, lost with controller 1
+    taker = message(1, 2, [1, 2, 3])
+    taker.epoch = 3  # controller 2's, by takeover
+    assert [type(e).__name__ for e in old.on_log(taker)] == ["Diverged"]
+    again = message(1, 1, [1])
+    again.epoch = 2  # our own handover message coming back: not a divergence
+    assert old.on_log(again) == []

@@ -114,7 +114,9 @@ async def test_a_stale_request_after_a_hand_back_is_ignored_not_fatal(tmp_path: 
         mission=LONG_LEGS,  # request 42 is early in the mission however loaded the machine
         controller_link=FAST_LINK,
         drone_link=FAST_LINK,
-        drone_args=("--force-race", "reply-first", "--race-delay", "0.3"),
+        # Takeovers off: with a 4 s uplink the drone would not see 0 for longer than the
+        # takeover time and rightly take it over; the stale request is the subject here.
+        drone_args=("--force-race", "reply-first", "--race-delay", "0.3", "--takeover-after", "0"),
         link_args=(("link-drone-0", ("--up-latency", "4s")),),
     )
     async with LocalTestbed(plan, tmp_path) as testbed:

@@ -33,11 +33,11 @@ def takeovers(snapshot: Snapshot) -> list[tuple[int, int, str]]:
     ]
 
 
-async def kill_the_master_when(
+async def kill_when(
     testbed: LocalTestbed, victim: int, after_reqnr: int, unflushed: bool
 ) -> Snapshot:
-    """Waits until the drone served ``after_reqnr`` (and, if ``unflushed``, the master holds
-    log entries it has not flushed), then kill -9 of the master; the snapshot of then."""
+    """Waits until the drone served ``after_reqnr`` (and, if ``unflushed``, ``victim`` holds
+    log entries it has not flushed), then kill -9 of ``victim``; the snapshot of then."""
 
     async def ready() -> bool:
         snapshot = await testbed.snapshot(audit=False)
@@ -62,7 +62,7 @@ async def test_a_killed_master_is_taken_over_and_the_mission_completes(tmp_path:
         drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
-        await kill_the_master_when(testbed, 0, 12, unflushed=False)
+        await kill_when(testbed, 0, 12, unflushed=False)
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
     assert takeovers(snapshot) == [(0, 1, "lost")]
@@ -92,7 +92,7 @@ async def test_the_unflushed_tail_of_a_killed_master_comes_from_the_drone(
         drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
-        before = await kill_the_master_when(testbed, 0, 14, unflushed=True)
+        before = await kill_when(testbed, 0, 14, unflushed=True)
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
     assert takeovers(snapshot) == [(0, 1, "lost")]
@@ -119,7 +119,7 @@ async def test_a_killed_master_restarted_after_the_takeover_rejoins_as_a_replica
         drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
-        await kill_the_master_when(testbed, 0, 14, unflushed=True)
+        await kill_when(testbed, 0, 14, unflushed=True)
 
         async def taken_over() -> bool:
             snapshot = await testbed.snapshot(audit=False)
@@ -135,3 +135,112 @@ async def test_a_killed_master_restarted_after_the_takeover_rejoins_as_a_replica
     assert not rejoined.master and rejoined.mission == "done"
     messages = [e.get("msg") for e in log_events(tmp_path, "controller-0")]
     assert "rejoined as a replica with nothing; catching up from the ring" in messages
+
+
+async def test_a_master_killed_after_the_drone_decided_a_handover_before_its_log_left(
+    tmp_path: Path,
+) -> None:
+    """The drone hands over from 0 to 1 after request 12; 0's log (16 MB flush limit:
+    never flushed before) cannot reach 1, whose ring link is cut, and 0 is killed as
+    soon as the drone decided. 1, master by the drone's word, waits for a log that will
+    never come, until the drone, not seeing 0, grants 1 again by takeover in a newer
+    epoch; 1 gets every reply from the drone."""
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=16 * 2**20,
+        handovers=((12, 1),),
+        speedup=20.0,
+        mission=LONG_LEGS,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        async def served(reqnr: int) -> bool:
+            return (await testbed.snapshot(audit=False)).drone.last_reqnr >= reqnr
+
+        await eventually(lambda: served(6), "request 6 served", 120)
+        await testbed.cut_link("link-ring-1")
+
+        async def decided() -> bool:
+            return (await testbed.snapshot(audit=False)).drone.master == 1
+
+        await eventually(decided, "the drone decided the handover", 120)
+        await testbed.kill_controller(0)
+        await testbed.restore_link("link-ring-1")
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == [(0, 1, "lost")]
+    cooperative, taken = snapshot.drone.handovers
+    assert (cooperative.kind, cooperative.epoch, taken.epoch) == ("cooperative", 2, 3)
+    assert cooperative.first_request_at == 0  # 1 never sent a request in epoch 2
+    assert snapshot.controllers[1].epoch == 3
+
+
+async def test_a_dead_replica_is_routed_around_and_the_watermark_moves_on(
+    tmp_path: Path,
+) -> None:
+    """Controller 1 of 0 -> 1 -> 2 -> 0 is killed for good: 0 sends to 2 after the
+    detection time, the mission completes on 0 and 2, and the drone retains only the
+    replies above a watermark that keeps moving (2 tells 0 what it holds)."""
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=0,
+        speedup=20.0,
+        mission=LONG_LEGS,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        await kill_when(testbed, 1, 12, unflushed=False)
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == []
+    master = snapshot.controllers[0]
+    assert list(master.routed_around) == [1] and master.successor == 2
+    # Everything but the last few requests is known held by every live controller.
+    assert snapshot.drone.last_reqnr - master.watermark_reqnr <= 3
+    assert snapshot.drone.retained_replies <= 3
+
+
+async def test_a_master_cut_off_from_the_drone_is_fenced_and_rejoins_when_the_link_returns(
+    tmp_path: Path,
+) -> None:
+    """Controller 0's link to the drone is cut while its process lives: the drone, not
+    seeing it, makes 1 master. 0 goes on re-sending its request into the cut; nothing it
+    sends once the link is back is executed: the drone refuses it as taken over, and 0
+    stops acting as master, drops what it had and rejoins as a replica."""
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=2 * 2**20,
+        speedup=20.0,
+        mission=LONG_LEGS,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        async def flying() -> bool:
+            return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 12
+
+        await eventually(flying, "request 12 served", 120)
+        await testbed.cut_link("link-drone-0")
+
+        async def taken_over() -> bool:
+            snapshot = await testbed.snapshot(audit=False)
+            return snapshot.drone.master == 1 and snapshot.drone.last_reqnr > 24
+
+        await eventually(taken_over, "controller 1 master and flying", 120)
+        cut_off = (await testbed.snapshot(audit=False)).controllers[0]
+        assert cut_off.master  # it does not know yet
+        await testbed.restore_link("link-drone-0")
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == [(0, 1, "lost")]
+    rejoined = snapshot.controllers[0]
+    assert [h.role for h in rejoined.handovers] == ["fenced"]
+    assert not rejoined.master and rejoined.mission == "done"
+    taken = snapshot.drone.handovers[0]
+    assert all(
+        a.controller_id != 0 for a in snapshot.drone.audit if a.received_at > taken.decided_at
+    )

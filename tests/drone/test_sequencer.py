@@ -116,6 +116,8 @@ def test_a_lost_master_is_taken_over_by_the_first_reachable_one_after_it_in_ring
     assert due is not None and due.new_master == 2
     assert seq.takeover_due(13.0, set(), seen, after_s=3.0) is None  # nobody to take it
     assert seq.takeover_due(99.0, {1, 2}, seen, after_s=0.0) is None  # turned off
+    unseen = {1: 12.0, 2: 12.0}  # the master not seen since the drone started
+    assert seq.takeover_due(99.0, {1, 2}, unseen, after_s=3.0) is None
     serve(seq, 0, 1, 1)
     record = seq.switch(1, "lost", now=13.0, takeover=True, lost_at=10.0)
     assert (record.kind, record.epoch, record.lost_at) == ("takeover", 2, 10.0)

@@ -154,7 +154,8 @@ class LogMessage(_message.Message):
     epoch: _builtins.int
     """On a handover message: the new master's epoch, from the drone's notice
     (0 if unknown), so the new master can tell a Connect refusal the drone
-    made before it granted that epoch from one made after.
+    made before it granted that epoch from one made after. On any other
+    message: the epoch of the mastership it was logged in (diagnosis).
     """
     @_builtins.property
     def entries(self) -> _containers.RepeatedCompositeFieldContainer[Global___LogEntry]:
@@ -347,6 +348,10 @@ class ControllerStatus(_message.Message):
     WAITING_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
     CATCHING_UP_TO_FIELD_NUMBER: _builtins.int
+    WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
+    FENCED_MESSAGES_FIELD_NUMBER: _builtins.int
+    ROUTED_AROUND_FIELD_NUMBER: _builtins.int
+    STANDBY_UP_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
     state: _builtins.str
@@ -398,6 +403,17 @@ class ControllerStatus(_message.Message):
     """The highest log number the predecessor said it holds on its stream's
     sync frame, that this controller has not received yet (0 when caught up).
     """
+    watermark_reqnr: _builtins.int
+    """The replication watermark this controller knows: the highest request
+    number every controller from it round to its predecessor holds (the
+    master sends it to the drone on every Invoke).
+    """
+    fenced_messages: _builtins.int
+    """Log messages dropped because they came from a master the drone fenced."""
+    standby_up: _builtins.bool
+    """Whether the standby stream to the drone is up (without it the drone
+    cannot make this controller master when the master is lost).
+    """
     @_builtins.property
     def peers(self) -> _containers.RepeatedCompositeFieldContainer[Global___PeerStatus]:
         """The successor and the other peers this controller streams to."""
@@ -409,6 +425,12 @@ class ControllerStatus(_message.Message):
     @_builtins.property
     def t_conn_s(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
         """T_conn of each drone connection this controller opened, seconds."""
+
+    @_builtins.property
+    def routed_around(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
+        """Successors skipped because their stream was down for the detection
+        time: the ring routes around them until they are back.
+        """
 
     def __init__(
         self,
@@ -436,10 +458,14 @@ class ControllerStatus(_message.Message):
         waiting: _builtins.str = ...,
         epoch: _builtins.int = ...,
         catching_up_to: _builtins.int = ...,
+        watermark_reqnr: _builtins.int = ...,
+        fenced_messages: _builtins.int = ...,
+        routed_around: _abc.Iterable[_builtins.int] | None = ...,
+        standby_up: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "epoch", b"epoch", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -458,7 +484,10 @@ class ControllerHandover(_message.Message):
     LOG_BYTES_FIELD_NUMBER: _builtins.int
     AT_FIELD_NUMBER: _builtins.int
     role: _builtins.str
-    """"old": this controller handed over; "new": it took over."""
+    """"old" (handed over), "new" (took over by a handover message), "taker"
+    (made master by the drone's takeover), "fenced" (its mastership taken
+    over; it rejoined as a replica).
+    """
     peer: _builtins.int
     """The other controller (the new master, or the old one)."""
     lognr: _builtins.int

@@ -3,6 +3,7 @@
     baton bench timeline   [--out DIR] [--speedup 4]        # Figure 5
     baton bench worst-case [--out DIR] [--repeat 3] [--quick]  # Figure 6
     baton bench micro      [--out DIR] [--quick]            # proxy, replay, ring, T_conn
+    baton bench failover   [--out DIR] [--kills 10] [--quick]  # kill -9 of the master
 
 Each writes its figures, JSON and a markdown table under --out and prints the
 table at the end. See docs/benchmarks.md for the results and their reading.
@@ -90,6 +91,21 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     common(micro)
     micro.set_defaults(run=_run_micro)
 
+    failover = benches.add_parser(
+        "failover",
+        help="kill -9 of the master at seeded request numbers, 3 and 6 controllers: "
+        "detection, catch-up, T_conn against the physical limit",
+    )
+    common(failover)
+    failover.add_argument(
+        "--kills", type=int, default=None, help="kills per controller count (default 10)"
+    )
+    failover.add_argument(
+        "--controllers", default=None, help="comma-separated controller counts (default 3,6)"
+    )
+    failover.add_argument("--seed", type=int, default=None, help="kill points' seed (default 1)")
+    failover.set_defaults(run=_run_failover)
+
 
 def _run_timeline(args: argparse.Namespace) -> int:
     from baton.bench.timeline import TimelineSettings, run_timeline, table
@@ -127,3 +143,18 @@ def _run_micro(args: argparse.Namespace) -> int:
     result = asyncio.run(run_micro(settings, args.out))
     print(table(result))
     return 0
+
+
+def _run_failover(args: argparse.Namespace) -> int:
+    from baton.bench.failover import FailoverSettings, run_failover, table
+
+    settings = FailoverSettings.quick() if args.quick else FailoverSettings()
+    counts = tuple(int(c) for c in args.controllers.split(",")) if args.controllers else None
+    if args.kills is not None and args.kills < 1:
+        raise SystemExit("baton bench failover: --kills must be >= 1")
+    if counts is not None and any(c < 2 for c in counts):
+        raise SystemExit("baton bench failover: --controllers must be >= 2 each")
+    settings = settings.with_options(kills=args.kills, controllers=counts, seed=args.seed)
+    result = asyncio.run(run_failover(settings, args.out))
+    print(table(result["summary"], result["takeover_time_s"]))
+    return 0 if all(run["ok"] for run in result["runs"]) else 1

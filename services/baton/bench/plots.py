@@ -88,3 +88,42 @@ def plot_worst_case(rows: Sequence[dict[str, Any]], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def plot_failover(runs: Sequence[dict[str, Any]], detection_s: float, path: Path) -> None:
+    """Per kill: detection, catch-up and T_conn stacked, and the physical limit above detection."""
+    measured = [r for r in runs if "total_s" in r]
+    fig, ax = plt.subplots(figsize=(10, 4.5))
+    labels = [
+        f"{r['controllers']}c@{r['kill_reqnr']}{'h' if r['in_handover'] else ''}" for r in measured
+    ]
+    x = range(len(measured))
+    detection = [r["detection_s"] for r in measured]
+    catch_up = [r["catch_up_s"] for r in measured]
+    t_conn = [r["t_conn_s"] for r in measured]
+    ax.bar(x, detection, color="tab:gray", label="detection")
+    ax.bar(x, catch_up, bottom=detection, color="tab:blue", label="catch-up")
+    ax.bar(
+        x,
+        t_conn,
+        bottom=[d + c for d, c in zip(detection, catch_up, strict=True)],
+        color="tab:orange",
+        label="T_conn",
+    )
+    ax.scatter(
+        x,
+        [d + r["physical_s"] for d, r in zip(detection, measured, strict=True)],
+        color="black",
+        marker="_",
+        s=200,
+        label="detection + physical limit",
+        zorder=3,
+    )
+    ax.axhline(detection_s, color="tab:gray", linestyle=":", linewidth=1)
+    ax.set_xticks(list(x), labels, rotation=60, fontsize=7)
+    ax.set_ylabel("kill -9 to the new master's first new request (s)")
+    ax.set_title("Takeover after kill -9 of the master (controllers@kill reqnr, h: in a handover)")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

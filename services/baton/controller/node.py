@@ -30,6 +30,7 @@ from baton.controller.protocol import (
     ConnectDrone,
     ControllerProtocol,
     DisconnectDrone,
+    Diverged,
     Effect,
     Fenced,
     NonDeterminismError,
@@ -154,6 +155,8 @@ class ControllerNode:
             cid, config.drone_address_for(cid), self.on_take_over, self.log
         )
         self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
+        self.routed_around: list[int] = []  # successors skipped as unreachable
+        self._router: asyncio.Task[None] | None = None
         self.fenced_messages = 0  # log messages dropped from a fenced master
         # Bumped when the controller rejoins after being fenced: calls of the
         # mission program from before then are refused, not answered.
@@ -175,6 +178,7 @@ class ControllerNode:
         self._standby.start()
         await self._apply(self.protocol.start())
         self._watchdog = asyncio.create_task(self._watch(), name="stall-watchdog")
+        self._router = asyncio.create_task(self._route_watch(), name="ring-router")
         self.log.info("controller started; asking the drone who the master is")
 
     def _recover(self) -> None:
@@ -259,6 +263,8 @@ class ControllerNode:
         """Closes every stream."""
         if self._watchdog is not None:
             self._watchdog.cancel()
+        if self._router is not None:
+            self._router.cancel()
         if self._settler is not None:
             self._settler.cancel()
         await self._standby.stop()
@@ -296,12 +302,17 @@ class ControllerNode:
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
         self._takeover_epoch = 0
+        self.routed_around = []
         self.peer(self.protocol.successor).start()
         await self._apply(self.protocol.start())
         self.log.info("rejoined as a replica with nothing; catching up from the ring")
 
     def peer(self, pid: int) -> PeerLink:
-        """The kept stream to controller ``pid``, created on first use."""
+        """The kept stream to controller ``pid``, created on first use.
+
+        A stream to the successor (or to the one we route to around a dead
+        successor) carries the history: the receiver is given what it lacks.
+        """
         link = self._peers.get(pid)
         if link is None:
             history = self.history if pid == self.protocol.successor else None
@@ -309,10 +320,67 @@ class ControllerNode:
             self._peers[pid] = link
         return link
 
+    async def _route_watch(self) -> None:
+        """Every 0.1 s: routes the ring around a successor down for the detection time."""
+        while True:
+            await self._route()
+            await asyncio.sleep(0.1)
+
+    async def _route(self) -> None:
+        """Sends to the first controller after us whose stream has not been down for the
+        detection time (docs/design.md, "The ring routes around the dead"); back to the
+        natural successor as soon as its stream is up again."""
+        detection = self.config.detection_s
+        p = self.protocol
+        if detection <= 0 or len(p.ring) < 3:
+            return  # with two controllers the only other one is the master or nobody
+        now = time.monotonic()
+        position = p.ring.index(self.id)
+        order = [p.ring[(position + step) % len(p.ring)] for step in range(1, len(p.ring))]
+        chosen = order[0]
+        for candidate in order:
+            link = self._peers.get(candidate)
+            if link is None or link.down_for(now) < detection:
+                chosen = candidate
+                break
+        if chosen == p.successor:
+            return
+        natural = order[0]
+        skipped = order[: order.index(chosen)]
+        if chosen == natural:
+            self.log.info("ring successor back; ring restored", successor=chosen)
+        else:
+            self.log.warning(
+                "ring successor unreachable; routing around it",
+                unreachable=skipped,
+                successor=chosen,
+                detection_s=detection,
+            )
+        previous = p.successor
+        p.route_to(chosen)
+        self.routed_around = skipped
+        link = self.peer(chosen)
+        if not link.has_history:
+            link.give_history(self.history)
+            await link.stop()
+        link.start()
+        link.holds_changed()
+        if previous != natural and previous not in skipped:
+            old = self._peers.get(previous)
+            if old is not None and old.unacked == 0:
+                await old.stop()
+                del self._peers[previous]
+        self._notify()
+
     @property
     def peers(self) -> dict[int, PeerLink]:
         """Streams this controller keeps, by peer id."""
         return dict(self._peers)
+
+    @property
+    def standby_up(self) -> bool:
+        """Whether the standby stream to the drone is up."""
+        return self._standby.up
 
     @property
     def drone_connected(self) -> bool:
@@ -360,6 +428,17 @@ class ControllerNode:
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
                 await self._close_drone()
+            elif isinstance(effect, Diverged):
+                self.log.warning(
+                    "the ring's log differs from ours: a takeover framed the same replies in "
+                    "messages of its own; rejoining as a replica",
+                    mlognr=effect.lognr,
+                    our_epoch=effect.ours_epoch,
+                    ring_epoch=effect.ring_epoch,
+                )
+                if not self._rejoining:
+                    self._rejoining = True
+                    asyncio.get_running_loop().create_task(self._rejoin())
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
                 self.log.warning(
@@ -510,9 +589,12 @@ class ControllerNode:
         await self._close_drone()  # a notice for a mastership we no longer hold
 
     async def on_sync(self, from_id: int, holds_lognr: int) -> None:
-        """A ring stream's sync frame: what its sender holds (only the predecessor's counts)."""
-        if from_id != self.protocol.predecessor:
-            return
+        """A ring stream's sync frame: what its sender holds.
+
+        Only a stream that carries the history sends more than 0: the one
+        from our predecessor, or from the one before a dead predecessor that
+        routes around it; so any sender's word counts.
+        """
         await self._apply(self.protocol.on_sync(holds_lognr))
 
     async def on_handover_notice(self, new_master: int, after_reqnr: int, epoch: int = 0) -> None:
@@ -545,7 +627,7 @@ class ControllerNode:
             self._fail(StatusError(grpc.StatusCode.INTERNAL, f"controller {self.id}: {exc}"))
             await self._apply(exc.effects)  # still forward it: the replicas after us go on
             return
-        if not any(isinstance(effect, Fenced) for effect in effects):
+        if not any(isinstance(effect, Fenced | Diverged) for effect in effects):
             self._held(message)
         self.log.debug(
             "log message received",

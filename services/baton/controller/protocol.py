@@ -67,7 +67,21 @@ class Fenced:
     epoch: int
 
 
-Effect = SendLog | ConnectDrone | DisconnectDrone | TookOver | Fenced
+@dataclass(frozen=True)
+class Diverged:
+    """Effect: a message numbered like one we handled, from a newer epoch: a takeover
+    framed the same replies differently. We must rejoin with nothing (docs/design.md)."""
+
+    lognr: int
+    ours_epoch: int
+    ring_epoch: int
+
+
+Effect = SendLog | ConnectDrone | DisconnectDrone | TookOver | Fenced | Diverged
+
+# Log numbers whose epoch a controller remembers, the newest (a takeover's
+# renumbering is found among the last few messages, never thousands back).
+EPOCHS_KEPT = 4096
 
 
 class Refusal(enum.Enum):
@@ -223,6 +237,8 @@ class ControllerProtocol:
         # request number held once each is, so the predecessor's word
         # becomes a request number. The master sends it on every Invoke.
         self.held_reqnr = 0  # the highest request number this controller holds
+        # The epoch of each recent log number handled or created (for Diverged).
+        self._epoch_at: dict[int, int] = {}
         self.watermark_reqnr = 0
         self._ends: deque[tuple[int, int]] = deque()
 
@@ -256,7 +272,9 @@ class ControllerProtocol:
             return []
         self.master = True
         if takeover:
-            self.catch_up_to = max(self.catch_up_to or 0, self.holds_lognr)
+            # What the predecessor said it holds may never come (it may have
+            # died with it); the drone has every reply above what we hold.
+            self.catch_up_to = self.holds_lognr
         return self._drain()
 
     def on_sync(self, holds_lognr: int) -> list[Effect]:
@@ -269,13 +287,24 @@ class ControllerProtocol:
             self.watermark_reqnr = max(self.watermark_reqnr, self._ends.popleft()[1])
         return self._drain()
 
-    def _held(self, lognr: int, reqnr: int) -> None:
-        """Log message ``lognr`` is held, and with it every request up to ``reqnr``."""
+    def _held(self, lognr: int, reqnr: int, epoch: int) -> None:
+        """Log message ``lognr`` of ``epoch`` is held, and with it every request up to ``reqnr``."""
+        self._epoch_at[lognr] = epoch
+        if len(self._epoch_at) > 2 * EPOCHS_KEPT:
+            for old in [n for n in self._epoch_at if n <= lognr - EPOCHS_KEPT]:
+                del self._epoch_at[old]
         self.held_reqnr = max(self.held_reqnr, reqnr)
         if len(self.ring) == 1:
             self.watermark_reqnr = self.held_reqnr  # nobody else to hold it
         else:
             self._ends.append((lognr, self.held_reqnr))
+
+    def route_to(self, successor: int) -> None:
+        """Log messages go to ``successor`` from now on: the ring routes around the
+        unreachable ones between us (the runtime decides; docs/design.md)."""
+        if successor == self.id or successor not in self.ring:
+            raise ValueError(f"controller {self.id} cannot route the ring to {successor}")
+        self.successor = successor
 
     @property
     def holds_lognr(self) -> int:
@@ -340,7 +369,7 @@ class ControllerProtocol:
         # flushes (which never come back to us), so it stays a few numbers. A
         # handover message does come back (footnote 3) and is forwarded then.
         self._received.add(self.lognr)
-        self._held(self.lognr, self.reqnr)
+        self._held(self.lognr, self.reqnr, self.epoch)
         message = self._message(self.lognr, origin=self.id, handover=False)
         message.epoch = self.epoch  # the mastership it was logged in, for diagnosis
         return SendLog(self.successor, message)
@@ -382,7 +411,7 @@ class ControllerProtocol:
             raise ProtocolError(f"handover notice names controller {new_master}")
         self.state, self.master = State.PASSIVE, False
         self.lognr += 1
-        self._held(self.lognr, self.reqnr)
+        self._held(self.lognr, self.reqnr, epoch)
         message = self._message(self.lognr, origin=new_master, handover=True)
         message.epoch = epoch
         return [DisconnectDrone(), SendLog(new_master, message)]
@@ -412,6 +441,13 @@ class ControllerProtocol:
         master's own handover message coming back, footnote 3) are forwarded
         but not handled.
         """
+        ours = self._epoch_at.get(message.lognr, 0)
+        if ours and message.epoch > ours:
+            # Only a takeover numbers a message like one that exists: the
+            # taker did not hold ours (it never left a master that died), and
+            # framed the same replies in messages of its own. The ring's is
+            # the taker's; our state past that number is not.
+            return [Diverged(message.lognr, ours, message.epoch)]
         if message.lognr in self._received:
             return []
         if self.state is State.ACTIVE and message.lognr > self.lognr and message.epoch < self.epoch:
@@ -463,7 +499,9 @@ class ControllerProtocol:
             )
         for entry in message.entries:
             self.log.append(entry)
-        self._held(message.lognr, message.entries[-1].reqnr if message.entries else 0)
+        self._held(
+            message.lognr, message.entries[-1].reqnr if message.entries else 0, message.epoch
+        )
         effects: list[Effect] = []
         if message.handover:
             self.master = True

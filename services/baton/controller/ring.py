@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any
 
 import grpc
 
@@ -127,6 +127,8 @@ class PeerLink:
         self._wakeup = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self.stream_up = False
+        # Since when the stream has not been up (monotonic); None while it is.
+        self.down_since: float | None = time.monotonic()
         self.counters = PeerCounters()
 
     def start(self) -> None:
@@ -147,6 +149,19 @@ class PeerLink:
         self._unacked[message.lognr] = message
         self._wakeup.set()
         self.start()
+
+    @property
+    def has_history(self) -> bool:
+        """Whether this stream gives its receiver the history it lacks (a successor's)."""
+        return self._history is not None
+
+    def give_history(self, history: LogHistory) -> None:
+        """Makes this a successor's stream (routed to around a dead one); from its next start."""
+        self._history = history
+
+    def down_for(self, now: float) -> float:
+        """Seconds the stream has not been up (0 while it is)."""
+        return 0.0 if self.down_since is None else now - self.down_since
 
     def holds_changed(self) -> None:
         """The history grew: the successor is told what we hold (a sync frame).
@@ -180,6 +195,8 @@ class PeerLink:
             except Exception as exc:
                 self._log.error("ring stream failed; reconnecting", error=repr(exc), exc_info=True)
             self.stream_up = False
+            if self.down_since is None:
+                self.down_since = time.monotonic()
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, BACKOFF_MAX_S)
 
@@ -190,7 +207,7 @@ class PeerLink:
             hello = await call.read()
             if hello is grpc.aio.EOF or not hello.hello:
                 raise ConnectionError(f"peer {self.peer_id} did not greet the ring stream")
-            self.stream_up = True
+            self.stream_up, self.down_since = True, None
             self.counters.connects += 1
             history = self._history
             holds = history.holds_lognr if history is not None else 0
@@ -273,7 +290,8 @@ class RingReceiver:
         self._deliver = deliver
         self._synced = synced
         self._log = log
-        self._serving: set[asyncio.Task[Any]] = set()
+        # Set (and replaced) by ``drop_streams``: every incoming stream ends.
+        self._dropped = asyncio.Event()
 
     def drop_streams(self) -> None:
         """Ends every incoming stream: their senders reconnect and hear our hello again.
@@ -281,18 +299,28 @@ class RingReceiver:
         After a rejoin with nothing (``ControllerNode.reset``), a predecessor
         still streaming to us would never re-send what we dropped.
         """
-        for task in list(self._serving):
-            task.cancel()
+        dropped, self._dropped = self._dropped, asyncio.Event()
+        dropped.set()
 
     async def serve(self, context: grpc.aio.ServicerContext) -> None:
         """Runs one incoming stream until the sender closes it (or ``drop_streams``)."""
-        task = asyncio.current_task()
-        assert task is not None
-        self._serving.add(task)
+        dropped = self._dropped
+        waiter = asyncio.create_task(dropped.wait())
+        serving = asyncio.create_task(self._serve(context))
         try:
-            await self._serve(context)
+            done, _ = await asyncio.wait({waiter, serving}, return_when=asyncio.FIRST_COMPLETED)
         finally:
-            self._serving.discard(task)
+            waiter.cancel()
+        if serving in done:
+            serving.result()
+            return
+        serving.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await serving
+        await context.abort(
+            grpc.StatusCode.UNAVAILABLE,
+            f"controller {self.my_id} rejoined the ring with nothing: connect again",
+        )
 
     async def _serve(self, context: grpc.aio.ServicerContext) -> None:
         await context.write(

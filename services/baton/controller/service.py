@@ -197,6 +197,10 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         waiting=node.waiting,
         epoch=p.epoch,
         catching_up_to=0 if p.caught_up else (p.catch_up_to or 0),
+        watermark_reqnr=p.watermark_reqnr,
+        fenced_messages=node.fenced_messages,
+        routed_around=node.routed_around,
+        standby_up=node.standby_up,
         handovers=[
             ring_pb2.ControllerHandover(
                 role=h.role,

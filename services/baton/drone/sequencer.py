@@ -377,7 +377,8 @@ class Sequencer:
         """Whether the master is lost, and who takes over (None: nobody, or not yet).
 
         ``reachable`` are the controllers holding a stream now, ``last_seen``
-        when each last held one or sent a request. Lost: the master, seen
+        when each last held one or sent a request (absent: not seen since the
+        drone started). Lost: the master, seen
         ``after_s`` ago or longer; the first reachable controller after it
         in ring order takes over (it received every log message that left
         the master). Also lost: the old master of a cooperative handover
@@ -388,7 +389,12 @@ class Sequencer:
         live = set(reachable)
         if after_s <= 0:
             return None
-        master_seen = last_seen.get(self.master, 0.0)
+        master_seen = last_seen.get(self.master)
+        if master_seen is None:
+            # Never seen since the drone started: the mission's start (the
+            # controllers come up one by one), or the drone restarted. A
+            # master is lost only once it was there.
+            return None
         if self.master not in live and now - master_seen >= after_s:
             position = self.ring.index(self.master)
             for step in range(1, len(self.ring)):

@@ -19,6 +19,7 @@ from typing import Any
 
 import grpc
 
+from baton.config import detection_time_s
 from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
 from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
@@ -41,12 +42,6 @@ _STATUS_READ_TIMEOUT_S = 1.0
 AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
 # How often the drone looks whether the master is lost (a fraction of the takeover time).
 _TAKEOVER_TICK_S = 0.05
-# The takeover time never goes below this in wall seconds, however sped up
-# the mission: a stream that breaks and is re-opened at once under load (the
-# controllers re-open within 50 ms to 1 s) must not cost a takeover.
-TAKEOVER_FLOOR_S = 1.0
-# Extra time the controllers get to re-connect after the drone service starts.
-RESTART_GRACE_S = 3.0
 
 
 async def latest_position(vehicle: MobilityBackend) -> api.Position:
@@ -95,12 +90,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.seq = sequencer
         self.streams = MasterStreams(sequencer)
         self.standby = StandbyStreams()
-        # When each controller last held a stream or sent a request (time.time()).
-        # At start every one counts as seen RESTART_GRACE_S from now: after a
-        # drone restart the controllers' re-connection back-off has grown.
-        self.last_seen: dict[int, float] = dict.fromkeys(
-            sequencer.controllers, time.time() + RESTART_GRACE_S
-        )
+        # When each controller last held a stream or sent a request
+        # (time.time()); absent until it is first seen.
+        self.last_seen: dict[int, float] = {}
         self._handed_over_after = 0
         self.dispatcher = Dispatcher({"Mobility": vehicle, "Camera": camera})
         self._lock = asyncio.Lock()
@@ -293,7 +285,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     ) -> drone_pb2.InvokeReply:
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         async with self._lock:
-            if cid in self.last_seen:
+            if cid in self.seq.ring:
                 self.last_seen[cid] = received_at
             digest = request_digest(method, request.payload)
             cached = self.seq.admit(
@@ -619,11 +611,7 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         settings.controllers, settings.master, settings.handover_script, settings.cache_window
     )
     store = DroneStore(settings.state_file) if settings.state_file else None
-    takeover_after_s = (
-        max(settings.takeover_after / settings.speedup, TAKEOVER_FLOOR_S)
-        if settings.takeover_after > 0
-        else 0.0
-    )
+    takeover_after_s = detection_time_s(settings.takeover_after, settings.speedup)
     return DroneService(vehicle, camera, sequencer, settings.race, store, takeover_after_s)
 
 

@@ -37,6 +37,7 @@ from baton.controller.protocol import (
     ConnectDrone,
     ControllerProtocol,
     DisconnectDrone,
+    Diverged,
     Effect,
     Fenced,
     NonDeterminismError,
@@ -374,8 +375,8 @@ class SimController:
         self._close_drone()
 
     def on_sync(self, from_id: int, holds_lognr: int) -> None:
-        """ControllerNode.on_sync: only the predecessor's sync frame counts."""
-        if not self.alive or from_id != self.protocol.predecessor:
+        """ControllerNode.on_sync: any sender's word counts (only history streams say > 0)."""
+        if not self.alive:
             return
         try:
             effects = self.protocol.on_sync(holds_lognr)
@@ -407,7 +408,7 @@ class SimController:
             self._fail(f"controller {self.id}: {exc}")
             self._apply(exc.effects)
             return
-        if not any(isinstance(effect, Fenced) for effect in effects):
+        if not any(isinstance(effect, Fenced | Diverged) for effect in effects):
             self._held(message)
         self.peak_log_queue = max(self.peak_log_queue, len(self.protocol.log_queue))
         self._apply(effects)

@@ -401,6 +401,19 @@ class LocalTestbed:
         await self.supervisor.restart(f"controller-{cid}")
         self.dead.discard(cid)
 
+    async def cut_link(self, name: str) -> None:
+        """Stops link emulator ``name`` (e.g. ``link-drone-0``): every connection through
+        it breaks and none can be made, while the parts on both sides live on."""
+        await self.supervisor.kill(name)
+
+    async def restore_link(self, name: str) -> None:
+        """Starts a cut link emulator again on the address it had."""
+        part = self.supervisor.parts[name]
+        argv = list(part.argv)
+        argv[argv.index("--listen") + 1] = part.ready_text
+        restored = await self.supervisor.start(name, argv, part.ready_file)
+        await self.supervisor.wait_ready(restored)
+
     async def snapshot(self, audit: bool = True) -> Snapshot:
         """The drone's and every live controller's status now, and the side effects counted."""
         assert self.drone_stub is not None

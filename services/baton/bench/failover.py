@@ -1,0 +1,307 @@
+"""``baton bench failover``: kill -9 of the master, and how long the mission waits.
+
+For 3 and 6 controllers, the grid mission runs again and again on a fresh
+local testbed; each run kills the master (kill -9) at one request number,
+chosen at random (seeded), or right after the drone decided a scripted
+handover (the old master may not have sent its log). Per kill, from the
+drone's takeover record and audit:
+
+- detection: the kill to the drone's decision (the takeover time);
+- catch-up: the decision to the new master's first *new* request (a request
+  number the drone had not served), less T_conn: the standby event, the
+  replay of what the new master holds, and the re-sent requests the drone
+  answers from its retained replies;
+- T_conn: the new master's Connect set-up;
+- the physical limit of what was missing: the drone link's latency plus
+  the reply bytes the new master lacked (above what it held) over the
+  link's bandwidth, plus T_conn.
+
+Every run must complete with every waypoint photographed once and each
+vehicle command acted on once, counted by the sim vehicle and the camera
+(``testbed.report.check_side_effects``), and every live replica with the
+same reply chain. See docs/benchmarks.md for the figures.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import statistics
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from baton.bench.runner import machine, say
+from baton.config import detection_time_s
+from baton.testbed.local import (
+    WIFI_DRONE_LINK,
+    LocalTestbed,
+    MissionPlan,
+    Snapshot,
+    TestbedPlan,
+)
+from baton.testbed.report import check_side_effects
+
+
+@dataclass(frozen=True)
+class FailoverSettings:
+    """What ``baton bench failover`` runs."""
+
+    controllers: tuple[int, ...] = (3, 6)
+    kills: int = 10  # per controller count
+    grid: int = 3
+    speedup: float = 10.0
+    flush_limit: int = 2 * 2**20
+    handover_at: int = 40  # a scripted handover (to 1 hop on), for the kills "in a handover"
+    first_kill: int = 6
+    last_kill: int = 90
+    seed: int = 1
+    timeout_s: float = 300.0
+
+    @classmethod
+    def quick(cls) -> FailoverSettings:
+        """Two kills on three controllers, a 2x2 grid: a check that it all works."""
+        return cls(controllers=(3,), kills=2, grid=2, speedup=20.0, handover_at=20, last_kill=30)
+
+    def with_options(self, **options: Any) -> FailoverSettings:
+        """A copy with the given options, those that are not None."""
+        return replace(self, **{k: v for k, v in options.items() if v is not None})
+
+
+@dataclass(frozen=True)
+class KillPoint:
+    """Where one run kills: after ``reqnr``, or right after the scripted handover."""
+
+    reqnr: int
+    in_handover: bool
+
+
+def kill_points(settings: FailoverSettings) -> list[KillPoint]:
+    """The seeded kill points of one controller count: every fifth in a handover."""
+    rng = random.Random(settings.seed)
+    return [
+        KillPoint(settings.handover_at, True)
+        if k % 5 == 4
+        else KillPoint(rng.randint(settings.first_kill, settings.last_kill), False)
+        for k in range(settings.kills)
+    ]
+
+
+def plan_for(settings: FailoverSettings, controllers: int) -> TestbedPlan:
+    """The testbed of one run: the paper's links, a scripted handover one hop on."""
+    return TestbedPlan(
+        controllers=controllers,
+        flush_limit=settings.flush_limit,
+        handovers=((settings.handover_at, 1),),
+        speedup=settings.speedup,
+        mission=MissionPlan(grid=settings.grid, spacing_m=50.0, altitude_m=10.0),
+    )
+
+
+async def run_kill(
+    settings: FailoverSettings, controllers: int, point: KillPoint, workdir: Path
+) -> dict[str, Any]:
+    """One run: the mission, the master killed at ``point``, the measurements."""
+    plan = plan_for(settings, controllers)
+    label = f"{controllers} controllers, kill at {point.reqnr}" + (
+        " (in the handover)" if point.in_handover else ""
+    )
+    say(f"{label}: starting in {workdir}")
+    async with LocalTestbed(plan, workdir) as testbed:
+        while True:
+            testbed.supervisor.check()
+            now = await testbed.snapshot(audit=False)
+            drone = now.drone
+            if point.in_handover and drone.handovers:
+                victim = drone.handovers[-1].old_master  # the drone decided; kill the old one
+                break
+            if not point.in_handover and drone.last_reqnr >= point.reqnr:
+                victim = drone.master
+                break
+            if now.missions_ended:
+                raise RuntimeError(f"{label}: the mission ended before the kill point")
+        held = now.controllers[victim]
+        killed_at = time.time()
+        await testbed.kill_controller(victim)
+        snapshot = await testbed.run_mission(settings.timeout_s, period=1.0)
+    result = measure(snapshot, plan, victim, killed_at, workdir)
+    result.update(
+        controllers=controllers,
+        kill_reqnr=drone.last_reqnr,
+        in_handover=point.in_handover,
+        victim=victim,
+        victim_unflushed_bytes=held.log_bytes,
+    )
+    say(
+        f"{label}: master {victim} killed after request {drone.last_reqnr}; "
+        f"{'OK' if result['ok'] else 'FAILED: ' + '; '.join(result['problems'])}, "
+        f"first new request {result.get('total_s', float('nan')):.3f} s after the kill"
+    )
+    return result
+
+
+def measure(
+    snapshot: Snapshot, plan: TestbedPlan, victim: int, killed_at: float, workdir: Path
+) -> dict[str, Any]:
+    """The promises checked and the takeover's times split, for one run."""
+    problems = []
+    drone = snapshot.drone
+    effects = check_side_effects(snapshot, plan.mission.grid, plan.mission.spacing_m)
+    if effects["exactly_once"] is not True:
+        problems.append(f"side effects: {effects['problems']}")
+    for cid, c in snapshot.controllers.items():
+        if c.mission != "done":
+            problems.append(f"controller {cid}: mission {c.mission}: {c.mission_error}")
+    chains = Counter(c.reply_chain for c in snapshot.controllers.values())
+    if len(chains) != 1:
+        problems.append(f"replicas diverged ({len(chains)} reply chains)")
+    taken = [h for h in drone.handovers if h.kind == "takeover" and h.old_master == victim]
+    if len(taken) != 1:
+        problems.append(f"{len(taken)} takeovers of controller {victim}")
+        return {"ok": False, "problems": problems}
+    record = taken[0]
+    new = record.new_master
+    first_new = next(
+        (a for a in drone.audit if a.reqnr > record.after_reqnr and a.controller_id == new), None
+    )
+    if first_new is None:
+        problems.append("the new master sent no new request")
+        return {"ok": False, "problems": problems}
+    t_conn = snapshot.controllers[new].t_conn_s[-1]
+    holds = taker_held_reqnr(workdir / "logs" / f"controller-{new}.log", record.epoch)
+    sizes = {a.reqnr: a.reply_bytes for a in drone.audit}
+    missing = sum(size for reqnr, size in sizes.items() if holds < reqnr <= record.after_reqnr)
+    link = plan.drone_link
+    bandwidth = link.bandwidth or float("inf")
+    physical = link.latency + missing * 8 / bandwidth + t_conn
+    detection = record.decided_at - killed_at
+    total = first_new.received_at - killed_at
+    return {
+        "ok": not problems,
+        "problems": problems,
+        "new_master": new,
+        "epoch": record.epoch,
+        "after_reqnr": record.after_reqnr,
+        "taker_held_reqnr": holds,
+        "missing_bytes": missing,
+        "detection_s": detection,
+        "catch_up_s": total - detection - t_conn,
+        "t_conn_s": t_conn,
+        "total_s": total,
+        "physical_s": physical,
+        "beyond_detection_over_physical": (total - detection) / physical,
+        "retained_replies_at_end": drone.retained_replies,
+    }
+
+
+def taker_held_reqnr(log_path: Path, epoch: int) -> int:
+    """The request number the new master held when it was told of the takeover (its log)."""
+    for line in log_path.read_text().splitlines():
+        if not line.startswith("{"):
+            continue
+        event = json.loads(line)
+        if event.get("msg") == "taking over from a lost master" and event.get("epoch") == epoch:
+            return int(event["holds_reqnr"])
+    raise RuntimeError(f"{log_path}: no takeover of epoch {epoch} logged")
+
+
+def summarize(runs: list[dict[str, Any]], settings: FailoverSettings) -> list[dict[str, Any]]:
+    """One row per controller count."""
+    rows = []
+    for controllers in settings.controllers:
+        mine = [r for r in runs if r["controllers"] == controllers]
+        measured = [r for r in mine if "total_s" in r]
+
+        def stat(key: str, runs: list[dict[str, Any]] = measured) -> dict[str, float]:
+            values = [r[key] for r in runs]
+            if not values:
+                return {}
+            return {
+                "mean": statistics.fmean(values),
+                "min": min(values),
+                "max": max(values),
+            }
+
+        rows.append(
+            {
+                "controllers": controllers,
+                "kills": len(mine),
+                "completed_exactly_once": sum(1 for r in mine if r["ok"]),
+                "detection_s": stat("detection_s"),
+                "catch_up_s": stat("catch_up_s"),
+                "t_conn_s": stat("t_conn_s"),
+                "total_s": stat("total_s"),
+                "physical_s": stat("physical_s"),
+                "beyond_detection_over_physical": stat("beyond_detection_over_physical"),
+                "missing_bytes": stat("missing_bytes"),
+            }
+        )
+    return rows
+
+
+def table(rows: list[dict[str, Any]], detection_s: float) -> str:
+    """The summary as a markdown table."""
+    lines = [
+        f"Takeover after kill -9 of the master (takeover time {detection_s:.2f} s wall)",
+        "",
+        "| controllers | kills | completed, exactly once | detection s | catch-up s | T_conn s "
+        "| kill to first new request s | physical limit s | (total - detection) / physical |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def cell(stat: dict[str, float]) -> str:
+        if not stat:
+            return "-"
+        return f"{stat['mean']:.3f} ({stat['min']:.3f}-{stat['max']:.3f})"
+
+    for r in rows:
+        lines.append(
+            f"| {r['controllers']} | {r['kills']} | {r['completed_exactly_once']} | "
+            f"{cell(r['detection_s'])} | {cell(r['catch_up_s'])} | {cell(r['t_conn_s'])} | "
+            f"{cell(r['total_s'])} | {cell(r['physical_s'])} | "
+            f"{cell(r['beyond_detection_over_physical'])} |"
+        )
+    return "\n".join(lines)
+
+
+async def run_failover(settings: FailoverSettings, out: Path) -> dict[str, Any]:
+    """Every run, then the summary, the JSON, the table and the plot under ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    runs = []
+    for controllers in settings.controllers:
+        for k, point in enumerate(kill_points(settings)):
+            workdir = out / "runs" / f"c{controllers}-k{k}"
+            try:
+                runs.append(await run_kill(settings, controllers, point, workdir))
+            except Exception as exc:  # a failed run is a result, not the end of the bench
+                say(f"{controllers} controllers, kill {k}: FAILED: {exc}")
+                runs.append(
+                    {
+                        "controllers": controllers,
+                        "kill_reqnr": point.reqnr,
+                        "in_handover": point.in_handover,
+                        "ok": False,
+                        "problems": [str(exc)],
+                    }
+                )
+    detection = detection_time_s(3.0, settings.speedup)
+    rows = summarize(runs, settings)
+    result = {
+        "settings": asdict(settings),
+        "drone_link": {
+            "latency_s": WIFI_DRONE_LINK.latency,
+            "bandwidth_bps": WIFI_DRONE_LINK.bandwidth,
+        },
+        "takeover_time_s": detection,
+        "machine": machine(),
+        "runs": runs,
+        "summary": rows,
+    }
+    (out / "failover.json").write_text(json.dumps(result, indent=2))
+    (out / "failover.md").write_text(table(rows, detection) + "\n")
+    from baton.bench.plots import plot_failover
+
+    plot_failover(runs, detection, out / "failover.png")
+    return result
