@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 
 from baton.bench.cli import register
+from baton.bench.failover import FailoverSettings, kill_points, run_failover
 from baton.bench.micro import MicroSettings, run_micro
 from baton.bench.timeline import TimelineSettings, run_timeline
 from baton.bench.worst_case import WorstCaseSettings, run_worst_case
@@ -65,6 +66,32 @@ async def test_micro_quick(tmp_path: Path) -> None:
     assert all(math.isfinite(r["throughput_bit_s"]) for r in result["ring"])
 
 
+async def test_failover_quick(tmp_path: Path) -> None:
+    """Two kills of the master (one right after a scripted handover's decision): each run
+    completes exactly once, counted at the vehicle and camera, with every time measured."""
+    settings = FailoverSettings.quick()
+    result = await run_failover(settings, tmp_path)
+    for name in ("failover.json", "failover.md", "failover.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert _png(tmp_path / "failover.png")
+    runs = result["runs"]
+    assert [r["ok"] for r in runs] == [True, True], [r["problems"] for r in runs]
+    assert [r["in_handover"] for r in runs] == [p.in_handover for p in kill_points(settings)]
+    for run in runs:
+        assert run["detection_s"] >= result["takeover_time_s"]
+        assert math.isfinite(run["beyond_detection_over_physical"])
+        assert run["catch_up_s"] > 0 and run["t_conn_s"] > 0
+
+
+def test_failover_kill_points_are_seeded_and_one_in_five_is_in_a_handover() -> None:
+    settings = FailoverSettings(kills=10)
+    points = kill_points(settings)
+    assert points == kill_points(settings)
+    assert [p.in_handover for p in points] == [k % 5 == 1 for k in range(10)]
+    random = [p for p in points if not p.in_handover]
+    assert all(settings.first_kill <= p.reqnr <= settings.last_kill for p in random)
+
+
 def test_cli_registers_three_benchmarks() -> None:
     import argparse
 
@@ -74,3 +101,5 @@ def test_cli_registers_three_benchmarks() -> None:
     assert args.quick and args.out == Path("x") and callable(args.run)
     assert parser.parse_args(["bench", "timeline"]).speedup is None
     assert parser.parse_args(["bench", "micro"]).out == Path("out/bench")
+    failover = parser.parse_args(["bench", "failover", "--kills", "4", "--controllers", "3"])
+    assert (failover.kills, failover.controllers) == (4, "3")

@@ -15,6 +15,7 @@ from baton.controller.protocol import (
     SendLog,
     State,
     request_digest,
+    ring_route,
 )
 from baton.v1 import ring_pb2
 
@@ -388,3 +389,12 @@ def test_a_message_numbered_like_ours_from_a_newer_epoch_means_we_must_rejoin() 
     again = message(1, 1, [1])
     again.epoch = 2  # our own handover message coming back: not a divergence
     assert old.on_log(again) == []
+
+
+def test_the_ring_routes_to_the_first_successor_not_down_for_the_detection_time() -> None:
+    down = {1: 5.0, 2: 0.4}  # seconds down; 3 has no stream tried yet
+    ring = [0, 1, 2, 3]
+    assert ring_route(ring, 0, down.get, 1.0) == (2, [1])
+    assert ring_route(ring, 0, lambda pid: 9.0, 1.0) == (1, [])  # all down: the natural one
+    assert ring_route(ring, 0, {1: 5.0, 2: 5.0}.get, 1.0) == (3, [1, 2])  # 3 is to be tried
+    assert ring_route(ring, 3, down.get, 1.0) == (0, [])

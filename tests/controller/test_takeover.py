@@ -22,6 +22,7 @@ from test_restarts_and_epochs import log_events
 from waiting import eventually
 
 from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
+from baton.v1 import drone_pb2
 
 
 def takeovers(snapshot: Snapshot) -> list[tuple[int, int, str]]:
@@ -244,3 +245,41 @@ async def test_a_master_cut_off_from_the_drone_is_fenced_and_rejoins_when_the_li
     assert all(
         a.controller_id != 0 for a in snapshot.drone.audit if a.received_at > taken.decided_at
     )
+
+
+async def test_a_master_killed_with_a_picture_in_flight_gets_no_second_picture(
+    tmp_path: Path,
+) -> None:
+    """The drone link is the WiFi one (20 Mbit/s): a picture's reply (about 1 MB) takes
+    0.4 s to reach the master, which is killed as soon as the drone executed the
+    TakePicture. The new master re-sends that request; the drone answers it from the
+    reply it retained, and the camera counts one picture per waypoint."""
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=2 * 2**20,
+        speedup=20.0,
+        mission=LONG_LEGS,
+        controller_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        assert testbed.drone_stub is not None
+
+        async def picture_executed() -> bool:
+            status = await testbed.drone_stub.GetStatus(
+                drone_pb2.GetDroneStatusRequest(include_audit=True)
+            )
+            return bool(status.audit) and status.audit[-1].method.endswith("/TakePicture")
+
+        await eventually(picture_executed, "a TakePicture executed", 120)
+        await testbed.kill_controller(0)
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == [(0, 1, "lost")]
+    # The picture was re-sent by the new master and answered again, not taken again.
+    again = [
+        e
+        for e in log_events(tmp_path, "drone")
+        if e.get("msg") == "duplicate answered from cache"
+        and str(e.get("method")).endswith("/TakePicture")
+    ]
+    assert again and all(e["controller"] == 1 for e in again)

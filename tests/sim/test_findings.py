@@ -27,6 +27,15 @@ SEEDS: dict[str, range | list[int]] = {
     "F4": range(600),
     "F5": range(400),
     "F9": [3984, 12485, 12501, 31467, 39193],
+    "F10": [320],
+    "F11": [14, 22],
+    "F12": [13],
+}
+# The scenario a finding needs besides its allow flag (issue 10's are off by default).
+OPTIONS: dict[str, dict[str, object]] = {
+    "F10": {"takeover_after": 3.0},
+    "F11": {"lose_master": True},
+    "F12": {"lose_master": True},
 }
 
 
@@ -38,7 +47,7 @@ SEEDS: dict[str, range | list[int]] = {
     ],
 )
 def test_the_scenario_of_a_known_finding_holds_every_oracle(code: str) -> None:
-    options = SimOptions(allow=frozenset({code}))
+    options = SimOptions(allow=frozenset({code}), **OPTIONS.get(code, {}))  # type: ignore[arg-type]
     for seed in SEEDS[code]:
         outcome = run_seed(seed, options)
         assert outcome.ok and not outcome.known, outcome.report()

@@ -79,11 +79,11 @@ class KillPoint:
 
 
 def kill_points(settings: FailoverSettings) -> list[KillPoint]:
-    """The seeded kill points of one controller count: every fifth in a handover."""
+    """The seeded kill points of one controller count: the 2nd, 7th, ... in a handover."""
     rng = random.Random(settings.seed)
     return [
         KillPoint(settings.handover_at, True)
-        if k % 5 == 4
+        if k % 5 == 1
         else KillPoint(rng.randint(settings.first_kill, settings.last_kill), False)
         for k in range(settings.kills)
     ]

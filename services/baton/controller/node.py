@@ -40,6 +40,7 @@ from baton.controller.protocol import (
     State,
     TookOver,
     request_digest,
+    ring_route,
 )
 from baton.controller.ring import PeerLink
 from baton.logs import get_logger
@@ -155,6 +156,8 @@ class ControllerNode:
             cid, config.drone_address_for(cid), self.on_take_over, self.log
         )
         self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
+        # Sleeps up to this request number were slept by a master lost since.
+        self._slept_up_to = 0
         self.routed_around: list[int] = []  # successors skipped as unreachable
         self._router: asyncio.Task[None] | None = None
         self.fenced_messages = 0  # log messages dropped from a fenced master
@@ -302,6 +305,7 @@ class ControllerNode:
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
         self._takeover_epoch = 0
+        self._slept_up_to = 0
         self.routed_around = []
         self.peer(self.protocol.successor).start()
         await self._apply(self.protocol.start())
@@ -335,18 +339,15 @@ class ControllerNode:
         if detection <= 0 or len(p.ring) < 3:
             return  # with two controllers the only other one is the master or nobody
         now = time.monotonic()
-        position = p.ring.index(self.id)
-        order = [p.ring[(position + step) % len(p.ring)] for step in range(1, len(p.ring))]
-        chosen = order[0]
-        for candidate in order:
-            link = self._peers.get(candidate)
-            if link is None or link.down_for(now) < detection:
-                chosen = candidate
-                break
+
+        def down_for(pid: int) -> float | None:
+            link = self._peers.get(pid)
+            return None if link is None else link.down_for(now)
+
+        chosen, skipped = ring_route(p.ring, self.id, down_for, detection)
         if chosen == p.successor:
             return
-        natural = order[0]
-        skipped = order[: order.index(chosen)]
+        natural = self.config.successor(self.id)
         if chosen == natural:
             self.log.info("ring successor back; ring restored", successor=chosen)
         else:
@@ -506,6 +507,7 @@ class ControllerNode:
         """
         p = self.protocol
         self._takeover_epoch = event.epoch
+        self._slept_up_to = max(self._slept_up_to, event.after_reqnr)
         self.handovers.append(
             HandoverEvent("taker", event.old_master, p.lognr, p.reqnr, p.log.size)
         )
@@ -826,7 +828,7 @@ class ControllerNode:
                 entry = ring_pb2.LogEntry(
                     reqnr=reqnr,
                     method=method,
-                    reply=await self._clock_call(method, request),
+                    reply=await self._clock_call(method, request, reqnr),
                     request_digest=digest,
                     request=request,
                 )
@@ -868,16 +870,20 @@ class ControllerNode:
         """Still ACTIVE, with ``reqnr`` the next request to log."""
         return self.protocol.state is State.ACTIVE and self.protocol.reqnr + 1 == reqnr
 
-    async def _clock_call(self, method: str, request: bytes) -> bytes:
+    async def _clock_call(self, method: str, request: bytes, reqnr: int) -> bytes:
         """Clock calls are answered here and logged like drone replies.
 
         Logging Sleep too means a new master replays the sleeps its
         predecessor already slept instead of sleeping them again; a sleep cut
-        short by a handover is discarded like any reply in flight.
+        short by a handover is discarded like any reply in flight. After a
+        takeover, a Sleep numbered below the drone's last request then (the
+        lost master slept it, and its log went with it) is not slept again:
+        the mission's time has passed (docs/design.md, "Takeover").
         """
         if method == CLOCK_NOW:
             return api.NowReply(unix_time_s=self.clock.now()).SerializeToString()
-        await self.clock.sleep(api.SleepRequest.FromString(request).seconds)
+        if reqnr > self._slept_up_to:
+            await self.clock.sleep(api.SleepRequest.FromString(request).seconds)
         return api.SleepReply().SerializeToString()
 
     async def _invoke_drone(

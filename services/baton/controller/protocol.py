@@ -16,6 +16,7 @@ from __future__ import annotations
 import enum
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from baton.digest import request_digest
@@ -107,6 +108,26 @@ class NonDeterminismError(Exception):
             f"{logged.method} {_show(logged.request)} but this program asks "
             f"{method} {_show(request)}"
         )
+
+
+def ring_route(
+    ring: list[int], me: int, down_for: Callable[[int], float | None], detection_s: float
+) -> tuple[int, list[int]]:
+    """Where ``me`` sends the ring's messages, and which successors it skips.
+
+    The first controller after ``me`` in ring order whose stream has not
+    been down for ``detection_s`` (``down_for``: seconds down, 0 while up,
+    None if no stream to it was tried yet, which makes it the one to try);
+    the natural successor if every one is down. docs/design.md, "The ring
+    routes around the dead".
+    """
+    position = ring.index(me)
+    order = [ring[(position + step) % len(ring)] for step in range(1, len(ring))]
+    for k, candidate in enumerate(order):
+        down = down_for(candidate)
+        if down is None or down < detection_s:
+            return candidate, order[:k]
+    return order[0], []
 
 
 class SeenNumbers:

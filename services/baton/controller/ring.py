@@ -212,7 +212,15 @@ class PeerLink:
             history = self._history
             holds = history.holds_lognr if history is not None else 0
             self._log.info("ring stream up", peer_lognr=hello.lognr, holds_lognr=holds)
-            await call.write(ring_pb2.LogFrame(sync=True, holds_lognr=holds, from_id=self.my_id))
+            if history is not None:
+                # Only a stream that carries the history says what it holds:
+                # the receiver's catch-up and watermark take any sender's word
+                # (a stream routed around a dead predecessor), and a direct
+                # handover stream's "0" would tell a restarted new master it
+                # had caught up with nothing.
+                await call.write(
+                    ring_pb2.LogFrame(sync=True, holds_lognr=holds, from_id=self.my_id)
+                )
             synced = holds
             acks = asyncio.create_task(self._read_acks(call))
             try:

@@ -54,7 +54,20 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--kill-master",
         action="store_true",
-        help="let kills hit the master (issue 10, failover, is not built: expect stalls)",
+        help="let kills (restarted later) hit a master in any sense",
+    )
+    p.add_argument(
+        "--lose-master",
+        action="store_true",
+        help="issue 10: lose the master for good (mid-flush, right after a handover, any "
+        "time) or cut its drone link for a while",
+    )
+    p.add_argument(
+        "--takeover-after",
+        type=float,
+        default=None,
+        help="the drone's takeover and the ring's detection time in seconds (default: off, "
+        "or drawn with --lose-master)",
     )
     p.add_argument(
         "--allow",
@@ -83,6 +96,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         min_calls=low,
         max_calls=high,
         kill_master=args.kill_master,
+        lose_master=args.lose_master,
+        takeover_after=args.takeover_after,
         allow=args.allow,
         mutation=args.mutation,
         trace=args.trace and args.seed is not None,

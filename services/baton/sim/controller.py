@@ -45,6 +45,7 @@ from baton.controller.protocol import (
     Refusal,
     SendLog,
     State,
+    ring_route,
 )
 from baton.digest import request_digest
 from baton.rpc.errors import StatusError
@@ -77,6 +78,7 @@ def refusal_from(error: StatusError) -> DroneRefusal | None:
         int(master),
         int(metadata.get("baton-epoch", "0")),
         int(metadata.get("baton-after-reqnr", "0")),
+        metadata.get("baton-takeover", "") == "1",
     )
 
 
@@ -162,6 +164,13 @@ class SimController:
         # Whether the drone has answered its start-up question (granted, refused, a notice).
         self.answered = False
         self._pump_due = False
+        # Takeover (issue 10): node.py's _takeover_epoch, _rejoining, fenced_messages,
+        # routed_around.
+        self.takeover_epoch = 0
+        self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
+        self.rejoining = False
+        self.fenced_messages = 0
+        self.routed_around: list[int] = []
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -174,10 +183,10 @@ class SimController:
         """Starts the mission program."""
         self._schedule_call()
 
-    def kill(self) -> None:
+    def kill(self, why: str = "killed") -> None:
         """The process dies with everything it held."""
         self.alive = False
-        self.world.trace(f"controller {self.id} killed")
+        self.world.trace(f"controller {self.id} {why}")
         self.drone_link.break_("controller killed")
         for other in self.world.live_controllers():
             link = other.links.get(self.id)
@@ -214,6 +223,19 @@ class SimController:
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
                 self._close_drone()
+            elif isinstance(effect, Diverged):
+                self.world.trace(
+                    f"controller {self.id} diverged at log message {effect.lognr} (epoch "
+                    f"{effect.ours_epoch} here, {effect.ring_epoch} on the ring): rejoins"
+                )
+                self._rejoin()
+            elif isinstance(effect, Fenced):
+                self.fenced_messages += 1
+                self.world.trace(
+                    f"controller {self.id} drops log message {effect.lognr} of fenced "
+                    f"{effect.origin} (epoch {effect.epoch})"
+                )
+        self.world.after_apply(self, effects)
         self._notify()
 
     def _notify(self) -> None:
@@ -295,14 +317,16 @@ class SimController:
         self._startup_answer()
         self.on_granted(epoch)
 
-    def on_drone_notice(self, sid: int, new_master: int, after_reqnr: int, epoch: int) -> None:
+    def on_drone_notice(
+        self, sid: int, new_master: int, after_reqnr: int, epoch: int, takeover: bool
+    ) -> None:
         """A HandoverNotice on the stream, which then ends."""
         session = self.session
         if session is None or session.sid != sid:
             return
         session.ended, session.stream = True, None
         self._startup_answer()
-        self.on_stream_notice(new_master, after_reqnr, epoch)
+        self.on_stream_notice(new_master, after_reqnr, epoch, takeover)
 
     def on_drone_refused(self, sid: int, error: StatusError) -> None:
         """Connect refused: node.py's on_connect_refused if it names a master, else reconnect."""
@@ -343,9 +367,9 @@ class SimController:
     # -- events (ControllerNode.on_*) ---------------------------------------------
 
     def on_granted(self, epoch: int) -> None:
-        """ControllerNode.on_granted."""
+        """ControllerNode.on_granted: a takeover if the epoch is the one on_take_over noted."""
         try:
-            effects = self.protocol.on_granted(epoch)
+            effects = self.protocol.on_granted(epoch, epoch == self.takeover_epoch)
         except ProtocolError as exc:
             self._uncaught("on_granted", exc)
             return
@@ -357,6 +381,9 @@ class SimController:
 
     def on_connect_refused(self, refusal: DroneRefusal) -> None:
         """ControllerNode.on_connect_refused."""
+        if refusal.taken_over:
+            self._fenced(refusal.master, refusal.epoch)
+            return
         if self.protocol.state is not State.ACTIVE:
             self._close_drone()
             return
@@ -367,15 +394,95 @@ class SimController:
             return
         self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
 
-    def on_stream_notice(self, new_master: int, after_reqnr: int, epoch: int) -> None:
+    def on_stream_notice(
+        self, new_master: int, after_reqnr: int, epoch: int, takeover: bool = False
+    ) -> None:
         """ControllerNode.on_stream_notice."""
+        if takeover:
+            self._fenced(new_master, epoch)
+            return
         if self.protocol.state is State.ACTIVE:
             self.on_handover_notice(new_master, after_reqnr, epoch)
             return
         self._close_drone()
 
+    def on_take_over(self, old_master: int, epoch: int) -> None:
+        """ControllerNode.on_take_over (the standby stream's TakeOver): connect again to
+        learn the epoch; on_granted then goes ACTIVE on what this controller holds."""
+        if not self.alive:
+            return
+        self.takeover_epoch = epoch
+        self.world.trace(f"controller {self.id} takes over from lost {old_master} (epoch {epoch})")
+        self._close_drone()
+        self._open_drone()
+        self._notify()
+
+    def _fenced(self, new_master: int, epoch: int) -> None:
+        """ControllerNode._fenced: stop acting as master (on_fenced), then rejoin."""
+        if self.rejoining:
+            return
+        self.world.trace(
+            f"controller {self.id} fenced: {new_master} took over in epoch {epoch} "
+            f"({len(self.protocol.log)} unflushed entries dropped)"
+        )
+        self._apply(self.protocol.on_fenced())
+        self._rejoin()
+
+    def _rejoin(self) -> None:
+        """ControllerNode._rejoin as a task: ControllerApp.rejoin (the program stops, reset,
+        incoming streams dropped, the program starts again), as a restart with nothing."""
+        if not self.rejoining:
+            self.rejoining = True
+            self.world.loop.after(0.0, self.world.rejoin, self)
+
+    # -- the ring routes around the dead (ControllerNode._route) -------------------
+
+    def route_check_later(self, delay: float | None = None) -> None:
+        """When _route could decide something new: a stream down for the detection time
+        (``delay`` None), or one up again (0). node.py asks every 0.1 s; the decisions
+        are the same, taken at the moments they can change."""
+        detection = self.world.detection_s
+        if detection <= 0 or len(self.protocol.ring) < 3 or not self.alive:
+            return
+        self.world.loop.after(detection + 1e-6 if delay is None else delay, self._route)
+
+    def _route(self) -> None:
+        """ControllerNode._route: send to the first controller after us whose stream has
+        not been down for the detection time; back to the natural successor once it is up."""
+        if not self.alive:
+            return
+        detection, p, now = self.world.detection_s, self.protocol, self.world.loop.now
+        if detection <= 0 or len(p.ring) < 3:
+            return
+
+        def down_for(pid: int) -> float | None:
+            link = self.links.get(pid)
+            return None if link is None else link.down_for(now)
+
+        chosen, skipped = ring_route(p.ring, self.id, down_for, detection)
+        if chosen == p.successor:
+            return
+        natural = p.ring[(p.ring.index(self.id) + 1) % len(p.ring)]
+        self.world.trace(f"controller {self.id} routes to {chosen} (around {skipped})")
+        previous = p.successor
+        p.route_to(chosen)
+        self.routed_around = skipped
+        link = self.peer(chosen)
+        if link.history is None:
+            link.history = self.history
+            link.restart()
+        link.start()
+        link.holds_changed()
+        if previous != natural and previous not in skipped:
+            old = self.links.get(previous)
+            if old is not None and not old.unacked:
+                old.stop()
+                del self.links[previous]
+        self.world.check_start()
+        self._notify()
+
     def on_sync(self, from_id: int, holds_lognr: int) -> None:
-        """ControllerNode.on_sync: any sender's word counts (only history streams say > 0)."""
+        """ControllerNode.on_sync: any sender's word counts (only history streams sync)."""
         if not self.alive:
             return
         try:
@@ -613,6 +720,8 @@ class SimController:
                     f"controller {self.id}: the drone refused request {inv.reqnr} "
                     f"({inv.call.method}): {error.message}"
                 )
+            elif verdict is Refusal.HANDED_OVER and refusal.taken_over:
+                self._fenced(refusal.master, refusal.epoch)
             elif verdict is Refusal.HANDED_OVER:
                 self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
             elif verdict is Refusal.REGRANTED:  # node.py: connect again to learn the epoch

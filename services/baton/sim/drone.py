@@ -45,6 +45,8 @@ if TYPE_CHECKING:
     from baton.sim.world import World
 
 ROUTES = drone_api_routes()
+# service.py _TAKEOVER_TICK_S: how often the drone looks whether the master is lost.
+TAKEOVER_TICK_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -122,6 +124,11 @@ class HandoverOrder:
     new_master: int
 
 
+@dataclass(frozen=True)
+class TakeoverCheck:
+    """``watch_master``'s re-check under the execution lock (a takeover waits its turn)."""
+
+
 @dataclass(eq=False)
 class Execution:
     """The request the drone is executing now."""
@@ -180,10 +187,17 @@ class SimDrone:
         # Durable (store.py): the request being executed, as its intent.
         self.intent: Intent | None = None
         # Volatile: gone at a restart.
-        self.queue: deque[Request | HandoverOrder] = deque()
+        self.queue: deque[Request | HandoverOrder | TakeoverCheck] = deque()
         self.busy: Execution | None = None
         self.streams: dict[int, Stream] = {}
         self.stats = DroneStats()
+        # Takeover (issue 10): the master is lost after this long unseen; 0: never.
+        self.takeover_after = world.takeover_after
+        # Volatile, as DroneService.last_seen: when each controller was last seen.
+        self.last_seen: dict[int, float] = {}
+        self.takeovers = 0
+        self._watching = False
+        self._check_queued = False
 
     # -- requests -------------------------------------------------------------------
 
@@ -205,6 +219,9 @@ class SimDrone:
             item = self.queue.popleft()
             if isinstance(item, HandoverOrder):
                 self._handover(item)
+            elif isinstance(item, TakeoverCheck):
+                self._check_queued = False
+                self._takeover_check()
             else:
                 self._start(item)
 
@@ -213,6 +230,8 @@ class SimDrone:
         seq, now = self.seq, self.world.loop.now
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         digest = request_digest(method, request.payload)
+        if cid in seq.ring:  # _invoke_to_the_end: a request is a sighting
+            self.last_seen[cid] = request.received_at
         try:
             cached = seq.admit(cid, request.epoch, reqnr, method, digest, request.watermark)
         except StatusError as err:
@@ -388,9 +407,10 @@ class SimDrone:
         """MasterStreams.wake: the old master's Connect handler resumes on a later loop turn."""
         self.world.trace(
             f"drone: master {record.old_master} -> {record.new_master} epoch {record.epoch} "
-            f"after reqnr {record.after_reqnr} ({record.trigger})"
+            f"after reqnr {record.after_reqnr} ({record.trigger}, {record.kind})"
         )
         self.world.loop.after(0.0, self._wake, record.old_master)
+        self.world.switched(record)  # where the lose-master fault may strike (faults.py)
 
     def _wake(self, cid: int) -> None:
         """The Connect handler's loop: deliver the notice owed, then end the stream."""
@@ -408,6 +428,7 @@ class SimDrone:
             notice.new_master,
             notice.after_reqnr,
             notice.epoch,
+            notice.takeover,
             stream=True,
         )
         self.seq.delivered(cid, notice)
@@ -450,6 +471,7 @@ class SimDrone:
         stream = self.streams.get(cid)
         if stream is not None and stream.connection == connection:
             del self.streams[cid]
+        self.last_seen[cid] = self.world.loop.now  # Standby's finally: seen as it went
         for request in self._requests():
             if request.controller_id == cid and request.connection == connection:
                 self._caller_gone(request)
@@ -471,6 +493,8 @@ class SimDrone:
         self.up = True
         self.stats.restarts += 1
         self.seq = self._restored()
+        self.last_seen = {}  # DroneService.last_seen is not in the store
+        self.watch()
         cut, self.intent = self.intent, None
         self.world.trace(f"drone restarts (cut off: {cut})")
         if cut is None:
@@ -499,3 +523,69 @@ class SimDrone:
             old.fired_script,
         )
         return seq
+
+    # -- takeover (DroneService.watch_master, _take_over) ------------------------
+
+    def reachable(self) -> set[int]:
+        """StandbyStreams.reachable | MasterStreams.holders: controllers holding a stream.
+
+        Simplification: a live controller's standby stream is up exactly while
+        its channel is usable (a kill or a partition ends it at once, as a
+        reset TCP connection does; it is back as soon as the channel is).
+        """
+        if not self.up:
+            return set()
+        world = self.world
+        return {cid for cid in self.controllers if world.controller(cid).drone_link.usable()}
+
+    def watch(self) -> None:
+        """Starts ``watch_master``'s loop if it is not running (at start and restarts)."""
+        if not self._watching and self.up and self.takeover_after > 0:
+            self._watching = True
+            self.world.loop.after(TAKEOVER_TICK_S, self._watch_master)
+
+    def _watch_master(self) -> None:
+        """One turn of DroneService.watch_master: note who is reachable, ask takeover_due.
+
+        The loop stops (to let a finished run end) once no program has
+        calls left; ``World`` starts it again when a program (re)starts.
+        """
+        self._watching = False
+        if not self.up or not self.world.mission_open():
+            return
+        now = self.world.loop.now
+        reachable = self.reachable()
+        for cid in reachable:
+            self.last_seen[cid] = now
+        due = self.seq.takeover_due(now, reachable, self.last_seen, self.takeover_after)
+        if due is not None and not self._check_queued:
+            self._check_queued = True  # async with self._lock: re-checked there
+            self.queue.append(TakeoverCheck())
+            self._next()
+        self.watch()
+
+    def _takeover_check(self) -> None:
+        """watch_master under the lock: takeover_due again, then _take_over."""
+        now = self.world.loop.now
+        reachable = self.reachable()
+        for cid in reachable:
+            self.last_seen[cid] = now
+        due = self.seq.takeover_due(now, reachable, self.last_seen, self.takeover_after)
+        if due is not None:
+            self._take_over(due.new_master, "lost", now, due.lost_at)
+
+    def _take_over(self, new_master: int, trigger: str, now: float, lost_at: float) -> None:
+        """DroneService._take_over: switch by takeover, tell the new master on its standby."""
+        record = self.seq.switch(new_master, trigger, now, takeover=True, lost_at=lost_at)
+        self.takeovers += 1
+        self._switched(record)
+        link = self.world.controller(new_master).drone_link
+        if link.usable():  # StandbyStreams.tell: its newest stream, if it holds one
+            link.to_controller(
+                link.generation,
+                0,
+                link.owner.on_take_over,
+                record.old_master,
+                record.epoch,
+                stream=True,
+            )

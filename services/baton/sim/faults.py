@@ -69,6 +69,7 @@ class FaultPlan:
     back_to_back: int = 0
     end_handover: bool = False
     garbled: bool = False
+    lose_master: str = ""
 
     def describe(self) -> str:
         """One line: the counts that are not zero."""
@@ -90,6 +91,8 @@ class FaultPlan:
             parts.append("handover at the end")
         if self.garbled:
             parts.append("garbled request")
+        if self.lose_master:
+            parts.append(f"lose master: {self.lose_master}")
         return ", ".join(parts)
 
 
@@ -143,7 +146,61 @@ def plan_faults(world: World) -> FaultPlan:
     if plan.garbled:
         loop.at(when(), garbled_request, world)
     loop.at(end, faults_stop, world)
+    if world.options.lose_master:
+        plan_failover(world, plan)
     return plan
+
+
+LOSE_MODES = ("any time", "mid-flush", "after handover", "drone link cut")
+
+
+def plan_failover(world: World, plan: FaultPlan) -> None:
+    """The lose-master fault (issue 10), drawn from the world's failover stream.
+
+    One of: the drone's master killed for good at a random moment; killed
+    for good right after it sent a log message (the message in flight or
+    just delivered); the old or the new master of a cooperative handover
+    killed for good right after the drone decided it (before or after its
+    notice and log left); or the master's drone link cut for a while,
+    shorter or longer than the takeover time (it lives on and is fenced).
+    """
+    rng, end = world.frng, plan.fault_end
+    mode = rng.choice(LOSE_MODES)
+    start = rng.uniform(0.0, end)
+    if mode == "after handover":
+        plan.lose_master = f"{mode} ({rng.choice(('old', 'new'))} master)"
+        strike = "old" if "old" in plan.lose_master else "new"
+        world.loop.at(start, _arm, world, "on switch", strike)
+    elif mode == "mid-flush":
+        plan.lose_master = mode
+        world.loop.at(start, _arm, world, "on flush", True)
+    elif mode == "drone link cut":
+        length = world.takeover_after * rng.uniform(0.5, 3.0)
+        plan.lose_master = f"{mode} for {length:.2f}s"
+        world.loop.at(start, cut_master, world, length)
+    else:
+        plan.lose_master = mode
+        world.loop.at(start, lose_master, world)
+
+
+def _arm(world: World, trigger: str, value: object) -> None:
+    world.failover[trigger] = value
+
+
+def lose_master(world: World, tries: int = 0) -> None:
+    """Kills the drone's master for good, once the programs run (tried every 50 ms)."""
+    if world.programs_started:
+        world.lose(world.drone.seq.master, "master")
+    elif tries < 100:
+        world.loop.after(0.05, lose_master, world, tries + 1)
+
+
+def cut_master(world: World, length: float) -> None:
+    """Partitions the drone's master from the drone for ``length`` seconds."""
+    cid = world.drone.seq.master
+    world.trace(f"master {cid} cut from the drone for {length:.3f}s")
+    world.net.cut(cid, DRONE)
+    world.loop.after(length, heal, world, [(cid, DRONE)])
 
 
 def faults_stop(world: World) -> None:

@@ -22,6 +22,11 @@ was fixed in node.py ``_apply``: a controller's own handover message enters
 its history only when it comes back round. The simulation still watches
 for it (``World.check_overtaken_handover``): if it strikes, the run fails.
 
+F10 to F12 came with issue 10's scenario (``--lose-master``: the master killed
+for good mid-flush, right after a handover decision or at any time, or its
+drone link cut for a while); it is behind that option, with more failures
+than these.
+
 F6 (a former master's received log numbers grew by one per message: its
 own flushes never came back, so the watermark stopped below them) was
 fixed in protocol.py ``_flush`` while this was written; the bounded
@@ -94,6 +99,43 @@ FINDINGS = {
             "restarted receiver, which takes the role it had already passed on",
             "ring.py PeerLink (re-sends _unacked originals; only history copies are cleared)",
             "kills of a controller with a handover message to it not yet acknowledged",
+        ),
+        Finding(
+            "F10",
+            "an old master that the ring routed around while its own handover message went "
+            "round never gets that message back: routed back to it, its predecessor re-sends "
+            "only what is above its hello, and the hello (holds_lognr, which counts its own "
+            "lognr) says it holds it; its received-numbers set keeps the gap for good and "
+            "grows by one per message (as F6 did). Replay: --seed 320 --takeover-after 3",
+            "protocol.py holds_lognr / on_handover_notice (the handover message's number is "
+            "in lognr, not in _received) with node.py _route (the message went round on "
+            "the routed link, acknowledged there, so no stream keeps it unacknowledged)",
+            "the default mix runs with takeover and route-around off (takeover_after 0); "
+            "--takeover-after 3 turns them on",
+        ),
+        Finding(
+            "F11",
+            "a cooperative handover to a controller that is dead (a scripted handover naming "
+            "a lost master), then taken back by takeover: the old master's handover message "
+            "went only to the dead controller, and its history gets it only when it comes "
+            "back round, so its log number is never delivered: every replica waits for it "
+            "for good (liveness), or with two controllers the taker's received-numbers set "
+            "keeps the gap (bounded). Replay: --seed 22 --lose-master (--seed 14: bounded)",
+            "node.py _apply (a handover message enters the history only when it comes back, "
+            "the F7 fix) with protocol.py on_granted(takeover) numbering on after it; the "
+            "drone's script switches to a controller it cannot reach",
+            "behind --lose-master",
+        ),
+        Finding(
+            "F12",
+            "a Clock.Now that a lost or fenced master answered and logged but never got off "
+            "it is answered again by the taker with another time: the drone retains drone "
+            "replies above the watermark, not Clock ones, so a program that acted on the "
+            "time (its later drone calls already executed) diverges from the ring's "
+            "(the oracle counts it as this finding). Replay: --seed 13 --lose-master",
+            "node.py _clock_call (Clock replies exist only in the master's log) against the "
+            "takeover's 'what the new master lacks, the drone has' (docs/design.md)",
+            "behind --lose-master",
         ),
     )
 }

@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from baton.controller.protocol import ConnectDrone, ControllerProtocol, Effect, Refusal, State
 from baton.drone import sequencer
+from baton.drone.dedupe import ReplyCache
 from baton.drone.sequencer import Sequencer
 from baton.rpc.errors import StatusError
+from baton.sim.controller import SimController
 from baton.sim.drone import Request, SimDrone
 from baton.sim.network import RingLink
 from baton.v1 import ring_pb2
@@ -32,6 +34,8 @@ class Mutation:
     name: str
     defect: str
     patches: Callable[[], list[tuple[Any, str, Any]]]
+    # SimOptions fields the defect needs to matter (e.g. the lose-master scenario).
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 @contextlib.contextmanager
@@ -162,6 +166,32 @@ def _defect10() -> list[tuple[Any, str, Any]]:
     return [(SimDrone, "_restored", restored)]
 
 
+def _forgets_tail() -> list[tuple[Any, str, Any]]:
+    """Issue 10: the drone forgets the retained tail: the reply cache evicts beyond its
+    window whatever the watermark (dedupe.py ReplyCache._evict), so a taker that re-sends
+    what the lost master never flushed finds the replies gone."""
+
+    def evict(self: ReplyCache) -> None:
+        while len(self._entries) > self.window:
+            del self._entries[next(iter(self._entries))]
+
+    return [(ReplyCache, "_evict", evict)]
+
+
+def _no_fencing() -> list[tuple[Any, str, Any]]:
+    """Issue 10: no fencing: a master whose role was taken over takes the takeover notice
+    (or refusal) for a cooperative handover: it sends its unflushed log to the taker and
+    stays a replica with everything it held, instead of ``on_fenced`` and a rejoin with
+    nothing (patched in SimController._fenced, the mirror of ControllerNode._fenced)."""
+
+    def fenced(self: SimController, new_master: int, epoch: int) -> None:
+        self.on_handover_notice(new_master, 0, epoch)
+
+    return [(SimController, "_fenced", fenced)]
+
+
+LOSE_MASTER = {"lose_master": True}
+
 for _mutation in (
     Mutation("line44", "Algorithm 1 line 44: in-order message dropped during REPLAY", _line44),
     Mutation("defect1", "drone books nothing when the caller goes away", _defect1),
@@ -171,5 +201,11 @@ for _mutation in (
     Mutation("defect4", "refusals not judged by epoch", _defect4),
     Mutation("defect5", "no reqnr gap bound", _defect5),
     Mutation("defect10", "drone restart forgets its state", _defect10),
+    Mutation(
+        "forgets-tail", "drone evicts replies above the watermark", _forgets_tail, LOSE_MASTER
+    ),
+    Mutation(
+        "no-fencing", "a fenced master hands over instead of rejoining", _no_fencing, LOSE_MASTER
+    ),
 ):
     MUTATIONS[_mutation.name] = _mutation

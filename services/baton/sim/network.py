@@ -151,6 +151,10 @@ class RingLink:
         self._fifo = 0.0
         self.connects = 0
         self.peak_unacked = 0
+        self.stopped = False  # PeerLink.stop: no more attempts
+        self._try = 0  # the connection attempt under way; a restart supersedes it
+        self.down_since: float | None = world.loop.now  # PeerLink.down_since
+        owner.route_check_later()
 
     def start(self) -> None:
         """Starts keeping the stream (PeerLink.start)."""
@@ -173,13 +177,38 @@ class RingLink:
             return  # a connection attempt in progress sees it for itself
         self.up = False
         self.generation = self.world.next_id()
+        self.down_since = self.world.loop.now
         self.world.trace(f"ring {self.owner.id}->{self.dest} down ({why})")
+        self.owner.route_check_later()
         self._retry()
+
+    def down_for(self, now: float) -> float:
+        """PeerLink.down_for: seconds the stream has not been up (0 while it is)."""
+        return 0.0 if self.down_since is None else now - self.down_since
+
+    def stop(self) -> None:
+        """PeerLink.stop: the stream ends, no more attempts, unacknowledged messages dropped."""
+        self.stopped = True
+        self._try += 1
+        if self.up:
+            self.up = False
+            self.generation = self.world.next_id()
+
+    def restart(self) -> None:
+        """PeerLink.stop then start (node.py _route after give_history): a new stream,
+        whose hello and history re-send use the history given. A stream not up
+        yet reads the history when it comes up."""
+        if self.up:
+            self.up = False
+            self.generation = self.world.next_id()
+            self.down_since = self.world.loop.now
+            self._try += 1
+            self._attempt(self._try)
 
     # -- connecting ---------------------------------------------------------------
 
     def _retry(self) -> None:
-        self.world.loop.after(self._backoff, self._attempt)
+        self.world.loop.after(self._backoff, self._attempt, self._try)
         self._backoff = min(self._backoff * 2, BACKOFF_MAX_S)
 
     def _usable_peer(self) -> SimController | None:
@@ -189,35 +218,39 @@ class RingLink:
             return peer
         return None
 
-    def _attempt(self) -> None:
-        if not self.owner.alive:
+    def _attempt(self, attempt: int | None = None) -> None:
+        if not self.owner.alive or self.stopped:
             return
+        if attempt is not None and attempt != self._try:
+            return  # superseded by a restart
         peer = self._usable_peer()
         if peer is None:
             self._retry()
             return
-        self.world.loop.after(self.world.net.delay(self.owner.id, self.dest), self._accepted, peer)
+        delay = self.world.net.delay(self.owner.id, self.dest)
+        self.world.loop.after(delay, self._accepted, peer, self._try)
 
-    def _accepted(self, peer: SimController) -> None:
+    def _accepted(self, peer: SimController, attempt: int) -> None:
         """At the receiver (RingReceiver.serve): the hello says the log number it holds."""
-        if not self.owner.alive:
+        if not self.owner.alive or attempt != self._try:
             return
         if self._usable_peer() is not peer:
             self._retry()
             return
         hello = peer.protocol.holds_lognr  # controller/service.py's current_lognr
         self.world.loop.after(
-            self.world.net.delay(self.dest, self.owner.id), self._greeted, peer, hello
+            self.world.net.delay(self.dest, self.owner.id), self._greeted, peer, hello, attempt
         )
 
-    def _greeted(self, peer: SimController, hello: int) -> None:
+    def _greeted(self, peer: SimController, hello: int, attempt: int) -> None:
         """PeerLink._stream_once after the hello: sync frame, history above it, unacked."""
-        if not self.owner.alive:
+        if not self.owner.alive or attempt != self._try:
             return
         if self._usable_peer() is not peer:
             self._retry()
             return
         self.up, self._peer = True, peer
+        self.down_since = None
         self.generation = self.world.next_id()
         self._backoff = BACKOFF_INITIAL_S
         self._sent = set()
@@ -227,13 +260,15 @@ class RingLink:
         self._synced = holds
         self.world.trace(f"ring {self.owner.id}->{self.dest} up (hello {hello}, holds {holds})")
         self.world.check_start()
-        self._deliver_later(0, self._sync_frame, holds)
+        if self.history is not None:  # PeerLink: only a history stream says what it holds
+            self._deliver_later(0, self._sync_frame, holds)
         for lognr in self._history_to_resend(hello):
             if self.history is not None:
                 self._write(self.history.get(lognr))
         for lognr in sorted(self.unacked):
             self._sent.add(lognr)
             self._write(self.unacked[lognr])
+        self.owner.route_check_later(0.0)  # back to a natural successor that is up again
 
     def holds_changed(self) -> None:
         """PeerLink.holds_changed: a sync frame when the history's top grew."""

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import grpc
 
+from baton.controller.protocol import Effect, SendLog
 from baton.drone.dedupe import DEFAULT_WINDOW
 from baton.drone.sequencer import ScriptedHandover
 from baton.sim.controller import SimController
@@ -29,6 +30,7 @@ from baton.sim.mission import MissionCall, random_mission
 from baton.sim.mutations import mutated
 from baton.sim.network import DRONE, Network
 from baton.sim.oracles import Violation, check
+from baton.v1.drone_pb2 import HandoverRecord
 from baton.v1.ring_pb2 import LogMessage
 
 # Beyond the fault window, how long the mission may take to finish, at most.
@@ -43,8 +45,14 @@ class SimOptions:
 
     min_calls: int = 8
     max_calls: int = 32
-    # Issue 10 (failover) is not built: killing the master may stall the mission.
+    # Kills (restarted later) may hit a master in any sense.
     kill_master: bool = False
+    # Issue 10's scenario: the master lost for good (killed, never restarted) at
+    # any point, or its drone link cut for a while (faults.plan_failover).
+    lose_master: bool = False
+    # The drone's takeover time and the ring's detection time, seconds (None: 0 in
+    # the default mix, drawn from 1, 1.5 and 3 with lose_master).
+    takeover_after: float | None = None
     # Known findings (findings.py) whose scenarios this run lets in.
     allow: frozenset[str] = frozenset()
     mutation: str | None = None
@@ -58,6 +66,10 @@ class SimOptions:
             parts.append(f"--calls {self.min_calls}-{self.max_calls}")
         if self.kill_master:
             parts.append("--kill-master")
+        if self.lose_master:
+            parts.append("--lose-master")
+        if self.takeover_after is not None:
+            parts.append(f"--takeover-after {self.takeover_after:g}")
         if self.allow:
             parts.append(f"--allow {','.join(sorted(self.allow))}")
         if self.mutation:
@@ -130,6 +142,19 @@ class World:
             reqnr = rng.randint(1, len(self.program))
             script.setdefault(reqnr, ScriptedHandover(reqnr, rng.choice(self.ring), line + 1))
         self.faulty = True
+        # Takeover and ring detection time (config.detection_time_s: takeover_after
+        # mission seconds, at least 1 s), from a stream of its own so that the
+        # failover draws leave every other draw of the seed where it was.
+        self.frng = random.Random(f"failover {seed}")
+        # Off in the default mix (``baton drone --takeover-after 0``: finding F10
+        # strikes there with the testbed's 3 s); --lose-master draws 1 to 3 s.
+        drawn = self.frng.choice((1.0, 1.5, 3.0)) if options.lose_master else 0.0
+        if options.takeover_after is not None:
+            drawn = options.takeover_after
+        self.takeover_after = self.detection_s = drawn
+        # Controllers killed for good (the lose-master fault), and what it did.
+        self.lost: set[int] = set()
+        self.failover: dict[str, object] = {}
         self.net = Network(self, [*self.ring, DRONE])
         self.drone = SimDrone(
             self, self.ring, self.ring[0], script, cache_window, rng.choice((0.0, 0.0, 0.05))
@@ -156,7 +181,7 @@ class World:
             f"{n} controllers, ring {self.ring} (initial master {self.ring[0]}), flush limit "
             f"{self.flush_limit} B, {len(self.program)} calls, cache window {cache_window}, "
             f"script {sorted((s.after_reqnr, s.new_master) for s in script.values())}, "
-            f"loss {self.net.p_loss}, dup {self.net.p_dup}"
+            f"loss {self.net.p_loss}, dup {self.net.p_dup}, takeover after {self.takeover_after}s"
         )
 
     # -- parts ------------------------------------------------------------------------
@@ -178,12 +203,58 @@ class World:
 
     def restart_controller(self, cid: int) -> None:
         """Restarts controller ``cid`` with nothing: a fresh protocol, history and program."""
-        if not self.controllers[cid].alive:
+        if not self.controllers[cid].alive and cid not in self.lost:
             self.trace(f"controller {cid} restarts")
             controller = self._new_controller(cid)
             controller.start()
             if self.programs_started:
                 controller.begin_program()
+            self.drone.watch()
+
+    def rejoin(self, controller: SimController) -> None:
+        """ControllerApp.rejoin after a takeover fenced ``controller`` or it diverged: its
+        program stops, ``ControllerNode.reset`` (new protocol, history cleared, its
+        streams stopped), incoming streams dropped so that the predecessors connect
+        again and say it all from hello 0, the program restarted from its first call.
+        The same as a kill and an immediate restart with nothing."""
+        if self.controllers.get(controller.id) is not controller or not controller.alive:
+            return
+        controller.ended_by = "rejoin"
+        controller.kill("rejoins as a replica with nothing")
+        self.restart_controller(controller.id)
+
+    def lose(self, cid: int, why: str) -> None:
+        """Kills controller ``cid`` for good (the lose-master fault)."""
+        controller = self.controllers[cid]
+        if not controller.alive or self.lost:
+            return
+        self.lost.add(cid)
+        controller.ended_by = "lost"
+        self.failover["lost"] = f"{cid} at {self.loop.now:.3f}s ({why})"
+        controller.kill(f"killed for good ({why})")
+
+    def mission_open(self) -> bool:
+        """Whether some program still has calls to make (or has not started)."""
+        return not self.programs_started or any(
+            not c.done for cid, c in self.controllers.items() if cid not in self.lost
+        )
+
+    def switched(self, record: HandoverRecord) -> None:
+        """The drone switched masters: the lose-master fault may strike now."""
+        strike = self.failover.pop("on switch", None)
+        if strike is not None and record.kind == "cooperative":
+            victim = record.old_master if strike == "old" else record.new_master
+            delay = self.frng.choice((0.0, self.frng.uniform(0.0, 0.02)))
+            self.loop.after(delay, self.lose, victim, f"{strike} master right after a handover")
+
+    def after_apply(self, controller: SimController, effects: list[Effect]) -> None:
+        """A controller carried out effects: the lose-master fault may strike mid-flush."""
+        if "on flush" not in self.failover or controller.id != self.drone.seq.master:
+            return
+        if any(isinstance(e, SendLog) and e.message.origin == controller.id for e in effects):
+            del self.failover["on flush"]
+            delay = self.frng.choice((0.0, self.frng.uniform(0.0, 0.01)))
+            self.loop.after(delay, self.lose, controller.id, "master mid-flush")
 
     def check_start(self) -> None:
         """Starts the programs once the ring is connected and every controller asked the drone.
@@ -194,6 +265,7 @@ class World:
         if self.programs_started:
             return
         allow, controllers = self.options.allow, self.controllers.values()
+        self.drone.watch()
         ring_up = all(c.alive and c.peer(c.protocol.successor).up for c in controllers)
         if ring_up and ("F4" in allow or all(c.answered for c in controllers)):
             self._start_programs()
