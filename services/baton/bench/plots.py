@@ -123,7 +123,7 @@ def plot_failover(runs: Sequence[dict[str, Any]], detection_s: float, path: Path
     ax.set_xticks(list(x), labels, rotation=60, fontsize=7)
     ax.set_ylabel("kill -9 to the new master's first new request (s)")
     ax.set_title("Takeover after kill -9 of the master (controllers@kill reqnr, h: in a handover)")
-    ax.legend(loc="upper right", fontsize=8)
+    ax.legend(loc="lower right", fontsize=8, framealpha=0.9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
