@@ -283,3 +283,35 @@ async def test_a_master_killed_with_a_picture_in_flight_gets_no_second_picture(
         and str(e.get("method")).endswith("/TakePicture")
     ]
     assert again and all(e["controller"] == 1 for e in again)
+
+
+async def test_a_master_that_dies_while_the_drone_restarts_is_taken_over(
+    tmp_path: Path,
+) -> None:
+    """The drone is killed, then the master; the drone restarts from its state file. It
+    never sees the master again, yet counts it as there before the restart (plus a grace
+    for the controllers to re-connect), so it is lost, not waited for for good."""
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=0,
+        handovers=((8, 1),),
+        speedup=20.0,
+        mission=LONG_LEGS,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        async def handed_over() -> bool:
+            drone = (await testbed.snapshot(audit=False)).drone
+            return drone.master == 1 and drone.last_reqnr >= 14
+
+        await eventually(handed_over, "controller 1 master and flying", 120)
+        await testbed.supervisor.kill("drone")
+        await testbed.kill_controller(1)
+        await testbed.supervisor.restart("drone")
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == [(1, 2, "lost")]
+    messages = [e.get("msg") for e in log_events(tmp_path, "drone")]
+    assert "state resumed" in messages and "master lost: taken over" in messages

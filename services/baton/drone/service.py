@@ -42,6 +42,10 @@ _STATUS_READ_TIMEOUT_S = 1.0
 AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
 # How often the drone looks whether the master is lost (a fraction of the takeover time).
 _TAKEOVER_TICK_S = 0.05
+# A drone restarted mid-mission counts its master as seen this long after the
+# restart: time for the controllers to re-connect (their back-off reaches
+# 1 s), after which a master that did not come back is lost.
+RESTART_GRACE_S = 5.0
 
 
 async def latest_position(vehicle: MobilityBackend) -> api.Position:
@@ -210,6 +214,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         c, seq = state.counters, self.seq
         counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
         seq.resume(c.master, c.handovers, counts, state.replies, state.audit, c.fired_script)
+        if c.last_reqnr or c.handovers:
+            # A mission in progress: its master was there before the restart.
+            # Seen "now plus the grace", so that it is lost if it does not
+            # come back (it may have died while the drone was down).
+            self.last_seen[c.master] = time.time() + RESTART_GRACE_S
         self.log.info(
             "state resumed",
             path=str(store.path),

@@ -47,6 +47,8 @@ if TYPE_CHECKING:
 ROUTES = drone_api_routes()
 # service.py _TAKEOVER_TICK_S: how often the drone looks whether the master is lost.
 TAKEOVER_TICK_S = 0.05
+# service.py RESTART_GRACE_S.
+RESTART_GRACE_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -493,7 +495,11 @@ class SimDrone:
         self.up = True
         self.stats.restarts += 1
         self.seq = self._restored()
-        self.last_seen = {}  # DroneService.last_seen is not in the store
+        # DroneService.last_seen is not in the store; _restore counts the master of
+        # a mission in progress as seen RESTART_GRACE_S after the restart.
+        self.last_seen = {}
+        if self.seq.last_reqnr or self.seq.handovers:
+            self.last_seen[self.seq.master] = self.world.loop.now + RESTART_GRACE_S
         self.watch()
         cut, self.intent = self.intent, None
         self.world.trace(f"drone restarts (cut off: {cut})")
