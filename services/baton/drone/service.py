@@ -165,17 +165,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self._switched(record)
         if self.store is not None:
             self.store.save(self._counters())
-        told = self.standby.tell(
-            new_master,
-            drone_pb2.StandbyEvent(
-                take_over=drone_pb2.TakeOver(
-                    old_master=record.old_master,
-                    epoch=record.epoch,
-                    after_reqnr=record.after_reqnr,
-                    watermark_reqnr=self.seq.cache.watermark,
-                )
-            ),
-        )
+        told = self.standby.tell(new_master, self._take_over_event(record))
         retained, retained_bytes = self.seq.cache.retained
         self.log.warning(
             "master lost: taken over" if trigger == "lost" else "takeover",
@@ -189,6 +179,27 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             told_on_standby=told,
         )
         return record
+
+    def _take_over_event(self, record: drone_pb2.HandoverRecord) -> drone_pb2.StandbyEvent:
+        return drone_pb2.StandbyEvent(
+            take_over=drone_pb2.TakeOver(
+                old_master=record.old_master,
+                epoch=record.epoch,
+                after_reqnr=record.after_reqnr,
+                watermark_reqnr=self.seq.cache.watermark,
+            )
+        )
+
+    def _take_over_owed(self, cid: int) -> drone_pb2.StandbyEvent | None:
+        """The TakeOver again for a taker that has not sent a request since (the stream
+        that was to carry it may have broken first); None otherwise."""
+        seq = self.seq
+        if cid != seq.master or not seq.handovers:
+            return None
+        record = seq.handovers[-1]
+        if record.kind != "takeover" or record.first_request_at:
+            return None
+        return self._take_over_event(record)
 
     # -- durable state (store.py) ---------------------------------------------------
 
@@ -473,6 +484,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             yield drone_pb2.StandbyEvent(
                 held=drone_pb2.StandbyHeld(master=self.seq.master, epoch=self.seq.epoch)
             )
+            owed = self._take_over_owed(cid)
+            if owed is not None:
+                yield owed
             while True:
                 yield await stream.events.get()
         finally:
