@@ -21,8 +21,22 @@ from test_faults_mid_mission import LONG_LEGS
 from test_restarts_and_epochs import log_events
 from waiting import eventually
 
-from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
+from baton.testbed.local import WIFI_DRONE_LINK, LocalTestbed, Snapshot, TestbedPlan
 from baton.v1 import drone_pb2
+
+
+def three_controllers(flush_limit: int, **options: object) -> TestbedPlan:
+    """Ring 0 -> 1 -> 2 -> 0, master 0, the long-legged mission at 20x, fast links."""
+    settings: dict[str, object] = {
+        "controllers": 3,
+        "flush_limit": flush_limit,
+        "speedup": 20.0,
+        "mission": LONG_LEGS,
+        "controller_link": FAST_LINK,
+        "drone_link": FAST_LINK,
+        **options,
+    }
+    return TestbedPlan(**settings)  # type: ignore[arg-type]
 
 
 def takeovers(snapshot: Snapshot) -> list[tuple[int, int, str]]:
@@ -54,14 +68,7 @@ async def kill_when(
 
 
 async def test_a_killed_master_is_taken_over_and_the_mission_completes(tmp_path: Path) -> None:
-    plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
-        speedup=20.0,
-        mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
-    )
+    plan = three_controllers(0)
     async with LocalTestbed(plan, tmp_path) as testbed:
         await kill_when(testbed, 0, 12, unflushed=False)
         snapshot = await testbed.run_mission(240)
@@ -84,14 +91,7 @@ async def test_the_unflushed_tail_of_a_killed_master_comes_from_the_drone(
     """A 2 MB flush limit: the master holds pictures it has not flushed when it is killed.
     Only the drone has those replies; it retained them (above the watermark) and answers
     the new master's re-sent requests from them, executing none twice."""
-    plan = TestbedPlan(
-        controllers=3,
-        flush_limit=2 * 2**20,
-        speedup=20.0,
-        mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
-    )
+    plan = three_controllers(2 * 2**20)
     async with LocalTestbed(plan, tmp_path) as testbed:
         before = await kill_when(testbed, 0, 14, unflushed=True)
         snapshot = await testbed.run_mission(240)
@@ -111,14 +111,7 @@ async def test_a_killed_master_restarted_after_the_takeover_rejoins_as_a_replica
     """It restarts with its log file (which may hold messages that never left it) and
     asks the drone, which tells it it was taken over; it drops all it had, restarts its
     program, and catches up from the ring like a controller with nothing."""
-    plan = TestbedPlan(
-        controllers=3,
-        flush_limit=2 * 2**20,
-        speedup=20.0,
-        mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
-    )
+    plan = three_controllers(2 * 2**20)
     async with LocalTestbed(plan, tmp_path) as testbed:
         await kill_when(testbed, 0, 14, unflushed=True)
 
@@ -146,15 +139,7 @@ async def test_a_master_killed_after_the_drone_decided_a_handover_before_its_log
     soon as the drone decided. 1, master by the drone's word, waits for a log that will
     never come, until the drone, not seeing 0, grants 1 again by takeover in a newer
     epoch; 1 gets every reply from the drone."""
-    plan = TestbedPlan(
-        controllers=3,
-        flush_limit=16 * 2**20,
-        handovers=((12, 1),),
-        speedup=20.0,
-        mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
-    )
+    plan = three_controllers(16 * 2**20, handovers=((12, 1),))
     async with LocalTestbed(plan, tmp_path) as testbed:
 
         async def served(reqnr: int) -> bool:
@@ -184,14 +169,7 @@ async def test_a_dead_replica_is_routed_around_and_the_watermark_moves_on(
     """Controller 1 of 0 -> 1 -> 2 -> 0 is killed for good: 0 sends to 2 after the
     detection time, the mission completes on 0 and 2, and the drone retains only the
     replies above a watermark that keeps moving (2 tells 0 what it holds)."""
-    plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
-        speedup=20.0,
-        mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
-    )
+    plan = three_controllers(0)
     async with LocalTestbed(plan, tmp_path) as testbed:
         await kill_when(testbed, 1, 12, unflushed=False)
         snapshot = await testbed.run_mission(240)
@@ -211,14 +189,7 @@ async def test_a_master_cut_off_from_the_drone_is_fenced_and_rejoins_when_the_li
     seeing it, makes 1 master. 0 goes on re-sending its request into the cut; nothing it
     sends once the link is back is executed: the drone refuses it as taken over, and 0
     stops acting as master, drops what it had and rejoins as a replica."""
-    plan = TestbedPlan(
-        controllers=3,
-        flush_limit=2 * 2**20,
-        speedup=20.0,
-        mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
-    )
+    plan = three_controllers(2 * 2**20)
     async with LocalTestbed(plan, tmp_path) as testbed:
 
         async def flying() -> bool:
@@ -254,20 +225,13 @@ async def test_a_master_killed_with_a_picture_in_flight_gets_no_second_picture(
     0.4 s to reach the master, which is killed as soon as the drone executed the
     TakePicture. The new master re-sends that request; the drone answers it from the
     reply it retained, and the camera counts one picture per waypoint."""
-    plan = TestbedPlan(
-        controllers=3,
-        flush_limit=2 * 2**20,
-        speedup=20.0,
-        mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-    )
+    plan = three_controllers(2 * 2**20, drone_link=WIFI_DRONE_LINK)
     async with LocalTestbed(plan, tmp_path) as testbed:
-        assert testbed.drone_stub is not None
+        stub = testbed.drone_stub
+        assert stub is not None
 
         async def picture_executed() -> bool:
-            status = await testbed.drone_stub.GetStatus(
-                drone_pb2.GetDroneStatusRequest(include_audit=True)
-            )
+            status = await stub.GetStatus(drone_pb2.GetDroneStatusRequest(include_audit=True))
             return bool(status.audit) and status.audit[-1].method.endswith("/TakePicture")
 
         await eventually(picture_executed, "a TakePicture executed", 120)
@@ -291,15 +255,7 @@ async def test_a_master_that_dies_while_the_drone_restarts_is_taken_over(
     """The drone is killed, then the master; the drone restarts from its state file. It
     never sees the master again, yet counts it as there before the restart (plus a grace
     for the controllers to re-connect), so it is lost, not waited for for good."""
-    plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
-        handovers=((8, 1),),
-        speedup=20.0,
-        mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
-    )
+    plan = three_controllers(0, handovers=((8, 1),))
     async with LocalTestbed(plan, tmp_path) as testbed:
 
         async def handed_over() -> bool:
