@@ -41,7 +41,7 @@ _STATUS_READ_TIMEOUT_S = 1.0
 # Audit entries in one GetStatus page: by default, and at most.
 AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
 # How often the drone looks whether the master is lost (a fraction of the takeover time).
-_TAKEOVER_TICK_S = 0.05
+TAKEOVER_TICK_S = 0.05
 # A drone restarted mid-mission counts its master as seen this long after the
 # restart: time for the controllers to re-connect (their back-off reaches
 # 1 s), after which a master that did not come back is lost.
@@ -155,7 +155,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                     )
                     if due is not None:
                         self._take_over(due.new_master, "lost", now, due.lost_at)
-            await asyncio.sleep(_TAKEOVER_TICK_S)
+            await asyncio.sleep(TAKEOVER_TICK_S)
 
     def _take_over(
         self, new_master: int, trigger: str, now: float, lost_at: float = 0.0

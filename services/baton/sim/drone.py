@@ -35,6 +35,7 @@ from baton.digest import request_digest
 from baton.drone.dedupe import CachedReply
 from baton.drone.dispatch import drone_api_routes
 from baton.drone.sequencer import ScriptedHandover, Sequencer, cut_off_outcome
+from baton.drone.service import RESTART_GRACE_S, TAKEOVER_TICK_S
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.sim.mission import UNPARSABLE
@@ -45,10 +46,6 @@ if TYPE_CHECKING:
     from baton.sim.world import World
 
 ROUTES = drone_api_routes()
-# service.py _TAKEOVER_TICK_S: how often the drone looks whether the master is lost.
-TAKEOVER_TICK_S = 0.05
-# service.py RESTART_GRACE_S.
-RESTART_GRACE_S = 5.0
 
 
 @dataclass(frozen=True)
