@@ -7,6 +7,8 @@ import grpc
 import pytest
 from drone_harness import start_drone
 
+from baton.digest import request_digest
+from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
 
@@ -43,5 +45,70 @@ async def test_a_takeover_is_told_again_to_a_taker_that_was_not_listening() -> N
         other = drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=2))
         assert (await other.read()).held.master == 1  # nothing owed to 2
         other.cancel()
+    finally:
+        await server.stop()
+
+
+NOW = "/baton.v1.Clock/Now"
+POSITION = "/baton.v1.Mobility/GetPosition"
+
+
+def clock_reply(reqnr: int, method: str = NOW, seconds: float = 1.0) -> drone_pb2.RetainedReply:
+    reply = api.NowReply(unix_time_s=1_700_000_000 + seconds).SerializeToString()
+    return drone_pb2.RetainedReply(
+        reqnr=reqnr, method=method, request_digest=request_digest(method, b""), reply=reply
+    )
+
+
+async def test_the_takeover_carries_every_retained_reply_with_the_clock_reads_sent_along() -> None:
+    """F12: a lost master's Clock.Now, sent along with its next Invoke, reaches the taker
+    with the drone's own replies above the watermark, so it reads the same time."""
+    drone, server = await start_drone()
+    try:
+        first = drone_pb2.InvokeRequest(controller_id=0, reqnr=1, method=POSITION, epoch=1)
+        await drone.stub.Invoke(first)
+        read = clock_reply(2, seconds=12.5)
+        second = drone_pb2.InvokeRequest(
+            controller_id=0, reqnr=3, method=POSITION, epoch=1, clock_replies=[read]
+        )
+        position = await drone.stub.Invoke(second)
+        standby = drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=1))
+        await standby.read()
+        await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
+        take_over = (await standby.read()).take_over
+        standby.cancel()
+        assert [r.reqnr for r in take_over.retained] == [1, 2, 3]
+        assert take_over.retained[1] == read
+        assert take_over.retained[2].reply == position.payload
+        assert take_over.retained[2].request_digest == request_digest(POSITION, b"")
+    finally:
+        await server.stop()
+
+
+@pytest.mark.parametrize(
+    ("kept", "why"),
+    [
+        (clock_reply(2, method=POSITION), "not a Clock method"),
+        (clock_reply(1), "must increase, above the last request served (1)"),
+        (clock_reply(3), "below this one (3)"),
+    ],
+)
+async def test_a_clock_reply_sent_along_out_of_place_is_refused_and_nothing_runs(
+    kept: drone_pb2.RetainedReply, why: str
+) -> None:
+    drone, server = await start_drone()
+    try:
+        await drone.stub.Invoke(
+            drone_pb2.InvokeRequest(controller_id=0, reqnr=1, method=POSITION, epoch=1)
+        )
+        bad = drone_pb2.InvokeRequest(
+            controller_id=0, reqnr=3, method=POSITION, epoch=1, clock_replies=[kept]
+        )
+        with pytest.raises(grpc.aio.AioRpcError) as refused:
+            await drone.stub.Invoke(bad)
+        assert refused.value.code() is grpc.StatusCode.INVALID_ARGUMENT
+        assert why in (refused.value.details() or "")
+        status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert (status.last_reqnr, status.executed, status.retained_replies) == (1, 1, 1)
     finally:
         await server.stop()

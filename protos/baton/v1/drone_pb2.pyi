@@ -36,6 +36,7 @@ class InvokeRequest(_message.Message):
     PAYLOAD_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
+    CLOCK_REPLIES_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The calling controller's id."""
     reqnr: _builtins.int
@@ -56,6 +57,14 @@ class InvokeRequest(_message.Message):
     every reply above it, so that a master taking over without the old
     one's log gets them again; it never goes down.
     """
+    @_builtins.property
+    def clock_replies(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
+        """The Clock calls the master answered itself since its last Invoke,
+        request numbers between the last one served and this one. The drone
+        keeps them with its own replies, so a taker answers them again with
+        the same time (a drone call that followed may depend on it).
+        """
+
     def __init__(
         self,
         *,
@@ -65,10 +74,11 @@ class InvokeRequest(_message.Message):
         payload: _builtins.bytes = ...,
         epoch: _builtins.int = ...,
         watermark_reqnr: _builtins.int = ...,
+        clock_replies: _abc.Iterable[Global___RetainedReply] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "epoch", b"epoch", "method", b"method", "payload", b"payload", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["clock_replies", b"clock_replies", "controller_id", b"controller_id", "epoch", b"epoch", "method", b"method", "payload", b"payload", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -328,6 +338,7 @@ class TakeOver(_message.Message):
     EPOCH_FIELD_NUMBER: _builtins.int
     AFTER_REQNR_FIELD_NUMBER: _builtins.int
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
+    RETAINED_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """The master that was lost."""
     epoch: _builtins.int
@@ -336,6 +347,14 @@ class TakeOver(_message.Message):
     """The last request number the drone served."""
     watermark_reqnr: _builtins.int
     """The replication watermark then: the drone holds every reply above it."""
+    @_builtins.property
+    def retained(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
+        """Every reply the drone retained above the watermark, oldest first: the
+        lost master's tail, drone calls and the Clock calls it sent along. The
+        taker answers its program from them (digest-checked) instead of
+        re-sending each request (docs/design.md, "Takeover").
+        """
+
     def __init__(
         self,
         *,
@@ -343,14 +362,57 @@ class TakeOver(_message.Message):
         epoch: _builtins.int = ...,
         after_reqnr: _builtins.int = ...,
         watermark_reqnr: _builtins.int = ...,
+        retained: _abc.Iterable[Global___RetainedReply] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "epoch", b"epoch", "old_master", b"old_master", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "epoch", b"epoch", "old_master", b"old_master", "retained", b"retained", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___TakeOver: _TypeAlias = TakeOver  # noqa: Y015
+
+@_typing.final
+class RetainedReply(_message.Message):
+    """A reply the drone keeps, as it gives it to a taker."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    REQNR_FIELD_NUMBER: _builtins.int
+    METHOD_FIELD_NUMBER: _builtins.int
+    REQUEST_DIGEST_FIELD_NUMBER: _builtins.int
+    REPLY_FIELD_NUMBER: _builtins.int
+    STATUS_CODE_FIELD_NUMBER: _builtins.int
+    STATUS_MESSAGE_FIELD_NUMBER: _builtins.int
+    reqnr: _builtins.int
+    """The request number."""
+    method: _builtins.str
+    """Full gRPC method name."""
+    request_digest: _builtins.bytes
+    """SHA-256 of method and serialized request (baton.digest)."""
+    reply: _builtins.bytes
+    """The serialized reply."""
+    status_code: _builtins.int
+    """The gRPC status code of a call that failed (0: a reply)."""
+    status_message: _builtins.str
+    """Its status message."""
+    def __init__(
+        self,
+        *,
+        reqnr: _builtins.int = ...,
+        method: _builtins.str = ...,
+        request_digest: _builtins.bytes = ...,
+        reply: _builtins.bytes = ...,
+        status_code: _builtins.int = ...,
+        status_message: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___RetainedReply: _TypeAlias = RetainedReply  # noqa: Y015
 
 @_typing.final
 class HandoverRequest(_message.Message):

@@ -14,7 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -138,6 +138,7 @@ class DroneSession:
         payload: bytes,
         timeout_s: float | None = None,
         watermark_reqnr: int = 0,
+        clock_replies: Sequence[drone_pb2.RetainedReply] = (),
     ) -> drone_pb2.InvokeReply:
         """Sends request ``reqnr`` in this session's epoch; raises grpc.aio.AioRpcError.
 
@@ -151,6 +152,7 @@ class DroneSession:
             payload=payload,
             epoch=self.epoch,
             watermark_reqnr=watermark_reqnr,
+            clock_replies=clock_replies,
         )
         reply: drone_pb2.InvokeReply = await self._stub.Invoke(
             request, wait_for_ready=True, timeout=timeout_s

@@ -72,6 +72,44 @@ def _given_up(reqnr: int, method: str, request: bytes, code: grpc.StatusCode) ->
     )
 
 
+def to_retained(entry: ring_pb2.LogEntry) -> drone_pb2.RetainedReply:
+    """A Clock call's log entry as the drone keeps it (sent along with the next Invoke)."""
+    return drone_pb2.RetainedReply(
+        reqnr=entry.reqnr,
+        method=entry.method,
+        request_digest=entry.request_digest,
+        reply=entry.reply,
+        status_code=entry.status_code,
+        status_message=entry.status_message,
+    )
+
+
+def from_retained(kept: drone_pb2.RetainedReply, method: str, request: bytes) -> ring_pb2.LogEntry:
+    """A taker's log entry for its program's call, from the reply the drone retained.
+
+    FAILED_PRECONDITION if the program asks another call than the one the
+    drone served (the digests differ): the mission program diverged, as the
+    drone would have refused it had the request been sent again.
+    """
+    digest = request_digest(method, request)
+    if kept.request_digest != digest:
+        raise StatusError(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            f"request {kept.reqnr} was served to the lost master as {kept.method} (digest "
+            f"{kept.request_digest.hex()[:16]}) but this mission program asks {method} "
+            f"(digest {digest.hex()[:16]}): the mission program diverged",
+        )
+    return ring_pb2.LogEntry(
+        reqnr=kept.reqnr,
+        method=method,
+        reply=kept.reply,
+        request_digest=digest,
+        request=request,
+        status_code=kept.status_code,
+        status_message=kept.status_message,
+    )
+
+
 @dataclass
 class Retry:
     """Re-sending with back-off for at most ``limit_s`` (wall time)."""
@@ -156,8 +194,13 @@ class ControllerNode:
             cid, config.drone_address_for(cid), self.on_take_over, self.log
         )
         self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
-        # Sleeps up to this request number were slept by a master lost since.
-        self._slept_up_to = 0
+        # The replies the drone retained for our takeover, by reqnr: the lost
+        # master's tail, answered from here instead of sent again.
+        self._retained: dict[int, drone_pb2.RetainedReply] = {}
+        # The Clock calls consumed since the last drone call: sent along with
+        # the next Invoke, so the drone keeps them for a taker.
+        self._clock_since_drone: list[ring_pb2.LogEntry] = []
+        self.answered_from_retained = 0
         self.routed_around: list[int] = []  # successors skipped as unreachable
         self._router: asyncio.Task[None] | None = None
         self.fenced_messages = 0  # log messages dropped from a fenced master
@@ -305,7 +348,8 @@ class ControllerNode:
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
         self._takeover_epoch = 0
-        self._slept_up_to = 0
+        self._retained = {}
+        self._clock_since_drone = []
         self.routed_around = []
         self.peer(self.protocol.successor).start()
         await self._apply(self.protocol.start())
@@ -503,11 +547,12 @@ class ControllerNode:
         """The drone made us master by takeover (standby stream): connect to learn it.
 
         The old master's log will not come: what we lack above what we hold
-        the drone answers again from its retained replies.
+        came with the TakeOver, the replies the drone retained (``_invoke``
+        answers the program from them).
         """
         p = self.protocol
         self._takeover_epoch = event.epoch
-        self._slept_up_to = max(self._slept_up_to, event.after_reqnr)
+        self._retained = {kept.reqnr: kept for kept in event.retained if kept.reqnr > p.held_reqnr}
         self.handovers.append(
             HandoverEvent("taker", event.old_master, p.lognr, p.reqnr, p.log.size)
         )
@@ -517,6 +562,7 @@ class ControllerNode:
             epoch=event.epoch,
             drone_after_reqnr=event.after_reqnr,
             watermark_reqnr=event.watermark_reqnr,
+            retained_replies=len(event.retained),
             holds_reqnr=p.held_reqnr,
         )
         # A session of an earlier mastership (or of the start-up question)
@@ -762,8 +808,11 @@ class ControllerNode:
         where the program gets it, so a call cancelled after that is counted
         as on every replica.
         """
-        if not entry.method.startswith(CLOCK_SERVICE):
+        if entry.method.startswith(CLOCK_SERVICE):
+            self._clock_since_drone.append(entry)
+        else:
             self._drone_calls += 1
+            self._clock_since_drone.clear()
         self._reply_chain.update(
             entry.reqnr.to_bytes(8, "big")
             + entry.status_code.to_bytes(4, "big", signed=True)
@@ -824,11 +873,20 @@ class ControllerNode:
         reqnr = self.protocol.reqnr + 1
         digest = request_digest(method, request)
         try:
-            if method in (CLOCK_NOW, CLOCK_SLEEP):
+            kept = self._retained.pop(reqnr, None)
+            if kept is not None:
+                try:
+                    entry = from_retained(kept, method, request)
+                except StatusError as err:
+                    self._fail(StatusError(err.code, f"controller {self.id}: {err.message}"))
+                    raise self._failure or err from None
+                self.answered_from_retained += 1
+                self.log.info("answered from the retained tail", reqnr=reqnr, method=method)
+            elif method in (CLOCK_NOW, CLOCK_SLEEP):
                 entry = ring_pb2.LogEntry(
                     reqnr=reqnr,
                     method=method,
-                    reply=await self._clock_call(method, request, reqnr),
+                    reply=await self._clock_call(method, request),
                     request_digest=digest,
                     request=request,
                 )
@@ -870,20 +928,20 @@ class ControllerNode:
         """Still ACTIVE, with ``reqnr`` the next request to log."""
         return self.protocol.state is State.ACTIVE and self.protocol.reqnr + 1 == reqnr
 
-    async def _clock_call(self, method: str, request: bytes, reqnr: int) -> bytes:
+    async def _clock_call(self, method: str, request: bytes) -> bytes:
         """Clock calls are answered here and logged like drone replies.
 
         Logging Sleep too means a new master replays the sleeps its
         predecessor already slept instead of sleeping them again; a sleep cut
-        short by a handover is discarded like any reply in flight. After a
-        takeover, a Sleep numbered below the drone's last request then (the
-        lost master slept it, and its log went with it) is not slept again:
-        the mission's time has passed (docs/design.md, "Takeover").
+        short by a handover is discarded like any reply in flight. They also
+        go to the drone with the next drone call (``_clock_since_drone``),
+        which keeps them for a taker: after a takeover the lost master's
+        Sleeps are not slept again and its times are read again the same
+        (docs/design.md, "Takeover").
         """
         if method == CLOCK_NOW:
             return api.NowReply(unix_time_s=self.clock.now()).SerializeToString()
-        if reqnr > self._slept_up_to:
-            await self.clock.sleep(api.SleepRequest.FromString(request).seconds)
+        await self.clock.sleep(api.SleepRequest.FromString(request).seconds)
         return api.SleepReply().SerializeToString()
 
     async def _invoke_drone(
@@ -916,6 +974,7 @@ class ControllerNode:
                     request,
                     timeout_s=budget,
                     watermark_reqnr=self.protocol.watermark_reqnr,
+                    clock_replies=[to_retained(entry) for entry in self._clock_since_drone],
                 )
                 return ring_pb2.LogEntry(
                     reqnr=reqnr,

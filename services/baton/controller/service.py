@@ -17,12 +17,11 @@ from google.protobuf import message as protobuf_message
 
 from baton.controller.node import CLOCK_SLEEP, ControllerNode
 from baton.controller.ring import RingReceiver
-from baton.rpc.errors import StatusError, abort_with
+from baton.rpc.errors import StatusError, abort_with, status_of
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA, token_in
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
-_STATUS_BY_CODE = {code.value[0]: code for code in grpc.StatusCode}
 PROXIED_SERVICES = ("Mobility", "Camera", "Clock")
 
 
@@ -35,11 +34,6 @@ def proxied_methods() -> dict[str, type[protobuf_message.Message]]:
             request_class = getattr(api, method.input_type.name)
             methods[f"/{service.full_name}/{method.name}"] = request_class
     return methods
-
-
-def status_of(code: int) -> grpc.StatusCode:
-    """The grpc.StatusCode with numeric value ``code``."""
-    return _STATUS_BY_CODE.get(code, grpc.StatusCode.UNKNOWN)
 
 
 def caller_refused(
@@ -201,6 +195,7 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         fenced_messages=node.fenced_messages,
         routed_around=node.routed_around,
         standby_up=node.standby_up,
+        answered_from_retained=node.answered_from_retained,
         handovers=[
             ring_pb2.ControllerHandover(
                 role=h.role,

@@ -27,6 +27,13 @@ drone may still have. The watermark trails the master by its unflushed log
 and the messages in flight, so this is bounded by the flush limit plus what
 is in flight, not by the mission.
 
+The retained replies also include the Clock calls the master answered itself
+and sent along with its next Invoke (``InvokeRequest.clock_replies``): a
+drone call after a ``Clock.Now`` may depend on the time it read, so a taker
+must read the same time. At a takeover the drone gives the taker all of them
+at once (``TakeOver.retained``), and the taker answers its program from them
+instead of re-sending each request.
+
 A request that failed after it was accepted (unknown method, bad payload,
 autopilot refusal, no acknowledgement in time) is served too: its status is
 cached like a reply, so a duplicate sees the same failure and every
@@ -46,7 +53,8 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass
 
-from baton.rpc.errors import StatusError
+from baton.rpc.errors import StatusError, status_of
+from baton.v1 import drone_pb2
 
 DEFAULT_WINDOW = 16
 
@@ -61,6 +69,26 @@ class CachedReply:
     reply: bytes
     # The failure, if the request failed; None for a reply.
     error: StatusError | None = None
+
+    def to_proto(self) -> drone_pb2.RetainedReply:
+        """As the drone gives it to a taker."""
+        error = self.error
+        return drone_pb2.RetainedReply(
+            reqnr=self.reqnr,
+            method=self.method,
+            request_digest=self.digest,
+            reply=self.reply,
+            status_code=0 if error is None else error.code.value[0],
+            status_message="" if error is None else error.message,
+        )
+
+    @classmethod
+    def from_proto(cls, kept: drone_pb2.RetainedReply) -> CachedReply:
+        """A reply a master sent along (a Clock call it answered itself)."""
+        error = None
+        if kept.status_code:
+            error = StatusError(status_of(kept.status_code), kept.status_message)
+        return cls(kept.reqnr, kept.method, kept.request_digest, kept.reply, error)
 
 
 class ReplyCache:
@@ -109,10 +137,14 @@ class ReplyCache:
                 return  # retained: only the drone may have it
             del self._entries[oldest]
 
+    def retained_replies(self) -> list[CachedReply]:
+        """The replies above the watermark, oldest first: what a taker is given."""
+        return [entry for entry in self._entries.values() if entry.reqnr > self.watermark]
+
     @property
     def retained(self) -> tuple[int, int]:
         """Replies above the watermark, kept whatever the window: (count, bytes)."""
-        kept = [entry for entry in self._entries.values() if entry.reqnr > self.watermark]
+        kept = self.retained_replies()
         return len(kept), sum(len(entry.reply) for entry in kept)
 
     @property

@@ -32,7 +32,7 @@ The rules (docs/design.md, "Epochs" and "Exactly once..."):
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import grpc
@@ -164,13 +164,16 @@ class Sequencer:
         method: str,
         digest: bytes,
         watermark: int = 0,
+        clock: Sequence[CachedReply] = (),
     ) -> CachedReply | None:
         """Decides a request: None to execute it now, a CachedReply to answer it again.
 
         Raises StatusError when it is refused; nothing is executed then and
         the request number stays unused. The master's ``watermark`` (every
         reachable controller holds the replies up to it) lets the cache stop
-        retaining them.
+        retaining them. ``clock`` are the Clock calls the master answered
+        since its last request, numbered between the last request served and
+        this one (INVALID_ARGUMENT otherwise); ``served`` keeps them.
         """
         what = f"Invoke reqnr {reqnr} epoch {epoch}"
         if controller_id != self.master:
@@ -229,6 +232,16 @@ class Sequencer:
                 "old; refused, nothing executed",
                 metadata=self.where_we_are(),
             )
+        after = self.last_reqnr
+        for kept in clock:
+            if not after < kept.reqnr < reqnr:
+                raise StatusError(
+                    grpc.StatusCode.INVALID_ARGUMENT,
+                    f"{what}: a Clock reply sent along is numbered {kept.reqnr}; they must "
+                    f"increase, above the last request served ({self.last_reqnr}) and below "
+                    f"this one ({reqnr}); refused, nothing executed",
+                )
+            after = kept.reqnr
         return None
 
     def note_request(
@@ -254,12 +267,16 @@ class Sequencer:
         received_at: float,
         now: float,
         error: StatusError | None = None,
+        clock: Sequence[CachedReply] = (),
     ) -> Served:
         """Books an accepted request's outcome, then fires the script's line due after it.
 
         ``received_at`` is when the request arrived (the audit's), ``now``
-        when it was done (a scripted handover is decided then).
+        when it was done (a scripted handover is decided then). ``clock``
+        are the Clock replies ``admit`` accepted with it, kept before it.
         """
+        for kept in clock:
+            self.cache.store(kept.reqnr, kept.method, kept.digest, kept.reply, kept.error)
         self.cache.store(reqnr, method, digest, reply, error)
         self.last_reqnr = reqnr
         # ``executed`` counts replies; a failed request counts as rejected

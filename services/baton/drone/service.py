@@ -13,7 +13,7 @@ import asyncio
 import json
 import sys
 import time
-from collections.abc import AsyncIterator, Callable, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -181,12 +181,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         return record
 
     def _take_over_event(self, record: drone_pb2.HandoverRecord) -> drone_pb2.StandbyEvent:
+        """The TakeOver, with every reply retained: the taker's catch-up in one message."""
+        cache = self.seq.cache
         return drone_pb2.StandbyEvent(
             take_over=drone_pb2.TakeOver(
                 old_master=record.old_master,
                 epoch=record.epoch,
                 after_reqnr=record.after_reqnr,
-                watermark_reqnr=self.seq.cache.watermark,
+                watermark_reqnr=cache.watermark,
+                retained=[reply.to_proto() for reply in cache.retained_replies()],
             )
         )
 
@@ -308,8 +311,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             if cid in self.seq.ring:
                 self.last_seen[cid] = received_at
             digest = request_digest(method, request.payload)
+            clock = self._clock_replies(request)
             cached = self.seq.admit(
-                cid, request.epoch, reqnr, method, digest, request.watermark_reqnr
+                cid, request.epoch, reqnr, method, digest, request.watermark_reqnr, clock
             )
             first = self.seq.note_request(cid, received_at)
             if first is not None:
@@ -328,11 +332,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 reply = await self._execute(request)
             except StatusError as err:
                 if err.code is not grpc.StatusCode.UNAVAILABLE:
-                    self._served(cid, reqnr, method, digest, b"", received_at, err)
+                    self._served(cid, reqnr, method, digest, b"", received_at, err, clock)
                 elif self.store is not None:
                     self.store.abandon()
                 raise
-            self._served(cid, reqnr, method, digest, reply, received_at)
+            self._served(cid, reqnr, method, digest, reply, received_at, clock=clock)
         if (
             self.race is not None
             and self.race.order == "notice-first"
@@ -340,6 +344,21 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         ):
             await asyncio.sleep(self.race.delay_s)
         return drone_pb2.InvokeReply(reqnr=reqnr, payload=reply)
+
+    def _clock_replies(self, request: drone_pb2.InvokeRequest) -> list[CachedReply]:
+        """The Clock replies sent along with a request; INVALID_ARGUMENT for another method."""
+        clock = []
+        for kept in request.clock_replies:
+            route = self.dispatcher.routes.get(kept.method)
+            if route is None or route.answered_by_drone:
+                raise StatusError(
+                    grpc.StatusCode.INVALID_ARGUMENT,
+                    f"Invoke reqnr {request.reqnr}: clock_replies holds reqnr {kept.reqnr} "
+                    f"as {kept.method!r}, which is not a Clock method; only the Clock calls "
+                    "a controller answered itself are sent along",
+                )
+            clock.append(CachedReply.from_proto(kept))
+        return clock
 
     def _answer_duplicate(
         self, request: drone_pb2.InvokeRequest, cached: CachedReply
@@ -398,9 +417,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         reply: bytes,
         received_at: float,
         error: StatusError | None = None,
+        clock: Sequence[CachedReply] = (),
     ) -> None:
         """Books a served request, saves it, and carries out the script's handover after it."""
-        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, time.time(), error)
+        served = self.seq.served(
+            cid, reqnr, method, digest, reply, received_at, time.time(), error, clock
+        )
         if served.skipped is not None:
             self.log.warning(
                 "scripted handover skipped: already the master",
@@ -414,7 +436,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self._handed_over_after = reqnr
         if self.store is not None:
             self.store.served(
-                self._counters(), served.cached, served.audit, self.seq.cache.reqnrs[0]
+                self._counters(),
+                [*clock, served.cached],
+                served.audit,
+                self.seq.cache.reqnrs[0],
             )
 
     def _switched(self, record: drone_pb2.HandoverRecord, notice_delay_s: float = 0.0) -> None:

@@ -25,14 +25,13 @@ from __future__ import annotations
 
 import json
 import sqlite3
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import grpc
-
 from baton.drone.dedupe import CachedReply
 from baton.drone.sequencer import AUDIT_IN_MEMORY
-from baton.rpc.errors import StatusError
+from baton.rpc.errors import StatusError, status_of
 from baton.v1 import drone_pb2
 
 SCHEMA = """
@@ -65,8 +64,6 @@ CREATE TABLE IF NOT EXISTS executing (
     received_at REAL NOT NULL
 );
 """
-
-_CODES = {code.value[0]: code for code in grpc.StatusCode}
 
 
 @dataclass
@@ -189,24 +186,27 @@ class DroneStore:
     def served(
         self,
         counters: Counters,
-        reply: CachedReply,
+        replies: Sequence[CachedReply],
         audit: drone_pb2.AuditEntry,
         oldest_cached: int,
     ) -> None:
-        """A request's outcome, its audit entry and the counters, in one transaction."""
-        error = reply.error
+        """A request's outcome (the last of ``replies``, after the Clock replies sent along
+        with it), its audit entry and the counters, in one transaction."""
         with self._transaction():
-            self._db.execute(
+            self._db.executemany(
                 "INSERT OR REPLACE INTO replies VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (
-                    reply.reqnr,
-                    reply.method,
-                    reply.digest,
-                    reply.reply,
-                    None if error is None else error.code.value[0],
-                    None if error is None else error.message,
-                    None if error is None else json.dumps(list(error.metadata)),
-                ),
+                [
+                    (
+                        reply.reqnr,
+                        reply.method,
+                        reply.digest,
+                        reply.reply,
+                        None if reply.error is None else reply.error.code.value[0],
+                        None if reply.error is None else reply.error.message,
+                        None if reply.error is None else json.dumps(list(reply.error.metadata)),
+                    )
+                    for reply in replies
+                ],
             )
             self._db.execute("DELETE FROM replies WHERE reqnr < ?", (oldest_cached,))
             self._db.execute(
@@ -257,4 +257,4 @@ def _error(code: int | None, message: str | None, metadata: str | None) -> Statu
     if code is None:
         return None
     pairs = [(str(k), str(v)) for k, v in json.loads(metadata or "[]")]
-    return StatusError(_CODES[code], message or "", metadata=pairs)
+    return StatusError(status_of(code), message or "", metadata=pairs)

@@ -15,6 +15,13 @@ from typing import NoReturn
 
 import grpc
 
+_STATUS_BY_CODE = {code.value[0]: code for code in grpc.StatusCode}
+
+
+def status_of(code: int) -> grpc.StatusCode:
+    """The grpc.StatusCode with numeric value ``code`` (UNKNOWN for a number gRPC lacks)."""
+    return _STATUS_BY_CODE.get(code, grpc.StatusCode.UNKNOWN)
+
 
 class StatusError(Exception):
     """A failure with the gRPC status code a caller should see."""

@@ -32,7 +32,16 @@ import grpc
 
 from baton.controller.drone_link import DroneRefusal
 from baton.controller.history import LogHistory
-from baton.controller.node import CLOCK_NOW, CLOCK_SLEEP, RETRY_FIRST_S, RETRY_MAX_S, _given_up
+from baton.controller.node import (
+    CLOCK_NOW,
+    CLOCK_SERVICE,
+    CLOCK_SLEEP,
+    RETRY_FIRST_S,
+    RETRY_MAX_S,
+    _given_up,
+    from_retained,
+    to_retained,
+)
 from baton.controller.protocol import (
     ConnectDrone,
     ControllerProtocol,
@@ -53,7 +62,7 @@ from baton.sim.drone import Request
 from baton.sim.mission import MissionCall
 from baton.sim.network import DroneLink, RingLink
 from baton.v1 import drone_api_pb2 as api
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 if TYPE_CHECKING:
     from baton.sim.world import World
@@ -167,6 +176,8 @@ class SimController:
         # Takeover (issue 10): node.py's _takeover_epoch, _rejoining, fenced_messages,
         # routed_around.
         self.takeover_epoch = 0
+        self.retained: dict[int, drone_pb2.RetainedReply] = {}  # node.py's _retained
+        self.clock_since_drone: list[ring_pb2.LogEntry] = []  # node.py's _clock_since_drone
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
         self.rejoining = False
         self.fenced_messages = 0
@@ -406,12 +417,17 @@ class SimController:
             return
         self._close_drone()
 
-    def on_take_over(self, old_master: int, epoch: int) -> None:
-        """ControllerNode.on_take_over (the standby stream's TakeOver): connect again to
-        learn the epoch; on_granted then goes ACTIVE on what this controller holds."""
+    def on_take_over(
+        self, old_master: int, epoch: int, retained: list[drone_pb2.RetainedReply]
+    ) -> None:
+        """ControllerNode.on_take_over (the standby stream's TakeOver): keep the retained
+        replies, connect again to learn the epoch; on_granted then goes ACTIVE on what
+        this controller holds."""
         if not self.alive:
             return
         self.takeover_epoch = epoch
+        held = self.protocol.held_reqnr
+        self.retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
         self.world.trace(f"controller {self.id} takes over from lost {old_master} (epoch {epoch})")
         self._close_drone()
         self._open_drone()
@@ -610,6 +626,10 @@ class SimController:
     def _seen(self, entry: ring_pb2.LogEntry) -> None:
         """ControllerNode._seen: the entries the protocol consumed, in order (the reply chain)."""
         self.seen.append((entry.reqnr, entry.status_code, bytes(entry.reply)))
+        if entry.method.startswith(CLOCK_SERVICE):
+            self.clock_since_drone.append(entry)
+        else:
+            self.clock_since_drone.clear()
 
     def _answered(self, status: int, reply: bytes) -> None:
         """The program gets its answer (or gives up) and goes on to its next call."""
@@ -641,7 +661,16 @@ class SimController:
             reqnr, call, request_digest(call.method, call.request), self.world.loop.now
         )
         self.inv, self.phase = inv, Phase.INVOKING
-        if call.method == CLOCK_NOW:
+        kept = self.retained.pop(reqnr, None)
+        if kept is not None:
+            try:
+                entry = from_retained(kept, call.method, call.request)
+            except StatusError as err:
+                self._fail(f"controller {self.id}: {err.message}")
+                self._stop()
+                return
+            self._invoked(inv, entry)
+        elif call.method == CLOCK_NOW:
             now = MISSION_START_UNIX + self.world.loop.now
             self._invoked(inv, self._entry(inv, api.NowReply(unix_time_s=now).SerializeToString()))
         elif call.method == CLOCK_SLEEP:
@@ -697,6 +726,7 @@ class SimController:
             link,
             link.generation,
             watermark=self.protocol.watermark_reqnr,
+            clock=tuple(to_retained(entry) for entry in self.clock_since_drone),
         )
         link.to_drone(len(call.request), self.world.drone.receive_invoke, request)
 

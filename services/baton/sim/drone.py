@@ -114,6 +114,7 @@ class Request:
     connection: int
     received_at: float = 0.0
     watermark: int = 0  # InvokeRequest.watermark_reqnr
+    clock: tuple[drone_pb2.RetainedReply, ...] = ()  # InvokeRequest.clock_replies
 
 
 @dataclass(frozen=True)
@@ -231,8 +232,9 @@ class SimDrone:
         digest = request_digest(method, request.payload)
         if cid in seq.ring:  # _invoke_to_the_end: a request is a sighting
             self.last_seen[cid] = request.received_at
+        clock = [CachedReply.from_proto(kept) for kept in request.clock]  # _clock_replies
         try:
-            cached = seq.admit(cid, request.epoch, reqnr, method, digest, request.watermark)
+            cached = seq.admit(cid, request.epoch, reqnr, method, digest, request.watermark, clock)
         except StatusError as err:
             seq.rejected += 1  # DroneService.Invoke
             self._reply(request, b"", err)
@@ -280,7 +282,7 @@ class SimDrone:
     def _failed(self, request: Request, digest: bytes, error: StatusError) -> None:
         if self._books(error):
             cid, reqnr, method = request.controller_id, request.reqnr, request.method
-            self._served(cid, reqnr, method, digest, b"", error, request.received_at)
+            self._served(cid, reqnr, method, digest, b"", error, request.received_at, request.clock)
         else:
             self.intent = None  # store.abandon()
         self._reply(request, b"", error)
@@ -311,10 +313,14 @@ class SimDrone:
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         received = request.received_at
         if execution.error is not None:
-            self._served(cid, reqnr, method, execution.digest, b"", execution.error, received)
+            self._served(
+                cid, reqnr, method, execution.digest, b"", execution.error, received, request.clock
+            )
             self._reply(request, b"", execution.error)
         else:
-            self._served(cid, reqnr, method, execution.digest, execution.reply, None, received)
+            self._served(
+                cid, reqnr, method, execution.digest, execution.reply, None, received, request.clock
+            )
             self._reply(request, execution.reply, None)
         self._next()
 
@@ -327,10 +333,12 @@ class SimDrone:
         reply: bytes,
         error: StatusError | None,
         received_at: float,
+        clock: tuple[drone_pb2.RetainedReply, ...] = (),
     ) -> None:
         """DroneService._served: books the outcome (the store's transaction), fires the script."""
         now = self.world.loop.now
-        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, now, error)
+        kept = [CachedReply.from_proto(reply) for reply in clock]
+        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, now, error, kept)
         self.intent = None
         retained, _ = self.seq.cache.retained
         self.stats.peak_cache = max(self.stats.peak_cache, len(self.seq.cache) - retained)
@@ -584,11 +592,13 @@ class SimDrone:
         self._switched(record)
         link = self.world.controller(new_master).drone_link
         if link.usable():  # StandbyStreams.tell: its newest stream, if it holds one
+            retained = [reply.to_proto() for reply in self.seq.cache.retained_replies()]
             link.to_controller(
                 link.generation,
-                0,
+                sum(len(reply.reply) for reply in retained),
                 link.owner.on_take_over,
                 record.old_master,
                 record.epoch,
+                retained,
                 stream=True,
             )

@@ -22,7 +22,14 @@ was fixed in node.py ``_apply``: a controller's own handover message enters
 its history only when it comes back round. The simulation still watches
 for it (``World.check_overtaken_handover``): if it strikes, the run fails.
 
-F10 to F12 came with issue 10's scenario (``--lose-master``: the master killed
+F12 (a Clock.Now a lost master answered was answered again by the taker
+with another time, though a drone call that followed may have used it) was
+fixed in node.py ``_clock_since_drone``: the Clock replies go to the drone
+with the next Invoke, it retains them with its own, and the TakeOver gives
+them to the taker (``from_retained``). The same-replies oracle now holds a
+lost incarnation to everything up to its last drone call.
+
+F10 and F11 came with issue 10's scenario (``--lose-master``: the master killed
 for good mid-flush, right after a handover decision or at any time, or its
 drone link cut for a while); it is behind that option, with more failures
 than these.
@@ -124,17 +131,6 @@ FINDINGS = {
             "node.py _apply (a handover message enters the history only when it comes back, "
             "the F7 fix) with protocol.py on_granted(takeover) numbering on after it; the "
             "drone's script switches to a controller it cannot reach",
-            "behind --lose-master",
-        ),
-        Finding(
-            "F12",
-            "a Clock.Now that a lost or fenced master answered and logged but never got off "
-            "it is answered again by the taker with another time: the drone retains drone "
-            "replies above the watermark, not Clock ones, so a program that acted on the "
-            "time (its later drone calls already executed) diverges from the ring's "
-            "(the oracle counts it as this finding). Replay: --seed 13 --lose-master",
-            "node.py _clock_call (Clock replies exist only in the master's log) against the "
-            "takeover's 'what the new master lacks, the drone has' (docs/design.md)",
             "behind --lose-master",
         ),
     )

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING
 from baton.sim.mission import Kind
 
 if TYPE_CHECKING:
+    from baton.sim.controller import SimController
     from baton.sim.world import World
 
 ORACLES = (
@@ -129,22 +130,21 @@ def _exactly_once(world: World) -> list[Violation]:
 
 def _same_replies(world: World) -> list[Violation]:
     found = []
-    longest_seen = max((c.seen for c in world.incarnations), key=len)
-    longest_view = max((c.view for c in world.incarnations), key=len)
+    observed = {id(c): _observed(world, c) for c in world.incarnations}
+    longest_seen = max((c.seen[: observed[id(c)]] for c in world.incarnations), key=len)
+    longest_view = max((c.view[: observed[id(c)]] for c in world.incarnations), key=len)
     for index, (reqnr, _, _) in enumerate(longest_seen):
         if reqnr != index + 1:
             found.append(Violation("same-replies", f"entry {index} is request {reqnr}"))
             break
     for controller in world.incarnations:
         name = f"controller {controller.id} (incarnation {controller.incarnation})"
+        upto = observed[id(controller)]
         for what, mine, longest in (
-            ("consumed entries", controller.seen, longest_seen),
-            ("program answers", controller.view, longest_view),
+            ("consumed entries", controller.seen[:upto], longest_seen),
+            ("program answers", controller.view[:upto], longest_view),
         ):
             for k, item in enumerate(mine):
-                if item != longest[k] and _clock_remade(world, controller, k):
-                    world.known.add("F12")
-                    continue
                 if item != longest[k]:
                     found.append(
                         Violation(
@@ -157,12 +157,20 @@ def _same_replies(world: World) -> list[Violation]:
     return found
 
 
-def _clock_remade(world: World, controller: object, index: int) -> bool:
-    """Known finding F12: a Clock.Now a lost or fenced master answered and never got
-    off it, answered again by the taker (another time)."""
-    if world.program[index].kind is not Kind.NOW:
-        return False
-    return any(getattr(c, "ended_by", "") for c in world.incarnations)
+def _observed(world: World, controller: SimController) -> int:
+    """How many of an incarnation's calls must match the others'.
+
+    All of them, but for an incarnation a failover ended (its master lost,
+    or fenced): its calls after its last drone call (Clock calls and Sleeps
+    it answered itself) never left it, so nothing depends on them, and a
+    taker may answer them again (with another time). Up to its last drone
+    call everything must match: the drone keeps the Clock replies sent
+    along with each Invoke (F12, fixed).
+    """
+    if not controller.ended_by:
+        return len(controller.seen)
+    calls = [k for k in range(len(controller.seen)) if world.program[k].to_drone]
+    return calls[-1] + 1 if calls else 0
 
 
 def _brief(item: tuple[int | bytes, ...]) -> str:
