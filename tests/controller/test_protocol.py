@@ -351,6 +351,20 @@ def test_a_takeover_grant_goes_active_on_what_the_taker_holds() -> None:
     assert (taker.state, taker.master, taker.reqnr, taker.epoch) == (State.ACTIVE, True, 2, 2)
 
 
+def test_a_taker_holding_less_than_the_drones_watermark_waits_for_the_ring() -> None:
+    """A taker restarted with nothing: the drone let go of the replies every controller
+    held (up to its watermark, 2), so the taker goes ACTIVE only once the ring gave it
+    those; answering them itself would read another time, or re-send a request the
+    drone can no longer answer."""
+    taker = ControllerProtocol(1, [0, 1, 2], 0)
+    taker.start()
+    assert taker.on_granted(2, takeover=True, watermark_reqnr=2) == []
+    assert taker.state is State.PASSIVE and not taker.caught_up
+    taker.on_log(message(1, 0, [1, 2]))
+    assert replay_all(taker) == [ConnectDrone()]
+    assert (taker.state, taker.reqnr) == (State.ACTIVE, 2)
+
+
 def test_a_fenced_masters_late_messages_are_dropped_by_the_taker() -> None:
     taker = ControllerProtocol(1, [0, 1, 2], 0)
     taker.start()

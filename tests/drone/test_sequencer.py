@@ -6,6 +6,7 @@ import grpc
 import pytest
 
 from baton.digest import request_digest
+from baton.drone.dedupe import GIVEN_UP, CachedReply
 from baton.drone.sequencer import MAX_REQNR_GAP, ScriptedHandover, Sequencer
 from baton.rpc.errors import StatusError
 
@@ -155,3 +156,26 @@ def test_replies_above_the_masters_watermark_are_retained_past_the_window() -> N
     assert seq.cache.reqnrs == [5, 6]
     assert seq.admit(0, 1, 7, GET, DIGEST, watermark=99) is None  # capped at what was served
     assert seq.cache.watermark == 6
+
+
+def test_a_give_up_sent_along_replaces_the_reply_the_program_never_saw() -> None:
+    """The master's program gave up on request 1, which the drone served; the give-up
+    comes with request 2. A taker must see what the program saw: the give-up."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    serve(seq, 0, 1, 1)
+    gave_up = CachedReply(
+        1, GET, DIGEST, b"", StatusError(grpc.StatusCode.CANCELLED, "gave up", (GIVEN_UP,))
+    )
+    assert seq.admit(0, 1, 2, GET, DIGEST, clock=[gave_up]) is None
+    seq.served(0, 2, GET, DIGEST, b"reply 2", 2.0, now=2.0, clock=[gave_up])
+    kept = seq.cache.get(1)
+    assert kept is not None and kept.error is not None
+    assert kept.error.code is grpc.StatusCode.CANCELLED and kept.to_proto().given_up
+    # Another request under the number served, or a reply rather than a give-up: refused.
+    other = CachedReply(2, GET, request_digest(GET, b"x"), b"", gave_up.error)
+    with pytest.raises(StatusError) as wrong:
+        seq.admit(0, 1, 3, GET, DIGEST, clock=[other])
+    assert wrong.value.code is grpc.StatusCode.INVALID_ARGUMENT
+    reply = CachedReply(2, GET, DIGEST, b"r")
+    with pytest.raises(StatusError):
+        seq.admit(0, 1, 3, GET, DIGEST, clock=[reply])

@@ -69,7 +69,7 @@ async def test_the_takeover_carries_every_retained_reply_with_the_clock_reads_se
         await drone.stub.Invoke(first)
         read = clock_reply(2, seconds=12.5)
         second = drone_pb2.InvokeRequest(
-            controller_id=0, reqnr=3, method=POSITION, epoch=1, clock_replies=[read]
+            controller_id=0, reqnr=3, method=POSITION, epoch=1, master_answers=[read]
         )
         position = await drone.stub.Invoke(second)
         standby = drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=1))
@@ -102,7 +102,7 @@ async def test_a_clock_reply_sent_along_out_of_place_is_refused_and_nothing_runs
             drone_pb2.InvokeRequest(controller_id=0, reqnr=1, method=POSITION, epoch=1)
         )
         bad = drone_pb2.InvokeRequest(
-            controller_id=0, reqnr=3, method=POSITION, epoch=1, clock_replies=[kept]
+            controller_id=0, reqnr=3, method=POSITION, epoch=1, master_answers=[kept]
         )
         with pytest.raises(grpc.aio.AioRpcError) as refused:
             await drone.stub.Invoke(bad)

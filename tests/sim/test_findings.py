@@ -98,7 +98,7 @@ def test_f6_a_former_master_keeps_its_received_numbers_a_watermark() -> None:
 
 
 def test_f12_a_lost_masters_clock_reads_are_read_again_the_same() -> None:
-    """Found by the simulation (F12), fixed in node.py _clock_since_drone and from_retained:
+    """Found by the simulation (F12), fixed in node.py _answered_here and from_retained:
     the drone keeps the Clock replies sent along with each Invoke and gives them to the
     taker. These seeds showed a Clock.Now answered again with another time."""
     for seed in (0, 13, 19):

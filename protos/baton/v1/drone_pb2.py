@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from baton.v1 import drone_api_pb2 as baton_dot_v1_dot_drone__api__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14\x62\x61ton/v1/drone.proto\x12\x08\x62\x61ton.v1\x1a\x18\x62\x61ton/v1/drone_api.proto\"\xae\x01\n\rInvokeRequest\x12\x15\n\rcontroller_id\x18\x01 \x01(\x05\x12\r\n\x05reqnr\x18\x02 \x01(\x04\x12\x0e\n\x06method\x18\x03 \x01(\t\x12\x0f\n\x07payload\x18\x04 \x01(\x0c\x12\r\n\x05\x65poch\x18\x05 \x01(\x04\x12\x17\n\x0fwatermark_reqnr\x18\x06 \x01(\x04\x12.\n\rclock_replies\x18\x07 \x03(\x0b\x32\x17.baton.v1.RetainedReply\"@\n\x0bInvokeReply\x12\r\n\x05reqnr\x18\x01 \x01(\x04\x12\x0f\n\x07payload\x18\x02 \x01(\x0c\x12\x11\n\tduplicate\x18\x03 \x01(\x08\"\'\n\x0e\x43onnectRequest\x12\x15\n\rcontroller_id\x18\x01 \x01(\x05\"m\n\nDroneEvent\x12(\n\tconnected\x18\x01 \x01(\x0b\x32\x13.baton.v1.ConnectedH\x00\x12,\n\x08handover\x18\x02 \x01(\x0b\x32\x18.baton.v1.HandoverNoticeH\x00\x42\x07\n\x05\x65vent\">\n\tConnected\x12\x0e\n\x06master\x18\x01 \x01(\x05\x12\x12\n\nlast_reqnr\x18\x02 \x01(\x04\x12\r\n\x05\x65poch\x18\x03 \x01(\x04\"\x83\x01\n\x0eHandoverNotice\x12\x12\n\nold_master\x18\x01 \x01(\x05\x12\x12\n\nnew_master\x18\x02 \x01(\x05\x12\x13\n\x0b\x61\x66ter_reqnr\x18\x03 \x01(\x04\x12\x13\n\x0b\x65nded_epoch\x18\x04 \x01(\x04\x12\r\n\x05\x65poch\x18\x05 \x01(\x04\x12\x10\n\x08takeover\x18\x06 \x01(\x08\"\'\n\x0eStandbyRequest\x12\x15\n\rcontroller_id\x18\x01 \x01(\x05\"g\n\x0cStandbyEvent\x12%\n\x04held\x18\x01 \x01(\x0b\x32\x15.baton.v1.StandbyHeldH\x00\x12\'\n\ttake_over\x18\x02 \x01(\x0b\x32\x12.baton.v1.TakeOverH\x00\x42\x07\n\x05\x65vent\",\n\x0bStandbyHeld\x12\x0e\n\x06master\x18\x01 \x01(\x05\x12\r\n\x05\x65poch\x18\x02 \x01(\x04\"\x86\x01\n\x08TakeOver\x12\x12\n\nold_master\x18\x01 \x01(\x05\x12\r\n\x05\x65poch\x18\x02 \x01(\x04\x12\x13\n\x0b\x61\x66ter_reqnr\x18\x03 \x01(\x04\x12\x17\n\x0fwatermark_reqnr\x18\x04 \x01(\x04\x12)\n\x08retained\x18\x05 \x03(\x0b\x32\x17.baton.v1.RetainedReply\"\x82\x01\n\rRetainedReply\x12\r\n\x05reqnr\x18\x01 \x01(\x04\x12\x0e\n\x06method\x18\x02 \x01(\t\x12\x16\n\x0erequest_digest\x18\x03 \x01(\x0c\x12\r\n\x05reply\x18\x04 \x01(\x0c\x12\x13\n\x0bstatus_code\x18\x05 \x01(\x05\x12\x16\n\x0estatus_message\x18\x06 \x01(\t\"7\n\x0fHandoverRequest\x12\x12\n\nnew_master\x18\x01 \x01(\x05\x12\x10\n\x08takeover\x18\x02 \x01(\x08\"[\n\rHandoverReply\x12\x12\n\nold_master\x18\x01 \x01(\x05\x12\x12\n\nnew_master\x18\x02 \x01(\x05\x12\x13\n\x0b\x61\x66ter_reqnr\x18\x03 \x01(\x04\x12\r\n\x05\x65poch\x18\x04 \x01(\x04\"^\n\x15GetDroneStatusRequest\x12\x15\n\rinclude_audit\x18\x01 \x01(\x08\x12\x19\n\x11\x61udit_after_reqnr\x18\x02 \x01(\x04\x12\x13\n\x0b\x61udit_limit\x18\x03 \x01(\r\"l\n\nAuditEntry\x12\r\n\x05reqnr\x18\x01 \x01(\x04\x12\x0e\n\x06method\x18\x02 \x01(\t\x12\x15\n\rcontroller_id\x18\x03 \x01(\x05\x12\x13\n\x0breceived_at\x18\x04 \x01(\x01\x12\x13\n\x0breply_bytes\x18\x05 \x01(\x04\"\xcb\x01\n\x0eHandoverRecord\x12\x12\n\nold_master\x18\x01 \x01(\x05\x12\x12\n\nnew_master\x18\x02 \x01(\x05\x12\x13\n\x0b\x61\x66ter_reqnr\x18\x03 \x01(\x04\x12\x12\n\ndecided_at\x18\x04 \x01(\x01\x12\x18\n\x10\x66irst_request_at\x18\x05 \x01(\x01\x12\x0f\n\x07\x64\x65lay_s\x18\x06 \x01(\x01\x12\x0f\n\x07trigger\x18\x07 \x01(\t\x12\r\n\x05\x65poch\x18\x08 \x01(\x04\x12\x0c\n\x04kind\x18\t \x01(\t\x12\x0f\n\x07lost_at\x18\n \x01(\x01\"\xe5\x04\n\x0b\x44roneStatus\x12\x0e\n\x06master\x18\x01 \x01(\x05\x12\x12\n\nlast_reqnr\x18\x02 \x01(\x04\x12\x10\n\x08\x65xecuted\x18\x03 \x01(\x04\x12\x12\n\nduplicates\x18\x04 \x01(\x04\x12\x10\n\x08rejected\x18\x05 \x01(\x04\x12\x19\n\x11vehicle_connected\x18\x06 \x01(\x08\x12\x13\n\x0bvehicle_url\x18\x07 \x01(\t\x12$\n\x08position\x18\x08 \x01(\x0b\x32\x12.baton.v1.Position\x12\x33\n\x0c\x66light_state\x18\t \x01(\x0b\x32\x1d.baton.v1.GetFlightStateReply\x12#\n\x05\x61udit\x18\n \x03(\x0b\x32\x14.baton.v1.AuditEntry\x12+\n\thandovers\x18\x0b \x03(\x0b\x32\x18.baton.v1.HandoverRecord\x12\x18\n\x10master_connected\x18\x0c \x01(\x08\x12\x13\n\x0b\x63ontrollers\x18\r \x03(\x05\x12&\n\x07vehicle\x18\x0e \x01(\x0b\x32\x15.baton.v1.VehicleLink\x12\x0f\n\x07waiting\x18\x0f \x01(\t\x12\r\n\x05\x65poch\x18\x10 \x01(\x04\x12\x12\n\naudit_more\x18\x11 \x01(\x08\x12\x1a\n\x12\x61udit_oldest_reqnr\x18\x12 \x01(\x04\x12\x17\n\x0fwatermark_reqnr\x18\x13 \x01(\x04\x12\x18\n\x10retained_replies\x18\x14 \x01(\x04\x12\x16\n\x0eretained_bytes\x18\x15 \x01(\x04\x12\x11\n\treachable\x18\x16 \x03(\x05\x12\x18\n\x10takeover_after_s\x18\x17 \x01(\x01\"\x9c\x01\n\x0bVehicleLink\x12\x0f\n\x07healthy\x18\x01 \x01(\x08\x12\x17\n\x0fheartbeat_age_s\x18\x02 \x01(\x01\x12\x16\n\x0eposition_age_s\x18\x03 \x01(\x01\x12\x0f\n\x07problem\x18\x04 \x01(\t\x12\x10\n\x08outage_s\x18\x05 \x01(\x01\x12\x0f\n\x07outages\x18\x06 \x01(\r\x12\x17\n\x0fstream_requests\x18\x07 \x01(\r2\xc2\x02\n\x05\x44rone\x12\x38\n\x06Invoke\x12\x17.baton.v1.InvokeRequest\x1a\x15.baton.v1.InvokeReply\x12;\n\x07\x43onnect\x12\x18.baton.v1.ConnectRequest\x1a\x14.baton.v1.DroneEvent0\x01\x12=\n\x07Standby\x12\x18.baton.v1.StandbyRequest\x1a\x16.baton.v1.StandbyEvent0\x01\x12>\n\x08Handover\x12\x19.baton.v1.HandoverRequest\x1a\x17.baton.v1.HandoverReply\x12\x43\n\tGetStatus\x12\x1f.baton.v1.GetDroneStatusRequest\x1a\x15.baton.v1.DroneStatusb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14\x62\x61ton/v1/drone.proto\x12\x08\x62\x61ton.v1\x1a\x18\x62\x61ton/v1/drone_api.proto\"\xaf\x01\n\rInvokeRequest\x12\x15\n\rcontroller_id\x18\x01 \x01(\x05\x12\r\n\x05reqnr\x18\x02 \x01(\x04\x12\x0e\n\x06method\x18\x03 \x01(\t\x12\x0f\n\x07payload\x18\x04 \x01(\x0c\x12\r\n\x05\x65poch\x18\x05 \x01(\x04\x12\x17\n\x0fwatermark_reqnr\x18\x06 \x01(\x04\x12/\n\x0emaster_answers\x18\x07 \x03(\x0b\x32\x17.baton.v1.RetainedReply\"@\n\x0bInvokeReply\x12\r\n\x05reqnr\x18\x01 \x01(\x04\x12\x0f\n\x07payload\x18\x02 \x01(\x0c\x12\x11\n\tduplicate\x18\x03 \x01(\x08\"\'\n\x0e\x43onnectRequest\x12\x15\n\rcontroller_id\x18\x01 \x01(\x05\"m\n\nDroneEvent\x12(\n\tconnected\x18\x01 \x01(\x0b\x32\x13.baton.v1.ConnectedH\x00\x12,\n\x08handover\x18\x02 \x01(\x0b\x32\x18.baton.v1.HandoverNoticeH\x00\x42\x07\n\x05\x65vent\">\n\tConnected\x12\x0e\n\x06master\x18\x01 \x01(\x05\x12\x12\n\nlast_reqnr\x18\x02 \x01(\x04\x12\r\n\x05\x65poch\x18\x03 \x01(\x04\"\x83\x01\n\x0eHandoverNotice\x12\x12\n\nold_master\x18\x01 \x01(\x05\x12\x12\n\nnew_master\x18\x02 \x01(\x05\x12\x13\n\x0b\x61\x66ter_reqnr\x18\x03 \x01(\x04\x12\x13\n\x0b\x65nded_epoch\x18\x04 \x01(\x04\x12\r\n\x05\x65poch\x18\x05 \x01(\x04\x12\x10\n\x08takeover\x18\x06 \x01(\x08\"\'\n\x0eStandbyRequest\x12\x15\n\rcontroller_id\x18\x01 \x01(\x05\"g\n\x0cStandbyEvent\x12%\n\x04held\x18\x01 \x01(\x0b\x32\x15.baton.v1.StandbyHeldH\x00\x12\'\n\ttake_over\x18\x02 \x01(\x0b\x32\x12.baton.v1.TakeOverH\x00\x42\x07\n\x05\x65vent\",\n\x0bStandbyHeld\x12\x0e\n\x06master\x18\x01 \x01(\x05\x12\r\n\x05\x65poch\x18\x02 \x01(\x04\"\x86\x01\n\x08TakeOver\x12\x12\n\nold_master\x18\x01 \x01(\x05\x12\r\n\x05\x65poch\x18\x02 \x01(\x04\x12\x13\n\x0b\x61\x66ter_reqnr\x18\x03 \x01(\x04\x12\x17\n\x0fwatermark_reqnr\x18\x04 \x01(\x04\x12)\n\x08retained\x18\x05 \x03(\x0b\x32\x17.baton.v1.RetainedReply\"\x94\x01\n\rRetainedReply\x12\r\n\x05reqnr\x18\x01 \x01(\x04\x12\x0e\n\x06method\x18\x02 \x01(\t\x12\x16\n\x0erequest_digest\x18\x03 \x01(\x0c\x12\r\n\x05reply\x18\x04 \x01(\x0c\x12\x13\n\x0bstatus_code\x18\x05 \x01(\x05\x12\x16\n\x0estatus_message\x18\x06 \x01(\t\x12\x10\n\x08given_up\x18\x07 \x01(\x08\"7\n\x0fHandoverRequest\x12\x12\n\nnew_master\x18\x01 \x01(\x05\x12\x10\n\x08takeover\x18\x02 \x01(\x08\"[\n\rHandoverReply\x12\x12\n\nold_master\x18\x01 \x01(\x05\x12\x12\n\nnew_master\x18\x02 \x01(\x05\x12\x13\n\x0b\x61\x66ter_reqnr\x18\x03 \x01(\x04\x12\r\n\x05\x65poch\x18\x04 \x01(\x04\"^\n\x15GetDroneStatusRequest\x12\x15\n\rinclude_audit\x18\x01 \x01(\x08\x12\x19\n\x11\x61udit_after_reqnr\x18\x02 \x01(\x04\x12\x13\n\x0b\x61udit_limit\x18\x03 \x01(\r\"l\n\nAuditEntry\x12\r\n\x05reqnr\x18\x01 \x01(\x04\x12\x0e\n\x06method\x18\x02 \x01(\t\x12\x15\n\rcontroller_id\x18\x03 \x01(\x05\x12\x13\n\x0breceived_at\x18\x04 \x01(\x01\x12\x13\n\x0breply_bytes\x18\x05 \x01(\x04\"\xcb\x01\n\x0eHandoverRecord\x12\x12\n\nold_master\x18\x01 \x01(\x05\x12\x12\n\nnew_master\x18\x02 \x01(\x05\x12\x13\n\x0b\x61\x66ter_reqnr\x18\x03 \x01(\x04\x12\x12\n\ndecided_at\x18\x04 \x01(\x01\x12\x18\n\x10\x66irst_request_at\x18\x05 \x01(\x01\x12\x0f\n\x07\x64\x65lay_s\x18\x06 \x01(\x01\x12\x0f\n\x07trigger\x18\x07 \x01(\t\x12\r\n\x05\x65poch\x18\x08 \x01(\x04\x12\x0c\n\x04kind\x18\t \x01(\t\x12\x0f\n\x07lost_at\x18\n \x01(\x01\"\xe5\x04\n\x0b\x44roneStatus\x12\x0e\n\x06master\x18\x01 \x01(\x05\x12\x12\n\nlast_reqnr\x18\x02 \x01(\x04\x12\x10\n\x08\x65xecuted\x18\x03 \x01(\x04\x12\x12\n\nduplicates\x18\x04 \x01(\x04\x12\x10\n\x08rejected\x18\x05 \x01(\x04\x12\x19\n\x11vehicle_connected\x18\x06 \x01(\x08\x12\x13\n\x0bvehicle_url\x18\x07 \x01(\t\x12$\n\x08position\x18\x08 \x01(\x0b\x32\x12.baton.v1.Position\x12\x33\n\x0c\x66light_state\x18\t \x01(\x0b\x32\x1d.baton.v1.GetFlightStateReply\x12#\n\x05\x61udit\x18\n \x03(\x0b\x32\x14.baton.v1.AuditEntry\x12+\n\thandovers\x18\x0b \x03(\x0b\x32\x18.baton.v1.HandoverRecord\x12\x18\n\x10master_connected\x18\x0c \x01(\x08\x12\x13\n\x0b\x63ontrollers\x18\r \x03(\x05\x12&\n\x07vehicle\x18\x0e \x01(\x0b\x32\x15.baton.v1.VehicleLink\x12\x0f\n\x07waiting\x18\x0f \x01(\t\x12\r\n\x05\x65poch\x18\x10 \x01(\x04\x12\x12\n\naudit_more\x18\x11 \x01(\x08\x12\x1a\n\x12\x61udit_oldest_reqnr\x18\x12 \x01(\x04\x12\x17\n\x0fwatermark_reqnr\x18\x13 \x01(\x04\x12\x18\n\x10retained_replies\x18\x14 \x01(\x04\x12\x16\n\x0eretained_bytes\x18\x15 \x01(\x04\x12\x11\n\treachable\x18\x16 \x03(\x05\x12\x18\n\x10takeover_after_s\x18\x17 \x01(\x01\"\x9c\x01\n\x0bVehicleLink\x12\x0f\n\x07healthy\x18\x01 \x01(\x08\x12\x17\n\x0fheartbeat_age_s\x18\x02 \x01(\x01\x12\x16\n\x0eposition_age_s\x18\x03 \x01(\x01\x12\x0f\n\x07problem\x18\x04 \x01(\t\x12\x10\n\x08outage_s\x18\x05 \x01(\x01\x12\x0f\n\x07outages\x18\x06 \x01(\r\x12\x17\n\x0fstream_requests\x18\x07 \x01(\r2\xc2\x02\n\x05\x44rone\x12\x38\n\x06Invoke\x12\x17.baton.v1.InvokeRequest\x1a\x15.baton.v1.InvokeReply\x12;\n\x07\x43onnect\x12\x18.baton.v1.ConnectRequest\x1a\x14.baton.v1.DroneEvent0\x01\x12=\n\x07Standby\x12\x18.baton.v1.StandbyRequest\x1a\x16.baton.v1.StandbyEvent0\x01\x12>\n\x08Handover\x12\x19.baton.v1.HandoverRequest\x1a\x17.baton.v1.HandoverReply\x12\x43\n\tGetStatus\x12\x1f.baton.v1.GetDroneStatusRequest\x1a\x15.baton.v1.DroneStatusb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -33,41 +33,41 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'baton.v1.drone_pb2', _globa
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_INVOKEREQUEST']._serialized_start=61
-  _globals['_INVOKEREQUEST']._serialized_end=235
-  _globals['_INVOKEREPLY']._serialized_start=237
-  _globals['_INVOKEREPLY']._serialized_end=301
-  _globals['_CONNECTREQUEST']._serialized_start=303
-  _globals['_CONNECTREQUEST']._serialized_end=342
-  _globals['_DRONEEVENT']._serialized_start=344
-  _globals['_DRONEEVENT']._serialized_end=453
-  _globals['_CONNECTED']._serialized_start=455
-  _globals['_CONNECTED']._serialized_end=517
-  _globals['_HANDOVERNOTICE']._serialized_start=520
-  _globals['_HANDOVERNOTICE']._serialized_end=651
-  _globals['_STANDBYREQUEST']._serialized_start=653
-  _globals['_STANDBYREQUEST']._serialized_end=692
-  _globals['_STANDBYEVENT']._serialized_start=694
-  _globals['_STANDBYEVENT']._serialized_end=797
-  _globals['_STANDBYHELD']._serialized_start=799
-  _globals['_STANDBYHELD']._serialized_end=843
-  _globals['_TAKEOVER']._serialized_start=846
-  _globals['_TAKEOVER']._serialized_end=980
-  _globals['_RETAINEDREPLY']._serialized_start=983
-  _globals['_RETAINEDREPLY']._serialized_end=1113
-  _globals['_HANDOVERREQUEST']._serialized_start=1115
-  _globals['_HANDOVERREQUEST']._serialized_end=1170
-  _globals['_HANDOVERREPLY']._serialized_start=1172
-  _globals['_HANDOVERREPLY']._serialized_end=1263
-  _globals['_GETDRONESTATUSREQUEST']._serialized_start=1265
-  _globals['_GETDRONESTATUSREQUEST']._serialized_end=1359
-  _globals['_AUDITENTRY']._serialized_start=1361
-  _globals['_AUDITENTRY']._serialized_end=1469
-  _globals['_HANDOVERRECORD']._serialized_start=1472
-  _globals['_HANDOVERRECORD']._serialized_end=1675
-  _globals['_DRONESTATUS']._serialized_start=1678
-  _globals['_DRONESTATUS']._serialized_end=2291
-  _globals['_VEHICLELINK']._serialized_start=2294
-  _globals['_VEHICLELINK']._serialized_end=2450
-  _globals['_DRONE']._serialized_start=2453
-  _globals['_DRONE']._serialized_end=2775
+  _globals['_INVOKEREQUEST']._serialized_end=236
+  _globals['_INVOKEREPLY']._serialized_start=238
+  _globals['_INVOKEREPLY']._serialized_end=302
+  _globals['_CONNECTREQUEST']._serialized_start=304
+  _globals['_CONNECTREQUEST']._serialized_end=343
+  _globals['_DRONEEVENT']._serialized_start=345
+  _globals['_DRONEEVENT']._serialized_end=454
+  _globals['_CONNECTED']._serialized_start=456
+  _globals['_CONNECTED']._serialized_end=518
+  _globals['_HANDOVERNOTICE']._serialized_start=521
+  _globals['_HANDOVERNOTICE']._serialized_end=652
+  _globals['_STANDBYREQUEST']._serialized_start=654
+  _globals['_STANDBYREQUEST']._serialized_end=693
+  _globals['_STANDBYEVENT']._serialized_start=695
+  _globals['_STANDBYEVENT']._serialized_end=798
+  _globals['_STANDBYHELD']._serialized_start=800
+  _globals['_STANDBYHELD']._serialized_end=844
+  _globals['_TAKEOVER']._serialized_start=847
+  _globals['_TAKEOVER']._serialized_end=981
+  _globals['_RETAINEDREPLY']._serialized_start=984
+  _globals['_RETAINEDREPLY']._serialized_end=1132
+  _globals['_HANDOVERREQUEST']._serialized_start=1134
+  _globals['_HANDOVERREQUEST']._serialized_end=1189
+  _globals['_HANDOVERREPLY']._serialized_start=1191
+  _globals['_HANDOVERREPLY']._serialized_end=1282
+  _globals['_GETDRONESTATUSREQUEST']._serialized_start=1284
+  _globals['_GETDRONESTATUSREQUEST']._serialized_end=1378
+  _globals['_AUDITENTRY']._serialized_start=1380
+  _globals['_AUDITENTRY']._serialized_end=1488
+  _globals['_HANDOVERRECORD']._serialized_start=1491
+  _globals['_HANDOVERRECORD']._serialized_end=1694
+  _globals['_DRONESTATUS']._serialized_start=1697
+  _globals['_DRONESTATUS']._serialized_end=2310
+  _globals['_VEHICLELINK']._serialized_start=2313
+  _globals['_VEHICLELINK']._serialized_end=2469
+  _globals['_DRONE']._serialized_start=2472
+  _globals['_DRONE']._serialized_end=2794
 # @@protoc_insertion_point(module_scope)

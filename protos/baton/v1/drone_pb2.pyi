@@ -36,7 +36,7 @@ class InvokeRequest(_message.Message):
     PAYLOAD_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
-    CLOCK_REPLIES_FIELD_NUMBER: _builtins.int
+    MASTER_ANSWERS_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The calling controller's id."""
     reqnr: _builtins.int
@@ -58,11 +58,14 @@ class InvokeRequest(_message.Message):
     one's log gets them again; it never goes down.
     """
     @_builtins.property
-    def clock_replies(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
-        """The Clock calls the master answered itself since its last Invoke,
-        request numbers between the last one served and this one. The drone
-        keeps them with its own replies, so a taker answers them again with
-        the same time (a drone call that followed may depend on it).
+    def master_answers(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
+        """The calls the master answered without the drone since the last drone
+        reply it consumed: its Clock calls, and calls its mission program gave
+        up on (given_up). Numbered above the last request served and below this
+        one; a call given up may also be the last one served (the drone
+        executed it, the program saw the give-up). The drone keeps them with its
+        own replies, so a taker answers them again as the lost master did (a
+        drone call that followed may depend on them).
         """
 
     def __init__(
@@ -74,11 +77,11 @@ class InvokeRequest(_message.Message):
         payload: _builtins.bytes = ...,
         epoch: _builtins.int = ...,
         watermark_reqnr: _builtins.int = ...,
-        clock_replies: _abc.Iterable[Global___RetainedReply] | None = ...,
+        master_answers: _abc.Iterable[Global___RetainedReply] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["clock_replies", b"clock_replies", "controller_id", b"controller_id", "epoch", b"epoch", "method", b"method", "payload", b"payload", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "epoch", b"epoch", "master_answers", b"master_answers", "method", b"method", "payload", b"payload", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -384,6 +387,7 @@ class RetainedReply(_message.Message):
     REPLY_FIELD_NUMBER: _builtins.int
     STATUS_CODE_FIELD_NUMBER: _builtins.int
     STATUS_MESSAGE_FIELD_NUMBER: _builtins.int
+    GIVEN_UP_FIELD_NUMBER: _builtins.int
     reqnr: _builtins.int
     """The request number."""
     method: _builtins.str
@@ -396,6 +400,10 @@ class RetainedReply(_message.Message):
     """The gRPC status code of a call that failed (0: a reply)."""
     status_message: _builtins.str
     """Its status message."""
+    given_up: _builtins.bool
+    """The mission program gave up on the call (a deadline, a cancellation):
+    the status is what it saw, whatever the drone did.
+    """
     def __init__(
         self,
         *,
@@ -405,10 +413,11 @@ class RetainedReply(_message.Message):
         reply: _builtins.bytes = ...,
         status_code: _builtins.int = ...,
         status_message: _builtins.str = ...,
+        given_up: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["given_up", b"given_up", "method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

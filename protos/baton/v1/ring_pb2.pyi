@@ -91,6 +91,7 @@ class LogEntry(_message.Message):
     REQUEST_FIELD_NUMBER: _builtins.int
     STATUS_CODE_FIELD_NUMBER: _builtins.int
     STATUS_MESSAGE_FIELD_NUMBER: _builtins.int
+    GIVEN_UP_FIELD_NUMBER: _builtins.int
     reqnr: _builtins.int
     """The request number."""
     method: _builtins.str
@@ -107,6 +108,10 @@ class LogEntry(_message.Message):
     """
     status_message: _builtins.str
     """The status message of a failed call."""
+    given_up: _builtins.bool
+    """The mission program gave up on the call (a deadline, a cancellation)
+    and the master logged what it saw; the drone may have executed it.
+    """
     def __init__(
         self,
         *,
@@ -117,10 +122,11 @@ class LogEntry(_message.Message):
         request: _builtins.bytes = ...,
         status_code: _builtins.int = ...,
         status_message: _builtins.str = ...,
+        given_up: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request", b"request", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["given_up", b"given_up", "method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request", b"request", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -138,7 +138,7 @@ class DroneSession:
         payload: bytes,
         timeout_s: float | None = None,
         watermark_reqnr: int = 0,
-        clock_replies: Sequence[drone_pb2.RetainedReply] = (),
+        master_answers: Sequence[drone_pb2.RetainedReply] = (),
     ) -> drone_pb2.InvokeReply:
         """Sends request ``reqnr`` in this session's epoch; raises grpc.aio.AioRpcError.
 
@@ -152,7 +152,7 @@ class DroneSession:
             payload=payload,
             epoch=self.epoch,
             watermark_reqnr=watermark_reqnr,
-            clock_replies=clock_replies,
+            master_answers=master_answers,
         )
         reply: drone_pb2.InvokeReply = await self._stub.Invoke(
             request, wait_for_ready=True, timeout=timeout_s

@@ -69,11 +69,13 @@ def _given_up(reqnr: int, method: str, request: bytes, code: grpc.StatusCode) ->
         status_code=code.value[0],
         status_message=f"{method}: the mission program gave up on the call ({code.name}); "
         "the drone may have executed it",
+        given_up=True,
     )
 
 
 def to_retained(entry: ring_pb2.LogEntry) -> drone_pb2.RetainedReply:
-    """A Clock call's log entry as the drone keeps it (sent along with the next Invoke)."""
+    """A call answered without the drone (a Clock call, a call given up) as the drone
+    keeps it: sent along with the next Invoke."""
     return drone_pb2.RetainedReply(
         reqnr=entry.reqnr,
         method=entry.method,
@@ -81,6 +83,7 @@ def to_retained(entry: ring_pb2.LogEntry) -> drone_pb2.RetainedReply:
         reply=entry.reply,
         status_code=entry.status_code,
         status_message=entry.status_message,
+        given_up=entry.given_up,
     )
 
 
@@ -107,6 +110,7 @@ def from_retained(kept: drone_pb2.RetainedReply, method: str, request: bytes) ->
         request=request,
         status_code=kept.status_code,
         status_message=kept.status_message,
+        given_up=kept.given_up,
     )
 
 
@@ -194,12 +198,13 @@ class ControllerNode:
             cid, config.drone_address_for(cid), self.on_take_over, self.log
         )
         self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
+        self._takeover_watermark = 0  # and the drone's watermark then
         # The replies the drone retained for our takeover, by reqnr: the lost
         # master's tail, answered from here instead of sent again.
         self._retained: dict[int, drone_pb2.RetainedReply] = {}
         # The Clock calls consumed since the last drone call: sent along with
         # the next Invoke, so the drone keeps them for a taker.
-        self._clock_since_drone: list[ring_pb2.LogEntry] = []
+        self._answered_here: list[ring_pb2.LogEntry] = []
         self.answered_from_retained = 0
         self.routed_around: list[int] = []  # successors skipped as unreachable
         self._router: asyncio.Task[None] | None = None
@@ -347,9 +352,9 @@ class ControllerNode:
         self._drone_wait, self._in_flight, self._busy = "", None, None
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
-        self._takeover_epoch = 0
+        self._takeover_epoch = self._takeover_watermark = 0
         self._retained = {}
-        self._clock_since_drone = []
+        self._answered_here = []
         self.routed_around = []
         self.peer(self.protocol.successor).start()
         await self._apply(self.protocol.start())
@@ -533,7 +538,7 @@ class ControllerNode:
             return  # a session closed meanwhile
         was_active = self.protocol.state is State.ACTIVE
         takeover = epoch == self._takeover_epoch
-        effects = self.protocol.on_granted(epoch, takeover)
+        effects = self.protocol.on_granted(epoch, takeover, self._takeover_watermark)
         if not was_active:
             self.log.info(
                 "the drone says this controller is master",
@@ -552,6 +557,7 @@ class ControllerNode:
         """
         p = self.protocol
         self._takeover_epoch = event.epoch
+        self._takeover_watermark = event.watermark_reqnr
         self._retained = {kept.reqnr: kept for kept in event.retained if kept.reqnr > p.held_reqnr}
         self.handovers.append(
             HandoverEvent("taker", event.old_master, p.lognr, p.reqnr, p.log.size)
@@ -808,11 +814,12 @@ class ControllerNode:
         where the program gets it, so a call cancelled after that is counted
         as on every replica.
         """
-        if entry.method.startswith(CLOCK_SERVICE):
-            self._clock_since_drone.append(entry)
-        else:
+        if not entry.method.startswith(CLOCK_SERVICE):
             self._drone_calls += 1
-            self._clock_since_drone.clear()
+        if entry.method.startswith(CLOCK_SERVICE) or entry.given_up:
+            self._answered_here.append(entry)  # sent along with the next drone call
+        else:
+            self._answered_here.clear()
         self._reply_chain.update(
             entry.reqnr.to_bytes(8, "big")
             + entry.status_code.to_bytes(4, "big", signed=True)
@@ -934,7 +941,7 @@ class ControllerNode:
         Logging Sleep too means a new master replays the sleeps its
         predecessor already slept instead of sleeping them again; a sleep cut
         short by a handover is discarded like any reply in flight. They also
-        go to the drone with the next drone call (``_clock_since_drone``),
+        go to the drone with the next drone call (``_answered_here``),
         which keeps them for a taker: after a takeover the lost master's
         Sleeps are not slept again and its times are read again the same
         (docs/design.md, "Takeover").
@@ -974,7 +981,7 @@ class ControllerNode:
                     request,
                     timeout_s=budget,
                     watermark_reqnr=self.protocol.watermark_reqnr,
-                    clock_replies=[to_retained(entry) for entry in self._clock_since_drone],
+                    master_answers=[to_retained(entry) for entry in self._answered_here],
                 )
                 return ring_pb2.LogEntry(
                     reqnr=reqnr,

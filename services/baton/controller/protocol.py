@@ -246,6 +246,8 @@ class ControllerProtocol:
         # the role goes ACTIVE only once it has handled that much, so that a
         # restarted one never writes over log numbers the ring already used.
         self.catch_up_to: int | None = 0 if len(ring) == 1 else None
+        # A taker's second condition: the drone's watermark at the takeover.
+        self.must_hold_reqnr = 0
         # Log numbers received over the ring, so that a message re-sent after a
         # reconnect is neither forwarded nor handled twice.
         self._received = SeenNumbers()
@@ -276,7 +278,9 @@ class ControllerProtocol:
 
     # -- the drone's word ---------------------------------------------------------
 
-    def on_granted(self, epoch: int, takeover: bool = False) -> list[Effect]:
+    def on_granted(
+        self, epoch: int, takeover: bool = False, watermark_reqnr: int = 0
+    ) -> list[Effect]:
         """The drone's Connected event: this controller is master in ``epoch``.
 
         After a handover (Algorithm 1) the controller is ACTIVE already and
@@ -284,9 +288,12 @@ class ControllerProtocol:
         mission's start, a restart while the drone held it as master, or a
         takeover. It becomes ACTIVE once caught up (``_drain``): with the
         ring, or, in a takeover, with what it holds (its predecessor may be
-        the lost master; the drone answers every request above the
-        watermark again, and the taker, first after the lost master, holds
-        every message that left it).
+        the lost master; the drone gave it every reply above the watermark,
+        and the taker, first after the lost master, holds every message that
+        left it). A taker that holds less than the drone's
+        ``watermark_reqnr`` (it restarted or rejoined with nothing: the drone
+        let go of the replies the others hold) waits until the ring gave it
+        that much.
         """
         self.epoch = epoch
         if self.state is State.ACTIVE:
@@ -296,6 +303,7 @@ class ControllerProtocol:
             # What the predecessor said it holds may never come (it may have
             # died with it); the drone has every reply above what we hold.
             self.catch_up_to = self.holds_lognr
+            self.must_hold_reqnr = watermark_reqnr
         return self._drain()
 
     def on_sync(self, holds_lognr: int) -> list[Effect]:
@@ -334,8 +342,13 @@ class ControllerProtocol:
 
     @property
     def caught_up(self) -> bool:
-        """Handled every log message the predecessor said it holds."""
-        return self.catch_up_to is not None and self.lognr >= self.catch_up_to
+        """Handled every log message the predecessor said it holds (and, taking over,
+        every request up to the drone's watermark)."""
+        return (
+            self.catch_up_to is not None
+            and self.lognr >= self.catch_up_to
+            and self.held_reqnr >= self.must_hold_reqnr
+        )
 
     def connect_refusal_is_stale(self, epoch: int) -> bool:
         """Whether a Connect refusal the drone made in ``epoch`` predates our mastership.

@@ -28,7 +28,7 @@ and the messages in flight, so this is bounded by the flush limit plus what
 is in flight, not by the mission.
 
 The retained replies also include the Clock calls the master answered itself
-and sent along with its next Invoke (``InvokeRequest.clock_replies``): a
+and sent along with its next Invoke (``InvokeRequest.master_answers``): a
 drone call after a ``Clock.Now`` may depend on the time it read, so a taker
 must read the same time. At a takeover the drone gives the taker all of them
 at once (``TakeOver.retained``), and the taker answers its program from them
@@ -57,6 +57,9 @@ from baton.rpc.errors import StatusError, status_of
 from baton.v1 import drone_pb2
 
 DEFAULT_WINDOW = 16
+# The metadata of a cached failure that is the mission program's give-up, not
+# the drone's outcome (a master sent it along: InvokeRequest.master_answers).
+GIVEN_UP = ("baton-given-up", "true")
 
 
 @dataclass(frozen=True)
@@ -80,6 +83,7 @@ class CachedReply:
             reply=self.reply,
             status_code=0 if error is None else error.code.value[0],
             status_message="" if error is None else error.message,
+            given_up=error is not None and GIVEN_UP in error.metadata,
         )
 
     @classmethod
@@ -87,7 +91,8 @@ class CachedReply:
         """A reply a master sent along (a Clock call it answered itself)."""
         error = None
         if kept.status_code:
-            error = StatusError(status_of(kept.status_code), kept.status_message)
+            given_up = (GIVEN_UP,) if kept.given_up else ()
+            error = StatusError(status_of(kept.status_code), kept.status_message, given_up)
         return cls(kept.reqnr, kept.method, kept.request_digest, kept.reply, error)
 
 

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import grpc
 
-from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, ReplyCache
+from baton.drone.dedupe import DEFAULT_WINDOW, GIVEN_UP, CachedReply, ReplyCache
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_pb2
 
@@ -234,15 +234,25 @@ class Sequencer:
             )
         after = self.last_reqnr
         for kept in clock:
+            if kept.reqnr == after == self.last_reqnr and self._given_up_here(kept):
+                continue  # its outcome is what the program saw: served again so
             if not after < kept.reqnr < reqnr:
                 raise StatusError(
                     grpc.StatusCode.INVALID_ARGUMENT,
-                    f"{what}: a Clock reply sent along is numbered {kept.reqnr}; they must "
-                    f"increase, above the last request served ({self.last_reqnr}) and below "
-                    f"this one ({reqnr}); refused, nothing executed",
+                    f"{what}: a call the master answered (master_answers) is numbered "
+                    f"{kept.reqnr}; they must increase, above the last request served "
+                    f"({self.last_reqnr}) and below this one ({reqnr}), or be the last one "
+                    "served, given up by the program; refused, nothing executed",
                 )
             after = kept.reqnr
         return None
+
+    def _given_up_here(self, kept: CachedReply) -> bool:
+        """A give-up of the last request served, as the master's program saw it: the same
+        request (digest) as the one the drone served."""
+        served = self.cache.get(kept.reqnr)
+        given_up = kept.error is not None and GIVEN_UP in kept.error.metadata
+        return given_up and served is not None and served.digest == kept.digest
 
     def note_request(
         self, controller_id: int, received_at: float

@@ -311,7 +311,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             if cid in self.seq.ring:
                 self.last_seen[cid] = received_at
             digest = request_digest(method, request.payload)
-            clock = self._clock_replies(request)
+            clock = self._master_answers(request)
             cached = self.seq.admit(
                 cid, request.epoch, reqnr, method, digest, request.watermark_reqnr, clock
             )
@@ -345,15 +345,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             await asyncio.sleep(self.race.delay_s)
         return drone_pb2.InvokeReply(reqnr=reqnr, payload=reply)
 
-    def _clock_replies(self, request: drone_pb2.InvokeRequest) -> list[CachedReply]:
+    def _master_answers(self, request: drone_pb2.InvokeRequest) -> list[CachedReply]:
         """The Clock replies sent along with a request; INVALID_ARGUMENT for another method."""
         clock = []
-        for kept in request.clock_replies:
+        for kept in request.master_answers:
             route = self.dispatcher.routes.get(kept.method)
             if route is None or route.answered_by_drone:
                 raise StatusError(
                     grpc.StatusCode.INVALID_ARGUMENT,
-                    f"Invoke reqnr {request.reqnr}: clock_replies holds reqnr {kept.reqnr} "
+                    f"Invoke reqnr {request.reqnr}: master_answers holds reqnr {kept.reqnr} "
                     f"as {kept.method!r}, which is not a Clock method; only the Clock calls "
                     "a controller answered itself are sent along",
                 )

@@ -175,9 +175,10 @@ class SimController:
         self._pump_due = False
         # Takeover (issue 10): node.py's _takeover_epoch, _rejoining, fenced_messages,
         # routed_around.
-        self.takeover_epoch = 0
+        self.takeover_epoch = self.takeover_watermark = 0
         self.retained: dict[int, drone_pb2.RetainedReply] = {}  # node.py's _retained
-        self.clock_since_drone: list[ring_pb2.LogEntry] = []  # node.py's _clock_since_drone
+        self.answered_here: list[ring_pb2.LogEntry] = []  # node.py's _answered_here
+        self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
         self.rejoining = False
         self.fenced_messages = 0
@@ -380,7 +381,9 @@ class SimController:
     def on_granted(self, epoch: int) -> None:
         """ControllerNode.on_granted: a takeover if the epoch is the one on_take_over noted."""
         try:
-            effects = self.protocol.on_granted(epoch, epoch == self.takeover_epoch)
+            effects = self.protocol.on_granted(
+                epoch, epoch == self.takeover_epoch, self.takeover_watermark
+            )
         except ProtocolError as exc:
             self._uncaught("on_granted", exc)
             return
@@ -418,7 +421,11 @@ class SimController:
         self._close_drone()
 
     def on_take_over(
-        self, old_master: int, epoch: int, retained: list[drone_pb2.RetainedReply]
+        self,
+        old_master: int,
+        epoch: int,
+        watermark_reqnr: int,
+        retained: list[drone_pb2.RetainedReply],
     ) -> None:
         """ControllerNode.on_take_over (the standby stream's TakeOver): keep the retained
         replies, connect again to learn the epoch; on_granted then goes ACTIVE on what
@@ -426,6 +433,7 @@ class SimController:
         if not self.alive:
             return
         self.takeover_epoch = epoch
+        self.takeover_watermark = watermark_reqnr
         held = self.protocol.held_reqnr
         self.retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
         self.world.trace(f"controller {self.id} takes over from lost {old_master} (epoch {epoch})")
@@ -626,10 +634,10 @@ class SimController:
     def _seen(self, entry: ring_pb2.LogEntry) -> None:
         """ControllerNode._seen: the entries the protocol consumed, in order (the reply chain)."""
         self.seen.append((entry.reqnr, entry.status_code, bytes(entry.reply)))
-        if entry.method.startswith(CLOCK_SERVICE):
-            self.clock_since_drone.append(entry)
+        if entry.method.startswith(CLOCK_SERVICE) or entry.given_up:
+            self.answered_here.append(entry)
         else:
-            self.clock_since_drone.clear()
+            self.answered_here.clear()
 
     def _answered(self, status: int, reply: bytes) -> None:
         """The program gets its answer (or gives up) and goes on to its next call."""
@@ -726,7 +734,9 @@ class SimController:
             link,
             link.generation,
             watermark=self.protocol.watermark_reqnr,
-            clock=tuple(to_retained(entry) for entry in self.clock_since_drone),
+            master_answers=tuple(to_retained(entry) for entry in self.answered_here),
+            sender=self,
+            consumed=len(self.seen),
         )
         link.to_drone(len(call.request), self.world.drone.receive_invoke, request)
 

@@ -42,6 +42,7 @@ from baton.sim.mission import UNPARSABLE
 from baton.v1 import drone_pb2
 
 if TYPE_CHECKING:
+    from baton.sim.controller import SimController
     from baton.sim.network import DroneLink
     from baton.sim.world import World
 
@@ -114,7 +115,11 @@ class Request:
     connection: int
     received_at: float = 0.0
     watermark: int = 0  # InvokeRequest.watermark_reqnr
-    clock: tuple[drone_pb2.RetainedReply, ...] = ()  # InvokeRequest.clock_replies
+    master_answers: tuple[drone_pb2.RetainedReply, ...] = ()  # InvokeRequest's
+    # For the oracles: the sender's incarnation, and how many calls its program
+    # had consumed when it sent this (the drone acting on it depends on them).
+    sender: SimController | None = None
+    consumed: int = 0
 
 
 @dataclass(frozen=True)
@@ -232,7 +237,7 @@ class SimDrone:
         digest = request_digest(method, request.payload)
         if cid in seq.ring:  # _invoke_to_the_end: a request is a sighting
             self.last_seen[cid] = request.received_at
-        clock = [CachedReply.from_proto(kept) for kept in request.clock]  # _clock_replies
+        clock = [CachedReply.from_proto(kept) for kept in request.master_answers]
         try:
             cached = seq.admit(cid, request.epoch, reqnr, method, digest, request.watermark, clock)
         except StatusError as err:
@@ -242,6 +247,7 @@ class SimDrone:
         seq.note_request(cid, request.received_at)
         self._note_epoch(cid, request.epoch, reqnr)
         if cached is not None:
+            _acted_on(request)
             self._answer_duplicate(request, cached)
             return
         self.intent = Intent(reqnr, method, digest, cid, request.received_at)
@@ -281,8 +287,11 @@ class SimDrone:
 
     def _failed(self, request: Request, digest: bytes, error: StatusError) -> None:
         if self._books(error):
+            _acted_on(request)
             cid, reqnr, method = request.controller_id, request.reqnr, request.method
-            self._served(cid, reqnr, method, digest, b"", error, request.received_at, request.clock)
+            self._served(
+                cid, reqnr, method, digest, b"", error, request.received_at, request.master_answers
+            )
         else:
             self.intent = None  # store.abandon()
         self._reply(request, b"", error)
@@ -310,16 +319,31 @@ class SimDrone:
             return
         self.busy = None
         request = execution.request
+        _acted_on(request)
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         received = request.received_at
         if execution.error is not None:
             self._served(
-                cid, reqnr, method, execution.digest, b"", execution.error, received, request.clock
+                cid,
+                reqnr,
+                method,
+                execution.digest,
+                b"",
+                execution.error,
+                received,
+                request.master_answers,
             )
             self._reply(request, b"", execution.error)
         else:
             self._served(
-                cid, reqnr, method, execution.digest, execution.reply, None, received, request.clock
+                cid,
+                reqnr,
+                method,
+                execution.digest,
+                execution.reply,
+                None,
+                received,
+                request.master_answers,
             )
             self._reply(request, execution.reply, None)
         self._next()
@@ -599,6 +623,15 @@ class SimDrone:
                 link.owner.on_take_over,
                 record.old_master,
                 record.epoch,
+                self.seq.cache.watermark,
                 retained,
                 stream=True,
             )
+
+
+def _acted_on(request: Request) -> None:
+    """For the oracles: the drone served ``request`` (or answered it again), so what its
+    sender's program had consumed when it sent it left the sender."""
+    if request.sender is not None:
+        sender = request.sender
+        sender.accepted_upto = max(sender.accepted_upto, request.consumed)

@@ -24,7 +24,7 @@ for it (``World.check_overtaken_handover``): if it strikes, the run fails.
 
 F12 (a Clock.Now a lost master answered was answered again by the taker
 with another time, though a drone call that followed may have used it) was
-fixed in node.py ``_clock_since_drone``: the Clock replies go to the drone
+fixed in node.py ``_answered_here``: the Clock replies go to the drone
 with the next Invoke, it retains them with its own, and the TakeOver gives
 them to the taker (``from_retained``). The same-replies oracle now holds a
 lost incarnation to everything up to its last drone call.

@@ -130,7 +130,7 @@ def _exactly_once(world: World) -> list[Violation]:
 
 def _same_replies(world: World) -> list[Violation]:
     found = []
-    observed = {id(c): _observed(world, c) for c in world.incarnations}
+    observed = {id(c): _observed(c) for c in world.incarnations}
     longest_seen = max((c.seen[: observed[id(c)]] for c in world.incarnations), key=len)
     longest_view = max((c.view[: observed[id(c)]] for c in world.incarnations), key=len)
     for index, (reqnr, _, _) in enumerate(longest_seen):
@@ -157,20 +157,18 @@ def _same_replies(world: World) -> list[Violation]:
     return found
 
 
-def _observed(world: World, controller: SimController) -> int:
+def _observed(controller: SimController) -> int:
     """How many of an incarnation's calls must match the others'.
 
     All of them, but for an incarnation a failover ended (its master lost,
-    or fenced): its calls after its last drone call (Clock calls and Sleeps
-    it answered itself) never left it, so nothing depends on them, and a
-    taker may answer them again (with another time). Up to its last drone
-    call everything must match: the drone keeps the Clock replies sent
-    along with each Invoke (F12, fixed).
+    or fenced): only those consumed before the last request of it the drone
+    accepted. What it consumed after that never left it (its Clock calls,
+    its program's give-ups: decided where it ran), so nothing depends on
+    it, and a taker may answer those calls otherwise. Everything before
+    must match: the drone keeps the calls a master answered itself, sent
+    along with its next request (F12, fixed; and the give-ups found with it).
     """
-    if not controller.ended_by:
-        return len(controller.seen)
-    calls = [k for k in range(len(controller.seen)) if world.program[k].to_drone]
-    return calls[-1] + 1 if calls else 0
+    return controller.accepted_upto if controller.ended_by else len(controller.seen)
 
 
 def _brief(item: tuple[int | bytes, ...]) -> str:
