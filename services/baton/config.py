@@ -106,6 +106,17 @@ def detection_time_s(takeover_after: float, speedup: float) -> float:
     return max(takeover_after / speedup, DETECTION_FLOOR_S)
 
 
+# The longest a controller waits between two repairs of the same gap (seconds).
+GAP_REPAIR_MAX_S = 8.0
+
+
+def gap_repair_s(detection_s: float) -> float:
+    """How long a log message may be missing while later ones are queued before the
+    controller has its predecessors re-send from its hello: the detection time, or its
+    floor when takeovers are off (node.py ``_repair_gap``)."""
+    return max(detection_s, DETECTION_FLOOR_S)
+
+
 def parse_address(value: Any) -> str:
     """A ``host:port`` string with a port in 0..65535."""
     text = str(value).strip()

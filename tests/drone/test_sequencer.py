@@ -179,3 +179,19 @@ def test_a_give_up_sent_along_replaces_the_reply_the_program_never_saw() -> None
     reply = CachedReply(2, GET, DIGEST, b"r")
     with pytest.raises(StatusError):
         seq.admit(0, 1, 3, GET, DIGEST, clock=[reply])
+
+
+def test_a_master_never_seen_is_lost_after_the_start_up_grace() -> None:
+    """Not seen since the drone started: lost only once ``unseen_from`` (the end of the
+    start-up grace) is ``after_s`` past; None (no controller seen yet) never."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    seen = {1: 20.0, 2: 20.0}
+    assert seq.takeover_due(99.0, {1, 2}, seen, after_s=3.0) is None
+    assert seq.takeover_due(12.5, {1, 2}, seen, after_s=3.0, unseen_from=10.0) is None
+    due = seq.takeover_due(13.0, {1, 2}, seen, after_s=3.0, unseen_from=10.0)
+    assert due is not None and (due.new_master, due.lost, due.lost_at) == (1, 0, 10.0)
+    # Made master later than the grace's end: counted from the switch.
+    seq.switch(2, "rpc", 50.0)
+    assert seq.takeover_due(52.0, {0, 1}, {0: 52.0, 1: 52.0}, 3.0, unseen_from=10.0) is None
+    due = seq.takeover_due(53.0, {0, 1}, {0: 53.0, 1: 53.0}, 3.0, unseen_from=10.0)
+    assert due is not None and (due.new_master, due.lost) == (0, 2)

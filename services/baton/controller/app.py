@@ -50,6 +50,7 @@ class ControllerApp:
         self.mission_process: asyncio.subprocess.Process | None = None
         self._watcher: asyncio.Task[None] | None = None
         self.node.on_rejoin = self.rejoin
+        self.node.on_gap = self.ring_service.receiver.drop_streams
 
     async def start(self) -> None:
         """Serves, starts the protocol, and launches the mission program if there is one."""

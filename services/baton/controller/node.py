@@ -22,7 +22,7 @@ from typing import Any
 
 import grpc
 
-from baton.config import BatonConfig
+from baton.config import GAP_REPAIR_MAX_S, BatonConfig, gap_repair_s
 from baton.controller.clock import MissionClock
 from baton.controller.drone_link import DroneRefusal, DroneSession, DroneStandby, refusal_of
 from baton.controller.history import LogHistory
@@ -215,6 +215,10 @@ class ControllerNode:
         self._rejoining = False
         # Set by the app: stops the mission program, resets, starts it again.
         self.on_rejoin: Callable[[], Coroutine[Any, Any, None]] | None = None
+        # Set by the app: ends every incoming ring stream (RingReceiver.drop_streams).
+        self.on_gap: Callable[[], None] | None = None
+        # The gap being repaired (_repair_gap): its log number, since when, the next try.
+        self._gap: tuple[int, float, float] | None = None
 
     def _log_context(self) -> dict[str, object]:
         p = self.protocol
@@ -267,7 +271,7 @@ class ControllerNode:
         """What holds now that would be a stall if it lasted (stalls.py)."""
         p = self.protocol
         holding = {}
-        if p.log_queue and (p.lognr + 1) not in p.log_queue:
+        if p.missing_lognr is not None:
             holding["gap"] = (
                 f"log message {p.lognr + 1} missing while {len(p.log_queue)} later ones "
                 f"are queued (up to {max(p.log_queue)})"
@@ -374,10 +378,45 @@ class ControllerNode:
         return link
 
     async def _route_watch(self) -> None:
-        """Every 0.1 s: routes the ring around a successor down for the detection time."""
+        """Every 0.1 s: routes the ring around a successor down for the detection time,
+        and repairs a gap in what we received."""
         while True:
+            self._repair_gap()
             await self._route()
             await asyncio.sleep(0.1)
+
+    def _repair_gap(self) -> None:
+        """A log message missing for the repair time while later ones are queued: our
+        predecessors are made to connect again, and hear our hello (simulation finding F3).
+
+        The ring does not forward a message to its origin, and a history stream
+        gives its receiver only what the sender held when it opened: a
+        controller restarted or rejoined with nothing whose predecessor gets
+        the messages it once created (or its own predecessor's) only later
+        would wait for them for ever. Re-opened, the stream re-sends from the
+        history whatever is above what we hold. Again, twice as late each
+        time, if the gap stays (the message may be nowhere yet).
+        """
+        missing = self.protocol.missing_lognr
+        now = time.monotonic()
+        if missing is None:
+            self._gap = None
+            return
+        repair_s = gap_repair_s(self.config.detection_s)
+        if self._gap is None or self._gap[0] != missing:
+            self._gap = (missing, now, now + repair_s)
+            return
+        lognr, since, due = self._gap
+        if now < due or self.on_gap is None:
+            return
+        self._gap = (lognr, since, now + min(2 * (now - since), GAP_REPAIR_MAX_S))
+        self.log.warning(
+            "log message missing while later ones are queued; predecessors re-send from our hello",
+            missing_lognr=lognr,
+            missing_for_s=round(now - since, 3),
+            queued=len(self.protocol.log_queue),
+        )
+        self.on_gap()
 
     async def _route(self) -> None:
         """Sends to the first controller after us whose stream has not been down for the

@@ -264,6 +264,10 @@ class ControllerProtocol:
         self._epoch_at: dict[int, int] = {}
         self.watermark_reqnr = 0
         self._ends: deque[tuple[int, int]] = deque()
+        # The last handover message we created, until it comes back round: if
+        # its new master is lost and the drone gives the role back to us by
+        # takeover, we are the only one that holds it (simulation finding F11).
+        self._handed: ring_pb2.LogMessage | None = None
 
     # -- lines 1-11 -------------------------------------------------------------
 
@@ -299,12 +303,35 @@ class ControllerProtocol:
         if self.state is State.ACTIVE:
             return []
         self.master = True
+        effects: list[Effect] = []
         if takeover:
+            effects.extend(self._resend_handed())
             # What the predecessor said it holds may never come (it may have
             # died with it); the drone has every reply above what we hold.
             self.catch_up_to = self.holds_lognr
             self.must_hold_reqnr = watermark_reqnr
-        return self._drain()
+        return effects + self._drain()
+
+    def _resend_handed(self) -> list[Effect]:
+        """Our own handover message, sent only to a new master the drone has lost, as a
+        normal message of ours to the ring (simulation finding F11).
+
+        A taker that handed over last and has handled nothing since holds
+        the log up to that message, which may never have left it (its new
+        master died with it). It goes on numbering after it, so the ring
+        must get it: we send it on as its new master would have, a normal
+        message, here with us as origin. If it did leave, the copies have
+        the same number, epoch and entries, and the second is a duplicate.
+        """
+        handed, self._handed = self._handed, None
+        if handed is None or handed.lognr != self.lognr or handed.lognr in self._received:
+            return []
+        self._received.add(handed.lognr)
+        message = ring_pb2.LogMessage()
+        message.CopyFrom(handed)
+        message.handover = False
+        message.origin = message.sender = self.id
+        return [SendLog(self.successor, message)]
 
     def on_sync(self, holds_lognr: int) -> list[Effect]:
         """The predecessor holds every log message up to ``holds_lognr`` and sends what we lack.
@@ -337,8 +364,24 @@ class ControllerProtocol:
 
     @property
     def holds_lognr(self) -> int:
-        """Every log number up to this one was received (handled, or queued to be)."""
-        return max(self.lognr, self._received.upto)
+        """Every log number up to this one was received (handled, or queued to be).
+
+        Our handover message, until it comes back round, is not held: it is
+        not in the history we give our successor (the F7 fix), so a
+        predecessor that re-sends from our hello (a stream re-opened, or
+        routed back to us) must give it to us (simulation finding F10).
+        """
+        lognr = self.lognr
+        if self._handed is not None and self._handed.lognr == lognr:
+            lognr -= 1
+        return max(lognr, self._received.upto)
+
+    @property
+    def missing_lognr(self) -> int | None:
+        """The next log number to handle while later ones are queued without it (a gap)."""
+        if self.log_queue and (self.lognr + 1) not in self.log_queue:
+            return self.lognr + 1
+        return None
 
     @property
     def caught_up(self) -> bool:
@@ -448,6 +491,8 @@ class ControllerProtocol:
         self._held(self.lognr, self.reqnr, epoch)
         message = self._message(self.lognr, origin=new_master, handover=True)
         message.epoch = epoch
+        self._handed = ring_pb2.LogMessage()
+        self._handed.CopyFrom(message)
         return [DisconnectDrone(), SendLog(new_master, message)]
 
     def on_fenced(self) -> list[Effect]:
@@ -493,6 +538,8 @@ class ControllerProtocol:
             # that fenced master and do not know yet: it is the ring's, and
             # the drone will tell us.
             return [Fenced(message.lognr, message.origin, message.epoch)]
+        if self._handed is not None and message.lognr >= self._handed.lognr:
+            self._handed = None  # it came back, or the ring went on past it
         self._received.add(message.lognr)
         effects: list[Effect] = []
         # Lines 31-33: forward (a handover message travels on as a normal one).

@@ -400,12 +400,17 @@ class Sequencer:
         reachable: Iterable[int],
         last_seen: Mapping[int, float],
         after_s: float,
+        unseen_from: float | None = None,
     ) -> TakeoverDue | None:
         """Whether the master is lost, and who takes over (None: nobody, or not yet).
 
         ``reachable`` are the controllers holding a stream now, ``last_seen``
         when each last held one or sent a request (absent: not seen since the
-        drone started). Lost: the master, seen
+        drone started). ``unseen_from`` is when a master not seen since the
+        drone started counts as seen: the end of the start-up grace (the
+        controllers come up one by one), or the switch that made it master
+        if that came later; None: such a master is never lost (no controller
+        was seen yet). Lost: the master, seen
         ``after_s`` ago or longer; the first reachable controller after it
         in ring order takes over (it received every log message that left
         the master). Also lost: the old master of a cooperative handover
@@ -419,9 +424,15 @@ class Sequencer:
         master_seen = last_seen.get(self.master)
         if master_seen is None:
             # Never seen since the drone started: the mission's start (the
-            # controllers come up one by one), or the drone restarted. A
-            # master is lost only once it was there.
-            return None
+            # controllers come up one by one), or the drone restarted before
+            # the mission went anywhere. It gets the start-up grace; one that
+            # never comes up is then lost like one that died (the mission
+            # would wait for it for ever).
+            if unseen_from is None:
+                return None
+            master_seen = unseen_from
+            if self.handovers:
+                master_seen = max(master_seen, self.handovers[-1].decided_at)
         if self.master not in live and now - master_seen >= after_s:
             position = self.ring.index(self.master)
             for step in range(1, len(self.ring)):

@@ -46,6 +46,12 @@ TAKEOVER_TICK_S = 0.05
 # restart: time for the controllers to re-connect (their back-off reaches
 # 1 s), after which a master that did not come back is lost.
 RESTART_GRACE_S = 5.0
+# A master not seen since the drone started counts as seen this long after
+# the drone first saw any controller: the controllers come up one by one (the
+# testbed starts them together, after the vehicle is ready), and a takeover
+# at the start must not go to whichever came first. One that never comes up
+# is then lost, and the mission goes on without it instead of waiting for ever.
+START_GRACE_S = 10.0
 
 
 async def latest_position(vehicle: MobilityBackend) -> api.Position:
@@ -97,6 +103,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         # When each controller last held a stream or sent a request
         # (time.time()); absent until it is first seen.
         self.last_seen: dict[int, float] = {}
+        # When the first controller was seen since the drone started (the
+        # start-up grace runs from then); None until one is.
+        self.first_seen: float | None = None
         self._handed_over_after = 0
         self.dispatcher = Dispatcher({"Mobility": vehicle, "Camera": camera})
         self._lock = asyncio.Lock()
@@ -141,21 +150,36 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """Takes the master over when it is lost (``Sequencer.takeover_due``)."""
         while True:
             now = time.time()
-            reachable = self.standby.reachable | self.streams.holders
-            for cid in reachable:
-                self.last_seen[cid] = now
-            due = self.seq.takeover_due(now, reachable, self.last_seen, self.takeover_after_s)
+            reachable = self._sighted(now)
+            due = self.seq.takeover_due(
+                now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
+            )
             if due is not None:
                 async with self._lock:
                     # Re-checked under the lock: a request may have come meanwhile.
                     now = time.time()
-                    reachable = self.standby.reachable | self.streams.holders
+                    reachable = self._sighted(now)
                     due = self.seq.takeover_due(
-                        now, reachable, self.last_seen, self.takeover_after_s
+                        now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
                     )
                     if due is not None:
                         self._take_over(due.new_master, "lost", now, due.lost_at)
             await asyncio.sleep(TAKEOVER_TICK_S)
+
+    def _sighted(self, now: float) -> set[int]:
+        """The controllers holding a stream now, noted as seen now."""
+        reachable = self.standby.reachable | self.streams.holders
+        for cid in reachable:
+            self.last_seen[cid] = now
+        if reachable and self.first_seen is None:
+            self.first_seen = now
+        return reachable
+
+    @property
+    def unseen_from(self) -> float | None:
+        """When a master not seen since the drone started counts as seen (the end of
+        the start-up grace); None while no controller was seen."""
+        return None if self.first_seen is None else self.first_seen + START_GRACE_S
 
     def _take_over(
         self, new_master: int, trigger: str, now: float, lost_at: float = 0.0

@@ -16,7 +16,7 @@ one command that replays it exactly.
 - ``faults``: what breaks, per seed.
 - ``oracles``: what must hold.
 - ``findings``: bugs it found in the code it runs; the default mix keeps
-  their scenarios out (``--allow F3`` lets one in).
+  their scenarios out (``--allow F4`` lets one in).
 - ``mutations``: known defects put back, to show the oracles catch them.
 - ``world``: one seed, end to end (``run_seed``); ``cli``: ``python -m baton.sim``.
 """

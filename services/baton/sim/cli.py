@@ -73,7 +73,7 @@ def parser() -> argparse.ArgumentParser:
         "--allow",
         type=_findings,
         default=frozenset(),
-        help="let in the scenarios of known findings, e.g. F3,F7 (see baton.sim.findings)",
+        help="let in the scenarios of known findings, e.g. F4,F9 (see baton.sim.findings)",
     )
     p.add_argument("--mutation", choices=sorted(MUTATIONS), help="put a known defect back")
     p.add_argument("--trace", action="store_true", help="print every event of --seed")

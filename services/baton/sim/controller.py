@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 
 import grpc
 
+from baton.config import GAP_REPAIR_MAX_S, gap_repair_s
 from baton.controller.drone_link import DroneRefusal
 from baton.controller.history import LogHistory
 from baton.controller.node import (
@@ -183,6 +184,7 @@ class SimController:
         self.rejoining = False
         self.fenced_messages = 0
         self.routed_around: list[int] = []
+        self._gap: tuple[int, float, float] | None = None  # node.py ControllerNode._gap
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -248,6 +250,7 @@ class SimController:
                     f"{effect.origin} (epoch {effect.epoch})"
                 )
         self.world.after_apply(self, effects)
+        self._gap_check_later()
         self._notify()
 
     def _notify(self) -> None:
@@ -458,6 +461,36 @@ class SimController:
         if not self.rejoining:
             self.rejoining = True
             self.world.loop.after(0.0, self.world.rejoin, self)
+
+    # -- a gap in what we received (ControllerNode._repair_gap) -------------------
+
+    def _gap_check_later(self) -> None:
+        """When node.py's _repair_gap (every 0.1 s) could act: a gap appeared; it is
+        looked at again at the repair time."""
+        missing = self.protocol.missing_lognr
+        if missing is None or not self.alive:
+            self._gap = None
+            return
+        if self._gap is not None and self._gap[0] == missing:
+            return
+        now, repair = self.world.loop.now, gap_repair_s(self.world.detection_s)
+        self._gap = (missing, now, now + repair)
+        self.world.loop.after(repair, self._repair_gap, missing)
+
+    def _repair_gap(self, missing: int) -> None:
+        """ControllerNode._repair_gap: still missing at the repair time, our predecessors
+        are made to connect again (ControllerApp's RingReceiver.drop_streams)."""
+        now = self.world.loop.now
+        if not self.alive or self._gap is None or self._gap[0] != missing:
+            return
+        lognr, since, due = self._gap
+        if now < due or self.protocol.missing_lognr != lognr:
+            return
+        interval = min(2 * (now - since), GAP_REPAIR_MAX_S)
+        self._gap = (lognr, since, now + interval)
+        self.world.trace(f"controller {self.id} misses log message {lognr}: streams dropped")
+        self.world.drop_streams_to(self)
+        self.world.loop.after(interval, self._repair_gap, missing)
 
     # -- the ring routes around the dead (ControllerNode._route) -------------------
 

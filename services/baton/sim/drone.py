@@ -35,7 +35,7 @@ from baton.digest import request_digest
 from baton.drone.dedupe import CachedReply
 from baton.drone.dispatch import drone_api_routes
 from baton.drone.sequencer import ScriptedHandover, Sequencer, cut_off_outcome
-from baton.drone.service import RESTART_GRACE_S, TAKEOVER_TICK_S
+from baton.drone.service import RESTART_GRACE_S, START_GRACE_S, TAKEOVER_TICK_S
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.sim.mission import UNPARSABLE
@@ -200,6 +200,7 @@ class SimDrone:
         self.takeover_after = world.takeover_after
         # Volatile, as DroneService.last_seen: when each controller was last seen.
         self.last_seen: dict[int, float] = {}
+        self.first_seen: float | None = None  # DroneService.first_seen
         self.takeovers = 0
         self._watching = False
         self._check_queued = False
@@ -527,6 +528,7 @@ class SimDrone:
         # DroneService.last_seen is not in the store; _restore counts the master of
         # a mission in progress as seen RESTART_GRACE_S after the restart.
         self.last_seen = {}
+        self.first_seen = None
         if self.seq.last_reqnr or self.seq.handovers:
             self.last_seen[self.seq.master] = self.world.loop.now + RESTART_GRACE_S
         self.watch()
@@ -589,44 +591,81 @@ class SimDrone:
         if not self.up or not self.world.mission_open():
             return
         now = self.world.loop.now
-        reachable = self.reachable()
-        for cid in reachable:
-            self.last_seen[cid] = now
-        due = self.seq.takeover_due(now, reachable, self.last_seen, self.takeover_after)
+        reachable = self._sighted(now)
+        due = self.seq.takeover_due(
+            now, reachable, self.last_seen, self.takeover_after, self._unseen_from()
+        )
         if due is not None and not self._check_queued:
             self._check_queued = True  # async with self._lock: re-checked there
             self.queue.append(TakeoverCheck())
             self._next()
         self.watch()
 
-    def _takeover_check(self) -> None:
-        """watch_master under the lock: takeover_due again, then _take_over."""
-        now = self.world.loop.now
+    def _sighted(self, now: float) -> set[int]:
+        """DroneService._sighted: who holds a stream, noted as seen now."""
         reachable = self.reachable()
         for cid in reachable:
             self.last_seen[cid] = now
-        due = self.seq.takeover_due(now, reachable, self.last_seen, self.takeover_after)
+        if reachable and self.first_seen is None:
+            self.first_seen = now
+        return reachable
+
+    def _unseen_from(self) -> float | None:
+        """DroneService.unseen_from: the end of the start-up grace."""
+        return None if self.first_seen is None else self.first_seen + START_GRACE_S
+
+    def _takeover_check(self) -> None:
+        """watch_master under the lock: takeover_due again, then _take_over."""
+        now = self.world.loop.now
+        reachable = self._sighted(now)
+        due = self.seq.takeover_due(
+            now, reachable, self.last_seen, self.takeover_after, self._unseen_from()
+        )
         if due is not None:
             self._take_over(due.new_master, "lost", now, due.lost_at)
+
+    def take_over_owed(self, cid: int) -> drone_pb2.HandoverRecord | None:
+        """DroneService._take_over_owed: the takeover to tell ``cid`` again, if it is the
+        taker and has not sent a request since."""
+        seq = self.seq
+        if cid != seq.master or not seq.handovers:
+            return None
+        record = seq.handovers[-1]
+        if record.kind != "takeover" or record.first_request_at:
+            return None
+        return record
+
+    def standby_opened(self, cid: int) -> None:
+        """DroneService.Standby: a controller's standby stream (re)opens; a TakeOver still
+        owed to it is told on it (the stream that was to carry it may have broken)."""
+        record = self.take_over_owed(cid) if self.up else None
+        if record is not None:
+            self._tell_take_over(record)
 
     def _take_over(self, new_master: int, trigger: str, now: float, lost_at: float) -> None:
         """DroneService._take_over: switch by takeover, tell the new master on its standby."""
         record = self.seq.switch(new_master, trigger, now, takeover=True, lost_at=lost_at)
         self.takeovers += 1
         self._switched(record)
-        link = self.world.controller(new_master).drone_link
-        if link.usable():  # StandbyStreams.tell: its newest stream, if it holds one
-            retained = [reply.to_proto() for reply in self.seq.cache.retained_replies()]
-            link.to_controller(
-                link.generation,
-                sum(len(reply.reply) for reply in retained),
-                link.owner.on_take_over,
-                record.old_master,
-                record.epoch,
-                self.seq.cache.watermark,
-                retained,
-                stream=True,
-            )
+        self._tell_take_over(record)
+
+    def _tell_take_over(self, record: drone_pb2.HandoverRecord) -> None:
+        """StandbyStreams.tell of DroneService._take_over_event, on the taker's newest
+        stream if it holds one: the TakeOver with every reply retained."""
+        link = self.world.controller(record.new_master).drone_link
+        if not link.usable():
+            return
+        retained = [reply.to_proto() for reply in self.seq.cache.retained_replies()]
+        link.to_controller(
+            link.generation,
+            sum(len(reply.reply) for reply in retained),
+            link.owner.on_take_over,
+            record.old_master,
+            record.epoch,
+            self.seq.cache.watermark,
+            retained,
+            stream=True,
+        )
 
 
 def _acted_on(request: Request) -> None:

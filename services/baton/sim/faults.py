@@ -257,7 +257,7 @@ def killable(world: World, victim: SimController) -> bool:
     allow = options.allow
     predecessor = world.controller(victim.protocol.predecessor)
     successor = world.controller(victim.protocol.successor)
-    if "F3" not in allow:
+    if "F3" not in allow:  # F3 is fixed; the keep-out stays (findings.py)
         if any(not c.alive for c in world.controllers.values()):
             return False
         by_origin = world.by_origin

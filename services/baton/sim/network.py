@@ -44,6 +44,8 @@ if TYPE_CHECKING:
 DRONE = -1  # the drone's node id in partitions
 # gRPC channel reconnect back-off (rpc/channels.py CHANNEL_OPTIONS).
 CHANNEL_BACKOFF_MIN_S, CHANNEL_BACKOFF_MAX_S = 0.1, 2.0
+# drone_link.DroneStandby's re-open back-off.
+STANDBY_BACKOFF_S, STANDBY_BACKOFF_MAX_S = 0.05, 1.0
 
 
 @dataclass(frozen=True)
@@ -402,6 +404,16 @@ class DroneLink:
         if generation == self.generation and self.owner.alive:
             handler(*args)
 
+    def _standby_again(self, generation: int, backoff: float) -> None:
+        """DroneStandby's re-open loop: once the drone is reachable, the stream is up."""
+        if generation != self.generation or not self.owner.alive:
+            return  # broken again (that break re-opens it), or the controller is gone
+        if not self.usable():
+            backoff = min(backoff * 2, STANDBY_BACKOFF_MAX_S)
+            self.world.loop.after(backoff, self._standby_again, generation, backoff)
+            return
+        self.world.drone.standby_opened(self.owner.id)
+
     def break_(self, why: str) -> None:
         """The connection broke: calls in flight fail, the Connect stream ends, at both ends."""
         old, self.generation = self.generation, self.world.next_id()
@@ -410,3 +422,9 @@ class DroneLink:
         world.drone.link_broke(self.owner.id, old)
         if self.owner.alive:
             world.loop.after(world.rng.uniform(0.005, 0.3), self.owner.on_drone_link_broken, old)
+            if world.drone.take_over_owed(self.owner.id) is not None:
+                # drone_link.DroneStandby opens its stream again (back-off from
+                # STANDBY_BACKOFF_S); the drone tells a TakeOver still owed on it.
+                world.loop.after(
+                    STANDBY_BACKOFF_S, self._standby_again, self.generation, STANDBY_BACKOFF_S
+                )

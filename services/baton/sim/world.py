@@ -146,8 +146,9 @@ class World:
         # mission seconds, at least 1 s), from a stream of its own so that the
         # failover draws leave every other draw of the seed where it was.
         self.frng = random.Random(f"failover {seed}")
-        # Off in the default mix (``baton drone --takeover-after 0``: finding F10
-        # strikes there with the testbed's 3 s); --lose-master draws 1 to 3 s.
+        # Off in the default mix (``baton drone --takeover-after 0``: finding F10,
+        # since fixed, struck there with the testbed's 3 s); --lose-master draws
+        # 1 to 3 s.
         drawn = self.frng.choice((1.0, 1.5, 3.0)) if options.lose_master else 0.0
         if options.takeover_after is not None:
             drawn = options.takeover_after
@@ -207,6 +208,7 @@ class World:
             self.trace(f"controller {cid} restarts")
             controller = self._new_controller(cid)
             controller.start()
+            self.drone.standby_opened(cid)  # its standby stream: a TakeOver owed to it
             if self.programs_started:
                 controller.begin_program()
             self.drone.watch()
@@ -222,6 +224,14 @@ class World:
         controller.ended_by = "rejoin"
         controller.kill("rejoins as a replica with nothing")
         self.restart_controller(controller.id)
+
+    def drop_streams_to(self, controller: SimController) -> None:
+        """RingReceiver.drop_streams: every ring stream into ``controller`` ends, and its
+        sender connects again (after its back-off) and hears the hello."""
+        for sender in self.live_controllers():
+            link = sender.links.get(controller.id)
+            if link is not None:
+                link.break_(f"dropped by {controller.id}")
 
     def lose(self, cid: int, why: str) -> None:
         """Kills controller ``cid`` for good (the lose-master fault)."""
