@@ -14,6 +14,7 @@ drops what it had, and rejoins as a replica with a restarted program.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from test_controller_end_to_end import FAST_LINK, assert_mission_promises
@@ -217,6 +218,42 @@ async def test_a_master_cut_off_from_the_drone_is_fenced_and_rejoins_when_the_li
     assert all(
         a.controller_id != 0 for a in snapshot.drone.audit if a.received_at > taken.decided_at
     )
+
+
+async def test_a_master_behind_a_silent_link_is_taken_over_within_seconds(
+    tmp_path: Path,
+) -> None:
+    """Controller 0's link to the drone goes silent: the link emulator is frozen
+    (SIGSTOP), so its connections stay open and carry nothing, with no reset to notice,
+    like a radio link that fades. The drone's keepalive finds it within 3 s, not the
+    project's default 15 s, and 1 takes over; when the link comes back, 0 is fenced."""
+    plan = three_controllers(2 * 2**20)
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        async def flying() -> bool:
+            return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 12
+
+        await eventually(flying, "request 12 served", 120)
+        silent_since = time.time()
+        testbed.blackhole_link("link-drone-0")
+
+        async def taken_over() -> bool:
+            return (await testbed.snapshot(audit=False)).drone.master == 1
+
+        await eventually(taken_over, "controller 1 master", 60)
+        record = (await testbed.snapshot(audit=False)).drone.handovers[-1]
+        found_after = record.decided_at - silent_since
+        # Keepalive (ping 1 s, answer within 2 s), then the takeover time (1 s at 20x).
+        assert found_after < 6.0, (
+            f"the takeover came {found_after:.1f} s after the link went silent"
+        )
+        testbed.thaw_link("link-drone-0")
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == [(0, 1, "lost")]
+    rejoined = snapshot.controllers[0]
+    assert [h.role for h in rejoined.handovers] == ["fenced"]
+    assert not rejoined.master and rejoined.mission == "done"
 
 
 async def test_a_master_killed_with_a_picture_in_flight_gets_no_second_picture(

@@ -889,7 +889,7 @@ class ControllerNode:
             if state is State.REPLAY:
                 return await self._replay(method, request)
             if state is State.ACTIVE:
-                entry = await self._invoke(method, request, gave_up)
+                entry = await self._invoke(method, request, gave_up, incarnation)
                 if entry is not None:
                     return entry
                 continue
@@ -913,7 +913,11 @@ class ControllerNode:
         return entry
 
     async def _invoke(
-        self, method: str, request: bytes, gave_up: Callable[[], grpc.StatusCode]
+        self,
+        method: str,
+        request: bytes,
+        gave_up: Callable[[], grpc.StatusCode],
+        incarnation: int,
     ) -> ring_pb2.LogEntry | None:
         """One call while ACTIVE: to the drone (or the clock), logged. None: state changed."""
         reqnr = self.protocol.reqnr + 1
@@ -942,6 +946,10 @@ class ControllerNode:
                     return None
                 entry = entry_or_none
         except asyncio.CancelledError:
+            if incarnation != self.incarnation:
+                # The program of before a rejoin, stopped: its call is nobody's now (found
+                # with a silent link: queued as abandoned, it failed the new program).
+                raise
             code = gave_up()
             given_up = _given_up(reqnr, method, request, code)
             if self._ours_to_log(reqnr):

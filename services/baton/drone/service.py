@@ -52,6 +52,11 @@ RESTART_GRACE_S = 5.0
 # at the start must not go to whichever came first. One that never comes up
 # is then lost, and the mission goes on without it instead of waiting for ever.
 START_GRACE_S = 10.0
+# The drone pings every controller's connection each second and drops it
+# after 2 s without the answer: a controller behind a silent link (a radio
+# that fades without a reset, a frozen node) loses its streams within 3 s and
+# is then lost like a dead one (the project's 10 s + 5 s would add 15 s).
+CONTROLLER_KEEPALIVE_S = (1.0, 2.0)
 
 
 async def latest_position(vehicle: MobilityBackend) -> api.Position:
@@ -696,7 +701,9 @@ async def serve(
     """Runs the drone service until ``stop`` is set."""
     service = build_service(settings, vehicle)
     server = BatonServer(
-        settings.address, [drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name]
+        settings.address,
+        [drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name],
+        keepalive=CONTROLLER_KEEPALIVE_S,
     )
     drone_pb2_grpc.add_DroneServicer_to_server(service, server.server)
     await vehicle.start()

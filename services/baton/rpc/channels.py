@@ -2,7 +2,14 @@
 
 Log messages and pictures are far larger than gRPC's 4 MB default, so every
 channel and server raises the message limits explicitly; keepalive detects a
-dead peer on a long-lived ring or Connect stream within seconds.
+dead peer on a long-lived ring or Connect stream within seconds. gRPC needs
+three options for that, not one: the ping interval and its timeout, the
+minimum time between pings on a connection that carries no data (5 minutes
+by default, which would space the pings of an idle held stream out that
+far), and the ping timeout (gRPC 1.8x closes a transport whose ping goes
+unanswered only after ``grpc.http2.ping_timeout_ms``, 1 minute by default,
+whatever the keepalive timeout). Found with a frozen link emulator: a held
+stream outlived a silent peer for a minute (tests/controller/test_takeover.py).
 """
 
 from __future__ import annotations
@@ -13,12 +20,16 @@ import grpc
 # header; the ring additionally slices log messages into frames (see ring.py),
 # so this bound is for single replies only.
 MAX_MESSAGE_BYTES = 256 * 1024 * 1024
+# A ping after 10 s without one, the peer dead after 5 s more without its answer.
+KEEPALIVE_MS, KEEPALIVE_TIMEOUT_MS = 10_000, 5_000
 
 CHANNEL_OPTIONS: list[tuple[str, int | str]] = [
     ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
     ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
-    ("grpc.keepalive_time_ms", 10_000),
-    ("grpc.keepalive_timeout_ms", 5_000),
+    ("grpc.keepalive_time_ms", KEEPALIVE_MS),
+    ("grpc.keepalive_timeout_ms", KEEPALIVE_TIMEOUT_MS),
+    ("grpc.http2.min_time_between_pings_ms", KEEPALIVE_MS),
+    ("grpc.http2.ping_timeout_ms", KEEPALIVE_TIMEOUT_MS),
     ("grpc.keepalive_permit_without_calls", 1),
     ("grpc.http2.max_pings_without_data", 0),
     # Reconnect quickly after a peer restarts; the caller adds its own back-off.
@@ -31,8 +42,10 @@ CHANNEL_OPTIONS: list[tuple[str, int | str]] = [
 SERVER_OPTIONS: list[tuple[str, int | str]] = [
     ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
     ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
-    ("grpc.keepalive_time_ms", 10_000),
-    ("grpc.keepalive_timeout_ms", 5_000),
+    ("grpc.keepalive_time_ms", KEEPALIVE_MS),
+    ("grpc.keepalive_timeout_ms", KEEPALIVE_TIMEOUT_MS),
+    ("grpc.http2.min_time_between_pings_ms", KEEPALIVE_MS),
+    ("grpc.http2.ping_timeout_ms", KEEPALIVE_TIMEOUT_MS),
     ("grpc.keepalive_permit_without_calls", 1),
     ("grpc.http2.min_ping_interval_without_data_ms", 5_000),
     ("grpc.http2.max_pings_without_data", 0),

@@ -406,6 +406,15 @@ class LocalTestbed:
         it breaks and none can be made, while the parts on both sides live on."""
         await self.supervisor.kill(name)
 
+    def blackhole_link(self, name: str) -> None:
+        """Freezes link emulator ``name``: its connections stay open but carry nothing, in
+        either direction (a radio link that fades without a reset); ``thaw_link`` ends it."""
+        self.supervisor.freeze(name)
+
+    def thaw_link(self, name: str) -> None:
+        """Ends a blackhole: what waited in the sockets flows again."""
+        self.supervisor.thaw(name)
+
     async def restore_link(self, name: str) -> None:
         """Starts a cut link emulator again on the address it had."""
         part = self.supervisor.parts[name]

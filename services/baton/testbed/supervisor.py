@@ -47,6 +47,7 @@ class ManagedProcess:
     expect_exit: bool = False
     # Killed on purpose (a fault injected): its exit is not a failure.
     killed: bool = False
+    frozen: bool = False  # SIGSTOPped (a fault injected)
     process: asyncio.subprocess.Process | None = None
     ready_text: str = ""
     _log_handle: object = field(default=None, repr=False)
@@ -152,6 +153,23 @@ class Supervisor:
         await part.process.wait()
         return part
 
+    def freeze(self, name: str) -> None:
+        """SIGSTOP of part ``name`` (a fault injected): it says nothing, yet its sockets
+        stay open and the kernel still acknowledges what reaches them. Through a
+        frozen link emulator that is a silent, blackholed link (no reset to notice)."""
+        part = self.parts[name]
+        assert part.process is not None and part.process.returncode is None
+        part.process.send_signal(signal.SIGSTOP)
+        part.frozen = True
+
+    def thaw(self, name: str) -> None:
+        """SIGCONT of a frozen part: it goes on where it stopped."""
+        part = self.parts[name]
+        assert part.process is not None
+        with contextlib.suppress(ProcessLookupError):
+            part.process.send_signal(signal.SIGCONT)
+        part.frozen = False
+
     async def restart(self, name: str) -> ManagedProcess:
         """Starts a killed part again with its command line; returns once it is ready."""
         old = self.parts[name]
@@ -173,6 +191,8 @@ class Supervisor:
         if process is None:
             return None
         if process.returncode is None:
+            if part.frozen:
+                self.thaw(name)  # a frozen process would not act on SIGTERM
             with contextlib.suppress(ProcessLookupError):
                 process.send_signal(signal.SIGTERM)
             try:
