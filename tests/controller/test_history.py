@@ -49,3 +49,20 @@ def test_an_unusable_log_file_names_itself_and_the_flag(tmp_path: Path) -> None:
     (tmp_path / "not-a-db").write_text("hello, I am text")
     with pytest.raises(OSError, match=r"not-a-db \(--log-file\).*give a writable path"):
         LogHistory(tmp_path / "not-a-db")
+
+
+def test_the_mastership_epoch_is_kept_with_the_log_and_cleared_with_it(tmp_path: Path) -> None:
+    """What a controller restarted from its file tells the drone on Connect: the drone
+    fences it if a takeover gave that mastership's log up while it was down."""
+    path = tmp_path / "controller-0-log.sqlite"
+    history = LogHistory(path)
+    assert history.mastership_epoch == 0
+    history.add(message(1))
+    history.keep_mastership_epoch(3)
+    history.close()
+    again = LogHistory(path)
+    assert again.mastership_epoch == 3
+    again.clear()  # fenced: rejoins with nothing
+    assert again.mastership_epoch == 0
+    again.close()
+    assert LogHistory(path).mastership_epoch == 0

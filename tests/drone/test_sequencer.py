@@ -195,3 +195,64 @@ def test_a_master_never_seen_is_lost_after_the_start_up_grace() -> None:
     assert seq.takeover_due(52.0, {0, 1}, {0: 52.0, 1: 52.0}, 3.0, unseen_from=10.0) is None
     due = seq.takeover_due(53.0, {0, 1}, {0: 53.0, 1: 53.0}, 3.0, unseen_from=10.0)
     assert due is not None and (due.new_master, due.lost) == (0, 2)
+
+
+def test_a_master_taken_over_and_given_the_role_back_must_rejoin_first() -> None:
+    """Simulation seed 16 (--lose-master): 0 was cut off, 2 took over, the script handed
+    back to 0 cooperatively. 0 never heard of the takeover and still holds its epoch-1
+    log: the drone refuses its Connect saying so, whoever is master now."""
+    seq = Sequencer([0, 2, 1], initial_master=0)
+    seq.switch(2, "lost", now=1.0, takeover=True, lost_at=0.5)  # epoch 2
+    serve(seq, 2, 2, 1)
+    seq.switch(0, "script", now=2.0)  # epoch 3, back to 0
+    assert 0 not in seq.pending  # the takeover notice is not needed to fence it
+    with pytest.raises(StatusError) as fenced:
+        seq.admit_connect(0, mastership_epoch=1)
+    assert fenced.value.code is grpc.StatusCode.FAILED_PRECONDITION
+    assert ("baton-takeover", "1") in fenced.value.metadata
+    assert dict(fenced.value.metadata)["baton-master"] == "0"
+    # Rejoined with nothing (or restarted with nothing): granted.
+    seq.admit_connect(0, mastership_epoch=0)
+    # A mastership after the takeover is not fenced by it.
+    seq.admit_connect(0, mastership_epoch=3)
+
+
+def test_a_cooperative_switch_back_does_not_fence() -> None:
+    """Issue 9 / F2: the role went away and came back before the old master heard;
+    nobody acted without its log, so it goes on in the new epoch."""
+    seq = Sequencer([0, 1], initial_master=0)
+    serve(seq, 0, 1, 1)
+    seq.switch(1, "rpc", now=1.0)
+    seq.switch(0, "rpc", now=2.0)
+    seq.admit_connect(0, mastership_epoch=1)
+    assert seq.taken_over_since(0, 1) is None
+
+
+def test_a_takeover_notice_is_moot_for_a_controller_holding_no_log_of_it() -> None:
+    seq = Sequencer([0, 1], initial_master=0)
+    serve(seq, 0, 1, 1)
+    seq.switch(1, "lost", now=1.0, takeover=True)
+    assert seq.pending[0].takeover
+    with pytest.raises(StatusError) as fenced:
+        seq.admit_connect(0, mastership_epoch=1)  # still holds its log: refused, fenced
+    assert ("baton-takeover", "1") in fenced.value.metadata
+    # Restarted with nothing: the notice would only make it rejoin again.
+    with pytest.raises(StatusError) as not_master:
+        seq.admit_connect(0, mastership_epoch=0)
+    assert ("baton-takeover", "1") not in not_master.value.metadata
+    assert 0 not in seq.pending
+
+
+def test_the_fence_survives_a_drone_restart() -> None:
+    """The notices owed are not kept by the store; the handover records are."""
+    seq = Sequencer([0, 1], initial_master=0)
+    serve(seq, 0, 1, 1)
+    seq.switch(1, "lost", now=1.0, takeover=True)
+    restarted = Sequencer([0, 1], initial_master=0)
+    restarted.resume(1, seq.handovers, (1, 1, 0, 0), [], [], [])
+    assert not restarted.pending
+    error = refused(restarted, 0, 1, 2)  # its Invoke of epoch 1
+    assert ("baton-takeover", "1") in error.metadata
+    with pytest.raises(StatusError) as fenced:
+        restarted.admit_connect(0, mastership_epoch=1)
+    assert ("baton-takeover", "1") in fenced.value.metadata

@@ -126,16 +126,26 @@ class ConnectRequest(_message.Message):
     DESCRIPTOR: _descriptor.Descriptor
 
     CONTROLLER_ID_FIELD_NUMBER: _builtins.int
+    MASTERSHIP_EPOCH_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The connecting controller's id; must be the current master."""
+    mastership_epoch: _builtins.int
+    """The epoch of the mastership whose log the controller holds (its latest:
+    granted by a Connected event or a handover message); 0 if it holds none
+    (never master, or started or rejoined with nothing since). If a takeover
+    gave that log up, the Connect is refused (FAILED_PRECONDITION with
+    `baton-takeover`), even if the controller is master again: it must
+    rejoin as a replica with nothing first.
+    """
     def __init__(
         self,
         *,
         controller_id: _builtins.int = ...,
+        mastership_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "mastership_epoch", b"mastership_epoch"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -72,9 +72,17 @@ class DroneSession:
     """One ACTIVE period's connection to the drone service."""
 
     def __init__(
-        self, controller_id: int, address: str, events: DroneEvents, log: BoundLogger
+        self,
+        controller_id: int,
+        address: str,
+        events: DroneEvents,
+        log: BoundLogger,
+        mastership_epoch: Callable[[], int] = lambda: 0,
     ) -> None:
         self.controller_id = controller_id
+        # Read at every (re)connect: the epoch of the mastership whose log the
+        # controller holds, which the drone fences if a takeover gave it up.
+        self._mastership_epoch = mastership_epoch
         self.address = address
         self._events_to = events
         self._log = log
@@ -95,7 +103,10 @@ class DroneSession:
         while True:
             try:
                 call = self._stub.Connect(
-                    drone_pb2.ConnectRequest(controller_id=self.controller_id),
+                    drone_pb2.ConnectRequest(
+                        controller_id=self.controller_id,
+                        mastership_epoch=self._mastership_epoch(),
+                    ),
                     wait_for_ready=True,
                 )
                 async for event in call:

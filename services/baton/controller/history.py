@@ -12,12 +12,15 @@ restarted after a crash recovers what it had from it (``recover``) before
 its predecessor gives it the rest. Without one, the file is a temporary one
 that is unlinked as soon as it is open: it goes with the process.
 
-The format (for ``baton replay`` and the mission report): one table
+The format (for ``baton replay`` and the mission report): a table
 ``messages(lognr INTEGER PRIMARY KEY, message BLOB)``, each row a serialized
 ``baton.v1.LogMessage`` (ring.proto) as the ring carried it, with its
 ``handover`` flag cleared: history re-sent to a restarted controller never
 makes it master; only the drone's grant or a handover message still owed to
-it does. WAL journal, ``synchronous=NORMAL``: a kill -9 loses nothing
+it does; and a table ``meta(key, value)`` with ``mastership_epoch``, the
+epoch of the mastership whose log the file holds (what the controller tells
+the drone on Connect, to be fenced if a takeover gave that log up). WAL
+journal, ``synchronous=NORMAL``: a kill -9 loses nothing
 written; a power cut may lose the last messages, which the ring gives again.
 """
 
@@ -33,6 +36,9 @@ from baton.controller.protocol import SeenNumbers
 from baton.v1 import ring_pb2
 
 SCHEMA = "CREATE TABLE IF NOT EXISTS messages (lognr INTEGER PRIMARY KEY, message BLOB NOT NULL)"
+# What the controller must know about its log beyond the messages, by name:
+# ``mastership_epoch``, the epoch of the mastership whose log it holds.
+META_SCHEMA = "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL)"
 
 
 class LogHistory:
@@ -49,6 +55,7 @@ class LogHistory:
                 self._db.execute("PRAGMA journal_mode=MEMORY")
                 self._db.execute("PRAGMA synchronous=OFF")
                 self._db.execute(SCHEMA)
+                self._db.execute(META_SCHEMA)
                 os.unlink(temporary)
             else:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -56,7 +63,12 @@ class LogHistory:
                 self._db.execute("PRAGMA journal_mode=WAL")
                 self._db.execute("PRAGMA synchronous=NORMAL")
                 self._db.execute(SCHEMA)
+                self._db.execute(META_SCHEMA)
             self._lognrs = {n for (n,) in self._db.execute("SELECT lognr FROM messages")}
+            row = self._db.execute(
+                "SELECT value FROM meta WHERE key = 'mastership_epoch'"
+            ).fetchone()
+            self._mastership_epoch = int(row[0]) if row else 0
         except (OSError, sqlite3.Error) as exc:
             raise OSError(
                 f"controller log file {self.path} (--log-file): {exc}; give a writable path"
@@ -72,8 +84,30 @@ class LogHistory:
     def clear(self) -> None:
         """Forgets every message (a controller fenced by a takeover rejoins with nothing)."""
         self._db.execute("DELETE FROM messages")
+        self._db.execute("DELETE FROM meta")
         self._lognrs.clear()
         self._held = SeenNumbers()
+        self._mastership_epoch = 0
+
+    @property
+    def mastership_epoch(self) -> int:
+        """The epoch of the mastership whose log this history holds (0: none).
+
+        Kept with the messages and cleared with them, so that a controller
+        restarted from its file still tells the drone (ConnectRequest) that
+        it holds the log of a mastership the drone may have given up by
+        takeover meanwhile, and is made to rejoin with nothing.
+        """
+        return self._mastership_epoch
+
+    def keep_mastership_epoch(self, epoch: int) -> None:
+        """Records ``epoch`` as the mastership whose log this history holds."""
+        if epoch == self._mastership_epoch:
+            return
+        self._db.execute(
+            "INSERT OR REPLACE INTO meta (key, value) VALUES ('mastership_epoch', ?)", (epoch,)
+        )
+        self._mastership_epoch = epoch
 
     def __contains__(self, lognr: object) -> bool:
         return lognr in self._lognrs

@@ -243,6 +243,9 @@ class ControllerNode:
         stream opens, and is given that from the history.
         """
         lognrs = list(self.history.above(0))
+        # The mastership whose log the file holds: told on Connect, so that the
+        # drone fences it if a takeover gave that log up while we were down.
+        self.protocol.epoch = self.history.mastership_epoch
         for lognr in lognrs:
             try:
                 self.protocol.on_log(self.history.get(lognr))
@@ -544,6 +547,9 @@ class ControllerNode:
                     )
                 )
                 self.log.info("taking over as master", old_master=effect.old_master)
+        # The mastership whose log we hold, kept with the log: a restart from the
+        # file tells it on Connect like this process does (fenced if taken over).
+        self.history.keep_mastership_epoch(self.protocol.epoch)
         self._notify()
 
     def _notify(self) -> None:
@@ -555,7 +561,9 @@ class ControllerNode:
             return
         address = self.config.drone_address_for(self.id)
         events = _SessionEvents(self)
-        self._drone = DroneSession(self.id, address, events, self.log)
+        self._drone = DroneSession(
+            self.id, address, events, self.log, lambda: self.protocol.epoch
+        )
         events.session = self._drone
         self._drone.open()
         self.log.info("connecting to the drone", drone=address)

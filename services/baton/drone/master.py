@@ -101,9 +101,10 @@ class MasterStreams:
         """Whether ``controller_id`` holds a Connect stream now."""
         return controller_id in self._streams
 
-    def attach(self, controller_id: int) -> MasterStream:
-        """Opens a Connect stream for the master, or for an old master owed a notice."""
-        self._sequencer.may_connect(controller_id)
+    def attach(self, controller_id: int, mastership_epoch: int = 0) -> MasterStream:
+        """Opens a Connect stream for the master, or for an old master owed a notice
+        (``Sequencer.admit_connect``: refused to one holding a log taken over)."""
+        self._sequencer.admit_connect(controller_id, mastership_epoch)
         previous = self._streams.get(controller_id)
         if previous is not None:
             # The controller reconnected (its old stream is likely dead): the

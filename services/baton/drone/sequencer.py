@@ -129,29 +129,57 @@ class Sequencer:
                 f"unknown controller id {controller_id}; known ids: {self.controllers}",
             )
 
-    def where_we_are(self, controller_id: int | None = None) -> tuple[tuple[str, str], ...]:
+    def where_we_are(
+        self, controller_id: int | None = None, mastership_epoch: int = 0
+    ) -> tuple[tuple[str, str], ...]:
         """The trailing metadata of a refusal: master, epoch, last request served.
 
-        ``baton-takeover`` tells a controller that the mastership it lost was
-        taken over (its log is not wanted; it rejoins as a replica).
+        ``baton-takeover`` tells a controller that the mastership whose log
+        it holds (``mastership_epoch``: the epoch its request or Connect
+        carries) was taken over: its log is not wanted; it rejoins as a
+        replica with nothing (``taken_over_since``).
         """
         where: tuple[tuple[str, str], ...] = (
             ("baton-master", str(self.master)),
             ("baton-epoch", str(self.epoch)),
             ("baton-after-reqnr", str(self.last_reqnr)),
         )
-        notice = self.pending.get(controller_id) if controller_id is not None else None
-        if notice is not None and notice.takeover:
+        if controller_id is not None and self.taken_over_since(controller_id, mastership_epoch):
             where += (("baton-takeover", "1"),)
         return where
 
-    def not_master_error(self, controller_id: int, what: str) -> StatusError:
+    def taken_over_since(
+        self, controller_id: int, mastership_epoch: int
+    ) -> drone_pb2.HandoverRecord | None:
+        """The takeover that gave up ``controller_id``'s log after its mastership in
+        ``mastership_epoch``, if any (0: it holds the log of no mastership).
+
+        The taker framed the replies that log holds in log messages of its
+        own, so a controller still holding it must not act on it, as master
+        or as a replica, even if the role has come back to it since (a
+        takeover, then a handover back): it rejoins as a replica with
+        nothing first (fenced; docs/design.md, "Takeover"). Decided from the
+        handover records, which the store keeps, and the controller's word,
+        so neither a drone restart (the notices owed are not kept) nor a
+        controller restart (its history file keeps the epoch) loses it.
+        """
+        if mastership_epoch <= 0:
+            return None
+        for record in self.handovers[max(0, mastership_epoch - 1) :]:
+            # handovers[i] granted epoch i + 2: these ended ``mastership_epoch`` or later.
+            if record.kind == "takeover" and record.old_master == controller_id:
+                return record
+        return None
+
+    def not_master_error(
+        self, controller_id: int, what: str, mastership_epoch: int = 0
+    ) -> StatusError:
         """The FAILED_PRECONDITION a non-master gets, naming the master."""
         return StatusError(
             grpc.StatusCode.FAILED_PRECONDITION,
             f"{what} refused: controller {controller_id} is not the master; the master is "
             f"controller {self.master} (epoch {self.epoch}, last reqnr served {self.last_reqnr})",
-            metadata=self.where_we_are(controller_id),
+            metadata=self.where_we_are(controller_id, mastership_epoch),
         )
 
     # -- a request arrives ---------------------------------------------------------
@@ -177,7 +205,7 @@ class Sequencer:
         """
         what = f"Invoke reqnr {reqnr} epoch {epoch}"
         if controller_id != self.master:
-            raise self.not_master_error(controller_id, what)
+            raise self.not_master_error(controller_id, what, epoch)
         if epoch == 0 or epoch > self.epoch:
             raise StatusError(
                 grpc.StatusCode.INVALID_ARGUMENT,
@@ -382,7 +410,11 @@ class Sequencer:
         )
         self.handovers.append(record)
         self.master = new_master
-        # A master that got the role back no longer needs the notice of losing it.
+        # A master that got the role back no longer needs the notice of losing it:
+        # after a cooperative switch its log never left it, so nobody acted without
+        # it. One whose mastership was taken over meanwhile must still rejoin with
+        # nothing: its Connect says which mastership's log it holds, and is refused
+        # with ``baton-takeover`` (``admit_connect``).
         self.pending.pop(new_master, None)
         self.pending[old] = drone_pb2.HandoverNotice(
             old_master=old,
@@ -450,11 +482,34 @@ class Sequencer:
             return TakeoverDue(self.master, last.old_master, old_seen)
         return None
 
-    def may_connect(self, controller_id: int) -> None:
-        """Raises unless ``controller_id`` may hold a Connect stream (master, or owed a notice)."""
+    def admit_connect(self, controller_id: int, mastership_epoch: int = 0) -> None:
+        """Raises unless ``controller_id`` may hold a Connect stream (master, or owed a notice).
+
+        ``mastership_epoch`` is the epoch of the mastership whose log the
+        controller holds (ConnectRequest; 0: none). If a takeover gave that
+        log up, the Connect is refused with ``baton-takeover`` (it rejoins
+        as a replica with nothing, then connects again), whoever is master
+        now (``taken_over_since``). A takeover notice owed to a controller
+        that holds no such log is moot (it restarted or rejoined with
+        nothing since): it is dropped, not delivered, so it does not make
+        the controller rejoin twice.
+        """
         self.check_known(controller_id)
+        lost = self.taken_over_since(controller_id, mastership_epoch)
+        if lost is not None:
+            raise StatusError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"Connect refused: controller {controller_id} holds the log of its mastership "
+                f"in epoch {mastership_epoch}, which controller {lost.new_master} took over in "
+                f"epoch {lost.epoch}; it rejoins as a replica with nothing, then connects again "
+                f"(the master is controller {self.master}, epoch {self.epoch})",
+                metadata=self.where_we_are(controller_id, mastership_epoch),
+            )
+        notice = self.pending.get(controller_id)
+        if notice is not None and notice.takeover:
+            del self.pending[controller_id]
         if controller_id != self.master and controller_id not in self.pending:
-            raise self.not_master_error(controller_id, "Connect")
+            raise self.not_master_error(controller_id, "Connect", mastership_epoch)
 
     def delivered(self, controller_id: int, notice: drone_pb2.HandoverNotice) -> None:
         """The notice reached its old master; it is no longer owed."""

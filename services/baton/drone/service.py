@@ -490,7 +490,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """The master's event stream: Connected, then a HandoverNotice at the switch."""
         cid = request.controller_id
         try:
-            stream = self.streams.attach(cid)
+            stream = self.streams.attach(cid, request.mastership_epoch)
         except StatusError as err:
             self.log.warning("connect rejected", controller=cid, reason=err.message)
             await abort_with(context, err)

@@ -312,7 +312,17 @@ class SimController:
             link.when_usable(self._channel_ready, session)
             return
         session.stream = link.generation
-        link.to_drone(0, self.world.drone.receive_connect, link, session.sid, link.generation)
+        # ConnectRequest.mastership_epoch, read at every (re)connect as DroneSession does.
+        # (node.py keeps it in the history file for a restart from the file; a
+        # simulated restart has nothing, so 0.)
+        link.to_drone(
+            0,
+            self.world.drone.receive_connect,
+            link,
+            session.sid,
+            link.generation,
+            self.protocol.epoch,
+        )
 
     def _channel_ready(self, session: Session) -> None:
         session.waiting = False

@@ -3,7 +3,7 @@
 ``SimDrone`` mirrors ``drone/service.py``'s ``DroneService``: one line of
 execution (its lock: requests and Handover calls are taken in arrival
 order, one at a time), every decision asked of the pure ``Sequencer``
-(``admit``, ``served``, ``switch``, ``may_connect``), the request's intent
+(``admit``, ``served``, ``switch``, ``admit_connect``), the request's intent
 kept while it executes, Connect streams that carry the Connected grant
 and the handover notice, and a restart that resumes from the durable
 state exactly as ``DroneService._restore`` does (the reply cache, the
@@ -466,11 +466,13 @@ class SimDrone:
         self.seq.delivered(cid, notice)
         del self.streams[cid]
 
-    def receive_connect(self, link: DroneLink, session: int, connection: int) -> None:
+    def receive_connect(
+        self, link: DroneLink, session: int, connection: int, mastership_epoch: int = 0
+    ) -> None:
         """DroneService.Connect: refused, or attached; Connected for the master; a notice owed."""
         cid = link.owner.id
         try:
-            self.seq.may_connect(cid)
+            self.seq.admit_connect(cid, mastership_epoch)
         except StatusError as err:
             link.to_controller(
                 connection, 0, link.owner.on_drone_refused, session, err, stream=True
