@@ -136,6 +136,25 @@ async def test_successor_restart_loses_nothing(tmp_path) -> None:  # type: ignor
         history.close()
 
 
+async def test_a_log_number_sent_again_is_written_again_and_acknowledged() -> None:
+    """A former master given the role back by takeover sends its handover message on,
+    maybe on the stream that carried it (protocol.py ``_resend_handed``): it was kept
+    unacknowledged for good when the stream had written that number already."""
+    server, receiver = await start_receiver("127.0.0.1:0")
+    link = PeerLink(0, 1, server.address, LOG)
+    try:
+        handover = ring_pb2.LogMessage(lognr=1, origin=1, handover=True)
+        link.send(handover)
+        await wait_for(lambda: link.unacked == 0 and receiver.messages)
+        arrivals = link.counters.acked
+        link.send(ring_pb2.LogMessage(lognr=1, origin=1))
+        await wait_for(lambda: link.unacked == 0 and link.counters.acked > arrivals, timeout=5)
+        assert link.counters.connects == 1
+    finally:
+        await link.stop()
+        await server.stop(0)
+
+
 def test_a_frame_claiming_more_than_the_limit_is_refused_before_buffering() -> None:
     """Issue 9, defect 8: the reassembler accepted a frame that claimed any total size."""
     r = Reassembler(max_bytes=1000)

@@ -561,9 +561,7 @@ class ControllerNode:
             return
         address = self.config.drone_address_for(self.id)
         events = _SessionEvents(self)
-        self._drone = DroneSession(
-            self.id, address, events, self.log, lambda: self.protocol.epoch
-        )
+        self._drone = DroneSession(self.id, address, events, self.log, lambda: self.protocol.epoch)
         events.session = self._drone
         self._drone.open()
         self.log.info("connecting to the drone", drone=address)

@@ -124,6 +124,8 @@ class PeerLink:
         self._log = log.bind(peer=peer_id)
         self._history = history
         self._unacked: dict[int, ring_pb2.LogMessage] = {}
+        # Written on the current stream (a new stream writes every unacked one).
+        self._sent: set[int] = set()
         self._wakeup = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self.stream_up = False
@@ -145,8 +147,14 @@ class PeerLink:
             self._task = None
 
     def send(self, message: ring_pb2.LogMessage) -> None:
-        """Queues ``message`` for the peer."""
+        """Queues ``message`` for the peer.
+
+        A log number sent before is written again (a former master sends its
+        handover message on after a takeover, protocol.py ``_resend_handed``):
+        the receiver ignores a duplicate by log number and acknowledges it.
+        """
         self._unacked[message.lognr] = message
+        self._sent.discard(message.lognr)
         self._wakeup.set()
         self.start()
 
@@ -231,7 +239,8 @@ class PeerLink:
                     for lognr in history.above(hello.lognr):
                         if lognr not in self._unacked:
                             await self._write(call, history.get(lognr))
-                sent: set[int] = set()
+                self._sent = set()
+                sent = self._sent
                 while True:
                     # Cleared before looking, so a wake-up during a write is not lost.
                     self._wakeup.clear()
@@ -254,7 +263,10 @@ class PeerLink:
                             raise ConnectionError(f"peer {self.peer_id} closed the ring stream")
                         continue
                     for lognr in pending:
-                        await self._write(call, self._unacked[lognr])
+                        message = self._unacked.get(lognr)
+                        if message is None:
+                            continue  # acknowledged meanwhile (an earlier write of it)
+                        await self._write(call, message)
                         sent.add(lognr)
             finally:
                 acks.cancel()

@@ -168,7 +168,7 @@ class RingLink:
         """PeerLink.send: kept until acknowledged; written at once if the stream is up."""
         self.unacked[message.lognr] = message
         self.peak_unacked = max(self.peak_unacked, len(self.unacked))
-        if self.up and message.lognr not in self._sent:
+        if self.up:  # written again if sent before (PeerLink.send)
             self._sent.add(message.lognr)
             self._write(message)
         self.start()
