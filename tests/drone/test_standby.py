@@ -60,9 +60,10 @@ def clock_reply(reqnr: int, method: str = NOW, seconds: float = 1.0) -> drone_pb
     )
 
 
-async def test_the_takeover_carries_every_retained_reply_with_the_clock_reads_sent_along() -> None:
+async def test_a_taker_connects_and_gets_the_retained_replies_above_what_it_holds() -> None:
     """F12: a lost master's Clock.Now, sent along with its next Invoke, reaches the taker
-    with the drone's own replies above the watermark, so it reads the same time."""
+    with the drone's own replies above the watermark, so it reads the same time; only
+    those above what the taker holds (its Connect says), so the link carries no more."""
     drone, server = await start_drone()
     try:
         first = drone_pb2.InvokeRequest(controller_id=0, reqnr=1, method=POSITION, epoch=1)
@@ -77,10 +78,15 @@ async def test_the_takeover_carries_every_retained_reply_with_the_clock_reads_se
         await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
         take_over = (await standby.read()).take_over
         standby.cancel()
-        assert [r.reqnr for r in take_over.retained] == [1, 2, 3]
-        assert take_over.retained[1] == read
-        assert take_over.retained[2].reply == position.payload
-        assert take_over.retained[2].request_digest == request_digest(POSITION, b"")
+        assert (take_over.old_master, take_over.epoch, take_over.after_reqnr) == (0, 2, 3)
+        connect = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=1, holds_reqnr=1))
+        connected = (await connect.read()).connected
+        connect.cancel()
+        assert connected.epoch == 2
+        assert [r.reqnr for r in connected.retained] == [2, 3]
+        assert connected.retained[0] == read
+        assert connected.retained[1].reply == position.payload
+        assert connected.retained[1].request_digest == request_digest(POSITION, b"")
     finally:
         await server.stop()
 

@@ -127,6 +127,7 @@ class ConnectRequest(_message.Message):
 
     CONTROLLER_ID_FIELD_NUMBER: _builtins.int
     MASTERSHIP_EPOCH_FIELD_NUMBER: _builtins.int
+    HOLDS_REQNR_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The connecting controller's id; must be the current master."""
     mastership_epoch: _builtins.int
@@ -137,15 +138,20 @@ class ConnectRequest(_message.Message):
     `baton-takeover`), even if the controller is master again: it must
     rejoin as a replica with nothing first.
     """
+    holds_reqnr: _builtins.int
+    """The highest request number whose reply the controller holds (in its
+    log). The Connected event carries every reply the drone retains above it.
+    """
     def __init__(
         self,
         *,
         controller_id: _builtins.int = ...,
         mastership_epoch: _builtins.int = ...,
+        holds_reqnr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "mastership_epoch", b"mastership_epoch"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "holds_reqnr", b"holds_reqnr", "mastership_epoch", b"mastership_epoch"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -192,6 +198,7 @@ class Connected(_message.Message):
     MASTER_FIELD_NUMBER: _builtins.int
     LAST_REQNR_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
+    RETAINED_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The master as the drone sees it (the caller)."""
     last_reqnr: _builtins.int
@@ -200,16 +207,27 @@ class Connected(_message.Message):
     """The epoch of this mastership: every Invoke of this stream's controller
     carries it until the drone switches masters.
     """
+    @_builtins.property
+    def retained(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
+        """Every reply the drone retains above the watermark and above what the
+        controller holds (ConnectRequest.holds_reqnr), oldest first: after a
+        takeover, the lost master's tail (drone calls, and the calls it answered
+        itself and sent along); after a handover, the reply in flight. The
+        master answers its program from them (digest-checked) instead of
+        re-sending each request (docs/design.md, "Takeover").
+        """
+
     def __init__(
         self,
         *,
         master: _builtins.int = ...,
         last_reqnr: _builtins.int = ...,
         epoch: _builtins.int = ...,
+        retained: _abc.Iterable[Global___RetainedReply] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master", "retained", b"retained"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -351,7 +369,6 @@ class TakeOver(_message.Message):
     EPOCH_FIELD_NUMBER: _builtins.int
     AFTER_REQNR_FIELD_NUMBER: _builtins.int
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
-    RETAINED_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """The master that was lost."""
     epoch: _builtins.int
@@ -360,14 +377,6 @@ class TakeOver(_message.Message):
     """The last request number the drone served."""
     watermark_reqnr: _builtins.int
     """The replication watermark then: the drone holds every reply above it."""
-    @_builtins.property
-    def retained(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
-        """Every reply the drone retained above the watermark, oldest first: the
-        lost master's tail, drone calls and the Clock calls it sent along. The
-        taker answers its program from them (digest-checked) instead of
-        re-sending each request (docs/design.md, "Takeover").
-        """
-
     def __init__(
         self,
         *,
@@ -375,11 +384,10 @@ class TakeOver(_message.Message):
         epoch: _builtins.int = ...,
         after_reqnr: _builtins.int = ...,
         watermark_reqnr: _builtins.int = ...,
-        retained: _abc.Iterable[Global___RetainedReply] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "epoch", b"epoch", "old_master", b"old_master", "retained", b"retained", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "epoch", b"epoch", "old_master", b"old_master", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -8,9 +8,9 @@ drone's takeover record and audit:
 
 - detection: the kill to the drone's decision (the takeover time);
 - catch-up: the decision to the new master's first *new* request (a request
-  number the drone had not served), less T_conn: the standby event, the
-  replay of what the new master holds, and the re-sent requests the drone
-  answers from its retained replies;
+  number the drone had not served), less T_conn: the TakeOver on the standby
+  stream with the replies the drone retained, the replay of what the new
+  master holds, and its program answered from those replies;
 - T_conn: the new master's Connect set-up;
 - the physical limit of what was missing: the drone link's latency plus
   the reply bytes the new master lacked (above what it held) over the

@@ -58,8 +58,9 @@ def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
 class DroneEvents(Protocol):
     """What a session tells its controller."""
 
-    def granted(self, epoch: int) -> None:
-        """Connected: the drone holds this controller as master in ``epoch``."""
+    def granted(self, epoch: int, retained: Sequence[drone_pb2.RetainedReply]) -> None:
+        """Connected: the drone holds this controller as master in ``epoch``; the replies
+        it retains above what the controller holds."""
 
     def notice(self, notice: drone_pb2.HandoverNotice) -> None:
         """A handover notice on the stream (the stream then ends)."""
@@ -78,11 +79,13 @@ class DroneSession:
         events: DroneEvents,
         log: BoundLogger,
         mastership_epoch: Callable[[], int] = lambda: 0,
+        holds_reqnr: Callable[[], int] = lambda: 0,
     ) -> None:
         self.controller_id = controller_id
         # Read at every (re)connect: the epoch of the mastership whose log the
         # controller holds, which the drone fences if a takeover gave it up.
         self._mastership_epoch = mastership_epoch
+        self._holds_reqnr = holds_reqnr  # and the request number its log holds up to
         self.address = address
         self._events_to = events
         self._log = log
@@ -106,6 +109,7 @@ class DroneSession:
                     drone_pb2.ConnectRequest(
                         controller_id=self.controller_id,
                         mastership_epoch=self._mastership_epoch(),
+                        holds_reqnr=self._holds_reqnr(),
                     ),
                     wait_for_ready=True,
                 )
@@ -120,8 +124,9 @@ class DroneSession:
                             t_conn_ms=round((self.t_conn_s or 0) * 1000, 3),
                             drone_last_reqnr=event.connected.last_reqnr,
                             epoch=self.epoch,
+                            retained_replies=len(event.connected.retained),
                         )
-                        self._events_to.granted(self.epoch)
+                        self._events_to.granted(self.epoch, event.connected.retained)
                     elif event.HasField("handover"):
                         self._events_to.notice(event.handover)
                         return

@@ -16,7 +16,7 @@ import asyncio
 import hashlib
 import time
 from collections import deque
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -561,7 +561,14 @@ class ControllerNode:
             return
         address = self.config.drone_address_for(self.id)
         events = _SessionEvents(self)
-        self._drone = DroneSession(self.id, address, events, self.log, lambda: self.protocol.epoch)
+        self._drone = DroneSession(
+            self.id,
+            address,
+            events,
+            self.log,
+            mastership_epoch=lambda: self.protocol.epoch,
+            holds_reqnr=lambda: self.protocol.held_reqnr,
+        )
         events.session = self._drone
         self._drone.open()
         self.log.info("connecting to the drone", drone=address)
@@ -577,10 +584,22 @@ class ControllerNode:
 
     # -- events -----------------------------------------------------------------------
 
-    async def on_granted(self, session: DroneSession, epoch: int) -> None:
-        """The drone's Connected event: this controller is master in ``epoch``."""
+    async def on_granted(
+        self,
+        session: DroneSession,
+        epoch: int,
+        retained: Sequence[drone_pb2.RetainedReply] = (),
+    ) -> None:
+        """The drone's Connected event: this controller is master in ``epoch``.
+
+        ``retained`` are the replies the drone retains above what we hold: after
+        a takeover the lost master's tail, which ``_invoke`` answers the
+        program from instead of sending those requests again.
+        """
         if session is not self._drone:
             return  # a session closed meanwhile
+        held = self.protocol.held_reqnr
+        self._retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
         was_active = self.protocol.state is State.ACTIVE
         takeover = epoch == self._takeover_epoch
         effects = self.protocol.on_granted(epoch, takeover, self._takeover_watermark)
@@ -597,13 +616,11 @@ class ControllerNode:
         """The drone made us master by takeover (standby stream): connect to learn it.
 
         The old master's log will not come: what we lack above what we hold
-        came with the TakeOver, the replies the drone retained (``_invoke``
-        answers the program from them).
+        comes with the Connected event, the replies the drone retained.
         """
         p = self.protocol
         self._takeover_epoch = event.epoch
         self._takeover_watermark = event.watermark_reqnr
-        self._retained = {kept.reqnr: kept for kept in event.retained if kept.reqnr > p.held_reqnr}
         self.handovers.append(
             HandoverEvent("taker", event.old_master, p.lognr, p.reqnr, p.log.size)
         )
@@ -613,7 +630,6 @@ class ControllerNode:
             epoch=event.epoch,
             drone_after_reqnr=event.after_reqnr,
             watermark_reqnr=event.watermark_reqnr,
-            retained_replies=len(event.retained),
             holds_reqnr=p.held_reqnr,
         )
         # A session of an earlier mastership (or of the start-up question)
@@ -1134,9 +1150,9 @@ class _SessionEvents:
     def _run(self, event: Coroutine[Any, Any, None]) -> None:
         asyncio.get_running_loop().create_task(event)
 
-    def granted(self, epoch: int) -> None:
+    def granted(self, epoch: int, retained: Sequence[drone_pb2.RetainedReply]) -> None:
         assert self.session is not None
-        self._run(self._node.on_granted(self.session, epoch))
+        self._run(self._node.on_granted(self.session, epoch, retained))
 
     def notice(self, notice: drone_pb2.HandoverNotice) -> None:
         assert self.session is not None

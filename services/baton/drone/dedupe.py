@@ -142,9 +142,11 @@ class ReplyCache:
                 return  # retained: only the drone may have it
             del self._entries[oldest]
 
-    def retained_replies(self) -> list[CachedReply]:
-        """The replies above the watermark, oldest first: what a taker is given."""
-        return [entry for entry in self._entries.values() if entry.reqnr > self.watermark]
+    def retained_replies(self, above: int = 0) -> list[CachedReply]:
+        """The replies above the watermark (and ``above``), oldest first: what a master
+        that holds up to ``above`` is given on Connect."""
+        floor = max(self.watermark, above)
+        return [entry for entry in self._entries.values() if entry.reqnr > floor]
 
     @property
     def retained(self) -> tuple[int, int]:

@@ -210,15 +210,13 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         return record
 
     def _take_over_event(self, record: drone_pb2.HandoverRecord) -> drone_pb2.StandbyEvent:
-        """The TakeOver, with every reply retained: the taker's catch-up in one message."""
-        cache = self.seq.cache
+        """The TakeOver (small: the replies the taker lacks come with its Connected)."""
         return drone_pb2.StandbyEvent(
             take_over=drone_pb2.TakeOver(
                 old_master=record.old_master,
                 epoch=record.epoch,
                 after_reqnr=record.after_reqnr,
-                watermark_reqnr=cache.watermark,
-                retained=[reply.to_proto() for reply in cache.retained_replies()],
+                watermark_reqnr=self.seq.cache.watermark,
             )
         )
 
@@ -497,9 +495,13 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.log.info("master connected", controller=cid)
         try:
             if cid == self.seq.master:
+                retained = self.seq.cache.retained_replies(above=request.holds_reqnr)
                 yield drone_pb2.DroneEvent(
                     connected=drone_pb2.Connected(
-                        master=cid, last_reqnr=self.seq.last_reqnr, epoch=self.seq.epoch
+                        master=cid,
+                        last_reqnr=self.seq.last_reqnr,
+                        epoch=self.seq.epoch,
+                        retained=[reply.to_proto() for reply in retained],
                     )
                 )
             while True:

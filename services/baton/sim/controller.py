@@ -322,6 +322,7 @@ class SimController:
             session.sid,
             link.generation,
             self.protocol.epoch,
+            self.protocol.held_reqnr,
         )
 
     def _channel_ready(self, session: Session) -> None:
@@ -333,14 +334,16 @@ class SimController:
         self.world.loop.after(session.backoff, self._connect, session)
         session.backoff = min(session.backoff * 2, SESSION_BACKOFF_MAX_S)
 
-    def on_drone_connected(self, sid: int, epoch: int) -> None:
+    def on_drone_connected(
+        self, sid: int, epoch: int, retained: list[drone_pb2.RetainedReply]
+    ) -> None:
         """The Connected event: the session's epoch, then node.py's on_granted."""
         session = self.session
         if session is None or session.sid != sid:
             return
         session.epoch, session.connected = epoch, True
         self._startup_answer()
-        self.on_granted(epoch)
+        self.on_granted(epoch, retained)
 
     def on_drone_notice(
         self, sid: int, new_master: int, after_reqnr: int, epoch: int, takeover: bool
@@ -391,8 +394,11 @@ class SimController:
 
     # -- events (ControllerNode.on_*) ---------------------------------------------
 
-    def on_granted(self, epoch: int) -> None:
-        """ControllerNode.on_granted: a takeover if the epoch is the one on_take_over noted."""
+    def on_granted(self, epoch: int, retained: list[drone_pb2.RetainedReply]) -> None:
+        """ControllerNode.on_granted: a takeover if the epoch is the one on_take_over noted;
+        the replies the drone retains above what we hold, to answer the program from."""
+        held = self.protocol.held_reqnr
+        self.retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
         try:
             effects = self.protocol.on_granted(
                 epoch, epoch == self.takeover_epoch, self.takeover_watermark
@@ -433,22 +439,14 @@ class SimController:
             return
         self._close_drone()
 
-    def on_take_over(
-        self,
-        old_master: int,
-        epoch: int,
-        watermark_reqnr: int,
-        retained: list[drone_pb2.RetainedReply],
-    ) -> None:
-        """ControllerNode.on_take_over (the standby stream's TakeOver): keep the retained
-        replies, connect again to learn the epoch; on_granted then goes ACTIVE on what
-        this controller holds."""
+    def on_take_over(self, old_master: int, epoch: int, watermark_reqnr: int) -> None:
+        """ControllerNode.on_take_over (the standby stream's TakeOver): connect again to
+        learn the epoch (and get the retained replies); on_granted then goes ACTIVE on
+        what this controller holds."""
         if not self.alive:
             return
         self.takeover_epoch = epoch
         self.takeover_watermark = watermark_reqnr
-        held = self.protocol.held_reqnr
-        self.retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
         self.world.trace(f"controller {self.id} takes over from lost {old_master} (epoch {epoch})")
         self._close_drone()
         self._open_drone()

@@ -467,7 +467,12 @@ class SimDrone:
         del self.streams[cid]
 
     def receive_connect(
-        self, link: DroneLink, session: int, connection: int, mastership_epoch: int = 0
+        self,
+        link: DroneLink,
+        session: int,
+        connection: int,
+        mastership_epoch: int = 0,
+        holds_reqnr: int = 0,
     ) -> None:
         """DroneService.Connect: refused, or attached; Connected for the master; a notice owed."""
         cid = link.owner.id
@@ -488,9 +493,16 @@ class SimDrone:
                 stream=True,
             )
         self.streams[cid] = Stream(cid, session, link, connection)
-        if cid == self.seq.master:
+        if cid == self.seq.master:  # Connected, with the replies retained above its holds
+            retained = [r.to_proto() for r in self.seq.cache.retained_replies(above=holds_reqnr)]
             link.to_controller(
-                connection, 0, link.owner.on_drone_connected, session, self.seq.epoch, stream=True
+                connection,
+                sum(len(reply.reply) for reply in retained),
+                link.owner.on_drone_connected,
+                session,
+                self.seq.epoch,
+                retained,
+                stream=True,
             )
         self._wake(cid)
 
@@ -653,19 +665,17 @@ class SimDrone:
 
     def _tell_take_over(self, record: drone_pb2.HandoverRecord) -> None:
         """StandbyStreams.tell of DroneService._take_over_event, on the taker's newest
-        stream if it holds one: the TakeOver with every reply retained."""
+        stream if it holds one (the retained replies come with its Connected)."""
         link = self.world.controller(record.new_master).drone_link
         if not link.usable():
             return
-        retained = [reply.to_proto() for reply in self.seq.cache.retained_replies()]
         link.to_controller(
             link.generation,
-            sum(len(reply.reply) for reply in retained),
+            0,
             link.owner.on_take_over,
             record.old_master,
             record.epoch,
             self.seq.cache.watermark,
-            retained,
             stream=True,
         )
 
