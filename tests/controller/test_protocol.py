@@ -366,6 +366,22 @@ def test_a_taker_holding_less_than_the_drones_watermark_waits_for_the_ring() -> 
     assert (taker.state, taker.reqnr) == (State.ACTIVE, 2)
 
 
+def test_a_fenced_masters_message_numbered_like_one_held_is_dropped_not_kept() -> None:
+    """The taker's message 2 (epoch 2) is held; the fenced master, cut off, flushed its
+    own 2 in epoch 1 (a give-up). That one is not the ring's: Fenced, not forwarded (a
+    history that kept it would give it to a replica catching up: --lose-master seed 757)."""
+    replica = ControllerProtocol(2, [0, 1, 2], 0)
+    replica.start()
+    ours = message(1, 1, [1])
+    ours.epoch = 2
+    replica.on_log(ours)
+    replay_all(replica)
+    stale = message(1, 0, [1])
+    stale.epoch = 1
+    effects = replica.on_log(stale)
+    assert [type(e).__name__ for e in effects] == ["Fenced"] and not sends(effects)
+
+
 def test_a_fenced_masters_late_messages_are_dropped_by_the_taker() -> None:
     taker = ControllerProtocol(1, [0, 1, 2], 0)
     taker.start()

@@ -256,3 +256,21 @@ def test_the_fence_survives_a_drone_restart() -> None:
     with pytest.raises(StatusError) as fenced:
         restarted.admit_connect(0, mastership_epoch=1)
     assert ("baton-takeover", "1") in fenced.value.metadata
+
+
+def test_calls_the_master_answered_sent_again_are_taken_once() -> None:
+    """The master gave up on request 2, whose Invoke carried its Sleep 1: not knowing
+    whether the drone got them, it sends both again with request 3. The drone holds
+    them already: request 3 is admitted (it was refused INVALID_ARGUMENT: the program
+    saw a failure for a TakePicture; --lose-master seed 56) and nothing is kept twice."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    sleep = CachedReply(1, "/baton.v1.Clock/Sleep", b"s", b"")
+    assert seq.admit(0, 1, 2, GET, DIGEST, clock=[sleep]) is None
+    seq.served(0, 2, GET, DIGEST, b"r2", 2.0, now=2.0, clock=[sleep])
+    gave_up = CachedReply(
+        2, GET, DIGEST, b"", StatusError(grpc.StatusCode.CANCELLED, "gave up", (GIVEN_UP,))
+    )
+    assert seq.admit(0, 1, 3, GET, DIGEST, clock=[sleep, gave_up]) is None
+    served = seq.served(0, 3, GET, DIGEST, b"r3", 3.0, now=3.0, clock=[sleep, gave_up])
+    assert [kept.reqnr for kept in served.kept] == [2]  # the give-up replaced reply 2
+    assert seq.cache.reqnrs == [1, 2, 3]

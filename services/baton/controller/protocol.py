@@ -527,6 +527,13 @@ class ControllerProtocol:
             # framed the same replies in messages of its own. The ring's is
             # the taker's; our state past that number is not.
             return [Diverged(message.lognr, ours, message.epoch)]
+        if ours and 0 < message.epoch < ours:
+            # The same number from an older epoch: the other framing, by a master
+            # a takeover replaced (cut off from the drone, it flushed on, e.g. a
+            # give-up). Not the ring's: neither held nor forwarded, and not our
+            # handover message coming back (a history that kept it would give it
+            # to a replica that catches up from us: --lose-master seed 757).
+            return [Fenced(message.lognr, message.origin, message.epoch)]
         if message.lognr in self._received:
             return []
         if self.state is State.ACTIVE and message.lognr > self.lognr and message.epoch < self.epoch:

@@ -69,6 +69,8 @@ class Served:
     handover: drone_pb2.HandoverRecord | None = None
     # A script line that named the master itself (skipped, kept for the log).
     skipped: ScriptedHandover | None = None
+    # The calls the master answered itself kept before it (not those held already).
+    kept: tuple[CachedReply, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -264,6 +266,8 @@ class Sequencer:
         for kept in clock:
             if kept.reqnr == after == self.last_reqnr and self._given_up_here(kept):
                 continue  # its outcome is what the program saw: served again so
+            if kept.reqnr < self.last_reqnr and self._kept_already(kept):
+                continue  # sent along with an earlier request the master then gave up on
             if not after < kept.reqnr < reqnr:
                 raise StatusError(
                     grpc.StatusCode.INVALID_ARGUMENT,
@@ -274,6 +278,22 @@ class Sequencer:
                 )
             after = kept.reqnr
         return None
+
+    def _kept_already(self, kept: CachedReply) -> bool:
+        """A call the master answered, below the last request served, that we hold already
+        (or trimmed, at or below the watermark): the master sent it along with a request
+        whose give-up left it not knowing whether we got it, and sends it again."""
+        held = self.cache.get(kept.reqnr)
+        if held is None:
+            return kept.reqnr <= self.cache.watermark
+        return held.digest == kept.digest
+
+    def _fresh(self, kept: CachedReply) -> bool:
+        """Whether ``served`` keeps a call the master answered (``admit`` accepted it):
+        not one we hold already."""
+        return kept.reqnr > self.last_reqnr or (
+            kept.reqnr == self.last_reqnr and self._given_up_here(kept)
+        )
 
     def _given_up_here(self, kept: CachedReply) -> bool:
         """A give-up of the last request served, as the master's program saw it: the same
@@ -313,7 +333,8 @@ class Sequencer:
         when it was done (a scripted handover is decided then). ``clock``
         are the Clock replies ``admit`` accepted with it, kept before it.
         """
-        for kept in clock:
+        fresh = tuple(kept for kept in clock if self._fresh(kept))
+        for kept in fresh:
             self.cache.store(kept.reqnr, kept.method, kept.digest, kept.reply, kept.error)
         self.cache.store(reqnr, method, digest, reply, error)
         self.last_reqnr = reqnr
@@ -337,12 +358,13 @@ class Sequencer:
         # never reach the drone.
         due = [n for n in self.script if n <= reqnr]
         if not due:
-            return Served(entry, cached)
+            return Served(entry, cached, kept=fresh)
         scripted = self.script.pop(min(due))
         self.fired_script.append(min(due))
         if scripted.new_master == self.master:
-            return Served(entry, cached, skipped=scripted)
-        return Served(entry, cached, handover=self.switch(scripted.new_master, "script", now))
+            return Served(entry, cached, skipped=scripted, kept=fresh)
+        handover = self.switch(scripted.new_master, "script", now)
+        return Served(entry, cached, handover=handover, kept=fresh)
 
     # -- a restart ------------------------------------------------------------------
 

@@ -464,7 +464,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         if self.store is not None:
             self.store.served(
                 self._counters(),
-                [*clock, served.cached],
+                [*served.kept, served.cached],
                 served.audit,
                 self.seq.cache.reqnrs[0],
             )
