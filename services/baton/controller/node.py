@@ -274,10 +274,16 @@ class ControllerNode:
         """What holds now that would be a stall if it lasted (stalls.py)."""
         p = self.protocol
         holding = {}
-        if p.missing_lognr is not None:
+        missing = p.missing_lognr
+        if missing is not None and p.log_queue:
             holding["gap"] = (
-                f"log message {p.lognr + 1} missing while {len(p.log_queue)} later ones "
+                f"log message {missing} missing while {len(p.log_queue)} later ones "
                 f"are queued (up to {max(p.log_queue)})"
+            )
+        elif missing is not None:
+            holding["gap"] = (
+                f"our handover message {missing} has not come back round, though we "
+                f"handled up to {p.lognr}: our history lacks it"
             )
         drone = self._drone
         if drone is not None and not drone.connected.is_set():
@@ -396,9 +402,11 @@ class ControllerNode:
         gives its receiver only what the sender held when it opened: a
         controller restarted or rejoined with nothing whose predecessor gets
         the messages it once created (or its own predecessor's) only later
-        would wait for them for ever. Re-opened, the stream re-sends from the
-        history whatever is above what we hold. Again, twice as late each
-        time, if the gap stays (the message may be nowhere yet).
+        would wait for them for ever. The same for our own handover message
+        when we handled later ones without it coming back (``missing_lognr``):
+        our history would lack it for good. Re-opened, the stream re-sends from
+        the history whatever is above what we hold (``holds_lognr``). Again,
+        twice as late each time, if the gap stays (the message may be nowhere yet).
         """
         missing = self.protocol.missing_lognr
         now = time.monotonic()
@@ -414,7 +422,8 @@ class ControllerNode:
             return
         self._gap = (lognr, since, now + min(2 * (now - since), GAP_REPAIR_MAX_S))
         self.log.warning(
-            "log message missing while later ones are queued; predecessors re-send from our hello",
+            "log message missing while later ones are queued (or our handover message did "
+            "not come back); predecessors re-send from our hello",
             missing_lognr=lognr,
             missing_for_s=round(now - since, 3),
             queued=len(self.protocol.log_queue),

@@ -369,18 +369,30 @@ class ControllerProtocol:
         Our handover message, until it comes back round, is not held: it is
         not in the history we give our successor (the F7 fix), so a
         predecessor that re-sends from our hello (a stream re-opened, or
-        routed back to us) must give it to us (simulation finding F10).
+        routed back to us) must give it to us (simulation finding F10). Nor
+        is it once the ring went on past it (its new master handed the role
+        straight back to us, and that message overtook it): until it comes
+        back it is missing from our history, and a successor that rejoins
+        with nothing would never get it from us.
         """
-        lognr = self.lognr
-        if self._handed is not None and self._handed.lognr == lognr:
-            lognr -= 1
-        return max(lognr, self._received.upto)
+        return self._received.upto
 
     @property
     def missing_lognr(self) -> int | None:
-        """The next log number to handle while later ones are queued without it (a gap)."""
+        """The next log number to handle while later ones are queued without it (a gap),
+        or our own handover message, not come back though we handled later ones.
+
+        The second is a gap in our history, not in our log: a successor that
+        rejoins with nothing would never get that number from us. The ring
+        does not bring it back by itself when it went round while we were
+        routed around, or reached a predecessor only after its stream to us
+        opened (a history stream gives what the sender held then, and a
+        controller does not forward its own messages).
+        """
         if self.log_queue and (self.lognr + 1) not in self.log_queue:
             return self.lognr + 1
+        if self._received.upto + 1 < self.lognr:
+            return self._received.upto + 1
         return None
 
     @property
@@ -545,6 +557,22 @@ class ControllerProtocol:
             # that fenced master and do not know yet: it is the ring's, and
             # the drone will tell us.
             return [Fenced(message.lognr, message.origin, message.epoch)]
+        if (
+            self.state is State.ACTIVE
+            and message.lognr > self.lognr
+            and message.handover
+            and message.epoch == self.epoch
+        ):
+            # The handover message that made us master in this epoch, come
+            # after we went ACTIVE without it: we restarted with nothing and
+            # the drone granted us the role again; what our predecessor holds
+            # did not count it (its old master keeps it out of its history
+            # until it comes back), and the drone answers its requests again
+            # from the replies it retains. We frame them in messages of our
+            # own under these numbers, so this one is not the ring's: queued,
+            # it would never be handled, and forwarded, it would make every
+            # replica that got it diverge from our message of that number.
+            return [Fenced(message.lognr, message.sender, message.epoch)]
         if self._handed is not None and message.lognr >= self._handed.lognr:
             self._handed = None  # it came back, or the ring went on past it
         self._received.add(message.lognr)
