@@ -66,7 +66,7 @@ def parser() -> argparse.ArgumentParser:
         "--takeover-after",
         type=float,
         default=None,
-        help="the drone's takeover and the ring's detection time in seconds (default: off, "
+        help="the drone's takeover and the ring's detection time in seconds (default: 3, "
         "or drawn with --lose-master)",
     )
     p.add_argument(

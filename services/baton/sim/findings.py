@@ -40,7 +40,10 @@ predecessors re-send from its hello. The kill keep-out in faults.py
 
 F10 (an old master routed around while its own handover message went
 round never got it back: its hello counted it) was fixed in protocol.py
-``holds_lognr``: the handover message is not held until it comes back.
+``holds_lognr``: the handover message is not held until it comes back,
+even once the ring went on past it (the role handed straight back: the
+direct message overtook it), and ``missing_lognr`` has the predecessors
+re-send it if it does not come by itself (--lose-master [bounded] seeds).
 
 F11 (a handover message sent only to a new master that was then lost, the
 role taken back by its old master: nobody else ever got its log number) was
