@@ -91,7 +91,8 @@ def plot_worst_case(rows: Sequence[dict[str, Any]], path: Path) -> None:
 
 
 def plot_failover(runs: Sequence[dict[str, Any]], detection_s: float, path: Path) -> None:
-    """Per kill: detection, catch-up and T_conn stacked, and the physical limit above detection."""
+    """Per kill: detection, connect (with the missing replies) and catch-up stacked, and the
+    physical limit above detection."""
     measured = [r for r in runs if "total_s" in r]
     fig, ax = plt.subplots(figsize=(10, 4.5))
     labels = [
@@ -99,16 +100,18 @@ def plot_failover(runs: Sequence[dict[str, Any]], detection_s: float, path: Path
     ]
     x = range(len(measured))
     detection = [r["detection_s"] for r in measured]
+    connect = [r["connect_s"] for r in measured]
     catch_up = [r["catch_up_s"] for r in measured]
-    t_conn = [r["t_conn_s"] for r in measured]
     ax.bar(x, detection, color="tab:gray", label="detection")
-    ax.bar(x, catch_up, bottom=detection, color="tab:blue", label="catch-up")
+    ax.bar(
+        x, connect, bottom=detection, color="tab:orange", label="connect, with the missing replies"
+    )
     ax.bar(
         x,
-        t_conn,
-        bottom=[d + c for d, c in zip(detection, catch_up, strict=True)],
-        color="tab:orange",
-        label="T_conn",
+        catch_up,
+        bottom=[d + c for d, c in zip(detection, connect, strict=True)],
+        color="tab:blue",
+        label="catch-up (replay, program)",
     )
     ax.scatter(
         x,
