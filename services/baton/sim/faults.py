@@ -188,11 +188,49 @@ def _arm(world: World, trigger: str, value: object) -> None:
 
 
 def lose_master(world: World, tries: int = 0) -> None:
-    """Kills the drone's master for good, once the programs run (tried every 50 ms)."""
-    if world.programs_started:
+    """Kills the drone's master for good, once the programs run and it is survivable
+    (tried every 50 ms for up to 5 s, else the master is not lost)."""
+    if world.programs_started and survivable(world, world.drone.seq.master):
         world.lose(world.drone.seq.master, "master")
     elif tries < 100:
         world.loop.after(0.05, lose_master, world, tries + 1)
+
+
+def survivable(world: World, victim: int) -> bool:
+    """Whether losing ``victim`` for good leaves a live copy of the log: another live
+    controller holds every request the drone no longer retains for a taker.
+
+    The drone retains the replies above its watermark (all it holds, after a
+    restart: the watermark is not stored); the others exist only on the ring. The watermark says what the ring held when the
+    master last heard, but the mix's kills restart a controller *with
+    nothing* (a controller without a durable log file): one killed since
+    then, or killed before and not caught up yet, holds none of it. Losing
+    the master for good on top of that is two faults where every copy of
+    the log is gone, which no design survives (one live holder is the
+    least failover needs; a durable ``--log-file`` is what makes a kill
+    keep its copy). So the lose-master fault waits until a live holder
+    exists, as the kills wait for what a restart needs (``killable``).
+    """
+    seq = world.drone.seq
+    retained = {reply.reqnr for reply in seq.cache.retained_replies()}
+    needed = set(range(1, seq.last_reqnr + 1)) - retained
+    if not needed:
+        return True
+    for c in world.live_controllers():
+        if c.id == victim or c.rejoining:
+            continue
+        if needed <= _held_requests(c):
+            return True
+    return False
+
+
+def _held_requests(controller: SimController) -> set[int]:
+    """The request numbers whose entries ``controller``'s history holds."""
+    held: set[int] = set()
+    history = controller.history
+    for lognr in history.above(0):
+        held.update(entry.reqnr for entry in history.get(lognr).entries)
+    return held
 
 
 def cut_master(world: World, length: float) -> None:

@@ -23,7 +23,7 @@ from baton.drone.dedupe import DEFAULT_WINDOW
 from baton.drone.sequencer import ScriptedHandover
 from baton.sim.controller import SimController
 from baton.sim.drone import SimDrone
-from baton.sim.faults import FaultPlan, handover, plan_faults
+from baton.sim.faults import FaultPlan, handover, plan_faults, survivable
 from baton.sim.findings import FINDINGS
 from baton.sim.loop import Loop
 from baton.sim.mission import MissionCall, random_mission
@@ -234,10 +234,15 @@ class World:
             if link is not None:
                 link.break_(f"dropped by {controller.id}")
 
-    def lose(self, cid: int, why: str) -> None:
-        """Kills controller ``cid`` for good (the lose-master fault)."""
+    def lose(self, cid: int, why: str, tries: int = 0) -> None:
+        """Kills controller ``cid`` for good (the lose-master fault), once that leaves a
+        live copy of the log (``faults.survivable``; tried every 50 ms for up to 5 s)."""
         controller = self.controllers[cid]
         if not controller.alive or self.lost:
+            return
+        if not survivable(self, cid):
+            if tries < 100:
+                self.loop.after(0.05, self.lose, cid, why, tries + 1)
             return
         self.lost.add(cid)
         controller.ended_by = "lost"
@@ -255,6 +260,9 @@ class World:
         strike = self.failover.pop("on switch", None)
         if strike is not None and record.kind == "cooperative":
             victim = record.old_master if strike == "old" else record.new_master
+            if not survivable(self, victim):  # no live copy of the log would be left
+                self.failover["on switch"] = strike  # the next switch
+                return
             delay = self.frng.choice((0.0, self.frng.uniform(0.0, 0.02)))
             self.loop.after(delay, self.lose, victim, f"{strike} master right after a handover")
 
@@ -263,6 +271,8 @@ class World:
         if "on flush" not in self.failover or controller.id != self.drone.seq.master:
             return
         if any(isinstance(e, SendLog) and e.message.origin == controller.id for e in effects):
+            if not survivable(self, controller.id):  # no live copy of the log would be left
+                return  # the next flush
             del self.failover["on flush"]
             delay = self.frng.choice((0.0, self.frng.uniform(0.0, 0.01)))
             self.loop.after(delay, self.lose, controller.id, "master mid-flush")
