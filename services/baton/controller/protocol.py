@@ -598,12 +598,37 @@ class ControllerProtocol:
         """Handles queued messages while PASSIVE and the next one is there (lines 34-43, 57-59)."""
         effects: list[Effect] = []
         while self.state is State.PASSIVE and (self.lognr + 1) in self.log_queue:
+            diverged = self._diverged_before(self.log_queue[self.lognr + 1])
+            if diverged is not None:
+                return [*effects, diverged]
             effects.extend(self._handle(self.log_queue.pop(self.lognr + 1)))
         if self.state is State.PASSIVE and self.master and not self.log_queue and self.caught_up:
             # The master's own log ran out with nothing queued: lines 54-56.
             self.state = State.ACTIVE
             effects.append(ConnectDrone())
         return effects
+
+    def _diverged_before(self, message: ring_pb2.LogMessage) -> Diverged | None:
+        """Whether the next message in order, from a newer epoch than our last one, does
+        not continue our requests: our last message is one a takeover renumbered.
+
+        The same-number rule (``on_log``) sees that only when the ring's message with
+        our last number comes to us; it may come later than the next one (a direct
+        handover message, or a queue drained after a catch-up), or never (we were
+        given only what lies above our hello). A message that does not start at our
+        next request is never right; from an older epoch it stays the loud error of
+        ``_handle``, from a newer one it is the ring's word against a framing that
+        never left a lost or fenced master: we rejoin with nothing.
+        """
+        ours = self._epoch_at.get(self.lognr, 0)
+        if (
+            message.entries
+            and message.entries[0].reqnr != self.reqnr + 1
+            and self.lognr > 0
+            and message.epoch > ours
+        ):
+            return Diverged(self.lognr, ours, message.epoch)
+        return None
 
     def _handle(self, message: ring_pb2.LogMessage) -> list[Effect]:
         """Lines 35-43 for an in-order message on a PASSIVE controller."""
