@@ -247,6 +247,7 @@ class LogAck(_message.Message):
     LOGNR_FIELD_NUMBER: _builtins.int
     HELLO_FIELD_NUMBER: _builtins.int
     RECEIVER_ID_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The log number of a message received whole; on a new stream, the first
     ack carries the highest log number the receiver holds (0 for none).
@@ -255,16 +256,23 @@ class LogAck(_message.Message):
     """True for that first ack of a stream."""
     receiver_id: _builtins.int
     """The receiver's id."""
+    epoch: _builtins.int
+    """On the hello: the epoch the receiver's message with that log number was
+    logged in (0 for none). A sender whose own message with that number is of
+    a newer epoch sends it too: a takeover renumbered the log, and the
+    receiver, seeing the ring's message, rejoins (docs/design.md, "Takeover").
+    """
     def __init__(
         self,
         *,
         lognr: _builtins.int = ...,
         hello: _builtins.bool = ...,
         receiver_id: _builtins.int = ...,
+        epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["hello", b"hello", "lognr", b"lognr", "receiver_id", b"receiver_id"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "hello", b"hello", "lognr", b"lognr", "receiver_id", b"receiver_id"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

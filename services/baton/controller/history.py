@@ -121,8 +121,11 @@ class LogHistory:
         return self._held.upto
 
     def add(self, message: ring_pb2.LogMessage) -> None:
-        """Keeps ``message`` unless a message with its log number is held already."""
-        if message.lognr in self._lognrs:
+        """Keeps ``message`` unless a message with its log number is held already,
+        from the same or a newer epoch (one from an older epoch is replaced: a
+        takeover numbered the log again, and a controller keeps the ring's framing
+        of a message it has not handled yet, ``ControllerProtocol.on_log``)."""
+        if message.lognr in self._lognrs and self.get(message.lognr).epoch >= message.epoch:
             return
         if message.handover:
             kept = ring_pb2.LogMessage()
@@ -130,7 +133,7 @@ class LogHistory:
             kept.handover = False
             message = kept
         self._db.execute(
-            "INSERT INTO messages (lognr, message) VALUES (?, ?)",
+            "INSERT OR REPLACE INTO messages (lognr, message) VALUES (?, ?)",
             (message.lognr, message.SerializeToString()),
         )
         self._lognrs.add(message.lognr)

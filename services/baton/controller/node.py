@@ -350,6 +350,7 @@ class ControllerNode:
         be restarted with it (``on_rejoin``).
         """
         self.incarnation += 1
+        kept = self.protocol.kept_for_rejoin()
         await self._close_drone()
         for link in self._peers.values():
             await link.stop()
@@ -371,6 +372,8 @@ class ControllerNode:
         self.routed_around = []
         self.peer(self.protocol.successor).start()
         await self._apply(self.protocol.start())
+        for message in kept:  # a handover message that exists nowhere else
+            await self.on_log(message)
         self.log.info("rejoined as a replica with nothing; catching up from the ring")
 
     def peer(self, pid: int) -> PeerLink:
@@ -383,8 +386,26 @@ class ControllerNode:
         if link is None:
             history = self.history if pid == self.protocol.successor else None
             link = PeerLink(self.id, pid, self.config.controller(pid).reach, self.log, history)
+            link.on_handover_acked = self._handover_acked
             self._peers[pid] = link
         return link
+
+    def _handover_acked(self, message: ring_pb2.LogMessage) -> None:
+        """The new master acknowledged our handover message: it enters our history now.
+
+        Not before (F7: a history copy re-sent ahead of it would overtake it),
+        and not only when it comes back round: the ring may go on past it
+        without giving it back to us (the new master handed over again before
+        its stream to its successor carried it, or the message went to a
+        controller that then rejoined and gave it on to a dead successor). Our
+        hello counts it then (``holds_lognr``), so a predecessor never gives it
+        again, and our history must hold it for our successor, or the
+        successor misses its log number for good (simulation, --lose-master).
+        """
+        if message.lognr in self.history:
+            return
+        self.history.add(message)
+        self.peer(self.protocol.successor).holds_changed()
 
     async def _route_watch(self) -> None:
         """Every 0.1 s: routes the ring around a successor down for the detection time,

@@ -130,6 +130,25 @@ def ring_route(
     return order[0], []
 
 
+def resend_after(hello_lognr: int, hello_epoch: int, our_epoch: int | None) -> int:
+    """The log number above which a ring sender gives a receiver its history.
+
+    The receiver's hello says the log number it holds (``hello_lognr``) and
+    the epoch its message with that number was logged in (``hello_epoch``,
+    0 if unknown); ``our_epoch`` is the epoch of the sender's own message
+    with that number (None if it holds none). A newer one means a takeover
+    numbered the log again after the receiver's message was framed (it never
+    left a master that was lost or fenced): the sender gives that message
+    too, and the receiver, seeing the ring's message with its number and a
+    newer epoch, rejoins (``Diverged``). Without it, a receiver whose top
+    message was renumbered would hear only what lies above it and never
+    learn that it diverged.
+    """
+    if hello_lognr > 0 and our_epoch is not None and 0 < hello_epoch < our_epoch:
+        return hello_lognr - 1
+    return hello_lognr
+
+
 class SeenNumbers:
     """A set of positive integers kept as a watermark plus the few above it.
 
@@ -233,6 +252,12 @@ class ControllerProtocol:
         self.lognr = 0
         self.log = Log()
         self.log_queue: dict[int, ring_pb2.LogMessage] = {}  # logQ, ordered by lognr
+        # A handover message whose log number diverged from ours (on_log): kept for
+        # the controller's fresh self (``kept_for_rejoin``).
+        self._diverging_handover: ring_pb2.LogMessage | None = None
+        # Our handover message's log number, counted as received when the ring went
+        # on past it before it came back (on_log): forwarded if it comes.
+        self._passed_handed = 0
         # Not ACTIVE on our own word (docs/design.md, "Restarts"): every
         # controller starts PASSIVE and asks the drone, which grants the
         # initial master epoch 1 at the mission's start, or tells a restarted
@@ -376,6 +401,31 @@ class ControllerProtocol:
         with nothing would never get it from us.
         """
         return self._received.upto
+
+    def kept_for_rejoin(self) -> list[ring_pb2.LogMessage]:
+        """The handover messages sent to us and not handled yet, for the controller that
+        rejoins with nothing (``Diverged``) to receive again after its reset.
+
+        A handover message goes from the old master to the new one only, and
+        enters the old master's history only once it has come back round (F7):
+        a new master that rejoins before handling it holds the one copy. Were
+        it dropped with the rest, no controller would ever get its log number,
+        and the new master would number its own messages like it (found by the
+        simulation with --lose-master). Its fresh self queues it until it has
+        caught up, handles it in order, and takes the role as the drone decided.
+        """
+        kept = [m for _, m in sorted(self.log_queue.items()) if m.handover]
+        if self._diverging_handover is not None:
+            kept.append(self._diverging_handover)
+        return kept
+
+    def epoch_of(self, lognr: int) -> int:
+        """The epoch of the message with ``lognr`` handled or queued here (0 if unknown):
+        what the ring hello says with ``holds_lognr`` (``resend_after``)."""
+        queued = self.log_queue.get(lognr)
+        if queued is not None:
+            return queued.epoch
+        return self._epoch_at.get(lognr, 0)
 
     @property
     def missing_lognr(self) -> int | None:
@@ -538,6 +588,8 @@ class ControllerProtocol:
             # taker did not hold ours (it never left a master that died), and
             # framed the same replies in messages of its own. The ring's is
             # the taker's; our state past that number is not.
+            if message.handover:
+                self._diverging_handover = message
             return [Diverged(message.lognr, ours, message.epoch)]
         if ours and 0 < message.epoch < ours:
             # The same number from an older epoch: the other framing, by a master
@@ -546,6 +598,22 @@ class ControllerProtocol:
             # handover message coming back (a history that kept it would give it
             # to a replica that catches up from us: --lose-master seed 757).
             return [Fenced(message.lognr, message.origin, message.epoch)]
+        queued = self.log_queue.get(message.lognr)
+        if queued is not None and message.epoch > queued.epoch:
+            # Not handled yet: the ring's message (a takeover's framing) takes the
+            # place of one it renumbered, and goes on to the successor like it.
+            self.log_queue[message.lognr] = message
+            effects = self._forward(message)
+            try:
+                effects.extend(self._drain())
+            except ProtocolError as exc:
+                raise ProtocolError(str(exc), effects + exc.effects) from exc
+            return effects
+        if message.lognr == self._passed_handed:
+            # Our handover message, back after the ring went on past it: counted
+            # as received then, but still to be forwarded like any message.
+            self._passed_handed = 0
+            return self._forward(message)
         if message.lognr in self._received:
             return []
         if self.state is State.ACTIVE and message.lognr > self.lognr and message.epoch < self.epoch:
@@ -574,17 +642,17 @@ class ControllerProtocol:
             # replica that got it diverge from our message of that number.
             return [Fenced(message.lognr, message.sender, message.epoch)]
         if self._handed is not None and message.lognr >= self._handed.lognr:
+            if message.lognr > self._handed.lognr:
+                # The ring went on past it: it may never come back (our hello
+                # counts it now, so no predecessor gives it again), and its
+                # number is held like the rest (the history has it once the new
+                # master acknowledged it, ControllerNode._handover_acked). If it
+                # does come back, it is forwarded all the same.
+                self._received.add(self._handed.lognr)
+                self._passed_handed = self._handed.lognr
             self._handed = None  # it came back, or the ring went on past it
         self._received.add(message.lognr)
-        effects: list[Effect] = []
-        # Lines 31-33: forward (a handover message travels on as a normal one).
-        # One of our own messages comes to us only when a predecessor re-sends
-        # its history to us after our restart: it has been round already.
-        if message.handover or message.origin not in (self.id, self.successor):
-            forwarded = ring_pb2.LogMessage()
-            forwarded.CopyFrom(message)
-            forwarded.handover = False
-            effects.append(SendLog(self.successor, forwarded))
+        effects = self._forward(message)
         if message.lognr <= self.lognr:
             return effects  # already handled (footnote 3)
         self.log_queue[message.lognr] = message
@@ -593,6 +661,19 @@ class ControllerProtocol:
         except ProtocolError as exc:
             raise ProtocolError(str(exc), effects + exc.effects) from exc
         return effects
+
+    def _forward(self, message: ring_pb2.LogMessage) -> list[Effect]:
+        """Lines 31-33: forward (a handover message travels on as a normal one).
+
+        One of our own messages comes to us only when a predecessor re-sends
+        its history to us after our restart: it has been round already.
+        """
+        if message.handover or message.origin not in (self.id, self.successor):
+            forwarded = ring_pb2.LogMessage()
+            forwarded.CopyFrom(message)
+            forwarded.handover = False
+            return [SendLog(self.successor, forwarded)]
+        return []
 
     def _drain(self) -> list[Effect]:
         """Handles queued messages while PASSIVE and the next one is there (lines 34-43, 57-59)."""

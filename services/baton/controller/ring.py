@@ -26,6 +26,7 @@ import grpc
 
 from baton.config import MAX_LOG_MESSAGE_DEFAULT
 from baton.controller.history import LogHistory
+from baton.controller.protocol import resend_after
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.v1 import ring_pb2, ring_pb2_grpc
@@ -124,6 +125,8 @@ class PeerLink:
         self._log = log.bind(peer=peer_id)
         self._history = history
         self._unacked: dict[int, ring_pb2.LogMessage] = {}
+        # Called with a handover message its receiver acknowledged (set by the node).
+        self.on_handover_acked: Callable[[ring_pb2.LogMessage], None] | None = None
         # Written on the current stream (a new stream writes every unacked one).
         self._sent: set[int] = set()
         self._wakeup = asyncio.Event()
@@ -236,7 +239,8 @@ class PeerLink:
                 # history, read back one message at a time (a restarted peer
                 # holds nothing and gets all of it).
                 if history is not None:
-                    for lognr in history.above(hello.lognr):
+                    ours = history.get(hello.lognr).epoch if hello.lognr in history else None
+                    for lognr in history.above(resend_after(hello.lognr, hello.epoch, ours)):
                         if lognr not in self._unacked:
                             await self._write(call, history.get(lognr))
                 self._sent = set()
@@ -280,8 +284,10 @@ class PeerLink:
 
     async def _read_acks(self, call: grpc.aio.StreamStreamCall) -> None:
         async for ack in _acks(call):
-            self._unacked.pop(ack.lognr, None)
+            message = self._unacked.pop(ack.lognr, None)
             self.counters.acked += 1
+            if message is not None and message.handover and self.on_handover_acked is not None:
+                self.on_handover_acked(message)
 
 
 async def _acks(call: grpc.aio.StreamStreamCall) -> AsyncIterator[ring_pb2.LogAck]:
@@ -303,10 +309,13 @@ class RingReceiver:
         log: BoundLogger,
         max_message_bytes: int = MAX_LOG_MESSAGE_DEFAULT,
         synced: Callable[[int, int], Awaitable[None]] | None = None,
+        epoch_of: Callable[[int], int] | None = None,
     ) -> None:
         self.my_id = my_id
         self.max_message_bytes = max_message_bytes
         self._current_lognr = current_lognr
+        # The epoch of the message with a log number we hold (the hello's, resend_after).
+        self._epoch_of = epoch_of
         self._deliver = deliver
         self._synced = synced
         self._log = log
@@ -343,8 +352,10 @@ class RingReceiver:
         )
 
     async def _serve(self, context: grpc.aio.ServicerContext) -> None:
+        lognr = self._current_lognr()
+        epoch = self._epoch_of(lognr) if self._epoch_of is not None and lognr else 0
         await context.write(
-            ring_pb2.LogAck(lognr=self._current_lognr(), hello=True, receiver_id=self.my_id)
+            ring_pb2.LogAck(lognr=lognr, hello=True, receiver_id=self.my_id, epoch=epoch)
         )
         reassembler = Reassembler(self.max_message_bytes)
         while True:

@@ -134,6 +134,7 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
             node.log,
             node.config.log_message_cap,
             node.on_sync,
+            lambda lognr: node.protocol.epoch_of(lognr),
         )
 
     async def LogRing(self, request_iterator: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[override]

@@ -585,6 +585,14 @@ class SimController:
         self.peak_log_queue = max(self.peak_log_queue, len(self.protocol.log_queue))
         self._apply(effects)
 
+    def handover_acked(self, message: ring_pb2.LogMessage) -> None:
+        """ControllerNode._handover_acked: the new master has our handover message; it
+        enters our history (it may never come back round)."""
+        if message.lognr in self.history:
+            return
+        self.history.add(message)
+        self.peer(self.protocol.successor).holds_changed()
+
     def _held(self, message: ring_pb2.LogMessage) -> None:
         """ControllerNode._held: into the history; the successor's link syncs."""
         self.history.add(message)

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from baton.controller.history import LogHistory
+from baton.controller.protocol import resend_after
 from baton.controller.ring import BACKOFF_INITIAL_S, BACKOFF_MAX_S
 from baton.v1 import ring_pb2
 
@@ -240,12 +241,19 @@ class RingLink:
             self._retry()
             return
         hello = peer.protocol.holds_lognr  # controller/service.py's current_lognr
+        epoch = peer.protocol.epoch_of(hello) if hello else 0  # and epoch_of
         self.world.loop.after(
-            self.world.net.delay(self.dest, self.owner.id), self._greeted, peer, hello, attempt
+            self.world.net.delay(self.dest, self.owner.id),
+            self._greeted,
+            peer,
+            hello,
+            attempt,
+            epoch,
         )
 
-    def _greeted(self, peer: SimController, hello: int, attempt: int) -> None:
-        """PeerLink._stream_once after the hello: sync frame, history above it, unacked."""
+    def _greeted(self, peer: SimController, hello: int, attempt: int, epoch: int = 0) -> None:
+        """PeerLink._stream_once after the hello: sync frame, history above it (and the
+        hello's own message if ours is of a newer epoch: resend_after), unacked."""
         if not self.owner.alive or attempt != self._try:
             return
         if self._usable_peer() is not peer:
@@ -264,6 +272,9 @@ class RingLink:
         self.world.check_start()
         if self.history is not None:  # PeerLink: only a history stream says what it holds
             self._deliver_later(0, self._sync_frame, holds)
+        if self.history is not None:
+            ours = self.history.get(hello).epoch if hello in self.history else None
+            hello = resend_after(hello, epoch, ours)
         for lognr in self._history_to_resend(hello):
             if self.history is not None:
                 self._write(self.history.get(lognr))
@@ -334,7 +345,9 @@ class RingLink:
 
     def _ack(self, generation: int, lognr: int) -> None:
         if generation == self.generation and self.up and self.owner.alive:
-            self.unacked.pop(lognr, None)
+            message = self.unacked.pop(lognr, None)
+            if message is not None and message.handover:  # PeerLink.on_handover_acked
+                self.owner.handover_acked(message)
 
 
 class DroneLink:

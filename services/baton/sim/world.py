@@ -223,8 +223,11 @@ class World:
         if self.controllers.get(controller.id) is not controller or not controller.alive:
             return
         controller.ended_by = "rejoin"
+        kept = controller.protocol.kept_for_rejoin()  # ControllerNode.reset
         controller.kill("rejoins as a replica with nothing")
         self.restart_controller(controller.id)
+        for message in kept:  # a handover message that exists nowhere else
+            self.controllers[controller.id].on_log(message)
 
     def drop_streams_to(self, controller: SimController) -> None:
         """RingReceiver.drop_streams: every ring stream into ``controller`` ends, and its
