@@ -15,6 +15,7 @@ from baton.controller.protocol import (
     SendLog,
     State,
     request_digest,
+    resend_after,
     ring_route,
 )
 from baton.v1 import ring_pb2
@@ -466,3 +467,75 @@ def test_the_ring_routes_to_the_first_successor_not_down_for_the_detection_time(
     assert ring_route(ring, 0, lambda pid: 9.0, 1.0) == (1, [])  # all down: the natural one
     assert ring_route(ring, 0, {1: 5.0, 2: 5.0}.get, 1.0) == (3, [1, 2])  # 3 is to be tried
     assert ring_route(ring, 3, down.get, 1.0) == (0, [])
+
+
+def test_a_next_message_of_a_newer_epoch_that_does_not_continue_ours_means_we_must_rejoin() -> None:
+    replica = started(1, [0, 1, 2], 0)
+    ours = message(1, 0, [1])
+    ours.epoch = 2  # a master's flush that never left it: the drone took over
+    replica.on_log(ours)
+    replay_all(replica)
+    ring = message(2, 0, [1, 2])  # the taker's message 2, framing request 1 again
+    ring.epoch = 3
+    assert [type(e).__name__ for e in replica.on_log(ring)] == ["SendLog", "Diverged"]
+    other = started(1, [0, 1, 2], 0)
+    other.on_log(ours)
+    replay_all(other)
+    stale = message(2, 0, [3])
+    stale.epoch = 2  # not of a newer epoch: still the loud error
+    with pytest.raises(ProtocolError):
+        other.on_log(stale)
+
+
+def test_the_ring_hello_makes_a_sender_give_a_renumbered_top_message_again() -> None:
+    assert resend_after(5, 2, 4) == 4  # ours is newer: give message 5 too
+    assert resend_after(5, 4, 4) == 5
+    assert resend_after(5, 0, 4) == 5  # a receiver that does not say its epoch
+    assert resend_after(5, 2, None) == 5  # we do not hold 5
+    p = started(1, [0, 1, 2], 2**20)
+    queued = message(3, 0, [3])
+    queued.epoch = 2
+    p.on_log(queued)
+    assert p.epoch_of(3) == 2 and p.epoch_of(7) == 0
+
+
+def test_a_queued_message_is_replaced_by_the_rings_of_a_newer_epoch() -> None:
+    p = started(1, [0, 1, 2], 2**20)
+    stale = message(2, 0, [2])
+    stale.epoch = 2
+    p.on_log(stale)
+    ring = message(2, 0, [3])
+    ring.epoch = 3
+    assert sends(p.on_log(ring)) == [(2, 2, False)]
+    assert p.log_queue[2].epoch == 3
+
+
+def test_a_handover_message_not_handled_is_kept_for_a_rejoin() -> None:
+    p = started(1, [0, 1, 2], 2**20)
+    ours = message(1, 0, [1])
+    ours.epoch = 2
+    p.on_log(ours)
+    handover = message(1, 1, [1, 2], handover=True, sender=2)
+    handover.epoch = 4
+    assert [type(e).__name__ for e in p.on_log(handover)] == ["Diverged"]
+    later = message(3, 1, [3], handover=True, sender=0)
+    later.epoch = 5
+    p.on_log(later)
+    assert [m.lognr for m in p.kept_for_rejoin()] == [3, 1]
+
+
+def test_an_old_masters_handover_message_the_ring_went_past_is_held_and_still_forwarded() -> (
+    None
+):
+    old = started(0, [0, 1, 2, 3], 2**20)
+    old.on_reply(entry(1))
+    old.on_handover_notice(2, epoch=2)  # handover message 1 to controller 2
+    assert old.holds_lognr == 0
+    past = message(2, 2, [2])
+    past.epoch = 2  # the new master's next message, before ours came back
+    old.on_log(past)
+    assert old.holds_lognr == 2 and not old._received.above
+    back = message(1, 2, [1])
+    back.epoch = 2
+    assert sends(old.on_log(back)) == [(1, 1, False)]  # on its way round, as before
+    assert old.on_log(back) == []  # once
