@@ -258,6 +258,10 @@ class ControllerProtocol:
         # Our handover message's log number, counted as received when the ring went
         # on past it before it came back (on_log): forwarded if it comes.
         self._passed_handed = 0
+        # The newest epoch of a log message handled, and the epoch whose handover
+        # message a cooperative grant owes us (on_granted, caught_up).
+        self._handled_epoch = 0
+        self._owed_epoch = 0
         # Not ACTIVE on our own word (docs/design.md, "Restarts"): every
         # controller starts PASSIVE and asks the drone, which grants the
         # initial master epoch 1 at the mission's start, or tells a restarted
@@ -329,6 +333,11 @@ class ControllerProtocol:
             return []
         self.master = True
         effects: list[Effect] = []
+        # A cooperative grant (not the first master's, not a takeover) comes with
+        # a handover message of its epoch, sent directly by the old master: it
+        # carries the old master's log, so we wait for it (F4). If the old master
+        # died before it left, the drone grants us again by takeover.
+        self._owed_epoch = 0 if takeover or epoch <= 1 else epoch
         if takeover:
             effects.extend(self._resend_handed())
             # What the predecessor said it holds may never come (it may have
@@ -453,6 +462,7 @@ class ControllerProtocol:
             self.catch_up_to is not None
             and self.lognr >= self.catch_up_to
             and self.held_reqnr >= self.must_hold_reqnr
+            and self._handled_epoch >= self._owed_epoch
         )
 
     def connect_refusal_is_stale(self, epoch: int) -> bool:
@@ -721,6 +731,7 @@ class ControllerProtocol:
             )
         for entry in message.entries:
             self.log.append(entry)
+        self._handled_epoch = max(self._handled_epoch, message.epoch)
         self._held(
             message.lognr, message.entries[-1].reqnr if message.entries else 0, message.epoch
         )
