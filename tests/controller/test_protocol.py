@@ -99,7 +99,9 @@ def test_a_controller_granted_the_role_after_a_restart_catches_up_first() -> Non
     # Messages it once created itself come back in the history: handled, not
     # forwarded again (they have been round).
     assert sends(p.on_log(message(1, 0, [1]))) == [(2, 1, False)]
-    assert sends(p.on_log(message(2, 1, [2]))) == []
+    ours = message(2, 1, [2])
+    ours.epoch = 4  # logged in its mastership (a cooperative grant waits for one, F4)
+    assert sends(p.on_log(ours)) == []
     replay_all(p)
     assert p.state is State.PASSIVE and not p.caught_up
     p.on_log(message(3, 1, [3]))
@@ -539,3 +541,30 @@ def test_an_old_masters_handover_message_the_ring_went_past_is_held_and_still_fo
     back.epoch = 2
     assert sends(old.on_log(back)) == [(1, 1, False)]  # on its way round, as before
     assert old.on_log(back) == []  # once
+
+
+def test_a_cooperative_grant_waits_for_its_handover_message() -> None:
+    new = started(1, [0, 1, 2], 2**20)
+    new.on_log(message(1, 0, [1]))
+    replay_all(new)
+    new.on_sync(1)
+    new.on_granted(3)  # before the handover message of epoch 3 came
+    assert new.state is State.PASSIVE and not new.caught_up
+    handover = message(2, 1, [2], handover=True, sender=0)
+    handover.epoch = 3
+    new.on_log(handover)
+    replay_all(new)
+    assert new.state is State.ACTIVE
+    taker = started(2, [0, 1, 2], 2**20)
+    taker.on_granted(4, takeover=True)  # a takeover owes no handover message
+    assert taker.state is State.ACTIVE
+
+
+def test_a_message_the_predecessor_holds_and_never_sends_is_a_gap() -> None:
+    p = started(1, [0, 1, 2], 2**20)
+    assert p.missing_lognr is None
+    p.on_sync(2)  # it holds 2, and 2's origin is us: the ring will not forward it to us
+    assert p.missing_lognr == 1
+    p.on_log(message(1, 2, [1]))
+    replay_all(p)
+    assert p.missing_lognr == 2

@@ -438,18 +438,26 @@ class ControllerProtocol:
 
     @property
     def missing_lognr(self) -> int | None:
-        """The next log number to handle while later ones are queued without it (a gap),
-        or our own handover message, not come back though we handled later ones.
+        """A log number we lack and nothing will bring by itself (a gap), if any.
 
-        The second is a gap in our history, not in our log: a successor that
-        rejoins with nothing would never get that number from us. The ring
-        does not bring it back by itself when it went round while we were
-        routed around, or reached a predecessor only after its stream to us
-        opened (a history stream gives what the sender held then, and a
-        controller does not forward its own messages).
+        - The next one to handle, while later ones are queued without it.
+        - The next one, while the predecessor's sync frame says it holds it and
+          nothing is queued: the ring forwards no message to its origin, so a
+          controller that rejoined or restarted with nothing after it handled
+          its own handover message (or created messages) is given them again
+          only by a history stream that opens after its predecessor held them.
+        - Our own handover message, not come back though we handled later ones:
+          a gap in our history, not in our log (a successor that rejoins with
+          nothing would never get that number from us).
         """
-        if self.log_queue and (self.lognr + 1) not in self.log_queue:
-            return self.lognr + 1
+        following = self.lognr + 1
+        if following in self.log_queue:
+            return None
+        if self.log_queue:
+            return following
+        promised = self.catch_up_to is not None and self.catch_up_to >= following
+        if promised and self.state is not State.ACTIVE and following not in self._received:
+            return following
         if self._received.upto + 1 < self.lognr:
             return self._received.upto + 1
         return None
