@@ -526,9 +526,7 @@ def test_a_handover_message_not_handled_is_kept_for_a_rejoin() -> None:
     assert [m.lognr for m in p.kept_for_rejoin()] == [3, 1]
 
 
-def test_an_old_masters_handover_message_the_ring_went_past_is_held_and_still_forwarded() -> (
-    None
-):
+def test_an_old_masters_handover_message_the_ring_went_past_is_held_and_still_forwarded() -> None:
     old = started(0, [0, 1, 2, 3], 2**20)
     old.on_reply(entry(1))
     old.on_handover_notice(2, epoch=2)  # handover message 1 to controller 2

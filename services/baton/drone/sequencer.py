@@ -264,10 +264,9 @@ class Sequencer:
             )
         after = self.last_reqnr
         for kept in clock:
-            if kept.reqnr == after == self.last_reqnr and self._given_up_here(kept):
-                continue  # its outcome is what the program saw: served again so
-            if kept.reqnr < self.last_reqnr and self._kept_already(kept):
-                continue  # sent along with an earlier request the master then gave up on
+            if kept.reqnr <= self.last_reqnr and after == self.last_reqnr and self._known(kept):
+                continue  # sent again: a give-up of a request served (its outcome is
+                # what the program saw: served again so), or what we keep already
             if not after < kept.reqnr < reqnr:
                 raise StatusError(
                     grpc.StatusCode.INVALID_ARGUMENT,
@@ -279,28 +278,32 @@ class Sequencer:
             after = kept.reqnr
         return None
 
-    def _kept_already(self, kept: CachedReply) -> bool:
-        """A call the master answered, below the last request served, that we hold already
-        (or trimmed, at or below the watermark): the master sent it along with a request
-        whose give-up left it not knowing whether we got it, and sends it again."""
-        held = self.cache.get(kept.reqnr)
-        if held is None:
+    def _known(self, kept: CachedReply) -> bool:
+        """A call at or below the last request served that the master sends along again:
+        a give-up of a request we served, as the master's program saw it, or a call it
+        answered itself that we keep already (the same request, by digest), or let go at
+        the watermark (every controller holds it).
+
+        A master keeps sending what it answered since its last drone call whose
+        outcome it knows, and a drone call the program gave up on leaves it not
+        knowing: so what it answered comes along again with the next request
+        (found by the simulation: --lose-master seeds 56 and 173).
+        """
+        ours = self.cache.get(kept.reqnr)
+        if ours is None:
             return kept.reqnr <= self.cache.watermark
-        return held.digest == kept.digest
+        if ours.digest != kept.digest:
+            return False
+        return _given_up(kept) or (ours.reply == kept.reply and ours.error is kept.error is None)
 
     def _fresh(self, kept: CachedReply) -> bool:
         """Whether ``served`` keeps a call the master answered (``admit`` accepted it):
-        not one we hold already."""
-        return kept.reqnr > self.last_reqnr or (
-            kept.reqnr == self.last_reqnr and self._given_up_here(kept)
-        )
-
-    def _given_up_here(self, kept: CachedReply) -> bool:
-        """A give-up of the last request served, as the master's program saw it: the same
-        request (digest) as the one the drone served."""
-        served = self.cache.get(kept.reqnr)
-        given_up = kept.error is not None and GIVEN_UP in kept.error.metadata
-        return given_up and served is not None and served.digest == kept.digest
+        above the last request served, or a give-up of one served that we still hold as
+        the drone's outcome (the program saw the give-up)."""
+        if kept.reqnr > self.last_reqnr:
+            return True
+        ours = self.cache.get(kept.reqnr)
+        return ours is not None and _given_up(kept) and not _given_up(ours)
 
     def note_request(
         self, controller_id: int, received_at: float
@@ -553,3 +556,8 @@ def cut_off_outcome(method: str, reqnr: int, is_read: bool) -> StatusError | Non
         f"{method} (request {reqnr}) was being executed when the drone service "
         "restarted: the vehicle may have acted on it, so it is not executed again",
     )
+
+
+def _given_up(reply: CachedReply) -> bool:
+    """A call the mission program gave up on, as its master sent it along."""
+    return reply.error is not None and GIVEN_UP in reply.error.metadata

@@ -201,8 +201,9 @@ def survivable(world: World, victim: int) -> bool:
     controller holds every request the drone no longer retains for a taker.
 
     The drone retains the replies above its watermark (all it holds, after a
-    restart: the watermark is not stored); the others exist only on the ring. The watermark says what the ring held when the
-    master last heard, but the mix's kills restart a controller *with
+    restart: the watermark is not stored); the others exist only on the
+    ring. The watermark says what the ring held when the master last heard,
+    but the mix's kills restart a controller *with
     nothing* (a controller without a durable log file): one killed since
     then, or killed before and not caught up yet, holds none of it. Losing
     the master for good on top of that is two faults where every copy of
