@@ -686,7 +686,7 @@ class ControllerNode:
             epoch=epoch,
             unflushed_entries=len(p.log),
         )
-        await self._apply(p.on_fenced())
+        await self._apply(p.on_fenced(epoch))
         asyncio.get_running_loop().create_task(self._rejoin())
 
     async def _rejoin(self) -> None:

@@ -262,6 +262,9 @@ class ControllerProtocol:
         # message a cooperative grant owes us (on_granted, caught_up).
         self._handled_epoch = 0
         self._owed_epoch = 0
+        # The epoch of the takeover that fenced us (on_fenced): older handover
+        # messages are not kept for the rejoin.
+        self._fenced_in = 0
         # Not ACTIVE on our own word (docs/design.md, "Restarts"): every
         # controller starts PASSIVE and asks the drone, which grants the
         # initial master epoch 1 at the mission's start, or tells a restarted
@@ -422,11 +425,13 @@ class ControllerProtocol:
         and the new master would number its own messages like it (found by the
         simulation with --lose-master). Its fresh self queues it until it has
         caught up, handles it in order, and takes the role as the drone decided.
+        Not one older than a takeover that fenced us: that role is gone.
         """
         kept = [m for _, m in sorted(self.log_queue.items()) if m.handover]
         if self._diverging_handover is not None:
             kept.append(self._diverging_handover)
-        return kept
+        # One older than the takeover that fenced us gives a role the drone took away.
+        return [m for m in kept if m.epoch > self._fenced_in]
 
     def epoch_of(self, lognr: int) -> int:
         """The epoch of the message with ``lognr`` handled or queued here (0 if unknown):
@@ -575,7 +580,7 @@ class ControllerProtocol:
         self._handed.CopyFrom(message)
         return [DisconnectDrone(), SendLog(new_master, message)]
 
-    def on_fenced(self) -> list[Effect]:
+    def on_fenced(self, epoch: int = 0) -> list[Effect]:
         """The drone gave our mastership to another controller by takeover.
 
         Not in Algorithm 1, whose masters never fail: our unflushed log is not
@@ -585,6 +590,7 @@ class ControllerProtocol:
         """
         was_active = self.state is State.ACTIVE
         self.state, self.master = State.PASSIVE, False
+        self._fenced_in = max(self._fenced_in, epoch)  # the takeover's (kept_for_rejoin)
         self.log.take()
         return [DisconnectDrone()] if was_active else []
 

@@ -460,7 +460,7 @@ class SimController:
             f"controller {self.id} fenced: {new_master} took over in epoch {epoch} "
             f"({len(self.protocol.log)} unflushed entries dropped)"
         )
-        self._apply(self.protocol.on_fenced())
+        self._apply(self.protocol.on_fenced(epoch))
         self._rejoin()
 
     def _rejoin(self) -> None:

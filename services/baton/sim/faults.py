@@ -307,7 +307,7 @@ def killable(world: World, victim: SimController) -> bool:
                 return False
     if "F9" not in allow and _handover_unacked_to(world, victim):
         return False
-    if "F4" not in allow:
+    if "F4" not in allow:  # F4 is fixed; the keep-out stays (findings.py)
         drone = world.drone
         named = {line.new_master for line in drone.seq.script.values()}
         named |= {item.new_master for item in drone.queue if isinstance(item, HandoverOrder)}
@@ -408,7 +408,7 @@ def ready_for_handover(world: World, new_master: int) -> bool:
             return False
         if session is None or not session.connected:
             return False
-    if "F4" not in allow:
+    if "F4" not in allow:  # F4 is fixed; the keep-out stays (findings.py)
         target = world.controller(new_master)
         if not target.alive or not target.answered or target.session is not None:
             return False
