@@ -181,6 +181,27 @@ def test_a_give_up_sent_along_replaces_the_reply_the_program_never_saw() -> None
         seq.admit(0, 1, 3, GET, DIGEST, clock=[reply])
 
 
+def test_give_ups_of_earlier_requests_served_may_come_along_again() -> None:
+    """The program gave up on requests 1 and 2, both served: the master does not know
+    whether its answers reached the drone, so both come along with request 3 (found by
+    the simulation: refused INVALID_ARGUMENT before, request 3 never executed)."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    serve(seq, 0, 1, 1)
+    serve(seq, 0, 1, 2)
+    error = StatusError(grpc.StatusCode.CANCELLED, "gave up", (GIVEN_UP,))
+    gave_up = [CachedReply(1, GET, DIGEST, b"", error), CachedReply(2, GET, DIGEST, b"", error)]
+    assert seq.admit(0, 1, 3, GET, DIGEST, clock=gave_up) is None
+    seq.served(0, 3, GET, DIGEST, b"reply 3", 3.0, now=3.0, clock=gave_up)
+    for reqnr in (1, 2):
+        kept = seq.cache.get(reqnr)
+        assert kept is not None and kept.to_proto().given_up
+    new_answer = CachedReply(4, "/baton.v1.Clock/Now", DIGEST, b"now")
+    assert seq.admit(0, 1, 5, GET, DIGEST, clock=[*gave_up, new_answer]) is None
+    with pytest.raises(StatusError) as late:  # one sent again after a new one: refused
+        seq.admit(0, 1, 5, GET, DIGEST, clock=[new_answer, gave_up[0]])
+    assert late.value.code is grpc.StatusCode.INVALID_ARGUMENT
+
+
 def test_a_master_never_seen_is_lost_after_the_start_up_grace() -> None:
     """Not seen since the drone started: lost only once ``unseen_from`` (the end of the
     start-up grace) is ``after_s`` past; None (no controller seen yet) never."""
