@@ -425,43 +425,6 @@ def test_a_message_numbered_like_ours_from_a_newer_epoch_means_we_must_rejoin() 
     assert old.on_log(again) == []
 
 
-def test_a_handover_message_the_ring_went_past_is_not_held_until_it_comes_back() -> None:
-    """Handed over and handed straight back: the direct handover message overtakes our own
-    one on its way round. Until that comes back our history lacks it, so our hello does
-    not count it and the gap is to be repaired (simulation --lose-master seed 430)."""
-    old = started(0, [0, 1, 2, 3], 0)
-    old.on_reply(entry(1))  # flushed: log message 1
-    old.on_handover_notice(2, epoch=2)  # log message 2, to controller 2
-    assert (old.holds_lognr, old.missing_lognr) == (1, None)  # on its way round (F10)
-    back = message(3, origin=0, reqnrs=[], handover=True, sender=2)
-    back.epoch = 3
-    assert ConnectDrone() in old.on_log(back) and old.state is State.ACTIVE
-    assert (old.lognr, old.holds_lognr, old.missing_lognr) == (3, 1, 2)
-    ours = message(2, origin=2, reqnrs=[], sender=1)
-    ours.epoch = 2
-    assert sends(old.on_log(ours)) == [(1, 2, False)]  # controller 1 still needs it
-    assert (old.holds_lognr, old.missing_lognr, len(old._received)) == (3, None, 0)
-
-
-def test_a_master_restarted_before_its_handover_message_came_drops_it_late() -> None:
-    """Restarted with nothing, granted the role again, caught up with what the predecessor
-    holds (not the handover message: its old master keeps it out of its history until it
-    comes back), ACTIVE: the drone answers those requests again, and the master frames
-    them in a message of its own under that number (simulation --lose-master seed 596)."""
-    new = ControllerProtocol(2, [0, 1, 2], 0)
-    new.start()
-    new.on_granted(2)
-    new.on_sync(1)
-    new.on_log(message(1, 0, [1]))
-    assert replay_all(new) == [ConnectDrone()] and new.state is State.ACTIVE
-    late = message(2, origin=2, reqnrs=[2, 3], handover=True, sender=1)
-    late.epoch = 2
-    effects = new.on_log(late)
-    assert [type(e).__name__ for e in effects] == ["Fenced"] and not new.log_queue
-    assert sends(new.on_reply(entry(2))) == [(0, 2, False)]
-    assert new.on_log(late) == [] and not new.log_queue  # a duplicate now
-
-
 def test_the_ring_routes_to_the_first_successor_not_down_for_the_detection_time() -> None:
     down = {1: 5.0, 2: 0.4}  # seconds down; 3 has no stream tried yet
     ring = [0, 1, 2, 3]

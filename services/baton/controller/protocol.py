@@ -406,11 +406,11 @@ class ControllerProtocol:
         Our handover message, until it comes back round, is not held: it is
         not in the history we give our successor (the F7 fix), so a
         predecessor that re-sends from our hello (a stream re-opened, or
-        routed back to us) must give it to us (simulation finding F10). Nor
-        is it once the ring went on past it (its new master handed the role
-        straight back to us, and that message overtook it): until it comes
-        back it is missing from our history, and a successor that rejoins
-        with nothing would never get it from us.
+        routed back to us) must give it to us (simulation finding F10). Once
+        the ring went on past it (its new master handed the role straight
+        back to us, and that message overtook it), it counts as received: it
+        may never come back, and our history has it once its new master
+        acknowledged it (``ControllerNode._handover_acked``).
         """
         return self._received.upto
 
@@ -649,22 +649,6 @@ class ControllerProtocol:
             # that fenced master and do not know yet: it is the ring's, and
             # the drone will tell us.
             return [Fenced(message.lognr, message.origin, message.epoch)]
-        if (
-            self.state is State.ACTIVE
-            and message.lognr > self.lognr
-            and message.handover
-            and message.epoch == self.epoch
-        ):
-            # The handover message that made us master in this epoch, come
-            # after we went ACTIVE without it: we restarted with nothing and
-            # the drone granted us the role again; what our predecessor holds
-            # did not count it (its old master keeps it out of its history
-            # until it comes back), and the drone answers its requests again
-            # from the replies it retains. We frame them in messages of our
-            # own under these numbers, so this one is not the ring's: queued,
-            # it would never be handled, and forwarded, it would make every
-            # replica that got it diverge from our message of that number.
-            return [Fenced(message.lognr, message.sender, message.epoch)]
         if self._handed is not None and message.lognr >= self._handed.lognr:
             if message.lognr > self._handed.lognr:
                 # The ring went on past it: it may never come back (our hello
