@@ -13,8 +13,8 @@ drone's takeover record and audit:
   number the drone had not served): the TakeOver on the standby stream, the
   replay of what the new master holds, its program answered from the
   retained replies;
-- T_conn: a Connect's set-up alone (the shortest any controller measured:
-  a Connected that carried nothing);
+- T_conn: a Connect's set-up alone (the shortest any controller measured
+  before the kill: the initial master's at the start carried nothing);
 - the physical limit of what was missing: the drone link's latency plus
   the reply bytes the new master lacked (above what it held) over the
   link's bandwidth, plus T_conn.
@@ -126,10 +126,13 @@ async def run_kill(
             if now.missions_ended:
                 raise RuntimeError(f"{label}: the mission ended before the kill point")
         held = now.controllers[victim]
+        # A Connect's set-up alone: the shortest any controller measured before the kill
+        # (the initial master's at the start carried no replies).
+        t_conn = min(min(c.t_conn_s) for c in now.controllers.values() if c.t_conn_s)
         killed_at = time.time()
         await testbed.kill_controller(victim)
         snapshot = await testbed.run_mission(settings.timeout_s, period=1.0)
-    result = measure(snapshot, plan, victim, killed_at, workdir)
+    result = measure(snapshot, plan, victim, killed_at, workdir, t_conn)
     result.update(
         controllers=controllers,
         kill_reqnr=drone.last_reqnr,
@@ -146,7 +149,12 @@ async def run_kill(
 
 
 def measure(
-    snapshot: Snapshot, plan: TestbedPlan, victim: int, killed_at: float, workdir: Path
+    snapshot: Snapshot,
+    plan: TestbedPlan,
+    victim: int,
+    killed_at: float,
+    workdir: Path,
+    t_conn: float,
 ) -> dict[str, Any]:
     """The promises checked and the takeover's times split, for one run."""
     problems = []
@@ -173,7 +181,6 @@ def measure(
         problems.append("the new master sent no new request")
         return {"ok": False, "problems": problems}
     connect = snapshot.controllers[new].t_conn_s[-1]
-    t_conn = min(min(c.t_conn_s) for c in snapshot.controllers.values() if c.t_conn_s)
     holds = taker_held_reqnr(workdir / "logs" / f"controller-{new}.log", record.epoch)
     sizes = {a.reqnr: a.reply_bytes for a in drone.audit}
     missing = sum(size for reqnr, size in sizes.items() if holds < reqnr <= record.after_reqnr)
