@@ -7,12 +7,14 @@ the same SQLite file; the end-to-end kill -9 mid-mission is in
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 
 import grpc
 import pytest
 from drone_harness import DroneUnderTest, start_drone
-from test_drone_service import ARM, POSITION, TAKEOFF, expect_error, invoke
+from test_drone_service import ARM, GOTO, POSITION, TAKEOFF, expect_error, invoke
+from waiting import eventually
 
 from baton.digest import request_digest
 from baton.drone.sequencer import AUDIT_IN_MEMORY
@@ -22,6 +24,7 @@ from baton.testbed.local import drone_status
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
+NOW = "/baton.v1.Clock/Now"
 SCRIPT = "# after 2 to 1, after 5 to 2\n2 1\n5 2\n"
 
 
@@ -139,3 +142,38 @@ async def test_the_audit_is_kept_in_bounded_memory_and_paged(tmp_path: Path, dur
         await server.stop(0)
         if drone.service.store is not None:
             drone.service.store.close()
+
+
+async def test_the_calls_a_master_answered_survive_a_drone_killed_executing_their_request(
+    tmp_path: Path,
+) -> None:
+    """The master's Clock.Now came along with a Goto; the drone dies executing the Goto.
+    Restarted, it still gives that time to a taker (with the Goto's cut-off outcome): it
+    was kept with the request's intent, not with its outcome (the helper found it with
+    the simulation, seed 1676, where the reading was lost)."""
+    state = tmp_path / "drone.sqlite"
+    first = await restart(None, state, script="")
+    drone = first[0]
+    await drone.stub.Invoke(invoke(0, 1, POSITION))
+    now = api.NowReply(unix_time_s=1_700_000_012.5).SerializeToString()
+    read = drone_pb2.RetainedReply(
+        reqnr=2, method=NOW, request_digest=request_digest(NOW, b""), reply=now
+    )
+    goto = invoke(0, 3, GOTO, api.GotoRequest(latitude_deg=47.4, relative_altitude_m=10))
+    goto.master_answers.append(read)
+    drone.vehicle.gate = asyncio.Event()  # the Goto never finishes: the drone is killed
+    pending = asyncio.ensure_future(drone.stub.Invoke(goto))
+    await eventually(lambda: "Goto" in drone.vehicle.calls, "the Goto executing", 10)
+    second = await restart(first, state, script="")
+    pending.cancel()
+    drone = second[0]
+    try:
+        await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
+        connect = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=1, holds_reqnr=1))
+        connected = (await connect.read()).connected
+        connect.cancel()
+        assert [r.reqnr for r in connected.retained] == [2, 3]
+        assert connected.retained[0] == read
+        assert connected.retained[1].status_code == grpc.StatusCode.UNKNOWN.value[0]
+    finally:
+        await second[1].stop(0)

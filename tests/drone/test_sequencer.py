@@ -167,7 +167,8 @@ def test_a_give_up_sent_along_replaces_the_reply_the_program_never_saw() -> None
         1, GET, DIGEST, b"", StatusError(grpc.StatusCode.CANCELLED, "gave up", (GIVEN_UP,))
     )
     assert seq.admit(0, 1, 2, GET, DIGEST, clock=[gave_up]) is None
-    seq.served(0, 2, GET, DIGEST, b"reply 2", 2.0, now=2.0, clock=[gave_up])
+    assert seq.keep([gave_up]) == (gave_up,)
+    seq.served(0, 2, GET, DIGEST, b"reply 2", 2.0, now=2.0)
     kept = seq.cache.get(1)
     assert kept is not None and kept.error is not None
     assert kept.error.code is grpc.StatusCode.CANCELLED and kept.to_proto().given_up
@@ -191,7 +192,8 @@ def test_give_ups_of_earlier_requests_served_may_come_along_again() -> None:
     error = StatusError(grpc.StatusCode.CANCELLED, "gave up", (GIVEN_UP,))
     gave_up = [CachedReply(1, GET, DIGEST, b"", error), CachedReply(2, GET, DIGEST, b"", error)]
     assert seq.admit(0, 1, 3, GET, DIGEST, clock=gave_up) is None
-    seq.served(0, 3, GET, DIGEST, b"reply 3", 3.0, now=3.0, clock=gave_up)
+    seq.keep(gave_up)
+    seq.served(0, 3, GET, DIGEST, b"reply 3", 3.0, now=3.0)
     for reqnr in (1, 2):
         kept = seq.cache.get(reqnr)
         assert kept is not None and kept.to_proto().given_up
@@ -287,11 +289,13 @@ def test_calls_the_master_answered_sent_again_are_taken_once() -> None:
     seq = Sequencer([0, 1, 2], initial_master=0)
     sleep = CachedReply(1, "/baton.v1.Clock/Sleep", b"s", b"")
     assert seq.admit(0, 1, 2, GET, DIGEST, clock=[sleep]) is None
-    seq.served(0, 2, GET, DIGEST, b"r2", 2.0, now=2.0, clock=[sleep])
+    seq.keep([sleep])
+    seq.served(0, 2, GET, DIGEST, b"r2", 2.0, now=2.0)
     gave_up = CachedReply(
         2, GET, DIGEST, b"", StatusError(grpc.StatusCode.CANCELLED, "gave up", (GIVEN_UP,))
     )
     assert seq.admit(0, 1, 3, GET, DIGEST, clock=[sleep, gave_up]) is None
-    served = seq.served(0, 3, GET, DIGEST, b"r3", 3.0, now=3.0, clock=[sleep, gave_up])
-    assert [kept.reqnr for kept in served.kept] == [2]  # the give-up replaced reply 2
+    kept = seq.keep([sleep, gave_up])
+    assert [k.reqnr for k in kept] == [2]  # the give-up replaces reply 2; Sleep 1 is held
+    seq.served(0, 3, GET, DIGEST, b"r3", 3.0, now=3.0)
     assert seq.cache.reqnrs == [1, 2, 3]

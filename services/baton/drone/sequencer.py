@@ -69,8 +69,6 @@ class Served:
     handover: drone_pb2.HandoverRecord | None = None
     # A script line that named the master itself (skipped, kept for the log).
     skipped: ScriptedHandover | None = None
-    # The calls the master answered itself kept before it (not those held already).
-    kept: tuple[CachedReply, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -201,7 +199,7 @@ class Sequencer:
         Raises StatusError when it is refused; nothing is executed then and
         the request number stays unused. The master's ``watermark`` (every
         reachable controller holds the replies up to it) lets the cache stop
-        retaining them. ``clock`` are the Clock calls the master answered
+        retaining them. ``clock`` are the calls the master answered
         since its last request, numbered between the last request served and
         this one (INVALID_ARGUMENT otherwise); ``served`` keeps them.
         """
@@ -296,6 +294,15 @@ class Sequencer:
             return False
         return _given_up(kept) or (ours.reply == kept.reply and ours.error is kept.error is None)
 
+    def keep(self, answers: Sequence[CachedReply]) -> tuple[CachedReply, ...]:
+        """Keeps the calls the master answered itself that ``admit`` accepted with a
+        request about to be executed (before it is: a drone that dies executing it
+        must still give them to a taker); returns those not held already."""
+        fresh = tuple(kept for kept in answers if self._fresh(kept))
+        for kept in fresh:
+            self.cache.store(kept.reqnr, kept.method, kept.digest, kept.reply, kept.error)
+        return fresh
+
     def _fresh(self, kept: CachedReply) -> bool:
         """Whether ``served`` keeps a call the master answered (``admit`` accepted it):
         above the last request served, or a give-up of one served that we still hold as
@@ -328,17 +335,12 @@ class Sequencer:
         received_at: float,
         now: float,
         error: StatusError | None = None,
-        clock: Sequence[CachedReply] = (),
     ) -> Served:
         """Books an accepted request's outcome, then fires the script's line due after it.
 
         ``received_at`` is when the request arrived (the audit's), ``now``
-        when it was done (a scripted handover is decided then). ``clock``
-        are the Clock replies ``admit`` accepted with it, kept before it.
+        when it was done (a scripted handover is decided then).
         """
-        fresh = tuple(kept for kept in clock if self._fresh(kept))
-        for kept in fresh:
-            self.cache.store(kept.reqnr, kept.method, kept.digest, kept.reply, kept.error)
         self.cache.store(reqnr, method, digest, reply, error)
         self.last_reqnr = reqnr
         # ``executed`` counts replies; a failed request counts as rejected
@@ -361,13 +363,13 @@ class Sequencer:
         # never reach the drone.
         due = [n for n in self.script if n <= reqnr]
         if not due:
-            return Served(entry, cached, kept=fresh)
+            return Served(entry, cached)
         scripted = self.script.pop(min(due))
         self.fired_script.append(min(due))
         if scripted.new_master == self.master:
-            return Served(entry, cached, skipped=scripted, kept=fresh)
+            return Served(entry, cached, skipped=scripted)
         handover = self.switch(scripted.new_master, "script", now)
-        return Served(entry, cached, handover=handover, kept=fresh)
+        return Served(entry, cached, handover=handover)
 
     # -- a restart ------------------------------------------------------------------
 

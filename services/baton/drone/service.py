@@ -13,7 +13,7 @@ import asyncio
 import json
 import sys
 import time
-from collections.abc import AsyncIterator, Callable, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -353,17 +353,18 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 )
             if cached is not None:
                 return self._answer_duplicate(request, cached)
+            kept = self.seq.keep(clock)
             if self.store is not None:
-                self.store.begin(Intent(reqnr, method, digest, cid, received_at))
+                self.store.begin(Intent(reqnr, method, digest, cid, received_at), kept)
             try:
                 reply = await self._execute(request)
             except StatusError as err:
                 if err.code is not grpc.StatusCode.UNAVAILABLE:
-                    self._served(cid, reqnr, method, digest, b"", received_at, err, clock)
+                    self._served(cid, reqnr, method, digest, b"", received_at, err)
                 elif self.store is not None:
                     self.store.abandon()
                 raise
-            self._served(cid, reqnr, method, digest, reply, received_at, clock=clock)
+            self._served(cid, reqnr, method, digest, reply, received_at)
         if (
             self.race is not None
             and self.race.order == "notice-first"
@@ -444,12 +445,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         reply: bytes,
         received_at: float,
         error: StatusError | None = None,
-        clock: Sequence[CachedReply] = (),
     ) -> None:
         """Books a served request, saves it, and carries out the script's handover after it."""
-        served = self.seq.served(
-            cid, reqnr, method, digest, reply, received_at, time.time(), error, clock
-        )
+        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, time.time(), error)
         if served.skipped is not None:
             self.log.warning(
                 "scripted handover skipped: already the master",
@@ -463,10 +461,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self._handed_over_after = reqnr
         if self.store is not None:
             self.store.served(
-                self._counters(),
-                [*served.kept, served.cached],
-                served.audit,
-                self.seq.cache.reqnrs[0],
+                self._counters(), served.cached, served.audit, self.seq.cache.reqnrs[0]
             )
 
     def _switched(self, record: drone_pb2.HandoverRecord, notice_delay_s: float = 0.0) -> None:

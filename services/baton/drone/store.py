@@ -171,13 +171,22 @@ class DroneStore:
         (oldest,) = self._db.execute("SELECT COALESCE(MIN(reqnr), 0) FROM audit").fetchone()
         return int(oldest)
 
-    def begin(self, intent: Intent) -> None:
-        """Notes the request about to be executed."""
-        self._db.execute(
-            "INSERT OR REPLACE INTO executing (id, reqnr, method, digest, controller_id, "
-            "received_at) VALUES (1, ?, ?, ?, ?, ?)",
-            (intent.reqnr, intent.method, intent.digest, intent.controller_id, intent.received_at),
-        )
+    def begin(self, intent: Intent, answers: Sequence[CachedReply] = ()) -> None:
+        """Notes the request about to be executed, with the calls its master answered
+        itself that came with it (kept for a taker whatever happens next)."""
+        with self._transaction():
+            self._put(answers)
+            self._db.execute(
+                "INSERT OR REPLACE INTO executing (id, reqnr, method, digest, controller_id, "
+                "received_at) VALUES (1, ?, ?, ?, ?, ?)",
+                (
+                    intent.reqnr,
+                    intent.method,
+                    intent.digest,
+                    intent.controller_id,
+                    intent.received_at,
+                ),
+            )
 
     def abandon(self) -> None:
         """The request noted by ``begin`` executed nothing (its reqnr stays unused)."""
@@ -186,28 +195,13 @@ class DroneStore:
     def served(
         self,
         counters: Counters,
-        replies: Sequence[CachedReply],
+        reply: CachedReply,
         audit: drone_pb2.AuditEntry,
         oldest_cached: int,
     ) -> None:
-        """A request's outcome (the last of ``replies``, after the Clock replies sent along
-        with it), its audit entry and the counters, in one transaction."""
+        """A request's outcome, its audit entry and the counters, in one transaction."""
         with self._transaction():
-            self._db.executemany(
-                "INSERT OR REPLACE INTO replies VALUES (?, ?, ?, ?, ?, ?, ?)",
-                [
-                    (
-                        reply.reqnr,
-                        reply.method,
-                        reply.digest,
-                        reply.reply,
-                        None if reply.error is None else reply.error.code.value[0],
-                        None if reply.error is None else reply.error.message,
-                        None if reply.error is None else json.dumps(list(reply.error.metadata)),
-                    )
-                    for reply in replies
-                ],
-            )
+            self._put([reply])
             self._db.execute("DELETE FROM replies WHERE reqnr < ?", (oldest_cached,))
             self._db.execute(
                 "INSERT OR REPLACE INTO audit VALUES (?, ?)",
@@ -215,6 +209,23 @@ class DroneStore:
             )
             self._db.execute("DELETE FROM executing")
             self._write_counters(counters)
+
+    def _put(self, replies: Sequence[CachedReply]) -> None:
+        self._db.executemany(
+            "INSERT OR REPLACE INTO replies VALUES (?, ?, ?, ?, ?, ?, ?)",
+            [
+                (
+                    reply.reqnr,
+                    reply.method,
+                    reply.digest,
+                    reply.reply,
+                    None if reply.error is None else reply.error.code.value[0],
+                    None if reply.error is None else reply.error.message,
+                    None if reply.error is None else json.dumps(list(reply.error.metadata)),
+                )
+                for reply in replies
+            ],
+        )
 
     def save(self, counters: Counters) -> None:
         """The counters alone (a handover between requests)."""

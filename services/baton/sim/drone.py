@@ -251,6 +251,7 @@ class SimDrone:
             _acted_on(request)
             self._answer_duplicate(request, cached)
             return
+        seq.keep(clock)  # with the intent, in one transaction (DroneService, store.begin)
         self.intent = Intent(reqnr, method, digest, cid, request.received_at)
         route = ROUTES[method]
         # DroneService._execute: the payload must parse, Mobility needs the vehicle.
@@ -290,9 +291,7 @@ class SimDrone:
         if self._books(error):
             _acted_on(request)
             cid, reqnr, method = request.controller_id, request.reqnr, request.method
-            self._served(
-                cid, reqnr, method, digest, b"", error, request.received_at, request.master_answers
-            )
+            self._served(cid, reqnr, method, digest, b"", error, request.received_at)
         else:
             self.intent = None  # store.abandon()
         self._reply(request, b"", error)
@@ -332,7 +331,6 @@ class SimDrone:
                 b"",
                 execution.error,
                 received,
-                request.master_answers,
             )
             self._reply(request, b"", execution.error)
         else:
@@ -344,7 +342,6 @@ class SimDrone:
                 execution.reply,
                 None,
                 received,
-                request.master_answers,
             )
             self._reply(request, execution.reply, None)
         self._next()
@@ -358,12 +355,10 @@ class SimDrone:
         reply: bytes,
         error: StatusError | None,
         received_at: float,
-        clock: tuple[drone_pb2.RetainedReply, ...] = (),
     ) -> None:
         """DroneService._served: books the outcome (the store's transaction), fires the script."""
         now = self.world.loop.now
-        kept = [CachedReply.from_proto(reply) for reply in clock]
-        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, now, error, kept)
+        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, now, error)
         self.intent = None
         retained, _ = self.seq.cache.retained
         self.stats.peak_cache = max(self.stats.peak_cache, len(self.seq.cache) - retained)
