@@ -81,6 +81,7 @@ async def test_failover_quick(tmp_path: Path) -> None:
         assert run["detection_s"] >= result["takeover_time_s"]
         assert math.isfinite(run["beyond_detection_over_physical"])
         assert run["catch_up_s"] > 0 and run["connect_s"] >= run["t_conn_s"] > 0
+        assert run["physical_s"] > run["t_conn_s"]
 
 
 def test_failover_kill_points_are_seeded_and_one_in_five_is_in_a_handover() -> None:

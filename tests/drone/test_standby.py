@@ -94,7 +94,7 @@ async def test_a_taker_connects_and_gets_the_retained_replies_above_what_it_hold
 @pytest.mark.parametrize(
     ("kept", "why"),
     [
-        (clock_reply(2, method=POSITION), "not a Clock method"),
+        (clock_reply(2, method=POSITION), "neither a Clock method nor a call given up"),
         (clock_reply(1), "must increase, above the last request served (1)"),
         (clock_reply(3), "below this one (3)"),
     ],

@@ -56,6 +56,9 @@ START_GRACE_S = 10.0
 # after 2 s without the answer: a controller behind a silent link (a radio
 # that fades without a reset, a frozen node) loses its streams within 3 s and
 # is then lost like a dead one (the project's 10 s + 5 s would add 15 s).
+# Only while takeovers are on: it is what finds a lost master behind such a
+# link, and it drops any link whose round trip exceeds 2 s, which a drone that
+# never takes over must keep (the 4 s uplink of the stale-request test).
 CONTROLLER_KEEPALIVE_S = (1.0, 2.0)
 
 
@@ -374,16 +377,17 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         return drone_pb2.InvokeReply(reqnr=reqnr, payload=reply)
 
     def _master_answers(self, request: drone_pb2.InvokeRequest) -> list[CachedReply]:
-        """The Clock replies sent along with a request; INVALID_ARGUMENT for another method."""
+        """The calls a master answered itself sent along with a request: Clock
+        replies and drone calls its program gave up on; INVALID_ARGUMENT for another."""
         clock = []
         for kept in request.master_answers:
             route = self.dispatcher.routes.get(kept.method)
-            if route is None or route.answered_by_drone:
+            if route is None or (route.answered_by_drone and not kept.given_up):
                 raise StatusError(
                     grpc.StatusCode.INVALID_ARGUMENT,
                     f"Invoke reqnr {request.reqnr}: master_answers holds reqnr {kept.reqnr} "
-                    f"as {kept.method!r}, which is not a Clock method; only the Clock calls "
-                    "a controller answered itself are sent along",
+                    f"as {kept.method!r}, which is neither a Clock method nor a call given "
+                    "up by the program; only what a controller answered itself is sent along",
                 )
             clock.append(CachedReply.from_proto(kept))
         return clock
@@ -700,7 +704,7 @@ async def serve(
     server = BatonServer(
         settings.address,
         [drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name],
-        keepalive=CONTROLLER_KEEPALIVE_S,
+        keepalive=CONTROLLER_KEEPALIVE_S if service.takeover_after_s > 0 else None,
     )
     drone_pb2_grpc.add_DroneServicer_to_server(service, server.server)
     await vehicle.start()
