@@ -20,6 +20,7 @@ PROGRAMS = [
     "baton.link.cli",
     "baton.testbed.cli",
     "baton.bench.cli",
+    "baton.certs.cli",
 ]
 
 

@@ -14,7 +14,12 @@ stream outlived a silent peer for a minute (tests/controller/test_takeover.py).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import grpc
+
+if TYPE_CHECKING:
+    from baton.rpc.tls import Identity, Tls
 
 # A picture at the largest resolution is 8192*8192*3 bytes (192 MiB) plus its
 # header; the ring additionally slices log messages into frames (see ring.py),
@@ -53,11 +58,32 @@ SERVER_OPTIONS: list[tuple[str, int | str]] = [
 ]
 
 
-def aio_channel(address: str) -> grpc.aio.Channel:
-    """An insecure asyncio channel to ``host:port`` with the project's options."""
-    return grpc.aio.insecure_channel(address, options=CHANNEL_OPTIONS)
+def _secure_options(tls: Tls | None, peer: Identity | None) -> list[tuple[str, int | str]]:
+    if tls is None:
+        return CHANNEL_OPTIONS
+    if peer is None:
+        raise ValueError("a TLS channel names the identity it expects to reach")
+    # The peer's certificate is checked against who we mean to reach, not the
+    # address: a link emulator or a published port may stand between (tls.py).
+    return [*CHANNEL_OPTIONS, ("grpc.ssl_target_name_override", peer.dns_name)]
 
 
-def sync_channel(address: str) -> grpc.Channel:
-    """A blocking channel to ``host:port`` with the project's options."""
-    return grpc.insecure_channel(address, options=CHANNEL_OPTIONS)
+def aio_channel(
+    address: str, tls: Tls | None = None, peer: Identity | None = None
+) -> grpc.aio.Channel:
+    """An asyncio channel to ``host:port`` with the project's options: mutual TLS as
+    ``tls``'s identity to ``peer`` (whose certificate is checked), else insecure."""
+    options = _secure_options(tls, peer)
+    if tls is None:
+        return grpc.aio.insecure_channel(address, options=options)
+    return grpc.aio.secure_channel(address, tls.channel_credentials(), options=options)
+
+
+def sync_channel(
+    address: str, tls: Tls | None = None, peer: Identity | None = None
+) -> grpc.Channel:
+    """A blocking channel to ``host:port``, as ``aio_channel``."""
+    options = _secure_options(tls, peer)
+    if tls is None:
+        return grpc.insecure_channel(address, options=options)
+    return grpc.secure_channel(address, tls.channel_credentials(), options=options)

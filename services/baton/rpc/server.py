@@ -1,7 +1,9 @@
 """Starting and stopping a baton gRPC server, the same way for every service.
 
 Every server serves the standard health service and server reflection, so
-``grpcurl -plaintext HOST:PORT list`` and ``describe`` work on all of them.
+``grpcurl HOST:PORT list`` and ``describe`` work on all of them (with the
+TLS flags of the README's Security section, or ``-plaintext`` on an insecure
+port).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from baton.rpc.channels import SERVER_OPTIONS
+from baton.rpc.tls import Tls
 
 
 class BatonServer:
@@ -25,10 +28,12 @@ class BatonServer:
         address: str,
         service_names: Iterable[str],
         keepalive: tuple[float, float] | None = None,
+        tls: Tls | None = None,
     ) -> None:
         """``keepalive`` (ping every so many seconds, give up after so many without the
         answer) overrides the project's 10 s and 5 s (channels.py) for a server that
-        must notice a silent client sooner."""
+        must notice a silent client sooner. With ``tls`` the port takes only callers
+        with a certificate of the mission's CA (tls.py); without, anyone."""
         options = dict(SERVER_OPTIONS)
         if keepalive is not None:
             every_ms, timeout_ms = round(keepalive[0] * 1000), round(keepalive[1] * 1000)
@@ -44,7 +49,10 @@ class BatonServer:
             [*self.service_names, health.SERVICE_NAME, reflection.SERVICE_NAME], self.server
         )
         try:
-            self.port = self.server.add_insecure_port(address)
+            if tls is None:
+                self.port = self.server.add_insecure_port(address)
+            else:
+                self.port = self.server.add_secure_port(address, tls.server_credentials())
         except RuntimeError:  # grpcio's way of saying the bind failed
             self.port = 0
         if self.port == 0:

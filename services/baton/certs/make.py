@@ -1,0 +1,162 @@
+"""Making a mission's CA and its parts' certificates, with ``cryptography``.
+
+One CA per mission (or per fleet): its key signs one certificate per part,
+each naming the part's identity (baton/rpc/tls.py) as a URI SAN and a DNS
+name, usable as a server and as a client (every part is both). Keys are
+ECDSA P-256, written owner-read-only. The CA key stays in the folder so that
+``issue`` can add a part or renew one later; a deployment moves it offline.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from baton.rpc.tls import CA_CERT, CA_KEY, Identity, TlsError
+
+DEFAULT_DAYS = 365
+_SKEW = datetime.timedelta(minutes=5)  # clocks of edge nodes are not exact
+
+
+def _write(path: Path, data: bytes, private: bool = False) -> None:
+    flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC
+    fd = os.open(path, flags, 0o600 if private else 0o644)
+    with os.fdopen(fd, "wb") as out:
+        out.write(data)
+
+
+def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
+    return key.private_bytes(
+        serialization.Encoding.PEM,
+        serialization.PrivateFormat.PKCS8,
+        serialization.NoEncryption(),
+    )
+
+
+def _name(common_name: str) -> x509.Name:
+    return x509.Name(
+        [
+            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "baton"),
+            x509.NameAttribute(NameOID.COMMON_NAME, common_name),
+        ]
+    )
+
+
+def make_ca(directory: Path, days: int = DEFAULT_DAYS) -> None:
+    """Writes ``ca.crt`` and ``ca.key`` into ``directory``."""
+    key = ec.generate_private_key(ec.SECP256R1())
+    now = datetime.datetime.now(datetime.UTC)
+    name = _name("baton mission CA")
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - _SKEW)
+        .not_valid_after(now + datetime.timedelta(days=days))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=False,
+                content_commitment=False,
+                key_encipherment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                key_cert_sign=True,
+                crl_sign=True,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    _write(directory / CA_CERT, cert.public_bytes(serialization.Encoding.PEM))
+    _write(directory / CA_KEY, _key_pem(key), private=True)
+
+
+def _load_ca(directory: Path) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
+    try:
+        cert = x509.load_pem_x509_certificate((directory / CA_CERT).read_bytes())
+        key = serialization.load_pem_private_key((directory / CA_KEY).read_bytes(), None)
+    except (OSError, ValueError) as exc:
+        raise TlsError(
+            f"{directory}: no usable CA ({CA_CERT} and {CA_KEY}: {exc}); "
+            f"make one with `baton certs init {directory}`"
+        ) from None
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise TlsError(f"{directory / CA_KEY}: not an EC key; make the CA with `baton certs init`")
+    return cert, key
+
+
+def issue(
+    directory: Path,
+    identity: Identity,
+    days: int = DEFAULT_DAYS,
+    not_before: datetime.datetime | None = None,
+) -> None:
+    """Writes ``NAME.crt`` and ``NAME.key`` for ``identity``, signed by the folder's CA.
+
+    ``not_before`` moves the validity window (tests make expired certificates).
+    """
+    ca_cert, ca_key = _load_ca(directory)
+    key = ec.generate_private_key(ec.SECP256R1())
+    start = not_before or datetime.datetime.now(datetime.UTC) - _SKEW
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(_name(identity.name))
+        .issuer_name(ca_cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(start + datetime.timedelta(days=days))
+        .add_extension(
+            x509.SubjectAlternativeName(
+                [
+                    x509.UniformResourceIdentifier(identity.uri),
+                    x509.DNSName(identity.dns_name),
+                ]
+            ),
+            critical=False,
+        )
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(
+            x509.ExtendedKeyUsage(
+                [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
+            ),
+            critical=False,
+        )
+        .add_extension(
+            x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()),
+            critical=False,
+        )
+        .sign(ca_key, hashes.SHA256())
+    )
+    _write(directory / f"{identity.name}.crt", cert.public_bytes(serialization.Encoding.PEM))
+    _write(directory / f"{identity.name}.key", _key_pem(key), private=True)
+
+
+def init(directory: Path, identities: Iterable[Identity], days: int = DEFAULT_DAYS) -> None:
+    """A new CA in ``directory`` (created) and a certificate for each identity.
+
+    Refuses a folder that holds a CA already: a new CA would lock out every part
+    still holding a certificate of the old one (``issue`` adds to a folder).
+    """
+    if (directory / CA_KEY).exists():
+        raise TlsError(
+            f"{directory / CA_KEY}: a CA exists already; add or renew a part's certificate "
+            f"with `baton certs issue {directory} NAME`, or remove the folder for a new CA"
+        )
+    directory.mkdir(parents=True, exist_ok=True)
+    make_ca(directory, days)
+    for identity in identities:
+        issue(directory, identity, days)

@@ -1,0 +1,141 @@
+"""Mutual TLS: who a caller is comes from its certificate, never from a request field.
+
+Every part of a mission has one identity, written in its certificate as a
+URI subject alternative name (``spiffe://baton/controller/1``,
+``spiffe://baton/drone``, ``spiffe://baton/operator``) beside a DNS name
+(``controller-1.baton``). A channel names the identity it expects to reach
+and checks the server's certificate against that DNS name, not against the
+address it dials: the testbed's link emulators and a container's published
+port stand between the two, and the peer is the same whatever the route.
+A server requires a client certificate from the mission's CA, and its
+servicers ask ``caller(context)`` who is calling (docs/design.md, Security).
+
+Certificates are files in one folder, named after the identity
+(``ca.crt``, ``controller-1.crt``, ``controller-1.key``), made by
+``baton certs init`` (baton/certs/make.py).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import grpc
+
+SPIFFE_PREFIX = "spiffe://baton/"
+DNS_SUFFIX = ".baton"
+ROLES = ("controller", "drone", "operator")
+CA_CERT = "ca.crt"
+CA_KEY = "ca.key"
+_URI = re.compile(r"spiffe://baton/(controller/(0|[1-9][0-9]{0,9})|drone|operator)")
+
+
+@dataclass(frozen=True, order=True)
+class Identity:
+    """One part of a mission: a controller (with its id), the drone, an operator."""
+
+    role: str
+    number: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.role not in ROLES:
+            raise ValueError(f"unknown role {self.role!r}; one of {', '.join(ROLES)}")
+        if (self.role == "controller") != (self.number is not None):
+            raise ValueError("a controller identity has a number, the others none")
+
+    @classmethod
+    def controller(cls, cid: int) -> Identity:
+        return cls("controller", cid)
+
+    @property
+    def uri(self) -> str:
+        """The URI SAN of its certificate: ``spiffe://baton/controller/1``."""
+        tail = self.role if self.number is None else f"{self.role}/{self.number}"
+        return SPIFFE_PREFIX + tail
+
+    @property
+    def name(self) -> str:
+        """Its file name stem and the first label of its DNS name: ``controller-1``."""
+        return self.role if self.number is None else f"{self.role}-{self.number}"
+
+    @property
+    def dns_name(self) -> str:
+        return self.name + DNS_SUFFIX
+
+    @classmethod
+    def from_uri(cls, uri: str) -> Identity | None:
+        """The identity a URI SAN names, or None for a URI that names none of ours."""
+        match = _URI.fullmatch(uri)
+        if match is None:
+            return None
+        if match.group(2) is not None:
+            return cls.controller(int(match.group(2)))
+        return cls(uri.removeprefix(SPIFFE_PREFIX))
+
+    def __str__(self) -> str:
+        return self.uri
+
+
+DRONE = Identity("drone")
+OPERATOR = Identity("operator")
+
+
+class TlsError(OSError):
+    """A certificate folder that cannot be used; the message names the file and the fix."""
+
+
+@dataclass(frozen=True)
+class Tls:
+    """The CA, certificate and key one part presents, loaded from a folder."""
+
+    identity: Identity
+    ca: bytes
+    cert: bytes
+    key: bytes
+
+    @classmethod
+    def load(cls, directory: str | Path, identity: Identity) -> Tls:
+        """Reads ``ca.crt``, ``NAME.crt`` and ``NAME.key`` from ``directory``."""
+        folder = Path(directory)
+        files = [folder / CA_CERT, folder / f"{identity.name}.crt", folder / f"{identity.name}.key"]
+        contents = []
+        for path in files:
+            try:
+                contents.append(path.read_bytes())
+            except OSError as exc:
+                raise TlsError(
+                    f"{path}: cannot read the {identity.name} TLS files ({exc.strerror}); "
+                    f"make them with `baton certs init {folder}`, or run with --insecure "
+                    "(debugging only: anyone on the network may then call this part)"
+                ) from None
+        ca, cert, key = contents
+        return cls(identity, ca, cert, key)
+
+    def server_credentials(self) -> grpc.ServerCredentials:
+        """A server that requires a client certificate signed by the mission's CA."""
+        return grpc.ssl_server_credentials(
+            [(self.key, self.cert)], root_certificates=self.ca, require_client_auth=True
+        )
+
+    def channel_credentials(self) -> grpc.ChannelCredentials:
+        """A client that presents its certificate and trusts the mission's CA only."""
+        return grpc.ssl_channel_credentials(
+            root_certificates=self.ca, private_key=self.key, certificate_chain=self.cert
+        )
+
+
+class _HasAuthContext(Protocol):
+    def auth_context(self) -> dict[str, list[bytes]]: ...
+
+
+def caller(context: _HasAuthContext) -> Identity | None:
+    """The identity in the caller's certificate; None on an insecure port or for a
+    certificate that names none of ours. gRPC has verified the chain already."""
+    auth = context.auth_context()
+    for uri in auth.get("peer_spiffe_id", []) + auth.get("x509_subject_alternative_name", []):
+        found = Identity.from_uri(uri.decode(errors="replace"))
+        if found is not None:
+            return found
+    return None
