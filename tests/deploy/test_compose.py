@@ -590,3 +590,25 @@ def test_dockerfile_installs_with_the_makefile_install_target() -> None:
     # ... and `make install` is the editable install with the dev extra.
     pip = [line for line in _make_recipe("install") if " -m pip install " in line]
     assert pip[-1] == "$(BIN)/python -m pip install --quiet -e '.[dev]'"
+
+
+@pytest.mark.parametrize("service", [s for s in BATON_SERVICES if s != "certs"])
+def test_every_baton_service_reads_the_certificates_the_certs_service_makes(
+    service: str,
+) -> None:
+    """Mutual TLS in the compose testbed: testbed.yaml's tls.certs is the volume the
+    `certs` service writes, mounted read-only wherever a part runs."""
+    folder = str(CONFIG.tls.certs)
+    assert not CONFIG.tls.insecure
+    assert f"certs:{folder}:ro" in SERVICES[service]["volumes"]
+    certs = _command("certs")
+    assert certs[:3] == ["baton", "certs", "init"] and certs[3] == folder
+    assert _option(certs, "--config") == CONFIG_IN_CONTAINER and "--keep-ca" in certs
+    assert f"certs:{folder}" in SERVICES["certs"]["volumes"]
+
+
+def test_the_drone_starts_once_the_certificates_are_made() -> None:
+    depends = SERVICES["drone"]["depends_on"]
+    assert depends["certs"] == {"condition": "service_completed_successfully"}
+    health = " ".join(SERVICES["drone"]["healthcheck"]["test"])
+    assert "tls_for(DRONE)" in health and "insecure_channel" not in health

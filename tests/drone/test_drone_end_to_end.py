@@ -18,7 +18,9 @@ from autopilots import Sitl
 from drone_harness import start_program, stop_program
 from google.protobuf.message import Message
 
+from baton.certs.make import init
 from baton.rpc.channels import sync_channel
+from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
@@ -29,12 +31,26 @@ SPEEDUP = "10"
 
 @dataclass
 class DroneBed:
-    """A running sim vehicle and drone service."""
+    """A running sim vehicle and drone service; ``stub`` calls it as the operator."""
 
     address: str
-    stub: drone_pb2_grpc.DroneStub
-    channel: grpc.Channel
+    certs: Path
     processes: list[subprocess.Popen[bytes]] = field(default_factory=list)
+    channels: dict[Identity, grpc.Channel] = field(default_factory=dict)
+
+    def as_(self, identity: Identity) -> drone_pb2_grpc.DroneStub:
+        """A stub that calls with ``identity``'s certificate."""
+        if identity not in self.channels:
+            tls = Tls.load(self.certs, identity)
+            self.channels[identity] = sync_channel(self.address, tls, DRONE)
+        return drone_pb2_grpc.DroneStub(self.channels[identity])
+
+    def as_controller(self, cid: int) -> drone_pb2_grpc.DroneStub:
+        return self.as_(Identity.controller(cid))
+
+    @property
+    def stub(self) -> drone_pb2_grpc.DroneStub:
+        return self.as_(OPERATOR)
 
     def status(self, audit: bool = False) -> drone_pb2.DroneStatus:
         return self.stub.GetStatus(drone_pb2.GetDroneStatusRequest(include_audit=audit), timeout=5)
@@ -62,6 +78,8 @@ def drone_bed(
     """The drone service (and the sim vehicle, when ``url`` is None) as processes."""
     script = tmp_path / "handovers.txt"
     script.write_text(handovers)
+    certs = tmp_path / "certs"
+    init(certs, [*(Identity.controller(cid) for cid in (0, 1, 2)), DRONE, OPERATOR])
     processes = []
     if url is None:  # the embedded sim vehicle
         sim, url = start_program(
@@ -81,17 +99,18 @@ def drone_bed(
                 "--initial-master=0",
                 f"--handover-file={script}",
                 f"--speedup={speedup}",
+                f"--certs={certs}",
             ],
             tmp_path / "address",
             tmp_path / "drone.log",
         )
         processes.append(drone)
-        channel = sync_channel(address)
-        bed = DroneBed(address, drone_pb2_grpc.DroneStub(channel), channel, processes)
+        bed = DroneBed(address, certs, processes)
         # ArduPilot arms ~40 s (of its time) after boot: minutes at worst on a loaded box.
         bed.wait_until("vehicle ready", lambda s: s.vehicle_connected and s.flight_state.ready, 120)
         yield bed
-        channel.close()
+        for channel in bed.channels.values():
+            channel.close()
     finally:
         for process in reversed(processes):
             stop_program(process)
@@ -133,7 +152,7 @@ class Controller:
         self.bed, self.cid, self.reqnr, self.epoch = bed, cid, reqnr, epoch
 
     def invoke(self, method: str, request: Message, reply_type: type[M]) -> tuple[M, bool]:
-        reply = self.bed.stub.Invoke(
+        reply = self.bed.as_controller(self.cid).Invoke(
             drone_pb2.InvokeRequest(
                 controller_id=self.cid,
                 reqnr=self.reqnr,
@@ -156,7 +175,7 @@ def distance_m(a: api.Position, b: api.Position) -> float:
 
 def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     home = testbed.status().position
-    stream = testbed.stub.Connect(drone_pb2.ConnectRequest(controller_id=0), timeout=60)
+    stream = testbed.as_controller(0).Connect(drone_pb2.ConnectRequest(controller_id=0), timeout=60)
     first = next(stream)
     assert first.connected == drone_pb2.Connected(master=0, last_reqnr=0, epoch=1)
     testbed.wait_until("master connected", lambda s: s.master_connected)
@@ -232,7 +251,7 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
         ("/baton.v1.Mobility/Goto", b"\xff", grpc.StatusCode.INVALID_ARGUMENT),
     ]:
         with pytest.raises(grpc.RpcError) as bad:
-            testbed.stub.Invoke(
+            testbed.as_controller(2).Invoke(
                 drone_pb2.InvokeRequest(
                     controller_id=2, reqnr=c2.reqnr, method=method, payload=payload, epoch=3
                 ),
@@ -241,7 +260,7 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
         assert bad.value.code() == code, bad.value.details()
         c2.reqnr += 1  # a failed request is served too: its reqnr is used
     with pytest.raises(grpc.RpcError) as bad:
-        testbed.stub.Invoke(
+        testbed.as_controller(2).Invoke(
             drone_pb2.InvokeRequest(controller_id=2, reqnr=0, method="/x", epoch=3), timeout=5
         )
     assert bad.value.code() == grpc.StatusCode.INVALID_ARGUMENT
@@ -268,7 +287,10 @@ def test_grpcurl_against_the_running_drone(
     sim_testbed: DroneBed, grpcurl: Callable[..., str]
 ) -> None:
     testbed = sim_testbed
-    run_grpcurl = grpcurl
+
+    def run_grpcurl(*args: str) -> str:  # as the README shows: the operator's certificate
+        return grpcurl(*args, certs=testbed.certs, peer=DRONE.dns_name)
+
     assert set(run_grpcurl(testbed.address, "list").split()) >= {
         "baton.v1.Drone",
         "grpc.health.v1.Health",

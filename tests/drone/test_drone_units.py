@@ -6,6 +6,7 @@ import grpc
 import pytest
 from drone_fakes import FakeMobility
 
+from baton.certs.make import ensure
 from baton.digest import request_digest
 from baton.drone.camera import Camera, image_size, parse_resolution
 from baton.drone.dedupe import ReplyCache
@@ -13,6 +14,7 @@ from baton.drone.dispatch import Dispatcher, drone_api_routes
 from baton.drone.master import HandoverScriptError, load_handover_script, parse_handover_script
 from baton.effects import read_effects
 from baton.rpc.errors import StatusError
+from baton.rpc.tls import DRONE, TlsError
 from baton.v1 import drone_api_pb2 as api
 
 ALL_METHODS = sorted(drone_api_routes())
@@ -200,6 +202,7 @@ def _drone_args(*argv: str):  # type: ignore[no-untyped-def]
 def test_cli_settings_from_flags_and_config(tmp_path) -> None:  # type: ignore[no-untyped-def]
     from baton.drone.cli import settings_from_args
 
+    ensure(tmp_path / "certs", [DRONE])  # the file's tls.certs, read from the file's folder
     config = tmp_path / "testbed.yaml"
     config.write_text(
         "drone: {address: '127.0.0.1:7000', vehicle_url: 'udpout://127.0.0.1:9'}\n"
@@ -211,10 +214,23 @@ def test_cli_settings_from_flags_and_config(tmp_path) -> None:  # type: ignore[n
     assert (settings.controllers, settings.master, settings.speedup) == ((3, 4), 4, 5.0)
     assert settings.resolution == (32, 16)
     assert settings.camera_effects_file is None
-    counted = settings_from_args(_drone_args("--camera-effects-file", str(tmp_path / "c.jsonl")))
+    assert settings.tls is not None and settings.tls.identity == DRONE
+    counted = settings_from_args(
+        _drone_args("--camera-effects-file", str(tmp_path / "c.jsonl"), "--insecure")
+    )
     assert counted.camera_effects_file == str(tmp_path / "c.jsonl")
-    flags = settings_from_args(_drone_args("--controllers", "0,1,2", "--address", "127.0.0.1:0"))
+    assert counted.tls is None
+    flags = settings_from_args(
+        _drone_args(
+            "--controllers", "0,1,2", "--address", "127.0.0.1:0", "--certs", str(tmp_path / "certs")
+        )
+    )
     assert (flags.controllers, flags.master, flags.address) == ((0, 1, 2), 0, "127.0.0.1:0")
+    assert flags.tls is not None
+    with pytest.raises(
+        TlsError, match=r"nowhere/ca\.crt: cannot read the drone TLS files.*--insecure"
+    ):
+        settings_from_args(_drone_args("--certs", str(tmp_path / "nowhere")))
 
 
 def test_cli_rejects_bad_handover_file_and_master(tmp_path) -> None:  # type: ignore[no-untyped-def]

@@ -73,7 +73,7 @@ class SimAutopilot:
 
 
 def invoke(bed: DroneBed, reqnr: int, method: str, request: object) -> drone_pb2.InvokeReply:
-    return bed.stub.Invoke(
+    return bed.as_controller(0).Invoke(
         drone_pb2.InvokeRequest(
             controller_id=0,
             reqnr=reqnr,

@@ -10,6 +10,9 @@
   link's bandwidth.
 - **T_conn**: the drone's Connect set-up on a new channel and on an open one,
   and as the testbed's controllers measured it when they became ACTIVE.
+- **TLS overhead**: the proxy and direct round trips above, measured on a
+  testbed with mutual TLS (the default) and on one ``--insecure``, one after
+  the other in the same run.
 """
 
 from __future__ import annotations
@@ -64,8 +67,11 @@ def _rate(samples: list[float]) -> float:
     return len(samples) / sum(samples) if samples else 0.0
 
 
-async def measure_proxy_and_drone(settings: MicroSettings, workdir: Path) -> dict[str, Any]:
-    """Proxy vs direct GetPosition round trips, and T_conn, on one testbed without links."""
+async def measure_proxy_and_drone(
+    settings: MicroSettings, workdir: Path, insecure: bool = False
+) -> dict[str, Any]:
+    """Proxy vs direct GetPosition round trips, and T_conn, on one testbed without links
+    (with mutual TLS, or ``insecure``)."""
     plan = TestbedPlan(
         controllers=2,
         flush_limit=1024 * MB,  # no flushes during the measurement
@@ -75,6 +81,7 @@ async def measure_proxy_and_drone(settings: MicroSettings, workdir: Path) -> dic
         mission_args=bench_mission_args(""),
         mission_file=BENCH_MISSION,
         emulate_links=False,
+        insecure=insecure,
     )
     workdir.mkdir(parents=True, exist_ok=True)
     # This process calls controller 0's proxy as its mission program does, with
@@ -82,11 +89,14 @@ async def measure_proxy_and_drone(settings: MicroSettings, workdir: Path) -> dic
     token = secrets.token_urlsafe(18)
     plan = replace(plan, mission_token=token)
     as_program = ((MISSION_TOKEN_METADATA, token),)
-    say("micro: starting a drone and 2 controllers (no link emulation)")
+    security = "insecure" if insecure else "mutual TLS"
+    say(f"micro: starting a drone and 2 controllers (no link emulation, {security})")
     async with LocalTestbed(plan, workdir) as testbed:
         config = testbed.config
         assert config is not None
-        channel = aio_channel(config.controller(0).address)
+        # The program's port: loopback and plain, tied to the program by the token.
+        master = (await testbed.snapshot(audit=False)).controllers[0]
+        channel = aio_channel(master.mission_address)
         mobility = drone_api_pb2_grpc.MobilityStub(channel)
         request = api.GetPositionRequest()
         for _ in range(50):  # warm up; the first calls wait for the vehicle
@@ -105,7 +115,10 @@ async def measure_proxy_and_drone(settings: MicroSettings, workdir: Path) -> dic
         say(f"micro: {settings.calls} direct Invoke calls and {settings.connects} Connects")
         # As controller 1: the drone hands over to it, and the measurement continues
         # from the drone's last reqnr.
-        direct = await measure_drone(config.drone.address, 1, settings.calls, 5, settings.connects)
+        certs = None if config.tls.insecure else config.tls.certs
+        direct = await measure_drone(
+            config.drone.address, 1, settings.calls, 5, settings.connects, certs
+        )
     proxy_ms = summary_ms(proxy)
     direct_ms = direct["invoke_get_position"]
     return {
@@ -211,7 +224,12 @@ async def measure_ring(size: int, bandwidth: float | None) -> dict[str, Any]:
 async def run_micro(settings: MicroSettings, out: Path) -> dict[str, Any]:
     """Runs every micro benchmark; writes micro.json and micro.md under ``out``."""
     out.mkdir(parents=True, exist_ok=True)
-    proxy = await measure_proxy_and_drone(settings, out / "micro-runs")
+    proxy = await measure_proxy_and_drone(settings, out / "micro-runs" / "tls")
+    plain = await measure_proxy_and_drone(settings, out / "micro-runs" / "insecure", True)
+    tls_overhead = {
+        path: proxy[key]["p50_ms"] - plain[key]["p50_ms"]
+        for path, key in (("proxy", "proxy_get_position"), ("direct", "direct_get_position"))
+    }
     replay = []
     for entries in settings.replay_entries:
         say(f"micro: replaying {entries} logged calls")
@@ -226,6 +244,8 @@ async def run_micro(settings: MicroSettings, out: Path) -> dict[str, Any]:
         "settings": settings.__dict__,
         "machine": machine(),
         "proxy": proxy,
+        "proxy_insecure": plain,
+        "tls_overhead_p50_ms": tls_overhead,
         "replay": replay,
         "ring": ring,
     }
@@ -254,7 +274,16 @@ def table(result: dict[str, Any]) -> str:
     text = markdown_table(["round trip", "p50 (ms)", "p99 (ms)", "calls/s"], rows)
     overhead = p["proxy_overhead_p50_ms"]
     verdict = "met" if overhead < 1 else "MISSED"
-    text += f"\nproxy overhead at p50: {overhead:.3f} ms (target < 1 ms: {verdict})\n\n"
+    text += f"\nproxy overhead at p50: {overhead:.3f} ms (target < 1 ms: {verdict})\n"
+    plain = result["proxy_insecure"]
+    added = result["tls_overhead_p50_ms"]
+    text += (
+        "\nmutual TLS (above) against the same testbed --insecure, p50: proxy "
+        f"{plain['proxy_get_position']['p50_ms']:.3f} ms insecure, {added['proxy']:+.3f} ms "
+        f"with TLS (goal < 0.3 ms added: {'met' if added['proxy'] < 0.3 else 'MISSED'}); "
+        f"direct Invoke {plain['direct_get_position']['p50_ms']:.3f} ms insecure, "
+        f"{added['direct']:+.3f} ms with TLS\n\n"
+    )
     text += markdown_table(
         ["replayed entries", "seconds", "calls/s", "target > 10,000/s"],
         [

@@ -5,8 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from baton.rpc.tls import Identity
+from baton.rpc.tls import Identity, Tls
+
+if TYPE_CHECKING:
+    from baton.config import BatonConfig
 
 
 def _identity(text: str) -> Identity:
@@ -39,6 +43,36 @@ def _days(text: str) -> int:
     return days
 
 
+def add_tls_flags(parser: argparse.ArgumentParser) -> None:
+    """``--certs`` and ``--insecure``, the same on every program that serves or calls."""
+    parser.add_argument(
+        "--certs",
+        type=Path,
+        metavar="DIR",
+        help="folder of ca.crt and this part's NAME.crt/NAME.key (baton certs init) "
+        "(default: the config's tls.certs, else ./certs)",
+    )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="plain gRPC, no certificates: anyone on the network may call; debugging only",
+    )
+
+
+def tls_from_flags(
+    args: argparse.Namespace, config: BatonConfig | None, identity: Identity
+) -> Tls | None:
+    """The certificate ``identity`` presents: flags over the configuration file, else
+    ./certs; None when insecure (a flag, or the file's tls.insecure)."""
+    if args.insecure:
+        return None
+    if args.certs is not None:
+        return Tls.load(args.certs, identity)
+    if config is not None:
+        return config.tls_for(identity)
+    return Tls.load(Path("certs"), identity)
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Adds ``baton certs init`` and ``baton certs issue``."""
     parser = subparsers.add_parser(
@@ -62,6 +96,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="controller ids when no --config is given (default 0,1,2, the demo's)",
     )
     init.add_argument("--days", type=_days, default=365, help="validity in days (default 365)")
+    init.add_argument(
+        "--keep-ca",
+        action="store_true",
+        help="a folder with a CA already keeps it and gets only the certificates it lacks "
+        "(the compose testbed's, run again)",
+    )
     init.set_defaults(run=_run_init)
     issue = actions.add_parser(
         "issue", help="add or renew one part's certificate, signed by the folder's CA"
@@ -73,7 +113,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def _run_init(args: argparse.Namespace) -> int:
-    from baton.certs.make import init
+    from baton.certs.make import ensure, init
     from baton.config import ConfigError, load_config
     from baton.rpc.tls import DRONE, OPERATOR
 
@@ -85,7 +125,10 @@ def _run_init(args: argparse.Namespace) -> int:
             print(f"baton certs: {exc}", file=sys.stderr)
             return 2
     parts = [*(Identity.controller(cid) for cid in ids), DRONE, OPERATOR]
-    init(args.dir, parts, args.days)
+    if args.keep_ca:
+        ensure(args.dir, parts, args.days)
+    else:
+        init(args.dir, parts, args.days)
     print(f"{args.dir}: CA and certificates for {', '.join(p.name for p in parts)}")
     return 0
 

@@ -160,3 +160,14 @@ def init(directory: Path, identities: Iterable[Identity], days: int = DEFAULT_DA
     make_ca(directory, days)
     for identity in identities:
         issue(directory, identity, days)
+
+
+def ensure(directory: Path, identities: Iterable[Identity], days: int = DEFAULT_DAYS) -> None:
+    """A CA in ``directory`` and a certificate for each identity, making only what is
+    missing (a testbed run again in its folder keeps the CA it made before)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    if not (directory / CA_KEY).exists():
+        make_ca(directory, days)
+    for identity in identities:
+        if not (directory / f"{identity.name}.crt").exists():
+            issue(directory, identity, days)

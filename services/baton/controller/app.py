@@ -10,10 +10,16 @@ import sys
 
 from baton.config import BatonConfig
 from baton.controller.node import ControllerNode
-from baton.controller.service import PROXIED_SERVICES, ControllerRingService, DroneApiProxy
+from baton.controller.service import (
+    PROXIED_SERVICES,
+    ControllerRingService,
+    DroneApiProxy,
+    ring_receiver,
+)
 from baton.lifecycle import write_atomically
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.server import BatonServer, run_until_signalled
+from baton.rpc.tls import INSECURE_WARNING, Identity
 from baton.v1 import ring_pb2_grpc
 
 
@@ -29,7 +35,10 @@ class ControllerApp:
         log_file: str | None = None,
     ) -> None:
         self.config = config
-        self.node = ControllerNode(config, cid, log_file)
+        tls = config.tls_for(Identity.controller(cid))
+        self.node = ControllerNode(config, cid, log_file, tls)
+        if tls is None:
+            self.node.log.warning(INSECURE_WARNING)
         # The mission program's token (rpc/mission.py): given in the environment
         # (a program started by hand), else made up for the program started here.
         self.token = os.environ.get(MISSION_TOKEN_ENV) or (
@@ -40,21 +49,33 @@ class ControllerApp:
                 "no mission token: anyone who reaches this controller can call the drone API "
                 f"through it (set {MISSION_TOKEN_ENV} here and for the mission program)"
             )
-        names = [f"baton.v1.{name}" for name in PROXIED_SERVICES] + ["baton.v1.ControllerRing"]
-        self.server = BatonServer(config.controller(cid).address, names)
-        self.server.server.add_generic_rpc_handlers((DroneApiProxy(self.node, self.token),))
-        self.ring_service = ControllerRingService(self.node, self.token)
-        ring_pb2_grpc.add_ControllerRingServicer_to_server(self.ring_service, self.server.server)
+        # Two ports: the ring's (log frames, status), with mutual TLS, and the
+        # mission program's on loopback (the drone API), tied to it by the token.
+        ring = "baton.v1.ControllerRing"
+        self.server = BatonServer(config.controller(cid).address, [ring], tls=tls)
+        self.receiver = ring_receiver(self.node)
+        ring_pb2_grpc.add_ControllerRingServicer_to_server(
+            ControllerRingService(self.node, self.token, self.receiver, tls is not None),
+            self.server.server,
+        )
+        names = [f"baton.v1.{name}" for name in PROXIED_SERVICES] + [ring]
+        self.mission_server = BatonServer(config.controller(cid).mission_address, names)
+        self.node.mission_address = self.mission_server.address  # bound already
+        self.mission_server.server.add_generic_rpc_handlers((DroneApiProxy(self.node, self.token),))
+        ring_pb2_grpc.add_ControllerRingServicer_to_server(
+            ControllerRingService(self.node, self.token), self.mission_server.server
+        )
         self.mission = mission
         self.mission_args = mission_args or []
         self.mission_process: asyncio.subprocess.Process | None = None
         self._watcher: asyncio.Task[None] | None = None
         self.node.on_rejoin = self.rejoin
-        self.node.on_gap = self.ring_service.receiver.drop_streams
+        self.node.on_gap = self.receiver.drop_streams
 
     async def start(self) -> None:
         """Serves, starts the protocol, and launches the mission program if there is one."""
         await self.server.start()
+        await self.mission_server.start()
         await self.node.start()
         await self._launch()
 
@@ -66,7 +87,7 @@ class ControllerApp:
         """
         await self._stop_mission()
         await self.node.reset()
-        self.ring_service.receiver.drop_streams()
+        self.receiver.drop_streams()
         await self._launch()
 
     async def _stop_mission(self) -> None:
@@ -86,7 +107,7 @@ class ControllerApp:
                 "--die-with-parent",
                 str(os.getpid()),
                 self.mission,
-                self.server.address,
+                self.mission_server.address,
                 *self.mission_args,
                 env={**os.environ, MISSION_TOKEN_ENV: self.token or ""},
             )
@@ -101,6 +122,7 @@ class ControllerApp:
         """Stops the mission program, the node and the server."""
         await self._stop_mission()
         await self.node.stop()
+        await self.mission_server.stop()
         await self.server.stop()
 
 
@@ -118,7 +140,14 @@ async def serve(
     async def main(stop: asyncio.Event) -> int:
         await app.start()
         print(
-            json.dumps({"event": "listening", "id": cid, "address": app.server.address}),
+            json.dumps(
+                {
+                    "event": "listening",
+                    "id": cid,
+                    "address": app.server.address,
+                    "mission_address": app.mission_server.address,
+                }
+            ),
             flush=True,
         )
         if address_file:

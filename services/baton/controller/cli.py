@@ -6,6 +6,8 @@ import argparse
 import asyncio
 import sys
 
+from baton.certs.cli import add_tls_flags
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Adds ``baton controller``."""
@@ -46,6 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "from it on restart (one mission, one file; format in baton/controller/history.py); "
         "default: a temporary file that goes with the process",
     )
+    add_tls_flags(parser)
     parser.set_defaults(run=run)
 
 
@@ -53,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
     """Loads and checks the configuration, then serves."""
     from baton.config import ConfigError, load_config, parse_size
     from baton.controller.app import serve
+    from baton.rpc.tls import Identity, TlsError
 
     try:
         config = load_config(args.config)
@@ -63,7 +67,13 @@ def run(args: argparse.Namespace) -> int:
                 raise ValueError(f"--flush-limit: {exc}") from None
             config = config.model_copy(update={"flush_limit": flush_limit})
         config.controller(args.id)
-    except (ConfigError, ValueError) as exc:
+        if args.insecure or args.certs is not None:
+            tls = config.tls.model_copy(
+                update={"insecure": args.insecure, "certs": args.certs or config.tls.certs}
+            )
+            config = config.model_copy(update={"tls": tls})
+        config.tls_for(Identity.controller(args.id))  # the files are there
+    except (ConfigError, TlsError, ValueError) as exc:
         print(f"baton controller: {exc}", file=sys.stderr)
         return 2
     except KeyError as exc:

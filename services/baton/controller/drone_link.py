@@ -22,6 +22,7 @@ import grpc
 
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
+from baton.rpc.tls import DRONE, Tls
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
 # Longest a call in flight at close may take to finish (a large picture on a slow link).
@@ -80,6 +81,7 @@ class DroneSession:
         log: BoundLogger,
         mastership_epoch: Callable[[], int] = lambda: 0,
         holds_reqnr: Callable[[], int] = lambda: 0,
+        tls: Tls | None = None,
     ) -> None:
         self.controller_id = controller_id
         # Read at every (re)connect: the epoch of the mastership whose log the
@@ -90,7 +92,7 @@ class DroneSession:
         self._events_to = events
         self._log = log
         self.epoch = 0  # from the Connected event
-        self._channel = aio_channel(address)
+        self._channel = aio_channel(address, tls, DRONE)
         self._stub = drone_pb2_grpc.DroneStub(self._channel)
         self.connected = asyncio.Event()
         self.t_conn_s: float | None = None
@@ -202,9 +204,11 @@ class DroneStandby:
         address: str,
         on_take_over: Callable[[drone_pb2.TakeOver], Awaitable[None]],
         log: BoundLogger,
+        tls: Tls | None = None,
     ) -> None:
         self.controller_id = controller_id
         self.address = address
+        self._tls = tls
         self._on_take_over = on_take_over
         self._log = log
         self.up = False
@@ -217,7 +221,7 @@ class DroneStandby:
 
     async def _hold(self) -> None:
         backoff = 0.05
-        async with aio_channel(self.address) as channel:
+        async with aio_channel(self.address, self._tls, DRONE) as channel:
             stub = drone_pb2_grpc.DroneStub(channel)
             while True:
                 try:

@@ -45,6 +45,7 @@ from baton.controller.protocol import (
 from baton.controller.ring import PeerLink
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
+from baton.rpc.tls import Tls
 from baton.stalls import StallWatch
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, ring_pb2
@@ -162,9 +163,18 @@ class HandoverEvent:
 class ControllerNode:
     """One mission controller: Algorithm 1 plus its ring streams and drone connection."""
 
-    def __init__(self, config: BatonConfig, cid: int, log_file: str | None = None) -> None:
+    def __init__(
+        self,
+        config: BatonConfig,
+        cid: int,
+        log_file: str | None = None,
+        tls: Tls | None = None,
+    ) -> None:
         self.config = config
         self.id = cid
+        # This controller's certificate for its calls (mutual TLS); None: insecure.
+        self.tls = tls
+        self.mission_address = ""  # where its program calls (set by the app once served)
         self.protocol = ControllerProtocol(cid, config.ring_order, config.flush_limit)
         # Every log message this controller holds: what it recovers after a
         # restart (with a file of its own) and gives a successor that restarts.
@@ -195,7 +205,7 @@ class ControllerNode:
         self.t_conn_s: list[float] = []
         # The standby stream: the drone's way to reach us for a takeover.
         self._standby = DroneStandby(
-            cid, config.drone_address_for(cid), self.on_take_over, self.log
+            cid, config.drone_address_for(cid), self.on_take_over, self.log, tls
         )
         self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
         self._takeover_watermark = 0  # and the drone's watermark then
@@ -385,7 +395,9 @@ class ControllerNode:
         link = self._peers.get(pid)
         if link is None:
             history = self.history if pid == self.protocol.successor else None
-            link = PeerLink(self.id, pid, self.config.controller(pid).reach, self.log, history)
+            link = PeerLink(
+                self.id, pid, self.config.controller(pid).reach, self.log, history, self.tls
+            )
             link.on_handover_acked = self._handover_acked
             self._peers[pid] = link
         return link
@@ -598,6 +610,7 @@ class ControllerNode:
             self.log,
             mastership_epoch=lambda: self.protocol.epoch,
             holds_reqnr=lambda: self.protocol.held_reqnr,
+            tls=self.tls,
         )
         events.session = self._drone
         self._drone.open()

@@ -29,6 +29,7 @@ from baton.controller.history import LogHistory
 from baton.controller.protocol import resend_after
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
+from baton.rpc.tls import Identity, Tls
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
 FRAME_BYTES = 1 << 20
@@ -118,10 +119,12 @@ class PeerLink:
         address: str,
         log: BoundLogger,
         history: LogHistory | None = None,
+        tls: Tls | None = None,
     ) -> None:
         self.my_id = my_id
         self.peer_id = peer_id
         self.address = address
+        self._tls = tls
         self._log = log.bind(peer=peer_id)
         self._history = history
         self._unacked: dict[int, ring_pb2.LogMessage] = {}
@@ -212,7 +215,9 @@ class PeerLink:
             backoff = min(backoff * 2, BACKOFF_MAX_S)
 
     async def _stream_once(self) -> None:
-        async with aio_channel(self.address) as channel:
+        async with aio_channel(
+            self.address, self._tls, Identity.controller(self.peer_id)
+        ) as channel:
             stub = ring_pb2_grpc.ControllerRingStub(channel)
             call = stub.LogRing(wait_for_ready=True)
             hello = await call.read()
@@ -331,11 +336,14 @@ class RingReceiver:
         dropped, self._dropped = self._dropped, asyncio.Event()
         dropped.set()
 
-    async def serve(self, context: grpc.aio.ServicerContext) -> None:
-        """Runs one incoming stream until the sender closes it (or ``drop_streams``)."""
+    async def serve(self, context: grpc.aio.ServicerContext, sender: int | None = None) -> None:
+        """Runs one incoming stream until the sender closes it (or ``drop_streams``).
+
+        ``sender``: the controller the caller's certificate names (mutual TLS);
+        every frame must then say it comes from that controller."""
         dropped = self._dropped
         waiter = asyncio.create_task(dropped.wait())
-        serving = asyncio.create_task(self._serve(context))
+        serving = asyncio.create_task(self._serve(context, sender))
         try:
             done, _ = await asyncio.wait({waiter, serving}, return_when=asyncio.FIRST_COMPLETED)
         finally:
@@ -351,7 +359,7 @@ class RingReceiver:
             f"controller {self.my_id} rejoined the ring with nothing: connect again",
         )
 
-    async def _serve(self, context: grpc.aio.ServicerContext) -> None:
+    async def _serve(self, context: grpc.aio.ServicerContext, sender: int | None) -> None:
         lognr = self._current_lognr()
         epoch = self._epoch_of(lognr) if self._epoch_of is not None and lognr else 0
         await context.write(
@@ -361,6 +369,13 @@ class RingReceiver:
         while True:
             frame = await context.read()
             if frame is grpc.aio.EOF:
+                return
+            if sender is not None and frame.from_id != sender:
+                await context.abort(
+                    grpc.StatusCode.PERMISSION_DENIED,
+                    f"LogRing: controller {sender}'s certificate sent a frame from_id "
+                    f"{frame.from_id}; a controller sends its own frames only",
+                )
                 return
             if frame.sync:
                 if self._synced is not None:

@@ -19,6 +19,7 @@ from baton.controller.node import CLOCK_SLEEP, ControllerNode
 from baton.controller.ring import RingReceiver
 from baton.rpc.errors import StatusError, abort_with, status_of
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA, token_in
+from baton.rpc.tls import caller, refused
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
@@ -121,36 +122,96 @@ def _check_sleep(request: protobuf_message.Message) -> None:
         )
 
 
-class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
-    """LogRing, GetStatus and MissionDone of one controller."""
+def ring_receiver(node: ControllerNode) -> RingReceiver:
+    """The receiving end of ``node``'s ring streams."""
+    return RingReceiver(
+        node.id,
+        lambda: node.protocol.holds_lognr,
+        node.on_log,
+        node.log,
+        node.config.log_message_cap,
+        node.on_sync,
+        lambda lognr: node.protocol.epoch_of(lognr),
+    )
 
-    def __init__(self, node: ControllerNode, token: str | None = None) -> None:
+
+class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
+    """LogRing, GetStatus and MissionDone of one controller, on one of its ports.
+
+    The ring port (``receiver`` given) takes LogRing; with ``authenticated``
+    (mutual TLS) only from a controller of the ring, as its certificate says,
+    and GetStatus from any part with a certificate; never MissionDone. The
+    mission program's loopback port has no receiver: LogRing is refused there,
+    and MissionDone is its program's (the token).
+    """
+
+    def __init__(
+        self,
+        node: ControllerNode,
+        token: str | None = None,
+        receiver: RingReceiver | None = None,
+        authenticated: bool = False,
+    ) -> None:
         self._node = node
         self._token = token
-        self.receiver = RingReceiver(
-            node.id,
-            lambda: node.protocol.holds_lognr,
-            node.on_log,
-            node.log,
-            node.config.log_message_cap,
-            node.on_sync,
-            lambda lognr: node.protocol.epoch_of(lognr),
-        )
+        self.receiver = receiver
+        self._authenticated = authenticated
 
     async def LogRing(self, request_iterator: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[override]
         """Receives log messages from a predecessor or an old master, acknowledging each."""
-        await self.receiver.serve(context)
+        if self.receiver is None:
+            await abort_with(
+                context,
+                StatusError(
+                    grpc.StatusCode.PERMISSION_DENIED,
+                    f"LogRing: controller {self._node.id} takes log frames on its ring port "
+                    f"({self._node.config.controller(self._node.id).address}) only, from a "
+                    "controller's certificate; this is its mission program's port",
+                ),
+            )
+        ring = self._node.config.ring_order
+        refusal = refused(
+            context,
+            self._authenticated,
+            "LogRing",
+            f"log frames come from the ring's controllers ({', '.join(map(str, ring))}) only",
+            lambda who: who.role == "controller" and who.number in ring,
+        )
+        if refusal is not None:
+            self._node.log.warning("ring stream refused", reason=refusal.message)
+            await abort_with(context, refusal)
+        sender = caller(context) if self._authenticated else None
+        await self.receiver.serve(context, None if sender is None else sender.number)
 
     async def GetStatus(
         self, request: ring_pb2.GetControllerStatusRequest, context: grpc.aio.ServicerContext
     ) -> ring_pb2.ControllerStatus:
         """The controller's state, counters and peer streams."""
+        refusal = refused(
+            context,
+            self._authenticated,
+            "GetStatus",
+            "any part of the mission may read the status, with its certificate",
+            lambda who: True,
+        )
+        if refusal is not None:
+            await abort_with(context, refusal)
         return controller_status(self._node)
 
     async def MissionDone(
         self, request: ring_pb2.MissionDoneRequest, context: grpc.aio.ServicerContext
     ) -> ring_pb2.MissionDoneReply:
         """The local mission program ended; the master flushes its last log entries."""
+        if self.receiver is not None:  # the ring port: found by the fuzz test
+            await abort_with(
+                context,
+                StatusError(
+                    grpc.StatusCode.PERMISSION_DENIED,
+                    f"MissionDone: controller {self._node.id} takes it from its mission program "
+                    f"on its mission port ({self._node.mission_address}) only, not on the ring "
+                    "port; nothing was changed",
+                ),
+            )
         refused = caller_refused(self._node.id, self._token, context, "MissionDone")
         if refused is not None:
             await abort_with(context, refused)
@@ -209,4 +270,5 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
             for h in node.handovers
         ],
         t_conn_s=node.all_t_conn_s,
+        mission_address=node.mission_address,
     )

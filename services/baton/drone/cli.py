@@ -6,6 +6,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
+from baton.certs.cli import add_tls_flags, tls_from_flags
 from baton.drone.camera import DEFAULT_RESOLUTION
 
 if TYPE_CHECKING:
@@ -149,6 +150,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="take the master over when the drone has not seen it (no stream, no request) "
         "for this long, in mission seconds, e.g. 3s; 0 never (default: config, else 3s)",
     )
+    add_tls_flags(parser)
     parser.add_argument(
         "--state",
         metavar="FILE",
@@ -166,11 +168,13 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     from baton.drone.dedupe import DEFAULT_WINDOW
     from baton.drone.master import load_handover_script
     from baton.drone.service import DroneSettings, Race
+    from baton.rpc.tls import DRONE
 
     address, vehicle_url, speedup = "127.0.0.1:50051", "udpin://127.0.0.1:14540", 1.0
     controllers: tuple[int, ...] = (0,)
     initial_master: int | None = None
     takeover_after = 3.0
+    config = None
     if args.config:
         config = load_config(args.config)
         address, vehicle_url = config.drone.address, config.drone.vehicle_url
@@ -211,6 +215,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         state_file=args.state,
         camera_effects_file=args.camera_effects_file,
         takeover_after=takeover_after,
+        tls=tls_from_flags(args, config, DRONE),
     )
 
 
@@ -223,10 +228,11 @@ def run(args: argparse.Namespace) -> int:
     from baton.drone.mobility import MavsdkMobility
     from baton.drone.service import serve
     from baton.rpc.server import run_until_signalled
+    from baton.rpc.tls import TlsError
 
     try:
         settings = settings_from_args(args)
-    except (ConfigError, HandoverScriptError, ValueError) as exc:
+    except (ConfigError, HandoverScriptError, TlsError, ValueError) as exc:
         print(f"baton drone: {exc}", file=sys.stderr)
         return 2
     vehicle = MavsdkMobility(settings.vehicle_url)

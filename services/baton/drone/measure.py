@@ -14,8 +14,10 @@ import asyncio
 import json
 import statistics
 import time
+from pathlib import Path
 
 from baton.rpc.channels import aio_channel
+from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
@@ -37,14 +39,28 @@ def summary_ms(samples: list[float]) -> dict[str, float]:
     }
 
 
-async def measure(address: str, controller: int, calls: int, pictures: int, connects: int) -> dict:
-    """Runs the three measurements against the drone at ``address``."""
-    channel = aio_channel(address)
+async def measure(
+    address: str,
+    controller: int,
+    calls: int,
+    pictures: int,
+    connects: int,
+    certs: Path | None = None,
+) -> dict:
+    """Runs the three measurements against the drone at ``address``: as the
+    controller and (for the handover) an operator, with their certificates in
+    ``certs``, or on an insecure port."""
+    me = Identity.controller(controller)
+    tls = None if certs is None else Tls.load(certs, me)
+    channel = aio_channel(address, tls, DRONE)
     stub = drone_pb2_grpc.DroneStub(channel)
     status = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
     epoch = status.epoch
     if status.master != controller:
-        epoch = (await stub.Handover(drone_pb2.HandoverRequest(new_master=controller))).epoch
+        operator = None if certs is None else Tls.load(certs, OPERATOR)
+        async with aio_channel(address, operator, DRONE) as as_operator:
+            handover = drone_pb2.HandoverRequest(new_master=controller)
+            epoch = (await drone_pb2_grpc.DroneStub(as_operator).Handover(handover)).epoch
     reqnr = status.last_reqnr
 
     async def connect(connect_stub: drone_pb2_grpc.DroneStub) -> float:
@@ -60,7 +76,7 @@ async def measure(address: str, controller: int, calls: int, pictures: int, conn
     # and HTTP/2 set-up) until the first event; and on an open channel.
     t_conn_new, t_conn_open = [], []
     for _ in range(connects):
-        fresh = aio_channel(address)
+        fresh = aio_channel(address, tls, DRONE)
         t_conn_new.append(await connect(drone_pb2_grpc.DroneStub(fresh)))
         await fresh.close()
         t_conn_open.append(await connect(stub))
@@ -91,6 +107,7 @@ async def measure(address: str, controller: int, calls: int, pictures: int, conn
     await channel.close()
     return {
         "address": address,
+        "tls": tls is not None,
         "t_conn_new_channel": summary_ms(t_conn_new),
         "t_conn_open_channel": summary_ms(t_conn_open),
         "invoke_get_position": summary_ms(position),
@@ -106,9 +123,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calls", type=int, default=1000, help="GetPosition calls (default 1000)")
     parser.add_argument("--pictures", type=int, default=20, help="TakePicture calls (default 20)")
     parser.add_argument("--connects", type=int, default=20, help="Connect set-ups (default 20)")
+    parser.add_argument(
+        "--certs",
+        type=Path,
+        help="folder with ca.crt and the controller's and operator's certificates "
+        "(baton certs init); without it, the drone's port must be insecure",
+    )
     args = parser.parse_args(argv)
     result = asyncio.run(
-        measure(args.address, args.controller, args.calls, args.pictures, args.connects)
+        measure(args.address, args.controller, args.calls, args.pictures, args.connects, args.certs)
     )
     print(json.dumps(result, indent=2))
     return 0

@@ -32,6 +32,7 @@ from baton.lifecycle import write_atomically
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.server import BatonServer
+from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused
 from baton.stalls import StallWatch
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -97,8 +98,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         race: Race | None = None,
         store: DroneStore | None = None,
         takeover_after_s: float = 0.0,
+        authenticated: bool = False,
     ) -> None:
         self.race = race
+        # Mutual TLS on the port: every call is checked against the caller's
+        # certificate (docs/design.md, Security); False: anyone may call.
+        self.authenticated = authenticated
         # The master is lost after this long (wall seconds) without a stream
         # or a request; 0: never (only an operator's takeover).
         self.takeover_after_s = takeover_after_s
@@ -293,6 +298,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """Executes one drone-API call for the master, or answers it from the reply cache."""
         received_at = time.time()
         try:
+            refusal = self._not_as(context, "Invoke", request.controller_id)
+            if refusal is not None:
+                raise refusal
             return await self.invoke(request, received_at)
         except StatusError as err:
             self.seq.rejected += 1
@@ -481,12 +489,27 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
         self.streams.wake(record.old_master, notice_delay_s)
 
+    def _not_as(self, context: grpc.aio.ServicerContext, what: str, cid: int) -> StatusError | None:
+        """Why the caller may not make ``what`` as controller ``cid``, or None: the
+        identity comes from its certificate, the request's controller_id must match."""
+        claimed = Identity.controller(cid)
+        return refused(
+            context,
+            self.authenticated,
+            f"{what} as controller {cid}",
+            f"only the certificate of {claimed.uri} may send controller_id {cid}",
+            lambda who: who == claimed,
+        )
+
     async def Connect(
         self, request: drone_pb2.ConnectRequest, context: grpc.aio.ServicerContext
     ) -> AsyncIterator[drone_pb2.DroneEvent]:
         """The master's event stream: Connected, then a HandoverNotice at the switch."""
         cid = request.controller_id
         try:
+            refusal = self._not_as(context, "Connect", cid)
+            if refusal is not None:
+                raise refusal
             stream = self.streams.attach(cid, request.mastership_epoch)
         except StatusError as err:
             self.log.warning("connect rejected", controller=cid, reason=err.message)
@@ -530,8 +553,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """A controller's standby stream: held while it runs; a TakeOver comes here."""
         cid = request.controller_id
         try:
+            refusal = self._not_as(context, "Standby", cid)
+            if refusal is not None:
+                raise refusal
             self.seq.check_known(cid)
         except StatusError as err:
+            self.log.warning("standby rejected", controller=cid, reason=err.message)
             await abort_with(context, err)
         stream = self.standby.attach(cid)
         self.last_seen[cid] = time.time()
@@ -559,6 +586,16 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         that re-grants a new master still waiting for a lost one's log.
         """
         try:
+            refusal = refused(
+                context,
+                self.authenticated,
+                "Handover",
+                f"only an operator ({OPERATOR.uri}) may move the master; a controller is "
+                "made master by the drone",
+                lambda who: who == OPERATOR,
+            )
+            if refusal is not None:
+                raise refusal
             self.seq.check_known(request.new_master)
             async with self._lock:
                 if request.takeover:
@@ -582,6 +619,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self, request: drone_pb2.GetDroneStatusRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.DroneStatus:
         """The drone's state, counters, handovers and (if asked) the command audit."""
+        refusal = refused(
+            context,
+            self.authenticated,
+            "GetStatus",
+            "any part of the mission may read the status, with its certificate",
+            lambda who: True,
+        )
+        if refusal is not None:
+            await abort_with(context, refusal)
         return await self.status(
             request.include_audit, request.audit_after_reqnr, request.audit_limit
         )
@@ -669,6 +715,8 @@ class DroneSettings:
     # The master is lost after this long without a stream or a request, in
     # mission seconds (divided by speedup); 0: never.
     takeover_after: float = 3.0
+    # The drone's certificate (mutual TLS); None: an insecure port open to anyone.
+    tls: Tls | None = None
 
     @property
     def master(self) -> int:
@@ -690,7 +738,15 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
     )
     store = DroneStore(settings.state_file) if settings.state_file else None
     takeover_after_s = detection_time_s(settings.takeover_after, settings.speedup)
-    return DroneService(vehicle, camera, sequencer, settings.race, store, takeover_after_s)
+    return DroneService(
+        vehicle,
+        camera,
+        sequencer,
+        settings.race,
+        store,
+        takeover_after_s,
+        authenticated=settings.tls is not None,
+    )
 
 
 async def serve(
@@ -705,11 +761,14 @@ async def serve(
         settings.address,
         [drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name],
         keepalive=CONTROLLER_KEEPALIVE_S if service.takeover_after_s > 0 else None,
+        tls=settings.tls,
     )
     drone_pb2_grpc.add_DroneServicer_to_server(service, server.server)
     await vehicle.start()
     await server.start()
     log = get_logger("drone")
+    if settings.tls is None:
+        log.warning(INSECURE_WARNING)
     log.info(
         "listening",
         address=server.address,

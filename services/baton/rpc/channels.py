@@ -39,8 +39,12 @@ CHANNEL_OPTIONS: list[tuple[str, int | str]] = [
     ("grpc.http2.max_pings_without_data", 0),
     # Reconnect quickly after a peer restarts; the caller adds its own back-off.
     ("grpc.initial_reconnect_backoff_ms", 100),
-    ("grpc.min_reconnect_backoff_ms", 100),
     ("grpc.max_reconnect_backoff_ms", 2_000),
+    # Despite its name, gRPC core reads this as the shortest time a connection
+    # attempt is given (its handshakes included) before it is abandoned: at
+    # 100 ms a TLS handshake over a link with seconds of latency never
+    # completed (the stale-request test's 4 s uplink). 20 s is gRPC's default.
+    ("grpc.min_reconnect_backoff_ms", 20_000),
     ("grpc.enable_retries", 0),
 ]
 

@@ -10,14 +10,62 @@ from __future__ import annotations
 
 import asyncio
 import signal
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
+from typing import Any
 
 import grpc
+from google.protobuf.message import DecodeError
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from baton.rpc.channels import SERVER_OPTIONS
 from baton.rpc.tls import Tls
+
+
+class MalformedRequests(grpc.aio.ServerInterceptor):
+    """A request that does not parse as its method's message is INVALID_ARGUMENT
+    naming the method, where gRPC would answer UNKNOWN (found by the fuzz test,
+    tests/test_fuzz.py). Requests of a stream are parsed where they are read."""
+
+    async def intercept_service(
+        self,
+        continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],
+        details: grpc.HandlerCallDetails,
+    ) -> grpc.RpcMethodHandler:
+        handler = await continuation(details)
+        if handler is None or handler.request_streaming or handler.request_deserializer is None:
+            return handler
+        parse = handler.request_deserializer
+        method = details.method
+
+        async def parsed(raw: bytes, context: grpc.aio.ServicerContext) -> Any:
+            try:
+                return parse(raw)
+            except DecodeError as exc:
+                await context.abort(
+                    grpc.StatusCode.INVALID_ARGUMENT,
+                    f"{method}: the request is not a valid message of this method: {exc}",
+                )
+
+        if handler.response_streaming:
+            streaming = handler.unary_stream
+
+            async def unary_stream(raw: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator:
+                request = await parsed(raw, context)
+                async for reply in streaming(request, context):
+                    yield reply
+
+            return grpc.unary_stream_rpc_method_handler(
+                unary_stream, response_serializer=handler.response_serializer
+            )
+        unary = handler.unary_unary
+
+        async def unary_unary(raw: bytes, context: grpc.aio.ServicerContext) -> Any:
+            return await unary(await parsed(raw, context), context)
+
+        return grpc.unary_unary_rpc_method_handler(
+            unary_unary, response_serializer=handler.response_serializer
+        )
 
 
 class BatonServer:
@@ -41,7 +89,9 @@ class BatonServer:
             options["grpc.http2.min_time_between_pings_ms"] = every_ms
             options["grpc.keepalive_timeout_ms"] = timeout_ms
             options["grpc.http2.ping_timeout_ms"] = timeout_ms
-        self.server = grpc.aio.server(options=list(options.items()))
+        self.server = grpc.aio.server(
+            options=list(options.items()), interceptors=[MalformedRequests()]
+        )
         self.health = health.aio.HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
         self.service_names = list(service_names)

@@ -18,17 +18,24 @@ Certificates are files in one folder, named after the identity
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
 import grpc
 
+from baton.rpc.errors import StatusError
+
 SPIFFE_PREFIX = "spiffe://baton/"
 DNS_SUFFIX = ".baton"
 ROLES = ("controller", "drone", "operator")
 CA_CERT = "ca.crt"
 CA_KEY = "ca.key"
+INSECURE_WARNING = (
+    "running insecure: every port is plain and anyone on the network may call it, "
+    "the drone included; for debugging only (drop --insecure / tls.insecure)"
+)
 _URI = re.compile(r"spiffe://baton/(controller/(0|[1-9][0-9]{0,9})|drone|operator)")
 
 
@@ -139,3 +146,31 @@ def caller(context: _HasAuthContext) -> Identity | None:
         if found is not None:
             return found
     return None
+
+
+def refused(
+    context: _HasAuthContext,
+    enforced: bool,
+    what: str,
+    rule: str,
+    allowed: Callable[[Identity], bool],
+) -> StatusError | None:
+    """Why the caller may not make this call, or None if it may.
+
+    ``enforced`` is False on an insecure server (everyone may). Otherwise a
+    caller without a baton certificate is UNAUTHENTICATED (a plain port, or
+    the mission program's loopback port, where only the token counts) and one
+    whose identity the ``allowed`` rule excludes is PERMISSION_DENIED; the
+    message names the call, the identity and the ``rule`` in words.
+    """
+    if not enforced:
+        return None
+    who = caller(context)
+    if who is None:
+        return StatusError(
+            grpc.StatusCode.UNAUTHENTICATED,
+            f"{what}: the caller presented no baton certificate; {rule}",
+        )
+    if allowed(who):
+        return None
+    return StatusError(grpc.StatusCode.PERMISSION_DENIED, f"{what}: refused to {who}: {rule}")

@@ -57,6 +57,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     parser.add_argument("--no-handovers", action="store_true", help="run without any handover")
     parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="every part plain, no certificates (debugging only: anyone on the network may "
+        "then command the drone); by default every part gets a certificate, from the "
+        "--config file's tls.certs folder or made in the workdir",
+    )
+    parser.add_argument(
         "--config", help="a full testbed YAML (endpoints, ring, initial master, locations, links)"
     )
     parser.add_argument(
@@ -177,6 +184,7 @@ def run(args: argparse.Namespace) -> int:
     """Validates the options, then runs or follows the testbed."""
     from baton.config import ConfigError, load_config, parse_size
     from baton.drone.master import HandoverScriptError, parse_handover_script
+    from baton.rpc.tls import INSECURE_WARNING
     from baton.testbed.local import (
         PAPER_CONTROLLER_LINK,
         WIFI_DRONE_LINK,
@@ -233,9 +241,14 @@ def run(args: argparse.Namespace) -> int:
         return _fail(str(exc))
     mission = MissionPlan(args.grid, args.spacing, args.altitude, args.speed, args.poll)
     report_path = Path(args.report)
+    if args.insecure:
+        print(f"baton testbed: WARNING: {INSECURE_WARNING}", file=sys.stderr)
     if args.action == "report":
         if base is None:
             return _fail("report needs --config FILE: the testbed to follow")
+        if args.insecure:
+            tls = base.tls.model_copy(update={"insecure": True})
+            base = base.model_copy(update={"tls": tls})
         return asyncio.run(follow_remote(base, args.grid, report_path, args.timeout, handovers))
     plan = TestbedPlan(
         controllers=len(ids),
@@ -249,6 +262,7 @@ def run(args: argparse.Namespace) -> int:
         base_config=base,
         vehicle=vehicle,
         sitl_binary=sitl_binary,
+        insecure=args.insecure,
     )
     workdir = (
         Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-testbed-"))

@@ -25,11 +25,13 @@ from typing import Any
 import grpc
 import yaml
 
+from baton.certs.make import ensure
 from baton.config import BatonConfig, DroneConfig, LinkSpec, parse_config
 from baton.effects import read_effects
 from baton.missions import grid as grid_mission
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import MISSION_TOKEN_ENV
+from baton.rpc.tls import CA_CERT, DRONE, OPERATOR, Identity, Tls
 from baton.testbed.supervisor import PartNotReady, Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
@@ -85,6 +87,9 @@ class TestbedPlan:
     # that runs already.
     vehicle: str = "sim"
     sitl_binary: Path | None = None  # default: baton.sitl.launcher.find_binary()
+    # Every port plain (debugging only); by default every part has a
+    # certificate, from the testbed file's tls.certs or made in the workdir.
+    insecure: bool = False
 
 
 # The side effects counted where they happen (baton.effects), in the workdir.
@@ -193,6 +198,8 @@ class LocalTestbed:
         self._channels: list[grpc.aio.Channel] = []
         self.drone_stub: drone_pb2_grpc.DroneStub | None = None
         self.controller_stubs: dict[int, ring_pb2_grpc.ControllerRingStub] = {}
+        # The operator's certificate the testbed calls with; None: insecure.
+        self.tls: Tls | None = None
         self.dead: set[int] = set()  # controllers killed on purpose, not restarted
         # SITL's second MAVLink port (tcp:HOST:PORT), for an independent monitor.
         self.sitl_monitor_url: str | None = None
@@ -246,12 +253,26 @@ class LocalTestbed:
         if plan.emulate_links:
             document["controller_link"] = plan.controller_link.model_dump()
             document["drone_link"] = plan.drone_link.model_dump()
+        document["tls"] = self._certificates(ids)
         self.config_path.write_text(yaml.safe_dump(document, sort_keys=False))
         self.config = parse_config(document, str(self.config_path))
         await self._start_drone()
         await self.wait_vehicle_ready(VEHICLE_READY_TIMEOUT_S, vehicle_wait)
         await self._start_controllers()
         return self.config
+
+    def _certificates(self, ids: list[int]) -> dict[str, Any]:
+        """The testbed file's ``tls``: the given file's certificate folder if it holds a
+        CA, else one made in the workdir (missing parts added); or insecure."""
+        base = self.plan.base_config
+        if self.plan.insecure or (base is not None and base.tls.insecure):
+            return {"insecure": True}
+        folder = self.workdir / "certs"
+        if base is not None and (base.tls.certs / CA_CERT).exists():
+            folder = base.tls.certs
+        ensure(folder, [*(Identity.controller(cid) for cid in ids), DRONE, OPERATOR])
+        self.tls = Tls.load(folder, OPERATOR)
+        return {"certs": str(folder.resolve())}
 
     def _home(self) -> str:
         base = self.plan.base_config
@@ -324,7 +345,7 @@ class LocalTestbed:
             argv += ["--resolution", self.plan.resolution]
         argv += self.plan.drone_args
         address = await self.supervisor.start_ready("drone", argv, ready)
-        channel = aio_channel(address)
+        channel = aio_channel(address, self.tls, DRONE)
         self._channels.append(channel)
         self.drone_stub = drone_pb2_grpc.DroneStub(channel)
 
@@ -359,7 +380,7 @@ class LocalTestbed:
             parts.append(await self.supervisor.start(f"controller-{cid}", argv, ready, env=env))
         for cid, part in zip(self.config.ring_order, parts, strict=True):
             address = await self.supervisor.wait_ready(part)
-            channel = aio_channel(address)
+            channel = aio_channel(address, self.tls, Identity.controller(cid))
             self._channels.append(channel)
             self.controller_stubs[cid] = ring_pb2_grpc.ControllerRingStub(channel)
 

@@ -16,6 +16,7 @@ from typing import Any
 from baton.config import BatonConfig
 from baton.lifecycle import write_atomically
 from baton.rpc.channels import aio_channel
+from baton.rpc.tls import DRONE, OPERATOR, Identity
 from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan, drone_status
 from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
@@ -138,8 +139,11 @@ async def follow_remote(
 ) -> int:
     """Waits for a testbed running elsewhere to finish its mission, then reports."""
     started = time.monotonic()
-    drone_channel = aio_channel(config.drone.address)
-    channels = {c.id: aio_channel(c.reach) for c in config.controllers}
+    tls = config.tls_for(OPERATOR)
+    drone_channel = aio_channel(config.drone.address, tls, DRONE)
+    channels = {
+        c.id: aio_channel(c.reach, tls, Identity.controller(c.id)) for c in config.controllers
+    }
     drone = drone_pb2_grpc.DroneStub(drone_channel)
     rings = {cid: ring_pb2_grpc.ControllerRingStub(ch) for cid, ch in channels.items()}
     progress = Progress(grid * grid, len(handovers))

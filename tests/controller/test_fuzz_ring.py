@@ -1,0 +1,57 @@
+"""Malformed input at a controller's ring port, for a fixed, seeded budget (issue 11):
+no crash, no hang, no change of state, every answer a defined status (tests/fuzzing.py).
+The caller holds a valid controller certificate."""
+
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+import grpc
+from fuzzing import INPUTS_PER_METHOD, SEED, UNHANDLED, answer, mutants
+
+from baton.certs.make import ensure
+from baton.config import parse_config
+from baton.controller.app import ControllerApp
+from baton.rpc.channels import aio_channel
+from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
+from baton.v1 import ring_pb2
+
+CONTROLLERS = (0, 1, 2)
+
+
+async def test_malformed_requests_to_a_controllers_ring_port(tmp_path: Path) -> None:
+    certs = tmp_path / "certs"
+    ensure(certs, [*(Identity.controller(cid) for cid in CONTROLLERS), DRONE, OPERATOR])
+    config = parse_config(
+        {
+            "controllers": [{"id": c, "address": "127.0.0.1:0"} for c in CONTROLLERS],
+            "tls": {"certs": str(certs)},
+        }
+    )
+    app = ControllerApp(config, 1)
+    await app.server.start()  # the ring port only: its node is not started
+    rng = random.Random(SEED)
+    try:
+        protocol = app.node.protocol
+        before = (protocol.lognr, protocol.reqnr, protocol.state)
+        valid = {
+            ("GetStatus", False): [ring_pb2.GetControllerStatusRequest().SerializeToString()],
+            ("MissionDone", False): [
+                ring_pb2.MissionDoneRequest(failed=True, error="x").SerializeToString()
+            ],
+        }
+        as_peer = Tls.load(certs, Identity.controller(0))
+        async with aio_channel(app.server.address, as_peer, Identity.controller(1)) as channel:
+            for (name, stream), examples in valid.items():
+                method = f"/baton.v1.ControllerRing/{name}"
+                for raw in mutants(examples, rng, INPUTS_PER_METHOD):
+                    code = await answer(channel, method, raw, stream)
+                    assert code not in UNHANDLED, (method, raw.hex(), code)
+            assert await answer(channel, "/baton.v1.ControllerRing/GetStatus", b"", False) is (
+                grpc.StatusCode.OK
+            )
+        assert (protocol.lognr, protocol.reqnr, protocol.state) == before
+        assert app.node.mission == "none"
+    finally:
+        await app.server.stop(0)

@@ -1,0 +1,118 @@
+"""Issue 11 across real processes: identities come from certificates, and every attack
+of the issue's list fails with the right status while the mission flies on exactly once."""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import grpc
+import pytest
+from test_controller_end_to_end import FAST_LINK, SMALL_GRID, assert_mission_promises
+
+from baton.certs.make import init, issue
+from baton.rpc.channels import aio_channel
+from baton.rpc.tls import DRONE, Identity, Tls
+from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
+
+
+async def refusal(call: object) -> grpc.aio.AioRpcError:
+    """The error a call (awaitable) ended with; fails the test if it succeeded."""
+    with pytest.raises(grpc.aio.AioRpcError) as refused:
+        await call  # type: ignore[misc]
+    return refused.value
+
+
+async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing(
+    tmp_path: Path,
+) -> None:
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=0,
+        speedup=20.0,
+        mission=SMALL_GRID,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        config = testbed.config
+        assert config is not None and testbed.tls is not None
+        deadline = asyncio.get_running_loop().time() + 120
+        while (await testbed.snapshot(audit=False)).drone.last_reqnr < 5:
+            assert asyncio.get_running_loop().time() < deadline, "mission did not start"
+            await asyncio.sleep(0.05)
+        certs = config.tls.certs
+        replica = Tls.load(certs, Identity.controller(2))  # a controller, never master here
+        position = api.GetPositionRequest().SerializeToString()
+
+        async with aio_channel(config.drone.address, replica, DRONE) as channel:
+            drone = drone_pb2_grpc.DroneStub(channel)
+            # The master's id written in the request, with another controller's certificate.
+            invoke = drone_pb2.InvokeRequest(
+                controller_id=0, reqnr=2**64 - 1, method="/baton.v1.Mobility/Goto", epoch=1
+            )
+            denied = await refusal(drone.Invoke(invoke))
+            assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
+            assert "spiffe://baton/controller/2" in (denied.details() or "")
+            assert "controller_id 0" in (denied.details() or "")
+            connect = drone.Connect(drone_pb2.ConnectRequest(controller_id=0))
+            denied = await refusal(connect.read())
+            assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
+            standby = drone.Standby(drone_pb2.StandbyRequest(controller_id=0))
+            denied = await refusal(standby.read())
+            assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
+            # A controller cannot move the master; an operator can (below).
+            denied = await refusal(drone.Handover(drone_pb2.HandoverRequest(new_master=2)))
+            assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
+            assert "only an operator" in (denied.details() or "")
+            # Its own id is fine for reading the status.
+            await drone.GetStatus(drone_pb2.GetDroneStatusRequest())
+
+        # No certificate, one of another CA, an expired one: the drone's port takes none.
+        foreign = tmp_path / "foreign"
+        init(foreign, [Identity.controller(0)])
+        stolen = Tls.load(foreign, Identity.controller(0))
+        expired = tmp_path / "expired"
+        shutil.copytree(certs, expired)
+        issue(expired, Identity.controller(0), days=1, not_before=datetime.now(UTC) - timedelta(2))
+        for tls in (
+            None,
+            Tls(stolen.identity, replica.ca, stolen.cert, stolen.key),
+            Tls.load(expired, Identity.controller(0)),
+        ):
+            async with aio_channel(config.drone.address, tls, DRONE) as channel:
+                stub = drone_pb2_grpc.DroneStub(channel)
+                failed = await refusal(stub.GetStatus(drone_pb2.GetDroneStatusRequest(), timeout=5))
+                assert failed.code() is grpc.StatusCode.UNAVAILABLE
+
+        # A forged log frame: from an operator, and from a controller naming another.
+        operator = testbed.tls
+        for tls, claimed, code in (
+            (operator, 0, grpc.StatusCode.PERMISSION_DENIED),
+            (replica, 0, grpc.StatusCode.PERMISSION_DENIED),
+        ):
+            async with aio_channel(config.controller(1).address, tls, Identity.controller(1)) as ch:
+                frame = ring_pb2.LogFrame(from_id=claimed, lognr=10**6, data=position)
+                stream = ring_pb2_grpc.ControllerRingStub(ch).LogRing(iter([frame]))
+                failed = await refusal(_read_all(stream))
+                assert failed.code() is code, failed.details()
+
+        # The operator hands over to 2 and the mission flies on.
+        async with aio_channel(config.drone.address, operator, DRONE) as channel:
+            moved = await drone_pb2_grpc.DroneStub(channel).Handover(
+                drone_pb2.HandoverRequest(new_master=2)
+            )
+            assert moved.new_master == 2
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert snapshot.drone.master == 2
+    assert not any(a.method.endswith("/Goto") and a.reqnr > 10**6 for a in snapshot.drone.audit)
+
+
+async def _read_all(stream: grpc.aio.StreamStreamCall) -> None:
+    while await stream.read() is not grpc.aio.EOF:
+        pass
