@@ -9,6 +9,7 @@ port).
 from __future__ import annotations
 
 import asyncio
+import inspect
 import signal
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
 from typing import Any
@@ -49,14 +50,23 @@ class MalformedRequests(grpc.aio.ServerInterceptor):
 
         if handler.response_streaming:
             streaming = handler.unary_stream
+            # A stream's servicer yields its replies, or writes them (context.write)
+            # as the health service's Watch does: the wrapper must do the same.
+            if inspect.isasyncgenfunction(streaming):
 
-            async def unary_stream(raw: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator:
-                request = await parsed(raw, context)
-                async for reply in streaming(request, context):
-                    yield reply
+                async def yielding(raw: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator:
+                    async for reply in streaming(await parsed(raw, context), context):
+                        yield reply
 
+                behavior: Callable[..., Any] = yielding
+            else:
+
+                async def writing(raw: bytes, context: grpc.aio.ServicerContext) -> None:
+                    await streaming(await parsed(raw, context), context)
+
+                behavior = writing
             return grpc.unary_stream_rpc_method_handler(
-                unary_stream, response_serializer=handler.response_serializer
+                behavior, response_serializer=handler.response_serializer
             )
         unary = handler.unary_unary
 
