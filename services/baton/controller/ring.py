@@ -23,6 +23,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 
 import grpc
+from google.protobuf.message import DecodeError
 
 from baton.config import MAX_LOG_MESSAGE_DEFAULT
 from baton.controller.history import LogHistory
@@ -87,9 +88,12 @@ class Reassembler:
             return None
         if self._received > frame.total_bytes:
             raise ValueError(f"log message {frame.lognr} overran its {frame.total_bytes} bytes")
-        message = ring_pb2.LogMessage.FromString(b"".join(self._parts))
+        data = b"".join(self._parts)
         self._lognr, self._parts, self._received = None, [], 0
-        return message
+        try:
+            return ring_pb2.LogMessage.FromString(data)
+        except DecodeError as exc:  # found by the fuzz test (tests/controller/test_fuzz_ring.py)
+            raise ValueError(f"log message {frame.lognr} is not a LogMessage: {exc}") from None
 
 
 @dataclass
@@ -367,7 +371,14 @@ class RingReceiver:
         )
         reassembler = Reassembler(self.max_message_bytes)
         while True:
-            frame = await context.read()
+            try:
+                frame = await context.read()
+            except DecodeError as exc:  # gRPC would end the stream UNKNOWN
+                await context.abort(
+                    grpc.StatusCode.INVALID_ARGUMENT,
+                    f"LogRing: a frame that is not a LogFrame ({exc}); nothing of it was taken",
+                )
+                return
             if frame is grpc.aio.EOF:
                 return
             if sender is not None and frame.from_id != sender:
