@@ -111,3 +111,35 @@ def test_missing_certificates_are_a_clear_error_naming_the_file_and_the_fix(
     assert f"{tmp_path / 'keys' / 'ca.crt'}: cannot read the {name} TLS files" in result.stderr
     assert f"baton certs init {tmp_path / 'keys'}" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (("testbed", "--timeout", "nan"), "--timeout must be a number > 0 and finite, got nan"),
+        (("testbed", "--speedup", "1e6"), "--speedup must be at most 1000"),
+        (("testbed", "--flush-limit", "1e999"), "it must be finite"),
+        (("sim-vehicle", "--port", "70000"), "must be a port in 0..65535"),
+        (("sim-vehicle", "--speedup", "inf"), "must be a number > 0 and finite"),
+        (("link", "--latency", "1e999", "--target", "127.0.0.1:1"), "it must be finite"),
+        (("drone", "--insecure", "--image", "/nonexistent"), "--image /nonexistent: cannot read"),
+        (("drone", "--insecure", "--vehicle-url", "bogus://x"), "not a MAVLink URL"),
+    ],
+)
+def test_bad_flags_are_one_clear_line_before_anything_starts(
+    argv: tuple[str, ...], message: str
+) -> None:
+    """Issue 11: each was a traceback, a silent acceptance, or a run that never ends."""
+    result = baton(*argv)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_an_unresolvable_host_is_named_as_such(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    config = tmp_path / "one.yaml"
+    config.write_text("controllers: [{id: 0, address: 'no-such-host.invalid:7100'}]\n")
+    result = baton("controller", "--id", "0", "--config", str(config), "--insecure")
+    assert result.returncode == 1
+    assert "the host 'no-such-host.invalid' does not resolve" in result.stderr
+    assert "in use" not in result.stderr and "Traceback" not in result.stderr

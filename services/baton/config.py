@@ -11,6 +11,7 @@ docs/design.md's performance model. Rates accept ``25Mbit``; Mbit means 10**6 bi
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 from typing import Annotated, Any
@@ -21,6 +22,7 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    StrictInt,
     ValidationError,
     field_validator,
     model_validator,
@@ -60,13 +62,26 @@ def _parse_with_units(value: Any, units: dict[str, Any], what: str, example: str
     if isinstance(value, bool):
         raise ValueError(f"expected {what} like {example!r}, got {value!r}")
     if isinstance(value, int | float):
+        if not math.isfinite(value):
+            raise ValueError(f"expected {what} like {example!r}, got {value!r}: it must be finite")
         return float(value)
     match = _NUMBER_WITH_UNIT.match(str(value))
     unit = match.group(2).lower() if match else None
     if match is None or unit not in units:
         known = ", ".join(u for u in units if u)
         raise ValueError(f"expected {what} like {example!r} (units: {known}), got {value!r}")
-    return float(match.group(1)) * units[unit]
+    number = float(match.group(1)) * units[unit]
+    if not math.isfinite(number):
+        raise ValueError(f"expected {what} like {example!r}, got {value!r}: it must be finite")
+    return number
+
+
+# The fastest a mission's clock and the sim vehicle may run.
+MAX_SPEEDUP = 1000.0
+
+# The longest duration a testbed file or flag may give (a link's latency, a
+# timeout): a day. 1e999 used to make a link that never delivers.
+MAX_DURATION_S = 86_400.0
 
 
 def parse_size(value: Any) -> int:
@@ -90,6 +105,11 @@ def parse_duration(value: Any) -> float:
     seconds = _parse_with_units(value, _TIME_UNITS, "a duration", "20ms")
     if seconds < 0:
         raise ValueError(f"a duration must be >= 0, got {value!r}")
+    if seconds > MAX_DURATION_S:
+        raise ValueError(
+            f"a duration must be at most a day ({MAX_DURATION_S:g} s), got {value!r}: no link "
+            "delay, timeout or takeover time of a mission is longer"
+        )
     return seconds
 
 
@@ -172,7 +192,7 @@ class DroneConfig(_Model):
 class ControllerConfig(_Model):
     """One mission controller."""
 
-    id: int = Field(ge=0, le=2**31 - 1)
+    id: int = Field(ge=0, le=2**31 - 1, strict=True)  # strict: `true` is not 1
     address: Address
     # How the other controllers reach this one (a link emulator in the
     # testbed); defaults to ``address``.
@@ -209,10 +229,10 @@ class BatonConfig(_Model):
     drone: DroneConfig = DroneConfig()
     controllers: list[ControllerConfig] = Field(min_length=1)
     # Ring order by controller id; defaults to the order of ``controllers``.
-    ring: list[int] | None = None
-    initial_master: int | None = None
+    ring: list[StrictInt] | None = None
+    initial_master: StrictInt | None = None
     flush_limit: Size = 2 * 2**20
-    speedup: float = Field(default=1.0, gt=0, le=1000)
+    speedup: float = Field(default=1.0, gt=0, le=MAX_SPEEDUP)
     controller_link: LinkSpec = LinkSpec()
     drone_link: LinkSpec = LinkSpec()
     # How long an ACTIVE controller keeps re-sending a request that the drone
@@ -238,6 +258,25 @@ class BatonConfig(_Model):
                 raise ValueError(f"controller id {c.id} appears twice; give each a unique id")
             seen.add(c.id)
         return controllers
+
+    @model_validator(mode="after")
+    def _one_part_per_address(self) -> BatonConfig:
+        owners: dict[str, str] = {}
+        parts = [("the drone", self.drone.address)]
+        parts += [(f"controller {c.id}", c.address) for c in self.controllers]
+        for owner, address in parts:
+            if address.endswith(":0"):
+                continue  # port 0: each picks a free port
+            if address in owners:
+                first = owners[address]
+                both = (
+                    f"controllers {first.split()[1]} and {owner.split()[1]}"
+                    if first.startswith("controller") and owner.startswith("controller")
+                    else f"{first} and {owner}"
+                )
+                raise ValueError(f"{both} both listen on {address}; give each part its own port")
+            owners[address] = owner
+        return self
 
     @model_validator(mode="after")
     def _ring_and_master(self) -> BatonConfig:

@@ -237,10 +237,39 @@ async def test_unreachable_vehicle_is_unavailable_at_once() -> None:
     [
         ("Takeoff", api.TakeoffRequest(altitude_m=0), "altitude_m"),
         ("Takeoff", api.TakeoffRequest(altitude_m=math.nan), "altitude_m"),
-        ("Goto", api.GotoRequest(latitude_deg=91, relative_altitude_m=10), "latitude_deg"),
-        ("Goto", api.GotoRequest(longitude_deg=-181, relative_altitude_m=10), "longitude_deg"),
-        ("Goto", api.GotoRequest(latitude_deg=math.nan, relative_altitude_m=10), "latitude_deg"),
-        ("Goto", api.GotoRequest(relative_altitude_m=-1), "relative_altitude_m"),
+        (
+            "Goto",
+            api.GotoRequest(latitude_deg=91, longitude_deg=8, relative_altitude_m=10),
+            "latitude_deg",
+        ),
+        (
+            "Goto",
+            api.GotoRequest(latitude_deg=47, longitude_deg=-181, relative_altitude_m=10),
+            "longitude_deg",
+        ),
+        (
+            "Goto",
+            api.GotoRequest(latitude_deg=math.nan, longitude_deg=8, relative_altitude_m=10),
+            "latitude_deg",
+        ),
+        (
+            "Goto",
+            api.GotoRequest(latitude_deg=47, longitude_deg=8, relative_altitude_m=-1),
+            "relative_altitude_m",
+        ),
+        # Issue 11: a Goto without a coordinate was flown to 0°N 0°E.
+        ("Goto", api.GotoRequest(relative_altitude_m=10), "latitude_deg is missing"),
+        (
+            "Goto",
+            api.GotoRequest(latitude_deg=47, relative_altitude_m=10),
+            "longitude_deg is missing",
+        ),
+        # A SetSpeed's bytes read as a Goto: speed 5 becomes latitude 5, no longitude.
+        (
+            "Goto",
+            api.GotoRequest.FromString(api.SetSpeedRequest(speed_m_s=5).SerializeToString()),
+            "longitude_deg is missing",
+        ),
         ("SetSpeed", api.SetSpeedRequest(speed_m_s=0), "speed_m_s"),
     ],
 )

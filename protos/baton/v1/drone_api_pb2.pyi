@@ -175,9 +175,11 @@ class GotoRequest(_message.Message):
     RELATIVE_ALTITUDE_M_FIELD_NUMBER: _builtins.int
     YAW_DEG_FIELD_NUMBER: _builtins.int
     latitude_deg: _builtins.float
-    """Latitude of the target, degrees, in [-90, 90]."""
+    """Latitude of the target, degrees, in [-90, 90]; required (optional only so
+    that a request without it is refused instead of flown to 0 degrees).
+    """
     longitude_deg: _builtins.float
-    """Longitude of the target, degrees, in [-180, 180]."""
+    """Longitude of the target, degrees, in [-180, 180]; required, as latitude."""
     relative_altitude_m: _builtins.float
     """Altitude of the target above home, metres."""
     yaw_deg: _builtins.float
@@ -185,16 +187,23 @@ class GotoRequest(_message.Message):
     def __init__(
         self,
         *,
-        latitude_deg: _builtins.float = ...,
-        longitude_deg: _builtins.float = ...,
+        latitude_deg: _builtins.float | None = ...,
+        longitude_deg: _builtins.float | None = ...,
         relative_altitude_m: _builtins.float = ...,
         yaw_deg: _builtins.float = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_latitude_deg", b"_latitude_deg", "_longitude_deg", b"_longitude_deg", "latitude_deg", b"latitude_deg", "longitude_deg", b"longitude_deg"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["latitude_deg", b"latitude_deg", "longitude_deg", b"longitude_deg", "relative_altitude_m", b"relative_altitude_m", "yaw_deg", b"yaw_deg"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_latitude_deg", b"_latitude_deg", "_longitude_deg", b"_longitude_deg", "latitude_deg", b"latitude_deg", "longitude_deg", b"longitude_deg", "relative_altitude_m", b"relative_altitude_m", "yaw_deg", b"yaw_deg"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    def WhichOneof(self, oneof_group: _Never) -> None: ...
+    _WhichOneofReturnType__latitude_deg: _TypeAlias = _typing.Literal["latitude_deg"]  # noqa: Y015
+    _WhichOneofArgType__latitude_deg: _TypeAlias = _typing.Literal["_latitude_deg", b"_latitude_deg"]  # noqa: Y015
+    _WhichOneofReturnType__longitude_deg: _TypeAlias = _typing.Literal["longitude_deg"]  # noqa: Y015
+    _WhichOneofArgType__longitude_deg: _TypeAlias = _typing.Literal["_longitude_deg", b"_longitude_deg"]  # noqa: Y015
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__latitude_deg) -> _WhichOneofReturnType__latitude_deg | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__longitude_deg) -> _WhichOneofReturnType__longitude_deg | None: ...
 
 Global___GotoRequest: _TypeAlias = GotoRequest  # noqa: Y015
 

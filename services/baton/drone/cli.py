@@ -45,6 +45,10 @@ def _address(text: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+# The connection URLs MAVSDK takes (MAVSDK's CliArg).
+VEHICLE_SCHEMES = ("udp", "udpin", "udpout", "tcp", "tcpin", "tcpout", "serial")
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Adds ``baton drone`` and its options."""
     width, height = DEFAULT_RESOLUTION
@@ -200,9 +204,24 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     if args.cache_window is not None and args.cache_window < 1:
         raise ValueError(f"--cache-window must be >= 1, got {args.cache_window}")
     script = load_handover_script(args.handover_file, controllers) if args.handover_file else {}
+    if args.image is not None:
+        try:
+            with open(args.image, "rb"):
+                pass
+        except OSError as exc:
+            raise ValueError(
+                f"--image {args.image}: cannot read it ({exc.strerror}); give an image file, "
+                "or leave --image out for generated pictures"
+            ) from None
+    vehicle = args.vehicle_url or vehicle_url
+    if vehicle.split("://", 1)[0] not in VEHICLE_SCHEMES or "://" not in vehicle:
+        raise ValueError(
+            f"--vehicle-url {vehicle}: not a MAVLink URL; use one of "
+            f"{', '.join(s + '://' for s in VEHICLE_SCHEMES)}, e.g. udpin://0.0.0.0:14540"
+        )
     return DroneSettings(
         address=args.address or address,
-        vehicle_url=args.vehicle_url or vehicle_url,
+        vehicle_url=vehicle,
         controllers=controllers,
         initial_master=initial_master,
         handover_script=script,

@@ -515,6 +515,13 @@ class MavsdkMobility:
 
     async def Goto(self, request: api.GotoRequest) -> api.GotoReply:
         """Flies to the location at the cruise speed; altitude AMSL = home AMSL + relative."""
+        for name in ("latitude_deg", "longitude_deg"):
+            if not request.HasField(name):
+                raise StatusError(
+                    grpc.StatusCode.INVALID_ARGUMENT,
+                    f"Goto: {name} is missing; a target needs both latitude_deg and "
+                    "longitude_deg (without them it was flown to 0°N 0°E)",
+                )
         _require_range("latitude_deg", request.latitude_deg, -90.0, 90.0)
         _require_range("longitude_deg", request.longitude_deg, -180.0, 180.0)
         _require_positive("relative_altitude_m", request.relative_altitude_m)

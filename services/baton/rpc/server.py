@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import inspect
 import signal
+import socket
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
 from typing import Any
 
@@ -78,6 +79,22 @@ class MalformedRequests(grpc.aio.ServerInterceptor):
         )
 
 
+def _why_not_bound(address: str) -> str:
+    """Why gRPC could not bind ``address`` (it only says it failed)."""
+    host = address.rsplit(":", 1)[0].strip("[]")
+    try:
+        socket.getaddrinfo(host, None)
+    except socket.gaierror:
+        return (
+            f"cannot serve on {address}: the host {host!r} does not resolve; give an address "
+            "of this machine (127.0.0.1, 0.0.0.0 or a name it resolves)"
+        )
+    return (
+        f"cannot serve on {address}: the address is in use or not on this host; "
+        "choose another port (port 0 picks a free one)"
+    )
+
+
 class BatonServer:
     """A ``grpc.aio`` server with health and reflection, bound to one address."""
 
@@ -116,10 +133,7 @@ class BatonServer:
         except RuntimeError:  # grpcio's way of saying the bind failed
             self.port = 0
         if self.port == 0:
-            raise OSError(
-                f"cannot serve on {address}: the address is in use or not on this host; "
-                "choose another port (port 0 picks a free one)"
-            )
+            raise OSError(_why_not_bound(address))
         host = address.rsplit(":", 1)[0]
         self.address = f"{host}:{self.port}"
 

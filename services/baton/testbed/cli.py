@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import sys
 import tempfile
 from pathlib import Path
@@ -182,7 +183,7 @@ def _vehicle(args: argparse.Namespace, base: BatonConfig | None) -> tuple[str, P
 
 def run(args: argparse.Namespace) -> int:
     """Validates the options, then runs or follows the testbed."""
-    from baton.config import ConfigError, load_config, parse_size
+    from baton.config import MAX_SPEEDUP, ConfigError, load_config, parse_size
     from baton.drone.master import HandoverScriptError, parse_handover_script
     from baton.rpc.tls import INSECURE_WARNING
     from baton.testbed.local import (
@@ -233,8 +234,11 @@ def run(args: argparse.Namespace) -> int:
             (reqnr, ids[(k + 1) % len(ids)]) for k, reqnr in enumerate(DEFAULT_HANDOVER_REQNRS)
         ]
     for name in ("speedup", "grid", "spacing", "altitude", "speed", "poll", "timeout"):
-        if getattr(args, name) <= 0:
-            return _fail(f"--{name} must be > 0, got {getattr(args, name)}")
+        value = getattr(args, name)
+        if not 0 < value < math.inf:  # nan too: a --timeout nan never timed out
+            return _fail(f"--{name} must be a number > 0 and finite, got {value}")
+    if args.speedup > MAX_SPEEDUP:  # checked before anything starts
+        return _fail(f"--speedup must be at most {MAX_SPEEDUP:g}, got {args.speedup:g}")
     try:
         vehicle, sitl_binary = _vehicle(args, base)
     except ValueError as exc:

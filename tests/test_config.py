@@ -1,0 +1,62 @@
+"""The testbed file's model: every bad value is refused with the file, the field and
+what to write instead (issue 11's list of inputs that were crashes or silently wrong)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from baton.config import ConfigError, parse_config, parse_duration, parse_size
+
+TWO = [{"id": 0, "address": "127.0.0.1:7100"}, {"id": 1, "address": "127.0.0.1:7101"}]
+
+
+def refused(document: dict[str, Any]) -> str:
+    with pytest.raises(ConfigError) as error:
+        parse_config(document, "t.yaml")
+    return str(error.value)
+
+
+@pytest.mark.parametrize(
+    ("extra", "field", "why"),
+    [
+        ({"flush_limit": float("inf")}, "flush_limit", "finite"),
+        ({"flush_limit": "1e999"}, "flush_limit", "finite"),
+        ({"flush_limit": float("nan")}, "flush_limit", "finite"),
+        ({"controller_link": {"latency": float("inf")}}, "controller_link.latency", "finite"),
+        ({"controller_link": {"latency": float("nan")}}, "controller_link.latency", "finite"),
+        ({"drone_link": {"bandwidth": float("nan")}}, "drone_link.bandwidth", "finite"),
+        ({"drone_link": {"latency": "2days"}}, "drone_link.latency", "units"),
+        ({"takeover_after": 10**9}, "takeover_after", "at most"),
+        ({"speedup": float("nan")}, "speedup", ""),
+    ],
+)
+def test_numbers_that_are_not_finite_or_not_sane_are_refused(
+    extra: dict[str, Any], field: str, why: str
+) -> None:
+    message = refused({"controllers": TWO, **extra})
+    assert message.startswith(f"t.yaml: {field}: "), message
+    assert why in message
+
+
+def test_a_boolean_is_not_an_id() -> None:
+    message = refused({"controllers": [{"id": True, "address": "127.0.0.1:7100"}]})
+    assert message.startswith("t.yaml: controllers[0].id: ")
+    assert "integer" in message
+
+
+def test_two_parts_on_one_address_are_refused() -> None:
+    twins = [{"id": 0, "address": "127.0.0.1:7100"}, {"id": 1, "address": "127.0.0.1:7100"}]
+    message = refused({"controllers": twins})
+    assert "127.0.0.1:7100" in message and "controllers 0 and 1" in message
+    clash = refused({"controllers": TWO, "drone": {"address": "127.0.0.1:7101"}})
+    assert "127.0.0.1:7101" in clash and "drone" in clash
+    # Port 0 picks a free port for each: not a clash.
+    parse_config({"controllers": [{"id": c, "address": "127.0.0.1:0"} for c in (0, 1)]})
+
+
+def test_the_parsers_refuse_infinity_for_flags_too() -> None:
+    for parse, text in ((parse_size, "1e999"), (parse_duration, "1e999"), (parse_size, "1e999MB")):
+        with pytest.raises(ValueError, match="finite"):
+            parse(text)
