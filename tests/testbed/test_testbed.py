@@ -214,7 +214,7 @@ def test_bad_options_are_refused_with_a_clear_message() -> None:
         (["--handover", "9"], "expected REQNR:MID"),
         (["--handover", "9:7"], "unknown controller id 7"),
         (["--flush-limit", "lots"], "expected a size like '2MB'"),
-        (["--grid", "0"], "--grid must be > 0"),
+        (["--grid", "0"], "--grid must be a number > 0"),
     ]:
         result = subprocess.run(baton("testbed", *args), capture_output=True, text=True, timeout=60)
         assert result.returncode == 2 and message in result.stderr, (args, result.stderr)
