@@ -40,9 +40,13 @@ def sitl_binary() -> Path | None:
 class Sitl:
     """``baton sitl`` as a process: start, kill -9, restart on the same instance."""
 
-    def __init__(self, workdir: Path, speedup: float = SITL_SPEEDUP) -> None:
+    def __init__(
+        self, workdir: Path, speedup: float = SITL_SPEEDUP, mavlink_key: Path | None = None
+    ) -> None:
         self.workdir = workdir
         self.speedup = speedup
+        # With a key, SITL holds it and url is SERIAL1, monitor_url SERIAL2 (signed only).
+        self.mavlink_key = mavlink_key
         self.process: subprocess.Popen[bytes] | None = None
         self.url = ""
         self.monitor_url = ""
@@ -68,6 +72,8 @@ class Sitl:
         ]
         if self.instance is not None:
             argv += ["--instance", str(self.instance)]
+        if self.mavlink_key is not None:
+            argv += ["--mavlink-key", str(self.mavlink_key)]
         log = (self.workdir / "sitl.log").open("ab")
         self.process = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout_s

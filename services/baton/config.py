@@ -186,6 +186,11 @@ class DroneConfig(_Model):
 
     address: Address = "127.0.0.1:50051"
     vehicle_url: str = "udpin://127.0.0.1:14540"
+    # MAVLink 2 signing between the drone service and the autopilot (off by
+    # default: usually a serial cable on the airframe); a key file made by
+    # `baton certs mavlink-key`, relative to the configuration file's folder.
+    # The sim vehicle of the testbed checks and signs with the same key.
+    mavlink_key: Path | None = None
     home: Location = Location(latitude_deg=47.397742, longitude_deg=8.545594, altitude_m=488.0)
 
 
@@ -401,6 +406,10 @@ def load_config(path: str | Path) -> BatonConfig:
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
     config = parse_config(data, str(path))
+    key = config.drone.mavlink_key
+    if key is not None and not key.is_absolute():
+        drone = config.drone.model_copy(update={"mavlink_key": path.parent / key})
+        config = config.model_copy(update={"drone": drone})
     if config.tls.certs.is_absolute():
         return config
     tls = config.tls.model_copy(update={"certs": path.parent / config.tls.certs})

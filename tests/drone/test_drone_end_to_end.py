@@ -37,6 +37,7 @@ class DroneBed:
     certs: Path
     processes: list[subprocess.Popen[bytes]] = field(default_factory=list)
     channels: dict[Identity, grpc.Channel] = field(default_factory=dict)
+    vehicle_url: str = ""
 
     def as_(self, identity: Identity) -> drone_pb2_grpc.DroneStub:
         """A stub that calls with ``identity``'s certificate."""
@@ -74,8 +75,16 @@ def drone_bed(
     url: str | None,
     speedup: float,
     handovers: str = "# the master switches after the landing command\n7 1\n",
+    *,
+    vehicle_key: Path | None = None,
+    drone_key: Path | None = None,
+    ready: bool = True,
 ) -> Iterator[DroneBed]:
-    """The drone service (and the sim vehicle, when ``url`` is None) as processes."""
+    """The drone service (and the sim vehicle, when ``url`` is None) as processes.
+
+    ``vehicle_key`` and ``drone_key`` turn MAVLink signing on at either end;
+    ``ready=False`` does not wait for the vehicle to be ready to arm.
+    """
     script = tmp_path / "handovers.txt"
     script.write_text(handovers)
     certs = tmp_path / "certs"
@@ -83,7 +92,8 @@ def drone_bed(
     processes = []
     if url is None:  # the embedded sim vehicle
         sim, url = start_program(
-            ["sim-vehicle", "--speedup", str(speedup), "--url-file", str(tmp_path / "url")],
+            ["sim-vehicle", "--speedup", str(speedup), "--url-file", str(tmp_path / "url")]
+            + ([f"--mavlink-key={vehicle_key}"] if vehicle_key else []),
             tmp_path / "url",
             tmp_path / "sim.log",
         )
@@ -100,14 +110,18 @@ def drone_bed(
                 f"--handover-file={script}",
                 f"--speedup={speedup}",
                 f"--certs={certs}",
+                *([f"--mavlink-key={drone_key}"] if drone_key else []),
             ],
             tmp_path / "address",
             tmp_path / "drone.log",
         )
         processes.append(drone)
-        bed = DroneBed(address, certs, processes)
+        bed = DroneBed(address, certs, processes, vehicle_url=url)
         # ArduPilot arms ~40 s (of its time) after boot: minutes at worst on a loaded box.
-        bed.wait_until("vehicle ready", lambda s: s.vehicle_connected and s.flight_state.ready, 120)
+        if ready:
+            bed.wait_until(
+                "vehicle ready", lambda s: s.vehicle_connected and s.flight_state.ready, 120
+            )
         yield bed
         for channel in bed.channels.values():
             channel.close()

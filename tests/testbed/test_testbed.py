@@ -279,3 +279,29 @@ def test_the_testbed_flies_the_vehicle_its_file_names(tmp_path: Path) -> None:
     assert report["side_effects"]["pictures_taken"] == 4
     assert not (tmp_path / "w" / "logs" / "sim-vehicle.log").exists()
     assert "vehicle " + url in report["stdout"]
+
+
+def test_a_testbed_file_with_a_mavlink_key_flies_signed(tmp_path: Path) -> None:
+    """drone.mavlink_key: the sim vehicle holds the key and the drone signs; exactly once."""
+    import yaml
+
+    from baton.signing import write_key
+    from baton.testbed.local import free_port
+
+    (tmp_path / "keys").mkdir()
+    write_key(tmp_path / "keys" / "mavlink.key")
+    document = {
+        "drone": {"address": f"127.0.0.1:{free_port()}", "mavlink_key": "keys/mavlink.key"},
+        "controllers": [{"id": cid, "address": f"127.0.0.1:{free_port()}"} for cid in range(2)],
+        "speedup": 20,
+    }
+    config = tmp_path / "testbed.yaml"
+    config.write_text(yaml.safe_dump(document))
+    report = run_testbed(tmp_path, "--config", str(config), *SMALL, "--handover", "6:1")
+    assert report["setup"]["vehicle"]["signing"] is True
+    assert report["setup"]["vehicle"]["refused_frames"] == 0
+    assert report["exactly_once"] and report["side_effects"]["exactly_once"]
+    assert report["side_effects"]["pictures_taken"] == 4
+    vehicle_log = (tmp_path / "w" / "logs" / "sim-vehicle.log").read_text()
+    assert "MAVLink frames refused" not in vehicle_log
+    assert '"signing": true' in vehicle_log  # the vehicle checked every frame it acted on

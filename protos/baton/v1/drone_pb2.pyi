@@ -788,6 +788,9 @@ class VehicleLink(_message.Message):
     OUTAGE_S_FIELD_NUMBER: _builtins.int
     OUTAGES_FIELD_NUMBER: _builtins.int
     STREAM_REQUESTS_FIELD_NUMBER: _builtins.int
+    SIGNING_FIELD_NUMBER: _builtins.int
+    REFUSED_FRAMES_FIELD_NUMBER: _builtins.int
+    LAST_REFUSAL_FIELD_NUMBER: _builtins.int
     healthy: _builtins.bool
     """Heartbeats are arriving and position telemetry is fresh."""
     heartbeat_age_s: _builtins.float
@@ -807,6 +810,15 @@ class VehicleLink(_message.Message):
     connect, after a reconnect, and when a stream stopped while heartbeats
     kept coming, as after an autopilot reboot).
     """
+    signing: _builtins.bool
+    """MAVLink 2 signing is on (baton drone --mavlink-key): what MAVSDK sends is
+    signed, and only signed frames from the autopilot reach it.
+    """
+    refused_frames: _builtins.int
+    """Frames from the autopilot refused for a missing or wrong signature or an
+    old timestamp, and the reason of the last one.
+    """
+    last_refusal: _builtins.str
     def __init__(
         self,
         *,
@@ -817,10 +829,13 @@ class VehicleLink(_message.Message):
         outage_s: _builtins.float = ...,
         outages: _builtins.int = ...,
         stream_requests: _builtins.int = ...,
+        signing: _builtins.bool = ...,
+        refused_frames: _builtins.int = ...,
+        last_refusal: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["healthy", b"healthy", "heartbeat_age_s", b"heartbeat_age_s", "outage_s", b"outage_s", "outages", b"outages", "position_age_s", b"position_age_s", "problem", b"problem", "stream_requests", b"stream_requests"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["healthy", b"healthy", "heartbeat_age_s", b"heartbeat_age_s", "last_refusal", b"last_refusal", "outage_s", b"outage_s", "outages", b"outages", "position_age_s", b"position_age_s", "problem", b"problem", "refused_frames", b"refused_frames", "signing", b"signing", "stream_requests", b"stream_requests"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -74,7 +74,7 @@ def tls_from_flags(
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """Adds ``baton certs init`` and ``baton certs issue``."""
+    """Adds ``baton certs init``, ``issue`` and ``mavlink-key``."""
     parser = subparsers.add_parser(
         "certs",
         help="make the CA and certificates for mutual TLS",
@@ -110,6 +110,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     issue.add_argument("part", type=_identity, help="controller-N, drone or operator")
     issue.add_argument("--days", type=_days, default=365, help="validity in days (default 365)")
     issue.set_defaults(run=_run_issue)
+    key = actions.add_parser(
+        "mavlink-key",
+        help="a new random MAVLink 2 signing key, for the drone and its autopilot",
+        description=(
+            "Writes a new 32-byte MAVLink signing key as 64 hexadecimal digits (mode 0600). "
+            "Give it to the drone (--mavlink-key, or drone.mavlink_key in the testbed file) "
+            "and install the same key on the autopilot (ArduPilot: SETUP_SIGNING, e.g. "
+            "MAVProxy's `signing key`, or `baton sitl --mavlink-key`). Refuses to replace a key."
+        ),
+    )
+    key.add_argument("file", type=Path, help="the key file to create")
+    key.set_defaults(run=_run_mavlink_key)
 
 
 def _run_init(args: argparse.Namespace) -> int:
@@ -130,6 +142,18 @@ def _run_init(args: argparse.Namespace) -> int:
     else:
         init(args.dir, parts, args.days)
     print(f"{args.dir}: CA and certificates for {', '.join(p.name for p in parts)}")
+    return 0
+
+
+def _run_mavlink_key(args: argparse.Namespace) -> int:
+    from baton.signing import SigningKeyError, write_key
+
+    try:
+        write_key(args.file)
+    except (SigningKeyError, OSError) as exc:
+        print(f"baton certs mavlink-key: {exc}", file=sys.stderr)
+        return 2
+    print(f"{args.file}: a new MAVLink signing key")
     return 0
 
 

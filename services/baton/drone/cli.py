@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from baton.certs.cli import add_tls_flags, tls_from_flags
@@ -81,6 +82,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         metavar="URL",
         help="MAVSDK connection URL of the autopilot, e.g. udpout://127.0.0.1:14550 "
         "(default: config, else udpin://127.0.0.1:14540)",
+    )
+    parser.add_argument(
+        "--mavlink-key",
+        metavar="FILE",
+        help="sign MAVLink to the autopilot and accept only signed MAVLink from it, with "
+        "this key (baton certs mavlink-key FILE; default: the config's drone.mavlink_key, "
+        "else unsigned). The autopilot must hold the same key",
     )
     parser.add_argument(
         "--controllers",
@@ -172,7 +180,9 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     from baton.drone.dedupe import DEFAULT_WINDOW
     from baton.drone.master import load_handover_script
     from baton.drone.service import DroneSettings, Race
+    from baton.drone.signing_relay import VehicleEndpoint
     from baton.rpc.tls import DRONE
+    from baton.signing import read_key
 
     address, vehicle_url, speedup = "127.0.0.1:50051", "udpin://127.0.0.1:14540", 1.0
     controllers: tuple[int, ...] = (0,)
@@ -219,6 +229,11 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
             f"--vehicle-url {vehicle}: not a MAVLink URL; use one of "
             f"{', '.join(s + '://' for s in VEHICLE_SCHEMES)}, e.g. udpin://0.0.0.0:14540"
         )
+    mavlink_key = None
+    key_file = args.mavlink_key or (config.drone.mavlink_key if config else None)
+    if key_file is not None:
+        mavlink_key = read_key(Path(key_file))
+        VehicleEndpoint.parse(vehicle)  # the relay can hold it, or a message saying why
     return DroneSettings(
         address=args.address or address,
         vehicle_url=vehicle,
@@ -235,6 +250,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         camera_effects_file=args.camera_effects_file,
         takeover_after=takeover_after,
         tls=tls_from_flags(args, config, DRONE),
+        mavlink_key=mavlink_key,
     )
 
 
@@ -254,5 +270,5 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigError, HandoverScriptError, TlsError, ValueError) as exc:
         print(f"baton drone: {exc}", file=sys.stderr)
         return 2
-    vehicle = MavsdkMobility(settings.vehicle_url)
+    vehicle = MavsdkMobility(settings.vehicle_url, signing_key=settings.mavlink_key)
     return asyncio.run(run_until_signalled(lambda stop: serve(settings, vehicle, stop)))

@@ -36,6 +36,7 @@ import grpc
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs
+from baton.drone.signing_relay import SigningRelay
 from baton.drone.vehicle_state import (
     ARDUPILOT_COMMAND_MODE,
     PREARM_TEXT_VALID_S,
@@ -166,8 +167,11 @@ class MavsdkMobility:
         command_timeout_s: float = 10.0,
         position_max_age_s: float = 1.0,
         heartbeat_timeout_s: float = 3.0,
+        signing_key: bytes | None = None,
     ) -> None:
         self.url = url
+        # With a key, MAVSDK talks to the autopilot through the signing relay.
+        self._relay = SigningRelay(url, signing_key) if signing_key is not None else None
         self.rates = rates or TelemetryRates()
         self.command_timeout_s = command_timeout_s
         self.monitor = LinkMonitor(
@@ -199,8 +203,9 @@ class MavsdkMobility:
         _ensure_executor(asyncio.get_running_loop())
         config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
         self._mavsdk = Mavsdk(config)
+        url = self.url if self._relay is None else await self._relay.start()
         try:
-            await self._mavsdk.add_any_connection(self.url)
+            await self._mavsdk.add_any_connection(url)
         except MavsdkConnectionError as exc:
             raise StatusError(
                 grpc.StatusCode.INVALID_ARGUMENT, f"cannot open vehicle URL {self.url}: {exc}"
@@ -217,6 +222,8 @@ class MavsdkMobility:
         if self._mavsdk is not None:
             self._mavsdk.destroy()
             self._mavsdk = None
+        if self._relay is not None:
+            await self._relay.close()
 
     @property
     def connected(self) -> bool:
@@ -225,7 +232,17 @@ class MavsdkMobility:
 
     def link(self) -> drone_pb2.VehicleLink:
         """The link to the autopilot now, for GetStatus."""
-        return self.monitor.snapshot(self._observe_link())
+        link = self.monitor.snapshot(self._observe_link())
+        relay = self._relay
+        if relay is not None:
+            link.signing, link.refused_frames = True, relay.refused
+            link.last_refusal = relay.last_refusal
+            if link.problem and relay.refused:
+                link.problem += (
+                    f"; {relay.refused} frames from the autopilot refused by MAVLink signing "
+                    f"({relay.last_refusal}): does it hold the drone's key?"
+                )
+        return link
 
     async def _attach(self) -> None:
         from mavsdk.asyncio.plugins.action import ActionAsync

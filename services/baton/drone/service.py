@@ -717,6 +717,8 @@ class DroneSettings:
     takeover_after: float = 3.0
     # The drone's certificate (mutual TLS); None: an insecure port open to anyone.
     tls: Tls | None = None
+    # The MAVLink signing key (signing.py); None: the autopilot link unsigned.
+    mavlink_key: bytes | None = None
 
     @property
     def master(self) -> int:

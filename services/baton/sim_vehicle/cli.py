@@ -131,6 +131,14 @@ def register(subparsers: Any) -> None:
         "system_id), flushed at once; a retransmission is not counted again; a restarted vehicle "
         "continues the file (default: none written)",
     )
+    parser.add_argument(
+        "--mavlink-key",
+        type=Path,
+        metavar="FILE",
+        help="MAVLink 2 signing as ArduPilot does it once it holds a key: accept only frames "
+        "signed with this key (RADIO_STATUS excepted), sign every frame sent "
+        "(baton certs mavlink-key FILE; default: unsigned)",
+    )
     parser.set_defaults(run=run)
 
 
@@ -138,10 +146,16 @@ def run(args: argparse.Namespace) -> int:
     """Runs the vehicles until SIGTERM or SIGINT; exit code 0."""
     from baton import logs
     from baton.effects import EffectsFile
+    from baton.signing import SigningKeyError, read_key
     from baton.sim_vehicle.kinematics import FlightParams, GeoPoint
     from baton.sim_vehicle.server import SimVehicle
 
     log = logs.get_logger("sim_vehicle")
+    try:
+        key = read_key(args.mavlink_key) if args.mavlink_key is not None else None
+    except SigningKeyError as exc:
+        print(f"baton sim-vehicle: --mavlink-key: {exc}", file=sys.stderr)
+        return 2
     if args.count < 1 or not 1 <= args.system_id <= 256 - args.count:
         log.error("bad --count/--system-id", count=args.count, system_id=args.system_id)
         return 2
@@ -167,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
                 speedup=args.speedup,
                 params=params,
                 effects=effects,
+                signing_key=key,
             )
             vehicle.start()
             vehicles.append(vehicle)

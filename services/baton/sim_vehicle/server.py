@@ -64,7 +64,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from baton import logs
+from baton import logs, signing
 from baton.effects import EffectsFile
 from baton.sim_vehicle.kinematics import (
     FlightParams,
@@ -214,6 +214,7 @@ class SimVehicle:
         params: FlightParams | None = None,
         on_state: Callable[[VehicleState], None] | None = None,
         effects: EffectsFile | None = None,
+        signing_key: bytes | None = None,
     ) -> None:
         if speedup <= 0 or not math.isfinite(speedup):
             raise ValueError(f"speedup must be > 0, got {speedup}")
@@ -225,6 +226,10 @@ class SimVehicle:
         self._kinematics = Kinematics(home, params)
         self._on_state = on_state
         self.effects = effects if effects is not None else EffectsFile(None)
+        self._signing_key = signing_key
+        # Frames refused for their signature; logged at most every REFUSAL_LOG_S.
+        self.refused_frames = 0
+        self._refusals_logged_at = -math.inf
         self._retransmissions = Retransmissions()
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -256,11 +261,18 @@ class SimVehicle:
         self._sock = sock
         self._sink = _PeerSink(sock)
         self._mav = mavlink.MAVLink(self._sink, srcSystem=self.system_id, srcComponent=1)
+        if self._signing_key is not None:
+            signing.enable(self._mav, self._signing_key, sign_outgoing=True)
         self._thread = threading.Thread(
             target=self._run, name=f"sim-vehicle-{self.system_id}", daemon=True
         )
         self._thread.start()
-        self._log.info("vehicle listening", url=self.url, speedup=self.speedup)
+        self._log.info(
+            "vehicle listening",
+            url=self.url,
+            speedup=self.speedup,
+            signing=self._signing_key is not None,
+        )
 
     def stop(self) -> None:
         """Stops the thread and closes the port; idempotent."""
@@ -364,6 +376,8 @@ class SimVehicle:
         # rest of a truncated one would swallow the next datagram's command.
         parser = mavlink.MAVLink(None, srcSystem=self.system_id, srcComponent=1)
         parser.robust_parsing = True
+        if self._signing_key is not None:
+            parser.signing = self._mav.signing  # one clock and one replay guard per vehicle
         try:
             messages = parser.parse_buffer(data) or []
         except mavlink.MAVError as exc:
@@ -371,6 +385,10 @@ class SimVehicle:
         if parser.buf_len() > 0:
             messages.append(mavlink.MAVLink_bad_data(data, "truncated packet"))
         bad = [msg for msg in messages if msg.get_msgId() == mavlink.MAVLINK_MSG_ID_BAD_DATA]
+        refused = [msg for msg in bad if msg.reason == signing.REFUSED_REASON]
+        if refused:
+            self._refused(refused, address)
+            bad = [msg for msg in bad if msg.reason != signing.REFUSED_REASON]
         if bad:  # not MAVLink, or a bad checksum: one line per datagram, not per byte
             self._log.warning(
                 "bad data skipped",
@@ -386,6 +404,18 @@ class SimVehicle:
                 continue  # another vehicle's traffic
             self._handle(msg, arrived_at)
 
+    def _refused(self, refused: list[Any], address: tuple[str, int]) -> None:
+        """Counts frames refused by signing, and says so at most every REFUSAL_LOG_S."""
+        self.refused_frames += len(refused)
+        now = time.monotonic()
+        if now - self._refusals_logged_at >= signing.REFUSAL_LOG_S:
+            self._refusals_logged_at = now
+            self._log.warning(
+                "MAVLink frames refused: not signed with the vehicle's key, or replayed",
+                peer=f"{address[0]}:{address[1]}",
+                refused=self.refused_frames,
+            )
+
     # --- telemetry -----------------------------------------------------------------
 
     def _send_due(self, now: float) -> None:
@@ -395,6 +425,10 @@ class SimVehicle:
                 del self._sink.peers[address]
         if not self._sink.peers:
             return
+        if self._signing_key is not None and self._mav is not None:
+            # pymavlink counts one per frame; the clock must keep up with time,
+            # or a ground station that starts later takes our frames for replays.
+            self._mav.signing.timestamp = max(self._mav.signing.timestamp, signing.timestamp_now())
         for msg_id, interval in self._intervals.items():
             if interval <= 0:
                 continue

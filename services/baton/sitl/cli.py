@@ -6,7 +6,9 @@ until SERIAL0 listens, announces the MAVLink URLs (``--url-file``: the
 drone service's URL on the first line, the monitor's ``tcp:HOST:PORT`` on the
 second) and passes SITL's output to its own. SIGTERM stops SITL; SITL dies
 with this wrapper (the kernel sends it SIGTERM), so a testbed killed outright
-leaves no autopilot behind.
+leaves no autopilot behind. With ``--mavlink-key`` it installs a MAVLink
+signing key first (``signing.install_on_ardupilot``) and announces SERIAL1
+and SERIAL2, the ports that then take signed frames only.
 """
 
 from __future__ import annotations
@@ -95,6 +97,14 @@ def register(subparsers: Any) -> None:
         help="write the vehicle URL (line 1) and the monitor address (line 2) here once "
         "SITL listens",
     )
+    parser.add_argument(
+        "--mavlink-key",
+        metavar="FILE",
+        help="install this MAVLink signing key (baton certs mavlink-key) with SETUP_SIGNING "
+        "on SERIAL0 and check that SITL signs with it; the vehicle URL is then SERIAL1 "
+        "and the monitor SERIAL2, which accept only signed frames (SERIAL0, a flight "
+        "controller's USB port, accepts unsigned ones for good)",
+    )
     parser.set_defaults(run=run)
 
 
@@ -154,6 +164,15 @@ def run(args: argparse.Namespace) -> int:
         home=args.home,
         defaults=Path(args.defaults).resolve() if args.defaults else None,
     )
+    key = None
+    if args.mavlink_key:
+        from baton.signing import SigningKeyError, read_key
+
+        try:
+            key = read_key(Path(args.mavlink_key))
+        except SigningKeyError as exc:
+            print(f"baton sitl: --mavlink-key: {exc}", file=sys.stderr)
+            return 2
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-sitl-"))
     workdir.mkdir(parents=True, exist_ok=True)
     stopping = threading.Event()
@@ -179,12 +198,30 @@ def run(args: argparse.Namespace) -> int:
         instance = free_instance(instance + 1)  # taken meanwhile: try the next free one
     ports = SitlPorts(instance)
     print("\n".join(seen), flush=True)
+    # SITL's output is read from now on: a full pipe would stop its simulation.
+    pump = threading.Thread(target=_pump, args=(process,), daemon=True)
+    pump.start()
+    vehicle_url, monitor = ports.vehicle_url, f"tcp:{ports.monitor_address}"
+    if key is not None:
+        from baton.signing import SigningKeyError, install_on_ardupilot
+
+        try:
+            install_on_ardupilot(
+                f"tcp:127.0.0.1:{ports.serial0}", f"tcp:127.0.0.1:{ports.serial2}", key
+            )
+        except SigningKeyError as exc:
+            print(f"baton sitl: --mavlink-key: {exc}", file=sys.stderr)
+            process.terminate()
+            return 1
+        vehicle_url = f"tcpout://127.0.0.1:{ports.serial1}"
+        monitor = f"tcp:127.0.0.1:{ports.serial2}"
     print(
         json.dumps(
             {
                 "event": "listening",
-                "url": ports.vehicle_url,
-                "monitor": f"tcp:{ports.monitor_address}",
+                "url": vehicle_url,
+                "monitor": monitor,
+                "signing": key is not None,
                 "instance": instance,
                 "speedup": settings.speedup,
                 "workdir": str(workdir),
@@ -195,9 +232,7 @@ def run(args: argparse.Namespace) -> int:
     if args.url_file:
         from baton.lifecycle import write_atomically
 
-        write_atomically(args.url_file, f"{ports.vehicle_url}\ntcp:{ports.monitor_address}\n")
-    pump = threading.Thread(target=_pump, args=(process,), daemon=True)
-    pump.start()
+        write_atomically(args.url_file, f"{vehicle_url}\n{monitor}\n")
     while not stopping.is_set() and process.poll() is None:
         stopping.wait(0.2)
     if process.poll() is None:

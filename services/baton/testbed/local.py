@@ -242,8 +242,11 @@ class LocalTestbed:
                 if original.range_m is not None:
                     entry["range_m"] = original.range_m
             controllers.append(entry)
+        drone: dict[str, Any] = {"address": drone_address, "vehicle_url": vehicle_url}
+        if self._mavlink_key() is not None:
+            drone["mavlink_key"] = str(self._mavlink_key())
         document: dict[str, Any] = {
-            "drone": {"address": drone_address, "vehicle_url": vehicle_url},
+            "drone": drone,
             "controllers": controllers,
             "ring": ids,
             "initial_master": base.master_id if base is not None else ids[0],
@@ -293,14 +296,27 @@ class LocalTestbed:
             effects.unlink(missing_ok=True)
             argv = baton_argv("sim-vehicle", "--speedup", speedup, "--url-file", str(ready))
             argv += ["--home", self._home(), "--effects-file", str(effects)]
+            argv += self._mavlink_key_args()
             return (await self.supervisor.start_ready("sim-vehicle", argv, ready)).splitlines()[0]
         argv = baton_argv("sitl", "--speedup", speedup, "--home", self._home())
         argv += ["--workdir", str(self.workdir / "sitl"), "--url-file", str(ready)]
         if self.plan.sitl_binary is not None:
             argv += ["--binary", str(self.plan.sitl_binary)]
+        argv += self._mavlink_key_args()
         announced = await self.supervisor.start_ready("sitl", argv, ready)
         url, self.sitl_monitor_url = announced.split()
         return url
+
+    def _mavlink_key(self) -> Path | None:
+        """The testbed file's MAVLink signing key (drone.mavlink_key), if any."""
+        base = self.plan.base_config
+        key = base.drone.mavlink_key if base is not None else None
+        return key.resolve() if key is not None else None
+
+    def _mavlink_key_args(self) -> list[str]:
+        """The vehicle holds the drone's key: ``--mavlink-key`` for sim-vehicle and sitl."""
+        key = self._mavlink_key()
+        return ["--mavlink-key", str(key)] if key is not None else []
 
     async def _start_link(self, name: str, target: str, spec: LinkSpec) -> str:
         ready = self.workdir / f"{name}.address"

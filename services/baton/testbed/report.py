@@ -227,6 +227,10 @@ def build_report(
             "vehicle": {
                 "url": drone.vehicle_url,
                 "autopilot": drone.flight_state.autopilot or "unknown",
+                # MAVLink 2 signing on the drone's link (drone.mavlink_key), and
+                # what it refused from the autopilot.
+                "signing": drone.vehicle.signing,
+                "refused_frames": drone.vehicle.refused_frames,
             },
         },
         "handovers": handovers,
