@@ -187,3 +187,35 @@ def test_the_sdk_refuses_a_second_concurrent_call() -> None:
     release.set()
     worker.join(10)
     assert caller("Mobility.GetPosition", lambda request, **options: "ok", None) == "ok"
+
+
+async def test_a_replicas_program_that_gave_up_waiting_for_the_log_starts_again(
+    tmp_path: Path,
+) -> None:
+    """A replica whose program's deadline passed while it waited for the log (the master's
+    program had its replies) restarts the program to replay the log, instead of stopping
+    the mission on that replica with a determinism error."""
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=1 << 20,  # the log reaches the replicas at the end only
+        speedup=20.0,
+        emulate_links=False,
+        mission_file=MISSIONS / "gives_up_on_replicas.py",
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        snapshot = await testbed.run_mission(120)
+    for cid, c in snapshot.controllers.items():
+        assert c.mission == "done", f"controller {cid}: {c.mission_error}"
+    master = (tmp_path / "logs" / "controller-0.log").read_text()
+    assert all(f"position {k}: reply" in master for k in range(3)), master
+    for cid in (1, 2):
+        assert snapshot.controllers[cid].program_restarts >= 1
+        output = (tmp_path / "logs" / f"controller-{cid}.log").read_text()
+        assert "position 0: DEADLINE_EXCEEDED" in output  # the first run gave up ...
+        assert "it starts again and replays the log" in output
+        assert "position 2: reply" in output  # ... the restarted one replayed the replies
+    assert snapshot.controllers[0].program_restarts == 0
+    chains = {c.reply_chain for c in snapshot.controllers.values()}
+    assert len(chains) == 1, "a replica's program saw something else than the master's"
+    audit = [a.reqnr for a in snapshot.drone.audit]
+    assert audit == [1, 2, 3, 4]  # each request executed once, by the master

@@ -368,6 +368,7 @@ class ControllerStatus(_message.Message):
     STANDBY_UP_FIELD_NUMBER: _builtins.int
     ANSWERED_FROM_RETAINED_FIELD_NUMBER: _builtins.int
     MISSION_ADDRESS_FIELD_NUMBER: _builtins.int
+    PROGRAM_RESTARTS_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
     state: _builtins.str
@@ -438,6 +439,11 @@ class ControllerStatus(_message.Message):
     """Where its mission program calls the drone API (loopback by default;
     the ring port does not serve it).
     """
+    program_restarts: _builtins.int
+    """Times the mission program was restarted to replay the log because it
+    gave up on a call (its own deadline or cancellation while it waited for
+    the log) that the master's program did not give up on.
+    """
     @_builtins.property
     def peers(self) -> _containers.RepeatedCompositeFieldContainer[Global___PeerStatus]:
         """The successor and the other peers this controller streams to."""
@@ -488,10 +494,11 @@ class ControllerStatus(_message.Message):
         standby_up: _builtins.bool = ...,
         answered_from_retained: _builtins.int = ...,
         mission_address: _builtins.str = ...,
+        program_restarts: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

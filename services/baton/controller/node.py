@@ -219,6 +219,8 @@ class ControllerNode:
         self.routed_around: list[int] = []  # successors skipped as unreachable
         self._router: asyncio.Task[None] | None = None
         self.fenced_messages = 0  # log messages dropped from a fenced master
+        # Times the program was restarted to replay a call it gave up on (_replay_again).
+        self.program_restarts = 0
         # Bumped when the controller rejoins after being fenced: calls of the
         # mission program from before then are refused, not answered.
         self.incarnation = 0
@@ -891,16 +893,7 @@ class ControllerNode:
                 entry = await self._replay(method, request)
                 self._abandoned.popleft()
                 if entry.status_code != code.value[0]:
-                    master_saw = "a reply" if entry.status_code == 0 else str(entry.status_code)
-                    self._fail(
-                        StatusError(
-                            grpc.StatusCode.FAILED_PRECONDITION,
-                            f"controller {self.id}: the mission program gave up on request "
-                            f"{entry.reqnr} ({method}, {code.name}) while this replica waited "
-                            f"for the log, but the master's program got {master_saw}: a "
-                            "deadline on a drone call made the mission non-deterministic",
-                        )
-                    )
+                    self._replay_again(entry, method, code)
             elif state is State.ACTIVE:
                 self._abandoned.popleft()
                 reqnr = self.protocol.reqnr + 1
@@ -964,6 +957,40 @@ class ControllerNode:
                 if incarnation == self.incarnation:
                     self._abandoned.append((method, request, gave_up()))
                 raise
+
+    def _replay_again(self, entry: ring_pb2.LogEntry, method: str, code: grpc.StatusCode) -> None:
+        """The program gave up on a call that the master's program did not: it starts again.
+
+        A replica's program gives up on its own clock while it waits for the
+        log (a deadline, a cancellation); a takeover or a large flush limit
+        makes that wait long, and the master's program may have had its reply
+        (or the lost master's give-up never reached the drone, and the taker's
+        program got the reply). The program has run on an answer the mission
+        never had, but a replica's program has acted on nothing: it is
+        restarted and replays the log from the start (the rejoin of a fenced
+        master), as Temporal retries a workflow task from its history.
+        """
+        master_saw = "a reply" if entry.status_code == 0 else f"status {entry.status_code}"
+        self.program_restarts += 1
+        self.log.warning(
+            "the mission program gave up on a call the master's program did not; it starts "
+            "again and replays the log (a deadline on a drone call makes a mission "
+            "non-deterministic: wait for the log instead)",
+            reqnr=entry.reqnr,
+            method=method,
+            gave_up=code.name,
+            master_saw=master_saw,
+            restarts=self.program_restarts,
+        )
+        if not self._rejoining:
+            self._rejoining = True
+            asyncio.get_running_loop().create_task(self._rejoin())
+        raise StatusError(
+            grpc.StatusCode.ABORTED,
+            f"controller {self.id}: the program gave up on request {entry.reqnr} ({method}, "
+            f"{code.name}) but the master's program got {master_saw}: the program starts "
+            "again and replays the log",
+        )
 
     async def _replay(self, method: str, request: bytes) -> ring_pb2.LogEntry:
         try:

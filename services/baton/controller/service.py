@@ -255,6 +255,7 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         catching_up_to=0 if p.caught_up else (p.catch_up_to or 0),
         watermark_reqnr=p.watermark_reqnr,
         fenced_messages=node.fenced_messages,
+        program_restarts=node.program_restarts,
         routed_around=node.routed_around,
         standby_up=node.standby_up,
         answered_from_retained=node.answered_from_retained,

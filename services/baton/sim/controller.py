@@ -650,12 +650,17 @@ class SimController:
                 if entry is None:
                     return False
                 self.abandoned.popleft()
-                if entry.status_code != code.value[0]:
-                    self._fail(
-                        f"controller {self.id}: the mission program gave up on request "
-                        f"{entry.reqnr} ({code.name}) while this replica waited for the log, "
-                        f"but the master's program got status {entry.status_code}"
+                if entry.status_code != code.value[0]:  # node.py _replay_again
+                    self.world.trace(
+                        f"controller {self.id}: the program gave up on request {entry.reqnr} "
+                        f"({code.name}) while this replica waited for the log, but the "
+                        f"master's program got status {entry.status_code}: it starts again"
                     )
+                    # What it answered before the give-up came from the log and
+                    # must match; from the give-up on it ran on its own answer.
+                    self.accepted_upto = max(self.accepted_upto, entry.reqnr - 1)
+                    self._rejoin()
+                    return False
             elif protocol.state is State.ACTIVE:
                 self.abandoned.popleft()
                 entry = _given_up(protocol.reqnr + 1, given_up.method, given_up.request, code)
@@ -854,22 +859,20 @@ class SimController:
 
     # -- the program gives up on a call (a deadline, a cancellation) --------------
 
-    def give_up(self, code: grpc.StatusCode, *, even_if_not_ours: bool = False) -> bool:
+    def give_up(self, code: grpc.StatusCode) -> bool:
         """The program's call is cancelled; node.py's except CancelledError branches.
 
         Inside _invoke, the master logs the give-up as the call's outcome if
-        the call is still its to log (``_ours_to_log``); node.py does nothing
-        otherwise (known finding F5), so the fault injector leaves such calls
-        alone unless F5 is allowed (``even_if_not_ours``). A call held while
-        PASSIVE is queued as abandoned (``_abandoned``). False if nothing was
-        cancelled.
+        the call is still its to log (``_ours_to_log``); otherwise a handover
+        overtook the reply, and the call is queued as abandoned, settled from
+        the log by the next call (F5, fixed: a mismatch restarts the program).
+        A call held while PASSIVE is queued as abandoned (``_abandoned``).
+        False if nothing was cancelled.
         """
         call, inv = self.call, self.inv
         if call is None or not self.alive:
             return False
         if inv is not None:
-            if not even_if_not_ours and not self._ours_to_log(inv.reqnr):
-                return False
             link = self.drone_link
             if inv.step is Step.IN_FLIGHT and inv.connection == link.generation and link.usable():
                 link.to_drone(0, self.world.drone.receive_cancel, inv.call_id)
@@ -880,7 +883,7 @@ class SimController:
                 self._seen(entry)
                 self.world.given_up[inv.reqnr] = code
                 self._apply(effects)
-            else:  # node.py: queued as abandoned, settled by the next call (F5)
+            else:  # node.py: queued as abandoned, settled by the next call (F5, fixed)
                 self.abandoned.append((call, code))
             self.world.trace(f"controller {self.id} gives up on request {inv.reqnr} ({code.name})")
             self._answered(code.value[0], b"")

@@ -365,23 +365,20 @@ def vehicle_back(world: World) -> None:
 def give_up(world: World, code: grpc.StatusCode) -> None:
     """A mission program gives up on its current call, where that keeps the mission deterministic.
 
-    The master's call while it is still the master's to log; or a replica's
-    held call whose entry the master logged as given up with the same code
-    (the program's last too: F8 is fixed). Allowing F5 adds calls whose
-    reply a handover overtook.
+    The master's call, also one whose reply a handover overtook (F5 is
+    fixed); or a replica's held call whose entry the master logged as given
+    up with the same code (the program's last too: F8 is fixed).
     """
-    allow = world.options.allow
     candidates: list[tuple[int, grpc.StatusCode]] = []
     for c in world.live_controllers():
-        inv = c.inv
-        if inv is not None and ("F5" in allow or c._ours_to_log(inv.reqnr)):
+        if c.inv is not None:
             candidates.append((c.id, code))
         reqnr = c.waiting_call_reqnr()
         if reqnr is not None and reqnr in world.given_up:
             candidates.append((c.id, world.given_up[reqnr]))
     if candidates:
         cid, chosen = world.rng.choice(candidates)
-        world.controller(cid).give_up(chosen, even_if_not_ours="F5" in allow)
+        world.controller(cid).give_up(chosen)
 
 
 def ready_for_handover(world: World, new_master: int) -> bool:

@@ -50,6 +50,15 @@ role taken back by its old master: nobody else ever got its log number) was
 fixed in protocol.py ``on_granted``: a taker whose own handover message has
 not come back sends it on to the ring as a normal message of its own.
 
+F5 (a program that gave up on a call whose reply a handover overtook lost
+its place; after a first fix it stopped the mission with a determinism
+error when the new master's program got a reply) was fixed in node.py
+``_replay_again``: a replica whose program gave up on a call the master's
+program did not restarts the program, which replays the log from the start.
+The same fixed most of the ``--lose-master`` failures (a lost master's
+give-up that never reached the drone, while a replica's program had given
+up with it). Its scenario is in the default mix now.
+
 F10 to F12 came with issue 10's scenario (``--lose-master``: the master killed
 for good mid-flush, right after a handover decision or at any time, or its
 drone link cut for a while); it is behind that option, with more failures
@@ -102,17 +111,6 @@ FINDINGS = {
             "master's handover message makes a new master connect",
             "Handover calls while the drone's master is not ACTIVE with its stream up, or "
             "while another Handover is queued",
-        ),
-        Finding(
-            "F5",
-            "a program that gives up on a call whose reply a handover overtook: it lost its "
-            "place silently (its next call took that call's log entry); now the call is "
-            "queued as abandoned and the mission stops with a determinism error when the "
-            "new master's program got a reply. Loud, not silent; still a failed mission: a "
-            "deadline racing a handover makes the program non-deterministic",
-            "node.py _invoke, except CancelledError (now queues it in _abandoned); the SDK "
-            "could refuse deadlines on drone calls instead",
-            "give-ups of calls no longer the controller's to log",
         ),
         Finding(
             "F9",
