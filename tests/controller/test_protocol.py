@@ -452,6 +452,46 @@ def test_a_next_message_of_a_newer_epoch_that_does_not_continue_ours_means_we_mu
         other.on_log(stale)
 
 
+def test_a_handover_message_that_continues_another_framing_means_we_must_rejoin() -> None:
+    """--lose-master seed 1943: the new master holds request 7 from a framing a takeover
+    replaced; the handover message, without entries, says it follows request 6."""
+    new_master = started(4, [0, 4, 5], 0)
+    old = message(1, 0, [1, 2, 3, 4, 5, 6, 7])
+    old.epoch = 6
+    new_master.on_log(old)
+    replay_all(new_master)
+    handover = message(2, 4, [], handover=True, sender=0)
+    handover.epoch, handover.after_reqnr = 9, 6
+    assert [type(e).__name__ for e in new_master.on_log(handover)] == ["SendLog", "Diverged"]
+    assert not new_master.master  # it does not go ACTIVE on a count that is not the ring's
+    assert [m.lognr for m in new_master.kept_for_rejoin()] == [2]
+    agreeing = started(4, [0, 4, 5], 0)
+    agreeing.on_log(old)
+    replay_all(agreeing)
+    handover.after_reqnr = 7
+    assert "TookOver" in [type(e).__name__ for e in agreeing.on_log(handover)]
+    assert agreeing.master
+
+
+def test_a_message_numbered_after_a_newer_mastership_by_an_older_one_is_dropped() -> None:
+    """--lose-master seed 222: a master the drone replaced, cut off, handled the newer
+    masters' messages and numbered its next one after them, in its old epoch."""
+    replica = started(1, [0, 1, 2], 0)
+    newer = message(1, 2, [1])
+    newer.epoch = 3
+    replica.on_log(newer)
+    replay_all(replica)
+    stale = message(2, 0, [2])
+    stale.epoch = 1
+    effects = replica.on_log(stale)
+    assert [type(e).__name__ for e in effects] == ["Fenced"]  # not forwarded, not held
+    assert 2 not in replica.log_queue and replica.lognr == 1
+    ring = message(2, 0, [2])
+    ring.epoch = 3
+    assert sends(replica.on_log(ring)) == [(2, 2, False)]
+    assert replica.lognr == 2
+
+
 def test_the_ring_hello_makes_a_sender_give_a_renumbered_top_message_again() -> None:
     assert resend_after(5, 2, 4) == 4  # ours is newer: give message 5 too
     assert resend_after(5, 4, 4) == 5

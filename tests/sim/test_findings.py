@@ -157,3 +157,31 @@ def test_f5_a_program_that_gave_up_on_an_overtaken_call_starts_again() -> None:
     for seed in range(400):
         outcome = run_seed(seed)
         assert outcome.ok and not outcome.known, outcome.report()
+
+
+def test_a_clock_call_waits_for_the_drones_word_after_a_handover_message() -> None:
+    """--lose-master seeds 789 and 1075, fixed in node.py _wait_granted: a controller ACTIVE
+    by a handover message answered a Clock call before its Connected event brought the lost
+    master's answer for that request number (the taker handed on before its program
+    consumed the retained tail)."""
+    for seed in (789, 1075):
+        outcome = run_seed(seed, SimOptions(lose_master=True))
+        assert outcome.ok and not outcome.known, outcome.report()
+
+
+def test_a_replicas_program_that_gave_up_with_a_lost_master_starts_again() -> None:
+    """--lose-master seeds fixed in node.py _replay_again: a lost master's give-up never
+    reached the drone, so the taker's program got the reply; a replica whose program had
+    given up with it restarts its program instead of stopping the mission."""
+    for seed in (185, 320, 694, 899, 961, 1178, 1436, 1462, 1488, 1629, 1722, 1896, 1987):
+        outcome = run_seed(seed, SimOptions(lose_master=True))
+        assert outcome.ok and not outcome.known, outcome.report()
+
+
+def test_two_framings_of_one_log_number_are_told_apart() -> None:
+    """--lose-master seeds fixed in protocol.py: a handover message says which request it
+    follows (``LogMessage.after_reqnr``), so a new master holding a replaced framing rejoins
+    (1943, 580); a message an older mastership numbered after a newer one is dropped (222)."""
+    for seed in (1943, 580, 222):
+        outcome = run_seed(seed, SimOptions(lose_master=True))
+        assert outcome.ok and not outcome.known, outcome.report()

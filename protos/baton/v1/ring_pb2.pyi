@@ -145,6 +145,7 @@ class LogMessage(_message.Message):
     SENDER_FIELD_NUMBER: _builtins.int
     CREATED_AT_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
+    AFTER_REQNR_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The log number, from 1."""
     origin: _builtins.int
@@ -163,6 +164,12 @@ class LogMessage(_message.Message):
     made before it granted that epoch from one made after. On any other
     message: the epoch of the mastership it was logged in (diagnosis).
     """
+    after_reqnr: _builtins.int
+    """The request number its first entry follows: how many requests its
+    creator had logged before it (also on a message without entries). A
+    receiver that counts otherwise holds another framing of the same
+    requests, one a takeover replaced (docs/design.md, "Takeover").
+    """
     @_builtins.property
     def entries(self) -> _containers.RepeatedCompositeFieldContainer[Global___LogEntry]:
         """The entries, by increasing reqnr; may be empty."""
@@ -177,12 +184,15 @@ class LogMessage(_message.Message):
         sender: _builtins.int = ...,
         created_at: _builtins.float = ...,
         epoch: _builtins.int = ...,
+        after_reqnr: _builtins.int | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_reqnr", b"after_reqnr"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_reqnr", b"after_reqnr", "created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    def WhichOneof(self, oneof_group: _Never) -> None: ...
+    _WhichOneofReturnType__after_reqnr: _TypeAlias = _typing.Literal["after_reqnr"]  # noqa: Y015
+    _WhichOneofArgType__after_reqnr: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr"]  # noqa: Y015
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__after_reqnr) -> _WhichOneofReturnType__after_reqnr | None: ...
 
 Global___LogMessage: _TypeAlias = LogMessage  # noqa: Y015
 

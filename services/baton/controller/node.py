@@ -208,6 +208,7 @@ class ControllerNode:
             cid, config.drone_address_for(cid), self.on_take_over, self.log, tls
         )
         self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
+        self._granted_epoch = 0  # the epoch of the drone's last Connected event (_wait_granted)
         self._takeover_watermark = 0  # and the drone's watermark then
         # The replies the drone retained for our takeover, by reqnr: the lost
         # master's tail, answered from here instead of sent again.
@@ -379,6 +380,7 @@ class ControllerNode:
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
         self._takeover_epoch = self._takeover_watermark = 0
+        self._granted_epoch = 0
         self._retained = {}
         self._answered_here = []
         self.routed_around = []
@@ -645,6 +647,7 @@ class ControllerNode:
             return  # a session closed meanwhile
         held = self.protocol.held_reqnr
         self._retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
+        self._granted_epoch = epoch
         was_active = self.protocol.state is State.ACTIVE
         takeover = epoch == self._takeover_epoch
         effects = self.protocol.on_granted(epoch, takeover, self._takeover_watermark)
@@ -1015,6 +1018,8 @@ class ControllerNode:
         reqnr = self.protocol.reqnr + 1
         digest = request_digest(method, request)
         try:
+            if method.startswith(CLOCK_SERVICE) and not await self._wait_granted():
+                return None
             kept = self._retained.pop(reqnr, None)
             if kept is not None:
                 try:
@@ -1069,6 +1074,23 @@ class ControllerNode:
         self._seen(entry)
         await self._apply(effects)
         return entry
+
+    async def _wait_granted(self) -> bool:
+        """Until the drone's Connected event of this mastership; False if we stop being ACTIVE.
+
+        A controller made ACTIVE by a handover message has not heard from the
+        drone yet, and the drone may retain answers for the next request
+        numbers: a lost master's Clock reading that a taker handed on before
+        its program consumed it (``--lose-master`` seeds 789 and 1075). A
+        drone call waits for the session anyway; a Clock call waits here, once
+        per mastership (not while the link is down later: a Clock call would
+        then block on the radio).
+        """
+        while self._granted_epoch != self.protocol.epoch:
+            if self.protocol.state is not State.ACTIVE:
+                return False
+            await self._changed.wait()
+        return self.protocol.state is State.ACTIVE
 
     def _ours_to_log(self, reqnr: int) -> bool:
         """Still ACTIVE, with ``reqnr`` the next request to log."""

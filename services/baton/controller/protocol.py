@@ -537,13 +537,15 @@ class ControllerProtocol:
         return SendLog(self.successor, message)
 
     def _message(self, lognr: int, origin: int, handover: bool) -> ring_pb2.LogMessage:
+        entries = self.log.take()
         return ring_pb2.LogMessage(
             lognr=lognr,
             origin=origin,
             handover=handover,
-            entries=self.log.take(),
+            entries=entries,
             sender=self.id,
             created_at=time.time(),
+            after_reqnr=self.reqnr - len(entries),
         )
 
     def on_mission_done(self) -> list[Effect]:
@@ -621,6 +623,13 @@ class ControllerProtocol:
             # give-up). Not the ring's: neither held nor forwarded, and not our
             # handover message coming back (a history that kept it would give it
             # to a replica that catches up from us: --lose-master seed 757).
+            return [Fenced(message.lognr, message.origin, message.epoch)]
+        if 0 < message.epoch < self.epoch_of(message.lognr - 1):
+            # Masters number log messages in the order of their epochs: one
+            # numbered after a message of a newer mastership is from a master
+            # the drone replaced, which went on cut off from it and took the
+            # newer message for the ring's (--lose-master seed 222). Not the
+            # ring's: neither held nor forwarded; the ring's own comes.
             return [Fenced(message.lognr, message.origin, message.epoch)]
         queued = self.log_queue.get(message.lognr)
         if queued is not None and message.epoch > queued.epoch:
@@ -710,12 +719,15 @@ class ControllerProtocol:
         never left a lost or fenced master: we rejoin with nothing.
         """
         ours = self._epoch_at.get(self.lognr, 0)
-        if (
-            message.entries
-            and message.entries[0].reqnr != self.reqnr + 1
-            and self.lognr > 0
-            and message.epoch > ours
-        ):
+        if message.HasField("after_reqnr"):
+            # Also on a message without entries: a new master's handover message
+            # that continues a framing other than ours (--lose-master seed 1943).
+            start = message.after_reqnr + 1
+        elif message.entries:
+            start = message.entries[0].reqnr
+        else:
+            return None
+        if start != self.reqnr + 1 and self.lognr > 0 and message.epoch > ours:
             return Diverged(self.lognr, ours, message.epoch)
         return None
 

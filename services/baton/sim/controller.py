@@ -178,6 +178,7 @@ class SimController:
         # routed_around.
         self.takeover_epoch = self.takeover_watermark = 0
         self.retained: dict[int, drone_pb2.RetainedReply] = {}  # node.py's _retained
+        self.granted_epoch = 0  # node.py's _granted_epoch: the last Connected's epoch
         self.answered_here: list[ring_pb2.LogEntry] = []  # node.py's _answered_here
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
@@ -399,6 +400,7 @@ class SimController:
         the replies the drone retains above what we hold, to answer the program from."""
         held = self.protocol.held_reqnr
         self.retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
+        self.granted_epoch = epoch
         try:
             effects = self.protocol.on_granted(
                 epoch, epoch == self.takeover_epoch, self.takeover_watermark
@@ -642,7 +644,7 @@ class SimController:
         False to wait for the log, or when the mission failed."""
         protocol = self.protocol
         while self.abandoned:
-            if self.failure is not None:
+            if self.failure is not None or self.rejoining:
                 return False
             given_up, code = self.abandoned[0]
             if protocol.state is State.REPLAY:
@@ -723,7 +725,17 @@ class SimController:
             reqnr, call, request_digest(call.method, call.request), self.world.loop.now
         )
         self.inv, self.phase = inv, Phase.INVOKING
-        kept = self.retained.pop(reqnr, None)
+        if call.method.startswith(CLOCK_SERVICE) and self.granted_epoch != self.protocol.epoch:
+            # node.py _wait_granted: ACTIVE by a handover message, the drone's
+            # Connected not yet here: it may bring a lost master's answer.
+            inv.step = Step.WAIT_CONNECTED
+            return
+        self._answer_active(inv)
+
+    def _answer_active(self, inv: Invocation) -> None:
+        """The rest of node.py _invoke: from the retained replies, the Clock or the drone."""
+        call = inv.call
+        kept = self.retained.pop(inv.reqnr, None)
         if kept is not None:
             try:
                 entry = from_retained(kept, call.method, call.request)
@@ -756,6 +768,12 @@ class SimController:
 
     def _drone_step(self, inv: Invocation) -> None:
         """One turn of ControllerNode._invoke_drone_retrying's loop, up to the send."""
+        if inv.call.method.startswith(CLOCK_SERVICE):  # waiting in node.py _wait_granted
+            if self.protocol.state is not State.ACTIVE:
+                self._invoked(inv, None)
+            elif self.granted_epoch == self.protocol.epoch:
+                self._answer_active(inv)
+            return
         session = self.session
         if session is None or self.protocol.state is not State.ACTIVE:
             self._invoked(inv, None)
