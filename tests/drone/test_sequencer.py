@@ -147,6 +147,21 @@ def test_a_handover_whose_old_master_dies_before_its_log_left_is_granted_again()
     assert seq2.takeover_due(9.0, {1}, {0: 1.0, 1: 9.0}, after_s=3.0) is None
 
 
+def test_a_handover_from_a_taker_that_has_not_connected_is_a_takeover() -> None:
+    """--lose-master seed 1190: the drone handed over cooperatively from a taker that had
+    not connected (not ACTIVE): no handover message ever came, the new master waited."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    serve(seq, 0, 1, 1)
+    assert not seq.handover_must_take_over(1)  # no takeover yet
+    seq.switch(1, "lost", now=5.0, takeover=True, lost_at=1.0)
+    assert seq.handover_must_take_over(2)  # 1 was told, but has not connected yet
+    assert not seq.handover_must_take_over(1)  # to itself: switch refuses it
+    seq.admit_connect(1)
+    assert not seq.handover_must_take_over(2)  # connected: cooperative again
+    seq.switch(2, "rpc", now=6.0)
+    assert not seq.handover_must_take_over(0)  # a cooperative grant waits for the log
+
+
 def test_replies_above_the_masters_watermark_are_retained_past_the_window() -> None:
     seq = Sequencer([0, 1], initial_master=0, cache_window=2)
     for reqnr in range(1, 7):

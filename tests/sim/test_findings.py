@@ -185,3 +185,10 @@ def test_two_framings_of_one_log_number_are_told_apart() -> None:
     for seed in (1943, 580, 222):
         outcome = run_seed(seed, SimOptions(lose_master=True))
         assert outcome.ok and not outcome.known, outcome.report()
+
+
+def test_a_handover_from_a_taker_not_yet_connected_is_a_takeover() -> None:
+    """--lose-master seed 1190, fixed in sequencer.py handover_must_take_over: a handover
+    from a taker that had not connected waited for ever for its handover message."""
+    outcome = run_seed(1190, SimOptions(lose_master=True))
+    assert outcome.ok and not outcome.known, outcome.report()

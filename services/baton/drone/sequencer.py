@@ -113,6 +113,9 @@ class Sequencer:
         self.fired_script: list[int] = []
         # Notices owed to old masters, by controller id.
         self.pending: dict[int, drone_pb2.HandoverNotice] = {}
+        # The epoch in which the master last opened a Connect stream (0: not
+        # since this drone started): ``handover_must_take_over``.
+        self.connected_epoch = 0
 
     @property
     def epoch(self) -> int:
@@ -537,6 +540,31 @@ class Sequencer:
             del self.pending[controller_id]
         if controller_id != self.master and controller_id not in self.pending:
             raise self.not_master_error(controller_id, "Connect", mastership_epoch)
+        if controller_id == self.master:
+            self.connected_epoch = self.epoch
+
+    def handover_must_take_over(self, new_master: int) -> bool:
+        """Whether a handover to ``new_master`` decided now must be a takeover: the master
+        was made master by a takeover and has not connected since.
+
+        A cooperative handover needs the old master to hear the notice and send
+        its log as a handover message, which only an ACTIVE master does. A
+        taker that has not connected yet is not ACTIVE: it would never send
+        it, and the new master would wait for ever (``--lose-master`` seed
+        1190). A takeover needs nobody's log: the new master gets the
+        replies above what it holds from the drone, and the old master, told
+        ``takeover``, rejoins as a replica. After a drone restart a taker that
+        had connected counts as not connected until it connects again: the
+        handover is then a takeover too, which costs its program a restart.
+        """
+        last = self.handovers[-1] if self.handovers else None
+        return (
+            new_master != self.master
+            and last is not None
+            and last.kind == "takeover"
+            and last.new_master == self.master
+            and self.connected_epoch != self.epoch
+        )
 
     def delivered(self, controller_id: int, notice: drone_pb2.HandoverNotice) -> None:
         """The notice reached its old master; it is no longer owed."""

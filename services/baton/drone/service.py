@@ -598,7 +598,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 raise refusal
             self.seq.check_known(request.new_master)
             async with self._lock:
-                if request.takeover:
+                if request.takeover or self.seq.handover_must_take_over(request.new_master):
                     record = self._take_over(request.new_master, "rpc", time.time())
                 else:
                     record = self.seq.switch(request.new_master, "rpc", time.time())

@@ -424,7 +424,13 @@ class SimDrone:
     # -- masters and streams -----------------------------------------------------
 
     def _handover(self, order: HandoverOrder) -> None:
+        """DroneService.Handover: cooperative, or a takeover while the master is a taker
+        that has not connected yet (``Sequencer.handover_must_take_over``)."""
         try:
+            if self.seq.handover_must_take_over(order.new_master):
+                self.seq.check_known(order.new_master)
+                self._take_over(order.new_master, "rpc", self.world.loop.now, 0.0)
+                return
             record = self.seq.switch(order.new_master, "rpc", self.world.loop.now)
         except StatusError:
             return
