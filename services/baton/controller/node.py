@@ -208,7 +208,6 @@ class ControllerNode:
             cid, config.drone_address_for(cid), self.on_take_over, self.log, tls
         )
         self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
-        self._granted_epoch = 0  # the epoch of the drone's last Connected event (_wait_granted)
         self._takeover_watermark = 0  # and the drone's watermark then
         # The replies the drone retained for our takeover, by reqnr: the lost
         # master's tail, answered from here instead of sent again.
@@ -380,7 +379,6 @@ class ControllerNode:
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
         self._takeover_epoch = self._takeover_watermark = 0
-        self._granted_epoch = 0
         self._retained = {}
         self._answered_here = []
         self.routed_around = []
@@ -647,7 +645,6 @@ class ControllerNode:
             return  # a session closed meanwhile
         held = self.protocol.held_reqnr
         self._retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
-        self._granted_epoch = epoch
         was_active = self.protocol.state is State.ACTIVE
         takeover = epoch == self._takeover_epoch
         effects = self.protocol.on_granted(epoch, takeover, self._takeover_watermark)
@@ -1086,7 +1083,7 @@ class ControllerNode:
         per mastership (not while the link is down later: a Clock call would
         then block on the radio).
         """
-        while self._granted_epoch != self.protocol.epoch:
+        while self.protocol.granted_epoch != self.protocol.epoch:
             if self.protocol.state is not State.ACTIVE:
                 return False
             await self._changed.wait()

@@ -273,6 +273,9 @@ class ControllerProtocol:
         self.state = State.PASSIVE
         # The drone's epoch of our current or last mastership (0: none yet).
         self.epoch = 0
+        # The epoch of the drone's last Connected event: a controller made ACTIVE by
+        # a handover message has not heard from the drone in its epoch yet.
+        self.granted_epoch = 0
         # The highest log number the predecessor said it holds (its stream's
         # sync frame); None until it has said. A controller the drone grants
         # the role goes ACTIVE only once it has handled that much, so that a
@@ -331,7 +334,7 @@ class ControllerProtocol:
         let go of the replies the others hold) waits until the ring gave it
         that much.
         """
-        self.epoch = epoch
+        self.epoch = self.granted_epoch = epoch
         if self.state is State.ACTIVE:
             return []
         self.master = True

@@ -178,7 +178,6 @@ class SimController:
         # routed_around.
         self.takeover_epoch = self.takeover_watermark = 0
         self.retained: dict[int, drone_pb2.RetainedReply] = {}  # node.py's _retained
-        self.granted_epoch = 0  # node.py's _granted_epoch: the last Connected's epoch
         self.answered_here: list[ring_pb2.LogEntry] = []  # node.py's _answered_here
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
@@ -400,7 +399,6 @@ class SimController:
         the replies the drone retains above what we hold, to answer the program from."""
         held = self.protocol.held_reqnr
         self.retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
-        self.granted_epoch = epoch
         try:
             effects = self.protocol.on_granted(
                 epoch, epoch == self.takeover_epoch, self.takeover_watermark
@@ -725,7 +723,8 @@ class SimController:
             reqnr, call, request_digest(call.method, call.request), self.world.loop.now
         )
         self.inv, self.phase = inv, Phase.INVOKING
-        if call.method.startswith(CLOCK_SERVICE) and self.granted_epoch != self.protocol.epoch:
+        protocol = self.protocol
+        if call.method.startswith(CLOCK_SERVICE) and protocol.granted_epoch != protocol.epoch:
             # node.py _wait_granted: ACTIVE by a handover message, the drone's
             # Connected not yet here: it may bring a lost master's answer.
             inv.step = Step.WAIT_CONNECTED
@@ -771,7 +770,7 @@ class SimController:
         if inv.call.method.startswith(CLOCK_SERVICE):  # waiting in node.py _wait_granted
             if self.protocol.state is not State.ACTIVE:
                 self._invoked(inv, None)
-            elif self.granted_epoch == self.protocol.epoch:
+            elif self.protocol.granted_epoch == self.protocol.epoch:
                 self._answer_active(inv)
             return
         session = self.session
