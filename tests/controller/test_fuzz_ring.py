@@ -21,7 +21,9 @@ from baton.v1 import ring_pb2
 CONTROLLERS = (0, 1, 2)
 
 
-async def test_malformed_requests_to_a_controllers_ring_port(tmp_path: Path) -> None:
+def _controller_1(tmp_path: Path) -> tuple[ControllerApp, Path]:
+    """Controller 1 of a three-controller ring under mutual TLS (not started), and the
+    certificates' folder."""
     certs = tmp_path / "certs"
     ensure(certs, [*(Identity.controller(cid) for cid in CONTROLLERS), DRONE, OPERATOR])
     config = parse_config(
@@ -30,7 +32,11 @@ async def test_malformed_requests_to_a_controllers_ring_port(tmp_path: Path) -> 
             "tls": {"certs": str(certs)},
         }
     )
-    app = ControllerApp(config, 1)
+    return ControllerApp(config, 1), certs
+
+
+async def test_malformed_requests_to_a_controllers_ring_port(tmp_path: Path) -> None:
+    app, certs = _controller_1(tmp_path)
     await app.server.start()  # the ring port only: its node is not started
     rng = random.Random(SEED)
     try:
@@ -62,15 +68,7 @@ async def test_malformed_log_frames_at_a_controllers_ring_port(tmp_path: Path) -
     """Frames of a log message from controller 0, mutated. A mutant may still be a valid
     message of an authorized peer, so the oracle is the answer and the server's health,
     not its state."""
-    certs = tmp_path / "certs"
-    ensure(certs, [*(Identity.controller(cid) for cid in CONTROLLERS), DRONE, OPERATOR])
-    config = parse_config(
-        {
-            "controllers": [{"id": c, "address": "127.0.0.1:0"} for c in CONTROLLERS],
-            "tls": {"certs": str(certs)},
-        }
-    )
-    app = ControllerApp(config, 1)
+    app, certs = _controller_1(tmp_path)
     await app.server.start()
     rng = random.Random(SEED)
     entry = ring_pb2.LogEntry(reqnr=1, method="/baton.v1.Mobility/GetPosition", reply=b"x" * 40)

@@ -19,7 +19,7 @@ from baton.controller.node import CLOCK_SLEEP, ControllerNode
 from baton.controller.ring import RingReceiver
 from baton.rpc.errors import StatusError, abort_with, status_of
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA, token_in
-from baton.rpc.tls import caller, refused
+from baton.rpc.tls import caller, refused, refused_status
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
@@ -187,13 +187,7 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
         self, request: ring_pb2.GetControllerStatusRequest, context: grpc.aio.ServicerContext
     ) -> ring_pb2.ControllerStatus:
         """The controller's state, counters and peer streams."""
-        refusal = refused(
-            context,
-            self._authenticated,
-            "GetStatus",
-            "any part of the mission may read the status, with its certificate",
-            lambda who: True,
-        )
+        refusal = refused_status(context, self._authenticated)
         if refusal is not None:
             await abort_with(context, refusal)
         return controller_status(self._node)

@@ -32,7 +32,7 @@ from baton.lifecycle import write_atomically
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.server import BatonServer
-from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused
+from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
 from baton.stalls import StallWatch
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -619,13 +619,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self, request: drone_pb2.GetDroneStatusRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.DroneStatus:
         """The drone's state, counters, handovers and (if asked) the command audit."""
-        refusal = refused(
-            context,
-            self.authenticated,
-            "GetStatus",
-            "any part of the mission may read the status, with its certificate",
-            lambda who: True,
-        )
+        refusal = refused_status(context, self.authenticated)
         if refusal is not None:
             await abort_with(context, refusal)
         return await self.status(

@@ -174,3 +174,14 @@ def refused(
     if allowed(who):
         return None
     return StatusError(grpc.StatusCode.PERMISSION_DENIED, f"{what}: refused to {who}: {rule}")
+
+
+def refused_status(context: _HasAuthContext, enforced: bool) -> StatusError | None:
+    """``refused`` for a GetStatus: any part of the mission, with its certificate."""
+    return refused(
+        context,
+        enforced,
+        "GetStatus",
+        "any part of the mission may read the status, with its certificate",
+        lambda who: True,
+    )
