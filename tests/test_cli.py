@@ -124,6 +124,22 @@ def test_missing_certificates_are_a_clear_error_naming_the_file_and_the_fix(
         (("link", "--latency", "1e999", "--target", "127.0.0.1:1"), "it must be finite"),
         (("drone", "--insecure", "--image", "/nonexistent"), "--image /nonexistent: cannot read"),
         (("drone", "--insecure", "--vehicle-url", "bogus://x"), "not a MAVLink URL"),
+        (
+            ("drone", "--insecure", "--mavlink-key", "/nonexistent.key"),
+            "/nonexistent.key: no such file; make one with `baton certs mavlink-key FILE`",
+        ),
+        (
+            ("sim-vehicle", "--mavlink-key", "/nonexistent.key"),
+            "--mavlink-key: MAVLink signing key /nonexistent.key: no such file",
+        ),
+        (
+            ("sitl", "--binary", "/bin/true", "--mavlink-key", "/nonexistent.key"),
+            "--mavlink-key: MAVLink signing key /nonexistent.key: no such file",
+        ),
+        (
+            ("drone", "--insecure", "--mavlink-key", "/dev/null", "--vehicle-url", "serial:///x"),
+            "not 64 hexadecimal digits",
+        ),
     ],
 )
 def test_bad_flags_are_one_clear_line_before_anything_starts(
