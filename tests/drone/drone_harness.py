@@ -15,7 +15,7 @@ from baton.drone.master import parse_handover_script
 from baton.drone.service import DroneService, DroneSettings, build_service
 from baton.rpc.channels import aio_channel
 from baton.rpc.server import BatonServer
-from baton.v1 import drone_pb2_grpc
+from baton.v1 import drone_pb2, drone_pb2_grpc
 
 
 @dataclass
@@ -78,3 +78,22 @@ def stop_program(process: subprocess.Popen[bytes]) -> None:
     except subprocess.TimeoutExpired:
         process.kill()
         process.wait(5)
+
+
+async def connect_as_master(
+    stub: drone_pb2_grpc.DroneStub, controller_id: int, holds_reqnr: int = 0
+) -> tuple[drone_pb2.Connected, list[drone_pb2.RetainedReply]]:
+    """A Connect as ``controller_id``: its Connected event and the retained replies that
+    follow it in batches, up to ``Connected.retained_through``; the stream is then closed."""
+    call = stub.Connect(
+        drone_pb2.ConnectRequest(controller_id=controller_id, holds_reqnr=holds_reqnr)
+    )
+    try:
+        connected = (await call.read()).connected
+        replies: list[drone_pb2.RetainedReply] = []
+        through = connected.retained_through
+        while through and (not replies or replies[-1].reqnr < through):
+            replies.extend((await call.read()).retained.replies)
+        return connected, replies
+    finally:
+        call.cancel()

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import grpc
 import pytest
-from drone_harness import DroneUnderTest, start_drone
+from drone_harness import DroneUnderTest, connect_as_master, start_drone
 from test_drone_service import ARM, GOTO, POSITION, TAKEOFF, expect_error, invoke
 from waiting import eventually
 
@@ -169,11 +169,10 @@ async def test_the_calls_a_master_answered_survive_a_drone_killed_executing_thei
     drone = second[0]
     try:
         await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
-        connect = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=1, holds_reqnr=1))
-        connected = (await connect.read()).connected
-        connect.cancel()
-        assert [r.reqnr for r in connected.retained] == [2, 3]
-        assert connected.retained[0] == read
-        assert connected.retained[1].status_code == grpc.StatusCode.UNKNOWN.value[0]
+        connected, retained = await connect_as_master(drone.stub, 1, holds_reqnr=1)
+        assert connected.retained_through == 3
+        assert [r.reqnr for r in retained] == [2, 3]
+        assert retained[0] == read
+        assert retained[1].status_code == grpc.StatusCode.UNKNOWN.value[0]
     finally:
         await second[1].stop(0)

@@ -9,7 +9,7 @@ from drone_fakes import FakeMobility
 from baton.certs.make import ensure
 from baton.digest import request_digest
 from baton.drone.camera import Camera, image_size, parse_resolution
-from baton.drone.dedupe import ReplyCache
+from baton.drone.dedupe import CachedReply, ReplyCache, retained_batches
 from baton.drone.dispatch import Dispatcher, drone_api_routes
 from baton.drone.master import HandoverScriptError, load_handover_script, parse_handover_script
 from baton.effects import read_effects
@@ -44,6 +44,17 @@ def test_reply_cache_retains_every_reply_above_the_watermark() -> None:
     assert cache.watermark == 6
     cache.raise_watermark(9)
     assert cache.reqnrs == [8, 9, 10]
+
+
+def test_retained_replies_go_in_batches_of_a_bounded_size_in_order() -> None:
+    """A taker answers its program from the first batch while the next crosses the link;
+    a reply larger than a batch goes alone, and nothing is lost or reordered."""
+    sizes = [10, 20, 30, 100, 5, 5, 60]
+    replies = [CachedReply(n + 1, "/m", b"", b"x" * size) for n, size in enumerate(sizes)]
+    batches = retained_batches(replies, max_bytes=60)
+    assert [[r.reqnr for r in batch] for batch in batches] == [[1, 2, 3], [4], [5, 6], [7]]
+    assert [r for batch in batches for r in batch] == replies
+    assert retained_batches([], max_bytes=60) == []
 
 
 def test_reply_cache_rejects_an_empty_window() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import grpc
 import pytest
-from drone_harness import start_drone
+from drone_harness import connect_as_master, start_drone
 
 from baton.digest import request_digest
 from baton.v1 import drone_api_pb2 as api
@@ -79,14 +79,12 @@ async def test_a_taker_connects_and_gets_the_retained_replies_above_what_it_hold
         take_over = (await standby.read()).take_over
         standby.cancel()
         assert (take_over.old_master, take_over.epoch, take_over.after_reqnr) == (0, 2, 3)
-        connect = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=1, holds_reqnr=1))
-        connected = (await connect.read()).connected
-        connect.cancel()
+        connected, retained = await connect_as_master(drone.stub, 1, holds_reqnr=1)
         assert connected.epoch == 2
-        assert [r.reqnr for r in connected.retained] == [2, 3]
-        assert connected.retained[0] == read
-        assert connected.retained[1].reply == position.payload
-        assert connected.retained[1].request_digest == request_digest(POSITION, b"")
+        assert [r.reqnr for r in retained] == [2, 3]
+        assert retained[0] == read
+        assert retained[1].reply == position.payload
+        assert retained[1].request_digest == request_digest(POSITION, b"")
     finally:
         await server.stop()
 

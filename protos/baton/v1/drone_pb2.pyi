@@ -165,6 +165,7 @@ class DroneEvent(_message.Message):
 
     CONNECTED_FIELD_NUMBER: _builtins.int
     HANDOVER_FIELD_NUMBER: _builtins.int
+    RETAINED_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def connected(self) -> Global___Connected:
         """The connection is up."""
@@ -173,17 +174,22 @@ class DroneEvent(_message.Message):
     def handover(self) -> Global___HandoverNotice:
         """Hand over to another controller."""
 
+    @_builtins.property
+    def retained(self) -> Global___RetainedBatch:
+        """Part of the replies the drone retains for this master, after Connected."""
+
     def __init__(
         self,
         *,
         connected: Global___Connected | None = ...,
         handover: Global___HandoverNotice | None = ...,
+        retained: Global___RetainedBatch | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover", "retained", b"retained"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover", "retained", b"retained"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_event: _TypeAlias = _typing.Literal["connected", "handover"]  # noqa: Y015
+    _WhichOneofReturnType_event: _TypeAlias = _typing.Literal["connected", "handover", "retained"]  # noqa: Y015
     _WhichOneofArgType_event: _TypeAlias = _typing.Literal["event", b"event"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_event) -> _WhichOneofReturnType_event | None: ...
 
@@ -198,7 +204,7 @@ class Connected(_message.Message):
     MASTER_FIELD_NUMBER: _builtins.int
     LAST_REQNR_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
-    RETAINED_FIELD_NUMBER: _builtins.int
+    RETAINED_THROUGH_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The master as the drone sees it (the caller)."""
     last_reqnr: _builtins.int
@@ -207,31 +213,55 @@ class Connected(_message.Message):
     """The epoch of this mastership: every Invoke of this stream's controller
     carries it until the drone switches masters.
     """
-    @_builtins.property
-    def retained(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
-        """Every reply the drone retains above the watermark and above what the
-        controller holds (ConnectRequest.holds_reqnr), oldest first: after a
-        takeover, the lost master's tail (drone calls, and the calls it answered
-        itself and sent along); after a handover, the reply in flight. The
-        master answers its program from them (digest-checked) instead of
-        re-sending each request (docs/design.md, "Takeover").
-        """
-
+    retained_through: _builtins.int
+    """The replies the drone retains above the watermark and above what the
+    controller holds (ConnectRequest.holds_reqnr) follow in RetainedBatch
+    events, oldest first, up to this request number (0: none follow): after
+    a takeover, the lost master's tail (drone calls, and the calls it
+    answered itself and sent along); after a handover, the reply in flight.
+    The master answers its program from them (digest-checked) as they come
+    instead of re-sending each request, and sends new requests only past
+    this number (docs/design.md, "Takeover").
+    """
     def __init__(
         self,
         *,
         master: _builtins.int = ...,
         last_reqnr: _builtins.int = ...,
         epoch: _builtins.int = ...,
-        retained: _abc.Iterable[Global___RetainedReply] | None = ...,
+        retained_through: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master", "retained", b"retained"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master", "retained_through", b"retained_through"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___Connected: _TypeAlias = Connected  # noqa: Y015
+
+@_typing.final
+class RetainedBatch(_message.Message):
+    """Replies the drone retains, in order: the program is answered from a batch
+    while the next crosses the link (docs/design.md, "Takeover").
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    REPLIES_FIELD_NUMBER: _builtins.int
+    @_builtins.property
+    def replies(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]: ...
+    def __init__(
+        self,
+        *,
+        replies: _abc.Iterable[Global___RetainedReply] | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["replies", b"replies"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___RetainedBatch: _TypeAlias = RetainedBatch  # noqa: Y015
 
 @_typing.final
 class HandoverNotice(_message.Message):

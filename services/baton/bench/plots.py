@@ -91,7 +91,7 @@ def plot_worst_case(rows: Sequence[dict[str, Any]], path: Path) -> None:
 
 
 def plot_failover(runs: Sequence[dict[str, Any]], detection_s: float, path: Path) -> None:
-    """Per kill: detection, connect (with the missing replies) and catch-up stacked, and the
+    """Per kill: detection, connect and catch-up (with the missing replies) stacked, and the
     physical limit above detection."""
     measured = [r for r in runs if "total_s" in r]
     fig, ax = plt.subplots(figsize=(10, 4.5))
@@ -103,15 +103,13 @@ def plot_failover(runs: Sequence[dict[str, Any]], detection_s: float, path: Path
     connect = [r["connect_s"] for r in measured]
     catch_up = [r["catch_up_s"] for r in measured]
     ax.bar(x, detection, color="tab:gray", label="detection")
-    ax.bar(
-        x, connect, bottom=detection, color="tab:orange", label="connect, with the missing replies"
-    )
+    ax.bar(x, connect, bottom=detection, color="tab:orange", label="connect")
     ax.bar(
         x,
         catch_up,
         bottom=[d + c for d, c in zip(detection, connect, strict=True)],
         color="tab:blue",
-        label="catch-up (replay, program)",
+        label="catch-up (the missing replies, the program)",
     )
     ax.scatter(
         x,
@@ -124,7 +122,7 @@ def plot_failover(runs: Sequence[dict[str, Any]], detection_s: float, path: Path
     )
     ax.axhline(detection_s, color="tab:gray", linestyle=":", linewidth=1)
     ax.set_xticks(list(x), labels, rotation=60, fontsize=7)
-    ax.set_ylabel("kill -9 to the new master's first new request (s)")
+    ax.set_ylabel("kill -9 to the new master's first new call (s)")
     ax.set_title("Takeover after kill -9 of the master (controllers@kill reqnr, h: in a handover)")
     ax.legend(loc="lower right", fontsize=8, framealpha=0.9)
     fig.tight_layout()

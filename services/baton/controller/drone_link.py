@@ -59,9 +59,12 @@ def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
 class DroneEvents(Protocol):
     """What a session tells its controller."""
 
-    def granted(self, epoch: int, retained: Sequence[drone_pb2.RetainedReply]) -> None:
+    def granted(self, epoch: int, retained_through: int) -> None:
         """Connected: the drone holds this controller as master in ``epoch``; the replies
-        it retains above what the controller holds."""
+        it retains above what the controller holds follow, up to ``retained_through``."""
+
+    def retained(self, replies: Sequence[drone_pb2.RetainedReply]) -> None:
+        """A batch of those replies, in order."""
 
     def notice(self, notice: drone_pb2.HandoverNotice) -> None:
         """A handover notice on the stream (the stream then ends)."""
@@ -126,9 +129,11 @@ class DroneSession:
                             t_conn_ms=round((self.t_conn_s or 0) * 1000, 3),
                             drone_last_reqnr=event.connected.last_reqnr,
                             epoch=self.epoch,
-                            retained_replies=len(event.connected.retained),
+                            retained_through=event.connected.retained_through,
                         )
-                        self._events_to.granted(self.epoch, event.connected.retained)
+                        self._events_to.granted(self.epoch, event.connected.retained_through)
+                    elif event.HasField("retained"):
+                        self._events_to.retained(event.retained.replies)
                     elif event.HasField("handover"):
                         self._events_to.notice(event.handover)
                         return

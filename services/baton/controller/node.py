@@ -210,8 +210,13 @@ class ControllerNode:
         self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
         self._takeover_watermark = 0  # and the drone's watermark then
         # The replies the drone retained for our takeover, by reqnr: the lost
-        # master's tail, answered from here instead of sent again.
+        # master's tail, answered from here instead of sent again. They come in
+        # batches after the Connected event, which says the last one's reqnr.
         self._retained: dict[int, drone_pb2.RetainedReply] = {}
+        self._retained_through = 0
+        # Granted by takeover: the program's first call beyond the retained tail is
+        # logged, the end of the takeover (baton bench failover reads it).
+        self._first_new_call_due = False
         # The Clock calls consumed since the last drone call: sent along with
         # the next Invoke, so the drone keeps them for a taker.
         self._answered_here: list[ring_pb2.LogEntry] = []
@@ -379,7 +384,8 @@ class ControllerNode:
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
         self._takeover_epoch = self._takeover_watermark = 0
-        self._retained = {}
+        self._retained, self._retained_through = {}, 0
+        self._first_new_call_due = False
         self._answered_here = []
         self.routed_around = []
         self.peer(self.protocol.successor).start()
@@ -630,23 +636,24 @@ class ControllerNode:
     # -- events -----------------------------------------------------------------------
 
     async def on_granted(
-        self,
-        session: DroneSession,
-        epoch: int,
-        retained: Sequence[drone_pb2.RetainedReply] = (),
+        self, session: DroneSession, epoch: int, retained_through: int = 0
     ) -> None:
         """The drone's Connected event: this controller is master in ``epoch``.
 
-        ``retained`` are the replies the drone retains above what we hold: after
-        a takeover the lost master's tail, which ``_invoke`` answers the
-        program from instead of sending those requests again.
+        The replies the drone retains above what we hold follow in batches, up
+        to ``retained_through`` (``on_retained``): after a takeover the lost
+        master's tail, which ``_invoke`` answers the program from as it comes
+        instead of sending those requests again. A Connected again (the
+        stream broke mid-way) says again what is still to come.
         """
         if session is not self._drone:
             return  # a session closed meanwhile
         held = self.protocol.held_reqnr
-        self._retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
+        self._retained = {}
+        self._retained_through = retained_through if retained_through > held else 0
         was_active = self.protocol.state is State.ACTIVE
         takeover = epoch == self._takeover_epoch
+        self._first_new_call_due = takeover
         effects = self.protocol.on_granted(epoch, takeover, self._takeover_watermark)
         if not was_active:
             self.log.info(
@@ -657,11 +664,21 @@ class ControllerNode:
             )
         await self._apply(effects)
 
+    async def on_retained(
+        self, session: DroneSession, replies: Sequence[drone_pb2.RetainedReply]
+    ) -> None:
+        """A batch of the replies the drone retains for us, in order (after Connected)."""
+        if session is not self._drone:
+            return
+        held = self.protocol.held_reqnr
+        self._retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
+        self._notify()
+
     async def on_take_over(self, event: drone_pb2.TakeOver) -> None:
         """The drone made us master by takeover (standby stream): connect to learn it.
 
         The old master's log will not come: what we lack above what we hold
-        comes with the Connected event, the replies the drone retained.
+        follows the Connected event, the replies the drone retained.
         """
         p = self.protocol
         self._takeover_epoch = event.epoch
@@ -1017,6 +1034,16 @@ class ControllerNode:
         try:
             if method.startswith(CLOCK_SERVICE) and not await self._wait_granted():
                 return None
+            if not await self._wait_retained(reqnr):
+                return None
+            if self._first_new_call_due and reqnr > self._retained_through:
+                self._first_new_call_due = False
+                self.log.info(
+                    "first new call after the takeover",
+                    reqnr=reqnr,
+                    method=method,
+                    epoch=self.protocol.epoch,
+                )
             kept = self._retained.pop(reqnr, None)
             if kept is not None:
                 try:
@@ -1084,6 +1111,18 @@ class ControllerNode:
         then block on the radio).
         """
         while self.protocol.granted_epoch != self.protocol.epoch:
+            if self.protocol.state is not State.ACTIVE:
+                return False
+            await self._changed.wait()
+        return self.protocol.state is State.ACTIVE
+
+    async def _wait_retained(self, reqnr: int) -> bool:
+        """Until the drone's retained reply for ``reqnr`` came, if one is coming (it
+        follows the Connected event in batches); False if we stop being ACTIVE.
+
+        A stream that breaks mid-way is connected again, and its Connected says
+        what is still to come (``on_granted``)."""
+        while reqnr <= self._retained_through and reqnr not in self._retained:
             if self.protocol.state is not State.ACTIVE:
                 return False
             await self._changed.wait()
@@ -1239,9 +1278,15 @@ class _SessionEvents:
     def _run(self, event: Coroutine[Any, Any, None]) -> None:
         asyncio.get_running_loop().create_task(event)
 
-    def granted(self, epoch: int, retained: Sequence[drone_pb2.RetainedReply]) -> None:
+    def granted(self, epoch: int, retained_through: int) -> None:
         assert self.session is not None
-        self._run(self._node.on_granted(self.session, epoch, retained))
+        self._run(self._node.on_granted(self.session, epoch, retained_through))
+
+    def retained(self, replies: Sequence[drone_pb2.RetainedReply]) -> None:
+        assert self.session is not None
+        # A task like granted's: tasks start in the order they are made, so the
+        # batch is taken after the Connected event's on_granted began (and reset).
+        self._run(self._node.on_retained(self.session, replies))
 
     def notice(self, notice: drone_pb2.HandoverNotice) -> None:
         assert self.session is not None

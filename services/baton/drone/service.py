@@ -22,7 +22,7 @@ import grpc
 from baton.config import detection_time_s
 from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
-from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
+from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, retained_batches
 from baton.drone.dispatch import Dispatcher
 from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend
@@ -218,7 +218,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         return record
 
     def _take_over_event(self, record: drone_pb2.HandoverRecord) -> drone_pb2.StandbyEvent:
-        """The TakeOver (small: the replies the taker lacks come with its Connected)."""
+        """The TakeOver (small: the replies the taker lacks follow its Connected)."""
         return drone_pb2.StandbyEvent(
             take_over=drone_pb2.TakeOver(
                 old_master=record.old_master,
@@ -523,9 +523,17 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                         master=cid,
                         last_reqnr=self.seq.last_reqnr,
                         epoch=self.seq.epoch,
-                        retained=[reply.to_proto() for reply in retained],
+                        retained_through=retained[-1].reqnr if retained else 0,
                     )
                 )
+                # In batches: the master answers its program from the first while
+                # the rest crosses the link (docs/design.md, "Takeover").
+                for batch in retained_batches(retained):
+                    yield drone_pb2.DroneEvent(
+                        retained=drone_pb2.RetainedBatch(
+                            replies=[reply.to_proto() for reply in batch]
+                        )
+                    )
             while True:
                 notice = self.seq.pending.get(cid)
                 if notice is not None:

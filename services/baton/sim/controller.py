@@ -105,6 +105,7 @@ class Step(enum.Enum):
 
     CLOCK = "clock"  # a Sleep
     WAIT_CONNECTED = "wait connected"  # _wait_connected
+    WAIT_RETAINED = "wait retained"  # _wait_retained
     WAIT_READY = "wait ready"  # drone.invoke waiting for the channel (wait_for_ready)
     IN_FLIGHT = "in flight"  # the Invoke is on its way or being executed
     PAUSE = "pause"  # Retry.pause after UNAVAILABLE
@@ -178,6 +179,7 @@ class SimController:
         # routed_around.
         self.takeover_epoch = self.takeover_watermark = 0
         self.retained: dict[int, drone_pb2.RetainedReply] = {}  # node.py's _retained
+        self.retained_through = 0  # and _retained_through
         self.answered_here: list[ring_pb2.LogEntry] = []  # node.py's _answered_here
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
@@ -271,6 +273,11 @@ class SimController:
         if inv is not None:
             if inv.step is Step.WAIT_CONNECTED:
                 self._drone_step(inv)
+            elif inv.step is Step.WAIT_RETAINED:
+                if self.protocol.state is not State.ACTIVE:
+                    self._invoked(inv, None)
+                else:
+                    self._answer_active(inv)
             return
         if self.phase is Phase.WAITING:
             self._step()
@@ -334,16 +341,23 @@ class SimController:
         self.world.loop.after(session.backoff, self._connect, session)
         session.backoff = min(session.backoff * 2, SESSION_BACKOFF_MAX_S)
 
-    def on_drone_connected(
-        self, sid: int, epoch: int, retained: list[drone_pb2.RetainedReply]
-    ) -> None:
+    def on_drone_connected(self, sid: int, epoch: int, retained_through: int) -> None:
         """The Connected event: the session's epoch, then node.py's on_granted."""
         session = self.session
         if session is None or session.sid != sid:
             return
         session.epoch, session.connected = epoch, True
         self._startup_answer()
-        self.on_granted(epoch, retained)
+        self.on_granted(epoch, retained_through)
+
+    def on_drone_retained(self, sid: int, replies: list[drone_pb2.RetainedReply]) -> None:
+        """A RetainedBatch event: node.py's on_retained."""
+        session = self.session
+        if session is None or session.sid != sid:
+            return
+        held = self.protocol.held_reqnr
+        self.retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
+        self._notify()
 
     def on_drone_notice(
         self, sid: int, new_master: int, after_reqnr: int, epoch: int, takeover: bool
@@ -394,11 +408,13 @@ class SimController:
 
     # -- events (ControllerNode.on_*) ---------------------------------------------
 
-    def on_granted(self, epoch: int, retained: list[drone_pb2.RetainedReply]) -> None:
+    def on_granted(self, epoch: int, retained_through: int) -> None:
         """ControllerNode.on_granted: a takeover if the epoch is the one on_take_over noted;
-        the replies the drone retains above what we hold, to answer the program from."""
+        the replies the drone retains above what we hold follow, up to ``retained_through``,
+        to answer the program from."""
         held = self.protocol.held_reqnr
-        self.retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
+        self.retained = {}
+        self.retained_through = retained_through if retained_through > held else 0
         try:
             effects = self.protocol.on_granted(
                 epoch, epoch == self.takeover_epoch, self.takeover_watermark
@@ -734,6 +750,9 @@ class SimController:
     def _answer_active(self, inv: Invocation) -> None:
         """The rest of node.py _invoke: from the retained replies, the Clock or the drone."""
         call = inv.call
+        if inv.reqnr <= self.retained_through and inv.reqnr not in self.retained:
+            inv.step = Step.WAIT_RETAINED  # node.py _wait_retained: its batch is coming
+            return
         kept = self.retained.pop(inv.reqnr, None)
         if kept is not None:
             try:

@@ -26,13 +26,14 @@ modelled; GetStatus is not modelled.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import grpc
 
 from baton.digest import request_digest
-from baton.drone.dedupe import CachedReply
+from baton.drone.dedupe import CachedReply, retained_batches
 from baton.drone.dispatch import drone_api_routes
 from baton.drone.sequencer import ScriptedHandover, Sequencer, cut_off_outcome
 from baton.drone.service import RESTART_GRACE_S, START_GRACE_S, TAKEOVER_TICK_S
@@ -47,6 +48,9 @@ if TYPE_CHECKING:
     from baton.sim.world import World
 
 ROUTES = drone_api_routes()
+# The sim's replies are tens of bytes: batches of about one or two of them, so that a
+# stream can break between the Connected event and its last retained batch.
+RETAINED_BATCH_BYTES = 64
 
 
 @dataclass(frozen=True)
@@ -494,17 +498,22 @@ class SimDrone:
                 stream=True,
             )
         self.streams[cid] = Stream(cid, session, link, connection)
-        if cid == self.seq.master:  # Connected, with the replies retained above its holds
-            retained = [r.to_proto() for r in self.seq.cache.retained_replies(above=holds_reqnr)]
-            link.to_controller(
-                connection,
-                sum(len(reply.reply) for reply in retained),
-                link.owner.on_drone_connected,
-                session,
-                self.seq.epoch,
-                retained,
-                stream=True,
-            )
+        if cid == self.seq.master:  # Connected, then the replies retained above its holds
+            retained = self.seq.cache.retained_replies(above=holds_reqnr)
+            through = retained[-1].reqnr if retained else 0
+            owner = link.owner
+            parts: list[tuple[int, Callable[..., None], tuple[Any, ...]]] = [
+                (0, owner.on_drone_connected, (session, self.seq.epoch, through))
+            ]
+            parts += [
+                (
+                    sum(len(reply.reply) for reply in batch),
+                    owner.on_drone_retained,
+                    (session, [reply.to_proto() for reply in batch]),
+                )
+                for batch in retained_batches(retained, RETAINED_BATCH_BYTES)
+            ]
+            link.stream_to_controller(connection, parts)
         self._wake(cid)
 
     def receive_stream_closed(self, cid: int, session: int) -> None:
@@ -666,7 +675,7 @@ class SimDrone:
 
     def _tell_take_over(self, record: drone_pb2.HandoverRecord) -> None:
         """StandbyStreams.tell of DroneService._take_over_event, on the taker's newest
-        stream if it holds one (the retained replies come with its Connected)."""
+        stream if it holds one (the retained replies follow its Connected)."""
         link = self.world.controller(record.new_master).drone_link
         if not link.usable():
             return

@@ -411,6 +411,23 @@ class DroneLink:
             arrival = self._stream_fifo = max(arrival, self._stream_fifo)
         self.world.loop.at(arrival, self._at_controller, generation, handler, args)
 
+    def stream_to_controller(
+        self, generation: int, parts: list[tuple[int, Callable[..., None], tuple[Any, ...]]]
+    ) -> None:
+        """Sends ``parts`` (size, handler, args) in order on the Connect stream, back to
+        back: one latency for them all (one jitter draw, like one message), each part
+        arriving once the bytes before it and its own crossed."""
+        if generation != self.generation:
+            return
+        latency = self.world.net.delay(DRONE, self.owner.id, 0)
+        spec = self.world.net.specs[DRONE, self.owner.id]
+        sent = 0
+        for size, handler, args in parts:
+            sent += size
+            arrival = self.world.loop.now + latency + spec.transfer(sent)
+            arrival = self._stream_fifo = max(arrival, self._stream_fifo)
+            self.world.loop.at(arrival, self._at_controller, generation, handler, args)
+
     def _at_controller(
         self, generation: int, handler: Callable[..., None], args: tuple[Any]
     ) -> None:
