@@ -199,6 +199,8 @@ class Connected(_message.Message):
     LAST_REQNR_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
     RETAINED_FIELD_NUMBER: _builtins.int
+    TAKEOVER_FIELD_NUMBER: _builtins.int
+    WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The master as the drone sees it (the caller)."""
     last_reqnr: _builtins.int
@@ -206,6 +208,19 @@ class Connected(_message.Message):
     epoch: _builtins.int
     """The epoch of this mastership: every Invoke of this stream's controller
     carries it until the drone switches masters.
+    """
+    takeover: _builtins.bool
+    """The mastership was granted by a takeover (HandoverRecord.kind
+    "takeover"): no handover message of its epoch will come, and the master
+    goes ACTIVE on what it holds once it holds every request up to the
+    watermark. Said on every Connected of the mastership, not only after a
+    TakeOver: a taker that restarted or rejoined with nothing after its
+    first request is not told the TakeOver again.
+    """
+    watermark_reqnr: _builtins.int
+    """The replication watermark now: the drone let go of the replies at or
+    below it (the retained replies start above it), so a master holding
+    less must get them from the ring first.
     """
     @_builtins.property
     def retained(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
@@ -224,10 +239,12 @@ class Connected(_message.Message):
         last_reqnr: _builtins.int = ...,
         epoch: _builtins.int = ...,
         retained: _abc.Iterable[Global___RetainedReply] | None = ...,
+        takeover: _builtins.bool = ...,
+        watermark_reqnr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master", "retained", b"retained"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master", "retained", b"retained", "takeover", b"takeover", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

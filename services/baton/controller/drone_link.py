@@ -59,9 +59,10 @@ def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
 class DroneEvents(Protocol):
     """What a session tells its controller."""
 
-    def granted(self, epoch: int, retained: Sequence[drone_pb2.RetainedReply]) -> None:
-        """Connected: the drone holds this controller as master in ``epoch``; the replies
-        it retains above what the controller holds."""
+    def granted(self, connected: drone_pb2.Connected) -> None:
+        """Connected: the drone holds this controller as master in ``connected.epoch``
+        (by takeover or not); the replies it retains above what the controller holds, and
+        its watermark."""
 
     def notice(self, notice: drone_pb2.HandoverNotice) -> None:
         """A handover notice on the stream (the stream then ends)."""
@@ -127,8 +128,9 @@ class DroneSession:
                             drone_last_reqnr=event.connected.last_reqnr,
                             epoch=self.epoch,
                             retained_replies=len(event.connected.retained),
+                            takeover=event.connected.takeover,
                         )
-                        self._events_to.granted(self.epoch, event.connected.retained)
+                        self._events_to.granted(event.connected)
                     elif event.HasField("handover"):
                         self._events_to.notice(event.handover)
                         return

@@ -634,20 +634,33 @@ class ControllerNode:
         session: DroneSession,
         epoch: int,
         retained: Sequence[drone_pb2.RetainedReply] = (),
+        takeover: bool = False,
+        watermark_reqnr: int = 0,
     ) -> None:
         """The drone's Connected event: this controller is master in ``epoch``.
 
         ``retained`` are the replies the drone retains above what we hold: after
         a takeover the lost master's tail, which ``_invoke`` answers the
         program from instead of sending those requests again.
+
+        ``takeover``: the drone granted this mastership by takeover (it says so
+        on every Connected; the TakeOver we may have noted says the same). A
+        taker that restarted or rejoined with nothing after its first request
+        is not told the TakeOver again, and took the grant for a cooperative
+        one, waiting for ever for a handover message (--lose-master seed
+        1092). ``watermark_reqnr`` is the drone's watermark now: the replies
+        at or below it are gone from the drone, so we must hold them before we
+        go ACTIVE (the TakeOver's, older, let a taker with nothing go ACTIVE
+        with a gap below the retained replies).
         """
         if session is not self._drone:
             return  # a session closed meanwhile
         held = self.protocol.held_reqnr
         self._retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
         was_active = self.protocol.state is State.ACTIVE
-        takeover = epoch == self._takeover_epoch
-        effects = self.protocol.on_granted(epoch, takeover, self._takeover_watermark)
+        takeover = takeover or epoch == self._takeover_epoch
+        watermark = max(self._takeover_watermark, watermark_reqnr)
+        effects = self.protocol.on_granted(epoch, takeover, watermark)
         if not was_active:
             self.log.info(
                 "the drone says this controller is master",
@@ -1239,9 +1252,17 @@ class _SessionEvents:
     def _run(self, event: Coroutine[Any, Any, None]) -> None:
         asyncio.get_running_loop().create_task(event)
 
-    def granted(self, epoch: int, retained: Sequence[drone_pb2.RetainedReply]) -> None:
+    def granted(self, connected: drone_pb2.Connected) -> None:
         assert self.session is not None
-        self._run(self._node.on_granted(self.session, epoch, retained))
+        self._run(
+            self._node.on_granted(
+                self.session,
+                connected.epoch,
+                connected.retained,
+                connected.takeover,
+                connected.watermark_reqnr,
+            )
+        )
 
     def notice(self, notice: drone_pb2.HandoverNotice) -> None:
         assert self.session is not None

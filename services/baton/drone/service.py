@@ -524,6 +524,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                         last_reqnr=self.seq.last_reqnr,
                         epoch=self.seq.epoch,
                         retained=[reply.to_proto() for reply in retained],
+                        takeover=self.seq.granted_by_takeover,
+                        watermark_reqnr=self.seq.cache.watermark,
                     )
                 )
             while True:

@@ -335,7 +335,12 @@ class SimController:
         session.backoff = min(session.backoff * 2, SESSION_BACKOFF_MAX_S)
 
     def on_drone_connected(
-        self, sid: int, epoch: int, retained: list[drone_pb2.RetainedReply]
+        self,
+        sid: int,
+        epoch: int,
+        retained: list[drone_pb2.RetainedReply],
+        takeover: bool = False,
+        watermark_reqnr: int = 0,
     ) -> None:
         """The Connected event: the session's epoch, then node.py's on_granted."""
         session = self.session
@@ -343,7 +348,7 @@ class SimController:
             return
         session.epoch, session.connected = epoch, True
         self._startup_answer()
-        self.on_granted(epoch, retained)
+        self.on_granted(epoch, retained, takeover, watermark_reqnr)
 
     def on_drone_notice(
         self, sid: int, new_master: int, after_reqnr: int, epoch: int, takeover: bool
@@ -394,14 +399,22 @@ class SimController:
 
     # -- events (ControllerNode.on_*) ---------------------------------------------
 
-    def on_granted(self, epoch: int, retained: list[drone_pb2.RetainedReply]) -> None:
-        """ControllerNode.on_granted: a takeover if the epoch is the one on_take_over noted;
-        the replies the drone retains above what we hold, to answer the program from."""
+    def on_granted(
+        self,
+        epoch: int,
+        retained: list[drone_pb2.RetainedReply],
+        takeover: bool = False,
+        watermark_reqnr: int = 0,
+    ) -> None:
+        """ControllerNode.on_granted: a takeover if the drone says so (or the epoch is the
+        one on_take_over noted); the replies the drone retains above what we hold, to
+        answer the program from, and its watermark now, which we must hold first."""
         held = self.protocol.held_reqnr
         self.retained = {kept.reqnr: kept for kept in retained if kept.reqnr > held}
+        takeover = takeover or epoch == self.takeover_epoch
         try:
             effects = self.protocol.on_granted(
-                epoch, epoch == self.takeover_epoch, self.takeover_watermark
+                epoch, takeover, max(self.takeover_watermark, watermark_reqnr)
             )
         except ProtocolError as exc:
             self._uncaught("on_granted", exc)

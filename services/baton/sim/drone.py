@@ -503,6 +503,8 @@ class SimDrone:
                 session,
                 self.seq.epoch,
                 retained,
+                self.seq.granted_by_takeover,
+                self.seq.cache.watermark,
                 stream=True,
             )
         self._wake(cid)
