@@ -162,6 +162,24 @@ def test_a_handover_from_a_taker_that_has_not_connected_is_a_takeover() -> None:
     assert not seq.handover_must_take_over(0)  # a cooperative grant waits for the log
 
 
+def test_a_mastership_granted_by_takeover_says_so_after_the_taker_sent_a_request() -> None:
+    """--lose-master seed 1092: the taker sent a request, then rejoined with nothing (its
+    log had diverged from the ring's). The drone tells a TakeOver only until the taker's
+    first request, so its fresh self took the Connected for a cooperative grant and
+    waited for ever for a handover message. Every Connected of the mastership says it."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    assert not seq.granted_by_takeover  # the initial grant
+    serve(seq, 0, 1, 1)
+    seq.switch(1, "lost", now=5.0, takeover=True, lost_at=1.0)
+    assert seq.granted_by_takeover
+    seq.note_request(1, 6.0)
+    serve(seq, 1, 2, 2)
+    assert seq.handovers[-1].first_request_at  # no TakeOver is owed any more...
+    assert seq.granted_by_takeover  # ...but its Connected says takeover all the same
+    seq.switch(2, "rpc", now=7.0)
+    assert not seq.granted_by_takeover  # cooperative: a handover message is owed
+
+
 def test_replies_above_the_masters_watermark_are_retained_past_the_window() -> None:
     seq = Sequencer([0, 1], initial_master=0, cache_window=2)
     for reqnr in range(1, 7):

@@ -89,6 +89,32 @@ async def test_a_taker_connects_and_gets_the_retained_replies_above_what_it_hold
         await server.stop()
 
 
+async def test_every_connected_of_a_taker_says_takeover_and_the_watermark() -> None:
+    """--lose-master seed 1092: a taker that sent a request, then rejoined with nothing,
+    is told no TakeOver again; its Connected says the mastership is a takeover (no
+    handover message will come) and the watermark it must hold before it goes ACTIVE
+    (the retained replies start above it)."""
+    drone, server = await start_drone()
+    try:
+        await drone.stub.Invoke(
+            drone_pb2.InvokeRequest(controller_id=0, reqnr=1, method=POSITION, epoch=1)
+        )
+        await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
+        await drone.stub.Invoke(
+            drone_pb2.InvokeRequest(
+                controller_id=1, reqnr=2, method=POSITION, epoch=2, watermark_reqnr=1
+            )
+        )
+        connected, retained = await connect_as_master(drone.stub, 1, holds_reqnr=0)
+        assert (connected.epoch, connected.takeover, connected.watermark_reqnr) == (2, True, 1)
+        assert [r.reqnr for r in retained] == [2]
+        await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=2))
+        connected, _ = await connect_as_master(drone.stub, 2)
+        assert (connected.epoch, connected.takeover) == (3, False)
+    finally:
+        await server.stop()
+
+
 @pytest.mark.parametrize(
     ("kept", "why"),
     [

@@ -205,6 +205,8 @@ class Connected(_message.Message):
     LAST_REQNR_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
     RETAINED_THROUGH_FIELD_NUMBER: _builtins.int
+    TAKEOVER_FIELD_NUMBER: _builtins.int
+    WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The master as the drone sees it (the caller)."""
     last_reqnr: _builtins.int
@@ -223,6 +225,19 @@ class Connected(_message.Message):
     instead of re-sending each request, and sends new requests only past
     this number (docs/design.md, "Takeover").
     """
+    takeover: _builtins.bool
+    """The mastership was granted by a takeover (HandoverRecord.kind
+    "takeover"): no handover message of its epoch will come, and the master
+    goes ACTIVE on what it holds once it holds every request up to the
+    watermark. Said on every Connected of the mastership, not only after a
+    TakeOver: a taker that restarted or rejoined with nothing after its
+    first request is not told the TakeOver again.
+    """
+    watermark_reqnr: _builtins.int
+    """The replication watermark now: the drone let go of the replies at or
+    below it (the retained replies start above it), so a master holding
+    less must get them from the ring first.
+    """
     def __init__(
         self,
         *,
@@ -230,10 +245,12 @@ class Connected(_message.Message):
         last_reqnr: _builtins.int = ...,
         epoch: _builtins.int = ...,
         retained_through: _builtins.int = ...,
+        takeover: _builtins.bool = ...,
+        watermark_reqnr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master", "retained_through", b"retained_through"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master", "retained_through", b"retained_through", "takeover", b"takeover", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -59,9 +59,10 @@ def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
 class DroneEvents(Protocol):
     """What a session tells its controller."""
 
-    def granted(self, epoch: int, retained_through: int) -> None:
-        """Connected: the drone holds this controller as master in ``epoch``; the replies
-        it retains above what the controller holds follow, up to ``retained_through``."""
+    def granted(self, connected: drone_pb2.Connected) -> None:
+        """Connected: the drone holds this controller as master in ``connected.epoch``
+        (by takeover or not), and its watermark; the replies it retains above what the
+        controller holds follow, up to ``connected.retained_through``."""
 
     def retained(self, replies: Sequence[drone_pb2.RetainedReply]) -> None:
         """A batch of those replies, in order."""
@@ -130,8 +131,9 @@ class DroneSession:
                             drone_last_reqnr=event.connected.last_reqnr,
                             epoch=self.epoch,
                             retained_through=event.connected.retained_through,
+                            takeover=event.connected.takeover,
                         )
-                        self._events_to.granted(self.epoch, event.connected.retained_through)
+                        self._events_to.granted(event.connected)
                     elif event.HasField("retained"):
                         self._events_to.retained(event.retained.replies)
                     elif event.HasField("handover"):

@@ -636,7 +636,12 @@ class ControllerNode:
     # -- events -----------------------------------------------------------------------
 
     async def on_granted(
-        self, session: DroneSession, epoch: int, retained_through: int = 0
+        self,
+        session: DroneSession,
+        epoch: int,
+        retained_through: int = 0,
+        takeover: bool = False,
+        watermark_reqnr: int = 0,
     ) -> None:
         """The drone's Connected event: this controller is master in ``epoch``.
 
@@ -645,6 +650,16 @@ class ControllerNode:
         master's tail, which ``_invoke`` answers the program from as it comes
         instead of sending those requests again. A Connected again (the
         stream broke mid-way) says again what is still to come.
+
+        ``takeover``: the drone granted this mastership by takeover (it says so
+        on every Connected; the TakeOver we may have noted says the same). A
+        taker that restarted or rejoined with nothing after its first request
+        is not told the TakeOver again, and took the grant for a cooperative
+        one, waiting for ever for a handover message (--lose-master seed
+        1092). ``watermark_reqnr`` is the drone's watermark now: the replies
+        at or below it are gone from the drone, so we must hold them before we
+        go ACTIVE (the TakeOver's, older, let a taker with nothing go ACTIVE
+        with a gap below the retained replies).
         """
         if session is not self._drone:
             return  # a session closed meanwhile
@@ -652,9 +667,10 @@ class ControllerNode:
         self._retained = {}
         self._retained_through = retained_through if retained_through > held else 0
         was_active = self.protocol.state is State.ACTIVE
-        takeover = epoch == self._takeover_epoch
+        takeover = takeover or epoch == self._takeover_epoch
         self._first_new_call_due = takeover
-        effects = self.protocol.on_granted(epoch, takeover, self._takeover_watermark)
+        watermark = max(self._takeover_watermark, watermark_reqnr)
+        effects = self.protocol.on_granted(epoch, takeover, watermark)
         if not was_active:
             self.log.info(
                 "the drone says this controller is master",
@@ -1278,9 +1294,17 @@ class _SessionEvents:
     def _run(self, event: Coroutine[Any, Any, None]) -> None:
         asyncio.get_running_loop().create_task(event)
 
-    def granted(self, epoch: int, retained_through: int) -> None:
+    def granted(self, connected: drone_pb2.Connected) -> None:
         assert self.session is not None
-        self._run(self._node.on_granted(self.session, epoch, retained_through))
+        self._run(
+            self._node.on_granted(
+                self.session,
+                connected.epoch,
+                connected.retained_through,
+                connected.takeover,
+                connected.watermark_reqnr,
+            )
+        )
 
     def retained(self, replies: Sequence[drone_pb2.RetainedReply]) -> None:
         assert self.session is not None

@@ -543,6 +543,19 @@ class Sequencer:
         if controller_id == self.master:
             self.connected_epoch = self.epoch
 
+    @property
+    def granted_by_takeover(self) -> bool:
+        """Whether the current mastership was granted by a takeover (Connected.takeover).
+
+        Its master is owed no handover message, and it must hold every
+        request up to the watermark before it goes ACTIVE. Said on every
+        Connected, because the master may not know: a taker that restarted or
+        rejoined with nothing after its first request is not told the TakeOver
+        again (``take_over_owed``), and would wait for ever for a handover
+        message (--lose-master seed 1092).
+        """
+        return bool(self.handovers) and self.handovers[-1].kind == "takeover"
+
     def handover_must_take_over(self, new_master: int) -> bool:
         """Whether a handover to ``new_master`` decided now must be a takeover: the master
         was made master by a takeover and has not connected since.

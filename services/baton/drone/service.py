@@ -524,6 +524,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                         last_reqnr=self.seq.last_reqnr,
                         epoch=self.seq.epoch,
                         retained_through=retained[-1].reqnr if retained else 0,
+                        takeover=self.seq.granted_by_takeover,
+                        watermark_reqnr=self.seq.cache.watermark,
                     )
                 )
                 # In batches: the master answers its program from the first while

@@ -341,14 +341,21 @@ class SimController:
         self.world.loop.after(session.backoff, self._connect, session)
         session.backoff = min(session.backoff * 2, SESSION_BACKOFF_MAX_S)
 
-    def on_drone_connected(self, sid: int, epoch: int, retained_through: int) -> None:
+    def on_drone_connected(
+        self,
+        sid: int,
+        epoch: int,
+        retained_through: int,
+        takeover: bool = False,
+        watermark_reqnr: int = 0,
+    ) -> None:
         """The Connected event: the session's epoch, then node.py's on_granted."""
         session = self.session
         if session is None or session.sid != sid:
             return
         session.epoch, session.connected = epoch, True
         self._startup_answer()
-        self.on_granted(epoch, retained_through)
+        self.on_granted(epoch, retained_through, takeover, watermark_reqnr)
 
     def on_drone_retained(self, sid: int, replies: list[drone_pb2.RetainedReply]) -> None:
         """A RetainedBatch event: node.py's on_retained."""
@@ -408,16 +415,24 @@ class SimController:
 
     # -- events (ControllerNode.on_*) ---------------------------------------------
 
-    def on_granted(self, epoch: int, retained_through: int) -> None:
-        """ControllerNode.on_granted: a takeover if the epoch is the one on_take_over noted;
-        the replies the drone retains above what we hold follow, up to ``retained_through``,
-        to answer the program from."""
+    def on_granted(
+        self,
+        epoch: int,
+        retained_through: int,
+        takeover: bool = False,
+        watermark_reqnr: int = 0,
+    ) -> None:
+        """ControllerNode.on_granted: a takeover if the drone says so (or the epoch is the
+        one on_take_over noted); the replies the drone retains above what we hold follow,
+        up to ``retained_through``, to answer the program from; the drone's watermark now,
+        which we must hold first."""
         held = self.protocol.held_reqnr
         self.retained = {}
         self.retained_through = retained_through if retained_through > held else 0
+        takeover = takeover or epoch == self.takeover_epoch
         try:
             effects = self.protocol.on_granted(
-                epoch, epoch == self.takeover_epoch, self.takeover_watermark
+                epoch, takeover, max(self.takeover_watermark, watermark_reqnr)
             )
         except ProtocolError as exc:
             self._uncaught("on_granted", exc)

@@ -502,8 +502,15 @@ class SimDrone:
             retained = self.seq.cache.retained_replies(above=holds_reqnr)
             through = retained[-1].reqnr if retained else 0
             owner = link.owner
+            connected = (
+                session,
+                self.seq.epoch,
+                through,
+                self.seq.granted_by_takeover,
+                self.seq.cache.watermark,
+            )
             parts: list[tuple[int, Callable[..., None], tuple[Any, ...]]] = [
-                (0, owner.on_drone_connected, (session, self.seq.epoch, through))
+                (0, owner.on_drone_connected, connected)
             ]
             parts += [
                 (

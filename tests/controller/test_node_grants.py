@@ -1,0 +1,53 @@
+"""The node's reading of the drone's Connected event, without processes (issue 10)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from baton.config import parse_config
+from baton.controller.node import ControllerNode
+from baton.controller.protocol import State
+from baton.digest import request_digest
+from baton.v1 import drone_pb2, ring_pb2
+
+POSITION = "/baton.v1.Mobility/GetPosition"
+DIGEST = request_digest(POSITION, b"")
+
+
+def entry(reqnr: int) -> ring_pb2.LogEntry:
+    return ring_pb2.LogEntry(
+        reqnr=reqnr, method=POSITION, request_digest=DIGEST, reply=b"%d" % reqnr
+    )
+
+
+async def test_a_taker_with_nothing_is_granted_by_the_connected_event_alone() -> None:
+    """--lose-master seed 1092: taker 2 sent a request, then its log diverged from the
+    ring's and it rejoined with nothing. No TakeOver is told again after a request, so
+    its fresh self knew only the Connected event: it took the grant for a cooperative
+    one and waited for ever for a handover message of epoch 6. The Connected says
+    takeover, and the drone's watermark now (2: the retained replies start at 3): the
+    taker goes ACTIVE once the ring gave it every request up to 2, not before (it would
+    frame the retained replies after a gap) and not never."""
+    config = parse_config(
+        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
+    )
+    node = ControllerNode(config, 2)
+    session: Any = object()
+    node._drone = session  # the session the Connected came on
+    retained = [
+        drone_pb2.RetainedReply(reqnr=3, method=POSITION, request_digest=DIGEST, reply=b"3")
+    ]
+    await node.on_granted(session, 6, 3, takeover=True, watermark_reqnr=2)
+    await node.on_retained(session, retained)
+    p = node.protocol
+    assert p.master and p.state is State.PASSIVE and not p.caught_up
+    # Holding nothing, it holds the log number it must (0): only the watermark holds it.
+    assert p.catch_up_to == 0 and p.must_hold_reqnr == 2 and p.state is State.PASSIVE
+    await node.on_sync(1, 1)
+    message = ring_pb2.LogMessage(lognr=1, origin=0, epoch=1, entries=[entry(1), entry(2)])
+    await node.on_log(message)
+    assert p.held_reqnr == 2 and p.caught_up  # no handover message owed
+    assert p.state is State.REPLAY  # the program replays 1 and 2, then goes ACTIVE
+    assert list(node._retained) == [3]
+    node._drone = None
+    await node.stop()
