@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 from baton.config import parse_config
@@ -49,5 +50,64 @@ async def test_a_taker_with_nothing_is_granted_by_the_connected_event_alone() ->
     assert p.held_reqnr == 2 and p.caught_up  # no handover message owed
     assert p.state is State.REPLAY  # the program replays 1 and 2, then goes ACTIVE
     assert list(node._retained) == [3]
+    node._drone = None
+    await node.stop()
+
+
+def kept(reqnr: int) -> drone_pb2.RetainedReply:
+    return drone_pb2.RetainedReply(
+        reqnr=reqnr, method=POSITION, request_digest=DIGEST, reply=b"%d" % reqnr
+    )
+
+
+async def settle() -> None:
+    """Lets every task that can run do so (nothing here waits on time or sockets)."""
+    for _ in range(20):
+        await asyncio.sleep(0)
+
+
+class NoDrone:
+    """A session the node must not send to: every reply it needs is retained."""
+
+    connected = asyncio.Event()
+
+    async def invoke(self, *args: object, **kwargs: object) -> None:
+        raise AssertionError(f"sent to the drone: {args}")
+
+    async def close(self) -> None:
+        pass
+
+
+async def test_a_taker_answers_its_program_from_each_retained_batch_as_it_comes() -> None:
+    """The retained tail follows the Connected event in batches: a call whose reply is
+    still crossing waits for its batch (it is not sent to the drone, nor answered by the
+    controller's clock); a Connected again (the stream broke mid-way) says what is still
+    to come, and the rest arrives on the new stream."""
+    config = parse_config(
+        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
+    )
+    node = ControllerNode(config, 1)
+    session: Any = NoDrone()
+    node._drone = session
+    await node.on_sync(0, 0)
+    await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
+    p = node.protocol
+    assert p.state is State.ACTIVE and node._retained_through == 3
+
+    first = asyncio.create_task(node.call(POSITION, b""))
+    await settle()
+    assert not first.done()  # its batch has not come
+    await node.on_retained(session, [kept(1)])
+    assert (await asyncio.wait_for(first, 5)).reply == b"1"
+
+    second = asyncio.create_task(node.call(POSITION, b""))
+    await settle()
+    assert not second.done()
+    # The stream broke before the next batch: the Connect again says 2 and 3 are to come.
+    await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
+    await node.on_retained(session, [kept(2), kept(3)])
+    assert (await asyncio.wait_for(second, 5)).reply == b"2"
+    assert (await node.call(POSITION, b"")).reply == b"3"
+    assert node.answered_from_retained == 3 and p.reqnr == 3
     node._drone = None
     await node.stop()
