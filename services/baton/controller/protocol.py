@@ -307,6 +307,11 @@ class ControllerProtocol:
         # than a message we handled is not the ring's log, and is taken back
         # (``_take_back_stale_words``).
         self._promised: dict[int, int] = {}
+        # Bounds on the epochs (non-zero) of the queued messages: the oldest is at
+        # least the first, the newest at most the second (both 0 when none was
+        # queued since the queue was last empty). They spare a look at every queued
+        # message on every message received (``_queue``).
+        self._queued_epochs = (0, 0)
         # A taker's second condition: the drone's watermark at the takeover.
         self.must_hold_reqnr = 0
         # Log numbers received over the ring, so that a message re-sent after a
@@ -679,7 +684,7 @@ class ControllerProtocol:
         if queued is not None and message.epoch > queued.epoch:
             # Not handled yet: the ring's message (a takeover's framing) takes the
             # place of one it renumbered, and goes on to the successor like it.
-            self.log_queue[message.lognr] = message
+            self._queue(message)
             effects = self._forward(message)
             effects.extend(self._drop_stale_queued(message.lognr, message.epoch))
             try:
@@ -717,7 +722,7 @@ class ControllerProtocol:
         effects = self._forward(message)
         if message.lognr <= self.lognr:
             return effects  # already handled (footnote 3)
-        self.log_queue[message.lognr] = message
+        self._queue(message)
         effects.extend(self._drop_stale_queued(message.lognr, message.epoch))
         try:
             effects.extend(self._drain())
@@ -777,15 +782,26 @@ class ControllerProtocol:
             return Diverged(self.lognr, ours, message.epoch)
         return None
 
+    def _queue(self, message: ring_pb2.LogMessage) -> None:
+        """Queues ``message`` (logQ), keeping the bounds on the queued epochs."""
+        if not self.log_queue:
+            self._queued_epochs = (0, 0)
+        self.log_queue[message.lognr] = message
+        if message.epoch:
+            oldest, newest = self._queued_epochs
+            oldest = min(oldest, message.epoch) if oldest else message.epoch
+            self._queued_epochs = (oldest, max(newest, message.epoch))
+
     def _newest_epoch_below(self, lognr: int) -> int:
         """The newest epoch of a message we handled or queued numbered below ``lognr``
         (the one before it, and above what we handled, our top and the queue's)."""
         newest = self.epoch_of(lognr - 1)
         if lognr > self.lognr:
             newest = max(newest, self._epoch_at.get(self.lognr, 0))
-            for queued_nr, queued in self.log_queue.items():
-                if queued_nr < lognr:
-                    newest = max(newest, queued.epoch)
+            if self.log_queue and self._queued_epochs[1] > newest:
+                for queued_nr, queued in self.log_queue.items():
+                    if queued_nr < lognr:
+                        newest = max(newest, queued.epoch)
         return newest
 
     def _drop_stale_queued(self, lognr: int, epoch: int) -> list[Effect]:
@@ -794,7 +810,8 @@ class ControllerProtocol:
         (a framing a takeover replaced, queued while we held nothing, seed 1219). Their
         numbers are no longer received: the ring's messages with them must be taken."""
         effects: list[Effect] = []
-        if epoch <= 0:
+        oldest = self._queued_epochs[0]
+        if not self.log_queue or not oldest or epoch <= oldest:
             return effects
         for queued_nr in sorted(self.log_queue):
             queued = self.log_queue[queued_nr]
@@ -802,6 +819,8 @@ class ControllerProtocol:
                 del self.log_queue[queued_nr]
                 self._received.discard(queued_nr)
                 effects.append(Unqueued(queued_nr, queued.origin, queued.epoch))
+        epochs = [queued.epoch for queued in self.log_queue.values() if queued.epoch]
+        self._queued_epochs = (min(epochs), max(epochs)) if epochs else (0, 0)
         return effects
 
     def _take_back_stale_words(self, epoch: int) -> None:
