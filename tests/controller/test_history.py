@@ -66,3 +66,21 @@ def test_the_mastership_epoch_is_kept_with_the_log_and_cleared_with_it(tmp_path:
     assert again.mastership_epoch == 0
     again.close()
     assert LogHistory(path).mastership_epoch == 0
+
+
+def test_a_message_dropped_unhandled_is_forgotten_only_in_its_epoch() -> None:
+    """protocol.py Unqueued: a queued message of a replaced framing leaves the history,
+    unless the ring's (newer) message with its number took its place meanwhile."""
+    history = LogHistory()
+    for lognr in (1, 2, 3):
+        history.add(message(lognr))
+    stale = message(4)
+    stale.epoch = 4
+    history.add(stale)
+    history.discard(4, 6)  # another epoch: kept
+    assert history.holds_lognr == 4
+    history.discard(2, 0)
+    assert (history.holds_lognr, list(history.above(0))) == (1, [1, 3, 4])
+    history.add(message(2))
+    assert history.holds_lognr == 4
+    history.close()

@@ -492,6 +492,101 @@ def test_a_message_numbered_after_a_newer_mastership_by_an_older_one_is_dropped(
     assert replica.lognr == 2
 
 
+def _of_epoch(m: ring_pb2.LogMessage, epoch: int) -> ring_pb2.LogMessage:
+    m.epoch = epoch
+    m.after_reqnr = m.entries[0].reqnr - 1 if m.entries else 0
+    return m
+
+
+def test_a_new_master_does_not_wait_for_a_predecessor_that_holds_a_replaced_framing() -> None:
+    """--lose-master seed 1402: a taker that held nothing renumbered the log and handed
+    over to 0 (handover message 1, epoch 4); 0's predecessors still hold messages 1-2
+    of the lost master's epoch 1, which a takeover replaced, and say so in their sync
+    frames. Waiting for log message 2, 0 never went ACTIVE, and nothing of the ring's
+    ever reached the predecessors to make them rejoin: every controller stalled."""
+    ring = [2, 3, 1, 4, 0, 5]
+    handover = _of_epoch(message(1, 0, [], handover=True, sender=3), 4)
+    # The replaced framing's word after the new master handled its handover message.
+    first = ControllerProtocol(0, ring, 0)
+    first.start()
+    assert first.on_granted(4) == []  # owed its handover message, and no word yet
+    assert "TookOver" in [type(e).__name__ for e in first.on_log(handover)]
+    assert first.state is State.PASSIVE
+    assert first.on_sync(2, 1) == [ConnectDrone()]  # epoch 1 < 4: not the ring's log
+    assert first.state is State.ACTIVE and first.lognr == 1
+    # The same word before it: taken back once the handover message is handled.
+    second = ControllerProtocol(0, ring, 0)
+    second.start()
+    second.on_granted(4)
+    second.on_sync(2, 1)
+    assert second.catch_up_to == 2
+    assert ConnectDrone() in second.on_log(handover)
+    assert second.state is State.ACTIVE and second.catch_up_to == 1
+    # A word of the same framing (or one that does not say its epoch) is waited for.
+    waiting = ControllerProtocol(0, ring, 0)
+    waiting.start()
+    waiting.on_granted(4)
+    waiting.on_log(handover)
+    waiting.on_sync(2, 4)
+    waiting.on_sync(3, 0)
+    assert waiting.state is State.PASSIVE and waiting.catch_up_to == 3
+    assert waiting.missing_lognr == 2
+
+
+def test_a_queued_message_of_a_replaced_framing_is_dropped_when_the_rings_comes() -> None:
+    """--lose-master seed 1219: a controller that rejoined with nothing was given log
+    message 3 of epoch 4 (the lost master's framing, from a predecessor that had not
+    seen the ring's yet) before the ring's message 1 of epoch 6 (a taker's, which
+    renumbered the log). Queued, 3 stood for a gap at 2 that no predecessor could fill:
+    the ring's 2 and 3 were never taken, and the master waited for them for ever."""
+    replica = ControllerProtocol(2, [7, 5, 3, 0, 4, 2, 1, 6], 0)
+    replica.start()
+    stale = _of_epoch(message(3, 6, range(11, 20)), 4)
+    replica.on_log(stale)
+    assert 3 in replica.log_queue
+    effects = replica.on_log(_of_epoch(message(1, 4, range(1, 6), sender=7), 6))
+    assert [type(e).__name__ for e in effects] == ["SendLog", "Unqueued"]
+    assert 3 not in replica.log_queue and replica.holds_lognr == 1
+    assert replica.missing_lognr is None
+    # Given again later: dropped at once, neither forwarded nor queued.
+    assert [type(e).__name__ for e in replica.on_log(stale)] == ["Fenced"]
+    replay_all(replica)
+    # The ring's own 2 and 3 are taken (the number is no longer counted as received).
+    assert sends(replica.on_log(_of_epoch(message(3, 4, range(8, 10)), 6))) == [(1, 3, False)]
+    assert sends(replica.on_log(_of_epoch(message(2, 4, range(6, 8)), 6))) == [(1, 2, False)]
+    assert replica.lognr == 2 and replica.state is State.REPLAY
+    replay_all(replica)
+    assert (replica.lognr, replica.reqnr) == (3, 9)
+
+
+def test_a_new_master_goes_active_past_a_replaced_framings_message_and_word() -> None:
+    """--lose-master seed 1219, at the new master 4: it rejoined with its handover message
+    (1, epoch 6) and was then given the replaced framing's 3 (epoch 4) and told that
+    its predecessor holds up to 3. Neither is the ring's; it goes ACTIVE at 1."""
+    master = ControllerProtocol(4, [7, 5, 3, 0, 4, 2, 1, 6], 0)
+    master.start()
+    master.on_granted(6)
+    master.on_log(_of_epoch(message(1, 4, range(1, 6), handover=True, sender=7), 6))
+    replay_all(master)
+    assert [type(e).__name__ for e in master.on_log(_of_epoch(message(3, 6, [11]), 4))] == [
+        "Fenced"
+    ]
+    assert master.on_sync(3, 4) == [ConnectDrone()]
+    assert (master.state, master.lognr, master.reqnr) == (State.ACTIVE, 1, 5)
+
+
+def test_seen_numbers_forget_a_number_below_or_above_the_watermark() -> None:
+    seen = SeenNumbers()
+    for number in (1, 2, 3, 4, 6):
+        seen.add(number)
+    seen.discard(6)
+    assert seen.upto == 4 and 6 not in seen
+    seen.discard(3)
+    assert seen.upto == 2 and 3 not in seen and 4 in seen
+    seen.add(3)
+    assert seen.upto == 4 and len(seen) == 0
+
+
 def test_the_ring_hello_makes_a_sender_give_a_renumbered_top_message_again() -> None:
     assert resend_after(5, 2, 4) == 4  # ours is newer: give message 5 too
     assert resend_after(5, 4, 4) == 5

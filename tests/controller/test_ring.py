@@ -53,11 +53,11 @@ class Receiver(ring_pb2_grpc.ControllerRingServicer):
     def __init__(self) -> None:
         self.messages: list[ring_pb2.LogMessage] = []
         self.arrived = asyncio.Event()
-        self.syncs: list[tuple[int, int]] = []
+        self.syncs: list[tuple[int, int, int]] = []
         self.receiver = RingReceiver(1, self.lognr, self.deliver, LOG, synced=self.synced)
 
-    async def synced(self, from_id: int, holds_lognr: int) -> None:
-        self.syncs.append((from_id, holds_lognr))
+    async def synced(self, from_id: int, holds_lognr: int, holds_epoch: int) -> None:
+        self.syncs.append((from_id, holds_lognr, holds_epoch))
 
     def lognr(self) -> int:
         return max((m.lognr for m in self.messages), default=0)
@@ -112,14 +112,17 @@ async def test_successor_restart_loses_nothing(tmp_path) -> None:  # type: ignor
     try:
         send(big_message(1, 10))
         await wait_for(lambda: link.unacked == 0)
-        assert first.syncs == [(0, 1)]  # the stream's first frame: what the sender holds
+        # The stream's first frame: what the sender holds, and its top message's epoch.
+        assert first.syncs == [(0, 1, 0)]
         # A message the successor created itself (it came round to us): never sent
         # to it while it lives, but it is in our history.
         history.add(ring_pb2.LogMessage(lognr=2, origin=1, handover=True))
         await server.stop(0)
         # Sent while the successor is down: kept until it is back.
         send(big_message(3, 10))
-        send(big_message(4, 10))
+        last = big_message(4, 10)
+        last.epoch = 3
+        send(last)
         await wait_for(lambda: not link.stream_up)
         assert link.unacked >= 2
         server, restarted = await start_receiver(address)
@@ -128,7 +131,7 @@ async def test_successor_restart_loses_nothing(tmp_path) -> None:  # type: ignor
         # history, its own old message included, as a normal (not handover) one.
         assert [m.lognr for m in restarted.messages] == [1, 2, 3, 4]
         assert restarted.messages[1].origin == 1 and not restarted.messages[1].handover
-        assert restarted.syncs == [(0, 4)]
+        assert restarted.syncs == [(0, 4, 3)]
         assert link.counters.connects == 2
     finally:
         await link.stop()

@@ -209,6 +209,7 @@ class LogFrame(_message.Message):
     FROM_ID_FIELD_NUMBER: _builtins.int
     SYNC_FIELD_NUMBER: _builtins.int
     HOLDS_LOGNR_FIELD_NUMBER: _builtins.int
+    HOLDS_EPOCH_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The message's log number (repeated on every frame)."""
     total_bytes: _builtins.int
@@ -229,6 +230,13 @@ class LogFrame(_message.Message):
     so a receiver that restarted with nothing catches up to here (a
     restarted controller goes ACTIVE on the drone's grant only once it has).
     """
+    holds_epoch: _builtins.int
+    """On the sync frame: the epoch of the sender's message holds_lognr (0 for
+    none). Masters number log messages in the order of their epochs, so a
+    receiver that handled a message of a newer epoch, numbered below, knows
+    the sender holds a framing a takeover replaced and does not wait for it
+    (docs/design.md, "Takeover").
+    """
     def __init__(
         self,
         *,
@@ -239,10 +247,11 @@ class LogFrame(_message.Message):
         from_id: _builtins.int = ...,
         sync: _builtins.bool = ...,
         holds_lognr: _builtins.int = ...,
+        holds_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["data", b"data", "from_id", b"from_id", "holds_lognr", b"holds_lognr", "lognr", b"lognr", "offset", b"offset", "sync", b"sync", "total_bytes", b"total_bytes"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["data", b"data", "from_id", b"from_id", "holds_epoch", b"holds_epoch", "holds_lognr", b"holds_lognr", "lognr", b"lognr", "offset", b"offset", "sync", b"sync", "total_bytes", b"total_bytes"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

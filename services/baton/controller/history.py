@@ -139,6 +139,15 @@ class LogHistory:
         self._lognrs.add(message.lognr)
         self._held.add(message.lognr)
 
+    def discard(self, lognr: int, epoch: int) -> None:
+        """Forgets the message ``lognr`` if it is of ``epoch``: one received and dropped
+        unhandled, of a framing a takeover replaced (protocol.py ``Unqueued``)."""
+        if lognr not in self._lognrs or self.get(lognr).epoch != epoch:
+            return
+        self._db.execute("DELETE FROM messages WHERE lognr = ?", (lognr,))
+        self._lognrs.discard(lognr)
+        self._held.discard(lognr)
+
     def get(self, lognr: int) -> ring_pb2.LogMessage:
         """The message with ``lognr``; KeyError if it is not held."""
         row = self._db.execute("SELECT message FROM messages WHERE lognr = ?", (lognr,)).fetchone()

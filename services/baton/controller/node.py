@@ -39,6 +39,7 @@ from baton.controller.protocol import (
     SendLog,
     State,
     TookOver,
+    Unqueued,
     request_digest,
     ring_route,
 )
@@ -590,6 +591,15 @@ class ControllerNode:
                     message_epoch=effect.epoch,
                     epoch=self.protocol.epoch,
                 )
+            elif isinstance(effect, Unqueued):
+                self.fenced_messages += 1
+                self.history.discard(effect.lognr, effect.epoch)
+                self.log.warning(
+                    "queued log message of a replaced framing dropped",
+                    mlognr=effect.lognr,
+                    origin=effect.origin,
+                    message_epoch=effect.epoch,
+                )
             elif isinstance(effect, TookOver):
                 self.handovers.append(
                     HandoverEvent(
@@ -781,14 +791,16 @@ class ControllerNode:
             return
         await self._close_drone()  # a notice for a mastership we no longer hold
 
-    async def on_sync(self, from_id: int, holds_lognr: int) -> None:
-        """A ring stream's sync frame: what its sender holds.
+    async def on_sync(self, from_id: int, holds_lognr: int, holds_epoch: int = 0) -> None:
+        """A ring stream's sync frame: what its sender holds, and the epoch of its
+        message with that number (a word of a framing a takeover replaced is not
+        taken, ``ControllerProtocol.on_sync``).
 
         Only a stream that carries the history sends more than 0: the one
         from our predecessor, or from the one before a dead predecessor that
         routes around it; so any sender's word counts.
         """
-        await self._apply(self.protocol.on_sync(holds_lognr))
+        await self._apply(self.protocol.on_sync(holds_lognr, holds_epoch))
 
     async def on_handover_notice(self, new_master: int, after_reqnr: int, epoch: int = 0) -> None:
         """The drone chose another master (Algorithm 1, lines 24-29)."""

@@ -78,7 +78,18 @@ class Diverged:
     ring_epoch: int
 
 
-Effect = SendLog | ConnectDrone | DisconnectDrone | TookOver | Fenced | Diverged
+@dataclass(frozen=True)
+class Unqueued:
+    """Effect: a queued message of a framing a takeover replaced (older than one handled
+    or queued below it), dropped unhandled: out of the history too, since the ring's
+    message with its number is to be taken (``ControllerProtocol._drop_stale_queued``)."""
+
+    lognr: int
+    origin: int
+    epoch: int
+
+
+Effect = SendLog | ConnectDrone | DisconnectDrone | TookOver | Fenced | Diverged | Unqueued
 
 # Log numbers whose epoch a controller remembers, the newest (a takeover's
 # renumbering is found among the last few messages, never thousands back).
@@ -167,6 +178,16 @@ class SeenNumbers:
     def __len__(self) -> int:
         """Numbers kept beyond the watermark (what this costs in memory)."""
         return len(self.above)
+
+    def discard(self, number: int) -> None:
+        """Forgets ``number`` (a message dropped unhandled: another copy must be taken).
+
+        Below the watermark, the numbers above it go back to ``above``: only
+        queued messages are dropped, so they are few."""
+        if number <= self.upto:
+            self.above.update(range(number + 1, self.upto + 1))
+            self.upto = number - 1
+        self.above.discard(number)
 
     def add(self, number: int) -> None:
         """Notes ``number``; moves the watermark over every number now contiguous."""
@@ -281,6 +302,16 @@ class ControllerProtocol:
         # the role goes ACTIVE only once it has handled that much, so that a
         # restarted one never writes over log numbers the ring already used.
         self.catch_up_to: int | None = 0 if len(ring) == 1 else None
+        # The sync frames' words above what we handled: log number -> the epoch of
+        # the sender's message with it (0 if unknown). A word of a framing older
+        # than a message we handled is not the ring's log, and is taken back
+        # (``_take_back_stale_words``).
+        self._promised: dict[int, int] = {}
+        # Bounds on the epochs (non-zero) of the queued messages: the oldest is at
+        # least the first, the newest at most the second (both 0 when none was
+        # queued since the queue was last empty). They spare a look at every queued
+        # message on every message received (``_queue``).
+        self._queued_epochs = (0, 0)
         # A taker's second condition: the drone's watermark at the takeover.
         self.must_hold_reqnr = 0
         # Log numbers received over the ring, so that a message re-sent after a
@@ -373,12 +404,25 @@ class ControllerProtocol:
         message.origin = message.sender = self.id
         return [SendLog(self.successor, message)]
 
-    def on_sync(self, holds_lognr: int) -> list[Effect]:
+    def on_sync(self, holds_lognr: int, holds_epoch: int = 0) -> list[Effect]:
         """The predecessor holds every log message up to ``holds_lognr`` and sends what we lack.
 
         Also moves the watermark: every controller holds what the predecessor does.
+        ``holds_epoch`` is the epoch of the sender's message ``holds_lognr`` (0 if
+        unknown). Masters number log messages in the order of their epochs, so a
+        sender whose top message is older than one we handled, and numbered above
+        it, holds another framing (one a takeover replaced, not given up yet: the
+        sender will see the ring's and rejoin): its word says nothing of the
+        ring's log, and a master that waited for it would wait for ever
+        (--lose-master seeds 1219, 1402).
         """
+        if holds_lognr > self.lognr and 0 < holds_epoch < self.epoch_of(self.lognr):
+            if self.catch_up_to is None:
+                self.catch_up_to = 0  # the sender holds nothing of the ring's above ours
+            return self._drain()
         self.catch_up_to = max(self.catch_up_to or 0, holds_lognr)
+        if holds_lognr > self.lognr:
+            self._promised[holds_lognr] = max(self._promised.get(holds_lognr, 0), holds_epoch)
         while self._ends and self._ends[0][0] <= holds_lognr:
             self.watermark_reqnr = max(self.watermark_reqnr, self._ends.popleft()[1])
         return self._drain()
@@ -627,19 +671,22 @@ class ControllerProtocol:
             # handover message coming back (a history that kept it would give it
             # to a replica that catches up from us: --lose-master seed 757).
             return [Fenced(message.lognr, message.origin, message.epoch)]
-        if 0 < message.epoch < self.epoch_of(message.lognr - 1):
+        if 0 < message.epoch < self._newest_epoch_below(message.lognr):
             # Masters number log messages in the order of their epochs: one
             # numbered after a message of a newer mastership is from a master
             # the drone replaced, which went on cut off from it and took the
-            # newer message for the ring's (--lose-master seed 222). Not the
-            # ring's: neither held nor forwarded; the ring's own comes.
+            # newer message for the ring's (--lose-master seed 222), or of a
+            # framing a takeover replaced, still held by a predecessor that
+            # has not seen the ring's (seed 1219). Not the ring's: neither
+            # held nor forwarded; the ring's own comes.
             return [Fenced(message.lognr, message.origin, message.epoch)]
         queued = self.log_queue.get(message.lognr)
         if queued is not None and message.epoch > queued.epoch:
             # Not handled yet: the ring's message (a takeover's framing) takes the
             # place of one it renumbered, and goes on to the successor like it.
-            self.log_queue[message.lognr] = message
+            self._queue(message)
             effects = self._forward(message)
+            effects.extend(self._drop_stale_queued(message.lognr, message.epoch))
             try:
                 effects.extend(self._drain())
             except ProtocolError as exc:
@@ -675,7 +722,8 @@ class ControllerProtocol:
         effects = self._forward(message)
         if message.lognr <= self.lognr:
             return effects  # already handled (footnote 3)
-        self.log_queue[message.lognr] = message
+        self._queue(message)
+        effects.extend(self._drop_stale_queued(message.lognr, message.epoch))
         try:
             effects.extend(self._drain())
         except ProtocolError as exc:
@@ -734,6 +782,60 @@ class ControllerProtocol:
             return Diverged(self.lognr, ours, message.epoch)
         return None
 
+    def _queue(self, message: ring_pb2.LogMessage) -> None:
+        """Queues ``message`` (logQ), keeping the bounds on the queued epochs."""
+        if not self.log_queue:
+            self._queued_epochs = (0, 0)
+        self.log_queue[message.lognr] = message
+        if message.epoch:
+            oldest, newest = self._queued_epochs
+            oldest = min(oldest, message.epoch) if oldest else message.epoch
+            self._queued_epochs = (oldest, max(newest, message.epoch))
+
+    def _newest_epoch_below(self, lognr: int) -> int:
+        """The newest epoch of a message we handled or queued numbered below ``lognr``
+        (the one before it, and above what we handled, our top and the queue's)."""
+        newest = self.epoch_of(lognr - 1)
+        if lognr > self.lognr:
+            newest = max(newest, self._epoch_at.get(self.lognr, 0))
+            if self.log_queue and self._queued_epochs[1] > newest:
+                for queued_nr, queued in self.log_queue.items():
+                    if queued_nr < lognr:
+                        newest = max(newest, queued.epoch)
+        return newest
+
+    def _drop_stale_queued(self, lognr: int, epoch: int) -> list[Effect]:
+        """Drops the queued messages numbered above ``lognr`` of a mastership older than
+        ``epoch``: the on_log rule for a message that came before the newer one below it
+        (a framing a takeover replaced, queued while we held nothing, seed 1219). Their
+        numbers are no longer received: the ring's messages with them must be taken."""
+        effects: list[Effect] = []
+        oldest = self._queued_epochs[0]
+        if not self.log_queue or not oldest or epoch <= oldest:
+            return effects
+        for queued_nr in sorted(self.log_queue):
+            queued = self.log_queue[queued_nr]
+            if queued_nr > lognr and 0 < queued.epoch < epoch:
+                del self.log_queue[queued_nr]
+                self._received.discard(queued_nr)
+                effects.append(Unqueued(queued_nr, queued.origin, queued.epoch))
+        epochs = [queued.epoch for queued in self.log_queue.values() if queued.epoch]
+        self._queued_epochs = (min(epochs), max(epochs)) if epochs else (0, 0)
+        return effects
+
+    def _take_back_stale_words(self, epoch: int) -> None:
+        """Handled a message of ``epoch``: a sync frame's word above it from an older
+        framing is not the ring's (``on_sync``), and is taken back; what is owed is
+        what the other words say, or what we hold."""
+        for promised in [n for n in self._promised if n <= self.lognr]:
+            del self._promised[promised]  # kept
+        stale = [n for n, e in self._promised.items() if 0 < e < epoch]
+        if not stale or self.catch_up_to is None:
+            return
+        for promised in stale:
+            del self._promised[promised]
+        self.catch_up_to = max([self.lognr, *self._promised])
+
     def _handle(self, message: ring_pb2.LogMessage) -> list[Effect]:
         """Lines 35-43 for an in-order message on a PASSIVE controller."""
         self.lognr = message.lognr
@@ -748,7 +850,8 @@ class ControllerProtocol:
         self._held(
             message.lognr, message.entries[-1].reqnr if message.entries else 0, message.epoch
         )
-        effects: list[Effect] = []
+        effects: list[Effect] = self._drop_stale_queued(message.lognr, message.epoch)
+        self._take_back_stale_words(message.epoch)
         if message.handover:
             self.master = True
             self.epoch = max(self.epoch, message.epoch)

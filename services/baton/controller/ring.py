@@ -238,9 +238,7 @@ class PeerLink:
                 # (a stream routed around a dead predecessor), and a direct
                 # handover stream's "0" would tell a restarted new master it
                 # had caught up with nothing.
-                await call.write(
-                    ring_pb2.LogFrame(sync=True, holds_lognr=holds, from_id=self.my_id)
-                )
+                await call.write(_sync_frame(history, holds, self.my_id))
             synced = holds
             acks = asyncio.create_task(self._read_acks(call))
             try:
@@ -259,9 +257,7 @@ class PeerLink:
                     self._wakeup.clear()
                     if history is not None and history.holds_lognr > synced:
                         synced = history.holds_lognr
-                        await call.write(
-                            ring_pb2.LogFrame(sync=True, holds_lognr=synced, from_id=self.my_id)
-                        )
+                        await call.write(_sync_frame(history, synced, self.my_id))
                     pending = [n for n in sorted(self._unacked) if n not in sent]
                     if not pending:
                         waiter = asyncio.create_task(self._wakeup.wait())
@@ -299,6 +295,14 @@ class PeerLink:
                 self.on_handover_acked(message)
 
 
+def _sync_frame(history: LogHistory, holds: int, my_id: int) -> ring_pb2.LogFrame:
+    """The sync frame: the history holds every message up to ``holds``, and the epoch
+    of its message with that number (a receiver that handled a newer one knows this
+    history is of a framing a takeover replaced, ``ControllerProtocol.on_sync``)."""
+    epoch = history.get(holds).epoch if holds and holds in history else 0
+    return ring_pb2.LogFrame(sync=True, holds_lognr=holds, holds_epoch=epoch, from_id=my_id)
+
+
 async def _acks(call: grpc.aio.StreamStreamCall) -> AsyncIterator[ring_pb2.LogAck]:
     while True:
         ack = await call.read()
@@ -317,7 +321,7 @@ class RingReceiver:
         deliver: Callable[[ring_pb2.LogMessage], Awaitable[None]],
         log: BoundLogger,
         max_message_bytes: int = MAX_LOG_MESSAGE_DEFAULT,
-        synced: Callable[[int, int], Awaitable[None]] | None = None,
+        synced: Callable[[int, int, int], Awaitable[None]] | None = None,
         epoch_of: Callable[[int], int] | None = None,
     ) -> None:
         self.my_id = my_id
@@ -390,7 +394,7 @@ class RingReceiver:
                 return
             if frame.sync:
                 if self._synced is not None:
-                    await self._synced(frame.from_id, frame.holds_lognr)
+                    await self._synced(frame.from_id, frame.holds_lognr, frame.holds_epoch)
                 continue
             try:
                 message = reassembler.add(frame)

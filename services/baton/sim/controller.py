@@ -55,6 +55,7 @@ from baton.controller.protocol import (
     Refusal,
     SendLog,
     State,
+    Unqueued,
     ring_route,
 )
 from baton.digest import request_digest
@@ -250,6 +251,13 @@ class SimController:
                 self.world.trace(
                     f"controller {self.id} drops log message {effect.lognr} of fenced "
                     f"{effect.origin} (epoch {effect.epoch})"
+                )
+            elif isinstance(effect, Unqueued):  # node.py: out of the history too
+                self.fenced_messages += 1
+                self.history.discard(effect.lognr, effect.epoch)
+                self.world.trace(
+                    f"controller {self.id} drops queued log message {effect.lognr} of a "
+                    f"replaced framing ({effect.origin}, epoch {effect.epoch})"
                 )
         self.world.after_apply(self, effects)
         self._gap_check_later()
@@ -577,12 +585,12 @@ class SimController:
         self.world.check_start()
         self._notify()
 
-    def on_sync(self, from_id: int, holds_lognr: int) -> None:
+    def on_sync(self, from_id: int, holds_lognr: int, holds_epoch: int = 0) -> None:
         """ControllerNode.on_sync: any sender's word counts (only history streams sync)."""
         if not self.alive:
             return
         try:
-            effects = self.protocol.on_sync(holds_lognr)
+            effects = self.protocol.on_sync(holds_lognr, holds_epoch)
         except ProtocolError as exc:
             self._uncaught("on_sync", exc)
             return

@@ -271,7 +271,7 @@ class RingLink:
         self.world.trace(f"ring {self.owner.id}->{self.dest} up (hello {hello}, holds {holds})")
         self.world.check_start()
         if self.history is not None:  # PeerLink: only a history stream says what it holds
-            self._deliver_later(0, self._sync_frame, holds)
+            self._deliver_later(0, self._sync_frame, (holds, self._epoch_of(holds)))
         if self.history is not None:
             ours = self.history.get(hello).epoch if hello in self.history else None
             hello = resend_after(hello, epoch, ours)
@@ -290,7 +290,13 @@ class RingLink:
         holds = self.history.holds_lognr
         if holds > self._synced:
             self._synced = holds
-            self._deliver_later(0, self._sync_frame, holds)
+            self._deliver_later(0, self._sync_frame, (holds, self._epoch_of(holds)))
+
+    def _epoch_of(self, holds: int) -> int:
+        """PeerLink's sync frame: the epoch of the history's message ``holds`` (0 for none)."""
+        if self.history is None or not holds or holds not in self.history:
+            return 0
+        return self.history.get(holds).epoch
 
     def _history_to_resend(self, hello: int) -> list[int]:
         """History messages the receiver lacks, except those still unacknowledged (ring.py)."""
@@ -330,8 +336,8 @@ class RingLink:
             return
         handler(peer, arg)
 
-    def _sync_frame(self, peer: SimController, holds: int) -> None:
-        peer.on_sync(self.owner.id, holds)
+    def _sync_frame(self, peer: SimController, holds: tuple[int, int]) -> None:
+        peer.on_sync(self.owner.id, *holds)
 
     def _message_frame(self, peer: SimController, data: bytes) -> None:
         message = ring_pb2.LogMessage.FromString(data)
