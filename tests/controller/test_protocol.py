@@ -125,6 +125,22 @@ def test_a_refusal_is_judged_by_the_epoch_it_was_sent_in() -> None:
     assert p.judge_refusal(3, master=1, epoch=4) is Refusal.STALE  # not ACTIVE: nothing to do
 
 
+def test_a_takeover_after_our_epoch_gives_up_the_log_we_still_hold() -> None:
+    """--lose-master seed 58: ACTIVE in epoch 1 and never told of the handover to 1 in
+    epoch 2, we are refused naming 2, which took 1's mastership over in epoch 3. Our log
+    never left us and 2 framed those replies from the drone's: it is not sent (no
+    handover message of ours in epoch 3), we rejoin with nothing."""
+    p = started(3, [3, 2, 0, 1], 2**20, initial_master=3)
+    p.on_reply(entry(1))
+    assert not p.log_given_up(0)  # no takeover yet: the log goes to the new master
+    assert not p.log_given_up(1)
+    assert p.log_given_up(3)
+    p.on_granted(4)  # the role came back cooperatively in epoch 4
+    assert not p.log_given_up(3) and p.log_given_up(5)
+    p.on_handover_notice(2, epoch=5)  # handed over: nothing of ours is held back
+    assert not p.log_given_up(6)
+
+
 def test_flush_limit_zero_flushes_after_every_reply() -> None:
     p = started(0, [0, 1], 0)
     for n in (1, 2, 3):

@@ -717,7 +717,7 @@ class ControllerNode:
         """Connect refused: another controller is master, and no notice is owed to us."""
         if session is not self._drone:
             return  # a session closed meanwhile
-        if refusal.taken_over:
+        if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
             await self._fenced(refusal.master, refusal.epoch)
             return
         if self.protocol.state is not State.ACTIVE:
@@ -1162,7 +1162,9 @@ class ControllerNode:
                                 f"({method}): {exc.details()}",
                             )
                         )
-                    elif verdict is Refusal.HANDED_OVER and refusal.taken_over:
+                    elif verdict is Refusal.HANDED_OVER and (
+                        refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
+                    ):
                         await self._fenced(refusal.master, refusal.epoch)
                     elif verdict is Refusal.HANDED_OVER:
                         await self.on_handover_notice(

@@ -491,6 +491,21 @@ class ControllerProtocol:
         """
         return epoch < self.epoch
 
+    def log_given_up(self, takeover_epoch: int) -> bool:
+        """Whether a drone refusal naming another master, whose newest takeover granted
+        ``takeover_epoch`` (``baton-takeover-epoch``), fences us rather than asking for
+        our log.
+
+        ACTIVE in an older epoch, we hold a log that never left us: the mastership
+        went on without it (a handover notice we never heard, its new master lost
+        while it waited for our handover message), and the takeover framed the same
+        replies from those the drone retains. Sending it as a handover message would
+        put a second framing of them on the ring (--lose-master seed 58: a give-up of
+        a request the drone had executed). We rejoin with nothing instead, like a
+        master whose own mastership was taken over.
+        """
+        return self.state is State.ACTIVE and takeover_epoch > self.epoch
+
     def judge_refusal(self, sent_epoch: int, master: int, epoch: int) -> Refusal:
         """What a drone refusal of a request sent in ``sent_epoch`` means (drone.proto).
 

@@ -89,6 +89,7 @@ def refusal_from(error: StatusError) -> DroneRefusal | None:
         int(metadata.get("baton-epoch", "0")),
         int(metadata.get("baton-after-reqnr", "0")),
         metadata.get("baton-takeover", "") == "1",
+        int(metadata.get("baton-takeover-epoch", "0")),
     )
 
 
@@ -414,7 +415,7 @@ class SimController:
 
     def on_connect_refused(self, refusal: DroneRefusal) -> None:
         """ControllerNode.on_connect_refused."""
-        if refusal.taken_over:
+        if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
             self._fenced(refusal.master, refusal.epoch)
             return
         if self.protocol.state is not State.ACTIVE:
@@ -831,7 +832,9 @@ class SimController:
                     f"controller {self.id}: the drone refused request {inv.reqnr} "
                     f"({inv.call.method}): {error.message}"
                 )
-            elif verdict is Refusal.HANDED_OVER and refusal.taken_over:
+            elif verdict is Refusal.HANDED_OVER and (
+                refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
+            ):
                 self._fenced(refusal.master, refusal.epoch)
             elif verdict is Refusal.HANDED_OVER:
                 self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
