@@ -489,6 +489,40 @@ def test_a_handover_message_that_continues_another_framing_means_we_must_rejoin(
     assert agreeing.master
 
 
+def test_a_handover_message_that_follows_a_newer_framing_of_our_last_number() -> None:
+    """--lose-master seed 1705: master 1, cut off from the drone, gave up on request 2
+    (which the drone had executed) and flushed the give-up as message 2 of epoch 1; 5
+    took over, framed request 2's reply as its message 2 of epoch 3 and handed over to
+    6. The handover message overtook the ring's message 2 and follows request 2, as
+    ours does: only the epoch of its creator's message 2 tells the framings apart."""
+    p = ControllerProtocol(5, [1, 6, 5], 0)
+    p.on_sync(0)
+    p.on_granted(3, takeover=True)  # the taker, holding nothing
+    p.on_reply(entry(1))
+    p.on_reply(entry(2))
+    (handover,) = [e.message for e in p.on_handover_notice(6, epoch=4) if isinstance(e, SendLog)]
+    assert (handover.lognr, handover.after_reqnr, handover.after_epoch) == (3, 2, 3)
+    replica = started(6, [1, 6, 5], 0, initial_master=1)
+    first = message(1, 1, [1])
+    first.epoch = 1
+    replica.on_log(first)
+    replay_all(replica)
+    given_up = message(2, 1, [2])
+    given_up.epoch = 1  # the fenced master's framing of request 2
+    replica.on_log(given_up)
+    replay_all(replica)
+    handover.origin = 6
+    assert [type(e).__name__ for e in replica.on_log(handover)] == ["SendLog", "Diverged"]
+    assert not replica.master  # it does not go ACTIVE on a framing that is not the ring's
+    assert [m.lognr for m in replica.kept_for_rejoin()] == [3]
+    handover.after_epoch = 1  # built on our framing: taken
+    agreeing = started(6, [1, 6, 5], 0, initial_master=1)
+    for m in (first, given_up):
+        agreeing.on_log(m)
+        replay_all(agreeing)
+    assert "TookOver" in [type(e).__name__ for e in agreeing.on_log(handover)]
+
+
 def test_a_message_numbered_after_a_newer_mastership_by_an_older_one_is_dropped() -> None:
     """--lose-master seed 222: a master the drone replaced, cut off, handled the newer
     masters' messages and numbered its next one after them, in its old epoch."""

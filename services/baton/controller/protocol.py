@@ -564,6 +564,7 @@ class ControllerProtocol:
             sender=self.id,
             created_at=time.time(),
             after_reqnr=self.reqnr - len(entries),
+            after_epoch=self._epoch_at.get(lognr - 1, 0),
         )
 
     def on_mission_done(self) -> list[Effect]:
@@ -737,6 +738,12 @@ class ControllerProtocol:
         never left a lost or fenced master: we rejoin with nothing.
         """
         ours = self._epoch_at.get(self.lognr, 0)
+        if self.lognr > 0 and 0 < ours < message.after_epoch:
+            # Its creator's message with our last number is of a newer epoch: another
+            # framing, which a takeover made of the replies ours holds, even if it
+            # ends at the same request (a fenced master's give-up of a request the
+            # drone executed for the taker: --lose-master seed 1705).
+            return Diverged(self.lognr, ours, message.after_epoch)
         if message.HasField("after_reqnr"):
             # Also on a message without entries: a new master's handover message
             # that continues a framing other than ours (--lose-master seed 1943).
