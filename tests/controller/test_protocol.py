@@ -450,6 +450,22 @@ def test_the_ring_routes_to_the_first_successor_not_down_for_the_detection_time(
     assert ring_route(ring, 3, down.get, 1.0) == (0, [])
 
 
+def test_a_master_cut_off_from_the_drone_does_not_route_around_its_successor() -> None:
+    """--lose-master seed 956: one partition cut master 6 off from the drone and from its
+    successor 1. 6 routed around 1 and its flushes (give-ups of requests that never
+    reached the drone) went to the replicas after 1; the drone made 1 master by
+    takeover, without them, and a later taker that held them built on a framing the
+    drone had replaced. Cut off, the master waits; connected, it routes as before."""
+    master = started(6, [5, 0, 2, 4, 6, 1, 3], 0, initial_master=6)
+    assert not master.may_route_around([1], [], drone_connected=False)
+    assert not master.may_route_around([1, 3], [1], drone_connected=False)  # one more
+    assert master.may_route_around([1], [1, 3], drone_connected=False)  # back towards 1
+    assert master.may_route_around([], [1], drone_connected=False)  # back to 1
+    assert master.may_route_around([1], [], drone_connected=True)
+    replica = started(3, [5, 0, 2, 4, 6, 1, 3], 0, initial_master=6)
+    assert replica.may_route_around([5], [], drone_connected=False)  # it creates nothing
+
+
 def test_a_next_message_of_a_newer_epoch_that_does_not_continue_ours_means_we_must_rejoin() -> None:
     replica = started(1, [0, 1, 2], 0)
     ours = message(1, 0, [1])

@@ -482,6 +482,8 @@ class ControllerNode:
         chosen, skipped = ring_route(p.ring, self.id, down_for, detection)
         if chosen == p.successor:
             return
+        if not p.may_route_around(skipped, self.routed_around, self.drone_connected):
+            return  # an ACTIVE master cut off from the drone: asked again in 0.1 s
         natural = self.config.successor(self.id)
         if chosen == natural:
             self.log.info("ring successor back; ring restored", successor=chosen)

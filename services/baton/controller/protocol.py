@@ -395,6 +395,28 @@ class ControllerProtocol:
         else:
             self._ends.append((lognr, self.held_reqnr))
 
+    def may_route_around(
+        self, skipped: list[int], routed_around: list[int], drone_connected: bool
+    ) -> bool:
+        """Whether the ring may skip ``skipped`` now (``ring_route``'s choice), where it
+        skips ``routed_around`` already (docs/design.md, "The ring routes around the dead").
+
+        Not an ACTIVE controller cut off from the drone, skipping one more: it
+        may be lost, and the drone then makes the first controller after it
+        that the drone reaches master by takeover, which must hold every
+        message that left it. A successor the master cannot reach may still be
+        reachable by the drone (one partition cuts the master off from both);
+        routed around it, the master's last flushes (give-ups of requests that
+        never reached the drone) would reach the replicas after the taker and
+        not the taker, and a later taker holding them would build on a framing
+        the drone replaced (--lose-master seed 956). Held back, they are lost
+        with the master like its unflushed log. Going back towards the natural
+        successor is always allowed, and so is everything once connected.
+        """
+        if self.state is not State.ACTIVE or drone_connected:
+            return True
+        return set(skipped) <= set(routed_around)
+
     def route_to(self, successor: int) -> None:
         """Log messages go to ``successor`` from now on: the ring routes around the
         unreachable ones between us (the runtime decides; docs/design.md)."""

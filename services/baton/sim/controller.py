@@ -74,6 +74,8 @@ DRONE_RETRY_LIMIT_S = 300.0
 SESSION_BACKOFF_FIRST_S, SESSION_BACKOFF_MAX_S = 0.05, 1.0
 # Clock.Now answers in Unix time; the mission starts here.
 MISSION_START_UNIX = 1.8e9
+# ControllerNode._route_watch's period: a route held back is asked again this often.
+ROUTE_POLL_S = 0.1
 
 
 def refusal_from(error: StatusError) -> DroneRefusal | None:
@@ -185,6 +187,7 @@ class SimController:
         self.rejoining = False
         self.fenced_messages = 0
         self.routed_around: list[int] = []
+        self.route_held = False  # a route held back polls (_route_again)
         self._gap: tuple[int, float, float] | None = None  # node.py ControllerNode._gap
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
@@ -528,6 +531,14 @@ class SimController:
         chosen, skipped = ring_route(p.ring, self.id, down_for, detection)
         if chosen == p.successor:
             return
+        session = self.session
+        connected = session is not None and session.connected
+        if not p.may_route_around(skipped, self.routed_around, connected):
+            # node.py asks again every 0.1 s: until connected, or no longer ACTIVE.
+            if not self.route_held:
+                self.route_held = True
+                self.world.loop.after(ROUTE_POLL_S, self._route_again)
+            return
         natural = p.ring[(p.ring.index(self.id) + 1) % len(p.ring)]
         self.world.trace(f"controller {self.id} routes to {chosen} (around {skipped})")
         previous = p.successor
@@ -546,6 +557,10 @@ class SimController:
                 del self.links[previous]
         self.world.check_start()
         self._notify()
+
+    def _route_again(self) -> None:
+        self.route_held = False
+        self._route()
 
     def on_sync(self, from_id: int, holds_lognr: int) -> None:
         """ControllerNode.on_sync: any sender's word counts (only history streams sync)."""
