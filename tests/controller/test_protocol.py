@@ -125,6 +125,22 @@ def test_a_refusal_is_judged_by_the_epoch_it_was_sent_in() -> None:
     assert p.judge_refusal(3, master=1, epoch=4) is Refusal.STALE  # not ACTIVE: nothing to do
 
 
+def test_a_takeover_after_our_epoch_gives_up_the_log_we_still_hold() -> None:
+    """--lose-master seed 58: ACTIVE in epoch 1 and never told of the handover to 1 in
+    epoch 2, we are refused naming 2, which took 1's mastership over in epoch 3. Our log
+    never left us and 2 framed those replies from the drone's: it is not sent (no
+    handover message of ours in epoch 3), we rejoin with nothing."""
+    p = started(3, [3, 2, 0, 1], 2**20, initial_master=3)
+    p.on_reply(entry(1))
+    assert not p.log_given_up(0)  # no takeover yet: the log goes to the new master
+    assert not p.log_given_up(1)
+    assert p.log_given_up(3)
+    p.on_granted(4)  # the role came back cooperatively in epoch 4
+    assert not p.log_given_up(3) and p.log_given_up(5)
+    p.on_handover_notice(2, epoch=5)  # handed over: nothing of ours is held back
+    assert not p.log_given_up(6)
+
+
 def test_flush_limit_zero_flushes_after_every_reply() -> None:
     p = started(0, [0, 1], 0)
     for n in (1, 2, 3):
@@ -434,6 +450,22 @@ def test_the_ring_routes_to_the_first_successor_not_down_for_the_detection_time(
     assert ring_route(ring, 3, down.get, 1.0) == (0, [])
 
 
+def test_a_master_cut_off_from_the_drone_does_not_route_around_its_successor() -> None:
+    """--lose-master seed 956: one partition cut master 6 off from the drone and from its
+    successor 1. 6 routed around 1 and its flushes (give-ups of requests that never
+    reached the drone) went to the replicas after 1; the drone made 1 master by
+    takeover, without them, and a later taker that held them built on a framing the
+    drone had replaced. Cut off, the master waits; connected, it routes as before."""
+    master = started(6, [5, 0, 2, 4, 6, 1, 3], 0, initial_master=6)
+    assert not master.may_route_around([1], [], drone_connected=False)
+    assert not master.may_route_around([1, 3], [1], drone_connected=False)  # one more
+    assert master.may_route_around([1], [1, 3], drone_connected=False)  # back towards 1
+    assert master.may_route_around([], [1], drone_connected=False)  # back to 1
+    assert master.may_route_around([1], [], drone_connected=True)
+    replica = started(3, [5, 0, 2, 4, 6, 1, 3], 0, initial_master=6)
+    assert replica.may_route_around([5], [], drone_connected=False)  # it creates nothing
+
+
 def test_a_next_message_of_a_newer_epoch_that_does_not_continue_ours_means_we_must_rejoin() -> None:
     replica = started(1, [0, 1, 2], 0)
     ours = message(1, 0, [1])
@@ -471,6 +503,40 @@ def test_a_handover_message_that_continues_another_framing_means_we_must_rejoin(
     handover.after_reqnr = 7
     assert "TookOver" in [type(e).__name__ for e in agreeing.on_log(handover)]
     assert agreeing.master
+
+
+def test_a_handover_message_that_follows_a_newer_framing_of_our_last_number() -> None:
+    """--lose-master seed 1705: master 1, cut off from the drone, gave up on request 2
+    (which the drone had executed) and flushed the give-up as message 2 of epoch 1; 5
+    took over, framed request 2's reply as its message 2 of epoch 3 and handed over to
+    6. The handover message overtook the ring's message 2 and follows request 2, as
+    ours does: only the epoch of its creator's message 2 tells the framings apart."""
+    p = ControllerProtocol(5, [1, 6, 5], 0)
+    p.on_sync(0)
+    p.on_granted(3, takeover=True)  # the taker, holding nothing
+    p.on_reply(entry(1))
+    p.on_reply(entry(2))
+    (handover,) = [e.message for e in p.on_handover_notice(6, epoch=4) if isinstance(e, SendLog)]
+    assert (handover.lognr, handover.after_reqnr, handover.after_epoch) == (3, 2, 3)
+    replica = started(6, [1, 6, 5], 0, initial_master=1)
+    first = message(1, 1, [1])
+    first.epoch = 1
+    replica.on_log(first)
+    replay_all(replica)
+    given_up = message(2, 1, [2])
+    given_up.epoch = 1  # the fenced master's framing of request 2
+    replica.on_log(given_up)
+    replay_all(replica)
+    handover.origin = 6
+    assert [type(e).__name__ for e in replica.on_log(handover)] == ["SendLog", "Diverged"]
+    assert not replica.master  # it does not go ACTIVE on a framing that is not the ring's
+    assert [m.lognr for m in replica.kept_for_rejoin()] == [3]
+    handover.after_epoch = 1  # built on our framing: taken
+    agreeing = started(6, [1, 6, 5], 0, initial_master=1)
+    for m in (first, given_up):
+        agreeing.on_log(m)
+        replay_all(agreeing)
+    assert "TookOver" in [type(e).__name__ for e in agreeing.on_log(handover)]
 
 
 def test_a_message_numbered_after_a_newer_mastership_by_an_older_one_is_dropped() -> None:

@@ -314,6 +314,29 @@ def test_the_fence_survives_a_drone_restart() -> None:
     assert ("baton-takeover", "1") in fenced.value.metadata
 
 
+def test_a_refusal_says_the_epoch_of_the_newest_takeover() -> None:
+    """--lose-master seed 58: master 3 is cut off as the drone hands over to 1; the
+    notice is lost. 1 dies waiting for 3's log, and 2 takes 1's mastership over. 3's
+    own mastership was never taken over (``taken_over_since``), but its log never left
+    it and 2 framed those replies from the drone's: the refusals say when the newest
+    takeover was, so that 3, still ACTIVE in epoch 1, rejoins instead of sending it."""
+    seq = Sequencer([3, 2, 0, 1], initial_master=3)
+    serve(seq, 3, 1, 1)
+    assert "baton-takeover-epoch" not in dict(refused(seq, 2, 1, 2).metadata)
+    seq.switch(1, "script", now=2.0)  # epoch 2: 3's notice is lost
+    seq.pending.clear()  # written to a stream the partition broke: counted delivered
+    seq.switch(2, "lost", now=3.0, takeover=True, lost_at=2.0)  # epoch 3
+    serve(seq, 2, 3, 2)
+    seq.switch(0, "script", now=4.0)  # epoch 4, cooperative
+    invoke = dict(refused(seq, 3, 1, 2).metadata)
+    assert invoke["baton-master"] == "0" and "baton-takeover" not in invoke
+    assert invoke["baton-takeover-epoch"] == "3"
+    with pytest.raises(StatusError) as connect:
+        seq.admit_connect(3, mastership_epoch=1)
+    assert dict(connect.value.metadata)["baton-takeover-epoch"] == "3"
+    assert seq.takeover_epoch == 3
+
+
 def test_calls_the_master_answered_sent_again_are_taken_once() -> None:
     """The master gave up on request 2, whose Invoke carried its Sleep 1: not knowing
     whether the drone got them, it sends both again with request 3. The drone holds

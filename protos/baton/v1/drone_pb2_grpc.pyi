@@ -43,7 +43,10 @@ class DroneStub:
 
     FAILED_PRECONDITION if the caller is not the master (the message names
     the current master; trailing metadata `baton-master`, `baton-epoch` and
-    `baton-after-reqnr` carry it for programs), if the request is stale (its
+    `baton-after-reqnr` carry it for programs, and `baton-takeover-epoch` the
+    epoch the newest takeover granted, if any: a caller still ACTIVE in an
+    older epoch holds a log that takeover replaced, and rejoins with nothing
+    rather than hand it over), if the request is stale (its
     epoch is an earlier mastership of the caller: a request still on the
     wire from before a handover; `baton-epoch` is above the request's), or
     if reqnr is neither a cached one (answered again, not executed) nor above
@@ -91,7 +94,10 @@ class DroneAsyncStub(DroneStub):
 
     FAILED_PRECONDITION if the caller is not the master (the message names
     the current master; trailing metadata `baton-master`, `baton-epoch` and
-    `baton-after-reqnr` carry it for programs), if the request is stale (its
+    `baton-after-reqnr` carry it for programs, and `baton-takeover-epoch` the
+    epoch the newest takeover granted, if any: a caller still ACTIVE in an
+    older epoch holds a log that takeover replaced, and rejoins with nothing
+    rather than hand it over), if the request is stale (its
     epoch is an earlier mastership of the caller: a request still on the
     wire from before a handover; `baton-epoch` is above the request's), or
     if reqnr is neither a cached one (answered again, not executed) nor above
@@ -142,7 +148,10 @@ class DroneServicer(metaclass=_abc_1.ABCMeta):
 
         FAILED_PRECONDITION if the caller is not the master (the message names
         the current master; trailing metadata `baton-master`, `baton-epoch` and
-        `baton-after-reqnr` carry it for programs), if the request is stale (its
+        `baton-after-reqnr` carry it for programs, and `baton-takeover-epoch` the
+        epoch the newest takeover granted, if any: a caller still ACTIVE in an
+        older epoch holds a log that takeover replaced, and rejoins with nothing
+        rather than hand it over), if the request is stale (its
         epoch is an earlier mastership of the caller: a request still on the
         wire from before a handover; `baton-epoch` is above the request's), or
         if reqnr is neither a cached one (answered again, not executed) nor above

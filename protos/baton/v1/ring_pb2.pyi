@@ -146,6 +146,7 @@ class LogMessage(_message.Message):
     CREATED_AT_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
     AFTER_REQNR_FIELD_NUMBER: _builtins.int
+    AFTER_EPOCH_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The log number, from 1."""
     origin: _builtins.int
@@ -170,6 +171,13 @@ class LogMessage(_message.Message):
     receiver that counts otherwise holds another framing of the same
     requests, one a takeover replaced (docs/design.md, "Takeover").
     """
+    after_epoch: _builtins.int
+    """The epoch of its creator's message with the log number before it (0:
+    none or unknown). A receiver whose own message with that number is of
+    an older epoch holds a framing a takeover replaced, even if it ends at
+    the same request (a fenced master's give-up of a request the drone
+    executed for the taker): it rejoins with nothing, like for after_reqnr.
+    """
     @_builtins.property
     def entries(self) -> _containers.RepeatedCompositeFieldContainer[Global___LogEntry]:
         """The entries, by increasing reqnr; may be empty."""
@@ -185,10 +193,11 @@ class LogMessage(_message.Message):
         created_at: _builtins.float = ...,
         epoch: _builtins.int = ...,
         after_reqnr: _builtins.int | None = ...,
+        after_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_reqnr", b"after_reqnr"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_reqnr", b"after_reqnr", "created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_epoch", b"after_epoch", "after_reqnr", b"after_reqnr", "created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__after_reqnr: _TypeAlias = _typing.Literal["after_reqnr"]  # noqa: Y015
     _WhichOneofArgType__after_reqnr: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr"]  # noqa: Y015

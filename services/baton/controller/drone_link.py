@@ -38,6 +38,8 @@ class DroneRefusal:
     after_reqnr: int
     # The refused controller's mastership was taken over (``baton-takeover``).
     taken_over: bool = False
+    # The epoch the drone's newest takeover granted (``baton-takeover-epoch``; 0: none).
+    takeover_epoch: int = 0
 
 
 def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
@@ -53,6 +55,7 @@ def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
         int(str(metadata.get("baton-epoch", "0"))),
         int(str(metadata.get("baton-after-reqnr", "0"))),
         str(metadata.get("baton-takeover", "")) == "1",
+        int(str(metadata.get("baton-takeover-epoch", "0"))),
     )
 
 

@@ -489,6 +489,8 @@ class ControllerNode:
         chosen, skipped = ring_route(p.ring, self.id, down_for, detection)
         if chosen == p.successor:
             return
+        if not p.may_route_around(skipped, self.routed_around, self.drone_connected):
+            return  # an ACTIVE master cut off from the drone: asked again in 0.1 s
         natural = self.config.successor(self.id)
         if chosen == natural:
             self.log.info("ring successor back; ring restored", successor=chosen)
@@ -760,7 +762,7 @@ class ControllerNode:
         """Connect refused: another controller is master, and no notice is owed to us."""
         if session is not self._drone:
             return  # a session closed meanwhile
-        if refusal.taken_over:
+        if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
             await self._fenced(refusal.master, refusal.epoch)
             return
         if self.protocol.state is not State.ACTIVE:
@@ -1229,7 +1231,9 @@ class ControllerNode:
                                 f"({method}): {exc.details()}",
                             )
                         )
-                    elif verdict is Refusal.HANDED_OVER and refusal.taken_over:
+                    elif verdict is Refusal.HANDED_OVER and (
+                        refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
+                    ):
                         await self._fenced(refusal.master, refusal.epoch)
                     elif verdict is Refusal.HANDED_OVER:
                         await self.on_handover_notice(

@@ -439,6 +439,28 @@ class ControllerProtocol:
         else:
             self._ends.append((lognr, self.held_reqnr))
 
+    def may_route_around(
+        self, skipped: list[int], routed_around: list[int], drone_connected: bool
+    ) -> bool:
+        """Whether the ring may skip ``skipped`` now (``ring_route``'s choice), where it
+        skips ``routed_around`` already (docs/design.md, "The ring routes around the dead").
+
+        Not an ACTIVE controller cut off from the drone, skipping one more: it
+        may be lost, and the drone then makes the first controller after it
+        that the drone reaches master by takeover, which must hold every
+        message that left it. A successor the master cannot reach may still be
+        reachable by the drone (one partition cuts the master off from both);
+        routed around it, the master's last flushes (give-ups of requests that
+        never reached the drone) would reach the replicas after the taker and
+        not the taker, and a later taker holding them would build on a framing
+        the drone replaced (--lose-master seed 956). Held back, they are lost
+        with the master like its unflushed log. Going back towards the natural
+        successor is always allowed, and so is everything once connected.
+        """
+        if self.state is not State.ACTIVE or drone_connected:
+            return True
+        return set(skipped) <= set(routed_around)
+
     def route_to(self, successor: int) -> None:
         """Log messages go to ``successor`` from now on: the ring routes around the
         unreachable ones between us (the runtime decides; docs/design.md)."""
@@ -535,6 +557,21 @@ class ControllerProtocol:
         """
         return epoch < self.epoch
 
+    def log_given_up(self, takeover_epoch: int) -> bool:
+        """Whether a drone refusal naming another master, whose newest takeover granted
+        ``takeover_epoch`` (``baton-takeover-epoch``), fences us rather than asking for
+        our log.
+
+        ACTIVE in an older epoch, we hold a log that never left us: the mastership
+        went on without it (a handover notice we never heard, its new master lost
+        while it waited for our handover message), and the takeover framed the same
+        replies from those the drone retains. Sending it as a handover message would
+        put a second framing of them on the ring (--lose-master seed 58: a give-up of
+        a request the drone had executed). We rejoin with nothing instead, like a
+        master whose own mastership was taken over.
+        """
+        return self.state is State.ACTIVE and takeover_epoch > self.epoch
+
     def judge_refusal(self, sent_epoch: int, master: int, epoch: int) -> Refusal:
         """What a drone refusal of a request sent in ``sent_epoch`` means (drone.proto).
 
@@ -593,6 +630,7 @@ class ControllerProtocol:
             sender=self.id,
             created_at=time.time(),
             after_reqnr=self.reqnr - len(entries),
+            after_epoch=self._epoch_at.get(lognr - 1, 0),
         )
 
     def on_mission_done(self) -> list[Effect]:
@@ -770,6 +808,12 @@ class ControllerProtocol:
         never left a lost or fenced master: we rejoin with nothing.
         """
         ours = self._epoch_at.get(self.lognr, 0)
+        if self.lognr > 0 and 0 < ours < message.after_epoch:
+            # Its creator's message with our last number is of a newer epoch: another
+            # framing, which a takeover made of the replies ours holds, even if it
+            # ends at the same request (a fenced master's give-up of a request the
+            # drone executed for the taker: --lose-master seed 1705).
+            return Diverged(self.lognr, ours, message.after_epoch)
         if message.HasField("after_reqnr"):
             # Also on a message without entries: a new master's handover message
             # that continues a framing other than ours (--lose-master seed 1943).

@@ -141,15 +141,33 @@ class Sequencer:
         it holds (``mastership_epoch``: the epoch its request or Connect
         carries) was taken over: its log is not wanted; it rejoins as a
         replica with nothing (``taken_over_since``).
+        ``baton-takeover-epoch`` is the epoch the newest takeover granted
+        (absent: none yet). A controller still ACTIVE in an older epoch holds a log
+        that never left it, and that takeover framed the same replies from
+        the ones the drone retains, whoever the master it replaced was (the
+        new master of a cooperative handover that waited for that very log,
+        say): the controller's log is not wanted either
+        (``ControllerProtocol.log_given_up``). Only the controller knows
+        whether it is ACTIVE, so the drone says the epoch and it decides.
         """
         where: tuple[tuple[str, str], ...] = (
             ("baton-master", str(self.master)),
             ("baton-epoch", str(self.epoch)),
             ("baton-after-reqnr", str(self.last_reqnr)),
         )
+        if self.takeover_epoch:
+            where += (("baton-takeover-epoch", str(self.takeover_epoch)),)
         if controller_id is not None and self.taken_over_since(controller_id, mastership_epoch):
             where += (("baton-takeover", "1"),)
         return where
+
+    @property
+    def takeover_epoch(self) -> int:
+        """The epoch the newest takeover granted (0: no takeover yet)."""
+        for record in reversed(self.handovers):
+            if record.kind == "takeover":
+                return record.epoch
+        return 0
 
     def taken_over_since(
         self, controller_id: int, mastership_epoch: int

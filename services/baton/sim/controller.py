@@ -75,6 +75,8 @@ DRONE_RETRY_LIMIT_S = 300.0
 SESSION_BACKOFF_FIRST_S, SESSION_BACKOFF_MAX_S = 0.05, 1.0
 # Clock.Now answers in Unix time; the mission starts here.
 MISSION_START_UNIX = 1.8e9
+# ControllerNode._route_watch's period: a route held back is asked again this often.
+ROUTE_POLL_S = 0.1
 
 
 def refusal_from(error: StatusError) -> DroneRefusal | None:
@@ -90,6 +92,7 @@ def refusal_from(error: StatusError) -> DroneRefusal | None:
         int(metadata.get("baton-epoch", "0")),
         int(metadata.get("baton-after-reqnr", "0")),
         metadata.get("baton-takeover", "") == "1",
+        int(metadata.get("baton-takeover-epoch", "0")),
     )
 
 
@@ -187,6 +190,7 @@ class SimController:
         self.rejoining = False
         self.fenced_messages = 0
         self.routed_around: list[int] = []
+        self.route_held = False  # a route held back polls (_route_again)
         self._gap: tuple[int, float, float] | None = None  # node.py ControllerNode._gap
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
@@ -453,7 +457,7 @@ class SimController:
 
     def on_connect_refused(self, refusal: DroneRefusal) -> None:
         """ControllerNode.on_connect_refused."""
-        if refusal.taken_over:
+        if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
             self._fenced(refusal.master, refusal.epoch)
             return
         if self.protocol.state is not State.ACTIVE:
@@ -566,6 +570,14 @@ class SimController:
         chosen, skipped = ring_route(p.ring, self.id, down_for, detection)
         if chosen == p.successor:
             return
+        session = self.session
+        connected = session is not None and session.connected
+        if not p.may_route_around(skipped, self.routed_around, connected):
+            # node.py asks again every 0.1 s: until connected, or no longer ACTIVE.
+            if not self.route_held:
+                self.route_held = True
+                self.world.loop.after(ROUTE_POLL_S, self._route_again)
+            return
         natural = p.ring[(p.ring.index(self.id) + 1) % len(p.ring)]
         self.world.trace(f"controller {self.id} routes to {chosen} (around {skipped})")
         previous = p.successor
@@ -584,6 +596,10 @@ class SimController:
                 del self.links[previous]
         self.world.check_start()
         self._notify()
+
+    def _route_again(self) -> None:
+        self.route_held = False
+        self._route()
 
     def on_sync(self, from_id: int, holds_lognr: int, holds_epoch: int = 0) -> None:
         """ControllerNode.on_sync: any sender's word counts (only history streams sync)."""
@@ -873,7 +889,9 @@ class SimController:
                     f"controller {self.id}: the drone refused request {inv.reqnr} "
                     f"({inv.call.method}): {error.message}"
                 )
-            elif verdict is Refusal.HANDED_OVER and refusal.taken_over:
+            elif verdict is Refusal.HANDED_OVER and (
+                refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
+            ):
                 self._fenced(refusal.master, refusal.epoch)
             elif verdict is Refusal.HANDED_OVER:
                 self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
