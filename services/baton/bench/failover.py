@@ -152,7 +152,7 @@ async def run_kill(
     say(
         f"{label}: master {victim} killed after request {drone.last_reqnr}; "
         f"{'OK' if result['ok'] else 'FAILED: ' + '; '.join(result['problems'])}, "
-        f"first new request {result.get('total_s', float('nan')):.3f} s after the kill"
+        f"first new call {result.get('total_s', float('nan')):.3f} s after the kill"
     )
     return result
 
@@ -241,6 +241,8 @@ def measure(
         "first_drone_request_s": first_drone.received_at - killed_at,
         "physical_s": physical,
         "beyond_detection_over_physical": (total - detection) / physical,
+        # What the takeover took beyond detection and the physical limit, in seconds.
+        "excess_s": total - detection - physical,
         "retained_replies_at_end": drone.retained_replies,
     }
 
