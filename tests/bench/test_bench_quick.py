@@ -68,6 +68,16 @@ async def test_micro_quick(tmp_path: Path) -> None:
     assert proxy["proxy_get_position"]["n"] == MicroSettings.quick().calls
     assert proxy["direct_get_position"]["calls_per_s"] > 0
     assert all(r["calls_per_s"] > 0 for r in result["replay"])
+    # The protocol and the node alone per log size, then a program end to end.
+    levels = [r["level"] for r in result["replay"]]
+    assert levels == ["protocol", "node"] * len(MicroSettings.quick().replay_entries) + [
+        "end to end"
+    ]
+    assert result["replay"][-1]["n"] == MicroSettings.quick().calls
+    for run in (proxy, result["proxy_insecure"]):
+        relay = run["relay"]
+        assert relay["relay_get_position"]["n"] == relay["direct_get_position"]["n"]
+        assert math.isfinite(relay["relay_overhead_p50_ms"])
     assert [r["bandwidth_bit_s"] for r in result["ring"]] == [25e6, None]
     assert all(math.isfinite(r["throughput_bit_s"]) for r in result["ring"])
 

@@ -218,8 +218,20 @@ def _show(payload: bytes) -> str:
 
 
 def entry_size(entry: ring_pb2.LogEntry) -> int:
-    """Bytes that ``entry`` adds to a serialized log message (field tag and length included)."""
-    return ring_pb2.LogMessage(entries=[entry]).ByteSize()
+    """Bytes that ``entry`` adds to a serialized log message (field tag and length included).
+
+    ``LogMessage.entries`` is field 4, so its tag is one byte; the length is a
+    varint. Computed rather than measured on a one-entry ``LogMessage``, which
+    copied the entry (its reply: a picture) on every append and every replayed
+    call (``tests/bench/test_model.py`` holds the two equal).
+    """
+    size = entry.ByteSize()
+    return 1 + _varint_size(size) + size
+
+
+def _varint_size(value: int) -> int:
+    """Bytes of ``value`` (>= 0) as a protobuf varint."""
+    return max(1, (value.bit_length() + 6) // 7)
 
 
 @dataclass
