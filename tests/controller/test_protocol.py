@@ -14,6 +14,7 @@ from baton.controller.protocol import (
     SeenNumbers,
     SendLog,
     State,
+    entry_size,
     request_digest,
     resend_after,
     ring_route,
@@ -730,3 +731,11 @@ def test_a_message_the_predecessor_holds_and_never_sends_is_a_gap() -> None:
     p.on_log(message(1, 2, [1]))
     replay_all(p)
     assert p.missing_lognr == 2
+
+
+@pytest.mark.parametrize("reply_bytes", [0, 1, 100, 127, 128, 16_250, 16_384, 2_097_000, 2**21])
+def test_entry_size_is_what_the_entry_adds_to_a_log_message(reply_bytes: int) -> None:
+    """Computed from the entry's own size (tag + varint length), not measured on a copy;
+    around every varint length boundary it is what a one-entry LogMessage measures."""
+    entry = ring_pb2.LogEntry(reqnr=7, method="/m", reply=b"x" * reply_bytes)
+    assert entry_size(entry) == ring_pb2.LogMessage(entries=[entry]).ByteSize()
