@@ -156,3 +156,45 @@ def test_the_report_fails_a_run_whose_audit_is_clean_but_a_goto_flew_twice() -> 
     assert "exactly once: False" in table and "2 times" in table
     report["side_effects"] = check_side_effects(snapshot(grid_vehicle_effects(), None), GRID)
     assert run_succeeded(report)
+
+
+def test_a_takeover_is_reported_as_one_and_does_not_stand_for_a_planned_handover() -> None:
+    """Two scripted handovers planned; the drone did the first and took the master over
+    once (lost): the report lists both with their kind, the takeover with its detection
+    time, the table and the missed list say the second planned handover never came."""
+    config = parse_config(
+        {"controllers": [{"id": i, "address": f"127.0.0.1:{7100 + i}"} for i in range(3)]}
+    )
+    drone = drone_pb2.DroneStatus()
+    drone.handovers.add(
+        old_master=0,
+        new_master=1,
+        after_reqnr=90,
+        trigger="script",
+        kind="cooperative",
+        decided_at=100.0,
+        delay_s=0.2,
+    )
+    drone.handovers.add(
+        old_master=1,
+        new_master=2,
+        after_reqnr=120,
+        trigger="lost",
+        kind="takeover",
+        decided_at=110.0,
+        lost_at=109.0,
+        delay_s=0.6,
+    )
+    run = Snapshot(drone, vehicle_effects=None, camera_effects=None)
+    for cid in range(3):
+        run.controllers[cid] = ring_pb2.ControllerStatus(id=cid, mission="done")
+    report = build_report(config, run, GRID, 1.0, [(90, 1), (180, 2)], SPACING_M)
+    assert [(h["kind"], h["trigger"]) for h in report["handovers"]] == [
+        ("cooperative", "script"),
+        ("takeover", "lost"),
+    ]
+    assert report["handovers"][0]["detection_s"] is None
+    assert report["handovers"][1]["detection_s"] == pytest.approx(1.0)
+    assert report["handovers_missed"] == [[180, 2]]
+    table = summary_table(report)
+    assert "takeover" in table and "planned handover 180:2 did not happen" in table

@@ -178,6 +178,14 @@ def build_report(
                 "after_reqnr": record.after_reqnr,
                 "hops": hops,
                 "trigger": record.trigger,
+                "kind": record.kind,
+                # A takeover: from the drone's last sighting of the lost master to its
+                # decision (the takeover time, and how late the drone looked).
+                "detection_s": (
+                    round(record.decided_at - record.lost_at, 6)
+                    if record.kind == "takeover"
+                    else None
+                ),
                 "log_bytes": moved,
                 "delay_s": round(record.delay_s, 6),
                 "model_worst_case_s": round(
@@ -193,8 +201,10 @@ def build_report(
                 ),
             }
         )
-    # A scripted reqnr that was a Clock call fires after the next drone request.
-    missed = planned_handovers[len(handovers) :]
+    # A scripted reqnr that was a Clock call fires after the next drone request. Only
+    # the script's handovers stand for planned ones (not an operator's, not a takeover).
+    scripted = [h for h in handovers if h["trigger"] == "script"]
+    missed = planned_handovers[len(scripted) :]
     return {
         "format": REPORT_FORMAT,
         "completed": completed,
@@ -309,12 +319,15 @@ def summary_table(report: dict[str, Any]) -> str:
         *(f"  {problem}" for problem in report["side_effects"]["problems"]),
         "",
         f"{'handover':>8} {'from':>4} {'to':>3} {'after':>6} {'hops':>4} {'log bytes':>10} "
-        f"{'delay s':>8} {'model s':>8}",
+        f"{'delay s':>8} {'model s':>8}  kind",
     ]
     for k, h in enumerate(report["handovers"], start=1):
+        kind = h.get("kind") or "cooperative"
+        if kind == "takeover":
+            kind += f" ({h['trigger']}, detected after {h['detection_s']:.3f} s)"
         lines.append(
             f"{k:>8} {h['from']:>4} {h['to']:>3} {h['after_reqnr']:>6} {h['hops']:>4} "
-            f"{h['log_bytes']:>10} {h['delay_s']:>8.3f} {h['model_worst_case_s']:>8.3f}"
+            f"{h['log_bytes']:>10} {h['delay_s']:>8.3f} {h['model_worst_case_s']:>8.3f}  {kind}"
         )
     for missed in report["handovers_missed"]:
         lines.append(

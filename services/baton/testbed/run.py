@@ -64,6 +64,12 @@ class Progress:
             for cid, c in sorted(snapshot.controllers.items())
         )
         drone = snapshot.drone
+        scripted = sum(1 for h in drone.handovers if h.trigger == "script")
+        takeovers = sum(1 for h in drone.handovers if h.kind == "takeover")
+        operator = sum(1 for h in drone.handovers if h.trigger == "rpc" and h.kind != "takeover")
+        others = (f" + {operator} by operator" if operator else "") + (
+            f" | takeovers {takeovers}" if takeovers else ""
+        )
         vehicle = "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
         vehicle += f" | drone waiting: {drone.waiting}" if drone.waiting else ""
         vehicle += "".join(
@@ -74,7 +80,7 @@ class Progress:
         print(
             f"{self._stamp()} waypoint {snapshot.pictures}/{self.waypoints} | "
             f"master {drone.master} | reqnr {drone.last_reqnr} | "
-            f"handovers {len(drone.handovers)}/{self.planned} | {states}{vehicle}",
+            f"handovers {scripted}/{self.planned}{others} | {states}{vehicle}",
             file=self.stream,
             flush=True,
         )
