@@ -6,7 +6,9 @@
 #  2. starts dockerd if no engine answers (and stops it again at the end)
 #  3. builds the images (deploy/images.sh, i.e. `make image`)
 #  4. runs deploy/compose.ci.yml: the paper's grid mission, 3 controllers,
-#     the handovers of deploy/handovers.txt, on the sim vehicle
+#     the handovers of deploy/handovers.txt, on the sim vehicle, or on
+#     ArduPilot SITL with BATON_COMPOSE_VEHICLE=ardupilot (needs the SITL
+#     image: ../shared/sitl or BATON_SITL_DIR holding arducopter)
 #  5. waits for the report service's verdict, brings everything down
 #
 # Exits 0 only if the report is a pass (completed, exactly once, replicas
@@ -27,8 +29,20 @@ UP_DEADLINE=${BATON_UP_DEADLINE:-300}
 REPORT_DEADLINE=${BATON_REPORT_DEADLINE:-420}
 DOWN_DEADLINE=${BATON_DOWN_DEADLINE:-120}
 STORAGE_DRIVERS=${BATON_DOCKERD_STORAGE:-overlay2 vfs}
+VEHICLE=${BATON_COMPOSE_VEHICLE:-sim}
 PROJECT=baton-ci
 COMPOSE=(docker-compose -f deploy/compose.ci.yml -p "$PROJECT")
+case $VEHICLE in
+sim) ;;
+ardupilot)
+    COMPOSE+=(--profile ardupilot)
+    export BATON_VEHICLE_URL=tcpout://127.0.0.1:5760
+    ;;
+*)
+    echo "compose-test: BATON_COMPOSE_VEHICLE must be sim or ardupilot, not '$VEHICLE'" >&2
+    exit 2
+    ;;
+esac
 REPORT=reports/report.json
 
 started_at=$(date +%s)
@@ -126,11 +140,16 @@ if ! timeout "$BUILD_DEADLINE" deploy/images.sh; then
 fi
 
 # -- 4. the run --------------------------------------------------------------------
+if [ "$VEHICLE" = ardupilot ] && ! docker image inspect baton-ardupilot-sitl:dev >/dev/null 2>&1; then
+    say "BATON_COMPOSE_VEHICLE=ardupilot, but no baton-ardupilot-sitl:dev was built: put" \
+        "arducopter and copter.parm in ../shared/sitl or set BATON_SITL_DIR to their folder"
+    exit 1
+fi
 mkdir -p reports
 rm -f "$REPORT"
 timeout "$DOWN_DEADLINE" "${COMPOSE[@]}" down -v --remove-orphans >/dev/null 2>&1 || true
 compose_up=1
-say "compose up: certs, sim vehicle, drone, 6 links, 3 controllers, report"
+say "compose up ($VEHICLE): certs, sim vehicle, drone, 6 links, 3 controllers, report"
 if ! timeout "$UP_DEADLINE" "${COMPOSE[@]}" up -d --no-build; then
     "${COMPOSE[@]}" ps >&2 || true
     "${COMPOSE[@]}" logs --no-color --tail 20 >&2 || true

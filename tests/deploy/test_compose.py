@@ -706,18 +706,35 @@ def _ci_link(service: str) -> tuple[str, str, LinkSpec]:
     return args.listen, args.target, spec
 
 
-def test_ci_compose_runs_the_users_testbed_less_the_sitl_profiles_plus_links() -> None:
-    users = set(SERVICES) - set(SITL_PROFILES.values())
+def test_ci_compose_runs_the_users_testbed_less_px4_plus_links() -> None:
+    users = set(SERVICES) - {SITL_PROFILES["px4"]}
     assert set(CI_SERVICES) == users | set(RING_LINKS) | set(DRONE_LINKS)
     for service, spec in CI_SERVICES.items():
-        assert spec["image"] == SERVICES["drone"]["image"], f"{service}: the image make builds"
+        assert spec["image"] == SERVICES[service if service in SERVICES else "drone"]["image"], (
+            f"{service}: the image make image builds"
+        )
         assert "build" not in spec, "compose-test.sh builds the images with deploy/images.sh"
         assert not spec.get("networks") and not spec.get("cap_add")
         expected = "none" if service == "certs" else "host"
         assert spec["network_mode"] == expected, f"{service}: loopback only on our machines"
 
 
-@pytest.mark.parametrize("service", sorted(CI_SERVICES))
+def test_ci_ardupilot_sitl_runs_like_the_users_on_the_host_network() -> None:
+    sitl = CI_SERVICES["ardupilot-sitl"]
+    assert sitl["profiles"] == ["ardupilot"]
+    assert _ci_command("ardupilot-sitl") == _command("ardupilot-sitl")
+    # compose-test.sh points the drone at SERIAL0 on loopback.
+    url = urlsplit("tcpout://127.0.0.1:5760")
+    assert url.port == _serial_tcp_port(0, 0)
+    text = (DEPLOY / "compose-test.sh").read_text()
+    assert f"export BATON_VEHICLE_URL={url.geturl()}" in text
+    assert "COMPOSE+=(--profile ardupilot)" in text
+
+
+CI_BATON_SERVICES = sorted(s for s in CI_SERVICES if s != "ardupilot-sitl")
+
+
+@pytest.mark.parametrize("service", CI_BATON_SERVICES)
 def test_ci_baton_command_parses(service: str) -> None:
     argv = _ci_command(service)
     assert argv[0] == "baton"
