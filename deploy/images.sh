@@ -49,7 +49,16 @@ auto)
         base=local
     fi
     ;;
-public | local) ;;
+public)
+    for image in "$public" "$public_sitl"; do
+        if ! docker image inspect "$image" >/dev/null 2>&1 && ! docker pull -q "$image" >/dev/null; then
+            say "BATON_BASE=public, but $image cannot be pulled: use BATON_BASE=local" \
+                "(a debootstrap base) on a machine without an image registry"
+            exit 1
+        fi
+    done
+    ;;
+local) ;;
 *)
     say "BATON_BASE must be auto, public or local, not '$base' (make image BATON_BASE=local)"
     exit 2
