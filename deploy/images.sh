@@ -84,7 +84,8 @@ timed "image baton-testbed:dev on $from" \
 
 if [ -f "$sitl_dir/arducopter" ] && [ -f "$sitl_dir/copter.parm" ]; then
     # The files as an image, for builders without named build contexts.
-    tar -C "$sitl_dir" -c arducopter copter.parm | docker import - baton-sitl-files:dev >/dev/null
+    tar -C "$sitl_dir" -c arducopter copter.parm |
+        docker import --change "LABEL baton.image=sitl-files" - baton-sitl-files:dev >/dev/null
     timed "image baton-ardupilot-sitl:dev on $from_sitl" \
         docker build --quiet --network "$network" -f deploy/Dockerfile.sitl \
         --build-arg BASE="$from_sitl" --build-arg SITL_FILES=baton-sitl-files:dev \
@@ -92,4 +93,7 @@ if [ -f "$sitl_dir/arducopter" ] && [ -f "$sitl_dir/copter.parm" ]; then
 else
     say "no ArduPilot SITL build in $sitl_dir (arducopter, copter.parm): baton-ardupilot-sitl:dev not built"
 fi
+# Each build leaves the previous image and the build stage untagged: remove
+# those (only images with the Dockerfiles' label, only dangling ones).
+docker image prune -f --filter label=baton.image >/dev/null
 docker image ls --format '{{.Repository}}:{{.Tag}} {{.Size}}' | grep '^baton-' >&2 || true

@@ -863,3 +863,15 @@ def test_compose_files_validate_with_the_compose_at_hand() -> None:
             check=False,
         )
         assert done.returncode == 0, f"{' '.join(cli)} config: deploy/{name}: {done.stderr}"
+
+
+def test_images_sh_removes_only_its_own_leftovers() -> None:
+    """Every build leaves the previous image and the build stage untagged; images.sh
+    prunes the dangling ones that carry the Dockerfiles' label, nothing else."""
+    assert "docker image prune -f --filter label=baton.image " in _images_sh()
+    for name in ("Dockerfile", "Dockerfile.sitl"):
+        text = (DEPLOY / name).read_text()
+        stages = len(re.findall(r"^FROM \$\{BASE\}", text, re.M))
+        labels = re.findall(r"^LABEL baton\.image=\S+\s*$", text, re.M)
+        assert stages and len(labels) == stages, f"{name}: one label per stage on BASE"
+    assert 'docker import --change "LABEL baton.image=sitl-files"' in _images_sh()
