@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 ARGS ?=
 
-.PHONY: demo test lint typecheck proto check-proto install clean
+.PHONY: demo test lint typecheck proto check-proto install clean image compose-test
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "baton needs Python 3.11+, found " + sys.version' 
@@ -35,6 +35,16 @@ typecheck: $(STAMP)
 # Regenerates the Python and mypy stubs beside the .proto files.
 proto: $(STAMP)
 	$(BIN)/python -m baton.protogen
+
+# The compose testbed's images in the local Docker engine (deploy/images.sh):
+# BATON_BASE=auto (default), public or local (a debootstrap base, no registry).
+image: $(STAMP)
+	PYTHON=$(BIN)/python deploy/images.sh
+
+# The compose testbed for real (deploy/compose-test.sh): installs Docker and
+# what it needs, builds the images, runs the mission, fails unless it passes.
+compose-test: $(STAMP)
+	PYTHON=$(BIN)/python deploy/compose-test.sh
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache

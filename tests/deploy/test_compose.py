@@ -392,7 +392,16 @@ def test_ardupilot_sitl_image_is_built_from_dockerfile_sitl() -> None:
     assert set(contexts) == {"sitl"}
     assert (DEPLOY / contexts["sitl"]).resolve() == SHARED_SITL.resolve()
     dockerfile = _dockerfile_sitl()
-    assert re.search(r"^FROM \S+:\S+\s*$", dockerfile, re.M), "pin the base image"
+    # The base: a pinned public image by default, a build argument for machines
+    # without a registry; the files' stage `sitl` is replaced by the named context.
+    args = _build_args(dockerfile)
+    assert re.fullmatch(r"[\w./-]+:[\w.-]+", args["BASE"]), "pin the base image"
+    assert re.search(r"^FROM \$\{SITL_FILES\} AS sitl\s*$", dockerfile, re.M)
+    assert re.search(r"^FROM \$\{BASE\}\s*$", dockerfile, re.M)
+    build = _images_sh_builds("Dockerfile.sitl")
+    assert '--build-arg BASE="$from_sitl"' in build
+    assert "--build-arg SITL_FILES=baton-sitl-files:dev" in build
+    assert build.endswith(f"-t {spec['image']} deploy >/dev/null")
     copies = _sitl_copies()
     assert set(copies) == {"arducopter", "copter.parm"}
     entrypoint = re.search(r"^ENTRYPOINT (\[.*\])\s*$", dockerfile, re.M)
@@ -579,17 +588,81 @@ def _make_recipe(target: str) -> list[str]:
     return lines + recipe
 
 
-def test_dockerfile_installs_with_the_makefile_install_target() -> None:
+def _build_args(dockerfile: str) -> dict[str, str]:
+    """A Dockerfile's ``ARG NAME=DEFAULT`` lines (``ARG NAME``: empty default)."""
+    found = re.findall(r"^ARG (\w+)(?:=(\S*))?\s*$", dockerfile, re.M)
+    return {name: default for name, default in found}
+
+
+def _images_sh() -> str:
+    return (DEPLOY / "images.sh").read_text().replace("\\\n", " ")
+
+
+def _images_sh_builds(dockerfile: str) -> str:
+    """The ``docker build`` command line of deploy/images.sh for ``dockerfile``."""
+    (build,) = [
+        line.strip()
+        for line in _images_sh().splitlines()
+        if "docker build" in line and f"-f deploy/{dockerfile} " in line
+    ]
+    return build
+
+
+def test_dockerfile_takes_its_base_as_a_build_argument() -> None:
     dockerfile = (DEPLOY / "Dockerfile").read_text()
-    assert re.search(r"^FROM python:3\.11-slim\s*$", dockerfile, re.M)
-    assert any("iproute2" in run for run in _dockerfile_runs()), "tc comes with iproute2"
-    installs = [run for run in _dockerfile_runs() if run.startswith("make install")]
-    assert len(installs) == 1, "the image installs baton with `make install`, as the README does"
+    args = _build_args(dockerfile)
+    # Users get the public image; a machine with no registry passes its own base.
+    assert args["BASE"] == "python:3.11-slim-bookworm"
+    froms = re.findall(r"^FROM (\S+)", dockerfile, re.M)
+    assert froms and set(froms) == {"${BASE}"}, f"every stage starts from BASE: {froms}"
+    assert dockerfile.index("ARG BASE=") < dockerfile.index("FROM "), "ARG BASE before FROM"
+    build = _images_sh_builds("Dockerfile")
+    assert '--build-arg BASE="$from"' in build and "-t baton-testbed:dev ." in build
+    assert re.search(r"^public=python:3\.11-slim-bookworm$", _images_sh(), re.M)
+    assert re.search(r"^local_base=baton-base:bookworm$", _images_sh(), re.M)
+
+
+def test_dockerfile_installs_baton_from_the_host_wheelhouse() -> None:
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    assert "WHEELHOUSE" in _build_args(dockerfile)
+    runs = " ".join(_dockerfile_runs())
+    assert "python3 -m venv /opt/venv" in runs
+    # With a wheelhouse: nothing but the wheelhouse (no index, so no network) ...
+    assert '-m pip install --no-cache-dir --no-index --find-links "$WHEELHOUSE" baton' in runs
+    # ... and it does not stay in the image.
+    (wheelhouse,) = re.findall(r"^wheelhouse=(\S+)", _images_sh(), re.M)
+    assert f'rm -rf "/opt/baton/${{WHEELHOUSE:-{wheelhouse}}}"' in runs
     assert re.search(r"^ENV PATH=/opt/venv/bin:", dockerfile, re.M)
-    assert installs[0] == "make install VENV=/opt/venv"
-    # ... and `make install` is the editable install with the dev extra.
-    pip = [line for line in _make_recipe("install") if " -m pip install " in line]
-    assert pip[-1] == "$(BIN)/python -m pip install --quiet -e '.[dev]'"
+    assert any("iproute2" in run for run in _dockerfile_runs()), "tc comes with iproute2"
+    assert "command -v tc" in runs, "a base with tc (the debootstrap one) needs no apt"
+    # images.sh builds that wheelhouse on the host (`pip wheel` of this repository)
+    # inside the build context, and passes the same folder.
+    sh = _images_sh()
+    (wheelhouse,) = re.findall(r"^wheelhouse=(\S+)", sh, re.M)
+    assert not wheelhouse.startswith(("/", "..")), "the wheelhouse must be in the build context"
+    assert '-m pip wheel --quiet --disable-pip-version-check --wheel-dir "$wheelhouse" .' in sh
+    assert '--build-arg WHEELHOUSE="$wheelhouse"' in _images_sh_builds("Dockerfile")
+    ignored = (DEPLOY / "Dockerfile.dockerignore").read_text().split()
+    assert not any(wheelhouse.startswith(p.strip("/")) for p in ignored)
+    # The offline base: no network in the build at all.
+    assert "from=$local_base from_sitl=$local_base network=none" in sh
+
+
+def test_make_image_and_compose_test_run_the_deploy_scripts() -> None:
+    assert _make_recipe("image")[-1] == "PYTHON=$(BIN)/python deploy/images.sh"
+    assert _make_recipe("compose-test")[-1] == "PYTHON=$(BIN)/python deploy/compose-test.sh"
+    for script in ("images.sh", "base-image.sh", "compose-test.sh"):
+        assert os.access(DEPLOY / script, os.X_OK), f"deploy/{script} must be executable"
+    assert 'deploy/base-image.sh "$local_base"' in _images_sh()
+
+
+def test_base_image_reads_the_mirror_from_apt_at_run_time() -> None:
+    text = (DEPLOY / "base-image.sh").read_text()
+    assert "apt-cache policy" in text and "DEBIAN_MIRROR" in text
+    # No mirror is written into the project.
+    assert not re.search(r"https?://", text.replace("^https?:", ""))
+    assert "--variant=minbase --include=python3,python3-venv,iproute2" in text
+    assert "docker import" in text
 
 
 @pytest.mark.parametrize("service", [s for s in BATON_SERVICES if s != "certs"])
@@ -612,3 +685,193 @@ def test_the_drone_starts_once_the_certificates_are_made() -> None:
     assert depends["certs"] == {"condition": "service_completed_successfully"}
     health = " ".join(SERVICES["drone"]["healthcheck"]["test"])
     assert "tls_for(DRONE)" in health and "insecure_channel" not in health
+
+
+# -- the CI compose file: host networking on loopback, `baton link` for shaping ----------
+
+CI_COMPOSE: dict[str, Any] = yaml.safe_load(_expand((DEPLOY / "compose.ci.yml").read_text()))
+CI_SERVICES: dict[str, dict[str, Any]] = CI_COMPOSE["services"]
+CI_CONFIG: BatonConfig = load_config(DEPLOY / "testbed.ci.yaml")
+RING_LINKS = {f"link-ring-{cid}": cid for cid in CI_CONFIG.ring_order}
+DRONE_LINKS = {f"link-drone-{cid}": cid for cid in CI_CONFIG.ring_order}
+
+
+def _ci_command(service: str) -> list[str]:
+    return _argv(CI_SERVICES[service].get("command"))
+
+
+def _ci_link(service: str) -> tuple[str, str, LinkSpec]:
+    """A link service's ``--listen``, ``--target`` and shaping, parsed by baton's parser."""
+    args = build_parser().parse_args(_ci_command(service)[1:])
+    spec = LinkSpec(latency=args.latency, bandwidth=args.bandwidth)
+    return args.listen, args.target, spec
+
+
+def test_ci_compose_runs_the_users_testbed_less_px4_plus_links() -> None:
+    users = set(SERVICES) - {SITL_PROFILES["px4"]}
+    assert set(CI_SERVICES) == users | set(RING_LINKS) | set(DRONE_LINKS)
+    for service, spec in CI_SERVICES.items():
+        assert spec["image"] == SERVICES[service if service in SERVICES else "drone"]["image"], (
+            f"{service}: the image make image builds"
+        )
+        assert "build" not in spec, "compose-test.sh builds the images with deploy/images.sh"
+        assert not spec.get("networks") and not spec.get("cap_add")
+        expected = "none" if service == "certs" else "host"
+        assert spec["network_mode"] == expected, f"{service}: loopback only on our machines"
+
+
+def test_ci_ardupilot_sitl_runs_like_the_users_on_the_host_network() -> None:
+    sitl = CI_SERVICES["ardupilot-sitl"]
+    assert sitl["profiles"] == ["ardupilot"]
+    assert _ci_command("ardupilot-sitl") == _command("ardupilot-sitl")
+    # compose-test.sh points the drone at SERIAL0 on loopback.
+    url = urlsplit("tcpout://127.0.0.1:5760")
+    assert url.port == _serial_tcp_port(0, 0)
+    text = (DEPLOY / "compose-test.sh").read_text()
+    assert f"export BATON_VEHICLE_URL={url.geturl()}" in text
+    assert "COMPOSE+=(--profile ardupilot)" in text
+
+
+CI_BATON_SERVICES = sorted(s for s in CI_SERVICES if s != "ardupilot-sitl")
+
+
+@pytest.mark.parametrize("service", CI_BATON_SERVICES)
+def test_ci_baton_command_parses(service: str) -> None:
+    argv = _ci_command(service)
+    assert argv[0] == "baton"
+    try:
+        build_parser().parse_args(argv[1:])
+    except SystemExit as exc:
+        pytest.fail(f"{service}: `baton {shlex.join(argv[1:])}` does not parse (exit {exc.code})")
+    if "--config" in argv:
+        assert _option(argv, "--config") == CONFIG_IN_CONTAINER
+        assert f"./testbed.ci.yaml:{CONFIG_IN_CONTAINER}:ro" in CI_SERVICES[service]["volumes"]
+
+
+def test_ci_testbed_is_the_users_testbed_on_loopback() -> None:
+    for field in ("ring", "initial_master", "flush_limit", "speedup"):
+        assert getattr(CI_CONFIG, field) == getattr(CONFIG, field), field
+    assert CI_CONFIG.controller_link == CONFIG.controller_link
+    assert CI_CONFIG.drone_link == CONFIG.drone_link
+    assert CI_CONFIG.drone.home == CONFIG.drone.home
+    assert CI_CONFIG.tls.certs == CONFIG.tls.certs
+    addresses = [CI_CONFIG.drone.address]
+    for c in CI_CONFIG.controllers:
+        addresses += [c.address, c.reach, CI_CONFIG.drone_address_for(c.id)]
+    for address in addresses:
+        host, _ = _host_port(address)
+        assert host.startswith("127."), f"{address}: only loopback on our CI machines"
+    assert len(set(addresses)) == len(addresses), "one listening address per part"
+
+
+def test_ci_commands_are_the_users_commands_on_other_addresses() -> None:
+    for service in ("certs", *CONTROLLER_SERVICES):
+        assert _ci_command(service) == _command(service), service
+    users_report, ci_report = _command("report"), _ci_command("report")
+    assert _option(ci_report, "--timeout").isdigit()
+    i = ci_report.index("--timeout")
+    assert ci_report[:i] + ci_report[i + 2 :] == users_report
+    assert _option(_ci_command("drone"), "--handover-file") == HANDOVERS_IN_CONTAINER
+    assert f"./handovers.txt:{HANDOVERS_IN_CONTAINER}:ro" in CI_SERVICES["drone"]["volumes"]
+
+
+def test_ci_drone_and_sim_vehicle_addresses_agree_with_the_config() -> None:
+    drone = _ci_command("drone")
+    assert _option(drone, "--address") == CI_CONFIG.drone.address
+    assert CI_SERVICES["drone"]["healthcheck"]["test"][-1] == CI_CONFIG.drone.address
+    raw = yaml.safe_load((DEPLOY / "compose.ci.yml").read_text())
+    url = _option(_argv(raw["services"]["drone"]["command"]), "--vehicle-url")
+    assert url == f"${{BATON_VEHICLE_URL:-{CI_CONFIG.drone.vehicle_url}}}"
+    vehicle = urlsplit(CI_CONFIG.drone.vehicle_url)
+    sim = _ci_command("sim-vehicle")
+    assert (vehicle.hostname, vehicle.port) == (
+        _option(sim, "--host"),
+        int(_option(sim, "--port")),
+    )
+    assert float(_option(sim, "--speedup")) == CI_CONFIG.speedup
+
+
+def test_ci_links_sit_where_the_config_says_and_shape_like_it() -> None:
+    for service, cid in RING_LINKS.items():
+        listen, target, spec = _ci_link(service)
+        controller = CI_CONFIG.controller(cid)
+        assert (listen, target) == (controller.reach, controller.address), service
+        assert controller.reach != controller.address, "peers reach controllers through it"
+        assert spec == CI_CONFIG.controller_link, f"{service}: controller_link"
+    for service, cid in DRONE_LINKS.items():
+        listen, target, spec = _ci_link(service)
+        assert listen == CI_CONFIG.drone_address_for(cid), service
+        assert target == CI_CONFIG.drone.address
+        assert spec == CI_CONFIG.drone_link, f"{service}: drone_link"
+
+
+def test_ci_controllers_start_once_the_drone_and_their_links_are_ready() -> None:
+    for service in (*RING_LINKS, *DRONE_LINKS):
+        ready = _option(_ci_command(service), "--address-file")
+        assert CI_SERVICES[service]["healthcheck"]["test"] == ["CMD", "test", "-s", ready]
+    for cid in CI_CONFIG.ring_order:
+        depends = CI_SERVICES[f"controller-{cid}"]["depends_on"]
+        needed = {"drone", *RING_LINKS, f"link-drone-{cid}"}
+        assert set(depends) == needed
+        assert all(depends[s] == {"condition": "service_healthy"} for s in needed)
+    assert CI_SERVICES["drone"]["depends_on"]["certs"] == {
+        "condition": "service_completed_successfully"
+    }
+    assert set(CI_SERVICES["report"]["depends_on"]) == set(CONTROLLER_SERVICES)
+
+
+def test_compose_test_runs_the_ci_file_and_fails_on_anything_but_a_pass() -> None:
+    text = (DEPLOY / "compose-test.sh").read_text()
+    assert "COMPOSE=(docker-compose -f deploy/compose.ci.yml" in text
+    assert "deploy/images.sh" in text
+    out = _option(_ci_command("report"), "--out")
+    assert ("../reports:" + str(Path(out).parent)) in CI_SERVICES["report"]["volumes"]
+    assert "REPORT=reports/" + Path(out).name in text
+    assert "--bridge=none --iptables=false" in text
+    for need in ("docker.io", "debootstrap", "docker-compose"):
+        assert f"missing+=({need})" in text
+
+
+def _compose_cli() -> list[str] | None:
+    """``docker compose`` (v2) or ``docker-compose`` (1.x), whichever answers here."""
+    for argv in (["docker", "compose"], ["docker-compose"]):
+        try:
+            done = subprocess.run(
+                [*argv, "version"], capture_output=True, text=True, timeout=30, check=False
+            )
+        except (OSError, subprocess.TimeoutExpired):
+            continue
+        if done.returncode == 0:
+            return argv
+    return None
+
+
+def test_compose_files_validate_with_the_compose_at_hand() -> None:
+    """The users' file needs Compose v2 (`name:`, `additional_contexts`); the CI file
+    must load in Debian's docker-compose 1.29 too. Skipped where neither is installed
+    (make compose-test installs docker-compose)."""
+    cli = _compose_cli()
+    if cli is None:
+        pytest.skip("no docker compose / docker-compose on this machine")
+    files = ["compose.ci.yml"] + (["docker-compose.yml"] if cli == ["docker", "compose"] else [])
+    for name in files:
+        done = subprocess.run(
+            [*cli, "-f", str(DEPLOY / name), "config", "-q"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+        assert done.returncode == 0, f"{' '.join(cli)} config: deploy/{name}: {done.stderr}"
+
+
+def test_images_sh_removes_only_its_own_leftovers() -> None:
+    """Every build leaves the previous image and the build stage untagged; images.sh
+    prunes the dangling ones that carry the Dockerfiles' label, nothing else."""
+    assert "docker image prune -f --filter label=baton.image " in _images_sh()
+    for name in ("Dockerfile", "Dockerfile.sitl"):
+        text = (DEPLOY / name).read_text()
+        stages = len(re.findall(r"^FROM \$\{BASE\}", text, re.M))
+        labels = re.findall(r"^LABEL baton\.image=\S+\s*$", text, re.M)
+        assert stages and len(labels) == stages, f"{name}: one label per stage on BASE"
+    assert 'docker import --change "LABEL baton.image=sitl-files"' in _images_sh()

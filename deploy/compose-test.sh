@@ -1,0 +1,190 @@
+#!/usr/bin/env bash
+# `make compose-test`: the compose testbed for real, on a machine like our CI's
+# (root, Debian's packages reachable, no image registry, loopback only).
+#
+#  1. installs what is missing: docker.io, debootstrap, docker-compose (apt-get)
+#  2. starts dockerd if no engine answers (and stops it again at the end)
+#  3. builds the images (deploy/images.sh, i.e. `make image`)
+#  4. runs deploy/compose.ci.yml: the paper's grid mission, 3 controllers,
+#     the handovers of deploy/handovers.txt, on the sim vehicle, or on
+#     ArduPilot SITL with BATON_COMPOSE_VEHICLE=ardupilot (needs the SITL
+#     image: ../shared/sitl or BATON_SITL_DIR holding arducopter)
+#  5. waits for the report service's verdict, brings everything down
+#
+# Exits 0 only if the report is a pass (completed, exactly once, replicas
+# consistent); reports/report.json holds it. Every wait has a deadline (in
+# seconds, from the environment):
+#   BATON_DOCKERD_DEADLINE (60)   for a started dockerd to answer
+#   BATON_BUILD_DEADLINE (1500)   for the images to build
+#   BATON_UP_DEADLINE (300)       for `compose up` (the drone healthy, the links listening)
+#   BATON_REPORT_DEADLINE (420)   for the report service to exit
+#   BATON_DOWN_DEADLINE (120)     for `compose down`, and for dockerd to stop
+# BATON_DOCKERD_STORAGE: storage drivers to try in order (default "overlay2 vfs").
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+DOCKERD_DEADLINE=${BATON_DOCKERD_DEADLINE:-60}
+BUILD_DEADLINE=${BATON_BUILD_DEADLINE:-1500}
+UP_DEADLINE=${BATON_UP_DEADLINE:-300}
+REPORT_DEADLINE=${BATON_REPORT_DEADLINE:-420}
+DOWN_DEADLINE=${BATON_DOWN_DEADLINE:-120}
+STORAGE_DRIVERS=${BATON_DOCKERD_STORAGE:-overlay2 vfs}
+VEHICLE=${BATON_COMPOSE_VEHICLE:-sim}
+PROJECT=baton-ci
+COMPOSE=(docker-compose -f deploy/compose.ci.yml -p "$PROJECT")
+case $VEHICLE in
+sim) ;;
+ardupilot)
+    COMPOSE+=(--profile ardupilot)
+    export BATON_VEHICLE_URL=tcpout://127.0.0.1:5760
+    ;;
+*)
+    echo "compose-test: BATON_COMPOSE_VEHICLE must be sim or ardupilot, not '$VEHICLE'" >&2
+    exit 2
+    ;;
+esac
+REPORT=reports/report.json
+
+started_at=$(date +%s)
+say() { echo "compose-test: [$(($(date +%s) - started_at)) s] $*" >&2; }
+
+# -- 1. what it needs ------------------------------------------------------------
+missing=()
+command -v dockerd >/dev/null || missing+=(docker.io)
+command -v debootstrap >/dev/null || missing+=(debootstrap)
+command -v docker-compose >/dev/null || missing+=(docker-compose)
+if [ ${#missing[@]} -gt 0 ]; then
+    if [ "$(id -u)" != 0 ]; then
+        say "missing ${missing[*]}, and only root installs them: sudo apt-get install ${missing[*]}"
+        exit 1
+    fi
+    say "installing ${missing[*]} (apt-get)"
+    timeout "$BUILD_DEADLINE" apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive timeout "$BUILD_DEADLINE" \
+        apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+# -- 2. a Docker engine ------------------------------------------------------------
+dockerd_pid=
+dockerd_log=$(mktemp "${TMPDIR:-/tmp}/baton-dockerd.XXXXXX.log")
+compose_up=
+
+stop_dockerd() {
+    [ -n "$dockerd_pid" ] || return 0
+    say "stopping the dockerd this run started (pid $dockerd_pid)"
+    kill -TERM "$dockerd_pid" 2>/dev/null || true
+    local deadline=$(($(date +%s) + DOWN_DEADLINE))
+    while kill -0 "$dockerd_pid" 2>/dev/null; do
+        if [ "$(date +%s)" -ge "$deadline" ]; then
+            say "dockerd (pid $dockerd_pid) did not stop within ${DOWN_DEADLINE} s of SIGTERM: killing it"
+            kill -KILL "$dockerd_pid" 2>/dev/null || true
+            break
+        fi
+        sleep 0.5
+    done
+    wait "$dockerd_pid" 2>/dev/null || true
+    dockerd_pid=
+    # dockerd leaves its network namespace mounted; nothing else uses it now.
+    umount /run/docker/netns/default 2>/dev/null || true
+}
+
+bring_down() {
+    [ -n "$compose_up" ] || return 0
+    compose_up=
+    say "bringing the testbed down"
+    timeout "$DOWN_DEADLINE" "${COMPOSE[@]}" down -v --remove-orphans --timeout 10 >/dev/null 2>&1 ||
+        say "'compose down' did not finish within ${DOWN_DEADLINE} s (or failed)"
+}
+
+cleanup() {
+    local rc=$?
+    bring_down
+    stop_dockerd
+    rm -f "$dockerd_log"
+    say "done in $(($(date +%s) - started_at)) s, exit $rc"
+    exit "$rc"
+}
+trap cleanup EXIT
+trap 'exit 130' INT TERM
+
+if docker info >/dev/null 2>&1; then
+    say "using the Docker engine that runs already"
+else
+    for driver in $STORAGE_DRIVERS; do
+        say "starting dockerd (storage driver $driver)"
+        dockerd --storage-driver="$driver" --bridge=none --iptables=false >"$dockerd_log" 2>&1 &
+        dockerd_pid=$!
+        deadline=$(($(date +%s) + DOCKERD_DEADLINE))
+        until docker info >/dev/null 2>&1; do
+            if ! kill -0 "$dockerd_pid" 2>/dev/null || [ "$(date +%s)" -ge "$deadline" ]; then
+                tail -n 5 "$dockerd_log" >&2
+                say "dockerd with $driver did not answer 'docker info' within ${DOCKERD_DEADLINE} s (its log's end above)"
+                stop_dockerd
+                break
+            fi
+            sleep 0.5
+        done
+        [ -z "$dockerd_pid" ] || break
+    done
+    if [ -z "$dockerd_pid" ]; then
+        say "no Docker engine could be started (tried: $STORAGE_DRIVERS)"
+        exit 1
+    fi
+fi
+
+# -- 3. the images ----------------------------------------------------------------
+say "building the images (deploy/images.sh)"
+if ! timeout "$BUILD_DEADLINE" deploy/images.sh; then
+    say "the images did not build within ${BUILD_DEADLINE} s (or failed, see above)"
+    exit 1
+fi
+
+# -- 4. the run --------------------------------------------------------------------
+if [ "$VEHICLE" = ardupilot ] && ! docker image inspect baton-ardupilot-sitl:dev >/dev/null 2>&1; then
+    say "BATON_COMPOSE_VEHICLE=ardupilot, but no baton-ardupilot-sitl:dev was built: put" \
+        "arducopter and copter.parm in ../shared/sitl or set BATON_SITL_DIR to their folder"
+    exit 1
+fi
+mkdir -p reports
+rm -f "$REPORT"
+timeout "$DOWN_DEADLINE" "${COMPOSE[@]}" down -v --remove-orphans >/dev/null 2>&1 || true
+compose_up=1
+say "compose up ($VEHICLE): certs, sim vehicle, drone, 6 links, 3 controllers, report"
+if ! timeout "$UP_DEADLINE" "${COMPOSE[@]}" up -d --no-build; then
+    "${COMPOSE[@]}" ps >&2 || true
+    "${COMPOSE[@]}" logs --no-color --tail 20 >&2 || true
+    say "the testbed did not come up within ${UP_DEADLINE} s (the drone healthy, every link listening)"
+    exit 1
+fi
+report_id=$("${COMPOSE[@]}" ps -q report)
+say "waiting for the report service's verdict (container ${report_id:0:12}, at most ${REPORT_DEADLINE} s)"
+set +e
+verdict=$(timeout "$REPORT_DEADLINE" docker wait "$report_id")
+waited=$?
+set -e
+"${COMPOSE[@]}" logs --no-color report >&2 || true
+if [ "$waited" -ne 0 ]; then
+    "${COMPOSE[@]}" logs --no-color --tail 30 >&2 || true
+    say "no verdict: the report service did not exit within ${REPORT_DEADLINE} s"
+    exit 1
+fi
+if [ "$verdict" != 0 ]; then
+    "${COMPOSE[@]}" logs --no-color --tail 30 >&2 || true
+    say "FAILED: the report service exited $verdict (not a pass; $REPORT if it got that far)"
+    exit 1
+fi
+if [ ! -s "$REPORT" ]; then
+    say "FAILED: the report service exited 0 but wrote no $REPORT"
+    exit 1
+fi
+# The verdict once more, from the file: the report's own three promises.
+if ! python3 - "$REPORT" <<'CHECK'; then
+import json, sys
+report = json.load(open(sys.argv[1]))
+failed = [k for k in ("completed", "exactly_once", "replicas_consistent") if report.get(k) is not True]
+sys.exit(f"{sys.argv[1]}: not true: {', '.join(failed)}" if failed else 0)
+CHECK
+    say "FAILED: $REPORT is not a pass"
+    exit 1
+fi
+say "PASS: completed, exactly once, replicas consistent ($REPORT)"
