@@ -166,6 +166,9 @@ class World:
         self.given_up: dict[int, grpc.StatusCode] = {}
         # Every log number sent, by the message's origin.
         self.by_origin: dict[int, set[int]] = {}
+        # The epochs each log number was sent in: more than one, a takeover replaced
+        # a framing (the same-replies oracle's ``_would_have_rejoined``).
+        self.framings: dict[int, set[int]] = {}
         # Known findings that struck in this run (KNOWN_FINDINGS).
         self.known: set[str] = set()
         self.regressions: list[Violation] = []  # fixed findings that struck again
