@@ -5,10 +5,13 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+import grpc
+
 from baton.config import parse_config
 from baton.controller.node import ControllerNode
 from baton.controller.protocol import State
 from baton.digest import request_digest
+from baton.rpc.errors import StatusError
 from baton.v1 import drone_pb2, ring_pb2
 
 POSITION = "/baton.v1.Mobility/GetPosition"
@@ -109,5 +112,113 @@ async def test_a_taker_answers_its_program_from_each_retained_batch_as_it_comes(
     assert (await asyncio.wait_for(second, 5)).reply == b"2"
     assert (await node.call(POSITION, b"")).reply == b"3"
     assert node.answered_from_retained == 3 and p.reqnr == 3
+    node._drone = None
+    await node.stop()
+
+
+async def test_a_give_up_of_a_retained_reply_a_lost_master_acted_on_is_not_logged() -> None:
+    """--lose-master seeds 2456 and 2707: the new master's program gave up on request 1
+    while its retained reply was crossing, and the master logged the give-up; but the
+    drone had served the lost master requests 2 and 3 after its program had that reply.
+    The entry is the retained reply (what the mission had), and the program, which saw
+    a give-up, starts again (it has acted on nothing: every call so far was retained)."""
+    config = parse_config(
+        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
+    )
+    node = ControllerNode(config, 1)
+    rejoins: list[int] = []
+
+    async def on_rejoin() -> None:
+        rejoins.append(node.protocol.reqnr)
+
+    node.on_rejoin = on_rejoin
+    session: Any = NoDrone()
+    node._drone = session
+    await node.on_sync(0, 0)
+    await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
+    p = node.protocol
+    assert p.state is State.ACTIVE and node._retained_through == 3
+
+    first = asyncio.create_task(node.call(POSITION, b""))
+    await settle()
+    first.cancel()  # the program gives up while the batch crosses
+    await settle()
+    assert p.reqnr == 0  # not logged as given up
+    await node.on_retained(session, [kept(1), kept(2), kept(3)])
+    second = asyncio.create_task(node.call(POSITION, b""))
+    try:
+        await asyncio.wait_for(second, 5)
+        raise AssertionError("the program went on past a give-up the log contradicts")
+    except StatusError as err:
+        assert err.code is grpc.StatusCode.ABORTED
+    await settle()
+    assert p.reqnr == 1 and node.program_restarts == 1 and rejoins == [1]
+    assert not p.log.entries[-1].given_up and p.log.entries[-1].reply == b"1"
+    node._drone = None
+    await node.stop()
+
+
+async def test_a_give_up_of_the_last_retained_reply_is_logged() -> None:
+    """No program acted on the last retained reply (the drone served nothing after it):
+    the new master's give-up of it is the call's outcome, as a master's give-up of its
+    last request is (and goes to the drone with the next request)."""
+    config = parse_config(
+        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
+    )
+    node = ControllerNode(config, 1)
+    session: Any = NoDrone()
+    node._drone = session
+    await node.on_sync(0, 0)
+    await node.on_granted(session, 2, 1, takeover=True, watermark_reqnr=0)
+    p = node.protocol
+    first = asyncio.create_task(node.call(POSITION, b""))
+    await settle()
+    first.cancel()
+    await settle()
+    assert p.reqnr == 1 and p.log.entries[-1].given_up
+    assert node.program_restarts == 0 and 1 not in node._retained
+    node._drone = None
+    await node.stop()
+
+
+async def test_a_give_up_before_the_connected_event_waits_for_what_the_drone_retains() -> None:
+    """--lose-master seed 2456: master 0, ACTIVE by a handover message (epoch 3) from a
+    taker that handed over at once, gave up on request 1 before the drone's Connected
+    came, and logged the give-up; the Connected then said the drone retains the lost
+    master's replies 1 to 3. Until the Connected of the mastership, a give-up is held
+    like one given up while waiting, and settled from what the drone retains."""
+    config = parse_config(
+        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
+    )
+    node = ControllerNode(config, 1)
+    rejoins: list[int] = []
+
+    async def on_rejoin() -> None:
+        rejoins.append(node.protocol.reqnr)
+
+    node.on_rejoin = on_rejoin
+    session: Any = NoDrone()
+    node._drone = session
+    await node.on_sync(0, 0)
+    handover = ring_pb2.LogMessage(lognr=1, origin=1, handover=True, sender=0, epoch=3)
+    await node.on_log(handover)
+    p = node.protocol
+    assert p.state is State.ACTIVE and p.granted_epoch != p.epoch
+
+    first = asyncio.create_task(node.call(POSITION, b""))
+    await settle()
+    first.cancel()
+    await settle()
+    assert p.reqnr == 0  # not logged: the drone may retain an answer
+    await node.on_granted(session, 3, 3, takeover=False, watermark_reqnr=0)
+    await node.on_retained(session, [kept(1), kept(2), kept(3)])
+    second = asyncio.create_task(node.call(POSITION, b""))
+    try:
+        await asyncio.wait_for(second, 5)
+        raise AssertionError("the program went on past a give-up the log contradicts")
+    except StatusError as err:
+        assert err.code is grpc.StatusCode.ABORTED
+    await settle()
+    assert p.reqnr == 1 and not p.log.entries[-1].given_up and rejoins == [1]
     node._drone = None
     await node.stop()

@@ -69,6 +69,17 @@ def test_lose_master_seeds_hold_every_oracle() -> None:
     assert not any(o.failed for o in outcomes), _failures(outcomes)
 
 
+# Beyond CI's range, fixed: a new master's give-up of a retained reply (2456, 2707),
+# killed replicas held to a framing a takeover replaced (the oracle), the drone's watch
+# stopped while a program still had a given-up call to settle (2957, the sim).
+LOSE_MASTER_BEYOND = (2260, 2342, 2398, 2456, 2566, 2707, 2957, 3231, 3518)
+
+
+def test_lose_master_seeds_beyond_ci_that_were_fixed_hold_every_oracle() -> None:
+    outcomes = [run_seed(seed, SimOptions(lose_master=True)) for seed in LOSE_MASTER_BEYOND]
+    assert not any(o.failed for o in outcomes), _failures(outcomes)
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(3 * 3600)
 def test_many_seeds_hold_every_oracle(sim_seeds: int | None) -> None:

@@ -929,7 +929,11 @@ class ControllerNode:
         up on. The entry is consumed as it comes: from the log when it is
         there (and the master's program must have given up on it too, else
         the deadline made the mission non-deterministic), or, if this
-        controller has become master meanwhile, logged as given up.
+        controller has become master meanwhile, logged as given up. Not
+        before the drone's Connected event of the mastership, and not if the
+        drone retains a reply for the request that a lost master's program
+        acted on (it was served a later request): that reply is the entry, as
+        the log's would be, and a program that saw a give-up starts again.
         """
         while self._abandoned:
             if self._failure is not None:
@@ -941,9 +945,28 @@ class ControllerNode:
                 self._abandoned.popleft()
                 if entry.status_code != code.value[0]:
                     self._replay_again(entry, method, code)
+            elif state is State.ACTIVE and not await self._wait_granted():
+                continue
+            elif state is State.ACTIVE and self.protocol.reqnr + 1 < self._retained_through:
+                # The drone retains the mission's answer to this request, and a
+                # lost master's program acted on it (the drone served it a later
+                # request): that is the entry, not our program's give-up
+                # (--lose-master seeds 2456, 2707). The last one retained no
+                # program acted on, and our give-up of it is logged (below).
+                reqnr = self.protocol.reqnr + 1
+                if not await self._wait_retained(reqnr):
+                    continue
+                entry = self._from_retained(self._retained.pop(reqnr), method, request)
+                self._abandoned.popleft()
+                effects = self.protocol.on_reply(entry)
+                self._seen(entry)
+                await self._apply(effects)
+                if entry.status_code != code.value[0]:
+                    self._replay_again(entry, method, code)
             elif state is State.ACTIVE:
                 self._abandoned.popleft()
                 reqnr = self.protocol.reqnr + 1
+                self._retained.pop(reqnr, None)
                 entry = _given_up(reqnr, method, request, code)
                 effects = self.protocol.on_reply(entry)
                 self._seen(entry)
@@ -1076,11 +1099,7 @@ class ControllerNode:
                 )
             kept = self._retained.pop(reqnr, None)
             if kept is not None:
-                try:
-                    entry = from_retained(kept, method, request)
-                except StatusError as err:
-                    self._fail(StatusError(err.code, f"controller {self.id}: {err.message}"))
-                    raise self._failure or err from None
+                entry = self._from_retained(kept, method, request)
                 self.answered_from_retained += 1
                 self.log.info("answered from the retained tail", reqnr=reqnr, method=method)
             elif method in (CLOCK_NOW, CLOCK_SLEEP):
@@ -1103,7 +1122,12 @@ class ControllerNode:
                 raise
             code = gave_up()
             given_up = _given_up(reqnr, method, request, code)
-            if self._ours_to_log(reqnr):
+            if (
+                self._ours_to_log(reqnr)
+                and self.protocol.granted_epoch == self.protocol.epoch
+                and reqnr >= self._retained_through
+            ):
+                self._retained.pop(reqnr, None)
                 self.log.warning(
                     "the mission program gave up on a call", reqnr=reqnr, code=code.name
                 )
@@ -1113,9 +1137,11 @@ class ControllerNode:
             else:
                 # A handover overtook the call: its entry will come in the new
                 # master's log, and the program's next call must not take it
-                # (simulation finding F5). Settled like a call given up while
-                # waiting: if the new master's program got a reply, the deadline
-                # made the mission non-deterministic, and it stops saying so.
+                # (simulation finding F5). Or the drone retains, or may retain (its
+                # Connected of this mastership has not come), the answer a lost
+                # master's program had: that answer is the entry. Settled like a
+                # call given up while waiting: if the entry is not the same
+                # give-up, the program starts again.
                 self._abandoned.append((method, request, code))
             raise
         if not self._ours_to_log(reqnr):
@@ -1128,6 +1154,16 @@ class ControllerNode:
         self._seen(entry)
         await self._apply(effects)
         return entry
+
+    def _from_retained(
+        self, kept: drone_pb2.RetainedReply, method: str, request: bytes
+    ) -> ring_pb2.LogEntry:
+        """``from_retained``; a call that differs from the retained one stops the mission."""
+        try:
+            return from_retained(kept, method, request)
+        except StatusError as err:
+            self._fail(StatusError(err.code, f"controller {self.id}: {err.message}"))
+            raise self._failure or err from None
 
     async def _wait_granted(self) -> bool:
         """Until the drone's Connected event of this mastership; False if we stop being ACTIVE.

@@ -236,6 +236,7 @@ class SimController:
             if isinstance(effect, SendLog):
                 message = effect.message
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
+                self.world.framings.setdefault(message.lognr, set()).add(message.epoch)
                 if not message.handover:  # it enters the history when it comes back (F7)
                     self.history.add(message)
                     self.peer(self.protocol.successor).holds_changed()
@@ -716,8 +717,36 @@ class SimController:
                     self.accepted_upto = max(self.accepted_upto, entry.reqnr - 1)
                     self._rejoin()
                     return False
+            elif protocol.state is State.ACTIVE and protocol.granted_epoch != protocol.epoch:
+                return False  # node.py _wait_granted: the drone may retain its answer
+            elif protocol.state is State.ACTIVE and protocol.reqnr + 1 < self.retained_through:
+                # node.py: the drone retains the answer a lost master's program acted
+                # on (it sent a later request); that is the entry.
+                reqnr = protocol.reqnr + 1
+                kept = self.retained.pop(reqnr, None)
+                if kept is None:
+                    return False  # _wait_retained: its batch is coming
+                try:
+                    entry = from_retained(kept, given_up.method, given_up.request)
+                except StatusError as err:
+                    self._fail(f"controller {self.id}: {err.message}")
+                    return False
+                self.abandoned.popleft()
+                effects = protocol.on_reply(entry)
+                self._seen(entry)
+                self._apply(effects)
+                if entry.status_code != code.value[0]:  # node.py _replay_again
+                    self.world.trace(
+                        f"controller {self.id}: the program gave up on request {reqnr} "
+                        f"({code.name}) that the drone retains with status "
+                        f"{entry.status_code}: it starts again"
+                    )
+                    self.accepted_upto = max(self.accepted_upto, entry.reqnr - 1)
+                    self._rejoin()
+                    return False
             elif protocol.state is State.ACTIVE:
                 self.abandoned.popleft()
+                self.retained.pop(protocol.reqnr + 1, None)
                 entry = _given_up(protocol.reqnr + 1, given_up.method, given_up.request, code)
                 effects = protocol.on_reply(entry)
                 self._seen(entry)
@@ -954,7 +983,13 @@ class SimController:
             if inv.step is Step.IN_FLIGHT and inv.connection == link.generation and link.usable():
                 link.to_drone(0, self.world.drone.receive_cancel, inv.call_id)
             self.inv = None
-            if self._ours_to_log(inv.reqnr):
+            p = self.protocol
+            if (
+                self._ours_to_log(inv.reqnr)
+                and p.granted_epoch == p.epoch
+                and inv.reqnr >= self.retained_through
+            ):
+                self.retained.pop(inv.reqnr, None)
                 entry = _given_up(inv.reqnr, call.method, call.request, code)
                 effects = self.protocol.on_reply(entry)
                 self._seen(entry)

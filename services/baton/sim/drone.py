@@ -616,7 +616,8 @@ class SimDrone:
         """One turn of DroneService.watch_master: note who is reachable, ask takeover_due.
 
         The loop stops (to let a finished run end) once no program has
-        calls left; ``World`` starts it again when a program (re)starts.
+        calls left nor a given-up call to settle (``World.mission_open``);
+        ``World`` starts it again when a program (re)starts.
         """
         self._watching = False
         if not self.up or not self.world.mission_open():

@@ -166,6 +166,9 @@ class World:
         self.given_up: dict[int, grpc.StatusCode] = {}
         # Every log number sent, by the message's origin.
         self.by_origin: dict[int, set[int]] = {}
+        # The epochs each log number was sent in: more than one, a takeover replaced
+        # a framing (the same-replies oracle's ``_would_have_rejoined``).
+        self.framings: dict[int, set[int]] = {}
         # Known findings that struck in this run (KNOWN_FINDINGS).
         self.known: set[str] = set()
         self.regressions: list[Violation] = []  # fixed findings that struck again
@@ -253,9 +256,12 @@ class World:
         controller.kill(f"killed for good ({why})")
 
     def mission_open(self) -> bool:
-        """Whether some program still has calls to make (or has not started)."""
+        """Whether some program still has calls to make (or has not started), or a call it
+        gave up on to settle (node.py _settle_after_the_end waits for the log, or for
+        the role: the drone's watch_master, which never stops, may have to grant it;
+        --lose-master seed 2957)."""
         return not self.programs_started or any(
-            not c.done for cid, c in self.controllers.items() if cid not in self.lost
+            not c.done or c.abandoned for cid, c in self.controllers.items() if cid not in self.lost
         )
 
     def switched(self, record: HandoverRecord) -> None:
