@@ -611,7 +611,7 @@ class ControllerNode:
                 self.log.info("taking over as master", old_master=effect.old_master)
         # The mastership whose log we hold, kept with the log: a restart from the
         # file tells it on Connect like this process does (fenced if taken over).
-        self.history.keep_mastership_epoch(self.protocol.epoch)
+        self.history.keep_mastership_epoch(self.protocol.log_mastership_epoch)
         self._notify()
 
     def _notify(self) -> None:
@@ -628,7 +628,7 @@ class ControllerNode:
             address,
             events,
             self.log,
-            mastership_epoch=lambda: self.protocol.epoch,
+            mastership_epoch=lambda: self.protocol.log_mastership_epoch,
             holds_reqnr=lambda: self.protocol.held_reqnr,
             tls=self.tls,
         )
@@ -763,7 +763,7 @@ class ControllerNode:
         if session is not self._drone:
             return  # a session closed meanwhile
         if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
-            await self._fenced(refusal.master, refusal.epoch)
+            await self._fenced(refusal.master, refusal.fencing_epoch)
             return
         if self.protocol.state is not State.ACTIVE:
             self.log.info("not the master", master=refusal.master, epoch=refusal.epoch)
@@ -1234,7 +1234,7 @@ class ControllerNode:
                     elif verdict is Refusal.HANDED_OVER and (
                         refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
                     ):
-                        await self._fenced(refusal.master, refusal.epoch)
+                        await self._fenced(refusal.master, refusal.fencing_epoch)
                     elif verdict is Refusal.HANDED_OVER:
                         await self.on_handover_notice(
                             refusal.master, refusal.after_reqnr, refusal.epoch

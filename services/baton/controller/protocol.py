@@ -326,6 +326,11 @@ class ControllerProtocol:
         self._queued_epochs = (0, 0)
         # A taker's second condition: the drone's watermark at the takeover.
         self.must_hold_reqnr = 0
+        # The epoch of a mastership of ours whose log is the ring's now (0: none): we
+        # handed it over cooperatively, or the ring went on without us acting in it.
+        self._mastership_over = 0
+        # The epoch of our takeover grant (0: none), while it is our mastership.
+        self._took_over_in = 0
         # Log numbers received over the ring, so that a message re-sent after a
         # reconnect is neither forwarded nor handled twice.
         self._received = SeenNumbers()
@@ -393,6 +398,7 @@ class ControllerProtocol:
             # died with it); the drone has every reply above what we hold.
             self.catch_up_to = self.holds_lognr
             self.must_hold_reqnr = watermark_reqnr
+            self._took_over_in = epoch
         return effects + self._drain()
 
     def _resend_handed(self) -> list[Effect]:
@@ -428,6 +434,15 @@ class ControllerProtocol:
         ring's log, and a master that waited for it would wait for ever
         (--lose-master seeds 1219, 1402).
         """
+        ours = self._epoch_at.get(holds_lognr, 0) if 0 < holds_lognr <= self.lognr else 0
+        if 0 < ours < holds_epoch:
+            # The sender's message with that number is of a newer epoch than ours:
+            # a takeover framed it anew (our framing never left a master that was
+            # lost or fenced). The same-number rule of ``on_log``, for a sender
+            # that holds less than we do: it gives us nothing above our hello,
+            # so its message with that number would never come (--lose-master
+            # seed 2791: a later taker built on the replaced framing).
+            return [Diverged(holds_lognr, ours, holds_epoch)]
         if holds_lognr > self.lognr and 0 < holds_epoch < self.epoch_of(self.lognr):
             if self.catch_up_to is None:
                 self.catch_up_to = 0  # the sender holds nothing of the ring's above ours
@@ -479,6 +494,27 @@ class ControllerProtocol:
         if successor == self.id or successor not in self.ring:
             raise ValueError(f"controller {self.id} cannot route the ring to {successor}")
         self.successor = successor
+
+    @property
+    def log_mastership_epoch(self) -> int:
+        """The epoch of the mastership whose log we may hold alone (ConnectRequest.
+        mastership_epoch, kept in the history file): the drone fences us if a
+        takeover gave that log up.
+
+        Our epoch, unless we handed that mastership over and our handover message
+        came back round (or the ring went on past it), or never acted in it and
+        the ring went on in a newer one (``_handle``): its log is the ring's
+        then, and we hold none of a later mastership we never heard of. The
+        drone would otherwise take a takeover of such a later mastership (one a
+        cooperative handover gave us while we were cut off, lost before we knew)
+        for one of our log, and a taker that held the ring's log would rejoin
+        with nothing, leaving nobody with the requests below the watermark
+        (--lose-master seed 2572).
+        """
+        handed_back = self._handed is None and self.state is not State.ACTIVE
+        if self.epoch and self._mastership_over == self.epoch and handed_back:
+            return 0
+        return self.epoch
 
     @property
     def holds_lognr(self) -> int:
@@ -677,6 +713,7 @@ class ControllerProtocol:
         message.epoch = epoch
         self._handed = ring_pb2.LogMessage()
         self._handed.CopyFrom(message)
+        self._mastership_over = self.epoch
         return [DisconnectDrone(), SendLog(new_master, message)]
 
     def on_fenced(self, epoch: int = 0) -> list[Effect]:
@@ -801,10 +838,37 @@ class ControllerProtocol:
             if diverged is not None:
                 return [*effects, diverged]
             effects.extend(self._handle(self.log_queue.pop(self.lognr + 1)))
+        if self.state is State.PASSIVE and self.master and self.log_queue and self.caught_up:
+            effects.extend(self._drop_queued_beyond_gap())
         if self.state is State.PASSIVE and self.master and not self.log_queue and self.caught_up:
             # The master's own log ran out with nothing queued: lines 54-56.
             self.state = State.ACTIVE
             effects.append(ConnectDrone())
+        return effects
+
+    def _drop_queued_beyond_gap(self) -> list[Effect]:
+        """A taker, caught up, whose queued messages wait for a number that never comes:
+        they are dropped (``Unqueued``), and it goes ACTIVE on what it holds.
+
+        The ring's log after a takeover is what the taker holds in order, and the
+        replies the drone retains above it. Messages of the lost master queued
+        above a gap (the one before them died with it: --lose-master seeds 2034,
+        3276) are a framing the taker replaces with its own from those replies;
+        kept, they held it PASSIVE for ever. Only a taker's, in its epoch, and
+        only older messages: a controller's that arrive later are fenced by the
+        taker's newer ones (``on_log``).
+        """
+        if self._took_over_in != self.epoch or (self.lognr + 1) in self.log_queue:
+            return []
+        effects: list[Effect] = []
+        for queued_nr in sorted(self.log_queue):
+            queued = self.log_queue[queued_nr]
+            if queued.epoch < self.epoch:
+                del self.log_queue[queued_nr]
+                self._received.discard(queued_nr)
+                effects.append(Unqueued(queued_nr, queued.origin, queued.epoch))
+        epochs = [queued.epoch for queued in self.log_queue.values() if queued.epoch]
+        self._queued_epochs = (min(epochs), max(epochs)) if epochs else (0, 0)
         return effects
 
     def _diverged_before(self, message: ring_pb2.LogMessage) -> Diverged | None:
@@ -912,6 +976,17 @@ class ControllerProtocol:
             self.master = True
             self.epoch = max(self.epoch, message.epoch)
             effects.append(TookOver(message.sender, message.lognr, self.reqnr, message.ByteSize()))
+        elif self.master and self.granted_epoch < self.epoch < message.epoch:
+            # Made master by a handover message the drone never confirmed, and the
+            # ring's log goes on in a newer mastership than it: the role went on
+            # without us (we handed it over, or a takeover gave our log up). Not
+            # master: ACTIVE on it, the drone would fence us, and a fresh self
+            # given the same handover message again (a stream that breaks before
+            # its acknowledgement re-sends it) would take it again, for ever
+            # (--lose-master seed 3747). We never acted in that mastership: the log
+            # we hold is the ring's (``log_mastership_epoch``).
+            self.master = False
+            self._mastership_over = self.epoch
         if self.log:
             self.state = State.REPLAY
         return effects

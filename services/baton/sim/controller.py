@@ -340,7 +340,7 @@ class SimController:
             link,
             session.sid,
             link.generation,
-            self.protocol.epoch,
+            self.protocol.log_mastership_epoch,
             self.protocol.held_reqnr,
         )
 
@@ -458,7 +458,7 @@ class SimController:
     def on_connect_refused(self, refusal: DroneRefusal) -> None:
         """ControllerNode.on_connect_refused."""
         if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
-            self._fenced(refusal.master, refusal.epoch)
+            self._fenced(refusal.master, refusal.fencing_epoch)
             return
         if self.protocol.state is not State.ACTIVE:
             self._close_drone()
@@ -892,7 +892,7 @@ class SimController:
             elif verdict is Refusal.HANDED_OVER and (
                 refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
             ):
-                self._fenced(refusal.master, refusal.epoch)
+                self._fenced(refusal.master, refusal.fencing_epoch)
             elif verdict is Refusal.HANDED_OVER:
                 self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
             elif verdict is Refusal.REGRANTED:  # node.py: connect again to learn the epoch
