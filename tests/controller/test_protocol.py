@@ -813,7 +813,9 @@ def test_a_taker_drops_the_lost_masters_messages_queued_beyond_a_gap() -> None:
     p.on_log(framed(2, 0, [2], 1))
     p.on_log(framed(4, 0, [4], 1))
     replay_all(p)
-    effects = p.on_granted(2, takeover=True, watermark_reqnr=0)
+    assert p.on_granted(2, takeover=True, watermark_reqnr=0) == []
+    assert p.state is State.PASSIVE  # 3 may be on its way: the gap repair asks first
+    effects = p.give_up_gap()  # the repair did not bring it (node.py _repair_gap)
     assert [(type(e).__name__, getattr(e, "lognr", None)) for e in effects] == [
         ("Unqueued", 4),
         ("ConnectDrone", None),
@@ -821,12 +823,12 @@ def test_a_taker_drops_the_lost_masters_messages_queued_beyond_a_gap() -> None:
     assert p.state is State.ACTIVE and not p.log_queue and 4 not in p._received
 
 
-def test_a_replica_does_not_drop_messages_queued_beyond_a_gap() -> None:
+def test_a_replica_does_not_give_up_a_gap() -> None:
     p = started(1, [0, 1, 2], 2**20)
     p.on_log(framed(1, 0, [1], 1))
     p.on_log(framed(3, 0, [3], 1))
     replay_all(p)
-    assert 3 in p.log_queue
+    assert p.give_up_gap() == [] and 3 in p.log_queue
 
 
 def test_a_mastership_handed_over_is_not_the_log_we_connect_with() -> None:
@@ -858,3 +860,24 @@ def test_a_mastership_handed_over_is_not_the_log_we_connect_with() -> None:
     seq.admit_connect(1, p.log_mastership_epoch)  # granted, not fenced
     with pytest.raises(StatusError):
         seq.admit_connect(1, 2)  # what it said before
+
+
+def test_a_fenced_master_keeps_the_messages_that_went_round_the_ring() -> None:
+    """Seed 3818: 0 flushed message 1 (requests 1-10), which went round the ring (1 said
+    it holds it, and the drone let go of those replies); 1 restarted with nothing and
+    took over. 0, fenced, rejoined with nothing: nobody held requests 1-10 and the taker
+    waited for ever. A fenced controller keeps what went round; a diverged one nothing."""
+    p = started(0, [0, 1], 0)
+    p.on_reply(entry(1))  # flushed at once: message 1
+    p.on_reply(entry(2))  # message 2, not acknowledged yet
+    p.on_sync(1)  # 1 holds message 1
+    assert p.watermark_reqnr == 1 and p.acked_lognr == 1
+    assert p.kept_when_fenced() == 0  # not fenced
+    p.on_fenced(2)
+    assert p.kept_when_fenced() == 1
+    # In a longer ring the word may come from one routing around the taker (seed 973).
+    q = started(0, [0, 1, 2], 0)
+    q.on_reply(entry(1))
+    q.on_sync(1)
+    q.on_fenced(2)
+    assert q.acked_lognr == 1 and q.kept_when_fenced() == 0

@@ -347,6 +347,9 @@ class ControllerProtocol:
         self._epoch_at: dict[int, int] = {}
         self.watermark_reqnr = 0
         self._ends: deque[tuple[int, int]] = deque()
+        # The highest log number we held that the predecessor's word says every
+        # controller held (the watermark's log number): ``kept_when_fenced``.
+        self.acked_lognr = 0
         # The last handover message we created, until it comes back round: if
         # its new master is lost and the drone gives the role back to us by
         # takeover, we are the only one that holds it (simulation finding F11).
@@ -451,7 +454,9 @@ class ControllerProtocol:
         if holds_lognr > self.lognr:
             self._promised[holds_lognr] = max(self._promised.get(holds_lognr, 0), holds_epoch)
         while self._ends and self._ends[0][0] <= holds_lognr:
-            self.watermark_reqnr = max(self.watermark_reqnr, self._ends.popleft()[1])
+            acked, reqnr = self._ends.popleft()
+            self.watermark_reqnr = max(self.watermark_reqnr, reqnr)
+            self.acked_lognr = max(self.acked_lognr, acked)
         return self._drain()
 
     def _held(self, lognr: int, reqnr: int, epoch: int) -> None:
@@ -549,6 +554,27 @@ class ControllerProtocol:
             kept.append(self._diverging_handover)
         # One older than the takeover that fenced us gives a role the drone took away.
         return [m for m in kept if m.epoch > self._fenced_in]
+
+    def kept_when_fenced(self) -> int:
+        """The log numbers (every one up to this) that a controller fenced by a takeover
+        keeps from its history when it rejoins: those that went round the whole ring
+        (``acked_lognr``), not the rest, which the taker may have framed anew.
+
+        Every controller held them, so the taker holds them or waits for them
+        from the ring (the drone let go of their replies: the watermark covers
+        them). A controller that lost them since (restarted with nothing) may
+        have left the fenced master the only holder: rejoining with nothing, it
+        left nobody, and the taker waited for ever (--lose-master seed 3818).
+        Fed to the fresh self like ring messages (``ControllerNode.reset``), they
+        are handled, replayed and given to the successor from the history again.
+
+        Only in a ring of two, where the predecessor's word is every other
+        controller's. In a longer one the word may come from a controller that
+        routes around a dead or restarted one, which then lacks them and may
+        take over without them: a give-up it replaced by the drone's reply was
+        kept (seed 973, tried first).
+        """
+        return self.acked_lognr if self._fenced_in and len(self.ring) == 2 else 0
 
     def epoch_of(self, lognr: int) -> int:
         """The epoch of the message with ``lognr`` handled or queued here (0 if unknown):
@@ -838,17 +864,17 @@ class ControllerProtocol:
             if diverged is not None:
                 return [*effects, diverged]
             effects.extend(self._handle(self.log_queue.pop(self.lognr + 1)))
-        if self.state is State.PASSIVE and self.master and self.log_queue and self.caught_up:
-            effects.extend(self._drop_queued_beyond_gap())
         if self.state is State.PASSIVE and self.master and not self.log_queue and self.caught_up:
             # The master's own log ran out with nothing queued: lines 54-56.
             self.state = State.ACTIVE
             effects.append(ConnectDrone())
         return effects
 
-    def _drop_queued_beyond_gap(self) -> list[Effect]:
-        """A taker, caught up, whose queued messages wait for a number that never comes:
-        they are dropped (``Unqueued``), and it goes ACTIVE on what it holds.
+    def give_up_gap(self) -> list[Effect]:
+        """A taker, caught up, whose queued messages wait for a number that the gap
+        repair did not bring (``ControllerNode._repair_gap``, once it had the
+        predecessors re-send and the gap stayed): they are dropped (``Unqueued``),
+        and it goes ACTIVE on what it holds.
 
         The ring's log after a takeover is what the taker holds in order, and the
         replies the drone retains above it. Messages of the lost master queued
@@ -856,9 +882,14 @@ class ControllerProtocol:
         3276) are a framing the taker replaces with its own from those replies;
         kept, they held it PASSIVE for ever. Only a taker's, in its epoch, and
         only older messages: a controller's that arrive later are fenced by the
-        taker's newer ones (``on_log``).
+        taker's newer ones (``on_log``). Not at once: a message on its way (a
+        partition, a reordering link) framed replies the programs may have seen
+        already, Clock calls answered by its master among them (seed 2600).
         """
-        if self._took_over_in != self.epoch or (self.lognr + 1) in self.log_queue:
+        ready = self.state is State.PASSIVE and self.master and self.caught_up
+        if not ready or self._took_over_in != self.epoch or not self.log_queue:
+            return []
+        if (self.lognr + 1) in self.log_queue:
             return []
         effects: list[Effect] = []
         for queued_nr in sorted(self.log_queue):
@@ -869,7 +900,7 @@ class ControllerProtocol:
                 effects.append(Unqueued(queued_nr, queued.origin, queued.epoch))
         epochs = [queued.epoch for queued in self.log_queue.values() if queued.epoch]
         self._queued_epochs = (min(epochs), max(epochs)) if epochs else (0, 0)
-        return effects
+        return effects + self._drain() if effects else []
 
     def _diverged_before(self, message: ring_pb2.LogMessage) -> Diverged | None:
         """Whether the next message in order, from a newer epoch than our last one, does

@@ -537,6 +537,13 @@ class SimController:
         lognr, since, due = self._gap
         if now < due or self.protocol.missing_lognr != lognr:
             return
+        if now - since >= 2 * gap_repair_s(self.world.detection_s):  # a repair was tried
+            given_up = self.protocol.give_up_gap()  # node.py: a taker's gap after a repair
+            if given_up:
+                self.world.trace(f"controller {self.id} gives up log message {lognr}: taker")
+                self._gap = None
+                self._apply(given_up)
+                return
         interval = min(2 * (now - since), GAP_REPAIR_MAX_S)
         self._gap = (lognr, since, now + interval)
         self.world.trace(f"controller {self.id} misses log message {lognr}: streams dropped")
