@@ -19,6 +19,7 @@ from baton.controller.protocol import (
     resend_after,
     ring_route,
 )
+from baton.rpc.errors import StatusError
 from baton.v1 import ring_pb2
 
 GET = "/baton.v1.Mobility/GetPosition"
@@ -739,3 +740,144 @@ def test_entry_size_is_what_the_entry_adds_to_a_log_message(reply_bytes: int) ->
     around every varint length boundary it is what a one-entry LogMessage measures."""
     entry = ring_pb2.LogEntry(reqnr=7, method="/m", reply=b"x" * reply_bytes)
     assert entry_size(entry) == ring_pb2.LogMessage(entries=[entry]).ByteSize()
+
+
+# -- --lose-master seeds 2000-3999 that stalled ------------------------------------------
+
+
+def framed(
+    lognr: int,
+    origin: int,
+    reqnrs: range | list[int],
+    epoch: int,
+    handover: bool = False,
+    sender: int = -1,
+) -> ring_pb2.LogMessage:
+    m = message(lognr, origin, reqnrs, handover=handover, sender=sender)
+    m.epoch = epoch
+    return m
+
+
+def test_a_refusal_fences_in_the_newest_takeovers_epoch_and_a_later_handover_is_kept() -> None:
+    """Seeds 2969, 3704: master 2, cut off, was taken over in epoch 2; the role came back
+    to it by a handover message of epoch 5, and the drone handed over from it to 4 in
+    epoch 6 at once. Refused (its Connect names the epoch-1 mastership), it rejoins: its
+    fresh self must keep the handover message of epoch 5, else 4 waits for ever."""
+    from baton.controller.drone_link import DroneRefusal
+
+    refusal = DroneRefusal(master=4, epoch=6, after_reqnr=6, taken_over=True, takeover_epoch=2)
+    assert refusal.fencing_epoch == 2
+    assert DroneRefusal(master=4, epoch=6, after_reqnr=6).fencing_epoch == 6
+    p = started(2, [2, 3, 4], 2**20, initial_master=2)
+    p.on_log(framed(2, 1, [1], 5, handover=True, sender=1))  # queued: 1 is missing
+    p.on_fenced(refusal.fencing_epoch)
+    assert [m.lognr for m in p.kept_for_rejoin()] == [2]
+
+
+def test_a_handover_message_the_ring_went_past_in_a_newer_epoch_makes_no_master() -> None:
+    """Seed 3747: a fresh controller is given again (unacknowledged, re-sent) the handover
+    message of epoch 4 that made it master before; the ring's log goes on in epoch 6
+    (a takeover after its own handover). It must not take the role: ACTIVE in epoch 4,
+    it was fenced, rejoined and given the message again, for ever."""
+    p = started(2, [0, 2, 5], 2**20, initial_master=0)
+    p.on_log(framed(1, 0, [1], 1))
+    p.on_log(framed(2, 2, [2], 4, handover=True, sender=0))
+    p.on_log(framed(3, 0, [3], 6))
+    replay_all(p)
+    p.on_sync(3)
+    assert not p.master and p.state is State.PASSIVE
+    # It never acted in epoch 4: its log is the ring's, and its Connect names no
+    # mastership (seed 1241: else fenced when the drone later made it taker).
+    assert p.log_mastership_epoch == 0
+
+
+def test_a_predecessors_sync_frame_of_a_newer_framing_below_our_top_makes_us_rejoin() -> None:
+    """Seed 2791: 5 held the lost master's messages 3-7 (epoch 1); its predecessor holds
+    the taker's message 3 (epoch 2) and nothing above it, so it gives 5 nothing. Its sync
+    frame says so: 5 diverged, and must rejoin before it takes over on that framing."""
+    p = started(5, [6, 5, 4], 2**20, initial_master=6)
+    for lognr in range(1, 8):
+        p.on_log(framed(lognr, 6, [lognr], 1))
+    replay_all(p)
+    effects = p.on_sync(3, 2)
+    assert [type(e).__name__ for e in effects] == ["Diverged"]
+    assert p.on_sync(3, 1) == []  # the same framing
+
+
+def test_a_taker_drops_the_lost_masters_messages_queued_beyond_a_gap() -> None:
+    """Seeds 2034, 3276: the lost master's message 3 died with it, its message 4 reached
+    the taker and was queued. The taker holds 2 and gets every reply above from the
+    drone: it drops 4 and goes ACTIVE, where it waited for 3 for ever."""
+    p = started(1, [0, 1], 2**20)
+    p.on_log(framed(1, 0, [1], 1))
+    p.on_log(framed(2, 0, [2], 1))
+    p.on_log(framed(4, 0, [4], 1))
+    replay_all(p)
+    assert p.on_granted(2, takeover=True, watermark_reqnr=0) == []
+    assert p.state is State.PASSIVE  # 3 may be on its way: the gap repair asks first
+    effects = p.give_up_gap()  # the repair did not bring it (node.py _repair_gap)
+    assert [(type(e).__name__, getattr(e, "lognr", None)) for e in effects] == [
+        ("Unqueued", 4),
+        ("ConnectDrone", None),
+    ]
+    assert p.state is State.ACTIVE and not p.log_queue and 4 not in p._received
+
+
+def test_a_replica_does_not_give_up_a_gap() -> None:
+    p = started(1, [0, 1, 2], 2**20)
+    p.on_log(framed(1, 0, [1], 1))
+    p.on_log(framed(3, 0, [3], 1))
+    replay_all(p)
+    assert p.give_up_gap() == [] and 3 in p.log_queue
+
+
+def test_a_mastership_handed_over_is_not_the_log_we_connect_with() -> None:
+    """Seed 2572: 1 handed over to 0 in epoch 3 (its handover message came back round),
+    then was given the role in epoch 4 while cut off, taken over in epoch 5 before it
+    knew, and granted it back by takeover in epoch 6. Its Connect named its epoch-2
+    mastership, which the drone took for the one taken over: the taker, which held the
+    ring's log, rejoined with nothing, and nobody held the requests below the watermark."""
+    from baton.drone.sequencer import Sequencer
+
+    p = started(1, [0, 1], 2**20, initial_master=0)
+    p.on_log(framed(1, 0, [1], 2, handover=True))
+    replay_all(p)
+    p.on_granted(2)
+    assert p.state is State.ACTIVE and p.log_mastership_epoch == 2
+    p.on_reply(entry(2))
+    p.on_handover_notice(0, epoch=3)
+    assert p.log_mastership_epoch == 2  # our handover message has not come back
+    p.on_log(framed(3, 0, [3], 3))  # the ring went on past it
+    replay_all(p)
+    assert p.log_mastership_epoch == 0
+
+    seq = Sequencer([0, 1], initial_master=0)
+    seq.switch(1, "script", now=1.0)  # epoch 2
+    seq.switch(0, "script", now=2.0)  # epoch 3
+    seq.switch(1, "script", now=3.0)  # epoch 4, unheard
+    seq.switch(0, "lost", now=4.0, takeover=True)  # epoch 5
+    seq.switch(1, "lost", now=5.0, takeover=True)  # epoch 6
+    seq.admit_connect(1, p.log_mastership_epoch)  # granted, not fenced
+    with pytest.raises(StatusError):
+        seq.admit_connect(1, 2)  # what it said before
+
+
+def test_a_fenced_master_keeps_the_messages_that_went_round_the_ring() -> None:
+    """Seed 3818: 0 flushed message 1 (requests 1-10), which went round the ring (1 said
+    it holds it, and the drone let go of those replies); 1 restarted with nothing and
+    took over. 0, fenced, rejoined with nothing: nobody held requests 1-10 and the taker
+    waited for ever. A fenced controller keeps what went round; a diverged one nothing."""
+    p = started(0, [0, 1], 0)
+    p.on_reply(entry(1))  # flushed at once: message 1
+    p.on_reply(entry(2))  # message 2, not acknowledged yet
+    p.on_sync(1)  # 1 holds message 1
+    assert p.watermark_reqnr == 1 and p.acked_lognr == 1
+    assert p.kept_when_fenced() == 0  # not fenced
+    p.on_fenced(2)
+    assert p.kept_when_fenced() == 1
+    # In a longer ring the word may come from one routing around the taker (seed 973).
+    q = started(0, [0, 1, 2], 0)
+    q.on_reply(entry(1))
+    q.on_sync(1)
+    q.on_fenced(2)
+    assert q.acked_lognr == 1 and q.kept_when_fenced() == 0

@@ -41,6 +41,21 @@ class DroneRefusal:
     # The epoch the drone's newest takeover granted (``baton-takeover-epoch``; 0: none).
     takeover_epoch: int = 0
 
+    @property
+    def fencing_epoch(self) -> int:
+        """The epoch of the takeover that fences the refused controller (``on_fenced``).
+
+        The newest takeover's, not the drone's epoch now: a handover message of a
+        mastership granted after that takeover is the role the drone gave since,
+        and the rejoining controller's fresh self must keep it
+        (``ControllerProtocol.kept_for_rejoin``). Measured by the drone's epoch,
+        a handover message sent just before a handover from its new master (two
+        switches back to back) was dropped, and the master after it waited for
+        ever for a handover message that nobody would send (--lose-master seeds
+        2969, 3704).
+        """
+        return self.takeover_epoch or self.epoch
+
 
 def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
     """The drone's master, epoch and last reqnr from a FAILED_PRECONDITION that names them."""

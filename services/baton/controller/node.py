@@ -368,7 +368,12 @@ class ControllerNode:
         be restarted with it (``on_rejoin``).
         """
         self.incarnation += 1
-        kept = self.protocol.kept_for_rejoin()
+        # A fenced controller keeps its messages that went round the ring (the one
+        # copy left, maybe: ``kept_when_fenced``), then the handover messages that
+        # exist nowhere else.
+        upto = self.protocol.kept_when_fenced()
+        kept = [self.history.get(n) for n in self.history.above(0) if n <= upto]
+        kept += self.protocol.kept_for_rejoin()
         await self._close_drone()
         for link in self._peers.values():
             await link.stop()
@@ -391,7 +396,7 @@ class ControllerNode:
         self.routed_around = []
         self.peer(self.protocol.successor).start()
         await self._apply(self.protocol.start())
-        for message in kept:  # a handover message that exists nowhere else
+        for message in kept:
             await self.on_log(message)
         self.log.info("rejoined as a replica with nothing; catching up from the ring")
 
@@ -432,11 +437,11 @@ class ControllerNode:
         """Every 0.1 s: routes the ring around a successor down for the detection time,
         and repairs a gap in what we received."""
         while True:
-            self._repair_gap()
+            await self._repair_gap()
             await self._route()
             await asyncio.sleep(0.1)
 
-    def _repair_gap(self) -> None:
+    async def _repair_gap(self) -> None:
         """A log message missing for the repair time while later ones are queued: our
         predecessors are made to connect again, and hear our hello (simulation finding F3).
 
@@ -449,6 +454,8 @@ class ControllerNode:
         our history would lack it for good. Re-opened, the stream re-sends from
         the history whatever is above what we hold (``holds_lognr``). Again,
         twice as late each time, if the gap stays (the message may be nowhere yet).
+        A taker whose gap stayed after a repair gives it up and goes ACTIVE
+        (``ControllerProtocol.give_up_gap``): the message died with the lost master.
         """
         missing = self.protocol.missing_lognr
         now = time.monotonic()
@@ -462,6 +469,18 @@ class ControllerNode:
         lognr, since, due = self._gap
         if now < due or self.on_gap is None:
             return
+        if now - since >= 2 * repair_s:  # a repair was tried, and the gap stayed
+            given_up = self.protocol.give_up_gap()
+            if given_up:
+                self.log.warning(
+                    "taker gives up log messages queued beyond a gap the repair did not "
+                    "fill; framing those replies from the drone's",
+                    missing_lognr=lognr,
+                    missing_for_s=round(now - since, 3),
+                )
+                self._gap = None
+                await self._apply(given_up)
+                return
         self._gap = (lognr, since, now + min(2 * (now - since), GAP_REPAIR_MAX_S))
         self.log.warning(
             "log message missing while later ones are queued (or our handover message did "
@@ -611,7 +630,7 @@ class ControllerNode:
                 self.log.info("taking over as master", old_master=effect.old_master)
         # The mastership whose log we hold, kept with the log: a restart from the
         # file tells it on Connect like this process does (fenced if taken over).
-        self.history.keep_mastership_epoch(self.protocol.epoch)
+        self.history.keep_mastership_epoch(self.protocol.log_mastership_epoch)
         self._notify()
 
     def _notify(self) -> None:
@@ -628,7 +647,7 @@ class ControllerNode:
             address,
             events,
             self.log,
-            mastership_epoch=lambda: self.protocol.epoch,
+            mastership_epoch=lambda: self.protocol.log_mastership_epoch,
             holds_reqnr=lambda: self.protocol.held_reqnr,
             tls=self.tls,
         )
@@ -763,7 +782,7 @@ class ControllerNode:
         if session is not self._drone:
             return  # a session closed meanwhile
         if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
-            await self._fenced(refusal.master, refusal.epoch)
+            await self._fenced(refusal.master, refusal.fencing_epoch)
             return
         if self.protocol.state is not State.ACTIVE:
             self.log.info("not the master", master=refusal.master, epoch=refusal.epoch)
@@ -1270,7 +1289,7 @@ class ControllerNode:
                     elif verdict is Refusal.HANDED_OVER and (
                         refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
                     ):
-                        await self._fenced(refusal.master, refusal.epoch)
+                        await self._fenced(refusal.master, refusal.fencing_epoch)
                     elif verdict is Refusal.HANDED_OVER:
                         await self.on_handover_notice(
                             refusal.master, refusal.after_reqnr, refusal.epoch

@@ -326,6 +326,11 @@ class ControllerProtocol:
         self._queued_epochs = (0, 0)
         # A taker's second condition: the drone's watermark at the takeover.
         self.must_hold_reqnr = 0
+        # The epoch of a mastership of ours whose log is the ring's now (0: none): we
+        # handed it over cooperatively, or the ring went on without us acting in it.
+        self._mastership_over = 0
+        # The epoch of our takeover grant (0: none), while it is our mastership.
+        self._took_over_in = 0
         # Log numbers received over the ring, so that a message re-sent after a
         # reconnect is neither forwarded nor handled twice.
         self._received = SeenNumbers()
@@ -342,6 +347,9 @@ class ControllerProtocol:
         self._epoch_at: dict[int, int] = {}
         self.watermark_reqnr = 0
         self._ends: deque[tuple[int, int]] = deque()
+        # The highest log number we held that the predecessor's word says every
+        # controller held (the watermark's log number): ``kept_when_fenced``.
+        self.acked_lognr = 0
         # The last handover message we created, until it comes back round: if
         # its new master is lost and the drone gives the role back to us by
         # takeover, we are the only one that holds it (simulation finding F11).
@@ -393,6 +401,7 @@ class ControllerProtocol:
             # died with it); the drone has every reply above what we hold.
             self.catch_up_to = self.holds_lognr
             self.must_hold_reqnr = watermark_reqnr
+            self._took_over_in = epoch
         return effects + self._drain()
 
     def _resend_handed(self) -> list[Effect]:
@@ -428,6 +437,15 @@ class ControllerProtocol:
         ring's log, and a master that waited for it would wait for ever
         (--lose-master seeds 1219, 1402).
         """
+        ours = self._epoch_at.get(holds_lognr, 0) if 0 < holds_lognr <= self.lognr else 0
+        if 0 < ours < holds_epoch:
+            # The sender's message with that number is of a newer epoch than ours:
+            # a takeover framed it anew (our framing never left a master that was
+            # lost or fenced). The same-number rule of ``on_log``, for a sender
+            # that holds less than we do: it gives us nothing above our hello,
+            # so its message with that number would never come (--lose-master
+            # seed 2791: a later taker built on the replaced framing).
+            return [Diverged(holds_lognr, ours, holds_epoch)]
         if holds_lognr > self.lognr and 0 < holds_epoch < self.epoch_of(self.lognr):
             if self.catch_up_to is None:
                 self.catch_up_to = 0  # the sender holds nothing of the ring's above ours
@@ -436,7 +454,9 @@ class ControllerProtocol:
         if holds_lognr > self.lognr:
             self._promised[holds_lognr] = max(self._promised.get(holds_lognr, 0), holds_epoch)
         while self._ends and self._ends[0][0] <= holds_lognr:
-            self.watermark_reqnr = max(self.watermark_reqnr, self._ends.popleft()[1])
+            acked, reqnr = self._ends.popleft()
+            self.watermark_reqnr = max(self.watermark_reqnr, reqnr)
+            self.acked_lognr = max(self.acked_lognr, acked)
         return self._drain()
 
     def _held(self, lognr: int, reqnr: int, epoch: int) -> None:
@@ -481,6 +501,27 @@ class ControllerProtocol:
         self.successor = successor
 
     @property
+    def log_mastership_epoch(self) -> int:
+        """The epoch of the mastership whose log we may hold alone (ConnectRequest.
+        mastership_epoch, kept in the history file): the drone fences us if a
+        takeover gave that log up.
+
+        Our epoch, unless we handed that mastership over and our handover message
+        came back round (or the ring went on past it), or never acted in it and
+        the ring went on in a newer one (``_handle``): its log is the ring's
+        then, and we hold none of a later mastership we never heard of. The
+        drone would otherwise take a takeover of such a later mastership (one a
+        cooperative handover gave us while we were cut off, lost before we knew)
+        for one of our log, and a taker that held the ring's log would rejoin
+        with nothing, leaving nobody with the requests below the watermark
+        (--lose-master seed 2572).
+        """
+        handed_back = self._handed is None and self.state is not State.ACTIVE
+        if self.epoch and self._mastership_over == self.epoch and handed_back:
+            return 0
+        return self.epoch
+
+    @property
     def holds_lognr(self) -> int:
         """Every log number up to this one was received (handled, or queued to be).
 
@@ -513,6 +554,27 @@ class ControllerProtocol:
             kept.append(self._diverging_handover)
         # One older than the takeover that fenced us gives a role the drone took away.
         return [m for m in kept if m.epoch > self._fenced_in]
+
+    def kept_when_fenced(self) -> int:
+        """The log numbers (every one up to this) that a controller fenced by a takeover
+        keeps from its history when it rejoins: those that went round the whole ring
+        (``acked_lognr``), not the rest, which the taker may have framed anew.
+
+        Every controller held them, so the taker holds them or waits for them
+        from the ring (the drone let go of their replies: the watermark covers
+        them). A controller that lost them since (restarted with nothing) may
+        have left the fenced master the only holder: rejoining with nothing, it
+        left nobody, and the taker waited for ever (--lose-master seed 3818).
+        Fed to the fresh self like ring messages (``ControllerNode.reset``), they
+        are handled, replayed and given to the successor from the history again.
+
+        Only in a ring of two, where the predecessor's word is every other
+        controller's. In a longer one the word may come from a controller that
+        routes around a dead or restarted one, which then lacks them and may
+        take over without them: a give-up it replaced by the drone's reply was
+        kept (seed 973, tried first).
+        """
+        return self.acked_lognr if self._fenced_in and len(self.ring) == 2 else 0
 
     def epoch_of(self, lognr: int) -> int:
         """The epoch of the message with ``lognr`` handled or queued here (0 if unknown):
@@ -677,6 +739,7 @@ class ControllerProtocol:
         message.epoch = epoch
         self._handed = ring_pb2.LogMessage()
         self._handed.CopyFrom(message)
+        self._mastership_over = self.epoch
         return [DisconnectDrone(), SendLog(new_master, message)]
 
     def on_fenced(self, epoch: int = 0) -> list[Effect]:
@@ -807,6 +870,38 @@ class ControllerProtocol:
             effects.append(ConnectDrone())
         return effects
 
+    def give_up_gap(self) -> list[Effect]:
+        """A taker, caught up, whose queued messages wait for a number that the gap
+        repair did not bring (``ControllerNode._repair_gap``, once it had the
+        predecessors re-send and the gap stayed): they are dropped (``Unqueued``),
+        and it goes ACTIVE on what it holds.
+
+        The ring's log after a takeover is what the taker holds in order, and the
+        replies the drone retains above it. Messages of the lost master queued
+        above a gap (the one before them died with it: --lose-master seeds 2034,
+        3276) are a framing the taker replaces with its own from those replies;
+        kept, they held it PASSIVE for ever. Only a taker's, in its epoch, and
+        only older messages: a controller's that arrive later are fenced by the
+        taker's newer ones (``on_log``). Not at once: a message on its way (a
+        partition, a reordering link) framed replies the programs may have seen
+        already, Clock calls answered by its master among them (seed 2600).
+        """
+        ready = self.state is State.PASSIVE and self.master and self.caught_up
+        if not ready or self._took_over_in != self.epoch or not self.log_queue:
+            return []
+        if (self.lognr + 1) in self.log_queue:
+            return []
+        effects: list[Effect] = []
+        for queued_nr in sorted(self.log_queue):
+            queued = self.log_queue[queued_nr]
+            if queued.epoch < self.epoch:
+                del self.log_queue[queued_nr]
+                self._received.discard(queued_nr)
+                effects.append(Unqueued(queued_nr, queued.origin, queued.epoch))
+        epochs = [queued.epoch for queued in self.log_queue.values() if queued.epoch]
+        self._queued_epochs = (min(epochs), max(epochs)) if epochs else (0, 0)
+        return effects + self._drain() if effects else []
+
     def _diverged_before(self, message: ring_pb2.LogMessage) -> Diverged | None:
         """Whether the next message in order, from a newer epoch than our last one, does
         not continue our requests: our last message is one a takeover renumbered.
@@ -912,6 +1007,17 @@ class ControllerProtocol:
             self.master = True
             self.epoch = max(self.epoch, message.epoch)
             effects.append(TookOver(message.sender, message.lognr, self.reqnr, message.ByteSize()))
+        elif self.master and self.granted_epoch < self.epoch < message.epoch:
+            # Made master by a handover message the drone never confirmed, and the
+            # ring's log goes on in a newer mastership than it: the role went on
+            # without us (we handed it over, or a takeover gave our log up). Not
+            # master: ACTIVE on it, the drone would fence us, and a fresh self
+            # given the same handover message again (a stream that breaks before
+            # its acknowledgement re-sends it) would take it again, for ever
+            # (--lose-master seed 3747). We never acted in that mastership: the log
+            # we hold is the ring's (``log_mastership_epoch``).
+            self.master = False
+            self._mastership_over = self.epoch
         if self.log:
             self.state = State.REPLAY
         return effects

@@ -341,7 +341,7 @@ class SimController:
             link,
             session.sid,
             link.generation,
-            self.protocol.epoch,
+            self.protocol.log_mastership_epoch,
             self.protocol.held_reqnr,
         )
 
@@ -459,7 +459,7 @@ class SimController:
     def on_connect_refused(self, refusal: DroneRefusal) -> None:
         """ControllerNode.on_connect_refused."""
         if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
-            self._fenced(refusal.master, refusal.epoch)
+            self._fenced(refusal.master, refusal.fencing_epoch)
             return
         if self.protocol.state is not State.ACTIVE:
             self._close_drone()
@@ -538,6 +538,13 @@ class SimController:
         lognr, since, due = self._gap
         if now < due or self.protocol.missing_lognr != lognr:
             return
+        if now - since >= 2 * gap_repair_s(self.world.detection_s):  # a repair was tried
+            given_up = self.protocol.give_up_gap()  # node.py: a taker's gap after a repair
+            if given_up:
+                self.world.trace(f"controller {self.id} gives up log message {lognr}: taker")
+                self._gap = None
+                self._apply(given_up)
+                return
         interval = min(2 * (now - since), GAP_REPAIR_MAX_S)
         self._gap = (lognr, since, now + interval)
         self.world.trace(f"controller {self.id} misses log message {lognr}: streams dropped")
@@ -921,7 +928,7 @@ class SimController:
             elif verdict is Refusal.HANDED_OVER and (
                 refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
             ):
-                self._fenced(refusal.master, refusal.epoch)
+                self._fenced(refusal.master, refusal.fencing_epoch)
             elif verdict is Refusal.HANDED_OVER:
                 self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
             elif verdict is Refusal.REGRANTED:  # node.py: connect again to learn the epoch

@@ -226,10 +226,19 @@ class World:
         if self.controllers.get(controller.id) is not controller or not controller.alive:
             return
         controller.ended_by = "rejoin"
-        kept = controller.protocol.kept_for_rejoin()  # ControllerNode.reset
-        controller.kill("rejoins as a replica with nothing")
+        # ControllerNode.reset: a fenced controller's messages that went round the ring,
+        # then the handover messages that exist nowhere else.
+        upto = controller.protocol.kept_when_fenced()
+        history = controller.history
+        kept = [history.get(n) for n in history.above(0) if n <= upto]
+        kept += controller.protocol.kept_for_rejoin()
+        controller.kill(
+            "rejoins as a replica with nothing"
+            if not upto
+            else f"rejoins as a replica with log messages 1-{upto}"
+        )
         self.restart_controller(controller.id)
-        for message in kept:  # a handover message that exists nowhere else
+        for message in kept:
             self.controllers[controller.id].on_log(message)
 
     def drop_streams_to(self, controller: SimController) -> None:
