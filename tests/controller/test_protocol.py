@@ -881,3 +881,49 @@ def test_a_fenced_master_keeps_the_messages_that_went_round_the_ring() -> None:
     q.on_sync(1)
     q.on_fenced(2)
     assert q.acked_lognr == 1 and q.kept_when_fenced() == 0
+
+
+def test_a_handover_message_sent_again_to_a_restarted_receiver_gives_no_role_handed_on() -> None:
+    """Simulation finding F9: the acknowledgement of handover message 1 (epoch 2) was lost;
+    its receiver handed the role on (message 2, epoch 3) and restarted with nothing; the old
+    master sent message 1 again, flag set. The ring's message 2 says that mastership is over:
+    the restarted receiver does not take it (it went ACTIVE in epoch 2 and, refused, made a
+    second message 3 of its own)."""
+    p = ControllerProtocol(1, [0, 1, 2], flush_limit=2**20)
+    p.start()
+    p.on_sync(2)  # the predecessor holds 2
+    handover = message(1, 1, [1], handover=True, sender=0)
+    handover.epoch = 2
+    passed_on = message(2, 2, [2], sender=1)  # our earlier self's handover message to 2
+    passed_on.epoch, passed_on.after_reqnr, passed_on.after_epoch = 3, 1, 2
+    p.on_log(handover)
+    p.on_log(passed_on)
+    effects = replay_all(p)
+    assert p.lognr == 2 and not p.master and p.state is State.PASSIVE and p.epoch == 0
+    assert not any(isinstance(e, ConnectDrone) for e in effects)
+    # Handed to us and still ours (the drone's word, or nothing newer): the role is taken.
+    q = ControllerProtocol(1, [0, 1, 2], flush_limit=2**20)
+    q.on_sync(1)
+    q.on_log(handover)
+    assert any(isinstance(e, ConnectDrone) for e in replay_all(q)) and q.master
+
+
+def test_a_handover_message_is_settled_once_the_ring_went_past_it() -> None:
+    """Simulation finding F9, the sender's side: a handover message still unacknowledged
+    on the direct stream is sent without its flag (``PeerLink.settle_handovers``) once the
+    ring went on past it, or it came back."""
+    old = started(0, [0, 1, 2, 3], 2**20)
+    old.on_reply(entry(1))
+    old.on_handover_notice(2, epoch=2)  # handover message 1 to controller 2
+    assert not old.handover_settled(1)
+    past = message(2, 2, [2])
+    past.epoch = 2
+    old.on_log(past)
+    assert old.handover_settled(1)
+    back = started(0, [0, 1, 2, 3], 2**20)
+    back.on_reply(entry(1))
+    back.on_handover_notice(2, epoch=2)
+    home = message(1, 2, [1])
+    home.epoch = 2
+    back.on_log(home)
+    assert back.handover_settled(1)

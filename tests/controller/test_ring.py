@@ -166,3 +166,26 @@ def test_a_frame_claiming_more_than_the_limit_is_refused_before_buffering() -> N
         r.add(claim)
     message = big_message(4, 900)
     assert r.add(frames(message, from_id=0)[0]) == message  # within the limit: as before
+
+
+async def test_a_settled_handover_message_is_sent_again_without_its_flag() -> None:
+    """Simulation finding F9: a handover message whose acknowledgement was lost went to a
+    receiver that restarted after handing the role on; once the ring went past it, the
+    old master's link writes it without the flag (``settle_handovers``)."""
+    address = f"127.0.0.1:{free_port()}"
+    link = PeerLink(0, 1, address, LOG)
+    server = None
+    try:
+        link.send(ring_pb2.LogMessage(lognr=1, origin=1, handover=True))
+        link.send(ring_pb2.LogMessage(lognr=2, origin=0))
+        assert link.settle_handovers(lambda lognr: False) == []
+        (settled,) = link.settle_handovers(lambda lognr: lognr == 1)
+        assert settled.lognr == 1 and settled.handover  # as it was: for the history
+        assert link.settle_handovers(lambda lognr: True) == []  # once
+        server, receiver = await start_receiver(address)
+        await wait_for(lambda: link.unacked == 0 and len(receiver.messages) == 2)
+        assert [(m.lognr, m.handover) for m in receiver.messages] == [(1, False), (2, False)]
+    finally:
+        await link.stop()
+        if server is not None:
+            await server.stop(0)

@@ -355,3 +355,16 @@ def test_calls_the_master_answered_sent_again_are_taken_once() -> None:
     assert [k.reqnr for k in kept] == [2]  # the give-up replaces reply 2; Sleep 1 is held
     seq.served(0, 3, GET, DIGEST, b"r3", 3.0, now=3.0)
     assert seq.cache.reqnrs == [1, 2, 3]
+
+
+def test_a_handover_from_an_initial_master_never_connected_is_a_takeover() -> None:
+    """Simulation finding F1 (--allow F1, most of its seeds): a Handover decided before the
+    initial master connected. It was never ACTIVE and ignored the notice; the new master,
+    refused at its start, waited for ever for a handover message."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    assert seq.handover_must_take_over(1)
+    seq.admit_connect(0)
+    assert not seq.handover_must_take_over(1)  # connected: it goes ACTIVE and hands over
+    served = Sequencer([0, 1, 2], initial_master=0)
+    serve(served, 0, 1, 1)  # it served a request (before a drone restart, say)
+    assert not served.handover_must_take_over(1)

@@ -864,6 +864,15 @@ class ControllerNode:
             entries=len(message.entries),
         )
         await self._apply(effects)
+        self._settle_handovers()
+
+    def _settle_handovers(self) -> None:
+        """Our handover messages still unacknowledged whose role is settled (the ring
+        went on past them) lose their flag and enter our history, as on an
+        acknowledgement (``PeerLink.settle_handovers``, simulation finding F9)."""
+        for link in list(self._peers.values()):
+            for message in link.settle_handovers(self.protocol.handover_settled):
+                self._handover_acked(message)
 
     def _held(self, message: ring_pb2.LogMessage) -> None:
         """Keeps a received message in the history; the successor's link says what we hold."""

@@ -306,6 +306,9 @@ class ControllerProtocol:
         self.state = State.PASSIVE
         # The drone's epoch of our current or last mastership (0: none yet).
         self.epoch = 0
+        # Our epoch before a handover message made us master: ours again if the
+        # ring shows that role was handed on before we took it (F9, ``_handle``).
+        self._epoch_before_handover = 0
         # The epoch of the drone's last Connected event: a controller made ACTIVE by
         # a handover message has not heard from the drone in its epoch yet.
         self.granted_epoch = 0
@@ -575,6 +578,18 @@ class ControllerProtocol:
         kept (seed 973, tried first).
         """
         return self.acked_lognr if self._fenced_in and len(self.ring) == 2 else 0
+
+    def handover_settled(self, lognr: int) -> bool:
+        """Whether our handover message ``lognr`` no longer gives its receiver the role.
+
+        It came back round, the ring went on past it (its new master handled
+        it: only the master creates the numbers after it), or we sent it on
+        ourselves as a taker (``_resend_handed``). A copy still unacknowledged
+        on the direct stream is then sent without the flag: a new master
+        restarted with nothing after it handed the role on would take it again
+        (simulation finding F9).
+        """
+        return lognr in self._received
 
     def epoch_of(self, lognr: int) -> int:
         """The epoch of the message with ``lognr`` handled or queued here (0 if unknown):
@@ -1003,7 +1018,25 @@ class ControllerProtocol:
         )
         effects: list[Effect] = self._drop_stale_queued(message.lognr, message.epoch)
         self._take_back_stale_words(message.epoch)
+        if (
+            self.master
+            and self.state is not State.ACTIVE
+            and 0 < self.epoch < message.epoch
+            and self.granted_epoch < message.epoch
+        ):
+            # A handover message made us master in ``self.epoch``, and the ring went
+            # on past it in a newer mastership: ours was handed on (or taken over)
+            # already, by an earlier incarnation of ours that handled the message
+            # and died before acknowledging it, so that its old master sent it to
+            # us again, flag set (simulation finding F9). Masters number log
+            # messages in the order of their epochs: that role is not ours to take,
+            # nor the log of that mastership ours (the Connect says so: fenced for
+            # a takeover of a role we never took, --lose-master seed 1241).
+            self.master = False
+            self.epoch = self._epoch_before_handover
         if message.handover:
+            if not self.master:
+                self._epoch_before_handover = self.epoch
             self.master = True
             self.epoch = max(self.epoch, message.epoch)
             effects.append(TookOver(message.sender, message.lognr, self.reqnr, message.ByteSize()))

@@ -132,6 +132,8 @@ class PeerLink:
         self._log = log.bind(peer=peer_id)
         self._history = history
         self._unacked: dict[int, ring_pb2.LogMessage] = {}
+        # The log numbers of the handover messages among them (``settle_handovers``).
+        self._handovers: set[int] = set()
         # Called with a handover message its receiver acknowledged (set by the node).
         self.on_handover_acked: Callable[[ring_pb2.LogMessage], None] | None = None
         # Written on the current stream (a new stream writes every unacked one).
@@ -164,9 +166,39 @@ class PeerLink:
         the receiver ignores a duplicate by log number and acknowledges it.
         """
         self._unacked[message.lognr] = message
+        if message.handover:
+            self._handovers.add(message.lognr)
+        else:
+            self._handovers.discard(message.lognr)
         self._sent.discard(message.lognr)
         self._wakeup.set()
         self.start()
+
+    def settle_handovers(self, settled: Callable[[int], bool]) -> list[ring_pb2.LogMessage]:
+        """Our unacknowledged handover messages whose role is ``settled`` (protocol.py
+        ``handover_settled``), sent from now on without the flag; returns them as they
+        were (the node's history takes them, as on an acknowledgement).
+
+        The acknowledgement was lost, and the receiver may be a new incarnation,
+        restarted with nothing after it handled the message and handed the role
+        on: written to it again, flag set, the message made it master again in an
+        epoch long over (simulation finding F9). Written on the current stream
+        already, it is not written again.
+        """
+        done: list[ring_pb2.LogMessage] = []
+        for lognr in sorted(self._handovers):
+            if not settled(lognr):
+                continue
+            self._handovers.discard(lognr)
+            message = self._unacked.get(lognr)
+            if message is None or not message.handover:
+                continue
+            plain = ring_pb2.LogMessage()
+            plain.CopyFrom(message)
+            plain.handover = False
+            self._unacked[lognr] = plain
+            done.append(message)
+        return done
 
     @property
     def has_history(self) -> bool:
@@ -290,6 +322,7 @@ class PeerLink:
     async def _read_acks(self, call: grpc.aio.StreamStreamCall) -> None:
         async for ack in _acks(call):
             message = self._unacked.pop(ack.lognr, None)
+            self._handovers.discard(ack.lognr)
             self.counters.acked += 1
             if message is not None and message.handover and self.on_handover_acked is not None:
                 self.on_handover_acked(message)

@@ -576,7 +576,8 @@ class Sequencer:
 
     def handover_must_take_over(self, new_master: int) -> bool:
         """Whether a handover to ``new_master`` decided now must be a takeover: the master
-        was made master by a takeover and has not connected since.
+        was made master by a takeover and has not connected since, or it is the initial
+        master, which has not connected and had nothing served (F1, at the start).
 
         A cooperative handover needs the old master to hear the notice and send
         its log as a handover message, which only an ACTIVE master does. A
@@ -589,13 +590,15 @@ class Sequencer:
         handover is then a takeover too, which costs its program a restart.
         """
         last = self.handovers[-1] if self.handovers else None
-        return (
-            new_master != self.master
-            and last is not None
-            and last.kind == "takeover"
-            and last.new_master == self.master
-            and self.connected_epoch != self.epoch
-        )
+        if new_master == self.master or self.connected_epoch == self.epoch:
+            return False
+        if last is None:
+            # The initial master, not connected and nothing served: it was never
+            # ACTIVE (it goes ACTIVE on its Connected event) and holds no log, so it
+            # would ignore the notice and the new master would wait for ever for its
+            # handover message (simulation finding F1). A takeover loses nothing.
+            return self.last_reqnr == 0
+        return last.kind == "takeover" and last.new_master == self.master
 
     def delivered(self, controller_id: int, notice: drone_pb2.HandoverNotice) -> None:
         """The notice reached its old master; it is no longer owed."""

@@ -647,6 +647,14 @@ class SimController:
             self._held(message)
         self.peak_log_queue = max(self.peak_log_queue, len(self.protocol.log_queue))
         self._apply(effects)
+        self._settle_handovers()
+
+    def _settle_handovers(self) -> None:
+        """ControllerNode._settle_handovers: a settled handover message loses its flag on
+        the direct link and enters the history, as on an acknowledgement (F9)."""
+        for link in list(self.links.values()):
+            for message in link.settle_handovers(self.protocol.handover_settled):
+                self.handover_acked(message)
 
     def handover_acked(self, message: ring_pb2.LogMessage) -> None:
         """ControllerNode._handover_acked: the new master has our handover message; it

@@ -285,8 +285,9 @@ def killable(world: World, victim: SimController) -> bool:
     ``kill_master``). Then, unless the finding is allowed: one controller
     down at a time, and the victim's predecessor and successor each hold
     every message whose origin is the victim or themselves, as a restart
-    needs (F3); no handover message to it waits for its acknowledgement
-    (F9); no scripted or queued Handover names it (F4).
+    needs (F3); no scripted or queued Handover names it (F4). A victim owed
+    the acknowledgement of a handover message may be killed (F9 is fixed;
+    ``--allow F9`` prefers such victims).
     """
     options = world.options
     if options.kill_master:
@@ -305,8 +306,6 @@ def killable(world: World, victim: SimController) -> bool:
             needed = mine | by_origin.get(neighbour.id, set())
             if any(lognr not in neighbour.history for lognr in needed):
                 return False
-    if "F9" not in allow and _handover_unacked_to(world, victim):
-        return False
     if "F4" not in allow:  # F4 is fixed; the keep-out stays (findings.py)
         drone = world.drone
         named = {line.new_master for line in drone.seq.script.values()}

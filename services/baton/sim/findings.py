@@ -78,6 +78,35 @@ allow``, as F3's): with --lose-master, letting them in still stalls about
 sends that message (it was not ACTIVE when told: F1's ground), and the
 mission waits for it.
 
+F1 (open) narrowed: a Handover decided before the initial master connected,
+with nothing served, is a takeover (``Sequencer.handover_must_take_over``):
+that master was never ACTIVE and holds no log, so nothing is lost, where it
+ignored the notice and the new master waited for ever. ``--allow F1`` seeds
+0-1499 went from 48 failures to 8 (300, 466, 643, 829, 838, 1099, 1352
+and 83, the one left in 0-299). Left: a Handover
+while the master is a cooperative new master not ACTIVE yet (466: it
+rejoined with nothing before its handover message came), an initial master
+the drone saw connect but whose Connected never reached it (83: a
+partition), and 829, which this rule moved into a stall (rpc takeovers
+decided while the drone was cut off from every controller; the last taker
+never heard its TakeOver; not diagnosed further). Deferring the notice of a
+master granted but not yet ACTIVE until it caught up (tried) changed none
+of these seeds and was left out.
+
+F9 (a handover message whose acknowledgement was lost was re-sent, flag
+set, to its receiver restarted with nothing, which took the role it had
+already handed on: ACTIVE in an epoch long over, refused by the drone, it
+sent a second handover message with a log number the ring had used) was
+fixed on both ends. The old master's link sends it without the flag once
+the ring went on past it or it came back (protocol.py
+``handover_settled``, ring.py ``PeerLink.settle_handovers``, node.py
+``_settle_handovers``; its history takes it, as on an acknowledgement),
+and a receiver that a handover message made master gives that role up,
+and its epoch, when it handles a message of a newer mastership before it
+went ACTIVE (protocol.py ``_handle``: the ring shows the role was handed on
+or taken over). Its scenario is in the default mix now (the kill keep-out
+is gone; ``--allow F9`` still prefers such victims).
+
 F6 (a former master's received log numbers grew by one per message: its
 own flushes never came back, so the watermark stopped below them) was
 fixed in protocol.py ``_flush`` while this was written; the bounded
@@ -99,6 +128,11 @@ class Finding:
     kept_out: str
 
 
+# Fixed findings whose allow flag still changes the mix: F3's and F4's keep-outs
+# stay (see above), and ``--allow F9`` makes kills prefer a controller owed the
+# acknowledgement of a handover message (the regression test's seeds).
+STILL_ALLOWED = frozenset({"F3", "F4", "F9"})
+
 FINDINGS = {
     f.code: f
     for f in (
@@ -108,16 +142,11 @@ FINDINGS = {
             "the old master, PASSIVE, ignores the notice; the new master, refused at start, "
             "never asks the drone again",
             "node.py on_stream_notice (closes the session when not ACTIVE); only the old "
-            "master's handover message makes a new master connect",
+            "master's handover message makes a new master connect. Narrowed: a handover "
+            "from an initial master not connected, with nothing served, is a takeover "
+            "(Sequencer.handover_must_take_over)",
             "Handover calls while the drone's master is not ACTIVE with its stream up, or "
             "while another Handover is queued",
-        ),
-        Finding(
-            "F9",
-            "a handover message whose acknowledgement was lost is re-sent, flag set, to the "
-            "restarted receiver, which takes the role it had already passed on",
-            "ring.py PeerLink (re-sends _unacked originals; only history copies are cleared)",
-            "kills of a controller with a handover message to it not yet acknowledged",
         ),
     )
 }

@@ -174,6 +174,20 @@ class RingLink:
             self._write(message)
         self.start()
 
+    def settle_handovers(self, settled: Callable[[int], bool]) -> list[ring_pb2.LogMessage]:
+        """PeerLink.settle_handovers: unacknowledged handover messages whose role is
+        settled are sent from now on without the flag (F9); returned as they were."""
+        done: list[ring_pb2.LogMessage] = []
+        for lognr, message in list(self.unacked.items()):
+            if not message.handover or not settled(lognr):
+                continue
+            plain = ring_pb2.LogMessage()
+            plain.CopyFrom(message)
+            plain.handover = False
+            self.unacked[lognr] = plain
+            done.append(message)
+        return done
+
     def break_(self, why: str) -> None:
         """The stream broke: everything in flight is lost; reconnect after the back-off."""
         if not self.up:

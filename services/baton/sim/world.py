@@ -343,7 +343,8 @@ class World:
             return
         sender = self.controllers.get(message.sender)
         direct = sender.links.get(controller.id) if sender is not None and sender.alive else None
-        if direct is not None and message.lognr in direct.unacked:
+        kept = direct.unacked.get(message.lognr) if direct is not None else None
+        if kept is not None and kept.handover:  # settled ones give no role (F9)
             what = (
                 f"F7: controller {controller.id} gets a copy of handover message "
                 f"{message.lognr} before the message itself"
