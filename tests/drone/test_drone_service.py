@@ -242,8 +242,22 @@ async def test_scripted_handover_after_the_right_request() -> None:
 
 
 async def test_notice_waits_for_a_disconnected_old_master(drone: DroneUnderTest) -> None:
+    """The old master connected once (it is ACTIVE and holds the log: a cooperative
+    handover), then its stream went; the notice waits for its next Connect. (A Handover
+    before the initial master ever connected is a takeover: finding F1's narrowing.)"""
+    first = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0))
+    assert (await next_event(first)).HasField("connected")
+    first.cancel()
+
+    async def stream_gone() -> bool:
+        status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        return not status.master_connected
+
+    await eventually(stream_gone, "the drone seeing the old master's stream gone")
     await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1))
-    stream = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0))
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    assert status.handovers[-1].kind == "cooperative"
+    stream = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0, mastership_epoch=1))
     event = await next_event(stream)
     assert event.handover == drone_pb2.HandoverNotice(
         old_master=0, new_master=1, after_reqnr=0, ended_epoch=1, epoch=2
