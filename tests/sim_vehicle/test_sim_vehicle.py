@@ -296,6 +296,12 @@ async def test_speed_hold_and_return_to_launch_in_process() -> None:
         await eventually(lambda: phase("hold"), "holding after takeoff")
         assert vehicle.state().relative_altitude_m == pytest.approx(5.0)
 
+        # In the air by MAVSDK's telemetry too (it trails the vehicle): a SetSpeed on
+        # the ground is only kept for the next Goto (mobility.py SetSpeed).
+        async def in_air() -> bool:
+            return (await flight_state(mobility)).in_air
+
+        await eventually(in_air, "MAVSDK's telemetry saying in the air")
         await mobility.SetSpeed(api.SetSpeedRequest(speed_m_s=8))
         assert vehicle.state().speed_m_s == pytest.approx(8.0)
         far_lat = HOME[0] + 500 / METRES_PER_DEG_LAT
