@@ -107,19 +107,28 @@ _EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
 _FIXED_PORTS_FROM = 20_000
 
 
+# Ports free_port returned in this process: never twice.
+_HANDED_OUT: set[int] = set()
+
+
 def free_port() -> int:
-    """A TCP port free on loopback now, outside the kernel's ephemeral range."""
+    """A TCP port free on loopback now, outside the kernel's ephemeral range, and not one
+    this process handed out before (drawn at random, two parts of one testbed drew the
+    same free port: "controllers 0 and 1 both listen on ...", a flaky test)."""
     try:
         ephemeral_low = int(_EPHEMERAL_RANGE.read_text().split()[0])
     except (OSError, ValueError, IndexError):
         ephemeral_low = 32_768
     for _ in range(200):
         port = random.randrange(_FIXED_PORTS_FROM, max(ephemeral_low, _FIXED_PORTS_FROM + 1000))
+        if port in _HANDED_OUT:
+            continue
         with socket.socket() as s:
             try:
                 s.bind(("127.0.0.1", port))
             except OSError:
                 continue
+            _HANDED_OUT.add(port)
             return port
     raise OSError(f"no free port on 127.0.0.1 between {_FIXED_PORTS_FROM} and {ephemeral_low}")
 
