@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import (
@@ -194,6 +194,30 @@ class DroneConfig(_Model):
     home: Location = Location(latitude_deg=47.397742, longitude_deg=8.545594, altitude_m=488.0)
 
 
+class RingConfig(_Model):
+    """The ring: its order and how log messages travel along it.
+
+    The testbed file's ``ring`` is either the order alone (``ring: [0, 1, 2]``)
+    or this mapping (``ring: {order: [0, 1, 2], forwarding: store-and-forward}``).
+    """
+
+    # Ring order by controller id; defaults to the order of ``controllers``.
+    order: list[StrictInt] | None = None
+    # cut-through: each frame is passed on as it arrives, and a handover's
+    # target gets what it lacks straight from the old master (docs/design.md,
+    # "The ring's forwarding"); store-and-forward: the paper's protocol, a
+    # message is passed on once whole.
+    forwarding: Literal["cut-through", "store-and-forward"] = "cut-through"
+    # The slice of a log message one frame carries: the per-hop delay of
+    # cut-through is one frame's time on the link.
+    frame_bytes: Size = Field(default=16 * 2**10, ge=2**10, le=4 * 2**20)
+
+    @property
+    def cut_through(self) -> bool:
+        """Whether frames are passed on as they arrive."""
+        return self.forwarding == "cut-through"
+
+
 class ControllerConfig(_Model):
     """One mission controller."""
 
@@ -233,8 +257,8 @@ class BatonConfig(_Model):
 
     drone: DroneConfig = DroneConfig()
     controllers: list[ControllerConfig] = Field(min_length=1)
-    # Ring order by controller id; defaults to the order of ``controllers``.
-    ring: list[StrictInt] | None = None
+    # Ring order and forwarding (``RingConfig``); a list is the order alone.
+    ring: RingConfig = RingConfig()
     initial_master: StrictInt | None = None
     flush_limit: Size = 2 * 2**20
     speedup: float = Field(default=1.0, gt=0, le=MAX_SPEEDUP)
@@ -253,6 +277,11 @@ class BatonConfig(_Model):
     # is refused before anything is buffered.
     max_log_message: Size | None = None
     tls: TlsConfig = TlsConfig()
+
+    @field_validator("ring", mode="before")
+    @classmethod
+    def _ring_order_alone(cls, ring: Any) -> Any:
+        return {"order": ring} if isinstance(ring, list) else ring
 
     @field_validator("controllers")
     @classmethod
@@ -286,9 +315,10 @@ class BatonConfig(_Model):
     @model_validator(mode="after")
     def _ring_and_master(self) -> BatonConfig:
         ids = [c.id for c in self.controllers]
-        if self.ring is not None and sorted(self.ring) != sorted(ids):
+        order = self.ring.order
+        if order is not None and sorted(order) != sorted(ids):
             raise ValueError(
-                f"ring {self.ring} must list every controller id exactly once: {sorted(ids)}"
+                f"ring {order} must list every controller id exactly once: {sorted(ids)}"
             )
         if self.initial_master is not None and self.initial_master not in ids:
             raise ValueError(
@@ -316,7 +346,8 @@ class BatonConfig(_Model):
     @property
     def ring_order(self) -> list[int]:
         """Controller ids in ring order."""
-        return list(self.ring) if self.ring is not None else [c.id for c in self.controllers]
+        order = self.ring.order
+        return list(order) if order is not None else [c.id for c in self.controllers]
 
     @property
     def master_id(self) -> int:

@@ -927,3 +927,28 @@ def test_a_handover_message_is_settled_once_the_ring_went_past_it() -> None:
     home.epoch = 2
     back.on_log(home)
     assert back.handover_settled(1)
+
+
+def test_forward_dest_says_from_the_head_alone_what_on_log_forwards_unchanged() -> None:
+    """Cut-through asks ``forward_dest`` on a message's first frame: it must agree with
+    what ``on_log`` then does with the whole message, and say None where the message
+    would go on changed (a handover message loses its flag)."""
+    from baton.controller.ring import head_of
+
+    cases = [
+        (message(1, 0, [1]), 2),  # new, from the master: on to the successor
+        (message(1, 0, [1]), None),  # seen: a re-send is ignored
+        (message(2, 2, [2]), None),  # its origin is our successor: it stops here
+        (message(3, 0, [3], handover=True), None),  # forwarded without its flag
+    ]
+    p = started(1, [0, 1, 2], 0)
+    for whole, expected in cases:
+        assert p.forward_dest(head_of(whole)) == expected
+        forwarded = [dest for dest, _, flag in sends(p.on_log(whole)) if not whole.handover]
+        assert forwarded == ([] if expected is None else [expected])
+        replay_all(p)
+    q = started(1, [0, 1, 2], 0)
+    assert sends(q.on_log(_of_epoch(message(1, 0, [1]), 3))) == [(2, 1, False)]
+    fenced = _of_epoch(message(2, 0, [2]), 1)  # numbered after a newer mastership's
+    assert q.forward_dest(head_of(fenced)) is None
+    assert sends(q.on_log(fenced)) == []

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
+import grpc
 import pytest
 
 from baton.controller.history import LogHistory
@@ -189,3 +190,132 @@ async def test_a_settled_handover_message_is_sent_again_without_its_flag() -> No
         await link.stop()
         if server is not None:
             await server.stop(0)
+
+
+# -- cut-through (docs/design.md, "The ring's forwarding") ---------------------------
+
+
+class Relaying(ring_pb2_grpc.ControllerRingServicer):
+    """A middle controller B: forwards to C what ``forwards`` says, cut-through, as the
+    node does (``ControllerNode.relay_for``, ``on_log`` -> ``PeerLink.send``). Its
+    handling of a whole message waits on ``gate``."""
+
+    def __init__(self, successor: str, forwards) -> None:  # type: ignore[no-untyped-def]
+        self.link = PeerLink(1, 2, successor, LOG)
+        self.forwards = forwards
+        self.gate = asyncio.Event()
+        self.gate.set()
+        self.handling = asyncio.Event()
+        self.handled: list[int] = []
+        self.receiver = RingReceiver(
+            1, lambda: max(self.handled, default=0), self.deliver, LOG, relay=self.relay
+        )
+
+    def relay(self, head: ring_pb2.LogMessage, total: int):  # type: ignore[no-untyped-def]
+        return self.link.relay(head.lognr, total) if self.forwards(head) else None
+
+    async def deliver(self, message: ring_pb2.LogMessage) -> None:
+        self.handling.set()
+        await self.gate.wait()
+        if message.lognr in self.handled:
+            return
+        self.handled.append(message.lognr)
+        if self.forwards(message, whole=True):
+            self.link.send(message)
+
+    async def LogRing(self, request_iterator, context):  # type: ignore[no-untyped-def]
+        await self.receiver.serve(context)
+
+
+async def start_chain(forwards):  # type: ignore[no-untyped-def]
+    """A -> B -> C: returns C's server and receiver, B's server and servicer."""
+    c_server, c = await start_receiver("127.0.0.1:0")
+    b = Relaying(c_server.address, forwards)
+    b_server = BatonServer("127.0.0.1:0", ["baton.v1.ControllerRing"])
+    ring_pb2_grpc.add_ControllerRingServicer_to_server(b, b_server.server)
+    await b_server.start()
+    return c_server, c, b_server, b
+
+
+def test_the_first_frame_says_the_head_and_the_rest_only_bytes() -> None:
+    message = big_message(5, 3 * FRAME_BYTES)
+    message.epoch, message.after_reqnr = 4, 9
+    parts = frames(message, from_id=0)
+    head = parts[0].head
+    assert (head.lognr, head.epoch, head.after_reqnr, len(head.entries)) == (5, 4, 9, 0)
+    assert not any(part.HasField("head") for part in parts[1:])
+
+
+async def test_frames_go_on_before_the_message_is_whole_and_the_last_one_after() -> None:
+    c_server, c, b_server, b = await start_chain(lambda m, whole=False: True)
+    a = PeerLink(0, 1, b_server.address, LOG)
+    try:
+        b.gate.clear()  # B holds the whole message unhandled
+        message = big_message(1, 4 * 2**20)
+        total = message.ByteSize()
+        a.send(message)
+        await b.handling.wait()
+        # Everything but the last frame went on to C while B had not handled it yet.
+        last = total - (total - 1) // FRAME_BYTES * FRAME_BYTES
+        await wait_for(lambda: b.link.counters.sent_bytes == total - last)
+        assert c.messages == []
+        b.gate.set()
+        await wait_for(lambda: c.messages and b.link.unacked == 0)
+        assert c.messages == [message]
+        assert (b.link.counters.relayed_messages, b.link.counters.relays_aborted) == (1, 0)
+    finally:
+        for link in (a, b.link):
+            await link.stop()
+        await b_server.stop(0)
+        await c_server.stop(0)
+
+
+async def test_a_relayed_message_not_forwarded_after_all_is_dropped_downstream() -> None:
+    """B starts passing message 1 on (its head says forward), then does not forward it
+    whole (e.g. the ring's state changed meanwhile): C drops what it got and takes the
+    next message intact."""
+    c_server, c, b_server, b = await start_chain(
+        lambda m, whole=False: not (whole and m.lognr == 1)
+    )
+    a = PeerLink(0, 1, b_server.address, LOG)
+    try:
+        first, second = big_message(1, 200_000), big_message(2, 50_000)
+        a.send(first)
+        a.send(second)
+        await wait_for(lambda: c.messages and b.link.unacked == 0)
+        assert c.messages == [second]
+        assert (b.link.counters.relayed_messages, b.link.counters.relays_aborted) == (1, 1)
+    finally:
+        for link in (a, b.link):
+            await link.stop()
+        await b_server.stop(0)
+        await c_server.stop(0)
+
+
+async def test_a_stream_broken_mid_message_loses_and_duplicates_nothing() -> None:
+    """A's stream to B breaks half-way through a cut-through message: B's relay is
+    given up (C drops its part), A re-sends on a new stream, C gets it once, whole."""
+    c_server, c, b_server, b = await start_chain(lambda m, whole=False: True)
+    message = big_message(1, 1 << 20)
+    parts = frames(message, from_id=0)
+    channel = grpc.aio.insecure_channel(b_server.address)
+    a = PeerLink(0, 1, b_server.address, LOG)
+    try:
+        call = ring_pb2_grpc.ControllerRingStub(channel).LogRing()
+        hello = await call.read()
+        assert hello.hello
+        for part in parts[: len(parts) // 2]:
+            await call.write(part)
+        await wait_for(lambda: b.link.counters.sent_bytes >= FRAME_BYTES)
+        call.cancel()  # the stream breaks part-way
+        await wait_for(lambda: b.link.counters.relays_aborted == 1)
+        a.send(message)  # the sender's reconnect re-sends what was not acknowledged
+        await wait_for(lambda: c.messages and b.link.unacked == 0 and a.unacked == 0)
+        assert c.messages == [message] and b.handled == [1]
+        assert b.link.counters.relayed_messages == 1
+    finally:
+        for link in (a, b.link):
+            await link.stop()
+        await channel.close()
+        await b_server.stop(0)
+        await c_server.stop(0)

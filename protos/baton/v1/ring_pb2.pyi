@@ -219,6 +219,8 @@ class LogFrame(_message.Message):
     SYNC_FIELD_NUMBER: _builtins.int
     HOLDS_LOGNR_FIELD_NUMBER: _builtins.int
     HOLDS_EPOCH_FIELD_NUMBER: _builtins.int
+    HEAD_FIELD_NUMBER: _builtins.int
+    ABORT_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The message's log number (repeated on every frame)."""
     total_bytes: _builtins.int
@@ -246,6 +248,19 @@ class LogFrame(_message.Message):
     the sender holds a framing a takeover replaced and does not wait for it
     (docs/design.md, "Takeover").
     """
+    abort: _builtins.bool
+    """The sender gives up the message lognr whose frames it was writing (the
+    stream it relayed them from broke, or it decided not to forward it):
+    the receiver drops what it has of it and hands nothing on.
+    """
+    @_builtins.property
+    def head(self) -> Global___LogMessage:
+        """On a message's first frame (offset 0): the message without its entries
+        (lognr, origin, handover, epoch, ...), so that a receiver can decide to
+        forward it before the rest arrives (cut-through, docs/design.md "The
+        ring's forwarding"). Absent from a sender that does not say it.
+        """
+
     def __init__(
         self,
         *,
@@ -257,10 +272,12 @@ class LogFrame(_message.Message):
         sync: _builtins.bool = ...,
         holds_lognr: _builtins.int = ...,
         holds_epoch: _builtins.int = ...,
+        head: Global___LogMessage | None = ...,
+        abort: _builtins.bool = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["head", b"head"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["data", b"data", "from_id", b"from_id", "holds_epoch", b"holds_epoch", "holds_lognr", b"holds_lognr", "lognr", b"lognr", "offset", b"offset", "sync", b"sync", "total_bytes", b"total_bytes"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["abort", b"abort", "data", b"data", "from_id", b"from_id", "head", b"head", "holds_epoch", b"holds_epoch", "holds_lognr", b"holds_lognr", "lognr", b"lognr", "offset", b"offset", "sync", b"sync", "total_bytes", b"total_bytes"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -334,6 +351,9 @@ class PeerStatus(_message.Message):
     STREAM_UP_FIELD_NUMBER: _builtins.int
     UNACKED_FIELD_NUMBER: _builtins.int
     CONNECTS_FIELD_NUMBER: _builtins.int
+    SENT_MESSAGES_FIELD_NUMBER: _builtins.int
+    RELAYED_MESSAGES_FIELD_NUMBER: _builtins.int
+    RELAYS_ABORTED_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The peer's controller id."""
     address: _builtins.str
@@ -344,6 +364,14 @@ class PeerStatus(_message.Message):
     """Messages sent and not yet acknowledged."""
     connects: _builtins.int
     """Times the stream was (re)opened."""
+    sent_messages: _builtins.int
+    """Log messages written on whole (store-and-forward, re-sends, our own)."""
+    relayed_messages: _builtins.int
+    """Log messages passed on frame by frame as they arrived (cut-through)."""
+    relays_aborted: _builtins.int
+    """Relayed messages given up part-way (not forwarded after all, or a stream
+    broke): the peer was told to drop them, and got them whole if forwarded.
+    """
     def __init__(
         self,
         *,
@@ -352,10 +380,13 @@ class PeerStatus(_message.Message):
         stream_up: _builtins.bool = ...,
         unacked: _builtins.int = ...,
         connects: _builtins.int = ...,
+        sent_messages: _builtins.int = ...,
+        relayed_messages: _builtins.int = ...,
+        relays_aborted: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["address", b"address", "connects", b"connects", "id", b"id", "stream_up", b"stream_up", "unacked", b"unacked"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["address", b"address", "connects", b"connects", "id", b"id", "relayed_messages", b"relayed_messages", "relays_aborted", b"relays_aborted", "sent_messages", b"sent_messages", "stream_up", b"stream_up", "unacked", b"unacked"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

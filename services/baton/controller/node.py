@@ -43,7 +43,7 @@ from baton.controller.protocol import (
     request_digest,
     ring_route,
 )
-from baton.controller.ring import PeerLink
+from baton.controller.ring import PeerLink, Relay
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
 from baton.rpc.tls import Tls
@@ -410,11 +410,36 @@ class ControllerNode:
         if link is None:
             history = self.history if pid == self.protocol.successor else None
             link = PeerLink(
-                self.id, pid, self.config.controller(pid).reach, self.log, history, self.tls
+                self.id,
+                pid,
+                self.config.controller(pid).reach,
+                self.log,
+                history,
+                self.tls,
+                self.config.ring.frame_bytes,
             )
             link.on_handover_acked = self._handover_acked
             self._peers[pid] = link
         return link
+
+    def relay_for(self, head: ring_pb2.LogMessage, total_bytes: int) -> Relay | None:
+        """Cut-through: the relay that passes a message on to our successor as its frames
+        arrive, if the protocol would forward it (``ControllerProtocol.forward_dest``)."""
+        if not self.config.ring.cut_through:
+            return None
+        dest = self.protocol.forward_dest(head)
+        return None if dest is None else self.peer(dest).relay(head.lognr, total_bytes)
+
+    def _send_catch_up(self, new_master: int) -> None:
+        """Cut-through: a handover's target is sent straight from us what it may lack, our
+        messages the ring has not yet brought back to us (above ``acked_lognr``), before
+        the handover message: one link's time, not one per hop (docs/design.md, "The
+        ring's forwarding"). It ignores what it already has, and the ring's copies."""
+        if not self.config.ring.cut_through or new_master == self.protocol.successor:
+            return
+        link = self.peer(new_master)
+        for lognr in self.history.above(self.protocol.acked_lognr):
+            link.send(self.history.get(lognr))
 
     def _handover_acked(self, message: ring_pb2.LogMessage) -> None:
         """The new master acknowledged our handover message: it enters our history now.
@@ -842,6 +867,7 @@ class ControllerNode:
             drone_after_reqnr=after_reqnr,
             log_bytes=log_bytes,
         )
+        self._send_catch_up(new_master)
         await self._apply(effects)
 
     async def on_log(self, message: ring_pb2.LogMessage) -> None:

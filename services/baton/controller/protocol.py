@@ -96,6 +96,21 @@ Effect = SendLog | ConnectDrone | DisconnectDrone | TookOver | Fenced | Diverged
 EPOCHS_KEPT = 4096
 
 
+class _Arrival(enum.Enum):
+    """What an arriving log message is to a controller (``ControllerProtocol._arrival``)."""
+
+    DIVERGED = "diverged"  # a takeover's framing of a number we hold: rejoin
+    FENCED = "fenced"  # from a master the drone replaced: neither held nor forwarded
+    REPLACES_QUEUED = "replaces queued"  # a newer framing of a queued number
+    OURS_PASSED = "ours passed"  # our handover message, back after the ring went past it
+    SEEN = "seen"  # a re-send of one we received: ignored
+    NEW = "new"  # forwarded, then handled or queued
+
+
+# The arrivals ``on_log`` forwards.
+_FORWARDED = frozenset({_Arrival.REPLACES_QUEUED, _Arrival.OURS_PASSED, _Arrival.NEW})
+
+
 class Refusal(enum.Enum):
     """What a drone refusal that names a master means to the controller that sent the request."""
 
@@ -783,33 +798,16 @@ class ControllerProtocol:
         master's own handover message coming back, footnote 3) are forwarded
         but not handled.
         """
-        ours = self._epoch_at.get(message.lognr, 0)
-        if ours and message.epoch > ours:
-            # Only a takeover numbers a message like one that exists: the
-            # taker did not hold ours (it never left a master that died), and
-            # framed the same replies in messages of its own. The ring's is
-            # the taker's; our state past that number is not.
+        arrival = self._arrival(message)
+        if arrival is _Arrival.DIVERGED:
             if message.handover:
                 self._diverging_handover = message
-            return [Diverged(message.lognr, ours, message.epoch)]
-        if ours and 0 < message.epoch < ours:
-            # The same number from an older epoch: the other framing, by a master
-            # a takeover replaced (cut off from the drone, it flushed on, e.g. a
-            # give-up). Not the ring's: neither held nor forwarded, and not our
-            # handover message coming back (a history that kept it would give it
-            # to a replica that catches up from us: --lose-master seed 757).
+            return [Diverged(message.lognr, self._epoch_at[message.lognr], message.epoch)]
+        if arrival is _Arrival.FENCED:
             return [Fenced(message.lognr, message.origin, message.epoch)]
-        if 0 < message.epoch < self._newest_epoch_below(message.lognr):
-            # Masters number log messages in the order of their epochs: one
-            # numbered after a message of a newer mastership is from a master
-            # the drone replaced, which went on cut off from it and took the
-            # newer message for the ring's (--lose-master seed 222), or of a
-            # framing a takeover replaced, still held by a predecessor that
-            # has not seen the ring's (seed 1219). Not the ring's: neither
-            # held nor forwarded; the ring's own comes.
-            return [Fenced(message.lognr, message.origin, message.epoch)]
-        queued = self.log_queue.get(message.lognr)
-        if queued is not None and message.epoch > queued.epoch:
+        if arrival is _Arrival.SEEN:
+            return []
+        if arrival is _Arrival.REPLACES_QUEUED:
             # Not handled yet: the ring's message (a takeover's framing) takes the
             # place of one it renumbered, and goes on to the successor like it.
             self._queue(message)
@@ -820,22 +818,11 @@ class ControllerProtocol:
             except ProtocolError as exc:
                 raise ProtocolError(str(exc), effects + exc.effects) from exc
             return effects
-        if message.lognr == self._passed_handed:
+        if arrival is _Arrival.OURS_PASSED:
             # Our handover message, back after the ring went on past it: counted
             # as received then, but still to be forwarded like any message.
             self._passed_handed = 0
             return self._forward(message)
-        if message.lognr in self._received:
-            return []
-        if self.state is State.ACTIVE and message.lognr > self.lognr and message.epoch < self.epoch:
-            # Only the master creates log numbers above its own. One of an
-            # earlier epoch that comes to us while we are master is from a
-            # master the drone replaced by takeover, which went on (cut off
-            # from the drone) or came back: its log is not the ring's
-            # (docs/design.md, "Takeover"). One of a newer epoch means we are
-            # that fenced master and do not know yet: it is the ring's, and
-            # the drone will tell us.
-            return [Fenced(message.lognr, message.origin, message.epoch)]
         if self._handed is not None and message.lognr >= self._handed.lognr:
             if message.lognr > self._handed.lognr:
                 # The ring went on past it: it may never come back (our hello
@@ -857,6 +844,66 @@ class ControllerProtocol:
         except ProtocolError as exc:
             raise ProtocolError(str(exc), effects + exc.effects) from exc
         return effects
+
+    def _arrival(self, message: ring_pb2.LogMessage) -> _Arrival:
+        """What a log message is to us, from its head alone (its entries do not count):
+        ``on_log`` acts on it, ``forward_dest`` asks it before the entries arrived."""
+        ours = self._epoch_at.get(message.lognr, 0)
+        if ours and message.epoch > ours:
+            # Only a takeover numbers a message like one that exists: the
+            # taker did not hold ours (it never left a master that died), and
+            # framed the same replies in messages of its own. The ring's is
+            # the taker's; our state past that number is not.
+            return _Arrival.DIVERGED
+        if ours and 0 < message.epoch < ours:
+            # The same number from an older epoch: the other framing, by a master
+            # a takeover replaced (cut off from the drone, it flushed on, e.g. a
+            # give-up). Not the ring's: neither held nor forwarded, and not our
+            # handover message coming back (a history that kept it would give it
+            # to a replica that catches up from us: --lose-master seed 757).
+            return _Arrival.FENCED
+        if 0 < message.epoch < self._newest_epoch_below(message.lognr):
+            # Masters number log messages in the order of their epochs: one
+            # numbered after a message of a newer mastership is from a master
+            # the drone replaced, which went on cut off from it and took the
+            # newer message for the ring's (--lose-master seed 222), or of a
+            # framing a takeover replaced, still held by a predecessor that
+            # has not seen the ring's (seed 1219). Not the ring's: neither
+            # held nor forwarded; the ring's own comes.
+            return _Arrival.FENCED
+        queued = self.log_queue.get(message.lognr)
+        if queued is not None and message.epoch > queued.epoch:
+            return _Arrival.REPLACES_QUEUED
+        if message.lognr == self._passed_handed:
+            return _Arrival.OURS_PASSED
+        if message.lognr in self._received:
+            return _Arrival.SEEN
+        if self.state is State.ACTIVE and message.lognr > self.lognr and message.epoch < self.epoch:
+            # Only the master creates log numbers above its own. One of an
+            # earlier epoch that comes to us while we are master is from a
+            # master the drone replaced by takeover, which went on (cut off
+            # from the drone) or came back: its log is not the ring's
+            # (docs/design.md, "Takeover"). One of a newer epoch means we are
+            # that fenced master and do not know yet: it is the ring's, and
+            # the drone will tell us.
+            return _Arrival.FENCED
+        return _Arrival.NEW
+
+    def forward_dest(self, head: ring_pb2.LogMessage) -> int | None:
+        """The controller ``on_log`` would forward a message with this head to,
+        unchanged, if it came whole now; None if it would not, or would change it
+        (a handover message travels on without its flag).
+
+        Cut-through forwarding (docs/design.md, "The ring's forwarding") asks this
+        on a message's first frame and passes the frames on as they come, all but
+        the last; ``on_log`` decides again when the message is whole, and only its
+        ``SendLog`` lets the last frame go.
+        """
+        if head.handover or self._arrival(head) not in _FORWARDED:
+            return None
+        if head.origin in (self.id, self.successor):
+            return None
+        return self.successor
 
     def _forward(self, message: ring_pb2.LogMessage) -> list[Effect]:
         """Lines 31-33: forward (a handover message travels on as a normal one).

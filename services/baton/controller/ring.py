@@ -12,6 +12,15 @@ receiver's number, whatever its origin (a restarted successor holds
 nothing, not even the messages it once created). The receiver ignores what
 it already has (``ControllerProtocol.on_log``), so nothing is lost and
 nothing is handled twice.
+
+Cut-through (docs/design.md, "The ring's forwarding"): a message's first frame
+carries its head (the message without its entries), and a controller that
+would forward it (``ControllerProtocol.forward_dest``) passes each frame on to
+its successor as it arrives (a ``Relay``), all but the last, which goes only
+once the whole message was handled and the protocol forwarded it; otherwise
+the successor is told to drop it (an abort frame). So a successor gets whole
+exactly the messages it would get from store-and-forward, in the same order,
+one frame's time behind its predecessor instead of one message's.
 """
 
 from __future__ import annotations
@@ -19,6 +28,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 
@@ -33,25 +43,41 @@ from baton.rpc.channels import aio_channel
 from baton.rpc.tls import Identity, Tls
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
-FRAME_BYTES = 1 << 20
+# The default frame size (the testbed file's ring.frame_bytes): a frame costs
+# 5 ms at 25 Mbit/s, the delay cut-through adds per hop (docs/design.md).
+FRAME_BYTES = 16 << 10
 BACKOFF_INITIAL_S = 0.05
 BACKOFF_MAX_S = 2.0
 
 
-def frames(message: ring_pb2.LogMessage, from_id: int) -> list[ring_pb2.LogFrame]:
-    """Slices a serialized log message into frames (at least one, even when empty)."""
+def head_of(message: ring_pb2.LogMessage) -> ring_pb2.LogMessage:
+    """The message without its entries: what a first frame says of it."""
+    head = ring_pb2.LogMessage()
+    for field, value in message.ListFields():
+        if field.name != "entries":
+            setattr(head, field.name, value)
+    return head
+
+
+def frames(
+    message: ring_pb2.LogMessage, from_id: int, frame_bytes: int = FRAME_BYTES
+) -> list[ring_pb2.LogFrame]:
+    """Slices a serialized log message into frames (at least one, even when empty);
+    the first carries the message's head."""
     data = message.SerializeToString()
     total = len(data)
-    return [
+    out = [
         ring_pb2.LogFrame(
             lognr=message.lognr,
             total_bytes=total,
             offset=offset,
-            data=data[offset : offset + FRAME_BYTES],
+            data=data[offset : offset + frame_bytes],
             from_id=from_id,
         )
-        for offset in range(0, max(total, 1), FRAME_BYTES)
+        for offset in range(0, max(total, 1), frame_bytes)
     ]
+    out[0].head.CopyFrom(head_of(message))
+    return out
 
 
 class Reassembler:
@@ -66,6 +92,11 @@ class Reassembler:
         self._lognr: int | None = None
         self._parts: list[bytes] = []
         self._received = 0
+
+    def drop(self, lognr: int) -> None:
+        """Forgets what arrived of message ``lognr`` (its sender gave it up)."""
+        if self._lognr == lognr:
+            self._lognr, self._parts, self._received = None, [], 0
 
     def add(self, frame: ring_pb2.LogFrame) -> ring_pb2.LogMessage | None:
         """Adds a frame; returns the message when its last frame arrived."""
@@ -96,6 +127,64 @@ class Reassembler:
             raise ValueError(f"log message {frame.lognr} is not a LogMessage: {exc}") from None
 
 
+class Relay:
+    """One log message's frames passed on to a peer as they arrive (cut-through).
+
+    The receiving stream adds each frame; the peer's ``PeerLink`` writes them
+    and lets them go (its memory is the frames not yet written, never the
+    message). The last frame waits for ``confirm`` (the protocol forwarded the
+    whole message: ``PeerLink.send``); ``settle`` without it, or ``abort``, and
+    the peer is told to drop what it got.
+    """
+
+    def __init__(self, lognr: int, total_bytes: int) -> None:
+        self.lognr = lognr
+        self.total_bytes = total_bytes
+        self._frames: deque[ring_pb2.LogFrame] = deque()
+        self._received = 0
+        self.confirmed = False
+        self.aborted = False
+        self.changed = asyncio.Event()
+        # Written on the current stream, bytes and frames (by the PeerLink).
+        self.written = 0
+        self.frames_written = 0
+
+    def add(self, frame: ring_pb2.LogFrame) -> None:
+        """A frame of the message arrived (in order: the Reassembler checked it)."""
+        self._frames.append(frame)
+        self._received += len(frame.data)
+        self.changed.set()
+
+    def confirm(self) -> None:
+        """The protocol forwarded the whole message to this peer: the last frame may go."""
+        self.confirmed = True
+        self.changed.set()
+
+    def settle(self) -> None:
+        """The whole message was handled: unless confirmed, it is not forwarded."""
+        if not self.confirmed:
+            self.abort()
+
+    def abort(self) -> None:
+        """The message is not passed on (its stream broke, or it is not forwarded)."""
+        self.aborted = True
+        self.changed.set()
+
+    def ready(self) -> ring_pb2.LogFrame | None:
+        """The next frame that may be written now, taken off the relay."""
+        if not self._frames or self.aborted:
+            return None
+        last = len(self._frames) == 1 and self._received >= self.total_bytes
+        if last and not self.confirmed:
+            return None
+        return self._frames.popleft()
+
+    @property
+    def buffered_bytes(self) -> int:
+        """Bytes received and not yet written on."""
+        return sum(len(frame.data) for frame in self._frames)
+
+
 @dataclass
 class PeerCounters:
     """What a PeerLink has done, for GetStatus and the benchmarks."""
@@ -104,6 +193,8 @@ class PeerCounters:
     sent_messages: int = 0
     sent_bytes: int = 0
     acked: int = 0
+    relayed_messages: int = 0  # written on frame by frame as they came (cut-through)
+    relays_aborted: int = 0  # given up part-way (not forwarded, or a stream broke)
 
 
 class PeerLink:
@@ -124,14 +215,18 @@ class PeerLink:
         log: BoundLogger,
         history: LogHistory | None = None,
         tls: Tls | None = None,
+        frame_bytes: int = FRAME_BYTES,
     ) -> None:
         self.my_id = my_id
         self.peer_id = peer_id
         self.address = address
+        self.frame_bytes = frame_bytes
         self._tls = tls
         self._log = log.bind(peer=peer_id)
         self._history = history
         self._unacked: dict[int, ring_pb2.LogMessage] = {}
+        # Messages being passed on frame by frame as they arrive (cut-through).
+        self._relays: dict[int, Relay] = {}
         # The log numbers of the handover messages among them (``settle_handovers``).
         self._handovers: set[int] = set()
         # Called with a handover message its receiver acknowledged (set by the node).
@@ -166,6 +261,9 @@ class PeerLink:
         the receiver ignores a duplicate by log number and acknowledges it.
         """
         self._unacked[message.lognr] = message
+        relay = self._relays.get(message.lognr)
+        if relay is not None:
+            relay.confirm()
         if message.handover:
             self._handovers.add(message.lognr)
         else:
@@ -173,6 +271,18 @@ class PeerLink:
         self._sent.discard(message.lognr)
         self._wakeup.set()
         self.start()
+
+    def relay(self, lognr: int, total_bytes: int) -> Relay | None:
+        """Starts passing message ``lognr`` on as its frames arrive (the caller adds
+        them); None if another stream's copy of it is being passed on already."""
+        old = self._relays.get(lognr)
+        if old is not None and not old.aborted:
+            return None
+        relay = Relay(lognr, total_bytes)
+        self._relays[lognr] = relay
+        self._wakeup.set()
+        self.start()
+        return relay
 
     def settle_handovers(self, settled: Callable[[int], bool]) -> list[ring_pb2.LogMessage]:
         """Our unacknowledged handover messages whose role is ``settled`` (protocol.py
@@ -290,7 +400,9 @@ class PeerLink:
                     if history is not None and history.holds_lognr > synced:
                         synced = history.holds_lognr
                         await call.write(_sync_frame(history, synced, self.my_id))
-                    pending = [n for n in sorted(self._unacked) if n not in sent]
+                    pending = sorted(
+                        {n for n in self._unacked if n not in sent} | set(self._relays)
+                    )
                     if not pending:
                         waiter = asyncio.create_task(self._wakeup.wait())
                         try:
@@ -304,6 +416,10 @@ class PeerLink:
                             raise ConnectionError(f"peer {self.peer_id} closed the ring stream")
                         continue
                     for lognr in pending:
+                        relay = self._relays.get(lognr)
+                        if relay is not None and await self._write_relay(call, relay, acks):
+                            sent.add(lognr)
+                            continue
                         message = self._unacked.get(lognr)
                         if message is None:
                             continue  # acknowledged meanwhile (an earlier write of it)
@@ -312,9 +428,64 @@ class PeerLink:
             finally:
                 acks.cancel()
                 call.cancel()
+                # A relay part-written on this stream cannot start again on the next
+                # (its written frames are gone): the message goes whole once forwarded.
+                for lognr, relay in list(self._relays.items()):
+                    if relay.frames_written:
+                        relay.abort()
+                        del self._relays[lognr]
+
+    async def _write_relay(
+        self, call: grpc.aio.StreamStreamCall, relay: Relay, acks: asyncio.Task[None]
+    ) -> bool:
+        """Writes a relayed message's frames as they come; True once all are written.
+
+        False if it was given up: the peer is told to drop what it got, and the
+        message goes whole if the protocol forwards it after all.
+        """
+        relay.written = relay.frames_written = 0
+        while True:
+            relay.changed.clear()
+            frame = relay.ready()
+            while frame is not None:
+                out = ring_pb2.LogFrame(
+                    lognr=frame.lognr,
+                    total_bytes=frame.total_bytes,
+                    offset=frame.offset,
+                    data=frame.data,
+                    from_id=self.my_id,
+                )
+                if frame.HasField("head"):
+                    out.head.CopyFrom(frame.head)
+                await call.write(out)
+                relay.written += len(frame.data)
+                relay.frames_written += 1
+                self.counters.sent_bytes += len(frame.data)
+                frame = relay.ready()
+            if relay.frames_written and relay.written >= relay.total_bytes:
+                self._relays.pop(relay.lognr, None)
+                self.counters.sent_messages += 1
+                self.counters.relayed_messages += 1
+                return True
+            if relay.aborted:
+                self._relays.pop(relay.lognr, None)
+                self.counters.relays_aborted += 1
+                if relay.frames_written:
+                    await call.write(
+                        ring_pb2.LogFrame(lognr=relay.lognr, abort=True, from_id=self.my_id)
+                    )
+                return False
+            waiter = asyncio.create_task(relay.changed.wait())
+            try:
+                done, _ = await asyncio.wait({waiter, acks}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                waiter.cancel()
+            if acks in done:
+                acks.result()  # raises the stream's error
+                raise ConnectionError(f"peer {self.peer_id} closed the ring stream")
 
     async def _write(self, call: grpc.aio.StreamStreamCall, message: ring_pb2.LogMessage) -> None:
-        for frame in frames(message, self.my_id):
+        for frame in frames(message, self.my_id, self.frame_bytes):
             await call.write(frame)
             self.counters.sent_bytes += len(frame.data)
         self.counters.sent_messages += 1
@@ -356,8 +527,12 @@ class RingReceiver:
         max_message_bytes: int = MAX_LOG_MESSAGE_DEFAULT,
         synced: Callable[[int, int, int], Awaitable[None]] | None = None,
         epoch_of: Callable[[int], int] | None = None,
+        relay: Callable[[ring_pb2.LogMessage, int], Relay | None] | None = None,
     ) -> None:
         self.my_id = my_id
+        # Given a first frame's head and the message's size: the Relay that passes
+        # its frames on as they come (cut-through), or None (store-and-forward).
+        self._relay = relay
         self.max_message_bytes = max_message_bytes
         self._current_lognr = current_lognr
         # The epoch of the message with a log number we hold (the hello's, resend_after).
@@ -407,34 +582,63 @@ class RingReceiver:
             ring_pb2.LogAck(lognr=lognr, hello=True, receiver_id=self.my_id, epoch=epoch)
         )
         reassembler = Reassembler(self.max_message_bytes)
-        while True:
-            try:
-                frame = await context.read()
-            except DecodeError as exc:  # gRPC would end the stream UNKNOWN
-                await context.abort(
-                    grpc.StatusCode.INVALID_ARGUMENT,
-                    f"LogRing: a frame that is not a LogFrame ({exc}); nothing of it was taken",
-                )
-                return
-            if frame is grpc.aio.EOF:
-                return
-            if sender is not None and frame.from_id != sender:
-                await context.abort(
-                    grpc.StatusCode.PERMISSION_DENIED,
-                    f"LogRing: controller {sender}'s certificate sent a frame from_id "
-                    f"{frame.from_id}; a controller sends its own frames only",
-                )
-                return
-            if frame.sync:
-                if self._synced is not None:
-                    await self._synced(frame.from_id, frame.holds_lognr, frame.holds_epoch)
-                continue
-            try:
-                message = reassembler.add(frame)
-            except ValueError as exc:
-                await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
-                return
-            if message is None:
-                continue
-            await self._deliver(message)
-            await context.write(ring_pb2.LogAck(lognr=message.lognr, receiver_id=self.my_id))
+        # The relay of the message part-way through, if it is passed on (cut-through).
+        relay: Relay | None = None
+        try:
+            while True:
+                try:
+                    frame = await context.read()
+                except DecodeError as exc:  # gRPC would end the stream UNKNOWN
+                    await context.abort(
+                        grpc.StatusCode.INVALID_ARGUMENT,
+                        f"LogRing: a frame that is not a LogFrame ({exc}); nothing of it was taken",
+                    )
+                    return
+                if frame is grpc.aio.EOF:
+                    return
+                if sender is not None and frame.from_id != sender:
+                    await context.abort(
+                        grpc.StatusCode.PERMISSION_DENIED,
+                        f"LogRing: controller {sender}'s certificate sent a frame from_id "
+                        f"{frame.from_id}; a controller sends its own frames only",
+                    )
+                    return
+                if frame.sync:
+                    if self._synced is not None:
+                        await self._synced(frame.from_id, frame.holds_lognr, frame.holds_epoch)
+                    continue
+                if frame.abort:
+                    reassembler.drop(frame.lognr)
+                    if relay is not None:
+                        relay.abort()
+                        relay = None
+                    continue
+                if frame.offset == 0:
+                    if relay is not None:
+                        relay.abort()  # a new message: the one part-way through was given up
+                    relay = self._start_relay(frame)
+                try:
+                    message = reassembler.add(frame)
+                except ValueError as exc:
+                    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
+                    return
+                if relay is not None:
+                    relay.add(frame)
+                if message is None:
+                    continue
+                await self._deliver(message)
+                if relay is not None:
+                    relay.settle()
+                    relay = None
+                await context.write(ring_pb2.LogAck(lognr=message.lognr, receiver_id=self.my_id))
+        finally:
+            if relay is not None:
+                relay.abort()
+
+    def _start_relay(self, first: ring_pb2.LogFrame) -> Relay | None:
+        """The relay for a message whose first frame this is, if it is passed on as it comes."""
+        if self._relay is None or not first.HasField("head"):
+            return None
+        if first.total_bytes > self.max_message_bytes or first.head.lognr != first.lognr:
+            return None  # refused by the reassembler, or not what it says: nothing passed on
+        return self._relay(first.head, first.total_bytes)

@@ -132,6 +132,7 @@ def ring_receiver(node: ControllerNode) -> RingReceiver:
         node.config.log_message_cap,
         node.on_sync,
         lambda lognr: node.protocol.epoch_of(lognr),
+        node.relay_for,
     )
 
 
@@ -232,6 +233,9 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
                 stream_up=link.stream_up,
                 unacked=link.unacked,
                 connects=link.counters.connects,
+                sent_messages=link.counters.sent_messages - link.counters.relayed_messages,
+                relayed_messages=link.counters.relayed_messages,
+                relays_aborted=link.counters.relays_aborted,
             )
             for pid, link in sorted(node.peers.items())
         ],

@@ -65,6 +65,9 @@ class TestbedPlan:
 
     controllers: int = 3
     flush_limit: int = 2 * 2**20
+    # The ring's forwarding (RingConfig.forwarding); None: the testbed file's, or
+    # the default (cut-through).
+    forwarding: str | None = None
     handovers: tuple[tuple[int, int], ...] = ()  # (after reqnr, new master)
     speedup: float = 10.0
     mission: MissionPlan = MissionPlan()
@@ -257,7 +260,7 @@ class LocalTestbed:
         document: dict[str, Any] = {
             "drone": drone,
             "controllers": controllers,
-            "ring": ids,
+            "ring": self._ring(ids),
             "initial_master": base.master_id if base is not None else ids[0],
             "flush_limit": plan.flush_limit,
             "speedup": plan.speedup,
@@ -315,6 +318,15 @@ class LocalTestbed:
         announced = await self.supervisor.start_ready("sitl", argv, ready)
         url, self.sitl_monitor_url = announced.split()
         return url
+
+    def _ring(self, ids: list[int]) -> dict[str, Any]:
+        """The testbed file's ring: the order, and the forwarding the plan or base says."""
+        base = self.plan.base_config
+        ring = base.ring.model_dump() if base is not None else {}
+        ring["order"] = ids
+        if self.plan.forwarding is not None:
+            ring["forwarding"] = self.plan.forwarding
+        return ring
 
     def _mavlink_key(self) -> Path | None:
         """The testbed file's MAVLink signing key (drone.mavlink_key), if any."""
