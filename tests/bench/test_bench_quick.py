@@ -29,15 +29,20 @@ async def test_worst_case_quick(tmp_path: Path) -> None:
     assert _png(tmp_path / "worst_case.png")
     saved = json.loads((tmp_path / "worst_case.json").read_text())
     rows = saved["summary"]
-    assert {(r["flush_limit"], r["hops"]) for r in rows} == {
-        (f, h) for f in settings.flush_limits for h in settings.hops
+    # Both forwarding modes in one run: the paper's and cut-through.
+    assert {(r["forwarding"], r["flush_limit"], r["hops"]) for r in rows} == {
+        (mode, f, h)
+        for mode in ("store-and-forward", "cut-through")
+        for f in settings.flush_limits
+        for h in settings.hops
     }
     for row in rows:
         assert row["n"] == settings.repeat
         assert row["mean_s"] > 0 and math.isfinite(row["ratio"])
+        assert 0 < row["limit_s"] < row["model_s"] and math.isfinite(row["limit_ratio"])
         assert row["all_placed_after_flush"], row
     assert result["summary"] == rows
-    assert "| flush (MB) |" in (tmp_path / "worst_case.md").read_text()
+    assert "| forwarding | flush (MB) |" in (tmp_path / "worst_case.md").read_text()
 
 
 async def test_timeline_quick(tmp_path: Path) -> None:

@@ -79,6 +79,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     worst.add_argument("--hops", default="1,3,5", help="comma-separated hop counts (default 1,3,5)")
     worst.add_argument(
+        "--forwarding",
+        default="store-and-forward,cut-through",
+        help="the ring's forwarding modes to measure, in one run (default both: "
+        "store-and-forward,cut-through)",
+    )
+    worst.add_argument(
         "--from-json",
         type=Path,
         help="do not run: recompute the model and the report from a saved worst_case.json",
@@ -130,10 +136,24 @@ def _run_worst_case(args: argparse.Namespace) -> int:
             flush_limits=tuple(_size_mb(s) for s in args.flush_limits.split(",")),
             hops=tuple(int(h) for h in args.hops.split(",")),
             repeat=args.repeat,
+            forwarding=tuple(_forwarding_modes(args.forwarding)),
         )
     result = asyncio.run(run_worst_case(settings, args.out))
     print(table(result["summary"]))
     return 0
+
+
+def _forwarding_modes(text: str) -> list[str]:
+    from baton.bench.worst_case import FORWARDING_MODES
+
+    modes = [mode.strip() for mode in text.split(",") if mode.strip()]
+    unknown = [mode for mode in modes if mode not in FORWARDING_MODES]
+    if unknown or not modes:
+        raise SystemExit(
+            f"baton bench worst-case: --forwarding {text!r}: expected a comma-separated list "
+            f"of {', '.join(FORWARDING_MODES)}"
+        )
+    return modes
 
 
 def _run_micro(args: argparse.Namespace) -> int:

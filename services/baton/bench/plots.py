@@ -54,37 +54,46 @@ def plot_timeline(
 
 
 def plot_worst_case(rows: Sequence[dict[str, Any]], path: Path) -> None:
-    """Figure 6: measured worst-case handover delay (mean, min-max) and the model, per hop count."""
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for k, hops in enumerate(sorted({r["hops"] for r in rows})):
-        mine = sorted((r for r in rows if r["hops"] == hops), key=lambda r: r["flush_limit"])
-        x = [r["flush_limit"] / MB for r in mine]
-        mean = [r["mean_s"] for r in mine]
-        low = [r["mean_s"] - r["min_s"] for r in mine]
-        high = [r["max_s"] - r["mean_s"] for r in mine]
-        color = colors[k % len(colors)]
-        ax.errorbar(
-            x,
-            mean,
-            yerr=[low, high],
-            color=color,
-            marker="o",
-            capsize=3,
-            label=f"{hops} hop{'s' if hops > 1 else ''}: measured",
+    """Figure 6, one panel per hop count: the paper's model, the physical limit, and the
+    measured delay (mean, min-max) of each forwarding mode."""
+    hop_counts = sorted({r["hops"] for r in rows})
+    fig, axes = plt.subplots(
+        1, len(hop_counts), figsize=(4.2 * len(hop_counts), 4.2), sharey=True, squeeze=False
+    )
+    styles = {"store-and-forward": ("tab:blue", "o"), "cut-through": ("tab:red", "s")}
+    for ax, hops in zip(axes[0], hop_counts, strict=True):
+        mine = [r for r in rows if r["hops"] == hops]
+        for forwarding in sorted({r.get("forwarding", "store-and-forward") for r in mine}):
+            measured = sorted(
+                (r for r in mine if r.get("forwarding", "store-and-forward") == forwarding),
+                key=lambda r: r["flush_limit"],
+            )
+            color, marker = styles.get(forwarding, ("tab:green", "^"))
+            ax.errorbar(
+                [r["flush_limit"] / MB for r in measured],
+                [r["mean_s"] for r in measured],
+                yerr=[
+                    [r["mean_s"] - r["min_s"] for r in measured],
+                    [r["max_s"] - r["mean_s"] for r in measured],
+                ],
+                color=color,
+                marker=marker,
+                capsize=3,
+                label=f"{forwarding}: measured",
+            )
+        reference = sorted(
+            {r["flush_limit"]: r for r in mine}.values(), key=lambda r: r["flush_limit"]
         )
-        ax.plot(
-            x,
-            [r["model_s"] for r in mine],
-            color=color,
-            linestyle="--",
-            label=f"{hops} hop{'s' if hops > 1 else ''}: model",
-        )
-    ax.set_xlabel("flush limit (MB)")
-    ax.set_ylabel("handover delay (s)")
-    ax.set_title("Worst-case handover delay, six controllers")
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
+        x = [r["flush_limit"] / MB for r in reference]
+        ax.plot(x, [r["model_s"] for r in reference], "k--", label="paper's model")
+        if all("limit_s" in r for r in reference):
+            ax.plot(x, [r["limit_s"] for r in reference], "k:", label="physical limit")
+        ax.set_title(f"{hops} hop{'s' if hops > 1 else ''}")
+        ax.set_xlabel("flush limit (MB)")
+        ax.grid(True, alpha=0.3)
+    axes[0][0].set_ylabel("handover delay (s)")
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle("Worst-case handover delay, six controllers")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

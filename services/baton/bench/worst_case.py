@@ -1,11 +1,15 @@
 """``baton bench worst-case``: the paper's Figure 6, handover delay vs flush limit and hops.
 
 Six controllers in a ring, links of 20 ms / 25 Mbit/s between them. For each
-flush limit one run of the bench mission, whose script (``script.py``) makes
-the master flush a log of about f + e and has the drone hand over right after,
-over 1, 3 and 5 hops, ``repeat`` times each. The measured delay (the drone's
-decision to the new master's first request) is set beside the paper's model
-T_log(0) + h * T_log(f + e) + T_conn, with T_conn measured in the same run.
+forwarding mode and flush limit one run of the bench mission, whose script
+(``script.py``) makes the master flush a log of about f + e and has the drone
+hand over right after, over 1, 3 and 5 hops, ``repeat`` times each. The
+measured delay (the drone's decision to the new master's first request) is
+set beside the paper's model T_log(0) + h * T_log(f + e) + T_conn and the
+physical limit l + 8 (f + e) / b + T_conn (the bytes the new master lacked,
+over one link), with T_conn measured in the same run. The paper's
+store-and-forward and baton's cut-through run in one invocation, so that
+their ratio is measured under the same load.
 """
 
 from __future__ import annotations
@@ -39,6 +43,8 @@ from baton.config import LinkSpec
 from baton.testbed.local import PAPER_CONTROLLER_LINK, WIFI_DRONE_LINK, TestbedPlan
 
 CONTROLLERS = 6
+# The paper's protocol first, then baton's.
+FORWARDING_MODES = ("store-and-forward", "cut-through")
 
 
 @dataclass(frozen=True)
@@ -50,11 +56,13 @@ class WorstCaseSettings:
     repeat: int = 3
     controller_link: LinkSpec = PAPER_CONTROLLER_LINK
     drone_link: LinkSpec = WIFI_DRONE_LINK
+    # The ring's forwarding modes to measure (RingConfig.forwarding), in this order.
+    forwarding: tuple[str, ...] = FORWARDING_MODES
 
     @classmethod
     def quick(cls) -> WorstCaseSettings:
-        """The reduced set for CI: flush 0 and 1 MB, 1 and 3 hops, once."""
-        return cls(flush_limits=(0, MB), hops=(1, 3), repeat=1)
+        """The reduced set for CI: flush 1 MB, 1 and 3 hops, once, in both modes."""
+        return cls(flush_limits=(MB,), hops=(1, 3), repeat=1)
 
 
 def settle_seconds(flush_limit: int, largest_entry: int, link: LinkSpec) -> float:
@@ -67,9 +75,9 @@ def settle_seconds(flush_limit: int, largest_entry: int, link: LinkSpec) -> floa
 
 
 async def measure_flush_limit(
-    flush_limit: int, settings: WorstCaseSettings, workdir: Path
+    flush_limit: int, forwarding: str, settings: WorstCaseSettings, workdir: Path
 ) -> dict[str, Any]:
-    """One run at ``flush_limit``: every hop count ``repeat`` times."""
+    """One run at ``flush_limit`` with ``forwarding``: every hop count ``repeat`` times."""
     full_picture = entry_bytes_of_full_picture()
     settle = settle_seconds(flush_limit, full_picture, settings.controller_link)
     hop_sequence = [h for _ in range(settings.repeat) for h in settings.hops]
@@ -77,6 +85,7 @@ async def measure_flush_limit(
     plan = TestbedPlan(
         controllers=CONTROLLERS,
         flush_limit=flush_limit,
+        forwarding=forwarding,
         handovers=script.handovers,
         speedup=1.0,
         mission_args=bench_mission_args(script.script),
@@ -85,8 +94,9 @@ async def measure_flush_limit(
         drone_link=settings.drone_link,
     )
     timeout = 120 + len(hop_sequence) * (settle + 4 * t_log(flush_limit + full_picture, 0, 20e6))
-    label = f"worst-case f={flush_limit / MB:g} MB"
-    snapshot = await run_plan(plan, workdir / f"flush-{flush_limit}", timeout, label)
+    label = f"worst-case {forwarding} f={flush_limit / MB:g} MB"
+    rundir = workdir / f"{forwarding}-flush-{flush_limit}"
+    snapshot = await run_plan(plan, rundir, timeout, label)
 
     requests = {c.reqnr: c.request_bytes for c in script.calls}
     calls = audit_calls(snapshot, requests, {c.reqnr: c.method for c in script.calls})
@@ -105,8 +115,8 @@ async def measure_flush_limit(
     # not of a handover; T_conn in the model is the mean of the others.
     startup, *handover_t_conn = snapshot.controllers[0].t_conn_s
     others = [t for cid, c in snapshot.controllers.items() if cid != 0 for t in c.t_conn_s]
-    handed_over = handover_log_bytes(workdir / f"flush-{flush_limit}" / "logs")
-    points = []
+    handed_over = handover_log_bytes(rundir / "logs")
+    points: list[dict[str, Any]] = []
     for p in script.points:
         flushed = actual[p.picture_reqnr].flushed if p.picture_reqnr in actual else 0
         # What the old master really held when it handed over: right after
@@ -114,6 +124,7 @@ async def measure_flush_limit(
         held = handed_over.get(p.after_reqnr, -1)
         points.append(
             {
+                "forwarding": forwarding,
                 "flush_limit": flush_limit,
                 "hops": p.hops,
                 "after_reqnr": p.after_reqnr,
@@ -126,6 +137,7 @@ async def measure_flush_limit(
             }
         )
     run = {
+        "forwarding": forwarding,
         "flush_limit": flush_limit,
         "largest_entry_bytes": largest,
         "t_conn_startup_s": startup,
@@ -139,20 +151,24 @@ async def measure_flush_limit(
         say(
             f"{label}: {point['hops']} hop(s) {point['old_master']}->{point['new_master']} "
             f"after reqnr {point['after_reqnr']}: flushed {point['flushed_bytes'] / MB:.2f} MB, "
-            f"delay {point['delay_s'] * 1e3:.0f} ms, model {point['model_s'] * 1e3:.0f} ms"
+            f"delay {point['delay_s'] * 1e3:.0f} ms, model {point['model_s'] * 1e3:.0f} ms, "
+            f"limit {point['limit_s'] * 1e3:.0f} ms"
         )
     return run
 
 
 async def _measure_with_retry(
-    flush_limit: int, settings: WorstCaseSettings, workdir: Path
+    flush_limit: int, forwarding: str, settings: WorstCaseSettings, workdir: Path
 ) -> dict[str, Any]:
     """One flush limit; a run that fails (a status call timing out under load) runs once more."""
     try:
-        return await measure_flush_limit(flush_limit, settings, workdir)
+        return await measure_flush_limit(flush_limit, forwarding, settings, workdir)
     except (RuntimeError, TimeoutError, grpc.RpcError) as exc:
-        say(f"worst-case f={flush_limit / MB:g} MB: run failed ({exc!r:.200}); running it again")
-        return await measure_flush_limit(flush_limit, settings, workdir / "retry")
+        say(
+            f"worst-case {forwarding} f={flush_limit / MB:g} MB: run failed ({exc!r:.200}); "
+            "running it again"
+        )
+        return await measure_flush_limit(flush_limit, forwarding, settings, workdir / "retry")
 
 
 def handover_log_bytes(logs: Path) -> dict[int, int]:
@@ -191,6 +207,15 @@ def apply_model(run: dict[str, Any], settings: WorstCaseSettings) -> None:
             + t_conn_s
             + 2 * settings.drone_link.latency
         )
+        # The physical limit: what the new master lacked (the flushed log and the
+        # handover message) over one link, then the connection.
+        lacked = point["flushed_bytes"] + max(point["handover_log_bytes"], 0)
+        point["limit_s"] = t_log(lacked, link.latency, bandwidth) + t_conn_s
+
+
+def forwarding_of(run: dict[str, Any]) -> str:
+    """A run's forwarding mode (a file saved before there were two: the paper's)."""
+    return str(run.get("forwarding", "store-and-forward"))
 
 
 def entry_bytes_of_full_picture() -> int:
@@ -203,7 +228,8 @@ def entry_bytes_of_full_picture() -> int:
 def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per (flush limit, hops): measured mean/min/max, model, ratio."""
     rows = []
-    for run in sorted(runs, key=lambda r: r["flush_limit"]):
+    order = {mode: k for k, mode in enumerate(FORWARDING_MODES)}
+    for run in sorted(runs, key=lambda r: (order[forwarding_of(r)], r["flush_limit"])):
         by_hops: dict[int, list[dict[str, Any]]] = {}
         for point in run["points"]:
             by_hops.setdefault(point["hops"], []).append(point)
@@ -212,8 +238,10 @@ def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
             mean = statistics.fmean(delays)
             model = points[0]["model_s"]
             extended = statistics.fmean(p["extended_model_s"] for p in points)
+            limit = statistics.fmean(p["limit_s"] for p in points)
             rows.append(
                 {
+                    "forwarding": forwarding_of(run),
                     "flush_limit": run["flush_limit"],
                     "hops": hops,
                     "n": len(delays),
@@ -224,6 +252,8 @@ def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                     "ratio": mean / model if model > 0 else float("nan"),
                     "extended_model_s": extended,
                     "extended_ratio": mean / extended if extended > 0 else float("nan"),
+                    "limit_s": limit,
+                    "limit_ratio": mean / limit if limit > 0 else float("nan"),
                     "all_placed_after_flush": all(p["placed_after_flush"] for p in points),
                 }
             )
@@ -234,6 +264,7 @@ def table(rows: list[dict[str, Any]]) -> str:
     """The summary as a markdown table."""
     return markdown_table(
         [
+            "forwarding",
             "flush (MB)",
             "hops",
             "n",
@@ -244,9 +275,12 @@ def table(rows: list[dict[str, Any]]) -> str:
             "ratio",
             "extended model (ms)",
             "ratio to extended",
+            "physical limit (ms)",
+            "ratio to limit",
         ],
         [
             [
+                r["forwarding"],
                 f"{r['flush_limit'] / MB:g}",
                 r["hops"],
                 r["n"],
@@ -257,6 +291,8 @@ def table(rows: list[dict[str, Any]]) -> str:
                 f"{r['ratio']:.2f}",
                 f"{r['extended_model_s'] * 1e3:.0f}",
                 f"{r['extended_ratio']:.2f}",
+                f"{r['limit_s'] * 1e3:.0f}",
+                f"{r['limit_ratio']:.2f}",
             ]
             for r in rows
         ],
@@ -267,8 +303,13 @@ async def run_worst_case(settings: WorstCaseSettings, out: Path) -> dict[str, An
     """Measures every flush limit, writes worst_case.{json,md,png} under ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     runs = []
-    for flush_limit in settings.flush_limits:
-        runs.append(await _measure_with_retry(flush_limit, settings, out / "worst-case-runs"))
+    for forwarding in settings.forwarding:
+        for flush_limit in settings.flush_limits:
+            runs.append(
+                await _measure_with_retry(
+                    flush_limit, forwarding, settings, out / "worst-case-runs"
+                )
+            )
     return write_report(runs, settings, out)
 
 
@@ -285,6 +326,7 @@ def write_report(
             "flush_limits": list(settings.flush_limits),
             "hops": list(settings.hops),
             "repeat": settings.repeat,
+            "forwarding": list(settings.forwarding),
             "controller_link": settings.controller_link.model_dump(),
             "drone_link": settings.drone_link.model_dump(),
         },
@@ -310,6 +352,7 @@ def report_from_json(path: Path, out: Path) -> dict[str, Any]:
         flush_limits=tuple(options["flush_limits"]),
         hops=tuple(options["hops"]),
         repeat=options["repeat"],
+        forwarding=tuple(options.get("forwarding", ["store-and-forward"])),
         controller_link=LinkSpec(**options["controller_link"]),
         drone_link=LinkSpec(**options["drone_link"]),
     )
