@@ -271,6 +271,9 @@ class BatonConfig(_Model):
     # The drone takes over a master it has not seen (no stream, no request)
     # for this long, in mission seconds (docs/design.md, "Takeover"); 0: never.
     takeover_after: Duration = 3.0
+    # How long a prepared handover waits for its target to catch up before the
+    # drone forces it (wall seconds; docs/design.md, "Prepared handover").
+    prepare_timeout: Duration = Field(default=10.0, gt=0)
     # The largest log message a controller accepts from the ring: the flush
     # limit plus the largest entry (a picture), with room to spare; default
     # flush_limit + 256 MiB (see ``log_message_cap``). A frame claiming more

@@ -37,6 +37,7 @@ class InvokeRequest(_message.Message):
     EPOCH_FIELD_NUMBER: _builtins.int
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
     MASTER_ANSWERS_FIELD_NUMBER: _builtins.int
+    PREPARATION_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The calling controller's id."""
     reqnr: _builtins.int
@@ -68,6 +69,12 @@ class InvokeRequest(_message.Message):
         drone call that followed may depend on them).
         """
 
+    @_builtins.property
+    def preparation(self) -> Global___PreparationProgress:
+        """While the master prepares a handover (DroneEvent.prepare): how far its
+        target is behind it. Absent otherwise.
+        """
+
     def __init__(
         self,
         *,
@@ -78,14 +85,45 @@ class InvokeRequest(_message.Message):
         epoch: _builtins.int = ...,
         watermark_reqnr: _builtins.int = ...,
         master_answers: _abc.Iterable[Global___RetainedReply] | None = ...,
+        preparation: Global___PreparationProgress | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["preparation", b"preparation"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "epoch", b"epoch", "master_answers", b"master_answers", "method", b"method", "payload", b"payload", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "epoch", b"epoch", "master_answers", b"master_answers", "method", b"method", "payload", b"payload", "preparation", b"preparation", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___InvokeRequest: _TypeAlias = InvokeRequest  # noqa: Y015
+
+@_typing.final
+class PreparationProgress(_message.Message):
+    """A master's word on the handover it prepares (docs/design.md, "Prepared
+    handover").
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    TARGET_FIELD_NUMBER: _builtins.int
+    LACKS_BYTES_FIELD_NUMBER: _builtins.int
+    target: _builtins.int
+    """The controller it prepares to hand over to."""
+    lacks_bytes: _builtins.int
+    """The bytes of log the target lacks: the messages sent to it and not
+    acknowledged, and the master's unflushed log.
+    """
+    def __init__(
+        self,
+        *,
+        target: _builtins.int = ...,
+        lacks_bytes: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["lacks_bytes", b"lacks_bytes", "target", b"target"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PreparationProgress: _TypeAlias = PreparationProgress  # noqa: Y015
 
 @_typing.final
 class InvokeReply(_message.Message):
@@ -166,6 +204,7 @@ class DroneEvent(_message.Message):
     CONNECTED_FIELD_NUMBER: _builtins.int
     HANDOVER_FIELD_NUMBER: _builtins.int
     RETAINED_FIELD_NUMBER: _builtins.int
+    PREPARE_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def connected(self) -> Global___Connected:
         """The connection is up."""
@@ -178,22 +217,66 @@ class DroneEvent(_message.Message):
     def retained(self) -> Global___RetainedBatch:
         """Part of the replies the drone retains for this master, after Connected."""
 
+    @_builtins.property
+    def prepare(self) -> Global___PrepareHandover:
+        """A planned handover: catch the target up; the drone moves the master
+        once it has (or at the timeout).
+        """
+
     def __init__(
         self,
         *,
         connected: Global___Connected | None = ...,
         handover: Global___HandoverNotice | None = ...,
         retained: Global___RetainedBatch | None = ...,
+        prepare: Global___PrepareHandover | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover", "retained", b"retained"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover", "prepare", b"prepare", "retained", b"retained"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover", "retained", b"retained"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover", "prepare", b"prepare", "retained", b"retained"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_event: _TypeAlias = _typing.Literal["connected", "handover", "retained"]  # noqa: Y015
+    _WhichOneofReturnType_event: _TypeAlias = _typing.Literal["connected", "handover", "retained", "prepare"]  # noqa: Y015
     _WhichOneofArgType_event: _TypeAlias = _typing.Literal["event", b"event"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_event) -> _WhichOneofReturnType_event | None: ...
 
 Global___DroneEvent: _TypeAlias = DroneEvent  # noqa: Y015
+
+@_typing.final
+class PrepareHandover(_message.Message):
+    """Prepare to hand over (docs/design.md, "Prepared handover"): the master
+    flushes every entry and streams each message to the target as well as to
+    the ring, with what the target may lack first, and says on every Invoke
+    how far behind the target is (PreparationProgress). The drone moves the
+    master when the target lacks less than a small bound, or at the timeout
+    (a forced handover, as the paper's); the master stops preparing then, or
+    at the timeout if it hears nothing.
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    TARGET_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
+    TIMEOUT_S_FIELD_NUMBER: _builtins.int
+    target: _builtins.int
+    """The controller to hand over to."""
+    epoch: _builtins.int
+    """The master's epoch this is for."""
+    timeout_s: _builtins.float
+    """Seconds the drone waits for the target to catch up (wall clock)."""
+    def __init__(
+        self,
+        *,
+        target: _builtins.int = ...,
+        epoch: _builtins.int = ...,
+        timeout_s: _builtins.float = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "target", b"target", "timeout_s", b"timeout_s"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PrepareHandover: _TypeAlias = PrepareHandover  # noqa: Y015
 
 @_typing.final
 class Connected(_message.Message):
@@ -496,19 +579,27 @@ class HandoverRequest(_message.Message):
 
     NEW_MASTER_FIELD_NUMBER: _builtins.int
     TAKEOVER_FIELD_NUMBER: _builtins.int
+    PREPARED_FIELD_NUMBER: _builtins.int
     new_master: _builtins.int
     """The new master's controller id; must be a known controller."""
     takeover: _builtins.bool
     """Take over: do not wait for the old master's log (it is gone)."""
+    prepared: _builtins.bool
+    """Prepare it (docs/design.md, "Prepared handover"): the master catches
+    the new master up while the mission goes on, and the drone moves the
+    master once it has (at most the testbed file's prepare_timeout later,
+    then as a forced handover). The reply comes when the master moved.
+    """
     def __init__(
         self,
         *,
         new_master: _builtins.int = ...,
         takeover: _builtins.bool = ...,
+        prepared: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["new_master", b"new_master", "takeover", b"takeover"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["new_master", b"new_master", "prepared", b"prepared", "takeover", b"takeover"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -634,6 +725,9 @@ class HandoverRecord(_message.Message):
     EPOCH_FIELD_NUMBER: _builtins.int
     KIND_FIELD_NUMBER: _builtins.int
     LOST_AT_FIELD_NUMBER: _builtins.int
+    PREPARE_STARTED_AT_FIELD_NUMBER: _builtins.int
+    PREPARE_TIMED_OUT_FIELD_NUMBER: _builtins.int
+    PREPARE_LACKED_BYTES_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """Master before."""
     new_master: _builtins.int
@@ -653,13 +747,26 @@ class HandoverRecord(_message.Message):
     epoch: _builtins.int
     """The epoch the new master was granted."""
     kind: _builtins.str
-    """"cooperative" (the old master sends its log, the paper's handover) or
-    "takeover" (the old master lost; the new master learns the tail from
-    the drone's retained replies).
+    """"cooperative" (the old master sends its log, the paper's handover: a
+    forced one), "prepared" (the new master was caught up first, so the old
+    master's log was small) or "takeover" (the old master lost; the new
+    master learns the tail from the drone's retained replies).
     """
     lost_at: _builtins.float
     """For a master lost: when the drone last saw it (its stream or a request);
     decided_at - lost_at is the detection time.
+    """
+    prepare_started_at: _builtins.float
+    """For a handover that was prepared: when the preparation began (Unix
+    seconds); decided_at - prepare_started_at is how long it took.
+    """
+    prepare_timed_out: _builtins.bool
+    """The preparation ran out of time: the handover was forced (kind
+    "cooperative").
+    """
+    prepare_lacked_bytes: _builtins.int
+    """What the target lacked, by the master's last word, when the drone
+    moved the master (bytes; with the reply served last).
     """
     def __init__(
         self,
@@ -674,10 +781,13 @@ class HandoverRecord(_message.Message):
         epoch: _builtins.int = ...,
         kind: _builtins.str = ...,
         lost_at: _builtins.float = ...,
+        prepare_started_at: _builtins.float = ...,
+        prepare_timed_out: _builtins.bool = ...,
+        prepare_lacked_bytes: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "trigger", b"trigger"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "trigger", b"trigger"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -712,6 +822,8 @@ class DroneStatus(_message.Message):
     RETAINED_BYTES_FIELD_NUMBER: _builtins.int
     REACHABLE_FIELD_NUMBER: _builtins.int
     TAKEOVER_AFTER_S_FIELD_NUMBER: _builtins.int
+    PREPARING_FOR_FIELD_NUMBER: _builtins.int
+    PREPARING_LACKS_BYTES_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -753,6 +865,11 @@ class DroneStatus(_message.Message):
     retained_bytes: _builtins.int
     takeover_after_s: _builtins.float
     """The master is lost after this long without a stream or a request."""
+    preparing_for: _builtins.int
+    """The handover being prepared, if any (-1: none), and the master's last
+    word on what its target lacks.
+    """
+    preparing_lacks_bytes: _builtins.int
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
         """The vehicle's latest position (zero if unknown)."""
@@ -809,10 +926,12 @@ class DroneStatus(_message.Message):
         retained_bytes: _builtins.int = ...,
         reachable: _abc.Iterable[_builtins.int] | None = ...,
         takeover_after_s: _builtins.float = ...,
+        preparing_for: _builtins.int = ...,
+        preparing_lacks_bytes: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -88,6 +88,9 @@ class DroneEvents(Protocol):
     def notice(self, notice: drone_pb2.HandoverNotice) -> None:
         """A handover notice on the stream (the stream then ends)."""
 
+    def prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
+        """A planned handover: catch the target up (docs/design.md, "Prepared handover")."""
+
     def refused(self, refusal: DroneRefusal) -> None:
         """Connect refused: another controller is master, and no notice is owed to this one."""
 
@@ -154,6 +157,8 @@ class DroneSession:
                         self._events_to.granted(event.connected)
                     elif event.HasField("retained"):
                         self._events_to.retained(event.retained.replies)
+                    elif event.HasField("prepare"):
+                        self._events_to.prepare(event.prepare)
                     elif event.HasField("handover"):
                         self._events_to.notice(event.handover)
                         return
@@ -182,6 +187,7 @@ class DroneSession:
         timeout_s: float | None = None,
         watermark_reqnr: int = 0,
         master_answers: Sequence[drone_pb2.RetainedReply] = (),
+        preparation: drone_pb2.PreparationProgress | None = None,
     ) -> drone_pb2.InvokeReply:
         """Sends request ``reqnr`` in this session's epoch; raises grpc.aio.AioRpcError.
 
@@ -196,6 +202,7 @@ class DroneSession:
             epoch=self.epoch,
             watermark_reqnr=watermark_reqnr,
             master_answers=master_answers,
+            preparation=preparation,
         )
         reply: drone_pb2.InvokeReply = await self._stub.Invoke(
             request, wait_for_ready=True, timeout=timeout_s

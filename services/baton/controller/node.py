@@ -54,6 +54,9 @@ from baton.v1 import drone_pb2, ring_pb2
 CLOCK_SERVICE = "/baton.v1.Clock/"
 CLOCK_SLEEP = "/baton.v1.Clock/Sleep"
 CLOCK_NOW = "/baton.v1.Clock/Now"
+# A master stops a prepared handover this long after the drone's timeout for it, if it
+# heard nothing (the drone forces the handover at its timeout: the notice is owed).
+PREPARE_GRACE_S = 2.0
 # Re-sending a request the drone could not take (drone unreachable, vehicle
 # link down): the same reqnr, so the drone's duplicate detection keeps it
 # safe, after a pause that doubles up to a cap, for the configuration's
@@ -185,6 +188,8 @@ class ControllerNode:
         # Replaced on every change, so a waiter holds the event of the state it saw.
         self._changed = asyncio.Event()
         self._peers: dict[int, PeerLink] = {}
+        # The highest log number sent straight to each handover target (_send_catch_up).
+        self._sent_straight: dict[int, int] = {}
         self._drone: DroneSession | None = None
         self._busy: str | None = None
         # Calls the program gave up on while this controller waited for the log, in order.
@@ -378,6 +383,7 @@ class ControllerNode:
         for link in self._peers.values():
             await link.stop()
         self._peers = {}
+        self._sent_straight = {}
         self.history.clear()
         self.protocol = ControllerProtocol(self.id, self.config.ring_order, self.config.flush_limit)
         if self._settler is not None:
@@ -430,16 +436,55 @@ class ControllerNode:
         dest = self.protocol.forward_dest(head)
         return None if dest is None else self.peer(dest).relay(head.lognr, total_bytes)
 
-    def _send_catch_up(self, new_master: int) -> None:
-        """Cut-through: a handover's target is sent straight from us what it may lack, our
-        messages the ring has not yet brought back to us (above ``acked_lognr``), before
-        the handover message: one link's time, not one per hop (docs/design.md, "The
-        ring's forwarding"). It ignores what it already has, and the ring's copies."""
-        if not self.config.ring.cut_through or new_master == self.protocol.successor:
-            return
-        link = self.peer(new_master)
-        for lognr in self.history.above(self.protocol.acked_lognr):
+    def _send_catch_up(self, target: int) -> None:
+        """A handover's target is sent straight from us what it may lack: our messages
+        the ring has not yet brought back to us (above ``acked_lognr``), and not sent to
+        it already, before what follows (the handover message, or a prepared handover's
+        flushes): one link's time, not one per hop (docs/design.md, "The ring's
+        forwarding"). It ignores what it already has, and the ring's copies."""
+        if target == self.protocol.successor:
+            return  # the ring's own stream gives it everything, in order
+        link = self.peer(target)
+        sent = max(self.protocol.acked_lognr, self._sent_straight.get(target, 0))
+        for lognr in self.history.above(sent):
             link.send(self.history.get(lognr))
+            self._sent_straight[target] = lognr
+
+    async def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
+        """The drone plans a handover (docs/design.md, "Prepared handover"): the target
+        is caught up straight from us while the mission goes on; the drone moves the
+        master once it lacks little (``_preparation_progress`` on every Invoke)."""
+        try:
+            effects = self.protocol.on_prepare(prepare.target, prepare.epoch)
+        except ProtocolError as exc:
+            self.log.error("bad prepare-handover event", error=str(exc))
+            return
+        if self.protocol.preparing_for != prepare.target:
+            return  # not ACTIVE in that epoch: the drone's word came late
+        self.log.info("preparing a handover", target=prepare.target, timeout_s=prepare.timeout_s)
+        self._send_catch_up(prepare.target)
+        await self._apply(effects)
+        loop = asyncio.get_running_loop()
+        # The drone moves the master by its timeout; if we hear nothing by then
+        # (its notice is owed on our stream), we stop flushing every entry.
+        loop.call_later(prepare.timeout_s + PREPARE_GRACE_S, self._preparation_over, prepare)
+
+    def _preparation_over(self, prepare: drone_pb2.PrepareHandover) -> None:
+        if self.protocol.preparing_for == prepare.target and self.protocol.epoch == prepare.epoch:
+            self.log.warning(
+                "a prepared handover was not carried out in its time; flushing as usual",
+                target=prepare.target,
+            )
+            self.protocol.end_preparation()
+
+    def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
+        """How far a prepared handover's target is behind us (None: not preparing)."""
+        target = self.protocol.preparing_for
+        if target is None:
+            return None
+        link = self._peers.get(target)
+        lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
+        return drone_pb2.PreparationProgress(target=target, lacks_bytes=lacks)
 
     def _handover_acked(self, message: ring_pb2.LogMessage) -> None:
         """The new master acknowledged our handover message: it enters our history now.
@@ -597,6 +642,10 @@ class ControllerNode:
     async def _apply(self, effects: list[Effect]) -> None:
         for effect in effects:
             if isinstance(effect, SendLog):
+                if effect.copy:
+                    self.peer(effect.dest).send(effect.message)
+                    self._sent_straight[effect.dest] = effect.message.lognr
+                    continue
                 if not effect.message.handover:
                     # A handover message we create enters the history when it
                     # comes back round (footnote 3), once its new master has it:
@@ -867,7 +916,8 @@ class ControllerNode:
             drone_after_reqnr=after_reqnr,
             log_bytes=log_bytes,
         )
-        self._send_catch_up(new_master)
+        if self.config.ring.cut_through:
+            self._send_catch_up(new_master)
         await self._apply(effects)
 
     async def on_log(self, message: ring_pb2.LogMessage) -> None:
@@ -1299,6 +1349,7 @@ class ControllerNode:
                     timeout_s=budget,
                     watermark_reqnr=self.protocol.watermark_reqnr,
                     master_answers=[to_retained(entry) for entry in self._answered_here],
+                    preparation=self._preparation_progress(),
                 )
                 return ring_pb2.LogEntry(
                     reqnr=reqnr,
@@ -1421,6 +1472,9 @@ class _SessionEvents:
     def notice(self, notice: drone_pb2.HandoverNotice) -> None:
         assert self.session is not None
         self._run(self._node.on_stream_notice(self.session, notice))
+
+    def prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
+        self._run(self._node.on_prepare(prepare))
 
     def refused(self, refusal: DroneRefusal) -> None:
         assert self.session is not None

@@ -37,6 +37,9 @@ class SendLog:
 
     dest: int
     message: ring_pb2.LogMessage
+    # A copy of a message also sent to the successor (to a prepared handover's
+    # target): held once, with the successor's.
+    copy: bool = False
 
 
 @dataclass(frozen=True)
@@ -292,6 +295,8 @@ class ControllerProtocol:
         self.id = cid
         self.ring = list(ring)
         self.flush_limit = flush_limit
+        # The target of the prepared handover under way (``on_prepare``), if any.
+        self.preparing_for: int | None = None
         position = ring.index(cid)
         self.predecessor = ring[(position - 1) % len(ring)]  # prvid
         self.successor = ring[(position + 1) % len(ring)]  # nxtid
@@ -709,9 +714,35 @@ class ControllerProtocol:
         self.log.append(entry)
         self.reqnr = self.held_reqnr = entry.reqnr
         self.invoked += 1
-        if self.log.size >= self.flush_limit:
-            return [self._flush()]
+        if self.log.size >= self.flush_limit or self.preparing_for is not None:
+            return self._flush_to_all()
         return []
+
+    # -- a prepared handover (docs/design.md, "Prepared handover") -----------------
+
+    def on_prepare(self, target: int, epoch: int) -> list[Effect]:
+        """The drone plans a handover to ``target``: what the log holds goes now, and
+        from now on every entry as it comes, to the ring and straight to the target, so
+        that the handover message, when the drone moves the master, holds at most the
+        last reply. Ignored unless ACTIVE in ``epoch`` (the drone's word may be late)."""
+        if self.state is not State.ACTIVE or epoch != self.epoch:
+            return []
+        if target == self.id or target not in self.ring:
+            raise ProtocolError(f"prepare handover names controller {target}")
+        self.preparing_for = target
+        return self._flush_to_all() if self.log else []
+
+    def end_preparation(self) -> None:
+        """The preparation is over without a handover (its time ran out): flush as usual."""
+        self.preparing_for = None
+
+    def _flush_to_all(self) -> list[Effect]:
+        """A flush, to the successor and to a prepared handover's target."""
+        sent = self._flush()
+        target = self.preparing_for
+        if target is None or target == self.successor:
+            return [sent]
+        return [sent, SendLog(target, sent.message, copy=True)]
 
     def _flush(self) -> SendLog:
         self.lognr += 1
@@ -744,7 +775,7 @@ class ControllerProtocol:
         would wait forever for the last entries below the flush limit.
         """
         if self.state is State.ACTIVE and self.log:
-            return [self._flush()]
+            return self._flush_to_all()
         return []
 
     # -- lines 24-29: the drone's handover notice --------------------------------
@@ -763,6 +794,7 @@ class ControllerProtocol:
         if new_master == self.id or new_master not in self.ring:
             raise ProtocolError(f"handover notice names controller {new_master}")
         self.state, self.master = State.PASSIVE, False
+        self.preparing_for = None
         self.lognr += 1
         self._held(self.lognr, self.reqnr, epoch)
         message = self._message(self.lognr, origin=new_master, handover=True)
@@ -782,6 +814,7 @@ class ControllerProtocol:
         """
         was_active = self.state is State.ACTIVE
         self.state, self.master = State.PASSIVE, False
+        self.preparing_for = None
         self._fenced_in = max(self._fenced_in, epoch)  # the takeover's (kept_for_rejoin)
         self.log.take()
         return [DisconnectDrone()] if was_active else []

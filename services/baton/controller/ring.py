@@ -337,6 +337,11 @@ class PeerLink:
         """Messages sent and not yet acknowledged."""
         return len(self._unacked)
 
+    @property
+    def unacked_bytes(self) -> int:
+        """The serialized size of the messages sent and not yet acknowledged."""
+        return sum(message.ByteSize() for message in self._unacked.values())
+
     async def _run(self) -> None:
         backoff = BACKOFF_INITIAL_S
         while True:

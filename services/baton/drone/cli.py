@@ -179,6 +179,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     from baton.config import load_config, parse_duration
     from baton.drone.dedupe import DEFAULT_WINDOW
     from baton.drone.master import load_handover_script
+    from baton.drone.sequencer import PREPARE_TIMEOUT_S
     from baton.drone.service import DroneSettings, Race
     from baton.drone.signing_relay import VehicleEndpoint
     from baton.rpc.tls import DRONE
@@ -188,6 +189,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     controllers: tuple[int, ...] = (0,)
     initial_master: int | None = None
     takeover_after = 3.0
+    prepare_timeout = PREPARE_TIMEOUT_S
     config = None
     if args.config:
         config = load_config(args.config)
@@ -195,6 +197,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         controllers = tuple(config.ring_order)
         initial_master, speedup = config.master_id, config.speedup
         takeover_after = config.takeover_after
+        prepare_timeout = config.prepare_timeout
     if args.takeover_after is not None:
         try:
             takeover_after = parse_duration(args.takeover_after)
@@ -249,6 +252,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         state_file=args.state,
         camera_effects_file=args.camera_effects_file,
         takeover_after=takeover_after,
+        prepare_timeout_s=prepare_timeout,
         tls=tls_from_flags(args, config, DRONE),
         mavlink_key=mavlink_key,
     )

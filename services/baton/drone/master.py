@@ -1,8 +1,9 @@
 """The handover script, and the Connect streams that tell masters of a switch.
 
 Handover triggers: a handover script (the paper's experiments: ``reqnr mid``
-lines, "hand over to controller mid right after serving request reqnr") and
-the ``Handover`` RPC. Both end in ``Sequencer.switch`` (``sequencer.py``),
+lines, "hand over to controller mid right after serving request reqnr";
+``reqnr mid prepared`` prepares the handover then, docs/design.md "Prepared
+handover") and the ``Handover`` RPC. Both end in ``Sequencer.switch`` (``sequencer.py``),
 which the drone service calls with its execution lock held, so a switch
 always falls between two requests.
 
@@ -40,10 +41,15 @@ def parse_handover_script(
             continue
         where = f"{source}:{number}"
         parts = content.split()
-        if len(parts) != 2 or not all(p.isdigit() for p in parts):
+        kind = parts[2] if len(parts) == 3 else "forced"
+        if (
+            len(parts) not in (2, 3)
+            or not all(p.isdigit() for p in parts[:2])
+            or kind not in ("forced", "prepared")
+        ):
             raise HandoverScriptError(
-                f"{where}: expected 'REQNR CONTROLLER_ID' (two non-negative integers), "
-                f"got {raw.strip()!r}"
+                f"{where}: expected 'REQNR CONTROLLER_ID' (two non-negative integers) and "
+                f"optionally 'prepared' or 'forced' (the default), got {raw.strip()!r}"
             )
         reqnr, mid = int(parts[0]), int(parts[1])
         if reqnr < 1:
@@ -54,7 +60,7 @@ def parse_handover_script(
             raise HandoverScriptError(
                 f"{where}: reqnr {reqnr} already has a handover (line {script[reqnr].line})"
             )
-        script[reqnr] = ScriptedHandover(reqnr, mid, number)
+        script[reqnr] = ScriptedHandover(reqnr, mid, number, prepared=kind == "prepared")
     return script
 
 

@@ -21,7 +21,12 @@ The rules (docs/design.md, "Epochs" and "Exactly once..."):
 - Every outcome of an accepted request is booked: a reply, or a failure
   after the request reached the vehicle; UNAVAILABLE (nothing reached the
   vehicle) is not booked and leaves the number unused.
-- The handover script's line due after a served request switches masters.
+- The handover script's line due after a served request switches masters,
+  or, marked ``prepared``, starts a prepared handover: the master catches
+  the target up while the mission goes on, and the master moves after the
+  first request served once the target lacks at most
+  ``PREPARED_BOUND_BYTES`` (with that request's reply), or at the timeout
+  as a forced handover (docs/design.md, "Prepared handover").
 - A master lost (no stream and no request for the takeover time) is taken
   over by the first reachable controller after it in ring order, in a new
   epoch, without its log (``takeover_due``); the drone answers the new
@@ -48,6 +53,11 @@ from baton.v1 import drone_pb2
 MAX_REQNR_GAP = 1_000_000
 # Audit entries kept in memory, the newest (the durable store keeps them all).
 AUDIT_IN_MEMORY = 1_000
+# A prepared handover moves the master once its target lacks at most this much
+# of the log, the reply served last included: 5 ms on a 25 Mbit/s link.
+PREPARED_BOUND_BYTES = 16 << 10
+# How long a prepared handover waits for its target by default (wall seconds).
+PREPARE_TIMEOUT_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -57,6 +67,7 @@ class ScriptedHandover:
     after_reqnr: int
     new_master: int
     line: int
+    prepared: bool = False  # a prepared handover (the line's third word)
 
 
 @dataclass(frozen=True)
@@ -69,6 +80,21 @@ class Served:
     handover: drone_pb2.HandoverRecord | None = None
     # A script line that named the master itself (skipped, kept for the log).
     skipped: ScriptedHandover | None = None
+    # A prepared handover the script began after it (owed to the master).
+    prepare: drone_pb2.PrepareHandover | None = None
+
+
+@dataclass
+class Preparation:
+    """A prepared handover under way (``Sequencer.prepare``)."""
+
+    target: int
+    trigger: str
+    started_at: float
+    deadline: float
+    notice: drone_pb2.PrepareHandover
+    # The master's last word on what the target lacks (None: not heard yet).
+    lacks_bytes: int | None = None
 
 
 @dataclass(frozen=True)
@@ -89,6 +115,7 @@ class Sequencer:
         initial_master: int,
         script: Mapping[int, ScriptedHandover] | None = None,
         cache_window: int = DEFAULT_WINDOW,
+        prepare_timeout_s: float = PREPARE_TIMEOUT_S,
     ) -> None:
         # In the order given: the ring's, which a takeover follows.
         self.ring = list(dict.fromkeys(controllers))
@@ -116,6 +143,9 @@ class Sequencer:
         # The epoch in which the master last opened a Connect stream (0: not
         # since this drone started): ``handover_must_take_over``.
         self.connected_epoch = 0
+        # The prepared handover under way, if any; any switch ends it.
+        self.preparing: Preparation | None = None
+        self.prepare_timeout_s = prepare_timeout_s
 
     @property
     def epoch(self) -> int:
@@ -379,6 +409,10 @@ class Sequencer:
         self.audit.append(entry)
         cached = self.cache.get(reqnr)
         assert cached is not None
+        if self.preparing is not None and controller_id == self.master:
+            handover = self._finish_preparation(len(reply), now)
+            if handover is not None:
+                return Served(entry, cached, handover=handover)
         # A scripted handover fires after the first request served at or past
         # its reqnr: request numbers the controllers answer themselves (Clock)
         # never reach the drone.
@@ -389,6 +423,9 @@ class Sequencer:
         self.fired_script.append(min(due))
         if scripted.new_master == self.master:
             return Served(entry, cached, skipped=scripted)
+        if scripted.prepared:
+            prepare = self.prepare(scripted.new_master, "script", now)
+            return Served(entry, cached, prepare=prepare)
         handover = self.switch(scripted.new_master, "script", now)
         return Served(entry, cached, handover=handover)
 
@@ -458,6 +495,7 @@ class Sequencer:
         )
         self.handovers.append(record)
         self.master = new_master
+        self.preparing = None  # a preparation ends with any switch
         # A master that got the role back no longer needs the notice of losing it:
         # after a cooperative switch its log never left it, so nobody acted without
         # it. One whose mastership was taken over meanwhile must still rejoin with
@@ -599,6 +637,61 @@ class Sequencer:
             # handover message (simulation finding F1). A takeover loses nothing.
             return self.last_reqnr == 0
         return last.kind == "takeover" and last.new_master == self.master
+
+    # -- prepared handovers (docs/design.md, "Prepared handover") -------------------
+
+    def prepare(
+        self, target: int, trigger: str, now: float, timeout_s: float | None = None
+    ) -> drone_pb2.PrepareHandover:
+        """Begins a prepared handover to ``target``; returns the notice the master is owed.
+
+        INVALID_ARGUMENT for an unknown id, FAILED_PRECONDITION for the master
+        itself (as ``switch``). A preparation under way is replaced.
+        """
+        self.check_known(target)
+        if target == self.master:
+            raise StatusError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"controller {target} already is the master (epoch {self.epoch}, after "
+                f"reqnr {self.last_reqnr})",
+            )
+        timeout = self.prepare_timeout_s if timeout_s is None else timeout_s
+        notice = drone_pb2.PrepareHandover(target=target, epoch=self.epoch, timeout_s=timeout)
+        self.preparing = Preparation(target, trigger, now, now + timeout, notice)
+        return notice
+
+    def note_progress(
+        self, controller_id: int, epoch: int, progress: drone_pb2.PreparationProgress | None
+    ) -> None:
+        """The master's word on the preparation, from an Invoke it sent (admitted)."""
+        p = self.preparing
+        if p is None or progress is None or progress.target != p.target:
+            return
+        if controller_id == self.master and epoch == self.epoch:
+            p.lacks_bytes = progress.lacks_bytes
+
+    def preparation_expired(self, now: float) -> drone_pb2.HandoverRecord | None:
+        """At the deadline with no request served meanwhile: the handover is forced."""
+        p = self.preparing
+        if p is None or now < p.deadline:
+            return None
+        return self._finish_preparation(0, now)
+
+    def _finish_preparation(self, reply_bytes: int, now: float) -> drone_pb2.HandoverRecord | None:
+        """After a master's request: moves the master if its target has caught up (the
+        master's last word and this reply within the bound) or the time is up."""
+        p = self.preparing
+        assert p is not None
+        lacked = None if p.lacks_bytes is None else p.lacks_bytes + reply_bytes
+        caught_up = lacked is not None and lacked <= PREPARED_BOUND_BYTES
+        if not caught_up and now < p.deadline:
+            return None
+        record = self.switch(p.target, p.trigger, now)
+        record.kind = "prepared" if caught_up else "cooperative"
+        record.prepare_started_at = p.started_at
+        record.prepare_timed_out = not caught_up
+        record.prepare_lacked_bytes = lacked or 0
+        return record
 
     def delivered(self, controller_id: int, notice: drone_pb2.HandoverNotice) -> None:
         """The notice reached its old master; it is no longer owed."""

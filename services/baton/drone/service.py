@@ -26,7 +26,12 @@ from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, retained_batches
 from baton.drone.dispatch import Dispatcher
 from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend
-from baton.drone.sequencer import ScriptedHandover, Sequencer, cut_off_outcome
+from baton.drone.sequencer import (
+    PREPARE_TIMEOUT_S,
+    ScriptedHandover,
+    Sequencer,
+    cut_off_outcome,
+)
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import write_atomically
 from baton.logs import get_logger
@@ -120,6 +125,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         # start-up grace runs from then); None until one is.
         self.first_seen: float | None = None
         self._handed_over_after = 0
+        # Set (and replaced) at every switch: a prepared Handover call waits on it.
+        self._switch_seen = asyncio.Event()
         self.dispatcher = Dispatcher({"Mobility": vehicle, "Camera": camera})
         self._lock = asyncio.Lock()
         self.log = get_logger("drone").bind(
@@ -177,6 +184,13 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                     )
                     if due is not None:
                         self._take_over(due.new_master, "lost", now, due.lost_at)
+            if self.seq.preparing is not None:
+                async with self._lock:
+                    forced = self.seq.preparation_expired(time.time())
+                    if forced is not None:
+                        self._switched(forced)
+                        if self.store is not None:
+                            self.store.save(self._counters())
             await asyncio.sleep(TAKEOVER_TICK_S)
 
     def _sighted(self, now: float) -> set[int]:
@@ -353,6 +367,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             cached = self.seq.admit(
                 cid, request.epoch, reqnr, method, digest, request.watermark_reqnr, clock
             )
+            if request.HasField("preparation"):
+                self.seq.note_progress(cid, request.epoch, request.preparation)
             first = self.seq.note_request(cid, received_at)
             if first is not None:
                 self.log.info(
@@ -471,6 +487,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             hold = self.race.delay_s if self.race and self.race.order == "reply-first" else 0.0
             self._switched(served.handover, notice_delay_s=hold)
             self._handed_over_after = reqnr
+        if served.prepare is not None:
+            self._preparing(served.prepare)
         if self.store is not None:
             self.store.served(
                 self._counters(), served.cached, served.audit, self.seq.cache.reqnrs[0]
@@ -478,16 +496,38 @@ class DroneService(drone_pb2_grpc.DroneServicer):
 
     def _switched(self, record: drone_pb2.HandoverRecord, notice_delay_s: float = 0.0) -> None:
         """Logs a switch and wakes the old master's stream to carry the notice."""
-        self.log.info(
+        prepared = {}
+        if record.prepare_started_at:
+            prepared = {
+                "prepared_s": round(record.decided_at - record.prepare_started_at, 6),
+                "prepare_timed_out": record.prepare_timed_out,
+                "lacked_bytes": record.prepare_lacked_bytes,
+            }
+        log = self.log.warning if record.prepare_timed_out else self.log.info
+        log(
             "handover",
             old_master=record.old_master,
             new_master=record.new_master,
             after_reqnr=record.after_reqnr,
             epoch=record.epoch,
             trigger=record.trigger,
+            kind=record.kind,
             old_master_connected=self.streams.connected(record.old_master),
+            **prepared,
         )
         self.streams.wake(record.old_master, notice_delay_s)
+        self._switch_seen.set()
+        self._switch_seen = asyncio.Event()
+
+    def _preparing(self, notice: drone_pb2.PrepareHandover) -> None:
+        """Logs a prepared handover begun and wakes the master's stream to carry it."""
+        self.log.info(
+            "preparing a handover",
+            target=notice.target,
+            timeout_s=notice.timeout_s,
+            master_connected=self.streams.master_connected,
+        )
+        self.streams.wake(self.seq.master)
 
     def _not_as(self, context: grpc.aio.ServicerContext, what: str, cid: int) -> StatusError | None:
         """Why the caller may not make ``what`` as controller ``cid``, or None: the
@@ -536,7 +576,16 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                             replies=[reply.to_proto() for reply in batch]
                         )
                     )
+            sent_prepare: drone_pb2.PrepareHandover | None = None
             while True:
+                preparing = self.seq.preparing
+                if (
+                    preparing is not None
+                    and cid == self.seq.master
+                    and preparing.notice is not sent_prepare
+                ):
+                    yield drone_pb2.DroneEvent(prepare=preparing.notice)
+                    sent_prepare = preparing.notice
                 notice = self.seq.pending.get(cid)
                 if notice is not None:
                     yield drone_pb2.DroneEvent(handover=notice)
@@ -607,6 +656,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             if refusal is not None:
                 raise refusal
             self.seq.check_known(request.new_master)
+            if request.prepared and not request.takeover:
+                return await self._prepared_handover(request.new_master)
             async with self._lock:
                 if request.takeover or self.seq.handover_must_take_over(request.new_master):
                     record = self._take_over(request.new_master, "rpc", time.time())
@@ -618,6 +669,40 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         except StatusError as err:
             self.log.warning("handover rejected", new_master=request.new_master, reason=err.message)
             await abort_with(context, err)
+        return drone_pb2.HandoverReply(
+            old_master=record.old_master,
+            new_master=record.new_master,
+            after_reqnr=record.after_reqnr,
+            epoch=record.epoch,
+        )
+
+    async def _prepared_handover(self, new_master: int) -> drone_pb2.HandoverReply:
+        """Handover(prepared): begins the preparation and answers once the master moved
+        (caught up, or forced at the timeout). A master without its Connect stream
+        cannot prepare anything: the handover is forced at once, as without ``prepared``."""
+        async with self._lock:
+            if not self.streams.master_connected or self.seq.handover_must_take_over(new_master):
+                preparation = None
+                if self.seq.handover_must_take_over(new_master):
+                    record = self._take_over(new_master, "rpc", time.time())
+                else:
+                    record = self.seq.switch(new_master, "rpc", time.time())
+                    self._switched(record)
+            else:
+                self._preparing(self.seq.prepare(new_master, "rpc", time.time()))
+                preparation = self.seq.preparing
+        if preparation is not None:
+            while self.seq.preparing is preparation:
+                await self._switch_seen.wait()
+            record = self.seq.handovers[-1]
+            if record.prepare_started_at != preparation.started_at:
+                raise StatusError(
+                    grpc.StatusCode.ABORTED,
+                    f"the handover to controller {new_master} being prepared was replaced by "
+                    f"another switch (to controller {record.new_master}, {record.kind})",
+                )
+        if self.store is not None:
+            self.store.save(self._counters())
         return drone_pb2.HandoverReply(
             old_master=record.old_master,
             new_master=record.new_master,
@@ -659,6 +744,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             watermark_reqnr=seq.cache.watermark,
             reachable=[c for c in seq.ring if c in self.standby.reachable],
             takeover_after_s=self.takeover_after_s,
+            preparing_for=seq.preparing.target if seq.preparing is not None else -1,
+            preparing_lacks_bytes=(seq.preparing.lacks_bytes or 0) if seq.preparing else 0,
         )
         status.retained_replies, status.retained_bytes = seq.cache.retained
         if self.vehicle.connected:
@@ -719,6 +806,8 @@ class DroneSettings:
     # The master is lost after this long without a stream or a request, in
     # mission seconds (divided by speedup); 0: never.
     takeover_after: float = 3.0
+    # How long a prepared handover waits for its target (wall seconds).
+    prepare_timeout_s: float = PREPARE_TIMEOUT_S
     # The drone's certificate (mutual TLS); None: an insecure port open to anyone.
     tls: Tls | None = None
     # The MAVLink signing key (signing.py); None: the autopilot link unsigned.
@@ -740,7 +829,11 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         position, settings.image_file, settings.resolution, settings.camera_effects_file
     )
     sequencer = Sequencer(
-        settings.controllers, settings.master, settings.handover_script, settings.cache_window
+        settings.controllers,
+        settings.master,
+        settings.handover_script,
+        settings.cache_window,
+        settings.prepare_timeout_s,
     )
     store = DroneStore(settings.state_file) if settings.state_file else None
     takeover_after_s = detection_time_s(settings.takeover_after, settings.speedup)

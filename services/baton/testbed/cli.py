@@ -58,6 +58,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     parser.add_argument("--no-handovers", action="store_true", help="run without any handover")
     parser.add_argument(
+        "--prepared",
+        action="store_true",
+        help="prepare the scripted handovers: the new master is caught up while the mission "
+        "goes on, and the drone moves the master once it has (docs/design.md)",
+    )
+    parser.add_argument(
+        "--forwarding",
+        choices=("cut-through", "store-and-forward"),
+        default=None,
+        help="the ring's forwarding (default: the testbed file's, else cut-through; "
+        "store-and-forward is the paper's)",
+    )
+    parser.add_argument(
         "--insecure",
         action="store_true",
         help="every part plain, no certificates (debugging only: anyone on the network may "
@@ -258,6 +271,8 @@ def run(args: argparse.Namespace) -> int:
         controllers=len(ids),
         flush_limit=flush_limit,
         handovers=tuple(handovers),
+        prepared=args.prepared,
+        forwarding=args.forwarding,
         speedup=base.speedup if base is not None and args.speedup == 10.0 else args.speedup,
         mission=mission,
         emulate_links=not args.no_links,

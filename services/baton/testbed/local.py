@@ -69,6 +69,8 @@ class TestbedPlan:
     # the default (cut-through).
     forwarding: str | None = None
     handovers: tuple[tuple[int, int], ...] = ()  # (after reqnr, new master)
+    # The scripted handovers are prepared ones (docs/design.md, "Prepared handover").
+    prepared: bool = False
     speedup: float = 10.0
     mission: MissionPlan = MissionPlan()
     mission_file: Path = GRID_MISSION
@@ -167,9 +169,10 @@ async def drone_status(
     return status
 
 
-def handover_file_text(handovers: tuple[tuple[int, int], ...]) -> str:
-    """The drone's handover script: ``reqnr mid`` lines."""
-    return "".join(f"{reqnr} {mid}\n" for reqnr, mid in handovers)
+def handover_file_text(handovers: tuple[tuple[int, int], ...], prepared: bool = False) -> str:
+    """The drone's handover script: ``reqnr mid`` lines (``reqnr mid prepared``)."""
+    kind = " prepared" if prepared else ""
+    return "".join(f"{reqnr} {mid}{kind}\n" for reqnr, mid in handovers)
 
 
 Effects = list[dict[str, Any]]
@@ -357,7 +360,7 @@ class LocalTestbed:
     async def _start_drone(self) -> None:
         assert self.config is not None
         script = self.workdir / "handovers.txt"
-        script.write_text(handover_file_text(self.plan.handovers))
+        script.write_text(handover_file_text(self.plan.handovers, self.plan.prepared))
         ready = self.workdir / "drone.address"
         # A new mission: no state and no pictures of an earlier run in this
         # workdir (a restarted drone of this run keeps them: the same argv).
