@@ -166,6 +166,10 @@ class NotALogFile(ValueError):
     """A file that is not a controller's log (``read_log``), and why."""
 
 
+class OtherDatabase(NotALogFile):
+    """A SQLite database, but without a log's ``messages`` table (the drone's state, say)."""
+
+
 def read_log(path: str | Path) -> list[ring_pb2.LogMessage]:
     """The messages of a saved log file, by log number, read without changing the file.
 
@@ -182,6 +186,10 @@ def read_log(path: str | Path) -> list[ring_pb2.LogMessage]:
         raise NotALogFile(f"{file}: cannot open it: {exc}") from exc
     try:
         rows = db.execute("SELECT lognr, message FROM messages ORDER BY lognr").fetchall()
+    except sqlite3.OperationalError as exc:
+        raise OtherDatabase(
+            f"{file}: not a controller log file ({exc}): a SQLite database of another kind"
+        ) from exc
     except sqlite3.DatabaseError as exc:
         raise NotALogFile(
             f"{file}: not a controller log file ({exc}); give a controller's --log-file "

@@ -28,7 +28,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "logs",
         nargs="+",
         metavar="LOG",
-        help="a log file, or a folder: every log file in it and below (*.sqlite) is replayed",
+        help="a log file, or a folder: every log file in it and below (*.sqlite) is replayed "
+        "(a testbed's workdir holds one per controller; other databases there are skipped)",
     )
     parser.add_argument(
         "--mission",
@@ -50,18 +51,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.set_defaults(run=run)
 
 
-def log_files(paths: list[str]) -> list[Path]:
-    """The log files the arguments name; ValueError names an argument that names none."""
-    files: list[Path] = []
+def log_files(paths: list[str]) -> list[tuple[Path, bool]]:
+    """The log files the arguments name, each with whether it was found in a folder;
+    ValueError names an argument that names none."""
+    files: list[tuple[Path, bool]] = []
     for text in paths:
         path = Path(text)
         if path.is_dir():
             found = sorted(path.rglob("*.sqlite"))
             if not found:
                 raise ValueError(f"{path}: a folder with no log file (*.sqlite) in it")
-            files += found
+            files += [(file, True) for file in found]
         elif path.is_file():
-            files.append(path)
+            files.append((path, False))
         else:
             raise ValueError(f"{path}: no such file or folder")
     return files
@@ -69,7 +71,7 @@ def log_files(paths: list[str]) -> list[Path]:
 
 def run(args: argparse.Namespace) -> int:
     """Replays every log; prints one verdict a log and a closing count."""
-    from baton.controller.history import NotALogFile
+    from baton.controller.history import NotALogFile, OtherDatabase
     from baton.replay.replayer import InconsistentLog, replay_log
 
     try:
@@ -81,9 +83,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"baton replay: --mission {args.mission}: no such file", file=sys.stderr)
         return BAD_INPUT
     clean = diverged = unreadable = 0
-    for path in files:
+    for path, in_folder in files:
         try:
             outcome = replay_log(path, args.mission, args.mission_arg)
+        except OtherDatabase as exc:
+            if not in_folder:
+                unreadable += 1
+                print(f"ERROR {path}: {exc}", flush=True)
+            else:
+                print(f"skip  {path}: not a controller log (another kind of database)")
+            continue
         except (NotALogFile, InconsistentLog) as exc:
             unreadable += 1
             print(f"ERROR {path}: {exc}", flush=True)
@@ -111,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"      | {line}")
         sys.stdout.flush()
     print(f"{clean} clean, {diverged} diverged, {unreadable} unreadable", flush=True)
-    if unreadable:
+    if unreadable or not clean + diverged:
+        if not clean + diverged + unreadable:
+            print("baton replay: no controller log among those files", file=sys.stderr)
         return BAD_INPUT
     return DIVERGED if diverged else CLEAN

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -15,9 +16,10 @@ from typing import Any
 
 from baton.config import BatonConfig
 from baton.lifecycle import write_atomically
+from baton.missions.plan import load_plan
 from baton.rpc.channels import aio_channel
 from baton.rpc.tls import DRONE, OPERATOR, Identity
-from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan, drone_status
+from baton.testbed.local import GRID_MISSION, LocalTestbed, Snapshot, TestbedPlan, drone_status
 from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
@@ -86,6 +88,18 @@ class Progress:
         )
 
 
+def files_note(files: dict[str, Any]) -> str:
+    """Where the run's logs are, and the command that replays them."""
+    mission = files["mission"]
+    args = "".join(f" --mission-arg {shlex.quote(arg)}" for arg in mission["args"])
+    tlogs = ", ".join(files["tlogs"]) or "none"
+    return (
+        f"controller logs: {', '.join(files['controller_logs'].values())}\n"
+        f"replay them: baton replay {files['workdir']} --mission {mission['file']}{args}\n"
+        f"telemetry log (.tlog): {tlogs}"
+    )
+
+
 def write_report(report: dict[str, Any], path: Path) -> None:
     """Writes the report JSON (creating the folder)."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -104,8 +118,10 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     )
     started = time.monotonic()
     testbed = LocalTestbed(plan, workdir)
+    flight_plan = load_plan(str(plan.flight_plan)) if plan.flight_plan is not None else None
     try:
-        progress = Progress(plan.mission.grid**2, len(plan.handovers))
+        waypoints = len(flight_plan.waypoints) if flight_plan else plan.mission.grid**2
+        progress = Progress(waypoints, len(plan.handovers))
         config = await testbed.start(progress.vehicle_wait)
         write_atomically(
             workdir / "pids.json",
@@ -129,10 +145,14 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
         time.monotonic() - started,
         list(plan.handovers),
         plan.mission.spacing_m,
+        flight_plan,
+        grid_mission=plan.mission_file == GRID_MISSION,
     )
+    report["files"] = files = testbed.files()
     write_report(report, report_path)
     print(summary_table(report), flush=True)
     print(f"report: {report_path}", flush=True)
+    print(files_note(files), flush=True)
     return 0 if run_succeeded(report) and not report["handovers_missed"] else 1
 
 
