@@ -189,3 +189,29 @@ def test_an_unsupported_item_is_refused_before_anything_starts(tmp_path: Path) -
     assert result.returncode == 2
     assert "item 2: CONDITION_YAW (115) is not supported" in result.stderr
     assert not (tmp_path / "w" / "testbed.yaml").exists()  # nothing was started
+
+
+def test_a_mission_edited_to_diverge_is_caught_at_its_takeoff(
+    run: dict[str, Any], tmp_path: Path
+) -> None:
+    source = PLAN_MISSION.read_text()
+    edited = source.replace(
+        "drone.mobility.takeoff(flight_plan.takeoff_altitude_m)",
+        "drone.mobility.takeoff(flight_plan.takeoff_altitude_m + 1)",
+    )
+    assert edited != source
+    mission = tmp_path / "plan_higher.py"
+    mission.write_text(edited)
+    log = Path(run["files"]["controller_logs"]["0"])
+    (reqnr,) = [
+        entry.reqnr
+        for message in read_log(log)
+        for entry in message.entries
+        if entry.method == "/baton.v1.Mobility/Takeoff"
+    ]
+    result = replay(run, mission, SURVEY)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert result.stdout.count(f"replayed {reqnr - 1} of ") == 3
+    assert result.stdout.count(f"diverged at request {reqnr}: ") == 3
+    assert "the log holds:    Mobility.Takeoff {altitude_m: 10.0}" in result.stdout
+    assert "the program asks: Mobility.Takeoff {altitude_m: 11.0}" in result.stdout
