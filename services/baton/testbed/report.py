@@ -298,12 +298,15 @@ def build_report(
         "completed": completed,
         "duration_s": round(duration_s, 3),
         "mission": {
-            "grid": None if plan is not None else grid,
+            "grid": grid if plan is None and grid_mission else None,
             "plan": str(plan.path) if plan is not None else None,
-            "waypoints": len(plan.waypoints) if plan is not None else grid * grid,
             # The grid mission checks its position at every picture, so a picture is a
-            # visit; the plan mission flies to each goto before the next.
-            "waypoints_visited": gotos if plan is not None else pictures,
+            # visit; the plan mission flies to each goto before the next. Of another
+            # mission file only its gotos are known.
+            "waypoints": (
+                len(plan.waypoints) if plan is not None else grid * grid if grid_mission else gotos
+            ),
+            "waypoints_visited": pictures if plan is None and grid_mission else gotos,
             "pictures": pictures,
             "invocations": len(audit),
             "calls": max(reqnrs, default=0),

@@ -28,8 +28,15 @@ from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 class Progress:
     """One status line a second: waypoint k of n, the master, each controller's state."""
 
-    def __init__(self, waypoints: int, planned_handovers: int, stream: Any = sys.stdout) -> None:
-        self.waypoints = waypoints
+    def __init__(
+        self,
+        waypoints: int,
+        planned_handovers: int,
+        stream: Any = sys.stdout,
+        what: str = "waypoint",
+    ) -> None:
+        self.waypoints = waypoints  # pictures expected, one a waypoint for "waypoint"
+        self.what = what
         self.planned = planned_handovers
         self.stream = stream
         self.started = time.monotonic()
@@ -80,8 +87,15 @@ class Progress:
             if c.waiting
         )
         print(
-            f"{self._stamp()} waypoint {snapshot.pictures}/{self.waypoints} | "
-            f"master {drone.master} | reqnr {drone.last_reqnr} | "
+            f"{self._stamp()} "
+            + (
+                f"waypoint {snapshot.pictures}/{self.waypoints}"
+                if self.waypoints and self.what == "waypoint"
+                else f"pictures {snapshot.pictures}"
+                + (f"/{self.waypoints}" if self.waypoints else "")
+            )
+            + " | "
+            + f"master {drone.master} | reqnr {drone.last_reqnr} | "
             f"handovers {scripted}/{self.planned}{others} | {states}{vehicle}",
             file=self.stream,
             flush=True,
@@ -120,8 +134,12 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     testbed = LocalTestbed(plan, workdir)
     flight_plan = load_plan(str(plan.flight_plan)) if plan.flight_plan is not None else None
     try:
-        waypoints = len(flight_plan.waypoints) if flight_plan else plan.mission.grid**2
-        progress = Progress(waypoints, len(plan.handovers))
+        # The grid mission takes a picture at each waypoint; a plan, where it says.
+        pictures = plan.mission.grid**2 if plan.mission_file == GRID_MISSION else 0
+        if flight_plan is not None:
+            pictures = flight_plan.pictures or 0
+        grid = plan.mission_file == GRID_MISSION
+        progress = Progress(pictures, len(plan.handovers), what="waypoint" if grid else "pictures")
         config = await testbed.start(progress.vehicle_wait)
         write_atomically(
             workdir / "pids.json",
