@@ -223,3 +223,13 @@ def test_the_cli_replays_a_folder_and_exits_by_the_worst_verdict(
     ]:
         bad = baton_replay(*args)
         assert bad.returncode == 2 and expected in bad.stderr, bad.stderr
+
+
+def test_the_replay_bench_writes_a_log_that_replays_clean_and_measures_it(tmp_path: Path) -> None:
+    from baton.bench.offline_replay import run_replay_bench
+
+    result = run_replay_bench(tmp_path, calls=501, passes=1)
+    assert result["calls"] == 501 and len(result["seconds"]) == 1
+    assert result["calls_per_s"] > 0 and Path(result["log"]).is_file()
+    assert len(read_log(Path(result["log"]))) == 6  # 100 entries a message
+    assert (tmp_path / "replay.json").is_file()
