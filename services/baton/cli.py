@@ -19,6 +19,7 @@ PROGRAMS = [
     "baton.controller.cli",
     "baton.link.cli",
     "baton.testbed.cli",
+    "baton.replay.cli",
     "baton.bench.cli",
     "baton.certs.cli",
 ]

@@ -3,7 +3,7 @@
 Signing (docs/design.md, Security) proves that a MAVLink frame was sent by
 someone holding the mission's 32-byte secret key, and a timestamp in each
 frame stops replays. The drone service's MAVLink stack, MAVSDK, cannot sign
-(mavlink/MAVSDK#1060), so the drone runs a relay (``drone/signing_relay.py``)
+(mavlink/MAVSDK#1060), so the drone runs a relay (``drone/mavlink_relay.py``)
 that signs what MAVSDK sends and checks what the autopilot sends; the sim
 vehicle checks and signs on its side as ArduPilot does.
 

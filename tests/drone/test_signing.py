@@ -22,7 +22,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from test_drone_end_to_end import Controller, drone_bed
 
-from baton.drone.signing_relay import RelayUrlError, VehicleEndpoint
+from baton.drone.mavlink_relay import RelayUrlError, VehicleEndpoint
 from baton.signing import (
     REFUSED_REASON,
     Signer,

@@ -154,11 +154,15 @@ class Clock:
 
 
 class Drone:
-    """A drone, as seen through the local mission controller."""
+    """A drone, as seen through the local mission controller.
 
-    def __init__(self, address: str) -> None:
+    ``channel``: one to use instead of a connection to ``address`` (``baton
+    replay`` gives one that answers from a saved log, in-process).
+    """
+
+    def __init__(self, address: str, channel: grpc.Channel | None = None) -> None:
         self.address = address
-        self._channel = sync_channel(address)
+        self._channel = sync_channel(address) if channel is None else channel
         token = os.environ.get(MISSION_TOKEN_ENV)
         call = _Caller(((MISSION_TOKEN_METADATA, token),) if token else ())
         self._metadata = call.metadata

@@ -28,6 +28,8 @@ def load_mission(path: str) -> Callable[..., Any]:
     if spec is None or spec.loader is None or not file.is_file():
         raise SystemExit(f"{path}: not a readable Python file")
     module = importlib.util.module_from_spec(spec)
+    # Registered as imported modules are: dataclasses (and pickle) look a class's module up.
+    sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     mission = getattr(module, "mission", None)
     if not callable(mission):

@@ -97,6 +97,21 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     common(micro)
     micro.set_defaults(run=_run_micro)
 
+    replay = benches.add_parser(
+        "replay", help="baton replay's speed: a saved log of --calls requests checked offline"
+    )
+    replay.add_argument(
+        "--out",
+        type=Path,
+        default=Path("out/bench"),
+        help="output folder (default: out/bench)",
+    )
+    replay.add_argument(
+        "--calls", type=int, default=10_000, help="requests in the log (default 10000)"
+    )
+    replay.add_argument("--passes", type=int, default=5, help="replays, median taken (default 5)")
+    replay.set_defaults(run=_run_replay)
+
     failover = benches.add_parser(
         "failover",
         help="kill -9 of the master at seeded request numbers, 3 and 6 controllers: "
@@ -178,3 +193,18 @@ def _run_failover(args: argparse.Namespace) -> int:
     result = asyncio.run(run_failover(settings, args.out))
     print(table(result["summary"], result["takeover_time_s"]))
     return 0 if all(run["ok"] for run in result["runs"]) else 1
+
+
+def _run_replay(args: argparse.Namespace) -> int:
+    from baton.bench.offline_replay import run_replay_bench
+
+    if args.calls < 1 or args.passes < 1:
+        print("baton bench replay: --calls and --passes must be >= 1")
+        return 2
+    result = run_replay_bench(args.out, args.calls, args.passes)
+    print(
+        f"baton replay: {result['calls']} logged calls checked in {result['median_s']:.3f} s "
+        f"(median of {result['passes']}; {result['calls_per_s']:,.0f} calls/s; target "
+        f"< {result['target_s']:.1f} s)\nby hand: time {result['command']}"
+    )
+    return 0 if result["median_s"] < result["target_s"] else 1

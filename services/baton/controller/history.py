@@ -32,6 +32,8 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from google.protobuf.message import DecodeError
+
 from baton.controller.protocol import SeenNumbers
 from baton.v1 import ring_pb2
 
@@ -158,3 +160,50 @@ class LogHistory:
     def above(self, lognr: int) -> Iterator[int]:
         """The held log numbers above ``lognr``, in order."""
         return iter(sorted(n for n in self._lognrs if n > lognr))
+
+
+class NotALogFile(ValueError):
+    """A file that is not a controller's log (``read_log``), and why."""
+
+
+class OtherDatabase(NotALogFile):
+    """A SQLite database, but without a log's ``messages`` table (the drone's state, say)."""
+
+
+def read_log(path: str | Path) -> list[ring_pb2.LogMessage]:
+    """The messages of a saved log file, by log number, read without changing the file.
+
+    For ``baton replay``: the file may be a copy, read-only, or still open in
+    a controller (WAL lets it read what was committed). Raises ``NotALogFile``
+    naming the file and what is wrong with it.
+    """
+    file = Path(path)
+    if not file.is_file():
+        raise NotALogFile(f"{file}: no such file")
+    try:
+        db = sqlite3.connect(f"{file.resolve().as_uri()}?mode=ro", uri=True)
+    except sqlite3.Error as exc:
+        raise NotALogFile(f"{file}: cannot open it: {exc}") from exc
+    try:
+        rows = db.execute("SELECT lognr, message FROM messages ORDER BY lognr").fetchall()
+    except sqlite3.OperationalError as exc:
+        raise OtherDatabase(
+            f"{file}: not a controller log file ({exc}): a SQLite database of another kind"
+        ) from exc
+    except sqlite3.DatabaseError as exc:
+        raise NotALogFile(
+            f"{file}: not a controller log file ({exc}); give a controller's --log-file "
+            "(the testbed keeps them as controller-N-log.sqlite in its workdir)"
+        ) from exc
+    finally:
+        db.close()
+    messages = []
+    for lognr, blob in rows:
+        try:
+            message = ring_pb2.LogMessage.FromString(blob)
+        except DecodeError as exc:
+            raise NotALogFile(f"{file}: log message {lognr} does not decode: {exc}") from exc
+        if message.lognr != lognr:
+            raise NotALogFile(f"{file}: row {lognr} holds log message {message.lognr}")
+        messages.append(message)
+    return messages

@@ -252,7 +252,7 @@ class ControllerNode:
     async def start(self) -> None:
         """Recovers the log file, opens the stream to the successor, asks the drone."""
         self._recover()
-        self.peer(self.protocol.successor).start()
+        self._open_links()
         self._standby.start()
         await self._apply(self.protocol.start())
         self._watchdog = asyncio.create_task(self._watch(), name="stall-watchdog")
@@ -400,11 +400,21 @@ class ControllerNode:
         self._first_new_call_due = False
         self._answered_here = []
         self.routed_around = []
-        self.peer(self.protocol.successor).start()
+        self._open_links()
         await self._apply(self.protocol.start())
         for message in kept:
             await self.on_log(message)
         self.log.info("rejoined as a replica with nothing; catching up from the ring")
+
+    def _open_links(self) -> None:
+        """Opens the stream to the successor, and to every other controller, kept open
+        for a handover: the old master's handover message and the catch-up go on an
+        open stream, not after a connection's set-up (docs/design.md, "The ring's
+        forwarding"). Only the successor's carries anything until then."""
+        self.peer(self.protocol.successor).start()
+        for pid in self.config.ring_order:
+            if pid != self.id:
+                self.peer(pid).start()
 
     def peer(self, pid: int) -> PeerLink:
         """The kept stream to controller ``pid``, created on first use.
@@ -573,7 +583,7 @@ class ControllerNode:
 
         def down_for(pid: int) -> float | None:
             link = self._peers.get(pid)
-            return None if link is None else link.down_for(now)
+            return None if link is None or not link.used else link.down_for(now)
 
         chosen, skipped = ring_route(p.ring, self.id, down_for, detection)
         if chosen == p.successor:

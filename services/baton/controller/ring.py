@@ -342,16 +342,24 @@ class PeerLink:
         """The serialized size of the messages sent and not yet acknowledged."""
         return sum(message.ByteSize() for message in self._unacked.values())
 
+    @property
+    def used(self) -> bool:
+        """Whether the link carries anything: the successor's, or one a message was sent
+        on (not only kept open for a handover to come, ``ControllerNode.start``)."""
+        return self._history is not None or bool(self._unacked) or self.counters.sent_messages > 0
+
     async def _run(self) -> None:
         backoff = BACKOFF_INITIAL_S
         while True:
+            # Said once per outage (then at debug level), unless it carries something.
+            log = self._log.warning if self.stream_up or self.used else self._log.debug
             try:
                 await self._stream_once()
                 backoff = BACKOFF_INITIAL_S
             except asyncio.CancelledError:
                 raise
             except grpc.aio.AioRpcError as exc:
-                self._log.warning(
+                log(
                     "ring stream down; reconnecting",
                     code=exc.code().name,
                     detail=exc.details(),

@@ -92,8 +92,7 @@ class DroneApiProxy(grpc.GenericRpcHandler):
                     f"{method}: payload is not a {request_class.__name__}: {exc}",
                 )
             try:
-                if method == CLOCK_SLEEP:
-                    _check_sleep(parsed)
+                check_request(method, parsed)
                 entry = await self._node.call(method, request, lambda: _gave_up(context))
             except StatusError as exc:
                 await abort_with(context, exc)
@@ -112,8 +111,11 @@ def _gave_up(context: grpc.aio.ServicerContext) -> grpc.StatusCode:
     return grpc.StatusCode.CANCELLED
 
 
-def _check_sleep(request: protobuf_message.Message) -> None:
-    """Clock.Sleep needs a finite, non-negative duration."""
+def check_request(method: str, request: protobuf_message.Message) -> None:
+    """Refuses (StatusError) a request no controller takes a request number for:
+    Clock.Sleep needs a finite, non-negative duration. ``baton replay`` refuses the same."""
+    if method != CLOCK_SLEEP:
+        return
     assert isinstance(request, api.SleepRequest)
     if not math.isfinite(request.seconds) or request.seconds < 0:
         raise StatusError(

@@ -91,6 +91,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "else unsigned). The autopilot must hold the same key",
     )
     parser.add_argument(
+        "--tlog-dir",
+        metavar="DIR",
+        help="record the MAVLink traffic with the autopilot as a telemetry log (.tlog, as "
+        "QGroundControl and pymavlink's mavlogdump.py read it), one file per run in DIR "
+        "(default: none recorded)",
+    )
+    parser.add_argument(
         "--controllers",
         type=_controller_ids,
         metavar="IDS",
@@ -179,9 +186,9 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     from baton.config import load_config, parse_duration
     from baton.drone.dedupe import DEFAULT_WINDOW
     from baton.drone.master import load_handover_script
+    from baton.drone.mavlink_relay import VehicleEndpoint
     from baton.drone.sequencer import PREPARE_TIMEOUT_S
     from baton.drone.service import DroneSettings, Race
-    from baton.drone.signing_relay import VehicleEndpoint
     from baton.rpc.tls import DRONE
     from baton.signing import read_key
 
@@ -237,6 +244,8 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     if key_file is not None:
         mavlink_key = read_key(Path(key_file))
         VehicleEndpoint.parse(vehicle)  # the relay can hold it, or a message saying why
+    if args.tlog_dir is not None:
+        VehicleEndpoint.parse(vehicle, tlog=True)
     return DroneSettings(
         address=args.address or address,
         vehicle_url=vehicle,
@@ -274,5 +283,9 @@ def run(args: argparse.Namespace) -> int:
     except (ConfigError, HandoverScriptError, TlsError, ValueError) as exc:
         print(f"baton drone: {exc}", file=sys.stderr)
         return 2
-    vehicle = MavsdkMobility(settings.vehicle_url, signing_key=settings.mavlink_key)
+    vehicle = MavsdkMobility(
+        settings.vehicle_url,
+        signing_key=settings.mavlink_key,
+        tlog_dir=Path(args.tlog_dir) if args.tlog_dir is not None else None,
+    )
     return asyncio.run(run_until_signalled(lambda stop: serve(settings, vehicle, stop)))

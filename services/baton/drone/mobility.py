@@ -30,13 +30,15 @@ import weakref
 from collections.abc import AsyncIterator, Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 import grpc
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs
-from baton.drone.signing_relay import SigningRelay
+from baton.drone.mavlink_relay import MavlinkRelay
+from baton.drone.tlog import TlogWriter, tlog_path
 from baton.drone.vehicle_state import (
     ARDUPILOT_COMMAND_MODE,
     PREARM_TEXT_VALID_S,
@@ -168,10 +170,14 @@ class MavsdkMobility:
         position_max_age_s: float = 1.0,
         heartbeat_timeout_s: float = 3.0,
         signing_key: bytes | None = None,
+        tlog_dir: Path | None = None,
     ) -> None:
         self.url = url
-        # With a key, MAVSDK talks to the autopilot through the signing relay.
-        self._relay = SigningRelay(url, signing_key) if signing_key is not None else None
+        # With a key or a telemetry log, MAVSDK talks to the autopilot through the relay.
+        self._relay: MavlinkRelay | None = None
+        if signing_key is not None or tlog_dir is not None:
+            tlog = TlogWriter(tlog_path(tlog_dir)) if tlog_dir is not None else None
+            self._relay = MavlinkRelay(url, signing_key, tlog)
         self.rates = rates or TelemetryRates()
         self.command_timeout_s = command_timeout_s
         self.monitor = LinkMonitor(
@@ -235,7 +241,7 @@ class MavsdkMobility:
         link = self.monitor.snapshot(self._observe_link())
         relay = self._relay
         if relay is not None:
-            link.signing, link.refused_frames = True, relay.refused
+            link.signing, link.refused_frames = relay.signer is not None, relay.refused
             link.last_refusal = relay.last_refusal
             if link.problem and relay.refused:
                 link.problem += (

@@ -101,6 +101,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "beside the checkout)",
     )
     parser.add_argument(
+        "--mission",
+        metavar="FILE",
+        help="what the controllers fly: a mission file (defines mission(drone, **params)), or "
+        "a QGroundControl plan (.plan, or a 'QGC WPL 110' waypoint file) flown by "
+        "baton/missions/plan.py (default: the paper's grid mission, --grid ...)",
+    )
+    parser.add_argument(
+        "--mission-arg",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a parameter of the mission function; repeatable",
+    )
+    parser.add_argument(
         "--grid", type=int, default=5, help="grid size: GRID x GRID waypoints (default 5)"
     )
     parser.add_argument(
@@ -194,6 +208,39 @@ def _vehicle(args: argparse.Namespace, base: BatonConfig | None) -> tuple[str, P
     return vehicle, binary.resolve()
 
 
+def _mission(mission: str | None, pairs: list[str]) -> tuple[Path, tuple[str, ...], Path | None]:
+    """The mission file, its parameters and the plan it flies, from ``--mission``;
+    ValueError says what is wrong (a plan is checked whole here, before anything starts)."""
+    from baton.missions import plan as plan_mission
+    from baton.sdk.run import load_mission, parse_params
+    from baton.testbed.local import GRID_MISSION
+
+    if mission is None:
+        if pairs:
+            raise ValueError("--mission-arg is for a --mission FILE")
+        return GRID_MISSION, (), None
+    path = Path(mission)
+    if not path.is_file():
+        raise ValueError(f"--mission {mission}: no such file")
+    flight_plan = None
+    if path.suffix != ".py":  # a QGroundControl plan, flown by the plan mission
+        try:
+            plan_mission.load_plan(str(path))
+        except plan_mission.PlanError as exc:
+            raise ValueError(f"--mission {mission}: {exc}") from None
+        flight_plan = path.resolve()
+        pairs = [f"plan={flight_plan}", *pairs]
+        path = Path(plan_mission.__file__)
+    elif path.resolve() == Path(plan_mission.__file__).resolve():
+        named = [p.partition("=")[2] for p in pairs if p.startswith("plan=")]
+        flight_plan = Path(named[-1]).resolve() if named else None
+    try:
+        parse_params(load_mission(str(path)), pairs)
+    except SystemExit as exc:
+        raise ValueError(f"--mission {mission}: {exc}") from None
+    return path.resolve(), tuple(pairs), flight_plan
+
+
 def run(args: argparse.Namespace) -> int:
     """Validates the options, then runs or follows the testbed."""
     from baton.config import MAX_SPEEDUP, ConfigError, load_config, parse_size
@@ -257,6 +304,10 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         return _fail(str(exc))
     mission = MissionPlan(args.grid, args.spacing, args.altitude, args.speed, args.poll)
+    try:
+        mission_file, mission_args, flight_plan = _mission(args.mission, args.mission_arg)
+    except ValueError as exc:
+        return _fail(str(exc))
     report_path = Path(args.report)
     if args.insecure:
         print(f"baton testbed: WARNING: {INSECURE_WARNING}", file=sys.stderr)
@@ -275,6 +326,9 @@ def run(args: argparse.Namespace) -> int:
         forwarding=args.forwarding,
         speedup=base.speedup if base is not None and args.speedup == 10.0 else args.speedup,
         mission=mission,
+        mission_file=mission_file,
+        mission_args=mission_args,
+        flight_plan=flight_plan,
         emulate_links=not args.no_links,
         controller_link=controller_link,
         drone_link=drone_link,

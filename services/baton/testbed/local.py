@@ -95,11 +95,22 @@ class TestbedPlan:
     # Every port plain (debugging only); by default every part has a
     # certificate, from the testbed file's tls.certs or made in the workdir.
     insecure: bool = False
+    # A QGroundControl plan the mission file flies (baton.missions.plan), for the
+    # report's side-effect check; None for the grid or another mission.
+    flight_plan: Path | None = None
+
+    def all_mission_args(self) -> list[str]:
+        """Every ``--mission-arg`` the controllers' mission program gets."""
+        grid_args = self.mission.args() if self.mission_file == GRID_MISSION else []
+        return [*grid_args, *self.mission_args]
 
 
 # The side effects counted where they happen (baton.effects), in the workdir.
 VEHICLE_EFFECTS_FILE = "vehicle-effects.jsonl"  # commands the sim vehicle acted on
 CAMERA_EFFECTS_FILE = "camera-effects.jsonl"  # pictures the drone's camera produced
+
+# The drone's telemetry logs (``baton drone --tlog-dir``), one per drone process.
+TLOG_GLOB = "drone_*.tlog"
 
 # Wall seconds the testbed waits for the vehicle to become ready (armable)
 # before it starts the mission: ArduPilot needs ~45 s of its own time after boot.
@@ -368,6 +379,8 @@ class LocalTestbed:
         camera_effects = self.workdir / CAMERA_EFFECTS_FILE
         remove_sqlite(state)
         camera_effects.unlink(missing_ok=True)
+        for tlog in self.workdir.glob(TLOG_GLOB):
+            tlog.unlink()
         argv = baton_argv(
             "drone",
             "--config",
@@ -380,6 +393,8 @@ class LocalTestbed:
             str(state),
             "--camera-effects-file",
             str(camera_effects),
+            "--tlog-dir",
+            str(self.workdir),
         )
         if self.plan.resolution:
             argv += ["--resolution", self.plan.resolution]
@@ -389,6 +404,24 @@ class LocalTestbed:
         self._channels.append(channel)
         self.drone_stub = drone_pb2_grpc.DroneStub(channel)
 
+    def controller_log(self, cid: int) -> Path:
+        """Controller ``cid``'s log file (``--log-file``): what ``baton replay`` replays."""
+        return self.workdir / f"controller-{cid}-log.sqlite"
+
+    def files(self) -> dict[str, Any]:
+        """What the run leaves in the workdir for a person: every controller's log (for
+        ``baton replay``, with the mission it ran), the drone's telemetry logs."""
+        ring = self.config.ring_order if self.config is not None else []
+        return {
+            "workdir": str(self.workdir),
+            "controller_logs": {str(cid): str(self.controller_log(cid)) for cid in ring},
+            "mission": {
+                "file": str(self.plan.mission_file),
+                "args": self.plan.all_mission_args(),
+            },
+            "tlogs": sorted(str(path) for path in self.workdir.glob(TLOG_GLOB)),
+        }
+
     async def _start_controllers(self) -> None:
         assert self.config is not None
         parts = []
@@ -396,7 +429,7 @@ class LocalTestbed:
             ready = self.workdir / f"controller-{cid}.address"
             # A new mission: no log of an earlier run (a restarted controller of
             # this run recovers from it: the same argv).
-            log_file = self.workdir / f"controller-{cid}-log.sqlite"
+            log_file = self.controller_log(cid)
             remove_sqlite(log_file)
             argv = baton_argv(
                 "controller",
@@ -411,8 +444,7 @@ class LocalTestbed:
                 "--log-file",
                 str(log_file),
             )
-            grid_args = self.plan.mission.args() if self.plan.mission_file == GRID_MISSION else []
-            for arg in [*grid_args, *self.plan.mission_args]:
+            for arg in self.plan.all_mission_args():
                 argv += ["--mission-arg", arg]
             env = None
             if self.plan.mission_token is not None:

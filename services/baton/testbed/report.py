@@ -17,6 +17,7 @@ from typing import Any
 
 from baton.config import BatonConfig
 from baton.missions.grid import waypoints
+from baton.missions.plan import Plan
 from baton.sdk import Position, distance_m, offset
 from baton.testbed.local import Effects, Snapshot
 
@@ -125,6 +126,88 @@ def _goto_problems(gotos: Effects, grid: int, spacing_m: float | None) -> list[s
     return problems
 
 
+def check_plan_effects(snapshot: Snapshot, plan: Plan, pictures_asked: int) -> dict[str, Any]:
+    """A QGroundControl plan's side effects, as the camera and the vehicle counted them.
+
+    Exactly once means: the camera produced the plan's pictures (for a plan that
+    triggers by distance, as many as the mission asked the drone for,
+    ``pictures_asked``); the vehicle acted on one arm, one takeoff, one land or
+    return to launch as the plan ends, and on one goto per waypoint of the plan,
+    in its order, at its position and, against the first, its altitude.
+    """
+    problems: list[str] = []
+    expected = plan.pictures if plan.pictures is not None else pictures_asked
+    camera = snapshot.camera_effects
+    pictures: int | str = NOT_COUNTED
+    if camera is not None:
+        pictures = sum(1 for e in camera if e["effect"] == "picture")
+        if pictures != expected:
+            problems.append(f"the camera produced {pictures} pictures; the plan takes {expected}")
+    vehicle = snapshot.vehicle_effects
+    commands: dict[str, int] | str = NOT_COUNTED
+    if vehicle is not None:
+        counts = Counter(e["effect"] for e in vehicle)
+        commands = dict(sorted(counts.items()))
+        # MAVSDK returns to launch by the autopilot's RTL mode, not by the command.
+        counts["return_to_launch"] += sum(
+            1 for e in vehicle if e["effect"] == "set_mode" and e["mode"] == "RETURN_TO_LAUNCH"
+        )
+        for name in ("arm", "takeoff", plan.end or "land"):
+            if counts[name] != 1:
+                problems.append(f"the vehicle acted on {counts[name]} {name} commands, not 1")
+        gotos = [e for e in vehicle if e["effect"] == "goto"]
+        wanted = plan.waypoints
+        if len(gotos) != len(wanted):
+            problems.append(
+                f"the vehicle acted on {len(gotos)} gotos; the plan has {len(wanted)} waypoints"
+            )
+        for k, (goto, item) in enumerate(zip(gotos, wanted, strict=False), start=1):
+            off = distance_m(
+                Position(goto["latitude_deg"], goto["longitude_deg"]),
+                Position(item.latitude_deg, item.longitude_deg),
+            )
+            climb = goto["altitude_amsl_m"] - gotos[0]["altitude_amsl_m"]
+            planned = item.altitude_m - wanted[0].altitude_m
+            if off > GOTO_TOLERANCE_M or abs(climb - planned) > GOTO_TOLERANCE_M:
+                problems.append(
+                    f"goto {k} flew to {off:.1f} m from {item.where} of the plan, "
+                    f"{climb - planned:+.1f} m off its altitude"
+                )
+                break  # the first one out of order says it; the rest follow from it
+    return {
+        "pictures_taken": pictures,
+        "pictures_expected": expected,
+        "vehicle_commands": commands,
+        "problems": problems,
+        "exactly_once": None if camera is None and vehicle is None else not problems,
+    }
+
+
+def check_counted_effects(snapshot: Snapshot, pictures_asked: int) -> dict[str, Any]:
+    """Side effects of a mission file the report knows nothing of: the camera must have
+    produced one picture for each TakePicture the drone executed; the vehicle's commands
+    are counted and shown, not checked."""
+    camera, vehicle = snapshot.camera_effects, snapshot.vehicle_effects
+    problems: list[str] = []
+    pictures: int | str = NOT_COUNTED
+    if camera is not None:
+        pictures = sum(1 for e in camera if e["effect"] == "picture")
+        if pictures != pictures_asked:
+            problems.append(
+                f"the camera produced {pictures} pictures; the mission asked for {pictures_asked}"
+            )
+    commands: dict[str, int] | str = NOT_COUNTED
+    if vehicle is not None:
+        commands = dict(sorted(Counter(e["effect"] for e in vehicle).items()))
+    return {
+        "pictures_taken": pictures,
+        "pictures_expected": pictures_asked,
+        "vehicle_commands": commands,
+        "problems": problems,
+        "exactly_once": None if camera is None and vehicle is None else not problems,
+    }
+
+
 def build_report(
     config: BatonConfig,
     snapshot: Snapshot,
@@ -132,8 +215,12 @@ def build_report(
     duration_s: float,
     planned_handovers: list[tuple[int, int]],
     spacing_m: float | None = None,
+    plan: Plan | None = None,
+    grid_mission: bool = True,
 ) -> dict[str, Any]:
-    """The report of one mission run (``spacing_m``: the grid's, if known)."""
+    """The report of one mission run (``spacing_m``: the grid's, if known; ``plan``: the
+    QGroundControl plan flown instead of the grid, if one was; ``grid_mission`` False
+    for another mission file, whose side effects are only counted)."""
     drone = snapshot.drone
     audit = list(drone.audit)
     executed = [a.reqnr for a in audit]
@@ -205,15 +292,21 @@ def build_report(
     # the script's handovers stand for planned ones (not an operator's, not a takeover).
     scripted = [h for h in handovers if h["trigger"] == "script"]
     missed = planned_handovers[len(scripted) :]
+    gotos = sum(1 for a in audit if a.method.endswith("/Goto"))
     return {
         "format": REPORT_FORMAT,
         "completed": completed,
         "duration_s": round(duration_s, 3),
         "mission": {
-            "grid": grid,
-            "waypoints": grid * grid,
-            # The mission checks its position at every picture, so a picture is a visit.
-            "waypoints_visited": pictures,
+            "grid": grid if plan is None and grid_mission else None,
+            "plan": str(plan.path) if plan is not None else None,
+            # The grid mission checks its position at every picture, so a picture is a
+            # visit; the plan mission flies to each goto before the next. Of another
+            # mission file only its gotos are known.
+            "waypoints": (
+                len(plan.waypoints) if plan is not None else grid * grid if grid_mission else gotos
+            ),
+            "waypoints_visited": pictures if plan is None and grid_mission else gotos,
             "pictures": pictures,
             "invocations": len(audit),
             "calls": max(reqnrs, default=0),
@@ -273,7 +366,13 @@ def build_report(
         ],
         "replicas_consistent": consistent,
         "exactly_once": exactly_once,
-        "side_effects": check_side_effects(snapshot, grid, spacing_m),
+        "side_effects": (
+            check_plan_effects(snapshot, plan, pictures)
+            if plan is not None
+            else check_side_effects(snapshot, grid, spacing_m)
+            if grid_mission
+            else check_counted_effects(snapshot, pictures)
+        ),
     }
 
 

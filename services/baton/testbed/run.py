@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -15,9 +16,10 @@ from typing import Any
 
 from baton.config import BatonConfig
 from baton.lifecycle import write_atomically
+from baton.missions.plan import load_plan
 from baton.rpc.channels import aio_channel
 from baton.rpc.tls import DRONE, OPERATOR, Identity
-from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan, drone_status
+from baton.testbed.local import GRID_MISSION, LocalTestbed, Snapshot, TestbedPlan, drone_status
 from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
@@ -26,8 +28,15 @@ from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 class Progress:
     """One status line a second: waypoint k of n, the master, each controller's state."""
 
-    def __init__(self, waypoints: int, planned_handovers: int, stream: Any = sys.stdout) -> None:
-        self.waypoints = waypoints
+    def __init__(
+        self,
+        waypoints: int,
+        planned_handovers: int,
+        stream: Any = sys.stdout,
+        what: str = "waypoint",
+    ) -> None:
+        self.waypoints = waypoints  # pictures expected, one a waypoint for "waypoint"
+        self.what = what
         self.planned = planned_handovers
         self.stream = stream
         self.started = time.monotonic()
@@ -78,12 +87,31 @@ class Progress:
             if c.waiting
         )
         print(
-            f"{self._stamp()} waypoint {snapshot.pictures}/{self.waypoints} | "
-            f"master {drone.master} | reqnr {drone.last_reqnr} | "
+            f"{self._stamp()} "
+            + (
+                f"waypoint {snapshot.pictures}/{self.waypoints}"
+                if self.waypoints and self.what == "waypoint"
+                else f"pictures {snapshot.pictures}"
+                + (f"/{self.waypoints}" if self.waypoints else "")
+            )
+            + " | "
+            + f"master {drone.master} | reqnr {drone.last_reqnr} | "
             f"handovers {scripted}/{self.planned}{others} | {states}{vehicle}",
             file=self.stream,
             flush=True,
         )
+
+
+def files_note(files: dict[str, Any]) -> str:
+    """Where the run's logs are, and the command that replays them."""
+    mission = files["mission"]
+    args = "".join(f" --mission-arg {shlex.quote(arg)}" for arg in mission["args"])
+    tlogs = ", ".join(files["tlogs"]) or "none"
+    return (
+        f"controller logs: {', '.join(files['controller_logs'].values())}\n"
+        f"replay them: baton replay {files['workdir']} --mission {mission['file']}{args}\n"
+        f"telemetry log (.tlog): {tlogs}"
+    )
 
 
 def write_report(report: dict[str, Any], path: Path) -> None:
@@ -104,8 +132,14 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     )
     started = time.monotonic()
     testbed = LocalTestbed(plan, workdir)
+    flight_plan = load_plan(str(plan.flight_plan)) if plan.flight_plan is not None else None
     try:
-        progress = Progress(plan.mission.grid**2, len(plan.handovers))
+        # The grid mission takes a picture at each waypoint; a plan, where it says.
+        pictures = plan.mission.grid**2 if plan.mission_file == GRID_MISSION else 0
+        if flight_plan is not None:
+            pictures = flight_plan.pictures or 0
+        grid = plan.mission_file == GRID_MISSION
+        progress = Progress(pictures, len(plan.handovers), what="waypoint" if grid else "pictures")
         config = await testbed.start(progress.vehicle_wait)
         write_atomically(
             workdir / "pids.json",
@@ -129,10 +163,14 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
         time.monotonic() - started,
         list(plan.handovers),
         plan.mission.spacing_m,
+        flight_plan,
+        grid_mission=plan.mission_file == GRID_MISSION,
     )
+    report["files"] = files = testbed.files()
     write_report(report, report_path)
     print(summary_table(report), flush=True)
     print(f"report: {report_path}", flush=True)
+    print(files_note(files), flush=True)
     return 0 if run_succeeded(report) and not report["handovers_missed"] else 1
 
 

@@ -1,13 +1,20 @@
-"""The MAVLink signing relay between MAVSDK and the autopilot (docs/design.md, Security).
+"""The MAVLink relay between MAVSDK and the autopilot: signing, and the telemetry log.
 
-MAVSDK has no message signing (mavlink/MAVSDK#1060), so when the drone is
-given a key (``baton drone --mavlink-key FILE``) MAVSDK does not talk to the
-autopilot itself: it talks to this relay on a loopback UDP port, and the
-relay holds the autopilot link at the vehicle URL. Every frame MAVSDK sends
-is signed on its way out (``Signer.sign``); every frame the autopilot sends
-is passed to MAVSDK only with a valid signature (``Signer.check``: the
+MAVSDK talks to the autopilot itself unless the drone signs its MAVLink or
+records it; then MAVSDK talks to this relay on a loopback UDP port, and the
+relay holds the autopilot link at the vehicle URL.
+
+*Signing* (docs/design.md, Security; ``baton drone --mavlink-key FILE``):
+MAVSDK has no message signing (mavlink/MAVSDK#1060). Every frame MAVSDK
+sends is signed on its way out (``Signer.sign``); every frame the autopilot
+sends is passed to MAVSDK only with a valid signature (``Signer.check``: the
 stream's timestamp must move forward, so a recorded frame cannot be played
 again). MAVSDK's parser accepts signed frames without checking them.
+
+*The telemetry log* (``baton drone --tlog-dir DIR``, ``drone/tlog.py``):
+every packet that crosses the relay, both ways, is teed into the run's
+``.tlog`` as it passes: the frames sent to the autopilot as sent (signed, if
+signing), and those passed on from it.
 
 The relay speaks the vehicle URLs a drone uses over a network: ``udpin://``
 (``udp://``), ``udpout://``, ``tcpout://`` (``tcp://``) and ``tcpin://``. A
@@ -31,6 +38,7 @@ from dataclasses import dataclass
 from urllib.parse import urlsplit
 
 from baton import logs
+from baton.drone.tlog import MavlinkFramer, TlogWriter
 from baton.signing import REFUSAL_LOG_S, Signer
 
 RECONNECT_S = 1.0
@@ -50,10 +58,16 @@ class VehicleEndpoint:
     port: int
 
     @classmethod
-    def parse(cls, url: str) -> VehicleEndpoint:
-        """The endpoint of a MAVSDK vehicle URL, or ``RelayUrlError``."""
+    def parse(cls, url: str, tlog: bool = False) -> VehicleEndpoint:
+        """The endpoint of a MAVSDK vehicle URL, or ``RelayUrlError`` (for signing, or
+        with ``tlog`` for recording the telemetry log)."""
         parts = urlsplit(url)
         scheme = {"udp": "udpin", "tcp": "tcpout"}.get(parts.scheme, parts.scheme)
+        if parts.scheme == "serial" and tlog:
+            raise RelayUrlError(
+                f"vehicle URL {url}: the telemetry log is recorded on a UDP or TCP vehicle "
+                "link only; leave out --tlog-dir on a serial link"
+            )
         if parts.scheme == "serial":
             raise RelayUrlError(
                 f"vehicle URL {url}: MAVLink signing is not available on a serial link "
@@ -66,19 +80,27 @@ class VehicleEndpoint:
             port = None
         if parts.scheme not in SIGNED_SCHEMES or not parts.hostname or port is None:
             raise RelayUrlError(
-                f"vehicle URL {url}: signing needs one of "
+                f"vehicle URL {url}: {'the telemetry log' if tlog else 'signing'} needs one of "
                 f"{', '.join(s + '://HOST:PORT' for s in SIGNED_SCHEMES)}"
             )
         return cls(scheme, parts.hostname, port)
 
 
-class SigningRelay:
-    """MAVSDK (loopback UDP) to the autopilot (vehicle URL), signing and checking."""
+class MavlinkRelay:
+    """MAVSDK (loopback UDP) to the autopilot (vehicle URL): signing and checking with a
+    ``key``, recording into ``tlog`` with one."""
 
-    def __init__(self, vehicle_url: str, key: bytes) -> None:
+    def __init__(
+        self, vehicle_url: str, key: bytes | None = None, tlog: TlogWriter | None = None
+    ) -> None:
         self.vehicle_url = vehicle_url
-        self.endpoint = VehicleEndpoint.parse(vehicle_url)
-        self.signer = Signer(key)
+        self.endpoint = VehicleEndpoint.parse(vehicle_url, tlog=key is None)
+        self.signer = Signer(key) if key is not None else None
+        self.tlog = tlog
+        # Without a signer (which frames what it signs and checks), whole packets are
+        # cut out of the stream here: one per datagram to MAVSDK, one per tlog record.
+        self._outgoing = MavlinkFramer()
+        self._incoming = MavlinkFramer()
         self.signed = 0
         self.refused = 0
         self.last_refusal = ""
@@ -91,7 +113,7 @@ class SigningRelay:
         self._server: asyncio.Server | None = None
         self._refusals_logged_at = 0.0
         self._refusals_unlogged = 0
-        self._log = logs.get_logger("drone.signing", vehicle=vehicle_url)
+        self._log = logs.get_logger("drone.relay", vehicle=vehicle_url)
 
     async def start(self) -> str:
         """Opens both sides; returns the URL MAVSDK should connect to."""
@@ -114,7 +136,12 @@ class SigningRelay:
             self._tasks.append(asyncio.create_task(self._dial(), name="signing-relay dial"))
         else:
             self._server = await asyncio.start_server(self._accepted, end.host, end.port)
-        self._log.info("signing relay started", mavsdk_port=port)
+        self._log.info(
+            "MAVLink relay started",
+            mavsdk_port=port,
+            signing=self.signer is not None,
+            tlog=str(self.tlog.path) if self.tlog else None,
+        )
         return f"udpout://127.0.0.1:{port}"
 
     async def close(self) -> None:
@@ -130,16 +157,23 @@ class SigningRelay:
                 transport.close()
         if self._tcp is not None:
             self._tcp.close()
+        if self.tlog is not None:
+            self.tlog.close()
 
     # --- MAVSDK to the autopilot ---------------------------------------------------
 
     def _from_mavsdk(self, data: bytes, address: tuple[str, int]) -> None:
         self._mavsdk_address = address
-        frames, dropped = self.signer.sign(data)
-        for reason in dropped:
-            self._log.warning("frame from MAVSDK not sent", reason=reason)
+        if self.signer is None:
+            frames = self._outgoing.frames(data)
+        else:
+            frames, dropped = self.signer.sign(data)
+            for reason in dropped:
+                self._log.warning("frame from MAVSDK not sent", reason=reason)
+            self.signed += len(frames)
+        if self.tlog is not None:
+            self.tlog.record(frames)
         for frame in frames:
-            self.signed += 1
             if self._udp is not None and self.endpoint.scheme == "udpout":
                 self._udp.sendto(frame)  # a connected socket: to the autopilot's address
             elif self._udp is not None and self._udp_peer is not None:
@@ -155,12 +189,18 @@ class SigningRelay:
         self._from_vehicle(data)
 
     def _from_vehicle(self, data: bytes) -> None:
-        checked = self.signer.check(data)
-        if checked.refused:
-            self._refuse(checked.refused)
+        if self.signer is None:
+            frames = self._incoming.frames(data)
+        else:
+            checked = self.signer.check(data)
+            if checked.refused:
+                self._refuse(checked.refused)
+            frames = checked.accepted
+        if self.tlog is not None:
+            self.tlog.record(frames)
         if self._local is None or self._mavsdk_address is None:
             return  # MAVSDK has not said where it is yet; it heartbeats at once
-        for frame in checked.accepted:
+        for frame in frames:
             self._local.sendto(frame, self._mavsdk_address)
 
     def _refuse(self, reasons: list[str]) -> None:
@@ -201,6 +241,7 @@ class SigningRelay:
 
     async def _hold(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self._tcp = writer
+        self._incoming = MavlinkFramer()  # a new stream: no half packet of the last one
         try:
             while data := await reader.read(65536):
                 self._from_vehicle(data)

@@ -1,0 +1,1 @@
+"""Offline replay of saved mission logs against a mission program (``baton replay``)."""
