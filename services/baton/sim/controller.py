@@ -192,6 +192,7 @@ class SimController:
         self.routed_around: list[int] = []
         self.route_held = False  # a route held back polls (_route_again)
         self._gap: tuple[int, float, float] | None = None  # node.py ControllerNode._gap
+        self.sent_straight: dict[int, int] = {}  # node.py ControllerNode._sent_straight
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -237,6 +238,10 @@ class SimController:
                 message = effect.message
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
                 self.world.framings.setdefault(message.lognr, set()).add(message.epoch)
+                if effect.copy:  # a prepared handover's target: held once already
+                    self.peer(effect.dest).send(message)
+                    self.sent_straight[effect.dest] = message.lognr
+                    continue
                 if not message.handover:  # it enters the history when it comes back (F7)
                     self.history.add(message)
                     self.peer(self.protocol.successor).holds_changed()
@@ -629,7 +634,20 @@ class SimController:
         except ProtocolError:
             return
         self.world.trace(f"controller {self.id} hands over to {new_master}")
+        if self.world.cut_through:
+            self._send_catch_up(new_master)
         self._apply(effects)
+
+    def _send_catch_up(self, target: int) -> None:
+        """ControllerNode._send_catch_up: what the target may lack, straight to it."""
+        if target == self.protocol.successor:
+            return
+        link = self.peer(target)
+        sent = max(self.protocol.acked_lognr, self.sent_straight.get(target, 0))
+        for lognr in self.history.above(sent):
+            self.world.trace(f"controller {self.id} sends {lognr} straight to {target}")
+            link.send(self.history.get(lognr))
+            self.sent_straight[target] = lognr
 
     def on_log(self, message: ring_pb2.LogMessage) -> None:
         """ControllerNode.on_log (lines 30-47)."""

@@ -133,6 +133,10 @@ class World:
         self.ring = list(range(n))
         rng.shuffle(self.ring)
         self.flush_limit = rng.choice((0, 0, 64, 256, 1024, 2048, 4096))
+        # The ring's forwarding (RingConfig.forwarding): cut-through's straight copies
+        # to a handover's target (frames relayed as they come change only timing,
+        # docs/design.md "The ring's forwarding"); the runtime's default.
+        self.cut_through = True
         self.program: tuple[MissionCall, ...] = random_mission(
             rng, rng.randint(options.min_calls, options.max_calls)
         )
