@@ -53,6 +53,9 @@ async def test_timeline_quick(tmp_path: Path) -> None:
     lines = (tmp_path / "timeline.csv").read_text().splitlines()
     assert lines[0].startswith("reqnr,method,controller,received_at,inter_arrival_s")
     assert len(lines) - 1 == result["requests"]
+    # The same three handovers prepared, on the cut-through ring: all caught up.
+    assert [h["kind"] for h in result["prepared_handovers"]] == ["prepared"] * 3
+    assert (tmp_path / "timeline-prepared.png").stat().st_size > 0
     handovers = result["handovers"]
     assert len(handovers) == 3
     assert all(h["delay_s"] > 0 for h in handovers)

@@ -354,6 +354,7 @@ class PeerStatus(_message.Message):
     SENT_MESSAGES_FIELD_NUMBER: _builtins.int
     RELAYED_MESSAGES_FIELD_NUMBER: _builtins.int
     RELAYS_ABORTED_FIELD_NUMBER: _builtins.int
+    RELAYING_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The peer's controller id."""
     address: _builtins.str
@@ -372,6 +373,8 @@ class PeerStatus(_message.Message):
     """Relayed messages given up part-way (not forwarded after all, or a stream
     broke): the peer was told to drop them, and got them whole if forwarded.
     """
+    relaying: _builtins.int
+    """The log number of the message being relayed now (0: none)."""
     def __init__(
         self,
         *,
@@ -383,10 +386,11 @@ class PeerStatus(_message.Message):
         sent_messages: _builtins.int = ...,
         relayed_messages: _builtins.int = ...,
         relays_aborted: _builtins.int = ...,
+        relaying: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["address", b"address", "connects", b"connects", "id", b"id", "relayed_messages", b"relayed_messages", "relays_aborted", b"relays_aborted", "sent_messages", b"sent_messages", "stream_up", b"stream_up", "unacked", b"unacked"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["address", b"address", "connects", b"connects", "id", b"id", "relayed_messages", b"relayed_messages", "relaying", b"relaying", "relays_aborted", b"relays_aborted", "sent_messages", b"sent_messages", "stream_up", b"stream_up", "unacked", b"unacked"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -7,7 +7,10 @@ from it (``model.master_log_sizes``), and three handovers are placed in the
 core of the mission where the log holds about 0, 1 and 2 MB. The measured run
 then has the drone hand over at those request numbers. The figure shows the
 inter-arrival time of requests at the drone and the master's log size over
-the request number, with the handovers as dashed lines.
+the request number, with the handovers as dashed lines. A last run makes the
+same three handovers as baton's prepared handovers on its cut-through ring
+(docs/design.md, "Prepared handover"), so that the paper's and baton's pauses
+are measured side by side.
 """
 
 from __future__ import annotations
@@ -71,12 +74,15 @@ class TimelineSettings:
             flush_limit=self.flush_limit if flush_limit is None else flush_limit,
         )
 
-    def plan(self, handovers: tuple[tuple[int, int], ...]) -> TestbedPlan:
-        """The testbed plan with ``handovers``."""
+    def plan(self, handovers: tuple[tuple[int, int], ...], prepared: bool = False) -> TestbedPlan:
+        """The testbed plan with ``handovers``: the paper's (forced, store-and-forward),
+        or baton's prepared ones on its cut-through ring."""
         return TestbedPlan(
             controllers=self.controllers,
             flush_limit=self.flush_limit,
             handovers=handovers,
+            prepared=prepared,
+            forwarding="cut-through" if prepared else "store-and-forward",
             speedup=self.speedup,
             mission=self.mission,
             resolution=self.resolution,
@@ -249,35 +255,13 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
         # the mission waits), so later ones are placed again on this run.
         kept = list(handovers[: off[0]])
         reference = measured
+    prepared = await run_plan(
+        settings.plan(handovers, prepared=True), runs / "prepared", timeout, "timeline prepared"
+    )
     rows = timeline_rows(measured, settings.flush_limit)
-    by_reqnr = {r["reqnr"]: r for r in rows}
-    records = []
-    for target, h in zip(settings.targets, measured.drone.handovers, strict=True):
-        # The next request the drone saw (Clock calls never reach it).
-        first = min((r for r in by_reqnr if r > h.after_reqnr), default=0)
-        records.append(
-            {
-                "after_reqnr": h.after_reqnr,
-                "new_master": h.new_master,
-                "target_bytes": target,
-                "log_bytes": by_reqnr[h.after_reqnr]["log_bytes"],
-                "delay_s": h.delay_s,
-                "ready_s": drone_connected_after(workdir / "logs", h.new_master, h.decided_at)
-                - h.decided_at,
-                "inter_arrival_s": by_reqnr[first]["inter_arrival_s"] if first in by_reqnr else 0,
-            }
-        )
-    polls = [r["inter_arrival_s"] for r in rows[1:] if r["method"] == "GetPosition"]
-    pictures = [
-        by_reqnr[r["reqnr"] + 1]["inter_arrival_s"]
-        for r in rows
-        if r["method"] == "TakePicture" and r["reqnr"] + 1 in by_reqnr
-    ]
-    poll_median = statistics.median(polls) if polls else 0.0
-    for record in records:
-        # What the handover added over the request's usual spacing: the new
-        # master's program sleeps one poll period too, as the old one would.
-        record["extra_s"] = record["inter_arrival_s"] - poll_median
+    records = handover_records(measured, rows, settings, workdir)
+    prepared_rows = timeline_rows(prepared, settings.flush_limit)
+    prepared_records = handover_records(prepared, prepared_rows, settings, runs / "prepared")
     result = {
         "settings": {
             "mission": settings.mission.__dict__,
@@ -290,31 +274,92 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
         "requests": len(rows),
         "dry_run_requests": dry_requests,
         "attempts": attempts,
-        "poll_inter_arrival_median_s": poll_median,
-        "after_picture_inter_arrival_median_s": statistics.median(pictures) if pictures else 0.0,
+        "poll_inter_arrival_median_s": poll_median(rows),
+        "after_picture_inter_arrival_median_s": after_picture_median(rows),
         "handovers": records,
+        "prepared_handovers": prepared_records,
     }
     write_json(out / "timeline.json", result)
     with (out / "timeline.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    plot_timeline(
-        [r["reqnr"] for r in rows],
-        [r["inter_arrival_s"] for r in rows],
-        # At a flush, the log as it was sent (f + e at most), then empty.
-        [r["flushed_bytes"] or r["log_bytes"] for r in rows],
-        [h.after_reqnr for h in measured.drone.handovers],
-        settings.flush_limit,
-        out / "timeline.png",
-    )
+    for run, run_rows, name in (
+        (measured, rows, "timeline.png"),
+        (prepared, prepared_rows, "timeline-prepared.png"),
+    ):
+        plot_timeline(
+            [r["reqnr"] for r in run_rows],
+            [r["inter_arrival_s"] for r in run_rows],
+            # At a flush, the log as it was sent (f + e at most), then empty.
+            [r["flushed_bytes"] or r["log_bytes"] for r in run_rows],
+            [h.after_reqnr for h in run.drone.handovers],
+            settings.flush_limit,
+            out / name,
+        )
     return result
 
 
+def poll_median(rows: list[dict[str, Any]]) -> float:
+    """The median inter-arrival time of the position polls."""
+    polls = [r["inter_arrival_s"] for r in rows[1:] if r["method"] == "GetPosition"]
+    return statistics.median(polls) if polls else 0.0
+
+
+def after_picture_median(rows: list[dict[str, Any]]) -> float:
+    """The median inter-arrival time of the request after a picture."""
+    by_reqnr = {r["reqnr"]: r for r in rows}
+    pictures = [
+        by_reqnr[r["reqnr"] + 1]["inter_arrival_s"]
+        for r in rows
+        if r["method"] == "TakePicture" and r["reqnr"] + 1 in by_reqnr
+    ]
+    return statistics.median(pictures) if pictures else 0.0
+
+
+def handover_records(
+    run: Snapshot, rows: list[dict[str, Any]], settings: TimelineSettings, workdir: Path
+) -> list[dict[str, Any]]:
+    """Each handover of ``run``: its delay, what it cost the mission, its kind."""
+    by_reqnr = {r["reqnr"]: r for r in rows}
+    records = []
+    for target, h in zip(settings.targets, run.drone.handovers, strict=True):
+        # The next request the drone saw (Clock calls never reach it).
+        first = min((r for r in by_reqnr if r > h.after_reqnr), default=0)
+        records.append(
+            {
+                "after_reqnr": h.after_reqnr,
+                "new_master": h.new_master,
+                "target_bytes": target,
+                # Prepared: what the new master lacked when the drone moved the master.
+                "log_bytes": (
+                    h.prepare_lacked_bytes
+                    if h.kind == "prepared"
+                    else by_reqnr[h.after_reqnr]["log_bytes"]
+                ),
+                "delay_s": h.delay_s,
+                "ready_s": drone_connected_after(workdir / "logs", h.new_master, h.decided_at)
+                - h.decided_at,
+                "inter_arrival_s": by_reqnr[first]["inter_arrival_s"] if first in by_reqnr else 0,
+                "kind": h.kind,
+                "prepare_s": h.decided_at - h.prepare_started_at if h.prepare_started_at else 0.0,
+            }
+        )
+    median = poll_median(rows)
+    for record in records:
+        # What the handover added over the request's usual spacing: the new
+        # master's program sleeps one poll period too, as the old one would.
+        record["extra_s"] = record["inter_arrival_s"] - median
+    return records
+
+
 def table(result: dict[str, Any]) -> str:
-    """The handovers of the measured run as a markdown table."""
+    """The handovers of the measured runs as a markdown table: the paper's, then the
+    same ones prepared."""
     rows = [
         [
+            h["kind"],
+            f"{h['prepare_s'] * 1e3:.0f}" if h["prepare_s"] else "-",
             h["after_reqnr"],
             h["new_master"],
             f"{h['target_bytes'] / MB:g}",
@@ -324,10 +369,12 @@ def table(result: dict[str, Any]) -> str:
             f"{h['inter_arrival_s'] * 1e3:.0f}",
             f"{h['extra_s'] * 1e3:.0f}",
         ]
-        for h in result["handovers"]
+        for h in [*result["handovers"], *result.get("prepared_handovers", [])]
     ]
     text = markdown_table(
         [
+            "kind",
+            "preparation (ms)",
             "after reqnr",
             "new master",
             "target log (MB)",

@@ -338,6 +338,12 @@ class PeerLink:
         return len(self._unacked)
 
     @property
+    def relaying(self) -> int:
+        """The log number of the message being passed on frame by frame (0: none)."""
+        written = [lognr for lognr, relay in self._relays.items() if relay.frames_written]
+        return written[0] if written else 0
+
+    @property
     def unacked_bytes(self) -> int:
         """The serialized size of the messages sent and not yet acknowledged."""
         return sum(message.ByteSize() for message in self._unacked.values())
@@ -447,6 +453,7 @@ class PeerLink:
                     if relay.frames_written:
                         relay.abort()
                         del self._relays[lognr]
+                        self.counters.relays_aborted += 1
 
     async def _write_relay(
         self, call: grpc.aio.StreamStreamCall, relay: Relay, acks: asyncio.Task[None]

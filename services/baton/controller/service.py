@@ -238,6 +238,7 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
                 sent_messages=link.counters.sent_messages - link.counters.relayed_messages,
                 relayed_messages=link.counters.relayed_messages,
                 relays_aborted=link.counters.relays_aborted,
+                relaying=link.relaying,
             )
             for pid, link in sorted(node.peers.items())
         ],

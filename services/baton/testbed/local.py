@@ -71,6 +71,7 @@ class TestbedPlan:
     handovers: tuple[tuple[int, int], ...] = ()  # (after reqnr, new master)
     # The scripted handovers are prepared ones (docs/design.md, "Prepared handover").
     prepared: bool = False
+    prepare_timeout: float | None = None  # the testbed file's prepare_timeout, if given
     speedup: float = 10.0
     mission: MissionPlan = MissionPlan()
     mission_file: Path = GRID_MISSION
@@ -279,6 +280,8 @@ class LocalTestbed:
             "flush_limit": plan.flush_limit,
             "speedup": plan.speedup,
         }
+        if plan.prepare_timeout is not None:
+            document["prepare_timeout"] = plan.prepare_timeout
         if plan.emulate_links:
             document["controller_link"] = plan.controller_link.model_dump()
             document["drone_link"] = plan.drone_link.model_dump()

@@ -273,6 +273,14 @@ def build_report(
                     if record.kind == "takeover"
                     else None
                 ),
+                # A prepared handover (or one forced when its preparation ran out of
+                # time): how long the preparation took, and what the target lacked.
+                "prepare_s": (
+                    round(record.decided_at - record.prepare_started_at, 6)
+                    if record.prepare_started_at
+                    else None
+                ),
+                "prepare_timed_out": record.prepare_timed_out,
                 "log_bytes": moved,
                 "delay_s": round(record.delay_s, 6),
                 "model_worst_case_s": round(
@@ -424,6 +432,9 @@ def summary_table(report: dict[str, Any]) -> str:
         kind = h.get("kind") or "cooperative"
         if kind == "takeover":
             kind += f" ({h['trigger']}, detected after {h['detection_s']:.3f} s)"
+        elif h.get("prepare_s") is not None:
+            what = "preparation timed out" if h["prepare_timed_out"] else "prepared"
+            kind += f" ({what} in {h['prepare_s']:.3f} s)"
         lines.append(
             f"{k:>8} {h['from']:>4} {h['to']:>3} {h['after_reqnr']:>6} {h['hops']:>4} "
             f"{h['log_bytes']:>10} {h['delay_s']:>8.3f} {h['model_worst_case_s']:>8.3f}  {kind}"
