@@ -60,7 +60,8 @@ def assert_mission_promises(snapshot: Snapshot, plan: TestbedPlan) -> None:
     scripted = [h for h in drone.handovers if h.trigger == "script"]
     assert [h.new_master for h in scripted] == [mid for _, mid in plan.handovers]
     for record, (planned, _) in zip(scripted, plan.handovers, strict=True):
-        assert planned <= record.after_reqnr <= planned + 2
+        # A prepared handover moves the master once the target caught up, later.
+        assert planned <= record.after_reqnr <= planned + (1000 if plan.prepared else 2)
     # Every handover ended with the new master's first request, except one whose old
     # master died before its log left: the next record re-grants it by takeover.
     records = list(drone.handovers)

@@ -9,6 +9,7 @@ from baton.digest import request_digest
 from baton.drone.dedupe import GIVEN_UP, CachedReply
 from baton.drone.sequencer import MAX_REQNR_GAP, ScriptedHandover, Sequencer
 from baton.rpc.errors import StatusError
+from baton.v1 import drone_pb2
 
 GET = "/baton.v1.Mobility/GetPosition"
 DIGEST = request_digest(GET, b"")
@@ -368,3 +369,85 @@ def test_a_handover_from_an_initial_master_never_connected_is_a_takeover() -> No
     served = Sequencer([0, 1, 2], initial_master=0)
     serve(served, 0, 1, 1)  # it served a request (before a drone restart, say)
     assert not served.handover_must_take_over(1)
+
+
+# -- prepared handovers (docs/design.md, "Prepared handover") -------------------------
+
+
+def progress(
+    target: int, lacks: int, behind_s: float = 0.0, acked: int = 1
+) -> drone_pb2.PreparationProgress:
+    return drone_pb2.PreparationProgress(
+        target=target, lacks_bytes=lacks, behind_s=behind_s, acked=acked
+    )
+
+
+def serve_with(
+    seq: Sequencer, reqnr: int, word: drone_pb2.PreparationProgress | None, reply: bytes
+):  # type: ignore[no-untyped-def]
+    assert seq.admit(0, 1, reqnr, GET, DIGEST) is None
+    seq.note_progress(0, 1, word)
+    return seq.served(0, reqnr, GET, DIGEST, reply, float(reqnr), now=float(reqnr))
+
+
+def test_a_prepared_handover_moves_the_master_once_the_target_lacks_little() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0, prepare_timeout_s=10.0)
+    serve(seq, 0, 1, 1)
+    notice = seq.prepare(2, "rpc", now=1.0)
+    assert (notice.target, notice.epoch, notice.timeout_s) == (2, 1, 10.0)
+    # Not heard yet, then far behind: the master stays.
+    assert serve_with(seq, 2, None, b"r").handover is None
+    assert serve_with(seq, 3, progress(2, 1 << 20), b"r").handover is None
+    # Little left, but this request's reply is a picture: not yet.
+    assert serve_with(seq, 4, progress(2, 100), b"p" * (20 << 10)).handover is None
+    # Little left and acknowledged lately, but a word about another target: ignored.
+    assert serve_with(seq, 5, progress(1, 100), b"r").handover is None
+    # Little left, but its oldest message waits for an acknowledgement: a frozen target.
+    assert serve_with(seq, 6, progress(2, 100, behind_s=0.3), b"r").handover is None
+    # Little left, nothing waits, but nothing acknowledged since the preparation began.
+    assert serve_with(seq, 7, progress(2, 100, acked=0), b"r").handover is None
+    record = serve_with(seq, 8, progress(2, 100, behind_s=0.05), b"r").handover
+    assert record is not None and (record.kind, record.new_master, record.epoch) == (
+        "prepared",
+        2,
+        2,
+    )
+    assert (record.prepare_started_at, record.prepare_lacked_bytes) == (1.0, 101)
+    assert not record.prepare_timed_out and seq.preparing is None
+    assert seq.pending[0].new_master == 2  # the old master's notice, as for any switch
+
+
+def test_a_prepared_handover_is_forced_at_its_timeout_with_or_without_a_request() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0, prepare_timeout_s=2.0)
+    serve(seq, 0, 1, 1)
+    seq.prepare(1, "script", now=1.0)
+    assert seq.preparation_expired(2.9) is None
+    forced = seq.preparation_expired(3.0)
+    assert forced is not None and (forced.kind, forced.prepare_timed_out) == ("cooperative", True)
+    assert forced.trigger == "script" and seq.master == 1
+    # After a request: the same at its end, if the target is still behind.
+    seq2 = Sequencer([0, 1], initial_master=0, prepare_timeout_s=2.0)
+    seq2.prepare(1, "rpc", now=0.0)
+    assert serve_with(seq2, 1, progress(1, 1 << 20), b"r").handover is None
+    late = serve_with(seq2, 2, progress(1, 1 << 20), b"r").handover
+    assert late is not None and late.prepare_timed_out and late.kind == "cooperative"
+
+
+def test_any_switch_ends_a_preparation_and_the_master_itself_is_refused() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    with pytest.raises(StatusError) as itself:
+        seq.prepare(0, "rpc", now=0.0)
+    assert itself.value.code is grpc.StatusCode.FAILED_PRECONDITION
+    seq.prepare(2, "rpc", now=0.0)
+    seq.switch(1, "lost", now=1.0, takeover=True)
+    assert seq.preparing is None and seq.preparation_expired(100.0) is None
+
+
+def test_a_script_line_marked_prepared_begins_a_preparation() -> None:
+    script = {2: ScriptedHandover(2, 1, 1, prepared=True)}
+    seq = Sequencer([0, 1], initial_master=0, script=script)
+    serve(seq, 0, 1, 1)
+    assert seq.admit(0, 1, 2, GET, DIGEST) is None
+    served = seq.served(0, 2, GET, DIGEST, b"r", 2.0, now=2.0)
+    assert served.handover is None and served.prepare is not None
+    assert served.prepare.target == 1 and seq.master == 0

@@ -105,21 +105,34 @@ class PreparationProgress(_message.Message):
 
     TARGET_FIELD_NUMBER: _builtins.int
     LACKS_BYTES_FIELD_NUMBER: _builtins.int
+    BEHIND_S_FIELD_NUMBER: _builtins.int
+    ACKED_FIELD_NUMBER: _builtins.int
     target: _builtins.int
     """The controller it prepares to hand over to."""
     lacks_bytes: _builtins.int
     """The bytes of log the target lacks: the messages sent to it and not
     acknowledged, and the master's unflushed log.
     """
+    behind_s: _builtins.float
+    """How long the oldest of those messages has waited for the target's
+    acknowledgement, seconds (0: none waits): a target that lacks little but
+    acknowledges nothing (its link froze) has not caught up.
+    """
+    acked: _builtins.int
+    """Messages the target has acknowledged since the preparation began: the
+    drone moves the master only to a target heard from since (0: none).
+    """
     def __init__(
         self,
         *,
         target: _builtins.int = ...,
         lacks_bytes: _builtins.int = ...,
+        behind_s: _builtins.float = ...,
+        acked: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["lacks_bytes", b"lacks_bytes", "target", b"target"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["acked", b"acked", "behind_s", b"behind_s", "lacks_bytes", b"lacks_bytes", "target", b"target"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

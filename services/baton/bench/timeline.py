@@ -322,7 +322,7 @@ def handover_records(
 ) -> list[dict[str, Any]]:
     """Each handover of ``run``: its delay, what it cost the mission, its kind."""
     by_reqnr = {r["reqnr"]: r for r in rows}
-    records = []
+    records: list[dict[str, Any]] = []
     for target, h in zip(settings.targets, run.drone.handovers, strict=True):
         # The next request the drone saw (Clock calls never reach it).
         first = min((r for r in by_reqnr if r > h.after_reqnr), default=0)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import math
 import time
 from collections import deque
 from collections.abc import Callable, Coroutine, Sequence
@@ -190,6 +191,10 @@ class ControllerNode:
         self._peers: dict[int, PeerLink] = {}
         # The highest log number sent straight to each handover target (_send_catch_up).
         self._sent_straight: dict[int, int] = {}
+        # The target's acknowledgements counted when the preparation began.
+        self._acked_before_prepare = 0
+        # When a frame of each log number last arrived (``arriving``), the newest few.
+        self._arriving: dict[int, float] = {}
         self._drone: DroneSession | None = None
         self._busy: str | None = None
         # Calls the program gave up on while this controller waited for the log, in order.
@@ -446,6 +451,12 @@ class ControllerNode:
         dest = self.protocol.forward_dest(head)
         return None if dest is None else self.peer(dest).relay(head.lognr, total_bytes)
 
+    def arriving(self, lognr: int) -> None:
+        """A frame of message ``lognr`` arrived: it is on its way, not missing."""
+        self._arriving[lognr] = time.monotonic()
+        if len(self._arriving) > 64:
+            del self._arriving[min(self._arriving)]
+
     def _send_catch_up(self, target: int) -> None:
         """A handover's target is sent straight from us what it may lack: our messages
         the ring has not yet brought back to us (above ``acked_lognr``), and not sent to
@@ -472,6 +483,7 @@ class ControllerNode:
         if self.protocol.preparing_for != prepare.target:
             return  # not ACTIVE in that epoch: the drone's word came late
         self.log.info("preparing a handover", target=prepare.target, timeout_s=prepare.timeout_s)
+        self._acked_before_prepare = self.peer(prepare.target).counters.acked
         self._send_catch_up(prepare.target)
         await self._apply(effects)
         loop = asyncio.get_running_loop()
@@ -494,7 +506,14 @@ class ControllerNode:
             return None
         link = self._peers.get(target)
         lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
-        return drone_pb2.PreparationProgress(target=target, lacks_bytes=lacks)
+        if link is None:
+            return drone_pb2.PreparationProgress(target=target, lacks_bytes=lacks)
+        return drone_pb2.PreparationProgress(
+            target=target,
+            lacks_bytes=lacks,
+            behind_s=link.waiting_for_ack_s(time.monotonic()),
+            acked=link.counters.acked - self._acked_before_prepare,
+        )
 
     def _handover_acked(self, message: ring_pb2.LogMessage) -> None:
         """The new master acknowledged our handover message: it enters our history now.
@@ -544,6 +563,11 @@ class ControllerNode:
             return
         repair_s = gap_repair_s(self.config.detection_s)
         if self._gap is None or self._gap[0] != missing:
+            self._gap = (missing, now, now + repair_s)
+            return
+        if now - self._arriving.get(missing, -math.inf) < repair_s:
+            # Its frames are coming (a large message over a slow link): not a gap.
+            # Re-opening the streams would only make it start again.
             self._gap = (missing, now, now + repair_s)
             return
         lognr, since, due = self._gap

@@ -227,6 +227,8 @@ class PeerLink:
         self._unacked: dict[int, ring_pb2.LogMessage] = {}
         # Messages being passed on frame by frame as they arrive (cut-through).
         self._relays: dict[int, Relay] = {}
+        # When each unacknowledged message was first given to ``send`` (monotonic).
+        self._sent_at: dict[int, float] = {}
         # The log numbers of the handover messages among them (``settle_handovers``).
         self._handovers: set[int] = set()
         # Called with a handover message its receiver acknowledged (set by the node).
@@ -261,6 +263,7 @@ class PeerLink:
         the receiver ignores a duplicate by log number and acknowledges it.
         """
         self._unacked[message.lognr] = message
+        self._sent_at.setdefault(message.lognr, time.monotonic())
         relay = self._relays.get(message.lognr)
         if relay is not None:
             relay.confirm()
@@ -342,6 +345,10 @@ class PeerLink:
         """The log number of the message being passed on frame by frame (0: none)."""
         written = [lognr for lognr, relay in self._relays.items() if relay.frames_written]
         return written[0] if written else 0
+
+    def waiting_for_ack_s(self, now: float) -> float:
+        """How long the oldest unacknowledged message has waited (0: none waits)."""
+        return now - min(self._sent_at.values()) if self._sent_at else 0.0
 
     @property
     def unacked_bytes(self) -> int:
@@ -513,6 +520,7 @@ class PeerLink:
     async def _read_acks(self, call: grpc.aio.StreamStreamCall) -> None:
         async for ack in _acks(call):
             message = self._unacked.pop(ack.lognr, None)
+            self._sent_at.pop(ack.lognr, None)
             self._handovers.discard(ack.lognr)
             self.counters.acked += 1
             if message is not None and message.handover and self.on_handover_acked is not None:
@@ -548,8 +556,12 @@ class RingReceiver:
         synced: Callable[[int, int, int], Awaitable[None]] | None = None,
         epoch_of: Callable[[int], int] | None = None,
         relay: Callable[[ring_pb2.LogMessage, int], Relay | None] | None = None,
+        arriving: Callable[[int], None] | None = None,
     ) -> None:
         self.my_id = my_id
+        # Told the log number of every frame of a message as it arrives (a message
+        # on its way is not missing: ``ControllerNode._repair_gap``).
+        self._arriving = arriving
         # Given a first frame's head and the message's size: the Relay that passes
         # its frames on as they come (cut-through), or None (store-and-forward).
         self._relay = relay
@@ -644,6 +656,8 @@ class RingReceiver:
                     return
                 if relay is not None:
                     relay.add(frame)
+                if self._arriving is not None:
+                    self._arriving(frame.lognr)
                 if message is None:
                     continue
                 await self._deliver(message)

@@ -135,6 +135,7 @@ def ring_receiver(node: ControllerNode) -> RingReceiver:
         node.on_sync,
         lambda lognr: node.protocol.epoch_of(lognr),
         node.relay_for,
+        node.arriving,
     )
 
 

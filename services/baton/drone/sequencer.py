@@ -56,6 +56,10 @@ AUDIT_IN_MEMORY = 1_000
 # A prepared handover moves the master once its target lacks at most this much
 # of the log, the reply served last included: 5 ms on a 25 Mbit/s link.
 PREPARED_BOUND_BYTES = 16 << 10
+# ... and has acknowledged every message it was sent more than this long ago, and
+# at least one since the preparation began: a target that lacks little but hears
+# nothing (its link froze) has not caught up.
+PREPARED_BEHIND_S = 0.25
 # How long a prepared handover waits for its target by default (wall seconds).
 PREPARE_TIMEOUT_S = 10.0
 
@@ -93,8 +97,11 @@ class Preparation:
     started_at: float
     deadline: float
     notice: drone_pb2.PrepareHandover
-    # The master's last word on what the target lacks (None: not heard yet).
+    # The master's last word on what the target lacks (None: not heard yet), and
+    # how long its oldest unacknowledged message has waited.
     lacks_bytes: int | None = None
+    behind_s: float = 0.0
+    acked: int = 0
 
 
 @dataclass(frozen=True)
@@ -668,7 +675,8 @@ class Sequencer:
         if p is None or progress is None or progress.target != p.target:
             return
         if controller_id == self.master and epoch == self.epoch:
-            p.lacks_bytes = progress.lacks_bytes
+            p.lacks_bytes, p.behind_s = progress.lacks_bytes, progress.behind_s
+            p.acked = progress.acked
 
     def preparation_expired(self, now: float) -> drone_pb2.HandoverRecord | None:
         """At the deadline with no request served meanwhile: the handover is forced."""
@@ -683,7 +691,15 @@ class Sequencer:
         p = self.preparing
         assert p is not None
         lacked = None if p.lacks_bytes is None else p.lacks_bytes + reply_bytes
-        caught_up = lacked is not None and lacked <= PREPARED_BOUND_BYTES
+        # A word speaks of the request it came with: the next must bring its own
+        # (this reply may be a picture the target now lacks too).
+        p.lacks_bytes = None
+        caught_up = (
+            lacked is not None
+            and lacked <= PREPARED_BOUND_BYTES
+            and p.behind_s <= PREPARED_BEHIND_S
+            and p.acked > 0
+        )
         if not caught_up and now < p.deadline:
             return None
         record = self.switch(p.target, p.trigger, now)
