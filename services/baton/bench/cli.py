@@ -79,6 +79,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     )
     worst.add_argument("--hops", default="1,3,5", help="comma-separated hop counts (default 1,3,5)")
     worst.add_argument(
+        "--controllers",
+        type=int,
+        default=6,
+        help="controllers in the ring (default 6, as the paper; 12 for hops up to 11)",
+    )
+    worst.add_argument(
         "--forwarding",
         default="store-and-forward,cut-through",
         help="the ring's forwarding modes to measure, in one run (default both: "
@@ -147,12 +153,16 @@ def _run_worst_case(args: argparse.Namespace) -> int:
     if args.quick:
         settings = WorstCaseSettings.quick()
     else:
-        settings = WorstCaseSettings(
-            flush_limits=tuple(_size_mb(s) for s in args.flush_limits.split(",")),
-            hops=tuple(int(h) for h in args.hops.split(",")),
-            repeat=args.repeat,
-            forwarding=tuple(_forwarding_modes(args.forwarding)),
-        )
+        try:
+            settings = WorstCaseSettings(
+                flush_limits=tuple(_size_mb(s) for s in args.flush_limits.split(",")),
+                hops=tuple(int(h) for h in args.hops.split(",")),
+                repeat=args.repeat,
+                forwarding=tuple(_forwarding_modes(args.forwarding)),
+                controllers=args.controllers,
+            )
+        except ValueError as exc:
+            raise SystemExit(f"baton bench worst-case: {exc}") from None
     result = asyncio.run(run_worst_case(settings, args.out))
     print(table(result["summary"]))
     return 0

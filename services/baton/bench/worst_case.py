@@ -58,6 +58,17 @@ class WorstCaseSettings:
     drone_link: LinkSpec = WIFI_DRONE_LINK
     # The ring's forwarding modes to measure (RingConfig.forwarding), in this order.
     forwarding: tuple[str, ...] = FORWARDING_MODES
+    controllers: int = CONTROLLERS
+
+    def __post_init__(self) -> None:
+        if not 2 <= self.controllers <= 16:
+            raise ValueError(f"controllers must be 2..16, got {self.controllers}")
+        far = [h for h in self.hops if not 0 < h < self.controllers]
+        if far:
+            raise ValueError(
+                f"hops {far} do not fit a ring of {self.controllers} controllers: "
+                f"use 1..{self.controllers - 1}"
+            )
 
     @classmethod
     def quick(cls) -> WorstCaseSettings:
@@ -65,13 +76,13 @@ class WorstCaseSettings:
         return cls(flush_limits=(MB,), hops=(1, 3), repeat=1)
 
 
-def settle_seconds(flush_limit: int, largest_entry: int, link: LinkSpec) -> float:
+def settle_seconds(
+    flush_limit: int, largest_entry: int, link: LinkSpec, controllers: int = CONTROLLERS
+) -> float:
     """Time for a log of f + e to go once round the ring, with room for replay and contention."""
     bandwidth = link.bandwidth or 1e12
-    return round(
-        1.3 * (CONTROLLERS - 1) * t_log(flush_limit + largest_entry, link.latency, bandwidth) + 1.0,
-        1,
-    )
+    once = t_log(flush_limit + largest_entry, link.latency, bandwidth)
+    return round(1.3 * (controllers - 1) * once + 1.0, 1)
 
 
 async def measure_flush_limit(
@@ -79,11 +90,13 @@ async def measure_flush_limit(
 ) -> dict[str, Any]:
     """One run at ``flush_limit`` with ``forwarding``: every hop count ``repeat`` times."""
     full_picture = entry_bytes_of_full_picture()
-    settle = settle_seconds(flush_limit, full_picture, settings.controller_link)
+    settle = settle_seconds(
+        flush_limit, full_picture, settings.controller_link, settings.controllers
+    )
     hop_sequence = [h for _ in range(settings.repeat) for h in settings.hops]
-    script = worst_case_script(flush_limit, hop_sequence, CONTROLLERS, settle)
+    script = worst_case_script(flush_limit, hop_sequence, settings.controllers, settle)
     plan = TestbedPlan(
-        controllers=CONTROLLERS,
+        controllers=settings.controllers,
         flush_limit=flush_limit,
         forwarding=forwarding,
         handovers=script.handovers,
@@ -322,7 +335,7 @@ def write_report(
     rows = summarize(runs)
     result = {
         "settings": {
-            "controllers": CONTROLLERS,
+            "controllers": settings.controllers,
             "flush_limits": list(settings.flush_limits),
             "hops": list(settings.hops),
             "repeat": settings.repeat,
@@ -353,6 +366,7 @@ def report_from_json(path: Path, out: Path) -> dict[str, Any]:
         hops=tuple(options["hops"]),
         repeat=options["repeat"],
         forwarding=tuple(options.get("forwarding", ["store-and-forward"])),
+        controllers=options.get("controllers", CONTROLLERS),
         controller_link=LinkSpec(**options["controller_link"]),
         drone_link=LinkSpec(**options["drone_link"]),
     )

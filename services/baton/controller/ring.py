@@ -46,6 +46,9 @@ from baton.v1 import ring_pb2, ring_pb2_grpc
 # The default frame size (the testbed file's ring.frame_bytes): a frame costs
 # 5 ms at 25 Mbit/s, the delay cut-through adds per hop (docs/design.md).
 FRAME_BYTES = 16 << 10
+# A relay holds at most this many frames not yet written on while its peer's
+# stream writes it: the stream it comes on waits for room (``Relay.room``).
+RELAY_WINDOW_FRAMES = 4
 BACKOFF_INITIAL_S = 0.05
 BACKOFF_MAX_S = 2.0
 
@@ -145,15 +148,29 @@ class Relay:
         self.confirmed = False
         self.aborted = False
         self.changed = asyncio.Event()
-        # Written on the current stream, bytes and frames (by the PeerLink).
+        # Written on the current stream, bytes and frames (by the PeerLink), and
+        # whether a stream is writing it now.
         self.written = 0
         self.frames_written = 0
+        self.writing = False
+        self._drained = asyncio.Event()
+        self.peak_buffered = 0
 
     def add(self, frame: ring_pb2.LogFrame) -> None:
         """A frame of the message arrived (in order: the Reassembler checked it)."""
         self._frames.append(frame)
         self._received += len(frame.data)
+        self.peak_buffered = max(self.peak_buffered, len(self._frames))
         self.changed.set()
+
+    async def room(self) -> None:
+        """Waits while the frames not yet written fill the window and a stream is
+        writing them: the stream the message comes on goes at the pace of the one it
+        goes on, and a relay holds a few frames, not the message. A relay no stream
+        writes (the peer's stream down, or busy) does not hold its sender back."""
+        while len(self._frames) >= RELAY_WINDOW_FRAMES and self.writing and not self.aborted:
+            self._drained.clear()
+            await self._drained.wait()
 
     def confirm(self) -> None:
         """The protocol forwarded the whole message to this peer: the last frame may go."""
@@ -169,6 +186,12 @@ class Relay:
         """The message is not passed on (its stream broke, or it is not forwarded)."""
         self.aborted = True
         self.changed.set()
+        self._drained.set()
+
+    def stop_writing(self) -> None:
+        """No stream writes it now: its sender is not held back."""
+        self.writing = False
+        self._drained.set()
 
     def ready(self) -> ring_pb2.LogFrame | None:
         """The next frame that may be written now, taken off the relay."""
@@ -177,6 +200,7 @@ class Relay:
         last = len(self._frames) == 1 and self._received >= self.total_bytes
         if last and not self.confirmed:
             return None
+        self._drained.set()
         return self._frames.popleft()
 
     @property
@@ -195,6 +219,7 @@ class PeerCounters:
     acked: int = 0
     relayed_messages: int = 0  # written on frame by frame as they came (cut-through)
     relays_aborted: int = 0  # given up part-way (not forwarded, or a stream broke)
+    peak_relay_frames: int = 0  # the most frames a relay held not yet written on
 
 
 class PeerLink:
@@ -471,6 +496,18 @@ class PeerLink:
         message goes whole if the protocol forwards it after all.
         """
         relay.written = relay.frames_written = 0
+        relay.writing = True
+        try:
+            return await self._write_relay_frames(call, relay, acks)
+        finally:
+            relay.stop_writing()
+            self.counters.peak_relay_frames = max(
+                self.counters.peak_relay_frames, relay.peak_buffered
+            )
+
+    async def _write_relay_frames(
+        self, call: grpc.aio.StreamStreamCall, relay: Relay, acks: asyncio.Task[None]
+    ) -> bool:
         while True:
             relay.changed.clear()
             frame = relay.ready()
@@ -659,6 +696,8 @@ class RingReceiver:
                 if self._arriving is not None:
                     self._arriving(frame.lognr)
                 if message is None:
+                    if relay is not None:
+                        await relay.room()
                     continue
                 await self._deliver(message)
                 if relay is not None:
