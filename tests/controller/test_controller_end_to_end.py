@@ -79,11 +79,18 @@ async def fly(tmp_path: Path, plan: TestbedPlan, timeout: float = 240) -> Snapsh
     return snapshot
 
 
-@pytest.mark.parametrize("flush_limit", [0, 2 * 2**20], ids=["flush-0", "flush-2MB"])
-async def test_two_controllers_three_handovers(tmp_path: Path, flush_limit: int) -> None:
+@pytest.mark.parametrize(
+    ("flush_limit", "forwarding"),
+    [(0, "cut-through"), (2 * 2**20, "store-and-forward")],
+    ids=["flush-0", "flush-2MB-paper"],
+)
+async def test_two_controllers_three_handovers(
+    tmp_path: Path, flush_limit: int, forwarding: str
+) -> None:
     plan = TestbedPlan(
         controllers=2,
         flush_limit=flush_limit,
+        forwarding=forwarding,
         handovers=((8, 1), (16, 0), (24, 1)),
         speedup=20.0,
         mission=SMALL_GRID,

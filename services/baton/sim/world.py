@@ -134,9 +134,10 @@ class World:
         rng.shuffle(self.ring)
         self.flush_limit = rng.choice((0, 0, 64, 256, 1024, 2048, 4096))
         # The ring's forwarding (RingConfig.forwarding): cut-through's straight copies
-        # to a handover's target (frames relayed as they come change only timing,
-        # docs/design.md "The ring's forwarding"); the runtime's default.
-        self.cut_through = True
+        # to a handover's target on even seeds (frames relayed as they come change only
+        # timing, docs/design.md "The ring's forwarding"), the paper's store-and-forward
+        # on odd ones; from the seed, so that the random draws stay the same.
+        self.cut_through = seed % 2 == 0
         self.program: tuple[MissionCall, ...] = random_mission(
             rng, rng.randint(options.min_calls, options.max_calls)
         )
@@ -188,7 +189,8 @@ class World:
         self.programs_started = False
         self.summary = (
             f"{n} controllers, ring {self.ring} (initial master {self.ring[0]}), flush limit "
-            f"{self.flush_limit} B, {len(self.program)} calls, cache window {cache_window}, "
+            f"{self.flush_limit} B, {'cut-through' if self.cut_through else 'store-and-forward'}, "
+            f"{len(self.program)} calls, cache window {cache_window}, "
             f"script {sorted((s.after_reqnr, s.new_master) for s in script.values())}, "
             f"loss {self.net.p_loss}, dup {self.net.p_dup}, takeover after {self.takeover_after}s"
         )
