@@ -39,6 +39,7 @@ import grpc
 
 from baton.drone.dedupe import DEFAULT_WINDOW, GIVEN_UP, CachedReply, ReplyCache
 from baton.rpc.errors import StatusError
+from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
 # How far a new request number may be above the last one served. Numbers skip
@@ -425,8 +426,13 @@ class Sequencer:
         now: float,
         takeover: bool = False,
         lost_at: float = 0.0,
+        reason: str = "",
+        position: api.Position | None = None,
     ) -> drone_pb2.HandoverRecord:
         """Makes ``new_master`` the master in the next epoch; owes the old one a notice.
+
+        ``reason`` and ``position`` (the handover policy's why and where) are kept
+        in the record for the report.
 
         Called between two requests (the service holds its execution lock).
         FAILED_PRECONDITION if ``new_master`` already is the master: a
@@ -455,6 +461,8 @@ class Sequencer:
             epoch=ended + 1,
             kind="takeover" if takeover else "cooperative",
             lost_at=lost_at,
+            reason=reason,
+            position=position,
         )
         self.handovers.append(record)
         self.master = new_master

@@ -26,6 +26,8 @@ from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, retained_batches
 from baton.drone.dispatch import Dispatcher
 from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend
+from baton.drone.policy import PolicyParams, Station
+from baton.drone.policy_runner import PolicyRunner
 from baton.drone.sequencer import ScriptedHandover, Sequencer, cut_off_outcome
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import write_atomically
@@ -131,8 +133,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
         self._stalls = StallWatch()
         self.waiting = ""
+        # The handover policy, when the drone runs one (build_service).
+        self.policy: PolicyRunner | None = None
         if store is not None:
             self._restore(store)
+
+    @property
+    def execution_lock(self) -> asyncio.Lock:
+        """The single line of execution: held to execute a request or move the master."""
+        return self._lock
 
     @property
     def last_reqnr(self) -> int:
@@ -163,7 +172,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """Takes the master over when it is lost (``Sequencer.takeover_due``)."""
         while True:
             now = time.time()
-            reachable = self._sighted(now)
+            reachable = self._takers(self._sighted(now))
             due = self.seq.takeover_due(
                 now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
             )
@@ -171,13 +180,19 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 async with self._lock:
                     # Re-checked under the lock: a request may have come meanwhile.
                     now = time.time()
-                    reachable = self._sighted(now)
+                    reachable = self._takers(self._sighted(now))
                     due = self.seq.takeover_due(
                         now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
                     )
                     if due is not None:
                         self._take_over(due.new_master, "lost", now, due.lost_at)
             await asyncio.sleep(TAKEOVER_TICK_S)
+
+    def _takers(self, reachable: set[int]) -> set[int]:
+        """Who may take a lost master over: the reachable controllers, and with a handover
+        policy only those in range of the vehicle (the policy never picks another)."""
+        in_range = self.policy.in_range() if self.policy is not None else None
+        return reachable if in_range is None else reachable & in_range
 
     def _sighted(self, now: float) -> set[int]:
         """The controllers holding a stream now, noted as seen now."""
@@ -194,11 +209,48 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         the start-up grace); None while no controller was seen."""
         return None if self.first_seen is None else self.first_seen + START_GRACE_S
 
+    def hand_over(
+        self,
+        new_master: int,
+        trigger: str,
+        takeover: bool = False,
+        reason: str = "",
+        position: api.Position | None = None,
+    ) -> drone_pb2.HandoverRecord:
+        """Moves the master to ``new_master`` now, between two requests (the caller holds
+        the lock): the one path of the Handover RPC and of the handover policy.
+
+        A takeover when asked, or when the current master could not send its log
+        (``Sequencer.handover_must_take_over``); else the paper's cooperative handover.
+        """
+        now = time.time()
+        if takeover or self.seq.handover_must_take_over(new_master):
+            return self._take_over(new_master, trigger, now, reason=reason, position=position)
+        record = self.seq.switch(new_master, trigger, now, reason=reason, position=position)
+        self._switched(record)
+        if self.store is not None:
+            self.store.save(self._counters())
+        return record
+
     def _take_over(
-        self, new_master: int, trigger: str, now: float, lost_at: float = 0.0
+        self,
+        new_master: int,
+        trigger: str,
+        now: float,
+        lost_at: float = 0.0,
+        reason: str = "",
+        position: api.Position | None = None,
     ) -> drone_pb2.HandoverRecord:
         """Switches to ``new_master`` by takeover (under the lock) and tells it on its standby."""
-        record = self.seq.switch(new_master, trigger, now, takeover=True, lost_at=lost_at)
+        record = self.seq.switch(
+            new_master,
+            trigger,
+            now,
+            takeover=True,
+            lost_at=lost_at,
+            reason=reason,
+            position=position,
+        )
         self._switched(record)
         if self.store is not None:
             self.store.save(self._counters())
@@ -437,6 +489,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             raise StatusError(
                 grpc.StatusCode.INTERNAL, f"{request.method} failed on the drone: {exc!r}"
             ) from exc
+        if self.policy is not None and route.service == "Mobility":
+            self.policy.executed(route.name, message)
         payload = reply.SerializeToString()
         log = self.log.debug if route.is_read else self.log.info
         log(
@@ -486,7 +540,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             epoch=record.epoch,
             trigger=record.trigger,
             old_master_connected=self.streams.connected(record.old_master),
+            reason=record.reason or None,
         )
+        if self.policy is not None and record.trigger in ("script", "rpc"):
+            self.policy.pin(record.new_master)  # they override the policy
         self.streams.wake(record.old_master, notice_delay_s)
 
     def _not_as(self, context: grpc.aio.ServicerContext, what: str, cid: int) -> StatusError | None:
@@ -608,13 +665,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 raise refusal
             self.seq.check_known(request.new_master)
             async with self._lock:
-                if request.takeover or self.seq.handover_must_take_over(request.new_master):
-                    record = self._take_over(request.new_master, "rpc", time.time())
-                else:
-                    record = self.seq.switch(request.new_master, "rpc", time.time())
-                    self._switched(record)
-                    if self.store is not None:
-                        self.store.save(self._counters())
+                record = self.hand_over(request.new_master, "rpc", request.takeover)
         except StatusError as err:
             self.log.warning("handover rejected", new_master=request.new_master, reason=err.message)
             await abort_with(context, err)
@@ -659,7 +710,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             watermark_reqnr=seq.cache.watermark,
             reachable=[c for c in seq.ring if c in self.standby.reachable],
             takeover_after_s=self.takeover_after_s,
+            handover_policy="none",
         )
+        if self.policy is not None:
+            self.policy.fill_status(status)
         status.retained_replies, status.retained_bytes = seq.cache.retained
         if self.vehicle.connected:
             try:
@@ -723,6 +777,10 @@ class DroneSettings:
     tls: Tls | None = None
     # The MAVLink signing key (signing.py); None: the autopilot link unsigned.
     mavlink_key: bytes | None = None
+    # The handover policy (policy.py) and every controller's station; None: the
+    # script and the operator only.
+    policy: PolicyParams | None = None
+    stations: Mapping[int, Station] = field(default_factory=dict)
 
     @property
     def master(self) -> int:
@@ -744,7 +802,7 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
     )
     store = DroneStore(settings.state_file) if settings.state_file else None
     takeover_after_s = detection_time_s(settings.takeover_after, settings.speedup)
-    return DroneService(
+    service = DroneService(
         vehicle,
         camera,
         sequencer,
@@ -753,6 +811,9 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         takeover_after_s,
         authenticated=settings.tls is not None,
     )
+    if settings.policy is not None:
+        service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
+    return service
 
 
 async def serve(
@@ -782,6 +843,7 @@ async def serve(
         controllers=list(settings.controllers),
         master=settings.master,
         scripted_handovers=len(settings.handover_script),
+        handover_policy=settings.policy.name if settings.policy is not None else "none",
         speedup=settings.speedup,
     )
     print(json.dumps({"event": "listening", "address": server.address}), flush=True)
@@ -791,11 +853,18 @@ async def serve(
         on_listening(server.address)
     watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
     takeovers = asyncio.create_task(service.watch_master(), name="takeover-watch")
+    policy = (
+        asyncio.create_task(service.policy.run(), name="handover-policy")
+        if service.policy is not None
+        else None
+    )
     try:
         await stop.wait()
     finally:
         watchdog.cancel()
         takeovers.cancel()
+        if policy is not None:
+            policy.cancel()
         await server.stop()
         await vehicle.close()
         if service.store is not None:
