@@ -279,6 +279,10 @@ class BatonConfig(_Model):
     # Who the drone makes master as it flies (``nearest``, ``predictive``);
     # ``none`` by default: the handover script and the operator only.
     handover_policy: PolicySetting = HandoverPolicyConfig()
+    # The local testbed's link emulators carry a controller's link to the drone
+    # only while the sim vehicle is within that controller's range_m of its
+    # location (link/radio.py); off: every controller reaches the drone anywhere.
+    radio_range: bool = False
 
     @field_validator("controllers")
     @classmethod
@@ -320,14 +324,25 @@ class BatonConfig(_Model):
             raise ValueError(
                 f"initial_master {self.initial_master} is not a controller id; use one of {ids}"
             )
-        if self.handover_policy.name != "none":
+        placed = [
+            (what, fix)
+            for what, fix, on in (
+                (
+                    f"handover_policy {self.handover_policy.name}",
+                    "use handover_policy: none",
+                    self.handover_policy.name != "none",
+                ),
+                ("radio_range", "set radio_range: false", self.radio_range),
+            )
+            if on
+        ]
+        for what, fix in placed:
             for c in self.controllers:
                 if c.location is None or c.range_m is None:
                     missing = "location" if c.location is None else "range_m"
                     raise ValueError(
-                        f"handover_policy {self.handover_policy.name} needs every controller's "
-                        f"location and range_m; controller {c.id} has no {missing}: add it, or "
-                        "use handover_policy: none"
+                        f"{what} needs every controller's location and range_m; controller "
+                        f"{c.id} has no {missing}: add it, or {fix}"
                     )
         if self.max_log_message is not None and self.max_log_message <= self.flush_limit:
             raise ValueError(

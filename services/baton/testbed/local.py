@@ -95,6 +95,8 @@ class TestbedPlan:
 # The side effects counted where they happen (baton.effects), in the workdir.
 VEHICLE_EFFECTS_FILE = "vehicle-effects.jsonl"  # commands the sim vehicle acted on
 CAMERA_EFFECTS_FILE = "camera-effects.jsonl"  # pictures the drone's camera produced
+# Where the sim vehicle is, for the link emulators' radio range (link/radio.py).
+VEHICLE_POSITION_FILE = "vehicle-position.json"
 
 # Wall seconds the testbed waits for the vehicle to become ready (armable)
 # before it starts the mission: ArduPilot needs ~45 s of its own time after boot.
@@ -224,8 +226,14 @@ class LocalTestbed:
         ready to arm; ``vehicle_wait`` sees the drone's status meanwhile.
         """
         plan = self.plan
-        vehicle_url = await self._start_vehicle()
         base = plan.base_config
+        radio = base is not None and base.radio_range
+        if radio and (plan.vehicle != "sim" or not plan.emulate_links):
+            raise PartNotReady(
+                "radio_range needs the sim vehicle (its position file) and the link emulators; "
+                "run with --vehicle sim and without --no-links, or set radio_range: false"
+            )
+        vehicle_url = await self._start_vehicle()
         if base is not None:
             ids = base.ring_order
             own = {c.id: c.address for c in base.controllers}
@@ -242,7 +250,7 @@ class LocalTestbed:
                     f"link-ring-{cid}", own[cid], plan.controller_link
                 )
                 entry["drone_address"] = await self._start_link(
-                    f"link-drone-{cid}", drone_address, plan.drone_link
+                    f"link-drone-{cid}", drone_address, plan.drone_link, self._radio_args(cid)
                 )
             if base is not None:
                 original = base.controller(cid)
@@ -265,6 +273,9 @@ class LocalTestbed:
         if plan.emulate_links:
             document["controller_link"] = plan.controller_link.model_dump()
             document["drone_link"] = plan.drone_link.model_dump()
+        if base is not None:
+            document["handover_policy"] = base.handover_policy.model_dump()
+            document["radio_range"] = base.radio_range
         document["tls"] = self._certificates(ids)
         self.config_path.write_text(yaml.safe_dump(document, sort_keys=False))
         self.config = parse_config(document, str(self.config_path))
@@ -286,6 +297,18 @@ class LocalTestbed:
         self.tls = Tls.load(folder, OPERATOR)
         return {"certs": str(folder.resolve())}
 
+    def _radio_args(self, cid: int) -> list[str]:
+        """``baton link`` options of controller ``cid``'s link to the drone: its radio
+        range, from the testbed file, when the file asks for radio range."""
+        base = self.plan.base_config
+        if base is None or not base.radio_range:
+            return []
+        station = base.controller(cid)
+        assert station.location is not None and station.range_m is not None
+        where = f"{station.location.latitude_deg},{station.location.longitude_deg}"
+        position = self.workdir / VEHICLE_POSITION_FILE
+        return ["--range", f"{where},{station.range_m}", "--position-file", str(position)]
+
     def _home(self) -> str:
         base = self.plan.base_config
         home = (base.drone if base is not None else DroneConfig()).home
@@ -305,6 +328,11 @@ class LocalTestbed:
             effects.unlink(missing_ok=True)
             argv = baton_argv("sim-vehicle", "--speedup", speedup, "--url-file", str(ready))
             argv += ["--home", self._home(), "--effects-file", str(effects)]
+            base = self.plan.base_config
+            if base is not None and base.radio_range:
+                position = self.workdir / VEHICLE_POSITION_FILE
+                position.unlink(missing_ok=True)
+                argv += ["--position-file", str(position)]
             argv += self._mavlink_key_args()
             return (await self.supervisor.start_ready("sim-vehicle", argv, ready)).splitlines()[0]
         argv = baton_argv("sitl", "--speedup", speedup, "--home", self._home())
@@ -327,7 +355,9 @@ class LocalTestbed:
         key = self._mavlink_key()
         return ["--mavlink-key", str(key)] if key is not None else []
 
-    async def _start_link(self, name: str, target: str, spec: LinkSpec) -> str:
+    async def _start_link(
+        self, name: str, target: str, spec: LinkSpec, radio: list[str] | None = None
+    ) -> str:
         ready = self.workdir / f"{name}.address"
         argv = baton_argv(
             "link",
@@ -336,6 +366,7 @@ class LocalTestbed:
             "--target",
             target,
             *_link_args(spec),
+            *(radio or []),
             *dict(self.plan.link_args).get(name, ()),
             "--address-file",
             str(ready),
