@@ -165,3 +165,20 @@ async def test_a_command_of_the_master_ends_a_hold(
         )
     )
     assert not drone.service.policy.holding
+
+
+async def test_a_master_still_starting_is_not_taken_over_by_the_first_controller_up() -> None:
+    policy = PolicyParams("nearest", margin_m=50.0, dwell_s=0.0, link_lost_after_s=3.0)
+    drone, server = await start_drone(policy=policy, stations=STATIONS)
+    links = Links(drone)
+    try:
+        assert drone.service.policy is not None
+        put(drone, 150.0, altitude_m=0.0)  # in 0's and 1's range; 0 has not come up yet
+        await links.up(1)
+        decision = await drone.service.policy.tick()
+        assert decision is not None and decision.action == STAY, decision
+        assert "master 0 link down (0.0 s" in decision.reason and "waiting 3 s" in decision.reason
+        assert drone.service.seq.master == 0
+    finally:
+        links.close()
+        await server.stop(0)

@@ -24,7 +24,6 @@ kept for GetStatus (``policy_decisions``); the latest one is always shown.
 from __future__ import annotations
 
 import asyncio
-import math
 import time
 from collections import deque
 from collections.abc import Mapping
@@ -177,7 +176,12 @@ class PolicyRunner:
         return time.time() * self.speedup
 
     def _links(self) -> dict[int, LinkState]:
-        """Each controller's link: up while it holds a stream; else down since last seen."""
+        """Each controller's link: up while it holds a stream; else down since last seen.
+
+        One not seen since the drone started counts as seen at the end of the
+        start-up grace (``DroneService.unseen_from``), as the takeover watch counts
+        it: the controllers come up one by one, and the first to come must not
+        take the master over from one still starting."""
         service = self.service
         up = service.standby.reachable | service.streams.holders
         now = time.time()
@@ -185,10 +189,10 @@ class PolicyRunner:
         for cid in self.stations:
             if cid in up:
                 links[cid] = LinkState(up=True)
-            else:
-                seen = service.last_seen.get(cid)
-                down = math.inf if seen is None else max(0.0, now - seen) * self.speedup
-                links[cid] = LinkState(up=False, down_for_s=down)
+                continue
+            seen = service.last_seen.get(cid, service.unseen_from)
+            down = 0.0 if seen is None else max(0.0, now - seen) * self.speedup
+            links[cid] = LinkState(up=False, down_for_s=down)
         return links
 
     def _note(self, decision: Decision, position: api.Position, master: int) -> None:

@@ -56,7 +56,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument(
         "--handover-file", help="handovers as 'REQNR MID' lines (the drone's format)"
     )
-    parser.add_argument("--no-handovers", action="store_true", help="run without any handover")
+    parser.add_argument(
+        "--no-handovers",
+        action="store_true",
+        help="run without any scripted handover (the default when the --config file names a "
+        "handover_policy: the drone then picks its masters)",
+    )
     parser.add_argument(
         "--insecure",
         action="store_true",
@@ -88,7 +93,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "beside the checkout)",
     )
     parser.add_argument(
+        "--mission",
+        choices=["grid", "corridor"],
+        default="grid",
+        help="the survey: the paper's grid (default), or a corridor: a line of --length metres "
+        "east of the take-off point (examples/corridor.yaml places stations along it)",
+    )
+    parser.add_argument(
         "--grid", type=int, default=5, help="grid size: GRID x GRID waypoints (default 5)"
+    )
+    parser.add_argument(
+        "--length", type=float, default=1500.0, help="corridor length, m (default 1500)"
     )
     parser.add_argument(
         "--spacing", type=float, default=50.0, help="waypoint spacing, m (default 50)"
@@ -229,11 +244,12 @@ def run(args: argparse.Namespace) -> int:
     except (HandoverScriptError, OSError) as exc:
         return _fail(str(exc))
     handovers = sorted((reqnr, h.new_master) for reqnr, h in scripted.items())
-    if not handovers and not args.no_handovers and len(ids) > 1:
+    ranged = base is not None and base.handover_policy.name != "none"
+    if not handovers and not args.no_handovers and not ranged and len(ids) > 1:
         handovers = [
             (reqnr, ids[(k + 1) % len(ids)]) for k, reqnr in enumerate(DEFAULT_HANDOVER_REQNRS)
         ]
-    for name in ("speedup", "grid", "spacing", "altitude", "speed", "poll", "timeout"):
+    for name in ("speedup", "grid", "length", "spacing", "altitude", "speed", "poll", "timeout"):
         value = getattr(args, name)
         if not 0 < value < math.inf:  # nan too: a --timeout nan never timed out
             return _fail(f"--{name} must be a number > 0 and finite, got {value}")
@@ -243,7 +259,17 @@ def run(args: argparse.Namespace) -> int:
         vehicle, sitl_binary = _vehicle(args, base)
     except ValueError as exc:
         return _fail(str(exc))
-    mission = MissionPlan(args.grid, args.spacing, args.altitude, args.speed, args.poll)
+    if args.mission == "corridor" and args.spacing > args.length:
+        return _fail(f"--spacing {args.spacing:g} is longer than the corridor (--length)")
+    mission = MissionPlan(
+        args.grid,
+        args.spacing,
+        args.altitude,
+        args.speed,
+        args.poll,
+        kind=args.mission,
+        length_m=args.length,
+    )
     report_path = Path(args.report)
     if args.insecure:
         print(f"baton testbed: WARNING: {INSECURE_WARNING}", file=sys.stderr)

@@ -28,6 +28,7 @@ import yaml
 from baton.certs.make import ensure
 from baton.config import BatonConfig, DroneConfig, LinkSpec, parse_config
 from baton.effects import read_effects
+from baton.missions import corridor as corridor_mission
 from baton.missions import grid as grid_mission
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import MISSION_TOKEN_ENV
@@ -36,6 +37,8 @@ from baton.testbed.supervisor import PartNotReady, Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
 GRID_MISSION = Path(grid_mission.__file__)
+CORRIDOR_MISSION = Path(corridor_mission.__file__)
+MISSION_KINDS = ("grid", "corridor")
 
 # The paper's links: 20 ms and 25 Mbit/s between controllers; WiFi to the drone.
 PAPER_CONTROLLER_LINK = LinkSpec(latency=0.020, bandwidth=25e6)
@@ -44,17 +47,44 @@ WIFI_DRONE_LINK = LinkSpec(latency=0.002, bandwidth=20e6)
 
 @dataclass(frozen=True)
 class MissionPlan:
-    """The grid mission's parameters (``baton.missions.grid.mission``)."""
+    """The survey the testbed flies and its parameters: the paper's grid
+    (``baton.missions.grid``) or a corridor (``baton.missions.corridor``)."""
 
     grid: int = 5
     spacing_m: float = 50.0
     altitude_m: float = 10.0
     speed_m_s: float = 5.0
     poll_s: float = 1.0
+    kind: str = "grid"  # or "corridor"
+    length_m: float = 1500.0  # the corridor's
+
+    def __post_init__(self) -> None:
+        if self.kind not in MISSION_KINDS:
+            raise ValueError(f"unknown mission {self.kind!r}; use one of {MISSION_KINDS}")
+
+    @property
+    def file(self) -> Path:
+        """The mission program."""
+        return GRID_MISSION if self.kind == "grid" else CORRIDOR_MISSION
 
     def args(self) -> list[str]:
         """``--mission-arg`` values for ``baton controller``."""
-        return [f"{name}={value}" for name, value in self.__dict__.items()]
+        shape = {"grid": self.grid} if self.kind == "grid" else {"length_m": self.length_m}
+        common = ("spacing_m", "altitude_m", "speed_m_s", "poll_s")
+        values = {**shape, **{name: getattr(self, name) for name in common}}
+        return [f"{name}={value}" for name, value in values.items()]
+
+    def targets(self) -> list[tuple[float, float]]:
+        """The waypoints, metres (north, east) of the take-off point, in flying order."""
+        if self.kind == "grid":
+            return grid_mission.waypoints(self.grid, self.spacing_m)
+        return corridor_mission.waypoints(self.length_m, self.spacing_m)
+
+    def describe(self) -> str:
+        """For a person: "5x5 grid", "corridor of 1500 m"."""
+        if self.kind == "grid":
+            return f"{self.grid}x{self.grid} grid"
+        return f"corridor of {self.length_m:g} m"
 
 
 @dataclass(frozen=True)
@@ -68,7 +98,9 @@ class TestbedPlan:
     handovers: tuple[tuple[int, int], ...] = ()  # (after reqnr, new master)
     speedup: float = 10.0
     mission: MissionPlan = MissionPlan()
-    mission_file: Path = GRID_MISSION
+    # A mission program of one's own (given only mission_args); default: the
+    # plan's mission, grid or corridor, with its parameters.
+    mission_file: Path | None = None
     emulate_links: bool = True
     controller_link: LinkSpec = PAPER_CONTROLLER_LINK
     drone_link: LinkSpec = WIFI_DRONE_LINK
@@ -421,14 +453,14 @@ class LocalTestbed:
                 "--config",
                 str(self.config_path),
                 "--mission",
-                str(self.plan.mission_file),
+                str(self.plan.mission_file or self.plan.mission.file),
                 "--address-file",
                 str(ready),
                 "--log-file",
                 str(log_file),
             )
-            grid_args = self.plan.mission.args() if self.plan.mission_file == GRID_MISSION else []
-            for arg in [*grid_args, *self.plan.mission_args]:
+            own_args = self.plan.mission.args() if self.plan.mission_file is None else []
+            for arg in [*own_args, *self.plan.mission_args]:
                 argv += ["--mission-arg", arg]
             env = None
             if self.plan.mission_token is not None:

@@ -67,7 +67,9 @@ class Progress:
         scripted = sum(1 for h in drone.handovers if h.trigger == "script")
         takeovers = sum(1 for h in drone.handovers if h.kind == "takeover")
         operator = sum(1 for h in drone.handovers if h.trigger == "rpc" and h.kind != "takeover")
-        others = (f" + {operator} by operator" if operator else "") + (
+        policy = sum(1 for h in drone.handovers if h.trigger == "policy")
+        others = f" + {policy} by policy" if policy else ""
+        others += (f" + {operator} by operator" if operator else "") + (
             f" | takeovers {takeovers}" if takeovers else ""
         )
         vehicle = "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
@@ -94,8 +96,11 @@ def write_report(report: dict[str, Any], path: Path) -> None:
 
 async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout: float) -> int:
     """Runs one mission on the local testbed; returns the exit code."""
+    base = plan.base_config
+    policy = base.handover_policy.name if base is not None else "none"
     print(
-        f"baton testbed: {plan.controllers} controllers, flush limit {plan.flush_limit} bytes, "
+        f"baton testbed: {plan.mission.describe()}, {plan.controllers} controllers, "
+        f"handover policy {policy}, flush limit {plan.flush_limit} bytes, "
         "handovers "
         f"{', '.join(f'{r}:{m}' for r, m in plan.handovers) or 'none'}, speed-up {plan.speedup}x, "
         f"vehicle {plan.vehicle}; "
@@ -105,7 +110,8 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     started = time.monotonic()
     testbed = LocalTestbed(plan, workdir)
     try:
-        progress = Progress(plan.mission.grid**2, len(plan.handovers))
+        targets = plan.mission.targets()
+        progress = Progress(len(targets), len(plan.handovers))
         config = await testbed.start(progress.vehicle_wait)
         write_atomically(
             workdir / "pids.json",
@@ -129,6 +135,7 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
         time.monotonic() - started,
         list(plan.handovers),
         plan.mission.spacing_m,
+        targets if plan.mission.kind != "grid" else None,
     )
     write_report(report, report_path)
     print(summary_table(report), flush=True)
