@@ -8,6 +8,7 @@ emulators follow the sim vehicle), a handover policy and no handover script.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -16,7 +17,8 @@ from test_testbed import run_testbed
 
 from baton.config import load_config
 from baton.link.radio import RadioRange
-from baton.testbed.local import free_port
+from baton.testbed.local import LocalTestbed, TestbedPlan, free_port
+from baton.testbed.report import build_report
 
 EXAMPLE = Path(__file__).parents[2] / "examples" / "corridor.yaml"
 MARGIN_M, LEAD_S, SPEED_M_S = 50.0, 10.0, 5.0
@@ -83,3 +85,38 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
     assert three[0].get("msg") == "vehicle out of radio range"  # from the start
     assert any(line.get("msg") == "vehicle in radio range" for line in three)
     assert next(line for line in three if line.get("msg") == "link stopped")["refused"] >= 1
+
+
+# Across the boundary between stations 0 and 1 (east 250 m; `nearest` moves the
+# master about 25 m past it): first dithering within 15 m of it, then three full
+# crossings. Distinct targets: the exactly-once check counts a goto to one place twice.
+DITHER = [240, 262, 242, 264, 244]
+CROSSINGS = [340, 160, 342]
+
+
+async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossing(
+    tmp_path: Path,
+) -> None:
+    config_path = corridor_on_free_ports(tmp_path, "nearest")
+    config = load_config(config_path)
+    eastings = [0, *DITHER, *CROSSINGS]
+    plan = TestbedPlan(
+        controllers=len(config.controllers),
+        base_config=config,
+        speedup=config.speedup,
+        mission_file=Path(__file__).parent / "missions" / "back_and_forth.py",
+        mission_args=(f"eastings={','.join(map(str, eastings))}",),
+        resolution="160x120",
+    )
+    started = time.monotonic()
+    async with LocalTestbed(plan, tmp_path / "w") as testbed:
+        snapshot = await testbed.run_mission(240)
+    targets = [(0.0, float(east)) for east in eastings]
+    report = build_report(config, snapshot, 0, time.monotonic() - started, [], targets=targets)
+    assert report["completed"] and report["replicas_consistent"] and report["exactly_once"]
+    assert report["side_effects"]["exactly_once"] is True, report["side_effects"]
+    # The dither moved nothing; each crossing moved the master once.
+    assert report["masters"] == [0, 1, 0, 1], report["handovers"]
+    assert {h["trigger"] for h in report["handovers"]} == {"policy"}
+    decisions = [(d.action, d.target) for d in snapshot.drone.policy_decisions]
+    assert decisions.count(("handover", 1)) == 2 and decisions.count(("handover", 0)) == 1

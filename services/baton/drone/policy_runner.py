@@ -122,7 +122,7 @@ class PolicyRunner:
         if self.latest is not None:
             status.policy_decision.CopyFrom(self.latest)
         status.policy_decisions.extend(self.decisions)
-        status.holding = self.holding
+        status.holding = self.holding and self._held_vehicle  # a flying vehicle stopped
 
     # -- the loop --------------------------------------------------------------------------
 
