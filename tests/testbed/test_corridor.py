@@ -14,9 +14,12 @@ from pathlib import Path
 import pytest
 import yaml
 from test_testbed import run_testbed
+from waiting import eventually
 
 from baton.config import load_config
 from baton.link.radio import RadioRange
+from baton.sdk import Position, offset
+from baton.sdk.geo import north_east_m
 from baton.testbed.local import LocalTestbed, TestbedPlan, free_port
 from baton.testbed.report import build_report
 
@@ -120,3 +123,90 @@ async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossi
     assert {h["trigger"] for h in report["handovers"]} == {"policy"}
     decisions = [(d.action, d.target) for d in snapshot.drone.policy_decisions]
     assert decisions.count(("handover", 1)) == 2 and decisions.count(("handover", 0)) == 1
+
+
+def gapped_corridor(tmp_path: Path) -> Path:
+    """Three stations 600 m apart with 400 m of range, on free ports: between 400 m
+    and 800 m east only station 1 reaches the vehicle."""
+    document = yaml.safe_load(EXAMPLE.read_text())
+    home = document["drone"]["home"]
+    document["drone"]["address"] = f"127.0.0.1:{free_port()}"
+    controllers = document["controllers"][:3]
+    for k, controller in enumerate(controllers):
+        controller["address"] = f"127.0.0.1:{free_port()}"
+        controller["range_m"] = 400
+        where = offset(Position(home["latitude_deg"], home["longitude_deg"]), 50.0, 600.0 * k)
+        controller["location"] = {
+            "latitude_deg": where.latitude_deg,
+            "longitude_deg": where.longitude_deg,
+        }
+    document["controllers"], document["ring"] = controllers, [0, 1, 2]
+    config = tmp_path / "gapped.yaml"
+    config.write_text(yaml.safe_dump(document))
+    return config
+
+
+async def test_no_controller_usable_holds_the_vehicle_until_one_is(tmp_path: Path) -> None:
+    """The master is killed while the vehicle is in its range only: the drone holds the
+    vehicle where it is and the mission waits; the master restarted, the vehicle flies
+    on to where it was going, and the mission ends with every effect once."""
+    config_path = gapped_corridor(tmp_path)
+    config = load_config(config_path)
+    home = Position(config.drone.home.latitude_deg, config.drone.home.longitude_deg)
+    eastings = [0, 450, 700]
+    plan = TestbedPlan(
+        controllers=len(config.controllers),
+        base_config=config,
+        speedup=config.speedup,
+        mission_file=Path(__file__).parent / "missions" / "back_and_forth.py",
+        mission_args=(f"eastings={','.join(map(str, eastings))}",),
+        resolution="160x120",
+    )
+
+    def east_m(position) -> float:  # type: ignore[no-untyped-def]
+        return north_east_m(home, Position(position.latitude_deg, position.longitude_deg))[1]
+
+    started = time.monotonic()
+    async with LocalTestbed(plan, tmp_path / "w") as testbed:
+
+        async def on_the_way_to_700() -> bool:
+            drone = (await testbed.snapshot(audit=False)).drone
+            return drone.master == 1 and east_m(drone.position) > 470
+
+        await eventually(on_the_way_to_700, "master 1, past 470 m east", 120)
+        await testbed.kill_controller(1)
+
+        async def held() -> object:
+            drone = (await testbed.snapshot(audit=False)).drone
+            return drone if drone.holding else None
+
+        holding = await eventually(held, "the drone to hold the vehicle", 30)
+        where = east_m(holding.position)
+        assert 470 < where < 700, where
+        assert "no controller usable" in holding.policy_decision.reason
+        assert "1 link down" in holding.policy_decision.reason
+
+        # Held: the vehicle stops at once (the sim's next tick; its telemetry comes at
+        # 20 Hz), then stays put while nobody can command it: 1 s of wall time, 10 s of
+        # the mission's.
+        def held_for(seconds: float, since: float):  # type: ignore[no-untyped-def]
+            async def check() -> object:
+                return await held() if time.monotonic() - since >= seconds else None
+
+            return check
+
+        settled = await eventually(held_for(0.5, time.monotonic()), "the vehicle held 0.5 s", 30)
+        stop = east_m(settled.position)  # type: ignore[attr-defined]
+        later = await eventually(held_for(1.0, time.monotonic()), "the vehicle held 1 s more", 30)
+        assert abs(east_m(later.position) - stop) < 0.1  # type: ignore[attr-defined]
+        await testbed.restart_controller(1)
+        snapshot = await testbed.run_mission(180)
+    targets = [(0.0, float(east)) for east in eastings]
+    report = build_report(config, snapshot, 0, time.monotonic() - started, [], targets=targets)
+    assert report["completed"] and report["replicas_consistent"] and report["exactly_once"]
+    # The resume's goto is the drone's own, taken off before counting.
+    assert report["side_effects"]["exactly_once"] is True, report["side_effects"]
+    assert report["side_effects"]["vehicle_commands"]["goto"] == len(eastings) + 1
+    assert report["policy"]["holds"] == 1 and report["policy"]["resumes"] == 1
+    assert report["masters"] == [0, 1]
+    assert not snapshot.drone.holding
