@@ -79,6 +79,15 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
             assert old.range_m - LEAD_S * SPEED_M_S - 5 <= from_old <= old.range_m, h
             assert "range runs out in" in h["reason"]
         assert 0 < h["delay_s"] < 5, h
+    # The map beside the report: the path in one part per master, each handover on it.
+    geojson = json.loads((tmp_path / "report.geojson").read_text())
+    kinds = [f["properties"]["kind"] for f in geojson["features"]]
+    assert kinds.count("station") == kinds.count("range") == 4
+    paths = [
+        f["properties"]["master"] for f in geojson["features"] if f["properties"]["kind"] == "path"
+    ]
+    assert paths == [0, 1, 2, 3] and kinds.count("handover") == 3
+    assert (tmp_path / "report.png").read_bytes()[:4] == b"\x89PNG"
     # The radio was real: station 0 lost the vehicle beyond 500 m and cut the link;
     # station 3 was refused until the vehicle came within 500 m of it.
     workdir = tmp_path / "w"

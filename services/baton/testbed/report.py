@@ -225,6 +225,7 @@ def build_report(
                 ),
                 "log_bytes": moved,
                 "delay_s": round(record.delay_s, 6),
+                "decided_at": record.decided_at,
                 # The handover policy's why and where (trigger "policy").
                 "reason": record.reason,
                 "position": (

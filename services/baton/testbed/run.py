@@ -17,6 +17,7 @@ from baton.config import BatonConfig
 from baton.lifecycle import write_atomically
 from baton.rpc.channels import aio_channel
 from baton.rpc.tls import DRONE, OPERATOR, Identity
+from baton.testbed.flight_map import Track, draw_flight, flight_geojson
 from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan, drone_status
 from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
@@ -112,6 +113,12 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     try:
         targets = plan.mission.targets()
         progress = Progress(len(targets), len(plan.handovers))
+        track = Track()
+
+        def follow(snapshot: Snapshot) -> None:
+            progress(snapshot)
+            track(snapshot, time.time())
+
         config = await testbed.start(progress.vehicle_wait)
         write_atomically(
             workdir / "pids.json",
@@ -119,7 +126,7 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
                 {name: p.process.pid for name, p in testbed.supervisor.parts.items() if p.process}
             ),
         )
-        snapshot = await testbed.run_mission(timeout, progress)
+        snapshot = await testbed.run_mission(timeout, follow)
     except (PartDied, PartNotReady) as exc:
         print(f"baton testbed: FAILED: {exc}", file=sys.stderr, flush=True)
         return 1
@@ -140,6 +147,14 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     write_report(report, report_path)
     print(summary_table(report), flush=True)
     print(f"report: {report_path}", flush=True)
+    geojson = flight_geojson(config, report, track.points)
+    map_path = report_path.with_suffix(".geojson")
+    map_path.write_text(json.dumps(geojson) + "\n")
+    picture = report_path.with_suffix(".png")
+    masters = " → ".join(str(m) for m in report["masters"])
+    policy = report["policy"]["name"]
+    draw_flight(geojson, picture, f"{plan.mission.describe()}, policy {policy}: masters {masters}")
+    print(f"map: {map_path} (GeoJSON), {picture}", flush=True)
     return 0 if run_succeeded(report) and not report["handovers_missed"] else 1
 
 
