@@ -60,3 +60,22 @@ def test_the_parsers_refuse_infinity_for_flags_too() -> None:
     for parse, text in ((parse_size, "1e999"), (parse_duration, "1e999"), (parse_size, "1e999MB")):
         with pytest.raises(ValueError, match="finite"):
             parse(text)
+
+
+def test_a_handover_policy_needs_every_controllers_location_and_range() -> None:
+    placed = [
+        {**TWO[0], "location": {"latitude_deg": 47.0, "longitude_deg": 8.0}, "range_m": 500},
+        {**TWO[1], "location": {"latitude_deg": 47.0, "longitude_deg": 8.01}},
+    ]
+    assert "controller 1 has no range_m" in refused(
+        {"controllers": placed, "handover_policy": "nearest"}
+    )
+    assert "handover_policy.name: Input should be 'none', 'nearest' or 'predictive'" in refused(
+        {"controllers": TWO, "handover_policy": "closest"}
+    )
+    placed[1]["range_m"] = 500
+    config = parse_config(
+        {"controllers": placed, "handover_policy": {"name": "predictive", "lead": "20s"}}
+    )
+    assert (config.handover_policy.name, config.handover_policy.lead) == ("predictive", 20.0)
+    assert parse_config({"controllers": TWO}).handover_policy.name == "none"

@@ -241,6 +241,29 @@ class ControllerConfig(_Model):
         return self.peer_address or self.address
 
 
+def _policy_shorthand(value: Any) -> Any:
+    """``handover_policy: nearest`` is ``handover_policy: {name: nearest}``."""
+    return {"name": value} if isinstance(value, str) else value
+
+
+class HandoverPolicyConfig(_Model):
+    """The drone's handover policy (docs/design.md, "Range-driven handovers")."""
+
+    # none: only the handover script and the operator move the master (the
+    # paper's experiments); nearest or predictive: the drone picks its master
+    # from where it is (drone/policy.py).
+    name: Literal["none", "nearest", "predictive"] = "none"
+    # nearest: hand over once another station is this much nearer...
+    margin_m: float = Field(default=50.0, ge=0, allow_inf_nan=False)
+    # ... for this long (mission time).
+    dwell: Duration = 3.0
+    # predictive: hand over this long (mission time) before the master's range runs out.
+    lead: Duration = 10.0
+
+
+PolicySetting = Annotated[HandoverPolicyConfig, BeforeValidator(_policy_shorthand)]
+
+
 class TlsConfig(_Model):
     """Mutual TLS (docs/design.md, Security): where every part finds its certificate."""
 
@@ -280,6 +303,13 @@ class BatonConfig(_Model):
     # is refused before anything is buffered.
     max_log_message: Size | None = None
     tls: TlsConfig = TlsConfig()
+    # Who the drone makes master as it flies (``nearest``, ``predictive``);
+    # ``none`` by default: the handover script and the operator only.
+    handover_policy: PolicySetting = HandoverPolicyConfig()
+    # The local testbed's link emulators carry a controller's link to the drone
+    # only while the sim vehicle is within that controller's range_m of its
+    # location (link/radio.py); off: every controller reaches the drone anywhere.
+    radio_range: bool = False
 
     @field_validator("ring", mode="before")
     @classmethod
@@ -327,6 +357,26 @@ class BatonConfig(_Model):
             raise ValueError(
                 f"initial_master {self.initial_master} is not a controller id; use one of {ids}"
             )
+        placed = [
+            (what, fix)
+            for what, fix, on in (
+                (
+                    f"handover_policy {self.handover_policy.name}",
+                    "use handover_policy: none",
+                    self.handover_policy.name != "none",
+                ),
+                ("radio_range", "set radio_range: false", self.radio_range),
+            )
+            if on
+        ]
+        for what, fix in placed:
+            for c in self.controllers:
+                if c.location is None or c.range_m is None:
+                    missing = "location" if c.location is None else "range_m"
+                    raise ValueError(
+                        f"{what} needs every controller's location and range_m; controller "
+                        f"{c.id} has no {missing}: add it, or {fix}"
+                    )
         if self.max_log_message is not None and self.max_log_message <= self.flush_limit:
             raise ValueError(
                 f"max_log_message ({self.max_log_message} bytes) must be above flush_limit "

@@ -28,6 +28,8 @@ class FakeMobility:
         # While set and not open, Goto waits for it after it started (the
         # autopilot's acknowledgement taking its time).
         self.gate: asyncio.Event | None = None
+        # Ground velocity, m/s north and east (the handover policy reads it).
+        self.velocity: tuple[float, float] | None = (0.0, 0.0)
 
     @property
     def connected(self) -> bool:
@@ -37,6 +39,9 @@ class FakeMobility:
         if self.is_connected:
             return drone_pb2.VehicleLink(healthy=True)
         return drone_pb2.VehicleLink(problem="fake vehicle disconnected")
+
+    def ground_velocity(self) -> tuple[float, float] | None:
+        return self.velocity if self.is_connected else None
 
     async def start(self) -> None:
         pass

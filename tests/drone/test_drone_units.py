@@ -255,3 +255,36 @@ def test_cli_rejects_bad_handover_file_and_master(tmp_path) -> None:  # type: ig
         settings_from_args(_drone_args("--controllers", "0,1", "--initial-master", "5"))
     with pytest.raises(SystemExit):
         _drone_args("--controllers", "0,0")
+
+
+def test_cli_handover_policy_from_the_config_or_the_flag(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from baton.drone.cli import settings_from_args
+
+    config = tmp_path / "testbed.yaml"
+    config.write_text(
+        "controllers:\n"
+        "  - {id: 0, address: '127.0.0.1:7000', range_m: 500,\n"
+        "     location: {latitude_deg: 47.0, longitude_deg: 8.0}}\n"
+        "  - {id: 1, address: '127.0.0.1:7001', range_m: 300,\n"
+        "     location: {latitude_deg: 47.0, longitude_deg: 8.01}}\n"
+        "handover_policy: {name: nearest, margin_m: 20, dwell: 1s}\n"
+        "takeover_after: 4s\ntls: {insecure: true}\n"
+    )
+    settings = settings_from_args(_drone_args("--config", str(config)))
+    assert settings.policy is not None
+    assert (settings.policy.name, settings.policy.margin_m, settings.policy.dwell_s) == (
+        "nearest",
+        20.0,
+        1.0,
+    )
+    assert settings.policy.link_lost_after_s == 4.0
+    assert settings.stations[1].range_m == 300.0
+    assert settings.stations[1].location.longitude_deg == 8.01
+    flag = settings_from_args(_drone_args("--config", str(config), "--handover-policy", "none"))
+    assert flag.policy is None
+    with pytest.raises(ValueError, match="--handover-policy predictive needs --config"):
+        settings_from_args(_drone_args("--handover-policy", "predictive", "--insecure"))
+    bare = tmp_path / "bare.yaml"
+    bare.write_text("controllers: [{id: 0, address: '127.0.0.1:7000'}]\ntls: {insecure: true}\n")
+    with pytest.raises(ValueError, match="controller 0 has no location in the config"):
+        settings_from_args(_drone_args("--config", str(bare), "--handover-policy", "nearest"))

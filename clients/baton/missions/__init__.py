@@ -1,1 +1,1 @@
-"""Mission programs that ship with baton (the paper's grid mission)."""
+"""Mission programs that ship with baton: the paper's grid, and a corridor survey."""

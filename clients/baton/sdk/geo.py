@@ -34,3 +34,14 @@ def distance_m(a: Position, b: Position) -> float:
         * math.cos(math.radians((a.latitude_deg + b.latitude_deg) / 2))
     )
     return math.hypot(north, east)
+
+
+def north_east_m(origin: Position, point: Position) -> tuple[float, float]:
+    """Metres north and east of ``origin`` to ``point``: the inverse of ``offset``."""
+    north = math.radians(point.latitude_deg - origin.latitude_deg) * EARTH_RADIUS_M
+    east = (
+        math.radians(point.longitude_deg - origin.longitude_deg)
+        * EARTH_RADIUS_M
+        * math.cos(math.radians(origin.latitude_deg))
+    )
+    return north, east

@@ -738,6 +738,8 @@ class HandoverRecord(_message.Message):
     EPOCH_FIELD_NUMBER: _builtins.int
     KIND_FIELD_NUMBER: _builtins.int
     LOST_AT_FIELD_NUMBER: _builtins.int
+    REASON_FIELD_NUMBER: _builtins.int
+    POSITION_FIELD_NUMBER: _builtins.int
     PREPARE_STARTED_AT_FIELD_NUMBER: _builtins.int
     PREPARE_TIMED_OUT_FIELD_NUMBER: _builtins.int
     PREPARE_LACKED_BYTES_FIELD_NUMBER: _builtins.int
@@ -755,7 +757,8 @@ class HandoverRecord(_message.Message):
     """first_request_at - decided_at, seconds; the handover delay. 0 until known."""
     trigger: _builtins.str
     """What triggered it: "script" (the handover file), "rpc" (the Handover
-    call) or "lost" (the drone lost the master: a takeover).
+    call), "policy" (the drone's handover policy, from where it is) or
+    "lost" (the drone lost the master: a takeover).
     """
     epoch: _builtins.int
     """The epoch the new master was granted."""
@@ -769,6 +772,8 @@ class HandoverRecord(_message.Message):
     """For a master lost: when the drone last saw it (its stream or a request);
     decided_at - lost_at is the detection time.
     """
+    reason: _builtins.str
+    """Why, for a person: the handover policy's reason (empty for the others)."""
     prepare_started_at: _builtins.float
     """For a handover that was prepared: when the preparation began (Unix
     seconds); decided_at - prepare_started_at is how long it took.
@@ -781,6 +786,10 @@ class HandoverRecord(_message.Message):
     """What the target lacked, by the master's last word, when the drone
     moved the master (bytes; with the reply served last).
     """
+    @_builtins.property
+    def position(self) -> _drone_api_pb2.Position:
+        """Where the vehicle was when the drone decided (zero if unknown)."""
+
     def __init__(
         self,
         *,
@@ -794,17 +803,70 @@ class HandoverRecord(_message.Message):
         epoch: _builtins.int = ...,
         kind: _builtins.str = ...,
         lost_at: _builtins.float = ...,
+        reason: _builtins.str = ...,
+        position: _drone_api_pb2.Position | None = ...,
         prepare_started_at: _builtins.float = ...,
         prepare_timed_out: _builtins.bool = ...,
         prepare_lacked_bytes: _builtins.int = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["position", b"position"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "trigger", b"trigger"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "position", b"position", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "reason", b"reason", "trigger", b"trigger"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___HandoverRecord: _TypeAlias = HandoverRecord  # noqa: Y015
+
+@_typing.final
+class PolicyDecision(_message.Message):
+    """One decision of the drone's handover policy (drone/policy.py)."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    ACTION_FIELD_NUMBER: _builtins.int
+    TARGET_FIELD_NUMBER: _builtins.int
+    TAKEOVER_FIELD_NUMBER: _builtins.int
+    REASON_FIELD_NUMBER: _builtins.int
+    DECIDED_AT_FIELD_NUMBER: _builtins.int
+    POSITION_FIELD_NUMBER: _builtins.int
+    MASTER_FIELD_NUMBER: _builtins.int
+    action: _builtins.str
+    """"stay", "handover" (to target), "hold" (no controller usable: the
+    vehicle holds position until one is) or "resume" (one is again: the
+    vehicle flies on to the target it was flying to).
+    """
+    target: _builtins.int
+    """The controller it hands over to (handover only)."""
+    takeover: _builtins.bool
+    """The handover is a takeover: the old master cannot be told."""
+    reason: _builtins.str
+    """Why, for a person: distances, ranges, links."""
+    decided_at: _builtins.float
+    """When (Unix seconds, wall clock)."""
+    master: _builtins.int
+    """The master when it decided."""
+    @_builtins.property
+    def position(self) -> _drone_api_pb2.Position:
+        """Where the vehicle was."""
+
+    def __init__(
+        self,
+        *,
+        action: _builtins.str = ...,
+        target: _builtins.int = ...,
+        takeover: _builtins.bool = ...,
+        reason: _builtins.str = ...,
+        decided_at: _builtins.float = ...,
+        position: _drone_api_pb2.Position | None = ...,
+        master: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["position", b"position"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["action", b"action", "decided_at", b"decided_at", "master", b"master", "position", b"position", "reason", b"reason", "takeover", b"takeover", "target", b"target"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PolicyDecision: _TypeAlias = PolicyDecision  # noqa: Y015
 
 @_typing.final
 class DroneStatus(_message.Message):
@@ -835,6 +897,10 @@ class DroneStatus(_message.Message):
     RETAINED_BYTES_FIELD_NUMBER: _builtins.int
     REACHABLE_FIELD_NUMBER: _builtins.int
     TAKEOVER_AFTER_S_FIELD_NUMBER: _builtins.int
+    HANDOVER_POLICY_FIELD_NUMBER: _builtins.int
+    POLICY_DECISION_FIELD_NUMBER: _builtins.int
+    POLICY_DECISIONS_FIELD_NUMBER: _builtins.int
+    HOLDING_FIELD_NUMBER: _builtins.int
     PREPARING_FOR_FIELD_NUMBER: _builtins.int
     PREPARING_LACKS_BYTES_FIELD_NUMBER: _builtins.int
     master: _builtins.int
@@ -878,6 +944,12 @@ class DroneStatus(_message.Message):
     retained_bytes: _builtins.int
     takeover_after_s: _builtins.float
     """The master is lost after this long without a stream or a request."""
+    handover_policy: _builtins.str
+    """The handover policy the drone runs: "none" (the script and the operator
+    only), "nearest" or "predictive".
+    """
+    holding: _builtins.bool
+    """The vehicle holds position because no controller is usable."""
     preparing_for: _builtins.int
     """The handover being prepared, if any (-1: none), and the master's last
     word on what its target lacks.
@@ -913,6 +985,16 @@ class DroneStatus(_message.Message):
     def reachable(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
         """Controllers holding a standby stream now (reachable), in ring order."""
 
+    @_builtins.property
+    def policy_decision(self) -> Global___PolicyDecision:
+        """The policy's latest decision (empty before its first)."""
+
+    @_builtins.property
+    def policy_decisions(self) -> _containers.RepeatedCompositeFieldContainer[Global___PolicyDecision]:
+        """The latest decisions that changed what the drone does (a handover, a
+        hold, a resume, a stay after one), oldest first; at most 100.
+        """
+
     def __init__(
         self,
         *,
@@ -939,12 +1021,16 @@ class DroneStatus(_message.Message):
         retained_bytes: _builtins.int = ...,
         reachable: _abc.Iterable[_builtins.int] | None = ...,
         takeover_after_s: _builtins.float = ...,
+        handover_policy: _builtins.str = ...,
+        policy_decision: Global___PolicyDecision | None = ...,
+        policy_decisions: _abc.Iterable[Global___PolicyDecision] | None = ...,
+        holding: _builtins.bool = ...,
         preparing_for: _builtins.int = ...,
         preparing_lacks_bytes: _builtins.int = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "policy_decision", b"policy_decision", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handovers", b"handovers", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -11,6 +11,8 @@ from baton.certs.cli import add_tls_flags, tls_from_flags
 from baton.drone.camera import DEFAULT_RESOLUTION
 
 if TYPE_CHECKING:
+    from baton.config import BatonConfig
+    from baton.drone.policy import PolicyParams, Station
     from baton.drone.service import DroneSettings
 
 
@@ -169,6 +171,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="take the master over when the drone has not seen it (no stream, no request) "
         "for this long, in mission seconds, e.g. 3s; 0 never (default: config, else 3s)",
     )
+    parser.add_argument(
+        "--handover-policy",
+        choices=["none", "nearest", "predictive"],
+        help="who the drone makes master as it flies, from its own position and every "
+        "controller's location and range (the --config file's): 'nearest' with hysteresis, "
+        "'predictive' from the velocity; 'none' leaves it to --handover-file and the Handover "
+        "RPC, which override a policy too (default: the config's handover_policy, else none)",
+    )
     add_tls_flags(parser)
     parser.add_argument(
         "--state",
@@ -224,6 +234,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     if args.cache_window is not None and args.cache_window < 1:
         raise ValueError(f"--cache-window must be >= 1, got {args.cache_window}")
     script = load_handover_script(args.handover_file, controllers) if args.handover_file else {}
+    policy, stations = handover_policy(config, args.handover_policy, takeover_after)
     if args.image is not None:
         try:
             with open(args.image, "rb"):
@@ -264,7 +275,51 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         prepare_timeout_s=prepare_timeout,
         tls=tls_from_flags(args, config, DRONE),
         mavlink_key=mavlink_key,
+        policy=policy,
+        stations=stations,
     )
+
+
+def handover_policy(
+    config: BatonConfig | None, flag: str | None, takeover_after: float
+) -> tuple[PolicyParams | None, dict[int, Station]]:
+    """The policy the drone runs (the flag over the config's) and every controller's
+    station; ValueError naming what is missing."""
+    from baton.drone.policy import PolicyParams, Station
+    from baton.drone.service import CONTROLLER_KEEPALIVE_S
+    from baton.sdk import Position
+
+    chosen = config.handover_policy if config is not None else None
+    name = flag or (chosen.name if chosen is not None else "none")
+    if name == "none":
+        return None, {}
+    if config is None:
+        raise ValueError(
+            f"--handover-policy {name} needs --config: the testbed file with every "
+            "controller's location and range_m"
+        )
+    stations = {}
+    for c in config.controllers:
+        if c.location is None or c.range_m is None:
+            missing = "location" if c.location is None else "range_m"
+            raise ValueError(
+                f"--handover-policy {name}: controller {c.id} has no {missing} in the config; add "
+                "it, or run without a handover policy"
+            )
+        where = Position(c.location.latitude_deg, c.location.longitude_deg)
+        stations[c.id] = Station(c.id, where, c.range_m)
+    assert chosen is not None
+    params = PolicyParams(
+        name,
+        margin_m=chosen.margin_m,
+        dwell_s=chosen.dwell,
+        lead_s=chosen.lead,
+        # A master's link down while in range is lost after the takeover time, as
+        # the takeover watch counts it; a link slower than the keepalive drops anyway.
+        link_lost_after_s=takeover_after,
+        max_rtt_s=CONTROLLER_KEEPALIVE_S[1],
+    )
+    return params, stations
 
 
 def run(args: argparse.Namespace) -> int:

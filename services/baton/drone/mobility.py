@@ -250,6 +250,15 @@ class MavsdkMobility:
                 )
         return link
 
+    def ground_velocity(self) -> tuple[float, float] | None:
+        """North and east m/s from the autopilot's GLOBAL_POSITION_INT (MAVSDK's
+        velocity_ned); None while the link is out or none arrived yet."""
+        velocity = self._latest.get("velocity")
+        if velocity is None or not self.connected:
+            return None
+        north, east = velocity.north_m_s, velocity.east_m_s
+        return (north, east) if math.isfinite(north) and math.isfinite(east) else None
+
     async def _attach(self) -> None:
         from mavsdk.asyncio.plugins.action import ActionAsync
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
@@ -264,6 +273,7 @@ class MavsdkMobility:
         self._direct = MavlinkDirectAsync(system)
         for name, stream in (
             ("position", telemetry.subscribe_position),
+            ("velocity", telemetry.subscribe_velocity_ned),
             ("home", telemetry.subscribe_home),
             ("armed", telemetry.subscribe_armed),
             ("in_air", telemetry.subscribe_in_air),

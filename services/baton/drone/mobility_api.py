@@ -33,6 +33,10 @@ class MobilityBackend(Protocol):
     def link(self) -> drone_pb2.VehicleLink:
         """The link to the autopilot now: ages, the problem if any, outages."""
 
+    def ground_velocity(self) -> tuple[float, float] | None:
+        """The vehicle's ground velocity now, metres per second north and east, from the
+        telemetry cache; None while it is not known (the handover policy's input)."""
+
     async def Arm(self, request: api.ArmRequest) -> api.ArmReply: ...
     async def Disarm(self, request: api.DisarmRequest) -> api.DisarmReply: ...
     async def Takeoff(self, request: api.TakeoffRequest) -> api.TakeoffReply: ...

@@ -44,6 +44,7 @@ import grpc
 
 from baton.drone.dedupe import DEFAULT_WINDOW, GIVEN_UP, CachedReply, ReplyCache
 from baton.rpc.errors import StatusError
+from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
 # How far a new request number may be above the last one served. Numbers skip
@@ -97,6 +98,8 @@ class Preparation:
     started_at: float
     deadline: float
     notice: drone_pb2.PrepareHandover
+    reason: str = ""  # the handover policy's why and where, for the record
+    position: api.Position | None = None
     # The master's last word on what the target lacks (None: not heard yet), and
     # how long its oldest unacknowledged message has waited.
     lacks_bytes: int | None = None
@@ -469,8 +472,13 @@ class Sequencer:
         now: float,
         takeover: bool = False,
         lost_at: float = 0.0,
+        reason: str = "",
+        position: api.Position | None = None,
     ) -> drone_pb2.HandoverRecord:
         """Makes ``new_master`` the master in the next epoch; owes the old one a notice.
+
+        ``reason`` and ``position`` (the handover policy's why and where) are kept
+        in the record for the report.
 
         Called between two requests (the service holds its execution lock).
         FAILED_PRECONDITION if ``new_master`` already is the master: a
@@ -499,6 +507,8 @@ class Sequencer:
             epoch=ended + 1,
             kind="takeover" if takeover else "cooperative",
             lost_at=lost_at,
+            reason=reason,
+            position=position,
         )
         self.handovers.append(record)
         self.master = new_master
@@ -648,7 +658,13 @@ class Sequencer:
     # -- prepared handovers (docs/design.md, "Prepared handover") -------------------
 
     def prepare(
-        self, target: int, trigger: str, now: float, timeout_s: float | None = None
+        self,
+        target: int,
+        trigger: str,
+        now: float,
+        timeout_s: float | None = None,
+        reason: str = "",
+        position: api.Position | None = None,
     ) -> drone_pb2.PrepareHandover:
         """Begins a prepared handover to ``target``; returns the notice the master is owed.
 
@@ -664,7 +680,7 @@ class Sequencer:
             )
         timeout = self.prepare_timeout_s if timeout_s is None else timeout_s
         notice = drone_pb2.PrepareHandover(target=target, epoch=self.epoch, timeout_s=timeout)
-        self.preparing = Preparation(target, trigger, now, now + timeout, notice)
+        self.preparing = Preparation(target, trigger, now, now + timeout, notice, reason, position)
         return notice
 
     def note_progress(
@@ -702,7 +718,7 @@ class Sequencer:
         )
         if not caught_up and now < p.deadline:
             return None
-        record = self.switch(p.target, p.trigger, now)
+        record = self.switch(p.target, p.trigger, now, reason=p.reason, position=p.position)
         record.kind = "prepared" if caught_up else "cooperative"
         record.prepare_started_at = p.started_at
         record.prepare_timed_out = not caught_up

@@ -26,6 +26,8 @@ from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, retained_batches
 from baton.drone.dispatch import Dispatcher
 from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend
+from baton.drone.policy import PolicyParams, Station
+from baton.drone.policy_runner import PolicyRunner
 from baton.drone.sequencer import (
     PREPARE_TIMEOUT_S,
     ScriptedHandover,
@@ -138,8 +140,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
         self._stalls = StallWatch()
         self.waiting = ""
+        # The handover policy, when the drone runs one (build_service).
+        self.policy: PolicyRunner | None = None
         if store is not None:
             self._restore(store)
+
+    @property
+    def execution_lock(self) -> asyncio.Lock:
+        """The single line of execution: held to execute a request or move the master."""
+        return self._lock
 
     @property
     def last_reqnr(self) -> int:
@@ -170,7 +179,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """Takes the master over when it is lost (``Sequencer.takeover_due``)."""
         while True:
             now = time.time()
-            reachable = self._sighted(now)
+            reachable = self._takers(self._sighted(now))
             due = self.seq.takeover_due(
                 now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
             )
@@ -178,7 +187,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 async with self._lock:
                     # Re-checked under the lock: a request may have come meanwhile.
                     now = time.time()
-                    reachable = self._sighted(now)
+                    reachable = self._takers(self._sighted(now))
                     due = self.seq.takeover_due(
                         now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
                     )
@@ -192,6 +201,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                         if self.store is not None:
                             self.store.save(self._counters())
             await asyncio.sleep(TAKEOVER_TICK_S)
+
+    def _takers(self, reachable: set[int]) -> set[int]:
+        """Who may take a lost master over: the reachable controllers, and with a handover
+        policy only those in range of the vehicle (the policy never picks another)."""
+        in_range = self.policy.in_range() if self.policy is not None else None
+        return reachable if in_range is None else reachable & in_range
 
     def _sighted(self, now: float) -> set[int]:
         """The controllers holding a stream now, noted as seen now."""
@@ -208,11 +223,48 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         the start-up grace); None while no controller was seen."""
         return None if self.first_seen is None else self.first_seen + START_GRACE_S
 
+    def hand_over(
+        self,
+        new_master: int,
+        trigger: str,
+        takeover: bool = False,
+        reason: str = "",
+        position: api.Position | None = None,
+    ) -> drone_pb2.HandoverRecord:
+        """Moves the master to ``new_master`` now, between two requests (the caller holds
+        the lock): the one path of the Handover RPC and of the handover policy.
+
+        A takeover when asked, or when the current master could not send its log
+        (``Sequencer.handover_must_take_over``); else the paper's cooperative handover.
+        """
+        now = time.time()
+        if takeover or self.seq.handover_must_take_over(new_master):
+            return self._take_over(new_master, trigger, now, reason=reason, position=position)
+        record = self.seq.switch(new_master, trigger, now, reason=reason, position=position)
+        self._switched(record)
+        if self.store is not None:
+            self.store.save(self._counters())
+        return record
+
     def _take_over(
-        self, new_master: int, trigger: str, now: float, lost_at: float = 0.0
+        self,
+        new_master: int,
+        trigger: str,
+        now: float,
+        lost_at: float = 0.0,
+        reason: str = "",
+        position: api.Position | None = None,
     ) -> drone_pb2.HandoverRecord:
         """Switches to ``new_master`` by takeover (under the lock) and tells it on its standby."""
-        record = self.seq.switch(new_master, trigger, now, takeover=True, lost_at=lost_at)
+        record = self.seq.switch(
+            new_master,
+            trigger,
+            now,
+            takeover=True,
+            lost_at=lost_at,
+            reason=reason,
+            position=position,
+        )
         self._switched(record)
         if self.store is not None:
             self.store.save(self._counters())
@@ -453,6 +505,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             raise StatusError(
                 grpc.StatusCode.INTERNAL, f"{request.method} failed on the drone: {exc!r}"
             ) from exc
+        if self.policy is not None and route.service == "Mobility":
+            self.policy.executed(route.name, message)
         payload = reply.SerializeToString()
         log = self.log.debug if route.is_read else self.log.info
         log(
@@ -514,10 +568,31 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             kind=record.kind,
             old_master_connected=self.streams.connected(record.old_master),
             **prepared,
+            reason=record.reason or None,
         )
+        if self.policy is not None and record.trigger in ("script", "rpc"):
+            self.policy.pin(record.new_master)  # they override the policy
         self.streams.wake(record.old_master, notice_delay_s)
         self._switch_seen.set()
         self._switch_seen = asyncio.Event()
+
+    def can_prepare(self, new_master: int) -> bool:
+        """Whether a handover to ``new_master`` can be prepared: the master holds its
+        Connect stream (to hear the PrepareHandover) and could send its log."""
+        return self.streams.master_connected and not self.seq.handover_must_take_over(new_master)
+
+    def prepare_handover(
+        self,
+        new_master: int,
+        trigger: str,
+        reason: str = "",
+        position: api.Position | None = None,
+    ) -> None:
+        """Begins a prepared handover (the caller holds the lock; ``can_prepare``)."""
+        notice = self.seq.prepare(
+            new_master, trigger, time.time(), reason=reason, position=position
+        )
+        self._preparing(notice)
 
     def _preparing(self, notice: drone_pb2.PrepareHandover) -> None:
         """Logs a prepared handover begun and wakes the master's stream to carry it."""
@@ -659,13 +734,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             if request.prepared and not request.takeover:
                 return await self._prepared_handover(request.new_master)
             async with self._lock:
-                if request.takeover or self.seq.handover_must_take_over(request.new_master):
-                    record = self._take_over(request.new_master, "rpc", time.time())
-                else:
-                    record = self.seq.switch(request.new_master, "rpc", time.time())
-                    self._switched(record)
-                    if self.store is not None:
-                        self.store.save(self._counters())
+                record = self.hand_over(request.new_master, "rpc", request.takeover)
         except StatusError as err:
             self.log.warning("handover rejected", new_master=request.new_master, reason=err.message)
             await abort_with(context, err)
@@ -681,15 +750,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         (caught up, or forced at the timeout). A master without its Connect stream
         cannot prepare anything: the handover is forced at once, as without ``prepared``."""
         async with self._lock:
-            if not self.streams.master_connected or self.seq.handover_must_take_over(new_master):
+            if not self.can_prepare(new_master):
                 preparation = None
-                if self.seq.handover_must_take_over(new_master):
-                    record = self._take_over(new_master, "rpc", time.time())
-                else:
-                    record = self.seq.switch(new_master, "rpc", time.time())
-                    self._switched(record)
+                record = self.hand_over(new_master, "rpc")
             else:
-                self._preparing(self.seq.prepare(new_master, "rpc", time.time()))
+                self.prepare_handover(new_master, "rpc")
                 preparation = self.seq.preparing
         if preparation is not None:
             while self.seq.preparing is preparation:
@@ -746,7 +811,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             takeover_after_s=self.takeover_after_s,
             preparing_for=seq.preparing.target if seq.preparing is not None else -1,
             preparing_lacks_bytes=(seq.preparing.lacks_bytes or 0) if seq.preparing else 0,
+            handover_policy="none",
         )
+        if self.policy is not None:
+            self.policy.fill_status(status)
         status.retained_replies, status.retained_bytes = seq.cache.retained
         if self.vehicle.connected:
             try:
@@ -812,6 +880,10 @@ class DroneSettings:
     tls: Tls | None = None
     # The MAVLink signing key (signing.py); None: the autopilot link unsigned.
     mavlink_key: bytes | None = None
+    # The handover policy (policy.py) and every controller's station; None: the
+    # script and the operator only.
+    policy: PolicyParams | None = None
+    stations: Mapping[int, Station] = field(default_factory=dict)
 
     @property
     def master(self) -> int:
@@ -837,7 +909,7 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
     )
     store = DroneStore(settings.state_file) if settings.state_file else None
     takeover_after_s = detection_time_s(settings.takeover_after, settings.speedup)
-    return DroneService(
+    service = DroneService(
         vehicle,
         camera,
         sequencer,
@@ -846,6 +918,9 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         takeover_after_s,
         authenticated=settings.tls is not None,
     )
+    if settings.policy is not None:
+        service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
+    return service
 
 
 async def serve(
@@ -875,6 +950,7 @@ async def serve(
         controllers=list(settings.controllers),
         master=settings.master,
         scripted_handovers=len(settings.handover_script),
+        handover_policy=settings.policy.name if settings.policy is not None else "none",
         speedup=settings.speedup,
     )
     print(json.dumps({"event": "listening", "address": server.address}), flush=True)
@@ -884,11 +960,18 @@ async def serve(
         on_listening(server.address)
     watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
     takeovers = asyncio.create_task(service.watch_master(), name="takeover-watch")
+    policy = (
+        asyncio.create_task(service.policy.run(), name="handover-policy")
+        if service.policy is not None
+        else None
+    )
     try:
         await stop.wait()
     finally:
         watchdog.cancel()
         takeovers.cancel()
+        if policy is not None:
+            policy.cancel()
         await server.stop()
         await vehicle.close()
         if service.store is not None:

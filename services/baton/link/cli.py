@@ -18,6 +18,7 @@ from typing import Any
 
 from baton.config import LinkSpec, parse_address, parse_duration, parse_rate
 from baton.lifecycle import write_atomically
+from baton.link.radio import parse_radio_range
 
 UNLIMITED = ("unlimited", "none")
 
@@ -106,6 +107,22 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="no emulation: pass bytes straight through (cannot be combined with shaping options)",
     )
     parser.add_argument(
+        "--range",
+        type=_option_type(parse_radio_range, "radio range"),
+        default=None,
+        metavar="LAT,LON,METRES",
+        help="radio range: carry connections only while the vehicle is within METRES of "
+        "LAT,LON (refused out of range, cut when it leaves); needs --position-file",
+    )
+    parser.add_argument(
+        "--position-file",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="where the vehicle is: the file `baton sim-vehicle --position-file` keeps "
+        "up to date (for --range)",
+    )
+    parser.add_argument(
         "--address-file",
         type=Path,
         default=None,
@@ -161,9 +178,11 @@ def run(args: argparse.Namespace) -> int:
     from baton.rpc.server import run_until_signalled
 
     up, down = link_specs(args)
+    if (args.range is None) != (args.position_file is None):
+        args.link_parser.error("--range and --position-file go together: give both or neither")
 
     async def serve(stop: asyncio.Event) -> int:
-        proxy = LinkProxy(args.listen, args.target, up, down)
+        proxy = LinkProxy(args.listen, args.target, up, down, args.range, args.position_file)
         try:
             await proxy.start()
         except OSError as exc:

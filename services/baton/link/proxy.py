@@ -6,6 +6,10 @@ chunks from its source while its in-flight amount is below a bound (so a
 asks its ``SerialLine`` when each chunk arrives, and writes it to the sink
 at that time. End of stream and resets travel the same way, behind the data
 sent before them: a half-close stays a half-close, a reset becomes a reset.
+
+With a radio range (``radio.py``) the link is up only while the vehicle is
+within it: a connection accepted out of range is reset at once (refused), and
+the vehicle leaving the range resets every open connection (cut).
 """
 
 from __future__ import annotations
@@ -18,9 +22,11 @@ import struct
 from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 from baton.config import LinkSpec
+from baton.link.radio import POSITION_PERIOD_S, RadioRange, read_position
 from baton.link.shaper import SerialLine
 from baton.logs import get_logger
 
@@ -43,6 +49,8 @@ class LinkCounters:
     bytes_up: int = 0  # client -> target, delivered
     bytes_down: int = 0  # target -> client, delivered
     peak_in_flight: int = 0  # most bytes one direction held at once (the buffering bound)
+    refused: int = 0  # accepted while the vehicle was out of radio range, and reset
+    cut: int = 0  # open when the vehicle left radio range, and reset
 
     def as_fields(self) -> dict[str, int]:
         """The counters as log fields."""
@@ -164,14 +172,31 @@ class LinkProxy:
 
     ``up`` shapes client -> target, ``down`` target -> client. Use inside one
     event loop: ``await proxy.start()``, then connect to ``proxy.address``;
-    ``await proxy.stop()`` closes the listener and every connection.
+    ``await proxy.stop()`` closes the listener and every connection. With
+    ``radio`` and ``position_file`` it carries connections only while the
+    vehicle (its position file) is within the radio's range.
     """
 
-    def __init__(self, listen: str, target: str, up: LinkSpec, down: LinkSpec) -> None:
+    def __init__(
+        self,
+        listen: str,
+        target: str,
+        up: LinkSpec,
+        down: LinkSpec,
+        radio: RadioRange | None = None,
+        position_file: Path | None = None,
+    ) -> None:
+        if (radio is None) != (position_file is None):
+            raise ValueError("a radio range needs the vehicle's position file, and vice versa")
         self.listen = listen
         self.target = target
         self.up = up
         self.down = down
+        self.radio = radio
+        self.position_file = position_file
+        # Whether the vehicle is within the radio's range (always, without one).
+        self.in_range = True
+        self._radio_watch: asyncio.Task[None] | None = None
         self.counters = LinkCounters()
         self.address = listen
         self.log = get_logger("link").bind(target=target)
@@ -181,6 +206,9 @@ class LinkProxy:
 
     async def start(self) -> None:
         """Starts listening; ``address`` then holds the bound port."""
+        if self.radio is not None:
+            self._look_at_the_vehicle()
+            self._radio_watch = asyncio.create_task(self._watch_the_vehicle())
         host, port = _split_address(self.listen)
         self._server = await asyncio.start_server(
             self._serve, host, port, limit=READ_BYTES, reuse_address=True
@@ -192,10 +220,43 @@ class LinkProxy:
             "link listening",
             up=self.up.model_dump(),
             down=self.down.model_dump(),
+            radio_range_m=self.radio.range_m if self.radio is not None else None,
         )
+
+    def _look_at_the_vehicle(self) -> bool:
+        """Reads the vehicle's position; notes (and logs) it entering or leaving the
+        range. Returns whether it just left."""
+        assert self.radio is not None and self.position_file is not None
+        where = read_position(self.position_file)
+        covered = where is not None and self.radio.covers(*where)
+        if covered == self.in_range:
+            return False
+        self.in_range = covered
+        distance = (
+            f"{self.radio.distance_m(*where):.0f} m" if where is not None else "position unknown"
+        )
+        self.log.info(
+            "vehicle in radio range" if covered else "vehicle out of radio range",
+            distance=distance,
+            range_m=self.radio.range_m,
+            open_connections=self.counters.active,
+        )
+        return not covered
+
+    async def _watch_the_vehicle(self) -> None:
+        """Cuts every open connection when the vehicle leaves the range."""
+        while True:
+            await asyncio.sleep(POSITION_PERIOD_S)
+            if self._look_at_the_vehicle():
+                self.counters.cut += len(self._connections)
+                for writer in list(self._writers):
+                    reset_connection(writer)
 
     async def stop(self) -> None:
         """Closes the listener, resets open connections and logs the counters."""
+        if self._radio_watch is not None:
+            self._radio_watch.cancel()
+            await asyncio.gather(self._radio_watch, return_exceptions=True)
         if self._server is not None:
             self._server.close()
         for writer in list(self._writers):
@@ -226,6 +287,11 @@ class LinkProxy:
         self.counters.active += 1
         peer = client.get_extra_info("peername")
         try:
+            if not self.in_range:
+                self.counters.refused += 1
+                self.log.debug("refused: the vehicle is out of radio range", peer=str(peer))
+                reset_connection(client)
+                return
             host, port = _split_address(self.target)
             try:
                 target_reader, target = await asyncio.open_connection(host, port, limit=READ_BYTES)

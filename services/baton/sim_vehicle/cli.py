@@ -132,6 +132,13 @@ def register(subparsers: Any) -> None:
         "continues the file (default: none written)",
     )
     parser.add_argument(
+        "--position-file",
+        type=Path,
+        metavar="PATH",
+        help="keep the vehicle's position in this JSON file, rewritten atomically 20 times a "
+        "second, for link emulators with a radio range (baton link --range); one vehicle only",
+    )
+    parser.add_argument(
         "--mavlink-key",
         type=Path,
         metavar="FILE",
@@ -146,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
     """Runs the vehicles until SIGTERM or SIGINT; exit code 0."""
     from baton import logs
     from baton.effects import EffectsFile
+    from baton.link.radio import POSITION_PERIOD_S, write_position
     from baton.signing import SigningKeyError, read_key
     from baton.sim_vehicle.kinematics import FlightParams, GeoPoint
     from baton.sim_vehicle.server import SimVehicle
@@ -155,6 +163,9 @@ def run(args: argparse.Namespace) -> int:
         key = read_key(args.mavlink_key) if args.mavlink_key is not None else None
     except SigningKeyError as exc:
         print(f"baton sim-vehicle: --mavlink-key: {exc}", file=sys.stderr)
+        return 2
+    if args.position_file is not None and args.count != 1:
+        print("baton sim-vehicle: --position-file is for one vehicle (--count 1)", file=sys.stderr)
         return 2
     if args.count < 1 or not 1 <= args.system_id <= 256 - args.count:
         log.error("bad --count/--system-id", count=args.count, system_id=args.system_id)
@@ -189,14 +200,27 @@ def run(args: argparse.Namespace) -> int:
             if args.count > 1:
                 event["system_id"] = vehicle.system_id
             print(json.dumps(event), flush=True)
+
+        def publish_position() -> None:
+            if args.position_file is not None:
+                state = vehicles[0].state()
+                write_position(
+                    args.position_file,
+                    state.latitude_deg,
+                    state.longitude_deg,
+                    state.relative_altitude_m,
+                )
+
+        publish_position()  # before the URL file: it is there when the parts start
         if args.url_file is not None:
             write_atomically(args.url_file, "".join(f"{v.url}\n" for v in vehicles))
         # Wake up now and then: a SIGTERM the kernel hands to a vehicle thread
         # does not interrupt a main thread blocked in a lock, and Python runs
         # handlers on the main thread only (seen: a sim vehicle outliving a
         # SIGKILLed testbed).
-        while not stop.wait(0.2):
-            pass
+        period = POSITION_PERIOD_S if args.position_file is not None else 0.2
+        while not stop.wait(period):
+            publish_position()
         log.info("signalled, stopping")
     finally:
         for vehicle in vehicles:

@@ -56,7 +56,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument(
         "--handover-file", help="handovers as 'REQNR MID' lines (the drone's format)"
     )
-    parser.add_argument("--no-handovers", action="store_true", help="run without any handover")
+    parser.add_argument(
+        "--no-handovers",
+        action="store_true",
+        help="run without any scripted handover (the default when the --config file names a "
+        "handover_policy: the drone then picks its masters)",
+    )
     parser.add_argument(
         "--prepared",
         action="store_true",
@@ -102,10 +107,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     parser.add_argument(
         "--mission",
-        metavar="FILE",
-        help="what the controllers fly: a mission file (defines mission(drone, **params)), or "
-        "a QGroundControl plan (.plan, or a 'QGC WPL 110' waypoint file) flown by "
-        "baton/missions/plan.py (default: the paper's grid mission, --grid ...)",
+        metavar="grid|corridor|FILE",
+        default="grid",
+        help="what the controllers fly: the paper's grid survey (default, --grid ...), a "
+        "corridor survey (a line of --length metres east of the take-off point; "
+        "examples/corridor.yaml places stations along it), a mission file (defines "
+        "mission(drone, **params)), or a QGroundControl plan (.plan, or a 'QGC WPL 110' "
+        "waypoint file) flown by baton/missions/plan.py",
     )
     parser.add_argument(
         "--mission-arg",
@@ -116,6 +124,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     parser.add_argument(
         "--grid", type=int, default=5, help="grid size: GRID x GRID waypoints (default 5)"
+    )
+    parser.add_argument(
+        "--length", type=float, default=1500.0, help="corridor length, m (default 1500)"
     )
     parser.add_argument(
         "--spacing", type=float, default=50.0, help="waypoint spacing, m (default 50)"
@@ -208,17 +219,17 @@ def _vehicle(args: argparse.Namespace, base: BatonConfig | None) -> tuple[str, P
     return vehicle, binary.resolve()
 
 
-def _mission(mission: str | None, pairs: list[str]) -> tuple[Path, tuple[str, ...], Path | None]:
-    """The mission file, its parameters and the plan it flies, from ``--mission``;
-    ValueError says what is wrong (a plan is checked whole here, before anything starts)."""
+def _mission(mission: str, pairs: list[str]) -> tuple[Path | None, tuple[str, ...], Path | None]:
+    """The mission file (None: the survey, grid or corridor), its parameters and the plan
+    it flies, from ``--mission``; ValueError says what is wrong (a plan is checked whole
+    here, before anything starts)."""
     from baton.missions import plan as plan_mission
     from baton.sdk.run import load_mission, parse_params
-    from baton.testbed.local import GRID_MISSION
 
-    if mission is None:
+    if mission in ("grid", "corridor"):
         if pairs:
             raise ValueError("--mission-arg is for a --mission FILE")
-        return GRID_MISSION, (), None
+        return None, (), None
     path = Path(mission)
     if not path.is_file():
         raise ValueError(f"--mission {mission}: no such file")
@@ -289,11 +300,12 @@ def run(args: argparse.Namespace) -> int:
     except (HandoverScriptError, OSError) as exc:
         return _fail(str(exc))
     handovers = sorted((reqnr, h.new_master) for reqnr, h in scripted.items())
-    if not handovers and not args.no_handovers and len(ids) > 1:
+    ranged = base is not None and base.handover_policy.name != "none"
+    if not handovers and not args.no_handovers and not ranged and len(ids) > 1:
         handovers = [
             (reqnr, ids[(k + 1) % len(ids)]) for k, reqnr in enumerate(DEFAULT_HANDOVER_REQNRS)
         ]
-    for name in ("speedup", "grid", "spacing", "altitude", "speed", "poll", "timeout"):
+    for name in ("speedup", "grid", "length", "spacing", "altitude", "speed", "poll", "timeout"):
         value = getattr(args, name)
         if not 0 < value < math.inf:  # nan too: a --timeout nan never timed out
             return _fail(f"--{name} must be a number > 0 and finite, got {value}")
@@ -303,7 +315,18 @@ def run(args: argparse.Namespace) -> int:
         vehicle, sitl_binary = _vehicle(args, base)
     except ValueError as exc:
         return _fail(str(exc))
-    mission = MissionPlan(args.grid, args.spacing, args.altitude, args.speed, args.poll)
+    if args.mission == "corridor" and args.spacing > args.length:
+        return _fail(f"--spacing {args.spacing:g} is longer than the corridor (--length)")
+    survey = args.mission if args.mission in ("grid", "corridor") else "grid"
+    mission = MissionPlan(
+        args.grid,
+        args.spacing,
+        args.altitude,
+        args.speed,
+        args.poll,
+        kind=survey,
+        length_m=args.length,
+    )
     try:
         mission_file, mission_args, flight_plan = _mission(args.mission, args.mission_arg)
     except ValueError as exc:

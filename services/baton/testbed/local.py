@@ -28,6 +28,7 @@ import yaml
 from baton.certs.make import ensure
 from baton.config import BatonConfig, DroneConfig, LinkSpec, parse_config
 from baton.effects import read_effects
+from baton.missions import corridor as corridor_mission
 from baton.missions import grid as grid_mission
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import MISSION_TOKEN_ENV
@@ -36,6 +37,8 @@ from baton.testbed.supervisor import PartNotReady, Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
 GRID_MISSION = Path(grid_mission.__file__)
+CORRIDOR_MISSION = Path(corridor_mission.__file__)
+MISSION_KINDS = ("grid", "corridor")
 
 # The paper's links: 20 ms and 25 Mbit/s between controllers; WiFi to the drone.
 PAPER_CONTROLLER_LINK = LinkSpec(latency=0.020, bandwidth=25e6)
@@ -44,17 +47,44 @@ WIFI_DRONE_LINK = LinkSpec(latency=0.002, bandwidth=20e6)
 
 @dataclass(frozen=True)
 class MissionPlan:
-    """The grid mission's parameters (``baton.missions.grid.mission``)."""
+    """The survey the testbed flies and its parameters: the paper's grid
+    (``baton.missions.grid``) or a corridor (``baton.missions.corridor``)."""
 
     grid: int = 5
     spacing_m: float = 50.0
     altitude_m: float = 10.0
     speed_m_s: float = 5.0
     poll_s: float = 1.0
+    kind: str = "grid"  # or "corridor"
+    length_m: float = 1500.0  # the corridor's
+
+    def __post_init__(self) -> None:
+        if self.kind not in MISSION_KINDS:
+            raise ValueError(f"unknown mission {self.kind!r}; use one of {MISSION_KINDS}")
+
+    @property
+    def file(self) -> Path:
+        """The mission program."""
+        return GRID_MISSION if self.kind == "grid" else CORRIDOR_MISSION
 
     def args(self) -> list[str]:
         """``--mission-arg`` values for ``baton controller``."""
-        return [f"{name}={value}" for name, value in self.__dict__.items()]
+        shape = {"grid": self.grid} if self.kind == "grid" else {"length_m": self.length_m}
+        common = ("spacing_m", "altitude_m", "speed_m_s", "poll_s")
+        values = {**shape, **{name: getattr(self, name) for name in common}}
+        return [f"{name}={value}" for name, value in values.items()]
+
+    def targets(self) -> list[tuple[float, float]]:
+        """The waypoints, metres (north, east) of the take-off point, in flying order."""
+        if self.kind == "grid":
+            return grid_mission.waypoints(self.grid, self.spacing_m)
+        return corridor_mission.waypoints(self.length_m, self.spacing_m)
+
+    def describe(self) -> str:
+        """For a person: "5x5 grid", "corridor of 1500 m"."""
+        if self.kind == "grid":
+            return f"{self.grid}x{self.grid} grid"
+        return f"corridor of {self.length_m:g} m"
 
 
 @dataclass(frozen=True)
@@ -74,7 +104,9 @@ class TestbedPlan:
     prepare_timeout: float | None = None  # the testbed file's prepare_timeout, if given
     speedup: float = 10.0
     mission: MissionPlan = MissionPlan()
-    mission_file: Path = GRID_MISSION
+    # A mission program of one's own (given only mission_args); default: the
+    # plan's mission, grid or corridor, with its parameters.
+    mission_file: Path | None = None
     emulate_links: bool = True
     controller_link: LinkSpec = PAPER_CONTROLLER_LINK
     drone_link: LinkSpec = WIFI_DRONE_LINK
@@ -102,13 +134,20 @@ class TestbedPlan:
 
     def all_mission_args(self) -> list[str]:
         """Every ``--mission-arg`` the controllers' mission program gets."""
-        grid_args = self.mission.args() if self.mission_file == GRID_MISSION else []
-        return [*grid_args, *self.mission_args]
+        own = self.mission.args() if self.mission_file is None else []
+        return [*own, *self.mission_args]
+
+    @property
+    def program(self) -> Path:
+        """The mission file the controllers run: one's own, else the survey's."""
+        return self.mission_file or self.mission.file
 
 
 # The side effects counted where they happen (baton.effects), in the workdir.
 VEHICLE_EFFECTS_FILE = "vehicle-effects.jsonl"  # commands the sim vehicle acted on
 CAMERA_EFFECTS_FILE = "camera-effects.jsonl"  # pictures the drone's camera produced
+# Where the sim vehicle is, for the link emulators' radio range (link/radio.py).
+VEHICLE_POSITION_FILE = "vehicle-position.json"
 
 # The drone's telemetry logs (``baton drone --tlog-dir``), one per drone process.
 TLOG_GLOB = "drone_*.tlog"
@@ -242,8 +281,14 @@ class LocalTestbed:
         ready to arm; ``vehicle_wait`` sees the drone's status meanwhile.
         """
         plan = self.plan
-        vehicle_url = await self._start_vehicle()
         base = plan.base_config
+        radio = base is not None and base.radio_range
+        if radio and (plan.vehicle != "sim" or not plan.emulate_links):
+            raise PartNotReady(
+                "radio_range needs the sim vehicle (its position file) and the link emulators; "
+                "run with --vehicle sim and without --no-links, or set radio_range: false"
+            )
+        vehicle_url = await self._start_vehicle()
         if base is not None:
             ids = base.ring_order
             own = {c.id: c.address for c in base.controllers}
@@ -260,7 +305,7 @@ class LocalTestbed:
                     f"link-ring-{cid}", own[cid], plan.controller_link
                 )
                 entry["drone_address"] = await self._start_link(
-                    f"link-drone-{cid}", drone_address, plan.drone_link
+                    f"link-drone-{cid}", drone_address, plan.drone_link, self._radio_args(cid)
                 )
             if base is not None:
                 original = base.controller(cid)
@@ -285,6 +330,9 @@ class LocalTestbed:
         if plan.emulate_links:
             document["controller_link"] = plan.controller_link.model_dump()
             document["drone_link"] = plan.drone_link.model_dump()
+        if base is not None:
+            document["handover_policy"] = base.handover_policy.model_dump()
+            document["radio_range"] = base.radio_range
         document["tls"] = self._certificates(ids)
         self.config_path.write_text(yaml.safe_dump(document, sort_keys=False))
         self.config = parse_config(document, str(self.config_path))
@@ -306,6 +354,18 @@ class LocalTestbed:
         self.tls = Tls.load(folder, OPERATOR)
         return {"certs": str(folder.resolve())}
 
+    def _radio_args(self, cid: int) -> list[str]:
+        """``baton link`` options of controller ``cid``'s link to the drone: its radio
+        range, from the testbed file, when the file asks for radio range."""
+        base = self.plan.base_config
+        if base is None or not base.radio_range:
+            return []
+        station = base.controller(cid)
+        assert station.location is not None and station.range_m is not None
+        where = f"{station.location.latitude_deg},{station.location.longitude_deg}"
+        position = self.workdir / VEHICLE_POSITION_FILE
+        return ["--range", f"{where},{station.range_m}", "--position-file", str(position)]
+
     def _home(self) -> str:
         base = self.plan.base_config
         home = (base.drone if base is not None else DroneConfig()).home
@@ -325,6 +385,11 @@ class LocalTestbed:
             effects.unlink(missing_ok=True)
             argv = baton_argv("sim-vehicle", "--speedup", speedup, "--url-file", str(ready))
             argv += ["--home", self._home(), "--effects-file", str(effects)]
+            base = self.plan.base_config
+            if base is not None and base.radio_range:
+                position = self.workdir / VEHICLE_POSITION_FILE
+                position.unlink(missing_ok=True)
+                argv += ["--position-file", str(position)]
             argv += self._mavlink_key_args()
             return (await self.supervisor.start_ready("sim-vehicle", argv, ready)).splitlines()[0]
         argv = baton_argv("sitl", "--speedup", speedup, "--home", self._home())
@@ -356,7 +421,9 @@ class LocalTestbed:
         key = self._mavlink_key()
         return ["--mavlink-key", str(key)] if key is not None else []
 
-    async def _start_link(self, name: str, target: str, spec: LinkSpec) -> str:
+    async def _start_link(
+        self, name: str, target: str, spec: LinkSpec, radio: list[str] | None = None
+    ) -> str:
         ready = self.workdir / f"{name}.address"
         argv = baton_argv(
             "link",
@@ -365,6 +432,7 @@ class LocalTestbed:
             "--target",
             target,
             *_link_args(spec),
+            *(radio or []),
             *dict(self.plan.link_args).get(name, ()),
             "--address-file",
             str(ready),
@@ -419,7 +487,7 @@ class LocalTestbed:
             "workdir": str(self.workdir),
             "controller_logs": {str(cid): str(self.controller_log(cid)) for cid in ring},
             "mission": {
-                "file": str(self.plan.mission_file),
+                "file": str(self.plan.program),
                 "args": self.plan.all_mission_args(),
             },
             "tlogs": sorted(str(path) for path in self.workdir.glob(TLOG_GLOB)),
@@ -441,7 +509,7 @@ class LocalTestbed:
                 "--config",
                 str(self.config_path),
                 "--mission",
-                str(self.plan.mission_file),
+                str(self.plan.program),
                 "--address-file",
                 str(ready),
                 "--log-file",

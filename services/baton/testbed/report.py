@@ -13,6 +13,7 @@ the controllers, only what the sim vehicle and the camera counted
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Sequence
 from typing import Any
 
 from baton.config import BatonConfig
@@ -55,9 +56,13 @@ def model_worst_case_s(
 
 
 def check_side_effects(
-    snapshot: Snapshot, grid: int, spacing_m: float | None = None
+    snapshot: Snapshot,
+    grid: int,
+    spacing_m: float | None = None,
+    targets: Sequence[tuple[float, float]] | None = None,
 ) -> dict[str, Any]:
-    """The grid mission's side effects, as the camera and the vehicle counted them.
+    """The grid mission's side effects, as the camera and the vehicle counted them
+    (or another survey's: ``targets``, its waypoints north and east of the first).
 
     Exactly once means: the camera produced one picture per waypoint
     (``grid``² pictures, each of which the mission checked as taken at its
@@ -70,15 +75,14 @@ def check_side_effects(
     part that did not count is ``NOT_COUNTED`` and not held against the run.
     """
     problems: list[str] = []
-    expected = grid * grid
+    expected = grid * grid if targets is None else len(targets)
+    plan = f"the {grid}x{grid} grid" if targets is None else "the survey"
     camera = snapshot.camera_effects
     pictures: int | str = NOT_COUNTED
     if camera is not None:
         pictures = sum(1 for e in camera if e["effect"] == "picture")
         if pictures != expected:
-            problems.append(
-                f"the camera produced {pictures} pictures; the {grid}x{grid} grid takes {expected}"
-            )
+            problems.append(f"the camera produced {pictures} pictures; {plan} takes {expected}")
     vehicle = snapshot.vehicle_effects
     commands: dict[str, int] | str = NOT_COUNTED
     if vehicle is not None:
@@ -87,7 +91,12 @@ def check_side_effects(
         for name in ONCE_PER_MISSION:
             if counts[name] != 1:
                 problems.append(f"the vehicle acted on {counts[name]} {name} commands, not 1")
-        problems += _goto_problems([e for e in vehicle if e["effect"] == "goto"], grid, spacing_m)
+        gotos = [e for e in vehicle if e["effect"] == "goto"]
+        gotos = _without_resumes(gotos, snapshot)
+        if targets is None:
+            spacing = spacing_m if spacing_m is not None else _grid_spacing(gotos)
+            targets = waypoints(grid, spacing)
+        problems += _goto_problems(gotos, targets, plan)
     return {
         "pictures_taken": pictures,
         "pictures_expected": expected,
@@ -97,31 +106,57 @@ def check_side_effects(
     }
 
 
-def _goto_problems(gotos: Effects, grid: int, spacing_m: float | None) -> list[str]:
-    """What is wrong with the gotos the vehicle acted on, for a ``grid`` x ``grid`` mission."""
+def _without_resumes(gotos: Effects, snapshot: Snapshot) -> Effects:
+    """The gotos the mission asked for: each resume of the drone's handover policy (a
+    leg flown on after a hold, ``PolicyDecision`` "resume") sent the last one again,
+    and is shown in the report's ``policy``, not counted against the mission."""
+    resumes = sum(1 for d in snapshot.drone.policy_decisions if d.action == "resume")
+    kept: Effects = []
+    for goto in gotos:
+        if resumes and kept and _same_target(kept[-1], goto):
+            resumes -= 1
+            continue
+        kept.append(goto)
+    return kept
+
+
+def _same_target(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    first = Position(a["latitude_deg"], a["longitude_deg"], 0.0, 0.0)
+    return distance_m(first, Position(b["latitude_deg"], b["longitude_deg"], 0.0, 0.0)) < 0.01
+
+
+def _grid_spacing(gotos: Effects) -> float:
+    """The grid's spacing, from its gotos: its second waypoint is one spacing east of its first."""
+    targets = [Position(g["latitude_deg"], g["longitude_deg"], 0.0, 0.0) for g in gotos]
+    return next(
+        (d for t in targets[1:] if (d := distance_m(targets[0], t)) > GOTO_TOLERANCE_M), 0.0
+    )
+
+
+def _goto_problems(
+    gotos: Effects, waypoints_ne: Sequence[tuple[float, float]], plan: str
+) -> list[str]:
+    """What is wrong with the gotos the vehicle acted on, for a survey of ``waypoints_ne``
+    (metres north and east of its first)."""
     targets = [Position(g["latitude_deg"], g["longitude_deg"], 0.0, 0.0) for g in gotos]
     problems = []
     repeated = Counter((round(t.latitude_deg, 6), round(t.longitude_deg, 6)) for t in targets)
     for (lat, lon), times in repeated.items():
         if times > 1:
             problems.append(f"the vehicle acted on a goto to {lat}, {lon} {times} times")
-    if len(targets) != grid * grid:
+    if len(targets) != len(waypoints_ne):
         problems.append(
-            f"the vehicle acted on {len(targets)} gotos; the {grid}x{grid} grid has "
-            f"{grid * grid} waypoints"
+            f"the vehicle acted on {len(targets)} gotos; {plan} has {len(waypoints_ne)} waypoints"
         )
     if not targets:
         return problems
-    if spacing_m is None:  # the grid's second waypoint is one spacing east of its first
-        spacing_m = next(
-            (d for t in targets[1:] if (d := distance_m(targets[0], t)) > GOTO_TOLERANCE_M), 0.0
-        )
-    for k, (target, (north, east)) in enumerate(
-        zip(targets, waypoints(grid, spacing_m), strict=False), start=1
-    ):
-        off = distance_m(target, offset(targets[0], north, east))
+    first_north, first_east = waypoints_ne[0]
+    for k, (target, (north, east)) in enumerate(zip(targets, waypoints_ne, strict=False), start=1):
+        expected = offset(targets[0], north - first_north, east - first_east)
+        off = distance_m(target, expected)
         if off > GOTO_TOLERANCE_M:
-            problems.append(f"goto {k} flew to {off:.1f} m from waypoint {k} of the grid")
+            where = "of the grid" if plan.endswith("grid") else f"of {plan}"
+            problems.append(f"goto {k} flew to {off:.1f} m from waypoint {k} {where}")
             break  # the first one out of order says it; the rest follow from it
     return problems
 
@@ -217,10 +252,12 @@ def build_report(
     spacing_m: float | None = None,
     plan: Plan | None = None,
     grid_mission: bool = True,
+    targets: Sequence[tuple[float, float]] | None = None,
 ) -> dict[str, Any]:
     """The report of one mission run (``spacing_m``: the grid's, if known; ``plan``: the
     QGroundControl plan flown instead of the grid, if one was; ``grid_mission`` False
-    for another mission file, whose side effects are only counted)."""
+    for another mission file, whose side effects are only counted; ``targets``: another
+    survey's waypoints, north and east of its first, instead of the grid)."""
     drone = snapshot.drone
     audit = list(drone.audit)
     executed = [a.reqnr for a in audit]
@@ -283,6 +320,14 @@ def build_report(
                 "prepare_timed_out": record.prepare_timed_out,
                 "log_bytes": moved,
                 "delay_s": round(record.delay_s, 6),
+                "decided_at": record.decided_at,
+                # The handover policy's why and where (trigger "policy").
+                "reason": record.reason,
+                "position": (
+                    [record.position.latitude_deg, record.position.longitude_deg]
+                    if record.HasField("position")
+                    else None
+                ),
                 "model_worst_case_s": round(
                     model_worst_case_s(
                         hops,
@@ -301,20 +346,25 @@ def build_report(
     scripted = [h for h in handovers if h["trigger"] == "script"]
     missed = planned_handovers[len(scripted) :]
     gotos = sum(1 for a in audit if a.method.endswith("/Goto"))
+    survey = plan is None and grid_mission  # the grid or the corridor: a picture a waypoint
     return {
         "format": REPORT_FORMAT,
         "completed": completed,
         "duration_s": round(duration_s, 3),
         "mission": {
-            "grid": grid if plan is None and grid_mission else None,
+            "grid": grid if survey and targets is None else None,
             "plan": str(plan.path) if plan is not None else None,
-            # The grid mission checks its position at every picture, so a picture is a
+            # The surveys check their position at every picture, so a picture is a
             # visit; the plan mission flies to each goto before the next. Of another
             # mission file only its gotos are known.
             "waypoints": (
-                len(plan.waypoints) if plan is not None else grid * grid if grid_mission else gotos
+                len(plan.waypoints)
+                if plan is not None
+                else (grid * grid if targets is None else len(targets))
+                if grid_mission
+                else gotos
             ),
-            "waypoints_visited": pictures if plan is None and grid_mission else gotos,
+            "waypoints_visited": pictures if survey else gotos,
             "pictures": pictures,
             "invocations": len(audit),
             "calls": max(reqnrs, default=0),
@@ -345,6 +395,20 @@ def build_report(
             },
         },
         "handovers": handovers,
+        # The master at the start, then after each handover.
+        "masters": [config.master_id, *(h["to"] for h in handovers)],
+        "policy": {
+            "name": drone.handover_policy or "none",
+            "radio_range": config.radio_range,
+            # Holds in the air (a hold decided on the ground, before the controllers
+            # are up or after the landing, stops nothing).
+            "holds": sum(
+                1
+                for d in drone.policy_decisions
+                if d.action == "hold" and d.position.relative_altitude_m > 0.5
+            ),
+            "resumes": sum(1 for d in drone.policy_decisions if d.action == "resume"),
+        },
         "handovers_planned": [list(h) for h in planned_handovers],
         "handovers_missed": [list(h) for h in missed],
         "drone": {
@@ -377,7 +441,7 @@ def build_report(
         "side_effects": (
             check_plan_effects(snapshot, plan, pictures)
             if plan is not None
-            else check_side_effects(snapshot, grid, spacing_m)
+            else check_side_effects(snapshot, grid, spacing_m, targets)
             if grid_mission
             else check_counted_effects(snapshot, pictures)
         ),
@@ -411,6 +475,25 @@ def _side_effects_line(effects: dict[str, Any]) -> str:
     )
 
 
+def _policy_lines(report: dict[str, Any]) -> list[str]:
+    """The handover policy's part of the summary: masters and each handover's reason."""
+    policy = report.get("policy") or {}
+    if policy.get("name", "none") == "none":
+        return []
+    masters = " -> ".join(str(m) for m in report["masters"])
+    lines = [
+        f"handover policy {policy['name']}"
+        f"{' with radio range' if policy['radio_range'] else ''}: masters {masters}; "
+        f"holds {policy['holds']}, resumes {policy['resumes']}"
+    ]
+    lines += [
+        f"  {h['from']} -> {h['to']} after {h['after_reqnr']}: {h['reason']}"
+        for h in report["handovers"]
+        if h["trigger"] == "policy"
+    ]
+    return lines
+
+
 def summary_table(report: dict[str, Any]) -> str:
     """The report as a few aligned tables for the terminal."""
     mission = report["mission"]
@@ -424,6 +507,7 @@ def summary_table(report: dict[str, Any]) -> str:
         f"replicas consistent: {report['replicas_consistent']}",
         _side_effects_line(report["side_effects"]),
         *(f"  {problem}" for problem in report["side_effects"]["problems"]),
+        *_policy_lines(report),
         "",
         f"{'handover':>8} {'from':>4} {'to':>3} {'after':>6} {'hops':>4} {'log bytes':>10} "
         f"{'delay s':>8} {'model s':>8}  kind",

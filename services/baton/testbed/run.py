@@ -19,7 +19,8 @@ from baton.lifecycle import write_atomically
 from baton.missions.plan import load_plan
 from baton.rpc.channels import aio_channel
 from baton.rpc.tls import DRONE, OPERATOR, Identity
-from baton.testbed.local import GRID_MISSION, LocalTestbed, Snapshot, TestbedPlan, drone_status
+from baton.testbed.flight_map import Track, draw_flight, flight_geojson
+from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan, drone_status
 from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
@@ -76,7 +77,9 @@ class Progress:
         scripted = sum(1 for h in drone.handovers if h.trigger == "script")
         takeovers = sum(1 for h in drone.handovers if h.kind == "takeover")
         operator = sum(1 for h in drone.handovers if h.trigger == "rpc" and h.kind != "takeover")
-        others = (f" + {operator} by operator" if operator else "") + (
+        policy = sum(1 for h in drone.handovers if h.trigger == "policy")
+        others = f" + {policy} by policy" if policy else ""
+        others += (f" + {operator} by operator" if operator else "") + (
             f" | takeovers {takeovers}" if takeovers else ""
         )
         vehicle = "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
@@ -122,8 +125,11 @@ def write_report(report: dict[str, Any], path: Path) -> None:
 
 async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout: float) -> int:
     """Runs one mission on the local testbed; returns the exit code."""
+    base = plan.base_config
+    policy = base.handover_policy.name if base is not None else "none"
     print(
-        f"baton testbed: {plan.controllers} controllers, flush limit {plan.flush_limit} bytes, "
+        f"baton testbed: {plan.mission.describe()}, {plan.controllers} controllers, "
+        f"handover policy {policy}, flush limit {plan.flush_limit} bytes, "
         "handovers "
         f"{', '.join(f'{r}:{m}' for r, m in plan.handovers) or 'none'}, speed-up {plan.speedup}x, "
         f"vehicle {plan.vehicle}; "
@@ -134,12 +140,21 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     testbed = LocalTestbed(plan, workdir)
     flight_plan = load_plan(str(plan.flight_plan)) if plan.flight_plan is not None else None
     try:
-        # The grid mission takes a picture at each waypoint; a plan, where it says.
-        pictures = plan.mission.grid**2 if plan.mission_file == GRID_MISSION else 0
+        # A survey (grid or corridor) takes a picture at each waypoint; a plan, where it says.
+        survey = plan.mission_file is None
+        targets = plan.mission.targets()
+        pictures = len(targets) if survey else 0
         if flight_plan is not None:
             pictures = flight_plan.pictures or 0
-        grid = plan.mission_file == GRID_MISSION
-        progress = Progress(pictures, len(plan.handovers), what="waypoint" if grid else "pictures")
+        progress = Progress(
+            pictures, len(plan.handovers), what="waypoint" if survey else "pictures"
+        )
+        track = Track()
+
+        def follow(snapshot: Snapshot) -> None:
+            progress(snapshot)
+            track(snapshot, time.time())
+
         config = await testbed.start(progress.vehicle_wait)
         write_atomically(
             workdir / "pids.json",
@@ -147,7 +162,7 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
                 {name: p.process.pid for name, p in testbed.supervisor.parts.items() if p.process}
             ),
         )
-        snapshot = await testbed.run_mission(timeout, progress)
+        snapshot = await testbed.run_mission(timeout, follow)
     except (PartDied, PartNotReady) as exc:
         print(f"baton testbed: FAILED: {exc}", file=sys.stderr, flush=True)
         return 1
@@ -164,13 +179,22 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
         list(plan.handovers),
         plan.mission.spacing_m,
         flight_plan,
-        grid_mission=plan.mission_file == GRID_MISSION,
+        grid_mission=survey,
+        targets=targets if plan.mission.kind != "grid" else None,
     )
     report["files"] = files = testbed.files()
     write_report(report, report_path)
     print(summary_table(report), flush=True)
     print(f"report: {report_path}", flush=True)
     print(files_note(files), flush=True)
+    geojson = flight_geojson(config, report, track.points)
+    map_path = report_path.with_suffix(".geojson")
+    map_path.write_text(json.dumps(geojson) + "\n")
+    picture = report_path.with_suffix(".png")
+    masters = " → ".join(str(m) for m in report["masters"])
+    policy = report["policy"]["name"]
+    draw_flight(geojson, picture, f"{plan.mission.describe()}, policy {policy}: masters {masters}")
+    print(f"map: {map_path} (GeoJSON), {picture}", flush=True)
     return 0 if run_succeeded(report) and not report["handovers_missed"] else 1
 
 

@@ -1,0 +1,347 @@
+"""The handover policy: which controller should be master, from where the drone is.
+
+The paper's drone "picks the controller deemed most suitable, e.g. the one
+that is closer to its current position; the drone knows the location of the
+edge nodes, their communication range, and the initial assignment of the
+master role". This module is that choice, as a pure function: no sockets, no
+tasks, no clock of its own. ``decide`` takes the vehicle's position and
+velocity (``Fix``), each controller's location and range (``Station``, from
+the testbed file), each controller's link as the drone sees it
+(``LinkState``: is its standby or Connect stream up, for how long has it been
+down, its round trip if known), the current master and the policy's own small
+state (``PolicyState``), and returns a ``Decision`` with a reason a person can
+read, and the next state. The drone service (``service.py``) feeds it its
+own telemetry every tick and carries the decision out; the tests feed it
+positions by hand.
+
+Two policies (docs/design.md, "Range-driven handovers"):
+
+- ``nearest`` (the paper's example): hand over to the nearest usable station
+  once it has been nearer than the master by ``margin_m`` for ``dwell_s``,
+  so that a drone on a boundary does not flap; at once when the master is
+  unusable.
+- ``predictive``: from the velocity, the time the vehicle stays in the
+  master's range; once that is below ``lead_s`` (enough for a handover to
+  finish), hand over to the usable station whose range the vehicle will
+  stay in longest, if that is longer than the master's.
+
+Both never choose a station that is out of range or whose link is down (or
+slower than ``max_rtt_s``), and say ``hold`` when no station is usable: the
+vehicle then holds position until one is. The master's link going down while
+it is in range is waited out for ``link_lost_after_s``, so a stream that is
+re-opened does not move the master; after that another usable station takes
+over (``takeover``: the old master cannot be told, so its log is not waited
+for). A master chosen by the handover script or the operator is kept while it
+is usable (``PolicyState.pinned``): they override the policy.
+
+Distances are horizontal, on a local flat Earth around each station (good to
+centimetres over a few kilometres, ``baton.sdk.geo``); a vehicle exactly on a
+station's circle is in its range. Times are mission seconds (wall seconds
+times the speed-up), as is the velocity the autopilot reports.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+
+from baton.sdk.geo import north_east_m
+from baton.sdk.types import Position
+
+# The policies a drone can run; "none" leaves the master to the script and the operator.
+POLICIES = ("none", "nearest", "predictive")
+
+STAY, HANDOVER, HOLD = "stay", "handover", "hold"
+
+
+@dataclass(frozen=True)
+class Station:
+    """A controller's antenna: where it is and how far it reaches (metres)."""
+
+    id: int
+    location: Position
+    range_m: float
+
+
+@dataclass(frozen=True)
+class Fix:
+    """Where the vehicle is and where it is going: position and ground velocity (m/s)."""
+
+    position: Position
+    north_m_s: float = 0.0
+    east_m_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class LinkState:
+    """A controller's link as the drone sees it now."""
+
+    up: bool  # it holds a standby or Connect stream
+    down_for_s: float = 0.0  # mission seconds since it was last up; 0 while up
+    rtt_s: float | None = None  # its last round trip, when measured
+
+
+@dataclass(frozen=True)
+class PolicyParams:
+    """A policy and its thresholds (times in mission seconds)."""
+
+    name: str = "nearest"
+    # nearest: another station must be this much nearer than the master...
+    margin_m: float = 50.0
+    # ... for this long, before the master moves to it.
+    dwell_s: float = 3.0
+    # predictive: hand over once the master's range runs out within this time.
+    lead_s: float = 10.0
+    # The master's link down this long while in range: another takes over.
+    link_lost_after_s: float = 3.0
+    # A link slower than this (round trip) is not used.
+    max_rtt_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.name not in POLICIES[1:]:
+            raise ValueError(
+                f"unknown handover policy {self.name!r}; use one of {', '.join(POLICIES[1:])}"
+            )
+        for field in ("margin_m", "dwell_s", "lead_s", "link_lost_after_s", "max_rtt_s"):
+            value = getattr(self, field)
+            if not 0 <= value < math.inf:
+                raise ValueError(f"policy {field} must be >= 0 and finite, got {value!r}")
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What to do now: ``stay``, ``handover`` to ``target``, or ``hold`` (none usable)."""
+
+    action: str
+    reason: str
+    target: int | None = None
+    # The old master cannot be told (its link is down): the target takes over
+    # without waiting for its log.
+    takeover: bool = False
+
+
+@dataclass(frozen=True)
+class PolicyState:
+    """What the policy remembers between two decisions."""
+
+    # nearest: the station that has been nearer by the margin, and since when.
+    candidate: int | None = None
+    candidate_since: float = 0.0
+    # A master the script or the operator chose: kept while it is usable.
+    pinned: int | None = None
+
+    def pin(self, master: int) -> PolicyState:
+        """The state after the script or the operator made ``master`` master."""
+        return PolicyState(pinned=master)
+
+
+def time_in_range_s(fix: Fix, station: Station) -> float:
+    """Mission seconds until the vehicle leaves ``station``'s range on its current
+    velocity: 0 if it is outside, infinite if it is inside and not moving."""
+    north, east = north_east_m(station.location, fix.position)
+    c = north * north + east * east - station.range_m * station.range_m
+    if c > 0:
+        return 0.0
+    a = fix.north_m_s**2 + fix.east_m_s**2
+    if a <= 1e-12:
+        return math.inf
+    b = 2 * (north * fix.north_m_s + east * fix.east_m_s)
+    # The later root of |p + v t| = r: where the straight track leaves the circle.
+    return (-b + math.sqrt(b * b - 4 * a * c)) / (2 * a)
+
+
+@dataclass(frozen=True)
+class _View:
+    """One station as seen from the vehicle now."""
+
+    station: Station
+    distance_m: float
+    link: LinkState
+    max_rtt_s: float
+
+    @property
+    def id(self) -> int:
+        return self.station.id
+
+    @property
+    def in_range(self) -> bool:
+        return self.distance_m <= self.station.range_m
+
+    @property
+    def link_ok(self) -> bool:
+        rtt = self.link.rtt_s
+        return self.link.up and (rtt is None or rtt <= self.max_rtt_s)
+
+    @property
+    def usable(self) -> bool:
+        return self.in_range and self.link_ok
+
+    def where(self) -> str:
+        return f"{self.distance_m:.0f} m of {self.station.range_m:.0f} m"
+
+    def why_not(self) -> str:
+        """Why it cannot be master now (empty if it can)."""
+        if not self.in_range:
+            return f"{self.id} out of range ({self.where()})"
+        if not self.link.up:
+            return f"{self.id} link down ({self.link.down_for_s:.1f} s, {self.where()})"
+        if not self.link_ok:
+            return f"{self.id} link too slow (round trip {self.link.rtt_s:.2f} s)"
+        return ""
+
+
+def decide(
+    params: PolicyParams,
+    stations: Mapping[int, Station],
+    fix: Fix,
+    links: Mapping[int, LinkState],
+    master: int,
+    state: PolicyState,
+    now: float,
+) -> tuple[Decision, PolicyState]:
+    """The policy's decision now and its next state (see the module docstring).
+
+    ``stations`` must hold every controller, the master too (KeyError
+    otherwise: the configuration check makes sure); a controller missing from
+    ``links`` counts as down.
+    """
+    views = {
+        cid: _View(
+            station,
+            distance_m(station, fix),
+            links.get(cid, LinkState(up=False, down_for_s=math.inf)),
+            params.max_rtt_s,
+        )
+        for cid, station in stations.items()
+    }
+    here = views[master]
+    others = [v for cid, v in sorted(views.items()) if cid != master and v.usable]
+    if state.pinned is not None and (state.pinned != master or not here.usable):
+        state = replace(state, pinned=None)
+    if state.candidate is not None and (state.candidate == master or state.candidate not in views):
+        state = replace(state, candidate=None)
+
+    if not here.usable:
+        if here.in_range and not here.link.up and here.link.down_for_s < params.link_lost_after_s:
+            return (
+                Decision(
+                    STAY,
+                    f"master {here.why_not()} but in range: waiting "
+                    f"{params.link_lost_after_s:g} s for it before another takes over",
+                ),
+                state,
+            )
+        best = _best(params, fix, others)
+        if best is None:
+            unusable = "; ".join(v.why_not() for _, v in sorted(views.items()))
+            return Decision(HOLD, f"no controller usable: {unusable}"), PolicyState()
+        return (
+            Decision(
+                HANDOVER,
+                f"master {here.why_not()}; {_why_best(params, fix, best)}",
+                target=best.id,
+                takeover=not here.link.up,
+            ),
+            PolicyState(),
+        )
+
+    if state.pinned == master:
+        return (
+            Decision(STAY, f"master {master} chosen by the script or operator ({here.where()})"),
+            state,
+        )
+    if params.name == "nearest":
+        return _nearest(params, here, others, state, now)
+    return _predictive(params, fix, here, others, state)
+
+
+def distance_m(station: Station, fix: Fix) -> float:
+    """Horizontal metres from ``station`` to the vehicle, as the policy measures them."""
+    north, east = north_east_m(station.location, fix.position)
+    return math.hypot(north, east)
+
+
+def _best(params: PolicyParams, fix: Fix, usable: list[_View]) -> _View | None:
+    """The station to move to when the master must go: the nearest, or for
+    ``predictive`` the one the vehicle stays in longest (then the nearest)."""
+    if not usable:
+        return None
+    if params.name == "nearest":
+        return min(usable, key=lambda v: (v.distance_m, v.id))
+    return min(usable, key=lambda v: (-time_in_range_s(fix, v.station), v.distance_m, v.id))
+
+
+def _why_best(params: PolicyParams, fix: Fix, best: _View) -> str:
+    if params.name == "nearest":
+        return f"{best.id} is the nearest usable ({best.where()})"
+    return (
+        f"{best.id} keeps the vehicle in range longest "
+        f"({_seconds(time_in_range_s(fix, best.station))}, {best.where()})"
+    )
+
+
+def _seconds(value: float) -> str:
+    return "while it is still" if math.isinf(value) else f"{value:.1f} s"
+
+
+def _nearest(
+    params: PolicyParams, here: _View, others: list[_View], state: PolicyState, now: float
+) -> tuple[Decision, PolicyState]:
+    best = min(others, key=lambda v: (v.distance_m, v.id), default=None)
+    if best is None or best.distance_m + params.margin_m >= here.distance_m:
+        nearest = f"; {best.id} at {best.distance_m:.0f} m" if best is not None else ""
+        return (
+            Decision(
+                STAY,
+                f"master {here.id} in range ({here.where()}), no usable station nearer by "
+                f"{params.margin_m:g} m{nearest}",
+            ),
+            replace(state, candidate=None),
+        )
+    if state.candidate != best.id:
+        state = replace(state, candidate=best.id, candidate_since=now)
+    held = now - state.candidate_since
+    nearer = f"{best.id} nearer ({best.distance_m:.0f} m) than master {here.id} ({here.where()})"
+    if held < params.dwell_s:
+        return (
+            Decision(STAY, f"{nearer} for {held:.1f} s of {params.dwell_s:g} s"),
+            state,
+        )
+    return (
+        Decision(HANDOVER, f"{nearer} by over {params.margin_m:g} m for {held:.1f} s", best.id),
+        PolicyState(),
+    )
+
+
+def _predictive(
+    params: PolicyParams, fix: Fix, here: _View, others: list[_View], state: PolicyState
+) -> tuple[Decision, PolicyState]:
+    left = time_in_range_s(fix, here.station)
+    if left > params.lead_s:
+        return (
+            Decision(
+                STAY,
+                f"master {here.id}'s range lasts {_seconds(left)} on this track "
+                f"(hand over {params.lead_s:g} s before it runs out)",
+            ),
+            state,
+        )
+    best = _best(params, fix, others)
+    if best is None or time_in_range_s(fix, best.station) <= left:
+        return (
+            Decision(
+                STAY,
+                f"master {here.id}'s range runs out in {left:.1f} s and no usable station "
+                "keeps the vehicle in range longer",
+            ),
+            state,
+        )
+    return (
+        Decision(
+            HANDOVER,
+            f"master {here.id}'s range runs out in {left:.1f} s; {_why_best(params, fix, best)}",
+            best.id,
+        ),
+        PolicyState(),
+    )

@@ -1,0 +1,284 @@
+"""Runs the handover policy (``policy.py``) in the drone service, from its own telemetry.
+
+Every ``POLICY_TICK_S`` the runner reads the vehicle's position and velocity
+from the mobility backend's telemetry cache, each controller's link from the
+drone's streams (a controller holding a standby or Connect stream is up; the
+drone's last sighting says for how long one has been down), asks the pure
+policy, and carries the decision out:
+
+- ``handover``: prepared (``DroneService.prepare_handover``, docs/design.md
+  "Prepared handover": the new master is caught up while the vehicle flies on,
+  and the drone moves the master once it has), or at once through
+  ``DroneService.hand_over``, the path of the Handover RPC, for a takeover or
+  a master that cannot prepare; under the execution lock, so the switch falls
+  between two requests; only if the master is still the one the policy
+  decided for.
+- ``hold``: no controller is usable. The vehicle holds position (MAVLink
+  hold/loiter through the backend, if it is in the air) and the mission
+  waits: no master can reach the drone. When a controller is usable again
+  the vehicle *resumes*: it flies on to the target of the master's last Goto
+  (it was stopped short of it, and the program polls until it is there). A
+  request of the master while holding ends the hold instead: the master
+  commands again.
+
+Every decision that changes what the drone does is logged with its reason and
+kept for GetStatus (``policy_decisions``); the latest one is always shown.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import deque
+from collections.abc import Mapping
+from typing import TYPE_CHECKING
+
+from google.protobuf.message import Message
+
+from baton.drone.policy import (
+    HANDOVER,
+    HOLD,
+    Decision,
+    Fix,
+    LinkState,
+    PolicyParams,
+    PolicyState,
+    Station,
+    decide,
+    distance_m,
+)
+from baton.logs import get_logger
+from baton.rpc.errors import StatusError
+from baton.sdk import Position
+from baton.sdk import distance_m as geo_distance_m
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2
+
+if TYPE_CHECKING:
+    from baton.drone.service import DroneService
+
+# How often the policy looks, wall seconds.
+POLICY_TICK_S = 0.1
+# Decisions kept for GetStatus.
+DECISIONS_KEPT = 100
+# An unchanged decision is logged again this often (wall seconds).
+DECISION_LOG_PERIOD_S = 5.0
+# Closer than this to the last Goto's target, a resume sends nothing.
+RESUME_MIN_M = 1.0
+RESUME = "resume"
+# Mobility commands after which there is nothing to resume (the vehicle lands,
+# goes home, holds or climbs on the master's word).
+_ENDS_A_LEG = frozenset({"Land", "ReturnToLaunch", "Hold", "Takeoff", "Disarm", "Arm"})
+
+
+class PolicyRunner:
+    """The handover policy's I/O: telemetry in, handovers and holds out."""
+
+    def __init__(
+        self,
+        service: DroneService,
+        params: PolicyParams,
+        stations: Mapping[int, Station],
+        speedup: float,
+    ) -> None:
+        self.service = service
+        self.params = params
+        self.stations = dict(stations)
+        self.speedup = speedup
+        self.state = PolicyState()
+        self.latest: drone_pb2.PolicyDecision | None = None
+        self.decisions: deque[drone_pb2.PolicyDecision] = deque(maxlen=DECISIONS_KEPT)
+        self.holding = False
+        self._held_vehicle = False  # the hold stopped a flying vehicle
+        self._last_goto: api.GotoRequest | None = None
+        self._fix: Fix | None = None
+        self._logged_at = 0.0
+        self.log = get_logger("drone.policy", policy=params.name)
+
+    # -- what the service tells the runner ---------------------------------------------
+
+    def pin(self, master: int) -> None:
+        """The script or the operator made ``master`` master: kept while it is usable."""
+        self.state = self.state.pin(master)
+
+    def executed(self, method_name: str, request: Message) -> None:
+        """A Mobility command of the master was executed: remember the leg it flies; a
+        command while holding ends the hold (the master commands again)."""
+        if method_name == "Goto":
+            assert isinstance(request, api.GotoRequest)
+            self._last_goto = request
+        elif method_name in _ENDS_A_LEG:
+            self._last_goto = None
+        if self.holding and (method_name == "Goto" or method_name in _ENDS_A_LEG):
+            self.holding = self._held_vehicle = False
+            self.log.info("hold ended by the master's command", method=method_name)
+
+    def in_range(self) -> set[int] | None:
+        """The controllers whose range holds the vehicle now; None before the first fix."""
+        fix = self._fix
+        if fix is None:
+            return None
+        return {cid for cid, s in self.stations.items() if distance_m(s, fix) <= s.range_m}
+
+    def fill_status(self, status: drone_pb2.DroneStatus) -> None:
+        """The policy's part of GetStatus."""
+        status.handover_policy = self.params.name
+        if self.latest is not None:
+            status.policy_decision.CopyFrom(self.latest)
+        status.policy_decisions.extend(self.decisions)
+        status.holding = self.holding and self._held_vehicle  # a flying vehicle stopped
+
+    # -- the loop --------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Decides every POLICY_TICK_S until cancelled."""
+        self.log.info(
+            "handover policy on",
+            stations={cid: s.range_m for cid, s in self.stations.items()},
+            margin_m=self.params.margin_m,
+            dwell_s=self.params.dwell_s,
+            lead_s=self.params.lead_s,
+        )
+        while True:
+            try:
+                await self.tick()
+            except StatusError as err:
+                self.log.warning("policy step failed", reason=err.message)
+            await asyncio.sleep(POLICY_TICK_S)
+
+    async def tick(self) -> Decision | None:
+        """One decision, carried out; None while the vehicle's position is not known."""
+        from baton.drone.service import latest_position
+
+        service = self.service
+        position = await latest_position(service.vehicle)
+        if position.latitude_deg == 0 and position.longitude_deg == 0:
+            return None
+        north, east = service.vehicle.ground_velocity() or (0.0, 0.0)
+        fix = Fix(Position.from_proto(position), north, east)
+        self._fix = fix
+        master = service.seq.master
+        decision, self.state = decide(
+            self.params, self.stations, fix, self._links(), master, self.state, self._now()
+        )
+        self._note(decision, position, master)
+        if decision.action == HANDOVER:
+            assert decision.target is not None
+            async with service.execution_lock:
+                preparing = service.seq.preparing
+                if service.seq.master != master:
+                    pass  # moved meanwhile
+                elif decision.takeover or not service.can_prepare(decision.target):
+                    service.hand_over(
+                        decision.target, "policy", decision.takeover, decision.reason, position
+                    )
+                elif preparing is None or preparing.target != decision.target:
+                    service.prepare_handover(decision.target, "policy", decision.reason, position)
+        elif decision.action == HOLD and not self.holding:
+            await self._hold(decision)
+        if decision.action != HOLD and self.holding:
+            await self._resume(master)
+        return decision
+
+    def _now(self) -> float:
+        """Mission seconds (the policy's clock)."""
+        return time.time() * self.speedup
+
+    def _links(self) -> dict[int, LinkState]:
+        """Each controller's link: up while it holds a stream; else down since last seen.
+
+        One not seen since the drone started counts as seen at the end of the
+        start-up grace (``DroneService.unseen_from``), as the takeover watch counts
+        it: the controllers come up one by one, and the first to come must not
+        take the master over from one still starting."""
+        service = self.service
+        up = service.standby.reachable | service.streams.holders
+        now = time.time()
+        links = {}
+        for cid in self.stations:
+            if cid in up:
+                links[cid] = LinkState(up=True)
+                continue
+            seen = service.last_seen.get(cid, service.unseen_from)
+            down = 0.0 if seen is None else max(0.0, now - seen) * self.speedup
+            links[cid] = LinkState(up=False, down_for_s=down)
+        return links
+
+    def _note(self, decision: Decision, position: api.Position, master: int) -> None:
+        """Keeps the decision for GetStatus and logs it when it changes what the drone does."""
+        record = drone_pb2.PolicyDecision(
+            action=decision.action,
+            target=decision.target if decision.target is not None else -1,
+            takeover=decision.takeover,
+            reason=decision.reason,
+            decided_at=time.time(),
+            position=position,
+            master=master,
+        )
+        self.latest = record
+        last = self.decisions[-1] if self.decisions else None
+        changed = last is None or (last.action, last.target, last.master) != (
+            record.action,
+            record.target,
+            record.master,
+        )
+        now = time.monotonic()
+        if changed:
+            self.decisions.append(record)
+        if changed or now - self._logged_at >= DECISION_LOG_PERIOD_S:
+            self._logged_at = now
+            log = self.log.info if changed else self.log.debug
+            log(
+                "policy decision",
+                action=decision.action,
+                target=decision.target,
+                takeover=decision.takeover,
+                reason=decision.reason,
+                latitude_deg=position.latitude_deg,
+                longitude_deg=position.longitude_deg,
+            )
+
+    async def _hold(self, decision: Decision) -> None:
+        """No controller usable: the vehicle holds position while it flies."""
+        service = self.service
+        async with service.execution_lock:
+            state = await service.vehicle.GetFlightState(api.GetFlightStateRequest())
+            if state.in_air:
+                await service.vehicle.Hold(api.HoldRequest())
+                self._held_vehicle = True
+            self.holding = True
+        self.log.warning(
+            "no controller usable: holding position"
+            if self._held_vehicle
+            else "no controller usable (vehicle on the ground: nothing to hold)",
+            reason=decision.reason,
+        )
+
+    async def _resume(self, master: int) -> None:
+        """A controller is usable again: fly on to the master's last Goto target."""
+        service = self.service
+        async with service.execution_lock:
+            if not self.holding:
+                return  # the master's command ended it meanwhile
+            self.holding = False
+            goto, held = self._last_goto, self._held_vehicle
+            self._held_vehicle = False
+            if not held or goto is None:
+                return
+            here = await service.vehicle.GetPosition(api.GetPositionRequest())
+            target = Position(goto.latitude_deg, goto.longitude_deg)
+            away = geo_distance_m(Position.from_proto(here.position), target)
+            if away <= RESUME_MIN_M:
+                return
+            await service.vehicle.Goto(goto)
+        reason = f"a controller is usable again: flying on to the last Goto's target ({away:.0f} m)"
+        record = drone_pb2.PolicyDecision(
+            action=RESUME,
+            target=-1,
+            reason=reason,
+            decided_at=time.time(),
+            position=here.position,
+            master=master,
+        )
+        self.decisions.append(record)
+        self.log.info("policy decision", action=RESUME, reason=reason)

@@ -1,0 +1,184 @@
+"""The handover policy inside the drone service: its telemetry in, handovers and holds out."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+
+import grpc
+import pytest
+from drone_harness import DroneUnderTest, start_drone
+from test_drone_service import GOTO, POSITION, invoke
+from waiting import eventually
+
+from baton.drone.policy import HANDOVER, HOLD, STAY, PolicyParams, Station
+from baton.sdk import Position, offset
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2
+
+HOME = Position(47.397742, 8.545594)
+# Three stations along a line east of home, 500 m apart, 400 m of range each.
+STATIONS = {cid: Station(cid, offset(HOME, 0.0, 500.0 * cid), 400.0) for cid in (0, 1, 2)}
+
+
+def put(drone: DroneUnderTest, east_m: float, altitude_m: float = 10.0) -> None:
+    """Moves the fake vehicle ``east_m`` east of home."""
+    where = offset(HOME, 0.0, east_m)
+    drone.vehicle.position.latitude_deg = where.latitude_deg
+    drone.vehicle.position.longitude_deg = where.longitude_deg
+    drone.vehicle.position.relative_altitude_m = altitude_m
+
+
+class Links:
+    """Standby streams held for controllers, as their links to the drone."""
+
+    def __init__(self, drone: DroneUnderTest) -> None:
+        self.drone = drone
+        self.calls: dict[int, grpc.aio.UnaryStreamCall] = {}  # type: ignore[type-arg]
+
+    async def up(self, *cids: int) -> None:
+        for cid in cids:
+            call = self.drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=cid))
+            assert (await call.read()).HasField("held")
+            self.calls[cid] = call
+        await eventually(
+            lambda: set(cids) <= self.drone.service.standby.reachable, f"{cids} reachable"
+        )
+
+    async def down(self, *cids: int) -> None:
+        for cid in cids:
+            self.calls.pop(cid).cancel()
+        await eventually(
+            lambda: not set(cids) & self.drone.service.standby.reachable, f"{cids} unreachable"
+        )
+
+    def close(self) -> None:
+        for call in self.calls.values():
+            call.cancel()
+
+
+@pytest.fixture
+async def ranged() -> AsyncIterator[tuple[DroneUnderTest, Links]]:
+    policy = PolicyParams("nearest", margin_m=50.0, dwell_s=0.0, link_lost_after_s=0.0)
+    drone, server = await start_drone(policy=policy, stations=STATIONS)
+    links = Links(drone)
+    yield drone, links
+    links.close()
+    await server.stop(0)
+
+
+async def test_the_drone_hands_over_to_the_nearest_station_and_says_why(
+    ranged: tuple[DroneUnderTest, Links],
+) -> None:
+    drone, links = ranged
+    await links.up(0, 1, 2)
+    assert drone.service.policy is not None
+    await drone.stub.Invoke(invoke(0, 1, POSITION))  # the mission has begun
+    put(drone, 200.0)
+    decision = await drone.service.policy.tick()
+    assert decision is not None and decision.action == STAY
+    put(drone, 300.0)  # 1 nearer by 100 m
+    decision = await drone.service.policy.tick()
+    assert decision is not None and decision.action == HANDOVER and decision.target == 1
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    assert status.master == 1 and status.handover_policy == "nearest"
+    (record,) = status.handovers
+    assert (record.old_master, record.new_master, record.trigger) == (0, 1, "policy")
+    assert record.kind == "cooperative"  # 0's link is up: it is told, and sends its log
+    assert "1 nearer (200 m) than master 0 (300 m of 400 m)" in record.reason
+    assert record.position.longitude_deg == pytest.approx(offset(HOME, 0, 300.0).longitude_deg)
+    assert [d.action for d in status.policy_decisions] == [STAY, HANDOVER]
+    assert status.policy_decision.reason == record.reason and not status.holding
+
+
+async def test_the_operator_overrides_the_policy_while_its_choice_is_usable(
+    ranged: tuple[DroneUnderTest, Links],
+) -> None:
+    drone, links = ranged
+    await links.up(0, 1, 2)
+    assert drone.service.policy is not None
+    put(drone, 650.0)  # 1 at 150 m, 2 at 350 m
+    await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=2))
+    decision = await drone.service.policy.tick()
+    assert decision is not None and decision.action == STAY
+    assert "chosen by the script or operator" in decision.reason
+    put(drone, 550.0)  # 2 out of range (450 m of 400 m): the policy moves it to 1
+    decision = await drone.service.policy.tick()
+    assert decision is not None and (decision.action, decision.target) == (HANDOVER, 1)
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    assert [(h.trigger, h.new_master) for h in status.handovers] == [("rpc", 2), ("policy", 1)]
+
+
+async def test_no_usable_controller_holds_the_vehicle_and_resumes_its_leg(
+    ranged: tuple[DroneUnderTest, Links],
+) -> None:
+    drone, links = ranged
+    await links.up(0, 1)
+    assert drone.service.policy is not None
+    put(drone, 0.0)
+    target = offset(HOME, 0.0, 900.0)
+    goto = api.GotoRequest(
+        latitude_deg=target.latitude_deg, longitude_deg=target.longitude_deg, relative_altitude_m=10
+    )
+    await drone.stub.Invoke(invoke(0, 1, GOTO, goto))
+    # The fake vehicle jumps to the target; say it is still flying, 250 m out, and
+    # every link is down (out of 0's range, and 1's link lost).
+    put(drone, 450.0)
+    await links.down(0, 1)
+    decision = await drone.service.policy.tick()
+    assert decision is not None and decision.action == HOLD
+    assert drone.vehicle.calls[-2:] == ["GetFlightState", "Hold"]
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    assert status.holding and status.policy_decision.action == HOLD
+    assert "0 out of range (450 m of 400 m); 1 link down" in status.policy_decision.reason
+    calls = len(drone.vehicle.calls)
+    decision = await drone.service.policy.tick()  # still none: no second Hold
+    assert decision is not None and decision.action == HOLD
+    assert "Hold" not in drone.vehicle.calls[calls:]
+    # 1 comes back: it takes over (0 cannot be told) and the vehicle flies on.
+    await links.up(1)
+    decision = await drone.service.policy.tick()
+    assert decision is not None and (decision.action, decision.target) == (HANDOVER, 1)
+    assert decision.takeover
+    assert drone.vehicle.calls[-1] == "Goto"
+    assert drone.vehicle.position.longitude_deg == pytest.approx(target.longitude_deg)
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    assert not status.holding and status.master == 1
+    assert status.handovers[-1].kind == "takeover"
+    assert [d.action for d in status.policy_decisions][-3:] == [HOLD, HANDOVER, "resume"]
+
+
+async def test_a_command_of_the_master_ends_a_hold(
+    ranged: tuple[DroneUnderTest, Links],
+) -> None:
+    drone, _ = ranged
+    assert drone.service.policy is not None
+    put(drone, 1300.0)  # out of every range, no link: hold
+    decision = await drone.service.policy.tick()
+    assert decision is not None and decision.action == HOLD and drone.service.policy.holding
+    # The master's Goto reaches the drone anyway (no radio here): it commands again.
+    await drone.stub.Invoke(
+        invoke(
+            0,
+            1,
+            GOTO,
+            api.GotoRequest(latitude_deg=47.4, longitude_deg=8.5, relative_altitude_m=10),
+        )
+    )
+    assert not drone.service.policy.holding
+
+
+async def test_a_master_still_starting_is_not_taken_over_by_the_first_controller_up() -> None:
+    policy = PolicyParams("nearest", margin_m=50.0, dwell_s=0.0, link_lost_after_s=3.0)
+    drone, server = await start_drone(policy=policy, stations=STATIONS)
+    links = Links(drone)
+    try:
+        assert drone.service.policy is not None
+        put(drone, 150.0, altitude_m=0.0)  # in 0's and 1's range; 0 has not come up yet
+        await links.up(1)
+        decision = await drone.service.policy.tick()
+        assert decision is not None and decision.action == STAY, decision
+        assert "master 0 link down (0.0 s" in decision.reason and "waiting 3 s" in decision.reason
+        assert drone.service.seq.master == 0
+    finally:
+        links.close()
+        await server.stop(0)

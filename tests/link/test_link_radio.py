@@ -1,0 +1,121 @@
+"""Radio range: the link carries connections only while the vehicle is within range."""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from link_endpoints import Echo, connect
+from test_link_cli import baton_link
+
+from baton.config import LinkSpec
+from baton.link.proxy import LinkProxy
+from baton.link.radio import RadioRange, parse_radio_range, write_position
+from baton.sdk import Position, offset
+
+STATION = Position(47.397742, 8.545594)
+RADIO = RadioRange(STATION.latitude_deg, STATION.longitude_deg, 500.0)
+
+
+def place(path: Path, east_m: float) -> None:
+    """The vehicle's position file says it is ``east_m`` east of the station."""
+    where = offset(STATION, 0.0, east_m)
+    write_position(path, where.latitude_deg, where.longitude_deg, 10.0)
+
+
+async def echoes(address: str) -> bool:
+    """Whether a new connection through the link carries a byte there and back."""
+    reader, writer = await connect(address)
+    try:
+        writer.write(b"x")
+        return await asyncio.wait_for(reader.read(1), 5) == b"x"
+    except ConnectionError:
+        return False
+    finally:
+        writer.close()
+
+
+async def until(check, what: str, timeout_s: float = 10.0) -> None:  # type: ignore[no-untyped-def]
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout_s
+    while not await check():
+        assert loop.time() < deadline, f"timed out waiting for {what}"
+        await asyncio.sleep(0.02)
+
+
+async def test_out_of_range_refuses_and_cuts_and_in_range_carries_again(
+    echo: Echo, tmp_path: Path
+) -> None:
+    position = tmp_path / "vehicle-position.json"
+    place(position, 300.0)
+    proxy = LinkProxy("127.0.0.1:0", echo.address, LinkSpec(), LinkSpec(), RADIO, position)
+    await proxy.start()
+    try:
+        assert proxy.in_range and await echoes(proxy.address)
+        reader, writer = await connect(proxy.address)
+        writer.write(b"y")
+        assert await reader.read(1) == b"y"
+        place(position, 501.0)  # just beyond the circle
+        with pytest.raises(ConnectionResetError):
+            # The open connection is cut: a reset, not a quiet end.
+            assert await asyncio.wait_for(reader.read(1), 5) != b""
+        writer.close()
+        assert not proxy.in_range and proxy.counters.cut == 1
+        assert not await echoes(proxy.address)
+        assert proxy.counters.refused >= 1
+        place(position, 500.0 - 1e-6)  # on the circle, to a micrometre: in range
+        await until(lambda: echoes(proxy.address), "the link to carry again")
+        assert proxy.in_range
+    finally:
+        await proxy.stop()
+
+
+async def test_no_position_file_is_out_of_range(echo: Echo, tmp_path: Path) -> None:
+    proxy = LinkProxy(
+        "127.0.0.1:0", echo.address, LinkSpec(), LinkSpec(), RADIO, tmp_path / "nowhere.json"
+    )
+    await proxy.start()
+    try:
+        assert not proxy.in_range and not await echoes(proxy.address)
+    finally:
+        await proxy.stop()
+
+
+def test_radio_range_options_are_checked() -> None:
+    assert parse_radio_range("47.1,8.2,500") == RadioRange(47.1, 8.2, 500.0)
+    with pytest.raises(ValueError, match="expected LAT,LON,METRES"):
+        parse_radio_range("47.1,8.2")
+    with pytest.raises(ValueError, match="range must be > 0"):
+        parse_radio_range("47.1,8.2,0")
+    result = subprocess.run(
+        [sys.executable, "-m", "baton.cli", "link", "--target", "127.0.0.1:1", "--range", "4,8,5"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert result.returncode == 2
+    assert "--range and --position-file go together" in result.stderr
+
+
+async def test_baton_link_follows_the_position_file(echo: Echo, tmp_path: Path) -> None:
+    position = tmp_path / "vehicle-position.json"
+    place(position, -200.0)
+    radio = f"{STATION.latitude_deg},{STATION.longitude_deg},500"
+    async with baton_link(
+        echo.address, "--off", "--range", radio, "--position-file", str(position)
+    ) as link:
+        assert await echoes(link.address)
+        place(position, -800.0)
+
+        async def refused() -> bool:
+            return not await echoes(link.address)
+
+        await until(refused, "the link to refuse")
+        _, lines = await link.terminate()
+    left = [line for line in lines if line.get("msg") == "vehicle out of radio range"]
+    assert left and left[0]["distance"] == "800 m"
+    stopped = next(line for line in lines if line.get("msg") == "link stopped")
+    assert stopped["refused"] >= 1

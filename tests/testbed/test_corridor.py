@@ -1,0 +1,221 @@
+"""The corridor survey across real processes: the drone picks its masters from where it is.
+
+examples/corridor.yaml on free ports: four stations of 500 m range along a
+1.5 km line, radio range on every controller's link to the drone (the link
+emulators follow the sim vehicle), a handover policy and no handover script.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from test_testbed import run_testbed
+from waiting import eventually
+
+from baton.config import load_config
+from baton.link.radio import RadioRange
+from baton.sdk import Position, offset
+from baton.sdk.geo import north_east_m
+from baton.testbed.local import LocalTestbed, TestbedPlan, free_port
+from baton.testbed.report import build_report
+
+EXAMPLE = Path(__file__).parents[2] / "examples" / "corridor.yaml"
+MARGIN_M, LEAD_S, SPEED_M_S = 50.0, 10.0, 5.0
+
+
+def corridor_on_free_ports(tmp_path: Path, policy: str) -> Path:
+    document = yaml.safe_load(EXAMPLE.read_text())
+    document["drone"]["address"] = f"127.0.0.1:{free_port()}"
+    for controller in document["controllers"]:
+        controller["address"] = f"127.0.0.1:{free_port()}"
+    document["handover_policy"]["name"] = policy
+    config = tmp_path / "corridor.yaml"
+    config.write_text(yaml.safe_dump(document))
+    return config
+
+
+def link_lines(workdir: Path, cid: int) -> list[dict]:  # type: ignore[type-arg]
+    log = workdir / "logs" / f"link-drone-{cid}.log"
+    return [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
+
+
+@pytest.mark.parametrize("policy", ["nearest", "predictive"])
+def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
+    tmp_path: Path, policy: str
+) -> None:
+    config_path = corridor_on_free_ports(tmp_path, policy)
+    config = load_config(config_path)
+    report = run_testbed(
+        tmp_path, "--config", str(config_path), "--mission", "corridor", "--spacing", "100"
+    )
+    assert report["completed"] and report["replicas_consistent"]
+    assert report["exactly_once"] and report["side_effects"]["exactly_once"] is True
+    assert report["side_effects"]["pictures_taken"] == report["mission"]["waypoints"] == 16
+    assert report["handovers_planned"] == []
+    assert report["policy"] == {"name": policy, "radio_range": True, "holds": 0, "resumes": 0}
+    # One station after the other, each by the policy, each the paper's handover.
+    assert report["masters"] == [0, 1, 2, 3]
+    assert [(h["trigger"], h["kind"]) for h in report["handovers"]] == [
+        ("policy", "cooperative")
+    ] * 3
+    for h in report["handovers"]:
+        old, new = (
+            RadioRange(s.location.latitude_deg, s.location.longitude_deg, s.range_m)
+            for s in (config.controller(h["from"]), config.controller(h["to"]))
+            if s.location is not None and s.range_m is not None
+        )
+        from_old, from_new = old.distance_m(*h["position"]), new.distance_m(*h["position"])
+        assert from_old <= old.range_m and from_new <= new.range_m, h  # both in range
+        if policy == "nearest":
+            assert from_new + MARGIN_M < from_old, h
+            assert "nearer" in h["reason"]
+        else:
+            # On the line, flying away from the old station at 5 m/s: handed over once its
+            # range would run out within the lead (10 s), with a tick of slack.
+            assert old.range_m - LEAD_S * SPEED_M_S - 5 <= from_old <= old.range_m, h
+            assert "range runs out in" in h["reason"]
+        assert 0 < h["delay_s"] < 5, h
+    # The map beside the report: the path in one part per master, each handover on it.
+    geojson = json.loads((tmp_path / "report.geojson").read_text())
+    kinds = [f["properties"]["kind"] for f in geojson["features"]]
+    assert kinds.count("station") == kinds.count("range") == 4
+    paths = [
+        f["properties"]["master"] for f in geojson["features"] if f["properties"]["kind"] == "path"
+    ]
+    assert paths == [0, 1, 2, 3] and kinds.count("handover") == 3
+    assert (tmp_path / "report.png").read_bytes()[:4] == b"\x89PNG"
+    # The radio was real: station 0 lost the vehicle beyond 500 m and cut the link;
+    # station 3 was refused until the vehicle came within 500 m of it.
+    workdir = tmp_path / "w"
+    zero, three = link_lines(workdir, 0), link_lines(workdir, 3)
+    assert any(line.get("msg") == "vehicle out of radio range" for line in zero)
+    assert next(line for line in zero if line.get("msg") == "link stopped")["cut"] >= 1
+    assert three[0].get("msg") == "vehicle out of radio range"  # from the start
+    assert any(line.get("msg") == "vehicle in radio range" for line in three)
+    assert next(line for line in three if line.get("msg") == "link stopped")["refused"] >= 1
+
+
+# Across the boundary between stations 0 and 1 (east 250 m; `nearest` moves the
+# master about 25 m past it): first dithering within 15 m of it, then three full
+# crossings. Distinct targets: the exactly-once check counts a goto to one place twice.
+DITHER = [240, 262, 242, 264, 244]
+CROSSINGS = [340, 160, 342]
+
+
+async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossing(
+    tmp_path: Path,
+) -> None:
+    config_path = corridor_on_free_ports(tmp_path, "nearest")
+    config = load_config(config_path)
+    eastings = [0, *DITHER, *CROSSINGS]
+    plan = TestbedPlan(
+        controllers=len(config.controllers),
+        base_config=config,
+        speedup=config.speedup,
+        mission_file=Path(__file__).parent / "missions" / "back_and_forth.py",
+        mission_args=(f"eastings={','.join(map(str, eastings))}",),
+        resolution="160x120",
+    )
+    started = time.monotonic()
+    async with LocalTestbed(plan, tmp_path / "w") as testbed:
+        snapshot = await testbed.run_mission(240)
+    targets = [(0.0, float(east)) for east in eastings]
+    report = build_report(config, snapshot, 0, time.monotonic() - started, [], targets=targets)
+    assert report["completed"] and report["replicas_consistent"] and report["exactly_once"]
+    assert report["side_effects"]["exactly_once"] is True, report["side_effects"]
+    # The dither moved nothing; each crossing moved the master once.
+    assert report["masters"] == [0, 1, 0, 1], report["handovers"]
+    assert {h["trigger"] for h in report["handovers"]} == {"policy"}
+    decisions = [(d.action, d.target) for d in snapshot.drone.policy_decisions]
+    assert decisions.count(("handover", 1)) == 2 and decisions.count(("handover", 0)) == 1
+
+
+def gapped_corridor(tmp_path: Path) -> Path:
+    """Three stations 600 m apart with 400 m of range, on free ports: between 400 m
+    and 800 m east only station 1 reaches the vehicle."""
+    document = yaml.safe_load(EXAMPLE.read_text())
+    home = document["drone"]["home"]
+    document["drone"]["address"] = f"127.0.0.1:{free_port()}"
+    controllers = document["controllers"][:3]
+    for k, controller in enumerate(controllers):
+        controller["address"] = f"127.0.0.1:{free_port()}"
+        controller["range_m"] = 400
+        where = offset(Position(home["latitude_deg"], home["longitude_deg"]), 50.0, 600.0 * k)
+        controller["location"] = {
+            "latitude_deg": where.latitude_deg,
+            "longitude_deg": where.longitude_deg,
+        }
+    document["controllers"], document["ring"] = controllers, [0, 1, 2]
+    config = tmp_path / "gapped.yaml"
+    config.write_text(yaml.safe_dump(document))
+    return config
+
+
+async def test_no_controller_usable_holds_the_vehicle_until_one_is(tmp_path: Path) -> None:
+    """The master is killed while the vehicle is in its range only: the drone holds the
+    vehicle where it is and the mission waits; the master restarted, the vehicle flies
+    on to where it was going, and the mission ends with every effect once."""
+    config_path = gapped_corridor(tmp_path)
+    config = load_config(config_path)
+    home = Position(config.drone.home.latitude_deg, config.drone.home.longitude_deg)
+    eastings = [0, 450, 700]
+    plan = TestbedPlan(
+        controllers=len(config.controllers),
+        base_config=config,
+        speedup=config.speedup,
+        mission_file=Path(__file__).parent / "missions" / "back_and_forth.py",
+        mission_args=(f"eastings={','.join(map(str, eastings))}",),
+        resolution="160x120",
+    )
+
+    def east_m(position) -> float:  # type: ignore[no-untyped-def]
+        return north_east_m(home, Position(position.latitude_deg, position.longitude_deg))[1]
+
+    started = time.monotonic()
+    async with LocalTestbed(plan, tmp_path / "w") as testbed:
+
+        async def on_the_way_to_700() -> bool:
+            drone = (await testbed.snapshot(audit=False)).drone
+            return drone.master == 1 and east_m(drone.position) > 470
+
+        await eventually(on_the_way_to_700, "master 1, past 470 m east", 120)
+        await testbed.kill_controller(1)
+
+        async def held() -> object:
+            drone = (await testbed.snapshot(audit=False)).drone
+            return drone if drone.holding else None
+
+        holding = await eventually(held, "the drone to hold the vehicle", 30)
+        where = east_m(holding.position)
+        assert 470 < where < 700, where
+        assert "no controller usable" in holding.policy_decision.reason
+        assert "1 link down" in holding.policy_decision.reason
+
+        # Held: the vehicle stops at once (the sim's next tick; its telemetry comes at
+        # 20 Hz), then stays put while nobody can command it: 1 s of wall time, 10 s of
+        # the mission's.
+        def held_for(seconds: float, since: float):  # type: ignore[no-untyped-def]
+            async def check() -> object:
+                return await held() if time.monotonic() - since >= seconds else None
+
+            return check
+
+        settled = await eventually(held_for(0.5, time.monotonic()), "the vehicle held 0.5 s", 30)
+        stop = east_m(settled.position)  # type: ignore[attr-defined]
+        later = await eventually(held_for(1.0, time.monotonic()), "the vehicle held 1 s more", 30)
+        assert abs(east_m(later.position) - stop) < 0.1  # type: ignore[attr-defined]
+        await testbed.restart_controller(1)
+        snapshot = await testbed.run_mission(180)
+    targets = [(0.0, float(east)) for east in eastings]
+    report = build_report(config, snapshot, 0, time.monotonic() - started, [], targets=targets)
+    assert report["completed"] and report["replicas_consistent"] and report["exactly_once"]
+    # The resume's goto is the drone's own, taken off before counting.
+    assert report["side_effects"]["exactly_once"] is True, report["side_effects"]
+    assert report["side_effects"]["vehicle_commands"]["goto"] == len(eastings) + 1
+    assert report["policy"]["holds"] == 1 and report["policy"]["resumes"] == 1
+    assert report["masters"] == [0, 1]
+    assert not snapshot.drone.holding
