@@ -57,10 +57,11 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
     assert report["side_effects"]["pictures_taken"] == report["mission"]["waypoints"] == 16
     assert report["handovers_planned"] == []
     assert report["policy"] == {"name": policy, "radio_range": True, "holds": 0, "resumes": 0}
-    # One station after the other, each by the policy, each the paper's handover.
+    # One station after the other, each by the policy, each prepared (the new master
+    # caught up while the vehicle flew on), each within both stations' range.
     assert report["masters"] == [0, 1, 2, 3]
     assert [(h["trigger"], h["kind"]) for h in report["handovers"]] == [
-        ("policy", "cooperative")
+        ("policy", "prepared")
     ] * 3
     for h in report["handovers"]:
         old, new = (
