@@ -60,9 +60,7 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
     # One station after the other, each by the policy, each prepared (the new master
     # caught up while the vehicle flew on), each within both stations' range.
     assert report["masters"] == [0, 1, 2, 3]
-    assert [(h["trigger"], h["kind"]) for h in report["handovers"]] == [
-        ("policy", "prepared")
-    ] * 3
+    assert [(h["trigger"], h["kind"]) for h in report["handovers"]] == [("policy", "prepared")] * 3
     for h in report["handovers"]:
         old, new = (
             RadioRange(s.location.latitude_deg, s.location.longitude_deg, s.range_m)
