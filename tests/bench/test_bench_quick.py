@@ -86,8 +86,17 @@ async def test_micro_quick(tmp_path: Path) -> None:
         relay = run["relay"]
         assert relay["relay_get_position"]["n"] == relay["direct_get_position"]["n"]
         assert math.isfinite(relay["relay_overhead_p50_ms"])
-    assert [r["bandwidth_bit_s"] for r in result["ring"]] == [25e6, None]
+    # One link, then two controllers passing the message on cut-through, per link.
+    assert [(r["relays"], r["bandwidth_bit_s"]) for r in result["ring"]] == [
+        (0, 25e6),
+        (2, 25e6),
+        (0, None),
+        (2, None),
+    ]
     assert all(math.isfinite(r["throughput_bit_s"]) for r in result["ring"])
+    for r in result["ring"]:
+        assert r["relayed"] == 2 * r["relays"]  # the warm-up message and the big one
+        assert 0 < r["relay_peak_bytes"] <= 2 * r["relay_window_bytes"] or not r["relays"]
 
 
 async def test_failover_quick(tmp_path: Path) -> None:
