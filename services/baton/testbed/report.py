@@ -77,12 +77,7 @@ def check_side_effects(
     problems: list[str] = []
     expected = grid * grid if targets is None else len(targets)
     plan = f"the {grid}x{grid} grid" if targets is None else "the survey"
-    camera = snapshot.camera_effects
-    pictures: int | str = NOT_COUNTED
-    if camera is not None:
-        pictures = sum(1 for e in camera if e["effect"] == "picture")
-        if pictures != expected:
-            problems.append(f"the camera produced {pictures} pictures; {plan} takes {expected}")
+    pictures = _count_pictures(snapshot, expected, f"{plan} takes", problems)
     vehicle = snapshot.vehicle_effects
     commands: dict[str, int] | str = NOT_COUNTED
     if vehicle is not None:
@@ -102,7 +97,7 @@ def check_side_effects(
         "pictures_expected": expected,
         "vehicle_commands": commands,
         "problems": problems,
-        "exactly_once": None if camera is None and vehicle is None else not problems,
+        "exactly_once": None if pictures == NOT_COUNTED and vehicle is None else not problems,
     }
 
 
@@ -172,12 +167,7 @@ def check_plan_effects(snapshot: Snapshot, plan: Plan, pictures_asked: int) -> d
     """
     problems: list[str] = []
     expected = plan.pictures if plan.pictures is not None else pictures_asked
-    camera = snapshot.camera_effects
-    pictures: int | str = NOT_COUNTED
-    if camera is not None:
-        pictures = sum(1 for e in camera if e["effect"] == "picture")
-        if pictures != expected:
-            problems.append(f"the camera produced {pictures} pictures; the plan takes {expected}")
+    pictures = _count_pictures(snapshot, expected, "the plan takes", problems)
     vehicle = snapshot.vehicle_effects
     commands: dict[str, int] | str = NOT_COUNTED
     if vehicle is not None:
@@ -214,23 +204,31 @@ def check_plan_effects(snapshot: Snapshot, plan: Plan, pictures_asked: int) -> d
         "pictures_expected": expected,
         "vehicle_commands": commands,
         "problems": problems,
-        "exactly_once": None if camera is None and vehicle is None else not problems,
+        "exactly_once": None if pictures == NOT_COUNTED and vehicle is None else not problems,
     }
+
+
+def _count_pictures(
+    snapshot: Snapshot, expected: int, what: str, problems: list[str]
+) -> int | str:
+    """The pictures the camera produced (``NOT_COUNTED`` if it kept no file); a count
+    other than ``expected`` is a problem, said as "... {what} {expected}"."""
+    camera = snapshot.camera_effects
+    if camera is None:
+        return NOT_COUNTED
+    pictures = sum(1 for e in camera if e["effect"] == "picture")
+    if pictures != expected:
+        problems.append(f"the camera produced {pictures} pictures; {what} {expected}")
+    return pictures
 
 
 def check_counted_effects(snapshot: Snapshot, pictures_asked: int) -> dict[str, Any]:
     """Side effects of a mission file the report knows nothing of: the camera must have
     produced one picture for each TakePicture the drone executed; the vehicle's commands
     are counted and shown, not checked."""
-    camera, vehicle = snapshot.camera_effects, snapshot.vehicle_effects
+    vehicle = snapshot.vehicle_effects
     problems: list[str] = []
-    pictures: int | str = NOT_COUNTED
-    if camera is not None:
-        pictures = sum(1 for e in camera if e["effect"] == "picture")
-        if pictures != pictures_asked:
-            problems.append(
-                f"the camera produced {pictures} pictures; the mission asked for {pictures_asked}"
-            )
+    pictures = _count_pictures(snapshot, pictures_asked, "the mission asked for", problems)
     commands: dict[str, int] | str = NOT_COUNTED
     if vehicle is not None:
         commands = dict(sorted(Counter(e["effect"] for e in vehicle).items()))
@@ -239,7 +237,7 @@ def check_counted_effects(snapshot: Snapshot, pictures_asked: int) -> dict[str, 
         "pictures_expected": pictures_asked,
         "vehicle_commands": commands,
         "problems": problems,
-        "exactly_once": None if camera is None and vehicle is None else not problems,
+        "exactly_once": None if pictures == NOT_COUNTED and vehicle is None else not problems,
     }
 
 
