@@ -224,7 +224,6 @@ class LocalTestbed:
         ready to arm; ``vehicle_wait`` sees the drone's status meanwhile.
         """
         plan = self.plan
-        vehicle_url = await self._start_vehicle()
         base = plan.base_config
         if base is not None:
             ids = base.ring_order
@@ -234,16 +233,27 @@ class LocalTestbed:
             ids = list(range(plan.controllers))
             own = {cid: f"127.0.0.1:{free_port()}" for cid in ids}
             drone_address = f"127.0.0.1:{free_port()}"
+        # The vehicle and the link emulators need nothing of each other: they start
+        # together (one after the other, a second each, was most of a test's start).
+        parts = [] if (vehicle := self._vehicle_part()) is None else [vehicle]
+        if plan.emulate_links:
+            for cid in ids:
+                parts.append(self._link_part(f"link-ring-{cid}", own[cid], plan.controller_link))
+                parts.append(self._link_part(f"link-drone-{cid}", drone_address, plan.drone_link))
+        announced = dict(
+            zip(
+                (name for name, _, _ in parts),
+                await self.supervisor.start_ready_together(parts),
+                strict=True,
+            )
+        )
+        vehicle_url = self._vehicle_url(announced)
         controllers = []
         for cid in ids:
             entry: dict[str, Any] = {"id": cid, "address": own[cid]}
             if plan.emulate_links:
-                entry["peer_address"] = await self._start_link(
-                    f"link-ring-{cid}", own[cid], plan.controller_link
-                )
-                entry["drone_address"] = await self._start_link(
-                    f"link-drone-{cid}", drone_address, plan.drone_link
-                )
+                entry["peer_address"] = announced[f"link-ring-{cid}"]
+                entry["drone_address"] = announced[f"link-drone-{cid}"]
             if base is not None:
                 original = base.controller(cid)
                 if original.location is not None:
@@ -291,11 +301,12 @@ class LocalTestbed:
         home = (base.drone if base is not None else DroneConfig()).home
         return f"{home.latitude_deg},{home.longitude_deg},{home.altitude_m}"
 
-    async def _start_vehicle(self) -> str:
-        """Starts the sim vehicle or SITL, as planned; returns the drone's vehicle URL."""
+    def _vehicle_part(self) -> tuple[str, list[str], Path] | None:
+        """The sim vehicle or SITL to start, as planned (name, argv, ready file); None for
+        an autopilot that runs already."""
         vehicle = self.plan.vehicle
         if vehicle not in ("sim", "sitl"):
-            return vehicle  # an autopilot that runs already
+            return None
         ready = self.workdir / "vehicle.url"
         speedup = str(self.plan.speedup)
         if vehicle == "sim":
@@ -306,15 +317,22 @@ class LocalTestbed:
             argv = baton_argv("sim-vehicle", "--speedup", speedup, "--url-file", str(ready))
             argv += ["--home", self._home(), "--effects-file", str(effects)]
             argv += self._mavlink_key_args()
-            return (await self.supervisor.start_ready("sim-vehicle", argv, ready)).splitlines()[0]
+            return "sim-vehicle", argv, ready
         argv = baton_argv("sitl", "--speedup", speedup, "--home", self._home())
         argv += ["--workdir", str(self.workdir / "sitl"), "--url-file", str(ready)]
         if self.plan.sitl_binary is not None:
             argv += ["--binary", str(self.plan.sitl_binary)]
         argv += self._mavlink_key_args()
-        announced = await self.supervisor.start_ready("sitl", argv, ready)
-        url, self.sitl_monitor_url = announced.split()
-        return url
+        return "sitl", argv, ready
+
+    def _vehicle_url(self, announced: dict[str, str]) -> str:
+        """The drone's vehicle URL, from what the started vehicle announced."""
+        if "sim-vehicle" in announced:
+            return announced["sim-vehicle"].splitlines()[0]
+        if "sitl" in announced:
+            url, self.sitl_monitor_url = announced["sitl"].split()
+            return url
+        return self.plan.vehicle  # an autopilot that runs already
 
     def _mavlink_key(self) -> Path | None:
         """The testbed file's MAVLink signing key (drone.mavlink_key), if any."""
@@ -327,7 +345,8 @@ class LocalTestbed:
         key = self._mavlink_key()
         return ["--mavlink-key", str(key)] if key is not None else []
 
-    async def _start_link(self, name: str, target: str, spec: LinkSpec) -> str:
+    def _link_part(self, name: str, target: str, spec: LinkSpec) -> tuple[str, list[str], Path]:
+        """Link emulator ``name`` in front of ``target`` (name, argv, ready file)."""
         ready = self.workdir / f"{name}.address"
         argv = baton_argv(
             "link",
@@ -340,7 +359,7 @@ class LocalTestbed:
             "--address-file",
             str(ready),
         )
-        return await self.supervisor.start_ready(name, argv, ready)
+        return name, argv, ready
 
     async def _start_drone(self) -> None:
         assert self.config is not None
@@ -376,7 +395,7 @@ class LocalTestbed:
 
     async def _start_controllers(self) -> None:
         assert self.config is not None
-        parts = []
+        starts = []
         for cid in self.config.ring_order:
             ready = self.workdir / f"controller-{cid}.address"
             # A new mission: no log of an earlier run (a restarted controller of
@@ -402,9 +421,14 @@ class LocalTestbed:
             env = None
             if self.plan.mission_token is not None:
                 env = {**os.environ, MISSION_TOKEN_ENV: self.plan.mission_token}
-            parts.append(await self.supervisor.start(f"controller-{cid}", argv, ready, env=env))
-        for cid, part in zip(self.config.ring_order, parts, strict=True):
-            address = await self.supervisor.wait_ready(part)
+            starts.append((f"controller-{cid}", argv, ready, env))
+        with self.supervisor.together():
+            parts = [
+                await self.supervisor.start(name, argv, ready, env=env)
+                for name, argv, ready, env in starts
+            ]
+        addresses = await self.supervisor.wait_all_ready(parts)
+        for cid, address in zip(self.config.ring_order, addresses, strict=True):
             channel = aio_channel(address, self.tls, Identity.controller(cid))
             self._channels.append(channel)
             self.controller_stubs[cid] = ring_pb2_grpc.ControllerRingStub(channel)
