@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -16,6 +17,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from autopilots import SKIP_REASON, Sitl, sitl_binary
 
+from baton.testbed.local import FREE_PORTS_ENV, free_port_range
+
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     """``--vehicle-url URL``: fly the drone tests against a SITL or autopilot instead of the sim."""
@@ -25,6 +28,31 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         help="MAVLink URL of an autopilot for the drone tests, e.g. udpin://0.0.0.0:14540 "
         "for PX4 SITL (default: start the embedded sim vehicle)",
     )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist (``make test`` runs two workers): each worker, and every
+    testbed it starts (``baton testbed`` inherits the variable), draws its testbeds'
+    ports from its own share of free_port's range, so two workers never pick one port."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")  # gw0, gw1, ...
+    if not worker.startswith("gw") or FREE_PORTS_ENV in os.environ:
+        return
+    index, count = int(worker[2:]), int(os.environ["PYTEST_XDIST_WORKER_COUNT"])
+    low, high = free_port_range()
+    share = (high - low) // count
+    os.environ[FREE_PORTS_ENV] = f"{low + index * share}-{low + (index + 1) * share}"
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under pytest-xdist with ``--dist loadgroup``: the ArduPilot SITL tests run on one
+    worker, in order (a module's tests share one SITL; a SITL killed and restarted on
+    its instance must not find it taken by another worker's SITL meanwhile); with
+    ``--vehicle-url`` every test does (there is one autopilot to fly)."""
+    one_autopilot = bool(config.getoption("--vehicle-url"))
+    for item in items:
+        if one_autopilot or item.get_closest_marker("sitl") is not None:
+            item.add_marker(pytest.mark.xdist_group("autopilot"))
 
 
 @pytest.fixture

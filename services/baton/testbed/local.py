@@ -105,22 +105,41 @@ VEHICLE_READY_TIMEOUT_S = 180.0
 # client connection can take a port between choosing it and binding it.
 _EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
 _FIXED_PORTS_FROM = 20_000
+# LOW-HIGH: the ports free_port draws from (HIGH excluded), for processes that start
+# testbeds at the same time (the test suite gives each pytest-xdist worker its share).
+FREE_PORTS_ENV = "BATON_FREE_PORTS"
 
 
 # Ports free_port returned in this process: never twice.
 _HANDED_OUT: set[int] = set()
 
 
-def free_port() -> int:
-    """A TCP port free on loopback now, outside the kernel's ephemeral range, and not one
-    this process handed out before (drawn at random, two parts of one testbed drew the
-    same free port: "controllers 0 and 1 both listen on ...", a flaky test)."""
+def free_port_range() -> tuple[int, int]:
+    """Where free_port draws (HIGH excluded): ``BATON_FREE_PORTS=LOW-HIGH`` where set,
+    else from 20,000 up to the kernel's ephemeral range."""
+    given = os.environ.get(FREE_PORTS_ENV)
+    if given:
+        low, _, high = given.partition("-")
+        if not (low.isdigit() and high.isdigit() and 0 < int(low) < int(high) <= 65_536):
+            raise ValueError(
+                f"{FREE_PORTS_ENV}={given!r}: expected LOW-HIGH, two port numbers with LOW "
+                "below HIGH (e.g. 20000-26000), or leave it unset"
+            )
+        return int(low), int(high)
     try:
         ephemeral_low = int(_EPHEMERAL_RANGE.read_text().split()[0])
     except (OSError, ValueError, IndexError):
         ephemeral_low = 32_768
+    return _FIXED_PORTS_FROM, max(ephemeral_low, _FIXED_PORTS_FROM + 1000)
+
+
+def free_port() -> int:
+    """A TCP port free on loopback now, outside the kernel's ephemeral range, and not one
+    this process handed out before (drawn at random, two parts of one testbed drew the
+    same free port: "controllers 0 and 1 both listen on ...", a flaky test)."""
+    low, high = free_port_range()
     for _ in range(200):
-        port = random.randrange(_FIXED_PORTS_FROM, max(ephemeral_low, _FIXED_PORTS_FROM + 1000))
+        port = random.randrange(low, high)
         if port in _HANDED_OUT:
             continue
         with socket.socket() as s:
@@ -130,7 +149,7 @@ def free_port() -> int:
                 continue
             _HANDED_OUT.add(port)
             return port
-    raise OSError(f"no free port on 127.0.0.1 between {_FIXED_PORTS_FROM} and {ephemeral_low}")
+    raise OSError(f"no free port on 127.0.0.1 between {low} and {high - 1}")
 
 
 def _link_args(spec: LinkSpec) -> list[str]:
