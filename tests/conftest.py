@@ -33,7 +33,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 def pytest_configure(config: pytest.Config) -> None:
     """Under pytest-xdist (``make test`` runs two workers): each worker, and every
     testbed it starts (``baton testbed`` inherits the variable), draws its testbeds'
-    ports from its own share of free_port's range, so two workers never pick one port."""
+    ports from its own share of free_port's range, so two workers never pick one port.
+    ``--vehicle-url`` (one autopilot to fly) needs one process."""
+    if config.getoption("--vehicle-url") and config.getoption("numprocesses", None):
+        raise pytest.UsageError(
+            "--vehicle-url flies one autopilot: run the tests in one process "
+            "(make test PYTEST_WORKERS=0 ARGS=..., or pytest -n 0)"
+        )
     worker = os.environ.get("PYTEST_XDIST_WORKER", "")  # gw0, gw1, ...
     if not worker.startswith("gw") or FREE_PORTS_ENV in os.environ:
         return
@@ -41,18 +47,6 @@ def pytest_configure(config: pytest.Config) -> None:
     low, high = free_port_range()
     share = (high - low) // count
     os.environ[FREE_PORTS_ENV] = f"{low + index * share}-{low + (index + 1) * share}"
-
-
-@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under pytest-xdist with ``--dist loadgroup``: the ArduPilot SITL tests run on one
-    worker, in order (a module's tests share one SITL; a SITL killed and restarted on
-    its instance must not find it taken by another worker's SITL meanwhile); with
-    ``--vehicle-url`` every test does (there is one autopilot to fly)."""
-    one_autopilot = bool(config.getoption("--vehicle-url"))
-    for item in items:
-        if one_autopilot or item.get_closest_marker("sitl") is not None:
-            item.add_marker(pytest.mark.xdist_group("autopilot"))
 
 
 @pytest.fixture
