@@ -33,7 +33,16 @@ if [ -z "$mirror" ]; then
 fi
 
 root=$(mktemp -d "${TMPDIR:-/var/tmp}/baton-base.XXXXXX")
-trap 'rm -rf "$root"' EXIT INT TERM
+# Removed however the script ends. debootstrap mounts /proc and /sys in the root it
+# builds; one stopped midway can leave them mounted: unmounted first, and rm stays
+# on the folder's own file system.
+remove_root() {
+    awk -v under="$root/" 'index($2, under) == 1 { print $2 }' /proc/mounts | sort -r |
+        while read -r mount; do umount -l "$mount" 2>/dev/null || true; done
+    rm -rf --one-file-system "$root"
+}
+trap remove_root EXIT
+trap 'exit 130' INT TERM
 echo "base-image.sh: debootstrap $suite from $mirror into $root" >&2
 started=$(date +%s)
 debootstrap --variant=minbase --include=python3,python3-venv,iproute2 \

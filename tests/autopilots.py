@@ -18,7 +18,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from pymavlink import mavutil
@@ -118,6 +118,7 @@ class Sample:
     longitude_deg: float
     relative_altitude_m: float
     ground_speed_m_s: float
+    boot_s: float = 0.0  # the vehicle's own clock (time_boot_ms), in its simulated seconds
 
 
 @dataclass
@@ -128,6 +129,7 @@ class TelemetryMonitor:
     """
 
     url: str
+    speedup: float = 1.0  # the vehicle's simulated seconds per wall second
     samples: list[Sample] = field(default_factory=list)
     homes: list[tuple[float, float, float]] = field(default_factory=list)  # (at, lat, lon)
     _stop: threading.Event = field(default_factory=threading.Event)
@@ -192,6 +194,7 @@ class TelemetryMonitor:
                         msg.lon / 1e7,
                         msg.relative_alt / 1000,
                         math.hypot(msg.vx, msg.vy) / 100,
+                        msg.time_boot_ms / 1000,
                     )
                 )
             else:
@@ -200,9 +203,28 @@ class TelemetryMonitor:
             link.close()
 
     def position_at(self, at: float) -> Sample:
-        """The sample nearest to wall time ``at``."""
+        """The sample nearest to wall time ``at`` (``sent_at``)."""
         assert self.samples, "the monitor recorded no position"
-        return min(self.samples, key=lambda s: abs(s.at - at))
+        return min(self.sent_at(), key=lambda s: abs(s.at - at))
+
+    def sent_at(self) -> list[Sample]:
+        """The samples at the wall time the vehicle sent them, as near as it can be told.
+
+        A sample is stamped when this thread reads it; on a loaded machine the thread
+        may not run for a while and then reads what queued meanwhile in a burst, all
+        stamped alike (a run read a sample 9.9 m short of a waypoint as the position
+        at its picture). By the vehicle's own clock, a sample was sent at the latest
+        as long before each later one as their clocks differ: the earliest of those
+        bounds and its own stamp."""
+        placed: list[Sample] = []
+        later: Sample | None = None
+        for sample in reversed(self.samples):
+            at = sample.at
+            if later is not None and later.boot_s >= sample.boot_s:  # not across a reboot
+                at = min(at, later.at - (later.boot_s - sample.boot_s) / self.speedup)
+            later = replace(sample, at=at)
+            placed.append(later)
+        return placed[::-1]
 
 
 def distance_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -16,6 +17,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from autopilots import SKIP_REASON, Sitl, sitl_binary
 
+from baton.testbed.local import FREE_PORTS_ENV, free_port_range
+
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     """``--vehicle-url URL``: fly the drone tests against a SITL or autopilot instead of the sim."""
@@ -25,6 +28,25 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         help="MAVLink URL of an autopilot for the drone tests, e.g. udpin://0.0.0.0:14540 "
         "for PX4 SITL (default: start the embedded sim vehicle)",
     )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under pytest-xdist (``make test`` runs two workers): each worker, and every
+    testbed it starts (``baton testbed`` inherits the variable), draws its testbeds'
+    ports from its own share of free_port's range, so two workers never pick one port.
+    ``--vehicle-url`` (one autopilot to fly) needs one process."""
+    if config.getoption("--vehicle-url") and config.getoption("numprocesses", None):
+        raise pytest.UsageError(
+            "--vehicle-url flies one autopilot: run the tests in one process "
+            "(make test PYTEST_WORKERS=0 ARGS=..., or pytest -n 0)"
+        )
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")  # gw0, gw1, ...
+    if not worker.startswith("gw") or FREE_PORTS_ENV in os.environ:
+        return
+    index, count = int(worker[2:]), int(os.environ["PYTEST_XDIST_WORKER_COUNT"])
+    low, high = free_port_range()
+    share = (high - low) // count
+    os.environ[FREE_PORTS_ENV] = f"{low + index * share}-{low + (index + 1) * share}"
 
 
 @pytest.fixture

@@ -13,7 +13,7 @@ import pytest
 from test_controller_end_to_end import FAST_LINK, SMALL_GRID, assert_mission_promises
 
 from baton.certs.make import init, issue
-from baton.rpc.channels import aio_channel
+from baton.rpc.channels import aio_channel, sync_channel
 from baton.rpc.tls import DRONE, Identity, Tls
 from baton.testbed.local import LocalTestbed, TestbedPlan
 from baton.v1 import drone_api_pb2 as api
@@ -89,17 +89,19 @@ async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing
                 failed = await refusal(stub.GetStatus(drone_pb2.GetDroneStatusRequest(), timeout=5))
                 assert failed.code() is grpc.StatusCode.UNAVAILABLE
 
-        # A forged log frame: from an operator, and from a controller naming another.
+        # A forged log frame: from an operator (refused as the stream opens), and from a
+        # controller naming another (refused at the frame).
         operator = testbed.tls
-        for tls, claimed, code in (
-            (operator, 0, grpc.StatusCode.PERMISSION_DENIED),
-            (replica, 0, grpc.StatusCode.PERMISSION_DENIED),
+        frame = ring_pb2.LogFrame(from_id=0, lognr=10**6, data=position)
+        for tls, message in (
+            (operator, "LogRing: refused to spiffe://baton/operator: log frames come from the"),
+            (replica, "controller 2's certificate sent a frame from_id 0"),
         ):
-            async with aio_channel(config.controller(1).address, tls, Identity.controller(1)) as ch:
-                frame = ring_pb2.LogFrame(from_id=claimed, lognr=10**6, data=position)
-                stream = ring_pb2_grpc.ControllerRingStub(ch).LogRing(iter([frame]))
-                failed = await refusal(_read_all(stream))
-                assert failed.code() is code, failed.details()
+            failed = await asyncio.to_thread(
+                forged_frame_refusal, config.controller(1).address, tls, frame
+            )
+            assert failed.code() is grpc.StatusCode.PERMISSION_DENIED, failed.details()
+            assert message in (failed.details() or ""), failed.details()
 
         # The operator hands over to 2 and the mission flies on.
         async with aio_channel(config.drone.address, operator, DRONE) as channel:
@@ -113,6 +115,17 @@ async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing
     assert not any(a.method.endswith("/Goto") and a.reqnr > 10**6 for a in snapshot.drone.audit)
 
 
-async def _read_all(stream: grpc.aio.StreamStreamCall) -> None:
-    while await stream.read() is not grpc.aio.EOF:
-        pass
+def forged_frame_refusal(address: str, tls: Tls, frame: ring_pb2.LogFrame) -> grpc.Call:
+    """Sends ``frame`` on a LogRing stream to ``address`` and returns the call the server
+    ended (fails the test if it did not refuse).
+
+    The blocking stub: its status is the server's, however the frame's write ends. The
+    asyncio stub's is not: a server that refuses while the frame is still being written
+    fails that write, and the asyncio stub then ends the call INTERNAL ("Internal error
+    from Core", SendMessageOperation) in place of the server's status (a CI flake)."""
+    with sync_channel(address, tls, Identity.controller(1)) as channel:
+        replies = ring_pb2_grpc.ControllerRingStub(channel).LogRing(iter([frame]), timeout=30)
+        with pytest.raises(grpc.RpcError) as refused:
+            for _ in replies:
+                pass
+    return refused.value  # type: ignore[return-value]

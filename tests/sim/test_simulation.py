@@ -7,6 +7,7 @@ every event. ``pytest tests/sim -m slow`` runs 100,000 seeds on every core.
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import os
 import subprocess
@@ -28,8 +29,21 @@ MUTATION_BUDGET = 300
 LOSE_MASTER_SEEDS = 2_000
 
 
+def _sweep(seeds: range, options: SimOptions | None = None, chunk: int = 250) -> list[Outcome]:
+    """Runs ``seeds`` on every core (``run_seeds``' share per worker process): the outcomes
+    that failed or that a known finding struck. A seed runs the same in any process
+    (``test_a_seed_replays_exactly_in_another_process``)."""
+    chunks = [range(start, min(start + chunk, seeds.stop)) for start in seeds[::chunk]]
+    # spawn, not fork: other tests in this process may have gRPC threads running.
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(min(os.cpu_count() or 1, len(chunks))) as pool:
+        parts = pool.imap_unordered(functools.partial(run_seeds, options=options), chunks)
+        return [outcome for part in parts for outcome in part]
+
+
 def _failures(outcomes: list[Outcome]) -> str:
     failed = [o for o in outcomes if o.failed]
+    failed.sort(key=lambda o: o.seed)
     return f"{len(failed)} seeds failed:\n" + "\n".join(o.report() for o in failed[:10])
 
 
@@ -55,17 +69,18 @@ def test_a_seed_replays_exactly_in_another_process() -> None:
 
 
 def test_ci_seeds_hold_every_oracle(sim_seeds: int | None) -> None:
-    outcomes = [run_seed(seed) for seed in range(sim_seeds or CI_SEEDS)]
+    total = sim_seeds or CI_SEEDS
+    outcomes = _sweep(range(total))
     assert not any(o.failed for o in outcomes), _failures(outcomes)
     # F7 (findings.py) strikes where the mix cannot keep it out: rarely.
     struck = [o.seed for o in outcomes if o.known]
-    assert len(struck) <= len(outcomes) // 100, f"known finding struck in seeds {struck}"
+    assert len(struck) <= total // 100, f"known finding struck in seeds {struck}"
 
 
 def test_lose_master_seeds_hold_every_oracle() -> None:
     """The master killed for good or cut off at every point (mid-flush, right after a
     handover decision, any time, its drone link cut): every seed holds every oracle."""
-    outcomes = [run_seed(seed, SimOptions(lose_master=True)) for seed in range(LOSE_MASTER_SEEDS)]
+    outcomes = _sweep(range(LOSE_MASTER_SEEDS), SimOptions(lose_master=True))
     assert not any(o.failed for o in outcomes), _failures(outcomes)
 
 
@@ -83,12 +98,8 @@ def test_lose_master_seeds_beyond_ci_that_were_fixed_hold_every_oracle() -> None
 @pytest.mark.slow
 @pytest.mark.timeout(3 * 3600)
 def test_many_seeds_hold_every_oracle(sim_seeds: int | None) -> None:
-    total, chunk = sim_seeds or SLOW_SEEDS, 500
-    chunks = [range(start, min(start + chunk, total)) for start in range(0, total, chunk)]
-    # spawn, not fork: other tests in this process may have gRPC threads running.
-    context = multiprocessing.get_context("spawn")
-    with context.Pool(os.cpu_count() or 1) as pool:
-        outcomes = [o for part in pool.imap_unordered(run_seeds, chunks) for o in part]
+    total = sim_seeds or SLOW_SEEDS
+    outcomes = _sweep(range(total), chunk=500)
     assert not any(o.failed for o in outcomes), _failures(outcomes)
     struck = [o.seed for o in outcomes if o.known]
     assert len(struck) <= total // 100, f"known finding struck in {len(struck)} seeds"

@@ -23,6 +23,7 @@ from baton.missions.grid import waypoints
 from baton.sdk import Position, offset
 
 GRID, SPACING_M = 5, 50.0
+SPEEDUP = 10
 AUTOPILOT = {"sim": "PX4", "sitl": "ArduPilot"}  # the sim vehicle speaks PX4's dialect
 
 
@@ -51,7 +52,7 @@ def test_grid_mission_checked_against_the_autopilots_telemetry(
             "--vehicle",
             vehicle,
             "--speedup",
-            "10",
+            str(SPEEDUP),
             "--controllers",
             "3",
             "--report",
@@ -71,7 +72,7 @@ def test_grid_mission_checked_against_the_autopilots_telemetry(
             assert process.poll() is None, process.communicate()[0]
             assert time.monotonic() < deadline, f"{vehicle} did not start within 60 s"
             time.sleep(0.05)
-        monitor = TelemetryMonitor(url)
+        monitor = TelemetryMonitor(url, speedup=SPEEDUP)
         monitor.start()
         output, _ = process.communicate(timeout=240)
     finally:

@@ -161,22 +161,41 @@ VEHICLE_READY_TIMEOUT_S = 180.0
 # client connection can take a port between choosing it and binding it.
 _EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
 _FIXED_PORTS_FROM = 20_000
+# LOW-HIGH: the ports free_port draws from (HIGH excluded), for processes that start
+# testbeds at the same time (the test suite gives each pytest-xdist worker its share).
+FREE_PORTS_ENV = "BATON_FREE_PORTS"
 
 
 # Ports free_port returned in this process: never twice.
 _HANDED_OUT: set[int] = set()
 
 
-def free_port() -> int:
-    """A TCP port free on loopback now, outside the kernel's ephemeral range, and not one
-    this process handed out before (drawn at random, two parts of one testbed drew the
-    same free port: "controllers 0 and 1 both listen on ...", a flaky test)."""
+def free_port_range() -> tuple[int, int]:
+    """Where free_port draws (HIGH excluded): ``BATON_FREE_PORTS=LOW-HIGH`` where set,
+    else from 20,000 up to the kernel's ephemeral range."""
+    given = os.environ.get(FREE_PORTS_ENV)
+    if given:
+        low, _, high = given.partition("-")
+        if not (low.isdigit() and high.isdigit() and 0 < int(low) < int(high) <= 65_536):
+            raise ValueError(
+                f"{FREE_PORTS_ENV}={given!r}: expected LOW-HIGH, two port numbers with LOW "
+                "below HIGH (e.g. 20000-26000), or leave it unset"
+            )
+        return int(low), int(high)
     try:
         ephemeral_low = int(_EPHEMERAL_RANGE.read_text().split()[0])
     except (OSError, ValueError, IndexError):
         ephemeral_low = 32_768
+    return _FIXED_PORTS_FROM, max(ephemeral_low, _FIXED_PORTS_FROM + 1000)
+
+
+def free_port() -> int:
+    """A TCP port free on loopback now, outside the kernel's ephemeral range, and not one
+    this process handed out before (drawn at random, two parts of one testbed drew the
+    same free port: "controllers 0 and 1 both listen on ...", a flaky test)."""
+    low, high = free_port_range()
     for _ in range(200):
-        port = random.randrange(_FIXED_PORTS_FROM, max(ephemeral_low, _FIXED_PORTS_FROM + 1000))
+        port = random.randrange(low, high)
         if port in _HANDED_OUT:
             continue
         with socket.socket() as s:
@@ -186,7 +205,7 @@ def free_port() -> int:
                 continue
             _HANDED_OUT.add(port)
             return port
-    raise OSError(f"no free port on 127.0.0.1 between {_FIXED_PORTS_FROM} and {ephemeral_low}")
+    raise OSError(f"no free port on 127.0.0.1 between {low} and {high - 1}")
 
 
 def _link_args(spec: LinkSpec) -> list[str]:
@@ -288,7 +307,6 @@ class LocalTestbed:
                 "radio_range needs the sim vehicle (its position file) and the link emulators; "
                 "run with --vehicle sim and without --no-links, or set radio_range: false"
             )
-        vehicle_url = await self._start_vehicle()
         if base is not None:
             ids = base.ring_order
             own = {c.id: c.address for c in base.controllers}
@@ -297,16 +315,31 @@ class LocalTestbed:
             ids = list(range(plan.controllers))
             own = {cid: f"127.0.0.1:{free_port()}" for cid in ids}
             drone_address = f"127.0.0.1:{free_port()}"
+        # The vehicle and the link emulators need nothing of each other: they start
+        # together (one after the other, a second each, was most of a test's start).
+        parts = [] if (vehicle := self._vehicle_part()) is None else [vehicle]
+        if plan.emulate_links:
+            for cid in ids:
+                parts.append(self._link_part(f"link-ring-{cid}", own[cid], plan.controller_link))
+                parts.append(
+                    self._link_part(
+                        f"link-drone-{cid}", drone_address, plan.drone_link, self._radio_args(cid)
+                    )
+                )
+        announced = dict(
+            zip(
+                (name for name, _, _ in parts),
+                await self.supervisor.start_ready_together(parts),
+                strict=True,
+            )
+        )
+        vehicle_url = self._vehicle_url(announced)
         controllers = []
         for cid in ids:
             entry: dict[str, Any] = {"id": cid, "address": own[cid]}
             if plan.emulate_links:
-                entry["peer_address"] = await self._start_link(
-                    f"link-ring-{cid}", own[cid], plan.controller_link
-                )
-                entry["drone_address"] = await self._start_link(
-                    f"link-drone-{cid}", drone_address, plan.drone_link, self._radio_args(cid)
-                )
+                entry["peer_address"] = announced[f"link-ring-{cid}"]
+                entry["drone_address"] = announced[f"link-drone-{cid}"]
             if base is not None:
                 original = base.controller(cid)
                 if original.location is not None:
@@ -371,11 +404,12 @@ class LocalTestbed:
         home = (base.drone if base is not None else DroneConfig()).home
         return f"{home.latitude_deg},{home.longitude_deg},{home.altitude_m}"
 
-    async def _start_vehicle(self) -> str:
-        """Starts the sim vehicle or SITL, as planned; returns the drone's vehicle URL."""
+    def _vehicle_part(self) -> tuple[str, list[str], Path] | None:
+        """The sim vehicle or SITL to start, as planned (name, argv, ready file); None for
+        an autopilot that runs already."""
         vehicle = self.plan.vehicle
         if vehicle not in ("sim", "sitl"):
-            return vehicle  # an autopilot that runs already
+            return None
         ready = self.workdir / "vehicle.url"
         speedup = str(self.plan.speedup)
         if vehicle == "sim":
@@ -391,15 +425,22 @@ class LocalTestbed:
                 position.unlink(missing_ok=True)
                 argv += ["--position-file", str(position)]
             argv += self._mavlink_key_args()
-            return (await self.supervisor.start_ready("sim-vehicle", argv, ready)).splitlines()[0]
+            return "sim-vehicle", argv, ready
         argv = baton_argv("sitl", "--speedup", speedup, "--home", self._home())
         argv += ["--workdir", str(self.workdir / "sitl"), "--url-file", str(ready)]
         if self.plan.sitl_binary is not None:
             argv += ["--binary", str(self.plan.sitl_binary)]
         argv += self._mavlink_key_args()
-        announced = await self.supervisor.start_ready("sitl", argv, ready)
-        url, self.sitl_monitor_url = announced.split()
-        return url
+        return "sitl", argv, ready
+
+    def _vehicle_url(self, announced: dict[str, str]) -> str:
+        """The drone's vehicle URL, from what the started vehicle announced."""
+        if "sim-vehicle" in announced:
+            return announced["sim-vehicle"].splitlines()[0]
+        if "sitl" in announced:
+            url, self.sitl_monitor_url = announced["sitl"].split()
+            return url
+        return self.plan.vehicle  # an autopilot that runs already
 
     def _ring(self, ids: list[int]) -> dict[str, Any]:
         """The testbed file's ring: the order, and the forwarding the plan or base says."""
@@ -421,9 +462,11 @@ class LocalTestbed:
         key = self._mavlink_key()
         return ["--mavlink-key", str(key)] if key is not None else []
 
-    async def _start_link(
+    def _link_part(
         self, name: str, target: str, spec: LinkSpec, radio: list[str] | None = None
-    ) -> str:
+    ) -> tuple[str, list[str], Path]:
+        """Link emulator ``name`` in front of ``target`` (name, argv, ready file), with
+        ``radio``: its radio range options (``_radio_args``)."""
         ready = self.workdir / f"{name}.address"
         argv = baton_argv(
             "link",
@@ -437,7 +480,7 @@ class LocalTestbed:
             "--address-file",
             str(ready),
         )
-        return await self.supervisor.start_ready(name, argv, ready)
+        return name, argv, ready
 
     async def _start_drone(self) -> None:
         assert self.config is not None
@@ -495,7 +538,7 @@ class LocalTestbed:
 
     async def _start_controllers(self) -> None:
         assert self.config is not None
-        parts = []
+        starts = []
         for cid in self.config.ring_order:
             ready = self.workdir / f"controller-{cid}.address"
             # A new mission: no log of an earlier run (a restarted controller of
@@ -520,9 +563,14 @@ class LocalTestbed:
             env = None
             if self.plan.mission_token is not None:
                 env = {**os.environ, MISSION_TOKEN_ENV: self.plan.mission_token}
-            parts.append(await self.supervisor.start(f"controller-{cid}", argv, ready, env=env))
-        for cid, part in zip(self.config.ring_order, parts, strict=True):
-            address = await self.supervisor.wait_ready(part)
+            starts.append((f"controller-{cid}", argv, ready, env))
+        with self.supervisor.together():
+            parts = [
+                await self.supervisor.start(name, argv, ready, env=env)
+                for name, argv, ready, env in starts
+            ]
+        addresses = await self.supervisor.wait_all_ready(parts)
+        for cid, address in zip(self.config.ring_order, addresses, strict=True):
             channel = aio_channel(address, self.tls, Identity.controller(cid))
             self._channels.append(channel)
             self.controller_stubs[cid] = ring_pb2_grpc.ControllerRingStub(channel)

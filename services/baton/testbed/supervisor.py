@@ -5,7 +5,9 @@ of the ``baton`` command. Its output goes to a log file; it announces where it
 listens by writing a ready file (``--address-file`` / ``--url-file``).
 ``Supervisor`` waits for those files with a deadline, notices when a part
 dies (and shows its last log lines), and stops everything on exit, SIGKILL
-after a grace period, so no process is left behind.
+after a grace period, so no process is left behind. Parts that do not need
+each other start together (``together``: one wave) and stop together, the
+last wave first.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import contextlib
 import os
 import signal
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,6 +50,7 @@ class ManagedProcess:
     # Killed on purpose (a fault injected): its exit is not a failure.
     killed: bool = False
     frozen: bool = False  # SIGSTOPped (a fault injected)
+    wave: int = 0  # parts of one wave were started together and stop together
     process: asyncio.subprocess.Process | None = None
     ready_text: str = ""
     _log_handle: object = field(default=None, repr=False)
@@ -78,6 +81,18 @@ class Supervisor:
         self.workdir = workdir
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.parts: dict[str, ManagedProcess] = {}
+        self._waves = 0
+        self._together: int | None = None
+
+    @contextlib.contextmanager
+    def together(self) -> Iterator[None]:
+        """The parts started inside are one wave: ``stop_all`` stops them together."""
+        self._waves += 1
+        self._together = self._waves
+        try:
+            yield
+        finally:
+            self._together = None
 
     async def start(
         self,
@@ -94,8 +109,15 @@ class Supervisor:
         if ready_file is not None:
             with contextlib.suppress(FileNotFoundError):
                 ready_file.unlink()
+        if self._together is None:
+            self._waves += 1
         part = ManagedProcess(
-            name, list(argv), self.workdir / f"{name}.log", ready_file, expect_exit
+            name,
+            list(argv),
+            self.workdir / f"{name}.log",
+            ready_file,
+            expect_exit,
+            wave=self._waves if self._together is None else self._together,
         )
         handle = part.log_path.open("wb")
         part._log_handle = handle
@@ -128,12 +150,32 @@ class Supervisor:
                 raise PartNotReady(f"{part.name} not ready after {timeout:.0f} s; log:\n{tail}")
             await asyncio.sleep(0.02)
 
+    async def wait_all_ready(
+        self, parts: Sequence[ManagedProcess], timeout: float = 30.0
+    ) -> list[str]:
+        """``wait_ready`` for several parts at once; the first failure is raised as it is."""
+        waits = [asyncio.ensure_future(self.wait_ready(part, timeout)) for part in parts]
+        try:
+            return list(await asyncio.gather(*waits))
+        finally:
+            for wait in waits:
+                wait.cancel()
+
     async def start_ready(
         self, name: str, argv: Sequence[str], ready_file: Path, timeout: float = 30.0
     ) -> str:
         """Starts a part and waits for its ready file; returns what it announced."""
         part = await self.start(name, argv, ready_file)
         return await self.wait_ready(part, timeout)
+
+    async def start_ready_together(
+        self, parts: Sequence[tuple[str, Sequence[str], Path]], timeout: float = 30.0
+    ) -> list[str]:
+        """Starts parts (name, argv, ready file) that do not need each other as one wave,
+        then waits for all their ready files; returns what each announced, in order."""
+        with self.together():
+            started = [await self.start(name, argv, ready) for name, argv, ready in parts]
+        return await self.wait_all_ready(started, timeout)
 
     def check(self) -> None:
         """Raises PartDied for the first part that exited unexpectedly."""
@@ -208,9 +250,11 @@ class Supervisor:
         return process.returncode
 
     async def stop_all(self, grace: float = 5.0) -> None:
-        """Stops every part, the most recently started first."""
-        for name in reversed(list(self.parts)):
-            await self.stop_part(name, grace)
+        """Stops every part, the most recent wave first, the parts of a wave together
+        (a controller takes its gRPC grace, 1 s, to stop: not once per controller)."""
+        for wave in sorted({part.wave for part in self.parts.values()}, reverse=True):
+            names = [name for name, part in self.parts.items() if part.wave == wave]
+            await asyncio.gather(*(self.stop_part(name, grace) for name in names))
 
     async def __aenter__(self) -> Supervisor:
         return self
