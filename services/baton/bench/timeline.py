@@ -320,10 +320,13 @@ def after_picture_median(rows: list[dict[str, Any]]) -> float:
 def handover_records(
     run: Snapshot, rows: list[dict[str, Any]], settings: TimelineSettings, workdir: Path
 ) -> list[dict[str, Any]]:
-    """Each handover of ``run``: its delay, what it cost the mission, its kind."""
+    """Each handover of ``run``: its delay, what it cost the mission, its kind. A prepared
+    one placed near the mission's end may not be carried out before the mission ends (its
+    preparation outlasts the mission): the run then has fewer than three."""
     by_reqnr = {r["reqnr"]: r for r in rows}
     records: list[dict[str, Any]] = []
-    for target, h in zip(settings.targets, run.drone.handovers, strict=True):
+    done = [h for h in run.drone.handovers if h.trigger == "script"]
+    for target, h in zip(settings.targets, done, strict=False):
         # The next request the drone saw (Clock calls never reach it).
         first = min((r for r in by_reqnr if r > h.after_reqnr), default=0)
         records.append(
