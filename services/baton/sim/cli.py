@@ -64,6 +64,12 @@ def parser() -> argparse.ArgumentParser:
         "time) or cut its drone link for a while",
     )
     p.add_argument(
+        "--prepared",
+        action="store_true",
+        help="make every scripted handover a prepared one (the default mix prepares a "
+        "quarter of them; --lose-master none)",
+    )
+    p.add_argument(
         "--takeover-after",
         type=float,
         default=None,
@@ -98,6 +104,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         max_calls=high,
         kill_master=args.kill_master,
         lose_master=args.lose_master,
+        prepared=args.prepared,
         takeover_after=args.takeover_after,
         allow=args.allow,
         mutation=args.mutation,

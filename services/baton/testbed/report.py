@@ -208,9 +208,7 @@ def check_plan_effects(snapshot: Snapshot, plan: Plan, pictures_asked: int) -> d
     }
 
 
-def _count_pictures(
-    snapshot: Snapshot, expected: int, what: str, problems: list[str]
-) -> int | str:
+def _count_pictures(snapshot: Snapshot, expected: int, what: str, problems: list[str]) -> int | str:
     """The pictures the camera produced (``NOT_COUNTED`` if it kept no file); a count
     other than ``expected`` is a problem, said as "... {what} {expected}"."""
     camera = snapshot.camera_effects
