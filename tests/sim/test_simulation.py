@@ -69,6 +69,22 @@ def test_lose_master_seeds_hold_every_oracle() -> None:
     assert not any(o.failed for o in outcomes), _failures(outcomes)
 
 
+# Prepared handovers (--prepared: every scripted handover is prepared) in CI.
+PREPARED_SEEDS = 1_200
+
+
+def test_prepared_handover_seeds_hold_every_oracle() -> None:
+    """Every scripted handover prepared (docs/design.md, "Prepared handover"), under the
+    default mix's faults: every oracle holds, every prepared handover's record is
+    prepared or forced at the timeout, and both kinds happen."""
+    outcomes = [run_seed(seed, SimOptions(prepared=True)) for seed in range(PREPARED_SEEDS)]
+    assert not any(o.failed for o in outcomes), _failures(outcomes)
+    carried_out = sum(o.prepared["prepared"] for o in outcomes)
+    forced = sum(o.prepared["forced"] for o in outcomes)
+    assert carried_out > PREPARED_SEEDS // 4, carried_out
+    assert forced > PREPARED_SEEDS // 20, forced
+
+
 # Beyond CI's range, fixed: a new master's give-up of a retained reply (2456, 2707),
 # killed replicas held to a framing a takeover replaced (the oracle), the drone's watch
 # stopped while a program still had a given-up call to settle (2957, the sim).

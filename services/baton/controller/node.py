@@ -191,8 +191,9 @@ class ControllerNode:
         self._peers: dict[int, PeerLink] = {}
         # The highest log number sent straight to each handover target (_send_catch_up).
         self._sent_straight: dict[int, int] = {}
-        # The target's acknowledgements counted when the preparation began.
-        self._acked_before_prepare = 0
+        # The stream to the target when the preparation began, and the acknowledgements
+        # it had counted then (a stream opened since counts from 0: ``_route`` drops one).
+        self._acked_before_prepare: tuple[PeerLink | None, int] = (None, 0)
         # When a frame of each log number last arrived (``arriving``), the newest few.
         self._arriving: dict[int, float] = {}
         self._drone: DroneSession | None = None
@@ -483,7 +484,8 @@ class ControllerNode:
         if self.protocol.preparing_for != prepare.target:
             return  # not ACTIVE in that epoch: the drone's word came late
         self.log.info("preparing a handover", target=prepare.target, timeout_s=prepare.timeout_s)
-        self._acked_before_prepare = self.peer(prepare.target).counters.acked
+        link = self.peer(prepare.target)
+        self._acked_before_prepare = (link, link.counters.acked)
         self._send_catch_up(prepare.target)
         await self._apply(effects)
         loop = asyncio.get_running_loop()
@@ -508,11 +510,15 @@ class ControllerNode:
         lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
         if link is None:
             return drone_pb2.PreparationProgress(target=target, lacks_bytes=lacks)
+        before, acked = self._acked_before_prepare
         return drone_pb2.PreparationProgress(
             target=target,
             lacks_bytes=lacks,
             behind_s=link.waiting_for_ack_s(time.monotonic()),
-            acked=link.counters.acked - self._acked_before_prepare,
+            # Only the stream the count was taken on: a stream opened since (the old
+            # one was dropped when the ring routed back past the target) counts from
+            # 0, and the difference went negative (--lose-master --prepared seed 816).
+            acked=link.counters.acked - (acked if link is before else 0),
         )
 
     def _handover_acked(self, message: ring_pb2.LogMessage) -> None:

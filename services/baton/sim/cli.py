@@ -119,6 +119,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"seed {args.seed}: ok\n  {outcome.summary}\n  faults: {outcome.faults}")
         else:
             print(outcome.report())
+        if outcome.prepared["begun"]:
+            p = outcome.prepared
+            print(
+                f"  prepared handovers: {p['begun']} begun, {p['prepared']} carried out, "
+                f"{p['forced']} forced at the timeout"
+            )
         print(f"  {outcome.events} events, {outcome.virtual_s:.1f} s virtual, {outcome.digest}")
         return 0 if outcome.ok else 1
     seeds: range = args.seeds

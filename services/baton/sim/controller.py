@@ -194,7 +194,8 @@ class SimController:
         self.route_held = False  # a route held back polls (_route_again)
         self._gap: tuple[int, float, float] | None = None  # node.py ControllerNode._gap
         self.sent_straight: dict[int, int] = {}  # node.py ControllerNode._sent_straight
-        self.acked_before_prepare = 0  # and _acked_before_prepare
+        # And _acked_before_prepare: the target's stream then, and its acks then.
+        self.acked_before_prepare: tuple[RingLink | None, int] = (None, 0)
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -661,7 +662,8 @@ class SimController:
         self.world.trace(
             f"controller {self.id} prepares a handover to {prepare.target} (epoch {prepare.epoch})"
         )
-        self.acked_before_prepare = self.peer(prepare.target).acked
+        link = self.peer(prepare.target)
+        self.acked_before_prepare = (link, link.acked)
         self._send_catch_up(prepare.target)
         self._apply(effects)
         self.world.loop.after(prepare.timeout_s + PREPARE_GRACE_S, self._preparation_over, prepare)
@@ -682,11 +684,12 @@ class SimController:
         lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
         if link is None:
             return drone_pb2.PreparationProgress(target=target, lacks_bytes=lacks)
+        before, acked = self.acked_before_prepare
         return drone_pb2.PreparationProgress(
             target=target,
             lacks_bytes=lacks,
             behind_s=link.waiting_for_ack_s(self.world.loop.now),
-            acked=link.acked - self.acked_before_prepare,
+            acked=link.acked - (acked if link is before else 0),
         )
 
     def _send_catch_up(self, target: int) -> None:

@@ -102,6 +102,8 @@ class Outcome:
     # Peaks over the run: log queue, unacknowledged messages on one stream, reply cache.
     peaks: dict[str, int] = field(default_factory=dict)
     trace: list[str] = field(default_factory=list)
+    # Prepared handovers: begun, carried out as prepared, forced at the timeout.
+    prepared: dict[str, int] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -424,7 +426,18 @@ class World:
                 "retained replies": self.drone.stats.peak_retained,
             },
             trace=self._trace or [],
+            prepared=self._prepared(),
         )
+
+    def _prepared(self) -> dict[str, int]:
+        drone = self.drone
+        records = drone.prepared_records
+        timed_out = sum(1 for r in records if r.prepare_timed_out)
+        return {
+            "begun": drone.preparations,
+            "prepared": len(records) - timed_out,
+            "forced": timed_out,
+        }
 
     def _digest(self) -> str:
         """A fingerprint of what happened: what every program saw and what the vehicle did."""
