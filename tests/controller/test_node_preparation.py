@@ -3,20 +3,20 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
+import pytest
+
 from baton.config import parse_config
+from baton.controller import node as node_module
 from baton.controller.node import ControllerNode
 from baton.controller.protocol import State
 from baton.v1 import drone_pb2
 
 
-async def test_the_progress_word_counts_the_acks_of_a_stream_opened_since_it_began() -> None:
-    """--lose-master --prepared seed 816 (the simulation): the master's stream to the
-    target was dropped (the ring routed back past it, ``_route``) and opened again, and
-    its acknowledgements counted from 0: the word's ``acked`` was the new stream's count
-    less the old one's, negative, and building the Invoke raised ValueError. A stream
-    opened since the preparation began counts all its acknowledgements."""
+async def active_master() -> ControllerNode:
+    """Controller 0 of a ring of three, ACTIVE in epoch 1 (the mission's start)."""
     config = parse_config(
         {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
     )
@@ -26,6 +26,40 @@ async def test_the_progress_word_counts_the_acks_of_a_stream_opened_since_it_beg
     await node.on_sync(2, 0)  # the predecessor holds nothing: caught up
     await node.on_granted(session, 1, 0)
     assert node.protocol.state is State.ACTIVE
+    return node
+
+
+async def test_an_older_preparations_time_does_not_end_a_newer_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The drone replaced a preparation for 2 by one for 1, then by one for 2 again (a
+    script's lines, each after a request). The first one's timer ended the third
+    (same target, same epoch) long before its timeout: the master stopped flushing
+    every entry and sent no progress word, so the drone could only force it."""
+    monkeypatch.setattr(node_module, "PREPARE_GRACE_S", 0.0)
+    node = await active_master()
+
+    def prepare(target: int, timeout_s: float) -> drone_pb2.PrepareHandover:
+        return drone_pb2.PrepareHandover(target=target, epoch=1, timeout_s=timeout_s)
+
+    await node.on_prepare(prepare(2, 0.01))
+    await node.on_prepare(prepare(1, 0.01))
+    await node.on_prepare(prepare(2, 30.0))
+    await asyncio.sleep(0.1)  # past the first two's time (timers fire in order)
+    assert node.protocol.preparing_for == 2
+    progress = node._preparation_progress()
+    assert progress is not None and progress.target == 2
+    node._drone = None
+    await node.stop()
+
+
+async def test_the_progress_word_counts_the_acks_of_a_stream_opened_since_it_began() -> None:
+    """--lose-master --prepared seed 816 (the simulation): the master's stream to the
+    target was dropped (the ring routed back past it, ``_route``) and opened again, and
+    its acknowledgements counted from 0: the word's ``acked`` was the new stream's count
+    less the old one's, negative, and building the Invoke raised ValueError. A stream
+    opened since the preparation began counts all its acknowledgements."""
+    node = await active_master()
     old = node.peer(2)
     old.counters.acked = 5  # acknowledgements of messages sent before
     await node.on_prepare(drone_pb2.PrepareHandover(target=2, epoch=1, timeout_s=10.0))

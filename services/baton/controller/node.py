@@ -194,6 +194,8 @@ class ControllerNode:
         # The stream to the target when the preparation began, and the acknowledgements
         # it had counted then (a stream opened since counts from 0: ``_route`` drops one).
         self._acked_before_prepare: tuple[PeerLink | None, int] = (None, 0)
+        # When we stop preparing on our own (loop time): the newest PrepareHandover's.
+        self._prepare_until = 0.0
         # When a frame of each log number last arrived (``arriving``), the newest few.
         self._arriving: dict[int, float] = {}
         self._drone: DroneSession | None = None
@@ -491,9 +493,14 @@ class ControllerNode:
         loop = asyncio.get_running_loop()
         # The drone moves the master by its timeout; if we hear nothing by then
         # (its notice is owed on our stream), we stop flushing every entry.
-        loop.call_later(prepare.timeout_s + PREPARE_GRACE_S, self._preparation_over, prepare)
+        until = self._prepare_until = loop.time() + prepare.timeout_s + PREPARE_GRACE_S
+        loop.call_at(until, self._preparation_over, prepare, until)
 
-    def _preparation_over(self, prepare: drone_pb2.PrepareHandover) -> None:
+    def _preparation_over(self, prepare: drone_pb2.PrepareHandover, until: float) -> None:
+        """The time of ``prepare`` is up, unless a newer preparation (the drone replaced
+        it, perhaps by one with the same target) gave us more."""
+        if until < self._prepare_until:
+            return
         if self.protocol.preparing_for == prepare.target and self.protocol.epoch == prepare.epoch:
             self.log.warning(
                 "a prepared handover was not carried out in its time; flushing as usual",

@@ -196,6 +196,7 @@ class SimController:
         self.sent_straight: dict[int, int] = {}  # node.py ControllerNode._sent_straight
         # And _acked_before_prepare: the target's stream then, and its acks then.
         self.acked_before_prepare: tuple[RingLink | None, int] = (None, 0)
+        self.prepare_until = 0.0  # and _prepare_until
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -666,11 +667,15 @@ class SimController:
         self.acked_before_prepare = (link, link.acked)
         self._send_catch_up(prepare.target)
         self._apply(effects)
-        self.world.loop.after(prepare.timeout_s + PREPARE_GRACE_S, self._preparation_over, prepare)
+        until = self.prepare_until = self.world.loop.now + prepare.timeout_s + PREPARE_GRACE_S
+        self.world.loop.at(until, self._preparation_over, prepare, until)
 
-    def _preparation_over(self, prepare: drone_pb2.PrepareHandover) -> None:
-        """ControllerNode._preparation_over: not carried out in its time."""
+    def _preparation_over(self, prepare: drone_pb2.PrepareHandover, until: float) -> None:
+        """ControllerNode._preparation_over: not carried out in its time (unless a newer
+        preparation gave more)."""
         p = self.protocol
+        if until < self.prepare_until:
+            return
         if self.alive and p.preparing_for == prepare.target and p.epoch == prepare.epoch:
             self.world.trace(f"controller {self.id} stops preparing for {prepare.target}")
             p.end_preparation()
