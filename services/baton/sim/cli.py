@@ -66,8 +66,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--prepared",
         action="store_true",
-        help="make every scripted handover a prepared one (the default mix prepares a "
-        "quarter of them; --lose-master none)",
+        help="make every scripted handover and Handover call a prepared one (the default "
+        "mix prepares a quarter of the script's lines; --lose-master none)",
     )
     p.add_argument(
         "--takeover-after",

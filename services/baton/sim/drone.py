@@ -137,6 +137,7 @@ class HandoverOrder:
     """A Handover call (an operator's or a test's): it takes the lock like a request."""
 
     new_master: int
+    prepared: bool = False  # HandoverRequest.prepared
 
 
 @dataclass(frozen=True)
@@ -236,11 +237,13 @@ class SimDrone:
         self.queue.append(request)
         self._next()
 
-    def handover_rpc(self, new_master: int) -> None:
-        """The Handover RPC: takes the lock, then switches (refused if already master)."""
+    def handover_rpc(self, new_master: int, prepared: bool = False) -> None:
+        """The Handover RPC: takes the lock, then switches (refused if already master), or
+        begins a prepared handover (its caller is answered once the master moved; nobody
+        waits for that here)."""
         if not self.up:
             return  # the operator's call fails UNAVAILABLE
-        self.queue.append(HandoverOrder(new_master))
+        self.queue.append(HandoverOrder(new_master, prepared))
         self._next()
 
     def _next(self) -> None:
@@ -455,8 +458,14 @@ class SimDrone:
 
     def _handover(self, order: HandoverOrder) -> None:
         """DroneService.Handover: cooperative, or a takeover while the master is a taker
-        that has not connected yet (``Sequencer.handover_must_take_over``)."""
+        that has not connected yet (``Sequencer.handover_must_take_over``). Prepared
+        (``_prepared_handover``) if the master can prepare (``can_prepare``)."""
         try:
+            if order.prepared and self._can_prepare(order.new_master):
+                self.seq.check_known(order.new_master)
+                notice = self.seq.prepare(order.new_master, "rpc", self.world.loop.now)
+                self._preparing(notice)
+                return
             if self.seq.handover_must_take_over(order.new_master):
                 self.seq.check_known(order.new_master)
                 self._take_over(order.new_master, "rpc", self.world.loop.now, 0.0)
@@ -465,6 +474,12 @@ class SimDrone:
         except StatusError:
             return
         self._switched(record)
+
+    def _can_prepare(self, new_master: int) -> bool:
+        """DroneService.can_prepare: the master holds its Connect stream (to hear the
+        PrepareHandover) and could send its log."""
+        seq = self.seq
+        return seq.master in self.streams and not seq.handover_must_take_over(new_master)
 
     def _switched(self, record: drone_pb2.HandoverRecord) -> None:
         """MasterStreams.wake: the old master's Connect handler resumes on a later loop turn."""

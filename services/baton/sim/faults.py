@@ -414,7 +414,7 @@ def ready_for_handover(world: World, new_master: int) -> bool:
 def handover(world: World, new_master: int, tries: int = 0) -> None:
     """A Handover call, when the mix allows it (tried again every 50 ms for up to 2 s)."""
     if ready_for_handover(world, new_master):
-        world.drone.handover_rpc(new_master)
+        world.drone.handover_rpc(new_master, prepared=world.options.prepared)
     elif tries < 40:
         world.loop.after(0.05, handover, world, new_master, tries + 1)
 

@@ -57,8 +57,9 @@ class SimOptions:
     # The drone's takeover time and the ring's detection time, seconds (None: 3 in
     # the default mix, drawn from 1, 1.5 and 3 with lose_master; 0 turns them off).
     takeover_after: float | None = None
-    # Every scripted handover is prepared (docs/design.md, "Prepared handover"); without
-    # it a quarter of the default mix's script lines are (World: PREPARED_SHARE).
+    # Every scripted handover and every Handover call of the faults is prepared
+    # (docs/design.md, "Prepared handover"); without it a quarter of the default mix's
+    # script lines are (World: PREPARED_SHARE), and no Handover call.
     prepared: bool = False
     # Known findings (findings.py) whose scenarios this run lets in.
     allow: frozenset[str] = frozenset()
