@@ -12,7 +12,19 @@ from baton.config import parse_config
 from baton.controller import node as node_module
 from baton.controller.node import ControllerNode
 from baton.controller.protocol import State
-from baton.v1 import drone_pb2
+from baton.digest import request_digest
+from baton.v1 import drone_pb2, ring_pb2
+
+POSITION = "/baton.v1.Mobility/GetPosition"
+
+
+def entry(reqnr: int) -> ring_pb2.LogEntry:
+    return ring_pb2.LogEntry(
+        reqnr=reqnr,
+        method=POSITION,
+        request_digest=request_digest(POSITION, b""),
+        reply=b"%d" % reqnr,
+    )
 
 
 async def active_master() -> ControllerNode:
@@ -73,4 +85,21 @@ async def test_the_progress_word_counts_the_acks_of_a_stream_opened_since_it_beg
     progress = node._preparation_progress()
     assert progress is not None and progress.target == 2 and progress.acked == 2
     node._drone = None
+    await node.stop()
+
+
+async def test_a_master_cut_off_from_the_drone_sends_the_target_no_copies() -> None:
+    """--lose-master --prepared seed 844 (the simulation): master 0 prepared a handover
+    to 2, the drone restarted and gave the role to another controller by takeover;
+    0, cut off and not yet told, gave up on a call and its flush went straight to 2,
+    past the taker's fence on the ring. The taker died with its log, 2 took over
+    holding the give-up and built on it, while the drone had acted on that request
+    for the taker's program. Copies go only while the Connect stream is up; a new
+    stream's PrepareHandover catches the target up (or a refusal fences us)."""
+    node = await active_master()
+    await node.on_prepare(drone_pb2.PrepareHandover(target=2, epoch=1, timeout_s=10.0))
+    node._drone = None  # the Connect stream broke: the session reconnects
+    await node._apply(node.protocol.on_reply(entry(1)))
+    assert node.peer(1).unacked == 1  # the ring has it
+    assert node.peer(2).unacked == 0  # the target gets no copy
     await node.stop()

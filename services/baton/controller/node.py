@@ -690,8 +690,14 @@ class ControllerNode:
         for effect in effects:
             if isinstance(effect, SendLog):
                 if effect.copy:
-                    self.peer(effect.dest).send(effect.message)
-                    self._sent_straight[effect.dest] = effect.message.lognr
+                    # Not while cut off from the drone: a takeover may have replaced
+                    # us, and the copy would pass the taker's fence on the ring (the
+                    # target built on a give-up the taker had replaced: --lose-master
+                    # --prepared seed 844). A new stream's PrepareHandover catches the
+                    # target up (``on_prepare``); a refused one fences us.
+                    if self.drone_connected:
+                        self.peer(effect.dest).send(effect.message)
+                        self._sent_straight[effect.dest] = effect.message.lognr
                     continue
                 if not effect.message.handover:
                     # A handover message we create enters the history when it

@@ -243,8 +243,10 @@ class SimController:
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
                 self.world.framings.setdefault(message.lognr, set()).add(message.epoch)
                 if effect.copy:  # a prepared handover's target: held once already
-                    self.peer(effect.dest).send(message)
-                    self.sent_straight[effect.dest] = message.lognr
+                    session = self.session  # node.py: not while cut off from the drone
+                    if session is not None and session.connected:
+                        self.peer(effect.dest).send(message)
+                        self.sent_straight[effect.dest] = message.lognr
                     continue
                 if not message.handover:  # it enters the history when it comes back (F7)
                     self.history.add(message)
