@@ -70,7 +70,7 @@ def test_lose_master_seeds_hold_every_oracle() -> None:
 
 
 # Prepared handovers (--prepared: every scripted handover is prepared) in CI.
-PREPARED_SEEDS = 1_200
+PREPARED_SEEDS = 1_500
 
 
 def test_prepared_handover_seeds_hold_every_oracle() -> None:
@@ -83,6 +83,19 @@ def test_prepared_handover_seeds_hold_every_oracle() -> None:
     forced = sum(o.prepared["forced"] for o in outcomes)
     assert carried_out > PREPARED_SEEDS // 4, carried_out
     assert forced > PREPARED_SEEDS // 20, forced
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="a watermark from a predecessor routing around a dead controller: the taker "
+    "lacks messages the drone let go of (docs/design.md, prepared handovers)",
+)
+def test_lose_master_prepared_seed_1546_holds_every_oracle() -> None:
+    """Open (not about preparing): the ring routed 2 -> 1 -> 2 around 0 (partitions),
+    1's word that it held messages 5 and 6 became the drone's watermark; 1 was killed
+    and 2 fenced, and taker 0 waits for ever for requests 4-7."""
+    outcome = run_seed(1546, SimOptions(lose_master=True, prepared=True))
+    assert outcome.ok, outcome.report()
 
 
 # Beyond CI's range, fixed: a new master's give-up of a retained reply (2456, 2707),
