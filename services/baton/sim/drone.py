@@ -4,12 +4,15 @@
 execution (its lock: requests and Handover calls are taken in arrival
 order, one at a time), every decision asked of the pure ``Sequencer``
 (``admit``, ``served``, ``switch``, ``admit_connect``), the request's intent
-kept while it executes, Connect streams that carry the Connected grant
-and the handover notice, and a restart that resumes from the durable
-state exactly as ``DroneService._restore`` does (the reply cache, the
-counters, the audit and the script, not the pending notices; a command
-cut off by the restart is booked UNKNOWN and never executed again, a read
-cut off runs again when re-sent).
+kept while it executes, Connect streams that carry the Connected grant,
+a prepared handover's PrepareHandover and the handover notice, the
+preparation's progress word on each Invoke and its deadline in
+``watch_master`` (docs/design.md, "Prepared handover"), and a restart
+that resumes from the durable state exactly as ``DroneService._restore``
+does (the reply cache, the counters, the audit and the script, not the
+pending notices nor a preparation; a command cut off by the restart is
+booked UNKNOWN and never executed again, a read cut off runs again when
+re-sent).
 
 ``SimVehicle`` and ``SimCamera`` are the ground truth: they record every
 read, flight command and picture they act on, by request, below every
