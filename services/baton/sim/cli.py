@@ -123,7 +123,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             p = outcome.prepared
             print(
                 f"  prepared handovers: {p['begun']} begun, {p['prepared']} carried out, "
-                f"{p['forced']} forced at the timeout"
+                f"{p['forced']} forced at the timeout; the word understated what the target "
+                f"lacked {p['understated']} times"
             )
         print(f"  {outcome.events} events, {outcome.virtual_s:.1f} s virtual, {outcome.digest}")
         return 0 if outcome.ok else 1

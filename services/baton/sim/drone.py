@@ -231,6 +231,9 @@ class SimDrone:
         # Every prepared handover the drone carried out or forced (the record check).
         self.prepared_records: list[drone_pb2.HandoverRecord] = []
         self.preparations = 0  # begun
+        # Prepared ones whose target in truth lacked more than the master's word said
+        # (a diagnostic, not an oracle: docs/design.md, prepared handovers).
+        self.understated: list[str] = []
 
     # -- requests -------------------------------------------------------------------
 
@@ -489,6 +492,8 @@ class SimDrone:
         prepared = ""
         if record.prepare_started_at:
             self.prepared_records.append(record)
+            if record.kind == "prepared":
+                self._check_caught_up(record)
             prepared = (
                 f", prepared for {record.decided_at - record.prepare_started_at:.3f}s, "
                 f"lacked {record.prepare_lacked_bytes} B"
@@ -510,6 +515,27 @@ class SimDrone:
         )
         self.world.loop.after(0.0, self._wake, self.seq.master)
         self.watch()  # watch_master forces it at the deadline
+
+    def _check_caught_up(self, record: drone_pb2.HandoverRecord) -> None:
+        """Ground truth for a diagnostic, not an oracle: what the target lacks of the old
+        master's log (history and unflushed entries) as the drone moves the master, more
+        than the word (with the reply) said. The word speaks of the stream to the target
+        only: a target restarted with nothing lacks the history too."""
+        old = self.world.controller(record.old_master)
+        target = self.world.controller(record.new_master)
+        if not (old.alive and target.alive):
+            return
+        lacked = old.protocol.log.size + sum(
+            old.history.get(n).ByteSize() for n in old.history.above(0) if n not in target.history
+        )
+        if lacked > record.prepare_lacked_bytes:
+            what = (
+                f"prepared handover {record.old_master}->{record.new_master} (epoch "
+                f"{record.epoch}): the word said {record.prepare_lacked_bytes} B, the target "
+                f"lacked {lacked} B (incarnation {target.incarnation})"
+            )
+            self.understated.append(what)
+            self.world.trace(what)
 
     def _wake(self, cid: int) -> None:
         """The Connect handler's loop: the PrepareHandover to the master, if one is under

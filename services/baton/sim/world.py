@@ -438,6 +438,7 @@ class World:
             "begun": drone.preparations,
             "prepared": len(records) - timed_out,
             "forced": timed_out,
+            "understated": len(drone.understated),
         }
 
     def _digest(self) -> str:
