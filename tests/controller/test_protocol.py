@@ -310,6 +310,24 @@ def test_mission_done_flushes_the_masters_last_entries() -> None:
     assert p.on_mission_done() == []
 
 
+def test_an_entry_logged_after_the_mission_ended_is_flushed_at_once() -> None:
+    """--prepared seed 3527 (the simulation): master 0 handed over to 1, its program
+    gave up on its last call (request 2) while PASSIVE and ended; 1 handed back, and 0,
+    ACTIVE again, settled the call by logging the give-up (node.py
+    ``_settle_after_the_end``), below the flush limit. No end of the mission came to
+    flush it: replica 1 waited for request 2 for ever."""
+    p = started(0, [0, 1], flush_limit=10**6)
+    p.on_reply(entry(1))
+    assert sends(p.on_handover_notice(1, epoch=2)) == [(1, 1, True)]
+    assert p.on_mission_done() == []  # PASSIVE: nothing to flush
+    back = message(2, origin=0, reqnrs=[], handover=True, sender=1)
+    back.epoch, back.after_reqnr, back.after_epoch = 3, 1, 2
+    p.on_log(back)
+    p.on_granted(3)
+    assert p.state is State.ACTIVE
+    assert sends(p.on_reply(entry(2))) == [(1, 3, False)]
+
+
 def test_seen_log_numbers_stay_a_watermark_when_they_arrive_in_order() -> None:
     """Issue 9, defect 8: the set of received log numbers grew by one per message."""
     seen = SeenNumbers()

@@ -443,6 +443,33 @@ def test_any_switch_ends_a_preparation_and_the_master_itself_is_refused() -> Non
     assert seq.preparing is None and seq.preparation_expired(100.0) is None
 
 
+def test_a_prepared_script_line_is_begun_again_after_a_restart_before_its_handover() -> None:
+    """A drone restart loses the preparation (it is not in the store), and the line
+    was stored as fired when it began: the scripted handover never happened. The line
+    fires once the preparation ends, so the restarted drone begins it again."""
+    script = {2: ScriptedHandover(2, 1, 1, prepared=True)}
+    seq = Sequencer([0, 1], initial_master=0, script=script, prepare_timeout_s=5.0)
+    serve(seq, 0, 1, 1)
+    serve(seq, 0, 1, 2)
+    assert seq.preparing is not None and seq.fired_script == []
+    # The drone restarts: what the store kept.
+    again = Sequencer([0, 1], initial_master=0, script=script, prepare_timeout_s=5.0)
+    counts = (seq.last_reqnr, seq.executed, seq.duplicates, seq.rejected)
+    again.resume(seq.master, seq.handovers, counts, [], seq.audit, seq.fired_script)
+    assert again.preparing is None
+    assert again.admit(0, 1, 3, GET, DIGEST) is None
+    served = again.served(0, 3, GET, DIGEST, b"r", 3.0, now=3.0)
+    assert served.prepare is not None and served.prepare.target == 1
+    forced = again.preparation_expired(8.0)
+    assert forced is not None and again.master == 1 and again.fired_script == [2]
+    # A preparation replaced by another line's ends as fired too.
+    script = {2: ScriptedHandover(2, 1, 1, True), 3: ScriptedHandover(3, 2, 2, True)}
+    seq = Sequencer([0, 1, 2], initial_master=0, script=script)
+    for reqnr in (1, 2, 3):
+        serve(seq, 0, 1, reqnr)
+    assert seq.preparing is not None and seq.preparing.target == 2 and seq.fired_script == [2]
+
+
 def test_a_script_line_marked_prepared_begins_a_preparation() -> None:
     script = {2: ScriptedHandover(2, 1, 1, prepared=True)}
     seq = Sequencer([0, 1], initial_master=0, script=script)

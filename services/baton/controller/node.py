@@ -191,8 +191,11 @@ class ControllerNode:
         self._peers: dict[int, PeerLink] = {}
         # The highest log number sent straight to each handover target (_send_catch_up).
         self._sent_straight: dict[int, int] = {}
-        # The target's acknowledgements counted when the preparation began.
-        self._acked_before_prepare = 0
+        # The stream to the target when the preparation began, and the acknowledgements
+        # it had counted then (a stream opened since counts from 0: ``_route`` drops one).
+        self._acked_before_prepare: tuple[PeerLink | None, int] = (None, 0)
+        # When we stop preparing on our own (loop time): the newest PrepareHandover's.
+        self._prepare_until = 0.0
         # When a frame of each log number last arrived (``arriving``), the newest few.
         self._arriving: dict[int, float] = {}
         self._drone: DroneSession | None = None
@@ -483,15 +486,21 @@ class ControllerNode:
         if self.protocol.preparing_for != prepare.target:
             return  # not ACTIVE in that epoch: the drone's word came late
         self.log.info("preparing a handover", target=prepare.target, timeout_s=prepare.timeout_s)
-        self._acked_before_prepare = self.peer(prepare.target).counters.acked
+        link = self.peer(prepare.target)
+        self._acked_before_prepare = (link, link.counters.acked)
         self._send_catch_up(prepare.target)
         await self._apply(effects)
         loop = asyncio.get_running_loop()
         # The drone moves the master by its timeout; if we hear nothing by then
         # (its notice is owed on our stream), we stop flushing every entry.
-        loop.call_later(prepare.timeout_s + PREPARE_GRACE_S, self._preparation_over, prepare)
+        until = self._prepare_until = loop.time() + prepare.timeout_s + PREPARE_GRACE_S
+        loop.call_at(until, self._preparation_over, prepare, until)
 
-    def _preparation_over(self, prepare: drone_pb2.PrepareHandover) -> None:
+    def _preparation_over(self, prepare: drone_pb2.PrepareHandover, until: float) -> None:
+        """The time of ``prepare`` is up, unless a newer preparation (the drone replaced
+        it, perhaps by one with the same target) gave us more."""
+        if until < self._prepare_until:
+            return
         if self.protocol.preparing_for == prepare.target and self.protocol.epoch == prepare.epoch:
             self.log.warning(
                 "a prepared handover was not carried out in its time; flushing as usual",
@@ -508,11 +517,15 @@ class ControllerNode:
         lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
         if link is None:
             return drone_pb2.PreparationProgress(target=target, lacks_bytes=lacks)
+        before, acked = self._acked_before_prepare
         return drone_pb2.PreparationProgress(
             target=target,
             lacks_bytes=lacks,
             behind_s=link.waiting_for_ack_s(time.monotonic()),
-            acked=link.counters.acked - self._acked_before_prepare,
+            # Only the stream the count was taken on: a stream opened since (the old
+            # one was dropped when the ring routed back past the target) counts from
+            # 0, and the difference went negative (--lose-master --prepared seed 816).
+            acked=link.counters.acked - (acked if link is before else 0),
         )
 
     def _handover_acked(self, message: ring_pb2.LogMessage) -> None:
@@ -677,8 +690,14 @@ class ControllerNode:
         for effect in effects:
             if isinstance(effect, SendLog):
                 if effect.copy:
-                    self.peer(effect.dest).send(effect.message)
-                    self._sent_straight[effect.dest] = effect.message.lognr
+                    # Not while cut off from the drone: a takeover may have replaced
+                    # us, and the copy would pass the taker's fence on the ring (the
+                    # target built on a give-up the taker had replaced: --lose-master
+                    # --prepared seed 844). A new stream's PrepareHandover catches the
+                    # target up (``on_prepare``); a refused one fences us.
+                    if self.drone_connected:
+                        self.peer(effect.dest).send(effect.message)
+                        self._sent_straight[effect.dest] = effect.message.lognr
                     continue
                 if not effect.message.handover:
                     # A handover message we create enters the history when it

@@ -297,6 +297,9 @@ class ControllerProtocol:
         self.flush_limit = flush_limit
         # The target of the prepared handover under way (``on_prepare``), if any.
         self.preparing_for: int | None = None
+        # The mission program ended (``on_mission_done``): an entry logged since (a
+        # call it gave up on, settled once ACTIVE again) is flushed at once.
+        self.mission_over = False
         position = ring.index(cid)
         self.predecessor = ring[(position - 1) % len(ring)]  # prvid
         self.successor = ring[(position + 1) % len(ring)]  # nxtid
@@ -716,6 +719,8 @@ class ControllerProtocol:
         self.invoked += 1
         if self.log.size >= self.flush_limit or self.preparing_for is not None:
             return self._flush_to_all()
+        if self.mission_over:  # no on_mission_done will come again
+            return self._flush_to_all()
         return []
 
     # -- a prepared handover (docs/design.md, "Prepared handover") -----------------
@@ -772,8 +777,12 @@ class ControllerProtocol:
         """Flushes what the master's log still holds once its mission program has ended.
 
         Not in Algorithm 1, whose missions never end: without it the replicas
-        would wait forever for the last entries below the flush limit.
+        would wait forever for the last entries below the flush limit. Nor
+        for an entry logged later: a call the program gave up on while PASSIVE
+        is settled once ACTIVE again (node.py ``_settle_after_the_end``), and
+        ``on_reply`` flushes it at once.
         """
+        self.mission_over = True
         if self.state is State.ACTIVE and self.log:
             return self._flush_to_all()
         return []

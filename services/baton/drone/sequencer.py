@@ -105,6 +105,8 @@ class Preparation:
     lacks_bytes: int | None = None
     behind_s: float = 0.0
     acked: int = 0
+    # The script line that began it (its reqnr; 0: not the script's).
+    line: int = 0
 
 
 @dataclass(frozen=True)
@@ -429,13 +431,18 @@ class Sequencer:
         due = [n for n in self.script if n <= reqnr]
         if not due:
             return Served(entry, cached)
-        scripted = self.script.pop(min(due))
-        self.fired_script.append(min(due))
+        line = min(due)
+        scripted = self.script.pop(line)
+        if scripted.prepared and scripted.new_master != self.master:
+            prepare = self.prepare(scripted.new_master, "script", now)
+            # Fired once the preparation ends (``_preparation_ended``): the preparation
+            # is not in the store, so a restart before then begins it again.
+            assert self.preparing is not None
+            self.preparing.line = line
+            return Served(entry, cached, prepare=prepare)
+        self.fired_script.append(line)
         if scripted.new_master == self.master:
             return Served(entry, cached, skipped=scripted)
-        if scripted.prepared:
-            prepare = self.prepare(scripted.new_master, "script", now)
-            return Served(entry, cached, prepare=prepare)
         handover = self.switch(scripted.new_master, "script", now)
         return Served(entry, cached, handover=handover)
 
@@ -512,7 +519,7 @@ class Sequencer:
         )
         self.handovers.append(record)
         self.master = new_master
-        self.preparing = None  # a preparation ends with any switch
+        self._preparation_ended()  # a preparation ends with any switch
         # A master that got the role back no longer needs the notice of losing it:
         # after a cooperative switch its log never left it, so nobody acted without
         # it. One whose mastership was taken over meanwhile must still rejoin with
@@ -680,8 +687,16 @@ class Sequencer:
             )
         timeout = self.prepare_timeout_s if timeout_s is None else timeout_s
         notice = drone_pb2.PrepareHandover(target=target, epoch=self.epoch, timeout_s=timeout)
+        self._preparation_ended()
         self.preparing = Preparation(target, trigger, now, now + timeout, notice, reason, position)
         return notice
+
+    def _preparation_ended(self) -> None:
+        """The preparation under way, if any, ends (a switch, or a new one replaces it):
+        the script line that began it has fired."""
+        if self.preparing is not None and self.preparing.line:
+            self.fired_script.append(self.preparing.line)
+        self.preparing = None
 
     def note_progress(
         self, controller_id: int, epoch: int, progress: drone_pb2.PreparationProgress | None

@@ -64,6 +64,12 @@ def parser() -> argparse.ArgumentParser:
         "time) or cut its drone link for a while",
     )
     p.add_argument(
+        "--prepared",
+        action="store_true",
+        help="make every scripted handover and Handover call a prepared one (the default "
+        "mix prepares a quarter of the script's lines; --lose-master none)",
+    )
+    p.add_argument(
         "--takeover-after",
         type=float,
         default=None,
@@ -98,6 +104,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         max_calls=high,
         kill_master=args.kill_master,
         lose_master=args.lose_master,
+        prepared=args.prepared,
         takeover_after=args.takeover_after,
         allow=args.allow,
         mutation=args.mutation,
@@ -112,6 +119,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"seed {args.seed}: ok\n  {outcome.summary}\n  faults: {outcome.faults}")
         else:
             print(outcome.report())
+        if outcome.prepared["begun"]:
+            p = outcome.prepared
+            print(
+                f"  prepared handovers: {p['begun']} begun, {p['prepared']} carried out, "
+                f"{p['forced']} forced at the timeout; the word understated what the target "
+                f"lacked {p['understated']} times"
+            )
         print(f"  {outcome.events} events, {outcome.virtual_s:.1f} s virtual, {outcome.digest}")
         return 0 if outcome.ok else 1
     seeds: range = args.seeds

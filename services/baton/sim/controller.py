@@ -37,6 +37,7 @@ from baton.controller.node import (
     CLOCK_NOW,
     CLOCK_SERVICE,
     CLOCK_SLEEP,
+    PREPARE_GRACE_S,
     RETRY_FIRST_S,
     RETRY_MAX_S,
     _given_up,
@@ -193,6 +194,9 @@ class SimController:
         self.route_held = False  # a route held back polls (_route_again)
         self._gap: tuple[int, float, float] | None = None  # node.py ControllerNode._gap
         self.sent_straight: dict[int, int] = {}  # node.py ControllerNode._sent_straight
+        # And _acked_before_prepare: the target's stream then, and its acks then.
+        self.acked_before_prepare: tuple[RingLink | None, int] = (None, 0)
+        self.prepare_until = 0.0  # and _prepare_until
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -239,8 +243,10 @@ class SimController:
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
                 self.world.framings.setdefault(message.lognr, set()).add(message.epoch)
                 if effect.copy:  # a prepared handover's target: held once already
-                    self.peer(effect.dest).send(message)
-                    self.sent_straight[effect.dest] = message.lognr
+                    session = self.session  # node.py: not while cut off from the drone
+                    if session is not None and session.connected:
+                        self.peer(effect.dest).send(message)
+                        self.sent_straight[effect.dest] = message.lognr
                     continue
                 if not message.handover:  # it enters the history when it comes back (F7)
                     self.history.add(message)
@@ -394,6 +400,13 @@ class SimController:
         session.ended, session.stream = True, None
         self._startup_answer()
         self.on_stream_notice(new_master, after_reqnr, epoch, takeover)
+
+    def on_drone_prepare(self, sid: int, prepare: drone_pb2.PrepareHandover) -> None:
+        """A PrepareHandover event on the stream: node.py's on_prepare."""
+        session = self.session
+        if session is None or session.sid != sid:
+            return
+        self.on_prepare(prepare)
 
     def on_drone_refused(self, sid: int, error: StatusError) -> None:
         """Connect refused: node.py's on_connect_refused if it names a master, else reconnect."""
@@ -637,6 +650,54 @@ class SimController:
         if self.world.cut_through:
             self._send_catch_up(new_master)
         self._apply(effects)
+
+    # -- a prepared handover (docs/design.md, "Prepared handover") ----------------
+
+    def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
+        """ControllerNode.on_prepare: the target is caught up straight from us while the
+        mission goes on; we stop preparing on our own after the timeout and the grace."""
+        try:
+            effects = self.protocol.on_prepare(prepare.target, prepare.epoch)
+        except ProtocolError:
+            return  # node.py logs it
+        if self.protocol.preparing_for != prepare.target:
+            return  # not ACTIVE in that epoch: the drone's word came late
+        self.world.trace(
+            f"controller {self.id} prepares a handover to {prepare.target} (epoch {prepare.epoch})"
+        )
+        link = self.peer(prepare.target)
+        self.acked_before_prepare = (link, link.acked)
+        self._send_catch_up(prepare.target)
+        self._apply(effects)
+        until = self.prepare_until = self.world.loop.now + prepare.timeout_s + PREPARE_GRACE_S
+        self.world.loop.at(until, self._preparation_over, prepare, until)
+
+    def _preparation_over(self, prepare: drone_pb2.PrepareHandover, until: float) -> None:
+        """ControllerNode._preparation_over: not carried out in its time (unless a newer
+        preparation gave more)."""
+        p = self.protocol
+        if until < self.prepare_until:
+            return
+        if self.alive and p.preparing_for == prepare.target and p.epoch == prepare.epoch:
+            self.world.trace(f"controller {self.id} stops preparing for {prepare.target}")
+            p.end_preparation()
+
+    def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
+        """ControllerNode._preparation_progress: how far the target is behind us."""
+        target = self.protocol.preparing_for
+        if target is None:
+            return None
+        link = self.links.get(target)
+        lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
+        if link is None:
+            return drone_pb2.PreparationProgress(target=target, lacks_bytes=lacks)
+        before, acked = self.acked_before_prepare
+        return drone_pb2.PreparationProgress(
+            target=target,
+            lacks_bytes=lacks,
+            behind_s=link.waiting_for_ack_s(self.world.loop.now),
+            acked=link.acked - (acked if link is before else 0),
+        )
 
     def _send_catch_up(self, target: int) -> None:
         """ControllerNode._send_catch_up: what the target may lack, straight to it."""
@@ -926,6 +987,7 @@ class SimController:
             link.generation,
             watermark=self.protocol.watermark_reqnr,
             master_answers=tuple(to_retained(entry) for entry in self.answered_here),
+            preparation=self._preparation_progress(),
             sender=self,
             consumed=len(self.seen),
         )

@@ -4,12 +4,15 @@
 execution (its lock: requests and Handover calls are taken in arrival
 order, one at a time), every decision asked of the pure ``Sequencer``
 (``admit``, ``served``, ``switch``, ``admit_connect``), the request's intent
-kept while it executes, Connect streams that carry the Connected grant
-and the handover notice, and a restart that resumes from the durable
-state exactly as ``DroneService._restore`` does (the reply cache, the
-counters, the audit and the script, not the pending notices; a command
-cut off by the restart is booked UNKNOWN and never executed again, a read
-cut off runs again when re-sent).
+kept while it executes, Connect streams that carry the Connected grant,
+a prepared handover's PrepareHandover and the handover notice, the
+preparation's progress word on each Invoke and its deadline in
+``watch_master`` (docs/design.md, "Prepared handover"), and a restart
+that resumes from the durable state exactly as ``DroneService._restore``
+does (the reply cache, the counters, the audit and the script, not the
+pending notices nor a preparation; a command cut off by the restart is
+booked UNKNOWN and never executed again, a read cut off runs again when
+re-sent).
 
 ``SimVehicle`` and ``SimCamera`` are the ground truth: they record every
 read, flight command and picture they act on, by request, below every
@@ -35,7 +38,12 @@ import grpc
 from baton.digest import request_digest
 from baton.drone.dedupe import CachedReply, retained_batches
 from baton.drone.dispatch import drone_api_routes
-from baton.drone.sequencer import ScriptedHandover, Sequencer, cut_off_outcome
+from baton.drone.sequencer import (
+    PREPARE_TIMEOUT_S,
+    ScriptedHandover,
+    Sequencer,
+    cut_off_outcome,
+)
 from baton.drone.service import RESTART_GRACE_S, START_GRACE_S, TAKEOVER_TICK_S
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
@@ -120,6 +128,7 @@ class Request:
     received_at: float = 0.0
     watermark: int = 0  # InvokeRequest.watermark_reqnr
     master_answers: tuple[drone_pb2.RetainedReply, ...] = ()  # InvokeRequest's
+    preparation: drone_pb2.PreparationProgress | None = None  # InvokeRequest's
     # For the oracles: the sender's incarnation, and how many calls its program
     # had consumed when it sent this (the drone acting on it depends on them).
     sender: SimController | None = None
@@ -131,11 +140,17 @@ class HandoverOrder:
     """A Handover call (an operator's or a test's): it takes the lock like a request."""
 
     new_master: int
+    prepared: bool = False  # HandoverRequest.prepared
 
 
 @dataclass(frozen=True)
 class TakeoverCheck:
     """``watch_master``'s re-check under the execution lock (a takeover waits its turn)."""
+
+
+@dataclass(frozen=True)
+class PreparationCheck:
+    """``watch_master``'s ``preparation_expired`` under the execution lock."""
 
 
 @dataclass(eq=False)
@@ -157,6 +172,8 @@ class Stream:
     session: int
     link: DroneLink
     connection: int
+    # The PrepareHandover last sent on it (DroneService.Connect's ``sent_prepare``).
+    sent_prepare: drone_pb2.PrepareHandover | None = None
 
 
 @dataclass
@@ -182,6 +199,7 @@ class SimDrone:
         script: dict[int, ScriptedHandover],
         cache_window: int,
         p_ack_lost: float,
+        prepare_timeout_s: float = PREPARE_TIMEOUT_S,
     ) -> None:
         self.world = world
         self.controllers = list(controllers)
@@ -189,14 +207,15 @@ class SimDrone:
         self.script = dict(script)
         self.cache_window = cache_window
         self.p_ack_lost = p_ack_lost
-        self.seq = Sequencer(controllers, initial_master, script, cache_window)
+        self.prepare_timeout_s = prepare_timeout_s
+        self.seq = self._sequencer()
         self.vehicle = SimVehicle()
         self.camera = SimCamera()
         self.up = True
         # Durable (store.py): the request being executed, as its intent.
         self.intent: Intent | None = None
         # Volatile: gone at a restart.
-        self.queue: deque[Request | HandoverOrder | TakeoverCheck] = deque()
+        self.queue: deque[Request | HandoverOrder | TakeoverCheck | PreparationCheck] = deque()
         self.busy: Execution | None = None
         self.streams: dict[int, Stream] = {}
         self.stats = DroneStats()
@@ -208,6 +227,13 @@ class SimDrone:
         self.takeovers = 0
         self._watching = False
         self._check_queued = False
+        self._expiry_queued = False
+        # Every prepared handover the drone carried out or forced (the record check).
+        self.prepared_records: list[drone_pb2.HandoverRecord] = []
+        self.preparations = 0  # begun
+        # Prepared ones whose target in truth lacked more than the master's word said
+        # (a diagnostic, not an oracle: docs/design.md, prepared handovers).
+        self.understated: list[str] = []
 
     # -- requests -------------------------------------------------------------------
 
@@ -217,11 +243,13 @@ class SimDrone:
         self.queue.append(request)
         self._next()
 
-    def handover_rpc(self, new_master: int) -> None:
-        """The Handover RPC: takes the lock, then switches (refused if already master)."""
+    def handover_rpc(self, new_master: int, prepared: bool = False) -> None:
+        """The Handover RPC: takes the lock, then switches (refused if already master), or
+        begins a prepared handover (its caller is answered once the master moved; nobody
+        waits for that here)."""
         if not self.up:
             return  # the operator's call fails UNAVAILABLE
-        self.queue.append(HandoverOrder(new_master))
+        self.queue.append(HandoverOrder(new_master, prepared))
         self._next()
 
     def _next(self) -> None:
@@ -232,6 +260,9 @@ class SimDrone:
             elif isinstance(item, TakeoverCheck):
                 self._check_queued = False
                 self._takeover_check()
+            elif isinstance(item, PreparationCheck):
+                self._expiry_queued = False
+                self._preparation_check()
             else:
                 self._start(item)
 
@@ -249,6 +280,8 @@ class SimDrone:
             seq.rejected += 1  # DroneService.Invoke
             self._reply(request, b"", err)
             return
+        if request.preparation is not None:  # _invoke_to_the_end: the master's word
+            seq.note_progress(cid, request.epoch, request.preparation)
         seq.note_request(cid, request.received_at)
         self._note_epoch(cid, request.epoch, reqnr)
         if cached is not None:
@@ -369,6 +402,8 @@ class SimDrone:
         self.stats.peak_retained = max(self.stats.peak_retained, retained)
         if served.handover is not None:
             self._switched(served.handover)
+        if served.prepare is not None:
+            self._preparing(served.prepare)
 
     def _answer_duplicate(self, request: Request, cached: CachedReply) -> None:
         if cached.error is not None:
@@ -429,8 +464,14 @@ class SimDrone:
 
     def _handover(self, order: HandoverOrder) -> None:
         """DroneService.Handover: cooperative, or a takeover while the master is a taker
-        that has not connected yet (``Sequencer.handover_must_take_over``)."""
+        that has not connected yet (``Sequencer.handover_must_take_over``). Prepared
+        (``_prepared_handover``) if the master can prepare (``can_prepare``)."""
         try:
+            if order.prepared and self._can_prepare(order.new_master):
+                self.seq.check_known(order.new_master)
+                notice = self.seq.prepare(order.new_master, "rpc", self.world.loop.now)
+                self._preparing(notice)
+                return
             if self.seq.handover_must_take_over(order.new_master):
                 self.seq.check_known(order.new_master)
                 self._take_over(order.new_master, "rpc", self.world.loop.now, 0.0)
@@ -440,20 +481,83 @@ class SimDrone:
             return
         self._switched(record)
 
+    def _can_prepare(self, new_master: int) -> bool:
+        """DroneService.can_prepare: the master holds its Connect stream (to hear the
+        PrepareHandover) and could send its log."""
+        seq = self.seq
+        return seq.master in self.streams and not seq.handover_must_take_over(new_master)
+
     def _switched(self, record: drone_pb2.HandoverRecord) -> None:
         """MasterStreams.wake: the old master's Connect handler resumes on a later loop turn."""
+        prepared = ""
+        if record.prepare_started_at:
+            self.prepared_records.append(record)
+            if record.kind == "prepared":
+                self._check_caught_up(record)
+            prepared = (
+                f", prepared for {record.decided_at - record.prepare_started_at:.3f}s, "
+                f"lacked {record.prepare_lacked_bytes} B"
+                + (", timed out" if record.prepare_timed_out else "")
+            )
         self.world.trace(
             f"drone: master {record.old_master} -> {record.new_master} epoch {record.epoch} "
-            f"after reqnr {record.after_reqnr} ({record.trigger}, {record.kind})"
+            f"after reqnr {record.after_reqnr} ({record.trigger}, {record.kind}{prepared})"
         )
         self.world.loop.after(0.0, self._wake, record.old_master)
         self.world.switched(record)  # where the lose-master fault may strike (faults.py)
 
+    def _preparing(self, notice: drone_pb2.PrepareHandover) -> None:
+        """DroneService._preparing: wakes the master's stream to carry the notice."""
+        self.preparations += 1
+        self.world.trace(
+            f"drone: preparing a handover from {self.seq.master} to {notice.target} "
+            f"(epoch {notice.epoch}, timeout {notice.timeout_s:g}s)"
+        )
+        self.world.loop.after(0.0, self._wake, self.seq.master)
+        self.watch()  # watch_master forces it at the deadline
+
+    def _check_caught_up(self, record: drone_pb2.HandoverRecord) -> None:
+        """Ground truth for a diagnostic, not an oracle: what the target lacks of the old
+        master's log (history and unflushed entries) as the drone moves the master, more
+        than the word (with the reply) said. The word speaks of the stream to the target
+        only: a target restarted with nothing lacks the history too."""
+        old = self.world.controller(record.old_master)
+        target = self.world.controller(record.new_master)
+        if not (old.alive and target.alive):
+            return
+        lacked = old.protocol.log.size + sum(
+            old.history.get(n).ByteSize() for n in old.history.above(0) if n not in target.history
+        )
+        if lacked > record.prepare_lacked_bytes:
+            what = (
+                f"prepared handover {record.old_master}->{record.new_master} (epoch "
+                f"{record.epoch}): the word said {record.prepare_lacked_bytes} B, the target "
+                f"lacked {lacked} B (incarnation {target.incarnation})"
+            )
+            self.understated.append(what)
+            self.world.trace(what)
+
     def _wake(self, cid: int) -> None:
-        """The Connect handler's loop: deliver the notice owed, then end the stream."""
+        """The Connect handler's loop: the PrepareHandover to the master, if one is under
+        way and not sent on this stream yet; the notice owed, then the stream ends."""
         stream = self.streams.get(cid)
         if stream is None or not self.up:
             return
+        preparing = self.seq.preparing
+        if (
+            preparing is not None
+            and cid == self.seq.master
+            and preparing.notice is not stream.sent_prepare
+        ):
+            stream.sent_prepare = preparing.notice
+            stream.link.to_controller(
+                stream.connection,
+                0,
+                stream.link.owner.on_drone_prepare,
+                stream.session,
+                preparing.notice,
+                stream=True,
+            )
         notice = self.seq.pending.get(cid)
         if notice is None:
             return
@@ -576,10 +680,20 @@ class SimDrone:
             cut.controller_id, cut.reqnr, cut.method, cut.digest, b"", error, cut.received_at
         )
 
+    def _sequencer(self) -> Sequencer:
+        """A new Sequencer as DroneService's factory makes it (nothing served yet)."""
+        return Sequencer(
+            self.controllers,
+            self.initial_master,
+            self.script,
+            self.cache_window,
+            self.prepare_timeout_s,
+        )
+
     def _restored(self) -> Sequencer:
         """A new Sequencer holding what the store keeps (DroneService._restore)."""
         old = self.seq
-        seq = Sequencer(self.controllers, self.initial_master, self.script, self.cache_window)
+        seq = self._sequencer()
         replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
         counts = (old.last_reqnr, old.executed, old.duplicates, old.rejected)
         seq.resume(
@@ -607,8 +721,9 @@ class SimDrone:
         return {cid for cid in self.controllers if world.controller(cid).drone_link.usable()}
 
     def watch(self) -> None:
-        """Starts ``watch_master``'s loop if it is not running (at start and restarts)."""
-        if not self._watching and self.up and self.takeover_after > 0:
+        """Starts ``watch_master``'s loop if it is not running (at start and restarts, and
+        for a prepared handover's deadline)."""
+        if not self._watching and self.up and (self.takeover_after > 0 or self.seq.preparing):
             self._watching = True
             self.world.loop.after(TAKEOVER_TICK_S, self._watch_master)
 
@@ -620,7 +735,9 @@ class SimDrone:
         ``World`` starts it again when a program (re)starts.
         """
         self._watching = False
-        if not self.up or not self.world.mission_open():
+        # DroneService.watch_master never stops: it forces a preparation left at the
+        # end of the mission at its deadline too.
+        if not self.up or not (self.world.mission_open() or self.seq.preparing):
             return
         now = self.world.loop.now
         reachable = self._sighted(now)
@@ -630,6 +747,13 @@ class SimDrone:
         if due is not None and not self._check_queued:
             self._check_queued = True  # async with self._lock: re-checked there
             self.queue.append(TakeoverCheck())
+            self._next()
+        preparing = self.seq.preparing
+        if preparing is not None and now >= preparing.deadline and not self._expiry_queued:
+            # watch_master takes the lock at every turn while preparing; only a turn
+            # at or past the deadline can force anything.
+            self._expiry_queued = True
+            self.queue.append(PreparationCheck())
             self._next()
         self.watch()
 
@@ -655,6 +779,12 @@ class SimDrone:
         )
         if due is not None:
             self._take_over(due.new_master, "lost", now, due.lost_at)
+
+    def _preparation_check(self) -> None:
+        """watch_master under the lock: a preparation past its deadline is forced."""
+        forced = self.seq.preparation_expired(self.world.loop.now)
+        if forced is not None:
+            self._switched(forced)
 
     def take_over_owed(self, cid: int) -> drone_pb2.HandoverRecord | None:
         """DroneService._take_over_owed: the takeover to tell ``cid`` again, if it is the

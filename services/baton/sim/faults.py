@@ -384,10 +384,11 @@ def ready_for_handover(world: World, new_master: int) -> bool:
     """Whether the mix may hand over to ``new_master`` now.
 
     Unless the finding is allowed: the drone's master is ACTIVE with its
-    Connect stream up (so it hands its log over) and no other Handover is
-    queued (F1); the target is alive, not the master, and holds no drone
-    session (its start-up question was answered, and it is not catching up
-    as a granted master) (F4); the programs have started (F1).
+    Connect stream up (so it hands its log over), no other Handover is
+    queued and no prepared handover under way (F1); the target is alive,
+    not the master, and holds no drone session (its start-up question was
+    answered, and it is not catching up as a granted master) (F4); the
+    programs have started (F1).
     """
     allow = world.options.allow
     drone = world.drone
@@ -397,6 +398,11 @@ def ready_for_handover(world: World, new_master: int) -> bool:
         return False
     if "F1" not in allow:
         if any(isinstance(item, HandoverOrder) for item in drone.queue):
+            return False
+        if drone.seq.preparing is not None:
+            # A prepared handover may move the master before this call takes the
+            # lock: it would find a new master not ACTIVE yet (F1's ground;
+            # --lose-master --prepared seeds 784, 1161, 1331).
             return False
         master = world.controller(drone.seq.master)
         session = master.session
@@ -414,7 +420,7 @@ def ready_for_handover(world: World, new_master: int) -> bool:
 def handover(world: World, new_master: int, tries: int = 0) -> None:
     """A Handover call, when the mix allows it (tried again every 50 ms for up to 2 s)."""
     if ready_for_handover(world, new_master):
-        world.drone.handover_rpc(new_master)
+        world.drone.handover_rpc(new_master, prepared=world.options.prepared)
     elif tries < 40:
         world.loop.after(0.05, handover, world, new_master, tries + 1)
 

@@ -143,6 +143,10 @@ class RingLink:
         self.dest = dest
         self.history = history
         self.unacked: dict[int, ring_pb2.LogMessage] = {}
+        # PeerLink._sent_at: when each unacknowledged message was first given to
+        # ``send``; and PeerCounters.acked (a prepared handover's progress word).
+        self.sent_at: dict[int, float] = {}
+        self.acked = 0
         self.up = False
         self.generation = 0
         self._synced = 0  # the last sync frame's holds_lognr
@@ -168,6 +172,7 @@ class RingLink:
     def send(self, message: ring_pb2.LogMessage) -> None:
         """PeerLink.send: kept until acknowledged; written at once if the stream is up."""
         self.unacked[message.lognr] = message
+        self.sent_at.setdefault(message.lognr, self.world.loop.now)
         self.peak_unacked = max(self.peak_unacked, len(self.unacked))
         if self.up:  # written again if sent before (PeerLink.send)
             self._sent.add(message.lognr)
@@ -198,6 +203,16 @@ class RingLink:
         self.world.trace(f"ring {self.owner.id}->{self.dest} down ({why})")
         self.owner.route_check_later()
         self._retry()
+
+    def waiting_for_ack_s(self, now: float) -> float:
+        """PeerLink.waiting_for_ack_s: how long the oldest unacknowledged message has
+        waited (0: none waits)."""
+        return now - min(self.sent_at.values()) if self.sent_at else 0.0
+
+    @property
+    def unacked_bytes(self) -> int:
+        """PeerLink.unacked_bytes: the serialized size of the unacknowledged messages."""
+        return sum(message.ByteSize() for message in self.unacked.values())
 
     def down_for(self, now: float) -> float:
         """PeerLink.down_for: seconds the stream has not been up (0 while it is)."""
@@ -366,6 +381,8 @@ class RingLink:
     def _ack(self, generation: int, lognr: int) -> None:
         if generation == self.generation and self.up and self.owner.alive:
             message = self.unacked.pop(lognr, None)
+            self.sent_at.pop(lognr, None)
+            self.acked += 1  # PeerLink._read_acks
             if message is not None and message.handover:  # PeerLink.on_handover_acked
                 self.owner.handover_acked(message)
 

@@ -23,6 +23,12 @@ in each epoch, and the virtual time at which programs finished.
 6. ``bounded``: once finished, every log queue, unacknowledged message,
    abandoned call and the received-numbers set beyond its watermark is
    empty, and the drone's reply cache never outgrew its window.
+
+Besides the oracles, a check of the drone's own word (not ground truth):
+``prepared-record``: every handover the drone prepared is recorded as
+``prepared`` (the target caught up: within ``PREPARED_BOUND_BYTES``, not
+timed out) or as a forced fallback (``cooperative``, ``prepare_timed_out``,
+decided at or after the drone's prepare timeout).
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from baton.drone.sequencer import PREPARED_BOUND_BYTES
 from baton.sim.mission import Kind
 
 if TYPE_CHECKING:
@@ -45,6 +52,7 @@ ORACLES = (
     "liveness",
     "no-failure",
     "bounded",
+    "prepared-record",
 )
 
 
@@ -72,6 +80,30 @@ def check(world: World) -> list[Violation]:
     found += stalled
     if not stalled and not failures:
         found += _bounded(world)
+    found += _prepared_records(world)
+    return found
+
+
+def _prepared_records(world: World) -> list[Violation]:
+    """Every prepared handover's record is ``prepared`` or a forced fallback at its timeout."""
+    found = []
+    timeout = world.drone.prepare_timeout_s
+    for r in world.drone.prepared_records:
+        what = (
+            f"handover {r.old_master}->{r.new_master} (epoch {r.epoch}) prepared from "
+            f"{r.prepare_started_at:.3f}s to {r.decided_at:.3f}s: kind {r.kind!r}, "
+            f"timed out {r.prepare_timed_out}, lacked {r.prepare_lacked_bytes} B"
+        )
+        if r.kind == "prepared":
+            ok = not r.prepare_timed_out and r.prepare_lacked_bytes <= PREPARED_BOUND_BYTES
+        else:
+            ok = (
+                r.kind == "cooperative"
+                and r.prepare_timed_out
+                and r.decided_at >= r.prepare_started_at + timeout - 1e-9
+            )
+        if not ok:
+            found.append(Violation("prepared-record", what))
     return found
 
 

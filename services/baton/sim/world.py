@@ -37,6 +37,10 @@ from baton.v1.ring_pb2 import LogMessage
 QUIET_BOUND_S = 60.0
 QUIET_BOUND_PER_CALL_S = 2.0
 MAX_EVENTS = 2_000_000
+# The default mix's share of prepared script lines (with --lose-master: none, unless
+# --prepared makes them all prepared), and the drone's prepare timeouts drawn.
+PREPARED_SHARE = 0.25
+PREPARE_TIMEOUTS_S = (0.3, 1.0, 3.0, 10.0)
 
 
 @dataclass(frozen=True)
@@ -53,6 +57,10 @@ class SimOptions:
     # The drone's takeover time and the ring's detection time, seconds (None: 3 in
     # the default mix, drawn from 1, 1.5 and 3 with lose_master; 0 turns them off).
     takeover_after: float | None = None
+    # Every scripted handover and every Handover call of the faults is prepared
+    # (docs/design.md, "Prepared handover"); without it a quarter of the default mix's
+    # script lines are (World: PREPARED_SHARE), and no Handover call.
+    prepared: bool = False
     # Known findings (findings.py) whose scenarios this run lets in.
     allow: frozenset[str] = frozenset()
     mutation: str | None = None
@@ -68,6 +76,8 @@ class SimOptions:
             parts.append("--kill-master")
         if self.lose_master:
             parts.append("--lose-master")
+        if self.prepared:
+            parts.append("--prepared")
         if self.takeover_after is not None:
             parts.append(f"--takeover-after {self.takeover_after:g}")
         if self.allow:
@@ -93,6 +103,8 @@ class Outcome:
     # Peaks over the run: log queue, unacknowledged messages on one stream, reply cache.
     peaks: dict[str, int] = field(default_factory=dict)
     trace: list[str] = field(default_factory=list)
+    # Prepared handovers: begun, carried out as prepared, forced at the timeout.
+    prepared: dict[str, int] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -142,10 +154,19 @@ class World:
             rng, rng.randint(options.min_calls, options.max_calls)
         )
         cache_window = rng.choice((1, 2, 4, DEFAULT_WINDOW))
+        # Which script lines are prepared, and the drone's prepare timeout: from a
+        # stream of their own, so that every other draw of the seed stays where it
+        # was (a seed without a prepared line runs as before prepared handovers).
+        prng = random.Random(f"prepared {seed}")
+        self.prepare_timeout = prng.choice(PREPARE_TIMEOUTS_S)
+        share = 1.0 if options.prepared else 0.0 if options.lose_master else PREPARED_SHARE
         script: dict[int, ScriptedHandover] = {}
         for line in range(rng.choice((0, 0, 1, 2, 4))):
             reqnr = rng.randint(1, len(self.program))
-            script.setdefault(reqnr, ScriptedHandover(reqnr, rng.choice(self.ring), line + 1))
+            prepared = prng.random() < share
+            script.setdefault(
+                reqnr, ScriptedHandover(reqnr, rng.choice(self.ring), line + 1, prepared)
+            )
         self.faulty = True
         # Takeover and ring detection time (config.detection_time_s: takeover_after
         # mission seconds, at least 1 s), from a stream of its own so that the
@@ -164,7 +185,13 @@ class World:
         self.failover: dict[str, object] = {}
         self.net = Network(self, [*self.ring, DRONE])
         self.drone = SimDrone(
-            self, self.ring, self.ring[0], script, cache_window, rng.choice((0.0, 0.0, 0.05))
+            self,
+            self.ring,
+            self.ring[0],
+            script,
+            cache_window,
+            rng.choice((0.0, 0.0, 0.05)),
+            self.prepare_timeout,
         )
         self.outages = 0
         # Request numbers the master logged as given up, and with which code.
@@ -191,7 +218,7 @@ class World:
             f"{n} controllers, ring {self.ring} (initial master {self.ring[0]}), flush limit "
             f"{self.flush_limit} B, {'cut-through' if self.cut_through else 'store-and-forward'}, "
             f"{len(self.program)} calls, cache window {cache_window}, "
-            f"script {sorted((s.after_reqnr, s.new_master) for s in script.values())}, "
+            f"script {_script(script, self.prepare_timeout)}, "
             f"loss {self.net.p_loss}, dup {self.net.p_dup}, takeover after {self.takeover_after}s"
         )
 
@@ -282,7 +309,7 @@ class World:
     def switched(self, record: HandoverRecord) -> None:
         """The drone switched masters: the lose-master fault may strike now."""
         strike = self.failover.pop("on switch", None)
-        if strike is not None and record.kind == "cooperative":
+        if strike is not None and record.kind != "takeover":  # a prepared one too
             victim = record.old_master if strike == "old" else record.new_master
             if not survivable(self, victim):  # no live copy of the log would be left
                 self.failover["on switch"] = strike  # the next switch
@@ -400,7 +427,19 @@ class World:
                 "retained replies": self.drone.stats.peak_retained,
             },
             trace=self._trace or [],
+            prepared=self._prepared(),
         )
+
+    def _prepared(self) -> dict[str, int]:
+        drone = self.drone
+        records = drone.prepared_records
+        timed_out = sum(1 for r in records if r.prepare_timed_out)
+        return {
+            "begun": drone.preparations,
+            "prepared": len(records) - timed_out,
+            "forced": timed_out,
+            "understated": len(drone.understated),
+        }
 
     def _digest(self) -> str:
         """A fingerprint of what happened: what every program saw and what the vehicle did."""
@@ -412,6 +451,16 @@ class World:
         h.update(repr([(a.time, a.tag) for a in drone.camera.pictures]).encode())
         h.update(repr((self.loop.events, self.loop.now)).encode())
         return h.hexdigest()[:16]
+
+
+def _script(script: dict[int, ScriptedHandover], timeout: float) -> str:
+    """The script for the summary: (after reqnr, new master), prepared lines marked."""
+    lines = sorted(script.values(), key=lambda s: s.after_reqnr)
+    text = str([(s.after_reqnr, s.new_master) for s in lines])
+    if any(s.prepared for s in lines):
+        marked = [f"{s.after_reqnr}->{s.new_master}" for s in lines if s.prepared]
+        text += f" (prepared: {', '.join(marked)}; timeout {timeout:g}s)"
+    return text
 
 
 def run_seed(seed: int, options: SimOptions | None = None) -> Outcome:

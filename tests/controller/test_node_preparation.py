@@ -1,0 +1,105 @@
+"""The node's side of a prepared handover, without processes (docs/design.md,
+"Prepared handover")."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+import pytest
+
+from baton.config import parse_config
+from baton.controller import node as node_module
+from baton.controller.node import ControllerNode
+from baton.controller.protocol import State
+from baton.digest import request_digest
+from baton.v1 import drone_pb2, ring_pb2
+
+POSITION = "/baton.v1.Mobility/GetPosition"
+
+
+def entry(reqnr: int) -> ring_pb2.LogEntry:
+    return ring_pb2.LogEntry(
+        reqnr=reqnr,
+        method=POSITION,
+        request_digest=request_digest(POSITION, b""),
+        reply=b"%d" % reqnr,
+    )
+
+
+async def active_master() -> ControllerNode:
+    """Controller 0 of a ring of three, ACTIVE in epoch 1 (the mission's start)."""
+    config = parse_config(
+        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
+    )
+    node = ControllerNode(config, 0)
+    session: Any = object()
+    node._drone = session
+    await node.on_sync(2, 0)  # the predecessor holds nothing: caught up
+    await node.on_granted(session, 1, 0)
+    assert node.protocol.state is State.ACTIVE
+    return node
+
+
+async def test_an_older_preparations_time_does_not_end_a_newer_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The drone replaced a preparation for 2 by one for 1, then by one for 2 again (a
+    script's lines, each after a request). The first one's timer ended the third
+    (same target, same epoch) long before its timeout: the master stopped flushing
+    every entry and sent no progress word, so the drone could only force it."""
+    monkeypatch.setattr(node_module, "PREPARE_GRACE_S", 0.0)
+    node = await active_master()
+
+    def prepare(target: int, timeout_s: float) -> drone_pb2.PrepareHandover:
+        return drone_pb2.PrepareHandover(target=target, epoch=1, timeout_s=timeout_s)
+
+    await node.on_prepare(prepare(2, 0.01))
+    await node.on_prepare(prepare(1, 0.01))
+    await node.on_prepare(prepare(2, 30.0))
+    await asyncio.sleep(0.1)  # past the first two's time (timers fire in order)
+    assert node.protocol.preparing_for == 2
+    progress = node._preparation_progress()
+    assert progress is not None and progress.target == 2
+    node._drone = None
+    await node.stop()
+
+
+async def test_the_progress_word_counts_the_acks_of_a_stream_opened_since_it_began() -> None:
+    """--lose-master --prepared seed 816 (the simulation): the master's stream to the
+    target was dropped (the ring routed back past it, ``_route``) and opened again, and
+    its acknowledgements counted from 0: the word's ``acked`` was the new stream's count
+    less the old one's, negative, and building the Invoke raised ValueError. A stream
+    opened since the preparation began counts all its acknowledgements."""
+    node = await active_master()
+    old = node.peer(2)
+    old.counters.acked = 5  # acknowledgements of messages sent before
+    await node.on_prepare(drone_pb2.PrepareHandover(target=2, epoch=1, timeout_s=10.0))
+    assert node.protocol.preparing_for == 2
+    progress = node._preparation_progress()
+    assert progress is not None and progress.acked == 0  # none since it began
+    await old.stop()
+    del node._peers[2]  # as _route drops a stream that holds nothing unacknowledged
+    new = node.peer(2)
+    new.counters.acked = 2
+    progress = node._preparation_progress()
+    assert progress is not None and progress.target == 2 and progress.acked == 2
+    node._drone = None
+    await node.stop()
+
+
+async def test_a_master_cut_off_from_the_drone_sends_the_target_no_copies() -> None:
+    """--lose-master --prepared seed 844 (the simulation): master 0 prepared a handover
+    to 2, the drone restarted and gave the role to another controller by takeover;
+    0, cut off and not yet told, gave up on a call and its flush went straight to 2,
+    past the taker's fence on the ring. The taker died with its log, 2 took over
+    holding the give-up and built on it, while the drone had acted on that request
+    for the taker's program. Copies go only while the Connect stream is up; a new
+    stream's PrepareHandover catches the target up (or a refusal fences us)."""
+    node = await active_master()
+    await node.on_prepare(drone_pb2.PrepareHandover(target=2, epoch=1, timeout_s=10.0))
+    node._drone = None  # the Connect stream broke: the session reconnects
+    await node._apply(node.protocol.on_reply(entry(1)))
+    assert node.peer(1).unacked == 1  # the ring has it
+    assert node.peer(2).unacked == 0  # the target gets no copy
+    await node.stop()
