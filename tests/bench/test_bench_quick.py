@@ -53,10 +53,14 @@ async def test_timeline_quick(tmp_path: Path) -> None:
     lines = (tmp_path / "timeline.csv").read_text().splitlines()
     assert lines[0].startswith("reqnr,method,controller,received_at,inter_arrival_s")
     assert len(lines) - 1 == result["requests"]
-    # The same three handovers prepared, on the cut-through ring: each carried out was
-    # caught up (the quick mission may end while the last one still prepares).
-    prepared = [h["kind"] for h in result["prepared_handovers"]]
-    assert 2 <= len(prepared) <= 3 and set(prepared) == {"prepared"}, prepared
+    # The same handovers prepared, on the cut-through ring: each one carried out was caught
+    # up, or forced at its (short) timeout; the quick mission keeps the link busy with
+    # pictures, so which is a matter of timing (the full run's are all caught up).
+    prepared = result["prepared_handovers"]
+    assert 1 <= len(prepared) <= 3, prepared
+    for h in prepared:
+        assert h["prepare_s"] > 0, h
+        assert h["kind"] == "prepared" or (h["kind"] == "cooperative" and h["prepare_timed_out"])
     assert (tmp_path / "timeline-prepared.png").stat().st_size > 0
     handovers = result["handovers"]
     assert len(handovers) == 3
