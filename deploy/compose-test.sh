@@ -138,8 +138,6 @@ if ! timeout "$BUILD_DEADLINE" deploy/images.sh; then
     say "the images did not build within ${BUILD_DEADLINE} s (or failed, see above)"
     exit 1
 fi
-# Their sizes, for the record (CI's log keeps them).
-docker image ls --format '{{.Repository}}:{{.Tag}} {{.Size}}' | grep '^baton' >&2 || true
 
 # -- 4. the run --------------------------------------------------------------------
 if [ "$VEHICLE" = ardupilot ] && ! docker image inspect baton-ardupilot-sitl:dev >/dev/null 2>&1; then

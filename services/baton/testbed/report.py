@@ -92,13 +92,7 @@ def check_side_effects(
             spacing = spacing_m if spacing_m is not None else _grid_spacing(gotos)
             targets = waypoints(grid, spacing)
         problems += _goto_problems(gotos, targets, plan)
-    return {
-        "pictures_taken": pictures,
-        "pictures_expected": expected,
-        "vehicle_commands": commands,
-        "problems": problems,
-        "exactly_once": None if pictures == NOT_COUNTED and vehicle is None else not problems,
-    }
+    return _effects(pictures, expected, commands, problems)
 
 
 def _without_resumes(gotos: Effects, snapshot: Snapshot) -> Effects:
@@ -199,12 +193,21 @@ def check_plan_effects(snapshot: Snapshot, plan: Plan, pictures_asked: int) -> d
                     f"{climb - planned:+.1f} m off its altitude"
                 )
                 break  # the first one out of order says it; the rest follow from it
+    return _effects(pictures, expected, commands, problems)
+
+
+def _effects(
+    pictures: int | str, expected: int, commands: dict[str, int] | str, problems: list[str]
+) -> dict[str, Any]:
+    """A side-effect check's verdict: what was counted, what is off, and exactly once
+    (None when neither the camera nor the vehicle counted anything)."""
+    counted = pictures != NOT_COUNTED or commands != NOT_COUNTED
     return {
         "pictures_taken": pictures,
         "pictures_expected": expected,
         "vehicle_commands": commands,
         "problems": problems,
-        "exactly_once": None if pictures == NOT_COUNTED and vehicle is None else not problems,
+        "exactly_once": not problems if counted else None,
     }
 
 
@@ -230,13 +233,7 @@ def check_counted_effects(snapshot: Snapshot, pictures_asked: int) -> dict[str, 
     commands: dict[str, int] | str = NOT_COUNTED
     if vehicle is not None:
         commands = dict(sorted(Counter(e["effect"] for e in vehicle).items()))
-    return {
-        "pictures_taken": pictures,
-        "pictures_expected": pictures_asked,
-        "vehicle_commands": commands,
-        "problems": problems,
-        "exactly_once": None if pictures == NOT_COUNTED and vehicle is None else not problems,
-    }
+    return _effects(pictures, pictures_asked, commands, problems)
 
 
 def build_report(
