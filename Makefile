@@ -11,7 +11,7 @@ ARGS ?=
 # file's tests run on one worker, in order (a module's SITL tests share one SITL).
 PYTEST_WORKERS ?= 2
 
-.PHONY: demo test lint typecheck proto check-proto install clean image compose-test
+.PHONY: demo test lint typecheck proto install clean image compose-test
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "baton needs Python 3.11+, found " + sys.version' 

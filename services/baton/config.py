@@ -426,11 +426,6 @@ class BatonConfig(_Model):
         order = self.ring_order
         return order[(order.index(cid) + 1) % len(order)]
 
-    def predecessor(self, cid: int) -> int:
-        """The previous controller in the ring (Algorithm 1's prvid)."""
-        order = self.ring_order
-        return order[(order.index(cid) - 1) % len(order)]
-
     def hops(self, src: int, dst: int) -> int:
         """Hops along the ring from ``src`` to ``dst``."""
         order = self.ring_order

@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import logging
 import sys
-import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -90,8 +89,3 @@ class BoundLogger:
 def get_logger(component: str, **fields: Any) -> BoundLogger:
     """The structured logger of one component (``drone``, ``controller``, ...)."""
     return BoundLogger(logging.getLogger(f"baton.{component}"), fields)
-
-
-def monotonic_ms() -> float:
-    """Milliseconds on the monotonic clock, for durations in log lines."""
-    return time.monotonic() * 1000.0

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import platform
-import statistics
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -89,16 +88,6 @@ def t_conn_samples(snapshot: Snapshot) -> list[float]:
 def handover_delays(snapshot: Snapshot) -> dict[int, float]:
     """Measured handover delay by the reqnr it came after (decision -> first request)."""
     return {h.after_reqnr: h.delay_s for h in snapshot.drone.handovers}
-
-
-def spread(samples: Sequence[float]) -> dict[str, float]:
-    """Mean, min and max of ``samples``."""
-    return {
-        "mean": statistics.fmean(samples),
-        "min": min(samples),
-        "max": max(samples),
-        "n": len(samples),
-    }
 
 
 def machine() -> dict[str, Any]:

@@ -1168,8 +1168,3 @@ class ControllerProtocol:
         return entry, effects
 
     # -- observation --------------------------------------------------------------
-
-    @property
-    def answerable(self) -> bool:
-        """Whether a mission call can be answered now (ACTIVE or REPLAY); else it is held."""
-        return self.state is not State.PASSIVE

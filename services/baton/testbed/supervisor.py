@@ -220,12 +220,6 @@ class Supervisor:
             await self.wait_ready(part)
         return part
 
-    async def wait_exit(self, name: str, timeout: float) -> int:
-        """Waits for part ``name`` to exit by itself; returns its code."""
-        part = self.parts[name]
-        assert part.process is not None
-        return await asyncio.wait_for(part.process.wait(), timeout)
-
     async def stop_part(self, name: str, grace: float = 5.0) -> int | None:
         """SIGTERM, then SIGKILL after ``grace`` seconds; returns the exit code."""
         part = self.parts[name]
