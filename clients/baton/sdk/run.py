@@ -37,6 +37,17 @@ def load_mission(path: str) -> Callable[..., Any]:
     return mission
 
 
+def add_mission_arg(parser: argparse.ArgumentParser, help_text: str = "") -> None:
+    """``--mission-arg KEY=VALUE``, repeatable: the pairs ``parse_params`` reads."""
+    parser.add_argument(
+        "--mission-arg",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=help_text or "a parameter of the mission function; repeatable",
+    )
+
+
 def parse_params(mission: Callable[..., Any], pairs: list[str]) -> dict[str, Any]:
     """``key=value`` strings, typed like the defaults of ``mission``'s parameters."""
     signature = inspect.signature(mission)

@@ -7,6 +7,7 @@ import asyncio
 import sys
 
 from baton.certs.cli import add_tls_flags
+from baton.sdk.run import add_mission_arg
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -31,13 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument(
         "--mission", help="a mission file (defines mission(drone, **params)) to run on start"
     )
-    parser.add_argument(
-        "--mission-arg",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="a parameter of the mission function; repeatable",
-    )
+    add_mission_arg(parser)
     parser.add_argument(
         "--address-file", help="write the address this controller listens on to this file"
     )

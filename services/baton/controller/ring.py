@@ -203,11 +203,6 @@ class Relay:
         self._drained.set()
         return self._frames.popleft()
 
-    @property
-    def buffered_bytes(self) -> int:
-        """Bytes received and not yet written on."""
-        return sum(len(frame.data) for frame in self._frames)
-
 
 @dataclass
 class PeerCounters:

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from baton.sdk.run import add_mission_arg
+
 # Exit codes: every log replayed clean; a divergence; a log or mission that could not be read.
 CLEAN, DIVERGED, BAD_INPUT = 0, 1, 2
 
@@ -36,12 +38,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         required=True,
         help="the mission file (defines mission(drone, **params)), as edited now",
     )
-    parser.add_argument(
-        "--mission-arg",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="a parameter of the mission function, as the logged run had it; repeatable",
+    add_mission_arg(
+        parser, "a parameter of the mission function, as the logged run had it; repeatable"
     )
     parser.add_argument(
         "--show-output",

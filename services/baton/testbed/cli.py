@@ -10,6 +10,8 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from baton.sdk.run import add_mission_arg
+
 if TYPE_CHECKING:
     from baton.config import BatonConfig, LinkSpec
 
@@ -115,13 +117,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "mission(drone, **params)), or a QGroundControl plan (.plan, or a 'QGC WPL 110' "
         "waypoint file) flown by baton/missions/plan.py",
     )
-    parser.add_argument(
-        "--mission-arg",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="a parameter of the mission function; repeatable",
-    )
+    add_mission_arg(parser)
     parser.add_argument(
         "--grid", type=int, default=5, help="grid size: GRID x GRID waypoints (default 5)"
     )
