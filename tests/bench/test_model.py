@@ -144,6 +144,26 @@ def test_timeline_places_handovers_on_polls_near_0_1_and_2_mb() -> None:
         assert math.isclose(sizes[reqnr], target, abs_tol=settings.tolerance)
 
 
+def test_timeline_looks_past_the_first_third_when_its_legs_were_long() -> None:
+    # A loaded dry run (CI): the first legs took 20 polls, the rest 3, so the
+    # first third of the core holds no log near 0 MB (the third picture
+    # flushes after it); the handover goes to the first such poll after it.
+    calls: list[Call] = []
+    for leg in range(9):
+        for _ in range(20 if leg < 3 else 3):
+            calls.append(Call(len(calls) + 1, GET_POSITION, 38))
+        calls.append(Call(len(calls) + 1, TAKE_PICTURE, 1_036_900))
+    settings = TimelineSettings()
+    handovers = place_handovers(calls, settings)
+    sizes = {
+        p.reqnr: p.size
+        for p in master_log_sizes(calls, settings.flush_limit, [r for r, _ in handovers])
+    }
+    assert handovers[0][0] > 63  # after the third picture's flush
+    for (reqnr, _), target in zip(handovers, settings.targets, strict=True):
+        assert math.isclose(sizes[reqnr], target, abs_tol=settings.tolerance)
+
+
 def test_audit_gaps_are_the_controllers_own_clock_calls() -> None:
     from baton.bench.runner import audit_calls
     from baton.testbed.local import Snapshot

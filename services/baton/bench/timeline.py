@@ -143,17 +143,23 @@ def place_handovers(
         lowest = max(placed[-1][0] + 1 if placed else start, start + k * part)
         highest = max(lowest, start + (k + 1) * part)
         all_points = master_log_sizes(calls, settings.flush_limit, [r for r, _ in placed])
-        points = [p for p in all_points if lowest <= p.reqnr <= highest]
         settled = _settled(all_points, arrivals or {}, settings)
-        pick = pick_in_stretch(
-            points,
-            settings.targets[k],
-            settings.tolerance,
-            lambda p, settled=settled: poll(p) and p.reqnr in settled,  # type: ignore[misc]
-        ) or pick_in_stretch(points, settings.targets[k], settings.tolerance, poll)
+        pick = None
+        # Legs differ in length (a loaded machine polls more on some), so the
+        # k-th part may hold no log near the target: then the rest of the core.
+        for window_end in (highest, end):
+            points = [p for p in all_points if lowest <= p.reqnr <= window_end]
+            pick = pick_in_stretch(
+                points,
+                settings.targets[k],
+                settings.tolerance,
+                lambda p, settled=settled: poll(p) and p.reqnr in settled,  # type: ignore[misc]
+            ) or pick_in_stretch(points, settings.targets[k], settings.tolerance, poll)
+            if pick is not None:
+                break
         if pick is None:
             raise ValueError(
-                f"no position poll in reqnr {lowest}..{highest} with a log of about "
+                f"no position poll in reqnr {lowest}..{end} with a log of about "
                 f"{settings.targets[k] / MB:g} MB"
             )
         placed.append((pick, (k + 1) % settings.controllers))
