@@ -21,6 +21,7 @@ from autopilots import SKIP_REASON, Sitl, sitl_binary
 from drone_harness import start_program, stop_program
 from test_drone_end_to_end import SPEEDUP, DroneBed, drone_bed
 
+from baton.effects import read_effects
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -34,8 +35,9 @@ def _free_udp_port() -> int:
 class SimAutopilot:
     """The sim vehicle on a fixed port, so that a restart has the same URL."""
 
-    def __init__(self, workdir: Path) -> None:
+    def __init__(self, workdir: Path, *extra: str) -> None:
         self.workdir = workdir
+        self.extra = list(extra)
         self.port = _free_udp_port()
         self.url = f"udpout://127.0.0.1:{self.port}"
         self.speedup = float(SPEEDUP)
@@ -57,6 +59,7 @@ class SimAutopilot:
                 "30",
                 "--url-file",
                 str(ready),
+                *self.extra,
             ],
             ready,
             self.workdir / "sim.log",
@@ -147,5 +150,35 @@ def test_autopilot_killed_mid_flight_and_restarted(kind: str, tmp_path: Path) ->
             log = (tmp_path / "drone.log").read_text()
             assert "vehicle link lost" in log and "vehicle link back" in log
             print(f"{kind}: stale reads refused {refused_after:.2f} s after kill -9")
+    finally:
+        autopilot.stop()
+
+
+@pytest.mark.parametrize("refusals", [2, 100])
+def test_an_arm_refused_while_the_vehicle_reports_ready_is_asked_again(
+    refusals: int, tmp_path: Path
+) -> None:
+    # ArduPilot SITL on a loaded CI machine refused an arm with FAILED while its
+    # pre-arm bit said ready (a check failing between its 1 Hz reports), and the
+    # mission's one Arm failed. The sim vehicle refuses the same way here.
+    effects = tmp_path / "effects.jsonl"
+    autopilot = SimAutopilot(
+        tmp_path, "--arm-refusals", str(refusals), "--effects-file", str(effects)
+    )
+    autopilot.start()
+    try:
+        with drone_bed(tmp_path, autopilot.url, autopilot.speedup, handovers="") as bed:
+            if refusals < 5:
+                invoke(bed, 1, "/baton.v1.Mobility/Arm", api.ArmRequest())
+                assert bed.status().flight_state.armed
+            else:  # a vehicle that keeps refusing: the reason, after ARM_SETTLE_S
+                with pytest.raises(grpc.RpcError) as refused:
+                    invoke(bed, 1, "/baton.v1.Mobility/Arm", api.ArmRequest())
+                assert refused.value.code() == grpc.StatusCode.ABORTED
+                assert "Arm: Gyros still settling" in (refused.value.details() or "")
+        arms = [e for e in read_effects(effects) if e["effect"] == "arm"]
+        assert len(arms) == (1 if refusals < 5 else 0)
+        log = (tmp_path / "drone.log").read_text()
+        assert log.count("arm refused while the vehicle reports ready") >= min(refusals, 5)
     finally:
         autopilot.stop()

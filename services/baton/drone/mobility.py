@@ -58,6 +58,13 @@ T = TypeVar("T")
 # ArduPilot's EKF_STATUS_REPORT (not in the common dialect).
 EKF_STATUS_REPORT_ID = 193
 
+# An autopilot that refuses to arm while it reports itself ready (an arming
+# check failed between ArduPilot's 1 Hz pre-arm reports: seen on a loaded
+# machine) is asked again every ARM_RETRY_S while it stays ready, for at most
+# ARM_SETTLE_S; a refused arm did nothing, so asking again cannot arm twice.
+ARM_SETTLE_S = 5.0
+ARM_RETRY_S = 0.5
+
 # Workers of the loop's default executor, which MAVSDK's asyncio API uses for
 # every awaited call.
 EXECUTOR_WORKERS = 32
@@ -522,15 +529,29 @@ class MavsdkMobility:
     async def Arm(self, request: api.ArmRequest) -> api.ArmReply:
         """Arms the motors (in GUIDED on ArduPilot); a refusal says why the vehicle is not ready."""
         self._require_connected()
-        try:
-            await self._enter_command_mode()
-            await self._command("arm", lambda: self._action.arm())
-        except StatusError as err:
-            why = self._readiness().reason
-            if why:
-                raise StatusError(err.code, f"{err.message}; not ready: {why}") from err
-            raise
-        return api.ArmReply()
+        started = time.monotonic()
+        while True:
+            try:
+                await self._enter_command_mode()
+                await self._command("arm", lambda: self._action.arm())
+                return api.ArmReply()
+            except StatusError as err:
+                state = self._readiness()
+                refused = err.code in (grpc.StatusCode.ABORTED, grpc.StatusCode.FAILED_PRECONDITION)
+                prearm = self._prearm  # what it said since this Arm began
+                said = prearm[0] if prearm and prearm[1] >= started - 1.0 else None
+                if refused and state.ready and time.monotonic() - started < ARM_SETTLE_S:
+                    self._log.warning(
+                        "arm refused while the vehicle reports ready; asking again",
+                        reason=err.message,
+                        autopilot_says=said,
+                    )
+                    await asyncio.sleep(ARM_RETRY_S)
+                    continue
+                why = state.reason or (f"it says {said!r}" if refused and said else "")
+                if why:
+                    raise StatusError(err.code, f"{err.message}; not ready: {why}") from err
+                raise
 
     async def Disarm(self, request: api.DisarmRequest) -> api.DisarmReply:
         """Disarms the motors."""

@@ -118,6 +118,15 @@ def register(subparsers: Any) -> None:
         "(default 10, 1 s of wall time at --speedup 10; 0 = ready at once)",
     )
     parser.add_argument(
+        "--arm-refusals",
+        type=int,
+        default=0,
+        metavar="N",
+        help="refuse the first N arms once warmed up with 'Arm: Gyros still settling' and "
+        "MAV_RESULT_FAILED, as ArduPilot does when an arming check fails between its pre-arm "
+        "reports (default 0)",
+    )
+    parser.add_argument(
         "--url-file",
         type=Path,
         help="write the MAVLink URL (one line per vehicle) to this file, atomically",
@@ -175,6 +184,7 @@ def run(args: argparse.Namespace) -> int:
         descent_rate_m_s=args.climb_rate,
         cruise_speed_m_s=args.speed,
         warmup_s=args.warmup,
+        arm_refusals=max(0, args.arm_refusals),
     )
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):

@@ -72,6 +72,10 @@ class PreArmFailed(Refused):
     """Arming refused by a pre-arm check; ArduPilot says so as "PreArm: <reason>"."""
 
 
+class ArmCheckFailed(PreArmFailed):
+    """Arming refused by a check that only arming runs: "Arm: <reason>", MAV_RESULT_FAILED."""
+
+
 @dataclass(frozen=True)
 class FlightParams:
     """Rates of the simulated airframe and its autopilot's warm-up, in simulated time."""
@@ -85,6 +89,9 @@ class FlightParams:
     # Seconds from start until the estimator is ready: GPS healthy, home set,
     # armable. ArduCopter SITL takes ~40 s; 10 s costs tests 1 s at speed-up 10.
     warmup_s: float = 10.0
+    # Arms refused once warmed up, as ArduPilot refuses when an arming check
+    # fails between its 1 Hz pre-arm reports (the pre-arm bit still set).
+    arm_refusals: int = 0
 
 
 class LocalFrame:
@@ -129,6 +136,7 @@ class Kinematics:
     def __init__(self, home: GeoPoint, params: FlightParams | None = None) -> None:
         self.frame = LocalFrame(home)
         self.params = params or FlightParams()
+        self._arm_refusals_left = self.params.arm_refusals
         self.speed_m_s = self.params.cruise_speed_m_s
         self.takeoff_altitude_m = self.params.takeoff_altitude_m
         self.position = LocalPoint(0.0, 0.0, 0.0)
@@ -195,6 +203,9 @@ class Kinematics:
         failure = self.prearm_failure()
         if failure is not None:
             raise PreArmFailed(failure)
+        if self._arm_refusals_left > 0:
+            self._arm_refusals_left -= 1
+            raise ArmCheckFailed("Arm: Gyros still settling")
         self.armed = True
         self.home = self.position
 

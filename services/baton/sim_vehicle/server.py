@@ -67,6 +67,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from baton import logs, signing
 from baton.effects import EffectsFile
 from baton.sim_vehicle.kinematics import (
+    ArmCheckFailed,
     FlightParams,
     GeoPoint,
     Kinematics,
@@ -706,7 +707,8 @@ class SimVehicle:
             else:
                 result = mavlink.MAV_RESULT_UNSUPPORTED
         except Refused as refusal:
-            result = mavlink.MAV_RESULT_DENIED
+            failed = isinstance(refusal, ArmCheckFailed)  # ArduPilot answers FAILED
+            result = mavlink.MAV_RESULT_FAILED if failed else mavlink.MAV_RESULT_DENIED
             self._log.info("command denied", command=command, reason=str(refusal))
             if isinstance(refusal, PreArmFailed):
                 # Before the ACK, so the reason is there when the refusal arrives.
