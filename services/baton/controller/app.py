@@ -22,6 +22,9 @@ from baton.rpc.server import BatonServer, run_until_signalled
 from baton.rpc.tls import INSECURE_WARNING, Identity
 from baton.v1 import ring_pb2_grpc
 
+# How long a mission program has to end after SIGTERM before it is killed.
+MISSION_STOP_GRACE_S = 2.0
+
 
 class ControllerApp:
     """A controller's server, node and (optional) mission program subprocess."""
@@ -94,9 +97,14 @@ class ControllerApp:
         if self._watcher is not None:
             self._watcher.cancel()
             self._watcher = None
-        if self.mission_process is not None and self.mission_process.returncode is None:
-            self.mission_process.terminate()
-            await self.mission_process.wait()
+        process = self.mission_process
+        if process is not None and process.returncode is None:
+            process.terminate()
+            try:
+                await asyncio.wait_for(process.wait(), MISSION_STOP_GRACE_S)
+            except TimeoutError:
+                process.kill()
+                await process.wait()
 
     async def _launch(self) -> None:
         if self.mission:

@@ -27,6 +27,8 @@ from baton.v1 import drone_pb2, drone_pb2_grpc
 
 # Longest a call in flight at close may take to finish (a large picture on a slow link).
 CLOSE_GRACE_S = 60.0
+# The same when the controller stops: its process has STOP_DEADLINE_S in all.
+STOP_GRACE_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -209,17 +211,19 @@ class DroneSession:
         )
         return reply
 
-    async def close(self) -> None:
-        """Closes the stream, then the channel once calls in flight have their replies.
+    async def close(self, grace: float = CLOSE_GRACE_S) -> None:
+        """Closes the stream, then the channel once calls in flight have their replies
+        (for at most ``grace`` seconds).
 
         A call in flight at a handover (footnote 2) must complete normally: its
-        reply is then discarded by the controller, not torn down mid-call.
+        reply is then discarded by the controller, not torn down mid-call. A
+        controller stopping waits less (``STOP_GRACE_S``).
         """
         if self._events is not None:
             self._events.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._events
-        await self._channel.close(grace=CLOSE_GRACE_S)
+        await self._channel.close(grace=grace)
 
 
 class DroneStandby:

@@ -25,7 +25,13 @@ import grpc
 
 from baton.config import GAP_REPAIR_MAX_S, BatonConfig, gap_repair_s
 from baton.controller.clock import MissionClock
-from baton.controller.drone_link import DroneRefusal, DroneSession, DroneStandby, refusal_of
+from baton.controller.drone_link import (
+    STOP_GRACE_S,
+    DroneRefusal,
+    DroneSession,
+    DroneStandby,
+    refusal_of,
+)
 from baton.controller.history import LogHistory
 from baton.controller.protocol import (
     ConnectDrone,
@@ -364,7 +370,7 @@ class ControllerNode:
             self._settler.cancel()
         await self._standby.stop()
         if self._drone is not None:
-            await self._drone.close()
+            await self._drone.close(grace=STOP_GRACE_S)
             self._drone = None
         for link in self._peers.values():
             await link.stop()

@@ -10,8 +10,11 @@ from __future__ import annotations
 
 import asyncio
 import inspect
+import os
 import signal
 import socket
+import sys
+import threading
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
 from typing import Any
 
@@ -22,6 +25,9 @@ from grpc_reflection.v1alpha import reflection
 
 from baton.rpc.channels import SERVER_OPTIONS
 from baton.rpc.tls import Tls
+
+# How long a service may take to stop cleanly after SIGTERM or SIGINT.
+STOP_DEADLINE_S = 5.0
 
 
 class MalformedRequests(grpc.aio.ServerInterceptor):
@@ -152,13 +158,38 @@ class BatonServer:
 async def run_until_signalled(
     main: Callable[[asyncio.Event], Awaitable[int]],
 ) -> int:
-    """Runs ``main(stop_event)``; SIGTERM and SIGINT set the event for a clean exit."""
+    """Runs ``main(stop_event)``; SIGTERM and SIGINT set the event for a clean exit.
+
+    The clean exit has ``STOP_DEADLINE_S``: a part that is still stopping then
+    (a call that waits on a peer dying with it, on a loaded machine) says so
+    on stderr and exits with code 1, so that a testbed killed outright leaves
+    nothing running (``lifecycle.die_with_parent``). A thread's timer, not the
+    loop's: a loop stuck is what it guards against.
+    """
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
+    deadline = threading.Timer(STOP_DEADLINE_S, _stop_overran)
+    deadline.daemon = True
+
+    def stopping() -> None:
+        stop.set()
+        if not deadline.is_alive():
+            deadline.start()
+
     for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, stopping)
     try:
         return await main(stop)
     finally:
+        deadline.cancel()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.remove_signal_handler(sig)
+
+
+def _stop_overran() -> None:
+    print(
+        f"{sys.argv[0]}: still stopping {STOP_DEADLINE_S:g} s after SIGTERM; exiting now",
+        file=sys.stderr,
+        flush=True,
+    )
+    os._exit(1)
