@@ -14,6 +14,7 @@ import pytest
 from test_controller_end_to_end import FAST_LINK, SMALL_GRID, assert_mission_promises, fly
 from waiting import eventually
 
+from baton.bench.script import BENCH_MISSION, bench_mission_args
 from baton.testbed.local import (
     PAPER_CONTROLLER_LINK,
     LocalTestbed,
@@ -159,3 +160,38 @@ async def test_a_prepared_handover_whose_target_never_catches_up_is_forced(
     assert (record.kind, record.new_master) == ("cooperative", 2)
     assert record.decided_at - record.prepare_started_at >= 1.0
     assert not any(h.kind == "prepared" for h in snapshot.drone.handovers)
+
+
+async def test_a_prepared_handover_moves_the_master_between_requests_on_the_masters_word(
+    tmp_path: Path,
+) -> None:
+    """The master's program sleeps right after the handover begins: no request comes for
+    3 s. The master tells the drone between requests once its target caught up
+    (ReportPreparation), so the master moves during the sleep, and the request after it
+    is the new master's. (At the next request instead, the old master would serve it,
+    and the preparation would last the whole sleep.)"""
+    script = "p,p,c,s3,p,p"  # reqnr 3 is the picture, 4 the sleep, 5 the next request
+    plan = TestbedPlan(
+        controllers=3,
+        flush_limit=0,
+        handovers=((3, 2),),
+        prepared=True,
+        speedup=1.0,
+        mission_file=BENCH_MISSION,
+        mission_args=bench_mission_args(script),
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        snapshot = await testbed.run_mission(120)
+    for cid, c in snapshot.controllers.items():
+        assert c.mission == "done", f"controller {cid}: mission {c.mission}: {c.mission_error}"
+    drone = snapshot.drone
+    assert drone.executed == 5  # the five drone calls, once each
+    (record,) = [h for h in drone.handovers if h.trigger == "script"]
+    assert (record.kind, record.new_master, record.after_reqnr) == ("prepared", 2, 3)
+    assert record.decided_at - record.prepare_started_at < 2.0
+    served_by = {a.reqnr: a.controller_id for a in drone.audit}
+    assert (served_by[3], served_by[5], served_by[6]) == (0, 2, 2)
+    words = (tmp_path / "logs" / "controller-0.log").read_text()
+    assert "drone moves the master on our word" in words

@@ -7,7 +7,12 @@ import pytest
 
 from baton.digest import request_digest
 from baton.drone.dedupe import GIVEN_UP, CachedReply
-from baton.drone.sequencer import MAX_REQNR_GAP, ScriptedHandover, Sequencer
+from baton.drone.sequencer import (
+    MAX_REQNR_GAP,
+    PREPARED_BOUND_BYTES,
+    ScriptedHandover,
+    Sequencer,
+)
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_pb2
 
@@ -431,6 +436,41 @@ def test_a_prepared_handover_is_forced_at_its_timeout_with_or_without_a_request(
     assert serve_with(seq2, 1, progress(1, 1 << 20), b"r").handover is None
     late = serve_with(seq2, 2, progress(1, 1 << 20), b"r").handover
     assert late is not None and late.prepare_timed_out and late.kind == "cooperative"
+
+
+def test_a_word_between_requests_moves_the_master_once_the_target_caught_up() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0, prepare_timeout_s=10.0)
+    serve(seq, 0, 1, 1)
+    notice = seq.prepare(2, "rpc", now=1.0)
+    assert notice.bound_bytes == PREPARED_BOUND_BYTES  # the master reports within it
+
+    def word(
+        target: int = 2, lacks: int = 100, after: int = 1, behind_s: float = 0.0, acked: int = 1
+    ) -> drone_pb2.HandoverRecord | None:
+        w = progress(target, lacks, behind_s, acked)
+        w.after_reqnr = after
+        return seq.progress_between(0, 1, w, now=2.0)
+
+    # Not the master, another epoch, another target, or still behind: nothing moves.
+    assert seq.progress_between(1, 1, progress(2, 100), now=2.0) is None
+    assert seq.progress_between(0, 2, progress(2, 100), now=2.0) is None
+    assert word(target=1) is None
+    assert word(lacks=PREPARED_BOUND_BYTES + 1) is None
+    assert word(behind_s=0.3) is None and word(acked=0) is None
+    # Before the deadline a word never forces: only a caught-up target moves the master.
+    assert seq.progress_between(0, 1, progress(2, 1 << 20), now=100.0) is None
+    assert seq.preparing is not None
+    # A word written before request 2 was served misses its reply: ignored.
+    serve_with(seq, 2, None, b"p" * (1 << 20))
+    assert word(after=1) is None and seq.master == 0
+    record = word(after=2)
+    assert record is not None and (record.kind, record.new_master, record.after_reqnr) == (
+        "prepared",
+        2,
+        2,
+    )
+    assert (record.prepare_lacked_bytes, record.decided_at) == (100, 2.0)
+    assert seq.preparing is None and seq.pending[0].new_master == 2
 
 
 def test_any_switch_ends_a_preparation_and_the_master_itself_is_refused() -> None:

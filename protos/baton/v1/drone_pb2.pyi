@@ -107,6 +107,7 @@ class PreparationProgress(_message.Message):
     LACKS_BYTES_FIELD_NUMBER: _builtins.int
     BEHIND_S_FIELD_NUMBER: _builtins.int
     ACKED_FIELD_NUMBER: _builtins.int
+    AFTER_REQNR_FIELD_NUMBER: _builtins.int
     target: _builtins.int
     """The controller it prepares to hand over to."""
     lacks_bytes: _builtins.int
@@ -122,6 +123,10 @@ class PreparationProgress(_message.Message):
     """Messages the target has acknowledged since the preparation began: the
     drone moves the master only to a target heard from since (0: none).
     """
+    after_reqnr: _builtins.int
+    """The master's last logged request number: the word speaks of every reply
+    up to it (ReportPreparation; on an Invoke, of those before the request).
+    """
     def __init__(
         self,
         *,
@@ -129,14 +134,71 @@ class PreparationProgress(_message.Message):
         lacks_bytes: _builtins.int = ...,
         behind_s: _builtins.float = ...,
         acked: _builtins.int = ...,
+        after_reqnr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["acked", b"acked", "behind_s", b"behind_s", "lacks_bytes", b"lacks_bytes", "target", b"target"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["acked", b"acked", "after_reqnr", b"after_reqnr", "behind_s", b"behind_s", "lacks_bytes", b"lacks_bytes", "target", b"target"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___PreparationProgress: _TypeAlias = PreparationProgress  # noqa: Y015
+
+@_typing.final
+class PreparationReport(_message.Message):
+    """ReportPreparation's request."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    CONTROLLER_ID_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
+    PROGRESS_FIELD_NUMBER: _builtins.int
+    controller_id: _builtins.int
+    """The reporting controller (the master)."""
+    epoch: _builtins.int
+    """Its epoch."""
+    @_builtins.property
+    def progress(self) -> Global___PreparationProgress:
+        """How far its target is behind it now."""
+
+    def __init__(
+        self,
+        *,
+        controller_id: _builtins.int = ...,
+        epoch: _builtins.int = ...,
+        progress: Global___PreparationProgress | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["progress", b"progress"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "epoch", b"epoch", "progress", b"progress"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PreparationReport: _TypeAlias = PreparationReport  # noqa: Y015
+
+@_typing.final
+class PreparationReportReply(_message.Message):
+    """ReportPreparation's reply."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    MOVED_FIELD_NUMBER: _builtins.int
+    moved: _builtins.bool
+    """The drone moved the master on this word (the handover notice follows on
+    the master's Connect stream).
+    """
+    def __init__(
+        self,
+        *,
+        moved: _builtins.bool = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["moved", b"moved"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PreparationReportReply: _TypeAlias = PreparationReportReply  # noqa: Y015
 
 @_typing.final
 class InvokeReply(_message.Message):
@@ -270,22 +332,29 @@ class PrepareHandover(_message.Message):
     TARGET_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
     TIMEOUT_S_FIELD_NUMBER: _builtins.int
+    BOUND_BYTES_FIELD_NUMBER: _builtins.int
     target: _builtins.int
     """The controller to hand over to."""
     epoch: _builtins.int
     """The master's epoch this is for."""
     timeout_s: _builtins.float
     """Seconds the drone waits for the target to catch up (wall clock)."""
+    bound_bytes: _builtins.int
+    """The drone moves the master once the target lacks at most this many bytes
+    (with the reply of the request served then): the master reports between
+    requests once it does (ReportPreparation). 0: report on Invoke only.
+    """
     def __init__(
         self,
         *,
         target: _builtins.int = ...,
         epoch: _builtins.int = ...,
         timeout_s: _builtins.float = ...,
+        bound_bytes: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "target", b"target", "timeout_s", b"timeout_s"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["bound_bytes", b"bound_bytes", "epoch", b"epoch", "target", b"target", "timeout_s", b"timeout_s"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

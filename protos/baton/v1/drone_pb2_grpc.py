@@ -55,6 +55,11 @@ class DroneStub:
                 request_serializer=baton_dot_v1_dot_drone__pb2.HandoverRequest.SerializeToString,
                 response_deserializer=baton_dot_v1_dot_drone__pb2.HandoverReply.FromString,
                 _registered_method=True)
+        self.ReportPreparation = channel.unary_unary(
+                '/baton.v1.Drone/ReportPreparation',
+                request_serializer=baton_dot_v1_dot_drone__pb2.PreparationReport.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_drone__pb2.PreparationReportReply.FromString,
+                _registered_method=True)
         self.GetStatus = channel.unary_unary(
                 '/baton.v1.Drone/GetStatus',
                 request_serializer=baton_dot_v1_dot_drone__pb2.GetDroneStatusRequest.SerializeToString,
@@ -125,6 +130,19 @@ class DroneServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def ReportPreparation(self, request, context):
+        """The master's word on the handover it prepares, between requests: sent
+        once its target lacks at most PrepareHandover.bound_bytes, so that the
+        drone moves the master then rather than at the master's next request
+        (docs/design.md, "Prepared handover"). The drone moves it if the word is
+        the master's, in its epoch, for the preparation under way, covers every
+        request served (after_reqnr), and says the target caught up.
+        PERMISSION_DENIED for a caller that is not that controller.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def GetStatus(self, request, context):
         """The drone's state, counters and command audit.
         """
@@ -154,6 +172,11 @@ def add_DroneServicer_to_server(servicer, server):
                     servicer.Handover,
                     request_deserializer=baton_dot_v1_dot_drone__pb2.HandoverRequest.FromString,
                     response_serializer=baton_dot_v1_dot_drone__pb2.HandoverReply.SerializeToString,
+            ),
+            'ReportPreparation': grpc.unary_unary_rpc_method_handler(
+                    servicer.ReportPreparation,
+                    request_deserializer=baton_dot_v1_dot_drone__pb2.PreparationReport.FromString,
+                    response_serializer=baton_dot_v1_dot_drone__pb2.PreparationReportReply.SerializeToString,
             ),
             'GetStatus': grpc.unary_unary_rpc_method_handler(
                     servicer.GetStatus,
@@ -270,6 +293,33 @@ class Drone:
             '/baton.v1.Drone/Handover',
             baton_dot_v1_dot_drone__pb2.HandoverRequest.SerializeToString,
             baton_dot_v1_dot_drone__pb2.HandoverReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def ReportPreparation(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/baton.v1.Drone/ReportPreparation',
+            baton_dot_v1_dot_drone__pb2.PreparationReport.SerializeToString,
+            baton_dot_v1_dot_drone__pb2.PreparationReportReply.FromString,
             options,
             channel_credentials,
             insecure,

@@ -81,6 +81,15 @@ class DroneStub:
     lacks from the drone's retained replies (use it when the old master is
     gone; the drone does it by itself after the takeover time).
     """
+    ReportPreparation: _grpc.UnaryUnaryMultiCallable[_drone_pb2.PreparationReport, _drone_pb2.PreparationReportReply]
+    """The master's word on the handover it prepares, between requests: sent
+    once its target lacks at most PrepareHandover.bound_bytes, so that the
+    drone moves the master then rather than at the master's next request
+    (docs/design.md, "Prepared handover"). The drone moves it if the word is
+    the master's, in its epoch, for the preparation under way, covers every
+    request served (after_reqnr), and says the target caught up.
+    PERMISSION_DENIED for a caller that is not that controller.
+    """
     GetStatus: _grpc.UnaryUnaryMultiCallable[_drone_pb2.GetDroneStatusRequest, _drone_pb2.DroneStatus]
     """The drone's state, counters and command audit."""
 
@@ -131,6 +140,15 @@ class DroneAsyncStub(DroneStub):
     old master is not asked for its log: the new master learns what it
     lacks from the drone's retained replies (use it when the old master is
     gone; the drone does it by itself after the takeover time).
+    """
+    ReportPreparation: _aio.UnaryUnaryMultiCallable[_drone_pb2.PreparationReport, _drone_pb2.PreparationReportReply]  # type: ignore[assignment]
+    """The master's word on the handover it prepares, between requests: sent
+    once its target lacks at most PrepareHandover.bound_bytes, so that the
+    drone moves the master then rather than at the master's next request
+    (docs/design.md, "Prepared handover"). The drone moves it if the word is
+    the master's, in its epoch, for the preparation under way, covers every
+    request served (after_reqnr), and says the target caught up.
+    PERMISSION_DENIED for a caller that is not that controller.
     """
     GetStatus: _aio.UnaryUnaryMultiCallable[_drone_pb2.GetDroneStatusRequest, _drone_pb2.DroneStatus]  # type: ignore[assignment]
     """The drone's state, counters and command audit."""
@@ -203,6 +221,21 @@ class DroneServicer(metaclass=_abc_1.ABCMeta):
         old master is not asked for its log: the new master learns what it
         lacks from the drone's retained replies (use it when the old master is
         gone; the drone does it by itself after the takeover time).
+        """
+
+    @_abc_1.abstractmethod
+    def ReportPreparation(
+        self,
+        request: _drone_pb2.PreparationReport,
+        context: _ServicerContext,
+    ) -> _typing.Union[_drone_pb2.PreparationReportReply, _abc.Awaitable[_drone_pb2.PreparationReportReply]]:
+        """The master's word on the handover it prepares, between requests: sent
+        once its target lacks at most PrepareHandover.bound_bytes, so that the
+        drone moves the master then rather than at the master's next request
+        (docs/design.md, "Prepared handover"). The drone moves it if the word is
+        the master's, in its epoch, for the preparation under way, covers every
+        request served (after_reqnr), and says the target caught up.
+        PERMISSION_DENIED for a caller that is not that controller.
         """
 
     @_abc_1.abstractmethod

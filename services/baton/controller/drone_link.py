@@ -29,6 +29,8 @@ from baton.v1 import drone_pb2, drone_pb2_grpc
 CLOSE_GRACE_S = 60.0
 # The same when the controller stops: its process has STOP_DEADLINE_S in all.
 STOP_GRACE_S = 1.0
+# How long a prepared handover's word between requests may take to be heard.
+REPORT_TIMEOUT_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -210,6 +212,17 @@ class DroneSession:
             request, wait_for_ready=True, timeout=timeout_s
         )
         return reply
+
+    async def report_preparation(self, progress: drone_pb2.PreparationProgress) -> bool:
+        """Tells the drone between requests how far a prepared handover's target is
+        behind; whether it moved the master on it. Raises grpc.aio.AioRpcError."""
+        reply: drone_pb2.PreparationReportReply = await self._stub.ReportPreparation(
+            drone_pb2.PreparationReport(
+                controller_id=self.controller_id, epoch=self.epoch, progress=progress
+            ),
+            timeout=REPORT_TIMEOUT_S,
+        )
+        return reply.moved
 
     async def close(self, grace: float = CLOSE_GRACE_S) -> None:
         """Closes the stream, then the channel once calls in flight have their replies

@@ -202,6 +202,11 @@ class ControllerNode:
         self._acked_before_prepare: tuple[PeerLink | None, int] = (None, 0)
         # When we stop preparing on our own (loop time): the newest PrepareHandover's.
         self._prepare_until = 0.0
+        # The drone's bound for a prepared handover's target (0: no words between
+        # requests) and the word to it in flight (``_target_acked``).
+        self._prepare_bound = 0
+        self._reporting: asyncio.Task[None] | None = None
+        self._report_again = False
         # When a frame of each log number last arrived (``arriving``), the newest few.
         self._arriving: dict[int, float] = {}
         self._drone: DroneSession | None = None
@@ -364,6 +369,8 @@ class ControllerNode:
         """Closes every stream."""
         if self._watchdog is not None:
             self._watchdog.cancel()
+        if self._reporting is not None:
+            self._reporting.cancel()
         if self._router is not None:
             self._router.cancel()
         if self._settler is not None:
@@ -449,6 +456,7 @@ class ControllerNode:
                 self.config.ring.frame_bytes,
             )
             link.on_handover_acked = self._handover_acked
+            link.on_acked = self._target_acked
             self._peers[pid] = link
         return link
 
@@ -494,6 +502,7 @@ class ControllerNode:
         self.log.info("preparing a handover", target=prepare.target, timeout_s=prepare.timeout_s)
         link = self.peer(prepare.target)
         self._acked_before_prepare = (link, link.counters.acked)
+        self._prepare_bound = prepare.bound_bytes
         self._send_catch_up(prepare.target)
         await self._apply(effects)
         loop = asyncio.get_running_loop()
@@ -522,17 +531,50 @@ class ControllerNode:
         link = self._peers.get(target)
         lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
         if link is None:
-            return drone_pb2.PreparationProgress(target=target, lacks_bytes=lacks)
+            return drone_pb2.PreparationProgress(
+                target=target, lacks_bytes=lacks, after_reqnr=self.protocol.reqnr
+            )
         before, acked = self._acked_before_prepare
         return drone_pb2.PreparationProgress(
             target=target,
             lacks_bytes=lacks,
+            after_reqnr=self.protocol.reqnr,
             behind_s=link.waiting_for_ack_s(time.monotonic()),
             # Only the stream the count was taken on: a stream opened since (the old
             # one was dropped when the ring routed back past the target) counts from
             # 0, and the difference went negative (--lose-master --prepared seed 816).
             acked=link.counters.acked - (acked if link is before else 0),
         )
+
+    def _target_acked(self, peer_id: int) -> None:
+        """An acknowledgement from ``peer_id``: if it is a prepared handover's target and
+        now lacks at most the drone's bound, the drone hears so between requests
+        (``ReportPreparation``), and moves the master then rather than at our next
+        request. One word in flight at a time; the latest state goes next."""
+        if peer_id != self.protocol.preparing_for or not self._prepare_bound:
+            return
+        progress = self._preparation_progress()
+        if progress is None or progress.lacks_bytes > self._prepare_bound:
+            return
+        self._report_again = True
+        if self._reporting is None or self._reporting.done():
+            self._reporting = asyncio.create_task(self._report_preparation(), name="prepared")
+
+    async def _report_preparation(self) -> None:
+        while self._report_again:
+            self._report_again = False
+            drone, progress = self._drone, self._preparation_progress()
+            if drone is None or progress is None or not drone.connected.is_set():
+                return
+            try:
+                moved = await drone.report_preparation(progress)
+            except grpc.aio.AioRpcError as exc:
+                # Only a word: the next Invoke carries it again.
+                self.log.info("preparation word not heard", code=exc.code().name)
+                return
+            if moved:
+                self.log.info("drone moves the master on our word", target=progress.target)
+                return
 
     def _handover_acked(self, message: ring_pb2.LogMessage) -> None:
         """The new master acknowledged our handover message: it enters our history now.

@@ -253,6 +253,8 @@ class PeerLink:
         self._handovers: set[int] = set()
         # Called with a handover message its receiver acknowledged (set by the node).
         self.on_handover_acked: Callable[[ring_pb2.LogMessage], None] | None = None
+        # Called with the peer's id after each acknowledgement it sends.
+        self.on_acked: Callable[[int], None] | None = None
         # Written on the current stream (a new stream writes every unacked one).
         self._sent: set[int] = set()
         self._wakeup = asyncio.Event()
@@ -557,6 +559,8 @@ class PeerLink:
             self.counters.acked += 1
             if message is not None and message.handover and self.on_handover_acked is not None:
                 self.on_handover_acked(message)
+            if self.on_acked is not None:
+                self.on_acked(self.peer_id)
 
 
 def _sync_frame(history: LogHistory, holds: int, my_id: int) -> ring_pb2.LogFrame:

@@ -686,7 +686,9 @@ class Sequencer:
                 f"reqnr {self.last_reqnr})",
             )
         timeout = self.prepare_timeout_s if timeout_s is None else timeout_s
-        notice = drone_pb2.PrepareHandover(target=target, epoch=self.epoch, timeout_s=timeout)
+        notice = drone_pb2.PrepareHandover(
+            target=target, epoch=self.epoch, timeout_s=timeout, bound_bytes=PREPARED_BOUND_BYTES
+        )
         self._preparation_ended()
         self.preparing = Preparation(target, trigger, now, now + timeout, notice, reason, position)
         return notice
@@ -709,6 +711,25 @@ class Sequencer:
             p.lacks_bytes, p.behind_s = progress.lacks_bytes, progress.behind_s
             p.acked = progress.acked
 
+    def progress_between(
+        self,
+        controller_id: int,
+        epoch: int,
+        progress: drone_pb2.PreparationProgress,
+        now: float,
+    ) -> drone_pb2.HandoverRecord | None:
+        """The master's word between requests (``ReportPreparation``, no request in
+        service): moves the master now if the target has caught up. A word written
+        before the last request was served (``after_reqnr`` below it) misses that
+        reply and is ignored; so is one not of the master in its epoch."""
+        p = self.preparing
+        if p is None or controller_id != self.master or epoch != self.epoch:
+            return None
+        if progress.target != p.target or progress.after_reqnr < self.last_reqnr:
+            return None
+        self.note_progress(controller_id, epoch, progress)
+        return self._finish_preparation(0, now, force=False)
+
     def preparation_expired(self, now: float) -> drone_pb2.HandoverRecord | None:
         """At the deadline with no request served meanwhile: the handover is forced."""
         p = self.preparing
@@ -716,9 +737,11 @@ class Sequencer:
             return None
         return self._finish_preparation(0, now)
 
-    def _finish_preparation(self, reply_bytes: int, now: float) -> drone_pb2.HandoverRecord | None:
+    def _finish_preparation(
+        self, reply_bytes: int, now: float, force: bool = True
+    ) -> drone_pb2.HandoverRecord | None:
         """After a master's request: moves the master if its target has caught up (the
-        master's last word and this reply within the bound) or the time is up."""
+        master's last word and this reply within the bound) or (``force``) the time is up."""
         p = self.preparing
         assert p is not None
         lacked = None if p.lacks_bytes is None else p.lacks_bytes + reply_bytes
@@ -731,7 +754,7 @@ class Sequencer:
             and p.behind_s <= PREPARED_BEHIND_S
             and p.acked > 0
         )
-        if not caught_up and now < p.deadline:
+        if not caught_up and (now < p.deadline or not force):
             return None
         record = self.switch(p.target, p.trigger, now, reason=p.reason, position=p.position)
         record.kind = "prepared" if caught_up else "cooperative"

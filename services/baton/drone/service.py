@@ -745,6 +745,23 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             epoch=record.epoch,
         )
 
+    async def ReportPreparation(
+        self, request: drone_pb2.PreparationReport, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.PreparationReportReply:
+        """The master's word between requests: the master moves now if its target
+        caught up (after the request being served, if any: the lock)."""
+        cid = request.controller_id
+        refusal = self._not_as(context, "ReportPreparation", cid)
+        if refusal is not None:
+            await abort_with(context, refusal)
+        async with self._lock:
+            record = self.seq.progress_between(cid, request.epoch, request.progress, time.time())
+            if record is not None:
+                self._switched(record)
+                if self.store is not None:
+                    self.store.save(self._counters())
+        return drone_pb2.PreparationReportReply(moved=record is not None)
+
     async def _prepared_handover(self, new_master: int) -> drone_pb2.HandoverReply:
         """Handover(prepared): begins the preparation and answers once the master moved
         (caught up, or forced at the timeout). A master without its Connect stream
