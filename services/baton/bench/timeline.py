@@ -278,6 +278,7 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
     records = handover_records(measured, rows, settings, workdir)
     prepared_rows = timeline_rows(prepared, settings.flush_limit)
     prepared_records = handover_records(prepared, prepared_rows, settings, runs / "prepared")
+    add_preparation_limits(prepared_records, records, handovers, prepared_rows, settings)
     result = {
         "settings": {
             "mission": settings.mission.__dict__,
@@ -314,6 +315,32 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
             out / name,
         )
     return result
+
+
+def add_preparation_limits(
+    prepared: list[dict[str, Any]],
+    forced: list[dict[str, Any]],
+    placed: Sequence[tuple[int, int]],
+    rows: list[dict[str, Any]],
+    settings: TimelineSettings,
+) -> None:
+    """Each prepared handover's physical limit: the bytes its target had to receive over
+    one controller link, the master's log when the preparation began (the forced run's
+    at the same request) and every picture taken while it lasted, and the ratio of the
+    preparation to it."""
+    link = settings.plan(()).controller_link
+    replies = {r["reqnr"]: r for r in rows}
+    for record, before, (began_after, _) in zip(prepared, forced, placed, strict=False):
+        taken = sum(
+            replies[n]["reply_bytes"]
+            for n in range(began_after + 1, record["after_reqnr"] + 1)
+            if n in replies and replies[n]["method"] == "TakePicture"
+        )
+        needed = before["log_bytes"] + taken
+        limit = t_log(needed, link.latency, link.bandwidth or 1e12)
+        record["prepare_needed_bytes"] = needed
+        record["prepare_limit_s"] = limit
+        record["prepare_ratio"] = record["prepare_s"] / limit if limit else math.nan
 
 
 def poll_median(rows: list[dict[str, Any]]) -> float:
@@ -388,6 +415,9 @@ def table(result: dict[str, Any]) -> str:
             f"{h['ready_s'] * 1e3:.0f}",
             f"{h['inter_arrival_s'] * 1e3:.0f}",
             f"{h['extra_s'] * 1e3:.0f}",
+            f"{h['prepare_needed_bytes'] / MB:.2f}" if "prepare_limit_s" in h else "-",
+            f"{h['prepare_limit_s'] * 1e3:.0f}" if "prepare_limit_s" in h else "-",
+            f"{h['prepare_ratio']:.2f}" if "prepare_limit_s" in h else "-",
         ]
         for h in [*result["handovers"], *result.get("prepared_handovers", [])]
     ]
@@ -403,6 +433,9 @@ def table(result: dict[str, Any]) -> str:
             "new master ACTIVE and connected (ms)",
             "inter-arrival (ms)",
             "extra over a poll (ms)",
+            "preparation had to send (MB)",
+            "its physical limit (ms)",
+            "preparation / limit",
         ],
         rows,
     )

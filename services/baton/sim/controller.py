@@ -197,6 +197,7 @@ class SimController:
         # And _acked_before_prepare: the target's stream then, and its acks then.
         self.acked_before_prepare: tuple[RingLink | None, int] = (None, 0)
         self.prepare_until = 0.0  # and _prepare_until
+        self.prepare_bound = 0  # and _prepare_bound
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -667,6 +668,7 @@ class SimController:
         )
         link = self.peer(prepare.target)
         self.acked_before_prepare = (link, link.acked)
+        self.prepare_bound = prepare.bound_bytes
         self._send_catch_up(prepare.target)
         self._apply(effects)
         until = self.prepare_until = self.world.loop.now + prepare.timeout_s + PREPARE_GRACE_S
@@ -689,12 +691,16 @@ class SimController:
             return None
         link = self.links.get(target)
         lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
+        after = self.protocol.reqnr
         if link is None:
-            return drone_pb2.PreparationProgress(target=target, lacks_bytes=lacks)
+            return drone_pb2.PreparationProgress(
+                target=target, lacks_bytes=lacks, after_reqnr=after
+            )
         before, acked = self.acked_before_prepare
         return drone_pb2.PreparationProgress(
             target=target,
             lacks_bytes=lacks,
+            after_reqnr=after,
             behind_s=link.waiting_for_ack_s(self.world.loop.now),
             acked=link.acked - (acked if link is before else 0),
         )
@@ -734,6 +740,24 @@ class SimController:
         for link in list(self.links.values()):
             for message in link.settle_handovers(self.protocol.handover_settled):
                 self.handover_acked(message)
+
+    def target_acked(self, peer_id: int) -> None:
+        """ControllerNode._target_acked: a target within the drone's bound is reported
+        between requests (ReportPreparation). Every such ack sends a word here, where
+        node.py keeps one in flight and sends the latest next: each word stands alone,
+        so these interleavings include its."""
+        if not self.alive or peer_id != self.protocol.preparing_for or not self.prepare_bound:
+            return
+        progress = self._preparation_progress()
+        session, link = self.session, self.drone_link
+        if progress is None or progress.lacks_bytes > self.prepare_bound:
+            return
+        if session is None or not session.connected or not link.usable():
+            return
+        self.world.trace(f"controller {self.id} reports {progress.lacks_bytes} B to the drone")
+        link.to_drone(
+            progress.ByteSize(), self.world.drone.receive_report, self.id, session.epoch, progress
+        )
 
     def handover_acked(self, message: ring_pb2.LogMessage) -> None:
         """ControllerNode._handover_acked: the new master has our handover message; it

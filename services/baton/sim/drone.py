@@ -144,6 +144,15 @@ class HandoverOrder:
 
 
 @dataclass(frozen=True)
+class PreparationWord:
+    """A ReportPreparation call: the master's word between requests, under the lock."""
+
+    controller_id: int
+    epoch: int
+    progress: drone_pb2.PreparationProgress
+
+
+@dataclass(frozen=True)
 class TakeoverCheck:
     """``watch_master``'s re-check under the execution lock (a takeover waits its turn)."""
 
@@ -215,7 +224,9 @@ class SimDrone:
         # Durable (store.py): the request being executed, as its intent.
         self.intent: Intent | None = None
         # Volatile: gone at a restart.
-        self.queue: deque[Request | HandoverOrder | TakeoverCheck | PreparationCheck] = deque()
+        self.queue: deque[
+            Request | HandoverOrder | TakeoverCheck | PreparationCheck | PreparationWord
+        ] = deque()
         self.busy: Execution | None = None
         self.streams: dict[int, Stream] = {}
         self.stats = DroneStats()
@@ -231,6 +242,7 @@ class SimDrone:
         # Every prepared handover the drone carried out or forced (the record check).
         self.prepared_records: list[drone_pb2.HandoverRecord] = []
         self.preparations = 0  # begun
+        self.words_moved = 0  # preparations ended by the master's word between requests
         # Prepared ones whose target in truth lacked more than the master's word said
         # (a diagnostic, not an oracle: docs/design.md, prepared handovers).
         self.understated: list[str] = []
@@ -252,11 +264,23 @@ class SimDrone:
         self.queue.append(HandoverOrder(new_master, prepared))
         self._next()
 
+    def receive_report(self, cid: int, epoch: int, progress: drone_pb2.PreparationProgress) -> None:
+        """ReportPreparation arrives; it waits for the lock like a request."""
+        self.queue.append(PreparationWord(cid, epoch, progress))
+        self._next()
+
     def _next(self) -> None:
         while self.up and self.busy is None and self.queue:
             item = self.queue.popleft()
             if isinstance(item, HandoverOrder):
                 self._handover(item)
+            elif isinstance(item, PreparationWord):
+                record = self.seq.progress_between(
+                    item.controller_id, item.epoch, item.progress, self.world.loop.now
+                )
+                if record is not None:
+                    self.words_moved += 1
+                    self._switched(record)
             elif isinstance(item, TakeoverCheck):
                 self._check_queued = False
                 self._takeover_check()

@@ -385,6 +385,7 @@ class RingLink:
             self.acked += 1  # PeerLink._read_acks
             if message is not None and message.handover:  # PeerLink.on_handover_acked
                 self.owner.handover_acked(message)
+            self.owner.target_acked(self.dest)  # PeerLink.on_acked
 
 
 class DroneLink:

@@ -438,6 +438,7 @@ class World:
             "begun": drone.preparations,
             "prepared": len(records) - timed_out,
             "forced": timed_out,
+            "on the word": drone.words_moved,
             "understated": len(drone.understated),
         }
 
