@@ -259,6 +259,10 @@ class HandoverPolicyConfig(_Model):
     dwell: Duration = 3.0
     # predictive: hand over this long (mission time) before the master's range runs out.
     lead: Duration = 10.0
+    # No controller usable, the vehicle flown into a station's range: that
+    # station's link has this long (mission time) to come up before the vehicle
+    # holds (a controller's reconnect backs off to 1 s of wall time).
+    link_up: Duration = 20.0
 
 
 PolicySetting = Annotated[HandoverPolicyConfig, BeforeValidator(_policy_shorthand)]
