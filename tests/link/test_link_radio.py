@@ -29,8 +29,12 @@ def place(path: Path, east_m: float) -> None:
 
 
 async def echoes(address: str) -> bool:
-    """Whether a new connection through the link carries a byte there and back."""
-    reader, writer = await connect(address)
+    """Whether a new connection through the link carries a byte there and back (a link
+    that refuses may reset it while it is being made, or after)."""
+    try:
+        reader, writer = await connect(address)
+    except ConnectionError:
+        return False
     try:
         writer.write(b"x")
         return await asyncio.wait_for(reader.read(1), 5) == b"x"
