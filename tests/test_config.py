@@ -79,3 +79,21 @@ def test_a_handover_policy_needs_every_controllers_location_and_range() -> None:
     )
     assert (config.handover_policy.name, config.handover_policy.lead) == ("predictive", 20.0)
     assert parse_config({"controllers": TWO}).handover_policy.name == "none"
+
+
+def test_a_radio_fade_needs_radio_range_and_sane_numbers() -> None:
+    placed = [
+        {**c, "location": {"latitude_deg": 47.0, "longitude_deg": 8.0 + c["id"] / 100}} for c in TWO
+    ]
+    placed = [{**c, "range_m": 500} for c in placed]
+    assert "radio_fade fades the radio range's links: set radio_range: true" in refused(
+        {"controllers": placed, "radio_fade": {}}
+    )
+    assert "radio_fade.bandwidth_factor" in refused(
+        {"controllers": placed, "radio_range": True, "radio_fade": {"bandwidth_factor": 0}}
+    )
+    config = parse_config(
+        {"controllers": placed, "radio_range": True, "radio_fade": {"latency": "50ms"}}
+    )
+    assert config.radio_fade is not None and config.radio_fade.link_arg() == "0.8,0.05s,0.25"
+    assert parse_config({"controllers": placed, "radio_range": True}).radio_fade is None

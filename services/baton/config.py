@@ -259,9 +259,28 @@ class HandoverPolicyConfig(_Model):
     dwell: Duration = 3.0
     # predictive: hand over this long (mission time) before the master's range runs out.
     lead: Duration = 10.0
+    # No controller usable, the vehicle flown into a station's range: that
+    # station's link has this long (mission time) to come up before the vehicle
+    # holds (a controller's reconnect backs off to 1 s of wall time).
+    link_up: Duration = 20.0
 
 
 PolicySetting = Annotated[HandoverPolicyConfig, BeforeValidator(_policy_shorthand)]
+
+
+class RadioFadeConfig(_Model):
+    """A radio link degrading with distance (link/radio.py ``Fade``): from
+    ``begins_at`` of a controller's range to its circle, its link to the drone's
+    one-way latency grows linearly by up to ``latency`` and its bandwidth falls
+    linearly to ``bandwidth_factor`` of the link's own."""
+
+    begins_at: float = Field(default=0.8, ge=0, lt=1)
+    latency: Duration = 0.05
+    bandwidth_factor: float = Field(default=0.25, gt=0, le=1)
+
+    def link_arg(self) -> str:
+        """``baton link --fade``'s value."""
+        return f"{self.begins_at},{self.latency}s,{self.bandwidth_factor}"
 
 
 class TlsConfig(_Model):
@@ -310,6 +329,9 @@ class BatonConfig(_Model):
     # only while the sim vehicle is within that controller's range_m of its
     # location (link/radio.py); off: every controller reaches the drone anywhere.
     radio_range: bool = False
+    # With radio_range: each such link also fades towards the edge of range
+    # (latency up, bandwidth down); absent: a link is as good anywhere in range.
+    radio_fade: RadioFadeConfig | None = None
 
     @field_validator("ring", mode="before")
     @classmethod
@@ -377,6 +399,11 @@ class BatonConfig(_Model):
                         f"{what} needs every controller's location and range_m; controller "
                         f"{c.id} has no {missing}: add it, or {fix}"
                     )
+        if self.radio_fade is not None and not self.radio_range:
+            raise ValueError(
+                "radio_fade fades the radio range's links: set radio_range: true, or drop "
+                "radio_fade"
+            )
         if self.max_log_message is not None and self.max_log_message <= self.flush_limit:
             raise ValueError(
                 f"max_log_message ({self.max_log_message} bytes) must be above flush_limit "

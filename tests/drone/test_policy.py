@@ -7,6 +7,7 @@ import math
 import pytest
 
 from baton.drone.policy import (
+    FLY_ON,
     HANDOVER,
     HOLD,
     STAY,
@@ -18,6 +19,7 @@ from baton.drone.policy import (
     Station,
     decide,
     distance_m,
+    entry_m,
     time_in_range_s,
 )
 from baton.sdk import Position, offset
@@ -35,8 +37,12 @@ def stations(*placed: tuple[float, float]) -> dict[int, Station]:
     return {k: Station(k, at(east), rng) for k, (east, rng) in enumerate(placed)}
 
 
-def fix(east_m: float, east_m_s: float = 0.0, north_m: float = 0.0) -> Fix:
-    return Fix(at(east_m, north_m), north_m_s=0.0, east_m_s=east_m_s)
+def fix(
+    east_m: float, east_m_s: float = 0.0, north_m: float = 0.0, leg_to: float | None = None
+) -> Fix:
+    """The vehicle ``east_m`` east (and ``north_m`` north), flying a leg to ``leg_to`` east."""
+    leg = None if leg_to is None else at(leg_to)
+    return Fix(at(east_m, north_m), north_m_s=0.0, east_m_s=east_m_s, leg_to=leg)
 
 
 def run(
@@ -91,6 +97,24 @@ def test_time_in_range_follows_the_track() -> None:
     assert time_in_range_s(sideways, station) == pytest.approx(40.0)
 
 
+def test_where_a_leg_enters_a_range() -> None:
+    station = Station(0, at(1000.0), 300.0)
+    assert entry_m(fix(0.0, leg_to=1500.0), station) == pytest.approx(700.0)
+    assert entry_m(fix(0.0, leg_to=700.0), station) == pytest.approx(700.0)  # on the circle
+    assert entry_m(fix(0.0, leg_to=690.0), station) is None  # ends short of it
+    assert entry_m(fix(1500.0, leg_to=0.0), station) == pytest.approx(200.0)  # from the east
+    assert entry_m(fix(0.0, leg_to=-500.0), station) is None  # flying away
+    assert entry_m(fix(0.0), station) is None  # no leg known
+    assert entry_m(fix(900.0), station) == 0.0  # in it, leg or not
+    # Passing north of the station: in at 300 m off its line only if the leg comes
+    # within 300 m.
+    assert entry_m(fix(0.0, north_m=299.0, leg_to=None), station) is None
+    skim = Fix(at(0.0, north_m=299.0), leg_to=at(2000.0, north_m=299.0))
+    assert entry_m(skim, station) == pytest.approx(1000.0 - math.sqrt(300**2 - 299**2), abs=0.5)
+    wide = Fix(at(0.0, north_m=301.0), leg_to=at(2000.0, north_m=301.0))
+    assert entry_m(wide, station) is None
+
+
 def test_bad_parameters_are_named() -> None:
     with pytest.raises(ValueError, match="unknown handover policy 'closest'"):
         PolicyParams("closest")
@@ -115,7 +139,7 @@ def test_nearest_waits_for_the_margin_and_the_dwell() -> None:
     decision, state = decide(NEAREST, placed, fix(550.0), {0: UP, 1: UP}, 0, state, 3.0)
     assert decision == Decision(HANDOVER, decision.reason, target=1)
     assert "1 nearer (450 m) than master 0 (550 m of 600 m)" in decision.reason
-    assert state == PolicyState()
+    assert state == PolicyState(entered=((0, -math.inf), (1, -math.inf)))
 
 
 def test_overlapping_ranges_pick_the_nearest_usable() -> None:
@@ -141,6 +165,76 @@ def test_no_station_in_range_holds_and_goes_on_when_one_is() -> None:
     )
     assert moved.action == HANDOVER and moved.target == 1 and master == 1
     assert moved.takeover is False  # 0's link is still up: it can be told
+
+
+def test_none_usable_flies_on_along_a_leg_into_a_range_else_holds() -> None:
+    # Master 0 lost in its range only (a gap from 300 to 500 m east); the leg goes on.
+    placed = stations((0.0, 400.0), (900.0, 400.0), (1600.0, 400.0))
+    lost = {0: LinkState(up=False, down_for_s=5.0), 1: LinkState(up=False, down_for_s=60.0)}
+    # A leg to 1200 m: into 1's range at 500 m (and 2's at 1200 m, later). The
+    # velocity gives the time.
+    decision, state = decide(
+        NEAREST, placed, fix(300.0, east_m_s=5.0, leg_to=1200.0), lost, 0, PolicyState(), 0.0
+    )
+    assert (decision.action, decision.target) == (FLY_ON, 1)
+    assert decision.reason == (
+        "no controller usable: 0 link down (5.0 s, 300 m of 400 m); 1 out of range "
+        "(600 m of 400 m); 2 out of range (1300 m of 400 m); flying on: the leg "
+        "enters 1's range in 200 m, 40 s"
+    )
+    assert state.entered == ((0, -math.inf),)
+    # A leg ending in the gap, or no leg known: hold.
+    decision, _ = decide(NEAREST, placed, fix(300.0, leg_to=450.0), lost, 0, PolicyState(), 0.0)
+    assert decision.action == HOLD
+    assert decision.reason.endswith("; the leg leads into no station's range")
+    decision, _ = decide(NEAREST, placed, fix(300.0), lost, 0, PolicyState(), 0.0)
+    assert decision.action == HOLD and decision.reason.endswith("2 out of range (1300 m of 400 m)")
+    # Back into the dead master's range is no way out: it was waited out already.
+    decision, _ = decide(NEAREST, placed, fix(300.0, leg_to=0.0), lost, 0, PolicyState(), 0.0)
+    assert decision.action == HOLD
+
+
+def test_flown_into_a_range_its_link_has_link_up_s_to_come_up() -> None:
+    placed = stations((0.0, 400.0), (900.0, 400.0))
+    params = PolicyParams("nearest", link_up_s=20.0)
+    lost = {0: LinkState(up=False, down_for_s=5.0), 1: LinkState(up=False, down_for_s=60.0)}
+    track = [(float(t), fix(300.0 + 10.0 * t, east_m_s=10.0, leg_to=1200.0)) for t in range(50)]
+    events, master = run(params, placed, track, links=lost)
+    # Flying on to 1's range (entered at t = 20 s), then 20 s for 1's link; no link:
+    # hold at t = 40 s, and again while nothing changes.
+    assert {d.action for t, d in events if t < 40} == {FLY_ON}
+    assert "in 1's range (400 m of 400 m), its link has 20.0 s more" in events[20][1].reason
+    assert "its link has 1.0 s more" in events[39][1].reason
+    assert {d.action for t, d in events if t >= 40} == {HOLD} and master == 0
+    # Its link up within the time: taken over (0 cannot be told), no hold.
+    state = PolicyState()
+    for now, where in track[:30]:
+        decision, state = decide(params, placed, where, lost, 0, state, now)
+    assert decision.action == FLY_ON
+    up = {**lost, 1: UP}
+    decision, state = decide(params, placed, fix(600.0, leg_to=1200.0), up, 0, state, 30.0)
+    assert (decision.action, decision.target, decision.takeover) == (HANDOVER, 1, True)
+    assert state == PolicyState(entered=((1, 20.0),))
+
+
+def test_a_station_whose_range_holds_the_vehicle_long_enough_is_not_flown_on_for() -> None:
+    # The vehicle has been in 1's range for 30 s (and 0's) when master 0's link is
+    # lost: 1's link is down as well, so it does not answer here; no way out.
+    placed = stations((0.0, 400.0), (500.0, 400.0))
+    state = PolicyState(entered=((0, 0.0), (1, 0.0)))
+    lost = {0: LinkState(up=False, down_for_s=5.0), 1: LinkState(up=False, down_for_s=0.5)}
+    leg = fix(300.0, leg_to=600.0)
+    decision, state = decide(NEAREST, placed, leg, lost, 0, state, 30.0)
+    assert decision.action == HOLD and "1 link down (0.5 s, 200 m of 400 m)" in decision.reason
+    assert state.entered == ((0, 0.0), (1, 0.0))
+    # Entered 5 s ago: flown on for (its link may be coming up).
+    state = PolicyState(entered=((0, 0.0), (1, 25.0)))
+    decision, state = decide(NEAREST, placed, leg, lost, 0, state, 30.0)
+    assert (decision.action, decision.target) == (FLY_ON, 1)
+    assert "in 1's range (200 m of 400 m), its link has 15.0 s more" in decision.reason
+    # Out of range forgets it; back in, it counts from then.
+    _, state = decide(NEAREST, placed, fix(1000.0), lost, 0, state, 31.0)
+    assert state.entered == ()
 
 
 def test_out_of_range_stations_and_dead_links_are_never_chosen() -> None:

@@ -10,7 +10,7 @@ from drone_harness import DroneUnderTest, start_drone
 from test_drone_service import GOTO, POSITION, invoke
 from waiting import eventually
 
-from baton.drone.policy import HANDOVER, HOLD, STAY, PolicyParams, Station
+from baton.drone.policy import FLY_ON, HANDOVER, HOLD, STAY, PolicyParams, Station
 from baton.sdk import Position, offset
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
@@ -115,17 +115,19 @@ async def test_no_usable_controller_holds_the_vehicle_and_resumes_its_leg(
     await links.up(0, 1)
     assert drone.service.policy is not None
     put(drone, 0.0)
-    target = offset(HOME, 0.0, 900.0)
+    # A leg that ends short of 2's range (it begins 600 m east).
+    target = offset(HOME, 0.0, 580.0)
     goto = api.GotoRequest(
         latitude_deg=target.latitude_deg, longitude_deg=target.longitude_deg, relative_altitude_m=10
     )
     await drone.stub.Invoke(invoke(0, 1, GOTO, goto))
-    # The fake vehicle jumps to the target; say it is still flying, 250 m out, and
+    # The fake vehicle jumps to the target; say it is still flying, 130 m out, and
     # every link is down (out of 0's range, and 1's link lost).
     put(drone, 450.0)
     await links.down(0, 1)
     decision = await drone.service.policy.tick()
     assert decision is not None and decision.action == HOLD
+    assert decision.reason.endswith("the leg leads into no station's range")
     assert drone.vehicle.calls[-2:] == ["GetFlightState", "Hold"]
     status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
     assert status.holding and status.policy_decision.action == HOLD
@@ -145,6 +147,43 @@ async def test_no_usable_controller_holds_the_vehicle_and_resumes_its_leg(
     assert not status.holding and status.master == 1
     assert status.handovers[-1].kind == "takeover"
     assert [d.action for d in status.policy_decisions][-3:] == [HOLD, HANDOVER, "resume"]
+
+
+async def test_a_leg_into_another_range_is_flown_on_and_its_station_takes_over(
+    ranged: tuple[DroneUnderTest, Links],
+) -> None:
+    """Master 1 lost with the vehicle in its range only, flying towards 2's: no hold;
+    2 takes over once the vehicle is in its range and 2's link is up."""
+    drone, links = ranged
+    await links.up(0, 1)
+    assert drone.service.policy is not None
+    put(drone, 0.0)
+    target = offset(HOME, 0.0, 900.0)
+    goto = api.GotoRequest(
+        latitude_deg=target.latitude_deg, longitude_deg=target.longitude_deg, relative_altitude_m=10
+    )
+    await drone.stub.Invoke(invoke(0, 1, GOTO, goto))
+    put(drone, 450.0)
+    await links.down(0, 1)
+    decision = await drone.service.policy.tick()
+    assert decision is not None and (decision.action, decision.target) == (FLY_ON, 2)
+    assert decision.reason.endswith("flying on: the leg enters 2's range in 150 m")
+    assert "Hold" not in drone.vehicle.calls
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    assert not status.holding and status.policy_decision.action == FLY_ON
+    # In 2's range, its link not up yet: still flying on (it has link_up_s to come up).
+    put(drone, 650.0)
+    decision = await drone.service.policy.tick()
+    assert decision is not None and decision.action == FLY_ON
+    assert "in 2's range (350 m of 400 m), its link has" in decision.reason
+    await links.up(2)
+    decision = await drone.service.policy.tick()
+    assert decision is not None and (decision.action, decision.target) == (HANDOVER, 2)
+    assert decision.takeover  # 1 cannot be told
+    assert "Hold" not in drone.vehicle.calls and drone.vehicle.calls.count("Goto") == 1
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    assert status.master == 2 and status.handovers[-1].kind == "takeover"
+    assert [d.action for d in status.policy_decisions][-2:] == [FLY_ON, HANDOVER]
 
 
 async def test_a_command_of_the_master_ends_a_hold(

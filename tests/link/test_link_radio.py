@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -13,7 +15,7 @@ from test_link_cli import baton_link
 
 from baton.config import LinkSpec
 from baton.link.proxy import LinkProxy
-from baton.link.radio import RadioRange, parse_radio_range, write_position
+from baton.link.radio import Fade, RadioRange, parse_fade, parse_radio_range, write_position
 from baton.sdk import Position, offset
 
 STATION = Position(47.397742, 8.545594)
@@ -27,8 +29,12 @@ def place(path: Path, east_m: float) -> None:
 
 
 async def echoes(address: str) -> bool:
-    """Whether a new connection through the link carries a byte there and back."""
-    reader, writer = await connect(address)
+    """Whether a new connection through the link carries a byte there and back (a link
+    that refuses may reset it while it is being made, or after)."""
+    try:
+        reader, writer = await connect(address)
+    except ConnectionError:
+        return False
     try:
         writer.write(b"x")
         return await asyncio.wait_for(reader.read(1), 5) == b"x"
@@ -119,3 +125,89 @@ async def test_baton_link_follows_the_position_file(echo: Echo, tmp_path: Path) 
     assert left and left[0]["distance"] == "800 m"
     stopped = next(line for line in lines if line.get("msg") == "link stopped")
     assert stopped["refused"] >= 1
+
+
+def test_a_fade_degrades_linearly_over_the_last_part_of_the_range() -> None:
+    fade = Fade(begins=0.8, latency_s=0.05, bandwidth_factor=0.25)
+    assert [fade.depth(d, 500.0) for d in (0.0, 400.0, 450.0, 500.0, 600.0)] == [
+        0.0,
+        0.0,
+        pytest.approx(0.5),
+        1.0,
+        1.0,
+    ]
+    base = LinkSpec(latency=0.02, bandwidth=20e6)
+    assert fade.spec(base, 0.0) == base
+    half = fade.spec(base, 0.5)
+    assert half.latency == pytest.approx(0.045) and half.bandwidth == pytest.approx(12.5e6)
+    edge = fade.spec(base, 1.0)
+    assert edge.latency == pytest.approx(0.07) and edge.bandwidth == pytest.approx(5e6)
+    assert fade.spec(LinkSpec(), 1.0).bandwidth is None  # unlimited stays unlimited
+    assert parse_fade("0.8,50ms,0.25") == fade
+    expected = re.escape("expected BEGINS,LATENCY,FACTOR like '0.8,50ms,0.25'")
+    with pytest.raises(ValueError, match=expected):
+        parse_fade("0.8,50ms")
+    with pytest.raises(ValueError, match=re.escape("bandwidth factor must be in (0, 1], got 0.0")):
+        parse_fade("0.8,50ms,0")
+    with pytest.raises(ValueError, match=re.escape("begins at a fraction of the range in [0, 1)")):
+        parse_fade("1,50ms,0.5")
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "baton.cli",
+            "link",
+            "--target",
+            "127.0.0.1:1",
+            "--fade",
+            "0.8,1s,1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert result.returncode == 2 and "--fade fades a radio range" in result.stderr
+
+
+async def round_trip_s(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> float:
+    started = time.monotonic()
+    writer.write(b"z")
+    assert await asyncio.wait_for(reader.read(1), 10) == b"z"
+    return time.monotonic() - started
+
+
+async def test_an_open_connection_slows_as_the_vehicle_nears_the_edge(
+    echo: Echo, tmp_path: Path
+) -> None:
+    position = tmp_path / "vehicle-position.json"
+    place(position, 100.0)
+    fade = Fade(begins=0.5, latency_s=0.2, bandwidth_factor=0.25)
+    spec = LinkSpec(bandwidth=8e6)
+    proxy = LinkProxy("127.0.0.1:0", echo.address, spec, spec, RADIO, position, fade)
+    await proxy.start()
+    try:
+        reader, writer = await connect(proxy.address)
+        near = await round_trip_s(reader, writer)
+        # At the circle: 200 ms more each way, a quarter of the bandwidth, on the
+        # connection already open.
+        place(position, 499.9)
+
+        async def faded() -> bool:
+            return proxy.depth > 0.999
+
+        await until(faded, "the link to fade")
+        [up, down] = sorted(proxy._directions, key=lambda d: d.upward)
+        assert up.line.bandwidth == down.line.bandwidth == pytest.approx(2e6, rel=2e-3)
+        far = await round_trip_s(reader, writer)
+        assert far >= 0.399 > near, (near, far)
+        # Back near the station: as fast as before.
+        place(position, 100.0)
+
+        async def clear() -> bool:
+            return proxy.depth == 0.0
+
+        await until(clear, "the fade to clear")
+        assert await round_trip_s(reader, writer) < 0.4
+        writer.close()
+    finally:
+        await proxy.stop()

@@ -56,7 +56,13 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
     assert report["exactly_once"] and report["side_effects"]["exactly_once"] is True
     assert report["side_effects"]["pictures_taken"] == report["mission"]["waypoints"] == 16
     assert report["handovers_planned"] == []
-    assert report["policy"] == {"name": policy, "radio_range": True, "holds": 0, "resumes": 0}
+    assert report["policy"] == {
+        "name": policy,
+        "radio_range": True,
+        "holds": 0,
+        "resumes": 0,
+        "flown_on": 0,
+    }
     # One station after the other, each by the policy, each prepared (the new master
     # caught up while the vehicle flew on), each within both stations' range.
     assert report["masters"] == [0, 1, 2, 3]
@@ -135,7 +141,9 @@ async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossi
 
 def gapped_corridor(tmp_path: Path) -> Path:
     """Three stations 600 m apart with 400 m of range, on free ports: between 400 m
-    and 800 m east only station 1 reaches the vehicle."""
+    and 800 m east only station 1 reaches the vehicle. A station flown into has 60 s
+    of the mission (6 s of wall time) for its link to come up: the vehicle flies on
+    meanwhile (a loaded CI box may take over 2 s, the default)."""
     document = yaml.safe_load(EXAMPLE.read_text())
     home = document["drone"]["home"]
     document["drone"]["address"] = f"127.0.0.1:{free_port()}"
@@ -149,19 +157,27 @@ def gapped_corridor(tmp_path: Path) -> Path:
             "longitude_deg": where.longitude_deg,
         }
     document["controllers"], document["ring"] = controllers, [0, 1, 2]
+    document["handover_policy"]["link_up"] = "60s"
     config = tmp_path / "gapped.yaml"
     config.write_text(yaml.safe_dump(document))
     return config
 
 
-async def test_no_controller_usable_holds_the_vehicle_until_one_is(tmp_path: Path) -> None:
-    """The master is killed while the vehicle is in its range only: the drone holds the
-    vehicle where it is and the mission waits; the master restarted, the vehicle flies
-    on to where it was going, and the mission ends with every effect once."""
+async def test_no_controller_usable_holds_the_vehicle_or_flies_on_into_a_range(
+    tmp_path: Path,
+) -> None:
+    """The master is killed while the vehicle is in its range only, twice.
+
+    First on a leg that ends in that range (to 700 m east): the drone holds the
+    vehicle where it is and the mission waits; the master restarted, the
+    vehicle flies on to where it was going. Then on the leg to 1,000 m, which
+    leads into station 2's range (from 803 m): the vehicle flies on, no hold,
+    and station 2 takes the mission over as soon as the vehicle reaches it. The
+    mission ends with every effect once and the replicas agreeing."""
     config_path = gapped_corridor(tmp_path)
     config = load_config(config_path)
     home = Position(config.drone.home.latitude_deg, config.drone.home.longitude_deg)
-    eastings = [0, 450, 700]
+    eastings = [0, 450, 700, 1000]
     plan = TestbedPlan(
         controllers=len(config.controllers),
         base_config=config,
@@ -170,6 +186,11 @@ async def test_no_controller_usable_holds_the_vehicle_until_one_is(tmp_path: Pat
         mission_args=(f"eastings={','.join(map(str, eastings))}",),
         resolution="160x120",
     )
+    station_2 = RadioRange(
+        config.controller(2).location.latitude_deg,  # type: ignore[union-attr]
+        config.controller(2).location.longitude_deg,  # type: ignore[union-attr]
+        400.0,
+    )
 
     def east_m(position) -> float:  # type: ignore[no-untyped-def]
         return north_east_m(home, Position(position.latitude_deg, position.longitude_deg))[1]
@@ -177,11 +198,14 @@ async def test_no_controller_usable_holds_the_vehicle_until_one_is(tmp_path: Pat
     started = time.monotonic()
     async with LocalTestbed(plan, tmp_path / "w") as testbed:
 
-        async def on_the_way_to_700() -> bool:
-            drone = (await testbed.snapshot(audit=False)).drone
-            return drone.master == 1 and east_m(drone.position) > 470
+        def master_1_past(east: float):  # type: ignore[no-untyped-def]
+            async def check() -> bool:
+                drone = (await testbed.snapshot(audit=False)).drone
+                return drone.master == 1 and east_m(drone.position) > east
 
-        await eventually(on_the_way_to_700, "master 1, past 470 m east", 120)
+            return check
+
+        await eventually(master_1_past(470), "master 1, past 470 m east", 120)
         await testbed.kill_controller(1)
 
         async def held() -> object:
@@ -193,6 +217,7 @@ async def test_no_controller_usable_holds_the_vehicle_until_one_is(tmp_path: Pat
         assert 470 < where < 700, where
         assert "no controller usable" in holding.policy_decision.reason
         assert "1 link down" in holding.policy_decision.reason
+        assert "the leg leads into no station's range" in holding.policy_decision.reason
 
         # Held: the vehicle stops at once (the sim's next tick; its telemetry comes at
         # 20 Hz), then stays put while nobody can command it: 1 s of wall time, 10 s of
@@ -208,6 +233,27 @@ async def test_no_controller_usable_holds_the_vehicle_until_one_is(tmp_path: Pat
         later = await eventually(held_for(1.0, time.monotonic()), "the vehicle held 1 s more", 30)
         assert abs(east_m(later.position) - stop) < 0.1  # type: ignore[attr-defined]
         await testbed.restart_controller(1)
+
+        # On the leg to 1,000 m, in station 1's range only (2's begins at 803 m).
+        await eventually(master_1_past(705), "master 1, past 705 m east", 120)
+        await testbed.kill_controller(1)
+
+        async def flying_on() -> object:
+            drone = (await testbed.snapshot(audit=False)).drone
+            decision = drone.policy_decision
+            return drone if decision.action in ("fly_on", "handover") else None
+
+        flying = await eventually(flying_on, "the drone to fly on", 30)
+        assert not flying.holding  # type: ignore[attr-defined]
+        # Killed in 1's range only, 2 out of range: a takeover cannot happen before
+        # 803 m, and the vehicle was there with no master, flying on.
+        assert east_m(flying.position) < 803 or flying.master == 2  # type: ignore[attr-defined]
+
+        async def taken_over() -> object:
+            drone = (await testbed.snapshot(audit=False)).drone
+            return drone if drone.master == 2 else None
+
+        await eventually(taken_over, "station 2 to take the mission over", 60)
         snapshot = await testbed.run_mission(180)
     targets = [(0.0, float(east)) for east in eastings]
     report = build_report(config, snapshot, 0, time.monotonic() - started, [], targets=targets)
@@ -215,6 +261,18 @@ async def test_no_controller_usable_holds_the_vehicle_until_one_is(tmp_path: Pat
     # The resume's goto is the drone's own, taken off before counting.
     assert report["side_effects"]["exactly_once"] is True, report["side_effects"]
     assert report["side_effects"]["vehicle_commands"]["goto"] == len(eastings) + 1
+    assert report["side_effects"]["pictures_taken"] == len(eastings)
+    # One hold (and its resume) for the first kill; none for the second.
     assert report["policy"]["holds"] == 1 and report["policy"]["resumes"] == 1
-    assert report["masters"] == [0, 1]
+    assert report["policy"]["flown_on"] >= 1
+    assert report["masters"] == [0, 1, 2]
+    takeover = report["handovers"][-1]
+    assert takeover["kind"] == "takeover" and takeover["to"] == 2, takeover
+    # Taken over in 2's range, while the vehicle flew on (before the leg's end, 206 m
+    # from 2): 2's link comes up within gRPC's reconnect backoff (at most 2 s of wall
+    # time, 100 m at 5 m/s and 10x) of the vehicle coming into range.
+    assert station_2.covers(*takeover["position"]), takeover
+    assert station_2.distance_m(*takeover["position"]) > 210, takeover
     assert not snapshot.drone.holding
+    decisions = [d.action for d in snapshot.drone.policy_decisions]
+    assert "hold" not in decisions[decisions.index("resume") :], decisions

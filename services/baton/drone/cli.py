@@ -314,6 +314,7 @@ def handover_policy(
         margin_m=chosen.margin_m,
         dwell_s=chosen.dwell,
         lead_s=chosen.lead,
+        link_up_s=chosen.link_up,
         # A master's link down while in range is lost after the takeover time, as
         # the takeover watch counts it; a link slower than the keepalive drops anyway.
         link_lost_after_s=takeover_after,

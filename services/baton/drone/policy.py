@@ -26,8 +26,13 @@ Two policies (docs/design.md, "Range-driven handovers"):
   stay in longest, if that is longer than the master's.
 
 Both never choose a station that is out of range or whose link is down (or
-slower than ``max_rtt_s``), and say ``hold`` when no station is usable: the
-vehicle then holds position until one is. The master's link going down while
+slower than ``max_rtt_s``). When no station is usable the vehicle *flies on*
+(``fly_on``) if the leg it flies (``Fix.leg_to``, the master's last Goto)
+leads into the range of a station not known to be dead, or it is in such a
+range whose station's link has had less than ``link_up_s`` to come up since
+the vehicle came into it;
+else it holds position (``hold``) until one is usable. Either way the mission
+waits: no master can command the vehicle. The master's link going down while
 it is in range is waited out for ``link_lost_after_s``, so a stream that is
 re-opened does not move the master; after that another usable station takes
 over (``takeover``: the old master cannot be told, so its log is not waited
@@ -52,7 +57,7 @@ from baton.sdk.types import Position
 # The policies a drone can run; "none" leaves the master to the script and the operator.
 POLICIES = ("none", "nearest", "predictive")
 
-STAY, HANDOVER, HOLD = "stay", "handover", "hold"
+STAY, HANDOVER, HOLD, FLY_ON = "stay", "handover", "hold", "fly_on"
 
 
 @dataclass(frozen=True)
@@ -66,11 +71,13 @@ class Station:
 
 @dataclass(frozen=True)
 class Fix:
-    """Where the vehicle is and where it is going: position and ground velocity (m/s)."""
+    """Where the vehicle is and where it is going: position, ground velocity (m/s)
+    and the end of the leg it flies (the master's last Goto), when known."""
 
     position: Position
     north_m_s: float = 0.0
     east_m_s: float = 0.0
+    leg_to: Position | None = None
 
 
 @dataclass(frozen=True)
@@ -97,13 +104,24 @@ class PolicyParams:
     link_lost_after_s: float = 3.0
     # A link slower than this (round trip) is not used.
     max_rtt_s: float = 2.0
+    # No station usable, the vehicle flown into a station's range: its link is
+    # given this long to come up (a controller's reconnect backs off to 1 s of
+    # wall time, 10 s of the mission's at 10x) before the vehicle holds.
+    link_up_s: float = 20.0
 
     def __post_init__(self) -> None:
         if self.name not in POLICIES[1:]:
             raise ValueError(
                 f"unknown handover policy {self.name!r}; use one of {', '.join(POLICIES[1:])}"
             )
-        for field in ("margin_m", "dwell_s", "lead_s", "link_lost_after_s", "max_rtt_s"):
+        for field in (
+            "margin_m",
+            "dwell_s",
+            "lead_s",
+            "link_lost_after_s",
+            "max_rtt_s",
+            "link_up_s",
+        ):
             value = getattr(self, field)
             if not 0 <= value < math.inf:
                 raise ValueError(f"policy {field} must be >= 0 and finite, got {value!r}")
@@ -111,7 +129,8 @@ class PolicyParams:
 
 @dataclass(frozen=True)
 class Decision:
-    """What to do now: ``stay``, ``handover`` to ``target``, or ``hold`` (none usable)."""
+    """What to do now: ``stay``, ``handover`` to ``target``, or with none usable
+    ``fly_on`` (towards ``target``'s range) or ``hold``."""
 
     action: str
     reason: str
@@ -130,10 +149,15 @@ class PolicyState:
     candidate_since: float = 0.0
     # A master the script or the operator chose: kept while it is usable.
     pinned: int | None = None
+    # Since when the vehicle has been in each station's range (the time its link
+    # has had to come up there), as (controller, mission seconds), sorted; None
+    # before the first decision (a station in range then counts as entered long
+    # ago, -inf: a drone started in the air has not seen it come into range).
+    entered: tuple[tuple[int, float], ...] | None = None
 
     def pin(self, master: int) -> PolicyState:
         """The state after the script or the operator made ``master`` master."""
-        return PolicyState(pinned=master)
+        return PolicyState(pinned=master, entered=self.entered)
 
 
 def time_in_range_s(fix: Fix, station: Station) -> float:
@@ -149,6 +173,28 @@ def time_in_range_s(fix: Fix, station: Station) -> float:
     b = 2 * (north * fix.north_m_s + east * fix.east_m_s)
     # The later root of |p + v t| = r: where the straight track leaves the circle.
     return (-b + math.sqrt(b * b - 4 * a * c)) / (2 * a)
+
+
+def entry_m(fix: Fix, station: Station) -> float | None:
+    """Metres along the vehicle's leg (its position to ``fix.leg_to``) to where it
+    comes into ``station``'s range: 0 if it is in it, None if the leg never does
+    (or is not known)."""
+    north, east = north_east_m(station.location, fix.position)
+    c = north * north + east * east - station.range_m * station.range_m
+    if c <= 0:
+        return 0.0
+    if fix.leg_to is None:
+        return None
+    to_north, to_east = north_east_m(station.location, fix.leg_to)
+    d_north, d_east = to_north - north, to_east - east
+    a = d_north * d_north + d_east * d_east
+    b = 2 * (north * d_north + east * d_east)
+    discriminant = b * b - 4 * a * c
+    if a <= 1e-12 or discriminant < 0:
+        return None
+    # The earlier root of |p + t d| = r, t in [0, 1]: where the leg enters the circle.
+    t = (-b - math.sqrt(discriminant)) / (2 * a)
+    return t * math.sqrt(a) if 0 <= t <= 1 else None
 
 
 @dataclass(frozen=True)
@@ -215,6 +261,22 @@ def decide(
         )
         for cid, station in stations.items()
     }
+    since = dict(state.entered) if state.entered is not None else {}
+    new = now if state.entered is not None else -math.inf
+    entered = {cid: since.get(cid, new) for cid, v in views.items() if v.in_range}
+    decision, state = _decide(params, fix, views, master, state, entered, now)
+    return decision, replace(state, entered=tuple(sorted(entered.items())))
+
+
+def _decide(
+    params: PolicyParams,
+    fix: Fix,
+    views: Mapping[int, _View],
+    master: int,
+    state: PolicyState,
+    entered: Mapping[int, float],
+    now: float,
+) -> tuple[Decision, PolicyState]:
     here = views[master]
     others = [v for cid, v in sorted(views.items()) if cid != master and v.usable]
     if state.pinned is not None and (state.pinned != master or not here.usable):
@@ -234,8 +296,7 @@ def decide(
             )
         best = _best(params, fix, others)
         if best is None:
-            unusable = "; ".join(v.why_not() for _, v in sorted(views.items()))
-            return Decision(HOLD, f"no controller usable: {unusable}"), PolicyState()
+            return _fly_on_or_hold(params, fix, views, master, state, entered, now)
         return (
             Decision(
                 HANDOVER,
@@ -254,6 +315,49 @@ def decide(
     if params.name == "nearest":
         return _nearest(params, here, others, state, now)
     return _predictive(params, fix, here, others, state)
+
+
+def _fly_on_or_hold(
+    params: PolicyParams,
+    fix: Fix,
+    views: Mapping[int, _View],
+    master: int,
+    state: PolicyState,
+    entered: Mapping[int, float],
+    now: float,
+) -> tuple[Decision, PolicyState]:
+    """No station usable: fly on while the leg leads into a range whose station may
+    answer there, else hold (the module docstring)."""
+    unusable = "; ".join(v.why_not() for _, v in sorted(views.items()))
+    ahead: list[tuple[float, int, str]] = []
+    for cid, view in sorted(views.items()):
+        if cid == master and view.in_range:
+            continue  # its link lost in range was waited out already
+        if view.in_range:
+            waited = now - entered[cid]
+            if waited < params.link_up_s:
+                ahead.append(
+                    (
+                        0.0,
+                        cid,
+                        f"in {cid}'s range ({view.where()}), its link has "
+                        f"{params.link_up_s - waited:.1f} s more to come up",
+                    )
+                )
+            continue
+        along = entry_m(fix, view.station)
+        if along is not None:
+            speed = math.hypot(fix.north_m_s, fix.east_m_s)
+            eta = f", {along / speed:.0f} s" if speed > 0.5 else ""
+            ahead.append((along, cid, f"the leg enters {cid}'s range in {along:.0f} m{eta}"))
+    if not ahead:
+        leg = "; the leg leads into no station's range" if fix.leg_to is not None else ""
+        return Decision(HOLD, f"no controller usable: {unusable}{leg}"), state
+    _, target, why = min(ahead)
+    return (
+        Decision(FLY_ON, f"no controller usable: {unusable}; flying on: {why}", target=target),
+        state,
+    )
 
 
 def distance_m(station: Station, fix: Fix) -> float:

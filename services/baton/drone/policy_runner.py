@@ -13,13 +13,18 @@ policy, and carries the decision out:
   a master that cannot prepare; under the execution lock, so the switch falls
   between two requests; only if the master is still the one the policy
   decided for.
-- ``hold``: no controller is usable. The vehicle holds position (MAVLink
-  hold/loiter through the backend, if it is in the air) and the mission
-  waits: no master can reach the drone. When a controller is usable again
-  the vehicle *resumes*: it flies on to the target of the master's last Goto
-  (it was stopped short of it, and the program polls until it is there). A
-  request of the master while holding ends the hold instead: the master
-  commands again.
+- ``fly_on``: no controller is usable, but the leg the vehicle flies (the
+  master's last Goto) leads into a station's range: nothing is done, the
+  vehicle flies on and the mission waits (no master can reach the drone);
+  the station is taken over as soon as it is usable. A vehicle holding
+  resumes its leg.
+- ``hold``: no controller is usable, and the leg leads into no range. The
+  vehicle holds position (MAVLink hold/loiter through the backend, if it is
+  in the air) and the mission waits. When a controller is usable again (or a
+  leg leads to one) the vehicle *resumes*: it flies on to the target of the
+  master's last Goto (it was stopped short of it, and the program polls until
+  it is there). A request of the master while holding ends the hold instead:
+  the master commands again.
 
 Every decision that changes what the drone does is logged with its reason and
 kept for GetStatus (``policy_decisions``); the latest one is always shown.
@@ -92,6 +97,8 @@ class PolicyRunner:
         self._held_vehicle = False  # the hold stopped a flying vehicle
         self._last_goto: api.GotoRequest | None = None
         self._fix: Fix | None = None
+        # The vehicle's position at the last decision (for the drone's own takeovers).
+        self.position: api.Position | None = None
         self._logged_at = 0.0
         self.log = get_logger("drone.policy", policy=params.name)
 
@@ -155,8 +162,10 @@ class PolicyRunner:
         if position.latitude_deg == 0 and position.longitude_deg == 0:
             return None
         north, east = service.vehicle.ground_velocity() or (0.0, 0.0)
-        fix = Fix(Position.from_proto(position), north, east)
-        self._fix = fix
+        goto = self._last_goto
+        leg_to = None if goto is None else Position(goto.latitude_deg, goto.longitude_deg)
+        fix = Fix(Position.from_proto(position), north, east, leg_to)
+        self._fix, self.position = fix, position
         master = service.seq.master
         decision, self.state = decide(
             self.params, self.stations, fix, self._links(), master, self.state, self._now()

@@ -192,7 +192,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                         now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
                     )
                     if due is not None:
-                        self._take_over(due.new_master, "lost", now, due.lost_at)
+                        where = self.policy.position if self.policy is not None else None
+                        self._take_over(due.new_master, "lost", now, due.lost_at, position=where)
             if self.seq.preparing is not None:
                 async with self._lock:
                     forced = self.seq.preparation_expired(time.time())

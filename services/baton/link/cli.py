@@ -18,7 +18,7 @@ from typing import Any
 
 from baton.config import LinkSpec, parse_address, parse_duration, parse_rate
 from baton.lifecycle import write_atomically
-from baton.link.radio import parse_radio_range
+from baton.link.radio import parse_fade, parse_radio_range
 
 UNLIMITED = ("unlimited", "none")
 
@@ -115,6 +115,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "LAT,LON (refused out of range, cut when it leaves); needs --position-file",
     )
     parser.add_argument(
+        "--fade",
+        type=_option_type(parse_fade, "radio fade"),
+        default=None,
+        metavar="BEGINS,LATENCY,FACTOR",
+        help="with --range: from BEGINS (a fraction of the range) to the circle the one-way "
+        "latency grows linearly by up to LATENCY and the bandwidth falls linearly to FACTOR "
+        "of its own, e.g. 0.8,50ms,0.25 (default: no fade)",
+    )
+    parser.add_argument(
         "--position-file",
         type=Path,
         default=None,
@@ -180,9 +189,13 @@ def run(args: argparse.Namespace) -> int:
     up, down = link_specs(args)
     if (args.range is None) != (args.position_file is None):
         args.link_parser.error("--range and --position-file go together: give both or neither")
+    if args.fade is not None and args.range is None:
+        args.link_parser.error("--fade fades a radio range: give --range and --position-file too")
 
     async def serve(stop: asyncio.Event) -> int:
-        proxy = LinkProxy(args.listen, args.target, up, down, args.range, args.position_file)
+        proxy = LinkProxy(
+            args.listen, args.target, up, down, args.range, args.position_file, args.fade
+        )
         try:
             await proxy.start()
         except OSError as exc:

@@ -9,7 +9,9 @@ sent before them: a half-close stays a half-close, a reset becomes a reset.
 
 With a radio range (``radio.py``) the link is up only while the vehicle is
 within it: a connection accepted out of range is reset at once (refused), and
-the vehicle leaving the range resets every open connection (cut).
+the vehicle leaving the range resets every open connection (cut). With a
+fade (``radio.Fade``) every open connection's lines are retuned as the
+vehicle's distance changes.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from baton.config import LinkSpec
-from baton.link.radio import POSITION_PERIOD_S, RadioRange, read_position
+from baton.link.radio import POSITION_PERIOD_S, Fade, RadioRange, read_position
 from baton.link.shaper import SerialLine
 from baton.logs import get_logger
 
@@ -85,6 +87,7 @@ class _Direction:
         self.reader = reader
         self.writer = writer
         self.line = SerialLine(spec)
+        self.upward = False  # client -> target (which spec a fade retunes it to)
         self.in_flight = 0
         self._on_delivered = on_delivered
         self._on_in_flight = on_in_flight
@@ -99,10 +102,9 @@ class _Direction:
 
     async def _receive(self) -> None:
         loop = asyncio.get_running_loop()
-        bound = self.line.max_in_flight
         while True:
             # Backpressure: stop reading while the line holds enough to stay busy.
-            while self.in_flight >= bound:
+            while self.in_flight >= self.line.max_in_flight:
                 self._room.clear()
                 await self._room.wait()
             try:
@@ -185,9 +187,12 @@ class LinkProxy:
         down: LinkSpec,
         radio: RadioRange | None = None,
         position_file: Path | None = None,
+        fade: Fade | None = None,
     ) -> None:
         if (radio is None) != (position_file is None):
             raise ValueError("a radio range needs the vehicle's position file, and vice versa")
+        if fade is not None and radio is None:
+            raise ValueError("a fade needs a radio range")
         self.listen = listen
         self.target = target
         self.up = up
@@ -196,6 +201,12 @@ class LinkProxy:
         self.position_file = position_file
         # Whether the vehicle is within the radio's range (always, without one).
         self.in_range = True
+        self.fade = fade
+        # How deep into the fade the vehicle is (0: none, 1: on the circle), in
+        # tenths as last logged, and the open connections' directions to retune.
+        self.depth = 0.0
+        self._logged_depth = 0
+        self._directions: set[_Direction] = set()
         self._radio_watch: asyncio.Task[None] | None = None
         self.counters = LinkCounters()
         self.address = listen
@@ -221,6 +232,7 @@ class LinkProxy:
             up=self.up.model_dump(),
             down=self.down.model_dump(),
             radio_range_m=self.radio.range_m if self.radio is not None else None,
+            fade=None if self.fade is None else vars(self.fade),
         )
 
     def _look_at_the_vehicle(self) -> bool:
@@ -229,6 +241,8 @@ class LinkProxy:
         assert self.radio is not None and self.position_file is not None
         where = read_position(self.position_file)
         covered = where is not None and self.radio.covers(*where)
+        if self.fade is not None and where is not None:
+            self._retune(self.fade.depth(self.radio.distance_m(*where), self.radio.range_m))
         if covered == self.in_range:
             return False
         self.in_range = covered
@@ -242,6 +256,25 @@ class LinkProxy:
             open_connections=self.counters.active,
         )
         return not covered
+
+    def _retune(self, depth: float) -> None:
+        """The vehicle is ``depth`` into the fade: every open line and new ones follow."""
+        assert self.fade is not None
+        if depth == self.depth:
+            return
+        self.depth = depth
+        up, down = self.fade.spec(self.up, depth), self.fade.spec(self.down, depth)
+        for direction in self._directions:
+            direction.line.retune(up if direction.upward else down)
+        tenths = int(depth * 10)
+        if tenths != self._logged_depth:
+            self._logged_depth = tenths
+            self.log.info(
+                "radio fade",
+                depth=round(depth, 2),
+                up=up.model_dump(),
+                down=down.model_dump(),
+            )
 
     async def _watch_the_vehicle(self) -> None:
         """Cuts every open connection when the vehicle leaves the range."""
@@ -331,8 +364,16 @@ class LinkProxy:
         target_reader: asyncio.StreamReader,
         target: asyncio.StreamWriter,
     ) -> None:
-        up = _Direction(client_reader, target, self.up, self._count_up, self._note_in_flight)
-        down = _Direction(target_reader, client, self.down, self._count_down, self._note_in_flight)
+        up_spec, down_spec = self.up, self.down
+        if self.fade is not None:
+            up_spec, down_spec = (
+                self.fade.spec(up_spec, self.depth),
+                self.fade.spec(down_spec, self.depth),
+            )
+        up = _Direction(client_reader, target, up_spec, self._count_up, self._note_in_flight)
+        down = _Direction(target_reader, client, down_spec, self._count_down, self._note_in_flight)
+        up.upward = True
+        self._directions |= {up, down}
         tasks = {asyncio.create_task(up.run()), asyncio.create_task(down.run())}
         try:
             pending = tasks
@@ -348,6 +389,7 @@ class LinkProxy:
                 client.close()
                 target.close()
         finally:
+            self._directions -= {up, down}
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)

@@ -10,6 +10,14 @@ link emulator in front of the drone for that controller (``baton link
 while the vehicle is out of range and cuts the open ones when it leaves
 (docs/design.md, "Radio range in the testbed").
 
+Optionally the link also *fades* (``Fade``, ``--fade BEGINS,LATENCY,FACTOR``):
+over the last part of the range, from ``BEGINS`` (a fraction of the range)
+to the circle, the one-way latency grows linearly by up to ``LATENCY`` and
+the bandwidth falls linearly to ``FACTOR`` of its own, in both directions.
+A simple, documented model, not a radio's physics: enough that a link at
+the edge of range is slower than one near the station, as a policy that
+waits for the last moment would find.
+
 The distance is horizontal, measured as the drone's policy measures it
 (``baton.sdk.geo.north_east_m`` from the station), so the two agree on the
 circle. A file that is missing or cannot be read means the vehicle's
@@ -25,6 +33,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from baton.config import LinkSpec, parse_duration
 from baton.lifecycle import write_atomically
 from baton.sdk import Position
 from baton.sdk.geo import north_east_m
@@ -50,6 +59,55 @@ class RadioRange:
     def covers(self, latitude_deg: float, longitude_deg: float) -> bool:
         """Whether a vehicle there is in range (on the circle counts)."""
         return self.distance_m(latitude_deg, longitude_deg) <= self.range_m
+
+
+@dataclass(frozen=True)
+class Fade:
+    """How a link degrades over the last part of a radio's range (the module docstring)."""
+
+    begins: float  # the fraction of the range where fading begins, in [0, 1)
+    latency_s: float  # one-way latency added at the circle
+    bandwidth_factor: float  # the fraction of the bandwidth left at the circle, in (0, 1]
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.begins < 1:
+            raise ValueError(
+                f"the fade begins at a fraction of the range in [0, 1), got {self.begins!r}"
+            )
+        if not 0 <= self.latency_s < math.inf:
+            raise ValueError(f"the fade's latency must be >= 0 and finite, got {self.latency_s!r}")
+        if not 0 < self.bandwidth_factor <= 1:
+            raise ValueError(
+                f"the fade's bandwidth factor must be in (0, 1], got {self.bandwidth_factor!r}"
+            )
+
+    def depth(self, distance_m: float, range_m: float) -> float:
+        """0 up to where fading begins, rising linearly to 1 on the circle (and beyond)."""
+        return min(1.0, max(0.0, (distance_m / range_m - self.begins) / (1 - self.begins)))
+
+    def spec(self, base: LinkSpec, depth: float) -> LinkSpec:
+        """``base`` faded to ``depth``: an unlimited bandwidth stays unlimited."""
+        bandwidth = base.bandwidth
+        if bandwidth is not None:
+            bandwidth *= 1 - depth * (1 - self.bandwidth_factor)
+        return LinkSpec(latency=base.latency + depth * self.latency_s, bandwidth=bandwidth)
+
+
+def parse_fade(text: str) -> Fade:
+    """``BEGINS,LATENCY,FACTOR`` like ``0.8,50ms,0.25``; ValueError saying what is wrong."""
+    parts = text.split(",")
+    example = (
+        "like '0.8,50ms,0.25' (from 80% of the range, +50 ms and a quarter of the "
+        "bandwidth at the circle)"
+    )
+    if len(parts) != 3:
+        raise ValueError(f"expected BEGINS,LATENCY,FACTOR {example}, got {text!r}")
+    try:
+        begins, factor = float(parts[0]), float(parts[2])
+        latency = parse_duration(parts[1])
+    except ValueError as exc:
+        raise ValueError(f"expected BEGINS,LATENCY,FACTOR {example}, got {text!r}: {exc}") from None
+    return Fade(begins, latency, factor)
 
 
 def parse_radio_range(text: str) -> RadioRange:

@@ -35,6 +35,12 @@ class SerialLine:
         self.bandwidth = spec.bandwidth
         self._free_at = float("-inf")  # when the line finishes serializing its queue
 
+    def retune(self, spec: LinkSpec) -> None:
+        """From now on, ``spec``'s latency and bandwidth (a radio link fading with
+        distance); what is queued keeps the times it was given."""
+        self.latency = spec.latency
+        self.bandwidth = spec.bandwidth
+
     @property
     def max_in_flight(self) -> int:
         """Bytes to hold between reading from the source and writing to the sink."""

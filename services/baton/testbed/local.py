@@ -366,6 +366,8 @@ class LocalTestbed:
         if base is not None:
             document["handover_policy"] = base.handover_policy.model_dump()
             document["radio_range"] = base.radio_range
+            if base.radio_fade is not None:
+                document["radio_fade"] = base.radio_fade.model_dump()
         document["tls"] = self._certificates(ids)
         self.config_path.write_text(yaml.safe_dump(document, sort_keys=False))
         self.config = parse_config(document, str(self.config_path))
@@ -397,7 +399,8 @@ class LocalTestbed:
         assert station.location is not None and station.range_m is not None
         where = f"{station.location.latitude_deg},{station.location.longitude_deg}"
         position = self.workdir / VEHICLE_POSITION_FILE
-        return ["--range", f"{where},{station.range_m}", "--position-file", str(position)]
+        fade = [] if base.radio_fade is None else ["--fade", base.radio_fade.link_arg()]
+        return ["--range", f"{where},{station.range_m}", "--position-file", str(position), *fade]
 
     def _home(self) -> str:
         base = self.plan.base_config

@@ -401,6 +401,12 @@ def build_report(
                 if d.action == "hold" and d.position.relative_altitude_m > 0.5
             ),
             "resumes": sum(1 for d in drone.policy_decisions if d.action == "resume"),
+            # No controller usable, flown on along a leg into a station's range.
+            "flown_on": sum(
+                1
+                for d in drone.policy_decisions
+                if d.action == "fly_on" and d.position.relative_altitude_m > 0.5
+            ),
         },
         "handovers_planned": [list(h) for h in planned_handovers],
         "handovers_missed": [list(h) for h in missed],
@@ -477,7 +483,8 @@ def _policy_lines(report: dict[str, Any]) -> list[str]:
     lines = [
         f"handover policy {policy['name']}"
         f"{' with radio range' if policy['radio_range'] else ''}: masters {masters}; "
-        f"holds {policy['holds']}, resumes {policy['resumes']}"
+        f"holds {policy['holds']}, resumes {policy['resumes']}, "
+        f"flown on {policy.get('flown_on', 0)}"
     ]
     lines += [
         f"  {h['from']} -> {h['to']} after {h['after_reqnr']}: {h['reason']}"
