@@ -278,7 +278,7 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
     records = handover_records(measured, rows, settings, workdir)
     prepared_rows = timeline_rows(prepared, settings.flush_limit)
     prepared_records = handover_records(prepared, prepared_rows, settings, runs / "prepared")
-    add_preparation_limits(prepared_records, records, handovers, prepared_rows, settings)
+    add_preparation_limits(prepared_records, handovers, prepared_rows, settings)
     result = {
         "settings": {
             "mission": settings.mission.__dict__,
@@ -319,25 +319,25 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
 
 def add_preparation_limits(
     prepared: list[dict[str, Any]],
-    forced: list[dict[str, Any]],
     placed: Sequence[tuple[int, int]],
     rows: list[dict[str, Any]],
     settings: TimelineSettings,
 ) -> None:
     """Each prepared handover's physical limit: the bytes its target had to receive over
-    one controller link, the master's log when the preparation began (the forced run's
-    at the same request) and every picture taken while it lasted, and the ratio of the
-    preparation to it."""
+    one controller link, the master's log when the preparation began (by the model, on
+    this run's requests and handovers) and every picture taken while it lasted, then
+    its acknowledgement back (the master knows the target caught up only then), and
+    the ratio of the preparation to it."""
     link = settings.plan(()).controller_link
     replies = {r["reqnr"]: r for r in rows}
-    for record, before, (began_after, _) in zip(prepared, forced, placed, strict=False):
+    for record, (began_after, _) in zip(prepared, placed, strict=False):
         taken = sum(
             replies[n]["reply_bytes"]
             for n in range(began_after + 1, record["after_reqnr"] + 1)
             if n in replies and replies[n]["method"] == "TakePicture"
         )
-        needed = before["log_bytes"] + taken
-        limit = t_log(needed, link.latency, link.bandwidth or 1e12)
+        needed = (replies[began_after]["log_bytes"] if began_after in replies else 0) + taken
+        limit = t_log(needed, link.latency, link.bandwidth or 1e12) + link.latency
         record["prepare_needed_bytes"] = needed
         record["prepare_limit_s"] = limit
         record["prepare_ratio"] = record["prepare_s"] / limit if limit else math.nan
