@@ -25,7 +25,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/baton testbed $(ARGS)
 
+# deploy/install-chromium.sh: Debian's chromium for the HTML report's browser test
+# (installed as root when missing; at once when it is there).
 test: $(STAMP)
+	deploy/install-chromium.sh
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
