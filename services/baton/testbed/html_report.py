@@ -46,9 +46,9 @@ th { background: #f3f3f3; } td.text, th.text { text-align: left; }
 .map { position: relative; display: inline-block; max-width: 100%; }
 .map > img.figure, img.figure { max-width: 100%; height: auto; display: block; }
 .thumb { position: absolute; transform: translate(-50%, -50%); line-height: 0;
-         border: 1px solid #333; background: #fff; }
+         border: 1px solid #333; background: #fff; opacity: 0.75; }
 .thumb img { width: THUMBpx; height: auto; }
-.thumb:hover { z-index: 10; } .thumb:hover img { width: auto; }
+.thumb:hover { z-index: 10; opacity: 1; } .thumb:hover img { width: auto; }
 ul.warnings li { color: #a33; }
 .small { color: #666; font-size: 0.9em; }
 """.replace("THUMB", str(THUMBNAIL_ON_MAP_PX))
