@@ -31,7 +31,10 @@ DEMO_ARGS ?= --config examples/corridor.yaml --mission corridor --spacing 100
 demo: $(STAMP)
 	$(BIN)/baton testbed $(if $(ARGS),$(ARGS),$(DEMO_ARGS))
 
+# deploy/install-chromium.sh: Debian's chromium for the HTML report's browser test
+# (installed as root when missing; at once when it is there).
 test: $(STAMP)
+	deploy/install-chromium.sh
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy

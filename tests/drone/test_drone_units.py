@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
+import io
+
 import grpc
 import pytest
 from drone_fakes import FakeMobility
 
 from baton.certs.make import ensure
 from baton.digest import request_digest
-from baton.drone.camera import Camera, image_size, parse_resolution
+from baton.drone import camera as camera_module
+from baton.drone.camera import (
+    THUMBNAIL_SIDE,
+    Camera,
+    image_size,
+    parse_resolution,
+    thumbnail_jpeg,
+    thumbnail_name,
+)
 from baton.drone.dedupe import CachedReply, ReplyCache, retained_batches
 from baton.drone.dispatch import Dispatcher, drone_api_routes
 from baton.drone.master import HandoverScriptError, load_handover_script, parse_handover_script
@@ -195,6 +205,62 @@ async def test_the_camera_counts_every_picture_it_produced_in_its_effects_file(
     await restarted.TakePicture(api.TakePictureRequest())
     assert [e["seq"] for e in read_effects(effects)] == [1, 2, 3]
     assert (camera.effects.seq, restarted.effects.seq) == (2, 3)
+
+
+async def test_the_camera_keeps_a_small_thumbnail_of_each_picture_and_where_it_was_taken(
+    tmp_path,  # type: ignore[no-untyped-def]
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from PIL import Image
+
+    monkeypatch.setattr(camera_module, "MAX_THUMBNAILS", 3)
+    effects, folder = tmp_path / "camera-effects.jsonl", tmp_path / "thumbnails"
+    camera = Camera(_zero_position, effects_file=effects, thumbnails_dir=folder)
+    for _ in range(2):
+        await camera.TakePicture(api.TakePictureRequest())
+    lines = read_effects(effects)
+    assert [(e["seq"], e["latitude_deg"], e["longitude_deg"]) for e in lines] == [
+        (1, 1.5, 0.0),
+        (2, 1.5, 0.0),
+    ]
+    kept = sorted(folder.iterdir())
+    assert [p.name for p in kept] == [thumbnail_name(1), thumbnail_name(2)]
+    with Image.open(kept[0]) as small:
+        assert small.format == "JPEG"
+        assert small.size == (THUMBNAIL_SIDE, round(546 * THUMBNAIL_SIDE / 640))
+    assert kept[0].stat().st_size < 10_000  # the 1 MB picture is not kept
+    # A restarted drone continues the run's count; no more than MAX_THUMBNAILS a run.
+    restarted = Camera(_zero_position, effects_file=effects, thumbnails_dir=folder)
+    for _ in range(3):
+        await restarted.TakePicture(api.TakePictureRequest())
+    assert [e["seq"] for e in read_effects(effects)] == [1, 2, 3, 4, 5]
+    assert sorted(p.name for p in folder.iterdir()) == sorted(thumbnail_name(k) for k in (1, 2, 3))
+
+
+async def test_a_picture_taken_where_the_position_is_unknown_says_no_place(
+    tmp_path,  # type: ignore[no-untyped-def]
+) -> None:
+    async def unknown() -> api.Position:
+        return api.Position()
+
+    effects = tmp_path / "camera-effects.jsonl"
+    camera = Camera(unknown, resolution=(16, 16), effects_file=effects)
+    await camera.TakePicture(api.TakePictureRequest())
+    assert "latitude_deg" not in read_effects(effects)[0]
+
+
+def test_thumbnails_of_a_static_png_and_of_bytes_that_are_no_image(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from PIL import Image
+
+    path = tmp_path / "shot.png"
+    Image.new("RGB", (400, 100), (200, 30, 30)).save(path)
+    small = thumbnail_jpeg(path.read_bytes())
+    assert small is not None
+    with Image.open(io.BytesIO(small)) as image:
+        assert image.size == (THUMBNAIL_SIDE, 24)
+    assert thumbnail_jpeg(b"not a picture") is None
+    with pytest.raises(OSError, match="--thumbnails-dir"):
+        Camera(_zero_position, thumbnails_dir=path / "under-a-file")
 
 
 def test_parse_resolution() -> None:

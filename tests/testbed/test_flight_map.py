@@ -91,3 +91,47 @@ def test_stations_ranges_the_path_by_master_and_the_handovers(tmp_path: Path) ->
     picture = tmp_path / "map.png"
     draw_flight(collection, picture, "test")
     assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_pictures_on_the_map_and_where_they_are_on_its_png(tmp_path: Path) -> None:
+    config = parse_config({"controllers": [{"id": 0, "address": "127.0.0.1:7100"}]})
+    track = []
+    for t, (north, east) in enumerate([(0, 0), (0, 100), (100, 100)]):
+        at = offset(HOME, north, east)
+        track.append(TrackPoint(float(t), at.latitude_deg, at.longitude_deg, 0))
+    places = {1: (0.0, 0.0), 2: (0.0, 100.0), 3: (100.0, 100.0)}
+    pictures: list[dict[str, object]] = [
+        {"seq": 7, "time": 1.0, "effect": "picture"},  # taken where the position was unknown
+    ]
+    for seq, (north, east) in places.items():
+        at = offset(HOME, north, east)
+        pictures.append(
+            {
+                "seq": seq,
+                "time": float(seq),
+                "effect": "picture",
+                "latitude_deg": at.latitude_deg,
+                "longitude_deg": at.longitude_deg,
+            }
+        )
+    collection = flight_geojson(config, {"handovers": []}, track, pictures)
+    shown = [f for f in collection["features"] if f["properties"]["kind"] == "picture"]
+    assert [f["properties"]["seq"] for f in shown] == [1, 2, 3]
+    on_png = draw_flight(collection, tmp_path / "map.png", "pictures")
+    assert set(on_png) == {1, 2, 3}
+    (x1, y1), (x2, y2), (x3, y3) = (on_png[k] for k in (1, 2, 3))
+    assert all(0 < v < 1 for v in (x1, y1, x2, y2, x3, y3))
+    # East is right, north is up (the PNG's rows count from the top); equal scales.
+    assert x2 > x1 and abs(y2 - y1) < 0.01 and y3 < y2 and abs(x3 - x2) < 0.01
+    from PIL import Image
+
+    with Image.open(tmp_path / "map.png") as image:
+        width, height = image.size
+        # Each picture's marker (#555555) is drawn where the fractions say.
+        for x, y in on_png.values():
+            assert image.convert("RGB").getpixel((round(x * width), round(y * height))) == (
+                0x55,
+                0x55,
+                0x55,
+            )
+    assert abs((x2 - x1) * width - (y2 - y3) * height) < 2  # 100 m each way, in pixels

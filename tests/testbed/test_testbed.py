@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+from chromium import render, require_chromium
+
 from baton.testbed.local import LocalTestbed, MissionPlan, TestbedPlan
 from baton.testbed.report import build_report
 from baton.v1 import drone_pb2
@@ -114,6 +116,26 @@ def test_the_cli_runs_a_mission_with_links_and_writes_the_report(tmp_path: Path)
     # 20 ms / 25 Mbit/s between controllers: the model counts at least one hop's latency.
     assert all(h["model_worst_case_s"] >= 0.04 for h in report["handovers"])
     assert report["setup"]["controller_link"] == {"latency_s": 0.02, "bandwidth_bps": 25e6}
+    # The HTML report beside the JSON, as a person sees it: in a real Chromium, offline.
+    page = tmp_path / "report.html"
+    assert f"HTML report: {page} (" in report["stdout"]
+    shown = render(
+        page,
+        ["#map-image", "#timeline-image", "tr.handover", ".thumb", "a.tlog", "#page-size"],
+        tmp_path / "report-screenshot.png",
+        executable=require_chromium(),
+    )
+    assert shown.console == [] and shown.page_errors == [] and shown.requests == [], shown
+    assert shown.counts == {
+        "#map-image": 1,
+        "#timeline-image": 1,
+        "tr.handover": 3,
+        ".thumb": 4,  # one a picture
+        "a.tlog": 1,
+        "#page-size": 1,
+    }
+    assert shown.images_decoded and shown.thumbnails_on_map
+    assert (tmp_path / "report-screenshot.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def start_testbed_cli(tmp_path: Path) -> tuple[subprocess.Popen[str], dict[str, int]]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import matplotlib
 
@@ -21,9 +21,11 @@ def plot_timeline(
     log_bytes: Sequence[int],
     handovers: Sequence[int],
     flush_limit: int,
-    path: Path,
+    path: Path | BinaryIO,
+    title: str | None = None,
 ) -> None:
-    """Figure 5: request inter-arrival time and the master's log size over reqnr."""
+    """Figure 5: request inter-arrival time and the master's log size over reqnr (as a PNG,
+    to a file or a binary stream)."""
     fig, ax = plt.subplots(figsize=(10, 4.5))
     ax.plot(reqnrs, inter_arrival_s, color="tab:red", linewidth=1, label="inter-arrival time")
     ax.set_xlabel("request number (reqnr)")
@@ -37,7 +39,9 @@ def plot_timeline(
         ax.axvline(
             reqnr, color="black", linestyle="--", linewidth=1, label="handover" if k == 0 else None
         )
-    ax.set_title(f"Request inter-arrival time and log growth (flush limit {flush_limit / MB:g} MB)")
+    ax.set_title(
+        title or f"Request inter-arrival time and log growth (flush limit {flush_limit / MB:g} MB)"
+    )
     lines = ax.get_legend_handles_labels()
     more = log_axis.get_legend_handles_labels()
     ax.legend(
@@ -49,7 +53,7 @@ def plot_timeline(
         frameon=False,
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, format="png")
     plt.close(fig)
 
 

@@ -22,7 +22,7 @@ import statistics
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from baton.bench.model import MB, Call, LogPoint, master_log_sizes, pick_in_stretch, t_log
 from baton.bench.runner import audit_calls, machine, markdown_table, run_plan, say, write_json
@@ -237,10 +237,31 @@ def timeline_rows(snapshot: Snapshot, flush_limit: int) -> list[dict[str, Any]]:
     return rows
 
 
-async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
-    """Dry run, placement, measured run; writes timeline.{png,json,csv} under ``out``."""
+def draw_timeline(
+    rows: Sequence[Mapping[str, Any]],
+    handovers: Sequence[int],
+    flush_limit: int,
+    path: Path | BinaryIO,
+    title: str | None = None,
+) -> None:
+    """The Figure 5 plot of one run's ``timeline_rows`` with its ``handovers`` (reqnrs),
+    for the benchmark and for the testbed's HTML report."""
     from baton.bench.plots import plot_timeline
 
+    plot_timeline(
+        [r["reqnr"] for r in rows],
+        [r["inter_arrival_s"] for r in rows],
+        # At a flush, the log as it was sent (f + e at most), then empty.
+        [r["flushed_bytes"] or r["log_bytes"] for r in rows],
+        handovers,
+        flush_limit,
+        path,
+        title,
+    )
+
+
+async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
+    """Dry run, placement, measured run; writes timeline.{png,json,csv} under ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     runs = out / "timeline-runs"
     timeout = 600.0
@@ -305,14 +326,8 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
         (measured, rows, "timeline.png"),
         (prepared, prepared_rows, "timeline-prepared.png"),
     ):
-        plot_timeline(
-            [r["reqnr"] for r in run_rows],
-            [r["inter_arrival_s"] for r in run_rows],
-            # At a flush, the log as it was sent (f + e at most), then empty.
-            [r["flushed_bytes"] or r["log_bytes"] for r in run_rows],
-            [h.after_reqnr for h in run.drone.handovers],
-            settings.flush_limit,
-            out / name,
+        draw_timeline(
+            run_rows, [h.after_reqnr for h in run.drone.handovers], settings.flush_limit, out / name
         )
     return result
 

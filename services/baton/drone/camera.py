@@ -9,11 +9,18 @@ from a fresh one.
 
 Every picture produced is counted where it is produced, one line in the
 camera's effects file (``baton.effects``, ``baton drone --camera-effects-file``),
-for the testbed's exactly-once check that does not trust the drone's audit.
+for the testbed's exactly-once check that does not trust the drone's audit,
+with the position where it was taken. The pictures themselves are not kept:
+with ``thumbnails_dir`` (``baton drone --thumbnails-dir``) the camera keeps a
+small JPEG of each (at most ``THUMBNAIL_SIDE`` pixels a side, about 3 KB, the
+first ``MAX_THUMBNAILS`` of a run), ``picture-SEQ.jpg`` by the picture's effects
+sequence number, for the testbed's HTML report.
 """
 
 from __future__ import annotations
 
+import asyncio
+import io
 import struct
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -30,6 +37,10 @@ MIN_SIDE = 16
 MAX_SIDE = 8192
 # Rows of the picture that carry the sequence stamp.
 _STAMP_ROWS = 8
+# Thumbnails kept (thumbnails_dir): their longer side, in pixels, and how many a run
+# keeps at most (about 3 KB each: 1.5 MB in all).
+THUMBNAIL_SIDE = 96
+MAX_THUMBNAILS = 500
 
 PositionSource = Callable[[], Awaitable[api.Position]]
 
@@ -79,11 +90,36 @@ def image_size(data: bytes) -> tuple[int, int]:
     return 0, 0
 
 
+def thumbnail_jpeg(image: bytes, side: int = THUMBNAIL_SIDE) -> bytes | None:
+    """A JPEG of ``image`` (PPM, PNG, JPEG: what Pillow reads) at most ``side`` pixels a
+    side; None for bytes that are no image Pillow knows."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(image)) as picture:
+            picture.thumbnail((side, side))
+            out = io.BytesIO()
+            picture.convert("RGB").save(out, "JPEG", quality=80)
+    except (OSError, ValueError, UnidentifiedImageError):
+        return None
+    return out.getvalue()
+
+
+def thumbnail_name(seq: int) -> str:
+    """The file of picture ``seq``'s thumbnail (its effects sequence number) in the folder."""
+    return f"picture-{seq}.jpg"
+
+
+THUMBNAIL_GLOB = "picture-*.jpg"
+
+
 class Camera:
     """The Camera service's two RPCs over a static file or a generated picture.
 
     ``effects_file``: where each picture produced is counted (seq, time,
-    resolution, bytes); None counts in memory only (``effects.seq``).
+    resolution, bytes, where it was taken); None counts in memory only
+    (``effects.seq``). ``thumbnails_dir``: where to keep each picture's thumbnail
+    (``thumbnail_name``); None keeps none.
     """
 
     def __init__(
@@ -92,8 +128,21 @@ class Camera:
         image_file: str | Path | None = None,
         resolution: tuple[int, int] = DEFAULT_RESOLUTION,
         effects_file: str | Path | None = None,
+        thumbnails_dir: str | Path | None = None,
     ) -> None:
         check_resolution(*resolution)
+        self.thumbnails_dir = Path(thumbnails_dir) if thumbnails_dir is not None else None
+        self.thumbnails = 0  # kept by this process (MAX_THUMBNAILS at most)
+        if self.thumbnails_dir is not None:
+            try:
+                self.thumbnails_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise OSError(
+                    f"thumbnails folder {self.thumbnails_dir} (--thumbnails-dir): "
+                    f"{exc.strerror or exc}; give a writable folder"
+                ) from exc
+            # A restarted drone continues the run's count.
+            self.thumbnails = sum(1 for _ in self.thumbnails_dir.glob(THUMBNAIL_GLOB))
         self._position = position
         self.effects = EffectsFile(effects_file, "--camera-effects-file")
         self.sequence = 0
@@ -120,12 +169,32 @@ class Camera:
             )
         return self._cached[1]
 
-    def picture(self) -> bytes:
-        """The next picture's bytes, counted in the effects file; advances the sequence number."""
+    def picture(self, where: api.Position | None = None) -> tuple[bytes, int]:
+        """The next picture's bytes and its effects sequence number, counted in the effects
+        file (with ``where`` it was taken, if known); advances the sequence number."""
         image = self._produce()
         width, height = self.resolution
-        self.effects.record("picture", resolution=f"{width}x{height}", bytes=len(image))
-        return image
+        place = {}
+        if where is not None and (where.latitude_deg or where.longitude_deg):
+            place = {"latitude_deg": where.latitude_deg, "longitude_deg": where.longitude_deg}
+        seq = self.effects.record(
+            "picture", resolution=f"{width}x{height}", bytes=len(image), **place
+        )
+        return image, seq
+
+    async def _keep_thumbnail(self, image: bytes, seq: int) -> None:
+        """Writes picture ``seq``'s thumbnail, while fewer than MAX_THUMBNAILS are kept."""
+        if self.thumbnails_dir is None or self.thumbnails >= MAX_THUMBNAILS:
+            return
+        self.thumbnails += 1
+        folder = self.thumbnails_dir
+
+        def write() -> None:
+            small = thumbnail_jpeg(image)
+            if small is not None:
+                (folder / thumbnail_name(seq)).write_bytes(small)
+
+        await asyncio.to_thread(write)
 
     def _produce(self) -> bytes:
         self.sequence += 1
@@ -154,13 +223,16 @@ class Camera:
 
     async def TakePicture(self, request: api.TakePictureRequest) -> api.TakePictureReply:
         """A picture with the vehicle's position and its sequence number."""
-        image = self.picture()
+        position = await self._position()
+        image, seq = self.picture(position)
         width, height = self.resolution
+        sequence = self.sequence
+        await self._keep_thumbnail(image, seq)
         return api.TakePictureReply(
             image=image,
             format=self.format,
             width=width,
             height=height,
-            position=await self._position(),
-            sequence=self.sequence,
+            position=position,
+            sequence=sequence,
         )

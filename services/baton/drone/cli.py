@@ -139,6 +139,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "a restarted drone continues the file (default: none written)",
     )
     parser.add_argument(
+        "--thumbnails-dir",
+        metavar="DIR",
+        help="keep a thumbnail of each picture in DIR (JPEG, 96 pixels a side, about 3 KB, "
+        "the first 500 of a run; picture-SEQ.jpg by the camera effects file's seq), for the "
+        "testbed's HTML report (default: none kept; the pictures themselves never are)",
+    )
+    parser.add_argument(
         "--speedup",
         type=float,
         metavar="X",
@@ -271,6 +278,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         race=Race(args.force_race, args.race_delay) if args.force_race else None,
         state_file=args.state,
         camera_effects_file=args.camera_effects_file,
+        thumbnails_dir=args.thumbnails_dir,
         takeover_after=takeover_after,
         prepare_timeout_s=prepare_timeout,
         tls=tls_from_flags(args, config, DRONE),

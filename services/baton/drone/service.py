@@ -889,6 +889,7 @@ class DroneSettings:
     race: Race | None = None
     state_file: str | None = None  # the durable state (store.py); None: memory only
     camera_effects_file: str | None = None  # pictures counted (baton.effects); None: no file
+    thumbnails_dir: str | None = None  # a small JPEG of each picture kept here; None: none
     # The master is lost after this long without a stream or a request, in
     # mission seconds (divided by speedup); 0: never.
     takeover_after: float = 3.0
@@ -916,7 +917,11 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         return await latest_position(vehicle)
 
     camera = Camera(
-        position, settings.image_file, settings.resolution, settings.camera_effects_file
+        position,
+        settings.image_file,
+        settings.resolution,
+        settings.camera_effects_file,
+        settings.thumbnails_dir,
     )
     sequencer = Sequencer(
         settings.controllers,

@@ -1,5 +1,6 @@
-"""The flight on a map: its path, each station's range, the master along the path, and
-each handover with its delay and reason; as GeoJSON (QGIS, geojson.io) and a PNG.
+"""The flight on a map: its path, each station's range, the master along the path,
+each handover with its delay and reason, and where each picture was taken; as GeoJSON
+(QGIS, geojson.io) and a PNG.
 
 ``Track`` collects the vehicle's position and the drone's master from the
 testbed's snapshots (twice a second); ``flight_geojson`` turns the track, the
@@ -7,7 +8,8 @@ testbed file and the report into one FeatureCollection, with simplestyle
 properties (``stroke``, ``fill``, ``marker-color``) so that geojson.io
 colours each master's part of the path and its station alike;
 ``draw_flight`` draws the same collection with matplotlib, in metres east
-and north of the first point.
+and north of the first point, and says where on the picture each of the
+pictures was taken (the HTML report puts their thumbnails there).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from baton.config import BatonConfig
 from baton.sdk import Position, offset
@@ -110,10 +112,14 @@ def _handover_point(handover: dict[str, Any], points: Sequence[TrackPoint]) -> l
 
 
 def flight_geojson(
-    config: BatonConfig, report: dict[str, Any], points: Sequence[TrackPoint]
+    config: BatonConfig,
+    report: dict[str, Any],
+    points: Sequence[TrackPoint],
+    pictures: Sequence[dict[str, Any]] = (),
 ) -> dict[str, Any]:
     """The run as a GeoJSON FeatureCollection: stations and their ranges, the path by
-    master, the handovers (delay, reason, trigger, kind)."""
+    master, the handovers (delay, reason, trigger, kind), and the pictures (the camera's
+    effects lines, ``baton.effects``: those that say where they were taken)."""
     features: list[dict[str, Any]] = []
     for c in config.controllers:
         if c.location is None:
@@ -184,11 +190,35 @@ def flight_geojson(
                 },
             }
         )
+    for picture in pictures:
+        if picture.get("effect") != "picture" or "latitude_deg" not in picture:
+            continue
+        features.append(
+            {
+                "type": "Feature",
+                "geometry": {
+                    "type": "Point",
+                    "coordinates": _lon_lat(picture["latitude_deg"], picture["longitude_deg"]),
+                },
+                "properties": {
+                    "kind": "picture",
+                    "seq": picture["seq"],
+                    "time": picture["time"],
+                    "marker-color": "#555555",
+                    "marker-symbol": "camera",
+                    "marker-size": "small",
+                },
+            }
+        )
     return {"type": "FeatureCollection", "features": features}
 
 
-def draw_flight(geojson: dict[str, Any], path: Path, title: str) -> None:
-    """The collection as a PNG, metres east and north of the path's first point."""
+def draw_flight(
+    geojson: dict[str, Any], path: Path | BinaryIO, title: str
+) -> dict[int, tuple[float, float]]:
+    """The collection as a PNG, metres east and north of the path's first point (to a
+    file, or a binary stream). Returns where each picture is on the PNG, by its seq:
+    fractions of its width from the left and of its height from the top."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -252,6 +282,14 @@ def draw_flight(geojson: dict[str, Any], path: Path, title: str) -> None:
             fontsize=8,
             ha="center",
         )
+    places: dict[int, tuple[float, float]] = {}
+    for f in features:
+        props = f["properties"]
+        if props["kind"] != "picture":
+            continue
+        (x,), (y,) = metres([f["geometry"]["coordinates"]])
+        places[props["seq"]] = (x, y)
+        ax.plot(x, y, marker="s", markersize=4, color=props["marker-color"], zorder=3)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
@@ -260,5 +298,12 @@ def draw_flight(geojson: dict[str, Any], path: Path, title: str) -> None:
         ax.legend(loc="upper left", fontsize=8)
     ax.grid(True, linewidth=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, format="png")
+    # Where the pictures ended up, now that drawing fixed the axes' limits and aspect.
+    width, height = fig.canvas.get_width_height()
+    on_picture = {}
+    for seq, at in places.items():
+        x, y = ax.transData.transform(at)
+        on_picture[seq] = (float(x / width), float(1 - y / height))
     plt.close(fig)
+    return on_picture

@@ -27,6 +27,7 @@ import yaml
 
 from baton.certs.make import ensure
 from baton.config import BatonConfig, DroneConfig, LinkSpec, parse_config
+from baton.drone.camera import THUMBNAIL_GLOB
 from baton.effects import read_effects
 from baton.missions import corridor as corridor_mission
 from baton.missions import grid as grid_mission
@@ -146,6 +147,7 @@ class TestbedPlan:
 # The side effects counted where they happen (baton.effects), in the workdir.
 VEHICLE_EFFECTS_FILE = "vehicle-effects.jsonl"  # commands the sim vehicle acted on
 CAMERA_EFFECTS_FILE = "camera-effects.jsonl"  # pictures the drone's camera produced
+THUMBNAILS_DIR = "thumbnails"  # a small JPEG of each picture (baton drone --thumbnails-dir)
 # Where the sim vehicle is, for the link emulators' radio range (link/radio.py).
 VEHICLE_POSITION_FILE = "vehicle-position.json"
 
@@ -498,6 +500,8 @@ class LocalTestbed:
         camera_effects.unlink(missing_ok=True)
         for tlog in self.workdir.glob(TLOG_GLOB):
             tlog.unlink()
+        for thumbnail in self.thumbnails_dir.glob(THUMBNAIL_GLOB):
+            thumbnail.unlink()
         argv = baton_argv(
             "drone",
             "--config",
@@ -512,6 +516,8 @@ class LocalTestbed:
             str(camera_effects),
             "--tlog-dir",
             str(self.workdir),
+            "--thumbnails-dir",
+            str(self.thumbnails_dir),
         )
         if self.plan.resolution:
             argv += ["--resolution", self.plan.resolution]
@@ -521,13 +527,19 @@ class LocalTestbed:
         self._channels.append(channel)
         self.drone_stub = drone_pb2_grpc.DroneStub(channel)
 
+    @property
+    def thumbnails_dir(self) -> Path:
+        """Where the drone's camera keeps a thumbnail of each picture (``thumbnail_name``)."""
+        return self.workdir / THUMBNAILS_DIR
+
     def controller_log(self, cid: int) -> Path:
         """Controller ``cid``'s log file (``--log-file``): what ``baton replay`` replays."""
         return self.workdir / f"controller-{cid}-log.sqlite"
 
     def files(self) -> dict[str, Any]:
         """What the run leaves in the workdir for a person: every controller's log (for
-        ``baton replay``, with the mission it ran), the drone's telemetry logs."""
+        ``baton replay``, with the mission it ran), the drone's telemetry logs, the
+        pictures' thumbnails."""
         ring = self.config.ring_order if self.config is not None else []
         return {
             "workdir": str(self.workdir),
@@ -537,6 +549,7 @@ class LocalTestbed:
                 "args": self.plan.all_mission_args(),
             },
             "tlogs": sorted(str(path) for path in self.workdir.glob(TLOG_GLOB)),
+            "thumbnails": str(self.thumbnails_dir),
         }
 
     async def _start_controllers(self) -> None:

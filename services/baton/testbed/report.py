@@ -494,6 +494,44 @@ def _policy_lines(report: dict[str, Any]) -> list[str]:
     return lines
 
 
+# The handover table's columns, in the terminal's summary and the HTML report.
+HANDOVER_COLUMNS = (
+    "handover",
+    "from",
+    "to",
+    "after",
+    "hops",
+    "log bytes",
+    "delay s",
+    "model s",
+    "kind",
+)
+
+
+_WIDTHS = (8, 4, 3, 6, 4, 10, 8, 8)  # the terminal's, of the columns before "kind"
+
+
+def handover_cells(number: int, h: dict[str, Any]) -> list[str]:
+    """Handover ``number`` of the report (``h``) as the handover table's cells."""
+    kind = h.get("kind") or "cooperative"
+    if kind == "takeover":
+        kind += f" ({h['trigger']}, detected after {h['detection_s']:.3f} s)"
+    elif h.get("prepare_s") is not None:
+        what = "preparation timed out" if h["prepare_timed_out"] else "prepared"
+        kind += f" ({what} in {h['prepare_s']:.3f} s)"
+    return [
+        str(number),
+        str(h["from"]),
+        str(h["to"]),
+        str(h["after_reqnr"]),
+        str(h["hops"]),
+        str(h["log_bytes"]),
+        f"{h['delay_s']:.3f}",
+        f"{h['model_worst_case_s']:.3f}",
+        kind,
+    ]
+
+
 def summary_table(report: dict[str, Any]) -> str:
     """The report as a few aligned tables for the terminal."""
     mission = report["mission"]
@@ -509,20 +547,13 @@ def summary_table(report: dict[str, Any]) -> str:
         *(f"  {problem}" for problem in report["side_effects"]["problems"]),
         *_policy_lines(report),
         "",
-        f"{'handover':>8} {'from':>4} {'to':>3} {'after':>6} {'hops':>4} {'log bytes':>10} "
-        f"{'delay s':>8} {'model s':>8}  kind",
+        " ".join(f"{c:>{w}}" for c, w in zip(HANDOVER_COLUMNS[:-1], _WIDTHS, strict=True))
+        + f"  {HANDOVER_COLUMNS[-1]}",
     ]
     for k, h in enumerate(report["handovers"], start=1):
-        kind = h.get("kind") or "cooperative"
-        if kind == "takeover":
-            kind += f" ({h['trigger']}, detected after {h['detection_s']:.3f} s)"
-        elif h.get("prepare_s") is not None:
-            what = "preparation timed out" if h["prepare_timed_out"] else "prepared"
-            kind += f" ({what} in {h['prepare_s']:.3f} s)"
-        lines.append(
-            f"{k:>8} {h['from']:>4} {h['to']:>3} {h['after_reqnr']:>6} {h['hops']:>4} "
-            f"{h['log_bytes']:>10} {h['delay_s']:>8.3f} {h['model_worst_case_s']:>8.3f}  {kind}"
-        )
+        *numbers, kind = handover_cells(k, h)
+        aligned = " ".join(f"{c:>{w}}" for c, w in zip(numbers, _WIDTHS, strict=True))
+        lines.append(f"{aligned}  {kind}")
     for missed in report["handovers_missed"]:
         lines.append(
             f"  planned handover {missed[0]}:{missed[1]} did not happen (mission too short?)"

@@ -14,12 +14,14 @@ import time
 from pathlib import Path
 from typing import Any
 
+from baton.bench.timeline import timeline_rows
 from baton.config import BatonConfig
 from baton.lifecycle import write_atomically
 from baton.missions.plan import load_plan
 from baton.rpc.channels import aio_channel
 from baton.rpc.tls import DRONE, OPERATOR, Identity
-from baton.testbed.flight_map import Track, draw_flight, flight_geojson
+from baton.testbed.flight_map import Track, flight_geojson
+from baton.testbed.html_report import write_page
 from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan, drone_status
 from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
@@ -187,14 +189,33 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     print(summary_table(report), flush=True)
     print(f"report: {report_path}", flush=True)
     print(files_note(files), flush=True)
-    geojson = flight_geojson(config, report, track.points)
+    taken = snapshot.camera_effects or []
+    geojson = flight_geojson(config, report, track.points, taken)
     map_path = report_path.with_suffix(".geojson")
     map_path.write_text(json.dumps(geojson) + "\n")
-    picture = report_path.with_suffix(".png")
+    map_png = report_path.with_suffix(".png")
+    page = report_path.with_suffix(".html")
     masters = " → ".join(str(m) for m in report["masters"])
     policy = report["policy"]["name"]
-    draw_flight(geojson, picture, f"{plan.mission.describe()}, policy {policy}: masters {masters}")
-    print(f"map: {map_path} (GeoJSON), {picture}", flush=True)
+    drawing = time.monotonic()
+    write_page(
+        page,
+        report,
+        geojson,
+        f"{plan.mission.describe()}, policy {policy}: masters {masters}",
+        timeline_rows(snapshot, config.flush_limit),
+        config.flush_limit,
+        taken,
+        testbed.thumbnails_dir,
+        map_path=map_png,
+        beside={"JSON report": str(report_path), "GeoJSON map": str(map_path)},
+    )
+    print(f"map: {map_path} (GeoJSON), {map_png}", flush=True)
+    print(
+        f"HTML report: {page} ({page.stat().st_size:,} bytes, drawn in "
+        f"{time.monotonic() - drawing:.1f} s)",
+        flush=True,
+    )
     return 0 if run_succeeded(report) and not report["handovers_missed"] else 1
 
 
