@@ -33,6 +33,7 @@ class ControllerApp:
         mission: str | None = None,
         mission_args: list[str] | None = None,
         log_file: str | None = None,
+        mission_python: str | None = None,
     ) -> None:
         self.config = config
         tls = config.tls_for(Identity.controller(cid))
@@ -67,6 +68,9 @@ class ControllerApp:
         )
         self.mission = mission
         self.mission_args = mission_args or []
+        # The interpreter that runs the program: this one, or a virtualenv of the
+        # mission's own with only baton-sdk in it (clients/pyproject.toml).
+        self.mission_python = mission_python or sys.executable
         self.mission_process: asyncio.subprocess.Process | None = None
         self._watcher: asyncio.Task[None] | None = None
         self.node.on_rejoin = self.rejoin
@@ -101,7 +105,7 @@ class ControllerApp:
     async def _launch(self) -> None:
         if self.mission:
             self.mission_process = await asyncio.create_subprocess_exec(
-                sys.executable,
+                self.mission_python,
                 "-m",
                 "baton.sdk.run",
                 "--die-with-parent",
@@ -133,9 +137,10 @@ async def serve(
     mission_args: list[str],
     address_file: str | None,
     log_file: str | None = None,
+    mission_python: str | None = None,
 ) -> int:
     """Runs a controller until SIGTERM or SIGINT."""
-    app = ControllerApp(config, cid, mission, mission_args, log_file)
+    app = ControllerApp(config, cid, mission, mission_args, log_file, mission_python)
 
     async def main(stop: asyncio.Event) -> int:
         await app.start()
