@@ -69,8 +69,10 @@ class ControllerApp:
         self.mission = mission
         self.mission_args = mission_args or []
         # The interpreter that runs the program: this one, or a virtualenv of the
-        # mission's own with only baton-sdk in it (clients/pyproject.toml).
-        self.mission_python = mission_python or sys.executable
+        # mission's own with only baton-sdk in it (clients/pyproject.toml). That one
+        # runs with -E: a PYTHONPATH set for baton itself must not put the services'
+        # tree (or another SDK) in front of what the virtualenv holds.
+        self.mission_python = [mission_python, "-E"] if mission_python else [sys.executable]
         self.mission_process: asyncio.subprocess.Process | None = None
         self._watcher: asyncio.Task[None] | None = None
         self.node.on_rejoin = self.rejoin
@@ -105,7 +107,7 @@ class ControllerApp:
     async def _launch(self) -> None:
         if self.mission:
             self.mission_process = await asyncio.create_subprocess_exec(
-                self.mission_python,
+                *self.mission_python,
                 "-m",
                 "baton.sdk.run",
                 "--die-with-parent",

@@ -21,7 +21,8 @@ def add_mission_python(parser: argparse.ArgumentParser) -> None:
         "--mission-python",
         metavar="PATH",
         help="the Python that runs the mission program, e.g. a virtualenv's bin/python with "
-        "only the SDK in it (pip install ./clients); default: the one running baton",
+        "only the SDK in it (pip install ./clients); it runs with -E (no PYTHONPATH); "
+        "default: the one running baton",
     )
 
 
@@ -30,9 +31,8 @@ def check_mission_python(path: str) -> None:
     if not (os.path.isfile(path) and os.access(path, os.X_OK)):
         raise ValueError(f"--mission-python {path}: not an executable file")
     try:
-        result = subprocess.run(
-            [path, "-c", f"import {MISSION_RUNNER}"], capture_output=True, text=True, timeout=60
-        )
+        check = [path, "-E", "-c", f"import {MISSION_RUNNER}"]
+        result = subprocess.run(check, capture_output=True, text=True, timeout=60)
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise ValueError(f"--mission-python {path}: does not run: {exc}") from None
     if result.returncode != 0:
