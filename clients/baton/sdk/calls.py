@@ -11,9 +11,8 @@ mapping (``errors.py``) live in one place each.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from functools import cache
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, NamedTuple, TypeVar
 
 from google.protobuf.message import Message
 
@@ -24,9 +23,11 @@ from baton.v1 import ring_pb2
 ResultT = TypeVar("ResultT")
 
 
-@dataclass(frozen=True)
-class Call(Generic[ResultT]):
-    """One call of the drone API: ``rpc`` ("Mobility.Takeoff") names it in errors."""
+class Call(NamedTuple, Generic[ResultT]):
+    """One call of the drone API: ``rpc`` ("Mobility.Takeoff") names it in errors.
+
+    A named tuple: a replay makes some 100,000 calls a second, and a frozen
+    dataclass cost a few microseconds of each."""
 
     rpc: str
     path: str  # the gRPC method, "/baton.v1.Mobility/Takeoff"
