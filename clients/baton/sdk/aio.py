@@ -39,9 +39,8 @@ class _Caller:
     def __init__(
         self, channel: grpc.aio.Channel, metadata: tuple[tuple[str, str], ...] = ()
     ) -> None:
-        self._channel = channel
         self._pending = ""  # the call awaiting its reply, if one is
-        self._methods: dict[str, grpc.aio.UnaryUnaryMultiCallable[Any, Any]] = {}
+        self._methods = calls.Methods(channel)
         self.metadata = metadata  # the mission token (baton.rpc.mission), if given
 
     async def __call__(self, call: calls.Call[ResultT]) -> ResultT:
@@ -56,15 +55,8 @@ class _Caller:
 
     async def send(self, call: calls.Call[ResultT], **options: Any) -> ResultT:
         """Sends ``call`` whatever else is pending (the end of the program only)."""
-        method = self._methods.get(call.path)
-        if method is None:
-            method = self._methods[call.path] = self._channel.unary_unary(
-                call.path,
-                request_serializer=type(call.request).SerializeToString,
-                response_deserializer=call.reply_type.FromString,
-            )
         try:
-            reply = await method(call.request, metadata=self.metadata, **options)
+            reply = await self._methods[call](call.request, metadata=self.metadata, **options)
         except grpc.RpcError as exc:
             raise call_error(call.rpc, exc) from None
         return call.result(reply)

@@ -36,6 +36,25 @@ class Call(NamedTuple, Generic[ResultT]):
     result: Callable[[Any], ResultT]
 
 
+class Methods:
+    """A channel's callable for each call's gRPC path, made on first use: the same for a
+    blocking and an asyncio channel (and ``baton replay``'s), whose ``unary_unary`` agree."""
+
+    def __init__(self, channel: Any) -> None:
+        self._channel = channel
+        self._methods: dict[str, Any] = {}
+
+    def __getitem__(self, call: Call[Any]) -> Any:
+        method = self._methods.get(call.path)
+        if method is None:
+            method = self._methods[call.path] = self._channel.unary_unary(
+                call.path,
+                request_serializer=type(call.request).SerializeToString,
+                response_deserializer=call.reply_type.FromString,
+            )
+        return method
+
+
 def _nothing(reply: Message) -> None:
     return None
 

@@ -25,10 +25,9 @@ class _Caller:
     """Sends ``calls.Call``s over a blocking channel, one at a time, with typed errors."""
 
     def __init__(self, channel: grpc.Channel, metadata: tuple[tuple[str, str], ...] = ()) -> None:
-        self._channel = channel
         self._lock = threading.Lock()
         self._pending = ""
-        self._methods: dict[str, grpc.UnaryUnaryMultiCallable] = {}
+        self._methods = calls.Methods(channel)
         self.metadata = metadata  # the mission token (baton.rpc.mission), if given
 
     def __call__(self, call: calls.Call[ResultT]) -> ResultT:
@@ -43,15 +42,8 @@ class _Caller:
 
     def send(self, call: calls.Call[ResultT], **options: Any) -> ResultT:
         """Sends ``call`` whatever else is pending (the end of the program only)."""
-        method = self._methods.get(call.path)
-        if method is None:
-            method = self._methods[call.path] = self._channel.unary_unary(
-                call.path,
-                request_serializer=type(call.request).SerializeToString,
-                response_deserializer=call.reply_type.FromString,
-            )
         try:
-            reply = method(call.request, metadata=self.metadata, **options)
+            reply = self._methods[call](call.request, metadata=self.metadata, **options)
         except grpc.RpcError as exc:
             raise call_error(call.rpc, exc) from None
         return call.result(reply)
