@@ -80,34 +80,25 @@ except ModuleNotFoundError:
     assert result.stdout.strip() == "no services"
 
 
+def fly_light_grid(python: Path, *args: str, timeout: float) -> subprocess.CompletedProcess[str]:
+    """``baton testbed`` flying tests/sdk/missions/light_grid.py from ``python``."""
+    mission = ["--mission", str(MISSIONS / "light_grid.py"), "--mission-python", str(python)]
+    return subprocess.run(
+        [sys.executable, "-m", "baton.cli", "testbed", *mission, *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
 def test_a_mission_from_the_sdk_virtualenv_flies_the_testbed(
     sdk_python: Path, tmp_path: Path
 ) -> None:
     report_path = tmp_path / "report.json"
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "baton.cli",
-            "testbed",
-            "--mission",
-            str(MISSIONS / "light_grid.py"),
-            "--mission-python",
-            str(sdk_python),
-            "--speedup",
-            "20",
-            "--no-links",
-            "--handover",
-            "8:1",
-            "--handover",
-            "16:2",
-            "--report",
-            str(report_path),
-            "--workdir",
-            str(tmp_path / "w"),
-        ],
-        capture_output=True,
-        text=True,
+    result = fly_light_grid(
+        sdk_python,
+        *("--speedup", "20", "--no-links", "--handover", "8:1", "--handover", "16:2"),
+        *("--report", str(report_path), "--workdir", str(tmp_path / "w")),
         timeout=300,
     )
     assert result.returncode == 0, result.stdout + result.stderr
@@ -125,21 +116,7 @@ def test_a_mission_from_the_sdk_virtualenv_flies_the_testbed(
 def test_a_python_without_the_sdk_is_refused_up_front(tmp_path: Path) -> None:
     bare = tmp_path / "bare"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(bare)], check=True)
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "baton.cli",
-            "testbed",
-            "--mission",
-            str(MISSIONS / "light_grid.py"),
-            "--mission-python",
-            str(bare / "bin" / "python"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = fly_light_grid(bare / "bin" / "python", timeout=60)
     assert result.returncode != 0
     assert "cannot import baton.sdk.run" in result.stderr
     assert "pip install ./clients" in result.stderr
