@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import threading
 from pathlib import Path
 
 import grpc
@@ -17,8 +16,6 @@ from baton.digest import request_digest
 from baton.rpc.channels import aio_channel
 from baton.rpc.errors import StatusError
 from baton.rpc.tls import Identity
-from baton.sdk.drone import _Caller
-from baton.sdk.errors import ConcurrentCallError
 from baton.testbed.local import LocalTestbed, TestbedPlan
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_api_pb2_grpc, ring_pb2, ring_pb2_grpc
@@ -168,25 +165,6 @@ async def test_calls_a_replicas_program_gave_up_on_take_their_own_log_entries() 
     assert entry.reqnr == 3 and entry.reply == b"third"
     assert node.protocol.reqnr == 3 and node.mission != "failed"
     await node.stop()
-
-
-def test_the_sdk_refuses_a_second_concurrent_call() -> None:
-    caller = _Caller()
-    entered, release = threading.Event(), threading.Event()
-
-    def slow(request: object, wait_for_ready: bool, metadata: object) -> str:
-        entered.set()
-        release.wait(10)
-        return "reply"
-
-    worker = threading.Thread(target=caller, args=("Mobility.GetPosition", slow, None))
-    worker.start()
-    assert entered.wait(10)
-    with pytest.raises(ConcurrentCallError, match="one call at a time"):
-        caller("Camera.TakePicture", slow, None)
-    release.set()
-    worker.join(10)
-    assert caller("Mobility.GetPosition", lambda request, **options: "ok", None) == "ok"
 
 
 async def test_a_replicas_program_that_gave_up_waiting_for_the_log_starts_again(

@@ -233,3 +233,38 @@ def test_the_replay_bench_writes_a_log_that_replays_clean_and_measures_it(tmp_pa
     assert result["calls_per_s"] > 0 and Path(result["log"]).is_file()
     assert len(read_log(Path(result["log"]))) == 6  # 100 entries a message
     assert (tmp_path / "replay.json").is_file()
+
+
+ASYNC_MISSION = """
+from baton.sdk import DroneCallError, Position
+
+
+async def mission(drone, altitude_m=10.0, east_deg=0.001):
+    await drone.mobility.arm()
+    await drone.mobility.takeoff(altitude_m)
+    here = await drone.mobility.position()
+    await drone.clock.sleep(1)
+    try:
+        east = Position(here.latitude_deg, here.longitude_deg + east_deg, 0, 0)
+        await drone.mobility.goto(east, altitude_m)
+    except DroneCallError as exc:
+        print("goto refused:", exc.code.name)
+    await drone.mobility.land()
+"""
+
+
+def test_an_async_mission_replays_the_same_log_and_diverges_where_it_differs(
+    tmp_path: Path,
+) -> None:
+    """``async def mission`` (baton.sdk.aio) replays as the blocking one does."""
+    log = write_log(tmp_path / "log.sqlite", CALLS)
+    program = tmp_path / "async_mission.py"
+    program.write_text(ASYNC_MISSION)
+    outcome = replay_log(log, str(program), [])
+    assert outcome.clean, outcome.divergence
+    assert outcome.replayed == outcome.logged == len(CALLS)
+    assert "goto refused: ABORTED" in outcome.output  # the logged failure, as DroneCallError
+    program.write_text(ASYNC_MISSION.replace("takeoff(altitude_m)", "takeoff(altitude_m + 1)"))
+    diverged = replay_log(log, str(program), [])
+    assert diverged.divergence is not None and diverged.divergence.reqnr == 2
+    assert diverged.divergence.fields == ("altitude_m",)

@@ -11,7 +11,7 @@
 The program talks to its local controller, which proxies the calls to the
 drone (or answers them from the log); it never knows which. Calls are made
 one at a time; a failed call raises ``DroneCallError`` naming the RPC and its
-status.
+status. ``baton.sdk.aio`` is the same API for asyncio (``async def mission``).
 """
 
 from baton.sdk.drone import Drone, connect

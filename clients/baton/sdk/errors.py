@@ -1,8 +1,9 @@
-"""Exceptions a mission program sees."""
+"""Exceptions a mission program sees, and how both APIs make them."""
 
 from __future__ import annotations
 
 import grpc
+import grpc.aio
 
 
 class DroneCallError(Exception):
@@ -17,3 +18,18 @@ class DroneCallError(Exception):
 
 class ConcurrentCallError(RuntimeError):
     """A second call while one is pending: the replay needs one call at a time."""
+
+
+def call_error(rpc: str, exc: grpc.RpcError) -> DroneCallError:
+    """The ``DroneCallError`` of a failed call, from the blocking or the asyncio channel."""
+    if isinstance(exc, grpc.Call | grpc.aio.AioRpcError):
+        return DroneCallError(rpc, exc.code(), exc.details() or "")
+    return DroneCallError(rpc, grpc.StatusCode.UNKNOWN, str(exc))
+
+
+def concurrent_call_error(rpc: str, pending: str) -> ConcurrentCallError:
+    """The error of ``rpc`` called while ``pending`` has not returned."""
+    return ConcurrentCallError(
+        f"{rpc} called while {pending} is pending: a mission program makes one call "
+        "at a time, so that every replica replays it"
+    )

@@ -1,6 +1,8 @@
 """Runs a mission file against a controller: ``python -m baton.sdk.run FILE ADDRESS [k=v ...]``.
 
-A mission file defines ``mission(drone, **params)``. Parameters given as
+A mission file defines ``mission(drone, **params)``: a plain function gets a
+blocking ``baton.sdk.Drone``, an ``async def`` one a ``baton.sdk.aio.Drone``
+(run in its own event loop). Parameters given as
 ``key=value`` are passed by name, converted to the type of the function's
 default for that parameter. The process exits 0 when the mission returns, 1
 with the error when it raises, and always tells the controller it ended.
@@ -9,6 +11,7 @@ with the error when it raises, and always tells the controller it ended.
 from __future__ import annotations
 
 import argparse
+import asyncio
 import importlib.util
 import inspect
 import sys
@@ -18,7 +21,8 @@ from pathlib import Path
 from typing import Any
 
 from baton.lifecycle import die_with_parent
-from baton.sdk.drone import Drone, connect
+from baton.sdk import aio
+from baton.sdk.drone import connect
 
 
 def load_mission(path: str) -> Callable[..., Any]:
@@ -72,15 +76,34 @@ def run(path: str, address: str, pairs: list[str]) -> int:
     """Runs the mission; returns the process exit code."""
     mission = load_mission(path)
     params = parse_params(mission, pairs)
-    drone: Drone = connect(address)
+    if inspect.iscoroutinefunction(mission):
+        return asyncio.run(_run_async(mission, address, params))
+    drone = connect(address)
     try:
         mission(drone, **params)
     except Exception as exc:
         traceback.print_exc()
-        drone.close(error=f"{type(exc).__name__}: {exc}")
+        drone.close(error=failure(exc))
         return 1
     drone.close()
     return 0
+
+
+async def _run_async(mission: Callable[..., Any], address: str, params: dict[str, Any]) -> int:
+    drone = aio.connect(address)
+    try:
+        await mission(drone, **params)
+    except Exception as exc:
+        traceback.print_exc()
+        await drone.close(error=failure(exc))
+        return 1
+    await drone.close()
+    return 0
+
+
+def failure(exc: BaseException) -> str:
+    """How a mission program's exception is told to its controller."""
+    return f"{type(exc).__name__}: {exc}"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -36,6 +36,7 @@ class ControllerApp:
         mission: str | None = None,
         mission_args: list[str] | None = None,
         log_file: str | None = None,
+        mission_python: str | None = None,
     ) -> None:
         self.config = config
         tls = config.tls_for(Identity.controller(cid))
@@ -70,6 +71,11 @@ class ControllerApp:
         )
         self.mission = mission
         self.mission_args = mission_args or []
+        # The interpreter that runs the program: this one, or a virtualenv of the
+        # mission's own with only baton-sdk in it (clients/pyproject.toml). That one
+        # runs with -E: a PYTHONPATH set for baton itself must not put the services'
+        # tree (or another SDK) in front of what the virtualenv holds.
+        self.mission_python = [mission_python, "-E"] if mission_python else [sys.executable]
         self.mission_process: asyncio.subprocess.Process | None = None
         self._watcher: asyncio.Task[None] | None = None
         self.node.on_rejoin = self.rejoin
@@ -109,7 +115,7 @@ class ControllerApp:
     async def _launch(self) -> None:
         if self.mission:
             self.mission_process = await asyncio.create_subprocess_exec(
-                sys.executable,
+                *self.mission_python,
                 "-m",
                 "baton.sdk.run",
                 "--die-with-parent",
@@ -141,9 +147,10 @@ async def serve(
     mission_args: list[str],
     address_file: str | None,
     log_file: str | None = None,
+    mission_python: str | None = None,
 ) -> int:
     """Runs a controller until SIGTERM or SIGINT."""
-    app = ControllerApp(config, cid, mission, mission_args, log_file)
+    app = ControllerApp(config, cid, mission, mission_args, log_file, mission_python)
 
     async def main(stop: asyncio.Event) -> int:
         await app.start()

@@ -4,10 +4,43 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
+import subprocess
 import sys
 
 from baton.certs.cli import add_tls_flags
 from baton.sdk.run import add_mission_arg
+
+# What a --mission-python interpreter must be able to import.
+MISSION_RUNNER = "baton.sdk.run"
+
+
+def add_mission_python(parser: argparse.ArgumentParser) -> None:
+    """``--mission-python PATH``: the interpreter that runs the mission program."""
+    parser.add_argument(
+        "--mission-python",
+        metavar="PATH",
+        help="the Python that runs the mission program, e.g. a virtualenv's bin/python with "
+        "only the SDK in it (pip install ./clients); it runs with -E (no PYTHONPATH); "
+        "default: the one running baton",
+    )
+
+
+def check_mission_python(path: str) -> None:
+    """Raises ValueError unless ``path`` is a Python that can run a mission program."""
+    if not (os.path.isfile(path) and os.access(path, os.X_OK)):
+        raise ValueError(f"--mission-python {path}: not an executable file")
+    try:
+        check = [path, "-E", "-c", f"import {MISSION_RUNNER}"]
+        result = subprocess.run(check, capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise ValueError(f"--mission-python {path}: does not run: {exc}") from None
+    if result.returncode != 0:
+        last = (result.stderr.strip().splitlines() or ["no output"])[-1]
+        raise ValueError(
+            f"--mission-python {path}: cannot import {MISSION_RUNNER} ({last}); install the "
+            "SDK into its environment: pip install ./clients"
+        )
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -33,6 +66,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--mission", help="a mission file (defines mission(drone, **params)) to run on start"
     )
     add_mission_arg(parser)
+    add_mission_python(parser)
     parser.add_argument(
         "--address-file", help="write the address this controller listens on to this file"
     )
@@ -68,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
             )
             config = config.model_copy(update={"tls": tls})
         config.tls_for(Identity.controller(args.id))  # the files are there
+        if args.mission_python is not None:
+            check_mission_python(args.mission_python)
     except (ConfigError, TlsError, ValueError) as exc:
         print(f"baton controller: {exc}", file=sys.stderr)
         return 2
@@ -75,5 +111,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"baton controller: --id {args.id}: {exc.args[0]}", file=sys.stderr)
         return 2
     return asyncio.run(
-        serve(config, args.id, args.mission, args.mission_arg, args.address_file, args.log_file)
+        serve(
+            config,
+            args.id,
+            args.mission,
+            args.mission_arg,
+            args.address_file,
+            args.log_file,
+            args.mission_python,
+        )
     )

@@ -10,6 +10,7 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from baton.controller.cli import add_mission_python, check_mission_python
 from baton.sdk.run import add_mission_arg
 
 if TYPE_CHECKING:
@@ -118,6 +119,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "waypoint file) flown by baton/missions/plan.py",
     )
     add_mission_arg(parser)
+    add_mission_python(parser)
     parser.add_argument(
         "--grid", type=int, default=5, help="grid size: GRID x GRID waypoints (default 5)"
     )
@@ -325,6 +327,8 @@ def run(args: argparse.Namespace) -> int:
     )
     try:
         mission_file, mission_args, flight_plan = _mission(args.mission, args.mission_arg)
+        if args.mission_python is not None:
+            check_mission_python(args.mission_python)
     except ValueError as exc:
         return _fail(str(exc))
     report_path = Path(args.report)
@@ -347,6 +351,7 @@ def run(args: argparse.Namespace) -> int:
         mission=mission,
         mission_file=mission_file,
         mission_args=mission_args,
+        mission_python=None if args.mission_python is None else Path(args.mission_python),
         flight_plan=flight_plan,
         emulate_links=not args.no_links,
         controller_link=controller_link,

@@ -121,6 +121,9 @@ class TestbedPlan:
     # The controllers' mission token (baton.rpc.mission), for a caller that acts
     # as a mission program itself (the micro benchmark); default: each makes one.
     mission_token: str | None = None
+    # The Python that runs the mission program on every controller (``baton
+    # controller --mission-python``), e.g. a virtualenv with only baton-sdk.
+    mission_python: Path | None = None
     # The autopilot: "sim" (the embedded sim vehicle), "sitl" (ArduPilot SITL,
     # started by the testbed at the same speed-up) or the MAVLink URL of one
     # that runs already.
@@ -576,6 +579,8 @@ class LocalTestbed:
             )
             for arg in self.plan.all_mission_args():
                 argv += ["--mission-arg", arg]
+            if self.plan.mission_python is not None:
+                argv += ["--mission-python", str(self.plan.mission_python)]
             env = None
             if self.plan.mission_token is not None:
                 env = {**os.environ, MISSION_TOKEN_ENV: self.plan.mission_token}

@@ -1,0 +1,195 @@
+"""The drone API's calls, written once: what each sends and what its reply means.
+
+The blocking API (``drone.py``) and the asyncio one (``aio.py``) are thin
+faces over this table: a method there builds a ``Call`` here and hands it to
+its transport, which sends ``request`` to ``path`` and returns
+``result(reply)``. So a call's name, its request and the typed result it
+gives are the same in both, and the one-call-at-a-time rule and the error
+mapping (``errors.py``) live in one place each.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import cache
+from typing import Any, Generic, NamedTuple, TypeVar
+
+from google.protobuf.message import Message
+
+from baton.sdk.types import FlightState, Picture, Position
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import ring_pb2
+
+ResultT = TypeVar("ResultT")
+
+
+class Call(NamedTuple, Generic[ResultT]):
+    """One call of the drone API: ``rpc`` ("Mobility.Takeoff") names it in errors.
+
+    A named tuple: a replay makes some 100,000 calls a second, and a frozen
+    dataclass cost a few microseconds of each."""
+
+    rpc: str
+    path: str  # the gRPC method, "/baton.v1.Mobility/Takeoff"
+    request: Message
+    reply_type: type[Message]
+    result: Callable[[Any], ResultT]
+
+
+class Methods:
+    """A channel's callable for each call's gRPC path, made on first use: the same for a
+    blocking and an asyncio channel (and ``baton replay``'s), whose ``unary_unary`` agree."""
+
+    def __init__(self, channel: Any) -> None:
+        self._channel = channel
+        self._methods: dict[str, Any] = {}
+
+    def __getitem__(self, call: Call[Any]) -> Any:
+        method = self._methods.get(call.path)
+        if method is None:
+            method = self._methods[call.path] = self._channel.unary_unary(
+                call.path,
+                request_serializer=type(call.request).SerializeToString,
+                response_deserializer=call.reply_type.FromString,
+            )
+        return method
+
+
+def _nothing(reply: Message) -> None:
+    return None
+
+
+@cache
+def _method(rpc: str) -> tuple[str, type[Message]]:
+    """The gRPC path and the reply class of ``Service.Method``, from the contracts."""
+    service_name, _, method_name = rpc.partition(".")
+    for module in (api, ring_pb2):
+        service = module.DESCRIPTOR.services_by_name.get(service_name)
+        if service is not None and method_name in service.methods_by_name:
+            reply = service.methods_by_name[method_name].output_type
+            return f"/{service.full_name}/{method_name}", getattr(module, reply.name)
+    raise ValueError(f"{rpc}: not a method of the drone API or the controller ring")
+
+
+def _call(rpc: str, request: Message, result: Callable[[Any], ResultT]) -> Call[ResultT]:
+    path, reply_type = _method(rpc)
+    return Call(rpc, path, request, reply_type, result)
+
+
+def _command(rpc: str, request: Message) -> Call[None]:
+    """A call whose reply says nothing beyond its success."""
+    return _call(rpc, request, _nothing)
+
+
+# Mobility ------------------------------------------------------------------------------
+
+
+def arm() -> Call[None]:
+    """Arms the motors."""
+    return _command("Mobility.Arm", api.ArmRequest())
+
+
+def disarm() -> Call[None]:
+    """Disarms the motors."""
+    return _command("Mobility.Disarm", api.DisarmRequest())
+
+
+def takeoff(altitude_m: float) -> Call[None]:
+    """Starts climbing to ``altitude_m`` above home."""
+    return _command("Mobility.Takeoff", api.TakeoffRequest(altitude_m=altitude_m))
+
+
+def goto(target: Position, relative_altitude_m: float | None = None) -> Call[None]:
+    """Starts flying to ``target`` (at its relative altitude unless one is given)."""
+    altitude = target.relative_altitude_m if relative_altitude_m is None else relative_altitude_m
+    request = api.GotoRequest(
+        latitude_deg=target.latitude_deg,
+        longitude_deg=target.longitude_deg,
+        relative_altitude_m=altitude,
+    )
+    return _command("Mobility.Goto", request)
+
+
+def set_speed(speed_m_s: float) -> Call[None]:
+    """Sets the cruise speed of later gotos."""
+    return _command("Mobility.SetSpeed", api.SetSpeedRequest(speed_m_s=speed_m_s))
+
+
+def hold() -> Call[None]:
+    """Stops and holds position."""
+    return _command("Mobility.Hold", api.HoldRequest())
+
+
+def land() -> Call[None]:
+    """Lands where the vehicle is."""
+    return _command("Mobility.Land", api.LandRequest())
+
+
+def return_to_launch() -> Call[None]:
+    """Flies home and lands."""
+    return _command("Mobility.ReturnToLaunch", api.ReturnToLaunchRequest())
+
+
+def position() -> Call[Position]:
+    """The vehicle's latest position."""
+    return _call(
+        "Mobility.GetPosition",
+        api.GetPositionRequest(),
+        lambda reply: Position.from_proto(reply.position),
+    )
+
+
+def home() -> Call[Position]:
+    """The home position."""
+    return _call(
+        "Mobility.GetHome", api.GetHomeRequest(), lambda reply: Position.from_proto(reply.home)
+    )
+
+
+def flight_state() -> Call[FlightState]:
+    """Armed, in air, mode, battery, readiness."""
+    return _call("Mobility.GetFlightState", api.GetFlightStateRequest(), FlightState.from_proto)
+
+
+# Camera --------------------------------------------------------------------------------
+
+
+def set_resolution(width: int, height: int) -> Call[tuple[int, int]]:
+    """Sets the picture size; the result is the size in use."""
+    return _call(
+        "Camera.SetResolution",
+        api.SetResolutionRequest(width=width, height=height),
+        lambda reply: (reply.width, reply.height),
+    )
+
+
+def take_picture() -> Call[Picture]:
+    """Takes a picture."""
+    return _call("Camera.TakePicture", api.TakePictureRequest(), Picture.from_proto)
+
+
+# Clock ---------------------------------------------------------------------------------
+
+
+def sleep(seconds: float) -> Call[None]:
+    """Sleeps ``seconds`` of mission time (at once while replaying)."""
+    return _command("Clock.Sleep", api.SleepRequest(seconds=seconds))
+
+
+def now() -> Call[float]:
+    """Mission time, Unix seconds; the same on every replica."""
+    return _call("Clock.Now", api.NowRequest(), lambda reply: reply.unix_time_s)
+
+
+# The end of the program ----------------------------------------------------------------
+
+# How long the controller is given to flush the log when the program ends.
+MISSION_DONE_TIMEOUT_S = 10.0
+
+
+def mission_done(error: str = "") -> Call[None]:
+    """Tells the controller the program has ended (``error``: why it failed, if it did)."""
+    return _command(
+        "ControllerRing.MissionDone",
+        ring_pb2.MissionDoneRequest(failed=bool(error), error=error),
+    )
