@@ -319,3 +319,59 @@ async def test_a_stream_broken_mid_message_loses_and_duplicates_nothing() -> Non
         await channel.close()
         await b_server.stop(0)
         await c_server.stop(0)
+
+
+class Holding(Receiver):
+    """A receiver that says it holds message 1 already, ``held_answers`` times."""
+
+    def __init__(self, held_answers: int) -> None:
+        super().__init__()
+        self.asked = 0
+        self.held_answers = held_answers
+        self.receiver = RingReceiver(1, self.lognr, self.deliver, LOG, held=self.held)
+
+    def held(self, head: ring_pb2.LogMessage) -> bool:
+        if head.lognr != 1:
+            return False
+        self.asked += 1
+        return self.asked <= self.held_answers
+
+
+async def start_holding(held_answers: int) -> tuple[BatonServer, Holding]:
+    receiver = Holding(held_answers)
+    server = BatonServer("127.0.0.1:0", ["baton.v1.ControllerRing"])
+    ring_pb2_grpc.add_ControllerRingServicer_to_server(receiver, server.server)
+    await server.start()
+    return server, receiver
+
+
+async def test_a_message_held_already_is_acknowledged_without_being_parsed() -> None:
+    """A handover's target gets the old master's message straight and round the ring;
+    the copy whose other came whole meanwhile is counted, acknowledged, not parsed."""
+    server, receiver = await start_holding(held_answers=1_000)
+    link = PeerLink(0, 1, server.address, LOG)
+    try:
+        link.send(big_message(1, 4 * FRAME_BYTES))
+        link.send(big_message(2, 10))
+        await wait_for(lambda: link.unacked == 0 and len(receiver.messages) == 1)
+        assert [m.lognr for m in receiver.messages] == [2]  # 1 acknowledged, not delivered
+        assert receiver.asked >= 2  # asked mid-way, and again at its last frame
+    finally:
+        await link.stop()
+        await server.stop(0)
+
+
+async def test_a_message_let_go_as_held_and_no_longer_held_is_sent_again() -> None:
+    """The receiver rejoined with nothing while it let a message's frames go: it does not
+    acknowledge it, its stream ends, and the sender's re-send is delivered whole."""
+    server, receiver = await start_holding(held_answers=1)
+    link = PeerLink(0, 1, server.address, LOG)
+    try:
+        message = big_message(1, 4 * FRAME_BYTES)
+        link.send(message)
+        await wait_for(lambda: link.unacked == 0 and receiver.messages, timeout=30)
+        assert receiver.messages == [message]
+        assert link.counters.connects >= 2
+    finally:
+        await link.stop()
+        await server.stop(0)

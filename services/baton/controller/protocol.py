@@ -931,6 +931,12 @@ class ControllerProtocol:
             return _Arrival.FENCED
         return _Arrival.NEW
 
+    def holds(self, head: ring_pb2.LogMessage) -> bool:
+        """Whether ``on_log`` would do nothing with a message with this head: we have
+        it already (``_Arrival.SEEN``). Cut-through lets such a message's frames go
+        without parsing them (``RingReceiver``)."""
+        return self._arrival(head) is _Arrival.SEEN
+
     def forward_dest(self, head: ring_pb2.LogMessage) -> int | None:
         """The controller ``on_log`` would forward a message with this head to,
         unchanged, if it came whole now; None if it would not, or would change it

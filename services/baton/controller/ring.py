@@ -83,6 +83,13 @@ def frames(
     return out
 
 
+@dataclass(frozen=True)
+class Skipped:
+    """A message whose frames were counted, not kept (``Reassembler.skip``): complete."""
+
+    lognr: int
+
+
 class Reassembler:
     """Puts frames back together into whole log messages, checking their order and size.
 
@@ -95,13 +102,21 @@ class Reassembler:
         self._lognr: int | None = None
         self._parts: list[bytes] = []
         self._received = 0
+        self._skipping = False
 
     def drop(self, lognr: int) -> None:
         """Forgets what arrived of message ``lognr`` (its sender gave it up)."""
         if self._lognr == lognr:
             self._lognr, self._parts, self._received = None, [], 0
 
-    def add(self, frame: ring_pb2.LogFrame) -> ring_pb2.LogMessage | None:
+    def skip(self, lognr: int) -> None:
+        """Message ``lognr``, part-way through, is held already (its other copy came
+        whole): what arrived is let go, the rest only counted, and its last frame
+        gives ``Skipped`` rather than a message parsed for nothing."""
+        if self._lognr == lognr:
+            self._parts, self._skipping = [], True
+
+    def add(self, frame: ring_pb2.LogFrame) -> ring_pb2.LogMessage | Skipped | None:
         """Adds a frame; returns the message when its last frame arrived."""
         if frame.total_bytes > self.max_bytes:
             raise ValueError(
@@ -111,12 +126,14 @@ class Reassembler:
             )
         if frame.offset == 0:
             self._lognr, self._parts, self._received = frame.lognr, [], 0
+            self._skipping = False
         elif frame.lognr != self._lognr or frame.offset != self._received:
             raise ValueError(
                 f"frame of log message {frame.lognr} at offset {frame.offset} does not follow "
                 f"message {self._lognr} at offset {self._received}"
             )
-        self._parts.append(frame.data)
+        if not self._skipping:
+            self._parts.append(frame.data)
         self._received += len(frame.data)
         if self._received < frame.total_bytes:
             return None
@@ -124,6 +141,9 @@ class Reassembler:
             raise ValueError(f"log message {frame.lognr} overran its {frame.total_bytes} bytes")
         data = b"".join(self._parts)
         self._lognr, self._parts, self._received = None, [], 0
+        if self._skipping:
+            self._skipping = False
+            return Skipped(frame.lognr)
         try:
             return ring_pb2.LogMessage.FromString(data)
         except DecodeError as exc:  # found by the fuzz test (tests/controller/test_fuzz_ring.py)
@@ -593,8 +613,12 @@ class RingReceiver:
         epoch_of: Callable[[int], int] | None = None,
         relay: Callable[[ring_pb2.LogMessage, int], Relay | None] | None = None,
         arriving: Callable[[int], None] | None = None,
+        held: Callable[[ring_pb2.LogMessage], bool] | None = None,
     ) -> None:
         self.my_id = my_id
+        # Given a message's head: whether handling it whole would do nothing (we
+        # hold it: ``ControllerProtocol.holds``), so its frames need not be kept.
+        self._held = held
         # Told the log number of every frame of a message as it arrives (a message
         # on its way is not missing: ``ControllerNode._repair_gap``).
         self._arriving = arriving
@@ -652,6 +676,8 @@ class RingReceiver:
         reassembler = Reassembler(self.max_message_bytes)
         # The relay of the message part-way through, if it is passed on (cut-through).
         relay: Relay | None = None
+        # And its head (from its first frame), to ask whether we hold it already.
+        head: ring_pb2.LogMessage | None = None
         try:
             while True:
                 try:
@@ -685,6 +711,7 @@ class RingReceiver:
                     if relay is not None:
                         relay.abort()  # a new message: the one part-way through was given up
                     relay = self._start_relay(frame)
+                    head = frame.head if frame.HasField("head") else None
                 try:
                     message = reassembler.add(frame)
                 except ValueError as exc:
@@ -697,6 +724,22 @@ class RingReceiver:
                 if message is None:
                     if relay is not None:
                         await relay.room()
+                    elif self._holds(head):
+                        # Its other copy came whole meanwhile (a handover's target
+                        # gets the old master's straight and the ring's): not parsed.
+                        reassembler.skip(frame.lognr)
+                    continue
+                if isinstance(message, Skipped):
+                    if not self._holds(head):  # we rejoined with nothing meanwhile
+                        await context.abort(
+                            grpc.StatusCode.UNAVAILABLE,
+                            f"controller {self.my_id} let message {message.lognr} go as held, "
+                            "and no longer holds it: send it again",
+                        )
+                        return
+                    await context.write(
+                        ring_pb2.LogAck(lognr=message.lognr, receiver_id=self.my_id)
+                    )
                     continue
                 await self._deliver(message)
                 if relay is not None:
@@ -706,6 +749,9 @@ class RingReceiver:
         finally:
             if relay is not None:
                 relay.abort()
+
+    def _holds(self, head: ring_pb2.LogMessage | None) -> bool:
+        return head is not None and self._held is not None and self._held(head)
 
     def _start_relay(self, first: ring_pb2.LogFrame) -> Relay | None:
         """The relay for a message whose first frame this is, if it is passed on as it comes."""

@@ -136,6 +136,7 @@ def ring_receiver(node: ControllerNode) -> RingReceiver:
         lambda lognr: node.protocol.epoch_of(lognr),
         node.relay_for,
         node.arriving,
+        lambda head: node.protocol.holds(head),
     )
 
 
