@@ -46,9 +46,10 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(BIN)/mypy
 
-# Regenerates the Python and mypy stubs beside the .proto files.
+# Regenerates the Python and mypy stubs beside the .proto files (tools/protogen.py,
+# configured by pyproject.toml's [tool.baton.protogen]; not part of the package).
 proto: $(STAMP)
-	$(BIN)/python -m baton.protogen
+	$(BIN)/python tools/protogen.py
 
 # The compose testbed's images in the local Docker engine (deploy/images.sh):
 # BATON_BASE=auto (default), public or local (a debootstrap base, no registry).

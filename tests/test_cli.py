@@ -36,6 +36,21 @@ def test_every_option_has_help(program: str) -> None:
     assert_documented(subparsers.choices[program], f"baton {program}")
 
 
+def test_a_subcommand_that_does_not_import_is_a_clear_error_not_a_missing_command(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A broken install says which program's module failed and why, instead of
+    leaving that subcommand out of `baton --help`."""
+    import baton.cli
+
+    monkeypatch.setattr(baton.cli, "PROGRAMS", [*baton.cli.PROGRAMS, "baton.absent.cli"])
+    with pytest.raises(SystemExit) as exited:
+        build_parser()
+    message = str(exited.value.code)
+    assert "baton.absent.cli" in message and "No module named 'baton.absent'" in message
+    assert "reinstall" in message
+
+
 def assert_documented(parser: argparse.ArgumentParser, name: str) -> None:
     """Every option of ``parser`` and of its own subcommands has a help text."""
     for action in parser._actions:

@@ -9,7 +9,10 @@ import pytest
 
 from baton.config import ConfigError, parse_config, parse_duration, parse_size
 
-TWO = [{"id": 0, "address": "127.0.0.1:7100"}, {"id": 1, "address": "127.0.0.1:7101"}]
+TWO: list[dict[str, Any]] = [
+    {"id": 0, "address": "127.0.0.1:7100"},
+    {"id": 1, "address": "127.0.0.1:7101"},
+]
 
 
 def refused(document: dict[str, Any]) -> str:

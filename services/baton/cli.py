@@ -26,7 +26,7 @@ PROGRAMS = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The parser of ``baton`` with every available subcommand."""
+    """The parser of ``baton`` with every subcommand; SystemExit naming one that does not load."""
     parser = argparse.ArgumentParser(
         prog="baton",
         description="Transparent handover of automated drone missions between edge controllers.",
@@ -47,10 +47,14 @@ def build_parser() -> argparse.ArgumentParser:
     for name in PROGRAMS:
         try:
             module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name is not None and name.startswith(exc.name):
-                continue  # that program is not built yet
-            raise
+        except ImportError as exc:
+            # Every program ships with baton: one that does not load is a broken
+            # install, said as such, never a subcommand silently missing.
+            raise SystemExit(
+                f"baton: the subcommand module {name} cannot be imported ({exc}): "
+                "the installation is broken; reinstall baton (make install, or "
+                "pip install -e '.[dev]')"
+            ) from exc
         module.register(subparsers)
     return parser
 

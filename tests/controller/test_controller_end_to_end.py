@@ -67,8 +67,10 @@ def assert_mission_promises(snapshot: Snapshot, plan: TestbedPlan) -> None:
     records = list(drone.handovers)
     for i, record in enumerate(records):
         after = records[i + 1] if i + 1 < len(records) else None
-        regranted = after is not None and after.kind == "takeover"
-        assert record.delay_s > 0 or (regranted and after.new_master == record.new_master)
+        regranted = (
+            after is not None and after.kind == "takeover" and after.new_master == record.new_master
+        )
+        assert record.delay_s > 0 or regranted
     assert [c.master for c in snapshot.controllers.values()].count(True) == 1
 
 

@@ -150,6 +150,7 @@ async def test_a_dead_master_is_a_visible_stall_within_seconds(tmp_path: Path) -
         predecessor = testbed.controller_stubs[2]  # ring 0 -> 1 -> 2 -> 0
 
         async def both_say_so() -> bool:
+            assert testbed.drone_stub is not None
             drone = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
             ring = await predecessor.GetStatus(ring_pb2.GetControllerStatusRequest())
             return "controller 0, holds no Connect stream" in drone.waiting and list(

@@ -13,6 +13,7 @@ from __future__ import annotations
 import random
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import pytest
 from test_protocol import started
@@ -72,7 +73,7 @@ class Ring:
                 assert isinstance(e, ConnectDrone | DisconnectDrone | TookOver)
 
     def step(self) -> bool:
-        choices = []
+        choices: list[tuple[str, Any]] = []
         choices += [("link", key) for key, q in self.links.items() if q]
         choices += [("reply", cid) for cid, (_, q) in self.in_flight.items() if q]
         choices += [("notice", cid) for cid, q in self.notices.items() if q]
@@ -119,7 +120,7 @@ class Ring:
         kind, value = outcomes.popleft()
         p = self.p[cid]
         if kind == "rejected":
-            self.apply(cid, p.on_handover_notice(int(value)))  # type: ignore[arg-type]
+            self.apply(cid, p.on_handover_notice(cast(int, value)))
             return
         if p.state is not State.ACTIVE or p.reqnr + 1 != reqnr:
             return  # the notice overtook the reply: discarded, the new master re-sends

@@ -21,6 +21,7 @@ import json
 import os
 import signal
 from pathlib import Path
+from typing import Any
 
 import pytest
 from test_controller_end_to_end import FAST_LINK, assert_mission_promises
@@ -129,7 +130,9 @@ async def test_a_stale_request_after_a_hand_back_is_ignored_not_fatal(tmp_path: 
         for e in log_events(tmp_path, "controller-0")
         if e.get("msg") == "stale request refused by the drone"
     ]
-    seen = [(e["reqnr"], e["sent_epoch"], e["drone_epoch"]) for e in stale]
+    seen: list[tuple[Any, Any, Any]] = [
+        (e["reqnr"], e["sent_epoch"], e["drone_epoch"]) for e in stale
+    ]
     # Takeoff, sent in epoch 1, refused in epoch 3 (0 master again); a later one may be
     # refused after the next switch, once 0 has its notice.
     assert seen[0] == (4, 1, 3) and all(sent < now for _, sent, now in seen)

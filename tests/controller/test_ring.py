@@ -68,12 +68,12 @@ class Receiver(ring_pb2_grpc.ControllerRingServicer):
             self.messages.append(message)
         self.arrived.set()
 
-    async def LogRing(self, request_iterator, context):  # type: ignore[no-untyped-def]
+    async def LogRing(self, request_iterator, context):  # type: ignore[no-untyped-def, override]
         await self.receiver.serve(context)
 
 
 async def start_receiver(address: str) -> tuple[BatonServer, Receiver]:
-    receiver = Receiver()
+    receiver = Receiver()  # type: ignore[abstract]
     server = BatonServer(address, ["baton.v1.ControllerRing"])
     ring_pb2_grpc.add_ControllerRingServicer_to_server(receiver, server.server)
     await server.start()
@@ -223,14 +223,14 @@ class Relaying(ring_pb2_grpc.ControllerRingServicer):
         if self.forwards(message, whole=True):
             self.link.send(message)
 
-    async def LogRing(self, request_iterator, context):  # type: ignore[no-untyped-def]
+    async def LogRing(self, request_iterator, context):  # type: ignore[no-untyped-def, override]
         await self.receiver.serve(context)
 
 
 async def start_chain(forwards):  # type: ignore[no-untyped-def]
     """A -> B -> C: returns C's server and receiver, B's server and servicer."""
     c_server, c = await start_receiver("127.0.0.1:0")
-    b = Relaying(c_server.address, forwards)
+    b = Relaying(c_server.address, forwards)  # type: ignore[abstract]
     b_server = BatonServer("127.0.0.1:0", ["baton.v1.ControllerRing"])
     ring_pb2_grpc.add_ControllerRingServicer_to_server(b, b_server.server)
     await b_server.start()

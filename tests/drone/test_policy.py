@@ -308,7 +308,9 @@ def test_a_pinned_master_is_kept_while_usable() -> None:
 
 def test_predictive_hands_over_before_the_range_runs_out() -> None:
     placed = stations((0.0, 500.0), (500.0, 500.0), (1000.0, 500.0))
-    track = [(t, fix(10.0 * t + 5.0, east_m_s=10.0)) for t in range(0, 150)]
+    track: list[tuple[float, Fix]] = [
+        (t, fix(10.0 * t + 5.0, east_m_s=10.0)) for t in range(0, 150)
+    ]
     events, master = run(PREDICTIVE, placed, track)
     # At 10 m/s with a 10 s lead: the first fix less than 100 m before each edge
     # (405 m, 905 m).

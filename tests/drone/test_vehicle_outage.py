@@ -11,6 +11,7 @@ is the fault-tolerance issue's; here the drone service's side is checked.
 from __future__ import annotations
 
 import socket
+import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -41,7 +42,7 @@ class SimAutopilot:
         self.port = _free_udp_port()
         self.url = f"udpout://127.0.0.1:{self.port}"
         self.speedup = float(SPEEDUP)
-        self.process = None
+        self.process: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
         ready = self.workdir / "sim.url"

@@ -139,7 +139,7 @@ async def test_copies_queued_while_the_vehicle_was_stopped_are_acted_on_once(
             finally:
                 os.kill(sim.process.pid, signal.SIGCONT)
             for command in [REPOSITION, SPEED] * 3:
-                ack = gcs.receive("COMMAND_ACK", lambda ack, c=command: ack.command == c)
+                ack = gcs.receive("COMMAND_ACK", lambda ack, c=command: ack.command == c)  # type: ignore[misc]
                 assert ack.result == ACCEPTED
     finally:
         assert await sim.terminate() == 0

@@ -103,8 +103,8 @@ def test_the_pictures_on_the_map_and_where_they_are_on_its_png(tmp_path: Path) -
     pictures: list[dict[str, object]] = [
         {"seq": 7, "time": 1.0, "effect": "picture"},  # taken where the position was unknown
     ]
-    for seq, (north, east) in places.items():
-        at = offset(HOME, north, east)
+    for seq, (north_m, east_m) in places.items():
+        at = offset(HOME, north_m, east_m)
         pictures.append(
             {
                 "seq": seq,

@@ -260,43 +260,24 @@ def draw_timeline(
     )
 
 
+# Each run of the timeline bench waits this long at most.
+RUN_TIMEOUT_S = 600.0
+
+
 async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
     """Dry run, placement, measured run; writes timeline.{png,json,csv} under ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     runs = out / "timeline-runs"
-    timeout = 600.0
-    reference = await run_plan(settings.plan(()), runs / "dry", timeout, "timeline dry run")
-    dry_requests = len(reference.drone.audit)
-    kept: list[tuple[int, int]] = []
-    attempts = []
-    for attempt in range(1, settings.attempts + 1):
-        arrivals = {a.reqnr: a.received_at for a in reference.drone.audit}
-        handovers = tuple(place_handovers(grid_calls(reference), settings, kept, arrivals))
-        say(f"timeline: attempt {attempt}: handovers (after reqnr, new master) {handovers}")
-        workdir = runs / f"measured-{attempt}"
-        measured = await run_plan(settings.plan(handovers), workdir, timeout, "timeline")
-        logs = handover_logs(measured, settings.flush_limit)
-        off = [
-            k
-            for k, (size, target) in enumerate(zip(logs, settings.targets, strict=True))
-            if abs(size - target) > settings.tolerance
-        ]
-        attempts.append({"handovers": handovers, "log_bytes": logs})
-        say(
-            f"timeline: attempt {attempt}: logs at handovers (MB) "
-            f"{[round(b / MB, 2) for b in logs]}"
-        )
-        if not off:
-            break
-        # Handovers shift the rest of the mission (the vehicle flies on while
-        # the mission waits), so later ones are placed again on this run.
-        kept = list(handovers[: off[0]])
-        reference = measured
+    placed = await measure_placed_handovers(settings, runs)
+    measured, handovers = placed.measured, placed.handovers
     prepared = await run_plan(
-        settings.plan(handovers, prepared=True), runs / "prepared", timeout, "timeline prepared"
+        settings.plan(handovers, prepared=True),
+        runs / "prepared",
+        RUN_TIMEOUT_S,
+        "timeline prepared",
     )
     rows = timeline_rows(measured, settings.flush_limit)
-    records = handover_records(measured, rows, settings, workdir)
+    records = handover_records(measured, rows, settings, placed.workdir)
     prepared_rows = timeline_rows(prepared, settings.flush_limit)
     prepared_records = handover_records(prepared, prepared_rows, settings, runs / "prepared")
     add_preparation_limits(prepared_records, handovers, prepared_rows, settings)
@@ -310,26 +291,91 @@ async def run_timeline(settings: TimelineSettings, out: Path) -> dict[str, Any]:
         },
         "machine": machine(),
         "requests": len(rows),
-        "dry_run_requests": dry_requests,
-        "attempts": attempts,
+        "dry_run_requests": placed.dry_requests,
+        "attempts": placed.attempts,
         "poll_inter_arrival_median_s": poll_median(rows),
         "after_picture_inter_arrival_median_s": after_picture_median(rows),
         "handovers": records,
         "prepared_handovers": prepared_records,
     }
+    write_timeline(
+        out,
+        result,
+        rows,
+        {"timeline.png": (measured, rows), "timeline-prepared.png": (prepared, prepared_rows)},
+        settings.flush_limit,
+    )
+    return result
+
+
+@dataclass(frozen=True)
+class PlacedRun:
+    """The measured run of the paper's handovers, placed where the log is near its targets."""
+
+    measured: Snapshot
+    handovers: tuple[tuple[int, int], ...]  # (after reqnr, new master), as the run made them
+    workdir: Path  # the measured run's folder (its logs)
+    dry_requests: int  # the requests of the dry run without handovers
+    attempts: list[dict[str, Any]]  # each attempt's handovers and logs at them
+
+
+async def measure_placed_handovers(settings: TimelineSettings, runs: Path) -> PlacedRun:
+    """A dry run for the request sequence, then measured runs with the handovers placed
+    from the last run, until every log at a handover is near its target (at most
+    ``settings.attempts`` measured runs)."""
+    reference = await run_plan(settings.plan(()), runs / "dry", RUN_TIMEOUT_S, "timeline dry run")
+    dry_requests = len(reference.drone.audit)
+    kept: list[tuple[int, int]] = []
+    attempts = []
+    for attempt in range(1, settings.attempts + 1):
+        arrivals = {a.reqnr: a.received_at for a in reference.drone.audit}
+        handovers = tuple(place_handovers(grid_calls(reference), settings, kept, arrivals))
+        say(f"timeline: attempt {attempt}: handovers (after reqnr, new master) {handovers}")
+        workdir = runs / f"measured-{attempt}"
+        measured = await run_plan(settings.plan(handovers), workdir, RUN_TIMEOUT_S, "timeline")
+        logs = handover_logs(measured, settings.flush_limit)
+        attempts.append({"handovers": handovers, "log_bytes": logs})
+        say(
+            f"timeline: attempt {attempt}: logs at handovers (MB) "
+            f"{[round(b / MB, 2) for b in logs]}"
+        )
+        off = off_target(logs, settings)
+        if not off:
+            break
+        # Handovers shift the rest of the mission (the vehicle flies on while
+        # the mission waits), so later ones are placed again on this run.
+        kept = list(handovers[: off[0]])
+        reference = measured
+    return PlacedRun(measured, handovers, workdir, dry_requests, attempts)
+
+
+def off_target(logs: Sequence[int], settings: TimelineSettings) -> list[int]:
+    """The handovers (by index) whose log was farther than the tolerance from its target."""
+    return [
+        k
+        for k, (size, target) in enumerate(zip(logs, settings.targets, strict=True))
+        if abs(size - target) > settings.tolerance
+    ]
+
+
+def write_timeline(
+    out: Path,
+    result: dict[str, Any],
+    rows: list[dict[str, Any]],
+    figures: Mapping[str, tuple[Snapshot, list[dict[str, Any]]]],
+    flush_limit: int,
+) -> None:
+    """timeline.json (``result``), timeline.csv (the measured run's ``rows``) and a
+    figure of each run (by file name: the run and its rows) under ``out``."""
     write_json(out / "timeline.json", result)
     with (out / "timeline.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    for run, run_rows, name in (
-        (measured, rows, "timeline.png"),
-        (prepared, prepared_rows, "timeline-prepared.png"),
-    ):
+    for name, (run, run_rows) in figures.items():
         draw_timeline(
-            run_rows, [h.after_reqnr for h in run.drone.handovers], settings.flush_limit, out / name
+            run_rows, [h.after_reqnr for h in run.drone.handovers], flush_limit, out / name
         )
-    return result
 
 
 def add_preparation_limits(

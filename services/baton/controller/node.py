@@ -55,6 +55,7 @@ from baton.logs import get_logger
 from baton.rpc.errors import StatusError
 from baton.rpc.tls import Tls
 from baton.stalls import StallWatch
+from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, ring_pb2
 
@@ -248,6 +249,9 @@ class ControllerNode:
         self.answered_from_retained = 0
         self.routed_around: list[int] = []  # successors skipped as unreachable
         self._router: asyncio.Task[None] | None = None
+        # What the node starts and does not await (rejoins, closing a replaced drone
+        # session, the session's events), held until each ends.
+        self._background = TaskSet()
         self.fenced_messages = 0  # log messages dropped from a fenced master
         # Times the program was restarted to replay a call it gave up on (_replay_again).
         self.program_restarts = 0
@@ -777,7 +781,7 @@ class ControllerNode:
                 )
                 if not self._rejoining:
                     self._rejoining = True
-                    asyncio.get_running_loop().create_task(self._rejoin())
+                    self._background.spawn(self._rejoin(), name="rejoin")
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
                 self.log.warning(
@@ -816,7 +820,7 @@ class ControllerNode:
         if self._drone is not None:
             return
         address = self.config.drone_address_for(self.id)
-        events = _SessionEvents(self)
+        events = _SessionEvents(self, self._background)
         self._drone = DroneSession(
             self.id,
             address,
@@ -837,7 +841,7 @@ class ControllerNode:
                 self.t_conn_s.append(drone.t_conn_s)
             # Closing from inside the drone's own event task would cancel it
             # mid-callback; let it finish on its own.
-            asyncio.get_running_loop().create_task(drone.close())
+            self._background.spawn(drone.close(), name="drone-close")
 
     # -- events -----------------------------------------------------------------------
 
@@ -941,7 +945,7 @@ class ControllerNode:
             unflushed_entries=len(p.log),
         )
         await self._apply(p.on_fenced(epoch))
-        asyncio.get_running_loop().create_task(self._rejoin())
+        self._background.spawn(self._rejoin(), name="rejoin")
 
     async def _rejoin(self) -> None:
         try:
@@ -1259,7 +1263,7 @@ class ControllerNode:
         )
         if not self._rejoining:
             self._rejoining = True
-            asyncio.get_running_loop().create_task(self._rejoin())
+            self._background.spawn(self._rejoin(), name="rejoin")
         raise StatusError(
             grpc.StatusCode.ABORTED,
             f"controller {self.id}: the program gave up on request {entry.reqnr} ({method}, "
@@ -1545,12 +1549,13 @@ class ControllerNode:
 class _SessionEvents:
     """A drone session's events, handed to the node on its event loop with the session."""
 
-    def __init__(self, node: ControllerNode) -> None:
+    def __init__(self, node: ControllerNode, tasks: TaskSet) -> None:
         self._node = node
+        self._tasks = tasks  # the node's: each event runs as a task of its own
         self.session: DroneSession | None = None
 
     def _run(self, event: Coroutine[Any, Any, None]) -> None:
-        asyncio.get_running_loop().create_task(event)
+        self._tasks.spawn(event, name="drone-event")
 
     def granted(self, connected: drone_pb2.Connected) -> None:
         assert self.session is not None

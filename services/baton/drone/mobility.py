@@ -15,7 +15,8 @@ ArduPilot streams nothing until asked and forgets it on reboot.
 Commands go through MAVSDK's ``ActionAsync``, which runs each call in the
 loop's default executor; since a handful of workers on 2 cores made reads wait
 behind commands (docs/design.md), the loop gets a larger default executor the
-first time a backend starts on it. What MAVSDK's Action does not do right on
+first time a backend starts on it (``MavsdkRuntime``, shared by the process's
+backends and given to each). What MAVSDK's Action does not do right on
 ArduPilot is done beside it with raw MAVLink commands (``MavlinkDirect``):
 GUIDED before arming, the cruise speed re-applied after every goto.
 """
@@ -68,10 +69,8 @@ ARM_RETRY_S = 0.5
 # Workers of the loop's default executor, which MAVSDK's asyncio API uses for
 # every awaited call.
 EXECUTOR_WORKERS = 32
-_loops_with_executor: weakref.WeakSet[asyncio.AbstractEventLoop] = weakref.WeakSet()
 
 _log = logs.get_logger("mavsdk")
-_mavsdk_logs_captured = False
 
 
 @dataclass(frozen=True)
@@ -86,30 +85,52 @@ class TelemetryRates:
     health_hz: float = 2.0  # SYS_STATUS: GPS health and the pre-arm bit (readiness)
 
 
-def capture_mavsdk_logs() -> None:
-    """Routes MAVSDK's own log lines (printed to stdout otherwise) into baton.logs."""
-    global _mavsdk_logs_captured
-    if _mavsdk_logs_captured:
-        return
-    import mavsdk
+class MavsdkRuntime:
+    """What the MAVSDK backends of one process share, set up once by the first to start.
 
-    def forward(level: Any, message: str, file: str | None, line: int) -> bool:
-        if level >= mavsdk.LogLevel.WARN:
-            _log.warning(message, mavsdk_level=level.name, source=f"{file}:{line}")
-        else:
-            _log.debug(message, mavsdk_level=level.name)
-        return True  # handled: MAVSDK prints nothing
+    MAVSDK's log lines go to one callback per process (its C library's), which
+    routes them into baton.logs instead of stdout. Its asyncio API runs every
+    blocking call with ``run_in_executor(None, ...)``, the loop's default
+    executor, which is therefore the only one it can be given: each event loop
+    a backend starts on gets, once, a default executor of ``workers`` threads
+    owned here (``asyncio.run`` shuts it down with the loop).
+    """
 
-    mavsdk.log_subscribe(forward)
-    _mavsdk_logs_captured = True
+    def __init__(self, workers: int = EXECUTOR_WORKERS) -> None:
+        self.workers = workers
+        self._logs_captured = False
+        self._executors: weakref.WeakKeyDictionary[
+            asyncio.AbstractEventLoop, ThreadPoolExecutor
+        ] = weakref.WeakKeyDictionary()
+
+    def prepare(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Captures MAVSDK's logs and gives ``loop`` its executor, each the first time only."""
+        self.capture_logs()
+        if loop not in self._executors:
+            executor = ThreadPoolExecutor(max_workers=self.workers, thread_name_prefix="mavsdk")
+            loop.set_default_executor(executor)
+            self._executors[loop] = executor
+
+    def capture_logs(self) -> None:
+        """Routes MAVSDK's own log lines (printed to stdout otherwise) into baton.logs."""
+        if self._logs_captured:
+            return
+        import mavsdk
+
+        def forward(level: Any, message: str, file: str | None, line: int) -> bool:
+            if level >= mavsdk.LogLevel.WARN:
+                _log.warning(message, mavsdk_level=level.name, source=f"{file}:{line}")
+            else:
+                _log.debug(message, mavsdk_level=level.name)
+            return True  # handled: MAVSDK prints nothing
+
+        mavsdk.log_subscribe(forward)
+        self._logs_captured = True
 
 
-def _ensure_executor(loop: asyncio.AbstractEventLoop) -> None:
-    if loop not in _loops_with_executor:
-        loop.set_default_executor(
-            ThreadPoolExecutor(max_workers=EXECUTOR_WORKERS, thread_name_prefix="mavsdk")
-        )
-        _loops_with_executor.add(loop)
+# The process's one runtime (MAVSDK's log callback is process-wide): every
+# MavsdkMobility shares it unless it is given another.
+PROCESS_RUNTIME = MavsdkRuntime()
 
 
 def _require_finite(name: str, value: float) -> None:
@@ -178,8 +199,10 @@ class MavsdkMobility:
         heartbeat_timeout_s: float = 3.0,
         signing_key: bytes | None = None,
         tlog_dir: Path | None = None,
+        runtime: MavsdkRuntime = PROCESS_RUNTIME,
     ) -> None:
         self.url = url
+        self._runtime = runtime
         # With a key or a telemetry log, MAVSDK talks to the autopilot through the relay.
         self._relay: MavlinkRelay | None = None
         if signing_key is not None or tlog_dir is not None:
@@ -212,8 +235,7 @@ class MavsdkMobility:
         """Adds the connection and starts waiting for the autopilot in the background."""
         from mavsdk.asyncio import ComponentType, Configuration, Mavsdk, MavsdkConnectionError
 
-        capture_mavsdk_logs()
-        _ensure_executor(asyncio.get_running_loop())
+        self._runtime.prepare(asyncio.get_running_loop())
         config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
         self._mavsdk = Mavsdk(config)
         url = self.url if self._relay is None else await self._relay.start()

@@ -41,6 +41,7 @@ from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.server import BatonServer
 from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
 from baton.stalls import StallWatch
+from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
@@ -131,6 +132,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self._switch_seen = asyncio.Event()
         self.dispatcher = Dispatcher({"Mobility": vehicle, "Camera": camera})
         self._lock = asyncio.Lock()
+        # The invocations running to their end, held while their callers may be gone.
+        self._invocations = TaskSet()
         self.log = get_logger("drone").bind(
             context=lambda: {
                 "master": self.seq.master,
@@ -404,7 +407,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         cache, never executed again. A duplicate that arrives meanwhile
         waits for it (the lock) and gets its outcome.
         """
-        task = asyncio.create_task(self._invoke_to_the_end(request, received_at))
+        task = self._invocations.spawn(self._invoke_to_the_end(request, received_at))
         task.add_done_callback(_retrieve_exception)
         return await asyncio.shield(task)
 

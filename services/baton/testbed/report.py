@@ -21,6 +21,7 @@ from baton.missions.grid import waypoints
 from baton.missions.plan import Plan
 from baton.sdk import Position, distance_m, offset
 from baton.testbed.local import Effects, Snapshot
+from baton.v1 import drone_pb2, ring_pb2
 
 REPORT_FORMAT = "baton.testbed.report/1"
 # What the report says for a part that keeps no effects file (SITL, an
@@ -253,161 +254,28 @@ def build_report(
     survey's waypoints, north and east of its first, instead of the grid)."""
     drone = snapshot.drone
     audit = list(drone.audit)
-    executed = [a.reqnr for a in audit]
-    counts = Counter(executed)
-    # Each request number once, and as many drone calls as every replica's
-    # program had answered (Clock calls are logged too but never reach the
-    # drone, so the audit's request numbers have gaps where they were).
-    exactly_once = all(n == 1 for n in counts.values()) and all(
-        c.drone_calls == len(audit) for c in snapshot.controllers.values()
-    )
     pictures = sum(1 for a in audit if a.method.endswith("/TakePicture"))
-    chains = {c.reply_chain for c in snapshot.controllers.values()}
-    reqnrs = {c.reqnr for c in snapshot.controllers.values()}
-    consistent = len(chains) == 1 and len(reqnrs) == 1 and max(reqnrs) >= drone.last_reqnr
-    completed = bool(snapshot.controllers) and all(
-        c.mission == "done" for c in snapshot.controllers.values()
-    )
     largest_entry = max((a.reply_bytes for a in audit), default=0)
     t_conns = [t for c in snapshot.controllers.values() for t in c.t_conn_s]
     t_conn = sum(t_conns) / len(t_conns) if t_conns else 0.0
-    link = config.controller_link
-    handovers = []
-    for record in drone.handovers:
-        old = snapshot.controllers.get(record.old_master)
-        moved = 0
-        if old is not None:
-            moved = next(
-                (
-                    h.log_bytes
-                    for h in old.handovers
-                    if h.role == "old"
-                    and h.peer == record.new_master
-                    and h.reqnr <= record.after_reqnr
-                ),
-                0,
-            )
-        hops = config.hops(record.old_master, record.new_master)
-        handovers.append(
-            {
-                "from": record.old_master,
-                "to": record.new_master,
-                "after_reqnr": record.after_reqnr,
-                "hops": hops,
-                "trigger": record.trigger,
-                "kind": record.kind,
-                # A takeover: from the drone's last sighting of the lost master to its
-                # decision (the takeover time, and how late the drone looked).
-                "detection_s": (
-                    round(record.decided_at - record.lost_at, 6)
-                    if record.kind == "takeover"
-                    else None
-                ),
-                # A prepared handover (or one forced when its preparation ran out of
-                # time): how long the preparation took, and what the target lacked.
-                "prepare_s": (
-                    round(record.decided_at - record.prepare_started_at, 6)
-                    if record.prepare_started_at
-                    else None
-                ),
-                "prepare_timed_out": record.prepare_timed_out,
-                "log_bytes": moved,
-                "delay_s": round(record.delay_s, 6),
-                "decided_at": record.decided_at,
-                # The handover policy's why and where (trigger "policy").
-                "reason": record.reason,
-                "position": (
-                    [record.position.latitude_deg, record.position.longitude_deg]
-                    if record.HasField("position")
-                    else None
-                ),
-                "model_worst_case_s": round(
-                    model_worst_case_s(
-                        hops,
-                        config.flush_limit,
-                        largest_entry,
-                        t_conn,
-                        link.latency,
-                        link.bandwidth,
-                    ),
-                    6,
-                ),
-            }
-        )
+    handovers = [
+        _handover(config, snapshot, record, largest_entry, t_conn) for record in drone.handovers
+    ]
     # A scripted reqnr that was a Clock call fires after the next drone request. Only
     # the script's handovers stand for planned ones (not an operator's, not a takeover).
     scripted = [h for h in handovers if h["trigger"] == "script"]
     missed = planned_handovers[len(scripted) :]
-    gotos = sum(1 for a in audit if a.method.endswith("/Goto"))
-    survey = plan is None and grid_mission  # the grid or the corridor: a picture a waypoint
     return {
         "format": REPORT_FORMAT,
-        "completed": completed,
+        "completed": bool(snapshot.controllers)
+        and all(c.mission == "done" for c in snapshot.controllers.values()),
         "duration_s": round(duration_s, 3),
-        "mission": {
-            "grid": grid if survey and targets is None else None,
-            "plan": str(plan.path) if plan is not None else None,
-            # The surveys check their position at every picture, so a picture is a
-            # visit; the plan mission flies to each goto before the next. Of another
-            # mission file only its gotos are known.
-            "waypoints": (
-                len(plan.waypoints)
-                if plan is not None
-                else (grid * grid if targets is None else len(targets))
-                if grid_mission
-                else gotos
-            ),
-            "waypoints_visited": pictures if survey else gotos,
-            "pictures": pictures,
-            "invocations": len(audit),
-            "calls": max(reqnrs, default=0),
-            # When the drone received each TakePicture (wall clock), for
-            # checking against the autopilot's own telemetry.
-            "picture_requests": [
-                {"reqnr": a.reqnr, "received_at": a.received_at}
-                for a in audit
-                if a.method.endswith("/TakePicture")
-            ],
-        },
-        "setup": {
-            "controllers": len(config.controllers),
-            "ring": config.ring_order,
-            "initial_master": config.master_id,
-            "flush_limit_bytes": config.flush_limit,
-            "speedup": config.speedup,
-            "controller_link": {"latency_s": link.latency, "bandwidth_bps": link.bandwidth},
-            "t_conn_mean_s": round(t_conn, 6),
-            "largest_entry_bytes": largest_entry,
-            "vehicle": {
-                "url": drone.vehicle_url,
-                "autopilot": drone.flight_state.autopilot or "unknown",
-                # MAVLink 2 signing on the drone's link (drone.mavlink_key), and
-                # what it refused from the autopilot.
-                "signing": drone.vehicle.signing,
-                "refused_frames": drone.vehicle.refused_frames,
-            },
-        },
+        "mission": _mission(snapshot, grid, plan, grid_mission, targets),
+        "setup": _setup(config, drone, t_conn, largest_entry),
         "handovers": handovers,
         # The master at the start, then after each handover.
         "masters": [config.master_id, *(h["to"] for h in handovers)],
-        "policy": {
-            "name": drone.handover_policy or "none",
-            "radio_range": config.radio_range,
-            # Holds in the air (a hold decided on the ground, before the controllers
-            # are up or after the landing, stops nothing).
-            "holds": sum(
-                1
-                for d in drone.policy_decisions
-                if d.action == "hold" and d.position.relative_altitude_m > 0.5
-            ),
-            "resumes": sum(1 for d in drone.policy_decisions if d.action == "resume"),
-            # No controller usable, flown on along a leg into a station's range.
-            "flown_on": sum(
-                1
-                for d in drone.policy_decisions
-                if d.action == "fly_on" and d.position.relative_altitude_m > 0.5
-            ),
-        },
+        "policy": _policy(config, drone),
         "handovers_planned": [list(h) for h in planned_handovers],
         "handovers_missed": [list(h) for h in missed],
         "drone": {
@@ -418,25 +286,9 @@ def build_report(
             "rejected": drone.rejected,
             "vehicle_outages": drone.vehicle.outages,
         },
-        "controllers": [
-            {
-                "id": cid,
-                "state": c.state,
-                "master": c.master,
-                "reqnr": c.reqnr,
-                "lognr": c.lognr,
-                "log_bytes": c.log_bytes,
-                "queue_length": c.queue_length,
-                "mission": c.mission,
-                "mission_error": c.mission_error,
-                "invoked": c.invoked,
-                "replayed": c.replayed,
-                "reply_chain": c.reply_chain.hex(),
-            }
-            for cid, c in sorted(snapshot.controllers.items())
-        ],
-        "replicas_consistent": consistent,
-        "exactly_once": exactly_once,
+        "controllers": [_controller(cid, c) for cid, c in sorted(snapshot.controllers.items())],
+        "replicas_consistent": replicas_consistent(snapshot),
+        "exactly_once": executed_exactly_once(snapshot),
         "side_effects": (
             check_plan_effects(snapshot, plan, pictures)
             if plan is not None
@@ -444,6 +296,191 @@ def build_report(
             if grid_mission
             else check_counted_effects(snapshot, pictures)
         ),
+    }
+
+
+def executed_exactly_once(snapshot: Snapshot) -> bool:
+    """Each request number once in the drone's audit, and as many drone calls as every
+    replica's program had answered (Clock calls are logged too but never reach the
+    drone, so the audit's request numbers have gaps where they were)."""
+    audit = snapshot.drone.audit
+    counts = Counter(a.reqnr for a in audit)
+    return all(n == 1 for n in counts.values()) and all(
+        c.drone_calls == len(audit) for c in snapshot.controllers.values()
+    )
+
+
+def replicas_consistent(snapshot: Snapshot) -> bool:
+    """Every controller got the same replies (one reply chain) up to one request number,
+    no earlier than the drone's last."""
+    chains = {c.reply_chain for c in snapshot.controllers.values()}
+    reqnrs = {c.reqnr for c in snapshot.controllers.values()}
+    return len(chains) == 1 and len(reqnrs) == 1 and max(reqnrs) >= snapshot.drone.last_reqnr
+
+
+def _handover(
+    config: BatonConfig,
+    snapshot: Snapshot,
+    record: drone_pb2.HandoverRecord,
+    largest_entry: int,
+    t_conn: float,
+) -> dict[str, Any]:
+    """One handover the drone recorded, with the log it moved and the model's bound."""
+    old = snapshot.controllers.get(record.old_master)
+    moved = 0
+    if old is not None:
+        moved = next(
+            (
+                h.log_bytes
+                for h in old.handovers
+                if h.role == "old" and h.peer == record.new_master and h.reqnr <= record.after_reqnr
+            ),
+            0,
+        )
+    hops = config.hops(record.old_master, record.new_master)
+    link = config.controller_link
+    return {
+        "from": record.old_master,
+        "to": record.new_master,
+        "after_reqnr": record.after_reqnr,
+        "hops": hops,
+        "trigger": record.trigger,
+        "kind": record.kind,
+        # A takeover: from the drone's last sighting of the lost master to its
+        # decision (the takeover time, and how late the drone looked).
+        "detection_s": (
+            round(record.decided_at - record.lost_at, 6) if record.kind == "takeover" else None
+        ),
+        # A prepared handover (or one forced when its preparation ran out of
+        # time): how long the preparation took, and what the target lacked.
+        "prepare_s": (
+            round(record.decided_at - record.prepare_started_at, 6)
+            if record.prepare_started_at
+            else None
+        ),
+        "prepare_timed_out": record.prepare_timed_out,
+        "log_bytes": moved,
+        "delay_s": round(record.delay_s, 6),
+        "decided_at": record.decided_at,
+        # The handover policy's why and where (trigger "policy").
+        "reason": record.reason,
+        "position": (
+            [record.position.latitude_deg, record.position.longitude_deg]
+            if record.HasField("position")
+            else None
+        ),
+        "model_worst_case_s": round(
+            model_worst_case_s(
+                hops,
+                config.flush_limit,
+                largest_entry,
+                t_conn,
+                link.latency,
+                link.bandwidth,
+            ),
+            6,
+        ),
+    }
+
+
+def _mission(
+    snapshot: Snapshot,
+    grid: int,
+    plan: Plan | None,
+    grid_mission: bool,
+    targets: Sequence[tuple[float, float]] | None,
+) -> dict[str, Any]:
+    """What the mission was and what of it the drone executed."""
+    audit = list(snapshot.drone.audit)
+    pictures = sum(1 for a in audit if a.method.endswith("/TakePicture"))
+    gotos = sum(1 for a in audit if a.method.endswith("/Goto"))
+    survey = plan is None and grid_mission  # the grid or the corridor: a picture a waypoint
+    return {
+        "grid": grid if survey and targets is None else None,
+        "plan": str(plan.path) if plan is not None else None,
+        # The surveys check their position at every picture, so a picture is a
+        # visit; the plan mission flies to each goto before the next. Of another
+        # mission file only its gotos are known.
+        "waypoints": (
+            len(plan.waypoints)
+            if plan is not None
+            else (grid * grid if targets is None else len(targets))
+            if grid_mission
+            else gotos
+        ),
+        "waypoints_visited": pictures if survey else gotos,
+        "pictures": pictures,
+        "invocations": len(audit),
+        "calls": max((c.reqnr for c in snapshot.controllers.values()), default=0),
+        # When the drone received each TakePicture (wall clock), for
+        # checking against the autopilot's own telemetry.
+        "picture_requests": [
+            {"reqnr": a.reqnr, "received_at": a.received_at}
+            for a in audit
+            if a.method.endswith("/TakePicture")
+        ],
+    }
+
+
+def _setup(
+    config: BatonConfig, drone: drone_pb2.DroneStatus, t_conn: float, largest_entry: int
+) -> dict[str, Any]:
+    """The ring, the links and the vehicle the mission ran with."""
+    link = config.controller_link
+    return {
+        "controllers": len(config.controllers),
+        "ring": config.ring_order,
+        "initial_master": config.master_id,
+        "flush_limit_bytes": config.flush_limit,
+        "speedup": config.speedup,
+        "controller_link": {"latency_s": link.latency, "bandwidth_bps": link.bandwidth},
+        "t_conn_mean_s": round(t_conn, 6),
+        "largest_entry_bytes": largest_entry,
+        "vehicle": {
+            "url": drone.vehicle_url,
+            "autopilot": drone.flight_state.autopilot or "unknown",
+            # MAVLink 2 signing on the drone's link (drone.mavlink_key), and
+            # what it refused from the autopilot.
+            "signing": drone.vehicle.signing,
+            "refused_frames": drone.vehicle.refused_frames,
+        },
+    }
+
+
+def _policy(config: BatonConfig, drone: drone_pb2.DroneStatus) -> dict[str, Any]:
+    """The drone's handover policy and what it decided in the air."""
+    decisions = drone.policy_decisions
+    return {
+        "name": drone.handover_policy or "none",
+        "radio_range": config.radio_range,
+        # Holds in the air (a hold decided on the ground, before the controllers
+        # are up or after the landing, stops nothing).
+        "holds": sum(
+            1 for d in decisions if d.action == "hold" and d.position.relative_altitude_m > 0.5
+        ),
+        "resumes": sum(1 for d in decisions if d.action == "resume"),
+        # No controller usable, flown on along a leg into a station's range.
+        "flown_on": sum(
+            1 for d in decisions if d.action == "fly_on" and d.position.relative_altitude_m > 0.5
+        ),
+    }
+
+
+def _controller(cid: int, c: ring_pb2.ControllerStatus) -> dict[str, Any]:
+    """One controller's final status."""
+    return {
+        "id": cid,
+        "state": c.state,
+        "master": c.master,
+        "reqnr": c.reqnr,
+        "lognr": c.lognr,
+        "log_bytes": c.log_bytes,
+        "queue_length": c.queue_length,
+        "mission": c.mission,
+        "mission_error": c.mission_error,
+        "invoked": c.invoked,
+        "replayed": c.replayed,
+        "reply_chain": c.reply_chain.hex(),
     }
 
 
