@@ -338,7 +338,7 @@ class Holding(Receiver):
 
 
 async def start_holding(held_answers: int) -> tuple[BatonServer, Holding]:
-    receiver = Holding(held_answers)
+    receiver = Holding(held_answers)  # type: ignore[abstract]
     server = BatonServer("127.0.0.1:0", ["baton.v1.ControllerRing"])
     ring_pb2_grpc.add_ControllerRingServicer_to_server(receiver, server.server)
     await server.start()
