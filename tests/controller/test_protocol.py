@@ -185,6 +185,22 @@ def test_handover_notice_sends_unflushed_log_to_new_master_with_its_id_as_origin
     assert p.on_handover_notice(2) == []  # a repeated notice changes nothing
 
 
+def test_a_handover_notice_older_than_our_takeover_is_ignored() -> None:
+    """Across real processes (test_restarts_and_epochs): master 1 (epoch 2) was moved to
+    a just-restarted 0 (epoch 3), which the drone, not having seen 0 since its kill,
+    took over at once, giving 1 the mastership again (epoch 4). The epoch-3 notice
+    reached 1 after that takeover: 1 handed over to 0, which the takeover had fenced,
+    and nobody was master, for ever. A notice of an epoch not above ours is stale."""
+    p = started(1, [0, 1, 2], 0, initial_master=1)
+    p.on_reply(entry(1))
+    p.on_granted(4, takeover=True)
+    assert p.on_handover_notice(0, epoch=3) == []
+    assert (p.state, p.master, p.epoch) == (State.ACTIVE, True, 4)
+    # The notice of a switch after our own epoch still hands over.
+    assert sends(p.on_handover_notice(0, epoch=5))[-1][2] is True
+    assert p.state is State.PASSIVE
+
+
 def test_passive_controller_replays_an_in_order_message_and_forwards_it() -> None:
     p = started(1, [0, 1, 2], 0)
     effects = p.on_log(message(1, origin=0, reqnrs=[1, 2]))

@@ -800,6 +800,12 @@ class ControllerProtocol:
         if self.state is not State.ACTIVE:
             # A repeated notice (e.g. from an Invoke rejection after the stream's).
             return []
+        if epoch and epoch <= self.epoch:
+            # A switch before our mastership: the drone made us master again since
+            # (a takeover of the controller it had moved to), and its notice of the
+            # older switch came late, on the old session's stream. Handing over now
+            # would leave no master (that controller was fenced by our takeover).
+            return []
         if new_master == self.id or new_master not in self.ring:
             raise ProtocolError(f"handover notice names controller {new_master}")
         self.state, self.master = State.PASSIVE, False
