@@ -11,6 +11,7 @@ from pathlib import Path
 
 from drone_fakes import FakeMobility
 
+from baton.config import controllers_only
 from baton.drone.master import parse_handover_script
 from baton.drone.service import DroneService, DroneSettings, build_service
 from baton.rpc.channels import aio_channel
@@ -32,8 +33,7 @@ async def start_drone(script: str = "", **settings: object) -> tuple[DroneUnderT
     """A drone for controllers 0, 1, 2 (master 0) on a free port."""
     controllers = (0, 1, 2)
     defaults: dict[str, object] = {
-        "address": "127.0.0.1:0",
-        "controllers": controllers,
+        "config": controllers_only(controllers),
         "resolution": (64, 48),
         "handover_script": parse_handover_script(script, "script", controllers),
     }

@@ -19,6 +19,7 @@ from drone_fakes import FakeMobility
 from fuzzing import INPUTS_PER_METHOD, SEED, UNHANDLED, answer, mutants
 
 from baton.certs.make import ensure
+from baton.config import controllers_only
 from baton.drone.service import DroneSettings, build_service
 from baton.rpc.channels import aio_channel
 from baton.rpc.server import BatonServer
@@ -39,7 +40,7 @@ def certs(tmp_path: Path) -> Path:
 @pytest.fixture
 async def drone(certs: Path) -> AsyncIterator[tuple[str, object]]:
     tls = Tls.load(certs, DRONE)
-    settings = DroneSettings(address="127.0.0.1:0", controllers=CONTROLLERS, tls=tls)
+    settings = DroneSettings(config=controllers_only(CONTROLLERS), tls=tls)
     service = build_service(settings, FakeMobility())
     server = BatonServer("127.0.0.1:0", ["baton.v1.Drone"], tls=tls)
     drone_pb2_grpc.add_DroneServicer_to_server(service, server.server)
