@@ -15,7 +15,7 @@ from baton.config import controllers_only
 from baton.drone.master import parse_handover_script
 from baton.drone.service import DroneService, DroneSettings, build_service
 from baton.rpc.channels import aio_channel
-from baton.rpc.server import BatonServer
+from baton.rpc.server import BatonServer, servicer
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
 
@@ -39,8 +39,8 @@ async def start_drone(script: str = "", **settings: object) -> tuple[DroneUnderT
     }
     vehicle = FakeMobility()
     service = build_service(DroneSettings(**{**defaults, **settings}), vehicle)  # type: ignore[arg-type]
-    server = BatonServer("127.0.0.1:0", ["baton.v1.Drone"])
-    drone_pb2_grpc.add_DroneServicer_to_server(service, server.server)
+    add = drone_pb2_grpc.add_DroneServicer_to_server
+    server = BatonServer("127.0.0.1:0", [servicer("baton.v1.Drone", add, service)])
     await server.start()
     stub = drone_pb2_grpc.DroneStub(aio_channel(server.address))
     return DroneUnderTest(service, vehicle, stub, server.address), server

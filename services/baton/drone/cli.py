@@ -314,7 +314,7 @@ def run(args: argparse.Namespace) -> int:
     from baton.drone.master import HandoverScriptError
     from baton.drone.mobility import MavsdkMobility
     from baton.drone.service import serve
-    from baton.rpc.server import run_until_signalled
+    from baton.lifecycle import run_until_signalled
     from baton.rpc.tls import TlsError
 
     try:

@@ -10,7 +10,6 @@ the master that was master when it was executed.
 from __future__ import annotations
 
 import asyncio
-import json
 import sys
 import time
 from collections.abc import AsyncIterator, Callable, Mapping
@@ -34,10 +33,10 @@ from baton.drone.sequencer import (
     cut_off_outcome,
 )
 from baton.drone.store import Counters, DroneStore, Intent
-from baton.lifecycle import write_atomically
+from baton.lifecycle import announce
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
-from baton.rpc.server import BatonServer
+from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
 from baton.stalls import StallWatch
 from baton.v1 import drone_api_pb2 as api
@@ -978,13 +977,13 @@ async def serve(
 ) -> int:
     """Runs the drone service until ``stop`` is set."""
     service = build_service(settings, vehicle)
+    name = drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name
     server = BatonServer(
         settings.address,
-        [drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name],
+        [servicer(name, drone_pb2_grpc.add_DroneServicer_to_server, service)],
         keepalive=CONTROLLER_KEEPALIVE_S if service.takeover_after_s > 0 else None,
         tls=settings.tls,
     )
-    drone_pb2_grpc.add_DroneServicer_to_server(service, server.server)
     await vehicle.start()
     await server.start()
     log = get_logger("drone")
@@ -1000,9 +999,7 @@ async def serve(
         handover_policy=settings.policy.name if settings.policy is not None else "none",
         speedup=settings.speedup,
     )
-    print(json.dumps({"event": "listening", "address": server.address}), flush=True)
-    if settings.address_file:
-        write_atomically(settings.address_file, server.address + "\n")
+    announce(settings.address_file, [server.address], {"address": server.address})
     if on_listening is not None:
         on_listening(server.address)
     watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
