@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -126,6 +127,11 @@ def detection_time_s(takeover_after: float, speedup: float) -> float:
     if takeover_after <= 0:
         return 0.0
     return max(takeover_after / speedup, DETECTION_FLOOR_S)
+
+
+# How long a prepared handover waits for its target to catch up before the
+# drone forces it (wall seconds; docs/design.md, "Prepared handover").
+PREPARE_TIMEOUT_S = 10.0
 
 
 # The longest a controller waits between two repairs of the same gap (seconds).
@@ -315,7 +321,7 @@ class BatonConfig(_Model):
     takeover_after: Duration = 3.0
     # How long a prepared handover waits for its target to catch up before the
     # drone forces it (wall seconds; docs/design.md, "Prepared handover").
-    prepare_timeout: Duration = Field(default=10.0, gt=0)
+    prepare_timeout: Duration = Field(default=PREPARE_TIMEOUT_S, gt=0)
     # The largest log message a controller accepts from the ring: the flush
     # limit plus the largest entry (a picture), with room to spare; default
     # flush_limit + 256 MiB (see ``log_message_cap``). A frame claiming more
@@ -520,3 +526,62 @@ def load_config(path: str | Path) -> BatonConfig:
         return config
     tls = config.tls.model_copy(update={"certs": path.parent / config.tls.certs})
     return config.model_copy(update={"tls": tls})
+
+
+def controllers_only(ids: Sequence[int]) -> BatonConfig:
+    """The model of a program given controller ids and no file (``baton drone
+    --controllers``, ``baton testbed --controllers``): every other field its default.
+    Each controller's address is port 0: a program started this way never reaches a
+    controller by it (the drone is called, the local testbed picks free ports)."""
+    return parse_config({"controllers": [{"id": cid, "address": "127.0.0.1:0"} for cid in ids]})
+
+
+def merge(
+    config: BatonConfig, flags: Iterable[tuple[str, str, Any]], source: str = ""
+) -> BatonConfig:
+    """``config`` with the flags that were given put in their fields, validated whole.
+
+    The one way a program combines its ``--config`` file with its flags: every flag
+    defaults to None ("not given"), so a flag given with the default's value still
+    wins over the file. ``flags`` are (flag, field path, value) like ``("--flush-limit",
+    "flush_limit", "2MB")``, the path dotted (``controller_link.latency``); a value of
+    None is left out. ConfigError names the flag, the value and what to write instead.
+    """
+    given = [(flag, path, value) for flag, path, value in flags if value is not None]
+    if not given:
+        return config
+    document = config.model_dump(exclude_unset=True)
+    for _, path, value in given:
+        *parents, name = path.split(".")
+        node = document
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):  # a shorthand the model keeps as a mapping
+                raise TypeError(f"{path}: {part} is not a mapping")
+        node[name] = value
+    try:
+        return BatonConfig.model_validate(document)
+    except ValidationError as exc:
+        raise ConfigError(_flag_errors(exc, given, source)) from None
+
+
+def _flag_errors(error: ValidationError, given: list[tuple[str, str, Any]], source: str) -> str:
+    """One line per problem, naming the flag that caused it (or every flag given, for
+    a problem of the whole, like an initial master that is not a controller)."""
+    by_path = {path: f"{flag} {_shown(value)}".rstrip() for flag, path, value in given}
+    everything = " ".join(by_path.values())
+    lines = []
+    for problem in error.errors():
+        path = ".".join(str(part) for part in problem["loc"])
+        msg = problem["msg"].removeprefix("Value error, ")
+        named = next((by_path[p] for p in by_path if path == p or path.startswith(p + ".")), None)
+        where = f" (over {source})" if source else ""
+        lines.append(f"{named or everything}{where}: {msg}")
+    return "\n".join(lines)
+
+
+def _shown(value: Any) -> str:
+    """A flag's value as it was typed."""
+    if isinstance(value, list | tuple):
+        return ",".join(str(v) for v in value)
+    return "" if value is True else str(value)

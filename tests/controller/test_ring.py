@@ -10,7 +10,7 @@ import pytest
 from baton.controller.history import LogHistory
 from baton.controller.ring import FRAME_BYTES, PeerLink, Reassembler, RingReceiver, frames
 from baton.logs import get_logger
-from baton.rpc.server import BatonServer
+from baton.rpc.server import BatonServer, Servicer, servicer
 from baton.testbed.local import free_port
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
@@ -72,10 +72,15 @@ class Receiver(ring_pb2_grpc.ControllerRingServicer):
         await self.receiver.serve(context)
 
 
+def _ring(impl: ring_pb2_grpc.ControllerRingServicer) -> Servicer:
+    return servicer(
+        "baton.v1.ControllerRing", ring_pb2_grpc.add_ControllerRingServicer_to_server, impl
+    )
+
+
 async def start_receiver(address: str) -> tuple[BatonServer, Receiver]:
     receiver = Receiver()  # type: ignore[abstract]
-    server = BatonServer(address, ["baton.v1.ControllerRing"])
-    ring_pb2_grpc.add_ControllerRingServicer_to_server(receiver, server.server)
+    server = BatonServer(address, [_ring(receiver)])
     await server.start()
     return server, receiver
 
@@ -231,8 +236,7 @@ async def start_chain(forwards):  # type: ignore[no-untyped-def]
     """A -> B -> C: returns C's server and receiver, B's server and servicer."""
     c_server, c = await start_receiver("127.0.0.1:0")
     b = Relaying(c_server.address, forwards)  # type: ignore[abstract]
-    b_server = BatonServer("127.0.0.1:0", ["baton.v1.ControllerRing"])
-    ring_pb2_grpc.add_ControllerRingServicer_to_server(b, b_server.server)
+    b_server = BatonServer("127.0.0.1:0", [_ring(b)])
     await b_server.start()
     return c_server, c, b_server, b
 
@@ -339,8 +343,7 @@ class Holding(Receiver):
 
 async def start_holding(held_answers: int) -> tuple[BatonServer, Holding]:
     receiver = Holding(held_answers)  # type: ignore[abstract]
-    server = BatonServer("127.0.0.1:0", ["baton.v1.ControllerRing"])
-    ring_pb2_grpc.add_ControllerRingServicer_to_server(receiver, server.server)
+    server = BatonServer("127.0.0.1:0", [_ring(receiver)])
     await server.start()
     return server, receiver
 

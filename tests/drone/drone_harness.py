@@ -11,10 +11,11 @@ from pathlib import Path
 
 from drone_fakes import FakeMobility
 
+from baton.config import controllers_only
 from baton.drone.master import parse_handover_script
 from baton.drone.service import DroneService, DroneSettings, build_service
 from baton.rpc.channels import aio_channel
-from baton.rpc.server import BatonServer
+from baton.rpc.server import BatonServer, servicer
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
 
@@ -32,15 +33,14 @@ async def start_drone(script: str = "", **settings: object) -> tuple[DroneUnderT
     """A drone for controllers 0, 1, 2 (master 0) on a free port."""
     controllers = (0, 1, 2)
     defaults: dict[str, object] = {
-        "address": "127.0.0.1:0",
-        "controllers": controllers,
+        "config": controllers_only(controllers),
         "resolution": (64, 48),
         "handover_script": parse_handover_script(script, "script", controllers),
     }
     vehicle = FakeMobility()
     service = build_service(DroneSettings(**{**defaults, **settings}), vehicle)  # type: ignore[arg-type]
-    server = BatonServer("127.0.0.1:0", ["baton.v1.Drone"])
-    drone_pb2_grpc.add_DroneServicer_to_server(service, server.server)
+    add = drone_pb2_grpc.add_DroneServicer_to_server
+    server = BatonServer("127.0.0.1:0", [servicer("baton.v1.Drone", add, service)])
     await server.start()
     stub = drone_pb2_grpc.DroneStub(aio_channel(server.address))
     return DroneUnderTest(service, vehicle, stub, server.address), server

@@ -19,9 +19,10 @@ from drone_fakes import FakeMobility
 from fuzzing import INPUTS_PER_METHOD, SEED, UNHANDLED, answer, mutants
 
 from baton.certs.make import ensure
+from baton.config import controllers_only
 from baton.drone.service import DroneSettings, build_service
 from baton.rpc.channels import aio_channel
-from baton.rpc.server import BatonServer
+from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -39,10 +40,10 @@ def certs(tmp_path: Path) -> Path:
 @pytest.fixture
 async def drone(certs: Path) -> AsyncIterator[tuple[str, object]]:
     tls = Tls.load(certs, DRONE)
-    settings = DroneSettings(address="127.0.0.1:0", controllers=CONTROLLERS, tls=tls)
+    settings = DroneSettings(config=controllers_only(CONTROLLERS), tls=tls)
     service = build_service(settings, FakeMobility())
-    server = BatonServer("127.0.0.1:0", ["baton.v1.Drone"], tls=tls)
-    drone_pb2_grpc.add_DroneServicer_to_server(service, server.server)
+    add = drone_pb2_grpc.add_DroneServicer_to_server
+    server = BatonServer("127.0.0.1:0", [servicer("baton.v1.Drone", add, service)], tls=tls)
     await server.start()
     yield server.address, service
     await server.stop(0)

@@ -14,11 +14,11 @@ import sys
 import time
 from pathlib import Path
 
-from baton.rpc.server import STOP_DEADLINE_S
+from baton.lifecycle import STOP_DEADLINE_S
 
 HANGS_WHEN_STOPPED = """
 import asyncio, pathlib, sys
-from baton.rpc.server import run_until_signalled
+from baton.lifecycle import run_until_signalled
 
 async def main(stop):
     pathlib.Path(sys.argv[1]).write_text("up")

@@ -13,7 +13,7 @@ import pytest
 from baton.certs.make import init, issue
 from baton.cli import main
 from baton.rpc.channels import aio_channel
-from baton.rpc.server import BatonServer
+from baton.rpc.server import BatonServer, generic
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls, TlsError, caller
 
 CONTROLLER_1 = Identity.controller(1)
@@ -37,11 +37,9 @@ async def drone_server(certs: Path) -> AsyncIterator[tuple[BatonServer, list[str
         callers.append(str(found))
         return str(found).encode()
 
-    server = BatonServer("127.0.0.1:0", [], tls=Tls.load(certs, DRONE))
     handler = grpc.unary_unary_rpc_method_handler(who)
-    server.server.add_generic_rpc_handlers(
-        [grpc.method_handlers_generic_handler("test.Who", {"Who": handler})]
-    )
+    who_is = generic(grpc.method_handlers_generic_handler("test.Who", {"Who": handler}))
+    server = BatonServer("127.0.0.1:0", [who_is], tls=Tls.load(certs, DRONE))
     await server.start()
     yield server, callers
     await server.stop(0)

@@ -10,9 +10,10 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 from chromium import render, require_chromium
 
-from baton.testbed.local import LocalTestbed, MissionPlan, TestbedPlan
+from baton.testbed.local import PAPER_CONTROLLER_LINK, LocalTestbed, MissionPlan, TestbedPlan
 from baton.testbed.report import build_report
 from baton.v1 import drone_pb2
 
@@ -327,3 +328,80 @@ def test_a_testbed_file_with_a_mavlink_key_flies_signed(tmp_path: Path) -> None:
     vehicle_log = (tmp_path / "w" / "logs" / "sim-vehicle.log").read_text()
     assert "MAVLink frames refused" not in vehicle_log
     assert '"signing": true' in vehicle_log  # the vehicle checked every frame it acted on
+
+
+def _planned(monkeypatch: pytest.MonkeyPatch, *argv: str) -> TestbedPlan:
+    """The plan `baton testbed ARGV` would run: its flags parsed and merged with its file,
+    up to the start (run_local is where it would start the processes)."""
+    import baton.testbed.run
+    from baton.cli import build_parser
+
+    planned: list[TestbedPlan] = []
+
+    async def capture(plan: TestbedPlan, workdir: Path, report: Path, timeout: float) -> int:
+        planned.append(plan)
+        return 0
+
+    monkeypatch.setattr(baton.testbed.run, "run_local", capture)
+    args = build_parser().parse_args(["testbed", *argv])
+    assert args.run(args) == 0
+    (plan,) = planned
+    return plan
+
+
+def _file(tmp_path: Path, **fields: object) -> Path:
+    import yaml
+
+    from baton.testbed.local import free_port
+
+    controllers = [{"id": cid, "address": f"127.0.0.1:{free_port()}"} for cid in (0, 1)]
+    drone = {"address": f"127.0.0.1:{free_port()}"}
+    fields = {"drone": drone, **fields}
+    path = tmp_path / "testbed.yaml"
+    path.write_text(yaml.safe_dump({"controllers": controllers, **fields}))
+    return path
+
+
+def test_a_flag_given_with_its_default_value_wins_over_the_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 15: `--flush-limit 2MB --speedup 10` (the defaults' values) were taken for
+    not given, and the file's flush limit and speed-up silently used instead."""
+    config = _file(tmp_path, flush_limit="512KB", speedup=40, drone_link={"latency": "5ms"})
+    given = _planned(
+        monkeypatch,
+        "--config",
+        str(config),
+        "--flush-limit",
+        "2MB",
+        "--speedup",
+        "10",
+        "--workdir",
+        str(tmp_path / "w"),
+    )
+    assert (given.flush_limit, given.speedup) == (2 * 2**20, 10.0)
+    file_only = _planned(monkeypatch, "--config", str(config), "--workdir", str(tmp_path / "w"))
+    assert (file_only.flush_limit, file_only.speedup) == (512 * 2**10, 40.0)
+    assert file_only.drone_link.latency == 0.005
+    assert file_only.controller_link == PAPER_CONTROLLER_LINK  # the file has none
+    neither = _planned(monkeypatch, "--workdir", str(tmp_path / "w"))
+    assert (neither.flush_limit, neither.speedup, neither.controllers) == (2 * 2**20, 10.0, 3)
+
+
+def test_an_explicit_flush_limit_wins_over_the_file_across_a_real_testbed(tmp_path: Path) -> None:
+    """The same across a real `baton testbed` process: the report's setup says what ran."""
+    config = _file(tmp_path, flush_limit=0, speedup=40)
+    report = run_testbed(
+        tmp_path,
+        "--config",
+        str(config),
+        *SMALL[:-2],
+        "--speedup",
+        "10",
+        "--flush-limit",
+        "2MB",
+        "--handover",
+        "4:1",
+    )
+    assert report["setup"]["flush_limit_bytes"] == 2 * 2**20
+    assert report["setup"]["speedup"] == 10.0

@@ -49,7 +49,7 @@ from baton.link.proxy import LinkProxy
 from baton.logs import get_logger
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
-from baton.rpc.server import BatonServer
+from baton.rpc.server import BatonServer, generic, servicer
 from baton.rpc.tls import DRONE, Identity, Tls
 from baton.testbed.local import LocalTestbed, TestbedPlan
 from baton.v1 import drone_api_pb2 as api
@@ -273,8 +273,8 @@ async def measure_replay_end_to_end(calls: int) -> dict[str, Any]:
     of its calls and has nothing else to do."""
     node = _replica()
     token = secrets.token_urlsafe(18)
-    server = BatonServer("127.0.0.1:0", [f"baton.v1.{name}" for name in PROXIED_SERVICES])
-    server.server.add_generic_rpc_handlers((DroneApiProxy(node, token),))
+    names = [f"baton.v1.{name}" for name in PROXIED_SERVICES]
+    server = BatonServer("127.0.0.1:0", [generic(DroneApiProxy(node, token), *names)])
     await server.start()
     try:
         await node.on_log(_position_log(REPLAY_WARM_UP + calls))
@@ -382,9 +382,9 @@ class _Relaying(ring_pb2_grpc.ControllerRingServicer):
         await self.receiver.serve(context)
 
 
-async def _serve_ring(servicer: ring_pb2_grpc.ControllerRingServicer) -> BatonServer:
-    server = BatonServer("127.0.0.1:0", ["baton.v1.ControllerRing"])
-    ring_pb2_grpc.add_ControllerRingServicer_to_server(servicer, server.server)
+async def _serve_ring(ring: ring_pb2_grpc.ControllerRingServicer) -> BatonServer:
+    add_ring = ring_pb2_grpc.add_ControllerRingServicer_to_server
+    server = BatonServer("127.0.0.1:0", [servicer("baton.v1.ControllerRing", add_ring, ring)])
     await server.start()
     return server
 

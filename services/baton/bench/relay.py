@@ -21,7 +21,7 @@ from collections.abc import Awaitable, Callable
 import grpc
 
 from baton.rpc.channels import aio_channel
-from baton.rpc.server import BatonServer
+from baton.rpc.server import BatonServer, generic
 from baton.rpc.tls import DRONE, Identity, Tls
 
 
@@ -55,8 +55,7 @@ class _Relay(grpc.GenericRpcHandler):
 async def serve(upstream: str, tls: Tls | None) -> None:
     """Relays until stdin closes."""
     channel = aio_channel(upstream, tls, DRONE if tls is not None else None)
-    server = BatonServer("127.0.0.1:0", [])
-    server.server.add_generic_rpc_handlers((_Relay(channel),))
+    server = BatonServer("127.0.0.1:0", [generic(_Relay(channel))])
     await server.start()
     print(server.address, flush=True)
     loop = asyncio.get_running_loop()

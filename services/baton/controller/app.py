@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import json
 import os
 import secrets
 import sys
@@ -16,9 +15,9 @@ from baton.controller.service import (
     DroneApiProxy,
     ring_receiver,
 )
-from baton.lifecycle import write_atomically
+from baton.lifecycle import announce, run_until_signalled
 from baton.rpc.mission import MISSION_TOKEN_ENV
-from baton.rpc.server import BatonServer, run_until_signalled
+from baton.rpc.server import BatonServer, generic, servicer
 from baton.rpc.tls import INSECURE_WARNING, Identity
 from baton.v1 import ring_pb2_grpc
 
@@ -56,19 +55,22 @@ class ControllerApp:
         # Two ports: the ring's (log frames, status), with mutual TLS, and the
         # mission program's on loopback (the drone API), tied to it by the token.
         ring = "baton.v1.ControllerRing"
-        self.server = BatonServer(config.controller(cid).address, [ring], tls=tls)
+        add_ring = ring_pb2_grpc.add_ControllerRingServicer_to_server
         self.receiver = ring_receiver(self.node)
-        ring_pb2_grpc.add_ControllerRingServicer_to_server(
-            ControllerRingService(self.node, self.token, self.receiver, tls is not None),
-            self.server.server,
+        peers = ControllerRingService(self.node, self.token, self.receiver, tls is not None)
+        self.server = BatonServer(
+            config.controller(cid).address, [servicer(ring, add_ring, peers)], tls=tls
         )
-        names = [f"baton.v1.{name}" for name in PROXIED_SERVICES] + [ring]
-        self.mission_server = BatonServer(config.controller(cid).mission_address, names)
+        proxy = DroneApiProxy(self.node, self.token)
+        names = [f"baton.v1.{name}" for name in PROXIED_SERVICES]
+        self.mission_server = BatonServer(
+            config.controller(cid).mission_address,
+            [
+                generic(proxy, *names),
+                servicer(ring, add_ring, ControllerRingService(self.node, self.token)),
+            ],
+        )
         self.node.mission_address = self.mission_server.address  # bound already
-        self.mission_server.server.add_generic_rpc_handlers((DroneApiProxy(self.node, self.token),))
-        ring_pb2_grpc.add_ControllerRingServicer_to_server(
-            ControllerRingService(self.node, self.token), self.mission_server.server
-        )
         self.mission = mission
         self.mission_args = mission_args or []
         # The interpreter that runs the program: this one, or a virtualenv of the
@@ -154,19 +156,9 @@ async def serve(
 
     async def main(stop: asyncio.Event) -> int:
         await app.start()
-        print(
-            json.dumps(
-                {
-                    "event": "listening",
-                    "id": cid,
-                    "address": app.server.address,
-                    "mission_address": app.mission_server.address,
-                }
-            ),
-            flush=True,
-        )
-        if address_file:
-            write_atomically(address_file, app.server.address)
+        address = app.server.address
+        listening = {"id": cid, "address": address, "mission_address": app.mission_server.address}
+        announce(address_file, [address], listening)
         await stop.wait()
         await app.stop()
         return 0

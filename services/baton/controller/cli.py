@@ -83,24 +83,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 def run(args: argparse.Namespace) -> int:
     """Loads and checks the configuration, then serves."""
-    from baton.config import ConfigError, load_config, parse_size
+    from baton.config import ConfigError, load_config, merge
     from baton.controller.app import serve
     from baton.rpc.tls import Identity, TlsError
 
     try:
-        config = load_config(args.config)
-        if args.flush_limit is not None:
-            try:
-                flush_limit = parse_size(args.flush_limit)
-            except ValueError as exc:
-                raise ValueError(f"--flush-limit: {exc}") from None
-            config = config.model_copy(update={"flush_limit": flush_limit})
+        # --certs: the certificates in that folder, over a file that said insecure.
+        secure = False if args.certs is not None and not args.insecure else None
+        flags = [
+            ("--flush-limit", "flush_limit", args.flush_limit),
+            ("--certs", "tls.certs", args.certs),
+            ("--certs", "tls.insecure", secure),
+            ("--insecure", "tls.insecure", True if args.insecure else None),
+        ]
+        config = merge(load_config(args.config), flags, args.config)
         config.controller(args.id)
-        if args.insecure or args.certs is not None:
-            tls = config.tls.model_copy(
-                update={"insecure": args.insecure, "certs": args.certs or config.tls.certs}
-            )
-            config = config.model_copy(update={"tls": tls})
         config.tls_for(Identity.controller(args.id))  # the files are there
         if args.mission_python is not None:
             check_mission_python(args.mission_python)

@@ -199,49 +199,45 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def settings_from_args(args: argparse.Namespace) -> DroneSettings:
-    """DroneSettings from flags over the optional configuration file."""
-    from baton.config import load_config, parse_duration
+    """DroneSettings from the flags merged over the optional configuration file
+    (``baton.config.merge``); ConfigError or ValueError names the flag and the fix."""
+    from baton.config import controllers_only, load_config, merge
     from baton.drone.dedupe import DEFAULT_WINDOW
     from baton.drone.master import load_handover_script
     from baton.drone.mavlink_relay import VehicleEndpoint
-    from baton.drone.sequencer import PREPARE_TIMEOUT_S
     from baton.drone.service import DroneSettings, Race
     from baton.rpc.tls import DRONE
     from baton.signing import read_key
 
-    address, vehicle_url, speedup = "127.0.0.1:50051", "udpin://127.0.0.1:14540", 1.0
-    controllers: tuple[int, ...] = (0,)
-    initial_master: int | None = None
-    takeover_after = 3.0
-    prepare_timeout = PREPARE_TIMEOUT_S
-    config = None
     if args.config:
         config = load_config(args.config)
-        address, vehicle_url = config.drone.address, config.drone.vehicle_url
-        controllers = tuple(config.ring_order)
-        initial_master, speedup = config.master_id, config.speedup
-        takeover_after = config.takeover_after
-        prepare_timeout = config.prepare_timeout
-    if args.takeover_after is not None:
-        try:
-            takeover_after = parse_duration(args.takeover_after)
-        except ValueError as exc:
-            raise ValueError(f"--takeover-after: {exc}") from None
-    controllers = args.controllers or controllers
-    if args.initial_master is not None:
-        initial_master = args.initial_master
-    if initial_master is not None and initial_master not in controllers:
-        raise ValueError(
-            f"--initial-master {initial_master} is not one of the controllers {list(controllers)}"
-        )
-    if args.speedup is not None and not 0 < args.speedup <= 1000:
-        raise ValueError(f"--speedup must be in (0, 1000], got {args.speedup}")
+    else:
+        if args.handover_policy not in (None, "none"):
+            raise ValueError(
+                f"--handover-policy {args.handover_policy} needs --config: the testbed file "
+                "with every controller's location and range_m"
+            )
+        config = controllers_only(args.controllers or (0,))
+    # Without a file the ids made the model; with one they are its ring order.
+    order = list(args.controllers) if args.config and args.controllers else None
+    flags = [
+        ("--address", "drone.address", args.address),
+        ("--vehicle-url", "drone.vehicle_url", args.vehicle_url),
+        ("--mavlink-key", "drone.mavlink_key", args.mavlink_key),
+        ("--controllers", "ring.order", order),
+        ("--initial-master", "initial_master", args.initial_master),
+        ("--speedup", "speedup", args.speedup),
+        ("--takeover-after", "takeover_after", args.takeover_after),
+        ("--handover-policy", "handover_policy.name", args.handover_policy),
+    ]
+    config = merge(config, flags, args.config or "")
     if not 0 <= args.race_delay <= 60:
         raise ValueError(f"--race-delay must be in 0..60 seconds, got {args.race_delay}")
     if args.cache_window is not None and args.cache_window < 1:
         raise ValueError(f"--cache-window must be >= 1, got {args.cache_window}")
+    controllers = tuple(config.ring_order)
     script = load_handover_script(args.handover_file, controllers) if args.handover_file else {}
-    policy, stations = handover_policy(config, args.handover_policy, takeover_after)
+    policy, stations = handover_policy(config)
     if args.image is not None:
         try:
             with open(args.image, "rb"):
@@ -251,36 +247,29 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
                 f"--image {args.image}: cannot read it ({exc.strerror}); give an image file, "
                 "or leave --image out for generated pictures"
             ) from None
-    vehicle = args.vehicle_url or vehicle_url
+    vehicle = config.drone.vehicle_url
     if vehicle.split("://", 1)[0] not in VEHICLE_SCHEMES or "://" not in vehicle:
         raise ValueError(
             f"--vehicle-url {vehicle}: not a MAVLink URL; use one of "
             f"{', '.join(s + '://' for s in VEHICLE_SCHEMES)}, e.g. udpin://0.0.0.0:14540"
         )
     mavlink_key = None
-    key_file = args.mavlink_key or (config.drone.mavlink_key if config else None)
-    if key_file is not None:
-        mavlink_key = read_key(Path(key_file))
+    if config.drone.mavlink_key is not None:
+        mavlink_key = read_key(config.drone.mavlink_key)
         VehicleEndpoint.parse(vehicle)  # the relay can hold it, or a message saying why
     if args.tlog_dir is not None:
         VehicleEndpoint.parse(vehicle, tlog=True)
     return DroneSettings(
-        address=args.address or address,
-        vehicle_url=vehicle,
-        controllers=controllers,
-        initial_master=initial_master,
+        config=config,
         handover_script=script,
         image_file=args.image,
         resolution=args.resolution,
-        speedup=args.speedup if args.speedup is not None else speedup,
         cache_window=args.cache_window or DEFAULT_WINDOW,
         address_file=args.address_file,
         race=Race(args.force_race, args.race_delay) if args.force_race else None,
         state_file=args.state,
         camera_effects_file=args.camera_effects_file,
         thumbnails_dir=args.thumbnails_dir,
-        takeover_after=takeover_after,
-        prepare_timeout_s=prepare_timeout,
         tls=tls_from_flags(args, config, DRONE),
         mavlink_key=mavlink_key,
         policy=policy,
@@ -288,44 +277,30 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     )
 
 
-def handover_policy(
-    config: BatonConfig | None, flag: str | None, takeover_after: float
-) -> tuple[PolicyParams | None, dict[int, Station]]:
-    """The policy the drone runs (the flag over the config's) and every controller's
-    station; ValueError naming what is missing."""
+def handover_policy(config: BatonConfig) -> tuple[PolicyParams | None, dict[int, Station]]:
+    """The policy the drone runs (the model's, flag merged in) and every controller's
+    station (the model has checked that each has a location and a range)."""
     from baton.drone.policy import PolicyParams, Station
     from baton.drone.service import CONTROLLER_KEEPALIVE_S
     from baton.sdk import Position
 
-    chosen = config.handover_policy if config is not None else None
-    name = flag or (chosen.name if chosen is not None else "none")
-    if name == "none":
+    chosen = config.handover_policy
+    if chosen.name == "none":
         return None, {}
-    if config is None:
-        raise ValueError(
-            f"--handover-policy {name} needs --config: the testbed file with every "
-            "controller's location and range_m"
-        )
     stations = {}
     for c in config.controllers:
-        if c.location is None or c.range_m is None:
-            missing = "location" if c.location is None else "range_m"
-            raise ValueError(
-                f"--handover-policy {name}: controller {c.id} has no {missing} in the config; add "
-                "it, or run without a handover policy"
-            )
+        assert c.location is not None and c.range_m is not None
         where = Position(c.location.latitude_deg, c.location.longitude_deg)
         stations[c.id] = Station(c.id, where, c.range_m)
-    assert chosen is not None
     params = PolicyParams(
-        name,
+        chosen.name,
         margin_m=chosen.margin_m,
         dwell_s=chosen.dwell,
         lead_s=chosen.lead,
         link_up_s=chosen.link_up,
         # A master's link down while in range is lost after the takeover time, as
         # the takeover watch counts it; a link slower than the keepalive drops anyway.
-        link_lost_after_s=takeover_after,
+        link_lost_after_s=config.takeover_after,
         max_rtt_s=CONTROLLER_KEEPALIVE_S[1],
     )
     return params, stations
@@ -339,7 +314,7 @@ def run(args: argparse.Namespace) -> int:
     from baton.drone.master import HandoverScriptError
     from baton.drone.mobility import MavsdkMobility
     from baton.drone.service import serve
-    from baton.rpc.server import run_until_signalled
+    from baton.lifecycle import run_until_signalled
     from baton.rpc.tls import TlsError
 
     try:

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import grpc
 
+from baton.config import PREPARE_TIMEOUT_S
 from baton.drone.dedupe import DEFAULT_WINDOW, GIVEN_UP, CachedReply, ReplyCache
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
@@ -61,8 +62,6 @@ PREPARED_BOUND_BYTES = 16 << 10
 # at least one since the preparation began: a target that lacks little but hears
 # nothing (its link froze) has not caught up.
 PREPARED_BEHIND_S = 0.25
-# How long a prepared handover waits for its target by default (wall seconds).
-PREPARE_TIMEOUT_S = 10.0
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,6 @@ the master that was master when it was executed.
 from __future__ import annotations
 
 import asyncio
-import json
 import sys
 import time
 from collections.abc import AsyncIterator, Callable, Mapping
@@ -19,7 +18,7 @@ from typing import Any
 
 import grpc
 
-from baton.config import detection_time_s
+from baton.config import BatonConfig, controllers_only, detection_time_s
 from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
 from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, retained_batches
@@ -29,16 +28,15 @@ from baton.drone.mobility_api import MobilityBackend
 from baton.drone.policy import PolicyParams, Station
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.sequencer import (
-    PREPARE_TIMEOUT_S,
     ScriptedHandover,
     Sequencer,
     cut_off_outcome,
 )
 from baton.drone.store import Counters, DroneStore, Intent
-from baton.lifecycle import write_atomically
+from baton.lifecycle import announce
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
-from baton.rpc.server import BatonServer
+from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
 from baton.stalls import StallWatch
 from baton.tasks import TaskSet
@@ -877,30 +875,24 @@ class Race:
 
 @dataclass(frozen=True)
 class DroneSettings:
-    """Everything ``baton drone`` needs, from flags or the testbed configuration."""
+    """Everything ``baton drone`` runs with: the testbed model (``baton.config``: its
+    address, vehicle URL, controllers, master, speed-up, takeover and prepare times;
+    the --config file with the flags merged in) and what only the drone's flags give."""
 
-    address: str = "127.0.0.1:50051"
-    vehicle_url: str = "udpin://127.0.0.1:14540"
-    controllers: tuple[int, ...] = (0,)
-    initial_master: int | None = None
+    config: BatonConfig = field(default_factory=lambda: controllers_only([0]))
     handover_script: Mapping[int, ScriptedHandover] = field(default_factory=dict)
     image_file: str | None = None
     resolution: tuple[int, int] = DEFAULT_RESOLUTION
-    speedup: float = 1.0
     cache_window: int = DEFAULT_WINDOW
     address_file: str | None = None
     race: Race | None = None
     state_file: str | None = None  # the durable state (store.py); None: memory only
     camera_effects_file: str | None = None  # pictures counted (baton.effects); None: no file
     thumbnails_dir: str | None = None  # a small JPEG of each picture kept here; None: none
-    # The master is lost after this long without a stream or a request, in
-    # mission seconds (divided by speedup); 0: never.
-    takeover_after: float = 3.0
-    # How long a prepared handover waits for its target (wall seconds).
-    prepare_timeout_s: float = PREPARE_TIMEOUT_S
     # The drone's certificate (mutual TLS); None: an insecure port open to anyone.
     tls: Tls | None = None
-    # The MAVLink signing key (signing.py); None: the autopilot link unsigned.
+    # The MAVLink signing key (signing.py), read from config.drone.mavlink_key;
+    # None: the autopilot link unsigned.
     mavlink_key: bytes | None = None
     # The handover policy (policy.py) and every controller's station; None: the
     # script and the operator only.
@@ -908,9 +900,40 @@ class DroneSettings:
     stations: Mapping[int, Station] = field(default_factory=dict)
 
     @property
+    def address(self) -> str:
+        """Where the drone serves."""
+        return self.config.drone.address
+
+    @property
+    def vehicle_url(self) -> str:
+        """The autopilot's MAVLink URL."""
+        return self.config.drone.vehicle_url
+
+    @property
+    def controllers(self) -> tuple[int, ...]:
+        """The controllers that may become master, in ring order."""
+        return tuple(self.config.ring_order)
+
+    @property
     def master(self) -> int:
         """The initial master: given, else the first controller."""
-        return self.initial_master if self.initial_master is not None else self.controllers[0]
+        return self.config.master_id
+
+    @property
+    def speedup(self) -> float:
+        """The mission's speed-up."""
+        return self.config.speedup
+
+    @property
+    def takeover_after(self) -> float:
+        """The master is lost after this long without a stream or a request, in
+        mission seconds (divided by speedup); 0: never."""
+        return self.config.takeover_after
+
+    @property
+    def prepare_timeout_s(self) -> float:
+        """How long a prepared handover waits for its target (wall seconds)."""
+        return self.config.prepare_timeout
 
 
 def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneService:
@@ -957,13 +980,13 @@ async def serve(
 ) -> int:
     """Runs the drone service until ``stop`` is set."""
     service = build_service(settings, vehicle)
+    name = drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name
     server = BatonServer(
         settings.address,
-        [drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name],
+        [servicer(name, drone_pb2_grpc.add_DroneServicer_to_server, service)],
         keepalive=CONTROLLER_KEEPALIVE_S if service.takeover_after_s > 0 else None,
         tls=settings.tls,
     )
-    drone_pb2_grpc.add_DroneServicer_to_server(service, server.server)
     await vehicle.start()
     await server.start()
     log = get_logger("drone")
@@ -979,9 +1002,7 @@ async def serve(
         handover_policy=settings.policy.name if settings.policy is not None else "none",
         speedup=settings.speedup,
     )
-    print(json.dumps({"event": "listening", "address": server.address}), flush=True)
-    if settings.address_file:
-        write_atomically(settings.address_file, server.address + "\n")
+    announce(settings.address_file, [server.address], {"address": server.address})
     if on_listening is not None:
         on_listening(server.address)
     watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")

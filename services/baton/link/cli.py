@@ -10,14 +10,13 @@ cleanly on SIGTERM or SIGINT.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from baton.config import LinkSpec, parse_address, parse_duration, parse_rate
-from baton.lifecycle import write_atomically
+from baton.lifecycle import announce, run_until_signalled, until_stopped
 from baton.link.radio import parse_fade, parse_radio_range
 
 UNLIMITED = ("unlimited", "none")
@@ -184,7 +183,6 @@ def run(args: argparse.Namespace) -> int:
     import asyncio
 
     from baton.link.proxy import LinkProxy
-    from baton.rpc.server import run_until_signalled
 
     up, down = link_specs(args)
     if (args.range is None) != (args.position_file is None):
@@ -201,19 +199,17 @@ def run(args: argparse.Namespace) -> int:
         except OSError as exc:
             proxy.log.error(f"cannot listen on {args.listen}: {exc.strerror or exc}")
             return 1
-        if args.address_file is not None:
-            write_atomically(args.address_file, proxy.address + "\n")
-        print(json.dumps({"event": "listening", "address": proxy.address}), flush=True)
+        announce(args.address_file, [proxy.address], {"address": proxy.address})
+        reported = proxy.counters.as_fields()
+
+        def report() -> None:
+            nonlocal reported
+            if proxy.counters.as_fields() != reported:
+                reported = proxy.counters.as_fields()
+                proxy.log.info("link counters", **reported)
+
         try:
-            reported = proxy.counters.as_fields()
-            interval = args.report_interval or None
-            while not stop.is_set():
-                try:
-                    await asyncio.wait_for(stop.wait(), interval)
-                except TimeoutError:
-                    if proxy.counters.as_fields() != reported:
-                        reported = proxy.counters.as_fields()
-                        proxy.log.info("link counters", **reported)
+            await until_stopped(stop, args.report_interval or None, report)
         finally:
             await proxy.stop()  # logs the final counters
         return 0

@@ -8,14 +8,10 @@ port).
 
 from __future__ import annotations
 
-import asyncio
 import inspect
-import os
-import signal
 import socket
-import sys
-import threading
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
+from dataclasses import dataclass
 from typing import Any
 
 import grpc
@@ -25,9 +21,6 @@ from grpc_reflection.v1alpha import reflection
 
 from baton.rpc.channels import SERVER_OPTIONS
 from baton.rpc.tls import Tls
-
-# How long a service may take to stop cleanly after SIGTERM or SIGINT.
-STOP_DEADLINE_S = 5.0
 
 
 class MalformedRequests(grpc.aio.ServerInterceptor):
@@ -101,13 +94,37 @@ def _why_not_bound(address: str) -> str:
     )
 
 
+@dataclass(frozen=True)
+class Servicer:
+    """One thing a ``BatonServer`` serves: the service names it reports SERVING and
+    lists for reflection, and how it is added to the gRPC server (``servicer``,
+    ``generic``)."""
+
+    names: tuple[str, ...]
+    add: Callable[[grpc.aio.Server], None]
+
+
+def servicer(
+    name: str, add_to_server: Callable[[Any, grpc.aio.Server], None], impl: Any
+) -> Servicer:
+    """Service ``name`` (``baton.v1.Drone``) served by ``impl`` through its generated
+    ``add_..._to_server``."""
+    return Servicer((name,), lambda server: add_to_server(impl, server))
+
+
+def generic(handler: grpc.GenericRpcHandler, *names: str) -> Servicer:
+    """A generic handler (a proxy, a relay) serving the services ``names``."""
+    return Servicer(names, lambda server: server.add_generic_rpc_handlers((handler,)))
+
+
 class BatonServer:
-    """A ``grpc.aio`` server with health and reflection, bound to one address."""
+    """A ``grpc.aio`` server with health and reflection, bound to one address, serving
+    the servicers it is given."""
 
     def __init__(
         self,
         address: str,
-        service_names: Iterable[str],
+        servicers: Iterable[Servicer],
         keepalive: tuple[float, float] | None = None,
         tls: Tls | None = None,
     ) -> None:
@@ -122,20 +139,23 @@ class BatonServer:
             options["grpc.http2.min_time_between_pings_ms"] = every_ms
             options["grpc.keepalive_timeout_ms"] = timeout_ms
             options["grpc.http2.ping_timeout_ms"] = timeout_ms
-        self.server = grpc.aio.server(
+        self._server = grpc.aio.server(
             options=list(options.items()), interceptors=[MalformedRequests()]
         )
         self.health = health.aio.HealthServicer()
-        health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
-        self.service_names = list(service_names)
+        health_pb2_grpc.add_HealthServicer_to_server(self.health, self._server)
+        self.service_names: list[str] = []
+        for served in servicers:
+            served.add(self._server)
+            self.service_names += served.names
         reflection.enable_server_reflection(
-            [*self.service_names, health.SERVICE_NAME, reflection.SERVICE_NAME], self.server
+            [*self.service_names, health.SERVICE_NAME, reflection.SERVICE_NAME], self._server
         )
         try:
             if tls is None:
-                self.port = self.server.add_insecure_port(address)
+                self.port = self._server.add_insecure_port(address)
             else:
-                self.port = self.server.add_secure_port(address, tls.server_credentials())
+                self.port = self._server.add_secure_port(address, tls.server_credentials())
         except RuntimeError:  # grpcio's way of saying the bind failed
             self.port = 0
         if self.port == 0:
@@ -145,51 +165,11 @@ class BatonServer:
 
     async def start(self) -> None:
         """Starts serving and reports every service SERVING."""
-        await self.server.start()
+        await self._server.start()
         for name in ["", *self.service_names]:
             await self.health.set(name, health_pb2.HealthCheckResponse.SERVING)
 
     async def stop(self, grace: float = 1.0) -> None:
         """Reports NOT_SERVING, then stops, letting calls finish for ``grace`` seconds."""
         await self.health.enter_graceful_shutdown()
-        await self.server.stop(grace)
-
-
-async def run_until_signalled(
-    main: Callable[[asyncio.Event], Awaitable[int]],
-) -> int:
-    """Runs ``main(stop_event)``; SIGTERM and SIGINT set the event for a clean exit.
-
-    The clean exit has ``STOP_DEADLINE_S``: a part that is still stopping then
-    (a call that waits on a peer dying with it, on a loaded machine) says so
-    on stderr and exits with code 1, so that a testbed killed outright leaves
-    nothing running (``lifecycle.die_with_parent``). A thread's timer, not the
-    loop's: a loop stuck is what it guards against.
-    """
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    deadline = threading.Timer(STOP_DEADLINE_S, _stop_overran)
-    deadline.daemon = True
-
-    def stopping() -> None:
-        stop.set()
-        if not deadline.is_alive():
-            deadline.start()
-
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stopping)
-    try:
-        return await main(stop)
-    finally:
-        deadline.cancel()
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.remove_signal_handler(sig)
-
-
-def _stop_overran() -> None:
-    print(
-        f"{sys.argv[0]}: still stopping {STOP_DEADLINE_S:g} s after SIGTERM; exiting now",
-        file=sys.stderr,
-        flush=True,
-    )
-    os._exit(1)
+        await self._server.stop(grace)

@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
+import asyncio
 import math
-import signal
 import sys
-import threading
 from pathlib import Path
 from typing import Any
 
-from baton.lifecycle import write_atomically
+from baton.lifecycle import announce, run_until_signalled, until_stopped
 
 DEFAULT_HOME = "47.397742,8.545594,488.0"  # PX4 SITL's default home (Zurich)
 
@@ -186,54 +184,53 @@ def run(args: argparse.Namespace) -> int:
         warmup_s=args.warmup,
         arm_refusals=max(0, args.arm_refusals),
     )
-    stop = threading.Event()
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(signum, lambda *_: stop.set())
-    vehicles = []
     effects = EffectsFile(args.effects_file)  # one file and sequence for every vehicle
-    try:
-        for index in range(args.count):
-            port = args.port + index if args.port else 0
-            vehicle = SimVehicle(
-                GeoPoint(*args.home),
-                system_id=args.system_id + index,
-                host=args.host,
-                port=port,
-                speedup=args.speedup,
-                params=params,
-                effects=effects,
-                signing_key=key,
-            )
-            vehicle.start()
-            vehicles.append(vehicle)
-            event = {"event": "listening", "url": vehicle.url, "port": vehicle.port}
-            if args.count > 1:
-                event["system_id"] = vehicle.system_id
-            print(json.dumps(event), flush=True)
 
-        def publish_position() -> None:
-            if args.position_file is not None:
-                state = vehicles[0].state()
-                write_position(
-                    args.position_file,
-                    state.latitude_deg,
-                    state.longitude_deg,
-                    state.relative_altitude_m,
+    async def serve(stop: asyncio.Event) -> int:
+        vehicles: list[SimVehicle] = []
+        try:
+            for index in range(args.count):
+                vehicle = SimVehicle(
+                    GeoPoint(*args.home),
+                    system_id=args.system_id + index,
+                    host=args.host,
+                    port=args.port + index if args.port else 0,
+                    speedup=args.speedup,
+                    params=params,
+                    effects=effects,
+                    signing_key=key,
                 )
+                vehicle.start()
+                vehicles.append(vehicle)
 
-        publish_position()  # before the URL file: it is there when the parts start
-        if args.url_file is not None:
-            write_atomically(args.url_file, "".join(f"{v.url}\n" for v in vehicles))
-        # Wake up now and then: a SIGTERM the kernel hands to a vehicle thread
-        # does not interrupt a main thread blocked in a lock, and Python runs
-        # handlers on the main thread only (seen: a sim vehicle outliving a
-        # SIGKILLed testbed).
-        period = POSITION_PERIOD_S if args.position_file is not None else 0.2
-        while not stop.wait(period):
-            publish_position()
-        log.info("signalled, stopping")
-    finally:
-        for vehicle in vehicles:
-            vehicle.stop()
-    sys.stdout.flush()
-    return 0
+            def publish_position() -> None:
+                if args.position_file is not None:
+                    state = vehicles[0].state()
+                    write_position(
+                        args.position_file,
+                        state.latitude_deg,
+                        state.longitude_deg,
+                        state.relative_altitude_m,
+                    )
+
+            publish_position()  # before the URL file: it is there when the parts start
+            listening = []
+            for vehicle in vehicles:
+                event: dict[str, Any] = {"url": vehicle.url, "port": vehicle.port}
+                if args.count > 1:
+                    event["system_id"] = vehicle.system_id
+                listening.append(event)
+            announce(args.url_file, [v.url for v in vehicles], *listening)
+            # Wake up now and then anyway: a SIGTERM the kernel hands to a vehicle
+            # thread once left a main thread blocked in a lock (a sim vehicle
+            # outliving a SIGKILLed testbed).
+            period = POSITION_PERIOD_S if args.position_file is not None else 0.2
+            await until_stopped(stop, period, publish_position)
+            log.info("signalled, stopping")
+        finally:
+            for vehicle in vehicles:
+                vehicle.stop()
+        sys.stdout.flush()
+        return 0
+
+    return asyncio.run(run_until_signalled(serve))

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
-import json
 import signal
 import subprocess
 import sys
@@ -25,6 +24,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from baton.lifecycle import announce
 from baton.sim_vehicle.cli import DEFAULT_HOME, parse_home
 from baton.sitl.launcher import LISTENING_MARK
 
@@ -215,24 +215,15 @@ def run(args: argparse.Namespace) -> int:
             return 1
         vehicle_url = f"tcpout://127.0.0.1:{ports.serial1}"
         monitor = f"tcp:127.0.0.1:{ports.serial2}"
-    print(
-        json.dumps(
-            {
-                "event": "listening",
-                "url": vehicle_url,
-                "monitor": monitor,
-                "signing": key is not None,
-                "instance": instance,
-                "speedup": settings.speedup,
-                "workdir": str(workdir),
-            }
-        ),
-        flush=True,
-    )
-    if args.url_file:
-        from baton.lifecycle import write_atomically
-
-        write_atomically(args.url_file, f"{vehicle_url}\n{monitor}\n")
+    listening = {
+        "url": vehicle_url,
+        "monitor": monitor,
+        "signing": key is not None,
+        "instance": instance,
+        "speedup": settings.speedup,
+        "workdir": str(workdir),
+    }
+    announce(args.url_file, [vehicle_url, monitor], listening)
     while not stopping.is_set() and process.poll() is None:
         stopping.wait(0.2)
     if process.poll() is None:

@@ -12,11 +12,28 @@ from typing import TYPE_CHECKING
 
 from baton.controller.cli import add_mission_python, check_mission_python
 from baton.sdk.run import add_mission_arg
+from baton.testbed.local import PAPER_CONTROLLER_LINK, WIFI_DRONE_LINK, MissionPlan
 
 if TYPE_CHECKING:
-    from baton.config import BatonConfig, LinkSpec
+    from baton.config import BatonConfig
+    from baton.testbed.local import TestbedPlan
 
 DEFAULT_HANDOVER_REQNRS = (90, 180, 270)
+# The local testbed's own defaults, where its --config file (or its absence) says nothing:
+# the paper's three controllers, ten times real time (the file's flush limit default is
+# the testbed's too), and the links of PAPER_CONTROLLER_LINK and WIFI_DRONE_LINK.
+DEFAULT_CONTROLLERS = 3
+DEFAULT_SPEEDUP = 10.0
+DEFAULT_FLUSH_LIMIT = "2MB"
+# The survey flags and the MissionPlan fields they set (its defaults are the flags').
+MISSION_FIELDS = {
+    "grid": "grid",
+    "length": "length_m",
+    "spacing": "spacing_m",
+    "altitude": "altitude_m",
+    "speed": "speed_m_s",
+    "poll": "poll_s",
+}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -40,12 +57,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="run (default): start and run a local testbed; report: follow one started elsewhere",
     )
     parser.add_argument(
-        "--controllers", type=int, default=3, help="controllers in the ring (default 3)"
+        "--controllers",
+        type=int,
+        help=f"controllers in the ring (default: the --config file's, else {DEFAULT_CONTROLLERS})",
     )
     parser.add_argument(
         "--flush-limit",
-        default="2MB",
-        help="log flush limit with units: 0, 512KB, 2MB (default 2MB)",
+        help="log flush limit with units: 0, 512KB, 2MB (default: the --config file's, else "
+        f"{DEFAULT_FLUSH_LIMIT})",
     )
     parser.add_argument(
         "--handover",
@@ -91,8 +110,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument(
         "--speedup",
         type=float,
-        default=10.0,
-        help="simulation speed-up, vehicle and clocks (default 10)",
+        help="simulation speed-up, vehicle and clocks (default: the --config file's, else "
+        f"{DEFAULT_SPEEDUP:g})",
     )
     parser.add_argument(
         "--vehicle",
@@ -120,37 +139,36 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     add_mission_arg(parser)
     add_mission_python(parser)
-    parser.add_argument(
-        "--grid", type=int, default=5, help="grid size: GRID x GRID waypoints (default 5)"
-    )
-    parser.add_argument(
-        "--length", type=float, default=1500.0, help="corridor length, m (default 1500)"
-    )
-    parser.add_argument(
-        "--spacing", type=float, default=50.0, help="waypoint spacing, m (default 50)"
-    )
-    parser.add_argument(
-        "--altitude", type=float, default=10.0, help="mission altitude, m (default 10)"
-    )
-    parser.add_argument("--speed", type=float, default=5.0, help="flying speed, m/s (default 5)")
-    parser.add_argument(
-        "--poll", type=float, default=1.0, help="position poll period, mission s (default 1)"
-    )
+    survey = MissionPlan()
+    for flag, kind, what in (
+        ("grid", int, "grid size: GRID x GRID waypoints"),
+        ("length", float, "corridor length, m"),
+        ("spacing", float, "waypoint spacing, m"),
+        ("altitude", float, "mission altitude, m"),
+        ("speed", float, "flying speed, m/s"),
+        ("poll", float, "position poll period, mission s"),
+    ):
+        default = getattr(survey, MISSION_FIELDS[flag])
+        parser.add_argument(f"--{flag}", type=kind, help=f"{what} (default {default:g})")
     parser.add_argument(
         "--link-latency",
-        help="controller-to-controller latency (default: the --config file's, else 20ms)",
+        help="controller-to-controller latency (default: the --config file's, else "
+        f"{PAPER_CONTROLLER_LINK.latency * 1e3:g}ms)",
     )
     parser.add_argument(
         "--link-bandwidth",
-        help="controller-to-controller bandwidth (default: the --config file's, else 25Mbit)",
+        help="controller-to-controller bandwidth (default: the --config file's, else "
+        f"{(PAPER_CONTROLLER_LINK.bandwidth or 0) / 1e6:g}Mbit)",
     )
     parser.add_argument(
         "--drone-link-latency",
-        help="controller-to-drone latency (default: the --config file's, else 2ms, WiFi-like)",
+        help="controller-to-drone latency (default: the --config file's, else "
+        f"{WIFI_DRONE_LINK.latency * 1e3:g}ms, WiFi-like)",
     )
     parser.add_argument(
         "--drone-link-bandwidth",
-        help="controller-to-drone bandwidth (default: the --config file's, else 20Mbit)",
+        help="controller-to-drone bandwidth (default: the --config file's, else "
+        f"{(WIFI_DRONE_LINK.bandwidth or 0) / 1e6:g}Mbit)",
     )
     parser.add_argument("--no-links", action="store_true", help="no link emulation: plain loopback")
     parser.add_argument(
@@ -164,7 +182,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--workdir", help="folder for logs and generated files (default: a new temp folder)"
     )
     parser.add_argument(
-        "--timeout", type=float, default=600.0, help="give up after this many seconds (default 600)"
+        "--timeout",
+        type=float,
+        default=600.0,
+        help="give up after this many seconds (default 600)",
     )
     parser.add_argument(
         "--wait", action="store_true", help="(report) wait for the services to come up and finish"
@@ -177,24 +198,14 @@ def _fail(message: str) -> int:
     return 2
 
 
-def _link(latency: str | None, bandwidth: str | None, default: LinkSpec) -> LinkSpec:
-    """A link from the options, each falling back to ``default``'s value."""
-    from baton.config import LinkSpec, parse_duration, parse_rate
-
-    return LinkSpec(
-        latency=default.latency if latency is None else parse_duration(latency),
-        bandwidth=default.bandwidth if bandwidth is None else parse_rate(bandwidth),
-    )
-
-
-def _vehicle(args: argparse.Namespace, base: BatonConfig | None) -> tuple[str, Path | None]:
+def _vehicle(args: argparse.Namespace, config: BatonConfig) -> tuple[str, Path | None]:
     """The planned vehicle ("sim", "sitl" or a URL) and the SITL binary; ValueError says why not."""
     from baton.sitl.launcher import find_binary
 
     vehicle = args.vehicle
     if vehicle is None:
-        named = base is not None and "vehicle_url" in base.drone.model_fields_set
-        vehicle = base.drone.vehicle_url if base is not None and named else "sim"
+        named = "vehicle_url" in config.drone.model_fields_set
+        vehicle = config.drone.vehicle_url if named else "sim"
     if vehicle not in ("sim", "sitl") and "://" not in vehicle:
         raise ValueError(
             f"--vehicle {vehicle!r}: expected sim, sitl or a MAVLink URL like "
@@ -212,8 +223,8 @@ def _vehicle(args: argparse.Namespace, base: BatonConfig | None) -> tuple[str, P
         )
     if not binary.is_file():
         raise ValueError(f"--sitl-binary {binary}: no such file")
-    if not 0 < args.speedup <= 100:
-        raise ValueError(f"--speedup {args.speedup:g}: SITL runs at a speed-up in (0, 100]")
+    if not 0 < config.speedup <= 100:
+        raise ValueError(f"--speedup {config.speedup:g}: SITL runs at a speed-up in (0, 100]")
     return vehicle, binary.resolve()
 
 
@@ -250,122 +261,152 @@ def _mission(mission: str, pairs: list[str]) -> tuple[Path | None, tuple[str, ..
     return path.resolve(), tuple(pairs), flight_plan
 
 
-def run(args: argparse.Namespace) -> int:
-    """Validates the options, then runs or follows the testbed."""
-    from baton.config import MAX_SPEEDUP, ConfigError, load_config, parse_size
-    from baton.drone.master import HandoverScriptError, parse_handover_script
-    from baton.rpc.tls import INSECURE_WARNING
-    from baton.testbed.local import (
-        PAPER_CONTROLLER_LINK,
-        WIFI_DRONE_LINK,
-        MissionPlan,
-        TestbedPlan,
-    )
-    from baton.testbed.run import follow_remote, run_local
+def testbed_config(args: argparse.Namespace) -> tuple[BatonConfig, bool]:
+    """The one model the testbed runs with: the --config file (else ``--controllers``
+    controllers), the testbed's own defaults where the file says nothing (its links, and
+    its speed-up when there is no file), then every flag that was given; and whether a
+    file was given. ConfigError names the file or the flag and the fix."""
+    from baton.config import ConfigError, controllers_only, load_config, merge
 
-    try:
-        base = load_config(args.config) if args.config else None
-    except ConfigError as exc:
-        return _fail(str(exc))
-    ids = base.ring_order if base is not None else list(range(args.controllers))
-    if base is None and args.controllers < 1:
-        return _fail(f"--controllers must be >= 1, got {args.controllers}")
-    file_ring = base.controller_link if base is not None and base.controller_link.emulated else None
-    file_drone = base.drone_link if base is not None and base.drone_link.emulated else None
-    try:
-        flush_limit = parse_size(args.flush_limit)
-        controller_link = _link(
-            args.link_latency, args.link_bandwidth, file_ring or PAPER_CONTROLLER_LINK
-        )
-        drone_link = _link(
-            args.drone_link_latency, args.drone_link_bandwidth, file_drone or WIFI_DRONE_LINK
-        )
-    except ValueError as exc:
-        return _fail(f"bad option value: {exc}")
-    if base is not None and args.flush_limit == "2MB":
-        flush_limit = base.flush_limit
+    if args.config:
+        config = load_config(args.config)
+        if args.controllers is not None and args.controllers != len(config.controllers):
+            raise ConfigError(
+                f"--controllers {args.controllers}: {args.config} lists "
+                f"{len(config.controllers)} controllers; drop --controllers or edit the file"
+            )
+    else:
+        count = DEFAULT_CONTROLLERS if args.controllers is None else args.controllers
+        if count < 1:
+            raise ConfigError(f"--controllers must be >= 1, got {count}")
+        config = controllers_only(range(count))
+    own = [
+        ("controller_link", None if config.controller_link.emulated else PAPER_CONTROLLER_LINK),
+        ("drone_link", None if config.drone_link.emulated else WIFI_DRONE_LINK),
+        ("speedup", None if args.config else DEFAULT_SPEEDUP),
+    ]
+    config = config.model_copy(update={field: value for field, value in own if value is not None})
+    flags = [
+        ("--flush-limit", "flush_limit", args.flush_limit),
+        ("--speedup", "speedup", args.speedup),
+        ("--forwarding", "ring.forwarding", args.forwarding),
+        ("--link-latency", "controller_link.latency", args.link_latency),
+        ("--link-bandwidth", "controller_link.bandwidth", args.link_bandwidth),
+        ("--drone-link-latency", "drone_link.latency", args.drone_link_latency),
+        ("--drone-link-bandwidth", "drone_link.bandwidth", args.drone_link_bandwidth),
+        ("--insecure", "tls.insecure", True if args.insecure else None),
+    ]
+    return merge(config, flags, args.config or ""), bool(args.config)
+
+
+def _check_numbers(args: argparse.Namespace) -> None:
+    """The numeric flags, before anything starts; ValueError says which and why."""
+    from baton.config import MAX_SPEEDUP
+
+    for name in ("speedup", *MISSION_FIELDS, "timeout"):
+        value = getattr(args, name)
+        if value is not None and not 0 < value < math.inf:  # nan too: a --timeout nan never ended
+            raise ValueError(f"--{name} must be a number > 0 and finite, got {value}")
+    if args.speedup is not None and args.speedup > MAX_SPEEDUP:
+        raise ValueError(f"--speedup must be at most {MAX_SPEEDUP:g}, got {args.speedup:g}")
+
+
+def _handovers(args: argparse.Namespace, config: BatonConfig) -> list[tuple[int, int]]:
+    """The scripted handovers (after reqnr, new master): the flags' and the file's, else
+    the default round trip unless a policy or --no-handovers says none.
+    HandoverScriptError or OSError say what is wrong."""
+    from baton.drone.master import HandoverScriptError, parse_handover_script
+
+    ids = config.ring_order
     handovers: list[tuple[int, int]] = []
-    try:
-        for text in args.handover:
-            reqnr, sep, mid = text.partition(":")
-            if not sep or not reqnr.isdigit() or not mid.isdigit():
-                raise HandoverScriptError(f"--handover {text!r}: expected REQNR:MID, e.g. 90:1")
-            handovers.append((int(reqnr), int(mid)))
-        script = "".join(f"{r} {m}\n" for r, m in handovers)
-        if args.handover_file:
-            script += Path(args.handover_file).read_text()
-        scripted = parse_handover_script(script, args.handover_file or "--handover", ids)
-    except (HandoverScriptError, OSError) as exc:
-        return _fail(str(exc))
+    for text in args.handover:
+        reqnr, sep, mid = text.partition(":")
+        if not sep or not reqnr.isdigit() or not mid.isdigit():
+            raise HandoverScriptError(f"--handover {text!r}: expected REQNR:MID, e.g. 90:1")
+        handovers.append((int(reqnr), int(mid)))
+    script = "".join(f"{r} {m}\n" for r, m in handovers)
+    if args.handover_file:
+        script += Path(args.handover_file).read_text()
+    scripted = parse_handover_script(script, args.handover_file or "--handover", ids)
     handovers = sorted((reqnr, h.new_master) for reqnr, h in scripted.items())
-    ranged = base is not None and base.handover_policy.name != "none"
+    ranged = config.handover_policy.name != "none"
     if not handovers and not args.no_handovers and not ranged and len(ids) > 1:
         handovers = [
             (reqnr, ids[(k + 1) % len(ids)]) for k, reqnr in enumerate(DEFAULT_HANDOVER_REQNRS)
         ]
-    for name in ("speedup", "grid", "length", "spacing", "altitude", "speed", "poll", "timeout"):
-        value = getattr(args, name)
-        if not 0 < value < math.inf:  # nan too: a --timeout nan never timed out
-            return _fail(f"--{name} must be a number > 0 and finite, got {value}")
-    if args.speedup > MAX_SPEEDUP:  # checked before anything starts
-        return _fail(f"--speedup must be at most {MAX_SPEEDUP:g}, got {args.speedup:g}")
-    try:
-        vehicle, sitl_binary = _vehicle(args, base)
-    except ValueError as exc:
-        return _fail(str(exc))
-    if args.mission == "corridor" and args.spacing > args.length:
-        return _fail(f"--spacing {args.spacing:g} is longer than the corridor (--length)")
-    survey = args.mission if args.mission in ("grid", "corridor") else "grid"
+    return handovers
+
+
+def _plan(
+    args: argparse.Namespace, config: BatonConfig, from_file: bool, handovers: list[tuple[int, int]]
+) -> TestbedPlan:
+    """What the local testbed runs; ValueError says which option is wrong."""
+    from baton.testbed.local import TestbedPlan
+
+    vehicle, sitl_binary = _vehicle(args, config)
+    survey = {MISSION_FIELDS[f]: v for f in MISSION_FIELDS if (v := getattr(args, f)) is not None}
     mission = MissionPlan(
-        args.grid,
-        args.spacing,
-        args.altitude,
-        args.speed,
-        args.poll,
-        kind=survey,
-        length_m=args.length,
+        **survey, kind=args.mission if args.mission in ("grid", "corridor") else "grid"
     )
-    try:
-        mission_file, mission_args, flight_plan = _mission(args.mission, args.mission_arg)
-        if args.mission_python is not None:
-            check_mission_python(args.mission_python)
-    except ValueError as exc:
-        return _fail(str(exc))
-    report_path = Path(args.report)
-    if args.insecure:
-        print(f"baton testbed: WARNING: {INSECURE_WARNING}", file=sys.stderr)
-    if args.action == "report":
-        if base is None:
-            return _fail("report needs --config FILE: the testbed to follow")
-        if args.insecure:
-            tls = base.tls.model_copy(update={"insecure": True})
-            base = base.model_copy(update={"tls": tls})
-        return asyncio.run(follow_remote(base, args.grid, report_path, args.timeout, handovers))
-    plan = TestbedPlan(
-        controllers=len(ids),
-        flush_limit=flush_limit,
+    if args.mission == "corridor" and mission.spacing_m > mission.length_m:
+        raise ValueError(f"--spacing {mission.spacing_m:g} is longer than the corridor (--length)")
+    mission_file, mission_args, flight_plan = _mission(args.mission, args.mission_arg)
+    if args.mission_python is not None:
+        check_mission_python(args.mission_python)
+    return TestbedPlan(
+        controllers=len(config.controllers),
+        flush_limit=config.flush_limit,
         handovers=tuple(handovers),
         prepared=args.prepared,
-        forwarding=args.forwarding,
-        speedup=base.speedup if base is not None and args.speedup == 10.0 else args.speedup,
+        forwarding=config.ring.forwarding,
+        prepare_timeout=(
+            config.prepare_timeout if "prepare_timeout" in config.model_fields_set else None
+        ),
+        speedup=config.speedup,
         mission=mission,
         mission_file=mission_file,
         mission_args=mission_args,
         mission_python=None if args.mission_python is None else Path(args.mission_python),
         flight_plan=flight_plan,
         emulate_links=not args.no_links,
-        controller_link=controller_link,
-        drone_link=drone_link,
-        base_config=base,
+        controller_link=config.controller_link,
+        drone_link=config.drone_link,
+        base_config=config if from_file else None,
         vehicle=vehicle,
         sitl_binary=sitl_binary,
         insecure=args.insecure,
     )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Validates the options, then runs or follows the testbed."""
+    from baton.config import ConfigError
+    from baton.drone.master import HandoverScriptError
+    from baton.rpc.tls import INSECURE_WARNING
+    from baton.testbed import run as running
+
+    try:
+        _check_numbers(args)
+        config, from_file = testbed_config(args)
+        handovers = _handovers(args, config)
+        plan = _plan(args, config, from_file, handovers)
+    except (ConfigError, HandoverScriptError, OSError, ValueError) as exc:
+        return _fail(str(exc))
+    report_path = Path(args.report)
+    if args.insecure:
+        print(f"baton testbed: WARNING: {INSECURE_WARNING}", file=sys.stderr)
+    grid = args.grid if args.grid is not None else MissionPlan().grid
+    if args.action == "report":
+        if not from_file:
+            return _fail("report needs --config FILE: the testbed to follow")
+        return asyncio.run(
+            running.follow_remote(config, grid, report_path, args.timeout, handovers)
+        )
     workdir = (
         Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-testbed-"))
     )
     try:
-        return asyncio.run(run_local(plan, workdir, report_path, args.timeout))
+        return asyncio.run(running.run_local(plan, workdir, report_path, args.timeout))
     except KeyboardInterrupt:
         print("baton testbed: interrupted; every process stopped", file=sys.stderr)
         return 130
