@@ -27,17 +27,18 @@ from typing import Any, BinaryIO
 from baton.bench.model import MB, Call, LogPoint, master_log_sizes, pick_in_stretch, t_log
 from baton.bench.runner import audit_calls, machine, markdown_table, run_plan, say, write_json
 from baton.bench.script import GET_POSITION, TAKE_PICTURE
+from baton.rpc.methods import path
 from baton.testbed.local import MissionPlan, Snapshot, TestbedPlan
 from baton.v1 import drone_api_pb2 as api
 
 _FULL = 123.456789
 # Request sizes of the grid mission's calls that carry arguments (the rest are empty).
 REQUEST_BYTES = {
-    "/baton.v1.Mobility/Goto": api.GotoRequest(
+    path("Mobility.Goto"): api.GotoRequest(
         latitude_deg=_FULL, longitude_deg=_FULL, relative_altitude_m=_FULL
     ).ByteSize(),
-    "/baton.v1.Mobility/Takeoff": api.TakeoffRequest(altitude_m=_FULL).ByteSize(),
-    "/baton.v1.Mobility/SetSpeed": api.SetSpeedRequest(speed_m_s=_FULL).ByteSize(),
+    path("Mobility.Takeoff"): api.TakeoffRequest(altitude_m=_FULL).ByteSize(),
+    path("Mobility.SetSpeed"): api.SetSpeedRequest(speed_m_s=_FULL).ByteSize(),
 }
 
 
@@ -181,7 +182,7 @@ def _settled(
         if last is None:
             settled.add(point.reqnr)
             continue
-        needed = 1.5 * t_log(last.flushed, link.latency, link.bandwidth or 1e12) + 0.1
+        needed = 1.5 * t_log(last.flushed, link.latency, link.bandwidth) + 0.1
         if arrivals[point.reqnr] - arrivals.get(last.reqnr, 0.0) >= needed:
             settled.add(point.reqnr)
     return settled
@@ -352,7 +353,7 @@ def add_preparation_limits(
             if n in replies and replies[n]["method"] == "TakePicture"
         )
         needed = (replies[began_after]["log_bytes"] if began_after in replies else 0) + taken
-        limit = t_log(needed, link.latency, link.bandwidth or 1e12) + link.latency
+        limit = t_log(needed, link.latency, link.bandwidth) + link.latency
         record["prepare_needed_bytes"] = needed
         record["prepare_limit_s"] = limit
         record["prepare_ratio"] = record["prepare_s"] / limit if limit else math.nan

@@ -10,13 +10,9 @@ import sys
 
 from baton.config import BatonConfig
 from baton.controller.node import ControllerNode
-from baton.controller.service import (
-    PROXIED_SERVICES,
-    ControllerRingService,
-    DroneApiProxy,
-    ring_receiver,
-)
+from baton.controller.service import ControllerRingService, DroneApiProxy, ring_receiver
 from baton.lifecycle import write_atomically
+from baton.rpc.methods import DRONE_API_SERVICES, service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.server import BatonServer, run_until_signalled
 from baton.rpc.tls import INSECURE_WARNING, Identity
@@ -55,14 +51,14 @@ class ControllerApp:
             )
         # Two ports: the ring's (log frames, status), with mutual TLS, and the
         # mission program's on loopback (the drone API), tied to it by the token.
-        ring = "baton.v1.ControllerRing"
+        ring = service_full_name("ControllerRing")
         self.server = BatonServer(config.controller(cid).address, [ring], tls=tls)
         self.receiver = ring_receiver(self.node)
         ring_pb2_grpc.add_ControllerRingServicer_to_server(
             ControllerRingService(self.node, self.token, self.receiver, tls is not None),
             self.server.server,
         )
-        names = [f"baton.v1.{name}" for name in PROXIED_SERVICES] + [ring]
+        names = [*map(service_full_name, DRONE_API_SERVICES), ring]
         self.mission_server = BatonServer(config.controller(cid).mission_address, names)
         self.node.mission_address = self.mission_server.address  # bound already
         self.mission_server.server.add_generic_rpc_handlers((DroneApiProxy(self.node, self.token),))

@@ -53,14 +53,15 @@ from baton.controller.protocol import (
 from baton.controller.ring import PeerLink, Relay
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
+from baton.rpc.methods import path, service_prefix
 from baton.rpc.tls import Tls
 from baton.stalls import StallWatch
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, ring_pb2
 
-CLOCK_SERVICE = "/baton.v1.Clock/"
-CLOCK_SLEEP = "/baton.v1.Clock/Sleep"
-CLOCK_NOW = "/baton.v1.Clock/Now"
+CLOCK_SERVICE = service_prefix("Clock")
+CLOCK_SLEEP = path("Clock.Sleep")
+CLOCK_NOW = path("Clock.Now")
 # A master stops a prepared handover this long after the drone's timeout for it, if it
 # heard nothing (the drone forces the handover at its timeout: the notice is owed).
 PREPARE_GRACE_S = 2.0

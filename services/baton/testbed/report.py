@@ -16,11 +16,13 @@ from collections import Counter
 from collections.abc import Sequence
 from typing import Any
 
+from baton.bench.model import t_max
 from baton.config import BatonConfig
 from baton.missions.grid import waypoints
 from baton.missions.plan import Plan
+from baton.rpc.methods import path
 from baton.sdk import Position, distance_m, offset
-from baton.testbed.local import Effects, Snapshot
+from baton.testbed.local import TAKE_PICTURE, Effects, Snapshot
 
 REPORT_FORMAT = "baton.testbed.report/1"
 # What the report says for a part that keeps no effects file (SITL, an
@@ -31,28 +33,7 @@ ONCE_PER_MISSION = ("arm", "takeoff", "land")
 # How far a goto's target may be from its grid waypoint: the target crosses
 # MAVLink as 1e-7 degrees (about 1 cm).
 GOTO_TOLERANCE_M = 0.5
-
-
-def t_log(size_bytes: float, latency_s: float, bandwidth_bps: float | None) -> float:
-    """The paper's T_log(s) = l + s/b (s in bits)."""
-    transfer = 0.0 if bandwidth_bps is None else size_bytes * 8 / bandwidth_bps
-    return latency_s + transfer
-
-
-def model_worst_case_s(
-    hops: int,
-    flush_limit: int,
-    largest_entry: int,
-    t_conn_s: float,
-    latency_s: float,
-    bandwidth_bps: float | None,
-) -> float:
-    """Section 4: T_max = T_log(0) + h * T_log(f + e) + T_conn."""
-    return (
-        t_log(0, latency_s, bandwidth_bps)
-        + hops * t_log(flush_limit + largest_entry, latency_s, bandwidth_bps)
-        + t_conn_s
-    )
+GOTO = path("Mobility.Goto")
 
 
 def check_side_effects(
@@ -261,7 +242,7 @@ def build_report(
     exactly_once = all(n == 1 for n in counts.values()) and all(
         c.drone_calls == len(audit) for c in snapshot.controllers.values()
     )
-    pictures = sum(1 for a in audit if a.method.endswith("/TakePicture"))
+    pictures = sum(1 for a in audit if a.method == TAKE_PICTURE)
     chains = {c.reply_chain for c in snapshot.controllers.values()}
     reqnrs = {c.reqnr for c in snapshot.controllers.values()}
     consistent = len(chains) == 1 and len(reqnrs) == 1 and max(reqnrs) >= drone.last_reqnr
@@ -322,10 +303,10 @@ def build_report(
                     else None
                 ),
                 "model_worst_case_s": round(
-                    model_worst_case_s(
-                        hops,
+                    t_max(
                         config.flush_limit,
                         largest_entry,
+                        hops,
                         t_conn,
                         link.latency,
                         link.bandwidth,
@@ -338,7 +319,7 @@ def build_report(
     # the script's handovers stand for planned ones (not an operator's, not a takeover).
     scripted = [h for h in handovers if h["trigger"] == "script"]
     missed = planned_handovers[len(scripted) :]
-    gotos = sum(1 for a in audit if a.method.endswith("/Goto"))
+    gotos = sum(1 for a in audit if a.method == GOTO)
     survey = plan is None and grid_mission  # the grid or the corridor: a picture a waypoint
     return {
         "format": REPORT_FORMAT,
@@ -366,7 +347,7 @@ def build_report(
             "picture_requests": [
                 {"reqnr": a.reqnr, "received_at": a.received_at}
                 for a in audit
-                if a.method.endswith("/TakePicture")
+                if a.method == TAKE_PICTURE
             ],
         },
         "setup": {
