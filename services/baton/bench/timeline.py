@@ -16,7 +16,6 @@ are measured side by side.
 from __future__ import annotations
 
 import csv
-import json
 import math
 import statistics
 from collections.abc import Mapping, Sequence
@@ -188,19 +187,16 @@ def _settled(
     return settled
 
 
-def drone_connected_after(logs: Path, controller: int, since: float) -> float:
-    """When ``controller`` next connected to the drone after ``since`` (its JSON log).
+def drone_connected_after(run: Snapshot, controller: int, since: float) -> float:
+    """When ``controller`` next connected to the drone after ``since`` (its status's
+    ``drone_connected_at``); NaN if it did not.
 
     The handover's own cost, without the mission program's poll sleep that
     may come before the new master's first request.
     """
-    for line in (logs / f"controller-{controller}.log").read_text().splitlines():
-        if not line.startswith("{"):
-            continue  # the mission program's own output
-        event = json.loads(line)
-        if event.get("msg") == "drone connected" and event["ts"] >= since:
-            return float(event["ts"])
-    return math.nan
+    status = run.controllers.get(controller)
+    later = [t for t in status.drone_connected_at if t >= since] if status is not None else []
+    return min(later, default=math.nan)
 
 
 def handover_logs(snapshot: Snapshot, flush_limit: int) -> list[int]:
@@ -400,8 +396,7 @@ def handover_records(
                     else by_reqnr[h.after_reqnr]["log_bytes"]
                 ),
                 "delay_s": h.delay_s,
-                "ready_s": drone_connected_after(workdir / "logs", h.new_master, h.decided_at)
-                - h.decided_at,
+                "ready_s": drone_connected_after(run, h.new_master, h.decided_at) - h.decided_at,
                 "inter_arrival_s": by_reqnr[first]["inter_arrival_s"] if first in by_reqnr else 0,
                 "kind": h.kind,
                 "prepare_s": h.decided_at - h.prepare_started_at if h.prepare_started_at else 0.0,

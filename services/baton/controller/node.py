@@ -229,6 +229,7 @@ class ControllerNode:
         self._drone_calls = 0
         self.handovers: list[HandoverEvent] = []
         self.t_conn_s: list[float] = []
+        self.drone_connected_at: list[float] = []  # of closed connections (all_drone_...)
         # The standby stream: the drone's way to reach us for a takeover.
         self._standby = DroneStandby(
             cid, config.drone_address_for(cid), self.on_take_over, self.log, tls
@@ -718,6 +719,12 @@ class ControllerNode:
         return self._drone is not None and self._drone.connected.is_set()
 
     @property
+    def all_drone_connected_at(self) -> list[float]:
+        """When the drone said connected (Unix seconds), every connection so far."""
+        current = self._drone.connected_at if self._drone is not None else []
+        return self.drone_connected_at + current
+
+    @property
     def all_t_conn_s(self) -> list[float]:
         """T_conn of every drone connection so far, the open one included."""
         current = self._drone.t_conn_s if self._drone is not None else None
@@ -836,6 +843,7 @@ class ControllerNode:
         if drone is not None:
             if drone.t_conn_s is not None:
                 self.t_conn_s.append(drone.t_conn_s)
+            self.drone_connected_at.extend(drone.connected_at)
             # Closing from inside the drone's own event task would cancel it
             # mid-callback; let it finish on its own.
             asyncio.get_running_loop().create_task(drone.close())

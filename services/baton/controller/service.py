@@ -262,5 +262,6 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
             for h in node.handovers
         ],
         t_conn_s=node.all_t_conn_s,
+        drone_connected_at=node.all_drone_connected_at,
         mission_address=node.mission_address,
     )
