@@ -181,3 +181,15 @@ def test_audit_gaps_are_the_controllers_own_clock_calls() -> None:
         Call(2, "/baton.v1.Clock/Now", 0, 11),
         Call(3, TAKE_PICTURE, 1000, 0),
     ]
+
+
+def test_a_handovers_ready_time_is_the_new_masters_next_connection_in_its_status() -> None:
+    from baton.bench.timeline import drone_connected_after
+    from baton.testbed.local import Snapshot
+    from baton.v1 import drone_pb2, ring_pb2
+
+    status = ring_pb2.ControllerStatus(id=1, drone_connected_at=[10.0, 25.5, 40.0])
+    run = Snapshot(drone_pb2.DroneStatus(), {1: status})
+    assert drone_connected_after(run, 1, 20.0) == 25.5
+    assert math.isnan(drone_connected_after(run, 1, 41.0))
+    assert math.isnan(drone_connected_after(run, 2, 0.0))  # no such controller

@@ -20,14 +20,15 @@ from baton.drone.camera import (
     thumbnail_name,
 )
 from baton.drone.dedupe import CachedReply, ReplyCache, retained_batches
-from baton.drone.dispatch import Dispatcher, drone_api_routes
+from baton.drone.dispatch import Dispatcher
 from baton.drone.master import HandoverScriptError, load_handover_script, parse_handover_script
 from baton.effects import read_effects
 from baton.rpc.errors import StatusError
+from baton.rpc.methods import drone_api
 from baton.rpc.tls import DRONE, TlsError
 from baton.v1 import drone_api_pb2 as api
 
-ALL_METHODS = sorted(drone_api_routes())
+ALL_METHODS = sorted(drone_api())
 
 
 def test_reply_cache_keeps_the_last_window_only_below_the_watermark() -> None:

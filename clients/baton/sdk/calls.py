@@ -11,11 +11,11 @@ mapping (``errors.py``) live in one place each.
 from __future__ import annotations
 
 from collections.abc import Callable
-from functools import cache
 from typing import Any, Generic, NamedTuple, TypeVar
 
 from google.protobuf.message import Message
 
+from baton.rpc.methods import method
 from baton.sdk.types import FlightState, Picture, Position
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2
@@ -59,21 +59,10 @@ def _nothing(reply: Message) -> None:
     return None
 
 
-@cache
-def _method(rpc: str) -> tuple[str, type[Message]]:
-    """The gRPC path and the reply class of ``Service.Method``, from the contracts."""
-    service_name, _, method_name = rpc.partition(".")
-    for module in (api, ring_pb2):
-        service = module.DESCRIPTOR.services_by_name.get(service_name)
-        if service is not None and method_name in service.methods_by_name:
-            reply = service.methods_by_name[method_name].output_type
-            return f"/{service.full_name}/{method_name}", getattr(module, reply.name)
-    raise ValueError(f"{rpc}: not a method of the drone API or the controller ring")
-
-
 def _call(rpc: str, request: Message, result: Callable[[Any], ResultT]) -> Call[ResultT]:
-    path, reply_type = _method(rpc)
-    return Call(rpc, path, request, reply_type, result)
+    """``rpc``'s call; its path and reply class come from the contracts (rpc/methods.py)."""
+    found = method(rpc)
+    return Call(rpc, found.path, request, found.reply_type, result)
 
 
 def _command(rpc: str, request: Message) -> Call[None]:

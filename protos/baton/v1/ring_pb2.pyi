@@ -432,6 +432,7 @@ class ControllerStatus(_message.Message):
     ANSWERED_FROM_RETAINED_FIELD_NUMBER: _builtins.int
     MISSION_ADDRESS_FIELD_NUMBER: _builtins.int
     PROGRAM_RESTARTS_FIELD_NUMBER: _builtins.int
+    DRONE_CONNECTED_AT_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
     state: _builtins.str
@@ -525,6 +526,13 @@ class ControllerStatus(_message.Message):
         time: the ring routes around them until they are back.
         """
 
+    @_builtins.property
+    def drone_connected_at(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
+        """When the drone said connected (its Connect stream's Connected event),
+        Unix seconds, wall clock, in order: every connection this controller
+        opened, a reconnect of the same one included.
+        """
+
     def __init__(
         self,
         *,
@@ -558,10 +566,11 @@ class ControllerStatus(_message.Message):
         answered_from_retained: _builtins.int = ...,
         mission_address: _builtins.str = ...,
         program_restarts: _builtins.int = ...,
+        drone_connected_at: _abc.Iterable[_builtins.float] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -42,12 +42,13 @@ from baton.config import LinkSpec, parse_config
 from baton.controller.node import ControllerNode
 from baton.controller.protocol import ControllerProtocol, State, request_digest
 from baton.controller.ring import FRAME_BYTES, RELAY_WINDOW_FRAMES, PeerLink, RingReceiver
-from baton.controller.service import PROXIED_SERVICES, DroneApiProxy
+from baton.controller.service import DroneApiProxy
 from baton.drone.measure import measure as measure_drone
 from baton.drone.measure import summary_ms
 from baton.link.proxy import LinkProxy
 from baton.logs import get_logger
 from baton.rpc.channels import aio_channel
+from baton.rpc.methods import DRONE_API_SERVICES, service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
 from baton.rpc.server import BatonServer, generic, servicer
 from baton.rpc.tls import DRONE, Identity, Tls
@@ -273,7 +274,7 @@ async def measure_replay_end_to_end(calls: int) -> dict[str, Any]:
     of its calls and has nothing else to do."""
     node = _replica()
     token = secrets.token_urlsafe(18)
-    names = [f"baton.v1.{name}" for name in PROXIED_SERVICES]
+    names = list(map(service_full_name, DRONE_API_SERVICES))
     server = BatonServer("127.0.0.1:0", [generic(DroneApiProxy(node, token), *names)])
     await server.start()
     try:
@@ -384,7 +385,9 @@ class _Relaying(ring_pb2_grpc.ControllerRingServicer):
 
 async def _serve_ring(ring: ring_pb2_grpc.ControllerRingServicer) -> BatonServer:
     add_ring = ring_pb2_grpc.add_ControllerRingServicer_to_server
-    server = BatonServer("127.0.0.1:0", [servicer("baton.v1.ControllerRing", add_ring, ring)])
+    server = BatonServer(
+        "127.0.0.1:0", [servicer(service_full_name("ControllerRing"), add_ring, ring)]
+    )
     await server.start()
     return server
 

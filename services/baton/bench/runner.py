@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from baton.bench.model import Call
+from baton.controller.node import CLOCK_SLEEP
 from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
 
 
@@ -52,7 +53,7 @@ async def run_plan(plan: TestbedPlan, workdir: Path, timeout: float, label: str)
 
 # Request numbers the drone never sees are the controller's own Clock calls
 # (Sleep, logged with its request and an empty reply): a Sleep of one second.
-CLOCK_CALL = ("/baton.v1.Clock/Sleep", 0, 9)
+CLOCK_CALL = (CLOCK_SLEEP, 0, 9)
 
 
 def audit_calls(

@@ -17,19 +17,19 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from baton.bench.model import Call, LogPoint, log_entry, master_log_sizes
+from baton.bench.model import Call, LogPoint, PredictedRing, master_log_sizes
 from baton.bench.model import entry_size_of as entry_bytes
-from baton.controller.protocol import Log
+from baton.controller.node import CLOCK_SLEEP
 from baton.drone.camera import DEFAULT_RESOLUTION, MIN_SIDE, ppm_header
 from baton.missions import bench as bench_mission
+from baton.rpc.methods import path
 from baton.v1 import drone_api_pb2 as api
 
 BENCH_MISSION = Path(bench_mission.__file__)
 
-GET_POSITION = "/baton.v1.Mobility/GetPosition"
-TAKE_PICTURE = "/baton.v1.Camera/TakePicture"
-SET_RESOLUTION = "/baton.v1.Camera/SetResolution"
-CLOCK_SLEEP = "/baton.v1.Clock/Sleep"
+GET_POSITION = path("Mobility.GetPosition")
+TAKE_PICTURE = path("Camera.TakePicture")
+SET_RESOLUTION = path("Camera.SetResolution")
 
 _FULL_POSITION = api.Position(
     latitude_deg=-89.123456789,
@@ -154,20 +154,20 @@ class WorstCaseScript:
         return master_log_sizes(self.calls, self.flush_limit, [p.after_reqnr for p in self.points])
 
 
-def _fill_to_just_under(builder: ScriptBuilder, log: Log, flush_limit: int) -> None:
+def _fill_to_just_under(builder: ScriptBuilder, log: PredictedRing, flush_limit: int) -> None:
     """Adds pictures until one more full picture would cross ``flush_limit``."""
     full = entry_bytes(Call(0, TAKE_PICTURE, picture_reply_bytes(*DEFAULT_RESOLUTION)))
     while log.size + full + RACE_SLACK < flush_limit:
-        log.append(log_entry(builder.picture()))
+        log.reply(builder.picture())
     width = DEFAULT_RESOLUTION[0]
     resolution_entries = 2 * entry_bytes(Call(0, SET_RESOLUTION, 8, 8))
     gap = flush_limit - log.size - resolution_entries - RACE_SLACK - FILL_MARGIN
     height = (gap - (full - width * DEFAULT_RESOLUTION[1] * 3)) // (width * 3)
     if height < MIN_SIDE:
         return
-    log.append(log_entry(builder.set_resolution(width, height)))
-    log.append(log_entry(builder.picture()))
-    log.append(log_entry(builder.set_resolution(*DEFAULT_RESOLUTION)))
+    log.reply(builder.set_resolution(width, height))
+    log.reply(builder.picture())
+    log.reply(builder.set_resolution(*DEFAULT_RESOLUTION))
 
 
 def worst_case_script(
@@ -186,17 +186,12 @@ def worst_case_script(
     drone hands over ``hops`` controllers further along the ring.
     """
     builder = ScriptBuilder()
-    log = Log()
+    log = PredictedRing(flush_limit)  # the master's log, by the protocol's flush rule
     points: list[WorstCasePoint] = []
     master = first_master
 
     def add(call: Call) -> int:
-        log.append(log_entry(call))
-        flushed = 0
-        if log.size >= flush_limit:
-            flushed = log.size
-            log.take()
-        return flushed
+        return log.reply(call).flushed
 
     for hops in hop_sequence:
         add(builder.position())
@@ -213,7 +208,7 @@ def worst_case_script(
         add(after)
         new_master = (master + hops) % controllers
         points.append(WorstCasePoint(picture.reqnr, after.reqnr, master, new_master, hops, flushed))
-        log.take()  # the handover message takes the rest; the new master starts empty
+        log.hand_over()  # the handover message takes the rest; the new master starts empty
         master = new_master
     # The last handover's delay needs the new master's first request.
     builder.position()

@@ -16,7 +16,6 @@ are measured side by side.
 from __future__ import annotations
 
 import csv
-import json
 import math
 import statistics
 from collections.abc import Mapping, Sequence
@@ -27,17 +26,18 @@ from typing import Any, BinaryIO
 from baton.bench.model import MB, Call, LogPoint, master_log_sizes, pick_in_stretch, t_log
 from baton.bench.runner import audit_calls, machine, markdown_table, run_plan, say, write_json
 from baton.bench.script import GET_POSITION, TAKE_PICTURE
+from baton.rpc.methods import path
 from baton.testbed.local import MissionPlan, Snapshot, TestbedPlan
 from baton.v1 import drone_api_pb2 as api
 
 _FULL = 123.456789
 # Request sizes of the grid mission's calls that carry arguments (the rest are empty).
 REQUEST_BYTES = {
-    "/baton.v1.Mobility/Goto": api.GotoRequest(
+    path("Mobility.Goto"): api.GotoRequest(
         latitude_deg=_FULL, longitude_deg=_FULL, relative_altitude_m=_FULL
     ).ByteSize(),
-    "/baton.v1.Mobility/Takeoff": api.TakeoffRequest(altitude_m=_FULL).ByteSize(),
-    "/baton.v1.Mobility/SetSpeed": api.SetSpeedRequest(speed_m_s=_FULL).ByteSize(),
+    path("Mobility.Takeoff"): api.TakeoffRequest(altitude_m=_FULL).ByteSize(),
+    path("Mobility.SetSpeed"): api.SetSpeedRequest(speed_m_s=_FULL).ByteSize(),
 }
 
 
@@ -181,25 +181,22 @@ def _settled(
         if last is None:
             settled.add(point.reqnr)
             continue
-        needed = 1.5 * t_log(last.flushed, link.latency, link.bandwidth or 1e12) + 0.1
+        needed = 1.5 * t_log(last.flushed, link.latency, link.bandwidth) + 0.1
         if arrivals[point.reqnr] - arrivals.get(last.reqnr, 0.0) >= needed:
             settled.add(point.reqnr)
     return settled
 
 
-def drone_connected_after(logs: Path, controller: int, since: float) -> float:
-    """When ``controller`` next connected to the drone after ``since`` (its JSON log).
+def drone_connected_after(run: Snapshot, controller: int, since: float) -> float:
+    """When ``controller`` next connected to the drone after ``since`` (its status's
+    ``drone_connected_at``); NaN if it did not.
 
     The handover's own cost, without the mission program's poll sleep that
     may come before the new master's first request.
     """
-    for line in (logs / f"controller-{controller}.log").read_text().splitlines():
-        if not line.startswith("{"):
-            continue  # the mission program's own output
-        event = json.loads(line)
-        if event.get("msg") == "drone connected" and event["ts"] >= since:
-            return float(event["ts"])
-    return math.nan
+    status = run.controllers.get(controller)
+    later = [t for t in status.drone_connected_at if t >= since] if status is not None else []
+    return min(later, default=math.nan)
 
 
 def handover_logs(snapshot: Snapshot, flush_limit: int) -> list[int]:
@@ -398,7 +395,7 @@ def add_preparation_limits(
             if n in replies and replies[n]["method"] == "TakePicture"
         )
         needed = (replies[began_after]["log_bytes"] if began_after in replies else 0) + taken
-        limit = t_log(needed, link.latency, link.bandwidth or 1e12) + link.latency
+        limit = t_log(needed, link.latency, link.bandwidth) + link.latency
         record["prepare_needed_bytes"] = needed
         record["prepare_limit_s"] = limit
         record["prepare_ratio"] = record["prepare_s"] / limit if limit else math.nan
@@ -445,8 +442,7 @@ def handover_records(
                     else by_reqnr[h.after_reqnr]["log_bytes"]
                 ),
                 "delay_s": h.delay_s,
-                "ready_s": drone_connected_after(workdir / "logs", h.new_master, h.decided_at)
-                - h.decided_at,
+                "ready_s": drone_connected_after(run, h.new_master, h.decided_at) - h.decided_at,
                 "inter_arrival_s": by_reqnr[first]["inter_arrival_s"] if first in by_reqnr else 0,
                 "kind": h.kind,
                 "prepare_s": h.decided_at - h.prepare_started_at if h.prepare_started_at else 0.0,

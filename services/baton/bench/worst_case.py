@@ -80,8 +80,7 @@ def settle_seconds(
     flush_limit: int, largest_entry: int, link: LinkSpec, controllers: int = CONTROLLERS
 ) -> float:
     """Time for a log of f + e to go once round the ring, with room for replay and contention."""
-    bandwidth = link.bandwidth or 1e12
-    once = t_log(flush_limit + largest_entry, link.latency, bandwidth)
+    once = t_log(flush_limit + largest_entry, link.latency, link.bandwidth)
     return round(1.3 * (controllers - 1) * once + 1.0, 1)
 
 
@@ -201,7 +200,7 @@ def apply_model(run: dict[str, Any], settings: WorstCaseSettings) -> None:
     t_conn_s = statistics.fmean(samples) if samples else 0.0
     run["t_conn_s"] = t_conn_s
     link = settings.controller_link
-    bandwidth = link.bandwidth or 1e12
+    bandwidth = link.bandwidth  # None: unlimited (the model's transfer takes no time)
     for point in run["points"]:
         point["model_s"] = t_max(
             run["flush_limit"],

@@ -9,13 +9,9 @@ import sys
 
 from baton.config import BatonConfig
 from baton.controller.node import ControllerNode
-from baton.controller.service import (
-    PROXIED_SERVICES,
-    ControllerRingService,
-    DroneApiProxy,
-    ring_receiver,
-)
+from baton.controller.service import ControllerRingService, DroneApiProxy, ring_receiver
 from baton.lifecycle import announce, run_until_signalled
+from baton.rpc.methods import DRONE_API_SERVICES, service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.server import BatonServer, generic, servicer
 from baton.rpc.tls import INSECURE_WARNING, Identity
@@ -54,7 +50,7 @@ class ControllerApp:
             )
         # Two ports: the ring's (log frames, status), with mutual TLS, and the
         # mission program's on loopback (the drone API), tied to it by the token.
-        ring = "baton.v1.ControllerRing"
+        ring = service_full_name("ControllerRing")
         add_ring = ring_pb2_grpc.add_ControllerRingServicer_to_server
         self.receiver = ring_receiver(self.node)
         peers = ControllerRingService(self.node, self.token, self.receiver, tls is not None)
@@ -62,7 +58,7 @@ class ControllerApp:
             config.controller(cid).address, [servicer(ring, add_ring, peers)], tls=tls
         )
         proxy = DroneApiProxy(self.node, self.token)
-        names = [f"baton.v1.{name}" for name in PROXIED_SERVICES]
+        names = list(map(service_full_name, DRONE_API_SERVICES))
         self.mission_server = BatonServer(
             config.controller(cid).mission_address,
             [

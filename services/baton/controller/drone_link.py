@@ -125,6 +125,9 @@ class DroneSession:
         self._stub = drone_pb2_grpc.DroneStub(self._channel)
         self.connected = asyncio.Event()
         self.t_conn_s: float | None = None
+        # When each Connected event came (Unix seconds, wall clock): the status's
+        # drone_connected_at.
+        self.connected_at: list[float] = []
         self.opened_at = time.monotonic()
         self._events: asyncio.Task[None] | None = None
 
@@ -149,6 +152,7 @@ class DroneSession:
                         if self.t_conn_s is None:
                             self.t_conn_s = time.monotonic() - self.opened_at
                         self.epoch = event.connected.epoch
+                        self.connected_at.append(time.time())
                         self.connected.set()
                         self._log.info(
                             "drone connected",

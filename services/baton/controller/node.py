@@ -53,15 +53,16 @@ from baton.controller.protocol import (
 from baton.controller.ring import PeerLink, Relay
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
+from baton.rpc.methods import path, service_prefix
 from baton.rpc.tls import Tls
 from baton.stalls import StallWatch
 from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, ring_pb2
 
-CLOCK_SERVICE = "/baton.v1.Clock/"
-CLOCK_SLEEP = "/baton.v1.Clock/Sleep"
-CLOCK_NOW = "/baton.v1.Clock/Now"
+CLOCK_SERVICE = service_prefix("Clock")
+CLOCK_SLEEP = path("Clock.Sleep")
+CLOCK_NOW = path("Clock.Now")
 # A master stops a prepared handover this long after the drone's timeout for it, if it
 # heard nothing (the drone forces the handover at its timeout: the notice is owed).
 PREPARE_GRACE_S = 2.0
@@ -229,6 +230,7 @@ class ControllerNode:
         self._drone_calls = 0
         self.handovers: list[HandoverEvent] = []
         self.t_conn_s: list[float] = []
+        self.drone_connected_at: list[float] = []  # of closed connections (all_drone_...)
         # The standby stream: the drone's way to reach us for a takeover.
         self._standby = DroneStandby(
             cid, config.drone_address_for(cid), self.on_take_over, self.log, tls
@@ -721,6 +723,12 @@ class ControllerNode:
         return self._drone is not None and self._drone.connected.is_set()
 
     @property
+    def all_drone_connected_at(self) -> list[float]:
+        """When the drone said connected (Unix seconds), every connection so far."""
+        current = self._drone.connected_at if self._drone is not None else []
+        return self.drone_connected_at + current
+
+    @property
     def all_t_conn_s(self) -> list[float]:
         """T_conn of every drone connection so far, the open one included."""
         current = self._drone.t_conn_s if self._drone is not None else None
@@ -839,6 +847,7 @@ class ControllerNode:
         if drone is not None:
             if drone.t_conn_s is not None:
                 self.t_conn_s.append(drone.t_conn_s)
+            self.drone_connected_at.extend(drone.connected_at)
             # Closing from inside the drone's own event task would cancel it
             # mid-callback; let it finish on its own.
             self._background.spawn(drone.close(), name="drone-close")

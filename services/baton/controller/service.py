@@ -1,8 +1,9 @@
 """The controller's gRPC face: the drone-API proxy and the ControllerRing service.
 
 The proxy serves the same Mobility, Camera and Clock services as the drone,
-built from the proto descriptors with one generic handler, so a method added
-to the contract is proxied without code here. Request and reply stay
+from the drone API's one method table (``rpc/methods.py``, read from the
+proto descriptors) with one generic handler, so a method added to the
+contract is proxied without code here. Request and reply stay
 serialized end to end: the controller logs and forwards bytes.
 """
 
@@ -18,23 +19,11 @@ from google.protobuf import message as protobuf_message
 from baton.controller.node import CLOCK_SLEEP, ControllerNode
 from baton.controller.ring import RingReceiver
 from baton.rpc.errors import StatusError, abort_with, status_of
+from baton.rpc.methods import drone_api
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA, token_in
 from baton.rpc.tls import caller, refused, refused_status
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2, ring_pb2_grpc
-
-PROXIED_SERVICES = ("Mobility", "Camera", "Clock")
-
-
-def proxied_methods() -> dict[str, type[protobuf_message.Message]]:
-    """Full gRPC method name -> request message class, for every drone-API method."""
-    methods: dict[str, type[protobuf_message.Message]] = {}
-    for service_name in PROXIED_SERVICES:
-        service = api.DESCRIPTOR.services_by_name[service_name]
-        for method in service.methods:
-            request_class = getattr(api, method.input_type.name)
-            methods[f"/{service.full_name}/{method.name}"] = request_class
-    return methods
 
 
 def caller_refused(
@@ -65,17 +54,17 @@ class DroneApiProxy(grpc.GenericRpcHandler):
     def __init__(self, node: ControllerNode, token: str | None = None) -> None:
         self._node = node
         self._token = token
-        self._methods = proxied_methods()
+        self._methods = drone_api()
 
     def service(
         self, handler_call_details: grpc.HandlerCallDetails
     ) -> grpc.RpcMethodHandler | None:
         """The raw-bytes handler of a drone-API method, None for other methods."""
         method = handler_call_details.method
-        request_class = self._methods.get(method)
-        if request_class is None:
+        found = self._methods.get(method)
+        if found is None:
             return None
-        return grpc.unary_unary_rpc_method_handler(self._handler(method, request_class))
+        return grpc.unary_unary_rpc_method_handler(self._handler(method, found.request_type))
 
     def _handler(
         self, method: str, request_class: type[protobuf_message.Message]
@@ -274,5 +263,6 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
             for h in node.handovers
         ],
         t_conn_s=node.all_t_conn_s,
+        drone_connected_at=node.all_drone_connected_at,
         mission_address=node.mission_address,
     )

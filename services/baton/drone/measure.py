@@ -17,9 +17,13 @@ import time
 from pathlib import Path
 
 from baton.rpc.channels import aio_channel
+from baton.rpc.methods import path
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
+
+GET_POSITION = path("Mobility.GetPosition")
+TAKE_PICTURE = path("Camera.TakePicture")
 
 
 def percentile(samples: list[float], q: float) -> float:
@@ -91,17 +95,17 @@ async def measure(
         )
 
     for _ in range(20):  # warm up the channel and the drone's telemetry path
-        await invoke("/baton.v1.Mobility/GetPosition")
+        await invoke(GET_POSITION)
     position = []
     for _ in range(calls):
         start = time.perf_counter()
-        await invoke("/baton.v1.Mobility/GetPosition")
+        await invoke(GET_POSITION)
         position.append(time.perf_counter() - start)
 
     picture, picture_bytes = [], 0
     for _ in range(pictures):
         start = time.perf_counter()
-        reply = await invoke("/baton.v1.Camera/TakePicture")
+        reply = await invoke(TAKE_PICTURE)
         picture.append(time.perf_counter() - start)
         picture_bytes = len(api.TakePictureReply.FromString(reply.payload).image)
     await channel.close()

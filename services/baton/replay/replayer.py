@@ -45,8 +45,9 @@ from baton.controller.protocol import (
     State,
     Unqueued,
 )
-from baton.controller.service import check_request, proxied_methods
+from baton.controller.service import check_request
 from baton.rpc.errors import StatusError, status_of
+from baton.rpc.methods import drone_api, path, rpc_of
 from baton.sdk import aio
 from baton.sdk.drone import Drone
 from baton.sdk.run import failure, load_mission, parse_params
@@ -55,8 +56,7 @@ from baton.v1 import ring_pb2
 # The replayer's id in its ring of one: no controller has it, so every message
 # of the log is someone else's (handled, never taken for our own).
 REPLAYER = -1
-MISSION_DONE = "/baton.v1.ControllerRing/MissionDone"
-_REQUEST_CLASSES = proxied_methods()
+MISSION_DONE = path("ControllerRing.MissionDone")
 
 
 class InconsistentLog(ValueError):
@@ -73,12 +73,12 @@ class ReplayStopped(BaseException):
 
 def describe(method: str, request: bytes) -> str:
     """``Service.Method {fields}``: a request as readable protobuf text."""
-    name = method.removeprefix("/baton.v1.").replace("/", ".")
-    request_class = _REQUEST_CLASSES.get(method)
-    if request_class is None:
+    name = rpc_of(method)
+    found = drone_api().get(method)
+    if found is None:
         return f"{name} (not a drone-API method) request bytes {bytes(request).hex()}"
     try:
-        decoded = request_class.FromString(request)
+        decoded = found.request_type.FromString(request)
     except protobuf_message.DecodeError:
         return f"{name} (does not decode) request bytes {bytes(request).hex()}"
     return f"{name} {{{text_format.MessageToString(decoded, as_one_line=True)}}}"
@@ -86,9 +86,10 @@ def describe(method: str, request: bytes) -> str:
 
 def differing_fields(method: str, logged: bytes, asked: bytes) -> list[str]:
     """The fields of two requests of ``method`` that differ (empty if not decodable)."""
-    request_class = _REQUEST_CLASSES.get(method)
-    if request_class is None:
+    found = drone_api().get(method)
+    if found is None:
         return []
+    request_class = found.request_type
     try:
         a, b = request_class.FromString(logged), request_class.FromString(asked)
     except protobuf_message.DecodeError:
@@ -271,15 +272,15 @@ class _ReplayedCall(grpc.UnaryUnaryMultiCallable):  # type: ignore[misc]
         payload = self._serialize(request)
         if self._method == MISSION_DONE:
             return ring_pb2.MissionDoneReply(flushed=False, lognr=self._replay.protocol.lognr)
-        request_class = _REQUEST_CLASSES.get(self._method)
-        if request_class is None:
+        found = drone_api().get(self._method)
+        if found is None:
             raise ReplayedError(
                 grpc.StatusCode.UNIMPLEMENTED,
                 f"{self._method}: not a drone-API method; a replay answers the mission "
                 "program's Mobility, Camera and Clock calls only",
             )
         try:
-            check_request(self._method, request_class.FromString(payload))
+            check_request(self._method, found.request_type.FromString(payload))
         except StatusError as exc:  # refused before it takes a request number
             raise ReplayedError(exc.code, exc.message) from None
         entry = self._replay.answer(self._method, payload)

@@ -37,7 +37,6 @@ import grpc
 
 from baton.digest import request_digest
 from baton.drone.dedupe import CachedReply, retained_batches
-from baton.drone.dispatch import drone_api_routes
 from baton.drone.sequencer import (
     PREPARE_TIMEOUT_S,
     ScriptedHandover,
@@ -47,6 +46,7 @@ from baton.drone.sequencer import (
 from baton.drone.service import RESTART_GRACE_S, START_GRACE_S, TAKEOVER_TICK_S
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
+from baton.rpc.methods import drone_api, service_prefix
 from baton.sim.mission import UNPARSABLE
 from baton.v1 import drone_pb2
 
@@ -55,7 +55,8 @@ if TYPE_CHECKING:
     from baton.sim.network import DroneLink
     from baton.sim.world import World
 
-ROUTES = drone_api_routes()
+ROUTES = drone_api()
+CAMERA = service_prefix("Camera")
 # The sim's replies are tens of bytes: batches of about one or two of them, so that a
 # stream can break between the Connected event and its last retained batch.
 RETAINED_BATCH_BYTES = 64
@@ -364,7 +365,7 @@ class SimDrone:
         request, now = execution.request, self.world.loop.now
         if execution.is_read:
             execution.reply = self.vehicle.read(now, request.reqnr, request.method)
-        elif request.method.startswith("/baton.v1.Camera/"):
+        elif request.method.startswith(CAMERA):
             size = self.world.rng.randint(300, 3000)
             execution.reply = self.camera.take(now, request.reqnr, request.payload, size)
         else:

@@ -26,13 +26,13 @@ import random
 from dataclasses import dataclass
 
 from baton.controller.node import CLOCK_NOW, CLOCK_SLEEP
+from baton.rpc.methods import path
 from baton.v1 import drone_api_pb2 as api
 
-MOBILITY = "/baton.v1.Mobility/"
-GET_POSITION = MOBILITY + "GetPosition"
-GET_FLIGHT_STATE = MOBILITY + "GetFlightState"
-COMMANDS = tuple(MOBILITY + name for name in ("Goto", "SetSpeed", "Takeoff", "Hold", "Land"))
-TAKE_PICTURE = "/baton.v1.Camera/TakePicture"
+GET_POSITION = path("Mobility.GetPosition")
+GET_FLIGHT_STATE = path("Mobility.GetFlightState")
+COMMANDS = tuple(path(f"Mobility.{n}") for n in ("Goto", "SetSpeed", "Takeoff", "Hold", "Land"))
+TAKE_PICTURE = path("Camera.TakePicture")
 # A request that starts with this byte does not parse at the simulated drone.
 UNPARSABLE = b"\xff"
 

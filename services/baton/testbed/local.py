@@ -32,6 +32,7 @@ from baton.effects import read_effects
 from baton.missions import corridor as corridor_mission
 from baton.missions import grid as grid_mission
 from baton.rpc.channels import aio_channel
+from baton.rpc.methods import path
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.tls import CA_CERT, DRONE, OPERATOR, Identity, Tls
 from baton.testbed.supervisor import PartNotReady, Supervisor, baton_argv
@@ -40,6 +41,7 @@ from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 GRID_MISSION = Path(grid_mission.__file__)
 CORRIDOR_MISSION = Path(corridor_mission.__file__)
 MISSION_KINDS = ("grid", "corridor")
+TAKE_PICTURE = path("Camera.TakePicture")
 
 # The paper's links: 20 ms and 25 Mbit/s between controllers; WiFi to the drone.
 PAPER_CONTROLLER_LINK = LinkSpec(latency=0.020, bandwidth=25e6)
@@ -273,7 +275,7 @@ class Snapshot:
     @property
     def pictures(self) -> int:
         """Pictures the drone has taken."""
-        return sum(1 for a in self.drone.audit if a.method.endswith("/TakePicture"))
+        return sum(1 for a in self.drone.audit if a.method == TAKE_PICTURE)
 
 
 class LocalTestbed:

@@ -16,11 +16,13 @@ from collections import Counter
 from collections.abc import Sequence
 from typing import Any
 
+from baton.bench.model import t_max
 from baton.config import BatonConfig
 from baton.missions.grid import waypoints
 from baton.missions.plan import Plan
+from baton.rpc.methods import path
 from baton.sdk import Position, distance_m, offset
-from baton.testbed.local import Effects, Snapshot
+from baton.testbed.local import TAKE_PICTURE, Effects, Snapshot
 from baton.v1 import drone_pb2, ring_pb2
 
 REPORT_FORMAT = "baton.testbed.report/1"
@@ -32,28 +34,7 @@ ONCE_PER_MISSION = ("arm", "takeoff", "land")
 # How far a goto's target may be from its grid waypoint: the target crosses
 # MAVLink as 1e-7 degrees (about 1 cm).
 GOTO_TOLERANCE_M = 0.5
-
-
-def t_log(size_bytes: float, latency_s: float, bandwidth_bps: float | None) -> float:
-    """The paper's T_log(s) = l + s/b (s in bits)."""
-    transfer = 0.0 if bandwidth_bps is None else size_bytes * 8 / bandwidth_bps
-    return latency_s + transfer
-
-
-def model_worst_case_s(
-    hops: int,
-    flush_limit: int,
-    largest_entry: int,
-    t_conn_s: float,
-    latency_s: float,
-    bandwidth_bps: float | None,
-) -> float:
-    """Section 4: T_max = T_log(0) + h * T_log(f + e) + T_conn."""
-    return (
-        t_log(0, latency_s, bandwidth_bps)
-        + hops * t_log(flush_limit + largest_entry, latency_s, bandwidth_bps)
-        + t_conn_s
-    )
+GOTO = path("Mobility.Goto")
 
 
 def check_side_effects(
@@ -254,7 +235,7 @@ def build_report(
     survey's waypoints, north and east of its first, instead of the grid)."""
     drone = snapshot.drone
     audit = list(drone.audit)
-    pictures = sum(1 for a in audit if a.method.endswith("/TakePicture"))
+    pictures = sum(1 for a in audit if a.method == TAKE_PICTURE)
     largest_entry = max((a.reply_bytes for a in audit), default=0)
     t_conns = [t for c in snapshot.controllers.values() for t in c.t_conn_s]
     t_conn = sum(t_conns) / len(t_conns) if t_conns else 0.0
@@ -370,10 +351,10 @@ def _handover(
             else None
         ),
         "model_worst_case_s": round(
-            model_worst_case_s(
-                hops,
+            t_max(
                 config.flush_limit,
                 largest_entry,
+                hops,
                 t_conn,
                 link.latency,
                 link.bandwidth,
@@ -392,8 +373,8 @@ def _mission(
 ) -> dict[str, Any]:
     """What the mission was and what of it the drone executed."""
     audit = list(snapshot.drone.audit)
-    pictures = sum(1 for a in audit if a.method.endswith("/TakePicture"))
-    gotos = sum(1 for a in audit if a.method.endswith("/Goto"))
+    pictures = sum(1 for a in audit if a.method == TAKE_PICTURE)
+    gotos = sum(1 for a in audit if a.method == GOTO)
     survey = plan is None and grid_mission  # the grid or the corridor: a picture a waypoint
     return {
         "grid": grid if survey and targets is None else None,
@@ -417,7 +398,7 @@ def _mission(
         "picture_requests": [
             {"reqnr": a.reqnr, "received_at": a.received_at}
             for a in audit
-            if a.method.endswith("/TakePicture")
+            if a.method == TAKE_PICTURE
         ],
     }
 
