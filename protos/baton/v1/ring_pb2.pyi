@@ -588,6 +588,11 @@ class ControllerHandover(_message.Message):
     REQNR_FIELD_NUMBER: _builtins.int
     LOG_BYTES_FIELD_NUMBER: _builtins.int
     AT_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
+    DRONE_AFTER_REQNR_FIELD_NUMBER: _builtins.int
+    HOLDS_REQNR_FIELD_NUMBER: _builtins.int
+    FIRST_NEW_REQNR_FIELD_NUMBER: _builtins.int
+    FIRST_NEW_AT_FIELD_NUMBER: _builtins.int
     role: _builtins.str
     """"old" (handed over), "new" (took over by a handover message), "taker"
     (made master by the drone's takeover), "fenced" (its mastership taken
@@ -603,6 +608,19 @@ class ControllerHandover(_message.Message):
     """Bytes of log the handover message carried (the unflushed log)."""
     at: _builtins.float
     """When (Unix seconds, wall clock)."""
+    epoch: _builtins.int
+    """The drone's epoch of the switch (the new master's), where known."""
+    drone_after_reqnr: _builtins.int
+    """The last request number the drone served before the switch ("old",
+    "taker": the notice's or the takeover's after_reqnr).
+    """
+    holds_reqnr: _builtins.int
+    """"taker": the request number its log held when it took over."""
+    first_new_reqnr: _builtins.int
+    """"taker": its first call beyond the drone's retained replies (the mission
+    going on), and when (Unix seconds; 0: none yet).
+    """
+    first_new_at: _builtins.float
     def __init__(
         self,
         *,
@@ -612,10 +630,15 @@ class ControllerHandover(_message.Message):
         reqnr: _builtins.int = ...,
         log_bytes: _builtins.int = ...,
         at: _builtins.float = ...,
+        epoch: _builtins.int = ...,
+        drone_after_reqnr: _builtins.int = ...,
+        holds_reqnr: _builtins.int = ...,
+        first_new_reqnr: _builtins.int = ...,
+        first_new_at: _builtins.float = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["at", b"at", "log_bytes", b"log_bytes", "lognr", b"lognr", "peer", b"peer", "reqnr", b"reqnr", "role", b"role"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["at", b"at", "drone_after_reqnr", b"drone_after_reqnr", "epoch", b"epoch", "first_new_at", b"first_new_at", "first_new_reqnr", b"first_new_reqnr", "holds_reqnr", b"holds_reqnr", "log_bytes", b"log_bytes", "lognr", b"lognr", "peer", b"peer", "reqnr", b"reqnr", "role", b"role"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

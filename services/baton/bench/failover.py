@@ -201,9 +201,17 @@ def measure(
     first_drone = next(
         (a for a in drone.audit if a.reqnr > record.after_reqnr and a.controller_id == new), None
     )
-    taker_log = workdir / "logs" / f"controller-{new}.log"
-    first_new_call = taker_event(taker_log, "first new call after the takeover", record.epoch)
-    if first_drone is None or first_new_call is None:
+    taking_over = next(
+        (
+            h
+            for h in snapshot.controllers[new].handovers
+            if h.role == "taker" and h.epoch == record.epoch
+        ),
+        None,
+    )
+    if taking_over is None:
+        raise RuntimeError(f"controller {new}: no takeover of epoch {record.epoch} in its status")
+    if first_drone is None or not taking_over.first_new_at:
         problems.append("the new master made no new call")
         return {"ok": False, "problems": problems}
     connect = snapshot.controllers[new].t_conn_s[-1]
@@ -211,17 +219,14 @@ def measure(
     # one measured at the start on a cold channel (a TCP and HTTP/2 handshake under
     # the start-up's load; CI saw 8 ms against 49 ms).
     t_conn = min(t_conn, connect)
-    taking_over = taker_event(taker_log, "taking over from a lost master", record.epoch)
-    if taking_over is None:
-        raise RuntimeError(f"{taker_log}: no takeover of epoch {record.epoch} logged")
-    holds = int(taking_over["holds_reqnr"])
+    holds = taking_over.holds_reqnr
     sizes = {a.reqnr: a.reply_bytes for a in drone.audit}
     missing = sum(size for reqnr, size in sizes.items() if holds < reqnr <= record.after_reqnr)
     link = plan.drone_link
     bandwidth = link.bandwidth or float("inf")
     physical = link.latency + missing * 8 / bandwidth + t_conn
     detection = record.decided_at - killed_at
-    total = float(first_new_call["ts"]) - killed_at
+    total = taking_over.first_new_at - killed_at
     return {
         "ok": not problems,
         "problems": problems,
@@ -235,7 +240,7 @@ def measure(
         "catch_up_s": total - detection - connect,
         "t_conn_s": t_conn,
         "total_s": total,
-        "first_new_call_reqnr": int(first_new_call["reqnr"]),
+        "first_new_call_reqnr": taking_over.first_new_reqnr,
         # The first drone call's arrival: later by whatever the program does before it
         # (the mission's own Clock.Sleep, for one), which is not the takeover's.
         "first_drone_request_s": first_drone.received_at - killed_at,
@@ -245,17 +250,6 @@ def measure(
         "excess_s": total - detection - physical,
         "retained_replies_at_end": drone.retained_replies,
     }
-
-
-def taker_event(log_path: Path, msg: str, epoch: int) -> dict[str, Any] | None:
-    """The new master's first log event ``msg`` of the takeover's ``epoch``."""
-    for line in log_path.read_text().splitlines():
-        if not line.startswith("{"):
-            continue
-        event = json.loads(line)
-        if event.get("msg") == msg and event.get("epoch") == epoch:
-            return dict(event)
-    return None
 
 
 def summarize(runs: list[dict[str, Any]], settings: FailoverSettings) -> list[dict[str, Any]]:

@@ -40,7 +40,7 @@ from baton.bench.script import (
     worst_case_script,
 )
 from baton.config import LinkSpec
-from baton.testbed.local import PAPER_CONTROLLER_LINK, WIFI_DRONE_LINK, TestbedPlan
+from baton.testbed.local import PAPER_CONTROLLER_LINK, WIFI_DRONE_LINK, Snapshot, TestbedPlan
 
 CONTROLLERS = 6
 # The paper's protocol first, then baton's.
@@ -127,7 +127,7 @@ async def measure_flush_limit(
     # not of a handover; T_conn in the model is the mean of the others.
     startup, *handover_t_conn = snapshot.controllers[0].t_conn_s
     others = [t for cid, c in snapshot.controllers.items() if cid != 0 for t in c.t_conn_s]
-    handed_over = handover_log_bytes(rundir / "logs")
+    handed_over = handover_log_bytes(snapshot)
     points: list[dict[str, Any]] = []
     for p in script.points:
         flushed = actual[p.picture_reqnr].flushed if p.picture_reqnr in actual else 0
@@ -183,15 +183,15 @@ async def _measure_with_retry(
         return await measure_flush_limit(flush_limit, forwarding, settings, workdir / "retry")
 
 
-def handover_log_bytes(logs: Path) -> dict[int, int]:
-    """The old master's log size at each handover, by the drone's after-reqnr (controller logs)."""
-    held: dict[int, int] = {}
-    for path in sorted(logs.glob("controller-*.log")):
-        for line in path.read_text().splitlines():
-            if line.startswith("{") and '"handing over"' in line:
-                event = json.loads(line)
-                held[int(event["drone_after_reqnr"])] = int(event["log_bytes"])
-    return held
+def handover_log_bytes(snapshot: Snapshot) -> dict[int, int]:
+    """The old master's log size at each handover, by the drone's after-reqnr (the old
+    masters' status)."""
+    return {
+        h.drone_after_reqnr: h.log_bytes
+        for c in snapshot.controllers.values()
+        for h in c.handovers
+        if h.role == "old"
+    }
 
 
 def apply_model(run: dict[str, Any], settings: WorstCaseSettings) -> None:

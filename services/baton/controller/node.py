@@ -171,6 +171,11 @@ class HandoverEvent:
     reqnr: int
     log_bytes: int
     at: float = field(default_factory=time.time)
+    epoch: int = 0
+    drone_after_reqnr: int = 0
+    holds_reqnr: int = 0  # a taker's
+    first_new_reqnr: int = 0  # a taker's first call beyond the retained replies
+    first_new_at: float = 0.0
 
 
 class ControllerNode:
@@ -919,7 +924,16 @@ class ControllerNode:
         self._takeover_epoch = event.epoch
         self._takeover_watermark = event.watermark_reqnr
         self.handovers.append(
-            HandoverEvent("taker", event.old_master, p.lognr, p.reqnr, p.log.size)
+            HandoverEvent(
+                "taker",
+                event.old_master,
+                p.lognr,
+                p.reqnr,
+                p.log.size,
+                epoch=event.epoch,
+                drone_after_reqnr=event.after_reqnr,
+                holds_reqnr=p.held_reqnr,
+            )
         )
         self.log.warning(
             "taking over from a lost master",
@@ -1021,8 +1035,26 @@ class ControllerNode:
         except ProtocolError as exc:
             self.log.error("bad handover notice", error=str(exc))
             return
+        if self.protocol.state is State.ACTIVE:
+            # A notice of a switch before our mastership (a takeover made us master
+            # since): stale, nothing handed over.
+            self.log.warning(
+                "stale handover notice ignored",
+                new_master=new_master,
+                notice_epoch=epoch,
+                epoch=self.protocol.epoch,
+            )
+            return
         self.handovers.append(
-            HandoverEvent("old", new_master, self.protocol.lognr, self.protocol.reqnr, log_bytes)
+            HandoverEvent(
+                "old",
+                new_master,
+                self.protocol.lognr,
+                self.protocol.reqnr,
+                log_bytes,
+                epoch=epoch,
+                drone_after_reqnr=after_reqnr,
+            )
         )
         self.log.info(
             "handing over",
@@ -1309,6 +1341,9 @@ class ControllerNode:
                 return None
             if self._first_new_call_due and reqnr > self._retained_through:
                 self._first_new_call_due = False
+                takers = [h for h in self.handovers if h.role == "taker"]
+                if takers:
+                    takers[-1].first_new_reqnr, takers[-1].first_new_at = reqnr, time.time()
                 self.log.info(
                     "first new call after the takeover",
                     reqnr=reqnr,

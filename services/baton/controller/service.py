@@ -259,6 +259,11 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
                 reqnr=h.reqnr,
                 log_bytes=h.log_bytes,
                 at=h.at,
+                epoch=h.epoch,
+                drone_after_reqnr=h.drone_after_reqnr,
+                holds_reqnr=h.holds_reqnr,
+                first_new_reqnr=h.first_new_reqnr,
+                first_new_at=h.first_new_at,
             )
             for h in node.handovers
         ],
