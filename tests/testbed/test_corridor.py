@@ -99,7 +99,9 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
     zero, three = link_lines(workdir, 0), link_lines(workdir, 3)
     assert any(line.get("msg") == "vehicle out of radio range" for line in zero)
     assert next(line for line in zero if line.get("msg") == "link stopped")["cut"] >= 1
-    assert three[0].get("msg") == "vehicle out of radio range"  # from the start
+    # From the start (a "radio fade" line may come first: the fade's own word).
+    coverage = [m for line in three if (m := line.get("msg", "")).startswith("vehicle ")]
+    assert coverage[0] == "vehicle out of radio range"
     assert any(line.get("msg") == "vehicle in radio range" for line in three)
     assert next(line for line in three if line.get("msg") == "link stopped")["refused"] >= 1
 
