@@ -28,14 +28,14 @@ EXAMPLE = Path(__file__).parents[2] / "examples" / "corridor.yaml"
 MARGIN_M, LEAD_S, SPEED_M_S = 50.0, 10.0, 5.0
 
 
-def corridor_on_free_ports(tmp_path: Path, policy: str, **settings: object) -> Path:
+def corridor_on_free_ports(tmp_path: Path, policy: str, max_rtt: str | None = None) -> Path:
     document = yaml.safe_load(EXAMPLE.read_text())
     document["drone"]["address"] = f"127.0.0.1:{free_port()}"
     for controller in document["controllers"]:
         controller["address"] = f"127.0.0.1:{free_port()}"
     document["handover_policy"]["name"] = policy
-    for name, value in settings.items():  # handover_policy's max_rtt, or top-level ones
-        (document["handover_policy"] if name == "max_rtt" else document)[name] = value
+    if max_rtt is not None:
+        document["handover_policy"]["max_rtt"] = max_rtt
     config = tmp_path / "corridor.yaml"
     config.write_text(yaml.safe_dump(document))
     return config
@@ -116,7 +116,7 @@ CROSSINGS = [340, 160, 342]
 # bound on the round trip the drone measures (its own is 2 ms each way). The
 # mission done, a master does not report its preparation (it sends no request):
 # the drone forces a prepared handover after 3 s (the mission's took 0.1-0.3 s).
-SLOW_LINK_S, MAX_RTT_S, PREPARE_TIMEOUT = 0.5, 0.8, "3s"
+SLOW_LINK_S, MAX_RTT_S, PREPARE_TIMEOUT_S = 0.5, 0.8, 3.0
 
 
 async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossing(
@@ -126,9 +126,7 @@ async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossi
     master 1's link to the drone gets slow. The drone measures its round trip
     rising over the bound, the policy leaves it for 0 and keeps off it while it
     is slow, and goes back to it, the nearer, once it is fast again."""
-    config_path = corridor_on_free_ports(
-        tmp_path, "nearest", max_rtt=f"{MAX_RTT_S}s", prepare_timeout=PREPARE_TIMEOUT
-    )
+    config_path = corridor_on_free_ports(tmp_path, "nearest", max_rtt=f"{MAX_RTT_S}s")
     config = load_config(config_path)
     eastings = [0, *DITHER, *CROSSINGS]
     plan = TestbedPlan(
@@ -138,6 +136,7 @@ async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossi
         mission_file=Path(__file__).parent / "missions" / "back_and_forth.py",
         mission_args=(f"eastings={','.join(map(str, eastings))}",),
         resolution="160x120",
+        prepare_timeout=PREPARE_TIMEOUT_S,
     )
     started = time.monotonic()
     async with LocalTestbed(plan, tmp_path / "w") as testbed:
