@@ -102,7 +102,10 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
     zero, three = link_lines(workdir, 0), link_lines(workdir, 3)
     assert any(line.get("msg") == "vehicle out of radio range" for line in zero)
     assert next(line for line in zero if line.get("msg") == "link stopped")["cut"] >= 1
-    assert three[0].get("msg") == "vehicle out of radio range"  # from the start
+    # From the start (a "radio fade" line may come first: the vehicle's position was
+    # known by then, 1.5 km out, deep in the fade).
+    ranged = [line["msg"] for line in three if "radio range" in line.get("msg", "")]
+    assert ranged[0] == "vehicle out of radio range", ranged
     assert any(line.get("msg") == "vehicle in radio range" for line in three)
     assert next(line for line in three if line.get("msg") == "link stopped")["refused"] >= 1
 
