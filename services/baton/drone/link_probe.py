@@ -7,7 +7,8 @@ stream, and the controller answers with the small unary ``AnswerPing`` on the
 same channel (so through the same link emulator, and under mutual TLS checked
 like Invoke). The round trip is the time from queueing the ping to the
 answer's arrival, on the drone's monotonic clock: no clock of the
-controller's is trusted. About 100 bytes a second each way per controller.
+controller's is trusted. About 120 bytes a second each way per controller
+(measured through the link emulator, without TLS).
 
 A ping lost with a broken stream is never answered: a new standby stream
 starts its controller's measurement afresh (``attached``). A link judged by
