@@ -269,6 +269,14 @@ class HandoverPolicyConfig(_Model):
     # station's link has this long (mission time) to come up before the vehicle
     # holds (a controller's reconnect backs off to 1 s of wall time).
     link_up: Duration = 20.0
+    # A controller's link is healthy while its last round trip (the drone's ping
+    # on its standby stream, drone/link_probe.py) took at most max_rtt and is at
+    # most rtt_stale old; the policy never hands over to one that is not. Wall
+    # time: a network does not speed up with the mission. With takeovers on, the
+    # drone's keepalive drops a link slower than 2 s anyway. Read by the drone
+    # whatever the policy, for GetStatus's links.
+    max_rtt: Duration = Field(default=2.0, gt=0)
+    rtt_stale: Duration = Field(default=3.0, gt=0)
 
 
 PolicySetting = Annotated[HandoverPolicyConfig, BeforeValidator(_policy_shorthand)]

@@ -65,12 +65,21 @@ async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing
             standby = drone.Standby(drone_pb2.StandbyRequest(controller_id=0))
             denied = await refusal(standby.read())
             assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
+            # Nor may it answer another's ping (the round trip the drone measures).
+            denied = await refusal(drone.AnswerPing(drone_pb2.PingAnswer(controller_id=0, seq=1)))
+            assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
             # A controller cannot move the master; an operator can (below).
             denied = await refusal(drone.Handover(drone_pb2.HandoverRequest(new_master=2)))
             assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
             assert "only an operator" in (denied.details() or "")
-            # Its own id is fine for reading the status.
-            await drone.GetStatus(drone_pb2.GetDroneStatusRequest())
+            # Its own id is fine for reading the status, which shows every controller's
+            # round trip measured through mutual TLS and the link emulators.
+            while not all(
+                link.answers and link.healthy
+                for link in (await drone.GetStatus(drone_pb2.GetDroneStatusRequest())).links
+            ):
+                assert asyncio.get_running_loop().time() < deadline, "links not measured"
+                await asyncio.sleep(0.1)
 
         # No certificate, one of another CA, an expired one: the drone's port takes none.
         foreign = tmp_path / "foreign"

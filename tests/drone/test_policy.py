@@ -20,6 +20,7 @@ from baton.drone.policy import (
     decide,
     distance_m,
     entry_m,
+    link_problem,
     time_in_range_s,
 )
 from baton.sdk import Position, offset
@@ -249,7 +250,54 @@ def test_out_of_range_stations_and_dead_links_are_never_chosen() -> None:
     decision, _ = decide(NEAREST, placed, fix(300.0), links, 0, PolicyState(), 0.0)
     assert decision.action == HOLD
     assert "1 out of range" in decision.reason and "2 link down" in decision.reason
-    assert "3 link too slow (round trip 2.50 s)" in decision.reason
+    assert "3 link too slow (round trip 2.50 s over 2 s)" in decision.reason
+
+
+def test_link_health_is_up_with_a_round_trip_fast_and_fresh_enough() -> None:
+    # Nothing measured yet (a stream just opened): healthy.
+    assert link_problem(UP, 0.5, 3.0) == ""
+    assert link_problem(LinkState(up=True, rtt_s=0.5, rtt_age_s=3.0), 0.5, 3.0) == ""
+    assert link_problem(LinkState(up=True, rtt_s=0.51, rtt_age_s=0.1), 0.5, 3.0) == (
+        "link too slow (round trip 0.51 s over 0.5 s)"
+    )
+    assert link_problem(LinkState(up=True, rtt_s=0.01, rtt_age_s=3.2), 0.5, 3.0) == (
+        "link stale (last round trip 3.2 s ago, over 3 s)"
+    )
+    # Pings sent, none answered: judged by the first one's age.
+    assert link_problem(LinkState(up=True, rtt_age_s=2.9), 0.5, 3.0) == ""
+    assert link_problem(LinkState(up=True, rtt_age_s=3.5), 0.5, 3.0) == (
+        "link silent (no answer to a ping of 3.5 s ago)"
+    )
+    # Down says so, whatever was measured before.
+    down = LinkState(up=False, down_for_s=1.5, rtt_s=0.01, rtt_age_s=0.2)
+    assert link_problem(down, 0.5, 3.0) == "link down (1.5 s)"
+
+
+def test_a_slow_or_stale_link_is_not_chosen_and_a_master_on_one_is_left() -> None:
+    params = PolicyParams("nearest", margin_m=50.0, dwell_s=0.0, max_rtt_s=0.3, rtt_stale_s=2.0)
+    placed = stations((0.0, 600.0), (500.0, 600.0), (600.0, 600.0))
+    fast = LinkState(up=True, rtt_s=0.01, rtt_age_s=0.5)
+    slow = LinkState(up=True, rtt_s=0.8, rtt_age_s=0.5)
+    stale = LinkState(up=True, rtt_s=0.01, rtt_age_s=2.5)
+    # 1 and 2 nearer than master 0 by far, but 1 slow: the drone goes to 2.
+    links = {0: fast, 1: slow, 2: fast}
+    decision, _ = decide(params, placed, fix(450.0), links, 0, PolicyState(), 0.0)
+    assert (decision.action, decision.target) == (HANDOVER, 2), decision
+    # Both slow or stale: the master stays.
+    links = {0: fast, 1: slow, 2: stale}
+    decision, _ = decide(params, placed, fix(450.0), links, 0, PolicyState(), 0.0)
+    assert decision.action == STAY and "no usable station nearer" in decision.reason
+    # The master's link slow: the nearest usable takes over at once, told (its
+    # stream is up: a cooperative handover, not a takeover).
+    links = {0: slow, 1: fast, 2: fast}
+    decision, _ = decide(params, placed, fix(100.0), links, 0, PolicyState(), 0.0)
+    assert (decision.action, decision.target, decision.takeover) == (HANDOVER, 1, False)
+    assert decision.reason.startswith("master 0 link too slow (round trip 0.80 s over 0.3 s)")
+    # A master chosen by the operator is left too when its link goes stale.
+    links = {0: stale, 1: fast, 2: fast}
+    decision, _ = decide(params, placed, fix(100.0), links, 0, PolicyState(pinned=0), 0.0)
+    assert (decision.action, decision.target) == (HANDOVER, 1)
+    assert "master 0 link stale (last round trip 2.5 s ago, over 2 s)" in decision.reason
 
 
 def test_the_masters_link_lost_in_range_is_waited_out_then_taken_over() -> None:

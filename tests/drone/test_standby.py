@@ -3,11 +3,18 @@ TakeOver that is owed to a taker whose stream was not there to carry it (issue 1
 
 from __future__ import annotations
 
+import asyncio
+import logging
+
 import grpc
 import pytest
 from drone_harness import connect_as_master, start_drone
+from waiting import eventually
 
+from baton.controller.drone_link import DroneStandby
 from baton.digest import request_digest
+from baton.drone.link_probe import LinkBounds
+from baton.logs import get_logger
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -47,6 +54,94 @@ async def test_a_takeover_is_told_again_to_a_taker_that_was_not_listening() -> N
         other.cancel()
     finally:
         await server.stop()
+
+
+async def test_the_drone_measures_each_standby_links_round_trip_and_says_when_it_goes_silent(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Controller 1 answers the drone's pings (the controller's own DroneStandby);
+    controller 2 holds a stream and never answers: its link goes silent, is logged
+    unhealthy, and healthy again once it answers."""
+    caplog.set_level(logging.INFO, logger="baton.drone")
+    drone, server = await start_drone(link_bounds=LinkBounds(max_rtt_s=0.5, rtt_stale_s=1.5))
+    pings = asyncio.create_task(drone.service.watch_links())
+
+    async def take_over(_: drone_pb2.TakeOver) -> None:
+        raise AssertionError("no takeover here")
+
+    answering = DroneStandby(1, drone.address, take_over, get_logger("controller"))
+    answering.start()
+    silent = drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=2))
+    try:
+        assert (await silent.read()).HasField("held")
+
+        async def links() -> dict[int, drone_pb2.ControllerLink]:
+            status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+            return {link.controller_id: link for link in status.links}
+
+        async def measured() -> drone_pb2.ControllerLink | None:
+            one = (await links())[1]
+            return one if one.answers >= 2 else None
+
+        one = await eventually(measured, "two of controller 1's answers measured")
+        assert one.standby and not one.connect and one.healthy and not one.problem
+        assert 0 < one.rtt_s < 0.5 and 0 <= one.rtt_age_s < 1.5, one
+        assert (one.max_rtt_s, one.rtt_stale_s) == (0.5, 1.5) and one.pings >= one.answers
+        assert answering.pings_answered >= 2
+        # Controller 2 was pinged on its stream and never answered.
+        ping = (await silent.read()).ping
+        assert ping.seq > 0
+
+        async def silent_for_long() -> drone_pb2.ControllerLink | None:
+            two = (await links())[2]
+            return two if not two.healthy else None
+
+        two = await eventually(silent_for_long, "controller 2's link to go silent")
+        assert two.standby and two.rtt_s == -1 and two.rtt_age_s > 1.5
+        assert two.problem.startswith("link silent (no answer to a ping of"), two.problem
+        # Controller 0 holds no stream: down, nothing measured.
+        zero = (await links())[0]
+        assert not zero.standby and not zero.healthy and zero.rtt_s == zero.rtt_age_s == -1
+
+        def logged() -> list[tuple[str, dict[str, object]]]:
+            """Controller 2's link health lines, in order."""
+            return [
+                (r.getMessage(), r.fields)  # type: ignore[attr-defined]
+                for r in caplog.records
+                if r.getMessage().startswith("controller link") and r.fields.get("controller") == 2  # type: ignore[attr-defined]
+            ]
+
+        def went(message: str) -> dict[str, object] | None:
+            lines = logged()
+            return lines[-1][1] if lines and lines[-1][0] == message else None
+
+        unhealthy = await eventually(
+            lambda: went("controller link unhealthy"), "the silent link logged unhealthy"
+        )
+        assert str(unhealthy["problem"]).startswith("link silent")
+        # It answers at last, each ping as it reads it: the ones queued while it did not
+        # read are measured slow; once it keeps up, the link is healthy again.
+        for _ in range(30):
+            latest = (await silent.read()).ping.seq
+            answer = drone_pb2.PingAnswer(controller_id=2, seq=latest)
+            assert (await drone.stub.AnswerPing(answer)).measured
+            if (await links())[2].healthy:
+                break
+        else:
+            raise AssertionError(f"controller 2's link never healthy: {(await links())[2]}")
+        # Neither a ping never sent to it nor one answered already is measured.
+        for seq in (latest, 10**9):
+            reply = await drone.stub.AnswerPing(drone_pb2.PingAnswer(controller_id=2, seq=seq))
+            assert not reply.measured
+        healthy = await eventually(
+            lambda: went("controller link healthy"), "the link logged healthy again"
+        )
+        assert 0 <= float(healthy["rtt_ms"]) <= 500  # type: ignore[arg-type]
+    finally:
+        pings.cancel()
+        silent.cancel()
+        await answering.stop()
+        await server.stop(0)
 
 
 NOW = "/baton.v1.Clock/Now"

@@ -7,12 +7,14 @@ import hashlib
 import os
 import statistics
 from collections.abc import AsyncIterator, Callable
+from pathlib import Path
 
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from link_endpoints import Echo, Sink, connect
 
 from baton.config import LinkSpec
+from baton.link.cli import read_shape
 from baton.link.proxy import READ_BYTES, LinkProxy, reset_connection
 from baton.link.shaper import SerialLine
 from baton.rpc.channels import aio_channel
@@ -62,6 +64,40 @@ async def test_directions_are_shaped_separately(echo: Echo, make_proxy) -> None:
     rtts = await ping_pong(proxy.address, 5)
     assert min(rtts) >= 0.035
     assert statistics.median(rtts) < 0.035 + 0.015
+
+
+async def test_a_reshaped_link_slows_its_open_connections(
+    echo: Echo, make_proxy, tmp_path: Path
+) -> None:
+    """``baton link --shape-file`` on SIGHUP: the file read, every open line retuned."""
+    proxy = await make_proxy(echo.address, LinkSpec(latency=0.005))
+    loop = asyncio.get_running_loop()
+    reader, writer = await connect(proxy.address)
+
+    async def round_trip() -> float:
+        started = loop.time()
+        writer.write(b"x")
+        assert await reader.readexactly(1) == b"x"
+        return loop.time() - started
+
+    assert await round_trip() < 0.005 * 2 + 0.015
+    shape = tmp_path / "shape.json"
+    shape.write_text('{"up": {"latency": "60ms"}}')
+    up, down = read_shape(shape, proxy.up, proxy.down)
+    assert (up.latency, down.latency) == (0.060, 0.005)  # down kept its own
+    proxy.reshape(up, down)
+    slow = await round_trip()
+    assert 0.065 <= slow < 0.065 + 0.015, slow
+    writer.close()
+    for text, problem in (
+        ("{", "not JSON"),
+        ('{"sideways": {}}', "expected an object with 'up' and/or 'down'"),
+        ('{"up": {"latency": "fast"}}', "latency"),
+    ):
+        shape.write_text(text)
+        with pytest.raises(ValueError, match=problem) as bad:
+            read_shape(shape, up, down)
+        assert str(shape) in str(bad.value)
 
 
 async def test_pass_through_is_fast_and_intact(echo: Echo, make_proxy) -> None:

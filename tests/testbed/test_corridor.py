@@ -16,23 +16,26 @@ import yaml
 from test_testbed import run_testbed
 from waiting import eventually
 
-from baton.config import load_config
+from baton.config import LinkSpec, load_config
 from baton.link.radio import RadioRange
 from baton.sdk import Position, offset
 from baton.sdk.geo import north_east_m
 from baton.testbed.local import LocalTestbed, TestbedPlan, free_port
 from baton.testbed.report import build_report
+from baton.v1 import drone_pb2
 
 EXAMPLE = Path(__file__).parents[2] / "examples" / "corridor.yaml"
 MARGIN_M, LEAD_S, SPEED_M_S = 50.0, 10.0, 5.0
 
 
-def corridor_on_free_ports(tmp_path: Path, policy: str) -> Path:
+def corridor_on_free_ports(tmp_path: Path, policy: str, max_rtt: str | None = None) -> Path:
     document = yaml.safe_load(EXAMPLE.read_text())
     document["drone"]["address"] = f"127.0.0.1:{free_port()}"
     for controller in document["controllers"]:
         controller["address"] = f"127.0.0.1:{free_port()}"
     document["handover_policy"]["name"] = policy
+    if max_rtt is not None:
+        document["handover_policy"]["max_rtt"] = max_rtt
     config = tmp_path / "corridor.yaml"
     config.write_text(yaml.safe_dump(document))
     return config
@@ -99,9 +102,10 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
     zero, three = link_lines(workdir, 0), link_lines(workdir, 3)
     assert any(line.get("msg") == "vehicle out of radio range" for line in zero)
     assert next(line for line in zero if line.get("msg") == "link stopped")["cut"] >= 1
-    # From the start (a "radio fade" line may come first: the fade's own word).
-    coverage = [m for line in three if (m := line.get("msg", "")).startswith("vehicle ")]
-    assert coverage[0] == "vehicle out of radio range"
+    # From the start (a "radio fade" line may come first: the vehicle's position was
+    # known by then, 1.5 km out, deep in the fade).
+    ranged = [line["msg"] for line in three if "radio range" in line.get("msg", "")]
+    assert ranged[0] == "vehicle out of radio range", ranged
     assert any(line.get("msg") == "vehicle in radio range" for line in three)
     assert next(line for line in three if line.get("msg") == "link stopped")["refused"] >= 1
 
@@ -111,12 +115,21 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
 # crossings. Distinct targets: the exactly-once check counts a goto to one place twice.
 DITHER = [240, 262, 242, 264, 244]
 CROSSINGS = [340, 160, 342]
+# Then station 1's link to the drone gets slow: 500 ms each way, over the 0.8 s
+# bound on the round trip the drone measures (its own is 2 ms each way). The
+# mission done, a master does not report its preparation (it sends no request):
+# the drone forces a prepared handover after 3 s (the mission's took 0.1-0.3 s).
+SLOW_LINK_S, MAX_RTT_S, PREPARE_TIMEOUT_S = 0.5, 0.8, 3.0
 
 
 async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossing(
     tmp_path: Path,
 ) -> None:
-    config_path = corridor_on_free_ports(tmp_path, "nearest")
+    """And, the mission done (landed 342 m east, in 0's and 1's range, master 1):
+    master 1's link to the drone gets slow. The drone measures its round trip
+    rising over the bound, the policy leaves it for 0 and keeps off it while it
+    is slow, and goes back to it, the nearer, once it is fast again."""
+    config_path = corridor_on_free_ports(tmp_path, "nearest", max_rtt=f"{MAX_RTT_S}s")
     config = load_config(config_path)
     eastings = [0, *DITHER, *CROSSINGS]
     plan = TestbedPlan(
@@ -126,10 +139,12 @@ async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossi
         mission_file=Path(__file__).parent / "missions" / "back_and_forth.py",
         mission_args=(f"eastings={','.join(map(str, eastings))}",),
         resolution="160x120",
+        prepare_timeout=PREPARE_TIMEOUT_S,
     )
     started = time.monotonic()
     async with LocalTestbed(plan, tmp_path / "w") as testbed:
         snapshot = await testbed.run_mission(240)
+        await a_slow_link_is_measured_and_avoided(testbed, config.drone_link.latency)
     targets = [(0.0, float(east)) for east in eastings]
     report = build_report(config, snapshot, 0, time.monotonic() - started, [], targets=targets)
     assert report["completed"] and report["replicas_consistent"] and report["exactly_once"]
@@ -139,6 +154,71 @@ async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossi
     assert {h["trigger"] for h in report["handovers"]} == {"policy"}
     decisions = [(d.action, d.target) for d in snapshot.drone.policy_decisions]
     assert decisions.count(("handover", 1)) == 2 and decisions.count(("handover", 0)) == 1
+
+
+async def a_slow_link_is_measured_and_avoided(testbed: LocalTestbed, latency_s: float) -> None:
+    """The second half of the test above (its docstring)."""
+
+    async def drone() -> drone_pb2.DroneStatus:
+        return (await testbed.snapshot(audit=False)).drone
+
+    def links(status: drone_pb2.DroneStatus) -> dict[int, drone_pb2.ControllerLink]:
+        return {link.controller_id: link for link in status.links}
+
+    async def measured_fast() -> drone_pb2.DroneStatus | None:
+        status = await drone()
+        return status if all(links(status)[c].answers >= 1 for c in (0, 1)) else None
+
+    status = await eventually(measured_fast, "both links measured")
+    assert status.master == 1, status.policy_decision
+    for cid in (0, 1):
+        link = links(status)[cid]
+        assert link.healthy and link.standby and link.max_rtt_s == MAX_RTT_S, link
+        # Twice the emulator's latency, and what the processes add (a loaded box).
+        assert 2 * latency_s <= link.rtt_s < 2 * latency_s + 0.3, link
+        assert 0 <= link.rtt_age_s <= link.rtt_stale_s, link
+    testbed.reshape_link("link-drone-1", LinkSpec(latency=SLOW_LINK_S))
+
+    async def left_for_0() -> drone_pb2.DroneStatus | None:
+        status = await drone()
+        return status if status.master == 0 else None
+
+    status = await eventually(left_for_0, "the policy to leave master 1's slow link", 60)
+    one = links(status)[1]
+    assert not one.healthy and one.rtt_s >= 2 * SLOW_LINK_S, one
+    assert one.problem.startswith("link too slow (round trip"), one.problem
+    moved = status.handovers[-1]
+    assert (moved.trigger, moved.old_master, moved.new_master) == ("policy", 1, 0), moved
+    assert moved.reason.startswith("master 1 link too slow (round trip"), moved.reason
+    # 1 is the nearer (166 m against 346 m) but slow: not chosen while it is.
+
+    async def staying_with_0() -> drone_pb2.DroneStatus | None:
+        status = await drone()
+        decision = status.policy_decision
+        return status if (decision.master, decision.action) == (0, "stay") else None
+
+    status = await eventually(staying_with_0, "the policy to stay with 0")
+    assert not links(status)[1].healthy, links(status)[1]
+    testbed.reshape_link("link-drone-1", LinkSpec(latency=latency_s))
+
+    async def back_to_1() -> drone_pb2.DroneStatus | None:
+        status = await drone()
+        return status if status.master == 1 else None
+
+    status = await eventually(back_to_1, "the policy to go back to 1, fast again", 60)
+    assert links(status)[1].healthy and "1 nearer" in status.handovers[-1].reason
+    log = [
+        json.loads(line)
+        for line in (testbed.workdir / "logs" / "drone.log").read_text().splitlines()
+        if line.startswith("{")
+    ]
+    health = [
+        (line["msg"], line.get("problem", "")[:13])
+        for line in log
+        if line.get("controller") == 1 and str(line.get("msg")).startswith("controller link")
+    ]
+    assert ("controller link unhealthy", "link too slow") in health, health
+    assert health[-1][0] == "controller link healthy", health
 
 
 def gapped_corridor(tmp_path: Path) -> Path:

@@ -521,6 +521,7 @@ class StandbyEvent(_message.Message):
 
     HELD_FIELD_NUMBER: _builtins.int
     TAKE_OVER_FIELD_NUMBER: _builtins.int
+    PING_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def held(self) -> Global___StandbyHeld:
         """Sent first: the stream is held."""
@@ -529,21 +530,96 @@ class StandbyEvent(_message.Message):
     def take_over(self) -> Global___TakeOver:
         """This controller is master now by takeover: open Connect."""
 
+    @_builtins.property
+    def ping(self) -> Global___LinkPing:
+        """Answer with AnswerPing (the drone measures the round trip)."""
+
     def __init__(
         self,
         *,
         held: Global___StandbyHeld | None = ...,
         take_over: Global___TakeOver | None = ...,
+        ping: Global___LinkPing | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["event", b"event", "held", b"held", "take_over", b"take_over"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["event", b"event", "held", b"held", "ping", b"ping", "take_over", b"take_over"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["event", b"event", "held", b"held", "take_over", b"take_over"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["event", b"event", "held", b"held", "ping", b"ping", "take_over", b"take_over"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_event: _TypeAlias = _typing.Literal["held", "take_over"]  # noqa: Y015
+    _WhichOneofReturnType_event: _TypeAlias = _typing.Literal["held", "take_over", "ping"]  # noqa: Y015
     _WhichOneofArgType_event: _TypeAlias = _typing.Literal["event", b"event"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_event) -> _WhichOneofReturnType_event | None: ...
 
 Global___StandbyEvent: _TypeAlias = StandbyEvent  # noqa: Y015
+
+@_typing.final
+class LinkPing(_message.Message):
+    """The drone's ping on a standby stream, about once a second."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    SEQ_FIELD_NUMBER: _builtins.int
+    seq: _builtins.int
+    """Answer with this number (never reused by a drone process)."""
+    def __init__(
+        self,
+        *,
+        seq: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["seq", b"seq"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___LinkPing: _TypeAlias = LinkPing  # noqa: Y015
+
+@_typing.final
+class PingAnswer(_message.Message):
+    """A controller's answer to a LinkPing."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    CONTROLLER_ID_FIELD_NUMBER: _builtins.int
+    SEQ_FIELD_NUMBER: _builtins.int
+    controller_id: _builtins.int
+    """The answering controller's id (its certificate's, with mutual TLS)."""
+    seq: _builtins.int
+    """The ping's number."""
+    def __init__(
+        self,
+        *,
+        controller_id: _builtins.int = ...,
+        seq: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "seq", b"seq"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PingAnswer: _TypeAlias = PingAnswer  # noqa: Y015
+
+@_typing.final
+class PingAnswerReply(_message.Message):
+    """The drone's word on a ping answer."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    MEASURED_FIELD_NUMBER: _builtins.int
+    measured: _builtins.bool
+    """The drone was waiting for that ping and measured the round trip."""
+    def __init__(
+        self,
+        *,
+        measured: _builtins.bool = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["measured", b"measured"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PingAnswerReply: _TypeAlias = PingAnswerReply  # noqa: Y015
 
 @_typing.final
 class StandbyHeld(_message.Message):
@@ -972,6 +1048,7 @@ class DroneStatus(_message.Message):
     HOLDING_FIELD_NUMBER: _builtins.int
     PREPARING_FOR_FIELD_NUMBER: _builtins.int
     PREPARING_LACKS_BYTES_FIELD_NUMBER: _builtins.int
+    LINKS_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -1064,6 +1141,12 @@ class DroneStatus(_message.Message):
         hold, a resume, a stay after one), oldest first; at most 100.
         """
 
+    @_builtins.property
+    def links(self) -> _containers.RepeatedCompositeFieldContainer[Global___ControllerLink]:
+        """Each controller's link as the drone sees it, in ring order: what the
+        handover policy takes as link health (docs/design.md, "Link health").
+        """
+
     def __init__(
         self,
         *,
@@ -1096,14 +1179,82 @@ class DroneStatus(_message.Message):
         holding: _builtins.bool = ...,
         preparing_for: _builtins.int = ...,
         preparing_lacks_bytes: _builtins.int = ...,
+        links: _abc.Iterable[Global___ControllerLink] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "policy_decision", b"policy_decision", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "master", b"master", "master_connected", b"master_connected", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "master", b"master", "master_connected", b"master_connected", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___DroneStatus: _TypeAlias = DroneStatus  # noqa: Y015
+
+@_typing.final
+class ControllerLink(_message.Message):
+    """One controller's link to the drone: its streams and its round trip, measured
+    by the drone's pings on the standby stream.
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    CONTROLLER_ID_FIELD_NUMBER: _builtins.int
+    STANDBY_FIELD_NUMBER: _builtins.int
+    CONNECT_FIELD_NUMBER: _builtins.int
+    RTT_S_FIELD_NUMBER: _builtins.int
+    RTT_AGE_S_FIELD_NUMBER: _builtins.int
+    HEALTHY_FIELD_NUMBER: _builtins.int
+    PROBLEM_FIELD_NUMBER: _builtins.int
+    MAX_RTT_S_FIELD_NUMBER: _builtins.int
+    RTT_STALE_S_FIELD_NUMBER: _builtins.int
+    PINGS_FIELD_NUMBER: _builtins.int
+    ANSWERS_FIELD_NUMBER: _builtins.int
+    controller_id: _builtins.int
+    """The controller."""
+    standby: _builtins.bool
+    """It holds a standby stream, a Connect stream."""
+    connect: _builtins.bool
+    rtt_s: _builtins.float
+    """The last round trip measured (wall seconds); -1 before the first answer
+    on its current standby stream.
+    """
+    rtt_age_s: _builtins.float
+    """Wall seconds since that answer came (or, before the first, since the
+    first ping on the stream was sent); -1 before the first ping.
+    """
+    healthy: _builtins.bool
+    """Up, its last round trip within max_rtt_s and no older than
+    rtt_stale_s (the bounds below, the testbed file's handover_policy).
+    """
+    problem: _builtins.str
+    """Why not, for a person ("round trip 0.84 s over 0.30 s"); empty when healthy."""
+    max_rtt_s: _builtins.float
+    """The bounds it is judged by (wall seconds)."""
+    rtt_stale_s: _builtins.float
+    pings: _builtins.int
+    """Pings sent to it, and answers measured, since the drone started."""
+    answers: _builtins.int
+    def __init__(
+        self,
+        *,
+        controller_id: _builtins.int = ...,
+        standby: _builtins.bool = ...,
+        connect: _builtins.bool = ...,
+        rtt_s: _builtins.float = ...,
+        rtt_age_s: _builtins.float = ...,
+        healthy: _builtins.bool = ...,
+        problem: _builtins.str = ...,
+        max_rtt_s: _builtins.float = ...,
+        rtt_stale_s: _builtins.float = ...,
+        pings: _builtins.int = ...,
+        answers: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["answers", b"answers", "connect", b"connect", "controller_id", b"controller_id", "healthy", b"healthy", "max_rtt_s", b"max_rtt_s", "pings", b"pings", "problem", b"problem", "rtt_age_s", b"rtt_age_s", "rtt_s", b"rtt_s", "rtt_stale_s", b"rtt_stale_s", "standby", b"standby"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___ControllerLink: _TypeAlias = ControllerLink  # noqa: Y015
 
 @_typing.final
 class VehicleLink(_message.Message):

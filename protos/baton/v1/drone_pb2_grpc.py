@@ -60,6 +60,11 @@ class DroneStub:
                 request_serializer=baton_dot_v1_dot_drone__pb2.PreparationReport.SerializeToString,
                 response_deserializer=baton_dot_v1_dot_drone__pb2.PreparationReportReply.FromString,
                 _registered_method=True)
+        self.AnswerPing = channel.unary_unary(
+                '/baton.v1.Drone/AnswerPing',
+                request_serializer=baton_dot_v1_dot_drone__pb2.PingAnswer.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_drone__pb2.PingAnswerReply.FromString,
+                _registered_method=True)
         self.GetStatus = channel.unary_unary(
                 '/baton.v1.Drone/GetStatus',
                 request_serializer=baton_dot_v1_dot_drone__pb2.GetDroneStatusRequest.SerializeToString,
@@ -143,6 +148,17 @@ class DroneServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def AnswerPing(self, request, context):
+        """A controller's answer to a LinkPing on its standby stream: the drone
+        measures the link's round trip from the ping's sending to this call's
+        arrival (docs/design.md, "Link health"). PERMISSION_DENIED for a caller
+        that is not that controller; an answer to a ping the drone no longer
+        waits for is accepted and not measured.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def GetStatus(self, request, context):
         """The drone's state, counters and command audit.
         """
@@ -177,6 +193,11 @@ def add_DroneServicer_to_server(servicer, server):
                     servicer.ReportPreparation,
                     request_deserializer=baton_dot_v1_dot_drone__pb2.PreparationReport.FromString,
                     response_serializer=baton_dot_v1_dot_drone__pb2.PreparationReportReply.SerializeToString,
+            ),
+            'AnswerPing': grpc.unary_unary_rpc_method_handler(
+                    servicer.AnswerPing,
+                    request_deserializer=baton_dot_v1_dot_drone__pb2.PingAnswer.FromString,
+                    response_serializer=baton_dot_v1_dot_drone__pb2.PingAnswerReply.SerializeToString,
             ),
             'GetStatus': grpc.unary_unary_rpc_method_handler(
                     servicer.GetStatus,
@@ -320,6 +341,33 @@ class Drone:
             '/baton.v1.Drone/ReportPreparation',
             baton_dot_v1_dot_drone__pb2.PreparationReport.SerializeToString,
             baton_dot_v1_dot_drone__pb2.PreparationReportReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def AnswerPing(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/baton.v1.Drone/AnswerPing',
+            baton_dot_v1_dot_drone__pb2.PingAnswer.SerializeToString,
+            baton_dot_v1_dot_drone__pb2.PingAnswerReply.FromString,
             options,
             channel_credentials,
             insecure,

@@ -90,6 +90,13 @@ class DroneStub:
     request served (after_reqnr), and says the target caught up.
     PERMISSION_DENIED for a caller that is not that controller.
     """
+    AnswerPing: _grpc.UnaryUnaryMultiCallable[_drone_pb2.PingAnswer, _drone_pb2.PingAnswerReply]
+    """A controller's answer to a LinkPing on its standby stream: the drone
+    measures the link's round trip from the ping's sending to this call's
+    arrival (docs/design.md, "Link health"). PERMISSION_DENIED for a caller
+    that is not that controller; an answer to a ping the drone no longer
+    waits for is accepted and not measured.
+    """
     GetStatus: _grpc.UnaryUnaryMultiCallable[_drone_pb2.GetDroneStatusRequest, _drone_pb2.DroneStatus]
     """The drone's state, counters and command audit."""
 
@@ -149,6 +156,13 @@ class DroneAsyncStub(DroneStub):
     the master's, in its epoch, for the preparation under way, covers every
     request served (after_reqnr), and says the target caught up.
     PERMISSION_DENIED for a caller that is not that controller.
+    """
+    AnswerPing: _aio.UnaryUnaryMultiCallable[_drone_pb2.PingAnswer, _drone_pb2.PingAnswerReply]  # type: ignore[assignment]
+    """A controller's answer to a LinkPing on its standby stream: the drone
+    measures the link's round trip from the ping's sending to this call's
+    arrival (docs/design.md, "Link health"). PERMISSION_DENIED for a caller
+    that is not that controller; an answer to a ping the drone no longer
+    waits for is accepted and not measured.
     """
     GetStatus: _aio.UnaryUnaryMultiCallable[_drone_pb2.GetDroneStatusRequest, _drone_pb2.DroneStatus]  # type: ignore[assignment]
     """The drone's state, counters and command audit."""
@@ -236,6 +250,19 @@ class DroneServicer(metaclass=_abc_1.ABCMeta):
         the master's, in its epoch, for the preparation under way, covers every
         request served (after_reqnr), and says the target caught up.
         PERMISSION_DENIED for a caller that is not that controller.
+        """
+
+    @_abc_1.abstractmethod
+    def AnswerPing(
+        self,
+        request: _drone_pb2.PingAnswer,
+        context: _ServicerContext,
+    ) -> _typing.Union[_drone_pb2.PingAnswerReply, _abc.Awaitable[_drone_pb2.PingAnswerReply]]:
+        """A controller's answer to a LinkPing on its standby stream: the drone
+        measures the link's round trip from the ping's sending to this call's
+        arrival (docs/design.md, "Link health"). PERMISSION_DENIED for a caller
+        that is not that controller; an answer to a ping the drone no longer
+        waits for is accepted and not measured.
         """
 
     @_abc_1.abstractmethod

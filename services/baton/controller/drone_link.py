@@ -23,6 +23,7 @@ import grpc
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.rpc.tls import DRONE, Tls
+from baton.tasks import TaskSet
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
 # Longest a call in flight at close may take to finish (a large picture on a slow link).
@@ -31,6 +32,10 @@ CLOSE_GRACE_S = 60.0
 STOP_GRACE_S = 1.0
 # How long a prepared handover's word between requests may take to be heard.
 REPORT_TIMEOUT_S = 2.0
+# How long an answer to the drone's ping may take (a later one replaces it), and
+# how many may be in flight at once (more pings wait for none: not answered).
+PING_ANSWER_TIMEOUT_S = 10.0
+PING_ANSWERS_IN_FLIGHT = 4
 
 
 @dataclass(frozen=True)
@@ -247,8 +252,10 @@ class DroneStandby:
     """The standby stream a controller holds to the drone for as long as it runs.
 
     It is how the drone knows the controller is reachable, and where a
-    TakeOver comes (``on_take_over``). Re-opened with back-off when it
-    breaks; ``up`` says whether it is open now.
+    TakeOver comes (``on_take_over``). The drone pings on it about once a
+    second, and the controller answers on the same channel (``AnswerPing``):
+    the drone measures the link's round trip (docs/design.md, "Link health").
+    Re-opened with back-off when it breaks; ``up`` says whether it is open now.
     """
 
     def __init__(
@@ -266,6 +273,8 @@ class DroneStandby:
         self._log = log
         self.up = False
         self._task: asyncio.Task[None] | None = None
+        self._answers = TaskSet()
+        self.pings_answered = 0
 
     def start(self) -> None:
         """Starts holding the stream."""
@@ -287,6 +296,8 @@ class DroneStandby:
                             self.up, backoff = True, 0.05
                         elif event.HasField("take_over"):
                             await self._on_take_over(event.take_over)
+                        elif event.HasField("ping"):
+                            self._answer(stub, event.ping.seq)
                 except asyncio.CancelledError:
                     raise
                 except grpc.aio.AioRpcError as exc:
@@ -299,6 +310,25 @@ class DroneStandby:
                 self.up = False
                 await asyncio.sleep(backoff)
                 backoff = min(backoff * 2, 1.0)
+
+    def _answer(self, stub: drone_pb2_grpc.DroneStub, seq: int) -> None:
+        """Answers the drone's ping ``seq`` in the background (the stream reads on)."""
+        if len(self._answers) >= PING_ANSWERS_IN_FLIGHT:
+            return  # the link is that slow: the drone measures it by the ones in flight
+
+        async def answer() -> None:
+            try:
+                await stub.AnswerPing(
+                    drone_pb2.PingAnswer(controller_id=self.controller_id, seq=seq),
+                    timeout=PING_ANSWER_TIMEOUT_S,
+                )
+                self.pings_answered += 1
+            except grpc.aio.AioRpcError as exc:
+                self._log.debug("ping answer failed", seq=seq, code=exc.code().name)
+            except grpc.aio.UsageError:
+                pass  # the channel closed: the stream is being re-opened or we stop
+
+        self._answers.spawn(answer(), name="ping-answer")
 
     async def stop(self) -> None:
         """Stops holding it."""

@@ -203,6 +203,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     (``baton.config.merge``); ConfigError or ValueError names the flag and the fix."""
     from baton.config import controllers_only, load_config, merge
     from baton.drone.dedupe import DEFAULT_WINDOW
+    from baton.drone.link_probe import LinkBounds
     from baton.drone.master import load_handover_script
     from baton.drone.mavlink_relay import VehicleEndpoint
     from baton.drone.service import DroneSettings, Race
@@ -274,6 +275,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         mavlink_key=mavlink_key,
         policy=policy,
         stations=stations,
+        link_bounds=LinkBounds(config.handover_policy.max_rtt, config.handover_policy.rtt_stale),
     )
 
 
@@ -281,7 +283,6 @@ def handover_policy(config: BatonConfig) -> tuple[PolicyParams | None, dict[int,
     """The policy the drone runs (the model's, flag merged in) and every controller's
     station (the model has checked that each has a location and a range)."""
     from baton.drone.policy import PolicyParams, Station
-    from baton.drone.service import CONTROLLER_KEEPALIVE_S
     from baton.sdk import Position
 
     chosen = config.handover_policy
@@ -299,9 +300,10 @@ def handover_policy(config: BatonConfig) -> tuple[PolicyParams | None, dict[int,
         lead_s=chosen.lead,
         link_up_s=chosen.link_up,
         # A master's link down while in range is lost after the takeover time, as
-        # the takeover watch counts it; a link slower than the keepalive drops anyway.
+        # the takeover watch counts it.
         link_lost_after_s=config.takeover_after,
-        max_rtt_s=CONTROLLER_KEEPALIVE_S[1],
+        max_rtt_s=chosen.max_rtt,
+        rtt_stale_s=chosen.rtt_stale,
     )
     return params, stations
 

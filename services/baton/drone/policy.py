@@ -8,7 +8,7 @@ tasks, no clock of its own. ``decide`` takes the vehicle's position and
 velocity (``Fix``), each controller's location and range (``Station``, from
 the testbed file), each controller's link as the drone sees it
 (``LinkState``: is its standby or Connect stream up, for how long has it been
-down, its round trip if known), the current master and the policy's own small
+down, its last round trip and how old that is), the current master and the policy's own small
 state (``PolicyState``), and returns a ``Decision`` with a reason a person can
 read, and the next state. The drone service (``service.py``) feeds it its
 own telemetry every tick and carries the decision out; the tests feed it
@@ -25,8 +25,9 @@ Two policies (docs/design.md, "Range-driven handovers"):
   finish), hand over to the usable station whose range the vehicle will
   stay in longest, if that is longer than the master's.
 
-Both never choose a station that is out of range or whose link is down (or
-slower than ``max_rtt_s``). When no station is usable the vehicle *flies on*
+Both never choose a station that is out of range or whose link is not
+healthy (``link_problem``: down, its last round trip over ``max_rtt_s`` or
+older than ``rtt_stale_s``). When no station is usable the vehicle *flies on*
 (``fly_on``) if the leg it flies (``Fix.leg_to``, the master's last Goto)
 leads into the range of a station not known to be dead, or it is in such a
 range whose station's link has had less than ``link_up_s`` to come up since
@@ -82,16 +83,40 @@ class Fix:
 
 @dataclass(frozen=True)
 class LinkState:
-    """A controller's link as the drone sees it now."""
+    """A controller's link as the drone sees it now (``drone/link_probe.py`` measures
+    the round trip: the drone's ping on the standby stream, the controller's answer)."""
 
     up: bool  # it holds a standby or Connect stream
     down_for_s: float = 0.0  # mission seconds since it was last up; 0 while up
-    rtt_s: float | None = None  # its last round trip, when measured
+    rtt_s: float | None = None  # its last round trip (wall seconds), once measured
+    # Wall seconds since that round trip was measured (before the first, since the
+    # first ping was sent); None before any ping: nothing is known yet.
+    rtt_age_s: float | None = None
+
+
+def link_problem(link: LinkState, max_rtt_s: float, rtt_stale_s: float) -> str:
+    """Why ``link`` is not healthy, for a person; empty if it is: up, and its last
+    round trip at most ``max_rtt_s`` and at most ``rtt_stale_s`` old (wall seconds).
+
+    A link whose pings were never answered is judged by the age of its first ping:
+    a stream that carries nothing (a frozen link) goes stale like one that stopped.
+    Nothing measured yet (no ping sent) is no problem: a stream just opened.
+    """
+    if not link.up:
+        return f"link down ({link.down_for_s:.1f} s)"
+    if link.rtt_s is not None and link.rtt_s > max_rtt_s:
+        return f"link too slow (round trip {link.rtt_s:.2f} s over {max_rtt_s:g} s)"
+    if link.rtt_age_s is not None and link.rtt_age_s > rtt_stale_s:
+        if link.rtt_s is None:
+            return f"link silent (no answer to a ping of {link.rtt_age_s:.1f} s ago)"
+        return f"link stale (last round trip {link.rtt_age_s:.1f} s ago, over {rtt_stale_s:g} s)"
+    return ""
 
 
 @dataclass(frozen=True)
 class PolicyParams:
-    """A policy and its thresholds (times in mission seconds)."""
+    """A policy and its thresholds (times in mission seconds, but a link's round trip
+    in wall seconds: a network does not speed up with the mission)."""
 
     name: str = "nearest"
     # nearest: another station must be this much nearer than the master...
@@ -102,8 +127,10 @@ class PolicyParams:
     lead_s: float = 10.0
     # The master's link down this long while in range: another takes over.
     link_lost_after_s: float = 3.0
-    # A link slower than this (round trip) is not used.
+    # A link whose last round trip took longer than this, or is older than
+    # rtt_stale_s, is not used (wall seconds; ``link_problem``).
     max_rtt_s: float = 2.0
+    rtt_stale_s: float = 3.0
     # No station usable, the vehicle flown into a station's range: its link is
     # given this long to come up (a controller's reconnect backs off to 1 s of
     # wall time, 10 s of the mission's at 10x) before the vehicle holds.
@@ -120,6 +147,7 @@ class PolicyParams:
             "lead_s",
             "link_lost_after_s",
             "max_rtt_s",
+            "rtt_stale_s",
             "link_up_s",
         ):
             value = getattr(self, field)
@@ -204,7 +232,8 @@ class _View:
     station: Station
     distance_m: float
     link: LinkState
-    max_rtt_s: float
+    # Why its link is not healthy (``link_problem``); empty if it is.
+    link_problem: str
 
     @property
     def id(self) -> int:
@@ -216,8 +245,7 @@ class _View:
 
     @property
     def link_ok(self) -> bool:
-        rtt = self.link.rtt_s
-        return self.link.up and (rtt is None or rtt <= self.max_rtt_s)
+        return not self.link_problem
 
     @property
     def usable(self) -> bool:
@@ -233,7 +261,7 @@ class _View:
         if not self.link.up:
             return f"{self.id} link down ({self.link.down_for_s:.1f} s, {self.where()})"
         if not self.link_ok:
-            return f"{self.id} link too slow (round trip {self.link.rtt_s:.2f} s)"
+            return f"{self.id} {self.link_problem}"
         return ""
 
 
@@ -252,15 +280,11 @@ def decide(
     otherwise: the configuration check makes sure); a controller missing from
     ``links`` counts as down.
     """
-    views = {
-        cid: _View(
-            station,
-            distance_m(station, fix),
-            links.get(cid, LinkState(up=False, down_for_s=math.inf)),
-            params.max_rtt_s,
-        )
-        for cid, station in stations.items()
-    }
+    views = {}
+    for cid, station in stations.items():
+        link = links.get(cid, LinkState(up=False, down_for_s=math.inf))
+        problem = link_problem(link, params.max_rtt_s, params.rtt_stale_s)
+        views[cid] = _View(station, distance_m(station, fix), link, problem)
     since = dict(state.entered) if state.entered is not None else {}
     new = now if state.entered is not None else -math.inf
     entered = {cid: since.get(cid, new) for cid, v in views.items() if v.in_range}

@@ -2,8 +2,9 @@
 
 Every ``POLICY_TICK_S`` the runner reads the vehicle's position and velocity
 from the mobility backend's telemetry cache, each controller's link from the
-drone's streams (a controller holding a standby or Connect stream is up; the
-drone's last sighting says for how long one has been down), asks the pure
+drone's streams and pings (``DroneService.link_states``: a controller holding a
+standby or Connect stream is up, the drone's last sighting says for how long
+one has been down, and ``link_probe.py`` measures its round trip), asks the pure
 policy, and carries the decision out:
 
 - ``handover``: prepared (``DroneService.prepare_handover``, docs/design.md
@@ -45,7 +46,6 @@ from baton.drone.policy import (
     HOLD,
     Decision,
     Fix,
-    LinkState,
     PolicyParams,
     PolicyState,
     Station,
@@ -167,8 +167,9 @@ class PolicyRunner:
         fix = Fix(Position.from_proto(position), north, east, leg_to)
         self._fix, self.position = fix, position
         master = service.seq.master
+        links = service.link_states(self.speedup)
         decision, self.state = decide(
-            self.params, self.stations, fix, self._links(), master, self.state, self._now()
+            self.params, self.stations, fix, links, master, self.state, self._now()
         )
         self._note(decision, position, master)
         if decision.action == HANDOVER:
@@ -192,26 +193,6 @@ class PolicyRunner:
     def _now(self) -> float:
         """Mission seconds (the policy's clock)."""
         return time.time() * self.speedup
-
-    def _links(self) -> dict[int, LinkState]:
-        """Each controller's link: up while it holds a stream; else down since last seen.
-
-        One not seen since the drone started counts as seen at the end of the
-        start-up grace (``DroneService.unseen_from``), as the takeover watch counts
-        it: the controllers come up one by one, and the first to come must not
-        take the master over from one still starting."""
-        service = self.service
-        up = service.standby.reachable | service.streams.holders
-        now = time.time()
-        links = {}
-        for cid in self.stations:
-            if cid in up:
-                links[cid] = LinkState(up=True)
-                continue
-            seen = service.last_seen.get(cid, service.unseen_from)
-            down = 0.0 if seen is None else max(0.0, now - seen) * self.speedup
-            links[cid] = LinkState(up=False, down_for_s=down)
-        return links
 
     def _note(self, decision: Decision, position: api.Position, master: int) -> None:
         """Keeps the decision for GetStatus and logs it when it changes what the drone does."""

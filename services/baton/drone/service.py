@@ -23,9 +23,10 @@ from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
 from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, retained_batches
 from baton.drone.dispatch import Dispatcher
+from baton.drone.link_probe import PING_PERIOD_S, LinkBounds, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend
-from baton.drone.policy import PolicyParams, Station
+from baton.drone.policy import LinkState, PolicyParams, Station
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.sequencer import (
     ScriptedHandover,
@@ -105,6 +106,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         store: DroneStore | None = None,
         takeover_after_s: float = 0.0,
         authenticated: bool = False,
+        link_bounds: LinkBounds | None = None,
     ) -> None:
         self.race = race
         # Mutual TLS on the port: every call is checked against the caller's
@@ -141,6 +143,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
         self._stalls = StallWatch()
         self.waiting = ""
+        # Each controller's round trip, measured by pings on its standby stream.
+        self.probes = LinkProbes(tuple(sequencer.ring), link_bounds or LinkBounds(), self.log)
         # The handover policy, when the drone runs one (build_service).
         self.policy: PolicyRunner | None = None
         if store is not None:
@@ -203,6 +207,35 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                         if self.store is not None:
                             self.store.save(self._counters())
             await asyncio.sleep(TAKEOVER_TICK_S)
+
+    async def watch_links(self) -> None:
+        """Every PING_PERIOD_S: pings each controller on its standby stream, and logs
+        the links that went unhealthy or healthy (``LinkProbes``)."""
+        while True:
+            now = time.monotonic()
+            for cid in self.standby.reachable:
+                self.standby.tell(cid, self.probes.ping(cid, now))
+            self.probes.watch(self.link_states())
+            await asyncio.sleep(PING_PERIOD_S)
+
+    def link_states(self, speedup: float = 1.0) -> dict[int, LinkState]:
+        """Each controller's link: up while it holds a standby or Connect stream, else
+        down since last seen (times ``speedup``: mission seconds), and its round trip.
+
+        One not seen since the drone started counts as seen at the end of the
+        start-up grace (``unseen_from``), as the takeover watch counts it: the
+        controllers come up one by one, and the first to come must not take the
+        master over from one still starting."""
+        up = self.standby.reachable | self.streams.holders
+        now, clock = time.time(), time.monotonic()
+        links = {}
+        for cid in self.seq.ring:
+            down = 0.0
+            if cid not in up:
+                seen = self.last_seen.get(cid, self.unseen_from)
+                down = 0.0 if seen is None else max(0.0, now - seen) * speedup
+            links[cid] = self.probes.state(cid, cid in up, down, clock)
+        return links
 
     def _takers(self, reachable: set[int]) -> set[int]:
         """Who may take a lost master over: the reachable controllers, and with a handover
@@ -697,6 +730,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.log.warning("standby rejected", controller=cid, reason=err.message)
             await abort_with(context, err)
         stream = self.standby.attach(cid)
+        self.probes.attached(cid)
         self.last_seen[cid] = time.time()
         try:
             yield drone_pb2.StandbyEvent(
@@ -710,6 +744,17 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         finally:
             self.standby.detach(stream)
             self.last_seen[cid] = time.time()
+
+    async def AnswerPing(
+        self, request: drone_pb2.PingAnswer, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.PingAnswerReply:
+        """A controller's answer to a LinkPing: its link's round trip measured."""
+        arrived = time.monotonic()
+        refusal = self._not_as(context, "AnswerPing", request.controller_id)
+        if refusal is not None:
+            await abort_with(context, refusal)
+        measured = self.probes.answered(request.controller_id, request.seq, arrived)
+        return drone_pb2.PingAnswerReply(measured=measured)
 
     async def Handover(
         self, request: drone_pb2.HandoverRequest, context: grpc.aio.ServicerContext
@@ -834,6 +879,17 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
         if self.policy is not None:
             self.policy.fill_status(status)
+        links, clock = self.link_states(), time.monotonic()
+        for cid in seq.ring:
+            status.links.append(
+                self.probes.status(
+                    cid,
+                    cid in self.standby.reachable,
+                    self.streams.connected(cid),
+                    links[cid].down_for_s,
+                    clock,
+                )
+            )
         status.retained_replies, status.retained_bytes = seq.cache.retained
         if self.vehicle.connected:
             try:
@@ -898,6 +954,8 @@ class DroneSettings:
     # script and the operator only.
     policy: PolicyParams | None = None
     stations: Mapping[int, Station] = field(default_factory=dict)
+    # What a healthy controller link is (GetStatus's links, the policy's usable).
+    link_bounds: LinkBounds = field(default_factory=LinkBounds)
 
     @property
     def address(self) -> str:
@@ -966,6 +1024,7 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         store,
         takeover_after_s,
         authenticated=settings.tls is not None,
+        link_bounds=settings.link_bounds,
     )
     if settings.policy is not None:
         service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
@@ -1007,6 +1066,7 @@ async def serve(
         on_listening(server.address)
     watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
     takeovers = asyncio.create_task(service.watch_master(), name="takeover-watch")
+    pings = asyncio.create_task(service.watch_links(), name="link-pings")
     policy = (
         asyncio.create_task(service.policy.run(), name="handover-policy")
         if service.policy is not None
@@ -1017,6 +1077,7 @@ async def serve(
     finally:
         watchdog.cancel()
         takeovers.cancel()
+        pings.cancel()
         if policy is not None:
             policy.cancel()
         await server.stop()

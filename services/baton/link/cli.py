@@ -13,11 +13,15 @@ import argparse
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from baton.config import LinkSpec, parse_address, parse_duration, parse_rate
 from baton.lifecycle import announce, run_until_signalled, until_stopped
 from baton.link.radio import parse_fade, parse_radio_range
+from baton.logs import BoundLogger
+
+if TYPE_CHECKING:
+    from baton.link.proxy import LinkProxy
 
 UNLIMITED = ("unlimited", "none")
 
@@ -131,6 +135,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "up to date (for --range)",
     )
     parser.add_argument(
+        "--shape-file",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="on SIGHUP, take the link's latency and bandwidth from this JSON file, e.g. "
+        '{"up": {"latency": "400ms"}, "down": {"latency": "400ms", "bandwidth": "1Mbit"}} '
+        "(a direction left out keeps its own); open connections follow at once",
+    )
+    parser.add_argument(
         "--address-file",
         type=Path,
         default=None,
@@ -199,6 +212,8 @@ def run(args: argparse.Namespace) -> int:
         except OSError as exc:
             proxy.log.error(f"cannot listen on {args.listen}: {exc.strerror or exc}")
             return 1
+        if args.shape_file is not None:
+            reshape_on_hangup(proxy, args.shape_file, proxy.log)
         announce(args.address_file, [proxy.address], {"address": proxy.address})
         reported = proxy.counters.as_fields()
 
@@ -215,3 +230,46 @@ def run(args: argparse.Namespace) -> int:
         return 0
 
     return asyncio.run(run_until_signalled(serve))
+
+
+def read_shape(path: Path, up: LinkSpec, down: LinkSpec) -> tuple[LinkSpec, LinkSpec]:
+    """The (up, down) specs ``path`` gives (``--shape-file``); ValueError naming the
+    file and what is wrong in it."""
+    import json
+
+    import pydantic
+
+    try:
+        document = json.loads(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"--shape-file {path}: cannot read it ({exc.strerror})") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--shape-file {path}: not JSON ({exc})") from None
+    if not isinstance(document, dict) or set(document) - {"up", "down"}:
+        raise ValueError(
+            f"--shape-file {path}: expected an object with 'up' and/or 'down', e.g. "
+            '{"up": {"latency": "400ms"}, "down": {"latency": "400ms"}}'
+        )
+    try:
+        return (
+            LinkSpec.model_validate(document["up"]) if "up" in document else up,
+            LinkSpec.model_validate(document["down"]) if "down" in document else down,
+        )
+    except pydantic.ValidationError as exc:
+        raise ValueError(f"--shape-file {path}: {exc}") from None
+
+
+def reshape_on_hangup(proxy: LinkProxy, path: Path, log: BoundLogger) -> None:
+    """SIGHUP: ``proxy`` takes the specs of ``path``; a bad file is logged, not taken."""
+    import asyncio
+    import signal
+
+    def hangup() -> None:
+        try:
+            up, down = read_shape(path, proxy.up, proxy.down)
+        except ValueError as exc:
+            log.error("link not reshaped", error=str(exc))
+            return
+        proxy.reshape(up, down)
+
+    asyncio.get_running_loop().add_signal_handler(signal.SIGHUP, hangup)

@@ -11,7 +11,9 @@ With a radio range (``radio.py``) the link is up only while the vehicle is
 within it: a connection accepted out of range is reset at once (refused), and
 the vehicle leaving the range resets every open connection (cut). With a
 fade (``radio.Fade``) every open connection's lines are retuned as the
-vehicle's distance changes.
+vehicle's distance changes. ``reshape`` changes the link's own latency and
+bandwidth while it runs (``baton link --shape-file``, on SIGHUP: a link that
+gets slow, for the drone's round-trip measurement).
 """
 
 from __future__ import annotations
@@ -257,15 +259,32 @@ class LinkProxy:
         )
         return not covered
 
+    def reshape(self, up: LinkSpec, down: LinkSpec) -> None:
+        """The link's own latency and bandwidth from now on, per direction: every open
+        line (faded as deep as the vehicle is, with a fade) and new ones follow."""
+        self.up, self.down = up, down
+        self._apply()
+        self.log.info("link reshaped", up=up.model_dump(), down=down.model_dump())
+
+    def _specs(self) -> tuple[LinkSpec, LinkSpec]:
+        """The (up, down) specs now: the link's own, faded if there is a fade."""
+        if self.fade is None:
+            return self.up, self.down
+        return self.fade.spec(self.up, self.depth), self.fade.spec(self.down, self.depth)
+
+    def _apply(self) -> None:
+        up, down = self._specs()
+        for direction in self._directions:
+            direction.line.retune(up if direction.upward else down)
+
     def _retune(self, depth: float) -> None:
         """The vehicle is ``depth`` into the fade: every open line and new ones follow."""
         assert self.fade is not None
         if depth == self.depth:
             return
         self.depth = depth
-        up, down = self.fade.spec(self.up, depth), self.fade.spec(self.down, depth)
-        for direction in self._directions:
-            direction.line.retune(up if direction.upward else down)
+        up, down = self._specs()
+        self._apply()
         tenths = int(depth * 10)
         if tenths != self._logged_depth:
             self._logged_depth = tenths
@@ -364,12 +383,7 @@ class LinkProxy:
         target_reader: asyncio.StreamReader,
         target: asyncio.StreamWriter,
     ) -> None:
-        up_spec, down_spec = self.up, self.down
-        if self.fade is not None:
-            up_spec, down_spec = (
-                self.fade.spec(up_spec, self.depth),
-                self.fade.spec(down_spec, self.depth),
-            )
+        up_spec, down_spec = self._specs()
         up = _Direction(client_reader, target, up_spec, self._count_up, self._note_in_flight)
         down = _Direction(target_reader, client, down_spec, self._count_down, self._note_in_flight)
         up.upward = True

@@ -14,8 +14,10 @@ exactly-once check that does not rest on the drone's own audit.
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import random
+import signal
 import socket
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,6 +31,7 @@ from baton.certs.make import ensure
 from baton.config import BatonConfig, DroneConfig, LinkSpec, parse_config
 from baton.drone.camera import THUMBNAIL_GLOB
 from baton.effects import read_effects
+from baton.lifecycle import write_atomically
 from baton.missions import corridor as corridor_mission
 from baton.missions import grid as grid_mission
 from baton.rpc.channels import aio_channel
@@ -487,10 +490,16 @@ class LocalTestbed:
             *_link_args(spec),
             *(radio or []),
             *dict(self.plan.link_args).get(name, ()),
+            "--shape-file",
+            str(self._shape_file(name)),
             "--address-file",
             str(ready),
         )
         return name, argv, ready
+
+    def _shape_file(self, name: str) -> Path:
+        """Where link emulator ``name`` reads a new shape on SIGHUP (``reshape_link``)."""
+        return self.workdir / f"{name}.shape.json"
 
     async def _start_drone(self) -> None:
         assert self.config is not None
@@ -645,6 +654,13 @@ class LocalTestbed:
         """Freezes link emulator ``name``: its connections stay open but carry nothing, in
         either direction (a radio link that fades without a reset); ``thaw_link`` ends it."""
         self.supervisor.freeze(name)
+
+    def reshape_link(self, name: str, up: LinkSpec, down: LinkSpec | None = None) -> None:
+        """Gives link emulator ``name`` a new latency and bandwidth (``down`` defaults to
+        ``up``): its open connections follow at once (``baton link --shape-file``)."""
+        shape = {"up": up.model_dump(), "down": (down or up).model_dump()}
+        write_atomically(self._shape_file(name), json.dumps(shape))
+        self.supervisor.send_signal(name, signal.SIGHUP)
 
     def thaw_link(self, name: str) -> None:
         """Ends a blackhole: what waited in the sockets flows again."""

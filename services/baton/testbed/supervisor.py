@@ -204,6 +204,12 @@ class Supervisor:
         part.process.send_signal(signal.SIGSTOP)
         part.frozen = True
 
+    def send_signal(self, name: str, signum: signal.Signals) -> None:
+        """Sends ``signum`` to live part ``name`` (SIGHUP: a link emulator reshapes)."""
+        part = self.parts[name]
+        assert part.process is not None and part.process.returncode is None
+        part.process.send_signal(signum)
+
     def thaw(self, name: str) -> None:
         """SIGCONT of a frozen part: it goes on where it stopped."""
         part = self.parts[name]
