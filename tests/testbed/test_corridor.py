@@ -17,11 +17,13 @@ from test_testbed import run_testbed
 from waiting import eventually
 
 from baton.config import load_config
+from baton.drone.policy import FLY_ON, HANDOVER, HOLD
 from baton.link.radio import RadioRange
 from baton.sdk import Position, offset
 from baton.sdk.geo import north_east_m
 from baton.testbed.local import LocalTestbed, TestbedPlan, free_port
 from baton.testbed.report import build_report
+from baton.v1 import drone_pb2
 
 EXAMPLE = Path(__file__).parents[2] / "examples" / "corridor.yaml"
 MARGIN_M, LEAD_S, SPEED_M_S = 50.0, 10.0, 5.0
@@ -136,7 +138,7 @@ async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossi
     assert report["masters"] == [0, 1, 0, 1], report["handovers"]
     assert {h["trigger"] for h in report["handovers"]} == {"policy"}
     decisions = [(d.action, d.target) for d in snapshot.drone.policy_decisions]
-    assert decisions.count(("handover", 1)) == 2 and decisions.count(("handover", 0)) == 1
+    assert decisions.count((HANDOVER, 1)) == 2 and decisions.count((HANDOVER, 0)) == 1
 
 
 def gapped_corridor(tmp_path: Path) -> Path:
@@ -241,7 +243,7 @@ async def test_no_controller_usable_holds_the_vehicle_or_flies_on_into_a_range(
         async def flying_on() -> object:
             drone = (await testbed.snapshot(audit=False)).drone
             decision = drone.policy_decision
-            return drone if decision.action in ("fly_on", "handover") else None
+            return drone if decision.action in (FLY_ON, HANDOVER) else None
 
         flying = await eventually(flying_on, "the drone to fly on", 30)
         assert not flying.holding  # type: ignore[attr-defined]
@@ -275,4 +277,4 @@ async def test_no_controller_usable_holds_the_vehicle_or_flies_on_into_a_range(
     assert station_2.distance_m(*takeover["position"]) > 210, takeover
     assert not snapshot.drone.holding
     decisions = [d.action for d in snapshot.drone.policy_decisions]
-    assert "hold" not in decisions[decisions.index("resume") :], decisions
+    assert HOLD not in decisions[decisions.index(drone_pb2.POLICY_ACTION_RESUME) :], decisions
