@@ -68,7 +68,11 @@ async def test_the_controller_serves_reflection_health_and_its_rpcs(
         status = json.loads(
             await asyncio.to_thread(grpcurl, address, "baton.v1.ControllerRing/GetStatus", **tls)
         )
-        assert status["state"] == "ACTIVE" and status["master"] is True and status["epoch"] == "1"
+        assert (
+            status["state"] == "CONTROLLER_STATE_ACTIVE"
+            and status["master"] is True
+            and status["epoch"] == "1"
+        )
         assert status["mission_address"] == mission
         assert mission.startswith("127.0.0.1:")
         listed = set((await asyncio.to_thread(grpcurl, mission, "list")).split())

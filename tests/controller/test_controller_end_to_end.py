@@ -21,6 +21,7 @@ import pytest
 from baton.config import LinkSpec
 from baton.testbed.local import LocalTestbed, MissionPlan, Snapshot, TestbedPlan
 from baton.testbed.report import NOT_COUNTED, check_side_effects
+from baton.v1 import drone_pb2, ring_pb2
 
 SMALL_GRID = MissionPlan(grid=2, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
 FAST_LINK = LinkSpec(latency=0.002, bandwidth=None)
@@ -30,7 +31,9 @@ def assert_mission_promises(snapshot: Snapshot, plan: TestbedPlan) -> None:
     drone = snapshot.drone
     waypoints = plan.mission.grid**2
     for cid, c in snapshot.controllers.items():
-        assert c.mission == "done", f"controller {cid}: mission {c.mission}: {c.mission_error}"
+        assert c.mission == ring_pb2.MISSION_STATE_DONE, (
+            f"controller {cid}: mission {c.mission}: {c.mission_error}"
+        )
     # Every request number executed exactly once, in order; every drone call
     # the replicas' programs made is in the audit (Clock calls are logged by
     # the controllers and never reach the drone, hence gaps in the numbers).
@@ -57,7 +60,7 @@ def assert_mission_promises(snapshot: Snapshot, plan: TestbedPlan) -> None:
     assert len({c.reqnr for c in snapshot.controllers.values()}) == 1
     # Every scripted handover happened after the right request, and ended.
     # (A scripted reqnr that was a Clock call fires after the next drone request.)
-    scripted = [h for h in drone.handovers if h.trigger == "script"]
+    scripted = [h for h in drone.handovers if h.trigger == drone_pb2.HANDOVER_TRIGGER_SCRIPT]
     assert [h.new_master for h in scripted] == [mid for _, mid in plan.handovers]
     for record, (planned, _) in zip(scripted, plan.handovers, strict=True):
         # A prepared handover moves the master once the target caught up, later.
@@ -68,7 +71,9 @@ def assert_mission_promises(snapshot: Snapshot, plan: TestbedPlan) -> None:
     for i, record in enumerate(records):
         after = records[i + 1] if i + 1 < len(records) else None
         regranted = (
-            after is not None and after.kind == "takeover" and after.new_master == record.new_master
+            after is not None
+            and after.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
+            and after.new_master == record.new_master
         )
         assert record.delay_s > 0 or regranted
     assert [c.master for c in snapshot.controllers.values()].count(True) == 1

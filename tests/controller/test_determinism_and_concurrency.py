@@ -34,8 +34,8 @@ async def test_a_diverging_mission_is_stopped_with_both_requests_shown(tmp_path:
     async with LocalTestbed(plan, tmp_path) as testbed:
         snapshot = await testbed.run_mission(120)
     master, replica = snapshot.controllers[0], snapshot.controllers[1]
-    assert master.mission == "done"
-    assert replica.mission == "failed"
+    assert master.mission == ring_pb2.MISSION_STATE_DONE
+    assert replica.mission == ring_pb2.MISSION_STATE_FAILED
     error = replica.mission_error
     assert "non-deterministic mission program at request 2" in error
     assert error.count("/baton.v1.Camera/SetResolution") == 2  # the logged one and this one
@@ -60,7 +60,7 @@ async def test_a_call_the_program_gave_up_on_is_logged_as_it_saw_it(tmp_path: Pa
     async with LocalTestbed(plan, tmp_path) as testbed:
         snapshot = await testbed.run_mission(120)
     for cid, c in snapshot.controllers.items():
-        assert c.mission == "done", f"controller {cid}: {c.mission_error}"
+        assert c.mission == ring_pb2.MISSION_STATE_DONE, f"controller {cid}: {c.mission_error}"
         output = (tmp_path / "logs" / f"controller-{cid}.log").read_text()
         assert "first picture: DEADLINE_EXCEEDED" in output, output
     # The drone took both pictures, each once: the one the program gave up on
@@ -107,7 +107,7 @@ async def test_an_outsider_calling_the_masters_proxy_is_refused_and_changes_noth
                 await ring.MissionDone(ring_pb2.MissionDoneRequest(failed=True, error="forged"))
             assert refused.value.code() == grpc.StatusCode.PERMISSION_DENIED
             status = await ring.GetStatus(ring_pb2.GetControllerStatusRequest())  # open
-            assert status.mission == "running"
+            assert status.mission == ring_pb2.MISSION_STATE_RUNNING
         # On the ring port, even an operator's certificate reaches no drone API.
         ring_port = testbed.config.controller(0).address
         async with aio_channel(ring_port, testbed.tls, Identity.controller(0)) as channel:
@@ -163,7 +163,7 @@ async def test_calls_a_replicas_program_gave_up_on_take_their_own_log_entries() 
     await node.on_log(ring_pb2.LogMessage(lognr=1, origin=0, entries=entries))
     entry = await asyncio.wait_for(third, 5)
     assert entry.reqnr == 3 and entry.reply == b"third"
-    assert node.protocol.reqnr == 3 and node.mission != "failed"
+    assert node.protocol.reqnr == 3 and node.mission != ring_pb2.MISSION_STATE_FAILED
     await node.stop()
 
 
@@ -183,7 +183,7 @@ async def test_a_replicas_program_that_gave_up_waiting_for_the_log_starts_again(
     async with LocalTestbed(plan, tmp_path) as testbed:
         snapshot = await testbed.run_mission(120)
     for cid, c in snapshot.controllers.items():
-        assert c.mission == "done", f"controller {cid}: {c.mission_error}"
+        assert c.mission == ring_pb2.MISSION_STATE_DONE, f"controller {cid}: {c.mission_error}"
     master = (tmp_path / "logs" / "controller-0.log").read_text()
     assert all(f"position {k}: reply" in master for k in range(3)), master
     for cid in (1, 2):

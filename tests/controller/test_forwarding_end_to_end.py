@@ -22,7 +22,9 @@ from baton.testbed.local import (
     TestbedPlan,
     drone_status,
 )
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
+
+PREPARED, COOPERATIVE = drone_pb2.HANDOVER_KIND_PREPARED, drone_pb2.HANDOVER_KIND_COOPERATIVE
 
 
 def relayed(status: ring_pb2.ControllerStatus, peer: int) -> ring_pb2.PeerStatus:
@@ -52,9 +54,11 @@ async def test_six_controllers_over_one_three_and_five_hops_in_each_mode(
         prepared=prepared,
     )
     snapshot = await fly(tmp_path, plan)
-    scripted = [h for h in snapshot.drone.handovers if h.trigger == "script"]
+    scripted = [
+        h for h in snapshot.drone.handovers if h.trigger == drone_pb2.HANDOVER_TRIGGER_SCRIPT
+    ]
     kinds = {h.kind for h in scripted}
-    assert kinds == ({"prepared"} if prepared else {"cooperative"}), scripted
+    assert kinds == {PREPARED if prepared else COOPERATIVE}, scripted
     if prepared:
         assert all(0 < h.prepare_started_at <= h.decided_at for h in scripted)
         assert all(h.prepare_lacked_bytes <= 16 << 10 for h in scripted)
@@ -157,9 +161,9 @@ async def test_a_prepared_handover_whose_target_never_catches_up_is_forced(
             testbed.thaw_link("link-ring-2")
         snapshot = await testbed.run_mission(300)
     assert_mission_promises(snapshot, plan)
-    assert (record.kind, record.new_master) == ("cooperative", 2)
+    assert (record.kind, record.new_master) == (COOPERATIVE, 2)
     assert record.decided_at - record.prepare_started_at >= 1.0
-    assert not any(h.kind == "prepared" for h in snapshot.drone.handovers)
+    assert not any(h.kind == PREPARED for h in snapshot.drone.handovers)
 
 
 async def test_a_prepared_handover_moves_the_master_between_requests_on_the_masters_word(
@@ -185,11 +189,13 @@ async def test_a_prepared_handover_moves_the_master_between_requests_on_the_mast
     async with LocalTestbed(plan, tmp_path) as testbed:
         snapshot = await testbed.run_mission(120)
     for cid, c in snapshot.controllers.items():
-        assert c.mission == "done", f"controller {cid}: mission {c.mission}: {c.mission_error}"
+        assert c.mission == ring_pb2.MISSION_STATE_DONE, (
+            f"controller {cid}: mission {c.mission}: {c.mission_error}"
+        )
     drone = snapshot.drone
     assert drone.executed == 5  # the five drone calls, once each
-    (record,) = [h for h in drone.handovers if h.trigger == "script"]
-    assert (record.kind, record.new_master, record.after_reqnr) == ("prepared", 2, 3)
+    (record,) = [h for h in drone.handovers if h.trigger == drone_pb2.HANDOVER_TRIGGER_SCRIPT]
+    assert (record.kind, record.new_master, record.after_reqnr) == (PREPARED, 2, 3)
     assert record.decided_at - record.prepare_started_at < 2.0
     served_by = {a.reqnr: a.controller_id for a in drone.audit}
     assert (served_by[3], served_by[5], served_by[6]) == (0, 2, 2)

@@ -13,6 +13,7 @@ from pathlib import Path
 from waiting import eventually
 
 from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.v1 import ring_pb2
 
 MISSIONS = Path(__file__).parent / "missions"
 PICTURES = 200
@@ -52,7 +53,7 @@ async def test_a_200_picture_mission_leaves_the_controllers_memory_flat(tmp_path
         snapshot = await testbed.run_mission(300)
         late = {cid: rss_bytes(pid) for cid, pid in pids.items()}
     for cid, c in snapshot.controllers.items():
-        assert c.mission == "done", f"controller {cid}: {c.mission_error}"
+        assert c.mission == ring_pb2.MISSION_STATE_DONE, f"controller {cid}: {c.mission_error}"
     assert len({c.reply_chain for c in snapshot.controllers.values()}) == 1
     # Each picture taken once: the drone's audit, and the camera's own count.
     assert [a.reqnr for a in snapshot.drone.audit] == list(range(1, PICTURES + 1))

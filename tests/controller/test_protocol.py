@@ -20,7 +20,7 @@ from baton.controller.protocol import (
     ring_route,
 )
 from baton.rpc.errors import StatusError
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 GET = "/baton.v1.Mobility/GetPosition"
 PICTURE = "/baton.v1.Camera/TakePicture"
@@ -886,11 +886,11 @@ def test_a_mastership_handed_over_is_not_the_log_we_connect_with() -> None:
     assert p.log_mastership_epoch == 0
 
     seq = Sequencer([0, 1], initial_master=0)
-    seq.switch(1, "script", now=1.0)  # epoch 2
-    seq.switch(0, "script", now=2.0)  # epoch 3
-    seq.switch(1, "script", now=3.0)  # epoch 4, unheard
-    seq.switch(0, "lost", now=4.0, takeover=True)  # epoch 5
-    seq.switch(1, "lost", now=5.0, takeover=True)  # epoch 6
+    seq.switch(1, drone_pb2.HANDOVER_TRIGGER_SCRIPT, now=1.0)  # epoch 2
+    seq.switch(0, drone_pb2.HANDOVER_TRIGGER_SCRIPT, now=2.0)  # epoch 3
+    seq.switch(1, drone_pb2.HANDOVER_TRIGGER_SCRIPT, now=3.0)  # epoch 4, unheard
+    seq.switch(0, drone_pb2.HANDOVER_TRIGGER_LOST, now=4.0, takeover=True)  # epoch 5
+    seq.switch(1, drone_pb2.HANDOVER_TRIGGER_LOST, now=5.0, takeover=True)  # epoch 6
     seq.admit_connect(1, p.log_mastership_epoch)  # granted, not fenced
     with pytest.raises(StatusError):
         seq.admit_connect(1, 2)  # what it said before

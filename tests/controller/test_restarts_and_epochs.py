@@ -29,7 +29,7 @@ from test_faults_mid_mission import LONG_LEGS
 from waiting import eventually
 
 from baton.testbed.local import LocalTestbed, TestbedPlan, remove_sqlite
-from baton.v1 import drone_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 
 def log_events(tmp_path: Path, part: str) -> list[dict[str, object]]:
@@ -89,7 +89,9 @@ async def test_a_killed_ex_master_restarts_catches_up_and_is_master_again(
         async def following() -> bool:
             # Up, told another is master, and caught up past its old mastership.
             status = (await testbed.snapshot(audit=False)).controllers[victim]
-            return status.state == "PASSIVE" and status.reqnr > last_before + 2
+            return (
+                status.state == ring_pb2.CONTROLLER_STATE_PASSIVE and status.reqnr > last_before + 2
+            )
 
         await eventually(following, f"restarted controller {victim} following the ring", 120)
         assert testbed.drone_stub is not None
@@ -105,7 +107,9 @@ async def test_a_killed_ex_master_restarts_catches_up_and_is_master_again(
     assert "not the master" in after and "taking over as master" in after
     assert "the drone says this controller is master" not in after
     status = snapshot.controllers[victim]
-    assert [h.role for h in status.handovers] == ["new"] and status.epoch == len(handovers) + 1
+    assert [h.role for h in status.handovers] == [
+        ring_pb2.HANDOVER_ROLE_NEW
+    ] and status.epoch == len(handovers) + 1
     # With its log file it recovered what it had, and its predecessor sent only the rest.
     assert ("recovered from the log file" in after) is keeps_its_log
     predecessor = (victim - 1) % plan.controllers

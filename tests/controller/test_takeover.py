@@ -23,7 +23,9 @@ from test_restarts_and_epochs import log_events
 from waiting import eventually
 
 from baton.testbed.local import WIFI_DRONE_LINK, LocalTestbed, Snapshot, TestbedPlan
-from baton.v1 import drone_pb2
+from baton.v1 import drone_pb2, ring_pb2
+
+LOST = drone_pb2.HANDOVER_TRIGGER_LOST
 
 
 def three_controllers(flush_limit: int, **options: object) -> TestbedPlan:
@@ -40,12 +42,14 @@ def three_controllers(flush_limit: int, **options: object) -> TestbedPlan:
     return TestbedPlan(**settings)  # type: ignore[arg-type]
 
 
-def takeovers(snapshot: Snapshot) -> list[tuple[int, int, str]]:
+def takeovers(
+    snapshot: Snapshot,
+) -> list[tuple[int, int, drone_pb2.HandoverTrigger.ValueType]]:
     """(old master, new master, trigger) of every takeover the drone made."""
     return [
         (h.old_master, h.new_master, h.trigger)
         for h in snapshot.drone.handovers
-        if h.kind == "takeover"
+        if h.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
     ]
 
 
@@ -74,7 +78,7 @@ async def test_a_killed_master_is_taken_over_and_the_mission_completes(tmp_path:
         await kill_when(testbed, 0, 12, unflushed=False)
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
-    assert takeovers(snapshot) == [(0, 1, "lost")]
+    assert takeovers(snapshot) == [(0, 1, LOST)]
     record = snapshot.drone.handovers[0]
     # Seen last at the kill; taken over after the takeover time (3 s of mission time,
     # at least 1 s of wall time); the new master's first request came after.
@@ -82,7 +86,7 @@ async def test_a_killed_master_is_taken_over_and_the_mission_completes(tmp_path:
     assert record.first_request_at > record.decided_at
     assert snapshot.drone.master == 1 and snapshot.drone.epoch == 2
     roles = [h.role for h in snapshot.controllers[1].handovers]
-    assert roles == ["taker"]
+    assert roles == [ring_pb2.HANDOVER_ROLE_TAKER]
     assert "master lost: taken over" in [e.get("msg") for e in log_events(tmp_path, "drone")]
 
 
@@ -98,7 +102,7 @@ async def test_the_unflushed_tail_of_a_killed_master_comes_from_the_drone(
         before = await kill_when(testbed, 0, 14, unflushed=True)
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
-    assert takeovers(snapshot) == [(0, 1, "lost")]
+    assert takeovers(snapshot) == [(0, 1, LOST)]
     lost = before.controllers[0]
     assert lost.log_entries > 0
     # The requests the dead master had logged and not flushed were answered from the
@@ -125,10 +129,10 @@ async def test_a_killed_master_restarted_after_the_takeover_rejoins_as_a_replica
         await testbed.restart_controller(0)
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
-    assert takeovers(snapshot) == [(0, 1, "lost")]
+    assert takeovers(snapshot) == [(0, 1, LOST)]
     rejoined = snapshot.controllers[0]
-    assert [h.role for h in rejoined.handovers] == ["fenced"]
-    assert not rejoined.master and rejoined.mission == "done"
+    assert [h.role for h in rejoined.handovers] == [ring_pb2.HANDOVER_ROLE_FENCED]
+    assert not rejoined.master and rejoined.mission == ring_pb2.MISSION_STATE_DONE
     messages = [e.get("msg") for e in log_events(tmp_path, "controller-0")]
     assert "rejoined as a replica with nothing; catching up from the ring" in messages
 
@@ -158,9 +162,13 @@ async def test_a_master_killed_after_the_drone_decided_a_handover_before_its_log
         await testbed.restore_link("link-ring-1")
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
-    assert takeovers(snapshot) == [(0, 1, "lost")]
+    assert takeovers(snapshot) == [(0, 1, LOST)]
     cooperative, taken = snapshot.drone.handovers
-    assert (cooperative.kind, cooperative.epoch, taken.epoch) == ("cooperative", 2, 3)
+    assert (cooperative.kind, cooperative.epoch, taken.epoch) == (
+        drone_pb2.HANDOVER_KIND_COOPERATIVE,
+        2,
+        3,
+    )
     assert cooperative.first_request_at == 0  # 1 never sent a request in epoch 2
     assert snapshot.controllers[1].epoch == 3
 
@@ -210,10 +218,10 @@ async def test_a_master_cut_off_from_the_drone_is_fenced_and_rejoins_when_the_li
         await testbed.restore_link("link-drone-0")
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
-    assert takeovers(snapshot) == [(0, 1, "lost")]
+    assert takeovers(snapshot) == [(0, 1, LOST)]
     rejoined = snapshot.controllers[0]
-    assert [h.role for h in rejoined.handovers] == ["fenced"]
-    assert not rejoined.master and rejoined.mission == "done"
+    assert [h.role for h in rejoined.handovers] == [ring_pb2.HANDOVER_ROLE_FENCED]
+    assert not rejoined.master and rejoined.mission == ring_pb2.MISSION_STATE_DONE
     taken = snapshot.drone.handovers[0]
     assert all(
         a.controller_id != 0 for a in snapshot.drone.audit if a.received_at > taken.decided_at
@@ -250,10 +258,10 @@ async def test_a_master_behind_a_silent_link_is_taken_over_within_seconds(
         testbed.thaw_link("link-drone-0")
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
-    assert takeovers(snapshot) == [(0, 1, "lost")]
+    assert takeovers(snapshot) == [(0, 1, LOST)]
     rejoined = snapshot.controllers[0]
-    assert [h.role for h in rejoined.handovers] == ["fenced"]
-    assert not rejoined.master and rejoined.mission == "done"
+    assert [h.role for h in rejoined.handovers] == [ring_pb2.HANDOVER_ROLE_FENCED]
+    assert not rejoined.master and rejoined.mission == ring_pb2.MISSION_STATE_DONE
 
 
 async def test_a_master_killed_with_a_picture_in_flight_gets_no_second_picture(
@@ -277,7 +285,7 @@ async def test_a_master_killed_with_a_picture_in_flight_gets_no_second_picture(
         await testbed.kill_controller(0)
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
-    assert takeovers(snapshot) == [(0, 1, "lost")]
+    assert takeovers(snapshot) == [(0, 1, LOST)]
     # The picture the lost master never got was answered from the retained tail.
     again = [
         e
@@ -307,6 +315,6 @@ async def test_a_master_that_dies_while_the_drone_restarts_is_taken_over(
         await testbed.supervisor.restart("drone")
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
-    assert takeovers(snapshot) == [(1, 2, "lost")]
+    assert takeovers(snapshot) == [(1, 2, LOST)]
     messages = [e.get("msg") for e in log_events(tmp_path, "drone")]
     assert "state resumed" in messages and "master lost: taken over" in messages

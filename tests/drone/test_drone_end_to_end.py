@@ -291,8 +291,8 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     assert [e.reqnr for e in status.audit] == list(range(1, 13))
     assert status.audit[5].reply_bytes > 1_000_000
     assert [(h.trigger, h.old_master, h.new_master, h.after_reqnr) for h in status.handovers] == [
-        ("script", 0, 1, 7),
-        ("rpc", 1, 2, 8),
+        (drone_pb2.HANDOVER_TRIGGER_SCRIPT, 0, 1, 7),
+        (drone_pb2.HANDOVER_TRIGGER_RPC, 1, 2, 8),
     ]
     assert all(h.delay_s > 0 and h.first_request_at > h.decided_at for h in status.handovers)
 

@@ -201,7 +201,7 @@ async def test_handover_rpc_notifies_the_connected_master(drone: DroneUnderTest)
         0,
         2,
         1,
-        "rpc",
+        drone_pb2.HANDOVER_TRIGGER_RPC,
     )
     assert record.first_request_at >= record.decided_at > 0
     assert record.delay_s == pytest.approx(record.first_request_at - record.decided_at)
@@ -235,7 +235,9 @@ async def test_scripted_handover_after_the_right_request() -> None:
         again = await drone.stub.Invoke(invoke(1, 2, ARM, epoch=2))
         assert again.duplicate and drone.vehicle.calls.count("Arm") == 1
         status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
-        assert status.master == 1 and status.handovers[0].trigger == "script"
+        assert (
+            status.master == 1 and status.handovers[0].trigger == drone_pb2.HANDOVER_TRIGGER_SCRIPT
+        )
         assert status.handovers[0].delay_s > 0
     finally:
         await server.stop(0)
@@ -256,7 +258,7 @@ async def test_notice_waits_for_a_disconnected_old_master(drone: DroneUnderTest)
     await eventually(stream_gone, "the drone seeing the old master's stream gone")
     await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1))
     status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
-    assert status.handovers[-1].kind == "cooperative"
+    assert status.handovers[-1].kind == drone_pb2.HANDOVER_KIND_COOPERATIVE
     stream = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0, mastership_epoch=1))
     event = await next_event(stream)
     assert event.handover == drone_pb2.HandoverNotice(

@@ -16,6 +16,7 @@ from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
 HOME = Position(47.397742, 8.545594)
+RPC, POLICY = drone_pb2.HANDOVER_TRIGGER_RPC, drone_pb2.HANDOVER_TRIGGER_POLICY
 # Three stations along a line east of home, 500 m apart, 400 m of range each.
 STATIONS = {cid: Station(cid, offset(HOME, 0.0, 500.0 * cid), 400.0) for cid in (0, 1, 2)}
 
@@ -80,10 +81,12 @@ async def test_the_drone_hands_over_to_the_nearest_station_and_says_why(
     decision = await drone.service.policy.tick()
     assert decision is not None and decision.action == HANDOVER and decision.target == 1
     status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
-    assert status.master == 1 and status.handover_policy == "nearest"
+    assert status.master == 1 and status.handover_policy == drone_pb2.HANDOVER_POLICY_NEAREST
     (record,) = status.handovers
-    assert (record.old_master, record.new_master, record.trigger) == (0, 1, "policy")
-    assert record.kind == "cooperative"  # 0's link is up: it is told, and sends its log
+    assert (record.old_master, record.new_master, record.trigger) == (0, 1, POLICY)
+    assert (
+        record.kind == drone_pb2.HANDOVER_KIND_COOPERATIVE
+    )  # 0's link is up: it is told, and sends its log
     assert "1 nearer (200 m) than master 0 (300 m of 400 m)" in record.reason
     assert record.position.longitude_deg == pytest.approx(offset(HOME, 0, 300.0).longitude_deg)
     assert [d.action for d in status.policy_decisions] == [STAY, HANDOVER]
@@ -105,7 +108,7 @@ async def test_the_operator_overrides_the_policy_while_its_choice_is_usable(
     decision = await drone.service.policy.tick()
     assert decision is not None and (decision.action, decision.target) == (HANDOVER, 1)
     status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
-    assert [(h.trigger, h.new_master) for h in status.handovers] == [("rpc", 2), ("policy", 1)]
+    assert [(h.trigger, h.new_master) for h in status.handovers] == [(RPC, 2), (POLICY, 1)]
 
 
 async def test_no_usable_controller_holds_the_vehicle_and_resumes_its_leg(
@@ -145,8 +148,12 @@ async def test_no_usable_controller_holds_the_vehicle_and_resumes_its_leg(
     assert drone.vehicle.position.longitude_deg == pytest.approx(target.longitude_deg)
     status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
     assert not status.holding and status.master == 1
-    assert status.handovers[-1].kind == "takeover"
-    assert [d.action for d in status.policy_decisions][-3:] == [HOLD, HANDOVER, "resume"]
+    assert status.handovers[-1].kind == drone_pb2.HANDOVER_KIND_TAKEOVER
+    assert [d.action for d in status.policy_decisions][-3:] == [
+        HOLD,
+        HANDOVER,
+        drone_pb2.POLICY_ACTION_RESUME,
+    ]
 
 
 async def test_a_leg_into_another_range_is_flown_on_and_its_station_takes_over(
@@ -182,7 +189,7 @@ async def test_a_leg_into_another_range_is_flown_on_and_its_station_takes_over(
     assert decision.takeover  # 1 cannot be told
     assert "Hold" not in drone.vehicle.calls and drone.vehicle.calls.count("Goto") == 1
     status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
-    assert status.master == 2 and status.handovers[-1].kind == "takeover"
+    assert status.master == 2 and status.handovers[-1].kind == drone_pb2.HANDOVER_KIND_TAKEOVER
     assert [d.action for d in status.policy_decisions][-2:] == [FLY_ON, HANDOVER]
 
 

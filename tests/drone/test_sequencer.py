@@ -18,6 +18,11 @@ from baton.v1 import drone_pb2
 
 GET = "/baton.v1.Mobility/GetPosition"
 DIGEST = request_digest(GET, b"")
+SCRIPT, RPC, LOST = (
+    drone_pb2.HANDOVER_TRIGGER_SCRIPT,
+    drone_pb2.HANDOVER_TRIGGER_RPC,
+    drone_pb2.HANDOVER_TRIGGER_LOST,
+)
 
 
 def serve(seq: Sequencer, cid: int, epoch: int, reqnr: int) -> None:
@@ -37,14 +42,14 @@ def test_every_switch_grants_the_next_epoch_and_owes_the_old_master_a_notice() -
     seq = Sequencer([0, 1, 2], initial_master=0)
     assert seq.epoch == 1
     serve(seq, 0, 1, 1)
-    record = seq.switch(1, "rpc", now=5.0)
+    record = seq.switch(1, RPC, now=5.0)
     assert (record.old_master, record.new_master, record.after_reqnr, record.epoch) == (0, 1, 1, 2)
     notice = seq.pending[0]
     assert (notice.new_master, notice.ended_epoch, notice.epoch) == (1, 1, 2)
-    seq.switch(0, "rpc", now=6.0)
+    seq.switch(0, RPC, now=6.0)
     assert seq.epoch == 3 and 0 not in seq.pending and seq.pending[1].ended_epoch == 2
     with pytest.raises(StatusError) as same:
-        seq.switch(0, "rpc", now=7.0)
+        seq.switch(0, RPC, now=7.0)
     assert same.value.code is grpc.StatusCode.FAILED_PRECONDITION
 
 
@@ -52,9 +57,9 @@ def test_a_request_from_an_earlier_mastership_is_stale_never_executed() -> None:
     """Issue 9, defect 4: a request still on the wire when the role came back."""
     seq = Sequencer([0, 1], initial_master=0)
     serve(seq, 0, 1, 1)
-    seq.switch(1, "rpc", now=1.0)
+    seq.switch(1, RPC, now=1.0)
     serve(seq, 1, 2, 2)
-    seq.switch(0, "rpc", now=2.0)  # back to 0, epoch 3
+    seq.switch(0, RPC, now=2.0)  # back to 0, epoch 3
     stale = refused(seq, 0, 1, 2)
     assert stale.code is grpc.StatusCode.FAILED_PRECONDITION and "stale" in stale.message
     assert (
@@ -69,8 +74,8 @@ def test_a_request_from_an_earlier_mastership_is_stale_never_executed() -> None:
 @pytest.mark.parametrize("epoch", [0, 4])
 def test_an_epoch_never_granted_is_invalid(epoch: int) -> None:
     seq = Sequencer([0, 1], initial_master=0)
-    seq.switch(1, "rpc", now=1.0)
-    seq.switch(0, "rpc", now=2.0)
+    seq.switch(1, RPC, now=1.0)
+    seq.switch(0, RPC, now=2.0)
     assert refused(seq, 0, epoch, 1).code is grpc.StatusCode.INVALID_ARGUMENT
 
 
@@ -126,8 +131,12 @@ def test_a_lost_master_is_taken_over_by_the_first_reachable_one_after_it_in_ring
     unseen = {1: 12.0, 2: 12.0}  # the master not seen since the drone started
     assert seq.takeover_due(99.0, {1, 2}, unseen, after_s=3.0) is None
     serve(seq, 0, 1, 1)
-    record = seq.switch(1, "lost", now=13.0, takeover=True, lost_at=10.0)
-    assert (record.kind, record.epoch, record.lost_at) == ("takeover", 2, 10.0)
+    record = seq.switch(1, LOST, now=13.0, takeover=True, lost_at=10.0)
+    assert (record.kind, record.epoch, record.lost_at) == (
+        drone_pb2.HANDOVER_KIND_TAKEOVER,
+        2,
+        10.0,
+    )
     assert seq.pending[0].takeover
     # The fenced master's requests are refused saying so.
     error = refused(seq, 0, 1, 2)
@@ -137,18 +146,18 @@ def test_a_lost_master_is_taken_over_by_the_first_reachable_one_after_it_in_ring
 def test_a_handover_whose_old_master_dies_before_its_log_left_is_granted_again() -> None:
     seq = Sequencer([0, 1, 2], initial_master=0)
     serve(seq, 0, 1, 1)
-    seq.switch(1, "script", now=20.0)  # cooperative: 1 waits for 0's log
+    seq.switch(1, SCRIPT, now=20.0)  # cooperative: 1 waits for 0's log
     seen = {0: 20.5, 1: 30.0, 2: 30.0}
     assert seq.takeover_due(23.0, {1, 2}, seen, after_s=3.0) is None
     due = seq.takeover_due(23.5, {1, 2}, seen, after_s=3.0)
     assert due is not None and (due.new_master, due.lost) == (1, 0)
-    record = seq.switch(1, "lost", now=23.5, takeover=True, lost_at=due.lost_at)
+    record = seq.switch(1, LOST, now=23.5, takeover=True, lost_at=due.lost_at)
     assert (record.old_master, record.new_master, record.epoch) == (0, 1, 3)
     assert seq.pending[0].takeover and seq.pending[0].epoch == 3
     # Once the new master has sent a request, a handover is not re-granted.
     seq2 = Sequencer([0, 1], initial_master=0)
     serve(seq2, 0, 1, 1)
-    seq2.switch(1, "script", now=1.0)
+    seq2.switch(1, SCRIPT, now=1.0)
     seq2.note_request(1, received_at=1.5)
     assert seq2.takeover_due(9.0, {1}, {0: 1.0, 1: 9.0}, after_s=3.0) is None
 
@@ -159,12 +168,12 @@ def test_a_handover_from_a_taker_that_has_not_connected_is_a_takeover() -> None:
     seq = Sequencer([0, 1, 2], initial_master=0)
     serve(seq, 0, 1, 1)
     assert not seq.handover_must_take_over(1)  # no takeover yet
-    seq.switch(1, "lost", now=5.0, takeover=True, lost_at=1.0)
+    seq.switch(1, LOST, now=5.0, takeover=True, lost_at=1.0)
     assert seq.handover_must_take_over(2)  # 1 was told, but has not connected yet
     assert not seq.handover_must_take_over(1)  # to itself: switch refuses it
     seq.admit_connect(1)
     assert not seq.handover_must_take_over(2)  # connected: cooperative again
-    seq.switch(2, "rpc", now=6.0)
+    seq.switch(2, RPC, now=6.0)
     assert not seq.handover_must_take_over(0)  # a cooperative grant waits for the log
 
 
@@ -176,13 +185,13 @@ def test_a_mastership_granted_by_takeover_says_so_after_the_taker_sent_a_request
     seq = Sequencer([0, 1, 2], initial_master=0)
     assert not seq.granted_by_takeover  # the initial grant
     serve(seq, 0, 1, 1)
-    seq.switch(1, "lost", now=5.0, takeover=True, lost_at=1.0)
+    seq.switch(1, LOST, now=5.0, takeover=True, lost_at=1.0)
     assert seq.granted_by_takeover
     seq.note_request(1, 6.0)
     serve(seq, 1, 2, 2)
     assert seq.handovers[-1].first_request_at  # no TakeOver is owed any more...
     assert seq.granted_by_takeover  # ...but its Connected says takeover all the same
-    seq.switch(2, "rpc", now=7.0)
+    seq.switch(2, RPC, now=7.0)
     assert not seq.granted_by_takeover  # cooperative: a handover message is owed
 
 
@@ -253,7 +262,7 @@ def test_a_master_never_seen_is_lost_after_the_start_up_grace() -> None:
     due = seq.takeover_due(13.0, {1, 2}, seen, after_s=3.0, unseen_from=10.0)
     assert due is not None and (due.new_master, due.lost, due.lost_at) == (1, 0, 10.0)
     # Made master later than the grace's end: counted from the switch.
-    seq.switch(2, "rpc", 50.0)
+    seq.switch(2, RPC, 50.0)
     assert seq.takeover_due(52.0, {0, 1}, {0: 52.0, 1: 52.0}, 3.0, unseen_from=10.0) is None
     due = seq.takeover_due(53.0, {0, 1}, {0: 53.0, 1: 53.0}, 3.0, unseen_from=10.0)
     assert due is not None and (due.new_master, due.lost) == (0, 2)
@@ -264,9 +273,9 @@ def test_a_master_taken_over_and_given_the_role_back_must_rejoin_first() -> None
     back to 0 cooperatively. 0 never heard of the takeover and still holds its epoch-1
     log: the drone refuses its Connect saying so, whoever is master now."""
     seq = Sequencer([0, 2, 1], initial_master=0)
-    seq.switch(2, "lost", now=1.0, takeover=True, lost_at=0.5)  # epoch 2
+    seq.switch(2, LOST, now=1.0, takeover=True, lost_at=0.5)  # epoch 2
     serve(seq, 2, 2, 1)
-    seq.switch(0, "script", now=2.0)  # epoch 3, back to 0
+    seq.switch(0, SCRIPT, now=2.0)  # epoch 3, back to 0
     assert 0 not in seq.pending  # the takeover notice is not needed to fence it
     with pytest.raises(StatusError) as fenced:
         seq.admit_connect(0, mastership_epoch=1)
@@ -284,8 +293,8 @@ def test_a_cooperative_switch_back_does_not_fence() -> None:
     nobody acted without its log, so it goes on in the new epoch."""
     seq = Sequencer([0, 1], initial_master=0)
     serve(seq, 0, 1, 1)
-    seq.switch(1, "rpc", now=1.0)
-    seq.switch(0, "rpc", now=2.0)
+    seq.switch(1, RPC, now=1.0)
+    seq.switch(0, RPC, now=2.0)
     seq.admit_connect(0, mastership_epoch=1)
     assert seq.taken_over_since(0, 1) is None
 
@@ -293,7 +302,7 @@ def test_a_cooperative_switch_back_does_not_fence() -> None:
 def test_a_takeover_notice_is_moot_for_a_controller_holding_no_log_of_it() -> None:
     seq = Sequencer([0, 1], initial_master=0)
     serve(seq, 0, 1, 1)
-    seq.switch(1, "lost", now=1.0, takeover=True)
+    seq.switch(1, LOST, now=1.0, takeover=True)
     assert seq.pending[0].takeover
     with pytest.raises(StatusError) as fenced:
         seq.admit_connect(0, mastership_epoch=1)  # still holds its log: refused, fenced
@@ -309,7 +318,7 @@ def test_the_fence_survives_a_drone_restart() -> None:
     """The notices owed are not kept by the store; the handover records are."""
     seq = Sequencer([0, 1], initial_master=0)
     serve(seq, 0, 1, 1)
-    seq.switch(1, "lost", now=1.0, takeover=True)
+    seq.switch(1, LOST, now=1.0, takeover=True)
     restarted = Sequencer([0, 1], initial_master=0)
     restarted.resume(1, seq.handovers, (1, 1, 0, 0), [], [], [])
     assert not restarted.pending
@@ -329,11 +338,11 @@ def test_a_refusal_says_the_epoch_of_the_newest_takeover() -> None:
     seq = Sequencer([3, 2, 0, 1], initial_master=3)
     serve(seq, 3, 1, 1)
     assert "baton-takeover-epoch" not in dict(refused(seq, 2, 1, 2).metadata)
-    seq.switch(1, "script", now=2.0)  # epoch 2: 3's notice is lost
+    seq.switch(1, SCRIPT, now=2.0)  # epoch 2: 3's notice is lost
     seq.pending.clear()  # written to a stream the partition broke: counted delivered
-    seq.switch(2, "lost", now=3.0, takeover=True, lost_at=2.0)  # epoch 3
+    seq.switch(2, LOST, now=3.0, takeover=True, lost_at=2.0)  # epoch 3
     serve(seq, 2, 3, 2)
-    seq.switch(0, "script", now=4.0)  # epoch 4, cooperative
+    seq.switch(0, SCRIPT, now=4.0)  # epoch 4, cooperative
     invoke = dict(refused(seq, 3, 1, 2).metadata)
     assert invoke["baton-master"] == "0" and "baton-takeover" not in invoke
     assert invoke["baton-takeover-epoch"] == "3"
@@ -398,7 +407,7 @@ def serve_with(
 def test_a_prepared_handover_moves_the_master_once_the_target_lacks_little() -> None:
     seq = Sequencer([0, 1, 2], initial_master=0, prepare_timeout_s=10.0)
     serve(seq, 0, 1, 1)
-    notice = seq.prepare(2, "rpc", now=1.0)
+    notice = seq.prepare(2, RPC, now=1.0)
     assert (notice.target, notice.epoch, notice.timeout_s) == (2, 1, 10.0)
     # Not heard yet, then far behind: the master stays.
     assert serve_with(seq, 2, None, b"r").handover is None
@@ -413,7 +422,7 @@ def test_a_prepared_handover_moves_the_master_once_the_target_lacks_little() -> 
     assert serve_with(seq, 7, progress(2, 100, acked=0), b"r").handover is None
     record = serve_with(seq, 8, progress(2, 100, behind_s=0.05), b"r").handover
     assert record is not None and (record.kind, record.new_master, record.epoch) == (
-        "prepared",
+        drone_pb2.HANDOVER_KIND_PREPARED,
         2,
         2,
     )
@@ -425,23 +434,30 @@ def test_a_prepared_handover_moves_the_master_once_the_target_lacks_little() -> 
 def test_a_prepared_handover_is_forced_at_its_timeout_with_or_without_a_request() -> None:
     seq = Sequencer([0, 1, 2], initial_master=0, prepare_timeout_s=2.0)
     serve(seq, 0, 1, 1)
-    seq.prepare(1, "script", now=1.0)
+    seq.prepare(1, SCRIPT, now=1.0)
     assert seq.preparation_expired(2.9) is None
     forced = seq.preparation_expired(3.0)
-    assert forced is not None and (forced.kind, forced.prepare_timed_out) == ("cooperative", True)
-    assert forced.trigger == "script" and seq.master == 1
+    assert forced is not None and (forced.kind, forced.prepare_timed_out) == (
+        drone_pb2.HANDOVER_KIND_COOPERATIVE,
+        True,
+    )
+    assert forced.trigger == SCRIPT and seq.master == 1
     # After a request: the same at its end, if the target is still behind.
     seq2 = Sequencer([0, 1], initial_master=0, prepare_timeout_s=2.0)
-    seq2.prepare(1, "rpc", now=0.0)
+    seq2.prepare(1, RPC, now=0.0)
     assert serve_with(seq2, 1, progress(1, 1 << 20), b"r").handover is None
     late = serve_with(seq2, 2, progress(1, 1 << 20), b"r").handover
-    assert late is not None and late.prepare_timed_out and late.kind == "cooperative"
+    assert (
+        late is not None
+        and late.prepare_timed_out
+        and late.kind == drone_pb2.HANDOVER_KIND_COOPERATIVE
+    )
 
 
 def test_a_word_between_requests_moves_the_master_once_the_target_caught_up() -> None:
     seq = Sequencer([0, 1, 2], initial_master=0, prepare_timeout_s=10.0)
     serve(seq, 0, 1, 1)
-    notice = seq.prepare(2, "rpc", now=1.0)
+    notice = seq.prepare(2, RPC, now=1.0)
     assert notice.bound_bytes == PREPARED_BOUND_BYTES  # the master reports within it
 
     def word(
@@ -465,7 +481,7 @@ def test_a_word_between_requests_moves_the_master_once_the_target_caught_up() ->
     assert word(after=1) is None and seq.master == 0
     record = word(after=2)
     assert record is not None and (record.kind, record.new_master, record.after_reqnr) == (
-        "prepared",
+        drone_pb2.HANDOVER_KIND_PREPARED,
         2,
         2,
     )
@@ -476,10 +492,10 @@ def test_a_word_between_requests_moves_the_master_once_the_target_caught_up() ->
 def test_any_switch_ends_a_preparation_and_the_master_itself_is_refused() -> None:
     seq = Sequencer([0, 1, 2], initial_master=0)
     with pytest.raises(StatusError) as itself:
-        seq.prepare(0, "rpc", now=0.0)
+        seq.prepare(0, RPC, now=0.0)
     assert itself.value.code is grpc.StatusCode.FAILED_PRECONDITION
-    seq.prepare(2, "rpc", now=0.0)
-    seq.switch(1, "lost", now=1.0, takeover=True)
+    seq.prepare(2, RPC, now=0.0)
+    seq.switch(1, LOST, now=1.0, takeover=True)
     assert seq.preparing is None and seq.preparation_expired(100.0) is None
 
 

@@ -41,7 +41,10 @@ async def test_a_takeover_is_told_again_to_a_taker_that_was_not_listening() -> N
         reply = await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
         assert reply.epoch == 2
         record = (await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())).handovers[0]
-        assert (record.kind, record.trigger) == ("takeover", "rpc")
+        assert (record.kind, record.trigger) == (
+            drone_pb2.HANDOVER_KIND_TAKEOVER,
+            drone_pb2.HANDOVER_TRIGGER_RPC,
+        )
         # Controller 1 held no standby stream when the drone decided: it is told when
         # it opens one, for as long as it has not sent a request as master.
         call = drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=1))

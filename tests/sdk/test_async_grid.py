@@ -10,6 +10,7 @@ from baton.missions import grid, grid_async
 from baton.replay.replayer import replay_log
 from baton.testbed.local import LocalTestbed, MissionPlan, TestbedPlan
 from baton.testbed.report import build_report
+from baton.v1 import ring_pb2
 
 ARGS = ("grid=2", "spacing_m=20", "altitude_m=5")
 
@@ -31,7 +32,7 @@ async def test_the_async_grid_flies_through_handovers_exactly_once(tmp_path: Pat
         report = build_report(testbed.config, snapshot, 2, 1.0, list(plan.handovers))
         logs = testbed.files()["controller_logs"]
     for cid, c in snapshot.controllers.items():
-        assert c.mission == "done", f"controller {cid}: {c.mission_error}"
+        assert c.mission == ring_pb2.MISSION_STATE_DONE, f"controller {cid}: {c.mission_error}"
     assert report["completed"] and report["exactly_once"] and report["replicas_consistent"]
     assert [h["to"] for h in report["handovers"]] == [1, 2, 0]
     assert report["handovers_missed"] == []

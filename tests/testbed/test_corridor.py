@@ -17,6 +17,7 @@ from test_testbed import run_testbed
 from waiting import eventually
 
 from baton.config import LinkSpec, load_config
+from baton.drone.policy import FLY_ON, HANDOVER, HOLD
 from baton.link.radio import RadioRange
 from baton.sdk import Position, offset
 from baton.sdk.geo import north_east_m
@@ -153,7 +154,7 @@ async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossi
     assert report["masters"] == [0, 1, 0, 1], report["handovers"]
     assert {h["trigger"] for h in report["handovers"]} == {"policy"}
     decisions = [(d.action, d.target) for d in snapshot.drone.policy_decisions]
-    assert decisions.count(("handover", 1)) == 2 and decisions.count(("handover", 0)) == 1
+    assert decisions.count((HANDOVER, 1)) == 2 and decisions.count((HANDOVER, 0)) == 1
 
 
 async def a_slow_link_is_measured_and_avoided(testbed: LocalTestbed, latency_s: float) -> None:
@@ -188,14 +189,22 @@ async def a_slow_link_is_measured_and_avoided(testbed: LocalTestbed, latency_s: 
     assert not one.healthy and one.rtt_s >= 2 * SLOW_LINK_S, one
     assert one.problem.startswith("link too slow (round trip"), one.problem
     moved = status.handovers[-1]
-    assert (moved.trigger, moved.old_master, moved.new_master) == ("policy", 1, 0), moved
+    assert (moved.trigger, moved.old_master, moved.new_master) == (
+        drone_pb2.HANDOVER_TRIGGER_POLICY,
+        1,
+        0,
+    ), moved
     assert moved.reason.startswith("master 1 link too slow (round trip"), moved.reason
     # 1 is the nearer (166 m against 346 m) but slow: not chosen while it is.
 
     async def staying_with_0() -> drone_pb2.DroneStatus | None:
         status = await drone()
         decision = status.policy_decision
-        return status if (decision.master, decision.action) == (0, "stay") else None
+        return (
+            status
+            if (decision.master, decision.action) == (0, drone_pb2.POLICY_ACTION_STAY)
+            else None
+        )
 
     status = await eventually(staying_with_0, "the policy to stay with 0")
     assert not links(status)[1].healthy, links(status)[1]
@@ -323,7 +332,7 @@ async def test_no_controller_usable_holds_the_vehicle_or_flies_on_into_a_range(
         async def flying_on() -> object:
             drone = (await testbed.snapshot(audit=False)).drone
             decision = drone.policy_decision
-            return drone if decision.action in ("fly_on", "handover") else None
+            return drone if decision.action in (FLY_ON, HANDOVER) else None
 
         flying = await eventually(flying_on, "the drone to fly on", 30)
         assert not flying.holding  # type: ignore[attr-defined]
@@ -357,4 +366,4 @@ async def test_no_controller_usable_holds_the_vehicle_or_flies_on_into_a_range(
     assert station_2.distance_m(*takeover["position"]) > 210, takeover
     assert not snapshot.drone.holding
     decisions = [d.action for d in snapshot.drone.policy_decisions]
-    assert "hold" not in decisions[decisions.index("resume") :], decisions
+    assert HOLD not in decisions[decisions.index(drone_pb2.POLICY_ACTION_RESUME) :], decisions

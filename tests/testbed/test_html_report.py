@@ -36,8 +36,8 @@ def a_run(mission_error: str = "") -> tuple[Snapshot, Any]:
         old_master=0,
         new_master=1,
         after_reqnr=3,
-        trigger="script",
-        kind="cooperative",
+        trigger=drone_pb2.HANDOVER_TRIGGER_SCRIPT,
+        kind=drone_pb2.HANDOVER_KIND_COOPERATIVE,
         decided_at=1e9 + 3.5,
         delay_s=0.2,
     )
@@ -45,8 +45,8 @@ def a_run(mission_error: str = "") -> tuple[Snapshot, Any]:
         old_master=1,
         new_master=2,
         after_reqnr=6,
-        trigger="lost",
-        kind="takeover",
+        trigger=drone_pb2.HANDOVER_TRIGGER_LOST,
+        kind=drone_pb2.HANDOVER_KIND_TAKEOVER,
         decided_at=1e9 + 7.5,
         lost_at=1e9 + 6.5,
         delay_s=0.6,
@@ -77,7 +77,10 @@ def a_run(mission_error: str = "") -> tuple[Snapshot, Any]:
     run = Snapshot(drone, vehicle_effects=None, camera_effects=camera)
     for cid in range(3):
         run.controllers[cid] = ring_pb2.ControllerStatus(
-            id=cid, mission="failed" if mission_error and cid == 2 else "done"
+            id=cid,
+            mission=ring_pb2.MISSION_STATE_FAILED
+            if mission_error and cid == 2
+            else ring_pb2.MISSION_STATE_DONE,
         )
         if mission_error and cid == 2:
             run.controllers[cid].mission_error = mission_error

@@ -146,7 +146,9 @@ def test_the_report_fails_a_run_whose_audit_is_clean_but_a_goto_flew_twice() -> 
     effects = grid_vehicle_effects()
     effects.insert(4, dict(effects[3]))
     run = snapshot(numbered(effects), pictures(9))
-    run.controllers[0] = ring_pb2.ControllerStatus(id=0, mission="done", master=True)
+    run.controllers[0] = ring_pb2.ControllerStatus(
+        id=0, mission=ring_pb2.MISSION_STATE_DONE, master=True
+    )
     report = build_report(config, run, GRID, 1.0, [], SPACING_M)
     assert report["completed"] and report["exactly_once"] and report["replicas_consistent"]
     assert report["side_effects"]["exactly_once"] is False
@@ -170,8 +172,8 @@ def test_a_takeover_is_reported_as_one_and_does_not_stand_for_a_planned_handover
         old_master=0,
         new_master=1,
         after_reqnr=90,
-        trigger="script",
-        kind="cooperative",
+        trigger=drone_pb2.HANDOVER_TRIGGER_SCRIPT,
+        kind=drone_pb2.HANDOVER_KIND_COOPERATIVE,
         decided_at=100.0,
         delay_s=0.2,
     )
@@ -179,15 +181,17 @@ def test_a_takeover_is_reported_as_one_and_does_not_stand_for_a_planned_handover
         old_master=1,
         new_master=2,
         after_reqnr=120,
-        trigger="lost",
-        kind="takeover",
+        trigger=drone_pb2.HANDOVER_TRIGGER_LOST,
+        kind=drone_pb2.HANDOVER_KIND_TAKEOVER,
         decided_at=110.0,
         lost_at=109.0,
         delay_s=0.6,
     )
     run = Snapshot(drone, vehicle_effects=None, camera_effects=None)
     for cid in range(3):
-        run.controllers[cid] = ring_pb2.ControllerStatus(id=cid, mission="done")
+        run.controllers[cid] = ring_pb2.ControllerStatus(
+            id=cid, mission=ring_pb2.MISSION_STATE_DONE
+        )
     report = build_report(config, run, GRID, 1.0, [(90, 1), (180, 2)], SPACING_M)
     assert [(h["kind"], h["trigger"]) for h in report["handovers"]] == [
         ("cooperative", "script"),

@@ -13,6 +13,7 @@ from collections import abc as _abc
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 import builtins as _builtins
 import sys
 import typing as _typing
@@ -23,6 +24,142 @@ else:
     from typing_extensions import TypeAlias as _TypeAlias, Never as _Never
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class _HandoverTrigger:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _HandoverTriggerEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_HandoverTrigger.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    HANDOVER_TRIGGER_UNSPECIFIED: _HandoverTrigger.ValueType  # 0
+    HANDOVER_TRIGGER_SCRIPT: _HandoverTrigger.ValueType  # 1
+    """The handover script (the testbed's handover file)."""
+    HANDOVER_TRIGGER_RPC: _HandoverTrigger.ValueType  # 2
+    """The Handover call (an operator)."""
+    HANDOVER_TRIGGER_POLICY: _HandoverTrigger.ValueType  # 3
+    """The drone's handover policy, from where it is."""
+    HANDOVER_TRIGGER_LOST: _HandoverTrigger.ValueType  # 4
+    """The drone lost the master: a takeover."""
+
+class HandoverTrigger(_HandoverTrigger, metaclass=_HandoverTriggerEnumTypeWrapper):
+    """What triggered a handover. Reports and terminals print the name after the
+    prefix in lower case ("script").
+    """
+
+HANDOVER_TRIGGER_UNSPECIFIED: HandoverTrigger.ValueType  # 0
+HANDOVER_TRIGGER_SCRIPT: HandoverTrigger.ValueType  # 1
+"""The handover script (the testbed's handover file)."""
+HANDOVER_TRIGGER_RPC: HandoverTrigger.ValueType  # 2
+"""The Handover call (an operator)."""
+HANDOVER_TRIGGER_POLICY: HandoverTrigger.ValueType  # 3
+"""The drone's handover policy, from where it is."""
+HANDOVER_TRIGGER_LOST: HandoverTrigger.ValueType  # 4
+"""The drone lost the master: a takeover."""
+Global___HandoverTrigger: _TypeAlias = HandoverTrigger  # noqa: Y015
+
+class _HandoverKind:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _HandoverKindEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_HandoverKind.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    HANDOVER_KIND_UNSPECIFIED: _HandoverKind.ValueType  # 0
+    HANDOVER_KIND_COOPERATIVE: _HandoverKind.ValueType  # 1
+    """The old master sends its log: the paper's handover (a forced one)."""
+    HANDOVER_KIND_PREPARED: _HandoverKind.ValueType  # 2
+    """The new master was caught up first, so the old master's log was small."""
+    HANDOVER_KIND_TAKEOVER: _HandoverKind.ValueType  # 3
+    """The old master lost: the new master learns the tail from the drone's
+    retained replies.
+    """
+
+class HandoverKind(_HandoverKind, metaclass=_HandoverKindEnumTypeWrapper):
+    """How the new master got the old master's log. Reports and terminals print
+    the name after the prefix in lower case ("takeover").
+    """
+
+HANDOVER_KIND_UNSPECIFIED: HandoverKind.ValueType  # 0
+HANDOVER_KIND_COOPERATIVE: HandoverKind.ValueType  # 1
+"""The old master sends its log: the paper's handover (a forced one)."""
+HANDOVER_KIND_PREPARED: HandoverKind.ValueType  # 2
+"""The new master was caught up first, so the old master's log was small."""
+HANDOVER_KIND_TAKEOVER: HandoverKind.ValueType  # 3
+"""The old master lost: the new master learns the tail from the drone's
+retained replies.
+"""
+Global___HandoverKind: _TypeAlias = HandoverKind  # noqa: Y015
+
+class _PolicyAction:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _PolicyActionEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_PolicyAction.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    POLICY_ACTION_UNSPECIFIED: _PolicyAction.ValueType  # 0
+    POLICY_ACTION_STAY: _PolicyAction.ValueType  # 1
+    """Keep the master."""
+    POLICY_ACTION_HANDOVER: _PolicyAction.ValueType  # 2
+    """Hand over to the target."""
+    POLICY_ACTION_HOLD: _PolicyAction.ValueType  # 3
+    """No controller usable: the vehicle holds position until one is."""
+    POLICY_ACTION_FLY_ON: _PolicyAction.ValueType  # 4
+    """No controller usable, but the leg the vehicle flies enters the target's
+    range: it flies on.
+    """
+    POLICY_ACTION_RESUME: _PolicyAction.ValueType  # 5
+    """A controller is usable again: the vehicle flies on to the target it was
+    flying to.
+    """
+
+class PolicyAction(_PolicyAction, metaclass=_PolicyActionEnumTypeWrapper):
+    """What the handover policy decided. Reports and terminals print the name
+    after the prefix in lower case ("fly_on").
+    """
+
+POLICY_ACTION_UNSPECIFIED: PolicyAction.ValueType  # 0
+POLICY_ACTION_STAY: PolicyAction.ValueType  # 1
+"""Keep the master."""
+POLICY_ACTION_HANDOVER: PolicyAction.ValueType  # 2
+"""Hand over to the target."""
+POLICY_ACTION_HOLD: PolicyAction.ValueType  # 3
+"""No controller usable: the vehicle holds position until one is."""
+POLICY_ACTION_FLY_ON: PolicyAction.ValueType  # 4
+"""No controller usable, but the leg the vehicle flies enters the target's
+range: it flies on.
+"""
+POLICY_ACTION_RESUME: PolicyAction.ValueType  # 5
+"""A controller is usable again: the vehicle flies on to the target it was
+flying to.
+"""
+Global___PolicyAction: _TypeAlias = PolicyAction  # noqa: Y015
+
+class _HandoverPolicy:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _HandoverPolicyEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_HandoverPolicy.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    HANDOVER_POLICY_UNSPECIFIED: _HandoverPolicy.ValueType  # 0
+    HANDOVER_POLICY_NONE: _HandoverPolicy.ValueType  # 1
+    """The handover script and the operator only (the paper's experiments)."""
+    HANDOVER_POLICY_NEAREST: _HandoverPolicy.ValueType  # 2
+    """Hand over to the nearest station in range (drone/policy.py)."""
+    HANDOVER_POLICY_PREDICTIVE: _HandoverPolicy.ValueType  # 3
+    """Hand over before the master's range runs out (drone/policy.py)."""
+
+class HandoverPolicy(_HandoverPolicy, metaclass=_HandoverPolicyEnumTypeWrapper):
+    """The handover policy a drone runs (the testbed file's handover_policy.name,
+    which reports and terminals print: the name after the prefix in lower case).
+    """
+
+HANDOVER_POLICY_UNSPECIFIED: HandoverPolicy.ValueType  # 0
+HANDOVER_POLICY_NONE: HandoverPolicy.ValueType  # 1
+"""The handover script and the operator only (the paper's experiments)."""
+HANDOVER_POLICY_NEAREST: HandoverPolicy.ValueType  # 2
+"""Hand over to the nearest station in range (drone/policy.py)."""
+HANDOVER_POLICY_PREDICTIVE: HandoverPolicy.ValueType  # 3
+"""Hand over before the master's range runs out (drone/policy.py)."""
+Global___HandoverPolicy: _TypeAlias = HandoverPolicy  # noqa: Y015
 
 @_typing.final
 class InvokeRequest(_message.Message):
@@ -392,7 +529,7 @@ class Connected(_message.Message):
     """
     takeover: _builtins.bool
     """The mastership was granted by a takeover (HandoverRecord.kind
-    "takeover"): no handover message of its epoch will come, and the master
+    HANDOVER_KIND_TAKEOVER): no handover message of its epoch will come, and the master
     goes ACTIVE on what it holds once it holds every request up to the
     watermark. Said on every Connected of the mastership, not only after a
     TakeOver: a taker that restarted or rejoined with nothing after its
@@ -900,19 +1037,12 @@ class HandoverRecord(_message.Message):
     """When the new master's first request arrived; 0 until it does."""
     delay_s: _builtins.float
     """first_request_at - decided_at, seconds; the handover delay. 0 until known."""
-    trigger: _builtins.str
-    """What triggered it: "script" (the handover file), "rpc" (the Handover
-    call), "policy" (the drone's handover policy, from where it is) or
-    "lost" (the drone lost the master: a takeover).
-    """
+    trigger: Global___HandoverTrigger.ValueType
+    """What triggered it."""
     epoch: _builtins.int
     """The epoch the new master was granted."""
-    kind: _builtins.str
-    """"cooperative" (the old master sends its log, the paper's handover: a
-    forced one), "prepared" (the new master was caught up first, so the old
-    master's log was small) or "takeover" (the old master lost; the new
-    master learns the tail from the drone's retained replies).
-    """
+    kind: Global___HandoverKind.ValueType
+    """How the new master got the old master's log."""
     lost_at: _builtins.float
     """For a master lost: when the drone last saw it (its stream or a request);
     decided_at - lost_at is the detection time.
@@ -925,7 +1055,7 @@ class HandoverRecord(_message.Message):
     """
     prepare_timed_out: _builtins.bool
     """The preparation ran out of time: the handover was forced (kind
-    "cooperative").
+    HANDOVER_KIND_COOPERATIVE).
     """
     prepare_lacked_bytes: _builtins.int
     """What the target lacked, by the master's last word, when the drone
@@ -944,9 +1074,9 @@ class HandoverRecord(_message.Message):
         decided_at: _builtins.float = ...,
         first_request_at: _builtins.float = ...,
         delay_s: _builtins.float = ...,
-        trigger: _builtins.str = ...,
+        trigger: Global___HandoverTrigger.ValueType = ...,
         epoch: _builtins.int = ...,
-        kind: _builtins.str = ...,
+        kind: Global___HandoverKind.ValueType = ...,
         lost_at: _builtins.float = ...,
         reason: _builtins.str = ...,
         position: _drone_api_pb2.Position | None = ...,
@@ -975,13 +1105,12 @@ class PolicyDecision(_message.Message):
     DECIDED_AT_FIELD_NUMBER: _builtins.int
     POSITION_FIELD_NUMBER: _builtins.int
     MASTER_FIELD_NUMBER: _builtins.int
-    action: _builtins.str
-    """"stay", "handover" (to target), "hold" (no controller usable: the
-    vehicle holds position until one is) or "resume" (one is again: the
-    vehicle flies on to the target it was flying to).
-    """
+    action: Global___PolicyAction.ValueType
+    """What it decided."""
     target: _builtins.int
-    """The controller it hands over to (handover only)."""
+    """The controller it hands over to (handover), or whose range it flies
+    towards (fly_on).
+    """
     takeover: _builtins.bool
     """The handover is a takeover: the old master cannot be told."""
     reason: _builtins.str
@@ -997,7 +1126,7 @@ class PolicyDecision(_message.Message):
     def __init__(
         self,
         *,
-        action: _builtins.str = ...,
+        action: Global___PolicyAction.ValueType = ...,
         target: _builtins.int = ...,
         takeover: _builtins.bool = ...,
         reason: _builtins.str = ...,
@@ -1090,10 +1219,8 @@ class DroneStatus(_message.Message):
     retained_bytes: _builtins.int
     takeover_after_s: _builtins.float
     """The master is lost after this long without a stream or a request."""
-    handover_policy: _builtins.str
-    """The handover policy the drone runs: "none" (the script and the operator
-    only), "nearest" or "predictive".
-    """
+    handover_policy: Global___HandoverPolicy.ValueType
+    """The handover policy the drone runs."""
     holding: _builtins.bool
     """The vehicle holds position because no controller is usable."""
     preparing_for: _builtins.int
@@ -1173,7 +1300,7 @@ class DroneStatus(_message.Message):
         retained_bytes: _builtins.int = ...,
         reachable: _abc.Iterable[_builtins.int] | None = ...,
         takeover_after_s: _builtins.float = ...,
-        handover_policy: _builtins.str = ...,
+        handover_policy: Global___HandoverPolicy.ValueType = ...,
         policy_decision: Global___PolicyDecision | None = ...,
         policy_decisions: _abc.Iterable[Global___PolicyDecision] | None = ...,
         holding: _builtins.bool = ...,

@@ -15,6 +15,7 @@ from collections import abc as _abc
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 import builtins as _builtins
 import sys
 import typing as _typing
@@ -25,6 +26,96 @@ else:
     from typing_extensions import TypeAlias as _TypeAlias, Never as _Never
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class _ControllerState:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _ControllerStateEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_ControllerState.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    CONTROLLER_STATE_UNSPECIFIED: _ControllerState.ValueType  # 0
+    CONTROLLER_STATE_ACTIVE: _ControllerState.ValueType  # 1
+    """Algorithm 1's ACTIVE: the master, calling the drone."""
+    CONTROLLER_STATE_PASSIVE: _ControllerState.ValueType  # 2
+    """PASSIVE: a replica, or a master catching up on the log."""
+    CONTROLLER_STATE_REPLAY: _ControllerState.ValueType  # 3
+    """REPLAY: its mission program is answered from the log."""
+
+class ControllerState(_ControllerState, metaclass=_ControllerStateEnumTypeWrapper):
+    """A controller's state in the paper's Figure 3. Reports and terminals print
+    the name after the prefix, in the paper's capitals ("ACTIVE").
+    """
+
+CONTROLLER_STATE_UNSPECIFIED: ControllerState.ValueType  # 0
+CONTROLLER_STATE_ACTIVE: ControllerState.ValueType  # 1
+"""Algorithm 1's ACTIVE: the master, calling the drone."""
+CONTROLLER_STATE_PASSIVE: ControllerState.ValueType  # 2
+"""PASSIVE: a replica, or a master catching up on the log."""
+CONTROLLER_STATE_REPLAY: ControllerState.ValueType  # 3
+"""REPLAY: its mission program is answered from the log."""
+Global___ControllerState: _TypeAlias = ControllerState  # noqa: Y015
+
+class _MissionState:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _MissionStateEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_MissionState.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    MISSION_STATE_UNSPECIFIED: _MissionState.ValueType  # 0
+    MISSION_STATE_NONE: _MissionState.ValueType  # 1
+    """Not started (or restarted to replay the log, not running yet)."""
+    MISSION_STATE_RUNNING: _MissionState.ValueType  # 2
+    MISSION_STATE_DONE: _MissionState.ValueType  # 3
+    """Ended without an error."""
+    MISSION_STATE_FAILED: _MissionState.ValueType  # 4
+    """Ended with an error (mission_error says which)."""
+
+class MissionState(_MissionState, metaclass=_MissionStateEnumTypeWrapper):
+    """The state of a controller's mission program. Reports and terminals print
+    the name after the prefix in lower case ("running").
+    """
+
+MISSION_STATE_UNSPECIFIED: MissionState.ValueType  # 0
+MISSION_STATE_NONE: MissionState.ValueType  # 1
+"""Not started (or restarted to replay the log, not running yet)."""
+MISSION_STATE_RUNNING: MissionState.ValueType  # 2
+MISSION_STATE_DONE: MissionState.ValueType  # 3
+"""Ended without an error."""
+MISSION_STATE_FAILED: MissionState.ValueType  # 4
+"""Ended with an error (mission_error says which)."""
+Global___MissionState: _TypeAlias = MissionState  # noqa: Y015
+
+class _HandoverRole:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _HandoverRoleEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_HandoverRole.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    HANDOVER_ROLE_UNSPECIFIED: _HandoverRole.ValueType  # 0
+    HANDOVER_ROLE_OLD: _HandoverRole.ValueType  # 1
+    """Handed over: it was master and sent its log to the new master."""
+    HANDOVER_ROLE_NEW: _HandoverRole.ValueType  # 2
+    """Took over by a handover message."""
+    HANDOVER_ROLE_TAKER: _HandoverRole.ValueType  # 3
+    """Made master by the drone's takeover (the old master lost)."""
+    HANDOVER_ROLE_FENCED: _HandoverRole.ValueType  # 4
+    """Its mastership taken over: it rejoined as a replica."""
+
+class HandoverRole(_HandoverRole, metaclass=_HandoverRoleEnumTypeWrapper):
+    """A controller's part in a handover. Reports and terminals print the name
+    after the prefix in lower case ("taker").
+    """
+
+HANDOVER_ROLE_UNSPECIFIED: HandoverRole.ValueType  # 0
+HANDOVER_ROLE_OLD: HandoverRole.ValueType  # 1
+"""Handed over: it was master and sent its log to the new master."""
+HANDOVER_ROLE_NEW: HandoverRole.ValueType  # 2
+"""Took over by a handover message."""
+HANDOVER_ROLE_TAKER: HandoverRole.ValueType  # 3
+"""Made master by the drone's takeover (the old master lost)."""
+HANDOVER_ROLE_FENCED: HandoverRole.ValueType  # 4
+"""Its mastership taken over: it rejoined as a replica."""
+Global___HandoverRole: _TypeAlias = HandoverRole  # noqa: Y015
 
 @_typing.final
 class MissionDoneRequest(_message.Message):
@@ -435,8 +526,8 @@ class ControllerStatus(_message.Message):
     DRONE_CONNECTED_AT_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
-    state: _builtins.str
-    """ACTIVE, PASSIVE or REPLAY."""
+    state: Global___ControllerState.ValueType
+    """Algorithm 1's state."""
     master: _builtins.bool
     """Algorithm 1's master flag."""
     reqnr: _builtins.int
@@ -453,8 +544,8 @@ class ControllerStatus(_message.Message):
     """The predecessor's id."""
     successor: _builtins.int
     """The successor's id."""
-    mission: _builtins.str
-    """The mission program's state: "none", "running", "done", "failed"."""
+    mission: Global___MissionState.ValueType
+    """The mission program's state."""
     mission_error: _builtins.str
     """Why the mission failed, if it did (e.g. the determinism guard)."""
     replayed: _builtins.int
@@ -537,7 +628,7 @@ class ControllerStatus(_message.Message):
         self,
         *,
         id: _builtins.int = ...,
-        state: _builtins.str = ...,
+        state: Global___ControllerState.ValueType = ...,
         master: _builtins.bool = ...,
         reqnr: _builtins.int = ...,
         lognr: _builtins.int = ...,
@@ -547,7 +638,7 @@ class ControllerStatus(_message.Message):
         peers: _abc.Iterable[Global___PeerStatus] | None = ...,
         predecessor: _builtins.int = ...,
         successor: _builtins.int = ...,
-        mission: _builtins.str = ...,
+        mission: Global___MissionState.ValueType = ...,
         mission_error: _builtins.str = ...,
         replayed: _builtins.int = ...,
         invoked: _builtins.int = ...,
@@ -593,11 +684,8 @@ class ControllerHandover(_message.Message):
     HOLDS_REQNR_FIELD_NUMBER: _builtins.int
     FIRST_NEW_REQNR_FIELD_NUMBER: _builtins.int
     FIRST_NEW_AT_FIELD_NUMBER: _builtins.int
-    role: _builtins.str
-    """"old" (handed over), "new" (took over by a handover message), "taker"
-    (made master by the drone's takeover), "fenced" (its mastership taken
-    over; it rejoined as a replica).
-    """
+    role: Global___HandoverRole.ValueType
+    """The part this controller played."""
     peer: _builtins.int
     """The other controller (the new master, or the old one)."""
     lognr: _builtins.int
@@ -611,20 +699,20 @@ class ControllerHandover(_message.Message):
     epoch: _builtins.int
     """The drone's epoch of the switch (the new master's), where known."""
     drone_after_reqnr: _builtins.int
-    """The last request number the drone served before the switch ("old",
-    "taker": the notice's or the takeover's after_reqnr).
+    """The last request number the drone served before the switch (old,
+    taker: the notice's or the takeover's after_reqnr).
     """
     holds_reqnr: _builtins.int
-    """"taker": the request number its log held when it took over."""
+    """taker: the request number its log held when it took over."""
     first_new_reqnr: _builtins.int
-    """"taker": its first call beyond the drone's retained replies (the mission
+    """taker: its first call beyond the drone's retained replies (the mission
     going on), and when (Unix seconds; 0: none yet).
     """
     first_new_at: _builtins.float
     def __init__(
         self,
         *,
-        role: _builtins.str = ...,
+        role: Global___HandoverRole.ValueType = ...,
         peer: _builtins.int = ...,
         lognr: _builtins.int = ...,
         reqnr: _builtins.int = ...,

@@ -38,6 +38,7 @@ from typing import Any
 
 from baton.bench.runner import machine, say
 from baton.config import detection_time_s
+from baton.rpc.labels import label
 from baton.testbed.local import (
     WIFI_DRONE_LINK,
     LocalTestbed,
@@ -47,7 +48,7 @@ from baton.testbed.local import (
     drone_status,
 )
 from baton.testbed.report import check_side_effects
-from baton.v1 import drone_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 # Requests before the scripted handover from which the bench watches the drone alone.
 HANDOVER_NEAR = 3
@@ -187,12 +188,17 @@ def measure(
     if effects["exactly_once"] is not True:
         problems.append(f"side effects: {effects['problems']}")
     for cid, c in snapshot.controllers.items():
-        if c.mission != "done":
-            problems.append(f"controller {cid}: mission {c.mission}: {c.mission_error}")
+        if c.mission != ring_pb2.MISSION_STATE_DONE:
+            mission = label(ring_pb2.MissionState, c.mission)
+            problems.append(f"controller {cid}: mission {mission}: {c.mission_error}")
     chains = Counter(c.reply_chain for c in snapshot.controllers.values())
     if len(chains) != 1:
         problems.append(f"replicas diverged ({len(chains)} reply chains)")
-    taken = [h for h in drone.handovers if h.kind == "takeover" and h.old_master == victim]
+    taken = [
+        h
+        for h in drone.handovers
+        if h.kind == drone_pb2.HANDOVER_KIND_TAKEOVER and h.old_master == victim
+    ]
     if len(taken) != 1:
         problems.append(f"{len(taken)} takeovers of controller {victim}")
         return {"ok": False, "problems": problems}
@@ -205,7 +211,7 @@ def measure(
         (
             h
             for h in snapshot.controllers[new].handovers
-            if h.role == "taker" and h.epoch == record.epoch
+            if h.role == ring_pb2.HANDOVER_ROLE_TAKER and h.epoch == record.epoch
         ),
         None,
     )

@@ -146,7 +146,7 @@ class PredictedRing:
         self._master = new_master
         self._deliver(self.master.on_granted(self._epoch))
         if self.master.state is not State.ACTIVE:
-            raise AssertionError(f"the predicted new master is {self.master.state.value}")
+            raise AssertionError(f"the predicted new master is {self.master.state.name}")
 
     def _deliver(self, effects: list[Effect]) -> None:
         """Hands every log message sent to its controller, which replays what it logs."""

@@ -18,6 +18,7 @@ from typing import Any
 from baton.bench.model import Call
 from baton.controller.node import CLOCK_SLEEP
 from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
+from baton.v1 import ring_pb2
 
 
 def say(text: str) -> None:
@@ -44,7 +45,9 @@ async def run_plan(plan: TestbedPlan, workdir: Path, timeout: float, label: str)
     async with LocalTestbed(plan, workdir) as testbed:
         snapshot = await testbed.run_mission(timeout, progress, period=1.0)
     failed = {
-        cid: c.mission_error for cid, c in snapshot.controllers.items() if c.mission != "done"
+        cid: c.mission_error
+        for cid, c in snapshot.controllers.items()
+        if c.mission != ring_pb2.MISSION_STATE_DONE
     }
     if failed:
         raise RuntimeError(f"{label}: mission failed on controllers {failed}")

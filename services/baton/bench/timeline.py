@@ -26,9 +26,11 @@ from typing import Any, BinaryIO
 from baton.bench.model import MB, Call, LogPoint, master_log_sizes, pick_in_stretch, t_log
 from baton.bench.runner import audit_calls, machine, markdown_table, run_plan, say, write_json
 from baton.bench.script import GET_POSITION, TAKE_PICTURE
+from baton.rpc.labels import label
 from baton.rpc.methods import path
 from baton.testbed.local import MissionPlan, Snapshot, TestbedPlan
 from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2
 
 _FULL = 123.456789
 # Request sizes of the grid mission's calls that carry arguments (the rest are empty).
@@ -426,7 +428,7 @@ def handover_records(
     preparation outlasts the mission): the run then has fewer than three."""
     by_reqnr = {r["reqnr"]: r for r in rows}
     records: list[dict[str, Any]] = []
-    done = [h for h in run.drone.handovers if h.trigger == "script"]
+    done = [h for h in run.drone.handovers if h.trigger == drone_pb2.HANDOVER_TRIGGER_SCRIPT]
     for target, h in zip(settings.targets, done, strict=False):
         # The next request the drone saw (Clock calls never reach it).
         first = min((r for r in by_reqnr if r > h.after_reqnr), default=0)
@@ -438,13 +440,13 @@ def handover_records(
                 # Prepared: what the new master lacked when the drone moved the master.
                 "log_bytes": (
                     h.prepare_lacked_bytes
-                    if h.kind == "prepared"
+                    if h.kind == drone_pb2.HANDOVER_KIND_PREPARED
                     else by_reqnr[h.after_reqnr]["log_bytes"]
                 ),
                 "delay_s": h.delay_s,
                 "ready_s": drone_connected_after(run, h.new_master, h.decided_at) - h.decided_at,
                 "inter_arrival_s": by_reqnr[first]["inter_arrival_s"] if first in by_reqnr else 0,
-                "kind": h.kind,
+                "kind": label(drone_pb2.HandoverKind, h.kind),
                 "prepare_s": h.decided_at - h.prepare_started_at if h.prepare_started_at else 0.0,
                 "prepare_timed_out": h.prepare_timed_out,
             }

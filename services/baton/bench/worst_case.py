@@ -41,6 +41,7 @@ from baton.bench.script import (
 )
 from baton.config import LinkSpec
 from baton.testbed.local import PAPER_CONTROLLER_LINK, WIFI_DRONE_LINK, Snapshot, TestbedPlan
+from baton.v1 import ring_pb2
 
 CONTROLLERS = 6
 # The paper's protocol first, then baton's.
@@ -190,7 +191,7 @@ def handover_log_bytes(snapshot: Snapshot) -> dict[int, int]:
         h.drone_after_reqnr: h.log_bytes
         for c in snapshot.controllers.values()
         for h in c.handovers
-        if h.role == "old"
+        if h.role == ring_pb2.HANDOVER_ROLE_OLD
     }
 
 

@@ -162,10 +162,7 @@ class Retry:
 class HandoverEvent:
     """A handover as this controller saw it, for the status and the report."""
 
-    # "old" (we handed over), "new" (a handover message made us master),
-    # "taker" (the drone made us master by takeover), "fenced" (our
-    # mastership was taken over: we rejoined as a replica).
-    role: str
+    role: ring_pb2.HandoverRole.ValueType  # ControllerHandover.role
     peer: int
     lognr: int
     reqnr: int
@@ -221,7 +218,7 @@ class ControllerNode:
         # Calls the program gave up on while this controller waited for the log, in order.
         self._abandoned: deque[tuple[str, bytes, grpc.StatusCode]] = deque()
         self._settler: asyncio.Task[None] | None = None  # for those left when the program ended
-        self.mission = "none"
+        self.mission: ring_pb2.MissionState.ValueType = ring_pb2.MISSION_STATE_NONE
         self.mission_error = ""
         # A request the drone could not take, being re-sent (see _invoke_drone).
         self._drone_wait = ""
@@ -275,7 +272,7 @@ class ControllerNode:
 
     def _log_context(self) -> dict[str, object]:
         p = self.protocol
-        return {"state": p.state.value, "reqnr": p.reqnr, "lognr": p.lognr}
+        return {"state": p.state.name, "reqnr": p.reqnr, "lognr": p.lognr}
 
     # -- life cycle -----------------------------------------------------------------
 
@@ -422,7 +419,7 @@ class ControllerNode:
             self._settler.cancel()
             self._settler = None
         self._abandoned.clear()
-        self.mission, self.mission_error = "none", ""
+        self.mission, self.mission_error = ring_pb2.MISSION_STATE_NONE, ""
         self._failure = None
         self._drone_wait, self._in_flight, self._busy = "", None, None
         self._reply_chain = hashlib.sha256()
@@ -816,7 +813,11 @@ class ControllerNode:
             elif isinstance(effect, TookOver):
                 self.handovers.append(
                     HandoverEvent(
-                        "new", effect.old_master, effect.lognr, effect.reqnr, effect.message_bytes
+                        ring_pb2.HANDOVER_ROLE_NEW,
+                        effect.old_master,
+                        effect.lognr,
+                        effect.reqnr,
+                        effect.message_bytes,
                     )
                 )
                 self.log.info("taking over as master", old_master=effect.old_master)
@@ -925,7 +926,7 @@ class ControllerNode:
         self._takeover_watermark = event.watermark_reqnr
         self.handovers.append(
             HandoverEvent(
-                "taker",
+                ring_pb2.HANDOVER_ROLE_TAKER,
                 event.old_master,
                 p.lognr,
                 p.reqnr,
@@ -959,7 +960,9 @@ class ControllerNode:
             return
         self._rejoining = True
         p = self.protocol
-        self.handovers.append(HandoverEvent("fenced", new_master, p.lognr, p.reqnr, p.log.size))
+        self.handovers.append(
+            HandoverEvent(ring_pb2.HANDOVER_ROLE_FENCED, new_master, p.lognr, p.reqnr, p.log.size)
+        )
         self.log.warning(
             "fenced: the drone gave our mastership to another controller by takeover; "
             "dropping what we hold beyond the ring and rejoining as a replica",
@@ -1047,7 +1050,7 @@ class ControllerNode:
             return
         self.handovers.append(
             HandoverEvent(
-                "old",
+                ring_pb2.HANDOVER_ROLE_OLD,
                 new_master,
                 self.protocol.lognr,
                 self.protocol.reqnr,
@@ -1105,7 +1108,7 @@ class ControllerNode:
 
     async def mission_done(self, failed: bool, error: str) -> bool:
         """The local mission program ended; the master flushes its last entries."""
-        self.mission = "failed" if failed else "done"
+        self.mission = ring_pb2.MISSION_STATE_FAILED if failed else ring_pb2.MISSION_STATE_DONE
         if error:
             self.mission_error = self.mission_error or error
         effects = self.protocol.on_mission_done()
@@ -1126,7 +1129,7 @@ class ControllerNode:
 
     def _fail(self, error: StatusError) -> None:
         self._failure = error
-        self.mission = "failed"
+        self.mission = ring_pb2.MISSION_STATE_FAILED
         self.mission_error = error.message
         self.log.error("mission stopped", error=error.message)
         self._notify()
@@ -1159,8 +1162,8 @@ class ControllerNode:
         self._busy = method
         incarnation = self.incarnation
         try:
-            if self.mission == "none":
-                self.mission = "running"
+            if self.mission == ring_pb2.MISSION_STATE_NONE:
+                self.mission = ring_pb2.MISSION_STATE_RUNNING
             try:
                 await self._settle_abandoned()
             except asyncio.CancelledError:
@@ -1341,7 +1344,7 @@ class ControllerNode:
                 return None
             if self._first_new_call_due and reqnr > self._retained_through:
                 self._first_new_call_due = False
-                takers = [h for h in self.handovers if h.role == "taker"]
+                takers = [h for h in self.handovers if h.role == ring_pb2.HANDOVER_ROLE_TAKER]
                 if takers:
                     takers[-1].first_new_reqnr, takers[-1].first_new_at = reqnr, time.time()
                 self.log.info(

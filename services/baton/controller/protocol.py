@@ -24,11 +24,12 @@ from baton.v1 import ring_pb2
 
 
 class State(enum.Enum):
-    """The controller states of the paper's Figure 3."""
+    """The controller states of the paper's Figure 3 (named as the paper does;
+    the values are the contract's ``ControllerStatus.state``)."""
 
-    ACTIVE = "ACTIVE"
-    PASSIVE = "PASSIVE"
-    REPLAY = "REPLAY"
+    ACTIVE = ring_pb2.CONTROLLER_STATE_ACTIVE
+    PASSIVE = ring_pb2.CONTROLLER_STATE_PASSIVE
+    REPLAY = ring_pb2.CONTROLLER_STATE_REPLAY
 
 
 @dataclass(frozen=True)
@@ -711,7 +712,7 @@ class ControllerProtocol:
     def on_reply(self, entry: ring_pb2.LogEntry) -> list[Effect]:
         """Logs the drone's reply to request reqnr + 1 and flushes at the limit."""
         if self.state is not State.ACTIVE:
-            raise ProtocolError(f"controller {self.id} got a drone reply while {self.state.value}")
+            raise ProtocolError(f"controller {self.id} got a drone reply while {self.state.name}")
         if entry.reqnr != self.reqnr + 1:
             raise ProtocolError(f"reply for request {entry.reqnr}, expected {self.reqnr + 1}")
         self.log.append(entry)
@@ -1165,7 +1166,7 @@ class ControllerProtocol:
         the logged request.
         """
         if self.state is not State.REPLAY:
-            raise ProtocolError(f"replay while {self.state.value}")
+            raise ProtocolError(f"replay while {self.state.name}")
         entry = self.log.entries[0]
         if entry.request_digest != request_digest(method, request):
             raise NonDeterminismError(entry.reqnr, entry, method, request)

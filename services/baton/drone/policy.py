@@ -54,11 +54,16 @@ from dataclasses import dataclass, replace
 
 from baton.sdk.geo import north_east_m
 from baton.sdk.types import Position
+from baton.v1 import drone_pb2
 
 # The policies a drone can run; "none" leaves the master to the script and the operator.
 POLICIES = ("none", "nearest", "predictive")
 
-STAY, HANDOVER, HOLD, FLY_ON = "stay", "handover", "hold", "fly_on"
+# A decision's action: the contract's PolicyAction (GetStatus shows it as it is).
+STAY = drone_pb2.POLICY_ACTION_STAY
+HANDOVER = drone_pb2.POLICY_ACTION_HANDOVER
+HOLD = drone_pb2.POLICY_ACTION_HOLD
+FLY_ON = drone_pb2.POLICY_ACTION_FLY_ON
 
 
 @dataclass(frozen=True)
@@ -160,7 +165,7 @@ class Decision:
     """What to do now: ``stay``, ``handover`` to ``target``, or with none usable
     ``fly_on`` (towards ``target``'s range) or ``hold``."""
 
-    action: str
+    action: drone_pb2.PolicyAction.ValueType
     reason: str
     target: int | None = None
     # The old master cannot be told (its link is down): the target takes over

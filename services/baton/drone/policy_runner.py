@@ -54,6 +54,7 @@ from baton.drone.policy import (
 )
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
+from baton.rpc.labels import label, parse
 from baton.sdk import Position
 from baton.sdk import distance_m as geo_distance_m
 from baton.v1 import drone_api_pb2 as api
@@ -70,7 +71,6 @@ DECISIONS_KEPT = 100
 DECISION_LOG_PERIOD_S = 5.0
 # Closer than this to the last Goto's target, a resume sends nothing.
 RESUME_MIN_M = 1.0
-RESUME = "resume"
 # Mobility commands after which there is nothing to resume (the vehicle lands,
 # goes home, holds or climbs on the master's word).
 _ENDS_A_LEG = frozenset({"Land", "ReturnToLaunch", "Hold", "Takeoff", "Disarm", "Arm"})
@@ -129,7 +129,7 @@ class PolicyRunner:
 
     def fill_status(self, status: drone_pb2.DroneStatus) -> None:
         """The policy's part of GetStatus."""
-        status.handover_policy = self.params.name
+        status.handover_policy = parse(drone_pb2.HandoverPolicy, self.params.name)
         if self.latest is not None:
             status.policy_decision.CopyFrom(self.latest)
         status.policy_decisions.extend(self.decisions)
@@ -180,10 +180,19 @@ class PolicyRunner:
                     pass  # moved meanwhile
                 elif decision.takeover or not service.can_prepare(decision.target):
                     service.hand_over(
-                        decision.target, "policy", decision.takeover, decision.reason, position
+                        decision.target,
+                        drone_pb2.HANDOVER_TRIGGER_POLICY,
+                        decision.takeover,
+                        decision.reason,
+                        position,
                     )
                 elif preparing is None or preparing.target != decision.target:
-                    service.prepare_handover(decision.target, "policy", decision.reason, position)
+                    service.prepare_handover(
+                        decision.target,
+                        drone_pb2.HANDOVER_TRIGGER_POLICY,
+                        decision.reason,
+                        position,
+                    )
         elif decision.action == HOLD and not self.holding:
             await self._hold(decision)
         if decision.action != HOLD and self.holding:
@@ -220,7 +229,7 @@ class PolicyRunner:
             log = self.log.info if changed else self.log.debug
             log(
                 "policy decision",
-                action=decision.action,
+                action=label(drone_pb2.PolicyAction, decision.action),
                 target=decision.target,
                 takeover=decision.takeover,
                 reason=decision.reason,
@@ -263,7 +272,7 @@ class PolicyRunner:
             await service.vehicle.Goto(goto)
         reason = f"a controller is usable again: flying on to the last Goto's target ({away:.0f} m)"
         record = drone_pb2.PolicyDecision(
-            action=RESUME,
+            action=drone_pb2.POLICY_ACTION_RESUME,
             target=-1,
             reason=reason,
             decided_at=time.time(),
@@ -271,4 +280,8 @@ class PolicyRunner:
             master=master,
         )
         self.decisions.append(record)
-        self.log.info("policy decision", action=RESUME, reason=reason)
+        self.log.info(
+            "policy decision",
+            action=label(drone_pb2.PolicyAction, drone_pb2.POLICY_ACTION_RESUME),
+            reason=reason,
+        )

@@ -93,7 +93,7 @@ class Preparation:
     """A prepared handover under way (``Sequencer.prepare``)."""
 
     target: int
-    trigger: str
+    trigger: drone_pb2.HandoverTrigger.ValueType
     started_at: float
     deadline: float
     notice: drone_pb2.PrepareHandover
@@ -206,7 +206,7 @@ class Sequencer:
     def takeover_epoch(self) -> int:
         """The epoch the newest takeover granted (0: no takeover yet)."""
         for record in reversed(self.handovers):
-            if record.kind == "takeover":
+            if record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER:
                 return record.epoch
         return 0
 
@@ -229,7 +229,10 @@ class Sequencer:
             return None
         for record in self.handovers[max(0, mastership_epoch - 1) :]:
             # handovers[i] granted epoch i + 2: these ended ``mastership_epoch`` or later.
-            if record.kind == "takeover" and record.old_master == controller_id:
+            if (
+                record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
+                and record.old_master == controller_id
+            ):
                 return record
         return None
 
@@ -433,7 +436,7 @@ class Sequencer:
         line = min(due)
         scripted = self.script.pop(line)
         if scripted.prepared and scripted.new_master != self.master:
-            prepare = self.prepare(scripted.new_master, "script", now)
+            prepare = self.prepare(scripted.new_master, drone_pb2.HANDOVER_TRIGGER_SCRIPT, now)
             # Fired once the preparation ends (``_preparation_ended``): the preparation
             # is not in the store, so a restart before then begins it again.
             assert self.preparing is not None
@@ -442,7 +445,7 @@ class Sequencer:
         self.fired_script.append(line)
         if scripted.new_master == self.master:
             return Served(entry, cached, skipped=scripted)
-        handover = self.switch(scripted.new_master, "script", now)
+        handover = self.switch(scripted.new_master, drone_pb2.HANDOVER_TRIGGER_SCRIPT, now)
         return Served(entry, cached, handover=handover)
 
     # -- a restart ------------------------------------------------------------------
@@ -474,7 +477,7 @@ class Sequencer:
     def switch(
         self,
         new_master: int,
-        trigger: str,
+        trigger: drone_pb2.HandoverTrigger.ValueType,
         now: float,
         takeover: bool = False,
         lost_at: float = 0.0,
@@ -511,7 +514,9 @@ class Sequencer:
             decided_at=now,
             trigger=trigger,
             epoch=ended + 1,
-            kind="takeover" if takeover else "cooperative",
+            kind=drone_pb2.HANDOVER_KIND_TAKEOVER
+            if takeover
+            else drone_pb2.HANDOVER_KIND_COOPERATIVE,
             lost_at=lost_at,
             reason=reason,
             position=position,
@@ -584,7 +589,11 @@ class Sequencer:
         if not self.handovers or self.master not in live:
             return None
         last = self.handovers[-1]
-        if last.kind == "takeover" or last.first_request_at or last.new_master != self.master:
+        if (
+            last.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
+            or last.first_request_at
+            or last.new_master != self.master
+        ):
             return None
         old_seen = max(last_seen.get(last.old_master, 0.0), last.decided_at)
         if last.old_master not in live and now - old_seen >= after_s:
@@ -633,7 +642,7 @@ class Sequencer:
         again (``take_over_owed``), and would wait for ever for a handover
         message (--lose-master seed 1092).
         """
-        return bool(self.handovers) and self.handovers[-1].kind == "takeover"
+        return bool(self.handovers) and self.handovers[-1].kind == drone_pb2.HANDOVER_KIND_TAKEOVER
 
     def handover_must_take_over(self, new_master: int) -> bool:
         """Whether a handover to ``new_master`` decided now must be a takeover: the master
@@ -659,14 +668,14 @@ class Sequencer:
             # would ignore the notice and the new master would wait for ever for its
             # handover message (simulation finding F1). A takeover loses nothing.
             return self.last_reqnr == 0
-        return last.kind == "takeover" and last.new_master == self.master
+        return last.kind == drone_pb2.HANDOVER_KIND_TAKEOVER and last.new_master == self.master
 
     # -- prepared handovers (docs/design.md, "Prepared handover") -------------------
 
     def prepare(
         self,
         target: int,
-        trigger: str,
+        trigger: drone_pb2.HandoverTrigger.ValueType,
         now: float,
         timeout_s: float | None = None,
         reason: str = "",
@@ -756,7 +765,9 @@ class Sequencer:
         if not caught_up and (now < p.deadline or not force):
             return None
         record = self.switch(p.target, p.trigger, now, reason=p.reason, position=p.position)
-        record.kind = "prepared" if caught_up else "cooperative"
+        record.kind = (
+            drone_pb2.HANDOVER_KIND_PREPARED if caught_up else drone_pb2.HANDOVER_KIND_COOPERATIVE
+        )
         record.prepare_started_at = p.started_at
         record.prepare_timed_out = not caught_up
         record.prepare_lacked_bytes = lacked or 0

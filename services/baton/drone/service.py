@@ -37,6 +37,7 @@ from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import announce
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
+from baton.rpc.labels import label
 from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
 from baton.stalls import StallWatch
@@ -198,7 +199,13 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                     )
                     if due is not None:
                         where = self.policy.position if self.policy is not None else None
-                        self._take_over(due.new_master, "lost", now, due.lost_at, position=where)
+                        self._take_over(
+                            due.new_master,
+                            drone_pb2.HANDOVER_TRIGGER_LOST,
+                            now,
+                            due.lost_at,
+                            position=where,
+                        )
             if self.seq.preparing is not None:
                 async with self._lock:
                     forced = self.seq.preparation_expired(time.time())
@@ -261,7 +268,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     def hand_over(
         self,
         new_master: int,
-        trigger: str,
+        trigger: drone_pb2.HandoverTrigger.ValueType,
         takeover: bool = False,
         reason: str = "",
         position: api.Position | None = None,
@@ -284,7 +291,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     def _take_over(
         self,
         new_master: int,
-        trigger: str,
+        trigger: drone_pb2.HandoverTrigger.ValueType,
         now: float,
         lost_at: float = 0.0,
         reason: str = "",
@@ -306,7 +313,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         told = self.standby.tell(new_master, self._take_over_event(record))
         retained, retained_bytes = self.seq.cache.retained
         self.log.warning(
-            "master lost: taken over" if trigger == "lost" else "takeover",
+            "master lost: taken over" if trigger == drone_pb2.HANDOVER_TRIGGER_LOST else "takeover",
             lost=record.old_master,
             new_master=new_master,
             epoch=record.epoch,
@@ -336,7 +343,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         if cid != seq.master or not seq.handovers:
             return None
         record = seq.handovers[-1]
-        if record.kind != "takeover" or record.first_request_at:
+        if record.kind != drone_pb2.HANDOVER_KIND_TAKEOVER or record.first_request_at:
             return None
         return self._take_over_event(record)
 
@@ -599,13 +606,16 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             new_master=record.new_master,
             after_reqnr=record.after_reqnr,
             epoch=record.epoch,
-            trigger=record.trigger,
-            kind=record.kind,
+            trigger=label(drone_pb2.HandoverTrigger, record.trigger),
+            kind=label(drone_pb2.HandoverKind, record.kind),
             old_master_connected=self.streams.connected(record.old_master),
             **prepared,
             reason=record.reason or None,
         )
-        if self.policy is not None and record.trigger in ("script", "rpc"):
+        if self.policy is not None and record.trigger in (
+            drone_pb2.HANDOVER_TRIGGER_SCRIPT,
+            drone_pb2.HANDOVER_TRIGGER_RPC,
+        ):
             self.policy.pin(record.new_master)  # they override the policy
         self.streams.wake(record.old_master, notice_delay_s)
         self._switch_seen.set()
@@ -619,7 +629,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     def prepare_handover(
         self,
         new_master: int,
-        trigger: str,
+        trigger: drone_pb2.HandoverTrigger.ValueType,
         reason: str = "",
         position: api.Position | None = None,
     ) -> None:
@@ -781,7 +791,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             if request.prepared and not request.takeover:
                 return await self._prepared_handover(request.new_master)
             async with self._lock:
-                record = self.hand_over(request.new_master, "rpc", request.takeover)
+                record = self.hand_over(
+                    request.new_master, drone_pb2.HANDOVER_TRIGGER_RPC, request.takeover
+                )
         except StatusError as err:
             self.log.warning("handover rejected", new_master=request.new_master, reason=err.message)
             await abort_with(context, err)
@@ -816,9 +828,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         async with self._lock:
             if not self.can_prepare(new_master):
                 preparation = None
-                record = self.hand_over(new_master, "rpc")
+                record = self.hand_over(new_master, drone_pb2.HANDOVER_TRIGGER_RPC)
             else:
-                self.prepare_handover(new_master, "rpc")
+                self.prepare_handover(new_master, drone_pb2.HANDOVER_TRIGGER_RPC)
                 preparation = self.seq.preparing
         if preparation is not None:
             while self.seq.preparing is preparation:
@@ -828,7 +840,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 raise StatusError(
                     grpc.StatusCode.ABORTED,
                     f"the handover to controller {new_master} being prepared was replaced by "
-                    f"another switch (to controller {record.new_master}, {record.kind})",
+                    f"another switch (to controller {record.new_master}, "
+                    f"{label(drone_pb2.HandoverKind, record.kind)})",
                 )
         if self.store is not None:
             self.store.save(self._counters())
@@ -875,7 +888,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             takeover_after_s=self.takeover_after_s,
             preparing_for=seq.preparing.target if seq.preparing is not None else -1,
             preparing_lacks_bytes=(seq.preparing.lacks_bytes or 0) if seq.preparing else 0,
-            handover_policy="none",
+            handover_policy=drone_pb2.HANDOVER_POLICY_NONE,
         )
         if self.policy is not None:
             self.policy.fill_status(status)

@@ -46,6 +46,7 @@ from baton.drone.sequencer import (
 from baton.drone.service import RESTART_GRACE_S, START_GRACE_S, TAKEOVER_TICK_S
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
+from baton.rpc.labels import label
 from baton.rpc.methods import drone_api, service_prefix
 from baton.sim.mission import UNPARSABLE
 from baton.v1 import drone_pb2
@@ -60,6 +61,7 @@ CAMERA = service_prefix("Camera")
 # The sim's replies are tens of bytes: batches of about one or two of them, so that a
 # stream can break between the Connected event and its last retained batch.
 RETAINED_BATCH_BYTES = 64
+RPC = drone_pb2.HANDOVER_TRIGGER_RPC  # an operator's Handover
 
 
 @dataclass(frozen=True)
@@ -494,14 +496,14 @@ class SimDrone:
         try:
             if order.prepared and self._can_prepare(order.new_master):
                 self.seq.check_known(order.new_master)
-                notice = self.seq.prepare(order.new_master, "rpc", self.world.loop.now)
+                notice = self.seq.prepare(order.new_master, RPC, self.world.loop.now)
                 self._preparing(notice)
                 return
             if self.seq.handover_must_take_over(order.new_master):
                 self.seq.check_known(order.new_master)
-                self._take_over(order.new_master, "rpc", self.world.loop.now, 0.0)
+                self._take_over(order.new_master, RPC, self.world.loop.now, 0.0)
                 return
-            record = self.seq.switch(order.new_master, "rpc", self.world.loop.now)
+            record = self.seq.switch(order.new_master, RPC, self.world.loop.now)
         except StatusError:
             return
         self._switched(record)
@@ -517,16 +519,18 @@ class SimDrone:
         prepared = ""
         if record.prepare_started_at:
             self.prepared_records.append(record)
-            if record.kind == "prepared":
+            if record.kind == drone_pb2.HANDOVER_KIND_PREPARED:
                 self._check_caught_up(record)
             prepared = (
                 f", prepared for {record.decided_at - record.prepare_started_at:.3f}s, "
                 f"lacked {record.prepare_lacked_bytes} B"
                 + (", timed out" if record.prepare_timed_out else "")
             )
+        trigger = label(drone_pb2.HandoverTrigger, record.trigger)
+        kind = label(drone_pb2.HandoverKind, record.kind)
         self.world.trace(
             f"drone: master {record.old_master} -> {record.new_master} epoch {record.epoch} "
-            f"after reqnr {record.after_reqnr} ({record.trigger}, {record.kind}{prepared})"
+            f"after reqnr {record.after_reqnr} ({trigger}, {kind}{prepared})"
         )
         self.world.loop.after(0.0, self._wake, record.old_master)
         self.world.switched(record)  # where the lose-master fault may strike (faults.py)
@@ -803,7 +807,7 @@ class SimDrone:
             now, reachable, self.last_seen, self.takeover_after, self._unseen_from()
         )
         if due is not None:
-            self._take_over(due.new_master, "lost", now, due.lost_at)
+            self._take_over(due.new_master, drone_pb2.HANDOVER_TRIGGER_LOST, now, due.lost_at)
 
     def _preparation_check(self) -> None:
         """watch_master under the lock: a preparation past its deadline is forced."""
@@ -818,7 +822,7 @@ class SimDrone:
         if cid != seq.master or not seq.handovers:
             return None
         record = seq.handovers[-1]
-        if record.kind != "takeover" or record.first_request_at:
+        if record.kind != drone_pb2.HANDOVER_KIND_TAKEOVER or record.first_request_at:
             return None
         return record
 
@@ -829,7 +833,13 @@ class SimDrone:
         if record is not None:
             self._tell_take_over(record)
 
-    def _take_over(self, new_master: int, trigger: str, now: float, lost_at: float) -> None:
+    def _take_over(
+        self,
+        new_master: int,
+        trigger: drone_pb2.HandoverTrigger.ValueType,
+        now: float,
+        lost_at: float,
+    ) -> None:
         """DroneService._take_over: switch by takeover, tell the new master on its standby."""
         record = self.seq.switch(new_master, trigger, now, takeover=True, lost_at=lost_at)
         self.takeovers += 1

@@ -38,7 +38,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from baton.drone.sequencer import PREPARED_BOUND_BYTES
+from baton.rpc.labels import label
 from baton.sim.mission import Kind
+from baton.v1 import drone_pb2
 
 if TYPE_CHECKING:
     from baton.sim.controller import SimController
@@ -89,16 +91,17 @@ def _prepared_records(world: World) -> list[Violation]:
     found = []
     timeout = world.drone.prepare_timeout_s
     for r in world.drone.prepared_records:
+        kind = label(drone_pb2.HandoverKind, r.kind)
         what = (
             f"handover {r.old_master}->{r.new_master} (epoch {r.epoch}) prepared from "
-            f"{r.prepare_started_at:.3f}s to {r.decided_at:.3f}s: kind {r.kind!r}, "
+            f"{r.prepare_started_at:.3f}s to {r.decided_at:.3f}s: kind {kind!r}, "
             f"timed out {r.prepare_timed_out}, lacked {r.prepare_lacked_bytes} B"
         )
-        if r.kind == "prepared":
+        if r.kind == drone_pb2.HANDOVER_KIND_PREPARED:
             ok = not r.prepare_timed_out and r.prepare_lacked_bytes <= PREPARED_BOUND_BYTES
         else:
             ok = (
-                r.kind == "cooperative"
+                r.kind == drone_pb2.HANDOVER_KIND_COOPERATIVE
                 and r.prepare_timed_out
                 and r.decided_at >= r.prepare_started_at + timeout - 1e-9
             )
@@ -246,7 +249,7 @@ def _liveness(world: World) -> list[Violation]:
                 "liveness",
                 f"controller {controller.id} not done by t={world.deadline:.1f}s "
                 f"(faults ended at {world.plan.fault_end:.1f}s): program at call "
-                f"{controller.pc}/{len(world.program)}, {p.state.value}, master={p.master}, "
+                f"{controller.pc}/{len(world.program)}, {p.state.name}, master={p.master}, "
                 f"epoch {p.epoch}, reqnr {p.reqnr}, lognr {p.lognr}, queued "
                 f"{sorted(p.log_queue)[:8]}, caught up {p.caught_up} "
                 f"(to {p.catch_up_to}); drone master {world.drone.seq.master} "

@@ -30,6 +30,7 @@ from baton.sim.mission import MissionCall, random_mission
 from baton.sim.mutations import mutated
 from baton.sim.network import DRONE, Network
 from baton.sim.oracles import Violation, check
+from baton.v1 import drone_pb2
 from baton.v1.drone_pb2 import HandoverRecord
 from baton.v1.ring_pb2 import LogMessage
 
@@ -309,7 +310,9 @@ class World:
     def switched(self, record: HandoverRecord) -> None:
         """The drone switched masters: the lose-master fault may strike now."""
         strike = self.failover.pop("on switch", None)
-        if strike is not None and record.kind != "takeover":  # a prepared one too
+        if (
+            strike is not None and record.kind != drone_pb2.HANDOVER_KIND_TAKEOVER
+        ):  # a prepared one too
             victim = record.old_master if strike == "old" else record.new_master
             if not survivable(self, victim):  # no live copy of the log would be left
                 self.failover["on switch"] = strike  # the next switch

@@ -35,6 +35,7 @@ from baton.lifecycle import write_atomically
 from baton.missions import corridor as corridor_mission
 from baton.missions import grid as grid_mission
 from baton.rpc.channels import aio_channel
+from baton.rpc.labels import label
 from baton.rpc.methods import path
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.tls import CA_CERT, DRONE, OPERATOR, Identity, Tls
@@ -273,7 +274,10 @@ class Snapshot:
     @property
     def missions_ended(self) -> bool:
         """Every controller's mission program has ended (done or failed)."""
-        return all(c.mission in ("done", "failed") for c in self.controllers.values())
+        return all(
+            c.mission in (ring_pb2.MISSION_STATE_DONE, ring_pb2.MISSION_STATE_FAILED)
+            for c in self.controllers.values()
+        )
 
     @property
     def pictures(self) -> int:
@@ -727,7 +731,12 @@ class LocalTestbed:
                 return snapshot
             if loop.time() > deadline:
                 states = {
-                    cid: (c.state, c.mission, c.reqnr) for cid, c in snapshot.controllers.items()
+                    cid: (
+                        label(ring_pb2.ControllerState, c.state),
+                        label(ring_pb2.MissionState, c.mission),
+                        c.reqnr,
+                    )
+                    for cid, c in snapshot.controllers.items()
                 }
                 raise TimeoutError(
                     f"mission not finished after {timeout:.0f} s; controllers: {states}"

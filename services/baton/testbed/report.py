@@ -20,6 +20,7 @@ from baton.bench.model import t_max
 from baton.config import BatonConfig
 from baton.missions.grid import waypoints
 from baton.missions.plan import Plan
+from baton.rpc.labels import label
 from baton.rpc.methods import path
 from baton.sdk import Position, distance_m, offset
 from baton.testbed.local import TAKE_PICTURE, Effects, Snapshot
@@ -81,7 +82,9 @@ def _without_resumes(gotos: Effects, snapshot: Snapshot) -> Effects:
     """The gotos the mission asked for: each resume of the drone's handover policy (a
     leg flown on after a hold, ``PolicyDecision`` "resume") sent the last one again,
     and is shown in the report's ``policy``, not counted against the mission."""
-    resumes = sum(1 for d in snapshot.drone.policy_decisions if d.action == "resume")
+    resumes = sum(
+        1 for d in snapshot.drone.policy_decisions if d.action == drone_pb2.POLICY_ACTION_RESUME
+    )
     kept: Effects = []
     for goto in gotos:
         if resumes and kept and _same_target(kept[-1], goto):
@@ -249,7 +252,7 @@ def build_report(
     return {
         "format": REPORT_FORMAT,
         "completed": bool(snapshot.controllers)
-        and all(c.mission == "done" for c in snapshot.controllers.values()),
+        and all(c.mission == ring_pb2.MISSION_STATE_DONE for c in snapshot.controllers.values()),
         "duration_s": round(duration_s, 3),
         "mission": _mission(snapshot, grid, plan, grid_mission, targets),
         "setup": _setup(config, drone, t_conn, largest_entry),
@@ -314,7 +317,9 @@ def _handover(
             (
                 h.log_bytes
                 for h in old.handovers
-                if h.role == "old" and h.peer == record.new_master and h.reqnr <= record.after_reqnr
+                if h.role == ring_pb2.HANDOVER_ROLE_OLD
+                and h.peer == record.new_master
+                and h.reqnr <= record.after_reqnr
             ),
             0,
         )
@@ -325,12 +330,14 @@ def _handover(
         "to": record.new_master,
         "after_reqnr": record.after_reqnr,
         "hops": hops,
-        "trigger": record.trigger,
-        "kind": record.kind,
+        "trigger": label(drone_pb2.HandoverTrigger, record.trigger),
+        "kind": label(drone_pb2.HandoverKind, record.kind),
         # A takeover: from the drone's last sighting of the lost master to its
         # decision (the takeover time, and how late the drone looked).
         "detection_s": (
-            round(record.decided_at - record.lost_at, 6) if record.kind == "takeover" else None
+            round(record.decided_at - record.lost_at, 6)
+            if record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
+            else None
         ),
         # A prepared handover (or one forced when its preparation ran out of
         # time): how long the preparation took, and what the target lacked.
@@ -432,17 +439,23 @@ def _policy(config: BatonConfig, drone: drone_pb2.DroneStatus) -> dict[str, Any]
     """The drone's handover policy and what it decided in the air."""
     decisions = drone.policy_decisions
     return {
-        "name": drone.handover_policy or "none",
+        "name": label(
+            drone_pb2.HandoverPolicy, drone.handover_policy or drone_pb2.HANDOVER_POLICY_NONE
+        ),
         "radio_range": config.radio_range,
         # Holds in the air (a hold decided on the ground, before the controllers
         # are up or after the landing, stops nothing).
         "holds": sum(
-            1 for d in decisions if d.action == "hold" and d.position.relative_altitude_m > 0.5
+            1
+            for d in decisions
+            if d.action == drone_pb2.POLICY_ACTION_HOLD and d.position.relative_altitude_m > 0.5
         ),
-        "resumes": sum(1 for d in decisions if d.action == "resume"),
+        "resumes": sum(1 for d in decisions if d.action == drone_pb2.POLICY_ACTION_RESUME),
         # No controller usable, flown on along a leg into a station's range.
         "flown_on": sum(
-            1 for d in decisions if d.action == "fly_on" and d.position.relative_altitude_m > 0.5
+            1
+            for d in decisions
+            if d.action == drone_pb2.POLICY_ACTION_FLY_ON and d.position.relative_altitude_m > 0.5
         ),
     }
 
@@ -451,13 +464,13 @@ def _controller(cid: int, c: ring_pb2.ControllerStatus) -> dict[str, Any]:
     """One controller's final status."""
     return {
         "id": cid,
-        "state": c.state,
+        "state": label(ring_pb2.ControllerState, c.state),
         "master": c.master,
         "reqnr": c.reqnr,
         "lognr": c.lognr,
         "log_bytes": c.log_bytes,
         "queue_length": c.queue_length,
-        "mission": c.mission,
+        "mission": label(ring_pb2.MissionState, c.mission),
         "mission_error": c.mission_error,
         "invoked": c.invoked,
         "replayed": c.replayed,

@@ -19,6 +19,7 @@ from baton.config import BatonConfig
 from baton.lifecycle import write_atomically
 from baton.missions.plan import load_plan
 from baton.rpc.channels import aio_channel
+from baton.rpc.labels import label
 from baton.rpc.tls import DRONE, OPERATOR, Identity
 from baton.testbed.flight_map import Track, flight_geojson
 from baton.testbed.html_report import write_page
@@ -72,14 +73,20 @@ class Progress:
         if not self._due():
             return
         states = " ".join(
-            f"c{cid}:{c.state[0]}{'*' if c.master else ''}@{c.reqnr}"
+            f"c{cid}:{label(ring_pb2.ControllerState, c.state)[0]}"
+            f"{'*' if c.master else ''}@{c.reqnr}"
             for cid, c in sorted(snapshot.controllers.items())
         )
         drone = snapshot.drone
-        scripted = sum(1 for h in drone.handovers if h.trigger == "script")
-        takeovers = sum(1 for h in drone.handovers if h.kind == "takeover")
-        operator = sum(1 for h in drone.handovers if h.trigger == "rpc" and h.kind != "takeover")
-        policy = sum(1 for h in drone.handovers if h.trigger == "policy")
+        scripted = sum(1 for h in drone.handovers if h.trigger == drone_pb2.HANDOVER_TRIGGER_SCRIPT)
+        takeovers = sum(1 for h in drone.handovers if h.kind == drone_pb2.HANDOVER_KIND_TAKEOVER)
+        operator = sum(
+            1
+            for h in drone.handovers
+            if h.trigger == drone_pb2.HANDOVER_TRIGGER_RPC
+            and h.kind != drone_pb2.HANDOVER_KIND_TAKEOVER
+        )
+        policy = sum(1 for h in drone.handovers if h.trigger == drone_pb2.HANDOVER_TRIGGER_POLICY)
         others = f" + {policy} by policy" if policy else ""
         others += (f" + {operator} by operator" if operator else "") + (
             f" | takeovers {takeovers}" if takeovers else ""
