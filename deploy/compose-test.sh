@@ -226,12 +226,16 @@ CHECK
         exit 1
     fi
     if [ "$name" = radio ]; then
-        # Out of range means refused and cut: each station's link saw the vehicle leave
-        # or arrive (controller 0's leaves, 1's arrives and leaves, 2's arrives).
-        local i
-        for i in 0 1 2; do
-            if ! "${COMPOSE[@]}" logs --no-color "link-drone-$i" 2>&1 | grep -q "radio range"; then
-                say "$name: FAILED: link-drone-$i never logged the vehicle entering or leaving its radio range"
+        # The links' radio range, from their logs: station 0's link saw the vehicle
+        # leave, station 2's saw it arrive, station 1's both (the log read whole
+        # first: `grep -q` stopping early would break the pipe under pipefail).
+        local check link msg link_log
+        for check in "0:vehicle out of radio range" "1:vehicle in radio range" \
+            "1:vehicle out of radio range" "2:vehicle in radio range"; do
+            link=link-drone-${check%%:*} msg=${check#*:}
+            link_log=$("${COMPOSE[@]}" logs --no-color "$link" 2>&1 || true)
+            if ! grep -q "\"$msg\"" <<<"$link_log"; then
+                say "$name: FAILED: $link never logged \"$msg\""
                 exit 1
             fi
         done

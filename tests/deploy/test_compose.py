@@ -1128,4 +1128,9 @@ def test_compose_test_runs_the_grid_then_the_radio_run_and_checks_its_story() ->
         f"run_mission radio reports/{Path(radio_out).name} -f deploy/compose.ci.radio.yml" in text
     )
     assert 'report.get("masters") != [0, 1, 2]' in text
+    # Each link to the drone logged the vehicle crossing its circle (proxy.py's words).
+    proxy = (REPO / "services" / "baton" / "link" / "proxy.py").read_text()
+    for message in ("vehicle in radio range", "vehicle out of radio range"):
+        assert f'"{message}"' in proxy
+        assert f'"1:{message}"' in text
     assert ("../reports:" + str(Path(radio_out).parent)) in CI_RADIO_SERVICES["report"]["volumes"]
