@@ -57,7 +57,8 @@ image: $(STAMP)
 	PYTHON=$(BIN)/python deploy/images.sh
 
 # The compose testbed for real (deploy/compose-test.sh): installs Docker and
-# what it needs, builds the images, runs the mission, fails unless it passes.
+# what it needs, builds the images, runs the grid mission and the range-driven
+# corridor, fails unless both pass.
 compose-test: $(STAMP)
 	PYTHON=$(BIN)/python deploy/compose-test.sh
 

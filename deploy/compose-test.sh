@@ -10,10 +10,16 @@
 #     ArduPilot SITL with BATON_COMPOSE_VEHICLE=ardupilot (needs the SITL
 #     image: ../shared/sitl or BATON_SITL_DIR holding arducopter)
 #  5. waits for the report service's verdict, brings everything down
+#  6. the same with radio range (compose.ci.radio.yml over compose.ci.yml):
+#     a 1 km corridor, 3 stations of 500 m range, the nearest policy, no
+#     handover script, each link to the drone up only while the sim vehicle
+#     is within its station's range
 #
-# Exits 0 only if the report is a pass (completed, exactly once, replicas
-# consistent); reports/report.json holds it. Every wait has a deadline (in
-# seconds, from the environment):
+# BATON_COMPOSE_RUNS chooses the runs (default "grid radio"; the radio run
+# needs the sim vehicle). Exits 0 only if every report is a pass (completed,
+# exactly once, replicas consistent; the radio run also masters 0, 1, 2 by the
+# policy alone); reports/report.json and reports/report-radio.json hold them.
+# Every wait has a deadline (in seconds, from the environment):
 #   BATON_DOCKERD_DEADLINE (60)   for a started dockerd to answer
 #   BATON_BUILD_DEADLINE (1500)   for the images to build
 #   BATON_UP_DEADLINE (300)       for `compose up` (the drone healthy, the links listening)
@@ -30,12 +36,13 @@ REPORT_DEADLINE=${BATON_REPORT_DEADLINE:-420}
 DOWN_DEADLINE=${BATON_DOWN_DEADLINE:-120}
 STORAGE_DRIVERS=${BATON_DOCKERD_STORAGE:-overlay2 vfs}
 VEHICLE=${BATON_COMPOSE_VEHICLE:-sim}
+RUNS=${BATON_COMPOSE_RUNS:-grid radio}
 PROJECT=baton-ci
-COMPOSE=(docker-compose -f deploy/compose.ci.yml -p "$PROJECT")
+BASE_COMPOSE=(docker-compose -f deploy/compose.ci.yml -p "$PROJECT")
 case $VEHICLE in
 sim) ;;
 ardupilot)
-    COMPOSE+=(--profile ardupilot)
+    BASE_COMPOSE+=(--profile ardupilot)
     export BATON_VEHICLE_URL=tcpout://127.0.0.1:5760
     ;;
 *)
@@ -43,7 +50,21 @@ ardupilot)
     exit 2
     ;;
 esac
-REPORT=reports/report.json
+for run in $RUNS; do
+    case $run in
+    grid | radio) ;;
+    *)
+        echo "compose-test: BATON_COMPOSE_RUNS lists grid and/or radio, not '$run'" >&2
+        exit 2
+        ;;
+    esac
+done
+if [ "$VEHICLE" = ardupilot ] && [[ " $RUNS " == *" radio "* ]]; then
+    echo "compose-test: the radio run needs the sim vehicle's position file: with" \
+        "BATON_COMPOSE_VEHICLE=ardupilot set BATON_COMPOSE_RUNS=grid" >&2
+    exit 2
+fi
+COMPOSE=("${BASE_COMPOSE[@]}")
 
 started_at=$(date +%s)
 say() { echo "compose-test: [$(($(date +%s) - started_at)) s] $*" >&2; }
@@ -139,52 +160,94 @@ if ! timeout "$BUILD_DEADLINE" deploy/images.sh; then
     exit 1
 fi
 
-# -- 4. the run --------------------------------------------------------------------
+# -- 4. the runs -------------------------------------------------------------------
 if [ "$VEHICLE" = ardupilot ] && ! docker image inspect baton-ardupilot-sitl:dev >/dev/null 2>&1; then
     say "BATON_COMPOSE_VEHICLE=ardupilot, but no baton-ardupilot-sitl:dev was built: put" \
         "arducopter and copter.parm in ../shared/sitl or set BATON_SITL_DIR to their folder"
     exit 1
 fi
 mkdir -p reports
-rm -f "$REPORT"
-timeout "$DOWN_DEADLINE" "${COMPOSE[@]}" down -v --remove-orphans >/dev/null 2>&1 || true
-compose_up=1
-say "compose up ($VEHICLE): certs, sim vehicle, drone, 6 links, 3 controllers, report"
-if ! timeout "$UP_DEADLINE" "${COMPOSE[@]}" up -d --no-build; then
-    "${COMPOSE[@]}" ps >&2 || true
-    "${COMPOSE[@]}" logs --no-color --tail 20 >&2 || true
-    say "the testbed did not come up within ${UP_DEADLINE} s (the drone healthy, every link listening)"
-    exit 1
-fi
-report_id=$("${COMPOSE[@]}" ps -q report)
-say "waiting for the report service's verdict (container ${report_id:0:12}, at most ${REPORT_DEADLINE} s)"
-set +e
-verdict=$(timeout "$REPORT_DEADLINE" docker wait "$report_id")
-waited=$?
-set -e
-"${COMPOSE[@]}" logs --no-color report >&2 || true
-if [ "$waited" -ne 0 ]; then
-    "${COMPOSE[@]}" logs --no-color --tail 30 >&2 || true
-    say "no verdict: the report service did not exit within ${REPORT_DEADLINE} s"
-    exit 1
-fi
-if [ "$verdict" != 0 ]; then
-    "${COMPOSE[@]}" logs --no-color --tail 30 >&2 || true
-    say "FAILED: the report service exited $verdict (not a pass; $REPORT if it got that far)"
-    exit 1
-fi
-if [ ! -s "$REPORT" ]; then
-    say "FAILED: the report service exited 0 but wrote no $REPORT"
-    exit 1
-fi
-# The verdict once more, from the file: the report's own three promises.
-if ! python3 - "$REPORT" <<'CHECK'; then
+
+# run_mission NAME REPORT [COMPOSE OPTION]...: one mission from compose up to its
+# verdict (the report service's exit and its file), then compose down.
+run_mission() {
+    local name=$1 report=$2
+    shift 2
+    COMPOSE=("${BASE_COMPOSE[@]}" "$@")
+    rm -f "$report"
+    timeout "$DOWN_DEADLINE" "${COMPOSE[@]}" down -v --remove-orphans >/dev/null 2>&1 || true
+    compose_up=1
+    say "$name: compose up ($VEHICLE): certs, sim vehicle, drone, 6 links, 3 controllers, report"
+    if ! timeout "$UP_DEADLINE" "${COMPOSE[@]}" up -d --no-build; then
+        "${COMPOSE[@]}" ps >&2 || true
+        "${COMPOSE[@]}" logs --no-color --tail 20 >&2 || true
+        say "$name: the testbed did not come up within ${UP_DEADLINE} s (the drone healthy, every link listening)"
+        exit 1
+    fi
+    local report_id verdict waited
+    report_id=$("${COMPOSE[@]}" ps -q report)
+    say "$name: waiting for the report service's verdict (container ${report_id:0:12}, at most ${REPORT_DEADLINE} s)"
+    set +e
+    verdict=$(timeout "$REPORT_DEADLINE" docker wait "$report_id")
+    waited=$?
+    set -e
+    "${COMPOSE[@]}" logs --no-color report >&2 || true
+    if [ "$waited" -ne 0 ]; then
+        "${COMPOSE[@]}" logs --no-color --tail 30 >&2 || true
+        say "$name: no verdict: the report service did not exit within ${REPORT_DEADLINE} s"
+        exit 1
+    fi
+    if [ "$verdict" != 0 ]; then
+        "${COMPOSE[@]}" logs --no-color --tail 30 >&2 || true
+        say "$name: FAILED: the report service exited $verdict (not a pass; $report if it got that far)"
+        exit 1
+    fi
+    if [ ! -s "$report" ]; then
+        say "$name: FAILED: the report service exited 0 but wrote no $report"
+        exit 1
+    fi
+    # The verdict once more, from the file: the report's own three promises; for
+    # the radio run also its story: no script, the policy handing over along the
+    # corridor (masters 0, 1, 2), and the links' radio range seen in their logs.
+    if ! python3 - "$report" "$name" <<'CHECK'; then
 import json, sys
-report = json.load(open(sys.argv[1]))
+path, name = sys.argv[1], sys.argv[2]
+report = json.load(open(path))
 failed = [k for k in ("completed", "exactly_once", "replicas_consistent") if report.get(k) is not True]
-sys.exit(f"{sys.argv[1]}: not true: {', '.join(failed)}" if failed else 0)
+if name == "radio":
+    if report.get("masters") != [0, 1, 2]:
+        failed.append(f"masters {report.get('masters')} (expected [0, 1, 2])")
+    triggers = sorted({h.get("trigger") for h in report.get("handovers", [])})
+    if triggers != ["policy"]:
+        failed.append(f"handover triggers {triggers} (expected policy only)")
+sys.exit(f"{path}: not as expected: {', '.join(failed)}" if failed else 0)
 CHECK
-    say "FAILED: $REPORT is not a pass"
-    exit 1
-fi
-say "PASS: completed, exactly once, replicas consistent ($REPORT)"
+        say "$name: FAILED: $report is not a pass"
+        exit 1
+    fi
+    if [ "$name" = radio ]; then
+        # The links' radio range, from their logs: station 0's link saw the vehicle
+        # leave, station 2's saw it arrive, station 1's both (the log read whole
+        # first: `grep -q` stopping early would break the pipe under pipefail).
+        local check link msg link_log
+        for check in "0:vehicle out of radio range" "1:vehicle in radio range" \
+            "1:vehicle out of radio range" "2:vehicle in radio range"; do
+            link=link-drone-${check%%:*} msg=${check#*:}
+            link_log=$("${COMPOSE[@]}" logs --no-color "$link" 2>&1 || true)
+            if ! grep -q "\"$msg\"" <<<"$link_log"; then
+                say "$name: FAILED: $link never logged \"$msg\""
+                exit 1
+            fi
+        done
+    fi
+    say "$name: PASS: completed, exactly once, replicas consistent ($report)"
+    bring_down
+}
+
+for run in $RUNS; do
+    case $run in
+    grid) run_mission grid reports/report.json ;;
+    radio) run_mission radio reports/report-radio.json -f deploy/compose.ci.radio.yml ;;
+    esac
+done
+say "PASS: ${RUNS// /, }"

@@ -22,6 +22,8 @@ import yaml
 from baton.cli import build_parser
 from baton.config import BatonConfig, LinkSpec, load_config, parse_duration, parse_rate
 from baton.drone.master import parse_handover_script
+from baton.link.radio import RadioRange
+from baton.sdk import Position, offset
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
@@ -826,7 +828,7 @@ def test_compose_test_runs_the_ci_file_and_fails_on_anything_but_a_pass() -> Non
     assert "deploy/images.sh" in text
     out = _option(_ci_command("report"), "--out")
     assert ("../reports:" + str(Path(out).parent)) in CI_SERVICES["report"]["volumes"]
-    assert "REPORT=reports/" + Path(out).name in text
+    assert f"run_mission grid reports/{Path(out).name}" in text
     assert "--bridge=none --iptables=false" in text
     for need in ("docker.io", "debootstrap", "docker-compose"):
         assert f"missing+=({need})" in text
@@ -848,15 +850,18 @@ def _compose_cli() -> list[str] | None:
 
 def test_compose_files_validate_with_the_compose_at_hand() -> None:
     """The users' file needs Compose v2 (`name:`, `additional_contexts`); the CI file
-    must load in Debian's docker-compose 1.29 too. Skipped where neither is installed
-    (make compose-test installs docker-compose)."""
+    must load in Debian's docker-compose 1.29 too, alone and under its radio override.
+    Skipped where neither is installed (make compose-test installs docker-compose)."""
     cli = _compose_cli()
     if cli is None:
         pytest.skip("no docker compose / docker-compose on this machine")
-    files = ["compose.ci.yml"] + (["docker-compose.yml"] if cli == ["docker", "compose"] else [])
-    for name in files:
+    files = [["compose.ci.yml"], ["compose.ci.yml", "compose.ci.radio.yml"]]
+    if cli == ["docker", "compose"]:
+        files += [["docker-compose.yml"], ["docker-compose.yml", "radio.yml"]]
+    for names in files:
+        name = " + ".join(names)
         done = subprocess.run(
-            [*cli, "-f", str(DEPLOY / name), "config", "-q"],
+            [*cli, *(a for n in names for a in ("-f", str(DEPLOY / n))), "config", "-q"],
             capture_output=True,
             text=True,
             timeout=60,
@@ -875,3 +880,257 @@ def test_images_sh_removes_only_its_own_leftovers() -> None:
         labels = re.findall(r"^LABEL baton\.image=\S+\s*$", text, re.M)
         assert stages and len(labels) == stages, f"{name}: one label per stage on BASE"
     assert 'docker import --change "LABEL baton.image=sitl-files"' in _images_sh()
+
+
+# -- radio range: radio.yml over docker-compose.yml, compose.ci.radio.yml over compose.ci.yml --
+
+
+def _mount_target(volume: str) -> str:
+    return volume.split(":")[1]
+
+
+def _merged(base: dict[str, Any], override: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """What compose makes of ``-f base -f override``'s services, as far as these files use
+    it: a service's options replaced, its volumes merged by their path in the container."""
+    services = {name: dict(spec) for name, spec in base["services"].items()}
+    for name, spec in override["services"].items():
+        merged = services.setdefault(name, {})
+        for key, value in spec.items():
+            if key == "volumes":
+                mounts = {_mount_target(v): v for v in merged.get("volumes", [])}
+                mounts.update({_mount_target(v): v for v in value})
+                merged["volumes"] = list(mounts.values())
+            else:
+                merged[key] = value
+    return services
+
+
+RADIO_OVERRIDE: dict[str, Any] = yaml.safe_load(_expand((DEPLOY / "radio.yml").read_text()))
+RADIO_SERVICES = _merged(COMPOSE, RADIO_OVERRIDE)
+RADIO_CONFIG: BatonConfig = load_config(DEPLOY / "testbed.radio.yaml")
+CI_RADIO_OVERRIDE: dict[str, Any] = yaml.safe_load(
+    _expand((DEPLOY / "compose.ci.radio.yml").read_text())
+)
+CI_RADIO_SERVICES = _merged(CI_COMPOSE, CI_RADIO_OVERRIDE)
+CI_RADIO_CONFIG: BatonConfig = load_config(DEPLOY / "testbed.ci.radio.yaml")
+RADIO_SIDECARS = {f"radio-{cid}": cid for cid in RADIO_CONFIG.ring_order}
+
+
+def _parsed(argv: list[str]) -> Any:
+    assert argv[0] == "baton", argv
+    try:
+        return build_parser().parse_args(argv[1:])
+    except SystemExit as exc:
+        pytest.fail(f"`baton {shlex.join(argv[1:])}` does not parse (exit {exc.code})")
+
+
+def _station_range(config: BatonConfig, cid: int) -> tuple[float, float, float]:
+    station = config.controller(cid)
+    assert station.location is not None and station.range_m is not None
+    return (station.location.latitude_deg, station.location.longitude_deg, station.range_m)
+
+
+def _assert_radio_like(args: Any, config: BatonConfig, cid: int, what: str) -> None:
+    """A `baton link` or `baton radio-netem`: the station's range and the config's fade."""
+    radio = args.range
+    assert (radio.latitude_deg, radio.longitude_deg, radio.range_m) == _station_range(
+        config, cid
+    ), f"{what}: --range is not controller {cid}'s location and range_m"
+    assert config.radio_fade is not None
+    fade = config.radio_fade
+    assert (args.fade.begins, args.fade.latency_s, args.fade.bandwidth_factor) == (
+        fade.begins_at,
+        fade.latency,
+        fade.bandwidth_factor,
+    ), f"{what}: --fade is not radio_fade"
+
+
+def _position_volume(services: dict[str, dict[str, Any]]) -> tuple[str, str]:
+    """The sim vehicle's --position-file, and the named volume that holds it."""
+    position = Path(_option(_argv(services["sim-vehicle"]["command"]), "--position-file"))
+    volumes = [
+        v for v in services["sim-vehicle"]["volumes"] if v.split(":")[1] == str(position.parent)
+    ]
+    assert len(volumes) == 1, "the sim vehicle writes its position file to a volume"
+    name = volumes[0].split(":")[0]
+    assert not name.startswith((".", "/")), f"{name}: a named volume, shared between containers"
+    return str(position), name
+
+
+def test_radio_testbeds_are_the_plain_ones_with_stations_and_radio_range() -> None:
+    for radio, plain in ((RADIO_CONFIG, CONFIG), (CI_RADIO_CONFIG, CI_CONFIG)):
+        assert radio.radio_range and radio.radio_fade is not None
+        assert radio.handover_policy.name == "nearest"
+        for field in ("drone", "ring", "initial_master", "flush_limit", "speedup", "tls"):
+            assert getattr(radio, field) == getattr(plain, field), field
+        assert (radio.controller_link, radio.drone_link) == (
+            plain.controller_link,
+            plain.drone_link,
+        )
+        for c in plain.controllers:
+            placed = radio.controller(c.id)
+            assert (placed.address, placed.reach) == (c.address, c.reach)
+            assert radio.drone_address_for(c.id) == plain.drone_address_for(c.id)
+    # The same stations for users and on CI, and the same fade and policy.
+    for cid in RADIO_CONFIG.ring_order:
+        assert _station_range(RADIO_CONFIG, cid) == _station_range(CI_RADIO_CONFIG, cid)
+    assert RADIO_CONFIG.radio_fade == CI_RADIO_CONFIG.radio_fade
+    assert RADIO_CONFIG.handover_policy == CI_RADIO_CONFIG.handover_policy
+
+
+def test_radio_stations_cover_the_corridor_together_and_none_alone() -> None:
+    report = _parsed(_argv(RADIO_SERVICES["report"]["command"]))
+    home = RADIO_CONFIG.drone.home
+
+    stations = [RadioRange(*_station_range(RADIO_CONFIG, c)) for c in RADIO_CONFIG.ring_order]
+    east = 0.0
+    while east <= report.length:
+        p = offset(Position(home.latitude_deg, home.longitude_deg), 0.0, east)
+        covering = [s for s in stations if s.covers(p.latitude_deg, p.longitude_deg)]
+        assert covering, f"{east:g} m east of home: no station in range"
+        east += 10.0
+    for s in stations:
+        assert not all(
+            s.covers(q.latitude_deg, q.longitude_deg)
+            for q in (
+                offset(Position(home.latitude_deg, home.longitude_deg), 0.0, e)
+                for e in (0.0, report.length)
+            )
+        ), "no single station covers the corridor"
+
+
+@pytest.mark.parametrize("services", [RADIO_SERVICES, CI_RADIO_SERVICES], ids=["users", "ci"])
+def test_radio_runs_mount_the_radio_testbed_everywhere(services: dict[str, dict[str, Any]]) -> None:
+    name = "testbed.radio.yaml" if services is RADIO_SERVICES else "testbed.ci.radio.yaml"
+    for service, spec in services.items():
+        argv = _argv(spec.get("command"))
+        if argv[:1] != ["baton"] or "--config" not in argv:
+            continue
+        _parsed(argv)
+        assert _option(argv, "--config") == CONFIG_IN_CONTAINER
+        mounts = [v for v in spec["volumes"] if _mount_target(v) == CONFIG_IN_CONTAINER]
+        assert mounts == [f"./{name}:{CONFIG_IN_CONTAINER}:ro"], service
+
+
+@pytest.mark.parametrize("services", [RADIO_SERVICES, CI_RADIO_SERVICES], ids=["users", "ci"])
+def test_radio_runs_fly_the_corridor_with_no_handover_script(
+    services: dict[str, dict[str, Any]],
+) -> None:
+    assert "--handover-file" not in _argv(services["drone"]["command"])
+    report = _parsed(_argv(services["report"]["command"]))
+    assert (report.mission, report.handover_file) == ("corridor", None)
+    expected = [f"length_m={report.length:g}", f"spacing_m={report.spacing:g}"]
+    for service in CONTROLLER_SERVICES:
+        argv = _argv(services[service]["command"])
+        args = _parsed(argv)
+        assert Path(args.mission).name == "corridor_mission.py"
+        assert (REPO / args.mission).is_file()
+        assert args.mission_arg == expected, f"{service} flies what the report follows"
+    # The drone's own address and vehicle: the plain run's.
+    plain = SERVICES if services is RADIO_SERVICES else CI_SERVICES
+    drone, plain_drone = _argv(services["drone"]["command"]), _argv(plain["drone"]["command"])
+    for option in ("--address", "--vehicle-url", "--config"):
+        assert _option(drone, option) == _option(plain_drone, option)
+    sim, plain_sim = (
+        _argv(services["sim-vehicle"]["command"]),
+        _argv(plain["sim-vehicle"]["command"]),
+    )
+    i = sim.index("--position-file")
+    assert sim[:i] + sim[i + 2 :] == plain_sim, "the plain sim vehicle plus its position file"
+
+
+def test_radio_sidecars_shape_each_controller_s_wifi_like_the_config() -> None:
+    position, volume = _position_volume(RADIO_SERVICES)
+    assert volume in RADIO_OVERRIDE["volumes"]
+    assert set(s for s in RADIO_SERVICES if s.startswith("radio-")) == set(RADIO_SIDECARS)
+    for service, cid in RADIO_SIDECARS.items():
+        spec = RADIO_SERVICES[service]
+        args = _parsed(_argv(spec["command"]))
+        assert args.run.__name__ == "run_radio_netem", f"{service} runs baton radio-netem"
+        # In its controller's network namespace, allowed to change its qdiscs.
+        assert spec["network_mode"] == f"service:controller-{cid}"
+        assert f"controller-{cid}" in spec["depends_on"]
+        assert "NET_ADMIN" in spec["cap_add"] and "networks" not in spec
+        assert spec["image"] == SERVICES["drone"]["image"]
+        assert args.subnet == _subnet("wifi")
+        assert args.latency == RADIO_CONFIG.drone_link.latency
+        assert args.bandwidth == RADIO_CONFIG.drone_link.bandwidth
+        _assert_radio_like(args, RADIO_CONFIG, cid, service)
+        assert str(args.position_file) == position
+        assert f"{volume}:{Path(position).parent}:ro" in spec["volumes"]
+
+
+@pytest.mark.parametrize("service", CONTROLLER_SERVICES)
+def test_radio_controllers_start_with_the_drone_link_dropped(service: str) -> None:
+    entry = _argv(RADIO_SERVICES[service]["entrypoint"])
+    plain = _argv(SERVICES[service]["entrypoint"])
+    assert entry[0] == plain[0] and entry[-1] == "--"
+    drop = [entry[i + 1] for i, arg in enumerate(entry) if arg == "--drop"]
+    assert drop == [_subnet("wifi")], "the sidecar opens the drone's network when in range"
+    ring = _subnet("ring")
+    i = entry.index("--shape")
+    assert entry[i : i + 4] == ["--shape", ring, "20ms", "25mbit"]
+    assert entry.count("--shape") == 1, "the wifi is the radio-netem sidecar's alone"
+    assert RADIO_SERVICES[service]["networks"] == SERVICES[service]["networks"]
+
+
+def test_ci_radio_links_carry_each_controller_s_link_within_its_range() -> None:
+    position, volume = _position_volume(CI_RADIO_SERVICES)
+    assert volume in CI_RADIO_OVERRIDE["volumes"]
+    assert set(CI_RADIO_SERVICES) == set(CI_SERVICES), "the same services, range-driven"
+    for service, cid in DRONE_LINKS.items():
+        spec = CI_RADIO_SERVICES[service]
+        argv = _argv(spec["command"])
+        args = _parsed(argv)
+        _assert_radio_like(args, CI_RADIO_CONFIG, cid, service)
+        assert str(args.position_file) == position
+        assert f"{volume}:{Path(position).parent}:ro" in spec["volumes"]
+        # Otherwise the plain run's link.
+        plain = _ci_command(service)
+        for option in ("--range", "--fade", "--position-file"):
+            i = argv.index(option)
+            argv = argv[:i] + argv[i + 2 :]
+        assert argv == plain
+    for service in RING_LINKS:
+        assert CI_RADIO_SERVICES[service]["command"] == CI_SERVICES[service]["command"]
+
+
+def test_netem_sh_drops_a_subnet_then_runs_the_service(tmp_path: Path) -> None:
+    log = tmp_path / "tc.log"
+    _fake_tools(tmp_path / "bin", log)
+    entry = _argv(RADIO_SERVICES["controller-1"]["entrypoint"])
+    env = {**os.environ, "PATH": f"{tmp_path / 'bin'}:{os.environ['PATH']}"}
+    done = subprocess.run(
+        ["sh", str(DEPLOY / "netem.sh"), *entry[1:], "echo", "started"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == "started\n"
+    eth = {n: f"eth{i}" for i, n in enumerate(sorted(COMPOSE["networks"]))}
+    assert log.read_text().splitlines() == [
+        f"qdisc replace dev {eth['ring']} root netem delay 20ms rate 25mbit",
+        f"qdisc replace dev {eth['wifi']} root netem loss 100%",
+    ]
+
+
+def test_compose_test_runs_the_grid_then_the_radio_run_and_checks_its_story() -> None:
+    text = (DEPLOY / "compose-test.sh").read_text()
+    assert "RUNS=${BATON_COMPOSE_RUNS:-grid radio}" in text
+    grid_out = _option(_ci_command("report"), "--out")
+    radio_out = _option(_argv(CI_RADIO_SERVICES["report"]["command"]), "--out")
+    assert grid_out != radio_out
+    assert f"run_mission grid reports/{Path(grid_out).name}" in text
+    assert (
+        f"run_mission radio reports/{Path(radio_out).name} -f deploy/compose.ci.radio.yml" in text
+    )
+    assert 'report.get("masters") != [0, 1, 2]' in text
+    # Each link to the drone logged the vehicle crossing its circle (proxy.py's words).
+    proxy = (REPO / "services" / "baton" / "link" / "proxy.py").read_text()
+    for message in ("vehicle in radio range", "vehicle out of radio range"):
+        assert f'"{message}"' in proxy
+        assert f'"1:{message}"' in text
+    assert ("../reports:" + str(Path(radio_out).parent)) in CI_RADIO_SERVICES["report"]["volumes"]

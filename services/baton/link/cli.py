@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from baton.config import LinkSpec, parse_address, parse_duration, parse_rate
-from baton.lifecycle import announce, run_until_signalled, until_stopped
+from baton.lifecycle import announce, run_until_signalled, until_stopped, write_atomically
 from baton.link.radio import parse_fade, parse_radio_range
 from baton.logs import BoundLogger
 
@@ -159,6 +160,124 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "(default: 10s)",
     )
     parser.set_defaults(run=run, link_parser=parser)
+    _register_radio_netem(subparsers)
+
+
+def _register_radio_netem(
+    subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
+) -> None:
+    """Adds ``baton radio-netem``: the same radio range, applied with tc netem."""
+    parser = subparsers.add_parser(
+        "radio-netem",
+        help="radio range on a network interface with tc netem (the compose testbed's)",
+        description=(
+            "Keeps the netem qdisc of this network namespace's interface on --subnet in step "
+            "with the vehicle's position file: 'netem delay LATENCY rate BANDWIDTH' (faded "
+            "towards the edge with --fade) while the vehicle is within --range, 'netem loss "
+            "100%%' when it is not or its position is unknown. The same range and fade as "
+            "'baton link --range', for containers shaped with netem. Needs NET_ADMIN and "
+            "the kernel's sch_netem."
+        ),
+    )
+    parser.add_argument(
+        "--subnet",
+        required=True,
+        metavar="CIDR",
+        help="the drone's network: the interface whose connected route is this subnet is shaped",
+    )
+    parser.add_argument(
+        "--latency",
+        type=_duration,
+        default=0.0,
+        metavar="DURATION",
+        help="netem delay in range, e.g. 2ms (default: 0)",
+    )
+    parser.add_argument(
+        "--bandwidth",
+        type=_bandwidth,
+        default=math.inf,
+        metavar="RATE",
+        help="netem rate in range, e.g. 20Mbit, or 'unlimited' (default)",
+    )
+    parser.add_argument(
+        "--range",
+        type=_option_type(parse_radio_range, "radio range"),
+        required=True,
+        metavar="LAT,LON,METRES",
+        help="the station's antenna and range",
+    )
+    parser.add_argument(
+        "--fade",
+        type=_option_type(parse_fade, "radio fade"),
+        default=None,
+        metavar="BEGINS,LATENCY,FACTOR",
+        help="as baton link --fade (default: no fade)",
+    )
+    parser.add_argument(
+        "--position-file",
+        type=Path,
+        required=True,
+        metavar="PATH",
+        help="where the vehicle is: the file `baton sim-vehicle --position-file` keeps up to date",
+    )
+    parser.add_argument(
+        "--ready-file",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="write the interface's name here once the first qdisc is applied",
+    )
+    parser.add_argument(
+        "--reassert",
+        type=_duration,
+        default=1.0,
+        metavar="DURATION",
+        help="apply the current qdisc again this often even if unchanged, in case "
+        "something else replaced it (default: 1s; 0: never)",
+    )
+    parser.set_defaults(run=run_radio_netem)
+
+
+def run_radio_netem(args: argparse.Namespace) -> int:
+    """Follows the vehicle until SIGTERM or SIGINT."""
+    import asyncio
+    import time
+
+    from baton.link.netem import NetemError, NetemRadio, interface_on
+    from baton.link.radio import POSITION_PERIOD_S
+
+    base = LinkSpec(
+        latency=args.latency, bandwidth=None if args.bandwidth == math.inf else args.bandwidth
+    )
+
+    async def follow(stop: asyncio.Event) -> int:
+        try:
+            device = interface_on(args.subnet)
+            radio = NetemRadio(device, args.range, args.position_file, base, args.fade)
+            radio.look()
+        except NetemError as exc:
+            print(f"baton radio-netem: {exc}", file=sys.stderr)
+            return 1
+        if args.ready_file is not None:
+            write_atomically(args.ready_file, f"{device}\n")
+        asserted = time.monotonic()
+
+        def tick() -> None:
+            nonlocal asserted
+            now = time.monotonic()
+            due = bool(args.reassert) and now - asserted >= args.reassert
+            radio.look(reassert=due)
+            if due:
+                asserted = now
+
+        try:
+            await until_stopped(stop, POSITION_PERIOD_S, tick)
+        except NetemError as exc:
+            print(f"baton radio-netem: {exc}", file=sys.stderr)
+            return 1
+        return 0
+
+    return asyncio.run(run_until_signalled(follow))
 
 
 def link_specs(args: argparse.Namespace) -> tuple[LinkSpec, LinkSpec]:

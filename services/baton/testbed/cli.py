@@ -395,12 +395,11 @@ def run(args: argparse.Namespace) -> int:
     report_path = Path(args.report)
     if args.insecure:
         print(f"baton testbed: WARNING: {INSECURE_WARNING}", file=sys.stderr)
-    grid = args.grid if args.grid is not None else MissionPlan().grid
     if args.action == "report":
         if not from_file:
             return _fail("report needs --config FILE: the testbed to follow")
         return asyncio.run(
-            running.follow_remote(config, grid, report_path, args.timeout, handovers)
+            running.follow_remote(config, plan.mission, report_path, args.timeout, handovers)
         )
     workdir = (
         Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-testbed-"))

@@ -23,7 +23,7 @@ from baton.rpc.labels import label
 from baton.rpc.tls import DRONE, OPERATOR, Identity
 from baton.testbed.flight_map import Track, flight_geojson
 from baton.testbed.html_report import write_page
-from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan, drone_status
+from baton.testbed.local import LocalTestbed, MissionPlan, Snapshot, TestbedPlan, drone_status
 from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
@@ -228,12 +228,13 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
 
 async def follow_remote(
     config: BatonConfig,
-    grid: int,
+    mission: MissionPlan,
     report_path: Path,
     timeout: float,
     handovers: list[tuple[int, int]],
 ) -> int:
-    """Waits for a testbed running elsewhere to finish its mission, then reports."""
+    """Waits for a testbed running elsewhere to fly ``mission`` (the grid or the
+    corridor its controllers were given), then reports."""
     started = time.monotonic()
     tls = config.tls_for(OPERATOR)
     drone_channel = aio_channel(config.drone.address, tls, DRONE)
@@ -242,7 +243,8 @@ async def follow_remote(
     }
     drone = drone_pb2_grpc.DroneStub(drone_channel)
     rings = {cid: ring_pb2_grpc.ControllerRingStub(ch) for cid, ch in channels.items()}
-    progress = Progress(grid * grid, len(handovers))
+    targets = mission.targets()
+    progress = Progress(len(targets), len(handovers))
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
     try:
@@ -270,7 +272,14 @@ async def follow_remote(
         await drone_channel.close()
         for channel in channels.values():
             await channel.close()
-    report = build_report(config, snapshot, grid, time.monotonic() - started, handovers)
+    report = build_report(
+        config,
+        snapshot,
+        mission.grid,
+        time.monotonic() - started,
+        handovers,
+        targets=targets if mission.kind != "grid" else None,
+    )
     write_report(report, report_path)
     print(summary_table(report), flush=True)
     return 0 if run_succeeded(report) else 1
