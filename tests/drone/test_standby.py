@@ -240,3 +240,24 @@ async def test_a_clock_reply_sent_along_out_of_place_is_refused_and_nothing_runs
         assert (status.last_reqnr, status.executed, status.retained_replies) == (1, 1, 1)
     finally:
         await server.stop()
+
+
+def test_one_late_answer_does_not_make_a_link_slow_two_in_a_row_do() -> None:
+    """CI: on a loaded machine one answer came after max_rtt and the policy moved the
+    master away and back. The round trip judged is the smaller of the last two answers."""
+    from baton.drone.link_probe import LinkProbes
+    from baton.logs import get_logger
+
+    probes = LinkProbes((0,), LinkBounds(max_rtt_s=0.5, rtt_stale_s=5.0), get_logger("test"))
+
+    def answer(sent: float, took: float) -> None:
+        seq = probes.ping(0, sent).ping.seq
+        assert probes.answered(0, seq, sent + took)
+
+    answer(0.0, 0.01)
+    answer(1.0, 0.9)  # one late answer
+    assert probes.problem(probes.state(0, True, 0.0, 2.0)) == ""
+    answer(2.0, 0.9)  # and another: slow now
+    assert probes.problem(probes.state(0, True, 0.0, 3.0)).startswith("link too slow")
+    answer(3.0, 0.01)  # one fast answer: the smaller of the two is fast again
+    assert probes.problem(probes.state(0, True, 0.0, 3.1)) == ""

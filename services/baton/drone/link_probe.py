@@ -38,6 +38,7 @@ class _Probe:
     pending: dict[int, float] = field(default_factory=dict)  # seq -> sent (monotonic)
     first_ping_at: float | None = None
     rtt_s: float | None = None
+    previous_rtt_s: float | None = None  # the answer before the last one
     answered_at: float | None = None  # monotonic
     measured_sent_at: float = float("-inf")  # when the ping measured was sent
 
@@ -90,15 +91,21 @@ class LinkProbes:
             return False
         # Answers of concurrent calls may arrive out of order: the newest ping's counts.
         if sent >= probe.measured_sent_at:
+            probe.previous_rtt_s = probe.rtt_s
             probe.rtt_s, probe.answered_at, probe.measured_sent_at = now - sent, now, sent
         self.answers[controller_id] += 1
         return True
 
     def measured(self, controller_id: int, now: float) -> tuple[float | None, float | None]:
-        """``controller_id``'s last round trip and its age (``LinkState``'s), wall seconds."""
+        """``controller_id``'s round trip and its age (``LinkState``'s), wall seconds: the
+        smaller of its last two answers, so one answer late on a loaded machine does not
+        make a link slow (CI: a master moved on one such answer); two in a row do."""
         probe = self._probes[controller_id]
         if probe.answered_at is not None:
-            return probe.rtt_s, now - probe.answered_at
+            last = probe.rtt_s
+            if last is not None and probe.previous_rtt_s is not None:
+                last = min(last, probe.previous_rtt_s)
+            return last, now - probe.answered_at
         if probe.first_ping_at is not None:
             return None, now - probe.first_ping_at
         return None, None
