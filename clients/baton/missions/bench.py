@@ -7,6 +7,9 @@ The sequence is the ``script`` parameter, comma-separated steps:
 - ``rWxH``: set the camera resolution to W x H pixels (picture size W*H*3 bytes);
 - ``sX``: sleep X mission seconds (answered and logged by the controller, not
   sent to the drone);
+- ``hX``: hold X seconds in the program itself, no call and nothing logged:
+  the program stays running, so its controller logs calls as during a
+  mission, while another caller (``baton bench micro``) calls in its place;
 - ``STEP*N``: the step N times.
 
 Every step is one request number, so the benchmarks can
@@ -15,6 +18,8 @@ script the drone's handovers at exact request numbers.
 """
 
 from __future__ import annotations
+
+import time
 
 from baton.sdk import Drone
 
@@ -33,6 +38,8 @@ def mission(drone: Drone, script: str = "p") -> None:
                 drone.camera.set_resolution(int(width), int(height))
             elif step.startswith("s"):
                 drone.clock.sleep(float(step[1:]))
+            elif step.startswith("h"):
+                time.sleep(float(step[1:]))
             else:
-                raise ValueError(f"bench script step {token!r} is not p, c, rWxH, sX or STEP*N")
+                raise ValueError(f"bench script step {token!r} is not p, c, rWxH, sX, hX or STEP*N")
     print("bench mission complete", flush=True)

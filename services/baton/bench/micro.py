@@ -61,6 +61,9 @@ RING_BANDWIDTH = 25e6
 # Issue 12's targets.
 PROXY_OVERHEAD_TARGET_MS = 0.5
 REPLAY_TARGET_CALLS_S = 100_000
+# How long the controllers' own program holds while this process calls in its place
+# (the testbed is stopped long before).
+HOLD_S = 3600
 
 
 @dataclass(frozen=True)
@@ -96,9 +99,10 @@ async def measure_proxy_and_drone(
         controllers=2,
         flush_limit=1024 * MB,  # no flushes during the measurement
         speedup=1.0,
-        # The controller's own program makes no call and ends, so this process is its
-        # only caller afterwards.
-        mission_args=bench_mission_args(""),
+        # The controller's own program makes no call and holds (stays running, so
+        # its controller logs calls as during a mission; an ended program's
+        # controller flushes every entry at once): this process is its only caller.
+        mission_args=bench_mission_args(f"h{HOLD_S}"),
         mission_file=BENCH_MISSION,
         emulate_links=False,
         insecure=insecure,
@@ -123,6 +127,7 @@ async def measure_proxy_and_drone(
             await mobility.GetPosition(
                 request, wait_for_ready=True, timeout=60, metadata=as_program
             )
+        before = (await testbed.snapshot(audit=False)).controllers[0].lognr
         say(f"micro: {settings.calls} GetPosition calls through controller 0's proxy")
         proxy = []
         for _ in range(settings.calls):
@@ -132,6 +137,9 @@ async def measure_proxy_and_drone(
         await channel.close()
         snapshot = await testbed.snapshot(audit=False)
         controller_t_conn = t_conn_samples(snapshot)
+        # The calls must be the proxy's path during a mission: each logged, none
+        # flushed (a flush per call is a ring message per call, not the proxy).
+        flushes = snapshot.controllers[0].lognr - before
         say(f"micro: {settings.calls} direct Invoke calls and {settings.connects} Connects")
         # As controller 1: the drone hands over to it, and the measurement continues
         # from the drone's last reqnr.
@@ -150,6 +158,7 @@ async def measure_proxy_and_drone(
             "calls_per_s": 1e3 / direct_ms["mean_ms"] if direct_ms["mean_ms"] else 0.0,
         },
         "proxy_overhead_p50_ms": proxy_ms["p50_ms"] - direct_ms["p50_ms"],
+        "flushes_during_proxy_calls": flushes,
         "direct_take_picture": direct["invoke_take_picture"],
         "t_conn_new_channel": direct["t_conn_new_channel"],
         "t_conn_open_channel": direct["t_conn_open_channel"],
