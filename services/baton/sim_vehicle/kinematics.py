@@ -6,7 +6,7 @@ speed-up), so every manoeuvre can be tested by stepping it by hand.
 
 It also keeps the autopilot's estimator warm-up: a real ArduCopter has no home
 for about 20 s after boot and refuses to arm for about 40 s, until its EKF
-uses GPS (../shared/sitl/README.md). Code that waits for "ready" only works
+uses GPS (docs/design.md, "The real autopilot"). Code that waits for "ready" only works
 against a real autopilot if the sim makes it wait too.
 
 Positions are kept in metres north / east / up of a fixed local origin (the

@@ -2,20 +2,20 @@
 
 MAVSDK connects with ``udpout://127.0.0.1:PORT`` exactly as to PX4 SITL. The
 vehicle binds a port (0 by default, so the kernel picks a free one: UDP
-listeners let a second process bind a taken port silently, see DESIGN.md) and
-learns each ground station's address from the first packet it sends; MAVSDK
-sends its own heartbeat as soon as the connection is added, so discovery is
-immediate. Packets for another system id are ignored, so vehicles never
-answer each other's ground stations.
+listeners let a second process bind a taken port silently, see docs/design.md,
+"Notes on MAVSDK 4.x and the sim vehicle") and learns each ground station's
+address from the first packet it sends; MAVSDK sends its own heartbeat as soon
+as the connection is added, so discovery is immediate. Packets for another
+system id are ignored, so vehicles never answer each other's ground stations.
 
-The set of messages and commands is the one DESIGN.md found sufficient for
+The set of messages and commands is the one that section found sufficient for
 MAVSDK 4.x (heartbeat with the PX4 custom mode, SYS_STATUS, position, home,
 extended state, GPS, battery; arm, takeoff, land, mode, reposition, speed,
 RTL, message requests and intervals; the parameter protocol for
 MIS_TAKEOFF_ALT). Unknown commands get COMMAND_ACK UNSUPPORTED.
 
 Two habits of a real ArduPilot that the project must not forget, kept here
-(../shared/sitl/README.md):
+(docs/design.md, "The real autopilot"):
 
 - Unasked, it streams only HEARTBEAT (plus STATUSTEXT and the replies to
   commands and parameter requests). Every other message comes only once a
