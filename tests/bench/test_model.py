@@ -13,6 +13,7 @@ from baton.bench.model import (
     entry_size_of,
     master_log_sizes,
     pick_in_stretch,
+    preparation_limit,
     t_log,
     t_max,
 )
@@ -33,6 +34,29 @@ def test_t_log_is_latency_plus_bits_over_bandwidth() -> None:
     assert t_log(0, 0.020, 25e6) == pytest.approx(0.020)
     # 1 MB = 2**20 bytes = 8,388,608 bits: 0.3355 s at 25 Mbit/s.
     assert t_log(MB, 0.020, 25e6) == pytest.approx(0.020 + 8 * 2**20 / 25e6)
+
+
+def test_a_preparations_limit_is_its_bytes_over_one_ring_link_and_the_drone_link_both_ways() -> (
+    None
+):
+    ring_l, ring_b, drone_l, drone_b = 0.020, 25e6, 0.002, 20e6
+    # Nothing taken meanwhile: the log over the ring link, the ack back, the drone's
+    # request and the master's word.
+    alone = preparation_limit(MB, [], ring_l, ring_b, drone_l, drone_b)
+    assert alone == pytest.approx(drone_l + 8 * MB / ring_b + 2 * ring_l + drone_l)
+    # A picture requested at once crosses the drone link while a 2 MB log crosses the
+    # ring link, then queues behind it (FIFO): it adds its ring transfer only.
+    two = preparation_limit(2 * MB, [], ring_l, ring_b, drone_l, drone_b)
+    early = preparation_limit(2 * MB, [(0.0, MB)], ring_l, ring_b, drone_l, drone_b)
+    assert early == pytest.approx(two + 8 * MB / ring_b)
+    # One requested late cannot leave the master before it exists there.
+    late = preparation_limit(MB, [(1.0, MB)], ring_l, ring_b, drone_l, drone_b)
+    picture_at_master = 1.0 + drone_l + 8 * MB / drone_b
+    assert late == pytest.approx(picture_at_master + 8 * MB / ring_b + 2 * ring_l + drone_l)
+    # Unlimited links: the latencies alone.
+    assert preparation_limit(MB, [(0.0, MB)], ring_l, None, drone_l, None) == pytest.approx(
+        2 * ring_l + 2 * drone_l
+    )
 
 
 def test_t_max_adds_one_handover_message_h_log_messages_and_t_conn() -> None:

@@ -38,6 +38,36 @@ def t_log(size_bytes: float, latency_s: float, bandwidth_bit_s: float | None) ->
     return latency_s + transfer
 
 
+def preparation_limit(
+    start_bytes: int,
+    later: Iterable[tuple[float, int]],
+    ring_latency_s: float,
+    ring_bandwidth_bit_s: float | None,
+    drone_latency_s: float,
+    drone_bandwidth_bit_s: float | None,
+) -> float:
+    """The physical limit of a prepared handover's preparation, timed as the drone times
+    it (its decision to prepare to its decision to move the master).
+
+    The drone's PrepareHandover crosses the drone link; the master's log at that
+    moment (``start_bytes``) and then every reply the target lacks too (``later``:
+    a picture taken meanwhile, as (seconds after the drone's decision that the drone
+    got its request, bytes); its bytes exist at the master only once the reply
+    crossed the drone link) cross one ring link one after the other; the target's
+    acknowledgement comes back over the ring link, and the master's word over the
+    drone link. Nothing else: no processing, no framing, no contention.
+    """
+
+    def transfer(size: float, bandwidth: float | None) -> float:
+        return t_log(size, 0.0, bandwidth)
+
+    free = drone_latency_s + transfer(start_bytes, ring_bandwidth_bit_s)
+    for requested_s, size in sorted(later):
+        at_master = requested_s + t_log(size, drone_latency_s, drone_bandwidth_bit_s)
+        free = max(free, at_master) + transfer(size, ring_bandwidth_bit_s)
+    return free + 2 * ring_latency_s + drone_latency_s
+
+
 def t_max(
     flush_limit: float,
     largest_entry: float,

@@ -23,7 +23,15 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from baton.bench.model import MB, Call, LogPoint, master_log_sizes, pick_in_stretch, t_log
+from baton.bench.model import (
+    MB,
+    Call,
+    LogPoint,
+    master_log_sizes,
+    pick_in_stretch,
+    preparation_limit,
+    t_log,
+)
 from baton.bench.runner import audit_calls, machine, markdown_table, run_plan, say, write_json
 from baton.bench.script import GET_POSITION, TAKE_PICTURE
 from baton.rpc.labels import label
@@ -383,22 +391,27 @@ def add_preparation_limits(
     rows: list[dict[str, Any]],
     settings: TimelineSettings,
 ) -> None:
-    """Each prepared handover's physical limit: the bytes its target had to receive over
-    one controller link, the master's log when the preparation began (by the model, on
-    this run's requests and handovers) and every picture taken while it lasted, then
-    its acknowledgement back (the master knows the target caught up only then), and
-    the ratio of the preparation to it."""
-    link = settings.plan(()).controller_link
+    """Each prepared handover's physical limit (``model.preparation_limit``): the
+    master's log when the preparation began (by the model, on this run's requests and
+    handovers), then every picture taken while it lasted, from when its bytes reached
+    the master, over one controller link, the acknowledgement back, and the drone link
+    both ways; and the ratio of the preparation to it."""
+    plan = settings.plan(())
+    ring, drone = plan.controller_link, plan.drone_link
     replies = {r["reqnr"]: r for r in rows}
     for record, (began_after, _) in zip(prepared, placed, strict=False):
-        taken = sum(
-            replies[n]["reply_bytes"]
+        pictures = [
+            replies[n]
             for n in range(began_after + 1, record["after_reqnr"] + 1)
             if n in replies and replies[n]["method"] == "TakePicture"
+        ]
+        start = replies[began_after]["log_bytes"] if began_after in replies else 0
+        began_at = record["prepare_started_at"]
+        later = [(p["received_at"] - began_at, p["reply_bytes"]) for p in pictures]
+        limit = preparation_limit(
+            start, later, ring.latency, ring.bandwidth, drone.latency, drone.bandwidth
         )
-        needed = (replies[began_after]["log_bytes"] if began_after in replies else 0) + taken
-        limit = t_log(needed, link.latency, link.bandwidth) + link.latency
-        record["prepare_needed_bytes"] = needed
+        record["prepare_needed_bytes"] = start + sum(p["reply_bytes"] for p in pictures)
         record["prepare_limit_s"] = limit
         record["prepare_ratio"] = record["prepare_s"] / limit if limit else math.nan
 
@@ -448,6 +461,7 @@ def handover_records(
                 "inter_arrival_s": by_reqnr[first]["inter_arrival_s"] if first in by_reqnr else 0,
                 "kind": label(drone_pb2.HandoverKind, h.kind),
                 "prepare_s": h.decided_at - h.prepare_started_at if h.prepare_started_at else 0.0,
+                "prepare_started_at": h.prepare_started_at,
                 "prepare_timed_out": h.prepare_timed_out,
             }
         )
