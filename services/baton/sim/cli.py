@@ -17,6 +17,7 @@ import time
 from collections.abc import Sequence
 from functools import partial
 
+from baton.drone.policy import POLICIES
 from baton.sim.findings import FINDINGS, STILL_ALLOWED
 from baton.sim.mutations import MUTATIONS, mutated
 from baton.sim.world import SimOptions, run_seed, run_seeds
@@ -41,6 +42,10 @@ def _findings(text: str) -> frozenset[str]:
             f"unknown finding {', '.join(sorted(unknown))}; known: {', '.join(sorted(known))}"
         )
     return codes
+
+
+def _counts(counts: dict[str, int]) -> str:
+    return ", ".join(f"{what} {n}" for what, n in sorted(counts.items())) or "none"
 
 
 def parser() -> argparse.ArgumentParser:
@@ -68,6 +73,13 @@ def parser() -> argparse.ArgumentParser:
         action="store_true",
         help="make every scripted handover and Handover call a prepared one (the default "
         "mix prepares a quarter of the script's lines; --lose-master none)",
+    )
+    p.add_argument(
+        "--policy",
+        choices=POLICIES[1:],
+        default=None,
+        help="fly the vehicle along a corridor of stations with radio range and let the "
+        "drone's handover policy move the master by prepared handovers",
     )
     p.add_argument(
         "--takeover-after",
@@ -105,6 +117,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         kill_master=args.kill_master,
         lose_master=args.lose_master,
         prepared=args.prepared,
+        policy=args.policy,
         takeover_after=args.takeover_after,
         allow=args.allow,
         mutation=args.mutation,
@@ -125,6 +138,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"  prepared handovers: {p['begun']} begun, {p['prepared']} carried out, "
                 f"{p['forced']} forced at the timeout; the word understated what the target "
                 f"lacked {p['understated']} times"
+            )
+        if outcome.policy_decided or outcome.policy_switches:
+            print(
+                f"  policy steps: {_counts(outcome.policy_decided)}; its handovers ended: "
+                f"{_counts(outcome.policy_switches)}"
             )
         print(f"  {outcome.events} events, {outcome.virtual_s:.1f} s virtual, {outcome.digest}")
         return 0 if outcome.ok else 1

@@ -28,7 +28,7 @@ modelled; GetStatus is not modelled.
 
 from __future__ import annotations
 
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -37,6 +37,7 @@ import grpc
 
 from baton.digest import request_digest
 from baton.drone.dedupe import CachedReply, retained_batches
+from baton.drone.policy import Decision
 from baton.drone.sequencer import (
     PREPARE_TIMEOUT_S,
     ScriptedHandover,
@@ -49,6 +50,7 @@ from baton.rpc.errors import StatusError
 from baton.rpc.labels import label
 from baton.rpc.methods import drone_api, service_prefix
 from baton.sim.mission import UNPARSABLE
+from baton.sim.policy_runner import PolicyStep, SimPolicyRunner
 from baton.v1 import drone_pb2
 
 if TYPE_CHECKING:
@@ -62,6 +64,7 @@ CAMERA = service_prefix("Camera")
 # stream can break between the Connected event and its last retained batch.
 RETAINED_BATCH_BYTES = 64
 RPC = drone_pb2.HANDOVER_TRIGGER_RPC  # an operator's Handover
+POLICY = drone_pb2.HANDOVER_TRIGGER_POLICY
 
 
 @dataclass(frozen=True)
@@ -228,7 +231,12 @@ class SimDrone:
         self.intent: Intent | None = None
         # Volatile: gone at a restart.
         self.queue: deque[
-            Request | HandoverOrder | TakeoverCheck | PreparationCheck | PreparationWord
+            Request
+            | HandoverOrder
+            | TakeoverCheck
+            | PreparationCheck
+            | PreparationWord
+            | PolicyStep
         ] = deque()
         self.busy: Execution | None = None
         self.streams: dict[int, Stream] = {}
@@ -249,6 +257,11 @@ class SimDrone:
         # Prepared ones whose target in truth lacked more than the master's word said
         # (a diagnostic, not an oracle: docs/design.md, prepared handovers).
         self.understated: list[str] = []
+        # The handover policy (--policy), volatile like the service's; and how its
+        # handovers ended (``_switched``), over every incarnation of the service.
+        self.policy = self._policy_runner()
+        self.policy_switches: Counter[str] = Counter()
+        self.policy_decided: Counter[str] = Counter()
 
     # -- requests -------------------------------------------------------------------
 
@@ -283,7 +296,10 @@ class SimDrone:
                 )
                 if record is not None:
                     self.words_moved += 1
-                    self._switched(record)
+                    self._switched(record, on_the_word=True)
+            elif isinstance(item, PolicyStep):
+                if self.policy is not None:
+                    self.policy.carry_out(item)
             elif isinstance(item, TakeoverCheck):
                 self._check_queued = False
                 self._takeover_check()
@@ -372,6 +388,8 @@ class SimDrone:
             execution.reply = self.camera.take(now, request.reqnr, request.payload, size)
         else:
             execution.reply = self.vehicle.act(now, request.reqnr, request.method, request.payload)
+            if self.policy is not None:  # DroneService._execute: the leg it flies
+                self.policy.executed(ROUTES[request.method].name)
             if self.p_ack_lost and self.world.rng.random() < self.p_ack_lost:
                 execution.error = StatusError(
                     grpc.StatusCode.DEADLINE_EXCEEDED,
@@ -499,14 +517,56 @@ class SimDrone:
                 notice = self.seq.prepare(order.new_master, RPC, self.world.loop.now)
                 self._preparing(notice)
                 return
-            if self.seq.handover_must_take_over(order.new_master):
-                self.seq.check_known(order.new_master)
-                self._take_over(order.new_master, RPC, self.world.loop.now, 0.0)
-                return
-            record = self.seq.switch(order.new_master, RPC, self.world.loop.now)
+            self._hand_over(order.new_master, RPC)
         except StatusError:
             return
-        self._switched(record)
+
+    def _hand_over(
+        self,
+        new_master: int,
+        trigger: drone_pb2.HandoverTrigger.ValueType,
+        takeover: bool = False,
+    ) -> None:
+        """DroneService.hand_over: by takeover when asked or when the master could not
+        send its log (``Sequencer.handover_must_take_over``), else cooperative."""
+        now = self.world.loop.now
+        if takeover or self.seq.handover_must_take_over(new_master):
+            self.seq.check_known(new_master)
+            self._take_over(new_master, trigger, now, 0.0)
+            return
+        self._switched(self.seq.switch(new_master, trigger, now))
+
+    # -- the handover policy (drone/policy_runner.py; sim/policy_runner.py) ----------
+
+    def _policy_runner(self) -> SimPolicyRunner | None:
+        corridor = self.world.corridor
+        return None if corridor is None else SimPolicyRunner(self, corridor)
+
+    def queue_policy_step(self, step: PolicyStep) -> None:
+        """The policy's decision waits for the execution lock like a request."""
+        self.queue.append(step)
+        self._next()
+
+    def policy_handover(self, master: int, decision: Decision) -> str:
+        """PolicyRunner.tick's handover under the lock: only if the master is still the one
+        decided for; prepared if the master can prepare, else at once (a takeover if the
+        decision says so). What it did, for the counts."""
+        seq, target = self.seq, decision.target
+        assert target is not None
+        preparing = seq.preparing
+        try:
+            if seq.master != master:
+                return "moved meanwhile"
+            if decision.takeover or not self._can_prepare(target):
+                self._hand_over(target, POLICY, decision.takeover)
+                return "takeover" if decision.takeover else "at once"
+            if preparing is not None and preparing.target == target:
+                return "already preparing"
+            self._preparing(seq.prepare(target, POLICY, self.world.loop.now))
+            return "prepare"
+        except StatusError as err:  # PolicyRunner.run: "policy step failed"
+            self.world.trace(f"drone: policy step failed: {err.message}")
+            return "failed"
 
     def _can_prepare(self, new_master: int) -> bool:
         """DroneService.can_prepare: the master holds its Connect stream (to hear the
@@ -514,8 +574,16 @@ class SimDrone:
         seq = self.seq
         return seq.master in self.streams and not seq.handover_must_take_over(new_master)
 
-    def _switched(self, record: drone_pb2.HandoverRecord) -> None:
-        """MasterStreams.wake: the old master's Connect handler resumes on a later loop turn."""
+    def _switched(self, record: drone_pb2.HandoverRecord, on_the_word: bool = False) -> None:
+        """MasterStreams.wake: the old master's Connect handler resumes on a later loop turn;
+        a master the script or an operator chose pins the policy (DroneService._switched)."""
+        if self.policy is not None and record.trigger in (
+            drone_pb2.HANDOVER_TRIGGER_SCRIPT,
+            RPC,
+        ):
+            self.policy.pin(record.new_master)
+        if record.trigger == POLICY:
+            self.policy_switches[_ending(record, on_the_word)] += 1
         prepared = ""
         if record.prepare_started_at:
             self.prepared_records.append(record)
@@ -689,6 +757,7 @@ class SimDrone:
         self.up = True
         self.stats.restarts += 1
         self.seq = self._restored()
+        self.policy = self._policy_runner()  # volatile: PolicyRunner is built afresh
         # DroneService.last_seen is not in the store; _restore counts the master of
         # a mission in progress as seen RESTART_GRACE_S after the restart.
         self.last_seen = {}
@@ -751,7 +820,11 @@ class SimDrone:
 
     def watch(self) -> None:
         """Starts ``watch_master``'s loop if it is not running (at start and restarts, and
-        for a prepared handover's deadline)."""
+        for a prepared handover's deadline), and the policy's and the radio's."""
+        if self.policy is not None and self.up:
+            self.policy.start()
+        if self.world.corridor is not None:
+            self.world.corridor.tick()
         if not self._watching and self.up and (self.takeover_after > 0 or self.seq.preparing):
             self._watching = True
             self.world.loop.after(TAKEOVER_TICK_S, self._watch_master)
@@ -769,9 +842,9 @@ class SimDrone:
         if not self.up or not (self.world.mission_open() or self.seq.preparing):
             return
         now = self.world.loop.now
-        reachable = self._sighted(now)
+        reachable = self._takers(self._sighted(now))
         due = self.seq.takeover_due(
-            now, reachable, self.last_seen, self.takeover_after, self._unseen_from()
+            now, reachable, self.last_seen, self.takeover_after, self.unseen_from()
         )
         if due is not None and not self._check_queued:
             self._check_queued = True  # async with self._lock: re-checked there
@@ -786,6 +859,11 @@ class SimDrone:
             self._next()
         self.watch()
 
+    def _takers(self, reachable: set[int]) -> set[int]:
+        """DroneService._takers: with a policy, only controllers in range may take over."""
+        in_range = self.policy.in_range() if self.policy is not None else None
+        return reachable if in_range is None else reachable & in_range
+
     def _sighted(self, now: float) -> set[int]:
         """DroneService._sighted: who holds a stream, noted as seen now."""
         reachable = self.reachable()
@@ -795,16 +873,16 @@ class SimDrone:
             self.first_seen = now
         return reachable
 
-    def _unseen_from(self) -> float | None:
+    def unseen_from(self) -> float | None:
         """DroneService.unseen_from: the end of the start-up grace."""
         return None if self.first_seen is None else self.first_seen + START_GRACE_S
 
     def _takeover_check(self) -> None:
         """watch_master under the lock: takeover_due again, then _take_over."""
         now = self.world.loop.now
-        reachable = self._sighted(now)
+        reachable = self._takers(self._sighted(now))
         due = self.seq.takeover_due(
-            now, reachable, self.last_seen, self.takeover_after, self._unseen_from()
+            now, reachable, self.last_seen, self.takeover_after, self.unseen_from()
         )
         if due is not None:
             self._take_over(due.new_master, drone_pb2.HANDOVER_TRIGGER_LOST, now, due.lost_at)
@@ -861,6 +939,18 @@ class SimDrone:
             self.seq.cache.watermark,
             stream=True,
         )
+
+
+def _ending(record: drone_pb2.HandoverRecord, on_the_word: bool) -> str:
+    """How a handover ended, for the counts: prepared (on the master's word between
+    requests, or at a request), forced at the prepare timeout, at once, or a takeover."""
+    if record.kind == drone_pb2.HANDOVER_KIND_PREPARED:
+        return "prepared on the word" if on_the_word else "prepared at a request"
+    if record.prepare_timed_out:
+        return "forced at the timeout"
+    if record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER:
+        return "takeover"
+    return "cooperative at once"
 
 
 def _acted_on(request: Request) -> None:

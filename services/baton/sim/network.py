@@ -94,11 +94,14 @@ class Network:
         """Whether no partition separates ``a`` and ``b``."""
         return not self.cuts.get(frozenset((a, b)))
 
-    def cut(self, a: int, b: int) -> None:
-        """Partitions ``a`` from ``b`` (counted: overlapping partitions heal one by one)."""
+    def cut(self, a: int, b: int, break_links: bool = True) -> None:
+        """Partitions ``a`` from ``b`` (counted: overlapping partitions heal one by one);
+        the links between them break, unless ``break_links`` is False (none is open yet)."""
         key = frozenset((a, b))
         self.cuts[key] = self.cuts.get(key, 0) + 1
         world = self.world
+        if not break_links:
+            return
         for x, y in ((a, b), (b, a)):
             if x == DRONE:
                 world.controller(y).drone_link.break_("partition")

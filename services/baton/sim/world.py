@@ -18,10 +18,11 @@ from dataclasses import dataclass, field
 
 import grpc
 
-from baton.controller.protocol import Effect, SendLog
+from baton.controller.protocol import Effect, SendLog, State
 from baton.drone.dedupe import DEFAULT_WINDOW
 from baton.drone.sequencer import ScriptedHandover
 from baton.sim.controller import SimController
+from baton.sim.corridor import Corridor
 from baton.sim.drone import SimDrone
 from baton.sim.faults import FaultPlan, handover, plan_faults, survivable
 from baton.sim.findings import FINDINGS
@@ -62,6 +63,10 @@ class SimOptions:
     # (docs/design.md, "Prepared handover"); without it a quarter of the default mix's
     # script lines are (World: PREPARED_SHARE), and no Handover call.
     prepared: bool = False
+    # A handover policy (drone/policy.py's "nearest" or "predictive"): the vehicle flies
+    # a corridor of stations with radio range, and the drone's policy moves the master
+    # by prepared handovers (corridor.py, policy_runner.py); None: no policy.
+    policy: str | None = None
     # Known findings (findings.py) whose scenarios this run lets in.
     allow: frozenset[str] = frozenset()
     mutation: str | None = None
@@ -79,6 +84,8 @@ class SimOptions:
             parts.append("--lose-master")
         if self.prepared:
             parts.append("--prepared")
+        if self.policy is not None:
+            parts.append(f"--policy {self.policy}")
         if self.takeover_after is not None:
             parts.append(f"--takeover-after {self.takeover_after:g}")
         if self.allow:
@@ -106,6 +113,13 @@ class Outcome:
     trace: list[str] = field(default_factory=list)
     # Prepared handovers: begun, carried out as prepared, forced at the timeout.
     prepared: dict[str, int] = field(default_factory=dict)
+    # With a policy: what its steps did ("prepare", "at once", "takeover", "hold"...)
+    # and how its handovers ended ("prepared on the word", "forced at the timeout"...).
+    policy_decided: dict[str, int] = field(default_factory=dict)
+    policy_switches: dict[str, int] = field(default_factory=dict)
+    # Controllers still ACTIVE as master at the end that the drone's master is not
+    # (with a policy: taken over out of range, never back in it; docs/design.md).
+    left_behind: list[int] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -185,6 +199,8 @@ class World:
         self.lost: set[int] = set()
         self.failover: dict[str, object] = {}
         self.net = Network(self, [*self.ring, DRONE])
+        # The corridor and its radio (--policy), from a random stream of its own.
+        self.corridor = Corridor(self, options.policy) if options.policy else None
         self.drone = SimDrone(
             self,
             self.ring,
@@ -222,6 +238,8 @@ class World:
             f"script {_script(script, self.prepare_timeout)}, "
             f"loss {self.net.p_loss}, dup {self.net.p_dup}, takeover after {self.takeover_after}s"
         )
+        if self.corridor is not None:
+            self.summary += f", {self.corridor.describe()}"
 
     # -- parts ------------------------------------------------------------------------
 
@@ -342,7 +360,10 @@ class World:
         allow, controllers = self.options.allow, self.controllers.values()
         self.drone.watch()
         ring_up = all(c.alive and c.peer(c.protocol.successor).up for c in controllers)
-        if ring_up and ("F4" in allow or all(c.answered for c in controllers)):
+        # With radio range, a controller out of range asks once the vehicle is near.
+        covered = self.corridor.covered if self.corridor is not None else set(self.ring)
+        asked = all(c.answered or c.id not in covered for c in controllers)
+        if ring_up and ("F4" in allow or asked):
             self._start_programs()
 
     def _start_programs(self) -> None:
@@ -399,6 +420,8 @@ class World:
 
     def run(self) -> Outcome:
         """Runs to the end, checks the oracles, frees the history files."""
+        if self.corridor is not None:
+            self.corridor.start()
         for controller in list(self.controllers.values()):
             controller.start()
         self.check_start()
@@ -431,6 +454,13 @@ class World:
             },
             trace=self._trace or [],
             prepared=self._prepared(),
+            policy_decided=dict(self.drone.policy_decided),
+            policy_switches=dict(self.drone.policy_switches),
+            left_behind=[
+                c.id
+                for c in self.live_controllers()
+                if c.id != self.drone.seq.master and c.protocol.state is State.ACTIVE
+            ],
         )
 
     def _prepared(self) -> dict[str, int]:
