@@ -143,6 +143,26 @@ def test_a_takeover_after_our_epoch_gives_up_the_log_we_still_hold() -> None:
     assert not p.log_given_up(6)
 
 
+def test_a_ring_message_of_a_newer_mastership_shows_an_active_master_it_was_taken_over() -> None:
+    """--policy nearest: master 0, out of radio range, is taken over by 1 in epoch 2; the
+    drone cannot tell it, the ring can: 1's message of epoch 2 shows the mastership went
+    on without 0's log. Its own messages, older epochs, and a controller that is not
+    ACTIVE (it handed over: nothing of its log is held back) show nothing."""
+    p = started(0, [0, 1, 2], 2**20)
+    p.on_reply(entry(1))
+    taker = message(1, origin=1, reqnrs=[1])
+    taker.epoch = 2
+    assert p.went_on_without_us(taker)
+    ours = message(1, origin=0, reqnrs=[1])
+    ours.epoch = 2
+    assert not p.went_on_without_us(ours)
+    same = message(1, origin=1, reqnrs=[1])
+    same.epoch = 1
+    assert not p.went_on_without_us(same)
+    p.on_handover_notice(1, epoch=2)
+    assert not p.went_on_without_us(taker)
+
+
 def test_flush_limit_zero_flushes_after_every_reply() -> None:
     p = started(0, [0, 1], 0)
     for n in (1, 2, 3):

@@ -197,8 +197,9 @@ async def test_a_master_cut_off_from_the_drone_is_fenced_and_rejoins_when_the_li
 ) -> None:
     """Controller 0's link to the drone is cut while its process lives: the drone, not
     seeing it, makes 1 master. 0 goes on re-sending its request into the cut; nothing it
-    sends once the link is back is executed: the drone refuses it as taken over, and 0
-    stops acting as master, drops what it had and rejoins as a replica."""
+    sends once the link is back is executed: the drone refuses it as taken over (or the
+    ring told it first), and 0 stops acting as master, drops what it had and rejoins as
+    a replica."""
     plan = three_controllers(2 * 2**20)
     async with LocalTestbed(plan, tmp_path) as testbed:
 
@@ -213,8 +214,8 @@ async def test_a_master_cut_off_from_the_drone_is_fenced_and_rejoins_when_the_li
             return snapshot.drone.master == 1 and snapshot.drone.last_reqnr > 24
 
         await eventually(taken_over, "controller 1 master and flying", 120)
-        cut_off = (await testbed.snapshot(audit=False)).controllers[0]
-        assert cut_off.master  # it does not know yet
+        # 0 learns it from the ring (1's log messages of epoch 2, the test below) or,
+        # if 1 flushed nothing yet, from the drone once the link is back: fenced once.
         await testbed.restore_link("link-drone-0")
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
@@ -226,6 +227,44 @@ async def test_a_master_cut_off_from_the_drone_is_fenced_and_rejoins_when_the_li
     assert all(
         a.controller_id != 0 for a in snapshot.drone.audit if a.received_at > taken.decided_at
     )
+
+
+async def test_a_master_cut_off_from_the_drone_for_good_follows_the_ring_as_a_replica(
+    tmp_path: Path,
+) -> None:
+    """As above, but the link never comes back (a station the vehicle flew away from):
+    the drone cannot tell 0 it was taken over. The ring can: 1's log messages are of a
+    newer mastership. 0 fences itself on them, rejoins with nothing and follows the
+    ring; its program ends with the mission. Before, it stayed ACTIVE for ever, its
+    program waiting on the drone (found by the simulation's --policy corridors)."""
+    plan = three_controllers(2 * 2**20)
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        async def flying() -> bool:
+            return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 12
+
+        await eventually(flying, "request 12 served", 120)
+        await testbed.cut_link("link-drone-0")
+
+        async def others_done() -> bool:
+            snapshot = await testbed.snapshot(audit=False)
+            return all(
+                snapshot.controllers[cid].mission == ring_pb2.MISSION_STATE_DONE for cid in (1, 2)
+            )
+
+        await eventually(others_done, "the mission ended on controllers 1 and 2", 240)
+
+        async def followed() -> bool:
+            c = (await testbed.snapshot(audit=False)).controllers[0]
+            return not c.master and c.mission == ring_pb2.MISSION_STATE_DONE
+
+        await eventually(followed, "controller 0 a replica, its program done", 60)
+        snapshot = await testbed.run_mission(60)
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == [(0, 1, LOST)]
+    rejoined = snapshot.controllers[0]
+    assert [h.role for h in rejoined.handovers] == [ring_pb2.HANDOVER_ROLE_FENCED]
+    assert rejoined.state == ring_pb2.CONTROLLER_STATE_PASSIVE
 
 
 async def test_a_master_behind_a_silent_link_is_taken_over_within_seconds(

@@ -1090,6 +1090,22 @@ class ControllerNode:
         )
         await self._apply(effects)
         self._settle_handovers()
+        if self.protocol.went_on_without_us(message) and not (
+            self.drone_connected or self.standby_up
+        ):
+            # Cut off from the drone, which took our mastership over: it cannot
+            # tell us (the radio may never bring us back), and a master stranded
+            # ACTIVE would follow the ring no more (simulation, --policy). With
+            # either stream up the drone tells us itself, as before.
+            self.log.warning(
+                "the ring carries a newer mastership than ours while the drone is out of "
+                "reach: taken over",
+                mlognr=message.lognr,
+                origin=message.origin,
+                epoch=message.epoch,
+                our_epoch=self.protocol.epoch,
+            )
+            await self._fenced(message.origin, message.epoch)
 
     def _settle_handovers(self) -> None:
         """Our handover messages still unacknowledged whose role is settled (the ring

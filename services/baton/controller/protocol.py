@@ -685,6 +685,20 @@ class ControllerProtocol:
         """
         return self.state is State.ACTIVE and takeover_epoch > self.epoch
 
+    def went_on_without_us(self, message: ring_pb2.LogMessage) -> bool:
+        """Whether a ring message shows our mastership went on without our log.
+
+        ACTIVE in an older epoch than another master's message: only the drone
+        grants epochs, and a mastership leaves an ACTIVE controller with its log
+        only by our own handover message (we are PASSIVE after it), so one that
+        went on without it went by a takeover, which framed the same replies
+        from those the drone retains. Our log is given up, as
+        ``log_given_up`` says when the drone tells us. The drone cannot tell a
+        master it can no longer reach (out of radio range, its link down for
+        good): the ring can, and ``ControllerNode.on_log`` fences us on it then.
+        """
+        return message.origin != self.id and self.log_given_up(message.epoch)
+
     def judge_refusal(self, sent_epoch: int, master: int, epoch: int) -> Refusal:
         """What a drone refusal of a request sent in ``sent_epoch`` means (drone.proto).
 

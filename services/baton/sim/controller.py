@@ -733,6 +733,18 @@ class SimController:
         self.peak_log_queue = max(self.peak_log_queue, len(self.protocol.log_queue))
         self._apply(effects)
         self._settle_handovers()
+        session = self.session
+        connected = session is not None and session.connected
+        if self.protocol.went_on_without_us(message) and not (
+            connected or self.drone_link.usable()
+        ):
+            # node.py: cut off from the drone (neither stream up: the standby stream is
+            # up exactly while the link is usable here), the ring shows the takeover.
+            self.world.trace(
+                f"controller {self.id} sees epoch {message.epoch} of {message.origin} on the "
+                f"ring while ACTIVE in {self.protocol.epoch}, cut off from the drone"
+            )
+            self._fenced(message.origin, message.epoch)
 
     def _settle_handovers(self) -> None:
         """ControllerNode._settle_handovers: a settled handover message loses its flag on
