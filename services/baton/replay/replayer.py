@@ -243,7 +243,8 @@ class ReplayedError(grpc.RpcError, grpc.Call):  # type: ignore[misc]
     def is_active(self) -> bool:
         return False
 
-    def time_remaining(self) -> None:
+    # grpc documents None for an RPC without a deadline; its stubs say float.
+    def time_remaining(self) -> None:  # type: ignore[override]
         return None
 
     def cancel(self) -> bool:
@@ -319,7 +320,8 @@ class ReplayChannel(grpc.Channel):  # type: ignore[misc]
 
         return refuse
 
-    unary_stream = stream_unary = stream_stream = _streaming
+    # A refusing function stands for the multi-callables: a replay has no streams to call.
+    unary_stream = stream_unary = stream_stream = _streaming  # type: ignore[assignment]
 
     def subscribe(self, callback: Callable[..., None], try_to_connect: bool = False) -> None:
         pass
