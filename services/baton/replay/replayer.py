@@ -220,7 +220,7 @@ def _ranges(numbers: list[int]) -> str:
     return text + (", ..." if len(runs) > 10 else "")
 
 
-class ReplayedError(grpc.RpcError, grpc.Call):  # type: ignore[misc]
+class ReplayedError(grpc.RpcError, grpc.Call):
     """A failed call's status as the log holds it (or as a controller refuses it)."""
 
     def __init__(self, code: grpc.StatusCode, details: str) -> None:
@@ -254,7 +254,7 @@ class ReplayedError(grpc.RpcError, grpc.Call):  # type: ignore[misc]
         return False
 
 
-class _ReplayedCall(grpc.UnaryUnaryMultiCallable):  # type: ignore[misc]
+class _ReplayedCall(grpc.UnaryUnaryMultiCallable):
     """One drone-API method of a ``ReplayChannel``."""
 
     def __init__(
@@ -296,7 +296,7 @@ class _ReplayedCall(grpc.UnaryUnaryMultiCallable):  # type: ignore[misc]
         raise NotImplementedError("a mission program makes one call at a time: call it plainly")
 
 
-class ReplayChannel(grpc.Channel):  # type: ignore[misc]
+class ReplayChannel(grpc.Channel):
     """A channel whose unary calls the log answers, in this process: no sockets."""
 
     def __init__(self, replay: LogReplay) -> None:
