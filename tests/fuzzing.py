@@ -38,11 +38,15 @@ async def answer(
     """The status one raw request ends with; a stream's first message counts as OK."""
     try:
         if stream:
-            call = channel.unary_stream(method)(raw, timeout=2)
+            raw_stream: grpc.aio.UnaryStreamMultiCallable[bytes, bytes]
+            raw_stream = channel.unary_stream(method)
+            call = raw_stream(raw, timeout=2)
             await call.read()
             call.cancel()
         else:
-            await channel.unary_unary(method)(raw, timeout=2)
+            raw_unary: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes]
+            raw_unary = channel.unary_unary(method)
+            await raw_unary(raw, timeout=2)
     except grpc.aio.AioRpcError as err:
         return err.code()
     return grpc.StatusCode.OK

@@ -79,6 +79,7 @@ async def test_malformed_log_frames_at_a_controllers_ring_port(tmp_path: Path) -
     try:
         as_peer = Tls.load(certs, Identity.controller(0))
         async with aio_channel(app.server.address, as_peer, Identity.controller(1)) as channel:
+            ring: grpc.aio.StreamStreamMultiCallable[bytes, bytes]
             ring = channel.stream_stream("/baton.v1.ControllerRing/LogRing")
             for raw in mutants(valid, rng, INPUTS_PER_METHOD):
                 call = ring(iter([raw]), timeout=2)

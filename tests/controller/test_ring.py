@@ -11,6 +11,7 @@ from baton.controller.history import LogHistory
 from baton.controller.ring import FRAME_BYTES, PeerLink, Reassembler, RingReceiver, frames
 from baton.logs import get_logger
 from baton.rpc.server import BatonServer, Servicer, servicer
+from baton.rpc.streams import next_message
 from baton.testbed.local import free_port
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
@@ -306,7 +307,7 @@ async def test_a_stream_broken_mid_message_loses_and_duplicates_nothing() -> Non
     a = PeerLink(0, 1, b_server.address, LOG)
     try:
         call = ring_pb2_grpc.ControllerRingStub(channel).LogRing()
-        hello = await call.read()
+        hello = await next_message(call)
         assert hello.hello
         for part in parts[: len(parts) // 2]:
             await call.write(part)

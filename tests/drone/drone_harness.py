@@ -16,6 +16,7 @@ from baton.drone.master import parse_handover_script
 from baton.drone.service import DroneService, DroneSettings, build_service
 from baton.rpc.channels import aio_channel
 from baton.rpc.server import BatonServer, servicer
+from baton.rpc.streams import next_message
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
 
@@ -25,7 +26,7 @@ class DroneUnderTest:
 
     service: DroneService
     vehicle: FakeMobility
-    stub: drone_pb2_grpc.DroneStub
+    stub: drone_pb2_grpc.DroneAsyncStub
     address: str
 
 
@@ -81,7 +82,7 @@ def stop_program(process: subprocess.Popen[bytes]) -> None:
 
 
 async def connect_as_master(
-    stub: drone_pb2_grpc.DroneStub, controller_id: int, holds_reqnr: int = 0
+    stub: drone_pb2_grpc.DroneAsyncStub, controller_id: int, holds_reqnr: int = 0
 ) -> tuple[drone_pb2.Connected, list[drone_pb2.RetainedReply]]:
     """A Connect as ``controller_id``: its Connected event and the retained replies that
     follow it in batches, up to ``Connected.retained_through``; the stream is then closed."""
@@ -89,11 +90,11 @@ async def connect_as_master(
         drone_pb2.ConnectRequest(controller_id=controller_id, holds_reqnr=holds_reqnr)
     )
     try:
-        connected = (await call.read()).connected
+        connected = (await next_message(call)).connected
         replies: list[drone_pb2.RetainedReply] = []
         through = connected.retained_through
         while through and (not replies or replies[-1].reqnr < through):
-            replies.extend((await call.read()).retained.replies)
+            replies.extend((await next_message(call)).retained.replies)
         return connected, replies
     finally:
         call.cancel()

@@ -238,6 +238,7 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     with pytest.raises(grpc.RpcError) as refused:
         c0.invoke("/baton.v1.Mobility/GetPosition", api.GetPositionRequest(), api.GetPositionReply)
     assert refused.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+    assert isinstance(refused.value, grpc.Call)  # the blocking stub's error is its call
     assert dict(refused.value.trailing_metadata())["baton-master"] == "1"
 
     # The new master re-sends the request the old one had in flight: cached.

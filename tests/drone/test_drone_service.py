@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Awaitable
 
 import grpc
 import pytest
@@ -10,6 +11,7 @@ from drone_harness import DroneUnderTest, start_drone
 from google.protobuf.message import Message
 from waiting import eventually
 
+from baton.rpc.streams import next_message, read_message
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -28,14 +30,14 @@ def invoke(
     )
 
 
-async def expect_error(call, code: grpc.StatusCode) -> grpc.aio.AioRpcError:  # type: ignore[no-untyped-def]
+async def expect_error(call: Awaitable[object], code: grpc.StatusCode) -> grpc.aio.AioRpcError:
     with pytest.raises(grpc.aio.AioRpcError) as info:
         await call
     assert info.value.code() == code, info.value.details()
     return info.value
 
 
-def trailing(error: grpc.aio.AioRpcError) -> dict[str, str]:
+def trailing(error: grpc.aio.AioRpcError) -> dict[str, str | bytes]:
     return {k: v for k, v in (error.trailing_metadata() or ())}
 
 
@@ -162,8 +164,18 @@ async def test_take_picture_through_invoke(drone: DroneUnderTest) -> None:
     assert picture.position.latitude_deg == pytest.approx(47.397742)
 
 
-async def next_event(stream) -> drone_pb2.DroneEvent:  # type: ignore[no-untyped-def]
-    return await asyncio.wait_for(stream.read(), 5)
+async def next_event(
+    stream: grpc.aio.UnaryStreamCall[drone_pb2.ConnectRequest, drone_pb2.DroneEvent],
+) -> drone_pb2.DroneEvent:
+    return await asyncio.wait_for(next_message(stream), 5)
+
+
+async def stream_ended(
+    stream: grpc.aio.UnaryStreamCall[drone_pb2.ConnectRequest, drone_pb2.DroneEvent],
+) -> bool:
+    """Whether the stream ends (within 5 s) with no further event."""
+    read = read_message(stream)
+    return await asyncio.wait_for(read, 5) is None
 
 
 async def test_connect_only_for_the_master(drone: DroneUnderTest) -> None:
@@ -190,7 +202,7 @@ async def test_handover_rpc_notifies_the_connected_master(drone: DroneUnderTest)
     assert event.handover == drone_pb2.HandoverNotice(
         old_master=0, new_master=2, after_reqnr=1, ended_epoch=1, epoch=2
     )
-    assert await next_event(stream) is grpc.aio.EOF
+    assert await stream_ended(stream)
     await expect_error(
         drone.stub.Invoke(invoke(0, 2, POSITION)), grpc.StatusCode.FAILED_PRECONDITION
     )
@@ -264,7 +276,7 @@ async def test_notice_waits_for_a_disconnected_old_master(drone: DroneUnderTest)
     assert event.handover == drone_pb2.HandoverNotice(
         old_master=0, new_master=1, after_reqnr=0, ended_epoch=1, epoch=2
     )
-    assert await next_event(stream) is grpc.aio.EOF
+    assert await stream_ended(stream)
     # Delivered once: the next Connect of the old master is refused.
     await expect_error(
         drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0)).read(),
@@ -277,7 +289,7 @@ async def test_reconnect_supersedes_the_old_stream(drone: DroneUnderTest) -> Non
     assert (await next_event(first)).HasField("connected")
     second = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0))
     assert (await next_event(second)).HasField("connected")
-    assert await next_event(first) is grpc.aio.EOF
+    assert await stream_ended(first)
     await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1))
     assert (await next_event(second)).HasField("handover")
 

@@ -11,6 +11,7 @@ from test_drone_service import GOTO, POSITION, invoke
 from waiting import eventually
 
 from baton.drone.policy import FLY_ON, HANDOVER, HOLD, STAY, PolicyParams, Station
+from baton.rpc.streams import next_message
 from baton.sdk import Position, offset
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
@@ -39,7 +40,7 @@ class Links:
     async def up(self, *cids: int) -> None:
         for cid in cids:
             call = self.drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=cid))
-            assert (await call.read()).HasField("held")
+            assert (await next_message(call)).HasField("held")
             self.calls[cid] = call
         await eventually(
             lambda: set(cids) <= self.drone.service.standby.reachable, f"{cids} reachable"

@@ -15,6 +15,7 @@ from baton.controller.drone_link import DroneStandby
 from baton.digest import request_digest
 from baton.drone.link_probe import LinkBounds
 from baton.logs import get_logger
+from baton.rpc.streams import next_message
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -23,7 +24,7 @@ async def test_a_standby_stream_says_who_is_master_and_counts_as_reachable() -> 
     drone, server = await start_drone()
     try:
         call = drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=2))
-        first = await call.read()
+        first = await next_message(call)
         assert first.held.master == 0 and first.held.epoch == 1
         status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         assert list(status.reachable) == [2]
@@ -48,12 +49,12 @@ async def test_a_takeover_is_told_again_to_a_taker_that_was_not_listening() -> N
         # Controller 1 held no standby stream when the drone decided: it is told when
         # it opens one, for as long as it has not sent a request as master.
         call = drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=1))
-        assert (await call.read()).held.master == 1
-        owed = (await call.read()).take_over
+        assert (await next_message(call)).held.master == 1
+        owed = (await next_message(call)).take_over
         assert (owed.old_master, owed.epoch) == (0, 2)
         call.cancel()
         other = drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=2))
-        assert (await other.read()).held.master == 1  # nothing owed to 2
+        assert (await next_message(other)).held.master == 1  # nothing owed to 2
         other.cancel()
     finally:
         await server.stop()
@@ -76,7 +77,7 @@ async def test_the_drone_measures_each_standby_links_round_trip_and_says_when_it
     answering.start()
     silent = drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=2))
     try:
-        assert (await silent.read()).HasField("held")
+        assert (await next_message(silent)).HasField("held")
 
         async def links() -> dict[int, drone_pb2.ControllerLink]:
             status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
@@ -92,7 +93,7 @@ async def test_the_drone_measures_each_standby_links_round_trip_and_says_when_it
         assert (one.max_rtt_s, one.rtt_stale_s) == (0.5, 1.5) and one.pings >= one.answers
         assert answering.pings_answered >= 2
         # Controller 2 was pinged on its stream and never answered.
-        ping = (await silent.read()).ping
+        ping = (await next_message(silent)).ping
         assert ping.seq > 0
 
         async def silent_for_long() -> drone_pb2.ControllerLink | None:
@@ -125,7 +126,7 @@ async def test_the_drone_measures_each_standby_links_round_trip_and_says_when_it
         # It answers at last, each ping as it reads it: the ones queued while it did not
         # read are measured slow; once it keeps up, the link is healthy again.
         for _ in range(30):
-            latest = (await silent.read()).ping.seq
+            latest = (await next_message(silent)).ping.seq
             answer = drone_pb2.PingAnswer(controller_id=2, seq=latest)
             assert (await drone.stub.AnswerPing(answer)).measured
             if (await links())[2].healthy:
@@ -174,7 +175,7 @@ async def test_a_taker_connects_and_gets_the_retained_replies_above_what_it_hold
         standby = drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=1))
         await standby.read()
         await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
-        take_over = (await standby.read()).take_over
+        take_over = (await next_message(standby)).take_over
         standby.cancel()
         assert (take_over.old_master, take_over.epoch, take_over.after_reqnr) == (0, 2, 3)
         connected, retained = await connect_as_master(drone.stub, 1, holds_reqnr=1)

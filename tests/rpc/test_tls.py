@@ -37,7 +37,7 @@ async def drone_server(certs: Path) -> AsyncIterator[tuple[BatonServer, list[str
         callers.append(str(found))
         return str(found).encode()
 
-    handler = grpc.unary_unary_rpc_method_handler(who)
+    handler: grpc.RpcMethodHandler[bytes, bytes] = grpc.unary_unary_rpc_method_handler(who)
     who_is = generic(grpc.method_handlers_generic_handler("test.Who", {"Who": handler}))
     server = BatonServer("127.0.0.1:0", [who_is], tls=Tls.load(certs, DRONE))
     await server.start()
@@ -49,7 +49,8 @@ async def ask(channel: grpc.aio.Channel) -> str | grpc.StatusCode:
     """Who the server says called, or the status the call ended with."""
     async with channel:
         try:
-            reply = await channel.unary_unary(WHO)(b"", timeout=5)
+            who: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes] = channel.unary_unary(WHO)
+            reply = await who(b"", timeout=5)
         except grpc.aio.AioRpcError as err:
             return err.code()
     assert isinstance(reply, bytes)

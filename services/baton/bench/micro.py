@@ -196,7 +196,7 @@ async def measure_relay(
                 raise RuntimeError(f"controller {controller} is not the drone's master")
             reqnr, epoch = status.last_reqnr, status.epoch
 
-            async def invoke(stub: drone_pb2_grpc.DroneStub) -> float:
+            async def invoke(stub: drone_pb2_grpc.DroneAsyncStub) -> float:
                 nonlocal reqnr
                 reqnr += 1
                 request = drone_pb2.InvokeRequest(

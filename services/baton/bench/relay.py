@@ -43,7 +43,7 @@ class _Relay(grpc.GenericRpcHandler):
     def _forward(
         self, method: str
     ) -> Callable[[bytes, grpc.aio.ServicerContext], Awaitable[bytes]]:
-        upstream = self._channel.unary_unary(method)
+        upstream: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes] = self._channel.unary_unary(method)
 
         async def forward(request: bytes, context: grpc.aio.ServicerContext) -> bytes:
             reply: bytes = await upstream(request)

@@ -311,7 +311,7 @@ class DroneStandby:
                 await asyncio.sleep(backoff)
                 backoff = min(backoff * 2, 1.0)
 
-    def _answer(self, stub: drone_pb2_grpc.DroneStub, seq: int) -> None:
+    def _answer(self, stub: drone_pb2_grpc.DroneAsyncStub, seq: int) -> None:
         """Answers the drone's ping ``seq`` in the background (the stream reads on)."""
         if len(self._answers) >= PING_ANSWERS_IN_FLIGHT:
             return  # the link is that slow: the drone measures it by the ones in flight

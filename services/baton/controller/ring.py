@@ -40,6 +40,7 @@ from baton.controller.history import LogHistory
 from baton.controller.protocol import resend_after
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
+from baton.rpc.streams import read_message
 from baton.rpc.tls import Identity, Tls
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
@@ -51,6 +52,10 @@ FRAME_BYTES = 16 << 10
 RELAY_WINDOW_FRAMES = 4
 BACKOFF_INITIAL_S = 0.05
 BACKOFF_MAX_S = 2.0
+
+# A LogRing stream, as its sender holds it (Call) and as its receiver serves it (Context).
+LogRingCall = grpc.aio.StreamStreamCall[ring_pb2.LogFrame, ring_pb2.LogAck]
+LogRingContext = grpc.aio.ServicerContext[ring_pb2.LogFrame, ring_pb2.LogAck]
 
 
 def head_of(message: ring_pb2.LogMessage) -> ring_pb2.LogMessage:
@@ -434,8 +439,8 @@ class PeerLink:
         ) as channel:
             stub = ring_pb2_grpc.ControllerRingStub(channel)
             call = stub.LogRing(wait_for_ready=True)
-            hello = await call.read()
-            if hello is grpc.aio.EOF or not hello.hello:
+            hello = await read_message(call)
+            if hello is None or not hello.hello:
                 raise ConnectionError(f"peer {self.peer_id} did not greet the ring stream")
             self.stream_up, self.down_since = True, None
             self.counters.connects += 1
@@ -504,9 +509,7 @@ class PeerLink:
                         del self._relays[lognr]
                         self.counters.relays_aborted += 1
 
-    async def _write_relay(
-        self, call: grpc.aio.StreamStreamCall, relay: Relay, acks: asyncio.Task[None]
-    ) -> bool:
+    async def _write_relay(self, call: LogRingCall, relay: Relay, acks: asyncio.Task[None]) -> bool:
         """Writes a relayed message's frames as they come; True once all are written.
 
         False if it was given up: the peer is told to drop what it got, and the
@@ -523,7 +526,7 @@ class PeerLink:
             )
 
     async def _write_relay_frames(
-        self, call: grpc.aio.StreamStreamCall, relay: Relay, acks: asyncio.Task[None]
+        self, call: LogRingCall, relay: Relay, acks: asyncio.Task[None]
     ) -> bool:
         while True:
             relay.changed.clear()
@@ -565,13 +568,13 @@ class PeerLink:
                 acks.result()  # raises the stream's error
                 raise ConnectionError(f"peer {self.peer_id} closed the ring stream")
 
-    async def _write(self, call: grpc.aio.StreamStreamCall, message: ring_pb2.LogMessage) -> None:
+    async def _write(self, call: LogRingCall, message: ring_pb2.LogMessage) -> None:
         for frame in frames(message, self.my_id, self.frame_bytes):
             await call.write(frame)
             self.counters.sent_bytes += len(frame.data)
         self.counters.sent_messages += 1
 
-    async def _read_acks(self, call: grpc.aio.StreamStreamCall) -> None:
+    async def _read_acks(self, call: LogRingCall) -> None:
         async for ack in _acks(call):
             message = self._unacked.pop(ack.lognr, None)
             self._sent_at.pop(ack.lognr, None)
@@ -591,10 +594,10 @@ def _sync_frame(history: LogHistory, holds: int, my_id: int) -> ring_pb2.LogFram
     return ring_pb2.LogFrame(sync=True, holds_lognr=holds, holds_epoch=epoch, from_id=my_id)
 
 
-async def _acks(call: grpc.aio.StreamStreamCall) -> AsyncIterator[ring_pb2.LogAck]:
+async def _acks(call: LogRingCall) -> AsyncIterator[ring_pb2.LogAck]:
     while True:
-        ack = await call.read()
-        if ack is grpc.aio.EOF:
+        ack = await read_message(call)
+        if ack is None:
             return
         yield ack
 
@@ -644,7 +647,7 @@ class RingReceiver:
         dropped, self._dropped = self._dropped, asyncio.Event()
         dropped.set()
 
-    async def serve(self, context: grpc.aio.ServicerContext, sender: int | None = None) -> None:
+    async def serve(self, context: LogRingContext, sender: int | None = None) -> None:
         """Runs one incoming stream until the sender closes it (or ``drop_streams``).
 
         ``sender``: the controller the caller's certificate names (mutual TLS);
@@ -667,7 +670,7 @@ class RingReceiver:
             f"controller {self.my_id} rejoined the ring with nothing: connect again",
         )
 
-    async def _serve(self, context: grpc.aio.ServicerContext, sender: int | None) -> None:
+    async def _serve(self, context: LogRingContext, sender: int | None) -> None:
         lognr = self._current_lognr()
         epoch = self._epoch_of(lognr) if self._epoch_of is not None and lognr else 0
         await context.write(

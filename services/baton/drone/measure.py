@@ -18,6 +18,7 @@ from pathlib import Path
 
 from baton.rpc.channels import aio_channel
 from baton.rpc.methods import path
+from baton.rpc.streams import read_message
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -67,12 +68,12 @@ async def measure(
             epoch = (await drone_pb2_grpc.DroneStub(as_operator).Handover(handover)).epoch
     reqnr = status.last_reqnr
 
-    async def connect(connect_stub: drone_pb2_grpc.DroneStub) -> float:
+    async def connect(connect_stub: drone_pb2_grpc.DroneAsyncStub) -> float:
         start = time.perf_counter()
         stream = connect_stub.Connect(drone_pb2.ConnectRequest(controller_id=controller))
-        event = await stream.read()
+        event = await read_message(stream)
         elapsed = time.perf_counter() - start
-        assert event.HasField("connected"), event
+        assert event is not None and event.HasField("connected"), event
         stream.cancel()
         return elapsed
 

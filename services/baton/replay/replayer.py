@@ -220,7 +220,7 @@ def _ranges(numbers: list[int]) -> str:
     return text + (", ..." if len(runs) > 10 else "")
 
 
-class ReplayedError(grpc.RpcError, grpc.Call):  # type: ignore[misc]
+class ReplayedError(grpc.RpcError, grpc.Call):
     """A failed call's status as the log holds it (or as a controller refuses it)."""
 
     def __init__(self, code: grpc.StatusCode, details: str) -> None:
@@ -243,7 +243,8 @@ class ReplayedError(grpc.RpcError, grpc.Call):  # type: ignore[misc]
     def is_active(self) -> bool:
         return False
 
-    def time_remaining(self) -> None:
+    # grpc documents None for an RPC without a deadline; its stubs say float.
+    def time_remaining(self) -> None:  # type: ignore[override]
         return None
 
     def cancel(self) -> bool:
@@ -253,7 +254,7 @@ class ReplayedError(grpc.RpcError, grpc.Call):  # type: ignore[misc]
         return False
 
 
-class _ReplayedCall(grpc.UnaryUnaryMultiCallable):  # type: ignore[misc]
+class _ReplayedCall(grpc.UnaryUnaryMultiCallable):
     """One drone-API method of a ``ReplayChannel``."""
 
     def __init__(
@@ -295,7 +296,7 @@ class _ReplayedCall(grpc.UnaryUnaryMultiCallable):  # type: ignore[misc]
         raise NotImplementedError("a mission program makes one call at a time: call it plainly")
 
 
-class ReplayChannel(grpc.Channel):  # type: ignore[misc]
+class ReplayChannel(grpc.Channel):
     """A channel whose unary calls the log answers, in this process: no sockets."""
 
     def __init__(self, replay: LogReplay) -> None:
@@ -319,7 +320,8 @@ class ReplayChannel(grpc.Channel):  # type: ignore[misc]
 
         return refuse
 
-    unary_stream = stream_unary = stream_stream = _streaming
+    # A refusing function stands for the multi-callables: a replay has no streams to call.
+    unary_stream = stream_unary = stream_stream = _streaming  # type: ignore[assignment]
 
     def subscribe(self, callback: Callable[..., None], try_to_connect: bool = False) -> None:
         pass

@@ -12,7 +12,7 @@ import inspect
 import socket
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import grpc
 from google.protobuf.message import DecodeError
@@ -22,6 +22,10 @@ from grpc_reflection.v1alpha import reflection
 from baton.rpc.channels import SERVER_OPTIONS
 from baton.rpc.tls import Tls
 
+# A grpc.aio server's method behaviour: a coroutine function, or an async generator
+# of a stream's replies. grpc's stubs type RpcMethodHandler's as the blocking server's.
+_AioBehaviour = Callable[[Any, grpc.aio.ServicerContext[Any, Any]], Any]
+
 
 class MalformedRequests(grpc.aio.ServerInterceptor):
     """A request that does not parse as its method's message is INVALID_ARGUMENT
@@ -30,9 +34,11 @@ class MalformedRequests(grpc.aio.ServerInterceptor):
 
     async def intercept_service(
         self,
-        continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],
+        continuation: Callable[
+            [grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler[Any, Any] | None]
+        ],
         details: grpc.HandlerCallDetails,
-    ) -> grpc.RpcMethodHandler:
+    ) -> grpc.RpcMethodHandler[Any, Any] | None:
         handler = await continuation(details)
         if handler is None or handler.request_streaming or handler.request_deserializer is None:
             return handler
@@ -49,7 +55,7 @@ class MalformedRequests(grpc.aio.ServerInterceptor):
                 )
 
         if handler.response_streaming:
-            streaming = handler.unary_stream
+            streaming = cast(_AioBehaviour, handler.unary_stream)
             # A stream's servicer yields its replies, or writes them (context.write)
             # as the health service's Watch does: the wrapper must do the same.
             if inspect.isasyncgenfunction(streaming):
@@ -68,7 +74,7 @@ class MalformedRequests(grpc.aio.ServerInterceptor):
             return grpc.unary_stream_rpc_method_handler(
                 behavior, response_serializer=handler.response_serializer
             )
-        unary = handler.unary_unary
+        unary = cast(_AioBehaviour, handler.unary_unary)
 
         async def unary_unary(raw: bytes, context: grpc.aio.ServicerContext) -> Any:
             return await unary(await parsed(raw, context), context)

@@ -18,7 +18,7 @@ Certificates are files in one folder, named after the identity
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -134,14 +134,14 @@ class Tls:
 
 
 class _HasAuthContext(Protocol):
-    def auth_context(self) -> dict[str, list[bytes]]: ...
+    def auth_context(self) -> Mapping[str, Iterable[bytes]]: ...
 
 
 def caller(context: _HasAuthContext) -> Identity | None:
     """The identity in the caller's certificate; None on an insecure port or for a
     certificate that names none of ours. gRPC has verified the chain already."""
     auth = context.auth_context()
-    for uri in auth.get("peer_spiffe_id", []) + auth.get("x509_subject_alternative_name", []):
+    for uri in [*auth.get("peer_spiffe_id", ()), *auth.get("x509_subject_alternative_name", ())]:
         found = Identity.from_uri(uri.decode(errors="replace"))
         if found is not None:
             return found

@@ -235,7 +235,7 @@ def remove_sqlite(path: Path) -> None:
 
 
 async def drone_status(
-    stub: drone_pb2_grpc.DroneStub, audit: bool = True, wait_for_ready: bool = False
+    stub: drone_pb2_grpc.DroneAsyncStub, audit: bool = True, wait_for_ready: bool = False
 ) -> drone_pb2.DroneStatus:
     """The drone's status with, if ``audit``, every audit entry it holds (page by page)."""
     request = drone_pb2.GetDroneStatusRequest(include_audit=audit)
@@ -295,8 +295,8 @@ class LocalTestbed:
         self.config: BatonConfig | None = None
         self.config_path = workdir / "testbed.yaml"
         self._channels: list[grpc.aio.Channel] = []
-        self.drone_stub: drone_pb2_grpc.DroneStub | None = None
-        self.controller_stubs: dict[int, ring_pb2_grpc.ControllerRingStub] = {}
+        self.drone_stub: drone_pb2_grpc.DroneAsyncStub | None = None
+        self.controller_stubs: dict[int, ring_pb2_grpc.ControllerRingAsyncStub] = {}
         # The operator's certificate the testbed calls with; None: insecure.
         self.tls: Tls | None = None
         self.dead: set[int] = set()  # controllers killed on purpose, not restarted

@@ -25,6 +25,6 @@ def mission(drone: Drone, deadline_s: float = 0.45) -> None:
         camera.TakePicture(api.TakePictureRequest(), timeout=float(deadline_s), metadata=as_program)
         print("first picture: reply", flush=True)
     except grpc.RpcError as exc:
-        print(f"first picture: {exc.code().name}", flush=True)  # type: ignore[attr-defined]
+        print(f"first picture: {exc.code().name}", flush=True)
     drone.camera.take_picture()
     drone.mobility.position()

@@ -31,6 +31,6 @@ def mission(drone: Drone, deadline_s: float = 0.5) -> None:
             )
             print(f"position {k}: reply", flush=True)
         except grpc.RpcError as exc:
-            print(f"position {k}: {exc.code().name}", flush=True)  # type: ignore[attr-defined]
+            print(f"position {k}: {exc.code().name}", flush=True)
     time.sleep(2.0)  # the master flushes only after this: a replica's deadlines pass meanwhile
     drone.camera.take_picture()
