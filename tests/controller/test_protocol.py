@@ -163,6 +163,23 @@ def test_a_ring_message_of_a_newer_mastership_shows_an_active_master_it_was_take
     assert not p.went_on_without_us(taker)
 
 
+def test_a_fenced_master_handles_nothing_it_queued_before_its_rejoin() -> None:
+    """--lose-master --prepared seed 242: master 3, cut off in epoch 1 with reply 1
+    unflushed, queues the taker's message 1 (epoch 2, from request 1) and is fenced on
+    it. Until the runtime rejoins with a fresh state, a sync frame must not drain that
+    message into the given-up one (it expected request 2: a ProtocolError that stopped
+    the mission)."""
+    p = started(3, [3, 2, 1, 0], 2**20, initial_master=3)
+    p.on_reply(entry(1))
+    taker = message(1, origin=2, reqnrs=[1])
+    taker.epoch = 2
+    p.on_log(taker)
+    assert p.went_on_without_us(taker)
+    p.on_fenced(2)
+    p.on_sync(1, 2)  # raised the ProtocolError before
+    assert p.lognr == 0 and 1 in p.log_queue
+
+
 def test_flush_limit_zero_flushes_after_every_reply() -> None:
     p = started(0, [0, 1], 0)
     for n in (1, 2, 3):

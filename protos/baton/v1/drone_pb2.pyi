@@ -509,6 +509,7 @@ class Connected(_message.Message):
     RETAINED_THROUGH_FIELD_NUMBER: _builtins.int
     TAKEOVER_FIELD_NUMBER: _builtins.int
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
+    TAKEOVER_EPOCH_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The master as the drone sees it (the caller)."""
     last_reqnr: _builtins.int
@@ -540,6 +541,13 @@ class Connected(_message.Message):
     below it (the retained replies start above it), so a master holding
     less must get them from the ring first.
     """
+    takeover_epoch: _builtins.int
+    """The epoch the newest takeover granted (0: none yet), as a refusal's
+    baton-takeover-epoch says it: a controller still ACTIVE in an older
+    epoch holds a log that takeover replaced (the role went on without it
+    and came back by a handover message or a grant), and rejoins with
+    nothing instead of taking the grant (ControllerProtocol.log_given_up).
+    """
     def __init__(
         self,
         *,
@@ -549,10 +557,11 @@ class Connected(_message.Message):
         retained_through: _builtins.int = ...,
         takeover: _builtins.bool = ...,
         watermark_reqnr: _builtins.int = ...,
+        takeover_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master", "retained_through", b"retained_through", "takeover", b"takeover", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master", "retained_through", b"retained_through", "takeover", b"takeover", "takeover_epoch", b"takeover_epoch", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

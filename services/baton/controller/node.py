@@ -867,6 +867,7 @@ class ControllerNode:
         retained_through: int = 0,
         takeover: bool = False,
         watermark_reqnr: int = 0,
+        takeover_epoch: int = 0,
     ) -> None:
         """The drone's Connected event: this controller is master in ``epoch``.
 
@@ -885,9 +886,27 @@ class ControllerNode:
         at or below it are gone from the drone, so we must hold them before we
         go ACTIVE (the TakeOver's, older, let a taker with nothing go ACTIVE
         with a gap below the retained replies).
+
+        ``takeover_epoch``: the newest takeover's. ACTIVE in an older epoch, we
+        hold a log that takeover replaced: the role went on without it and came
+        back to us (a handover message we hold queued, or a grant) while we
+        were cut off. We rejoin with nothing instead of taking the grant, as a
+        refusal would make us (``log_given_up``); a handover message to us is
+        kept for our fresh self (simulation, --policy seeds 71 and 177: the
+        message stayed queued for ever behind the old mastership).
         """
         if session is not self._drone:
             return  # a session closed meanwhile
+        if self.protocol.log_given_up(takeover_epoch):
+            self.log.warning(
+                "granted while ACTIVE in a mastership a takeover replaced: rejoining with "
+                "nothing before taking the role",
+                epoch=epoch,
+                our_epoch=self.protocol.epoch,
+                takeover_epoch=takeover_epoch,
+            )
+            await self._fenced(self.id, takeover_epoch)
+            return
         held = self.protocol.held_reqnr
         self._retained = {}
         self._retained_through = retained_through if retained_through > held else 0
@@ -1629,6 +1648,7 @@ class _SessionEvents:
                 connected.retained_through,
                 connected.takeover,
                 connected.watermark_reqnr,
+                connected.takeover_epoch,
             )
         )
 

@@ -322,6 +322,9 @@ class ControllerProtocol:
         # The epoch of the takeover that fenced us (on_fenced): older handover
         # messages are not kept for the rejoin.
         self._fenced_in = 0
+        # Fenced (``on_fenced``): this state is given up; the runtime rejoins with a
+        # fresh one, and until then nothing queued is handled here.
+        self.fenced = False
         # Not ACTIVE on our own word (docs/design.md, "Restarts"): every
         # controller starts PASSIVE and asks the drone, which grants the
         # initial master epoch 1 at the mission's start, or tells a restarted
@@ -844,6 +847,7 @@ class ControllerProtocol:
         """
         was_active = self.state is State.ACTIVE
         self.state, self.master = State.PASSIVE, False
+        self.fenced = True
         self.preparing_for = None
         self._fenced_in = max(self._fenced_in, epoch)  # the takeover's (kept_for_rejoin)
         self.log.take()
@@ -988,8 +992,15 @@ class ControllerProtocol:
         return []
 
     def _drain(self) -> list[Effect]:
-        """Handles queued messages while PASSIVE and the next one is there (lines 34-43, 57-59)."""
+        """Handles queued messages while PASSIVE and the next one is there (lines 34-43, 57-59).
+
+        Not once fenced: what we hold is given up, and a message queued while we
+        were ACTIVE (the taker's framing, from the ring) does not follow our log
+        (--lose-master --prepared seed 242: "log message 1 starts at request 1,
+        controller 3 expects 2" before the rejoin). The fresh self handles it."""
         effects: list[Effect] = []
+        if self.fenced:
+            return effects
         while self.state is State.PASSIVE and (self.lognr + 1) in self.log_queue:
             diverged = self._diverged_before(self.log_queue[self.lognr + 1])
             if diverged is not None:

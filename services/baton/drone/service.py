@@ -686,6 +686,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                         retained_through=retained[-1].reqnr if retained else 0,
                         takeover=self.seq.granted_by_takeover,
                         watermark_reqnr=self.seq.cache.watermark,
+                        takeover_epoch=self.seq.takeover_epoch,
                     )
                 )
                 # In batches: the master answers its program from the first while

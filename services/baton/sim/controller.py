@@ -373,13 +373,22 @@ class SimController:
         retained_through: int,
         takeover: bool = False,
         watermark_reqnr: int = 0,
+        takeover_epoch: int = 0,
     ) -> None:
-        """The Connected event: the session's epoch, then node.py's on_granted."""
+        """The Connected event: the session's epoch, then node.py's on_granted (which
+        first rejoins with nothing if a takeover replaced the mastership we are ACTIVE in)."""
         session = self.session
         if session is None or session.sid != sid:
             return
         session.epoch, session.connected = epoch, True
         self._startup_answer()
+        if self.protocol.log_given_up(takeover_epoch):
+            self.world.trace(
+                f"controller {self.id} granted epoch {epoch} while ACTIVE in "
+                f"{self.protocol.epoch}, below takeover {takeover_epoch}"
+            )
+            self._fenced(self.id, takeover_epoch)
+            return
         self.on_granted(epoch, retained_through, takeover, watermark_reqnr)
 
     def on_drone_retained(self, sid: int, replies: list[drone_pb2.RetainedReply]) -> None:

@@ -709,6 +709,7 @@ class SimDrone:
                 through,
                 self.seq.granted_by_takeover,
                 self.seq.cache.watermark,
+                self.seq.takeover_epoch,
             )
             parts: list[tuple[int, Callable[..., None], tuple[Any, ...]]] = [
                 (0, owner.on_drone_connected, connected)
