@@ -28,7 +28,7 @@ from baton.bench.runner import audit_calls, machine, markdown_table, run_plan, s
 from baton.bench.script import GET_POSITION, TAKE_PICTURE
 from baton.rpc.labels import label
 from baton.rpc.methods import path
-from baton.testbed.local import MissionPlan, Snapshot, TestbedPlan
+from baton.testbed.local import MissionPlan, Snapshot, TestbedPlan, local_config
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -89,13 +89,15 @@ class TimelineSettings:
         """The testbed plan with ``handovers``: the paper's (forced, store-and-forward),
         or baton's prepared ones on its cut-through ring."""
         return TestbedPlan(
-            controllers=self.controllers,
-            flush_limit=self.flush_limit,
+            config=local_config(
+                self.controllers,
+                flush_limit=self.flush_limit,
+                prepare_timeout=self.prepare_timeout_s if prepared else None,
+                ring={"forwarding": "cut-through" if prepared else "store-and-forward"},
+                speedup=self.speedup,
+            ),
             handovers=handovers,
             prepared=prepared,
-            prepare_timeout=self.prepare_timeout_s if prepared else None,
-            forwarding="cut-through" if prepared else "store-and-forward",
-            speedup=self.speedup,
             mission=self.mission,
             resolution=self.resolution,
         )
@@ -172,7 +174,7 @@ def _settled(
     points: Sequence[LogPoint], arrivals: Mapping[int, float], settings: TimelineSettings
 ) -> set[int]:
     """Reqnrs at which the last flush has crossed the controller link (with room to spare)."""
-    link = settings.plan(()).controller_link
+    link = settings.plan(()).config.controller_link
     settled: set[int] = set()
     last: LogPoint | None = None
     for point in points:
@@ -388,7 +390,7 @@ def add_preparation_limits(
     this run's requests and handovers) and every picture taken while it lasted, then
     its acknowledgement back (the master knows the target caught up only then), and
     the ratio of the preparation to it."""
-    link = settings.plan(()).controller_link
+    link = settings.plan(()).config.controller_link
     replies = {r["reqnr"]: r for r in rows}
     for record, (began_after, _) in zip(prepared, placed, strict=False):
         taken = sum(
