@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from baton.config import LinkSpec
-from baton.testbed.local import LocalTestbed, MissionPlan, Snapshot, TestbedPlan
+from baton.testbed.local import LocalTestbed, MissionPlan, Snapshot, TestbedPlan, local_config
 from baton.testbed.report import NOT_COUNTED, check_side_effects
 from baton.v1 import drone_pb2, ring_pb2
 
@@ -95,14 +95,16 @@ async def test_two_controllers_three_handovers(
     tmp_path: Path, flush_limit: int, forwarding: str
 ) -> None:
     plan = TestbedPlan(
-        controllers=2,
-        flush_limit=flush_limit,
-        forwarding=forwarding,
+        config=local_config(
+            2,
+            flush_limit=flush_limit,
+            ring={"forwarding": forwarding},
+            speedup=20.0,
+            controller_link=FAST_LINK,
+            drone_link=FAST_LINK,
+        ),
         handovers=((8, 1), (16, 0), (24, 1)),
-        speedup=20.0,
         mission=SMALL_GRID,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     snapshot = await fly(tmp_path, plan)
     assert snapshot.drone.master == 1
@@ -110,13 +112,11 @@ async def test_two_controllers_three_handovers(
 
 async def test_six_controllers_handovers_over_one_three_and_five_hops(tmp_path: Path) -> None:
     plan = TestbedPlan(
-        controllers=6,
-        flush_limit=0,
+        config=local_config(
+            6, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
         handovers=((6, 1), (12, 4), (18, 3)),  # 0->1: 1 hop, 1->4: 3 hops, 4->3: 5 hops
-        speedup=20.0,
         mission=SMALL_GRID,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     snapshot = await fly(tmp_path, plan)
     assert snapshot.drone.master == 3
@@ -126,13 +126,11 @@ async def test_six_controllers_handovers_over_one_three_and_five_hops(tmp_path: 
 async def test_handover_while_a_call_is_in_flight_both_orders(tmp_path: Path, order: str) -> None:
     """Footnote 2, forced: the drone holds back the reply (or the notice) at every handover."""
     plan = TestbedPlan(
-        controllers=2,
-        flush_limit=0,
+        config=local_config(
+            2, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
         handovers=((8, 1), (16, 0), (24, 1)),
-        speedup=20.0,
         mission=SMALL_GRID,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
         drone_args=("--force-race", order, "--race-delay", "0.3"),
     )
     snapshot = await fly(tmp_path, plan)
@@ -154,13 +152,11 @@ async def test_a_replica_that_restarts_catches_up_from_its_predecessor(tmp_path:
     """A controller stopped mid-mission and restarted recovers its log file, and its
     predecessor gives it the rest."""
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
+        config=local_config(
+            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
         handovers=((8, 1), (30, 0)),
-        speedup=20.0,
         mission=SMALL_GRID,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         deadline = asyncio.get_running_loop().time() + 120

@@ -16,7 +16,7 @@ from baton.digest import request_digest
 from baton.rpc.channels import aio_channel
 from baton.rpc.errors import StatusError
 from baton.rpc.tls import Identity
-from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_api_pb2_grpc, ring_pb2, ring_pb2_grpc
 
@@ -25,9 +25,7 @@ MISSIONS = Path(__file__).parent / "missions"
 
 async def test_a_diverging_mission_is_stopped_with_both_requests_shown(tmp_path: Path) -> None:
     plan = TestbedPlan(
-        controllers=2,
-        flush_limit=0,
-        speedup=20.0,
+        config=local_config(2, flush_limit=0, speedup=20.0),
         emulate_links=False,
         mission_file=MISSIONS / "diverging.py",
     )
@@ -49,13 +47,15 @@ async def test_a_diverging_mission_is_stopped_with_both_requests_shown(tmp_path:
 async def test_a_call_the_program_gave_up_on_is_logged_as_it_saw_it(tmp_path: Path) -> None:
     """Issue 9, defect 1, across processes: a TakePicture whose deadline passed at the drone."""
     plan = TestbedPlan(
-        controllers=2,
-        flush_limit=0,
-        speedup=20.0,
+        config=local_config(
+            2,
+            flush_limit=0,
+            speedup=20.0,
+            # 0.3 s each way: the program's 0.45 s deadline passes while the drone is at it.
+            drone_link=LinkSpec(latency=0.3, bandwidth=None),
+            controller_link=LinkSpec(latency=0.002, bandwidth=None),
+        ),
         mission_file=MISSIONS / "gives_up.py",
-        # 0.3 s each way: the program's 0.45 s deadline passes while the drone is at it.
-        drone_link=LinkSpec(latency=0.3, bandwidth=None),
-        controller_link=LinkSpec(latency=0.002, bandwidth=None),
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         snapshot = await testbed.run_mission(120)
@@ -78,13 +78,11 @@ async def test_an_outsider_calling_the_masters_proxy_is_refused_and_changes_noth
 ) -> None:
     """Issue 9, defect 6: only the mission program may call a controller's drone API."""
     plan = TestbedPlan(
-        controllers=2,
-        flush_limit=0,
+        config=local_config(
+            2, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
         handovers=((10, 1),),
-        speedup=20.0,
         mission=SMALL_GRID,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         assert testbed.config is not None
@@ -174,9 +172,11 @@ async def test_a_replicas_program_that_gave_up_waiting_for_the_log_starts_again(
     program had its replies) restarts the program to replay the log, instead of stopping
     the mission on that replica with a determinism error."""
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=1 << 20,  # the log reaches the replicas at the end only
-        speedup=20.0,
+        config=local_config(
+            3,
+            flush_limit=1 << 20,  # the log reaches the replicas at the end only
+            speedup=20.0,
+        ),
         emulate_links=False,
         mission_file=MISSIONS / "gives_up_on_replicas.py",
     )

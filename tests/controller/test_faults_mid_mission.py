@@ -27,7 +27,7 @@ import pytest
 from test_controller_end_to_end import FAST_LINK, assert_mission_promises
 from waiting import eventually
 
-from baton.testbed.local import LocalTestbed, MissionPlan, TestbedPlan
+from baton.testbed.local import LocalTestbed, MissionPlan, TestbedPlan, local_config
 from baton.v1 import drone_pb2, ring_pb2
 
 # Long legs (100 m at 5 m/s: 1 s of wall time at speed-up 20) so that the pause
@@ -49,13 +49,11 @@ async def flying_to_the_second_waypoint(testbed: LocalTestbed) -> bool:
 @pytest.mark.parametrize("pause_s", [8.0, 30.0])
 async def test_the_mission_survives_a_vehicle_outage(tmp_path: Path, pause_s: float) -> None:
     plan = TestbedPlan(
-        controllers=2,
-        flush_limit=0,
+        config=local_config(
+            2, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
         handovers=((12, 1),),
-        speedup=20.0,
         mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         mission = asyncio.create_task(testbed.run_mission(240))
@@ -87,13 +85,11 @@ async def test_the_mission_survives_a_vehicle_outage(tmp_path: Path, pause_s: fl
 
 async def test_the_drone_killed_and_restarted_resumes_the_mission(tmp_path: Path) -> None:
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
+        config=local_config(
+            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
         handovers=((8, 1), (30, 2)),  # one before the kill, one after it
-        speedup=20.0,
         mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         await eventually(
@@ -130,12 +126,10 @@ async def test_a_dead_master_is_a_visible_stall_within_seconds(tmp_path: Path) -
     The replica does not wait (issue 10): it routes the ring around the dead one, and
     says so."""
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
-        speedup=20.0,
+        config=local_config(
+            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
         mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
         drone_args=("--takeover-after", "0"),
     )
     async with LocalTestbed(plan, tmp_path) as testbed:

@@ -21,6 +21,7 @@ from baton.testbed.local import (
     MissionPlan,
     TestbedPlan,
     drone_status,
+    local_config,
 )
 from baton.v1 import drone_pb2, ring_pb2
 
@@ -43,14 +44,16 @@ async def test_six_controllers_over_one_three_and_five_hops_in_each_mode(
     """The handovers over 1, 3 and 5 hops of the worst-case benchmark, in the paper's
     protocol (forced handovers, whole messages) and in baton's (cut-through, prepared)."""
     plan = TestbedPlan(
-        controllers=6,
-        flush_limit=0,
+        config=local_config(
+            6,
+            flush_limit=0,
+            speedup=20.0,
+            controller_link=FAST_LINK,
+            drone_link=FAST_LINK,
+            ring={"forwarding": forwarding},
+        ),
         handovers=((6, 1), (12, 4), (18, 3)),
-        speedup=20.0,
         mission=SMALL_GRID,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
-        forwarding=forwarding,
         prepared=prepared,
     )
     snapshot = await fly(tmp_path, plan)
@@ -75,13 +78,15 @@ async def test_a_64_mb_message_crosses_a_six_controller_cut_through_ring_intact(
     """Four 17 MB pictures under a 128 MB flush limit: the master's last flush, when its
     program ends, is one 66 MB message, passed on frame by frame by four controllers."""
     plan = TestbedPlan(
-        controllers=6,
-        flush_limit=128 * 2**20,
-        speedup=20.0,
+        config=local_config(
+            6,
+            flush_limit=128 * 2**20,
+            speedup=20.0,
+            controller_link=FAST_LINK,
+            drone_link=FAST_LINK,
+        ),
         mission=SMALL_GRID,
         resolution="2400x2400",
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     snapshot = await fly(tmp_path, plan, timeout=300)
     largest = max(
@@ -105,13 +110,15 @@ async def test_a_ring_link_cut_in_the_middle_of_a_cut_through_message_loses_noth
     link breaks: 1 gives the relay up, and 2 gets the message whole once the link is
     back, from 1's re-send; nothing is lost or handled twice."""
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
-        speedup=20.0,
+        config=local_config(
+            3,
+            flush_limit=0,
+            speedup=20.0,
+            controller_link=PAPER_CONTROLLER_LINK,
+            drone_link=FAST_LINK,
+        ),
         mission=MissionPlan(grid=2, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0),
         resolution="1600x1200",
-        controller_link=PAPER_CONTROLLER_LINK,
-        drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         stub = testbed.controller_stubs[1]
@@ -136,16 +143,18 @@ async def test_a_prepared_handover_whose_target_never_catches_up_is_forced(
     forces the handover at prepare_timeout, and the mission completes once the link
     carries again."""
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
+        config=local_config(
+            3,
+            flush_limit=0,
+            prepare_timeout=1.0,
+            # Long enough that the mission goes on well after the forced handover.
+            speedup=5.0,
+            controller_link=FAST_LINK,
+            drone_link=FAST_LINK,
+        ),
         handovers=((8, 2),),
         prepared=True,
-        prepare_timeout=1.0,
-        # Long enough that the mission goes on well after the forced handover.
-        speedup=5.0,
         mission=MissionPlan(grid=3, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0),
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         testbed.blackhole_link("link-ring-2")
@@ -176,15 +185,13 @@ async def test_a_prepared_handover_moves_the_master_between_requests_on_the_mast
     and the preparation would last the whole sleep.)"""
     script = "p,p,c,s3,p,p"  # reqnr 3 is the picture, 4 the sleep, 5 the next request
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
+        config=local_config(
+            3, flush_limit=0, speedup=1.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
         handovers=((3, 2),),
         prepared=True,
-        speedup=1.0,
         mission_file=BENCH_MISSION,
         mission_args=bench_mission_args(script),
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         snapshot = await testbed.run_mission(120)

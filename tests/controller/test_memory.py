@@ -12,7 +12,7 @@ from pathlib import Path
 
 from waiting import eventually
 
-from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
 from baton.v1 import ring_pb2
 
 MISSIONS = Path(__file__).parent / "missions"
@@ -30,17 +30,15 @@ def rss_bytes(pid: int) -> int:
 
 async def test_a_200_picture_mission_leaves_the_controllers_memory_flat(tmp_path: Path) -> None:
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
+        config=local_config(3, flush_limit=0, speedup=20.0),
         handovers=((60, 1), (140, 2)),
-        speedup=20.0,
         emulate_links=False,
         mission_file=MISSIONS / "pictures.py",
         mission_args=(f"count={PICTURES}",),
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         pids = {}
-        for cid in range(plan.controllers):
+        for cid in plan.config.ring_order:
             process = testbed.supervisor.parts[f"controller-{cid}"].process
             assert process is not None
             pids[cid] = process.pid

@@ -28,7 +28,7 @@ from test_controller_end_to_end import FAST_LINK, assert_mission_promises
 from test_faults_mid_mission import LONG_LEGS
 from waiting import eventually
 
-from baton.testbed.local import LocalTestbed, TestbedPlan, remove_sqlite
+from baton.testbed.local import LocalTestbed, TestbedPlan, local_config, remove_sqlite
 from baton.v1 import drone_pb2, ring_pb2
 
 
@@ -57,15 +57,17 @@ async def test_a_killed_ex_master_restarts_catches_up_and_is_master_again(
     tmp_path: Path, victim: int, handovers: tuple[tuple[int, int], ...], keeps_its_log: bool
 ) -> None:
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
+        config=local_config(
+            3,
+            flush_limit=0,
+            # 10, not 20: the restarted controller must be up and following before the
+            # mission ends, on a loaded CI machine too (a restart took 3 s there).
+            speedup=10.0,
+            controller_link=FAST_LINK,
+            drone_link=FAST_LINK,
+        ),
         handovers=handovers[:-1],
-        # 10, not 20: the restarted controller must be up and following before the
-        # mission ends, on a loaded CI machine too (a restart took 3 s there).
-        speedup=10.0,
         mission=LONG_LEGS,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     last_before = handovers[-2][0]
     async with LocalTestbed(plan, tmp_path) as testbed:
@@ -112,7 +114,7 @@ async def test_a_killed_ex_master_restarts_catches_up_and_is_master_again(
     ] and status.epoch == len(handovers) + 1
     # With its log file it recovered what it had, and its predecessor sent only the rest.
     assert ("recovered from the log file" in after) is keeps_its_log
-    predecessor = (victim - 1) % plan.controllers
+    predecessor = (victim - 1) % len(plan.config.controllers)
     ups = [
         e
         for e in log_events(tmp_path, f"controller-{predecessor}")
@@ -128,14 +130,12 @@ async def test_a_stale_request_after_a_hand_back_is_ignored_not_fatal(tmp_path: 
     drone requests; about half the request numbers are Clock calls) and hands back; the
     old request then arrives from 0, master again in a newer epoch."""
     plan = TestbedPlan(
-        controllers=2,
-        flush_limit=0,
+        config=local_config(
+            2, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
         # Arm is request 3; the reply comes first (held notice), so 0 sends 4 at once.
         handovers=((3, 1), (40, 0), (42, 1)),
-        speedup=20.0,
         mission=LONG_LEGS,  # request 42 is early in the mission however loaded the machine
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
         # Takeovers off: with a 4 s uplink the drone would not see 0 for longer than the
         # takeover time and rightly take it over; the stale request is the subject here.
         drone_args=("--force-race", "reply-first", "--race-delay", "0.3", "--takeover-after", "0"),

@@ -16,7 +16,7 @@ from test_controller_end_to_end import FAST_LINK, SMALL_GRID, assert_mission_pro
 from baton.certs.make import init, issue
 from baton.rpc.channels import aio_channel, sync_channel
 from baton.rpc.tls import DRONE, Identity, Tls
-from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
@@ -32,12 +32,10 @@ async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing
     tmp_path: Path,
 ) -> None:
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
-        speedup=20.0,
+        config=local_config(
+            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
         mission=SMALL_GRID,
-        controller_link=FAST_LINK,
-        drone_link=FAST_LINK,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         config = testbed.config

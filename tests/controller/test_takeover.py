@@ -22,24 +22,21 @@ from test_faults_mid_mission import LONG_LEGS
 from test_restarts_and_epochs import log_events
 from waiting import eventually
 
-from baton.testbed.local import WIFI_DRONE_LINK, LocalTestbed, Snapshot, TestbedPlan
+from baton.config import LinkSpec
+from baton.testbed.local import WIFI_DRONE_LINK, LocalTestbed, Snapshot, TestbedPlan, local_config
 from baton.v1 import drone_pb2, ring_pb2
 
 LOST = drone_pb2.HANDOVER_TRIGGER_LOST
 
 
-def three_controllers(flush_limit: int, **options: object) -> TestbedPlan:
+def three_controllers(
+    flush_limit: int, handovers: tuple[tuple[int, int], ...] = (), drone_link: LinkSpec = FAST_LINK
+) -> TestbedPlan:
     """Ring 0 -> 1 -> 2 -> 0, master 0, the long-legged mission at 20x, fast links."""
-    settings: dict[str, object] = {
-        "controllers": 3,
-        "flush_limit": flush_limit,
-        "speedup": 20.0,
-        "mission": LONG_LEGS,
-        "controller_link": FAST_LINK,
-        "drone_link": FAST_LINK,
-        **options,
-    }
-    return TestbedPlan(**settings)  # type: ignore[arg-type]
+    config = local_config(
+        3, flush_limit=flush_limit, speedup=20.0, controller_link=FAST_LINK, drone_link=drone_link
+    )
+    return TestbedPlan(config=config, handovers=handovers, mission=LONG_LEGS)
 
 
 def takeovers(

@@ -13,6 +13,7 @@ from baton.drone.policy import (
     STAY,
     Decision,
     Fix,
+    LinkBounds,
     LinkState,
     PolicyParams,
     PolicyState,
@@ -253,28 +254,32 @@ def test_out_of_range_stations_and_dead_links_are_never_chosen() -> None:
     assert "3 link too slow (round trip 2.50 s over 2 s)" in decision.reason
 
 
+BOUNDS = LinkBounds(max_rtt_s=0.5, rtt_stale_s=3.0)
+
+
 def test_link_health_is_up_with_a_round_trip_fast_and_fresh_enough() -> None:
     # Nothing measured yet (a stream just opened): healthy.
-    assert link_problem(UP, 0.5, 3.0) == ""
-    assert link_problem(LinkState(up=True, rtt_s=0.5, rtt_age_s=3.0), 0.5, 3.0) == ""
-    assert link_problem(LinkState(up=True, rtt_s=0.51, rtt_age_s=0.1), 0.5, 3.0) == (
+    assert link_problem(UP, BOUNDS) == ""
+    assert link_problem(LinkState(up=True, rtt_s=0.5, rtt_age_s=3.0), BOUNDS) == ""
+    assert link_problem(LinkState(up=True, rtt_s=0.51, rtt_age_s=0.1), BOUNDS) == (
         "link too slow (round trip 0.51 s over 0.5 s)"
     )
-    assert link_problem(LinkState(up=True, rtt_s=0.01, rtt_age_s=3.2), 0.5, 3.0) == (
+    assert link_problem(LinkState(up=True, rtt_s=0.01, rtt_age_s=3.2), BOUNDS) == (
         "link stale (last round trip 3.2 s ago, over 3 s)"
     )
     # Pings sent, none answered: judged by the first one's age.
-    assert link_problem(LinkState(up=True, rtt_age_s=2.9), 0.5, 3.0) == ""
-    assert link_problem(LinkState(up=True, rtt_age_s=3.5), 0.5, 3.0) == (
+    assert link_problem(LinkState(up=True, rtt_age_s=2.9), BOUNDS) == ""
+    assert link_problem(LinkState(up=True, rtt_age_s=3.5), BOUNDS) == (
         "link silent (no answer to a ping of 3.5 s ago)"
     )
     # Down says so, whatever was measured before.
     down = LinkState(up=False, down_for_s=1.5, rtt_s=0.01, rtt_age_s=0.2)
-    assert link_problem(down, 0.5, 3.0) == "link down (1.5 s)"
+    assert link_problem(down, BOUNDS) == "link down (1.5 s)"
 
 
 def test_a_slow_or_stale_link_is_not_chosen_and_a_master_on_one_is_left() -> None:
-    params = PolicyParams("nearest", margin_m=50.0, dwell_s=0.0, max_rtt_s=0.3, rtt_stale_s=2.0)
+    bounds = LinkBounds(max_rtt_s=0.3, rtt_stale_s=2.0)
+    params = PolicyParams("nearest", margin_m=50.0, dwell_s=0.0, link_bounds=bounds)
     placed = stations((0.0, 600.0), (500.0, 600.0), (600.0, 600.0))
     fast = LinkState(up=True, rtt_s=0.01, rtt_age_s=0.5)
     slow = LinkState(up=True, rtt_s=0.8, rtt_age_s=0.5)

@@ -11,9 +11,10 @@ import pytest
 from drone_harness import connect_as_master, start_drone
 from waiting import eventually
 
+from baton.config import controllers_only, merge
 from baton.controller.drone_link import DroneStandby
 from baton.digest import request_digest
-from baton.drone.link_probe import LinkBounds
+from baton.drone.policy import LinkBounds
 from baton.logs import get_logger
 from baton.rpc.streams import next_message
 from baton.v1 import drone_api_pb2 as api
@@ -67,7 +68,11 @@ async def test_the_drone_measures_each_standby_links_round_trip_and_says_when_it
     controller 2 holds a stream and never answers: its link goes silent, is logged
     unhealthy, and healthy again once it answers."""
     caplog.set_level(logging.INFO, logger="baton.drone")
-    drone, server = await start_drone(link_bounds=LinkBounds(max_rtt_s=0.5, rtt_stale_s=1.5))
+    bounds = [
+        ("max_rtt", "handover_policy.max_rtt", 0.5),
+        ("rtt_stale", "handover_policy.rtt_stale", 1.5),
+    ]
+    drone, server = await start_drone(config=merge(controllers_only((0, 1, 2)), bounds))
     pings = asyncio.create_task(drone.service.watch_links())
 
     async def take_over(_: drone_pb2.TakeOver) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from baton.missions import grid, grid_async
 from baton.replay.replayer import replay_log
-from baton.testbed.local import LocalTestbed, MissionPlan, TestbedPlan
+from baton.testbed.local import LocalTestbed, MissionPlan, TestbedPlan, local_config
 from baton.testbed.report import build_report
 from baton.v1 import ring_pb2
 
@@ -17,10 +17,8 @@ ARGS = ("grid=2", "spacing_m=20", "altitude_m=5")
 
 async def test_the_async_grid_flies_through_handovers_exactly_once(tmp_path: Path) -> None:
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
+        config=local_config(3, flush_limit=0, speedup=20.0),
         handovers=((8, 1), (16, 2), (24, 0)),
-        speedup=20.0,
         emulate_links=False,
         mission=MissionPlan(grid=2, spacing_m=20.0, altitude_m=5.0),  # what the report expects
         mission_file=Path(grid_async.__file__),

@@ -29,7 +29,9 @@ EXAMPLE = Path(__file__).parents[2] / "examples" / "corridor.yaml"
 MARGIN_M, LEAD_S, SPEED_M_S = 50.0, 10.0, 5.0
 
 
-def corridor_on_free_ports(tmp_path: Path, policy: str, max_rtt: str | None = None) -> Path:
+def corridor_on_free_ports(
+    tmp_path: Path, policy: str, max_rtt: str | None = None, prepare_timeout: str | None = None
+) -> Path:
     document = yaml.safe_load(EXAMPLE.read_text())
     document["drone"]["address"] = f"127.0.0.1:{free_port()}"
     for controller in document["controllers"]:
@@ -37,6 +39,8 @@ def corridor_on_free_ports(tmp_path: Path, policy: str, max_rtt: str | None = No
     document["handover_policy"]["name"] = policy
     if max_rtt is not None:
         document["handover_policy"]["max_rtt"] = max_rtt
+    if prepare_timeout is not None:
+        document["prepare_timeout"] = prepare_timeout
     config = tmp_path / "corridor.yaml"
     config.write_text(yaml.safe_dump(document))
     return config
@@ -130,17 +134,17 @@ async def test_back_and_forth_across_a_boundary_moves_the_master_once_per_crossi
     master 1's link to the drone gets slow. The drone measures its round trip
     rising over the bound, the policy leaves it for 0 and keeps off it while it
     is slow, and goes back to it, the nearer, once it is fast again."""
-    config_path = corridor_on_free_ports(tmp_path, "nearest", max_rtt=f"{MAX_RTT_S}s")
+    config_path = corridor_on_free_ports(
+        tmp_path, "nearest", max_rtt=f"{MAX_RTT_S}s", prepare_timeout=f"{PREPARE_TIMEOUT_S}s"
+    )
     config = load_config(config_path)
     eastings = [0, *DITHER, *CROSSINGS]
     plan = TestbedPlan(
-        controllers=len(config.controllers),
-        base_config=config,
-        speedup=config.speedup,
+        config=config,
+        from_file=True,
         mission_file=Path(__file__).parent / "missions" / "back_and_forth.py",
         mission_args=(f"eastings={','.join(map(str, eastings))}",),
         resolution="160x120",
-        prepare_timeout=PREPARE_TIMEOUT_S,
     )
     started = time.monotonic()
     async with LocalTestbed(plan, tmp_path / "w") as testbed:
@@ -270,9 +274,8 @@ async def test_no_controller_usable_holds_the_vehicle_or_flies_on_into_a_range(
     home = Position(config.drone.home.latitude_deg, config.drone.home.longitude_deg)
     eastings = [0, 450, 700, 1000]
     plan = TestbedPlan(
-        controllers=len(config.controllers),
-        base_config=config,
-        speedup=config.speedup,
+        config=config,
+        from_file=True,
         mission_file=Path(__file__).parent / "missions" / "back_and_forth.py",
         mission_args=(f"eastings={','.join(map(str, eastings))}",),
         resolution="160x120",

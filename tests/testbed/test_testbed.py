@@ -13,7 +13,13 @@ from pathlib import Path
 import pytest
 from chromium import render, require_chromium
 
-from baton.testbed.local import PAPER_CONTROLLER_LINK, LocalTestbed, MissionPlan, TestbedPlan
+from baton.testbed.local import (
+    PAPER_CONTROLLER_LINK,
+    LocalTestbed,
+    MissionPlan,
+    TestbedPlan,
+    local_config,
+)
 from baton.testbed.report import build_report
 from baton.v1 import drone_pb2
 
@@ -54,10 +60,8 @@ def alive(pid: int) -> bool:
 
 async def test_report_agrees_with_the_drones_own_audit(tmp_path: Path) -> None:
     plan = TestbedPlan(
-        controllers=3,
-        flush_limit=0,
+        config=local_config(3, flush_limit=0, speedup=20.0),
         handovers=((8, 1), (16, 2), (24, 0)),
-        speedup=20.0,
         mission=MissionPlan(grid=2, spacing_m=20.0, altitude_m=5.0),
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
@@ -379,13 +383,19 @@ def test_a_flag_given_with_its_default_value_wins_over_the_file(
         "--workdir",
         str(tmp_path / "w"),
     )
-    assert (given.flush_limit, given.speedup) == (2 * 2**20, 10.0)
-    file_only = _planned(monkeypatch, "--config", str(config), "--workdir", str(tmp_path / "w"))
+    assert (given.config.flush_limit, given.config.speedup) == (2 * 2**20, 10.0)
+    file_only = _planned(
+        monkeypatch, "--config", str(config), "--workdir", str(tmp_path / "w")
+    ).config
     assert (file_only.flush_limit, file_only.speedup) == (512 * 2**10, 40.0)
     assert file_only.drone_link.latency == 0.005
     assert file_only.controller_link == PAPER_CONTROLLER_LINK  # the file has none
-    neither = _planned(monkeypatch, "--workdir", str(tmp_path / "w"))
-    assert (neither.flush_limit, neither.speedup, neither.controllers) == (2 * 2**20, 10.0, 3)
+    neither = _planned(monkeypatch, "--workdir", str(tmp_path / "w")).config
+    assert (neither.flush_limit, neither.speedup, len(neither.controllers)) == (
+        2 * 2**20,
+        10.0,
+        3,
+    )
 
 
 def test_an_explicit_flush_limit_wins_over_the_file_across_a_real_testbed(tmp_path: Path) -> None:

@@ -46,6 +46,7 @@ from baton.testbed.local import (
     Snapshot,
     TestbedPlan,
     drone_status,
+    local_config,
 )
 from baton.testbed.report import check_side_effects
 from baton.v1 import drone_pb2, ring_pb2
@@ -101,10 +102,10 @@ def kill_points(settings: FailoverSettings) -> list[KillPoint]:
 def plan_for(settings: FailoverSettings, controllers: int) -> TestbedPlan:
     """The testbed of one run: the paper's links, a scripted handover one hop on."""
     return TestbedPlan(
-        controllers=controllers,
-        flush_limit=settings.flush_limit,
+        config=local_config(
+            controllers, flush_limit=settings.flush_limit, speedup=settings.speedup
+        ),
         handovers=((settings.handover_at, 1),),
-        speedup=settings.speedup,
         mission=MissionPlan(grid=settings.grid, spacing_m=50.0, altitude_m=10.0),
     )
 
@@ -228,7 +229,7 @@ def measure(
     holds = taking_over.holds_reqnr
     sizes = {a.reqnr: a.reply_bytes for a in drone.audit}
     missing = sum(size for reqnr, size in sizes.items() if holds < reqnr <= record.after_reqnr)
-    link = plan.drone_link
+    link = plan.config.drone_link
     bandwidth = link.bandwidth or float("inf")
     physical = link.latency + missing * 8 / bandwidth + t_conn
     detection = record.decided_at - killed_at

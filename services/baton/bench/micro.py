@@ -52,7 +52,7 @@ from baton.rpc.methods import DRONE_API_SERVICES, service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
 from baton.rpc.server import BatonServer, generic, servicer
 from baton.rpc.tls import DRONE, Identity, Tls
-from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_api_pb2_grpc, drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
@@ -96,16 +96,18 @@ async def measure_proxy_and_drone(
     """Proxy vs direct GetPosition round trips, and T_conn, on one testbed without links
     (with mutual TLS, or ``insecure``)."""
     plan = TestbedPlan(
-        controllers=2,
-        flush_limit=1024 * MB,  # no flushes during the measurement
-        speedup=1.0,
+        config=local_config(
+            2,
+            flush_limit=1024 * MB,  # no flushes during the measurement
+            speedup=1.0,
+            tls={"insecure": insecure},
+        ),
         # The controller's own program makes no call and holds (stays running, so
         # its controller logs calls as during a mission; an ended program's
         # controller flushes every entry at once): this process is its only caller.
         mission_args=bench_mission_args(f"h{HOLD_S}"),
         mission_file=BENCH_MISSION,
         emulate_links=False,
-        insecure=insecure,
     )
     workdir.mkdir(parents=True, exist_ok=True)
     # This process calls controller 0's proxy as its mission program does, with

@@ -41,7 +41,7 @@ async def run_plan(plan: TestbedPlan, workdir: Path, timeout: float, label: str)
                 f"handovers {done}/{len(plan.handovers)}"
             )
 
-    say(f"{label}: starting {plan.controllers} controllers in {workdir}")
+    say(f"{label}: starting {len(plan.config.controllers)} controllers in {workdir}")
     async with LocalTestbed(plan, workdir) as testbed:
         snapshot = await testbed.run_mission(timeout, progress, period=1.0)
     failed = {

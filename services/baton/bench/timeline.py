@@ -36,7 +36,7 @@ from baton.bench.runner import audit_calls, machine, markdown_table, run_plan, s
 from baton.bench.script import GET_POSITION, TAKE_PICTURE
 from baton.rpc.labels import label
 from baton.rpc.methods import path
-from baton.testbed.local import MissionPlan, Snapshot, TestbedPlan
+from baton.testbed.local import MissionPlan, Snapshot, TestbedPlan, local_config
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -97,13 +97,15 @@ class TimelineSettings:
         """The testbed plan with ``handovers``: the paper's (forced, store-and-forward),
         or baton's prepared ones on its cut-through ring."""
         return TestbedPlan(
-            controllers=self.controllers,
-            flush_limit=self.flush_limit,
+            config=local_config(
+                self.controllers,
+                flush_limit=self.flush_limit,
+                prepare_timeout=self.prepare_timeout_s if prepared else None,
+                ring={"forwarding": "cut-through" if prepared else "store-and-forward"},
+                speedup=self.speedup,
+            ),
             handovers=handovers,
             prepared=prepared,
-            prepare_timeout=self.prepare_timeout_s if prepared else None,
-            forwarding="cut-through" if prepared else "store-and-forward",
-            speedup=self.speedup,
             mission=self.mission,
             resolution=self.resolution,
         )
@@ -180,7 +182,7 @@ def _settled(
     points: Sequence[LogPoint], arrivals: Mapping[int, float], settings: TimelineSettings
 ) -> set[int]:
     """Reqnrs at which the last flush has crossed the controller link (with room to spare)."""
-    link = settings.plan(()).controller_link
+    link = settings.plan(()).config.controller_link
     settled: set[int] = set()
     last: LogPoint | None = None
     for point in points:
@@ -396,8 +398,8 @@ def add_preparation_limits(
     handovers), then every picture taken while it lasted, from when its bytes reached
     the master, over one controller link, the acknowledgement back, and the drone link
     both ways; and the ratio of the preparation to it."""
-    plan = settings.plan(())
-    ring, drone = plan.controller_link, plan.drone_link
+    config = settings.plan(()).config
+    ring, drone = config.controller_link, config.drone_link
     replies = {r["reqnr"]: r for r in rows}
     for record, (began_after, _) in zip(prepared, placed, strict=False):
         pictures = [

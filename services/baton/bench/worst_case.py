@@ -40,7 +40,13 @@ from baton.bench.script import (
     worst_case_script,
 )
 from baton.config import LinkSpec
-from baton.testbed.local import PAPER_CONTROLLER_LINK, WIFI_DRONE_LINK, Snapshot, TestbedPlan
+from baton.testbed.local import (
+    PAPER_CONTROLLER_LINK,
+    WIFI_DRONE_LINK,
+    Snapshot,
+    TestbedPlan,
+    local_config,
+)
 from baton.v1 import ring_pb2
 
 CONTROLLERS = 6
@@ -96,15 +102,17 @@ async def measure_flush_limit(
     hop_sequence = [h for _ in range(settings.repeat) for h in settings.hops]
     script = worst_case_script(flush_limit, hop_sequence, settings.controllers, settle)
     plan = TestbedPlan(
-        controllers=settings.controllers,
-        flush_limit=flush_limit,
-        forwarding=forwarding,
+        config=local_config(
+            settings.controllers,
+            flush_limit=flush_limit,
+            ring={"forwarding": forwarding},
+            speedup=1.0,
+            controller_link=settings.controller_link,
+            drone_link=settings.drone_link,
+        ),
         handovers=script.handovers,
-        speedup=1.0,
         mission_args=bench_mission_args(script.script),
         mission_file=BENCH_MISSION,
-        controller_link=settings.controller_link,
-        drone_link=settings.drone_link,
     )
     timeout = 120 + len(hop_sequence) * (settle + 4 * t_log(flush_limit + full_picture, 0, 20e6))
     label = f"worst-case {forwarding} f={flush_limit / MB:g} MB"

@@ -203,7 +203,6 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     (``baton.config.merge``); ConfigError or ValueError names the flag and the fix."""
     from baton.config import controllers_only, load_config, merge
     from baton.drone.dedupe import DEFAULT_WINDOW
-    from baton.drone.link_probe import LinkBounds
     from baton.drone.master import load_handover_script
     from baton.drone.mavlink_relay import VehicleEndpoint
     from baton.drone.service import DroneSettings, Race
@@ -275,7 +274,6 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         mavlink_key=mavlink_key,
         policy=policy,
         stations=stations,
-        link_bounds=LinkBounds(config.handover_policy.max_rtt, config.handover_policy.rtt_stale),
     )
 
 
@@ -283,6 +281,7 @@ def handover_policy(config: BatonConfig) -> tuple[PolicyParams | None, dict[int,
     """The policy the drone runs (the model's, flag merged in) and every controller's
     station (the model has checked that each has a location and a range)."""
     from baton.drone.policy import PolicyParams, Station
+    from baton.drone.service import link_bounds
     from baton.sdk import Position
 
     chosen = config.handover_policy
@@ -302,8 +301,7 @@ def handover_policy(config: BatonConfig) -> tuple[PolicyParams | None, dict[int,
         # A master's link down while in range is lost after the takeover time, as
         # the takeover watch counts it.
         link_lost_after_s=config.takeover_after,
-        max_rtt_s=chosen.max_rtt,
-        rtt_stale_s=chosen.rtt_stale,
+        link_bounds=link_bounds(config),
     )
     return params, stations
 

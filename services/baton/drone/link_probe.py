@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from baton.drone.policy import LinkState, link_problem
+from baton.drone.policy import LinkBounds, LinkState, link_problem
 from baton.logs import BoundLogger
 from baton.v1 import drone_pb2
 
@@ -41,14 +41,6 @@ class _Probe:
     previous_rtt_s: float | None = None  # the answer before the last one
     answered_at: float | None = None  # monotonic
     measured_sent_at: float = float("-inf")  # when the ping measured was sent
-
-
-@dataclass(frozen=True)
-class LinkBounds:
-    """What a healthy link is (wall seconds): ``policy.link_problem``'s bounds."""
-
-    max_rtt_s: float = 2.0
-    rtt_stale_s: float = 3.0
 
 
 class LinkProbes:
@@ -117,7 +109,7 @@ class LinkProbes:
 
     def problem(self, link: LinkState) -> str:
         """Why ``link`` is not healthy by these bounds; empty if it is."""
-        return link_problem(link, self.bounds.max_rtt_s, self.bounds.rtt_stale_s)
+        return link_problem(link, self.bounds)
 
     def status(
         self, controller_id: int, standby: bool, connect: bool, down_for_s: float, now: float

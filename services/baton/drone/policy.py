@@ -26,8 +26,8 @@ Two policies (docs/design.md, "Range-driven handovers"):
   stay in longest, if that is longer than the master's.
 
 Both never choose a station that is out of range or whose link is not
-healthy (``link_problem``: down, its last round trip over ``max_rtt_s`` or
-older than ``rtt_stale_s``). When no station is usable the vehicle *flies on*
+healthy (``link_problem``: down, its last round trip over ``LinkBounds.max_rtt_s``
+or older than ``rtt_stale_s``). When no station is usable the vehicle *flies on*
 (``fly_on``) if the leg it flies (``Fix.leg_to``, the master's last Goto)
 leads into the range of a station not known to be dead, or it is in such a
 range whose station's link has had less than ``link_up_s`` to come up since
@@ -99,9 +99,31 @@ class LinkState:
     rtt_age_s: float | None = None
 
 
-def link_problem(link: LinkState, max_rtt_s: float, rtt_stale_s: float) -> str:
+def _check_finite(owner: object, fields: tuple[str, ...], what: str) -> None:
+    """ValueError unless each of ``owner``'s ``fields`` is >= 0 and finite."""
+    for name in fields:
+        value = getattr(owner, name)
+        if not 0 <= value < math.inf:
+            raise ValueError(f"{what} {name} must be >= 0 and finite, got {value!r}")
+
+
+@dataclass(frozen=True)
+class LinkBounds:
+    """What a healthy link is (``link_problem``): its last round trip took at most
+    ``max_rtt_s`` and is at most ``rtt_stale_s`` old. Wall seconds: a network does not
+    speed up with the mission. The policy's (``PolicyParams.link_bounds``) and the
+    drone's GetStatus and log (``link_probe.LinkProbes``), whatever the policy."""
+
+    max_rtt_s: float = 2.0
+    rtt_stale_s: float = 3.0
+
+    def __post_init__(self) -> None:
+        _check_finite(self, ("max_rtt_s", "rtt_stale_s"), "policy")
+
+
+def link_problem(link: LinkState, bounds: LinkBounds) -> str:
     """Why ``link`` is not healthy, for a person; empty if it is: up, and its last
-    round trip at most ``max_rtt_s`` and at most ``rtt_stale_s`` old (wall seconds).
+    round trip within ``bounds``.
 
     A link whose pings were never answered is judged by the age of its first ping:
     a stream that carries nothing (a frozen link) goes stale like one that stopped.
@@ -109,6 +131,7 @@ def link_problem(link: LinkState, max_rtt_s: float, rtt_stale_s: float) -> str:
     """
     if not link.up:
         return f"link down ({link.down_for_s:.1f} s)"
+    max_rtt_s, rtt_stale_s = bounds.max_rtt_s, bounds.rtt_stale_s
     if link.rtt_s is not None and link.rtt_s > max_rtt_s:
         return f"link too slow (round trip {link.rtt_s:.2f} s over {max_rtt_s:g} s)"
     if link.rtt_age_s is not None and link.rtt_age_s > rtt_stale_s:
@@ -132,10 +155,8 @@ class PolicyParams:
     lead_s: float = 10.0
     # The master's link down this long while in range: another takes over.
     link_lost_after_s: float = 3.0
-    # A link whose last round trip took longer than this, or is older than
-    # rtt_stale_s, is not used (wall seconds; ``link_problem``).
-    max_rtt_s: float = 2.0
-    rtt_stale_s: float = 3.0
+    # A link not healthy by these bounds is not used (``link_problem``).
+    link_bounds: LinkBounds = LinkBounds()
     # No station usable, the vehicle flown into a station's range: its link is
     # given this long to come up (a controller's reconnect backs off to 1 s of
     # wall time, 10 s of the mission's at 10x) before the vehicle holds.
@@ -146,18 +167,8 @@ class PolicyParams:
             raise ValueError(
                 f"unknown handover policy {self.name!r}; use one of {', '.join(POLICIES[1:])}"
             )
-        for field in (
-            "margin_m",
-            "dwell_s",
-            "lead_s",
-            "link_lost_after_s",
-            "max_rtt_s",
-            "rtt_stale_s",
-            "link_up_s",
-        ):
-            value = getattr(self, field)
-            if not 0 <= value < math.inf:
-                raise ValueError(f"policy {field} must be >= 0 and finite, got {value!r}")
+        thresholds = ("margin_m", "dwell_s", "lead_s", "link_lost_after_s", "link_up_s")
+        _check_finite(self, thresholds, "policy")
 
 
 @dataclass(frozen=True)
@@ -288,7 +299,7 @@ def decide(
     views = {}
     for cid, station in stations.items():
         link = links.get(cid, LinkState(up=False, down_for_s=math.inf))
-        problem = link_problem(link, params.max_rtt_s, params.rtt_stale_s)
+        problem = link_problem(link, params.link_bounds)
         views[cid] = _View(station, distance_m(station, fix), link, problem)
     since = dict(state.entered) if state.entered is not None else {}
     new = now if state.entered is not None else -math.inf

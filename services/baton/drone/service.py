@@ -23,10 +23,10 @@ from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
 from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, retained_batches
 from baton.drone.dispatch import Dispatcher
-from baton.drone.link_probe import PING_PERIOD_S, LinkBounds, LinkProbes
+from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend
-from baton.drone.policy import LinkState, PolicyParams, Station
+from baton.drone.policy import LinkBounds, LinkState, PolicyParams, Station
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.sequencer import (
     ScriptedHandover,
@@ -968,8 +968,6 @@ class DroneSettings:
     # script and the operator only.
     policy: PolicyParams | None = None
     stations: Mapping[int, Station] = field(default_factory=dict)
-    # What a healthy controller link is (GetStatus's links, the policy's usable).
-    link_bounds: LinkBounds = field(default_factory=LinkBounds)
 
     @property
     def address(self) -> str:
@@ -1006,6 +1004,18 @@ class DroneSettings:
     def prepare_timeout_s(self) -> float:
         """How long a prepared handover waits for its target (wall seconds)."""
         return self.config.prepare_timeout
+
+    @property
+    def link_bounds(self) -> LinkBounds:
+        """What a healthy controller link is (GetStatus's links and the log, whatever the
+        policy; the policy's are the same, ``drone.cli.handover_policy``)."""
+        return link_bounds(self.config)
+
+
+def link_bounds(config: BatonConfig) -> LinkBounds:
+    """The model's bounds of a healthy controller link (``handover_policy.max_rtt`` and
+    ``rtt_stale``), as the policy and the link probes take them."""
+    return LinkBounds(config.handover_policy.max_rtt, config.handover_policy.rtt_stale)
 
 
 def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneService:

@@ -12,18 +12,20 @@ from typing import TYPE_CHECKING
 
 from baton.controller.cli import add_mission_python, check_mission_python
 from baton.sdk.run import add_mission_arg
-from baton.testbed.local import PAPER_CONTROLLER_LINK, WIFI_DRONE_LINK, MissionPlan
+from baton.testbed.local import (
+    DEFAULT_CONTROLLERS,
+    DEFAULT_SPEEDUP,
+    PAPER_CONTROLLER_LINK,
+    WIFI_DRONE_LINK,
+    MissionPlan,
+)
 
 if TYPE_CHECKING:
     from baton.config import BatonConfig
     from baton.testbed.local import TestbedPlan
 
 DEFAULT_HANDOVER_REQNRS = (90, 180, 270)
-# The local testbed's own defaults, where its --config file (or its absence) says nothing:
-# the paper's three controllers, ten times real time (the file's flush limit default is
-# the testbed's too), and the links of PAPER_CONTROLLER_LINK and WIFI_DRONE_LINK.
-DEFAULT_CONTROLLERS = 3
-DEFAULT_SPEEDUP = 10.0
+# For --help: BatonConfig's flush limit default, the testbed's too.
 DEFAULT_FLUSH_LIMIT = "2MB"
 # The survey flags and the MissionPlan fields they set (its defaults are the flags').
 MISSION_FIELDS = {
@@ -267,6 +269,7 @@ def testbed_config(args: argparse.Namespace) -> tuple[BatonConfig, bool]:
     its speed-up when there is no file), then every flag that was given; and whether a
     file was given. ConfigError names the file or the flag and the fix."""
     from baton.config import ConfigError, controllers_only, load_config, merge
+    from baton.testbed.local import with_testbed_defaults
 
     if args.config:
         config = load_config(args.config)
@@ -280,12 +283,7 @@ def testbed_config(args: argparse.Namespace) -> tuple[BatonConfig, bool]:
         if count < 1:
             raise ConfigError(f"--controllers must be >= 1, got {count}")
         config = controllers_only(range(count))
-    own = [
-        ("controller_link", None if config.controller_link.emulated else PAPER_CONTROLLER_LINK),
-        ("drone_link", None if config.drone_link.emulated else WIFI_DRONE_LINK),
-        ("speedup", None if args.config else DEFAULT_SPEEDUP),
-    ]
-    config = config.model_copy(update={field: value for field, value in own if value is not None})
+    config = with_testbed_defaults(config, from_file=bool(args.config))
     flags = [
         ("--flush-limit", "flush_limit", args.flush_limit),
         ("--speedup", "speedup", args.speedup),
@@ -354,27 +352,18 @@ def _plan(
     if args.mission_python is not None:
         check_mission_python(args.mission_python)
     return TestbedPlan(
-        controllers=len(config.controllers),
-        flush_limit=config.flush_limit,
+        config=config,
+        from_file=from_file,
         handovers=tuple(handovers),
         prepared=args.prepared,
-        forwarding=config.ring.forwarding,
-        prepare_timeout=(
-            config.prepare_timeout if "prepare_timeout" in config.model_fields_set else None
-        ),
-        speedup=config.speedup,
         mission=mission,
         mission_file=mission_file,
         mission_args=mission_args,
         mission_python=None if args.mission_python is None else Path(args.mission_python),
         flight_plan=flight_plan,
         emulate_links=not args.no_links,
-        controller_link=config.controller_link,
-        drone_link=config.drone_link,
-        base_config=config if from_file else None,
         vehicle=vehicle,
         sitl_binary=sitl_binary,
-        insecure=args.insecure,
     )
 
 

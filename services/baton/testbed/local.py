@@ -28,7 +28,7 @@ import grpc
 import yaml
 
 from baton.certs.make import ensure
-from baton.config import BatonConfig, DroneConfig, LinkSpec, parse_config
+from baton.config import BatonConfig, LinkSpec, controllers_only, merge, parse_config
 from baton.drone.camera import THUMBNAIL_GLOB
 from baton.effects import read_effects
 from baton.lifecycle import write_atomically
@@ -47,9 +47,34 @@ CORRIDOR_MISSION = Path(corridor_mission.__file__)
 MISSION_KINDS = ("grid", "corridor")
 TAKE_PICTURE = path("Camera.TakePicture")
 
-# The paper's links: 20 ms and 25 Mbit/s between controllers; WiFi to the drone.
+# The local testbed's own defaults, where its configuration says nothing: the paper's
+# three controllers, ten times real time (BatonConfig's flush limit default, 2 MB, is the
+# testbed's too), and the paper's links: 20 ms and 25 Mbit/s between controllers, WiFi
+# to the drone.
+DEFAULT_CONTROLLERS = 3
+DEFAULT_SPEEDUP = 10.0
 PAPER_CONTROLLER_LINK = LinkSpec(latency=0.020, bandwidth=25e6)
 WIFI_DRONE_LINK = LinkSpec(latency=0.002, bandwidth=20e6)
+
+
+def with_testbed_defaults(config: BatonConfig, from_file: bool) -> BatonConfig:
+    """``config`` with the local testbed's own defaults where it says nothing: the paper's
+    links where it emulates none, and, when it is not a testbed file, speed-up 10."""
+    own = [
+        ("controller_link", None if config.controller_link.emulated else PAPER_CONTROLLER_LINK),
+        ("drone_link", None if config.drone_link.emulated else WIFI_DRONE_LINK),
+        ("speedup", None if from_file else DEFAULT_SPEEDUP),
+    ]
+    return config.model_copy(update={name: value for name, value in own if value is not None})
+
+
+def local_config(controllers: int = DEFAULT_CONTROLLERS, **fields: Any) -> BatonConfig:
+    """The one model of a local testbed without a file: ``controllers`` controllers (the
+    testbed picks their ports), its own defaults, and ``fields`` over them, validated
+    (BatonConfig's fields: ``flush_limit=0``, ``speedup=20.0``, ``drone_link=LinkSpec(...)``,
+    ``ring={"forwarding": "store-and-forward"}``; None: not given)."""
+    config = with_testbed_defaults(controllers_only(range(controllers)), from_file=False)
+    return merge(config, ((name, name, value) for name, value in fields.items()))
 
 
 @dataclass(frozen=True)
@@ -96,28 +121,24 @@ class MissionPlan:
 
 @dataclass(frozen=True)
 class TestbedPlan:
-    """What to run: controllers, protocol parameters, handovers, links, mission."""
+    """What to run: the one configuration model (controllers, ring, protocol parameters,
+    links, policy, TLS), and the handovers, the mission and how the parts are started."""
 
     __test__ = False  # not a pytest test class, despite its name
 
-    controllers: int = 3
-    flush_limit: int = 2 * 2**20
-    # The ring's forwarding (RingConfig.forwarding); None: the testbed file's, or
-    # the default (cut-through).
-    forwarding: str | None = None
+    config: BatonConfig = field(default_factory=local_config)
+    # ``config`` is a testbed file's (``--config``): its addresses and certificate
+    # folder are used as they are. Otherwise the testbed picks free ports on loopback
+    # and makes the certificates in the workdir.
+    from_file: bool = False
     handovers: tuple[tuple[int, int], ...] = ()  # (after reqnr, new master)
     # The scripted handovers are prepared ones (docs/design.md, "Prepared handover").
     prepared: bool = False
-    prepare_timeout: float | None = None  # the testbed file's prepare_timeout, if given
-    speedup: float = 10.0
     mission: MissionPlan = MissionPlan()
     # A mission program of one's own (given only mission_args); default: the
     # plan's mission, grid or corridor, with its parameters.
     mission_file: Path | None = None
     emulate_links: bool = True
-    controller_link: LinkSpec = PAPER_CONTROLLER_LINK
-    drone_link: LinkSpec = WIFI_DRONE_LINK
-    base_config: BatonConfig | None = None  # a full testbed file, when given
     resolution: str | None = None
     drone_args: tuple[str, ...] = ()  # extra `baton drone` options (e.g. --force-race)
     # Extra `baton link` options by link name ("link-drone-0", "link-ring-1"),
@@ -135,9 +156,6 @@ class TestbedPlan:
     # that runs already.
     vehicle: str = "sim"
     sitl_binary: Path | None = None  # default: baton.sitl.launcher.find_binary()
-    # Every port plain (debugging only); by default every part has a
-    # certificate, from the testbed file's tls.certs or made in the workdir.
-    insecure: bool = False
     # A QGroundControl plan the mission file flies (baton.missions.plan), for the
     # report's side-effect check; None for the grid or another mission.
     flight_plan: Path | None = None
@@ -314,19 +332,17 @@ class LocalTestbed:
         ready to arm; ``vehicle_wait`` sees the drone's status meanwhile.
         """
         plan = self.plan
-        base = plan.base_config
-        radio = base is not None and base.radio_range
-        if radio and (plan.vehicle != "sim" or not plan.emulate_links):
+        config = plan.config
+        if config.radio_range and (plan.vehicle != "sim" or not plan.emulate_links):
             raise PartNotReady(
                 "radio_range needs the sim vehicle (its position file) and the link emulators; "
                 "run with --vehicle sim and without --no-links, or set radio_range: false"
             )
-        if base is not None:
-            ids = base.ring_order
-            own = {c.id: c.address for c in base.controllers}
-            drone_address = base.drone.address
+        ids = config.ring_order
+        if plan.from_file:
+            own = {c.id: c.address for c in config.controllers}
+            drone_address = config.drone.address
         else:
-            ids = list(range(plan.controllers))
             own = {cid: f"127.0.0.1:{free_port()}" for cid in ids}
             drone_address = f"127.0.0.1:{free_port()}"
         # The vehicle and the link emulators need nothing of each other: they start
@@ -334,10 +350,10 @@ class LocalTestbed:
         parts = [] if (vehicle := self._vehicle_part()) is None else [vehicle]
         if plan.emulate_links:
             for cid in ids:
-                parts.append(self._link_part(f"link-ring-{cid}", own[cid], plan.controller_link))
+                parts.append(self._link_part(f"link-ring-{cid}", own[cid], config.controller_link))
                 parts.append(
                     self._link_part(
-                        f"link-drone-{cid}", drone_address, plan.drone_link, self._radio_args(cid)
+                        f"link-drone-{cid}", drone_address, config.drone_link, self._radio_args(cid)
                     )
                 )
         announced = dict(
@@ -354,12 +370,11 @@ class LocalTestbed:
             if plan.emulate_links:
                 entry["peer_address"] = announced[f"link-ring-{cid}"]
                 entry["drone_address"] = announced[f"link-drone-{cid}"]
-            if base is not None:
-                original = base.controller(cid)
-                if original.location is not None:
-                    entry["location"] = original.location.model_dump()
-                if original.range_m is not None:
-                    entry["range_m"] = original.range_m
+            original = config.controller(cid)
+            if original.location is not None:
+                entry["location"] = original.location.model_dump()
+            if original.range_m is not None:
+                entry["range_m"] = original.range_m
             controllers.append(entry)
         drone: dict[str, Any] = {"address": drone_address, "vehicle_url": vehicle_url}
         if self._mavlink_key() is not None:
@@ -368,20 +383,18 @@ class LocalTestbed:
             "drone": drone,
             "controllers": controllers,
             "ring": self._ring(ids),
-            "initial_master": base.master_id if base is not None else ids[0],
-            "flush_limit": plan.flush_limit,
-            "speedup": plan.speedup,
+            "initial_master": config.master_id,
+            "flush_limit": config.flush_limit,
+            "speedup": config.speedup,
+            "prepare_timeout": config.prepare_timeout,
         }
-        if plan.prepare_timeout is not None:
-            document["prepare_timeout"] = plan.prepare_timeout
         if plan.emulate_links:
-            document["controller_link"] = plan.controller_link.model_dump()
-            document["drone_link"] = plan.drone_link.model_dump()
-        if base is not None:
-            document["handover_policy"] = base.handover_policy.model_dump()
-            document["radio_range"] = base.radio_range
-            if base.radio_fade is not None:
-                document["radio_fade"] = base.radio_fade.model_dump()
+            document["controller_link"] = config.controller_link.model_dump()
+            document["drone_link"] = config.drone_link.model_dump()
+        document["handover_policy"] = config.handover_policy.model_dump()
+        document["radio_range"] = config.radio_range
+        if config.radio_fade is not None:
+            document["radio_fade"] = config.radio_fade.model_dump()
         document["tls"] = self._certificates(ids)
         self.config_path.write_text(yaml.safe_dump(document, sort_keys=False))
         self.config = parse_config(document, str(self.config_path))
@@ -393,12 +406,12 @@ class LocalTestbed:
     def _certificates(self, ids: list[int]) -> dict[str, Any]:
         """The testbed file's ``tls``: the given file's certificate folder if it holds a
         CA, else one made in the workdir (missing parts added); or insecure."""
-        base = self.plan.base_config
-        if self.plan.insecure or (base is not None and base.tls.insecure):
+        tls = self.plan.config.tls
+        if tls.insecure:
             return {"insecure": True}
         folder = self.workdir / "certs"
-        if base is not None and (base.tls.certs / CA_CERT).exists():
-            folder = base.tls.certs
+        if self.plan.from_file and (tls.certs / CA_CERT).exists():
+            folder = tls.certs
         ensure(folder, [*(Identity.controller(cid) for cid in ids), DRONE, OPERATOR])
         self.tls = Tls.load(folder, OPERATOR)
         return {"certs": str(folder.resolve())}
@@ -406,19 +419,18 @@ class LocalTestbed:
     def _radio_args(self, cid: int) -> list[str]:
         """``baton link`` options of controller ``cid``'s link to the drone: its radio
         range, from the testbed file, when the file asks for radio range."""
-        base = self.plan.base_config
-        if base is None or not base.radio_range:
+        config = self.plan.config
+        if not config.radio_range:
             return []
-        station = base.controller(cid)
+        station = config.controller(cid)
         assert station.location is not None and station.range_m is not None
         where = f"{station.location.latitude_deg},{station.location.longitude_deg}"
         position = self.workdir / VEHICLE_POSITION_FILE
-        fade = [] if base.radio_fade is None else ["--fade", base.radio_fade.link_arg()]
+        fade = [] if config.radio_fade is None else ["--fade", config.radio_fade.link_arg()]
         return ["--range", f"{where},{station.range_m}", "--position-file", str(position), *fade]
 
     def _home(self) -> str:
-        base = self.plan.base_config
-        home = (base.drone if base is not None else DroneConfig()).home
+        home = self.plan.config.drone.home
         return f"{home.latitude_deg},{home.longitude_deg},{home.altitude_m}"
 
     def _vehicle_part(self) -> tuple[str, list[str], Path] | None:
@@ -428,7 +440,7 @@ class LocalTestbed:
         if vehicle not in ("sim", "sitl"):
             return None
         ready = self.workdir / "vehicle.url"
-        speedup = str(self.plan.speedup)
+        speedup = str(self.plan.config.speedup)
         if vehicle == "sim":
             # A new run counts from zero; a restarted vehicle of this run (the
             # same argv) appends to the same file.
@@ -436,8 +448,7 @@ class LocalTestbed:
             effects.unlink(missing_ok=True)
             argv = baton_argv("sim-vehicle", "--speedup", speedup, "--url-file", str(ready))
             argv += ["--home", self._home(), "--effects-file", str(effects)]
-            base = self.plan.base_config
-            if base is not None and base.radio_range:
+            if self.plan.config.radio_range:
                 position = self.workdir / VEHICLE_POSITION_FILE
                 position.unlink(missing_ok=True)
                 argv += ["--position-file", str(position)]
@@ -460,18 +471,12 @@ class LocalTestbed:
         return self.plan.vehicle  # an autopilot that runs already
 
     def _ring(self, ids: list[int]) -> dict[str, Any]:
-        """The testbed file's ring: the order, and the forwarding the plan or base says."""
-        base = self.plan.base_config
-        ring = base.ring.model_dump() if base is not None else {}
-        ring["order"] = ids
-        if self.plan.forwarding is not None:
-            ring["forwarding"] = self.plan.forwarding
-        return ring
+        """The testbed file's ring: the configuration's, in the order ``ids``."""
+        return {**self.plan.config.ring.model_dump(), "order": ids}
 
     def _mavlink_key(self) -> Path | None:
         """The testbed file's MAVLink signing key (drone.mavlink_key), if any."""
-        base = self.plan.base_config
-        key = base.drone.mavlink_key if base is not None else None
+        key = self.plan.config.drone.mavlink_key
         return key.resolve() if key is not None else None
 
     def _mavlink_key_args(self) -> list[str]:

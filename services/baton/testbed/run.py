@@ -134,13 +134,13 @@ def write_report(report: dict[str, Any], path: Path) -> None:
 
 async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout: float) -> int:
     """Runs one mission on the local testbed; returns the exit code."""
-    base = plan.base_config
-    policy = base.handover_policy.name if base is not None else "none"
+    planned = plan.config
     print(
-        f"baton testbed: {plan.mission.describe()}, {plan.controllers} controllers, "
-        f"handover policy {policy}, flush limit {plan.flush_limit} bytes, "
-        "handovers "
-        f"{', '.join(f'{r}:{m}' for r, m in plan.handovers) or 'none'}, speed-up {plan.speedup}x, "
+        f"baton testbed: {plan.mission.describe()}, {len(planned.controllers)} controllers, "
+        f"handover policy {planned.handover_policy.name}, flush limit {planned.flush_limit} "
+        "bytes, handovers "
+        f"{', '.join(f'{r}:{m}' for r, m in plan.handovers) or 'none'}, "
+        f"speed-up {planned.speedup}x, "
         f"vehicle {plan.vehicle}; "
         f"logs in {workdir / 'logs'}",
         flush=True,
