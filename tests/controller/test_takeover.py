@@ -264,6 +264,50 @@ async def test_a_master_cut_off_from_the_drone_for_good_follows_the_ring_as_a_re
     assert rejoined.state == ring_pb2.CONTROLLER_STATE_PASSIVE
 
 
+async def test_a_master_given_the_role_back_before_it_heard_of_a_takeover_rejoins_first(
+    tmp_path: Path,
+) -> None:
+    """Controller 0, cut off from the drone, never hears of the handover to 2 (forced:
+    0 is out of reach); 2, waiting for 0's log, is taken over by 1; then the role comes
+    back to 0 by 1's handover message, and 0's link returns. 0 is still ACTIVE in epoch
+    1 on a log the taker framed anew from the drone's replies: the drone's Connected says
+    the takeover's epoch, and 0 rejoins with nothing before it takes the role from the
+    handover message. Before, it went on as master on its epoch-1 log, the handover
+    message queued for ever (the simulation's --policy seeds 71 and 177). The operator
+    makes every switch here (``takeover_after: 0``: the drone takes nothing over)."""
+    config = local_config(
+        3,
+        flush_limit=64 * 2**20,  # no flush: nothing on the ring tells 0 before its link returns
+        speedup=20.0,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+        takeover_after=0,
+    )
+    plan = TestbedPlan(config=config, mission=LONG_LEGS)
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        assert testbed.drone_stub is not None
+        drone = testbed.drone_stub
+
+        async def served(reqnr: int) -> bool:
+            return (await testbed.snapshot(audit=False)).drone.last_reqnr >= reqnr
+
+        await eventually(lambda: served(12), "request 12 served", 120)
+        await testbed.cut_link("link-drone-0")
+        await drone.Handover(drone_pb2.HandoverRequest(new_master=2))  # 0 never hears
+        taken = await drone.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
+        await eventually(lambda: served(taken.after_reqnr + 4), "1 flying as master", 120)
+        back = await drone.Handover(drone_pb2.HandoverRequest(new_master=0))
+        assert back.epoch > taken.epoch
+        await testbed.restore_link("link-drone-0")
+        snapshot = await testbed.run_mission(240)
+    assert snapshot.drone.takeover_after_s == 0  # the file's value reached the drone
+    assert_mission_promises(snapshot, plan)
+    assert takeovers(snapshot) == [(2, 1, drone_pb2.HANDOVER_TRIGGER_RPC)]
+    rejoined = snapshot.controllers[0]
+    assert ring_pb2.HANDOVER_ROLE_FENCED in [h.role for h in rejoined.handovers]
+    assert rejoined.mission == ring_pb2.MISSION_STATE_DONE
+
+
 async def test_a_master_behind_a_silent_link_is_taken_over_within_seconds(
     tmp_path: Path,
 ) -> None:

@@ -376,7 +376,11 @@ class LocalTestbed:
             if original.range_m is not None:
                 entry["range_m"] = original.range_m
             controllers.append(entry)
-        drone: dict[str, Any] = {"address": drone_address, "vehicle_url": vehicle_url}
+        drone: dict[str, Any] = {
+            "address": drone_address,
+            "vehicle_url": vehicle_url,
+            "home": config.drone.home.model_dump(),
+        }
         if self._mavlink_key() is not None:
             drone["mavlink_key"] = str(self._mavlink_key())
         document: dict[str, Any] = {
@@ -387,7 +391,13 @@ class LocalTestbed:
             "flush_limit": config.flush_limit,
             "speedup": config.speedup,
             "prepare_timeout": config.prepare_timeout,
+            # Given to the parts as given to the testbed (a file's takeover_after was
+            # silently dropped: every part ran with the default).
+            "takeover_after": config.takeover_after,
+            "drone_retry_limit": config.drone_retry_limit,
         }
+        if config.max_log_message is not None:
+            document["max_log_message"] = config.max_log_message
         if plan.emulate_links:
             document["controller_link"] = config.controller_link.model_dump()
             document["drone_link"] = config.drone_link.model_dump()
