@@ -50,6 +50,15 @@ def takeovers(
     ]
 
 
+async def until_served(testbed: LocalTestbed, reqnr: int) -> None:
+    """Waits until the drone served request ``reqnr``."""
+
+    async def served() -> bool:
+        return (await testbed.snapshot(audit=False)).drone.last_reqnr >= reqnr
+
+    await eventually(served, f"request {reqnr} served", 120)
+
+
 async def kill_when(
     testbed: LocalTestbed, victim: int, after_reqnr: int, unflushed: bool
 ) -> Snapshot:
@@ -144,11 +153,7 @@ async def test_a_master_killed_after_the_drone_decided_a_handover_before_its_log
     epoch; 1 gets every reply from the drone."""
     plan = three_controllers(16 * 2**20, handovers=((12, 1),))
     async with LocalTestbed(plan, tmp_path) as testbed:
-
-        async def served(reqnr: int) -> bool:
-            return (await testbed.snapshot(audit=False)).drone.last_reqnr >= reqnr
-
-        await eventually(lambda: served(6), "request 6 served", 120)
+        await until_served(testbed, 6)
         await testbed.cut_link("link-ring-1")
 
         async def decided() -> bool:
@@ -199,11 +204,7 @@ async def test_a_master_cut_off_from_the_drone_is_fenced_and_rejoins_when_the_li
     a replica."""
     plan = three_controllers(2 * 2**20)
     async with LocalTestbed(plan, tmp_path) as testbed:
-
-        async def flying() -> bool:
-            return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 12
-
-        await eventually(flying, "request 12 served", 120)
+        await until_served(testbed, 12)
         await testbed.cut_link("link-drone-0")
 
         async def taken_over() -> bool:
@@ -236,11 +237,7 @@ async def test_a_master_cut_off_from_the_drone_for_good_follows_the_ring_as_a_re
     program waiting on the drone (found by the simulation's --policy corridors)."""
     plan = three_controllers(2 * 2**20)
     async with LocalTestbed(plan, tmp_path) as testbed:
-
-        async def flying() -> bool:
-            return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 12
-
-        await eventually(flying, "request 12 served", 120)
+        await until_served(testbed, 12)
         await testbed.cut_link("link-drone-0")
 
         async def others_done() -> bool:
@@ -287,15 +284,11 @@ async def test_a_master_given_the_role_back_before_it_heard_of_a_takeover_rejoin
     async with LocalTestbed(plan, tmp_path) as testbed:
         assert testbed.drone_stub is not None
         drone = testbed.drone_stub
-
-        async def served(reqnr: int) -> bool:
-            return (await testbed.snapshot(audit=False)).drone.last_reqnr >= reqnr
-
-        await eventually(lambda: served(12), "request 12 served", 120)
+        await until_served(testbed, 12)
         await testbed.cut_link("link-drone-0")
         await drone.Handover(drone_pb2.HandoverRequest(new_master=2))  # 0 never hears
         taken = await drone.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
-        await eventually(lambda: served(taken.after_reqnr + 4), "1 flying as master", 120)
+        await until_served(testbed, taken.after_reqnr + 4)  # 1 flies as master
         back = await drone.Handover(drone_pb2.HandoverRequest(new_master=0))
         assert back.epoch > taken.epoch
         await testbed.restore_link("link-drone-0")
@@ -317,11 +310,7 @@ async def test_a_master_behind_a_silent_link_is_taken_over_within_seconds(
     project's default 15 s, and 1 takes over; when the link comes back, 0 is fenced."""
     plan = three_controllers(2 * 2**20)
     async with LocalTestbed(plan, tmp_path) as testbed:
-
-        async def flying() -> bool:
-            return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 12
-
-        await eventually(flying, "request 12 served", 120)
+        await until_served(testbed, 12)
         silent_since = time.time()
         testbed.blackhole_link("link-drone-0")
 
