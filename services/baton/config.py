@@ -29,6 +29,7 @@ from pydantic import (
     model_validator,
 )
 
+from baton.drone.policy import LinkBounds, PolicyParams
 from baton.rpc.tls import Identity, Tls
 
 _SIZE_UNITS = {
@@ -252,6 +253,9 @@ def _policy_shorthand(value: Any) -> Any:
     return {"name": value} if isinstance(value, str) else value
 
 
+_POLICY, _LINK_BOUNDS = PolicyParams(), LinkBounds()
+
+
 class HandoverPolicyConfig(_Model):
     """The drone's handover policy (docs/design.md, "Range-driven handovers")."""
 
@@ -259,24 +263,26 @@ class HandoverPolicyConfig(_Model):
     # paper's experiments); nearest or predictive: the drone picks its master
     # from where it is (drone/policy.py).
     name: Literal["none", "nearest", "predictive"] = "none"
+    # The thresholds' defaults are the pure policy's (drone/policy.py PolicyParams,
+    # LinkBounds): one place each.
     # nearest: hand over once another station is this much nearer...
-    margin_m: float = Field(default=50.0, ge=0, allow_inf_nan=False)
+    margin_m: float = Field(default=_POLICY.margin_m, ge=0, allow_inf_nan=False)
     # ... for this long (mission time).
-    dwell: Duration = 3.0
+    dwell: Duration = _POLICY.dwell_s
     # predictive: hand over this long (mission time) before the master's range runs out.
-    lead: Duration = 10.0
+    lead: Duration = _POLICY.lead_s
     # No controller usable, the vehicle flown into a station's range: that
     # station's link has this long (mission time) to come up before the vehicle
     # holds (a controller's reconnect backs off to 1 s of wall time).
-    link_up: Duration = 20.0
+    link_up: Duration = _POLICY.link_up_s
     # A controller's link is healthy while its last round trip (the drone's ping
     # on its standby stream, drone/link_probe.py) took at most max_rtt and is at
     # most rtt_stale old; the policy never hands over to one that is not. Wall
     # time: a network does not speed up with the mission. With takeovers on, the
     # drone's keepalive drops a link slower than 2 s anyway. Read by the drone
     # whatever the policy, for GetStatus's links.
-    max_rtt: Duration = Field(default=2.0, gt=0)
-    rtt_stale: Duration = Field(default=3.0, gt=0)
+    max_rtt: Duration = Field(default=_LINK_BOUNDS.max_rtt_s, gt=0)
+    rtt_stale: Duration = Field(default=_LINK_BOUNDS.rtt_stale_s, gt=0)
 
 
 PolicySetting = Annotated[HandoverPolicyConfig, BeforeValidator(_policy_shorthand)]
