@@ -10,6 +10,7 @@ import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from baton.config import BatonConfig
 from baton.controller.cli import add_mission_python, check_mission_python
 from baton.sdk.run import add_mission_arg
 from baton.testbed.local import (
@@ -21,12 +22,11 @@ from baton.testbed.local import (
 )
 
 if TYPE_CHECKING:
-    from baton.config import BatonConfig
     from baton.testbed.local import TestbedPlan
 
 DEFAULT_HANDOVER_REQNRS = (90, 180, 270)
-# For --help: BatonConfig's flush limit default, the testbed's too.
-DEFAULT_FLUSH_LIMIT = "2MB"
+# For --help: BatonConfig's flush limit default (in MiB, as 2MB parses), the testbed's too.
+DEFAULT_FLUSH_LIMIT = f"{BatonConfig.model_fields['flush_limit'].default / 2**20:g}MB"
 # The survey flags and the MissionPlan fields they set (its defaults are the flags').
 MISSION_FIELDS = {
     "grid": "grid",
