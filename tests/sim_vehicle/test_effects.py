@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from waiting import eventually
 
 from baton.effects import EffectsFile, read_effects
 from baton.sim_vehicle.kinematics import FlightParams, GeoPoint
@@ -117,6 +118,15 @@ def test_a_goto_sent_again_once_acknowledged_is_counted_twice(vehicle: SimVehicl
     assert [e["seq"] for e in effects] == [1, 2, 3, 4]
 
 
+def stopped(pid: int) -> bool:
+    """Whether every thread of process ``pid`` is stopped (a SIGSTOP took effect)."""
+    states = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        stat = (task / "stat").read_text()
+        states.append(stat[stat.rindex(")") + 2])  # the field after "pid (comm)"
+    return all(state in "tT" for state in states)
+
+
 async def test_copies_queued_while_the_vehicle_was_stopped_are_acted_on_once(
     tmp_path: Path,
 ) -> None:
@@ -132,6 +142,10 @@ async def test_copies_queued_while_the_vehicle_was_stopped_are_acted_on_once(
             assert gcs.command(ARM, 1).result == ACCEPTED
             assert gcs.command(TAKEOFF, 0, 0, 0, 0, 0, 0, HOME[2] + 10).result == ACCEPTED
             os.kill(sim.process.pid, signal.SIGSTOP)
+            # kill() returns before the stop takes effect: a vehicle still running read
+            # the first copy and acknowledged it before the others were sent (a goto
+            # acted on twice, seen once on a loaded machine).
+            await eventually(lambda: stopped(sim.process.pid), "the vehicle stopped", 10)
             try:
                 for _ in range(3):
                     gcs.send_command_int(REPOSITION, -1, 0, 0, UNSET, x=north, y=east, z=498.0)
