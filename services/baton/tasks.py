@@ -33,3 +33,13 @@ class TaskSet:
     def __len__(self) -> int:
         """How many are still running."""
         return len(self._tasks)
+
+    async def drain(self) -> None:
+        """Waits until every task held has ended, those started meanwhile too."""
+        while self._tasks:
+            await asyncio.wait(set(self._tasks))
+
+    def cancel(self) -> None:
+        """Cancels every task still running."""
+        for task in self._tasks:
+            task.cancel()

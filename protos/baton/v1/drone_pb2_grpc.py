@@ -40,6 +40,11 @@ class DroneStub:
                 request_serializer=baton_dot_v1_dot_drone__pb2.InvokeRequest.SerializeToString,
                 response_deserializer=baton_dot_v1_dot_drone__pb2.InvokeReply.FromString,
                 _registered_method=True)
+        self.InvokeStream = channel.stream_stream(
+                '/baton.v1.Drone/InvokeStream',
+                request_serializer=baton_dot_v1_dot_drone__pb2.InvokeCall.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_drone__pb2.InvokeOutcome.FromString,
+                _registered_method=True)
         self.Connect = channel.unary_stream(
                 '/baton.v1.Drone/Connect',
                 request_serializer=baton_dot_v1_dot_drone__pb2.ConnectRequest.SerializeToString,
@@ -97,6 +102,22 @@ class DroneServicer:
         be sent again. ABORTED with MAVSDK's reason if the autopilot refused;
         DEADLINE_EXCEEDED if it did not acknowledge (it may have acted); UNKNOWN
         if the drone restarted while executing it (never executed again).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def InvokeStream(self, request_iterator, context):
+        """Invoke's calls as messages on one stream, which a master keeps open for
+        its mastership (docs/design.md, "The proxy path"): a stream message costs
+        less than a call's set-up, in the two processes the proxy adds to each
+        drone call. Each InvokeCall's request is executed exactly as Invoke
+        executes it, and answered by one InvokeOutcome with the same call number,
+        in the order calls complete: its reply, or its failure with Invoke's
+        status code, message and trailing metadata (PERMISSION_DENIED for a
+        request whose controller_id is not the caller's). A failure ends the call,
+        not the stream. A call in flight when the stream ends runs to its end as
+        Invoke's does: the same request sent again is answered from the cache.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -174,6 +195,11 @@ def add_DroneServicer_to_server(servicer, server):
                     request_deserializer=baton_dot_v1_dot_drone__pb2.InvokeRequest.FromString,
                     response_serializer=baton_dot_v1_dot_drone__pb2.InvokeReply.SerializeToString,
             ),
+            'InvokeStream': grpc.stream_stream_rpc_method_handler(
+                    servicer.InvokeStream,
+                    request_deserializer=baton_dot_v1_dot_drone__pb2.InvokeCall.FromString,
+                    response_serializer=baton_dot_v1_dot_drone__pb2.InvokeOutcome.SerializeToString,
+            ),
             'Connect': grpc.unary_stream_rpc_method_handler(
                     servicer.Connect,
                     request_deserializer=baton_dot_v1_dot_drone__pb2.ConnectRequest.FromString,
@@ -233,6 +259,33 @@ class Drone:
             '/baton.v1.Drone/Invoke',
             baton_dot_v1_dot_drone__pb2.InvokeRequest.SerializeToString,
             baton_dot_v1_dot_drone__pb2.InvokeReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def InvokeStream(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/baton.v1.Drone/InvokeStream',
+            baton_dot_v1_dot_drone__pb2.InvokeCall.SerializeToString,
+            baton_dot_v1_dot_drone__pb2.InvokeOutcome.FromString,
             options,
             channel_credentials,
             insecure,

@@ -60,6 +60,18 @@ class DroneStub:
     DEADLINE_EXCEEDED if it did not acknowledge (it may have acted); UNKNOWN
     if the drone restarted while executing it (never executed again).
     """
+    InvokeStream: _grpc.StreamStreamMultiCallable[_drone_pb2.InvokeCall, _drone_pb2.InvokeOutcome]
+    """Invoke's calls as messages on one stream, which a master keeps open for
+    its mastership (docs/design.md, "The proxy path"): a stream message costs
+    less than a call's set-up, in the two processes the proxy adds to each
+    drone call. Each InvokeCall's request is executed exactly as Invoke
+    executes it, and answered by one InvokeOutcome with the same call number,
+    in the order calls complete: its reply, or its failure with Invoke's
+    status code, message and trailing metadata (PERMISSION_DENIED for a
+    request whose controller_id is not the caller's). A failure ends the call,
+    not the stream. A call in flight when the stream ends runs to its end as
+    Invoke's does: the same request sent again is answered from the cache.
+    """
     Connect: _grpc.UnaryStreamMultiCallable[_drone_pb2.ConnectRequest, _drone_pb2.DroneEvent]
     """The stream the master holds while ACTIVE. The first event says the
     connection is up (its set-up time is T_conn); a HandoverNotice follows
@@ -126,6 +138,18 @@ class DroneAsyncStub(DroneStub):
     be sent again. ABORTED with MAVSDK's reason if the autopilot refused;
     DEADLINE_EXCEEDED if it did not acknowledge (it may have acted); UNKNOWN
     if the drone restarted while executing it (never executed again).
+    """
+    InvokeStream: _aio.StreamStreamMultiCallable[_drone_pb2.InvokeCall, _drone_pb2.InvokeOutcome]  # type: ignore[assignment]
+    """Invoke's calls as messages on one stream, which a master keeps open for
+    its mastership (docs/design.md, "The proxy path"): a stream message costs
+    less than a call's set-up, in the two processes the proxy adds to each
+    drone call. Each InvokeCall's request is executed exactly as Invoke
+    executes it, and answered by one InvokeOutcome with the same call number,
+    in the order calls complete: its reply, or its failure with Invoke's
+    status code, message and trailing metadata (PERMISSION_DENIED for a
+    request whose controller_id is not the caller's). A failure ends the call,
+    not the stream. A call in flight when the stream ends runs to its end as
+    Invoke's does: the same request sent again is answered from the cache.
     """
     Connect: _aio.UnaryStreamMultiCallable[_drone_pb2.ConnectRequest, _drone_pb2.DroneEvent]  # type: ignore[assignment]
     """The stream the master holds while ACTIVE. The first event says the
@@ -196,6 +220,24 @@ class DroneServicer(metaclass=_abc_1.ABCMeta):
         be sent again. ABORTED with MAVSDK's reason if the autopilot refused;
         DEADLINE_EXCEEDED if it did not acknowledge (it may have acted); UNKNOWN
         if the drone restarted while executing it (never executed again).
+        """
+
+    @_abc_1.abstractmethod
+    def InvokeStream(
+        self,
+        request_iterator: _MaybeAsyncIterator[_drone_pb2.InvokeCall],
+        context: _ServicerContext,
+    ) -> _typing.Union[_abc.Iterator[_drone_pb2.InvokeOutcome], _abc.AsyncIterator[_drone_pb2.InvokeOutcome]]:
+        """Invoke's calls as messages on one stream, which a master keeps open for
+        its mastership (docs/design.md, "The proxy path"): a stream message costs
+        less than a call's set-up, in the two processes the proxy adds to each
+        drone call. Each InvokeCall's request is executed exactly as Invoke
+        executes it, and answered by one InvokeOutcome with the same call number,
+        in the order calls complete: its reply, or its failure with Invoke's
+        status code, message and trailing metadata (PERMISSION_DENIED for a
+        request whose controller_id is not the caller's). A failure ends the call,
+        not the stream. A call in flight when the stream ends runs to its end as
+        Invoke's does: the same request sent again is answered from the cache.
         """
 
     @_abc_1.abstractmethod

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import os
 import subprocess
 import sys
 
+from baton import lifecycle
 from baton.certs.cli import add_tls_flags
 from baton.sdk.run import add_mission_arg
 
@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     except KeyError as exc:
         print(f"baton controller: --id {args.id}: {exc.args[0]}", file=sys.stderr)
         return 2
-    return asyncio.run(
+    return lifecycle.run(
         serve(
             config,
             args.id,

@@ -1,4 +1,4 @@
-"""The master's connection to the drone: the Connect stream and Invoke calls.
+"""The master's connection to the drone: the Connect stream and its calls.
 
 Opened when the controller becomes ACTIVE and closed when it stops being
 ACTIVE (docs/design.md, protocol note 5), and once at start to ask the
@@ -6,13 +6,15 @@ drone who the master is; the time from opening to the drone's first event is
 T_conn. The Connected event carries the epoch of the mastership, which every
 Invoke of the session carries; a handover notice on the stream, or a Connect
 refused because another controller is master, reach the controller through
-``DroneEvents``.
+``DroneEvents``. The session's drone calls travel on one kept InvokeStream
+(``InvokeCalls``; docs/design.md, "The proxy path").
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
@@ -22,6 +24,7 @@ import grpc
 
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
+from baton.rpc.errors import call_error
 from baton.rpc.tls import DRONE, Tls
 from baton.tasks import TaskSet
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -104,6 +107,96 @@ class DroneEvents(Protocol):
         """Connect refused: another controller is master, and no notice is owed to this one."""
 
 
+class InvokeCalls:
+    """Drone calls as messages on one kept InvokeStream (drone.proto), each
+    raising what its unary Invoke would: its reply, or grpc.aio.AioRpcError.
+
+    The stream opens at the first call and again at the first call after it
+    ended. A call's failure comes as its outcome, with Invoke's code and
+    trailing metadata (``rpc.errors.call_error``). A call the stream ended
+    under fails as Invoke fails when the connection drops: UNAVAILABLE (or the
+    stream's own status, e.g. RESOURCE_EXHAUSTED for a request over the size
+    limit), and the drone keeps what it did for the same request sent again.
+    A call waits for the drone to be reachable (``wait_for_ready``) for at most
+    its timeout, then fails DEADLINE_EXCEEDED; its write cut short by the
+    timeout cancels the stream, which its next call opens again.
+    """
+
+    def __init__(self, stub: drone_pb2_grpc.DroneAsyncStub, log: BoundLogger) -> None:
+        self._stub = stub
+        self._log = log
+        self._stream: grpc.aio.StreamStreamCall[drone_pb2.InvokeCall, drone_pb2.InvokeOutcome]
+        self._stream_open = False
+        self._reader: asyncio.Task[None] | None = None
+        self._waiting: dict[int, asyncio.Future[drone_pb2.InvokeOutcome]] = {}
+        self._numbers = itertools.count(1)
+        self._writing = asyncio.Lock()
+
+    async def invoke(
+        self, request: drone_pb2.InvokeRequest, timeout_s: float | None
+    ) -> drone_pb2.InvokeReply:
+        number = next(self._numbers)
+        waiter: asyncio.Future[drone_pb2.InvokeOutcome] = asyncio.get_running_loop().create_future()
+        self._waiting[number] = waiter
+        try:
+            async with asyncio.timeout(timeout_s):
+                async with self._writing:
+                    await self._open().write(drone_pb2.InvokeCall(call=number, request=request))
+                outcome = await waiter
+        except TimeoutError:
+            raise grpc.aio.AioRpcError(
+                grpc.StatusCode.DEADLINE_EXCEEDED,
+                grpc.aio.Metadata(),
+                grpc.aio.Metadata(),
+                f"no outcome for request {request.reqnr} in {timeout_s:g} s",
+            ) from None
+        finally:
+            self._waiting.pop(number, None)
+        if outcome.HasField("failure"):
+            raise call_error(outcome.failure)
+        return outcome.reply
+
+    def _open(self) -> grpc.aio.StreamStreamCall[drone_pb2.InvokeCall, drone_pb2.InvokeOutcome]:
+        if not self._stream_open:
+            self._stream = self._stub.InvokeStream(wait_for_ready=True)
+            self._stream_open = True
+            self._reader = asyncio.create_task(self._read(self._stream), name="invoke-outcomes")
+        return self._stream
+
+    async def _read(
+        self, stream: grpc.aio.StreamStreamCall[drone_pb2.InvokeCall, drone_pb2.InvokeOutcome]
+    ) -> None:
+        code, details = grpc.StatusCode.UNAVAILABLE, "the drone ended the invoke stream"
+        try:
+            async for outcome in stream:
+                waiter = self._waiting.get(outcome.call)
+                if waiter is not None and not waiter.done():
+                    waiter.set_result(outcome)
+        except grpc.aio.AioRpcError as exc:
+            if exc.code() is not grpc.StatusCode.CANCELLED:
+                code = exc.code()
+            details = f"the invoke stream ended: {exc.code().name}: {exc.details()}"
+        finally:
+            if self._stream is stream:
+                self._stream_open = False
+            error = grpc.aio.AioRpcError(code, grpc.aio.Metadata(), grpc.aio.Metadata(), details)
+            for waiter in self._waiting.values():
+                if not waiter.done():
+                    waiter.set_exception(error)
+        self._log.info("invoke stream ended", code=code.name, detail=details)
+
+    async def close(self, grace: float) -> None:
+        """Ends the stream once the calls in flight have their outcomes (for at most
+        ``grace`` seconds)."""
+        if self._waiting:
+            await asyncio.wait(list(self._waiting.values()), timeout=grace)
+        if self._stream_open:
+            self._stream.cancel()
+        if self._reader is not None:
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._reader
+
+
 class DroneSession:
     """One ACTIVE period's connection to the drone service."""
 
@@ -128,6 +221,7 @@ class DroneSession:
         self.epoch = 0  # from the Connected event
         self._channel = aio_channel(address, tls, DRONE)
         self._stub = drone_pb2_grpc.DroneStub(self._channel)
+        self._calls = InvokeCalls(self._stub, log)
         self.connected = asyncio.Event()
         self.t_conn_s: float | None = None
         # When each Connected event came (Unix seconds, wall clock): the status's
@@ -217,10 +311,7 @@ class DroneSession:
             master_answers=master_answers,
             preparation=preparation,
         )
-        reply: drone_pb2.InvokeReply = await self._stub.Invoke(
-            request, wait_for_ready=True, timeout=timeout_s
-        )
-        return reply
+        return await self._calls.invoke(request, timeout_s)
 
     async def report_preparation(self, progress: drone_pb2.PreparationProgress) -> bool:
         """Tells the drone between requests how far a prepared handover's target is
@@ -245,7 +336,9 @@ class DroneSession:
             self._events.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._events
-        await self._channel.close(grace=grace)
+        started = time.monotonic()
+        await self._calls.close(grace)
+        await self._channel.close(grace=max(0.0, grace - (time.monotonic() - started)))
 
 
 class DroneStandby:

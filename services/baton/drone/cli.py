@@ -308,8 +308,8 @@ def handover_policy(config: BatonConfig) -> tuple[PolicyParams | None, dict[int,
 
 def run(args: argparse.Namespace) -> int:
     """Runs the drone service until SIGINT/SIGTERM."""
-    import asyncio
 
+    from baton import lifecycle
     from baton.config import ConfigError
     from baton.drone.master import HandoverScriptError
     from baton.drone.mobility import MavsdkMobility
@@ -327,4 +327,4 @@ def run(args: argparse.Namespace) -> int:
         signing_key=settings.mavlink_key,
         tlog_dir=Path(args.tlog_dir) if args.tlog_dir is not None else None,
     )
-    return asyncio.run(run_until_signalled(lambda stop: serve(settings, vehicle, stop)))
+    return lifecycle.run(run_until_signalled(lambda stop: serve(settings, vehicle, stop)))

@@ -36,7 +36,7 @@ from baton.drone.sequencer import (
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import announce
 from baton.logs import get_logger
-from baton.rpc.errors import StatusError, abort_with
+from baton.rpc.errors import StatusError, abort_with, call_failure
 from baton.rpc.labels import label
 from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
@@ -404,7 +404,63 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self, request: drone_pb2.InvokeRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.InvokeReply:
         """Executes one drone-API call for the master, or answers it from the reply cache."""
-        received_at = time.time()
+        try:
+            return await self._invoke_for(context, request, time.time())
+        except StatusError as err:
+            await abort_with(context, err)
+
+    async def InvokeStream(  # type: ignore[override]  # writes with context.write
+        self,
+        calls: AsyncIterator[drone_pb2.InvokeCall],
+        context: grpc.aio.ServicerContext,
+    ) -> None:
+        """Invoke's calls as messages on one stream: each is executed as Invoke
+        executes it and answered when it completes, its failure in its outcome.
+
+        Calls run concurrently as their Invokes would (the sequencer's lock
+        orders them); their outcomes are written one at a time. When the
+        caller half-closes, the stream ends once every call has its outcome;
+        when it goes away, what is still running runs to its end
+        (``invoke``) and its outcome is dropped, as a cancelled Invoke's is.
+        """
+        answering = TaskSet()
+        writing = asyncio.Lock()
+
+        async def answer(call: drone_pb2.InvokeCall, received_at: float) -> None:
+            outcome = drone_pb2.InvokeOutcome(call=call.call)
+            try:
+                outcome.reply.CopyFrom(await self._invoke_for(context, call.request, received_at))
+            except StatusError as err:
+                outcome.failure.CopyFrom(call_failure(err))
+            except Exception as exc:  # what a unary Invoke would end with: UNKNOWN
+                self.log.error("invoke failed", exc_info=True, reqnr=call.request.reqnr)
+                unknown = StatusError(grpc.StatusCode.UNKNOWN, f"{type(exc).__name__}: {exc}")
+                outcome.failure.CopyFrom(call_failure(unknown))
+            try:
+                async with writing:
+                    await context.write(outcome)
+            except Exception as exc:  # the stream ended: the caller sends it again
+                self.log.info(
+                    "invoke outcome not delivered: its stream ended",
+                    reqnr=call.request.reqnr,
+                    error=f"{type(exc).__name__}: {exc}",
+                )
+
+        try:
+            async for call in calls:
+                answering.spawn(answer(call, time.time()), name="invoke-call")
+            await answering.drain()
+        finally:
+            answering.cancel()
+
+    async def _invoke_for(
+        self,
+        context: grpc.aio.ServicerContext,
+        request: drone_pb2.InvokeRequest,
+        received_at: float,
+    ) -> drone_pb2.InvokeReply:
+        """Invoke for the caller of ``context``: the reply, or StatusError (counted and
+        logged) if the caller may not send it or the drone refused or failed it."""
         try:
             refusal = self._not_as(context, "Invoke", request.controller_id)
             if refusal is not None:
@@ -421,7 +477,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 code=err.code.name,
                 reason=err.message,
             )
-            await abort_with(context, err)
+            raise
 
     async def invoke(
         self, request: drone_pb2.InvokeRequest, received_at: float

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from baton import lifecycle
 from baton.config import LinkSpec, parse_address, parse_duration, parse_rate
 from baton.lifecycle import announce, run_until_signalled, until_stopped, write_atomically
 from baton.link.radio import parse_fade, parse_radio_range
@@ -277,7 +278,7 @@ def run_radio_netem(args: argparse.Namespace) -> int:
             return 1
         return 0
 
-    return asyncio.run(run_until_signalled(follow))
+    return lifecycle.run(run_until_signalled(follow))
 
 
 def link_specs(args: argparse.Namespace) -> tuple[LinkSpec, LinkSpec]:
@@ -348,7 +349,7 @@ def run(args: argparse.Namespace) -> int:
             await proxy.stop()  # logs the final counters
         return 0
 
-    return asyncio.run(run_until_signalled(serve))
+    return lifecycle.run(run_until_signalled(serve))
 
 
 def read_shape(path: Path, up: LinkSpec, down: LinkSpec) -> tuple[LinkSpec, LinkSpec]:

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from baton import lifecycle
 from baton.lifecycle import announce, run_until_signalled, until_stopped
 
 DEFAULT_HOME = "47.397742,8.545594,488.0"  # PX4 SITL's default home (Zurich)
@@ -233,4 +234,4 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.flush()
         return 0
 
-    return asyncio.run(run_until_signalled(serve))
+    return lifecycle.run(run_until_signalled(serve))
