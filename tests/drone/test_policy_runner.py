@@ -244,8 +244,8 @@ class Restartable:
     """A drone with a state file over one fake vehicle, restarted as a kill would: the
     service and its streams go, the vehicle keeps doing what it was last told."""
 
-    def __init__(self, state: Path) -> None:
-        self.state = state
+    def __init__(self, state: Path, params: PolicyParams = PARAMS) -> None:
+        self.state, self.params = state, params
         self.drone: DroneUnderTest
         self.server: BatonServer
         self.links: Links
@@ -254,7 +254,7 @@ class Restartable:
         previous = getattr(self, "drone", None)
         vehicle = previous.vehicle if previous is not None else None
         self.drone, self.server = await start_drone(
-            vehicle=vehicle, policy=PARAMS, stations=STATIONS, state_file=str(self.state)
+            vehicle=vehicle, policy=self.params, stations=STATIONS, state_file=str(self.state)
         )
         self.links = Links(self.drone)
         return self.drone
@@ -403,3 +403,38 @@ async def test_a_resume_the_vehicle_refused_is_tried_again(restartable: Restarta
     assert flight_commands(drone) == ["Goto", "Hold", "Goto", "Goto"]
     assert drone.vehicle.position.longitude_deg == pytest.approx(goto(580.0).longitude_deg)
     assert not (await bed.status()).holding
+
+
+async def test_a_drone_restarted_while_holding_waits_for_its_master_before_resuming(
+    tmp_path: Path,
+) -> None:
+    """Held in master 0's range, 0's link lost: a restarted drone counts 0 as seen for
+    its start-up grace, and the policy waits for 0 (stay). Nobody can command the
+    vehicle meanwhile, so it is not resumed until 0's link is up again."""
+    params = PolicyParams("nearest", margin_m=50.0, dwell_s=0.0, link_lost_after_s=0.5)
+    bed = Restartable(tmp_path / "drone.sqlite", params)
+    drone = await bed.start()
+    try:
+        await bed.links.up(0)
+        put(drone, 0.0)
+        await drone.stub.Invoke(invoke(0, 1, GOTO, goto(80.0)))  # in 0's range only
+        put(drone, 50.0)
+        await bed.links.down(0)
+
+        async def held() -> bool:
+            decision = await bed.policy.tick()
+            return decision is not None and decision.action == HOLD
+
+        await eventually(held, "the hold once 0's loss is waited out")
+        drone = await bed.restart()
+        decision = await bed.policy.tick()
+        assert decision is not None and decision.action == STAY and decision.waiting, decision
+        assert flight_commands(drone) == [], "resumed with no controller usable"
+        assert (await bed.status()).holding
+        await bed.links.up(0)
+        decision = await bed.policy.tick()
+        assert decision is not None and decision.action == STAY and not decision.waiting
+        assert flight_commands(drone) == ["Goto"]
+        assert not (await bed.status()).holding
+    finally:
+        await bed.stop()

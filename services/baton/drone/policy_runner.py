@@ -24,8 +24,9 @@ policy, and carries the decision out:
   in the air) and the mission waits. When a controller is usable again (or a
   leg leads to one) the vehicle *resumes*: it flies on to the target of the
   master's last Goto (it was stopped short of it, and the program polls until
-  it is there). A request of the master while holding ends the hold instead:
-  the master commands again.
+  it is there); not while the policy waits for the master's lost link (as a
+  restarted drone does for its start-up grace). A request of the master while
+  holding ends the hold instead: the master commands again.
 
 The vehicle outlives the drone service: an autopilot told to hold holds until
 told otherwise. So the leg and the hold are kept in the drone's state file
@@ -247,7 +248,7 @@ class PolicyRunner:
                     )
         elif decision.action == HOLD and (not self.holding or self._unsure):
             await self._hold(decision)
-        if decision.action != HOLD and self.holding:
+        if decision.action != HOLD and not decision.waiting and self.holding:
             await self._resume(master)
         return decision
 

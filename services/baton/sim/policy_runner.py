@@ -139,7 +139,9 @@ class SimPolicyRunner:
         elif decision.action != self._last_action:
             drone.world.trace(f"policy: {action}: {decision.reason}")
         self._last_action = decision.action
-        if decision.action == HANDOVER or (decision.action == HOLD) != self.holding:
+        holds = not self.holding and decision.action == HOLD
+        resumes = self.holding and decision.action != HOLD and not decision.waiting
+        if decision.action == HANDOVER or holds or resumes:
             return PolicyStep(decision, master)
         return None
 
@@ -171,7 +173,7 @@ class SimPolicyRunner:
             self.holding = self._held_vehicle = True
             drone.policy_decided["hold"] += 1
             drone.world.trace(f"policy: the vehicle holds ({decision.reason})")
-        if decision.action != HOLD and self.holding:
+        if decision.action != HOLD and not decision.waiting and self.holding:
             # PolicyRunner._resume: fly on to the last Goto's target (the corridor's end).
             held, self.holding, self._held_vehicle = self._held_vehicle, False, False
             if held:
