@@ -31,14 +31,16 @@ class DroneUnderTest:
 
 
 async def start_drone(script: str = "", **settings: object) -> tuple[DroneUnderTest, BatonServer]:
-    """A drone for controllers 0, 1, 2 (master 0) on a free port."""
+    """A drone for controllers 0, 1, 2 (master 0) on a free port; ``vehicle=`` a
+    FakeMobility to drive it (a restarted drone's is its predecessor's), else a new one."""
     controllers = (0, 1, 2)
     defaults: dict[str, object] = {
         "config": controllers_only(controllers),
         "resolution": (64, 48),
         "handover_script": parse_handover_script(script, "script", controllers),
     }
-    vehicle = FakeMobility()
+    vehicle = settings.pop("vehicle", None) or FakeMobility()
+    assert isinstance(vehicle, FakeMobility)
     service = build_service(DroneSettings(**{**defaults, **settings}), vehicle)  # type: ignore[arg-type]
     add = drone_pb2_grpc.add_DroneServicer_to_server
     server = BatonServer("127.0.0.1:0", [servicer("baton.v1.Drone", add, service)])

@@ -311,6 +311,7 @@ def test_the_masters_link_lost_in_range_is_waited_out_then_taken_over() -> None:
         links = {0: LinkState(up=False, down_for_s=down), 1: UP}
         decision, _ = decide(NEAREST, placed, fix(300.0), links, 0, PolicyState(), 0.0)
         assert decision.action == STAY and "waiting 3 s" in decision.reason
+        assert decision.waiting  # nobody commands the vehicle: a held one is not resumed
     links = {0: LinkState(up=False, down_for_s=3.0), 1: UP}
     decision, _ = decide(NEAREST, placed, fix(300.0), links, 0, PolicyState(), 0.0)
     assert decision.action == HANDOVER and decision.target == 1 and decision.takeover

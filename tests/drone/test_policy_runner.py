@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import AsyncIterator
+from pathlib import Path
 
 import grpc
 import pytest
@@ -10,7 +11,12 @@ from drone_harness import DroneUnderTest, start_drone
 from test_drone_service import GOTO, POSITION, invoke
 from waiting import eventually
 
+from baton.digest import request_digest
 from baton.drone.policy import FLY_ON, HANDOVER, HOLD, STAY, PolicyParams, Station
+from baton.drone.policy_runner import PolicyRunner
+from baton.drone.store import Intent
+from baton.rpc.errors import StatusError
+from baton.rpc.server import BatonServer
 from baton.rpc.streams import next_message
 from baton.sdk import Position, offset
 from baton.v1 import drone_api_pb2 as api
@@ -20,6 +26,7 @@ HOME = Position(47.397742, 8.545594)
 RPC, POLICY = drone_pb2.HANDOVER_TRIGGER_RPC, drone_pb2.HANDOVER_TRIGGER_POLICY
 # Three stations along a line east of home, 500 m apart, 400 m of range each.
 STATIONS = {cid: Station(cid, offset(HOME, 0.0, 500.0 * cid), 400.0) for cid in (0, 1, 2)}
+PARAMS = PolicyParams("nearest", margin_m=50.0, dwell_s=0.0, link_lost_after_s=0.0)
 
 
 def put(drone: DroneUnderTest, east_m: float, altitude_m: float = 10.0) -> None:
@@ -60,8 +67,7 @@ class Links:
 
 @pytest.fixture
 async def ranged() -> AsyncIterator[tuple[DroneUnderTest, Links]]:
-    policy = PolicyParams("nearest", margin_m=50.0, dwell_s=0.0, link_lost_after_s=0.0)
-    drone, server = await start_drone(policy=policy, stations=STATIONS)
+    drone, server = await start_drone(policy=PARAMS, stations=STATIONS)
     links = Links(drone)
     yield drone, links
     links.close()
@@ -229,3 +235,206 @@ async def test_a_master_still_starting_is_not_taken_over_by_the_first_controller
     finally:
         links.close()
         await server.stop(0)
+
+
+# -- a drone restarted around a hold (its state file; the vehicle outlives it) -----------
+
+
+class Restartable:
+    """A drone with a state file over one fake vehicle, restarted as a kill would: the
+    service and its streams go, the vehicle keeps doing what it was last told."""
+
+    def __init__(self, state: Path, params: PolicyParams = PARAMS) -> None:
+        self.state, self.params = state, params
+        self.drone: DroneUnderTest
+        self.server: BatonServer
+        self.links: Links
+
+    async def start(self) -> DroneUnderTest:
+        previous = getattr(self, "drone", None)
+        vehicle = previous.vehicle if previous is not None else None
+        self.drone, self.server = await start_drone(
+            vehicle=vehicle, policy=self.params, stations=STATIONS, state_file=str(self.state)
+        )
+        self.links = Links(self.drone)
+        return self.drone
+
+    async def restart(self) -> DroneUnderTest:
+        """The service again; the vehicle's calls are counted from the restart on."""
+        await self.stop()
+        self.drone.vehicle.calls.clear()
+        return await self.start()
+
+    async def stop(self) -> None:
+        self.links.close()
+        await self.server.stop(0)
+        assert self.drone.service.store is not None
+        self.drone.service.store.close()
+
+    @property
+    def policy(self) -> PolicyRunner:
+        assert self.drone.service.policy is not None
+        return self.drone.service.policy
+
+    async def status(self) -> drone_pb2.DroneStatus:
+        return await self.drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+
+
+@pytest.fixture
+async def restartable(tmp_path: Path) -> AsyncIterator[Restartable]:
+    bed = Restartable(tmp_path / "drone.sqlite")
+    await bed.start()
+    yield bed
+    await bed.stop()
+
+
+def goto(east_m: float) -> api.GotoRequest:
+    target = offset(HOME, 0.0, east_m)
+    return api.GotoRequest(
+        latitude_deg=target.latitude_deg, longitude_deg=target.longitude_deg, relative_altitude_m=10
+    )
+
+
+async def fly_and_lose_every_link(
+    bed: Restartable, leg_to_east_m: float
+) -> drone_pb2.PolicyAction.ValueType:
+    """Master 0 sends the vehicle on a leg to ``leg_to_east_m``; at 450 m east (out of
+    0's range, in 1's) every link goes down: the policy's decision."""
+    drone = bed.drone
+    await bed.links.up(0, 1)
+    put(drone, 0.0)
+    await drone.stub.Invoke(invoke(0, 1, GOTO, goto(leg_to_east_m)))
+    put(drone, 450.0)  # the fake vehicle jumped to the target: say it is still flying
+    await bed.links.down(0, 1)
+    decision = await bed.policy.tick()
+    assert decision is not None
+    return decision.action
+
+
+def flight_commands(drone: DroneUnderTest, since: int = 0) -> list[str]:
+    return [c for c in drone.vehicle.calls[since:] if c in ("Hold", "Goto")]
+
+
+@pytest.mark.parametrize("usable_at_once", [False, True], ids=["still-none", "usable-at-once"])
+async def test_a_drone_restarted_while_the_vehicle_holds_keeps_the_hold_and_resumes_the_leg(
+    restartable: Restartable, usable_at_once: bool
+) -> None:
+    """The vehicle held by the policy outlives the drone service: the restarted drone
+    knows it holds (GetStatus says so at once), and on which leg, and flies it on as
+    soon as a controller is usable, whether that is at its first decision or later."""
+    bed = restartable
+    assert await fly_and_lose_every_link(bed, 580.0) == HOLD  # the leg ends short of 2's range
+    assert flight_commands(bed.drone) == ["Goto", "Hold"]
+    drone = await bed.restart()
+    assert (await bed.status()).holding, "the restarted drone forgot the vehicle holds"
+    if not usable_at_once:
+        decision = await bed.policy.tick()
+        assert decision is not None and decision.action == HOLD
+        assert decision.reason.endswith("the leg leads into no station's range")
+        # The hold is sent again (the vehicle may not have heard it before the restart).
+        assert flight_commands(drone) == ["Hold"]
+        assert (await bed.status()).holding
+    await bed.links.up(1)
+    decision = await bed.policy.tick()
+    assert decision is not None and (decision.action, decision.target) == (HANDOVER, 1)
+    assert flight_commands(drone)[-1:] == ["Goto"], "the vehicle was left holding"
+    target = goto(580.0)
+    assert drone.vehicle.position.longitude_deg == pytest.approx(target.longitude_deg)
+    status = await bed.status()
+    assert not status.holding and status.master == 1
+    resume = status.policy_decisions[-1]
+    assert resume.action == drone_pb2.POLICY_ACTION_RESUME, status.policy_decisions
+    assert "held before the drone's restart" in resume.reason
+
+
+async def test_a_drone_restarted_while_flying_on_still_flies_the_leg_on(
+    restartable: Restartable,
+) -> None:
+    """No controller usable, the leg leading into 2's range: flying on. The restarted
+    drone knows the leg too, so it flies on rather than holding the vehicle."""
+    bed = restartable
+    assert await fly_and_lose_every_link(bed, 900.0) == FLY_ON
+    drone = await bed.restart()
+    assert not (await bed.status()).holding
+    decision = await bed.policy.tick()
+    assert decision is not None and (decision.action, decision.target) == (FLY_ON, 2), decision
+    assert flight_commands(drone) == []
+
+
+async def test_a_goto_cut_off_by_a_restart_forgets_the_old_leg_and_hold(
+    restartable: Restartable,
+) -> None:
+    """The master's Goto while the vehicle held, cut off by a restart: the vehicle may be
+    flying to the new target (the master is told UNKNOWN), so the old leg is never resumed."""
+    bed = restartable
+    assert await fly_and_lose_every_link(bed, 580.0) == HOLD
+    request = invoke(0, 2, GOTO, goto(300.0))
+    store = bed.drone.service.store
+    assert store is not None
+    store.begin(Intent(2, GOTO, request_digest(GOTO, request.payload), 0, 1.0))
+    drone = await bed.restart()
+    assert not (await bed.status()).holding
+    await bed.links.up(1)
+    decision = await bed.policy.tick()
+    assert decision is not None and (decision.action, decision.target) == (HANDOVER, 1)
+    assert flight_commands(drone) == []
+
+
+async def test_a_resume_the_vehicle_refused_is_tried_again(restartable: Restartable) -> None:
+    """The resume's Goto fails (the autopilot did not answer): the drone still holds the
+    vehicle as far as it knows, and sends the Goto again at its next decision."""
+    bed = restartable
+    assert await fly_and_lose_every_link(bed, 580.0) == HOLD
+    drone = bed.drone
+    goto_once = drone.vehicle.Goto
+
+    async def refused(request: api.GotoRequest) -> api.GotoReply:
+        drone.vehicle.Goto = goto_once  # type: ignore[method-assign]
+        drone.vehicle.calls.append("Goto")
+        raise StatusError(grpc.StatusCode.UNAVAILABLE, "Goto: no answer from the autopilot")
+
+    drone.vehicle.Goto = refused  # type: ignore[method-assign]
+    await bed.links.up(1)
+    with pytest.raises(StatusError):
+        await bed.policy.tick()
+    assert (await bed.status()).holding
+    decision = await bed.policy.tick()
+    assert decision is not None and decision.action == STAY
+    assert flight_commands(drone) == ["Goto", "Hold", "Goto", "Goto"]
+    assert drone.vehicle.position.longitude_deg == pytest.approx(goto(580.0).longitude_deg)
+    assert not (await bed.status()).holding
+
+
+async def test_a_drone_restarted_while_holding_waits_for_its_master_before_resuming(
+    tmp_path: Path,
+) -> None:
+    """Held in master 0's range, 0's link lost: a restarted drone counts 0 as seen for
+    its start-up grace, and the policy waits for 0 (stay). Nobody can command the
+    vehicle meanwhile, so it is not resumed until 0's link is up again."""
+    params = PolicyParams("nearest", margin_m=50.0, dwell_s=0.0, link_lost_after_s=0.5)
+    bed = Restartable(tmp_path / "drone.sqlite", params)
+    drone = await bed.start()
+    try:
+        await bed.links.up(0)
+        put(drone, 0.0)
+        await drone.stub.Invoke(invoke(0, 1, GOTO, goto(80.0)))  # in 0's range only
+        put(drone, 50.0)
+        await bed.links.down(0)
+
+        async def held() -> bool:
+            decision = await bed.policy.tick()
+            return decision is not None and decision.action == HOLD
+
+        await eventually(held, "the hold once 0's loss is waited out")
+        drone = await bed.restart()
+        decision = await bed.policy.tick()
+        assert decision is not None and decision.action == STAY and decision.waiting, decision
+        assert flight_commands(drone) == [], "resumed with no controller usable"
+        assert (await bed.status()).holding
+        await bed.links.up(0)
+        decision = await bed.policy.tick()
+        assert decision is not None and decision.action == STAY and not decision.waiting
+        assert flight_commands(drone) == ["Goto"]
+        assert not (await bed.status()).holding
+    finally:
+        await bed.stop()

@@ -182,6 +182,10 @@ class Decision:
     # The old master cannot be told (its link is down): the target takes over
     # without waiting for its log.
     takeover: bool = False
+    # ``stay`` while the master is not usable (its link lost in range, waited out
+    # for ``link_lost_after_s``): no controller can command the vehicle, so a held
+    # one is not resumed yet.
+    waiting: bool = False
 
 
 @dataclass(frozen=True)
@@ -331,6 +335,7 @@ def _decide(
                     STAY,
                     f"master {here.why_not()} but in range: waiting "
                     f"{params.link_lost_after_s:g} s for it before another takes over",
+                    waiting=True,
                 ),
                 state,
             )

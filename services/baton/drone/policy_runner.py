@@ -24,8 +24,18 @@ policy, and carries the decision out:
   in the air) and the mission waits. When a controller is usable again (or a
   leg leads to one) the vehicle *resumes*: it flies on to the target of the
   master's last Goto (it was stopped short of it, and the program polls until
-  it is there). A request of the master while holding ends the hold instead:
-  the master commands again.
+  it is there); not while the policy waits for the master's lost link (as a
+  restarted drone does for its start-up grace). A request of the master while
+  holding ends the hold instead: the master commands again.
+
+The vehicle outlives the drone service: an autopilot told to hold holds until
+told otherwise. So the leg and the hold are kept in the drone's state file
+(``store.PolicyMemory``, the hold written before the Hold is sent), and a
+restarted drone holds again from its start (GetStatus says so), sends Hold
+again at its first ``hold`` and resumes the leg at its first other decision.
+A Hold or a resume's Goto that fails leaves the vehicle's state unknown: the
+runner holds as far as it knows and sends the command again at the next
+decision.
 
 Every decision that changes what the drone does is logged with its reason and
 kept for GetStatus (``policy_decisions``); the latest one is always shown.
@@ -52,6 +62,7 @@ from baton.drone.policy import (
     decide,
     distance_m,
 )
+from baton.drone.store import PolicyMemory
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
 from baton.rpc.labels import label, parse
@@ -95,6 +106,11 @@ class PolicyRunner:
         self.decisions: deque[drone_pb2.PolicyDecision] = deque(maxlen=DECISIONS_KEPT)
         self.holding = False
         self._held_vehicle = False  # the hold stopped a flying vehicle
+        # The vehicle may not be doing what the runner believes (a hold kept across a
+        # restart, a Hold or a resume's Goto that failed): the next decision sends its
+        # command even though the runner holds already.
+        self._unsure = False
+        self._held_before_restart = False  # for the resume's reason
         self._last_goto: api.GotoRequest | None = None
         self._fix: Fix | None = None
         # The vehicle's position at the last decision (for the drone's own takeovers).
@@ -108,6 +124,40 @@ class PolicyRunner:
         """The script or the operator made ``master`` master: kept while it is usable."""
         self.state = self.state.pin(master)
 
+    def restore(self) -> None:
+        """A restarted drone: the leg and the hold its predecessor kept in the store.
+
+        A command of the master that changes the leg, cut off by the restart, leaves
+        both unknown (the vehicle may be acting on it; the master is told UNKNOWN): they
+        are forgotten, so that no older leg is flown again.
+        """
+        service = self.service
+        if service.store is None:
+            return
+        memory = service.store.load_policy()
+        cut = service.cut_off
+        route = None if cut is None else service.dispatcher.routes.get(cut.method)
+        if cut is not None and route is not None and route.service == "Mobility":
+            if _changes_the_leg(route.name):
+                self.log.warning(
+                    "a command cut off by the restart: the leg and the hold before it are "
+                    "forgotten (the vehicle may have acted on it)",
+                    method=route.name,
+                    reqnr=cut.reqnr,
+                    held=memory.held,
+                )
+                self._save()
+                return
+        self._last_goto = None if memory.leg is None else api.GotoRequest.FromString(memory.leg)
+        if memory.held:
+            self.holding = self._held_vehicle = self._unsure = True
+            self._held_before_restart = True
+            self.log.warning(
+                "the vehicle was held by the policy before the restart: held until a "
+                "controller is usable, then flown on to the last Goto's target",
+                leg_to=_leg_to(self._last_goto),
+            )
+
     def executed(self, method_name: str, request: Message) -> None:
         """A Mobility command of the master was executed: remember the leg it flies; a
         command while holding ends the hold (the master commands again)."""
@@ -116,9 +166,12 @@ class PolicyRunner:
             self._last_goto = request
         elif method_name in _ENDS_A_LEG:
             self._last_goto = None
-        if self.holding and (method_name == "Goto" or method_name in _ENDS_A_LEG):
-            self.holding = self._held_vehicle = False
+        else:
+            return
+        if self.holding:
+            self.holding = self._held_vehicle = self._unsure = False
             self.log.info("hold ended by the master's command", method=method_name)
+        self._save()
 
     def in_range(self) -> set[int] | None:
         """The controllers whose range holds the vehicle now; None before the first fix."""
@@ -193,9 +246,9 @@ class PolicyRunner:
                         decision.reason,
                         position,
                     )
-        elif decision.action == HOLD and not self.holding:
+        elif decision.action == HOLD and (not self.holding or self._unsure):
             await self._hold(decision)
-        if decision.action != HOLD and self.holding:
+        if decision.action != HOLD and not decision.waiting and self.holding:
             await self._resume(master)
         return decision
 
@@ -237,21 +290,46 @@ class PolicyRunner:
                 longitude_deg=position.longitude_deg,
             )
 
+    def _save(self, held: bool | None = None) -> None:
+        """Keeps the leg and the hold (``held``, else what the runner believes) in the
+        drone's state file, if it has one."""
+        store = self.service.store
+        if store is None:
+            return
+        goto = self._last_goto
+        store.save_policy(
+            PolicyMemory(
+                None if goto is None else goto.SerializeToString(),
+                self.holding and self._held_vehicle if held is None else held,
+            )
+        )
+
     async def _hold(self, decision: Decision) -> None:
-        """No controller usable: the vehicle holds position while it flies."""
+        """No controller usable: the vehicle holds position while it flies (again, when
+        the runner is not sure it does)."""
         service = self.service
+        again = self.holding
         async with service.execution_lock:
             state = await service.vehicle.GetFlightState(api.GetFlightStateRequest())
             if state.in_air:
-                await service.vehicle.Hold(api.HoldRequest())
-                self._held_vehicle = True
-            self.holding = True
-        self.log.warning(
-            "no controller usable: holding position"
-            if self._held_vehicle
-            else "no controller usable (vehicle on the ground: nothing to hold)",
-            reason=decision.reason,
-        )
+                # Kept first: a drone restarted once the vehicle holds must know it does
+                # (one restarted before it does holds it again).
+                self._save(held=True)
+                try:
+                    await service.vehicle.Hold(api.HoldRequest())
+                except BaseException:
+                    # It may hold or not: held as far as the drone knows, sent again next.
+                    self.holding = self._held_vehicle = self._unsure = True
+                    raise
+            self.holding, self._held_vehicle, self._unsure = True, state.in_air, False
+            self._save()
+        if not self._held_vehicle:
+            message = "no controller usable (vehicle on the ground: nothing to hold)"
+        elif again:
+            message = "no controller usable: holding position again (it may not have held)"
+        else:
+            message = "no controller usable: holding position"
+        self.log.warning(message, reason=decision.reason)
 
     async def _resume(self, master: int) -> None:
         """A controller is usable again: fly on to the master's last Goto target."""
@@ -259,18 +337,33 @@ class PolicyRunner:
         async with service.execution_lock:
             if not self.holding:
                 return  # the master's command ended it meanwhile
-            self.holding = False
-            goto, held = self._last_goto, self._held_vehicle
-            self._held_vehicle = False
-            if not held or goto is None:
-                return
-            here = await service.vehicle.GetPosition(api.GetPositionRequest())
-            target = Position(goto.latitude_deg, goto.longitude_deg)
-            away = geo_distance_m(Position.from_proto(here.position), target)
-            if away <= RESUME_MIN_M:
-                return
-            await service.vehicle.Goto(goto)
+            goto, held, restarted = self._last_goto, self._held_vehicle, self._held_before_restart
+            here, away = None, 0.0
+            if held and goto is not None:
+                here = await service.vehicle.GetPosition(api.GetPositionRequest())
+                target = Position(goto.latitude_deg, goto.longitude_deg)
+                away = geo_distance_m(Position.from_proto(here.position), target)
+                if away > RESUME_MIN_M:
+                    try:
+                        await service.vehicle.Goto(goto)
+                    except BaseException:
+                        # It may fly on or hold still: resumed again at the next decision
+                        # (or held again, if that is a hold).
+                        self._unsure = True
+                        raise
+            self.holding = self._held_vehicle = self._unsure = False
+            self._held_before_restart = False
+            self._save()
+        if here is None or away <= RESUME_MIN_M:
+            if held:
+                self.log.info(
+                    "a controller is usable again: nothing to resume "
+                    + ("(no Goto known)" if goto is None else "(at the last Goto's target)")
+                )
+            return
         reason = f"a controller is usable again: flying on to the last Goto's target ({away:.0f} m)"
+        if restarted:
+            reason += ", held before the drone's restart"
         record = drone_pb2.PolicyDecision(
             action=drone_pb2.POLICY_ACTION_RESUME,
             target=-1,
@@ -285,3 +378,12 @@ class PolicyRunner:
             action=label(drone_pb2.PolicyAction, drone_pb2.POLICY_ACTION_RESUME),
             reason=reason,
         )
+
+
+def _changes_the_leg(method_name: str) -> bool:
+    """Whether a Mobility command of the master sets the leg the vehicle flies."""
+    return method_name == "Goto" or method_name in _ENDS_A_LEG
+
+
+def _leg_to(goto: api.GotoRequest | None) -> tuple[float, float] | None:
+    return None if goto is None else (goto.latitude_deg, goto.longitude_deg)

@@ -148,6 +148,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.probes = LinkProbes(tuple(sequencer.ring), link_bounds or LinkBounds(), self.log)
         # The handover policy, when the drone runs one (build_service).
         self.policy: PolicyRunner | None = None
+        # The request a restart cut off (store.py's intent), as found at start.
+        self.cut_off: Intent | None = None
         if store is not None:
             self._restore(store)
 
@@ -386,7 +388,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             audit=len(state.audit),
             script_left=len(seq.script),
         )
-        cut = state.executing
+        cut = self.cut_off = state.executing
         if cut is None:
             return
         route = self.dispatcher.routes.get(cut.method)
@@ -1108,6 +1110,7 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
     )
     if settings.policy is not None:
         service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
+        service.policy.restore()
     return service
 
 

@@ -15,6 +15,11 @@ may have been acting on it: a read is executed again when it is re-sent (it
 changes nothing), a command is answered with UNKNOWN and never executed a
 second time (at most once, counted at the vehicle).
 
+The handover policy's runner keeps what the vehicle outlives the drone with
+(``PolicyMemory``): the leg it flies (the master's last Goto) and whether the
+policy holds it. An autopilot told to hold keeps holding whatever happens to
+the companion computer, so a restarted drone must know to resume it.
+
 Durability: WAL with ``synchronous=NORMAL``, which survives the process
 being killed (the operating system keeps what was written); a power cut may
 lose the last transactions. ``synchronous=FULL`` would cost an fsync per
@@ -63,6 +68,11 @@ CREATE TABLE IF NOT EXISTS executing (
     controller_id INTEGER NOT NULL,
     received_at REAL NOT NULL
 );
+CREATE TABLE IF NOT EXISTS policy (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    leg BLOB,
+    held INTEGER NOT NULL
+);
 """
 
 
@@ -88,6 +98,16 @@ class Intent:
     digest: bytes
     controller_id: int
     received_at: float
+
+
+@dataclass(frozen=True)
+class PolicyMemory:
+    """What the handover policy's runner must not forget (``policy_runner.py``): the leg
+    the vehicle flies (the master's last Goto, a serialized ``GotoRequest``; None: none
+    known) and whether the policy holds the vehicle in the air."""
+
+    leg: bytes | None = None
+    held: bool = False
 
 
 @dataclass
@@ -157,6 +177,20 @@ class DroneStore:
             reqnr, method, digest, controller_id, received_at = intent
             executing = Intent(reqnr, method, bytes(digest), controller_id, received_at)
         return DroneState(counters, replies, audit, executing)
+
+    def load_policy(self) -> PolicyMemory:
+        """The policy runner's memory; empty for a new file (or a drone without a policy)."""
+        row = self._db.execute("SELECT leg, held FROM policy WHERE id = 1").fetchone()
+        if row is None:
+            return PolicyMemory()
+        leg, held = row
+        return PolicyMemory(None if leg is None else bytes(leg), bool(held))
+
+    def save_policy(self, memory: PolicyMemory) -> None:
+        """The policy runner's memory, replacing what was kept (one statement: atomic)."""
+        self._db.execute(
+            "INSERT OR REPLACE INTO policy VALUES (1, ?, ?)", (memory.leg, int(memory.held))
+        )
 
     def audit_page(self, after_reqnr: int, limit: int) -> list[drone_pb2.AuditEntry]:
         """At most ``limit`` audit entries with a reqnr above ``after_reqnr``, in order."""

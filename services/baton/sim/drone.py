@@ -758,7 +758,11 @@ class SimDrone:
         self.up = True
         self.stats.restarts += 1
         self.seq = self._restored()
-        self.policy = self._policy_runner()  # volatile: PolicyRunner is built afresh
+        # PolicyRunner is built afresh, with the hold the store keeps (PolicyRunner.restore).
+        held = self.policy is not None and self.policy.held_vehicle
+        self.policy = self._policy_runner()
+        if self.policy is not None:
+            self.policy.restore(held, self.intent)
         # DroneService.last_seen is not in the store; _restore counts the master of
         # a mission in progress as seen RESTART_GRACE_S after the restart.
         self.last_seen = {}

@@ -27,11 +27,13 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from baton.drone.policy import HANDOVER, HOLD, Decision, LinkState, PolicyState, decide, distance_m
-from baton.drone.policy_runner import _ENDS_A_LEG, POLICY_TICK_S
+from baton.drone.policy_runner import _ENDS_A_LEG, POLICY_TICK_S, _changes_the_leg
 from baton.rpc.labels import label
+from baton.rpc.methods import drone_api
 from baton.v1 import drone_pb2
 
 if TYPE_CHECKING:
+    from baton.drone.store import Intent
     from baton.sim.corridor import Corridor
     from baton.sim.drone import SimDrone
 
@@ -62,6 +64,21 @@ class SimPolicyRunner:
     def pin(self, master: int) -> None:
         """The script or the operator made ``master`` master: kept while it is usable."""
         self.state = self.state.pin(master)
+
+    @property
+    def held_vehicle(self) -> bool:
+        """Whether the policy holds the vehicle (what the store keeps: PolicyMemory.held)."""
+        return self.holding and self._held_vehicle
+
+    def restore(self, held: bool, cut_off: Intent | None) -> None:
+        """PolicyRunner.restore: a restarted drone holds again if its predecessor held
+        (resumed at its first decision that is not ``hold``), unless a command that
+        changes the leg was cut off by the restart (forgotten; the leg is the corridor's)."""
+        if cut_off is not None:
+            route = drone_api().get(cut_off.method)
+            if route is not None and route.service == "Mobility" and _changes_the_leg(route.name):
+                return
+        self.holding = self._held_vehicle = held
 
     def executed(self, method_name: str) -> None:
         """PolicyRunner.executed: a Goto, or a command that ends a leg, ends a hold (the
@@ -122,7 +139,9 @@ class SimPolicyRunner:
         elif decision.action != self._last_action:
             drone.world.trace(f"policy: {action}: {decision.reason}")
         self._last_action = decision.action
-        if decision.action == HANDOVER or (decision.action == HOLD) != self.holding:
+        holds = not self.holding and decision.action == HOLD
+        resumes = self.holding and decision.action != HOLD and not decision.waiting
+        if decision.action == HANDOVER or holds or resumes:
             return PolicyStep(decision, master)
         return None
 
@@ -154,7 +173,7 @@ class SimPolicyRunner:
             self.holding = self._held_vehicle = True
             drone.policy_decided["hold"] += 1
             drone.world.trace(f"policy: the vehicle holds ({decision.reason})")
-        if decision.action != HOLD and self.holding:
+        if decision.action != HOLD and not decision.waiting and self.holding:
             # PolicyRunner._resume: fly on to the last Goto's target (the corridor's end).
             held, self.holding, self._held_vehicle = self._held_vehicle, False, False
             if held:
