@@ -235,3 +235,12 @@ def test_a_master_regranted_while_active_in_a_replaced_mastership_rejoins_first(
     for seed in (71, 177):
         outcome = run_seed(seed, SimOptions(policy="nearest"))
         assert not outcome.failed, _failures([outcome])
+
+
+def test_a_taker_after_a_drone_restart_holds_what_the_drone_let_go() -> None:
+    """--policy nearest seed 201: the drone restarted and forgot its watermark (3), and
+    said 0 to a taker restarted with nothing, which went ACTIVE at once and waited for
+    ever for request 1's retained reply (the cache had let 1-3 go). The store keeps the
+    watermark: the taker waits until the ring gave it request 3."""
+    outcome = run_seed(201, SimOptions(policy="nearest"))
+    assert not outcome.failed, _failures([outcome])
