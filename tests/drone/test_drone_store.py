@@ -8,6 +8,7 @@ the same SQLite file; the end-to-end kill -9 mid-mission is in
 from __future__ import annotations
 
 import asyncio
+import sqlite3
 from pathlib import Path
 
 import grpc
@@ -18,7 +19,7 @@ from waiting import eventually
 
 from baton.digest import request_digest
 from baton.drone.sequencer import AUDIT_IN_MEMORY
-from baton.drone.store import DroneStore, Intent
+from baton.drone.store import Counters, DroneStore, Intent
 from baton.rpc.server import BatonServer
 from baton.testbed.local import drone_status
 from baton.v1 import drone_api_pb2 as api
@@ -176,3 +177,54 @@ async def test_the_calls_a_master_answered_survive_a_drone_killed_executing_thei
         assert retained[1].status_code == grpc.StatusCode.UNKNOWN.value[0]
     finally:
         await second[1].stop(0)
+
+
+async def test_a_restarted_drone_tells_a_taker_the_watermark_it_had(tmp_path: Path) -> None:
+    """--policy nearest seed 201: the watermark was not kept, and a restarted drone said 0.
+    The replies up to it were let go, so a taker restarted with nothing went ACTIVE at
+    once (it held the 0 it was told it must) and waited for ever for request 1's reply.
+    Kept with the counters, the taker is told it must hold up to 3 first, and is given
+    only the replies above it."""
+    state = tmp_path / "drone.sqlite"
+    first = await restart(None, state, script="")
+    drone = first[0]
+    for reqnr in range(1, 6):
+        request = invoke(0, reqnr, POSITION)
+        request.watermark_reqnr = 3  # every controller holds up to request 3
+        await drone.stub.Invoke(request)
+    assert drone.service.seq.cache.watermark == 3
+    second = await restart(first, state, script="")
+    drone = second[0]
+    try:
+        assert drone.service.seq.cache.watermark == 3
+        await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
+        connected, retained = await connect_as_master(drone.stub, 1)
+        assert connected.watermark_reqnr == 3
+        assert [r.reqnr for r in retained] == [4, 5]
+    finally:
+        await second[1].stop(0)
+
+
+def test_a_state_file_from_before_the_watermark_was_kept_opens(tmp_path: Path) -> None:
+    """A file written without the watermark column gets it (0: as that drone said)."""
+    state = tmp_path / "drone.sqlite"
+    db = sqlite3.connect(state)
+    db.execute(
+        "CREATE TABLE state (id INTEGER PRIMARY KEY CHECK (id = 1), master INTEGER NOT NULL, "
+        "last_reqnr INTEGER NOT NULL, executed INTEGER NOT NULL, duplicates INTEGER NOT NULL, "
+        "rejected INTEGER NOT NULL, handovers BLOB NOT NULL, fired_script TEXT NOT NULL)"
+    )
+    db.execute("INSERT INTO state VALUES (1, 2, 7, 7, 0, 0, ?, '[]')", (b"",))
+    db.commit()
+    db.close()
+    store = DroneStore(state)
+    try:
+        loaded = store.load()
+        assert loaded is not None
+        assert (loaded.counters.master, loaded.counters.last_reqnr) == (2, 7)
+        assert loaded.counters.watermark == 0
+        store.save(Counters(master=2, last_reqnr=8, watermark=5))
+        loaded = store.load()
+        assert loaded is not None and loaded.counters.watermark == 5
+    finally:
+        store.close()

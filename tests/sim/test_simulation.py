@@ -235,3 +235,28 @@ def test_a_master_regranted_while_active_in_a_replaced_mastership_rejoins_first(
     for seed in (71, 177):
         outcome = run_seed(seed, SimOptions(policy="nearest"))
         assert not outcome.failed, _failures([outcome])
+
+
+def test_a_taker_after_a_drone_restart_holds_what_the_drone_let_go() -> None:
+    """--policy nearest seed 201: the drone restarted and forgot its watermark (3), and
+    said 0 to a taker restarted with nothing, which went ACTIVE at once and waited for
+    ever for request 1's retained reply (the cache had let 1-3 go). The store keeps the
+    watermark: the taker waits until the ring gave it request 3."""
+    outcome = run_seed(201, SimOptions(policy="nearest"))
+    assert not outcome.failed, _failures([outcome])
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="a taker holding a framing an earlier takeover replaced builds on it "
+    "(docs/design.md, the handover policy)",
+)
+def test_policy_seed_132_holds_every_oracle() -> None:
+    """Open (--policy nearest seed 132, same-replies): master 4, cut off by a forced
+    handover it never heard, answered Clock calls 7-10 itself and flushed them to 2; a
+    takeover (3, epoch 3) framed 8-10 anew with another reading of request 9. Before
+    those messages reached 2, the policy made 2 master by takeover: it went ACTIVE on
+    4's reading (the drone sent it only the replies above what it holds), and the drone
+    executed its requests 16 and 17."""
+    outcome = run_seed(132, SimOptions(policy="nearest"))
+    assert outcome.ok, outcome.report()

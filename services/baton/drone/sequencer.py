@@ -458,15 +458,24 @@ class Sequencer:
         replies: Iterable[CachedReply],
         audit: Iterable[drone_pb2.AuditEntry],
         fired_script: Iterable[int],
+        watermark: int = 0,
     ) -> None:
         """Takes back what the durable store kept: master and handovers (so the epoch),
         ``counts`` (last reqnr, executed, duplicates, rejected), the reply cache, the
-        newest audit entries, and the script lines already fired."""
+        newest audit entries, the script lines already fired, and the watermark.
+
+        The watermark too: the cache let the replies at or below it go, and a
+        taker is told it (``Connected.watermark_reqnr``) to know what it must
+        hold before it goes ACTIVE. Read as 0 after a restart, it let a taker
+        restarted with nothing go ACTIVE at once and wait for ever for the
+        retained reply of request 1, long gone (--policy nearest seed 201).
+        """
         self.master = master
         self.handovers[:] = handovers
         self.last_reqnr, self.executed, self.duplicates, self.rejected = counts
         for reply in replies:
             self.cache.store(reply.reqnr, reply.method, reply.digest, reply.reply, reply.error)
+        self.cache.raise_watermark(watermark)
         self.audit.extend(audit)
         self.fired_script[:] = fired_script
         for reqnr in self.fired_script:

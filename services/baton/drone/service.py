@@ -361,6 +361,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             rejected=seq.rejected,
             handovers=list(seq.handovers),
             fired_script=list(seq.fired_script),
+            watermark=seq.cache.watermark,
         )
 
     def _restore(self, store: DroneStore) -> None:
@@ -372,7 +373,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             return
         c, seq = state.counters, self.seq
         counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
-        seq.resume(c.master, c.handovers, counts, state.replies, state.audit, c.fired_script)
+        seq.resume(
+            c.master, c.handovers, counts, state.replies, state.audit, c.fired_script, c.watermark
+        )
         if c.last_reqnr or c.handovers:
             # A mission in progress: its master was there before the restart.
             # Seen "now plus the grace", so that it is lost if it does not

@@ -48,7 +48,8 @@ CREATE TABLE IF NOT EXISTS state (
     duplicates INTEGER NOT NULL,
     rejected INTEGER NOT NULL,
     handovers BLOB NOT NULL,
-    fired_script TEXT NOT NULL
+    fired_script TEXT NOT NULL,
+    watermark INTEGER NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS replies (
     reqnr INTEGER PRIMARY KEY,
@@ -87,6 +88,8 @@ class Counters:
     rejected: int = 0
     handovers: list[drone_pb2.HandoverRecord] = field(default_factory=list)
     fired_script: list[int] = field(default_factory=list)  # script reqnrs already fired
+    # The reply cache's watermark: the replies at or below it are let go (dedupe.py).
+    watermark: int = 0
 
 
 @dataclass(frozen=True)
@@ -131,6 +134,11 @@ class DroneStore:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.executescript(SCHEMA)
+            columns = {row[1] for row in self._db.execute("PRAGMA table_info(state)")}
+            if "watermark" not in columns:  # a file written before the watermark was kept
+                self._db.execute(
+                    "ALTER TABLE state ADD COLUMN watermark INTEGER NOT NULL DEFAULT 0"
+                )
         except (OSError, sqlite3.Error) as exc:
             raise OSError(
                 f"drone state file {self.path} (--state): {exc}; give a writable path"
@@ -143,12 +151,12 @@ class DroneStore:
     def load(self) -> DroneState | None:
         """What was stored; None for a new file."""
         row = self._db.execute(
-            "SELECT master, last_reqnr, executed, duplicates, rejected, handovers, fired_script "
-            "FROM state WHERE id = 1"
+            "SELECT master, last_reqnr, executed, duplicates, rejected, handovers, fired_script, "
+            "watermark FROM state WHERE id = 1"
         ).fetchone()
         if row is None:
             return None
-        master, last_reqnr, executed, duplicates, rejected, handovers, fired = row
+        master, last_reqnr, executed, duplicates, rejected, handovers, fired, watermark = row
         counters = Counters(
             master,
             last_reqnr,
@@ -157,6 +165,7 @@ class DroneStore:
             rejected,
             list(drone_pb2.DroneStatus.FromString(handovers).handovers),
             list(json.loads(fired)),
+            watermark,
         )
         replies = [
             CachedReply(reqnr, method, bytes(digest), bytes(reply), _error(code, message, meta))
@@ -269,7 +278,8 @@ class DroneStore:
     def _write_counters(self, c: Counters) -> None:
         handovers = drone_pb2.DroneStatus(handovers=c.handovers).SerializeToString()
         self._db.execute(
-            "INSERT OR REPLACE INTO state VALUES (1, ?, ?, ?, ?, ?, ?, ?)",
+            "INSERT OR REPLACE INTO state (id, master, last_reqnr, executed, duplicates, "
+            "rejected, handovers, fired_script, watermark) VALUES (1, ?, ?, ?, ?, ?, ?, ?, ?)",
             (
                 c.master,
                 c.last_reqnr,
@@ -278,6 +288,7 @@ class DroneStore:
                 c.rejected,
                 handovers,
                 json.dumps(sorted(c.fired_script)),
+                c.watermark,
             ),
         )
 

@@ -806,6 +806,7 @@ class SimDrone:
             [r for r in replies if r is not None],
             old.audit,
             old.fired_script,
+            old.cache.watermark,
         )
         return seq
 
