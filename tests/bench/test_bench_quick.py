@@ -83,6 +83,8 @@ async def test_micro_quick(tmp_path: Path) -> None:
     # The proxied calls are a running mission's: logged, not flushed one by one.
     assert proxy["flushes_during_proxy_calls"] == 0
     assert result["proxy_insecure"]["flushes_during_proxy_calls"] == 0
+    # Interleaved call by call with the proxied calls, on a drone beside it.
+    assert proxy["direct_get_position"]["n"] == MicroSettings.quick().calls
     assert proxy["direct_get_position"]["calls_per_s"] > 0
     assert all(r["calls_per_s"] > 0 for r in result["replay"])
     # The protocol and the node alone per log size, then a program end to end.

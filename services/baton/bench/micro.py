@@ -1,11 +1,11 @@
 """``baton bench micro``: the costs the handover model builds on, one at a time.
 
 - **Proxy round trip**: GetPosition through a controller's drone-API proxy
-  (the mission program's path: controller, Invoke, drone, log) against a
-  direct Invoke on the drone, on loopback without link emulation. Then,
-  interleaved call by call, direct Invokes against Invokes through a bare
-  relay process (``relay.py``): the floor of one more Python gRPC hop, which
-  the proxy overhead contains.
+  (the mission program's path: controller, InvokeStream, drone, log) against
+  a direct Invoke on a drone of a second testbed like the first, interleaved
+  call by call, on loopback without link emulation. Then, interleaved too,
+  direct Invokes against Invokes through a bare relay process
+  (``relay.py``): the floor of one more Python gRPC hop.
 - **Replay speed**: calls per second that Algorithm 1's REPLAY answers from a
   log: in ``ControllerProtocol.replay`` alone (the pure state machine), and
   end to end, a mission program (the SDK, in a process of its own) answered
@@ -23,12 +23,14 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import secrets
 import statistics
 import sys
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -43,8 +45,8 @@ from baton.controller.node import ControllerNode
 from baton.controller.protocol import ControllerProtocol, State, request_digest
 from baton.controller.ring import FRAME_BYTES, RELAY_WINDOW_FRAMES, PeerLink, RingReceiver
 from baton.controller.service import DroneApiProxy
+from baton.drone.measure import MasterCalls, summary_ms
 from baton.drone.measure import measure as measure_drone
-from baton.drone.measure import summary_ms
 from baton.link.proxy import LinkProxy
 from baton.logs import get_logger
 from baton.rpc.channels import aio_channel
@@ -54,7 +56,7 @@ from baton.rpc.server import BatonServer, generic, servicer
 from baton.rpc.tls import DRONE, Identity, Tls
 from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
 from baton.v1 import drone_api_pb2 as api
-from baton.v1 import drone_api_pb2_grpc, drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
+from baton.v1 import drone_api_pb2_grpc, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
 LOG = get_logger("bench")
 RING_BANDWIDTH = 25e6
@@ -93,8 +95,17 @@ def _rate(samples: list[float]) -> float:
 async def measure_proxy_and_drone(
     settings: MicroSettings, workdir: Path, insecure: bool = False
 ) -> dict[str, Any]:
-    """Proxy vs direct GetPosition round trips, and T_conn, on one testbed without links
-    (with mutual TLS, or ``insecure``)."""
+    """Proxy vs direct GetPosition round trips, and T_conn, on testbeds without links
+    (with mutual TLS, or ``insecure``).
+
+    A direct call needs the drone's master, and a controller master of its drone
+    cannot give the role away and back without a log to hand over: so the direct
+    calls go to a second testbed like the first, whose drone this process is
+    master of, and the two paths are measured call by call in turn (which goes
+    first alternates), as the relay is. Measured one after the other, the
+    direct baseline of one block and the proxy of the next differed by up to
+    1 ms at p50 on the shared cores, more than the overhead measured.
+    """
     plan = TestbedPlan(
         config=local_config(
             2,
@@ -102,9 +113,9 @@ async def measure_proxy_and_drone(
             speedup=1.0,
             tls={"insecure": insecure},
         ),
-        # The controller's own program makes no call and holds (stays running, so
+        # The controllers' own program makes no call and holds (stays running, so
         # its controller logs calls as during a mission; an ended program's
-        # controller flushes every entry at once): this process is its only caller.
+        # controller flushes every entry at once): this process is the only caller.
         mission_args=bench_mission_args(f"h{HOLD_S}"),
         mission_file=BENCH_MISSION,
         emulate_links=False,
@@ -116,57 +127,89 @@ async def measure_proxy_and_drone(
     plan = replace(plan, mission_token=token)
     as_program = ((MISSION_TOKEN_METADATA, token),)
     security = "insecure" if insecure else "mutual TLS"
-    say(f"micro: starting a drone and 2 controllers (no link emulation, {security})")
-    async with LocalTestbed(plan, workdir) as testbed:
-        config = testbed.config
-        assert config is not None
+    say(
+        f"micro: starting two testbeds of a drone and 2 controllers (no link emulation, {security})"
+    )
+    proxied, beside = (
+        LocalTestbed(plan, workdir / "proxied"),
+        LocalTestbed(plan, workdir / "direct"),
+    )
+    async with contextlib.AsyncExitStack() as stack:
+        await asyncio.gather(stack.enter_async_context(proxied), stack.enter_async_context(beside))
+        config, direct_config = proxied.config, beside.config
+        assert config is not None and direct_config is not None
+        # The second testbed's own certificates (each testbed makes its own CA).
+        certs = None if direct_config.tls.insecure else direct_config.tls.certs
         # The program's port: loopback and plain, tied to the program by the token.
-        master = (await testbed.snapshot(audit=False)).controllers[0]
+        master = (await proxied.snapshot(audit=False)).controllers[0]
         channel = aio_channel(master.mission_address)
         mobility = drone_api_pb2_grpc.MobilityStub(channel)
         request = api.GetPositionRequest()
+
+        async def through_proxy() -> float:
+            start = time.perf_counter()
+            await mobility.GetPosition(request, metadata=as_program)
+            return time.perf_counter() - start
+
         for _ in range(50):  # warm up; the first calls wait for the vehicle
             await mobility.GetPosition(
                 request, wait_for_ready=True, timeout=60, metadata=as_program
             )
-        before = (await testbed.snapshot(audit=False)).controllers[0].lognr
-        say(f"micro: {settings.calls} GetPosition calls through controller 0's proxy")
-        proxy = []
-        for _ in range(settings.calls):
-            start = time.perf_counter()
-            await mobility.GetPosition(request, metadata=as_program)
-            proxy.append(time.perf_counter() - start)
+        before = (await proxied.snapshot(audit=False)).controllers[0].lognr
+        tls = None if certs is None else Tls.load(certs, Identity.controller(1))
+        async with aio_channel(direct_config.drone.address, tls, DRONE) as direct_channel:
+            # As controller 1 of the second testbed: its drone hands over to it.
+            direct = await MasterCalls.become_master(
+                drone_pb2_grpc.DroneStub(direct_channel), direct_config.drone.address, 1, certs
+            )
+            for _ in range(50):
+                await direct.invoke()
+            say(
+                f"micro: {settings.calls} GetPosition calls through controller 0's proxy, "
+                f"and as many direct Invokes on the second drone, in turn"
+            )
+            proxy, direct_s = await interleaved(through_proxy, direct.timed, settings.calls)
         await channel.close()
-        snapshot = await testbed.snapshot(audit=False)
+        snapshot = await proxied.snapshot(audit=False)
         controller_t_conn = t_conn_samples(snapshot)
         # The calls must be the proxy's path during a mission: each logged, none
         # flushed (a flush per call is a ring message per call, not the proxy).
         flushes = snapshot.controllers[0].lognr - before
-        say(f"micro: {settings.calls} direct Invoke calls and {settings.connects} Connects")
-        # As controller 1: the drone hands over to it, and the measurement continues
-        # from the drone's last reqnr.
-        certs = None if config.tls.insecure else config.tls.certs
-        direct = await measure_drone(
-            config.drone.address, 1, settings.calls, 5, settings.connects, certs
+        say(f"micro: pictures and {settings.connects} Connects on the second drone")
+        direct_more = await measure_drone(
+            direct_config.drone.address, 1, 0, 5, settings.connects, certs
         )
         say(f"micro: {settings.calls} direct Invokes and {settings.calls} through a bare relay")
-        relay = await measure_relay(config.drone.address, 1, settings.calls, certs)
-    proxy_ms = summary_ms(proxy)
-    direct_ms = direct["invoke_get_position"]
+        relay = await measure_relay(direct_config.drone.address, 1, settings.calls, certs)
+    proxy_ms, direct_ms = summary_ms(proxy), summary_ms(direct_s)
     return {
         "proxy_get_position": {**proxy_ms, "calls_per_s": _rate(proxy)},
-        "direct_get_position": {
-            **direct_ms,
-            "calls_per_s": 1e3 / direct_ms["mean_ms"] if direct_ms["mean_ms"] else 0.0,
-        },
+        "direct_get_position": {**direct_ms, "calls_per_s": _rate(direct_s)},
         "proxy_overhead_p50_ms": proxy_ms["p50_ms"] - direct_ms["p50_ms"],
         "flushes_during_proxy_calls": flushes,
-        "direct_take_picture": direct["invoke_take_picture"],
-        "t_conn_new_channel": direct["t_conn_new_channel"],
-        "t_conn_open_channel": direct["t_conn_open_channel"],
+        "direct_take_picture": direct_more["invoke_take_picture"],
+        "t_conn_new_channel": direct_more["t_conn_new_channel"],
+        "t_conn_open_channel": direct_more["t_conn_open_channel"],
         "t_conn_controllers_ms": [round(t * 1e3, 3) for t in controller_t_conn],
         "relay": relay,
     }
+
+
+async def interleaved(
+    first: Callable[[], Awaitable[float]], second: Callable[[], Awaitable[float]], calls: int
+) -> tuple[list[float], list[float]]:
+    """``calls`` timings of each, taken in turn, which goes first alternating: the
+    shared cores' slow moments fall on both alike."""
+    one: list[float] = []
+    other: list[float] = []
+    for k in range(calls):
+        if k % 2:
+            other.append(await second())
+            one.append(await first())
+        else:
+            one.append(await first())
+            other.append(await second())
+    return one, other
 
 
 async def measure_relay(
@@ -191,35 +234,16 @@ async def measure_relay(
             aio_channel(address, tls, DRONE) as direct_channel,
             aio_channel(relay_address) as relay_channel,
         ):
-            direct = drone_pb2_grpc.DroneStub(direct_channel)
             relayed = drone_pb2_grpc.DroneStub(relay_channel)
-            status = await direct.GetStatus(drone_pb2.GetDroneStatusRequest())
-            if status.master != controller:
-                raise RuntimeError(f"controller {controller} is not the drone's master")
-            reqnr, epoch = status.last_reqnr, status.epoch
-
-            async def invoke(stub: drone_pb2_grpc.DroneAsyncStub) -> float:
-                nonlocal reqnr
-                reqnr += 1
-                request = drone_pb2.InvokeRequest(
-                    controller_id=controller, reqnr=reqnr, method=GET_POSITION, epoch=epoch
-                )
-                start = time.perf_counter()
-                await stub.Invoke(request, wait_for_ready=True, timeout=30)
-                return time.perf_counter() - start
-
+            direct = await MasterCalls.become_master(
+                drone_pb2_grpc.DroneStub(direct_channel), address, controller, certs
+            )
             for _ in range(20):  # warm up both paths
-                await invoke(direct)
-                await invoke(relayed)
-            direct_s: list[float] = []
-            relay_s: list[float] = []
-            for k in range(calls):
-                if k % 2:
-                    direct_s.append(await invoke(direct))
-                    relay_s.append(await invoke(relayed))
-                else:
-                    relay_s.append(await invoke(relayed))
-                    direct_s.append(await invoke(direct))
+                await direct.invoke()
+                await direct.invoke(via=relayed)
+            relay_s, direct_s = await interleaved(
+                lambda: direct.timed(via=relayed), direct.timed, calls
+            )
     finally:
         relay.stdin.close()
         try:
@@ -531,7 +555,7 @@ def table(result: dict[str, Any]) -> str:
         ["proxy overhead at p50 (ms)", "mutual TLS", "insecure"],
         [
             [
-                "through the controller, against direct Invoke (run one after the other)",
+                "through the controller, against direct Invoke on a drone beside it (interleaved)",
                 f"{p['proxy_overhead_p50_ms']:.3f}",
                 f"{plain['proxy_overhead_p50_ms']:.3f}",
             ],

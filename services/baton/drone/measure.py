@@ -44,10 +44,71 @@ def summary_ms(samples: list[float]) -> dict[str, float]:
     }
 
 
+class MasterCalls:
+    """Drone calls as the drone's master, numbered on from its last reqnr: what a
+    program calling the drone directly would send (the benchmarks' baseline)."""
+
+    def __init__(
+        self, stub: drone_pb2_grpc.DroneAsyncStub, controller: int, epoch: int, reqnr: int
+    ) -> None:
+        self.stub = stub
+        self.controller = controller
+        self.epoch = epoch
+        self.reqnr = reqnr
+
+    @classmethod
+    async def become_master(
+        cls,
+        stub: drone_pb2_grpc.DroneAsyncStub,
+        address: str,
+        controller: int,
+        certs: Path | None,
+    ) -> MasterCalls:
+        """As ``controller`` over ``stub``'s channel to the drone at ``address``: made
+        master first by an operator's Handover (with the operator's certificate in
+        ``certs``) if it is not."""
+        status = await stub.GetStatus(
+            drone_pb2.GetDroneStatusRequest(), wait_for_ready=True, timeout=30
+        )
+        epoch = status.epoch
+        if status.master != controller:
+            operator = None if certs is None else Tls.load(certs, OPERATOR)
+            async with aio_channel(address, operator, DRONE) as as_operator:
+                handover = drone_pb2.HandoverRequest(new_master=controller)
+                epoch = (await drone_pb2_grpc.DroneStub(as_operator).Handover(handover)).epoch
+        return cls(stub, controller, epoch, status.last_reqnr)
+
+    async def invoke(
+        self,
+        method: str = GET_POSITION,
+        payload: bytes = b"",
+        via: drone_pb2_grpc.DroneAsyncStub | None = None,
+    ) -> drone_pb2.InvokeReply:
+        """The next request, over ``via`` (a relay) or straight to the drone."""
+        self.reqnr += 1
+        request = drone_pb2.InvokeRequest(
+            controller_id=self.controller,
+            reqnr=self.reqnr,
+            method=method,
+            payload=payload,
+            epoch=self.epoch,
+        )
+        reply: drone_pb2.InvokeReply = await (via or self.stub).Invoke(
+            request, wait_for_ready=True, timeout=30
+        )
+        return reply
+
+    async def timed(self, via: drone_pb2_grpc.DroneAsyncStub | None = None) -> float:
+        """One GetPosition's round trip, in seconds."""
+        start = time.perf_counter()
+        await self.invoke(via=via)
+        return time.perf_counter() - start
+
+
 async def measure(
     address: str,
     controller: int,
-    calls: int,
+    count: int,
     pictures: int,
     connects: int,
     certs: Path | None = None,
@@ -59,14 +120,7 @@ async def measure(
     tls = None if certs is None else Tls.load(certs, me)
     channel = aio_channel(address, tls, DRONE)
     stub = drone_pb2_grpc.DroneStub(channel)
-    status = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
-    epoch = status.epoch
-    if status.master != controller:
-        operator = None if certs is None else Tls.load(certs, OPERATOR)
-        async with aio_channel(address, operator, DRONE) as as_operator:
-            handover = drone_pb2.HandoverRequest(new_master=controller)
-            epoch = (await drone_pb2_grpc.DroneStub(as_operator).Handover(handover)).epoch
-    reqnr = status.last_reqnr
+    calls = await MasterCalls.become_master(stub, address, controller, certs)
 
     async def connect(connect_stub: drone_pb2_grpc.DroneAsyncStub) -> float:
         start = time.perf_counter()
@@ -86,27 +140,14 @@ async def measure(
         await fresh.close()
         t_conn_open.append(await connect(stub))
 
-    async def invoke(method: str, payload: bytes = b"") -> drone_pb2.InvokeReply:
-        nonlocal reqnr
-        reqnr += 1
-        return await stub.Invoke(
-            drone_pb2.InvokeRequest(
-                controller_id=controller, reqnr=reqnr, method=method, payload=payload, epoch=epoch
-            )
-        )
-
     for _ in range(20):  # warm up the channel and the drone's telemetry path
-        await invoke(GET_POSITION)
-    position = []
-    for _ in range(calls):
-        start = time.perf_counter()
-        await invoke(GET_POSITION)
-        position.append(time.perf_counter() - start)
+        await calls.invoke()
+    position = [await calls.timed() for _ in range(count)]
 
     picture, picture_bytes = [], 0
     for _ in range(pictures):
         start = time.perf_counter()
-        reply = await invoke(TAKE_PICTURE)
+        reply = await calls.invoke(TAKE_PICTURE)
         picture.append(time.perf_counter() - start)
         picture_bytes = len(api.TakePictureReply.FromString(reply.payload).image)
     await channel.close()
@@ -115,7 +156,7 @@ async def measure(
         "tls": tls is not None,
         "t_conn_new_channel": summary_ms(t_conn_new),
         "t_conn_open_channel": summary_ms(t_conn_open),
-        "invoke_get_position": summary_ms(position),
+        "invoke_get_position": summary_ms(position) if position else None,
         "invoke_take_picture": {**summary_ms(picture), "image_bytes": picture_bytes},
     }
 
