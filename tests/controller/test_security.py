@@ -58,6 +58,14 @@ async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing
             assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
             assert "spiffe://baton/controller/2" in (denied.details() or "")
             assert "controller_id 0" in (denied.details() or "")
+            # The same on the kept stream a master sends its calls on: the call is refused.
+            stream = drone.InvokeStream()
+            await stream.write(drone_pb2.InvokeCall(call=1, request=invoke))
+            outcome = await stream.read()
+            assert isinstance(outcome, drone_pb2.InvokeOutcome) and outcome.call == 1
+            assert outcome.failure.code == grpc.StatusCode.PERMISSION_DENIED.value[0]
+            assert "controller_id 0" in outcome.failure.message
+            stream.cancel()
             connect = drone.Connect(drone_pb2.ConnectRequest(controller_id=0))
             denied = await refusal(connect.read())
             assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
