@@ -55,16 +55,21 @@ class DroneApiProxy(grpc.GenericRpcHandler):
         self._node = node
         self._token = token
         self._methods = drone_api()
+        self._handlers: dict[str, grpc.RpcMethodHandler] = {}  # made once per method
 
     def service(
         self, handler_call_details: grpc.HandlerCallDetails
     ) -> grpc.RpcMethodHandler | None:
         """The raw-bytes handler of a drone-API method, None for other methods."""
         method = handler_call_details.method
-        found = self._methods.get(method)
-        if found is None:
-            return None
-        return grpc.unary_unary_rpc_method_handler(self._handler(method, found.request_type))
+        handler = self._handlers.get(method)
+        if handler is None:
+            found = self._methods.get(method)
+            if found is None:
+                return None
+            handler = grpc.unary_unary_rpc_method_handler(self._handler(method, found.request_type))
+            self._handlers[method] = handler
+        return handler
 
     def _handler(
         self, method: str, request_class: type[protobuf_message.Message]
