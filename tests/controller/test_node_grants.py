@@ -116,6 +116,48 @@ async def test_a_taker_answers_its_program_from_each_retained_batch_as_it_comes(
     await node.stop()
 
 
+async def test_a_taker_holding_a_replaced_framing_rejoins_before_it_sends_a_request() -> None:
+    """--policy nearest seed 132: the taker holds request 2 as a cut-off master framed it
+    in epoch 1 (its Clock reading), and a takeover in epoch 3 brought another to the
+    drone. Its Connected (epoch 7) is followed by the replies it holds too: the program's
+    next call waits for them, and the taker rejoins with nothing on request 2 instead
+    of building on a reading no other controller has."""
+    config = parse_config(
+        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
+    )
+    node = ControllerNode(config, 1)
+    rejoins: list[int] = []
+
+    async def on_rejoin() -> None:
+        rejoins.append(node.protocol.reqnr)
+
+    node.on_rejoin = on_rejoin
+    session: Any = NoDrone()
+    node._drone = session
+    await node.on_sync(0, 0)
+    await node.on_log(ring_pb2.LogMessage(lognr=1, origin=0, epoch=1, entries=[entry(1)]))
+    await node.on_log(ring_pb2.LogMessage(lognr=2, origin=0, epoch=1, entries=[entry(2)]))
+    await node.on_granted(session, 7, 2, takeover=True, watermark_reqnr=0)
+    p = node.protocol
+    assert (await node.call(POSITION, b"")).reply == b"1"  # replayed from the log
+    assert (await node.call(POSITION, b"")).reply == b"2"
+    assert p.state is State.ACTIVE and p.held_reqnr == 2
+    third = asyncio.create_task(node.call(POSITION, b""))
+    await settle()
+    assert not third.done()  # the batches of the replies we hold have not come
+    await node.on_retained(session, [kept(1)])
+    await settle()
+    assert not third.done() and not rejoins  # the same outcome: the ring's
+    replaced = kept(2)
+    replaced.reply, replaced.epoch = b"another reading", 3
+    await node.on_retained(session, [replaced])
+    await settle()
+    assert rejoins == [2]
+    third.cancel()
+    node._drone = None
+    await node.stop()
+
+
 async def test_a_give_up_of_a_retained_reply_a_lost_master_acted_on_is_not_logged() -> None:
     """--lose-master seeds 2456 and 2707: the new master's program gave up on request 1
     while its retained reply was crossing, and the master logged the give-up; but the

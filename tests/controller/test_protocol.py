@@ -1023,3 +1023,40 @@ def test_forward_dest_says_from_the_head_alone_what_on_log_forwards_unchanged() 
     fenced = _of_epoch(message(2, 0, [2]), 1)  # numbered after a newer mastership's
     assert q.forward_dest(head_of(fenced)) is None
     assert sends(q.on_log(fenced)) == []
+
+
+def test_a_taker_finds_a_request_it_holds_in_a_framing_a_later_takeover_replaced() -> None:
+    """--policy nearest seed 132: master 4, cut off, answered Clock.Now 2 itself (reading
+    A) and flushed it to 2 in epoch 1; a takeover that did not hold it (epoch 3) read B
+    and brought that to the drone. Made master by takeover (epoch 7), 2 holds 2 up to
+    request 2 and said so: it must not build on reading A. The drone's reply brought in
+    a newer epoch than our framing, and other, is a replaced framing; the same outcome,
+    or one brought in our framing's epoch or before (a give-up of a request the drone
+    served, not sent along yet), is the ring's."""
+    now = "/baton.v1.Clock/Now"
+    taker = ControllerProtocol(2, [4, 2, 0, 3, 1], 0)
+    taker.start()
+    cut_off = _of_epoch(message(1, 4, [1]), 1)
+    cut_off.entries.append(entry(2, now, reply=b"reading A"))
+    taker.on_log(cut_off)
+    taker.on_granted(7, takeover=True)
+    taker.replay(GET, b"")
+    taker.replay(now, b"")
+    assert (taker.state, taker.held_reqnr) == (State.ACTIVE, 2)
+
+    def kept(reply: bytes, epoch: int, reqnr: int = 2) -> drone_pb2.RetainedReply:
+        method = now if reqnr == 2 else GET
+        return drone_pb2.RetainedReply(
+            reqnr=reqnr,
+            method=method,
+            request_digest=request_digest(method, b""),
+            reply=reply,
+            epoch=epoch,
+        )
+
+    first = kept(b"reply 1", 1, reqnr=1)
+    replaced = kept(b"reading B", 3)
+    assert taker.replaced_framing([first, replaced]) == replaced
+    assert taker.replaced_framing([first, kept(b"reading A", 3)]) is None  # the same
+    assert taker.replaced_framing([kept(b"reading B", 1)]) is None  # ours is as new
+    assert taker.replaced_framing([kept(b"reading B", 3, reqnr=3)]) is None  # not held

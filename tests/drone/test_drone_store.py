@@ -172,9 +172,10 @@ async def test_the_calls_a_master_answered_survive_a_drone_killed_executing_thei
         await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
         connected, retained = await connect_as_master(drone.stub, 1, holds_reqnr=1)
         assert connected.retained_through == 3
-        assert [r.reqnr for r in retained] == [2, 3]
-        assert retained[0] == read
-        assert retained[1].status_code == grpc.StatusCode.UNKNOWN.value[0]
+        assert [r.reqnr for r in retained] == [1, 2, 3]  # 1 too: it is compared
+        read.epoch = 1  # brought by the master of epoch 1
+        assert retained[1] == read
+        assert retained[2].status_code == grpc.StatusCode.UNKNOWN.value[0]
     finally:
         await second[1].stop(0)
 
@@ -201,12 +202,14 @@ async def test_a_restarted_drone_tells_a_taker_the_watermark_it_had(tmp_path: Pa
         connected, retained = await connect_as_master(drone.stub, 1)
         assert connected.watermark_reqnr == 3
         assert [r.reqnr for r in retained] == [4, 5]
+        assert [r.epoch for r in retained] == [1, 1]  # the mastership that brought each
     finally:
         await second[1].stop(0)
 
 
 def test_a_state_file_from_before_the_watermark_was_kept_opens(tmp_path: Path) -> None:
-    """A file written without the watermark column gets it (0: as that drone said)."""
+    """A file written without the watermark column gets it (0: as that drone said), and
+    one without the replies' epochs gets them (0: older than any framing)."""
     state = tmp_path / "drone.sqlite"
     db = sqlite3.connect(state)
     db.execute(
@@ -215,6 +218,11 @@ def test_a_state_file_from_before_the_watermark_was_kept_opens(tmp_path: Path) -
         "rejected INTEGER NOT NULL, handovers BLOB NOT NULL, fired_script TEXT NOT NULL)"
     )
     db.execute("INSERT INTO state VALUES (1, 2, 7, 7, 0, 0, ?, '[]')", (b"",))
+    db.execute(  # and without the replies' epochs
+        "CREATE TABLE replies (reqnr INTEGER PRIMARY KEY, method TEXT NOT NULL, "
+        "digest BLOB NOT NULL, reply BLOB NOT NULL, code INTEGER, message TEXT, metadata TEXT)"
+    )
+    db.execute("INSERT INTO replies VALUES (7, 'm', ?, ?, NULL, NULL, NULL)", (b"d", b"r"))
     db.commit()
     db.close()
     store = DroneStore(state)
@@ -223,6 +231,7 @@ def test_a_state_file_from_before_the_watermark_was_kept_opens(tmp_path: Path) -
         assert loaded is not None
         assert (loaded.counters.master, loaded.counters.last_reqnr) == (2, 7)
         assert loaded.counters.watermark == 0
+        assert [(r.reqnr, r.epoch) for r in loaded.replies] == [(7, 0)]
         store.save(Counters(master=2, last_reqnr=8, watermark=5))
         loaded = store.load()
         assert loaded is not None and loaded.counters.watermark == 5

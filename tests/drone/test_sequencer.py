@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import grpc
 import pytest
 
@@ -206,6 +208,22 @@ def test_replies_above_the_masters_watermark_are_retained_past_the_window() -> N
     assert seq.cache.watermark == 6
 
 
+def test_a_taker_is_given_every_retained_reply_with_the_epoch_that_brought_it() -> None:
+    """--policy nearest seed 132: the policy's taker is the nearest station, and may hold
+    a framing an earlier takeover replaced. It is given the retained replies it says it
+    holds too, each with the epoch of the mastership that brought it, to compare; a
+    master granted otherwise only those above what it holds."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    for reqnr in (1, 2, 3):
+        serve(seq, 0, 1, reqnr)
+    assert seq.admit(0, 1, 4, GET, DIGEST, watermark=1) is None
+    assert seq.replies_for_master(holds_reqnr=3) == []  # not a takeover
+    seq.switch(1, LOST, now=4.0, takeover=True, lost_at=1.0)
+    serve(seq, 1, 2, 4)
+    given = [reply.to_proto() for reply in seq.replies_for_master(holds_reqnr=3)]
+    assert [(r.reqnr, r.epoch) for r in given] == [(2, 1), (3, 1), (4, 2)]
+
+
 def test_a_give_up_sent_along_replaces_the_reply_the_program_never_saw() -> None:
     """The master's program gave up on request 1, which the drone served; the give-up
     comes with request 2. A taker must see what the program saw: the give-up."""
@@ -215,7 +233,7 @@ def test_a_give_up_sent_along_replaces_the_reply_the_program_never_saw() -> None
         1, GET, DIGEST, b"", StatusError(grpc.StatusCode.CANCELLED, "gave up", (GIVEN_UP,))
     )
     assert seq.admit(0, 1, 2, GET, DIGEST, clock=[gave_up]) is None
-    assert seq.keep([gave_up]) == (gave_up,)
+    assert seq.keep([gave_up]) == (replace(gave_up, epoch=1),)  # brought in epoch 1
     seq.served(0, 2, GET, DIGEST, b"reply 2", 2.0, now=2.0)
     kept = seq.cache.get(1)
     assert kept is not None and kept.error is not None

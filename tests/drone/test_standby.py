@@ -164,10 +164,11 @@ def clock_reply(reqnr: int, method: str = NOW, seconds: float = 1.0) -> drone_pb
     )
 
 
-async def test_a_taker_connects_and_gets_the_retained_replies_above_what_it_holds() -> None:
+async def test_a_taker_connects_and_gets_the_retained_replies_with_their_epochs() -> None:
     """F12: a lost master's Clock.Now, sent along with its next Invoke, reaches the taker
-    with the drone's own replies above the watermark, so it reads the same time; only
-    those above what the taker holds (its Connect says), so the link carries no more."""
+    with the drone's own replies above the watermark, so it reads the same time; those
+    the taker holds (its Connect says) too, each with the epoch that brought it, for the
+    taker to compare with its framing (--policy nearest seed 132)."""
     drone, server = await start_drone()
     try:
         first = drone_pb2.InvokeRequest(controller_id=0, reqnr=1, method=POSITION, epoch=1)
@@ -185,10 +186,11 @@ async def test_a_taker_connects_and_gets_the_retained_replies_above_what_it_hold
         assert (take_over.old_master, take_over.epoch, take_over.after_reqnr) == (0, 2, 3)
         connected, retained = await connect_as_master(drone.stub, 1, holds_reqnr=1)
         assert connected.epoch == 2
-        assert [r.reqnr for r in retained] == [2, 3]
-        assert retained[0] == read
-        assert retained[1].reply == position.payload
-        assert retained[1].request_digest == request_digest(POSITION, b"")
+        assert [(r.reqnr, r.epoch) for r in retained] == [(1, 1), (2, 1), (3, 1)]
+        read.epoch = 1
+        assert retained[1] == read
+        assert retained[2].reply == position.payload
+        assert retained[2].request_digest == request_digest(POSITION, b"")
     finally:
         await server.stop()
 

@@ -196,8 +196,7 @@ def test_a_failing_seed_prints_the_command_that_replays_it(
 # pure policy deciding at its ticks, its handovers prepared) in CI.
 POLICY_SEEDS = 100
 # Every oracle holds on every policy seed but these (docs/design.md, "The deterministic
-# simulation", the handover policy; none in CI's range: beyond it, 132 and 201 of 0-299
-# are not diagnosed yet).
+# simulation", the handover policy; none: 132 and 201, beyond CI's range, are fixed).
 POLICY_OPEN: frozenset[int] = frozenset()
 # These hold on those seeds too.
 POLICY_SAFE = frozenset({"at-most-once", "exactly-once", "one-master-per-epoch", "prepared-record"})
@@ -246,17 +245,14 @@ def test_a_taker_after_a_drone_restart_holds_what_the_drone_let_go() -> None:
     assert not outcome.failed, _failures([outcome])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="a taker holding a framing an earlier takeover replaced builds on it "
-    "(docs/design.md, the handover policy)",
-)
 def test_policy_seed_132_holds_every_oracle() -> None:
-    """Open (--policy nearest seed 132, same-replies): master 4, cut off by a forced
-    handover it never heard, answered Clock calls 7-10 itself and flushed them to 2; a
-    takeover (3, epoch 3) framed 8-10 anew with another reading of request 9. Before
-    those messages reached 2, the policy made 2 master by takeover: it went ACTIVE on
-    4's reading (the drone sent it only the replies above what it holds), and the drone
-    executed its requests 16 and 17."""
+    """--policy nearest seed 132 (same-replies): master 4, cut off by a forced handover
+    it never heard, answered Clock calls 7-10 itself and flushed them to 2; a takeover
+    (3, epoch 3) framed 8-10 anew with another reading of request 9. Before those
+    messages reached 2, the policy made 2 master by takeover: it went ACTIVE on 4's
+    reading (the drone sent it only the replies above what it holds), and the drone
+    executed its requests 16 and 17. Now the taker is given the retained replies it
+    holds too, with their epochs, finds request 9 of epoch 3 other than its epoch-1
+    framing, and rejoins with nothing before it sends a request."""
     outcome = run_seed(132, SimOptions(policy="nearest"))
     assert outcome.ok, outcome.report()

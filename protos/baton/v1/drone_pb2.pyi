@@ -951,6 +951,7 @@ class RetainedReply(_message.Message):
     STATUS_CODE_FIELD_NUMBER: _builtins.int
     STATUS_MESSAGE_FIELD_NUMBER: _builtins.int
     GIVEN_UP_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
     reqnr: _builtins.int
     """The request number."""
     method: _builtins.str
@@ -967,6 +968,11 @@ class RetainedReply(_message.Message):
     """The mission program gave up on the call (a deadline, a cancellation):
     the status is what it saw, whatever the drone did.
     """
+    epoch: _builtins.int
+    """The epoch of the mastership whose request (or master_answers) brought
+    this to the drone: a taker that holds the request framed in an older
+    epoch, with another outcome, holds a framing a later takeover replaced.
+    """
     def __init__(
         self,
         *,
@@ -977,10 +983,11 @@ class RetainedReply(_message.Message):
         status_code: _builtins.int = ...,
         status_message: _builtins.str = ...,
         given_up: _builtins.bool = ...,
+        epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["given_up", b"given_up", "method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "given_up", b"given_up", "method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

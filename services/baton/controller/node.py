@@ -244,6 +244,10 @@ class ControllerNode:
         # batches after the Connected event, which says the last one's reqnr.
         self._retained: dict[int, drone_pb2.RetainedReply] = {}
         self._retained_through = 0
+        # The last reqnr the batches will bring, and the last one that came: after a
+        # takeover they include those we hold, compared with our framing before any
+        # new request (``on_retained``).
+        self._retained_due = self._retained_came = 0
         # Granted by takeover: the program's first call beyond the retained tail is
         # logged, the end of the takeover (baton bench failover reads it).
         self._first_new_call_due = False
@@ -426,6 +430,7 @@ class ControllerNode:
         self._drone_calls = 0
         self._takeover_epoch = self._takeover_watermark = 0
         self._retained, self._retained_through = {}, 0
+        self._retained_due = self._retained_came = 0
         self._first_new_call_due = False
         self._answered_here = []
         self.routed_around = []
@@ -910,6 +915,7 @@ class ControllerNode:
         held = self.protocol.held_reqnr
         self._retained = {}
         self._retained_through = retained_through if retained_through > held else 0
+        self._retained_due, self._retained_came = retained_through, 0
         was_active = self.protocol.state is State.ACTIVE
         takeover = takeover or epoch == self._takeover_epoch
         self._first_new_call_due = takeover
@@ -931,6 +937,21 @@ class ControllerNode:
         if session is not self._drone:
             return
         held = self.protocol.held_reqnr
+        if replies:
+            self._retained_came = max(self._retained_came, replies[-1].reqnr)
+        replaced = self.protocol.replaced_framing(replies)
+        if replaced is not None:
+            self.log.warning(
+                "we hold a request in a framing a later takeover replaced (the drone keeps "
+                "another outcome, brought in a newer epoch); rejoining as a replica",
+                reqnr=replaced.reqnr,
+                drone_epoch=replaced.epoch,
+                epoch=self.protocol.epoch,
+            )
+            if not self._rejoining:
+                self._rejoining = True
+                self._background.spawn(self._rejoin(), name="rejoin")
+            return
         self._retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
         self._notify()
 
@@ -1478,8 +1499,14 @@ class ControllerNode:
         follows the Connected event in batches); False if we stop being ACTIVE.
 
         A stream that breaks mid-way is connected again, and its Connected says
-        what is still to come (``on_granted``)."""
-        while reqnr <= self._retained_through and reqnr not in self._retained:
+        what is still to come (``on_granted``). A request past them waits for every
+        batch: the replies at or below what we hold came first and were compared
+        with our framing (``on_retained``)."""
+        while (
+            reqnr not in self._retained
+            if reqnr <= self._retained_through
+            else self._retained_came < self._retained_due
+        ):
             if self.protocol.state is not State.ACTIVE:
                 return False
             await self._changed.wait()

@@ -14,13 +14,15 @@ Where docs/design.md reads the paper's text over its pseudo-code, the method say
 from __future__ import annotations
 
 import enum
+import hashlib
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 from baton.digest import request_digest
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 
 class State(enum.Enum):
@@ -98,6 +100,25 @@ Effect = SendLog | ConnectDrone | DisconnectDrone | TookOver | Fenced | Diverged
 # Log numbers whose epoch a controller remembers, the newest (a takeover's
 # renumbering is found among the last few messages, never thousands back).
 EPOCHS_KEPT = 4096
+
+
+class _Outcome(Protocol):
+    """What a program saw of a request: a log entry's, or a reply the drone retains."""
+
+    @property
+    def request_digest(self) -> bytes: ...
+    @property
+    def reply(self) -> bytes: ...
+    @property
+    def status_code(self) -> int: ...
+    @property
+    def given_up(self) -> bool: ...
+
+
+def _seen_as(outcome: _Outcome) -> tuple[bytes, int, bool, bytes]:
+    """An outcome, to compare: the request, status, give-up and reply (by digest)."""
+    reply = hashlib.sha256(outcome.reply).digest()
+    return outcome.request_digest, outcome.status_code, outcome.given_up, reply
 
 
 class _Arrival(enum.Enum):
@@ -375,6 +396,10 @@ class ControllerProtocol:
         self.held_reqnr = 0  # the highest request number this controller holds
         # The epoch of each recent log number handled or created (for Diverged).
         self._epoch_at: dict[int, int] = {}
+        # The framing of each recent request held: the epoch of the message (or of
+        # our mastership) it was logged in, and what the program saw
+        # (``replaced_framing``).
+        self._framed: dict[int, tuple[int, tuple[bytes, int, bool, bytes]]] = {}
         self.watermark_reqnr = 0
         self._ends: deque[tuple[int, int]] = deque()
         # The highest log number we held that the predecessor's word says every
@@ -488,6 +513,41 @@ class ControllerProtocol:
             self.watermark_reqnr = max(self.watermark_reqnr, reqnr)
             self.acked_lognr = max(self.acked_lognr, acked)
         return self._drain()
+
+    def _framing(self, entries: Sequence[ring_pb2.LogEntry], epoch: int) -> None:
+        """``entries`` are held as framed in ``epoch`` (``replaced_framing``)."""
+        for entry in entries:
+            self._framed[entry.reqnr] = (epoch, _seen_as(entry))
+        if entries and len(self._framed) > 2 * EPOCHS_KEPT:
+            newest = entries[-1].reqnr
+            for old in [n for n in self._framed if n <= newest - EPOCHS_KEPT]:
+                del self._framed[old]
+
+    def replaced_framing(
+        self, replies: Sequence[drone_pb2.RetainedReply]
+    ) -> drone_pb2.RetainedReply | None:
+        """The first of the replies the drone retains whose request we hold in a framing
+        a later mastership replaced: brought to the drone in a newer epoch than the one
+        we hold it framed in, and other than ours (None: none is).
+
+        A taker builds on what it holds, and the ring's version of a request is
+        its newest framing: the drone keeps each request as the first master
+        that brought it framed it (or a give-up the program saw), and a master
+        of a later epoch brings it only if it did not hold an earlier framing
+        that reached the drone, so an older framing held here that differs was
+        replaced by a takeover that did not hold it (a cut-off master's Clock
+        reading framed again: --policy nearest seed 132). Same content, or a
+        framing of ours as new as the drone's (a give-up of a request the drone
+        served, not yet sent along), is the ring's.
+        """
+        for kept in replies:
+            framed = self._framed.get(kept.reqnr)
+            if framed is None or kept.reqnr > self.held_reqnr:
+                continue
+            epoch, seen = framed
+            if epoch < kept.epoch and seen != _seen_as(kept):
+                return kept
+        return None
 
     def _held(self, lognr: int, reqnr: int, epoch: int) -> None:
         """Log message ``lognr`` of ``epoch`` is held, and with it every request up to ``reqnr``."""
@@ -734,6 +794,7 @@ class ControllerProtocol:
             raise ProtocolError(f"reply for request {entry.reqnr}, expected {self.reqnr + 1}")
         self.log.append(entry)
         self.reqnr = self.held_reqnr = entry.reqnr
+        self._framing([entry], self.epoch)
         self.invoked += 1
         if self.log.size >= self.flush_limit or self.preparing_for is not None:
             return self._flush_to_all()
@@ -1139,6 +1200,7 @@ class ControllerProtocol:
             )
         for entry in message.entries:
             self.log.append(entry)
+        self._framing(message.entries, message.epoch)
         self._handled_epoch = max(self._handled_epoch, message.epoch)
         self._held(
             message.lognr, message.entries[-1].reqnr if message.entries else 0, message.epoch

@@ -77,6 +77,8 @@ class CachedReply:
     reply: bytes
     # The failure, if the request failed; None for a reply.
     error: StatusError | None = None
+    # The epoch of the mastership that brought it (its request, or master_answers).
+    epoch: int = 0
 
     def to_proto(self) -> drone_pb2.RetainedReply:
         """As the drone gives it to a taker."""
@@ -89,6 +91,7 @@ class CachedReply:
             status_code=0 if error is None else error.code.value[0],
             status_message="" if error is None else error.message,
             given_up=error is not None and GIVEN_UP in error.metadata,
+            epoch=self.epoch,
         )
 
     @classmethod
@@ -98,7 +101,7 @@ class CachedReply:
         if kept.status_code:
             given_up = (GIVEN_UP,) if kept.given_up else ()
             error = StatusError(status_of(kept.status_code), kept.status_message, given_up)
-        return cls(kept.reqnr, kept.method, kept.request_digest, kept.reply, error)
+        return cls(kept.reqnr, kept.method, kept.request_digest, kept.reply, error, kept.epoch)
 
 
 class ReplyCache:
@@ -128,9 +131,11 @@ class ReplyCache:
         digest: bytes,
         reply: bytes,
         error: StatusError | None = None,
+        epoch: int = 0,
     ) -> None:
-        """Remembers a served request (reply or failure); evicts the oldest beyond the window."""
-        self._entries[reqnr] = CachedReply(reqnr, method, digest, reply, error)
+        """Remembers a served request (reply or failure), brought by the master of
+        ``epoch``; evicts the oldest beyond the window."""
+        self._entries[reqnr] = CachedReply(reqnr, method, digest, reply, error, epoch)
         self._entries.move_to_end(reqnr)
         self._evict()
 

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import grpc
 
@@ -363,9 +363,11 @@ class Sequencer:
         """Keeps the calls the master answered itself that ``admit`` accepted with a
         request about to be executed (before it is: a drone that dies executing it
         must still give them to a taker); returns those not held already."""
-        fresh = tuple(kept for kept in answers if self._fresh(kept))
+        fresh = tuple(replace(kept, epoch=self.epoch) for kept in answers if self._fresh(kept))
         for kept in fresh:
-            self.cache.store(kept.reqnr, kept.method, kept.digest, kept.reply, kept.error)
+            self.cache.store(
+                kept.reqnr, kept.method, kept.digest, kept.reply, kept.error, kept.epoch
+            )
         return fresh
 
     def _fresh(self, kept: CachedReply) -> bool:
@@ -406,7 +408,7 @@ class Sequencer:
         ``received_at`` is when the request arrived (the audit's), ``now``
         when it was done (a scripted handover is decided then).
         """
-        self.cache.store(reqnr, method, digest, reply, error)
+        self.cache.store(reqnr, method, digest, reply, error, self.epoch)
         self.last_reqnr = reqnr
         # ``executed`` counts replies; a failed request counts as rejected
         # (by the service, which refuses it) but is audited, so the audit's
@@ -474,7 +476,9 @@ class Sequencer:
         self.handovers[:] = handovers
         self.last_reqnr, self.executed, self.duplicates, self.rejected = counts
         for reply in replies:
-            self.cache.store(reply.reqnr, reply.method, reply.digest, reply.reply, reply.error)
+            self.cache.store(
+                reply.reqnr, reply.method, reply.digest, reply.reply, reply.error, reply.epoch
+            )
         self.cache.raise_watermark(watermark)
         self.audit.extend(audit)
         self.fired_script[:] = fired_script
@@ -652,6 +656,23 @@ class Sequencer:
         message (--lose-master seed 1092).
         """
         return bool(self.handovers) and self.handovers[-1].kind == drone_pb2.HANDOVER_KIND_TAKEOVER
+
+    def replies_for_master(self, holds_reqnr: int) -> list[CachedReply]:
+        """The retained replies the master's Connected is followed by: those above what
+        it holds (``ConnectRequest.holds_reqnr``), and in a mastership granted by
+        takeover every one above the watermark.
+
+        A taker's held tail need not be the one the drone keeps: the policy's
+        taker is the nearest station, not the first after the lost master, and
+        may hold a master's framing that an earlier takeover replaced (a cut-off
+        master's Clock readings, framed again by the taker that did not hold
+        them: --policy nearest seed 132). The replies it holds come too, with
+        the epoch that brought each, for it to compare
+        (``ControllerProtocol.replaced_framing``); they are bounded like the
+        rest, by the flush limit and what is in flight.
+        """
+        above = 0 if self.granted_by_takeover else holds_reqnr
+        return self.cache.retained_replies(above=above)
 
     def handover_must_take_over(self, new_master: int) -> bool:
         """Whether a handover to ``new_master`` decided now must be a takeover: the master

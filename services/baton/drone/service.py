@@ -738,7 +738,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.log.info("master connected", controller=cid)
         try:
             if cid == self.seq.master:
-                retained = self.seq.cache.retained_replies(above=request.holds_reqnr)
+                retained = self.seq.replies_for_master(request.holds_reqnr)
                 yield drone_pb2.DroneEvent(
                     connected=drone_pb2.Connected(
                         master=cid,

@@ -58,7 +58,8 @@ CREATE TABLE IF NOT EXISTS replies (
     reply BLOB NOT NULL,
     code INTEGER,
     message TEXT,
-    metadata TEXT
+    metadata TEXT,
+    epoch INTEGER NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS audit (reqnr INTEGER PRIMARY KEY, entry BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS executing (
@@ -139,6 +140,9 @@ class DroneStore:
                 self._db.execute(
                     "ALTER TABLE state ADD COLUMN watermark INTEGER NOT NULL DEFAULT 0"
                 )
+            columns = {row[1] for row in self._db.execute("PRAGMA table_info(replies)")}
+            if "epoch" not in columns:  # a file written before the replies' epochs were kept
+                self._db.execute("ALTER TABLE replies ADD COLUMN epoch INTEGER NOT NULL DEFAULT 0")
         except (OSError, sqlite3.Error) as exc:
             raise OSError(
                 f"drone state file {self.path} (--state): {exc}; give a writable path"
@@ -168,9 +172,11 @@ class DroneStore:
             watermark,
         )
         replies = [
-            CachedReply(reqnr, method, bytes(digest), bytes(reply), _error(code, message, meta))
-            for reqnr, method, digest, reply, code, message, meta in self._db.execute(
-                "SELECT reqnr, method, digest, reply, code, message, metadata FROM replies "
+            CachedReply(
+                reqnr, method, bytes(digest), bytes(reply), _error(code, message, meta), epoch
+            )
+            for reqnr, method, digest, reply, code, message, meta, epoch in self._db.execute(
+                "SELECT reqnr, method, digest, reply, code, message, metadata, epoch FROM replies "
                 "ORDER BY reqnr"
             )
         ]
@@ -255,7 +261,7 @@ class DroneStore:
 
     def _put(self, replies: Sequence[CachedReply]) -> None:
         self._db.executemany(
-            "INSERT OR REPLACE INTO replies VALUES (?, ?, ?, ?, ?, ?, ?)",
+            "INSERT OR REPLACE INTO replies VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
             [
                 (
                     reply.reqnr,
@@ -265,6 +271,7 @@ class DroneStore:
                     None if reply.error is None else reply.error.code.value[0],
                     None if reply.error is None else reply.error.message,
                     None if reply.error is None else json.dumps(list(reply.error.metadata)),
+                    reply.epoch,
                 )
                 for reply in replies
             ],

@@ -185,6 +185,7 @@ class SimController:
         self.takeover_epoch = self.takeover_watermark = 0
         self.retained: dict[int, drone_pb2.RetainedReply] = {}  # node.py's _retained
         self.retained_through = 0  # and _retained_through
+        self.retained_due = self.retained_came = 0  # and _retained_due, _retained_came
         self.answered_here: list[ring_pb2.LogEntry] = []  # node.py's _answered_here
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
@@ -397,6 +398,16 @@ class SimController:
         if session is None or session.sid != sid:
             return
         held = self.protocol.held_reqnr
+        if replies:
+            self.retained_came = max(self.retained_came, replies[-1].reqnr)
+        replaced = self.protocol.replaced_framing(replies)
+        if replaced is not None:
+            self.world.trace(
+                f"controller {self.id} holds request {replaced.reqnr} in a framing a later "
+                f"takeover replaced (the drone's is of epoch {replaced.epoch}): rejoins"
+            )
+            self._rejoin()
+            return
         self.retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
         self._notify()
 
@@ -470,6 +481,7 @@ class SimController:
         held = self.protocol.held_reqnr
         self.retained = {}
         self.retained_through = retained_through if retained_through > held else 0
+        self.retained_due, self.retained_came = retained_through, 0
         takeover = takeover or epoch == self.takeover_epoch
         try:
             effects = self.protocol.on_granted(
@@ -862,9 +874,9 @@ class SimController:
                 # node.py: the drone retains the answer a lost master's program acted
                 # on (it sent a later request); that is the entry.
                 reqnr = protocol.reqnr + 1
-                kept = self.retained.pop(reqnr, None)
-                if kept is None:
+                if self._retained_pending(reqnr):
                     return False  # _wait_retained: its batch is coming
+                kept = self.retained.pop(reqnr)
                 try:
                     entry = from_retained(kept, given_up.method, given_up.request)
                 except StatusError as err:
@@ -954,10 +966,17 @@ class SimController:
             return
         self._answer_active(inv)
 
+    def _retained_pending(self, reqnr: int) -> bool:
+        """node.py _wait_retained's condition: the reply for ``reqnr`` is to come, or
+        a batch is (a request past them waits until those we hold were compared)."""
+        if reqnr <= self.retained_through:
+            return reqnr not in self.retained
+        return self.retained_came < self.retained_due
+
     def _answer_active(self, inv: Invocation) -> None:
         """The rest of node.py _invoke: from the retained replies, the Clock or the drone."""
         call = inv.call
-        if inv.reqnr <= self.retained_through and inv.reqnr not in self.retained:
+        if self._retained_pending(inv.reqnr):
             inv.step = Step.WAIT_RETAINED  # node.py _wait_retained: its batch is coming
             return
         kept = self.retained.pop(inv.reqnr, None)

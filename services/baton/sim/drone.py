@@ -700,7 +700,7 @@ class SimDrone:
             )
         self.streams[cid] = Stream(cid, session, link, connection)
         if cid == self.seq.master:  # Connected, then the replies retained above its holds
-            retained = self.seq.cache.retained_replies(above=holds_reqnr)
+            retained = self.seq.replies_for_master(holds_reqnr)
             through = retained[-1].reqnr if retained else 0
             owner = link.owner
             connected = (
