@@ -17,8 +17,6 @@ from collections.abc import Awaitable, Callable, Coroutine, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
-import uvloop
-
 T = TypeVar("T")
 
 # How long a service may take to stop cleanly after SIGTERM or SIGINT.
@@ -28,10 +26,7 @@ _PR_SET_PDEATHSIG = 1
 
 # The event loop of every serving part: "uvloop" (the default) or "asyncio".
 EVENT_LOOP_ENV = "BATON_EVENT_LOOP"
-EVENT_LOOPS: dict[str, Callable[[], asyncio.AbstractEventLoop]] = {
-    "uvloop": uvloop.new_event_loop,
-    "asyncio": asyncio.new_event_loop,
-}
+EVENT_LOOPS = ("uvloop", "asyncio")
 
 
 def run(main: Coroutine[Any, Any, T]) -> T:
@@ -39,12 +34,20 @@ def run(main: Coroutine[Any, Any, T]) -> T:
 
     The loop is uvloop's: a drone call through a controller crosses two
     processes' loops twice, and uvloop's takes less of that round trip than
-    asyncio's (docs/benchmarks.md, "Proxy overhead"). ``BATON_EVENT_LOOP=asyncio``
+    asyncio's (docs/design.md, "The proxy path"). ``BATON_EVENT_LOOP=asyncio``
     selects the standard loop instead, to measure the difference.
     """
     name = os.environ.get(EVENT_LOOP_ENV, "uvloop")
-    factory = EVENT_LOOPS.get(name)
-    if factory is None:
+    factory: Callable[[], asyncio.AbstractEventLoop]
+    if name == "uvloop":
+        # Imported here: this module ships in the SDK (die_with_parent), which
+        # depends on grpcio and protobuf only; uvloop is the services'.
+        import uvloop
+
+        factory = uvloop.new_event_loop
+    elif name == "asyncio":
+        factory = asyncio.new_event_loop
+    else:
         main.close()
         raise SystemExit(
             f"{EVENT_LOOP_ENV}={name!r} in the environment: say one of {', '.join(EVENT_LOOPS)}"

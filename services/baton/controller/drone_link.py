@@ -24,7 +24,7 @@ import grpc
 
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
-from baton.rpc.errors import call_error
+from baton.rpc.outcomes import error_of
 from baton.rpc.tls import DRONE, Tls
 from baton.tasks import TaskSet
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -113,7 +113,7 @@ class InvokeCalls:
 
     The stream opens at the first call and again at the first call after it
     ended. A call's failure comes as its outcome, with Invoke's code and
-    trailing metadata (``rpc.errors.call_error``). A call the stream ended
+    trailing metadata (``rpc.outcomes.error_of``). A call the stream ended
     under fails as Invoke fails when the connection drops: UNAVAILABLE (or the
     stream's own status, e.g. RESOURCE_EXHAUSTED for a request over the size
     limit), and the drone keeps what it did for the same request sent again.
@@ -153,7 +153,7 @@ class InvokeCalls:
         finally:
             self._waiting.pop(number, None)
         if outcome.HasField("failure"):
-            raise call_error(outcome.failure)
+            raise error_of(outcome.failure)
         return outcome.reply
 
     def _open(self) -> grpc.aio.StreamStreamCall[drone_pb2.InvokeCall, drone_pb2.InvokeOutcome]:

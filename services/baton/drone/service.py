@@ -36,8 +36,9 @@ from baton.drone.sequencer import (
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import announce
 from baton.logs import get_logger
-from baton.rpc.errors import StatusError, abort_with, call_failure
+from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.labels import label
+from baton.rpc.outcomes import failure_of
 from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
 from baton.stalls import StallWatch
@@ -436,11 +437,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             try:
                 outcome.reply.CopyFrom(await self._invoke_for(context, call.request, received_at))
             except StatusError as err:
-                outcome.failure.CopyFrom(call_failure(err))
+                outcome.failure.CopyFrom(failure_of(err))
             except Exception as exc:  # what a unary Invoke would end with: UNKNOWN
                 self.log.error("invoke failed", exc_info=True, reqnr=call.request.reqnr)
                 unknown = StatusError(grpc.StatusCode.UNKNOWN, f"{type(exc).__name__}: {exc}")
-                outcome.failure.CopyFrom(call_failure(unknown))
+                outcome.failure.CopyFrom(failure_of(unknown))
             try:
                 async with writing:
                     await context.write(outcome)

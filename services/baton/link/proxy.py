@@ -69,8 +69,10 @@ def _split_address(address: str) -> tuple[str, int]:
 def reset_connection(writer: asyncio.StreamWriter) -> None:
     """Closes a connection with a TCP reset, so the peer sees a reset, not an end of stream."""
     sock = writer.get_extra_info("socket")
-    if sock is not None:
-        with contextlib.suppress(OSError):
+    if sock is not None and not writer.transport.is_closing():
+        # OSError: the peer went first. ValueError: uvloop's socket of a transport
+        # that closed meanwhile has no file descriptor left.
+        with contextlib.suppress(OSError, ValueError):
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
     writer.transport.abort()
 

@@ -15,8 +15,6 @@ from typing import NoReturn
 
 import grpc
 
-from baton.v1 import drone_pb2
-
 _STATUS_BY_CODE = {code.value[0]: code for code in grpc.StatusCode}
 
 
@@ -49,21 +47,3 @@ async def abort_with(context: grpc.aio.ServicerContext, error: StatusError) -> N
         context.set_trailing_metadata(error.metadata)
     await context.abort(error.code, error.message)
     raise AssertionError("unreachable: context.abort raises")
-
-
-def call_failure(error: StatusError) -> drone_pb2.CallFailure:
-    """A call's failure on a stream (drone.proto InvokeStream) as its RPC would end."""
-    return drone_pb2.CallFailure(
-        code=error.code.value[0], message=error.message, metadata=dict(error.metadata)
-    )
-
-
-def call_error(failure: drone_pb2.CallFailure) -> grpc.aio.AioRpcError:
-    """The error a caller's RPC would have raised for a call's ``failure`` on a stream,
-    with its code, details and trailing metadata: callers handle both alike."""
-    return grpc.aio.AioRpcError(
-        status_of(failure.code),
-        grpc.aio.Metadata(),
-        grpc.aio.Metadata(*failure.metadata.items()),
-        failure.message,
-    )
