@@ -256,3 +256,19 @@ def test_policy_seed_132_holds_every_oracle() -> None:
     framing, and rejoins with nothing before it sends a request."""
     outcome = run_seed(132, SimOptions(policy="nearest"))
     assert outcome.ok, outcome.report()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="a taker whose only source is a replaced framing rejoins for ever "
+    "(docs/design.md, 'A taker that holds a replaced framing')",
+)
+def test_lose_master_seed_3166_holds_every_oracle() -> None:
+    """Open (--lose-master seed 3166, liveness), since seed 132's fix: taker 4 holds
+    request 17 framed in an older epoch than the one the drone keeps (a taker lost with
+    its messages, epoch 5), rejoins with nothing, and gets the same old framing again
+    from the ring, the only copy left: it is granted, finds it, rejoins, for ever. The
+    fix it needs: rejoin holding what precedes the replaced request, and take no older
+    framing of it from the ring, so the drone's retained replies answer it."""
+    outcome = run_seed(3166, SimOptions(lose_master=True))
+    assert outcome.ok, outcome.report()
