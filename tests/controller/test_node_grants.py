@@ -81,6 +81,25 @@ class NoDrone:
         pass
 
 
+async def taker_of_three() -> tuple[ControllerNode, Any, list[int]]:
+    """Controller 1 of three, in sync with its predecessor and holding a drone session
+    that answers nothing; the list is the request number at each rejoin."""
+    config = parse_config(
+        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
+    )
+    node = ControllerNode(config, 1)
+    rejoins: list[int] = []
+
+    async def on_rejoin() -> None:
+        rejoins.append(node.protocol.reqnr)
+
+    node.on_rejoin = on_rejoin
+    session: Any = NoDrone()
+    node._drone = session
+    await node.on_sync(0, 0)
+    return node, session, rejoins
+
+
 async def test_a_taker_answers_its_program_from_each_retained_batch_as_it_comes() -> None:
     """The retained tail follows the Connected event in batches: a call whose reply is
     still crossing waits for its batch (it is not sent to the drone, nor answered by the
@@ -122,19 +141,7 @@ async def test_a_taker_holding_a_replaced_framing_rejoins_before_it_sends_a_requ
     drone. Its Connected (epoch 7) is followed by the replies it holds too: the program's
     next call waits for them, and the taker rejoins with nothing on request 2 instead
     of building on a reading no other controller has."""
-    config = parse_config(
-        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
-    )
-    node = ControllerNode(config, 1)
-    rejoins: list[int] = []
-
-    async def on_rejoin() -> None:
-        rejoins.append(node.protocol.reqnr)
-
-    node.on_rejoin = on_rejoin
-    session: Any = NoDrone()
-    node._drone = session
-    await node.on_sync(0, 0)
+    node, session, rejoins = await taker_of_three()
     await node.on_log(ring_pb2.LogMessage(lognr=1, origin=0, epoch=1, entries=[entry(1)]))
     await node.on_log(ring_pb2.LogMessage(lognr=2, origin=0, epoch=1, entries=[entry(2)]))
     await node.on_granted(session, 7, 2, takeover=True, watermark_reqnr=0)
@@ -164,19 +171,7 @@ async def test_a_give_up_of_a_retained_reply_a_lost_master_acted_on_is_not_logge
     drone had served the lost master requests 2 and 3 after its program had that reply.
     The entry is the retained reply (what the mission had), and the program, which saw
     a give-up, starts again (it has acted on nothing: every call so far was retained)."""
-    config = parse_config(
-        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
-    )
-    node = ControllerNode(config, 1)
-    rejoins: list[int] = []
-
-    async def on_rejoin() -> None:
-        rejoins.append(node.protocol.reqnr)
-
-    node.on_rejoin = on_rejoin
-    session: Any = NoDrone()
-    node._drone = session
-    await node.on_sync(0, 0)
+    node, session, rejoins = await taker_of_three()
     await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
     p = node.protocol
     assert p.state is State.ACTIVE and node._retained_through == 3
@@ -229,19 +224,7 @@ async def test_a_give_up_before_the_connected_event_waits_for_what_the_drone_ret
     came, and logged the give-up; the Connected then said the drone retains the lost
     master's replies 1 to 3. Until the Connected of the mastership, a give-up is held
     like one given up while waiting, and settled from what the drone retains."""
-    config = parse_config(
-        {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
-    )
-    node = ControllerNode(config, 1)
-    rejoins: list[int] = []
-
-    async def on_rejoin() -> None:
-        rejoins.append(node.protocol.reqnr)
-
-    node.on_rejoin = on_rejoin
-    session: Any = NoDrone()
-    node._drone = session
-    await node.on_sync(0, 0)
+    node, session, rejoins = await taker_of_three()
     handover = ring_pb2.LogMessage(lognr=1, origin=1, handover=True, sender=0, epoch=3)
     await node.on_log(handover)
     p = node.protocol
