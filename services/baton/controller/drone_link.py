@@ -107,6 +107,9 @@ class DroneEvents(Protocol):
         """Connect refused: another controller is master, and no notice is owed to this one."""
 
 
+_InvokeStream = grpc.aio.StreamStreamCall[drone_pb2.InvokeCall, drone_pb2.InvokeOutcome]
+
+
 class InvokeCalls:
     """Drone calls as messages on one kept InvokeStream (drone.proto), each
     raising what its unary Invoke would: its reply, or grpc.aio.AioRpcError.
@@ -125,8 +128,8 @@ class InvokeCalls:
     def __init__(self, stub: drone_pb2_grpc.DroneAsyncStub, log: BoundLogger) -> None:
         self._stub = stub
         self._log = log
-        self._stream: grpc.aio.StreamStreamCall[drone_pb2.InvokeCall, drone_pb2.InvokeOutcome]
-        self._stream_open = False
+        # The stream now, None until the first call and after it ended.
+        self._stream: _InvokeStream | None = None
         self._reader: asyncio.Task[None] | None = None
         self._waiting: dict[int, asyncio.Future[drone_pb2.InvokeOutcome]] = {}
         self._numbers = itertools.count(1)
@@ -156,16 +159,13 @@ class InvokeCalls:
             raise error_of(outcome.failure)
         return outcome.reply
 
-    def _open(self) -> grpc.aio.StreamStreamCall[drone_pb2.InvokeCall, drone_pb2.InvokeOutcome]:
-        if not self._stream_open:
+    def _open(self) -> _InvokeStream:
+        if self._stream is None:
             self._stream = self._stub.InvokeStream(wait_for_ready=True)
-            self._stream_open = True
             self._reader = asyncio.create_task(self._read(self._stream), name="invoke-outcomes")
         return self._stream
 
-    async def _read(
-        self, stream: grpc.aio.StreamStreamCall[drone_pb2.InvokeCall, drone_pb2.InvokeOutcome]
-    ) -> None:
+    async def _read(self, stream: _InvokeStream) -> None:
         code, details = grpc.StatusCode.UNAVAILABLE, "the drone ended the invoke stream"
         try:
             async for outcome in stream:
@@ -178,7 +178,7 @@ class InvokeCalls:
             details = f"the invoke stream ended: {exc.code().name}: {exc.details()}"
         finally:
             if self._stream is stream:
-                self._stream_open = False
+                self._stream = None
             error = grpc.aio.AioRpcError(code, grpc.aio.Metadata(), grpc.aio.Metadata(), details)
             for waiter in self._waiting.values():
                 if not waiter.done():
@@ -190,7 +190,7 @@ class InvokeCalls:
         ``grace`` seconds)."""
         if self._waiting:
             await asyncio.wait(list(self._waiting.values()), timeout=grace)
-        if self._stream_open:
+        if self._stream is not None:
             self._stream.cancel()
         if self._reader is not None:
             with contextlib.suppress(asyncio.CancelledError):
