@@ -9,7 +9,16 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+# Before anything imports grpc, which reads it once: gRPC's fork handlers off.
+# uvloop starts a process (a controller's mission program, the testbed's parts)
+# with fork(); those handlers then run in the child and, when another thread is
+# inside gRPC, leave it to die of SIGSEGV or SIGABRT before its exec. baton never
+# uses gRPC in a forked child: it always execs. docs/design.md, "Starting
+# processes beside gRPC". A value the environment sets is kept.
+os.environ.setdefault("GRPC_ENABLE_FORK_SUPPORT", "0")
 
 # Subcommand modules, in the order `baton --help` lists them.
 PROGRAMS = [
