@@ -11,6 +11,7 @@ from baton.controller.protocol import (
     NonDeterminismError,
     ProtocolError,
     Refusal,
+    ReplacedFraming,
     SeenNumbers,
     SendLog,
     State,
@@ -1056,7 +1057,52 @@ def test_a_taker_finds_a_request_it_holds_in_a_framing_a_later_takeover_replaced
 
     first = kept(b"reply 1", 1, reqnr=1)
     replaced = kept(b"reading B", 3)
-    assert taker.replaced_framing([first, replaced]) == replaced
+    assert taker.replaced_framing([first, replaced]) == ReplacedFraming(2, 1, 1, 3)
     assert taker.replaced_framing([first, kept(b"reading A", 3)]) is None  # the same
     assert taker.replaced_framing([kept(b"reading B", 1)]) is None  # ours is as new
     assert taker.replaced_framing([kept(b"reading B", 3, reqnr=3)]) is None  # not held
+
+
+def test_a_taker_whose_framing_was_replaced_refuses_it_and_frames_anew() -> None:
+    """--lose-master seed 3166: master 2's framing (epoch 2) holds its give-up of request
+    3; a taker (epoch 5) executed 3 and was lost before its messages left, so the ring
+    holds only the replaced framing. Taker 4 (epoch 6) finds it replaced, and its fresh
+    self refuses it from the message that holds 3 on (and its holder's word that it
+    holds it): it holds what precedes it, goes ACTIVE on the drone's word, and its own
+    message 3, of epoch 6, is the one that replaces the old on the ring. Rejoining
+    with nothing alone, it was given the old framing again and rejoined for ever."""
+    ring = [_of_epoch(message(n, 1, [n]), 2) for n in (1, 2, 3)]
+    taker = ControllerProtocol(4, [1, 3, 4, 2], 0)
+    taker.start()
+    for m in ring:
+        taker.on_log(m)
+    taker.on_sync(3, 2)
+    replay_all(taker)
+    taker.on_granted(6, takeover=True, watermark_reqnr=2)
+    executed = drone_pb2.RetainedReply(
+        reqnr=3, method=GET, request_digest=request_digest(GET, b""), reply=b"done", epoch=5
+    )
+    replaced = taker.replaced_framing([executed])
+    assert replaced == ReplacedFraming(reqnr=3, lognr=3, ours_epoch=2, epoch=5)
+
+    fresh = ControllerProtocol(4, [1, 3, 4, 2], 0)
+    fresh.start()
+    fresh.refuse_replaced(replaced)
+    fresh.on_sync(3, 2)  # the predecessor holds 3, of the replaced framing
+    assert [sends(fresh.on_log(m)) for m in ring] == [[(2, 1, False)], [(2, 2, False)], []]
+    assert (fresh.holds_lognr, fresh.catch_up_to) == (2, 0)
+    assert sends(fresh.on_log(_of_epoch(message(4, 1, [4]), 2))) == []  # and what follows
+    fresh.on_granted(6, takeover=True, watermark_reqnr=2)
+    replay_all(fresh)
+    assert fresh.state is State.ACTIVE
+    effects = fresh.on_reply(ring_pb2.LogEntry(reqnr=3, method=GET, reply=b"done"))
+    assert [(m.lognr, m.epoch) for m in (e.message for e in effects if isinstance(e, SendLog))] == [
+        (3, 6)
+    ]
+    # A framing newer than the replaced one is not refused: it may be the drone's.
+    other = ControllerProtocol(4, [1, 3, 4, 2], 0)
+    other.start()
+    other.refuse_replaced(replaced)
+    other.on_log(ring[0])
+    other.on_log(ring[1])
+    assert sends(other.on_log(_of_epoch(message(3, 1, [3]), 5))) == [(2, 3, False)]

@@ -258,17 +258,12 @@ def test_policy_seed_132_holds_every_oracle() -> None:
     assert outcome.ok, outcome.report()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="a taker whose only source is a replaced framing rejoins for ever "
-    "(docs/design.md, 'A taker that holds a replaced framing')",
-)
 def test_lose_master_seed_3166_holds_every_oracle() -> None:
-    """Open (--lose-master seed 3166, liveness), since seed 132's fix: taker 4 holds
+    """--lose-master seed 3166 (liveness), broken by seed 132's fix: taker 4 holds
     request 17 framed in an older epoch than the one the drone keeps (a taker lost with
-    its messages, epoch 5), rejoins with nothing, and gets the same old framing again
-    from the ring, the only copy left: it is granted, finds it, rejoins, for ever. The
-    fix it needs: rejoin holding what precedes the replaced request, and take no older
-    framing of it from the ring, so the drone's retained replies answer it."""
+    its messages, epoch 5). Rejoining with nothing, it got the same old framing again
+    from the ring, the only copy left: it was granted, found it, rejoined, for ever.
+    Its fresh self now refuses that framing from the message that holds 17 on, is
+    answered from the drone's retained replies, and its messages replace the old."""
     outcome = run_seed(3166, SimOptions(lose_master=True))
     assert outcome.ok, outcome.report()

@@ -43,6 +43,7 @@ from baton.controller.protocol import (
     NonDeterminismError,
     ProtocolError,
     Refusal,
+    ReplacedFraming,
     SendLog,
     State,
     TookOver,
@@ -267,6 +268,9 @@ class ControllerNode:
         # mission program from before then are refused, not answered.
         self.incarnation = 0
         self._rejoining = False
+        # A framing of ours the drone replaced (on_retained): refused by every fresh
+        # self after it (reset), so the ring's copy of it is not taken again.
+        self._replaced: ReplacedFraming | None = None
         # Set by the app: stops the mission program, resets, starts it again.
         self.on_rejoin: Callable[[], Coroutine[Any, Any, None]] | None = None
         # Set by the app: ends every incoming ring stream (RingReceiver.drop_streams).
@@ -419,6 +423,8 @@ class ControllerNode:
         self._sent_straight = {}
         self.history.clear()
         self.protocol = ControllerProtocol(self.id, self.config.ring_order, self.config.flush_limit)
+        if self._replaced is not None:
+            self.protocol.refuse_replaced(self._replaced)
         if self._settler is not None:
             self._settler.cancel()
             self._settler = None
@@ -943,11 +949,15 @@ class ControllerNode:
         if replaced is not None:
             self.log.warning(
                 "we hold a request in a framing a later takeover replaced (the drone keeps "
-                "another outcome, brought in a newer epoch); rejoining as a replica",
+                "another outcome, brought in a newer epoch); rejoining as a replica that "
+                "refuses that framing from its log message on",
                 reqnr=replaced.reqnr,
+                lognr=replaced.lognr,
+                framed_in=replaced.ours_epoch,
                 drone_epoch=replaced.epoch,
                 epoch=self.protocol.epoch,
             )
+            self._replaced = replaced
             if not self._rejoining:
                 self._rejoining = True
                 self._background.spawn(self._rejoin(), name="rejoin")

@@ -66,6 +66,24 @@ class TookOver:
 
 
 @dataclass(frozen=True)
+class ReplacedFraming:
+    """The first request a taker holds in a framing a later mastership replaced
+    (``ControllerProtocol.replaced_framing``), and where that framing begins.
+
+    From log message ``lognr`` on (the one that holds ``reqnr`` in our
+    framing, of ``ours_epoch``) ours is not the drone's; the drone's outcome
+    of ``reqnr`` was brought in ``epoch``. The taker rejoins refusing that
+    framing from there on (``ControllerProtocol.refuse_replaced``):
+    docs/design.md, "A taker that holds a replaced framing".
+    """
+
+    reqnr: int
+    lognr: int
+    ours_epoch: int
+    epoch: int
+
+
+@dataclass(frozen=True)
 class Fenced:
     """Effect (bookkeeping only): a log message from a master the drone has fenced, dropped."""
 
@@ -397,9 +415,12 @@ class ControllerProtocol:
         # The epoch of each recent log number handled or created (for Diverged).
         self._epoch_at: dict[int, int] = {}
         # The framing of each recent request held: the epoch of the message (or of
-        # our mastership) it was logged in, and what the program saw
-        # (``replaced_framing``).
-        self._framed: dict[int, tuple[int, tuple[bytes, int, bool, bytes]]] = {}
+        # our mastership) it was logged in, that message's log number (0: in our
+        # log, not flushed yet), and what the program saw (``replaced_framing``).
+        self._framed: dict[int, tuple[int, int, tuple[bytes, int, bool, bytes]]] = {}
+        # A framing a later mastership replaced, from this log number on, in this
+        # epoch or an older one: refused (``refuse_replaced``; None: none).
+        self._replaced_from: tuple[int, int] | None = None
         self.watermark_reqnr = 0
         self._ends: deque[tuple[int, int]] = deque()
         # The highest log number we held that the predecessor's word says every
@@ -501,7 +522,10 @@ class ControllerProtocol:
             # so its message with that number would never come (--lose-master
             # seed 2791: a later taker built on the replaced framing).
             return [Diverged(holds_lognr, ours, holds_epoch)]
-        if holds_lognr > self.lognr and 0 < holds_epoch < self.epoch_of(self.lognr):
+        if holds_lognr > self.lognr and (
+            0 < holds_epoch < self.epoch_of(self.lognr)
+            or self._replaced_framing_of(holds_lognr, holds_epoch)
+        ):
             if self.catch_up_to is None:
                 self.catch_up_to = 0  # the sender holds nothing of the ring's above ours
             return self._drain()
@@ -514,10 +538,11 @@ class ControllerProtocol:
             self.acked_lognr = max(self.acked_lognr, acked)
         return self._drain()
 
-    def _framing(self, entries: Sequence[ring_pb2.LogEntry], epoch: int) -> None:
-        """``entries`` are held as framed in ``epoch`` (``replaced_framing``)."""
+    def _framing(self, entries: Sequence[ring_pb2.LogEntry], epoch: int, lognr: int) -> None:
+        """``entries`` are held as framed in ``epoch``, in log message ``lognr`` (0: our
+        log's, not flushed yet): ``replaced_framing``."""
         for entry in entries:
-            self._framed[entry.reqnr] = (epoch, _seen_as(entry))
+            self._framed[entry.reqnr] = (epoch, lognr, _seen_as(entry))
         if entries and len(self._framed) > 2 * EPOCHS_KEPT:
             newest = entries[-1].reqnr
             for old in [n for n in self._framed if n <= newest - EPOCHS_KEPT]:
@@ -525,7 +550,7 @@ class ControllerProtocol:
 
     def replaced_framing(
         self, replies: Sequence[drone_pb2.RetainedReply]
-    ) -> drone_pb2.RetainedReply | None:
+    ) -> ReplacedFraming | None:
         """The first of the replies the drone retains whose request we hold in a framing
         a later mastership replaced: brought to the drone in a newer epoch than the one
         we hold it framed in, and other than ours (None: none is).
@@ -544,10 +569,38 @@ class ControllerProtocol:
             framed = self._framed.get(kept.reqnr)
             if framed is None or kept.reqnr > self.held_reqnr:
                 continue
-            epoch, seen = framed
+            epoch, lognr, seen = framed
             if epoch < kept.epoch and seen != _seen_as(kept):
-                return kept
+                return ReplacedFraming(kept.reqnr, lognr or self.lognr + 1, epoch, kept.epoch)
         return None
+
+    def refuse_replaced(self, replaced: ReplacedFraming) -> None:
+        """From ``replaced.lognr`` on, log messages of ``replaced.ours_epoch`` or older
+        are not the ring's: neither held nor forwarded, and a predecessor's word
+        that it holds one does not count.
+
+        Set on the fresh protocol of a taker that found its framing replaced
+        (``replaced_framing``) and rejoined. The ring may hold nothing newer:
+        the master that framed the request anew may have been lost before its
+        messages left (--lose-master seed 3166). Given the replaced framing
+        again, the taker found it replaced again, for ever. Refusing it, the
+        taker holds what precedes it, is answered from the drone's retained
+        replies from there (the newer framing), and its own messages (of its
+        newer epoch) replace the older framing on the ring (``Diverged``).
+        Only that framing and older ones: masters number log messages in the
+        order of their epochs, so one of an epoch between ours and the drone's
+        is another framing, which may be the drone's lineage up to the
+        request; if it too holds a version the drone replaced, the taker finds
+        it and refuses that one in turn, an epoch newer each time.
+        """
+        self._replaced_from = (replaced.lognr, replaced.ours_epoch)
+
+    def _replaced_framing_of(self, lognr: int, epoch: int) -> bool:
+        """Whether message ``lognr`` of ``epoch`` is of a refused framing (``refuse_replaced``)."""
+        if self._replaced_from is None:
+            return False
+        from_lognr, up_to_epoch = self._replaced_from
+        return lognr >= from_lognr and 0 < epoch <= up_to_epoch
 
     def _held(self, lognr: int, reqnr: int, epoch: int) -> None:
         """Log message ``lognr`` of ``epoch`` is held, and with it every request up to ``reqnr``."""
@@ -794,7 +847,7 @@ class ControllerProtocol:
             raise ProtocolError(f"reply for request {entry.reqnr}, expected {self.reqnr + 1}")
         self.log.append(entry)
         self.reqnr = self.held_reqnr = entry.reqnr
-        self._framing([entry], self.epoch)
+        self._framing([entry], self.epoch, 0)
         self.invoked += 1
         if self.log.size >= self.flush_limit or self.preparing_for is not None:
             return self._flush_to_all()
@@ -976,6 +1029,8 @@ class ControllerProtocol:
     def _arrival(self, message: ring_pb2.LogMessage) -> _Arrival:
         """What a log message is to us, from its head alone (its entries do not count):
         ``on_log`` acts on it, ``forward_dest`` asks it before the entries arrived."""
+        if self._replaced_framing_of(message.lognr, message.epoch):
+            return _Arrival.FENCED  # a framing the drone replaced (``refuse_replaced``)
         ours = self._epoch_at.get(message.lognr, 0)
         if ours and message.epoch > ours:
             # Only a takeover numbers a message like one that exists: the
@@ -1200,7 +1255,7 @@ class ControllerProtocol:
             )
         for entry in message.entries:
             self.log.append(entry)
-        self._framing(message.entries, message.epoch)
+        self._framing(message.entries, message.epoch, message.lognr)
         self._handled_epoch = max(self._handled_epoch, message.epoch)
         self._held(
             message.lognr, message.entries[-1].reqnr if message.entries else 0, message.epoch

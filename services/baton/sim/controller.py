@@ -54,6 +54,7 @@ from baton.controller.protocol import (
     NonDeterminismError,
     ProtocolError,
     Refusal,
+    ReplacedFraming,
     SendLog,
     State,
     Unqueued,
@@ -190,6 +191,8 @@ class SimController:
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
         self.rejoining = False
+        # node.py's _replaced: carried to the incarnation a rejoin starts (World.rejoin).
+        self.replaced: ReplacedFraming | None = None
         self.fenced_messages = 0
         self.routed_around: list[int] = []
         self.route_held = False  # a route held back polls (_route_again)
@@ -404,8 +407,11 @@ class SimController:
         if replaced is not None:
             self.world.trace(
                 f"controller {self.id} holds request {replaced.reqnr} in a framing a later "
-                f"takeover replaced (the drone's is of epoch {replaced.epoch}): rejoins"
+                f"takeover replaced (the drone's is of epoch {replaced.epoch}): rejoins "
+                f"refusing log messages {replaced.lognr}+ of epoch {replaced.ours_epoch} "
+                "or older"
             )
+            self.replaced = replaced
             self._rejoin()
             return
         self.retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)

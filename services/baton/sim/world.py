@@ -290,8 +290,12 @@ class World:
             else f"rejoins as a replica with log messages 1-{upto}"
         )
         self.restart_controller(controller.id)
+        fresh = self.controllers[controller.id]
+        if controller.replaced is not None:
+            fresh.replaced = controller.replaced
+            fresh.protocol.refuse_replaced(controller.replaced)
         for message in kept:
-            self.controllers[controller.id].on_log(message)
+            fresh.on_log(message)
 
     def drop_streams_to(self, controller: SimController) -> None:
         """RingReceiver.drop_streams: every ring stream into ``controller`` ends, and its
