@@ -19,7 +19,7 @@ from waiting import eventually
 
 from baton.digest import request_digest
 from baton.drone.sequencer import AUDIT_IN_MEMORY
-from baton.drone.store import Counters, DroneStore, Intent
+from baton.drone.store import Counters, DroneStore, Intent, PolicyMemory
 from baton.rpc.server import BatonServer
 from baton.testbed.local import drone_status
 from baton.v1 import drone_api_pb2 as api
@@ -208,8 +208,9 @@ async def test_a_restarted_drone_tells_a_taker_the_watermark_it_had(tmp_path: Pa
 
 
 def test_a_state_file_from_before_the_watermark_was_kept_opens(tmp_path: Path) -> None:
-    """A file written without the watermark column gets it (0: as that drone said), and
-    one without the replies' epochs gets them (0: older than any framing)."""
+    """A file written without the watermark column gets it (0: as that drone said), one
+    without the replies' epochs gets them (0: older than any framing), and one without
+    the policy's resumes gets them (0)."""
     state = tmp_path / "drone.sqlite"
     db = sqlite3.connect(state)
     db.execute(
@@ -223,6 +224,11 @@ def test_a_state_file_from_before_the_watermark_was_kept_opens(tmp_path: Path) -
         "digest BLOB NOT NULL, reply BLOB NOT NULL, code INTEGER, message TEXT, metadata TEXT)"
     )
     db.execute("INSERT INTO replies VALUES (7, 'm', ?, ?, NULL, NULL, NULL)", (b"d", b"r"))
+    db.execute(  # and without the policy's resumes
+        "CREATE TABLE policy (id INTEGER PRIMARY KEY CHECK (id = 1), leg BLOB, "
+        "held INTEGER NOT NULL)"
+    )
+    db.execute("INSERT INTO policy VALUES (1, NULL, 1)")
     db.commit()
     db.close()
     store = DroneStore(state)
@@ -235,5 +241,8 @@ def test_a_state_file_from_before_the_watermark_was_kept_opens(tmp_path: Path) -
         store.save(Counters(master=2, last_reqnr=8, watermark=5))
         loaded = store.load()
         assert loaded is not None and loaded.counters.watermark == 5
+        assert store.load_policy() == PolicyMemory(None, True, 0)
+        store.save_policy(PolicyMemory(None, False, 2))
+        assert store.load_policy() == PolicyMemory(None, False, 2)
     finally:
         store.close()

@@ -345,6 +345,11 @@ async def test_a_drone_restarted_while_the_vehicle_holds_keeps_the_hold_and_resu
     resume = status.policy_decisions[-1]
     assert resume.action == drone_pb2.POLICY_ACTION_RESUME, status.policy_decisions
     assert "held before the drone's restart" in resume.reason
+    # Counted where the report finds it after another restart, with no decision left.
+    assert status.policy_resumes == 1
+    await bed.restart()
+    status = await bed.status()
+    assert (status.policy_resumes, len(status.policy_decisions)) == (1, 0)
 
 
 async def test_a_drone_restarted_while_flying_on_still_flies_the_leg_on(

@@ -1305,6 +1305,7 @@ class DroneStatus(_message.Message):
     PREPARING_FOR_FIELD_NUMBER: _builtins.int
     PREPARING_LACKS_BYTES_FIELD_NUMBER: _builtins.int
     LINKS_FIELD_NUMBER: _builtins.int
+    POLICY_RESUMES_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -1355,6 +1356,13 @@ class DroneStatus(_message.Message):
     word on what its target lacks.
     """
     preparing_lacks_bytes: _builtins.int
+    policy_resumes: _builtins.int
+    """The Gotos the policy sent to fly a held vehicle on (a resume: the last
+    Goto's target again), since the mission's start, kept in the state file
+    like the hold. The testbed's report takes them out of the gotos the
+    vehicle acted on before it counts the mission's (policy_decisions keeps
+    only the latest 100, and only since the drone's start).
+    """
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
         """The vehicle's latest position (zero if unknown)."""
@@ -1434,10 +1442,11 @@ class DroneStatus(_message.Message):
         preparing_for: _builtins.int = ...,
         preparing_lacks_bytes: _builtins.int = ...,
         links: _abc.Iterable[Global___ControllerLink] | None = ...,
+        policy_resumes: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "policy_decision", b"policy_decision", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "master", b"master", "master_connected", b"master_connected", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "master", b"master", "master_connected", b"master_connected", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "policy_resumes", b"policy_resumes", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

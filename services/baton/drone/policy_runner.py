@@ -112,6 +112,8 @@ class PolicyRunner:
         self._unsure = False
         self._held_before_restart = False  # for the resume's reason
         self._last_goto: api.GotoRequest | None = None
+        # Resumes sent since the mission's start (DroneStatus.policy_resumes), kept.
+        self.resumes = 0
         self._fix: Fix | None = None
         # The vehicle's position at the last decision (for the drone's own takeovers).
         self.position: api.Position | None = None
@@ -135,6 +137,7 @@ class PolicyRunner:
         if service.store is None:
             return
         memory = service.store.load_policy()
+        self.resumes = memory.resumes
         cut = service.cut_off
         route = None if cut is None else service.dispatcher.routes.get(cut.method)
         if cut is not None and route is not None and route.service == "Mobility":
@@ -187,6 +190,7 @@ class PolicyRunner:
             status.policy_decision.CopyFrom(self.latest)
         status.policy_decisions.extend(self.decisions)
         status.holding = self.holding and self._held_vehicle  # a flying vehicle stopped
+        status.policy_resumes = self.resumes
 
     # -- the loop --------------------------------------------------------------------------
 
@@ -301,6 +305,7 @@ class PolicyRunner:
             PolicyMemory(
                 None if goto is None else goto.SerializeToString(),
                 self.holding and self._held_vehicle if held is None else held,
+                self.resumes,
             )
         )
 
@@ -351,6 +356,7 @@ class PolicyRunner:
                         # (or held again, if that is a hold).
                         self._unsure = True
                         raise
+                    self.resumes += 1
             self.holding = self._held_vehicle = self._unsure = False
             self._held_before_restart = False
             self._save()

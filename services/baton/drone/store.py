@@ -73,7 +73,8 @@ CREATE TABLE IF NOT EXISTS executing (
 CREATE TABLE IF NOT EXISTS policy (
     id INTEGER PRIMARY KEY CHECK (id = 1),
     leg BLOB,
-    held INTEGER NOT NULL
+    held INTEGER NOT NULL,
+    resumes INTEGER NOT NULL DEFAULT 0
 );
 """
 
@@ -108,10 +109,12 @@ class Intent:
 class PolicyMemory:
     """What the handover policy's runner must not forget (``policy_runner.py``): the leg
     the vehicle flies (the master's last Goto, a serialized ``GotoRequest``; None: none
-    known) and whether the policy holds the vehicle in the air."""
+    known), whether the policy holds the vehicle in the air, and how many resumes it
+    sent (``DroneStatus.policy_resumes``)."""
 
     leg: bytes | None = None
     held: bool = False
+    resumes: int = 0
 
 
 @dataclass
@@ -140,6 +143,9 @@ class DroneStore:
                 self._db.execute(
                     "ALTER TABLE state ADD COLUMN watermark INTEGER NOT NULL DEFAULT 0"
                 )
+            columns = {row[1] for row in self._db.execute("PRAGMA table_info(policy)")}
+            if "resumes" not in columns:  # a file written before the resumes were kept
+                self._db.execute("ALTER TABLE policy ADD COLUMN resumes INTEGER NOT NULL DEFAULT 0")
             columns = {row[1] for row in self._db.execute("PRAGMA table_info(replies)")}
             if "epoch" not in columns:  # a file written before the replies' epochs were kept
                 self._db.execute("ALTER TABLE replies ADD COLUMN epoch INTEGER NOT NULL DEFAULT 0")
@@ -195,16 +201,17 @@ class DroneStore:
 
     def load_policy(self) -> PolicyMemory:
         """The policy runner's memory; empty for a new file (or a drone without a policy)."""
-        row = self._db.execute("SELECT leg, held FROM policy WHERE id = 1").fetchone()
+        row = self._db.execute("SELECT leg, held, resumes FROM policy WHERE id = 1").fetchone()
         if row is None:
             return PolicyMemory()
-        leg, held = row
-        return PolicyMemory(None if leg is None else bytes(leg), bool(held))
+        leg, held, resumes = row
+        return PolicyMemory(None if leg is None else bytes(leg), bool(held), int(resumes))
 
     def save_policy(self, memory: PolicyMemory) -> None:
         """The policy runner's memory, replacing what was kept (one statement: atomic)."""
         self._db.execute(
-            "INSERT OR REPLACE INTO policy VALUES (1, ?, ?)", (memory.leg, int(memory.held))
+            "INSERT OR REPLACE INTO policy (id, leg, held, resumes) VALUES (1, ?, ?, ?)",
+            (memory.leg, int(memory.held), memory.resumes),
         )
 
     def audit_page(self, after_reqnr: int, limit: int) -> list[drone_pb2.AuditEntry]:

@@ -80,11 +80,10 @@ def check_side_effects(
 
 def _without_resumes(gotos: Effects, snapshot: Snapshot) -> Effects:
     """The gotos the mission asked for: each resume of the drone's handover policy (a
-    leg flown on after a hold, ``PolicyDecision`` "resume") sent the last one again,
-    and is shown in the report's ``policy``, not counted against the mission."""
-    resumes = sum(
-        1 for d in snapshot.drone.policy_decisions if d.action == drone_pb2.POLICY_ACTION_RESUME
-    )
+    leg flown on after a hold, ``DroneStatus.policy_resumes``, kept across the drone's
+    restarts) sent the last one again, and is shown in the report's ``policy``, not
+    counted against the mission."""
+    resumes = snapshot.drone.policy_resumes
     kept: Effects = []
     for goto in gotos:
         if resumes and kept and _same_target(kept[-1], goto):
