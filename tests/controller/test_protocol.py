@@ -524,6 +524,20 @@ def test_the_ring_routes_to_the_first_successor_not_down_for_the_detection_time(
     assert ring_route(ring, 3, down.get, 1.0) == (0, [])
 
 
+def test_the_ring_stays_with_its_current_successor_when_every_one_is_down() -> None:
+    """--lose-master seeds 4097, 5631, 10175: 1 routed around its dead successor 0 to 2,
+    whose stream takes longer than the detection time to come up (a slow direction).
+    Every one counted as down, the route went back to the dead 0, dropped the stream to
+    2 and, tried again, never gave it the time to come up: the taker was never given the
+    log. With every one down, the ring stays with the one it sends to."""
+    ring = [1, 0, 2, 3]
+    down = {0: 5.0, 2: 1.2, 3: 1.5}
+    assert ring_route(ring, 1, down.get, 1.0, current=2) == (2, [0])
+    assert ring_route(ring, 1, down.get, 1.0, current=3) == (3, [0, 2])
+    assert ring_route(ring, 1, down.get, 1.0) == (0, [])  # none chosen yet: the natural one
+    assert ring_route(ring, 1, {0: 5.0, 2: 1.2, 3: 0.5}.get, 1.0, current=2) == (3, [0, 2])
+
+
 def test_a_master_cut_off_from_the_drone_does_not_route_around_its_successor() -> None:
     """--lose-master seed 956: one partition cut master 6 off from the drone and from its
     successor 1. 6 routed around 1 and its flushes (give-ups of requests that never
@@ -953,6 +967,54 @@ def test_a_fenced_master_keeps_the_messages_that_went_round_the_ring() -> None:
     q.on_sync(1)
     q.on_fenced(2)
     assert q.acked_lognr == 1 and q.kept_when_fenced() == 0
+
+
+def test_a_master_whose_program_starts_again_keeps_its_log_for_its_fresh_self() -> None:
+    """--lose-master seeds 10688, 11795 (a ring of two, controller 0 lost): taker 1's
+    program gave up on request 11, whose retained reply a lost master's program acted on;
+    the entry is that reply, and the program starts again by a rejoin. The rejoin dropped
+    everything, and nobody else held the requests below the drone's watermark: the fresh
+    taker waited for them for ever. The master flushes its log, and its fresh self is fed
+    every message up to it; a replica, or a master fenced since, keeps what it did."""
+    p = started(1, [1, 0], 2**20, initial_master=1)
+    p.on_reply(entry(1))
+    p.on_reply(entry(2))
+    assert sends(p.restart_program()) == [(0, 1, False)]
+    assert not p.log and p.kept_history() == 1
+    p.on_fenced(2)
+    assert p.kept_history() == p.kept_when_fenced() == 0
+    replica = started(0, [1, 0], 2**20, initial_master=1)
+    assert replica.restart_program() == [] and replica.kept_history() == 0
+    # The fresh self holds the log again and goes ACTIVE on it when granted.
+    fresh = ControllerProtocol(1, [1, 0], 2**20)
+    fresh.start()
+    kept = message(1, 1, [1, 2])
+    kept.epoch = 1
+    fresh.on_log(kept)
+    fresh.on_granted(3, takeover=True, watermark_reqnr=2)
+    replay_all(fresh)
+    assert fresh.state is State.ACTIVE and fresh.reqnr == 2
+
+
+def test_a_program_that_starts_again_keeps_a_handover_message_for_the_fresh_self() -> None:
+    """--lose-master seed 11002: replica 6's program gave up on request 1, which the log
+    holds as served: it starts again by a rejoin. Before the rejoin, the handover message
+    that made 6 master came and was handled; it was not kept (not queued), the fresh self
+    got only the old master's history copy (no flag), and the drone, which had moved the
+    role on to 0 already, waited for ever for 6's handover. Once the program starts
+    again, nothing more is handled: the message is queued and kept for the fresh self."""
+    p = ControllerProtocol(1, [0, 1, 2], 2**20)
+    p.start()
+    p.on_sync(0)
+    p.on_log(_of_epoch(message(1, 0, [1, 2]), 1))
+    assert p.state is State.REPLAY
+    p.replay(GET, b"")  # the call the program gave up on: the log says it was served
+    assert p.restart_program() == [] and p.kept_history() == 0  # a replica: nothing kept
+    replay_all(p)
+    handover = _of_epoch(message(2, 1, [3], handover=True, sender=0), 2)
+    p.on_log(handover)
+    assert not p.master and p.lognr == 1
+    assert p.kept_for_rejoin() == [handover]
 
 
 def test_a_handover_message_sent_again_to_a_restarted_receiver_gives_no_role_handed_on() -> None:

@@ -267,3 +267,27 @@ def test_lose_master_seed_3166_holds_every_oracle() -> None:
     answered from the drone's retained replies, and its messages replace the old."""
     outcome = run_seed(3166, SimOptions(lose_master=True))
     assert outcome.ok, outcome.report()
+
+
+def test_lose_master_seeds_10688_11795_and_11002_hold_every_oracle() -> None:
+    """--lose-master seeds 10688, 11795 (liveness, a ring of two): taker 1's program gave
+    up on a call whose retained reply a lost master's program acted on, and started
+    again by a rejoin with nothing; the other controller was lost, and nobody held the
+    requests below the drone's watermark. The master now flushes its log and its fresh
+    self keeps it. Seed 11002: a replica whose program started again handled, before
+    the rejoin, the handover message that made it master, and its fresh self was no
+    master; now nothing is handled after the decision, and the message is kept."""
+    for seed in (10688, 11795, 11002):
+        outcome = run_seed(seed, SimOptions(lose_master=True))
+        assert outcome.ok, outcome.report()
+
+
+def test_lose_master_seeds_4097_5631_10175_hold_every_oracle() -> None:
+    """--lose-master seeds 4097, 5631, 10175 (liveness): a controller routing around its
+    dead successor to one whose stream takes longer than the detection time to come up
+    (a slow direction) found every one down and went back to the dead one, dropping
+    that stream; tried again from nothing, it never came up, and the taker was never
+    given the log. With every one down, the ring stays with the one it sends to."""
+    for seed in (4097, 5631, 10175):
+        outcome = run_seed(seed, SimOptions(lose_master=True))
+        assert outcome.ok, outcome.report()

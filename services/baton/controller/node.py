@@ -411,9 +411,10 @@ class ControllerNode:
         """
         self.incarnation += 1
         # A fenced controller keeps its messages that went round the ring (the one
-        # copy left, maybe: ``kept_when_fenced``), then the handover messages that
-        # exist nowhere else.
-        upto = self.protocol.kept_when_fenced()
+        # copy left, maybe: ``kept_when_fenced``), a master whose program starts
+        # again its whole log (``restart_program``), then the handover messages
+        # that exist nowhere else.
+        upto = self.protocol.kept_history()
         kept = [self.history.get(n) for n in self.history.above(0) if n <= upto]
         kept += self.protocol.kept_for_rejoin()
         await self._close_drone()
@@ -689,7 +690,7 @@ class ControllerNode:
             link = self._peers.get(pid)
             return None if link is None or not link.used else link.down_for(now)
 
-        chosen, skipped = ring_route(p.ring, self.id, down_for, detection)
+        chosen, skipped = ring_route(p.ring, self.id, down_for, detection, p.successor)
         if chosen == p.successor:
             return
         if not p.may_route_around(skipped, self.routed_around, self.drone_connected):
@@ -1263,6 +1264,7 @@ class ControllerNode:
                 entry = await self._replay(method, request)
                 self._abandoned.popleft()
                 if entry.status_code != code.value[0]:
+                    await self._apply(self.protocol.restart_program())
                     self._replay_again(entry, method, code)
             elif state is State.ACTIVE and not await self._wait_granted():
                 continue
@@ -1281,6 +1283,7 @@ class ControllerNode:
                 self._seen(entry)
                 await self._apply(effects)
                 if entry.status_code != code.value[0]:
+                    await self._apply(self.protocol.restart_program())
                     self._replay_again(entry, method, code)
             elif state is State.ACTIVE:
                 self._abandoned.popleft()

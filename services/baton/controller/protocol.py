@@ -180,15 +180,26 @@ class NonDeterminismError(Exception):
 
 
 def ring_route(
-    ring: list[int], me: int, down_for: Callable[[int], float | None], detection_s: float
+    ring: list[int],
+    me: int,
+    down_for: Callable[[int], float | None],
+    detection_s: float,
+    current: int | None = None,
 ) -> tuple[int, list[int]]:
     """Where ``me`` sends the ring's messages, and which successors it skips.
 
     The first controller after ``me`` in ring order whose stream has not
     been down for ``detection_s`` (``down_for``: seconds down, 0 while up,
     None if no stream to it was tried yet, which makes it the one to try);
-    the natural successor if every one is down. docs/design.md, "The ring
-    routes around the dead".
+    if every one is down, the one we send to now (``current``; the natural
+    successor if None). docs/design.md, "The ring routes around the dead".
+
+    Not the natural successor whenever every one is down: a stream counts
+    as down from its first attempt, so one whose set-up takes longer than
+    the detection time (a slow direction) was down for it before it could
+    come up, and the route went back to a dead natural successor, dropping
+    that stream, then tried it again from nothing, for ever (--lose-master
+    seeds 4097, 5631, 10175: the taker or a replica was never given the log).
     """
     position = ring.index(me)
     order = [ring[(position + step) % len(ring)] for step in range(1, len(ring))]
@@ -196,6 +207,8 @@ def ring_route(
         down = down_for(candidate)
         if down is None or down < detection_s:
             return candidate, order[:k]
+    if current in order:
+        return current, order[: order.index(current)]
     return order[0], []
 
 
@@ -426,6 +439,11 @@ class ControllerProtocol:
         # The highest log number we held that the predecessor's word says every
         # controller held (the watermark's log number): ``kept_when_fenced``.
         self.acked_lognr = 0
+        # Our program starts again by a rejoin (``restart_program``): like fenced,
+        # nothing queued is handled here any more (the fresh self handles it); and
+        # the log number up to which a master keeps its history for its fresh self.
+        self.restarting = False
+        self._restart_keeps = 0
         # The last handover message we created, until it comes back round: if
         # its new master is lost and the drone gives the role back to us by
         # takeover, we are the only one that holds it (simulation finding F11).
@@ -718,6 +736,40 @@ class ControllerProtocol:
         kept (seed 973, tried first).
         """
         return self.acked_lognr if self._fenced_in and len(self.ring) == 2 else 0
+
+    def restart_program(self) -> list[Effect]:
+        """Our program starts again by a rejoin (it gave up on a call whose entry, from
+        the log or a reply the drone retains, is not a give-up: node.py
+        ``_replay_again``). Nothing queued is handled here any more, and a master in
+        the drone's epoch flushes its log and keeps every message up to it for its
+        fresh self (``kept_history``).
+
+        The rejoin dropped everything, as for a replica whose log diverged;
+        but a master's log is the ring's (it frames the drone's replies in
+        the drone's epoch), and it may be the only copy left: the other
+        controllers lost or restarted with nothing, and the drone let go of
+        the replies below the watermark. The fresh taker then waited for ever
+        for requests nobody held (--lose-master seeds 10688, 11795: a ring of
+        two, the other controller lost). And until the rejoin, the controller
+        handled what came: a handover message that made it master was then
+        neither queued (``kept_for_rejoin``) nor anywhere else with its flag,
+        the fresh self given the old master's history copy was no master, and
+        the drone, which had moved the role on from it already, waited for
+        ever for its handover (--lose-master seed 11002).
+        """
+        self.restarting = True
+        if self.state is not State.ACTIVE or self.granted_epoch != self.epoch:
+            return []
+        effects = self._flush_to_all() if self.log else []
+        self._restart_keeps = self.lognr
+        return effects
+
+    def kept_history(self) -> int:
+        """The log numbers (every one up to this) a controller that rejoins keeps from its
+        history for its fresh self: a master's whose program starts again
+        (``restart_program``) unless fenced since, else ``kept_when_fenced``."""
+        restarted = 0 if self.fenced else self._restart_keeps
+        return max(restarted, self.kept_when_fenced())
 
     def handover_settled(self, lognr: int) -> bool:
         """Whether our handover message ``lognr`` no longer gives its receiver the role.
@@ -1113,9 +1165,10 @@ class ControllerProtocol:
         Not once fenced: what we hold is given up, and a message queued while we
         were ACTIVE (the taker's framing, from the ring) does not follow our log
         (--lose-master --prepared seed 242: "log message 1 starts at request 1,
-        controller 3 expects 2" before the rejoin). The fresh self handles it."""
+        controller 3 expects 2" before the rejoin). The fresh self handles it.
+        Nor once our program starts again by a rejoin (``restart_program``)."""
         effects: list[Effect] = []
-        if self.fenced:
+        if self.fenced or self.restarting:
             return effects
         while self.state is State.PASSIVE and (self.lognr + 1) in self.log_queue:
             diverged = self._diverged_before(self.log_queue[self.lognr + 1])

@@ -621,7 +621,7 @@ class SimController:
             link = self.links.get(pid)
             return None if link is None else link.down_for(now)
 
-        chosen, skipped = ring_route(p.ring, self.id, down_for, detection)
+        chosen, skipped = ring_route(p.ring, self.id, down_for, detection, p.successor)
         if chosen == p.successor:
             return
         session = self.session
@@ -864,6 +864,7 @@ class SimController:
                     return False
                 self.abandoned.popleft()
                 if entry.status_code != code.value[0]:  # node.py _replay_again
+                    self._apply(protocol.restart_program())
                     self.world.trace(
                         f"controller {self.id}: the program gave up on request {entry.reqnr} "
                         f"({code.name}) while this replica waited for the log, but the "
@@ -893,6 +894,7 @@ class SimController:
                 self._seen(entry)
                 self._apply(effects)
                 if entry.status_code != code.value[0]:  # node.py _replay_again
+                    self._apply(protocol.restart_program())
                     self.world.trace(
                         f"controller {self.id}: the program gave up on request {reqnr} "
                         f"({code.name}) that the drone retains with status "

@@ -279,8 +279,9 @@ class World:
             return
         controller.ended_by = "rejoin"
         # ControllerNode.reset: a fenced controller's messages that went round the ring,
-        # then the handover messages that exist nowhere else.
-        upto = controller.protocol.kept_when_fenced()
+        # a restarted master's whole log, then the handover messages that exist nowhere
+        # else.
+        upto = controller.protocol.kept_history()
         history = controller.history
         kept = [history.get(n) for n in history.above(0) if n <= upto]
         kept += controller.protocol.kept_for_rejoin()
