@@ -1168,3 +1168,43 @@ def test_a_taker_whose_framing_was_replaced_refuses_it_and_frames_anew() -> None
     other.on_log(ring[0])
     other.on_log(ring[1])
     assert sends(other.on_log(_of_epoch(message(3, 1, [3]), 5))) == [(2, 3, False)]
+
+
+# -- --policy seeds that broke same-replies (2026-11-27) -------------------------------
+
+
+def test_a_predecessors_word_for_our_number_in_an_older_framing_does_not_move_the_watermark() -> (
+    None
+):
+    """--policy predictive seed 408 (nearest 1122 and 3283 the same): taker 0 (epoch 3)
+    framed Clock request 1 in its message 1; its predecessor 5 still held the lost 2's
+    message 1 (epoch 2, another reading) and said so. 0 took that for its own message 1
+    and gave the drone watermark 1: the drone let its reply go, and 5, taking over later
+    on the older reading, found nothing retained to compare it with and built on it.
+    The ring's word (the same number in our epoch) moves the watermark as before."""
+    master = started(0, [0, 1, 5], 0)
+    master.on_granted(3, takeover=True)
+    master.on_reply(entry(1))  # flushes message 1 of epoch 3
+    master.on_reply(entry(2))  # and 2
+    assert master.on_sync(1, 2) == []  # 5's message 1 is of epoch 2
+    assert master.watermark_reqnr == 0 and master.catch_up_to == 1
+    master.on_sync(2, 3)
+    assert master.watermark_reqnr == 2
+
+
+def test_a_queued_message_of_a_newer_mastership_fences_a_master_once_cut_off() -> None:
+    """--policy nearest seed 2921: master 1 flew out of range; the drone made 0 master by
+    takeover in a newer epoch, and 0's next message came while 1's Connect stream still looked up
+    (a silent link, not yet found by keepalive), so the ring's fence did not apply then.
+    Queued, the message was never looked at again and 1 stayed ACTIVE for ever. The
+    runtime asks ``went_on_in_queue`` every 0.1 s, and fences us once cut off."""
+    p = started(1, [0, 1], 2**20, initial_master=1)
+    p.on_reply(entry(1))
+    p.on_reply(entry(2))  # unflushed: the log never left us
+    assert p.went_on_in_queue() is None
+    taker = framed(2, 0, [1, 2], 2)  # the taker's second message (its first on its way)
+    p.on_log(taker)
+    assert 2 in p.log_queue and p.state is State.ACTIVE
+    assert p.went_on_in_queue() == taker
+    p.on_handover_notice(0, epoch=2)  # not ACTIVE: nothing of ours is held back
+    assert p.went_on_in_queue() is None

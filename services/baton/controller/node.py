@@ -615,10 +615,14 @@ class ControllerNode:
 
     async def _route_watch(self) -> None:
         """Every 0.1 s: routes the ring around a successor down for the detection time,
-        and repairs a gap in what we received."""
+        repairs a gap in what we received, and fences us on a queued message of a
+        newer mastership once the drone is out of reach (``_fence_by_the_ring``)."""
         while True:
             await self._repair_gap()
             await self._route()
+            went_on = self.protocol.went_on_in_queue()
+            if went_on is not None:
+                await self._fence_by_the_ring(went_on)
             await asyncio.sleep(0.1)
 
     async def _repair_gap(self) -> None:
@@ -1141,22 +1145,30 @@ class ControllerNode:
         )
         await self._apply(effects)
         self._settle_handovers()
-        if self.protocol.went_on_without_us(message) and not (
-            self.drone_connected or self.standby_up
-        ):
-            # Cut off from the drone, which took our mastership over: it cannot
-            # tell us (the radio may never bring us back), and a master stranded
-            # ACTIVE would follow the ring no more (simulation, --policy). With
-            # either stream up the drone tells us itself, as before.
-            self.log.warning(
-                "the ring carries a newer mastership than ours while the drone is out of "
-                "reach: taken over",
-                mlognr=message.lognr,
-                origin=message.origin,
-                epoch=message.epoch,
-                our_epoch=self.protocol.epoch,
-            )
-            await self._fenced(message.origin, message.epoch)
+        if self.protocol.went_on_without_us(message):
+            await self._fence_by_the_ring(message)
+
+    async def _fence_by_the_ring(self, message: ring_pb2.LogMessage) -> None:
+        """``message`` shows our mastership went on without our log: fenced, if we are
+        cut off from the drone (neither stream up).
+
+        The drone, which took our mastership over, cannot tell us then (the radio
+        may never bring us back), and a master stranded ACTIVE would follow the
+        ring no more (simulation, --policy). With either stream up the drone tells
+        us itself, as before. Asked on the message's arrival and, for one queued
+        while a stream still looked up, every 0.1 s (``_route_watch``).
+        """
+        if self.drone_connected or self.standby_up:
+            return
+        self.log.warning(
+            "the ring carries a newer mastership than ours while the drone is out of "
+            "reach: taken over",
+            mlognr=message.lognr,
+            origin=message.origin,
+            epoch=message.epoch,
+            our_epoch=self.protocol.epoch,
+        )
+        await self._fenced(message.origin, message.epoch)
 
     def _settle_handovers(self) -> None:
         """Our handover messages still unacknowledged whose role is settled (the ring

@@ -529,9 +529,13 @@ class ControllerProtocol:
         it, holds another framing (one a takeover replaced, not given up yet: the
         sender will see the ring's and rejoin): its word says nothing of the
         ring's log, and a master that waited for it would wait for ever
-        (--lose-master seeds 1219, 1402).
+        (--lose-master seeds 1219, 1402). Nor does a sender whose message with
+        a number we hold is older than ours: it holds the framing ours replaced,
+        not ours, and the watermark stays (``_replaced_word``).
         """
         ours = self._epoch_at.get(holds_lognr, 0) if 0 < holds_lognr <= self.lognr else 0
+        if 0 < holds_epoch < ours:
+            return self._replaced_word(holds_lognr)
         if 0 < ours < holds_epoch:
             # The sender's message with that number is of a newer epoch than ours:
             # a takeover framed it anew (our framing never left a master that was
@@ -554,6 +558,24 @@ class ControllerProtocol:
             acked, reqnr = self._ends.popleft()
             self.watermark_reqnr = max(self.watermark_reqnr, reqnr)
             self.acked_lognr = max(self.acked_lognr, acked)
+        return self._drain()
+
+    def _replaced_word(self, holds_lognr: int) -> list[Effect]:
+        """The predecessor holds message ``holds_lognr`` of an older epoch than ours: a
+        framing a takeover replaced (it will see the ring's and rejoin). Caught up
+        with it as far as numbers go, but the watermark does not move.
+
+        The watermark says every controller holds our requests up to it, and the
+        drone lets their replies go. Taken from such a word (a master's own
+        messages of its takeover epoch, the predecessor still holding the lost
+        master's), it let the drone drop the replies of the newer framing: the
+        next taker, holding the older one (a lost master's Clock reading or
+        give-up), found nothing retained to compare it with
+        (``replaced_framing``) and built on it, while the drone had acted for a
+        program that saw the newer one (--policy nearest seeds 1122 and 3283,
+        predictive 408: same-replies).
+        """
+        self.catch_up_to = max(self.catch_up_to or 0, holds_lognr)
         return self._drain()
 
     def _framing(self, entries: Sequence[ring_pb2.LogEntry], epoch: int, lognr: int) -> None:
@@ -866,6 +888,24 @@ class ControllerProtocol:
         good): the ring can, and ``ControllerNode.on_log`` fences us on it then.
         """
         return message.origin != self.id and self.log_given_up(message.epoch)
+
+    def went_on_in_queue(self) -> ring_pb2.LogMessage | None:
+        """A queued ring message that shows our mastership went on without our log
+        (``went_on_without_us``), if any: the fence of a master cut off from the drone
+        once both its streams are down, whenever that comes.
+
+        The message may come while the drone's streams still look up (a link that
+        went silent, not yet found by keepalive); queued here, ACTIVE, it would
+        otherwise never be looked at again, and the master stayed ACTIVE for ever,
+        its program answered by itself past the drone's last request (--policy
+        nearest seed 2921).
+        """
+        if self.state is not State.ACTIVE or self._queued_epochs[1] <= self.epoch:
+            return None
+        for queued in self.log_queue.values():
+            if self.went_on_without_us(queued):
+                return queued
+        return None
 
     def judge_refusal(self, sent_epoch: int, master: int, epoch: int) -> Refusal:
         """What a drone refusal of a request sent in ``sent_epoch`` means (drone.proto).

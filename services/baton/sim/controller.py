@@ -369,6 +369,7 @@ class SimController:
         session.stream, session.connected = None, False
         self.world.loop.after(session.backoff, self._connect, session)
         session.backoff = min(session.backoff * 2, SESSION_BACKOFF_MAX_S)
+        self._fence_by_the_ring(self.protocol.went_on_in_queue())
 
     def on_drone_connected(
         self,
@@ -470,6 +471,8 @@ class SimController:
         session = self.session
         if session is not None and session.stream == connection:
             self._reconnect_later(session)
+        else:
+            self._fence_by_the_ring(self.protocol.went_on_in_queue())
 
     # -- events (ControllerNode.on_*) ---------------------------------------------
 
@@ -760,18 +763,25 @@ class SimController:
         self.peak_log_queue = max(self.peak_log_queue, len(self.protocol.log_queue))
         self._apply(effects)
         self._settle_handovers()
+        if self.protocol.went_on_without_us(message):
+            self._fence_by_the_ring(message)
+
+    def _fence_by_the_ring(self, message: ring_pb2.LogMessage | None) -> None:
+        """ControllerNode._fence_by_the_ring: cut off from the drone (neither stream up:
+        the standby stream is up exactly while the link is usable here), the ring shows
+        the takeover. node.py also asks every 0.1 s of a queued message
+        (``went_on_in_queue``); here when a stream goes down (``_reconnect_later``,
+        ``on_drone_link_broken``), the moments the answer can change."""
+        if message is None or not self.alive:
+            return
         session = self.session
-        connected = session is not None and session.connected
-        if self.protocol.went_on_without_us(message) and not (
-            connected or self.drone_link.usable()
-        ):
-            # node.py: cut off from the drone (neither stream up: the standby stream is
-            # up exactly while the link is usable here), the ring shows the takeover.
-            self.world.trace(
-                f"controller {self.id} sees epoch {message.epoch} of {message.origin} on the "
-                f"ring while ACTIVE in {self.protocol.epoch}, cut off from the drone"
-            )
-            self._fenced(message.origin, message.epoch)
+        if (session is not None and session.connected) or self.drone_link.usable():
+            return
+        self.world.trace(
+            f"controller {self.id} sees epoch {message.epoch} of {message.origin} on the "
+            f"ring while ACTIVE in {self.protocol.epoch}, cut off from the drone"
+        )
+        self._fenced(message.origin, message.epoch)
 
     def _settle_handovers(self) -> None:
         """ControllerNode._settle_handovers: a settled handover message loses its flag on
