@@ -969,6 +969,32 @@ def test_a_fenced_master_keeps_the_messages_that_went_round_the_ring() -> None:
     assert q.acked_lognr == 1 and q.kept_when_fenced() == 0
 
 
+def test_a_fenced_master_keeps_the_takers_messages_it_queued() -> None:
+    """--policy seed 882 (a ring of two): master 0, cut off, flushed message 1, which went
+    round; 1 took over (epoch 2) and its messages 2-3 came to 0, still ACTIVE, which
+    queued them. 1 handed the role back and died, and the drone let go of those replies.
+    Fenced (granted by the handover message, its own mastership replaced), 0 kept only
+    message 1, and nobody held 2-3. It keeps the taker's lineage after what went round:
+    the messages of the takeover's epoch or newer, not its own older ones."""
+    p = started(0, [0, 1], 0)
+    p.on_reply(entry(1))  # message 1
+    p.on_sync(1)
+    for lognr in (2, 3):
+        p.on_log(_of_epoch(message(lognr, 1, [lognr]), 2))  # queued: we are ACTIVE
+    assert p.state is State.ACTIVE and sorted(p.log_queue) == [2, 3]
+    p.on_fenced(2)
+    assert p.kept_when_fenced() == 3
+    # Our own message 2 of epoch 1 after it instead (not acknowledged): only what went
+    # round, even with a message of the taker's epoch queued above ours.
+    q = started(0, [0, 1], 0)
+    q.on_reply(entry(1))
+    q.on_sync(1)
+    q.on_reply(entry(2))
+    q.on_log(_of_epoch(message(3, 1, [3]), 2))
+    q.on_fenced(2)
+    assert q.kept_when_fenced() == 1
+
+
 def test_a_master_whose_program_starts_again_keeps_its_log_for_its_fresh_self() -> None:
     """--lose-master seeds 10688, 11795 (a ring of two, controller 0 lost): taker 1's
     program gave up on request 11, whose retained reply a lost master's program acted on;

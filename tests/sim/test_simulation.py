@@ -309,6 +309,17 @@ def test_policy_seeds_that_took_a_replaced_framings_word_hold_every_oracle() -> 
         assert outcome.ok, outcome.report()
 
 
+def test_policy_seed_882_keeps_the_takers_messages_a_fenced_master_queued() -> None:
+    """--policy nearest and predictive seed 882 (liveness, a ring of two): master 0, out of
+    range, was taken over by 1 and queued 1's messages 4-12, still ACTIVE; 1 handed the
+    role back and died, and the drone had let go of those replies. Fenced when the
+    handover message's grant showed its own mastership replaced, 0 rejoined with
+    messages 1-3 only, and nobody held 4-12. It keeps the taker's lineage now."""
+    for policy in ("nearest", "predictive"):
+        outcome = run_seed(882, SimOptions(policy=policy))
+        assert outcome.ok, outcome.report()
+
+
 def test_policy_seeds_fence_a_master_whose_takeover_came_before_its_link_fell() -> None:
     """--policy nearest seed 2921 (same-replies, liveness): master 1 flew out of range and
     0 took over; 0's message came while 1's drone stream still looked up, so 1 queued it

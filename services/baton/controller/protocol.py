@@ -756,8 +756,27 @@ class ControllerProtocol:
         routes around a dead or restarted one, which then lacks them and may
         take over without them: a give-up it replaced by the drone's reply was
         kept (seed 973, tried first).
+
+        And the messages queued right after them framed in the fencing
+        takeover's epoch or a newer one: the taker's lineage, the ring's log,
+        not ours. A master cut off from the drone queues them, ACTIVE in its
+        replaced mastership, and may hold the only copy: the taker handed the
+        role back to it and died, and the drone had let go of their replies
+        (--policy nearest and predictive seed 882: the old master, fenced
+        only when granted by the handover message, rejoined with messages 1-3
+        and nobody held 4-12). Not a handover message (kept with its flag,
+        ``kept_for_rejoin``), nor past one: its history copy, fed to the fresh
+        self and forwarded, overtook the message (F7; seeds 2196, 373, 1026,
+        when handled messages and handover messages counted too).
         """
-        return self.acked_lognr if self._fenced_in and len(self.ring) == 2 else 0
+        if not (self._fenced_in and len(self.ring) == 2):
+            return 0
+        upto = self.acked_lognr
+        while (queued := self.log_queue.get(upto + 1)) is not None:
+            if queued.handover or queued.epoch < self._fenced_in:
+                break
+            upto += 1
+        return upto
 
     def restart_program(self) -> list[Effect]:
         """Our program starts again by a rejoin (it gave up on a call whose entry, from
