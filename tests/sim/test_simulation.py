@@ -21,7 +21,10 @@ from baton.sim.cli import main
 from baton.sim.mutations import MUTATIONS, mutated
 from baton.sim.world import Outcome, run_seeds
 
-CI_SEEDS = 4_000
+# The default mix in CI. 3,000 since 2026-11-27: CI's 20 minutes on 2 cores had
+# less than two left; the wider ranges (0-7999 here, and every mode's in
+# docs/design.md, "Wider sweeps") are swept by hand with `baton.sim --seeds`.
+CI_SEEDS = 3_000
 SLOW_SEEDS = 100_000
 # Each mutation must make some seed fail within this many.
 MUTATION_BUDGET = 300
@@ -86,7 +89,7 @@ def test_lose_master_seeds_hold_every_oracle() -> None:
 
 
 # Prepared handovers (--prepared: every scripted handover is prepared) in CI.
-PREPARED_SEEDS = 1_500
+PREPARED_SEEDS = 1_000  # 1,500 before 2026-11-27 (CI_SEEDS says why); 0-3999 by hand
 
 
 def test_prepared_handover_seeds_hold_every_oracle() -> None:
