@@ -83,9 +83,13 @@ async def test_micro_quick(tmp_path: Path) -> None:
     # The proxied calls are a running mission's: logged, not flushed one by one.
     assert proxy["flushes_during_proxy_calls"] == 0
     assert result["proxy_insecure"]["flushes_during_proxy_calls"] == 0
-    # Interleaved call by call with the proxied calls, on a drone beside it.
-    assert proxy["direct_get_position"]["n"] == MicroSettings.quick().calls
-    assert proxy["direct_get_position"]["calls_per_s"] > 0
+    # Interleaved call by call with the proxied calls (the SDK's stream and unary), on a
+    # drone beside it (unary and on a stream).
+    for path in ("proxy_unary", "direct", "direct_stream"):
+        assert proxy[f"{path}_get_position"]["n"] == MicroSettings.quick().calls
+        assert proxy[f"{path}_get_position"]["calls_per_s"] > 0
+    for overhead in ("proxy_overhead", "proxy_overhead_vs_stream", "proxy_unary_overhead"):
+        assert math.isfinite(proxy[f"{overhead}_p50_ms"])
     assert all(r["calls_per_s"] > 0 for r in result["replay"])
     # The protocol and the node alone per log size, then a program end to end.
     levels = [r["level"] for r in result["replay"]]

@@ -14,6 +14,7 @@ import grpc
 import grpc.aio
 import pytest
 
+from baton.rpc.methods import drone_api, rpc_of
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
 from baton.sdk import ConcurrentCallError, DroneCallError, FlightState, Position, aio
 from baton.sdk.drone import Drone
@@ -36,15 +37,44 @@ class FakeController:
     release: threading.Event = field(default_factory=threading.Event)
     # Methods refused with this status and message.
     refuse: dict[str, tuple[grpc.StatusCode, str]] = field(default_factory=dict)
+    streams: int = 0  # ProgramCalls streams opened
+    cancelled: int = 0  # held calls cancelled (the program gave up on them)
 
-    async def answer(self, name: str, request: Any, context: grpc.aio.ServicerContext) -> None:
+    async def answer(
+        self, name: str, request: Any, context: grpc.aio.ServicerContext
+    ) -> tuple[grpc.StatusCode, str] | None:
+        """Records the call; the status it is refused with, if it is."""
         metadata = {k: v for k, v in context.invocation_metadata() or () if isinstance(v, str)}
         self.received.append((name, request, metadata))
         if name == self.hold:
             self.entered.set()
-            await asyncio.to_thread(self.release.wait, 10)
-        if name in self.refuse:
-            await context.abort(*self.refuse[name])
+            try:
+                await asyncio.to_thread(self.release.wait, 10)
+            except asyncio.CancelledError:
+                self.cancelled += 1
+                raise
+        return self.refuse.get(name)
+
+    async def program_calls(
+        self, calls: AsyncIterator[ring_pb2.ProgramCall], context: grpc.aio.ServicerContext
+    ) -> AsyncIterator[ring_pb2.ProgramOutcome]:
+        """ControllerRing.ProgramCalls as the controller answers it: each call as its
+        unary method, a refusal as the call's failure."""
+        self.streams += 1
+        async for call in calls:
+            found = drone_api()[call.method]
+            service, name = rpc_of(call.method).split(".")
+            refused = await self.answer(
+                f"{service}.{name}", found.request_type.FromString(call.request), context
+            )
+            if refused is not None:
+                code, message = refused
+                failure = api.CallFailure(code=code.value[0], message=message)
+                yield ring_pb2.ProgramOutcome(call=call.call, failure=failure)
+            else:
+                made = REPLIES.get(name)
+                reply = made() if made is not None else reply_of(service, name)
+                yield ring_pb2.ProgramOutcome(call=call.call, reply=reply.SerializeToString())
 
 
 def servicers(fake: FakeController) -> list[tuple[Any, Callable[[Any, grpc.aio.Server], None]]]:
@@ -59,10 +89,19 @@ def servicers(fake: FakeController) -> list[tuple[Any, Callable[[Any, grpc.aio.S
         for name in [n for n in vars(base) if not n.startswith("_")]:
 
             async def method(self: Any, request: Any, context: Any, name: str = name) -> Any:
-                await fake.answer(f"{service}.{name}", request, context)
+                refused = await fake.answer(f"{service}.{name}", request, context)
+                if refused is not None:
+                    await context.abort(*refused)
                 return REPLIES.get(name, lambda: reply_of(service, name))()
 
             setattr(Servicer, name, method)
+        if service == "ControllerRing":
+
+            async def program_calls(self: Any, calls: Any, context: Any) -> Any:
+                async for outcome in fake.program_calls(calls, context):
+                    yield outcome
+
+            Servicer.ProgramCalls = program_calls
         return Servicer(), add
 
     return [
@@ -206,6 +245,7 @@ async def test_every_call_sends_its_request_with_the_token_and_gives_a_typed_res
         name, sent, metadata = fake.received[-1]
         assert (name, sent) == (rpc, request), method
         assert metadata[MISSION_TOKEN_METADATA] == "the-token"
+    assert fake.streams == 1  # every call a message on the one stream of calls
     picture = await sdk.call("camera.take_picture")
     assert (picture.image, picture.sequence, picture.position) == (b"jpeg", 7, CALLS[9][4])
     await sdk.close("ValueError: gave up")
@@ -263,7 +303,11 @@ async def test_a_cancelled_async_call_lets_the_next_one_through(
         held.cancel()
         with pytest.raises(asyncio.CancelledError):
             await held
+        fake.release.set()
+        # The controller saw the call given up (its stream cancelled: a real one logs
+        # the give-up), and the next call goes on a new stream.
         assert await drone.clock.now() == 1234.5
+        assert (fake.streams, fake.cancelled) == (2, 1)
 
 
 async def test_the_blocking_api_refuses_a_second_call_from_another_thread(

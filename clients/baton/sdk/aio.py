@@ -18,6 +18,8 @@ must replay the program's calls in the same order), and a failed call raises
 
 from __future__ import annotations
 
+import asyncio
+import itertools
 from types import TracebackType
 from typing import Any, TypeVar
 
@@ -34,13 +36,16 @@ ResultT = TypeVar("ResultT")
 
 
 class _Caller:
-    """Sends ``calls.Call``s over an asyncio channel, one at a time, with typed errors."""
+    """Sends ``calls.Call``s over an asyncio channel, one at a time, with typed errors,
+    on the stream of calls kept open to the controller (as ``drone.py``'s)."""
 
     def __init__(
         self, channel: grpc.aio.Channel, metadata: tuple[tuple[str, str], ...] = ()
     ) -> None:
         self._pending = ""  # the call awaiting its reply, if one is
         self._methods = calls.Methods(channel)
+        self._stream: Any = None  # the stream of calls, once opened
+        self._numbers = itertools.count(1)
         self.metadata = metadata  # the mission token (baton.rpc.mission), if given
 
     async def __call__(self, call: calls.Call[ResultT]) -> ResultT:
@@ -48,13 +53,45 @@ class _Caller:
             raise concurrent_call_error(call.rpc, self._pending)
         self._pending = call.rpc
         try:
-            # No deadline: a PASSIVE controller holds the call until it may answer.
-            return await self.send(call, wait_for_ready=True)
+            return await self._on_stream(call)
         finally:
             self._pending = ""
 
+    async def _on_stream(self, call: calls.Call[ResultT]) -> ResultT:
+        if self._stream is None:
+            # No deadline: a PASSIVE controller holds the call until it may answer.
+            self._stream = self._methods.program_calls()(
+                metadata=self.metadata, wait_for_ready=True
+            )
+        stream = self._stream
+        number = next(self._numbers)
+        try:
+            await stream.write(calls.on_stream(number, call))
+            outcome = await stream.read()
+        except grpc.RpcError as exc:
+            self._stream = None
+            raise call_error(call.rpc, exc) from None
+        except asyncio.InvalidStateError:  # the stream had ended, without an error
+            self._stream = None
+            raise calls.stream_ended(call) from None
+        except BaseException:
+            # Cancelled while waiting: the controller must see the call given up (the
+            # stream cancelled), not answer it on the stream the next call would use.
+            self.end_stream()
+            raise
+        if outcome is grpc.aio.EOF:
+            self._stream = None
+            raise calls.stream_ended(call)
+        return calls.result_of(call, number, outcome)
+
+    def end_stream(self) -> None:
+        """Cancels the stream of calls, if one is open (the next call opens another)."""
+        if self._stream is not None:
+            stream, self._stream = self._stream, None
+            stream.cancel()
+
     async def send(self, call: calls.Call[ResultT], **options: Any) -> ResultT:
-        """Sends ``call`` whatever else is pending (the end of the program only)."""
+        """Sends ``call`` as a unary call, whatever else is pending (the end of the program)."""
         try:
             reply = await self._methods[call](call.request, metadata=self.metadata, **options)
         except grpc.RpcError as exc:
@@ -146,13 +183,16 @@ class Clock:
 class Drone:
     """A drone, as seen through the local mission controller; every call is awaited.
 
-    ``channel``: one to use instead of a connection to ``address``.
+    ``channel``: one to use instead of a connection to ``address``; ``token``: the
+    mission token, if not this program's ``BATON_MISSION_TOKEN``.
     """
 
-    def __init__(self, address: str, channel: grpc.aio.Channel | None = None) -> None:
+    def __init__(
+        self, address: str, channel: grpc.aio.Channel | None = None, token: str | None = None
+    ) -> None:
         self.address = address
         self._channel = aio_channel(address) if channel is None else channel
-        self._call = _Caller(self._channel, mission_token_metadata())
+        self._call = _Caller(self._channel, mission_token_metadata(token))
         self.mobility = Mobility(self._call)
         self.camera = Camera(self._call)
         self.clock = Clock(self._call)
@@ -164,6 +204,7 @@ class Drone:
         except DroneCallError:
             pass  # the controller is gone: nothing left to flush to
         finally:
+            self._call.end_stream()
             await self._channel.close()
 
     async def __aenter__(self) -> Drone:

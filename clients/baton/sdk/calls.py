@@ -13,9 +13,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, Generic, NamedTuple, TypeVar
 
+import grpc
 from google.protobuf.message import Message
 
-from baton.rpc.methods import method
+from baton.rpc.errors import status_of
+from baton.rpc.methods import method, path
+from baton.sdk.errors import DroneCallError
 from baton.sdk.types import FlightState, Picture, Position
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2
@@ -36,13 +39,58 @@ class Call(NamedTuple, Generic[ResultT]):
     result: Callable[[Any], ResultT]
 
 
+# The drone-API calls travel as messages on one stream the program keeps open to
+# its controller (ring.proto ProgramCalls): a unary call sets up an HTTP/2 stream
+# and its call state at both ends each time (docs/design.md, "The proxy path").
+PROGRAM_CALLS = path("ControllerRing.ProgramCalls")
+
+
+def on_stream(number: int, call: Call[Any]) -> ring_pb2.ProgramCall:
+    """``call`` as the ``number``-th message of the program's stream."""
+    return ring_pb2.ProgramCall(
+        call=number, method=call.path, request=call.request.SerializeToString()
+    )
+
+
+def result_of(call: Call[ResultT], number: int, outcome: ring_pb2.ProgramOutcome) -> ResultT:
+    """The result of the ``number``-th call on the stream from its ``outcome``, or the
+    ``DroneCallError`` its unary call would have raised."""
+    if outcome.call != number:
+        raise DroneCallError(
+            call.rpc,
+            grpc.StatusCode.INTERNAL,
+            f"the controller answered call {outcome.call} on the stream, expected {number}",
+        )
+    if outcome.HasField("failure"):
+        raise DroneCallError(call.rpc, status_of(outcome.failure.code), outcome.failure.message)
+    return call.result(call.reply_type.FromString(outcome.reply))
+
+
+def stream_ended(call: Call[Any]) -> DroneCallError:
+    """The error of a call whose stream the controller ended before its outcome."""
+    return DroneCallError(
+        call.rpc,
+        grpc.StatusCode.UNAVAILABLE,
+        "the controller ended the stream of calls before this call's outcome",
+    )
+
+
 class Methods:
-    """A channel's callable for each call's gRPC path, made on first use: the same for a
-    blocking and an asyncio channel (and ``baton replay``'s), whose ``unary_unary`` agree."""
+    """A channel's callable for each call's gRPC path, made on first use, and for the
+    stream of calls: the same for a blocking and an asyncio channel (and ``baton
+    replay``'s), whose ``unary_unary`` and ``stream_stream`` agree."""
 
     def __init__(self, channel: Any) -> None:
         self._channel = channel
         self._methods: dict[str, Any] = {}
+
+    def program_calls(self) -> Any:
+        """The multi-callable that opens the stream of calls (ring.proto ProgramCalls)."""
+        return self._channel.stream_stream(
+            PROGRAM_CALLS,
+            request_serializer=ring_pb2.ProgramCall.SerializeToString,
+            response_deserializer=ring_pb2.ProgramOutcome.FromString,
+        )
 
     def __getitem__(self, call: Call[Any]) -> Any:
         method = self._methods.get(call.path)

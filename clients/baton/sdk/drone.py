@@ -5,7 +5,9 @@ The calls themselves are in ``calls.py``, shared with the asyncio API (``aio.py`
 
 from __future__ import annotations
 
+import itertools
 import os
+import queue
 import threading
 from types import TracebackType
 from typing import Any, TypeVar
@@ -17,17 +19,24 @@ from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
 from baton.sdk import calls
 from baton.sdk.errors import DroneCallError, call_error, concurrent_call_error
 from baton.sdk.types import FlightState, Picture, Position
+from baton.v1 import ring_pb2
 
 ResultT = TypeVar("ResultT")
 
 
 class _Caller:
-    """Sends ``calls.Call``s over a blocking channel, one at a time, with typed errors."""
+    """Sends ``calls.Call``s over a blocking channel, one at a time, with typed errors.
+
+    The drone-API calls go as messages on the stream of calls kept open to the
+    controller (``calls.PROGRAM_CALLS``), opened on the first call and again
+    after one that failed with it."""
 
     def __init__(self, channel: grpc.Channel, metadata: tuple[tuple[str, str], ...] = ()) -> None:
         self._lock = threading.Lock()
         self._pending = ""
         self._methods = calls.Methods(channel)
+        self._stream: tuple[queue.SimpleQueue[ring_pb2.ProgramCall | None], Any] | None = None
+        self._numbers = itertools.count(1)
         self.metadata = metadata  # the mission token (baton.rpc.mission), if given
 
     def __call__(self, call: calls.Call[ResultT]) -> ResultT:
@@ -35,13 +44,46 @@ class _Caller:
             raise concurrent_call_error(call.rpc, self._pending)
         self._pending = call.rpc
         try:
-            # No deadline: a PASSIVE controller holds the call until it may answer.
-            return self.send(call, wait_for_ready=True)
+            return self._on_stream(call)
         finally:
             self._lock.release()
 
+    def _on_stream(self, call: calls.Call[ResultT]) -> ResultT:
+        if self._stream is None:
+            requests: queue.SimpleQueue[ring_pb2.ProgramCall | None] = queue.SimpleQueue()
+            # No deadline: a PASSIVE controller holds the call until it may answer.
+            outcomes = self._methods.program_calls()(
+                iter(requests.get, None), metadata=self.metadata, wait_for_ready=True
+            )
+            self._stream = (requests, outcomes)
+        requests, outcomes = self._stream
+        number = next(self._numbers)
+        requests.put(calls.on_stream(number, call))
+        try:
+            outcome = next(outcomes)
+        except grpc.RpcError as exc:
+            self._stream = None
+            raise call_error(call.rpc, exc) from None
+        except StopIteration:
+            self._stream = None
+            raise calls.stream_ended(call) from None
+        except BaseException:
+            # Interrupted waiting (KeyboardInterrupt): the call is given up, and the
+            # controller must see it so (the stream cancelled), not answer it later.
+            self.end_stream()
+            raise
+        return calls.result_of(call, number, outcome)
+
+    def end_stream(self) -> None:
+        """Cancels the stream of calls, if one is open (the next call opens another)."""
+        if self._stream is not None:
+            requests, outcomes = self._stream
+            self._stream = None
+            requests.put(None)
+            outcomes.cancel()
+
     def send(self, call: calls.Call[ResultT], **options: Any) -> ResultT:
-        """Sends ``call`` whatever else is pending (the end of the program only)."""
+        """Sends ``call`` as a unary call, whatever else is pending (the end of the program)."""
         try:
             reply = self._methods[call](call.request, metadata=self.metadata, **options)
         except grpc.RpcError as exc:
@@ -130,9 +172,10 @@ class Clock:
         return self._call(calls.now())
 
 
-def mission_token_metadata() -> tuple[tuple[str, str], ...]:
-    """The metadata that carries this program's mission token (baton.rpc.mission), if any."""
-    token = os.environ.get(MISSION_TOKEN_ENV)
+def mission_token_metadata(token: str | None = None) -> tuple[tuple[str, str], ...]:
+    """The metadata that carries the mission token (baton.rpc.mission): ``token``, else
+    this program's from its environment, if it has one."""
+    token = token or os.environ.get(MISSION_TOKEN_ENV)
     return ((MISSION_TOKEN_METADATA, token),) if token else ()
 
 
@@ -140,13 +183,16 @@ class Drone:
     """A drone, as seen through the local mission controller.
 
     ``channel``: one to use instead of a connection to ``address`` (``baton
-    replay`` gives one that answers from a saved log, in-process).
+    replay`` gives one that answers from a saved log, in-process). ``token``:
+    the mission token, if not this program's ``BATON_MISSION_TOKEN``.
     """
 
-    def __init__(self, address: str, channel: grpc.Channel | None = None) -> None:
+    def __init__(
+        self, address: str, channel: grpc.Channel | None = None, token: str | None = None
+    ) -> None:
         self.address = address
         self._channel = sync_channel(address) if channel is None else channel
-        self._call = _Caller(self._channel, mission_token_metadata())
+        self._call = _Caller(self._channel, mission_token_metadata(token))
         self.mobility = Mobility(self._call)
         self.camera = Camera(self._call)
         self.clock = Clock(self._call)
@@ -158,6 +204,7 @@ class Drone:
         except DroneCallError:
             pass  # the controller is gone: nothing left to flush to
         finally:
+            self._call.end_stream()
             self._channel.close()
 
     def __enter__(self) -> Drone:

@@ -11,6 +11,7 @@ whole message, and on a new stream tells the sender the last log number it
 holds so that nothing acknowledged is sent twice and nothing is lost.
 """
 
+from baton.v1 import drone_api_pb2 as _drone_api_pb2
 from collections import abc as _abc
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
@@ -116,6 +117,72 @@ HANDOVER_ROLE_TAKER: HandoverRole.ValueType  # 3
 HANDOVER_ROLE_FENCED: HandoverRole.ValueType  # 4
 """Its mastership taken over: it rejoined as a replica."""
 Global___HandoverRole: _TypeAlias = HandoverRole  # noqa: Y015
+
+@_typing.final
+class ProgramCall(_message.Message):
+    """One drone-API call of the mission program on ProgramCalls."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    CALL_FIELD_NUMBER: _builtins.int
+    METHOD_FIELD_NUMBER: _builtins.int
+    REQUEST_FIELD_NUMBER: _builtins.int
+    call: _builtins.int
+    """The program's number for this call, unique on its stream; its outcome
+    carries it back.
+    """
+    method: _builtins.str
+    """The gRPC method the unary call would name: "/baton.v1.Mobility/GetPosition"."""
+    request: _builtins.bytes
+    """The serialized request message of the method."""
+    def __init__(
+        self,
+        *,
+        call: _builtins.int = ...,
+        method: _builtins.str = ...,
+        request: _builtins.bytes = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["call", b"call", "method", b"method", "request", b"request"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___ProgramCall: _TypeAlias = ProgramCall  # noqa: Y015
+
+@_typing.final
+class ProgramOutcome(_message.Message):
+    """The outcome of one ProgramCall: its reply, or the status the unary call
+    would end with.
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    CALL_FIELD_NUMBER: _builtins.int
+    REPLY_FIELD_NUMBER: _builtins.int
+    FAILURE_FIELD_NUMBER: _builtins.int
+    call: _builtins.int
+    """The call's number."""
+    reply: _builtins.bytes
+    """The serialized reply message of the method."""
+    @_builtins.property
+    def failure(self) -> _drone_api_pb2.CallFailure: ...
+    def __init__(
+        self,
+        *,
+        call: _builtins.int = ...,
+        reply: _builtins.bytes = ...,
+        failure: _drone_api_pb2.CallFailure | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["failure", b"failure", "outcome", b"outcome", "reply", b"reply"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["call", b"call", "failure", b"failure", "outcome", b"outcome", "reply", b"reply"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType_outcome: _TypeAlias = _typing.Literal["reply", "failure"]  # noqa: Y015
+    _WhichOneofArgType_outcome: _TypeAlias = _typing.Literal["outcome", b"outcome"]  # noqa: Y015
+    def WhichOneof(self, oneof_group: _WhichOneofArgType_outcome) -> _WhichOneofReturnType_outcome | None: ...
+
+Global___ProgramOutcome: _TypeAlias = ProgramOutcome  # noqa: Y015
 
 @_typing.final
 class MissionDoneRequest(_message.Message):

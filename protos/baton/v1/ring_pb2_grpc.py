@@ -50,6 +50,11 @@ class ControllerRingStub:
                 request_serializer=baton_dot_v1_dot_ring__pb2.MissionDoneRequest.SerializeToString,
                 response_deserializer=baton_dot_v1_dot_ring__pb2.MissionDoneReply.FromString,
                 _registered_method=True)
+        self.ProgramCalls = channel.stream_stream(
+                '/baton.v1.ControllerRing/ProgramCalls',
+                request_serializer=baton_dot_v1_dot_ring__pb2.ProgramCall.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_ring__pb2.ProgramOutcome.FromString,
+                _registered_method=True)
 
 
 class ControllerRingServicer:
@@ -79,6 +84,20 @@ class ControllerRingServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def ProgramCalls(self, request_iterator, context):
+        """The local mission program's drone-API calls as messages on one stream it
+        keeps open, answered as the unary Mobility, Camera and Clock methods of
+        the same port answer them (a call's set-up each time is what a unary
+        call costs: docs/design.md, "The proxy path"). One call at a time: the
+        program sends a call once the previous one's outcome has come. A call
+        whose stream ends before its outcome is one the program gave up on
+        (CANCELLED, or DEADLINE_EXCEEDED past the stream's deadline). The mission
+        port only, with the mission token, as the unary methods.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_ControllerRingServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -96,6 +115,11 @@ def add_ControllerRingServicer_to_server(servicer, server):
                     servicer.MissionDone,
                     request_deserializer=baton_dot_v1_dot_ring__pb2.MissionDoneRequest.FromString,
                     response_serializer=baton_dot_v1_dot_ring__pb2.MissionDoneReply.SerializeToString,
+            ),
+            'ProgramCalls': grpc.stream_stream_rpc_method_handler(
+                    servicer.ProgramCalls,
+                    request_deserializer=baton_dot_v1_dot_ring__pb2.ProgramCall.FromString,
+                    response_serializer=baton_dot_v1_dot_ring__pb2.ProgramOutcome.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -180,6 +204,33 @@ class ControllerRing:
             '/baton.v1.ControllerRing/MissionDone',
             baton_dot_v1_dot_ring__pb2.MissionDoneRequest.SerializeToString,
             baton_dot_v1_dot_ring__pb2.MissionDoneReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def ProgramCalls(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/baton.v1.ControllerRing/ProgramCalls',
+            baton_dot_v1_dot_ring__pb2.ProgramCall.SerializeToString,
+            baton_dot_v1_dot_ring__pb2.ProgramOutcome.FromString,
             options,
             channel_credentials,
             insecure,

@@ -50,6 +50,16 @@ class ControllerRingStub:
     log still holds (below the flush limit), so that every replica can replay
     the mission to its end. Idempotent; the SDK calls it when a mission closes.
     """
+    ProgramCalls: _grpc.StreamStreamMultiCallable[_ring_pb2.ProgramCall, _ring_pb2.ProgramOutcome]
+    """The local mission program's drone-API calls as messages on one stream it
+    keeps open, answered as the unary Mobility, Camera and Clock methods of
+    the same port answer them (a call's set-up each time is what a unary
+    call costs: docs/design.md, "The proxy path"). One call at a time: the
+    program sends a call once the previous one's outcome has come. A call
+    whose stream ends before its outcome is one the program gave up on
+    (CANCELLED, or DEADLINE_EXCEEDED past the stream's deadline). The mission
+    port only, with the mission token, as the unary methods.
+    """
 
 @_typing.type_check_only
 class ControllerRingAsyncStub(ControllerRingStub):
@@ -64,6 +74,16 @@ class ControllerRingAsyncStub(ControllerRingStub):
     """The local mission program has ended. On the master this flushes what the
     log still holds (below the flush limit), so that every replica can replay
     the mission to its end. Idempotent; the SDK calls it when a mission closes.
+    """
+    ProgramCalls: _aio.StreamStreamMultiCallable[_ring_pb2.ProgramCall, _ring_pb2.ProgramOutcome]  # type: ignore[assignment]
+    """The local mission program's drone-API calls as messages on one stream it
+    keeps open, answered as the unary Mobility, Camera and Clock methods of
+    the same port answer them (a call's set-up each time is what a unary
+    call costs: docs/design.md, "The proxy path"). One call at a time: the
+    program sends a call once the previous one's outcome has come. A call
+    whose stream ends before its outcome is one the program gave up on
+    (CANCELLED, or DEADLINE_EXCEEDED past the stream's deadline). The mission
+    port only, with the mission token, as the unary methods.
     """
 
 class ControllerRingServicer(metaclass=_abc_1.ABCMeta):
@@ -94,6 +114,22 @@ class ControllerRingServicer(metaclass=_abc_1.ABCMeta):
         """The local mission program has ended. On the master this flushes what the
         log still holds (below the flush limit), so that every replica can replay
         the mission to its end. Idempotent; the SDK calls it when a mission closes.
+        """
+
+    @_abc_1.abstractmethod
+    def ProgramCalls(
+        self,
+        request_iterator: _MaybeAsyncIterator[_ring_pb2.ProgramCall],
+        context: _ServicerContext,
+    ) -> _typing.Union[_abc.Iterator[_ring_pb2.ProgramOutcome], _abc.AsyncIterator[_ring_pb2.ProgramOutcome]]:
+        """The local mission program's drone-API calls as messages on one stream it
+        keeps open, answered as the unary Mobility, Camera and Clock methods of
+        the same port answer them (a call's set-up each time is what a unary
+        call costs: docs/design.md, "The proxy path"). One call at a time: the
+        program sends a call once the previous one's outcome has come. A call
+        whose stream ends before its outcome is one the program gave up on
+        (CANCELLED, or DEADLINE_EXCEEDED past the stream's deadline). The mission
+        port only, with the mission token, as the unary methods.
         """
 
 def add_ControllerRingServicer_to_server(servicer: ControllerRingServicer, server: _typing.Union[_grpc.Server, _aio.Server]) -> None: ...

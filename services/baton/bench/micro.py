@@ -30,7 +30,7 @@ import secrets
 import statistics
 import sys
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -44,7 +44,7 @@ from baton.config import LinkSpec, parse_config
 from baton.controller.node import ControllerNode
 from baton.controller.protocol import ControllerProtocol, State, request_digest
 from baton.controller.ring import FRAME_BYTES, RELAY_WINDOW_FRAMES, PeerLink, RingReceiver
-from baton.controller.service import DroneApiProxy
+from baton.controller.service import ControllerRingService, DroneApiProxy
 from baton.drone.measure import MasterCalls, summary_ms
 from baton.drone.measure import measure as measure_drone
 from baton.link.proxy import LinkProxy
@@ -54,6 +54,7 @@ from baton.rpc.methods import DRONE_API_SERVICES, service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
 from baton.rpc.server import BatonServer, generic, servicer
 from baton.rpc.tls import DRONE, Identity, Tls
+from baton.sdk import aio
 from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_api_pb2_grpc, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
@@ -142,11 +143,21 @@ async def measure_proxy_and_drone(
         certs = None if direct_config.tls.insecure else direct_config.tls.certs
         # The program's port: loopback and plain, tied to the program by the token.
         master = (await proxied.snapshot(audit=False)).controllers[0]
+        # The program's path: the SDK, its calls on the stream it keeps to the controller
+        # (on a channel of its own, closed without MissionDone: the mission goes on).
+        program_channel = aio_channel(master.mission_address)
+        program = aio.Drone(master.mission_address, program_channel, token=token)
+        # grpcurl's: each call a unary call of the drone API on the same port.
         channel = aio_channel(master.mission_address)
         mobility = drone_api_pb2_grpc.MobilityStub(channel)
         request = api.GetPositionRequest()
 
-        async def through_proxy() -> float:
+        async def through_program() -> float:
+            start = time.perf_counter()
+            await program.mobility.position()
+            return time.perf_counter() - start
+
+        async def through_unary() -> float:
             start = time.perf_counter()
             await mobility.GetPosition(request, metadata=as_program)
             return time.perf_counter() - start
@@ -155,6 +166,7 @@ async def measure_proxy_and_drone(
             await mobility.GetPosition(
                 request, wait_for_ready=True, timeout=60, metadata=as_program
             )
+            await program.mobility.position()
         before = (await proxied.snapshot(audit=False)).controllers[0].lognr
         tls = None if certs is None else Tls.load(certs, Identity.controller(1))
         async with aio_channel(direct_config.drone.address, tls, DRONE) as direct_channel:
@@ -164,11 +176,18 @@ async def measure_proxy_and_drone(
             )
             for _ in range(50):
                 await direct.invoke()
+                await direct.timed_on_stream()
             say(
-                f"micro: {settings.calls} GetPosition calls through controller 0's proxy, "
-                f"and as many direct Invokes on the second drone, in turn"
+                f"micro: {settings.calls} GetPosition calls each through controller 0 (the SDK's "
+                "stream, and unary) and direct on the second drone (unary, and on a stream), "
+                "in turn"
             )
-            proxy, direct_s = await interleaved(through_proxy, direct.timed, settings.calls)
+            proxy, unary, direct_s, direct_stream = await interleaved(
+                (through_program, through_unary, direct.timed, direct.timed_on_stream),
+                settings.calls,
+            )
+            await direct.close()
+        await program_channel.close()
         await channel.close()
         snapshot = await proxied.snapshot(audit=False)
         controller_t_conn = t_conn_samples(snapshot)
@@ -182,10 +201,17 @@ async def measure_proxy_and_drone(
         say(f"micro: {settings.calls} direct Invokes and {settings.calls} through a bare relay")
         relay = await measure_relay(direct_config.drone.address, 1, settings.calls, certs)
     proxy_ms, direct_ms = summary_ms(proxy), summary_ms(direct_s)
+    unary_ms, direct_stream_ms = summary_ms(unary), summary_ms(direct_stream)
     return {
         "proxy_get_position": {**proxy_ms, "calls_per_s": _rate(proxy)},
+        "proxy_unary_get_position": {**unary_ms, "calls_per_s": _rate(unary)},
         "direct_get_position": {**direct_ms, "calls_per_s": _rate(direct_s)},
+        "direct_stream_get_position": {**direct_stream_ms, "calls_per_s": _rate(direct_stream)},
+        # The program's path against a direct unary Invoke (the issue's measure), and
+        # against direct calls on a kept stream as well (like for like: the hop alone).
         "proxy_overhead_p50_ms": proxy_ms["p50_ms"] - direct_ms["p50_ms"],
+        "proxy_overhead_vs_stream_p50_ms": proxy_ms["p50_ms"] - direct_stream_ms["p50_ms"],
+        "proxy_unary_overhead_p50_ms": unary_ms["p50_ms"] - direct_ms["p50_ms"],
         "flushes_during_proxy_calls": flushes,
         "direct_take_picture": direct_more["invoke_take_picture"],
         "t_conn_new_channel": direct_more["t_conn_new_channel"],
@@ -196,20 +222,16 @@ async def measure_proxy_and_drone(
 
 
 async def interleaved(
-    first: Callable[[], Awaitable[float]], second: Callable[[], Awaitable[float]], calls: int
-) -> tuple[list[float], list[float]]:
-    """``calls`` timings of each, taken in turn, which goes first alternating: the
-    shared cores' slow moments fall on both alike."""
-    one: list[float] = []
-    other: list[float] = []
+    paths: Sequence[Callable[[], Awaitable[float]]], calls: int
+) -> list[list[float]]:
+    """``calls`` timings of each path, taken in turn, which goes first rotating: the
+    shared cores' slow moments fall on all alike."""
+    timings: list[list[float]] = [[] for _ in paths]
     for k in range(calls):
-        if k % 2:
-            other.append(await second())
-            one.append(await first())
-        else:
-            one.append(await first())
-            other.append(await second())
-    return one, other
+        for j in range(len(paths)):
+            which = (k + j) % len(paths)
+            timings[which].append(await paths[which]())
+    return timings
 
 
 async def measure_relay(
@@ -242,7 +264,7 @@ async def measure_relay(
                 await direct.invoke()
                 await direct.invoke(via=relayed)
             relay_s, direct_s = await interleaved(
-                lambda: direct.timed(via=relayed), direct.timed, calls
+                (lambda: direct.timed(via=relayed), direct.timed), calls
             )
     finally:
         relay.stdin.close()
@@ -310,7 +332,13 @@ async def measure_replay_end_to_end(calls: int) -> dict[str, Any]:
     node = _replica()
     token = secrets.token_urlsafe(18)
     names = list(map(service_full_name, DRONE_API_SERVICES))
-    server = BatonServer("127.0.0.1:0", [generic(DroneApiProxy(node, token), *names)])
+    proxy = DroneApiProxy(node, token)
+    ring = ControllerRingService(node, token, proxy=proxy)
+    add_ring = ring_pb2_grpc.add_ControllerRingServicer_to_server
+    server = BatonServer(
+        "127.0.0.1:0",
+        [generic(proxy, *names), servicer(service_full_name("ControllerRing"), add_ring, ring)],
+    )
     await server.start()
     try:
         await node.on_log(_position_log(REPLAY_WARM_UP + calls))
@@ -537,8 +565,10 @@ def table(result: dict[str, Any]) -> str:
     p = result["proxy"]
     rows: list[list[object]] = []
     for name, key in (
-        ("through controller proxy", "proxy_get_position"),
+        ("through the controller, on the SDK's stream (the program's path)", "proxy_get_position"),
+        ("through the controller, unary (grpcurl's path)", "proxy_unary_get_position"),
         ("direct Invoke", "direct_get_position"),
+        ("direct, on a kept InvokeStream", "direct_stream_get_position"),
     ):
         s = p[key]
         rows.append(
@@ -555,9 +585,19 @@ def table(result: dict[str, Any]) -> str:
         ["proxy overhead at p50 (ms)", "mutual TLS", "insecure"],
         [
             [
-                "through the controller, against direct Invoke on a drone beside it (interleaved)",
+                "the program's path, against direct Invoke on a drone beside it (interleaved)",
                 f"{p['proxy_overhead_p50_ms']:.3f}",
                 f"{plain['proxy_overhead_p50_ms']:.3f}",
+            ],
+            [
+                "the program's path, against direct calls on a kept InvokeStream (like for like)",
+                f"{p['proxy_overhead_vs_stream_p50_ms']:.3f}",
+                f"{plain['proxy_overhead_vs_stream_p50_ms']:.3f}",
+            ],
+            [
+                "unary through the controller, against direct Invoke",
+                f"{p['proxy_unary_overhead_p50_ms']:.3f}",
+                f"{plain['proxy_unary_overhead_p50_ms']:.3f}",
             ],
             [
                 "through a bare relay, against direct Invoke (interleaved)",
@@ -571,7 +611,7 @@ def table(result: dict[str, Any]) -> str:
     text += (
         f"\nproxy overhead target < {target} ms at p50: {verdicts[0]} with mutual TLS, "
         f"{verdicts[1]} insecure; the bare relay (the floor of one more Python gRPC hop, "
-        "no work) is the second row\n"
+        "no work) is the last row\n"
     )
     added = result["tls_overhead_p50_ms"]
     text += (

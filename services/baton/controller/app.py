@@ -63,7 +63,7 @@ class ControllerApp:
             config.controller(cid).mission_address,
             [
                 generic(proxy, *names),
-                servicer(ring, add_ring, ControllerRingService(self.node, self.token)),
+                servicer(ring, add_ring, ControllerRingService(self.node, self.token, proxy=proxy)),
             ],
         )
         self.node.mission_address = self.mission_server.address  # bound already

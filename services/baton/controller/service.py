@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import hmac
 import math
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 
 import grpc
 from google.protobuf import message as protobuf_message
@@ -21,6 +21,7 @@ from baton.controller.ring import RingReceiver
 from baton.rpc.errors import StatusError, abort_with, status_of
 from baton.rpc.methods import drone_api
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA, token_in
+from baton.rpc.outcomes import failure_of
 from baton.rpc.tls import caller, refused, refused_status
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2, ring_pb2_grpc
@@ -79,22 +80,59 @@ class DroneApiProxy(grpc.GenericRpcHandler):
             if refused is not None:
                 await abort_with(context, refused)
             try:
-                parsed = request_class.FromString(request)
-            except protobuf_message.DecodeError as exc:
-                await context.abort(
-                    grpc.StatusCode.INVALID_ARGUMENT,
-                    f"{method}: payload is not a {request_class.__name__}: {exc}",
-                )
-            try:
-                check_request(method, parsed)
-                entry = await self._node.call(method, request, lambda: _gave_up(context))
+                return await self.answer(method, request_class, request, context)
             except StatusError as exc:
                 await abort_with(context, exc)
-            if entry.status_code != 0:
-                await context.abort(status_of(entry.status_code), entry.status_message)
-            return bytes(entry.reply)
 
         return handle
+
+    async def answer(
+        self,
+        method: str,
+        request_class: type[protobuf_message.Message],
+        request: bytes,
+        context: grpc.aio.ServicerContext,
+    ) -> bytes:
+        """The reply to one call of the program, unary or on its stream; StatusError if it
+        fails (the caller's token is checked already)."""
+        try:
+            parsed = request_class.FromString(request)
+        except protobuf_message.DecodeError as exc:
+            raise StatusError(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"{method}: payload is not a {request_class.__name__}: {exc}",
+            ) from None
+        check_request(method, parsed)
+        entry = await self._node.call(method, request, lambda: _gave_up(context))
+        if entry.status_code != 0:
+            raise StatusError(status_of(entry.status_code), entry.status_message)
+        return bytes(entry.reply)
+
+    async def serve_calls(
+        self, calls: AsyncIterator[ring_pb2.ProgramCall], context: grpc.aio.ServicerContext
+    ) -> AsyncIterator[ring_pb2.ProgramOutcome]:
+        """ControllerRing.ProgramCalls: the program's calls on its kept stream, answered in
+        turn as the unary methods answer them. The stream ending (the program cancels it,
+        or dies) while a call is at the node cancels that call: the node logs the give-up
+        as for a unary call's (``ControllerNode.call``)."""
+        refused = caller_refused(self._node.id, self._token, context, "ProgramCalls")
+        if refused is not None:
+            await abort_with(context, refused)
+        async for call in calls:
+            found = self._methods.get(call.method)
+            try:
+                if found is None:
+                    raise StatusError(
+                        grpc.StatusCode.UNIMPLEMENTED,
+                        f"ProgramCalls: call {call.call} names {call.method!r}, not a method "
+                        'of the drone API ("/baton.v1.Mobility/GetPosition" ...); nothing '
+                        "was logged",
+                    )
+                reply = await self.answer(call.method, found.request_type, call.request, context)
+            except StatusError as exc:
+                yield ring_pb2.ProgramOutcome(call=call.call, failure=failure_of(exc))
+                continue
+            yield ring_pb2.ProgramOutcome(call=call.call, reply=reply)
 
 
 def _gave_up(context: grpc.aio.ServicerContext) -> grpc.StatusCode:
@@ -135,13 +173,14 @@ def ring_receiver(node: ControllerNode) -> RingReceiver:
 
 
 class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
-    """LogRing, GetStatus and MissionDone of one controller, on one of its ports.
+    """LogRing, GetStatus, MissionDone and ProgramCalls of one controller, on one of its ports.
 
     The ring port (``receiver`` given) takes LogRing; with ``authenticated``
     (mutual TLS) only from a controller of the ring, as its certificate says,
-    and GetStatus from any part with a certificate; never MissionDone. The
-    mission program's loopback port has no receiver: LogRing is refused there,
-    and MissionDone is its program's (the token).
+    and GetStatus from any part with a certificate; never MissionDone or
+    ProgramCalls. The mission program's loopback port has no receiver: LogRing
+    is refused there, and MissionDone and ProgramCalls (through the ``proxy``)
+    are its program's (the token).
     """
 
     def __init__(
@@ -150,11 +189,13 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
         token: str | None = None,
         receiver: RingReceiver | None = None,
         authenticated: bool = False,
+        proxy: DroneApiProxy | None = None,
     ) -> None:
         self._node = node
         self._token = token
         self.receiver = receiver
         self._authenticated = authenticated
+        self._proxy = proxy  # the mission port's: ProgramCalls
 
     async def LogRing(self, request_iterator: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[override]
         """Receives log messages from a predecessor or an old master, acknowledging each."""
@@ -210,6 +251,25 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
             await abort_with(context, refused)
         flushed = await self._node.mission_done(request.failed, request.error)
         return ring_pb2.MissionDoneReply(flushed=flushed, lognr=self._node.protocol.lognr)
+
+    async def ProgramCalls(  # type: ignore[override]
+        self,
+        request_iterator: AsyncIterator[ring_pb2.ProgramCall],
+        context: grpc.aio.ServicerContext,
+    ) -> AsyncIterator[ring_pb2.ProgramOutcome]:
+        """The mission program's drone-API calls on the stream it keeps (the mission port)."""
+        if self._proxy is None:
+            await abort_with(
+                context,
+                StatusError(
+                    grpc.StatusCode.PERMISSION_DENIED,
+                    f"ProgramCalls: controller {self._node.id} takes its mission program's calls "
+                    f"on its mission port ({self._node.mission_address}) only, not on the ring "
+                    "port; nothing was changed",
+                ),
+            )
+        async for outcome in self._proxy.serve_calls(request_iterator, context):
+            yield outcome
 
 
 def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:

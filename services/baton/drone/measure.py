@@ -16,6 +16,8 @@ import statistics
 import time
 from pathlib import Path
 
+from baton.controller.drone_link import InvokeCalls
+from baton.logs import get_logger
 from baton.rpc.channels import aio_channel
 from baton.rpc.methods import path
 from baton.rpc.streams import read_message
@@ -55,6 +57,7 @@ class MasterCalls:
         self.controller = controller
         self.epoch = epoch
         self.reqnr = reqnr
+        self._stream: InvokeCalls | None = None
 
     @classmethod
     async def become_master(
@@ -103,6 +106,24 @@ class MasterCalls:
         start = time.perf_counter()
         await self.invoke(via=via)
         return time.perf_counter() - start
+
+    async def timed_on_stream(self) -> float:
+        """One GetPosition's round trip as a message on the kept InvokeStream (the
+        controller's own way: ``drone_link.InvokeCalls``), in seconds."""
+        if self._stream is None:
+            self._stream = InvokeCalls(self.stub, get_logger("bench"))
+        self.reqnr += 1
+        request = drone_pb2.InvokeRequest(
+            controller_id=self.controller, reqnr=self.reqnr, method=GET_POSITION, epoch=self.epoch
+        )
+        start = time.perf_counter()
+        await self._stream.invoke(request, 30)
+        return time.perf_counter() - start
+
+    async def close(self) -> None:
+        """Ends the stream of ``timed_on_stream``, if it was opened."""
+        if self._stream is not None:
+            await self._stream.close(grace=5)
 
 
 async def measure(

@@ -22,7 +22,7 @@ import asyncio
 import inspect
 import io
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import redirect_stdout
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,9 +49,10 @@ from baton.controller.service import check_request
 from baton.rpc.errors import StatusError, status_of
 from baton.rpc.methods import drone_api, path, rpc_of
 from baton.sdk import aio
+from baton.sdk.calls import PROGRAM_CALLS
 from baton.sdk.drone import Drone
 from baton.sdk.run import failure, load_mission, parse_params
-from baton.v1 import ring_pb2
+from baton.v1 import drone_api_pb2, ring_pb2
 
 # The replayer's id in its ring of one: no controller has it, so every message
 # of the log is someone else's (handled, never taken for our own).
@@ -297,7 +298,8 @@ class _ReplayedCall(grpc.UnaryUnaryMultiCallable):
 
 
 class ReplayChannel(grpc.Channel):
-    """A channel whose unary calls the log answers, in this process: no sockets."""
+    """A channel whose drone-API calls the log answers, in this process: no sockets.
+    The SDK's stream of calls (``calls.PROGRAM_CALLS``) is answered call by call."""
 
     def __init__(self, replay: LogReplay) -> None:
         self._replay = replay
@@ -311,17 +313,38 @@ class ReplayChannel(grpc.Channel):
     ) -> _ReplayedCall:
         return _ReplayedCall(self._replay, method, request_serializer, response_deserializer)
 
+    def outcome(self, call: ring_pb2.ProgramCall) -> ring_pb2.ProgramOutcome:
+        """A call on the program's stream of calls (``calls.PROGRAM_CALLS``), answered as
+        its unary call is; ``ReplayStopped`` at a divergence."""
+        try:
+            reply = self.unary_unary(call.method)(call.request)
+        except ReplayedError as exc:
+            failure = drone_api_pb2.CallFailure(code=exc.code().value[0], message=exc.details())
+            return ring_pb2.ProgramOutcome(call=call.call, failure=failure)
+        return ring_pb2.ProgramOutcome(call=call.call, reply=reply)
+
+    def stream_stream(  # type: ignore[override]
+        self,
+        method: str,
+        request_serializer: Callable[[Any], bytes] | None = None,
+        response_deserializer: Callable[[bytes], Any] | None = None,
+        _registered_method: bool | None = False,
+    ) -> Callable[..., Any]:
+        if method != PROGRAM_CALLS:
+            return self._streaming(method)
+        return lambda requests, *args, **kwargs: _ReplayedStream(self, requests)
+
     def _streaming(self, method: str, *args: Any, **kwargs: Any) -> Callable[..., Any]:
         def refuse(*args: Any, **kwargs: Any) -> Any:
             raise ReplayedError(
                 grpc.StatusCode.UNIMPLEMENTED,
-                f"{method}: a replay answers the drone API's unary calls only",
+                f"{method}: a replay answers the drone API's calls only",
             )
 
         return refuse
 
-    # A refusing function stands for the multi-callables: a replay has no streams to call.
-    unary_stream = stream_unary = stream_stream = _streaming  # type: ignore[assignment]
+    # A refusing function stands for the other multi-callables: a replay has no such calls.
+    unary_stream = stream_unary = _streaming  # type: ignore[assignment]
 
     def subscribe(self, callback: Callable[..., None], try_to_connect: bool = False) -> None:
         pass
@@ -344,6 +367,41 @@ class ReplayChannel(grpc.Channel):
         pass
 
 
+class _ReplayedStream:
+    """The program's stream of calls on a ``ReplayChannel``: each call it sends, answered
+    as it is taken (the blocking SDK sends one, then waits for its outcome)."""
+
+    def __init__(self, channel: ReplayChannel, requests: Iterator[ring_pb2.ProgramCall]) -> None:
+        self._channel = channel
+        self._requests = requests
+
+    def __iter__(self) -> _ReplayedStream:
+        return self
+
+    def __next__(self) -> ring_pb2.ProgramOutcome:
+        return self._channel.outcome(next(self._requests))
+
+    def cancel(self) -> bool:
+        return False
+
+
+class _AioReplayedStream:
+    """The stream of calls on an ``AioReplayChannel``: a call's outcome when it is written."""
+
+    def __init__(self, channel: ReplayChannel) -> None:
+        self._channel = channel
+        self._outcomes: list[ring_pb2.ProgramOutcome] = []
+
+    async def write(self, call: ring_pb2.ProgramCall) -> None:
+        self._outcomes.append(self._channel.outcome(call))
+
+    async def read(self) -> ring_pb2.ProgramOutcome:
+        return self._outcomes.pop(0)
+
+    def cancel(self) -> bool:
+        return False
+
+
 class _AioReplayedCall:
     """One drone-API method of an ``AioReplayChannel``: the log's answer, awaited."""
 
@@ -355,7 +413,7 @@ class _AioReplayedCall:
 
 
 class AioReplayChannel:
-    """``ReplayChannel`` for the asyncio SDK (``baton.sdk.aio``): unary calls only."""
+    """``ReplayChannel`` for the asyncio SDK (``baton.sdk.aio``)."""
 
     def __init__(self, replay: LogReplay) -> None:
         self._channel = ReplayChannel(replay)
@@ -370,6 +428,17 @@ class AioReplayChannel:
         return _AioReplayedCall(
             self._channel.unary_unary(method, request_serializer, response_deserializer)
         )
+
+    def stream_stream(
+        self,
+        method: str,
+        request_serializer: Callable[[Any], bytes] | None = None,
+        response_deserializer: Callable[[bytes], Any] | None = None,
+        _registered_method: bool | None = False,
+    ) -> Callable[..., Any]:
+        if method != PROGRAM_CALLS:
+            return self._channel.stream_stream(method)
+        return lambda *args, **kwargs: _AioReplayedStream(self._channel)
 
     async def close(self) -> None:
         pass

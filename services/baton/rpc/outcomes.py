@@ -11,17 +11,17 @@ from __future__ import annotations
 import grpc
 
 from baton.rpc.errors import StatusError, status_of
-from baton.v1 import drone_pb2
+from baton.v1 import drone_api_pb2
 
 
-def failure_of(error: StatusError) -> drone_pb2.CallFailure:
+def failure_of(error: StatusError) -> drone_api_pb2.CallFailure:
     """A call's failure on a stream (drone.proto InvokeStream) as its RPC would end."""
-    return drone_pb2.CallFailure(
+    return drone_api_pb2.CallFailure(
         code=error.code.value[0], message=error.message, metadata=dict(error.metadata)
     )
 
 
-def error_of(failure: drone_pb2.CallFailure) -> grpc.aio.AioRpcError:
+def error_of(failure: drone_api_pb2.CallFailure) -> grpc.aio.AioRpcError:
     """The error a caller's RPC would have raised for a call's ``failure`` on a stream,
     with its code, details and trailing metadata: callers handle both alike."""
     return grpc.aio.AioRpcError(
