@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 from pathlib import Path
 
 import grpc
@@ -44,33 +45,61 @@ async def test_a_diverging_mission_is_stopped_with_both_requests_shown(tmp_path:
     assert [a.reqnr for a in snapshot.drone.audit] == [1, 2, 3]
 
 
-async def test_a_call_the_program_gave_up_on_is_logged_as_it_saw_it(tmp_path: Path) -> None:
-    """Issue 9, defect 1, across processes: a TakePicture whose deadline passed at the drone."""
+async def gives_up_on_a_picture(mission: str, tmp_path: Path) -> dict[int, str]:
+    """Runs ``mission``, which gives up on its first TakePicture while the drone is at it
+    (0.3 s each way on the drone link), on two controllers; checks that the drone took
+    both pictures, each once (the one given up reached the camera), and that the
+    replica saw what the master's program saw. The controllers' logs, by id."""
     plan = TestbedPlan(
         config=local_config(
             2,
             flush_limit=0,
             speedup=20.0,
-            # 0.3 s each way: the program's 0.45 s deadline passes while the drone is at it.
             drone_link=LinkSpec(latency=0.3, bandwidth=None),
             controller_link=LinkSpec(latency=0.002, bandwidth=None),
         ),
-        mission_file=MISSIONS / "gives_up.py",
+        mission_file=MISSIONS / mission,
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
         snapshot = await testbed.run_mission(120)
+    outputs = {}
     for cid, c in snapshot.controllers.items():
         assert c.mission == ring_pb2.MISSION_STATE_DONE, f"controller {cid}: {c.mission_error}"
-        output = (tmp_path / "logs" / f"controller-{cid}.log").read_text()
-        assert "first picture: DEADLINE_EXCEEDED" in output, output
-    # The drone took both pictures, each once: the one the program gave up on
-    # (it reached the camera) and the one it asked for again.
+        outputs[cid] = (tmp_path / "logs" / f"controller-{cid}.log").read_text()
     audit = [(a.reqnr, a.method.rsplit("/", 1)[1]) for a in snapshot.drone.audit]
     assert [m for _, m in audit].count("TakePicture") == 2, audit
     assert len({r for r, _ in audit}) == len(audit)
     chains = {c.reply_chain for c in snapshot.controllers.values()}
     assert len(chains) == 1, "the replica saw something else than the master's program"
     assert {c.drone_calls for c in snapshot.controllers.values()} == {len(audit)}
+    return outputs
+
+
+async def test_a_call_the_program_gave_up_on_is_logged_as_it_saw_it(tmp_path: Path) -> None:
+    """Issue 9, defect 1, across processes: a TakePicture whose deadline (0.45 s) passed
+    at the drone."""
+    outputs = await gives_up_on_a_picture("gives_up.py", tmp_path)
+    for output in outputs.values():
+        assert "first picture: DEADLINE_EXCEEDED" in output, output
+
+
+async def test_a_call_cancelled_on_the_programs_stream_is_logged_as_given_up(
+    tmp_path: Path,
+) -> None:
+    """The SDK's calls travel on one kept stream (ring.proto ProgramCalls): a call the
+    program cancels (after 0.45 s) must reach the master as a unary call's cancellation
+    does, as the node's give-up, and the drone's side effect is counted once."""
+    outputs = await gives_up_on_a_picture("cancels.py", tmp_path)
+    assert "first picture: gave up" in outputs[0], outputs[0]
+    # The replica's program got the master's give-up from the log (or gave up itself
+    # while it waited for it): never the picture the master's program did not see.
+    assert "first picture: reply" not in outputs[1], outputs[1]
+    gave_up = [
+        json.loads(line)
+        for line in outputs[0].splitlines()
+        if '"the mission program gave up on a call"' in line
+    ]
+    assert [(g["reqnr"], g["code"]) for g in gave_up] == [(2, "CANCELLED")], gave_up
 
 
 async def test_an_outsider_calling_the_masters_proxy_is_refused_and_changes_nothing(
@@ -129,6 +158,29 @@ async def test_the_controller_refuses_a_second_concurrent_call() -> None:
     assert refused.value.code is grpc.StatusCode.FAILED_PRECONDITION
     assert "concurrent call /baton.v1.Mobility/GetHome" in refused.value.message
     held.cancel()
+
+
+async def test_a_call_that_overtakes_the_give_up_of_the_pending_one_waits_for_it() -> None:
+    """The program gave up on a call (a deadline, a cancelled stream) and made its next
+    one at once: the next one can reach the controller before the give-up does (another
+    stream, or another connection). Found under load by the give-up tests: the next
+    call was refused as concurrent and the mission failed."""
+    config = parse_config(
+        {"controllers": [{"id": 0, "address": "127.0.0.1:1"}, {"id": 1, "address": "127.0.0.1:2"}]}
+    )
+    node = ControllerNode(config, 1)  # PASSIVE: its calls are held until the log comes
+    position, home = "/baton.v1.Mobility/GetPosition", "/baton.v1.Mobility/GetHome"
+    held = asyncio.create_task(node.call(position, b""))
+    await eventually(lambda: node._busy == position, "the first call held")
+    second = asyncio.create_task(node.call(home, b""))
+    await asyncio.sleep(0.05)  # the next call is in before the give-up
+    held.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await held
+    await eventually(lambda: node._busy == home, "the next call held in its turn")
+    assert not second.done()
+    second.cancel()
+    await node.stop()
 
 
 async def test_calls_a_replicas_program_gave_up_on_take_their_own_log_entries() -> None:

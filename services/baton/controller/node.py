@@ -13,6 +13,7 @@ give every replica the same reply (see ``_invoke_drone``).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import math
 import time
@@ -67,6 +68,11 @@ CLOCK_NOW = path("Clock.Now")
 # A master stops a prepared handover this long after the drone's timeout for it, if it
 # heard nothing (the drone forces the handover at its timeout: the notice is owed).
 PREPARE_GRACE_S = 2.0
+# A call that comes while the previous one is pending waits this long for it to end
+# before it is refused as concurrent: a program that gave up on a call (its deadline,
+# a cancelled stream) makes its next one at once, and that one can reach the
+# controller first (on another stream or connection, in no fixed order).
+BUSY_GRACE_S = 2.0
 # Re-sending a request the drone could not take (drone unreachable, vehicle
 # link down): the same reqnr, so the drone's duplicate detection keeps it
 # safe, after a pause that doubles up to a cap, for the configuration's
@@ -216,6 +222,8 @@ class ControllerNode:
         self._arriving: dict[int, float] = {}
         self._drone: DroneSession | None = None
         self._busy: str | None = None
+        self._idle = asyncio.Event()  # set while no call is pending (``_busy`` None)
+        self._idle.set()
         # Calls the program gave up on while this controller waited for the log, in order.
         self._abandoned: deque[tuple[str, bytes, grpc.StatusCode]] = deque()
         self._settler: asyncio.Task[None] | None = None  # for those left when the program ended
@@ -433,6 +441,7 @@ class ControllerNode:
         self.mission, self.mission_error = ring_pb2.MISSION_STATE_NONE, ""
         self._failure = None
         self._drone_wait, self._in_flight, self._busy = "", None, None
+        self._idle.set()
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
         self._takeover_epoch = self._takeover_watermark = 0
@@ -1233,12 +1242,17 @@ class ControllerNode:
         drone, which may have acted, finishes and records it either way.
         """
         if self._busy is not None:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(BUSY_GRACE_S):
+                    await self._idle.wait()
+        if self._busy is not None:
             raise StatusError(
                 grpc.StatusCode.FAILED_PRECONDITION,
                 f"controller {self.id}: concurrent call {method} while {self._busy} is pending; "
                 "a mission program makes one drone call at a time",
             )
         self._busy = method
+        self._idle.clear()
         incarnation = self.incarnation
         try:
             if self.mission == ring_pb2.MISSION_STATE_NONE:
@@ -1253,6 +1267,7 @@ class ControllerNode:
         finally:
             if incarnation == self.incarnation:
                 self._busy = None
+                self._idle.set()
 
     async def _settle_abandoned(self) -> None:
         """Gives the log's entry to a call the program gave up on while this controller waited.
