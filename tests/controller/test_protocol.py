@@ -1234,3 +1234,62 @@ def test_a_queued_message_of_a_newer_mastership_fences_a_master_once_cut_off() -
     assert p.went_on_in_queue() == taker
     p.on_handover_notice(0, epoch=2)  # not ACTIVE: nothing of ours is held back
     assert p.went_on_in_queue() is None
+
+
+# -- --policy nearest seed 48: a master's fresh self and its earlier self's message -----
+
+
+def test_a_master_that_flushed_and_rejoins_gives_its_mastership_up_to_its_fresh_self() -> None:
+    """--policy nearest seed 48: taker 4 (epoch 15) flushed its message 12 on a framing it
+    then gave up (it diverged and rejoined with nothing). Its fresh self tells the drone,
+    which grants it a new epoch: regranted 15, its messages could not be told apart from
+    that message 12. A master that flushed nothing in its epoch, or was fenced, or whose
+    program starts again (its log is the ring's), gives nothing up."""
+    p = started(4, [4, 0, 3], 2**20)
+    p.on_log(framed(1, 0, [1], 14))
+    replay_all(p)
+    p.on_granted(15, takeover=True)
+    assert p.state is State.ACTIVE and p.mastership_given_up() == 0  # nothing flushed
+    p.on_reply(entry(2))
+    p.on_mission_done()  # flushes message 2 of epoch 15
+    assert p.mastership_given_up() == 15
+    fresh = ControllerProtocol(4, [4, 0, 3], 2**20)
+    fresh.given_up_epoch = p.mastership_given_up()
+    assert fresh.mastership_given_up() == 15  # said again if the fresh self rejoins too
+    restarting = started(4, [4, 0, 3], 0, initial_master=4)
+    restarting.on_reply(entry(1))
+    restarting.restart_program()
+    assert restarting.mastership_given_up() == 0
+    fenced = started(4, [4, 0, 3], 0, initial_master=4)
+    fenced.on_reply(entry(1))
+    fenced.on_fenced(2)
+    assert fenced.mastership_given_up() == 0
+
+
+def test_a_newer_masters_word_drops_an_older_message_queued_above_its_top() -> None:
+    """--policy nearest seed 48: every controller held the ring's messages 1-9 (epoch 14)
+    and the earlier self's message 12 (epoch 15) queued above a gap nobody could fill; the
+    fresh master (epoch 16) logged nothing more, so no message of its epoch ever dropped
+    it. Its sync frame says it is ACTIVE in epoch 16 holding 9: the successor drops 12, and
+    says so to its own successor. A word of the queued message's own epoch drops nothing."""
+    master = started(4, [4, 0, 3], 2**20)
+    for lognr in range(1, 10):
+        master.on_log(framed(lognr, 0, [lognr], 14))
+    replay_all(master)
+    master.on_log(framed(12, 4, [12], 15))
+    master.on_granted(16, takeover=True)
+    assert [type(e).__name__ for e in master.give_up_gap()] == ["Unqueued", "ConnectDrone"]
+    assert master.state is State.ACTIVE and master.master_word == (16, 9)
+    p = started(0, [4, 0, 3], 2**20, initial_master=4)
+    for lognr in range(1, 10):
+        p.on_log(framed(lognr, 3, [lognr], 14))
+    replay_all(p)
+    p.on_log(framed(12, 4, [12], 15))
+    assert p.missing_lognr == 10 and p.master_word == (0, 0)
+    assert p.on_sync(9, 14, 15, 9) == [] and 12 in p.log_queue  # not older than its epoch
+    effects = p.on_sync(9, 14, *master.master_word)
+    assert [(type(e).__name__, getattr(e, "lognr", None)) for e in effects] == [("Unqueued", 12)]
+    assert not p.log_queue and 12 not in p._received and p.missing_lognr is None
+    assert p.master_word == (16, 9)
+    p.on_sync(9, 14, 15, 8)  # an older word is not relayed
+    assert p.master_word == (16, 9)

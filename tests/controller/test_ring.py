@@ -56,10 +56,14 @@ class Receiver(ring_pb2_grpc.ControllerRingServicer):
         self.messages: list[ring_pb2.LogMessage] = []
         self.arrived = asyncio.Event()
         self.syncs: list[tuple[int, int, int]] = []
+        self.words: list[tuple[int, ...]] = []  # the sync frames' master words
         self.receiver = RingReceiver(1, self.lognr, self.deliver, LOG, synced=self.synced)
 
-    async def synced(self, from_id: int, holds_lognr: int, holds_epoch: int) -> None:
+    async def synced(
+        self, from_id: int, holds_lognr: int, holds_epoch: int, *master_word: int
+    ) -> None:
         self.syncs.append((from_id, holds_lognr, holds_epoch))
+        self.words.append(master_word)
 
     def lognr(self) -> int:
         return max((m.lognr for m in self.messages), default=0)
@@ -104,6 +108,30 @@ async def test_a_64_mb_log_message_passes_the_ring() -> None:
     finally:
         await link.stop()
         await server.stop(0)
+
+
+async def test_a_sync_frame_says_the_masters_word_and_again_when_it_changes(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """--policy nearest seed 48: the newest ACTIVE master's word (epoch, log number held)
+    rides on every sync frame, and a changed word is written once the link is woken
+    (the node wakes it when it dropped queued messages on such a word)."""
+    server, receiver = await start_receiver(f"127.0.0.1:{free_port()}")
+    history = LogHistory(tmp_path / "history.sqlite")
+    link = PeerLink(0, 1, server.address, LOG, history)
+    word = (15, 9)
+    link.master_word = lambda: word
+    try:
+        history.add(big_message(1, 10))
+        link.send(big_message(1, 10))
+        await wait_for(lambda: link.unacked == 0 and receiver.words)
+        assert receiver.words == [(15, 9)]
+        word = (16, 9)
+        link.holds_changed()
+        await wait_for(lambda: len(receiver.words) == 2)
+        assert receiver.words[-1] == (16, 9) and receiver.syncs[-1] == (0, 1, 0)
+    finally:
+        await link.stop()
+        await server.stop(0)
+        history.close()
 
 
 async def test_successor_restart_loses_nothing(tmp_path) -> None:  # type: ignore[no-untyped-def]

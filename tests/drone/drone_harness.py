@@ -84,12 +84,17 @@ def stop_program(process: subprocess.Popen[bytes]) -> None:
 
 
 async def connect_as_master(
-    stub: drone_pb2_grpc.DroneAsyncStub, controller_id: int, holds_reqnr: int = 0
+    stub: drone_pb2_grpc.DroneAsyncStub,
+    controller_id: int,
+    holds_reqnr: int = 0,
+    given_up_epoch: int = 0,
 ) -> tuple[drone_pb2.Connected, list[drone_pb2.RetainedReply]]:
     """A Connect as ``controller_id``: its Connected event and the retained replies that
     follow it in batches, up to ``Connected.retained_through``; the stream is then closed."""
     call = stub.Connect(
-        drone_pb2.ConnectRequest(controller_id=controller_id, holds_reqnr=holds_reqnr)
+        drone_pb2.ConnectRequest(
+            controller_id=controller_id, holds_reqnr=holds_reqnr, given_up_epoch=given_up_epoch
+        )
     )
     try:
         connected = (await next_message(call)).connected

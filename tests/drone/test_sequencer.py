@@ -552,3 +552,28 @@ def test_a_script_line_marked_prepared_begins_a_preparation() -> None:
     served = seq.served(0, 2, GET, DIGEST, b"r", 2.0, now=2.0)
     assert served.handover is None and served.prepare is not None
     assert served.prepare.target == 1 and seq.master == 0
+
+
+def test_a_masters_fresh_self_that_gave_its_mastership_up_is_granted_a_new_epoch() -> None:
+    """--policy nearest seed 48: master 4 (epoch 3 here) flushed a message on a framing it
+    then gave up, and rejoined with nothing; its fresh self says so on Connect. Granted
+    the same epoch, its messages could not be told apart from that one: it takes over
+    from its earlier self in a new epoch, and owes itself no notice. A second Connect
+    before the first Connected (it says the same) is granted that epoch as it is."""
+    seq = Sequencer([4, 0, 3], initial_master=4)
+    seq.switch(0, LOST, now=1.0, takeover=True)  # epoch 2
+    seq.switch(4, LOST, now=2.0, takeover=True)  # epoch 3
+    assert not seq.fresh_self_due(4, mastership_epoch=0, given_up_epoch=0)
+    assert not seq.fresh_self_due(0, mastership_epoch=0, given_up_epoch=3)  # not master
+    assert not seq.fresh_self_due(4, mastership_epoch=3, given_up_epoch=3)  # holds its log
+    assert seq.fresh_self_due(4, mastership_epoch=0, given_up_epoch=3)
+    record = seq.take_over_from_earlier_self(4, now=3.0)
+    assert (record.old_master, record.new_master, record.epoch) == (4, 4, 4)
+    assert record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER and seq.granted_by_takeover
+    assert 4 not in seq.pending
+    assert not seq.fresh_self_due(4, mastership_epoch=0, given_up_epoch=3)  # the second
+    seq.admit_connect(4, mastership_epoch=0)
+    assert seq.connected_epoch == 4
+    with pytest.raises(StatusError) as fenced:
+        seq.admit_connect(4, mastership_epoch=3)  # the earlier self's log: given up
+    assert ("baton-takeover", "1") in fenced.value.metadata

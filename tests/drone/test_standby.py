@@ -221,6 +221,27 @@ async def test_every_connected_of_a_taker_says_takeover_and_the_watermark() -> N
         await server.stop()
 
 
+async def test_a_masters_fresh_self_that_gave_its_mastership_up_is_granted_a_new_epoch() -> None:
+    """--policy nearest seed 48: taker 1 (epoch 2) flushed a message on a framing it then
+    gave up, and rejoined with nothing. Its fresh self's Connect says so: the drone grants
+    it epoch 3 by a takeover of its earlier self. A second Connect that says the same (the
+    first Connected not heard yet) is granted epoch 3 as it is."""
+    drone, server = await start_drone()
+    try:
+        await drone.stub.Invoke(
+            drone_pb2.InvokeRequest(controller_id=0, reqnr=1, method=POSITION, epoch=1)
+        )
+        await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1, takeover=True))
+        connected, _ = await connect_as_master(drone.stub, 1, given_up_epoch=2)
+        assert (connected.epoch, connected.takeover, connected.takeover_epoch) == (3, True, 3)
+        connected, _ = await connect_as_master(drone.stub, 1, given_up_epoch=2)
+        assert connected.epoch == 3
+        status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert (status.handovers[-1].old_master, status.handovers[-1].new_master) == (1, 1)
+    finally:
+        await server.stop()
+
+
 @pytest.mark.parametrize(
     ("kept", "why"),
     [

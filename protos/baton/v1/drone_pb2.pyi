@@ -438,6 +438,7 @@ class ConnectRequest(_message.Message):
     CONTROLLER_ID_FIELD_NUMBER: _builtins.int
     MASTERSHIP_EPOCH_FIELD_NUMBER: _builtins.int
     HOLDS_REQNR_FIELD_NUMBER: _builtins.int
+    GIVEN_UP_EPOCH_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The connecting controller's id; must be the current master."""
     mastership_epoch: _builtins.int
@@ -452,16 +453,27 @@ class ConnectRequest(_message.Message):
     """The highest request number whose reply the controller holds (in its
     log). The Connected event carries every reply the drone retains above it.
     """
+    given_up_epoch: _builtins.int
+    """The epoch of a mastership of this controller whose log an earlier self of
+    its process gave up when it rejoined with nothing, after it had flushed
+    log messages in it (0 for none). If the controller is still the master in
+    that epoch and holds no log (mastership_epoch 0), the drone grants it the
+    next epoch by a takeover of its earlier self: granted the same one, its
+    messages could not be told apart from the earlier self's. A second Connect
+    saying the same is granted the new epoch as it is (docs/design.md,
+    "Takeover").
+    """
     def __init__(
         self,
         *,
         controller_id: _builtins.int = ...,
         mastership_epoch: _builtins.int = ...,
         holds_reqnr: _builtins.int = ...,
+        given_up_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "holds_reqnr", b"holds_reqnr", "mastership_epoch", b"mastership_epoch"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "given_up_epoch", b"given_up_epoch", "holds_reqnr", b"holds_reqnr", "mastership_epoch", b"mastership_epoch"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

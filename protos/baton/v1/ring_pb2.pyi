@@ -379,6 +379,8 @@ class LogFrame(_message.Message):
     HOLDS_EPOCH_FIELD_NUMBER: _builtins.int
     HEAD_FIELD_NUMBER: _builtins.int
     ABORT_FIELD_NUMBER: _builtins.int
+    MASTER_EPOCH_FIELD_NUMBER: _builtins.int
+    MASTER_LOGNR_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The message's log number (repeated on every frame)."""
     total_bytes: _builtins.int
@@ -411,6 +413,16 @@ class LogFrame(_message.Message):
     stream it relayed them from broke, or it decided not to forward it):
     the receiver drops what it has of it and hands nothing on.
     """
+    master_epoch: _builtins.int
+    """On the sync frame: the newest mastership the sender knows to have been
+    ACTIVE (its own while it is; 0 for none), and the log number its master
+    held then. That master numbers every message above master_lognr in its
+    epoch or a newer one, so a receiver drops a queued message numbered above
+    it of an older epoch: an earlier self of a master that rejoined flushed it
+    on a framing it gave up, and no message of the master may come to replace
+    it (docs/design.md, "Takeover"). The receiver says the newest word on.
+    """
+    master_lognr: _builtins.int
     @_builtins.property
     def head(self) -> Global___LogMessage:
         """On a message's first frame (offset 0): the message without its entries
@@ -432,10 +444,12 @@ class LogFrame(_message.Message):
         holds_epoch: _builtins.int = ...,
         head: Global___LogMessage | None = ...,
         abort: _builtins.bool = ...,
+        master_epoch: _builtins.int = ...,
+        master_lognr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["head", b"head"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["abort", b"abort", "data", b"data", "from_id", b"from_id", "head", b"head", "holds_epoch", b"holds_epoch", "holds_lognr", b"holds_lognr", "lognr", b"lognr", "offset", b"offset", "sync", b"sync", "total_bytes", b"total_bytes"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["abort", b"abort", "data", b"data", "from_id", b"from_id", "head", b"head", "holds_epoch", b"holds_epoch", "holds_lognr", b"holds_lognr", "lognr", b"lognr", "master_epoch", b"master_epoch", "master_lognr", b"master_lognr", "offset", b"offset", "sync", b"sync", "total_bytes", b"total_bytes"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

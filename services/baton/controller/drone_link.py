@@ -208,6 +208,7 @@ class DroneSession:
         log: BoundLogger,
         mastership_epoch: Callable[[], int] = lambda: 0,
         holds_reqnr: Callable[[], int] = lambda: 0,
+        given_up_epoch: Callable[[], int] = lambda: 0,
         tls: Tls | None = None,
     ) -> None:
         self.controller_id = controller_id
@@ -215,6 +216,8 @@ class DroneSession:
         # controller holds, which the drone fences if a takeover gave it up.
         self._mastership_epoch = mastership_epoch
         self._holds_reqnr = holds_reqnr  # and the request number its log holds up to
+        # and the mastership an earlier self gave up (a new epoch for its fresh self)
+        self._given_up_epoch = given_up_epoch
         self.address = address
         self._events_to = events
         self._log = log
@@ -243,6 +246,7 @@ class DroneSession:
                         controller_id=self.controller_id,
                         mastership_epoch=self._mastership_epoch(),
                         holds_reqnr=self._holds_reqnr(),
+                        given_up_epoch=self._given_up_epoch(),
                     ),
                     wait_for_ready=True,
                 )

@@ -425,6 +425,7 @@ class ControllerNode:
         upto = self.protocol.kept_history()
         kept = [self.history.get(n) for n in self.history.above(0) if n <= upto]
         kept += self.protocol.kept_for_rejoin()
+        given_up = self.protocol.mastership_given_up()
         await self._close_drone()
         for link in self._peers.values():
             await link.stop()
@@ -432,6 +433,8 @@ class ControllerNode:
         self._sent_straight = {}
         self.history.clear()
         self.protocol = ControllerProtocol(self.id, self.config.ring_order, self.config.flush_limit)
+        # Said on every Connect: a master's fresh self is granted a new epoch.
+        self.protocol.given_up_epoch = given_up
         if self._replaced is not None:
             self.protocol.refuse_replaced(self._replaced)
         if self._settler is not None:
@@ -486,6 +489,7 @@ class ControllerNode:
             )
             link.on_handover_acked = self._handover_acked
             link.on_acked = self._target_acked
+            link.master_word = lambda: self.protocol.master_word
             self._peers[pid] = link
         return link
 
@@ -829,6 +833,9 @@ class ControllerNode:
             elif isinstance(effect, Unqueued):
                 self.fenced_messages += 1
                 self.history.discard(effect.lognr, effect.epoch)
+                # The successor may hold the same: our sync frame says the master's
+                # word again (``ControllerProtocol.on_sync``).
+                self.peer(self.protocol.successor).holds_changed()
                 self.log.warning(
                     "queued log message of a replaced framing dropped",
                     mlognr=effect.lognr,
@@ -867,6 +874,7 @@ class ControllerNode:
             self.log,
             mastership_epoch=lambda: self.protocol.log_mastership_epoch,
             holds_reqnr=lambda: self.protocol.held_reqnr,
+            given_up_epoch=lambda: self.protocol.given_up_epoch,
             tls=self.tls,
         )
         events.session = self._drone
@@ -1081,16 +1089,26 @@ class ControllerNode:
             return
         await self._close_drone()  # a notice for a mastership we no longer hold
 
-    async def on_sync(self, from_id: int, holds_lognr: int, holds_epoch: int = 0) -> None:
+    async def on_sync(
+        self,
+        from_id: int,
+        holds_lognr: int,
+        holds_epoch: int = 0,
+        master_epoch: int = 0,
+        master_lognr: int = 0,
+    ) -> None:
         """A ring stream's sync frame: what its sender holds, and the epoch of its
         message with that number (a word of a framing a takeover replaced is not
-        taken, ``ControllerProtocol.on_sync``).
+        taken, ``ControllerProtocol.on_sync``), and the newest ACTIVE master's word
+        (a queued message older than it above what it held is dropped).
 
         Only a stream that carries the history sends more than 0: the one
         from our predecessor, or from the one before a dead predecessor that
         routes around it; so any sender's word counts.
         """
-        await self._apply(self.protocol.on_sync(holds_lognr, holds_epoch))
+        await self._apply(
+            self.protocol.on_sync(holds_lognr, holds_epoch, master_epoch, master_lognr)
+        )
 
     async def on_handover_notice(self, new_master: int, after_reqnr: int, epoch: int = 0) -> None:
         """The drone chose another master (Algorithm 1, lines 24-29)."""

@@ -448,6 +448,16 @@ class ControllerProtocol:
         # its new master is lost and the drone gives the role back to us by
         # takeover, we are the only one that holds it (simulation finding F11).
         self._handed: ring_pb2.LogMessage | None = None
+        # The epoch of the last mastership we flushed a log message in (0: none):
+        # ``mastership_given_up``.
+        self._flushed_in = 0
+        # The epoch of a mastership whose log an earlier self of this process gave
+        # up when it rejoined (0: none): ConnectRequest.given_up_epoch, set by the
+        # runtime on the fresh self (``mastership_given_up``).
+        self.given_up_epoch = 0
+        # The newest word of an ACTIVE master the ring gave us: its epoch, and the
+        # log number it held then (``on_sync``, ``master_word``); (0, 0): none.
+        self._master_word = (0, 0)
 
     # -- lines 1-11 -------------------------------------------------------------
 
@@ -519,7 +529,63 @@ class ControllerProtocol:
         message.origin = message.sender = self.id
         return [SendLog(self.successor, message)]
 
-    def on_sync(self, holds_lognr: int, holds_epoch: int = 0) -> list[Effect]:
+    def on_sync(
+        self, holds_lognr: int, holds_epoch: int = 0, master_epoch: int = 0, master_lognr: int = 0
+    ) -> list[Effect]:
+        """A sync frame: the sender's word on what it holds (``_on_holds``), and on the
+        newest ACTIVE master it knows of (``master_epoch``, ``master_lognr``: 0 for none).
+
+        Masters number log messages in the order of their epochs, and a master
+        ACTIVE in ``master_epoch`` holding ``master_lognr`` creates every number
+        above it in that epoch or a newer one: a queued message numbered above
+        it of an older epoch is not the ring's, and is dropped (``Unqueued``).
+        A message of the master's would drop it too, but a master may have
+        nothing more to log: --policy nearest seed 48, where a master's earlier
+        self flushed its message 12 on a framing it then gave up (it rejoined
+        with nothing), its fresh self was granted a newer epoch and logged
+        nothing more, and every controller held that message 12 queued above
+        the ring's top (9) for ever. The newest word is said on again in our
+        own sync frames (``master_word``).
+        """
+        effects: list[Effect] = []
+        if master_epoch > 0:
+            newest, at = self._master_word
+            if master_epoch > newest or (master_epoch == newest and master_lognr < at):
+                self._master_word = (master_epoch, master_lognr)
+            effects = self._drop_stale_queued(master_lognr, master_epoch)
+        return effects + self._on_holds(holds_lognr, holds_epoch)
+
+    @property
+    def master_word(self) -> tuple[int, int]:
+        """What our sync frames say of the newest ACTIVE master we know of: its epoch and
+        the log number it held ((0, 0): none). Our own while ACTIVE, else the newest
+        word the ring gave us (``on_sync``)."""
+        if self.state is State.ACTIVE:
+            return self.epoch, self.lognr
+        return self._master_word
+
+    def mastership_given_up(self) -> int:
+        """The epoch of a mastership of ours whose log a rejoin now gives up (0: none), for
+        the fresh self to tell the drone (``given_up_epoch``, ConnectRequest).
+
+        A master that flushed log messages in its epoch and rejoins with nothing
+        (its log diverged from the ring's, or a taker's framing was replaced)
+        leaves those messages on the ring. Granted the same epoch again, its
+        fresh self would number messages like them in the same epoch, which no
+        rule tells apart (a duplicate by number), and nothing newer would
+        replace them where they are queued (--policy nearest seed 48). The
+        drone grants it a new epoch instead, by a takeover of its earlier self
+        (``Sequencer.take_over_from_earlier_self``). Not a fenced controller
+        (the role went to another), nor one whose program starts again (its
+        log is the ring's, and kept: ``restart_program``). What an earlier
+        self said is said again.
+        """
+        ours = self.epoch if self.master and self._flushed_in == self.epoch else 0
+        if self.fenced or self.restarting:
+            ours = 0
+        return max(ours, self.given_up_epoch)
+
+    def _on_holds(self, holds_lognr: int, holds_epoch: int) -> list[Effect]:
         """The predecessor holds every log message up to ``holds_lognr`` and sends what we lack.
 
         Also moves the watermark: every controller holds what the predecessor does.
@@ -999,6 +1065,7 @@ class ControllerProtocol:
         # handover message does come back (footnote 3) and is forwarded then.
         self._received.add(self.lognr)
         self._held(self.lognr, self.reqnr, self.epoch)
+        self._flushed_in = self.epoch
         message = self._message(self.lognr, origin=self.id, handover=False)
         message.epoch = self.epoch  # the mastership it was logged in, for diagnosis
         return SendLog(self.successor, message)

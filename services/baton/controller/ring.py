@@ -280,6 +280,8 @@ class PeerLink:
         self.on_handover_acked: Callable[[ring_pb2.LogMessage], None] | None = None
         # Called with the peer's id after each acknowledgement it sends.
         self.on_acked: Callable[[int], None] | None = None
+        # The master's word our sync frames say (``ControllerProtocol.master_word``).
+        self.master_word: Callable[[], tuple[int, int]] = lambda: (0, 0)
         # Written on the current stream (a new stream writes every unacked one).
         self._sent: set[int] = set()
         self._wakeup = asyncio.Event()
@@ -453,8 +455,8 @@ class PeerLink:
                 # (a stream routed around a dead predecessor), and a direct
                 # handover stream's "0" would tell a restarted new master it
                 # had caught up with nothing.
-                await call.write(_sync_frame(history, holds, self.my_id))
-            synced = holds
+                await call.write(_sync_frame(history, holds, self.my_id, self.master_word()))
+            synced, word = holds, self.master_word()
             acks = asyncio.create_task(self._read_acks(call))
             try:
                 # Whatever the successor does not hold yet is re-sent from the
@@ -470,9 +472,10 @@ class PeerLink:
                 while True:
                     # Cleared before looking, so a wake-up during a write is not lost.
                     self._wakeup.clear()
-                    if history is not None and history.holds_lognr > synced:
-                        synced = history.holds_lognr
-                        await call.write(_sync_frame(history, synced, self.my_id))
+                    grew = history is not None and history.holds_lognr > synced
+                    if history is not None and (grew or self.master_word() != word):
+                        synced, word = max(synced, history.holds_lognr), self.master_word()
+                        await call.write(_sync_frame(history, synced, self.my_id, word))
                     pending = sorted(
                         {n for n in self._unacked if n not in sent} | set(self._relays)
                     )
@@ -586,12 +589,23 @@ class PeerLink:
                 self.on_acked(self.peer_id)
 
 
-def _sync_frame(history: LogHistory, holds: int, my_id: int) -> ring_pb2.LogFrame:
+def _sync_frame(
+    history: LogHistory, holds: int, my_id: int, word: tuple[int, int]
+) -> ring_pb2.LogFrame:
     """The sync frame: the history holds every message up to ``holds``, and the epoch
     of its message with that number (a receiver that handled a newer one knows this
-    history is of a framing a takeover replaced, ``ControllerProtocol.on_sync``)."""
+    history is of a framing a takeover replaced, ``ControllerProtocol.on_sync``), and
+    the newest ACTIVE master's ``word`` (its epoch and the log number it held)."""
     epoch = history.get(holds).epoch if holds and holds in history else 0
-    return ring_pb2.LogFrame(sync=True, holds_lognr=holds, holds_epoch=epoch, from_id=my_id)
+    master_epoch, master_lognr = word
+    return ring_pb2.LogFrame(
+        sync=True,
+        holds_lognr=holds,
+        holds_epoch=epoch,
+        from_id=my_id,
+        master_epoch=master_epoch,
+        master_lognr=master_lognr,
+    )
 
 
 async def _acks(call: LogRingCall) -> AsyncIterator[ring_pb2.LogAck]:
@@ -612,7 +626,7 @@ class RingReceiver:
         deliver: Callable[[ring_pb2.LogMessage], Awaitable[None]],
         log: BoundLogger,
         max_message_bytes: int = MAX_LOG_MESSAGE_DEFAULT,
-        synced: Callable[[int, int, int], Awaitable[None]] | None = None,
+        synced: Callable[[int, int, int, int, int], Awaitable[None]] | None = None,
         epoch_of: Callable[[int], int] | None = None,
         relay: Callable[[ring_pb2.LogMessage, int], Relay | None] | None = None,
         arriving: Callable[[int], None] | None = None,
@@ -702,7 +716,13 @@ class RingReceiver:
                     return
                 if frame.sync:
                     if self._synced is not None:
-                        await self._synced(frame.from_id, frame.holds_lognr, frame.holds_epoch)
+                        await self._synced(
+                            frame.from_id,
+                            frame.holds_lognr,
+                            frame.holds_epoch,
+                            frame.master_epoch,
+                            frame.master_lognr,
+                        )
                     continue
                 if frame.abort:
                     reassembler.drop(frame.lognr)

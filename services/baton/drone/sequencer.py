@@ -496,6 +496,7 @@ class Sequencer:
         lost_at: float = 0.0,
         reason: str = "",
         position: api.Position | None = None,
+        lost: int | None = None,
     ) -> drone_pb2.HandoverRecord:
         """Makes ``new_master`` the master in the next epoch; owes the old one a notice.
 
@@ -517,7 +518,9 @@ class Sequencer:
                 f"controller {new_master} already is the master (epoch {self.epoch}, after "
                 f"reqnr {self.last_reqnr})",
             )
-        if new_master == old:
+        if lost is not None:
+            old = lost  # the one whose log a takeover gives up, as the caller says
+        elif new_master == old:
             old = self.handovers[-1].old_master  # the lost one whose log is given up
         ended = self.epoch
         record = drone_pb2.HandoverRecord(
@@ -543,6 +546,8 @@ class Sequencer:
         # nothing: its Connect says which mastership's log it holds, and is refused
         # with ``baton-takeover`` (``admit_connect``).
         self.pending.pop(new_master, None)
+        if old == new_master:
+            return record  # its earlier self's log is given up: nobody to tell
         self.pending[old] = drone_pb2.HandoverNotice(
             old_master=old,
             new_master=new_master,
@@ -643,6 +648,41 @@ class Sequencer:
             raise self.not_master_error(controller_id, "Connect", mastership_epoch)
         if controller_id == self.master:
             self.connected_epoch = self.epoch
+
+    def fresh_self_due(
+        self, controller_id: int, mastership_epoch: int, given_up_epoch: int
+    ) -> bool:
+        """Whether the master's Connect comes from a fresh self of it that must be granted a
+        new epoch (``take_over_from_earlier_self``): it holds the log of no mastership
+        (``mastership_epoch`` 0) and says an earlier self gave up the log of the current
+        one (``ConnectRequest.given_up_epoch``).
+
+        That earlier self flushed log messages in this epoch on a framing it then
+        gave up (it rejoined with nothing: ``ControllerProtocol.
+        mastership_given_up``). Granted this epoch again, the fresh self's
+        messages could not be told apart from those, and nothing newer would
+        replace them where they are queued (--policy nearest seed 48). A
+        second Connect of the same fresh self before its first Connected says
+        the same word, and is granted the new epoch as it is: the epoch has
+        moved on.
+        """
+        return (
+            controller_id == self.master
+            and mastership_epoch == 0
+            and 0 < given_up_epoch == self.epoch
+            and bool(self.handovers)
+        )
+
+    def take_over_from_earlier_self(
+        self, controller_id: int, now: float
+    ) -> drone_pb2.HandoverRecord:
+        """The master takes over from its earlier self (``fresh_self_due``): a new epoch, by
+        takeover (its Connected says so, and it goes ACTIVE on what it holds and the
+        replies the drone retains), giving up the earlier self's log
+        (``taken_over_since`` fences a Connect that names it). No notice is owed."""
+        return self.switch(
+            controller_id, drone_pb2.HANDOVER_TRIGGER_LOST, now, takeover=True, lost=controller_id
+        )
 
     @property
     def granted_by_takeover(self) -> bool:

@@ -328,6 +328,24 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
         return record
 
+    def _take_over_from_earlier_self(self, cid: int, given_up_epoch: int) -> None:
+        """A fresh self of the master that gave its mastership up (under the lock, checked
+        again: a second Connect of it finds the epoch moved on) is granted a new epoch by
+        a takeover of its earlier self (``Sequencer.fresh_self_due``); its Connected
+        says so. Nothing is told on its standby stream: this Connect carries it."""
+        if not self.seq.fresh_self_due(cid, 0, given_up_epoch):
+            return
+        record = self.seq.take_over_from_earlier_self(cid, time.time())
+        self._switched(record)
+        if self.store is not None:
+            self.store.save(self._counters())
+        self.log.warning(
+            "master's fresh self takes over from its earlier self",
+            controller=cid,
+            given_up_epoch=given_up_epoch,
+            epoch=record.epoch,
+        )
+
     def _take_over_event(self, record: drone_pb2.HandoverRecord) -> drone_pb2.StandbyEvent:
         """The TakeOver (small: the replies the taker lacks follow its Connected)."""
         return drone_pb2.StandbyEvent(
@@ -732,6 +750,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             refusal = self._not_as(context, "Connect", cid)
             if refusal is not None:
                 raise refusal
+            if self.seq.fresh_self_due(cid, request.mastership_epoch, request.given_up_epoch):
+                async with self._lock:
+                    self._take_over_from_earlier_self(cid, request.given_up_epoch)
             stream = self.streams.attach(cid, request.mastership_epoch)
         except StatusError as err:
             self.log.warning("connect rejected", controller=cid, reason=err.message)

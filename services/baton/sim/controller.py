@@ -242,6 +242,7 @@ class SimController:
     # -- effects (ControllerNode._apply) ------------------------------------------
 
     def _apply(self, effects: list[Effect]) -> None:
+        unqueued = False
         for effect in effects:
             if isinstance(effect, SendLog):
                 message = effect.message
@@ -275,11 +276,16 @@ class SimController:
                 )
             elif isinstance(effect, Unqueued):  # node.py: out of the history too
                 self.fenced_messages += 1
+                unqueued = True
                 self.history.discard(effect.lognr, effect.epoch)
                 self.world.trace(
                     f"controller {self.id} drops queued log message {effect.lognr} of a "
                     f"replaced framing ({effect.origin}, epoch {effect.epoch})"
                 )
+        if unqueued and self.alive:
+            # node.py: the successor's stream says the master's word again, which may
+            # drop the same messages there (ControllerProtocol.on_sync).
+            self.peer(self.protocol.successor).word_changed()
         self.world.after_apply(self, effects)
         self._gap_check_later()
         self._notify()
@@ -359,6 +365,7 @@ class SimController:
             link.generation,
             self.protocol.log_mastership_epoch,
             self.protocol.held_reqnr,
+            self.protocol.given_up_epoch,
         )
 
     def _channel_ready(self, session: Session) -> None:
@@ -658,12 +665,19 @@ class SimController:
         self.route_held = False
         self._route()
 
-    def on_sync(self, from_id: int, holds_lognr: int, holds_epoch: int = 0) -> None:
+    def on_sync(
+        self,
+        from_id: int,
+        holds_lognr: int,
+        holds_epoch: int = 0,
+        master_epoch: int = 0,
+        master_lognr: int = 0,
+    ) -> None:
         """ControllerNode.on_sync: any sender's word counts (only history streams sync)."""
         if not self.alive:
             return
         try:
-            effects = self.protocol.on_sync(holds_lognr, holds_epoch)
+            effects = self.protocol.on_sync(holds_lognr, holds_epoch, master_epoch, master_lognr)
         except ProtocolError as exc:
             self._uncaught("on_sync", exc)
             return

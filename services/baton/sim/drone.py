@@ -164,6 +164,19 @@ class TakeoverCheck:
 
 
 @dataclass(frozen=True)
+class FreshSelfConnect:
+    """A Connect from a fresh self of the master that gave its mastership up
+    (``Sequencer.fresh_self_due``): DroneService.Connect takes the execution lock for
+    the takeover from its earlier self, then goes on as any Connect."""
+
+    link: DroneLink
+    session: int
+    connection: int
+    holds_reqnr: int
+    given_up_epoch: int
+
+
+@dataclass(frozen=True)
 class PreparationCheck:
     """``watch_master``'s ``preparation_expired`` under the execution lock."""
 
@@ -237,6 +250,7 @@ class SimDrone:
             | PreparationCheck
             | PreparationWord
             | PolicyStep
+            | FreshSelfConnect
         ] = deque()
         self.busy: Execution | None = None
         self.streams: dict[int, Stream] = {}
@@ -306,6 +320,8 @@ class SimDrone:
             elif isinstance(item, PreparationCheck):
                 self._expiry_queued = False
                 self._preparation_check()
+            elif isinstance(item, FreshSelfConnect):
+                self._fresh_self_connect(item)
             else:
                 self._start(item)
 
@@ -679,9 +695,19 @@ class SimDrone:
         connection: int,
         mastership_epoch: int = 0,
         holds_reqnr: int = 0,
+        given_up_epoch: int = 0,
     ) -> None:
-        """DroneService.Connect: refused, or attached; Connected for the master; a notice owed."""
+        """DroneService.Connect: refused, or attached; Connected for the master; a notice owed.
+
+        A fresh self of the master that gave its mastership up waits for the
+        execution lock first (``FreshSelfConnect``)."""
         cid = link.owner.id
+        if self.seq.fresh_self_due(cid, mastership_epoch, given_up_epoch):
+            self.queue.append(
+                FreshSelfConnect(link, session, connection, holds_reqnr, given_up_epoch)
+            )
+            self._next()
+            return
         try:
             self.seq.admit_connect(cid, mastership_epoch)
         except StatusError as err:
@@ -724,6 +750,19 @@ class SimDrone:
             ]
             link.stream_to_controller(connection, parts)
         self._wake(cid)
+
+    def _fresh_self_connect(self, item: FreshSelfConnect) -> None:
+        """DroneService.Connect under the lock: the takeover from the earlier self if it is
+        still due, then the Connect as any other (a handler whose call ended meanwhile is
+        gone)."""
+        link, cid = item.link, item.link.owner.id
+        if not link.owner.alive or link.generation != item.connection:
+            return
+        if self.seq.fresh_self_due(cid, 0, item.given_up_epoch):
+            record = self.seq.take_over_from_earlier_self(cid, self.world.loop.now)
+            self.takeovers += 1
+            self._switched(record)
+        self.receive_connect(link, item.session, item.connection, 0, item.holds_reqnr)
 
     def receive_stream_closed(self, cid: int, session: int) -> None:
         """The controller closed its session's Connect stream."""

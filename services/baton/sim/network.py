@@ -153,6 +153,7 @@ class RingLink:
         self.up = False
         self.generation = 0
         self._synced = 0  # the last sync frame's holds_lognr
+        self._synced_word = (0, 0)  # and the master's word it said
         self._peer: SimController | None = None
         self._started = False
         self._backoff = BACKOFF_INITIAL_S
@@ -303,7 +304,7 @@ class RingLink:
         self.world.trace(f"ring {self.owner.id}->{self.dest} up (hello {hello}, holds {holds})")
         self.world.check_start()
         if self.history is not None:  # PeerLink: only a history stream says what it holds
-            self._deliver_later(0, self._sync_frame, (holds, self._epoch_of(holds)))
+            self._deliver_later(0, self._sync_frame, self._sync(holds))
         if self.history is not None:
             ours = self.history.get(hello).epoch if hello in self.history else None
             hello = resend_after(hello, epoch, ours)
@@ -322,7 +323,21 @@ class RingLink:
         holds = self.history.holds_lognr
         if holds > self._synced:
             self._synced = holds
-            self._deliver_later(0, self._sync_frame, (holds, self._epoch_of(holds)))
+            self._deliver_later(0, self._sync_frame, self._sync(holds))
+
+    def word_changed(self) -> None:
+        """PeerLink's sync frame when the master's word changed (``ControllerProtocol.
+        master_word``). node.py looks at every wake-up; here when the owner dropped
+        queued messages, the one moment the successor may hold the same ones."""
+        if not self.up or self.history is None or not self.owner.alive:
+            return
+        if self.owner.protocol.master_word != self._synced_word:
+            self._deliver_later(0, self._sync_frame, self._sync(self.history.holds_lognr))
+
+    def _sync(self, holds: int) -> tuple[int, int, int, int]:
+        """PeerLink's sync frame: what we hold, its epoch, and the master's word."""
+        self._synced_word = word = self.owner.protocol.master_word
+        return holds, self._epoch_of(holds), *word
 
     def _epoch_of(self, holds: int) -> int:
         """PeerLink's sync frame: the epoch of the history's message ``holds`` (0 for none)."""
@@ -368,7 +383,7 @@ class RingLink:
             return
         handler(peer, arg)
 
-    def _sync_frame(self, peer: SimController, holds: tuple[int, int]) -> None:
+    def _sync_frame(self, peer: SimController, holds: tuple[int, int, int, int]) -> None:
         peer.on_sync(self.owner.id, *holds)
 
     def _message_frame(self, peer: SimController, data: bytes) -> None:

@@ -258,11 +258,15 @@ class World:
         """Controllers that are running now, by id."""
         return [c for _, c in sorted(self.controllers.items()) if c.alive]
 
-    def restart_controller(self, cid: int) -> None:
-        """Restarts controller ``cid`` with nothing: a fresh protocol, history and program."""
+    def restart_controller(self, cid: int, given_up_epoch: int = 0) -> None:
+        """Restarts controller ``cid`` with nothing: a fresh protocol, history and program.
+
+        A rejoin says the mastership its earlier self gave up (``given_up_epoch``,
+        ``ControllerProtocol.mastership_given_up``) from its first Connect on."""
         if not self.controllers[cid].alive and cid not in self.lost:
             self.trace(f"controller {cid} restarts")
             controller = self._new_controller(cid)
+            controller.protocol.given_up_epoch = given_up_epoch
             controller.start()
             self.drone.standby_opened(cid)  # its standby stream: a TakeOver owed to it
             if self.programs_started:
@@ -282,6 +286,7 @@ class World:
         # a restarted master's whole log, then the handover messages that exist nowhere
         # else.
         upto = controller.protocol.kept_history()
+        given_up = controller.protocol.mastership_given_up()
         history = controller.history
         kept = [history.get(n) for n in history.above(0) if n <= upto]
         kept += controller.protocol.kept_for_rejoin()
@@ -290,7 +295,7 @@ class World:
             if not upto
             else f"rejoins as a replica with log messages 1-{upto}"
         )
-        self.restart_controller(controller.id)
+        self.restart_controller(controller.id, given_up)
         fresh = self.controllers[controller.id]
         if controller.replaced is not None:
             fresh.replaced = controller.replaced
