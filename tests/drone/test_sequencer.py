@@ -164,6 +164,42 @@ def test_a_handover_whose_old_master_dies_before_its_log_left_is_granted_again()
     assert seq2.takeover_due(9.0, {1}, {0: 1.0, 1: 9.0}, after_s=3.0) is None
 
 
+def test_two_switches_at_once_whose_first_old_master_dies_are_taken_over() -> None:
+    """--lose-master seeds 2407, 2535, 5120, 6027 (F1's pattern): the script hands 0 -> 2,
+    an RPC's Handover 2 -> 4 at the same instant, and 0 dies before its log left. 2 never
+    goes ACTIVE (it waits for 0's handover message), so it never hands over to 4; the
+    last switch's old master (2) is alive. 4 is granted again by takeover of lost 0."""
+    seq = Sequencer([0, 4, 1, 2, 3], initial_master=0)
+    serve(seq, 0, 1, 1)
+    seq.switch(2, SCRIPT, now=20.0)  # epoch 2: 2 waits for 0's log
+    seq.switch(4, RPC, now=20.0)  # epoch 3: 4 waits for 2's, which never comes
+    seen = {0: 20.5, 1: 30.0, 2: 30.0, 3: 30.0, 4: 30.0}
+    live = {1, 2, 3, 4}
+    assert seq.takeover_due(23.0, live, seen, after_s=3.0) is None
+    due = seq.takeover_due(23.5, live, seen, after_s=3.0)
+    assert due is not None and (due.new_master, due.lost, due.lost_at) == (4, 0, 20.5)
+    record = seq.switch(4, LOST, now=23.5, takeover=True, lost_at=due.lost_at, lost=due.lost)
+    assert (record.old_master, record.new_master, record.epoch) == (0, 4, 4)
+    assert seq.pending[0].takeover and seq.pending[0].epoch == 4
+    assert seq.taken_over_since(0, 1) is record  # 0's log, if it comes back, is fenced
+    assert seq.takeover_due(99.0, live, seen, after_s=3.0) is None  # granted: done
+    # A middle master that sent a request held the first one's log: nothing is lost.
+    seq2 = Sequencer([0, 1, 2], initial_master=0)
+    serve(seq2, 0, 1, 1)
+    seq2.switch(1, SCRIPT, now=1.0)
+    seq2.note_request(1, received_at=1.5)
+    serve(seq2, 1, 2, 2)
+    seq2.switch(2, RPC, now=2.0)
+    assert seq2.takeover_due(9.0, {1, 2}, {0: 1.0, 1: 9.0, 2: 9.0}, after_s=3.0) is None
+    # Nor before a takeover: its taker goes ACTIVE on what it holds, waiting for nobody.
+    seq3 = Sequencer([0, 1, 2], initial_master=0)
+    serve(seq3, 0, 1, 1)
+    seq3.switch(1, LOST, now=1.0, takeover=True)
+    seq3.admit_connect(1)
+    seq3.switch(2, RPC, now=2.0)
+    assert seq3.takeover_due(9.0, {1, 2}, {0: 1.0, 1: 9.0, 2: 9.0}, after_s=3.0) is None
+
+
 def test_a_handover_from_a_taker_that_has_not_connected_is_a_takeover() -> None:
     """--lose-master seed 1190: the drone handed over cooperatively from a taker that had
     not connected (not ACTIVE): no handover message ever came, the new master waited."""

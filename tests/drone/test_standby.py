@@ -242,6 +242,45 @@ async def test_a_masters_fresh_self_that_gave_its_mastership_up_is_granted_a_new
         await server.stop()
 
 
+async def test_two_switches_at_once_whose_first_old_master_is_lost_are_taken_over() -> None:
+    """--lose-master seeds 2407, 2535, 5120, 6027 (F1's pattern), over real gRPC: the
+    script hands 0 -> 1 after request 1, an operator's Handover 1 -> 2 comes right after,
+    and 0 is gone before its log left. 1 never goes ACTIVE (it waits for 0's handover
+    message), so it never hands over to 2, and the last switch's old master (1) holds
+    its stream: before, nothing was taken over. Now 2 is granted again by takeover of 0,
+    told on its standby stream, and 0's log is fenced."""
+    drone, server = await start_drone("1 1")
+    drone.service.takeover_after_s = 0.3
+    watch = asyncio.create_task(drone.service.watch_master())
+    standbys = [drone.stub.Standby(drone_pb2.StandbyRequest(controller_id=c)) for c in (1, 2)]
+    try:
+        for standby in standbys:
+            await next_message(standby)
+        await drone.stub.Invoke(
+            drone_pb2.InvokeRequest(controller_id=0, reqnr=1, method=POSITION, epoch=1)
+        )
+        reply = await drone.stub.Handover(drone_pb2.HandoverRequest(new_master=2))
+        assert (reply.old_master, reply.epoch) == (1, 3)
+        # Before, nothing came: no takeover was ever due.
+        take_over = (await asyncio.wait_for(next_message(standbys[1]), 5)).take_over
+        assert (take_over.old_master, take_over.epoch) == (0, 4)
+        record = (await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())).handovers[-1]
+        assert (record.kind, record.old_master, record.new_master) == (
+            drone_pb2.HANDOVER_KIND_TAKEOVER,
+            0,
+            2,
+        )
+        refusal = drone.stub.Connect(drone_pb2.ConnectRequest(controller_id=0, mastership_epoch=1))
+        with pytest.raises(grpc.aio.AioRpcError) as fenced:
+            await next_message(refusal)
+        assert dict(fenced.value.trailing_metadata() or ())["baton-takeover"] == "1"
+    finally:
+        watch.cancel()
+        for standby in standbys:
+            standby.cancel()
+        await server.stop()
+
+
 @pytest.mark.parametrize(
     ("kept", "why"),
     [

@@ -267,6 +267,18 @@ def test_lose_master_seed_3166_holds_every_oracle() -> None:
     assert outcome.ok, outcome.report()
 
 
+def test_lose_master_seeds_of_two_switches_at_once_hold_every_oracle() -> None:
+    """--lose-master seeds 2407, 2535, 5120, 6027 (liveness, F1's pattern): the drone
+    switched twice at one instant (the script's handover, then an RPC's: 0 -> 2 -> 4 in
+    2407) and the first old master was lost before its handover message left. The middle
+    master never went ACTIVE, so it never handed over to the last, whose old master was
+    alive: no takeover, a stall. A lost old master of any cooperative switch whose new
+    master sent nothing since now has the master granted again, by takeover."""
+    for seed in (2407, 2535, 5120, 6027):
+        outcome = run_seed(seed, SimOptions(lose_master=True))
+        assert outcome.ok, outcome.report()
+
+
 def test_lose_master_seeds_10688_11795_and_11002_hold_every_oracle() -> None:
     """--lose-master seeds 10688, 11795 (liveness, a ring of two): taker 1's program gave
     up on a call whose retained reply a lost master's program acted on, and started

@@ -581,6 +581,16 @@ class Sequencer:
         whose new master has sent nothing since, when the old master has
         not been seen for ``after_s`` since the switch (it died before
         sending its log): the new master is granted again, by takeover.
+        The same for any old master of the cooperative switches since the
+        last takeover or request: a new master that waits for a handover
+        message is not ACTIVE, so it never sends one on, and the lost log
+        holds up every switch after it (the script's switch and an RPC's at
+        one instant, the first old master lost right after: F1,
+        --lose-master seeds 2407, 2535, 5120, 6027). ``lost`` is that old
+        master, whose log the takeover gives up (``switch``'s ``lost``: its
+        Connect is fenced); the middle masters never went ACTIVE, or hold a
+        log the takeover's epoch replaces as it does a late handover
+        message's.
         """
         live = set(reachable)
         if after_s <= 0:
@@ -606,16 +616,18 @@ class Sequencer:
             return None
         if not self.handovers or self.master not in live:
             return None
-        last = self.handovers[-1]
-        if (
-            last.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
-            or last.first_request_at
-            or last.new_master != self.master
-        ):
+        if self.handovers[-1].new_master != self.master:
             return None
-        old_seen = max(last_seen.get(last.old_master, 0.0), last.decided_at)
-        if last.old_master not in live and now - old_seen >= after_s:
-            return TakeoverDue(self.master, last.old_master, old_seen)
+        # The trailing cooperative switches whose new masters sent nothing: each new
+        # master waits for its old master's handover message, which an old master
+        # sends only once ACTIVE, so one lost before its log left holds up every
+        # switch after it (two at one instant, the script's and an RPC's: F1).
+        for record in reversed(self.handovers):
+            if record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER or record.first_request_at:
+                return None
+            old_seen = max(last_seen.get(record.old_master, 0.0), record.decided_at)
+            if record.old_master not in live and now - old_seen >= after_s:
+                return TakeoverDue(self.master, record.old_master, old_seen)
         return None
 
     def admit_connect(self, controller_id: int, mastership_epoch: int = 0) -> None:

@@ -208,6 +208,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                             now,
                             due.lost_at,
                             position=where,
+                            lost=due.lost,
                         )
             if self.seq.preparing is not None:
                 async with self._lock:
@@ -299,8 +300,13 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         lost_at: float = 0.0,
         reason: str = "",
         position: api.Position | None = None,
+        lost: int | None = None,
     ) -> drone_pb2.HandoverRecord:
-        """Switches to ``new_master`` by takeover (under the lock) and tells it on its standby."""
+        """Switches to ``new_master`` by takeover (under the lock) and tells it on its standby.
+
+        ``lost`` is the controller whose log is given up (``TakeoverDue.lost``; None: the
+        master, or the lost old master of the last switch when the master is granted
+        again)."""
         record = self.seq.switch(
             new_master,
             trigger,
@@ -309,6 +315,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             lost_at=lost_at,
             reason=reason,
             position=position,
+            lost=lost,
         )
         self._switched(record)
         if self.store is not None:

@@ -930,7 +930,9 @@ class SimDrone:
             now, reachable, self.last_seen, self.takeover_after, self.unseen_from()
         )
         if due is not None:
-            self._take_over(due.new_master, drone_pb2.HANDOVER_TRIGGER_LOST, now, due.lost_at)
+            self._take_over(
+                due.new_master, drone_pb2.HANDOVER_TRIGGER_LOST, now, due.lost_at, due.lost
+            )
 
     def _preparation_check(self) -> None:
         """watch_master under the lock: a preparation past its deadline is forced."""
@@ -962,9 +964,12 @@ class SimDrone:
         trigger: drone_pb2.HandoverTrigger.ValueType,
         now: float,
         lost_at: float,
+        lost: int | None = None,
     ) -> None:
         """DroneService._take_over: switch by takeover, tell the new master on its standby."""
-        record = self.seq.switch(new_master, trigger, now, takeover=True, lost_at=lost_at)
+        record = self.seq.switch(
+            new_master, trigger, now, takeover=True, lost_at=lost_at, lost=lost
+        )
         self.takeovers += 1
         self._switched(record)
         self._tell_take_over(record)

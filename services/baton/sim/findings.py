@@ -91,7 +91,13 @@ partition), and 829, which this rule moved into a stall (rpc takeovers
 decided while the drone was cut off from every controller; the last taker
 never heard its TakeOver; not diagnosed further). Deferring the notice of a
 master granted but not yet ACTIVE until it caught up (tried) changed none
-of these seeds and was left out.
+of these seeds and was left out. Its pattern under --lose-master (the script's
+switch and an RPC's at one instant, the first old master lost before its
+log left, so the middle master never went ACTIVE: seeds 2407, 2535, 5120,
+6027) is fixed: ``Sequencer.takeover_due`` looks at every cooperative switch
+since the last takeover, and grants the master again by takeover when the
+old master of any of them is lost (docs/design.md, "The deterministic
+simulation": "Beyond CI's range").
 
 F9 (a handover message whose acknowledgement was lost was re-sent, flag
 set, to its receiver restarted with nothing, which took the role it had
