@@ -44,15 +44,15 @@ from baton.config import LinkSpec, parse_config
 from baton.controller.node import ControllerNode
 from baton.controller.protocol import ControllerProtocol, State, request_digest
 from baton.controller.ring import FRAME_BYTES, RELAY_WINDOW_FRAMES, PeerLink, RingReceiver
-from baton.controller.service import ControllerRingService, DroneApiProxy
+from baton.controller.service import mission_port
 from baton.drone.measure import MasterCalls, summary_ms
 from baton.drone.measure import measure as measure_drone
 from baton.link.proxy import LinkProxy
 from baton.logs import get_logger
 from baton.rpc.channels import aio_channel
-from baton.rpc.methods import DRONE_API_SERVICES, service_full_name
+from baton.rpc.methods import service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
-from baton.rpc.server import BatonServer, generic, servicer
+from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import DRONE, Identity, Tls
 from baton.sdk import aio
 from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
@@ -331,14 +331,7 @@ async def measure_replay_end_to_end(calls: int) -> dict[str, Any]:
     of its calls and has nothing else to do."""
     node = _replica()
     token = secrets.token_urlsafe(18)
-    names = list(map(service_full_name, DRONE_API_SERVICES))
-    proxy = DroneApiProxy(node, token)
-    ring = ControllerRingService(node, token, proxy=proxy)
-    add_ring = ring_pb2_grpc.add_ControllerRingServicer_to_server
-    server = BatonServer(
-        "127.0.0.1:0",
-        [generic(proxy, *names), servicer(service_full_name("ControllerRing"), add_ring, ring)],
-    )
+    server = BatonServer("127.0.0.1:0", mission_port(node, token))
     await server.start()
     try:
         await node.on_log(_position_log(REPLAY_WARM_UP + calls))

@@ -9,11 +9,11 @@ import sys
 
 from baton.config import BatonConfig
 from baton.controller.node import ControllerNode
-from baton.controller.service import ControllerRingService, DroneApiProxy, ring_receiver
+from baton.controller.service import ControllerRingService, mission_port, ring_receiver
 from baton.lifecycle import announce, run_until_signalled
-from baton.rpc.methods import DRONE_API_SERVICES, service_full_name
+from baton.rpc.methods import service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV
-from baton.rpc.server import BatonServer, generic, servicer
+from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import INSECURE_WARNING, Identity
 from baton.v1 import ring_pb2_grpc
 
@@ -57,14 +57,8 @@ class ControllerApp:
         self.server = BatonServer(
             config.controller(cid).address, [servicer(ring, add_ring, peers)], tls=tls
         )
-        proxy = DroneApiProxy(self.node, self.token)
-        names = list(map(service_full_name, DRONE_API_SERVICES))
         self.mission_server = BatonServer(
-            config.controller(cid).mission_address,
-            [
-                generic(proxy, *names),
-                servicer(ring, add_ring, ControllerRingService(self.node, self.token, proxy=proxy)),
-            ],
+            config.controller(cid).mission_address, mission_port(self.node, self.token)
         )
         self.node.mission_address = self.mission_server.address  # bound already
         self.mission = mission

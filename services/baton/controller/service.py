@@ -19,9 +19,10 @@ from google.protobuf import message as protobuf_message
 from baton.controller.node import CLOCK_SLEEP, ControllerNode
 from baton.controller.ring import RingReceiver
 from baton.rpc.errors import StatusError, abort_with, status_of
-from baton.rpc.methods import drone_api
+from baton.rpc.methods import DRONE_API_SERVICES, drone_api, service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA, token_in
 from baton.rpc.outcomes import failure_of
+from baton.rpc.server import Servicer, generic, servicer
 from baton.rpc.tls import caller, refused, refused_status
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2, ring_pb2_grpc
@@ -270,6 +271,21 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
             )
         async for outcome in self._proxy.serve_calls(request_iterator, context):
             yield outcome
+
+
+def mission_port(node: ControllerNode, token: str | None) -> list[Servicer]:
+    """What a controller serves its mission program on: the drone API (unary, through
+    ``DroneApiProxy``) and ControllerRing (MissionDone, ProgramCalls, GetStatus)."""
+    proxy = DroneApiProxy(node, token)
+    ring = ControllerRingService(node, token, proxy=proxy)
+    return [
+        generic(proxy, *map(service_full_name, DRONE_API_SERVICES)),
+        servicer(
+            service_full_name("ControllerRing"),
+            ring_pb2_grpc.add_ControllerRingServicer_to_server,
+            ring,
+        ),
+    ]
 
 
 def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
