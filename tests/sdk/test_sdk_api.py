@@ -13,6 +13,7 @@ from typing import Any
 import grpc
 import grpc.aio
 import pytest
+from waiting import eventually
 
 from baton.rpc.methods import drone_api, rpc_of
 from baton.rpc.mission import MISSION_TOKEN_ENV, MISSION_TOKEN_METADATA
@@ -303,9 +304,10 @@ async def test_a_cancelled_async_call_lets_the_next_one_through(
         held.cancel()
         with pytest.raises(asyncio.CancelledError):
             await held
-        fake.release.set()
-        # The controller saw the call given up (its stream cancelled: a real one logs
+        # The controller sees the call given up (its stream cancelled: a real one logs
         # the give-up), and the next call goes on a new stream.
+        await eventually(lambda: fake.cancelled == 1, "the held call cancelled at the server")
+        fake.release.set()
         assert await drone.clock.now() == 1234.5
         assert (fake.streams, fake.cancelled) == (2, 1)
 

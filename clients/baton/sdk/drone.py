@@ -62,10 +62,10 @@ class _Caller:
         try:
             outcome = next(outcomes)
         except grpc.RpcError as exc:
-            self._stream = None
+            self.end_stream()  # its request thread waits on the queue: let it go
             raise call_error(call.rpc, exc) from None
         except StopIteration:
-            self._stream = None
+            self.end_stream()
             raise calls.stream_ended(call) from None
         except BaseException:
             # Interrupted waiting (KeyboardInterrupt): the call is given up, and the
