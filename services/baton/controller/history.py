@@ -22,6 +22,8 @@ epoch of the mastership whose log the file holds (what the controller tells
 the drone on Connect, to be fenced if a takeover gave that log up). WAL
 journal, ``synchronous=NORMAL``: a kill -9 loses nothing
 written; a power cut may lose the last messages, which the ring gives again.
+Its checkpoints run on a thread of their own (``baton.wal``), not in the
+commit of a message on the event loop.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from google.protobuf.message import DecodeError
 
 from baton.controller.protocol import SeenNumbers
 from baton.v1 import ring_pb2
+from baton.wal import Checkpointer, open_wal
 
 SCHEMA = "CREATE TABLE IF NOT EXISTS messages (lognr INTEGER PRIMARY KEY, message BLOB NOT NULL)"
 # What the controller must know about its log beyond the messages, by name:
@@ -48,6 +51,7 @@ class LogHistory:
 
     def __init__(self, path: str | Path | None = None) -> None:
         self.path = Path(path) if path is not None else None
+        self._checkpointer: Checkpointer | None = None
         try:
             if self.path is None:
                 fd, temporary = tempfile.mkstemp(prefix="baton-history-", suffix=".sqlite")
@@ -61,9 +65,7 @@ class LogHistory:
                 os.unlink(temporary)
             else:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
-                self._db = sqlite3.connect(self.path, isolation_level=None)
-                self._db.execute("PRAGMA journal_mode=WAL")
-                self._db.execute("PRAGMA synchronous=NORMAL")
+                self._db, self._checkpointer = open_wal(self.path)
                 self._db.execute(SCHEMA)
                 self._db.execute(META_SCHEMA)
             self._lognrs = {n for (n,) in self._db.execute("SELECT lognr FROM messages")}
@@ -81,6 +83,8 @@ class LogHistory:
 
     def close(self) -> None:
         """Closes the file (a temporary one is gone with it)."""
+        if self._checkpointer is not None:
+            self._checkpointer.close()
         self._db.close()
 
     def clear(self) -> None:

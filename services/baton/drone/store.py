@@ -23,7 +23,8 @@ the companion computer, so a restarted drone must know to resume it.
 Durability: WAL with ``synchronous=NORMAL``, which survives the process
 being killed (the operating system keeps what was written); a power cut may
 lose the last transactions. ``synchronous=FULL`` would cost an fsync per
-request.
+request. Checkpoints run on a thread of their own (``baton.wal``), not in a
+request's commit.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from baton.drone.dedupe import CachedReply
 from baton.drone.sequencer import AUDIT_IN_MEMORY
 from baton.rpc.errors import StatusError, status_of
 from baton.v1 import drone_pb2
+from baton.wal import open_wal
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS state (
@@ -134,9 +136,7 @@ class DroneStore:
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._db = sqlite3.connect(self.path, isolation_level=None)
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db, self._checkpointer = open_wal(self.path)
             self._db.executescript(SCHEMA)
             columns = {row[1] for row in self._db.execute("PRAGMA table_info(state)")}
             if "watermark" not in columns:  # a file written before the watermark was kept
@@ -156,6 +156,7 @@ class DroneStore:
 
     def close(self) -> None:
         """Closes the file."""
+        self._checkpointer.close()
         self._db.close()
 
     def load(self) -> DroneState | None:
