@@ -6,11 +6,12 @@ import os
 import sqlite3
 from pathlib import Path
 
+from waiting import eventually
+
 from baton.controller.history import LogHistory
 from baton.drone.store import DroneStore
 from baton.v1 import ring_pb2
 from baton.wal import Checkpointer, open_wal
-from tests.waiting import eventually
 
 MB = 1 << 20
 
