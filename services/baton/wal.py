@@ -42,8 +42,8 @@ class Checkpointer:
     def __init__(self, path: Path, every_s: float = CHECKPOINT_EVERY_S) -> None:
         self.path = path
         self.every_s = every_s
-        # Checkpoints that copied something (for tests).
-        self.checkpoints = 0
+        # Checkpoints that copied the whole log into the file (for tests).
+        self.complete = 0
         self._stopping = threading.Event()
         self._log = get_logger("wal", file=str(path))
         self._thread = threading.Thread(
@@ -73,10 +73,11 @@ class Checkpointer:
                     # The log keeps what was written; the next period tries again.
                     self._log.warning("checkpoint failed; trying again", error=str(exc))
                     continue
-                if not busy and copied >= frames:
-                    seen = version  # else a reader held part of it back: again next period
-                if copied:
-                    self.checkpoints += 1
+                if busy or copied < frames:
+                    continue  # a reader held part of it back: again next period
+                seen = version
+                if frames:
+                    self.complete += 1
         finally:
             db.close()
 

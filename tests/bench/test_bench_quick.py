@@ -44,6 +44,7 @@ async def test_worst_case_quick(tmp_path: Path) -> None:
         assert row["mean_s"] > 0 and math.isfinite(row["ratio"])
         assert 0 < row["limit_s"] < row["model_s"] and math.isfinite(row["limit_ratio"])
         assert row["all_placed_after_flush"], row
+        assert row["cores_busy"] is not None and 0 < row["cores_busy"] <= 1, row
     assert result["summary"] == rows
     assert "| forwarding | flush (MB) |" in (tmp_path / "worst_case.md").read_text()
 

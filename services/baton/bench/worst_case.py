@@ -7,7 +7,8 @@ hand over right after, over 1, 3 and 5 hops, ``repeat`` times each. The
 measured delay (the drone's decision to the new master's first request) is
 set beside the paper's model T_log(0) + h * T_log(f + e) + T_conn and the
 physical limit l + 8 (f + e) / b + T_conn (the bytes the new master lacked,
-over one link), with T_conn measured in the same run. The paper's
+over one link), with T_conn measured in the same run, and beside them how
+busy the machine's cores were meanwhile (``cpu.py``). The paper's
 store-and-forward and baton's cut-through run in one invocation, so that
 their ratio is measured under the same load.
 """
@@ -22,6 +23,7 @@ from typing import Any
 
 import grpc
 
+from baton.bench.cpu import CpuSampler
 from baton.bench.model import MB, master_log_sizes, t_log, t_max
 from baton.bench.runner import (
     audit_calls,
@@ -117,7 +119,8 @@ async def measure_flush_limit(
     timeout = 120 + len(hop_sequence) * (settle + 4 * t_log(flush_limit + full_picture, 0, 20e6))
     label = f"worst-case {forwarding} f={flush_limit / MB:g} MB"
     rundir = workdir / f"{forwarding}-flush-{flush_limit}"
-    snapshot = await run_plan(plan, rundir, timeout, label)
+    with CpuSampler() as cpu:
+        snapshot = await run_plan(plan, rundir, timeout, label)
 
     requests = {c.reqnr: c.request_bytes for c in script.calls}
     calls = audit_calls(snapshot, requests, {c.reqnr: c.method for c in script.calls})
@@ -132,6 +135,7 @@ async def measure_flush_limit(
     }
     largest = max(entry_bytes(c) for c in calls if c.method == TAKE_PICTURE)
     delays = handover_delays(snapshot)
+    records = {h.after_reqnr: h for h in snapshot.drone.handovers}
     # The initial master's first connection is part of the testbed's start,
     # not of a handover; T_conn in the model is the mean of the others.
     startup, *handover_t_conn = snapshot.controllers[0].t_conn_s
@@ -155,6 +159,13 @@ async def measure_flush_limit(
                 "handover_log_bytes": held,
                 "placed_after_flush": flushed >= flush_limit and flushed > 0 and 0 <= held < 4096,
                 "delay_s": delays.get(p.after_reqnr, 0.0),
+                # How busy the machine's cores were from the decision to the first
+                # request: the contention the delay beyond the limit includes.
+                "cores_busy": (
+                    cpu.busy(record.decided_at, record.first_request_at)
+                    if (record := records.get(p.after_reqnr)) is not None
+                    else None
+                ),
             }
         )
     run = {
@@ -260,6 +271,7 @@ def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
             model = points[0]["model_s"]
             extended = statistics.fmean(p["extended_model_s"] for p in points)
             limit = statistics.fmean(p["limit_s"] for p in points)
+            busy = [p["cores_busy"] for p in points if p.get("cores_busy") is not None]
             rows.append(
                 {
                     "forwarding": forwarding_of(run),
@@ -276,6 +288,7 @@ def summarize(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                     "limit_s": limit,
                     "limit_ratio": mean / limit if limit > 0 else float("nan"),
                     "all_placed_after_flush": all(p["placed_after_flush"] for p in points),
+                    "cores_busy": statistics.fmean(busy) if busy else None,
                 }
             )
     return rows
@@ -298,6 +311,7 @@ def table(rows: list[dict[str, Any]]) -> str:
             "ratio to extended",
             "physical limit (ms)",
             "ratio to limit",
+            "cores busy",
         ],
         [
             [
@@ -314,6 +328,7 @@ def table(rows: list[dict[str, Any]]) -> str:
                 f"{r['extended_ratio']:.2f}",
                 f"{r['limit_s'] * 1e3:.0f}",
                 f"{r['limit_ratio']:.2f}",
+                "-" if r.get("cores_busy") is None else f"{r['cores_busy']:.0%}",
             ]
             for r in rows
         ],

@@ -1,0 +1,44 @@
+"""The cores' busy share beside a benchmark's numbers (baton.bench.cpu)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from waiting import eventually
+
+from baton.bench.cpu import CpuSampler, read_cpu_ticks
+
+
+def test_the_kernels_count_is_read_as_busy_and_total_ticks(tmp_path: Path) -> None:
+    stat = tmp_path / "stat"
+    # user nice system idle iowait irq softirq steal guest guest_nice
+    stat.write_text("cpu  100 5 50 800 40 3 2 0 7 0\ncpu0 50 2 25 400 20 1 1 0 0 0\n")
+    busy, total = read_cpu_ticks(stat) or (0, 0)
+    assert (busy, total) == (160, 1000)  # idle and iowait are not busy; guest is in user
+    assert read_cpu_ticks(tmp_path / "absent") is None
+    stat.write_text("intr 1 2 3\n")
+    assert read_cpu_ticks(stat) is None
+
+
+def test_busy_is_the_share_between_the_samples_around_a_window() -> None:
+    cpu = CpuSampler()
+    for at, ticks in ((10.0, (0, 0)), (11.0, (50, 200)), (12.0, (150, 400))):
+        cpu.record(at, ticks)
+    assert cpu.busy(10.5, 11.5) == 150 / 400  # from the sample at 10 to the one at 12
+    assert cpu.busy(11.0, 12.0) == 100 / 200
+    assert cpu.busy(11.0, 11.1) is None  # too short to count ticks in
+    assert cpu.busy(9.0, 11.0) is None  # before the first sample
+    assert cpu.busy(11.5, 12.5) is None  # after the last
+
+
+async def test_the_sampler_samples_this_machine_while_entered() -> None:
+    with CpuSampler(every_s=0.01) as cpu:
+        start = time.time()
+        await eventually(lambda: time.time() - start > 0.3, "0.3 s of samples")
+        end = time.time()
+        busy = await eventually(
+            lambda: cpu.busy(start, end) is not None and cpu.busy(start, end),
+            "a sample after the window",
+        )
+    assert 0 < busy <= 1
