@@ -57,7 +57,7 @@ def plot_timeline(
     plt.close(fig)
 
 
-def plot_worst_case(rows: Sequence[dict[str, Any]], path: Path) -> None:
+def plot_worst_case(rows: Sequence[dict[str, Any]], path: Path, controllers: int) -> None:
     """Figure 6, one panel per hop count: the paper's model, the physical limit, and the
     measured delay (mean, min-max) of each forwarding mode."""
     hop_counts = sorted({r["hops"] for r in rows})
@@ -97,7 +97,7 @@ def plot_worst_case(rows: Sequence[dict[str, Any]], path: Path) -> None:
         ax.grid(True, alpha=0.3)
     axes[0][0].set_ylabel("handover delay (s)")
     axes[0][0].legend(fontsize=8)
-    fig.suptitle("Worst-case handover delay, six controllers")
+    fig.suptitle(f"Worst-case handover delay, {controllers} controllers")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

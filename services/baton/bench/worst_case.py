@@ -372,7 +372,7 @@ def write_report(
     }
     write_json(out / "worst_case.json", result)
     (out / "worst_case.md").write_text(table(rows))
-    plot_worst_case(rows, out / "worst_case.png")
+    plot_worst_case(rows, out / "worst_case.png", settings.controllers)
     return result
 
 
