@@ -89,11 +89,6 @@ def t_conn_samples(snapshot: Snapshot) -> list[float]:
     return [t for c in snapshot.controllers.values() for t in c.t_conn_s]
 
 
-def handover_delays(snapshot: Snapshot) -> dict[int, float]:
-    """Measured handover delay by the reqnr it came after (decision -> first request)."""
-    return {h.after_reqnr: h.delay_s for h in snapshot.drone.handovers}
-
-
 def machine() -> dict[str, Any]:
     """What the numbers were measured on."""
     cpu = ""

@@ -27,7 +27,6 @@ from baton.bench.cpu import CpuSampler
 from baton.bench.model import MB, master_log_sizes, t_log, t_max
 from baton.bench.runner import (
     audit_calls,
-    handover_delays,
     machine,
     markdown_table,
     run_plan,
@@ -134,7 +133,6 @@ async def measure_flush_limit(
         for p in master_log_sizes(calls, flush_limit, [p.after_reqnr for p in script.points])
     }
     largest = max(entry_bytes(c) for c in calls if c.method == TAKE_PICTURE)
-    delays = handover_delays(snapshot)
     records = {h.after_reqnr: h for h in snapshot.drone.handovers}
     # The initial master's first connection is part of the testbed's start,
     # not of a handover; T_conn in the model is the mean of the others.
@@ -147,6 +145,7 @@ async def measure_flush_limit(
         # What the old master really held when it handed over: right after
         # its largest flush, at most a small entry or two.
         held = handed_over.get(p.after_reqnr, -1)
+        record = records.get(p.after_reqnr)
         points.append(
             {
                 "forwarding": forwarding,
@@ -158,12 +157,12 @@ async def measure_flush_limit(
                 "flushed_bytes": flushed,
                 "handover_log_bytes": held,
                 "placed_after_flush": flushed >= flush_limit and flushed > 0 and 0 <= held < 4096,
-                "delay_s": delays.get(p.after_reqnr, 0.0),
+                "delay_s": record.delay_s if record is not None else 0.0,
                 # How busy the machine's cores were from the decision to the first
                 # request: the contention the delay beyond the limit includes.
                 "cores_busy": (
                     cpu.busy(record.decided_at, record.first_request_at)
-                    if (record := records.get(p.after_reqnr)) is not None
+                    if record is not None
                     else None
                 ),
             }
