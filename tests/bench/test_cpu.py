@@ -35,10 +35,13 @@ def test_busy_is_the_share_between_the_samples_around_a_window() -> None:
 async def test_the_sampler_samples_this_machine_while_entered() -> None:
     with CpuSampler(every_s=0.01) as cpu:
         start = time.time()
-        await eventually(lambda: time.time() - start > 0.3, "0.3 s of samples")
+        while time.time() - start < 0.3:  # keeps one core busy: an idle machine reads 0.0
+            pass
         end = time.time()
         busy = await eventually(
-            lambda: cpu.busy(start, end) is not None and cpu.busy(start, end),
-            "a sample after the window",
+            lambda: cpu.busy(start, end) is not None, "a sample after the window"
         )
-    assert 0 < busy <= 1
+        busy = cpu.busy(start, end)
+    # One core was busy all through the window; how large a share of the machine that
+    # is depends on how many cores /proc/stat counts (a container may see the host's).
+    assert busy is not None and 0 < busy <= 1
