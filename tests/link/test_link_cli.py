@@ -32,7 +32,13 @@ class LinkProcess:
         self.process.send_signal(signal.SIGTERM)
         _, stderr = await asyncio.wait_for(self.process.communicate(), 10)
         assert self.process.returncode is not None
-        return self.process.returncode, [json.loads(line) for line in stderr.splitlines()]
+        lines = []
+        for line in stderr.splitlines():
+            try:
+                lines.append(json.loads(line))
+            except ValueError:  # once under load on 2 cores: say what it was
+                raise AssertionError(f"baton link wrote a line not JSON: {line!r}") from None
+        return self.process.returncode, lines
 
 
 @contextlib.asynccontextmanager

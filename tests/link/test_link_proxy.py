@@ -10,13 +10,14 @@ from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import pytest
+import uvloop
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from link_endpoints import Echo, Sink, connect
 
 from baton.config import LinkSpec
 from baton.link.cli import read_shape
 from baton.link.proxy import READ_BYTES, LinkProxy, reset_connection
-from baton.link.shaper import SerialLine
+from baton.link.shaper import SEGMENT_BYTES, SerialLine
 from baton.rpc.channels import aio_channel
 from baton.rpc.server import BatonServer
 
@@ -230,3 +231,39 @@ async def _until(condition: Callable[[], bool], deadline: float = 10.0) -> None:
     while not condition():
         assert loop.time() < end, "condition not reached before the deadline"
         await asyncio.sleep(0.01)
+
+
+def test_a_paced_transfer_waits_on_timers_not_by_spinning(monkeypatch) -> None:
+    """Under uvloop, as the services run it: each 16 KiB segment is waited for about once.
+
+    uvloop counts time in whole milliseconds, so a wait of under one returned at
+    once with the clock unchanged, and the proxy spun until the segment was due
+    (about 17 wake-ups a segment, and three times the CPU of the transfer: the
+    links of a twelve-controller ring then took a core of the machine's two)."""
+    waits = 0
+    sleep = asyncio.sleep
+
+    async def counted(delay: float) -> None:
+        nonlocal waits
+        waits += 1
+        await sleep(delay)
+
+    monkeypatch.setattr(asyncio, "sleep", counted)
+    size = 2 << 20
+
+    async def transfer() -> None:
+        sink = Sink()
+        await sink.start()
+        sink.expect = size
+        proxy = LinkProxy("127.0.0.1:0", sink.address, LinkSpec(latency=0.020, bandwidth=25e6), OFF)
+        await proxy.start()
+        _, writer = await connect(proxy.address)
+        writer.write(os.urandom(size))
+        await asyncio.wait_for(sink.done.wait(), 30)
+        writer.close()
+        await proxy.stop()
+        await sink.stop()
+
+    uvloop.run(transfer())
+    segments = size // SEGMENT_BYTES
+    assert waits <= 2 * segments, f"{waits} waits for {segments} segments"
