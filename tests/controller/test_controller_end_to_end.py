@@ -109,6 +109,15 @@ async def test_two_controllers_three_handovers(
     )
     snapshot = await fly(tmp_path, plan)
     assert snapshot.drone.master == 1
+    # Each new master connected on a channel to the drone connected in advance (TCP
+    # and HTTP/2 made long before the handover), each controller's first one not.
+    connecting = [
+        json.loads(line)["connected_in_advance"]
+        for cid in (0, 1)
+        for line in (tmp_path / "logs" / f"controller-{cid}.log").read_text().splitlines()
+        if '"connecting to the drone"' in line
+    ]
+    assert sorted(connecting) == [False, False, True, True, True], connecting
 
 
 async def test_six_controllers_handovers_over_one_three_and_five_hops(tmp_path: Path) -> None:

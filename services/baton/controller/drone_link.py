@@ -3,7 +3,9 @@
 Opened when the controller becomes ACTIVE and closed when it stops being
 ACTIVE (docs/design.md, protocol note 5), and once at start to ask the
 drone who the master is; the time from opening to the drone's first event is
-T_conn. The Connected event carries the epoch of the mastership, which every
+T_conn. A session's channel is one kept connected in advance when it is
+ready (``WarmChannel``), so that a handover's connection is the Connect call
+alone. The Connected event carries the epoch of the mastership, which every
 Invoke of the session carries; a handover notice on the stream, or a Connect
 refused because another controller is master, reach the controller through
 ``DroneEvents``. The session's drone calls travel on one kept InvokeStream
@@ -197,6 +199,56 @@ class InvokeCalls:
                 await self._reader
 
 
+class WarmChannel:
+    """A channel to the drone kept connected for the controller's next session.
+
+    A session started while it is READY takes it: its TCP connection (and its
+    TLS handshake) were made long before, and the handover's connection is the
+    Connect call alone (docs/design.md, "A warm channel for the next
+    mastership"). A new one then starts connecting for the session after. One
+    not READY (the link was cut and it waits to reconnect, or it has not
+    connected yet) is closed, and the session gets a fresh channel, as it
+    would without this one: never slower than connecting then.
+    """
+
+    def __init__(self, address: str, tls: Tls | None = None) -> None:
+        self.address = address
+        self._tls = tls
+        self._spare: grpc.aio.Channel | None = None
+        self._closing = TaskSet()
+        self.warm = 0  # sessions given a channel connected in advance
+        self.cold = 0  # and a fresh one
+
+    def _connecting(self) -> grpc.aio.Channel:
+        channel = aio_channel(self.address, self._tls, DRONE, keep_idle=True)
+        channel.get_state(try_to_connect=True)
+        return channel
+
+    def start(self) -> None:
+        """Starts connecting the first spare."""
+        if self._spare is None:
+            self._spare = self._connecting()
+
+    def take(self) -> tuple[grpc.aio.Channel, bool]:
+        """A channel for a session, and whether it was connected already; the session
+        owns it (closes it). A new spare starts connecting."""
+        spare, self._spare = self._spare, self._connecting()
+        if spare is not None and spare.get_state() is grpc.ChannelConnectivity.READY:
+            self.warm += 1
+            return spare, True
+        if spare is not None:
+            self._closing.spawn(spare.close(), name="drone-spare-close")
+        self.cold += 1
+        return aio_channel(self.address, self._tls, DRONE), False
+
+    async def close(self) -> None:
+        """Closes the spare."""
+        spare, self._spare = self._spare, None
+        if spare is not None:
+            await spare.close()
+        await self._closing.drain()
+
+
 class DroneSession:
     """One ACTIVE period's connection to the drone service."""
 
@@ -210,7 +262,10 @@ class DroneSession:
         holds_reqnr: Callable[[], int] = lambda: 0,
         given_up_epoch: Callable[[], int] = lambda: 0,
         tls: Tls | None = None,
+        channel: grpc.aio.Channel | None = None,
     ) -> None:
+        """``channel``: the one to use (and close), connected already or not (``WarmChannel``);
+        else a new one."""
         self.controller_id = controller_id
         # Read at every (re)connect: the epoch of the mastership whose log the
         # controller holds, which the drone fences if a takeover gave it up.
@@ -222,7 +277,7 @@ class DroneSession:
         self._events_to = events
         self._log = log
         self.epoch = 0  # from the Connected event
-        self._channel = aio_channel(address, tls, DRONE)
+        self._channel = channel if channel is not None else aio_channel(address, tls, DRONE)
         self._stub = drone_pb2_grpc.DroneStub(self._channel)
         self._calls = InvokeCalls(self._stub, log)
         self.connected = asyncio.Event()

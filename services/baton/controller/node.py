@@ -31,6 +31,7 @@ from baton.controller.drone_link import (
     DroneRefusal,
     DroneSession,
     DroneStandby,
+    WarmChannel,
     refusal_of,
 )
 from baton.controller.history import LogHistory
@@ -246,6 +247,8 @@ class ControllerNode:
         self._standby = DroneStandby(
             cid, config.drone_address_for(cid), self.on_take_over, self.log, tls
         )
+        # A channel to the drone connected in advance, for the next session.
+        self._warm_channel = WarmChannel(config.drone_address_for(cid), tls)
         self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
         self._takeover_watermark = 0  # and the drone's watermark then
         # The replies the drone retained for our takeover, by reqnr: the lost
@@ -298,6 +301,7 @@ class ControllerNode:
         self._open_links()
         self._standby.start()
         await self._apply(self.protocol.start())
+        self._warm_channel.start()
         self._watchdog = asyncio.create_task(self._watch(), name="stall-watchdog")
         self._router = asyncio.create_task(self._route_watch(), name="ring-router")
         self.log.info("controller started; asking the drone who the master is")
@@ -403,6 +407,7 @@ class ControllerNode:
         if self._drone is not None:
             await self._drone.close(grace=STOP_GRACE_S)
             self._drone = None
+        await self._warm_channel.close()
         for link in self._peers.values():
             await link.stop()
         self.history.close()
@@ -867,6 +872,7 @@ class ControllerNode:
             return
         address = self.config.drone_address_for(self.id)
         events = _SessionEvents(self, self._background)
+        channel, warm = self._warm_channel.take()
         self._drone = DroneSession(
             self.id,
             address,
@@ -876,10 +882,11 @@ class ControllerNode:
             holds_reqnr=lambda: self.protocol.held_reqnr,
             given_up_epoch=lambda: self.protocol.given_up_epoch,
             tls=self.tls,
+            channel=channel,
         )
         events.session = self._drone
         self._drone.open()
-        self.log.info("connecting to the drone", drone=address)
+        self.log.info("connecting to the drone", drone=address, connected_in_advance=warm)
 
     async def _close_drone(self) -> None:
         drone, self._drone = self._drone, None

@@ -72,12 +72,18 @@ def _secure_options(tls: Tls | None, peer: Identity | None) -> list[tuple[str, i
     return [*CHANNEL_OPTIONS, ("grpc.ssl_target_name_override", peer.dns_name)]
 
 
+# gRPC lets a channel with no call for 30 minutes go IDLE (its connection closed).
+KEEP_IDLE_OPTIONS: list[tuple[str, int | str]] = [("grpc.client_idle_timeout_ms", 2**31 - 1)]
+
+
 def aio_channel(
-    address: str, tls: Tls | None = None, peer: Identity | None = None
+    address: str, tls: Tls | None = None, peer: Identity | None = None, keep_idle: bool = False
 ) -> grpc.aio.Channel:
     """An asyncio channel to ``host:port`` with the project's options: mutual TLS as
-    ``tls``'s identity to ``peer`` (whose certificate is checked), else insecure."""
-    options = _secure_options(tls, peer)
+    ``tls``'s identity to ``peer`` (whose certificate is checked), else insecure.
+    ``keep_idle``: its connection stays open however long no call uses it (a channel
+    connected in advance, ``controller.drone_link.WarmChannel``)."""
+    options = _secure_options(tls, peer) + (KEEP_IDLE_OPTIONS if keep_idle else [])
     if tls is None:
         return grpc.aio.insecure_channel(address, options=options)
     return grpc.aio.secure_channel(address, tls.channel_credentials(), options=options)
