@@ -11,16 +11,22 @@ from baton.rpc.streams import next_message
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
 
+async def spare_connected(warm: WarmChannel) -> grpc.aio.Channel:
+    """Starts ``warm`` and waits until its first spare is connected; returns it."""
+    warm.start()
+    spare = warm._spare
+    assert spare is not None
+    await eventually(
+        lambda: spare.get_state() is grpc.ChannelConnectivity.READY, "the spare connected"
+    )
+    return spare
+
+
 async def test_a_session_takes_the_channel_connected_in_advance_and_a_new_one_connects() -> None:
     drone, server = await start_drone()
     warm = WarmChannel(drone.address)
     try:
-        warm.start()
-        spare = warm._spare
-        assert spare is not None
-        await eventually(
-            lambda: spare.get_state() is grpc.ChannelConnectivity.READY, "the spare connected"
-        )
+        spare = await spare_connected(warm)
         channel, connected = warm.take()
         assert channel is spare and connected
         # Taken at once (nothing awaited between), the next spare has not connected
@@ -50,12 +56,7 @@ async def test_a_spare_cut_off_from_the_drone_is_not_taken() -> None:
     drone, server = await start_drone()
     warm = WarmChannel(drone.address)
     try:
-        warm.start()
-        spare = warm._spare
-        assert spare is not None
-        await eventually(
-            lambda: spare.get_state() is grpc.ChannelConnectivity.READY, "the spare connected"
-        )
+        spare = await spare_connected(warm)
         await server.stop()  # the drone goes: the spare's connection breaks
         await eventually(
             lambda: spare.get_state() is not grpc.ChannelConnectivity.READY, "the spare broken"
