@@ -256,16 +256,15 @@ class DroneSession:
         self,
         controller_id: int,
         address: str,
+        channel: grpc.aio.Channel,
         events: DroneEvents,
         log: BoundLogger,
         mastership_epoch: Callable[[], int] = lambda: 0,
         holds_reqnr: Callable[[], int] = lambda: 0,
         given_up_epoch: Callable[[], int] = lambda: 0,
-        tls: Tls | None = None,
-        channel: grpc.aio.Channel | None = None,
     ) -> None:
-        """``channel``: the one to use (and close), connected already or not (``WarmChannel``);
-        else a new one."""
+        """``channel``: the session's own to ``address`` (it closes it), connected in
+        advance or not (``WarmChannel.take``)."""
         self.controller_id = controller_id
         # Read at every (re)connect: the epoch of the mastership whose log the
         # controller holds, which the drone fences if a takeover gave it up.
@@ -277,7 +276,7 @@ class DroneSession:
         self._events_to = events
         self._log = log
         self.epoch = 0  # from the Connected event
-        self._channel = channel if channel is not None else aio_channel(address, tls, DRONE)
+        self._channel = channel
         self._stub = drone_pb2_grpc.DroneStub(self._channel)
         self._calls = InvokeCalls(self._stub, log)
         self.connected = asyncio.Event()

@@ -876,13 +876,12 @@ class ControllerNode:
         self._drone = DroneSession(
             self.id,
             address,
+            channel,
             events,
             self.log,
             mastership_epoch=lambda: self.protocol.log_mastership_epoch,
             holds_reqnr=lambda: self.protocol.held_reqnr,
             given_up_epoch=lambda: self.protocol.given_up_epoch,
-            tls=self.tls,
-            channel=channel,
         )
         events.session = self._drone
         self._drone.open()
