@@ -15,6 +15,7 @@ from test_controller_end_to_end import FAST_LINK, SMALL_GRID, assert_mission_pro
 from waiting import eventually
 
 from baton.bench.script import BENCH_MISSION, bench_mission_args
+from baton.config import LinkSpec
 from baton.testbed.local import (
     PAPER_CONTROLLER_LINK,
     LocalTestbed,
@@ -208,3 +209,41 @@ async def test_a_prepared_handover_moves_the_master_between_requests_on_the_mast
     assert (served_by[3], served_by[5], served_by[6]) == (0, 2, 2)
     words = (tmp_path / "logs" / "controller-0.log").read_text()
     assert "drone moves the master on our word" in words
+
+
+async def test_scripted_handovers_closer_than_a_preparation_each_happen_in_order(
+    tmp_path: Path,
+) -> None:
+    """The script's second line is due at the request after the first's: the first
+    preparation cannot have caught up by then (20 ms ring links). The second line
+    waits for the first handover; it does not replace the first preparation, which
+    dropped a scripted handover (CI at 5e5646f, the 3-hop one of the six-controller
+    test, under load)."""
+    plan = TestbedPlan(
+        config=local_config(
+            3,
+            flush_limit=0,
+            speedup=1.0,
+            controller_link=LinkSpec(latency=0.02, bandwidth=None),
+            drone_link=FAST_LINK,
+        ),
+        handovers=((3, 1), (4, 2)),
+        prepared=True,
+        mission_file=BENCH_MISSION,
+        mission_args=bench_mission_args("p,p,p,p,p,s1,p,p"),
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        snapshot = await testbed.run_mission(120)
+    for cid, c in snapshot.controllers.items():
+        assert c.mission == ring_pb2.MISSION_STATE_DONE, (
+            f"controller {cid}: mission {c.mission}: {c.mission_error}"
+        )
+    scripted = [
+        h for h in snapshot.drone.handovers if h.trigger == drone_pb2.HANDOVER_TRIGGER_SCRIPT
+    ]
+    assert [(h.old_master, h.new_master, h.kind) for h in scripted] == [
+        (0, 1, PREPARED),
+        (1, 2, PREPARED),
+    ], scripted
+    assert scripted[1].prepare_started_at >= scripted[0].decided_at
+    assert snapshot.drone.master == 2

@@ -572,12 +572,29 @@ def test_a_prepared_script_line_is_begun_again_after_a_restart_before_its_handov
     assert served.prepare is not None and served.prepare.target == 1
     forced = again.preparation_expired(8.0)
     assert forced is not None and again.master == 1 and again.fired_script == [2]
-    # A preparation replaced by another line's ends as fired too.
+    # A preparation an operator's replaced ends as fired too.
+    seq = Sequencer([0, 1, 2], initial_master=0, script=dict(script))
+    serve(seq, 0, 1, 1)
+    serve(seq, 0, 1, 2)
+    seq.prepare(2, RPC, now=2.5)
+    assert seq.preparing is not None and seq.preparing.target == 2 and seq.fired_script == [2]
+
+
+def test_a_script_line_due_while_an_earlier_lines_preparation_is_under_way_waits() -> None:
+    """Lines 2 and 3 both prepared: at request 3 the target of line 2 has not caught up.
+    Line 3 waits for line 2's handover and begins its own preparation after it; it does
+    not replace line 2's, which dropped that handover (CI at 5e5646f)."""
     script = {2: ScriptedHandover(2, 1, 1, True), 3: ScriptedHandover(3, 2, 2, True)}
-    seq = Sequencer([0, 1, 2], initial_master=0, script=script)
+    seq = Sequencer([0, 1, 2], initial_master=0, script=script, prepare_timeout_s=5.0)
     for reqnr in (1, 2, 3):
         serve(seq, 0, 1, reqnr)
-    assert seq.preparing is not None and seq.preparing.target == 2 and seq.fired_script == [2]
+    assert seq.preparing is not None and seq.preparing.target == 1 and seq.fired_script == []
+    forced = seq.preparation_expired(8.0)
+    assert forced is not None and seq.master == 1 and seq.fired_script == [2]
+    assert seq.admit(1, 2, 4, GET, DIGEST) is None
+    served = seq.served(1, 4, GET, DIGEST, b"r", 9.0, now=9.0)
+    assert served.prepare is not None and served.prepare.target == 2 and seq.master == 1
+    assert seq.preparing is not None and seq.preparing.line == 3
 
 
 def test_a_script_line_marked_prepared_begins_a_preparation() -> None:
@@ -588,6 +605,29 @@ def test_a_script_line_marked_prepared_begins_a_preparation() -> None:
     served = seq.served(0, 2, GET, DIGEST, b"r", 2.0, now=2.0)
     assert served.handover is None and served.prepare is not None
     assert served.prepare.target == 1 and seq.master == 0
+
+
+def test_a_new_master_that_spoke_on_a_preparation_held_its_old_masters_log() -> None:
+    """--lose-master --prepared seed 1439: after the mission's last request, 5 hands over
+    to 2 and 2 (ACTIVE: it prepares a handover to 3 and says so between requests) to 3;
+    5 is then lost. No new master sent a request, but 2's word proves 5's log arrived:
+    no takeover. (One was decided; it fenced the ACTIVE master and lost its log.)"""
+    seq = Sequencer([5, 2, 3], initial_master=5)
+    serve(seq, 5, 1, 1)
+    seq.switch(2, SCRIPT, now=1.0)  # epoch 2
+    seq.prepare(3, RPC, now=1.1)
+    word = drone_pb2.PreparationProgress(target=3, lacks_bytes=1 << 20, after_reqnr=1)
+    assert seq.progress_between(2, 2, word, now=1.2) is None  # not caught up
+    seq.switch(3, RPC, now=1.3)  # epoch 3
+    seen = {5: 1.0, 2: 9.0, 3: 9.0}
+    assert seq.takeover_due(9.0, {2, 3}, seen, after_s=3.0) is None
+    # Without the word, 5's log may never have left it: 3 is granted again.
+    silent = Sequencer([5, 2, 3], initial_master=5)
+    serve(silent, 5, 1, 1)
+    silent.switch(2, SCRIPT, now=1.0)
+    silent.switch(3, RPC, now=1.3)
+    due = silent.takeover_due(9.0, {2, 3}, seen, after_s=3.0)
+    assert due is not None and (due.new_master, due.lost) == (3, 5)
 
 
 def test_a_masters_fresh_self_that_gave_its_mastership_up_is_granted_a_new_epoch() -> None:

@@ -157,6 +157,10 @@ class Sequencer:
         # The prepared handover under way, if any; any switch ends it.
         self.preparing: Preparation | None = None
         self.prepare_timeout_s = prepare_timeout_s
+        # The last epoch whose master spoke as ACTIVE between requests (its word on a
+        # preparation: it prepares only when ACTIVE): ``takeover_due``. 0 after a
+        # restart, as the store does not keep it; a request says as much.
+        self.active_epoch = 0
 
     @property
     def epoch(self) -> int:
@@ -431,9 +435,11 @@ class Sequencer:
                 return Served(entry, cached, handover=handover)
         # A scripted handover fires after the first request served at or past
         # its reqnr: request numbers the controllers answer themselves (Clock)
-        # never reach the drone.
+        # never reach the drone. The script's lines go in order: one due while
+        # the preparation an earlier line began is under way waits for its
+        # handover (replacing it dropped that line's handover).
         due = [n for n in self.script if n <= reqnr]
-        if not due:
+        if not due or (self.preparing is not None and self.preparing.line):
             return Served(entry, cached)
         line = min(due)
         scripted = self.script.pop(line)
@@ -578,7 +584,11 @@ class Sequencer:
         ``after_s`` ago or longer; the first reachable controller after it
         in ring order takes over (it received every log message that left
         the master). Also lost: the old master of a cooperative handover
-        whose new master has sent nothing since, when the old master has
+        whose new master has sent nothing since (no request, and no word on
+        a preparation, which only an ACTIVE master gives: after the
+        mission's last request, --lose-master --prepared seed 1439 took
+        over from an old master whose log had long arrived, and the
+        fenced ACTIVE master's log was lost), when the old master has
         not been seen for ``after_s`` since the switch (it died before
         sending its log): the new master is granted again, by takeover.
         The same for any old master of the cooperative switches since the
@@ -625,6 +635,8 @@ class Sequencer:
         for record in reversed(self.handovers):
             if record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER or record.first_request_at:
                 return None
+            if record.epoch <= self.active_epoch:
+                return None  # its new master went ACTIVE: the log before it arrived
             old_seen = max(last_seen.get(record.old_master, 0.0), record.decided_at)
             if record.old_master not in live and now - old_seen >= after_s:
                 return TakeoverDue(self.master, record.old_master, old_seen)
@@ -812,6 +824,8 @@ class Sequencer:
         service): moves the master now if the target has caught up. A word written
         before the last request was served (``after_reqnr`` below it) misses that
         reply and is ignored; so is one not of the master in its epoch."""
+        if controller_id == self.master and epoch == self.epoch:
+            self.active_epoch = epoch
         p = self.preparing
         if p is None or controller_id != self.master or epoch != self.epoch:
             return None
