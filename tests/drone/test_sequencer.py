@@ -260,6 +260,27 @@ def test_a_taker_is_given_every_retained_reply_with_the_epoch_that_brought_it() 
     assert [(r.reqnr, r.epoch) for r in given] == [(2, 1), (3, 1), (4, 2)]
 
 
+def test_the_replies_a_taker_says_it_adopted_count_as_brought_in_its_epoch() -> None:
+    """--policy nearest seed 4287: master 0's program gave up on request 2, which the
+    drone served; 0 handed over to 4 with the give-up (epoch 2), and 4 was taken over by
+    1 (epoch 3), which answered its program from the drone's replies of 2 and 3. Its
+    request 4 says so (``adopted_from_reqnr``): they count as brought in epoch 3, newer
+    than 4's give-up, so a later taker holding it finds it replaced. A master not granted
+    by takeover, another epoch, or nothing adopted changes nothing."""
+    seq = Sequencer([0, 4, 1, 3], initial_master=0)
+    for reqnr in (1, 2, 3):
+        serve(seq, 0, 1, reqnr)
+    assert seq.adopt(0, 1, 2, 4) == []  # not a takeover
+    seq.switch(4, SCRIPT, now=3.0)  # epoch 2
+    seq.switch(1, LOST, now=4.0, takeover=True, lost_at=3.0)  # epoch 3
+    assert seq.adopt(1, 2, 2, 4) == [] and seq.adopt(1, 3, 0, 4) == []
+    adopted = seq.adopt(1, 3, 2, 4)
+    assert [(r.reqnr, r.epoch) for r in adopted] == [(2, 3), (3, 3)]
+    assert [(r.reqnr, r.epoch) for r in seq.replies_for_master(0)] == [(1, 1), (2, 3), (3, 3)]
+    assert seq.cache.reqnrs == [1, 2, 3]  # in place: eviction's order unchanged
+    assert seq.adopt(1, 3, 2, 5) == []  # said again: nothing more
+
+
 def test_a_give_up_sent_along_replaces_the_reply_the_program_never_saw() -> None:
     """The master's program gave up on request 1, which the drone served; the give-up
     comes with request 2. A taker must see what the program saw: the give-up."""

@@ -175,6 +175,7 @@ class InvokeRequest(_message.Message):
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
     MASTER_ANSWERS_FIELD_NUMBER: _builtins.int
     PREPARATION_FIELD_NUMBER: _builtins.int
+    ADOPTED_FROM_REQNR_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The calling controller's id."""
     reqnr: _builtins.int
@@ -194,6 +195,12 @@ class InvokeRequest(_message.Message):
     reachable controller is known to hold (0: none known). The drone keeps
     every reply above it, so that a master taking over without the old
     one's log gets them again; it never goes down.
+    """
+    adopted_from_reqnr: _builtins.int
+    """In a mastership granted by takeover: the first request number whose
+    answer the master took from the drone's retained replies (0: none). It
+    held none of them; the drone counts those up to this request as brought
+    in this epoch (docs/design.md, "A taker that holds a replaced framing").
     """
     @_builtins.property
     def master_answers(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
@@ -223,10 +230,11 @@ class InvokeRequest(_message.Message):
         watermark_reqnr: _builtins.int = ...,
         master_answers: _abc.Iterable[Global___RetainedReply] | None = ...,
         preparation: Global___PreparationProgress | None = ...,
+        adopted_from_reqnr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["preparation", b"preparation"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "epoch", b"epoch", "master_answers", b"master_answers", "method", b"method", "payload", b"payload", "preparation", b"preparation", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["adopted_from_reqnr", b"adopted_from_reqnr", "controller_id", b"controller_id", "epoch", b"epoch", "master_answers", b"master_answers", "method", b"method", "payload", b"payload", "preparation", b"preparation", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -353,6 +353,7 @@ class DroneSession:
         watermark_reqnr: int = 0,
         master_answers: Sequence[drone_pb2.RetainedReply] = (),
         preparation: drone_pb2.PreparationProgress | None = None,
+        adopted_from_reqnr: int = 0,
     ) -> drone_pb2.InvokeReply:
         """Sends request ``reqnr`` in this session's epoch; raises grpc.aio.AioRpcError.
 
@@ -368,6 +369,7 @@ class DroneSession:
             watermark_reqnr=watermark_reqnr,
             master_answers=master_answers,
             preparation=preparation,
+            adopted_from_reqnr=adopted_from_reqnr,
         )
         return await self._calls.invoke(request, timeout_s)
 

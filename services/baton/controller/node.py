@@ -256,6 +256,9 @@ class ControllerNode:
         # batches after the Connected event, which says the last one's reqnr.
         self._retained: dict[int, drone_pb2.RetainedReply] = {}
         self._retained_through = 0
+        # The epoch, and the first request number answered from the retained replies
+        # in it (``_adopt``): InvokeRequest.adopted_from_reqnr.
+        self._adopted = (0, 0)
         # The last reqnr the batches will bring, and the last one that came: after a
         # takeover they include those we hold, compared with our framing before any
         # new request (``on_retained``).
@@ -454,6 +457,7 @@ class ControllerNode:
         self._drone_calls = 0
         self._takeover_epoch = self._takeover_watermark = 0
         self._retained, self._retained_through = {}, 0
+        self._adopted = (0, 0)
         self._retained_due = self._retained_came = 0
         self._first_new_call_due = False
         self._answered_here = []
@@ -1329,6 +1333,7 @@ class ControllerNode:
                 if not await self._wait_retained(reqnr):
                     continue
                 entry = self._from_retained(self._retained.pop(reqnr), method, request)
+                self._adopt(reqnr)
                 self._abandoned.popleft()
                 effects = self.protocol.on_reply(entry)
                 self._seen(entry)
@@ -1476,6 +1481,7 @@ class ControllerNode:
             kept = self._retained.pop(reqnr, None)
             if kept is not None:
                 entry = self._from_retained(kept, method, request)
+                self._adopt(reqnr)
                 self.answered_from_retained += 1
                 self.log.info("answered from the retained tail", reqnr=reqnr, method=method)
             elif method in (CLOCK_NOW, CLOCK_SLEEP):
@@ -1530,6 +1536,13 @@ class ControllerNode:
         self._seen(entry)
         await self._apply(effects)
         return entry
+
+    def _adopt(self, reqnr: int) -> None:
+        """Our program was answered from the drone's retained reply of ``reqnr``: our
+        requests of this mastership say from which one on (the drone counts them as
+        brought in our epoch: ``Sequencer.adopt``)."""
+        if self._adopted[0] != self.protocol.epoch:
+            self._adopted = (self.protocol.epoch, reqnr)
 
     def _from_retained(
         self, kept: drone_pb2.RetainedReply, method: str, request: bytes
@@ -1628,6 +1641,9 @@ class ControllerNode:
                     watermark_reqnr=self.protocol.watermark_reqnr,
                     master_answers=[to_retained(entry) for entry in self._answered_here],
                     preparation=self._preparation_progress(),
+                    adopted_from_reqnr=(
+                        self._adopted[1] if self._adopted[0] == self.protocol.epoch else 0
+                    ),
                 )
                 return ring_pb2.LogEntry(
                     reqnr=reqnr,

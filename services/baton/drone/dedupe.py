@@ -52,7 +52,7 @@ with a reply to a different question.
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from baton.rpc.errors import StatusError, status_of
 from baton.v1 import drone_pb2
@@ -138,6 +138,19 @@ class ReplyCache:
         self._entries[reqnr] = CachedReply(reqnr, method, digest, reply, error, epoch)
         self._entries.move_to_end(reqnr)
         self._evict()
+
+    def restamp(self, first: int, below: int, epoch: int) -> list[CachedReply]:
+        """The retained replies from ``first`` up to ``below`` (excluded) brought before
+        ``epoch``, now counted as brought in it (in place: eviction's order is unchanged);
+        returns them."""
+        changed = [
+            replace(entry, epoch=epoch)
+            for entry in self.retained_replies(above=first - 1)
+            if entry.reqnr < below and entry.epoch < epoch
+        ]
+        for entry in changed:
+            self._entries[entry.reqnr] = entry
+        return changed
 
     def raise_watermark(self, reqnr: int) -> None:
         """Every controller holds the replies up to ``reqnr``: they need not be retained."""

@@ -374,6 +374,28 @@ class Sequencer:
             )
         return fresh
 
+    def adopt(
+        self, controller_id: int, epoch: int, adopted_from: int, reqnr: int
+    ) -> list[CachedReply]:
+        """A taker's request says it answered its program from the retained replies from
+        ``adopted_from`` on (``InvokeRequest.adopted_from_reqnr``): those up to ``reqnr``
+        count from now on as brought in its epoch; returns them, for the store.
+
+        It held none of them, and frames them in its own messages. Kept with the
+        epoch of the master that first brought them, they looked older than a
+        framing they had replaced (a lost master's give-up of a request the drone
+        executed, handed on before the takeover), and a later taker holding that
+        framing took it for the ring's and built on it (--policy nearest seed 4287:
+        same-replies). The taker says what it adopted itself: its Connect's
+        ``holds_reqnr`` may be stale by the time the replies come (counting from
+        it, --lose-master seed 2720 made a taker refuse its own framing for ever).
+        """
+        if not adopted_from or not self.granted_by_takeover:
+            return []
+        if controller_id != self.master or epoch != self.epoch:
+            return []
+        return self.cache.restamp(adopted_from, reqnr, epoch)
+
     def _fresh(self, kept: CachedReply) -> bool:
         """Whether ``served`` keeps a call the master answered (``admit`` accepted it):
         above the last request served, or a give-up of one served that we still hold as

@@ -561,7 +561,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 )
             if cached is not None:
                 return self._answer_duplicate(request, cached)
-            kept = self.seq.keep(clock)
+            kept = self.seq.keep(clock) + tuple(
+                self.seq.adopt(cid, request.epoch, request.adopted_from_reqnr, reqnr)
+            )
             if self.store is not None:
                 self.store.begin(Intent(reqnr, method, digest, cid, received_at), kept)
             try:

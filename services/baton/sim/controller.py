@@ -185,6 +185,7 @@ class SimController:
         # routed_around.
         self.takeover_epoch = self.takeover_watermark = 0
         self.retained: dict[int, drone_pb2.RetainedReply] = {}  # node.py's _retained
+        self.adopted = (0, 0)  # node.py's _adopted: (epoch, first reqnr answered from retained)
         self.retained_through = 0  # and _retained_through
         self.retained_due = self.retained_came = 0  # and _retained_due, _retained_came
         self.answered_here: list[ring_pb2.LogEntry] = []  # node.py's _answered_here
@@ -908,6 +909,7 @@ class SimController:
                 if self._retained_pending(reqnr):
                     return False  # _wait_retained: its batch is coming
                 kept = self.retained.pop(reqnr)
+                self._adopt(reqnr)
                 try:
                     entry = from_retained(kept, given_up.method, given_up.request)
                 except StatusError as err:
@@ -998,6 +1000,11 @@ class SimController:
             return
         self._answer_active(inv)
 
+    def _adopt(self, reqnr: int) -> None:
+        """node.py _adopt: the program was answered from the drone's retained reply."""
+        if self.adopted[0] != self.protocol.epoch:
+            self.adopted = (self.protocol.epoch, reqnr)
+
     def _retained_pending(self, reqnr: int) -> bool:
         """node.py _wait_retained's condition: the reply for ``reqnr`` is to come, or
         a batch is (a request past them waits until those we hold were compared)."""
@@ -1013,6 +1020,7 @@ class SimController:
             return
         kept = self.retained.pop(inv.reqnr, None)
         if kept is not None:
+            self._adopt(inv.reqnr)
             try:
                 entry = from_retained(kept, call.method, call.request)
             except StatusError as err:
@@ -1084,6 +1092,7 @@ class SimController:
             watermark=self.protocol.watermark_reqnr,
             master_answers=tuple(to_retained(entry) for entry in self.answered_here),
             preparation=self._preparation_progress(),
+            adopted_from=self.adopted[1] if self.adopted[0] == self.protocol.epoch else 0,
             sender=self,
             consumed=len(self.seen),
         )

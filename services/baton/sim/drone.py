@@ -135,6 +135,7 @@ class Request:
     watermark: int = 0  # InvokeRequest.watermark_reqnr
     master_answers: tuple[drone_pb2.RetainedReply, ...] = ()  # InvokeRequest's
     preparation: drone_pb2.PreparationProgress | None = None  # InvokeRequest's
+    adopted_from: int = 0  # InvokeRequest.adopted_from_reqnr
     # For the oracles: the sender's incarnation, and how many calls its program
     # had consumed when it sent this (the drone acting on it depends on them).
     sender: SimController | None = None
@@ -348,6 +349,7 @@ class SimDrone:
             self._answer_duplicate(request, cached)
             return
         seq.keep(clock)  # with the intent, in one transaction (DroneService, store.begin)
+        seq.adopt(cid, request.epoch, request.adopted_from, reqnr)
         self.intent = Intent(reqnr, method, digest, cid, request.received_at)
         route = ROUTES[method]
         # DroneService._execute: the payload must parse, Mobility needs the vehicle.
