@@ -203,8 +203,19 @@ async def test_a_restarted_drone_tells_a_taker_the_watermark_it_had(tmp_path: Pa
         assert connected.watermark_reqnr == 3
         assert [r.reqnr for r in retained] == [4, 5]
         assert [r.epoch for r in retained] == [1, 1]  # the mastership that brought each
+        # The taker answered its program from both; its request 6 says so, and the
+        # drone counts them as brought in its epoch 2, kept across a restart too.
+        adopted = invoke(1, 6, POSITION, epoch=2)
+        adopted.adopted_from_reqnr = 4
+        await drone.stub.Invoke(adopted)
     finally:
         await second[1].stop(0)
+    third = await restart(second, state, script="")
+    try:
+        kept = third[0].service.seq.cache
+        assert [(r.reqnr, r.epoch) for r in kept.retained_replies()] == [(4, 2), (5, 2), (6, 2)]
+    finally:
+        await third[1].stop(0)
 
 
 def test_a_state_file_from_before_the_watermark_was_kept_opens(tmp_path: Path) -> None:
