@@ -13,6 +13,7 @@ import pytest
 import uvloop
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from link_endpoints import Echo, Sink, connect
+from waiting import eventually
 
 from baton.config import LinkSpec
 from baton.link.cli import read_shape
@@ -267,3 +268,28 @@ def test_a_paced_transfer_waits_on_timers_not_by_spinning(monkeypatch) -> None:
     uvloop.run(transfer())
     segments = size // SEGMENT_BYTES
     assert waits <= 2 * segments, f"{waits} waits for {segments} segments"
+
+
+async def test_a_connection_that_fails_in_the_emulator_is_reset_and_logged_not_left_to_asyncio(
+    echo: Echo, make_proxy, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """CI (test_link_radio, under load): a connection cut as the vehicle left the range
+    ended in an exception that escaped the handler, and asyncio printed "Unhandled
+    exception in client_connected_cb" on stderr, not a JSON line. Whatever a connection
+    fails with, the client is reset and the link logs it and goes on."""
+    proxy = await make_proxy(echo.address)
+    unhandled: list[dict] = []
+    asyncio.get_running_loop().set_exception_handler(lambda _, context: unhandled.append(context))
+
+    async def fails(*_: object) -> None:
+        raise RuntimeError("unable to perform operation on a closed transport")
+
+    monkeypatch.setattr(proxy, "_forward", fails)
+    reader, writer = await connect(proxy.address)
+    with pytest.raises((ConnectionError, asyncio.IncompleteReadError)):
+        await asyncio.wait_for(reader.readexactly(1), 10)
+    writer.close()
+    await eventually(lambda: proxy.counters.active == 0, "the connection ended", 10)
+    assert unhandled == [] and proxy.counters.failed == 1
+    monkeypatch.undo()
+    assert await asyncio.wait_for(ping_pong(proxy.address, 1), 10)  # it goes on

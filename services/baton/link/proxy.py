@@ -368,6 +368,12 @@ class LinkProxy:
             # stop() ends connections this way; asyncio's server callback would
             # report a cancelled handler as an error, so it ends quietly here.
             reset_connection(client)
+        except Exception as exc:  # one connection's end, never the link's
+            # A write to a transport a radio cut aborted meanwhile, say (CI, under
+            # load): asyncio would print it on stderr, outside the JSON log.
+            self.counters.failed += 1
+            self.log.warning("connection failed in the link; reset", error=repr(exc))
+            reset_connection(client)
         finally:
             self._connections.discard(task)
             self._writers.discard(client)
