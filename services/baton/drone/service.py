@@ -21,6 +21,7 @@ import grpc
 from baton.config import BatonConfig, controllers_only, detection_time_s
 from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
+from baton.drone.core import DroneCore
 from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, retained_batches
 from baton.drone.dispatch import Dispatcher
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
@@ -28,11 +29,7 @@ from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend
 from baton.drone.policy import LinkBounds, LinkState, PolicyParams, Station
 from baton.drone.policy_runner import PolicyRunner
-from baton.drone.sequencer import (
-    ScriptedHandover,
-    Sequencer,
-    cut_off_outcome,
-)
+from baton.drone.sequencer import ScriptedHandover, Sequencer, TakeoverDue
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import announce
 from baton.logs import get_logger
@@ -52,16 +49,6 @@ _STATUS_READ_TIMEOUT_S = 1.0
 AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
 # How often the drone looks whether the master is lost (a fraction of the takeover time).
 TAKEOVER_TICK_S = 0.05
-# A drone restarted mid-mission counts its master as seen this long after the
-# restart: time for the controllers to re-connect (their back-off reaches
-# 1 s), after which a master that did not come back is lost.
-RESTART_GRACE_S = 5.0
-# A master not seen since the drone started counts as seen this long after
-# the drone first saw any controller: the controllers come up one by one (the
-# testbed starts them together, after the vehicle is ready), and a takeover
-# at the start must not go to whichever came first. One that never comes up
-# is then lost, and the mission goes on without it instead of waiting for ever.
-START_GRACE_S = 10.0
 # The drone pings every controller's connection each second and drops it
 # after 2 s without the answer: a controller behind a silent link (a radio
 # that fades without a reset, a frozen node) loses its streams within 3 s and
@@ -95,8 +82,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     """The drone middleware of drone.proto, over a vehicle backend and a camera.
 
     Every decision (who may invoke, in which epoch, which request numbers,
-    duplicates, the script) is the pure ``Sequencer``'s; this class executes
-    what it admits, keeps the Connect streams, and saves the outcome.
+    duplicates, the script, who is lost and who takes over) is the pure
+    ``DroneCore``'s; this class executes what it admits, keeps the streams,
+    and saves the outcome.
     """
 
     def __init__(
@@ -114,21 +102,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         # Mutual TLS on the port: every call is checked against the caller's
         # certificate (docs/design.md, Security); False: anyone may call.
         self.authenticated = authenticated
-        # The master is lost after this long (wall seconds) without a stream
-        # or a request; 0: never (only an operator's takeover).
-        self.takeover_after_s = takeover_after_s
         self.store = store
         self.vehicle = vehicle
         self.camera = camera
+        # The master is lost after takeover_after_s (wall seconds) without a
+        # stream or a request; 0: never (only an operator's takeover).
+        self.core = DroneCore(sequencer, takeover_after_s)
         self.seq = sequencer
         self.streams = MasterStreams(sequencer)
         self.standby = StandbyStreams()
-        # When each controller last held a stream or sent a request
-        # (time.time()); absent until it is first seen.
-        self.last_seen: dict[int, float] = {}
-        # When the first controller was seen since the drone started (the
-        # start-up grace runs from then); None until one is.
-        self.first_seen: float | None = None
         self._handed_over_after = 0
         # Set (and replaced) at every switch: a prepared Handover call waits on it.
         self._switch_seen = asyncio.Event()
@@ -153,6 +135,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.cut_off: Intent | None = None
         if store is not None:
             self._restore(store)
+
+    @property
+    def takeover_after_s(self) -> float:
+        """The takeover time in wall seconds (0: never)."""
+        return self.core.takeover_after_s
+
+    @takeover_after_s.setter
+    def takeover_after_s(self, seconds: float) -> None:
+        self.core.takeover_after_s = seconds
 
     @property
     def execution_lock(self) -> asyncio.Lock:
@@ -187,19 +178,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     async def watch_master(self) -> None:
         """Takes the master over when it is lost (``Sequencer.takeover_due``)."""
         while True:
-            now = time.time()
-            reachable = self._takers(self._sighted(now))
-            due = self.seq.takeover_due(
-                now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
-            )
+            due = self._takeover_due()
             if due is not None:
                 async with self._lock:
                     # Re-checked under the lock: a request may have come meanwhile.
                     now = time.time()
-                    reachable = self._takers(self._sighted(now))
-                    due = self.seq.takeover_due(
-                        now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
-                    )
+                    due = self._takeover_due(now)
                     if due is not None:
                         where = self.policy.position if self.policy is not None else None
                         self._take_over(
@@ -243,31 +227,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         for cid in self.seq.ring:
             down = 0.0
             if cid not in up:
-                seen = self.last_seen.get(cid, self.unseen_from)
-                down = 0.0 if seen is None else max(0.0, now - seen) * speedup
+                down = (self.core.down_for(cid, now) or 0.0) * speedup
             links[cid] = self.probes.state(cid, cid in up, down, clock)
         return links
 
-    def _takers(self, reachable: set[int]) -> set[int]:
-        """Who may take a lost master over: the reachable controllers, and with a handover
-        policy only those in range of the vehicle (the policy never picks another)."""
+    def _takeover_due(self, now: float | None = None) -> TakeoverDue | None:
+        """``DroneCore.takeover_due`` with who holds a stream now and who is in range."""
         in_range = self.policy.in_range() if self.policy is not None else None
-        return reachable if in_range is None else reachable & in_range
-
-    def _sighted(self, now: float) -> set[int]:
-        """The controllers holding a stream now, noted as seen now."""
-        reachable = self.standby.reachable | self.streams.holders
-        for cid in reachable:
-            self.last_seen[cid] = now
-        if reachable and self.first_seen is None:
-            self.first_seen = now
-        return reachable
-
-    @property
-    def unseen_from(self) -> float | None:
-        """When a master not seen since the drone started counts as seen (the end of
-        the start-up grace); None while no controller was seen."""
-        return None if self.first_seen is None else self.first_seen + START_GRACE_S
+        holders = self.standby.reachable | self.streams.holders
+        return self.core.takeover_due(time.time() if now is None else now, holders, in_range)
 
     def hand_over(
         self,
@@ -284,7 +252,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         (``Sequencer.handover_must_take_over``); else the paper's cooperative handover.
         """
         now = time.time()
-        if takeover or self.seq.handover_must_take_over(new_master):
+        if self.core.must_take_over(new_master, takeover):
             return self._take_over(new_master, trigger, now, reason=reason, position=position)
         record = self.seq.switch(new_master, trigger, now, reason=reason, position=position)
         self._switched(record)
@@ -367,13 +335,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     def _take_over_owed(self, cid: int) -> drone_pb2.StandbyEvent | None:
         """The TakeOver again for a taker that has not sent a request since (the stream
         that was to carry it may have broken first); None otherwise."""
-        seq = self.seq
-        if cid != seq.master or not seq.handovers:
-            return None
-        record = seq.handovers[-1]
-        if record.kind != drone_pb2.HANDOVER_KIND_TAKEOVER or record.first_request_at:
-            return None
-        return self._take_over_event(record)
+        record = self.core.takeover_owed(cid)
+        return None if record is None else self._take_over_event(record)
 
     # -- durable state (store.py) ---------------------------------------------------
 
@@ -399,14 +362,16 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             return
         c, seq = state.counters, self.seq
         counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
-        seq.resume(
-            c.master, c.handovers, counts, state.replies, state.audit, c.fired_script, c.watermark
+        self.core.resume(
+            time.time(),
+            c.master,
+            c.handovers,
+            counts,
+            state.replies,
+            state.audit,
+            c.fired_script,
+            c.watermark,
         )
-        if c.last_reqnr or c.handovers:
-            # A mission in progress: its master was there before the restart.
-            # Seen "now plus the grace", so that it is lost if it does not
-            # come back (it may have died while the drone was down).
-            self.last_seen[c.master] = time.time() + RESTART_GRACE_S
         self.log.info(
             "state resumed",
             path=str(store.path),
@@ -420,8 +385,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         cut = self.cut_off = state.executing
         if cut is None:
             return
-        route = self.dispatcher.routes.get(cut.method)
-        error = cut_off_outcome(cut.method, cut.reqnr, route is not None and route.is_read)
+        error = self.core.cut_off(cut)
         if error is None:
             store.abandon()
             self.log.info("read cut off by the restart: will execute again", reqnr=cut.reqnr)
@@ -541,16 +505,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     ) -> drone_pb2.InvokeReply:
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         async with self._lock:
-            if cid in self.seq.ring:
-                self.last_seen[cid] = received_at
             digest = request_digest(method, request.payload)
-            clock = self._master_answers(request)
-            cached = self.seq.admit(
-                cid, request.epoch, reqnr, method, digest, request.watermark_reqnr, clock
-            )
-            if request.HasField("preparation"):
-                self.seq.note_progress(cid, request.epoch, request.preparation)
-            first = self.seq.note_request(cid, received_at)
+            admitted = self.core.admit(request, digest, received_at)
+            first = admitted.first
             if first is not None:
                 self.log.info(
                     "first request of new master",
@@ -559,17 +516,14 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                     after_reqnr=first.after_reqnr,
                     delay_s=round(first.delay_s, 6),
                 )
-            if cached is not None:
-                return self._answer_duplicate(request, cached)
-            kept = self.seq.keep(clock) + tuple(
-                self.seq.adopt(cid, request.epoch, request.adopted_from_reqnr, reqnr)
-            )
+            if admitted.cached is not None:
+                return self._answer_duplicate(request, admitted.cached)
             if self.store is not None:
-                self.store.begin(Intent(reqnr, method, digest, cid, received_at), kept)
+                self.store.begin(Intent(reqnr, method, digest, cid, received_at), admitted.kept)
             try:
                 reply = await self._execute(request)
             except StatusError as err:
-                if err.code is not grpc.StatusCode.UNAVAILABLE:
+                if self.core.books(err):
                     self._served(cid, reqnr, method, digest, b"", received_at, err)
                 elif self.store is not None:
                     self.store.abandon()
@@ -582,22 +536,6 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         ):
             await asyncio.sleep(self.race.delay_s)
         return drone_pb2.InvokeReply(reqnr=reqnr, payload=reply)
-
-    def _master_answers(self, request: drone_pb2.InvokeRequest) -> list[CachedReply]:
-        """The calls a master answered itself sent along with a request: Clock
-        replies and drone calls its program gave up on; INVALID_ARGUMENT for another."""
-        clock = []
-        for kept in request.master_answers:
-            route = self.dispatcher.routes.get(kept.method)
-            if route is None or (route.answered_by_drone and not kept.given_up):
-                raise StatusError(
-                    grpc.StatusCode.INVALID_ARGUMENT,
-                    f"Invoke reqnr {request.reqnr}: master_answers holds reqnr {kept.reqnr} "
-                    f"as {kept.method!r}, which is neither a Clock method nor a call given "
-                    "up by the program; only what a controller answered itself is sent along",
-                )
-            clock.append(CachedReply.from_proto(kept))
-        return clock
 
     def _answer_duplicate(
         self, request: drone_pb2.InvokeRequest, cached: CachedReply
@@ -713,7 +651,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     def can_prepare(self, new_master: int) -> bool:
         """Whether a handover to ``new_master`` can be prepared: the master holds its
         Connect stream (to hear the PrepareHandover) and could send its log."""
-        return self.streams.master_connected and not self.seq.handover_must_take_over(new_master)
+        return self.core.can_prepare(self.streams.master_connected, new_master)
 
     def prepare_handover(
         self,
@@ -834,7 +772,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             await abort_with(context, err)
         stream = self.standby.attach(cid)
         self.probes.attached(cid)
-        self.last_seen[cid] = time.time()
+        self.core.seen(cid, time.time())
         try:
             yield drone_pb2.StandbyEvent(
                 held=drone_pb2.StandbyHeld(master=self.seq.master, epoch=self.seq.epoch)
@@ -846,7 +784,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 yield await stream.events.get()
         finally:
             self.standby.detach(stream)
-            self.last_seen[cid] = time.time()
+            self.core.seen(cid, time.time())
 
     async def AnswerPing(
         self, request: drone_pb2.PingAnswer, context: grpc.aio.ServicerContext

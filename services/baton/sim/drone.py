@@ -1,9 +1,10 @@
-"""The simulated drone: the real ``Sequencer`` over a simulated vehicle and camera.
+"""The simulated drone: the real ``DroneCore`` over a simulated vehicle and camera.
 
-``SimDrone`` mirrors ``drone/service.py``'s ``DroneService``: one line of
-execution (its lock: requests and Handover calls are taken in arrival
-order, one at a time), every decision asked of the pure ``Sequencer``
-(``admit``, ``served``, ``switch``, ``admit_connect``), the request's intent
+``SimDrone`` is a driver of the drone's pure core, as ``drone/service.py``'s
+``DroneService`` is: one line of execution (its lock: requests and Handover
+calls are taken in arrival order, one at a time), every decision asked of
+``DroneCore`` and its ``Sequencer`` (``admit``, ``books``, ``served``,
+``switch``, ``admit_connect``, ``takeover_due``, ``resume``), the request's intent
 kept while it executes, Connect streams that carry the Connected grant,
 a prepared handover's PrepareHandover and the handover notice, the
 preparation's progress word on each Invoke and its deadline in
@@ -36,15 +37,11 @@ from typing import TYPE_CHECKING, Any
 import grpc
 
 from baton.digest import request_digest
+from baton.drone.core import DroneCore
 from baton.drone.dedupe import CachedReply, retained_batches
 from baton.drone.policy import Decision
-from baton.drone.sequencer import (
-    PREPARE_TIMEOUT_S,
-    ScriptedHandover,
-    Sequencer,
-    cut_off_outcome,
-)
-from baton.drone.service import RESTART_GRACE_S, START_GRACE_S, TAKEOVER_TICK_S
+from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
+from baton.drone.service import TAKEOVER_TICK_S
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.labels import label
@@ -140,6 +137,22 @@ class Request:
     # had consumed when it sent this (the drone acting on it depends on them).
     sender: SimController | None = None
     consumed: int = 0
+
+    def proto(self) -> drone_pb2.InvokeRequest:
+        """The InvokeRequest these fields are (what ``DroneCore.admit`` reads)."""
+        request = drone_pb2.InvokeRequest(
+            controller_id=self.controller_id,
+            epoch=self.epoch,
+            reqnr=self.reqnr,
+            method=self.method,
+            payload=self.payload,
+            watermark_reqnr=self.watermark,
+            master_answers=self.master_answers,
+            adopted_from_reqnr=self.adopted_from,
+        )
+        if self.preparation is not None:
+            request.preparation.CopyFrom(self.preparation)
+        return request
 
 
 @dataclass(frozen=True)
@@ -237,7 +250,7 @@ class SimDrone:
         self.cache_window = cache_window
         self.p_ack_lost = p_ack_lost
         self.prepare_timeout_s = prepare_timeout_s
-        self.seq = self._sequencer()
+        self.core = DroneCore(self._sequencer(), world.takeover_after)
         self.vehicle = SimVehicle()
         self.camera = SimCamera()
         self.up = True
@@ -256,11 +269,6 @@ class SimDrone:
         self.busy: Execution | None = None
         self.streams: dict[int, Stream] = {}
         self.stats = DroneStats()
-        # Takeover (issue 10): the master is lost after this long unseen; 0: never.
-        self.takeover_after = world.takeover_after
-        # Volatile, as DroneService.last_seen: when each controller was last seen.
-        self.last_seen: dict[int, float] = {}
-        self.first_seen: float | None = None  # DroneService.first_seen
         self.takeovers = 0
         self._watching = False
         self._check_queued = False
@@ -277,6 +285,11 @@ class SimDrone:
         self.policy = self._policy_runner()
         self.policy_switches: Counter[str] = Counter()
         self.policy_decided: Counter[str] = Counter()
+
+    @property
+    def seq(self) -> Sequencer:
+        """The core's Sequencer (a restart makes a new core)."""
+        return self.core.seq
 
     # -- requests -------------------------------------------------------------------
 
@@ -331,25 +344,18 @@ class SimDrone:
         seq, now = self.seq, self.world.loop.now
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         digest = request_digest(method, request.payload)
-        if cid in seq.ring:  # _invoke_to_the_end: a request is a sighting
-            self.last_seen[cid] = request.received_at
-        clock = [CachedReply.from_proto(kept) for kept in request.master_answers]
         try:
-            cached = seq.admit(cid, request.epoch, reqnr, method, digest, request.watermark, clock)
+            admitted = self.core.admit(request.proto(), digest, request.received_at)
         except StatusError as err:
             seq.rejected += 1  # DroneService.Invoke
             self._reply(request, b"", err)
             return
-        if request.preparation is not None:  # _invoke_to_the_end: the master's word
-            seq.note_progress(cid, request.epoch, request.preparation)
-        seq.note_request(cid, request.received_at)
         self._note_epoch(cid, request.epoch, reqnr)
-        if cached is not None:
+        if admitted.cached is not None:
             _acted_on(request)
-            self._answer_duplicate(request, cached)
+            self._answer_duplicate(request, admitted.cached)
             return
-        seq.keep(clock)  # with the intent, in one transaction (DroneService, store.begin)
-        seq.adopt(cid, request.epoch, request.adopted_from, reqnr)
+        # admitted.kept is stored with the intent, in one transaction (store.begin)
         self.intent = Intent(reqnr, method, digest, cid, request.received_at)
         route = ROUTES[method]
         # DroneService._execute: the payload must parse, Mobility needs the vehicle.
@@ -378,15 +384,8 @@ class SimDrone:
         loop.at(now + duration * rng.uniform(0.1, 0.9), self._act, execution)
         loop.at(now + duration, self._complete, execution)
 
-    def _books(self, error: StatusError) -> bool:
-        """Whether a failure after admission is the request's outcome (_invoke_to_the_end).
-
-        UNAVAILABLE means nothing reached the vehicle: the reqnr stays unused.
-        """
-        return error.code is not grpc.StatusCode.UNAVAILABLE
-
     def _failed(self, request: Request, digest: bytes, error: StatusError) -> None:
-        if self._books(error):
+        if self.core.books(error):
             _acted_on(request)
             cid, reqnr, method = request.controller_id, request.reqnr, request.method
             self._served(cid, reqnr, method, digest, b"", error, request.received_at)
@@ -548,7 +547,7 @@ class SimDrone:
         """DroneService.hand_over: by takeover when asked or when the master could not
         send its log (``Sequencer.handover_must_take_over``), else cooperative."""
         now = self.world.loop.now
-        if takeover or self.seq.handover_must_take_over(new_master):
+        if self.core.must_take_over(new_master, takeover):
             self.seq.check_known(new_master)
             self._take_over(new_master, trigger, now, 0.0)
             return
@@ -589,8 +588,7 @@ class SimDrone:
     def _can_prepare(self, new_master: int) -> bool:
         """DroneService.can_prepare: the master holds its Connect stream (to hear the
         PrepareHandover) and could send its log."""
-        seq = self.seq
-        return seq.master in self.streams and not seq.handover_must_take_over(new_master)
+        return self.core.can_prepare(self.seq.master in self.streams, new_master)
 
     def _switched(self, record: drone_pb2.HandoverRecord, on_the_word: bool = False) -> None:
         """MasterStreams.wake: the old master's Connect handler resumes on a later loop turn;
@@ -777,7 +775,7 @@ class SimDrone:
         stream = self.streams.get(cid)
         if stream is not None and stream.connection == connection:
             del self.streams[cid]
-        self.last_seen[cid] = self.world.loop.now  # Standby's finally: seen as it went
+        self.core.seen(cid, self.world.loop.now)  # Standby's finally: seen as it went
         for request in self._requests():
             if request.controller_id == cid and request.connection == connection:
                 self._caller_gone(request)
@@ -798,26 +796,19 @@ class SimDrone:
         """The drone service starts again from its durable state (DroneService._restore)."""
         self.up = True
         self.stats.restarts += 1
-        self.seq = self._restored()
+        self.core = self._restored()
         # PolicyRunner is built afresh, with the hold the store keeps (PolicyRunner.restore).
         held = self.policy is not None and self.policy.held_vehicle
         self.policy = self._policy_runner()
         if self.policy is not None:
             self.policy.restore(held, self.intent)
-        # DroneService.last_seen is not in the store; _restore counts the master of
-        # a mission in progress as seen RESTART_GRACE_S after the restart.
-        self.last_seen = {}
-        self.first_seen = None
-        if self.seq.last_reqnr or self.seq.handovers:
-            self.last_seen[self.seq.master] = self.world.loop.now + RESTART_GRACE_S
         self.watch()
         cut, self.intent = self.intent, None
         self.world.trace(f"drone restarts (cut off: {cut})")
         if cut is None:
             return
         self.stats.cut_off.append(cut)
-        route = ROUTES.get(cut.method)
-        error = cut_off_outcome(cut.method, cut.reqnr, route is not None and route.is_read)
+        error = self.core.cut_off(cut)
         if error is None:
             return  # a read: the re-sent request executes it again
         self._served(
@@ -834,13 +825,15 @@ class SimDrone:
             self.prepare_timeout_s,
         )
 
-    def _restored(self) -> Sequencer:
-        """A new Sequencer holding what the store keeps (DroneService._restore)."""
+    def _restored(self) -> DroneCore:
+        """A new core holding what the store keeps (DroneService._restore): the sightings
+        are not kept (``DroneCore.resume`` gives the master the restart grace)."""
         old = self.seq
-        seq = self._sequencer()
+        core = DroneCore(self._sequencer(), self.world.takeover_after)
         replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
         counts = (old.last_reqnr, old.executed, old.duplicates, old.rejected)
-        seq.resume(
+        core.resume(
+            self.world.loop.now,
             old.master,
             old.handovers,
             counts,
@@ -849,7 +842,7 @@ class SimDrone:
             old.fired_script,
             old.cache.watermark,
         )
-        return seq
+        return core
 
     # -- takeover (DroneService.watch_master, _take_over) ------------------------
 
@@ -872,7 +865,8 @@ class SimDrone:
             self.policy.start()
         if self.world.corridor is not None:
             self.world.corridor.tick()
-        if not self._watching and self.up and (self.takeover_after > 0 or self.seq.preparing):
+        takeovers = self.core.takeover_after_s > 0
+        if not self._watching and self.up and (takeovers or self.seq.preparing):
             self._watching = True
             self.world.loop.after(TAKEOVER_TICK_S, self._watch_master)
 
@@ -889,10 +883,7 @@ class SimDrone:
         if not self.up or not (self.world.mission_open() or self.seq.preparing):
             return
         now = self.world.loop.now
-        reachable = self._takers(self._sighted(now))
-        due = self.seq.takeover_due(
-            now, reachable, self.last_seen, self.takeover_after, self.unseen_from()
-        )
+        due = self._takeover_due(now)
         if due is not None and not self._check_queued:
             self._check_queued = True  # async with self._lock: re-checked there
             self.queue.append(TakeoverCheck())
@@ -906,31 +897,15 @@ class SimDrone:
             self._next()
         self.watch()
 
-    def _takers(self, reachable: set[int]) -> set[int]:
-        """DroneService._takers: with a policy, only controllers in range may take over."""
+    def _takeover_due(self, now: float) -> TakeoverDue | None:
+        """``DroneCore.takeover_due`` with who holds a stream now and who is in range."""
         in_range = self.policy.in_range() if self.policy is not None else None
-        return reachable if in_range is None else reachable & in_range
-
-    def _sighted(self, now: float) -> set[int]:
-        """DroneService._sighted: who holds a stream, noted as seen now."""
-        reachable = self.reachable()
-        for cid in reachable:
-            self.last_seen[cid] = now
-        if reachable and self.first_seen is None:
-            self.first_seen = now
-        return reachable
-
-    def unseen_from(self) -> float | None:
-        """DroneService.unseen_from: the end of the start-up grace."""
-        return None if self.first_seen is None else self.first_seen + START_GRACE_S
+        return self.core.takeover_due(now, self.reachable(), in_range)
 
     def _takeover_check(self) -> None:
         """watch_master under the lock: takeover_due again, then _take_over."""
         now = self.world.loop.now
-        reachable = self._takers(self._sighted(now))
-        due = self.seq.takeover_due(
-            now, reachable, self.last_seen, self.takeover_after, self.unseen_from()
-        )
+        due = self._takeover_due(now)
         if due is not None:
             self._take_over(
                 due.new_master, drone_pb2.HANDOVER_TRIGGER_LOST, now, due.lost_at, due.lost
@@ -942,21 +917,10 @@ class SimDrone:
         if forced is not None:
             self._switched(forced)
 
-    def take_over_owed(self, cid: int) -> drone_pb2.HandoverRecord | None:
-        """DroneService._take_over_owed: the takeover to tell ``cid`` again, if it is the
-        taker and has not sent a request since."""
-        seq = self.seq
-        if cid != seq.master or not seq.handovers:
-            return None
-        record = seq.handovers[-1]
-        if record.kind != drone_pb2.HANDOVER_KIND_TAKEOVER or record.first_request_at:
-            return None
-        return record
-
     def standby_opened(self, cid: int) -> None:
         """DroneService.Standby: a controller's standby stream (re)opens; a TakeOver still
         owed to it is told on it (the stream that was to carry it may have broken)."""
-        record = self.take_over_owed(cid) if self.up else None
+        record = self.core.takeover_owed(cid) if self.up else None
         if record is not None:
             self._tell_take_over(record)
 

@@ -2,9 +2,10 @@
 
 Each mutation replaces a function (or a constant) of the code the
 simulation runs for the duration of a ``with mutated(name):`` block and
-restores it afterwards; no file is edited. Where the defect lived in
-``drone/service.py``, which the simulation mirrors rather than runs, the
-patch goes to the mirror (``SimDrone``), and the docstring says so.
+restores it afterwards; no file is edited. The patches go to the shipped
+pure cores (``ControllerProtocol``, ``DroneCore``, ``Sequencer``,
+``ReplyCache``), except where the defect lived in a driver's I/O (a caller's
+cancellation, a ring link's re-send), which the docstring says.
 """
 
 from __future__ import annotations
@@ -16,8 +17,8 @@ from typing import Any
 
 from baton.controller.protocol import ConnectDrone, ControllerProtocol, Effect, Refusal, State
 from baton.drone import sequencer
+from baton.drone.core import DroneCore
 from baton.drone.dedupe import ReplyCache
-from baton.drone.sequencer import Sequencer
 from baton.rpc.errors import StatusError
 from baton.sim.controller import SimController
 from baton.sim.drone import Request, SimDrone
@@ -76,9 +77,10 @@ def _line44() -> list[tuple[Any, str, Any]]:
 def _defect1() -> list[tuple[Any, str, Any]]:
     """Issue 9, defect 1: a caller that goes away cancels the execution; nothing is booked.
 
-    In drone/service.py (which the simulation mirrors): the handler was not
+    A driver's I/O, not a decision: drone/service.py's handler was not
     shielded, so a gRPC cancellation (a deadline, a dropped connection)
-    cancelled the vehicle call and the bookkeeping with it.
+    cancelled the vehicle call and the bookkeeping with it (patched in the
+    simulation's driver, ``SimDrone._caller_gone``).
     """
 
     def caller_gone(self: SimDrone, request: Request) -> None:
@@ -94,13 +96,13 @@ def _defect1() -> list[tuple[Any, str, Any]]:
 def _defect2() -> list[tuple[Any, str, Any]]:
     """Issue 9, defect 2: UNAVAILABLE (the vehicle not connected) is booked as the outcome.
 
-    In drone/service.py's _invoke_to_the_end (mirrored by SimDrone._books).
+    ``DroneCore.books``.
     """
 
-    def books(self: SimDrone, error: StatusError) -> bool:
+    def books(error: StatusError) -> bool:
         return True
 
-    return [(SimDrone, "_books", books)]
+    return [(DroneCore, "books", staticmethod(books))]
 
 
 def _defect3_active() -> list[tuple[Any, str, Any]]:
@@ -155,15 +157,17 @@ def _defect5() -> list[tuple[Any, str, Any]]:
 def _defect10() -> list[tuple[Any, str, Any]]:
     """Issue 9, defect 10: a restarted drone service starts as a new drone.
 
-    In drone/service.py's _restore (mirrored by SimDrone._restored): nothing
-    was stored, so master, epoch, reply cache and the request cut off were gone.
+    ``DroneCore.resume`` and ``DroneCore.cut_off``: nothing was stored, so master,
+    epoch, reply cache and the request cut off were gone.
     """
 
-    def restored(self: SimDrone) -> Sequencer:
-        self.intent = None
-        return Sequencer(self.controllers, self.initial_master, self.script, self.cache_window)
+    def resume(self: DroneCore, *args: object) -> None:
+        return None
 
-    return [(SimDrone, "_restored", restored)]
+    def cut_off(self: DroneCore, intent: object) -> None:
+        return None
+
+    return [(DroneCore, "resume", resume), (DroneCore, "cut_off", cut_off)]
 
 
 def _forgets_tail() -> list[tuple[Any, str, Any]]:

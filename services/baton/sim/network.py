@@ -508,7 +508,7 @@ class DroneLink:
         world.drone.link_broke(self.owner.id, old)
         if self.owner.alive:
             world.loop.after(world.rng.uniform(0.005, 0.3), self.owner.on_drone_link_broken, old)
-            if world.drone.take_over_owed(self.owner.id) is not None:
+            if world.drone.core.takeover_owed(self.owner.id) is not None:
                 # drone_link.DroneStandby opens its stream again (back-off from
                 # STANDBY_BACKOFF_S); the drone tells a TakeOver still owed on it.
                 world.loop.after(

@@ -150,13 +150,9 @@ class SimPolicyRunner:
         last seen (or since the end of the start-up grace); no round trip measured."""
         drone = self.drone
         up = drone.reachable()
-        unseen_from = drone.unseen_from()
         links = {}
         for cid in drone.seq.ring:
-            down = 0.0
-            if cid not in up:
-                seen = drone.last_seen.get(cid, unseen_from)
-                down = 0.0 if seen is None else max(0.0, now - seen)
+            down = 0.0 if cid in up else (drone.core.down_for(cid, now) or 0.0)
             links[cid] = LinkState(up=cid in up, down_for_s=down)
         return links
 

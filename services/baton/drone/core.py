@@ -1,0 +1,227 @@
+"""The drone's decisions beyond the ``Sequencer``: who is alive, who may take over,
+what a request may carry, which failures are booked, what a restart resumes.
+
+Pure like the ``Sequencer`` it holds: no asyncio, no gRPC calls, no clock of
+its own (every time is an argument). The drone service (``service.py``) and
+the simulation's drone (``baton.sim.drone``) are both drivers of this one
+object: they turn streams, requests, timers and the store into calls here and
+carry out what comes back, so the simulation checks the code that ships.
+
+The rules it keeps (docs/design.md, "Takeover" and "Exactly once"):
+
+- A controller is *seen* while it holds a stream (standby or Connect) and
+  when it sends a request; one never seen since the drone started counts as
+  seen at the end of the start-up grace, and the master of a mission resumed
+  after a restart at the end of the restart grace.
+- The master is lost when it has not been seen for the takeover time; the
+  first controller after it in ring order that holds a stream (and, with a
+  handover policy, is in range) takes over (``Sequencer.takeover_due``).
+- A request's ``master_answers`` hold only what a controller answers itself
+  (Clock replies) or a call its program gave up on: anything else is refused
+  INVALID_ARGUMENT before the request is admitted.
+- A failure after admission is the request's outcome and is booked, except
+  UNAVAILABLE, which means nothing reached the vehicle: the number stays
+  unused and the same request may be sent again.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import grpc
+
+from baton.drone.dedupe import CachedReply
+from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
+from baton.drone.store import Intent
+from baton.rpc.errors import StatusError
+from baton.rpc.methods import Method, drone_api
+from baton.v1 import drone_pb2
+
+# A drone restarted mid-mission counts its master as seen this long after the
+# restart: time for the controllers to re-connect (their back-off reaches
+# 1 s), after which a master that did not come back is lost.
+RESTART_GRACE_S = 5.0
+# A master not seen since the drone started counts as seen this long after
+# the drone first saw any controller: the controllers come up one by one, and
+# a takeover at the start must not go to whichever came first. One that never
+# comes up is then lost, and the mission goes on without it.
+START_GRACE_S = 10.0
+
+
+@dataclass(frozen=True)
+class Admitted:
+    """A request the drone admitted: answered from the cache (``cached``), or to execute.
+
+    ``kept`` are the master's own answers (and adopted replies) to store with
+    the request's intent, in one transaction; ``first`` the handover record the
+    request completed as its new master's first, if it did.
+    """
+
+    cached: CachedReply | None
+    kept: tuple[CachedReply, ...]
+    first: drone_pb2.HandoverRecord | None
+
+
+class DroneCore:
+    """The drone's whole decision state: the ``Sequencer`` and the sightings of controllers."""
+
+    def __init__(self, seq: Sequencer, takeover_after_s: float = 0.0) -> None:
+        self.seq = seq
+        # The master is lost after this long unseen; 0: never (only an operator's takeover).
+        self.takeover_after_s = takeover_after_s
+        self.routes: Mapping[str, Method] = drone_api()
+        # When each controller was last seen; absent until it first is.
+        self.last_seen: dict[int, float] = {}
+        # When the first controller was seen since the drone started (the start-up
+        # grace runs from then); None until one is.
+        self.first_seen: float | None = None
+
+    # -- sightings -------------------------------------------------------------------
+
+    def seen(self, controller_id: int, now: float) -> None:
+        """``controller_id`` was seen at ``now``: it sent a request, or a stream of it ended."""
+        if controller_id in self.seq.ring:
+            self.last_seen[controller_id] = now
+
+    def sighted(self, now: float, holders: Iterable[int]) -> set[int]:
+        """The controllers holding a stream now (``holders``), noted as seen now."""
+        reachable = set(holders)
+        for cid in reachable:
+            self.last_seen[cid] = now
+        if reachable and self.first_seen is None:
+            self.first_seen = now
+        return reachable
+
+    @property
+    def unseen_from(self) -> float | None:
+        """When a master not seen since the drone started counts as seen (the end of the
+        start-up grace); None while no controller was seen."""
+        return None if self.first_seen is None else self.first_seen + START_GRACE_S
+
+    def down_for(self, controller_id: int, now: float) -> float | None:
+        """How long ``controller_id``, holding no stream, has been unseen (the start-up
+        grace counted as a sighting); None if no controller was seen yet."""
+        seen = self.last_seen.get(controller_id, self.unseen_from)
+        return None if seen is None else max(0.0, now - seen)
+
+    @staticmethod
+    def takers(reachable: set[int], in_range: set[int] | None) -> set[int]:
+        """Who may take a lost master over: the reachable controllers, and with a handover
+        policy (``in_range`` not None) only those in range of the vehicle."""
+        return reachable if in_range is None else reachable & in_range
+
+    def takeover_due(
+        self, now: float, holders: Iterable[int], in_range: set[int] | None
+    ) -> TakeoverDue | None:
+        """Whether the master is lost now, and who takes over (``Sequencer.takeover_due``)."""
+        reachable = self.takers(self.sighted(now, holders), in_range)
+        return self.seq.takeover_due(
+            now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
+        )
+
+    def takeover_owed(self, controller_id: int) -> drone_pb2.HandoverRecord | None:
+        """The takeover to tell ``controller_id`` again on a new standby stream: it is the
+        taker and has sent no request since (the stream that carried it may have broken)."""
+        seq = self.seq
+        if controller_id != seq.master or not seq.handovers:
+            return None
+        record = seq.handovers[-1]
+        if record.kind != drone_pb2.HANDOVER_KIND_TAKEOVER or record.first_request_at:
+            return None
+        return record
+
+    # -- requests --------------------------------------------------------------------
+
+    def master_answers(
+        self, reqnr: int, answers: Sequence[drone_pb2.RetainedReply]
+    ) -> list[CachedReply]:
+        """The calls a master answered itself, sent along with request ``reqnr``: Clock
+        replies and calls its program gave up on; INVALID_ARGUMENT for anything else."""
+        kept = []
+        for answer in answers:
+            route = self.routes.get(answer.method)
+            if route is None or (route.answered_by_drone and not answer.given_up):
+                raise StatusError(
+                    grpc.StatusCode.INVALID_ARGUMENT,
+                    f"Invoke reqnr {reqnr}: master_answers holds reqnr {answer.reqnr} "
+                    f"as {answer.method!r}, which is neither a Clock method nor a call given "
+                    "up by the program; only what a controller answered itself is sent along",
+                )
+            kept.append(CachedReply.from_proto(answer))
+        return kept
+
+    def admit(
+        self,
+        request: drone_pb2.InvokeRequest,
+        digest: bytes,
+        received_at: float,
+    ) -> Admitted:
+        """Admits a request (raises StatusError to refuse it): a sighting of its sender,
+        its master answers checked, ``Sequencer.admit``, the master's word on a
+        preparation, the first request of a new master; then what to keep with it."""
+        seq, cid = self.seq, request.controller_id
+        self.seen(cid, received_at)
+        answers = self.master_answers(request.reqnr, request.master_answers)
+        cached = seq.admit(
+            cid,
+            request.epoch,
+            request.reqnr,
+            request.method,
+            digest,
+            request.watermark_reqnr,
+            answers,
+        )
+        if request.HasField("preparation"):
+            seq.note_progress(cid, request.epoch, request.preparation)
+        first = seq.note_request(cid, received_at)
+        if cached is not None:
+            return Admitted(cached, (), first)
+        kept = seq.keep(answers) + tuple(
+            seq.adopt(cid, request.epoch, request.adopted_from_reqnr, request.reqnr)
+        )
+        return Admitted(None, kept, first)
+
+    @staticmethod
+    def books(error: StatusError) -> bool:
+        """Whether a failure after admission is the request's outcome: all but UNAVAILABLE,
+        which means nothing reached the vehicle (the number stays unused)."""
+        return error.code is not grpc.StatusCode.UNAVAILABLE
+
+    # -- masters ---------------------------------------------------------------------
+
+    def must_take_over(self, new_master: int, takeover: bool) -> bool:
+        """Whether a switch to ``new_master`` is a takeover: when asked, or when the master
+        could not send its log (``Sequencer.handover_must_take_over``)."""
+        return takeover or self.seq.handover_must_take_over(new_master)
+
+    def can_prepare(self, master_connected: bool, new_master: int) -> bool:
+        """Whether a handover to ``new_master`` can be prepared: the master holds its
+        Connect stream (to hear the PrepareHandover) and could send its log."""
+        return master_connected and not self.seq.handover_must_take_over(new_master)
+
+    # -- a restart -------------------------------------------------------------------
+
+    def resume(
+        self,
+        now: float,
+        master: int,
+        handovers: Iterable[drone_pb2.HandoverRecord],
+        counts: tuple[int, int, int, int],
+        replies: Iterable[CachedReply],
+        audit: Iterable[drone_pb2.AuditEntry],
+        fired_script: Iterable[int],
+        watermark: int,
+    ) -> None:
+        """Takes back what the durable store kept (``Sequencer.resume``). The master of a
+        mission in progress was there before the restart: it counts as seen at the end
+        of the restart grace, so it is lost if it does not come back."""
+        self.seq.resume(master, handovers, counts, replies, audit, fired_script, watermark)
+        if self.seq.last_reqnr or self.seq.handovers:
+            self.last_seen[master] = now + RESTART_GRACE_S
+
+    def cut_off(self, intent: Intent) -> StatusError | None:
+        """The outcome of a request a restart cut off while it executed: None for a read
+        (executed again when re-sent), else the failure to book (``cut_off_outcome``)."""
+        route = self.routes.get(intent.method)
+        return cut_off_outcome(intent.method, intent.reqnr, route is not None and route.is_read)
