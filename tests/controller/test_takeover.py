@@ -15,6 +15,7 @@ drops what it had, and rejoins as a replica with a restarted program.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from test_controller_end_to_end import FAST_LINK, assert_mission_promises
@@ -387,3 +388,40 @@ async def test_a_master_that_dies_while_the_drone_restarts_is_taken_over(
     assert takeovers(snapshot) == [(1, 2, LOST)]
     messages = [e.get("msg") for e in log_events(tmp_path, "drone")]
     assert "state resumed" in messages and "master lost: taken over" in messages
+
+
+async def test_a_new_master_that_never_connects_is_taken_over_whatever_streams_it_holds(
+    tmp_path: Path,
+) -> None:
+    """The script makes controller 1 master at request 30, but the ring link into 1 is
+    frozen from request 24 on: the handover message never reaches it, so it never goes
+    ACTIVE nor connects, while its standby stream to the drone stays up. The drone takes
+    it over once it has not served (no Connect stream, no request) for the longer of the
+    takeover time and the prepare timeout, whatever streams it holds; before, the
+    mission waited for as long as the link stayed frozen. When the link thaws, 1 is
+    fenced and rejoins as a replica."""
+    plan = three_controllers(0, handovers=((30, 1),))
+    plan = replace(plan, config=plan.config.model_copy(update={"prepare_timeout": 3.0}))
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        await until_served(testbed, 24)
+        testbed.blackhole_link("link-ring-1")
+
+        async def taken_over() -> bool:
+            return bool(takeovers(await testbed.snapshot(audit=False)))
+
+        await eventually(taken_over, "the stuck new master taken over", 60)
+        handed, taken = (await testbed.snapshot(audit=False)).drone.handovers[:2]
+        testbed.thaw_link("link-ring-1")
+        snapshot = await testbed.run_mission(240)
+    assert (handed.old_master, handed.new_master, handed.kind) == (
+        0,
+        1,
+        drone_pb2.HANDOVER_KIND_COOPERATIVE,
+    )
+    assert handed.first_request_at == 0  # 1 never sent a request as master
+    # Not served for the prepare timeout (3 s, longer than the takeover time).
+    assert taken.decided_at - handed.decided_at >= 3.0
+    assert takeovers(snapshot) == [(1, 2, LOST)]
+    assert_mission_promises(snapshot, plan)
+    rejoined = snapshot.controllers[1]
+    assert not rejoined.master and rejoined.mission == ring_pb2.MISSION_STATE_DONE

@@ -433,16 +433,14 @@ class ControllerNode:
         upto = self.protocol.kept_history()
         kept = [self.history.get(n) for n in self.history.above(0) if n <= upto]
         kept += self.protocol.kept_for_rejoin()
-        given_up = self.protocol.mastership_given_up()
+        fresh = self.protocol.fresh_self()
         await self._close_drone()
         for link in self._peers.values():
             await link.stop()
         self._peers = {}
         self._sent_straight = {}
         self.history.clear()
-        self.protocol = ControllerProtocol(self.id, self.config.ring_order, self.config.flush_limit)
-        # Said on every Connect: a master's fresh self is granted a new epoch.
-        self.protocol.given_up_epoch = given_up
+        self.protocol = fresh
         if self._replaced is not None:
             self.protocol.refuse_replaced(self._replaced)
         if self._settler is not None:

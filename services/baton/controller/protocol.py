@@ -785,6 +785,19 @@ class ControllerProtocol:
         """
         return self._received.upto
 
+    def fresh_self(self) -> ControllerProtocol:
+        """The protocol of this controller rejoining with nothing (``ControllerNode.reset``).
+
+        It knows nothing of the log, but says which mastership its earlier self
+        gave up (``given_up_epoch``, on every Connect) and remembers the takeover
+        that fenced it: a handover message that gave the earlier self a role
+        in an epoch that takeover ended gives the fresh self none (``_arrival``).
+        """
+        fresh = ControllerProtocol(self.id, self.ring, self.flush_limit)
+        fresh.given_up_epoch = self.mastership_given_up()
+        fresh._fenced_in = self._fenced_in
+        return fresh
+
     def kept_for_rejoin(self) -> list[ring_pb2.LogMessage]:
         """The handover messages sent to us and not handled yet, for the controller that
         rejoins with nothing (``Diverged``) to receive again after its reset.
@@ -1209,6 +1222,13 @@ class ControllerProtocol:
         ``on_log`` acts on it, ``forward_dest`` asks it before the entries arrived."""
         if self._replaced_framing_of(message.lognr, message.epoch):
             return _Arrival.FENCED  # a framing the drone replaced (``refuse_replaced``)
+        if message.handover and message.origin == self.id and 0 < message.epoch <= self._fenced_in:
+            # A role the drone took away by the takeover that fenced us: a
+            # predecessor re-sends it to our fresh self until acknowledged,
+            # and taking it would be fenced at the Connect again and again.
+            # Its number is the taker's on the ring (it never left the old master
+            # but to us), and comes from there.
+            return _Arrival.FENCED
         ours = self._epoch_at.get(message.lognr, 0)
         if ours and message.epoch > ours:
             # Only a takeover numbers a message like one that exists: the

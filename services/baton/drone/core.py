@@ -16,6 +16,11 @@ The rules it keeps (docs/design.md, "Takeover" and "Exactly once"):
 - The master is lost when it has not been seen for the takeover time; the
   first controller after it in ring order that holds a stream (and, with a
   handover policy, is in range) takes over (``Sequencer.takeover_due``).
+- A master *serves* while it holds its Connect stream and when it sends a
+  request. One that has not served for ``serve_within_s`` (the longer of
+  the takeover time and the prepare timeout: a new master may take as long
+  to catch up and connect as a prepared handover's target may) is lost
+  whatever streams it holds.
 - A request's ``master_answers`` hold only what a controller answers itself
   (Clock replies) or a call its program gave up on: anything else is refused
   INVALID_ARGUMENT before the request is admitted.
@@ -73,6 +78,8 @@ class DroneCore:
         self.routes: Mapping[str, Method] = drone_api()
         # When each controller was last seen; absent until it first is.
         self.last_seen: dict[int, float] = {}
+        # When each controller last served: held its Connect stream or sent a request.
+        self.last_served: dict[int, float] = {}
         # When the first controller was seen since the drone started (the start-up
         # grace runs from then); None until one is.
         self.first_seen: float | None = None
@@ -94,6 +101,13 @@ class DroneCore:
         return reachable
 
     @property
+    def serve_within_s(self) -> float:
+        """How long a master may go without serving before it is lost (0: never)."""
+        if self.takeover_after_s <= 0:
+            return 0.0
+        return max(self.takeover_after_s, self.seq.prepare_timeout_s)
+
+    @property
     def unseen_from(self) -> float | None:
         """When a master not seen since the drone started counts as seen (the end of the
         start-up grace); None while no controller was seen."""
@@ -112,12 +126,25 @@ class DroneCore:
         return reachable if in_range is None else reachable & in_range
 
     def takeover_due(
-        self, now: float, holders: Iterable[int], in_range: set[int] | None
+        self,
+        now: float,
+        holders: Iterable[int],
+        connected: Iterable[int],
+        in_range: set[int] | None,
     ) -> TakeoverDue | None:
-        """Whether the master is lost now, and who takes over (``Sequencer.takeover_due``)."""
+        """Whether the master is lost now, and who takes over (``Sequencer.takeover_due``):
+        ``holders`` hold a stream now, ``connected`` a Connect stream."""
+        for cid in connected:
+            self.last_served[cid] = now
         reachable = self.takers(self.sighted(now, holders), in_range)
         return self.seq.takeover_due(
-            now, reachable, self.last_seen, self.takeover_after_s, self.unseen_from
+            now,
+            reachable,
+            self.last_seen,
+            self.takeover_after_s,
+            self.unseen_from,
+            self.last_served,
+            self.serve_within_s,
         )
 
     def takeover_owed(self, controller_id: int) -> drone_pb2.HandoverRecord | None:
@@ -172,6 +199,7 @@ class DroneCore:
             request.watermark_reqnr,
             answers,
         )
+        self.last_served[cid] = received_at  # admitted: from the master, in its epoch
         if request.HasField("preparation"):
             seq.note_progress(cid, request.epoch, request.preparation)
         first = seq.note_request(cid, received_at)
@@ -218,7 +246,7 @@ class DroneCore:
         of the restart grace, so it is lost if it does not come back."""
         self.seq.resume(master, handovers, counts, replies, audit, fired_script, watermark)
         if self.seq.last_reqnr or self.seq.handovers:
-            self.last_seen[master] = now + RESTART_GRACE_S
+            self.last_seen[master] = self.last_served[master] = now + RESTART_GRACE_S
 
     def cut_off(self, intent: Intent) -> StatusError | None:
         """The outcome of a request a restart cut off while it executed: None for a read

@@ -593,6 +593,8 @@ class Sequencer:
         last_seen: Mapping[int, float],
         after_s: float,
         unseen_from: float | None = None,
+        serving: Mapping[int, float] | None = None,
+        serve_within_s: float = 0.0,
     ) -> TakeoverDue | None:
         """Whether the master is lost, and who takes over (None: nobody, or not yet).
 
@@ -623,6 +625,14 @@ class Sequencer:
         Connect is fenced); the middle masters never went ACTIVE, or hold a
         log the takeover's epoch replaces as it does a late handover
         message's.
+
+        Lost too, whatever streams it holds: a master that has not served
+        (``serving``: when each controller last held its Connect stream or
+        sent a request) for ``serve_within_s`` since it last did, or since the
+        switch that made it master. A master that keeps its standby stream but
+        never connects (its handover message stuck on a frozen ring link, its
+        program stopped) would otherwise be waited on for ever. The first
+        reachable controller after it takes over, giving up its mastership.
         """
         live = set(reachable)
         if after_s <= 0:
@@ -640,12 +650,46 @@ class Sequencer:
             if self.handovers:
                 master_seen = max(master_seen, self.handovers[-1].decided_at)
         if self.master not in live and now - master_seen >= after_s:
-            position = self.ring.index(self.master)
-            for step in range(1, len(self.ring)):
-                candidate = self.ring[(position + step) % len(self.ring)]
-                if candidate in live:
-                    return TakeoverDue(candidate, self.master, master_seen)
+            taker = self._first_after(self.master, live)
+            return None if taker is None else TakeoverDue(taker, self.master, master_seen)
+        due = self._old_master_lost(now, live, last_seen, after_s)
+        if due is None and serving is not None and serve_within_s > 0:
+            due = self._not_serving(now, live, serving, serve_within_s, unseen_from)
+        return due
+
+    def _first_after(self, controller_id: int, live: set[int]) -> int | None:
+        """The first controller after ``controller_id`` in ring order that is in ``live``."""
+        position = self.ring.index(controller_id)
+        for step in range(1, len(self.ring)):
+            candidate = self.ring[(position + step) % len(self.ring)]
+            if candidate in live:
+                return candidate
+        return None
+
+    def _not_serving(
+        self,
+        now: float,
+        live: set[int],
+        serving: Mapping[int, float],
+        serve_within_s: float,
+        unseen_from: float | None,
+    ) -> TakeoverDue | None:
+        """``takeover_due``'s master that holds a stream but has not served for
+        ``serve_within_s`` (since its last Connect stream or request, or the switch)."""
+        since = serving.get(self.master, unseen_from)
+        if since is None:
             return None
+        if self.handovers:
+            since = max(since, self.handovers[-1].decided_at)
+        if now - since < serve_within_s:
+            return None
+        taker = self._first_after(self.master, live)
+        return None if taker is None else TakeoverDue(taker, self.master, since)
+
+    def _old_master_lost(
+        self, now: float, live: set[int], last_seen: Mapping[int, float], after_s: float
+    ) -> TakeoverDue | None:
+        """``takeover_due``'s old master of the trailing cooperative switches, lost."""
         if not self.handovers or self.master not in live:
             return None
         if self.handovers[-1].new_master != self.master:

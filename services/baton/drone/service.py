@@ -235,7 +235,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """``DroneCore.takeover_due`` with who holds a stream now and who is in range."""
         in_range = self.policy.in_range() if self.policy is not None else None
         holders = self.standby.reachable | self.streams.holders
-        return self.core.takeover_due(time.time() if now is None else now, holders, in_range)
+        connected = {self.seq.master} if self.streams.master_connected else set()
+        return self.core.takeover_due(
+            time.time() if now is None else now, holders, connected, in_range
+        )
 
     def hand_over(
         self,

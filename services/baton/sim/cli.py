@@ -82,6 +82,12 @@ def parser() -> argparse.ArgumentParser:
         "drone's handover policy move the master by prepared handovers",
     )
     p.add_argument(
+        "--stall-new-master",
+        action="store_true",
+        help="cut the ring from a new master right after a cooperative switch, for about "
+        "as long as the drone lets a master go without serving (its drone link stays up)",
+    )
+    p.add_argument(
         "--takeover-after",
         type=float,
         default=None,
@@ -118,6 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         lose_master=args.lose_master,
         prepared=args.prepared,
         policy=args.policy,
+        stall_new_master=args.stall_new_master,
         takeover_after=args.takeover_after,
         allow=args.allow,
         mutation=args.mutation,

@@ -900,7 +900,8 @@ class SimDrone:
     def _takeover_due(self, now: float) -> TakeoverDue | None:
         """``DroneCore.takeover_due`` with who holds a stream now and who is in range."""
         in_range = self.policy.in_range() if self.policy is not None else None
-        return self.core.takeover_due(now, self.reachable(), in_range)
+        connected = {self.seq.master} if self.seq.master in self.streams else set()
+        return self.core.takeover_due(now, self.reachable(), connected, in_range)
 
     def _takeover_check(self) -> None:
         """watch_master under the lock: takeover_due again, then _take_over."""

@@ -37,6 +37,7 @@ or leaves the fault out; ``SimOptions.allow`` lets it in.
 
 from __future__ import annotations
 
+import random
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -70,6 +71,7 @@ class FaultPlan:
     end_handover: bool = False
     garbled: bool = False
     lose_master: str = ""
+    stall: str = ""
 
     def describe(self) -> str:
         """One line: the counts that are not zero."""
@@ -93,6 +95,8 @@ class FaultPlan:
             parts.append("garbled request")
         if self.lose_master:
             parts.append(f"lose master: {self.lose_master}")
+        if self.stall:
+            parts.append(f"stall: {self.stall}")
         return ", ".join(parts)
 
 
@@ -148,6 +152,8 @@ def plan_faults(world: World) -> FaultPlan:
     loop.at(end, faults_stop, world)
     if world.options.lose_master:
         plan_failover(world, plan)
+    if world.options.stall_new_master:
+        plan_stall(world, plan)
     return plan
 
 
@@ -181,6 +187,26 @@ def plan_failover(world: World, plan: FaultPlan) -> None:
     else:
         plan.lose_master = mode
         world.loop.at(start, lose_master, world)
+
+
+def plan_stall(world: World, plan: FaultPlan) -> None:
+    """The stall fault, from a random stream of its own (every other draw of the seed
+    stays where it was): from a drawn moment, the next cooperative switch cuts the ring
+    from its new master for 0.5 to 3 times how long the drone lets a master go without
+    serving (``DroneCore.serve_within_s``); the new master's drone link stays up."""
+    rng = random.Random(f"stall {world.seed}")
+    length = world.drone.core.serve_within_s * rng.uniform(0.5, 3.0)
+    plan.stall = f"the ring cut from a new master for {length:.2f}s"
+    world.loop.at(rng.uniform(0.0, plan.fault_end), _arm, world, "stall on switch", length)
+
+
+def stall_ring(world: World, new_master: int, length: float) -> None:
+    """Cuts every ring link into and out of ``new_master`` for ``length`` seconds."""
+    pairs = [(cid, new_master) for cid in world.ring if cid != new_master]
+    world.trace(f"ring cut from new master {new_master} for {length:.3f}s")
+    for a, b in pairs:
+        world.net.cut(a, b)
+    world.loop.after(length, heal, world, pairs)
 
 
 def _arm(world: World, trigger: str, value: object) -> None:

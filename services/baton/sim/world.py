@@ -18,13 +18,13 @@ from dataclasses import dataclass, field
 
 import grpc
 
-from baton.controller.protocol import Effect, SendLog, State
+from baton.controller.protocol import ControllerProtocol, Effect, SendLog, State
 from baton.drone.dedupe import DEFAULT_WINDOW
 from baton.drone.sequencer import ScriptedHandover
 from baton.sim.controller import SimController
 from baton.sim.corridor import Corridor
 from baton.sim.drone import SimDrone
-from baton.sim.faults import FaultPlan, handover, plan_faults, survivable
+from baton.sim.faults import FaultPlan, handover, plan_faults, stall_ring, survivable
 from baton.sim.findings import FINDINGS
 from baton.sim.loop import Loop
 from baton.sim.mission import MissionCall, random_mission
@@ -67,6 +67,11 @@ class SimOptions:
     # a corridor of stations with radio range, and the drone's policy moves the master
     # by prepared handovers (corridor.py, policy_runner.py); None: no policy.
     policy: str | None = None
+    # The ring cut from a new master right after a cooperative switch, for a drawn time
+    # around how long the drone lets a master go without serving (its drone link stays
+    # up): the handover message cannot reach it, so it never connects
+    # (faults.plan_stall).
+    stall_new_master: bool = False
     # Known findings (findings.py) whose scenarios this run lets in.
     allow: frozenset[str] = frozenset()
     mutation: str | None = None
@@ -86,6 +91,8 @@ class SimOptions:
             parts.append("--prepared")
         if self.policy is not None:
             parts.append(f"--policy {self.policy}")
+        if self.stall_new_master:
+            parts.append("--stall-new-master")
         if self.takeover_after is not None:
             parts.append(f"--takeover-after {self.takeover_after:g}")
         if self.allow:
@@ -258,15 +265,15 @@ class World:
         """Controllers that are running now, by id."""
         return [c for _, c in sorted(self.controllers.items()) if c.alive]
 
-    def restart_controller(self, cid: int, given_up_epoch: int = 0) -> None:
+    def restart_controller(self, cid: int, fresh: ControllerProtocol | None = None) -> None:
         """Restarts controller ``cid`` with nothing: a fresh protocol, history and program.
 
-        A rejoin says the mastership its earlier self gave up (``given_up_epoch``,
-        ``ControllerProtocol.mastership_given_up``) from its first Connect on."""
+        A rejoin's protocol is the earlier self's ``fresh_self``."""
         if not self.controllers[cid].alive and cid not in self.lost:
             self.trace(f"controller {cid} restarts")
             controller = self._new_controller(cid)
-            controller.protocol.given_up_epoch = given_up_epoch
+            if fresh is not None:
+                controller.protocol = fresh
             controller.start()
             self.drone.standby_opened(cid)  # its standby stream: a TakeOver owed to it
             if self.programs_started:
@@ -286,7 +293,7 @@ class World:
         # a restarted master's whole log, then the handover messages that exist nowhere
         # else.
         upto = controller.protocol.kept_history()
-        given_up = controller.protocol.mastership_given_up()
+        fresh_protocol = controller.protocol.fresh_self()
         history = controller.history
         kept = [history.get(n) for n in history.above(0) if n <= upto]
         kept += controller.protocol.kept_for_rejoin()
@@ -295,7 +302,7 @@ class World:
             if not upto
             else f"rejoins as a replica with log messages 1-{upto}"
         )
-        self.restart_controller(controller.id, given_up)
+        self.restart_controller(controller.id, fresh_protocol)
         fresh = self.controllers[controller.id]
         if controller.replaced is not None:
             fresh.replaced = controller.replaced
@@ -336,7 +343,11 @@ class World:
         )
 
     def switched(self, record: HandoverRecord) -> None:
-        """The drone switched masters: the lose-master fault may strike now."""
+        """The drone switched masters: the lose-master or the stall fault may strike now."""
+        stall = self.failover.get("stall on switch")
+        if isinstance(stall, float) and record.kind == drone_pb2.HANDOVER_KIND_COOPERATIVE:
+            del self.failover["stall on switch"]
+            stall_ring(self, record.new_master, stall)
         strike = self.failover.pop("on switch", None)
         if (
             strike is not None and record.kind != drone_pb2.HANDOVER_KIND_TAKEOVER
@@ -398,7 +409,9 @@ class World:
         message and was not created by it: a history copy of the handover
         message its old master still has unacknowledged on the direct link.
         Taken as a normal message, it makes the direct one a duplicate, and
-        ``controller`` never takes over.
+        ``controller`` never takes over. A handover whose mastership the drone
+        has already ended (a later epoch there) gives no role to lose: one who
+        took it would be fenced at its Connect.
         """
         p = controller.protocol
         if (
@@ -411,7 +424,9 @@ class World:
         sender = self.controllers.get(message.sender)
         direct = sender.links.get(controller.id) if sender is not None and sender.alive else None
         kept = direct.unacked.get(message.lognr) if direct is not None else None
-        if kept is not None and kept.handover:  # settled ones give no role (F9)
+        if kept is None or not kept.handover:  # settled ones give no role (F9)
+            return
+        if self.drone.seq.epoch <= kept.epoch:
             what = (
                 f"F7: controller {controller.id} gets a copy of handover message "
                 f"{message.lognr} before the message itself"
