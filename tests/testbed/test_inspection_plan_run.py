@@ -151,3 +151,50 @@ def test_a_plan_edited_to_loop_once_more_diverges(run: dict[str, Any], tmp_path:
     )
     assert result.returncode == 1, result.stdout + result.stderr
     assert result.stdout.splitlines()[-1] == "0 clean, 3 diverged, 0 unreadable"
+
+
+@pytest.mark.parametrize(
+    ("end", "effect"), [("", ("set_mode", "HOLD")), ("end=land", ("land", None))]
+)
+def test_an_open_ended_plan_ends_as_the_run_chose(
+    tmp_path: Path, end: str, effect: tuple[str, str | None]
+) -> None:
+    takeoff = {
+        "type": "SimpleItem",
+        "command": 22,
+        "frame": 3,
+        "params": [0, 0, 0, None, 47.397742, 8.545594, 8],
+    }
+    waypoint = {
+        "type": "SimpleItem",
+        "command": 16,
+        "frame": 3,
+        "params": [0, 0, 0, None, 47.3979, 8.545594, 8],
+    }
+    plan = tmp_path / "open.plan"
+    plan.write_text(json.dumps({"fileType": "Plan", "mission": {"items": [takeoff, waypoint]}}))
+    chosen = ["--mission-arg", end] if end else []
+    report = tmp_path / "report.json"
+    result = baton(
+        "testbed",
+        "--mission",
+        str(plan),
+        *chosen,
+        "--speedup",
+        "20",
+        "--handover",
+        "8:1",
+        "--workdir",
+        str(tmp_path / "w"),
+        "--report",
+        str(report),
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    effects = json.loads(report.read_text())["side_effects"]
+    assert effects["exactly_once"] is True and effects["problems"] == [], effects
+    ends = [
+        e
+        for e in read_effects(tmp_path / "w" / "vehicle-effects.jsonl")
+        if e["effect"] in ("set_mode", "land", "return_to_launch")
+    ]
+    assert [(e["effect"], e.get("mode")) for e in ends] == [effect]
