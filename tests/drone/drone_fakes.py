@@ -30,6 +30,7 @@ class FakeMobility:
         self.gate: asyncio.Event | None = None
         # Ground velocity, m/s north and east (the handover policy reads it).
         self.velocity: tuple[float, float] | None = (0.0, 0.0)
+        self.roi: api.Position | None = None
 
     @property
     def connected(self) -> bool:
@@ -68,6 +69,23 @@ class FakeMobility:
             raise StatusError(grpc.StatusCode.ABORTED, "Takeoff: command denied (not armed)")
         self.position.relative_altitude_m = request.altitude_m
         return api.TakeoffReply()
+
+    def looking_at(self) -> api.Position | None:
+        return self.roi
+
+    async def SetRoiLocation(self, request: api.SetRoiLocationRequest) -> api.SetRoiLocationReply:
+        self._call("SetRoiLocation")
+        self.roi = api.Position(
+            latitude_deg=request.latitude_deg,
+            longitude_deg=request.longitude_deg,
+            relative_altitude_m=request.relative_altitude_m,
+        )
+        return api.SetRoiLocationReply()
+
+    async def ClearRoi(self, request: api.ClearRoiRequest) -> api.ClearRoiReply:
+        self._call("ClearRoi")
+        self.roi = None
+        return api.ClearRoiReply()
 
     async def Goto(self, request: api.GotoRequest) -> api.GotoReply:
         self._call("Goto")

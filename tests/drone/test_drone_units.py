@@ -106,7 +106,12 @@ def test_handover_script_missing_file(tmp_path) -> None:  # type: ignore[no-unty
 
 def test_routes_cover_every_drone_api_method() -> None:
     services = {name.split("/")[1] for name in ALL_METHODS}
-    assert services == {"baton.v1.Mobility", "baton.v1.Camera", "baton.v1.Clock"}
+    assert services == {
+        "baton.v1.Mobility",
+        "baton.v1.Camera",
+        "baton.v1.Gimbal",
+        "baton.v1.Clock",
+    }
     assert "/baton.v1.Mobility/GetPosition" in ALL_METHODS
 
 
@@ -130,6 +135,20 @@ async def test_dispatch_of_every_method(method: str) -> None:
     parsed = route.parse(request.SerializeToString())
     reply = await dispatcher.handler(route)(parsed)
     assert isinstance(reply, route.reply_type)
+
+
+async def test_the_gimbal_is_answered_by_the_vehicle_backend_and_aims_the_camera() -> None:
+    vehicle = FakeMobility()
+    camera = Camera(_zero_position, resolution=(16, 16), aim=vehicle.looking_at)
+    dispatcher = Dispatcher({"Mobility": vehicle, "Camera": camera})
+    set_roi = dispatcher.handler(dispatcher.route("/baton.v1.Gimbal/SetRoiLocation"))
+    await set_roi(api.SetRoiLocationRequest(latitude_deg=47.1, longitude_deg=8.2))
+    picture = await camera.TakePicture(api.TakePictureRequest())
+    assert picture.HasField("looking_at") and picture.looking_at.latitude_deg == 47.1
+    assert camera.effects.seq == 1
+    await dispatcher.handler(dispatcher.route("/baton.v1.Gimbal/ClearRoi"))(api.ClearRoiRequest())
+    assert not (await camera.TakePicture(api.TakePictureRequest())).HasField("looking_at")
+    assert vehicle.calls == ["SetRoiLocation", "ClearRoi"]
 
 
 def test_dispatch_unknown_method_and_bad_payload() -> None:

@@ -229,3 +229,30 @@ def test_the_retransmission_rule_in_time() -> None:
     rule.acted(arm, 10, arrived_at=30.0, acked_at=30.002)
     rule.acted(disarm, 11, arrived_at=30.1, acked_at=30.102)
     assert rule.original(arm, None, 30.6) is None
+
+
+def test_the_gimbal_points_at_a_region_of_interest_until_it_is_cleared(
+    vehicle: SimVehicle,
+) -> None:
+    lat, lon = 47.3978, 8.5457
+    with GroundStation(vehicle.port) as gcs:
+        gcs.say_hello()
+        # As MAVSDK's Gimbal.set_roi_location sends it (here in MAV_FRAME_GLOBAL: AMSL).
+        located = gcs.command_int(
+            mavlink.MAV_CMD_DO_SET_ROI_LOCATION, 0, x=int(lat * 1e7), y=int(lon * 1e7), z=490
+        )
+        assert located.result == ACCEPTED
+        looking = vehicle.state().looking_at
+        assert looking is not None and looking.altitude_amsl_m == pytest.approx(490)
+        assert gcs.command(mavlink.MAV_CMD_DO_SET_ROI_NONE).result == ACCEPTED
+        assert vehicle.state().looking_at is None
+        # DO_SET_ROI: location mode (3) points, none (0) clears, another mode is refused.
+        roi = mavlink.MAV_CMD_DO_SET_ROI
+        assert gcs.command(roi, 3, 0, 0, 0, lat, lon, 495).result == ACCEPTED
+        assert vehicle.state().looking_at is not None
+        assert gcs.command(roi, 1).result == mavlink.MAV_RESULT_DENIED
+        assert gcs.command(roi, 0).result == ACCEPTED
+        assert vehicle.state().looking_at is None
+    assert [e["effect"] for e in counted(vehicle)] == ["roi", "roi_none", "roi", "roi_none"]
+    first = counted(vehicle)[0]
+    assert (round(first["latitude_deg"], 6), round(first["longitude_deg"], 6)) == (lat, lon)

@@ -165,6 +165,23 @@ class Camera:
         return await self._call(calls.take_picture())
 
 
+class Gimbal:
+    """Where the camera points: a region of interest, until cleared."""
+
+    def __init__(self, call: _Caller) -> None:
+        self._call = call
+
+    async def set_roi_location(
+        self, target: Position, relative_altitude_m: float | None = None
+    ) -> None:
+        """Points the camera at ``target`` (at its relative altitude unless one is given)."""
+        await self._call(calls.set_roi_location(target, relative_altitude_m))
+
+    async def clear_roi(self) -> None:
+        """Clears the region of interest."""
+        await self._call(calls.clear_roi())
+
+
 class Clock:
     """Mission time: sleeps really only while the controller is the active master."""
 
@@ -195,6 +212,7 @@ class Drone:
         self._call = _Caller(self._channel, mission_token_metadata(token))
         self.mobility = Mobility(self._call)
         self.camera = Camera(self._call)
+        self.gimbal = Gimbal(self._call)
         self.clock = Clock(self._call)
 
     async def close(self, error: str = "") -> None:

@@ -205,6 +205,26 @@ def take_picture() -> Call[Picture]:
     return _call("Camera.TakePicture", api.TakePictureRequest(), Picture.from_proto)
 
 
+# Gimbal --------------------------------------------------------------------------------
+
+
+def set_roi_location(target: Position, relative_altitude_m: float | None = None) -> Call[None]:
+    """Points the camera at ``target`` (at its relative altitude unless one is given)
+    until the region of interest is cleared or set again."""
+    altitude = target.relative_altitude_m if relative_altitude_m is None else relative_altitude_m
+    request = api.SetRoiLocationRequest(
+        latitude_deg=target.latitude_deg,
+        longitude_deg=target.longitude_deg,
+        relative_altitude_m=altitude,
+    )
+    return _command("Gimbal.SetRoiLocation", request)
+
+
+def clear_roi() -> Call[None]:
+    """Clears the region of interest."""
+    return _command("Gimbal.ClearRoi", api.ClearRoiRequest())
+
+
 # Clock ---------------------------------------------------------------------------------
 
 

@@ -1,4 +1,4 @@
-"""The ``Drone`` handle: mobility, camera and clock, each call blocking until it returns.
+"""The ``Drone`` handle: mobility, camera, gimbal and clock, each call blocking until it returns.
 
 The calls themselves are in ``calls.py``, shared with the asyncio API (``aio.py``).
 """
@@ -157,6 +157,21 @@ class Camera:
         return self._call(calls.take_picture())
 
 
+class Gimbal:
+    """Where the camera points: a region of interest, until cleared."""
+
+    def __init__(self, call: _Caller) -> None:
+        self._call = call
+
+    def set_roi_location(self, target: Position, relative_altitude_m: float | None = None) -> None:
+        """Points the camera at ``target`` (at its relative altitude unless one is given)."""
+        self._call(calls.set_roi_location(target, relative_altitude_m))
+
+    def clear_roi(self) -> None:
+        """Clears the region of interest."""
+        self._call(calls.clear_roi())
+
+
 class Clock:
     """Mission time: sleeps really only while the controller is the active master."""
 
@@ -195,6 +210,7 @@ class Drone:
         self._call = _Caller(self._channel, mission_token_metadata(token))
         self.mobility = Mobility(self._call)
         self.camera = Camera(self._call)
+        self.gimbal = Gimbal(self._call)
         self.clock = Clock(self._call)
 
     def close(self, error: str = "") -> None:

@@ -64,10 +64,19 @@ class Picture:
     height: int
     position: Position
     sequence: int
+    # The region of interest the gimbal pointed at; None: it looked where the vehicle was.
+    looking_at: Position | None = None
 
     @classmethod
     def from_proto(cls, r: api.TakePictureReply) -> Picture:
         """From the wire message."""
+        looking_at = Position.from_proto(r.looking_at) if r.HasField("looking_at") else None
         return cls(
-            r.image, r.format, r.width, r.height, Position.from_proto(r.position), r.sequence
+            r.image,
+            r.format,
+            r.width,
+            r.height,
+            Position.from_proto(r.position),
+            r.sequence,
+            looking_at,
         )

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18\x62\x61ton/v1/drone_api.proto\x12\x08\x62\x61ton.v1\"q\n\x08Position\x12\x14\n\x0clatitude_deg\x18\x01 \x01(\x01\x12\x15\n\rlongitude_deg\x18\x02 \x01(\x01\x12\x1b\n\x13\x61\x62solute_altitude_m\x18\x03 \x01(\x01\x12\x1b\n\x13relative_altitude_m\x18\x04 \x01(\x01\"\x0c\n\nArmRequest\"\n\n\x08\x41rmReply\"\x0f\n\rDisarmRequest\"\r\n\x0b\x44isarmReply\"$\n\x0eTakeoffRequest\x12\x12\n\naltitude_m\x18\x01 \x01(\x01\"\x0e\n\x0cTakeoffReply\"\x95\x01\n\x0bGotoRequest\x12\x19\n\x0clatitude_deg\x18\x01 \x01(\x01H\x00\x88\x01\x01\x12\x1a\n\rlongitude_deg\x18\x02 \x01(\x01H\x01\x88\x01\x01\x12\x1b\n\x13relative_altitude_m\x18\x03 \x01(\x01\x12\x0f\n\x07yaw_deg\x18\x04 \x01(\x01\x42\x0f\n\r_latitude_degB\x10\n\x0e_longitude_deg\"\x0b\n\tGotoReply\"$\n\x0fSetSpeedRequest\x12\x11\n\tspeed_m_s\x18\x01 \x01(\x01\"\x0f\n\rSetSpeedReply\"\r\n\x0bHoldRequest\"\x0b\n\tHoldReply\"\r\n\x0bLandRequest\"\x0b\n\tLandReply\"\x17\n\x15ReturnToLaunchRequest\"\x15\n\x13ReturnToLaunchReply\"\x14\n\x12GetPositionRequest\"8\n\x10GetPositionReply\x12$\n\x08position\x18\x01 \x01(\x0b\x32\x12.baton.v1.Position\"\x10\n\x0eGetHomeRequest\"0\n\x0cGetHomeReply\x12 \n\x04home\x18\x01 \x01(\x0b\x32\x12.baton.v1.Position\"\x17\n\x15GetFlightStateRequest\"\xdd\x01\n\x13GetFlightStateReply\x12\r\n\x05\x61rmed\x18\x01 \x01(\x08\x12\x0e\n\x06in_air\x18\x02 \x01(\x08\x12\x13\n\x0b\x66light_mode\x18\x03 \x01(\t\x12\x17\n\x0f\x62\x61ttery_percent\x18\x04 \x01(\x01\x12\r\n\x05ready\x18\x05 \x01(\x08\x12\x14\n\x0clanded_state\x18\x06 \x01(\t\x12\x0f\n\x07\x61rmable\x18\x07 \x01(\x08\x12\x18\n\x10not_ready_reason\x18\x08 \x01(\t\x12\x16\n\x0e\x61utopilot_mode\x18\t \x01(\t\x12\x11\n\tautopilot\x18\n \x01(\t\"5\n\x14SetResolutionRequest\x12\r\n\x05width\x18\x01 \x01(\r\x12\x0e\n\x06height\x18\x02 \x01(\r\"3\n\x12SetResolutionReply\x12\r\n\x05width\x18\x01 \x01(\r\x12\x0e\n\x06height\x18\x02 \x01(\r\"\x14\n\x12TakePictureRequest\"\x88\x01\n\x10TakePictureReply\x12\r\n\x05image\x18\x01 \x01(\x0c\x12\x0e\n\x06\x66ormat\x18\x02 \x01(\t\x12\r\n\x05width\x18\x03 \x01(\r\x12\x0e\n\x06height\x18\x04 \x01(\r\x12$\n\x08position\x18\x05 \x01(\x0b\x32\x12.baton.v1.Position\x12\x10\n\x08sequence\x18\x06 \x01(\x04\"\x1f\n\x0cSleepRequest\x12\x0f\n\x07seconds\x18\x01 \x01(\x01\"\x0c\n\nSleepReply\"\x0c\n\nNowRequest\"\x1f\n\x08NowReply\x12\x13\n\x0bunix_time_s\x18\x01 \x01(\x01\"\x94\x01\n\x0b\x43\x61llFailure\x12\x0c\n\x04\x63ode\x18\x01 \x01(\x05\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\x35\n\x08metadata\x18\x03 \x03(\x0b\x32#.baton.v1.CallFailure.MetadataEntry\x1a/\n\rMetadataEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\x32\xb8\x05\n\x08Mobility\x12/\n\x03\x41rm\x12\x14.baton.v1.ArmRequest\x1a\x12.baton.v1.ArmReply\x12\x38\n\x06\x44isarm\x12\x17.baton.v1.DisarmRequest\x1a\x15.baton.v1.DisarmReply\x12;\n\x07Takeoff\x12\x18.baton.v1.TakeoffRequest\x1a\x16.baton.v1.TakeoffReply\x12\x32\n\x04Goto\x12\x15.baton.v1.GotoRequest\x1a\x13.baton.v1.GotoReply\x12>\n\x08SetSpeed\x12\x19.baton.v1.SetSpeedRequest\x1a\x17.baton.v1.SetSpeedReply\x12\x32\n\x04Hold\x12\x15.baton.v1.HoldRequest\x1a\x13.baton.v1.HoldReply\x12\x32\n\x04Land\x12\x15.baton.v1.LandRequest\x1a\x13.baton.v1.LandReply\x12P\n\x0eReturnToLaunch\x12\x1f.baton.v1.ReturnToLaunchRequest\x1a\x1d.baton.v1.ReturnToLaunchReply\x12G\n\x0bGetPosition\x12\x1c.baton.v1.GetPositionRequest\x1a\x1a.baton.v1.GetPositionReply\x12;\n\x07GetHome\x12\x18.baton.v1.GetHomeRequest\x1a\x16.baton.v1.GetHomeReply\x12P\n\x0eGetFlightState\x12\x1f.baton.v1.GetFlightStateRequest\x1a\x1d.baton.v1.GetFlightStateReply2\xa0\x01\n\x06\x43\x61mera\x12M\n\rSetResolution\x12\x1e.baton.v1.SetResolutionRequest\x1a\x1c.baton.v1.SetResolutionReply\x12G\n\x0bTakePicture\x12\x1c.baton.v1.TakePictureRequest\x1a\x1a.baton.v1.TakePictureReply2o\n\x05\x43lock\x12\x35\n\x05Sleep\x12\x16.baton.v1.SleepRequest\x1a\x14.baton.v1.SleepReply\x12/\n\x03Now\x12\x14.baton.v1.NowRequest\x1a\x12.baton.v1.NowReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18\x62\x61ton/v1/drone_api.proto\x12\x08\x62\x61ton.v1\"q\n\x08Position\x12\x14\n\x0clatitude_deg\x18\x01 \x01(\x01\x12\x15\n\rlongitude_deg\x18\x02 \x01(\x01\x12\x1b\n\x13\x61\x62solute_altitude_m\x18\x03 \x01(\x01\x12\x1b\n\x13relative_altitude_m\x18\x04 \x01(\x01\"\x0c\n\nArmRequest\"\n\n\x08\x41rmReply\"\x0f\n\rDisarmRequest\"\r\n\x0b\x44isarmReply\"$\n\x0eTakeoffRequest\x12\x12\n\naltitude_m\x18\x01 \x01(\x01\"\x0e\n\x0cTakeoffReply\"\x95\x01\n\x0bGotoRequest\x12\x19\n\x0clatitude_deg\x18\x01 \x01(\x01H\x00\x88\x01\x01\x12\x1a\n\rlongitude_deg\x18\x02 \x01(\x01H\x01\x88\x01\x01\x12\x1b\n\x13relative_altitude_m\x18\x03 \x01(\x01\x12\x0f\n\x07yaw_deg\x18\x04 \x01(\x01\x42\x0f\n\r_latitude_degB\x10\n\x0e_longitude_deg\"\x0b\n\tGotoReply\"$\n\x0fSetSpeedRequest\x12\x11\n\tspeed_m_s\x18\x01 \x01(\x01\"\x0f\n\rSetSpeedReply\"\r\n\x0bHoldRequest\"\x0b\n\tHoldReply\"\r\n\x0bLandRequest\"\x0b\n\tLandReply\"\x17\n\x15ReturnToLaunchRequest\"\x15\n\x13ReturnToLaunchReply\"\x14\n\x12GetPositionRequest\"8\n\x10GetPositionReply\x12$\n\x08position\x18\x01 \x01(\x0b\x32\x12.baton.v1.Position\"\x10\n\x0eGetHomeRequest\"0\n\x0cGetHomeReply\x12 \n\x04home\x18\x01 \x01(\x0b\x32\x12.baton.v1.Position\"\x17\n\x15GetFlightStateRequest\"\xdd\x01\n\x13GetFlightStateReply\x12\r\n\x05\x61rmed\x18\x01 \x01(\x08\x12\x0e\n\x06in_air\x18\x02 \x01(\x08\x12\x13\n\x0b\x66light_mode\x18\x03 \x01(\t\x12\x17\n\x0f\x62\x61ttery_percent\x18\x04 \x01(\x01\x12\r\n\x05ready\x18\x05 \x01(\x08\x12\x14\n\x0clanded_state\x18\x06 \x01(\t\x12\x0f\n\x07\x61rmable\x18\x07 \x01(\x08\x12\x18\n\x10not_ready_reason\x18\x08 \x01(\t\x12\x16\n\x0e\x61utopilot_mode\x18\t \x01(\t\x12\x11\n\tautopilot\x18\n \x01(\t\"5\n\x14SetResolutionRequest\x12\r\n\x05width\x18\x01 \x01(\r\x12\x0e\n\x06height\x18\x02 \x01(\r\"3\n\x12SetResolutionReply\x12\r\n\x05width\x18\x01 \x01(\r\x12\x0e\n\x06height\x18\x02 \x01(\r\"\x14\n\x12TakePictureRequest\"\xb0\x01\n\x10TakePictureReply\x12\r\n\x05image\x18\x01 \x01(\x0c\x12\x0e\n\x06\x66ormat\x18\x02 \x01(\t\x12\r\n\x05width\x18\x03 \x01(\r\x12\x0e\n\x06height\x18\x04 \x01(\r\x12$\n\x08position\x18\x05 \x01(\x0b\x32\x12.baton.v1.Position\x12\x10\n\x08sequence\x18\x06 \x01(\x04\x12&\n\nlooking_at\x18\x07 \x01(\x0b\x32\x12.baton.v1.Position\"\x8e\x01\n\x15SetRoiLocationRequest\x12\x19\n\x0clatitude_deg\x18\x01 \x01(\x01H\x00\x88\x01\x01\x12\x1a\n\rlongitude_deg\x18\x02 \x01(\x01H\x01\x88\x01\x01\x12\x1b\n\x13relative_altitude_m\x18\x03 \x01(\x01\x42\x0f\n\r_latitude_degB\x10\n\x0e_longitude_deg\"\x15\n\x13SetRoiLocationReply\"\x11\n\x0f\x43learRoiRequest\"\x0f\n\rClearRoiReply\"\x1f\n\x0cSleepRequest\x12\x0f\n\x07seconds\x18\x01 \x01(\x01\"\x0c\n\nSleepReply\"\x0c\n\nNowRequest\"\x1f\n\x08NowReply\x12\x13\n\x0bunix_time_s\x18\x01 \x01(\x01\"\x94\x01\n\x0b\x43\x61llFailure\x12\x0c\n\x04\x63ode\x18\x01 \x01(\x05\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\x35\n\x08metadata\x18\x03 \x03(\x0b\x32#.baton.v1.CallFailure.MetadataEntry\x1a/\n\rMetadataEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\t:\x02\x38\x01\x32\xb8\x05\n\x08Mobility\x12/\n\x03\x41rm\x12\x14.baton.v1.ArmRequest\x1a\x12.baton.v1.ArmReply\x12\x38\n\x06\x44isarm\x12\x17.baton.v1.DisarmRequest\x1a\x15.baton.v1.DisarmReply\x12;\n\x07Takeoff\x12\x18.baton.v1.TakeoffRequest\x1a\x16.baton.v1.TakeoffReply\x12\x32\n\x04Goto\x12\x15.baton.v1.GotoRequest\x1a\x13.baton.v1.GotoReply\x12>\n\x08SetSpeed\x12\x19.baton.v1.SetSpeedRequest\x1a\x17.baton.v1.SetSpeedReply\x12\x32\n\x04Hold\x12\x15.baton.v1.HoldRequest\x1a\x13.baton.v1.HoldReply\x12\x32\n\x04Land\x12\x15.baton.v1.LandRequest\x1a\x13.baton.v1.LandReply\x12P\n\x0eReturnToLaunch\x12\x1f.baton.v1.ReturnToLaunchRequest\x1a\x1d.baton.v1.ReturnToLaunchReply\x12G\n\x0bGetPosition\x12\x1c.baton.v1.GetPositionRequest\x1a\x1a.baton.v1.GetPositionReply\x12;\n\x07GetHome\x12\x18.baton.v1.GetHomeRequest\x1a\x16.baton.v1.GetHomeReply\x12P\n\x0eGetFlightState\x12\x1f.baton.v1.GetFlightStateRequest\x1a\x1d.baton.v1.GetFlightStateReply2\xa0\x01\n\x06\x43\x61mera\x12M\n\rSetResolution\x12\x1e.baton.v1.SetResolutionRequest\x1a\x1c.baton.v1.SetResolutionReply\x12G\n\x0bTakePicture\x12\x1c.baton.v1.TakePictureRequest\x1a\x1a.baton.v1.TakePictureReply2\x9a\x01\n\x06Gimbal\x12P\n\x0eSetRoiLocation\x12\x1f.baton.v1.SetRoiLocationRequest\x1a\x1d.baton.v1.SetRoiLocationReply\x12>\n\x08\x43learRoi\x12\x19.baton.v1.ClearRoiRequest\x1a\x17.baton.v1.ClearRoiReply2o\n\x05\x43lock\x12\x35\n\x05Sleep\x12\x16.baton.v1.SleepRequest\x1a\x14.baton.v1.SleepReply\x12/\n\x03Now\x12\x14.baton.v1.NowRequest\x1a\x12.baton.v1.NowReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -86,23 +86,33 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_TAKEPICTUREREQUEST']._serialized_start=1094
   _globals['_TAKEPICTUREREQUEST']._serialized_end=1114
   _globals['_TAKEPICTUREREPLY']._serialized_start=1117
-  _globals['_TAKEPICTUREREPLY']._serialized_end=1253
-  _globals['_SLEEPREQUEST']._serialized_start=1255
-  _globals['_SLEEPREQUEST']._serialized_end=1286
-  _globals['_SLEEPREPLY']._serialized_start=1288
-  _globals['_SLEEPREPLY']._serialized_end=1300
-  _globals['_NOWREQUEST']._serialized_start=1302
-  _globals['_NOWREQUEST']._serialized_end=1314
-  _globals['_NOWREPLY']._serialized_start=1316
-  _globals['_NOWREPLY']._serialized_end=1347
-  _globals['_CALLFAILURE']._serialized_start=1350
-  _globals['_CALLFAILURE']._serialized_end=1498
-  _globals['_CALLFAILURE_METADATAENTRY']._serialized_start=1451
-  _globals['_CALLFAILURE_METADATAENTRY']._serialized_end=1498
-  _globals['_MOBILITY']._serialized_start=1501
-  _globals['_MOBILITY']._serialized_end=2197
-  _globals['_CAMERA']._serialized_start=2200
-  _globals['_CAMERA']._serialized_end=2360
-  _globals['_CLOCK']._serialized_start=2362
-  _globals['_CLOCK']._serialized_end=2473
+  _globals['_TAKEPICTUREREPLY']._serialized_end=1293
+  _globals['_SETROILOCATIONREQUEST']._serialized_start=1296
+  _globals['_SETROILOCATIONREQUEST']._serialized_end=1438
+  _globals['_SETROILOCATIONREPLY']._serialized_start=1440
+  _globals['_SETROILOCATIONREPLY']._serialized_end=1461
+  _globals['_CLEARROIREQUEST']._serialized_start=1463
+  _globals['_CLEARROIREQUEST']._serialized_end=1480
+  _globals['_CLEARROIREPLY']._serialized_start=1482
+  _globals['_CLEARROIREPLY']._serialized_end=1497
+  _globals['_SLEEPREQUEST']._serialized_start=1499
+  _globals['_SLEEPREQUEST']._serialized_end=1530
+  _globals['_SLEEPREPLY']._serialized_start=1532
+  _globals['_SLEEPREPLY']._serialized_end=1544
+  _globals['_NOWREQUEST']._serialized_start=1546
+  _globals['_NOWREQUEST']._serialized_end=1558
+  _globals['_NOWREPLY']._serialized_start=1560
+  _globals['_NOWREPLY']._serialized_end=1591
+  _globals['_CALLFAILURE']._serialized_start=1594
+  _globals['_CALLFAILURE']._serialized_end=1742
+  _globals['_CALLFAILURE_METADATAENTRY']._serialized_start=1695
+  _globals['_CALLFAILURE_METADATAENTRY']._serialized_end=1742
+  _globals['_MOBILITY']._serialized_start=1745
+  _globals['_MOBILITY']._serialized_end=2441
+  _globals['_CAMERA']._serialized_start=2444
+  _globals['_CAMERA']._serialized_end=2604
+  _globals['_GIMBAL']._serialized_start=2607
+  _globals['_GIMBAL']._serialized_end=2761
+  _globals['_CLOCK']._serialized_start=2763
+  _globals['_CLOCK']._serialized_end=2874
 # @@protoc_insertion_point(module_scope)

@@ -3,9 +3,9 @@
 isort:skip_file
 The drone API that mission programs see.
 
-The same three services are served by the drone service (Mobility and
-Camera, reached through Drone.Invoke) and, as a transparent proxy, by every
-mission controller to its local mission program. Clock is answered by the
+The same four services are served by the drone service (Mobility, Camera
+and Gimbal, reached through Drone.Invoke) and, as a transparent proxy, by
+every mission controller to its local mission program. Clock is answered by the
 controller, never by the drone: its replies are logged like any other, so
 every replica of the mission program reads the same time.
 """
@@ -619,6 +619,7 @@ class TakePictureReply(_message.Message):
     HEIGHT_FIELD_NUMBER: _builtins.int
     POSITION_FIELD_NUMBER: _builtins.int
     SEQUENCE_FIELD_NUMBER: _builtins.int
+    LOOKING_AT_FIELD_NUMBER: _builtins.int
     image: _builtins.bytes
     """The encoded image."""
     format: _builtins.str
@@ -635,6 +636,13 @@ class TakePictureReply(_message.Message):
     def position(self) -> Global___Position:
         """Where the vehicle was when the picture was taken."""
 
+    @_builtins.property
+    def looking_at(self) -> Global___Position:
+        """Where the camera looked: the region of interest the gimbal pointed at
+        (Gimbal.SetRoiLocation); unset when none was set (the camera looked
+        where the vehicle was).
+        """
+
     def __init__(
         self,
         *,
@@ -644,14 +652,107 @@ class TakePictureReply(_message.Message):
         height: _builtins.int = ...,
         position: Global___Position | None = ...,
         sequence: _builtins.int = ...,
+        looking_at: Global___Position | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["position", b"position"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["looking_at", b"looking_at", "position", b"position"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["format", b"format", "height", b"height", "image", b"image", "position", b"position", "sequence", b"sequence", "width", b"width"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["format", b"format", "height", b"height", "image", b"image", "looking_at", b"looking_at", "position", b"position", "sequence", b"sequence", "width", b"width"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___TakePictureReply: _TypeAlias = TakePictureReply  # noqa: Y015
+
+@_typing.final
+class SetRoiLocationRequest(_message.Message):
+    """Point the camera at a location."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    LATITUDE_DEG_FIELD_NUMBER: _builtins.int
+    LONGITUDE_DEG_FIELD_NUMBER: _builtins.int
+    RELATIVE_ALTITUDE_M_FIELD_NUMBER: _builtins.int
+    latitude_deg: _builtins.float
+    """Latitude of the region of interest, degrees, in [-90, 90]; required
+    (optional only so that a request without it is refused).
+    """
+    longitude_deg: _builtins.float
+    """Longitude, degrees, in [-180, 180]; required, as latitude."""
+    relative_altitude_m: _builtins.float
+    """Altitude of the region of interest above home, metres (may be 0 or
+    negative: a point on the ground below the home position).
+    """
+    def __init__(
+        self,
+        *,
+        latitude_deg: _builtins.float | None = ...,
+        longitude_deg: _builtins.float | None = ...,
+        relative_altitude_m: _builtins.float = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_latitude_deg", b"_latitude_deg", "_longitude_deg", b"_longitude_deg", "latitude_deg", b"latitude_deg", "longitude_deg", b"longitude_deg"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_latitude_deg", b"_latitude_deg", "_longitude_deg", b"_longitude_deg", "latitude_deg", b"latitude_deg", "longitude_deg", b"longitude_deg", "relative_altitude_m", b"relative_altitude_m"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType__latitude_deg: _TypeAlias = _typing.Literal["latitude_deg"]  # noqa: Y015
+    _WhichOneofArgType__latitude_deg: _TypeAlias = _typing.Literal["_latitude_deg", b"_latitude_deg"]  # noqa: Y015
+    _WhichOneofReturnType__longitude_deg: _TypeAlias = _typing.Literal["longitude_deg"]  # noqa: Y015
+    _WhichOneofArgType__longitude_deg: _TypeAlias = _typing.Literal["_longitude_deg", b"_longitude_deg"]  # noqa: Y015
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__latitude_deg) -> _WhichOneofReturnType__latitude_deg | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__longitude_deg) -> _WhichOneofReturnType__longitude_deg | None: ...
+
+Global___SetRoiLocationRequest: _TypeAlias = SetRoiLocationRequest  # noqa: Y015
+
+@_typing.final
+class SetRoiLocationReply(_message.Message):
+    """The vehicle accepted the region of interest."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    def __init__(
+        self,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___SetRoiLocationReply: _TypeAlias = SetRoiLocationReply  # noqa: Y015
+
+@_typing.final
+class ClearRoiRequest(_message.Message):
+    """Clear the region of interest."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    def __init__(
+        self,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___ClearRoiRequest: _TypeAlias = ClearRoiRequest  # noqa: Y015
+
+@_typing.final
+class ClearRoiReply(_message.Message):
+    """The vehicle cleared it."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    def __init__(
+        self,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___ClearRoiReply: _TypeAlias = ClearRoiReply  # noqa: Y015
 
 @_typing.final
 class SleepRequest(_message.Message):

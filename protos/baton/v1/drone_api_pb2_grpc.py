@@ -673,6 +673,132 @@ class Camera:
             _registered_method=True)
 
 
+class GimbalStub:
+    """Where the camera's gimbal points. The gimbal is reached over the vehicle's
+    own MAVLink link, so the drone's vehicle backend answers these calls.
+    """
+
+    def __init__(self, channel):
+        """Constructor.
+
+        Args:
+            channel: A grpc.Channel.
+        """
+        self.SetRoiLocation = channel.unary_unary(
+                '/baton.v1.Gimbal/SetRoiLocation',
+                request_serializer=baton_dot_v1_dot_drone__api__pb2.SetRoiLocationRequest.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_drone__api__pb2.SetRoiLocationReply.FromString,
+                _registered_method=True)
+        self.ClearRoi = channel.unary_unary(
+                '/baton.v1.Gimbal/ClearRoi',
+                request_serializer=baton_dot_v1_dot_drone__api__pb2.ClearRoiRequest.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_drone__api__pb2.ClearRoiReply.FromString,
+                _registered_method=True)
+
+
+class GimbalServicer:
+    """Where the camera's gimbal points. The gimbal is reached over the vehicle's
+    own MAVLink link, so the drone's vehicle backend answers these calls.
+    """
+
+    def SetRoiLocation(self, request, context):
+        """Points the camera at a location (a region of interest) until the ROI is
+        cleared or set again (MAV_CMD_DO_SET_ROI_LOCATION). The vehicle may also
+        turn to face it.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def ClearRoi(self, request, context):
+        """Clears the region of interest: the camera points as it did before
+        (MAV_CMD_DO_SET_ROI_NONE).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+
+def add_GimbalServicer_to_server(servicer, server):
+    rpc_method_handlers = {
+            'SetRoiLocation': grpc.unary_unary_rpc_method_handler(
+                    servicer.SetRoiLocation,
+                    request_deserializer=baton_dot_v1_dot_drone__api__pb2.SetRoiLocationRequest.FromString,
+                    response_serializer=baton_dot_v1_dot_drone__api__pb2.SetRoiLocationReply.SerializeToString,
+            ),
+            'ClearRoi': grpc.unary_unary_rpc_method_handler(
+                    servicer.ClearRoi,
+                    request_deserializer=baton_dot_v1_dot_drone__api__pb2.ClearRoiRequest.FromString,
+                    response_serializer=baton_dot_v1_dot_drone__api__pb2.ClearRoiReply.SerializeToString,
+            ),
+    }
+    generic_handler = grpc.method_handlers_generic_handler(
+            'baton.v1.Gimbal', rpc_method_handlers)
+    server.add_generic_rpc_handlers((generic_handler,))
+    server.add_registered_method_handlers('baton.v1.Gimbal', rpc_method_handlers)
+
+
+ # This class is part of an EXPERIMENTAL API.
+class Gimbal:
+    """Where the camera's gimbal points. The gimbal is reached over the vehicle's
+    own MAVLink link, so the drone's vehicle backend answers these calls.
+    """
+
+    @staticmethod
+    def SetRoiLocation(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/baton.v1.Gimbal/SetRoiLocation',
+            baton_dot_v1_dot_drone__api__pb2.SetRoiLocationRequest.SerializeToString,
+            baton_dot_v1_dot_drone__api__pb2.SetRoiLocationReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def ClearRoi(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/baton.v1.Gimbal/ClearRoi',
+            baton_dot_v1_dot_drone__api__pb2.ClearRoiRequest.SerializeToString,
+            baton_dot_v1_dot_drone__api__pb2.ClearRoiReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+
 class ClockStub:
     """Time, as the mission program sees it. Answered by the controller.
 

@@ -3,9 +3,9 @@
 isort:skip_file
 The drone API that mission programs see.
 
-The same three services are served by the drone service (Mobility and
-Camera, reached through Drone.Invoke) and, as a transparent proxy, by every
-mission controller to its local mission program. Clock is answered by the
+The same four services are served by the drone service (Mobility, Camera
+and Gimbal, reached through Drone.Invoke) and, as a transparent proxy, by
+every mission controller to its local mission program. Clock is answered by the
 controller, never by the drone: its replies are logged like any other, so
 every replica of the mission program reads the same time.
 """
@@ -241,6 +241,70 @@ class CameraServicer(metaclass=_abc_1.ABCMeta):
         """Takes a picture and returns its bytes."""
 
 def add_CameraServicer_to_server(servicer: CameraServicer, server: _typing.Union[_grpc.Server, _aio.Server]) -> None: ...
+
+class GimbalStub:
+    """Where the camera's gimbal points. The gimbal is reached over the vehicle's
+    own MAVLink link, so the drone's vehicle backend answers these calls.
+    """
+
+    @_typing.overload
+    def __new__(cls, channel: _grpc.Channel) -> _Self: ...
+    @_typing.overload
+    def __new__(cls, channel: _aio.Channel) -> GimbalAsyncStub: ...
+    SetRoiLocation: _grpc.UnaryUnaryMultiCallable[_drone_api_pb2.SetRoiLocationRequest, _drone_api_pb2.SetRoiLocationReply]
+    """Points the camera at a location (a region of interest) until the ROI is
+    cleared or set again (MAV_CMD_DO_SET_ROI_LOCATION). The vehicle may also
+    turn to face it.
+    """
+    ClearRoi: _grpc.UnaryUnaryMultiCallable[_drone_api_pb2.ClearRoiRequest, _drone_api_pb2.ClearRoiReply]
+    """Clears the region of interest: the camera points as it did before
+    (MAV_CMD_DO_SET_ROI_NONE).
+    """
+
+@_typing.type_check_only
+class GimbalAsyncStub(GimbalStub):
+    """Where the camera's gimbal points. The gimbal is reached over the vehicle's
+    own MAVLink link, so the drone's vehicle backend answers these calls.
+    """
+
+    def __init__(self, channel: _aio.Channel) -> None: ...
+    SetRoiLocation: _aio.UnaryUnaryMultiCallable[_drone_api_pb2.SetRoiLocationRequest, _drone_api_pb2.SetRoiLocationReply]  # type: ignore[assignment]
+    """Points the camera at a location (a region of interest) until the ROI is
+    cleared or set again (MAV_CMD_DO_SET_ROI_LOCATION). The vehicle may also
+    turn to face it.
+    """
+    ClearRoi: _aio.UnaryUnaryMultiCallable[_drone_api_pb2.ClearRoiRequest, _drone_api_pb2.ClearRoiReply]  # type: ignore[assignment]
+    """Clears the region of interest: the camera points as it did before
+    (MAV_CMD_DO_SET_ROI_NONE).
+    """
+
+class GimbalServicer(metaclass=_abc_1.ABCMeta):
+    """Where the camera's gimbal points. The gimbal is reached over the vehicle's
+    own MAVLink link, so the drone's vehicle backend answers these calls.
+    """
+
+    @_abc_1.abstractmethod
+    def SetRoiLocation(
+        self,
+        request: _drone_api_pb2.SetRoiLocationRequest,
+        context: _ServicerContext,
+    ) -> _typing.Union[_drone_api_pb2.SetRoiLocationReply, _abc.Awaitable[_drone_api_pb2.SetRoiLocationReply]]:
+        """Points the camera at a location (a region of interest) until the ROI is
+        cleared or set again (MAV_CMD_DO_SET_ROI_LOCATION). The vehicle may also
+        turn to face it.
+        """
+
+    @_abc_1.abstractmethod
+    def ClearRoi(
+        self,
+        request: _drone_api_pb2.ClearRoiRequest,
+        context: _ServicerContext,
+    ) -> _typing.Union[_drone_api_pb2.ClearRoiReply, _abc.Awaitable[_drone_api_pb2.ClearRoiReply]]:
+        """Clears the region of interest: the camera points as it did before
+        (MAV_CMD_DO_SET_ROI_NONE).
+        """
+
+def add_GimbalServicer_to_server(servicer: GimbalServicer, server: _typing.Union[_grpc.Server, _aio.Server]) -> None: ...
 
 class ClockStub:
     """Time, as the mission program sees it. Answered by the controller.

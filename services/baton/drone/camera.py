@@ -43,6 +43,8 @@ THUMBNAIL_SIDE = 96
 MAX_THUMBNAILS = 500
 
 PositionSource = Callable[[], Awaitable[api.Position]]
+# Where the gimbal points now: the vehicle's region of interest, None when none is set.
+AimSource = Callable[[], api.Position | None]
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
@@ -119,7 +121,8 @@ class Camera:
     ``effects_file``: where each picture produced is counted (seq, time,
     resolution, bytes, where it was taken); None counts in memory only
     (``effects.seq``). ``thumbnails_dir``: where to keep each picture's thumbnail
-    (``thumbnail_name``); None keeps none.
+    (``thumbnail_name``); None keeps none. ``aim``: where the gimbal points (the
+    vehicle backend's ``looking_at``), recorded with each picture as where it looked.
     """
 
     def __init__(
@@ -129,8 +132,10 @@ class Camera:
         resolution: tuple[int, int] = DEFAULT_RESOLUTION,
         effects_file: str | Path | None = None,
         thumbnails_dir: str | Path | None = None,
+        aim: AimSource | None = None,
     ) -> None:
         check_resolution(*resolution)
+        self._aim = aim
         self.thumbnails_dir = Path(thumbnails_dir) if thumbnails_dir is not None else None
         self.thumbnails = 0  # kept by this process (MAX_THUMBNAILS at most)
         if self.thumbnails_dir is not None:
@@ -169,14 +174,20 @@ class Camera:
             )
         return self._cached[1]
 
-    def picture(self, where: api.Position | None = None) -> tuple[bytes, int]:
+    def picture(
+        self, where: api.Position | None = None, looking_at: api.Position | None = None
+    ) -> tuple[bytes, int]:
         """The next picture's bytes and its effects sequence number, counted in the effects
-        file (with ``where`` it was taken, if known); advances the sequence number."""
+        file (with ``where`` it was taken, if known, and the region of interest it
+        ``looking_at``, if one was set); advances the sequence number."""
         image = self._produce()
         width, height = self.resolution
-        place = {}
+        place: dict[str, float] = {}
         if where is not None and (where.latitude_deg or where.longitude_deg):
             place = {"latitude_deg": where.latitude_deg, "longitude_deg": where.longitude_deg}
+        if looking_at is not None:
+            place["looking_at_latitude_deg"] = looking_at.latitude_deg
+            place["looking_at_longitude_deg"] = looking_at.longitude_deg
         seq = self.effects.record(
             "picture", resolution=f"{width}x{height}", bytes=len(image), **place
         )
@@ -222,9 +233,11 @@ class Camera:
         return api.SetResolutionReply(width=width, height=height)
 
     async def TakePicture(self, request: api.TakePictureRequest) -> api.TakePictureReply:
-        """A picture with the vehicle's position and its sequence number."""
+        """A picture with the vehicle's position, where the gimbal pointed (if at a region
+        of interest) and its sequence number."""
         position = await self._position()
-        image, seq = self.picture(position)
+        looking_at = self._aim() if self._aim is not None else None
+        image, seq = self.picture(position, looking_at)
         width, height = self.resolution
         sequence = self.sequence
         await self._keep_thumbnail(image, seq)
@@ -235,4 +248,5 @@ class Camera:
             height=height,
             position=position,
             sequence=sequence,
+            looking_at=looking_at,
         )

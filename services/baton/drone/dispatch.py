@@ -21,13 +21,17 @@ from baton.rpc.methods import Method, drone_api, path
 Handler = Callable[[Any], Awaitable[Message]]
 # A drone-API method as the dispatcher routes it (the one table: rpc/methods.py).
 Route = Method
+# Services answered by another service's implementation: the gimbal is reached over
+# the vehicle's own MAVLink link, so the vehicle backend (MAVSDK) answers it too.
+ANSWERED_BY = {"Gimbal": "Mobility"}
 
 
 class Dispatcher:
     """Finds the route of a method and the coroutine that executes it.
 
     ``implementations`` maps a service name to the object with one coroutine
-    per RPC, named as in the proto (the Mobility backend, the camera).
+    per RPC, named as in the proto (the Mobility backend, the camera); a service
+    not in it is answered by the one ``ANSWERED_BY`` names, if any.
     """
 
     def __init__(self, implementations: Mapping[str, object]) -> None:
@@ -53,6 +57,8 @@ class Dispatcher:
     def handler(self, route: Route) -> Handler:
         """The coroutine function for ``route``; UNIMPLEMENTED if its service lacks it."""
         implementation = self._implementations.get(route.service)
+        if implementation is None and route.service in ANSWERED_BY:
+            implementation = self._implementations.get(ANSWERED_BY[route.service])
         handler = getattr(implementation, route.name, None)
         if handler is None:
             raise StatusError(

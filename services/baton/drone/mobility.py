@@ -19,6 +19,12 @@ first time a backend starts on it (``MavsdkRuntime``, shared by the process's
 backends and given to each). What MAVSDK's Action does not do right on
 ArduPilot is done beside it with raw MAVLink commands (``MavlinkDirect``):
 GUIDED before arming, the cruise speed re-applied after every goto.
+
+The Gimbal service is answered here too (the gimbal is reached over the same
+link): a region of interest through MAVSDK's Gimbal plugin, addressed to all
+gimbal managers (gimbal id 0: no gimbal discovery needed; the autopilot is the
+manager of a gimbal it drives, and points the vehicle's yaw where it has none),
+and cleared with a raw ``MAV_CMD_DO_SET_ROI_NONE``, which that plugin lacks.
 """
 
 from __future__ import annotations
@@ -217,6 +223,9 @@ class MavsdkMobility:
         self._action: Any = None
         self._telemetry: Any = None
         self._direct: Any = None
+        self._gimbal: Any = None
+        # The region of interest the autopilot accepted last (None: none, or cleared).
+        self._roi: api.Position | None = None
         self._system_id = 0
         self._tasks: list[asyncio.Task[None]] = []
         # Latest value of each telemetry stream, by name; filled by subscriptions.
@@ -290,6 +299,7 @@ class MavsdkMobility:
 
     async def _attach(self) -> None:
         from mavsdk.asyncio.plugins.action import ActionAsync
+        from mavsdk.asyncio.plugins.gimbal import GimbalAsync
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
@@ -300,6 +310,7 @@ class MavsdkMobility:
         self._system_id = await system.get_system_id()
         self._telemetry = telemetry = TelemetryAsync(system)
         self._direct = MavlinkDirectAsync(system)
+        self._gimbal = GimbalAsync(system)
         for name, stream in (
             ("position", telemetry.subscribe_position),
             ("velocity", telemetry.subscribe_velocity_ned),
@@ -451,13 +462,14 @@ class MavsdkMobility:
             )
 
     async def _command(self, what: str, call: Callable[[], Awaitable[T]]) -> T:
-        """Runs one MAVSDK action, mapping its failure to a StatusError."""
+        """Runs one MAVSDK action (or gimbal command), mapping its failure to a StatusError."""
         from mavsdk.plugins.action import ActionError
+        from mavsdk.plugins.gimbal import GimbalError
 
         self._require_connected()
         try:
             return await asyncio.wait_for(call(), self.command_timeout_s)
-        except ActionError as exc:
+        except (ActionError, GimbalError) as exc:
             raise StatusError(
                 _status_of_action_error(exc.result.name),
                 f"vehicle at {self.url} refused {what}: {exc}",
@@ -700,3 +712,48 @@ class MavsdkMobility:
             autopilot_mode=heartbeat.mode_name() if heartbeat else "UNKNOWN",
             autopilot=heartbeat.autopilot_name() if heartbeat else "UNKNOWN",
         )
+
+    # --- Gimbal RPCs ---------------------------------------------------------------------
+
+    def looking_at(self) -> api.Position | None:
+        """The region of interest the autopilot accepted last; None if none is set."""
+        return self._roi
+
+    async def SetRoiLocation(self, request: api.SetRoiLocationRequest) -> api.SetRoiLocationReply:
+        """Points the camera at a location, through MAVSDK's Gimbal plugin:
+        MAV_CMD_DO_SET_ROI_LOCATION (a COMMAND_INT) to every gimbal manager.
+
+        MAVSDK sends it in MAV_FRAME_GLOBAL_RELATIVE_ALT (its CommandInt's default
+        frame, which set_roi_location leaves), so the altitude given is above home."""
+        for name in ("latitude_deg", "longitude_deg"):
+            if not request.HasField(name):
+                raise StatusError(
+                    grpc.StatusCode.INVALID_ARGUMENT,
+                    f"SetRoiLocation: {name} is missing; a region of interest needs both "
+                    "latitude_deg and longitude_deg",
+                )
+        _require_range("latitude_deg", request.latitude_deg, -90.0, 90.0)
+        _require_range("longitude_deg", request.longitude_deg, -180.0, 180.0)
+        _require_finite("relative_altitude_m", request.relative_altitude_m)
+        home = self._cached("home")
+        absolute = home.absolute_altitude_m + request.relative_altitude_m
+        await self._command(
+            "set region of interest",
+            lambda: self._gimbal.set_roi_location(
+                0, request.latitude_deg, request.longitude_deg, request.relative_altitude_m
+            ),
+        )
+        self._roi = api.Position(
+            latitude_deg=request.latitude_deg,
+            longitude_deg=request.longitude_deg,
+            absolute_altitude_m=absolute,
+            relative_altitude_m=request.relative_altitude_m,
+        )
+        return api.SetRoiLocationReply()
+
+    async def ClearRoi(self, request: api.ClearRoiRequest) -> api.ClearRoiReply:
+        """Clears the region of interest (MAV_CMD_DO_SET_ROI_NONE, all gimbals)."""
+        self._require_connected()
+        await self._raw_command("clear region of interest", mavlink.MAV_CMD_DO_SET_ROI_NONE, 0)
+        self._roi = None
+        return api.ClearRoiReply()

@@ -1,7 +1,7 @@
 """What the drone service needs from a vehicle backend (MAVSDK in practice).
 
-The drone service dispatches ``/baton.v1.Mobility/*`` calls to an object with
-one coroutine per RPC of the Mobility service, named as in the proto, taking
+The drone service dispatches ``/baton.v1.Mobility/*`` and ``/baton.v1.Gimbal/*``
+calls to an object with one coroutine per RPC of those services, named as in the proto, taking
 the request message and returning the reply message. A failure is raised as
 ``baton.rpc.errors.StatusError`` with the right status code and, for
 autopilot refusals, MAVSDK's own reason in the message.
@@ -37,6 +37,10 @@ class MobilityBackend(Protocol):
         """The vehicle's ground velocity now, metres per second north and east, from the
         telemetry cache; None while it is not known (the handover policy's input)."""
 
+    def looking_at(self) -> api.Position | None:
+        """The region of interest the gimbal points at (Gimbal.SetRoiLocation accepted
+        last, not cleared since); None if none is set. The camera records it."""
+
     async def Arm(self, request: api.ArmRequest) -> api.ArmReply: ...
     async def Disarm(self, request: api.DisarmRequest) -> api.DisarmReply: ...
     async def Takeoff(self, request: api.TakeoffRequest) -> api.TakeoffReply: ...
@@ -52,3 +56,9 @@ class MobilityBackend(Protocol):
     async def GetFlightState(
         self, request: api.GetFlightStateRequest
     ) -> api.GetFlightStateReply: ...
+
+    # The Gimbal service (reached over the same link; drone/dispatch.py ANSWERED_BY).
+    async def SetRoiLocation(
+        self, request: api.SetRoiLocationRequest
+    ) -> api.SetRoiLocationReply: ...
+    async def ClearRoi(self, request: api.ClearRoiRequest) -> api.ClearRoiReply: ...

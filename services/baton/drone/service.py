@@ -1063,6 +1063,7 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         settings.resolution,
         settings.camera_effects_file,
         settings.thumbnails_dir,
+        aim=vehicle.looking_at,  # where the gimbal points: a picture records it
     )
     sequencer = Sequencer(
         settings.controllers,

@@ -30,9 +30,9 @@ from baton.v1 import drone_api_pb2, ring_pb2
 
 # Services the drone answers itself; Clock is answered by the controller so
 # that every replica of a mission program reads the same (logged) time.
-DRONE_SERVICES = ("Mobility", "Camera")
+DRONE_SERVICES = ("Mobility", "Camera", "Gimbal")
 CONTROLLER_SERVICES = ("Clock",)
-# The drone API a mission program calls (the controller proxies all three).
+# The drone API a mission program calls (the controller proxies all of it).
 DRONE_API_SERVICES = (*DRONE_SERVICES, *CONTROLLER_SERVICES)
 # Where each service is described: the drone API, then the controller ring.
 _CONTRACTS = (drone_api_pb2, ring_pb2)
@@ -129,7 +129,7 @@ def service_full_name(service_name: str) -> str:
 
 @cache
 def drone_api() -> Mapping[str, Method]:
-    """Every method of the drone API (Mobility, Camera, Clock), by gRPC path."""
+    """Every method of the drone API (Mobility, Camera, Gimbal, Clock), by gRPC path."""
     table: dict[str, Method] = {}
     for service_name in DRONE_API_SERVICES:
         service = drone_api_pb2.DESCRIPTOR.services_by_name[service_name]

@@ -14,6 +14,13 @@ extended state, GPS, battery; arm, takeoff, land, mode, reposition, speed,
 RTL, message requests and intervals; the parameter protocol for
 MIS_TAKEOFF_ALT). Unknown commands get COMMAND_ACK UNSUPPORTED.
 
+It has a gimbal, which it manages itself as an autopilot does: a region of
+interest (``MAV_CMD_DO_SET_ROI_LOCATION``, ``MAV_CMD_DO_SET_ROI`` in location
+mode) points it at a location until ``MAV_CMD_DO_SET_ROI_NONE`` (or
+``DO_SET_ROI`` mode none) clears it; ``state().looking_at`` is where it
+points, and each change is counted as a flight command is (``roi``,
+``roi_none``).
+
 Two habits of a real ArduPilot that the project must not forget, kept here
 (docs/design.md, "The real autopilot"):
 
@@ -140,6 +147,12 @@ _SO_TIMESTAMPNS = 35
 _TIMESPEC = struct.Struct("@ll")
 
 PARAM_TAKEOFF_ALT = "MIS_TAKEOFF_ALT"
+# The region-of-interest commands its gimbal obeys.
+ROI_COMMANDS = (
+    mavlink.MAV_CMD_DO_SET_ROI_LOCATION,
+    mavlink.MAV_CMD_DO_SET_ROI,
+    mavlink.MAV_CMD_DO_SET_ROI_NONE,
+)
 FORCE_DISARM_MAGIC = 21196
 
 
@@ -162,6 +175,7 @@ class VehicleState:
     battery_pct: float
     time_s: float
     peers: int
+    looking_at: GeoPoint | None = None  # the gimbal's region of interest, if one is set
 
     def as_fields(self) -> dict[str, Any]:
         """The state as flat log fields."""
@@ -242,6 +256,8 @@ class SimVehicle:
         self._intervals = {msg_id: DEFAULT_INTERVALS_S[msg_id] for msg_id in UNASKED_STREAMS}
         self._next_due: dict[int, float] = {}
         self._last_reported: tuple[Any, ...] | None = None
+        # The gimbal's region of interest (AMSL); None: it looks where the vehicle goes.
+        self._roi: GeoPoint | None = None
         self.port = 0
         self._log = logs.get_logger("sim_vehicle", system_id=system_id)
 
@@ -322,6 +338,7 @@ class SimVehicle:
             battery_pct=k.battery_pct,
             time_s=k.time_s,
             peers=len(self._sink.peers) if self._sink else 0,
+            looking_at=self._roi,
         )
 
     # --- the vehicle's thread ------------------------------------------------------
@@ -682,6 +699,8 @@ class SimVehicle:
                         "altitude_amsl_m": round(target.altitude_amsl_m, 3),
                     },
                 )
+            elif command in ROI_COMMANDS:
+                effect = self._point_gimbal(command, p, p7, frame, x, y)
             elif command == mavlink.MAV_CMD_DO_CHANGE_SPEED:
                 if p[1] > 0:
                     k.set_speed(p[1])
@@ -714,6 +733,37 @@ class SimVehicle:
                 # Before the ACK, so the reason is there when the refusal arrives.
                 self._send_prearm_failure(str(refusal))
         return result, after_ack, effect
+
+    def _point_gimbal(
+        self,
+        command: int,
+        p: list[float],
+        p7: float,
+        frame: int | None,
+        x: int | None,
+        y: int | None,
+    ) -> tuple[str, dict[str, Any]]:
+        """Sets or clears the gimbal's region of interest; the effect to count."""
+        mode = mavlink.MAV_ROI_LOCATION
+        if command == mavlink.MAV_CMD_DO_SET_ROI_NONE:
+            mode = mavlink.MAV_ROI_NONE
+        elif command == mavlink.MAV_CMD_DO_SET_ROI:
+            mode = _required_int(p[0], "param1 (ROI mode)")
+        if mode == mavlink.MAV_ROI_NONE:
+            self._roi = None
+            return ("roi_none", {})
+        if mode != mavlink.MAV_ROI_LOCATION:
+            raise Refused(f"ROI mode {mode} is not supported by the sim vehicle (location is)")
+        target = self._reposition_target(p, p7, frame, x, y)
+        self._roi = target
+        return (
+            "roi",
+            {
+                "latitude_deg": target.latitude_deg,
+                "longitude_deg": target.longitude_deg,
+                "altitude_amsl_m": round(target.altitude_amsl_m, 3),
+            },
+        )
 
     def _set_mode(self, main: int, sub: int) -> None:
         k = self._kinematics

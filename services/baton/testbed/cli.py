@@ -247,7 +247,8 @@ def _mission(mission: str, pairs: list[str]) -> tuple[Path | None, tuple[str, ..
     flight_plan = None
     if path.suffix != ".py":  # a QGroundControl plan, flown by the plan mission
         try:
-            plan_mission.load_plan(str(path))
+            ends = [p.partition("=")[2] for p in pairs if p.startswith("end=")]
+            plan_mission.load_plan(str(path), ends[-1] if ends else "")
         except plan_mission.PlanError as exc:
             raise ValueError(f"--mission {mission}: {exc}") from None
         flight_plan = path.resolve()

@@ -151,13 +151,15 @@ def check_plan_effects(snapshot: Snapshot, plan: Plan, pictures_asked: int) -> d
     if vehicle is not None:
         counts = Counter(e["effect"] for e in vehicle)
         commands = dict(sorted(counts.items()))
-        # MAVSDK returns to launch by the autopilot's RTL mode, not by the command.
-        counts["return_to_launch"] += sum(
-            1 for e in vehicle if e["effect"] == "set_mode" and e["mode"] == "RETURN_TO_LAUNCH"
-        )
-        for name in ("arm", "takeoff", plan.end or "land"):
+        # MAVSDK returns to launch and holds by the autopilot's modes, not by commands.
+        for name, mode in (("return_to_launch", "RETURN_TO_LAUNCH"), ("hold", "HOLD")):
+            counts[name] += sum(
+                1 for e in vehicle if e["effect"] == "set_mode" and e["mode"] == mode
+            )
+        for name in ("arm", "takeoff", plan.end):
             if counts[name] != 1:
                 problems.append(f"the vehicle acted on {counts[name]} {name} commands, not 1")
+        problems += _steps_problems(vehicle, plan)
         gotos = [e for e in vehicle if e["effect"] == "goto"]
         wanted = plan.waypoints
         if len(gotos) != len(wanted):
@@ -178,6 +180,27 @@ def check_plan_effects(snapshot: Snapshot, plan: Plan, pictures_asked: int) -> d
                 )
                 break  # the first one out of order says it; the rest follow from it
     return _effects(pictures, expected, commands, problems)
+
+
+def _steps_problems(vehicle: Effects, plan: Plan) -> list[str]:
+    """What is off in the order of the gotos and regions of interest the vehicle acted
+    on, against the plan's (its loops expanded: each waypoint once a lap, the ROI set
+    and cleared between the waypoints the plan puts it)."""
+    names = {name for name, _ in plan.vehicle_steps}
+    acted = [e["effect"] for e in vehicle if e["effect"] in names | {"roi", "roi_none"}]
+    wanted = [name for name, _ in plan.vehicle_steps]
+    if acted == wanted:
+        return []
+    k = next(
+        (k for k, (a, w) in enumerate(zip(acted, wanted, strict=False)) if a != w),
+        min(len(acted), len(wanted)),
+    )
+    where = plan.vehicle_steps[k][1].where if k < len(wanted) else "after the plan's last step"
+    return [
+        f"the vehicle's {k + 1}th step was {acted[k] if k < len(acted) else 'missing'}; the "
+        f"plan's is {wanted[k] if k < len(wanted) else 'none'} ({where}); it acted on "
+        f"{len(acted)} steps of the plan's {len(wanted)}"
+    ]
 
 
 def _effects(

@@ -147,7 +147,13 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     )
     started = time.monotonic()
     testbed = LocalTestbed(plan, workdir)
-    flight_plan = load_plan(str(plan.flight_plan)) if plan.flight_plan is not None else None
+    # The plan as the mission flies it: with the run's end=... if it was given one.
+    end = [a.partition("=")[2] for a in plan.all_mission_args() if a.startswith("end=")]
+    flight_plan = (
+        load_plan(str(plan.flight_plan), end[-1] if end else "")
+        if plan.flight_plan is not None
+        else None
+    )
     try:
         # A survey (grid or corridor) takes a picture at each waypoint; a plan, where it says.
         survey = plan.mission_file is None
