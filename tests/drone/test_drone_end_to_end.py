@@ -303,7 +303,7 @@ def test_grpcurl_against_the_running_drone(
 ) -> None:
     testbed = sim_testbed
 
-    def run_grpcurl(*args: str) -> str:  # as the README shows: the operator's certificate
+    def run_grpcurl(*args: str) -> str:  # as docs/operating.md shows: the operator's certificate
         return grpcurl(*args, certs=testbed.certs, peer=DRONE.dns_name)
 
     assert set(run_grpcurl(testbed.address, "list").split()) >= {

@@ -2,12 +2,13 @@
 and, independently of it, against the side effects counted where they happened.
 
 ``build_report`` turns the final status of the drone and of every controller
-into one JSON document (format ``baton.testbed.report/1``, described in the
-README), and ``summary_table`` prints it for a person. The same report comes
-out of the local testbed and of the compose testbed. ``check_side_effects``
-is the skeptic's exactly-once check: it trusts neither the drone's audit nor
-the controllers, only what the sim vehicle and the camera counted
-(``baton.effects``), held against what the grid mission asks for.
+into one JSON document (format ``baton.testbed.report/1``, described in
+docs/operating.md, "The report"), and ``summary_table`` prints it for a
+person. The same report comes out of the local testbed and of the compose
+testbed. ``check_side_effects`` is the skeptic's exactly-once check: it
+trusts neither the drone's audit nor the controllers, only what the sim
+vehicle and the camera counted (``baton.effects``), held against what the
+grid mission asks for.
 """
 
 from __future__ import annotations
