@@ -155,7 +155,8 @@ class TestbedPlan:
     # started by the testbed at the same speed-up) or the MAVLink URL of one
     # that runs already.
     vehicle: str = "sim"
-    sitl_binary: Path | None = None  # default: baton.sitl.launcher.find_binary()
+    # None: ``baton sitl`` finds one (baton.sitl.launcher.find_binary).
+    sitl_binary: Path | None = None
     # A QGroundControl plan the mission file flies (baton.missions.plan), for the
     # report's side-effect check; None for the grid or another mission.
     flight_plan: Path | None = None
@@ -467,7 +468,7 @@ class LocalTestbed:
         argv = baton_argv("sitl", "--speedup", speedup, "--home", self._home())
         argv += ["--workdir", str(self.workdir / "sitl"), "--url-file", str(ready)]
         if self.plan.sitl_binary is not None:
-            argv += ["--binary", str(self.plan.sitl_binary)]
+            argv += ["--sitl-binary", str(self.plan.sitl_binary)]
         argv += self._mavlink_key_args()
         return "sitl", argv, ready
 
