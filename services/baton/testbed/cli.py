@@ -232,7 +232,7 @@ def _mission(mission: str, pairs: list[str]) -> tuple[Path | None, tuple[str, ..
     it flies, from ``--mission``; ValueError says what is wrong (a plan is checked whole
     here, before anything starts)."""
     from baton.missions import plan as plan_mission
-    from baton.sdk.run import load_mission, parse_params
+    from baton.sdk.run import MissionLoadError, load_mission, parse_params
 
     if mission in ("grid", "corridor"):
         if pairs:
@@ -254,7 +254,11 @@ def _mission(mission: str, pairs: list[str]) -> tuple[Path | None, tuple[str, ..
         named = [p.partition("=")[2] for p in pairs if p.startswith("plan=")]
         flight_plan = Path(named[-1]).resolve() if named else None
     try:
-        parse_params(load_mission(str(path)), pairs)
+        loaded = load_mission(str(path))
+    except MissionLoadError as exc:  # names the file, the line and the cause
+        raise ValueError(f"--mission: {exc}") from None
+    try:
+        parse_params(loaded, pairs)
     except SystemExit as exc:
         raise ValueError(f"--mission {mission}: {exc}") from None
     return path.resolve(), tuple(pairs), flight_plan

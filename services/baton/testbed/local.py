@@ -171,6 +171,15 @@ class TestbedPlan:
         """The mission file the controllers run: one's own, else the survey's."""
         return self.mission_file or self.mission.file
 
+    def describe_mission(self) -> str:
+        """For a person, the mission flown: "5x5 grid", "corridor of 1500 m", "plan
+        survey.plan", "mission my_mission.py"."""
+        if self.flight_plan is not None:
+            return f"plan {self.flight_plan.name}"
+        if self.mission_file is not None:
+            return f"mission {self.mission_file.name}"
+        return self.mission.describe()
+
 
 # The side effects counted where they happen (baton.effects), in the workdir.
 VEHICLE_EFFECTS_FILE = "vehicle-effects.jsonl"  # commands the sim vehicle acted on

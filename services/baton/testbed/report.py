@@ -396,7 +396,7 @@ def _mission(
             if grid_mission
             else gotos
         ),
-        "waypoints_visited": pictures if survey else gotos,
+        "waypoints_visited": pictures if survey else vehicle_gotos(snapshot, gotos),
         "pictures": pictures,
         "invocations": len(audit),
         "calls": max((c.reqnr for c in snapshot.controllers.values()), default=0),
@@ -408,6 +408,16 @@ def _mission(
             if a.method == TAKE_PICTURE
         ],
     }
+
+
+def vehicle_gotos(snapshot: Snapshot, requested: int) -> int:
+    """The gotos the vehicle acted on, where it counted them (a goto the drone refused,
+    or the vehicle did not take, visits nothing; a resume after a policy hold is the
+    same leg again); else the ``requested`` gotos the drone's audit holds."""
+    vehicle = snapshot.vehicle_effects
+    if vehicle is None:
+        return requested
+    return len(_without_resumes([e for e in vehicle if e["effect"] == "goto"], snapshot))
 
 
 def _setup(

@@ -136,7 +136,7 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     """Runs one mission on the local testbed; returns the exit code."""
     planned = plan.config
     print(
-        f"baton testbed: {plan.mission.describe()}, {len(planned.controllers)} controllers, "
+        f"baton testbed: {plan.describe_mission()}, {len(planned.controllers)} controllers, "
         f"handover policy {planned.handover_policy.name}, flush limit {planned.flush_limit} "
         "bytes, handovers "
         f"{', '.join(f'{r}:{m}' for r, m in plan.handovers) or 'none'}, "
@@ -209,7 +209,7 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
         page,
         report,
         geojson,
-        f"{plan.mission.describe()}, policy {policy}: masters {masters}",
+        f"{plan.describe_mission()}, policy {policy}: masters {masters}",
         timeline_rows(snapshot, config.flush_limit),
         config.flush_limit,
         taken,
