@@ -309,10 +309,11 @@ async def test_handover_waits_for_the_request_being_served(drone: DroneUnderTest
         assert asyncio.get_running_loop().time() < deadline, "Arm never started"
         await asyncio.sleep(0.01)
     handover = asyncio.ensure_future(drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1)))
-    # A negative can only be watched for a while: long enough for a
-    # handover that skipped the lock to have finished.
-    await asyncio.sleep(0.1)
+    # The barrier: the Handover RPC has reached the drone and is queued on the lock
+    # the Arm holds. Only the gate releases it from there, so it cannot be done yet.
+    await eventually(lambda: drone.service._lock._waiters, "the handover queued on the lock")
     assert not handover.done()
+    assert drone.service.seq.master == 0, "no switch while the request is served"
     gate.set()
     assert (await arm).reqnr == 1
     assert (await handover).after_reqnr == 1
