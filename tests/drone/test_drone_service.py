@@ -3,38 +3,16 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable
 
 import grpc
 import pytest
 from drone_harness import DroneUnderTest, start_drone
-from google.protobuf.message import Message
+from helpers.drone_calls import ARM, GOTO, POSITION, TAKEOFF, expect_error, invoke
 from waiting import eventually
 
 from baton.rpc.streams import next_message, read_message
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
-
-POSITION = "/baton.v1.Mobility/GetPosition"
-ARM = "/baton.v1.Mobility/Arm"
-TAKEOFF = "/baton.v1.Mobility/Takeoff"
-GOTO = "/baton.v1.Mobility/Goto"
-
-
-def invoke(
-    cid: int, reqnr: int, method: str, request: Message | None = None, epoch: int = 1
-) -> drone_pb2.InvokeRequest:
-    payload = request.SerializeToString() if request is not None else b""
-    return drone_pb2.InvokeRequest(
-        controller_id=cid, reqnr=reqnr, method=method, payload=payload, epoch=epoch
-    )
-
-
-async def expect_error(call: Awaitable[object], code: grpc.StatusCode) -> grpc.aio.AioRpcError:
-    with pytest.raises(grpc.aio.AioRpcError) as info:
-        await call
-    assert info.value.code() == code, info.value.details()
-    return info.value
 
 
 def trailing(error: grpc.aio.AioRpcError) -> dict[str, str | bytes]:

@@ -10,7 +10,7 @@ from typing import Any
 import grpc
 import pytest
 from drone_harness import DroneUnderTest
-from test_drone_service import ARM, GOTO, POSITION, invoke
+from helpers.drone_calls import ARM, GOTO, POSITION, invoke
 from waiting import eventually
 
 from baton.controller.drone_link import InvokeCalls, refusal_of
