@@ -8,7 +8,7 @@
 #  4. runs deploy/compose.ci.yml: the paper's grid mission, 3 controllers,
 #     the handovers of deploy/handovers.txt, on the sim vehicle, or on
 #     ArduPilot SITL with BATON_COMPOSE_VEHICLE=ardupilot (needs the SITL
-#     image: ../shared/sitl or BATON_SITL_DIR holding arducopter)
+#     image: BATON_SITL_BINARY or arducopter on PATH, see deploy/images.sh)
 #  5. waits for the report service's verdict, brings everything down
 #  6. the same with radio range (compose.ci.radio.yml over compose.ci.yml):
 #     a 1 km corridor, 3 stations of 500 m range, the nearest policy, no
@@ -162,8 +162,9 @@ fi
 
 # -- 4. the runs -------------------------------------------------------------------
 if [ "$VEHICLE" = ardupilot ] && ! docker image inspect baton-ardupilot-sitl:dev >/dev/null 2>&1; then
-    say "BATON_COMPOSE_VEHICLE=ardupilot, but no baton-ardupilot-sitl:dev was built: put" \
-        "arducopter and copter.parm in ../shared/sitl or set BATON_SITL_DIR to their folder"
+    say "BATON_COMPOSE_VEHICLE=ardupilot, but no baton-ardupilot-sitl:dev was built: set" \
+        "BATON_SITL_BINARY to an ArduCopter SITL build or put arducopter on PATH" \
+        "(https://ardupilot.org/dev/docs/building-setup-linux.html)"
     exit 1
 fi
 mkdir -p reports

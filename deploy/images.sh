@@ -3,8 +3,13 @@
 #
 #   baton-testbed:dev         deploy/Dockerfile, baton installed from a wheelhouse
 #                             built here (`pip wheel`), so no network in the build
-#   baton-ardupilot-sitl:dev  deploy/Dockerfile.sitl, where BATON_SITL_DIR
-#                             (default ../shared/sitl) holds arducopter and copter.parm
+#   baton-ardupilot-sitl:dev  deploy/Dockerfile.sitl, from the ArduCopter SITL build
+#                             `baton sitl --which` finds (BATON_SITL_BINARY, else
+#                             arducopter on PATH) and its copter.parm (BATON_SITL_PARM,
+#                             else the one beside the build or in its ArduPilot tree,
+#                             else ../shared/ardupilot/copter.parm), staged in build/sitl
+#                             (the compose file's build context `sitl`); where there
+#                             is none, the image is left out and this says why
 #
 # BATON_BASE chooses the base image:
 #   auto (default)  the public python:3.11-slim-bookworm if the engine has it or
@@ -19,7 +24,7 @@ cd "$(dirname "$0")/.."
 
 python=${PYTHON:-python3}
 base=${BATON_BASE:-auto}
-sitl_dir=${BATON_SITL_DIR:-../shared/sitl}
+sitl_dir=build/sitl # the compose file's build context `sitl`
 public=python:3.11-slim-bookworm
 public_sitl=debian:bookworm-slim
 local_base=baton-base:bookworm
@@ -82,7 +87,26 @@ timed "image baton-testbed:dev on $from" \
     --build-arg BASE="$from" --build-arg WHEELHOUSE="$wheelhouse" \
     -t baton-testbed:dev . >/dev/null
 
-if [ -f "$sitl_dir/arducopter" ] && [ -f "$sitl_dir/copter.parm" ]; then
+# The SITL build where users keep it, found by the one lookup baton uses.
+rm -rf "$sitl_dir"
+sitl_binary=
+sitl_parm=
+if found=$("$python" -m baton.cli sitl --which 2>/tmp/baton-sitl-which.$$); then
+    sitl_binary=$(printf '%s\n' "$found" | sed -n 1p)
+    sitl_parm=${BATON_SITL_PARM:-$(printf '%s\n' "$found" | sed -n 2p)}
+    if [ -z "$sitl_parm" ] && [ -f ../shared/ardupilot/copter.parm ]; then
+        sitl_parm=../shared/ardupilot/copter.parm
+    fi
+fi
+sitl_missing=$(cat /tmp/baton-sitl-which.$$)
+rm -f /tmp/baton-sitl-which.$$
+if [ -n "$sitl_binary" ] && [ -z "$sitl_parm" ]; then
+    sitl_missing="no copter.parm for $sitl_binary: set BATON_SITL_PARM"
+fi
+if [ -n "$sitl_binary" ] && [ -n "$sitl_parm" ]; then
+    mkdir -p "$sitl_dir"
+    cp "$sitl_binary" "$sitl_dir/arducopter"
+    cp "$sitl_parm" "$sitl_dir/copter.parm"
     # The files as an image, for builders without named build contexts.
     tar -C "$sitl_dir" -c arducopter copter.parm |
         docker import --change "LABEL baton.image=sitl-files" - baton-sitl-files:dev >/dev/null
@@ -91,7 +115,7 @@ if [ -f "$sitl_dir/arducopter" ] && [ -f "$sitl_dir/copter.parm" ]; then
         --build-arg BASE="$from_sitl" --build-arg SITL_FILES=baton-sitl-files:dev \
         -t baton-ardupilot-sitl:dev deploy >/dev/null
 else
-    say "no ArduPilot SITL build in $sitl_dir (arducopter, copter.parm): baton-ardupilot-sitl:dev not built"
+    say "baton-ardupilot-sitl:dev not built: $sitl_missing"
 fi
 # Each build leaves the previous image and the build stage untagged: remove
 # those (only images with the Dockerfiles' label, only dangling ones).

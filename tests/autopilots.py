@@ -1,7 +1,8 @@
 """Autopilots for the tests: ArduPilot SITL as a real process, and a monitor of its own.
 
-``Sitl`` runs ``baton sitl`` (the project's supervised wrapper of
-``../shared/sitl/arducopter``) and can kill -9 and restart it on the same
+``Sitl`` runs ``baton sitl`` (baton's supervised wrapper of an ArduCopter
+SITL build, found as ``baton sitl`` finds it: ``BATON_SITL_BINARY``, else
+``arducopter`` on PATH) and can kill -9 and restart it on the same
 instance. ``TelemetryMonitor`` holds a second MAVLink connection to SITL's
 SERIAL1 with pymavlink, independent of the drone service and MAVSDK, and
 records where SITL itself says the vehicle was: the witness the tests check
@@ -23,18 +24,21 @@ from pathlib import Path
 
 from pymavlink import mavutil
 
-from baton.sitl.launcher import find_binary
+from baton.sitl.launcher import HOW_TO_POINT_AT_A_BUILD, SitlBinaryNotFound, find_binary
 
 SITL_SPEEDUP = 10.0
 SKIP_REASON = (
-    "ArduPilot SITL binary not found at ../shared/sitl/arducopter (beside the checkout): "
-    "the sitl tests need it; CI has it"
+    f"the sitl tests fly ArduPilot Copter SITL, and none was found: {HOW_TO_POINT_AT_A_BUILD}"
 )
 
 
 def sitl_binary() -> Path | None:
-    """The SITL binary the tests fly, if this machine has one."""
-    return find_binary()
+    """The SITL binary the tests fly (``BATON_SITL_BINARY``, else ``arducopter`` on
+    PATH), or None where this machine has none."""
+    try:
+        return find_binary(None, os.environ)
+    except SitlBinaryNotFound:
+        return None
 
 
 class Sitl:

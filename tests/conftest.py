@@ -82,10 +82,11 @@ def grpcurl() -> Callable[..., str]:
 
 @pytest.fixture(scope="module")
 def sitl_autopilot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Sitl]:
-    """ArduPilot Copter SITL (``../shared/sitl/arducopter``) for a module's tests.
+    """ArduPilot Copter SITL for a module's tests (``BATON_SITL_BINARY``, else ``arducopter``
+    on PATH).
 
-    Skips with a clear message where the binary is absent (a user's machine);
-    CI has it. Tests that use it are marked ``sitl``.
+    Skips with a message that says how to point baton at a build where there
+    is none. Tests that use it are marked ``sitl``.
     """
     if sitl_binary() is None:
         pytest.skip(SKIP_REASON)

@@ -27,7 +27,7 @@ def test_generated_stubs_match_the_protos() -> None:
 async def test_the_controller_serves_reflection_health_and_its_rpcs(
     grpcurl: Callable[..., str], tmp_path: Path
 ) -> None:
-    """The ring port (mutual TLS, as grpcurl's README example) and the mission program's
+    """The ring port (mutual TLS, as docs/operating.md's grpcurl example) and the mission program's
     loopback port (plain, the drone API)."""
     certs = tmp_path / "certs"
     ensure(certs, [Identity.controller(0), OPERATOR])

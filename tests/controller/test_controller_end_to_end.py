@@ -13,78 +13,16 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections import Counter
 from pathlib import Path
 
 import pytest
 
-from baton.config import LinkSpec
-from baton.testbed.local import LocalTestbed, MissionPlan, Snapshot, TestbedPlan, local_config
-from baton.testbed.report import NOT_COUNTED, check_side_effects
-from baton.v1 import drone_pb2, ring_pb2
+# Re-exported for tests/controller/test_takeover.py, which imports them from here.
+from helpers.missions import FAST_LINK as FAST_LINK
+from helpers.missions import SMALL_GRID, fly
+from helpers.missions import assert_mission_promises as assert_mission_promises
 
-SMALL_GRID = MissionPlan(grid=2, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
-FAST_LINK = LinkSpec(latency=0.002, bandwidth=None)
-
-
-def assert_mission_promises(snapshot: Snapshot, plan: TestbedPlan) -> None:
-    drone = snapshot.drone
-    waypoints = plan.mission.grid**2
-    for cid, c in snapshot.controllers.items():
-        assert c.mission == ring_pb2.MISSION_STATE_DONE, (
-            f"controller {cid}: mission {c.mission}: {c.mission_error}"
-        )
-    # Every request number executed exactly once, in order; every drone call
-    # the replicas' programs made is in the audit (Clock calls are logged by
-    # the controllers and never reach the drone, hence gaps in the numbers).
-    executed = [a.reqnr for a in drone.audit]
-    assert executed == sorted(set(executed))
-    assert drone.executed == len(executed)
-    assert {c.drone_calls for c in snapshot.controllers.values()} == {len(executed)}
-    # Every waypoint photographed once.
-    assert snapshot.pictures == waypoints
-    # The same, counted where it happened: one picture per waypoint produced
-    # by the camera; one arm, takeoff and land, and each goto once and in the
-    # grid's order, acted on by the sim vehicle (SITL or an autopilot of its
-    # own counts nothing).
-    effects = check_side_effects(snapshot, plan.mission.grid, plan.mission.spacing_m)
-    assert effects["exactly_once"] is True, effects
-    assert effects["pictures_taken"] == waypoints, effects
-    if plan.vehicle == "sim":
-        assert effects["vehicle_commands"]["goto"] == waypoints, effects
-    else:
-        assert effects["vehicle_commands"] == NOT_COUNTED, effects
-    # Every replica's program saw the same replies, and as many as the drone served.
-    chains = Counter(c.reply_chain for c in snapshot.controllers.values())
-    assert len(chains) == 1, f"replicas diverged: {chains}"
-    assert len({c.reqnr for c in snapshot.controllers.values()}) == 1
-    # Every scripted handover happened after the right request, and ended.
-    # (A scripted reqnr that was a Clock call fires after the next drone request.)
-    scripted = [h for h in drone.handovers if h.trigger == drone_pb2.HANDOVER_TRIGGER_SCRIPT]
-    assert [h.new_master for h in scripted] == [mid for _, mid in plan.handovers]
-    for record, (planned, _) in zip(scripted, plan.handovers, strict=True):
-        # A prepared handover moves the master once the target caught up, later.
-        assert planned <= record.after_reqnr <= planned + (1000 if plan.prepared else 2)
-    # Every handover ended with the new master's first request, except one whose old
-    # master's log never left (it died, or it was out of reach): the next record takes
-    # the new master's role over, re-granting it or giving it to another.
-    records = list(drone.handovers)
-    for i, record in enumerate(records):
-        after = records[i + 1] if i + 1 < len(records) else None
-        taken_over = (
-            after is not None
-            and after.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
-            and record.new_master in (after.new_master, after.old_master)
-        )
-        assert record.delay_s > 0 or taken_over
-    assert [c.master for c in snapshot.controllers.values()].count(True) == 1
-
-
-async def fly(tmp_path: Path, plan: TestbedPlan, timeout: float = 240) -> Snapshot:
-    async with LocalTestbed(plan, tmp_path) as testbed:
-        snapshot = await testbed.run_mission(timeout)
-    assert_mission_promises(snapshot, plan)
-    return snapshot
+from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
 
 
 @pytest.mark.parametrize(

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import grpc
 import pytest
-from test_controller_end_to_end import FAST_LINK, SMALL_GRID, assert_mission_promises
+from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises
 from waiting import eventually
 
 from baton.config import LinkSpec, parse_config

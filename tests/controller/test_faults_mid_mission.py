@@ -24,15 +24,17 @@ import time
 from pathlib import Path
 
 import pytest
-from test_controller_end_to_end import FAST_LINK, assert_mission_promises
+from helpers.missions import FAST_LINK, assert_mission_promises
+from helpers.missions import (
+    LONG_LEGS as LONG_LEGS,  # re-exported for tests/controller/test_takeover.py
+)
 from waiting import eventually
 
-from baton.testbed.local import LocalTestbed, MissionPlan, TestbedPlan, local_config
+from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
 from baton.v1 import drone_pb2, ring_pb2
 
 # Long legs (100 m at 5 m/s: 1 s of wall time at speed-up 20) so that the pause
 # lands while the mission polls the position between two commands.
-LONG_LEGS = MissionPlan(grid=2, spacing_m=100.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
 
 
 async def flying_to_the_second_waypoint(testbed: LocalTestbed) -> bool:

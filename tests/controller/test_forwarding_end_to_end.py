@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from test_controller_end_to_end import FAST_LINK, SMALL_GRID, assert_mission_promises, fly
+from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises, fly
 from waiting import eventually
 
 from baton.bench.script import BENCH_MISSION, bench_mission_args

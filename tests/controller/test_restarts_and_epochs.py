@@ -17,7 +17,6 @@ executes nothing, and the controller ignores the refusal.
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import time
@@ -25,18 +24,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_controller_end_to_end import FAST_LINK, assert_mission_promises
-from test_faults_mid_mission import LONG_LEGS
+from helpers.missions import FAST_LINK, LONG_LEGS, assert_mission_promises
+from helpers.missions import (
+    log_events as log_events,  # re-exported for tests/controller/test_takeover.py
+)
 from waiting import eventually
 
 from baton.testbed.local import LocalTestbed, TestbedPlan, local_config, remove_sqlite
 from baton.v1 import drone_pb2, ring_pb2
-
-
-def log_events(tmp_path: Path, part: str) -> list[dict[str, object]]:
-    """The JSON log lines of one part, in order."""
-    text = (tmp_path / "logs" / f"{part}.log").read_text()
-    return [json.loads(line) for line in text.splitlines() if line.startswith("{")]
 
 
 @pytest.mark.parametrize(

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import grpc
 import pytest
-from test_controller_end_to_end import FAST_LINK, SMALL_GRID, assert_mission_promises
+from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises
 
 from baton.certs.make import init, issue
 from baton.rpc.channels import aio_channel, sync_channel

@@ -18,6 +18,7 @@ from urllib.parse import SplitResult, urlsplit
 
 import pytest
 import yaml
+from autopilots import SKIP_REASON, sitl_binary
 
 from baton.cli import build_parser
 from baton.config import BatonConfig, LinkSpec, load_config, parse_duration, parse_rate
@@ -47,8 +48,8 @@ SERVICES: dict[str, dict[str, Any]] = COMPOSE["services"]
 CONFIG: BatonConfig = load_config(DEPLOY / "testbed.yaml")
 # The SITL autopilots, each in its own profile: profile -> service.
 SITL_PROFILES = {"px4": "px4-sitl", "ardupilot": "ardupilot-sitl"}
-# The project's ArduPilot SITL build, beside the repository (../shared/sitl/README.md).
-SHARED_SITL = REPO.parent / "shared" / "sitl"
+# Where deploy/images.sh stages the SITL build it finds (the compose file's context `sitl`).
+STAGED_SITL = REPO / "build" / "sitl"
 
 
 def _argv(value: str | list[str] | None) -> list[str]:
@@ -389,10 +390,11 @@ def test_ardupilot_sitl_image_is_built_from_dockerfile_sitl() -> None:
     build = spec["build"]
     assert (DEPLOY / build["context"] / build["dockerfile"]) == DEPLOY / "Dockerfile.sitl"
     assert ":" in spec["image"] and "/" not in spec["image"], "a local tag, nothing to pull"
-    # The build context `sitl`: by default the project's SITL folder beside the repository.
+    # The build context `sitl`: by default the folder images.sh stages the build in.
     contexts = build["additional_contexts"]
     assert set(contexts) == {"sitl"}
-    assert (DEPLOY / contexts["sitl"]).resolve() == SHARED_SITL.resolve()
+    assert (DEPLOY / contexts["sitl"]).resolve() == STAGED_SITL.resolve()
+    assert "sitl_dir=build/sitl " in (DEPLOY / "images.sh").read_text()
     dockerfile = _dockerfile_sitl()
     # The base: a pinned public image by default, a build argument for machines
     # without a registry; the files' stage `sitl` is replaced by the named context.
@@ -443,12 +445,13 @@ def test_readme_shows_the_sitl_command_line_compose_runs() -> None:
     assert shlex.split(shown) == [binary, *_command("ardupilot-sitl")]
 
 
-def test_shared_sitl_folder_holds_what_dockerfile_sitl_copies() -> None:
-    if not SHARED_SITL.is_dir():
-        pytest.skip(f"no ArduPilot SITL build at {SHARED_SITL} on this machine")
+def test_images_sh_stages_what_dockerfile_sitl_copies() -> None:
+    """images.sh finds the build with ``baton sitl --which`` (the one lookup) and copies
+    it and its parameters under the names Dockerfile.sitl copies from the context."""
+    images = (DEPLOY / "images.sh").read_text()
+    assert "-m baton.cli sitl --which" in images
     for name in _sitl_copies():
-        assert (SHARED_SITL / name).is_file(), f"{SHARED_SITL / name} is missing"
-    assert os.access(SHARED_SITL / "arducopter", os.X_OK)
+        assert f'"$sitl_dir/{name}"' in images, f"images.sh does not stage {name}"
 
 
 def test_ardupilot_sitl_runs_like_the_local_testbed() -> None:
@@ -481,9 +484,9 @@ def test_ardupilot_sitl_ports_agree_with_the_vehicle_url() -> None:
 
 
 def test_ardupilot_sitl_arguments_are_known_to_the_binary() -> None:
-    binary = SHARED_SITL / "arducopter"
-    if not binary.is_file():
-        pytest.skip(f"no ArduPilot SITL binary at {binary} on this machine")
+    binary = sitl_binary()
+    if binary is None:
+        pytest.skip(SKIP_REASON)
     done = subprocess.run(
         [str(binary), "--help"], capture_output=True, text=True, timeout=30, check=False
     )

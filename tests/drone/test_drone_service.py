@@ -3,38 +3,16 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable
 
 import grpc
 import pytest
 from drone_harness import DroneUnderTest, start_drone
-from google.protobuf.message import Message
+from helpers.drone_calls import ARM, GOTO, POSITION, TAKEOFF, expect_error, invoke
 from waiting import eventually
 
 from baton.rpc.streams import next_message, read_message
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
-
-POSITION = "/baton.v1.Mobility/GetPosition"
-ARM = "/baton.v1.Mobility/Arm"
-TAKEOFF = "/baton.v1.Mobility/Takeoff"
-GOTO = "/baton.v1.Mobility/Goto"
-
-
-def invoke(
-    cid: int, reqnr: int, method: str, request: Message | None = None, epoch: int = 1
-) -> drone_pb2.InvokeRequest:
-    payload = request.SerializeToString() if request is not None else b""
-    return drone_pb2.InvokeRequest(
-        controller_id=cid, reqnr=reqnr, method=method, payload=payload, epoch=epoch
-    )
-
-
-async def expect_error(call: Awaitable[object], code: grpc.StatusCode) -> grpc.aio.AioRpcError:
-    with pytest.raises(grpc.aio.AioRpcError) as info:
-        await call
-    assert info.value.code() == code, info.value.details()
-    return info.value
 
 
 def trailing(error: grpc.aio.AioRpcError) -> dict[str, str | bytes]:
@@ -309,10 +287,11 @@ async def test_handover_waits_for_the_request_being_served(drone: DroneUnderTest
         assert asyncio.get_running_loop().time() < deadline, "Arm never started"
         await asyncio.sleep(0.01)
     handover = asyncio.ensure_future(drone.stub.Handover(drone_pb2.HandoverRequest(new_master=1)))
-    # A negative can only be watched for a while: long enough for a
-    # handover that skipped the lock to have finished.
-    await asyncio.sleep(0.1)
+    # The barrier: the Handover RPC has reached the drone and is queued on the lock
+    # the Arm holds. Only the gate releases it from there, so it cannot be done yet.
+    await eventually(lambda: drone.service._lock._waiters, "the handover queued on the lock")
     assert not handover.done()
+    assert drone.service.seq.master == 0, "no switch while the request is served"
     gate.set()
     assert (await arm).reqnr == 1
     assert (await handover).after_reqnr == 1

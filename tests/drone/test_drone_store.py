@@ -14,7 +14,7 @@ from pathlib import Path
 import grpc
 import pytest
 from drone_harness import DroneUnderTest, connect_as_master, start_drone
-from test_drone_service import ARM, GOTO, POSITION, TAKEOFF, expect_error, invoke
+from helpers.drone_calls import ARM, GOTO, POSITION, TAKEOFF, expect_error, invoke
 from waiting import eventually
 
 from baton.digest import request_digest

@@ -5,11 +5,12 @@ would, over real gRPC channels with the fake vehicle in-process."""
 from __future__ import annotations
 
 import asyncio
+from typing import Any
 
 import grpc
 import pytest
 from drone_harness import DroneUnderTest
-from test_drone_service import ARM, GOTO, POSITION, invoke
+from helpers.drone_calls import ARM, GOTO, POSITION, invoke
 from waiting import eventually
 
 from baton.controller.drone_link import InvokeCalls, refusal_of
@@ -128,16 +129,28 @@ async def test_calls_in_flight_when_the_drone_goes_away_fail_unavailable() -> No
         await calls.close(1)
 
 
-async def test_close_waits_for_the_call_in_flight(drone: DroneUnderTest) -> None:
+async def test_close_waits_for_the_call_in_flight(
+    drone: DroneUnderTest, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A call in flight at a handover completes normally (footnote 2)."""
     calls = InvokeCalls(drone.stub, LOG)
     drone.vehicle.gate = asyncio.Event()
     goto = invoke(0, 1, GOTO, api.GotoRequest(latitude_deg=47.4, longitude_deg=8.5))
     pending = asyncio.ensure_future(calls.invoke(goto, timeout_s=30))
     await eventually(lambda: drone.vehicle.calls == ["Goto"], "the Goto executing")
+    # The barrier: close has started waiting on the calls in flight. A close that
+    # ended the stream instead never gets there (and this times out).
+    waiting_on_calls = asyncio.Event()
+    real_wait = asyncio.wait
+
+    async def wait(*args: Any, **kwargs: Any) -> Any:
+        waiting_on_calls.set()
+        return await real_wait(*args, **kwargs)
+
+    monkeypatch.setattr(asyncio, "wait", wait)
     closing = asyncio.ensure_future(calls.close(30))
-    await asyncio.sleep(0.2)  # close must be waiting on the call, not ending it
-    assert not closing.done()
+    await asyncio.wait_for(waiting_on_calls.wait(), 10)
+    assert not closing.done() and not pending.done()
     drone.vehicle.gate.set()
     assert (await asyncio.wait_for(pending, 10)).reqnr == 1
     await asyncio.wait_for(closing, 10)

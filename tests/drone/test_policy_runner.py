@@ -8,7 +8,7 @@ from pathlib import Path
 import grpc
 import pytest
 from drone_harness import DroneUnderTest, start_drone
-from test_drone_service import GOTO, POSITION, invoke
+from helpers.drone_calls import GOTO, POSITION, invoke
 from waiting import eventually
 
 from baton.digest import request_digest

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import pytest
 from autopilots import SKIP_REASON, Sitl, sitl_binary
+from helpers.drone_bed import Controller, drone_bed
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
-from test_drone_end_to_end import Controller, drone_bed
 
 from baton.drone.mavlink_relay import RelayUrlError, VehicleEndpoint
 from baton.signing import (

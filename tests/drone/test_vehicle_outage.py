@@ -20,7 +20,7 @@ import grpc
 import pytest
 from autopilots import SKIP_REASON, Sitl, sitl_binary
 from drone_harness import start_program, stop_program
-from test_drone_end_to_end import SPEEDUP, DroneBed, drone_bed
+from helpers.drone_bed import SPEEDUP, DroneBed, drone_bed
 
 from baton.effects import read_effects
 from baton.v1 import drone_api_pb2 as api

@@ -3,14 +3,10 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import json
-import signal
-import sys
-from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
+from helpers.links import baton_link
 from link_endpoints import Echo, Sink, connect, send_and_time
 
 from baton.cli import build_parser
@@ -18,52 +14,6 @@ from baton.config import LinkSpec
 from baton.link.cli import link_specs
 
 PAPER_LINK = ["--latency", "20ms", "--bandwidth", "25Mbit"]
-
-
-class LinkProcess:
-    """A running ``baton link`` subprocess and its listening address."""
-
-    def __init__(self, process: asyncio.subprocess.Process, address: str) -> None:
-        self.process = process
-        self.address = address
-
-    async def terminate(self) -> tuple[int, list[dict]]:
-        """SIGTERM; returns the exit code and the JSON log lines."""
-        self.process.send_signal(signal.SIGTERM)
-        _, stderr = await asyncio.wait_for(self.process.communicate(), 10)
-        assert self.process.returncode is not None
-        lines = []
-        for line in stderr.splitlines():
-            try:
-                lines.append(json.loads(line))
-            except ValueError:  # once under load on 2 cores: say what it was
-                raise AssertionError(f"baton link wrote a line not JSON: {line!r}") from None
-        return self.process.returncode, lines
-
-
-@contextlib.asynccontextmanager
-async def baton_link(target: str, *options: str) -> AsyncIterator[LinkProcess]:
-    process = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "baton.cli",
-        "link",
-        "--target",
-        target,
-        *options,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-    )
-    try:
-        assert process.stdout is not None
-        line = await asyncio.wait_for(process.stdout.readline(), 20)
-        event = json.loads(line)
-        assert event["event"] == "listening"
-        yield LinkProcess(process, event["address"])
-    finally:
-        if process.returncode is None:
-            process.kill()
-            await process.wait()
 
 
 @pytest.mark.parametrize("size", [10**6, pytest.param(16 * 10**6, marks=pytest.mark.slow)])

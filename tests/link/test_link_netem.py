@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import pytest
-from test_link_radio import RADIO, STATION, place
+from helpers.links import RADIO, STATION, place
 from waiting import STEP_TIMEOUT_S
 
 from baton.config import LinkSpec

@@ -10,22 +10,12 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers.links import RADIO, STATION, baton_link, place
 from link_endpoints import Echo, connect
-from test_link_cli import baton_link
 
 from baton.config import LinkSpec
 from baton.link.proxy import LinkProxy
-from baton.link.radio import Fade, RadioRange, parse_fade, parse_radio_range, write_position
-from baton.sdk import Position, offset
-
-STATION = Position(47.397742, 8.545594)
-RADIO = RadioRange(STATION.latitude_deg, STATION.longitude_deg, 500.0)
-
-
-def place(path: Path, east_m: float) -> None:
-    """The vehicle's position file says it is ``east_m`` east of the station."""
-    where = offset(STATION, 0.0, east_m)
-    write_position(path, where.latitude_deg, where.longitude_deg, 10.0)
+from baton.link.radio import Fade, RadioRange, parse_fade, parse_radio_range
 
 
 async def echoes(address: str) -> bool:

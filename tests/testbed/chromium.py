@@ -9,7 +9,7 @@ image decoded, and a screenshot.
 
     python tests/testbed/chromium.py reports/testbed-report.html docs/report.png
 
-takes the screenshot that the README shows.
+takes the screenshot that docs/operating.md shows.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from test_testbed import run_testbed
+from helpers.testbed_runs import run_testbed
 from waiting import eventually
 
 from baton.config import LinkSpec, load_config

@@ -7,6 +7,7 @@ makes ``exactly_once`` false with a problem that says what happened.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -14,8 +15,9 @@ import pytest
 from baton.config import parse_config
 from baton.missions.grid import waypoints
 from baton.sdk import Position, offset
-from baton.testbed.local import Snapshot
+from baton.testbed.local import MissionPlan, Snapshot, TestbedPlan
 from baton.testbed.report import (
+    GOTO,
     NOT_COUNTED,
     build_report,
     check_side_effects,
@@ -202,3 +204,36 @@ def test_a_takeover_is_reported_as_one_and_does_not_stand_for_a_planned_handover
     assert report["handovers_missed"] == [[180, 2]]
     table = summary_table(report)
     assert "takeover" in table and "planned handover 180:2 did not happen" in table
+
+
+def test_gotos_the_vehicle_did_not_act_on_visit_nothing() -> None:
+    """A mission file's seven Gotos, all refused: the drone audited them (a refused
+    request keeps its number), the vehicle acted on none, so none was visited."""
+    config = parse_config({"controllers": [{"id": 0, "address": "127.0.0.1:7100"}]})
+    drone = drone_pb2.DroneStatus()
+    for reqnr in range(1, 8):
+        drone.audit.add(reqnr=reqnr, method=GOTO, controller_id=0)
+    refused = Snapshot(drone, vehicle_effects=numbered([{"effect": "arm"}]), camera_effects=[])
+    mission = build_report(config, refused, GRID, 1.0, [], grid_mission=False)["mission"]
+    assert (mission["waypoints_visited"], mission["waypoints"]) == (0, 7)
+    # Where the vehicle counts nothing (SITL, an autopilot of its own), the audit is all
+    # there is.
+    uncounted = Snapshot(drone, vehicle_effects=None, camera_effects=None)
+    mission = build_report(config, uncounted, GRID, 1.0, [], grid_mission=False)["mission"]
+    assert mission["waypoints_visited"] == 7
+
+
+@pytest.mark.parametrize(
+    ("plan", "shown"),
+    [
+        (TestbedPlan(), "5x5 grid"),
+        (TestbedPlan(mission=MissionPlan(kind="corridor")), "corridor of 1500 m"),
+        (TestbedPlan(mission_file=Path("missions/square.py")), "mission square.py"),
+        (
+            TestbedPlan(mission_file=Path("plan.py"), flight_plan=Path("/x/survey.plan")),
+            "plan survey.plan",
+        ),
+    ],
+)
+def test_the_banner_names_the_mission_flown(plan: TestbedPlan, shown: str) -> None:
+    assert plan.describe_mission() == shown

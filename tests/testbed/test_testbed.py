@@ -6,12 +6,12 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 from chromium import render, require_chromium
+from helpers.testbed_runs import baton, run_testbed
 
 from baton.testbed.local import (
     PAPER_CONTROLLER_LINK,
@@ -24,26 +24,6 @@ from baton.testbed.report import build_report
 from baton.v1 import drone_pb2
 
 SMALL = ["--grid", "2", "--spacing", "20", "--altitude", "5", "--speedup", "20"]
-
-
-def baton(*args: str) -> list[str]:
-    return [sys.executable, "-m", "baton.cli", *args]
-
-
-def run_testbed(tmp_path: Path, *args: str) -> dict:  # type: ignore[type-arg]
-    """Runs `baton testbed ARGS` to the end; expects success and returns its report."""
-    report_path = tmp_path / "report.json"
-    result = subprocess.run(
-        baton("testbed", *args, "--report", str(report_path), "--workdir", str(tmp_path / "w")),
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert "mission COMPLETED" in result.stdout
-    report: dict = json.loads(report_path.read_text())  # type: ignore[type-arg]
-    report["stdout"] = result.stdout
-    return report
 
 
 def alive(pid: int) -> bool:

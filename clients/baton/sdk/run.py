@@ -25,19 +25,52 @@ from baton.sdk import aio
 from baton.sdk.drone import connect
 
 
+class MissionLoadError(SystemExit):
+    """A mission file that does not load, said in a line or two a mission author can act
+    on: the file, the line, the cause (no traceback). A SystemExit, so that a program
+    that loads one exits with the message."""
+
+
+def describe_load_error(path: str, exc: BaseException) -> str:
+    """``FILE, line N: Error: message`` and the line's source, for an exception raised
+    while ``path`` was executed: a SyntaxError where it is, anything else at the deepest
+    line of the mission file that led to it (and where it was raised, if elsewhere)."""
+    cause = f"{type(exc).__name__}: {exc}"
+    if isinstance(exc, SyntaxError):
+        where = exc.filename or path
+        cause = f"{type(exc).__name__}: {exc.msg}"
+        source = (exc.text or "").strip()
+        shown = f"{where}, line {exc.lineno}: {cause}"
+        return f"{shown}\n    {source}" if source else shown
+    frames = traceback.extract_tb(exc.__traceback__)
+    mine = Path(path).resolve()
+    in_file = [f for f in frames if Path(f.filename).resolve() == mine]
+    if not in_file:
+        return f"{path}: {cause}"
+    frame = in_file[-1]
+    shown = f"{path}, line {frame.lineno}: {cause}"
+    last = frames[-1]
+    if last is not frame and not last.filename.startswith("<"):
+        shown += f" (raised in {last.filename}, line {last.lineno})"
+    return f"{shown}\n    {frame.line}" if frame.line else shown
+
+
 def load_mission(path: str) -> Callable[..., Any]:
-    """The ``mission`` function of a mission file."""
+    """The ``mission`` function of a mission file; MissionLoadError says why not."""
     file = Path(path)
     spec = importlib.util.spec_from_file_location(f"baton_mission_{file.stem}", file)
     if spec is None or spec.loader is None or not file.is_file():
-        raise SystemExit(f"{path}: not a readable Python file")
+        raise MissionLoadError(f"{path}: not a readable Python file")
     module = importlib.util.module_from_spec(spec)
     # Registered as imported modules are: dataclasses (and pickle) look a class's module up.
     sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:  # anything a module's top level raises: the author's to fix
+        raise MissionLoadError(describe_load_error(path, exc)) from None
     mission = getattr(module, "mission", None)
     if not callable(mission):
-        raise SystemExit(f"{path}: defines no function `mission(drone, **params)`")
+        raise MissionLoadError(f"{path}: defines no function `mission(drone, **params)`")
     return mission
 
 

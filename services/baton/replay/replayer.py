@@ -31,8 +31,6 @@ from typing import Any, cast
 
 import grpc
 import grpc.aio
-from google.protobuf import message as protobuf_message
-from google.protobuf import text_format
 
 from baton.controller.history import read_log
 from baton.controller.protocol import (
@@ -47,7 +45,8 @@ from baton.controller.protocol import (
 )
 from baton.controller.service import check_request
 from baton.rpc.errors import StatusError, status_of
-from baton.rpc.methods import drone_api, path, rpc_of
+from baton.rpc.methods import describe_request as describe
+from baton.rpc.methods import differing_fields, drone_api, path
 from baton.sdk import aio
 from baton.sdk.calls import PROGRAM_CALLS
 from baton.sdk.drone import Drone
@@ -70,36 +69,6 @@ class ReplayStopped(BaseException):
     A BaseException, like SystemExit: a mission's ``except Exception`` must not
     swallow it and go on with a log it no longer follows.
     """
-
-
-def describe(method: str, request: bytes) -> str:
-    """``Service.Method {fields}``: a request as readable protobuf text."""
-    name = rpc_of(method)
-    found = drone_api().get(method)
-    if found is None:
-        return f"{name} (not a drone-API method) request bytes {bytes(request).hex()}"
-    try:
-        decoded = found.request_type.FromString(request)
-    except protobuf_message.DecodeError:
-        return f"{name} (does not decode) request bytes {bytes(request).hex()}"
-    return f"{name} {{{text_format.MessageToString(decoded, as_one_line=True)}}}"
-
-
-def differing_fields(method: str, logged: bytes, asked: bytes) -> list[str]:
-    """The fields of two requests of ``method`` that differ (empty if not decodable)."""
-    found = drone_api().get(method)
-    if found is None:
-        return []
-    request_class = found.request_type
-    try:
-        a, b = request_class.FromString(logged), request_class.FromString(asked)
-    except protobuf_message.DecodeError:
-        return []
-    return [
-        field.name
-        for field in request_class.DESCRIPTOR.fields
-        if getattr(a, field.name) != getattr(b, field.name)
-    ]
 
 
 @dataclass(frozen=True)

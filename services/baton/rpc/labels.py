@@ -4,7 +4,7 @@ A status field whose values are a closed set is an enum in the contracts
 (``ControllerStatus.state``, ``HandoverRecord.kind``, ``PolicyDecision.action``,
 ...), and code assigns and compares the generated values
 (``drone_pb2.HANDOVER_KIND_TAKEOVER``), never strings. What people read (the
-terminal, the logs, the JSON report and so the README) are words: ``label``
+terminal, the logs, the JSON report and so the docs) are words: ``label``
 is the one place that turns a value into its word, the value's name without
 its enum's prefix in lower case (``"takeover"``, ``"fly_on"``), except a
 controller state, which keeps the paper's capitals (``"ACTIVE"``). ``parse``

@@ -22,7 +22,7 @@ from functools import cache
 from types import MappingProxyType
 
 import grpc
-from google.protobuf import message_factory
+from google.protobuf import message_factory, text_format
 from google.protobuf.message import DecodeError, Message
 
 from baton.rpc.errors import StatusError
@@ -144,3 +144,51 @@ def rpc_of(grpc_path: str) -> str:
     a path outside the contracts' package keeps its package."""
     package = f"/{drone_api_pb2.DESCRIPTOR.package}."
     return grpc_path.removeprefix(package).replace("/", ".")
+
+
+def describe_request(method: str, request: bytes) -> str:
+    """``Service.Method {fields}``: a logged or asked request as readable protobuf text
+    (its bytes in hex where it is not a drone-API method or does not decode)."""
+    name = rpc_of(method)
+    found = drone_api().get(method)
+    if found is None:
+        return f"{name} (not a drone-API method) request bytes {bytes(request).hex()}"
+    try:
+        decoded = found.request_type.FromString(request)
+    except DecodeError:
+        return f"{name} (does not decode) request bytes {bytes(request).hex()}"
+    return f"{name} {{{text_format.MessageToString(decoded, as_one_line=True)}}}"
+
+
+def differing_fields(method: str, logged: bytes, asked: bytes) -> list[str]:
+    """The fields of two requests of ``method`` that differ (empty if not decodable)."""
+    found = drone_api().get(method)
+    if found is None:
+        return []
+    request_class = found.request_type
+    try:
+        a, b = request_class.FromString(logged), request_class.FromString(asked)
+    except DecodeError:
+        return []
+    return [
+        field.name
+        for field in request_class.DESCRIPTOR.fields
+        if getattr(a, field.name) != getattr(b, field.name)
+    ]
+
+
+def describe_nondeterminism(
+    reqnr: int, logged_method: str, logged_request: bytes, method: str, request: bytes
+) -> str:
+    """The determinism guard's message: both requests decoded as ``baton replay`` shows
+    them, and the fields that differ when the method is the same."""
+    text = (
+        f"non-deterministic mission program at request {reqnr}: the log holds "
+        f"{describe_request(logged_method, logged_request)} but this program asks "
+        f"{describe_request(method, request)}"
+    )
+    if logged_method == method:
+        fields = differing_fields(method, logged_request, request)
+        if fields:
+            text += f" (fields that differ: {', '.join(fields)})"
+    return text

@@ -2,7 +2,7 @@
 
 Every server serves the standard health service and server reflection, so
 ``grpcurl HOST:PORT list`` and ``describe`` work on all of them (with the
-TLS flags of the README's Security section, or ``-plaintext`` on an insecure
+TLS flags of docs/operating.md's "Inspecting with grpcurl", or ``-plaintext`` on an insecure
 port).
 """
 

@@ -1,9 +1,9 @@
 """Which MAVLink commands are retransmissions of one the vehicle already acted on.
 
 A ground station sends a command again when its COMMAND_ACK does not come
-in time. MAVSDK 4.1 does it 0.5 s after each copy, 3 times, and (measured
-here, 2026-11) leaves COMMAND_LONG's ``confirmation`` at 0, so the field
-MAVLink meant for this cannot be relied on; COMMAND_INT has no such field.
+in time. MAVSDK 4.1 does it 0.5 s after each copy, 3 times, and leaves
+COMMAND_LONG's ``confirmation`` at 0, so the field MAVLink meant for this
+cannot be relied on; COMMAND_INT has no such field.
 When the acknowledgement was lost (or the vehicle was too slow to send it),
 not the command, the vehicle has already acted: acting and counting again
 would fly a second takeoff and make the effects file report a double

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
+import os
 import signal
 import subprocess
 import sys
@@ -57,10 +58,11 @@ def register(subparsers: Any) -> None:
         ),
     )
     parser.add_argument(
+        "--sitl-binary",
         "--binary",
+        dest="binary",
         metavar="PATH",
-        help="the arducopter SITL binary (default: ../shared/sitl/arducopter beside the "
-        "checkout, where it exists)",
+        help="the arducopter SITL binary (default: $BATON_SITL_BINARY, else arducopter on PATH)",
     )
     parser.add_argument(
         "--defaults",
@@ -105,6 +107,12 @@ def register(subparsers: Any) -> None:
         "and the monitor SERIAL2, which accept only signed frames (SERIAL0, a flight "
         "controller's USB port, accepts unsigned ones for good)",
     )
+    parser.add_argument(
+        "--which",
+        action="store_true",
+        help="print the binary (line 1) and the parameter defaults (line 2, empty if none) "
+        "it would run, and exit: deploy/images.sh stages them for the compose SITL image",
+    )
     parser.set_defaults(run=run)
 
 
@@ -142,19 +150,25 @@ def _start(argv: list[str], workdir: Path) -> tuple[subprocess.Popen[str], list[
 
 def run(args: argparse.Namespace) -> int:
     """Runs SITL until SIGTERM or until it exits."""
-    from baton.sitl.launcher import SitlPorts, SitlSettings, find_binary, free_instance
+    from baton.sitl.launcher import (
+        SitlBinaryNotFound,
+        SitlPorts,
+        SitlSettings,
+        find_binary,
+        find_defaults,
+        free_instance,
+    )
 
-    binary = Path(args.binary) if args.binary else find_binary()
-    if binary is None:
-        print(
-            "baton sitl: no SITL binary: ../shared/sitl/arducopter does not exist here; "
-            "pass --binary PATH (an ArduCopter SITL build)",
-            file=sys.stderr,
-        )
+    try:
+        binary = find_binary(args.binary, os.environ)
+    except SitlBinaryNotFound as exc:
+        print(f"baton sitl: {exc}", file=sys.stderr)
         return 2
-    if not binary.is_file():
-        print(f"baton sitl: --binary {binary}: no such file", file=sys.stderr)
-        return 2
+    if args.which:
+        defaults = Path(args.defaults).resolve() if args.defaults else find_defaults(binary)
+        print(binary)
+        print(defaults or "")
+        return 0
     if args.defaults and not Path(args.defaults).is_file():
         print(f"baton sitl: --defaults {args.defaults}: no such file", file=sys.stderr)
         return 2

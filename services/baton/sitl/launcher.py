@@ -2,8 +2,11 @@
 
 ArduPilot's software-in-the-loop Copter (``arducopter``, built for the
 ``sitl`` board) is the autopilot the paper flew. No package registry ships
-it; the project expects one at ``../shared/sitl/arducopter`` beside a
-checkout (``find_binary``), and tests skip where it is absent.
+it: users keep ArduPilot's build where ArduPilot's build puts it
+(``build/sitl/bin/arducopter``) or on PATH, and ``find_binary`` looks for it
+in one order for every caller (``baton sitl``, ``baton testbed --vehicle
+sitl``, the tests): the flag, then ``BATON_SITL_BINARY``, then ``arducopter``
+on PATH. The environment is read by the command line, which passes it in.
 
 One instance ``-I N`` serves MAVLink on TCP 5760+10N (SERIAL0, the drone
 service's), 5762+10N (SERIAL1, free for an independent telemetry monitor)
@@ -15,27 +18,71 @@ for a client on SERIAL0.
 
 from __future__ import annotations
 
+import shutil
 import socket
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-# Beside a checkout of this repository (``<repo>/../shared/sitl``).
-_REPO = Path(__file__).resolve().parents[3]
-DEFAULT_BINARY_PLACES = (
-    _REPO.parent / "shared" / "sitl" / "arducopter",
-    Path("../shared/sitl/arducopter"),
-)
 SERIAL0_BASE, SERIAL1_BASE, SERIAL2_BASE, RC_IN_BASE = 5760, 5762, 5763, 5501
 MAX_INSTANCE = 50
 # What SITL prints once SERIAL0 listens: the simulation runs from then on.
 LISTENING_MARK = "SERIAL0 on TCP port"
+# The environment variable that names a SITL build, read by the command line.
+BINARY_ENV = "BATON_SITL_BINARY"
+# ArduPilot's own instructions for building SITL (``./waf configure --board
+# sitl`` then ``./waf copter``, which writes ``build/sitl/bin/arducopter``).
+BUILD_INSTRUCTIONS = "https://ardupilot.org/dev/docs/building-setup-linux.html"
+HOW_TO_POINT_AT_A_BUILD = (
+    "pass --sitl-binary PATH, set BATON_SITL_BINARY=PATH, or put arducopter on PATH "
+    "(an ArduPilot build for the sitl board: ./waf configure --board sitl && ./waf copter "
+    f"writes build/sitl/bin/arducopter; see {BUILD_INSTRUCTIONS})"
+)
+NOT_FOUND = f"no ArduPilot Copter SITL binary found: {HOW_TO_POINT_AT_A_BUILD}"
 
 
-def find_binary() -> Path | None:
-    """The project's SITL binary (``../shared/sitl/arducopter``), if there is one."""
-    for place in DEFAULT_BINARY_PLACES:
-        if place.is_file():
-            return place.resolve()
+class SitlBinaryNotFound(LookupError):
+    """No SITL binary where baton looks, or none at the place named: says how to fix it."""
+
+
+def _named_binary(place: str, where: str) -> Path:
+    path = Path(place).expanduser()
+    if not path.is_file():
+        raise SitlBinaryNotFound(f"{where}: no such file; {HOW_TO_POINT_AT_A_BUILD}")
+    if not path.stat().st_mode & 0o111:
+        raise SitlBinaryNotFound(f"{where}: not executable (chmod +x {path})")
+    return path.resolve()
+
+
+def find_binary(flag: str | Path | None, env: Mapping[str, str]) -> Path:
+    """The ArduCopter SITL binary: ``flag``, then ``env[BATON_SITL_BINARY]``, then
+    ``arducopter`` on ``env["PATH"]``; SitlBinaryNotFound says how to point at a build.
+
+    A place that is named (the flag, the variable) and holds no binary is an
+    error, not a reason to look further: the user meant that one.
+    """
+    if flag:
+        return _named_binary(str(flag), f"--sitl-binary {flag}")
+    named = env.get(BINARY_ENV)
+    if named:
+        return _named_binary(named, f"{BINARY_ENV}={named}")
+    on_path = shutil.which("arducopter", path=env.get("PATH", ""))
+    if on_path is not None:
+        return Path(on_path).resolve()
+    raise SitlBinaryNotFound(NOT_FOUND)
+
+
+def find_defaults(binary: Path) -> Path | None:
+    """The parameter defaults for ``binary``: ``copter.parm`` beside it, else the one
+    of the ArduPilot tree it was built in (``Tools/autotest/default_params``)."""
+    beside = binary.parent / "copter.parm"
+    if beside.is_file():
+        return beside
+    # build/sitl/bin/arducopter -> the source tree three folders up.
+    if len(binary.parents) > 3:
+        tree = binary.parents[3] / "Tools" / "autotest" / "default_params" / "copter.parm"
+        if tree.is_file():
+            return tree
     return None
 
 
@@ -78,15 +125,14 @@ class SitlSettings:
     binary: Path
     speedup: float = 1.0
     home: tuple[float, float, float] = (47.397742, 8.545594, 488.0)
-    defaults: Path | None = None  # default: copter.parm beside the binary, if any
+    defaults: Path | None = None  # default: find_defaults(binary)
     heading_deg: float = 0.0
 
     def defaults_file(self) -> Path | None:
-        """The parameter defaults: given, else ``copter.parm`` beside the binary."""
+        """The parameter defaults: given, else ``find_defaults`` of the binary."""
         if self.defaults is not None:
             return self.defaults
-        beside = self.binary.parent / "copter.parm"
-        return beside if beside.is_file() else None
+        return find_defaults(self.binary)
 
     def argv(self, instance: int) -> list[str]:
         """The SITL command line for instance ``instance`` (run in its own workdir)."""

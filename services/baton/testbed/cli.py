@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import math
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -126,8 +127,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument(
         "--sitl-binary",
         metavar="PATH",
-        help="the ArduCopter SITL binary for --vehicle sitl (default: ../shared/sitl/arducopter "
-        "beside the checkout)",
+        help="the ArduCopter SITL binary for --vehicle sitl (default: $BATON_SITL_BINARY, "
+        "else arducopter on PATH)",
     )
     parser.add_argument(
         "--mission",
@@ -202,7 +203,7 @@ def _fail(message: str) -> int:
 
 def _vehicle(args: argparse.Namespace, config: BatonConfig) -> tuple[str, Path | None]:
     """The planned vehicle ("sim", "sitl" or a URL) and the SITL binary; ValueError says why not."""
-    from baton.sitl.launcher import find_binary
+    from baton.sitl.launcher import SitlBinaryNotFound, find_binary
 
     vehicle = args.vehicle
     if vehicle is None:
@@ -217,17 +218,13 @@ def _vehicle(args: argparse.Namespace, config: BatonConfig) -> tuple[str, Path |
         raise ValueError("--sitl-binary is for --vehicle sitl")
     if vehicle != "sitl":
         return vehicle, None
-    binary = Path(args.sitl_binary) if args.sitl_binary else find_binary()
-    if binary is None:
-        raise ValueError(
-            "--vehicle sitl: no SITL binary at ../shared/sitl/arducopter; "
-            "pass --sitl-binary PATH (an ArduCopter SITL build)"
-        )
-    if not binary.is_file():
-        raise ValueError(f"--sitl-binary {binary}: no such file")
+    try:
+        binary = find_binary(args.sitl_binary, os.environ)
+    except SitlBinaryNotFound as exc:
+        raise ValueError(f"--vehicle sitl: {exc}") from None
     if not 0 < config.speedup <= 100:
         raise ValueError(f"--speedup {config.speedup:g}: SITL runs at a speed-up in (0, 100]")
-    return vehicle, binary.resolve()
+    return vehicle, binary
 
 
 def _mission(mission: str, pairs: list[str]) -> tuple[Path | None, tuple[str, ...], Path | None]:
@@ -235,7 +232,7 @@ def _mission(mission: str, pairs: list[str]) -> tuple[Path | None, tuple[str, ..
     it flies, from ``--mission``; ValueError says what is wrong (a plan is checked whole
     here, before anything starts)."""
     from baton.missions import plan as plan_mission
-    from baton.sdk.run import load_mission, parse_params
+    from baton.sdk.run import MissionLoadError, load_mission, parse_params
 
     if mission in ("grid", "corridor"):
         if pairs:
@@ -258,7 +255,11 @@ def _mission(mission: str, pairs: list[str]) -> tuple[Path | None, tuple[str, ..
         named = [p.partition("=")[2] for p in pairs if p.startswith("plan=")]
         flight_plan = Path(named[-1]).resolve() if named else None
     try:
-        parse_params(load_mission(str(path)), pairs)
+        loaded = load_mission(str(path))
+    except MissionLoadError as exc:  # names the file, the line and the cause
+        raise ValueError(f"--mission: {exc}") from None
+    try:
+        parse_params(loaded, pairs)
     except SystemExit as exc:
         raise ValueError(f"--mission {mission}: {exc}") from None
     return path.resolve(), tuple(pairs), flight_plan

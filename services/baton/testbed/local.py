@@ -155,7 +155,8 @@ class TestbedPlan:
     # started by the testbed at the same speed-up) or the MAVLink URL of one
     # that runs already.
     vehicle: str = "sim"
-    sitl_binary: Path | None = None  # default: baton.sitl.launcher.find_binary()
+    # None: ``baton sitl`` finds one (baton.sitl.launcher.find_binary).
+    sitl_binary: Path | None = None
     # A QGroundControl plan the mission file flies (baton.missions.plan), for the
     # report's side-effect check; None for the grid or another mission.
     flight_plan: Path | None = None
@@ -169,6 +170,15 @@ class TestbedPlan:
     def program(self) -> Path:
         """The mission file the controllers run: one's own, else the survey's."""
         return self.mission_file or self.mission.file
+
+    def describe_mission(self) -> str:
+        """For a person, the mission flown: "5x5 grid", "corridor of 1500 m", "plan
+        survey.plan", "mission my_mission.py"."""
+        if self.flight_plan is not None:
+            return f"plan {self.flight_plan.name}"
+        if self.mission_file is not None:
+            return f"mission {self.mission_file.name}"
+        return self.mission.describe()
 
 
 # The side effects counted where they happen (baton.effects), in the workdir.
@@ -467,7 +477,7 @@ class LocalTestbed:
         argv = baton_argv("sitl", "--speedup", speedup, "--home", self._home())
         argv += ["--workdir", str(self.workdir / "sitl"), "--url-file", str(ready)]
         if self.plan.sitl_binary is not None:
-            argv += ["--binary", str(self.plan.sitl_binary)]
+            argv += ["--sitl-binary", str(self.plan.sitl_binary)]
         argv += self._mavlink_key_args()
         return "sitl", argv, ready
 

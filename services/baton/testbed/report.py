@@ -2,12 +2,13 @@
 and, independently of it, against the side effects counted where they happened.
 
 ``build_report`` turns the final status of the drone and of every controller
-into one JSON document (format ``baton.testbed.report/1``, described in the
-README), and ``summary_table`` prints it for a person. The same report comes
-out of the local testbed and of the compose testbed. ``check_side_effects``
-is the skeptic's exactly-once check: it trusts neither the drone's audit nor
-the controllers, only what the sim vehicle and the camera counted
-(``baton.effects``), held against what the grid mission asks for.
+into one JSON document (format ``baton.testbed.report/1``, described in
+docs/operating.md, "The report"), and ``summary_table`` prints it for a
+person. The same report comes out of the local testbed and of the compose
+testbed. ``check_side_effects`` is the skeptic's exactly-once check: it
+trusts neither the drone's audit nor the controllers, only what the sim
+vehicle and the camera counted (``baton.effects``), held against what the
+grid mission asks for.
 """
 
 from __future__ import annotations
@@ -418,7 +419,7 @@ def _mission(
             if grid_mission
             else gotos
         ),
-        "waypoints_visited": pictures if survey else gotos,
+        "waypoints_visited": pictures if survey else vehicle_gotos(snapshot, gotos),
         "pictures": pictures,
         "invocations": len(audit),
         "calls": max((c.reqnr for c in snapshot.controllers.values()), default=0),
@@ -430,6 +431,16 @@ def _mission(
             if a.method == TAKE_PICTURE
         ],
     }
+
+
+def vehicle_gotos(snapshot: Snapshot, requested: int) -> int:
+    """The gotos the vehicle acted on, where it counted them (a goto the drone refused,
+    or the vehicle did not take, visits nothing; a resume after a policy hold is the
+    same leg again); else the ``requested`` gotos the drone's audit holds."""
+    vehicle = snapshot.vehicle_effects
+    if vehicle is None:
+        return requested
+    return len(_without_resumes([e for e in vehicle if e["effect"] == "goto"], snapshot))
 
 
 def _setup(

@@ -26,6 +26,7 @@ from baton.testbed.html_report import write_page
 from baton.testbed.local import LocalTestbed, MissionPlan, Snapshot, TestbedPlan, drone_status
 from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
+from baton.testbed.waits import waits_line
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
 
@@ -45,6 +46,8 @@ class Progress:
         self.stream = stream
         self.started = time.monotonic()
         self._last = 0.0
+        # The testbed's configuration once known: which waits radio range explains.
+        self.config: BatonConfig | None = None
 
     def _due(self) -> bool:
         now = time.monotonic()
@@ -93,10 +96,10 @@ class Progress:
         )
         vehicle = "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
         vehicle += f" | drone waiting: {drone.waiting}" if drone.waiting else ""
-        vehicle += "".join(
-            f" | c{cid} waiting: {c.waiting}"
-            for cid, c in sorted(snapshot.controllers.items())
-            if c.waiting
+        vehicle += waits_line(
+            self.config,
+            {cid: c.waiting for cid, c in snapshot.controllers.items() if c.waiting},
+            vehicle_position(drone),
         )
         print(
             f"{self._stamp()} "
@@ -112,6 +115,14 @@ class Progress:
             file=self.stream,
             flush=True,
         )
+
+
+def vehicle_position(drone: drone_pb2.DroneStatus) -> tuple[float, float] | None:
+    """The vehicle's latitude and longitude by the drone's telemetry; None if unknown."""
+    position = drone.position
+    if position.latitude_deg == 0 and position.longitude_deg == 0:
+        return None
+    return position.latitude_deg, position.longitude_deg
 
 
 def files_note(files: dict[str, Any]) -> str:
@@ -136,7 +147,7 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
     """Runs one mission on the local testbed; returns the exit code."""
     planned = plan.config
     print(
-        f"baton testbed: {plan.mission.describe()}, {len(planned.controllers)} controllers, "
+        f"baton testbed: {plan.describe_mission()}, {len(planned.controllers)} controllers, "
         f"handover policy {planned.handover_policy.name}, flush limit {planned.flush_limit} "
         "bytes, handovers "
         f"{', '.join(f'{r}:{m}' for r, m in plan.handovers) or 'none'}, "
@@ -171,6 +182,7 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
             track(snapshot, time.time())
 
         config = await testbed.start(progress.vehicle_wait)
+        progress.config = config
         write_atomically(
             workdir / "pids.json",
             json.dumps(
@@ -215,7 +227,7 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
         page,
         report,
         geojson,
-        f"{plan.mission.describe()}, policy {policy}: masters {masters}",
+        f"{plan.describe_mission()}, policy {policy}: masters {masters}",
         timeline_rows(snapshot, config.flush_limit),
         config.flush_limit,
         taken,
@@ -251,6 +263,7 @@ async def follow_remote(
     rings = {cid: ring_pb2_grpc.ControllerRingStub(ch) for cid, ch in channels.items()}
     targets = mission.targets()
     progress = Progress(len(targets), len(handovers))
+    progress.config = config
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
     try:

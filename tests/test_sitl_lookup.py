@@ -1,0 +1,120 @@
+"""Where baton finds ArduPilot SITL: the flag, then BATON_SITL_BINARY, then arducopter
+on PATH; where there is none, every caller says how to point baton at a build."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from autopilots import SKIP_REASON
+
+from baton.sitl.launcher import (
+    BUILD_INSTRUCTIONS,
+    HOW_TO_POINT_AT_A_BUILD,
+    NOT_FOUND,
+    SitlBinaryNotFound,
+    find_binary,
+    find_defaults,
+)
+
+
+def fake_build(root: Path) -> Path:
+    """An ArduPilot tree with a SITL "build": an executable arducopter, copter.parm."""
+    binary = root / "build" / "sitl" / "bin" / "arducopter"
+    binary.parent.mkdir(parents=True)
+    binary.write_text("#!/bin/sh\necho fake arducopter\n")
+    binary.chmod(0o755)
+    params = root / "Tools" / "autotest" / "default_params" / "copter.parm"
+    params.parent.mkdir(parents=True)
+    params.write_text("FRAME_TYPE 0\n")
+    return binary
+
+
+def test_the_variable_names_the_binary(tmp_path: Path) -> None:
+    binary = fake_build(tmp_path / "ardupilot")
+    env = {"BATON_SITL_BINARY": str(binary), "PATH": ""}
+    assert find_binary(None, env) == binary.resolve()
+
+
+def test_the_flag_comes_before_the_variable(tmp_path: Path) -> None:
+    first = fake_build(tmp_path / "a")
+    second = fake_build(tmp_path / "b")
+    assert find_binary(first, {"BATON_SITL_BINARY": str(second)}) == first.resolve()
+
+
+def test_the_variable_comes_before_path(tmp_path: Path) -> None:
+    named = fake_build(tmp_path / "a")
+    on_path = fake_build(tmp_path / "b")
+    env = {"BATON_SITL_BINARY": str(named), "PATH": str(on_path.parent)}
+    assert find_binary(None, env) == named.resolve()
+
+
+def test_arducopter_on_path_is_found(tmp_path: Path) -> None:
+    binary = fake_build(tmp_path / "ardupilot")
+    assert find_binary(None, {"PATH": f"/nonexistent:{binary.parent}"}) == binary.resolve()
+
+
+def test_a_named_place_without_a_binary_is_an_error_not_a_fallback(tmp_path: Path) -> None:
+    on_path = fake_build(tmp_path / "b")
+    env = {"BATON_SITL_BINARY": str(tmp_path / "nope"), "PATH": str(on_path.parent)}
+    with pytest.raises(SitlBinaryNotFound, match=r"BATON_SITL_BINARY=.*nope: no such file"):
+        find_binary(None, env)
+    with pytest.raises(SitlBinaryNotFound, match=r"--sitl-binary .*nope: no such file"):
+        find_binary(tmp_path / "nope", {})
+
+
+def test_none_found_says_how_to_point_baton_at_a_build() -> None:
+    with pytest.raises(SitlBinaryNotFound) as caught:
+        find_binary(None, {"PATH": ""})
+    message = str(caught.value)
+    assert message == NOT_FOUND
+    for how in ("--sitl-binary PATH", "BATON_SITL_BINARY=PATH", "arducopter on PATH"):
+        assert how in message
+    assert BUILD_INSTRUCTIONS in message
+    assert BUILD_INSTRUCTIONS.startswith("https://ardupilot.org/")
+
+
+def test_the_tests_skip_message_says_the_same() -> None:
+    assert HOW_TO_POINT_AT_A_BUILD in SKIP_REASON
+
+
+def test_the_parameters_of_the_build_tree_are_found(tmp_path: Path) -> None:
+    binary = fake_build(tmp_path / "ardupilot")
+    expected = tmp_path / "ardupilot" / "Tools" / "autotest" / "default_params" / "copter.parm"
+    assert find_defaults(binary) == expected
+    beside = binary.parent / "copter.parm"
+    beside.write_text("")
+    assert find_defaults(binary) == beside
+
+
+def run_baton(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "baton.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PATH": "", **env},
+    )
+
+
+def test_baton_sitl_finds_the_variables_binary(tmp_path: Path) -> None:
+    binary = fake_build(tmp_path / "ardupilot")
+    done = run_baton({"BATON_SITL_BINARY": str(binary)}, "sitl", "--which")
+    assert done.returncode == 0, done.stderr
+    found, params = done.stdout.splitlines()
+    assert Path(found) == binary.resolve()
+    assert Path(params).name == "copter.parm"
+
+
+@pytest.mark.parametrize(
+    "argv", [("sitl", "--which"), ("testbed", "--vehicle", "sitl")], ids=["sitl", "testbed"]
+)
+def test_the_command_line_without_a_binary_says_how_to_point_at_one(argv: tuple[str]) -> None:
+    env = {k: "" for k in ("BATON_SITL_BINARY",)}
+    done = run_baton(env, *argv)
+    assert done.returncode == 2
+    assert NOT_FOUND in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr
