@@ -18,9 +18,7 @@ from pathlib import Path
 import pytest
 
 # Re-exported for tests/controller/test_takeover.py, which imports them from here.
-from helpers.missions import FAST_LINK as FAST_LINK
-from helpers.missions import SMALL_GRID, fly
-from helpers.missions import assert_mission_promises as assert_mission_promises
+from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises, fly
 
 from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
 

@@ -37,8 +37,9 @@ async def test_a_diverging_mission_is_stopped_with_both_requests_shown(tmp_path:
     assert replica.mission == ring_pb2.MISSION_STATE_FAILED
     error = replica.mission_error
     assert "non-deterministic mission program at request 2" in error
-    assert error.count("/baton.v1.Camera/SetResolution") == 2  # the logged one and this one
-    assert "request bytes" in error
+    # Both requests decoded as `baton replay` shows them, and the field that differs.
+    assert error.count("Camera.SetResolution {width: ") == 2  # the logged one and this one
+    assert "(fields that differ: width)" in error
     program_output = (tmp_path / "logs" / "controller-1.log").read_text()
     assert "DroneCallError: Camera.SetResolution failed with FAILED_PRECONDITION" in program_output
     # The drone executed the master's requests only, once each.

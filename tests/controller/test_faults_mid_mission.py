@@ -24,10 +24,7 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers.missions import FAST_LINK, assert_mission_promises
-from helpers.missions import (
-    LONG_LEGS as LONG_LEGS,  # re-exported for tests/controller/test_takeover.py
-)
+from helpers.missions import FAST_LINK, LONG_LEGS, assert_mission_promises
 from waiting import eventually
 
 from baton.testbed.local import LocalTestbed, TestbedPlan, local_config

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+from helpers.protocol import started
 
 from baton.controller.protocol import (
     ConnectDrone,
@@ -63,19 +64,6 @@ def replay_all(p: ControllerProtocol) -> list:
         _, more = p.replay(GET, b"")
         effects.extend(more)
     return effects
-
-
-def started(
-    cid: int, ring: list[int], flush_limit: int, initial_master: int = 0
-) -> ControllerProtocol:
-    """A controller at the mission's start: the predecessor holds nothing yet, and the
-    drone grants the initial master epoch 1."""
-    p = ControllerProtocol(cid, ring, flush_limit)
-    p.start()
-    p.on_sync(0)
-    if cid == initial_master:
-        p.on_granted(1)
-    return p
 
 
 def test_every_controller_starts_passive_and_asks_the_drone() -> None:
@@ -339,7 +327,9 @@ def test_determinism_guard_shows_both_requests() -> None:
     with pytest.raises(NonDeterminismError) as caught:
         p.replay(PICTURE, b"\x08\x01")
     text = str(caught.value)
-    assert "request 1" in text and GET in text and PICTURE in text and "0801" in text
+    # Both requests decoded as `baton replay` shows them.
+    assert "request 1" in text and "Mobility.GetPosition {}" in text
+    assert "Camera.TakePicture {" in text and "request bytes" not in text
     assert p.state is State.REPLAY and p.reqnr == 0  # nothing consumed
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, cast
 
 import pytest
-from test_protocol import started
+from helpers.protocol import started
 
 from baton.controller.protocol import (
     ConnectDrone,

@@ -24,10 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from helpers.missions import FAST_LINK, LONG_LEGS, assert_mission_promises
-from helpers.missions import (
-    log_events as log_events,  # re-exported for tests/controller/test_takeover.py
-)
+from helpers.missions import FAST_LINK, LONG_LEGS, assert_mission_promises, log_events
 from waiting import eventually
 
 from baton.testbed.local import LocalTestbed, TestbedPlan, local_config, remove_sqlite

@@ -18,9 +18,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from test_controller_end_to_end import FAST_LINK, assert_mission_promises
-from test_faults_mid_mission import LONG_LEGS
-from test_restarts_and_epochs import log_events
+from helpers.missions import FAST_LINK, LONG_LEGS, assert_mission_promises, log_events
 from waiting import eventually
 
 from baton.config import LinkSpec

@@ -3,8 +3,6 @@ determinism guard's message is built by ``describe_nondeterminism``."""
 
 from __future__ import annotations
 
-import pytest
-
 from baton.controller.protocol import NonDeterminismError
 from baton.rpc.methods import describe_nondeterminism, describe_request, path
 from baton.v1 import drone_api_pb2, ring_pb2
@@ -44,11 +42,6 @@ def test_another_method_is_shown_without_fields_that_differ() -> None:
     )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="controller/protocol.py (the lead's) still shows raw hex: NonDeterminismError "
-    "must build its message with baton.rpc.methods.describe_nondeterminism",
-)
 def test_the_determinism_guard_raises_with_the_decoded_message() -> None:
     logged = ring_pb2.LogEntry(reqnr=5, method=TAKEOFF, request=takeoff(10))
     error = NonDeterminismError(5, logged, TAKEOFF, takeoff(15))

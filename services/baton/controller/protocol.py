@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 from baton.digest import request_digest
+from baton.rpc.methods import describe_nondeterminism
 from baton.v1 import drone_pb2, ring_pb2
 
 
@@ -173,9 +174,7 @@ class NonDeterminismError(Exception):
         self.method = method
         self.request = request
         super().__init__(
-            f"non-deterministic mission program at request {reqnr}: the log holds "
-            f"{logged.method} {_show(logged.request)} but this program asks "
-            f"{method} {_show(request)}"
+            describe_nondeterminism(reqnr, logged.method, bytes(logged.request), method, request)
         )
 
 
@@ -281,11 +280,6 @@ class ProtocolError(Exception):
     def __init__(self, text: str, effects: list[Effect] | None = None) -> None:
         super().__init__(text)
         self.effects: list[Effect] = list(effects or [])
-
-
-def _show(payload: bytes) -> str:
-    text = bytes(payload).hex()
-    return f"(request bytes {text[:96]}{'...' if len(text) > 96 else ''})"
 
 
 def entry_size(entry: ring_pb2.LogEntry) -> int:

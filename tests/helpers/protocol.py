@@ -1,0 +1,18 @@
+"""The controller protocol at a mission's start, for the tests that feed it events."""
+
+from __future__ import annotations
+
+from baton.controller.protocol import ControllerProtocol
+
+
+def started(
+    cid: int, ring: list[int], flush_limit: int, initial_master: int = 0
+) -> ControllerProtocol:
+    """A controller at the mission's start: the predecessor holds nothing yet, and the
+    drone grants the initial master epoch 1."""
+    p = ControllerProtocol(cid, ring, flush_limit)
+    p.start()
+    p.on_sync(0)
+    if cid == initial_master:
+        p.on_granted(1)
+    return p
