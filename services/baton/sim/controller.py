@@ -25,13 +25,23 @@ from __future__ import annotations
 
 import enum
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import grpc
 
 from baton.config import GAP_REPAIR_MAX_S, gap_repair_s
-from baton.controller.drone_link import DroneRefusal
+from baton.controller.core import (
+    ControllerCore,
+    CoreEffect,
+    DroneRefusal,
+    Fail,
+    Note,
+    Reconnect,
+    Rejoin,
+    SendCatchUp,
+)
 from baton.controller.history import LogHistory
 from baton.controller.node import (
     CLOCK_NOW,
@@ -49,12 +59,9 @@ from baton.controller.protocol import (
     ControllerProtocol,
     DisconnectDrone,
     Diverged,
-    Effect,
     Fenced,
     NonDeterminismError,
     ProtocolError,
-    Refusal,
-    ReplacedFraming,
     SendLog,
     State,
     Unqueued,
@@ -158,7 +165,10 @@ class SimController:
         self.id = cid
         self.incarnation = incarnation
         self.alive = True
-        self.protocol = ControllerProtocol(cid, world.ring, world.flush_limit)
+        # The shipped core: the protocol and the decisions about the drone session.
+        self.core = ControllerCore(
+            ControllerProtocol(cid, world.ring, world.flush_limit), world.cut_through
+        )
         self.history = LogHistory()
         self.links: dict[int, RingLink] = {}
         self.drone_link = DroneLink(world, self)
@@ -181,19 +191,11 @@ class SimController:
         # Whether the drone has answered its start-up question (granted, refused, a notice).
         self.answered = False
         self._pump_due = False
-        # Takeover (issue 10): node.py's _takeover_epoch, _rejoining, fenced_messages,
-        # routed_around.
-        self.takeover_epoch = self.takeover_watermark = 0
-        self.retained: dict[int, drone_pb2.RetainedReply] = {}  # node.py's _retained
+        # Takeover: node.py's fenced_messages and routed_around.
         self.adopted = (0, 0)  # node.py's _adopted: (epoch, first reqnr answered from retained)
-        self.retained_through = 0  # and _retained_through
-        self.retained_due = self.retained_came = 0  # and _retained_due, _retained_came
         self.answered_here: list[ring_pb2.LogEntry] = []  # node.py's _answered_here
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
-        self.rejoining = False
-        # node.py's _replaced: carried to the incarnation a rejoin starts (World.rejoin).
-        self.replaced: ReplacedFraming | None = None
         self.fenced_messages = 0
         self.routed_around: list[int] = []
         self.route_held = False  # a route held back polls (_route_again)
@@ -205,6 +207,11 @@ class SimController:
         self.prepare_bound = 0  # and _prepare_bound
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
+
+    @property
+    def protocol(self) -> ControllerProtocol:
+        """Algorithm 1's state machine (the core's)."""
+        return self.core.protocol
 
     def start(self) -> None:
         """Opens the stream to the successor and asks the drone (node.py start)."""
@@ -242,7 +249,7 @@ class SimController:
 
     # -- effects (ControllerNode._apply) ------------------------------------------
 
-    def _apply(self, effects: list[Effect]) -> None:
+    def _apply(self, effects: Sequence[CoreEffect]) -> None:
         unqueued = False
         for effect in effects:
             if isinstance(effect, SendLog):
@@ -268,7 +275,20 @@ class SimController:
                     f"controller {self.id} diverged at log message {effect.lognr} (epoch "
                     f"{effect.ours_epoch} here, {effect.ring_epoch} on the ring): rejoins"
                 )
+                if self.core.rejoin():
+                    self._rejoin()
+            elif isinstance(effect, Reconnect):
+                self._close_drone()
+                self._open_drone()
+            elif isinstance(effect, Rejoin):
                 self._rejoin()
+            elif isinstance(effect, SendCatchUp):
+                self._send_catch_up(effect.target)
+            elif isinstance(effect, Note):
+                fields = " ".join(f"{k}={v}" for k, v in effect.fields.items())
+                self.world.trace(f"controller {self.id}: {effect.text} ({fields})")
+            elif isinstance(effect, Fail):
+                self._fail(effect.text)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
                 self.world.trace(
@@ -395,36 +415,21 @@ class SimController:
             return
         session.epoch, session.connected = epoch, True
         self._startup_answer()
-        if self.protocol.log_given_up(takeover_epoch):
-            self.world.trace(
-                f"controller {self.id} granted epoch {epoch} while ACTIVE in "
-                f"{self.protocol.epoch}, below takeover {takeover_epoch}"
+        try:
+            effects = self.core.granted(
+                epoch, retained_through, takeover, watermark_reqnr, takeover_epoch
             )
-            self._fenced(self.id, takeover_epoch)
+        except ProtocolError as exc:
+            self._uncaught("on_granted", exc)
             return
-        self.on_granted(epoch, retained_through, takeover, watermark_reqnr)
+        self._apply(effects)
 
     def on_drone_retained(self, sid: int, replies: list[drone_pb2.RetainedReply]) -> None:
         """A RetainedBatch event: node.py's on_retained."""
         session = self.session
         if session is None or session.sid != sid:
             return
-        held = self.protocol.held_reqnr
-        if replies:
-            self.retained_came = max(self.retained_came, replies[-1].reqnr)
-        replaced = self.protocol.replaced_framing(replies)
-        if replaced is not None:
-            self.world.trace(
-                f"controller {self.id} holds request {replaced.reqnr} in a framing a later "
-                f"takeover replaced (the drone's is of epoch {replaced.epoch}): rejoins "
-                f"refusing log messages {replaced.lognr}+ of epoch {replaced.ours_epoch} "
-                "or older"
-            )
-            self.replaced = replaced
-            self._rejoin()
-            return
-        self.retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
-        self._notify()
+        self._apply(self.core.retained_batch(replies))
 
     def on_drone_notice(
         self, sid: int, new_master: int, after_reqnr: int, epoch: int, takeover: bool
@@ -484,92 +489,30 @@ class SimController:
 
     # -- events (ControllerNode.on_*) ---------------------------------------------
 
-    def on_granted(
-        self,
-        epoch: int,
-        retained_through: int,
-        takeover: bool = False,
-        watermark_reqnr: int = 0,
-    ) -> None:
-        """ControllerNode.on_granted: a takeover if the drone says so (or the epoch is the
-        one on_take_over noted); the replies the drone retains above what we hold follow,
-        up to ``retained_through``, to answer the program from; the drone's watermark now,
-        which we must hold first."""
-        held = self.protocol.held_reqnr
-        self.retained = {}
-        self.retained_through = retained_through if retained_through > held else 0
-        self.retained_due, self.retained_came = retained_through, 0
-        takeover = takeover or epoch == self.takeover_epoch
-        try:
-            effects = self.protocol.on_granted(
-                epoch, takeover, max(self.takeover_watermark, watermark_reqnr)
-            )
-        except ProtocolError as exc:
-            self._uncaught("on_granted", exc)
-            return
-        self._apply(effects)
-
     def _uncaught(self, where: str, exc: ProtocolError) -> None:
         """A ProtocolError that node.py does not catch there: the controller is broken."""
         self._fail(f"controller {self.id}: ProtocolError escapes node.py {where}: {exc}")
 
     def on_connect_refused(self, refusal: DroneRefusal) -> None:
         """ControllerNode.on_connect_refused."""
-        if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
-            self._fenced(refusal.master, refusal.fencing_epoch)
-            return
-        if self.protocol.state is not State.ACTIVE:
-            self._close_drone()
-            return
-        if self.protocol.connect_refusal_is_stale(refusal.epoch):
-            # Asked before the drone made us master, answered after: ask again.
-            self._close_drone()
-            self._open_drone()
-            return
-        self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+        self._apply(self.core.connect_refused(refusal))
 
     def on_stream_notice(
         self, new_master: int, after_reqnr: int, epoch: int, takeover: bool = False
     ) -> None:
         """ControllerNode.on_stream_notice."""
-        if takeover:
-            self._fenced(new_master, epoch)
-            return
-        if self.protocol.state is State.ACTIVE:
-            self.on_handover_notice(new_master, after_reqnr, epoch)
-            return
-        self._close_drone()
+        self._apply(self.core.stream_notice(new_master, after_reqnr, epoch, takeover))
 
     def on_take_over(self, old_master: int, epoch: int, watermark_reqnr: int) -> None:
-        """ControllerNode.on_take_over (the standby stream's TakeOver): connect again to
-        learn the epoch (and get the retained replies); on_granted then goes ACTIVE on
-        what this controller holds."""
+        """ControllerNode.on_take_over (the standby stream's TakeOver)."""
         if not self.alive:
             return
-        self.takeover_epoch = epoch
-        self.takeover_watermark = watermark_reqnr
-        self.world.trace(f"controller {self.id} takes over from lost {old_master} (epoch {epoch})")
-        self._close_drone()
-        self._open_drone()
-        self._notify()
-
-    def _fenced(self, new_master: int, epoch: int) -> None:
-        """ControllerNode._fenced: stop acting as master (on_fenced), then rejoin."""
-        if self.rejoining:
-            return
-        self.world.trace(
-            f"controller {self.id} fenced: {new_master} took over in epoch {epoch} "
-            f"({len(self.protocol.log)} unflushed entries dropped)"
-        )
-        self._apply(self.protocol.on_fenced(epoch))
-        self._rejoin()
+        self._apply(self.core.take_over(old_master, epoch, 0, watermark_reqnr))
 
     def _rejoin(self) -> None:
-        """ControllerNode._rejoin as a task: ControllerApp.rejoin (the program stops, reset,
-        incoming streams dropped, the program starts again), as a restart with nothing."""
-        if not self.rejoining:
-            self.rejoining = True
-            self.world.loop.after(0.0, self.world.rejoin, self)
+        """A rejoin as ControllerApp.rejoin does it (the program stops, reset, incoming
+        streams dropped, the program starts again), as a restart with nothing."""
+        self.world.loop.after(0.0, self.world.rejoin, self)
 
     # -- a gap in what we received (ControllerNode._repair_gap) -------------------
 
@@ -686,16 +629,7 @@ class SimController:
 
     def on_handover_notice(self, new_master: int, after_reqnr: int, epoch: int = 0) -> None:
         """ControllerNode.on_handover_notice (Algorithm 1, lines 24-29)."""
-        if self.protocol.state is not State.ACTIVE:
-            return
-        try:
-            effects = self.protocol.on_handover_notice(new_master, epoch)
-        except ProtocolError:
-            return
-        self.world.trace(f"controller {self.id} hands over to {new_master}")
-        if self.world.cut_through:
-            self._send_catch_up(new_master)
-        self._apply(effects)
+        self._apply(self.core.handover_notice(new_master, after_reqnr, epoch))
 
     # -- a prepared handover (docs/design.md, "Prepared handover") ----------------
 
@@ -782,21 +716,15 @@ class SimController:
             self._fence_by_the_ring(message)
 
     def _fence_by_the_ring(self, message: ring_pb2.LogMessage | None) -> None:
-        """ControllerNode._fence_by_the_ring: cut off from the drone (neither stream up:
-        the standby stream is up exactly while the link is usable here), the ring shows
-        the takeover. node.py also asks every 0.1 s of a queued message
+        """ControllerNode._fence_by_the_ring (the standby stream is up exactly while the
+        link is usable here). node.py also asks every 0.1 s of a queued message
         (``went_on_in_queue``); here when a stream goes down (``_reconnect_later``,
         ``on_drone_link_broken``), the moments the answer can change."""
-        if message is None or not self.alive:
+        if not self.alive:
             return
         session = self.session
-        if (session is not None and session.connected) or self.drone_link.usable():
-            return
-        self.world.trace(
-            f"controller {self.id} sees epoch {message.epoch} of {message.origin} on the "
-            f"ring while ACTIVE in {self.protocol.epoch}, cut off from the drone"
-        )
-        self._fenced(message.origin, message.epoch)
+        reachable = (session is not None and session.connected) or self.drone_link.usable()
+        self._apply(self.core.went_on_without_us(message, reachable))
 
     def _settle_handovers(self) -> None:
         """ControllerNode._settle_handovers: a settled handover message loses its flag on
@@ -880,7 +808,7 @@ class SimController:
         False to wait for the log, or when the mission failed."""
         protocol = self.protocol
         while self.abandoned:
-            if self.failure is not None or self.rejoining:
+            if self.failure is not None or self.core.rejoining:
                 return False
             given_up, code = self.abandoned[0]
             if protocol.state is State.REPLAY:
@@ -902,13 +830,13 @@ class SimController:
                     return False
             elif protocol.state is State.ACTIVE and protocol.granted_epoch != protocol.epoch:
                 return False  # node.py _wait_granted: the drone may retain its answer
-            elif protocol.state is State.ACTIVE and protocol.reqnr + 1 < self.retained_through:
+            elif protocol.state is State.ACTIVE and protocol.reqnr + 1 < self.core.retained_through:
                 # node.py: the drone retains the answer a lost master's program acted
                 # on (it sent a later request); that is the entry.
                 reqnr = protocol.reqnr + 1
                 if self._retained_pending(reqnr):
                     return False  # _wait_retained: its batch is coming
-                kept = self.retained.pop(reqnr)
+                kept = self.core.retained.pop(reqnr)
                 self._adopt(reqnr)
                 try:
                     entry = from_retained(kept, given_up.method, given_up.request)
@@ -931,7 +859,7 @@ class SimController:
                     return False
             elif protocol.state is State.ACTIVE:
                 self.abandoned.popleft()
-                self.retained.pop(protocol.reqnr + 1, None)
+                self.core.retained.pop(protocol.reqnr + 1, None)
                 entry = _given_up(protocol.reqnr + 1, given_up.method, given_up.request, code)
                 effects = protocol.on_reply(entry)
                 self._seen(entry)
@@ -1008,9 +936,9 @@ class SimController:
     def _retained_pending(self, reqnr: int) -> bool:
         """node.py _wait_retained's condition: the reply for ``reqnr`` is to come, or
         a batch is (a request past them waits until those we hold were compared)."""
-        if reqnr <= self.retained_through:
-            return reqnr not in self.retained
-        return self.retained_came < self.retained_due
+        if reqnr <= self.core.retained_through:
+            return reqnr not in self.core.retained
+        return self.core.retained_came < self.core.retained_due
 
     def _answer_active(self, inv: Invocation) -> None:
         """The rest of node.py _invoke: from the retained replies, the Clock or the drone."""
@@ -1018,7 +946,7 @@ class SimController:
         if self._retained_pending(inv.reqnr):
             inv.step = Step.WAIT_RETAINED  # node.py _wait_retained: its batch is coming
             return
-        kept = self.retained.pop(inv.reqnr, None)
+        kept = self.core.retained.pop(inv.reqnr, None)
         if kept is not None:
             self._adopt(inv.reqnr)
             try:
@@ -1112,21 +1040,11 @@ class SimController:
             return
         refusal = refusal_from(error)
         if refusal is not None:
-            verdict = self.protocol.judge_refusal(inv.sent_epoch, refusal.master, refusal.epoch)
-            if verdict is Refusal.DISAGREE:
-                self._fail(
-                    f"controller {self.id}: the drone refused request {inv.reqnr} "
-                    f"({inv.call.method}): {error.message}"
+            self._apply(
+                self.core.request_refused(
+                    inv.sent_epoch, refusal, inv.reqnr, inv.call.method, error.message
                 )
-            elif verdict is Refusal.HANDED_OVER and (
-                refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
-            ):
-                self._fenced(refusal.master, refusal.fencing_epoch)
-            elif verdict is Refusal.HANDED_OVER:
-                self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
-            elif verdict is Refusal.REGRANTED:  # node.py: connect again to learn the epoch
-                self._close_drone()
-                self._open_drone()
+            )
             self._invoked(inv, None)
             return
         waited = self.world.loop.now - inv.started
@@ -1187,9 +1105,9 @@ class SimController:
             if (
                 self._ours_to_log(inv.reqnr)
                 and p.granted_epoch == p.epoch
-                and inv.reqnr >= self.retained_through
+                and inv.reqnr >= self.core.retained_through
             ):
-                self.retained.pop(inv.reqnr, None)
+                self.core.retained.pop(inv.reqnr, None)
                 entry = _given_up(inv.reqnr, call.method, call.request, code)
                 effects = self.protocol.on_reply(entry)
                 self._seen(entry)
