@@ -13,6 +13,8 @@ from baton.controller.core import (
     Reconnect,
     Record,
     Rejoin,
+    RepairGap,
+    RouteTo,
     SendCatchUp,
 )
 from baton.controller.protocol import DisconnectDrone, SendLog, State
@@ -54,7 +56,12 @@ def test_a_stale_handover_notice_hands_nothing_over_and_sends_no_catch_up() -> N
     core = master()
     core.protocol.on_granted(3)
     effects = core.handover_notice(2, 0, 1)
-    assert kinds(effects) == [Note] and effects[0].text == "stale handover notice ignored"
+    note = effects[0]
+    assert (
+        kinds(effects) == [Note]
+        and isinstance(note, Note)
+        and note.text == "stale handover notice ignored"
+    )
     assert core.protocol.state is State.ACTIVE
 
 
@@ -85,7 +92,8 @@ def test_a_connect_refusal_decides_by_what_the_drone_says() -> None:
 def test_a_refused_request_is_judged_by_epoch() -> None:
     core = master()
     disagree = core.request_refused(1, DroneRefusal(0, 1, 3), 4, GET, "wrong reqnr")
-    assert kinds(disagree) == [Fail] and "refused request 4" in disagree[0].text
+    fail = disagree[0]
+    assert kinds(disagree) == [Fail] and isinstance(fail, Fail) and "refused request 4" in fail.text
     regranted = master().request_refused(1, DroneRefusal(0, 2, 3), 4, GET, "")
     assert kinds(regranted) == [Note, Reconnect]
     handed = master().request_refused(1, DroneRefusal(2, 2, 3), 4, GET, "")
@@ -128,3 +136,39 @@ def test_a_fresh_self_carries_what_the_rejoin_must_not_forget() -> None:
     fresh.protocol.on_sync(0)
     fresh.protocol.on_log(stale)
     assert fresh.protocol.state is State.PASSIVE and not fresh.protocol.master
+
+
+def test_a_gap_is_repaired_when_due_and_again_twice_as_late() -> None:
+    """Message 2 missing while 3 is queued: noted at once, repaired at the repair time,
+    then again twice as late each time; not while its frames are still coming."""
+    core = ControllerCore(started(1, [0, 1, 2], 0))
+    core.protocol.on_log(ring_pb2.LogMessage(lognr=1, origin=0, sender=0))
+    core.protocol.on_log(ring_pb2.LogMessage(lognr=3, origin=0, sender=0))
+    assert core.protocol.missing_lognr == 2
+    assert core.gap_due(10.0, 1.0) == [] and core.gap == (2, 10.0, 11.0)
+    assert core.gap_due(10.9, 1.0) == []
+    assert kinds(core.gap_due(11.0, 1.0)) == [Note, RepairGap]
+    assert core.gap == (2, 10.0, 13.0)  # twice as late
+    assert core.gap_due(12.0, 1.0, frames_seen_at=11.5) == []  # its frames are coming
+    assert core.gap == (2, 12.0, 13.0)
+    core.protocol.on_log(ring_pb2.LogMessage(lognr=2, origin=0, sender=0))
+    assert core.gap_due(20.0, 1.0) == [] and core.gap is None
+
+
+def test_the_ring_routes_around_a_successor_down_for_the_detection_time() -> None:
+    core = ControllerCore(started(1, [0, 1, 2], 0))
+    down = {2: 0.5, 0: 0.0}
+    assert core.route_due(down.get, 1.0, drone_connected=False) == []
+    down[2] = 1.0
+    effects = core.route_due(down.get, 1.0, drone_connected=False)
+    assert kinds(effects) == [Note, RouteTo]
+    route = effects[1]
+    assert isinstance(route, RouteTo) and (route.successor, route.skipped) == (0, [2])
+    assert (route.previous, route.natural) == (2, 2)
+    assert core.protocol.successor == 0 and core.routed_around == [2]
+    down[2] = 0.0  # back: the natural successor again
+    back = core.route_due(down.get, 1.0, drone_connected=False)
+    assert kinds(back) == [Note, RouteTo] and core.protocol.successor == 2
+    # Two controllers: nowhere to route around to.
+    two = ControllerCore(started(1, [0, 1], 0))
+    assert two.route_due(lambda pid: 99.0, 1.0, drone_connected=False) == []

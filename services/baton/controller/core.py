@@ -29,10 +29,11 @@ The rules (docs/design.md, "Takeover", "Epochs" and "Restarts"):
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from baton.config import GAP_REPAIR_MAX_S
 from baton.controller.protocol import (
     ControllerProtocol,
     DisconnectDrone,
@@ -41,6 +42,7 @@ from baton.controller.protocol import (
     Refusal,
     ReplacedFraming,
     State,
+    ring_route,
 )
 from baton.v1 import drone_pb2, ring_pb2
 
@@ -110,13 +112,30 @@ class Note:
 
 
 @dataclass(frozen=True)
+class RepairGap:
+    """Effect: make our predecessors connect again (every incoming ring stream dropped),
+    so that they hear our hello and re-send what is above what we hold."""
+
+
+@dataclass(frozen=True)
+class RouteTo:
+    """Effect: send the ring's messages to ``successor`` from now on, skipping ``skipped``
+    (the links follow: the new successor's stream carries the history)."""
+
+    successor: int
+    skipped: list[int]
+    previous: int  # the successor before
+    natural: int  # the successor in ring order
+
+
+@dataclass(frozen=True)
 class Fail:
     """Effect: the mission stops here with ``text`` (the controller cannot go on)."""
 
     text: str
 
 
-CoreEffect = Effect | Reconnect | Rejoin | SendCatchUp | Record | Note | Fail
+CoreEffect = Effect | Reconnect | Rejoin | SendCatchUp | Record | Note | Fail | RepairGap | RouteTo
 
 
 class ControllerCore:
@@ -144,6 +163,11 @@ class ControllerCore:
         self.replaced: ReplacedFraming | None = None
         # A rejoin is under way (``Rejoin`` given, the runtime not done with it).
         self.rejoining = False
+        # The gap in what we received being repaired (``gap_due``): the missing log
+        # number, since when it is missing, when to act next.
+        self.gap: tuple[int, float, float] | None = None
+        # The successors the ring routes around now (``route_due``).
+        self.routed_around: list[int] = []
 
     def fresh_self(self) -> ControllerCore:
         """The core of this controller rejoining with nothing (``ControllerProtocol.
@@ -378,3 +402,84 @@ class ControllerCore:
             fields,
         )
         return [note, *self.fenced(message.origin, message.epoch)]
+
+    # -- timers ------------------------------------------------------------------------
+
+    def gap_due(
+        self, now: float, repair_s: float, frames_seen_at: float | None = None
+    ) -> list[CoreEffect]:
+        """A log message missing for ``repair_s`` while later ones are queued (or our
+        handover message did not come back): our predecessors re-send from our hello
+        (``RepairGap``); again, twice as late each time (at most ``GAP_REPAIR_MAX_S``),
+        if the gap stays. A taker whose gap stayed after a repair gives it up and goes
+        ACTIVE (``ControllerProtocol.give_up_gap``): the message died with the lost
+        master. Not a gap while its frames are coming (``frames_seen_at`` within
+        ``repair_s``: a large message over a slow link); re-opening the streams would
+        only make it start again. Asked at any time; acts only when due (``gap``)."""
+        p = self.protocol
+        missing = p.missing_lognr
+        if missing is None:
+            self.gap = None
+            return []
+        if self.gap is None or self.gap[0] != missing:
+            self.gap = (missing, now, now + repair_s)
+            return []
+        if frames_seen_at is not None and now - frames_seen_at < repair_s:
+            self.gap = (missing, now, now + repair_s)
+            return []
+        lognr, since, due = self.gap
+        if now < due:
+            return []
+        if now - since >= 2 * repair_s:  # a repair was tried, and the gap stayed
+            given_up = p.give_up_gap()
+            if given_up:
+                self.gap = None
+                note = Note(
+                    "warning",
+                    "taker gives up log messages queued beyond a gap the repair did not "
+                    "fill; framing those replies from the drone's",
+                    {"missing_lognr": lognr, "missing_for_s": round(now - since, 3)},
+                )
+                return [note, *given_up]
+        self.gap = (lognr, since, now + min(2 * (now - since), GAP_REPAIR_MAX_S))
+        note = Note(
+            "warning",
+            "log message missing while later ones are queued (or our handover message did "
+            "not come back); predecessors re-send from our hello",
+            {
+                "missing_lognr": lognr,
+                "missing_for_s": round(now - since, 3),
+                "queued": len(p.log_queue),
+            },
+        )
+        return [note, RepairGap()]
+
+    def route_due(
+        self,
+        down_for: Callable[[int], float | None],
+        detection_s: float,
+        drone_connected: bool,
+    ) -> list[CoreEffect]:
+        """Where the ring's messages go: the first controller after us whose stream has
+        not been down for ``detection_s`` (``ring_route``; ``down_for`` says how long
+        each has been, None if never tried); back to the natural successor as soon as
+        its stream is up again. Not around a successor while we are an ACTIVE master
+        cut off from the drone (``ControllerProtocol.may_route_around``): asked again."""
+        p = self.protocol
+        if detection_s <= 0 or len(p.ring) < 3:
+            return []  # with two controllers the only other one is the master or nobody
+        chosen, skipped = ring_route(p.ring, p.id, down_for, detection_s, p.successor)
+        if chosen == p.successor:
+            return []
+        if not p.may_route_around(skipped, self.routed_around, drone_connected):
+            return []
+        natural = p.ring[(p.ring.index(p.id) + 1) % len(p.ring)]
+        if chosen == natural:
+            note = Note("info", "ring successor back; ring restored", {"successor": chosen})
+        else:
+            fields = {"unreachable": skipped, "successor": chosen, "detection_s": detection_s}
+            note = Note("warning", "ring successor unreachable; routing around it", fields)
+        previous = p.successor
+        p.route_to(chosen)
+        self.routed_around = skipped
+        return [note, RouteTo(chosen, skipped, previous, natural)]

@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
-import math
 import time
 from collections import deque
 from collections.abc import Callable, Coroutine, Sequence
@@ -24,7 +23,7 @@ from typing import Any
 
 import grpc
 
-from baton.config import GAP_REPAIR_MAX_S, BatonConfig, gap_repair_s
+from baton.config import BatonConfig, gap_repair_s
 from baton.controller.clock import MissionClock
 from baton.controller.core import (
     ControllerCore,
@@ -34,6 +33,8 @@ from baton.controller.core import (
     Reconnect,
     Record,
     Rejoin,
+    RepairGap,
+    RouteTo,
     SendCatchUp,
 )
 from baton.controller.drone_link import (
@@ -58,7 +59,6 @@ from baton.controller.protocol import (
     TookOver,
     Unqueued,
     request_digest,
-    ring_route,
 )
 from baton.controller.ring import PeerLink, Relay
 from baton.logs import get_logger
@@ -267,7 +267,6 @@ class ControllerNode:
         # the next Invoke, so the drone keeps them for a taker.
         self._answered_here: list[ring_pb2.LogEntry] = []
         self.answered_from_retained = 0
-        self.routed_around: list[int] = []  # successors skipped as unreachable
         self._router: asyncio.Task[None] | None = None
         # What the node starts and does not await (rejoins, closing a replaced drone
         # session, the session's events), held until each ends.
@@ -282,8 +281,11 @@ class ControllerNode:
         self.on_rejoin: Callable[[], Coroutine[Any, Any, None]] | None = None
         # Set by the app: ends every incoming ring stream (RingReceiver.drop_streams).
         self.on_gap: Callable[[], None] | None = None
-        # The gap being repaired (_repair_gap): its log number, since when, the next try.
-        self._gap: tuple[int, float, float] | None = None
+
+    @property
+    def routed_around(self) -> list[int]:
+        """The successors the ring routes around now."""
+        return self.core.routed_around
 
     @property
     def protocol(self) -> ControllerProtocol:
@@ -451,7 +453,6 @@ class ControllerNode:
         self._drone_calls = 0
         self._adopted = (0, 0)
         self._answered_here = []
-        self.routed_around = []
         self._open_links()
         await self._apply(self.protocol.start())
         for message in kept:
@@ -638,104 +639,40 @@ class ControllerNode:
             await asyncio.sleep(0.1)
 
     async def _repair_gap(self) -> None:
-        """A log message missing for the repair time while later ones are queued: our
-        predecessors are made to connect again, and hear our hello (simulation finding F3).
-
-        The ring does not forward a message to its origin, and a history stream
-        gives its receiver only what the sender held when it opened: a
-        controller restarted or rejoined with nothing whose predecessor gets
-        the messages it once created (or its own predecessor's) only later
-        would wait for them for ever. The same for our own handover message
-        when we handled later ones without it coming back (``missing_lognr``):
-        our history would lack it for good. Re-opened, the stream re-sends from
-        the history whatever is above what we hold (``holds_lognr``). Again,
-        twice as late each time, if the gap stays (the message may be nowhere yet).
-        A taker whose gap stayed after a repair gives it up and goes ACTIVE
-        (``ControllerProtocol.give_up_gap``): the message died with the lost master.
-        """
-        missing = self.protocol.missing_lognr
-        now = time.monotonic()
-        if missing is None:
-            self._gap = None
-            return
+        """A gap in what we received, repaired (``ControllerCore.gap_due``)."""
         repair_s = gap_repair_s(self.config.detection_s)
-        if self._gap is None or self._gap[0] != missing:
-            self._gap = (missing, now, now + repair_s)
-            return
-        if now - self._arriving.get(missing, -math.inf) < repair_s:
-            # Its frames are coming (a large message over a slow link): not a gap.
-            # Re-opening the streams would only make it start again.
-            self._gap = (missing, now, now + repair_s)
-            return
-        lognr, since, due = self._gap
-        if now < due or self.on_gap is None:
-            return
-        if now - since >= 2 * repair_s:  # a repair was tried, and the gap stayed
-            given_up = self.protocol.give_up_gap()
-            if given_up:
-                self.log.warning(
-                    "taker gives up log messages queued beyond a gap the repair did not "
-                    "fill; framing those replies from the drone's",
-                    missing_lognr=lognr,
-                    missing_for_s=round(now - since, 3),
-                )
-                self._gap = None
-                await self._apply(given_up)
-                return
-        self._gap = (lognr, since, now + min(2 * (now - since), GAP_REPAIR_MAX_S))
-        self.log.warning(
-            "log message missing while later ones are queued (or our handover message did "
-            "not come back); predecessors re-send from our hello",
-            missing_lognr=lognr,
-            missing_for_s=round(now - since, 3),
-            queued=len(self.protocol.log_queue),
-        )
-        self.on_gap()
+        missing = self.protocol.missing_lognr
+        frames = self._arriving.get(missing) if missing is not None else None
+        await self._apply(self.core.gap_due(time.monotonic(), repair_s, frames))
 
     async def _route(self) -> None:
-        """Sends to the first controller after us whose stream has not been down for the
-        detection time (docs/design.md, "The ring routes around the dead"); back to the
-        natural successor as soon as its stream is up again."""
-        detection = self.config.detection_s
-        p = self.protocol
-        if detection <= 0 or len(p.ring) < 3:
-            return  # with two controllers the only other one is the master or nobody
+        """Where the ring's messages go (``ControllerCore.route_due``); the links follow."""
         now = time.monotonic()
 
         def down_for(pid: int) -> float | None:
             link = self._peers.get(pid)
             return None if link is None or not link.used else link.down_for(now)
 
-        chosen, skipped = ring_route(p.ring, self.id, down_for, detection, p.successor)
-        if chosen == p.successor:
-            return
-        if not p.may_route_around(skipped, self.routed_around, self.drone_connected):
-            return  # an ACTIVE master cut off from the drone: asked again in 0.1 s
-        natural = self.config.successor(self.id)
-        if chosen == natural:
-            self.log.info("ring successor back; ring restored", successor=chosen)
-        else:
-            self.log.warning(
-                "ring successor unreachable; routing around it",
-                unreachable=skipped,
-                successor=chosen,
-                detection_s=detection,
-            )
-        previous = p.successor
-        p.route_to(chosen)
-        self.routed_around = skipped
-        link = self.peer(chosen)
+        await self._apply(
+            self.core.route_due(down_for, self.config.detection_s, self.drone_connected)
+        )
+
+    async def _routed(self, route: RouteTo) -> None:
+        """The ring now sends to ``route.successor``: its stream carries the history; the
+        stream to a successor routed to before, and not skipped now, ends once it has
+        nothing unacknowledged."""
+        link = self.peer(route.successor)
         if not link.has_history:
             link.give_history(self.history)
             await link.stop()
         link.start()
         link.holds_changed()
-        if previous != natural and previous not in skipped:
+        previous = route.previous
+        if previous != route.natural and previous not in route.skipped:
             old = self._peers.get(previous)
             if old is not None and old.unacked == 0:
                 await old.stop()
                 del self._peers[previous]
-        self._notify()
 
     @property
     def peers(self) -> dict[int, PeerLink]:
@@ -843,6 +780,11 @@ class ControllerNode:
                 getattr(self.log, effect.level)(effect.text, **effect.fields)
             elif isinstance(effect, Fail):
                 self._fail(StatusError(grpc.StatusCode.INTERNAL, effect.text))
+            elif isinstance(effect, RepairGap):
+                if self.on_gap is not None:
+                    self.on_gap()
+            elif isinstance(effect, RouteTo):
+                await self._routed(effect)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
                 self.log.warning(

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 
 import grpc
 
-from baton.config import GAP_REPAIR_MAX_S, gap_repair_s
+from baton.config import gap_repair_s
 from baton.controller.core import (
     ControllerCore,
     CoreEffect,
@@ -40,6 +40,8 @@ from baton.controller.core import (
     Note,
     Reconnect,
     Rejoin,
+    RepairGap,
+    RouteTo,
     SendCatchUp,
 )
 from baton.controller.history import LogHistory
@@ -191,15 +193,13 @@ class SimController:
         # Whether the drone has answered its start-up question (granted, refused, a notice).
         self.answered = False
         self._pump_due = False
-        # Takeover: node.py's fenced_messages and routed_around.
+        # Takeover: node.py's fenced_messages.
         self.adopted = (0, 0)  # node.py's _adopted: (epoch, first reqnr answered from retained)
         self.answered_here: list[ring_pb2.LogEntry] = []  # node.py's _answered_here
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
         self.fenced_messages = 0
-        self.routed_around: list[int] = []
         self.route_held = False  # a route held back polls (_route_again)
-        self._gap: tuple[int, float, float] | None = None  # node.py ControllerNode._gap
         self.sent_straight: dict[int, int] = {}  # node.py ControllerNode._sent_straight
         # And _acked_before_prepare: the target's stream then, and its acks then.
         self.acked_before_prepare: tuple[RingLink | None, int] = (None, 0)
@@ -207,6 +207,11 @@ class SimController:
         self.prepare_bound = 0  # and _prepare_bound
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
+
+    @property
+    def routed_around(self) -> list[int]:
+        """The successors the ring routes around now (the core's)."""
+        return self.core.routed_around
 
     @property
     def protocol(self) -> ControllerProtocol:
@@ -289,6 +294,10 @@ class SimController:
                 self.world.trace(f"controller {self.id}: {effect.text} ({fields})")
             elif isinstance(effect, Fail):
                 self._fail(effect.text)
+            elif isinstance(effect, RepairGap):
+                self.world.drop_streams_to(self)
+            elif isinstance(effect, RouteTo):
+                self._routed(effect)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
                 self.world.trace(
@@ -517,39 +526,26 @@ class SimController:
     # -- a gap in what we received (ControllerNode._repair_gap) -------------------
 
     def _gap_check_later(self) -> None:
-        """When node.py's _repair_gap (every 0.1 s) could act: a gap appeared; it is
-        looked at again at the repair time."""
-        missing = self.protocol.missing_lognr
-        if missing is None or not self.alive:
-            self._gap = None
+        """``ControllerCore.gap_due`` now, and again when the gap it notes falls due
+        (node.py asks every 0.1 s; the decisions are the same, taken when they can
+        change). The simulation's messages arrive whole: no frames to wait for."""
+        if not self.alive:
             return
-        if self._gap is not None and self._gap[0] == missing:
-            return
-        now, repair = self.world.loop.now, gap_repair_s(self.world.detection_s)
-        self._gap = (missing, now, now + repair)
-        self.world.loop.after(repair, self._repair_gap, missing)
+        before = self.core.gap
+        self._apply_gap()
+        gap = self.core.gap
+        if gap is not None and gap != before:
+            self.world.loop.at(gap[2], self._gap_due, gap)
 
-    def _repair_gap(self, missing: int) -> None:
-        """ControllerNode._repair_gap: still missing at the repair time, our predecessors
-        are made to connect again (ControllerApp's RingReceiver.drop_streams)."""
-        now = self.world.loop.now
-        if not self.alive or self._gap is None or self._gap[0] != missing:
-            return
-        lognr, since, due = self._gap
-        if now < due or self.protocol.missing_lognr != lognr:
-            return
-        if now - since >= 2 * gap_repair_s(self.world.detection_s):  # a repair was tried
-            given_up = self.protocol.give_up_gap()  # node.py: a taker's gap after a repair
-            if given_up:
-                self.world.trace(f"controller {self.id} gives up log message {lognr}: taker")
-                self._gap = None
-                self._apply(given_up)
-                return
-        interval = min(2 * (now - since), GAP_REPAIR_MAX_S)
-        self._gap = (lognr, since, now + interval)
-        self.world.trace(f"controller {self.id} misses log message {lognr}: streams dropped")
-        self.world.drop_streams_to(self)
-        self.world.loop.after(interval, self._repair_gap, missing)
+    def _gap_due(self, gap: tuple[int, float, float]) -> None:
+        if self.alive and self.core.gap == gap:
+            self._gap_check_later()
+
+    def _apply_gap(self) -> None:
+        repair_s = gap_repair_s(self.world.detection_s)
+        effects = self.core.gap_due(self.world.loop.now, repair_s)
+        if effects:
+            self._apply(effects)
 
     # -- the ring routes around the dead (ControllerNode._route) -------------------
 
@@ -563,47 +559,46 @@ class SimController:
         self.world.loop.after(detection + 1e-6 if delay is None else delay, self._route)
 
     def _route(self) -> None:
-        """ControllerNode._route: send to the first controller after us whose stream has
-        not been down for the detection time; back to the natural successor once it is up."""
+        """ControllerNode._route: ``ControllerCore.route_due``; the links follow."""
         if not self.alive:
             return
-        detection, p, now = self.world.detection_s, self.protocol, self.world.loop.now
-        if detection <= 0 or len(p.ring) < 3:
-            return
+        now = self.world.loop.now
 
         def down_for(pid: int) -> float | None:
             link = self.links.get(pid)
             return None if link is None else link.down_for(now)
 
-        chosen, skipped = ring_route(p.ring, self.id, down_for, detection, p.successor)
-        if chosen == p.successor:
-            return
         session = self.session
         connected = session is not None and session.connected
-        if not p.may_route_around(skipped, self.routed_around, connected):
-            # node.py asks again every 0.1 s: until connected, or no longer ACTIVE.
-            if not self.route_held:
-                self.route_held = True
-                self.world.loop.after(ROUTE_POLL_S, self._route_again)
+        successor = self.protocol.successor
+        effects = self.core.route_due(down_for, self.world.detection_s, connected)
+        if effects:
+            self._apply(effects)
             return
-        natural = p.ring[(p.ring.index(self.id) + 1) % len(p.ring)]
-        self.world.trace(f"controller {self.id} routes to {chosen} (around {skipped})")
-        previous = p.successor
-        p.route_to(chosen)
-        self.routed_around = skipped
-        link = self.peer(chosen)
+        chosen, _ = ring_route(
+            self.protocol.ring, self.id, down_for, self.world.detection_s, successor
+        )
+        if chosen != successor and not self.route_held:
+            # Held back (an ACTIVE master cut off from the drone): node.py asks again
+            # every 0.1 s, until connected or no longer ACTIVE.
+            self.route_held = True
+            self.world.loop.after(ROUTE_POLL_S, self._route_again)
+
+    def _routed(self, route: RouteTo) -> None:
+        """ControllerNode._routed: the new successor's stream carries the history."""
+        link = self.peer(route.successor)
         if link.history is None:
             link.history = self.history
             link.restart()
         link.start()
         link.holds_changed()
-        if previous != natural and previous not in skipped:
+        previous = route.previous
+        if previous != route.natural and previous not in route.skipped:
             old = self.links.get(previous)
             if old is not None and not old.unacked:
                 old.stop()
                 del self.links[previous]
         self.world.check_start()
-        self._notify()
 
     def _route_again(self) -> None:
         self.route_held = False
