@@ -129,13 +129,39 @@ class RouteTo:
 
 
 @dataclass(frozen=True)
+class Preparing:
+    """Effect: a prepared handover to ``target`` began (``ControllerCore.prepare``): count
+    the acknowledgements of the stream to it from now, and call ``preparation_over``
+    at ``until`` (the drone's timeout and a grace)."""
+
+    target: int
+    epoch: int
+    until: float
+
+
+@dataclass(frozen=True)
 class Fail:
     """Effect: the mission stops here with ``text`` (the controller cannot go on)."""
 
     text: str
 
 
-CoreEffect = Effect | Reconnect | Rejoin | SendCatchUp | Record | Note | Fail | RepairGap | RouteTo
+CoreEffect = (
+    Effect
+    | Reconnect
+    | Rejoin
+    | SendCatchUp
+    | Record
+    | Note
+    | Fail
+    | RepairGap
+    | RouteTo
+    | Preparing
+)
+
+# A master stops a prepared handover this long after the drone's timeout for it, if it
+# heard nothing (the drone forces the handover at its timeout: the notice is owed).
+PREPARE_GRACE_S = 2.0
 
 
 class ControllerCore:
@@ -168,6 +194,10 @@ class ControllerCore:
         self.gap: tuple[int, float, float] | None = None
         # The successors the ring routes around now (``route_due``).
         self.routed_around: list[int] = []
+        # The prepared handover under way (``prepare``): the drone's bound for its
+        # target (0: no words between requests), and when we stop on our own.
+        self.prepare_bound = 0
+        self.prepare_until = 0.0
 
     def fresh_self(self) -> ControllerCore:
         """The core of this controller rejoining with nothing (``ControllerProtocol.
@@ -402,6 +432,73 @@ class ControllerCore:
             fields,
         )
         return [note, *self.fenced(message.origin, message.epoch)]
+
+    # -- a prepared handover (docs/design.md, "Prepared handover") ----------------------
+
+    def prepare(
+        self, target: int, epoch: int, timeout_s: float, bound_bytes: int, now: float
+    ) -> list[CoreEffect]:
+        """The drone plans a handover to ``target``: it is caught up straight from us while
+        the mission goes on; the drone moves the master once it lacks at most
+        ``bound_bytes`` (``progress`` on every Invoke, ``report_due`` between them). If
+        we hear nothing by the drone's timeout and a grace (its notice is owed on our
+        stream), we stop flushing every entry (``preparation_over``). Nothing if we are
+        not ACTIVE in ``epoch`` (the drone's word came late)."""
+        p = self.protocol
+        try:
+            effects = p.on_prepare(target, epoch)
+        except ProtocolError as exc:
+            return [Note("error", "bad prepare-handover event", {"error": str(exc)})]
+        if p.preparing_for != target:
+            return []
+        self.prepare_bound = bound_bytes
+        until = self.prepare_until = now + timeout_s + PREPARE_GRACE_S
+        note = Note("info", "preparing a handover", {"target": target, "timeout_s": timeout_s})
+        return [note, Preparing(target, epoch, until), SendCatchUp(target), *effects]
+
+    def preparation_over(self, target: int, epoch: int, until: float) -> list[CoreEffect]:
+        """The time of the preparation for ``target`` in ``epoch`` is up, unless a newer
+        preparation (the drone replaced it, perhaps by one with the same target) gave
+        more (a later ``prepare_until``)."""
+        p = self.protocol
+        if until < self.prepare_until:
+            return []
+        if p.preparing_for != target or p.epoch != epoch:
+            return []
+        p.end_preparation()
+        note = Note(
+            "warning",
+            "a prepared handover was not carried out in its time; flushing as usual",
+            {"target": target},
+        )
+        return [note]
+
+    def progress(
+        self, unacked_bytes: int | None, behind_s: float = 0.0, acked: int = 0
+    ) -> drone_pb2.PreparationProgress | None:
+        """How far a prepared handover's target is behind us (None: not preparing):
+        ``unacked_bytes`` on the stream to it (None: no stream to it), how long its
+        oldest unacknowledged message has waited, and its acknowledgements since the
+        preparation began."""
+        p = self.protocol
+        target = p.preparing_for
+        if target is None:
+            return None
+        lacks = (unacked_bytes or 0) + p.log.size
+        if unacked_bytes is None:
+            return drone_pb2.PreparationProgress(
+                target=target, lacks_bytes=lacks, after_reqnr=p.reqnr
+            )
+        return drone_pb2.PreparationProgress(
+            target=target, lacks_bytes=lacks, after_reqnr=p.reqnr, behind_s=behind_s, acked=acked
+        )
+
+    def report_due(self, peer_id: int, progress: drone_pb2.PreparationProgress | None) -> bool:
+        """Whether an acknowledgement from ``peer_id`` is worth a word to the drone between
+        requests (``ReportPreparation``): it is the target, and lacks at most the bound."""
+        if peer_id != self.protocol.preparing_for or not self.prepare_bound:
+            return False
+        return progress is not None and progress.lacks_bytes <= self.prepare_bound
 
     # -- timers ------------------------------------------------------------------------
 

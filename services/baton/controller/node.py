@@ -30,6 +30,7 @@ from baton.controller.core import (
     CoreEffect,
     Fail,
     Note,
+    Preparing,
     Reconnect,
     Record,
     Rejoin,
@@ -73,9 +74,6 @@ from baton.v1 import drone_pb2, ring_pb2
 CLOCK_SERVICE = service_prefix("Clock")
 CLOCK_SLEEP = path("Clock.Sleep")
 CLOCK_NOW = path("Clock.Now")
-# A master stops a prepared handover this long after the drone's timeout for it, if it
-# heard nothing (the drone forces the handover at its timeout: the notice is owed).
-PREPARE_GRACE_S = 2.0
 # A call that comes while the previous one is pending waits this long for it to end
 # before it is refused as concurrent: a program that gave up on a call (its deadline,
 # a cancelled stream) makes its next one at once, and that one can reach the
@@ -223,11 +221,7 @@ class ControllerNode:
         # The stream to the target when the preparation began, and the acknowledgements
         # it had counted then (a stream opened since counts from 0: ``_route`` drops one).
         self._acked_before_prepare: tuple[PeerLink | None, int] = (None, 0)
-        # When we stop preparing on our own (loop time): the newest PrepareHandover's.
-        self._prepare_until = 0.0
-        # The drone's bound for a prepared handover's target (0: no words between
-        # requests) and the word to it in flight (``_target_acked``).
-        self._prepare_bound = 0
+        # The word to the drone on a prepared handover in flight (``_target_acked``).
         self._reporting: asyncio.Task[None] | None = None
         self._report_again = False
         # When a frame of each log number last arrived (``arriving``), the newest few.
@@ -522,72 +516,49 @@ class ControllerNode:
             self._sent_straight[target] = lognr
 
     async def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
-        """The drone plans a handover (docs/design.md, "Prepared handover"): the target
-        is caught up straight from us while the mission goes on; the drone moves the
-        master once it lacks little (``_preparation_progress`` on every Invoke)."""
-        try:
-            effects = self.protocol.on_prepare(prepare.target, prepare.epoch)
-        except ProtocolError as exc:
-            self.log.error("bad prepare-handover event", error=str(exc))
-            return
-        if self.protocol.preparing_for != prepare.target:
-            return  # not ACTIVE in that epoch: the drone's word came late
-        self.log.info("preparing a handover", target=prepare.target, timeout_s=prepare.timeout_s)
-        link = self.peer(prepare.target)
-        self._acked_before_prepare = (link, link.counters.acked)
-        self._prepare_bound = prepare.bound_bytes
-        self._send_catch_up(prepare.target)
-        await self._apply(effects)
-        loop = asyncio.get_running_loop()
-        # The drone moves the master by its timeout; if we hear nothing by then
-        # (its notice is owed on our stream), we stop flushing every entry.
-        until = self._prepare_until = loop.time() + prepare.timeout_s + PREPARE_GRACE_S
-        loop.call_at(until, self._preparation_over, prepare, until)
-
-    def _preparation_over(self, prepare: drone_pb2.PrepareHandover, until: float) -> None:
-        """The time of ``prepare`` is up, unless a newer preparation (the drone replaced
-        it, perhaps by one with the same target) gave us more."""
-        if until < self._prepare_until:
-            return
-        if self.protocol.preparing_for == prepare.target and self.protocol.epoch == prepare.epoch:
-            self.log.warning(
-                "a prepared handover was not carried out in its time; flushing as usual",
-                target=prepare.target,
+        """The drone plans a handover (``ControllerCore.prepare``)."""
+        now = asyncio.get_running_loop().time()
+        await self._apply(
+            self.core.prepare(
+                prepare.target, prepare.epoch, prepare.timeout_s, prepare.bound_bytes, now
             )
-            self.protocol.end_preparation()
+        )
+
+    def _preparing(self, preparing: Preparing) -> None:
+        """A preparation began: the stream to its target counts acknowledgements from
+        now; its time is up at ``preparing.until`` (loop time)."""
+        link = self.peer(preparing.target)
+        self._acked_before_prepare = (link, link.counters.acked)
+        loop = asyncio.get_running_loop()
+        loop.call_at(preparing.until, self._preparation_over, preparing)
+
+    def _preparation_over(self, preparing: Preparing) -> None:
+        for effect in self.core.preparation_over(
+            preparing.target, preparing.epoch, preparing.until
+        ):
+            if isinstance(effect, Note):
+                getattr(self.log, effect.level)(effect.text, **effect.fields)
 
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
-        """How far a prepared handover's target is behind us (None: not preparing)."""
+        """How far a prepared handover's target is behind us (``ControllerCore.progress``).
+        Only the acknowledgements of the stream the count was taken on: a stream opened
+        since (the ring routed back past the target) counts from 0."""
         target = self.protocol.preparing_for
-        if target is None:
-            return None
-        link = self._peers.get(target)
-        lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
+        link = self._peers.get(target) if target is not None else None
         if link is None:
-            return drone_pb2.PreparationProgress(
-                target=target, lacks_bytes=lacks, after_reqnr=self.protocol.reqnr
-            )
+            return self.core.progress(None)
         before, acked = self._acked_before_prepare
-        return drone_pb2.PreparationProgress(
-            target=target,
-            lacks_bytes=lacks,
-            after_reqnr=self.protocol.reqnr,
-            behind_s=link.waiting_for_ack_s(time.monotonic()),
-            # Only the stream the count was taken on: a stream opened since (the old
-            # one was dropped when the ring routed back past the target) counts from
-            # 0, and the difference went negative (--lose-master --prepared seed 816).
-            acked=link.counters.acked - (acked if link is before else 0),
+        return self.core.progress(
+            link.unacked_bytes,
+            link.waiting_for_ack_s(time.monotonic()),
+            link.counters.acked - (acked if link is before else 0),
         )
 
     def _target_acked(self, peer_id: int) -> None:
-        """An acknowledgement from ``peer_id``: if it is a prepared handover's target and
-        now lacks at most the drone's bound, the drone hears so between requests
-        (``ReportPreparation``), and moves the master then rather than at our next
-        request. One word in flight at a time; the latest state goes next."""
-        if peer_id != self.protocol.preparing_for or not self._prepare_bound:
-            return
-        progress = self._preparation_progress()
-        if progress is None or progress.lacks_bytes > self._prepare_bound:
+        """An acknowledgement from ``peer_id``: a word to the drone between requests if it
+        is due (``ControllerCore.report_due``). One word in flight at a time; the latest
+        state goes next."""
+        if not self.core.report_due(peer_id, self._preparation_progress()):
             return
         self._report_again = True
         if self._reporting is None or self._reporting.done():
@@ -785,6 +756,8 @@ class ControllerNode:
                     self.on_gap()
             elif isinstance(effect, RouteTo):
                 await self._routed(effect)
+            elif isinstance(effect, Preparing):
+                self._preparing(effect)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
                 self.log.warning(

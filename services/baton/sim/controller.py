@@ -38,6 +38,7 @@ from baton.controller.core import (
     DroneRefusal,
     Fail,
     Note,
+    Preparing,
     Reconnect,
     Rejoin,
     RepairGap,
@@ -49,7 +50,6 @@ from baton.controller.node import (
     CLOCK_NOW,
     CLOCK_SERVICE,
     CLOCK_SLEEP,
-    PREPARE_GRACE_S,
     RETRY_FIRST_S,
     RETRY_MAX_S,
     _given_up,
@@ -203,8 +203,6 @@ class SimController:
         self.sent_straight: dict[int, int] = {}  # node.py ControllerNode._sent_straight
         # And _acked_before_prepare: the target's stream then, and its acks then.
         self.acked_before_prepare: tuple[RingLink | None, int] = (None, 0)
-        self.prepare_until = 0.0  # and _prepare_until
-        self.prepare_bound = 0  # and _prepare_bound
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -298,6 +296,8 @@ class SimController:
                 self.world.drop_streams_to(self)
             elif isinstance(effect, RouteTo):
                 self._routed(effect)
+            elif isinstance(effect, Preparing):
+                self._preparing(effect)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
                 self.world.trace(
@@ -629,54 +629,40 @@ class SimController:
     # -- a prepared handover (docs/design.md, "Prepared handover") ----------------
 
     def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
-        """ControllerNode.on_prepare: the target is caught up straight from us while the
-        mission goes on; we stop preparing on our own after the timeout and the grace."""
-        try:
-            effects = self.protocol.on_prepare(prepare.target, prepare.epoch)
-        except ProtocolError:
-            return  # node.py logs it
-        if self.protocol.preparing_for != prepare.target:
-            return  # not ACTIVE in that epoch: the drone's word came late
-        self.world.trace(
-            f"controller {self.id} prepares a handover to {prepare.target} (epoch {prepare.epoch})"
+        """ControllerNode.on_prepare (``ControllerCore.prepare``)."""
+        self._apply(
+            self.core.prepare(
+                prepare.target,
+                prepare.epoch,
+                prepare.timeout_s,
+                prepare.bound_bytes,
+                self.world.loop.now,
+            )
         )
-        link = self.peer(prepare.target)
-        self.acked_before_prepare = (link, link.acked)
-        self.prepare_bound = prepare.bound_bytes
-        self._send_catch_up(prepare.target)
-        self._apply(effects)
-        until = self.prepare_until = self.world.loop.now + prepare.timeout_s + PREPARE_GRACE_S
-        self.world.loop.at(until, self._preparation_over, prepare, until)
 
-    def _preparation_over(self, prepare: drone_pb2.PrepareHandover, until: float) -> None:
-        """ControllerNode._preparation_over: not carried out in its time (unless a newer
-        preparation gave more)."""
-        p = self.protocol
-        if until < self.prepare_until:
-            return
-        if self.alive and p.preparing_for == prepare.target and p.epoch == prepare.epoch:
-            self.world.trace(f"controller {self.id} stops preparing for {prepare.target}")
-            p.end_preparation()
+    def _preparing(self, preparing: Preparing) -> None:
+        """ControllerNode._preparing: acknowledgements counted from now; the timer."""
+        link = self.peer(preparing.target)
+        self.acked_before_prepare = (link, link.acked)
+        self.world.loop.at(preparing.until, self._preparation_over, preparing)
+
+    def _preparation_over(self, preparing: Preparing) -> None:
+        if self.alive:
+            self._apply(
+                self.core.preparation_over(preparing.target, preparing.epoch, preparing.until)
+            )
 
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
-        """ControllerNode._preparation_progress: how far the target is behind us."""
+        """ControllerNode._preparation_progress (``ControllerCore.progress``)."""
         target = self.protocol.preparing_for
-        if target is None:
-            return None
-        link = self.links.get(target)
-        lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
-        after = self.protocol.reqnr
+        link = self.links.get(target) if target is not None else None
         if link is None:
-            return drone_pb2.PreparationProgress(
-                target=target, lacks_bytes=lacks, after_reqnr=after
-            )
+            return self.core.progress(None)
         before, acked = self.acked_before_prepare
-        return drone_pb2.PreparationProgress(
-            target=target,
-            lacks_bytes=lacks,
-            after_reqnr=after,
-            behind_s=link.waiting_for_ack_s(self.world.loop.now),
-            acked=link.acked - (acked if link is before else 0),
+        return self.core.progress(
+            link.unacked_bytes,
+            link.waiting_for_ack_s(self.world.loop.now),
+            link.acked - (acked if link is before else 0),
         )
 
     def _send_catch_up(self, target: int) -> None:
@@ -733,12 +719,12 @@ class SimController:
         between requests (ReportPreparation). Every such ack sends a word here, where
         node.py keeps one in flight and sends the latest next: each word stands alone,
         so these interleavings include its."""
-        if not self.alive or peer_id != self.protocol.preparing_for or not self.prepare_bound:
+        if not self.alive:
             return
         progress = self._preparation_progress()
-        session, link = self.session, self.drone_link
-        if progress is None or progress.lacks_bytes > self.prepare_bound:
+        if progress is None or not self.core.report_due(peer_id, progress):
             return
+        session, link = self.session, self.drone_link
         if session is None or not session.connected or not link.usable():
             return
         self.world.trace(f"controller {self.id} reports {progress.lacks_bytes} B to the drone")
