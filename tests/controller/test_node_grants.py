@@ -52,7 +52,7 @@ async def test_a_taker_with_nothing_is_granted_by_the_connected_event_alone() ->
     await node.on_log(message)
     assert p.held_reqnr == 2 and p.caught_up  # no handover message owed
     assert p.state is State.REPLAY  # the program replays 1 and 2, then goes ACTIVE
-    assert list(node._retained) == [3]
+    assert list(node.core.retained) == [3]
     node._drone = None
     await node.stop()
 
@@ -114,7 +114,7 @@ async def test_a_taker_answers_its_program_from_each_retained_batch_as_it_comes(
     await node.on_sync(0, 0)
     await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
     p = node.protocol
-    assert p.state is State.ACTIVE and node._retained_through == 3
+    assert p.state is State.ACTIVE and node.core.retained_through == 3
 
     first = asyncio.create_task(node.call(POSITION, b""))
     await settle()
@@ -176,7 +176,7 @@ async def test_a_give_up_of_a_retained_reply_a_lost_master_acted_on_is_not_logge
     node, session, rejoins = await taker_of_three()
     await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
     p = node.protocol
-    assert p.state is State.ACTIVE and node._retained_through == 3
+    assert p.state is State.ACTIVE and node.core.retained_through == 3
 
     first = asyncio.create_task(node.call(POSITION, b""))
     await settle()
@@ -217,7 +217,7 @@ async def test_a_give_up_of_the_last_retained_reply_is_logged() -> None:
     first.cancel()
     await settle()
     assert p.reqnr == 1 and p.log.entries[-1].given_up
-    assert node.program_restarts == 0 and 1 not in node._retained
+    assert node.program_restarts == 0 and 1 not in node.core.retained
     node._drone = None
     await node.stop()
 

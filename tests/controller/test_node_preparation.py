@@ -3,13 +3,12 @@
 
 from __future__ import annotations
 
-import asyncio
 from typing import Any
 
-import pytest
+from helpers.protocol import started
 
 from baton.config import parse_config
-from baton.controller import node as node_module
+from baton.controller.core import PREPARE_GRACE_S, ControllerCore, Note, Preparing
 from baton.controller.node import ControllerNode
 from baton.controller.protocol import State
 from baton.digest import request_digest
@@ -41,28 +40,25 @@ async def active_master() -> ControllerNode:
     return node
 
 
-async def test_an_older_preparations_time_does_not_end_a_newer_one(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+def test_an_older_preparations_time_does_not_end_a_newer_one() -> None:
     """The drone replaced a preparation for 2 by one for 1, then by one for 2 again (a
     script's lines, each after a request). The first one's timer ended the third
     (same target, same epoch) long before its timeout: the master stopped flushing
-    every entry and sent no progress word, so the drone could only force it."""
-    monkeypatch.setattr(node_module, "PREPARE_GRACE_S", 0.0)
-    node = await active_master()
-
-    def prepare(target: int, timeout_s: float) -> drone_pb2.PrepareHandover:
-        return drone_pb2.PrepareHandover(target=target, epoch=1, timeout_s=timeout_s)
-
-    await node.on_prepare(prepare(2, 0.01))
-    await node.on_prepare(prepare(1, 0.01))
-    await node.on_prepare(prepare(2, 30.0))
-    await asyncio.sleep(0.1)  # past the first two's time (timers fire in order)
-    assert node.protocol.preparing_for == 2
-    progress = node._preparation_progress()
+    every entry and sent no progress word, so the drone could only force it. Timers
+    at chosen times on the pure core, not wall-clock ones."""
+    core = ControllerCore(started(0, [0, 1, 2], 0))
+    timers = []
+    for target, at, timeout_s in ((2, 0.0, 0.01), (1, 1.0, 0.01), (2, 2.0, 30.0)):
+        effects = core.prepare(target, 1, timeout_s, 0, now=at)
+        timers += [e for e in effects if isinstance(e, Preparing)]
+    assert [t.until for t in timers] == [0.01 + PREPARE_GRACE_S, 1.01 + PREPARE_GRACE_S, 34.0]
+    for timer in timers[:2]:  # the first two's time is up, in order
+        assert core.preparation_over(timer.target, timer.epoch, timer.until) == []
+    assert core.protocol.preparing_for == 2
+    progress = core.progress(0)
     assert progress is not None and progress.target == 2
-    node._drone = None
-    await node.stop()
+    over = core.preparation_over(2, 1, timers[2].until)  # the third's own time
+    assert [type(e) for e in over] == [Note] and core.protocol.preparing_for is None
 
 
 async def test_the_progress_word_counts_the_acks_of_a_stream_opened_since_it_began() -> None:

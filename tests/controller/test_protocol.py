@@ -839,7 +839,7 @@ def test_a_refusal_fences_in_the_newest_takeovers_epoch_and_a_later_handover_is_
     to it by a handover message of epoch 5, and the drone handed over from it to 4 in
     epoch 6 at once. Refused (its Connect names the epoch-1 mastership), it rejoins: its
     fresh self must keep the handover message of epoch 5, else 4 waits for ever."""
-    from baton.controller.drone_link import DroneRefusal
+    from baton.controller.core import DroneRefusal
 
     refusal = DroneRefusal(master=4, epoch=6, after_reqnr=6, taken_over=True, takeover_epoch=2)
     assert refusal.fencing_epoch == 2

@@ -19,11 +19,11 @@ import contextlib
 import itertools
 import time
 from collections.abc import Awaitable, Callable, Sequence
-from dataclasses import dataclass
 from typing import Protocol
 
 import grpc
 
+from baton.controller.core import DroneRefusal
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.rpc.outcomes import error_of
@@ -41,34 +41,6 @@ REPORT_TIMEOUT_S = 2.0
 # how many may be in flight at once (more pings wait for none: not answered).
 PING_ANSWER_TIMEOUT_S = 10.0
 PING_ANSWERS_IN_FLIGHT = 4
-
-
-@dataclass(frozen=True)
-class DroneRefusal:
-    """Where the drone stands when it refuses a request or a Connect: its trailing metadata."""
-
-    master: int
-    epoch: int
-    after_reqnr: int
-    # The refused controller's mastership was taken over (``baton-takeover``).
-    taken_over: bool = False
-    # The epoch the drone's newest takeover granted (``baton-takeover-epoch``; 0: none).
-    takeover_epoch: int = 0
-
-    @property
-    def fencing_epoch(self) -> int:
-        """The epoch of the takeover that fences the refused controller (``on_fenced``).
-
-        The newest takeover's, not the drone's epoch now: a handover message of a
-        mastership granted after that takeover is the role the drone gave since,
-        and the rejoining controller's fresh self must keep it
-        (``ControllerProtocol.kept_for_rejoin``). Measured by the drone's epoch,
-        a handover message sent just before a handover from its new master (two
-        switches back to back) was dropped, and the master after it waited for
-        ever for a handover message that nobody would send (--lose-master seeds
-        2969, 3704).
-        """
-        return self.takeover_epoch or self.epoch
 
 
 def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:

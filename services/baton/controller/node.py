@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
-import math
 import time
 from collections import deque
 from collections.abc import Callable, Coroutine, Sequence
@@ -24,8 +23,21 @@ from typing import Any
 
 import grpc
 
-from baton.config import GAP_REPAIR_MAX_S, BatonConfig, gap_repair_s
+from baton.config import BatonConfig, gap_repair_s
 from baton.controller.clock import MissionClock
+from baton.controller.core import (
+    ControllerCore,
+    CoreEffect,
+    Fail,
+    Note,
+    Preparing,
+    Reconnect,
+    Record,
+    Rejoin,
+    RepairGap,
+    RouteTo,
+    SendCatchUp,
+)
 from baton.controller.drone_link import (
     STOP_GRACE_S,
     DroneRefusal,
@@ -40,18 +52,14 @@ from baton.controller.protocol import (
     ControllerProtocol,
     DisconnectDrone,
     Diverged,
-    Effect,
     Fenced,
     NonDeterminismError,
     ProtocolError,
-    Refusal,
-    ReplacedFraming,
     SendLog,
     State,
     TookOver,
     Unqueued,
     request_digest,
-    ring_route,
 )
 from baton.controller.ring import PeerLink, Relay
 from baton.logs import get_logger
@@ -66,9 +74,6 @@ from baton.v1 import drone_pb2, ring_pb2
 CLOCK_SERVICE = service_prefix("Clock")
 CLOCK_SLEEP = path("Clock.Sleep")
 CLOCK_NOW = path("Clock.Now")
-# A master stops a prepared handover this long after the drone's timeout for it, if it
-# heard nothing (the drone forces the handover at its timeout: the notice is owed).
-PREPARE_GRACE_S = 2.0
 # A call that comes while the previous one is pending waits this long for it to end
 # before it is refused as concurrent: a program that gave up on a call (its deadline,
 # a cancelled stream) makes its next one at once, and that one can reach the
@@ -198,7 +203,11 @@ class ControllerNode:
         # This controller's certificate for its calls (mutual TLS); None: insecure.
         self.tls = tls
         self.mission_address = ""  # where its program calls (set by the app once served)
-        self.protocol = ControllerProtocol(cid, config.ring_order, config.flush_limit)
+        # The protocol and this controller's decisions about its drone session.
+        self.core = ControllerCore(
+            ControllerProtocol(cid, config.ring_order, config.flush_limit),
+            cut_through=config.ring.cut_through,
+        )
         # Every log message this controller holds: what it recovers after a
         # restart (with a file of its own) and gives a successor that restarts.
         self.history = LogHistory(log_file)
@@ -212,11 +221,7 @@ class ControllerNode:
         # The stream to the target when the preparation began, and the acknowledgements
         # it had counted then (a stream opened since counts from 0: ``_route`` drops one).
         self._acked_before_prepare: tuple[PeerLink | None, int] = (None, 0)
-        # When we stop preparing on our own (loop time): the newest PrepareHandover's.
-        self._prepare_until = 0.0
-        # The drone's bound for a prepared handover's target (0: no words between
-        # requests) and the word to it in flight (``_target_acked``).
-        self._prepare_bound = 0
+        # The word to the drone on a prepared handover in flight (``_target_acked``).
         self._reporting: asyncio.Task[None] | None = None
         self._report_again = False
         # When a frame of each log number last arrived (``arriving``), the newest few.
@@ -249,28 +254,13 @@ class ControllerNode:
         )
         # A channel to the drone connected in advance, for the next session.
         self._warm_channel = WarmChannel(config.drone_address_for(cid), tls)
-        self._takeover_epoch = 0  # the epoch of the takeover the drone granted us, if any
-        self._takeover_watermark = 0  # and the drone's watermark then
-        # The replies the drone retained for our takeover, by reqnr: the lost
-        # master's tail, answered from here instead of sent again. They come in
-        # batches after the Connected event, which says the last one's reqnr.
-        self._retained: dict[int, drone_pb2.RetainedReply] = {}
-        self._retained_through = 0
         # The epoch, and the first request number answered from the retained replies
         # in it (``_adopt``): InvokeRequest.adopted_from_reqnr.
         self._adopted = (0, 0)
-        # The last reqnr the batches will bring, and the last one that came: after a
-        # takeover they include those we hold, compared with our framing before any
-        # new request (``on_retained``).
-        self._retained_due = self._retained_came = 0
-        # Granted by takeover: the program's first call beyond the retained tail is
-        # logged, the end of the takeover (baton bench failover reads it).
-        self._first_new_call_due = False
         # The Clock calls consumed since the last drone call: sent along with
         # the next Invoke, so the drone keeps them for a taker.
         self._answered_here: list[ring_pb2.LogEntry] = []
         self.answered_from_retained = 0
-        self.routed_around: list[int] = []  # successors skipped as unreachable
         self._router: asyncio.Task[None] | None = None
         # What the node starts and does not await (rejoins, closing a replaced drone
         # session, the session's events), held until each ends.
@@ -281,16 +271,20 @@ class ControllerNode:
         # Bumped when the controller rejoins after being fenced: calls of the
         # mission program from before then are refused, not answered.
         self.incarnation = 0
-        self._rejoining = False
-        # A framing of ours the drone replaced (on_retained): refused by every fresh
-        # self after it (reset), so the ring's copy of it is not taken again.
-        self._replaced: ReplacedFraming | None = None
         # Set by the app: stops the mission program, resets, starts it again.
         self.on_rejoin: Callable[[], Coroutine[Any, Any, None]] | None = None
         # Set by the app: ends every incoming ring stream (RingReceiver.drop_streams).
         self.on_gap: Callable[[], None] | None = None
-        # The gap being repaired (_repair_gap): its log number, since when, the next try.
-        self._gap: tuple[int, float, float] | None = None
+
+    @property
+    def routed_around(self) -> list[int]:
+        """The successors the ring routes around now."""
+        return self.core.routed_around
+
+    @property
+    def protocol(self) -> ControllerProtocol:
+        """Algorithm 1's state machine (the core's)."""
+        return self.core.protocol
 
     def _log_context(self) -> dict[str, object]:
         p = self.protocol
@@ -433,16 +427,14 @@ class ControllerNode:
         upto = self.protocol.kept_history()
         kept = [self.history.get(n) for n in self.history.above(0) if n <= upto]
         kept += self.protocol.kept_for_rejoin()
-        fresh = self.protocol.fresh_self()
+        fresh = self.core.fresh_self()
         await self._close_drone()
         for link in self._peers.values():
             await link.stop()
         self._peers = {}
         self._sent_straight = {}
         self.history.clear()
-        self.protocol = fresh
-        if self._replaced is not None:
-            self.protocol.refuse_replaced(self._replaced)
+        self.core = fresh
         if self._settler is not None:
             self._settler.cancel()
             self._settler = None
@@ -453,13 +445,8 @@ class ControllerNode:
         self._idle.set()
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
-        self._takeover_epoch = self._takeover_watermark = 0
-        self._retained, self._retained_through = {}, 0
         self._adopted = (0, 0)
-        self._retained_due = self._retained_came = 0
-        self._first_new_call_due = False
         self._answered_here = []
-        self.routed_around = []
         self._open_links()
         await self._apply(self.protocol.start())
         for message in kept:
@@ -529,72 +516,49 @@ class ControllerNode:
             self._sent_straight[target] = lognr
 
     async def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
-        """The drone plans a handover (docs/design.md, "Prepared handover"): the target
-        is caught up straight from us while the mission goes on; the drone moves the
-        master once it lacks little (``_preparation_progress`` on every Invoke)."""
-        try:
-            effects = self.protocol.on_prepare(prepare.target, prepare.epoch)
-        except ProtocolError as exc:
-            self.log.error("bad prepare-handover event", error=str(exc))
-            return
-        if self.protocol.preparing_for != prepare.target:
-            return  # not ACTIVE in that epoch: the drone's word came late
-        self.log.info("preparing a handover", target=prepare.target, timeout_s=prepare.timeout_s)
-        link = self.peer(prepare.target)
-        self._acked_before_prepare = (link, link.counters.acked)
-        self._prepare_bound = prepare.bound_bytes
-        self._send_catch_up(prepare.target)
-        await self._apply(effects)
-        loop = asyncio.get_running_loop()
-        # The drone moves the master by its timeout; if we hear nothing by then
-        # (its notice is owed on our stream), we stop flushing every entry.
-        until = self._prepare_until = loop.time() + prepare.timeout_s + PREPARE_GRACE_S
-        loop.call_at(until, self._preparation_over, prepare, until)
-
-    def _preparation_over(self, prepare: drone_pb2.PrepareHandover, until: float) -> None:
-        """The time of ``prepare`` is up, unless a newer preparation (the drone replaced
-        it, perhaps by one with the same target) gave us more."""
-        if until < self._prepare_until:
-            return
-        if self.protocol.preparing_for == prepare.target and self.protocol.epoch == prepare.epoch:
-            self.log.warning(
-                "a prepared handover was not carried out in its time; flushing as usual",
-                target=prepare.target,
+        """The drone plans a handover (``ControllerCore.prepare``)."""
+        now = asyncio.get_running_loop().time()
+        await self._apply(
+            self.core.prepare(
+                prepare.target, prepare.epoch, prepare.timeout_s, prepare.bound_bytes, now
             )
-            self.protocol.end_preparation()
+        )
+
+    def _preparing(self, preparing: Preparing) -> None:
+        """A preparation began: the stream to its target counts acknowledgements from
+        now; its time is up at ``preparing.until`` (loop time)."""
+        link = self.peer(preparing.target)
+        self._acked_before_prepare = (link, link.counters.acked)
+        loop = asyncio.get_running_loop()
+        loop.call_at(preparing.until, self._preparation_over, preparing)
+
+    def _preparation_over(self, preparing: Preparing) -> None:
+        for effect in self.core.preparation_over(
+            preparing.target, preparing.epoch, preparing.until
+        ):
+            if isinstance(effect, Note):
+                getattr(self.log, effect.level)(effect.text, **effect.fields)
 
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
-        """How far a prepared handover's target is behind us (None: not preparing)."""
+        """How far a prepared handover's target is behind us (``ControllerCore.progress``).
+        Only the acknowledgements of the stream the count was taken on: a stream opened
+        since (the ring routed back past the target) counts from 0."""
         target = self.protocol.preparing_for
-        if target is None:
-            return None
-        link = self._peers.get(target)
-        lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
+        link = self._peers.get(target) if target is not None else None
         if link is None:
-            return drone_pb2.PreparationProgress(
-                target=target, lacks_bytes=lacks, after_reqnr=self.protocol.reqnr
-            )
+            return self.core.progress(None)
         before, acked = self._acked_before_prepare
-        return drone_pb2.PreparationProgress(
-            target=target,
-            lacks_bytes=lacks,
-            after_reqnr=self.protocol.reqnr,
-            behind_s=link.waiting_for_ack_s(time.monotonic()),
-            # Only the stream the count was taken on: a stream opened since (the old
-            # one was dropped when the ring routed back past the target) counts from
-            # 0, and the difference went negative (--lose-master --prepared seed 816).
-            acked=link.counters.acked - (acked if link is before else 0),
+        return self.core.progress(
+            link.unacked_bytes,
+            link.waiting_for_ack_s(time.monotonic()),
+            link.counters.acked - (acked if link is before else 0),
         )
 
     def _target_acked(self, peer_id: int) -> None:
-        """An acknowledgement from ``peer_id``: if it is a prepared handover's target and
-        now lacks at most the drone's bound, the drone hears so between requests
-        (``ReportPreparation``), and moves the master then rather than at our next
-        request. One word in flight at a time; the latest state goes next."""
-        if peer_id != self.protocol.preparing_for or not self._prepare_bound:
-            return
-        progress = self._preparation_progress()
-        if progress is None or progress.lacks_bytes > self._prepare_bound:
+        """An acknowledgement from ``peer_id``: a word to the drone between requests if it
+        is due (``ControllerCore.report_due``). One word in flight at a time; the latest
+        state goes next."""
+        if not self.core.report_due(peer_id, self._preparation_progress()):
             return
         self._report_again = True
         if self._reporting is None or self._reporting.done():
@@ -646,104 +610,40 @@ class ControllerNode:
             await asyncio.sleep(0.1)
 
     async def _repair_gap(self) -> None:
-        """A log message missing for the repair time while later ones are queued: our
-        predecessors are made to connect again, and hear our hello (simulation finding F3).
-
-        The ring does not forward a message to its origin, and a history stream
-        gives its receiver only what the sender held when it opened: a
-        controller restarted or rejoined with nothing whose predecessor gets
-        the messages it once created (or its own predecessor's) only later
-        would wait for them for ever. The same for our own handover message
-        when we handled later ones without it coming back (``missing_lognr``):
-        our history would lack it for good. Re-opened, the stream re-sends from
-        the history whatever is above what we hold (``holds_lognr``). Again,
-        twice as late each time, if the gap stays (the message may be nowhere yet).
-        A taker whose gap stayed after a repair gives it up and goes ACTIVE
-        (``ControllerProtocol.give_up_gap``): the message died with the lost master.
-        """
-        missing = self.protocol.missing_lognr
-        now = time.monotonic()
-        if missing is None:
-            self._gap = None
-            return
+        """A gap in what we received, repaired (``ControllerCore.gap_due``)."""
         repair_s = gap_repair_s(self.config.detection_s)
-        if self._gap is None or self._gap[0] != missing:
-            self._gap = (missing, now, now + repair_s)
-            return
-        if now - self._arriving.get(missing, -math.inf) < repair_s:
-            # Its frames are coming (a large message over a slow link): not a gap.
-            # Re-opening the streams would only make it start again.
-            self._gap = (missing, now, now + repair_s)
-            return
-        lognr, since, due = self._gap
-        if now < due or self.on_gap is None:
-            return
-        if now - since >= 2 * repair_s:  # a repair was tried, and the gap stayed
-            given_up = self.protocol.give_up_gap()
-            if given_up:
-                self.log.warning(
-                    "taker gives up log messages queued beyond a gap the repair did not "
-                    "fill; framing those replies from the drone's",
-                    missing_lognr=lognr,
-                    missing_for_s=round(now - since, 3),
-                )
-                self._gap = None
-                await self._apply(given_up)
-                return
-        self._gap = (lognr, since, now + min(2 * (now - since), GAP_REPAIR_MAX_S))
-        self.log.warning(
-            "log message missing while later ones are queued (or our handover message did "
-            "not come back); predecessors re-send from our hello",
-            missing_lognr=lognr,
-            missing_for_s=round(now - since, 3),
-            queued=len(self.protocol.log_queue),
-        )
-        self.on_gap()
+        missing = self.protocol.missing_lognr
+        frames = self._arriving.get(missing) if missing is not None else None
+        await self._apply(self.core.gap_due(time.monotonic(), repair_s, frames))
 
     async def _route(self) -> None:
-        """Sends to the first controller after us whose stream has not been down for the
-        detection time (docs/design.md, "The ring routes around the dead"); back to the
-        natural successor as soon as its stream is up again."""
-        detection = self.config.detection_s
-        p = self.protocol
-        if detection <= 0 or len(p.ring) < 3:
-            return  # with two controllers the only other one is the master or nobody
+        """Where the ring's messages go (``ControllerCore.route_due``); the links follow."""
         now = time.monotonic()
 
         def down_for(pid: int) -> float | None:
             link = self._peers.get(pid)
             return None if link is None or not link.used else link.down_for(now)
 
-        chosen, skipped = ring_route(p.ring, self.id, down_for, detection, p.successor)
-        if chosen == p.successor:
-            return
-        if not p.may_route_around(skipped, self.routed_around, self.drone_connected):
-            return  # an ACTIVE master cut off from the drone: asked again in 0.1 s
-        natural = self.config.successor(self.id)
-        if chosen == natural:
-            self.log.info("ring successor back; ring restored", successor=chosen)
-        else:
-            self.log.warning(
-                "ring successor unreachable; routing around it",
-                unreachable=skipped,
-                successor=chosen,
-                detection_s=detection,
-            )
-        previous = p.successor
-        p.route_to(chosen)
-        self.routed_around = skipped
-        link = self.peer(chosen)
+        await self._apply(
+            self.core.route_due(down_for, self.config.detection_s, self.drone_connected)
+        )
+
+    async def _routed(self, route: RouteTo) -> None:
+        """The ring now sends to ``route.successor``: its stream carries the history; the
+        stream to a successor routed to before, and not skipped now, ends once it has
+        nothing unacknowledged."""
+        link = self.peer(route.successor)
         if not link.has_history:
             link.give_history(self.history)
             await link.stop()
         link.start()
         link.holds_changed()
-        if previous != natural and previous not in skipped:
+        previous = route.previous
+        if previous != route.natural and previous not in route.skipped:
             old = self._peers.get(previous)
             if old is not None and old.unacked == 0:
                 await old.stop()
                 del self._peers[previous]
-        self._notify()
 
     @property
     def peers(self) -> dict[int, PeerLink]:
@@ -784,7 +684,7 @@ class ControllerNode:
 
     # -- effects --------------------------------------------------------------------
 
-    async def _apply(self, effects: list[Effect]) -> None:
+    async def _apply(self, effects: Sequence[CoreEffect]) -> None:
         for effect in effects:
             if isinstance(effect, SendLog):
                 if effect.copy:
@@ -825,9 +725,39 @@ class ControllerNode:
                     our_epoch=effect.ours_epoch,
                     ring_epoch=effect.ring_epoch,
                 )
-                if not self._rejoining:
-                    self._rejoining = True
+                if self.core.rejoin():
                     self._background.spawn(self._rejoin(), name="rejoin")
+            elif isinstance(effect, Reconnect):
+                await self._close_drone()
+                self._open_drone()
+            elif isinstance(effect, Rejoin):
+                self._background.spawn(self._rejoin(), name="rejoin")
+            elif isinstance(effect, SendCatchUp):
+                self._send_catch_up(effect.target)
+            elif isinstance(effect, Record):
+                self.handovers.append(
+                    HandoverEvent(
+                        effect.role,
+                        effect.other,
+                        effect.lognr,
+                        effect.reqnr,
+                        effect.log_bytes,
+                        epoch=effect.epoch,
+                        drone_after_reqnr=effect.drone_after_reqnr,
+                        holds_reqnr=effect.holds_reqnr,
+                    )
+                )
+            elif isinstance(effect, Note):
+                getattr(self.log, effect.level)(effect.text, **effect.fields)
+            elif isinstance(effect, Fail):
+                self._fail(StatusError(grpc.StatusCode.INTERNAL, effect.text))
+            elif isinstance(effect, RepairGap):
+                if self.on_gap is not None:
+                    self.on_gap()
+            elif isinstance(effect, RouteTo):
+                await self._routed(effect)
+            elif isinstance(effect, Preparing):
+                self._preparing(effect)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
                 self.log.warning(
@@ -910,148 +840,29 @@ class ControllerNode:
         watermark_reqnr: int = 0,
         takeover_epoch: int = 0,
     ) -> None:
-        """The drone's Connected event: this controller is master in ``epoch``.
-
-        The replies the drone retains above what we hold follow in batches, up
-        to ``retained_through`` (``on_retained``): after a takeover the lost
-        master's tail, which ``_invoke`` answers the program from as it comes
-        instead of sending those requests again. A Connected again (the
-        stream broke mid-way) says again what is still to come.
-
-        ``takeover``: the drone granted this mastership by takeover (it says so
-        on every Connected; the TakeOver we may have noted says the same). A
-        taker that restarted or rejoined with nothing after its first request
-        is not told the TakeOver again, and took the grant for a cooperative
-        one, waiting for ever for a handover message (--lose-master seed
-        1092). ``watermark_reqnr`` is the drone's watermark now: the replies
-        at or below it are gone from the drone, so we must hold them before we
-        go ACTIVE (the TakeOver's, older, let a taker with nothing go ACTIVE
-        with a gap below the retained replies).
-
-        ``takeover_epoch``: the newest takeover's. ACTIVE in an older epoch, we
-        hold a log that takeover replaced: the role went on without it and came
-        back to us (a handover message we hold queued, or a grant) while we
-        were cut off. We rejoin with nothing instead of taking the grant, as a
-        refusal would make us (``log_given_up``); a handover message to us is
-        kept for our fresh self (simulation, --policy seeds 71 and 177: the
-        message stayed queued for ever behind the old mastership).
-        """
+        """The drone's Connected event: this controller is master in ``epoch``
+        (``ControllerCore.granted``)."""
         if session is not self._drone:
             return  # a session closed meanwhile
-        if self.protocol.log_given_up(takeover_epoch):
-            self.log.warning(
-                "granted while ACTIVE in a mastership a takeover replaced: rejoining with "
-                "nothing before taking the role",
-                epoch=epoch,
-                our_epoch=self.protocol.epoch,
-                takeover_epoch=takeover_epoch,
-            )
-            await self._fenced(self.id, takeover_epoch)
-            return
-        held = self.protocol.held_reqnr
-        self._retained = {}
-        self._retained_through = retained_through if retained_through > held else 0
-        self._retained_due, self._retained_came = retained_through, 0
-        was_active = self.protocol.state is State.ACTIVE
-        takeover = takeover or epoch == self._takeover_epoch
-        self._first_new_call_due = takeover
-        watermark = max(self._takeover_watermark, watermark_reqnr)
-        effects = self.protocol.on_granted(epoch, takeover, watermark)
-        if not was_active:
-            self.log.info(
-                "the drone says this controller is master",
-                epoch=epoch,
-                takeover=takeover,
-                caught_up=self.protocol.caught_up,
-            )
-        await self._apply(effects)
+        await self._apply(
+            self.core.granted(epoch, retained_through, takeover, watermark_reqnr, takeover_epoch)
+        )
 
     async def on_retained(
         self, session: DroneSession, replies: Sequence[drone_pb2.RetainedReply]
     ) -> None:
-        """A batch of the replies the drone retains for us, in order (after Connected)."""
+        """A batch of the replies the drone retains for us (``ControllerCore.retained_batch``)."""
         if session is not self._drone:
             return
-        held = self.protocol.held_reqnr
-        if replies:
-            self._retained_came = max(self._retained_came, replies[-1].reqnr)
-        replaced = self.protocol.replaced_framing(replies)
-        if replaced is not None:
-            self.log.warning(
-                "we hold a request in a framing a later takeover replaced (the drone keeps "
-                "another outcome, brought in a newer epoch); rejoining as a replica that "
-                "refuses that framing from its log message on",
-                reqnr=replaced.reqnr,
-                lognr=replaced.lognr,
-                framed_in=replaced.ours_epoch,
-                drone_epoch=replaced.epoch,
-                epoch=self.protocol.epoch,
-            )
-            self._replaced = replaced
-            if not self._rejoining:
-                self._rejoining = True
-                self._background.spawn(self._rejoin(), name="rejoin")
-            return
-        self._retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
-        self._notify()
+        await self._apply(self.core.retained_batch(replies))
 
     async def on_take_over(self, event: drone_pb2.TakeOver) -> None:
-        """The drone made us master by takeover (standby stream): connect to learn it.
-
-        The old master's log will not come: what we lack above what we hold
-        follows the Connected event, the replies the drone retained.
-        """
-        p = self.protocol
-        self._takeover_epoch = event.epoch
-        self._takeover_watermark = event.watermark_reqnr
-        self.handovers.append(
-            HandoverEvent(
-                ring_pb2.HANDOVER_ROLE_TAKER,
-                event.old_master,
-                p.lognr,
-                p.reqnr,
-                p.log.size,
-                epoch=event.epoch,
-                drone_after_reqnr=event.after_reqnr,
-                holds_reqnr=p.held_reqnr,
+        """The drone made us master by takeover (``ControllerCore.take_over``)."""
+        await self._apply(
+            self.core.take_over(
+                event.old_master, event.epoch, event.after_reqnr, event.watermark_reqnr
             )
         )
-        self.log.warning(
-            "taking over from a lost master",
-            old_master=event.old_master,
-            epoch=event.epoch,
-            drone_after_reqnr=event.after_reqnr,
-            watermark_reqnr=event.watermark_reqnr,
-            holds_reqnr=p.held_reqnr,
-        )
-        # A session of an earlier mastership (or of the start-up question)
-        # would not carry the new epoch: connect again.
-        await self._close_drone()
-        self._open_drone()
-        self._notify()
-
-    async def _fenced(self, new_master: int, epoch: int) -> None:
-        """Our mastership was taken over: stop acting as master, then rejoin as a replica.
-
-        The rejoin (``on_rejoin``, else ``reset``) runs as a task of its own:
-        it stops the mission program, whose call may be the caller here.
-        """
-        if self._rejoining:
-            return
-        self._rejoining = True
-        p = self.protocol
-        self.handovers.append(
-            HandoverEvent(ring_pb2.HANDOVER_ROLE_FENCED, new_master, p.lognr, p.reqnr, p.log.size)
-        )
-        self.log.warning(
-            "fenced: the drone gave our mastership to another controller by takeover; "
-            "dropping what we hold beyond the ring and rejoining as a replica",
-            new_master=new_master,
-            epoch=epoch,
-            unflushed_entries=len(p.log),
-        )
-        await self._apply(p.on_fenced(epoch))
-        self._background.spawn(self._rejoin(), name="rejoin")
 
     async def _rejoin(self) -> None:
         try:
@@ -1060,42 +871,25 @@ class ControllerNode:
             else:
                 await self.reset()
         finally:
-            self._rejoining = False
+            self.core.rejoining = False
 
     async def on_connect_refused(self, session: DroneSession, refusal: DroneRefusal) -> None:
-        """Connect refused: another controller is master, and no notice is owed to us."""
+        """Connect refused (``ControllerCore.connect_refused``)."""
         if session is not self._drone:
             return  # a session closed meanwhile
-        if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
-            await self._fenced(refusal.master, refusal.fencing_epoch)
-            return
-        if self.protocol.state is not State.ACTIVE:
-            self.log.info("not the master", master=refusal.master, epoch=refusal.epoch)
-            await self._close_drone()
-            return
-        if self.protocol.connect_refusal_is_stale(refusal.epoch):
-            # Asked before the drone made us master, answered after: ask again.
-            self.log.info("stale Connect refusal; connecting again", epoch=refusal.epoch)
-            await self._close_drone()
-            self._open_drone()
-            return
-        # Made master by a handover message, but the drone moved on meanwhile:
-        # the log goes to the master it names.
-        await self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+        await self._apply(self.core.connect_refused(refusal))
 
     async def on_stream_notice(
         self, session: DroneSession, notice: drone_pb2.HandoverNotice
     ) -> None:
-        """A handover notice on the Connect stream (the drone owes at most one, the latest)."""
+        """A handover notice on the Connect stream (``ControllerCore.stream_notice``)."""
         if session is not self._drone:
             return
-        if notice.takeover:
-            await self._fenced(notice.new_master, notice.epoch)
-            return
-        if self.protocol.state is State.ACTIVE:
-            await self.on_handover_notice(notice.new_master, notice.after_reqnr, notice.epoch)
-            return
-        await self._close_drone()  # a notice for a mastership we no longer hold
+        await self._apply(
+            self.core.stream_notice(
+                notice.new_master, notice.after_reqnr, notice.epoch, notice.takeover
+            )
+        )
 
     async def on_sync(
         self,
@@ -1119,45 +913,8 @@ class ControllerNode:
         )
 
     async def on_handover_notice(self, new_master: int, after_reqnr: int, epoch: int = 0) -> None:
-        """The drone chose another master (Algorithm 1, lines 24-29)."""
-        if self.protocol.state is not State.ACTIVE:
-            return
-        log_bytes = self.protocol.log.size
-        try:
-            effects = self.protocol.on_handover_notice(new_master, epoch)
-        except ProtocolError as exc:
-            self.log.error("bad handover notice", error=str(exc))
-            return
-        if self.protocol.state is State.ACTIVE:
-            # A notice of a switch before our mastership (a takeover made us master
-            # since): stale, nothing handed over.
-            self.log.warning(
-                "stale handover notice ignored",
-                new_master=new_master,
-                notice_epoch=epoch,
-                epoch=self.protocol.epoch,
-            )
-            return
-        self.handovers.append(
-            HandoverEvent(
-                ring_pb2.HANDOVER_ROLE_OLD,
-                new_master,
-                self.protocol.lognr,
-                self.protocol.reqnr,
-                log_bytes,
-                epoch=epoch,
-                drone_after_reqnr=after_reqnr,
-            )
-        )
-        self.log.info(
-            "handing over",
-            new_master=new_master,
-            drone_after_reqnr=after_reqnr,
-            log_bytes=log_bytes,
-        )
-        if self.config.ring.cut_through:
-            self._send_catch_up(new_master)
-        await self._apply(effects)
+        """The drone chose another master (``ControllerCore.handover_notice``)."""
+        await self._apply(self.core.handover_notice(new_master, after_reqnr, epoch))
 
     async def on_log(self, message: ring_pb2.LogMessage) -> None:
         """A log message from the ring or from an old master (lines 30-47)."""
@@ -1183,27 +940,13 @@ class ControllerNode:
         if self.protocol.went_on_without_us(message):
             await self._fence_by_the_ring(message)
 
-    async def _fence_by_the_ring(self, message: ring_pb2.LogMessage) -> None:
-        """``message`` shows our mastership went on without our log: fenced, if we are
-        cut off from the drone (neither stream up).
-
-        The drone, which took our mastership over, cannot tell us then (the radio
-        may never bring us back), and a master stranded ACTIVE would follow the
-        ring no more (simulation, --policy). With either stream up the drone tells
-        us itself, as before. Asked on the message's arrival and, for one queued
-        while a stream still looked up, every 0.1 s (``_route_watch``).
-        """
-        if self.drone_connected or self.standby_up:
-            return
-        self.log.warning(
-            "the ring carries a newer mastership than ours while the drone is out of "
-            "reach: taken over",
-            mlognr=message.lognr,
-            origin=message.origin,
-            epoch=message.epoch,
-            our_epoch=self.protocol.epoch,
-        )
-        await self._fenced(message.origin, message.epoch)
+    async def _fence_by_the_ring(self, message: ring_pb2.LogMessage | None) -> None:
+        """``message`` shows our mastership went on without our log: fenced if we are cut
+        off from the drone (``ControllerCore.went_on_without_us``). Asked on the
+        message's arrival and, for one queued while a stream still looked up, every
+        0.1 s (``_route_watch``)."""
+        reachable = self.drone_connected or self.standby_up
+        await self._apply(self.core.went_on_without_us(message, reachable))
 
     def _settle_handovers(self) -> None:
         """Our handover messages still unacknowledged whose role is settled (the ring
@@ -1321,7 +1064,7 @@ class ControllerNode:
                     self._replay_again(entry, method, code)
             elif state is State.ACTIVE and not await self._wait_granted():
                 continue
-            elif state is State.ACTIVE and self.protocol.reqnr + 1 < self._retained_through:
+            elif state is State.ACTIVE and self.protocol.reqnr + 1 < self.core.retained_through:
                 # The drone retains the mission's answer to this request, and a
                 # lost master's program acted on it (the drone served it a later
                 # request): that is the entry, not our program's give-up
@@ -1330,7 +1073,7 @@ class ControllerNode:
                 reqnr = self.protocol.reqnr + 1
                 if not await self._wait_retained(reqnr):
                     continue
-                entry = self._from_retained(self._retained.pop(reqnr), method, request)
+                entry = self._from_retained(self.core.retained.pop(reqnr), method, request)
                 self._adopt(reqnr)
                 self._abandoned.popleft()
                 effects = self.protocol.on_reply(entry)
@@ -1342,7 +1085,7 @@ class ControllerNode:
             elif state is State.ACTIVE:
                 self._abandoned.popleft()
                 reqnr = self.protocol.reqnr + 1
-                self._retained.pop(reqnr, None)
+                self.core.retained.pop(reqnr, None)
                 entry = _given_up(reqnr, method, request, code)
                 effects = self.protocol.on_reply(entry)
                 self._seen(entry)
@@ -1428,8 +1171,7 @@ class ControllerNode:
             master_saw=master_saw,
             restarts=self.program_restarts,
         )
-        if not self._rejoining:
-            self._rejoining = True
+        if self.core.rejoin():
             self._background.spawn(self._rejoin(), name="rejoin")
         raise StatusError(
             grpc.StatusCode.ABORTED,
@@ -1465,8 +1207,8 @@ class ControllerNode:
                 return None
             if not await self._wait_retained(reqnr):
                 return None
-            if self._first_new_call_due and reqnr > self._retained_through:
-                self._first_new_call_due = False
+            if self.core.first_new_call_due and reqnr > self.core.retained_through:
+                self.core.first_new_call_due = False
                 takers = [h for h in self.handovers if h.role == ring_pb2.HANDOVER_ROLE_TAKER]
                 if takers:
                     takers[-1].first_new_reqnr, takers[-1].first_new_at = reqnr, time.time()
@@ -1476,7 +1218,7 @@ class ControllerNode:
                     method=method,
                     epoch=self.protocol.epoch,
                 )
-            kept = self._retained.pop(reqnr, None)
+            kept = self.core.retained.pop(reqnr, None)
             if kept is not None:
                 entry = self._from_retained(kept, method, request)
                 self._adopt(reqnr)
@@ -1505,9 +1247,9 @@ class ControllerNode:
             if (
                 self._ours_to_log(reqnr)
                 and self.protocol.granted_epoch == self.protocol.epoch
-                and reqnr >= self._retained_through
+                and reqnr >= self.core.retained_through
             ):
-                self._retained.pop(reqnr, None)
+                self.core.retained.pop(reqnr, None)
                 self.log.warning(
                     "the mission program gave up on a call", reqnr=reqnr, code=code.name
                 )
@@ -1578,9 +1320,9 @@ class ControllerNode:
         batch: the replies at or below what we hold came first and were compared
         with our framing (``on_retained``)."""
         while (
-            reqnr not in self._retained
-            if reqnr <= self._retained_through
-            else self._retained_came < self._retained_due
+            reqnr not in self.core.retained
+            if reqnr <= self.core.retained_through
+            else self.core.retained_came < self.core.retained_due
         ):
             if self.protocol.state is not State.ACTIVE:
                 return False
@@ -1653,40 +1395,11 @@ class ControllerNode:
             except grpc.aio.AioRpcError as exc:
                 refusal = refusal_of(exc)
                 if refusal is not None:
-                    verdict = self.protocol.judge_refusal(sent_epoch, refusal.master, refusal.epoch)
-                    if verdict is Refusal.DISAGREE:
-                        # The drone knows us as master, in this epoch, yet refused
-                        # the request number: the log and the drone disagree.
-                        self._fail(
-                            StatusError(
-                                grpc.StatusCode.INTERNAL,
-                                f"controller {self.id}: the drone refused request {reqnr} "
-                                f"({method}): {exc.details()}",
-                            )
+                    await self._apply(
+                        self.core.request_refused(
+                            sent_epoch, refusal, reqnr, method, exc.details() or ""
                         )
-                    elif verdict is Refusal.HANDED_OVER and (
-                        refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
-                    ):
-                        await self._fenced(refusal.master, refusal.fencing_epoch)
-                    elif verdict is Refusal.HANDED_OVER:
-                        await self.on_handover_notice(
-                            refusal.master, refusal.after_reqnr, refusal.epoch
-                        )
-                    elif verdict is Refusal.REGRANTED:
-                        self.log.info(
-                            "master again in a newer epoch; connecting again",
-                            sent_epoch=sent_epoch,
-                            drone_epoch=refusal.epoch,
-                        )
-                        await self._close_drone()
-                        self._open_drone()
-                    else:
-                        self.log.info(
-                            "stale request refused by the drone",
-                            reqnr=reqnr,
-                            sent_epoch=sent_epoch,
-                            drone_epoch=refusal.epoch,
-                        )
+                    )
                     return None
                 if exc.code() is grpc.StatusCode.UNAVAILABLE and not retry.exhausted():
                     # The drone could not be reached, or its vehicle is not

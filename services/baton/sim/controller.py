@@ -25,19 +25,31 @@ from __future__ import annotations
 
 import enum
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import grpc
 
-from baton.config import GAP_REPAIR_MAX_S, gap_repair_s
-from baton.controller.drone_link import DroneRefusal
+from baton.config import gap_repair_s
+from baton.controller.core import (
+    ControllerCore,
+    CoreEffect,
+    DroneRefusal,
+    Fail,
+    Note,
+    Preparing,
+    Reconnect,
+    Rejoin,
+    RepairGap,
+    RouteTo,
+    SendCatchUp,
+)
 from baton.controller.history import LogHistory
 from baton.controller.node import (
     CLOCK_NOW,
     CLOCK_SERVICE,
     CLOCK_SLEEP,
-    PREPARE_GRACE_S,
     RETRY_FIRST_S,
     RETRY_MAX_S,
     _given_up,
@@ -49,12 +61,9 @@ from baton.controller.protocol import (
     ControllerProtocol,
     DisconnectDrone,
     Diverged,
-    Effect,
     Fenced,
     NonDeterminismError,
     ProtocolError,
-    Refusal,
-    ReplacedFraming,
     SendLog,
     State,
     Unqueued,
@@ -158,7 +167,10 @@ class SimController:
         self.id = cid
         self.incarnation = incarnation
         self.alive = True
-        self.protocol = ControllerProtocol(cid, world.ring, world.flush_limit)
+        # The shipped core: the protocol and the decisions about the drone session.
+        self.core = ControllerCore(
+            ControllerProtocol(cid, world.ring, world.flush_limit), world.cut_through
+        )
         self.history = LogHistory()
         self.links: dict[int, RingLink] = {}
         self.drone_link = DroneLink(world, self)
@@ -181,30 +193,28 @@ class SimController:
         # Whether the drone has answered its start-up question (granted, refused, a notice).
         self.answered = False
         self._pump_due = False
-        # Takeover (issue 10): node.py's _takeover_epoch, _rejoining, fenced_messages,
-        # routed_around.
-        self.takeover_epoch = self.takeover_watermark = 0
-        self.retained: dict[int, drone_pb2.RetainedReply] = {}  # node.py's _retained
+        # Takeover: node.py's fenced_messages.
         self.adopted = (0, 0)  # node.py's _adopted: (epoch, first reqnr answered from retained)
-        self.retained_through = 0  # and _retained_through
-        self.retained_due = self.retained_came = 0  # and _retained_due, _retained_came
         self.answered_here: list[ring_pb2.LogEntry] = []  # node.py's _answered_here
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
-        self.rejoining = False
-        # node.py's _replaced: carried to the incarnation a rejoin starts (World.rejoin).
-        self.replaced: ReplacedFraming | None = None
         self.fenced_messages = 0
-        self.routed_around: list[int] = []
         self.route_held = False  # a route held back polls (_route_again)
-        self._gap: tuple[int, float, float] | None = None  # node.py ControllerNode._gap
         self.sent_straight: dict[int, int] = {}  # node.py ControllerNode._sent_straight
         # And _acked_before_prepare: the target's stream then, and its acks then.
         self.acked_before_prepare: tuple[RingLink | None, int] = (None, 0)
-        self.prepare_until = 0.0  # and _prepare_until
-        self.prepare_bound = 0  # and _prepare_bound
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
+
+    @property
+    def routed_around(self) -> list[int]:
+        """The successors the ring routes around now (the core's)."""
+        return self.core.routed_around
+
+    @property
+    def protocol(self) -> ControllerProtocol:
+        """Algorithm 1's state machine (the core's)."""
+        return self.core.protocol
 
     def start(self) -> None:
         """Opens the stream to the successor and asks the drone (node.py start)."""
@@ -242,7 +252,7 @@ class SimController:
 
     # -- effects (ControllerNode._apply) ------------------------------------------
 
-    def _apply(self, effects: list[Effect]) -> None:
+    def _apply(self, effects: Sequence[CoreEffect]) -> None:
         unqueued = False
         for effect in effects:
             if isinstance(effect, SendLog):
@@ -268,7 +278,26 @@ class SimController:
                     f"controller {self.id} diverged at log message {effect.lognr} (epoch "
                     f"{effect.ours_epoch} here, {effect.ring_epoch} on the ring): rejoins"
                 )
+                if self.core.rejoin():
+                    self._rejoin()
+            elif isinstance(effect, Reconnect):
+                self._close_drone()
+                self._open_drone()
+            elif isinstance(effect, Rejoin):
                 self._rejoin()
+            elif isinstance(effect, SendCatchUp):
+                self._send_catch_up(effect.target)
+            elif isinstance(effect, Note):
+                fields = " ".join(f"{k}={v}" for k, v in effect.fields.items())
+                self.world.trace(f"controller {self.id}: {effect.text} ({fields})")
+            elif isinstance(effect, Fail):
+                self._fail(effect.text)
+            elif isinstance(effect, RepairGap):
+                self.world.drop_streams_to(self)
+            elif isinstance(effect, RouteTo):
+                self._routed(effect)
+            elif isinstance(effect, Preparing):
+                self._preparing(effect)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
                 self.world.trace(
@@ -395,36 +424,21 @@ class SimController:
             return
         session.epoch, session.connected = epoch, True
         self._startup_answer()
-        if self.protocol.log_given_up(takeover_epoch):
-            self.world.trace(
-                f"controller {self.id} granted epoch {epoch} while ACTIVE in "
-                f"{self.protocol.epoch}, below takeover {takeover_epoch}"
+        try:
+            effects = self.core.granted(
+                epoch, retained_through, takeover, watermark_reqnr, takeover_epoch
             )
-            self._fenced(self.id, takeover_epoch)
+        except ProtocolError as exc:
+            self._uncaught("on_granted", exc)
             return
-        self.on_granted(epoch, retained_through, takeover, watermark_reqnr)
+        self._apply(effects)
 
     def on_drone_retained(self, sid: int, replies: list[drone_pb2.RetainedReply]) -> None:
         """A RetainedBatch event: node.py's on_retained."""
         session = self.session
         if session is None or session.sid != sid:
             return
-        held = self.protocol.held_reqnr
-        if replies:
-            self.retained_came = max(self.retained_came, replies[-1].reqnr)
-        replaced = self.protocol.replaced_framing(replies)
-        if replaced is not None:
-            self.world.trace(
-                f"controller {self.id} holds request {replaced.reqnr} in a framing a later "
-                f"takeover replaced (the drone's is of epoch {replaced.epoch}): rejoins "
-                f"refusing log messages {replaced.lognr}+ of epoch {replaced.ours_epoch} "
-                "or older"
-            )
-            self.replaced = replaced
-            self._rejoin()
-            return
-        self.retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
-        self._notify()
+        self._apply(self.core.retained_batch(replies))
 
     def on_drone_notice(
         self, sid: int, new_master: int, after_reqnr: int, epoch: int, takeover: bool
@@ -484,129 +498,54 @@ class SimController:
 
     # -- events (ControllerNode.on_*) ---------------------------------------------
 
-    def on_granted(
-        self,
-        epoch: int,
-        retained_through: int,
-        takeover: bool = False,
-        watermark_reqnr: int = 0,
-    ) -> None:
-        """ControllerNode.on_granted: a takeover if the drone says so (or the epoch is the
-        one on_take_over noted); the replies the drone retains above what we hold follow,
-        up to ``retained_through``, to answer the program from; the drone's watermark now,
-        which we must hold first."""
-        held = self.protocol.held_reqnr
-        self.retained = {}
-        self.retained_through = retained_through if retained_through > held else 0
-        self.retained_due, self.retained_came = retained_through, 0
-        takeover = takeover or epoch == self.takeover_epoch
-        try:
-            effects = self.protocol.on_granted(
-                epoch, takeover, max(self.takeover_watermark, watermark_reqnr)
-            )
-        except ProtocolError as exc:
-            self._uncaught("on_granted", exc)
-            return
-        self._apply(effects)
-
     def _uncaught(self, where: str, exc: ProtocolError) -> None:
         """A ProtocolError that node.py does not catch there: the controller is broken."""
         self._fail(f"controller {self.id}: ProtocolError escapes node.py {where}: {exc}")
 
     def on_connect_refused(self, refusal: DroneRefusal) -> None:
         """ControllerNode.on_connect_refused."""
-        if refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch):
-            self._fenced(refusal.master, refusal.fencing_epoch)
-            return
-        if self.protocol.state is not State.ACTIVE:
-            self._close_drone()
-            return
-        if self.protocol.connect_refusal_is_stale(refusal.epoch):
-            # Asked before the drone made us master, answered after: ask again.
-            self._close_drone()
-            self._open_drone()
-            return
-        self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+        self._apply(self.core.connect_refused(refusal))
 
     def on_stream_notice(
         self, new_master: int, after_reqnr: int, epoch: int, takeover: bool = False
     ) -> None:
         """ControllerNode.on_stream_notice."""
-        if takeover:
-            self._fenced(new_master, epoch)
-            return
-        if self.protocol.state is State.ACTIVE:
-            self.on_handover_notice(new_master, after_reqnr, epoch)
-            return
-        self._close_drone()
+        self._apply(self.core.stream_notice(new_master, after_reqnr, epoch, takeover))
 
     def on_take_over(self, old_master: int, epoch: int, watermark_reqnr: int) -> None:
-        """ControllerNode.on_take_over (the standby stream's TakeOver): connect again to
-        learn the epoch (and get the retained replies); on_granted then goes ACTIVE on
-        what this controller holds."""
+        """ControllerNode.on_take_over (the standby stream's TakeOver)."""
         if not self.alive:
             return
-        self.takeover_epoch = epoch
-        self.takeover_watermark = watermark_reqnr
-        self.world.trace(f"controller {self.id} takes over from lost {old_master} (epoch {epoch})")
-        self._close_drone()
-        self._open_drone()
-        self._notify()
-
-    def _fenced(self, new_master: int, epoch: int) -> None:
-        """ControllerNode._fenced: stop acting as master (on_fenced), then rejoin."""
-        if self.rejoining:
-            return
-        self.world.trace(
-            f"controller {self.id} fenced: {new_master} took over in epoch {epoch} "
-            f"({len(self.protocol.log)} unflushed entries dropped)"
-        )
-        self._apply(self.protocol.on_fenced(epoch))
-        self._rejoin()
+        self._apply(self.core.take_over(old_master, epoch, 0, watermark_reqnr))
 
     def _rejoin(self) -> None:
-        """ControllerNode._rejoin as a task: ControllerApp.rejoin (the program stops, reset,
-        incoming streams dropped, the program starts again), as a restart with nothing."""
-        if not self.rejoining:
-            self.rejoining = True
-            self.world.loop.after(0.0, self.world.rejoin, self)
+        """A rejoin as ControllerApp.rejoin does it (the program stops, reset, incoming
+        streams dropped, the program starts again), as a restart with nothing."""
+        self.world.loop.after(0.0, self.world.rejoin, self)
 
     # -- a gap in what we received (ControllerNode._repair_gap) -------------------
 
     def _gap_check_later(self) -> None:
-        """When node.py's _repair_gap (every 0.1 s) could act: a gap appeared; it is
-        looked at again at the repair time."""
-        missing = self.protocol.missing_lognr
-        if missing is None or not self.alive:
-            self._gap = None
+        """``ControllerCore.gap_due`` now, and again when the gap it notes falls due
+        (node.py asks every 0.1 s; the decisions are the same, taken when they can
+        change). The simulation's messages arrive whole: no frames to wait for."""
+        if not self.alive:
             return
-        if self._gap is not None and self._gap[0] == missing:
-            return
-        now, repair = self.world.loop.now, gap_repair_s(self.world.detection_s)
-        self._gap = (missing, now, now + repair)
-        self.world.loop.after(repair, self._repair_gap, missing)
+        before = self.core.gap
+        self._apply_gap()
+        gap = self.core.gap
+        if gap is not None and gap != before:
+            self.world.loop.at(gap[2], self._gap_due, gap)
 
-    def _repair_gap(self, missing: int) -> None:
-        """ControllerNode._repair_gap: still missing at the repair time, our predecessors
-        are made to connect again (ControllerApp's RingReceiver.drop_streams)."""
-        now = self.world.loop.now
-        if not self.alive or self._gap is None or self._gap[0] != missing:
-            return
-        lognr, since, due = self._gap
-        if now < due or self.protocol.missing_lognr != lognr:
-            return
-        if now - since >= 2 * gap_repair_s(self.world.detection_s):  # a repair was tried
-            given_up = self.protocol.give_up_gap()  # node.py: a taker's gap after a repair
-            if given_up:
-                self.world.trace(f"controller {self.id} gives up log message {lognr}: taker")
-                self._gap = None
-                self._apply(given_up)
-                return
-        interval = min(2 * (now - since), GAP_REPAIR_MAX_S)
-        self._gap = (lognr, since, now + interval)
-        self.world.trace(f"controller {self.id} misses log message {lognr}: streams dropped")
-        self.world.drop_streams_to(self)
-        self.world.loop.after(interval, self._repair_gap, missing)
+    def _gap_due(self, gap: tuple[int, float, float]) -> None:
+        if self.alive and self.core.gap == gap:
+            self._gap_check_later()
+
+    def _apply_gap(self) -> None:
+        repair_s = gap_repair_s(self.world.detection_s)
+        effects = self.core.gap_due(self.world.loop.now, repair_s)
+        if effects:
+            self._apply(effects)
 
     # -- the ring routes around the dead (ControllerNode._route) -------------------
 
@@ -620,47 +559,46 @@ class SimController:
         self.world.loop.after(detection + 1e-6 if delay is None else delay, self._route)
 
     def _route(self) -> None:
-        """ControllerNode._route: send to the first controller after us whose stream has
-        not been down for the detection time; back to the natural successor once it is up."""
+        """ControllerNode._route: ``ControllerCore.route_due``; the links follow."""
         if not self.alive:
             return
-        detection, p, now = self.world.detection_s, self.protocol, self.world.loop.now
-        if detection <= 0 or len(p.ring) < 3:
-            return
+        now = self.world.loop.now
 
         def down_for(pid: int) -> float | None:
             link = self.links.get(pid)
             return None if link is None else link.down_for(now)
 
-        chosen, skipped = ring_route(p.ring, self.id, down_for, detection, p.successor)
-        if chosen == p.successor:
-            return
         session = self.session
         connected = session is not None and session.connected
-        if not p.may_route_around(skipped, self.routed_around, connected):
-            # node.py asks again every 0.1 s: until connected, or no longer ACTIVE.
-            if not self.route_held:
-                self.route_held = True
-                self.world.loop.after(ROUTE_POLL_S, self._route_again)
+        successor = self.protocol.successor
+        effects = self.core.route_due(down_for, self.world.detection_s, connected)
+        if effects:
+            self._apply(effects)
             return
-        natural = p.ring[(p.ring.index(self.id) + 1) % len(p.ring)]
-        self.world.trace(f"controller {self.id} routes to {chosen} (around {skipped})")
-        previous = p.successor
-        p.route_to(chosen)
-        self.routed_around = skipped
-        link = self.peer(chosen)
+        chosen, _ = ring_route(
+            self.protocol.ring, self.id, down_for, self.world.detection_s, successor
+        )
+        if chosen != successor and not self.route_held:
+            # Held back (an ACTIVE master cut off from the drone): node.py asks again
+            # every 0.1 s, until connected or no longer ACTIVE.
+            self.route_held = True
+            self.world.loop.after(ROUTE_POLL_S, self._route_again)
+
+    def _routed(self, route: RouteTo) -> None:
+        """ControllerNode._routed: the new successor's stream carries the history."""
+        link = self.peer(route.successor)
         if link.history is None:
             link.history = self.history
             link.restart()
         link.start()
         link.holds_changed()
-        if previous != natural and previous not in skipped:
+        previous = route.previous
+        if previous != route.natural and previous not in route.skipped:
             old = self.links.get(previous)
             if old is not None and not old.unacked:
                 old.stop()
                 del self.links[previous]
         self.world.check_start()
-        self._notify()
 
     def _route_again(self) -> None:
         self.route_held = False
@@ -686,68 +624,45 @@ class SimController:
 
     def on_handover_notice(self, new_master: int, after_reqnr: int, epoch: int = 0) -> None:
         """ControllerNode.on_handover_notice (Algorithm 1, lines 24-29)."""
-        if self.protocol.state is not State.ACTIVE:
-            return
-        try:
-            effects = self.protocol.on_handover_notice(new_master, epoch)
-        except ProtocolError:
-            return
-        self.world.trace(f"controller {self.id} hands over to {new_master}")
-        if self.world.cut_through:
-            self._send_catch_up(new_master)
-        self._apply(effects)
+        self._apply(self.core.handover_notice(new_master, after_reqnr, epoch))
 
     # -- a prepared handover (docs/design.md, "Prepared handover") ----------------
 
     def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
-        """ControllerNode.on_prepare: the target is caught up straight from us while the
-        mission goes on; we stop preparing on our own after the timeout and the grace."""
-        try:
-            effects = self.protocol.on_prepare(prepare.target, prepare.epoch)
-        except ProtocolError:
-            return  # node.py logs it
-        if self.protocol.preparing_for != prepare.target:
-            return  # not ACTIVE in that epoch: the drone's word came late
-        self.world.trace(
-            f"controller {self.id} prepares a handover to {prepare.target} (epoch {prepare.epoch})"
+        """ControllerNode.on_prepare (``ControllerCore.prepare``)."""
+        self._apply(
+            self.core.prepare(
+                prepare.target,
+                prepare.epoch,
+                prepare.timeout_s,
+                prepare.bound_bytes,
+                self.world.loop.now,
+            )
         )
-        link = self.peer(prepare.target)
-        self.acked_before_prepare = (link, link.acked)
-        self.prepare_bound = prepare.bound_bytes
-        self._send_catch_up(prepare.target)
-        self._apply(effects)
-        until = self.prepare_until = self.world.loop.now + prepare.timeout_s + PREPARE_GRACE_S
-        self.world.loop.at(until, self._preparation_over, prepare, until)
 
-    def _preparation_over(self, prepare: drone_pb2.PrepareHandover, until: float) -> None:
-        """ControllerNode._preparation_over: not carried out in its time (unless a newer
-        preparation gave more)."""
-        p = self.protocol
-        if until < self.prepare_until:
-            return
-        if self.alive and p.preparing_for == prepare.target and p.epoch == prepare.epoch:
-            self.world.trace(f"controller {self.id} stops preparing for {prepare.target}")
-            p.end_preparation()
+    def _preparing(self, preparing: Preparing) -> None:
+        """ControllerNode._preparing: acknowledgements counted from now; the timer."""
+        link = self.peer(preparing.target)
+        self.acked_before_prepare = (link, link.acked)
+        self.world.loop.at(preparing.until, self._preparation_over, preparing)
+
+    def _preparation_over(self, preparing: Preparing) -> None:
+        if self.alive:
+            self._apply(
+                self.core.preparation_over(preparing.target, preparing.epoch, preparing.until)
+            )
 
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
-        """ControllerNode._preparation_progress: how far the target is behind us."""
+        """ControllerNode._preparation_progress (``ControllerCore.progress``)."""
         target = self.protocol.preparing_for
-        if target is None:
-            return None
-        link = self.links.get(target)
-        lacks = (link.unacked_bytes if link is not None else 0) + self.protocol.log.size
-        after = self.protocol.reqnr
+        link = self.links.get(target) if target is not None else None
         if link is None:
-            return drone_pb2.PreparationProgress(
-                target=target, lacks_bytes=lacks, after_reqnr=after
-            )
+            return self.core.progress(None)
         before, acked = self.acked_before_prepare
-        return drone_pb2.PreparationProgress(
-            target=target,
-            lacks_bytes=lacks,
-            after_reqnr=after,
-            behind_s=link.waiting_for_ack_s(self.world.loop.now),
-            acked=link.acked - (acked if link is before else 0),
+        return self.core.progress(
+            link.unacked_bytes,
+            link.waiting_for_ack_s(self.world.loop.now),
+            link.acked - (acked if link is before else 0),
         )
 
     def _send_catch_up(self, target: int) -> None:
@@ -782,21 +697,15 @@ class SimController:
             self._fence_by_the_ring(message)
 
     def _fence_by_the_ring(self, message: ring_pb2.LogMessage | None) -> None:
-        """ControllerNode._fence_by_the_ring: cut off from the drone (neither stream up:
-        the standby stream is up exactly while the link is usable here), the ring shows
-        the takeover. node.py also asks every 0.1 s of a queued message
+        """ControllerNode._fence_by_the_ring (the standby stream is up exactly while the
+        link is usable here). node.py also asks every 0.1 s of a queued message
         (``went_on_in_queue``); here when a stream goes down (``_reconnect_later``,
         ``on_drone_link_broken``), the moments the answer can change."""
-        if message is None or not self.alive:
+        if not self.alive:
             return
         session = self.session
-        if (session is not None and session.connected) or self.drone_link.usable():
-            return
-        self.world.trace(
-            f"controller {self.id} sees epoch {message.epoch} of {message.origin} on the "
-            f"ring while ACTIVE in {self.protocol.epoch}, cut off from the drone"
-        )
-        self._fenced(message.origin, message.epoch)
+        reachable = (session is not None and session.connected) or self.drone_link.usable()
+        self._apply(self.core.went_on_without_us(message, reachable))
 
     def _settle_handovers(self) -> None:
         """ControllerNode._settle_handovers: a settled handover message loses its flag on
@@ -810,12 +719,12 @@ class SimController:
         between requests (ReportPreparation). Every such ack sends a word here, where
         node.py keeps one in flight and sends the latest next: each word stands alone,
         so these interleavings include its."""
-        if not self.alive or peer_id != self.protocol.preparing_for or not self.prepare_bound:
+        if not self.alive:
             return
         progress = self._preparation_progress()
-        session, link = self.session, self.drone_link
-        if progress is None or progress.lacks_bytes > self.prepare_bound:
+        if progress is None or not self.core.report_due(peer_id, progress):
             return
+        session, link = self.session, self.drone_link
         if session is None or not session.connected or not link.usable():
             return
         self.world.trace(f"controller {self.id} reports {progress.lacks_bytes} B to the drone")
@@ -880,7 +789,7 @@ class SimController:
         False to wait for the log, or when the mission failed."""
         protocol = self.protocol
         while self.abandoned:
-            if self.failure is not None or self.rejoining:
+            if self.failure is not None or self.core.rejoining:
                 return False
             given_up, code = self.abandoned[0]
             if protocol.state is State.REPLAY:
@@ -902,13 +811,13 @@ class SimController:
                     return False
             elif protocol.state is State.ACTIVE and protocol.granted_epoch != protocol.epoch:
                 return False  # node.py _wait_granted: the drone may retain its answer
-            elif protocol.state is State.ACTIVE and protocol.reqnr + 1 < self.retained_through:
+            elif protocol.state is State.ACTIVE and protocol.reqnr + 1 < self.core.retained_through:
                 # node.py: the drone retains the answer a lost master's program acted
                 # on (it sent a later request); that is the entry.
                 reqnr = protocol.reqnr + 1
                 if self._retained_pending(reqnr):
                     return False  # _wait_retained: its batch is coming
-                kept = self.retained.pop(reqnr)
+                kept = self.core.retained.pop(reqnr)
                 self._adopt(reqnr)
                 try:
                     entry = from_retained(kept, given_up.method, given_up.request)
@@ -931,7 +840,7 @@ class SimController:
                     return False
             elif protocol.state is State.ACTIVE:
                 self.abandoned.popleft()
-                self.retained.pop(protocol.reqnr + 1, None)
+                self.core.retained.pop(protocol.reqnr + 1, None)
                 entry = _given_up(protocol.reqnr + 1, given_up.method, given_up.request, code)
                 effects = protocol.on_reply(entry)
                 self._seen(entry)
@@ -1008,9 +917,9 @@ class SimController:
     def _retained_pending(self, reqnr: int) -> bool:
         """node.py _wait_retained's condition: the reply for ``reqnr`` is to come, or
         a batch is (a request past them waits until those we hold were compared)."""
-        if reqnr <= self.retained_through:
-            return reqnr not in self.retained
-        return self.retained_came < self.retained_due
+        if reqnr <= self.core.retained_through:
+            return reqnr not in self.core.retained
+        return self.core.retained_came < self.core.retained_due
 
     def _answer_active(self, inv: Invocation) -> None:
         """The rest of node.py _invoke: from the retained replies, the Clock or the drone."""
@@ -1018,7 +927,7 @@ class SimController:
         if self._retained_pending(inv.reqnr):
             inv.step = Step.WAIT_RETAINED  # node.py _wait_retained: its batch is coming
             return
-        kept = self.retained.pop(inv.reqnr, None)
+        kept = self.core.retained.pop(inv.reqnr, None)
         if kept is not None:
             self._adopt(inv.reqnr)
             try:
@@ -1112,21 +1021,11 @@ class SimController:
             return
         refusal = refusal_from(error)
         if refusal is not None:
-            verdict = self.protocol.judge_refusal(inv.sent_epoch, refusal.master, refusal.epoch)
-            if verdict is Refusal.DISAGREE:
-                self._fail(
-                    f"controller {self.id}: the drone refused request {inv.reqnr} "
-                    f"({inv.call.method}): {error.message}"
+            self._apply(
+                self.core.request_refused(
+                    inv.sent_epoch, refusal, inv.reqnr, inv.call.method, error.message
                 )
-            elif verdict is Refusal.HANDED_OVER and (
-                refusal.taken_over or self.protocol.log_given_up(refusal.takeover_epoch)
-            ):
-                self._fenced(refusal.master, refusal.fencing_epoch)
-            elif verdict is Refusal.HANDED_OVER:
-                self.on_handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
-            elif verdict is Refusal.REGRANTED:  # node.py: connect again to learn the epoch
-                self._close_drone()
-                self._open_drone()
+            )
             self._invoked(inv, None)
             return
         waited = self.world.loop.now - inv.started
@@ -1187,9 +1086,9 @@ class SimController:
             if (
                 self._ours_to_log(inv.reqnr)
                 and p.granted_epoch == p.epoch
-                and inv.reqnr >= self.retained_through
+                and inv.reqnr >= self.core.retained_through
             ):
-                self.retained.pop(inv.reqnr, None)
+                self.core.retained.pop(inv.reqnr, None)
                 entry = _given_up(inv.reqnr, call.method, call.request, code)
                 effects = self.protocol.on_reply(entry)
                 self._seen(entry)

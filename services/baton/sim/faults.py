@@ -244,7 +244,7 @@ def survivable(world: World, victim: int) -> bool:
     if not needed:
         return True
     for c in world.live_controllers():
-        if c.id == victim or c.rejoining:
+        if c.id == victim or c.core.rejoining:
             continue
         if needed <= _held_requests(c):
             return True

@@ -15,12 +15,12 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+from baton.controller.core import ControllerCore, CoreEffect
 from baton.controller.protocol import ConnectDrone, ControllerProtocol, Effect, Refusal, State
 from baton.drone import sequencer
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import ReplyCache
 from baton.rpc.errors import StatusError
-from baton.sim.controller import SimController
 from baton.sim.drone import Request, SimDrone
 from baton.sim.network import RingLink
 from baton.v1 import ring_pb2
@@ -186,12 +186,14 @@ def _no_fencing() -> list[tuple[Any, str, Any]]:
     """Issue 10: no fencing: a master whose role was taken over takes the takeover notice
     (or refusal) for a cooperative handover: it sends its unflushed log to the taker and
     stays a replica with everything it held, instead of ``on_fenced`` and a rejoin with
-    nothing (patched in SimController._fenced, the mirror of ControllerNode._fenced)."""
+    nothing (``ControllerCore.fenced``, the core of node.py and the simulation)."""
 
-    def fenced(self: SimController, new_master: int, epoch: int) -> None:
-        self.on_handover_notice(new_master, 0, epoch)
+    def fenced(self: ControllerCore, new_master: int, epoch: int) -> list[CoreEffect]:
+        if self.protocol.state is not State.ACTIVE:
+            return []
+        return self.handover_notice(new_master, 0, epoch)
 
-    return [(SimController, "_fenced", fenced)]
+    return [(ControllerCore, "fenced", fenced)]
 
 
 LOSE_MASTER = {"lose_master": True}

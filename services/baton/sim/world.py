@@ -14,11 +14,13 @@ from __future__ import annotations
 import hashlib
 import itertools
 import random
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import grpc
 
-from baton.controller.protocol import ControllerProtocol, Effect, SendLog, State
+from baton.controller.core import ControllerCore, CoreEffect
+from baton.controller.protocol import SendLog, State
 from baton.drone.dedupe import DEFAULT_WINDOW
 from baton.drone.sequencer import ScriptedHandover
 from baton.sim.controller import SimController
@@ -265,7 +267,7 @@ class World:
         """Controllers that are running now, by id."""
         return [c for _, c in sorted(self.controllers.items()) if c.alive]
 
-    def restart_controller(self, cid: int, fresh: ControllerProtocol | None = None) -> None:
+    def restart_controller(self, cid: int, fresh: ControllerCore | None = None) -> None:
         """Restarts controller ``cid`` with nothing: a fresh protocol, history and program.
 
         A rejoin's protocol is the earlier self's ``fresh_self``."""
@@ -273,7 +275,7 @@ class World:
             self.trace(f"controller {cid} restarts")
             controller = self._new_controller(cid)
             if fresh is not None:
-                controller.protocol = fresh
+                controller.core = fresh
             controller.start()
             self.drone.standby_opened(cid)  # its standby stream: a TakeOver owed to it
             if self.programs_started:
@@ -293,7 +295,7 @@ class World:
         # a restarted master's whole log, then the handover messages that exist nowhere
         # else.
         upto = controller.protocol.kept_history()
-        fresh_protocol = controller.protocol.fresh_self()
+        fresh_core = controller.core.fresh_self()
         history = controller.history
         kept = [history.get(n) for n in history.above(0) if n <= upto]
         kept += controller.protocol.kept_for_rejoin()
@@ -302,11 +304,8 @@ class World:
             if not upto
             else f"rejoins as a replica with log messages 1-{upto}"
         )
-        self.restart_controller(controller.id, fresh_protocol)
+        self.restart_controller(controller.id, fresh_core)
         fresh = self.controllers[controller.id]
-        if controller.replaced is not None:
-            fresh.replaced = controller.replaced
-            fresh.protocol.refuse_replaced(controller.replaced)
         for message in kept:
             fresh.on_log(message)
 
@@ -359,7 +358,7 @@ class World:
             delay = self.frng.choice((0.0, self.frng.uniform(0.0, 0.02)))
             self.loop.after(delay, self.lose, victim, f"{strike} master right after a handover")
 
-    def after_apply(self, controller: SimController, effects: list[Effect]) -> None:
+    def after_apply(self, controller: SimController, effects: Sequence[CoreEffect]) -> None:
         """A controller carried out effects: the lose-master fault may strike mid-flush."""
         if "on flush" not in self.failover or controller.id != self.drone.seq.master:
             return

@@ -1,0 +1,582 @@
+"""The controller's decisions about its drone session, as a pure object: events in,
+effects out.
+
+``ControllerProtocol`` is Algorithm 1 and the ring; this core holds it and adds
+what a controller decides about the drone's word: a grant (Connected), the
+replies the drone retains for a taker, a TakeOver on the standby stream, a
+refused Connect, a handover notice, being fenced by a takeover. No asyncio, no
+gRPC, no clock: the controller runtime (``node.py``) and the simulation's
+controller (``baton.sim.controller``) both feed it events and carry out the
+effects it returns, in order, so the simulation runs the decisions that ship.
+
+The rules (docs/design.md, "Takeover", "Epochs" and "Restarts"):
+
+- Granted while ACTIVE in a mastership a newer takeover replaced: the role
+  went on without our log; we rejoin with nothing before taking the grant.
+- A grant is a takeover's when the drone says so or its epoch is the one a
+  TakeOver told us: the master must then hold every request up to the
+  drone's watermark before it goes ACTIVE, and answers its program from the
+  replies the drone retains above what it holds.
+- Retained replies that show we hold a request in a framing a later takeover
+  replaced make us rejoin, refusing that framing from then on.
+- Fenced (a takeover of our mastership, told by a refusal, a notice, or the
+  ring while the drone is out of reach): stop acting as master, drop the
+  unflushed log, rejoin as a replica with nothing. Once: a rejoin under way
+  is not started again.
+- A handover notice of a switch before our mastership (a takeover made us
+  master since) is stale: nothing is handed over, nothing is sent.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from baton.config import GAP_REPAIR_MAX_S
+from baton.controller.protocol import (
+    ControllerProtocol,
+    DisconnectDrone,
+    Effect,
+    ProtocolError,
+    Refusal,
+    ReplacedFraming,
+    State,
+    ring_route,
+)
+from baton.v1 import drone_pb2, ring_pb2
+
+
+@dataclass(frozen=True)
+class DroneRefusal:
+    """Where the drone stands when it refuses a request or a Connect: its trailing metadata."""
+
+    master: int
+    epoch: int
+    after_reqnr: int
+    # The refused controller's mastership was taken over (``baton-takeover``).
+    taken_over: bool = False
+    # The epoch the drone's newest takeover granted (``baton-takeover-epoch``; 0: none).
+    takeover_epoch: int = 0
+
+    @property
+    def fencing_epoch(self) -> int:
+        """The epoch of the takeover that fences the refused controller (``on_fenced``):
+        the newest takeover's, not the drone's epoch now. A handover message of a
+        mastership granted after that takeover is a role the drone gave since, which
+        the rejoining controller's fresh self must keep
+        (``ControllerProtocol.kept_for_rejoin``)."""
+        return self.takeover_epoch or self.epoch
+
+
+@dataclass(frozen=True)
+class Reconnect:
+    """Effect: close the drone session (if any) and open a new one, to hear a new epoch."""
+
+
+@dataclass(frozen=True)
+class Rejoin:
+    """Effect: rejoin as a replica with nothing (``ControllerNode.reset``), as a task of its
+    own: it stops the mission program, whose call may be what led here."""
+
+
+@dataclass(frozen=True)
+class SendCatchUp:
+    """Effect: send ``target`` straight what it may lack of our history (cut-through)."""
+
+    target: int
+
+
+@dataclass(frozen=True)
+class Record:
+    """Effect (bookkeeping): a role this controller took in a handover, for its status."""
+
+    role: ring_pb2.HandoverRole.ValueType
+    other: int
+    lognr: int
+    reqnr: int
+    log_bytes: int
+    epoch: int = 0
+    drone_after_reqnr: int = 0
+    holds_reqnr: int = 0
+
+
+@dataclass(frozen=True)
+class Note:
+    """Effect: something a person may want to read (the runtime's log, the simulation's
+    trace); ``level`` is ``info``, ``warning`` or ``error``."""
+
+    level: str
+    text: str
+    fields: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RepairGap:
+    """Effect: make our predecessors connect again (every incoming ring stream dropped),
+    so that they hear our hello and re-send what is above what we hold."""
+
+
+@dataclass(frozen=True)
+class RouteTo:
+    """Effect: send the ring's messages to ``successor`` from now on, skipping ``skipped``
+    (the links follow: the new successor's stream carries the history)."""
+
+    successor: int
+    skipped: list[int]
+    previous: int  # the successor before
+    natural: int  # the successor in ring order
+
+
+@dataclass(frozen=True)
+class Preparing:
+    """Effect: a prepared handover to ``target`` began (``ControllerCore.prepare``): count
+    the acknowledgements of the stream to it from now, and call ``preparation_over``
+    at ``until`` (the drone's timeout and a grace)."""
+
+    target: int
+    epoch: int
+    until: float
+
+
+@dataclass(frozen=True)
+class Fail:
+    """Effect: the mission stops here with ``text`` (the controller cannot go on)."""
+
+    text: str
+
+
+CoreEffect = (
+    Effect
+    | Reconnect
+    | Rejoin
+    | SendCatchUp
+    | Record
+    | Note
+    | Fail
+    | RepairGap
+    | RouteTo
+    | Preparing
+)
+
+# A master stops a prepared handover this long after the drone's timeout for it, if it
+# heard nothing (the drone forces the handover at its timeout: the notice is owed).
+PREPARE_GRACE_S = 2.0
+
+
+class ControllerCore:
+    """A controller's protocol and what it knows of its drone session."""
+
+    def __init__(self, protocol: ControllerProtocol, cut_through: bool = False) -> None:
+        self.protocol = protocol
+        # The ring forwards frames as they come: a handover's new master is sent
+        # what it may lack straight away (``handover_notice``).
+        self.cut_through = cut_through
+        # The epoch of the takeover the drone told us of (TakeOver), and its watermark.
+        self.takeover_epoch = 0
+        self.takeover_watermark = 0
+        # The replies the drone retains for us above what we hold (after Connected),
+        # by reqnr, up to ``retained_through``; ``retained_due`` is the last the drone
+        # said it sends, ``retained_came`` the last that came.
+        self.retained: dict[int, drone_pb2.RetainedReply] = {}
+        self.retained_through = 0
+        self.retained_due = 0
+        self.retained_came = 0
+        # A takeover's first call that is not answered from the retained replies
+        # says which retained replies it adopted (InvokeRequest.adopted_from_reqnr).
+        self.first_new_call_due = False
+        # A framing of ours the drone replaced: refused by every fresh self.
+        self.replaced: ReplacedFraming | None = None
+        # A rejoin is under way (``Rejoin`` given, the runtime not done with it).
+        self.rejoining = False
+        # The gap in what we received being repaired (``gap_due``): the missing log
+        # number, since when it is missing, when to act next.
+        self.gap: tuple[int, float, float] | None = None
+        # The successors the ring routes around now (``route_due``).
+        self.routed_around: list[int] = []
+        # The prepared handover under way (``prepare``): the drone's bound for its
+        # target (0: no words between requests), and when we stop on our own.
+        self.prepare_bound = 0
+        self.prepare_until = 0.0
+
+    def fresh_self(self) -> ControllerCore:
+        """The core of this controller rejoining with nothing (``ControllerProtocol.
+        fresh_self``), refusing the framing the drone replaced, if any."""
+        fresh = ControllerCore(self.protocol.fresh_self(), self.cut_through)
+        fresh.replaced = self.replaced
+        if self.replaced is not None:
+            fresh.protocol.refuse_replaced(self.replaced)
+        return fresh
+
+    # -- the drone's word ------------------------------------------------------------
+
+    def granted(
+        self,
+        epoch: int,
+        retained_through: int = 0,
+        takeover: bool = False,
+        watermark_reqnr: int = 0,
+        takeover_epoch: int = 0,
+    ) -> list[CoreEffect]:
+        """The drone's Connected event: master in ``epoch``. The retained replies above
+        what we hold follow, up to ``retained_through`` (``retained_batch``); a takeover's
+        grant must hold every request up to the watermark before it goes ACTIVE.
+        Raises ProtocolError as ``ControllerProtocol.on_granted`` does."""
+        p = self.protocol
+        if p.log_given_up(takeover_epoch):
+            note = Note(
+                "warning",
+                "granted while ACTIVE in a mastership a takeover replaced: rejoining with "
+                "nothing before taking the role",
+                {"epoch": epoch, "our_epoch": p.epoch, "takeover_epoch": takeover_epoch},
+            )
+            return [note, *self.fenced(self.protocol.id, takeover_epoch)]
+        held = p.held_reqnr
+        self.retained = {}
+        self.retained_through = retained_through if retained_through > held else 0
+        self.retained_due, self.retained_came = retained_through, 0
+        was_active = p.state is State.ACTIVE
+        takeover = takeover or epoch == self.takeover_epoch
+        self.first_new_call_due = takeover
+        watermark = max(self.takeover_watermark, watermark_reqnr)
+        effects: list[CoreEffect] = list(p.on_granted(epoch, takeover, watermark))
+        if not was_active:
+            fields = {"epoch": epoch, "takeover": takeover, "caught_up": p.caught_up}
+            effects.insert(0, Note("info", "the drone says this controller is master", fields))
+        return effects
+
+    def retained_batch(self, replies: Sequence[drone_pb2.RetainedReply]) -> list[CoreEffect]:
+        """A batch of the replies the drone retains for us, in order (after Connected)."""
+        held = self.protocol.held_reqnr
+        if replies:
+            self.retained_came = max(self.retained_came, replies[-1].reqnr)
+        replaced = self.protocol.replaced_framing(replies)
+        if replaced is not None:
+            self.replaced = replaced
+            note = Note(
+                "warning",
+                "we hold a request in a framing a later takeover replaced (the drone keeps "
+                "another outcome, brought in a newer epoch); rejoining as a replica that "
+                "refuses that framing from its log message on",
+                {
+                    "reqnr": replaced.reqnr,
+                    "lognr": replaced.lognr,
+                    "framed_in": replaced.ours_epoch,
+                    "drone_epoch": replaced.epoch,
+                    "epoch": self.protocol.epoch,
+                },
+            )
+            return [note, *self.rejoin()]
+        self.retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
+        return []
+
+    def take_over(
+        self, old_master: int, epoch: int, after_reqnr: int, watermark_reqnr: int
+    ) -> list[CoreEffect]:
+        """The drone made us master by takeover (the standby stream's TakeOver): connect
+        again to learn the epoch; the replies we lack follow the Connected."""
+        p = self.protocol
+        self.takeover_epoch = epoch
+        self.takeover_watermark = watermark_reqnr
+        fields = {
+            "old_master": old_master,
+            "epoch": epoch,
+            "drone_after_reqnr": after_reqnr,
+            "watermark_reqnr": watermark_reqnr,
+            "holds_reqnr": p.held_reqnr,
+        }
+        return [
+            Record(
+                ring_pb2.HANDOVER_ROLE_TAKER,
+                old_master,
+                p.lognr,
+                p.reqnr,
+                p.log.size,
+                epoch=epoch,
+                drone_after_reqnr=after_reqnr,
+                holds_reqnr=p.held_reqnr,
+            ),
+            Note("warning", "taking over from a lost master", fields),
+            Reconnect(),
+        ]
+
+    def fenced(self, new_master: int, epoch: int) -> list[CoreEffect]:
+        """Our mastership was taken over (in ``epoch``): stop acting as master, then
+        rejoin as a replica with nothing; nothing if a rejoin is under way."""
+        if self.rejoining:
+            return []
+        p = self.protocol
+        note = Note(
+            "warning",
+            "fenced: the drone gave our mastership to another controller by takeover; "
+            "dropping what we hold beyond the ring and rejoining as a replica",
+            {"new_master": new_master, "epoch": epoch, "unflushed_entries": len(p.log)},
+        )
+        record = Record(ring_pb2.HANDOVER_ROLE_FENCED, new_master, p.lognr, p.reqnr, p.log.size)
+        return [record, note, *p.on_fenced(epoch), *self.rejoin()]
+
+    def rejoin(self) -> list[CoreEffect]:
+        """A rejoin with nothing, unless one is under way."""
+        if self.rejoining:
+            return []
+        self.rejoining = True
+        return [Rejoin()]
+
+    def connect_refused(self, refusal: DroneRefusal) -> list[CoreEffect]:
+        """Connect refused: another controller is master, and no notice is owed to us."""
+        p = self.protocol
+        if refusal.taken_over or p.log_given_up(refusal.takeover_epoch):
+            return self.fenced(refusal.master, refusal.fencing_epoch)
+        if p.state is not State.ACTIVE:
+            fields = {"master": refusal.master, "epoch": refusal.epoch}
+            return [Note("info", "not the master", fields), DisconnectDrone()]
+        if p.connect_refusal_is_stale(refusal.epoch):
+            # Asked before the drone made us master, answered after: ask again.
+            note = Note("info", "stale Connect refusal; connecting again", {"epoch": refusal.epoch})
+            return [note, Reconnect()]
+        # Made master by a handover message, but the drone moved on meanwhile: the
+        # log goes to the master it names.
+        return self.handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+
+    def request_refused(
+        self, sent_epoch: int, refusal: DroneRefusal, reqnr: int, method: str, detail: str
+    ) -> list[CoreEffect]:
+        """The drone refused request ``reqnr``, sent in ``sent_epoch``, naming a master
+        (``ControllerProtocol.judge_refusal``): the log and the drone disagree (the
+        mission stops), another master now (fenced, or a handover notice), ourselves
+        again in a newer epoch (connect again to learn it), or a stale refusal."""
+        p = self.protocol
+        verdict = p.judge_refusal(sent_epoch, refusal.master, refusal.epoch)
+        if verdict is Refusal.DISAGREE:
+            # The drone knows us as master, in this epoch, yet refused the request
+            # number: the log and the drone disagree.
+            return [
+                Fail(f"controller {p.id}: the drone refused request {reqnr} ({method}): {detail}")
+            ]
+        if verdict is Refusal.HANDED_OVER:
+            if refusal.taken_over or p.log_given_up(refusal.takeover_epoch):
+                return self.fenced(refusal.master, refusal.fencing_epoch)
+            return self.handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+        if verdict is Refusal.REGRANTED:
+            fields = {"sent_epoch": sent_epoch, "drone_epoch": refusal.epoch}
+            return [
+                Note("info", "master again in a newer epoch; connecting again", fields),
+                Reconnect(),
+            ]
+        fields = {"reqnr": reqnr, "sent_epoch": sent_epoch, "drone_epoch": refusal.epoch}
+        return [Note("info", "stale request refused by the drone", fields)]
+
+    def stream_notice(
+        self, new_master: int, after_reqnr: int, epoch: int, takeover: bool
+    ) -> list[CoreEffect]:
+        """A handover notice on the Connect stream (the drone owes at most one, the latest)."""
+        if takeover:
+            return self.fenced(new_master, epoch)
+        if self.protocol.state is State.ACTIVE:
+            return self.handover_notice(new_master, after_reqnr, epoch)
+        return [DisconnectDrone()]  # a notice for a mastership we no longer hold
+
+    def handover_notice(self, new_master: int, after_reqnr: int, epoch: int) -> list[CoreEffect]:
+        """The drone chose another master (Algorithm 1, lines 24-29): the unflushed log
+        goes to it with the handover flag, and with cut-through what it may lack of our
+        history first. Nothing for a stale notice, or when not ACTIVE."""
+        p = self.protocol
+        if p.state is not State.ACTIVE:
+            return []
+        log_bytes = p.log.size
+        try:
+            effects = p.on_handover_notice(new_master, epoch)
+        except ProtocolError as exc:
+            return [Note("error", "bad handover notice", {"error": str(exc)})]
+        if p.state is State.ACTIVE:
+            # A notice of a switch before our mastership (a takeover made us master
+            # since): stale, nothing handed over.
+            fields = {"new_master": new_master, "notice_epoch": epoch, "epoch": p.epoch}
+            return [Note("warning", "stale handover notice ignored", fields)]
+        record = Record(
+            ring_pb2.HANDOVER_ROLE_OLD,
+            new_master,
+            p.lognr,
+            p.reqnr,
+            log_bytes,
+            epoch=epoch,
+            drone_after_reqnr=after_reqnr,
+        )
+        fields = {
+            "new_master": new_master,
+            "drone_after_reqnr": after_reqnr,
+            "log_bytes": log_bytes,
+        }
+        catch_up: list[CoreEffect] = [SendCatchUp(new_master)] if self.cut_through else []
+        return [record, Note("info", "handing over", fields), *catch_up, *effects]
+
+    def went_on_without_us(
+        self, message: ring_pb2.LogMessage | None, drone_reachable: bool
+    ) -> list[CoreEffect]:
+        """``message`` (if any) shows our mastership went on without our log: fenced, if we
+        are cut off from the drone (neither stream up). With either stream up the drone
+        tells us itself; cut off, it cannot, and a master stranded ACTIVE would follow
+        the ring no more."""
+        if message is None or drone_reachable:
+            return []
+        fields = {
+            "mlognr": message.lognr,
+            "origin": message.origin,
+            "epoch": message.epoch,
+            "our_epoch": self.protocol.epoch,
+        }
+        note = Note(
+            "warning",
+            "the ring carries a newer mastership than ours while the drone is out of reach: "
+            "taken over",
+            fields,
+        )
+        return [note, *self.fenced(message.origin, message.epoch)]
+
+    # -- a prepared handover (docs/design.md, "Prepared handover") ----------------------
+
+    def prepare(
+        self, target: int, epoch: int, timeout_s: float, bound_bytes: int, now: float
+    ) -> list[CoreEffect]:
+        """The drone plans a handover to ``target``: it is caught up straight from us while
+        the mission goes on; the drone moves the master once it lacks at most
+        ``bound_bytes`` (``progress`` on every Invoke, ``report_due`` between them). If
+        we hear nothing by the drone's timeout and a grace (its notice is owed on our
+        stream), we stop flushing every entry (``preparation_over``). Nothing if we are
+        not ACTIVE in ``epoch`` (the drone's word came late)."""
+        p = self.protocol
+        try:
+            effects = p.on_prepare(target, epoch)
+        except ProtocolError as exc:
+            return [Note("error", "bad prepare-handover event", {"error": str(exc)})]
+        if p.preparing_for != target:
+            return []
+        self.prepare_bound = bound_bytes
+        until = self.prepare_until = now + timeout_s + PREPARE_GRACE_S
+        note = Note("info", "preparing a handover", {"target": target, "timeout_s": timeout_s})
+        return [note, Preparing(target, epoch, until), SendCatchUp(target), *effects]
+
+    def preparation_over(self, target: int, epoch: int, until: float) -> list[CoreEffect]:
+        """The time of the preparation for ``target`` in ``epoch`` is up, unless a newer
+        preparation (the drone replaced it, perhaps by one with the same target) gave
+        more (a later ``prepare_until``)."""
+        p = self.protocol
+        if until < self.prepare_until:
+            return []
+        if p.preparing_for != target or p.epoch != epoch:
+            return []
+        p.end_preparation()
+        note = Note(
+            "warning",
+            "a prepared handover was not carried out in its time; flushing as usual",
+            {"target": target},
+        )
+        return [note]
+
+    def progress(
+        self, unacked_bytes: int | None, behind_s: float = 0.0, acked: int = 0
+    ) -> drone_pb2.PreparationProgress | None:
+        """How far a prepared handover's target is behind us (None: not preparing):
+        ``unacked_bytes`` on the stream to it (None: no stream to it), how long its
+        oldest unacknowledged message has waited, and its acknowledgements since the
+        preparation began."""
+        p = self.protocol
+        target = p.preparing_for
+        if target is None:
+            return None
+        lacks = (unacked_bytes or 0) + p.log.size
+        if unacked_bytes is None:
+            return drone_pb2.PreparationProgress(
+                target=target, lacks_bytes=lacks, after_reqnr=p.reqnr
+            )
+        return drone_pb2.PreparationProgress(
+            target=target, lacks_bytes=lacks, after_reqnr=p.reqnr, behind_s=behind_s, acked=acked
+        )
+
+    def report_due(self, peer_id: int, progress: drone_pb2.PreparationProgress | None) -> bool:
+        """Whether an acknowledgement from ``peer_id`` is worth a word to the drone between
+        requests (``ReportPreparation``): it is the target, and lacks at most the bound."""
+        if peer_id != self.protocol.preparing_for or not self.prepare_bound:
+            return False
+        return progress is not None and progress.lacks_bytes <= self.prepare_bound
+
+    # -- timers ------------------------------------------------------------------------
+
+    def gap_due(
+        self, now: float, repair_s: float, frames_seen_at: float | None = None
+    ) -> list[CoreEffect]:
+        """A log message missing for ``repair_s`` while later ones are queued (or our
+        handover message did not come back): our predecessors re-send from our hello
+        (``RepairGap``); again, twice as late each time (at most ``GAP_REPAIR_MAX_S``),
+        if the gap stays. A taker whose gap stayed after a repair gives it up and goes
+        ACTIVE (``ControllerProtocol.give_up_gap``): the message died with the lost
+        master. Not a gap while its frames are coming (``frames_seen_at`` within
+        ``repair_s``: a large message over a slow link); re-opening the streams would
+        only make it start again. Asked at any time; acts only when due (``gap``)."""
+        p = self.protocol
+        missing = p.missing_lognr
+        if missing is None:
+            self.gap = None
+            return []
+        if self.gap is None or self.gap[0] != missing:
+            self.gap = (missing, now, now + repair_s)
+            return []
+        if frames_seen_at is not None and now - frames_seen_at < repair_s:
+            self.gap = (missing, now, now + repair_s)
+            return []
+        lognr, since, due = self.gap
+        if now < due:
+            return []
+        if now - since >= 2 * repair_s:  # a repair was tried, and the gap stayed
+            given_up = p.give_up_gap()
+            if given_up:
+                self.gap = None
+                note = Note(
+                    "warning",
+                    "taker gives up log messages queued beyond a gap the repair did not "
+                    "fill; framing those replies from the drone's",
+                    {"missing_lognr": lognr, "missing_for_s": round(now - since, 3)},
+                )
+                return [note, *given_up]
+        self.gap = (lognr, since, now + min(2 * (now - since), GAP_REPAIR_MAX_S))
+        note = Note(
+            "warning",
+            "log message missing while later ones are queued (or our handover message did "
+            "not come back); predecessors re-send from our hello",
+            {
+                "missing_lognr": lognr,
+                "missing_for_s": round(now - since, 3),
+                "queued": len(p.log_queue),
+            },
+        )
+        return [note, RepairGap()]
+
+    def route_due(
+        self,
+        down_for: Callable[[int], float | None],
+        detection_s: float,
+        drone_connected: bool,
+    ) -> list[CoreEffect]:
+        """Where the ring's messages go: the first controller after us whose stream has
+        not been down for ``detection_s`` (``ring_route``; ``down_for`` says how long
+        each has been, None if never tried); back to the natural successor as soon as
+        its stream is up again. Not around a successor while we are an ACTIVE master
+        cut off from the drone (``ControllerProtocol.may_route_around``): asked again."""
+        p = self.protocol
+        if detection_s <= 0 or len(p.ring) < 3:
+            return []  # with two controllers the only other one is the master or nobody
+        chosen, skipped = ring_route(p.ring, p.id, down_for, detection_s, p.successor)
+        if chosen == p.successor:
+            return []
+        if not p.may_route_around(skipped, self.routed_around, drone_connected):
+            return []
+        natural = p.ring[(p.ring.index(p.id) + 1) % len(p.ring)]
+        if chosen == natural:
+            note = Note("info", "ring successor back; ring restored", {"successor": chosen})
+        else:
+            fields = {"unreachable": skipped, "successor": chosen, "detection_s": detection_s}
+            note = Note("warning", "ring successor unreachable; routing around it", fields)
+        previous = p.successor
+        p.route_to(chosen)
+        self.routed_around = skipped
+        return [note, RouteTo(chosen, skipped, previous, natural)]

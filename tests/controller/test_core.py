@@ -1,0 +1,174 @@
+"""The controller's pure core for its drone session: the drone's word in, effects out
+(no sockets, no tasks): the decisions node.py and the simulation both carry out."""
+
+from __future__ import annotations
+
+from helpers.protocol import started
+
+from baton.controller.core import (
+    ControllerCore,
+    DroneRefusal,
+    Fail,
+    Note,
+    Reconnect,
+    Record,
+    Rejoin,
+    RepairGap,
+    RouteTo,
+    SendCatchUp,
+)
+from baton.controller.protocol import DisconnectDrone, SendLog, State
+from baton.digest import request_digest
+from baton.v1 import drone_pb2, ring_pb2
+
+GET = "/baton.v1.Mobility/GetPosition"
+
+
+def master(cut_through: bool = True) -> ControllerCore:
+    """Controller 0 of ring 0 -> 1 -> 2, ACTIVE master in epoch 1."""
+    core = ControllerCore(started(0, [0, 1, 2], 0), cut_through)
+    assert core.protocol.state is State.ACTIVE
+    return core
+
+
+def kinds(effects: list) -> list[type]:
+    return [type(effect) for effect in effects]
+
+
+def test_a_handover_notice_sends_the_log_and_with_cut_through_the_catch_up_first() -> None:
+    core = master()
+    effects = core.handover_notice(2, 0, 2)
+    assert kinds(effects) == [Record, Note, SendCatchUp, DisconnectDrone, SendLog]
+    send = effects[-1]
+    assert isinstance(send, SendLog) and send.dest == 2 and send.message.handover
+    assert core.protocol.state is State.PASSIVE
+    assert kinds(master(cut_through=False).handover_notice(2, 0, 2)) == [
+        Record,
+        Note,
+        DisconnectDrone,
+        SendLog,
+    ]
+
+
+def test_a_stale_handover_notice_hands_nothing_over_and_sends_no_catch_up() -> None:
+    """A notice of a switch before our mastership (epoch 1 while we are master in 3): the
+    runtime ignored it while the simulation's copy still sent the catch-up."""
+    core = master()
+    core.protocol.on_granted(3)
+    effects = core.handover_notice(2, 0, 1)
+    note = effects[0]
+    assert (
+        kinds(effects) == [Note]
+        and isinstance(note, Note)
+        and note.text == "stale handover notice ignored"
+    )
+    assert core.protocol.state is State.ACTIVE
+
+
+def test_fenced_drops_the_log_and_rejoins_once() -> None:
+    core = master()
+    effects = core.fenced(1, 2)
+    assert kinds(effects) == [Record, Note, DisconnectDrone, Rejoin]
+    role = effects[0]
+    assert isinstance(role, Record) and role.role == ring_pb2.HANDOVER_ROLE_FENCED
+    assert core.protocol.fenced and core.rejoining
+    assert core.fenced(1, 2) == []  # a rejoin is under way
+    assert core.rejoin() == []
+
+
+def test_a_connect_refusal_decides_by_what_the_drone_says() -> None:
+    taken = master().connect_refused(DroneRefusal(1, 2, 5, taken_over=True))
+    assert Rejoin in kinds(taken)
+    replica = ControllerCore(started(1, [0, 1, 2], 0))
+    assert kinds(replica.connect_refused(DroneRefusal(0, 1, 5))) == [Note, DisconnectDrone]
+    stale = master()
+    stale.protocol.on_granted(3)
+    assert kinds(stale.connect_refused(DroneRefusal(2, 2, 5))) == [Note, Reconnect]
+    # Made master, but the drone moved on meanwhile: the log goes to the master it names.
+    moved = master().connect_refused(DroneRefusal(2, 2, 5))
+    assert SendLog in kinds(moved)
+
+
+def test_a_refused_request_is_judged_by_epoch() -> None:
+    core = master()
+    disagree = core.request_refused(1, DroneRefusal(0, 1, 3), 4, GET, "wrong reqnr")
+    fail = disagree[0]
+    assert kinds(disagree) == [Fail] and isinstance(fail, Fail) and "refused request 4" in fail.text
+    regranted = master().request_refused(1, DroneRefusal(0, 2, 3), 4, GET, "")
+    assert kinds(regranted) == [Note, Reconnect]
+    handed = master().request_refused(1, DroneRefusal(2, 2, 3), 4, GET, "")
+    assert SendLog in kinds(handed)
+    fenced = master().request_refused(1, DroneRefusal(2, 2, 3, taken_over=True), 4, GET, "")
+    assert Rejoin in kinds(fenced)
+
+
+def test_a_takeover_reconnects_and_its_grant_counts_as_a_takeover() -> None:
+    core = ControllerCore(started(1, [0, 1, 2], 0))
+    effects = core.take_over(0, 2, 7, watermark_reqnr=0)
+    assert kinds(effects) == [Record, Note, Reconnect]
+    # The grant does not say takeover: its epoch is the TakeOver's.
+    core.granted(2, retained_through=0, takeover=False, watermark_reqnr=0)
+    assert core.first_new_call_due and core.protocol.state is State.ACTIVE
+
+
+def test_retained_replies_above_what_we_hold_are_kept_for_the_program() -> None:
+    core = ControllerCore(started(1, [0, 1, 2], 0))
+    core.take_over(0, 2, 2, watermark_reqnr=0)
+    core.granted(2, retained_through=2, takeover=True)
+    digest = request_digest(GET, b"")
+    replies = [
+        drone_pb2.RetainedReply(reqnr=n, method=GET, request_digest=digest, reply=b"r", epoch=1)
+        for n in (1, 2)
+    ]
+    assert core.retained_batch(replies) == []
+    assert sorted(core.retained) == [1, 2] and core.retained_came == 2
+
+
+def test_a_fresh_self_carries_what_the_rejoin_must_not_forget() -> None:
+    core = master()
+    core.fenced(1, 3)
+    fresh = core.fresh_self()
+    assert fresh.protocol.state is State.PASSIVE and not fresh.rejoining
+    # Our handover message of a mastership the takeover ended gives the fresh self no
+    # role (it would be fenced at every Connect).
+    stale = ring_pb2.LogMessage(lognr=1, origin=0, sender=2, handover=True, epoch=2)
+    fresh.protocol.start()
+    fresh.protocol.on_sync(0)
+    fresh.protocol.on_log(stale)
+    assert fresh.protocol.state is State.PASSIVE and not fresh.protocol.master
+
+
+def test_a_gap_is_repaired_when_due_and_again_twice_as_late() -> None:
+    """Message 2 missing while 3 is queued: noted at once, repaired at the repair time,
+    then again twice as late each time; not while its frames are still coming."""
+    core = ControllerCore(started(1, [0, 1, 2], 0))
+    core.protocol.on_log(ring_pb2.LogMessage(lognr=1, origin=0, sender=0))
+    core.protocol.on_log(ring_pb2.LogMessage(lognr=3, origin=0, sender=0))
+    assert core.protocol.missing_lognr == 2
+    assert core.gap_due(10.0, 1.0) == [] and core.gap == (2, 10.0, 11.0)
+    assert core.gap_due(10.9, 1.0) == []
+    assert kinds(core.gap_due(11.0, 1.0)) == [Note, RepairGap]
+    assert core.gap == (2, 10.0, 13.0)  # twice as late
+    assert core.gap_due(12.0, 1.0, frames_seen_at=11.5) == []  # its frames are coming
+    assert core.gap == (2, 12.0, 13.0)
+    core.protocol.on_log(ring_pb2.LogMessage(lognr=2, origin=0, sender=0))
+    assert core.gap_due(20.0, 1.0) == [] and core.gap is None
+
+
+def test_the_ring_routes_around_a_successor_down_for_the_detection_time() -> None:
+    core = ControllerCore(started(1, [0, 1, 2], 0))
+    down = {2: 0.5, 0: 0.0}
+    assert core.route_due(down.get, 1.0, drone_connected=False) == []
+    down[2] = 1.0
+    effects = core.route_due(down.get, 1.0, drone_connected=False)
+    assert kinds(effects) == [Note, RouteTo]
+    route = effects[1]
+    assert isinstance(route, RouteTo) and (route.successor, route.skipped) == (0, [2])
+    assert (route.previous, route.natural) == (2, 2)
+    assert core.protocol.successor == 0 and core.routed_around == [2]
+    down[2] = 0.0  # back: the natural successor again
+    back = core.route_due(down.get, 1.0, drone_connected=False)
+    assert kinds(back) == [Note, RouteTo] and core.protocol.successor == 2
+    # Two controllers: nowhere to route around to.
+    two = ControllerCore(started(1, [0, 1], 0))
+    assert two.route_due(lambda pid: 99.0, 1.0, drone_connected=False) == []
