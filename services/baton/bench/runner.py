@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from baton.bench.model import Call
-from baton.controller.node import CLOCK_SLEEP
+from baton.controller.core import CLOCK_SLEEP
 from baton.testbed.local import LocalTestbed, Snapshot, TestbedPlan
 from baton.v1 import ring_pb2
 

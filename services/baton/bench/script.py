@@ -19,7 +19,7 @@ from pathlib import Path
 
 from baton.bench.model import Call, LogPoint, PredictedRing, master_log_sizes
 from baton.bench.model import entry_size_of as entry_bytes
-from baton.controller.node import CLOCK_SLEEP
+from baton.controller.core import CLOCK_SLEEP
 from baton.drone.camera import DEFAULT_RESOLUTION, MIN_SIDE, ppm_header
 from baton.missions import bench as bench_mission
 from baton.rpc.methods import path

@@ -29,22 +29,90 @@ The rules (docs/design.md, "Takeover", "Epochs" and "Restarts"):
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
+import grpc
 
 from baton.config import GAP_REPAIR_MAX_S
 from baton.controller.protocol import (
     ControllerProtocol,
     DisconnectDrone,
     Effect,
+    NonDeterminismError,
     ProtocolError,
     Refusal,
     ReplacedFraming,
     State,
     ring_route,
 )
+from baton.digest import request_digest
+from baton.rpc.errors import StatusError
+from baton.rpc.methods import path, service_prefix
 from baton.v1 import drone_pb2, ring_pb2
+
+CLOCK_SERVICE = service_prefix("Clock")
+CLOCK_SLEEP = path("Clock.Sleep")
+CLOCK_NOW = path("Clock.Now")
+
+
+def given_up_entry(
+    reqnr: int, method: str, request: bytes, code: grpc.StatusCode
+) -> ring_pb2.LogEntry:
+    """The log entry of a call the mission program gave up on: the status it saw."""
+    return ring_pb2.LogEntry(
+        reqnr=reqnr,
+        method=method,
+        request_digest=request_digest(method, request),
+        request=request,
+        status_code=code.value[0],
+        status_message=f"{method}: the mission program gave up on the call ({code.name}); "
+        "the drone may have executed it",
+        given_up=True,
+    )
+
+
+def to_retained(entry: ring_pb2.LogEntry) -> drone_pb2.RetainedReply:
+    """A call answered without the drone (a Clock call, a call given up) as the drone
+    keeps it: sent along with the next Invoke."""
+    return drone_pb2.RetainedReply(
+        reqnr=entry.reqnr,
+        method=entry.method,
+        request_digest=entry.request_digest,
+        reply=entry.reply,
+        status_code=entry.status_code,
+        status_message=entry.status_message,
+        given_up=entry.given_up,
+    )
+
+
+def from_retained(kept: drone_pb2.RetainedReply, method: str, request: bytes) -> ring_pb2.LogEntry:
+    """A taker's log entry for its program's call, from the reply the drone retained.
+
+    FAILED_PRECONDITION if the program asks another call than the one the
+    drone served (the digests differ): the mission program diverged, as the
+    drone would have refused it had the request been sent again.
+    """
+    digest = request_digest(method, request)
+    if kept.request_digest != digest:
+        raise StatusError(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            f"request {kept.reqnr} was served to the lost master as {kept.method} (digest "
+            f"{kept.request_digest.hex()[:16]}) but this mission program asks {method} "
+            f"(digest {digest.hex()[:16]}): the mission program diverged",
+        )
+    return ring_pb2.LogEntry(
+        reqnr=kept.reqnr,
+        method=method,
+        reply=kept.reply,
+        request_digest=digest,
+        request=request,
+        status_code=kept.status_code,
+        status_message=kept.status_message,
+        given_up=kept.given_up,
+    )
 
 
 @dataclass(frozen=True)
@@ -144,6 +212,74 @@ class Fail:
     """Effect: the mission stops here with ``text`` (the controller cannot go on)."""
 
     text: str
+    code: grpc.StatusCode = grpc.StatusCode.INTERNAL
+
+
+@dataclass(frozen=True)
+class Seen:
+    """Effect: the protocol consumed ``entry``: it is the program's answer, on every
+    replica (counted into the reply chain where it is consumed, not where the program
+    gets it, so a call cancelled after that counts as on every replica)."""
+
+    entry: ring_pb2.LogEntry
+
+
+@dataclass(frozen=True)
+class ReplayAgain:
+    """Effect: the program gave up (``code``) on a call whose entry is not that give-up
+    (the master's program, or a lost master's, got ``entry``): it has acted on nothing
+    the mission did not, and starts again from the log (the rejoin comes with it); its
+    call fails ABORTED."""
+
+    entry: ring_pb2.LogEntry
+    method: str
+    code: grpc.StatusCode
+
+
+@dataclass(frozen=True)
+class FirstNewCall:
+    """Effect (bookkeeping): a takeover's first call not answered from the retained
+    replies, the end of the takeover (``baton bench failover`` reads it)."""
+
+    reqnr: int
+    method: str
+    epoch: int
+
+
+# What ``ControllerCore.answer`` says of the program's call.
+@dataclass(frozen=True)
+class Answer:
+    """The call's answer is ``entry`` (replayed, or logged now)."""
+
+    entry: ring_pb2.LogEntry
+
+
+@dataclass(frozen=True)
+class Hold:
+    """The call waits for a change: the log (not ACTIVE: ``reqnr`` 0), or, ACTIVE with
+    request ``reqnr`` next, the drone's grant or the replies it retains."""
+
+    reqnr: int = 0
+
+
+@dataclass(frozen=True)
+class AskClock:
+    """Request ``reqnr`` is the controller's own Clock call: answer it, then ``logged``."""
+
+    reqnr: int
+    digest: bytes
+
+
+@dataclass(frozen=True)
+class AskDrone:
+    """Request ``reqnr`` goes to the drone: invoke it, then ``logged`` (or ``answer``
+    again if the drone's answer changed the state)."""
+
+    reqnr: int
+    digest: bytes
+
+
+CallStep = Answer | Hold | AskClock | AskDrone
 
 
 CoreEffect = (
@@ -157,6 +293,9 @@ CoreEffect = (
     | RepairGap
     | RouteTo
     | Preparing
+    | Seen
+    | ReplayAgain
+    | FirstNewCall
 )
 
 # A master stops a prepared handover this long after the drone's timeout for it, if it
@@ -198,6 +337,16 @@ class ControllerCore:
         # target (0: no words between requests), and when we stop on our own.
         self.prepare_bound = 0
         self.prepare_until = 0.0
+        # The program's calls given up while this controller waited, in order: each is
+        # settled by the next call (``settle``) with the entry the log gives it.
+        self.abandoned: deque[tuple[str, bytes, grpc.StatusCode]] = deque()
+        # The epoch, and the first request answered from the retained replies in it:
+        # InvokeRequest.adopted_from_reqnr (the drone counts them as brought in it).
+        self.adopted = (0, 0)
+        # The Clock calls (and give-ups) consumed since the last drone call: sent
+        # along with the next Invoke, so the drone keeps them for a taker.
+        self.answered_here: list[ring_pb2.LogEntry] = []
+        self.answered_from_retained = 0
 
     def fresh_self(self) -> ControllerCore:
         """The core of this controller rejoining with nothing (``ControllerProtocol.
@@ -499,6 +648,196 @@ class ControllerCore:
         if peer_id != self.protocol.preparing_for or not self.prepare_bound:
             return False
         return progress is not None and progress.lacks_bytes <= self.prepare_bound
+
+    # -- the mission program's calls ---------------------------------------------------
+
+    def consume(self, entry: ring_pb2.LogEntry) -> Seen:
+        """The protocol consumed ``entry`` as the program's answer: a Clock answer or a
+        give-up goes along with the next drone call, a drone call clears them."""
+        if entry.method.startswith(CLOCK_SERVICE) or entry.given_up:
+            self.answered_here.append(entry)
+        else:
+            self.answered_here.clear()
+        return Seen(entry)
+
+    def ours_to_log(self, reqnr: int) -> bool:
+        """Still ACTIVE, with ``reqnr`` the next request to log."""
+        p = self.protocol
+        return p.state is State.ACTIVE and p.reqnr + 1 == reqnr
+
+    def retained_pending(self, reqnr: int) -> bool:
+        """Whether the drone's retained reply for ``reqnr`` is still to come, or (past
+        them) a batch is: the replies at or below what we hold come first and are
+        compared with our framing (``retained_batch``)."""
+        if reqnr <= self.retained_through:
+            return reqnr not in self.retained
+        return self.retained_came < self.retained_due
+
+    def adopted_from(self) -> int:
+        """InvokeRequest.adopted_from_reqnr: the first request of this mastership answered
+        from the retained replies (0: none)."""
+        return self.adopted[1] if self.adopted[0] == self.protocol.epoch else 0
+
+    def _adopt(self, reqnr: int) -> None:
+        if self.adopted[0] != self.protocol.epoch:
+            self.adopted = (self.protocol.epoch, reqnr)
+
+    def _log(self, entry: ring_pb2.LogEntry) -> list[CoreEffect]:
+        """The master logs ``entry`` as the program's answer."""
+        effects = self.protocol.on_reply(entry)
+        return [self.consume(entry), *effects]
+
+    def _from_retained(
+        self, kept: drone_pb2.RetainedReply, method: str, request: bytes
+    ) -> ring_pb2.LogEntry | Fail:
+        try:
+            return from_retained(kept, method, request)
+        except StatusError as err:
+            return Fail(f"controller {self.protocol.id}: {err.message}", err.code)
+
+    def _replay(
+        self, method: str, request: bytes
+    ) -> tuple[ring_pb2.LogEntry | None, list[CoreEffect]]:
+        """The log's entry for the call (REPLAY); None and a Fail if it is another call."""
+        try:
+            entry, effects = self.protocol.replay(method, request)
+        except NonDeterminismError as exc:
+            text = f"controller {self.protocol.id}: {exc}"
+            return None, [Fail(text, grpc.StatusCode.FAILED_PRECONDITION)]
+        return entry, [self.consume(entry), *effects]
+
+    def _again(
+        self, entry: ring_pb2.LogEntry, method: str, code: grpc.StatusCode
+    ) -> list[CoreEffect]:
+        """A give-up the entry contradicts: the program starts again (``ReplayAgain``)."""
+        return [*self.protocol.restart_program(), ReplayAgain(entry, method, code), *self.rejoin()]
+
+    def settle(self) -> tuple[bool, list[CoreEffect]]:
+        """Gives the log's entry to each call the program gave up on while this controller
+        waited, in order: True once none is left; False to wait for a change (or the
+        mission stopped: a ``Fail``, or the program starts again: ``ReplayAgain``).
+
+        The program's next call must not take the entry of one it gave up on. The
+        entry comes from the log (REPLAY), or, master meanwhile: after the drone's
+        grant of the mastership, the reply the drone retains for it if a lost
+        master's program acted on it (the drone served it a later request), else
+        our give-up, logged. An entry that is not that give-up makes the program
+        start again.
+        """
+        p, effects = self.protocol, []
+        while self.abandoned:
+            method, request, code = self.abandoned[0]
+            if p.state is State.REPLAY:
+                entry, replayed = self._replay(method, request)
+                effects += replayed
+                if entry is None:
+                    return False, effects
+                self.abandoned.popleft()
+                if entry.status_code != code.value[0]:
+                    return False, [*effects, *self._again(entry, method, code)]
+            elif p.state is State.ACTIVE and p.granted_epoch != p.epoch:
+                return False, effects  # the drone's grant may bring a retained answer
+            elif p.state is State.ACTIVE and p.reqnr + 1 < self.retained_through:
+                # The drone retains the answer to this request, and a lost master's
+                # program acted on it: that is the entry, not our program's give-up.
+                # The last one retained no program acted on: our give-up is logged.
+                reqnr = p.reqnr + 1
+                if self.retained_pending(reqnr):
+                    return False, effects
+                entry_or_fail = self._from_retained(self.retained.pop(reqnr), method, request)
+                if isinstance(entry_or_fail, Fail):
+                    return False, [*effects, entry_or_fail]
+                self._adopt(reqnr)
+                self.abandoned.popleft()
+                effects += self._log(entry_or_fail)
+                if entry_or_fail.status_code != code.value[0]:
+                    return False, [*effects, *self._again(entry_or_fail, method, code)]
+            elif p.state is State.ACTIVE:
+                self.abandoned.popleft()
+                reqnr = p.reqnr + 1
+                self.retained.pop(reqnr, None)
+                effects += self._log(given_up_entry(reqnr, method, request, code))
+            else:
+                return False, effects
+        return True, effects
+
+    def answer(self, method: str, request: bytes) -> tuple[CallStep, list[CoreEffect]]:
+        """What to do with the program's call now (Algorithm 1 with the drone's word):
+        REPLAY answers from the log; PASSIVE holds it; ACTIVE answers it from the
+        replies the drone retains for a taker, or asks the Clock or the drone.
+        An ACTIVE master's Clock call waits for the drone's grant of the mastership
+        (the drone may retain a lost master's Clock answer for it), and any call
+        for the retained replies still to come."""
+        p = self.protocol
+        if p.state is State.REPLAY:
+            entry, replayed = self._replay(method, request)
+            return (Answer(entry) if entry is not None else Hold()), replayed
+        if p.state is not State.ACTIVE:
+            return Hold(), []
+        reqnr = p.reqnr + 1
+        if method.startswith(CLOCK_SERVICE) and p.granted_epoch != p.epoch:
+            return Hold(reqnr), []
+        if self.retained_pending(reqnr):
+            return Hold(reqnr), []
+        effects: list[CoreEffect] = []
+        if self.first_new_call_due and reqnr > self.retained_through:
+            self.first_new_call_due = False
+            effects.append(FirstNewCall(reqnr, method, p.epoch))
+        kept = self.retained.pop(reqnr, None)
+        if kept is not None:
+            entry_or_fail = self._from_retained(kept, method, request)
+            if isinstance(entry_or_fail, Fail):
+                return Hold(reqnr), [*effects, entry_or_fail]
+            self._adopt(reqnr)
+            self.answered_from_retained += 1
+            fields = {"reqnr": reqnr, "method": method}
+            effects.append(Note("info", "answered from the retained tail", fields))
+            return Answer(entry_or_fail), [*effects, *self._log(entry_or_fail)]
+        digest = request_digest(method, request)
+        if method in (CLOCK_NOW, CLOCK_SLEEP):
+            return AskClock(reqnr, digest), effects
+        return AskDrone(reqnr, digest), effects
+
+    def logged(
+        self, reqnr: int, entry: ring_pb2.LogEntry
+    ) -> tuple[ring_pb2.LogEntry | None, list[CoreEffect]]:
+        """The answer to request ``reqnr`` came (the Clock's or the drone's): logged if
+        still ours to log; None if a handover notice overtook it (footnote 2: the new
+        master re-sends the request, the drone answers it from its cache, and the
+        program still sees this reply)."""
+        if not self.ours_to_log(reqnr):
+            return None, [
+                Note("info", "reply discarded after handover", {"discarded_reqnr": reqnr})
+            ]
+        return entry, self._log(entry)
+
+    def gave_up(
+        self, reqnr: int, method: str, request: bytes, code: grpc.StatusCode
+    ) -> list[CoreEffect]:
+        """The program gave up (``code``) on its call: on request ``reqnr`` of an ACTIVE
+        master at it (0: while held). The master logs the give-up as the call's outcome
+        (it is what the program saw, so every replica's program sees it, and a new
+        master answers it from the log) if it is still its to log, the drone granted
+        the mastership, and no retained reply answers it. Otherwise the call is
+        settled like one given up while waiting (``settle``): a handover overtook it,
+        or the drone retains (or may: no grant yet) the answer a lost master's program
+        had."""
+        p = self.protocol
+        if (
+            reqnr
+            and self.ours_to_log(reqnr)
+            and p.granted_epoch == p.epoch
+            and reqnr >= self.retained_through
+        ):
+            self.retained.pop(reqnr, None)
+            note = Note(
+                "warning",
+                "the mission program gave up on a call",
+                {"reqnr": reqnr, "code": code.name},
+            )
+            return [note, *self._log(given_up_entry(reqnr, method, request, code))]
+        self.abandoned.append((method, request, code))
+        return []
 
     # -- timers ------------------------------------------------------------------------
 

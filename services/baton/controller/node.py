@@ -16,7 +16,6 @@ import asyncio
 import contextlib
 import hashlib
 import time
-from collections import deque
 from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -26,17 +25,26 @@ import grpc
 from baton.config import BatonConfig, gap_repair_s
 from baton.controller.clock import MissionClock
 from baton.controller.core import (
+    CLOCK_NOW,
+    CLOCK_SERVICE,
+    Answer,
+    AskClock,
     ControllerCore,
     CoreEffect,
     Fail,
+    FirstNewCall,
+    Hold,
     Note,
     Preparing,
     Reconnect,
     Record,
     Rejoin,
     RepairGap,
+    ReplayAgain,
     RouteTo,
+    Seen,
     SendCatchUp,
+    to_retained,
 )
 from baton.controller.drone_link import (
     STOP_GRACE_S,
@@ -53,27 +61,21 @@ from baton.controller.protocol import (
     DisconnectDrone,
     Diverged,
     Fenced,
-    NonDeterminismError,
     ProtocolError,
     SendLog,
     State,
     TookOver,
     Unqueued,
-    request_digest,
 )
 from baton.controller.ring import PeerLink, Relay
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
-from baton.rpc.methods import path, service_prefix
 from baton.rpc.tls import Tls
 from baton.stalls import StallWatch
 from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, ring_pb2
 
-CLOCK_SERVICE = service_prefix("Clock")
-CLOCK_SLEEP = path("Clock.Sleep")
-CLOCK_NOW = path("Clock.Now")
 # A call that comes while the previous one is pending waits this long for it to end
 # before it is refused as concurrent: a program that gave up on a call (its deadline,
 # a cancelled stream) makes its next one at once, and that one can reach the
@@ -84,61 +86,6 @@ BUSY_GRACE_S = 2.0
 # safe, after a pause that doubles up to a cap, for the configuration's
 # drone_retry_limit; the wait is logged at once and again every 5 s (stalls.py).
 RETRY_FIRST_S, RETRY_MAX_S = 0.2, 2.0
-
-
-def _given_up(reqnr: int, method: str, request: bytes, code: grpc.StatusCode) -> ring_pb2.LogEntry:
-    """The log entry of a call the mission program gave up on: the status it saw."""
-    return ring_pb2.LogEntry(
-        reqnr=reqnr,
-        method=method,
-        request_digest=request_digest(method, request),
-        request=request,
-        status_code=code.value[0],
-        status_message=f"{method}: the mission program gave up on the call ({code.name}); "
-        "the drone may have executed it",
-        given_up=True,
-    )
-
-
-def to_retained(entry: ring_pb2.LogEntry) -> drone_pb2.RetainedReply:
-    """A call answered without the drone (a Clock call, a call given up) as the drone
-    keeps it: sent along with the next Invoke."""
-    return drone_pb2.RetainedReply(
-        reqnr=entry.reqnr,
-        method=entry.method,
-        request_digest=entry.request_digest,
-        reply=entry.reply,
-        status_code=entry.status_code,
-        status_message=entry.status_message,
-        given_up=entry.given_up,
-    )
-
-
-def from_retained(kept: drone_pb2.RetainedReply, method: str, request: bytes) -> ring_pb2.LogEntry:
-    """A taker's log entry for its program's call, from the reply the drone retained.
-
-    FAILED_PRECONDITION if the program asks another call than the one the
-    drone served (the digests differ): the mission program diverged, as the
-    drone would have refused it had the request been sent again.
-    """
-    digest = request_digest(method, request)
-    if kept.request_digest != digest:
-        raise StatusError(
-            grpc.StatusCode.FAILED_PRECONDITION,
-            f"request {kept.reqnr} was served to the lost master as {kept.method} (digest "
-            f"{kept.request_digest.hex()[:16]}) but this mission program asks {method} "
-            f"(digest {digest.hex()[:16]}): the mission program diverged",
-        )
-    return ring_pb2.LogEntry(
-        reqnr=kept.reqnr,
-        method=method,
-        reply=kept.reply,
-        request_digest=digest,
-        request=request,
-        status_code=kept.status_code,
-        status_message=kept.status_message,
-        given_up=kept.given_up,
-    )
 
 
 @dataclass
@@ -230,8 +177,6 @@ class ControllerNode:
         self._busy: str | None = None
         self._idle = asyncio.Event()  # set while no call is pending (``_busy`` None)
         self._idle.set()
-        # Calls the program gave up on while this controller waited for the log, in order.
-        self._abandoned: deque[tuple[str, bytes, grpc.StatusCode]] = deque()
         self._settler: asyncio.Task[None] | None = None  # for those left when the program ended
         self.mission: ring_pb2.MissionState.ValueType = ring_pb2.MISSION_STATE_NONE
         self.mission_error = ""
@@ -254,13 +199,6 @@ class ControllerNode:
         )
         # A channel to the drone connected in advance, for the next session.
         self._warm_channel = WarmChannel(config.drone_address_for(cid), tls)
-        # The epoch, and the first request number answered from the retained replies
-        # in it (``_adopt``): InvokeRequest.adopted_from_reqnr.
-        self._adopted = (0, 0)
-        # The Clock calls consumed since the last drone call: sent along with
-        # the next Invoke, so the drone keeps them for a taker.
-        self._answered_here: list[ring_pb2.LogEntry] = []
-        self.answered_from_retained = 0
         self._router: asyncio.Task[None] | None = None
         # What the node starts and does not await (rejoins, closing a replaced drone
         # session, the session's events), held until each ends.
@@ -275,6 +213,11 @@ class ControllerNode:
         self.on_rejoin: Callable[[], Coroutine[Any, Any, None]] | None = None
         # Set by the app: ends every incoming ring stream (RingReceiver.drop_streams).
         self.on_gap: Callable[[], None] | None = None
+
+    @property
+    def answered_from_retained(self) -> int:
+        """Calls a taker's program was answered from the drone's retained replies."""
+        return self.core.answered_from_retained
 
     @property
     def routed_around(self) -> list[int]:
@@ -438,15 +381,12 @@ class ControllerNode:
         if self._settler is not None:
             self._settler.cancel()
             self._settler = None
-        self._abandoned.clear()
         self.mission, self.mission_error = ring_pb2.MISSION_STATE_NONE, ""
         self._failure = None
         self._drone_wait, self._in_flight, self._busy = "", None, None
         self._idle.set()
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
-        self._adopted = (0, 0)
-        self._answered_here = []
         self._open_links()
         await self._apply(self.protocol.start())
         for message in kept:
@@ -750,7 +690,19 @@ class ControllerNode:
             elif isinstance(effect, Note):
                 getattr(self.log, effect.level)(effect.text, **effect.fields)
             elif isinstance(effect, Fail):
-                self._fail(StatusError(grpc.StatusCode.INTERNAL, effect.text))
+                self._fail(StatusError(effect.code, effect.text))
+            elif isinstance(effect, Seen):
+                self._seen(effect.entry)
+            elif isinstance(effect, FirstNewCall):
+                takers = [h for h in self.handovers if h.role == ring_pb2.HANDOVER_ROLE_TAKER]
+                if takers:
+                    takers[-1].first_new_reqnr, takers[-1].first_new_at = effect.reqnr, time.time()
+                self.log.info(
+                    "first new call after the takeover",
+                    reqnr=effect.reqnr,
+                    method=effect.method,
+                    epoch=effect.epoch,
+                )
             elif isinstance(effect, RepairGap):
                 if self.on_gap is not None:
                     self.on_gap()
@@ -971,7 +923,7 @@ class ControllerNode:
         effects = self.protocol.on_mission_done()
         await self._apply(effects)
         self.log.info("mission program ended", failed=failed, flushed=bool(effects))
-        if self._abandoned and self._settler is None:
+        if self.core.abandoned and self._settler is None:
             # Its last call was given up while this replica waited: no next
             # call will settle it, so the entry is consumed here when it comes,
             # else it would hold REPLAY for ever (simulation finding F8).
@@ -1030,7 +982,7 @@ class ControllerNode:
                 await self._settle_abandoned()
             except asyncio.CancelledError:
                 if incarnation == self.incarnation:
-                    self._abandoned.append((method, request, gave_up()))
+                    self.core.gave_up(0, method, request, gave_up())
                 raise
             return await self._answer(method, request, gave_up, incarnation)
         finally:
@@ -1039,73 +991,22 @@ class ControllerNode:
                 self._idle.set()
 
     async def _settle_abandoned(self) -> None:
-        """Gives the log's entry to a call the program gave up on while this controller waited.
-
-        The program's next call must not take the entry of the one it gave
-        up on. The entry is consumed as it comes: from the log when it is
-        there (and the master's program must have given up on it too, else
-        the deadline made the mission non-deterministic), or, if this
-        controller has become master meanwhile, logged as given up. Not
-        before the drone's Connected event of the mastership, and not if the
-        drone retains a reply for the request that a lost master's program
-        acted on (it was served a later request): that reply is the entry, as
-        the log's would be, and a program that saw a give-up starts again.
-        """
-        while self._abandoned:
+        """Gives the log's entry to each call the program gave up on while this controller
+        waited (``ControllerCore.settle``), waiting for the log or the drone's word."""
+        while True:
             if self._failure is not None:
                 raise self._failure
-            method, request, code = self._abandoned[0]
-            state = self.protocol.state
-            if state is State.REPLAY:
-                entry = await self._replay(method, request)
-                self._abandoned.popleft()
-                if entry.status_code != code.value[0]:
-                    await self._apply(self.protocol.restart_program())
-                    self._replay_again(entry, method, code)
-            elif state is State.ACTIVE and not await self._wait_granted():
-                continue
-            elif state is State.ACTIVE and self.protocol.reqnr + 1 < self.core.retained_through:
-                # The drone retains the mission's answer to this request, and a
-                # lost master's program acted on it (the drone served it a later
-                # request): that is the entry, not our program's give-up
-                # (--lose-master seeds 2456, 2707). The last one retained no
-                # program acted on, and our give-up of it is logged (below).
-                reqnr = self.protocol.reqnr + 1
-                if not await self._wait_retained(reqnr):
-                    continue
-                entry = self._from_retained(self.core.retained.pop(reqnr), method, request)
-                self._adopt(reqnr)
-                self._abandoned.popleft()
-                effects = self.protocol.on_reply(entry)
-                self._seen(entry)
-                await self._apply(effects)
-                if entry.status_code != code.value[0]:
-                    await self._apply(self.protocol.restart_program())
-                    self._replay_again(entry, method, code)
-            elif state is State.ACTIVE:
-                self._abandoned.popleft()
-                reqnr = self.protocol.reqnr + 1
-                self.core.retained.pop(reqnr, None)
-                entry = _given_up(reqnr, method, request, code)
-                effects = self.protocol.on_reply(entry)
-                self._seen(entry)
-                await self._apply(effects)
-            else:
-                await self._changed.wait()
+            changed = self._changed
+            done, effects = self.core.settle()
+            await self._apply_call(effects)
+            if done:
+                return
+            await changed.wait()
 
     def _seen(self, entry: ring_pb2.LogEntry) -> None:
-        """Counts the entry the program is answered with into the reply chain.
-
-        Called where the protocol consumes the entry (logged or replayed), not
-        where the program gets it, so a call cancelled after that is counted
-        as on every replica.
-        """
+        """Counts the entry the protocol consumed (``Seen``) into the reply chain."""
         if not entry.method.startswith(CLOCK_SERVICE):
             self._drone_calls += 1
-        if entry.method.startswith(CLOCK_SERVICE) or entry.given_up:
-            self._answered_here.append(entry)  # sent along with the next drone call
-        else:
-            self._answered_here.clear()
         self._reply_chain.update(
             entry.reqnr.to_bytes(8, "big")
             + entry.status_code.to_bytes(4, "big", signed=True)
@@ -1128,37 +1029,70 @@ class ControllerNode:
         gave_up: Callable[[], grpc.StatusCode],
         incarnation: int,
     ) -> ring_pb2.LogEntry:
+        """The program's call answered (``ControllerCore.answer``): from the log, the
+        retained replies, the Clock or the drone, waiting for a change as it says."""
         while True:
             self._check_incarnation(incarnation)
             if self._failure is not None:
                 raise self._failure
-            state = self.protocol.state
-            if state is State.REPLAY:
-                return await self._replay(method, request)
-            if state is State.ACTIVE:
-                entry = await self._invoke(method, request, gave_up, incarnation)
-                if entry is not None:
-                    return entry
-                continue
+            changed = self._changed
+            step, effects = self.core.answer(method, request)
+            await self._apply_call(effects)
+            if self._failure is not None:
+                raise self._failure
             try:
-                await self._changed.wait()
+                if isinstance(step, Answer):
+                    return step.entry
+                if isinstance(step, Hold):
+                    await changed.wait()
+                    continue
+                if isinstance(step, AskClock):
+                    reply = await self._clock_call(method, request)
+                    entry: ring_pb2.LogEntry | None = ring_pb2.LogEntry(
+                        reqnr=step.reqnr,
+                        method=method,
+                        reply=reply,
+                        request_digest=step.digest,
+                        request=request,
+                    )
+                else:
+                    entry = await self._invoke_drone(step.reqnr, method, request, step.digest)
             except asyncio.CancelledError:
                 if incarnation == self.incarnation:
-                    self._abandoned.append((method, request, gave_up()))
+                    reqnr = 0 if isinstance(step, Answer) else step.reqnr
+                    given_up = self.core.gave_up(reqnr, method, request, gave_up())
+                    await asyncio.shield(self._apply_call(given_up))
                 raise
+            if entry is None:
+                continue  # the state changed: asked again
+            logged, effects = self.core.logged(step.reqnr, entry)
+            await self._apply_call(effects)
+            if logged is not None:
+                return logged
 
-    def _replay_again(self, entry: ring_pb2.LogEntry, method: str, code: grpc.StatusCode) -> None:
-        """The program gave up on a call that the master's program did not: it starts again.
+    async def _apply_call(self, effects: Sequence[CoreEffect]) -> None:
+        """``_apply`` for the call path: a mission stopped (``Fail``) or a program that
+        starts again (``ReplayAgain``) ends the call with its status. Nothing to apply
+        wakes nobody: a call that waits must not wake itself."""
+        if effects:
+            await self._apply(effects)
+        again = next((e for e in effects if isinstance(e, ReplayAgain)), None)
+        if again is not None:
+            self._replay_again(again)
+        if self._failure is not None:
+            raise self._failure
 
-        A replica's program gives up on its own clock while it waits for the
-        log (a deadline, a cancellation); a takeover or a large flush limit
-        makes that wait long, and the master's program may have had its reply
-        (or the lost master's give-up never reached the drone, and the taker's
-        program got the reply). The program has run on an answer the mission
-        never had, but a replica's program has acted on nothing: it is
-        restarted and replays the log from the start (the rejoin of a fenced
-        master), as Temporal retries a workflow task from its history.
+    def _replay_again(self, again: ReplayAgain) -> None:
+        """The program gave up on a call that the master's program did not: it starts again
+        from the log (``ReplayAgain``; the rejoin comes with it), its call ABORTED.
+
+        A replica's program gives up on its own clock while it waits for the log (a
+        deadline, a cancellation); the master's program may have had its reply. The
+        program has run on an answer the mission never had, but a replica's program
+        has acted on nothing: it is restarted and replays the log from the start, as
+        Temporal retries a workflow task from its history.
         """
+        entry, method, code = again.entry, again.method, again.code
         master_saw = "a reply" if entry.status_code == 0 else f"status {entry.status_code}"
         self.program_restarts += 1
         self.log.warning(
@@ -1171,167 +1105,12 @@ class ControllerNode:
             master_saw=master_saw,
             restarts=self.program_restarts,
         )
-        if self.core.rejoin():
-            self._background.spawn(self._rejoin(), name="rejoin")
         raise StatusError(
             grpc.StatusCode.ABORTED,
             f"controller {self.id}: the program gave up on request {entry.reqnr} ({method}, "
             f"{code.name}) but the master's program got {master_saw}: the program starts "
             "again and replays the log",
         )
-
-    async def _replay(self, method: str, request: bytes) -> ring_pb2.LogEntry:
-        try:
-            entry, effects = self.protocol.replay(method, request)
-        except NonDeterminismError as exc:
-            self._fail(
-                StatusError(grpc.StatusCode.FAILED_PRECONDITION, f"controller {self.id}: {exc}")
-            )
-            raise self._failure or StatusError(grpc.StatusCode.INTERNAL, str(exc)) from None
-        self._seen(entry)
-        await self._apply(effects)
-        return entry
-
-    async def _invoke(
-        self,
-        method: str,
-        request: bytes,
-        gave_up: Callable[[], grpc.StatusCode],
-        incarnation: int,
-    ) -> ring_pb2.LogEntry | None:
-        """One call while ACTIVE: to the drone (or the clock), logged. None: state changed."""
-        reqnr = self.protocol.reqnr + 1
-        digest = request_digest(method, request)
-        try:
-            if method.startswith(CLOCK_SERVICE) and not await self._wait_granted():
-                return None
-            if not await self._wait_retained(reqnr):
-                return None
-            if self.core.first_new_call_due and reqnr > self.core.retained_through:
-                self.core.first_new_call_due = False
-                takers = [h for h in self.handovers if h.role == ring_pb2.HANDOVER_ROLE_TAKER]
-                if takers:
-                    takers[-1].first_new_reqnr, takers[-1].first_new_at = reqnr, time.time()
-                self.log.info(
-                    "first new call after the takeover",
-                    reqnr=reqnr,
-                    method=method,
-                    epoch=self.protocol.epoch,
-                )
-            kept = self.core.retained.pop(reqnr, None)
-            if kept is not None:
-                entry = self._from_retained(kept, method, request)
-                self._adopt(reqnr)
-                self.answered_from_retained += 1
-                self.log.info("answered from the retained tail", reqnr=reqnr, method=method)
-            elif method in (CLOCK_NOW, CLOCK_SLEEP):
-                entry = ring_pb2.LogEntry(
-                    reqnr=reqnr,
-                    method=method,
-                    reply=await self._clock_call(method, request),
-                    request_digest=digest,
-                    request=request,
-                )
-            else:
-                entry_or_none = await self._invoke_drone(reqnr, method, request, digest)
-                if entry_or_none is None:
-                    return None
-                entry = entry_or_none
-        except asyncio.CancelledError:
-            if incarnation != self.incarnation:
-                # The program of before a rejoin, stopped: its call is nobody's now (found
-                # with a silent link: queued as abandoned, it failed the new program).
-                raise
-            code = gave_up()
-            given_up = _given_up(reqnr, method, request, code)
-            if (
-                self._ours_to_log(reqnr)
-                and self.protocol.granted_epoch == self.protocol.epoch
-                and reqnr >= self.core.retained_through
-            ):
-                self.core.retained.pop(reqnr, None)
-                self.log.warning(
-                    "the mission program gave up on a call", reqnr=reqnr, code=code.name
-                )
-                effects = self.protocol.on_reply(given_up)
-                self._seen(given_up)
-                await asyncio.shield(self._apply(effects))
-            else:
-                # A handover overtook the call: its entry will come in the new
-                # master's log, and the program's next call must not take it
-                # (simulation finding F5). Or the drone retains, or may retain (its
-                # Connected of this mastership has not come), the answer a lost
-                # master's program had: that answer is the entry. Settled like a
-                # call given up while waiting: if the entry is not the same
-                # give-up, the program starts again.
-                self._abandoned.append((method, request, code))
-            raise
-        if not self._ours_to_log(reqnr):
-            # A handover notice overtook the reply (footnote 2): the reply is not
-            # ours to log. The new master re-sends reqnr and the drone answers
-            # it from its reply cache, so the program still sees this reply.
-            self.log.info("reply discarded after handover", discarded_reqnr=reqnr)
-            return None
-        effects = self.protocol.on_reply(entry)
-        self._seen(entry)
-        await self._apply(effects)
-        return entry
-
-    def _adopt(self, reqnr: int) -> None:
-        """Our program was answered from the drone's retained reply of ``reqnr``: our
-        requests of this mastership say from which one on (the drone counts them as
-        brought in our epoch: ``Sequencer.adopt``)."""
-        if self._adopted[0] != self.protocol.epoch:
-            self._adopted = (self.protocol.epoch, reqnr)
-
-    def _from_retained(
-        self, kept: drone_pb2.RetainedReply, method: str, request: bytes
-    ) -> ring_pb2.LogEntry:
-        """``from_retained``; a call that differs from the retained one stops the mission."""
-        try:
-            return from_retained(kept, method, request)
-        except StatusError as err:
-            self._fail(StatusError(err.code, f"controller {self.id}: {err.message}"))
-            raise self._failure or err from None
-
-    async def _wait_granted(self) -> bool:
-        """Until the drone's Connected event of this mastership; False if we stop being ACTIVE.
-
-        A controller made ACTIVE by a handover message has not heard from the
-        drone yet, and the drone may retain answers for the next request
-        numbers: a lost master's Clock reading that a taker handed on before
-        its program consumed it (``--lose-master`` seeds 789 and 1075). A
-        drone call waits for the session anyway; a Clock call waits here, once
-        per mastership (not while the link is down later: a Clock call would
-        then block on the radio).
-        """
-        while self.protocol.granted_epoch != self.protocol.epoch:
-            if self.protocol.state is not State.ACTIVE:
-                return False
-            await self._changed.wait()
-        return self.protocol.state is State.ACTIVE
-
-    async def _wait_retained(self, reqnr: int) -> bool:
-        """Until the drone's retained reply for ``reqnr`` came, if one is coming (it
-        follows the Connected event in batches); False if we stop being ACTIVE.
-
-        A stream that breaks mid-way is connected again, and its Connected says
-        what is still to come (``on_granted``). A request past them waits for every
-        batch: the replies at or below what we hold came first and were compared
-        with our framing (``on_retained``)."""
-        while (
-            reqnr not in self.core.retained
-            if reqnr <= self.core.retained_through
-            else self.core.retained_came < self.core.retained_due
-        ):
-            if self.protocol.state is not State.ACTIVE:
-                return False
-            await self._changed.wait()
-        return self.protocol.state is State.ACTIVE
-
-    def _ours_to_log(self, reqnr: int) -> bool:
-        """Still ACTIVE, with ``reqnr`` the next request to log."""
-        return self.protocol.state is State.ACTIVE and self.protocol.reqnr + 1 == reqnr
 
     async def _clock_call(self, method: str, request: bytes) -> bytes:
         """Clock calls are answered here and logged like drone replies.
@@ -1379,11 +1158,9 @@ class ControllerNode:
                     request,
                     timeout_s=budget,
                     watermark_reqnr=self.protocol.watermark_reqnr,
-                    master_answers=[to_retained(entry) for entry in self._answered_here],
+                    master_answers=[to_retained(entry) for entry in self.core.answered_here],
                     preparation=self._preparation_progress(),
-                    adopted_from_reqnr=(
-                        self._adopted[1] if self._adopted[0] == self.protocol.epoch else 0
-                    ),
+                    adopted_from_reqnr=self.core.adopted_from(),
                 )
                 return ring_pb2.LogEntry(
                     reqnr=reqnr,

@@ -16,7 +16,8 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 import grpc
 from google.protobuf import message as protobuf_message
 
-from baton.controller.node import CLOCK_SLEEP, ControllerNode
+from baton.controller.core import CLOCK_SLEEP
+from baton.controller.node import ControllerNode
 from baton.controller.ring import RingReceiver
 from baton.rpc.errors import StatusError, abort_with, status_of
 from baton.rpc.methods import DRONE_API_SERVICES, drone_api, service_full_name

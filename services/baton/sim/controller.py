@@ -24,7 +24,6 @@ retry limit, node.py's ``drone_retry_limit``, is far beyond any fault).
 from __future__ import annotations
 
 import enum
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -33,36 +32,33 @@ import grpc
 
 from baton.config import gap_repair_s
 from baton.controller.core import (
+    CLOCK_NOW,
+    Answer,
+    AskClock,
     ControllerCore,
     CoreEffect,
     DroneRefusal,
     Fail,
+    Hold,
     Note,
     Preparing,
     Reconnect,
     Rejoin,
     RepairGap,
+    ReplayAgain,
     RouteTo,
+    Seen,
     SendCatchUp,
-)
-from baton.controller.history import LogHistory
-from baton.controller.node import (
-    CLOCK_NOW,
-    CLOCK_SERVICE,
-    CLOCK_SLEEP,
-    RETRY_FIRST_S,
-    RETRY_MAX_S,
-    _given_up,
-    from_retained,
     to_retained,
 )
+from baton.controller.history import LogHistory
+from baton.controller.node import RETRY_FIRST_S, RETRY_MAX_S
 from baton.controller.protocol import (
     ConnectDrone,
     ControllerProtocol,
     DisconnectDrone,
     Diverged,
     Fenced,
-    NonDeterminismError,
     ProtocolError,
     SendLog,
     State,
@@ -120,7 +116,7 @@ class Step(enum.Enum):
 
     CLOCK = "clock"  # a Sleep
     WAIT_CONNECTED = "wait connected"  # _wait_connected
-    WAIT_RETAINED = "wait retained"  # _wait_retained
+    HOLD = "hold"  # ControllerCore.answer's Hold: the drone's grant or retained replies
     WAIT_READY = "wait ready"  # drone.invoke waiting for the channel (wait_for_ready)
     IN_FLIGHT = "in flight"  # the Invoke is on its way or being executed
     PAUSE = "pause"  # Retry.pause after UNAVAILABLE
@@ -181,7 +177,6 @@ class SimController:
         self.call: MissionCall | None = None
         self.phase = Phase.RUNNING
         self.inv: Invocation | None = None
-        self.abandoned: deque[tuple[MissionCall, grpc.StatusCode]] = deque()
         self.failure: str | None = None
         self.program_failed = False
         # What the protocol consumed (node.py _seen) and what the program saw, in order.
@@ -194,8 +189,6 @@ class SimController:
         self.answered = False
         self._pump_due = False
         # Takeover: node.py's fenced_messages.
-        self.adopted = (0, 0)  # node.py's _adopted: (epoch, first reqnr answered from retained)
-        self.answered_here: list[ring_pb2.LogEntry] = []  # node.py's _answered_here
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
         self.fenced_messages = 0
@@ -292,6 +285,10 @@ class SimController:
                 self.world.trace(f"controller {self.id}: {effect.text} ({fields})")
             elif isinstance(effect, Fail):
                 self._fail(effect.text)
+            elif isinstance(effect, Seen):
+                self._seen(effect.entry)
+            elif isinstance(effect, ReplayAgain):
+                self._replayed_again(effect)
             elif isinstance(effect, RepairGap):
                 self.world.drop_streams_to(self)
             elif isinstance(effect, RouteTo):
@@ -331,18 +328,16 @@ class SimController:
         if not self.alive:
             return
         if self.call is None:
-            if self.done and self.abandoned:  # node.py _settle_after_the_end (F8)
+            if self.done and self.core.abandoned:  # node.py _settle_after_the_end (F8)
                 self._settle()
             return
         inv = self.inv
         if inv is not None:
             if inv.step is Step.WAIT_CONNECTED:
                 self._drone_step(inv)
-            elif inv.step is Step.WAIT_RETAINED:
-                if self.protocol.state is not State.ACTIVE:
-                    self._invoked(inv, None)
-                else:
-                    self._answer_active(inv)
+            elif inv.step is Step.HOLD:
+                self.inv = None
+                self._step()
             return
         if self.phase is Phase.WAITING:
             self._step()
@@ -763,7 +758,6 @@ class SimController:
         call = self.call
         assert call is not None
         self.phase = Phase.RUNNING
-        protocol = self.protocol
         if not self._settle():
             if self.failure is not None:
                 self._stop()
@@ -773,103 +767,54 @@ class SimController:
         if self.failure is not None:  # _answer
             self._stop()
             return
-        if protocol.state is State.REPLAY:
-            replayed = self._replay(call)
-            if replayed is None:
-                self._stop()
-                return
-            self._answered(replayed.status_code, replayed.reply)
-        elif protocol.state is State.ACTIVE:
-            self._invoke(call)
-        else:
+        step, effects = self.core.answer(call.method, call.request)
+        if effects:  # nothing to apply wakes nobody: a call that waits must not wake itself
+            self._apply(effects)
+        if self.failure is not None:
+            self._stop()
+            return
+        if isinstance(step, Answer):
+            self._answered(step.entry.status_code, step.entry.reply)
+            return
+        if isinstance(step, Hold) and not step.reqnr:
             self.phase = Phase.WAITING
+            return
+        inv = Invocation(
+            step.reqnr, call, request_digest(call.method, call.request), self.world.loop.now
+        )
+        self.inv, self.phase = inv, Phase.INVOKING
+        if isinstance(step, Hold):
+            inv.step = Step.HOLD  # the drone's grant, or its retained replies, to come
+        elif isinstance(step, AskClock):
+            self._clock(inv)
+        else:
+            self._drone_step(inv)
 
     def _settle(self) -> bool:
-        """node.py _settle_abandoned: True once every abandoned call has its entry;
-        False to wait for the log, or when the mission failed."""
-        protocol = self.protocol
-        while self.abandoned:
-            if self.failure is not None or self.core.rejoining:
-                return False
-            given_up, code = self.abandoned[0]
-            if protocol.state is State.REPLAY:
-                entry = self._replay(given_up)
-                if entry is None:
-                    return False
-                self.abandoned.popleft()
-                if entry.status_code != code.value[0]:  # node.py _replay_again
-                    self._apply(protocol.restart_program())
-                    self.world.trace(
-                        f"controller {self.id}: the program gave up on request {entry.reqnr} "
-                        f"({code.name}) while this replica waited for the log, but the "
-                        f"master's program got status {entry.status_code}: it starts again"
-                    )
-                    # What it answered before the give-up came from the log and
-                    # must match; from the give-up on it ran on its own answer.
-                    self.accepted_upto = max(self.accepted_upto, entry.reqnr - 1)
-                    self._rejoin()
-                    return False
-            elif protocol.state is State.ACTIVE and protocol.granted_epoch != protocol.epoch:
-                return False  # node.py _wait_granted: the drone may retain its answer
-            elif protocol.state is State.ACTIVE and protocol.reqnr + 1 < self.core.retained_through:
-                # node.py: the drone retains the answer a lost master's program acted
-                # on (it sent a later request); that is the entry.
-                reqnr = protocol.reqnr + 1
-                if self._retained_pending(reqnr):
-                    return False  # _wait_retained: its batch is coming
-                kept = self.core.retained.pop(reqnr)
-                self._adopt(reqnr)
-                try:
-                    entry = from_retained(kept, given_up.method, given_up.request)
-                except StatusError as err:
-                    self._fail(f"controller {self.id}: {err.message}")
-                    return False
-                self.abandoned.popleft()
-                effects = protocol.on_reply(entry)
-                self._seen(entry)
-                self._apply(effects)
-                if entry.status_code != code.value[0]:  # node.py _replay_again
-                    self._apply(protocol.restart_program())
-                    self.world.trace(
-                        f"controller {self.id}: the program gave up on request {reqnr} "
-                        f"({code.name}) that the drone retains with status "
-                        f"{entry.status_code}: it starts again"
-                    )
-                    self.accepted_upto = max(self.accepted_upto, entry.reqnr - 1)
-                    self._rejoin()
-                    return False
-            elif protocol.state is State.ACTIVE:
-                self.abandoned.popleft()
-                self.core.retained.pop(protocol.reqnr + 1, None)
-                entry = _given_up(protocol.reqnr + 1, given_up.method, given_up.request, code)
-                effects = protocol.on_reply(entry)
-                self._seen(entry)
-                self._apply(effects)
-            else:
-                return False
-        return True
-
-    def _replay(self, call: MissionCall) -> ring_pb2.LogEntry | None:
-        """ControllerNode._replay; None when the program diverged (the mission stops)."""
-        try:
-            entry, effects = self.protocol.replay(call.method, call.request)
-        except NonDeterminismError as exc:
-            self._fail(f"controller {self.id}: {exc}")
-            return None
-        except ProtocolError as exc:
-            self._uncaught("_replay", exc)
-            return None
-        self._seen(entry)
-        self._apply(effects)
-        return entry
+        """node.py _settle_abandoned (``ControllerCore.settle``): True once every abandoned
+        call has its entry; False to wait for the log, or when the mission failed or the
+        program starts again."""
+        if self.failure is not None or self.core.rejoining:
+            return False
+        done, effects = self.core.settle()
+        if effects:
+            self._apply(effects)
+        return done and self.failure is None
 
     def _seen(self, entry: ring_pb2.LogEntry) -> None:
         """ControllerNode._seen: the entries the protocol consumed, in order (the reply chain)."""
         self.seen.append((entry.reqnr, entry.status_code, bytes(entry.reply)))
-        if entry.method.startswith(CLOCK_SERVICE) or entry.given_up:
-            self.answered_here.append(entry)
-        else:
-            self.answered_here.clear()
+
+    def _replayed_again(self, again: ReplayAgain) -> None:
+        """node.py _replay_again: the program starts again (the rejoin came with it)."""
+        entry = again.entry
+        self.world.trace(
+            f"controller {self.id}: the program gave up on request {entry.reqnr} "
+            f"({again.code.name}) but the entry has status {entry.status_code}: it starts again"
+        )
+        # What it answered before the give-up came from the log and must match; from
+        # the give-up on it ran on its own answer.
+        self.accepted_upto = max(self.accepted_upto, entry.reqnr - 1)
 
     def _answered(self, status: int, reply: bytes) -> None:
         """The program gets its answer (or gives up) and goes on to its next call."""
@@ -891,60 +836,15 @@ class SimController:
 
     # -- ACTIVE: the Clock and the drone (ControllerNode._invoke) -----------------
 
-    def _ours_to_log(self, reqnr: int) -> bool:
-        """ControllerNode._ours_to_log: still ACTIVE, with ``reqnr`` the next to log."""
-        return self.protocol.state is State.ACTIVE and self.protocol.reqnr + 1 == reqnr
-
-    def _invoke(self, call: MissionCall) -> None:
-        reqnr = self.protocol.reqnr + 1
-        inv = Invocation(
-            reqnr, call, request_digest(call.method, call.request), self.world.loop.now
-        )
-        self.inv, self.phase = inv, Phase.INVOKING
-        protocol = self.protocol
-        if call.method.startswith(CLOCK_SERVICE) and protocol.granted_epoch != protocol.epoch:
-            # node.py _wait_granted: ACTIVE by a handover message, the drone's
-            # Connected not yet here: it may bring a lost master's answer.
-            inv.step = Step.WAIT_CONNECTED
-            return
-        self._answer_active(inv)
-
-    def _adopt(self, reqnr: int) -> None:
-        """node.py _adopt: the program was answered from the drone's retained reply."""
-        if self.adopted[0] != self.protocol.epoch:
-            self.adopted = (self.protocol.epoch, reqnr)
-
-    def _retained_pending(self, reqnr: int) -> bool:
-        """node.py _wait_retained's condition: the reply for ``reqnr`` is to come, or
-        a batch is (a request past them waits until those we hold were compared)."""
-        if reqnr <= self.core.retained_through:
-            return reqnr not in self.core.retained
-        return self.core.retained_came < self.core.retained_due
-
-    def _answer_active(self, inv: Invocation) -> None:
-        """The rest of node.py _invoke: from the retained replies, the Clock or the drone."""
+    def _clock(self, inv: Invocation) -> None:
+        """node.py _clock_call: Now at once, Sleep after its virtual time."""
         call = inv.call
-        if self._retained_pending(inv.reqnr):
-            inv.step = Step.WAIT_RETAINED  # node.py _wait_retained: its batch is coming
-            return
-        kept = self.core.retained.pop(inv.reqnr, None)
-        if kept is not None:
-            self._adopt(inv.reqnr)
-            try:
-                entry = from_retained(kept, call.method, call.request)
-            except StatusError as err:
-                self._fail(f"controller {self.id}: {err.message}")
-                self._stop()
-                return
-            self._invoked(inv, entry)
-        elif call.method == CLOCK_NOW:
+        if call.method == CLOCK_NOW:
             now = MISSION_START_UNIX + self.world.loop.now
             self._invoked(inv, self._entry(inv, api.NowReply(unix_time_s=now).SerializeToString()))
-        elif call.method == CLOCK_SLEEP:
-            seconds = api.SleepRequest.FromString(call.request).seconds
-            self.world.loop.after(seconds, self._slept, inv)
-        else:
-            self._drone_step(inv)
+            return
+        seconds = api.SleepRequest.FromString(call.request).seconds
+        self.world.loop.after(seconds, self._slept, inv)
 
     def _entry(self, inv: Invocation, reply: bytes) -> ring_pb2.LogEntry:
         return ring_pb2.LogEntry(
@@ -961,12 +861,6 @@ class SimController:
 
     def _drone_step(self, inv: Invocation) -> None:
         """One turn of ControllerNode._invoke_drone_retrying's loop, up to the send."""
-        if inv.call.method.startswith(CLOCK_SERVICE):  # waiting in node.py _wait_granted
-            if self.protocol.state is not State.ACTIVE:
-                self._invoked(inv, None)
-            elif self.protocol.granted_epoch == self.protocol.epoch:
-                self._answer_active(inv)
-            return
         session = self.session
         if session is None or self.protocol.state is not State.ACTIVE:
             self._invoked(inv, None)
@@ -999,9 +893,9 @@ class SimController:
             link,
             link.generation,
             watermark=self.protocol.watermark_reqnr,
-            master_answers=tuple(to_retained(entry) for entry in self.answered_here),
+            master_answers=tuple(to_retained(entry) for entry in self.core.answered_here),
             preparation=self._preparation_progress(),
-            adopted_from=self.adopted[1] if self.adopted[0] == self.protocol.epoch else 0,
+            adopted_from=self.core.adopted_from(),
             sender=self,
             consumed=len(self.seen),
         )
@@ -1047,20 +941,17 @@ class SimController:
             self._drone_step(inv)
 
     def _invoked(self, inv: Invocation, entry: ring_pb2.LogEntry | None) -> None:
-        """The end of ControllerNode._invoke: log the entry if it is still ours to log."""
+        """The end of ControllerNode._answer's turn: log the entry if it is still ours."""
         self.inv = None
         if entry is None:
             self._step()  # _answer's loop: the state changed
             return
-        if not self._ours_to_log(inv.reqnr):
-            # Footnote 2: a handover overtook the reply; the new master re-sends it.
-            self.world.trace(f"controller {self.id} discards the reply to {inv.reqnr}")
-            self._step()
-            return
-        effects = self.protocol.on_reply(entry)
-        self._seen(entry)
+        logged, effects = self.core.logged(inv.reqnr, entry)
         self._apply(effects)
-        self._answered(entry.status_code, entry.reply)
+        if logged is None:
+            self._step()  # footnote 2: a handover overtook the reply
+            return
+        self._answered(logged.status_code, logged.reply)
 
     # -- the program gives up on a call (a deadline, a cancellation) --------------
 
@@ -1082,25 +973,15 @@ class SimController:
             if inv.step is Step.IN_FLIGHT and inv.connection == link.generation and link.usable():
                 link.to_drone(0, self.world.drone.receive_cancel, inv.call_id)
             self.inv = None
-            p = self.protocol
-            if (
-                self._ours_to_log(inv.reqnr)
-                and p.granted_epoch == p.epoch
-                and inv.reqnr >= self.core.retained_through
-            ):
-                self.core.retained.pop(inv.reqnr, None)
-                entry = _given_up(inv.reqnr, call.method, call.request, code)
-                effects = self.protocol.on_reply(entry)
-                self._seen(entry)
+            effects = self.core.gave_up(inv.reqnr, call.method, call.request, code)
+            if any(isinstance(e, Seen) and e.entry.given_up for e in effects):
                 self.world.given_up[inv.reqnr] = code
-                self._apply(effects)
-            else:  # node.py: queued as abandoned, settled by the next call (F5, fixed)
-                self.abandoned.append((call, code))
+            self._apply(effects)
             self.world.trace(f"controller {self.id} gives up on request {inv.reqnr} ({code.name})")
             self._answered(code.value[0], b"")
             return True
         if self.phase is Phase.WAITING:
-            self.abandoned.append((call, code))
+            self.core.gave_up(0, call.method, call.request, code)
             self.world.trace(f"controller {self.id} gives up on call {call.index} while waiting")
             self._answered(code.value[0], b"")
             return True

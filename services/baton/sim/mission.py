@@ -25,7 +25,7 @@ import enum
 import random
 from dataclasses import dataclass
 
-from baton.controller.node import CLOCK_NOW, CLOCK_SLEEP
+from baton.controller.core import CLOCK_NOW, CLOCK_SLEEP
 from baton.rpc.methods import path
 from baton.v1 import drone_api_pb2 as api
 

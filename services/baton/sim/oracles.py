@@ -268,7 +268,7 @@ def _bounded(world: World) -> list[Violation]:
         left = {
             "log queue": len(p.log_queue),
             "received beyond the watermark": len(p._received),
-            "abandoned calls": len(controller.abandoned),
+            "abandoned calls": len(controller.core.abandoned),
             "unflushed log entries": len(p.log),
         }
         for dest, link in sorted(controller.links.items()):

@@ -338,7 +338,9 @@ class World:
         the role: the drone's watch_master, which never stops, may have to grant it;
         --lose-master seed 2957)."""
         return not self.programs_started or any(
-            not c.done or c.abandoned for cid, c in self.controllers.items() if cid not in self.lost
+            not c.done or c.core.abandoned
+            for cid, c in self.controllers.items()
+            if cid not in self.lost
         )
 
     def switched(self, record: HandoverRecord) -> None:
