@@ -40,7 +40,9 @@ from baton.config import GAP_REPAIR_MAX_S
 from baton.controller.protocol import (
     ControllerProtocol,
     DisconnectDrone,
+    Diverged,
     Effect,
+    Fenced,
     NonDeterminismError,
     ProtocolError,
     Refusal,
@@ -216,6 +218,21 @@ class Fail:
 
 
 @dataclass(frozen=True)
+class Keep:
+    """Effect: keep ``message`` in the history (what a successor that restarts is given
+    again); the successor's stream then says what we hold."""
+
+    message: ring_pb2.LogMessage
+
+
+@dataclass(frozen=True)
+class SettleHandovers:
+    """Effect: our handover messages still unacknowledged whose role is settled (the
+    ring went on past them: ``ControllerProtocol.handover_settled``) lose their flag on
+    the direct link and enter the history, as on an acknowledgement."""
+
+
+@dataclass(frozen=True)
 class Seen:
     """Effect: the protocol consumed ``entry``: it is the program's answer, on every
     replica (counted into the reply chain where it is consumed, not where the program
@@ -293,6 +310,8 @@ CoreEffect = (
     | RepairGap
     | RouteTo
     | Preparing
+    | Keep
+    | SettleHandovers
     | Seen
     | ReplayAgain
     | FirstNewCall
@@ -558,6 +577,27 @@ class ControllerCore:
         }
         catch_up: list[CoreEffect] = [SendCatchUp(new_master)] if self.cut_through else []
         return [record, Note("info", "handing over", fields), *catch_up, *effects]
+
+    def log_arrived(
+        self, message: ring_pb2.LogMessage, drone_reachable: Callable[[], bool]
+    ) -> list[CoreEffect]:
+        """A log message from the ring or from an old master (Algorithm 1, lines 30-47):
+        kept in the history unless it is from a fenced master or diverged from ours;
+        forwarded and handled (``ControllerProtocol.on_log``); a message we cannot
+        handle stops our mission but is still forwarded (the replicas after us go on);
+        a message that shows our mastership went on without us fences us if the drone
+        is out of reach (``drone_reachable``, asked then: ``went_on_without_us``)."""
+        p = self.protocol
+        try:
+            effects = p.on_log(message)
+        except ProtocolError as exc:
+            return [Keep(message), Fail(f"controller {p.id}: {exc}"), *exc.effects]
+        dropped = any(isinstance(effect, Fenced | Diverged) for effect in effects)
+        kept: list[CoreEffect] = [] if dropped else [Keep(message)]
+        fenced: list[CoreEffect] = []
+        if p.went_on_without_us(message):  # asked of the driver only then
+            fenced = self.went_on_without_us(message, drone_reachable())
+        return [*kept, *effects, SettleHandovers(), *fenced]
 
     def went_on_without_us(
         self, message: ring_pb2.LogMessage | None, drone_reachable: bool

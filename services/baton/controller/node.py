@@ -34,6 +34,7 @@ from baton.controller.core import (
     Fail,
     FirstNewCall,
     Hold,
+    Keep,
     Note,
     Preparing,
     Reconnect,
@@ -44,6 +45,7 @@ from baton.controller.core import (
     RouteTo,
     Seen,
     SendCatchUp,
+    SettleHandovers,
     to_retained,
 )
 from baton.controller.drone_link import (
@@ -693,6 +695,10 @@ class ControllerNode:
                 self._fail(StatusError(effect.code, effect.text))
             elif isinstance(effect, Seen):
                 self._seen(effect.entry)
+            elif isinstance(effect, Keep):
+                self._held(effect.message)
+            elif isinstance(effect, SettleHandovers):
+                self._settle_handovers()
             elif isinstance(effect, FirstNewCall):
                 takers = [h for h in self.handovers if h.role == ring_pb2.HANDOVER_ROLE_TAKER]
                 if takers:
@@ -869,16 +875,7 @@ class ControllerNode:
         await self._apply(self.core.handover_notice(new_master, after_reqnr, epoch))
 
     async def on_log(self, message: ring_pb2.LogMessage) -> None:
-        """A log message from the ring or from an old master (lines 30-47)."""
-        try:
-            effects = self.protocol.on_log(message)
-        except ProtocolError as exc:
-            self._held(message)
-            self._fail(StatusError(grpc.StatusCode.INTERNAL, f"controller {self.id}: {exc}"))
-            await self._apply(exc.effects)  # still forward it: the replicas after us go on
-            return
-        if not any(isinstance(effect, Fenced | Diverged) for effect in effects):
-            self._held(message)
+        """A log message from the ring or from an old master (``ControllerCore.log_arrived``)."""
         self.log.debug(
             "log message received",
             mlognr=message.lognr,
@@ -887,10 +884,9 @@ class ControllerNode:
             handover=message.handover,
             entries=len(message.entries),
         )
-        await self._apply(effects)
-        self._settle_handovers()
-        if self.protocol.went_on_without_us(message):
-            await self._fence_by_the_ring(message)
+        await self._apply(
+            self.core.log_arrived(message, lambda: self.drone_connected or self.standby_up)
+        )
 
     async def _fence_by_the_ring(self, message: ring_pb2.LogMessage | None) -> None:
         """``message`` shows our mastership went on without our log: fenced if we are cut

@@ -40,6 +40,7 @@ from baton.controller.core import (
     DroneRefusal,
     Fail,
     Hold,
+    Keep,
     Note,
     Preparing,
     Reconnect,
@@ -49,6 +50,7 @@ from baton.controller.core import (
     RouteTo,
     Seen,
     SendCatchUp,
+    SettleHandovers,
     to_retained,
 )
 from baton.controller.history import LogHistory
@@ -287,6 +289,10 @@ class SimController:
                 self._fail(effect.text)
             elif isinstance(effect, Seen):
                 self._seen(effect.entry)
+            elif isinstance(effect, Keep):
+                self._held(effect.message)
+            elif isinstance(effect, SettleHandovers):
+                self._settle_handovers()
             elif isinstance(effect, ReplayAgain):
                 self._replayed_again(effect)
             elif isinstance(effect, RepairGap):
@@ -672,24 +678,19 @@ class SimController:
             self.sent_straight[target] = lognr
 
     def on_log(self, message: ring_pb2.LogMessage) -> None:
-        """ControllerNode.on_log (lines 30-47)."""
+        """ControllerNode.on_log (``ControllerCore.log_arrived``)."""
         if not self.alive:
             return
         self.world.check_overtaken_handover(self, message)
-        try:
-            effects = self.protocol.on_log(message)
-        except ProtocolError as exc:
-            self._held(message)
-            self._fail(f"controller {self.id}: {exc}")
-            self._apply(exc.effects)
-            return
-        if not any(isinstance(effect, Fenced | Diverged) for effect in effects):
-            self._held(message)
+        effects = self.core.log_arrived(message, self._drone_reachable)
         self.peak_log_queue = max(self.peak_log_queue, len(self.protocol.log_queue))
         self._apply(effects)
-        self._settle_handovers()
-        if self.protocol.went_on_without_us(message):
-            self._fence_by_the_ring(message)
+
+    def _drone_reachable(self) -> bool:
+        """Either stream to the drone up (the standby stream is up exactly while the link
+        is usable here)."""
+        session = self.session
+        return (session is not None and session.connected) or self.drone_link.usable()
 
     def _fence_by_the_ring(self, message: ring_pb2.LogMessage | None) -> None:
         """ControllerNode._fence_by_the_ring (the standby stream is up exactly while the
@@ -698,9 +699,7 @@ class SimController:
         ``on_drone_link_broken``), the moments the answer can change."""
         if not self.alive:
             return
-        session = self.session
-        reachable = (session is not None and session.connected) or self.drone_link.usable()
-        self._apply(self.core.went_on_without_us(message, reachable))
+        self._apply(self.core.went_on_without_us(message, self._drone_reachable()))
 
     def _settle_handovers(self) -> None:
         """ControllerNode._settle_handovers: a settled handover message loses its flag on
