@@ -195,10 +195,10 @@ def ring_route(
 
     Not the natural successor whenever every one is down: a stream counts
     as down from its first attempt, so one whose set-up takes longer than
-    the detection time (a slow direction) was down for it before it could
-    come up, and the route went back to a dead natural successor, dropping
-    that stream, then tried it again from nothing, for ever (--lose-master
-    seeds 4097, 5631, 10175: the taker or a replica was never given the log).
+    the detection time (a slow direction) is down for it before it can
+    come up; going back to a dead natural successor would drop that stream
+    and try it again from nothing, for ever, and the controllers after us
+    (a taker among them) would never be given the log.
     """
     position = ring.index(me)
     order = [ring[(position + step) % len(ring)] for step in range(1, len(ring))]
@@ -380,7 +380,7 @@ class ControllerProtocol:
         # The drone's epoch of our current or last mastership (0: none yet).
         self.epoch = 0
         # Our epoch before a handover message made us master: ours again if the
-        # ring shows that role was handed on before we took it (F9, ``_handle``).
+        # ring shows that role was handed on before we took it (``_handle``).
         self._epoch_before_handover = 0
         # The epoch of the drone's last Connected event: a controller made ACTIVE by
         # a handover message has not heard from the drone in its epoch yet.
@@ -440,7 +440,7 @@ class ControllerProtocol:
         self._restart_keeps = 0
         # The last handover message we created, until it comes back round: if
         # its new master is lost and the drone gives the role back to us by
-        # takeover, we are the only one that holds it (simulation finding F11).
+        # takeover, we are the only one that holds it (``_resend_handed``).
         self._handed: ring_pb2.LogMessage | None = None
         # The epoch of the last mastership we flushed a log message in (0: none):
         # ``mastership_given_up``.
@@ -490,8 +490,9 @@ class ControllerProtocol:
         effects: list[Effect] = []
         # A cooperative grant (not the first master's, not a takeover) comes with
         # a handover message of its epoch, sent directly by the old master: it
-        # carries the old master's log, so we wait for it (F4). If the old master
-        # died before it left, the drone grants us again by takeover.
+        # carries the old master's log, so we wait for it (ACTIVE without it, we
+        # would reuse its log number or re-send requests it served). If the old
+        # master died before it left, the drone grants us again by takeover.
         self._owed_epoch = 0 if takeover or epoch <= 1 else epoch
         if takeover:
             effects.extend(self._resend_handed())
@@ -504,7 +505,7 @@ class ControllerProtocol:
 
     def _resend_handed(self) -> list[Effect]:
         """Our own handover message, sent only to a new master the drone has lost, as a
-        normal message of ours to the ring (simulation finding F11).
+        normal message of ours to the ring.
 
         A taker that handed over last and has handled nothing since holds
         the log up to that message, which may never have left it (its new
@@ -534,12 +535,11 @@ class ControllerProtocol:
         above it in that epoch or a newer one: a queued message numbered above
         it of an older epoch is not the ring's, and is dropped (``Unqueued``).
         A message of the master's would drop it too, but a master may have
-        nothing more to log: --policy nearest seed 48, where a master's earlier
-        self flushed its message 12 on a framing it then gave up (it rejoined
-        with nothing), its fresh self was granted a newer epoch and logged
-        nothing more, and every controller held that message 12 queued above
-        the ring's top (9) for ever. The newest word is said on again in our
-        own sync frames (``master_word``).
+        nothing more to log (a fresh self granted a newer epoch after its
+        earlier self flushed on a framing it gave up): without the word, every
+        controller would hold that stale message queued above the ring's top
+        for ever. The newest word is said on again in our own sync frames
+        (``master_word``).
         """
         effects: list[Effect] = []
         if master_epoch > 0:
@@ -567,7 +567,7 @@ class ControllerProtocol:
         leaves those messages on the ring. Granted the same epoch again, its
         fresh self would number messages like them in the same epoch, which no
         rule tells apart (a duplicate by number), and nothing newer would
-        replace them where they are queued (--policy nearest seed 48). The
+        replace them where they are queued. The
         drone grants it a new epoch instead, by a takeover of its earlier self
         (``Sequencer.take_over_from_earlier_self``). Not a fenced controller
         (the role went to another), nor one whose program starts again (its
@@ -588,10 +588,10 @@ class ControllerProtocol:
         sender whose top message is older than one we handled, and numbered above
         it, holds another framing (one a takeover replaced, not given up yet: the
         sender will see the ring's and rejoin): its word says nothing of the
-        ring's log, and a master that waited for it would wait for ever
-        (--lose-master seeds 1219, 1402). Nor does a sender whose message with
-        a number we hold is older than ours: it holds the framing ours replaced,
-        not ours, and the watermark stays (``_replaced_word``).
+        ring's log, and a master that waited for it would wait for ever. Nor
+        does a sender whose message with a number we hold is older than ours:
+        it holds the framing ours replaced, not ours, and the watermark stays
+        (``_replaced_word``).
         """
         ours = self._epoch_at.get(holds_lognr, 0) if 0 < holds_lognr <= self.lognr else 0
         if 0 < holds_epoch < ours:
@@ -601,8 +601,8 @@ class ControllerProtocol:
             # a takeover framed it anew (our framing never left a master that was
             # lost or fenced). The same-number rule of ``on_log``, for a sender
             # that holds less than we do: it gives us nothing above our hello,
-            # so its message with that number would never come (--lose-master
-            # seed 2791: a later taker built on the replaced framing).
+            # so its message with that number would never come, and a later
+            # taker holding ours would build on the replaced framing.
             return [Diverged(holds_lognr, ours, holds_epoch)]
         if holds_lognr > self.lognr and (
             0 < holds_epoch < self.epoch_of(self.lognr)
@@ -628,12 +628,11 @@ class ControllerProtocol:
         The watermark says every controller holds our requests up to it, and the
         drone lets their replies go. Taken from such a word (a master's own
         messages of its takeover epoch, the predecessor still holding the lost
-        master's), it let the drone drop the replies of the newer framing: the
-        next taker, holding the older one (a lost master's Clock reading or
-        give-up), found nothing retained to compare it with
-        (``replaced_framing``) and built on it, while the drone had acted for a
-        program that saw the newer one (--policy nearest seeds 1122 and 3283,
-        predictive 408: same-replies).
+        master's), it would let the drone drop the replies of the newer framing:
+        the next taker, holding the older one (a lost master's Clock reading or
+        give-up), would find nothing retained to compare it with
+        (``replaced_framing``) and build on it, while the drone acted for a
+        program that saw the newer one: two programs shown different replies.
         """
         self.catch_up_to = max(self.catch_up_to or 0, holds_lognr)
         return self._drain()
@@ -661,7 +660,7 @@ class ControllerProtocol:
         of a later epoch brings it only if it did not hold an earlier framing
         that reached the drone, so an older framing held here that differs was
         replaced by a takeover that did not hold it (a cut-off master's Clock
-        reading framed again: --policy nearest seed 132). Same content, or a
+        reading framed again). Same content, or a
         framing of ours as new as the drone's (a give-up of a request the drone
         served, not yet sent along), is the ring's.
         """
@@ -682,8 +681,8 @@ class ControllerProtocol:
         Set on the fresh protocol of a taker that found its framing replaced
         (``replaced_framing``) and rejoined. The ring may hold nothing newer:
         the master that framed the request anew may have been lost before its
-        messages left (--lose-master seed 3166). Given the replaced framing
-        again, the taker found it replaced again, for ever. Refusing it, the
+        messages left. Given the replaced framing again, the taker would find
+        it replaced again, for ever. Refusing it, the
         taker holds what precedes it, is answered from the drone's retained
         replies from there (the newer framing), and its own messages (of its
         newer epoch) replace the older framing on the ring (``Diverged``).
@@ -728,7 +727,7 @@ class ControllerProtocol:
         routed around it, the master's last flushes (give-ups of requests that
         never reached the drone) would reach the replicas after the taker and
         not the taker, and a later taker holding them would build on a framing
-        the drone replaced (--lose-master seed 956). Held back, they are lost
+        the drone replaced. Held back, they are lost
         with the master like its unflushed log. Going back towards the natural
         successor is always allowed, and so is everything once connected.
         """
@@ -756,8 +755,7 @@ class ControllerProtocol:
         drone would otherwise take a takeover of such a later mastership (one a
         cooperative handover gave us while we were cut off, lost before we knew)
         for one of our log, and a taker that held the ring's log would rejoin
-        with nothing, leaving nobody with the requests below the watermark
-        (--lose-master seed 2572).
+        with nothing, leaving nobody with the requests below the watermark.
         """
         handed_back = self._handed is None and self.state is not State.ACTIVE
         if self.epoch and self._mastership_over == self.epoch and handed_back:
@@ -769,9 +767,10 @@ class ControllerProtocol:
         """Every log number up to this one was received (handled, or queued to be).
 
         Our handover message, until it comes back round, is not held: it is
-        not in the history we give our successor (the F7 fix), so a
-        predecessor that re-sends from our hello (a stream re-opened, or
-        routed back to us) must give it to us (simulation finding F10). Once
+        not in the history we give our successor (a history copy could
+        overtake it), so a predecessor that re-sends from our hello (a stream
+        re-opened, or routed back to us) must give it to us, or nobody ever
+        gets its log number from us. Once
         the ring went on past it (its new master handed the role straight
         back to us, and that message overtook it), it counts as received: it
         may never come back, and our history has it once its new master
@@ -797,11 +796,11 @@ class ControllerProtocol:
         rejoins with nothing (``Diverged``) to receive again after its reset.
 
         A handover message goes from the old master to the new one only, and
-        enters the old master's history only once it has come back round (F7):
-        a new master that rejoins before handling it holds the one copy. Were
-        it dropped with the rest, no controller would ever get its log number,
-        and the new master would number its own messages like it (found by the
-        simulation with --lose-master). Its fresh self queues it until it has
+        enters the old master's history only once it has come back round (a
+        history copy must not overtake it): a new master that rejoins before
+        handling it holds the one copy. Were it dropped with the rest, no
+        controller would ever get its log number, and the new master would
+        number its own messages like it. Its fresh self queues it until it has
         caught up, handles it in order, and takes the role as the drone decided.
         Not one older than a takeover that fenced us: that role is gone.
         """
@@ -820,27 +819,24 @@ class ControllerProtocol:
         from the ring (the drone let go of their replies: the watermark covers
         them). A controller that lost them since (restarted with nothing) may
         have left the fenced master the only holder: rejoining with nothing, it
-        left nobody, and the taker waited for ever (--lose-master seed 3818).
+        left nobody, and the taker would wait for ever.
         Fed to the fresh self like ring messages (``ControllerNode.reset``), they
         are handled, replayed and given to the successor from the history again.
 
         Only in a ring of two, where the predecessor's word is every other
         controller's. In a longer one the word may come from a controller that
         routes around a dead or restarted one, which then lacks them and may
-        take over without them: a give-up it replaced by the drone's reply was
-        kept (seed 973, tried first).
+        take over without them; the fenced controller would then keep a give-up
+        the taker replaced by the drone's reply.
 
         And the messages queued right after them framed in the fencing
         takeover's epoch or a newer one: the taker's lineage, the ring's log,
         not ours. A master cut off from the drone queues them, ACTIVE in its
         replaced mastership, and may hold the only copy: the taker handed the
-        role back to it and died, and the drone had let go of their replies
-        (--policy nearest and predictive seed 882: the old master, fenced
-        only when granted by the handover message, rejoined with messages 1-3
-        and nobody held 4-12). Not a handover message (kept with its flag,
-        ``kept_for_rejoin``), nor past one: its history copy, fed to the fresh
-        self and forwarded, overtook the message (F7; seeds 2196, 373, 1026,
-        when handled messages and handover messages counted too).
+        role back to it and died, and the drone had let go of their replies.
+        Not a handover message (kept with its flag, ``kept_for_rejoin``), nor
+        past one: its history copy, fed to the fresh self and forwarded, would
+        overtake the message (``World.check_overtaken_handover`` checks F7).
         """
         if not (self._fenced_in and len(self.ring) == 2):
             return 0
@@ -862,14 +858,13 @@ class ControllerProtocol:
         but a master's log is the ring's (it frames the drone's replies in
         the drone's epoch), and it may be the only copy left: the other
         controllers lost or restarted with nothing, and the drone let go of
-        the replies below the watermark. The fresh taker then waited for ever
-        for requests nobody held (--lose-master seeds 10688, 11795: a ring of
-        two, the other controller lost). And until the rejoin, the controller
-        handled what came: a handover message that made it master was then
-        neither queued (``kept_for_rejoin``) nor anywhere else with its flag,
-        the fresh self given the old master's history copy was no master, and
-        the drone, which had moved the role on from it already, waited for
-        ever for its handover (--lose-master seed 11002).
+        the replies below the watermark: the fresh taker would wait for ever
+        for requests nobody held. And until the rejoin the controller handles
+        nothing queued: a handover message that made it master would otherwise
+        be neither queued (``kept_for_rejoin``) nor anywhere else with its
+        flag, the fresh self given the old master's history copy would be no
+        master, and the drone, which had moved the role on from it already,
+        would wait for ever for its handover.
         """
         self.restarting = True
         if self.state is not State.ACTIVE or self.granted_epoch != self.epoch:
@@ -892,8 +887,8 @@ class ControllerProtocol:
         it: only the master creates the numbers after it), or we sent it on
         ourselves as a taker (``_resend_handed``). A copy still unacknowledged
         on the direct stream is then sent without the flag: a new master
-        restarted with nothing after it handed the role on would take it again
-        (simulation finding F9).
+        restarted with nothing after it handed the role on would take it again,
+        ACTIVE in an epoch long over.
         """
         return lognr in self._received
 
@@ -961,8 +956,8 @@ class ControllerProtocol:
         went on without it (a handover notice we never heard, its new master lost
         while it waited for our handover message), and the takeover framed the same
         replies from those the drone retains. Sending it as a handover message would
-        put a second framing of them on the ring (--lose-master seed 58: a give-up of
-        a request the drone had executed). We rejoin with nothing instead, like a
+        put a second framing of them on the ring (a give-up of a request the drone
+        had executed, say). We rejoin with nothing instead, like a
         master whose own mastership was taken over.
         """
         return self.state is State.ACTIVE and takeover_epoch > self.epoch
@@ -988,9 +983,8 @@ class ControllerProtocol:
 
         The message may come while the drone's streams still look up (a link that
         went silent, not yet found by keepalive); queued here, ACTIVE, it would
-        otherwise never be looked at again, and the master stayed ACTIVE for ever,
-        its program answered by itself past the drone's last request (--policy
-        nearest seed 2921).
+        otherwise never be looked at again, and the master would stay ACTIVE for
+        ever, its program answered by itself past the drone's last request.
         """
         if self.state is not State.ACTIVE or self._queued_epochs[1] <= self.epoch:
             return None
@@ -1235,15 +1229,15 @@ class ControllerProtocol:
             # a takeover replaced (cut off from the drone, it flushed on, e.g. a
             # give-up). Not the ring's: neither held nor forwarded, and not our
             # handover message coming back (a history that kept it would give it
-            # to a replica that catches up from us: --lose-master seed 757).
+            # to a replica that catches up from us).
             return _Arrival.FENCED
         if 0 < message.epoch < self._newest_epoch_below(message.lognr):
             # Masters number log messages in the order of their epochs: one
             # numbered after a message of a newer mastership is from a master
             # the drone replaced, which went on cut off from it and took the
-            # newer message for the ring's (--lose-master seed 222), or of a
-            # framing a takeover replaced, still held by a predecessor that
-            # has not seen the ring's (seed 1219). Not the ring's: neither
+            # newer message for the ring's, or of a framing a takeover
+            # replaced, still held by a predecessor that has not seen the
+            # ring's. Not the ring's: neither
             # held nor forwarded; the ring's own comes.
             return _Arrival.FENCED
         queued = self.log_queue.get(message.lognr)
@@ -1304,8 +1298,8 @@ class ControllerProtocol:
 
         Not once fenced: what we hold is given up, and a message queued while we
         were ACTIVE (the taker's framing, from the ring) does not follow our log
-        (--lose-master --prepared seed 242: "log message 1 starts at request 1,
-        controller 3 expects 2" before the rejoin). The fresh self handles it.
+        (handled, it would fail as starting at a request we do not expect). The
+        fresh self handles it.
         Nor once our program starts again by a rejoin (``restart_program``)."""
         effects: list[Effect] = []
         if self.fenced or self.restarting:
@@ -1329,13 +1323,13 @@ class ControllerProtocol:
 
         The ring's log after a takeover is what the taker holds in order, and the
         replies the drone retains above it. Messages of the lost master queued
-        above a gap (the one before them died with it: --lose-master seeds 2034,
-        3276) are a framing the taker replaces with its own from those replies;
-        kept, they held it PASSIVE for ever. Only a taker's, in its epoch, and
-        only older messages: a controller's that arrive later are fenced by the
-        taker's newer ones (``on_log``). Not at once: a message on its way (a
-        partition, a reordering link) framed replies the programs may have seen
-        already, Clock calls answered by its master among them (seed 2600).
+        above a gap (the one before them died with it) are a framing the taker
+        replaces with its own from those replies; kept, they would hold it
+        PASSIVE for ever. Only a taker's, in its epoch, and only older messages:
+        a controller's that arrive later are fenced by the taker's newer ones
+        (``on_log``). Not at once: a message on its way (a partition, a
+        reordering link) framed replies the programs may have seen already,
+        Clock calls answered by its master among them.
         """
         ready = self.state is State.PASSIVE and self.master and self.caught_up
         if not ready or self._took_over_in != self.epoch or not self.log_queue:
@@ -1370,11 +1364,11 @@ class ControllerProtocol:
             # Its creator's message with our last number is of a newer epoch: another
             # framing, which a takeover made of the replies ours holds, even if it
             # ends at the same request (a fenced master's give-up of a request the
-            # drone executed for the taker: --lose-master seed 1705).
+            # drone executed for the taker).
             return Diverged(self.lognr, ours, message.after_epoch)
         if message.HasField("after_reqnr"):
             # Also on a message without entries: a new master's handover message
-            # that continues a framing other than ours (--lose-master seed 1943).
+            # that continues a framing other than ours.
             start = message.after_reqnr + 1
         elif message.entries:
             start = message.entries[0].reqnr
@@ -1409,7 +1403,7 @@ class ControllerProtocol:
     def _drop_stale_queued(self, lognr: int, epoch: int) -> list[Effect]:
         """Drops the queued messages numbered above ``lognr`` of a mastership older than
         ``epoch``: the on_log rule for a message that came before the newer one below it
-        (a framing a takeover replaced, queued while we held nothing, seed 1219). Their
+        (a framing a takeover replaced, queued while we held nothing). Their
         numbers are no longer received: the ring's messages with them must be taken."""
         effects: list[Effect] = []
         oldest = self._queued_epochs[0]
@@ -1465,10 +1459,10 @@ class ControllerProtocol:
             # on past it in a newer mastership: ours was handed on (or taken over)
             # already, by an earlier incarnation of ours that handled the message
             # and died before acknowledging it, so that its old master sent it to
-            # us again, flag set (simulation finding F9). Masters number log
-            # messages in the order of their epochs: that role is not ours to take,
-            # nor the log of that mastership ours (the Connect says so: fenced for
-            # a takeover of a role we never took, --lose-master seed 1241).
+            # us again, flag set. Masters number log messages in the order of
+            # their epochs: that role is not ours to take, nor the log of that
+            # mastership ours (our Connect would be fenced for a takeover of a
+            # role we never took).
             self.master = False
             self.epoch = self._epoch_before_handover
         if message.handover:
@@ -1483,8 +1477,8 @@ class ControllerProtocol:
             # without us (we handed it over, or a takeover gave our log up). Not
             # master: ACTIVE on it, the drone would fence us, and a fresh self
             # given the same handover message again (a stream that breaks before
-            # its acknowledgement re-sends it) would take it again, for ever
-            # (--lose-master seed 3747). We never acted in that mastership: the log
+            # its acknowledgement re-sends it) would take it again, for ever.
+            # We never acted in that mastership: the log
             # we hold is the ring's (``log_mastership_epoch``).
             self.master = False
             self._mastership_over = self.epoch
