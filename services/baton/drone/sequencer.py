@@ -353,8 +353,8 @@ class Sequencer:
 
         A master keeps sending what it answered since its last drone call whose
         outcome it knows, and a drone call the program gave up on leaves it not
-        knowing: so what it answered comes along again with the next request
-        (found by the simulation: --lose-master seeds 56 and 173).
+        knowing: so what it answered comes along again with the next request,
+        which must not be refused for it.
         """
         ours = self.cache.get(kept.reqnr)
         if ours is None:
@@ -382,13 +382,14 @@ class Sequencer:
         count from now on as brought in its epoch; returns them, for the store.
 
         It held none of them, and frames them in its own messages. Kept with the
-        epoch of the master that first brought them, they looked older than a
-        framing they had replaced (a lost master's give-up of a request the drone
-        executed, handed on before the takeover), and a later taker holding that
-        framing took it for the ring's and built on it (--policy nearest seed 4287:
-        same-replies). The taker says what it adopted itself: its Connect's
-        ``holds_reqnr`` may be stale by the time the replies come (counting from
-        it, --lose-master seed 2720 made a taker refuse its own framing for ever).
+        epoch of the master that first brought them, they would look older than
+        a framing they had replaced (a lost master's give-up of a request the
+        drone executed, handed on before the takeover), and a later taker
+        holding that framing would take it for the ring's and build on it,
+        showing programs different replies. The taker says what it adopted
+        itself: its Connect's ``holds_reqnr`` may be stale by the time the
+        replies come, and counted from it a taker could refuse its own framing
+        for ever.
         """
         if not adopted_from or not self.granted_by_takeover:
             return []
@@ -496,9 +497,9 @@ class Sequencer:
 
         The watermark too: the cache let the replies at or below it go, and a
         taker is told it (``Connected.watermark_reqnr``) to know what it must
-        hold before it goes ACTIVE. Read as 0 after a restart, it let a taker
-        restarted with nothing go ACTIVE at once and wait for ever for the
-        retained reply of request 1, long gone (--policy nearest seed 201).
+        hold before it goes ACTIVE. Read as 0 after a restart, it would let a
+        taker restarted with nothing go ACTIVE at once and wait for ever for the
+        retained reply of request 1, long gone.
         """
         self.master = master
         self.handovers[:] = handovers
@@ -610,17 +611,16 @@ class Sequencer:
         the master). Also lost: the old master of a cooperative handover
         whose new master has sent nothing since (no request, and no word on
         a preparation, which only an ACTIVE master gives: after the
-        mission's last request, --lose-master --prepared seed 1439 took
-        over from an old master whose log had long arrived, and the
-        fenced ACTIVE master's log was lost), when the old master has
+        mission's last request an ACTIVE new master sends no request,
+        and a takeover then would fence it and lose its log), when the
+        old master has
         not been seen for ``after_s`` since the switch (it died before
         sending its log): the new master is granted again, by takeover.
         The same for any old master of the cooperative switches since the
         last takeover or request: a new master that waits for a handover
         message is not ACTIVE, so it never sends one on, and the lost log
-        holds up every switch after it (the script's switch and an RPC's at
-        one instant, the first old master lost right after: F1,
-        --lose-master seeds 2407, 2535, 5120, 6027). ``lost`` is that old
+        holds up every switch after it (two switches at one instant, the
+        first old master lost right after). ``lost`` is that old
         master, whose log the takeover gives up (``switch``'s ``lost``: its
         Connect is fenced); the middle masters never went ACTIVE, or hold a
         log the takeover's epoch replaces as it does a late handover
@@ -697,7 +697,7 @@ class Sequencer:
         # The trailing cooperative switches whose new masters sent nothing: each new
         # master waits for its old master's handover message, which an old master
         # sends only once ACTIVE, so one lost before its log left holds up every
-        # switch after it (two at one instant, the script's and an RPC's: F1).
+        # switch after it (two at one instant, the script's and an RPC's).
         for record in reversed(self.handovers):
             if record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER or record.first_request_at:
                 return None
@@ -751,7 +751,7 @@ class Sequencer:
         gave up (it rejoined with nothing: ``ControllerProtocol.
         mastership_given_up``). Granted this epoch again, the fresh self's
         messages could not be told apart from those, and nothing newer would
-        replace them where they are queued (--policy nearest seed 48). A
+        replace them where they are queued. A
         second Connect of the same fresh self before its first Connected says
         the same word, and is granted the new epoch as it is: the epoch has
         moved on.
@@ -783,7 +783,7 @@ class Sequencer:
         Connected, because the master may not know: a taker that restarted or
         rejoined with nothing after its first request is not told the TakeOver
         again (``take_over_owed``), and would wait for ever for a handover
-        message (--lose-master seed 1092).
+        message.
         """
         return bool(self.handovers) and self.handovers[-1].kind == drone_pb2.HANDOVER_KIND_TAKEOVER
 
@@ -796,7 +796,7 @@ class Sequencer:
         taker is the nearest station, not the first after the lost master, and
         may hold a master's framing that an earlier takeover replaced (a cut-off
         master's Clock readings, framed again by the taker that did not hold
-        them: --policy nearest seed 132). The replies it holds come too, with
+        them). The replies it holds come too, with
         the epoch that brought each, for it to compare
         (``ControllerProtocol.replaced_framing``); they are bounded like the
         rest, by the flush limit and what is in flight.
@@ -807,17 +807,17 @@ class Sequencer:
     def handover_must_take_over(self, new_master: int) -> bool:
         """Whether a handover to ``new_master`` decided now must be a takeover: the master
         was made master by a takeover and has not connected since, or it is the initial
-        master, which has not connected and had nothing served (F1, at the start).
+        master, which has not connected and had nothing served.
 
         A cooperative handover needs the old master to hear the notice and send
         its log as a handover message, which only an ACTIVE master does. A
         taker that has not connected yet is not ACTIVE: it would never send
-        it, and the new master would wait for ever (``--lose-master`` seed
-        1190). A takeover needs nobody's log: the new master gets the
-        replies above what it holds from the drone, and the old master, told
-        ``takeover``, rejoins as a replica. After a drone restart a taker that
-        had connected counts as not connected until it connects again: the
-        handover is then a takeover too, which costs its program a restart.
+        it, and the new master would wait for ever. A takeover needs nobody's
+        log: the new master gets the replies above what it holds from the
+        drone, and the old master, told ``takeover``, rejoins as a replica.
+        After a drone restart a taker that had connected counts as not
+        connected until it connects again: the handover is then a takeover
+        too, which costs its program a restart.
         """
         last = self.handovers[-1] if self.handovers else None
         if new_master == self.master or self.connected_epoch == self.epoch:
@@ -826,7 +826,7 @@ class Sequencer:
             # The initial master, not connected and nothing served: it was never
             # ACTIVE (it goes ACTIVE on its Connected event) and holds no log, so it
             # would ignore the notice and the new master would wait for ever for its
-            # handover message (simulation finding F1). A takeover loses nothing.
+            # handover message. A takeover loses nothing.
             return self.last_reqnr == 0
         return last.kind == drone_pb2.HANDOVER_KIND_TAKEOVER and last.new_master == self.master
 
