@@ -525,14 +525,15 @@ class ControllerNode:
     def _handover_acked(self, message: ring_pb2.LogMessage) -> None:
         """The new master acknowledged our handover message: it enters our history now.
 
-        Not before (F7: a history copy re-sent ahead of it would overtake it),
-        and not only when it comes back round: the ring may go on past it
+        Not before (a history copy re-sent ahead of it would overtake it, and
+        its new master would take the copy for a normal message), and not only
+        when it comes back round: the ring may go on past it
         without giving it back to us (the new master handed over again before
         its stream to its successor carried it, or the message went to a
         controller that then rejoined and gave it on to a dead successor). Our
         hello counts it then (``holds_lognr``), so a predecessor never gives it
         again, and our history must hold it for our successor, or the
-        successor misses its log number for good (simulation, --lose-master).
+        successor misses its log number for good.
         """
         if message.lognr in self.history:
             return
@@ -632,9 +633,9 @@ class ControllerNode:
                 if effect.copy:
                     # Not while cut off from the drone: a takeover may have replaced
                     # us, and the copy would pass the taker's fence on the ring (the
-                    # target built on a give-up the taker had replaced: --lose-master
-                    # --prepared seed 844). A new stream's PrepareHandover catches the
-                    # target up (``on_prepare``); a refused one fences us.
+                    # target would build on a give-up the taker had replaced). A new
+                    # stream's PrepareHandover catches the target up (``on_prepare``);
+                    # a refused one fences us.
                     if self.drone_connected:
                         self.peer(effect.dest).send(effect.message)
                         self._sent_straight[effect.dest] = effect.message.lognr
@@ -644,7 +645,8 @@ class ControllerNode:
                     # comes back round (footnote 3), once its new master has it:
                     # a history copy (flag cleared) re-sent to our successor
                     # before then could overtake it, and the new master would
-                    # take the copy for a normal message (simulation finding F7).
+                    # take the copy for a normal message (the simulation's
+                    # ``World.check_overtaken_handover`` checks F7).
                     self.history.add(effect.message)
                     self.peer(self.protocol.successor).holds_changed()
                 self.peer(effect.dest).send(effect.message)
@@ -899,7 +901,8 @@ class ControllerNode:
     def _settle_handovers(self) -> None:
         """Our handover messages still unacknowledged whose role is settled (the ring
         went on past them) lose their flag and enter our history, as on an
-        acknowledgement (``PeerLink.settle_handovers``, simulation finding F9)."""
+        acknowledgement (``PeerLink.settle_handovers``): a receiver restarted with
+        nothing must not take that role again."""
         for link in list(self._peers.values()):
             for message in link.settle_handovers(self.protocol.handover_settled):
                 self._handover_acked(message)
@@ -922,7 +925,7 @@ class ControllerNode:
         if self.core.abandoned and self._settler is None:
             # Its last call was given up while this replica waited: no next
             # call will settle it, so the entry is consumed here when it comes,
-            # else it would hold REPLAY for ever (simulation finding F8).
+            # else it would hold REPLAY for ever.
             self._settler = asyncio.create_task(self._settle_after_the_end())
         return bool(effects)
 

@@ -151,7 +151,7 @@ class Reassembler:
             return Skipped(frame.lognr)
         try:
             return ring_pb2.LogMessage.FromString(data)
-        except DecodeError as exc:  # found by the fuzz test (tests/controller/test_fuzz_ring.py)
+        except DecodeError as exc:  # a malformed frame names itself (test_fuzz_ring.py)
             raise ValueError(f"log message {frame.lognr} is not a LogMessage: {exc}") from None
 
 
@@ -343,9 +343,9 @@ class PeerLink:
 
         The acknowledgement was lost, and the receiver may be a new incarnation,
         restarted with nothing after it handled the message and handed the role
-        on: written to it again, flag set, the message made it master again in an
-        epoch long over (simulation finding F9). Written on the current stream
-        already, it is not written again.
+        on: written to it again, flag set, the message would make it master
+        again in an epoch long over. Written on the current stream already, it
+        is not written again.
         """
         done: list[ring_pb2.LogMessage] = []
         for lognr in sorted(self._handovers):

@@ -29,8 +29,8 @@ _AioBehaviour = Callable[[Any, grpc.aio.ServicerContext[Any, Any]], Any]
 
 class MalformedRequests(grpc.aio.ServerInterceptor):
     """A request that does not parse as its method's message is INVALID_ARGUMENT
-    naming the method, where gRPC would answer UNKNOWN (found by the fuzz test,
-    tests/test_fuzz.py). Requests of a stream are parsed where they are read."""
+    naming the method, where gRPC would answer UNKNOWN (tests/test_fuzz.py
+    checks it). Requests of a stream are parsed where they are read."""
 
     async def intercept_service(
         self,
