@@ -260,7 +260,7 @@ class SimController:
                         self.peer(effect.dest).send(message)
                         self.sent_straight[effect.dest] = message.lognr
                     continue
-                if not message.handover:  # it enters the history when it comes back (F7)
+                if not message.handover:  # it enters the history when it comes back round
                     self.history.add(message)
                     self.peer(self.protocol.successor).holds_changed()
                 self.peer(effect.dest).send(effect.message)
@@ -334,7 +334,7 @@ class SimController:
         if not self.alive:
             return
         if self.call is None:
-            if self.done and self.core.abandoned:  # node.py _settle_after_the_end (F8)
+            if self.done and self.core.abandoned:  # node.py _settle_after_the_end
                 self._settle()
             return
         inv = self.inv
@@ -703,7 +703,7 @@ class SimController:
 
     def _settle_handovers(self) -> None:
         """ControllerNode._settle_handovers: a settled handover message loses its flag on
-        the direct link and enters the history, as on an acknowledgement (F9)."""
+        the direct link and enters the history, as on an acknowledgement."""
         for link in list(self.links.values()):
             for message in link.settle_handovers(self.protocol.handover_settled):
                 self.handover_acked(message)
@@ -960,7 +960,7 @@ class SimController:
         Inside _invoke, the master logs the give-up as the call's outcome if
         the call is still its to log (``_ours_to_log``); otherwise a handover
         overtook the reply, and the call is queued as abandoned, settled from
-        the log by the next call (F5, fixed: a mismatch restarts the program).
+        the log by the next call (a mismatch restarts the program).
         A call held while PASSIVE is queued as abandoned (``_abandoned``).
         False if nothing was cancelled.
         """

@@ -390,9 +390,10 @@ def vehicle_back(world: World) -> None:
 def give_up(world: World, code: grpc.StatusCode) -> None:
     """A mission program gives up on its current call, where that keeps the mission deterministic.
 
-    The master's call, also one whose reply a handover overtook (F5 is
-    fixed); or a replica's held call whose entry the master logged as given
-    up with the same code (the program's last too: F8 is fixed).
+    The master's call, also one whose reply a handover overtook (the
+    scenario that checks F5's fix); or a replica's held call whose entry the
+    master logged as given up with the same code, the program's last too
+    (F8's).
     """
     candidates: list[tuple[int, grpc.StatusCode]] = []
     for c in world.live_controllers():
@@ -427,8 +428,7 @@ def ready_for_handover(world: World, new_master: int) -> bool:
             return False
         if drone.seq.preparing is not None:
             # A prepared handover may move the master before this call takes the
-            # lock: it would find a new master not ACTIVE yet (F1's ground;
-            # --lose-master --prepared seeds 784, 1161, 1331).
+            # lock: it would find a new master not ACTIVE yet (F1's ground).
             return False
         master = world.controller(drone.seq.master)
         session = master.session
@@ -453,7 +453,7 @@ def handover(world: World, new_master: int, tries: int = 0) -> None:
 
 def there_and_back(world: World, new_master: int, delay: float) -> None:
     """Two Handover calls back to back: to ``new_master``, and ``delay`` later back again,
-    at once, before the old master may have heard of the first (F2, fixed)."""
+    at once, before the old master may have heard of the first (checks F2's fix)."""
     old = world.drone.seq.master
     handover(world, new_master)
     world.loop.after(delay, world.drone.handover_rpc, old)

@@ -185,7 +185,7 @@ class RingLink:
 
     def settle_handovers(self, settled: Callable[[int], bool]) -> list[ring_pb2.LogMessage]:
         """PeerLink.settle_handovers: unacknowledged handover messages whose role is
-        settled are sent from now on without the flag (F9); returned as they were."""
+        settled are sent from now on without the flag; returned as they were."""
         done: list[ring_pb2.LogMessage] = []
         for lognr, message in list(self.unacked.items()):
             if not message.handover or not settled(lognr):

@@ -201,15 +201,14 @@ def _observed(controller: SimController, world: World) -> int:
     its program's give-ups: decided where it ran), so nothing depends on
     it, and a taker may answer those calls otherwise. Everything before
     must match: the drone keeps the calls a master answered itself, sent
-    along with its next request (F12, fixed; and the give-ups found with it).
+    along with its next request, the program's give-ups among them.
 
     The same for an incarnation killed while it held a log message that a
     takeover framed again in a newer epoch: alive, it would have rejoined
     with nothing (``Diverged``) before its program acted on anything after
-    its last request the drone accepted, and been held to exactly that
-    (--lose-master seeds 2260, 2342, 2398, 2566, 3231, 3518: a replica that
-    consumed a give-up of a master cut off from the drone, killed before the
-    taker's framing of that request reached it).
+    its last request the drone accepted, and been held to exactly that (a
+    replica that consumed a give-up of a master cut off from the drone,
+    killed before the taker's framing of that request reached it).
     """
     if controller.ended_by or _would_have_rejoined(controller, world):
         return controller.accepted_upto

@@ -335,8 +335,8 @@ class World:
     def mission_open(self) -> bool:
         """Whether some program still has calls to make (or has not started), or a call it
         gave up on to settle (node.py _settle_after_the_end waits for the log, or for
-        the role: the drone's watch_master, which never stops, may have to grant it;
-        --lose-master seed 2957)."""
+        the role: the drone's watch_master, which never stops, may have to grant it,
+        and the run goes on until it does)."""
         return not self.programs_started or any(
             not c.done or c.core.abandoned
             for cid, c in self.controllers.items()
@@ -425,7 +425,7 @@ class World:
         sender = self.controllers.get(message.sender)
         direct = sender.links.get(controller.id) if sender is not None and sender.alive else None
         kept = direct.unacked.get(message.lognr) if direct is not None else None
-        if kept is None or not kept.handover:  # settled ones give no role (F9)
+        if kept is None or not kept.handover:  # settled ones give no role
             return
         if self.drone.seq.epoch <= kept.epoch:
             what = (
