@@ -812,31 +812,27 @@ class ControllerProtocol:
 
     def kept_when_fenced(self) -> int:
         """The log numbers (every one up to this) that a controller fenced by a takeover
-        keeps from its history when it rejoins: those that went round the whole ring
-        (``acked_lognr``), not the rest, which the taker may have framed anew.
+        keeps from its history when it rejoins, in a ring of two only.
 
-        Every controller held them, so the taker holds them or waits for them
-        from the ring (the drone let go of their replies: the watermark covers
-        them). A controller that lost them since (restarted with nothing) may
-        have left the fenced master the only holder: rejoining with nothing, it
-        left nobody, and the taker would wait for ever.
-        Fed to the fresh self like ring messages (``ControllerNode.reset``), they
-        are handled, replayed and given to the successor from the history again.
+        - Those that went round the whole ring (``acked_lognr``): the drone let
+          go of their replies, and the fenced master may hold the only copy
+          left (the other controller restarted with nothing); dropped, the
+          taker would wait for ever for them. Not the rest, which the taker
+          may have framed anew.
+        - The messages queued right after them framed in the fencing
+          takeover's epoch or a newer one: the ring's log, of which a master
+          cut off from the drone may hold the only copy (the taker handed the
+          role back to it and died).
+        - Not a handover message (``kept_for_rejoin`` keeps it, flag and all),
+          nor anything past one: a history copy of it, fed to the fresh self
+          and forwarded, would overtake it (``World.check_overtaken_handover``
+          checks F7).
 
-        Only in a ring of two, where the predecessor's word is every other
-        controller's. In a longer one the word may come from a controller that
-        routes around a dead or restarted one, which then lacks them and may
-        take over without them; the fenced controller would then keep a give-up
-        the taker replaced by the drone's reply.
-
-        And the messages queued right after them framed in the fencing
-        takeover's epoch or a newer one: the taker's lineage, the ring's log,
-        not ours. A master cut off from the drone queues them, ACTIVE in its
-        replaced mastership, and may hold the only copy: the taker handed the
-        role back to it and died, and the drone had let go of their replies.
-        Not a handover message (kept with its flag, ``kept_for_rejoin``), nor
-        past one: its history copy, fed to the fresh self and forwarded, would
-        overtake the message (``World.check_overtaken_handover`` checks F7).
+        In a longer ring the predecessor's word may come from a controller that
+        routes around one that lacks them, which may then take over without
+        them: the fenced controller would keep a give-up the taker replaced.
+        The fresh self handles what is kept like ring messages
+        (``ControllerNode.reset``) and gives it to its successor again.
         """
         if not (self._fenced_in and len(self.ring) == 2):
             return 0
