@@ -850,12 +850,12 @@ class ControllerProtocol:
         the drone's epoch flushes its log and keeps every message up to it for its
         fresh self (``kept_history``).
 
-        The rejoin dropped everything, as for a replica whose log diverged;
-        but a master's log is the ring's (it frames the drone's replies in
-        the drone's epoch), and it may be the only copy left: the other
-        controllers lost or restarted with nothing, and the drone let go of
-        the replies below the watermark: the fresh taker would wait for ever
-        for requests nobody held. And until the rejoin the controller handles
+        A rejoin drops everything, as for a replica whose log diverged; but a
+        master's log is the ring's (it frames the drone's replies in the
+        drone's epoch), and it may be the only copy left (the other
+        controllers lost or restarted with nothing, the replies below the
+        watermark let go by the drone): dropped, the fresh taker would wait
+        for ever for requests nobody holds. And until the rejoin the controller handles
         nothing queued: a handover message that made it master would otherwise
         be neither queued (``kept_for_rejoin``) nor anywhere else with its
         flag, the fresh self given the old master's history copy would be no
