@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 
@@ -27,3 +28,15 @@ def run_testbed(tmp_path: Path, *args: str) -> dict:  # type: ignore[type-arg]
     report: dict = json.loads(report_path.read_text())  # type: ignore[type-arg]
     report["stdout"] = result.stdout
     return report
+
+
+def baton_run(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    """Runs ``baton ARGS`` to the end, its output captured."""
+    return subprocess.run(baton(*args), capture_output=True, text=True, timeout=timeout)
+
+
+def fly_plan(tmp_path: Path, plan: Path, handovers: Sequence[str], *args: str) -> dict:  # type: ignore[type-arg]
+    """`baton testbed --mission PLAN` at 20x with the ``REQNR:ID`` handovers, to the end;
+    its report (with ``stdout``)."""
+    flags = [arg for h in handovers for arg in ("--handover", h)]
+    return run_testbed(tmp_path, "--mission", str(plan), "--speedup", "20", *flags, *args)

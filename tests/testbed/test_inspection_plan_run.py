@@ -7,13 +7,12 @@ replay` of the run clean."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from collections import Counter
 from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers.testbed_runs import baton_run, fly_plan
 
 from baton.controller.history import read_log
 from baton.effects import read_effects
@@ -26,34 +25,10 @@ PLAN_MISSION = Path(plan_mission.__file__)
 HANDOVERS = ("12:1", "40:2", "70:0")
 
 
-def baton(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "baton.cli", *args], capture_output=True, text=True, timeout=timeout
-    )
-
-
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """`baton testbed --mission examples/inspection.plan` to the end; its report."""
-    tmp = tmp_path_factory.mktemp("inspection")
-    report_path = tmp / "report.json"
-    handovers = [arg for h in HANDOVERS for arg in ("--handover", h)]
-    result = baton(
-        "testbed",
-        "--mission",
-        str(INSPECTION),
-        "--speedup",
-        "20",
-        *handovers,
-        "--workdir",
-        str(tmp / "w"),
-        "--report",
-        str(report_path),
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
-    report: dict[str, Any] = json.loads(report_path.read_text())
-    report["stdout"] = result.stdout
-    return report
+    return fly_plan(tmp_path_factory.mktemp("inspection"), INSPECTION, HANDOVERS)
 
 
 def vehicle_effects(run: dict[str, Any]) -> list[dict[str, Any]]:
@@ -121,7 +96,7 @@ def test_the_delays_are_the_mission_clocks_logged_sleeps(run: dict[str, Any]) ->
 
 
 def test_the_logs_replay_clean(run: dict[str, Any]) -> None:
-    result = baton(
+    result = baton_run(
         "replay",
         run["files"]["workdir"],
         "--mission",
@@ -140,7 +115,7 @@ def test_a_plan_edited_to_loop_once_more_diverges(run: dict[str, Any], tmp_path:
     jump["params"][1] += 1
     edited = tmp_path / "inspection_more.plan"
     edited.write_text(json.dumps(document))
-    result = baton(
+    result = baton_run(
         "replay",
         run["files"]["workdir"],
         "--mission",
@@ -175,7 +150,7 @@ def test_an_open_ended_plan_ends_as_the_run_chose(
     plan.write_text(json.dumps({"fileType": "Plan", "mission": {"items": [takeoff, waypoint]}}))
     chosen = ["--mission-arg", end] if end else []
     report = tmp_path / "report.json"
-    result = baton(
+    result = baton_run(
         "testbed",
         "--mission",
         str(plan),

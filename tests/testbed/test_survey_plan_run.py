@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers.testbed_runs import baton_run, fly_plan
 
 from baton.controller.history import read_log
 from baton.missions import plan as plan_mission
@@ -25,34 +26,10 @@ PLAN_MISSION = Path(plan_mission.__file__)
 HANDOVERS = ("12:1", "30:2", "50:0")
 
 
-def baton(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "baton.cli", *args], capture_output=True, text=True, timeout=timeout
-    )
-
-
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """`baton testbed --mission examples/survey.plan` to the end; its report and stdout."""
-    tmp = tmp_path_factory.mktemp("survey")
-    report_path = tmp / "report.json"
-    handovers = [arg for h in HANDOVERS for arg in ("--handover", h)]
-    result = baton(
-        "testbed",
-        "--mission",
-        str(SURVEY),
-        "--speedup",
-        "20",
-        *handovers,
-        "--workdir",
-        str(tmp / "w"),
-        "--report",
-        str(report_path),
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
-    report: dict[str, Any] = json.loads(report_path.read_text())
-    report["stdout"] = result.stdout
-    return report
+    return fly_plan(tmp_path_factory.mktemp("survey"), SURVEY, HANDOVERS)
 
 
 def test_the_survey_plan_is_flown_exactly_once_through_handovers(run: dict[str, Any]) -> None:
@@ -109,7 +86,7 @@ def test_the_drones_tlog_reads_back_with_mavlogdump(run: dict[str, Any]) -> None
 
 
 def replay(run: dict[str, Any], mission: Path, plan: Path) -> subprocess.CompletedProcess[str]:
-    return baton(
+    return baton_run(
         "replay",
         run["files"]["workdir"],
         "--mission",
@@ -185,7 +162,9 @@ def test_an_unsupported_item_is_refused_before_anything_starts(tmp_path: Path) -
     )
     bad = tmp_path / "yaw.plan"
     bad.write_text(json.dumps(document))
-    result = baton("testbed", "--mission", str(bad), "--workdir", str(tmp_path / "w"), timeout=60)
+    result = baton_run(
+        "testbed", "--mission", str(bad), "--workdir", str(tmp_path / "w"), timeout=60
+    )
     assert result.returncode == 2
     assert "item 2: CONDITION_YAW (115) is not supported" in result.stderr
     assert not (tmp_path / "w" / "testbed.yaml").exists()  # nothing was started
