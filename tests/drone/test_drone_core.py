@@ -122,3 +122,28 @@ def test_a_read_cut_off_runs_again_and_a_command_cut_off_is_booked() -> None:
     assert drone.cut_off(Intent(4, GET, b"", 0, 1.0)) is None
     error = drone.cut_off(Intent(4, GOTO, b"", 0, 1.0))
     assert error is not None and error.code is grpc.StatusCode.UNKNOWN
+
+
+def test_a_masters_connect_carries_the_grant_then_the_retained_replies_in_batches() -> None:
+    drone = core()
+    digest = request_digest(GET, b"")
+    for reqnr in (1, 2, 3):
+        drone.seq.admit(0, 1, reqnr, GET, digest)
+        drone.seq.served(0, reqnr, GET, digest, b"x" * 40, float(reqnr), float(reqnr))
+    assert drone.connected(1, 0) is None  # not the master: nothing but a notice owed
+    first = drone.connected(0, holds_reqnr=1, batch_bytes=64)
+    assert first is not None
+    grant, batches = first
+    assert (grant.master, grant.epoch, grant.last_reqnr, grant.retained_through) == (0, 1, 3, 3)
+    assert [[reply.reqnr for reply in batch] for batch in batches] == [[2], [3]]
+
+
+def test_a_connect_stream_carries_a_preparation_once_then_the_notice() -> None:
+    drone = core()
+    assert drone.stream_event(0, None) is None
+    notice = drone.seq.prepare(1, RPC, 1.0)
+    assert drone.stream_event(0, None) is notice
+    assert drone.stream_event(0, notice) is None  # sent already
+    drone.seq.switch(2, RPC, 2.0)
+    owed = drone.stream_event(0, notice)
+    assert isinstance(owed, drone_pb2.HandoverNotice) and owed.new_master == 2

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import grpc
 
-from baton.drone.dedupe import CachedReply
+from baton.drone.dedupe import RETAINED_BATCH_BYTES, CachedReply, retained_batches
 from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
@@ -227,6 +227,48 @@ class DroneCore:
         """Whether a handover to ``new_master`` can be prepared: the master holds its
         Connect stream (to hear the PrepareHandover) and could send its log."""
         return master_connected and not self.seq.handover_must_take_over(new_master)
+
+    # -- the master's Connect stream ---------------------------------------------------
+
+    def connected(
+        self, controller_id: int, holds_reqnr: int, batch_bytes: int = RETAINED_BATCH_BYTES
+    ) -> tuple[drone_pb2.Connected, list[list[CachedReply]]] | None:
+        """What a Connect of ``controller_id`` (admitted: ``Sequencer.admit_connect``)
+        carries first, if it is the master: the Connected grant, then the replies the
+        drone retains above what it holds (``holds_reqnr``), in batches of about
+        ``batch_bytes`` (the master answers its program from the first while the rest
+        crosses). None for a controller that is not the master (owed a notice)."""
+        seq = self.seq
+        if controller_id != seq.master:
+            return None
+        retained = seq.replies_for_master(holds_reqnr)
+        grant = drone_pb2.Connected(
+            master=controller_id,
+            last_reqnr=seq.last_reqnr,
+            epoch=seq.epoch,
+            retained_through=retained[-1].reqnr if retained else 0,
+            takeover=seq.granted_by_takeover,
+            watermark_reqnr=seq.cache.watermark,
+            takeover_epoch=seq.takeover_epoch,
+        )
+        return grant, retained_batches(retained, batch_bytes)
+
+    def stream_event(
+        self, controller_id: int, sent_prepare: drone_pb2.PrepareHandover | None
+    ) -> drone_pb2.PrepareHandover | drone_pb2.HandoverNotice | None:
+        """The next event for ``controller_id``'s Connect stream, which sent
+        ``sent_prepare`` last: the PrepareHandover of a preparation under way, to the
+        master, once; else the handover notice owed to it, after which the stream ends
+        (``Sequencer.delivered`` once it is written); None: nothing now."""
+        seq = self.seq
+        preparing = seq.preparing
+        if (
+            preparing is not None
+            and controller_id == seq.master
+            and preparing.notice is not sent_prepare
+        ):
+            return preparing.notice
+        return seq.pending.get(controller_id)
 
     # -- a restart -------------------------------------------------------------------
 

@@ -22,7 +22,7 @@ from baton.config import BatonConfig, controllers_only, detection_time_s
 from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
 from baton.drone.core import DroneCore
-from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, retained_batches
+from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
 from baton.drone.dispatch import Dispatcher
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
@@ -709,22 +709,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             await abort_with(context, err)
         self.log.info("master connected", controller=cid)
         try:
-            if cid == self.seq.master:
-                retained = self.seq.replies_for_master(request.holds_reqnr)
-                yield drone_pb2.DroneEvent(
-                    connected=drone_pb2.Connected(
-                        master=cid,
-                        last_reqnr=self.seq.last_reqnr,
-                        epoch=self.seq.epoch,
-                        retained_through=retained[-1].reqnr if retained else 0,
-                        takeover=self.seq.granted_by_takeover,
-                        watermark_reqnr=self.seq.cache.watermark,
-                        takeover_epoch=self.seq.takeover_epoch,
-                    )
-                )
-                # In batches: the master answers its program from the first while
-                # the rest crosses the link (docs/design.md, "Takeover").
-                for batch in retained_batches(retained):
+            first = self.core.connected(cid, request.holds_reqnr)
+            if first is not None:
+                grant, batches = first
+                yield drone_pb2.DroneEvent(connected=grant)
+                for batch in batches:
                     yield drone_pb2.DroneEvent(
                         retained=drone_pb2.RetainedBatch(
                             replies=[reply.to_proto() for reply in batch]
@@ -732,15 +721,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                     )
             sent_prepare: drone_pb2.PrepareHandover | None = None
             while True:
-                preparing = self.seq.preparing
-                if (
-                    preparing is not None
-                    and cid == self.seq.master
-                    and preparing.notice is not sent_prepare
-                ):
-                    yield drone_pb2.DroneEvent(prepare=preparing.notice)
-                    sent_prepare = preparing.notice
-                notice = self.seq.pending.get(cid)
+                notice = self.core.stream_event(cid, sent_prepare)
+                if isinstance(notice, drone_pb2.PrepareHandover):
+                    yield drone_pb2.DroneEvent(prepare=notice)
+                    sent_prepare = notice
+                    continue
                 if notice is not None:
                     yield drone_pb2.DroneEvent(handover=notice)
                     self.seq.delivered(cid, notice)

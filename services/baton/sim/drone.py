@@ -38,7 +38,7 @@ import grpc
 
 from baton.digest import request_digest
 from baton.drone.core import DroneCore
-from baton.drone.dedupe import CachedReply, retained_batches
+from baton.drone.dedupe import CachedReply
 from baton.drone.policy import Decision
 from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
 from baton.drone.service import TAKEOVER_TICK_S
@@ -656,23 +656,20 @@ class SimDrone:
         stream = self.streams.get(cid)
         if stream is None or not self.up:
             return
-        preparing = self.seq.preparing
-        if (
-            preparing is not None
-            and cid == self.seq.master
-            and preparing.notice is not stream.sent_prepare
-        ):
-            stream.sent_prepare = preparing.notice
+        event = self.core.stream_event(cid, stream.sent_prepare)
+        if isinstance(event, drone_pb2.PrepareHandover):
+            stream.sent_prepare = event
             stream.link.to_controller(
                 stream.connection,
                 0,
                 stream.link.owner.on_drone_prepare,
                 stream.session,
-                preparing.notice,
+                event,
                 stream=True,
             )
-        notice = self.seq.pending.get(cid)
-        if notice is None:
+            event = self.core.stream_event(cid, stream.sent_prepare)
+        notice = event
+        if notice is None or isinstance(notice, drone_pb2.PrepareHandover):
             return
         stream.link.to_controller(
             stream.connection,
@@ -725,17 +722,17 @@ class SimDrone:
                 stream=True,
             )
         self.streams[cid] = Stream(cid, session, link, connection)
-        if cid == self.seq.master:  # Connected, then the replies retained above its holds
-            retained = self.seq.replies_for_master(holds_reqnr)
-            through = retained[-1].reqnr if retained else 0
+        first = self.core.connected(cid, holds_reqnr, RETAINED_BATCH_BYTES)
+        if first is not None:  # Connected, then the replies retained above its holds
+            grant, batches = first
             owner = link.owner
             connected = (
                 session,
-                self.seq.epoch,
-                through,
-                self.seq.granted_by_takeover,
-                self.seq.cache.watermark,
-                self.seq.takeover_epoch,
+                grant.epoch,
+                grant.retained_through,
+                grant.takeover,
+                grant.watermark_reqnr,
+                grant.takeover_epoch,
             )
             parts: list[tuple[int, Callable[..., None], tuple[Any, ...]]] = [
                 (0, owner.on_drone_connected, connected)
@@ -746,7 +743,7 @@ class SimDrone:
                     owner.on_drone_retained,
                     (session, [reply.to_proto() for reply in batch]),
                 )
-                for batch in retained_batches(retained, RETAINED_BATCH_BYTES)
+                for batch in batches
             ]
             link.stream_to_controller(connection, parts)
         self._wake(cid)
