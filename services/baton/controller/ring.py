@@ -37,7 +37,7 @@ from google.protobuf.message import DecodeError
 
 from baton.config import MAX_LOG_MESSAGE_DEFAULT
 from baton.controller.history import LogHistory
-from baton.controller.protocol import resend_after
+from baton.controller.outbox import Outbox
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.rpc.streams import read_message
@@ -269,13 +269,10 @@ class PeerLink:
         self._tls = tls
         self._log = log.bind(peer=peer_id)
         self._history = history
-        self._unacked: dict[int, ring_pb2.LogMessage] = {}
+        # What the peer has not acknowledged yet, and what a new stream re-sends.
+        self._outbox = Outbox()
         # Messages being passed on frame by frame as they arrive (cut-through).
         self._relays: dict[int, Relay] = {}
-        # When each unacknowledged message was first given to ``send`` (monotonic).
-        self._sent_at: dict[int, float] = {}
-        # The log numbers of the handover messages among them (``settle_handovers``).
-        self._handovers: set[int] = set()
         # Called with a handover message its receiver acknowledged (set by the node).
         self.on_handover_acked: Callable[[ring_pb2.LogMessage], None] | None = None
         # Called with the peer's id after each acknowledgement it sends.
@@ -311,15 +308,10 @@ class PeerLink:
         handover message on after a takeover, protocol.py ``_resend_handed``):
         the receiver ignores a duplicate by log number and acknowledges it.
         """
-        self._unacked[message.lognr] = message
-        self._sent_at.setdefault(message.lognr, time.monotonic())
+        self._outbox.put(message, time.monotonic())
         relay = self._relays.get(message.lognr)
         if relay is not None:
             relay.confirm()
-        if message.handover:
-            self._handovers.add(message.lognr)
-        else:
-            self._handovers.discard(message.lognr)
         self._sent.discard(message.lognr)
         self._wakeup.set()
         self.start()
@@ -337,30 +329,10 @@ class PeerLink:
         return relay
 
     def settle_handovers(self, settled: Callable[[int], bool]) -> list[ring_pb2.LogMessage]:
-        """Our unacknowledged handover messages whose role is ``settled`` (protocol.py
-        ``handover_settled``), sent from now on without the flag; returns them as they
-        were (the node's history takes them, as on an acknowledgement).
-
-        The acknowledgement was lost, and the receiver may be a new incarnation,
-        restarted with nothing after it handled the message and handed the role
-        on: written to it again, flag set, the message would make it master
-        again in an epoch long over. Written on the current stream already, it
-        is not written again.
-        """
-        done: list[ring_pb2.LogMessage] = []
-        for lognr in sorted(self._handovers):
-            if not settled(lognr):
-                continue
-            self._handovers.discard(lognr)
-            message = self._unacked.get(lognr)
-            if message is None or not message.handover:
-                continue
-            plain = ring_pb2.LogMessage()
-            plain.CopyFrom(message)
-            plain.handover = False
-            self._unacked[lognr] = plain
-            done.append(message)
-        return done
+        """Our unacknowledged handover messages whose role is settled, written from now
+        on without the flag (``Outbox.settle_handovers``); returns them as they were.
+        Written on the current stream already, they are not written again."""
+        return self._outbox.settle_handovers(settled)
 
     @property
     def has_history(self) -> bool:
@@ -387,7 +359,7 @@ class PeerLink:
     @property
     def unacked(self) -> int:
         """Messages sent and not yet acknowledged."""
-        return len(self._unacked)
+        return len(self._outbox.unacked)
 
     @property
     def relaying(self) -> int:
@@ -397,18 +369,22 @@ class PeerLink:
 
     def waiting_for_ack_s(self, now: float) -> float:
         """How long the oldest unacknowledged message has waited (0: none waits)."""
-        return now - min(self._sent_at.values()) if self._sent_at else 0.0
+        return self._outbox.waiting_for_ack_s(now)
 
     @property
     def unacked_bytes(self) -> int:
         """The serialized size of the messages sent and not yet acknowledged."""
-        return sum(message.ByteSize() for message in self._unacked.values())
+        return self._outbox.unacked_bytes
 
     @property
     def used(self) -> bool:
         """Whether the link carries anything: the successor's, or one a message was sent
         on (not only kept open for a handover to come, ``ControllerNode.start``)."""
-        return self._history is not None or bool(self._unacked) or self.counters.sent_messages > 0
+        return (
+            self._history is not None
+            or bool(self._outbox.unacked)
+            or self.counters.sent_messages > 0
+        )
 
     async def _run(self) -> None:
         backoff = BACKOFF_INITIAL_S
@@ -464,9 +440,9 @@ class PeerLink:
                 # holds nothing and gets all of it).
                 if history is not None:
                     ours = history.get(hello.lognr).epoch if hello.lognr in history else None
-                    for lognr in history.above(resend_after(hello.lognr, hello.epoch, ours)):
-                        if lognr not in self._unacked:
-                            await self._write(call, history.get(lognr))
+                    after = self._outbox.resend_from(hello.lognr, hello.epoch, ours)
+                    for lognr in self._outbox.history_to_resend(history.above(after)):
+                        await self._write(call, history.get(lognr))
                 self._sent = set()
                 sent = self._sent
                 while True:
@@ -477,7 +453,7 @@ class PeerLink:
                         synced, word = max(synced, history.holds_lognr), self.master_word()
                         await call.write(_sync_frame(history, synced, self.my_id, word))
                     pending = sorted(
-                        {n for n in self._unacked if n not in sent} | set(self._relays)
+                        {n for n in self._outbox.unacked if n not in sent} | set(self._relays)
                     )
                     if not pending:
                         waiter = asyncio.create_task(self._wakeup.wait())
@@ -496,7 +472,7 @@ class PeerLink:
                         if relay is not None and await self._write_relay(call, relay, acks):
                             sent.add(lognr)
                             continue
-                        message = self._unacked.get(lognr)
+                        message = self._outbox.unacked.get(lognr)
                         if message is None:
                             continue  # acknowledged meanwhile (an earlier write of it)
                         await self._write(call, message)
@@ -579,9 +555,7 @@ class PeerLink:
 
     async def _read_acks(self, call: LogRingCall) -> None:
         async for ack in _acks(call):
-            message = self._unacked.pop(ack.lognr, None)
-            self._sent_at.pop(ack.lognr, None)
-            self._handovers.discard(ack.lognr)
+            message = self._outbox.ack(ack.lognr)
             self.counters.acked += 1
             if message is not None and message.handover and self.on_handover_acked is not None:
                 self.on_handover_acked(message)

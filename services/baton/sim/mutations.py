@@ -126,7 +126,8 @@ def _defect3_resend() -> list[tuple[Any, str, Any]]:
     """Issue 9, defect 3: a predecessor re-sends a restarted successor only others' messages.
 
     As ring.py did: the successor's own messages stopped at the predecessor
-    and were never given back (patched in RingLink, the mirror of PeerLink).
+    and were never given back. Patched in the simulation's ring link, where the
+    history's origins are at hand (both links ask ``Outbox.history_to_resend``).
     """
     original = RingLink._history_to_resend
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from baton.controller.history import LogHistory
-from baton.controller.protocol import resend_after
+from baton.controller.outbox import Outbox
 from baton.controller.ring import BACKOFF_INITIAL_S, BACKOFF_MAX_S
 from baton.v1 import ring_pb2
 
@@ -145,10 +145,9 @@ class RingLink:
         self.owner = owner
         self.dest = dest
         self.history = history
-        self.unacked: dict[int, ring_pb2.LogMessage] = {}
-        # PeerLink._sent_at: when each unacknowledged message was first given to
-        # ``send``; and PeerCounters.acked (a prepared handover's progress word).
-        self.sent_at: dict[int, float] = {}
+        # What the peer has not acknowledged yet (the shipped Outbox, as PeerLink's);
+        # and PeerCounters.acked (a prepared handover's progress word).
+        self.outbox = Outbox()
         self.acked = 0
         self.up = False
         self.generation = 0
@@ -175,8 +174,7 @@ class RingLink:
 
     def send(self, message: ring_pb2.LogMessage) -> None:
         """PeerLink.send: kept until acknowledged; written at once if the stream is up."""
-        self.unacked[message.lognr] = message
-        self.sent_at.setdefault(message.lognr, self.world.loop.now)
+        self.outbox.put(message, self.world.loop.now)
         self.peak_unacked = max(self.peak_unacked, len(self.unacked))
         if self.up:  # written again if sent before (PeerLink.send)
             self._sent.add(message.lognr)
@@ -184,18 +182,13 @@ class RingLink:
         self.start()
 
     def settle_handovers(self, settled: Callable[[int], bool]) -> list[ring_pb2.LogMessage]:
-        """PeerLink.settle_handovers: unacknowledged handover messages whose role is
-        settled are sent from now on without the flag; returned as they were."""
-        done: list[ring_pb2.LogMessage] = []
-        for lognr, message in list(self.unacked.items()):
-            if not message.handover or not settled(lognr):
-                continue
-            plain = ring_pb2.LogMessage()
-            plain.CopyFrom(message)
-            plain.handover = False
-            self.unacked[lognr] = plain
-            done.append(message)
-        return done
+        """PeerLink.settle_handovers (``Outbox.settle_handovers``)."""
+        return self.outbox.settle_handovers(settled)
+
+    @property
+    def unacked(self) -> dict[int, ring_pb2.LogMessage]:
+        """The messages sent and not yet acknowledged, by log number."""
+        return self.outbox.unacked
 
     def break_(self, why: str) -> None:
         """The stream broke: everything in flight is lost; reconnect after the back-off."""
@@ -211,12 +204,12 @@ class RingLink:
     def waiting_for_ack_s(self, now: float) -> float:
         """PeerLink.waiting_for_ack_s: how long the oldest unacknowledged message has
         waited (0: none waits)."""
-        return now - min(self.sent_at.values()) if self.sent_at else 0.0
+        return self.outbox.waiting_for_ack_s(now)
 
     @property
     def unacked_bytes(self) -> int:
         """PeerLink.unacked_bytes: the serialized size of the unacknowledged messages."""
-        return sum(message.ByteSize() for message in self.unacked.values())
+        return self.outbox.unacked_bytes
 
     def down_for(self, now: float) -> float:
         """PeerLink.down_for: seconds the stream has not been up (0 while it is)."""
@@ -307,7 +300,7 @@ class RingLink:
             self._deliver_later(0, self._sync_frame, self._sync(holds))
         if self.history is not None:
             ours = self.history.get(hello).epoch if hello in self.history else None
-            hello = resend_after(hello, epoch, ours)
+            hello = self.outbox.resend_from(hello, epoch, ours)
         for lognr in self._history_to_resend(hello):
             if self.history is not None:
                 self._write(self.history.get(lognr))
@@ -346,10 +339,10 @@ class RingLink:
         return self.history.get(holds).epoch
 
     def _history_to_resend(self, hello: int) -> list[int]:
-        """History messages the receiver lacks, except those still unacknowledged (ring.py)."""
+        """PeerLink's re-send from the history (``Outbox.history_to_resend``)."""
         if self.history is None:
             return []
-        return [n for n in self.history.above(hello) if n not in self.unacked]
+        return self.outbox.history_to_resend(self.history.above(hello))
 
     # -- frames -------------------------------------------------------------------
 
@@ -398,8 +391,7 @@ class RingLink:
 
     def _ack(self, generation: int, lognr: int) -> None:
         if generation == self.generation and self.up and self.owner.alive:
-            message = self.unacked.pop(lognr, None)
-            self.sent_at.pop(lognr, None)
+            message = self.outbox.ack(lognr)
             self.acked += 1  # PeerLink._read_acks
             if message is not None and message.handover:  # PeerLink.on_handover_acked
                 self.owner.handover_acked(message)
