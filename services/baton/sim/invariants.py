@@ -1,0 +1,309 @@
+"""The protocol's invariants as code, checked after every event of a run.
+
+The oracles (``oracles.py``) judge a finished run; these judge every state
+on the way, so a violation is reported at the event that made it, not at the
+end (or never, if a later event hid it). Each invariant is a pure function of
+the world's state (the controllers' ``ControllerProtocol``, the drone's
+``Sequencer``, the ground truth ``SimVehicle`` and ``SimCamera``) and what
+the ``Invariants`` checker remembers of the state before (for the ones about
+never moving back), returning what is wrong or None. ``World`` installs the
+checker as the loop's ``after_event`` hook; the first violation of each
+invariant becomes a ``Violation`` naming it, the event number and the
+virtual time, beside the oracles' (``python -m baton.sim --seed N`` prints
+it with the replay line).
+
+The invariants (docs/simulation.md, "Invariants"):
+
+1. ``one-active-master-per-epoch``: no two live controllers ACTIVE as master
+   in the same epoch. Not "at most one ACTIVE master": a master cut off
+   from the drone and the ring stays ACTIVE in its own, older epoch until
+   it hears of the takeover (docs/design.md, "Takeover"); what the protocol
+   guarantees is that the epochs differ.
+2. ``drone-one-master-per-epoch``: the drone never accepts requests of two
+   controllers in one epoch (the end-of-run oracle's record, seen at once).
+3. ``epoch-granted``: no controller's epoch is newer than the drone's: every
+   epoch is the drone's grant.
+4. ``drone-never-moves-back``: the drone's epoch, last request number and
+   watermark never decrease, across drone restarts too (they are resumed
+   from the store), and the watermark never passes the last request.
+5. ``one-framing-per-epoch``: every log message sent with a log number and
+   an epoch carries the same origin and entries (a master creates each
+   number once in its epoch; forwards and re-sends copy it). So two
+   controllers that hold number n in one epoch hold the same message.
+6. ``master-holds-the-ring-log``: the controller the drone serves, ACTIVE
+   in the drone's epoch, holds at every log number it handled the newest
+   framing sent with that number (``World.framings``). With 5, a
+   controller's handled log forks from the ring's only where it holds an
+   older framing of a number that a takeover framed again; such a
+   controller is a replaced master or a replica that handled its messages,
+   and rejoins with nothing when the ring's message reaches it
+   (``Diverged``), which ``oracles._observed`` allows for.
+7. ``replies-held``: every entry a program consumed (a drone reply, a local
+   answer, a give-up) is held by a live controller (handled, or in a
+   master's unflushed log) or by the drone (its reply cache), or the drone
+   let it go because every controller held it (at or below its watermark).
+   Only the entries the oracles hold an incarnation to
+   (``oracles._observed``): what a failover-ended incarnation consumed
+   after its last request the drone accepted never left it.
+8. ``at-most-once``: no command or picture acted on twice at the vehicle
+   (the oracle's count, at the event that broke it).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from baton.controller.protocol import Effect, SendLog, State
+from baton.sim.oracles import Violation, _observed
+
+if TYPE_CHECKING:
+    from baton.sim.controller import SimController
+    from baton.sim.world import World
+
+INVARIANTS = (
+    "one-active-master-per-epoch",
+    "drone-one-master-per-epoch",
+    "epoch-granted",
+    "drone-never-moves-back",
+    "one-framing-per-epoch",
+    "master-holds-the-ring-log",
+    "replies-held",
+    "at-most-once",
+)
+
+
+@dataclass
+class Before:
+    """What the checker remembers of the drone between events."""
+
+    epoch: int = 0
+    last_reqnr: int = 0
+    watermark: int = 0
+    conflicts: int = 0
+    acted: int = 0
+
+
+def one_active_master_per_epoch(live: list[SimController]) -> str | None:
+    """No two live controllers ACTIVE as master in one epoch."""
+    by_epoch: dict[int, int] = {}
+    for c in live:
+        p = c.protocol
+        if p.state is State.ACTIVE and p.master:
+            other = by_epoch.setdefault(p.epoch, c.id)
+            if other != c.id:
+                return f"controllers {other} and {c.id} both ACTIVE as master in epoch {p.epoch}"
+    return None
+
+
+def drone_one_master_per_epoch(world: World, before: Before) -> str | None:
+    """The drone accepted requests of one controller per epoch (its record grew no conflict)."""
+    conflicts = world.drone.stats.epoch_conflicts
+    if len(conflicts) > before.conflicts:
+        before.conflicts = len(conflicts)
+        return conflicts[-1]
+    return None
+
+
+def epoch_granted(world: World, live: list[SimController]) -> str | None:
+    """No live controller is in an epoch newer than the drone's."""
+    epoch = world.drone.seq.epoch
+    for c in live:
+        if c.protocol.epoch > epoch:
+            return f"controller {c.id} in epoch {c.protocol.epoch}, the drone's is {epoch}"
+    return None
+
+
+def drone_never_moves_back(world: World, before: Before) -> str | None:
+    """The drone's epoch, last reqnr and watermark never decrease; watermark <= last reqnr."""
+    seq = world.drone.seq
+    now = (seq.epoch, seq.last_reqnr, seq.cache.watermark)
+    was = (before.epoch, before.last_reqnr, before.watermark)
+    before.epoch, before.last_reqnr, before.watermark = now
+    for name, old, new in zip(("epoch", "last reqnr", "watermark"), was, now, strict=True):
+        if new < old:
+            return f"the drone's {name} went back from {old} to {new}"
+    if seq.cache.watermark > seq.last_reqnr:
+        return (
+            f"the drone's watermark {seq.cache.watermark} is past its last reqnr {seq.last_reqnr}"
+        )
+    return None
+
+
+def master_holds_the_ring_log(world: World) -> str | None:
+    """The drone's ACTIVE master holds the newest framing of every log number it handled."""
+    seq = world.drone.seq
+    master = world.controllers.get(seq.master)
+    if master is None or not master.alive:
+        return None
+    p = master.protocol
+    if p.state is not State.ACTIVE or not p.master or p.epoch != seq.epoch:
+        return None
+    for lognr, epoch in p._epoch_at.items():
+        newest = max(world.framings.get(lognr, (epoch,)))
+        if epoch < newest:
+            return (
+                f"master {master.id} (epoch {p.epoch}) holds log message {lognr} of epoch "
+                f"{epoch}, a newer framing (epoch {newest}) was sent"
+            )
+    return None
+
+
+def replies_held(world: World, live: list[SimController]) -> str | None:
+    """Every entry a program consumed is held by a live controller or by the drone."""
+    seq = world.drone.seq
+    # Every request up to a live controller's held_reqnr is held there.
+    floor = max([seq.cache.watermark, *(c.protocol.held_reqnr for c in live)])
+    consumed = max((len(c.seen) for c in world.incarnations), default=0)
+    if consumed <= floor:
+        return None
+    unflushed = {e.reqnr for c in live for e in c.protocol.log.entries}
+    for c in world.incarnations:
+        if len(c.seen) <= floor:
+            continue
+        upto = _observed(c, world)
+        for reqnr, _, _ in c.seen[floor:upto]:
+            if reqnr <= floor or reqnr in unflushed or seq.cache.get(reqnr) is not None:
+                continue
+            return (
+                f"request {reqnr}, consumed by controller {c.id} (incarnation "
+                f"{c.incarnation}), is held by no live controller (they hold up to {floor}) "
+                f"and not by the drone (watermark {seq.cache.watermark})"
+            )
+    return None
+
+
+def at_most_once(world: World, before: Before) -> str | None:
+    """No command or picture acted on twice (checked for the ones acted on since)."""
+    drone = world.drone
+    acted = [*drone.vehicle.commands, *drone.camera.pictures]
+    if len(acted) == before.acted:
+        return None
+    before.acted = len(acted)
+    tags = [a.tag for a in acted]
+    if len(set(tags)) < len(tags):
+        twice = sorted({t for t in tags if tags.count(t) > 1})
+        return f"{twice[0]!r} acted on {tags.count(twice[0])} times"
+    return None
+
+
+class Invariants:
+    """The checker a World installs: every invariant after every event (or every
+    ``every``-th), the first violation of each kept."""
+
+    def __init__(self, world: World, every: int = 1) -> None:
+        self.world = world
+        self.every = every
+        self.before = Before()
+        self.found: dict[str, Violation] = {}
+        self.checks = 0
+        b = self.before
+        # Each check, and what it reads: it runs again only once that changed (a check
+        # of a state it saw already would find the same), which keeps the checks after
+        # every event affordable (docs/simulation.md, "Invariants").
+        self._checks: tuple[tuple[str, Callable[[list[SimController]], str | None]], ...] = (
+            ("one-active-master-per-epoch", one_active_master_per_epoch),
+            ("epoch-granted", lambda live: epoch_granted(world, live)),
+            ("replies-held", lambda live: replies_held(world, live)),
+        )
+        self._drone_checks: tuple[tuple[str, Callable[[], str | None]], ...] = (
+            ("drone-one-master-per-epoch", lambda: drone_one_master_per_epoch(world, b)),
+            ("drone-never-moves-back", lambda: drone_never_moves_back(world, b)),
+            ("at-most-once", lambda: at_most_once(world, b)),
+        )
+        self._seen: tuple[object, ...] = ()
+        self._drone_seen: tuple[object, ...] = ()
+        # What master_holds_the_ring_log last looked at: checked again when it changes.
+        self._master_seen: tuple[object, ...] = ()
+        # One framing per (log number, epoch): the origin and entries first sent.
+        self._framed: dict[tuple[int, int], tuple[int, bytes]] = {}
+
+    @property
+    def violations(self) -> list[Violation]:
+        """The first violation of each invariant, in the order found."""
+        return list(self.found.values())
+
+    def after_event(self) -> None:
+        """The loop's hook: checks the state the event left."""
+        loop = self.world.loop
+        if loop.events % self.every:
+            return
+        self.checks += 1
+        world = self.world
+        drone = world.drone
+        seq = drone.seq
+        drone_key = (
+            id(seq),
+            len(seq.handovers),
+            seq.last_reqnr,
+            seq.cache.watermark,
+            len(seq.cache),
+            len(drone.vehicle.commands) + len(drone.camera.pictures),
+            len(drone.stats.epoch_conflicts),
+        )
+        found = self.found
+        if drone_key != self._drone_seen:
+            self._drone_seen = drone_key
+            for name, drone_check in self._drone_checks:
+                if name not in found and (problem := drone_check()) is not None:
+                    self._fail(name, problem)
+        live = [c for c in world.controllers.values() if c.alive]
+        key = (
+            drone_key,
+            len(world.incarnations),
+            *[
+                (p, p.state, p.epoch, p.held_reqnr, len(c.seen), len(p.log.entries))
+                for c in live
+                for p in (c.protocol,)
+            ],
+        )
+        if key != self._seen:
+            self._seen = key
+            for name, check in self._checks:
+                if name not in found and (problem := check(live)) is not None:
+                    self._fail(name, problem)
+        if "master-holds-the-ring-log" not in found and (problem := self._master_log()):
+            self._fail("master-holds-the-ring-log", problem)
+
+    def _master_log(self) -> str | None:
+        """Invariant 6, when the master, its log or the framings sent have changed."""
+        world = self.world
+        seq = world.drone.seq
+        master = world.controllers.get(seq.master)
+        p = master.protocol if master is not None else None
+        key = (
+            seq.epoch,
+            id(p),
+            p and (p.state, p.epoch, p.lognr, len(p._epoch_at)),
+            len(self._framed),
+        )
+        if key == self._master_seen:
+            return None
+        self._master_seen = key
+        return master_holds_the_ring_log(world)
+
+    def sent(self, controller: SimController, effects: list[Effect]) -> None:
+        """``World.after_apply``'s hook: every log message sent keeps invariant 5."""
+        if "one-framing-per-epoch" in self.found:
+            return
+        for effect in effects:
+            if not isinstance(effect, SendLog):
+                continue
+            m = effect.message
+            entries = b"".join(e.SerializeToString(deterministic=True) for e in m.entries)
+            first = self._framed.setdefault((m.lognr, m.epoch), (m.origin, entries))
+            if first != (m.origin, entries):
+                self._fail(
+                    "one-framing-per-epoch",
+                    f"controller {controller.id} sent log message {m.lognr} of epoch {m.epoch} "
+                    f"(origin {m.origin}, {len(m.entries)} entries) unlike the first sent with "
+                    f"that number and epoch (origin {first[0]})",
+                )
+                return
+
+    def _fail(self, name: str, problem: str) -> None:
+        loop = self.world.loop
+        what = f"{problem} (after event {loop.events}, t={loop.now:.4f}s)"
+        self.found[name] = Violation(name, what)
+        self.world.trace(f"INVARIANT {name} broken: {what}")
