@@ -27,9 +27,13 @@ The invariants (docs/simulation.md, "Invariants"):
    watermark never decrease, across drone restarts too (they are resumed
    from the store), and the watermark never passes the last request.
 5. ``one-framing-per-epoch``: every log message sent with a log number and
-   an epoch carries the same origin and entries (a master creates each
-   number once in its epoch; forwards and re-sends copy it). So two
-   controllers that hold number n in one epoch hold the same message.
+   an epoch carries the same entries after the same request number (a
+   master creates each number once in its epoch; forwards and re-sends copy
+   it). So two controllers that hold number n in one epoch hold the same
+   entries. Not the same origin: a taker that handed over last sends its
+   own handover message on as a normal message of its own
+   (``ControllerProtocol._resend_handed``), where the first copy named the
+   lost new master as origin.
 6. ``master-holds-the-ring-log``: the controller the drone serves, ACTIVE
    in the drone's epoch, holds at every log number it handled the newest
    framing sent with that number (``World.framings``). With 5, a
@@ -39,8 +43,8 @@ The invariants (docs/simulation.md, "Invariants"):
    and rejoins with nothing when the ring's message reaches it
    (``Diverged``), which ``oracles._observed`` allows for.
 7. ``replies-held``: every entry a program consumed (a drone reply, a local
-   answer, a give-up) is held by a live controller (handled, or in a
-   master's unflushed log) or by the drone (its reply cache), or the drone
+   answer, a give-up) is held by a live controller (handled, queued, or in
+   a master's unflushed log) or by the drone (its reply cache), or the drone
    let it go because every controller held it (at or below its watermark).
    Only the entries the oracles hold an incarnation to
    (``oracles._observed``): what a failover-ended incarnation consumed
@@ -158,7 +162,13 @@ def replies_held(world: World, live: list[SimController]) -> str | None:
     consumed = max((len(c.seen) for c in world.incarnations), default=0)
     if consumed <= floor:
         return None
+    # Beyond that: in a master's unflushed log, or in a log message received and queued
+    # (a controller that restarted with nothing holds the ring's messages queued while
+    # it replays the ones below).
     unflushed = {e.reqnr for c in live for e in c.protocol.log.entries}
+    unflushed.update(
+        e.reqnr for c in live for m in c.protocol.log_queue.values() for e in m.entries
+    )
     for c in world.incarnations:
         if len(c.seen) <= floor:
             continue
@@ -216,8 +226,9 @@ class Invariants:
         self._drone_seen: tuple[object, ...] = ()
         # What master_holds_the_ring_log last looked at: checked again when it changes.
         self._master_seen: tuple[object, ...] = ()
-        # One framing per (log number, epoch): the origin and entries first sent.
-        self._framed: dict[tuple[int, int], tuple[int, bytes]] = {}
+        # One framing per (log number, epoch): what the first sent held (after_reqnr,
+        # entries), and its origin.
+        self._framed: dict[tuple[int, int], tuple[tuple[int, bytes], int]] = {}
 
     @property
     def violations(self) -> list[Violation]:
@@ -253,7 +264,15 @@ class Invariants:
             drone_key,
             len(world.incarnations),
             *[
-                (p, p.state, p.epoch, p.held_reqnr, len(c.seen), len(p.log.entries))
+                (
+                    p,
+                    p.state,
+                    p.epoch,
+                    p.held_reqnr,
+                    len(c.seen),
+                    len(p.log.entries),
+                    len(p.log_queue),
+                )
                 for c in live
                 for p in (c.protocol,)
             ],
@@ -292,13 +311,15 @@ class Invariants:
                 continue
             m = effect.message
             entries = b"".join(e.SerializeToString(deterministic=True) for e in m.entries)
-            first = self._framed.setdefault((m.lognr, m.epoch), (m.origin, entries))
-            if first != (m.origin, entries):
+            held = (m.after_reqnr, entries)
+            first, origin = self._framed.setdefault((m.lognr, m.epoch), (held, m.origin))
+            if first != held:
                 self._fail(
                     "one-framing-per-epoch",
                     f"controller {controller.id} sent log message {m.lognr} of epoch {m.epoch} "
-                    f"(origin {m.origin}, {len(m.entries)} entries) unlike the first sent with "
-                    f"that number and epoch (origin {first[0]})",
+                    f"(origin {m.origin}, {len(m.entries)} entries after request "
+                    f"{m.after_reqnr}) unlike the first sent with that number and epoch "
+                    f"(origin {origin}, after request {first[0]})",
                 )
                 return
 
