@@ -24,7 +24,7 @@ def test_every_order_of_a_handover_and_a_duplicated_message_holds() -> None:
 def test_the_explorer_finds_a_restarted_master_that_goes_active_on_its_own_word() -> None:
     """defect3-active, a patch of the shipped ``ControllerProtocol.start``: proof that
     the exploration can fail."""
-    scope = Scope(controllers=2, calls=2, handover_after=1, fault="kill", window=0.0)
+    scope = Scope(controllers=2, calls=1, handover_after=1, fault="kill", window=0.0)
     with mutated("defect3-active"):
         result = explore(scope, options=SimOptions(kill_master=True))
     assert result.found, result.summary()

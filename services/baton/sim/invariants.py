@@ -36,11 +36,17 @@ The invariants (docs/simulation.md, "Invariants"):
    lost new master as origin.
 6. ``master-holds-the-ring-log``: whenever the drone accepts a new request,
    the master it serves (ACTIVE in the drone's epoch) holds at every log
-   number it handled a framing no older than any live controller's. Not
-   the newest ever sent (``World.framings``): a master lost mid-flush sends
-   a framing that may reach nobody alive (--lose-master seed 956: taker 0
-   holds a handover message of epoch 4 whose number the lost taker 5 framed
-   in epoch 5 and died with). Not at every instant: a taker goes ACTIVE on the
+   number it handled a framing no older than any live controller's, but
+   those of masterships a takeover ended (the ring fences them: ``Fenced``;
+   their holders rejoin). Not the newest ever sent (``World.framings``): a
+   master lost mid-flush sends a framing that may reach nobody alive
+   (--lose-master seed 956: taker 0 holds a handover message of epoch 4
+   whose number the lost taker 5 framed in epoch 5 and died with). And not
+   against a replaced mastership's (--policy nearest seed 984: taker 7,
+   epoch 8, holds an empty message 5 of epoch 3 where the replicas hold
+   taker 1's message 5 of epoch 5, requests 7-12, a mastership 7's own
+   takeover ended; 7 frames the same replies in message 6, and the replicas
+   rejoin on it, ``Diverged``). Not at every instant: a taker goes ACTIVE on the
    drone's grant, and then compares its framing with the replies the drone
    retained (``ControllerProtocol.replaced_framing``); one that holds a
    framing a later takeover replaced rejoins with nothing before it sends a
@@ -70,6 +76,7 @@ from typing import TYPE_CHECKING
 
 from baton.controller.protocol import Effect, SendLog, State
 from baton.sim.oracles import Violation, _observed
+from baton.v1 import drone_pb2
 
 if TYPE_CHECKING:
     from baton.sim.controller import SimController
@@ -155,12 +162,14 @@ def master_holds_the_ring_log(world: World) -> str | None:
     if p.state is not State.ACTIVE or not p.master or p.epoch != seq.epoch:
         return None
     live = [c for c in world.live_controllers() if c is not master]
+    # Masterships a takeover ended: their framings are fenced on the ring, not its log.
+    replaced = {r.epoch - 1 for r in seq.handovers if r.kind == drone_pb2.HANDOVER_KIND_TAKEOVER}
     for lognr, epoch in p._epoch_at.items():
         if epoch >= max(world.framings.get(lognr, (epoch,))):
             continue  # the newest framing sent (the common case: nothing to look up)
         for c in live:
             theirs = c.protocol.epoch_of(lognr)
-            if theirs > epoch:
+            if theirs > epoch and theirs not in replaced:
                 return (
                     f"master {master.id} (epoch {p.epoch}) holds log message {lognr} of "
                     f"epoch {epoch}, controller {c.id} holds it of epoch {theirs}"
