@@ -27,6 +27,14 @@ What is abstracted, and why:
   late relative to them. Beyond the window, time orders events as in a
   run (a takeover after 3 s without service is not raced against a 10 ms
   delivery; the seeded runs cover those with random delays).
+- *A process's own wake-ups, first.* An event scheduled for the instant
+  it was scheduled in (a controller's ``_pump``, a rejoin, the drone's
+  wake of a stream) is taken next, alone: asyncio runs the callbacks made
+  ready before it reads its sockets again, and one process's wake-up
+  commutes with another's deliveries.
+- *The start-up, in time order* (``Scope.from_start`` explores it too):
+  the Connects, the grant and the ring's first streams until the programs
+  start; the interleavings of interest come after.
 - *The fault, to any moment.* The one fault is not timed: in every state
   until it is used, each of its forms is one more enabled event (kill a
   controller the mix may kill, restarted 0.5 s later; drop a ring stream
