@@ -102,6 +102,12 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--mutation", choices=sorted(MUTATIONS), help="put a known defect back")
     p.add_argument("--trace", action="store_true", help="print every event of --seed")
+    p.add_argument(
+        "--check-every",
+        type=int,
+        default=SimOptions().check_every,
+        help="check the invariants (baton.sim.invariants) after every N events (0: never)",
+    )
     p.add_argument("--stop-at-first", action="store_true", help="with --seeds: stop at a failure")
     p.add_argument(
         "--workers",
@@ -129,6 +135,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         allow=args.allow,
         mutation=args.mutation,
         trace=args.trace and args.seed is not None,
+        check_every=args.check_every,
     )
     if args.seed is not None:
         with mutated(args.mutation):

@@ -16,6 +16,7 @@ import itertools
 import random
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import grpc
 
@@ -28,6 +29,7 @@ from baton.sim.corridor import Corridor
 from baton.sim.drone import SimDrone
 from baton.sim.faults import FaultPlan, handover, plan_faults, stall_ring, survivable
 from baton.sim.findings import FINDINGS
+from baton.sim.invariants import Invariants
 from baton.sim.loop import Loop
 from baton.sim.mission import MissionCall, random_mission
 from baton.sim.mutations import mutated
@@ -36,6 +38,9 @@ from baton.sim.oracles import Violation, check
 from baton.v1 import drone_pb2
 from baton.v1.drone_pb2 import HandoverRecord
 from baton.v1.ring_pb2 import LogMessage
+
+if TYPE_CHECKING:
+    from baton.sim.explore import Scope
 
 # Beyond the fault window, how long the mission may take to finish, at most.
 QUIET_BOUND_S = 60.0
@@ -78,6 +83,9 @@ class SimOptions:
     allow: frozenset[str] = frozenset()
     mutation: str | None = None
     trace: bool = False
+    # The invariants (invariants.py) after every this many events (1: every event;
+    # 0: not checked).
+    check_every: int = 1
 
     def flags(self) -> str:
         """The command-line flags that give these options (defaults left out)."""
@@ -101,6 +109,8 @@ class SimOptions:
             parts.append(f"--allow {','.join(sorted(self.allow))}")
         if self.mutation:
             parts.append(f"--mutation {self.mutation}")
+        if self.check_every != default.check_every:
+            parts.append(f"--check-every {self.check_every}")
         return " ".join(parts)
 
 
@@ -158,11 +168,16 @@ class Outcome:
 class World:
     """Everything one seed simulates."""
 
-    def __init__(self, seed: int, options: SimOptions) -> None:
+    def __init__(self, seed: int, options: SimOptions, scope: Scope | None = None) -> None:
         self.seed = seed
         self.options = options
         self.rng = rng = random.Random(seed)
         self.loop = Loop()
+        # The invariants, checked after every event (options.check_every).
+        self.invariants: Invariants | None = None
+        if options.check_every:
+            self.invariants = Invariants(self, options.check_every)
+            self.loop.after_event = self.invariants.after_event
         self._trace: list[str] | None = [] if options.trace else None
         self._ids = itertools.count(1)
         n = rng.randint(2, 8)
@@ -191,6 +206,8 @@ class World:
             script.setdefault(
                 reqnr, ScriptedHandover(reqnr, rng.choice(self.ring), line + 1, prepared)
             )
+        if scope is not None:  # explore.py: a small world of its own, not the seed's
+            script, cache_window = scope.shape(self)
         self.faulty = True
         # Takeover and ring detection time (config.detection_time_s: takeover_after
         # mission seconds, at least 1 s), from a stream of its own so that the
@@ -234,7 +251,7 @@ class World:
         self.incarnations: list[SimController] = []
         for cid in sorted(self.ring):
             self._new_controller(cid)
-        self.plan: FaultPlan = plan_faults(self)
+        self.plan: FaultPlan = plan_faults(self) if scope is None else scope.quiet(self)
         self.deadline = (
             self.plan.fault_end + QUIET_BOUND_S + QUIET_BOUND_PER_CALL_S * len(self.program)
         )
@@ -362,6 +379,8 @@ class World:
 
     def after_apply(self, controller: SimController, effects: Sequence[CoreEffect]) -> None:
         """A controller carried out effects: the lose-master fault may strike mid-flush."""
+        if self.invariants is not None:
+            self.invariants.sent(controller, effects)
         if "on flush" not in self.failover or controller.id != self.drone.seq.master:
             return
         if any(isinstance(e, SendLog) and e.message.origin == controller.id for e in effects):
@@ -446,19 +465,14 @@ class World:
 
     def run(self) -> Outcome:
         """Runs to the end, checks the oracles, frees the history files."""
-        if self.corridor is not None:
-            self.corridor.start()
-        for controller in list(self.controllers.values()):
-            controller.start()
-        self.check_start()
+        self.begin()
         try:
             self.loop.run(self.deadline, MAX_EVENTS)
-            violations = check(self) + self.regressions
+            violations = self.verdict()
             if self.loop.events >= MAX_EVENTS:
                 violations.append(Violation("liveness", f"more than {MAX_EVENTS} events"))
         finally:
-            for controller in self.incarnations:
-                controller.close()
+            self.close()
         return Outcome(
             seed=self.seed,
             options=self.options,
@@ -488,6 +502,26 @@ class World:
                 if c.id != self.drone.seq.master and c.protocol.state is State.ACTIVE
             ],
         )
+
+    def begin(self) -> None:
+        """Starts the corridor, the controllers and, once ready, the programs."""
+        if self.corridor is not None:
+            self.corridor.start()
+        for controller in list(self.controllers.values()):
+            controller.start()
+        self.check_start()
+
+    def verdict(self) -> list[Violation]:
+        """The oracles, the fixed findings that struck again, and the invariants broken."""
+        violations = check(self) + self.regressions
+        if self.invariants is not None:
+            violations += self.invariants.violations
+        return violations
+
+    def close(self) -> None:
+        """Frees the history files."""
+        for controller in self.incarnations:
+            controller.close()
 
     def _prepared(self) -> dict[str, int]:
         drone = self.drone
