@@ -432,6 +432,9 @@ class LocalTestbed:
         }
         if self._mavlink_key() is not None:
             drone["mavlink_key"] = str(self._mavlink_key())
+        if config.drone.gcs:  # ground stations watching live (drone/gcs.py)
+            drone["gcs"] = list(config.drone.gcs)
+            drone["gcs_override"] = config.drone.gcs_override
         document: dict[str, Any] = {
             "drone": drone,
             "controllers": controllers,
