@@ -22,6 +22,7 @@ from waiting import eventually
 
 from baton.drone.gcs import GcsEndpoint, GcsEndpointError
 from baton.effects import read_effects
+from baton.signing import enable, write_key
 from baton.testbed.local import (
     VEHICLE_EFFECTS_FILE,
     LocalTestbed,
@@ -37,11 +38,16 @@ MISSION = MissionPlan(grid=3, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, pol
 
 
 class Station:
-    """A pymavlink ground station listening where the drone forwards (udpin), in a thread."""
+    """A pymavlink ground station listening where the drone forwards (udpin), in a thread;
+    with ``key``, it signs what it sends and accepts only signed frames."""
 
-    def __init__(self) -> None:
+    def __init__(self, key: bytes | None = None) -> None:
         self.port = free_port()
         self.link = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}", source_system=255)
+        self.key = key
+        if key is not None:
+            enable(self.link.mav, key, sign_outgoing=True)
+        self.signed_acks = 0
         self.positions: list[float] = []  # arrival times of GLOBAL_POSITION_INT
         self.acks: list[Any] = []
         self.texts: list[str] = []
@@ -59,10 +65,13 @@ class Station:
                 self.positions.append(time.monotonic())
             elif kind == "COMMAND_ACK" and msg.target_system == 255:
                 self.acks.append(msg)  # to this station (the autopilot's to MAVSDK pass too)
+                self.signed_acks += bool(msg.get_msgbuf()[2] & 0x01)
             elif kind == "STATUSTEXT":
                 self.texts.append(msg.text)
 
     def land(self) -> None:
+        if self.key is not None:  # mavutil made a new MAVLink 2 object on the first frame
+            enable(self.link.mav, self.key, sign_outgoing=True)
         self.link.mav.command_long_send(1, 1, mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0)
 
     def close(self) -> None:
@@ -71,10 +80,14 @@ class Station:
         self.link.close()
 
 
-def plan(station: Station, override: bool) -> TestbedPlan:
+def plan(station: Station, override: bool, key_file: Path | None = None) -> TestbedPlan:
     config = local_config(3, flush_limit=0, speedup=10.0, drone_link=FAST_LINK)
     drone = config.drone.model_copy(
-        update={"gcs": [f"udp:127.0.0.1:{station.port}"], "gcs_override": override}
+        update={
+            "gcs": [f"udp:127.0.0.1:{station.port}"],
+            "gcs_override": override,
+            "mavlink_key": key_file,
+        }
     )
     config = config.model_copy(update={"drone": drone})
     return TestbedPlan(config=config, handovers=((20, 1), (45, 2)), mission=MISSION)
@@ -147,3 +160,24 @@ async def test_with_override_a_ground_stations_land_pauses_the_mission(tmp_path:
     finally:
         station.close()
     assert any("paused by ground station 255" in e for e in errors), errors
+
+
+async def test_with_signing_the_ground_station_link_is_signed(tmp_path: Path) -> None:
+    """drone.mavlink_key: a station holding the key sees the autopilot's signed frames and
+    gets the drone's answer signed; pymavlink's station accepts only signed frames."""
+    key_file = tmp_path / "mavlink.key"
+    key = write_key(key_file)
+    station = Station(key)
+    try:
+        async with LocalTestbed(plan(station, False, key_file), tmp_path) as testbed:
+
+            async def airborne() -> bool:
+                return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 10
+
+            await eventually(airborne, "the vehicle flying", 60)
+            station.land()
+            await eventually(lambda: station.acks, "the drone's signed COMMAND_ACK", 10)
+    finally:
+        station.close()
+    assert station.positions and station.signed_acks == len(station.acks) == 1
+    assert station.acks[0].result == mavlink.MAV_RESULT_DENIED
