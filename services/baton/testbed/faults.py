@@ -23,7 +23,7 @@ from __future__ import annotations
 import asyncio
 import re
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -321,7 +321,7 @@ def fault_outcomes(
     return entries
 
 
-def fault_lines(report: dict[str, Any]) -> list[str]:
+def fault_lines(report: Mapping[str, Any]) -> list[str]:
     """The faults and the parts that died, for the terminal's summary."""
     lines = []
     for f in report.get("faults", []):
