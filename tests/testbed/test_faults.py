@@ -3,6 +3,7 @@ through what baton lives through, across real processes."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 from pathlib import Path
 
@@ -112,3 +113,46 @@ def test_stop_cut_and_a_kill_restarted_by_restart_parts(tmp_path: Path) -> None:
     assert [c["id"] for c in report["controllers"]] == [0, 1, 2]
     assert report["completed"] and report["exactly_once"] and report["replicas_consistent"]
     assert report["side_effects"]["exactly_once"] is True
+
+
+def test_the_drone_killed_is_restarted_with_its_state_and_the_mission_completes_once(
+    tmp_path: Path,
+) -> None:
+    """--restart-parts: the drone service back with its state file (same command line);
+    the controllers re-send what was in flight and nothing runs twice, by the vehicle's
+    own count."""
+    report = run_testbed(
+        tmp_path, *SMALL, "--no-handovers", "--restart-parts", "--fault", "kill:drone@reqnr=20"
+    )
+    [death] = report["parts_died"]
+    assert death["part"] == "drone" and death["restarted_at_s"] > death["at_s"]
+    assert report["completed"] and report["exactly_once"] and report["replicas_consistent"]
+    assert report["side_effects"]["exactly_once"] is True
+    assert len(report["files"]["tlogs"]) == 2  # one a drone process
+
+
+def test_without_restart_parts_a_dead_drone_ends_the_run_with_a_report(tmp_path: Path) -> None:
+    """The mission cannot go on without the drone: the run stops, says why, and still
+    writes the report with the fault in it; exit 1."""
+    report_path = tmp_path / "report.json"
+    result = subprocess.run(
+        baton(
+            "testbed",
+            *SMALL,
+            "--no-handovers",
+            "--fault",
+            "kill:drone@reqnr=20",
+            "--report",
+            str(report_path),
+            "--workdir",
+            str(tmp_path / "w"),
+        ),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "run ended early: drone died and is not restarted" in result.stdout
+    report = json.loads(report_path.read_text())
+    assert report["ended_early"].startswith("drone died and is not restarted")
+    assert report["faults"][0]["fired"] and not report["completed"]

@@ -320,7 +320,7 @@ class Snapshot:
     controllers: dict[int, ring_pb2.ControllerStatus] = field(default_factory=dict)
     vehicle_effects: Effects | None = None
     camera_effects: Effects | None = None
-    # Parts not answering on purpose or dead, by name: "dead", "stopped" (a fault).
+    # Parts not answering on purpose or dead, by name: "dead", "stopped", "cut" (a fault).
     absent: dict[str, str] = field(default_factory=dict)
 
     @property
@@ -878,7 +878,8 @@ class LocalTestbed:
         snapshot = Snapshot(drone)
         for name, part in self.supervisor.parts.items():
             if part.returncode is not None and not part.expect_exit:
-                snapshot.absent[name] = "dead"
+                cut = name.startswith("link-") and name in self.held_down
+                snapshot.absent[name] = "cut" if cut else "dead"
             elif part.frozen:
                 snapshot.absent[name] = "stopped"
         for cid, stub in self.controller_stubs.items():

@@ -101,7 +101,7 @@ class Progress:
         )
         vehicle = "".join(
             f" | {how}: {', '.join(sorted(n for n, h in snapshot.absent.items() if h == how))}"
-            for how in ("dead", "stopped")
+            for how in ("dead", "stopped", "cut")
             if how in snapshot.absent.values()
         )
         vehicle += "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
