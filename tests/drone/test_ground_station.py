@@ -11,6 +11,8 @@ master's next call is refused FAILED_PRECONDITION "paused by ground station".
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -181,3 +183,18 @@ async def test_with_signing_the_ground_station_link_is_signed(tmp_path: Path) ->
         station.close()
     assert station.positions and station.signed_acks == len(station.acks) == 1
     assert station.acks[0].result == mavlink.MAV_RESULT_DENIED
+
+
+def test_a_bad_gcs_option_names_it_and_the_fix() -> None:
+    for program in ("drone", "testbed"):
+        result = subprocess.run(
+            [sys.executable, "-m", "baton.cli", program, "--gcs", "tcp:127.0.0.1:5760"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert result.returncode == 2, result.stderr
+        assert "--gcs tcp:127.0.0.1:5760: GCS endpoint 'tcp:127.0.0.1:5760': expected " in (
+            result.stderr
+        )
+        assert "udp:HOST:PORT, e.g. udp:127.0.0.1:14550" in result.stderr

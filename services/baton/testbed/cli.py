@@ -206,6 +206,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "cut:link-ring-1@reqnr=90,for=10s. Each is in the report with the mission's verdict",
     )
     parser.add_argument(
+        "--gcs",
+        action="append",
+        metavar="udp:HOST:PORT",
+        help="a ground station watching live: the drone forwards the autopilot's MAVLink there "
+        "(QGroundControl: udp:127.0.0.1:14550), repeatable; its commands are refused unless "
+        "--gcs-override (default: the --config file's drone.gcs, else none)",
+    )
+    parser.add_argument(
+        "--gcs-override",
+        action="store_true",
+        help="a ground station's command is an operator override that pauses the mission",
+    )
+    parser.add_argument(
         "--restart-parts",
         action="store_true",
         help="start a part that dies (killed from outside or by --fault kill) again with its "
@@ -314,6 +327,8 @@ def testbed_config(args: argparse.Namespace) -> tuple[BatonConfig, bool]:
         ("--drone-link-latency", "drone_link.latency", args.drone_link_latency),
         ("--drone-link-bandwidth", "drone_link.bandwidth", args.drone_link_bandwidth),
         ("--insecure", "tls.insecure", True if args.insecure else None),
+        ("--gcs", "drone.gcs", args.gcs),
+        ("--gcs-override", "drone.gcs_override", True if args.gcs_override else None),
     ]
     return merge(config, flags, args.config or ""), bool(args.config)
 
