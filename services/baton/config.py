@@ -199,6 +199,21 @@ class DroneConfig(_Model):
     # The sim vehicle of the testbed checks and signs with the same key.
     mavlink_key: Path | None = None
     home: Location = Location(latitude_deg=47.397742, longitude_deg=8.545594, altitude_m=488.0)
+    # Ground stations that watch live: the autopilot's MAVLink is forwarded to each
+    # (udp:HOST:PORT, where QGroundControl or MAVProxy listens; drone/gcs.py).
+    gcs: list[str] = []
+    # A ground station's command is an operator override that pauses the mission
+    # (false: refused, watch only).
+    gcs_override: bool = False
+
+    @field_validator("gcs")
+    @classmethod
+    def _gcs_endpoints(cls, value: list[str]) -> list[str]:
+        from baton.drone.gcs import GcsEndpoint
+
+        for text in value:
+            GcsEndpoint.parse(text)  # ValueError names it and the fix
+        return value
 
 
 class RingConfig(_Model):

@@ -12,6 +12,7 @@ from baton.drone.camera import DEFAULT_RESOLUTION
 
 if TYPE_CHECKING:
     from baton.config import BatonConfig
+    from baton.drone.gcs import GcsLink
     from baton.drone.policy import PolicyParams, Station
     from baton.drone.service import DroneSettings
 
@@ -98,6 +99,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="record the MAVLink traffic with the autopilot as a telemetry log (.tlog, as "
         "QGroundControl and pymavlink's mavlogdump.py read it), one file per run in DIR "
         "(default: none recorded)",
+    )
+    parser.add_argument(
+        "--gcs",
+        action="append",
+        metavar="udp:HOST:PORT",
+        help="forward the autopilot's MAVLink to a ground station listening there (QGroundControl, "
+        "MAVProxy: udp:127.0.0.1:14550), repeatable; its commands are refused (watch only) "
+        "unless --gcs-override (default: the config's drone.gcs, else none)",
+    )
+    parser.add_argument(
+        "--gcs-override",
+        action="store_true",
+        help="a ground station's command is an operator override: passed to the autopilot, and "
+        "the mission paused (the master's next call refused FAILED_PRECONDITION) (default: the "
+        "config's drone.gcs_override, else watch only)",
     )
     parser.add_argument(
         "--controllers",
@@ -224,6 +240,8 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         ("--address", "drone.address", args.address),
         ("--vehicle-url", "drone.vehicle_url", args.vehicle_url),
         ("--mavlink-key", "drone.mavlink_key", args.mavlink_key),
+        ("--gcs", "drone.gcs", args.gcs),
+        ("--gcs-override", "drone.gcs_override", True if args.gcs_override else None),
         ("--controllers", "ring.order", order),
         ("--initial-master", "initial_master", args.initial_master),
         ("--speedup", "speedup", args.speedup),
@@ -257,8 +275,8 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     if config.drone.mavlink_key is not None:
         mavlink_key = read_key(config.drone.mavlink_key)
         VehicleEndpoint.parse(vehicle)  # the relay can hold it, or a message saying why
-    if args.tlog_dir is not None:
-        VehicleEndpoint.parse(vehicle, tlog=True)
+    if args.tlog_dir is not None or config.drone.gcs:
+        VehicleEndpoint.parse(vehicle, tlog=True)  # the relay holds it, or a message why
     return DroneSettings(
         config=config,
         handover_script=script,
@@ -306,6 +324,23 @@ def handover_policy(config: BatonConfig) -> tuple[PolicyParams | None, dict[int,
     return params, stations
 
 
+def ground_stations(settings: DroneSettings) -> GcsLink | None:
+    """The ground stations the configuration names (drone.gcs, --gcs), signed with the
+    mission's key when signing is on; None without any."""
+    from baton.drone.gcs import GcsEndpoint, GcsLink
+    from baton.signing import Signer
+
+    drone = settings.config.drone
+    if not drone.gcs:
+        return None
+    key = settings.mavlink_key
+    return GcsLink(
+        [GcsEndpoint.parse(text) for text in drone.gcs],
+        override=drone.gcs_override,
+        signer=Signer(key, link_id=2) if key is not None else None,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     """Runs the drone service until SIGINT/SIGTERM."""
 
@@ -326,5 +361,6 @@ def run(args: argparse.Namespace) -> int:
         settings.vehicle_url,
         signing_key=settings.mavlink_key,
         tlog_dir=Path(args.tlog_dir) if args.tlog_dir is not None else None,
+        gcs=ground_stations(settings),
     )
     return lifecycle.run(run_until_signalled(lambda stop: serve(settings, vehicle, stop)))

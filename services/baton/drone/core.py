@@ -78,6 +78,8 @@ class DroneCore:
         self.routes: Mapping[str, Method] = drone_api()
         # When each controller was last seen; absent until it first is.
         self.last_seen: dict[int, float] = {}
+        # Why a ground station's operator paused the mission (drone/gcs.py); "": not paused.
+        self.paused_by = ""
         # When each controller last served: held its Connect stream or sent a request.
         self.last_served: dict[int, float] = {}
         # When the first controller was seen since the drone started (the start-up
@@ -189,6 +191,7 @@ class DroneCore:
         preparation, the first request of a new master; then what to keep with it."""
         seq, cid = self.seq, request.controller_id
         self.seen(cid, received_at)
+        self.refuse_if_paused(cid, request.reqnr)
         answers = self.master_answers(request.reqnr, request.master_answers)
         cached = seq.admit(
             cid,
@@ -209,6 +212,23 @@ class DroneCore:
             seq.adopt(cid, request.epoch, request.adopted_from_reqnr, request.reqnr)
         )
         return Admitted(None, kept, first)
+
+    # -- a ground station's override (drone/gcs.py) ----------------------------------
+
+    def pause_by_ground_station(self, reason: str) -> None:
+        """An operator at a ground station took the vehicle over (override allowed): the
+        mission is paused until ``resume_from_ground_station``."""
+        self.paused_by = reason
+
+    def resume_from_ground_station(self) -> None:
+        self.paused_by = ""
+
+    def refuse_if_paused(self, controller_id: int, reqnr: int) -> None:
+        """While paused, the master's next request is refused FAILED_PRECONDITION before it
+        is admitted (its number stays unused, nothing reaches the vehicle); a re-sent one
+        already executed is still answered from the cache."""
+        if self.paused_by and controller_id == self.seq.master and reqnr > self.seq.last_reqnr:
+            raise StatusError(grpc.StatusCode.FAILED_PRECONDITION, self.paused_by)
 
     @staticmethod
     def books(error: StatusError) -> bool:

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from urllib.parse import urlsplit
 
 from baton import logs
+from baton.drone.gcs import GcsLink
 from baton.drone.tlog import MavlinkFramer, TlogWriter
 from baton.signing import REFUSAL_LOG_S, Signer
 
@@ -91,9 +92,15 @@ class MavlinkRelay:
     ``key``, recording into ``tlog`` with one."""
 
     def __init__(
-        self, vehicle_url: str, key: bytes | None = None, tlog: TlogWriter | None = None
+        self,
+        vehicle_url: str,
+        key: bytes | None = None,
+        tlog: TlogWriter | None = None,
+        gcs: GcsLink | None = None,
     ) -> None:
         self.vehicle_url = vehicle_url
+        # Ground stations (drone/gcs.py): the autopilot's frames go to them too.
+        self.gcs = gcs
         self.endpoint = VehicleEndpoint.parse(vehicle_url, tlog=key is None)
         self.signer = Signer(key) if key is not None else None
         self.tlog = tlog
@@ -136,6 +143,9 @@ class MavlinkRelay:
             self._tasks.append(asyncio.create_task(self._dial(), name="signing-relay dial"))
         else:
             self._server = await asyncio.start_server(self._accepted, end.host, end.port)
+        if self.gcs is not None:
+            self.gcs.to_vehicle = self._override_to_vehicle
+            await self.gcs.start()
         self._log.info(
             "MAVLink relay started",
             mavsdk_port=port,
@@ -159,6 +169,8 @@ class MavlinkRelay:
             self._tcp.close()
         if self.tlog is not None:
             self.tlog.close()
+        if self.gcs is not None:
+            self.gcs.close()
 
     # --- MAVSDK to the autopilot ---------------------------------------------------
 
@@ -171,6 +183,16 @@ class MavlinkRelay:
             for reason in dropped:
                 self._log.warning("frame from MAVSDK not sent", reason=reason)
             self.signed += len(frames)
+        self._to_vehicle(frames)
+
+    def _override_to_vehicle(self, frame: bytes) -> None:
+        """A ground station's command taken as an operator override, on to the autopilot
+        as the drone's own (signed, if signing)."""
+        if self.signer is not None:
+            frame = self.signer.sign_frame(frame)
+        self._to_vehicle([frame])
+
+    def _to_vehicle(self, frames: list[bytes]) -> None:
         if self.tlog is not None:
             self.tlog.record(frames)
         for frame in frames:
@@ -198,6 +220,8 @@ class MavlinkRelay:
             frames = checked.accepted
         if self.tlog is not None:
             self.tlog.record(frames)
+        if self.gcs is not None:
+            self.gcs.forward(frames)
         if self._local is None or self._mavsdk_address is None:
             return  # MAVSDK has not said where it is yet; it heartbeats at once
         for frame in frames:

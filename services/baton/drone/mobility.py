@@ -44,6 +44,7 @@ import grpc
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs
+from baton.drone.gcs import GcsLink
 from baton.drone.mavlink_relay import MavlinkRelay
 from baton.drone.tlog import TlogWriter, tlog_path
 from baton.drone.vehicle_state import (
@@ -205,15 +206,19 @@ class MavsdkMobility:
         heartbeat_timeout_s: float = 3.0,
         signing_key: bytes | None = None,
         tlog_dir: Path | None = None,
+        gcs: GcsLink | None = None,
         runtime: MavsdkRuntime = PROCESS_RUNTIME,
     ) -> None:
         self.url = url
         self._runtime = runtime
-        # With a key or a telemetry log, MAVSDK talks to the autopilot through the relay.
+        # Ground stations watching live (drone/gcs.py), fed by the relay.
+        self.gcs = gcs
+        # With a key, a telemetry log or ground stations, MAVSDK talks to the autopilot
+        # through the relay.
         self._relay: MavlinkRelay | None = None
-        if signing_key is not None or tlog_dir is not None:
+        if signing_key is not None or tlog_dir is not None or gcs is not None:
             tlog = TlogWriter(tlog_path(tlog_dir)) if tlog_dir is not None else None
-            self._relay = MavlinkRelay(url, signing_key, tlog)
+            self._relay = MavlinkRelay(url, signing_key, tlog, gcs)
         self.rates = rates or TelemetryRates()
         self.command_timeout_s = command_timeout_s
         self.monitor = LinkMonitor(

@@ -1072,6 +1072,10 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
     if settings.policy is not None:
         service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
         service.policy.restore()
+    gcs = getattr(vehicle, "gcs", None)  # ground stations watching (drone/gcs.py)
+    if gcs is not None:
+        gcs.on_override = service.core.pause_by_ground_station
+        gcs.controller = lambda: str(sequencer.master)
     return service
 
 

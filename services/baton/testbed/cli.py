@@ -193,6 +193,38 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     parser.add_argument(
         "--wait", action="store_true", help="(report) wait for the services to come up and finish"
     )
+    parser.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="KIND:PART@WHEN[,for=DURATION]",
+        help="inject a fault, repeatable: kill (kill -9), stop (SIGSTOP, then SIGCONT after "
+        "for=) or cut (a link emulator: link-ring-N, link-drone-N) of a part (controller-N, "
+        "drone, sim-vehicle, a link) after the drone served request N (@reqnr=N) or at a "
+        "time after the mission started (@t=30s); for=DURATION ends it (a killed part is "
+        "restarted); e.g. kill:controller-1@reqnr=130, stop:controller-0@reqnr=60,for=20s, "
+        "cut:link-ring-1@reqnr=90,for=10s. Each is in the report with the mission's verdict",
+    )
+    parser.add_argument(
+        "--gcs",
+        action="append",
+        metavar="udp:HOST:PORT",
+        help="a ground station watching live: the drone forwards the autopilot's MAVLink there "
+        "(QGroundControl: udp:127.0.0.1:14550), repeatable; its commands are refused unless "
+        "--gcs-override (default: the --config file's drone.gcs, else none)",
+    )
+    parser.add_argument(
+        "--gcs-override",
+        action="store_true",
+        help="a ground station's command is an operator override that pauses the mission",
+    )
+    parser.add_argument(
+        "--restart-parts",
+        action="store_true",
+        help="start a part that dies (killed from outside or by --fault kill) again with its "
+        "command line, as a supervisor would (a controller keeps its log file, the drone its "
+        "state); without it a dead part is reported and the run goes on while the mission can",
+    )
     parser.set_defaults(run=run)
 
 
@@ -295,6 +327,8 @@ def testbed_config(args: argparse.Namespace) -> tuple[BatonConfig, bool]:
         ("--drone-link-latency", "drone_link.latency", args.drone_link_latency),
         ("--drone-link-bandwidth", "drone_link.bandwidth", args.drone_link_bandwidth),
         ("--insecure", "tls.insecure", True if args.insecure else None),
+        ("--gcs", "drone.gcs", args.gcs),
+        ("--gcs-override", "drone.gcs_override", True if args.gcs_override else None),
     ]
     return merge(config, flags, args.config or ""), bool(args.config)
 
@@ -341,6 +375,7 @@ def _plan(
     args: argparse.Namespace, config: BatonConfig, from_file: bool, handovers: list[tuple[int, int]]
 ) -> TestbedPlan:
     """What the local testbed runs; ValueError says which option is wrong."""
+    from baton.testbed.faults import parse_fault
     from baton.testbed.local import TestbedPlan
 
     vehicle, sitl_binary = _vehicle(args, config)
@@ -366,6 +401,9 @@ def _plan(
         emulate_links=not args.no_links,
         vehicle=vehicle,
         sitl_binary=sitl_binary,
+        keep_going=True,
+        restart_parts=args.restart_parts,
+        faults=tuple(parse_fault(text) for text in args.fault),
     )
 
 
@@ -375,14 +413,18 @@ def run(args: argparse.Namespace) -> int:
     from baton.drone.master import HandoverScriptError
     from baton.rpc.tls import INSECURE_WARNING
     from baton.testbed import run as running
+    from baton.testbed.faults import check_parts
 
     try:
         _check_numbers(args)
         config, from_file = testbed_config(args)
         handovers = _handovers(args, config)
         plan = _plan(args, config, from_file, handovers)
+        check_parts(plan.faults, plan.part_names())
     except (ConfigError, HandoverScriptError, OSError, ValueError) as exc:
         return _fail(str(exc))
+    if args.action == "report" and (plan.faults or args.restart_parts):
+        return _fail("--fault and --restart-parts are for a local run, not 'report'")
     report_path = Path(args.report)
     if args.insecure:
         print(f"baton testbed: WARNING: {INSECURE_WARNING}", file=sys.stderr)

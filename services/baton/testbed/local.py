@@ -14,11 +14,13 @@ exactly-once check that does not rest on the drone's own audit.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import random
 import signal
 import socket
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +41,8 @@ from baton.rpc.labels import label
 from baton.rpc.methods import path
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.tls import CA_CERT, DRONE, OPERATOR, Identity, Tls
-from baton.testbed.supervisor import PartNotReady, Supervisor, baton_argv
+from baton.testbed.faults import Fault, FaultInjector, PartDeath, check_parts
+from baton.testbed.supervisor import ManagedProcess, PartNotReady, Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
 GRID_MISSION = Path(grid_mission.__file__)
@@ -160,6 +163,14 @@ class TestbedPlan:
     # A QGroundControl plan the mission file flies (baton.missions.plan), for the
     # report's side-effect check; None for the grid or another mission.
     flight_plan: Path | None = None
+    # A part that dies (killed from outside, crashed) is reported and the run goes on
+    # while the mission can (``baton testbed``); False: it fails the run (PartDied), as
+    # a test wants when a part crashes.
+    keep_going: bool = False
+    # A dead part is started again with its command line (and state, log file and
+    # address), as a supervisor would (``baton testbed --restart-parts``).
+    restart_parts: bool = False
+    faults: tuple[Fault, ...] = ()  # ``baton testbed --fault``, fired by FaultInjector
 
     def all_mission_args(self) -> list[str]:
         """Every ``--mission-arg`` the controllers' mission program gets."""
@@ -170,6 +181,17 @@ class TestbedPlan:
     def program(self) -> Path:
         """The mission file the controllers run: one's own, else the survey's."""
         return self.mission_file or self.mission.file
+
+    def part_names(self) -> list[str]:
+        """The parts this plan starts, by name (what ``--fault`` may name)."""
+        names = ["drone"]
+        if self.vehicle in ("sim", "sitl"):
+            names.append("sim-vehicle" if self.vehicle == "sim" else "sitl")
+        for cid in self.config.ring_order:
+            names.append(f"controller-{cid}")
+            if self.emulate_links:
+                names += [f"link-ring-{cid}", f"link-drone-{cid}"]
+        return names
 
     def describe_mission(self) -> str:
         """For a person, the mission flown: "5x5 grid", "corridor of 1500 m", "plan
@@ -298,6 +320,8 @@ class Snapshot:
     controllers: dict[int, ring_pb2.ControllerStatus] = field(default_factory=dict)
     vehicle_effects: Effects | None = None
     camera_effects: Effects | None = None
+    # Parts not answering on purpose or dead, by name: "dead", "stopped", "cut" (a fault).
+    absent: dict[str, str] = field(default_factory=dict)
 
     @property
     def missions_ended(self) -> bool:
@@ -330,6 +354,17 @@ class LocalTestbed:
         self.dead: set[int] = set()  # controllers killed on purpose, not restarted
         # SITL's second MAVLink port (tcp:HOST:PORT), for an independent monitor.
         self.sitl_monitor_url: str | None = None
+        # Every part that died while the mission ran, in order (``keep_going``).
+        self.deaths: list[PartDeath] = []
+        self._seen_dead: set[int] = set()  # pids whose death is recorded
+        # Parts a fault holds down (a cut link, a kill with for=): not restarted meanwhile.
+        self.held_down: set[str] = set()
+        # Why the run ended before the mission did (the drone died, not restarted).
+        self.ended_early = ""
+        self.started_at = 0.0  # monotonic, when the controllers started
+        # Where the testbed says what happens to its parts (faults, deaths, restarts).
+        self.say: Callable[[str], None] = print
+        self.injector = FaultInjector(self, plan.faults, lambda text: self.say(text))
 
     # -- start ----------------------------------------------------------------------
 
@@ -343,6 +378,10 @@ class LocalTestbed:
         """
         plan = self.plan
         config = plan.config
+        try:
+            check_parts(plan.faults, plan.part_names())
+        except ValueError as exc:
+            raise PartNotReady(str(exc)) from None
         if config.radio_range and (plan.vehicle != "sim" or not plan.emulate_links):
             raise PartNotReady(
                 "radio_range needs the sim vehicle (its position file) and the link emulators; "
@@ -393,6 +432,9 @@ class LocalTestbed:
         }
         if self._mavlink_key() is not None:
             drone["mavlink_key"] = str(self._mavlink_key())
+        if config.drone.gcs:  # ground stations watching live (drone/gcs.py)
+            drone["gcs"] = list(config.drone.gcs)
+            drone["gcs_override"] = config.drone.gcs_override
         document: dict[str, Any] = {
             "drone": drone,
             "controllers": controllers,
@@ -421,6 +463,7 @@ class LocalTestbed:
         await self._start_drone()
         await self.wait_vehicle_ready(VEHICLE_READY_TIMEOUT_S, vehicle_wait)
         await self._start_controllers()
+        self.started_at = time.monotonic()
         return self.config
 
     def _certificates(self, ids: list[int]) -> dict[str, Any]:
@@ -676,7 +719,9 @@ class LocalTestbed:
 
     async def cut_link(self, name: str) -> None:
         """Stops link emulator ``name`` (e.g. ``link-drone-0``): every connection through
-        it breaks and none can be made, while the parts on both sides live on."""
+        it breaks and none can be made, while the parts on both sides live on (until
+        ``restore_link``; ``--restart-parts`` leaves a cut link cut)."""
+        self.held_down.add(name)
         await self.supervisor.kill(name)
 
     def blackhole_link(self, name: str) -> None:
@@ -700,16 +745,145 @@ class LocalTestbed:
         part = self.supervisor.parts[name]
         argv = list(part.argv)
         argv[argv.index("--listen") + 1] = part.ready_text
-        restored = await self.supervisor.start(name, argv, part.ready_file)
+        restored = await self.supervisor.start(name, argv, part.ready_file, append=True)
         await self.supervisor.wait_ready(restored)
+        self.held_down.discard(name)
+
+    # -- parts that die -------------------------------------------------------------------
+
+    async def drone_reqnr(self) -> tuple[int | None, int | None]:
+        """The drone's last request number and master now; (None, None) if it does not
+        answer within a second (dead, stopped or restarting)."""
+        if self.drone_stub is None:
+            return None, None
+        try:
+            status = await self.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest(), timeout=1)
+        except grpc.aio.AioRpcError:
+            return None, None
+        return status.last_reqnr, status.master
+
+    def _since_start(self) -> float:
+        """Seconds since the mission started (the controllers did)."""
+        return time.monotonic() - self.started_at
+
+    async def _record_death(
+        self, part: ManagedProcess, cause: str, at: tuple[int | None, int | None] | None = None
+    ) -> PartDeath:
+        """Keeps part ``part``'s death for the report (``at``: the drone's last request
+        number and master then, if known) and says it, unless a fault caused it (the
+        fault says so itself)."""
+        assert part.process is not None
+        self._seen_dead.add(part.process.pid)
+        if at is None:
+            at = await self.drone_reqnr() if part.name != "drone" else (None, None)
+        reqnr, master = at
+        death = PartDeath(
+            part.name,
+            self._since_start(),
+            time.time(),
+            part.returncode,
+            reqnr,
+            master,
+            cause,
+        )
+        self.deaths.append(death)
+        if cause == "outside":
+            self.say(death.describe().partition("; ")[0])
+        return death
+
+    async def kill_part(
+        self,
+        name: str,
+        cause: str,
+        at: tuple[int | None, int | None] | None = None,
+        restart_later: bool = False,
+    ) -> None:
+        """kill -9 of part ``name`` by the fault ``cause`` (``at``: the drone's last
+        request number and master); recorded as a death. It stays dead if
+        ``restart_later`` (the fault restarts it) or without ``restart_parts``."""
+        if restart_later:
+            self.held_down.add(name)
+        part = await self.supervisor.kill(name)
+        await self._record_death(part, cause, at)
+        self._mark_dead(name)
+
+    def _mark_dead(self, name: str) -> None:
+        if name.startswith("controller-"):
+            self.dead.add(int(name.rpartition("-")[2]))
+
+    async def restart_part(self, name: str) -> None:
+        """Starts dead part ``name`` again with its command line: a controller keeps its
+        log file, the drone its state file, a link emulator and the sim vehicle their
+        address (the sim vehicle starts again at home, on the ground)."""
+        self.held_down.discard(name)
+        if name.startswith("link-"):
+            await self.restore_link(name)
+        elif name == "sim-vehicle":
+            part = self.supervisor.parts[name]
+            url = part.ready_text.splitlines()[0]
+            argv = [*part.argv, "--port", url.rpartition(":")[2]]
+            restarted = await self.supervisor.start(name, argv, part.ready_file, append=True)
+            await self.supervisor.wait_ready(restarted)
+        else:
+            await self.supervisor.restart(name)
+        if name.startswith("controller-"):
+            self.dead.discard(int(name.rpartition("-")[2]))
+        for death in reversed(self.deaths):
+            if death.part == name and death.restarted_at_s is None:
+                death.restarted_at_s = self._since_start()
+                break
+        self.say(f"{name} restarted with its command line")
+
+    async def watch_parts(self) -> None:
+        """Parts that died: without ``keep_going``, PartDied for the first; else each is
+        recorded (by a fault or from outside), restarted if ``restart_parts`` (unless a
+        fault holds it down), and the run ends early (``ended_early``) only when the
+        mission cannot go on: the drone or the vehicle dead for good, or every controller."""
+        if not self.plan.keep_going:
+            self.supervisor.check()
+            return
+        for name, part in list(self.supervisor.parts.items()):
+            process = part.process
+            if process is None or process.returncode is None:
+                continue
+            if part.expect_exit and process.returncode == 0:
+                continue
+            if process.pid not in self._seen_dead:
+                if part.killed and name in self.held_down:
+                    self._seen_dead.add(process.pid)  # a cut link: the fault's own record
+                    continue
+                await self._record_death(part, "outside")
+                self._mark_dead(name)
+            if name in self.held_down or self.ended_early:
+                continue
+            if self.plan.restart_parts:
+                try:
+                    await self.restart_part(name)
+                except (PartNotReady, RuntimeError) as exc:
+                    self.ended_early = f"{name} could not be restarted: {exc}"
+            elif name in ("drone", "sim-vehicle", "sitl"):
+                self.ended_early = (
+                    f"{name} died and is not restarted (--restart-parts restarts it): the "
+                    "mission cannot go on"
+                )
+        ring = self.config.ring_order if self.config is not None else []
+        if ring and self.dead >= set(ring) and not self.ended_early:
+            if not (self.plan.restart_parts or self.held_down):
+                self.ended_early = "every controller died: the mission cannot go on"
 
     async def snapshot(self, audit: bool = True) -> Snapshot:
         """The drone's and every live controller's status now, and the side effects counted."""
         assert self.drone_stub is not None
         drone = await drone_status(self.drone_stub, audit)
         snapshot = Snapshot(drone)
+        for name, part in self.supervisor.parts.items():
+            if part.returncode is not None and not part.expect_exit:
+                cut = name.startswith("link-") and name in self.held_down
+                snapshot.absent[name] = "cut" if cut else "dead"
+            elif part.frozen:
+                snapshot.absent[name] = "stopped"
         for cid, stub in self.controller_stubs.items():
-            if cid in self.dead:
+            if cid in self.dead or f"controller-{cid}" in snapshot.absent:
                 continue
             snapshot.controllers[cid] = await stub.GetStatus(
                 ring_pb2.GetControllerStatusRequest(), timeout=10
@@ -735,24 +909,44 @@ class LocalTestbed:
         progress: Callable[[Snapshot], None] | None = None,
         period: float = 0.5,
     ) -> Snapshot:
-        """Waits until every mission program has ended; raises if a part dies or time runs out."""
+        """Waits until every live mission program has ended (and no fault is still under
+        way), firing the plan's faults meanwhile; raises if a part dies (unless the plan
+        keeps going) or time runs out. With ``keep_going``, a run that cannot go on
+        returns its last snapshot and says why in ``ended_early``."""
+        injecting = asyncio.create_task(self.injector.run(self.started_at or time.monotonic()))
+        try:
+            return await self._follow(timeout, progress, period)
+        finally:
+            injecting.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await injecting
+
+    async def _follow(
+        self, timeout: float, progress: Callable[[Snapshot], None] | None, period: float
+    ) -> Snapshot:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
+        last: Snapshot | None = None
         while True:
-            self.supervisor.check()
+            await self.watch_parts()
+            if self.ended_early:
+                if last is None:
+                    raise PartNotReady(self.ended_early)
+                return last
             try:
                 snapshot = await self.snapshot()
             except grpc.aio.AioRpcError as exc:
                 # A part that stops answering has usually just died: give the
                 # child watcher a moment, then say which one.
                 await asyncio.sleep(0.5)
-                self.supervisor.check()
+                await self.watch_parts()
                 if loop.time() > deadline:
                     raise TimeoutError(f"status not available: {exc.details()}") from None
                 continue
+            last = snapshot
             if progress is not None:
                 progress(snapshot)
-            if snapshot.missions_ended:
+            if snapshot.missions_ended and not self.injector.in_progress:
                 return snapshot
             if loop.time() > deadline:
                 states = {

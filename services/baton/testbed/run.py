@@ -21,6 +21,7 @@ from baton.missions.plan import load_plan
 from baton.rpc.channels import aio_channel
 from baton.rpc.labels import label
 from baton.rpc.tls import DRONE, OPERATOR, Identity
+from baton.testbed.faults import fault_lines, fault_outcomes
 from baton.testbed.flight_map import Track, flight_geojson
 from baton.testbed.html_report import write_page
 from baton.testbed.local import LocalTestbed, MissionPlan, Snapshot, TestbedPlan, drone_status
@@ -55,6 +56,10 @@ class Progress:
             return False
         self._last = now
         return True
+
+    def event(self, text: str) -> None:
+        """Something that happened to a part (a fault, a death, a restart), at once."""
+        print(f"{self._stamp()} {text}", file=self.stream, flush=True)
 
     def _stamp(self) -> str:
         return f"[{time.monotonic() - self.started:6.1f}s]"
@@ -94,7 +99,12 @@ class Progress:
         others += (f" + {operator} by operator" if operator else "") + (
             f" | takeovers {takeovers}" if takeovers else ""
         )
-        vehicle = "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
+        vehicle = "".join(
+            f" | {how}: {', '.join(sorted(n for n, h in snapshot.absent.items() if h == how))}"
+            for how in ("dead", "stopped", "cut")
+            if how in snapshot.absent.values()
+        )
+        vehicle += "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
         vehicle += f" | drone waiting: {drone.waiting}" if drone.waiting else ""
         vehicle += waits_line(
             self.config,
@@ -143,6 +153,19 @@ def write_report(report: dict[str, Any], path: Path) -> None:
     path.write_text(json.dumps(report, indent=2) + "\n")
 
 
+def add_faults(report: dict[str, Any], testbed: LocalTestbed) -> None:
+    """The run's faults and the parts that died, with the mission's verdict, into the
+    report (``faults``, ``parts_died``, ``ended_early``)."""
+    verdict = (
+        f"{'COMPLETED' if report['completed'] else 'NOT COMPLETED'}, exactly once: "
+        f"{bool(report['exactly_once'] and report['side_effects']['exactly_once'] is not False)}"
+        f", replicas consistent: {report['replicas_consistent']}"
+    )
+    report["faults"] = fault_outcomes(testbed.injector.records, report, verdict)
+    report["parts_died"] = [death.to_json() for death in testbed.deaths]
+    report["ended_early"] = testbed.ended_early or None
+
+
 async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout: float) -> int:
     """Runs one mission on the local testbed; returns the exit code."""
     planned = plan.config
@@ -176,6 +199,7 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
             pictures, len(plan.handovers), what="waypoint" if survey else "pictures"
         )
         track = Track()
+        testbed.say = progress.event
 
         def follow(snapshot: Snapshot) -> None:
             progress(snapshot)
@@ -210,8 +234,11 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
         targets=targets if plan.mission.kind != "grid" else None,
     )
     report["files"] = files = testbed.files()
+    add_faults(report, testbed)
     write_report(report, report_path)
     print(summary_table(report), flush=True)
+    for line in fault_lines(report):
+        print(line, flush=True)
     print(f"report: {report_path}", flush=True)
     print(files_note(files), flush=True)
     taken = snapshot.camera_effects or []

@@ -53,6 +53,7 @@ class ManagedProcess:
     wave: int = 0  # parts of one wave were started together and stop together
     process: asyncio.subprocess.Process | None = None
     ready_text: str = ""
+    env: Mapping[str, str] | None = None  # its whole environment; None: the supervisor's
     _log_handle: object = field(default=None, repr=False)
 
     @property
@@ -101,10 +102,12 @@ class Supervisor:
         ready_file: Path | None = None,
         expect_exit: bool = False,
         env: Mapping[str, str] | None = None,
+        append: bool = False,
     ) -> ManagedProcess:
         """Starts ``argv`` as part ``name``; its stdout and stderr go to ``workdir/name.log``.
 
-        ``env``: its whole environment (default: this process's).
+        ``env``: its whole environment (default: this process's); ``append``: a restart
+        continues the log of the part's earlier run instead of replacing it.
         """
         if ready_file is not None:
             with contextlib.suppress(FileNotFoundError):
@@ -118,8 +121,9 @@ class Supervisor:
             ready_file,
             expect_exit,
             wave=self._waves if self._together is None else self._together,
+            env=env,
         )
-        handle = part.log_path.open("wb")
+        handle = part.log_path.open("ab" if append else "wb")
         part._log_handle = handle
         part.process = await asyncio.create_subprocess_exec(
             *argv,
@@ -219,9 +223,12 @@ class Supervisor:
         part.frozen = False
 
     async def restart(self, name: str) -> ManagedProcess:
-        """Starts a killed part again with its command line; returns once it is ready."""
+        """Starts a killed part again with its command line and environment; returns once it
+        is ready."""
         old = self.parts[name]
-        part = await self.start(name, old.argv, old.ready_file, old.expect_exit)
+        part = await self.start(
+            name, old.argv, old.ready_file, old.expect_exit, old.env, append=True
+        )
         if part.ready_file is not None:
             await self.wait_ready(part)
         return part

@@ -1,0 +1,200 @@
+"""A ground station watches live (issue 32, item 5), across real processes.
+
+The drone forwards the autopilot's MAVLink to the GCS endpoints it is given
+(``drone.gcs``), so a pymavlink ground station (as QGroundControl or MAVProxy
+would) sees the vehicle through a whole testbed flight with handovers. Its
+commands are refused by default (watch only: a COMMAND_ACK DENIED, and the
+vehicle acts on nothing it sent, by the vehicle's own effects file), or, with
+``gcs_override``, taken as an operator override that pauses the mission: the
+master's next call is refused FAILED_PRECONDITION "paused by ground station".
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from helpers.missions import FAST_LINK
+from pymavlink import mavutil
+from waiting import eventually
+
+from baton.drone.gcs import GcsEndpoint, GcsEndpointError
+from baton.effects import read_effects
+from baton.signing import enable, write_key
+from baton.testbed.local import (
+    VEHICLE_EFFECTS_FILE,
+    LocalTestbed,
+    MissionPlan,
+    TestbedPlan,
+    free_port,
+    local_config,
+)
+from baton.v1 import ring_pb2
+
+mavlink = mavutil.mavlink
+MISSION = MissionPlan(grid=3, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
+
+
+class Station:
+    """A pymavlink ground station listening where the drone forwards (udpin), in a thread;
+    with ``key``, it signs what it sends and accepts only signed frames."""
+
+    def __init__(self, key: bytes | None = None) -> None:
+        self.port = free_port()
+        self.link = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}", source_system=255)
+        self.key = key
+        if key is not None:
+            enable(self.link.mav, key, sign_outgoing=True)
+        self.signed_acks = 0
+        self.positions: list[float] = []  # arrival times of GLOBAL_POSITION_INT
+        self.acks: list[Any] = []
+        self.texts: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._listen, daemon=True)
+        self._thread.start()
+
+    def _listen(self) -> None:
+        while not self._stop.is_set():
+            msg = self.link.recv_match(blocking=True, timeout=0.2)
+            if msg is None:
+                continue
+            kind = msg.get_type()
+            if kind == "GLOBAL_POSITION_INT":
+                self.positions.append(time.monotonic())
+            elif kind == "COMMAND_ACK" and msg.target_system == 255:
+                self.acks.append(msg)  # to this station (the autopilot's to MAVSDK pass too)
+                self.signed_acks += bool(msg.get_msgbuf()[2] & 0x01)
+            elif kind == "STATUSTEXT":
+                self.texts.append(msg.text)
+
+    def land(self) -> None:
+        if self.key is not None:  # mavutil made a new MAVLink 2 object on the first frame
+            enable(self.link.mav, self.key, sign_outgoing=True)
+        self.link.mav.command_long_send(1, 1, mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.link.close()
+
+
+def plan(station: Station, override: bool, key_file: Path | None = None) -> TestbedPlan:
+    config = local_config(3, flush_limit=0, speedup=10.0, drone_link=FAST_LINK)
+    drone = config.drone.model_copy(
+        update={
+            "gcs": [f"udp:127.0.0.1:{station.port}"],
+            "gcs_override": override,
+            "mavlink_key": key_file,
+        }
+    )
+    config = config.model_copy(update={"drone": drone})
+    return TestbedPlan(config=config, handovers=((20, 1), (45, 2)), mission=MISSION)
+
+
+def test_a_gcs_endpoint_is_checked() -> None:
+    assert GcsEndpoint.parse("udp:127.0.0.1:14550") == GcsEndpoint("127.0.0.1", 14550)
+    assert GcsEndpoint.parse("udp://10.0.0.2:14551") == GcsEndpoint("10.0.0.2", 14551)
+    for bad in ("tcp:127.0.0.1:5760", "udp:14550", "udp:host:99999"):
+        try:
+            GcsEndpoint.parse(bad)
+        except GcsEndpointError as exc:
+            assert repr(bad) in str(exc) and "udp:" in str(exc)
+        else:
+            raise AssertionError(f"{bad} accepted")
+
+
+async def test_a_ground_station_watches_a_whole_flight_and_its_land_is_refused(
+    tmp_path: Path,
+) -> None:
+    station = Station()
+    try:
+        async with LocalTestbed(plan(station, override=False), tmp_path) as testbed:
+
+            async def airborne() -> bool:
+                return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 10
+
+            await eventually(airborne, "the vehicle flying", 60)
+            station.land()
+            await eventually(lambda: station.acks, "the drone's COMMAND_ACK", 10)
+            snapshot = await testbed.run_mission(240)
+    finally:
+        station.close()
+    [ack] = station.acks
+    assert (ack.command, ack.result) == (mavlink.MAV_CMD_NAV_LAND, mavlink.MAV_RESULT_DENIED)
+    assert any(t.startswith("baton in control, master ") for t in station.texts), station.texts
+    assert any(t.endswith("; GCS watch only") for t in station.texts)
+    # Watch only, by the vehicle's own count: the mission's one land, none of the station's.
+    effects = read_effects(tmp_path / VEHICLE_EFFECTS_FILE) or []
+    assert [e["effect"] for e in effects].count("land") == 1
+    assert all(c.mission == ring_pb2.MISSION_STATE_DONE for c in snapshot.controllers.values())
+    assert [h.new_master for h in snapshot.drone.handovers] == [1, 2]
+    # Positions at 1 Hz or more through the whole flight, handovers included.
+    gaps = [b - a for a, b in zip(station.positions, station.positions[1:], strict=False)]
+    assert len(station.positions) > 20 and max(gaps) < 1.0, max(gaps)
+
+
+async def test_with_override_a_ground_stations_land_pauses_the_mission(tmp_path: Path) -> None:
+    station = Station()
+    try:
+        async with LocalTestbed(plan(station, override=True), tmp_path) as testbed:
+
+            async def airborne() -> bool:
+                return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 10
+
+            await eventually(airborne, "the vehicle flying", 60)
+            station.land()
+
+            def landed_by_station() -> bool:
+                effects = read_effects(tmp_path / VEHICLE_EFFECTS_FILE) or []
+                return "land" in [e["effect"] for e in effects]
+
+            await eventually(landed_by_station, "the vehicle acting on the station's LAND", 20)
+
+            async def refused() -> list[str]:
+                snapshot = await testbed.snapshot(audit=False)
+                return [c.mission_error for c in snapshot.controllers.values() if c.mission_error]
+
+            errors = await eventually(refused, "the mission told it is paused", 60)
+    finally:
+        station.close()
+    assert any("paused by ground station 255" in e for e in errors), errors
+
+
+async def test_with_signing_the_ground_station_link_is_signed(tmp_path: Path) -> None:
+    """drone.mavlink_key: a station holding the key sees the autopilot's signed frames and
+    gets the drone's answer signed; pymavlink's station accepts only signed frames."""
+    key_file = tmp_path / "mavlink.key"
+    key = write_key(key_file)
+    station = Station(key)
+    try:
+        async with LocalTestbed(plan(station, False, key_file), tmp_path) as testbed:
+
+            async def airborne() -> bool:
+                return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 10
+
+            await eventually(airborne, "the vehicle flying", 60)
+            station.land()
+            await eventually(lambda: station.acks, "the drone's signed COMMAND_ACK", 10)
+    finally:
+        station.close()
+    assert station.positions and station.signed_acks == len(station.acks) == 1
+    assert station.acks[0].result == mavlink.MAV_RESULT_DENIED
+
+
+def test_a_bad_gcs_option_names_it_and_the_fix() -> None:
+    for program in ("drone", "testbed"):
+        result = subprocess.run(
+            [sys.executable, "-m", "baton.cli", program, "--gcs", "tcp:127.0.0.1:5760"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert result.returncode == 2, result.stderr
+        assert "--gcs tcp:127.0.0.1:5760: GCS endpoint 'tcp:127.0.0.1:5760': expected " in (
+            result.stderr
+        )
+        assert "udp:HOST:PORT, e.g. udp:127.0.0.1:14550" in result.stderr

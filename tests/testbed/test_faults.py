@@ -1,0 +1,158 @@
+"""``baton testbed --fault`` and ``--restart-parts`` (issue 32, item 8): the testbed lives
+through what baton lives through, across real processes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+from helpers.testbed_runs import baton, run_testbed
+
+from baton.testbed.faults import Fault, check_parts, parse_fault
+
+SMALL = ["--grid", "3", "--spacing", "20", "--altitude", "5", "--speedup", "20"]
+
+
+def test_faults_parse_with_their_time_and_duration() -> None:
+    assert parse_fault("kill:controller-1@reqnr=130") == Fault(
+        "kill:controller-1@reqnr=130", "kill", "controller-1", reqnr=130
+    )
+    assert parse_fault("stop:controller-0@reqnr=60,for=20s") == Fault(
+        "stop:controller-0@reqnr=60,for=20s", "stop", "controller-0", reqnr=60, for_s=20.0
+    )
+    cut = parse_fault("cut:link-ring-1@t=30s,for=500ms")
+    assert (cut.kind, cut.part, cut.at_s, cut.for_s) == ("cut", "link-ring-1", 30.0, 0.5)
+
+
+@pytest.mark.parametrize(
+    ("text", "why"),
+    [
+        ("explode:controller-1@reqnr=3", "unknown fault 'explode', expected one of kill"),
+        ("kill:controller-1", "no time: add @reqnr=N"),
+        ("kill:ctl-1@reqnr=3", "unknown part 'ctl-1'"),
+        ("cut:controller-1@reqnr=3", "cut is for a link emulator"),
+        ("kill:controller-1@reqnr=x", "reqnr='x' is not a request number >= 1"),
+        ("kill:controller-1@reqnr=3,t=4s", "give the time once"),
+        ("stop:drone@t=3s,for=soon", "expected a duration like '20ms'"),
+        ("stop:drone@t=3s,for=0s", "must be longer than 0"),
+        ("stop:drone@t=3s,when=now", "'when=now' is not reqnr=N, t=DURATION or for=DURATION"),
+    ],
+)
+def test_a_bad_fault_names_the_option_and_the_fix(text: str, why: str) -> None:
+    with pytest.raises(ValueError) as caught:
+        parse_fault(text)
+    message = str(caught.value)
+    assert message.startswith(f"--fault {text!r}: ") and why in message, message
+    assert "e.g. kill:controller-1@reqnr=130" in message
+
+
+def test_a_fault_on_a_part_the_testbed_lacks_is_refused_before_anything_starts() -> None:
+    with pytest.raises(ValueError, match="this testbed has no controller-7; its parts: "):
+        check_parts([parse_fault("kill:controller-7@reqnr=3")], ["drone", "controller-0"])
+    result = subprocess.run(
+        baton("testbed", "--no-links", "--fault", "cut:link-ring-0@reqnr=3"),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert "--fault 'cut:link-ring-0@reqnr=3': this testbed has no link-ring-0" in result.stderr
+
+
+def test_the_master_killed_by_a_fault_is_taken_over_and_the_mission_completes_once(
+    tmp_path: Path,
+) -> None:
+    """kill -9 of the master mid-mission from the command line: the run goes on, the
+    drone takes the master over, and the report lists the fault with the takeover
+    and the mission's verdict; exactly once by the drone's audit and by the vehicle's
+    and the camera's own counts."""
+    report = run_testbed(
+        tmp_path, *SMALL, "--no-handovers", "--fault", "kill:controller-0@reqnr=20"
+    )
+    [fault] = report["faults"]
+    assert fault["fault"] == "kill:controller-0@reqnr=20" and fault["fired"]
+    assert fault["fired_at_reqnr"] >= 20 and fault["master_before"] == 0
+    [takeover] = fault["handovers_after"]
+    assert (takeover["from"], takeover["to"], takeover["kind"]) == (0, 1, "takeover")
+    assert fault["mission_verdict"].startswith("COMPLETED, exactly once: True")
+    [death] = report["parts_died"]
+    assert death["part"] == "controller-0" and death["cause"] == fault["fault"]
+    assert report["completed"] and report["exactly_once"] and report["replicas_consistent"]
+    assert report["side_effects"]["exactly_once"] is True
+    effects = report["side_effects"]["vehicle_commands"]
+    assert effects["arm"] == effects["takeoff"] == effects["land"] == 1
+    assert report["drone"]["master"] == 1
+    assert "fault kill:controller-0@reqnr=20: killed controller-0 (kill -9)" in report["stdout"]
+    assert "takeover 0 -> 1" in report["stdout"]
+
+
+def test_stop_cut_and_a_kill_restarted_by_restart_parts(tmp_path: Path) -> None:
+    """A frozen replica thawed, a ring link cut and restored, and the master killed with
+    --restart-parts (back with its log file): every fault ends, the mission completes
+    once, and every controller, the restarted one too, ends with the same replies."""
+    report = run_testbed(
+        tmp_path,
+        *SMALL,
+        "--no-handovers",
+        "--restart-parts",
+        "--fault",
+        "stop:controller-2@reqnr=10,for=2s",
+        "--fault",
+        "cut:link-ring-1@reqnr=25,for=1s",
+        "--fault",
+        "kill:controller-0@reqnr=40",
+    )
+    stop, cut, kill = report["faults"]
+    assert all(f["fired"] and not f["problem"] for f in (stop, cut, kill))
+    assert stop["ended_at_s"] >= stop["fired_at_s"] + 2.0
+    assert cut["ended_at_s"] >= cut["fired_at_s"] + 1.0
+    [death] = report["parts_died"]
+    assert death["part"] == "controller-0" and death["restarted_at_s"] is not None
+    assert [c["id"] for c in report["controllers"]] == [0, 1, 2]
+    assert report["completed"] and report["exactly_once"] and report["replicas_consistent"]
+    assert report["side_effects"]["exactly_once"] is True
+
+
+def test_the_drone_killed_is_restarted_with_its_state_and_the_mission_completes_once(
+    tmp_path: Path,
+) -> None:
+    """--restart-parts: the drone service back with its state file (same command line);
+    the controllers re-send what was in flight and nothing runs twice, by the vehicle's
+    own count."""
+    report = run_testbed(
+        tmp_path, *SMALL, "--no-handovers", "--restart-parts", "--fault", "kill:drone@reqnr=20"
+    )
+    [death] = report["parts_died"]
+    assert death["part"] == "drone" and death["restarted_at_s"] > death["at_s"]
+    assert report["completed"] and report["exactly_once"] and report["replicas_consistent"]
+    assert report["side_effects"]["exactly_once"] is True
+    assert len(report["files"]["tlogs"]) == 2  # one a drone process
+
+
+def test_without_restart_parts_a_dead_drone_ends_the_run_with_a_report(tmp_path: Path) -> None:
+    """The mission cannot go on without the drone: the run stops, says why, and still
+    writes the report with the fault in it; exit 1."""
+    report_path = tmp_path / "report.json"
+    result = subprocess.run(
+        baton(
+            "testbed",
+            *SMALL,
+            "--no-handovers",
+            "--fault",
+            "kill:drone@reqnr=20",
+            "--report",
+            str(report_path),
+            "--workdir",
+            str(tmp_path / "w"),
+        ),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "run ended early: drone died and is not restarted" in result.stdout
+    report = json.loads(report_path.read_text())
+    assert report["ended_early"].startswith("drone died and is not restarted")
+    assert report["faults"][0]["fired"] and not report["completed"]
