@@ -460,6 +460,13 @@ class BatonConfig(_Model):
                 "radio_fade fades the radio range's links: set radio_range: true, or drop "
                 "radio_fade"
             )
+        lost_link = self.safety.lost_link
+        if lost_link and self.takeover_after and lost_link <= self.takeover_after:
+            raise ValueError(
+                f"safety.lost_link ({lost_link:g} s) must be longer than takeover_after "
+                f"({self.takeover_after:g} s): a master lost alone is taken over, and only "
+                "when no controller is left does the failsafe act; raise safety.lost_link"
+            )
         if self.max_log_message is not None and self.max_log_message <= self.flush_limit:
             raise ValueError(
                 f"max_log_message ({self.max_log_message} bytes) must be above flush_limit "

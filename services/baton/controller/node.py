@@ -62,6 +62,7 @@ from baton.controller.protocol import (
     request_digest,
 )
 from baton.controller.ring import PeerLink, Relay
+from baton.drone.safety import sleep_refusal
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
 from baton.rpc.methods import path, service_prefix
@@ -1226,12 +1227,13 @@ class ControllerNode:
                 self.log.info("answered from the retained tail", reqnr=reqnr, method=method)
             elif method in (CLOCK_NOW, CLOCK_SLEEP):
                 entry = ring_pb2.LogEntry(
-                    reqnr=reqnr,
-                    method=method,
-                    reply=await self._clock_call(method, request),
-                    request_digest=digest,
-                    request=request,
+                    reqnr=reqnr, method=method, request_digest=digest, request=request
                 )
+                refusal = self._clock_refusal(method, request)
+                if refusal is not None:  # logged as the call's outcome, as a drone's failure
+                    entry.status_code, entry.status_message = refusal.code.value[0], refusal.message
+                else:
+                    entry.reply = await self._clock_call(method, request)
             else:
                 entry_or_none = await self._invoke_drone(reqnr, method, request, digest)
                 if entry_or_none is None:
@@ -1332,6 +1334,13 @@ class ControllerNode:
     def _ours_to_log(self, reqnr: int) -> bool:
         """Still ACTIVE, with ``reqnr`` the next request to log."""
         return self.protocol.state is State.ACTIVE and self.protocol.reqnr + 1 == reqnr
+
+    def _clock_refusal(self, method: str, request: bytes) -> StatusError | None:
+        """A Sleep beyond the mission's ``safety.max_sleep`` (``safety.sleep_refusal``)."""
+        if method != CLOCK_SLEEP:
+            return None
+        seconds = api.SleepRequest.FromString(request).seconds
+        return sleep_refusal(seconds, self.config.safety.max_sleep)
 
     async def _clock_call(self, method: str, request: bytes) -> bytes:
         """Clock calls are answered here and logged like drone replies.

@@ -196,6 +196,8 @@ class DroneCore:
             self.last_usable = now
             return None
         if self.last_usable is None or not airborne:
+            if self.last_usable is not None and self.last_usable > now:
+                return None  # a restart's grace runs
             # Counted from the first look in the air: a drone restarted mid-flight, or
             # a vehicle that took off, waits the whole lost_link time.
             self.last_usable = now
@@ -319,6 +321,9 @@ class DroneCore:
         self.seq.resume(master, handovers, counts, replies, audit, fired_script, watermark)
         if self.seq.last_reqnr or self.seq.handovers:
             self.last_seen[master] = self.last_served[master] = now + RESTART_GRACE_S
+            # The lost-link time too counts from the end of the grace: the controllers
+            # re-connect to a restarted drone meanwhile.
+            self.last_usable = now + RESTART_GRACE_S
 
     def cut_off(self, intent: Intent) -> StatusError | None:
         """The outcome of a request a restart cut off while it executed: None for a read

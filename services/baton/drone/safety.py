@@ -120,13 +120,9 @@ def limit_refusal(method: str, request: Message, params: SafetyParams) -> Status
 
 
 def sleep_refusal(seconds: float, max_sleep_s: float) -> StatusError | None:
-    """INVALID_ARGUMENT for a Clock.Sleep longer than the mission's ``max_sleep`` (or not
-    a finite number >= 0); None if the controller may sleep it."""
-    if not math.isfinite(seconds) or seconds < 0:
-        return StatusError(
-            grpc.StatusCode.INVALID_ARGUMENT,
-            f"Clock.Sleep: seconds must be finite and >= 0, got {seconds!r}",
-        )
+    """INVALID_ARGUMENT for a Clock.Sleep longer than the mission's ``max_sleep``; None
+    if the controller may sleep it (a sleep not finite or negative is refused before it
+    takes a request number: ``controller.service``)."""
     if seconds > max_sleep_s:
         return _beyond("Clock.Sleep", "seconds", seconds, "max_sleep", max_sleep_s)
     return None

@@ -1208,7 +1208,8 @@ def safety_params(config: BatonConfig) -> SafetyParams:
     """The model's safety net in wall seconds (mission seconds / speed-up)."""
     safety = config.safety
     return SafetyParams(
-        lost_link_s=safety.lost_link / config.speedup,
+        # At least the detection time in wall seconds, as a takeover's (its floor).
+        lost_link_s=detection_time_s(safety.lost_link, config.speedup),
         lost_link_action=safety.lost_link_action,
         max_speed_m_s=safety.max_speed,
         max_altitude_m=safety.max_altitude,

@@ -413,6 +413,7 @@ class LocalTestbed:
             document["drone_link"] = config.drone_link.model_dump()
         document["handover_policy"] = config.handover_policy.model_dump()
         document["radio_range"] = config.radio_range
+        document["safety"] = config.safety.model_dump()
         if config.radio_fade is not None:
             document["radio_fade"] = config.radio_fade.model_dump()
         document["tls"] = self._certificates(ids)
