@@ -99,3 +99,40 @@ async def test_a_speed_and_a_sleep_beyond_the_bounds_are_refused_and_nothing_exe
     assert speeds == [3.0]  # the sane one only: 1e9 never reached the vehicle
     logs = " ".join(p.read_text() for p in (tmp_path / "logs").glob("*.log"))
     assert "safety.max_speed = 15" in logs and "safety.max_sleep = 600" in logs
+
+
+async def test_the_cruise_speed_survives_a_drone_killed_mid_mission(tmp_path: Path) -> None:
+    """kill -9 of the drone mid-mission, restarted on its state file: every goto the
+    vehicle flies after the restart is followed by the mission's speed, as before it
+    (issue 32, item 6; ArduPilot resets the speed at every reposition)."""
+    plan = TestbedPlan(
+        config=local_config(
+            2, flush_limit=0, speedup=SPEEDUP, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
+        mission=LONG_LEGS,
+    )
+    effects = tmp_path / VEHICLE_EFFECTS_FILE
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        def gotos() -> int:
+            return sum(e["effect"] == "goto" for e in read_effects(effects))
+
+        await eventually(lambda: gotos() >= 2, "the vehicle flying its second leg", 60)
+        part = testbed.supervisor.parts["drone"]
+        assert part.process is not None and part.ready_file is not None
+        os.kill(part.process.pid, signal.SIGKILL)
+        await part.process.wait()
+        killed_at_seq = max(e["seq"] for e in read_effects(effects))
+        restarted = await testbed.supervisor.start("drone", part.argv, part.ready_file)
+        await testbed.supervisor.wait_ready(restarted)
+        await testbed.run_mission(240)
+    flown = read_effects(effects)
+    after = [e for e in flown if e["seq"] > killed_at_seq]
+    gotos_after = [i for i, e in enumerate(after) if e["effect"] == "goto"]
+    assert gotos_after, "no goto after the restart"
+    for i in gotos_after:
+        following = after[i + 1] if i + 1 < len(after) else None
+        assert following is not None and following["effect"] == "set_speed", after
+        assert following["speed_m_s"] == LONG_LEGS.speed_m_s
+    log = (tmp_path / "logs" / "drone.log").read_text()
+    assert "cruise speed restored" in log

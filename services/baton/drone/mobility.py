@@ -639,6 +639,11 @@ class MavsdkMobility:
                 self._log.warning("cruise speed not applied after goto", reason=err.message)
         return api.GotoReply()
 
+    def restore_speed(self, speed_m_s: float) -> None:
+        """The cruise speed the mission set before the drone restarted: re-applied after
+        every goto from now on, as it was (``MobilityBackend.restore_speed``)."""
+        self._speed_m_s = speed_m_s
+
     async def SetSpeed(self, request: api.SetSpeedRequest) -> api.SetSpeedReply:
         """Sets the cruise speed of this flight leg (if flying) and of every later goto.
 

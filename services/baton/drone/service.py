@@ -44,6 +44,8 @@ from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
+# The durable commanded state's key of the mission's cruise speed (store.py).
+SPEED_KEY = "speed_m_s"
 # A status read must not hang on a vehicle that stopped answering.
 _STATUS_READ_TIMEOUT_S = 1.0
 # Audit entries in one GetStatus page: by default, and at most.
@@ -495,6 +497,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.log.info("new state file", path=str(store.path))
             return
         c, seq = state.counters, self.seq
+        speed = store.load_commanded().get(SPEED_KEY)
+        if speed is not None:
+            self.vehicle.restore_speed(float(speed))
+            self.log.info("cruise speed restored", speed_m_s=speed)
         failsafe = store.load_failsafe()
         if failsafe is not None:
             self.core.enter_failsafe(failsafe)
@@ -717,6 +723,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             ) from exc
         if self.policy is not None and route.service == "Mobility":
             self.policy.executed(route.name, message)
+        if self.store is not None and isinstance(message, api.SetSpeedRequest):
+            # Commanded state the vehicle needs again after a restart (store.py).
+            self.store.save_commanded(SPEED_KEY, message.speed_m_s)
         payload = reply.SerializeToString()
         log = self.log.debug if route.is_read else self.log.info
         log(
