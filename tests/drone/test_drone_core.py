@@ -11,6 +11,7 @@ from baton.drone.core import RESTART_GRACE_S, START_GRACE_S, DroneCore
 from baton.drone.policy import Station
 from baton.drone.safety import (
     SafetyParams,
+    gcs_failsafe_params,
     landing_due,
     limit_refusal,
     nearest_station,
@@ -254,3 +255,15 @@ def test_nearest_station_and_landing_over_it() -> None:
     assert nearest_station(api.Position(), stations) is None
     assert landing_due(api.Position(latitude_deg=47.01, longitude_deg=8.0), stations[1])
     assert not landing_due(api.Position(latitude_deg=47.0099, longitude_deg=8.0), stations[1])
+
+
+def test_the_autopilot_s_own_gcs_failsafe_parameters() -> None:
+    ardupilot = gcs_failsafe_params(True, 10.0, 245)
+    assert [(p.name, p.value) for p in ardupilot] == [
+        ("SYSID_MYGCS", 245),
+        ("FS_GCS_TIMEOUT", 10.0),
+        ("FS_GCS_ENABLE", 1),
+    ]
+    px4 = gcs_failsafe_params(False, 2.5, 245)
+    assert [(p.name, p.value) for p in px4] == [("COM_DL_LOSS_T", 5), ("NAV_DLL_ACT", 2)]
+    assert gcs_failsafe_params(True, 0.0, 245) == []

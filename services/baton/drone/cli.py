@@ -326,5 +326,6 @@ def run(args: argparse.Namespace) -> int:
         settings.vehicle_url,
         signing_key=settings.mavlink_key,
         tlog_dir=Path(args.tlog_dir) if args.tlog_dir is not None else None,
+        gcs_failsafe_timeout_s=settings.config.safety.autopilot_gcs_timeout,
     )
     return lifecycle.run(run_until_signalled(lambda stop: serve(settings, vehicle, stop)))

@@ -99,6 +99,36 @@ def landing_due(position: api.Position, station: Station) -> bool:
     return distance_m(station, Fix(Position.from_proto(position))) <= LANDING_RADIUS_M
 
 
+@dataclass(frozen=True)
+class AutopilotParam:
+    """One parameter of the autopilot's own GCS failsafe (``gcs_failsafe_params``)."""
+
+    name: str
+    value: float
+    integer: bool = True
+
+
+def gcs_failsafe_params(ardupilot: bool, timeout_s: float, gcs_sysid: int) -> list[AutopilotParam]:
+    """The autopilot's own GCS failsafe, so that it returns home if the drone service
+    (its only ground station) stops sending heartbeats for ``timeout_s``; [] when 0.
+
+    ArduPilot: FS_GCS_ENABLE 1 (RTL), FS_GCS_TIMEOUT, and SYSID_MYGCS set to the drone
+    service's MAVLink system id (ArduPilot counts only that id's heartbeats as its
+    GCS's). PX4: NAV_DLL_ACT 2 (Return), COM_DL_LOSS_T (whole seconds, at least 5)."""
+    if timeout_s <= 0:
+        return []
+    if ardupilot:
+        return [
+            AutopilotParam("SYSID_MYGCS", gcs_sysid),
+            AutopilotParam("FS_GCS_TIMEOUT", max(2.0, timeout_s), integer=False),
+            AutopilotParam("FS_GCS_ENABLE", 1),
+        ]
+    return [
+        AutopilotParam("COM_DL_LOSS_T", max(5, math.ceil(timeout_s))),
+        AutopilotParam("NAV_DLL_ACT", 2),
+    ]
+
+
 def limit_refusal(method: str, request: Message, params: SafetyParams) -> StatusError | None:
     """INVALID_ARGUMENT naming the bound a call asks beyond (a SetSpeed faster than
     ``max_speed_m_s``, a Takeoff or Goto higher than ``max_altitude_m``); None if none."""
