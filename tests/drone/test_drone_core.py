@@ -10,6 +10,7 @@ from baton.digest import request_digest
 from baton.drone.core import RESTART_GRACE_S, START_GRACE_S, DroneCore
 from baton.drone.policy import Station
 from baton.drone.safety import (
+    Failsafe,
     SafetyParams,
     gcs_failsafe_params,
     landing_due,
@@ -267,3 +268,39 @@ def test_the_autopilot_s_own_gcs_failsafe_parameters() -> None:
     px4 = gcs_failsafe_params(False, 2.5, 245)
     assert [(p.name, p.value) for p in px4] == [("COM_DL_LOSS_T", 5), ("NAV_DLL_ACT", 2)]
     assert gcs_failsafe_params(True, 0.0, 245) == []
+
+
+def test_below_the_battery_reserve_the_mission_ends_once() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    drone = DroneCore(seq, 1.0, SafetyParams(10.0, "hold", battery_reserve_pct=25.0))
+    assert drone.battery_due(0.0, 25.0, airborne=True) is None
+    assert drone.battery_due(0.0, float("nan"), airborne=True) is None  # not said
+    assert drone.battery_due(0.0, 20.0, airborne=False) is None  # on the ground
+    due = drone.battery_due(1.0, 24.9, airborne=True)
+    assert due is not None and (due.cause, due.action) == ("battery", "rtl")
+    assert "battery 24.9 % below the reserve of 25 %" in due.reason
+    drone.enter_failsafe(due)
+    assert drone.battery_due(2.0, 20.0, airborne=True) is None  # once
+    refused = drone.refusal(GET, b"")
+    assert refused is not None and "in failsafe (battery" in refused.message
+
+
+def test_a_low_battery_ends_a_lost_link_hold_but_not_a_return() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    params = SafetyParams(10.0, "hold", battery_reserve_pct=25.0, battery_action="land")
+    drone = DroneCore(seq, 1.0, params)
+    drone.failsafe_due(0.0, set(), None, True)
+    held = drone.failsafe_due(10.0, set(), None, True)
+    assert held is not None and held.action == "hold"
+    drone.enter_failsafe(held)
+    low = drone.battery_due(11.0, 20.0, airborne=True)
+    assert low is not None and low.action == "land"
+    returning = DroneCore(Sequencer([0], initial_master=0), 1.0, SafetyParams(10.0, "rtl", 0, 0))
+    returning.enter_failsafe(Failsafe("lost_link", "rtl", 0.0, "gone"))
+    assert returning.battery_due(1.0, 1.0, airborne=True) is None
+    # nearest_station without a known station: home
+    near = DroneCore(
+        seq, 1.0, SafetyParams(battery_reserve_pct=25.0, battery_action="nearest_station")
+    )
+    due = near.battery_due(0.0, 20.0, True, nearest=None)
+    assert due is not None and due.action == "rtl" and "no station known" in due.reason

@@ -14,7 +14,7 @@ from waiting import eventually
 
 from baton.effects import read_effects
 from baton.testbed.local import VEHICLE_EFFECTS_FILE, LocalTestbed, TestbedPlan, local_config
-from baton.v1 import drone_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 MISSIONS = Path(__file__).parent / "missions"
 SPEEDUP = 20.0
@@ -136,3 +136,48 @@ async def test_the_cruise_speed_survives_a_drone_killed_mid_mission(tmp_path: Pa
         assert following["speed_m_s"] == LONG_LEGS.speed_m_s
     log = (tmp_path / "logs" / "drone.log").read_text()
     assert "cruise speed restored" in log
+
+
+async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) -> None:
+    """A small battery (8 Wh: about 2 min of flight) and a 50 % reserve: mid-mission the
+    drone commands the return, the vehicle counts it, and the program's next call fails
+    FAILED_PRECONDITION on every controller (issue 32, item 2)."""
+    plan = TestbedPlan(
+        config=local_config(
+            2,
+            flush_limit=0,
+            speedup=SPEEDUP,
+            controller_link=FAST_LINK,
+            drone_link=FAST_LINK,
+            safety={"battery_reserve": 50.0, "battery_action": "rtl"},
+        ),
+        mission=LONG_LEGS,
+        vehicle_args=("--battery-capacity-wh", "8"),
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        assert testbed.drone_stub is not None
+        effects = tmp_path / VEHICLE_EFFECTS_FILE
+
+        def returned() -> list[dict[str, object]]:
+            return [
+                e
+                for e in read_effects(effects)
+                if e["effect"] == "return_to_launch" or e.get("mode") == "RETURN_TO_LAUNCH"
+            ]
+
+        await eventually(lambda: bool(returned()), "the vehicle told to return", 120)
+        status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert (status.failsafe.cause, status.failsafe.action) == ("battery", "rtl")
+        assert "below the reserve of 50 %" in status.failsafe.reason
+        # Nothing after the return reached the vehicle: every later call refused.
+        first = int(returned()[0]["seq"])  # type: ignore[call-overload]
+        assert [e["effect"] for e in read_effects(effects) if e["seq"] > first] == []
+
+        async def every_program_told() -> bool:
+            errors = [
+                (await stub.GetStatus(ring_pb2.GetControllerStatusRequest())).mission_error
+                for stub in testbed.controller_stubs.values()
+            ]
+            return all("in failsafe (battery" in error for error in errors)
+
+        await eventually(every_program_told, "every program ended by the failsafe", 60)

@@ -29,10 +29,11 @@ The rules it keeps (docs/design.md, "Takeover" and "Exactly once"):
   unused and the same request may be sent again.
 - The safety net (``safety.py``, docs/operating.md "The safety net"): with no
   usable controller (no request, no stream from one the drone could make
-  master) for ``lost_link_s`` while the vehicle is in the air, the vehicle is
-  put in failsafe. While it is, every admitted request is refused before
-  execution (FAILED_PRECONDITION, booked: the master logs it as the call's
-  outcome, so every replica's program sees the same), until an operator
+  master) for ``lost_link_s`` while the vehicle is in the air, or with the
+  battery below the mission's reserve, the vehicle is put in failsafe. While
+  it is, every admitted request is refused before execution
+  (FAILED_PRECONDITION, booked: the master logs it as the call's outcome, so
+  every replica's program sees the same), until an operator
   resumes. A call beyond a bound of the vehicle (speed, altitude) is refused
   INVALID_ARGUMENT the same way.
 """
@@ -45,7 +46,13 @@ from dataclasses import dataclass
 import grpc
 
 from baton.drone.dedupe import CachedReply
-from baton.drone.safety import Failsafe, SafetyParams, limit_refusal, lost_link_failsafe
+from baton.drone.safety import (
+    Failsafe,
+    SafetyParams,
+    battery_failsafe,
+    limit_refusal,
+    lost_link_failsafe,
+)
 from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
@@ -205,6 +212,19 @@ class DroneCore:
         if self.failsafe is not None:
             return None
         return lost_link_failsafe(now, self.last_usable, self.safety, nearest)
+
+    def battery_due(
+        self, now: float, percent: float, airborne: bool, nearest: int | None = None
+    ) -> Failsafe | None:
+        """The battery failsafe due now (``safety.battery_failsafe``), or None: none on the
+        ground, nor while the vehicle already returns or lands for a failsafe; a lost-link
+        hold is ended by it (the vehicle must come back before the battery runs out)."""
+        if not airborne:
+            return None
+        held = self.failsafe
+        if held is not None and (held.cause == "battery" or held.action != "hold"):
+            return None
+        return battery_failsafe(now, percent, self.safety, nearest)
 
     def enter_failsafe(self, failsafe: Failsafe) -> None:
         """The vehicle is in ``failsafe`` from now: requests are refused until a resume."""

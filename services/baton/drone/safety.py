@@ -33,11 +33,14 @@ class SafetyParams:
     lost_link_action: str = "rtl"
     max_speed_m_s: float = math.inf
     max_altitude_m: float = math.inf
+    battery_reserve_pct: float = 0.0  # 0: no battery reserve
+    battery_action: str = "rtl"
 
 
 @dataclass(frozen=True)
 class Failsafe:
-    """The vehicle taken out of the mission's hands: why (``cause``: ``lost_link``),
+    """The vehicle taken out of the mission's hands: why (``cause``: ``lost_link`` or
+    ``battery``),
     what it does (``action``, and the ``station`` it flies to for nearest_station),
     since when (wall seconds) and the reason a person reads."""
 
@@ -64,11 +67,7 @@ def lost_link_failsafe(
     lost_s = now - last_usable
     if params.lost_link_s <= 0 or lost_s < params.lost_link_s:
         return None
-    action = params.lost_link_action
-    where = f" (station {station})" if action == "nearest_station" and station is not None else ""
-    if action == "nearest_station" and station is None:
-        action = "rtl"  # no station known: home is the place known to be clear
-        where = " (no station known: rtl)"
+    action, where = _landing_action(params.lost_link_action, station)
     return Failsafe(
         "lost_link",
         action,
@@ -77,6 +76,34 @@ def lost_link_failsafe(
         f"{action}{where}",
         station if action == "nearest_station" else None,
     )
+
+
+def battery_failsafe(
+    now: float, percent: float, params: SafetyParams, station: int | None
+) -> Failsafe | None:
+    """The battery failsafe due at ``now`` with ``percent`` left: below the mission's
+    reserve, the mission ends with ``battery_action``; None above it, when the reserve
+    is off, or when the autopilot does not say (NaN)."""
+    reserve = params.battery_reserve_pct
+    if reserve <= 0 or not math.isfinite(percent) or percent >= reserve:
+        return None
+    action, where = _landing_action(params.battery_action, station)
+    return Failsafe(
+        "battery",
+        action,
+        now,
+        f"battery {percent:.1f} % below the reserve of {reserve:g} %: {action}{where}",
+        station if action == "nearest_station" else None,
+    )
+
+
+def _landing_action(action: str, station: int | None) -> tuple[str, str]:
+    """The action and its words: nearest_station needs a station, else home (rtl)."""
+    if action != "nearest_station":
+        return action, ""
+    if station is None:
+        return "rtl", " (no station known: rtl)"
+    return action, f" (station {station})"
 
 
 def nearest_station(position: api.Position, stations: Mapping[int, Station]) -> int | None:

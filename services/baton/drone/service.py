@@ -222,12 +222,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 failsafe = self.core.failsafe
                 if failsafe is not None and failsafe.station is not None and state.in_air:
                     await self._land_at_station(failsafe, here)
-                elif failsafe is None:
-                    due = self._failsafe_due(state.in_air, here)
+                else:
+                    due = self._failsafe_due(state, here)
                     if due is not None:
                         async with self._lock:
                             # Re-checked under the lock: a request may have come meanwhile.
-                            due = self._failsafe_due(state.in_air, here)
+                            due = self._failsafe_due(state, here)
                             if due is not None:
                                 await self._enter_failsafe(due)
             await asyncio.sleep(TAKEOVER_TICK_S)
@@ -243,13 +243,20 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         except (StatusError, TimeoutError):
             return None
 
-    def _failsafe_due(self, airborne: bool, here: api.Position) -> Failsafe | None:
-        """``DroneCore.failsafe_due`` with who holds a stream now, who is in range, and the
-        station nearest the vehicle (``here``)."""
+    def _failsafe_due(self, state: api.GetFlightStateReply, here: api.Position) -> Failsafe | None:
+        """``DroneCore.battery_due``, else ``failsafe_due`` (the lost link), with the
+        battery and whether the vehicle is in the air (``state``), who holds a stream
+        now, who is in range, and the station nearest the vehicle (``here``)."""
+        now, airborne = time.time(), state.in_air
+        nearest = nearest_station(here, self.stations)
+        battery = self.core.battery_due(now, state.battery_percent, airborne, nearest)
+        if battery is not None:
+            return battery
+        if self.core.failsafe is not None:
+            return None
         in_range = self.policy.in_range() if self.policy is not None else None
         holders = self.standby.reachable | self.streams.holders
-        nearest = nearest_station(here, self.stations)
-        return self.core.failsafe_due(time.time(), holders, in_range, airborne, nearest)
+        return self.core.failsafe_due(now, holders, in_range, airborne, nearest)
 
     async def _enter_failsafe(self, failsafe: Failsafe) -> None:
         """Puts the vehicle in ``failsafe`` (the caller holds the lock): booked in the core
@@ -1222,6 +1229,8 @@ def safety_params(config: BatonConfig) -> SafetyParams:
         lost_link_action=safety.lost_link_action,
         max_speed_m_s=safety.max_speed,
         max_altitude_m=safety.max_altitude,
+        battery_reserve_pct=safety.battery_reserve,
+        battery_action=safety.battery_action,
     )
 
 
