@@ -82,8 +82,9 @@ class SimVehicle:
     Mobility request UNAVAILABLE without reaching the vehicle.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, battery_drain_pct_s: float = 0.0) -> None:
         self.connected = True
+        self.battery_drain_pct_s = battery_drain_pct_s
         self.commands: list[Acted] = []
         self.reads: dict[int, list[Acted]] = {}
         # The failsafe actions the drone commanded (no request's: the oracles keep them
@@ -91,6 +92,10 @@ class SimVehicle:
         self.failsafes: list[tuple[float, str]] = []
         self.resumes: list[float] = []
         self._serial = 0
+
+    def battery(self, now: float) -> float:
+        """The battery left at ``now``, percent (drained at a constant rate from 100)."""
+        return max(0.0, 100.0 - self.battery_drain_pct_s * now)
 
     def act(self, now: float, reqnr: int, method: str, request: bytes) -> bytes:
         """A flight command reaches the vehicle; the vehicle acts on it."""
@@ -266,7 +271,7 @@ class SimDrone:
         self.p_ack_lost = p_ack_lost
         self.prepare_timeout_s = prepare_timeout_s
         self.core = DroneCore(self._sequencer(), world.takeover_after, world.safety)
-        self.vehicle = SimVehicle()
+        self.vehicle = SimVehicle(world.battery_drain)
         self.camera = SimCamera()
         self.up = True
         # Durable (store.py): the request being executed, as its intent.
@@ -939,10 +944,14 @@ class SimDrone:
         return self.core.takeover_due(now, self.reachable(), connected, in_range)
 
     def _failsafe_due(self, now: float) -> Failsafe | None:
-        """``DroneCore.failsafe_due`` as ``DroneService._failsafe_due`` asks it: the vehicle
-        counts as in the air while the mission is open (the sim has no flight state)."""
-        in_range = self.policy.in_range() if self.policy is not None else None
+        """``DroneCore.battery_due``, else ``failsafe_due``, as ``DroneService._failsafe_due``
+        asks them: the vehicle counts as in the air while the mission is open (the sim has
+        no flight state)."""
         airborne = self.world.mission_open()
+        battery = self.core.battery_due(now, self.vehicle.battery(now), airborne)
+        if battery is not None or self.core.failsafe is not None:
+            return battery
+        in_range = self.policy.in_range() if self.policy is not None else None
         return self.core.failsafe_due(now, self.reachable(), in_range, airborne)
 
     def _failsafe_check(self) -> None:
@@ -951,7 +960,7 @@ class SimDrone:
         due = self._failsafe_due(now)
         if due is not None:
             self.core.enter_failsafe(due)
-            self.vehicle.failsafes.append((now, due.action))
+            self.vehicle.failsafes.append((now, f"{due.cause} {due.action}"))
             self.world.trace(f"failsafe: {due.reason}")
 
     def resume_rpc(self) -> None:

@@ -175,6 +175,9 @@ def plan_failsafe(world: World, plan: FaultPlan) -> None:
         f"{world.safety.lost_link_action})"
     )
     world.loop.at(start, cut_every_station, world, length)
+    if world.battery_drain:
+        reserve_at = (100.0 - world.safety.battery_reserve_pct) / world.battery_drain
+        plan.failsafe += f", battery at the reserve at {reserve_at:.2f}s"
     if rng.random() < 0.5:
         resume_at = start + length + rng.uniform(0.0, 2.0 * lost_link)
         plan.failsafe += f", resumed at {resume_at:.2f}s"

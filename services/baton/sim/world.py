@@ -214,9 +214,18 @@ class World:
         # usable controller, drawn from a stream of its own, as are its action.
         srng = random.Random(f"failsafe {seed}")
         self.safety = SafetyParams()
+        # The battery's drain, percent per second (0: it never runs low).
+        self.battery_drain = 0.0
         if options.failsafe:
             lost_link = max(drawn, 1.0) * srng.choice((2.0, 3.0, 5.0))
-            self.safety = SafetyParams(lost_link, srng.choice(ACTIONS))
+            action = srng.choice(ACTIONS)
+            # In half the seeds the battery reaches the 20 % reserve 2 to 30 s in.
+            if srng.random() < 0.5:
+                self.battery_drain = 80.0 / srng.uniform(2.0, 30.0)
+            battery_action = srng.choice(ACTIONS[1:])
+            self.safety = SafetyParams(
+                lost_link, action, battery_reserve_pct=20.0, battery_action=battery_action
+            )
         # Controllers killed for good (the lose-master fault), and what it did.
         self.lost: set[int] = set()
         self.failover: dict[str, object] = {}
