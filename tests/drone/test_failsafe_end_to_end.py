@@ -181,3 +181,36 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
             return all("in failsafe (battery" in error for error in errors)
 
         await eventually(every_program_told, "every program ended by the failsafe", 60)
+
+
+async def test_the_drone_service_dead_for_good_the_autopilot_returns(tmp_path: Path) -> None:
+    """kill -9 of the drone mid-flight, never restarted: the autopilot's own GCS failsafe
+    (PX4's NAV_DLL_ACT and COM_DL_LOSS_T, set by the drone at connect) returns the vehicle
+    once no ground station was heard for the timeout (5 s of wall time at least)."""
+    plan = TestbedPlan(
+        config=local_config(
+            2, flush_limit=0, speedup=SPEEDUP, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
+        mission=LONG_LEGS,
+    )
+    effects = tmp_path / VEHICLE_EFFECTS_FILE
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        def gotos() -> int:
+            return sum(e["effect"] == "goto" for e in read_effects(effects))
+
+        await eventually(lambda: gotos() >= 2, "the vehicle flying its second leg", 60)
+        log = (tmp_path / "logs" / "drone.log").read_text()
+        assert '"autopilot GCS failsafe set"' in log and "NAV_DLL_ACT=2" in log
+        part = testbed.supervisor.parts["drone"]
+        assert part.process is not None
+        os.kill(part.process.pid, signal.SIGKILL)
+        killed_at = time.time()
+
+        def returned() -> list[dict[str, object]]:
+            return [e for e in read_effects(effects) if e["effect"] == "link_loss_return"]
+
+        await eventually(lambda: bool(returned()), "the autopilot returning by itself", 30)
+        after_s = float(returned()[0]["time"]) - killed_at  # type: ignore[arg-type]
+        print(f"drone killed to the autopilot's return: {after_s:.2f} s wall")
+        assert after_s >= 5.0 - 0.5  # the GCS heartbeat's period: up to 1 s before the kill

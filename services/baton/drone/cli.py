@@ -313,7 +313,7 @@ def run(args: argparse.Namespace) -> int:
     from baton.config import ConfigError
     from baton.drone.master import HandoverScriptError
     from baton.drone.mobility import MavsdkMobility
-    from baton.drone.service import serve
+    from baton.drone.service import autopilot_gcs_timeout_s, serve
     from baton.lifecycle import run_until_signalled
     from baton.rpc.tls import TlsError
 
@@ -326,6 +326,6 @@ def run(args: argparse.Namespace) -> int:
         settings.vehicle_url,
         signing_key=settings.mavlink_key,
         tlog_dir=Path(args.tlog_dir) if args.tlog_dir is not None else None,
-        gcs_failsafe_timeout_s=settings.config.safety.autopilot_gcs_timeout,
+        gcs_failsafe_timeout_s=autopilot_gcs_timeout_s(settings.config),
     )
     return lifecycle.run(run_until_signalled(lambda stop: serve(settings, vehicle, stop)))

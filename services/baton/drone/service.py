@@ -21,7 +21,7 @@ import grpc
 from baton.config import BatonConfig, controllers_only, detection_time_s
 from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
-from baton.drone.core import DroneCore
+from baton.drone.core import RESTART_GRACE_S, DroneCore
 from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply, retained_batches
 from baton.drone.dispatch import Dispatcher
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
@@ -1232,6 +1232,17 @@ def safety_params(config: BatonConfig) -> SafetyParams:
         battery_reserve_pct=safety.battery_reserve,
         battery_action=safety.battery_action,
     )
+
+
+def autopilot_gcs_timeout_s(config: BatonConfig) -> float:
+    """The autopilot's own GCS failsafe time (its clock: mission seconds): the model's
+    ``safety.autopilot_gcs_timeout``, but never shorter than a restart of the drone
+    service takes (the restart grace, in wall seconds, times the speed-up), so that a
+    restart is not taken for the drone service's death; 0: left alone."""
+    configured = config.safety.autopilot_gcs_timeout
+    if configured <= 0:
+        return 0.0
+    return max(configured, RESTART_GRACE_S * config.speedup)
 
 
 def landing_stations(config: BatonConfig) -> dict[int, Station]:
