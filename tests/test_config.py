@@ -100,3 +100,32 @@ def test_a_radio_fade_needs_radio_range_and_sane_numbers() -> None:
     )
     assert config.radio_fade is not None and config.radio_fade.link_arg() == "0.8,0.05s,0.25"
     assert parse_config({"controllers": placed, "radio_range": True}).radio_fade is None
+
+
+@pytest.mark.parametrize(
+    ("safety", "field", "why"),
+    [
+        ({"lost_link": -1}, "safety.lost_link", ">= 0"),
+        ({"lost_link": float("nan")}, "safety.lost_link", "finite"),
+        ({"lost_link_action": "crash"}, "safety.lost_link_action", "nearest_station"),
+        ({"battery_reserve": -5}, "safety.battery_reserve", "greater than or equal to 0"),
+        ({"battery_reserve": float("nan")}, "safety.battery_reserve", "finite"),
+        ({"battery_reserve": 150}, "safety.battery_reserve", "less than or equal to 100"),
+        ({"battery_action": "hold"}, "safety.battery_action", "rtl"),
+        ({"max_speed": 0}, "safety.max_speed", "greater than 0"),
+        ({"max_sleep": float("inf")}, "safety.max_sleep", "finite"),
+        ({"lost_link": 2}, "", "must be longer than takeover_after"),
+    ],
+)
+def test_the_safety_net_s_bad_values_are_refused(
+    safety: dict[str, Any], field: str, why: str
+) -> None:
+    message = refused({"controllers": TWO, "safety": safety})
+    assert "t.yaml" in message and field in message and why in message, message
+
+
+def test_the_safety_net_s_defaults() -> None:
+    safety = parse_config({"controllers": TWO}).safety
+    assert (safety.lost_link, safety.lost_link_action) == (30.0, "rtl")
+    assert (safety.battery_reserve, safety.battery_action) == (20.0, "rtl")
+    assert (safety.max_speed, safety.max_altitude, safety.max_sleep) == (15.0, 120.0, 600.0)

@@ -318,6 +318,40 @@ class RadioFadeConfig(_Model):
         return f"{self.begins_at},{self.latency}s,{self.bandwidth_factor}"
 
 
+FailsafeAction = Literal["hold", "land", "rtl", "nearest_station"]
+
+
+class SafetyConfig(_Model):
+    """The operator's safety net at the drone (docs/operating.md, "The safety net").
+
+    Times are mission seconds, like ``takeover_after``. The defaults are chosen
+    for a vehicle flying beyond sight of its operator: ``rtl`` after 30 s with
+    no usable controller (home is where the vehicle was armed, a place known to
+    be clear; a hold only waits for the battery to run out, a landing comes
+    down wherever the link was lost), and the limits of a small multicopter
+    flown under the open category's 120 m ceiling.
+    """
+
+    # No usable controller (no request, no stream) for this long: the failsafe
+    # action. 0: never (the vehicle holds and waits, the old behaviour).
+    lost_link: Duration = 30.0
+    lost_link_action: FailsafeAction = "rtl"
+    # Below this battery percentage the mission ends with battery_action; 0: off.
+    battery_reserve: float = Field(default=20.0, ge=0, le=100, allow_inf_nan=False)
+    battery_action: Literal["land", "rtl", "nearest_station"] = "rtl"
+    # The fastest a SetSpeed may ask for and the highest a Takeoff or Goto may
+    # fly (metres above home); the autopilot's own maximum, where it says it,
+    # is the bound when lower.
+    max_speed: float = Field(default=15.0, gt=0, allow_inf_nan=False)
+    max_altitude: float = Field(default=120.0, gt=0, allow_inf_nan=False)
+    # The longest Clock.Sleep a mission may ask for.
+    max_sleep: Duration = 600.0
+    # The autopilot's own GCS failsafe, set at connect: if the drone service
+    # itself stops talking to the autopilot for this long (seconds of the
+    # autopilot's clock), the autopilot returns home. 0: left as it is.
+    autopilot_gcs_timeout: Duration = 10.0
+
+
 class TlsConfig(_Model):
     """Mutual TLS (docs/design.md, Security): where every part finds its certificate."""
 
@@ -367,6 +401,8 @@ class BatonConfig(_Model):
     # With radio_range: each such link also fades towards the edge of range
     # (latency up, bandwidth down); absent: a link is as good anywhere in range.
     radio_fade: RadioFadeConfig | None = None
+    # Lost link, battery reserve and the limits a vehicle can fly (``SafetyConfig``).
+    safety: SafetyConfig = SafetyConfig()
 
     @field_validator("ring", mode="before")
     @classmethod
@@ -438,6 +474,13 @@ class BatonConfig(_Model):
             raise ValueError(
                 "radio_fade fades the radio range's links: set radio_range: true, or drop "
                 "radio_fade"
+            )
+        lost_link = self.safety.lost_link
+        if lost_link and self.takeover_after and lost_link <= self.takeover_after:
+            raise ValueError(
+                f"safety.lost_link ({lost_link:g} s) must be longer than takeover_after "
+                f"({self.takeover_after:g} s): a master lost alone is taken over, and only "
+                "when no controller is left does the failsafe act; raise safety.lost_link"
             )
         if self.max_log_message is not None and self.max_log_message <= self.flush_limit:
             raise ValueError(

@@ -85,7 +85,14 @@ async def test_the_mission_survives_a_vehicle_outage(tmp_path: Path, pause_s: fl
 async def test_the_drone_killed_and_restarted_resumes_the_mission(tmp_path: Path) -> None:
     plan = TestbedPlan(
         config=local_config(
-            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+            3,
+            flush_limit=0,
+            speedup=20.0,
+            controller_link=FAST_LINK,
+            drone_link=FAST_LINK,
+            # The drone stays down until the master shows its wait (up to 15 s of wall
+            # time): the autopilot's own GCS failsafe must not take that for its death.
+            safety={"autopilot_gcs_timeout": "10min"},
         ),
         handovers=((8, 1), (30, 2)),  # one before the kill, one after it
         mission=LONG_LEGS,

@@ -79,6 +79,10 @@ async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing
             denied = await refusal(drone.Handover(drone_pb2.HandoverRequest(new_master=2)))
             assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
             assert "only an operator" in (denied.details() or "")
+            # Nor give the mission the vehicle back after a failsafe (issue 32).
+            denied = await refusal(drone.Resume(drone_pb2.ResumeRequest()))
+            assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
+            assert "only an operator" in (denied.details() or "")
             # Its own id is fine for reading the status, which shows every controller's
             # round trip measured through mutual TLS and the link emulators.
             while not all(

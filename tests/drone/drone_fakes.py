@@ -31,6 +31,8 @@ class FakeMobility:
         # Ground velocity, m/s north and east (the handover policy reads it).
         self.velocity: tuple[float, float] | None = (0.0, 0.0)
         self.roi: api.Position | None = None
+        # The cruise speed a restarted drone gave back from its state file.
+        self.restored_speed: float | None = None
 
     @property
     def connected(self) -> bool:
@@ -95,6 +97,9 @@ class FakeMobility:
         self.position.longitude_deg = request.longitude_deg
         self.position.relative_altitude_m = request.relative_altitude_m
         return api.GotoReply()
+
+    def restore_speed(self, speed_m_s: float) -> None:
+        self.restored_speed = speed_m_s
 
     async def SetSpeed(self, request: api.SetSpeedRequest) -> api.SetSpeedReply:
         self._call("SetSpeed")

@@ -8,9 +8,20 @@ import pytest
 
 from baton.digest import request_digest
 from baton.drone.core import RESTART_GRACE_S, START_GRACE_S, DroneCore
+from baton.drone.policy import Station
+from baton.drone.safety import (
+    Failsafe,
+    SafetyParams,
+    gcs_failsafe_params,
+    landing_due,
+    limit_refusal,
+    nearest_station,
+    sleep_refusal,
+)
 from baton.drone.sequencer import Sequencer
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
+from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
 GET = "/baton.v1.Mobility/GetPosition"
@@ -147,3 +158,174 @@ def test_a_connect_stream_carries_a_preparation_once_then_the_notice() -> None:
     drone.seq.switch(2, RPC, 2.0)
     owed = drone.stream_event(0, notice)
     assert isinstance(owed, drone_pb2.HandoverNotice) and owed.new_master == 2
+
+
+# -- the safety net (drone/safety.py) ---------------------------------------------
+
+SET_SPEED = "/baton.v1.Mobility/SetSpeed"
+
+
+def safe_core(lost_link_s: float = 10.0, action: str = "rtl") -> DroneCore:
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    params = SafetyParams(lost_link_s, action, max_speed_m_s=15.0, max_altitude_m=120.0)
+    return DroneCore(seq, 1.0, params)
+
+
+def test_no_usable_controller_for_lost_link_s_in_the_air_is_a_failsafe() -> None:
+    drone = safe_core()
+    assert drone.failsafe_due(0.0, {0, 1}, None, airborne=True) is None
+    assert drone.failsafe_due(9.9, set(), None, airborne=True) is None
+    due = drone.failsafe_due(10.0, set(), None, airborne=True)
+    assert due is not None and (due.cause, due.action, due.since) == ("lost_link", "rtl", 10.0)
+    assert "no usable controller for 10.0 s" in due.reason
+
+
+def test_a_request_or_a_stream_of_any_controller_keeps_the_link_usable() -> None:
+    drone = safe_core()
+    assert drone.failsafe_due(0.0, set(), None, airborne=True) is None
+    drone.seen(2, 8.0)  # a request, or a stream that ended
+    assert drone.failsafe_due(17.9, set(), None, airborne=True) is None
+    assert drone.failsafe_due(18.0, set(), None, airborne=True) is not None
+
+
+def test_on_the_ground_no_failsafe_and_the_time_counts_from_the_last_look_there() -> None:
+    drone = safe_core()
+    assert drone.failsafe_due(0.0, set(), None, airborne=False) is None
+    assert drone.failsafe_due(100.0, set(), None, airborne=False) is None
+    assert drone.failsafe_due(100.1, set(), None, airborne=True) is None
+    assert drone.failsafe_due(109.9, set(), None, airborne=True) is None
+    assert drone.failsafe_due(110.0, set(), None, airborne=True) is not None
+
+
+def test_controllers_out_of_range_are_not_usable_with_a_policy() -> None:
+    """1 holds a stream but is out of range: the link was last usable at 0 (0 in range)."""
+    drone = safe_core()
+    assert drone.failsafe_due(0.0, {0}, None, airborne=True) is None
+    assert drone.failsafe_due(10.0, {1}, set(), airborne=True) is not None
+
+
+def test_lost_link_off_never_fails_safe() -> None:
+    drone = safe_core(lost_link_s=0.0)
+    assert drone.failsafe_due(0.0, set(), None, airborne=True) is None
+    assert drone.failsafe_due(1e6, set(), None, airborne=True) is None
+
+
+def test_nearest_station_flies_to_the_station_given_else_home() -> None:
+    due = safe_core(action="nearest_station").failsafe_due(0.0, set(), None, True, nearest=2)
+    assert due is None
+    drone = safe_core(action="nearest_station")
+    drone.failsafe_due(0.0, set(), None, True, nearest=2)
+    due = drone.failsafe_due(10.0, set(), None, True, nearest=2)
+    assert due is not None and (due.action, due.station) == ("nearest_station", 2)
+    drone = safe_core(action="nearest_station")
+    drone.failsafe_due(0.0, set(), None, True)
+    due = drone.failsafe_due(10.0, set(), None, True, nearest=None)
+    assert due is not None and (due.action, due.station) == ("rtl", None)
+
+
+def test_in_failsafe_every_request_is_refused_before_execution_and_booked() -> None:
+    """Admitted (its number used, a duplicate answered from the cache) but refused
+    FAILED_PRECONDITION, until an operator resumes."""
+    drone = safe_core()
+    drone.failsafe_due(0.0, set(), None, True)
+    due = drone.failsafe_due(10.0, set(), None, True)
+    assert due is not None
+    drone.enter_failsafe(due)
+    assert drone.failsafe_due(30.0, set(), None, True) is None  # once
+    admitted = drone.admit(request(1), request_digest(GET, b""), 31.0)
+    assert admitted.cached is None and admitted.refused is not None
+    assert admitted.refused.code is grpc.StatusCode.FAILED_PRECONDITION
+    assert "in failsafe (lost_link" in admitted.refused.message
+    assert "Resume" in admitted.refused.message
+    assert drone.resume_mission(40.0) is due
+    assert drone.resume_mission(40.0) is None
+    drone.seq.served(0, 1, GET, request_digest(GET, b""), b"", 31.0, 31.0, admitted.refused)
+    assert drone.admit(request(2), request_digest(GET, b""), 41.0).refused is None
+    # the lost-link time counts afresh from the resume
+    assert drone.failsafe_due(49.9, set(), None, True) is None
+
+
+def test_a_set_speed_beyond_the_vehicle_s_bound_is_refused_naming_it() -> None:
+    drone = safe_core()
+    payload = api.SetSpeedRequest(speed_m_s=1e9).SerializeToString()
+    call = drone_pb2.InvokeRequest(
+        controller_id=0, epoch=1, reqnr=1, method=SET_SPEED, payload=payload
+    )
+    refused = drone.admit(call, request_digest(SET_SPEED, payload), 0.0).refused
+    assert refused is not None and refused.code is grpc.StatusCode.INVALID_ARGUMENT
+    assert "safety.max_speed = 15" in refused.message and "1e+09" in refused.message
+    ok = api.SetSpeedRequest(speed_m_s=15.0).SerializeToString()
+    assert drone.refusal(SET_SPEED, ok) is None
+
+
+def test_limits_of_altitude_and_sleep() -> None:
+    params = SafetyParams(max_altitude_m=120.0)
+    high = api.GotoRequest(latitude_deg=1, longitude_deg=1, relative_altitude_m=121)
+    refused = limit_refusal("Mobility.Goto", high, params)
+    assert refused is not None and "safety.max_altitude = 120" in refused.message
+    assert limit_refusal("Mobility.Takeoff", api.TakeoffRequest(altitude_m=120), params) is None
+    too_long = sleep_refusal(1e12, 600.0)
+    assert too_long is not None and too_long.code is grpc.StatusCode.INVALID_ARGUMENT
+    assert "safety.max_sleep = 600" in too_long.message
+    assert sleep_refusal(600.0, 600.0) is None
+
+
+def test_nearest_station_and_landing_over_it() -> None:
+    from baton.sdk.types import Position
+
+    stations = {
+        0: Station(0, Position(47.0, 8.0), 0.0),
+        1: Station(1, Position(47.01, 8.0), 0.0),
+    }
+    assert nearest_station(api.Position(latitude_deg=47.008, longitude_deg=8.0), stations) == 1
+    assert nearest_station(api.Position(), stations) is None
+    assert landing_due(api.Position(latitude_deg=47.01, longitude_deg=8.0), stations[1])
+    assert not landing_due(api.Position(latitude_deg=47.0099, longitude_deg=8.0), stations[1])
+
+
+def test_the_autopilot_s_own_gcs_failsafe_parameters() -> None:
+    ardupilot = gcs_failsafe_params(True, 10.0, 245)
+    assert [(p.name, p.value) for p in ardupilot] == [
+        ("SYSID_MYGCS", 245),
+        ("FS_GCS_TIMEOUT", 10.0),
+        ("FS_GCS_ENABLE", 1),
+    ]
+    px4 = gcs_failsafe_params(False, 2.5, 245)
+    assert [(p.name, p.value) for p in px4] == [("COM_DL_LOSS_T", 5), ("NAV_DLL_ACT", 2)]
+    assert gcs_failsafe_params(True, 0.0, 245) == []
+
+
+def test_below_the_battery_reserve_the_mission_ends_once() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    drone = DroneCore(seq, 1.0, SafetyParams(10.0, "hold", battery_reserve_pct=25.0))
+    assert drone.battery_due(0.0, 25.0, airborne=True) is None
+    assert drone.battery_due(0.0, float("nan"), airborne=True) is None  # not said
+    assert drone.battery_due(0.0, 20.0, airborne=False) is None  # on the ground
+    due = drone.battery_due(1.0, 24.9, airborne=True)
+    assert due is not None and (due.cause, due.action) == ("battery", "rtl")
+    assert "battery 24.9 % below the reserve of 25 %" in due.reason
+    drone.enter_failsafe(due)
+    assert drone.battery_due(2.0, 20.0, airborne=True) is None  # once
+    refused = drone.refusal(GET, b"")
+    assert refused is not None and "in failsafe (battery" in refused.message
+
+
+def test_a_low_battery_ends_a_lost_link_hold_but_not_a_return() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    params = SafetyParams(10.0, "hold", battery_reserve_pct=25.0, battery_action="land")
+    drone = DroneCore(seq, 1.0, params)
+    drone.failsafe_due(0.0, set(), None, True)
+    held = drone.failsafe_due(10.0, set(), None, True)
+    assert held is not None and held.action == "hold"
+    drone.enter_failsafe(held)
+    low = drone.battery_due(11.0, 20.0, airborne=True)
+    assert low is not None and low.action == "land"
+    returning = DroneCore(Sequencer([0], initial_master=0), 1.0, SafetyParams(10.0, "rtl", 0, 0))
+    returning.enter_failsafe(Failsafe("lost_link", "rtl", 0.0, "gone"))
+    assert returning.battery_due(1.0, 1.0, airborne=True) is None
+    # nearest_station without a known station: home
+    near = DroneCore(
+        seq, 1.0, SafetyParams(battery_reserve_pct=25.0, battery_action="nearest_station")
+    )
+    due = near.battery_due(0.0, 20.0, True, nearest=None)
+    assert due is not None and due.action == "rtl" and "no station known" in due.reason

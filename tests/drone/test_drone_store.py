@@ -18,6 +18,7 @@ from helpers.drone_calls import ARM, GOTO, POSITION, TAKEOFF, expect_error, invo
 from waiting import eventually
 
 from baton.digest import request_digest
+from baton.drone.safety import Failsafe
 from baton.drone.sequencer import AUDIT_IN_MEMORY
 from baton.drone.store import Counters, DroneStore, Intent, PolicyMemory
 from baton.rpc.server import BatonServer
@@ -257,3 +258,45 @@ def test_a_state_file_from_before_the_watermark_was_kept_opens(tmp_path: Path) -
         assert store.load_policy() == PolicyMemory(None, False, 2)
     finally:
         store.close()
+
+
+async def test_the_cruise_speed_and_a_failsafe_survive_a_restart(tmp_path: Path) -> None:
+    """Commanded state (issue 32, item 6): the mission's speed is given back to the vehicle
+    backend, and a vehicle in failsafe stays there (requests refused, booked) until an
+    operator's Resume."""
+    state = tmp_path / "drone.sqlite"
+    first = await restart(None, state, script="")
+    drone = first[0]
+    speed = api.SetSpeedRequest(speed_m_s=7.5)
+    await drone.stub.Invoke(invoke(0, 1, "/baton.v1.Mobility/SetSpeed", speed))
+    drone.service.core.enter_failsafe(Failsafe("lost_link", "rtl", 1.0, "no usable controller"))
+    drone.service._save_failsafe()
+    second = await restart(first, state, script="")
+    drone = second[0]
+    try:
+        assert drone.vehicle.restored_speed == 7.5
+        refused = await expect_error(
+            drone.stub.Invoke(invoke(0, 2, POSITION)), grpc.StatusCode.FAILED_PRECONDITION
+        )
+        assert "in failsafe (lost_link" in (refused.details() or "")
+        assert "GetPosition" not in drone.vehicle.calls  # nothing executed
+        again = await expect_error(
+            drone.stub.Invoke(invoke(0, 2, POSITION)), grpc.StatusCode.FAILED_PRECONDITION
+        )
+        assert again.details() == refused.details()  # booked: the same outcome again
+        status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert status.failsafe.cause == "lost_link" and status.last_reqnr == 2
+        await drone.stub.Resume(drone_pb2.ResumeRequest())
+        await expect_error(
+            drone.stub.Resume(drone_pb2.ResumeRequest()), grpc.StatusCode.FAILED_PRECONDITION
+        )
+        await drone.stub.Invoke(invoke(0, 3, POSITION))
+        assert "GetPosition" in drone.vehicle.calls
+    finally:
+        await second[1].stop(0)
+    third = await restart(second, state, script="")
+    try:
+        status = await third[0].stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert not status.HasField("failsafe")  # the resume is kept too
+    finally:
+        await third[1].stop(0)

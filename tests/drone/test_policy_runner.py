@@ -14,6 +14,7 @@ from waiting import eventually
 from baton.digest import request_digest
 from baton.drone.policy import FLY_ON, HANDOVER, HOLD, STAY, PolicyParams, Station
 from baton.drone.policy_runner import PolicyRunner
+from baton.drone.safety import Failsafe
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.server import BatonServer
@@ -443,3 +444,28 @@ async def test_a_drone_restarted_while_holding_waits_for_its_master_before_resum
         assert not (await bed.status()).holding
     finally:
         await bed.stop()
+
+
+async def test_in_failsafe_the_policy_neither_holds_nor_flies_the_leg_on(
+    ranged: tuple[DroneUnderTest, Links],
+) -> None:
+    """The failsafe's action (a return) has the vehicle: the policy's hold would stop
+    it, its resume would fly the mission's leg again (issue 32)."""
+    drone, links = ranged
+    await links.up(0, 1)
+    assert drone.service.policy is not None
+    put(drone, 0.0)
+    target = offset(HOME, 0.0, 580.0)
+    goto = api.GotoRequest(
+        latitude_deg=target.latitude_deg, longitude_deg=target.longitude_deg, relative_altitude_m=10
+    )
+    await drone.stub.Invoke(invoke(0, 1, GOTO, goto))
+    put(drone, 450.0)
+    drone.service.core.enter_failsafe(Failsafe("lost_link", "rtl", 0.0, "no usable controller"))
+    await links.down(0, 1)
+    calls = len(drone.vehicle.calls)
+    await drone.service.policy.tick()
+    await links.up(1)
+    await drone.service.policy.tick()
+    assert "Hold" not in drone.vehicle.calls[calls:]
+    assert "Goto" not in drone.vehicle.calls[calls:]

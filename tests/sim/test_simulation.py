@@ -19,7 +19,7 @@ import pytest
 from baton.sim import SimOptions, run_seed
 from baton.sim.cli import main
 from baton.sim.mutations import MUTATIONS, mutated
-from baton.sim.world import Outcome, run_seeds
+from baton.sim.world import Outcome, World, run_seeds
 
 # The default mix in CI. 3,000 since 2026-11-27: CI's 20 minutes on 2 cores had
 # less than two left; the wider ranges (0-7999 here, and every mode's in
@@ -377,3 +377,22 @@ def test_a_fenced_new_masters_fresh_self_takes_no_role_its_earlier_self_lost() -
     outcomes = [run_seed(seed, options) for seed in (680, 8, 422)]
     assert not any(o.failed for o in outcomes), _failures(outcomes)
     assert all("stall" in o.faults for o in outcomes)
+
+
+# Issue 32's every-station-lost scenario (--failsafe) in CI.
+FAILSAFE_SEEDS = 300
+
+
+def test_failsafe_seeds_hold_every_oracle_and_fail_safe() -> None:
+    """Every station cut from the drone at a drawn moment: exactly once and the replicas'
+    replies hold, nothing reaches the vehicle from a failsafe until the operator's resume
+    (the nothing-in-failsafe oracle), and the failsafe does act in many seeds."""
+    options = SimOptions(failsafe=True)
+    outcomes = run_seeds(range(FAILSAFE_SEEDS), options)
+    assert not any(o.failed for o in outcomes), _failures(outcomes)
+    failsafes = 0
+    for seed in range(40):
+        world = World(seed, options)
+        world.run()
+        failsafes += len(world.drone.vehicle.failsafes)
+    assert failsafes >= 10

@@ -152,13 +152,31 @@ def test_refusals() -> None:
 
 
 def test_arming_sets_home_and_battery_drains_only_when_armed() -> None:
-    k = Kinematics(HOME, FlightParams(battery_drain_pct_s=1.0, warmup_s=0.0))
+    """36 Wh: 1 % is 1296 J; armed on the ground a tenth of the 200 W hover draw."""
+    k = Kinematics(HOME, FlightParams(battery_capacity_wh=36.0, warmup_s=0.0))
     run(k, 1.0)
     assert k.battery_pct == 100.0
     k.arm()
     run(k, 2.0)
-    assert k.battery_pct == pytest.approx(98.0)
+    assert k.battery_pct == pytest.approx(100.0 - 2 * 20.0 / 1296.0)
     assert k.geo_home() == HOME
+
+
+def test_the_battery_drains_by_hover_and_by_speed() -> None:
+    """In the air: hover power plus drag by the square of the ground speed."""
+    params = FlightParams(
+        battery_capacity_wh=36.0, hover_power_w=200.0, drag_power_w_per_m2s2=2.0, warmup_s=0.0
+    )
+    k = Kinematics(HOME, params)
+    k.arm()
+    k.takeoff(10.0)
+    run(k, 10.0)
+    hovering = k.battery_draw_pct_s()
+    assert k.power_w() == pytest.approx(200.0)
+    assert hovering == pytest.approx(100 * 200.0 / (36.0 * 3600))
+    k.goto(LocalPoint(1000.0, 0.0, 10.0))
+    run(k, 10.0)
+    assert k.power_w() == pytest.approx(200.0 + 2.0 * 5.0**2)  # cruising at 5 m/s
 
 
 def test_not_armable_until_the_estimator_has_warmed_up() -> None:

@@ -162,6 +162,85 @@ HANDOVER_POLICY_PREDICTIVE: HandoverPolicy.ValueType  # 3
 Global___HandoverPolicy: _TypeAlias = HandoverPolicy  # noqa: Y015
 
 @_typing.final
+class ResumeRequest(_message.Message):
+    """Clear the vehicle's failsafe."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    def __init__(
+        self,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___ResumeRequest: _TypeAlias = ResumeRequest  # noqa: Y015
+
+@_typing.final
+class ResumeReply(_message.Message):
+    """The failsafe was cleared."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    CLEARED_FIELD_NUMBER: _builtins.int
+    @_builtins.property
+    def cleared(self) -> Global___Failsafe:
+        """The failsafe the vehicle was in."""
+
+    def __init__(
+        self,
+        *,
+        cleared: Global___Failsafe | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["cleared", b"cleared"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["cleared", b"cleared"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___ResumeReply: _TypeAlias = ResumeReply  # noqa: Y015
+
+@_typing.final
+class Failsafe(_message.Message):
+    """The vehicle taken out of the mission's hands by the safety net."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    CAUSE_FIELD_NUMBER: _builtins.int
+    ACTION_FIELD_NUMBER: _builtins.int
+    SINCE_FIELD_NUMBER: _builtins.int
+    REASON_FIELD_NUMBER: _builtins.int
+    STATION_FIELD_NUMBER: _builtins.int
+    cause: _builtins.str
+    """Why: "lost_link" (no usable controller for safety.lost_link)."""
+    action: _builtins.str
+    """What the vehicle was told: "hold", "land", "rtl" or "nearest_station"."""
+    since: _builtins.float
+    """When, Unix seconds (the drone's clock)."""
+    reason: _builtins.str
+    """The reason as a person reads it (how long, which bound, which station)."""
+    station: _builtins.int
+    """The station flown to for nearest_station; -1 otherwise."""
+    def __init__(
+        self,
+        *,
+        cause: _builtins.str = ...,
+        action: _builtins.str = ...,
+        since: _builtins.float = ...,
+        reason: _builtins.str = ...,
+        station: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["action", b"action", "cause", b"cause", "reason", b"reason", "since", b"since", "station", b"station"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___Failsafe: _TypeAlias = Failsafe  # noqa: Y015
+
+@_typing.final
 class InvokeRequest(_message.Message):
     """One drone-API call."""
 
@@ -1275,6 +1354,9 @@ class DroneStatus(_message.Message):
     PREPARING_LACKS_BYTES_FIELD_NUMBER: _builtins.int
     LINKS_FIELD_NUMBER: _builtins.int
     POLICY_RESUMES_FIELD_NUMBER: _builtins.int
+    FAILSAFE_FIELD_NUMBER: _builtins.int
+    LOST_LINK_S_FIELD_NUMBER: _builtins.int
+    LOST_LINK_ACTION_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -1332,6 +1414,9 @@ class DroneStatus(_message.Message):
     vehicle acted on before it counts the mission's (policy_decisions keeps
     only the latest 100, and only since the drone's start).
     """
+    lost_link_s: _builtins.float
+    """The lost-link failsafe's time (wall seconds; 0: off) and action."""
+    lost_link_action: _builtins.str
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
         """The vehicle's latest position (zero if unknown)."""
@@ -1378,6 +1463,13 @@ class DroneStatus(_message.Message):
         handover policy takes as link health (docs/design.md, "Link health").
         """
 
+    @_builtins.property
+    def failsafe(self) -> Global___Failsafe:
+        """The failsafe the vehicle is in; absent while the mission has the
+        vehicle. While set, every request is refused FAILED_PRECONDITION until
+        an operator's Resume.
+        """
+
     def __init__(
         self,
         *,
@@ -1412,10 +1504,13 @@ class DroneStatus(_message.Message):
         preparing_lacks_bytes: _builtins.int = ...,
         links: _abc.Iterable[Global___ControllerLink] | None = ...,
         policy_resumes: _builtins.int = ...,
+        failsafe: Global___Failsafe | None = ...,
+        lost_link_s: _builtins.float = ...,
+        lost_link_action: _builtins.str = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["flight_state", b"flight_state", "policy_decision", b"policy_decision", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["failsafe", b"failsafe", "flight_state", b"flight_state", "policy_decision", b"policy_decision", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "master", b"master", "master_connected", b"master_connected", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "policy_resumes", b"policy_resumes", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "failsafe", b"failsafe", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "lost_link_action", b"lost_link_action", "lost_link_s", b"lost_link_s", "master", b"master", "master_connected", b"master_connected", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "policy_resumes", b"policy_resumes", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -75,6 +75,11 @@ class DroneStub:
                 request_serializer=baton_dot_v1_dot_drone__pb2.GetDroneStatusRequest.SerializeToString,
                 response_deserializer=baton_dot_v1_dot_drone__pb2.DroneStatus.FromString,
                 _registered_method=True)
+        self.Resume = channel.unary_unary(
+                '/baton.v1.Drone/Resume',
+                request_serializer=baton_dot_v1_dot_drone__pb2.ResumeRequest.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_drone__pb2.ResumeReply.FromString,
+                _registered_method=True)
 
 
 class DroneServicer:
@@ -187,6 +192,18 @@ class DroneServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Resume(self, request, context):
+        """An operator gives the mission the vehicle back after a failsafe
+        (docs/operating.md, "The safety net"): the mission's next call is
+        executed again instead of refused. The vehicle keeps doing what the
+        failsafe made it do until that call. PERMISSION_DENIED for any caller
+        but the operator's certificate; FAILED_PRECONDITION when the vehicle is
+        in no failsafe.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_DroneServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -229,6 +246,11 @@ def add_DroneServicer_to_server(servicer, server):
                     servicer.GetStatus,
                     request_deserializer=baton_dot_v1_dot_drone__pb2.GetDroneStatusRequest.FromString,
                     response_serializer=baton_dot_v1_dot_drone__pb2.DroneStatus.SerializeToString,
+            ),
+            'Resume': grpc.unary_unary_rpc_method_handler(
+                    servicer.Resume,
+                    request_deserializer=baton_dot_v1_dot_drone__pb2.ResumeRequest.FromString,
+                    response_serializer=baton_dot_v1_dot_drone__pb2.ResumeReply.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -448,6 +470,33 @@ class Drone:
             '/baton.v1.Drone/GetStatus',
             baton_dot_v1_dot_drone__pb2.GetDroneStatusRequest.SerializeToString,
             baton_dot_v1_dot_drone__pb2.DroneStatus.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Resume(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/baton.v1.Drone/Resume',
+            baton_dot_v1_dot_drone__pb2.ResumeRequest.SerializeToString,
+            baton_dot_v1_dot_drone__pb2.ResumeReply.FromString,
             options,
             channel_credentials,
             insecure,

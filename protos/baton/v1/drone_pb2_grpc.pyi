@@ -111,6 +111,14 @@ class DroneStub:
     """
     GetStatus: _grpc.UnaryUnaryMultiCallable[_drone_pb2.GetDroneStatusRequest, _drone_pb2.DroneStatus]
     """The drone's state, counters and command audit."""
+    Resume: _grpc.UnaryUnaryMultiCallable[_drone_pb2.ResumeRequest, _drone_pb2.ResumeReply]
+    """An operator gives the mission the vehicle back after a failsafe
+    (docs/operating.md, "The safety net"): the mission's next call is
+    executed again instead of refused. The vehicle keeps doing what the
+    failsafe made it do until that call. PERMISSION_DENIED for any caller
+    but the operator's certificate; FAILED_PRECONDITION when the vehicle is
+    in no failsafe.
+    """
 
 @_typing.type_check_only
 class DroneAsyncStub(DroneStub):
@@ -190,6 +198,14 @@ class DroneAsyncStub(DroneStub):
     """
     GetStatus: _aio.UnaryUnaryMultiCallable[_drone_pb2.GetDroneStatusRequest, _drone_pb2.DroneStatus]  # type: ignore[assignment]
     """The drone's state, counters and command audit."""
+    Resume: _aio.UnaryUnaryMultiCallable[_drone_pb2.ResumeRequest, _drone_pb2.ResumeReply]  # type: ignore[assignment]
+    """An operator gives the mission the vehicle back after a failsafe
+    (docs/operating.md, "The safety net"): the mission's next call is
+    executed again instead of refused. The vehicle keeps doing what the
+    failsafe made it do until that call. PERMISSION_DENIED for any caller
+    but the operator's certificate; FAILED_PRECONDITION when the vehicle is
+    in no failsafe.
+    """
 
 class DroneServicer(metaclass=_abc_1.ABCMeta):
     """The drone service, on the drone's companion computer."""
@@ -314,5 +330,19 @@ class DroneServicer(metaclass=_abc_1.ABCMeta):
         context: _ServicerContext,
     ) -> _typing.Union[_drone_pb2.DroneStatus, _abc.Awaitable[_drone_pb2.DroneStatus]]:
         """The drone's state, counters and command audit."""
+
+    @_abc_1.abstractmethod
+    def Resume(
+        self,
+        request: _drone_pb2.ResumeRequest,
+        context: _ServicerContext,
+    ) -> _typing.Union[_drone_pb2.ResumeReply, _abc.Awaitable[_drone_pb2.ResumeReply]]:
+        """An operator gives the mission the vehicle back after a failsafe
+        (docs/operating.md, "The safety net"): the mission's next call is
+        executed again instead of refused. The vehicle keeps doing what the
+        failsafe made it do until that call. PERMISSION_DENIED for any caller
+        but the operator's certificate; FAILED_PRECONDITION when the vehicle is
+        in no failsafe.
+        """
 
 def add_DroneServicer_to_server(servicer: DroneServicer, server: _typing.Union[_grpc.Server, _aio.Server]) -> None: ...

@@ -29,6 +29,7 @@ The rules (docs/design.md, "Takeover", "Epochs" and "Restarts"):
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -51,8 +52,10 @@ from baton.controller.protocol import (
     ring_route,
 )
 from baton.digest import request_digest
+from baton.drone.safety import sleep_refusal
 from baton.rpc.errors import StatusError
 from baton.rpc.methods import path, service_prefix
+from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, ring_pb2
 
 CLOCK_SERVICE = service_prefix("Clock")
@@ -325,8 +328,15 @@ PREPARE_GRACE_S = 2.0
 class ControllerCore:
     """A controller's protocol and what it knows of its drone session."""
 
-    def __init__(self, protocol: ControllerProtocol, cut_through: bool = False) -> None:
+    def __init__(
+        self,
+        protocol: ControllerProtocol,
+        cut_through: bool = False,
+        max_sleep_s: float = math.inf,
+    ) -> None:
         self.protocol = protocol
+        # The longest Clock.Sleep the mission may ask (``safety.max_sleep``).
+        self.max_sleep_s = max_sleep_s
         # The ring forwards frames as they come: a handover's new master is sent
         # what it may lack straight away (``handover_notice``).
         self.cut_through = cut_through
@@ -370,7 +380,7 @@ class ControllerCore:
     def fresh_self(self) -> ControllerCore:
         """The core of this controller rejoining with nothing (``ControllerProtocol.
         fresh_self``), refusing the framing the drone replaced, if any."""
-        fresh = ControllerCore(self.protocol.fresh_self(), self.cut_through)
+        fresh = ControllerCore(self.protocol.fresh_self(), self.cut_through, self.max_sleep_s)
         fresh.replaced = self.replaced
         if self.replaced is not None:
             fresh.protocol.refuse_replaced(self.replaced)
@@ -834,9 +844,26 @@ class ControllerCore:
             effects.append(Note("info", "answered from the retained tail", fields))
             return Answer(entry_or_fail), [*effects, *self._log(entry_or_fail)]
         digest = request_digest(method, request)
+        refusal = self._clock_refusal(method, request)
+        if refusal is not None:  # logged as the call's outcome, as a drone's failure is
+            entry = ring_pb2.LogEntry(
+                reqnr=reqnr,
+                method=method,
+                request_digest=digest,
+                request=request,
+                status_code=refusal.code.value[0],
+                status_message=refusal.message,
+            )
+            return Answer(entry), [*effects, *self._log(entry)]
         if method in (CLOCK_NOW, CLOCK_SLEEP):
             return AskClock(reqnr, digest), effects
         return AskDrone(reqnr, digest), effects
+
+    def _clock_refusal(self, method: str, request: bytes) -> StatusError | None:
+        """A Sleep beyond the mission's bound (``safety.sleep_refusal``), else None."""
+        if method != CLOCK_SLEEP:
+            return None
+        return sleep_refusal(api.SleepRequest.FromString(request).seconds, self.max_sleep_s)
 
     def logged(
         self, reqnr: int, entry: ring_pb2.LogEntry

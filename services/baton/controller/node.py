@@ -156,6 +156,7 @@ class ControllerNode:
         self.core = ControllerCore(
             ControllerProtocol(cid, config.ring_order, config.flush_limit),
             cut_through=config.ring.cut_through,
+            max_sleep_s=config.safety.max_sleep,
         )
         # Every log message this controller holds: what it recovers after a
         # restart (with a file of its own) and gives a successor that restarts.

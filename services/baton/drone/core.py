@@ -27,6 +27,15 @@ The rules it keeps (docs/design.md, "Takeover" and "Exactly once"):
 - A failure after admission is the request's outcome and is booked, except
   UNAVAILABLE, which means nothing reached the vehicle: the number stays
   unused and the same request may be sent again.
+- The safety net (``safety.py``, docs/operating.md "The safety net"): with no
+  usable controller (no request, no stream from one the drone could make
+  master) for ``lost_link_s`` while the vehicle is in the air, or with the
+  battery below the mission's reserve, the vehicle is put in failsafe. While
+  it is, every admitted request is refused before execution
+  (FAILED_PRECONDITION, booked: the master logs it as the call's outcome, so
+  every replica's program sees the same), until an operator
+  resumes. A call beyond a bound of the vehicle (speed, altitude) is refused
+  INVALID_ARGUMENT the same way.
 """
 
 from __future__ import annotations
@@ -37,6 +46,13 @@ from dataclasses import dataclass
 import grpc
 
 from baton.drone.dedupe import RETAINED_BATCH_BYTES, CachedReply, retained_batches
+from baton.drone.safety import (
+    Failsafe,
+    SafetyParams,
+    battery_failsafe,
+    limit_refusal,
+    lost_link_failsafe,
+)
 from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
@@ -66,13 +82,23 @@ class Admitted:
     cached: CachedReply | None
     kept: tuple[CachedReply, ...]
     first: drone_pb2.HandoverRecord | None
+    # Admitted but refused before execution (failsafe, a bound): the request's
+    # outcome, booked like a failure of the vehicle, nothing executed.
+    refused: StatusError | None = None
 
 
 class DroneCore:
     """The drone's whole decision state: the ``Sequencer`` and the sightings of controllers."""
 
-    def __init__(self, seq: Sequencer, takeover_after_s: float = 0.0) -> None:
+    def __init__(
+        self, seq: Sequencer, takeover_after_s: float = 0.0, safety: SafetyParams | None = None
+    ) -> None:
         self.seq = seq
+        self.safety = safety or SafetyParams()
+        # The failsafe the vehicle is in (None: the mission has it), and when a usable
+        # controller was last there (None: not looked yet).
+        self.failsafe: Failsafe | None = None
+        self.last_usable: float | None = None
         # The master is lost after this long unseen; 0: never (only an operator's takeover).
         self.takeover_after_s = takeover_after_s
         self.routes: Mapping[str, Method] = drone_api()
@@ -92,6 +118,7 @@ class DroneCore:
         """``controller_id`` was seen at ``now``: it sent a request, or a stream of it ended."""
         if controller_id in self.seq.ring:
             self.last_seen[controller_id] = now
+            self.last_usable = max(self.last_usable or now, now)
 
     def sighted(self, now: float, holders: Iterable[int]) -> set[int]:
         """The controllers holding a stream now (``holders``), noted as seen now."""
@@ -160,6 +187,73 @@ class DroneCore:
             return None
         return record
 
+    # -- the safety net ---------------------------------------------------------------
+
+    def failsafe_due(
+        self,
+        now: float,
+        holders: Iterable[int],
+        in_range: set[int] | None,
+        airborne: bool,
+        nearest: int | None = None,
+    ) -> Failsafe | None:
+        """The lost-link failsafe due now (``safety.lost_link_failsafe``), or None: none is
+        due while the vehicle is on the ground, is already in failsafe, or a controller it
+        could make master (``takers``: holding a stream, in range with a policy) is there.
+        ``nearest`` is the station nearest the vehicle, for ``nearest_station``."""
+        if self.takers(set(holders) & set(self.seq.ring), in_range):
+            self.last_usable = now
+            return None
+        if self.last_usable is None or not airborne:
+            if self.last_usable is not None and self.last_usable > now:
+                return None  # a restart's grace runs
+            # Counted from the first look in the air: a drone restarted mid-flight, or
+            # a vehicle that took off, waits the whole lost_link time.
+            self.last_usable = now
+            return None
+        if self.failsafe is not None:
+            return None
+        return lost_link_failsafe(now, self.last_usable, self.safety, nearest)
+
+    def battery_due(
+        self, now: float, percent: float, airborne: bool, nearest: int | None = None
+    ) -> Failsafe | None:
+        """The battery failsafe due now (``safety.battery_failsafe``), or None: none on the
+        ground, nor while the vehicle already returns or lands for a failsafe; a lost-link
+        hold is ended by it (the vehicle must come back before the battery runs out)."""
+        if not airborne:
+            return None
+        held = self.failsafe
+        if held is not None and (held.cause == "battery" or held.action != "hold"):
+            return None
+        return battery_failsafe(now, percent, self.safety, nearest)
+
+    def enter_failsafe(self, failsafe: Failsafe) -> None:
+        """The vehicle is in ``failsafe`` from now: requests are refused until a resume."""
+        self.failsafe = failsafe
+
+    def resume_mission(self, now: float) -> Failsafe | None:
+        """An operator gives the mission the vehicle back: the failsafe cleared (returned;
+        None if there was none), the lost-link time counted afresh from ``now``."""
+        cleared, self.failsafe = self.failsafe, None
+        self.last_usable = now
+        return cleared
+
+    def refusal(self, method: str, payload: bytes) -> StatusError | None:
+        """Why an admitted request is not executed: the vehicle in failsafe, or a bound of
+        the vehicle it asks beyond; None to execute it. A payload that does not parse
+        is left to the execution, which refuses it."""
+        route = self.routes.get(method)
+        if self.failsafe is not None:
+            return self.failsafe.refusal(route.rpc if route is not None else method)
+        if route is None:
+            return None
+        try:
+            message = route.parse(payload)
+        except StatusError:
+            return None
+        return limit_refusal(route.rpc, message, self.safety)
+
     # -- requests --------------------------------------------------------------------
 
     def master_answers(
@@ -211,7 +305,7 @@ class DroneCore:
         kept = seq.keep(answers) + tuple(
             seq.adopt(cid, request.epoch, request.adopted_from_reqnr, request.reqnr)
         )
-        return Admitted(None, kept, first)
+        return Admitted(None, kept, first, self.refusal(request.method, request.payload))
 
     # -- a ground station's override (drone/gcs.py) ----------------------------------
 
@@ -309,6 +403,9 @@ class DroneCore:
         self.seq.resume(master, handovers, counts, replies, audit, fired_script, watermark)
         if self.seq.last_reqnr or self.seq.handovers:
             self.last_seen[master] = self.last_served[master] = now + RESTART_GRACE_S
+            # The lost-link time too counts from the end of the grace: the controllers
+            # re-connect to a restarted drone meanwhile.
+            self.last_usable = now + RESTART_GRACE_S
 
     def cut_off(self, intent: Intent) -> StatusError | None:
         """The outcome of a request a restart cut off while it executed: None for a read

@@ -63,6 +63,9 @@ from baton.v1 import drone_pb2
 
 T = TypeVar("T")
 
+# How long a parameter read or write may take before the autopilot counts as
+# lacking it (MAVSDK's own parameter timeouts are longer and retried).
+PARAM_TIMEOUT_S = 3.0
 # ArduPilot's EKF_STATUS_REPORT (not in the common dialect).
 EKF_STATUS_REPORT_ID = 193
 
@@ -208,8 +211,13 @@ class MavsdkMobility:
         tlog_dir: Path | None = None,
         gcs: GcsLink | None = None,
         runtime: MavsdkRuntime = PROCESS_RUNTIME,
+        gcs_failsafe_timeout_s: float = 0.0,
     ) -> None:
         self.url = url
+        # The autopilot's own GCS failsafe (safety.gcs_failsafe_params); 0: left alone.
+        self.gcs_failsafe_timeout_s = gcs_failsafe_timeout_s
+        self._param: Any = None
+        self._gcs_sysid = 245
         self._runtime = runtime
         # Ground stations watching live (drone/gcs.py), fed by the relay.
         self.gcs = gcs
@@ -251,6 +259,7 @@ class MavsdkMobility:
 
         self._runtime.prepare(asyncio.get_running_loop())
         config = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+        self._gcs_sysid = config.system_id
         self._mavsdk = Mavsdk(config)
         url = self.url if self._relay is None else await self._relay.start()
         try:
@@ -306,6 +315,7 @@ class MavsdkMobility:
         from mavsdk.asyncio.plugins.action import ActionAsync
         from mavsdk.asyncio.plugins.gimbal import GimbalAsync
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
+        from mavsdk.asyncio.plugins.param import ParamAsync
         from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 
         # A negative timeout waits until an autopilot appears or we are cancelled.
@@ -316,6 +326,7 @@ class MavsdkMobility:
         self._telemetry = telemetry = TelemetryAsync(system)
         self._direct = MavlinkDirectAsync(system)
         self._gimbal = GimbalAsync(system)
+        self._param = ParamAsync(system)
         for name, stream in (
             ("position", telemetry.subscribe_position),
             ("velocity", telemetry.subscribe_velocity_ned),
@@ -422,6 +433,11 @@ class MavsdkMobility:
             if self.monitor.wants_streams(now):
                 self.monitor.streams_requested(now)
                 await self._request_rates()
+                # At connect and after a reboot, beside the streams; in the background:
+                # an autopilot without the parameters answers nothing (timeouts).
+                self._tasks.append(
+                    asyncio.create_task(self._set_gcs_failsafe(), name="gcs-failsafe params")
+                )
             await asyncio.sleep(self.WATCH_PERIOD_S)
 
     async def _request_rates(self) -> None:
@@ -452,6 +468,34 @@ class MavsdkMobility:
                 )
             except StatusError as exc:
                 self._log.warning("telemetry rate refused", stream="ekf_status", error=str(exc))
+
+    async def _set_gcs_failsafe(self) -> None:
+        """Sets the autopilot's own GCS failsafe (``safety.gcs_failsafe_params``) where it
+        has the parameters: each read first, and left alone (logged) where the read gets
+        no answer (the embedded sim vehicle knows only MIS_TAKEOFF_ALT)."""
+        from baton.drone.safety import gcs_failsafe_params
+
+        heartbeat = self._heartbeat
+        ardupilot = heartbeat is not None and heartbeat.is_ardupilot
+        params = gcs_failsafe_params(ardupilot, self.gcs_failsafe_timeout_s, self._gcs_sysid)
+        done = []
+        for p in params:
+            get = self._param.get_param_int if p.integer else self._param.get_param_float
+            put = self._param.set_param_int if p.integer else self._param.set_param_float
+            value = int(p.value) if p.integer else float(p.value)
+            try:
+                await asyncio.wait_for(get(p.name), PARAM_TIMEOUT_S)
+                await asyncio.wait_for(put(p.name, value), PARAM_TIMEOUT_S)
+            except Exception as exc:  # ParamError, a timeout: the autopilot lacks it
+                self._log.warning(
+                    "autopilot GCS failsafe not set: the autopilot does not take the parameter",
+                    param=p.name,
+                    error=f"{type(exc).__name__}: {exc}",
+                )
+                return
+            done.append(f"{p.name}={value}")
+        if done:
+            self._log.info("autopilot GCS failsafe set", params=done)
 
     # --- helpers -----------------------------------------------------------------------
 
@@ -643,6 +687,11 @@ class MavsdkMobility:
             except StatusError as err:
                 self._log.warning("cruise speed not applied after goto", reason=err.message)
         return api.GotoReply()
+
+    def restore_speed(self, speed_m_s: float) -> None:
+        """The cruise speed the mission set before the drone restarted: re-applied after
+        every goto from now on, as it was (``MobilityBackend.restore_speed``)."""
+        self._speed_m_s = speed_m_s
 
     async def SetSpeed(self, request: api.SetSpeedRequest) -> api.SetSpeedReply:
         """Sets the cruise speed of this flight leg (if flying) and of every later goto.

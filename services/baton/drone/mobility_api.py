@@ -41,6 +41,10 @@ class MobilityBackend(Protocol):
         """The region of interest the gimbal points at (Gimbal.SetRoiLocation accepted
         last, not cleared since); None if none is set. The camera records it."""
 
+    def restore_speed(self, speed_m_s: float) -> None:
+        """The cruise speed the mission set before the drone restarted (its durable
+        state): sent again with the next goto, as a SetSpeed's would be."""
+
     async def Arm(self, request: api.ArmRequest) -> api.ArmReply: ...
     async def Disarm(self, request: api.DisarmRequest) -> api.DisarmReply: ...
     async def Takeoff(self, request: api.TakeoffRequest) -> api.TakeoffReply: ...

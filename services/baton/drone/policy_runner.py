@@ -315,6 +315,8 @@ class PolicyRunner:
         service = self.service
         again = self.holding
         async with service.execution_lock:
+            if service.core.failsafe is not None:
+                return  # the failsafe's action has the vehicle: a hold must not stop it
             state = await service.vehicle.GetFlightState(api.GetFlightStateRequest())
             if state.in_air:
                 # Kept first: a drone restarted once the vehicle holds must know it does
@@ -342,6 +344,11 @@ class PolicyRunner:
         async with service.execution_lock:
             if not self.holding:
                 return  # the master's command ended it meanwhile
+            if service.core.failsafe is not None:
+                # The failsafe's action has the vehicle: no flying on to the leg.
+                self.holding = self._held_vehicle = self._unsure = False
+                self._save()
+                return
             goto, held, restarted = self._last_goto, self._held_vehicle, self._held_before_restart
             here, away = None, 0.0
             if held and goto is not None:

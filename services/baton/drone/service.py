@@ -21,7 +21,7 @@ import grpc
 from baton.config import BatonConfig, controllers_only, detection_time_s
 from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
-from baton.drone.core import DroneCore
+from baton.drone.core import RESTART_GRACE_S, DroneCore
 from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
 from baton.drone.dispatch import Dispatcher
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
@@ -29,6 +29,7 @@ from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend
 from baton.drone.policy import LinkBounds, LinkState, PolicyParams, Station
 from baton.drone.policy_runner import PolicyRunner
+from baton.drone.safety import Failsafe, SafetyParams, landing_due, nearest_station
 from baton.drone.sequencer import ScriptedHandover, Sequencer, TakeoverDue
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import announce
@@ -43,6 +44,8 @@ from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
+# The durable commanded state's key of the mission's cruise speed (store.py).
+SPEED_KEY = "speed_m_s"
 # A status read must not hang on a vehicle that stopped answering.
 _STATUS_READ_TIMEOUT_S = 1.0
 # Audit entries in one GetStatus page: by default, and at most.
@@ -97,6 +100,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         takeover_after_s: float = 0.0,
         authenticated: bool = False,
         link_bounds: LinkBounds | None = None,
+        safety: SafetyParams | None = None,
+        stations: Mapping[int, Station] | None = None,
     ) -> None:
         self.race = race
         # Mutual TLS on the port: every call is checked against the caller's
@@ -107,7 +112,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.camera = camera
         # The master is lost after takeover_after_s (wall seconds) without a
         # stream or a request; 0: never (only an operator's takeover).
-        self.core = DroneCore(sequencer, takeover_after_s)
+        self.core = DroneCore(sequencer, takeover_after_s, safety)
+        # Every controller's station: the landing points of nearest_station.
+        self.stations: Mapping[int, Station] = stations or {}
+        # The nearest_station failsafe whose landing was commanded (at most once).
+        self._landing_for: Failsafe | None = None
         self.seq = sequencer
         self.streams = MasterStreams(sequencer)
         self.standby = StandbyStreams()
@@ -202,6 +211,137 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                         if self.store is not None:
                             self.store.save(self._counters())
             await asyncio.sleep(TAKEOVER_TICK_S)
+
+    async def watch_failsafe(self) -> None:
+        """Puts the vehicle in failsafe when ``DroneCore.failsafe_due`` says so, and lands
+        it at the station once a nearest_station failsafe has brought it there."""
+        while True:
+            state = await self._flight_state()
+            if state is not None:
+                here = await latest_position(self.vehicle)
+                failsafe = self.core.failsafe
+                if failsafe is not None and failsafe.station is not None and state.in_air:
+                    await self._land_at_station(failsafe, here)
+                else:
+                    due = self._failsafe_due(state, here)
+                    if due is not None:
+                        async with self._lock:
+                            # Re-checked under the lock: a request may have come meanwhile.
+                            due = self._failsafe_due(state, here)
+                            if due is not None:
+                                await self._enter_failsafe(due)
+            await asyncio.sleep(TAKEOVER_TICK_S)
+
+    async def _flight_state(self) -> api.GetFlightStateReply | None:
+        """The vehicle's flight state now; None while it is not connected or does not say."""
+        if not self.vehicle.connected:
+            return None
+        try:
+            return await asyncio.wait_for(
+                self.vehicle.GetFlightState(api.GetFlightStateRequest()), _STATUS_READ_TIMEOUT_S
+            )
+        except (StatusError, TimeoutError):
+            return None
+
+    def _failsafe_due(self, state: api.GetFlightStateReply, here: api.Position) -> Failsafe | None:
+        """``DroneCore.battery_due``, else ``failsafe_due`` (the lost link), with the
+        battery and whether the vehicle is in the air (``state``), who holds a stream
+        now, who is in range, and the station nearest the vehicle (``here``)."""
+        now, airborne = time.time(), state.in_air
+        nearest = nearest_station(here, self.stations)
+        battery = self.core.battery_due(now, state.battery_percent, airborne, nearest)
+        if battery is not None:
+            return battery
+        if self.core.failsafe is not None:
+            return None
+        in_range = self.policy.in_range() if self.policy is not None else None
+        holders = self.standby.reachable | self.streams.holders
+        return self.core.failsafe_due(now, holders, in_range, airborne, nearest)
+
+    async def _enter_failsafe(self, failsafe: Failsafe) -> None:
+        """Puts the vehicle in ``failsafe`` (the caller holds the lock): booked in the core
+        and the store first, so a request that comes next is refused whatever the
+        vehicle answers, then the action commanded."""
+        self.core.enter_failsafe(failsafe)
+        self._save_failsafe()
+        self.log.warning(
+            "failsafe",
+            cause=failsafe.cause,
+            action=failsafe.action,
+            station=failsafe.station,
+            reason=failsafe.reason,
+        )
+        try:
+            await self._command_failsafe(failsafe)
+        except StatusError as err:
+            self.log.error("failsafe action refused by the vehicle", reason=err.message)
+
+    async def _command_failsafe(self, failsafe: Failsafe) -> None:
+        vehicle = self.vehicle
+        if failsafe.action == "hold":
+            await vehicle.Hold(api.HoldRequest())
+        elif failsafe.action == "land":
+            await vehicle.Land(api.LandRequest())
+        elif failsafe.action == "rtl":
+            await vehicle.ReturnToLaunch(api.ReturnToLaunchRequest())
+        elif failsafe.station is not None:
+            here = await latest_position(vehicle)
+            at = self.stations[failsafe.station].location
+            await vehicle.Goto(
+                api.GotoRequest(
+                    latitude_deg=at.latitude_deg,
+                    longitude_deg=at.longitude_deg,
+                    relative_altitude_m=max(here.relative_altitude_m, 1.0),
+                )
+            )
+
+    async def _land_at_station(self, failsafe: Failsafe, here: api.Position) -> None:
+        """Lands once a nearest_station failsafe has brought the vehicle over its station
+        (``safety.landing_due``); once: the vehicle landing is no longer flying there."""
+        assert failsafe.station is not None
+        if failsafe is self._landing_for or not landing_due(here, self.stations[failsafe.station]):
+            return
+        async with self._lock:
+            if self.core.failsafe is failsafe:
+                self._landing_for = failsafe
+                self.log.warning("failsafe: landing at the station", station=failsafe.station)
+                try:
+                    await self.vehicle.Land(api.LandRequest())
+                except StatusError as err:
+                    self._landing_for = None  # tried again at the next look
+                    self.log.error("failsafe landing refused by the vehicle", reason=err.message)
+
+    def _save_failsafe(self) -> None:
+        if self.store is not None:
+            self.store.save_failsafe(self.core.failsafe)
+
+    async def Resume(
+        self, request: drone_pb2.ResumeRequest, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.ResumeReply:
+        """An operator gives the mission the vehicle back after a failsafe."""
+        try:
+            refusal = refused(
+                context,
+                self.authenticated,
+                "Resume",
+                f"only an operator ({OPERATOR.uri}) may give the mission the vehicle back",
+                lambda who: who == OPERATOR,
+            )
+            if refusal is not None:
+                raise refusal
+            async with self._lock:
+                cleared = self.core.resume_mission(time.time())
+                if cleared is None:
+                    raise StatusError(
+                        grpc.StatusCode.FAILED_PRECONDITION,
+                        "Resume: the vehicle is in no failsafe; the mission has it",
+                    )
+                self._save_failsafe()
+        except StatusError as err:
+            self.log.warning("resume rejected", reason=err.message)
+            await abort_with(context, err)
+        self.log.warning("failsafe cleared by the operator", cause=cleared.cause)
+        return drone_pb2.ResumeReply(cleared=failsafe_proto(cleared))
 
     async def watch_links(self) -> None:
         """Every PING_PERIOD_S: pings each controller on its standby stream, and logs
@@ -364,6 +504,14 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.log.info("new state file", path=str(store.path))
             return
         c, seq = state.counters, self.seq
+        speed = store.load_commanded().get(SPEED_KEY)
+        if speed is not None:
+            self.vehicle.restore_speed(float(speed))
+            self.log.info("cruise speed restored", speed_m_s=speed)
+        failsafe = store.load_failsafe()
+        if failsafe is not None:
+            self.core.enter_failsafe(failsafe)
+            self.log.warning("still in failsafe", cause=failsafe.cause, reason=failsafe.reason)
         counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
         self.core.resume(
             time.time(),
@@ -523,6 +671,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 return self._answer_duplicate(request, admitted.cached)
             if self.store is not None:
                 self.store.begin(Intent(reqnr, method, digest, cid, received_at), admitted.kept)
+            if admitted.refused is not None:
+                self._served(cid, reqnr, method, digest, b"", received_at, admitted.refused)
+                raise admitted.refused
             try:
                 reply = await self._execute(request)
             except StatusError as err:
@@ -579,6 +730,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             ) from exc
         if self.policy is not None and route.service == "Mobility":
             self.policy.executed(route.name, message)
+        if self.store is not None and isinstance(message, api.SetSpeedRequest):
+            # Commanded state the vehicle needs again after a restart (store.py).
+            self.store.save_commanded(SPEED_KEY, message.speed_m_s)
         payload = reply.SerializeToString()
         log = self.log.debug if route.is_read else self.log.info
         log(
@@ -911,6 +1065,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
         if self.policy is not None:
             self.policy.fill_status(status)
+        if self.core.failsafe is not None:
+            status.failsafe.CopyFrom(failsafe_proto(self.core.failsafe))
+        status.lost_link_s = self.core.safety.lost_link_s
+        status.lost_link_action = self.core.safety.lost_link_action
         links, clock = self.link_states(), time.monotonic()
         for cid in seq.ring:
             status.links.append(
@@ -946,6 +1104,17 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             status.audit_more = len(page) > limit
             status.audit.extend(page[:limit])
         return status
+
+
+def failsafe_proto(failsafe: Failsafe) -> drone_pb2.Failsafe:
+    """The failsafe as GetStatus and Resume show it."""
+    return drone_pb2.Failsafe(
+        cause=failsafe.cause,
+        action=failsafe.action,
+        since=failsafe.since,
+        reason=failsafe.reason,
+        station=-1 if failsafe.station is None else failsafe.station,
+    )
 
 
 @dataclass(frozen=True)
@@ -1036,6 +1205,42 @@ def link_bounds(config: BatonConfig) -> LinkBounds:
     return LinkBounds(config.handover_policy.max_rtt, config.handover_policy.rtt_stale)
 
 
+def safety_params(config: BatonConfig) -> SafetyParams:
+    """The model's safety net in wall seconds (mission seconds / speed-up)."""
+    safety = config.safety
+    return SafetyParams(
+        # At least the detection time in wall seconds, as a takeover's (its floor).
+        lost_link_s=detection_time_s(safety.lost_link, config.speedup),
+        lost_link_action=safety.lost_link_action,
+        max_speed_m_s=safety.max_speed,
+        max_altitude_m=safety.max_altitude,
+        battery_reserve_pct=safety.battery_reserve,
+        battery_action=safety.battery_action,
+    )
+
+
+def autopilot_gcs_timeout_s(config: BatonConfig) -> float:
+    """The autopilot's own GCS failsafe time (its clock: mission seconds): the model's
+    ``safety.autopilot_gcs_timeout``, but never shorter than a restart of the drone
+    service takes (the restart grace, in wall seconds, times the speed-up), so that a
+    restart is not taken for the drone service's death; 0: left alone."""
+    configured = config.safety.autopilot_gcs_timeout
+    if configured <= 0:
+        return 0.0
+    return max(configured, RESTART_GRACE_S * config.speedup)
+
+
+def landing_stations(config: BatonConfig) -> dict[int, Station]:
+    """Every controller with a location, as a station to land at (nearest_station)."""
+    from baton.sdk.types import Position
+
+    return {
+        c.id: Station(c.id, Position(c.location.latitude_deg, c.location.longitude_deg), 0.0)
+        for c in config.controllers
+        if c.location is not None
+    }
+
+
 def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneService:
     """The Drone servicer for ``settings`` over ``vehicle``."""
 
@@ -1068,6 +1273,8 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         takeover_after_s,
         authenticated=settings.tls is not None,
         link_bounds=settings.link_bounds,
+        safety=safety_params(settings.config),
+        stations=landing_stations(settings.config),
     )
     if settings.policy is not None:
         service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
@@ -1114,6 +1321,7 @@ async def serve(
         on_listening(server.address)
     watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
     takeovers = asyncio.create_task(service.watch_master(), name="takeover-watch")
+    failsafes = asyncio.create_task(service.watch_failsafe(), name="failsafe-watch")
     pings = asyncio.create_task(service.watch_links(), name="link-pings")
     policy = (
         asyncio.create_task(service.policy.run(), name="handover-policy")
@@ -1125,6 +1333,7 @@ async def serve(
     finally:
         watchdog.cancel()
         takeovers.cancel()
+        failsafes.cancel()
         pings.cancel()
         if policy is not None:
             policy.cancel()

@@ -32,10 +32,12 @@ from __future__ import annotations
 import json
 import sqlite3
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 from baton.drone.dedupe import CachedReply
+from baton.drone.safety import Failsafe
 from baton.drone.sequencer import AUDIT_IN_MEMORY
 from baton.rpc.errors import StatusError, status_of
 from baton.v1 import drone_pb2
@@ -72,6 +74,7 @@ CREATE TABLE IF NOT EXISTS executing (
     controller_id INTEGER NOT NULL,
     received_at REAL NOT NULL
 );
+CREATE TABLE IF NOT EXISTS commanded (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS policy (
     id INTEGER PRIMARY KEY CHECK (id = 1),
     leg BLOB,
@@ -214,6 +217,32 @@ class DroneStore:
             "INSERT OR REPLACE INTO policy (id, leg, held, resumes) VALUES (1, ?, ?, ?)",
             (memory.leg, int(memory.held), memory.resumes),
         )
+
+    def save_failsafe(self, failsafe: Failsafe | None) -> None:
+        """The failsafe the vehicle is in (None: cleared): a restarted drone keeps refusing
+        the mission's calls until an operator resumes."""
+        self.save_commanded("failsafe", None if failsafe is None else asdict(failsafe))
+
+    def load_failsafe(self) -> Failsafe | None:
+        """The failsafe kept by ``save_failsafe``; None if none."""
+        kept = self.load_commanded().get("failsafe")
+        return None if kept is None else Failsafe(**kept)
+
+    def save_commanded(self, key: str, value: Any) -> None:
+        """Commanded state the vehicle must get again after a restart of the drone or the
+        autopilot (the mission's cruise speed, the failsafe), as JSON; None forgets it."""
+        with self._transaction():
+            if value is None:
+                self._db.execute("DELETE FROM commanded WHERE key = ?", (key,))
+            else:
+                self._db.execute(
+                    "INSERT OR REPLACE INTO commanded VALUES (?, ?)", (key, json.dumps(value))
+                )
+
+    def load_commanded(self) -> dict[str, Any]:
+        """Everything ``save_commanded`` kept, by key."""
+        rows = self._db.execute("SELECT key, value FROM commanded").fetchall()
+        return {key: json.loads(value) for key, value in rows}
 
     def audit_page(self, after_reqnr: int, limit: int) -> list[drone_pb2.AuditEntry]:
         """At most ``limit`` audit entries with a reqnr above ``after_reqnr``, in order."""

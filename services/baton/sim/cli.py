@@ -88,6 +88,13 @@ def parser() -> argparse.ArgumentParser:
         "as long as the drone lets a master go without serving (its drone link stays up)",
     )
     p.add_argument(
+        "--failsafe",
+        action="store_true",
+        help="issue 32: the drone's lost-link failsafe on; every station cut from the drone "
+        "at a drawn moment, in most seeds for longer than lost_link, and an operator's "
+        "Resume in half of them",
+    )
+    p.add_argument(
         "--takeover-after",
         type=float,
         default=None,
@@ -131,6 +138,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         prepared=args.prepared,
         policy=args.policy,
         stall_new_master=args.stall_new_master,
+        failsafe=args.failsafe,
         takeover_after=args.takeover_after,
         allow=args.allow,
         mutation=args.mutation,

@@ -40,6 +40,7 @@ from baton.digest import request_digest
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import CachedReply
 from baton.drone.policy import Decision
+from baton.drone.safety import Failsafe
 from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
 from baton.drone.service import TAKEOVER_TICK_S
 from baton.drone.store import Intent
@@ -81,11 +82,20 @@ class SimVehicle:
     Mobility request UNAVAILABLE without reaching the vehicle.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, battery_drain_pct_s: float = 0.0) -> None:
         self.connected = True
+        self.battery_drain_pct_s = battery_drain_pct_s
         self.commands: list[Acted] = []
         self.reads: dict[int, list[Acted]] = {}
+        # The failsafe actions the drone commanded (no request's: the oracles keep them
+        # apart), and the operator's resumes, as (time, what).
+        self.failsafes: list[tuple[float, str]] = []
+        self.resumes: list[float] = []
         self._serial = 0
+
+    def battery(self, now: float) -> float:
+        """The battery left at ``now``, percent (drained at a constant rate from 100)."""
+        return max(0.0, 100.0 - self.battery_drain_pct_s * now)
 
     def act(self, now: float, reqnr: int, method: str, request: bytes) -> bytes:
         """A flight command reaches the vehicle; the vehicle acts on it."""
@@ -191,6 +201,16 @@ class FreshSelfConnect:
 
 
 @dataclass(frozen=True)
+class FailsafeCheck:
+    """watch_failsafe's turn under the lock: the failsafe due checked again, then entered."""
+
+
+@dataclass(frozen=True)
+class ResumeOrder:
+    """The operator's Resume: takes the lock, then clears the failsafe."""
+
+
+@dataclass(frozen=True)
 class PreparationCheck:
     """``watch_master``'s ``preparation_expired`` under the execution lock."""
 
@@ -250,8 +270,8 @@ class SimDrone:
         self.cache_window = cache_window
         self.p_ack_lost = p_ack_lost
         self.prepare_timeout_s = prepare_timeout_s
-        self.core = DroneCore(self._sequencer(), world.takeover_after)
-        self.vehicle = SimVehicle()
+        self.core = DroneCore(self._sequencer(), world.takeover_after, world.safety)
+        self.vehicle = SimVehicle(world.battery_drain)
         self.camera = SimCamera()
         self.up = True
         # Durable (store.py): the request being executed, as its intent.
@@ -265,6 +285,8 @@ class SimDrone:
             | PreparationWord
             | PolicyStep
             | FreshSelfConnect
+            | FailsafeCheck
+            | ResumeOrder
         ] = deque()
         self.busy: Execution | None = None
         self.streams: dict[int, Stream] = {}
@@ -273,6 +295,7 @@ class SimDrone:
         self._watching = False
         self._check_queued = False
         self._expiry_queued = False
+        self._failsafe_queued = False
         # Every prepared handover the drone carried out or forced (the record check).
         self.prepared_records: list[drone_pb2.HandoverRecord] = []
         self.preparations = 0  # begun
@@ -336,6 +359,14 @@ class SimDrone:
                 self._preparation_check()
             elif isinstance(item, FreshSelfConnect):
                 self._fresh_self_connect(item)
+            elif isinstance(item, FailsafeCheck):
+                self._failsafe_queued = False
+                self._failsafe_check()
+            elif isinstance(item, ResumeOrder):
+                cleared = self.core.resume_mission(self.world.loop.now)
+                if cleared is not None:
+                    self.vehicle.resumes.append(self.world.loop.now)
+                    self.world.trace(f"failsafe cleared by the operator ({cleared.cause})")
             else:
                 self._start(item)
 
@@ -357,6 +388,9 @@ class SimDrone:
             return
         # admitted.kept is stored with the intent, in one transaction (store.begin)
         self.intent = Intent(reqnr, method, digest, cid, request.received_at)
+        if admitted.refused is not None:  # in failsafe, or beyond a bound: nothing executed
+            self._failed(request, digest, admitted.refused)
+            return
         route = ROUTES[method]
         # DroneService._execute: the payload must parse, Mobility needs the vehicle.
         if request.payload.startswith(UNPARSABLE):
@@ -826,7 +860,9 @@ class SimDrone:
         """A new core holding what the store keeps (DroneService._restore): the sightings
         are not kept (``DroneCore.resume`` gives the master the restart grace)."""
         old = self.seq
-        core = DroneCore(self._sequencer(), self.world.takeover_after)
+        core = DroneCore(self._sequencer(), self.world.takeover_after, self.world.safety)
+        if self.core.failsafe is not None:  # kept in the store (store.save_failsafe)
+            core.enter_failsafe(self.core.failsafe)
         replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
         counts = (old.last_reqnr, old.executed, old.duplicates, old.rejected)
         core.resume(
@@ -862,7 +898,7 @@ class SimDrone:
             self.policy.start()
         if self.world.corridor is not None:
             self.world.corridor.tick()
-        takeovers = self.core.takeover_after_s > 0
+        takeovers = self.core.takeover_after_s > 0 or self.core.safety.lost_link_s > 0
         if not self._watching and self.up and (takeovers or self.seq.preparing):
             self._watching = True
             self.world.loop.after(TAKEOVER_TICK_S, self._watch_master)
@@ -885,6 +921,10 @@ class SimDrone:
             self._check_queued = True  # async with self._lock: re-checked there
             self.queue.append(TakeoverCheck())
             self._next()
+        if self._failsafe_due(now) is not None and not self._failsafe_queued:
+            self._failsafe_queued = True  # watch_failsafe: async with self._lock
+            self.queue.append(FailsafeCheck())
+            self._next()
         preparing = self.seq.preparing
         if preparing is not None and now >= preparing.deadline and not self._expiry_queued:
             # watch_master takes the lock at every turn while preparing; only a turn
@@ -899,6 +939,33 @@ class SimDrone:
         in_range = self.policy.in_range() if self.policy is not None else None
         connected = {self.seq.master} if self.seq.master in self.streams else set()
         return self.core.takeover_due(now, self.reachable(), connected, in_range)
+
+    def _failsafe_due(self, now: float) -> Failsafe | None:
+        """``DroneCore.battery_due``, else ``failsafe_due``, as ``DroneService._failsafe_due``
+        asks them: the vehicle counts as in the air while the mission is open (the sim has
+        no flight state)."""
+        airborne = self.world.mission_open()
+        battery = self.core.battery_due(now, self.vehicle.battery(now), airborne)
+        if battery is not None or self.core.failsafe is not None:
+            return battery
+        in_range = self.policy.in_range() if self.policy is not None else None
+        return self.core.failsafe_due(now, self.reachable(), in_range, airborne)
+
+    def _failsafe_check(self) -> None:
+        """watch_failsafe under the lock: failsafe_due again, then entered and commanded."""
+        now = self.world.loop.now
+        due = self._failsafe_due(now)
+        if due is not None:
+            self.core.enter_failsafe(due)
+            self.vehicle.failsafes.append((now, f"{due.cause} {due.action}"))
+            self.world.trace(f"failsafe: {due.reason}")
+
+    def resume_rpc(self) -> None:
+        """Drone.Resume: takes the lock, then clears the failsafe (if any)."""
+        if not self.up:
+            return  # the operator's call fails UNAVAILABLE
+        self.queue.append(ResumeOrder())
+        self._next()
 
     def _takeover_check(self) -> None:
         """watch_master under the lock: takeover_due again, then _take_over."""

@@ -72,6 +72,7 @@ class FaultPlan:
     garbled: bool = False
     lose_master: str = ""
     stall: str = ""
+    failsafe: str = ""
 
     def describe(self) -> str:
         """One line: the counts that are not zero."""
@@ -97,6 +98,8 @@ class FaultPlan:
             parts.append(f"lose master: {self.lose_master}")
         if self.stall:
             parts.append(f"stall: {self.stall}")
+        if self.failsafe:
+            parts.append(f"failsafe: {self.failsafe}")
         return ", ".join(parts)
 
 
@@ -154,7 +157,46 @@ def plan_faults(world: World) -> FaultPlan:
         plan_failover(world, plan)
     if world.options.stall_new_master:
         plan_stall(world, plan)
+    if world.options.failsafe:
+        plan_failsafe(world, plan)
     return plan
+
+
+def plan_failsafe(world: World, plan: FaultPlan) -> None:
+    """The every-station-lost fault (issue 32), from a random stream of its own: from a
+    drawn moment every controller is cut from the drone for 0.5 to 2.5 times lost_link
+    (so in most seeds the drone's failsafe acts), and in half the seeds an operator's
+    Resume comes at a drawn moment after the cut heals."""
+    rng = random.Random(f"failsafe cut {world.seed}")
+    lost_link = world.safety.lost_link_s
+    length = lost_link * rng.uniform(0.5, 2.5)
+    start = rng.uniform(0.0, plan.fault_end)
+    plan.failsafe = f"every station cut for {length:.2f}s (lost_link {lost_link:g}s, " + (
+        f"{world.safety.lost_link_action})"
+    )
+    world.loop.at(start, cut_every_station, world, length)
+    if world.battery_drain:
+        reserve_at = (100.0 - world.safety.battery_reserve_pct) / world.battery_drain
+        plan.failsafe += f", battery at the reserve at {reserve_at:.2f}s"
+    if rng.random() < 0.5:
+        resume_at = start + length + rng.uniform(0.0, 2.0 * lost_link)
+        plan.failsafe += f", resumed at {resume_at:.2f}s"
+        world.loop.at(resume_at, operator_resume, world)
+
+
+def cut_every_station(world: World, length: float) -> None:
+    """Partitions every controller from the drone for ``length`` seconds."""
+    world.trace(f"every station cut from the drone for {length:.3f}s")
+    pairs = [(cid, DRONE) for cid in world.ring]
+    for a, b in pairs:
+        world.net.cut(a, b)
+    world.loop.after(length, heal, world, pairs)
+
+
+def operator_resume(world: World) -> None:
+    """The operator's Resume (Drone.Resume), whether or not the vehicle is in failsafe."""
+    world.trace("operator resumes")
+    world.drone.resume_rpc()
 
 
 LOSE_MODES = ("any time", "mid-flush", "after handover", "drone link cut")

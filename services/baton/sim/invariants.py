@@ -70,11 +70,12 @@ The invariants (docs/simulation.md, "Invariants"):
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from baton.controller.protocol import Effect, SendLog, State
+from baton.controller.core import CoreEffect
+from baton.controller.protocol import SendLog, State
 from baton.sim.oracles import Violation, _observed
 from baton.v1 import drone_pb2
 
@@ -318,7 +319,7 @@ class Invariants:
         self._master_seen = key
         return master_holds_the_ring_log(world)
 
-    def sent(self, controller: SimController, effects: list[Effect]) -> None:
+    def sent(self, controller: SimController, effects: Sequence[CoreEffect]) -> None:
         """``World.after_apply``'s hook: every log message sent keeps invariant 5."""
         if "one-framing-per-epoch" in self.found:
             return

@@ -197,7 +197,23 @@ def _no_fencing() -> list[tuple[Any, str, Any]]:
     return [(ControllerCore, "fenced", fenced)]
 
 
+def _flies_on_in_failsafe() -> list[tuple[Any, str, Any]]:
+    """Issue 32: a vehicle in failsafe silently flies on: the mission's next call is
+    executed instead of refused (``DroneCore.refusal`` ignores the failsafe)."""
+    original = DroneCore.refusal
+
+    def refusal(self: DroneCore, method: str, payload: bytes) -> StatusError | None:
+        failsafe, self.failsafe = self.failsafe, None
+        try:
+            return original(self, method, payload)
+        finally:
+            self.failsafe = failsafe
+
+    return [(DroneCore, "refusal", refusal)]
+
+
 LOSE_MASTER = {"lose_master": True}
+FAILSAFE = {"failsafe": True}
 
 for _mutation in (
     Mutation("line44", "Algorithm 1 line 44: in-order message dropped during REPLAY", _line44),
@@ -213,6 +229,12 @@ for _mutation in (
     ),
     Mutation(
         "no-fencing", "a fenced master hands over instead of rejoining", _no_fencing, LOSE_MASTER
+    ),
+    Mutation(
+        "flies-on-in-failsafe",
+        "a call after a failsafe executed without the operator's resume",
+        _flies_on_in_failsafe,
+        FAILSAFE,
     ),
 ):
     MUTATIONS[_mutation.name] = _mutation

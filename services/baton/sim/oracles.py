@@ -83,6 +83,31 @@ def check(world: World) -> list[Violation]:
     if not stalled and not failures:
         found += _bounded(world)
     found += _prepared_records(world)
+    found += _nothing_in_failsafe(world)
+    return found
+
+
+def _nothing_in_failsafe(world: World) -> list[Violation]:
+    """Nothing reaches the vehicle or the camera from a failsafe until the operator's next
+    resume (drone/safety.py): the mission does not silently fly on."""
+    drone, found = world.drone, []
+    acted = [
+        *drone.vehicle.commands,
+        *drone.camera.pictures,
+        *(a for reads in drone.vehicle.reads.values() for a in reads),
+    ]
+    for since, action in drone.vehicle.failsafes:
+        until = min((t for t in drone.vehicle.resumes if t >= since), default=float("inf"))
+        inside = [a for a in acted if since <= a.time < until]
+        if inside:
+            found.append(
+                Violation(
+                    "nothing-in-failsafe",
+                    f"request {inside[0].reqnr} acted on at {inside[0].time:.3f}s, in the "
+                    f"{action} failsafe from {since:.3f}s, "
+                    + ("never resumed" if until == float("inf") else f"resumed at {until:.3f}s"),
+                )
+            )
     return found
 
 

@@ -23,6 +23,7 @@ import grpc
 from baton.controller.core import ControllerCore, CoreEffect
 from baton.controller.protocol import SendLog, State
 from baton.drone.dedupe import DEFAULT_WINDOW
+from baton.drone.safety import ACTIONS, SafetyParams
 from baton.drone.sequencer import ScriptedHandover
 from baton.sim.controller import SimController
 from baton.sim.corridor import Corridor
@@ -79,6 +80,9 @@ class SimOptions:
     # up): the handover message cannot reach it, so it never connects
     # (faults.plan_stall).
     stall_new_master: bool = False
+    # Issue 32's lost-link failsafe on, and every station cut from the drone at a drawn
+    # moment (faults.plan_failsafe).
+    failsafe: bool = False
     # Known findings (findings.py) whose scenarios this run lets in.
     allow: frozenset[str] = frozenset()
     mutation: str | None = None
@@ -103,6 +107,8 @@ class SimOptions:
             parts.append(f"--policy {self.policy}")
         if self.stall_new_master:
             parts.append("--stall-new-master")
+        if self.failsafe:
+            parts.append("--failsafe")
         if self.takeover_after is not None:
             parts.append(f"--takeover-after {self.takeover_after:g}")
         if self.allow:
@@ -221,6 +227,22 @@ class World:
         if options.takeover_after is not None:
             drawn = options.takeover_after
         self.takeover_after = self.detection_s = drawn
+        # The drone's lost-link failsafe (--failsafe): after a few takeover times with no
+        # usable controller, drawn from a stream of its own, as are its action.
+        srng = random.Random(f"failsafe {seed}")
+        self.safety = SafetyParams()
+        # The battery's drain, percent per second (0: it never runs low).
+        self.battery_drain = 0.0
+        if options.failsafe:
+            lost_link = max(drawn, 1.0) * srng.choice((2.0, 3.0, 5.0))
+            action = srng.choice(ACTIONS)
+            # In half the seeds the battery reaches the 20 % reserve 2 to 30 s in.
+            if srng.random() < 0.5:
+                self.battery_drain = 80.0 / srng.uniform(2.0, 30.0)
+            battery_action = srng.choice(ACTIONS[1:])
+            self.safety = SafetyParams(
+                lost_link, action, battery_reserve_pct=20.0, battery_action=battery_action
+            )
         # Controllers killed for good (the lose-master fault), and what it did.
         self.lost: set[int] = set()
         self.failover: dict[str, object] = {}

@@ -108,6 +108,25 @@ def register(subparsers: Any) -> None:
         "--climb-rate", type=_positive, default=3.0, help="climb and descent rate, m/s (default 3)"
     )
     parser.add_argument(
+        "--battery-capacity-wh",
+        type=_positive,
+        default=100.0,
+        help="the battery's energy, Wh (default 100: 24 min at 5 m/s with the default draw)",
+    )
+    parser.add_argument(
+        "--hover-power-w",
+        type=_positive,
+        default=200.0,
+        help="power drawn hovering, W (default 200; a tenth of it armed on the ground)",
+    )
+    parser.add_argument(
+        "--drag-power",
+        type=_not_negative,
+        default=2.0,
+        metavar="W_PER_M2S2",
+        help="power drawn beyond hover per (m/s)^2 of ground speed, W (default 2)",
+    )
+    parser.add_argument(
         "--warmup",
         type=_not_negative,
         default=10.0,
@@ -183,6 +202,9 @@ def run(args: argparse.Namespace) -> int:
         descent_rate_m_s=args.climb_rate,
         cruise_speed_m_s=args.speed,
         warmup_s=args.warmup,
+        battery_capacity_wh=args.battery_capacity_wh,
+        hover_power_w=args.hover_power_w,
+        drag_power_w_per_m2s2=args.drag_power,
         arm_refusals=max(0, args.arm_refusals),
     )
     effects = EffectsFile(args.effects_file)  # one file and sequence for every vehicle

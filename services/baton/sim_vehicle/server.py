@@ -147,6 +147,11 @@ _SO_TIMESTAMPNS = 35
 _TIMESPEC = struct.Struct("@ll")
 
 PARAM_TAKEOFF_ALT = "MIS_TAKEOFF_ALT"
+# PX4's data-link loss failsafe, which the drone service sets at connect: after
+# COM_DL_LOSS_T seconds (simulated) without a ground station's HEARTBEAT, in the
+# air, NAV_DLL_ACT 2 returns home (0: nothing, PX4's default).
+PARAM_DL_LOSS_T, PARAM_DLL_ACT = "COM_DL_LOSS_T", "NAV_DLL_ACT"
+RETURN_ON_LINK_LOSS = 2
 # The region-of-interest commands its gimbal obeys.
 ROI_COMMANDS = (
     mavlink.MAV_CMD_DO_SET_ROI_LOCATION,
@@ -260,6 +265,12 @@ class SimVehicle:
         self._roi: GeoPoint | None = None
         self.port = 0
         self._log = logs.get_logger("sim_vehicle", system_id=system_id)
+        # PX4's data-link loss parameters (PX4's defaults: 10 s, no action), when a
+        # ground station's HEARTBEAT came last (None: never), and whether the vehicle
+        # already returned for this loss.
+        self._link_loss: dict[str, float] = {PARAM_DL_LOSS_T: 10.0, PARAM_DLL_ACT: 0.0}
+        self._gcs_seen_at: float | None = None
+        self._link_loss_acted = False
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -371,6 +382,7 @@ class SimVehicle:
             if now >= next_tick:
                 with self._lock:
                     self._kinematics.step((now - last) * self.speedup)
+                    self._watch_link_loss(now)
                     last = now
                     self._send_due(now)
                     self._report_if_changed()
@@ -602,6 +614,8 @@ class SimVehicle:
             self._command(msg, arrived_at, msg.command, params, msg.z, msg.frame, msg.x, msg.y)
         elif kind in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET"):
             self._param(msg, kind)
+        elif kind == "HEARTBEAT" and msg.type == mavlink.MAV_TYPE_GCS:
+            self._gcs_seen_at = time.monotonic()
 
     def _command(
         self,
@@ -820,27 +834,52 @@ class SimVehicle:
     # --- parameters -----------------------------------------------------------------
 
     def _param(self, msg: Any, kind: str) -> None:
+        name = PARAM_TAKEOFF_ALT
         if kind == "PARAM_SET":
             name = _param_name(msg.param_id)
-            if name != PARAM_TAKEOFF_ALT:
+            if name in self._link_loss:
+                self._link_loss[name] = float(_int_from_bytewise(msg.param_value))
+            elif name != PARAM_TAKEOFF_ALT:
                 return  # PX4 stays silent about unknown parameters
-            if math.isfinite(msg.param_value) and msg.param_value > 0:
+            elif math.isfinite(msg.param_value) and msg.param_value > 0:
                 self._kinematics.takeoff_altitude_m = float(msg.param_value)
         elif kind == "PARAM_REQUEST_READ":
             name = _param_name(msg.param_id)
-            if name != PARAM_TAKEOFF_ALT and msg.param_index != 0:
+            if msg.param_index == 0:
+                name = PARAM_TAKEOFF_ALT
+            elif name != PARAM_TAKEOFF_ALT and name not in self._link_loss:
                 return
-        self._send_param()
+        self._send_param(name)
 
-    def _send_param(self) -> None:
+    def _send_param(self, name: str = PARAM_TAKEOFF_ALT) -> None:
         assert self._mav is not None
-        self._mav.param_value_send(
-            PARAM_TAKEOFF_ALT.encode(),
-            self._kinematics.takeoff_altitude_m,
-            mavlink.MAV_PARAM_TYPE_REAL32,
-            1,
-            0,
-        )
+        if name in self._link_loss:
+            kind = mavlink.MAV_PARAM_TYPE_INT32
+            value = _int_to_bytewise(round(self._link_loss[name]))
+            index = 1 + list(self._link_loss).index(name)
+        else:
+            value, kind, index = (
+                self._kinematics.takeoff_altitude_m,
+                mavlink.MAV_PARAM_TYPE_REAL32,
+                0,
+            )
+        self._mav.param_value_send(name.encode(), value, kind, 1 + len(self._link_loss), index)
+
+    def _watch_link_loss(self, now: float) -> None:
+        """PX4's data-link loss failsafe (COM_DL_LOSS_T, NAV_DLL_ACT): in the air with no
+        ground station heard for the time, the vehicle returns home, once per loss."""
+        seen = self._gcs_seen_at
+        k = self._kinematics
+        if seen is None or self._link_loss[PARAM_DLL_ACT] != RETURN_ON_LINK_LOSS:
+            return
+        lost = (now - seen) * self.speedup >= self._link_loss[PARAM_DL_LOSS_T]
+        if not lost:
+            self._link_loss_acted = False
+        elif not self._link_loss_acted and k.in_air and k.phase is not Phase.RETURN:
+            self._link_loss_acted = True
+            k.return_to_launch()
+            self.effects.record("link_loss_return", system_id=self.system_id)
+            self._log.warning("ground station lost: returning (NAV_DLL_ACT)")
 
 
 def _receive_stamped(sock: socket.socket) -> tuple[bytes, tuple[str, int], float]:
@@ -864,6 +903,16 @@ def _required_int(value: float, name: str) -> int:
     if not math.isfinite(value):
         raise Refused(f"{name} must be set, got {value}")
     return round(value)
+
+
+def _int_from_bytewise(value: float) -> int:
+    """An INT32 parameter's value as PX4 carries it in a float field: its four bytes."""
+    return int(struct.unpack("<i", struct.pack("<f", value))[0])
+
+
+def _int_to_bytewise(value: int) -> float:
+    """The float field whose four bytes are the INT32 ``value`` (PX4's encoding)."""
+    return float(struct.unpack("<f", struct.pack("<i", value))[0])
 
 
 def _param_name(raw: str | bytes) -> str:

@@ -147,6 +147,8 @@ class TestbedPlan:
     # Extra `baton link` options by link name ("link-drone-0", "link-ring-1"),
     # e.g. an asymmetric link: (("link-drone-0", ("--up-latency", "3s")),).
     link_args: tuple[tuple[str, tuple[str, ...]], ...] = ()
+    # Extra `baton sim-vehicle` options (e.g. --battery-capacity-wh 8).
+    vehicle_args: tuple[str, ...] = ()
     mission_args: tuple[str, ...] = ()  # extra mission parameters, key=value
     # The controllers' mission token (baton.rpc.mission), for a caller that acts
     # as a mission program itself (the micro benchmark); default: each makes one.
@@ -455,6 +457,7 @@ class LocalTestbed:
             document["drone_link"] = config.drone_link.model_dump()
         document["handover_policy"] = config.handover_policy.model_dump()
         document["radio_range"] = config.radio_range
+        document["safety"] = config.safety.model_dump()
         if config.radio_fade is not None:
             document["radio_fade"] = config.radio_fade.model_dump()
         document["tls"] = self._certificates(ids)
@@ -516,6 +519,7 @@ class LocalTestbed:
                 position.unlink(missing_ok=True)
                 argv += ["--position-file", str(position)]
             argv += self._mavlink_key_args()
+            argv += self.plan.vehicle_args
             return "sim-vehicle", argv, ready
         argv = baton_argv("sitl", "--speedup", speedup, "--home", self._home())
         argv += ["--workdir", str(self.workdir / "sitl"), "--url-file", str(ready)]

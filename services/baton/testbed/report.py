@@ -292,6 +292,18 @@ def build_report(
             "duplicates": drone.duplicates,
             "rejected": drone.rejected,
             "vehicle_outages": drone.vehicle.outages,
+            # The failsafe the vehicle is in at the end (docs/operating.md, "The safety
+            # net"); None: the mission had the vehicle.
+            "failsafe": (
+                {
+                    "cause": drone.failsafe.cause,
+                    "action": drone.failsafe.action,
+                    "since": drone.failsafe.since,
+                    "reason": drone.failsafe.reason,
+                }
+                if drone.HasField("failsafe")
+                else None
+            ),
         },
         "controllers": [_controller(cid, c) for cid, c in sorted(snapshot.controllers.items())],
         "replicas_consistent": replicas_consistent(snapshot),

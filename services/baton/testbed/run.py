@@ -106,6 +106,8 @@ class Progress:
         )
         vehicle += "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
         vehicle += f" | drone waiting: {drone.waiting}" if drone.waiting else ""
+        if drone.HasField("failsafe"):  # the safety net took the vehicle (docs/operating.md)
+            vehicle += f" | FAILSAFE {drone.failsafe.action}: {drone.failsafe.reason}"
         vehicle += waits_line(
             self.config,
             {cid: c.waiting for cid, c in snapshot.controllers.items() if c.waiting},

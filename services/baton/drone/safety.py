@@ -1,0 +1,193 @@
+"""The operator's safety net, as pure decisions: the failsafe a vehicle is in, the
+limits a vehicle can fly, the station to land at.
+
+No clock, no I/O: ``DroneCore`` holds a ``Failsafe`` and asks these functions;
+the drone service and the simulation's drone carry out what it decides, and
+the controller asks ``sleep_refusal`` before it sleeps (docs/operating.md,
+"The safety net").
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import grpc
+from google.protobuf.message import Message
+
+from baton.drone.policy import Fix, Station, distance_m
+from baton.rpc.errors import StatusError
+from baton.sdk.types import Position
+from baton.v1 import drone_api_pb2 as api
+
+# What a failsafe makes the vehicle do.
+ACTIONS = ("hold", "land", "rtl", "nearest_station")
+
+
+@dataclass(frozen=True)
+class SafetyParams:
+    """The safety net's settings, in wall seconds (``config.SafetyConfig`` / speed-up)."""
+
+    lost_link_s: float = 0.0  # 0: no lost-link failsafe
+    lost_link_action: str = "rtl"
+    max_speed_m_s: float = math.inf
+    max_altitude_m: float = math.inf
+    battery_reserve_pct: float = 0.0  # 0: no battery reserve
+    battery_action: str = "rtl"
+
+
+@dataclass(frozen=True)
+class Failsafe:
+    """The vehicle taken out of the mission's hands: why (``cause``: ``lost_link`` or
+    ``battery``),
+    what it does (``action``, and the ``station`` it flies to for nearest_station),
+    since when (wall seconds) and the reason a person reads."""
+
+    cause: str
+    action: str
+    since: float
+    reason: str
+    station: int | None = None
+
+    def refusal(self, method: str) -> StatusError:
+        """What a call gets while the vehicle is in this failsafe: refused before execution."""
+        return StatusError(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            f"{method}: the vehicle is in failsafe ({self.cause}: {self.reason}); nothing was "
+            "executed. An operator's Resume (Drone.Resume) gives the mission the vehicle back",
+        )
+
+
+def lost_link_failsafe(
+    now: float, last_usable: float, params: SafetyParams, station: int | None
+) -> Failsafe | None:
+    """The lost-link failsafe due at ``now`` when no usable controller was there since
+    ``last_usable``; None while the link was lost for less than ``lost_link_s``."""
+    lost_s = now - last_usable
+    if params.lost_link_s <= 0 or lost_s < params.lost_link_s:
+        return None
+    action, where = _landing_action(params.lost_link_action, station)
+    return Failsafe(
+        "lost_link",
+        action,
+        now,
+        f"no usable controller for {lost_s:.1f} s (lost_link {params.lost_link_s:g} s): "
+        f"{action}{where}",
+        station if action == "nearest_station" else None,
+    )
+
+
+def battery_failsafe(
+    now: float, percent: float, params: SafetyParams, station: int | None
+) -> Failsafe | None:
+    """The battery failsafe due at ``now`` with ``percent`` left: below the mission's
+    reserve, the mission ends with ``battery_action``; None above it, when the reserve
+    is off, or when the autopilot does not say (NaN)."""
+    reserve = params.battery_reserve_pct
+    if reserve <= 0 or not math.isfinite(percent) or percent >= reserve:
+        return None
+    action, where = _landing_action(params.battery_action, station)
+    return Failsafe(
+        "battery",
+        action,
+        now,
+        f"battery {percent:.1f} % below the reserve of {reserve:g} %: {action}{where}",
+        station if action == "nearest_station" else None,
+    )
+
+
+def _landing_action(action: str, station: int | None) -> tuple[str, str]:
+    """The action and its words: nearest_station needs a station, else home (rtl)."""
+    if action != "nearest_station":
+        return action, ""
+    if station is None:
+        return "rtl", " (no station known: rtl)"
+    return action, f" (station {station})"
+
+
+def nearest_station(position: api.Position, stations: Mapping[int, Station]) -> int | None:
+    """The id of the station nearest ``position`` (its landing point is its location);
+    None without a station or a known position."""
+    if not stations or not (position.latitude_deg or position.longitude_deg):
+        return None
+    fix = Fix(Position.from_proto(position))
+    return min(stations, key=lambda sid: (distance_m(stations[sid], fix), sid))
+
+
+# Over a station's landing point within this many metres: land (nearest_station).
+LANDING_RADIUS_M = 3.0
+
+
+def landing_due(position: api.Position, station: Station) -> bool:
+    """Whether a vehicle flying to ``station`` (nearest_station) is over it: time to land."""
+    if not (position.latitude_deg or position.longitude_deg):
+        return False
+    return distance_m(station, Fix(Position.from_proto(position))) <= LANDING_RADIUS_M
+
+
+@dataclass(frozen=True)
+class AutopilotParam:
+    """One parameter of the autopilot's own GCS failsafe (``gcs_failsafe_params``)."""
+
+    name: str
+    value: float
+    integer: bool = True
+
+
+def gcs_failsafe_params(ardupilot: bool, timeout_s: float, gcs_sysid: int) -> list[AutopilotParam]:
+    """The autopilot's own GCS failsafe, so that it returns home if the drone service
+    (its only ground station) stops sending heartbeats for ``timeout_s``; [] when 0.
+
+    ArduPilot: FS_GCS_ENABLE 1 (RTL), FS_GCS_TIMEOUT, and SYSID_MYGCS set to the drone
+    service's MAVLink system id (ArduPilot counts only that id's heartbeats as its
+    GCS's). PX4: NAV_DLL_ACT 2 (Return), COM_DL_LOSS_T (whole seconds, at least 5)."""
+    if timeout_s <= 0:
+        return []
+    if ardupilot:
+        return [
+            AutopilotParam("SYSID_MYGCS", gcs_sysid),
+            AutopilotParam("FS_GCS_TIMEOUT", max(2.0, timeout_s), integer=False),
+            AutopilotParam("FS_GCS_ENABLE", 1),
+        ]
+    return [
+        AutopilotParam("COM_DL_LOSS_T", max(5, math.ceil(timeout_s))),
+        AutopilotParam("NAV_DLL_ACT", 2),
+    ]
+
+
+def limit_refusal(method: str, request: Message, params: SafetyParams) -> StatusError | None:
+    """INVALID_ARGUMENT naming the bound a call asks beyond (a SetSpeed faster than
+    ``max_speed_m_s``, a Takeoff or Goto higher than ``max_altitude_m``); None if none."""
+    if isinstance(request, api.SetSpeedRequest) and request.speed_m_s > params.max_speed_m_s:
+        return _beyond(method, "speed_m_s", request.speed_m_s, "max_speed", params.max_speed_m_s)
+    if isinstance(request, api.TakeoffRequest) and request.altitude_m > params.max_altitude_m:
+        return _beyond(
+            method, "altitude_m", request.altitude_m, "max_altitude", params.max_altitude_m
+        )
+    if isinstance(request, api.GotoRequest) and request.relative_altitude_m > params.max_altitude_m:
+        return _beyond(
+            method,
+            "relative_altitude_m",
+            request.relative_altitude_m,
+            "max_altitude",
+            params.max_altitude_m,
+        )
+    return None
+
+
+def sleep_refusal(seconds: float, max_sleep_s: float) -> StatusError | None:
+    """INVALID_ARGUMENT for a Clock.Sleep longer than the mission's ``max_sleep``; None
+    if the controller may sleep it (a sleep not finite or negative is refused before it
+    takes a request number: ``controller.service``)."""
+    if seconds > max_sleep_s:
+        return _beyond("Clock.Sleep", "seconds", seconds, "max_sleep", max_sleep_s)
+    return None
+
+
+def _beyond(method: str, field: str, value: float, bound: str, limit: float) -> StatusError:
+    return StatusError(
+        grpc.StatusCode.INVALID_ARGUMENT,
+        f"{method}: {field} {value:g} is beyond the bound safety.{bound} = {limit:g}; "
+        "nothing was executed",
+    )

@@ -1,0 +1,216 @@
+"""The operator's safety net across real processes (the local testbed: sim vehicle,
+drone service, controllers), each promise witnessed by the sim vehicle's effects file,
+not by baton's word (issue 32, items 1 and 7)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+from helpers.missions import FAST_LINK, LONG_LEGS
+from waiting import eventually
+
+from baton.effects import read_effects
+from baton.testbed.local import VEHICLE_EFFECTS_FILE, LocalTestbed, TestbedPlan, local_config
+from baton.v1 import drone_pb2, ring_pb2
+
+MISSIONS = Path(__file__).parent / "missions"
+SPEEDUP = 20.0
+LOST_LINK_S = 60.0  # mission seconds: 3 wall seconds at speed-up 20
+
+
+async def test_every_station_killed_mid_flight_is_the_failsafe_after_lost_link(
+    tmp_path: Path,
+) -> None:
+    """Every controller killed while the vehicle flies a leg: after lost_link the drone
+    commands the configured action (rtl), the vehicle counts it, GetStatus says why;
+    an operator's Resume clears it."""
+    plan = TestbedPlan(
+        config=local_config(
+            3,
+            flush_limit=0,
+            speedup=SPEEDUP,
+            controller_link=FAST_LINK,
+            drone_link=FAST_LINK,
+            safety={"lost_link": LOST_LINK_S, "lost_link_action": "rtl"},
+        ),
+        mission=LONG_LEGS,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        assert testbed.drone_stub is not None
+        effects = tmp_path / VEHICLE_EFFECTS_FILE
+
+        def gotos() -> int:
+            return sum(e["effect"] == "goto" for e in read_effects(effects))
+
+        await eventually(lambda: gotos() >= 2, "the vehicle flying its second leg", 60)
+        for cid in (0, 1, 2):
+            process = testbed.supervisor.parts[f"controller-{cid}"].process
+            assert process is not None
+            os.kill(process.pid, signal.SIGKILL)
+        killed_at = time.time()
+
+        def returned() -> list[dict[str, object]]:
+            return [
+                e
+                for e in read_effects(effects)
+                if e["effect"] == "return_to_launch"  # MAV_CMD_NAV_RETURN_TO_LAUNCH, or
+                or e.get("mode") == "RETURN_TO_LAUNCH"  # PX4's mode, as MAVSDK sets it
+            ]
+
+        await eventually(lambda: bool(returned()), "the vehicle told to return", 30)
+        acted_after_s = float(returned()[0]["time"]) - killed_at  # type: ignore[arg-type]
+        print(
+            f"lost link to rtl at the vehicle: {acted_after_s:.2f} s wall, "
+            f"{acted_after_s * SPEEDUP:.1f} mission s (lost_link {LOST_LINK_S:g})"
+        )
+        assert LOST_LINK_S / SPEEDUP <= acted_after_s < LOST_LINK_S / SPEEDUP + 3.0
+        status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert status.HasField("failsafe")
+        assert (status.failsafe.cause, status.failsafe.action) == ("lost_link", "rtl")
+        assert "no usable controller" in status.failsafe.reason
+        assert status.lost_link_s == LOST_LINK_S / SPEEDUP
+        cleared = await testbed.drone_stub.Resume(drone_pb2.ResumeRequest())
+        assert cleared.cleared.cause == "lost_link"
+        status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert not status.HasField("failsafe")
+    log = (tmp_path / "logs" / "drone.log").read_text()
+    assert '"failsafe"' in log and "failsafe cleared by the operator" in log
+
+
+async def test_a_speed_and_a_sleep_beyond_the_bounds_are_refused_and_nothing_executed(
+    tmp_path: Path,
+) -> None:
+    """SetSpeed(1e9) refused INVALID_ARGUMENT naming safety.max_speed, and the vehicle
+    never told it; Sleep(1e12) refused naming safety.max_sleep (the mission ends)."""
+    plan = TestbedPlan(
+        config=local_config(2, flush_limit=0, speedup=SPEEDUP),
+        mission_file=MISSIONS / "beyond_bounds.py",
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        await testbed.run_mission(120)
+    speeds = [
+        e["speed_m_s"]
+        for e in read_effects(tmp_path / VEHICLE_EFFECTS_FILE)
+        if e["effect"] == "set_speed"
+    ]
+    assert speeds == [3.0]  # the sane one only: 1e9 never reached the vehicle
+    logs = " ".join(p.read_text() for p in (tmp_path / "logs").glob("*.log"))
+    assert "safety.max_speed = 15" in logs and "safety.max_sleep = 600" in logs
+
+
+async def test_the_cruise_speed_survives_a_drone_killed_mid_mission(tmp_path: Path) -> None:
+    """kill -9 of the drone mid-mission, restarted on its state file: every goto the
+    vehicle flies after the restart is followed by the mission's speed, as before it
+    (issue 32, item 6; ArduPilot resets the speed at every reposition)."""
+    plan = TestbedPlan(
+        config=local_config(
+            2, flush_limit=0, speedup=SPEEDUP, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
+        mission=LONG_LEGS,
+    )
+    effects = tmp_path / VEHICLE_EFFECTS_FILE
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        def gotos() -> int:
+            return sum(e["effect"] == "goto" for e in read_effects(effects))
+
+        await eventually(lambda: gotos() >= 2, "the vehicle flying its second leg", 60)
+        part = testbed.supervisor.parts["drone"]
+        assert part.process is not None and part.ready_file is not None
+        os.kill(part.process.pid, signal.SIGKILL)
+        await part.process.wait()
+        killed_at_seq = max(e["seq"] for e in read_effects(effects))
+        restarted = await testbed.supervisor.start("drone", part.argv, part.ready_file)
+        await testbed.supervisor.wait_ready(restarted)
+        await testbed.run_mission(240)
+    flown = read_effects(effects)
+    after = [e for e in flown if e["seq"] > killed_at_seq]
+    gotos_after = [i for i, e in enumerate(after) if e["effect"] == "goto"]
+    assert gotos_after, "no goto after the restart"
+    for i in gotos_after:
+        following = after[i + 1] if i + 1 < len(after) else None
+        assert following is not None and following["effect"] == "set_speed", after
+        assert following["speed_m_s"] == LONG_LEGS.speed_m_s
+    log = (tmp_path / "logs" / "drone.log").read_text()
+    assert "cruise speed restored" in log
+
+
+async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) -> None:
+    """A small battery (8 Wh: about 2 min of flight) and a 50 % reserve: mid-mission the
+    drone commands the return, the vehicle counts it, and the program's next call fails
+    FAILED_PRECONDITION on every controller (issue 32, item 2)."""
+    plan = TestbedPlan(
+        config=local_config(
+            2,
+            flush_limit=0,
+            speedup=SPEEDUP,
+            controller_link=FAST_LINK,
+            drone_link=FAST_LINK,
+            safety={"battery_reserve": 50.0, "battery_action": "rtl"},
+        ),
+        mission=LONG_LEGS,
+        vehicle_args=("--battery-capacity-wh", "8"),
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        assert testbed.drone_stub is not None
+        effects = tmp_path / VEHICLE_EFFECTS_FILE
+
+        def returned() -> list[dict[str, object]]:
+            return [
+                e
+                for e in read_effects(effects)
+                if e["effect"] == "return_to_launch" or e.get("mode") == "RETURN_TO_LAUNCH"
+            ]
+
+        await eventually(lambda: bool(returned()), "the vehicle told to return", 120)
+        status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert (status.failsafe.cause, status.failsafe.action) == ("battery", "rtl")
+        assert "below the reserve of 50 %" in status.failsafe.reason
+        # Nothing after the return reached the vehicle: every later call refused.
+        first = int(returned()[0]["seq"])  # type: ignore[call-overload]
+        assert [e["effect"] for e in read_effects(effects) if e["seq"] > first] == []
+
+        async def every_program_told() -> bool:
+            errors = [
+                (await stub.GetStatus(ring_pb2.GetControllerStatusRequest())).mission_error
+                for stub in testbed.controller_stubs.values()
+            ]
+            return all("in failsafe (battery" in error for error in errors)
+
+        await eventually(every_program_told, "every program ended by the failsafe", 60)
+
+
+async def test_the_drone_service_dead_for_good_the_autopilot_returns(tmp_path: Path) -> None:
+    """kill -9 of the drone mid-flight, never restarted: the autopilot's own GCS failsafe
+    (PX4's NAV_DLL_ACT and COM_DL_LOSS_T, set by the drone at connect) returns the vehicle
+    once no ground station was heard for the timeout (5 s of wall time at least)."""
+    plan = TestbedPlan(
+        config=local_config(
+            2, flush_limit=0, speedup=SPEEDUP, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
+        mission=LONG_LEGS,
+    )
+    effects = tmp_path / VEHICLE_EFFECTS_FILE
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        def gotos() -> int:
+            return sum(e["effect"] == "goto" for e in read_effects(effects))
+
+        await eventually(lambda: gotos() >= 2, "the vehicle flying its second leg", 60)
+        log = (tmp_path / "logs" / "drone.log").read_text()
+        assert '"autopilot GCS failsafe set"' in log and "NAV_DLL_ACT=2" in log
+        part = testbed.supervisor.parts["drone"]
+        assert part.process is not None
+        os.kill(part.process.pid, signal.SIGKILL)
+        killed_at = time.time()
+
+        def returned() -> list[dict[str, object]]:
+            return [e for e in read_effects(effects) if e["effect"] == "link_loss_return"]
+
+        await eventually(lambda: bool(returned()), "the autopilot returning by itself", 30)
+        after_s = float(returned()[0]["time"]) - killed_at  # type: ignore[arg-type]
+        print(f"drone killed to the autopilot's return: {after_s:.2f} s wall")
+        assert after_s >= 5.0 - 0.5  # the GCS heartbeat's period: up to 1 s before the kill
