@@ -6,6 +6,9 @@ from __future__ import annotations
 from helpers.protocol import started
 
 from baton.controller.core import (
+    CLOCK_SLEEP,
+    Answer,
+    AskClock,
     ControllerCore,
     DroneRefusal,
     Fail,
@@ -19,6 +22,7 @@ from baton.controller.core import (
 )
 from baton.controller.protocol import DisconnectDrone, SendLog, State
 from baton.digest import request_digest
+from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, ring_pb2
 
 GET = "/baton.v1.Mobility/GetPosition"
@@ -172,3 +176,15 @@ def test_the_ring_routes_around_a_successor_down_for_the_detection_time() -> Non
     # Two controllers: nowhere to route around to.
     two = ControllerCore(started(1, [0, 1], 0))
     assert two.route_due(lambda pid: 99.0, 1.0, drone_connected=False) == []
+
+
+def test_a_sleep_beyond_the_missions_bound_is_logged_as_refused() -> None:
+    core = ControllerCore(started(0, [0, 1, 2], 0), max_sleep_s=600.0)
+    core.protocol.granted_epoch = core.protocol.epoch
+    too_long = api.SleepRequest(seconds=1e12).SerializeToString()
+    step, _ = core.answer(CLOCK_SLEEP, too_long)
+    assert isinstance(step, Answer) and step.entry.status_code == 3  # INVALID_ARGUMENT
+    assert "safety.max_sleep" in step.entry.status_message
+    assert core.protocol.reqnr == 1  # logged: every replica's program sees the refusal
+    fine = api.SleepRequest(seconds=1.0).SerializeToString()
+    assert isinstance(core.answer(CLOCK_SLEEP, fine)[0], AskClock)

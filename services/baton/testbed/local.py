@@ -327,11 +327,15 @@ class Snapshot:
 
     @property
     def missions_ended(self) -> bool:
-        """Every controller's mission program has ended (done or failed)."""
-        return all(
+        """Every controller's mission program has ended (done or failed), and no
+        prepared handover is still under way at the drone: one the script began near
+        the end moves the master once its target caught up (the master's word) or at
+        the prepare timeout, after the last request."""
+        ended = all(
             c.mission in (ring_pb2.MISSION_STATE_DONE, ring_pb2.MISSION_STATE_FAILED)
             for c in self.controllers.values()
         )
+        return ended and self.drone.preparing_for < 0
 
     @property
     def pictures(self) -> int:
