@@ -24,7 +24,12 @@ import time
 from pathlib import Path
 
 import pytest
-from helpers.missions import FAST_LINK, LONG_LEGS, assert_mission_promises
+from helpers.missions import (
+    FAST_LINK,
+    LONG_LEGS,
+    assert_mission_promises,
+    flying_to_the_second_waypoint,
+)
 from waiting import eventually
 
 from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
@@ -32,17 +37,6 @@ from baton.v1 import drone_pb2, ring_pb2
 
 # Long legs (100 m at 5 m/s: 1 s of wall time at speed-up 20) so that the pause
 # lands while the mission polls the position between two commands.
-
-
-async def flying_to_the_second_waypoint(testbed: LocalTestbed) -> bool:
-    """The vehicle is between waypoints 1 and 2: the mission only polls its position."""
-    audit = (await testbed.snapshot()).drone.audit
-    methods = [a.method.rsplit("/", 1)[1] for a in audit]
-    return (
-        methods.count("Goto") == 2
-        and methods.count("TakePicture") == 1
-        and methods[-3:] == ["GetPosition"] * 3
-    )
 
 
 @pytest.mark.parametrize("pause_s", [8.0, 30.0])

@@ -9,7 +9,7 @@ import signal
 import time
 from pathlib import Path
 
-from helpers.missions import FAST_LINK, LONG_LEGS
+from helpers.missions import FAST_LINK, LONG_LEGS, flying_to_the_second_waypoint
 from waiting import eventually
 
 from baton.effects import read_effects
@@ -118,6 +118,11 @@ async def test_the_cruise_speed_survives_a_drone_killed_mid_mission(tmp_path: Pa
             return sum(e["effect"] == "goto" for e in read_effects(effects))
 
         await eventually(lambda: gotos() >= 2, "the vehicle flying its second leg", 60)
+        # Killed while the mission only polls the position: a Goto the kill cuts off is
+        # booked as its outcome (the vehicle may have acted) and ends the mission.
+        await eventually(
+            lambda: flying_to_the_second_waypoint(testbed), "the vehicle between waypoints"
+        )
         part = testbed.supervisor.parts["drone"]
         assert part.process is not None and part.ready_file is not None
         os.kill(part.process.pid, signal.SIGKILL)

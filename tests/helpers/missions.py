@@ -89,3 +89,14 @@ def log_events(tmp_path: Path, part: str) -> list[dict[str, object]]:
     """The JSON log lines of one part, in order."""
     text = (tmp_path / "logs" / f"{part}.log").read_text()
     return [json.loads(line) for line in text.splitlines() if line.startswith("{")]
+
+
+async def flying_to_the_second_waypoint(testbed: LocalTestbed) -> bool:
+    """The vehicle is between waypoints 1 and 2: the mission only polls its position."""
+    audit = (await testbed.snapshot()).drone.audit
+    methods = [a.method.rsplit("/", 1)[1] for a in audit]
+    return (
+        methods.count("Goto") == 2
+        and methods.count("TakePicture") == 1
+        and methods[-3:] == ["GetPosition"] * 3
+    )

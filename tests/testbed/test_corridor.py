@@ -265,6 +265,9 @@ def gapped_corridor(tmp_path: Path) -> Path:
         }
     document["controllers"], document["ring"] = controllers, [0, 1, 2]
     document["handover_policy"]["link_up"] = "60s"
+    # The policy's hold is what these tests watch: the lost-link failsafe (30 mission-s
+    # by default) would end a hold that waits for a restarted station.
+    document.setdefault("safety", {})["lost_link"] = "10min"
     config = tmp_path / "gapped.yaml"
     config.write_text(yaml.safe_dump(document))
     return config

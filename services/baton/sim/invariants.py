@@ -58,9 +58,11 @@ The invariants (docs/simulation.md, "Invariants"):
    and rejoins with nothing when the ring's message reaches it
    (``Diverged``), which ``oracles._observed`` allows for.
 7. ``replies-held``: every entry a program consumed (a drone reply, a local
-   answer, a give-up) is held by a live controller (handled, queued, or in
-   a master's unflushed log) or by the drone (its reply cache), or the drone
-   let it go because every controller held it (at or below its watermark).
+   answer, a give-up) is held by a live controller (handled, queued, in its
+   history, or in a master's unflushed log) or by the drone (its reply cache,
+   or the intent of a request a restart cut off, booked when it comes back),
+   or the drone let it go because every controller held it (at or below its
+   watermark).
    Only the entries the oracles hold an incarnation to
    (``oracles._observed``): what a failover-ended incarnation consumed
    after its last request the drone accepted never left it.
@@ -189,9 +191,14 @@ def replies_held(world: World, live: list[SimController]) -> str | None:
     # Beyond that: in a master's unflushed log, or in a log message received and queued
     # (a controller that restarted with nothing holds the ring's messages queued while
     # it replays the ones below).
+    intent = world.drone.intent  # a request the drone executes, or a restart cut off
     unflushed = {e.reqnr for c in live for e in c.protocol.log.entries}
     unflushed.update(
         e.reqnr for c in live for m in c.protocol.log_queue.values() for e in m.entries
+    )
+    # A master's own flushed messages are in its history, not among those it handled.
+    unflushed.update(
+        e.reqnr for c in live for n in c.history.above(0) for e in c.history.get(n).entries
     )
     for c in world.incarnations:
         if len(c.seen) <= floor:
@@ -200,6 +207,8 @@ def replies_held(world: World, live: list[SimController]) -> str | None:
         for reqnr, _, _ in c.seen[floor:upto]:
             if reqnr <= floor or reqnr in unflushed or seq.cache.get(reqnr) is not None:
                 continue
+            if intent is not None and intent.reqnr == reqnr:
+                continue  # the drone's store keeps it: booked when the drone comes back
             return (
                 f"request {reqnr}, consumed by controller {c.id} (incarnation "
                 f"{c.incarnation}), is held by no live controller (they hold up to {floor}) "
