@@ -144,9 +144,11 @@ async def test_the_cruise_speed_survives_a_drone_killed_mid_mission(tmp_path: Pa
 
 
 async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) -> None:
-    """A small battery (8 Wh: about 2 min of flight) and a 50 % reserve: mid-mission the
-    drone commands the return, the vehicle counts it, and the program's next call fails
-    FAILED_PRECONDITION on every controller (issue 32, item 2)."""
+    """A small battery (8 Wh: about 2 min of flight) and an 80 % reserve: early in the
+    mission the drone commands the return, the vehicle counts it, and the program's next
+    call fails FAILED_PRECONDITION on every controller (issue 32, item 2). The reserve is
+    crossed early so that a loaded machine's late battery reading still falls while the
+    vehicle flies (at 50 % it fell after the last waypoint, with the vehicle landing)."""
     plan = TestbedPlan(
         config=local_config(
             2,
@@ -154,7 +156,7 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
             speedup=SPEEDUP,
             controller_link=FAST_LINK,
             drone_link=FAST_LINK,
-            safety={"battery_reserve": 50.0, "battery_action": "rtl"},
+            safety={"battery_reserve": 80.0, "battery_action": "rtl"},
         ),
         mission=LONG_LEGS,
         vehicle_args=("--battery-capacity-wh", "8"),
@@ -173,7 +175,7 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
         await eventually(lambda: bool(returned()), "the vehicle told to return", 120)
         status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         assert (status.failsafe.cause, status.failsafe.action) == ("battery", "rtl")
-        assert "below the reserve of 50 %" in status.failsafe.reason
+        assert "below the reserve of 80 %" in status.failsafe.reason
         # Nothing after the return reached the vehicle: every later call refused.
         first = int(returned()[0]["seq"])  # type: ignore[call-overload]
         assert [e["effect"] for e in read_effects(effects) if e["seq"] > first] == []
