@@ -29,15 +29,21 @@ async def test_a_session_takes_the_channel_connected_in_advance_and_a_new_one_co
         spare = await spare_connected(warm)
         channel, connected = warm.take()
         assert channel is spare and connected
-        # Taken at once (nothing awaited between), the next spare has not connected
-        # yet: a fresh channel, and the spare that was not ready is closed, not left.
+        # Taken at once (nothing awaited between), the next spare has usually not
+        # connected yet: a fresh channel, and the spare that was not ready is closed,
+        # not left. gRPC connects on its own thread, so on a quiet machine the spare may
+        # be ready already: then it is the one taken, connected.
         unready = warm._spare
         assert unready is not None and unready is not spare
         fresh, connected = warm.take()
-        assert not connected and fresh is not unready
-        await eventually(
-            lambda: unready.get_state() is grpc.ChannelConnectivity.SHUTDOWN, "the spare closed"
-        )
+        if connected:
+            assert fresh is unready
+        else:
+            assert fresh is not unready
+            await eventually(
+                lambda: unready.get_state() is grpc.ChannelConnectivity.SHUTDOWN,
+                "the spare closed",
+            )
         for taken in (channel, fresh):  # either works as it is
             call = drone_pb2_grpc.DroneStub(taken).Connect(
                 drone_pb2.ConnectRequest(controller_id=0)
