@@ -220,4 +220,6 @@ async def test_the_drone_service_dead_for_good_the_autopilot_returns(tmp_path: P
         await eventually(lambda: bool(returned()), "the autopilot returning by itself", 30)
         after_s = float(returned()[0]["time"]) - killed_at  # type: ignore[arg-type]
         print(f"drone killed to the autopilot's return: {after_s:.2f} s wall")
-        assert after_s >= 5.0 - 0.5  # the GCS heartbeat's period: up to 1 s before the kill
+        # Counted from the last GCS heartbeat the vehicle heard (sent each second, up to
+        # 1 s before the kill, more on a loaded machine), not from the kill.
+        assert after_s >= 5.0 - 1.5
