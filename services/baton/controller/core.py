@@ -31,9 +31,9 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import grpc
 
@@ -48,6 +48,7 @@ from baton.controller.protocol import (
     ProtocolError,
     Refusal,
     ReplacedFraming,
+    SendLog,
     State,
     ring_route,
 )
@@ -200,6 +201,14 @@ class RouteTo:
     previous: int  # the successor before
     natural: int  # the successor in ring order
 
+    @property
+    def retired(self) -> int | None:
+        """A successor routed to before and neither the natural one nor skipped now: its
+        stream ends once it has nothing unacknowledged (the ring came back past it)."""
+        if self.previous == self.natural or self.previous in self.skipped:
+            return None
+        return self.previous
+
 
 @dataclass(frozen=True)
 class Preparing:
@@ -302,8 +311,26 @@ class AskDrone:
 CallStep = Answer | Hold | AskClock | AskDrone
 
 
+@dataclass(frozen=True)
+class Persist:
+    """Effect: ``message`` enters the history (and the successor's stream is told what we
+    hold now), before it is sent (``ControllerCore.ready``)."""
+
+    message: ring_pb2.LogMessage
+
+
+@dataclass(frozen=True)
+class KeepMastership:
+    """Effect: the mastership whose log the history holds, kept with it, so that a restart
+    from the file tells the drone on Connect (fenced if a takeover replaced it)."""
+
+    epoch: int
+
+
 CoreEffect = (
     Effect
+    | Persist
+    | KeepMastership
     | Reconnect
     | Rejoin
     | SendCatchUp
@@ -323,6 +350,15 @@ CoreEffect = (
 # A master stops a prepared handover this long after the drone's timeout for it, if it
 # heard nothing (the drone forces the handover at its timeout: the notice is owed).
 PREPARE_GRACE_S = 2.0
+
+
+class HeldLog(Protocol):
+    """What the core reads of the log messages a controller holds (its ``LogHistory``),
+    as raft's core reads its ``Storage``: it never writes them."""
+
+    def above(self, lognr: int) -> Iterator[int]: ...
+
+    def get(self, lognr: int) -> ring_pb2.LogMessage: ...
 
 
 class ControllerCore:
@@ -376,6 +412,9 @@ class ControllerCore:
         # along with the next Invoke, so the drone keeps them for a taker.
         self.answered_here: list[ring_pb2.LogEntry] = []
         self.answered_from_retained = 0
+        # The last log number sent straight to each handover target (``catch_up`` and a
+        # prepared handover's copies), so that none is sent to it twice.
+        self.sent_straight: dict[int, int] = {}
 
     def fresh_self(self) -> ControllerCore:
         """The core of this controller rejoining with nothing (``ControllerProtocol.
@@ -385,6 +424,61 @@ class ControllerCore:
         if self.replaced is not None:
             fresh.protocol.refuse_replaced(self.replaced)
         return fresh
+
+    def ready(self, effects: Sequence[CoreEffect], drone_connected: bool) -> list[CoreEffect]:
+        """What a driver carries out for ``effects``, in this order (etcd raft's ``Ready``).
+
+        - A log message we send enters the history first (``Persist``), except a
+          handover message: it enters when it comes back round, once its new master
+          has it; a history copy re-sent to the successor before then could overtake
+          it, and the new master would take the copy for a normal message.
+        - A copy for a prepared handover's target goes only while the drone's stream
+          is up: cut off, a takeover may have replaced us, and the copy would pass the
+          taker's fence on the ring. A new stream's PrepareHandover catches the
+          target up; a refused one fences us.
+        - A log that diverged from the ring's makes us rejoin with nothing, once.
+        - Last, the mastership whose log we hold is kept with the log.
+        """
+        out: list[CoreEffect] = []
+        for effect in effects:
+            if isinstance(effect, SendLog):
+                if effect.copy and not drone_connected:
+                    continue
+                if effect.copy:
+                    self.sent_straight[effect.dest] = effect.message.lognr
+                elif not effect.message.handover:
+                    out.append(Persist(effect.message))
+            out.append(effect)
+            if isinstance(effect, Diverged):
+                out.extend(self.rejoin())
+        out.append(KeepMastership(self.protocol.log_mastership_epoch))
+        return out
+
+    def catch_up(self, target: int, held: HeldLog) -> list[ring_pb2.LogMessage] | None:
+        """What a handover's target is sent straight from us (``SendCatchUp``), or None
+        when the target is our successor, whose ring stream gives it everything in order.
+
+        Our messages the ring has not yet brought back to us (above ``acked_lognr``)
+        and not sent to it already, before what follows (the handover message, or a
+        prepared handover's flushes): one link's time, not one per hop
+        (docs/design.md, "The ring's forwarding"). The target ignores what it has.
+        """
+        if target == self.protocol.successor:
+            return None
+        sent = max(self.protocol.acked_lognr, self.sent_straight.get(target, 0))
+        messages = [held.get(lognr) for lognr in held.above(sent)]
+        if messages:
+            self.sent_straight[target] = messages[-1].lognr
+        return messages
+
+    def kept_on_rejoin(self, held: HeldLog) -> list[ring_pb2.LogMessage]:
+        """What a controller that rejoins with nothing gives its fresh self, in order: a
+        fenced controller's messages that went round the ring (maybe the one copy
+        left: ``kept_when_fenced``), a master whose program starts again its whole log
+        (``restart_program``), then the handover messages that exist nowhere else."""
+        upto = self.protocol.kept_history()
+        kept = [held.get(lognr) for lognr in held.above(0) if lognr <= upto]
+        return kept + self.protocol.kept_for_rejoin()
 
     # -- the drone's word ------------------------------------------------------------
 

@@ -35,7 +35,9 @@ from baton.controller.core import (
     FirstNewCall,
     Hold,
     Keep,
+    KeepMastership,
     Note,
+    Persist,
     Preparing,
     Reconnect,
     Record,
@@ -167,7 +169,6 @@ class ControllerNode:
         self._changed = asyncio.Event()
         self._peers: dict[int, PeerLink] = {}
         # The highest log number sent straight to each handover target (_send_catch_up).
-        self._sent_straight: dict[int, int] = {}
         # The stream to the target when the preparation began, and the acknowledgements
         # it had counted then (a stream opened since counts from 0: ``_route`` drops one).
         self._acked_before_prepare: tuple[PeerLink | None, int] = (None, 0)
@@ -366,19 +367,12 @@ class ControllerNode:
         be restarted with it (``on_rejoin``).
         """
         self.incarnation += 1
-        # A fenced controller keeps its messages that went round the ring (the one
-        # copy left, maybe: ``kept_when_fenced``), a master whose program starts
-        # again its whole log (``restart_program``), then the handover messages
-        # that exist nowhere else.
-        upto = self.protocol.kept_history()
-        kept = [self.history.get(n) for n in self.history.above(0) if n <= upto]
-        kept += self.protocol.kept_for_rejoin()
+        kept = self.core.kept_on_rejoin(self.history)
         fresh = self.core.fresh_self()
         await self._close_drone()
         for link in self._peers.values():
             await link.stop()
         self._peers = {}
-        self._sent_straight = {}
         self.history.clear()
         self.core = fresh
         if self._settler is not None:
@@ -445,18 +439,12 @@ class ControllerNode:
             del self._arriving[min(self._arriving)]
 
     def _send_catch_up(self, target: int) -> None:
-        """A handover's target is sent straight from us what it may lack: our messages
-        the ring has not yet brought back to us (above ``acked_lognr``), and not sent to
-        it already, before what follows (the handover message, or a prepared handover's
-        flushes): one link's time, not one per hop (docs/design.md, "The ring's
-        forwarding"). It ignores what it already has, and the ring's copies."""
-        if target == self.protocol.successor:
-            return  # the ring's own stream gives it everything, in order
-        link = self.peer(target)
-        sent = max(self.protocol.acked_lognr, self._sent_straight.get(target, 0))
-        for lognr in self.history.above(sent):
-            link.send(self.history.get(lognr))
-            self._sent_straight[target] = lognr
+        """What a handover's target may lack, straight to it (``ControllerCore.catch_up``)."""
+        messages = self.core.catch_up(target, self.history)
+        if messages is not None:
+            link = self.peer(target)
+            for message in messages:
+                link.send(message)
 
     async def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
         """The drone plans a handover (``ControllerCore.prepare``)."""
@@ -582,12 +570,11 @@ class ControllerNode:
             await link.stop()
         link.start()
         link.holds_changed()
-        previous = route.previous
-        if previous != route.natural and previous not in route.skipped:
-            old = self._peers.get(previous)
-            if old is not None and old.unacked == 0:
-                await old.stop()
-                del self._peers[previous]
+        retired = route.retired
+        old = None if retired is None else self._peers.get(retired)
+        if retired is not None and old is not None and old.unacked == 0:
+            await old.stop()
+            del self._peers[retired]
 
     @property
     def peers(self) -> dict[int, PeerLink]:
@@ -629,27 +616,11 @@ class ControllerNode:
     # -- effects --------------------------------------------------------------------
 
     async def _apply(self, effects: Sequence[CoreEffect]) -> None:
-        for effect in effects:
-            if isinstance(effect, SendLog):
-                if effect.copy:
-                    # Not while cut off from the drone: a takeover may have replaced
-                    # us, and the copy would pass the taker's fence on the ring (the
-                    # target would build on a give-up the taker had replaced). A new
-                    # stream's PrepareHandover catches the target up (``on_prepare``);
-                    # a refused one fences us.
-                    if self.drone_connected:
-                        self.peer(effect.dest).send(effect.message)
-                        self._sent_straight[effect.dest] = effect.message.lognr
-                    continue
-                if not effect.message.handover:
-                    # A handover message we create enters the history when it
-                    # comes back round (footnote 3), once its new master has it:
-                    # a history copy (flag cleared) re-sent to our successor
-                    # before then could overtake it, and the new master would
-                    # take the copy for a normal message (the simulation's
-                    # ``World.check_overtaken_handover`` checks F7).
-                    self.history.add(effect.message)
-                    self.peer(self.protocol.successor).holds_changed()
+        for effect in self.core.ready(effects, self.drone_connected):
+            if isinstance(effect, Persist):
+                self.history.add(effect.message)
+                self.peer(self.protocol.successor).holds_changed()
+            elif isinstance(effect, SendLog):
                 self.peer(effect.dest).send(effect.message)
                 self.log.debug(
                     "log message sent",
@@ -670,8 +641,6 @@ class ControllerNode:
                     our_epoch=effect.ours_epoch,
                     ring_epoch=effect.ring_epoch,
                 )
-                if self.core.rejoin():
-                    self._background.spawn(self._rejoin(), name="rejoin")
             elif isinstance(effect, Reconnect):
                 await self._close_drone()
                 self._open_drone()
@@ -751,9 +720,8 @@ class ControllerNode:
                     )
                 )
                 self.log.info("taking over as master", old_master=effect.old_master)
-        # The mastership whose log we hold, kept with the log: a restart from the
-        # file tells it on Connect like this process does (fenced if taken over).
-        self.history.keep_mastership_epoch(self.protocol.log_mastership_epoch)
+            elif isinstance(effect, KeepMastership):
+                self.history.keep_mastership_epoch(effect.epoch)
         self._notify()
 
     def _notify(self) -> None:

@@ -330,14 +330,10 @@ class World:
         if self.controllers.get(controller.id) is not controller or not controller.alive:
             return
         controller.ended_by = "rejoin"
-        # ControllerNode.reset: a fenced controller's messages that went round the ring,
-        # a restarted master's whole log, then the handover messages that exist nowhere
-        # else.
+        # ControllerNode.reset: what the fresh self is given (``ControllerCore.kept_on_rejoin``).
         upto = controller.protocol.kept_history()
         fresh_core = controller.core.fresh_self()
-        history = controller.history
-        kept = [history.get(n) for n in history.above(0) if n <= upto]
-        kept += controller.protocol.kept_for_rejoin()
+        kept = controller.core.kept_on_rejoin(controller.history)
         controller.kill(
             "rejoins as a replica with nothing"
             if not upto
