@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -522,7 +522,16 @@ class ControllerCore:
         held = self.protocol.held_reqnr
         if replies:
             self.retained_came = max(self.retained_came, replies[-1].reqnr)
-        replaced = self.protocol.replaced_framing(replies)
+        refused = self._refuse_replaced(replies)
+        if refused:
+            return refused
+        self.retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
+        return []
+
+    def _refuse_replaced(self, replies: Iterable[drone_pb2.RetainedReply]) -> list[CoreEffect]:
+        """A rejoin refusing our framing of a request the drone keeps in a newer one
+        (``ControllerProtocol.replaced_framing``); nothing if there is none."""
+        replaced = self.protocol.replaced_framing(list(replies))
         if replaced is not None:
             self.replaced = replaced
             note = Note(
@@ -539,7 +548,6 @@ class ControllerCore:
                 },
             )
             return [note, *self.rejoin()]
-        self.retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
         return []
 
     def take_over(
@@ -913,7 +921,17 @@ class ControllerCore:
         (the drone may retain a lost master's Clock answer for it), and any call
         for the retained replies still to come."""
         p = self.protocol
+        if self.rejoining:
+            # What the program would take now may be the framing the rejoin drops; its
+            # fresh self answers it.
+            return Hold(), []
         if p.state is State.REPLAY:
+            kept = self.retained.get(p.reqnr + 1)
+            if kept is not None and (refused := self._refuse_replaced([kept])):
+                # A taker that held less than the replies the drone retains for it was
+                # given by the ring a framing of one that a later takeover replaced:
+                # refused as when the grant's retained replies find it.
+                return Hold(), refused
             entry, replayed = self._replay(method, request)
             return (Answer(entry) if entry is not None else Hold()), replayed
         if p.state is not State.ACTIVE:

@@ -65,7 +65,9 @@ The invariants (docs/simulation.md, "Invariants"):
    watermark).
    Only the entries the oracles hold an incarnation to
    (``oracles._observed``): what a failover-ended incarnation consumed
-   after its last request the drone accepted never left it.
+   after its last request the drone accepted never left it. Nor, of a killed
+   incarnation, a local answer above the drone's last request: a taker may
+   frame it anew, and the oracle then no longer holds the incarnation to it.
 8. ``at-most-once``: no command or picture acted on twice at the vehicle
    (the oracle's count, at the event that broke it).
 """
@@ -209,6 +211,12 @@ def replies_held(world: World, live: list[SimController]) -> str | None:
                 continue
             if intent is not None and intent.reqnr == reqnr:
                 continue  # the drone's store keeps it: booked when the drone comes back
+            if not c.alive and not c.ended_by and reqnr > seq.last_reqnr:
+                # A killed program's local answer (a Clock reading, a give-up) that no
+                # request took to the drone: a taker may frame it anew, and the oracle
+                # then holds the killed incarnation only to what the drone accepted
+                # (``oracles._would_have_rejoined``).
+                continue
             return (
                 f"request {reqnr}, consumed by controller {c.id} (incarnation "
                 f"{c.incarnation}), is held by no live controller (they hold up to {floor}) "
