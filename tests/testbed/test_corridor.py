@@ -33,6 +33,8 @@ MARGIN_M, SPEED_M_S = 50.0, 5.0
 # edge, took longer than that on CI, and the vehicle left the old station's range
 # first (a takeover, not a prepared handover). 20 s gives it 1.9 s.
 LEAD_S = 20.0
+# The waits about a link to the drone: a station's own, and the drone's about it.
+LINK_KEYS = ("standby", "drone", "link 0", "link 1", "link 2", "link 3")
 
 
 def corridor_on_free_ports(
@@ -76,6 +78,14 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
     assert report["exactly_once"] and report["side_effects"]["exactly_once"] is True
     assert report["side_effects"]["pictures_taken"] == report["mission"]["waypoints"] == 16
     assert report["handovers_planned"] == []
+    # Every station was out of range for a while, as planned, and said so quietly: no
+    # warning about a station's link to the drone, on the progress line or in the
+    # report (the drone would warn of one in range without its stream).
+    assert "out of range, as planned: " in report["stdout"]
+    expected = {w["part"] for w in report["waits"]["expected"] if w["text"] == "out of range"}
+    assert expected == {"c0", "c1", "c2", "c3"}, report["waits"]
+    links = [w for w in report["waits"]["needs_person"] if w["key"] in LINK_KEYS]
+    assert links == [] and "stream to the drone" not in report["stdout"], report["waits"]
     assert report["policy"] == {
         "name": policy,
         "radio_range": True,
