@@ -113,6 +113,15 @@ class WaitLog:
         }
 
 
+def needed_a_person(waits: dict[str, list[dict[str, Any]]]) -> list[str]:
+    """Each wait of the report that needed a person, in words."""
+    return [
+        f"{e['part']}: {e['text']} (up to {e['longest_s']:.0f} s, "
+        f"first seen {e['first_s']:.0f} s into the run)"
+        for e in waits["needs_person"]
+    ]
+
+
 def report_lines(waits: dict[str, list[dict[str, Any]]]) -> list[str]:
     """The report's lines about waits: the expected ones in one quiet line, then each
     that needed a person on its own line, loudly."""
@@ -122,9 +131,4 @@ def report_lines(waits: dict[str, list[dict[str, Any]]]) -> list[str]:
             f"{e['part']} {e['text']} (up to {e['longest_s']:.0f} s)" for e in waits["expected"]
         )
         lines.append(f"expected waits: {seen}")
-    for e in waits["needs_person"]:
-        lines.append(
-            f"{LOUD}: {e['part']}: {e['text']} (up to {e['longest_s']:.0f} s, "
-            f"first seen {e['first_s']:.0f} s into the run)"
-        )
-    return lines
+    return lines + [f"{LOUD}: {line}" for line in needed_a_person(waits)]
