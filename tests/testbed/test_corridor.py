@@ -351,6 +351,17 @@ async def test_no_controller_usable_holds_the_vehicle_or_flies_on_into_a_range(
         stop = east_m(settled.position)  # type: ignore[attr-defined]
         later = await eventually(held_for(1.0, time.monotonic()), "the vehicle held 1 s more", 30)
         assert abs(east_m(later.position) - stop) < 0.1  # type: ignore[attr-defined]
+
+        # Station 1's link should be up (the vehicle is in its range) and is not: once it
+        # has had its time to come up, the drone says a person should look. Stations 0
+        # and 2, out of range as planned, are not waited for.
+        async def link_1_needs_a_person() -> object:
+            drone = (await testbed.snapshot(audit=False)).drone
+            waits = {w.key: w.needs_person for w in drone.waits}
+            return waits if waits.get("link 1") else None
+
+        waits = await eventually(link_1_needs_a_person, "the drone to warn of link 1", 30)
+        assert "link 0" not in waits and "link 2" not in waits, waits  # type: ignore[operator]
         await testbed.restart_controller(1)
 
         # On the leg to 1,000 m, in station 1's range only (2's begins at 803 m).
