@@ -707,16 +707,16 @@ class ControllerStatus(_message.Message):
 
     @_builtins.property
     def waits(self) -> _containers.RepeatedCompositeFieldContainer[_waits_pb2.Wait]:
-        """What the controller has been waiting for, each once it has held 3 s: the
-        drone unreachable or its vehicle not connected (it re-sends the same
-        request until drone_retry_limit), no stream to the drone, a log message
-        missing while later ones are queued, the ring stream to its successor
-        down or routed around an unreachable one, a new master catching up with
-        the ring. No stream to the drone
-        (standby or Connect) is expected of a station on the handover policy's
-        map that is not master (the vehicle may be out of its range: the drone's
-        own waits say when it is in range); a new master catching up is expected
-        within the prepare timeout; everything else needs a person.
+        """What the controller has been waiting for, each once it has held 3 s: no
+        stream to the drone, a request without an answer, a log message missing
+        while later ones are queued, the ring stream to its successor down or
+        routed around an unreachable one, a new master catching up with the ring;
+        and at once, the drone unreachable or its vehicle not connected (it
+        re-sends the same request until drone_retry_limit). No stream to the
+        drone (standby or Connect) is expected of a station on the handover
+        policy's map that is not master (the vehicle may be out of its range: the
+        drone's own waits say when it is in range); a new master catching up is
+        expected within the prepare timeout; everything else needs a person.
         """
 
     def __init__(
