@@ -9,6 +9,7 @@ without acting twice, and tells the master when to hand over.
 """
 
 from baton.v1 import drone_api_pb2 as _drone_api_pb2
+from baton.v1 import waits_pb2 as _waits_pb2
 from collections import abc as _abc
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
@@ -1357,6 +1358,7 @@ class DroneStatus(_message.Message):
     FAILSAFE_FIELD_NUMBER: _builtins.int
     LOST_LINK_S_FIELD_NUMBER: _builtins.int
     LOST_LINK_ACTION_FIELD_NUMBER: _builtins.int
+    WAITS_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -1374,8 +1376,9 @@ class DroneStatus(_message.Message):
     master_connected: _builtins.bool
     """Whether the master holds its Connect stream now."""
     waiting: _builtins.str
-    """What the drone has been waiting for, and for how long, once it lasts 3 s
-    (the master holding no Connect stream); empty when nothing.
+    """The waits in `waits` that need a person, as one line ("TEXT for N s",
+    "; "-separated); empty when none does. Kept for grpcurl and scripts that
+    read it: `waits` has every wait, each with whether it needs a person.
     """
     epoch: _builtins.int
     """The current master's epoch: 1 for the initial master, one more at
@@ -1470,6 +1473,16 @@ class DroneStatus(_message.Message):
         an operator's Resume.
         """
 
+    @_builtins.property
+    def waits(self) -> _containers.RepeatedCompositeFieldContainer[_waits_pb2.Wait]:
+        """What the drone has been waiting for, each once it has held 3 s: the master
+        holding no Connect stream (needs a person), a controller holding no standby
+        stream while the vehicle is in its range on the handover policy's map, or
+        without a policy at all (needs a person once the link has had its time to
+        come up; a station out of range is not waited for). Until a controller
+        first reaches the drone process, only that (expected for a minute).
+        """
+
     def __init__(
         self,
         *,
@@ -1507,10 +1520,11 @@ class DroneStatus(_message.Message):
         failsafe: Global___Failsafe | None = ...,
         lost_link_s: _builtins.float = ...,
         lost_link_action: _builtins.str = ...,
+        waits: _abc.Iterable[_waits_pb2.Wait] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["failsafe", b"failsafe", "flight_state", b"flight_state", "policy_decision", b"policy_decision", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "failsafe", b"failsafe", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "lost_link_action", b"lost_link_action", "lost_link_s", b"lost_link_s", "master", b"master", "master_connected", b"master_connected", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "policy_resumes", b"policy_resumes", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "failsafe", b"failsafe", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "lost_link_action", b"lost_link_action", "lost_link_s", b"lost_link_s", "master", b"master", "master_connected", b"master_connected", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "policy_resumes", b"policy_resumes", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -75,7 +75,7 @@ from baton.controller.ring import PeerLink, Relay
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
 from baton.rpc.tls import Tls
-from baton.stalls import StallWatch
+from baton.stalls import StallWatch, Wait, controller_judge, one_line
 from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, ring_pb2
@@ -185,10 +185,10 @@ class ControllerNode:
         self.mission: ring_pb2.MissionState.ValueType = ring_pb2.MISSION_STATE_NONE
         self.mission_error = ""
         # A request the drone could not take, being re-sent (see _invoke_drone).
-        self._drone_wait = ""
-        # Stalls the watchdog sees (stalls.py): a missing log message, a ring stream down.
+        self._drone_wait: Wait | None = None
+        # Waits the watchdog sees (stalls.py): a missing log message, a ring stream down.
         self._stalls = StallWatch()
-        self._stalled = ""
+        self._stalled: list[Wait] = []
         self._watchdog: asyncio.Task[None] | None = None
         self._in_flight: tuple[int, str] | None = None  # the request the drone has now
         self._failure: StatusError | None = None
@@ -280,9 +280,14 @@ class ControllerNode:
             )
 
     @property
+    def waits(self) -> list[Wait]:
+        """What the controller waits for, judged (stalls.py), for GetStatus."""
+        return [self._drone_wait, *self._stalled] if self._drone_wait else self._stalled
+
+    @property
     def waiting(self) -> str:
-        """What the controller is stuck on outside itself, for GetStatus; empty when nothing."""
-        return "; ".join(text for text in (self._drone_wait, self._stalled) if text)
+        """The waits that need a person, as one line; empty when none does."""
+        return one_line(self.waits)
 
     def stall_conditions(self) -> dict[str, str]:
         """What holds now that would be a stall if it lasted (stalls.py)."""
@@ -325,16 +330,25 @@ class ControllerNode:
                 f"ring stream to controller {p.successor} down "
                 f"({link.unacked} messages not acknowledged)"
             )
+        if self.routed_around:
+            skipped = ", ".join(str(cid) for cid in self.routed_around)
+            holding["routed"] = (
+                f"ring routed around controller {skipped} (unreachable) to controller {p.successor}"
+            )
         return holding
 
     async def _watch(self) -> None:
         """Every half second: stalls into the status, and into the log when they begin."""
         while True:
             now = time.monotonic()
-            stalls = self._stalls.update(now, self.stall_conditions())
-            self._stalled = "; ".join(stalls)
-            if self._stalls.due_for_log(now, stalls):
-                self.log.warning("stalled", waiting=self._stalled)
+            judge = controller_judge(
+                self.config.handover_policy.name != "none",
+                self.protocol.master,
+                self.config.prepare_timeout,
+            )
+            self._stalled = self._stalls.update(now, self.stall_conditions(), judge)
+            if self._stalls.due_for_log(now, self._stalled):
+                self.log.warning("stalled", waiting=one_line(self._stalled))
             await asyncio.sleep(0.5)
 
     async def stop(self) -> None:
@@ -380,7 +394,7 @@ class ControllerNode:
             self._settler = None
         self.mission, self.mission_error = ring_pb2.MISSION_STATE_NONE, ""
         self._failure = None
-        self._drone_wait, self._in_flight, self._busy = "", None, None
+        self._drone_wait, self._in_flight, self._busy = None, None, None
         self._idle.set()
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
@@ -1102,7 +1116,7 @@ class ControllerNode:
         try:
             return await self._invoke_drone_retrying(reqnr, method, request, digest)
         finally:
-            self._drone_wait = ""
+            self._drone_wait = None
             self._in_flight = None
 
     async def _invoke_drone_retrying(
@@ -1150,9 +1164,10 @@ class ControllerNode:
                     # The drone could not be reached, or its vehicle is not
                     # connected: nothing was executed, so the same reqnr is
                     # re-sent (the drone left it unused).
-                    self._drone_wait = (
-                        f"request {reqnr} ({method}): drone unavailable for "
-                        f"{retry.waited():.0f} s: {exc.details()}"
+                    self._drone_wait = Wait(
+                        "retry",
+                        f"request {reqnr} ({method}): drone unavailable ({exc.details()})",
+                        retry.waited(),
                     )
                     if retry.should_log():
                         self.log.warning(

@@ -39,7 +39,7 @@ from baton.rpc.labels import label
 from baton.rpc.outcomes import failure_of
 from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
-from baton.stalls import StallWatch
+from baton.stalls import StallWatch, Wait, drone_conditions, drone_judge, one_line
 from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -135,7 +135,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             }
         )
         self._stalls = StallWatch()
-        self.waiting = ""
+        self.waits: list[Wait] = []
+        self._reached = False  # a controller has reached this process (stalls.py)
         # Each controller's round trip, measured by pings on its standby stream.
         self.probes = LinkProbes(tuple(sequencer.ring), link_bounds or LinkBounds(), self.log)
         # The handover policy, when the drone runs one (build_service).
@@ -169,18 +170,27 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """The newest served requests held in memory, in order."""
         return list(self.seq.audit)
 
+    @property
+    def waiting(self) -> str:
+        """The waits that need a person, as one line; empty when none does."""
+        return one_line(self.waits)
+
     async def watch(self) -> None:
-        """Every half second: stalls into GetStatus.waiting, and into the log when they begin."""
+        """Every half second: waits into GetStatus, and stalls into the log when they begin."""
         while True:
-            holding = {}
-            if not self.streams.master_connected:
-                holding["master"] = (
-                    f"the master, controller {self.seq.master}, holds no Connect stream"
-                )
+            reachable, connected = self.standby.reachable, self.streams.master_connected
+            self._reached = self._reached or bool(reachable) or connected
+            # Without a policy there is no map: every link should be up. With one,
+            # a position not known yet puts no station in range.
+            policy = self.policy
+            in_range = None if policy is None else (policy.in_range() or set())
+            holding = drone_conditions(
+                self.seq.master, connected, self.seq.ring, reachable, in_range, self._reached
+            )
+            link_up_s = policy.params.link_up_s / policy.speedup if policy is not None else 0.0
             now = time.monotonic()
-            stalls = self._stalls.update(now, holding)
-            self.waiting = "; ".join(stalls)
-            if self._stalls.due_for_log(now, stalls):
+            self.waits = self._stalls.update(now, holding, drone_judge(link_up_s))
+            if self._stalls.due_for_log(now, self.waits):
                 self.log.warning("stalled", waiting=self.waiting)
             await asyncio.sleep(0.5)
 
@@ -1056,6 +1066,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             controllers=seq.controllers,
             vehicle=self.vehicle.link(),
             waiting=self.waiting,
+            waits=[w.to_proto() for w in self.waits],
             watermark_reqnr=seq.cache.watermark,
             reachable=[c for c in seq.ring if c in self.standby.reachable],
             takeover_after_s=self.takeover_after_s,

@@ -39,19 +39,18 @@ The invariants (docs/simulation.md, "Invariants"):
    number it handled a framing no older than any live controller's, but
    those of masterships a takeover ended (the ring fences them: ``Fenced``;
    their holders rejoin). Not the newest ever sent (``World.framings``): a
-   master lost mid-flush sends a framing that may reach nobody alive
-   (--lose-master seed 956: taker 0 holds a handover message of epoch 4
-   whose number the lost taker 5 framed in epoch 5 and died with). And not
-   against a replaced mastership's (--policy nearest seed 984: taker 7,
-   epoch 8, holds an empty message 5 of epoch 3 where the replicas hold
-   taker 1's message 5 of epoch 5, requests 7-12, a mastership 7's own
-   takeover ended; 7 frames the same replies in message 6, and the replicas
-   rejoin on it, ``Diverged``). Not at every instant: a taker goes ACTIVE on the
+   master lost mid-flush sends a framing that may reach nobody alive, and
+   a taker may hold an older framing of a number the lost one framed again
+   and died with. And not against a replaced mastership's: a taker whose
+   own mastership a later takeover ended may hold an older, emptier
+   framing of a number the replicas hold from that later master; it frames
+   the same replies in its next message, and the replicas rejoin on it
+   (``Diverged``). Not at every instant: a taker goes ACTIVE on the
    drone's grant, and then compares its framing with the replies the drone
    retained (``ControllerProtocol.replaced_framing``); one that holds a
    framing a later takeover replaced rejoins with nothing before it sends a
-   request (--lose-master seeds 580 and 956: ACTIVE so for the one event
-   that finds it). With 5, a
+   request (ACTIVE so for the one event that finds it; the runs that found
+   each case: docs/simulation.md, "Invariants"). With 5, a
    controller's handled log forks from the ring's only where it holds an
    older framing of a number that a takeover framed again; such a
    controller is a replaced master or a replica that handled its messages,

@@ -25,6 +25,7 @@ from baton.rpc.labels import label
 from baton.rpc.methods import path
 from baton.sdk import Position, distance_m, offset
 from baton.testbed.local import TAKE_PICTURE, Effects, Snapshot
+from baton.testbed.waits import report_lines
 from baton.v1 import drone_pb2, ring_pb2
 
 REPORT_FORMAT = "baton.testbed.report/1"
@@ -646,4 +647,6 @@ def summary_table(report: dict[str, Any]) -> str:
         )
         if c["mission_error"]:
             lines.append(f"{'':>10} error: {c['mission_error']}")
+    if "waits" in report:  # the run's waits (Progress's WaitLog): quiet, then loud
+        lines += ["", *report_lines(report["waits"])]
     return "\n".join(lines)
