@@ -317,7 +317,11 @@ class ControllerNode:
             )
         if self._in_flight is not None:
             reqnr, method = self._in_flight
-            holding[f"request {reqnr}"] = f"request {reqnr} ({method}) sent, no answer yet"
+            holding[f"request {reqnr}"] = f"request {reqnr} ({method}) sent, no answer yet" + (
+                f": it waits at the drone, {drone.operator_pause}"
+                if drone is not None and drone.operator_pause
+                else ""
+            )
         link = self._peers.get(p.successor)
         if link is not None and not link.stream_up:
             holding["ring"] = (

@@ -108,6 +108,10 @@ class Progress:
         vehicle += f" | drone waiting: {drone.waiting}" if drone.waiting else ""
         if drone.HasField("failsafe"):  # the safety net took the vehicle (docs/operating.md)
             vehicle += f" | FAILSAFE {drone.failsafe.action}: {drone.failsafe.reason}"
+        if drone.HasField("paused"):  # an operator's pause (docs/operating.md)
+            vehicle += f" | PAUSED: {drone.paused.reason}"
+        if drone.HasField("ended"):
+            vehicle += f" | ENDED: {drone.ended.reason}"
         vehicle += waits_line(
             self.config,
             {cid: c.waiting for cid, c in snapshot.controllers.items() if c.waiting},
