@@ -24,6 +24,7 @@ from baton.drone.operator import Operator, OperatorCommand
 from baton.drone.safety import Failsafe
 from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.tls import OPERATOR, refused
+from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -43,6 +44,7 @@ class OperatorCommands:
         # Set when a pause ends (a resume, an abort, a land-now); replaced at each pause.
         self._unpaused = asyncio.Event()
         self._unpaused.set()
+        self._tasks = TaskSet()  # a ground station's pauses
 
     # -- a request of a paused mission ----------------------------------------------
 
@@ -133,20 +135,25 @@ class OperatorCommands:
         return drone_pb2.OperatorReply(command=await self._command(context, "LandNow", decide))
 
     def ground_station_paused(self, station: str, what: str) -> None:
-        """A ground station's override (drone/gcs.py) pauses the mission; the station
-        commands the vehicle itself. Taken at once, not under the lock: it is called on
-        the relay's datagram path, and a request executing now is the mission's last
-        before the pause either way."""
-        core = self.service.core
-        try:
-            taken = core.operator.pause(time.time(), core.seq.last_reqnr, by=station, note=what)
-        except StatusError as err:
-            self.service.log.info("ground station override: already paused", reason=err.message)
-            return
-        self._unpaused = asyncio.Event()
-        self._save()
-        self._tell_master()
-        self.service.log.warning("mission paused", by=taken.by, reason=taken.reason)
+        """A ground station's override (drone/gcs.py) pauses the mission, between two
+        requests as any command; the station commands the vehicle itself. Called on the
+        relay's datagram path: the pause is a task of its own."""
+        self._tasks.spawn(self._ground_station_pause(station, what), name="gcs-pause")
+
+    async def _ground_station_pause(self, station: str, what: str) -> None:
+        service = self.service
+        async with service.execution_lock:
+            try:
+                taken = service.core.operator.pause(
+                    time.time(), service.seq.last_reqnr, by=station, note=what
+                )
+            except StatusError as err:
+                service.log.info("ground station override: not paused", reason=err.message)
+                return
+            self._unpaused = asyncio.Event()
+            self._save()
+            self._tell_master()
+        service.log.warning("mission paused", by=taken.by, reason=taken.reason)
 
     # -- carrying a command out -----------------------------------------------------
 
