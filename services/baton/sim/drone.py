@@ -298,6 +298,7 @@ class SimDrone:
         # Requests of a paused mission waiting for a resume, not admitted
         # (OperatorCommands.wait_resumed): their callers may still go away.
         self.parked: list[Request] = []
+        self.waited = 0  # requests that waited for a resume, over every incarnation
         self.busy: Execution | None = None
         self.streams: dict[int, Stream] = {}
         self.stats = DroneStats()
@@ -384,6 +385,7 @@ class SimDrone:
         digest = request_digest(method, request.payload)
         if self.core.holds(request.proto()):
             self.parked.append(request)  # paused: waits for a resume, not admitted
+            self.waited += 1
             return
         try:
             admitted = self.core.admit(request.proto(), digest, request.received_at)
