@@ -80,9 +80,14 @@ async def test_paused_the_vehicle_holds_and_no_call_reaches_it_until_resumed(
         before = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         paused = (await stub.Pause(drone_pb2.PauseRequest(note="a kite on the leg"))).command
         assert (paused.command, paused.action, paused.vehicle) == ("pause", "hold", "accepted")
-        held = [e for e in effects(tmp_path) if e.get("mode") == "HOLD"]
-        assert held, "the vehicle never told to hold"
+        held = await eventually(
+            lambda: [e for e in effects(tmp_path) if e.get("mode") == "HOLD"],
+            "the vehicle holding",
+            10,
+        )
         held_seq = int(held[-1]["seq"])  # type: ignore[call-overload]
+        hold_s = float(held[-1]["time"]) - paused.at  # type: ignore[arg-type]
+        print(f"pause decided to the vehicle's HOLD: {hold_s * 1000:.1f} ms")
 
         # The explicit event: the master says its next request waits at the drone, and
         # why, for longer than the takeover and the lost-link times.
@@ -139,6 +144,8 @@ async def test_abort_returns_the_vehicle_and_every_program_ends_with_the_same_er
             ]
 
         await eventually(returned, "the vehicle told to return", 10)
+        rtl_s = float(returned()[0]["time"]) - aborted.at  # type: ignore[arg-type]
+        print(f"abort decided to the vehicle's return: {rtl_s * 1000:.1f} ms")
 
         async def every_program_ended() -> set[str] | None:
             errors = {
