@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 import grpc
 
+from baton.drone.mobility_api import command_action
 from baton.drone.operator import Operator, OperatorCommand
 from baton.drone.safety import Failsafe
 from baton.rpc.errors import StatusError, abort_with
@@ -193,15 +194,9 @@ class OperatorCommands:
         """Commands the vehicle what ``taken`` says, and records its answer."""
         vehicle, operator = self.service.vehicle, self.service.core.operator
         try:
-            if taken.action == "hold":
-                await vehicle.Hold(api.HoldRequest())
-            elif taken.action == "rtl":
-                await vehicle.ReturnToLaunch(api.ReturnToLaunchRequest())
-            elif taken.action == "land":
-                await vehicle.Land(api.LandRequest())
-            elif taken.action == "goto" and operator.leg is not None:
+            if taken.action == "goto" and operator.leg is not None:
                 await vehicle.Goto(api.GotoRequest.FromString(operator.leg))
-            else:
+            elif not await command_action(vehicle, taken.action):
                 return taken
         except StatusError as err:
             self.service.log.error(

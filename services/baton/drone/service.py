@@ -26,7 +26,7 @@ from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
 from baton.drone.dispatch import Dispatcher
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
-from baton.drone.mobility_api import MobilityBackend
+from baton.drone.mobility_api import MobilityBackend, command_action
 from baton.drone.operator_service import OperatorCommands, failsafe_proto, fill_status
 from baton.drone.policy import LinkBounds, LinkState, PolicyParams, Station
 from baton.drone.policy_runner import PolicyRunner
@@ -282,13 +282,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
 
     async def _command_failsafe(self, failsafe: Failsafe) -> None:
         vehicle = self.vehicle
-        if failsafe.action == "hold":
-            await vehicle.Hold(api.HoldRequest())
-        elif failsafe.action == "land":
-            await vehicle.Land(api.LandRequest())
-        elif failsafe.action == "rtl":
-            await vehicle.ReturnToLaunch(api.ReturnToLaunchRequest())
-        elif failsafe.station is not None:
+        if await command_action(vehicle, failsafe.action):
+            return
+        if failsafe.station is not None:
             here = await latest_position(vehicle)
             at = self.stations[failsafe.station].location
             await vehicle.Goto(
