@@ -110,6 +110,8 @@ class OperatorCommands:
             nonlocal cleared
             cleared, taken = self.service.core.resume_mission(now)
             self.service.save_failsafe()
+            if cleared is not None:
+                self.service.log.warning("failsafe cleared by the operator", cause=cleared.cause)
             return taken
 
         taken = await self._command(context, "Resume", decide)
