@@ -138,3 +138,29 @@ def test_what_the_vehicle_did_is_recorded_and_the_state_survives_a_restart() -> 
     for i in range(KEPT + 5):
         again.resume(float(i), 3, Failsafe("battery", "rtl", 0.0, "low"))
     assert len(again.commands) == KEPT
+
+
+def test_the_cli_refuses_an_abort_flag_on_another_command(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from baton.cli import main
+
+    assert main(["operator", "pause", "--land", "--insecure"]) == 2
+    assert "--rtl and --land go with abort only" in capsys.readouterr().err
+
+
+def test_the_cli_says_what_the_drone_took_and_what_the_vehicle_did() -> None:
+    from baton.drone.operator_cli import describe
+
+    taken = drone_pb2.OperatorCommand(
+        command="abort",
+        at=0.0,
+        after_reqnr=17,
+        action="land",
+        reason="aborted by the operator after request 17: land",
+        vehicle="accepted",
+    )
+    assert describe(taken) == (
+        "00:00:00 UTC abort: aborted by the operator after request 17: land; the vehicle "
+        "told land: accepted"
+    )
