@@ -100,12 +100,17 @@ async def test_paused_the_vehicle_holds_and_no_call_reaches_it_until_resumed(
             return status.waiting if found and int(found.group(1)) >= OUTLASTS_S else None
 
         await eventually(master_waited, "the master saying why its request waits", 30)
+
+        async def drone_says() -> bool:
+            status = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+            return "the master's next request waits for Resume" in status.waiting
+
+        await eventually(drone_says, "the drone saying the mission is paused", 10)
         during = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         assert during.last_reqnr == paused.after_reqnr  # nothing admitted since the pause
         assert (during.epoch, len(during.handovers)) == (before.epoch, len(before.handovers))
         assert not during.HasField("failsafe")
         assert during.paused.after_reqnr == paused.after_reqnr
-        assert "the master's next request waits for Resume" in during.waiting
         assert [e for e in effects(tmp_path) if int(e["seq"]) > held_seq] == []  # type: ignore[call-overload]
 
         cli = await asyncio.create_subprocess_exec(
