@@ -113,11 +113,14 @@ def controller_judge(on_map: bool, master: bool, catch_up_bound_s: float) -> Jud
     the drone can, and its own waits say when a station in range has no stream
     (``drone_judge``). A new master catching up with the ring is expected for as
     long as a prepared handover's target is given (``catch_up_bound_s``, the
-    prepare timeout). Everything else, the master's own link included, needs a
-    person.
+    prepare timeout). A request waiting at the drone while an operator paused the
+    mission is the operator's own doing: expected. Everything else, the master's
+    own link included, needs a person.
     """
 
     def judge(key: str, age_s: float) -> bool:
+        if key == "paused":
+            return False
         if key in ("standby", "drone"):
             return master or not on_map
         if key == "catch-up":
@@ -166,11 +169,14 @@ def drone_judge(link_up_bound_s: float) -> Judge:
     """How the drone judges its waits. A controller's standby stream missing while
     the vehicle is in its range is expected for ``link_up_bound_s`` (the time the
     link has to come up, at least ``LINK_UP_AFTER_S``) and needs a person after;
-    controllers still starting get ``START_BOUND_S``; every other wait (the master
-    holding no Connect stream) needs a person."""
+    controllers still starting get ``START_BOUND_S``; an operator's pause is the
+    operator's own doing (expected); every other wait (the master holding no
+    Connect stream) needs a person."""
     bound = max(link_up_bound_s, LINK_UP_AFTER_S)
 
     def judge(key: str, age_s: float) -> bool:
+        if key == "paused":
+            return False
         if key.startswith("link "):
             return age_s >= bound
         if key == "start":

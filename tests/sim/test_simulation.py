@@ -409,3 +409,25 @@ def test_failsafe_seeds_hold_every_oracle_and_fail_safe() -> None:
         world.run()
         failsafes += len(world.drone.vehicle.failsafes)
     assert failsafes >= 10
+
+
+# Issue 32's operator commands (--operator) in CI.
+OPERATOR_SEEDS = 120
+
+
+def test_operator_seeds_hold_every_oracle_and_the_commands_act() -> None:
+    """An operator's pause then resume or abort, abort, land-now at a drawn moment: exactly
+    once and the replicas' replies hold, nothing reaches the vehicle while paused or after
+    the mission ended (nothing-while-paused, nothing-after-abort), and requests do wait."""
+    options = SimOptions(operator=True)
+    outcomes = []
+    taken: Counter[str] = Counter()
+    waited = 0
+    for seed in range(OPERATOR_SEEDS):
+        world = World(seed, options)
+        outcomes.append(world.run())
+        taken.update(command for _, command, _ in world.drone.vehicle.operator)
+        waited += world.drone.waited
+    assert not any(o.failed for o in outcomes), _failures(outcomes)
+    assert min(taken[c] for c in ("pause", "resume", "abort", "land_now")) >= 3, taken
+    assert waited >= 10

@@ -323,7 +323,11 @@ class ControllerNode:
             )
         if self._in_flight is not None:
             reqnr, method = self._in_flight
-            holding[f"request {reqnr}"] = f"request {reqnr} ({method}) sent, no answer yet"
+            sent = f"request {reqnr} ({method}) sent, no answer yet"
+            if drone is not None and drone.operator_pause:
+                holding["paused"] = f"{sent}: it waits at the drone, {drone.operator_pause}"
+            else:
+                holding[f"request {reqnr}"] = sent
         link = self._peers.get(p.successor)
         if link is not None and not link.stream_up:
             holding["ring"] = (

@@ -36,6 +36,10 @@ The rules it keeps (docs/design.md, "Takeover" and "Exactly once"):
   every replica's program sees the same), until an operator
   resumes. A call beyond a bound of the vehicle (speed, altitude) is refused
   INVALID_ARGUMENT the same way.
+- An operator's commands (``operator.py``, docs/operating.md "Operator commands"):
+  while paused, the master's next request waits at the drone before admission
+  (``holds``); once an abort or a land-now ended the mission, every admitted
+  request is refused before execution and booked, as in failsafe.
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ from dataclasses import dataclass
 import grpc
 
 from baton.drone.dedupe import RETAINED_BATCH_BYTES, CachedReply, retained_batches
+from baton.drone.operator import Operator, OperatorCommand
 from baton.drone.safety import (
     Failsafe,
     SafetyParams,
@@ -104,8 +109,8 @@ class DroneCore:
         self.routes: Mapping[str, Method] = drone_api()
         # When each controller was last seen; absent until it first is.
         self.last_seen: dict[int, float] = {}
-        # Why a ground station's operator paused the mission (drone/gcs.py); "": not paused.
-        self.paused_by = ""
+        # The operator's pause, the end of the mission, every command (operator.py).
+        self.operator = Operator()
         # When each controller last served: held its Connect stream or sent a request.
         self.last_served: dict[int, float] = {}
         # When the first controller was seen since the drone started (the start-up
@@ -232,20 +237,33 @@ class DroneCore:
         """The vehicle is in ``failsafe`` from now: requests are refused until a resume."""
         self.failsafe = failsafe
 
-    def resume_mission(self, now: float) -> Failsafe | None:
-        """An operator gives the mission the vehicle back: the failsafe cleared (returned;
-        None if there was none), the lost-link time counted afresh from ``now``."""
+    def resume_mission(self, now: float) -> tuple[Failsafe | None, OperatorCommand]:
+        """An operator gives the mission the vehicle back (``Operator.resume``: raises
+        StatusError if nothing holds it): the pause and the failsafe cleared (the
+        failsafe returned; None if there was none), the lost-link time counted afresh
+        from ``now``."""
+        taken = self.operator.resume(now, self.seq.last_reqnr, self.failsafe)
         cleared, self.failsafe = self.failsafe, None
         self.last_usable = now
-        return cleared
+        return cleared, taken
+
+    def holds(self, request: drone_pb2.InvokeRequest) -> bool:
+        """Whether ``request`` waits at the drone before admission: the mission is paused
+        and it is the master's next (``Operator.holds``)."""
+        seq = self.seq
+        return self.operator.holds(request.controller_id, request.reqnr, seq.master, seq.last_reqnr)
 
     def refusal(self, method: str, payload: bytes) -> StatusError | None:
-        """Why an admitted request is not executed: the vehicle in failsafe, or a bound of
-        the vehicle it asks beyond; None to execute it. A payload that does not parse
-        is left to the execution, which refuses it."""
+        """Why an admitted request is not executed: the mission ended by an operator, the
+        vehicle in failsafe, or a bound of the vehicle it asks beyond; None to execute
+        it. A payload that does not parse is left to the execution, which refuses it."""
         route = self.routes.get(method)
+        name = route.rpc if route is not None else method
+        ended = self.operator.refusal(name)
+        if ended is not None:
+            return ended
         if self.failsafe is not None:
-            return self.failsafe.refusal(route.rpc if route is not None else method)
+            return self.failsafe.refusal(name)
         if route is None:
             return None
         try:
@@ -285,7 +303,6 @@ class DroneCore:
         preparation, the first request of a new master; then what to keep with it."""
         seq, cid = self.seq, request.controller_id
         self.seen(cid, received_at)
-        self.refuse_if_paused(cid, request.reqnr)
         answers = self.master_answers(request.reqnr, request.master_answers)
         cached = seq.admit(
             cid,
@@ -306,23 +323,6 @@ class DroneCore:
             seq.adopt(cid, request.epoch, request.adopted_from_reqnr, request.reqnr)
         )
         return Admitted(None, kept, first, self.refusal(request.method, request.payload))
-
-    # -- a ground station's override (drone/gcs.py) ----------------------------------
-
-    def pause_by_ground_station(self, reason: str) -> None:
-        """An operator at a ground station took the vehicle over (override allowed): the
-        mission is paused until ``resume_from_ground_station``."""
-        self.paused_by = reason
-
-    def resume_from_ground_station(self) -> None:
-        self.paused_by = ""
-
-    def refuse_if_paused(self, controller_id: int, reqnr: int) -> None:
-        """While paused, the master's next request is refused FAILED_PRECONDITION before it
-        is admitted (its number stays unused, nothing reaches the vehicle); a re-sent one
-        already executed is still answered from the cache."""
-        if self.paused_by and controller_id == self.seq.master and reqnr > self.seq.last_reqnr:
-            raise StatusError(grpc.StatusCode.FAILED_PRECONDITION, self.paused_by)
 
     @staticmethod
     def books(error: StatusError) -> bool:

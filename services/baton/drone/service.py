@@ -26,7 +26,8 @@ from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
 from baton.drone.dispatch import Dispatcher
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
-from baton.drone.mobility_api import MobilityBackend
+from baton.drone.mobility_api import MobilityBackend, command_action
+from baton.drone.operator_service import OperatorCommands, failsafe_proto, fill_status
 from baton.drone.policy import LinkBounds, LinkState, PolicyParams, Station
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.safety import Failsafe, SafetyParams, landing_due, nearest_station
@@ -143,6 +144,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.policy: PolicyRunner | None = None
         # The request a restart cut off (store.py's intent), as found at start.
         self.cut_off: Intent | None = None
+        # Pause, Resume, Abort, LandNow (operator_service.py).
+        self.operator = OperatorCommands(self)
         if store is not None:
             self._restore(store)
 
@@ -187,6 +190,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             holding = drone_conditions(
                 self.seq.master, connected, self.seq.ring, reachable, in_range, self._reached
             )
+            holding.update(self.operator.waiting())
             link_up_s = policy.params.link_up_s / policy.speedup if policy is not None else 0.0
             now = time.monotonic()
             self.waits = self._stalls.update(now, holding, drone_judge(link_up_s))
@@ -273,7 +277,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         and the store first, so a request that comes next is refused whatever the
         vehicle answers, then the action commanded."""
         self.core.enter_failsafe(failsafe)
-        self._save_failsafe()
+        self.save_failsafe()
         self.log.warning(
             "failsafe",
             cause=failsafe.cause,
@@ -288,13 +292,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
 
     async def _command_failsafe(self, failsafe: Failsafe) -> None:
         vehicle = self.vehicle
-        if failsafe.action == "hold":
-            await vehicle.Hold(api.HoldRequest())
-        elif failsafe.action == "land":
-            await vehicle.Land(api.LandRequest())
-        elif failsafe.action == "rtl":
-            await vehicle.ReturnToLaunch(api.ReturnToLaunchRequest())
-        elif failsafe.station is not None:
+        if await command_action(vehicle, failsafe.action):
+            return
+        if failsafe.station is not None:
             here = await latest_position(vehicle)
             at = self.stations[failsafe.station].location
             await vehicle.Goto(
@@ -321,37 +321,31 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                     self._landing_for = None  # tried again at the next look
                     self.log.error("failsafe landing refused by the vehicle", reason=err.message)
 
-    def _save_failsafe(self) -> None:
+    def save_failsafe(self) -> None:
         if self.store is not None:
             self.store.save_failsafe(self.core.failsafe)
+
+    # -- an operator's commands (operator_service.py) --------------------------------
 
     async def Resume(
         self, request: drone_pb2.ResumeRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.ResumeReply:
-        """An operator gives the mission the vehicle back after a failsafe."""
-        try:
-            refusal = refused(
-                context,
-                self.authenticated,
-                "Resume",
-                f"only an operator ({OPERATOR.uri}) may give the mission the vehicle back",
-                lambda who: who == OPERATOR,
-            )
-            if refusal is not None:
-                raise refusal
-            async with self._lock:
-                cleared = self.core.resume_mission(time.time())
-                if cleared is None:
-                    raise StatusError(
-                        grpc.StatusCode.FAILED_PRECONDITION,
-                        "Resume: the vehicle is in no failsafe; the mission has it",
-                    )
-                self._save_failsafe()
-        except StatusError as err:
-            self.log.warning("resume rejected", reason=err.message)
-            await abort_with(context, err)
-        self.log.warning("failsafe cleared by the operator", cause=cleared.cause)
-        return drone_pb2.ResumeReply(cleared=failsafe_proto(cleared))
+        return await self.operator.resume(request, context)
+
+    async def Pause(
+        self, request: drone_pb2.PauseRequest, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.OperatorReply:
+        return await self.operator.pause(request, context)
+
+    async def Abort(
+        self, request: drone_pb2.AbortRequest, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.OperatorReply:
+        return await self.operator.abort(request, context)
+
+    async def LandNow(
+        self, request: drone_pb2.LandNowRequest, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.OperatorReply:
+        return await self.operator.land_now(request, context)
 
     async def watch_links(self) -> None:
         """Every PING_PERIOD_S: pings each controller on its standby stream, and logs
@@ -522,6 +516,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         if failsafe is not None:
             self.core.enter_failsafe(failsafe)
             self.log.warning("still in failsafe", cause=failsafe.cause, reason=failsafe.reason)
+        self.operator.restore()
         counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
         self.core.resume(
             time.time(),
@@ -657,15 +652,23 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         cache, never executed again. A duplicate that arrives meanwhile
         waits for it (the lock) and gets its outcome.
         """
-        task = self._invocations.spawn(self._invoke_to_the_end(request, received_at))
-        task.add_done_callback(_retrieve_exception)
-        return await asyncio.shield(task)
+        while True:
+            await self.operator.wait_resumed(request)  # paused: waits, not admitted
+            task = self._invocations.spawn(self._invoke_to_the_end(request, received_at))
+            task.add_done_callback(_retrieve_exception)
+            reply = await asyncio.shield(task)
+            if reply is not None:
+                return reply
 
     async def _invoke_to_the_end(
         self, request: drone_pb2.InvokeRequest, received_at: float
-    ) -> drone_pb2.InvokeReply:
+    ) -> drone_pb2.InvokeReply | None:
+        """The request under the execution lock, to its end; None when a pause came before
+        it got the lock (it waits again, not admitted)."""
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         async with self._lock:
+            if self.core.holds(request):
+                return None
             digest = request_digest(method, request.payload)
             admitted = self.core.admit(request, digest, received_at)
             first = admitted.first
@@ -738,8 +741,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             raise StatusError(
                 grpc.StatusCode.INTERNAL, f"{request.method} failed on the drone: {exc!r}"
             ) from exc
-        if self.policy is not None and route.service == "Mobility":
-            self.policy.executed(route.name, message)
+        if route.service == "Mobility":
+            self.operator.executed(route.name, request.payload)
+            if self.policy is not None:
+                self.policy.executed(route.name, message)
         if self.store is not None and isinstance(message, api.SetSpeedRequest):
             # Commanded state the vehicle needs again after a restart (store.py).
             self.store.save_commanded(SPEED_KEY, message.speed_m_s)
@@ -884,7 +889,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                         )
                     )
             sent_prepare: drone_pb2.PrepareHandover | None = None
+            said = ""  # the operator's pause as this stream last told it
             while True:
+                word = self.operator.word()
+                if word.paused != said:
+                    yield drone_pb2.DroneEvent(operator=word)
+                    said = word.paused
                 notice = self.core.stream_event(cid, sent_prepare)
                 if isinstance(notice, drone_pb2.PrepareHandover):
                     yield drone_pb2.DroneEvent(prepare=notice)
@@ -1078,6 +1088,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.policy.fill_status(status)
         if self.core.failsafe is not None:
             status.failsafe.CopyFrom(failsafe_proto(self.core.failsafe))
+        fill_status(status, self.operator)
         status.lost_link_s = self.core.safety.lost_link_s
         status.lost_link_action = self.core.safety.lost_link_action
         links, clock = self.link_states(), time.monotonic()
@@ -1115,17 +1126,6 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             status.audit_more = len(page) > limit
             status.audit.extend(page[:limit])
         return status
-
-
-def failsafe_proto(failsafe: Failsafe) -> drone_pb2.Failsafe:
-    """The failsafe as GetStatus and Resume show it."""
-    return drone_pb2.Failsafe(
-        cause=failsafe.cause,
-        action=failsafe.action,
-        since=failsafe.since,
-        reason=failsafe.reason,
-        station=-1 if failsafe.station is None else failsafe.station,
-    )
 
 
 @dataclass(frozen=True)
@@ -1292,7 +1292,7 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         service.policy.restore()
     gcs = getattr(vehicle, "gcs", None)  # ground stations watching (drone/gcs.py)
     if gcs is not None:
-        gcs.on_override = service.core.pause_by_ground_station
+        gcs.on_override = service.operator.ground_station_paused
         gcs.controller = lambda: str(sequencer.master)
     return service
 

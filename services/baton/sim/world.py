@@ -83,6 +83,9 @@ class SimOptions:
     # Issue 32's lost-link failsafe on, and every station cut from the drone at a drawn
     # moment (faults.plan_failsafe).
     failsafe: bool = False
+    # Issue 32's operator commands at drawn moments: pause then resume, pause then
+    # abort, abort, land-now (faults.plan_operator).
+    operator: bool = False
     # Known findings (findings.py) whose scenarios this run lets in.
     allow: frozenset[str] = frozenset()
     mutation: str | None = None
@@ -109,6 +112,8 @@ class SimOptions:
             parts.append("--stall-new-master")
         if self.failsafe:
             parts.append("--failsafe")
+        if self.operator:
+            parts.append("--operator")
         if self.takeover_after is not None:
             parts.append(f"--takeover-after {self.takeover_after:g}")
         if self.allow:

@@ -109,6 +109,10 @@ class Progress:
         vehicle += "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
         if drone.HasField("failsafe"):  # the safety net took the vehicle (docs/operating.md)
             vehicle += f" | FAILSAFE {drone.failsafe.action}: {drone.failsafe.reason}"
+        if drone.HasField("paused"):  # an operator's pause (docs/operating.md)
+            vehicle += f" | PAUSED: {drone.paused.reason}"
+        if drone.HasField("ended"):
+            vehicle += f" | ENDED: {drone.ended.reason}"
         vehicle += waits_line(waits)
         print(
             f"{self._stamp()} "
