@@ -12,7 +12,9 @@ The set of messages and commands is the one that section found sufficient for
 MAVSDK 4.x (heartbeat with the PX4 custom mode, SYS_STATUS, position, home,
 extended state, GPS, battery; arm, takeoff, land, mode, reposition, speed,
 RTL, message requests and intervals; the parameter protocol for
-MIS_TAKEOFF_ALT). Unknown commands get COMMAND_ACK UNSUPPORTED.
+MIS_TAKEOFF_ALT; the mission protocol for fence uploads, ``fence_upload.py``,
+``state().fence`` the fence held and each upload accepted counted as ``fence``).
+Unknown commands get COMMAND_ACK UNSUPPORTED.
 
 It has a gimbal, which it manages itself as an autopilot does: a region of
 interest (``MAV_CMD_DO_SET_ROI_LOCATION``, ``MAV_CMD_DO_SET_ROI`` in location
@@ -72,7 +74,9 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs, signing
+from baton.drone.fence import Fence
 from baton.effects import EffectsFile
+from baton.sim_vehicle.fence_upload import FENCE, Ack, FenceUpload, Request
 from baton.sim_vehicle.kinematics import (
     ArmCheckFailed,
     FlightParams,
@@ -181,6 +185,7 @@ class VehicleState:
     time_s: float
     peers: int
     looking_at: GeoPoint | None = None  # the gimbal's region of interest, if one is set
+    fence: Fence | None = None  # the fence a ground station uploaded (None: none)
 
     def as_fields(self) -> dict[str, Any]:
         """The state as flat log fields."""
@@ -263,6 +268,9 @@ class SimVehicle:
         self._last_reported: tuple[Any, ...] | None = None
         # The gimbal's region of interest (AMSL); None: it looks where the vehicle goes.
         self._roi: GeoPoint | None = None
+        # The fence held (uploaded whole: fence_upload.py) and the upload under way.
+        self._fence: Fence | None = None
+        self._fence_upload = FenceUpload()
         self.port = 0
         self._log = logs.get_logger("sim_vehicle", system_id=system_id)
         # PX4's data-link loss parameters (PX4's defaults: 10 s, no action), when a
@@ -350,6 +358,7 @@ class SimVehicle:
             time_s=k.time_s,
             peers=len(self._sink.peers) if self._sink else 0,
             looking_at=self._roi,
+            fence=self._fence,
         )
 
     # --- the vehicle's thread ------------------------------------------------------
@@ -594,6 +603,8 @@ class SimVehicle:
                 | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
                 | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
                 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
             )
             mav.autopilot_version_send(
                 capabilities, 0x010F0000, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.system_id
@@ -616,6 +627,44 @@ class SimVehicle:
             self._param(msg, kind)
         elif kind == "HEARTBEAT" and msg.type == mavlink.MAV_TYPE_GCS:
             self._gcs_seen_at = time.monotonic()
+        elif kind in ("MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_CLEAR_ALL"):
+            self._mission(msg, kind)
+
+    def _mission(self, msg: Any, kind: str) -> None:
+        """The mission protocol, fence uploads only (fence_upload.py); a mission of another
+        type is refused MAV_MISSION_UNSUPPORTED (baton flies missions call by call)."""
+        assert self._mav is not None
+        to = (msg.get_srcSystem(), msg.get_srcComponent())
+        if msg.mission_type != FENCE:
+            if kind != "MISSION_ITEM_INT":
+                self._mav.mission_ack_send(*to, mavlink.MAV_MISSION_UNSUPPORTED, msg.mission_type)
+            return
+        upload = self._fence_upload
+        if kind == "MISSION_COUNT":
+            step: Request | Ack | None = upload.on_count(msg.count)
+        elif kind == "MISSION_ITEM_INT":
+            step = upload.on_item(msg)
+        else:
+            step = upload.on_clear()
+        if isinstance(step, Request):
+            self._mav.mission_request_int_send(*to, step.seq, FENCE)
+            return
+        if step is None:
+            return
+        if step.fence is not None or step.cleared:
+            self._fence = step.fence
+            fence = step.fence or Fence()
+            self.effects.record(
+                "fence",
+                system_id=self.system_id,
+                polygons=[[list(v) for v in p.vertices] for p in fence.polygons],
+                inclusion=[p.inclusion for p in fence.polygons],
+                circles=len(fence.circles),
+            )
+            self._log.info("fence held", polygons=len(fence.polygons), circles=len(fence.circles))
+        else:
+            self._log.info("fence upload refused", result=step.result)
+        self._mav.mission_ack_send(*to, step.result, FENCE)
 
     def _command(
         self,
