@@ -27,15 +27,15 @@ import grpc
 from google.protobuf.message import Message
 
 from baton.rpc.errors import StatusError
+from baton.sdk.geo import north_east_m
+from baton.sdk.types import Position
 from baton.v1 import drone_api_pb2 as api
-
-EARTH_RADIUS_M = 6_371_000.0
 
 
 def _local(lat0: float, lon0: float, lat: float, lon: float) -> tuple[float, float]:
-    """Metres east and north of (lat0, lon0) on the flat projection around it."""
-    east = math.radians(lon - lon0) * math.cos(math.radians(lat0)) * EARTH_RADIUS_M
-    north = math.radians(lat - lat0) * EARTH_RADIUS_M
+    """Metres east and north of (lat0, lon0) on the flat projection around it (the
+    missions' own, ``baton.sdk.geo``)."""
+    north, east = north_east_m(Position(lat0, lon0), Position(lat, lon))
     return east, north
 
 

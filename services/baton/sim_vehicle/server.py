@@ -156,6 +156,7 @@ PARAM_TAKEOFF_ALT = "MIS_TAKEOFF_ALT"
 # air, NAV_DLL_ACT 2 returns home (0: nothing, PX4's default).
 PARAM_DL_LOSS_T, PARAM_DLL_ACT = "COM_DL_LOSS_T", "NAV_DLL_ACT"
 RETURN_ON_LINK_LOSS = 2
+PARAM_GF_MAX_VER_DIST, PARAM_GF_ACTION = "GF_MAX_VER_DIST", "GF_ACTION"
 # The region-of-interest commands its gimbal obeys.
 ROI_COMMANDS = (
     mavlink.MAV_CMD_DO_SET_ROI_LOCATION,
@@ -277,6 +278,10 @@ class SimVehicle:
         # ground station's HEARTBEAT came last (None: never), and whether the vehicle
         # already returned for this loss.
         self._link_loss: dict[str, float] = {PARAM_DL_LOSS_T: 10.0, PARAM_DLL_ACT: 0.0}
+        # PX4's geofence parameters the drone sets beside a fence upload (safety.py
+        # fence_params; PX4's defaults: no ceiling, warn only), kept and read back: the
+        # drone's own fence check acts on a breach here.
+        self._geofence_params: dict[str, float] = {PARAM_GF_MAX_VER_DIST: 0.0, PARAM_GF_ACTION: 1.0}
         self._gcs_seen_at: float | None = None
         self._link_loss_acted = False
 
@@ -888,6 +893,11 @@ class SimVehicle:
             name = _param_name(msg.param_id)
             if name in self._link_loss:
                 self._link_loss[name] = float(_int_from_bytewise(msg.param_value))
+            elif name == PARAM_GF_ACTION:
+                self._geofence_params[name] = float(_int_from_bytewise(msg.param_value))
+            elif name == PARAM_GF_MAX_VER_DIST:
+                if math.isfinite(msg.param_value) and msg.param_value >= 0:
+                    self._geofence_params[name] = float(msg.param_value)
             elif name != PARAM_TAKEOFF_ALT:
                 return  # PX4 stays silent about unknown parameters
             elif math.isfinite(msg.param_value) and msg.param_value > 0:
@@ -896,23 +906,26 @@ class SimVehicle:
             name = _param_name(msg.param_id)
             if msg.param_index == 0:
                 name = PARAM_TAKEOFF_ALT
-            elif name != PARAM_TAKEOFF_ALT and name not in self._link_loss:
+            elif name not in self._param_names():
                 return
         self._send_param(name)
 
+    def _param_names(self) -> list[str]:
+        """Every parameter it knows, in index order."""
+        return [PARAM_TAKEOFF_ALT, *self._link_loss, *self._geofence_params]
+
     def _send_param(self, name: str = PARAM_TAKEOFF_ALT) -> None:
         assert self._mav is not None
-        if name in self._link_loss:
+        value = self._kinematics.takeoff_altitude_m
+        kind = mavlink.MAV_PARAM_TYPE_REAL32
+        if name in self._link_loss or name == PARAM_GF_ACTION:
             kind = mavlink.MAV_PARAM_TYPE_INT32
-            value = _int_to_bytewise(round(self._link_loss[name]))
-            index = 1 + list(self._link_loss).index(name)
-        else:
-            value, kind, index = (
-                self._kinematics.takeoff_altitude_m,
-                mavlink.MAV_PARAM_TYPE_REAL32,
-                0,
-            )
-        self._mav.param_value_send(name.encode(), value, kind, 1 + len(self._link_loss), index)
+            held = {**self._link_loss, **self._geofence_params}[name]
+            value = _int_to_bytewise(round(held))
+        elif name == PARAM_GF_MAX_VER_DIST:
+            value = self._geofence_params[name]
+        names = self._param_names()
+        self._mav.param_value_send(name.encode(), value, kind, len(names), names.index(name))
 
     def _watch_link_loss(self, now: float) -> None:
         """PX4's data-link loss failsafe (COM_DL_LOSS_T, NAV_DLL_ACT): in the air with no
