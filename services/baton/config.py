@@ -29,10 +29,10 @@ from pydantic import (
     model_validator,
 )
 
-from baton.drone.fence import Fence, FenceCircle, FencePolygon, open_ring
-from baton.drone.fence import polygon_problem as fence_polygon_problem
 from baton.drone.policy import LinkBounds, PolicyParams
 from baton.rpc.tls import Identity, Tls
+from baton.sdk.fence import Fence, FenceCircle, FencePolygon, open_ring
+from baton.sdk.fence import polygon_problem as fence_polygon_problem
 
 _SIZE_UNITS = {
     "": 1,

@@ -1,10 +1,13 @@
-"""The mission's geofence as a pure rule (drone/fence.py): inside and outside, on the
+"""The mission's geofence as a pure rule (sdk/fence.py, drone/fence.py): inside and outside, on the
 edge, exclusion zones, the ceiling, the refusal of a Goto out of it, a breach, a fence
 that cannot be flown, and the core's refusal path and failsafe (issue 32, item 3)."""
 
 from __future__ import annotations
 
+import json
 import math
+from collections.abc import Mapping
+from pathlib import Path
 
 import grpc
 import pytest
@@ -12,18 +15,14 @@ import pytest
 from baton.config import ConfigError, parse_config
 from baton.digest import request_digest
 from baton.drone.core import DroneCore
-from baton.drone.fence import (
-    Fence,
-    FenceCircle,
-    FencePolygon,
-    breach,
-    move_refusal,
-    outside_points,
-    polygon_problem,
-)
+from baton.drone.fence import breach, move_refusal
 from baton.drone.safety import SafetyParams, fence_params
 from baton.drone.sequencer import Sequencer
+from baton.missions.plan import PlanError, load_plan
+from baton.sdk.fence import Fence, FenceCircle, FencePolygon, outside_points, polygon_problem
 from baton.sim_vehicle.fence_upload import Ack, FenceUpload, Request
+from baton.testbed.local import local_config
+from baton.testbed.plan_fence import with_plan_fence
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -276,3 +275,55 @@ def test_the_sim_vehicle_takes_a_fence_upload_item_by_item() -> None:
     upload.on_item(items[0])
     assert upload.on_item(items[1]) == Ack(mavlink.MAV_MISSION_INVALID_PARAM1)
     assert upload.on_clear() == Ack(mavlink.MAV_MISSION_ACCEPTED, cleared=True)
+
+
+def write_plan(tmp_path: Path, waypoint: tuple[float, float], fence: Mapping[str, object]) -> Path:
+    """A .plan: a takeoff and one waypoint (above home), with ``fence`` as its geoFence."""
+
+    def item(command: int, lat: float, lon: float) -> dict[str, object]:
+        return {
+            "type": "SimpleItem",
+            "command": command,
+            "frame": 3,
+            "params": [0, 0, 0, None, lat, lon, 10],
+        }
+
+    document = {
+        "fileType": "Plan",
+        "mission": {"items": [item(22, *HOME), item(16, *waypoint)]},
+        "geoFence": {"version": 2, **fence},
+    }
+    path = tmp_path / "fenced.plan"
+    path.write_text(json.dumps(document))
+    return path
+
+
+def test_a_plan_flies_in_its_geofence_and_a_waypoint_outside_refuses_the_run(
+    tmp_path: Path,
+) -> None:
+    circle = {"circles": [{"circle": {"center": list(HOME), "radius": 150}, "inclusion": True}]}
+    inside = write_plan(tmp_path, (HOME[0] + 0.001, HOME[1]), circle)
+    config = with_plan_fence(local_config(2), inside)
+    assert config.safety.fence is not None
+    fence = config.safety.fence.fence()
+    assert fence.circles == (FenceCircle(*HOME, 150.0),)
+    assert fence.ceiling_m == config.safety.max_altitude
+    outside = write_plan(tmp_path, (HOME[0] + 0.002, HOME[1]), circle)  # 222 m north
+    with pytest.raises(ValueError) as refused:
+        with_plan_fence(local_config(2), outside)
+    assert str(refused.value) == (
+        f"plan {outside}: 1 waypoint(s) outside the plan's geoFence: item 1 (47.3997420, "
+        "8.5455940) is outside the inclusion circle of 150 m around (47.3977420, "
+        "8.5455940). Nothing was flown: move the waypoints inside the fence, or redraw the "
+        "fence"
+    )
+
+
+def test_a_plan_whose_fence_polygon_crosses_itself_is_refused(tmp_path: Path) -> None:
+    bowtie = [list(SQUARE[i]) for i in (0, 2, 1, 3)]
+    path = write_plan(tmp_path, HOME, {"polygons": [{"polygon": bowtie, "inclusion": True}]})
+    with pytest.raises(PlanError) as refused:
+        load_plan(str(path))
+    assert "geoFence polygon 0: edges 0-1 and 2-3 cross: the polygon intersects itself" in str(
+        refused.value
+    )

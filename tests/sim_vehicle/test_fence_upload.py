@@ -12,11 +12,11 @@ import grpc
 import pytest
 from waiting import eventually
 
-from baton.drone.fence import Fence, FenceCircle, FencePolygon
 from baton.drone.mobility import MavsdkMobility
 from baton.effects import EffectsFile, read_effects
 from baton.rpc.errors import StatusError
 from baton.sdk import Position, offset
+from baton.sdk.fence import Fence, FenceCircle, FencePolygon
 from baton.sim_vehicle.fence_upload import MAX_ITEMS
 from baton.sim_vehicle.kinematics import GeoPoint
 from baton.sim_vehicle.server import SimVehicle

@@ -44,7 +44,6 @@ import grpc
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs
-from baton.drone.fence import Fence
 from baton.drone.gcs import GcsLink
 from baton.drone.mavlink_relay import MavlinkRelay
 from baton.drone.safety import AutopilotParam, fence_params, gcs_failsafe_params
@@ -60,6 +59,7 @@ from baton.drone.vehicle_state import (
     readiness,
 )
 from baton.rpc.errors import StatusError
+from baton.sdk.fence import Fence
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 

@@ -16,9 +16,10 @@ from dataclasses import dataclass
 import grpc
 from google.protobuf.message import Message
 
-from baton.drone.fence import Fence, breach
+from baton.drone.fence import breach
 from baton.drone.policy import Fix, Station, distance_m
 from baton.rpc.errors import StatusError
+from baton.sdk.fence import Fence
 from baton.sdk.types import Position
 from baton.v1 import drone_api_pb2 as api
 

@@ -25,7 +25,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from baton.drone.fence import Fence, FenceCircle, FencePolygon
+from baton.sdk.fence import Fence, FenceCircle, FencePolygon
 
 FENCE = mavlink.MAV_MISSION_TYPE_FENCE
 VERTEX = {

@@ -74,8 +74,8 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs, signing
-from baton.drone.fence import Fence
 from baton.effects import EffectsFile
+from baton.sdk.fence import Fence
 from baton.sim_vehicle.fence_upload import FENCE, Ack, FenceUpload, Request
 from baton.sim_vehicle.kinematics import (
     ArmCheckFailed,

@@ -10,8 +10,8 @@ from pathlib import Path
 from typing import Any
 
 from baton.config import BatonConfig
-from baton.drone.fence import outside_points
 from baton.missions.plan import AMSL_FRAMES, Plan, load_plan
+from baton.sdk.fence import outside_points
 
 
 def plan_fence_document(plan: Plan, config: BatonConfig) -> dict[str, Any] | None:
