@@ -129,8 +129,8 @@ def test_a_breach_puts_the_vehicle_in_the_fence_s_failsafe_once_per_breach() -> 
     due = core.fence_due(2.0, out, True)
     assert due is not None and (due.cause, due.action) == ("fence", "land")
     assert (
-        due.reason
-        == "fence breach: the vehicle is outside the inclusion polygon of 4 vertices: land"
+        due.reason == "fence breach: the vehicle at (47.4100000, 8.5450000, 10.0 m) is outside the "
+        "inclusion polygon of 4 vertices: land"
     )
     assert core.fence_due(2.0, out, True) == due  # asked twice (the lock's re-check): same
     core.enter_failsafe(due)

@@ -107,8 +107,12 @@ def fence_failsafe(now: float, position: api.Position, fence: Fence | None) -> F
     why = breach(fence, position)
     if fence is None or why is None:
         return None
+    at = (
+        f"({position.latitude_deg:.7f}, {position.longitude_deg:.7f}, "
+        f"{position.relative_altitude_m:.1f} m)"
+    )
     return Failsafe(
-        "fence", fence.action, now, f"fence breach: the vehicle is {why}: {fence.action}"
+        "fence", fence.action, now, f"fence breach: the vehicle at {at} is {why}: {fence.action}"
     )
 
 
