@@ -112,3 +112,45 @@ async def test_an_arm_is_refused_when_the_vehicle_does_not_take_the_fence(
     finally:
         await mobility.close()
         vehicle.stop()
+
+
+async def test_the_vehicle_out_of_its_fence_returns_by_itself(tmp_path: Path) -> None:
+    """The drone's backend sets GF_ACTION 3 (Return) beside the upload; flown out of the
+    fence (a Goto straight to the backend, past the drone's own check), the sim vehicle
+    returns by itself, as PX4 does: the autopilot's net under the drone's."""
+    fence = Fence((square(100.0),), ceiling_m=60.0)
+    effects = tmp_path / "effects.jsonl"
+    vehicle = sim_vehicle(effects)
+    mobility = MavsdkMobility(vehicle.url, fence=fence)
+    await mobility.start()
+    try:
+        await eventually(lambda: vehicle.state().fence_action == 3, "GF_ACTION set", 20)
+
+        async def ready() -> bool:
+            if not mobility.connected:
+                return False
+            return (await mobility.GetFlightState(api.GetFlightStateRequest())).ready
+
+        await eventually(ready, "vehicle ready", 20)
+        await mobility.SetSpeed(api.SetSpeedRequest(speed_m_s=15.0))
+        await mobility.Arm(api.ArmRequest())
+        await mobility.Takeoff(api.TakeoffRequest(altitude_m=5.0))
+        await eventually(lambda: vehicle.state().relative_altitude_m > 4.0, "5 m up", 20)
+        out = offset(HOME, 300.0, 0.0)
+        await mobility.Goto(
+            api.GotoRequest(
+                latitude_deg=out.latitude_deg,
+                longitude_deg=out.longitude_deg,
+                relative_altitude_m=5,
+            )
+        )
+
+        def acted() -> list[dict[str, object]]:
+            return [e for e in read_effects(effects) if e["effect"] == "fence_breach"]
+
+        await eventually(acted, "the vehicle acting on its fence", 30)
+        assert [e["action"] for e in acted()] == [3]
+        assert vehicle.state().phase == "return"
+    finally:
+        await mobility.close()
+        vehicle.stop()

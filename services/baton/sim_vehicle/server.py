@@ -12,8 +12,10 @@ The set of messages and commands is the one that section found sufficient for
 MAVSDK 4.x (heartbeat with the PX4 custom mode, SYS_STATUS, position, home,
 extended state, GPS, battery; arm, takeoff, land, mode, reposition, speed,
 RTL, message requests and intervals; the parameter protocol for
-MIS_TAKEOFF_ALT; the mission protocol for fence uploads, ``fence_upload.py``,
-``state().fence`` the fence held and each upload accepted counted as ``fence``).
+MIS_TAKEOFF_ALT and PX4's link-loss and geofence parameters; the mission protocol
+for fence uploads, ``fence_upload.py``, ``state().fence`` the fence held and each
+upload accepted counted as ``fence``, a breach acted on as GF_ACTION says and counted
+as ``fence_breach``).
 Unknown commands get COMMAND_ACK UNSUPPORTED.
 
 It has a gimbal, which it manages itself as an autopilot does: a region of
@@ -68,7 +70,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -157,6 +159,7 @@ PARAM_TAKEOFF_ALT = "MIS_TAKEOFF_ALT"
 PARAM_DL_LOSS_T, PARAM_DLL_ACT = "COM_DL_LOSS_T", "NAV_DLL_ACT"
 RETURN_ON_LINK_LOSS = 2
 PARAM_GF_MAX_VER_DIST, PARAM_GF_ACTION = "GF_MAX_VER_DIST", "GF_ACTION"
+GF_RETURN, GF_LAND = 3, 5  # GF_ACTION values it acts on (PX4's; 1, a warning, is its default)
 # The region-of-interest commands its gimbal obeys.
 ROI_COMMANDS = (
     mavlink.MAV_CMD_DO_SET_ROI_LOCATION,
@@ -187,6 +190,7 @@ class VehicleState:
     peers: int
     looking_at: GeoPoint | None = None  # the gimbal's region of interest, if one is set
     fence: Fence | None = None  # the fence a ground station uploaded (None: none)
+    fence_action: int = 1  # GF_ACTION: what it does out of the fence (1: warn only)
 
     def as_fields(self) -> dict[str, Any]:
         """The state as flat log fields."""
@@ -279,11 +283,12 @@ class SimVehicle:
         # already returned for this loss.
         self._link_loss: dict[str, float] = {PARAM_DL_LOSS_T: 10.0, PARAM_DLL_ACT: 0.0}
         # PX4's geofence parameters the drone sets beside a fence upload (safety.py
-        # fence_params; PX4's defaults: no ceiling, warn only), kept and read back: the
-        # drone's own fence check acts on a breach here.
+        # fence_params; PX4's defaults: no ceiling, warn only), and whether the vehicle
+        # already acted on this breach.
         self._geofence_params: dict[str, float] = {PARAM_GF_MAX_VER_DIST: 0.0, PARAM_GF_ACTION: 1.0}
         self._gcs_seen_at: float | None = None
         self._link_loss_acted = False
+        self._fence_acted = False
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -364,6 +369,7 @@ class SimVehicle:
             peers=len(self._sink.peers) if self._sink else 0,
             looking_at=self._roi,
             fence=self._fence,
+            fence_action=round(self._geofence_params[PARAM_GF_ACTION]),
         )
 
     # --- the vehicle's thread ------------------------------------------------------
@@ -397,6 +403,7 @@ class SimVehicle:
                 with self._lock:
                     self._kinematics.step((now - last) * self.speedup)
                     self._watch_link_loss(now)
+                    self._watch_fence()
                     last = now
                     self._send_due(now)
                     self._report_if_changed()
@@ -942,6 +949,28 @@ class SimVehicle:
             k.return_to_launch()
             self.effects.record("link_loss_return", system_id=self.system_id)
             self._log.warning("ground station lost: returning (NAV_DLL_ACT)")
+
+    def _watch_fence(self) -> None:
+        """PX4's geofence action (GF_ACTION, GF_MAX_VER_DIST over the uploaded fence): in
+        the air and out of the fence, Return (3) or Land (5), once per breach; the drone
+        service acts on the same breach from its telemetry, this is the vehicle's own."""
+        k, fence = self._kinematics, self._fence
+        action = round(self._geofence_params[PARAM_GF_ACTION])
+        if fence is None or action not in (GF_RETURN, GF_LAND) or not k.in_air:
+            return
+        here = k.geo_position()
+        ceiling = self._geofence_params[PARAM_GF_MAX_VER_DIST] or math.inf
+        bounded = replace(fence, ceiling_m=ceiling)
+        if bounded.outside(here.latitude_deg, here.longitude_deg, k.relative_altitude_m) is None:
+            self._fence_acted = False
+        elif not self._fence_acted and k.phase not in (Phase.RETURN, Phase.LAND):
+            self._fence_acted = True
+            if action == GF_RETURN:
+                k.return_to_launch()
+            else:
+                k.land()
+            self.effects.record("fence_breach", system_id=self.system_id, action=action)
+            self._log.warning("out of the fence: acting (GF_ACTION)", action=action)
 
 
 def _receive_stamped(sock: socket.socket) -> tuple[bytes, tuple[str, int], float]:
