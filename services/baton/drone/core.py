@@ -35,7 +35,9 @@ The rules it keeps (docs/design.md, "Takeover" and "Exactly once"):
   (FAILED_PRECONDITION, booked: the master logs it as the call's outcome, so
   every replica's program sees the same), until an operator
   resumes. A call beyond a bound of the vehicle (speed, altitude) is refused
-  INVALID_ARGUMENT the same way.
+  INVALID_ARGUMENT the same way, and one that would move the vehicle out of the
+  mission's fence (``fence.py``) OUT_OF_RANGE; the vehicle found out of the fence
+  is put in the fence's failsafe, once each time it leaves.
 - An operator's commands (``operator.py``, docs/operating.md "Operator commands"):
   while paused, the master's next request waits at the drone before admission
   (``holds``); once an abort or a land-now ended the mission, every admitted
@@ -50,11 +52,13 @@ from dataclasses import dataclass
 import grpc
 
 from baton.drone.dedupe import RETAINED_BATCH_BYTES, CachedReply, retained_batches
+from baton.drone.fence import move_refusal
 from baton.drone.operator import Operator, OperatorCommand
 from baton.drone.safety import (
     Failsafe,
     SafetyParams,
     battery_failsafe,
+    fence_failsafe,
     limit_refusal,
     lost_link_failsafe,
 )
@@ -62,6 +66,7 @@ from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.methods import Method, drone_api
+from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
 # A drone restarted mid-mission counts its master as seen this long after the
@@ -104,6 +109,8 @@ class DroneCore:
         # controller was last there (None: not looked yet).
         self.failsafe: Failsafe | None = None
         self.last_usable: float | None = None
+        # Whether the vehicle was out of the fence at the last look (a breach acts once).
+        self.out_of_fence = False
         # The master is lost after this long unseen; 0: never (only an operator's takeover).
         self.takeover_after_s = takeover_after_s
         self.routes: Mapping[str, Method] = drone_api()
@@ -233,9 +240,22 @@ class DroneCore:
             return None
         return battery_failsafe(now, percent, self.safety, nearest)
 
+    def fence_due(self, now: float, position: api.Position, airborne: bool) -> Failsafe | None:
+        """The fence failsafe due now (``safety.fence_failsafe``), or None: none on the
+        ground or while in a failsafe already, and once per breach: a vehicle still out
+        after an operator's resume is not put back in failsafe until it was inside."""
+        due = fence_failsafe(now, position, self.safety.fence) if airborne else None
+        if due is None and (position.latitude_deg or position.longitude_deg):
+            self.out_of_fence = False
+        if self.failsafe is not None or self.out_of_fence:
+            return None
+        return due
+
     def enter_failsafe(self, failsafe: Failsafe) -> None:
         """The vehicle is in ``failsafe`` from now: requests are refused until a resume."""
         self.failsafe = failsafe
+        if failsafe.cause == "fence":
+            self.out_of_fence = True
 
     def resume_mission(self, now: float) -> tuple[Failsafe | None, OperatorCommand]:
         """An operator gives the mission the vehicle back (``Operator.resume``: raises
@@ -255,8 +275,9 @@ class DroneCore:
 
     def refusal(self, method: str, payload: bytes) -> StatusError | None:
         """Why an admitted request is not executed: the mission ended by an operator, the
-        vehicle in failsafe, or a bound of the vehicle it asks beyond; None to execute
-        it. A payload that does not parse is left to the execution, which refuses it."""
+        vehicle in failsafe, a bound of the vehicle it asks beyond, or a move out of the
+        fence; None to execute it. A payload that does not parse is left to the
+        execution, which refuses it."""
         route = self.routes.get(method)
         name = route.rpc if route is not None else method
         ended = self.operator.refusal(name)
@@ -270,7 +291,9 @@ class DroneCore:
             message = route.parse(payload)
         except StatusError:
             return None
-        return limit_refusal(route.rpc, message, self.safety)
+        return limit_refusal(route.rpc, message, self.safety) or move_refusal(
+            route.rpc, message, self.safety.fence
+        )
 
     # -- requests --------------------------------------------------------------------
 

@@ -258,14 +258,18 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             return None
 
     def _failsafe_due(self, state: api.GetFlightStateReply, here: api.Position) -> Failsafe | None:
-        """``DroneCore.battery_due``, else ``failsafe_due`` (the lost link), with the
-        battery and whether the vehicle is in the air (``state``), who holds a stream
-        now, who is in range, and the station nearest the vehicle (``here``)."""
+        """``DroneCore.battery_due``, else ``fence_due``, else ``failsafe_due`` (the lost
+        link), with the battery and whether the vehicle is in the air (``state``), who
+        holds a stream now, who is in range, and where the vehicle is (``here``: the
+        fence, the station nearest it)."""
         now, airborne = time.time(), state.in_air
         nearest = nearest_station(here, self.stations)
         battery = self.core.battery_due(now, state.battery_percent, airborne, nearest)
         if battery is not None:
             return battery
+        breach = self.core.fence_due(now, here, airborne)
+        if breach is not None:
+            return breach
         if self.core.failsafe is not None:
             return None
         in_range = self.policy.in_range() if self.policy is not None else None
@@ -1227,6 +1231,7 @@ def safety_params(config: BatonConfig) -> SafetyParams:
         max_altitude_m=safety.max_altitude,
         battery_reserve_pct=safety.battery_reserve,
         battery_action=safety.battery_action,
+        fence=safety.fence.fence() if safety.fence is not None else None,
     )
 
 
