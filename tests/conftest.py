@@ -17,6 +17,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from autopilots import SKIP_REASON, Sitl, sitl_binary
 
+from baton.drone.invariants import CHECK_ENV
 from baton.testbed.local import FREE_PORTS_ENV, free_port_range
 
 
@@ -35,6 +36,9 @@ def pytest_configure(config: pytest.Config) -> None:
     testbed it starts (``baton testbed`` inherits the variable), draws its testbeds'
     ports from its own share of free_port's range, so two workers never pick one port.
     ``--vehicle-url`` (one autopilot to fly) needs one process."""
+    # The parts the tests start check their invariants as they run (a broken one stops
+    # the part: baton.drone.invariants).
+    os.environ.setdefault(CHECK_ENV, "1")
     if config.getoption("--vehicle-url") and config.getoption("numprocesses", None):
         raise pytest.UsageError(
             "--vehicle-url flies one autopilot: run the tests in one process "

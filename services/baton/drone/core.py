@@ -53,6 +53,7 @@ import grpc
 
 from baton.drone.dedupe import RETAINED_BATCH_BYTES, CachedReply, retained_batches
 from baton.drone.fence import move_refusal
+from baton.drone.invariants import DroneWatch, InvariantBroken
 from baton.drone.operator import Operator, OperatorCommand
 from baton.drone.safety import (
     Failsafe,
@@ -101,10 +102,16 @@ class DroneCore:
     """The drone's whole decision state: the ``Sequencer`` and the sightings of controllers."""
 
     def __init__(
-        self, seq: Sequencer, takeover_after_s: float = 0.0, safety: SafetyParams | None = None
+        self,
+        seq: Sequencer,
+        takeover_after_s: float = 0.0,
+        safety: SafetyParams | None = None,
+        watch: DroneWatch | None = None,
     ) -> None:
         self.seq = seq
         self.safety = safety or SafetyParams()
+        # The invariants checked at every admitted request (None: not checked).
+        self.watch = watch
         # The failsafe the vehicle is in (None: the mission has it), and when a usable
         # controller was last there (None: not looked yet).
         self.failsafe: Failsafe | None = None
@@ -337,6 +344,8 @@ class DroneCore:
             answers,
         )
         self.last_served[cid] = received_at  # admitted: from the master, in its epoch
+        if self.watch is not None:
+            self._check(cid, request.epoch, request.reqnr)
         if request.HasField("preparation"):
             seq.note_progress(cid, request.epoch, request.preparation)
         first = seq.note_request(cid, received_at)
@@ -346,6 +355,16 @@ class DroneCore:
             seq.adopt(cid, request.epoch, request.adopted_from_reqnr, request.reqnr)
         )
         return Admitted(None, kept, first, self.refusal(request.method, request.payload))
+
+    def _check(self, cid: int, epoch: int, reqnr: int) -> None:
+        """The drone's invariants after an admission (``invariants.DroneWatch``)."""
+        assert self.watch is not None
+        seq = self.seq
+        problem = self.watch.accepted(epoch, cid, reqnr) or self.watch.moved(
+            seq.epoch, seq.last_reqnr, seq.cache.watermark
+        )
+        if problem is not None:
+            raise InvariantBroken(problem)
 
     @staticmethod
     def books(error: StatusError) -> bool:

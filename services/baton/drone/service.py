@@ -10,6 +10,7 @@ the master that was master when it was executed.
 from __future__ import annotations
 
 import asyncio
+import os
 import sys
 import time
 from collections.abc import AsyncIterator, Callable, Mapping
@@ -24,6 +25,7 @@ from baton.drone.camera import DEFAULT_RESOLUTION, Camera
 from baton.drone.core import RESTART_GRACE_S, DroneCore
 from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
 from baton.drone.dispatch import Dispatcher
+from baton.drone.invariants import INVARIANT_EXIT, DroneWatch, InvariantBroken, checking
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend, command_action
@@ -113,7 +115,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.camera = camera
         # The master is lost after takeover_after_s (wall seconds) without a
         # stream or a request; 0: never (only an operator's takeover).
-        self.core = DroneCore(sequencer, takeover_after_s, safety)
+        watch = DroneWatch() if checking() else None  # BATON_CHECK_INVARIANTS=1
+        self.core = DroneCore(sequencer, takeover_after_s, safety, watch)
         # Every controller's station: the landing points of nearest_station.
         self.stations: Mapping[int, Station] = stations or {}
         # The nearest_station failsafe whose landing was commanded (at most once).
@@ -674,7 +677,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             if self.core.holds(request):
                 return None
             digest = request_digest(method, request.payload)
-            admitted = self.core.admit(request, digest, received_at)
+            try:
+                admitted = self.core.admit(request, digest, received_at)
+            except InvariantBroken as broken:
+                # A defect of baton: stop as a kill -9 would, rather than fly on.
+                self.log.error("invariant broken; the drone service stops", problem=str(broken))
+                os._exit(INVARIANT_EXIT)
             first = admitted.first
             if first is not None:
                 self.log.info(

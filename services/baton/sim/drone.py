@@ -39,6 +39,7 @@ import grpc
 from baton.digest import request_digest
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import CachedReply
+from baton.drone.invariants import DroneWatch
 from baton.drone.policy import Decision
 from baton.drone.safety import Failsafe
 from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
@@ -249,7 +250,7 @@ class Stream:
 class DroneStats:
     """What the oracles and the report read besides the ground truth."""
 
-    epoch_owner: dict[int, int] = field(default_factory=dict)
+    epochs: DroneWatch = field(default_factory=DroneWatch)
     epoch_conflicts: list[str] = field(default_factory=list)
     cut_off: list[Intent] = field(default_factory=list)
     restarts: int = 0
@@ -541,13 +542,11 @@ class SimDrone:
         )
 
     def _note_epoch(self, cid: int, epoch: int, reqnr: int) -> None:
-        """Oracle 4's record: which controller the drone accepted requests from in each epoch."""
-        owner = self.stats.epoch_owner.setdefault(epoch, cid)
-        if owner != cid:
-            self.stats.epoch_conflicts.append(
-                f"epoch {epoch}: requests of controller {owner} and of controller {cid} "
-                f"(reqnr {reqnr}) accepted"
-            )
+        """Oracle 4's record: which controller the drone accepted requests from in each
+        epoch (``DroneWatch.accepted``, the check a running drone makes too)."""
+        problem = self.stats.epochs.accepted(epoch, cid, reqnr)
+        if problem is not None:
+            self.stats.epoch_conflicts.append(problem)
 
     # -- callers that go away ----------------------------------------------------
 

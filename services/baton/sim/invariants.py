@@ -74,11 +74,12 @@ The invariants (docs/simulation.md, "Invariants"):
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from baton.controller.core import CoreEffect
 from baton.controller.protocol import SendLog, State
+from baton.drone.invariants import DroneWatch
 from baton.sim.oracles import Violation, _observed
 from baton.v1 import drone_pb2
 
@@ -102,9 +103,7 @@ INVARIANTS = (
 class Before:
     """What the checker remembers of the drone between events."""
 
-    epoch: int = 0
-    last_reqnr: int = 0
-    watermark: int = 0
+    watch: DroneWatch = field(default_factory=DroneWatch)
     conflicts: int = 0
     acted: int = 0
 
@@ -140,19 +139,10 @@ def epoch_granted(world: World, live: list[SimController]) -> str | None:
 
 
 def drone_never_moves_back(world: World, before: Before) -> str | None:
-    """The drone's epoch, last reqnr and watermark never decrease; watermark <= last reqnr."""
+    """The drone's epoch, last reqnr and watermark never decrease; watermark <= last reqnr
+    (``DroneWatch.moved``, the check a running drone makes too)."""
     seq = world.drone.seq
-    now = (seq.epoch, seq.last_reqnr, seq.cache.watermark)
-    was = (before.epoch, before.last_reqnr, before.watermark)
-    before.epoch, before.last_reqnr, before.watermark = now
-    for name, old, new in zip(("epoch", "last reqnr", "watermark"), was, now, strict=True):
-        if new < old:
-            return f"the drone's {name} went back from {old} to {new}"
-    if seq.cache.watermark > seq.last_reqnr:
-        return (
-            f"the drone's watermark {seq.cache.watermark} is past its last reqnr {seq.last_reqnr}"
-        )
-    return None
+    return before.watch.moved(seq.epoch, seq.last_reqnr, seq.cache.watermark)
 
 
 def master_holds_the_ring_log(world: World) -> str | None:
