@@ -418,3 +418,35 @@ def test_predictive_back_and_forth_over_the_overlap_hands_over_once_per_crossing
             now += 1.0
     events, master = run(PREDICTIVE, placed, track)
     assert [d.target for _, d in events] == [1] and master == 1
+
+
+def test_a_handover_decision_under_the_lock_does_what_the_master_can() -> None:
+    """``handover_step``: the one rule the drone's policy runner and the simulation's
+    carry out once they hold the execution lock."""
+    from baton.drone.policy import (
+        ALREADY_PREPARING,
+        HANDOVER,
+        HOLD,
+        MOVED,
+        PREPARE,
+        STAY,
+        SWITCH,
+        Decision,
+        handover_step,
+        hold_due,
+        resume_due,
+    )
+
+    to_2 = Decision(HANDOVER, "range runs out", target=2)
+    assert handover_step(to_2, 1, 3, True, None) == MOVED
+    assert handover_step(to_2, 1, 1, False, None) == SWITCH  # no Connect stream to prepare on
+    taking = Decision(HANDOVER, "master lost", target=2, takeover=True)
+    assert handover_step(taking, 1, 1, True, None) == SWITCH
+    assert handover_step(to_2, 1, 1, True, 2) == ALREADY_PREPARING
+    assert handover_step(to_2, 1, 1, True, 3) == PREPARE
+    hold = Decision(HOLD, "none usable")
+    assert hold_due(hold, holding=False) and not hold_due(hold, holding=True)
+    assert hold_due(hold, holding=True, unsure=True)  # a restarted drone commands it again
+    assert resume_due(Decision(STAY, "ok"), holding=True)
+    assert not resume_due(Decision(STAY, "ok"), holding=False)
+    assert not resume_due(hold, holding=True)

@@ -497,3 +497,43 @@ def _predictive(
         ),
         PolicyState(),
     )
+
+
+# What a handover decision does under the execution lock (``handover_step``).
+MOVED = "moved meanwhile"  # the master changed since the decision: nothing
+SWITCH = "at once"  # a takeover, or a master that cannot prepare: switched now
+ALREADY_PREPARING = "already preparing"  # a preparation for the target is under way
+PREPARE = "prepare"  # a prepared handover begins
+
+
+def handover_step(
+    decision: Decision,
+    decided_for: int,
+    master: int,
+    can_prepare: bool,
+    preparing_for: int | None,
+) -> str:
+    """What a ``handover`` decision taken for master ``decided_for`` does once the runner
+    holds the execution lock, where ``master`` is master now: nothing if the master
+    moved meanwhile; at once for a takeover or a master that cannot prepare (it holds
+    no Connect stream to hear the PrepareHandover); nothing if it already prepares one
+    for the target; else a prepared handover."""
+    if master != decided_for:
+        return MOVED
+    if decision.takeover or not can_prepare:
+        return SWITCH
+    if preparing_for == decision.target:
+        return ALREADY_PREPARING
+    return PREPARE
+
+
+def hold_due(decision: Decision, holding: bool, unsure: bool = False) -> bool:
+    """Whether the runner commands the vehicle to hold: the decision says ``hold`` and it
+    does not hold it already (or does not know whether the autopilot still holds: a
+    restarted drone)."""
+    return decision.action == HOLD and (not holding or unsure)
+
+
+def resume_due(decision: Decision, holding: bool) -> bool:
+    """Whether a hold ends: a decision other than ``hold`` that waits for nothing."""
+    return holding and decision.action != HOLD and not decision.waiting

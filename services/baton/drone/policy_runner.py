@@ -54,7 +54,8 @@ from google.protobuf.message import Message
 from baton.drone.policy import (
     ENDS_A_LEG,
     HANDOVER,
-    HOLD,
+    PREPARE,
+    SWITCH,
     Decision,
     Fix,
     PolicyParams,
@@ -62,6 +63,9 @@ from baton.drone.policy import (
     Station,
     decide,
     distance_m,
+    handover_step,
+    hold_due,
+    resume_due,
 )
 from baton.drone.store import PolicyMemory
 from baton.logs import get_logger
@@ -231,9 +235,14 @@ class PolicyRunner:
             assert decision.target is not None
             async with service.execution_lock:
                 preparing = service.seq.preparing
-                if service.seq.master != master:
-                    pass  # moved meanwhile
-                elif decision.takeover or not service.can_prepare(decision.target):
+                step = handover_step(
+                    decision,
+                    master,
+                    service.seq.master,
+                    service.can_prepare(decision.target),
+                    None if preparing is None else preparing.target,
+                )
+                if step == SWITCH:
                     service.hand_over(
                         decision.target,
                         drone_pb2.HANDOVER_TRIGGER_POLICY,
@@ -241,16 +250,16 @@ class PolicyRunner:
                         decision.reason,
                         position,
                     )
-                elif preparing is None or preparing.target != decision.target:
+                elif step == PREPARE:
                     service.prepare_handover(
                         decision.target,
                         drone_pb2.HANDOVER_TRIGGER_POLICY,
                         decision.reason,
                         position,
                     )
-        elif decision.action == HOLD and (not self.holding or self._unsure):
+        elif hold_due(decision, self.holding, self._unsure):
             await self._hold(decision)
-        if decision.action != HOLD and not decision.waiting and self.holding:
+        if resume_due(decision, self.holding):
             await self._resume(master)
         return decision
 

@@ -40,7 +40,7 @@ from baton.digest import request_digest
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import CachedReply
 from baton.drone.invariants import DroneWatch
-from baton.drone.policy import Decision
+from baton.drone.policy import PREPARE, SWITCH, Decision, handover_step
 from baton.drone.safety import Failsafe
 from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
 from baton.drone.service import TAKEOVER_TICK_S
@@ -621,15 +621,19 @@ class SimDrone:
         assert target is not None
         preparing = seq.preparing
         try:
-            if seq.master != master:
-                return "moved meanwhile"
-            if decision.takeover or not self._can_prepare(target):
+            step = handover_step(
+                decision,
+                master,
+                seq.master,
+                self._can_prepare(target),
+                None if preparing is None else preparing.target,
+            )
+            if step == SWITCH:
                 self._hand_over(target, POLICY, decision.takeover)
-                return "takeover" if decision.takeover else "at once"
-            if preparing is not None and preparing.target == target:
-                return "already preparing"
-            self._preparing(seq.prepare(target, POLICY, self.world.loop.now))
-            return "prepare"
+                return "takeover" if decision.takeover else step
+            if step == PREPARE:
+                self._preparing(seq.prepare(target, POLICY, self.world.loop.now))
+            return step
         except StatusError as err:  # PolicyRunner.run: "policy step failed"
             self.world.trace(f"drone: policy step failed: {err.message}")
             return "failed"

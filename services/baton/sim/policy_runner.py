@@ -29,12 +29,13 @@ from typing import TYPE_CHECKING
 from baton.drone.policy import (
     ENDS_A_LEG,
     HANDOVER,
-    HOLD,
     Decision,
     LinkState,
     PolicyState,
     decide,
     distance_m,
+    hold_due,
+    resume_due,
 )
 from baton.drone.policy_runner import POLICY_TICK_S, _changes_the_leg
 from baton.rpc.labels import label
@@ -148,9 +149,11 @@ class SimPolicyRunner:
         elif decision.action != self._last_action:
             drone.world.trace(f"policy: {action}: {decision.reason}")
         self._last_action = decision.action
-        holds = not self.holding and decision.action == HOLD
-        resumes = self.holding and decision.action != HOLD and not decision.waiting
-        if decision.action == HANDOVER or holds or resumes:
+        if (
+            decision.action == HANDOVER
+            or hold_due(decision, self.holding)
+            or resume_due(decision, self.holding)
+        ):
             return PolicyStep(decision, master)
         return None
 
@@ -172,13 +175,13 @@ class SimPolicyRunner:
         if decision.action == HANDOVER:
             assert decision.target is not None
             drone.policy_decided[drone.policy_handover(step.master, decision)] += 1
-        elif decision.action == HOLD and not self.holding:
+        elif hold_due(decision, self.holding):
             # PolicyRunner._hold: the vehicle is in the air all along the corridor.
             self.corridor.hold()
             self.holding = self._held_vehicle = True
             drone.policy_decided["hold"] += 1
             drone.world.trace(f"policy: the vehicle holds ({decision.reason})")
-        if decision.action != HOLD and not decision.waiting and self.holding:
+        if resume_due(decision, self.holding):
             # PolicyRunner._resume: fly on to the last Goto's target (the corridor's end).
             held, self.holding, self._held_vehicle = self._held_vehicle, False, False
             if held:
