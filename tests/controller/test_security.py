@@ -114,7 +114,7 @@ async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing
         operator = testbed.tls
         frame = ring_pb2.LogFrame(from_id=0, lognr=10**6, data=position)
         for tls, message in (
-            (operator, "LogRing: refused to spiffe://baton/operator: log frames come from the"),
+            (operator, "LogRing: refused to spiffe://baton/operator before reading its request"),
             (replica, "controller 2's certificate sent a frame from_id 0"),
         ):
             forged = await asyncio.to_thread(

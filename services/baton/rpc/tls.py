@@ -101,6 +101,8 @@ class Tls:
     ca: bytes
     cert: bytes
     key: bytes
+    # The folder it was read from: its revocation list (revocation.py) lives there.
+    folder: Path | None = None
 
     @classmethod
     def load(cls, directory: str | Path, identity: Identity) -> Tls:
@@ -118,7 +120,7 @@ class Tls:
                     "(debugging only: anyone on the network may then call this part)"
                 ) from None
         ca, cert, key = contents
-        return cls(identity, ca, cert, key)
+        return cls(identity, ca, cert, key, folder)
 
     def server_credentials(self) -> grpc.ServerCredentials:
         """A server that requires a client certificate signed by the mission's CA."""
