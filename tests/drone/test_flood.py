@@ -61,7 +61,9 @@ async def test_a_stations_flood_is_refused_before_the_drone_reads_it(tmp_path: P
         while (await testbed.snapshot(audit=False)).drone.last_reqnr < 5:
             assert asyncio.get_running_loop().time() < deadline, "mission did not start"
             await asyncio.sleep(0.05)
-        pid = testbed.supervisor.parts["drone"].process.pid
+        process = testbed.supervisor.parts["drone"].process
+        assert process is not None
+        pid = process.pid
         before = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         rss_before, peak_before = rss_bytes(pid), peak_rss_bytes(pid)
 
@@ -102,8 +104,8 @@ async def test_a_stations_flood_is_refused_before_the_drone_reads_it(tmp_path: P
         # before the drone reads it.
         small = drone_pb2.InvokeRequest(controller_id=0, reqnr=1, epoch=1, payload=b"\0" * MB)
         operator = Tls.load(config.tls.certs, OPERATOR)
-        async with aio_channel(config.drone.address, operator, DRONE) as channel:
-            code, message = await status_code(drone_pb2_grpc.DroneStub(channel).Invoke(small))
+        async with aio_channel(config.drone.address, operator, DRONE) as as_operator:
+            code, message = await status_code(drone_pb2_grpc.DroneStub(as_operator).Invoke(small))
         assert code is grpc.StatusCode.PERMISSION_DENIED, message
         assert "before reading its request" in message and OPERATOR.uri in message
         flooding.set()
