@@ -74,7 +74,7 @@ def tls_from_flags(
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """Adds ``baton certs init``, ``issue`` and ``mavlink-key``."""
+    """Adds ``baton certs init``, ``issue``, ``revoke`` and ``mavlink-key``."""
     parser = subparsers.add_parser(
         "certs",
         help="make the CA and certificates for mutual TLS",
@@ -110,6 +110,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     issue.add_argument("part", type=_identity, help="controller-N, drone or operator")
     issue.add_argument("--days", type=_days, default=365, help="validity in days (default 365)")
     issue.set_defaults(run=_run_issue)
+    revoke = actions.add_parser(
+        "revoke",
+        help="refuse a certificate on every part, from now on, without re-keying the others",
+        description=(
+            "Adds a certificate to the folder's revocation list (revoked.crl, signed by its "
+            "CA). Every part that reads this folder refuses it within seconds, on new calls "
+            "and on the streams it holds, without a restart. Give a part (its current "
+            "certificate: a stolen station) or the serial `baton certs issue` printed "
+            "(a certificate it replaced)."
+        ),
+    )
+    revoke.add_argument("dir", type=Path, help="a folder made by `baton certs init`")
+    revoke.add_argument(
+        "what", help="controller-N, drone or operator, or a certificate's serial (hexadecimal)"
+    )
+    revoke.set_defaults(run=_run_revoke)
     key = actions.add_parser(
         "mavlink-key",
         help="a new random MAVLink 2 signing key, for the drone and its autopilot",
@@ -160,6 +176,46 @@ def _run_mavlink_key(args: argparse.Namespace) -> int:
 def _run_issue(args: argparse.Namespace) -> int:
     from baton.certs.make import issue
 
-    issue(args.dir, args.part, args.days)
-    print(f"{args.dir}: certificate for {args.part.name} ({args.part.uri})")
+    replaced, serial = issue(args.dir, args.part, args.days)
+    print(f"{args.dir}: certificate for {args.part.name} ({args.part.uri}), serial {serial:x}")
+    if replaced is not None:
+        print(
+            f"it replaces serial {replaced:x}, still valid until revoked: "
+            f"baton certs revoke {args.dir} {replaced:x}"
+        )
+    return 0
+
+
+def _run_revoke(args: argparse.Namespace) -> int:
+    from baton.certs.make import revoke, serial_of
+    from baton.rpc.tls import TlsError
+
+    try:
+        part: Identity | None = _identity(args.what)
+    except argparse.ArgumentTypeError:
+        part = None
+    if part is not None:
+        serial = serial_of(args.dir / f"{part.name}.crt")
+        if serial is None:
+            print(
+                f"baton certs revoke: {args.dir / (part.name + '.crt')}: no certificate",
+                file=sys.stderr,
+            )
+            return 2
+    else:
+        try:
+            serial = int(args.what.replace(":", ""), 16)
+        except ValueError:
+            print(
+                f"baton certs revoke: {args.what!r}: neither a part (controller-N, drone, "
+                "operator) nor a serial in hexadecimal (as `baton certs issue` prints it)",
+                file=sys.stderr,
+            )
+            return 2
+    try:
+        revoked = revoke(args.dir, serial)
+    except TlsError as exc:
+        print(f"baton certs revoke: {exc}", file=sys.stderr)
+        return 2
+    print(f"{args.dir}: serial {serial:x} revoked ({len(revoked)} in revoked.crl)")
     return 0

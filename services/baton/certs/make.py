@@ -19,6 +19,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from baton.rpc.revocation import REVOKED_CRL, revoked_serials
 from baton.rpc.tls import CA_CERT, CA_KEY, Identity, TlsError
 
 DEFAULT_DAYS = 365
@@ -103,12 +104,14 @@ def issue(
     identity: Identity,
     days: int = DEFAULT_DAYS,
     not_before: datetime.datetime | None = None,
-) -> None:
-    """Writes ``NAME.crt`` and ``NAME.key`` for ``identity``, signed by the folder's CA.
+) -> tuple[int | None, int]:
+    """Writes ``NAME.crt`` and ``NAME.key`` for ``identity``, signed by the folder's CA;
+    returns the serial of the certificate it replaced (None: none) and the new one's.
 
     ``not_before`` moves the validity window (tests make expired certificates).
     """
     ca_cert, ca_key = _load_ca(directory)
+    replaced = serial_of(directory / f"{identity.name}.crt")
     key = ec.generate_private_key(ec.SECP256R1())
     start = not_before or datetime.datetime.now(datetime.UTC) - _SKEW
     cert = (
@@ -143,6 +146,48 @@ def issue(
     )
     _write(directory / f"{identity.name}.crt", cert.public_bytes(serialization.Encoding.PEM))
     _write(directory / f"{identity.name}.key", _key_pem(key), private=True)
+    return replaced, cert.serial_number
+
+
+def serial_of(path: Path) -> int | None:
+    """The serial number of the certificate in ``path``; None if there is none."""
+    try:
+        return x509.load_pem_x509_certificate(path.read_bytes()).serial_number
+    except (OSError, ValueError):
+        return None
+
+
+def revoke(directory: Path, serial: int) -> frozenset[int]:
+    """Adds ``serial`` to the folder's revocation list (``revoked.crl``, signed by its
+    CA) and returns every serial it revokes. The file is replaced atomically: a part
+    reading it meanwhile sees the old list or the new one."""
+    ca_cert, ca_key = _load_ca(directory)
+    path = directory / REVOKED_CRL
+    now = datetime.datetime.now(datetime.UTC)
+    builder = (
+        x509.CertificateRevocationListBuilder()
+        .issuer_name(ca_cert.subject)
+        .last_update(now)
+        # Parts keep a list however old it is (a revocation never expires);
+        # next_update is X.509's required field, not a deadline baton keeps.
+        .next_update(now + datetime.timedelta(days=DEFAULT_DAYS))
+    )
+    revoked = {serial: now}
+    if path.exists():
+        ca_pem = ca_cert.public_bytes(serialization.Encoding.PEM)
+        data = path.read_bytes()
+        revoked_serials(data, ca_pem, path)  # refuses a list that is not this CA's
+        for entry in x509.load_pem_x509_crl(data):
+            revoked.setdefault(entry.serial_number, entry.revocation_date_utc)
+    for number, when in sorted(revoked.items()):
+        builder = builder.add_revoked_certificate(
+            x509.RevokedCertificateBuilder().serial_number(number).revocation_date(when).build()
+        )
+    crl = builder.sign(ca_key, hashes.SHA256())
+    partial = path.with_name(path.name + ".new")
+    _write(partial, crl.public_bytes(serialization.Encoding.PEM))
+    os.replace(partial, path)
+    return frozenset(revoked)
 
 
 def init(directory: Path, identities: Iterable[Identity], days: int = DEFAULT_DAYS) -> None:
