@@ -14,47 +14,56 @@ INVOKE, HANDOVER, STATUS = (
     "/baton.v1.Drone/Handover",
     "/baton.v1.Drone/GetStatus",
 )
-STATION = Caller(Identity.controller(1), 0x51)
+NOW = 1_800_000_000.0
+STATION = Caller(Identity.controller(1), 0x51, NOW + 3600)
 
 
 def test_the_drone_admits_its_controllers_and_an_operator_each_to_their_calls() -> None:
-    assert admit(DRONE_PORT, INVOKE, STATION, frozenset(), 0) is None
-    assert admit(DRONE_PORT, HANDOVER, Caller(OPERATOR, 7), frozenset(), 0) is None
+    assert admit(DRONE_PORT, INVOKE, STATION, frozenset(), 0, NOW) is None
+    assert admit(DRONE_PORT, HANDOVER, Caller(OPERATOR, 7), frozenset(), 0, NOW) is None
     for who in (Caller(OPERATOR, 7), Caller(DRONE, 8), Caller(Identity.controller(9), 9)):
-        refusal = admit(DRONE_PORT, INVOKE, who, frozenset(), 0)
+        refusal = admit(DRONE_PORT, INVOKE, who, frozenset(), 0, NOW)
         assert refusal is not None and refusal.code is grpc.StatusCode.PERMISSION_DENIED
         assert "Invoke: refused to" in refusal.message and "before reading" in refusal.message
-    refusal = admit(DRONE_PORT, HANDOVER, STATION, frozenset(), 0)
+    refusal = admit(DRONE_PORT, HANDOVER, STATION, frozenset(), 0, NOW)
     assert refusal is not None and "only an operator" in refusal.message
-    assert admit(DRONE_PORT, STATUS, Caller(DRONE, 8), frozenset(), 0) is None
+    assert admit(DRONE_PORT, STATUS, Caller(DRONE, 8), frozenset(), 0, NOW) is None
     assert DRONE_PORT.max_request_bytes == DRONE_REQUEST_BYTES
 
 
 def test_a_revoked_certificate_or_none_is_unauthenticated_whatever_the_call() -> None:
     for method in (INVOKE, STATUS):
-        refusal = admit(DRONE_PORT, method, STATION, frozenset({0x51}), 0)
+        refusal = admit(DRONE_PORT, method, STATION, frozenset({0x51}), 0, NOW)
         assert refusal is not None and refusal.code is grpc.StatusCode.UNAUTHENTICATED
         assert "serial 51" in refusal.message and "revoked" in refusal.message
-    refusal = admit(DRONE_PORT, STATUS, Caller(None, None), frozenset(), 0)
+    refusal = admit(DRONE_PORT, STATUS, Caller(None, None), frozenset(), 0, NOW)
     assert refusal is not None and refusal.code is grpc.StatusCode.UNAUTHENTICATED
 
 
 def test_one_caller_holds_at_most_its_share_of_calls() -> None:
     cap = DRONE_PORT.calls_per_caller
-    assert admit(DRONE_PORT, INVOKE, STATION, frozenset(), cap - 1) is None
-    refusal = admit(DRONE_PORT, INVOKE, STATION, frozenset(), cap)
+    assert admit(DRONE_PORT, INVOKE, STATION, frozenset(), cap - 1, NOW) is None
+    refusal = admit(DRONE_PORT, INVOKE, STATION, frozenset(), cap, NOW)
     assert refusal is not None and refusal.code is grpc.StatusCode.RESOURCE_EXHAUSTED
 
 
 def test_the_ring_port_takes_frames_from_the_ring_and_reads_a_slice_and_its_head() -> None:
     ring = ring_policy([0, 1, 2], 16 << 10)
     log_ring = "/baton.v1.ControllerRing/LogRing"
-    assert admit(ring, log_ring, STATION, frozenset(), 0) is None
-    assert admit(ring, log_ring, Caller(OPERATOR, 1), frozenset(), 0) is not None
+    assert admit(ring, log_ring, STATION, frozenset(), 0, NOW) is None
+    assert admit(ring, log_ring, Caller(OPERATOR, 1), frozenset(), 0, NOW) is not None
     assert 16 << 10 < ring.max_request_bytes <= 1 << 20
 
 
-def test_a_revocation_cuts_exactly_the_streams_of_its_certificates() -> None:
-    live = {"a": 0x51, "b": 0x52, "c": None, "d": 0x51}
-    assert to_cut(live, frozenset({0x51})) == ["a", "d"]
-    assert to_cut(live, frozenset()) == []
+def test_an_expired_certificate_on_a_connection_made_before_is_refused() -> None:
+    refusal = admit(DRONE_PORT, STATUS, STATION, frozenset(), 0, NOW + 3601)
+    assert refusal is not None and refusal.code is grpc.StatusCode.UNAUTHENTICATED
+    assert "has expired" in refusal.message
+
+
+def test_the_timer_cuts_exactly_the_streams_whose_certificates_no_longer_count() -> None:
+    other = Caller(Identity.controller(2), 0x52, NOW + 60)
+    live = {"a": STATION, "b": other, "c": Caller(None, None), "d": STATION}
+    assert to_cut(live, frozenset({0x51}), NOW) == ["a", "d"]
+    assert to_cut(live, frozenset(), NOW) == []
+    assert to_cut(live, frozenset(), NOW + 61) == ["b"]

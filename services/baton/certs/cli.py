@@ -73,8 +73,18 @@ def tls_from_flags(
     return Tls.load(Path("certs"), identity)
 
 
+def _hours(text: str) -> int:
+    try:
+        hours = int(text)
+    except ValueError:
+        hours = 0
+    if not 1 <= hours <= 24 * 90:
+        raise argparse.ArgumentTypeError(f"{text!r}: hours of validity, 1 to 2160")
+    return hours
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """Adds ``baton certs init``, ``issue``, ``revoke`` and ``mavlink-key``."""
+    """Adds ``baton certs init``, ``issue``, ``rotate``, ``revoke`` and ``mavlink-key``."""
     parser = subparsers.add_parser(
         "certs",
         help="make the CA and certificates for mutual TLS",
@@ -110,6 +120,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     issue.add_argument("part", type=_identity, help="controller-N, drone or operator")
     issue.add_argument("--days", type=_days, default=365, help="validity in days (default 365)")
     issue.set_defaults(run=_run_issue)
+    rotate = actions.add_parser(
+        "rotate",
+        help="a new short-lived key and certificate for a running part, taken without a restart",
+        description=(
+            "Replaces a part's key and certificate with new ones valid for --hours (24 by "
+            "default). A running part presents the new certificate from its next connection "
+            "on, without a restart; connections it holds keep the old one until they end. "
+            "The old certificate stays valid until it expires: revoke it (baton certs "
+            "revoke) to end it at once. Run it again before --hours pass (a timer on the "
+            "machine that holds ca.key), in the spirit of SPIFFE's short-lived SVIDs."
+        ),
+    )
+    rotate.add_argument("dir", type=Path, help="a folder made by `baton certs init`")
+    rotate.add_argument("part", type=_identity, help="controller-N, drone or operator")
+    rotate.add_argument("--hours", type=_hours, default=24, help="validity in hours (default 24)")
+    rotate.set_defaults(run=_run_rotate)
     revoke = actions.add_parser(
         "revoke",
         help="refuse a certificate on every part, from now on, without re-keying the others",
@@ -177,13 +203,29 @@ def _run_issue(args: argparse.Namespace) -> int:
     from baton.certs.make import issue
 
     replaced, serial = issue(args.dir, args.part, args.days)
+    _say_issued(args, serial, replaced)
+    return 0
+
+
+def _run_rotate(args: argparse.Namespace) -> int:
+    import datetime
+
+    from baton.certs.make import issue
+
+    valid_for = datetime.timedelta(hours=args.hours)
+    replaced, serial = issue(args.dir, args.part, valid_for=valid_for)
+    _say_issued(args, serial, replaced)
+    print(f"valid for {args.hours} h: rotate again before then; a running part takes it")
+    return 0
+
+
+def _say_issued(args: argparse.Namespace, serial: int, replaced: int | None) -> None:
     print(f"{args.dir}: certificate for {args.part.name} ({args.part.uri}), serial {serial:x}")
     if replaced is not None:
         print(
-            f"it replaces serial {replaced:x}, still valid until revoked: "
+            f"it replaces serial {replaced:x}, valid until it expires or is revoked: "
             f"baton certs revoke {args.dir} {replaced:x}"
         )
-    return 0
 
 
 def _run_revoke(args: argparse.Namespace) -> int:

@@ -27,10 +27,14 @@ _SKEW = datetime.timedelta(minutes=5)  # clocks of edge nodes are not exact
 
 
 def _write(path: Path, data: bytes, private: bool = False) -> None:
+    """Replaces ``path`` atomically: a running part that re-reads it (a rotation, a
+    revocation list) sees the old file or the new one, never a part of one."""
+    partial = path.with_name(path.name + ".new")
     flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC
-    fd = os.open(path, flags, 0o600 if private else 0o644)
+    fd = os.open(partial, flags, 0o600 if private else 0o644)
     with os.fdopen(fd, "wb") as out:
         out.write(data)
+    os.replace(partial, path)
 
 
 def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
@@ -104,11 +108,13 @@ def issue(
     identity: Identity,
     days: int = DEFAULT_DAYS,
     not_before: datetime.datetime | None = None,
+    valid_for: datetime.timedelta | None = None,
 ) -> tuple[int | None, int]:
     """Writes ``NAME.crt`` and ``NAME.key`` for ``identity``, signed by the folder's CA;
     returns the serial of the certificate it replaced (None: none) and the new one's.
 
-    ``not_before`` moves the validity window (tests make expired certificates).
+    ``not_before`` moves the validity window (tests make expired certificates);
+    ``valid_for`` replaces ``days`` (a short-lived certificate, ``rotate``).
     """
     ca_cert, ca_key = _load_ca(directory)
     replaced = serial_of(directory / f"{identity.name}.crt")
@@ -121,7 +127,7 @@ def issue(
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
         .not_valid_before(start)
-        .not_valid_after(start + datetime.timedelta(days=days))
+        .not_valid_after(start + (valid_for or datetime.timedelta(days=days)))
         .add_extension(
             x509.SubjectAlternativeName(
                 [
@@ -159,8 +165,7 @@ def serial_of(path: Path) -> int | None:
 
 def revoke(directory: Path, serial: int) -> frozenset[int]:
     """Adds ``serial`` to the folder's revocation list (``revoked.crl``, signed by its
-    CA) and returns every serial it revokes. The file is replaced atomically: a part
-    reading it meanwhile sees the old list or the new one."""
+    CA) and returns every serial it revokes."""
     ca_cert, ca_key = _load_ca(directory)
     path = directory / REVOKED_CRL
     now = datetime.datetime.now(datetime.UTC)
@@ -184,9 +189,7 @@ def revoke(directory: Path, serial: int) -> frozenset[int]:
             x509.RevokedCertificateBuilder().serial_number(number).revocation_date(when).build()
         )
     crl = builder.sign(ca_key, hashes.SHA256())
-    partial = path.with_name(path.name + ".new")
-    _write(partial, crl.public_bytes(serialization.Encoding.PEM))
-    os.replace(partial, path)
+    _write(path, crl.public_bytes(serialization.Encoding.PEM))
     return frozenset(revoked)
 
 

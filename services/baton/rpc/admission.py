@@ -4,15 +4,16 @@ Pure decisions, applied by the gate (baton/rpc/gate.py) on every port:
 
 - ``admit``: a call arrives with the caller's certificate (its identity and
   serial number), the method, and how many calls that caller has in flight
-  on this port. A revoked certificate is UNAUTHENTICATED; a caller the
+  on this port. A revoked or expired certificate is UNAUTHENTICATED; a caller the
   method's rule excludes is PERMISSION_DENIED; a caller with
   ``calls_per_caller`` calls in flight is RESOURCE_EXHAUSTED. Nothing of the
   request has been read then, so a refused caller costs the port what gRPC
   buffers before the refusal reaches it (its flow-control window), not its
   message.
 - ``to_cut``: the live streams whose certificates a newer revocation list
-  names, re-checked by a timer: a revoked station loses the streams it held
-  within that timer's period, not at its next connection.
+  names, or which expired since the stream opened, re-checked by a timer: a
+  revoked station loses the streams it held within that timer's period, not
+  at its next connection, and a short-lived certificate ends with its time.
 
 Rules that need the request (a controller_id that must be the caller's own)
 stay with the servicers; a port's rules here are what the caller's
@@ -86,10 +87,20 @@ class PortPolicy:
 @dataclass(frozen=True)
 class Caller:
     """Who calls, from its certificate: its identity (None: a certificate of the CA
-    naming none of ours) and serial number (None: no certificate)."""
+    naming none of ours), serial number (None: no certificate) and end of validity
+    (seconds since the epoch; None: not known)."""
 
     identity: Identity | None
     serial: int | None
+    not_after: float | None = None
+
+    def invalid(self, revoked: frozenset[int], now: float) -> str | None:
+        """Why its certificate no longer counts (revoked, expired), or None."""
+        if self.serial is not None and self.serial in revoked:
+            return "is revoked (the CA folder's revoked.crl)"
+        if self.not_after is not None and now > self.not_after:
+            return "has expired (baton certs rotate renews a running part's)"
+        return None
 
 
 def describe(caller: Caller) -> str:
@@ -104,14 +115,18 @@ def admit(
     caller: Caller,
     revoked: frozenset[int],
     in_flight: int,
+    now: float,
 ) -> StatusError | None:
-    """Why ``caller`` may not start ``method`` on this port now, or None if it may.
+    """Why ``caller`` may not start ``method`` on this port at ``now``, or None if it
+    may. Called on a port with mutual TLS only (an insecure port admits everyone).
 
-    Called on a port with mutual TLS only (an insecure port admits everyone).
+    gRPC checks a certificate's validity at the handshake only; a connection made
+    before the certificate expired is refused here from then on.
     """
     name = method.rsplit("/", 1)[-1]
-    if caller.serial is not None and caller.serial in revoked:
-        return revoked_error(name, caller)
+    invalid = caller.invalid(revoked, now)
+    if invalid is not None:
+        return invalid_error(name, caller, invalid)
     if caller.identity is None:
         return StatusError(
             grpc.StatusCode.UNAUTHENTICATED,
@@ -134,19 +149,20 @@ def admit(
     return None
 
 
-def revoked_error(name: str, caller: Caller) -> StatusError:
+def invalid_error(name: str, caller: Caller, why: str) -> StatusError:
     """The refusal of a call ``name`` (LogRing), or the end of its stream, whose
-    certificate is revoked."""
+    certificate no longer counts (``why``: ``Caller.invalid``)."""
     return StatusError(
         grpc.StatusCode.UNAUTHENTICATED,
-        f"{name}: the certificate of {describe(caller)} is revoked (the CA folder's "
-        "revoked.crl); the part needs a new one (baton certs issue)",
+        f"{name}: the certificate of {describe(caller)} {why}; the part needs a new one "
+        "(baton certs issue or rotate)",
     )
 
 
 K = TypeVar("K", bound=Hashable)
 
 
-def to_cut(live: Mapping[K, int | None], revoked: frozenset[int]) -> list[K]:
-    """The live calls (each with its certificate's serial) that a revocation list ends."""
-    return [key for key, serial in live.items() if serial is not None and serial in revoked]
+def to_cut(live: Mapping[K, Caller], revoked: frozenset[int], now: float) -> list[K]:
+    """The live calls whose certificates no longer count at ``now``: revoked by the
+    list, or expired while the call was open."""
+    return [key for key, who in live.items() if who.invalid(revoked, now) is not None]

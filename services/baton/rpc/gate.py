@@ -13,8 +13,10 @@ where the servicer reads them.
 
 A call on a request or reply stream runs as a task the gate can end: when a
 newer revocation list names its certificate (a timer re-reads the list every
-``RECHECK_S``), the task is cancelled and the stream ends UNAUTHENTICATED.
-A unary call runs to its end; the caller's next call is refused.
+``RECHECK_S``), or the certificate expires while the stream is open (gRPC
+checks validity at the handshake only), the task is cancelled and the stream
+ends UNAUTHENTICATED. A unary call runs to its end; the caller's next call
+is refused.
 """
 
 from __future__ import annotations
@@ -23,8 +25,9 @@ import asyncio
 import contextlib
 import functools
 import inspect
+import time
 from collections import Counter
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncGenerator, Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -33,7 +36,7 @@ from cryptography import x509
 from google.protobuf.message import DecodeError
 
 from baton.logs import get_logger
-from baton.rpc.admission import RECHECK_S, Caller, PortPolicy, admit, revoked_error, to_cut
+from baton.rpc.admission import RECHECK_S, Caller, PortPolicy, admit, invalid_error, to_cut
 from baton.rpc.errors import abort_with
 from baton.rpc.revocation import REVOKED_CRL, RevocationList
 from baton.rpc.tls import Tls, caller
@@ -47,18 +50,19 @@ _Continuation = Callable[
 
 
 @functools.lru_cache(maxsize=256)
-def _serial(pem: bytes) -> int | None:
+def _serial_and_end(pem: bytes) -> tuple[int | None, float | None]:
     try:
-        return x509.load_pem_x509_certificate(pem).serial_number
+        cert = x509.load_pem_x509_certificate(pem)
     except ValueError:
-        return None
+        return None, None
+    return cert.serial_number, cert.not_valid_after_utc.timestamp()
 
 
 def caller_of(context: grpc.aio.ServicerContext[Any, Any]) -> Caller:
-    """Who calls: the identity and serial of the certificate gRPC has verified."""
+    """Who calls: the identity, serial and validity of the certificate gRPC verified."""
     pems = list(context.auth_context().get("x509_pem_cert", ()))
-    serial = _serial(bytes(pems[0])) if pems else None
-    return Caller(caller(context), serial)
+    serial, not_after = _serial_and_end(bytes(pems[0])) if pems else (None, None)
+    return Caller(caller(context), serial, not_after)
 
 
 @dataclass
@@ -86,7 +90,8 @@ class Gate(grpc.aio.ServerInterceptor):
         self.refresh()
 
     def refresh(self) -> None:
-        """Reads the revocation list again if it changed, and cuts what it revokes."""
+        """Reads the revocation list again if it changed, and cuts the live streams
+        whose certificates it revokes or which have expired."""
         if self.revocations is None:
             return
         before = self.revocations.serials
@@ -97,9 +102,12 @@ class Gate(grpc.aio.ServerInterceptor):
             self.log.warning(
                 "revocation list read", revoked=sorted(f"{s:x}" for s in self.revocations.serials)
             )
-        live = {key: call.caller.serial for key, call in self._live.items()}
-        for key in to_cut(live, self.revocations.serials):
+        live = {key: call.caller for key, call in self._live.items()}
+        for key in to_cut(live, self.revocations.serials, time.time()):
             self._live[key].cut.set()
+
+    def _revoked(self) -> frozenset[int]:
+        return self.revocations.serials if self.revocations is not None else frozenset()
 
     async def watch(self) -> None:
         """Every RECHECK_S: the revocation list re-read and the live streams re-checked."""
@@ -130,8 +138,8 @@ class Gate(grpc.aio.ServerInterceptor):
         if not self.enforced:
             return await run()
         who = caller_of(context)
-        revoked = self.revocations.serials if self.revocations is not None else frozenset()
-        refusal = admit(self.policy, method, who, revoked, self._in_flight[who])
+        revoked = self._revoked()
+        refusal = admit(self.policy, method, who, revoked, self._in_flight[who], time.time())
         if refusal is not None:
             self.log.warning(
                 "call refused before its request", method=method, reason=refusal.message
@@ -168,8 +176,9 @@ class Gate(grpc.aio.ServerInterceptor):
                 with contextlib.suppress(BaseException):
                     await task
         if task.cancelled():
-            error = revoked_error(method.rsplit("/", 1)[-1], who)
-            self.log.warning("stream cut: its certificate is revoked", method=method)
+            why = who.invalid(self._revoked(), time.time()) or "no longer counts"
+            error = invalid_error(method.rsplit("/", 1)[-1], who, why)
+            self.log.warning("stream cut", method=method, reason=error.message)
             await abort_with(context, error)
         return task.result()
 
@@ -256,8 +265,11 @@ def _writing(
         return cast(Callable[[Any, grpc.aio.ServicerContext[Any, Any]], Awaitable[None]], behaviour)
 
     async def write(request: Any, context: grpc.aio.ServicerContext[Any, Any]) -> None:
-        replies = cast(AsyncIterator[Any], behaviour(request, context))
-        async for reply in replies:
-            await context.write(reply)
+        # Closed when the write loop ends however it ends (a cancelled call too), so
+        # that the servicer's clean-up runs then, not when the generator is collected.
+        generator = cast(AsyncGenerator[Any, None], behaviour(request, context))
+        async with contextlib.aclosing(generator) as replies:
+            async for reply in replies:
+                await context.write(reply)
 
     return write
