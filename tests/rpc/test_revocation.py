@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import grpc
@@ -54,7 +55,9 @@ async def test_a_revoked_certificate_is_refused_and_its_streams_cut(
             assert asyncio.get_running_loop().time() < deadline, "mission did not start"
             await asyncio.sleep(0.05)
         certs = config.tls.certs
-        old = Tls.load(certs, STATION)
+        # A copy of the station's files as they are now (a thief's): a Tls read from
+        # the folder would present whatever the folder holds later.
+        old = replace(Tls.load(certs, STATION), folder=None)
 
         # Live streams held with the station's certificate, on the drone and on a
         # controller's ring port: the health service's Watch.
@@ -147,3 +150,20 @@ def test_revoke_names_what_it_cannot_revoke(
     assert "neither a part" in capsys.readouterr().err
     assert main(["certs", "revoke", str(folder), STATION.name]) == 0
     assert "1 in revoked.crl" in capsys.readouterr().out
+
+
+def test_a_running_part_takes_a_rotated_certificate_only_with_its_own_key(
+    tmp_path: Path,
+) -> None:
+    folder = tmp_path / "c"
+    init(folder, [STATION])
+    started = Tls.load(folder, STATION)
+    assert started.current() is started
+    key = (folder / f"{STATION.name}.key").read_bytes()
+    assert main(["certs", "rotate", str(folder), STATION.name, "--hours", "2"]) == 0
+    rotated = started.current()
+    assert rotated.cert != started.cert and rotated.key != started.key
+    assert rotated.ca == started.ca and rotated.folder == folder
+    # Caught between the two files' writes: the new certificate, the old key.
+    (folder / f"{STATION.name}.key").write_bytes(key)
+    assert rotated.current() is rotated
