@@ -11,12 +11,12 @@ from pathlib import Path
 
 import grpc
 from helpers.memory import peak_rss_bytes, rss_bytes
-from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises
+from helpers.missions import assert_mission_promises, three_on_fast_links, until_served
 
 from baton.rpc.channels import aio_channel, sync_channel
 from baton.rpc.ports import DRONE_REQUEST_BYTES
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
-from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
+from baton.testbed.local import LocalTestbed
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
 MB = 2**20
@@ -48,19 +48,11 @@ def blocking_refusal(
 
 
 async def test_a_stations_flood_is_refused_before_the_drone_reads_it(tmp_path: Path) -> None:
-    plan = TestbedPlan(
-        config=local_config(
-            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
-        ),
-        mission=SMALL_GRID,
-    )
+    plan = three_on_fast_links()
     async with LocalTestbed(plan, tmp_path) as testbed:
         config, stub = testbed.config, testbed.drone_stub
         assert config is not None and stub is not None
-        deadline = asyncio.get_running_loop().time() + 120
-        while (await testbed.snapshot(audit=False)).drone.last_reqnr < 5:
-            assert asyncio.get_running_loop().time() < deadline, "mission did not start"
-            await asyncio.sleep(0.05)
+        await until_served(testbed, 5)
         process = testbed.supervisor.parts["drone"].process
         assert process is not None
         pid = process.pid

@@ -14,7 +14,7 @@ from pathlib import Path
 import grpc
 import pytest
 from grpc_health.v1 import health_pb2
-from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises, log_events
+from helpers.missions import assert_mission_promises, log_events, three_on_fast_links, until_served
 
 from baton.certs.make import init, revoke
 from baton.cli import main
@@ -22,7 +22,7 @@ from baton.rpc.admission import RECHECK_S
 from baton.rpc.channels import aio_channel
 from baton.rpc.revocation import REVOKED_CRL, RevocationList
 from baton.rpc.tls import CA_CERT, DRONE, OPERATOR, Identity, Tls
-from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
+from baton.testbed.local import LocalTestbed
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
 STATION = Identity.controller(2)
@@ -41,19 +41,11 @@ async def stream_end(call: grpc.aio.UnaryStreamCall, timeout_s: float) -> grpc.a
 async def test_a_revoked_certificate_is_refused_and_its_streams_cut(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    plan = TestbedPlan(
-        config=local_config(
-            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
-        ),
-        mission=SMALL_GRID,
-    )
+    plan = three_on_fast_links()
     async with LocalTestbed(plan, tmp_path) as testbed:
         config = testbed.config
         assert config is not None and testbed.drone_stub is not None
-        deadline = asyncio.get_running_loop().time() + 120
-        while (await testbed.snapshot(audit=False)).drone.last_reqnr < 5:
-            assert asyncio.get_running_loop().time() < deadline, "mission did not start"
-            await asyncio.sleep(0.05)
+        await until_served(testbed, 5)
         certs = config.tls.certs
         # A copy of the station's files as they are now (a thief's): a Tls read from
         # the folder would present whatever the folder holds later.

@@ -83,6 +83,11 @@ def _hours(text: str) -> int:
     return hours
 
 
+def _folder_and_part(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dir", type=Path, help="a folder made by `baton certs init`")
+    parser.add_argument("part", type=_identity, help="controller-N, drone or operator")
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Adds ``baton certs init``, ``issue``, ``rotate``, ``revoke`` and ``mavlink-key``."""
     parser = subparsers.add_parser(
@@ -116,8 +121,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     issue = actions.add_parser(
         "issue", help="add or renew one part's certificate, signed by the folder's CA"
     )
-    issue.add_argument("dir", type=Path, help="a folder made by `baton certs init`")
-    issue.add_argument("part", type=_identity, help="controller-N, drone or operator")
+    _folder_and_part(issue)
     issue.add_argument("--days", type=_days, default=365, help="validity in days (default 365)")
     issue.set_defaults(run=_run_issue)
     rotate = actions.add_parser(
@@ -132,8 +136,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
             "machine that holds ca.key), in the spirit of SPIFFE's short-lived SVIDs."
         ),
     )
-    rotate.add_argument("dir", type=Path, help="a folder made by `baton certs init`")
-    rotate.add_argument("part", type=_identity, help="controller-N, drone or operator")
+    _folder_and_part(rotate)
     rotate.add_argument("--hours", type=_hours, default=24, help="validity in hours (default 24)")
     rotate.set_defaults(run=_run_rotate)
     revoke = actions.add_parser(
