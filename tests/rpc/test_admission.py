@@ -1,12 +1,20 @@
-"""The pure admission decisions (rpc/admission.py) and the ports' rules (ports.py)."""
+"""The pure admission decisions (rpc/admission.py), the ports' rules (ports.py), and
+the gate that applies them (gate.py) on a real server."""
 
 from __future__ import annotations
 
-import grpc
+import asyncio
+from pathlib import Path
 
-from baton.rpc.admission import Caller, admit, to_cut
+import grpc
+import pytest
+
+from baton.certs.make import init
+from baton.rpc.admission import Caller, PortPolicy, admit, to_cut
+from baton.rpc.channels import aio_channel
 from baton.rpc.ports import DRONE_REQUEST_BYTES, drone_policy, ring_policy
-from baton.rpc.tls import DRONE, OPERATOR, Identity
+from baton.rpc.server import BatonServer, generic
+from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
 
 DRONE_PORT = drone_policy([0, 1, 2])
 INVOKE, HANDOVER, STATUS = (
@@ -67,3 +75,42 @@ def test_the_timer_cuts_exactly_the_streams_whose_certificates_no_longer_count()
     assert to_cut(live, frozenset({0x51}), NOW) == ["a", "d"]
     assert to_cut(live, frozenset(), NOW) == []
     assert to_cut(live, frozenset(), NOW + 61) == ["b"]
+
+
+async def test_a_port_holds_at_most_a_callers_share_and_frees_it_as_calls_end(
+    tmp_path: Path,
+) -> None:
+    """Through a real server: the gate counts a caller's calls in flight, refuses the
+    one above the cap before reading it, and counts a finished call out."""
+    certs = tmp_path / "certs"
+    init(certs, [Identity.controller(1), DRONE])
+    release, arrived = asyncio.Event(), asyncio.Queue[None]()
+
+    async def hold(request: bytes, context: grpc.aio.ServicerContext) -> bytes:
+        arrived.put_nowait(None)
+        await release.wait()
+        return request
+
+    handler: grpc.RpcMethodHandler[bytes, bytes] = grpc.unary_unary_rpc_method_handler(hold)
+    served = generic(grpc.method_handlers_generic_handler("test.Hold", {"Hold": handler}))
+    policy = PortPolicy("test port", 1 << 20, calls_per_caller=4)
+    server = BatonServer("127.0.0.1:0", [served], tls=Tls.load(certs, DRONE), policy=policy)
+    await server.start()
+    try:
+        tls = Tls.load(certs, Identity.controller(1))
+        async with aio_channel(server.address, tls, DRONE) as channel:
+            call: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes] = channel.unary_unary(
+                "/test.Hold/Hold"
+            )
+            held = [asyncio.ensure_future(call(b"x", timeout=20)) for _ in range(4)]
+            for _ in held:
+                await asyncio.wait_for(arrived.get(), 20)
+            with pytest.raises(grpc.aio.AioRpcError) as refused:
+                await call(b"y" * (1 << 19), timeout=20)
+            assert refused.value.code() is grpc.StatusCode.RESOURCE_EXHAUSTED
+            assert "4 calls in flight on the test port" in (refused.value.details() or "")
+            release.set()
+            assert await asyncio.gather(*held) == [b"x"] * 4
+            assert await call(b"z", timeout=20) == b"z"
+    finally:
+        await server.stop(0)
