@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import shutil
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -74,6 +75,7 @@ async def test_a_revoked_certificate_is_refused_and_its_streams_cut(
         assert main(["certs", "rotate", str(certs), STATION.name, "--hours", "1"]) == 0
         printed = capsys.readouterr().out
         replaced = printed.split("it replaces serial ")[1].split(",")[0]
+        revoked_at = time.monotonic()
         assert main(["certs", "revoke", str(certs), replaced]) == 0
         assert f"serial {replaced} revoked" in capsys.readouterr().out
 
@@ -81,6 +83,8 @@ async def test_a_revoked_certificate_is_refused_and_its_streams_cut(
             ended = await stream_end(watch, 4 * RECHECK_S + 5)
             assert ended.code() is grpc.StatusCode.UNAUTHENTICATED, ended.details()
             assert "revoked" in (ended.details() or "")
+        with capsys.disabled():
+            print(f"streams of the revoked certificate cut {time.monotonic() - revoked_at:.2f} s")
         for channel in channels:
             await channel.close()
         # Its next connection: refused on every part it calls, whatever the call.
