@@ -33,8 +33,9 @@ def test_the_drone_admits_its_controllers_and_an_operator_each_to_their_calls() 
         refusal = admit(DRONE_PORT, INVOKE, who, frozenset(), 0, NOW)
         assert refusal is not None and refusal.code is grpc.StatusCode.PERMISSION_DENIED
         assert "Invoke: refused to" in refusal.message and "before reading" in refusal.message
-    refusal = admit(DRONE_PORT, HANDOVER, STATION, frozenset(), 0, NOW)
-    assert refusal is not None and "only an operator" in refusal.message
+    for operators in ("Handover", "Resume", "Pause", "Abort", "LandNow"):
+        refusal = admit(DRONE_PORT, "/baton.v1.Drone/" + operators, STATION, frozenset(), 0, NOW)
+        assert refusal is not None and "only an operator" in refusal.message
     assert admit(DRONE_PORT, STATUS, Caller(DRONE, 8), frozenset(), 0, NOW) is None
     assert DRONE_PORT.max_request_bytes == DRONE_REQUEST_BYTES
 

@@ -33,7 +33,8 @@ _RING = "/baton.v1.ControllerRing/"
 
 def drone_policy(controller_ids: Iterable[int]) -> PortPolicy:
     """The drone's: the mission's controllers call what a master or standby does,
-    an operator moves the master and resumes; anyone of the mission reads status."""
+    an operator moves the master, pauses, resumes or ends the mission; anyone of the
+    mission reads status."""
     stations = controllers(controller_ids, "the mission")
     operator = only(OPERATOR, "an operator")
     rules = {
@@ -47,7 +48,9 @@ def drone_policy(controller_ids: Iterable[int]) -> PortPolicy:
             "AnswerPing",
         )
     }
-    rules |= {_DRONE + "Handover": operator, _DRONE + "Resume": operator}
+    rules |= {
+        _DRONE + method: operator for method in ("Handover", "Resume", "Pause", "Abort", "LandNow")
+    }
     rules[_DRONE + "GetStatus"] = ANY_PART
     return PortPolicy("drone's port", DRONE_REQUEST_BYTES, rules)
 
