@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from helpers.memory import rss_bytes
 from waiting import eventually
 
 from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
@@ -18,14 +19,6 @@ from baton.v1 import ring_pb2
 MISSIONS = Path(__file__).parent / "missions"
 PICTURES = 200
 MB = 2**20
-
-
-def rss_bytes(pid: int) -> int:
-    """The resident set size of process ``pid``."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) * 1024
-    raise AssertionError(f"no VmRSS for process {pid}")
 
 
 async def test_a_200_picture_mission_leaves_the_controllers_memory_flat(tmp_path: Path) -> None:

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import grpc
 import pytest
-from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises
+from helpers.missions import assert_mission_promises, three_on_fast_links, until_served
 
 from baton.certs.make import init, issue
 from baton.rpc.channels import aio_channel, sync_channel
 from baton.rpc.tls import DRONE, Identity, Tls
-from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
+from baton.testbed.local import LocalTestbed
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
@@ -31,19 +31,12 @@ async def refusal(call: Awaitable[object]) -> grpc.aio.AioRpcError:
 async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing(
     tmp_path: Path,
 ) -> None:
-    plan = TestbedPlan(
-        config=local_config(
-            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
-        ),
-        mission=SMALL_GRID,
-    )
+    plan = three_on_fast_links()
     async with LocalTestbed(plan, tmp_path) as testbed:
         config = testbed.config
         assert config is not None and testbed.tls is not None
+        await until_served(testbed, 5)
         deadline = asyncio.get_running_loop().time() + 120
-        while (await testbed.snapshot(audit=False)).drone.last_reqnr < 5:
-            assert asyncio.get_running_loop().time() < deadline, "mission did not start"
-            await asyncio.sleep(0.05)
         certs = config.tls.certs
         replica = Tls.load(certs, Identity.controller(2))  # a controller, never master here
         position = api.GetPositionRequest().SerializeToString()
@@ -114,7 +107,7 @@ async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing
         operator = testbed.tls
         frame = ring_pb2.LogFrame(from_id=0, lognr=10**6, data=position)
         for tls, message in (
-            (operator, "LogRing: refused to spiffe://baton/operator: log frames come from the"),
+            (operator, "LogRing: refused to spiffe://baton/operator before reading its request"),
             (replica, "controller 2's certificate sent a frame from_id 0"),
         ):
             forged = await asyncio.to_thread(

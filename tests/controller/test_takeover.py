@@ -18,7 +18,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from helpers.missions import FAST_LINK, LONG_LEGS, assert_mission_promises, log_events
+from helpers.missions import FAST_LINK, LONG_LEGS, assert_mission_promises, log_events, until_served
 from waiting import eventually
 
 from baton.config import LinkSpec
@@ -47,15 +47,6 @@ def takeovers(
         for h in snapshot.drone.handovers
         if h.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
     ]
-
-
-async def until_served(testbed: LocalTestbed, reqnr: int) -> None:
-    """Waits until the drone served request ``reqnr``."""
-
-    async def served() -> bool:
-        return (await testbed.snapshot(audit=False)).drone.last_reqnr >= reqnr
-
-    await eventually(served, f"request {reqnr} served", 120)
 
 
 async def kill_when(

@@ -73,8 +73,8 @@ async def test_paused_the_vehicle_holds_and_no_call_reaches_it_until_resumed(
                 await drone_pb2_grpc.DroneStub(channel).Pause(drone_pb2.PauseRequest())
         assert refused.value.code() is grpc.StatusCode.PERMISSION_DENIED
         assert refused.value.details() == (
-            "Pause: refused to spiffe://baton/controller/1: only an operator "
-            "(spiffe://baton/operator) may pause, resume or end the mission"
+            "Pause: refused to spiffe://baton/controller/1 before reading its request: only "
+            "an operator (spiffe://baton/operator) may call it on the drone's port"
         )
 
         before = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())

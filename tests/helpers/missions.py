@@ -6,12 +6,15 @@ import json
 from collections import Counter
 from pathlib import Path
 
+from waiting import eventually
+
 from baton.config import LinkSpec
 from baton.testbed.local import (
     LocalTestbed,
     MissionPlan,
     Snapshot,
     TestbedPlan,
+    local_config,
 )
 from baton.testbed.report import NOT_COUNTED, check_side_effects, resent_gotos
 from baton.v1 import drone_pb2, ring_pb2
@@ -90,6 +93,24 @@ def log_events(tmp_path: Path, part: str) -> list[dict[str, object]]:
     """The JSON log lines of one part, in order."""
     text = (tmp_path / "logs" / f"{part}.log").read_text()
     return [json.loads(line) for line in text.splitlines() if line.startswith("{")]
+
+
+def three_on_fast_links() -> TestbedPlan:
+    """Three controllers (0 master) on fast links at 20x, flying the small grid, with
+    mutual TLS: the plan of the end-to-end security tests."""
+    config = local_config(
+        3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+    )
+    return TestbedPlan(config=config, mission=SMALL_GRID)
+
+
+async def until_served(testbed: LocalTestbed, reqnr: int) -> None:
+    """Waits until the drone served request ``reqnr``."""
+
+    async def served() -> bool:
+        return (await testbed.snapshot(audit=False)).drone.last_reqnr >= reqnr
+
+    await eventually(served, f"request {reqnr} served", 120)
 
 
 async def flying_to_the_second_waypoint(testbed: LocalTestbed) -> bool:

@@ -73,8 +73,23 @@ def tls_from_flags(
     return Tls.load(Path("certs"), identity)
 
 
+def _hours(text: str) -> int:
+    try:
+        hours = int(text)
+    except ValueError:
+        hours = 0
+    if not 1 <= hours <= 24 * 90:
+        raise argparse.ArgumentTypeError(f"{text!r}: hours of validity, 1 to 2160")
+    return hours
+
+
+def _folder_and_part(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dir", type=Path, help="a folder made by `baton certs init`")
+    parser.add_argument("part", type=_identity, help="controller-N, drone or operator")
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """Adds ``baton certs init``, ``issue`` and ``mavlink-key``."""
+    """Adds ``baton certs init``, ``issue``, ``rotate``, ``revoke`` and ``mavlink-key``."""
     parser = subparsers.add_parser(
         "certs",
         help="make the CA and certificates for mutual TLS",
@@ -106,10 +121,40 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     issue = actions.add_parser(
         "issue", help="add or renew one part's certificate, signed by the folder's CA"
     )
-    issue.add_argument("dir", type=Path, help="a folder made by `baton certs init`")
-    issue.add_argument("part", type=_identity, help="controller-N, drone or operator")
+    _folder_and_part(issue)
     issue.add_argument("--days", type=_days, default=365, help="validity in days (default 365)")
     issue.set_defaults(run=_run_issue)
+    rotate = actions.add_parser(
+        "rotate",
+        help="a new short-lived key and certificate for a running part, taken without a restart",
+        description=(
+            "Replaces a part's key and certificate with new ones valid for --hours (24 by "
+            "default). A running part presents the new certificate from its next connection "
+            "on, without a restart; connections it holds keep the old one until they end. "
+            "The old certificate stays valid until it expires: revoke it (baton certs "
+            "revoke) to end it at once. Run it again before --hours pass (a timer on the "
+            "machine that holds ca.key), in the spirit of SPIFFE's short-lived SVIDs."
+        ),
+    )
+    _folder_and_part(rotate)
+    rotate.add_argument("--hours", type=_hours, default=24, help="validity in hours (default 24)")
+    rotate.set_defaults(run=_run_rotate)
+    revoke = actions.add_parser(
+        "revoke",
+        help="refuse a certificate on every part, from now on, without re-keying the others",
+        description=(
+            "Adds a certificate to the folder's revocation list (revoked.crl, signed by its "
+            "CA). Every part that reads this folder refuses it within seconds, on new calls "
+            "and on the streams it holds, without a restart. Give a part (its current "
+            "certificate: a stolen station) or the serial `baton certs issue` printed "
+            "(a certificate it replaced)."
+        ),
+    )
+    revoke.add_argument("dir", type=Path, help="a folder made by `baton certs init`")
+    revoke.add_argument(
+        "what", help="controller-N, drone or operator, or a certificate's serial (hexadecimal)"
+    )
+    revoke.set_defaults(run=_run_revoke)
     key = actions.add_parser(
         "mavlink-key",
         help="a new random MAVLink 2 signing key, for the drone and its autopilot",
@@ -160,6 +205,62 @@ def _run_mavlink_key(args: argparse.Namespace) -> int:
 def _run_issue(args: argparse.Namespace) -> int:
     from baton.certs.make import issue
 
-    issue(args.dir, args.part, args.days)
-    print(f"{args.dir}: certificate for {args.part.name} ({args.part.uri})")
+    replaced, serial = issue(args.dir, args.part, args.days)
+    _say_issued(args, serial, replaced)
+    return 0
+
+
+def _run_rotate(args: argparse.Namespace) -> int:
+    import datetime
+
+    from baton.certs.make import issue
+
+    valid_for = datetime.timedelta(hours=args.hours)
+    replaced, serial = issue(args.dir, args.part, valid_for=valid_for)
+    _say_issued(args, serial, replaced)
+    print(f"valid for {args.hours} h: rotate again before then; a running part takes it")
+    return 0
+
+
+def _say_issued(args: argparse.Namespace, serial: int, replaced: int | None) -> None:
+    print(f"{args.dir}: certificate for {args.part.name} ({args.part.uri}), serial {serial:x}")
+    if replaced is not None:
+        print(
+            f"it replaces serial {replaced:x}, valid until it expires or is revoked: "
+            f"baton certs revoke {args.dir} {replaced:x}"
+        )
+
+
+def _run_revoke(args: argparse.Namespace) -> int:
+    from baton.certs.make import revoke, serial_of
+    from baton.rpc.tls import TlsError
+
+    try:
+        part: Identity | None = _identity(args.what)
+    except argparse.ArgumentTypeError:
+        part = None
+    if part is not None:
+        serial = serial_of(args.dir / f"{part.name}.crt")
+        if serial is None:
+            print(
+                f"baton certs revoke: {args.dir / (part.name + '.crt')}: no certificate",
+                file=sys.stderr,
+            )
+            return 2
+    else:
+        try:
+            serial = int(args.what.replace(":", ""), 16)
+        except ValueError:
+            print(
+                f"baton certs revoke: {args.what!r}: neither a part (controller-N, drone, "
+                "operator) nor a serial in hexadecimal (as `baton certs issue` prints it)",
+                file=sys.stderr,
+            )
+            return 2
+    try:
+        revoked = revoke(args.dir, serial)
+    except TlsError as exc:
+        print(f"baton certs revoke: {exc}", file=sys.stderr)
+        return 2
+    print(f"{args.dir}: serial {serial:x} revoked ({len(revoked)} in revoked.crl)")
     return 0

@@ -19,6 +19,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from baton.rpc.revocation import REVOKED_CRL, revoked_serials
 from baton.rpc.tls import CA_CERT, CA_KEY, Identity, TlsError
 
 DEFAULT_DAYS = 365
@@ -26,10 +27,14 @@ _SKEW = datetime.timedelta(minutes=5)  # clocks of edge nodes are not exact
 
 
 def _write(path: Path, data: bytes, private: bool = False) -> None:
+    """Replaces ``path`` atomically: a running part that re-reads it (a rotation, a
+    revocation list) sees the old file or the new one, never a part of one."""
+    partial = path.with_name(path.name + ".new")
     flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC
-    fd = os.open(path, flags, 0o600 if private else 0o644)
+    fd = os.open(partial, flags, 0o600 if private else 0o644)
     with os.fdopen(fd, "wb") as out:
         out.write(data)
+    os.replace(partial, path)
 
 
 def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
@@ -103,12 +108,16 @@ def issue(
     identity: Identity,
     days: int = DEFAULT_DAYS,
     not_before: datetime.datetime | None = None,
-) -> None:
-    """Writes ``NAME.crt`` and ``NAME.key`` for ``identity``, signed by the folder's CA.
+    valid_for: datetime.timedelta | None = None,
+) -> tuple[int | None, int]:
+    """Writes ``NAME.crt`` and ``NAME.key`` for ``identity``, signed by the folder's CA;
+    returns the serial of the certificate it replaced (None: none) and the new one's.
 
-    ``not_before`` moves the validity window (tests make expired certificates).
+    ``not_before`` moves the validity window (tests make expired certificates);
+    ``valid_for`` replaces ``days`` (a short-lived certificate, ``rotate``).
     """
     ca_cert, ca_key = _load_ca(directory)
+    replaced = serial_of(directory / f"{identity.name}.crt")
     key = ec.generate_private_key(ec.SECP256R1())
     start = not_before or datetime.datetime.now(datetime.UTC) - _SKEW
     cert = (
@@ -118,7 +127,7 @@ def issue(
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
         .not_valid_before(start)
-        .not_valid_after(start + datetime.timedelta(days=days))
+        .not_valid_after(start + (valid_for or datetime.timedelta(days=days)))
         .add_extension(
             x509.SubjectAlternativeName(
                 [
@@ -143,6 +152,45 @@ def issue(
     )
     _write(directory / f"{identity.name}.crt", cert.public_bytes(serialization.Encoding.PEM))
     _write(directory / f"{identity.name}.key", _key_pem(key), private=True)
+    return replaced, cert.serial_number
+
+
+def serial_of(path: Path) -> int | None:
+    """The serial number of the certificate in ``path``; None if there is none."""
+    try:
+        return x509.load_pem_x509_certificate(path.read_bytes()).serial_number
+    except (OSError, ValueError):
+        return None
+
+
+def revoke(directory: Path, serial: int) -> frozenset[int]:
+    """Adds ``serial`` to the folder's revocation list (``revoked.crl``, signed by its
+    CA) and returns every serial it revokes."""
+    ca_cert, ca_key = _load_ca(directory)
+    path = directory / REVOKED_CRL
+    now = datetime.datetime.now(datetime.UTC)
+    builder = (
+        x509.CertificateRevocationListBuilder()
+        .issuer_name(ca_cert.subject)
+        .last_update(now)
+        # Parts keep a list however old it is (a revocation never expires);
+        # next_update is X.509's required field, not a deadline baton keeps.
+        .next_update(now + datetime.timedelta(days=DEFAULT_DAYS))
+    )
+    revoked = {serial: now}
+    if path.exists():
+        ca_pem = ca_cert.public_bytes(serialization.Encoding.PEM)
+        data = path.read_bytes()
+        revoked_serials(data, ca_pem, path)  # refuses a list that is not this CA's
+        for entry in x509.load_pem_x509_crl(data):
+            revoked.setdefault(entry.serial_number, entry.revocation_date_utc)
+    for number, when in sorted(revoked.items()):
+        builder = builder.add_revoked_certificate(
+            x509.RevokedCertificateBuilder().serial_number(number).revocation_date(when).build()
+        )
+    crl = builder.sign(ca_key, hashes.SHA256())
+    _write(path, crl.public_bytes(serialization.Encoding.PEM))
+    return frozenset(revoked)
 
 
 def init(directory: Path, identities: Iterable[Identity], days: int = DEFAULT_DAYS) -> None:

@@ -13,6 +13,7 @@ from baton.controller.service import ControllerRingService, mission_port, ring_r
 from baton.lifecycle import announce, run_until_signalled
 from baton.rpc.methods import service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV
+from baton.rpc.ports import mission_policy, ring_policy
 from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import INSECURE_WARNING, Identity
 from baton.v1 import ring_pb2_grpc
@@ -55,10 +56,15 @@ class ControllerApp:
         self.receiver = ring_receiver(self.node)
         peers = ControllerRingService(self.node, self.token, self.receiver, tls is not None)
         self.server = BatonServer(
-            config.controller(cid).address, [servicer(ring, add_ring, peers)], tls=tls
+            config.controller(cid).address,
+            [servicer(ring, add_ring, peers)],
+            tls=tls,
+            policy=ring_policy(config.ring_order, config.ring.frame_bytes),
         )
         self.mission_server = BatonServer(
-            config.controller(cid).mission_address, mission_port(self.node, self.token)
+            config.controller(cid).mission_address,
+            mission_port(self.node, self.token),
+            policy=mission_policy(),
         )
         self.node.mission_address = self.mission_server.address  # bound already
         self.mission = mission

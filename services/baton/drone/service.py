@@ -40,6 +40,7 @@ from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.labels import label
 from baton.rpc.outcomes import failure_of
+from baton.rpc.ports import drone_policy
 from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
 from baton.stalls import StallWatch, Wait, drone_conditions, drone_judge, one_line
@@ -1324,6 +1325,7 @@ async def serve(
         [servicer(name, drone_pb2_grpc.add_DroneServicer_to_server, service)],
         keepalive=CONTROLLER_KEEPALIVE_S if service.takeover_after_s > 0 else None,
         tls=settings.tls,
+        policy=drone_policy(settings.controllers),
     )
     await vehicle.start()
     await server.start()

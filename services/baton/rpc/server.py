@@ -8,80 +8,20 @@ port).
 
 from __future__ import annotations
 
-import inspect
+import asyncio
 import socket
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 import grpc
-from google.protobuf.message import DecodeError
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from baton.rpc.channels import SERVER_OPTIONS
+from baton.rpc.admission import PortPolicy
+from baton.rpc.channels import MAX_MESSAGE_BYTES, SERVER_OPTIONS
+from baton.rpc.gate import Gate
 from baton.rpc.tls import Tls
-
-# A grpc.aio server's method behaviour: a coroutine function, or an async generator
-# of a stream's replies. grpc's stubs type RpcMethodHandler's as the blocking server's.
-_AioBehaviour = Callable[[Any, grpc.aio.ServicerContext[Any, Any]], Any]
-
-
-class MalformedRequests(grpc.aio.ServerInterceptor):
-    """A request that does not parse as its method's message is INVALID_ARGUMENT
-    naming the method, where gRPC would answer UNKNOWN (tests/test_fuzz.py
-    checks it). Requests of a stream are parsed where they are read."""
-
-    async def intercept_service(
-        self,
-        continuation: Callable[
-            [grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler[Any, Any] | None]
-        ],
-        details: grpc.HandlerCallDetails,
-    ) -> grpc.RpcMethodHandler[Any, Any] | None:
-        handler = await continuation(details)
-        if handler is None or handler.request_streaming or handler.request_deserializer is None:
-            return handler
-        parse = handler.request_deserializer
-        method = details.method
-
-        async def parsed(raw: bytes, context: grpc.aio.ServicerContext) -> Any:
-            try:
-                return parse(raw)
-            except DecodeError as exc:
-                await context.abort(
-                    grpc.StatusCode.INVALID_ARGUMENT,
-                    f"{method}: the request is not a valid message of this method: {exc}",
-                )
-
-        if handler.response_streaming:
-            streaming = cast(_AioBehaviour, handler.unary_stream)
-            # A stream's servicer yields its replies, or writes them (context.write)
-            # as the health service's Watch does: the wrapper must do the same.
-            if inspect.isasyncgenfunction(streaming):
-
-                async def yielding(raw: bytes, context: grpc.aio.ServicerContext) -> AsyncIterator:
-                    async for reply in streaming(await parsed(raw, context), context):
-                        yield reply
-
-                behavior: Callable[..., Any] = yielding
-            else:
-
-                async def writing(raw: bytes, context: grpc.aio.ServicerContext) -> None:
-                    await streaming(await parsed(raw, context), context)
-
-                behavior = writing
-            return grpc.unary_stream_rpc_method_handler(
-                behavior, response_serializer=handler.response_serializer
-            )
-        unary = cast(_AioBehaviour, handler.unary_unary)
-
-        async def unary_unary(raw: bytes, context: grpc.aio.ServicerContext) -> Any:
-            return await unary(await parsed(raw, context), context)
-
-        return grpc.unary_unary_rpc_method_handler(
-            unary_unary, response_serializer=handler.response_serializer
-        )
 
 
 def _why_not_bound(address: str) -> str:
@@ -133,21 +73,27 @@ class BatonServer:
         servicers: Iterable[Servicer],
         keepalive: tuple[float, float] | None = None,
         tls: Tls | None = None,
+        policy: PortPolicy | None = None,
     ) -> None:
         """``keepalive`` (ping every so many seconds, give up after so many without the
         answer) overrides the project's 10 s and 5 s (channels.py) for a server that
         must notice a silent client sooner. With ``tls`` the port takes only callers
-        with a certificate of the mission's CA (tls.py); without, anyone."""
+        with a certificate of the mission's CA (tls.py), not revoked, admitted by
+        ``policy`` before their requests are read (gate.py); without, anyone. The
+        policy's ``max_request_bytes`` bounds every request (by default the largest
+        message of channels.py)."""
+        policy = policy or PortPolicy(f"port {address}", MAX_MESSAGE_BYTES)
         options = dict(SERVER_OPTIONS)
+        options["grpc.max_receive_message_length"] = policy.max_request_bytes
         if keepalive is not None:
             every_ms, timeout_ms = round(keepalive[0] * 1000), round(keepalive[1] * 1000)
             options["grpc.keepalive_time_ms"] = every_ms
             options["grpc.http2.min_time_between_pings_ms"] = every_ms
             options["grpc.keepalive_timeout_ms"] = timeout_ms
             options["grpc.http2.ping_timeout_ms"] = timeout_ms
-        self._server = grpc.aio.server(
-            options=list(options.items()), interceptors=[MalformedRequests()]
-        )
+        self.gate = Gate(policy, tls)
+        self._server = grpc.aio.server(options=list(options.items()), interceptors=[self.gate])
+        self._watching: asyncio.Task[None] | None = None
         self.health = health.aio.HealthServicer()
         health_pb2_grpc.add_HealthServicer_to_server(self.health, self._server)
         self.service_names: list[str] = []
@@ -172,10 +118,14 @@ class BatonServer:
     async def start(self) -> None:
         """Starts serving and reports every service SERVING."""
         await self._server.start()
+        if self.gate.revocations is not None:
+            self._watching = asyncio.create_task(self.gate.watch(), name="revocations")
         for name in ["", *self.service_names]:
             await self.health.set(name, health_pb2.HealthCheckResponse.SERVING)
 
     async def stop(self, grace: float = 1.0) -> None:
         """Reports NOT_SERVING, then stops, letting calls finish for ``grace`` seconds."""
         await self.health.enter_graceful_shutdown()
+        if self._watching is not None:
+            self._watching.cancel()
         await self._server.stop(grace)

@@ -19,11 +19,13 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Protocol
+from typing import Protocol, cast
 
 import grpc
+from cryptography import x509
+from cryptography.hazmat.primitives import serialization
 
 from baton.rpc.errors import StatusError
 
@@ -101,6 +103,8 @@ class Tls:
     ca: bytes
     cert: bytes
     key: bytes
+    # The folder it was read from: its revocation list (revocation.py) lives there.
+    folder: Path | None = None
 
     @classmethod
     def load(cls, directory: str | Path, identity: Identity) -> Tls:
@@ -118,19 +122,66 @@ class Tls:
                     "(debugging only: anyone on the network may then call this part)"
                 ) from None
         ca, cert, key = contents
-        return cls(identity, ca, cert, key)
+        return cls(identity, ca, cert, key, folder)
+
+    def current(self) -> Tls:
+        """This part's certificate and key as its folder holds them now (``baton certs
+        rotate`` replaces them while the part runs), else these. A pair caught between
+        the writes of its two files (a key that is not the certificate's) is not taken:
+        the one before it still serves. The CA is the one the part started with."""
+        if self.folder is None:
+            return self
+        try:
+            cert = (self.folder / f"{self.identity.name}.crt").read_bytes()
+            key = (self.folder / f"{self.identity.name}.key").read_bytes()
+        except OSError:
+            return self
+        if (cert, key) == (self.cert, self.key) or not _pair(cert, key):
+            return self
+        return replace(self, cert=cert, key=key)
 
     def server_credentials(self) -> grpc.ServerCredentials:
-        """A server that requires a client certificate signed by the mission's CA."""
-        return grpc.ssl_server_credentials(
-            [(self.key, self.cert)], root_certificates=self.ca, require_client_auth=True
+        """A server that requires a client certificate signed by the mission's CA, and
+        presents its newest certificate (``current``) at every new connection."""
+        presented = [self]
+
+        def newer() -> grpc.ServerCertificateConfiguration | None:
+            # Called by gRPC at each handshake: None keeps the certificate it has.
+            fresh = presented[0].current()
+            if fresh is presented[0]:
+                return None
+            presented[0] = fresh
+            return grpc.ssl_server_certificate_configuration(
+                [(fresh.key, fresh.cert)], root_certificates=self.ca
+            )
+
+        first = grpc.ssl_server_certificate_configuration(
+            [(self.key, self.cert)], root_certificates=self.ca
+        )
+        # grpc's stubs omit the None its documentation allows the fetcher to return.
+        fetcher = cast(Callable[[], grpc.ServerCertificateConfiguration], newer)
+        return grpc.dynamic_ssl_server_credentials(
+            first, fetcher, require_client_authentication=True
         )
 
     def channel_credentials(self) -> grpc.ChannelCredentials:
-        """A client that presents its certificate and trusts the mission's CA only."""
+        """A client that presents its newest certificate (``current``) and trusts the
+        mission's CA only; a channel keeps the one it was made with."""
+        fresh = self.current()
         return grpc.ssl_channel_credentials(
-            root_certificates=self.ca, private_key=self.key, certificate_chain=self.cert
+            root_certificates=self.ca, private_key=fresh.key, certificate_chain=fresh.cert
         )
+
+
+def _pair(cert_pem: bytes, key_pem: bytes) -> bool:
+    """Whether the key is the certificate's (both parse)."""
+    try:
+        cert = x509.load_pem_x509_certificate(cert_pem)
+        key = serialization.load_pem_private_key(key_pem, None)
+    except (ValueError, TypeError):
+        return False
+    spki = serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+    return cert.public_key().public_bytes(*spki) == key.public_key().public_bytes(*spki)
 
 
 class _HasAuthContext(Protocol):

@@ -1,0 +1,66 @@
+"""Each port's admission (admission.py): who may call its methods, from the
+certificate alone, and the largest request it reads.
+
+The limits are what the calls legitimately carry, so that one caller cannot
+make a port read (and hold) more than that per call:
+
+- The drone's port: a drone-API request is under a kilobyte (a Goto, a
+  TakePicture request); what makes an Invoke bigger is its
+  ``master_answers``, the master's Clock answers since its last drone call,
+  about 80 bytes each. 4 MiB holds some 50,000 of them: a program that only
+  sleeps and reads the clock for hours between two drone calls.
+- A controller's ring port: a log frame is one slice of a log message
+  (``ring.frame_bytes``, 16 KiB by default, at most 4 MiB) and, on a
+  message's first frame, the message's head without its entries.
+- The mission port (loopback, the mission token): the program's drone-API
+  calls, as small as the drone's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from baton.rpc.admission import ANY_PART, PortPolicy, controllers, only
+from baton.rpc.tls import OPERATOR
+
+DRONE_REQUEST_BYTES = 4 << 20
+# Room beside a frame's slice for its head (a log message without its entries).
+FRAME_HEAD_BYTES = 64 << 10
+
+_DRONE = "/baton.v1.Drone/"
+_RING = "/baton.v1.ControllerRing/"
+
+
+def drone_policy(controller_ids: Iterable[int]) -> PortPolicy:
+    """The drone's: the mission's controllers call what a master or standby does,
+    an operator moves the master, pauses, resumes or ends the mission; anyone of the
+    mission reads status."""
+    stations = controllers(controller_ids, "the mission")
+    operator = only(OPERATOR, "an operator")
+    rules = {
+        _DRONE + method: stations
+        for method in (
+            "Invoke",
+            "InvokeStream",
+            "Connect",
+            "Standby",
+            "ReportPreparation",
+            "AnswerPing",
+        )
+    }
+    rules |= {
+        _DRONE + method: operator for method in ("Handover", "Resume", "Pause", "Abort", "LandNow")
+    }
+    rules[_DRONE + "GetStatus"] = ANY_PART
+    return PortPolicy("drone's port", DRONE_REQUEST_BYTES, rules)
+
+
+def ring_policy(ring_order: Iterable[int], frame_bytes: int) -> PortPolicy:
+    """A controller's ring port: log frames from the ring's controllers only."""
+    rules = {_RING + "LogRing": controllers(ring_order, "the ring")}
+    return PortPolicy("ring port", frame_bytes + FRAME_HEAD_BYTES, rules)
+
+
+def mission_policy() -> PortPolicy:
+    """A controller's mission port: its program's calls (the token decides who)."""
+    return PortPolicy("mission port", DRONE_REQUEST_BYTES)

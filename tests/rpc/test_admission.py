@@ -1,0 +1,117 @@
+"""The pure admission decisions (rpc/admission.py), the ports' rules (ports.py), and
+the gate that applies them (gate.py) on a real server."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import grpc
+import pytest
+
+from baton.certs.make import init
+from baton.rpc.admission import Caller, PortPolicy, admit, to_cut
+from baton.rpc.channels import aio_channel
+from baton.rpc.ports import DRONE_REQUEST_BYTES, drone_policy, ring_policy
+from baton.rpc.server import BatonServer, generic
+from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
+
+DRONE_PORT = drone_policy([0, 1, 2])
+INVOKE, HANDOVER, STATUS = (
+    "/baton.v1.Drone/Invoke",
+    "/baton.v1.Drone/Handover",
+    "/baton.v1.Drone/GetStatus",
+)
+NOW = 1_800_000_000.0
+STATION = Caller(Identity.controller(1), 0x51, NOW + 3600)
+
+
+def test_the_drone_admits_its_controllers_and_an_operator_each_to_their_calls() -> None:
+    assert admit(DRONE_PORT, INVOKE, STATION, frozenset(), 0, NOW) is None
+    assert admit(DRONE_PORT, HANDOVER, Caller(OPERATOR, 7), frozenset(), 0, NOW) is None
+    for who in (Caller(OPERATOR, 7), Caller(DRONE, 8), Caller(Identity.controller(9), 9)):
+        refusal = admit(DRONE_PORT, INVOKE, who, frozenset(), 0, NOW)
+        assert refusal is not None and refusal.code is grpc.StatusCode.PERMISSION_DENIED
+        assert "Invoke: refused to" in refusal.message and "before reading" in refusal.message
+    for operators in ("Handover", "Resume", "Pause", "Abort", "LandNow"):
+        refusal = admit(DRONE_PORT, "/baton.v1.Drone/" + operators, STATION, frozenset(), 0, NOW)
+        assert refusal is not None and "only an operator" in refusal.message
+    assert admit(DRONE_PORT, STATUS, Caller(DRONE, 8), frozenset(), 0, NOW) is None
+    assert DRONE_PORT.max_request_bytes == DRONE_REQUEST_BYTES
+
+
+def test_a_revoked_certificate_or_none_is_unauthenticated_whatever_the_call() -> None:
+    for method in (INVOKE, STATUS):
+        refusal = admit(DRONE_PORT, method, STATION, frozenset({0x51}), 0, NOW)
+        assert refusal is not None and refusal.code is grpc.StatusCode.UNAUTHENTICATED
+        assert "serial 51" in refusal.message and "revoked" in refusal.message
+    refusal = admit(DRONE_PORT, STATUS, Caller(None, None), frozenset(), 0, NOW)
+    assert refusal is not None and refusal.code is grpc.StatusCode.UNAUTHENTICATED
+
+
+def test_one_caller_holds_at_most_its_share_of_calls() -> None:
+    cap = DRONE_PORT.calls_per_caller
+    assert admit(DRONE_PORT, INVOKE, STATION, frozenset(), cap - 1, NOW) is None
+    refusal = admit(DRONE_PORT, INVOKE, STATION, frozenset(), cap, NOW)
+    assert refusal is not None and refusal.code is grpc.StatusCode.RESOURCE_EXHAUSTED
+
+
+def test_the_ring_port_takes_frames_from_the_ring_and_reads_a_slice_and_its_head() -> None:
+    ring = ring_policy([0, 1, 2], 16 << 10)
+    log_ring = "/baton.v1.ControllerRing/LogRing"
+    assert admit(ring, log_ring, STATION, frozenset(), 0, NOW) is None
+    assert admit(ring, log_ring, Caller(OPERATOR, 1), frozenset(), 0, NOW) is not None
+    assert 16 << 10 < ring.max_request_bytes <= 1 << 20
+
+
+def test_an_expired_certificate_on_a_connection_made_before_is_refused() -> None:
+    refusal = admit(DRONE_PORT, STATUS, STATION, frozenset(), 0, NOW + 3601)
+    assert refusal is not None and refusal.code is grpc.StatusCode.UNAUTHENTICATED
+    assert "has expired" in refusal.message
+
+
+def test_the_timer_cuts_exactly_the_streams_whose_certificates_no_longer_count() -> None:
+    other = Caller(Identity.controller(2), 0x52, NOW + 60)
+    live = {"a": STATION, "b": other, "c": Caller(None, None), "d": STATION}
+    assert to_cut(live, frozenset({0x51}), NOW) == ["a", "d"]
+    assert to_cut(live, frozenset(), NOW) == []
+    assert to_cut(live, frozenset(), NOW + 61) == ["b"]
+
+
+async def test_a_port_holds_at_most_a_callers_share_and_frees_it_as_calls_end(
+    tmp_path: Path,
+) -> None:
+    """Through a real server: the gate counts a caller's calls in flight, refuses the
+    one above the cap before reading it, and counts a finished call out."""
+    certs = tmp_path / "certs"
+    init(certs, [Identity.controller(1), DRONE])
+    release, arrived = asyncio.Event(), asyncio.Queue[None]()
+
+    async def hold(request: bytes, context: grpc.aio.ServicerContext) -> bytes:
+        arrived.put_nowait(None)
+        await release.wait()
+        return request
+
+    handler: grpc.RpcMethodHandler[bytes, bytes] = grpc.unary_unary_rpc_method_handler(hold)
+    served = generic(grpc.method_handlers_generic_handler("test.Hold", {"Hold": handler}))
+    policy = PortPolicy("test port", 1 << 20, calls_per_caller=4)
+    server = BatonServer("127.0.0.1:0", [served], tls=Tls.load(certs, DRONE), policy=policy)
+    await server.start()
+    try:
+        tls = Tls.load(certs, Identity.controller(1))
+        async with aio_channel(server.address, tls, DRONE) as channel:
+            call: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes] = channel.unary_unary(
+                "/test.Hold/Hold"
+            )
+            held = [asyncio.ensure_future(call(b"x", timeout=20)) for _ in range(4)]
+            for _ in held:
+                await asyncio.wait_for(arrived.get(), 20)
+            with pytest.raises(grpc.aio.AioRpcError) as refused:
+                await call(b"y" * (1 << 19), timeout=20)
+            assert refused.value.code() is grpc.StatusCode.RESOURCE_EXHAUSTED
+            assert "4 calls in flight on the test port" in (refused.value.details() or "")
+            release.set()
+            assert await asyncio.gather(*held) == [b"x"] * 4
+            assert await call(b"z", timeout=20) == b"z"
+    finally:
+        await server.stop(0)
