@@ -1055,7 +1055,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             master_connected=self.streams.master_connected,
             controllers=seq.controllers,
             vehicle=self.vehicle.link(),
-            waiting=self.waiting,
+            waiting="; ".join(
+                filter(None, (self.waiting, self.store.problem if self.store else ""))
+            ),
             watermark_reqnr=seq.cache.watermark,
             reachable=[c for c in seq.ring if c in self.standby.reachable],
             takeover_after_s=self.takeover_after_s,

@@ -108,6 +108,11 @@ class Progress:
         vehicle += f" | drone waiting: {drone.waiting}" if drone.waiting else ""
         if drone.HasField("failsafe"):  # the safety net took the vehicle (docs/operating.md)
             vehicle += f" | FAILSAFE {drone.failsafe.action}: {drone.failsafe.reason}"
+        vehicle += "".join(
+            f" | c{cid} log file NOT DURABLE (whole up to {c.log_file.whole_up_to_lognr})"
+            for cid, c in sorted(snapshot.controllers.items())
+            if c.log_file.path and not c.log_file.durable
+        )
         vehicle += waits_line(
             self.config,
             {cid: c.waiting for cid, c in snapshot.controllers.items() if c.waiting},
