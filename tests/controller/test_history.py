@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import subprocess
 import sys
@@ -147,3 +148,40 @@ def test_a_restarted_controller_that_cannot_write_its_file_says_so_at_start(
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip().splitlines()[-1] == "False|the start's probe write|1"
     assert f"cannot write {path}: the start's probe write failed" in result.stdout + result.stderr
+
+
+def test_a_failed_checkpoint_is_the_files_failure_said_within_a_second(tmp_path: Path) -> None:
+    """On a disk that fills (RLIMIT_FSIZE in a process of its own), the checkpoint that
+    must grow the file fails first while the write-ahead log still takes messages: that
+    failure, seen on the checkpoint's thread, ends durability at the next write or poll
+    (the controller polls every 0.5 s); the ERROR says how late it came, and the file
+    read afterwards holds every message up to the stated one."""
+    path = tmp_path / "controller-1-log.sqlite"
+    script = (
+        "import json, resource, time\n"
+        "from baton.controller.history import LogHistory\n"
+        "from baton.logs import configure\n"
+        "from baton.v1 import ring_pb2\n"
+        "configure()\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, resource.RLIM_INFINITY))\n"
+        f"h = LogHistory({str(path)!r})\n"
+        "n = 0\n"
+        "while h.health.durable and n < 60:\n"
+        "    n += 1\n"
+        "    entry = ring_pb2.LogEntry(reqnr=n, reply=bytes(30_000))\n"
+        "    h.add(ring_pb2.LogMessage(lognr=n, entries=[entry]))\n"
+        "    time.sleep(0.25)\n"
+        "    h.poll()\n"
+        "print(json.dumps([h.health.failed_write, h.health.whole_up_to, n]))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stderr
+    *logged, last = (result.stderr + result.stdout).strip().splitlines()
+    failed_write, whole, added = json.loads(last)
+    assert failed_write == "a checkpoint" and whole == added, result.stdout
+    [error] = [json.loads(line) for line in logged if '"level": "error"' in line]
+    assert "RLIMIT_FSIZE" in error["error"] and error["said_after_s"] < 1.0, error
+    saved = read_saved_log(path)
+    assert (saved.whole_up_to, len(saved.messages)) == (whole, whole)

@@ -33,6 +33,7 @@ def test_faults_parse_with_their_time_and_duration() -> None:
         ("kill:controller-1", "no time: add @reqnr=N"),
         ("kill:ctl-1@reqnr=3", "unknown part 'ctl-1'"),
         ("cut:controller-1@reqnr=3", "cut is for a link emulator"),
+        ("full:drone@reqnr=3", "full is for a controller's log file (controller-N), not drone"),
         ("kill:controller-1@reqnr=x", "reqnr='x' is not a request number >= 1"),
         ("kill:controller-1@reqnr=3,t=4s", "give the time once"),
         ("stop:drone@t=3s,for=soon", "expected a duration like '20ms'"),

@@ -349,7 +349,7 @@ def read_saved_log(path: str | Path) -> SavedLog:
             f"{file}: not a controller log file ({exc}): a SQLite database of another kind"
         ) from exc
     except sqlite3.DatabaseError as exc:
-        if file.stat().st_size % 512 or "malformed" in str(exc):
+        if _sqlite_header(file):
             raise NotALogFile(
                 f"{file}: a damaged file ({exc}): it was cut or overwritten, and what it "
                 "held cannot be read; replay another controller's log file"
@@ -373,6 +373,13 @@ def read_saved_log(path: str | Path) -> SavedLog:
             raise NotALogFile(f"{file}: row {lognr} holds log message {message.lognr}")
         messages.append(message)
     return SavedLog(messages, whole_up_to)
+
+
+def _sqlite_header(file: Path) -> bool:
+    """Whether ``file`` begins as a SQLite database does (one that then fails to read is
+    damaged: cut or overwritten)."""
+    with file.open("rb") as opened:
+        return opened.read(16) == b"SQLite format 3\x00"
 
 
 def _has_meta(db: sqlite3.Connection) -> bool:
