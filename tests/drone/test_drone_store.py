@@ -332,7 +332,11 @@ async def test_a_drone_that_cannot_write_its_state_refuses_new_requests_and_reco
     assert "cannot write its state file" in status.waiting and status.last_reqnr == 2
     again = await drone.stub.Invoke(takeoff)  # the master re-sends: from the cache
     assert again.duplicate and drone.vehicle.calls.count("Takeoff") == 1
-    disk.failing = None  # the disk has room again
+    disk.failing = None  # the disk has room again: the next write, between requests,
+    store.save_commanded("probe", 1)  # writes the outcome of request 2 first
+    with sqlite3.connect(state) as db:
+        assert db.execute("SELECT reqnr FROM audit").fetchall() == [(1,), (2,)]
+        assert db.execute("SELECT reqnr FROM executing").fetchall() == []  # not the refused 3
     await drone.stub.Invoke(invoke(0, 3, GOTO))
     status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
     assert status.waiting == "" and status.last_reqnr == 3

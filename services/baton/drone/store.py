@@ -180,23 +180,22 @@ class DroneStore:
         self._unsaved: list[tuple[str, Callable[[], object]]] = []
         self._log = get_logger("store", file=str(self.path))
 
-    def refusal(self) -> StatusError | None:
-        """Why a new request is refused now (the file takes no writes), after trying the
-        failed writes again; None when the file is whole."""
-        if self._unsaved:
-            self._write_through()
-        return drone_refusal(self.health)
-
     @property
     def problem(self) -> str:
         """What GetStatus says while the file takes no writes ("" while it does)."""
         refusal = drone_refusal(self.health)
         return "" if refusal is None else refusal.message
 
-    def _write(self, what: str, write: Callable[[], object]) -> bool:
-        """``write`` (one transaction) after the failed ones; False if any still fails."""
-        self._unsaved.append((what, write))
-        return self._write_through()
+    def _write(self, what: str, write: Callable[[], object], keep: bool = True) -> bool:
+        """``write`` (one transaction) after the failed ones; False if any still fails.
+        ``keep``: a write that fails is tried again before the next (not an intent: its
+        request is refused, and no record of it may appear later)."""
+        entry = (what, write)
+        self._unsaved.append(entry)
+        written = self._write_through()
+        if not written and not keep:
+            self._unsaved.remove(entry)
+        return written
 
     def _write_through(self) -> bool:
         while self._unsaved:
@@ -355,7 +354,7 @@ class DroneStore:
                     ),
                 )
 
-        if not self._write(f"the intent of request {intent.reqnr}", write):
+        if not self._write(f"the intent of request {intent.reqnr}", write, keep=False):
             refusal = drone_refusal(self.health)
             assert refusal is not None
             raise refusal
