@@ -32,6 +32,7 @@ itself.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import resource
 import sqlite3
@@ -109,6 +110,14 @@ def open_wal(path: Path) -> tuple[sqlite3.Connection, Checkpointer]:
         db.close()
         raise
     return db, Checkpointer(path)
+
+
+def roll_back(db: sqlite3.Connection) -> None:
+    """Ends the transaction a failed write left open, if SQLite did not end it itself
+    (it rolls back on its own after some I/O errors)."""
+    if db.in_transaction:
+        with contextlib.suppress(sqlite3.Error):
+            db.execute("ROLLBACK")
 
 
 def describe_write_error(path: Path | None, exc: BaseException) -> str:

@@ -38,7 +38,6 @@ is missing. A controller opened on a file it cannot write says so at start
 
 from __future__ import annotations
 
-import contextlib
 import os
 import sqlite3
 import tempfile
@@ -53,7 +52,7 @@ from baton.controller.protocol import SeenNumbers
 from baton.durability import FileHealth, held_whole, write_failed
 from baton.logs import get_logger
 from baton.v1 import ring_pb2
-from baton.wal import Checkpointer, describe_write_error, open_wal
+from baton.wal import Checkpointer, describe_write_error, open_wal, roll_back
 
 SCHEMA = "CREATE TABLE IF NOT EXISTS messages (lognr INTEGER PRIMARY KEY, message BLOB NOT NULL)"
 # What the controller must know about its log beyond the messages, by name:
@@ -165,13 +164,8 @@ class LogHistory:
             return False
         return True
 
-    def _rollback(self) -> None:
-        if self._db.in_transaction:
-            with contextlib.suppress(sqlite3.Error):  # SQLite rolled back itself
-                self._db.execute("ROLLBACK")
-
     def _failed(self, what: str, exc: sqlite3.Error) -> None:
-        self._rollback()
+        roll_back(self._db)
         self._fail(what, describe_write_error(self.path, exc))
 
     def _fail(self, what: str, error: str, began: float | None = None) -> None:
@@ -197,7 +191,7 @@ class LogHistory:
                 (whole,),
             )
         except sqlite3.Error:
-            self._rollback()
+            roll_back(self._db)
 
     def close(self) -> None:
         """Closes the file (a temporary one is gone with it)."""

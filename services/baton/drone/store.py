@@ -38,7 +38,6 @@ executes it again), and the reply cache in memory answers a re-sent request.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import sqlite3
 import time
@@ -60,7 +59,7 @@ from baton.durability import (
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, status_of
 from baton.v1 import drone_pb2
-from baton.wal import describe_write_error, open_wal
+from baton.wal import describe_write_error, open_wal, roll_back
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS state (
@@ -203,9 +202,7 @@ class DroneStore:
             try:
                 write()
             except sqlite3.Error as exc:
-                if self._db.in_transaction:
-                    with contextlib.suppress(sqlite3.Error):  # SQLite rolled back itself
-                        self._db.execute("ROLLBACK")
+                roll_back(self._db)
                 self.health, reports = write_failed(
                     self.health,
                     what,

@@ -10,9 +10,9 @@ A fault is ``KIND:PART@WHEN[,for=DURATION]``:
   (``link-ring-N``) or between it and the drone (``link-drone-N``) stops, every
   connection through it breaks, and it is started again on its address 10 s later.
 - ``full:controller-1@reqnr=20,for=10s``: the controller's disk fills: its log
-  file (``--log-file``) takes no more bytes, and every write that would grow it
-  fails with EFBIG as a full disk fails it with ENOSPC (``fill_disk``); 10 s
-  later the disk has room again.
+  file (``--log-file``; the drone's: its state file) takes no more bytes, and
+  every write that would grow it fails with EFBIG as a full disk fails it with
+  ENOSPC (``fill_disk``); 10 s later the disk has room again.
 
 WHEN is ``reqnr=N`` (the drone's ``last_reqnr``, polled) or ``t=DURATION`` (after
 the mission's start: once every controller runs). Without ``for=`` a stop or a
@@ -110,8 +110,11 @@ def parse_fault(text: str) -> Fault:
             f"unknown part {part!r}: expected controller-N, link-ring-N, link-drone-N, drone, "
             "sim-vehicle or sitl"
         )
-    if kind == "full" and not part.startswith("controller-"):
-        raise bad(f"full is for a controller's log file (controller-N), not {part}")
+    if kind == "full" and not (part == "drone" or part.startswith("controller-")):
+        raise bad(
+            f"full is for a controller's log file (controller-N) or the drone's state file "
+            f"(drone), not {part}"
+        )
     if kind == "cut" and not part.startswith("link-"):
         raise bad(
             f"cut is for a link emulator (link-ring-N, link-drone-N), not {part}; "
@@ -290,11 +293,15 @@ class FaultInjector:
             testbed.supervisor.freeze(fault.part)
             what = f"stopped {fault.part} (SIGSTOP)"
         elif fault.kind == "full":
-            log_file = testbed.controller_log(int(fault.part.rsplit("-", 1)[1]))
-            wal = log_file.with_name(log_file.name + "-wal")
+            durable = (
+                testbed.drone_state
+                if fault.part == "drone"
+                else testbed.controller_log(int(fault.part.rsplit("-", 1)[1]))
+            )
+            wal = durable.with_name(durable.name + "-wal")
             assert part.process is not None
-            limit = fill_disk(part.process.pid, [log_file, wal], part.log_path)
-            what = f"filled the disk of {fault.part}'s log file ({limit} bytes a file)"
+            limit = fill_disk(part.process.pid, [durable, wal], part.log_path)
+            what = f"filled the disk of {durable.name} ({limit} bytes a file)"
         else:
             await testbed.cut_link(fault.part)
             what = f"cut {fault.part}"
