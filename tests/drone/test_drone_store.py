@@ -8,6 +8,7 @@ the same SQLite file; the end-to-end kill -9 mid-mission is in
 from __future__ import annotations
 
 import asyncio
+import logging
 import sqlite3
 from pathlib import Path
 
@@ -349,3 +350,28 @@ async def test_a_drone_that_cannot_write_its_state_refuses_new_requests_and_reco
         assert again.duplicate and "Takeoff" not in drone.vehicle.calls
     finally:
         await second[1].stop(0)
+
+
+def test_failing_checkpoints_are_said_once_while_commits_still_reach_the_log(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The checkpoint thread's failure (what it reports; the thread is stopped here so
+    that it reports nothing else) is an ERROR once, at the next write, and an INFO once
+    it clears; the drone keeps taking requests meanwhile: its commits still reach the
+    write-ahead log."""
+    store = DroneStore(tmp_path / "drone.sqlite")
+    checkpointer = store._checkpointer
+    checkpointer.close()
+    checkpointer.failed = "disk I/O error (SQLITE_IOERR_WRITE)"
+    with caplog.at_level(logging.INFO, logger="baton.store"):
+        store.save(Counters(master=0, last_reqnr=1))
+        store.save(Counters(master=0, last_reqnr=2))
+        checkpointer.failed = ""
+        store.save(Counters(master=0, last_reqnr=3))
+    said = [(r.levelname, r.getMessage()) for r in caplog.records if r.name == "baton.store"]
+    assert [level for level, _ in said] == ["ERROR", "INFO"], said
+    assert said[0][1].startswith(f"checkpoints of {store.path} fail: disk I/O error")
+    assert store.health.durable and store.load() is not None
+    loaded = store.load()
+    assert loaded is not None and loaded.counters.last_reqnr == 3
+    store.close()

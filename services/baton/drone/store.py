@@ -178,6 +178,8 @@ class DroneStore:
         # Writes that failed, each with what it was, to be tried again first, in order.
         self._unsaved: list[tuple[str, Callable[[], object]]] = []
         self._log = get_logger("store", file=str(self.path))
+        # Whether failing checkpoints were said (once, until one succeeds again).
+        self._checkpoints_failing = False
 
     @property
     def problem(self) -> str:
@@ -189,12 +191,28 @@ class DroneStore:
         """``write`` (one transaction) after the failed ones; False if any still fails.
         ``keep``: a write that fails is tried again before the next (not an intent: its
         request is refused, and no record of it may appear later)."""
+        self._watch_checkpoints()
         entry = (what, write)
         self._unsaved.append(entry)
         written = self._write_through()
         if not written and not keep:
             self._unsaved.remove(entry)
         return written
+
+    def _watch_checkpoints(self) -> None:
+        """Failing checkpoints, said once: the file's disk is filling, though commits
+        still reach its write-ahead log (and a drone restarted reads them from there)."""
+        failed = self._checkpointer.failed
+        if failed and not self._checkpoints_failing:
+            self._log.error(
+                f"checkpoints of {self.path} fail: {failed}; requests are still written to "
+                f"{self.path.name}-wal while its disk has room, then refused",
+                file=str(self.path),
+                error=failed,
+            )
+        elif not failed and self._checkpoints_failing:
+            self._log.info(f"checkpoints of {self.path} succeed again", file=str(self.path))
+        self._checkpoints_failing = bool(failed)
 
     def _write_through(self) -> bool:
         while self._unsaved:
