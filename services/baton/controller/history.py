@@ -33,7 +33,7 @@ and keeps every later message in memory, still replicating. The file stays
 whole up to the log number stated then, which it records, if it still can,
 as ``meta.whole_up_to_lognr``; ``baton replay`` stops there and names what
 is missing. A controller opened on a file it cannot write says so at start
-(a probe write and checkpoint).
+(a probe write).
 """
 
 from __future__ import annotations
@@ -105,33 +105,30 @@ class LogHistory:
         self._memory: dict[int, bytes] = {}
         self.health = FileHealth(str(self.path) if self.path else "(a temporary file)")
         self._log = get_logger("history", file=self.health.path)
-        self._probe()
+        if self.path is not None:  # a temporary file claims nothing to probe for
+            self._probe()
 
     def _probe(self) -> None:
-        """A write of ``PROBE_BYTES`` and a checkpoint at start (``meta.starts``
-        counted): a file whose disk cannot take that much more is said so now, not at
-        its first message. A file that takes writes again drops its mark: the ring
-        gives a restarted controller what its file lacks, and the file is written
-        whole again."""
-        probe = "the start's probe write"
-        if not (
-            self._write(
-                probe,
+        """A write of ``PROBE_BYTES`` at start, deleted (``meta.starts`` counted): a file
+        whose disk cannot take that much more is said so now, not at its first message
+        (a checkpoint that fails later is said by ``poll``). A file that takes writes
+        again drops its mark: the ring gives a restarted controller what its file lacks,
+        and the file is written whole again."""
+        writes: list[tuple[str, tuple[object, ...]]] = [
+            (
                 "INSERT INTO meta (key, value) VALUES ('starts', 1) "
                 "ON CONFLICT (key) DO UPDATE SET value = value + 1",
-            )
-            and self._write(
-                probe,
+                (),
+            ),
+            (
                 "INSERT OR REPLACE INTO meta (key, value) VALUES ('probe', zeroblob(?))",
                 (PROBE_BYTES,),
-            )
-            and self._write(probe, "DELETE FROM meta WHERE key IN ('probe', 'whole_up_to_lognr')")
-        ):
-            return
-        try:
-            self._db.execute("PRAGMA wal_checkpoint(PASSIVE)")
-        except sqlite3.Error as exc:
-            self._failed("the start's probe checkpoint", exc)
+            ),
+            ("DELETE FROM meta WHERE key IN ('probe', 'whole_up_to_lognr')", ()),
+        ]
+        for sql, params in writes:
+            if not self._write("the start's probe write", sql, params):
+                return
 
     def poll(self) -> None:
         """Takes a failed checkpoint (reported by its thread) as the file's failure."""
