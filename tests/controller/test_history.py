@@ -151,8 +151,9 @@ def test_a_restarted_controller_that_cannot_write_its_file_says_so_at_start(
 
 
 def test_a_failed_checkpoint_is_the_files_failure_said_within_a_second(tmp_path: Path) -> None:
-    """On a disk that fills (RLIMIT_FSIZE in a process of its own), the checkpoint that
-    must grow the file fails first while the write-ahead log still takes messages: that
+    """On a disk that fills (RLIMIT_FSIZE in a process of its own: 600 kB, room for the
+    write-ahead log's use between checkpoints, the start's probe included), the
+    checkpoint that must grow the file fails first while the log still takes messages: that
     failure, seen on the checkpoint's thread, ends durability at the next write or poll
     (the controller polls every 0.5 s); the ERROR says how late it came, and the file
     read afterwards holds every message up to the stated one."""
@@ -163,10 +164,10 @@ def test_a_failed_checkpoint_is_the_files_failure_said_within_a_second(tmp_path:
         "from baton.logs import configure\n"
         "from baton.v1 import ring_pb2\n"
         "configure()\n"
-        "resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, resource.RLIM_INFINITY))\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (600_000, resource.RLIM_INFINITY))\n"
         f"h = LogHistory({str(path)!r})\n"
         "n = 0\n"
-        "while h.health.durable and n < 60:\n"
+        "while h.health.durable and n < 80:\n"
         "    n += 1\n"
         "    entry = ring_pb2.LogEntry(reqnr=n, reply=bytes(30_000))\n"
         "    h.add(ring_pb2.LogMessage(lognr=n, entries=[entry]))\n"
