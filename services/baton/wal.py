@@ -20,15 +20,25 @@ fsyncs, and once a checkpoint has caught up the writer's next commit starts
 the log from the beginning again, so the log stays near what is written in
 one period. Durability is unchanged: the same commits reach the log, and
 the same checkpoints the file; only the thread that pays for them differs.
+
+A checkpoint that fails (the disk full, an I/O error) leaves the log whole
+(what was committed stays in it, and a reader recovers it from there), but it
+is the first sign that the file's disk no longer takes writes: the checkpoint
+needs the file to grow while the log still has room. ``Checkpointer.failed``
+says so from the first failure until a checkpoint succeeds again; its owner
+decides what that means (``baton.durability``), and the thread logs nothing
+itself.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import resource
 import sqlite3
 import threading
+import time
 from pathlib import Path
-
-from baton.logs import get_logger
 
 # How often the checkpoint thread copies the log into the file, if anything was written.
 CHECKPOINT_EVERY_S = 0.5
@@ -44,8 +54,11 @@ class Checkpointer:
         self.every_s = every_s
         # Checkpoints that copied the whole log into the file (for tests).
         self.complete = 0
+        # The error of the last checkpoint, while checkpoints fail ("" once one succeeds),
+        # and when the first of those failures happened (Unix seconds).
+        self.failed = ""
+        self.failed_at = 0.0
         self._stopping = threading.Event()
-        self._log = get_logger("wal", file=str(path))
         self._thread = threading.Thread(
             target=self._run, name=f"checkpoint {path.name}", daemon=True
         )
@@ -71,8 +84,11 @@ class Checkpointer:
                     busy, frames, copied = db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
                 except sqlite3.Error as exc:
                     # The log keeps what was written; the next period tries again.
-                    self._log.warning("checkpoint failed; trying again", error=str(exc))
+                    if not self.failed:
+                        self.failed_at = time.time()
+                    self.failed = describe_write_error(self.path, exc)
                     continue
+                self.failed = ""
                 if busy or copied < frames:
                     continue  # a reader held part of it back: again next period
                 seen = version
@@ -94,3 +110,34 @@ def open_wal(path: Path) -> tuple[sqlite3.Connection, Checkpointer]:
         db.close()
         raise
     return db, Checkpointer(path)
+
+
+def roll_back(db: sqlite3.Connection) -> None:
+    """Ends the transaction a failed write left open, if SQLite did not end it itself
+    (it rolls back on its own after some I/O errors)."""
+    if db.in_transaction:
+        with contextlib.suppress(sqlite3.Error):
+            db.execute("ROLLBACK")
+
+
+def describe_write_error(path: Path | None, exc: BaseException) -> str:
+    """A failed write's error for a person: SQLite's words and code, then what the
+    operating system says about the file's disk (SQLite does not pass the errno on)."""
+    text = str(exc)
+    code = getattr(exc, "sqlite_errorname", "")  # set by SQLite, not on errors made up
+    if code:
+        text += f" ({code})"
+    if path is None:
+        return text
+    facts = []
+    try:
+        disk = os.statvfs(path.parent)
+        facts.append(f"{disk.f_bavail * disk.f_frsize} bytes free on its disk")
+    except OSError:
+        pass
+    if not os.access(path.parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        facts.append("the file or its folder is read-only")
+    limit, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+    if limit != resource.RLIM_INFINITY:
+        facts.append(f"this process may write files only up to {limit} bytes (RLIMIT_FSIZE)")
+    return text + (f": {', '.join(facts)}" if facts else "")

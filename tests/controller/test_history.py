@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import json
+import logging
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
 import pytest
+from helpers.storage import failing_writes
 
-from baton.controller.history import LogHistory
+from baton.controller.history import LogHistory, read_saved_log
 from baton.v1 import ring_pb2
 
 
@@ -84,3 +89,100 @@ def test_a_message_dropped_unhandled_is_forgotten_only_in_its_epoch() -> None:
     history.add(message(2))
     assert history.holds_lognr == 4
     history.close()
+
+
+def test_a_failed_write_ends_the_files_durability_once_and_keeps_later_messages_in_memory(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The first failed write is an ERROR naming the file, the write and the error; the
+    file is marked whole up to the messages it had, nothing more is written to it (not
+    even once writes succeed again: a gap would follow), and the controller still holds
+    and gives every message, from memory."""
+    path = tmp_path / "controller-1-log.sqlite"
+    history = LogHistory(path)
+    for lognr in (1, 2, 3):
+        history.add(message(lognr))
+    disk = failing_writes(history)
+    disk.failing = "INTO messages"  # the mark, a small write to meta, still fits
+    with caplog.at_level(logging.ERROR):
+        for lognr in (4, 5):
+            history.add(message(lognr))
+    [error] = [r for r in caplog.records if r.levelno == logging.ERROR]
+    assert f"cannot write {path}: log message 4 failed: database or disk is full" in (
+        error.getMessage()
+    )
+    assert "the file holds log messages 1-3 whole" in error.getMessage()
+    status = history.status()
+    assert (status.durable, status.whole_up_to_lognr, status.failures) == (False, 3, 1)
+    assert status.failed_write == "log message 4"
+    disk.failing = None
+    history.add(message(6))
+    assert (history.holds_lognr, history.get(5), history.get(6)) == (6, message(5), message(6))
+    assert disk.failed == 1  # nothing tried after the first failure
+    history.close()
+    saved = read_saved_log(path)
+    assert (saved.whole_up_to, [m.lognr for m in saved.messages]) == (3, [1, 2, 3])
+
+
+def test_a_restarted_controller_that_cannot_write_its_file_says_so_at_start(
+    tmp_path: Path,
+) -> None:
+    """In a process whose files may not grow past 32 KiB (RLIMIT_FSIZE, as on a disk
+    with that little room: SQLite's shared-memory file fits, its log does not), the
+    log file's probe write fails: the ERROR comes at start, before any message, and
+    the controller holds what the file held."""
+    path = tmp_path / "controller-1-log.sqlite"
+    history = LogHistory(path)
+    history.add(message(1))
+    history.close()
+    probe = (
+        "import resource, sys\n"
+        "from baton.controller.history import LogHistory\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (32768, resource.RLIM_INFINITY))\n"
+        f"h = LogHistory({str(path)!r})\n"
+        "print(h.health.durable, h.health.failed_write, h.holds_lognr, sep='|')\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "False|the start's probe write|1"
+    assert f"cannot write {path}: the start's probe write failed" in result.stdout + result.stderr
+
+
+def test_a_failed_checkpoint_is_the_files_failure_said_within_a_second(tmp_path: Path) -> None:
+    """On a disk that fills (RLIMIT_FSIZE in a process of its own: 600 kB, room for the
+    write-ahead log's use between checkpoints, the start's probe included), the
+    checkpoint that must grow the file fails first while the log still takes messages: that
+    failure, seen on the checkpoint's thread, ends durability at the next write or poll
+    (the controller polls every 0.5 s); the ERROR says how late it came, and the file
+    read afterwards holds every message up to the stated one."""
+    path = tmp_path / "controller-1-log.sqlite"
+    script = (
+        "import json, resource, time\n"
+        "from baton.controller.history import LogHistory\n"
+        "from baton.logs import configure\n"
+        "from baton.v1 import ring_pb2\n"
+        "configure()\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (600_000, resource.RLIM_INFINITY))\n"
+        f"h = LogHistory({str(path)!r})\n"
+        "n = 0\n"
+        "while h.health.durable and n < 80:\n"
+        "    n += 1\n"
+        "    entry = ring_pb2.LogEntry(reqnr=n, reply=bytes(30_000))\n"
+        "    h.add(ring_pb2.LogMessage(lognr=n, entries=[entry]))\n"
+        "    time.sleep(0.25)\n"
+        "    h.poll()\n"
+        "print(json.dumps([h.health.failed_write, h.health.whole_up_to, n]))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stderr
+    *logged, last = (result.stderr + result.stdout).strip().splitlines()
+    failed_write, whole, added = json.loads(last)
+    assert failed_write == "a checkpoint" and whole == added, result.stdout
+    [error] = [json.loads(line) for line in logged if '"level": "error"' in line]
+    assert "RLIMIT_FSIZE" in error["error"] and error["said_after_s"] < 1.0, error
+    saved = read_saved_log(path)
+    assert (saved.whole_up_to, len(saved.messages)) == (whole, whole)

@@ -6,6 +6,7 @@ import asyncio
 from typing import Any
 
 import grpc
+from helpers.protocol import connected_session
 
 from baton.config import parse_config
 from baton.controller.node import ControllerNode
@@ -36,7 +37,7 @@ async def test_a_taker_with_nothing_is_granted_by_the_connected_event_alone() ->
         {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
     )
     node = ControllerNode(config, 2)
-    session: Any = object()
+    session = connected_session()
     node._drone = session  # the session the Connected came on
     retained = [
         drone_pb2.RetainedReply(reqnr=3, method=POSITION, request_digest=DIGEST, reply=b"3")

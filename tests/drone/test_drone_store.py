@@ -8,6 +8,7 @@ the same SQLite file; the end-to-end kill -9 mid-mission is in
 from __future__ import annotations
 
 import asyncio
+import logging
 import sqlite3
 from pathlib import Path
 
@@ -15,6 +16,7 @@ import grpc
 import pytest
 from drone_harness import DroneUnderTest, connect_as_master, start_drone
 from helpers.drone_calls import ARM, GOTO, POSITION, TAKEOFF, expect_error, invoke
+from helpers.storage import failing_writes
 from waiting import eventually
 
 from baton.digest import request_digest
@@ -300,3 +302,76 @@ async def test_the_cruise_speed_and_a_failsafe_survive_a_restart(tmp_path: Path)
         assert not status.HasField("failsafe")  # the resume is kept too
     finally:
         await third[1].stop(0)
+
+
+async def test_a_drone_that_cannot_write_its_state_refuses_new_requests_and_recovers(
+    tmp_path: Path,
+) -> None:
+    """A write that fails (here the outcome of request 2, as on a full disk) is never
+    made up for by executing anything new: request 3 is refused UNAVAILABLE naming the
+    file, and nothing reaches the vehicle; a re-sent request 2 is answered from memory.
+    Once writes succeed, the failed outcome is written first and request 3 executes;
+    a drone restarted from the file then holds every outcome, none twice."""
+    state = tmp_path / "drone.sqlite"
+    first = await restart(None, state, script="")
+    drone = first[0]
+    store = drone.service.store
+    assert store is not None
+    disk = failing_writes(store)
+    await drone.stub.Invoke(invoke(0, 1, ARM))
+    disk.failing = "INTO audit"  # request 2's intent is written; its outcome is not
+    takeoff = invoke(0, 2, TAKEOFF, api.TakeoffRequest(altitude_m=10))
+    await drone.stub.Invoke(takeoff)
+    disk.failing = ""  # no write at all now
+    error = await expect_error(drone.stub.Invoke(invoke(0, 3, GOTO)), grpc.StatusCode.UNAVAILABLE)
+    assert f"the drone cannot write its state file {state}: database or disk is full" in (
+        error.details() or ""
+    )
+    assert "it refuses new requests so that none can be executed twice" in (error.details() or "")
+    assert "Goto" not in drone.vehicle.calls
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    assert "cannot write its state file" in status.waiting and status.last_reqnr == 2
+    again = await drone.stub.Invoke(takeoff)  # the master re-sends: from the cache
+    assert again.duplicate and drone.vehicle.calls.count("Takeoff") == 1
+    disk.failing = None  # the disk has room again: the next write, between requests,
+    store.save_commanded("probe", 1)  # writes the outcome of request 2 first
+    with sqlite3.connect(state) as db:
+        assert db.execute("SELECT reqnr FROM audit").fetchall() == [(1,), (2,)]
+        assert db.execute("SELECT reqnr FROM executing").fetchall() == []  # not the refused 3
+    await drone.stub.Invoke(invoke(0, 3, GOTO))
+    status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+    assert status.waiting == "" and status.last_reqnr == 3
+    second = await restart(first, state, script="")
+    try:
+        drone = second[0]
+        status = await drone.stub.GetStatus(drone_pb2.GetDroneStatusRequest(include_audit=True))
+        assert [a.reqnr for a in status.audit] == [1, 2, 3] and status.last_reqnr == 3
+        again = await drone.stub.Invoke(takeoff)
+        assert again.duplicate and "Takeoff" not in drone.vehicle.calls
+    finally:
+        await second[1].stop(0)
+
+
+def test_failing_checkpoints_are_said_once_while_commits_still_reach_the_log(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The checkpoint thread's failure (what it reports; the thread is stopped here so
+    that it reports nothing else) is an ERROR once, at the next write, and an INFO once
+    it clears; the drone keeps taking requests meanwhile: its commits still reach the
+    write-ahead log."""
+    store = DroneStore(tmp_path / "drone.sqlite")
+    checkpointer = store._checkpointer
+    checkpointer.close()
+    checkpointer.failed = "disk I/O error (SQLITE_IOERR_WRITE)"
+    with caplog.at_level(logging.INFO, logger="baton.store"):
+        store.save(Counters(master=0, last_reqnr=1))
+        store.save(Counters(master=0, last_reqnr=2))
+        checkpointer.failed = ""
+        store.save(Counters(master=0, last_reqnr=3))
+    said = [(r.levelname, r.getMessage()) for r in caplog.records if r.name == "baton.store"]
+    assert [level for level, _ in said] == ["ERROR", "INFO"], said
+    assert said[0][1].startswith(f"checkpoints of {store.path} fail: disk I/O error")
+    assert store.health.durable and store.load() is not None
+    loaded = store.load()
+    assert loaded is not None and loaded.counters.last_reqnr == 3
+    store.close()

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
+from types import SimpleNamespace
+from typing import Any
+
 from baton.controller.protocol import ControllerProtocol
 
 
@@ -16,3 +20,11 @@ def started(
     if cid == initial_master:
         p.on_granted(1)
     return p
+
+
+def connected_session() -> Any:
+    """A stand-in for a controller's drone session whose Connect stream is up, for the
+    tests that call ``ControllerNode``'s event handlers without a drone."""
+    session = SimpleNamespace(connected=asyncio.Event())
+    session.connected.set()
+    return session

@@ -10,6 +10,7 @@ from pathlib import Path
 import grpc
 import pytest
 from google.protobuf.message import Message
+from helpers.storage import failing_writes
 
 from baton.controller.history import LogHistory, NotALogFile, read_log
 from baton.digest import request_digest
@@ -141,7 +142,9 @@ def test_another_method_past_the_end_and_an_early_end_diverge(
         [],
     )
     assert longer.divergence is not None and longer.divergence.reqnr == 7
-    assert "more than the log holds (it ends at request 6)" in longer.divergence.why
+    assert (
+        "more than the log holds (it ends at request 6, in log message 3" in longer.divergence.why
+    )
     assert longer.divergence.program == "Clock.Now {}" and not longer.divergence.logged
     shorter = replay_log(log, str(edited(tmp_path, "drone.mobility.land()", "pass")), [])
     assert shorter.divergence is not None and shorter.divergence.reqnr == 6
@@ -268,3 +271,45 @@ def test_an_async_mission_replays_the_same_log_and_diverges_where_it_differs(
     diverged = replay_log(log, str(program), [])
     assert diverged.divergence is not None and diverged.divergence.reqnr == 2
     assert diverged.divergence.fields == ("altitude_m",)
+
+
+def test_a_file_cut_by_a_failed_write_or_saved_early_names_what_it_lacks(
+    tmp_path: Path, mission_file: Path
+) -> None:
+    """A controller whose file failed a write marked it whole up to log message 3 (the
+    storage layer fails its fourth message on): the replay stops there and says what is
+    missing and where to look. A file without the mark that ends early says it ends
+    before the program does. A file cut in its bytes is named damaged, never a
+    traceback."""
+    messages = read_log(write_log(tmp_path / "whole.sqlite", CALLS, per_message=1))
+    cut = tmp_path / "cut.sqlite"
+    history = LogHistory(cut)
+    disk = failing_writes(history)
+    for message in messages:
+        disk.failing = "INTO messages" if message.lognr > 3 else None
+        history.add(message)
+    history.close()
+    outcome = replay_log(cut, str(mission_file), [])
+    assert outcome.divergence is not None and outcome.divergence.reqnr == 4
+    assert outcome.divergence.why.startswith(
+        "the file holds only log messages 1-3 whole (it ends at request 3, in log message 3): "
+        "its controller could not write to it after that"
+    ), outcome.divergence.why
+    assert "replay another controller's log file" in outcome.divergence.why
+
+    early = write_log(tmp_path / "early.sqlite", CALLS, per_message=1)
+    with sqlite3.connect(early) as db:
+        db.execute("DELETE FROM messages WHERE lognr > 3")
+    outcome = replay_log(early, str(mission_file), [])
+    assert outcome.divergence is not None and outcome.divergence.why == (
+        "the program asks for more than the log holds (it ends at request 3, in log message "
+        "3: a file saved before the mission ended, or of a controller still catching up)"
+    )
+
+    damaged = tmp_path / "damaged.sqlite"
+    whole = (tmp_path / "whole.sqlite").read_bytes()
+    damaged.write_bytes(whole[: len(whole) // 3])
+    result = baton_replay(str(damaged), "--mission", str(mission_file))
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert f"ERROR {damaged}: {damaged}: a damaged file" in result.stdout, result.stdout
+    assert "Traceback" not in result.stdout + result.stderr

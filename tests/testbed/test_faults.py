@@ -34,6 +34,7 @@ def test_faults_parse_with_their_time_and_duration() -> None:
         ("kill:controller-1", "no time: add @reqnr=N"),
         ("kill:ctl-1@reqnr=3", "unknown part 'ctl-1'"),
         ("cut:controller-1@reqnr=3", "cut is for a link emulator"),
+        ("full:link-ring-0@reqnr=3", "full is for a controller's log file (controller-N) or"),
         ("kill:controller-1@reqnr=x", "reqnr='x' is not a request number >= 1"),
         ("kill:controller-1@reqnr=3,t=4s", "give the time once"),
         ("stop:drone@t=3s,for=soon", "expected a duration like '20ms'"),
@@ -165,3 +166,57 @@ def test_without_restart_parts_a_dead_drone_ends_the_run_with_a_report(tmp_path:
     report = json.loads(report_path.read_text())
     assert report["ended_early"].startswith("drone died and is not restarted")
     assert report["faults"][0]["fired"] and not report["completed"]
+
+
+def log_lines(path: Path) -> list[dict]:  # type: ignore[type-arg]
+    """A part's structured log lines."""
+    return [json.loads(line) for line in path.read_text().splitlines() if line.startswith("{")]
+
+
+def test_a_controller_whose_disk_fills_says_so_at_once_and_the_mission_completes_once(
+    tmp_path: Path,
+) -> None:
+    """``full:controller-1``: controller 1's log file may grow no more (RLIMIT_FSIZE, its
+    writes fail with EFBIG as on a full disk; a log file only grows, so its next message
+    fails). Its first failed write is an ERROR in its log within a second (measured:
+    ``said_after_s``), the progress line and the report say the file is not durable and
+    up to which log message it is whole, and ``baton replay`` of its file names what is
+    missing. The mission completes exactly once by the vehicle's own count, every
+    replica consistent (controller 1 replicates from memory). (The drone's side is
+    ``tests/drone/test_drone_store.py``: its file reuses its own free pages, so when a
+    full disk stops it depends on the run.)"""
+    report = run_testbed(
+        tmp_path, *SMALL, "--no-handovers", "--fault", "full:controller-1@reqnr=40"
+    )
+    [fault] = report["faults"]
+    assert fault["fired"] and fault["mission_verdict"].startswith("COMPLETED, exactly once: True")
+    assert report["side_effects"]["exactly_once"] and report["replicas_consistent"]
+    c1 = next(c for c in report["controllers"] if c["id"] == 1)
+    log_file = c1["log_file"]
+    assert not log_file["durable"] and "RLIMIT_FSIZE" in log_file["error"]
+    whole = log_file["whole_up_to_lognr"]
+    assert whole < c1["lognr"], (whole, c1["lognr"])
+    assert f"c1 log file NOT DURABLE (whole up to {whole})" in report["stdout"]
+    logs = tmp_path / "w" / "logs"
+    [error] = [
+        line for line in log_lines(logs / "controller-1.log") if line.get("level") == "error"
+    ]
+    assert error["msg"].startswith(f"cannot write {tmp_path / 'w' / 'controller-1-log.sqlite'}")
+    assert error["said_after_s"] < 1.0, error
+    mission = report["files"]["mission"]
+    replay = subprocess.run(
+        baton(
+            "replay",
+            report["files"]["controller_logs"]["1"],
+            "--mission",
+            mission["file"],
+            *(arg for value in mission["args"] for arg in ("--mission-arg", value)),
+        ),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert replay.returncode == 1, replay.stdout + replay.stderr
+    held = f"log messages 1-{whole}" if whole else "no log message"
+    assert f"the file holds only {held} whole" in replay.stdout, replay.stdout
+    assert "Traceback" not in replay.stdout + replay.stderr

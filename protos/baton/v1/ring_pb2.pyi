@@ -607,6 +607,7 @@ class ControllerStatus(_message.Message):
     PROGRAM_RESTARTS_FIELD_NUMBER: _builtins.int
     DRONE_CONNECTED_AT_FIELD_NUMBER: _builtins.int
     WAITS_FIELD_NUMBER: _builtins.int
+    LOG_FILE_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
     state: Global___ControllerState.ValueType
@@ -719,6 +720,10 @@ class ControllerStatus(_message.Message):
         expected within the prepare timeout; everything else needs a person.
         """
 
+    @_builtins.property
+    def log_file(self) -> Global___LogFileStatus:
+        """Its log file (--log-file) and whether writes still reach it."""
+
     def __init__(
         self,
         *,
@@ -754,14 +759,69 @@ class ControllerStatus(_message.Message):
         program_restarts: _builtins.int = ...,
         drone_connected_at: _abc.Iterable[_builtins.float] | None = ...,
         waits: _abc.Iterable[_waits_pb2.Wait] | None = ...,
+        log_file: Global___LogFileStatus | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["log_file", b"log_file"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "log_file", b"log_file", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___ControllerStatus: _TypeAlias = ControllerStatus  # noqa: Y015
+
+@_typing.final
+class LogFileStatus(_message.Message):
+    """A controller's log file: durable while every write reaches it. After its
+    first failed write (the disk full, an I/O error, a read-only file system)
+    the controller writes nothing more to it and keeps later log messages in
+    memory only (docs/operating.md, "A disk that fills").
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    PATH_FIELD_NUMBER: _builtins.int
+    DURABLE_FIELD_NUMBER: _builtins.int
+    FAILED_WRITE_FIELD_NUMBER: _builtins.int
+    ERROR_FIELD_NUMBER: _builtins.int
+    FAILED_AT_FIELD_NUMBER: _builtins.int
+    FAILURES_FIELD_NUMBER: _builtins.int
+    WHOLE_UP_TO_LOGNR_FIELD_NUMBER: _builtins.int
+    path: _builtins.str
+    """The file; "(a temporary file)" for a controller without --log-file."""
+    durable: _builtins.bool
+    """Whether writes still reach it."""
+    failed_write: _builtins.str
+    """Once not durable: the failed write ("log message 12", "a checkpoint") and
+    its error, with what the operating system says of the disk.
+    """
+    error: _builtins.str
+    failed_at: _builtins.float
+    """When it failed, Unix seconds, and the failed writes since (the first
+    included).
+    """
+    failures: _builtins.int
+    whole_up_to_lognr: _builtins.int
+    """The file holds every log message up to this one, whole; those above it
+    are in this controller's memory only.
+    """
+    def __init__(
+        self,
+        *,
+        path: _builtins.str = ...,
+        durable: _builtins.bool = ...,
+        failed_write: _builtins.str = ...,
+        error: _builtins.str = ...,
+        failed_at: _builtins.float = ...,
+        failures: _builtins.int = ...,
+        whole_up_to_lognr: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["durable", b"durable", "error", b"error", "failed_at", b"failed_at", "failed_write", b"failed_write", "failures", b"failures", "path", b"path", "whole_up_to_lognr", b"whole_up_to_lognr"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___LogFileStatus: _TypeAlias = LogFileStatus  # noqa: Y015
 
 @_typing.final
 class ControllerHandover(_message.Message):

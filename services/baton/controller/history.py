@@ -24,6 +24,16 @@ journal, ``synchronous=NORMAL``: a kill -9 loses nothing
 written; a power cut may lose the last messages, which the ring gives again.
 Its checkpoints run on a thread of their own (``baton.wal``), not in the
 commit of a message on the event loop.
+
+A write that fails (the disk full, an I/O error, a read-only file system), or
+a checkpoint that fails, ends the file's durability (``baton.durability``):
+the controller says so once (an ERROR naming the file, the write and the
+error, and ``ControllerStatus.log_file``), writes nothing more to the file,
+and keeps every later message in memory, still replicating. The file stays
+whole up to the log number stated then, which it records, if it still can,
+as ``meta.whole_up_to_lognr``; ``baton replay`` stops there and names what
+is missing. A controller opened on a file it cannot write says so at start
+(a probe write).
 """
 
 from __future__ import annotations
@@ -31,19 +41,30 @@ from __future__ import annotations
 import os
 import sqlite3
 import tempfile
+import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 from google.protobuf.message import DecodeError
 
 from baton.controller.protocol import SeenNumbers
+from baton.durability import FileHealth, held_whole, write_failed
+from baton.logs import get_logger
 from baton.v1 import ring_pb2
-from baton.wal import Checkpointer, open_wal
+from baton.wal import Checkpointer, describe_write_error, open_wal, roll_back
 
 SCHEMA = "CREATE TABLE IF NOT EXISTS messages (lognr INTEGER PRIMARY KEY, message BLOB NOT NULL)"
 # What the controller must know about its log beyond the messages, by name:
-# ``mastership_epoch``, the epoch of the mastership whose log it holds.
+# ``mastership_epoch``, the epoch of the mastership whose log it holds;
+# ``whole_up_to_lognr``, once a write failed, the log number up to which the file is
+# whole (``baton replay`` reads no further).
 META_SCHEMA = "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL)"
+
+
+# What the start's probe writes (and deletes): a disk that cannot take this much more
+# is said to be full at start. One picture's log message is larger.
+PROBE_BYTES = 64 << 10
 
 
 class LogHistory:
@@ -80,6 +101,94 @@ class LogHistory:
         self._held = SeenNumbers()
         for lognr in sorted(self._lognrs):
             self._held.add(lognr)
+        # Messages the file could not take, by log number, serialized (memory only).
+        self._memory: dict[int, bytes] = {}
+        self.health = FileHealth(str(self.path) if self.path else "(a temporary file)")
+        self._log = get_logger("history", file=self.health.path)
+        if self.path is not None:  # a temporary file claims nothing to probe for
+            self._probe()
+
+    def _probe(self) -> None:
+        """A write of ``PROBE_BYTES`` at start, deleted (``meta.starts`` counted): a file
+        whose disk cannot take that much more is said so now, not at its first message
+        (a checkpoint that fails later is said by ``poll``). A file that takes writes
+        again drops its mark: the ring gives a restarted controller what its file lacks,
+        and the file is written whole again."""
+        writes: list[tuple[str, tuple[object, ...]]] = [
+            (
+                "INSERT INTO meta (key, value) VALUES ('starts', 1) "
+                "ON CONFLICT (key) DO UPDATE SET value = value + 1",
+                (),
+            ),
+            (
+                "INSERT OR REPLACE INTO meta (key, value) VALUES ('probe', zeroblob(?))",
+                (PROBE_BYTES,),
+            ),
+            ("DELETE FROM meta WHERE key IN ('probe', 'whole_up_to_lognr')", ()),
+        ]
+        for sql, params in writes:
+            if not self._write("the start's probe write", sql, params):
+                return
+
+    def poll(self) -> None:
+        """Takes a failed checkpoint (reported by its thread) as the file's failure."""
+        if self._checkpointer is not None and self._checkpointer.failed and self.health.durable:
+            self._fail("a checkpoint", self._checkpointer.failed, self._checkpointer.failed_at)
+
+    def status(self) -> ring_pb2.LogFileStatus:
+        """The file's health, for GetStatus."""
+        self.poll()
+        h = self.health
+        return ring_pb2.LogFileStatus(
+            path=h.path,
+            durable=h.durable,
+            failed_write=h.failed_write,
+            error=h.error,
+            failed_at=h.failed_at,
+            failures=h.failures,
+            whole_up_to_lognr=h.whole_up_to,
+        )
+
+    def _write(self, what: str, sql: str, params: tuple[object, ...] = ()) -> bool:
+        """One write to the file while it takes writes; False once it does not."""
+        self.poll()
+        if not self.health.durable:
+            return False
+        try:
+            self._db.execute(sql, params)
+        except sqlite3.Error as exc:
+            self._failed(what, exc)
+            return False
+        return True
+
+    def _failed(self, what: str, exc: sqlite3.Error) -> None:
+        roll_back(self._db)
+        self._fail(what, describe_write_error(self.path, exc))
+
+    def _fail(self, what: str, error: str, began: float | None = None) -> None:
+        whole = 0
+        while whole + 1 in self._lognrs and whole + 1 not in self._memory:
+            whole += 1
+        self.health, reports = write_failed(
+            self.health,
+            what,
+            error,
+            time.time(),
+            f"the log is no longer durable: the file holds {held_whole(whole)} whole; "
+            "this controller keeps later ones in memory only and still replicates (a restart "
+            "recovers only what the file holds; the ring gives it the rest)",
+            whole,
+            began,
+        )
+        for report in reports:
+            getattr(self._log, report.level)(report.text, **report.fields)
+        try:  # the mark, if the file still takes one small write
+            self._db.execute(
+                "INSERT OR REPLACE INTO meta (key, value) VALUES ('whole_up_to_lognr', ?)",
+                (whole,),
+            )
+        except sqlite3.Error:
+            roll_back(self._db)
 
     def close(self) -> None:
         """Closes the file (a temporary one is gone with it)."""
@@ -88,9 +197,11 @@ class LogHistory:
         self._db.close()
 
     def clear(self) -> None:
-        """Forgets every message (a controller fenced by a takeover rejoins with nothing)."""
-        self._db.execute("DELETE FROM messages")
-        self._db.execute("DELETE FROM meta")
+        """Forgets every message (a controller fenced by a takeover rejoins with nothing).
+        A file that no longer takes writes keeps what it held, with its mark."""
+        if self._write("clearing the log", "DELETE FROM messages"):
+            self._write("clearing the log", "DELETE FROM meta")
+        self._memory.clear()
         self._lognrs.clear()
         self._held = SeenNumbers()
         self._mastership_epoch = 0
@@ -110,8 +221,10 @@ class LogHistory:
         """Records ``epoch`` as the mastership whose log this history holds."""
         if epoch == self._mastership_epoch:
             return
-        self._db.execute(
-            "INSERT OR REPLACE INTO meta (key, value) VALUES ('mastership_epoch', ?)", (epoch,)
+        self._write(
+            f"the mastership epoch {epoch}",
+            "INSERT OR REPLACE INTO meta (key, value) VALUES ('mastership_epoch', ?)",
+            (epoch,),
         )
         self._mastership_epoch = epoch
 
@@ -138,10 +251,15 @@ class LogHistory:
             kept.CopyFrom(message)
             kept.handover = False
             message = kept
-        self._db.execute(
+        blob = message.SerializeToString()
+        if self._write(
+            f"log message {message.lognr}",
             "INSERT OR REPLACE INTO messages (lognr, message) VALUES (?, ?)",
-            (message.lognr, message.SerializeToString()),
-        )
+            (message.lognr, blob),
+        ):
+            self._memory.pop(message.lognr, None)
+        else:
+            self._memory[message.lognr] = blob
         self._lognrs.add(message.lognr)
         self._held.add(message.lognr)
 
@@ -150,12 +268,18 @@ class LogHistory:
         unhandled, of a framing a takeover replaced (protocol.py ``Unqueued``)."""
         if lognr not in self._lognrs or self.get(lognr).epoch != epoch:
             return
-        self._db.execute("DELETE FROM messages WHERE lognr = ?", (lognr,))
+        if self._memory.pop(lognr, None) is None:
+            self._write(
+                f"dropping log message {lognr}", "DELETE FROM messages WHERE lognr = ?", (lognr,)
+            )
         self._lognrs.discard(lognr)
         self._held.discard(lognr)
 
     def get(self, lognr: int) -> ring_pb2.LogMessage:
         """The message with ``lognr``; KeyError if it is not held."""
+        kept = self._memory.get(lognr)
+        if kept is not None:
+            return ring_pb2.LogMessage.FromString(kept)
         row = self._db.execute("SELECT message FROM messages WHERE lognr = ?", (lognr,)).fetchone()
         if row is None:
             raise KeyError(lognr)
@@ -174,8 +298,24 @@ class OtherDatabase(NotALogFile):
     """A SQLite database, but without a log's ``messages`` table (the drone's state, say)."""
 
 
+@dataclass(frozen=True)
+class SavedLog:
+    """A saved log file as ``baton replay`` reads it."""
+
+    messages: list[ring_pb2.LogMessage]
+    # Set when its controller could not write to it: the log number up to which the
+    # file is whole (``messages`` stops there); None: a file whose writes never failed.
+    whole_up_to: int | None = None
+
+
 def read_log(path: str | Path) -> list[ring_pb2.LogMessage]:
-    """The messages of a saved log file, by log number, read without changing the file.
+    """The messages of a saved log file, by log number (``read_saved_log``)."""
+    return read_saved_log(path).messages
+
+
+def read_saved_log(path: str | Path) -> SavedLog:
+    """A saved log file, read without changing it: its messages by log number, up to
+    the log number its mark says the file is whole to, if its controller marked it.
 
     For ``baton replay``: the file may be a copy, read-only, or still open in
     a controller (WAL lets it read what was committed). Raises ``NotALogFile``
@@ -190,19 +330,32 @@ def read_log(path: str | Path) -> list[ring_pb2.LogMessage]:
         raise NotALogFile(f"{file}: cannot open it: {exc}") from exc
     try:
         rows = db.execute("SELECT lognr, message FROM messages ORDER BY lognr").fetchall()
+        mark = (
+            db.execute("SELECT value FROM meta WHERE key = 'whole_up_to_lognr'").fetchone()
+            if _has_meta(db)
+            else None
+        )
     except sqlite3.OperationalError as exc:
         raise OtherDatabase(
             f"{file}: not a controller log file ({exc}): a SQLite database of another kind"
         ) from exc
     except sqlite3.DatabaseError as exc:
+        if _sqlite_header(file):
+            raise NotALogFile(
+                f"{file}: a damaged file ({exc}): it was cut or overwritten, and what it "
+                "held cannot be read; replay another controller's log file"
+            ) from exc
         raise NotALogFile(
             f"{file}: not a controller log file ({exc}); give a controller's --log-file "
             "(the testbed keeps them as controller-N-log.sqlite in its workdir)"
         ) from exc
     finally:
         db.close()
+    whole_up_to = None if mark is None else int(mark[0])
     messages = []
     for lognr, blob in rows:
+        if whole_up_to is not None and lognr > whole_up_to:
+            break
         try:
             message = ring_pb2.LogMessage.FromString(blob)
         except DecodeError as exc:
@@ -210,4 +363,17 @@ def read_log(path: str | Path) -> list[ring_pb2.LogMessage]:
         if message.lognr != lognr:
             raise NotALogFile(f"{file}: row {lognr} holds log message {message.lognr}")
         messages.append(message)
-    return messages
+    return SavedLog(messages, whole_up_to)
+
+
+def _sqlite_header(file: Path) -> bool:
+    """Whether ``file`` begins as a SQLite database does (one that then fails to read is
+    damaged: cut or overwritten)."""
+    with file.open("rb") as opened:
+        return opened.read(16) == b"SQLite format 3\x00"
+
+
+def _has_meta(db: sqlite3.Connection) -> bool:
+    """Whether the file has the ``meta`` table (files written before it was kept do not)."""
+    row = db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'meta'")
+    return row.fetchone() is not None

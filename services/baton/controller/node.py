@@ -344,6 +344,7 @@ class ControllerNode:
     async def _watch(self) -> None:
         """Every half second: stalls into the status, and into the log when they begin."""
         while True:
+            self.history.poll()  # a failed checkpoint is said within this period
             now = time.monotonic()
             judge = controller_judge(
                 self.config.handover_policy.name != "none",

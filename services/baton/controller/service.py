@@ -334,6 +334,7 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         routed_around=node.routed_around,
         standby_up=node.standby_up,
         answered_from_retained=node.answered_from_retained,
+        log_file=node.history.status(),
         handovers=[
             ring_pb2.ControllerHandover(
                 role=h.role,

@@ -1088,8 +1088,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             master_connected=self.streams.master_connected,
             controllers=seq.controllers,
             vehicle=self.vehicle.link(),
-            waiting=self.waiting,
-            waits=[w.to_proto() for w in self.waits],
+            waiting="; ".join(
+                filter(None, (self.waiting, self.store.problem if self.store else ""))
+            ),
+            waits=[w.to_proto() for w in self.waits]
+            + (
+                [Wait("state file", self.store.problem, 0.0).to_proto()]
+                if self.store is not None and self.store.problem
+                else []
+            ),
             watermark_reqnr=seq.cache.watermark,
             reachable=[c for c in seq.ring if c in self.standby.reachable],
             takeover_after_s=self.takeover_after_s,

@@ -25,13 +25,23 @@ being killed (the operating system keeps what was written); a power cut may
 lose the last transactions. ``synchronous=FULL`` would cost an fsync per
 request. Checkpoints run on a thread of their own (``baton.wal``), not in a
 request's commit.
+
+A write that fails (the disk full, an I/O error, a read-only file system) is
+kept, and tried again, in order, before the next write (``baton.durability``):
+every write replaces rows whole, so the first that succeeds makes the file
+whole again. Until one does, ``begin`` refuses the request UNAVAILABLE: a
+request executed with no intent on disk could be executed again by a drone
+restarted from the file. A failed ``served`` does not take back what was
+executed: its intent is on disk (a restart answers the request UNKNOWN, never
+executes it again), and the reply cache in memory answers a re-sent request.
 """
 
 from __future__ import annotations
 
 import json
 import sqlite3
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,9 +49,17 @@ from typing import Any
 from baton.drone.dedupe import CachedReply
 from baton.drone.safety import Failsafe
 from baton.drone.sequencer import AUDIT_IN_MEMORY
+from baton.durability import (
+    FileHealth,
+    Report,
+    drone_refusal,
+    write_failed,
+    write_succeeded,
+)
+from baton.logs import get_logger
 from baton.rpc.errors import StatusError, status_of
 from baton.v1 import drone_pb2
-from baton.wal import open_wal
+from baton.wal import describe_write_error, open_wal, roll_back
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS state (
@@ -156,6 +174,71 @@ class DroneStore:
             raise OSError(
                 f"drone state file {self.path} (--state): {exc}; give a writable path"
             ) from exc
+        self.health = FileHealth(str(self.path))
+        # Writes that failed, each with what it was, to be tried again first, in order.
+        self._unsaved: list[tuple[str, Callable[[], object]]] = []
+        self._log = get_logger("store", file=str(self.path))
+        # Whether failing checkpoints were said (once, until one succeeds again).
+        self._checkpoints_failing = False
+
+    @property
+    def problem(self) -> str:
+        """What GetStatus says while the file takes no writes ("" while it does)."""
+        refusal = drone_refusal(self.health)
+        return "" if refusal is None else refusal.message
+
+    def _write(self, what: str, write: Callable[[], object], keep: bool = True) -> bool:
+        """``write`` (one transaction) after the failed ones; False if any still fails.
+        ``keep``: a write that fails is tried again before the next (not an intent: its
+        request is refused, and no record of it may appear later)."""
+        self._watch_checkpoints()
+        entry = (what, write)
+        self._unsaved.append(entry)
+        written = self._write_through()
+        if not written and not keep:
+            self._unsaved.remove(entry)
+        return written
+
+    def _watch_checkpoints(self) -> None:
+        """Failing checkpoints, said once: the file's disk is filling, though commits
+        still reach its write-ahead log (and a drone restarted reads them from there)."""
+        failed = self._checkpointer.failed
+        if failed and not self._checkpoints_failing:
+            self._log.error(
+                f"checkpoints of {self.path} fail: {failed}; requests are still written to "
+                f"{self.path.name}-wal while its disk has room, then refused",
+                file=str(self.path),
+                error=failed,
+            )
+        elif not failed and self._checkpoints_failing:
+            self._log.info(f"checkpoints of {self.path} succeed again", file=str(self.path))
+        self._checkpoints_failing = bool(failed)
+
+    def _write_through(self) -> bool:
+        while self._unsaved:
+            what, write = self._unsaved[0]
+            try:
+                write()
+            except sqlite3.Error as exc:
+                roll_back(self._db)
+                self.health, reports = write_failed(
+                    self.health,
+                    what,
+                    describe_write_error(self.path, exc),
+                    time.time(),
+                    "the drone refuses new requests until a write succeeds (it tries again at "
+                    "each request), so that none can be executed twice after a restart",
+                )
+                self._report(reports)
+                return False
+            del self._unsaved[0]
+        self.health, reports = write_succeeded(self.health, time.time())
+        self._report(reports)
+        return True
+
+    def _report(self, reports: Sequence[Report]) -> None:
+        for report in reports:
+            getattr(self._log, report.level)(report.text, **report.fields)
 
     def close(self) -> None:
         """Closes the file."""
@@ -213,10 +296,14 @@ class DroneStore:
 
     def save_policy(self, memory: PolicyMemory) -> None:
         """The policy runner's memory, replacing what was kept (one statement: atomic)."""
-        self._db.execute(
-            "INSERT OR REPLACE INTO policy (id, leg, held, resumes) VALUES (1, ?, ?, ?)",
-            (memory.leg, int(memory.held), memory.resumes),
-        )
+
+        def write() -> None:
+            self._db.execute(
+                "INSERT OR REPLACE INTO policy (id, leg, held, resumes) VALUES (1, ?, ?, ?)",
+                (memory.leg, int(memory.held), memory.resumes),
+            )
+
+        self._write("the policy's memory", write)
 
     def save_failsafe(self, failsafe: Failsafe | None) -> None:
         """The failsafe the vehicle is in (None: cleared): a restarted drone keeps refusing
@@ -231,13 +318,17 @@ class DroneStore:
     def save_commanded(self, key: str, value: Any) -> None:
         """Commanded state the vehicle must get again after a restart of the drone or the
         autopilot (the mission's cruise speed, the failsafe), as JSON; None forgets it."""
-        with self._transaction():
-            if value is None:
-                self._db.execute("DELETE FROM commanded WHERE key = ?", (key,))
-            else:
-                self._db.execute(
-                    "INSERT OR REPLACE INTO commanded VALUES (?, ?)", (key, json.dumps(value))
-                )
+
+        def write() -> None:
+            with self._transaction():
+                if value is None:
+                    self._db.execute("DELETE FROM commanded WHERE key = ?", (key,))
+                else:
+                    self._db.execute(
+                        "INSERT OR REPLACE INTO commanded VALUES (?, ?)", (key, json.dumps(value))
+                    )
+
+        self._write(f"the commanded {key}", write)
 
     def load_commanded(self) -> dict[str, Any]:
         """Everything ``save_commanded`` kept, by key."""
@@ -259,24 +350,33 @@ class DroneStore:
 
     def begin(self, intent: Intent, answers: Sequence[CachedReply] = ()) -> None:
         """Notes the request about to be executed, with the calls its master answered
-        itself that came with it (kept for a taker whatever happens next)."""
-        with self._transaction():
-            self._put(answers)
-            self._db.execute(
-                "INSERT OR REPLACE INTO executing (id, reqnr, method, digest, controller_id, "
-                "received_at) VALUES (1, ?, ?, ?, ?, ?)",
-                (
-                    intent.reqnr,
-                    intent.method,
-                    intent.digest,
-                    intent.controller_id,
-                    intent.received_at,
-                ),
-            )
+        itself that came with it (kept for a taker whatever happens next). Raises
+        StatusError UNAVAILABLE if the file takes no writes: the request must not be
+        executed."""
+
+        def write() -> None:
+            with self._transaction():
+                self._put(answers)
+                self._db.execute(
+                    "INSERT OR REPLACE INTO executing (id, reqnr, method, digest, "
+                    "controller_id, received_at) VALUES (1, ?, ?, ?, ?, ?)",
+                    (
+                        intent.reqnr,
+                        intent.method,
+                        intent.digest,
+                        intent.controller_id,
+                        intent.received_at,
+                    ),
+                )
+
+        if not self._write(f"the intent of request {intent.reqnr}", write, keep=False):
+            refusal = drone_refusal(self.health)
+            assert refusal is not None
+            raise refusal
 
     def abandon(self) -> None:
         """The request noted by ``begin`` executed nothing (its reqnr stays unused)."""
-        self._db.execute("DELETE FROM executing")
+        self._write("an abandoned intent", lambda: self._db.execute("DELETE FROM executing"))
 
     def served(
         self,
@@ -286,15 +386,19 @@ class DroneStore:
         oldest_cached: int,
     ) -> None:
         """A request's outcome, its audit entry and the counters, in one transaction."""
-        with self._transaction():
-            self._put([reply])
-            self._db.execute("DELETE FROM replies WHERE reqnr < ?", (oldest_cached,))
-            self._db.execute(
-                "INSERT OR REPLACE INTO audit VALUES (?, ?)",
-                (audit.reqnr, audit.SerializeToString()),
-            )
-            self._db.execute("DELETE FROM executing")
-            self._write_counters(counters)
+
+        def write() -> None:
+            with self._transaction():
+                self._put([reply])
+                self._db.execute("DELETE FROM replies WHERE reqnr < ?", (oldest_cached,))
+                self._db.execute(
+                    "INSERT OR REPLACE INTO audit VALUES (?, ?)",
+                    (audit.reqnr, audit.SerializeToString()),
+                )
+                self._db.execute("DELETE FROM executing")
+                self._write_counters(counters)
+
+        self._write(f"the outcome of request {reply.reqnr}", write)
 
     def _put(self, replies: Sequence[CachedReply]) -> None:
         self._db.executemany(
@@ -316,8 +420,12 @@ class DroneStore:
 
     def save(self, counters: Counters) -> None:
         """The counters alone (a handover between requests)."""
-        with self._transaction():
-            self._write_counters(counters)
+
+        def write() -> None:
+            with self._transaction():
+                self._write_counters(counters)
+
+        self._write("the counters", write)
 
     def _write_counters(self, c: Counters) -> None:
         handovers = drone_pb2.DroneStatus(handovers=c.handovers).SerializeToString()

@@ -32,7 +32,7 @@ from typing import Any, cast
 import grpc
 import grpc.aio
 
-from baton.controller.history import read_log
+from baton.controller.history import read_saved_log
 from baton.controller.protocol import (
     ControllerProtocol,
     Diverged,
@@ -44,6 +44,7 @@ from baton.controller.protocol import (
     Unqueued,
 )
 from baton.controller.service import check_request
+from baton.durability import held_whole
 from baton.rpc.errors import StatusError, status_of
 from baton.rpc.methods import describe_request as describe
 from baton.rpc.methods import differing_fields, drone_api, path
@@ -96,7 +97,9 @@ class Divergence:
 class LogReplay:
     """A replica's REPLAY state holding a whole saved log, answering calls from it."""
 
-    def __init__(self, messages: list[ring_pb2.LogMessage]) -> None:
+    def __init__(self, messages: list[ring_pb2.LogMessage], whole_up_to: int | None = None) -> None:
+        # Set for a file its controller could not write to the end (``SavedLog``).
+        self.whole_up_to = whole_up_to
         expected = list(range(1, len(messages) + 1))
         lognrs = [m.lognr for m in messages]
         if lognrs != expected:
@@ -116,6 +119,21 @@ class LogReplay:
                 raise InconsistentLog(f"log message {message.lognr}: {exc}") from exc
             if message.entries:
                 self.logged_reqnr = message.entries[-1].reqnr
+
+    def _past_the_end(self) -> str:
+        """Why the log holds no more: a file cut by a failed write says what it lacks."""
+        ends = f"it ends at request {self.logged_reqnr}, in log message {self.protocol.lognr}"
+        if self.whole_up_to is not None:
+            return (
+                f"the file holds only {held_whole(self.whole_up_to)} whole ({ends}): its "
+                "controller could not write to it after that (its log and GetStatus name the "
+                f"error), so what the ring logged after request {self.logged_reqnr} is missing "
+                "here; replay another controller's log file"
+            )
+        return (
+            f"the program asks for more than the log holds ({ends}: a file saved before "
+            "the mission ended, or of a controller still catching up)"
+        )
 
     @staticmethod
     def _check(effects: list[Effect]) -> None:
@@ -137,11 +155,7 @@ class LogReplay:
         if self.protocol.state is not State.REPLAY:
             self._diverge(
                 Divergence(
-                    self.protocol.reqnr + 1,
-                    f"the program asks for more than the log holds (it ends at request "
-                    f"{self.logged_reqnr})",
-                    "",
-                    describe(method, request),
+                    self.protocol.reqnr + 1, self._past_the_end(), "", describe(method, request)
                 )
             )
         try:
@@ -439,7 +453,8 @@ def replay_log(path: Path, mission_file: str, pairs: list[str]) -> ReplayOutcome
     parameters that do not load.
     """
     started = time.perf_counter()
-    replay = LogReplay(read_log(path))
+    saved = read_saved_log(path)
+    replay = LogReplay(saved.messages, saved.whole_up_to)
     # Loaded anew for every log: module state of one replay must not leak into the next.
     mission = load_mission(mission_file)
     params = parse_params(mission, pairs)

@@ -199,11 +199,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         default=[],
         metavar="KIND:PART@WHEN[,for=DURATION]",
         help="inject a fault, repeatable: kill (kill -9), stop (SIGSTOP, then SIGCONT after "
-        "for=) or cut (a link emulator: link-ring-N, link-drone-N) of a part (controller-N, "
+        "for=), cut (a link emulator: link-ring-N, link-drone-N) or full (controller-N's disk "
+        "fills: its log file can grow no more) of a part (controller-N, "
         "drone, sim-vehicle, a link) after the drone served request N (@reqnr=N) or at a "
         "time after the mission started (@t=30s); for=DURATION ends it (a killed part is "
         "restarted); e.g. kill:controller-1@reqnr=130, stop:controller-0@reqnr=60,for=20s, "
-        "cut:link-ring-1@reqnr=90,for=10s. Each is in the report with the mission's verdict",
+        "cut:link-ring-1@reqnr=90,for=10s, full:controller-1@reqnr=40. Each is in the report "
+        "with the mission's verdict",
     )
     parser.add_argument(
         "--gcs",

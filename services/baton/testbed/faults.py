@@ -9,6 +9,10 @@ A fault is ``KIND:PART@WHEN[,for=DURATION]``:
 - ``cut:link-ring-1@t=30s,for=10s``: the link emulator in front of a controller
   (``link-ring-N``) or between it and the drone (``link-drone-N``) stops, every
   connection through it breaks, and it is started again on its address 10 s later.
+- ``full:controller-1@reqnr=20,for=10s``: the controller's disk fills: its log
+  file (``--log-file``; the drone's: its state file) takes no more bytes, and
+  every write that would grow it fails with EFBIG as a full disk fails it with
+  ENOSPC (``fill_disk``); 10 s later the disk has room again.
 
 WHEN is ``reqnr=N`` (the drone's ``last_reqnr``, polled) or ``t=DURATION`` (after
 the mission's start: once every controller runs). Without ``for=`` a stop or a
@@ -22,9 +26,11 @@ from __future__ import annotations
 
 import asyncio
 import re
+import resource
 import time
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from baton.config import parse_duration
@@ -32,7 +38,7 @@ from baton.config import parse_duration
 if TYPE_CHECKING:
     from baton.testbed.local import LocalTestbed
 
-FAULT_KINDS = ("kill", "stop", "cut")
+FAULT_KINDS = ("kill", "stop", "cut", "full")
 FAULT_EXAMPLE = (
     "kill:controller-1@reqnr=130, stop:controller-0@reqnr=60,for=20s or "
     "cut:link-ring-1@t=30s,for=10s"
@@ -40,6 +46,28 @@ FAULT_EXAMPLE = (
 _PART = re.compile(r"^(sim-vehicle|sitl|drone|(controller|link-ring|link-drone)-\d+)$")
 # How often the injector reads the drone's last request number.
 POLL_S = 0.05
+# What a part filled by ``full`` may still write to its own log (stdout), bytes: its
+# log lines, the error about the full disk among them, still reach a person.
+LOG_ROOM = 1 << 20
+
+
+def fill_disk(pid: int, files: Collection[Path], own_log: Path) -> int:
+    """Makes the disk of ``files`` full for process ``pid``: RLIMIT_FSIZE set to the
+    largest of them, so that no write of ``pid`` grows them any more (EFBIG; Python
+    ignores SIGXFSZ), while its own log keeps ``LOG_ROOM``. Returns the limit.
+
+    The limit is the process's, on every file it writes, not a file system's: the
+    closest to a full disk that needs no root (a tmpfs needs a mount)."""
+    sizes = [path.stat().st_size for path in files if path.exists()]
+    own = own_log.stat().st_size if own_log.exists() else 0
+    limit = max([*sizes, own + LOG_ROOM])
+    resource.prlimit(pid, resource.RLIMIT_FSIZE, (limit, resource.RLIM_INFINITY))
+    return limit
+
+
+def free_disk(pid: int) -> None:
+    """Ends ``fill_disk``: writes of ``pid`` may grow files again."""
+    resource.prlimit(pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
 
 
 @dataclass(frozen=True)
@@ -81,6 +109,11 @@ def parse_fault(text: str) -> Fault:
         raise bad(
             f"unknown part {part!r}: expected controller-N, link-ring-N, link-drone-N, drone, "
             "sim-vehicle or sitl"
+        )
+    if kind == "full" and not (part == "drone" or part.startswith("controller-")):
+        raise bad(
+            f"full is for a controller's log file (controller-N) or the drone's state file "
+            f"(drone), not {part}"
         )
     if kind == "cut" and not part.startswith("link-"):
         raise bad(
@@ -259,6 +292,16 @@ class FaultInjector:
         elif fault.kind == "stop":
             testbed.supervisor.freeze(fault.part)
             what = f"stopped {fault.part} (SIGSTOP)"
+        elif fault.kind == "full":
+            durable = (
+                testbed.drone_state
+                if fault.part == "drone"
+                else testbed.controller_log(int(fault.part.rsplit("-", 1)[1]))
+            )
+            wal = durable.with_name(durable.name + "-wal")
+            assert part.process is not None
+            limit = fill_disk(part.process.pid, [durable, wal], part.log_path)
+            what = f"filled the disk of {durable.name} ({limit} bytes a file)"
         else:
             await testbed.cut_link(fault.part)
             what = f"cut {fault.part}"
@@ -279,6 +322,11 @@ class FaultInjector:
             elif fault.kind == "cut":
                 await testbed.restore_link(fault.part)
                 what = f"{fault.part} restored"
+            elif fault.kind == "full":
+                part = testbed.supervisor.parts[fault.part]
+                assert part.process is not None
+                free_disk(part.process.pid)
+                what = f"the disk of {fault.part} has room again"
             else:
                 await testbed.restart_part(fault.part)
                 what = f"{fault.part} restarted"

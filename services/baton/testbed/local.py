@@ -594,7 +594,7 @@ class LocalTestbed:
         ready = self.workdir / "drone.address"
         # A new mission: no state and no pictures of an earlier run in this
         # workdir (a restarted drone of this run keeps them: the same argv).
-        state = self.workdir / "drone-state.sqlite"
+        state = self.drone_state
         camera_effects = self.workdir / CAMERA_EFFECTS_FILE
         remove_sqlite(state)
         camera_effects.unlink(missing_ok=True)
@@ -631,6 +631,11 @@ class LocalTestbed:
     def thumbnails_dir(self) -> Path:
         """Where the drone's camera keeps a thumbnail of each picture (``thumbnail_name``)."""
         return self.workdir / THUMBNAILS_DIR
+
+    @property
+    def drone_state(self) -> Path:
+        """The drone's state file (``--state``)."""
+        return self.workdir / "drone-state.sqlite"
 
     def controller_log(self, cid: int) -> Path:
         """Controller ``cid``'s log file (``--log-file``): what ``baton replay`` replays."""

@@ -545,6 +545,13 @@ def _controller(cid: int, c: ring_pb2.ControllerStatus) -> dict[str, Any]:
         "invoked": c.invoked,
         "replayed": c.replayed,
         "reply_chain": c.reply_chain.hex(),
+        # Its log file; once a write failed, what the file still holds (docs/operating.md).
+        "log_file": {
+            "path": c.log_file.path,
+            "durable": c.log_file.durable,
+            "error": c.log_file.error,
+            "whole_up_to_lognr": c.log_file.whole_up_to_lognr if not c.log_file.durable else None,
+        },
     }
 
 
@@ -671,6 +678,12 @@ def summary_table(report: dict[str, Any]) -> str:
         )
         if c["mission_error"]:
             lines.append(f"{'':>10} error: {c['mission_error']}")
+        log_file = c.get("log_file")
+        if log_file and not log_file["durable"]:
+            lines.append(
+                f"{'':>10} log file NOT DURABLE: whole up to log message "
+                f"{log_file['whole_up_to_lognr']} ({log_file['error']})"
+            )
     if "waits" in report:  # the run's waits (Progress's WaitLog): quiet, then loud
         lines += ["", *report_lines(report["waits"])]
     return "\n".join(lines)

@@ -113,6 +113,11 @@ class Progress:
             vehicle += f" | PAUSED: {drone.paused.reason}"
         if drone.HasField("ended"):
             vehicle += f" | ENDED: {drone.ended.reason}"
+        vehicle += "".join(
+            f" | c{cid} log file NOT DURABLE (whole up to {c.log_file.whole_up_to_lognr})"
+            for cid, c in sorted(snapshot.controllers.items())
+            if c.log_file.path and not c.log_file.durable
+        )
         vehicle += waits_line(waits)
         print(
             f"{self._stamp()} "
