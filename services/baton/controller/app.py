@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import datetime
 import os
 import secrets
 import sys
+from pathlib import Path
 
+from baton.authenticity import AuthenticityError, ReplyVerifier
 from baton.config import BatonConfig
 from baton.controller.node import ControllerNode
 from baton.controller.service import ControllerRingService, mission_port, ring_receiver
@@ -14,11 +17,24 @@ from baton.lifecycle import announce, run_until_signalled
 from baton.rpc.methods import service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.server import BatonServer, servicer
-from baton.rpc.tls import INSECURE_WARNING, Identity
+from baton.rpc.tls import DRONE, INSECURE_WARNING, Identity, Tls, TlsError
 from baton.v1 import ring_pb2_grpc
 
 # How long a mission program has to end after SIGTERM before it is killed.
 MISSION_STOP_GRACE_S = 2.0
+
+
+def drone_verifier(certs: Path, tls: Tls) -> ReplyVerifier:
+    """The drone's signature check, from ``drone.crt`` in the certificate folder checked
+    against the mission's CA now; TlsError naming the file and the fix otherwise."""
+    pem = Tls.read_certificate(certs, DRONE)
+    try:
+        return ReplyVerifier.from_pem(pem, tls.ca, datetime.datetime.now(datetime.UTC))
+    except (AuthenticityError, ValueError) as exc:
+        raise TlsError(
+            f"{certs / (DRONE.name + '.crt')}: {exc}; make the drone's certificate "
+            f"with `baton certs issue {certs} drone` and copy drone.crt to every controller"
+        ) from None
 
 
 class ControllerApp:
@@ -38,6 +54,8 @@ class ControllerApp:
         self.node = ControllerNode(config, cid, log_file, tls)
         if tls is None:
             self.node.log.warning(INSECURE_WARNING)
+        else:
+            self.node.core.verifier = drone_verifier(config.tls.certs, tls)
         # The mission program's token (rpc/mission.py): given in the environment
         # (a program started by hand), else made up for the program started here.
         self.token = os.environ.get(MISSION_TOKEN_ENV) or (

@@ -333,6 +333,8 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         routed_around=node.routed_around,
         standby_up=node.standby_up,
         answered_from_retained=node.answered_from_retained,
+        refused_messages=node.core.refused_messages,
+        last_refused=node.core.last_refused,
         handovers=[
             ring_pb2.ControllerHandover(
                 role=h.role,

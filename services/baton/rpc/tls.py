@@ -120,6 +120,21 @@ class Tls:
         ca, cert, key = contents
         return cls(identity, ca, cert, key)
 
+    @staticmethod
+    def read_certificate(directory: str | Path, identity: Identity) -> bytes:
+        """Another part's certificate (``NAME.crt``, public) from ``directory``: a
+        controller checks the drone's signatures against it (baton.authenticity)."""
+        path = Path(directory) / f"{identity.name}.crt"
+        try:
+            return path.read_bytes()
+        except OSError as exc:
+            raise TlsError(
+                f"{path}: cannot read the {identity.name} certificate ({exc.strerror}); "
+                f"every controller checks the {identity.name}'s signatures against it: "
+                f"copy {identity.name}.crt (not its key) into {directory}, or make the "
+                f"folder with `baton certs init {directory}`"
+            ) from None
+
     def server_credentials(self) -> grpc.ServerCredentials:
         """A server that requires a client certificate signed by the mission's CA."""
         return grpc.ssl_server_credentials(
