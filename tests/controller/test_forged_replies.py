@@ -1,0 +1,136 @@
+"""Issue 33 across real processes under mutual TLS: a station holding a valid certificate
+cannot invent or alter what the drone answered (baton.authenticity). Its forged log
+messages are refused and named by the receiver, and the mission completes exactly once
+(counted where the effects happen) with every replica's program seeing the same replies."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises
+from waiting import eventually
+
+from baton.authenticity import needs_drone_signature
+from baton.controller.history import read_log
+from baton.controller.ring import frames
+from baton.digest import request_digest
+from baton.rpc.channels import aio_channel
+from baton.rpc.methods import path
+from baton.rpc.tls import DRONE, Identity, Tls
+from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
+
+GET_POSITION = path("Mobility.GetPosition")
+
+
+def signed_message(log: Path) -> ring_pb2.LogMessage | None:
+    """The newest message of a controller's log file with a reply the drone signed."""
+    for message in reversed(read_log(log)):
+        if any(needs_drone_signature(e) and e.drone_signature for e in message.entries):
+            return message
+    return None
+
+
+async def send_forged(
+    address: str, station: Tls, receiver: int, forge: list[ring_pb2.LogMessage]
+) -> ring_pb2.LogAck:
+    """Sends each of ``forge`` (numbered from what the receiver's hello says it holds, + 1)
+    on a LogRing stream from ``station``'s certificate, waits for each acknowledgement
+    (a refused message is acknowledged too: it is dropped, not asked again) and returns
+    the hello."""
+    async with aio_channel(address, station, Identity.controller(receiver)) as channel:
+        call = ring_pb2_grpc.ControllerRingStub(channel).LogRing()
+        hello = await call.read()
+        assert isinstance(hello, ring_pb2.LogAck) and hello.hello
+        for message in forge:
+            message.lognr = hello.lognr + 1
+            for frame in frames(message, station.identity.number or 0):
+                await call.write(frame)
+            while True:
+                ack = await call.read()
+                assert isinstance(ack, ring_pb2.LogAck), ack
+                if ack.lognr == message.lognr:
+                    break
+        await call.done_writing()
+        return hello
+
+
+async def test_forged_and_altered_replies_on_the_ring_are_refused_and_the_mission_flies_once(
+    tmp_path: Path,
+) -> None:
+    plan = TestbedPlan(
+        config=local_config(
+            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
+        mission=SMALL_GRID,
+    )
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        config = testbed.config
+        assert config is not None and testbed.tls is not None
+        victim = 2  # controller 1's successor: a LogRing stream from 1 is its to take
+
+        async def signed_in_log() -> ring_pb2.LogMessage | None:
+            return await asyncio.to_thread(signed_message, testbed.controller_log(victim))
+
+        genuine = await eventually(signed_in_log, "a drone-signed reply in the log", 120)
+        station = Tls.load(config.tls.certs, Identity.controller(1))  # stolen from a mast
+
+        # Invented replies: GetPosition answered with a place the drone never was.
+        made_up = api.Position(latitude_deg=1.0, longitude_deg=2.0).SerializeToString()
+        digest = request_digest(GET_POSITION, b"")
+        last = max(e.reqnr for e in genuine.entries)
+        invented = ring_pb2.LogMessage(
+            origin=genuine.origin,
+            sender=genuine.sender,
+            epoch=genuine.epoch,
+            entries=[
+                ring_pb2.LogEntry(
+                    reqnr=last + n, method=GET_POSITION, reply=made_up, request_digest=digest
+                )
+                for n in (1, 2)
+            ],
+        )
+        # An altered entry: a real message with the drone's signature, its reply changed.
+        altered = ring_pb2.LogMessage()
+        altered.CopyFrom(genuine)
+        signed = next(e for e in altered.entries if e.drone_signature)
+        signed.reply = made_up
+        # A replayed old frame: the real message again, as the ring carried it (held
+        # already by its log number, and its signatures are the drone's: ignored).
+        replayed = ring_pb2.LogMessage()
+        replayed.CopyFrom(genuine)
+
+        address = config.controller(victim).address
+        await send_forged(address, station, victim, [invented, altered])
+        async with aio_channel(address, station, Identity.controller(victim)) as channel:
+            ring = ring_pb2_grpc.ControllerRingStub(channel)
+            status = await ring.GetStatus(ring_pb2.GetControllerStatusRequest())
+            assert status.refused_messages == 2, status
+            assert "relayed by controller 1" in status.last_refused, status.last_refused
+            assert f"request {signed.reqnr} ({signed.method})" in status.last_refused
+            # The replay, numbered as it was: taken for what it is, changing nothing.
+            call = ring.LogRing()
+            hello = await call.read()
+            assert isinstance(hello, ring_pb2.LogAck) and hello.lognr >= replayed.lognr
+            for frame in frames(replayed, 1):
+                await call.write(frame)
+            ack = await call.read()
+            assert isinstance(ack, ring_pb2.LogAck) and ack.lognr == replayed.lognr
+            await call.done_writing()
+            status = await ring.GetStatus(ring_pb2.GetControllerStatusRequest())
+            assert status.refused_messages == 2, status
+
+        # An operator hands over to the victim, whose log the forgeries did not touch.
+        async with aio_channel(config.drone.address, testbed.tls, DRONE) as channel:
+            moved = await drone_pb2_grpc.DroneStub(channel).Handover(
+                drone_pb2.HandoverRequest(new_master=victim)
+            )
+            assert moved.new_master == victim
+        snapshot = await testbed.run_mission(240)
+    assert_mission_promises(snapshot, plan)
+    assert snapshot.drone.master == victim
+    # Every genuine message, handovers included, passed every controller's check.
+    refused = {cid: c.refused_messages for cid, c in snapshot.controllers.items()}
+    assert refused == {0: 0, 1: 0, victim: 2}, refused
