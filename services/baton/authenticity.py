@@ -29,7 +29,7 @@ from __future__ import annotations
 import datetime
 import hashlib
 import struct
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -46,6 +46,7 @@ from baton.v1 import drone_pb2, ring_pb2
 # Names what the bytes mean, so a signature over a reply is never taken for one
 # over anything else the drone's key may sign later.
 REPLY_TAG = b"baton.v1 drone reply\0"
+MESSAGE_TAG = b"baton.v1 log message\0"
 _CLOCK = service_prefix("Clock")
 
 SigningKey = ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey
@@ -88,25 +89,72 @@ def _verify(key: VerifyingKey, signature: bytes, data: bytes) -> bool:
     return True
 
 
+def message_statement(message: ring_pb2.LogMessage) -> bytes:
+    """The canonical bytes a controller signs for a log message it creates: what it says
+    of itself (sender, log number, epoch, where it follows) and every entry, each with
+    the drone's word on it. Not its origin or handover flag: a handover message's new
+    master sends it on as a normal message with itself as origin, and a history keeps
+    it without the flag; only the drone's word makes a controller master."""
+    parts = [
+        MESSAGE_TAG,
+        struct.pack(
+            ">iQQ?QQdI",
+            message.sender,
+            message.lognr,
+            message.epoch,
+            message.HasField("after_reqnr"),
+            message.after_reqnr,
+            message.after_epoch,
+            message.created_at,
+            len(message.entries),
+        ),
+    ]
+    for entry in message.entries:
+        method, status = entry.method.encode(), entry.status_message.encode()
+        parts += [
+            struct.pack(
+                ">QiI?QI",
+                entry.reqnr,
+                entry.status_code,
+                len(method),
+                entry.given_up,
+                entry.drone_epoch,
+                len(status),
+            ),
+            method,
+            status,
+            hashlib.sha256(entry.request_digest).digest(),
+            hashlib.sha256(entry.reply).digest(),
+            hashlib.sha256(entry.request).digest(),
+            hashlib.sha256(entry.drone_signature).digest(),
+        ]
+    return b"".join(parts)
+
+
 @dataclass(frozen=True)
-class ReplySigner:
-    """The drone's key, signing what it answers."""
+class Signer:
+    """A part's own key: the drone signs its replies, a controller its log messages."""
 
     key: SigningKey
 
     @classmethod
-    def from_pem(cls, key_pem: bytes) -> ReplySigner:
-        """From the drone's private key (``drone.key`` of its certificate folder)."""
+    def from_pem(cls, key_pem: bytes) -> Signer:
+        """From a part's private key (``NAME.key`` of its certificate folder)."""
         key = serialization.load_pem_private_key(key_pem, password=None)
         if not isinstance(key, ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey):
             raise AuthenticityError(
-                f"the drone's key is {type(key).__name__}; replies are signed with an "
-                "ECDSA or Ed25519 key (`baton certs init` makes ECDSA P-256)"
+                f"the key is {type(key).__name__}; baton signs with an ECDSA or Ed25519 "
+                "key (`baton certs init` makes ECDSA P-256)"
             )
         return cls(key)
 
     def sign(self, reqnr: int, epoch: int, method: str, digest: bytes, reply: bytes) -> bytes:
+        """The drone's signature of its reply to request ``reqnr``."""
         return _sign(self.key, reply_statement(reqnr, epoch, method, digest, reply))
+
+    def seal(self, message: ring_pb2.LogMessage) -> None:
+        """Signs a log message this controller created (``LogMessage.signature``)."""
+        message.signature = _sign(self.key, message_statement(message))
 
 
 def _names(cert: x509.Certificate) -> list[Identity]:
@@ -119,36 +167,38 @@ def _names(cert: x509.Certificate) -> list[Identity]:
 
 
 @dataclass(frozen=True)
-class ReplyVerifier:
-    """The drone's public key, from its certificate checked against the mission's CA."""
+class Verifier:
+    """One part's public key, from its certificate checked against the mission's CA."""
 
     key: VerifyingKey
 
     @classmethod
-    def from_pem(cls, cert_pem: bytes, ca_pem: bytes, now: datetime.datetime) -> ReplyVerifier:
-        """From the drone's certificate, once it is signed by the CA, valid at ``now``
-        and names the drone: a station's certificate would let that station sign."""
+    def from_pem(
+        cls, cert_pem: bytes, ca_pem: bytes, now: datetime.datetime, who: Identity = DRONE
+    ) -> Verifier:
+        """From ``who``'s certificate, once it is signed by the CA, valid at ``now`` and
+        names ``who``: another part's certificate would let that part sign as ``who``."""
         cert = x509.load_pem_x509_certificate(cert_pem)
         ca = x509.load_pem_x509_certificate(ca_pem)
         try:
             cert.verify_directly_issued_by(ca)
         except (ValueError, TypeError, InvalidSignature):
             raise AuthenticityError(
-                "the drone's certificate is not signed by the mission's CA (ca.crt)"
+                f"the {who.name} certificate is not signed by the mission's CA (ca.crt)"
             ) from None
         if not cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
             raise AuthenticityError(
-                f"the drone's certificate is valid from {cert.not_valid_before_utc} to "
+                f"the {who.name} certificate is valid from {cert.not_valid_before_utc} to "
                 f"{cert.not_valid_after_utc}, not at {now}"
             )
         names = _names(cert)
-        if DRONE not in names:
+        if who not in names:
             named = ", ".join(map(str, names)) or "no baton identity"
-            raise AuthenticityError(f"the drone's certificate names {named}, not {DRONE}")
+            raise AuthenticityError(f"the {who.name} certificate names {named}, not {who}")
         key = cert.public_key()
         if not isinstance(key, ec.EllipticCurvePublicKey | ed25519.Ed25519PublicKey):
             raise AuthenticityError(
-                f"the drone's certificate holds a {type(key).__name__}; replies are signed "
+                f"the {who.name} certificate holds a {type(key).__name__}; baton signs "
                 "with an ECDSA or Ed25519 key"
             )
         return cls(key)
@@ -162,6 +212,36 @@ class ReplyVerifier:
             entry.reqnr, entry.drone_epoch, entry.method, entry.request_digest, entry.reply
         )
         return _verify(self.key, entry.drone_signature, statement)
+
+    def verify_message(self, message: ring_pb2.LogMessage) -> bool:
+        """Whether ``message`` carries its creator's signature (``Signer.seal``)."""
+        return _verify(self.key, message.signature, message_statement(message))
+
+
+@dataclass(frozen=True)
+class Keys:
+    """What a controller checks log messages against: the drone's key and every
+    controller's of the ring, from their certificates."""
+
+    drone: Verifier
+    controllers: Mapping[int, Verifier]
+
+
+def refusal(keys: Keys, message: ring_pb2.LogMessage) -> str | None:
+    """Why ``message`` is not what its creator and the drone said, or None if it is.
+
+    Its creator's signature first (``LogMessage.sender``, a controller of the ring):
+    a relay can pass a message on but not make one in another's name or change it;
+    then the drone's on every reply it made: its creator cannot invent one."""
+    creator = keys.controllers.get(message.sender)
+    if creator is None:
+        return f"its creator, controller {message.sender}, is not one of the ring"
+    if not creator.verify_message(message):
+        return f"it has no valid signature of its creator, controller {message.sender}"
+    entry = unsigned_reply(keys.drone, message.entries)
+    if entry is not None:
+        return f"request {entry.reqnr} ({entry.method}) has no valid drone signature"
+    return None
 
 
 class _Outcome(Protocol):
@@ -180,7 +260,7 @@ def needs_drone_signature(outcome: _Outcome) -> bool:
 
 
 def signed_reply(
-    signer: ReplySigner | None,
+    signer: Signer | None,
     reqnr: int,
     epoch: int,
     method: str,
@@ -196,7 +276,7 @@ def signed_reply(
 
 
 def signed_retained(
-    signer: ReplySigner | None, kept: drone_pb2.RetainedReply
+    signer: Signer | None, kept: drone_pb2.RetainedReply
 ) -> drone_pb2.RetainedReply:
     """A retained reply as the drone gives it to a taker: signed if the drone made it."""
     if signer is not None and needs_drone_signature(kept):
@@ -207,7 +287,7 @@ def signed_retained(
 
 
 def unsigned_reply(
-    verifier: ReplyVerifier, entries: Iterable[ring_pb2.LogEntry]
+    verifier: Verifier, entries: Iterable[ring_pb2.LogEntry]
 ) -> ring_pb2.LogEntry | None:
     """The first entry whose reply needs the drone's signature and lacks a valid one."""
     for entry in entries:

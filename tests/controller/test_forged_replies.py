@@ -6,12 +6,13 @@ messages are refused and named by the receiver, and the mission completes exactl
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from pathlib import Path
 
 from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises
 from waiting import eventually
 
-from baton.authenticity import needs_drone_signature
+from baton.authenticity import Signer, needs_drone_signature
 from baton.controller.history import read_log
 from baton.controller.ring import frames
 from baton.digest import request_digest
@@ -33,28 +34,34 @@ def signed_message(log: Path) -> ring_pb2.LogMessage | None:
     return None
 
 
-async def send_forged(
-    address: str, station: Tls, receiver: int, forge: list[ring_pb2.LogMessage]
-) -> ring_pb2.LogAck:
-    """Sends each of ``forge`` (numbered from what the receiver's hello says it holds, + 1)
-    on a LogRing stream from ``station``'s certificate, waits for each acknowledgement
-    (a refused message is acknowledged too: it is dropped, not asked again) and returns
-    the hello."""
+async def send(
+    address: str,
+    station: Tls,
+    receiver: int,
+    message: ring_pb2.LogMessage,
+    renumber: bool,
+    seal: Callable[[ring_pb2.LogMessage], None] | None = None,
+) -> None:
+    """Sends ``message`` on a LogRing stream from ``station``'s certificate (numbered
+    after what the receiver's hello says it holds if ``renumber``, then ``seal``ed) and
+    waits for its acknowledgement: a refused message is acknowledged too (dropped, not
+    asked again)."""
     async with aio_channel(address, station, Identity.controller(receiver)) as channel:
         call = ring_pb2_grpc.ControllerRingStub(channel).LogRing()
         hello = await call.read()
         assert isinstance(hello, ring_pb2.LogAck) and hello.hello
-        for message in forge:
+        if renumber:
             message.lognr = hello.lognr + 1
-            for frame in frames(message, station.identity.number or 0):
-                await call.write(frame)
-            while True:
-                ack = await call.read()
-                assert isinstance(ack, ring_pb2.LogAck), ack
-                if ack.lognr == message.lognr:
-                    break
+        if seal is not None:
+            seal(message)
+        for frame in frames(message, station.identity.number or 0):
+            await call.write(frame)
+        while True:
+            ack = await call.read()
+            assert isinstance(ack, ring_pb2.LogAck), ack
+            if ack.lognr == message.lognr:
+                break
         await call.done_writing()
-        return hello
 
 
 async def test_forged_and_altered_replies_on_the_ring_are_refused_and_the_mission_flies_once(
@@ -76,15 +83,23 @@ async def test_forged_and_altered_replies_on_the_ring_are_refused_and_the_missio
 
         genuine = await eventually(signed_in_log, "a drone-signed reply in the log", 120)
         station = Tls.load(config.tls.certs, Identity.controller(1))  # stolen from a mast
+        stolen_key = Signer.from_pem(station.key)
 
-        # Invented replies: GetPosition answered with a place the drone never was.
+        def copy(message: ring_pb2.LogMessage) -> ring_pb2.LogMessage:
+            copied = ring_pb2.LogMessage()
+            copied.CopyFrom(message)
+            return copied
+
+        # Invented replies in its own name, signed with its own key: GetPosition
+        # answered with a place the drone never was.
         made_up = api.Position(latitude_deg=1.0, longitude_deg=2.0).SerializeToString()
         digest = request_digest(GET_POSITION, b"")
         last = max(e.reqnr for e in genuine.entries)
         invented = ring_pb2.LogMessage(
-            origin=genuine.origin,
-            sender=genuine.sender,
+            origin=1,
+            sender=1,
             epoch=genuine.epoch,
+            after_reqnr=last,
             entries=[
                 ring_pb2.LogEntry(
                     reqnr=last + n, method=GET_POSITION, reply=made_up, request_digest=digest
@@ -92,35 +107,33 @@ async def test_forged_and_altered_replies_on_the_ring_are_refused_and_the_missio
                 for n in (1, 2)
             ],
         )
-        # An altered entry: a real message with the drone's signature, its reply changed.
-        altered = ring_pb2.LogMessage()
-        altered.CopyFrom(genuine)
-        signed = next(e for e in altered.entries if e.drone_signature)
-        signed.reply = made_up
-        # A replayed old frame: the real message again, as the ring carried it (held
-        # already by its log number, and its signatures are the drone's: ignored).
-        replayed = ring_pb2.LogMessage()
-        replayed.CopyFrom(genuine)
-
+        # A real message of the master with a reply changed.
+        altered = copy(genuine)
+        next(e for e in altered.entries if e.drone_signature).reply = made_up
+        # The master's message again under the next log number, and one claiming a newer
+        # mastership in its name (log number 9999, a handover, 5 epochs on).
+        newer = copy(genuine)
+        newer.lognr, newer.handover, newer.epoch, newer.origin = 9999, True, genuine.epoch + 5, 2
         address = config.controller(victim).address
-        await send_forged(address, station, victim, [invented, altered])
+        cases = [
+            (invented, True, f"request {last + 1} (/baton.v1.Mobility/GetPosition) has no valid"),
+            (altered, True, "no valid signature of its creator, controller 0"),
+            (copy(genuine), True, "no valid signature of its creator, controller 0"),
+            (newer, False, "no valid signature of its creator, controller 0"),
+        ]
         async with aio_channel(address, station, Identity.controller(victim)) as channel:
             ring = ring_pb2_grpc.ControllerRingStub(channel)
+            for count, (message, renumber, why) in enumerate(cases, 1):
+                seal = stolen_key.seal if message is invented else None
+                await send(address, station, victim, message, renumber, seal)
+                status = await ring.GetStatus(ring_pb2.GetControllerStatusRequest())
+                assert status.refused_messages == count, status
+                assert "relayed by controller 1" in status.last_refused, status.last_refused
+                assert why in status.last_refused, status.last_refused
+            # A replayed old frame, numbered as it was: held already, and genuine.
+            await send(address, station, victim, copy(genuine), renumber=False)
             status = await ring.GetStatus(ring_pb2.GetControllerStatusRequest())
-            assert status.refused_messages == 2, status
-            assert "relayed by controller 1" in status.last_refused, status.last_refused
-            assert f"request {signed.reqnr} ({signed.method})" in status.last_refused
-            # The replay, numbered as it was: taken for what it is, changing nothing.
-            call = ring.LogRing()
-            hello = await call.read()
-            assert isinstance(hello, ring_pb2.LogAck) and hello.lognr >= replayed.lognr
-            for frame in frames(replayed, 1):
-                await call.write(frame)
-            ack = await call.read()
-            assert isinstance(ack, ring_pb2.LogAck) and ack.lognr == replayed.lognr
-            await call.done_writing()
-            status = await ring.GetStatus(ring_pb2.GetControllerStatusRequest())
-            assert status.refused_messages == 2, status
+            assert status.refused_messages == len(cases), status
 
         # An operator hands over to the victim, whose log the forgeries did not touch.
         async with aio_channel(config.drone.address, testbed.tls, DRONE) as channel:
@@ -133,4 +146,4 @@ async def test_forged_and_altered_replies_on_the_ring_are_refused_and_the_missio
     assert snapshot.drone.master == victim
     # Every genuine message, handovers included, passed every controller's check.
     refused = {cid: c.refused_messages for cid, c in snapshot.controllers.items()}
-    assert refused == {0: 0, 1: 0, victim: 2}, refused
+    assert refused == {0: 0, 1: 0, victim: 4}, refused

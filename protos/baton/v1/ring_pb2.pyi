@@ -316,6 +316,7 @@ class LogMessage(_message.Message):
     EPOCH_FIELD_NUMBER: _builtins.int
     AFTER_REQNR_FIELD_NUMBER: _builtins.int
     AFTER_EPOCH_FIELD_NUMBER: _builtins.int
+    SIGNATURE_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The log number, from 1."""
     origin: _builtins.int
@@ -347,6 +348,13 @@ class LogMessage(_message.Message):
     the same request (a fenced master's give-up of a request the drone
     executed for the taker): it rejoins with nothing, like for after_reqnr.
     """
+    signature: _builtins.bytes
+    """Its creator's signature (the sender's certificate key) over what it says
+    and its entries, not its origin or handover flag
+    (baton.authenticity.message_statement): every receiver checks it, so a
+    relay can pass a message on but not forge or change one; empty on an
+    insecure ring.
+    """
     @_builtins.property
     def entries(self) -> _containers.RepeatedCompositeFieldContainer[Global___LogEntry]:
         """The entries, by increasing reqnr; may be empty."""
@@ -363,10 +371,11 @@ class LogMessage(_message.Message):
         epoch: _builtins.int = ...,
         after_reqnr: _builtins.int | None = ...,
         after_epoch: _builtins.int = ...,
+        signature: _builtins.bytes = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_reqnr", b"after_reqnr"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_epoch", b"after_epoch", "after_reqnr", b"after_reqnr", "created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_epoch", b"after_epoch", "after_reqnr", b"after_reqnr", "created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender", "signature", b"signature"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__after_reqnr: _TypeAlias = _typing.Literal["after_reqnr"]  # noqa: Y015
     _WhichOneofArgType__after_reqnr: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr"]  # noqa: Y015

@@ -7,9 +7,8 @@ import datetime
 import os
 import secrets
 import sys
-from pathlib import Path
 
-from baton.authenticity import AuthenticityError, ReplyVerifier
+from baton.authenticity import AuthenticityError, Keys, Signer, Verifier
 from baton.config import BatonConfig
 from baton.controller.node import ControllerNode
 from baton.controller.service import ControllerRingService, mission_port, ring_receiver
@@ -24,17 +23,24 @@ from baton.v1 import ring_pb2_grpc
 MISSION_STOP_GRACE_S = 2.0
 
 
-def drone_verifier(certs: Path, tls: Tls) -> ReplyVerifier:
-    """The drone's signature check, from ``drone.crt`` in the certificate folder checked
-    against the mission's CA now; TlsError naming the file and the fix otherwise."""
-    pem = Tls.read_certificate(certs, DRONE)
-    try:
-        return ReplyVerifier.from_pem(pem, tls.ca, datetime.datetime.now(datetime.UTC))
-    except (AuthenticityError, ValueError) as exc:
-        raise TlsError(
-            f"{certs / (DRONE.name + '.crt')}: {exc}; make the drone's certificate "
-            f"with `baton certs issue {certs} drone` and copy drone.crt to every controller"
-        ) from None
+def ring_keys(config: BatonConfig, tls: Tls) -> Keys:
+    """The drone's and every ring controller's key, from ``NAME.crt`` in the certificate
+    folder, each checked against the mission's CA now; TlsError naming the file and the
+    fix otherwise."""
+    certs, now = config.tls.certs, datetime.datetime.now(datetime.UTC)
+
+    def key(who: Identity) -> Verifier:
+        pem = Tls.read_certificate(certs, who)
+        try:
+            return Verifier.from_pem(pem, tls.ca, now, who)
+        except (AuthenticityError, ValueError) as exc:
+            raise TlsError(
+                f"{certs / (who.name + '.crt')}: {exc}; make it with `baton certs issue "
+                f"{certs} {who.name}` and copy {who.name}.crt to every controller"
+            ) from None
+
+    controllers = {cid: key(Identity.controller(cid)) for cid in config.ring_order}
+    return Keys(key(DRONE), controllers)
 
 
 class ControllerApp:
@@ -55,7 +61,8 @@ class ControllerApp:
         if tls is None:
             self.node.log.warning(INSECURE_WARNING)
         else:
-            self.node.core.verifier = drone_verifier(config.tls.certs, tls)
+            self.node.core.keys = ring_keys(config, tls)
+            self.node.core.protocol.seal = Signer.from_pem(tls.key).seal
         # The mission program's token (rpc/mission.py): given in the environment
         # (a program started by hand), else made up for the program started here.
         self.token = os.environ.get(MISSION_TOKEN_ENV) or (

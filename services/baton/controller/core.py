@@ -37,7 +37,7 @@ from typing import Any
 
 import grpc
 
-from baton.authenticity import ReplyVerifier, unsigned_reply
+from baton.authenticity import Keys, refusal
 from baton.config import GAP_REPAIR_MAX_S
 from baton.controller.protocol import (
     ControllerProtocol,
@@ -379,9 +379,9 @@ class ControllerCore:
         # along with the next Invoke, so the drone keeps them for a taker.
         self.answered_here: list[ring_pb2.LogEntry] = []
         self.answered_from_retained = 0
-        # Checks the drone's signature of every reply a log message brings
-        # (baton.authenticity); None: insecure, a station's word is taken.
-        self.verifier: ReplyVerifier | None = None
+        # Checks every log message's creator's signature and the drone's of every
+        # reply it brings (baton.authenticity); None: insecure, a station's word is taken.
+        self.keys: Keys | None = None
         # The log messages refused for it, and the last refusal in words.
         self.refused_messages = 0
         self.last_refused = ""
@@ -391,7 +391,7 @@ class ControllerCore:
         fresh_self``), refusing the framing the drone replaced, if any."""
         fresh = ControllerCore(self.protocol.fresh_self(), self.cut_through, self.max_sleep_s)
         fresh.replaced = self.replaced
-        fresh.verifier = self.verifier
+        fresh.keys = self.keys
         fresh.refused_messages, fresh.last_refused = self.refused_messages, self.last_refused
         if self.replaced is not None:
             fresh.protocol.refuse_replaced(self.replaced)
@@ -627,30 +627,28 @@ class ControllerCore:
         return [*kept, *effects, SettleHandovers(), *fenced]
 
     def unsigned(self, message: ring_pb2.LogMessage, relayed_by: int = 0) -> list[CoreEffect]:
-        """A log message with a reply the drone did not sign (forged or altered by a
-        station): refused whole, before it touches the log, the history or the ring
-        (not forwarded: a relay of it is dropped), named by the station that relayed it
-        (``relayed_by``, the ring stream's; 0: our own history) and the entry. Nothing
-        if it is signed throughout, or we check no signatures."""
-        if self.verifier is None:
+        """A log message its creator did not sign, or with a reply the drone did not sign
+        (forged or altered by a station): refused whole, before it touches the log, the
+        history or the ring (not forwarded: a relay of it is dropped), named by the
+        station that relayed it (``relayed_by``, the ring stream's; 0: our own history)
+        and why. Nothing if it is signed throughout, or we check no signatures."""
+        if self.keys is None:
             return []
-        entry = unsigned_reply(self.verifier, message.entries)
-        if entry is None:
+        why = refusal(self.keys, message)
+        if why is None:
             return []
         self.refused_messages += 1
         self.last_refused = (
             f"log message {message.lognr} (origin {message.origin}, epoch {message.epoch}) "
-            f"relayed by controller {relayed_by}: request {entry.reqnr} ({entry.method}) "
-            "has no valid drone signature"
+            f"relayed by controller {relayed_by}: {why}"
         )
         fields = {
             "mlognr": message.lognr,
             "origin": message.origin,
             "relayed_by": relayed_by,
-            "reqnr": entry.reqnr,
-            "method": entry.method,
+            "why": why,
         }
-        return [Note("error", "log message refused: a reply the drone did not sign", fields)]
+        return [Note("error", "log message refused: not signed as it says", fields)]
 
     def went_on_without_us(
         self, message: ring_pb2.LogMessage | None, drone_reachable: bool

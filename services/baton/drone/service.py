@@ -18,7 +18,7 @@ from typing import Any
 
 import grpc
 
-from baton.authenticity import ReplySigner, signed_reply, signed_retained
+from baton.authenticity import Signer, signed_reply, signed_retained
 from baton.config import BatonConfig, controllers_only, detection_time_s
 from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
@@ -106,7 +106,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     ) -> None:
         self.race = race
         # Signs every reply the drone makes (baton.authenticity); None: insecure, unsigned.
-        self.signer: ReplySigner | None = None
+        self.signer: Signer | None = None
         # Mutual TLS on the port: every call is checked against the caller's
         # certificate (docs/design.md, Security); False: anyone may call.
         self.authenticated = authenticated
@@ -1289,7 +1289,7 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         stations=landing_stations(settings.config),
     )
     if settings.tls is not None:
-        service.signer = ReplySigner.from_pem(settings.tls.key)
+        service.signer = Signer.from_pem(settings.tls.key)
     if settings.policy is not None:
         service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
         service.policy.restore()
