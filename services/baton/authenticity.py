@@ -29,7 +29,7 @@ from __future__ import annotations
 import datetime
 import hashlib
 import struct
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -57,8 +57,11 @@ class AuthenticityError(ValueError):
     """A key or certificate that cannot sign or check replies; the message says why."""
 
 
-def reply_statement(reqnr: int, epoch: int, method: str, digest: bytes, reply: bytes) -> bytes:
-    """The canonical bytes the drone signs for the reply to request ``reqnr``."""
+def reply_statement(
+    reqnr: int, epoch: int, method: str, digest: bytes, reply: bytes, reply_sha256: bytes = b""
+) -> bytes:
+    """The canonical bytes the drone signs for the reply to request ``reqnr``
+    (``reply_sha256``: the reply's SHA-256, if the caller has it already)."""
     name = method.encode()
     return b"".join(
         (
@@ -67,7 +70,7 @@ def reply_statement(reqnr: int, epoch: int, method: str, digest: bytes, reply: b
             name,
             struct.pack(">I", len(digest)),
             bytes(digest),
-            hashlib.sha256(reply).digest(),
+            reply_sha256 or hashlib.sha256(reply).digest(),
         )
     )
 
@@ -89,7 +92,13 @@ def _verify(key: VerifyingKey, signature: bytes, data: bytes) -> bool:
     return True
 
 
-def message_statement(message: ring_pb2.LogMessage) -> bytes:
+def reply_hashes(message: ring_pb2.LogMessage) -> list[bytes]:
+    """The SHA-256 of each entry's reply: hashed once for both signatures' checks (a
+    log message may carry 64 MB of pictures)."""
+    return [hashlib.sha256(entry.reply).digest() for entry in message.entries]
+
+
+def message_statement(message: ring_pb2.LogMessage, hashes: list[bytes] | None = None) -> bytes:
     """The canonical bytes a controller signs for a log message it creates: what it says
     of itself (sender, log number, epoch, where it follows) and every entry, each with
     the drone's word on it. Not its origin or handover flag: a handover message's new
@@ -109,7 +118,7 @@ def message_statement(message: ring_pb2.LogMessage) -> bytes:
             len(message.entries),
         ),
     ]
-    for entry in message.entries:
+    for entry, reply_sha256 in zip(message.entries, hashes or reply_hashes(message), strict=True):
         method, status = entry.method.encode(), entry.status_message.encode()
         parts += [
             struct.pack(
@@ -124,7 +133,7 @@ def message_statement(message: ring_pb2.LogMessage) -> bytes:
             method,
             status,
             hashlib.sha256(entry.request_digest).digest(),
-            hashlib.sha256(entry.reply).digest(),
+            reply_sha256,
             hashlib.sha256(entry.request).digest(),
             hashlib.sha256(entry.drone_signature).digest(),
         ]
@@ -203,19 +212,26 @@ class Verifier:
             )
         return cls(key)
 
-    def verify(self, entry: ring_pb2.LogEntry) -> bool:
+    def verify(self, entry: ring_pb2.LogEntry, reply_sha256: bytes = b"") -> bool:
         """Whether ``entry`` carries the drone's signature of its reply, and its request
         bytes (shown when a program diverges) are the ones the signed digest names."""
         if entry.request and request_digest(entry.method, entry.request) != entry.request_digest:
             return False
         statement = reply_statement(
-            entry.reqnr, entry.drone_epoch, entry.method, entry.request_digest, entry.reply
+            entry.reqnr,
+            entry.drone_epoch,
+            entry.method,
+            entry.request_digest,
+            entry.reply,
+            reply_sha256,
         )
         return _verify(self.key, entry.drone_signature, statement)
 
-    def verify_message(self, message: ring_pb2.LogMessage) -> bool:
+    def verify_message(
+        self, message: ring_pb2.LogMessage, hashes: list[bytes] | None = None
+    ) -> bool:
         """Whether ``message`` carries its creator's signature (``Signer.seal``)."""
-        return _verify(self.key, message.signature, message_statement(message))
+        return _verify(self.key, message.signature, message_statement(message, hashes))
 
 
 @dataclass(frozen=True)
@@ -236,9 +252,10 @@ def refusal(keys: Keys, message: ring_pb2.LogMessage) -> str | None:
     creator = keys.controllers.get(message.sender)
     if creator is None:
         return f"its creator, controller {message.sender}, is not one of the ring"
-    if not creator.verify_message(message):
+    hashes = reply_hashes(message)
+    if not creator.verify_message(message, hashes):
         return f"it has no valid signature of its creator, controller {message.sender}"
-    entry = unsigned_reply(keys.drone, message.entries)
+    entry = unsigned_reply(keys.drone, message.entries, hashes)
     if entry is not None:
         return f"request {entry.reqnr} ({entry.method}) has no valid drone signature"
     return None
@@ -287,10 +304,12 @@ def signed_retained(
 
 
 def unsigned_reply(
-    verifier: Verifier, entries: Iterable[ring_pb2.LogEntry]
+    verifier: Verifier, entries: Sequence[ring_pb2.LogEntry], hashes: Sequence[bytes] = ()
 ) -> ring_pb2.LogEntry | None:
-    """The first entry whose reply needs the drone's signature and lacks a valid one."""
-    for entry in entries:
-        if needs_drone_signature(entry) and not verifier.verify(entry):
+    """The first entry whose reply needs the drone's signature and lacks a valid one
+    (``hashes``: the replies' SHA-256, ``reply_hashes``, if the caller has them)."""
+    for k, entry in enumerate(entries):
+        reply_sha256 = hashes[k] if hashes else b""
+        if needs_drone_signature(entry) and not verifier.verify(entry, reply_sha256):
             return entry
     return None
