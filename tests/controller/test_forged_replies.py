@@ -9,7 +9,7 @@ import asyncio
 from collections.abc import Callable
 from pathlib import Path
 
-from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises
+from helpers.missions import assert_mission_promises, attacked_ring
 from waiting import eventually
 
 from baton.authenticity import Signer, needs_drone_signature
@@ -19,7 +19,7 @@ from baton.digest import request_digest
 from baton.rpc.channels import aio_channel
 from baton.rpc.methods import path
 from baton.rpc.tls import DRONE, Identity, Tls
-from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
+from baton.testbed.local import LocalTestbed
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
@@ -67,12 +67,7 @@ async def send(
 async def test_forged_and_altered_replies_on_the_ring_are_refused_and_the_mission_flies_once(
     tmp_path: Path,
 ) -> None:
-    plan = TestbedPlan(
-        config=local_config(
-            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
-        ),
-        mission=SMALL_GRID,
-    )
+    plan = attacked_ring()
     async with LocalTestbed(plan, tmp_path) as testbed:
         config = testbed.config
         assert config is not None and testbed.tls is not None

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import grpc
 import pytest
-from helpers.missions import FAST_LINK, SMALL_GRID, assert_mission_promises
+from helpers.missions import assert_mission_promises, attacked_ring
 
 from baton.certs.make import init, issue
 from baton.rpc.channels import aio_channel, sync_channel
 from baton.rpc.tls import DRONE, Identity, Tls
-from baton.testbed.local import LocalTestbed, TestbedPlan, local_config
+from baton.testbed.local import LocalTestbed
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
@@ -31,12 +31,7 @@ async def refusal(call: Awaitable[object]) -> grpc.aio.AioRpcError:
 async def test_callers_are_who_their_certificates_say_and_attacks_change_nothing(
     tmp_path: Path,
 ) -> None:
-    plan = TestbedPlan(
-        config=local_config(
-            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
-        ),
-        mission=SMALL_GRID,
-    )
+    plan = attacked_ring()
     async with LocalTestbed(plan, tmp_path) as testbed:
         config = testbed.config
         assert config is not None and testbed.tls is not None

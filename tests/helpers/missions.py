@@ -12,6 +12,7 @@ from baton.testbed.local import (
     MissionPlan,
     Snapshot,
     TestbedPlan,
+    local_config,
 )
 from baton.testbed.report import NOT_COUNTED, check_side_effects
 from baton.v1 import drone_pb2, ring_pb2
@@ -20,6 +21,17 @@ SMALL_GRID = MissionPlan(grid=2, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, 
 
 
 FAST_LINK = LinkSpec(latency=0.002, bandwidth=None)
+
+
+def attacked_ring() -> TestbedPlan:
+    """The ring the attack tests fly (mutual TLS, the default): three controllers
+    flushing every entry, fast links, a small grid at 20x."""
+    return TestbedPlan(
+        config=local_config(
+            3, flush_limit=0, speedup=20.0, controller_link=FAST_LINK, drone_link=FAST_LINK
+        ),
+        mission=SMALL_GRID,
+    )
 
 
 def assert_mission_promises(snapshot: Snapshot, plan: TestbedPlan) -> None:
