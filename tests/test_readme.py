@@ -128,3 +128,16 @@ def test_the_readmes_mission_loads() -> None:
     scope: dict[str, object] = {}
     exec(compile(source, "README.md", "exec"), scope)
     assert callable(scope["mission"])
+
+
+def test_the_excerpt_of_make_test_shows_the_commands_it_runs() -> None:
+    """The README's excerpt of `make test`'s output names the commands the Makefile
+    runs, in order (``make -n test``)."""
+    blocks = re.findall(r"^```text\n(.*?)^```", README.read_text(), flags=re.M | re.S)
+    (excerpt,) = [b for b in blocks if ".venv/bin/mypy" in b]
+    shown = [line for line in excerpt.splitlines() if line.startswith(".venv/bin/")]
+    done = subprocess.run(["make", "-n", "test"], cwd=ROOT, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    run = [line.strip() for line in done.stdout.splitlines() if line.startswith(".venv/bin/")]
+    # The test recipe's own commands come last (a stale .venv's set-up may come first).
+    assert len(shown) == 4 and run[-len(shown) :] == shown, run

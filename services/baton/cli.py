@@ -25,6 +25,7 @@ PROGRAMS = [
     "baton.sim_vehicle.cli",
     "baton.sitl.cli",
     "baton.drone.cli",
+    "baton.drone.operator_cli",
     "baton.controller.cli",
     "baton.link.cli",
     "baton.testbed.cli",

@@ -31,6 +31,8 @@ from pydantic import (
 
 from baton.drone.policy import LinkBounds, PolicyParams
 from baton.rpc.tls import Identity, Tls
+from baton.sdk.fence import Fence, FenceCircle, FencePolygon, open_ring
+from baton.sdk.fence import polygon_problem as fence_polygon_problem
 
 _SIZE_UNITS = {
     "": 1,
@@ -321,6 +323,92 @@ class RadioFadeConfig(_Model):
 FailsafeAction = Literal["hold", "land", "rtl", "nearest_station"]
 
 
+class FencePolygonConfig(_Model):
+    """One polygon of the fence: its vertices, ``[latitude, longitude]`` each, in order
+    around the area (the first may be repeated last)."""
+
+    vertices: list[list[float]]
+    # true: the vehicle stays inside it; false: outside it (a no-fly zone).
+    inclusion: bool = True
+
+    @field_validator("vertices")
+    @classmethod
+    def _a_polygon(cls, vertices: list[list[float]]) -> list[list[float]]:
+        problem = fence_polygon_problem(vertices)
+        if problem is not None:
+            raise ValueError(problem)
+        return vertices
+
+
+class FenceCircleConfig(_Model):
+    """One circle of the fence: its ``center`` ``[latitude, longitude]`` and radius."""
+
+    center: list[float] = Field(min_length=2, max_length=2)
+    radius: float = Field(gt=0, allow_inf_nan=False)
+    inclusion: bool = True
+
+    @field_validator("center")
+    @classmethod
+    def _a_place(cls, center: list[float]) -> list[float]:
+        lat, lon = center
+        if not (math.isfinite(lat) and math.isfinite(lon)) or abs(lat) > 90 or abs(lon) > 180:
+            raise ValueError(
+                f"center {center} is not a place: give [latitude, longitude], latitude in "
+                "[-90, 90], longitude in [-180, 180]"
+            )
+        return center
+
+
+def _fence_shorthand(value: Any) -> Any:
+    """``fence: {polygon: [[lat, lon], ...]}`` is one inclusion polygon of ``polygons``."""
+    if isinstance(value, dict) and "polygon" in value:
+        value = dict(value)
+        polygons = [{"vertices": value.pop("polygon")}, *value.get("polygons", [])]
+        value["polygons"] = polygons
+    return value
+
+
+class FenceConfig(_Model):
+    """The mission's geofence (drone/fence.py; docs/operating.md, "The safety net"):
+    areas the vehicle stays inside (inclusion) or outside of, and a ceiling in metres
+    above home. Every Goto outside it is refused; a vehicle found outside is put in
+    failsafe with ``action``; it is uploaded to the autopilot before arming."""
+
+    polygons: list[FencePolygonConfig] = []
+    circles: list[FenceCircleConfig] = []
+    ceiling: float
+    # What a breach makes the vehicle do: no hold (a vehicle holding outside its fence
+    # stays out), no nearest_station (a station may lie outside it).
+    action: Literal["rtl", "land"] = "rtl"
+
+    @field_validator("ceiling")
+    @classmethod
+    def _a_ceiling(cls, ceiling: float) -> float:
+        if not math.isfinite(ceiling) or ceiling <= 0:
+            raise ValueError(
+                f"the ceiling is {ceiling}: give the metres above home the vehicle may fly "
+                "up to, a number > 0 (e.g. 120, the open category's limit)"
+            )
+        return ceiling
+
+    def fence(self) -> Fence:
+        """The pure fence the drone checks and uploads."""
+        return Fence(
+            tuple(
+                FencePolygon(open_ring([(v[0], v[1]) for v in p.vertices]), p.inclusion)
+                for p in self.polygons
+            ),
+            tuple(
+                FenceCircle(c.center[0], c.center[1], c.radius, c.inclusion) for c in self.circles
+            ),
+            self.ceiling,
+            self.action,
+        )
+
+
+FenceSetting = Annotated[FenceConfig, BeforeValidator(_fence_shorthand)]
+
+
 class SafetyConfig(_Model):
     """The operator's safety net at the drone (docs/operating.md, "The safety net").
 
@@ -350,6 +438,9 @@ class SafetyConfig(_Model):
     # itself stops talking to the autopilot for this long (seconds of the
     # autopilot's clock), the autopilot returns home. 0: left as it is.
     autopilot_gcs_timeout: Duration = 10.0
+    # The mission's geofence (``FenceConfig``); absent: none (a QGroundControl plan's
+    # geoFence is the testbed's when it flies one).
+    fence: FenceSetting | None = None
 
 
 class TlsConfig(_Model):
@@ -482,6 +573,16 @@ class BatonConfig(_Model):
                 f"({self.takeover_after:g} s): a master lost alone is taken over, and only "
                 "when no controller is left does the failsafe act; raise safety.lost_link"
             )
+        fence = self.safety.fence
+        if fence is not None:
+            home = self.drone.home
+            why = fence.fence().outside(home.latitude_deg, home.longitude_deg)
+            if why is not None:
+                raise ValueError(
+                    f"safety.fence: the mission's start, drone.home ({home.latitude_deg:.7f}, "
+                    f"{home.longitude_deg:.7f}), is {why}: the vehicle would take off in "
+                    "breach; draw the fence around the home, or fix drone.home"
+                )
         if self.max_log_message is not None and self.max_log_message <= self.flush_limit:
             raise ValueError(
                 f"max_log_message ({self.max_log_message} bytes) must be above flush_limit "

@@ -12,7 +12,9 @@ from baton.controller.core import (
     ControllerCore,
     DroneRefusal,
     Fail,
+    KeepMastership,
     Note,
+    Persist,
     Reconnect,
     Record,
     Rejoin,
@@ -20,7 +22,7 @@ from baton.controller.core import (
     RouteTo,
     SendCatchUp,
 )
-from baton.controller.protocol import DisconnectDrone, SendLog, State
+from baton.controller.protocol import DisconnectDrone, Diverged, SendLog, State
 from baton.digest import request_digest
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, ring_pb2
@@ -188,3 +190,58 @@ def test_a_sleep_beyond_the_missions_bound_is_logged_as_refused() -> None:
     assert core.protocol.reqnr == 1  # logged: every replica's program sees the refusal
     fine = api.SleepRequest(seconds=1.0).SerializeToString()
     assert isinstance(core.answer(CLOCK_SLEEP, fine)[0], AskClock)
+
+
+class _Held:
+    """A history of whole log messages, as ``HeldLog`` reads it."""
+
+    def __init__(self, *lognrs: int) -> None:
+        self.messages = {n: ring_pb2.LogMessage(lognr=n, origin=0, epoch=1) for n in lognrs}
+
+    def above(self, lognr: int):  # type: ignore[no-untyped-def]
+        return iter(sorted(n for n in self.messages if n > lognr))
+
+    def get(self, lognr: int) -> ring_pb2.LogMessage:
+        return self.messages[lognr]
+
+
+def test_ready_persists_before_sending_and_holds_a_copy_back_while_cut_off() -> None:
+    core = master()
+    normal = SendLog(1, ring_pb2.LogMessage(lognr=5, origin=0, epoch=1))
+    handover = SendLog(2, ring_pb2.LogMessage(lognr=6, origin=0, epoch=1, handover=True))
+    copy = SendLog(2, ring_pb2.LogMessage(lognr=5, origin=0, epoch=1), copy=True)
+    ready = core.ready([normal, handover, copy], drone_connected=False)
+    # A normal message enters the history first; a handover message when it comes back
+    # round; a copy for a prepared target not at all while the drone's stream is down.
+    assert kinds(ready) == [Persist, SendLog, SendLog, KeepMastership]
+    assert ready[0] == Persist(normal.message) and ready[1] is normal and ready[2] is handover
+    assert kinds(core.ready([copy], drone_connected=True)) == [SendLog, KeepMastership]
+    assert core.sent_straight == {2: 5}
+
+
+def test_ready_rejoins_once_on_a_diverged_log() -> None:
+    core = master()
+    diverged = Diverged(4, 1, 3)
+    assert kinds(core.ready([diverged], True)) == [Diverged, Rejoin, KeepMastership]
+    assert kinds(core.ready([diverged], True)) == [Diverged, KeepMastership]
+
+
+def test_the_catch_up_sends_each_message_once_and_nothing_to_the_successor() -> None:
+    core = master()
+    held = _Held(1, 2, 3)
+    assert core.catch_up(1, held) is None  # the successor's ring stream gives it all
+    assert [m.lognr for m in core.catch_up(2, held) or []] == [1, 2, 3]
+    held.messages[4] = ring_pb2.LogMessage(lognr=4, origin=0, epoch=1)
+    assert [m.lognr for m in core.catch_up(2, held) or []] == [4]
+    assert core.catch_up(2, held) == []
+
+
+def test_a_rejoin_keeps_what_went_round_and_the_handover_messages_nowhere_else() -> None:
+    core = master()
+    assert core.kept_on_rejoin(_Held(1, 2)) == []  # a master that was not fenced keeps nothing
+
+
+def test_a_route_retires_a_successor_it_no_longer_needs() -> None:
+    assert RouteTo(1, [], previous=2, natural=1).retired == 2
+    assert RouteTo(2, [1], previous=1, natural=1).retired is None  # the natural one
+    assert RouteTo(0, [1, 2], previous=2, natural=1).retired is None  # skipped now

@@ -174,7 +174,9 @@ async def test_a_call_that_overtakes_the_give_up_of_the_pending_one_waits_for_it
     held = asyncio.create_task(node.call(position, b""))
     await eventually(lambda: node._busy == position, "the first call held")
     second = asyncio.create_task(node.call(home, b""))
-    await asyncio.sleep(0.05)  # the next call is in before the give-up
+    # The barrier: the next call is in, waiting for the pending one to end, before
+    # the give-up.
+    await eventually(lambda: node._idle._waiters, "the next call waiting for the first")
     held.cancel()
     with pytest.raises(asyncio.CancelledError):
         await held

@@ -147,12 +147,24 @@ async def test_a_dead_master_is_a_visible_stall_within_seconds(tmp_path: Path) -
             assert testbed.drone_stub is not None
             drone = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
             ring = await predecessor.GetStatus(ring_pb2.GetControllerStatusRequest())
-            return "controller 0, holds no Connect stream" in drone.waiting and list(
-                ring.routed_around
-            ) == [0]
+            master_lost = any(w.key == "master" and w.needs_person for w in drone.waits)
+            return (
+                master_lost
+                and "controller 0, holds no Connect stream" in drone.waiting
+                and list(ring.routed_around) == [0]
+            )
 
         await eventually(both_say_so, "the stall and the route around it reported", 15)
         assert time.monotonic() - killed_at < 10
+
+        async def link_down() -> bool:
+            # Without a policy every controller's link should be up: once it has had
+            # its time to come up, the dead one's needs a person.
+            assert testbed.drone_stub is not None
+            drone = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+            return any(w.key == "link 0" and w.needs_person for w in drone.waits)
+
+        await eventually(link_down, "the dead controller's link reported", 15)
     assert '"stalled"' in (tmp_path / "logs" / "drone.log").read_text()
     assert (
         "ring successor unreachable; routing around it"

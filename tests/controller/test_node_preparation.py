@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import asyncio
+from types import SimpleNamespace
 from typing import Any
 
 from helpers.protocol import started
@@ -32,7 +34,8 @@ async def active_master() -> ControllerNode:
         {"controllers": [{"id": i, "address": f"127.0.0.1:{i + 1}"} for i in range(3)]}
     )
     node = ControllerNode(config, 0)
-    session: Any = object()
+    session: Any = SimpleNamespace(connected=asyncio.Event())
+    session.connected.set()  # the Connect stream is up
     node._drone = session
     await node.on_sync(2, 0)  # the predecessor holds nothing: caught up
     await node.on_granted(session, 1, 0)

@@ -237,8 +237,10 @@ def test_in_failsafe_every_request_is_refused_before_execution_and_booked() -> N
     assert admitted.refused.code is grpc.StatusCode.FAILED_PRECONDITION
     assert "in failsafe (lost_link" in admitted.refused.message
     assert "Resume" in admitted.refused.message
-    assert drone.resume_mission(40.0) is due
-    assert drone.resume_mission(40.0) is None
+    cleared, taken = drone.resume_mission(40.0)
+    assert cleared is due and taken.command == "resume"
+    with pytest.raises(StatusError, match="neither paused nor in failsafe"):
+        drone.resume_mission(40.0)
     drone.seq.served(0, 1, GET, request_digest(GET, b""), b"", 31.0, 31.0, admitted.refused)
     assert drone.admit(request(2), request_digest(GET, b""), 41.0).refused is None
     # the lost-link time counts afresh from the resume

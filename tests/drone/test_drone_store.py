@@ -270,7 +270,7 @@ async def test_the_cruise_speed_and_a_failsafe_survive_a_restart(tmp_path: Path)
     speed = api.SetSpeedRequest(speed_m_s=7.5)
     await drone.stub.Invoke(invoke(0, 1, "/baton.v1.Mobility/SetSpeed", speed))
     drone.service.core.enter_failsafe(Failsafe("lost_link", "rtl", 1.0, "no usable controller"))
-    drone.service._save_failsafe()
+    drone.service.save_failsafe()
     second = await restart(first, state, script="")
     drone = second[0]
     try:

@@ -6,7 +6,7 @@ would) sees the vehicle through a whole testbed flight with handovers. Its
 commands are refused by default (watch only: a COMMAND_ACK DENIED, and the
 vehicle acts on nothing it sent, by the vehicle's own effects file), or, with
 ``gcs_override``, taken as an operator override that pauses the mission: the
-master's next call is refused FAILED_PRECONDITION "paused by ground station".
+master's next call waits at the drone until an operator resumes or ends it.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from baton.testbed.local import (
     free_port,
     local_config,
 )
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 mavlink = mavutil.mavlink
 MISSION = MissionPlan(grid=3, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
@@ -153,15 +153,36 @@ async def test_with_override_a_ground_stations_land_pauses_the_mission(tmp_path:
                 return "land" in [e["effect"] for e in effects]
 
             await eventually(landed_by_station, "the vehicle acting on the station's LAND", 20)
+            stub = testbed.drone_stub
+            assert stub is not None
 
-            async def refused() -> list[str]:
+            async def paused() -> drone_pb2.OperatorCommand | None:
+                status = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+                return status.paused if status.HasField("paused") else None
+
+            pause = await eventually(paused, "the mission paused by the station", 20)
+            drone_log = tmp_path / "logs" / "drone.log"
+            await eventually(
+                lambda: "request waits: the mission is paused" in drone_log.read_text(),
+                "the master's next call waiting at the drone",
+                20,
+            )
+            status = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+            # The operator ends the mission the station took over: every program is told.
+            await stub.LandNow(drone_pb2.LandNowRequest(note="the station landed it"))
+
+            async def ended() -> list[str]:
                 snapshot = await testbed.snapshot(audit=False)
-                return [c.mission_error for c in snapshot.controllers.values() if c.mission_error]
+                errors = [c.mission_error for c in snapshot.controllers.values()]
+                return errors if all(errors) else []
 
-            errors = await eventually(refused, "the mission told it is paused", 60)
+            errors = await eventually(ended, "every program ended by the land-now", 60)
     finally:
         station.close()
-    assert any("paused by ground station 255" in e for e in errors), errors
+    assert (pause.by, pause.action) == ("ground station 255", "")  # the station flies it
+    assert "MAV_CMD_NAV_LAND" in pause.reason
+    assert status.last_reqnr == pause.after_reqnr  # nothing admitted while paused
+    assert all("the mission has ended (told to land now by the operator" in e for e in errors)
 
 
 async def test_with_signing_the_ground_station_link_is_signed(tmp_path: Path) -> None:

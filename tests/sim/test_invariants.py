@@ -87,3 +87,13 @@ def test_invariants_are_not_checked_when_turned_off() -> None:
     world = World(1, SimOptions(check_every=0))
     assert world.invariants is None and world.loop.after_event is None
     world.close()
+
+
+def test_a_killed_programs_local_answer_the_drone_never_saw_is_not_a_lost_reply() -> None:
+    """Default mix, seed 14407: master 0 answered a Clock call (request 9) that reached
+    replica 2's program; 2 was killed, and 0, fenced by 2's takeover, dropped it. No
+    live controller held 9 and the drone never saw it, but nothing depended on it: the
+    taker frames it anew, and the oracle then holds the killed incarnation only to
+    what the drone accepted. The invariant fired at the fence, before the framing."""
+    outcome = run_seed(14407, SimOptions())
+    assert outcome.ok, outcome.report()

@@ -316,6 +316,19 @@ def test_policy_seeds_that_took_a_replaced_framings_word_hold_every_oracle() -> 
         assert outcome.ok, outcome.report()
 
 
+def test_policy_seeds_of_a_taker_given_a_replaced_framing_after_its_grant() -> None:
+    """--policy predictive seeds 3536 and 7190 (same-replies): taker 2 restarted with
+    nothing and was granted holding no request, the drone retaining requests 10-12 for
+    it as taker 3 had them in epoch 2. The ring then gave it the cut-off master 1's
+    give-ups of 10-12, framed in epoch 1; its program replayed them from the log, never
+    comparing them with the retained replies, and 2 built on them. A taker checks the
+    log's entry against the reply the drone retains for it as its program reaches it
+    (``ControllerCore.answer``), as the grant's batch does (``retained_batch``)."""
+    for seed in (3536, 7190):
+        outcome = run_seed(seed, SimOptions(policy="predictive"))
+        assert outcome.ok, outcome.report()
+
+
 def test_policy_seed_4287_counts_the_replies_a_taker_adopted_as_brought_in_its_epoch() -> None:
     """--policy nearest seed 4287 (same-replies): master 0's program gave up on request
     2, which the drone executed; 0 handed over to 4 with the give-up (epoch 2), and 4 was
@@ -396,3 +409,25 @@ def test_failsafe_seeds_hold_every_oracle_and_fail_safe() -> None:
         world.run()
         failsafes += len(world.drone.vehicle.failsafes)
     assert failsafes >= 10
+
+
+# Issue 32's operator commands (--operator) in CI.
+OPERATOR_SEEDS = 120
+
+
+def test_operator_seeds_hold_every_oracle_and_the_commands_act() -> None:
+    """An operator's pause then resume or abort, abort, land-now at a drawn moment: exactly
+    once and the replicas' replies hold, nothing reaches the vehicle while paused or after
+    the mission ended (nothing-while-paused, nothing-after-abort), and requests do wait."""
+    options = SimOptions(operator=True)
+    outcomes = []
+    taken: Counter[str] = Counter()
+    waited = 0
+    for seed in range(OPERATOR_SEEDS):
+        world = World(seed, options)
+        outcomes.append(world.run())
+        taken.update(command for _, command, _ in world.drone.vehicle.operator)
+        waited += world.drone.waited
+    assert not any(o.failed for o in outcomes), _failures(outcomes)
+    assert min(taken[c] for c in ("pause", "resume", "abort", "land_now")) >= 3, taken
+    assert waited >= 10

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers.mobility import connected_mobility
 from waiting import eventually
 
 from baton.effects import EffectsFile, read_effects
@@ -28,7 +29,6 @@ from baton.v1 import drone_api_pb2 as api
 
 from .ground_station import UNSET, GroundStation, mavlink
 from .sim_process import start_sim
-from .test_sim_vehicle import connected_mobility
 
 HOME = (47.397742, 8.545594, 488.0)
 ARM = mavlink.MAV_CMD_COMPONENT_ARM_DISARM

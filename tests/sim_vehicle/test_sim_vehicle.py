@@ -15,6 +15,7 @@ from pathlib import Path
 
 import grpc
 import pytest
+from helpers.mobility import connected_mobility
 
 from baton.drone.mobility import MavsdkMobility
 from baton.rpc.errors import StatusError
@@ -37,20 +38,6 @@ async def sim() -> AsyncIterator[SimProcess]:
     vehicle = await start_sim("--speedup", "10", "--home", ",".join(map(str, HOME)))
     yield vehicle
     assert await vehicle.terminate() == 0
-
-
-async def connected_mobility(url: str) -> MavsdkMobility:
-    mobility = MavsdkMobility(url)
-    await mobility.start()
-
-    async def ready() -> bool:
-        return (
-            mobility.connected
-            and (await mobility.GetFlightState(api.GetFlightStateRequest())).ready
-        )
-
-    await eventually(ready, "vehicle connected and ready")
-    return mobility
 
 
 async def position(mobility: MavsdkMobility) -> api.Position:

@@ -33,6 +33,8 @@ MARGIN_M, SPEED_M_S = 50.0, 5.0
 # edge, took longer than that on CI, and the vehicle left the old station's range
 # first (a takeover, not a prepared handover). 20 s gives it 1.9 s.
 LEAD_S = 20.0
+# The waits about a link to the drone: a station's own, and the drone's about it.
+LINK_KEYS = ("standby", "drone", "link 0", "link 1", "link 2", "link 3")
 
 
 def corridor_on_free_ports(
@@ -76,6 +78,14 @@ def test_the_corridor_is_flown_with_the_masters_its_stations_reach(
     assert report["exactly_once"] and report["side_effects"]["exactly_once"] is True
     assert report["side_effects"]["pictures_taken"] == report["mission"]["waypoints"] == 16
     assert report["handovers_planned"] == []
+    # Every station was out of range for a while, as planned, and said so quietly: no
+    # warning about a station's link to the drone, on the progress line or in the
+    # report (the drone would warn of one in range without its stream).
+    assert "out of range, as planned: " in report["stdout"]
+    expected = {w["part"] for w in report["waits"]["expected"] if w["text"] == "out of range"}
+    assert expected == {"c0", "c1", "c2", "c3"}, report["waits"]
+    links = [w for w in report["waits"]["needs_person"] if w["key"] in LINK_KEYS]
+    assert links == [] and "stream to the drone" not in report["stdout"], report["waits"]
     assert report["policy"] == {
         "name": policy,
         "radio_range": True,
@@ -341,6 +351,17 @@ async def test_no_controller_usable_holds_the_vehicle_or_flies_on_into_a_range(
         stop = east_m(settled.position)  # type: ignore[attr-defined]
         later = await eventually(held_for(1.0, time.monotonic()), "the vehicle held 1 s more", 30)
         assert abs(east_m(later.position) - stop) < 0.1  # type: ignore[attr-defined]
+
+        # Station 1's link should be up (the vehicle is in its range) and is not: once it
+        # has had its time to come up, the drone says a person should look. Stations 0
+        # and 2, out of range as planned, are not waited for.
+        async def link_1_needs_a_person() -> object:
+            drone = (await testbed.snapshot(audit=False)).drone
+            waits = {w.key: w.needs_person for w in drone.waits}
+            return waits if waits.get("link 1") else None
+
+        waits = await eventually(link_1_needs_a_person, "the drone to warn of link 1", 30)
+        assert "link 0" not in waits and "link 2" not in waits, waits  # type: ignore[operator]
         await testbed.restart_controller(1)
 
         # On the leg to 1,000 m, in station 1's range only (2's begins at 803 m).

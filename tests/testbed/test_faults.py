@@ -11,6 +11,7 @@ import pytest
 from helpers.testbed_runs import baton, run_testbed
 
 from baton.testbed.faults import Fault, check_parts, parse_fault
+from baton.testbed.waits import LOUD
 
 SMALL = ["--grid", "3", "--spacing", "20", "--altitude", "5", "--speedup", "20"]
 
@@ -91,7 +92,9 @@ def test_the_master_killed_by_a_fault_is_taken_over_and_the_mission_completes_on
 def test_stop_cut_and_a_kill_restarted_by_restart_parts(tmp_path: Path) -> None:
     """A frozen replica thawed, a ring link cut and restored, and the master killed with
     --restart-parts (back with its log file): every fault ends, the mission completes
-    once, and every controller, the restarted one too, ends with the same replies."""
+    once, and every controller, the restarted one too, ends with the same replies. The
+    cut ring link is a stall that needs a person: the progress line and the report say
+    so loudly."""
     report = run_testbed(
         tmp_path,
         *SMALL,
@@ -100,14 +103,20 @@ def test_stop_cut_and_a_kill_restarted_by_restart_parts(tmp_path: Path) -> None:
         "--fault",
         "stop:controller-2@reqnr=10,for=2s",
         "--fault",
-        "cut:link-ring-1@reqnr=25,for=1s",
+        "cut:link-ring-2@reqnr=60,for=6s",
         "--fault",
         "kill:controller-0@reqnr=40",
     )
     stop, cut, kill = report["faults"]
     assert all(f["fired"] and not f["problem"] for f in (stop, cut, kill))
     assert stop["ended_at_s"] >= stop["fired_at_s"] + 2.0
-    assert cut["ended_at_s"] >= cut["fired_at_s"] + 1.0
+    assert cut["ended_at_s"] >= cut["fired_at_s"] + 6.0
+    # Controller 1 (ring 0 -> 1 -> 2, master since the kill) lost its successor for
+    # 6 s: its stream down, then the ring routed around 2; each, held 3 s, is shown
+    # as needing a person.
+    stalls = [w for w in report["waits"]["needs_person"] if w["part"] == "c1"]
+    assert {"ring", "routed"} & {w["key"] for w in stalls}, report["waits"]
+    assert f"{LOUD}: c1: ring " in report["stdout"]
     [death] = report["parts_died"]
     assert death["part"] == "controller-0" and death["restarted_at_s"] is not None
     assert [c["id"] for c in report["controllers"]] == [0, 1, 2]

@@ -17,7 +17,7 @@ from baton.config import parse_config
 from baton.drone.camera import generate_pixels, ppm_header, thumbnail_jpeg, thumbnail_name
 from baton.sdk import Position, offset
 from baton.testbed.flight_map import TrackPoint, flight_geojson
-from baton.testbed.html_report import CSP, write_page
+from baton.testbed.html_report import CSP, warnings, write_page
 from baton.testbed.local import Snapshot
 from baton.testbed.report import build_report
 from baton.v1 import drone_pb2, ring_pb2
@@ -172,3 +172,32 @@ def test_a_mission_error_is_a_warning_and_is_escaped(tmp_path: Path) -> None:
     assert "<script>" not in text
     assert "controller 2: mission failed: &lt;script&gt;alert(1)&lt;/script&gt; went wrong" in text
     assert '<span class="verdict fail">no</span>' in text  # not completed
+
+
+def test_a_wait_that_needed_a_person_is_a_warning_and_an_expected_one_is_not() -> None:
+    run, config = a_run()
+    report = build_report(config, run, 3, 12.0, [(3, 1), (9, 0)], 60.0, grid_mission=False)
+    report["waits"] = {
+        "needs_person": [
+            {
+                "part": "c1",
+                "key": "ring",
+                "text": "ring stream to controller 2 down",
+                "longest_s": 7.0,
+                "first_s": 21.9,
+            }
+        ],
+        "expected": [
+            {
+                "part": "c3",
+                "key": "standby",
+                "text": "out of range",
+                "longest_s": 30.0,
+                "first_s": 17.8,
+            }
+        ],
+    }
+    found = [w for w in warnings(report) if w.startswith("waited: ")]
+    assert found == [
+        "waited: c1: ring stream to controller 2 down (up to 7 s, first seen 22 s into the run)"
+    ]

@@ -1,68 +1,104 @@
-"""The progress line warns about what needs a person, and only that: a station out of
-radio range by design is shown as expected; a real stall is still a warning."""
+"""The progress line and the report show expected waits quietly and stalls loudly, as
+each part judged them: a station out of radio range by design is "out of range, as
+planned"; a real stall is a "NEEDS A PERSON"."""
 
 from __future__ import annotations
 
 import io
-from pathlib import Path
 
-from baton.config import load_config
 from baton.testbed.local import Snapshot
 from baton.testbed.run import Progress
-from baton.testbed.waits import out_of_range, sort_waits, waits_line
-from baton.v1 import drone_pb2, ring_pb2
+from baton.testbed.waits import LOUD, WaitLog, part_waits, report_lines, waits_line
+from baton.v1 import drone_pb2, ring_pb2, waits_pb2
 
-CORRIDOR = load_config(Path(__file__).resolve().parents[2] / "examples" / "corridor.yaml")
-# Over station 1's antenna: out of station 3's range (1,000 m east).
-OVER_STATION_1 = (47.3981912, 8.5522295)
-NO_STANDBY = (
-    "no standby stream to the drone at 127.0.0.1:33673: the drone cannot make this "
-    "controller master if the master is lost for 26 s"
+NO_STANDBY = waits_pb2.Wait(
+    key="standby",
+    text="no standby stream to the drone at 127.0.0.1:33673: the drone cannot make this "
+    "controller master if the master is lost",
+    age_s=26.0,
+    needs_person=False,
 )
-RING_DOWN = "ring stream to controller 2 down (3 messages not acknowledged) for 5 s"
+RING_DOWN = waits_pb2.Wait(
+    key="ring",
+    text="ring stream to controller 2 down (3 messages not acknowledged)",
+    age_s=5.0,
+    needs_person=True,
+)
+LINK_1 = waits_pb2.Wait(
+    key="link 1",
+    text="controller 1 holds no standby stream though the vehicle is in its range",
+    age_s=6.0,
+    needs_person=True,
+)
 
 
-def corridor_line(waiting: dict[int, str]) -> str:
-    """The progress line the corridor shows with the vehicle over station 1."""
-    out = io.StringIO()
-    progress = Progress(16, 0, stream=out)
-    progress.config = CORRIDOR
-    drone = drone_pb2.DroneStatus(master=1)
-    drone.position.latitude_deg, drone.position.longitude_deg = OVER_STATION_1
-    snapshot = Snapshot(drone, vehicle_effects=None, camera_effects=None)
+def snapshot(drone: list[waits_pb2.Wait], controllers: dict[int, list[waits_pb2.Wait]]) -> Snapshot:
+    """Four controllers, 1 master, with these waits."""
+    taken = Snapshot(drone_pb2.DroneStatus(master=1, waits=drone))
     for cid in range(4):
-        snapshot.controllers[cid] = ring_pb2.ControllerStatus(
-            id=cid, master=cid == 1, waiting=waiting.get(cid, "")
+        taken.controllers[cid] = ring_pb2.ControllerStatus(
+            id=cid, master=cid == 1, waits=controllers.get(cid, [])
         )
-    progress(snapshot)
+    return taken
+
+
+def progress_line(taken: Snapshot) -> str:
+    out = io.StringIO()
+    Progress(16, 0, stream=out)(taken)
     return out.getvalue()
 
 
-def test_the_corridor_shows_no_warning_for_stations_out_of_range() -> None:
-    assert out_of_range(CORRIDOR, 3, OVER_STATION_1)
-    line = corridor_line({3: NO_STANDBY})
-    assert "waiting" not in line, line
-    assert "out of range, as planned: c3" in line
+def test_stations_out_of_range_are_named_once_as_planned_and_warn_nothing() -> None:
+    line = progress_line(snapshot([], {0: [NO_STANDBY], 3: [NO_STANDBY]}))
+    assert line.rstrip().endswith("| out of range, as planned: c0, c3"), line
+    assert LOUD not in line and "waiting" not in line
 
 
-def test_a_real_stall_is_still_warned() -> None:
-    # A ring stream down is never explained by range.
-    line = corridor_line({3: f"{NO_STANDBY}; {RING_DOWN}"})
-    assert f"c3 waiting: {RING_DOWN}" in line
-    assert "out of range, as planned: c3" in line
-    # A station in range without its standby stream is a link that should be up.
-    assert not out_of_range(CORRIDOR, 1, OVER_STATION_1)
-    line = corridor_line({1: NO_STANDBY})
-    assert f"c1 waiting: {NO_STANDBY}" in line
-    assert "as planned" not in line
+def test_a_real_stall_is_still_warned_beside_the_expected() -> None:
+    line = progress_line(snapshot([], {3: [NO_STANDBY, RING_DOWN]}))
+    assert "| out of range, as planned: c3" in line
+    assert line.rstrip().endswith(
+        f"| {LOUD}: c3: ring stream to controller 2 down (3 messages not acknowledged) for 5 s"
+    ), line
 
 
-def test_without_radio_range_every_wait_is_a_warning() -> None:
-    grid = CORRIDOR.model_copy(update={"radio_range": False})
-    assert not out_of_range(grid, 3, OVER_STATION_1)
-    assert waits_line(grid, {3: NO_STANDBY}, OVER_STATION_1) == f" | c3 waiting: {NO_STANDBY}"
+def test_a_station_the_drone_finds_in_range_is_not_shown_out_of_range() -> None:
+    # Station 1 says its missing stream may be range; the drone, which sees the
+    # vehicle in its range, says the link should be up.
+    taken = snapshot([LINK_1], {1: [NO_STANDBY], 3: [NO_STANDBY]})
+    line = waits_line(part_waits(taken.drone, taken.controllers))
+    assert line == (
+        " | out of range, as planned: c3"
+        f" | {LOUD}: drone: controller 1 holds no standby stream though the vehicle is in "
+        "its range for 6 s"
+    )
 
 
-def test_an_unknown_position_explains_nothing() -> None:
-    assert not out_of_range(CORRIDOR, 3, None)
-    assert sort_waits(NO_STANDBY, beyond_range=False).warnings == [NO_STANDBY]
+def test_the_report_keeps_each_wait_once_with_its_longest_age() -> None:
+    log = WaitLog()
+    early = snapshot([], {3: [NO_STANDBY]})
+    log.add(part_waits(early.drone, early.controllers), 4.0)
+    # The same station's Connect and standby streams: one "out of range" in the report.
+    drone_link = waits_pb2.Wait(key="drone", age_s=35.0)
+    later = snapshot([], {3: [waits_pb2.Wait(key="standby", age_s=40.0), drone_link, RING_DOWN]})
+    log.add(part_waits(later.drone, later.controllers), 30.0)
+    waits = log.to_json()
+    assert waits == {
+        "needs_person": [
+            {"part": "c3", "key": "ring", "first_s": 30.0, "longest_s": 5.0, "text": RING_DOWN.text}
+        ],
+        "expected": [
+            {
+                "part": "c3",
+                "key": "standby",
+                "first_s": 4.0,
+                "longest_s": 40.0,
+                "text": "out of range",
+            }
+        ],
+    }
+    assert report_lines(waits) == [
+        "expected waits: c3 out of range (up to 40 s)",
+        f"{LOUD}: c3: {RING_DOWN.text} (up to 5 s, first seen 30 s into the run)",
+    ]
+    assert report_lines({"needs_person": [], "expected": []}) == []

@@ -55,7 +55,8 @@ hovering at each with ``HoverAndCapture``, else by distance while flying.
 
 A ``.plan``'s ``geoFence`` (inclusion and exclusion polygons and circles) and
 ``rallyPoints`` are read, checked and kept in the ``Plan`` (``fence``,
-``rally_points``) for the safety net; they change nothing flown here.
+``rally_points``); they change nothing flown here. The testbed makes the fence the
+mission's (the drone enforces it) when its configuration has none.
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ from typing import Any
 
 from baton.missions.grid import wait_until_ready
 from baton.sdk import Drone, Position, distance_m
+from baton.sdk.fence import FenceCircle, FencePolygon, open_ring, polygon_problem
 
 # Command numbers and names (MAV_CMD) of the items flown, and of others a plan
 # may hold, so that a refusal names them.
@@ -239,24 +241,6 @@ class Item:
         return self.command == DO_SET_ROI_NONE or (
             self.command == DO_SET_ROI and self.params[0] == ROI_MODE_NONE
         )
-
-
-@dataclass(frozen=True)
-class FenceCircle:
-    """A circular geofence: inside it (inclusion) or outside it the vehicle must stay."""
-
-    latitude_deg: float
-    longitude_deg: float
-    radius_m: float
-    inclusion: bool
-
-
-@dataclass(frozen=True)
-class FencePolygon:
-    """A polygonal geofence: its vertices (latitude, longitude), in order."""
-
-    vertices: tuple[tuple[float, float], ...]
-    inclusion: bool
 
 
 @dataclass(frozen=True)
@@ -471,7 +455,12 @@ def _geofence(path: Path, raw: Any) -> Geofence:
                 "([latitude, longitude] each); redraw it in QGroundControl's fence editor"
             )
         points = tuple(_coordinate(path, f"{where}, vertex {v}", p) for v, p in enumerate(vertices))
-        polygons.append(FencePolygon(points, bool(polygon.get("inclusion", True))))
+        problem = polygon_problem(points)
+        if problem is not None:  # crossing edges, no area: the drone could not enforce it
+            raise PlanError(
+                f"plan {path}: {where}: {problem}; redraw it in QGroundControl's fence editor"
+            )
+        polygons.append(FencePolygon(open_ring(points), bool(polygon.get("inclusion", True))))
     circles = []
     for k, circle in enumerate(raw.get("circles") or []):
         where = f"geoFence circle {k}"
@@ -987,7 +976,10 @@ def check_lines(plan: Plan) -> list[str]:
             f"{point.relative_altitude_m:g} m"
         )
     if plan.fence or plan.rally_points:
-        lines.append("(the geofence and rally points are read and checked, not enforced yet)")
+        lines.append(
+            "(the geofence is the testbed's fence when it has none: docs/plans.md; "
+            "rally points are not used yet)"
+        )
     pictures = plan.pictures
     lines.append(
         f"{len(plan.waypoints)} waypoints, "

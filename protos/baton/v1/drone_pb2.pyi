@@ -9,6 +9,7 @@ without acting twice, and tells the master when to hand over.
 """
 
 from baton.v1 import drone_api_pb2 as _drone_api_pb2
+from baton.v1 import waits_pb2 as _waits_pb2
 from collections import abc as _abc
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
@@ -163,7 +164,7 @@ Global___HandoverPolicy: _TypeAlias = HandoverPolicy  # noqa: Y015
 
 @_typing.final
 class ResumeRequest(_message.Message):
-    """Clear the vehicle's failsafe."""
+    """Give the mission the vehicle back."""
 
     DESCRIPTOR: _descriptor.Descriptor
 
@@ -180,27 +181,179 @@ Global___ResumeRequest: _TypeAlias = ResumeRequest  # noqa: Y015
 
 @_typing.final
 class ResumeReply(_message.Message):
-    """The failsafe was cleared."""
+    """The pause or the failsafe was cleared."""
 
     DESCRIPTOR: _descriptor.Descriptor
 
     CLEARED_FIELD_NUMBER: _builtins.int
+    COMMAND_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def cleared(self) -> Global___Failsafe:
-        """The failsafe the vehicle was in."""
+        """The failsafe the vehicle was in (absent: none)."""
+
+    @_builtins.property
+    def command(self) -> Global___OperatorCommand:
+        """The command as the drone took it."""
 
     def __init__(
         self,
         *,
         cleared: Global___Failsafe | None = ...,
+        command: Global___OperatorCommand | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["cleared", b"cleared"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["cleared", b"cleared", "command", b"command"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["cleared", b"cleared"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["cleared", b"cleared", "command", b"command"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___ResumeReply: _TypeAlias = ResumeReply  # noqa: Y015
+
+@_typing.final
+class PauseRequest(_message.Message):
+    """Pause the mission."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    NOTE_FIELD_NUMBER: _builtins.int
+    note: _builtins.str
+    """Why, for the record (optional)."""
+    def __init__(
+        self,
+        *,
+        note: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["note", b"note"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PauseRequest: _TypeAlias = PauseRequest  # noqa: Y015
+
+@_typing.final
+class AbortRequest(_message.Message):
+    """End the mission."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    ACTION_FIELD_NUMBER: _builtins.int
+    NOTE_FIELD_NUMBER: _builtins.int
+    action: _builtins.str
+    """What the vehicle does: "rtl" (return home; the default when empty) or
+    "land" (land where it is).
+    """
+    note: _builtins.str
+    """Why, for the record (optional)."""
+    def __init__(
+        self,
+        *,
+        action: _builtins.str = ...,
+        note: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["action", b"action", "note", b"note"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___AbortRequest: _TypeAlias = AbortRequest  # noqa: Y015
+
+@_typing.final
+class LandNowRequest(_message.Message):
+    """End the mission with the vehicle landing where it is."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    NOTE_FIELD_NUMBER: _builtins.int
+    note: _builtins.str
+    """Why, for the record (optional)."""
+    def __init__(
+        self,
+        *,
+        note: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["note", b"note"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___LandNowRequest: _TypeAlias = LandNowRequest  # noqa: Y015
+
+@_typing.final
+class OperatorReply(_message.Message):
+    """What an operator command did."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    COMMAND_FIELD_NUMBER: _builtins.int
+    @_builtins.property
+    def command(self) -> Global___OperatorCommand:
+        """The command as the drone took it."""
+
+    def __init__(
+        self,
+        *,
+        command: Global___OperatorCommand | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["command", b"command"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["command", b"command"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___OperatorReply: _TypeAlias = OperatorReply  # noqa: Y015
+
+@_typing.final
+class OperatorCommand(_message.Message):
+    """One operator command as the drone took it (GetStatus, the testbed's report)."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    COMMAND_FIELD_NUMBER: _builtins.int
+    AT_FIELD_NUMBER: _builtins.int
+    AFTER_REQNR_FIELD_NUMBER: _builtins.int
+    ACTION_FIELD_NUMBER: _builtins.int
+    REASON_FIELD_NUMBER: _builtins.int
+    BY_FIELD_NUMBER: _builtins.int
+    VEHICLE_FIELD_NUMBER: _builtins.int
+    command: _builtins.str
+    """"pause", "resume", "abort" or "land_now"."""
+    at: _builtins.float
+    """When it took effect (Unix seconds, the drone's clock), between two requests."""
+    after_reqnr: _builtins.int
+    """The last request number served then."""
+    action: _builtins.str
+    """What the vehicle was told: "hold", "rtl", "land", "goto" (a resume flying
+    on to the last Goto's target), or empty (nothing).
+    """
+    reason: _builtins.str
+    """Why, as a person reads it."""
+    by: _builtins.str
+    """Who: "operator", or the ground station whose override paused the mission."""
+    vehicle: _builtins.str
+    """What the vehicle did: "accepted", or the autopilot's refusal; empty when
+    it was told nothing.
+    """
+    def __init__(
+        self,
+        *,
+        command: _builtins.str = ...,
+        at: _builtins.float = ...,
+        after_reqnr: _builtins.int = ...,
+        action: _builtins.str = ...,
+        reason: _builtins.str = ...,
+        by: _builtins.str = ...,
+        vehicle: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["action", b"action", "after_reqnr", b"after_reqnr", "at", b"at", "by", b"by", "command", b"command", "reason", b"reason", "vehicle", b"vehicle"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___OperatorCommand: _TypeAlias = OperatorCommand  # noqa: Y015
 
 @_typing.final
 class Failsafe(_message.Message):
@@ -589,6 +742,7 @@ class DroneEvent(_message.Message):
     HANDOVER_FIELD_NUMBER: _builtins.int
     RETAINED_FIELD_NUMBER: _builtins.int
     PREPARE_FIELD_NUMBER: _builtins.int
+    OPERATOR_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def connected(self) -> Global___Connected:
         """The connection is up."""
@@ -607,6 +761,13 @@ class DroneEvent(_message.Message):
         once it has (or at the timeout).
         """
 
+    @_builtins.property
+    def operator(self) -> Global___OperatorWord:
+        """An operator paused the mission, or the pause ended: said when it
+        changes (and on a Connect while paused), so the master says why its
+        request waits (docs/operating.md, "Operator commands").
+        """
+
     def __init__(
         self,
         *,
@@ -614,16 +775,41 @@ class DroneEvent(_message.Message):
         handover: Global___HandoverNotice | None = ...,
         retained: Global___RetainedBatch | None = ...,
         prepare: Global___PrepareHandover | None = ...,
+        operator: Global___OperatorWord | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover", "prepare", b"prepare", "retained", b"retained"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover", "operator", b"operator", "prepare", b"prepare", "retained", b"retained"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover", "prepare", b"prepare", "retained", b"retained"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["connected", b"connected", "event", b"event", "handover", b"handover", "operator", b"operator", "prepare", b"prepare", "retained", b"retained"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_event: _TypeAlias = _typing.Literal["connected", "handover", "retained", "prepare"]  # noqa: Y015
+    _WhichOneofReturnType_event: _TypeAlias = _typing.Literal["connected", "handover", "retained", "prepare", "operator"]  # noqa: Y015
     _WhichOneofArgType_event: _TypeAlias = _typing.Literal["event", b"event"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_event) -> _WhichOneofReturnType_event | None: ...
 
 Global___DroneEvent: _TypeAlias = DroneEvent  # noqa: Y015
+
+@_typing.final
+class OperatorWord(_message.Message):
+    """The operator's pause as the master hears it."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    PAUSED_FIELD_NUMBER: _builtins.int
+    paused: _builtins.str
+    """The pause's reason ("paused by the operator after request 7"); empty:
+    not paused (resumed, or the mission ended).
+    """
+    def __init__(
+        self,
+        *,
+        paused: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["paused", b"paused"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___OperatorWord: _TypeAlias = OperatorWord  # noqa: Y015
 
 @_typing.final
 class PrepareHandover(_message.Message):
@@ -1377,6 +1563,10 @@ class DroneStatus(_message.Message):
     FAILSAFE_FIELD_NUMBER: _builtins.int
     LOST_LINK_S_FIELD_NUMBER: _builtins.int
     LOST_LINK_ACTION_FIELD_NUMBER: _builtins.int
+    WAITS_FIELD_NUMBER: _builtins.int
+    PAUSED_FIELD_NUMBER: _builtins.int
+    ENDED_FIELD_NUMBER: _builtins.int
+    OPERATOR_COMMANDS_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -1394,8 +1584,9 @@ class DroneStatus(_message.Message):
     master_connected: _builtins.bool
     """Whether the master holds its Connect stream now."""
     waiting: _builtins.str
-    """What the drone has been waiting for, and for how long, once it lasts 3 s
-    (the master holding no Connect stream); empty when nothing.
+    """The waits in `waits` that need a person, as one line ("TEXT for N s",
+    "; "-separated); empty when none does. Kept for grpcurl and scripts that
+    read it: `waits` has every wait, each with whether it needs a person.
     """
     epoch: _builtins.int
     """The current master's epoch: 1 for the initial master, one more at
@@ -1490,6 +1681,34 @@ class DroneStatus(_message.Message):
         an operator's Resume.
         """
 
+    @_builtins.property
+    def waits(self) -> _containers.RepeatedCompositeFieldContainer[_waits_pb2.Wait]:
+        """What the drone has been waiting for, each once it has held 3 s: the master
+        holding no Connect stream (needs a person), a controller holding no standby
+        stream while the vehicle is in its range on the handover policy's map, or
+        without a policy at all (needs a person once the link has had its time to
+        come up; a station out of range is not waited for). Until a controller
+        first reaches the drone process, only that (expected for a minute).
+        """
+
+    @_builtins.property
+    def paused(self) -> Global___OperatorCommand:
+        """The operator's pause while it lasts (absent: not paused): the master's
+        next request waits for Resume.
+        """
+
+    @_builtins.property
+    def ended(self) -> Global___OperatorCommand:
+        """The operator command that ended the mission (Abort, LandNow); absent
+        while it runs.
+        """
+
+    @_builtins.property
+    def operator_commands(self) -> _containers.RepeatedCompositeFieldContainer[Global___OperatorCommand]:
+        """Every operator command, oldest first (the newest 100), kept in the state
+        file.
+        """
+
     def __init__(
         self,
         *,
@@ -1527,10 +1746,14 @@ class DroneStatus(_message.Message):
         failsafe: Global___Failsafe | None = ...,
         lost_link_s: _builtins.float = ...,
         lost_link_action: _builtins.str = ...,
+        waits: _abc.Iterable[_waits_pb2.Wait] | None = ...,
+        paused: Global___OperatorCommand | None = ...,
+        ended: Global___OperatorCommand | None = ...,
+        operator_commands: _abc.Iterable[Global___OperatorCommand] | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["failsafe", b"failsafe", "flight_state", b"flight_state", "policy_decision", b"policy_decision", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["ended", b"ended", "failsafe", b"failsafe", "flight_state", b"flight_state", "paused", b"paused", "policy_decision", b"policy_decision", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "epoch", b"epoch", "executed", b"executed", "failsafe", b"failsafe", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "lost_link_action", b"lost_link_action", "lost_link_s", b"lost_link_s", "master", b"master", "master_connected", b"master_connected", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "policy_resumes", b"policy_resumes", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "ended", b"ended", "epoch", b"epoch", "executed", b"executed", "failsafe", b"failsafe", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "lost_link_action", b"lost_link_action", "lost_link_s", b"lost_link_s", "master", b"master", "master_connected", b"master_connected", "operator_commands", b"operator_commands", "paused", b"paused", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "policy_resumes", b"policy_resumes", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

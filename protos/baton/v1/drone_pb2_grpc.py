@@ -80,6 +80,21 @@ class DroneStub:
                 request_serializer=baton_dot_v1_dot_drone__pb2.ResumeRequest.SerializeToString,
                 response_deserializer=baton_dot_v1_dot_drone__pb2.ResumeReply.FromString,
                 _registered_method=True)
+        self.Pause = channel.unary_unary(
+                '/baton.v1.Drone/Pause',
+                request_serializer=baton_dot_v1_dot_drone__pb2.PauseRequest.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_drone__pb2.OperatorReply.FromString,
+                _registered_method=True)
+        self.Abort = channel.unary_unary(
+                '/baton.v1.Drone/Abort',
+                request_serializer=baton_dot_v1_dot_drone__pb2.AbortRequest.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_drone__pb2.OperatorReply.FromString,
+                _registered_method=True)
+        self.LandNow = channel.unary_unary(
+                '/baton.v1.Drone/LandNow',
+                request_serializer=baton_dot_v1_dot_drone__pb2.LandNowRequest.SerializeToString,
+                response_deserializer=baton_dot_v1_dot_drone__pb2.OperatorReply.FromString,
+                _registered_method=True)
 
 
 class DroneServicer:
@@ -193,12 +208,47 @@ class DroneServicer:
         raise NotImplementedError('Method not implemented!')
 
     def Resume(self, request, context):
-        """An operator gives the mission the vehicle back after a failsafe
-        (docs/operating.md, "The safety net"): the mission's next call is
-        executed again instead of refused. The vehicle keeps doing what the
-        failsafe made it do until that call. PERMISSION_DENIED for any caller
-        but the operator's certificate; FAILED_PRECONDITION when the vehicle is
-        in no failsafe.
+        """An operator gives the mission the vehicle back after a pause or a
+        failsafe (docs/operating.md, "Operator commands", "The safety net"): the
+        mission's next call is executed again instead of waiting or refused.
+        After a pause that stopped a leg, the vehicle flies on to the last
+        Goto's target; after a failsafe it keeps doing what the failsafe made it
+        do until that call. PERMISSION_DENIED for any caller but the operator's
+        certificate; FAILED_PRECONDITION when the mission is neither paused nor
+        in failsafe, or has ended (Abort, LandNow).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def Pause(self, request, context):
+        """An operator pauses the mission (docs/operating.md, "Operator commands"):
+        between two requests, the vehicle holds, and the master's next request
+        waits at the drone, not admitted, until Resume (or Abort, LandNow). The
+        master keeps its streams meanwhile: no takeover, no lost-link failsafe.
+        PERMISSION_DENIED for any caller but the operator's certificate;
+        FAILED_PRECONDITION when paused already or the mission has ended.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def Abort(self, request, context):
+        """An operator ends the mission: between two requests, the vehicle returns
+        home (RTL) or lands where it is, as asked, and every later request is
+        refused FAILED_PRECONDITION "the mission has ended (aborted by the operator ...)"
+        before execution, booked as its outcome (the master logs it, so every
+        replica's program ends with the same error). Not resumable.
+        PERMISSION_DENIED for any caller but the operator's certificate;
+        INVALID_ARGUMENT for an unknown action; FAILED_PRECONDITION when the
+        mission has ended already.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def LandNow(self, request, context):
+        """Abort with the vehicle landing where it is.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -251,6 +301,21 @@ def add_DroneServicer_to_server(servicer, server):
                     servicer.Resume,
                     request_deserializer=baton_dot_v1_dot_drone__pb2.ResumeRequest.FromString,
                     response_serializer=baton_dot_v1_dot_drone__pb2.ResumeReply.SerializeToString,
+            ),
+            'Pause': grpc.unary_unary_rpc_method_handler(
+                    servicer.Pause,
+                    request_deserializer=baton_dot_v1_dot_drone__pb2.PauseRequest.FromString,
+                    response_serializer=baton_dot_v1_dot_drone__pb2.OperatorReply.SerializeToString,
+            ),
+            'Abort': grpc.unary_unary_rpc_method_handler(
+                    servicer.Abort,
+                    request_deserializer=baton_dot_v1_dot_drone__pb2.AbortRequest.FromString,
+                    response_serializer=baton_dot_v1_dot_drone__pb2.OperatorReply.SerializeToString,
+            ),
+            'LandNow': grpc.unary_unary_rpc_method_handler(
+                    servicer.LandNow,
+                    request_deserializer=baton_dot_v1_dot_drone__pb2.LandNowRequest.FromString,
+                    response_serializer=baton_dot_v1_dot_drone__pb2.OperatorReply.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -497,6 +562,87 @@ class Drone:
             '/baton.v1.Drone/Resume',
             baton_dot_v1_dot_drone__pb2.ResumeRequest.SerializeToString,
             baton_dot_v1_dot_drone__pb2.ResumeReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Pause(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/baton.v1.Drone/Pause',
+            baton_dot_v1_dot_drone__pb2.PauseRequest.SerializeToString,
+            baton_dot_v1_dot_drone__pb2.OperatorReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Abort(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/baton.v1.Drone/Abort',
+            baton_dot_v1_dot_drone__pb2.AbortRequest.SerializeToString,
+            baton_dot_v1_dot_drone__pb2.OperatorReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def LandNow(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/baton.v1.Drone/LandNow',
+            baton_dot_v1_dot_drone__pb2.LandNowRequest.SerializeToString,
+            baton_dot_v1_dot_drone__pb2.OperatorReply.FromString,
             options,
             channel_credentials,
             insecure,

@@ -112,13 +112,35 @@ class DroneStub:
     GetStatus: _grpc.UnaryUnaryMultiCallable[_drone_pb2.GetDroneStatusRequest, _drone_pb2.DroneStatus]
     """The drone's state, counters and command audit."""
     Resume: _grpc.UnaryUnaryMultiCallable[_drone_pb2.ResumeRequest, _drone_pb2.ResumeReply]
-    """An operator gives the mission the vehicle back after a failsafe
-    (docs/operating.md, "The safety net"): the mission's next call is
-    executed again instead of refused. The vehicle keeps doing what the
-    failsafe made it do until that call. PERMISSION_DENIED for any caller
-    but the operator's certificate; FAILED_PRECONDITION when the vehicle is
-    in no failsafe.
+    """An operator gives the mission the vehicle back after a pause or a
+    failsafe (docs/operating.md, "Operator commands", "The safety net"): the
+    mission's next call is executed again instead of waiting or refused.
+    After a pause that stopped a leg, the vehicle flies on to the last
+    Goto's target; after a failsafe it keeps doing what the failsafe made it
+    do until that call. PERMISSION_DENIED for any caller but the operator's
+    certificate; FAILED_PRECONDITION when the mission is neither paused nor
+    in failsafe, or has ended (Abort, LandNow).
     """
+    Pause: _grpc.UnaryUnaryMultiCallable[_drone_pb2.PauseRequest, _drone_pb2.OperatorReply]
+    """An operator pauses the mission (docs/operating.md, "Operator commands"):
+    between two requests, the vehicle holds, and the master's next request
+    waits at the drone, not admitted, until Resume (or Abort, LandNow). The
+    master keeps its streams meanwhile: no takeover, no lost-link failsafe.
+    PERMISSION_DENIED for any caller but the operator's certificate;
+    FAILED_PRECONDITION when paused already or the mission has ended.
+    """
+    Abort: _grpc.UnaryUnaryMultiCallable[_drone_pb2.AbortRequest, _drone_pb2.OperatorReply]
+    """An operator ends the mission: between two requests, the vehicle returns
+    home (RTL) or lands where it is, as asked, and every later request is
+    refused FAILED_PRECONDITION "the mission has ended (aborted by the operator ...)"
+    before execution, booked as its outcome (the master logs it, so every
+    replica's program ends with the same error). Not resumable.
+    PERMISSION_DENIED for any caller but the operator's certificate;
+    INVALID_ARGUMENT for an unknown action; FAILED_PRECONDITION when the
+    mission has ended already.
+    """
+    LandNow: _grpc.UnaryUnaryMultiCallable[_drone_pb2.LandNowRequest, _drone_pb2.OperatorReply]
+    """Abort with the vehicle landing where it is."""
 
 @_typing.type_check_only
 class DroneAsyncStub(DroneStub):
@@ -199,13 +221,35 @@ class DroneAsyncStub(DroneStub):
     GetStatus: _aio.UnaryUnaryMultiCallable[_drone_pb2.GetDroneStatusRequest, _drone_pb2.DroneStatus]  # type: ignore[assignment]
     """The drone's state, counters and command audit."""
     Resume: _aio.UnaryUnaryMultiCallable[_drone_pb2.ResumeRequest, _drone_pb2.ResumeReply]  # type: ignore[assignment]
-    """An operator gives the mission the vehicle back after a failsafe
-    (docs/operating.md, "The safety net"): the mission's next call is
-    executed again instead of refused. The vehicle keeps doing what the
-    failsafe made it do until that call. PERMISSION_DENIED for any caller
-    but the operator's certificate; FAILED_PRECONDITION when the vehicle is
-    in no failsafe.
+    """An operator gives the mission the vehicle back after a pause or a
+    failsafe (docs/operating.md, "Operator commands", "The safety net"): the
+    mission's next call is executed again instead of waiting or refused.
+    After a pause that stopped a leg, the vehicle flies on to the last
+    Goto's target; after a failsafe it keeps doing what the failsafe made it
+    do until that call. PERMISSION_DENIED for any caller but the operator's
+    certificate; FAILED_PRECONDITION when the mission is neither paused nor
+    in failsafe, or has ended (Abort, LandNow).
     """
+    Pause: _aio.UnaryUnaryMultiCallable[_drone_pb2.PauseRequest, _drone_pb2.OperatorReply]  # type: ignore[assignment]
+    """An operator pauses the mission (docs/operating.md, "Operator commands"):
+    between two requests, the vehicle holds, and the master's next request
+    waits at the drone, not admitted, until Resume (or Abort, LandNow). The
+    master keeps its streams meanwhile: no takeover, no lost-link failsafe.
+    PERMISSION_DENIED for any caller but the operator's certificate;
+    FAILED_PRECONDITION when paused already or the mission has ended.
+    """
+    Abort: _aio.UnaryUnaryMultiCallable[_drone_pb2.AbortRequest, _drone_pb2.OperatorReply]  # type: ignore[assignment]
+    """An operator ends the mission: between two requests, the vehicle returns
+    home (RTL) or lands where it is, as asked, and every later request is
+    refused FAILED_PRECONDITION "the mission has ended (aborted by the operator ...)"
+    before execution, booked as its outcome (the master logs it, so every
+    replica's program ends with the same error). Not resumable.
+    PERMISSION_DENIED for any caller but the operator's certificate;
+    INVALID_ARGUMENT for an unknown action; FAILED_PRECONDITION when the
+    mission has ended already.
+    """
+    LandNow: _aio.UnaryUnaryMultiCallable[_drone_pb2.LandNowRequest, _drone_pb2.OperatorReply]  # type: ignore[assignment]
+    """Abort with the vehicle landing where it is."""
 
 class DroneServicer(metaclass=_abc_1.ABCMeta):
     """The drone service, on the drone's companion computer."""
@@ -337,12 +381,52 @@ class DroneServicer(metaclass=_abc_1.ABCMeta):
         request: _drone_pb2.ResumeRequest,
         context: _ServicerContext,
     ) -> _typing.Union[_drone_pb2.ResumeReply, _abc.Awaitable[_drone_pb2.ResumeReply]]:
-        """An operator gives the mission the vehicle back after a failsafe
-        (docs/operating.md, "The safety net"): the mission's next call is
-        executed again instead of refused. The vehicle keeps doing what the
-        failsafe made it do until that call. PERMISSION_DENIED for any caller
-        but the operator's certificate; FAILED_PRECONDITION when the vehicle is
-        in no failsafe.
+        """An operator gives the mission the vehicle back after a pause or a
+        failsafe (docs/operating.md, "Operator commands", "The safety net"): the
+        mission's next call is executed again instead of waiting or refused.
+        After a pause that stopped a leg, the vehicle flies on to the last
+        Goto's target; after a failsafe it keeps doing what the failsafe made it
+        do until that call. PERMISSION_DENIED for any caller but the operator's
+        certificate; FAILED_PRECONDITION when the mission is neither paused nor
+        in failsafe, or has ended (Abort, LandNow).
         """
+
+    @_abc_1.abstractmethod
+    def Pause(
+        self,
+        request: _drone_pb2.PauseRequest,
+        context: _ServicerContext,
+    ) -> _typing.Union[_drone_pb2.OperatorReply, _abc.Awaitable[_drone_pb2.OperatorReply]]:
+        """An operator pauses the mission (docs/operating.md, "Operator commands"):
+        between two requests, the vehicle holds, and the master's next request
+        waits at the drone, not admitted, until Resume (or Abort, LandNow). The
+        master keeps its streams meanwhile: no takeover, no lost-link failsafe.
+        PERMISSION_DENIED for any caller but the operator's certificate;
+        FAILED_PRECONDITION when paused already or the mission has ended.
+        """
+
+    @_abc_1.abstractmethod
+    def Abort(
+        self,
+        request: _drone_pb2.AbortRequest,
+        context: _ServicerContext,
+    ) -> _typing.Union[_drone_pb2.OperatorReply, _abc.Awaitable[_drone_pb2.OperatorReply]]:
+        """An operator ends the mission: between two requests, the vehicle returns
+        home (RTL) or lands where it is, as asked, and every later request is
+        refused FAILED_PRECONDITION "the mission has ended (aborted by the operator ...)"
+        before execution, booked as its outcome (the master logs it, so every
+        replica's program ends with the same error). Not resumable.
+        PERMISSION_DENIED for any caller but the operator's certificate;
+        INVALID_ARGUMENT for an unknown action; FAILED_PRECONDITION when the
+        mission has ended already.
+        """
+
+    @_abc_1.abstractmethod
+    def LandNow(
+        self,
+        request: _drone_pb2.LandNowRequest,
+        context: _ServicerContext,
+    ) -> _typing.Union[_drone_pb2.OperatorReply, _abc.Awaitable[_drone_pb2.OperatorReply]]:
+        """Abort with the vehicle landing where it is."""
 
 def add_DroneServicer_to_server(servicer: DroneServicer, server: _typing.Union[_grpc.Server, _aio.Server]) -> None: ...

@@ -12,6 +12,7 @@ holds so that nothing acknowledged is sent twice and nothing is lost.
 """
 
 from baton.v1 import drone_api_pb2 as _drone_api_pb2
+from baton.v1 import waits_pb2 as _waits_pb2
 from collections import abc as _abc
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
@@ -625,6 +626,7 @@ class ControllerStatus(_message.Message):
     MISSION_ADDRESS_FIELD_NUMBER: _builtins.int
     PROGRAM_RESTARTS_FIELD_NUMBER: _builtins.int
     DRONE_CONNECTED_AT_FIELD_NUMBER: _builtins.int
+    WAITS_FIELD_NUMBER: _builtins.int
     REFUSED_MESSAGES_FIELD_NUMBER: _builtins.int
     LAST_REFUSED_FIELD_NUMBER: _builtins.int
     id: _builtins.int
@@ -664,11 +666,9 @@ class ControllerStatus(_message.Message):
     the Clock, which the controller answers and logs itself).
     """
     waiting: _builtins.str
-    """What the controller has been waiting for, and for how long, when it is
-    stuck on something outside it: the drone unreachable or its vehicle not
-    connected (it re-sends the same request until drone_retry_limit), a log
-    message missing while later ones are queued, the ring stream to its
-    successor down, each after 3 s; empty when it is not waiting.
+    """The waits in `waits` that need a person, as one line ("TEXT for N s",
+    "; "-separated); empty when none does. Kept for grpcurl and scripts that
+    read it: `waits` has every wait, each with whether it needs a person.
     """
     epoch: _builtins.int
     """The drone's epoch of this controller's current or last mastership (0
@@ -703,9 +703,10 @@ class ControllerStatus(_message.Message):
     the log) that the master's program did not give up on.
     """
     refused_messages: _builtins.int
-    """Log messages refused on arrival because a reply in them lacks the drone's
-    valid signature (forged or altered by a station), and the last refusal:
-    which station relayed it, which log message and which request.
+    """Log messages refused on arrival (baton.authenticity): without a valid
+    signature of their creator, or with a reply the drone did not sign
+    (forged or altered by a station); and the last refusal: which station
+    relayed it, which log message and why.
     """
     last_refused: _builtins.str
     @_builtins.property
@@ -731,6 +732,20 @@ class ControllerStatus(_message.Message):
         """When the drone said connected (its Connect stream's Connected event),
         Unix seconds, wall clock, in order: every connection this controller
         opened, a reconnect of the same one included.
+        """
+
+    @_builtins.property
+    def waits(self) -> _containers.RepeatedCompositeFieldContainer[_waits_pb2.Wait]:
+        """What the controller has been waiting for, each once it has held 3 s: no
+        stream to the drone, a request without an answer, a log message missing
+        while later ones are queued, the ring stream to its successor down or
+        routed around an unreachable one, a new master catching up with the ring;
+        and at once, the drone unreachable or its vehicle not connected (it
+        re-sends the same request until drone_retry_limit). No stream to the
+        drone (standby or Connect) is expected of a station on the handover
+        policy's map that is not master (the vehicle may be out of its range: the
+        drone's own waits say when it is in range); a new master catching up is
+        expected within the prepare timeout; everything else needs a person.
         """
 
     def __init__(
@@ -767,12 +782,13 @@ class ControllerStatus(_message.Message):
         mission_address: _builtins.str = ...,
         program_restarts: _builtins.int = ...,
         drone_connected_at: _abc.Iterable[_builtins.float] | None = ...,
+        waits: _abc.Iterable[_waits_pb2.Wait] | None = ...,
         refused_messages: _builtins.int = ...,
         last_refused: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "last_refused", b"last_refused", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "refused_messages", b"refused_messages", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "last_refused", b"last_refused", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "refused_messages", b"refused_messages", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

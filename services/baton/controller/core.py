@@ -31,9 +31,9 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import grpc
 
@@ -49,6 +49,7 @@ from baton.controller.protocol import (
     ProtocolError,
     Refusal,
     ReplacedFraming,
+    SendLog,
     State,
     ring_route,
 )
@@ -203,6 +204,14 @@ class RouteTo:
     previous: int  # the successor before
     natural: int  # the successor in ring order
 
+    @property
+    def retired(self) -> int | None:
+        """A successor routed to before and neither the natural one nor skipped now: its
+        stream ends once it has nothing unacknowledged (the ring came back past it)."""
+        if self.previous == self.natural or self.previous in self.skipped:
+            return None
+        return self.previous
+
 
 @dataclass(frozen=True)
 class Preparing:
@@ -305,8 +314,26 @@ class AskDrone:
 CallStep = Answer | Hold | AskClock | AskDrone
 
 
+@dataclass(frozen=True)
+class Persist:
+    """Effect: ``message`` enters the history (and the successor's stream is told what we
+    hold now), before it is sent (``ControllerCore.ready``)."""
+
+    message: ring_pb2.LogMessage
+
+
+@dataclass(frozen=True)
+class KeepMastership:
+    """Effect: the mastership whose log the history holds, kept with it, so that a restart
+    from the file tells the drone on Connect (fenced if a takeover replaced it)."""
+
+    epoch: int
+
+
 CoreEffect = (
     Effect
+    | Persist
+    | KeepMastership
     | Reconnect
     | Rejoin
     | SendCatchUp
@@ -326,6 +353,15 @@ CoreEffect = (
 # A master stops a prepared handover this long after the drone's timeout for it, if it
 # heard nothing (the drone forces the handover at its timeout: the notice is owed).
 PREPARE_GRACE_S = 2.0
+
+
+class HeldLog(Protocol):
+    """What the core reads of the log messages a controller holds (its ``LogHistory``),
+    as raft's core reads its ``Storage``: it never writes them."""
+
+    def above(self, lognr: int) -> Iterator[int]: ...
+
+    def get(self, lognr: int) -> ring_pb2.LogMessage: ...
 
 
 class ControllerCore:
@@ -379,6 +415,9 @@ class ControllerCore:
         # along with the next Invoke, so the drone keeps them for a taker.
         self.answered_here: list[ring_pb2.LogEntry] = []
         self.answered_from_retained = 0
+        # The last log number sent straight to each handover target (``catch_up`` and a
+        # prepared handover's copies), so that none is sent to it twice.
+        self.sent_straight: dict[int, int] = {}
         # Checks every log message's creator's signature and the drone's of every
         # reply it brings (baton.authenticity); None: insecure, a station's word is taken.
         self.keys: Keys | None = None
@@ -396,6 +435,61 @@ class ControllerCore:
         if self.replaced is not None:
             fresh.protocol.refuse_replaced(self.replaced)
         return fresh
+
+    def ready(self, effects: Sequence[CoreEffect], drone_connected: bool) -> list[CoreEffect]:
+        """What a driver carries out for ``effects``, in this order (etcd raft's ``Ready``).
+
+        - A log message we send enters the history first (``Persist``), except a
+          handover message: it enters when it comes back round, once its new master
+          has it; a history copy re-sent to the successor before then could overtake
+          it, and the new master would take the copy for a normal message.
+        - A copy for a prepared handover's target goes only while the drone's stream
+          is up: cut off, a takeover may have replaced us, and the copy would pass the
+          taker's fence on the ring. A new stream's PrepareHandover catches the
+          target up; a refused one fences us.
+        - A log that diverged from the ring's makes us rejoin with nothing, once.
+        - Last, the mastership whose log we hold is kept with the log.
+        """
+        out: list[CoreEffect] = []
+        for effect in effects:
+            if isinstance(effect, SendLog):
+                if effect.copy and not drone_connected:
+                    continue
+                if effect.copy:
+                    self.sent_straight[effect.dest] = effect.message.lognr
+                elif not effect.message.handover:
+                    out.append(Persist(effect.message))
+            out.append(effect)
+            if isinstance(effect, Diverged):
+                out.extend(self.rejoin())
+        out.append(KeepMastership(self.protocol.log_mastership_epoch))
+        return out
+
+    def catch_up(self, target: int, held: HeldLog) -> list[ring_pb2.LogMessage] | None:
+        """What a handover's target is sent straight from us (``SendCatchUp``), or None
+        when the target is our successor, whose ring stream gives it everything in order.
+
+        Our messages the ring has not yet brought back to us (above ``acked_lognr``)
+        and not sent to it already, before what follows (the handover message, or a
+        prepared handover's flushes): one link's time, not one per hop
+        (docs/design.md, "The ring's forwarding"). The target ignores what it has.
+        """
+        if target == self.protocol.successor:
+            return None
+        sent = max(self.protocol.acked_lognr, self.sent_straight.get(target, 0))
+        messages = [held.get(lognr) for lognr in held.above(sent)]
+        if messages:
+            self.sent_straight[target] = messages[-1].lognr
+        return messages
+
+    def kept_on_rejoin(self, held: HeldLog) -> list[ring_pb2.LogMessage]:
+        """What a controller that rejoins with nothing gives its fresh self, in order: a
+        fenced controller's messages that went round the ring (maybe the one copy
+        left: ``kept_when_fenced``), a master whose program starts again its whole log
+        (``restart_program``), then the handover messages that exist nowhere else."""
+        upto = self.protocol.kept_history()
+        kept = [held.get(lognr) for lognr in held.above(0) if lognr <= upto]
+        return kept + self.protocol.kept_for_rejoin()
 
     # -- the drone's word ------------------------------------------------------------
 
@@ -439,7 +533,16 @@ class ControllerCore:
         held = self.protocol.held_reqnr
         if replies:
             self.retained_came = max(self.retained_came, replies[-1].reqnr)
-        replaced = self.protocol.replaced_framing(replies)
+        refused = self._refuse_replaced(replies)
+        if refused:
+            return refused
+        self.retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
+        return []
+
+    def _refuse_replaced(self, replies: Iterable[drone_pb2.RetainedReply]) -> list[CoreEffect]:
+        """A rejoin refusing our framing of a request the drone keeps in a newer one
+        (``ControllerProtocol.replaced_framing``); nothing if there is none."""
+        replaced = self.protocol.replaced_framing(list(replies))
         if replaced is not None:
             self.replaced = replaced
             note = Note(
@@ -456,7 +559,6 @@ class ControllerCore:
                 },
             )
             return [note, *self.rejoin()]
-        self.retained.update((kept.reqnr, kept) for kept in replies if kept.reqnr > held)
         return []
 
     def take_over(
@@ -860,7 +962,17 @@ class ControllerCore:
         (the drone may retain a lost master's Clock answer for it), and any call
         for the retained replies still to come."""
         p = self.protocol
+        if self.rejoining:
+            # What the program would take now may be the framing the rejoin drops; its
+            # fresh self answers it.
+            return Hold(), []
         if p.state is State.REPLAY:
+            kept = self.retained.get(p.reqnr + 1)
+            if kept is not None and (refused := self._refuse_replaced([kept])):
+                # A taker that held less than the replies the drone retains for it was
+                # given by the ring a framing of one that a later takeover replaced:
+                # refused as when the grant's retained replies find it.
+                return Hold(), refused
             entry, replayed = self._replay(method, request)
             return (Answer(entry) if entry is not None else Hold()), replayed
         if p.state is not State.ACTIVE:

@@ -258,6 +258,9 @@ class DroneSession:
         self.connected_at: list[float] = []
         self.opened_at = time.monotonic()
         self._events: asyncio.Task[None] | None = None
+        # The operator's pause as the drone last said it (DroneEvent.operator): why a
+        # request waits at the drone; "" when not paused.
+        self.operator_pause = ""
 
     def open(self) -> None:
         """Starts connecting; ``connected`` is set when the drone's first event arrives."""
@@ -296,6 +299,8 @@ class DroneSession:
                         self._events_to.retained(event.retained.replies)
                     elif event.HasField("prepare"):
                         self._events_to.prepare(event.prepare)
+                    elif event.HasField("operator"):
+                        self.operator_pause = event.operator.paused
                     elif event.HasField("handover"):
                         self._events_to.notice(event.handover)
                         return

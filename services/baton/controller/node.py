@@ -35,7 +35,9 @@ from baton.controller.core import (
     FirstNewCall,
     Hold,
     Keep,
+    KeepMastership,
     Note,
+    Persist,
     Preparing,
     Reconnect,
     Record,
@@ -73,7 +75,7 @@ from baton.controller.ring import PeerLink, Relay
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
 from baton.rpc.tls import Tls
-from baton.stalls import StallWatch
+from baton.stalls import StallWatch, Wait, controller_judge, one_line
 from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, ring_pb2
@@ -167,7 +169,6 @@ class ControllerNode:
         self._changed = asyncio.Event()
         self._peers: dict[int, PeerLink] = {}
         # The highest log number sent straight to each handover target (_send_catch_up).
-        self._sent_straight: dict[int, int] = {}
         # The stream to the target when the preparation began, and the acknowledgements
         # it had counted then (a stream opened since counts from 0: ``_route`` drops one).
         self._acked_before_prepare: tuple[PeerLink | None, int] = (None, 0)
@@ -184,10 +185,10 @@ class ControllerNode:
         self.mission: ring_pb2.MissionState.ValueType = ring_pb2.MISSION_STATE_NONE
         self.mission_error = ""
         # A request the drone could not take, being re-sent (see _invoke_drone).
-        self._drone_wait = ""
-        # Stalls the watchdog sees (stalls.py): a missing log message, a ring stream down.
+        self._drone_wait: Wait | None = None
+        # Waits the watchdog sees (stalls.py): a missing log message, a ring stream down.
         self._stalls = StallWatch()
-        self._stalled = ""
+        self._stalled: list[Wait] = []
         self._watchdog: asyncio.Task[None] | None = None
         self._in_flight: tuple[int, str] | None = None  # the request the drone has now
         self._failure: StatusError | None = None
@@ -279,9 +280,14 @@ class ControllerNode:
             )
 
     @property
+    def waits(self) -> list[Wait]:
+        """What the controller waits for, judged (stalls.py), for GetStatus."""
+        return [self._drone_wait, *self._stalled] if self._drone_wait else self._stalled
+
+    @property
     def waiting(self) -> str:
-        """What the controller is stuck on outside itself, for GetStatus; empty when nothing."""
-        return "; ".join(text for text in (self._drone_wait, self._stalled) if text)
+        """The waits that need a person, as one line; empty when none does."""
+        return one_line(self.waits)
 
     def stall_conditions(self) -> dict[str, str]:
         """What holds now that would be a stall if it lasted (stalls.py)."""
@@ -317,12 +323,21 @@ class ControllerNode:
             )
         if self._in_flight is not None:
             reqnr, method = self._in_flight
-            holding[f"request {reqnr}"] = f"request {reqnr} ({method}) sent, no answer yet"
+            sent = f"request {reqnr} ({method}) sent, no answer yet"
+            if drone is not None and drone.operator_pause:
+                holding["paused"] = f"{sent}: it waits at the drone, {drone.operator_pause}"
+            else:
+                holding[f"request {reqnr}"] = sent
         link = self._peers.get(p.successor)
         if link is not None and not link.stream_up:
             holding["ring"] = (
                 f"ring stream to controller {p.successor} down "
                 f"({link.unacked} messages not acknowledged)"
+            )
+        if self.routed_around:
+            skipped = ", ".join(str(cid) for cid in self.routed_around)
+            holding["routed"] = (
+                f"ring routed around controller {skipped} (unreachable) to controller {p.successor}"
             )
         return holding
 
@@ -330,10 +345,14 @@ class ControllerNode:
         """Every half second: stalls into the status, and into the log when they begin."""
         while True:
             now = time.monotonic()
-            stalls = self._stalls.update(now, self.stall_conditions())
-            self._stalled = "; ".join(stalls)
-            if self._stalls.due_for_log(now, stalls):
-                self.log.warning("stalled", waiting=self._stalled)
+            judge = controller_judge(
+                self.config.handover_policy.name != "none",
+                self.protocol.master,
+                self.config.prepare_timeout,
+            )
+            self._stalled = self._stalls.update(now, self.stall_conditions(), judge)
+            if self._stalls.due_for_log(now, self._stalled):
+                self.log.warning("stalled", waiting=one_line(self._stalled))
             await asyncio.sleep(0.5)
 
     async def stop(self) -> None:
@@ -366,19 +385,12 @@ class ControllerNode:
         be restarted with it (``on_rejoin``).
         """
         self.incarnation += 1
-        # A fenced controller keeps its messages that went round the ring (the one
-        # copy left, maybe: ``kept_when_fenced``), a master whose program starts
-        # again its whole log (``restart_program``), then the handover messages
-        # that exist nowhere else.
-        upto = self.protocol.kept_history()
-        kept = [self.history.get(n) for n in self.history.above(0) if n <= upto]
-        kept += self.protocol.kept_for_rejoin()
+        kept = self.core.kept_on_rejoin(self.history)
         fresh = self.core.fresh_self()
         await self._close_drone()
         for link in self._peers.values():
             await link.stop()
         self._peers = {}
-        self._sent_straight = {}
         self.history.clear()
         self.core = fresh
         if self._settler is not None:
@@ -386,7 +398,7 @@ class ControllerNode:
             self._settler = None
         self.mission, self.mission_error = ring_pb2.MISSION_STATE_NONE, ""
         self._failure = None
-        self._drone_wait, self._in_flight, self._busy = "", None, None
+        self._drone_wait, self._in_flight, self._busy = None, None, None
         self._idle.set()
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
@@ -445,18 +457,12 @@ class ControllerNode:
             del self._arriving[min(self._arriving)]
 
     def _send_catch_up(self, target: int) -> None:
-        """A handover's target is sent straight from us what it may lack: our messages
-        the ring has not yet brought back to us (above ``acked_lognr``), and not sent to
-        it already, before what follows (the handover message, or a prepared handover's
-        flushes): one link's time, not one per hop (docs/design.md, "The ring's
-        forwarding"). It ignores what it already has, and the ring's copies."""
-        if target == self.protocol.successor:
-            return  # the ring's own stream gives it everything, in order
-        link = self.peer(target)
-        sent = max(self.protocol.acked_lognr, self._sent_straight.get(target, 0))
-        for lognr in self.history.above(sent):
-            link.send(self.history.get(lognr))
-            self._sent_straight[target] = lognr
+        """What a handover's target may lack, straight to it (``ControllerCore.catch_up``)."""
+        messages = self.core.catch_up(target, self.history)
+        if messages is not None:
+            link = self.peer(target)
+            for message in messages:
+                link.send(message)
 
     async def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
         """The drone plans a handover (``ControllerCore.prepare``)."""
@@ -582,12 +588,11 @@ class ControllerNode:
             await link.stop()
         link.start()
         link.holds_changed()
-        previous = route.previous
-        if previous != route.natural and previous not in route.skipped:
-            old = self._peers.get(previous)
-            if old is not None and old.unacked == 0:
-                await old.stop()
-                del self._peers[previous]
+        retired = route.retired
+        old = None if retired is None else self._peers.get(retired)
+        if retired is not None and old is not None and old.unacked == 0:
+            await old.stop()
+            del self._peers[retired]
 
     @property
     def peers(self) -> dict[int, PeerLink]:
@@ -629,27 +634,11 @@ class ControllerNode:
     # -- effects --------------------------------------------------------------------
 
     async def _apply(self, effects: Sequence[CoreEffect]) -> None:
-        for effect in effects:
-            if isinstance(effect, SendLog):
-                if effect.copy:
-                    # Not while cut off from the drone: a takeover may have replaced
-                    # us, and the copy would pass the taker's fence on the ring (the
-                    # target would build on a give-up the taker had replaced). A new
-                    # stream's PrepareHandover catches the target up (``on_prepare``);
-                    # a refused one fences us.
-                    if self.drone_connected:
-                        self.peer(effect.dest).send(effect.message)
-                        self._sent_straight[effect.dest] = effect.message.lognr
-                    continue
-                if not effect.message.handover:
-                    # A handover message we create enters the history when it
-                    # comes back round (footnote 3), once its new master has it:
-                    # a history copy (flag cleared) re-sent to our successor
-                    # before then could overtake it, and the new master would
-                    # take the copy for a normal message (the simulation's
-                    # ``World.check_overtaken_handover`` checks F7).
-                    self.history.add(effect.message)
-                    self.peer(self.protocol.successor).holds_changed()
+        for effect in self.core.ready(effects, self.drone_connected):
+            if isinstance(effect, Persist):
+                self.history.add(effect.message)
+                self.peer(self.protocol.successor).holds_changed()
+            elif isinstance(effect, SendLog):
                 self.peer(effect.dest).send(effect.message)
                 self.log.debug(
                     "log message sent",
@@ -670,8 +659,6 @@ class ControllerNode:
                     our_epoch=effect.ours_epoch,
                     ring_epoch=effect.ring_epoch,
                 )
-                if self.core.rejoin():
-                    self._background.spawn(self._rejoin(), name="rejoin")
             elif isinstance(effect, Reconnect):
                 await self._close_drone()
                 self._open_drone()
@@ -751,9 +738,8 @@ class ControllerNode:
                     )
                 )
                 self.log.info("taking over as master", old_master=effect.old_master)
-        # The mastership whose log we hold, kept with the log: a restart from the
-        # file tells it on Connect like this process does (fenced if taken over).
-        self.history.keep_mastership_epoch(self.protocol.log_mastership_epoch)
+            elif isinstance(effect, KeepMastership):
+                self.history.keep_mastership_epoch(effect.epoch)
         self._notify()
 
     def _notify(self) -> None:
@@ -1137,7 +1123,7 @@ class ControllerNode:
         try:
             return await self._invoke_drone_retrying(reqnr, method, request, digest)
         finally:
-            self._drone_wait = ""
+            self._drone_wait = None
             self._in_flight = None
 
     async def _invoke_drone_retrying(
@@ -1187,9 +1173,10 @@ class ControllerNode:
                     # The drone could not be reached, or its vehicle is not
                     # connected: nothing was executed, so the same reqnr is
                     # re-sent (the drone left it unused).
-                    self._drone_wait = (
-                        f"request {reqnr} ({method}): drone unavailable for "
-                        f"{retry.waited():.0f} s: {exc.details()}"
+                    self._drone_wait = Wait(
+                        "retry",
+                        f"request {reqnr} ({method}): drone unavailable ({exc.details()})",
+                        retry.waited(),
                     )
                     if retry.should_log():
                         self.log.warning(

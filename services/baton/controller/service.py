@@ -325,6 +325,7 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         drone_connected=node.drone_connected,
         drone_calls=node.drone_calls,
         waiting=node.waiting,
+        waits=[w.to_proto() for w in node.waits],
         epoch=p.epoch,
         catching_up_to=0 if p.caught_up else (p.catch_up_to or 0),
         watermark_reqnr=p.watermark_reqnr,

@@ -348,7 +348,7 @@ def run(args: argparse.Namespace) -> int:
     from baton.config import ConfigError
     from baton.drone.master import HandoverScriptError
     from baton.drone.mobility import MavsdkMobility
-    from baton.drone.service import autopilot_gcs_timeout_s, serve
+    from baton.drone.service import autopilot_gcs_timeout_s, safety_params, serve
     from baton.lifecycle import run_until_signalled
     from baton.rpc.tls import TlsError
 
@@ -363,5 +363,6 @@ def run(args: argparse.Namespace) -> int:
         tlog_dir=Path(args.tlog_dir) if args.tlog_dir is not None else None,
         gcs=ground_stations(settings),
         gcs_failsafe_timeout_s=autopilot_gcs_timeout_s(settings.config),
+        fence=safety_params(settings.config).fence,
     )
     return lifecycle.run(run_until_signalled(lambda stop: serve(settings, vehicle, stop)))

@@ -35,7 +35,13 @@ The rules it keeps (docs/design.md, "Takeover" and "Exactly once"):
   (FAILED_PRECONDITION, booked: the master logs it as the call's outcome, so
   every replica's program sees the same), until an operator
   resumes. A call beyond a bound of the vehicle (speed, altitude) is refused
-  INVALID_ARGUMENT the same way.
+  INVALID_ARGUMENT the same way, and one that would move the vehicle out of the
+  mission's fence (``fence.py``) OUT_OF_RANGE; the vehicle found out of the fence
+  is put in the fence's failsafe, once each time it leaves.
+- An operator's commands (``operator.py``, docs/operating.md "Operator commands"):
+  while paused, the master's next request waits at the drone before admission
+  (``holds``); once an abort or a land-now ended the mission, every admitted
+  request is refused before execution and booked, as in failsafe.
 """
 
 from __future__ import annotations
@@ -46,10 +52,13 @@ from dataclasses import dataclass
 import grpc
 
 from baton.drone.dedupe import RETAINED_BATCH_BYTES, CachedReply, retained_batches
+from baton.drone.fence import move_refusal
+from baton.drone.operator import Operator, OperatorCommand
 from baton.drone.safety import (
     Failsafe,
     SafetyParams,
     battery_failsafe,
+    fence_failsafe,
     limit_refusal,
     lost_link_failsafe,
 )
@@ -57,6 +66,7 @@ from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.methods import Method, drone_api
+from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
 # A drone restarted mid-mission counts its master as seen this long after the
@@ -99,13 +109,15 @@ class DroneCore:
         # controller was last there (None: not looked yet).
         self.failsafe: Failsafe | None = None
         self.last_usable: float | None = None
+        # Whether the vehicle was out of the fence at the last look (a breach acts once).
+        self.out_of_fence = False
         # The master is lost after this long unseen; 0: never (only an operator's takeover).
         self.takeover_after_s = takeover_after_s
         self.routes: Mapping[str, Method] = drone_api()
         # When each controller was last seen; absent until it first is.
         self.last_seen: dict[int, float] = {}
-        # Why a ground station's operator paused the mission (drone/gcs.py); "": not paused.
-        self.paused_by = ""
+        # The operator's pause, the end of the mission, every command (operator.py).
+        self.operator = Operator()
         # When each controller last served: held its Connect stream or sent a request.
         self.last_served: dict[int, float] = {}
         # When the first controller was seen since the drone started (the start-up
@@ -228,31 +240,60 @@ class DroneCore:
             return None
         return battery_failsafe(now, percent, self.safety, nearest)
 
+    def fence_due(self, now: float, position: api.Position, airborne: bool) -> Failsafe | None:
+        """The fence failsafe due now (``safety.fence_failsafe``), or None: none on the
+        ground or while in a failsafe already, and once per breach: a vehicle still out
+        after an operator's resume is not put back in failsafe until it was inside."""
+        due = fence_failsafe(now, position, self.safety.fence) if airborne else None
+        if due is None and (position.latitude_deg or position.longitude_deg):
+            self.out_of_fence = False
+        if self.failsafe is not None or self.out_of_fence:
+            return None
+        return due
+
     def enter_failsafe(self, failsafe: Failsafe) -> None:
         """The vehicle is in ``failsafe`` from now: requests are refused until a resume."""
         self.failsafe = failsafe
+        if failsafe.cause == "fence":
+            self.out_of_fence = True
 
-    def resume_mission(self, now: float) -> Failsafe | None:
-        """An operator gives the mission the vehicle back: the failsafe cleared (returned;
-        None if there was none), the lost-link time counted afresh from ``now``."""
+    def resume_mission(self, now: float) -> tuple[Failsafe | None, OperatorCommand]:
+        """An operator gives the mission the vehicle back (``Operator.resume``: raises
+        StatusError if nothing holds it): the pause and the failsafe cleared (the
+        failsafe returned; None if there was none), the lost-link time counted afresh
+        from ``now``."""
+        taken = self.operator.resume(now, self.seq.last_reqnr, self.failsafe)
         cleared, self.failsafe = self.failsafe, None
         self.last_usable = now
-        return cleared
+        return cleared, taken
+
+    def holds(self, request: drone_pb2.InvokeRequest) -> bool:
+        """Whether ``request`` waits at the drone before admission: the mission is paused
+        and it is the master's next (``Operator.holds``)."""
+        seq = self.seq
+        return self.operator.holds(request.controller_id, request.reqnr, seq.master, seq.last_reqnr)
 
     def refusal(self, method: str, payload: bytes) -> StatusError | None:
-        """Why an admitted request is not executed: the vehicle in failsafe, or a bound of
-        the vehicle it asks beyond; None to execute it. A payload that does not parse
-        is left to the execution, which refuses it."""
+        """Why an admitted request is not executed: the mission ended by an operator, the
+        vehicle in failsafe, a bound of the vehicle it asks beyond, or a move out of the
+        fence; None to execute it. A payload that does not parse is left to the
+        execution, which refuses it."""
         route = self.routes.get(method)
+        name = route.rpc if route is not None else method
+        ended = self.operator.refusal(name)
+        if ended is not None:
+            return ended
         if self.failsafe is not None:
-            return self.failsafe.refusal(route.rpc if route is not None else method)
+            return self.failsafe.refusal(name)
         if route is None:
             return None
         try:
             message = route.parse(payload)
         except StatusError:
             return None
-        return limit_refusal(route.rpc, message, self.safety)
+        return limit_refusal(route.rpc, message, self.safety) or move_refusal(
+            route.rpc, message, self.safety.fence
+        )
 
     # -- requests --------------------------------------------------------------------
 
@@ -285,7 +326,6 @@ class DroneCore:
         preparation, the first request of a new master; then what to keep with it."""
         seq, cid = self.seq, request.controller_id
         self.seen(cid, received_at)
-        self.refuse_if_paused(cid, request.reqnr)
         answers = self.master_answers(request.reqnr, request.master_answers)
         cached = seq.admit(
             cid,
@@ -306,23 +346,6 @@ class DroneCore:
             seq.adopt(cid, request.epoch, request.adopted_from_reqnr, request.reqnr)
         )
         return Admitted(None, kept, first, self.refusal(request.method, request.payload))
-
-    # -- a ground station's override (drone/gcs.py) ----------------------------------
-
-    def pause_by_ground_station(self, reason: str) -> None:
-        """An operator at a ground station took the vehicle over (override allowed): the
-        mission is paused until ``resume_from_ground_station``."""
-        self.paused_by = reason
-
-    def resume_from_ground_station(self) -> None:
-        self.paused_by = ""
-
-    def refuse_if_paused(self, controller_id: int, reqnr: int) -> None:
-        """While paused, the master's next request is refused FAILED_PRECONDITION before it
-        is admitted (its number stays unused, nothing reaches the vehicle); a re-sent one
-        already executed is still answered from the cache."""
-        if self.paused_by and controller_id == self.seq.master and reqnr > self.seq.last_reqnr:
-            raise StatusError(grpc.StatusCode.FAILED_PRECONDITION, self.paused_by)
 
     @staticmethod
     def books(error: StatusError) -> bool:

@@ -15,9 +15,9 @@ What a station sends is never passed to the autopilot as it is:
   heartbeats) is dropped, and counted;
 - override allowed (``--gcs-override``, ``drone.gcs_override: true``): a
   command (and SET_MODE) is the operator taking over. It is passed to the
-  autopilot, and the mission is paused: the drone refuses the master's next
-  Invoke with FAILED_PRECONDITION "paused by ground station ..." until it is
-  resumed (``DroneCore.pause_by_ground_station``). MISSION_* is dropped still:
+  autopilot, and the mission is paused as by an operator's Pause (the master's
+  next request waits at the drone until an operator's Resume, Abort or LandNow:
+  ``operator.py``), the vehicle left to the station. MISSION_* is dropped still:
   baton owns the mission.
 
 With MAVLink signing on (``--mavlink-key``), the station must sign with the
@@ -98,8 +98,8 @@ class GcsLink:
         self._checker = Signer(signer.key, link_id=1) if signer is not None else None
         # Passes a station's override command on to the autopilot (the relay's way out).
         self.to_vehicle: Callable[[bytes], None] = lambda frame: None
-        # Told when a station takes over (override allowed): the reason, for the pause.
-        self.on_override: Callable[[str], None] = lambda reason: None
+        # Called with the station and the command of an override (the mission pauses).
+        self.on_override: Callable[[str, str], None] = lambda station, what: None
         # Which controller is baton's master now, for the status text.
         self.controller: Callable[[], str] = lambda: "?"
         self.forwarded = 0
@@ -180,7 +180,7 @@ class GcsLink:
         if self.override:
             self.overrides += 1
             self._log.warning("operator override from a ground station", station=station, what=what)
-            self.on_override(f"paused by {station} ({what}); resume it to fly the mission on")
+            self.on_override(station, what)
             self.to_vehicle(raw)
             return
         self.denied += 1

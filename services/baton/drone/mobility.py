@@ -46,6 +46,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from baton import logs
 from baton.drone.gcs import GcsLink
 from baton.drone.mavlink_relay import MavlinkRelay
+from baton.drone.safety import AutopilotParam, fence_params, gcs_failsafe_params
 from baton.drone.tlog import TlogWriter, tlog_path
 from baton.drone.vehicle_state import (
     ARDUPILOT_COMMAND_MODE,
@@ -58,6 +59,7 @@ from baton.drone.vehicle_state import (
     readiness,
 )
 from baton.rpc.errors import StatusError
+from baton.sdk.fence import Fence
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -212,8 +214,16 @@ class MavsdkMobility:
         gcs: GcsLink | None = None,
         runtime: MavsdkRuntime = PROCESS_RUNTIME,
         gcs_failsafe_timeout_s: float = 0.0,
+        fence: Fence | None = None,
     ) -> None:
         self.url = url
+        # The mission's fence (drone/fence.py), uploaded at connect, after a reboot and
+        # before arming; ``_fence_held``: the autopilot accepted it since it was last
+        # (re)connected.
+        self.fence = fence
+        self._fence_held = False
+        self._fence_lock = asyncio.Lock()  # one upload at a time (MAVSDK answers BUSY)
+        self._geofence: Any = None
         # The autopilot's own GCS failsafe (safety.gcs_failsafe_params); 0: left alone.
         self.gcs_failsafe_timeout_s = gcs_failsafe_timeout_s
         self._param: Any = None
@@ -313,6 +323,7 @@ class MavsdkMobility:
 
     async def _attach(self) -> None:
         from mavsdk.asyncio.plugins.action import ActionAsync
+        from mavsdk.asyncio.plugins.geofence import GeofenceAsync
         from mavsdk.asyncio.plugins.gimbal import GimbalAsync
         from mavsdk.asyncio.plugins.mavlink_direct import MavlinkDirectAsync
         from mavsdk.asyncio.plugins.param import ParamAsync
@@ -327,6 +338,7 @@ class MavsdkMobility:
         self._direct = MavlinkDirectAsync(system)
         self._gimbal = GimbalAsync(system)
         self._param = ParamAsync(system)
+        self._geofence = GeofenceAsync(system)
         for name, stream in (
             ("position", telemetry.subscribe_position),
             ("velocity", telemetry.subscribe_velocity_ned),
@@ -414,6 +426,7 @@ class MavsdkMobility:
             # right after a SITL restart).
             self._latest.clear()
             self._prearm = None
+            self._fence_held = False  # a rebooted autopilot may have lost it
         elif change == "recovered" and outage_since is not None:
             self._log.info("vehicle link back", outage_s=round(now - outage_since, 2))
         return now
@@ -438,6 +451,10 @@ class MavsdkMobility:
                 self._tasks.append(
                     asyncio.create_task(self._set_gcs_failsafe(), name="gcs-failsafe params")
                 )
+                if self.fence is not None and not self._fence_held:
+                    self._tasks.append(
+                        asyncio.create_task(self._fence_at_connect(), name="fence upload")
+                    )
             await asyncio.sleep(self.WATCH_PERIOD_S)
 
     async def _request_rates(self) -> None:
@@ -470,14 +487,16 @@ class MavsdkMobility:
                 self._log.warning("telemetry rate refused", stream="ekf_status", error=str(exc))
 
     async def _set_gcs_failsafe(self) -> None:
-        """Sets the autopilot's own GCS failsafe (``safety.gcs_failsafe_params``) where it
-        has the parameters: each read first, and left alone (logged) where the read gets
-        no answer (the embedded sim vehicle knows only MIS_TAKEOFF_ALT)."""
-        from baton.drone.safety import gcs_failsafe_params
-
+        """Sets the autopilot's own GCS failsafe (``safety.gcs_failsafe_params``)."""
         heartbeat = self._heartbeat
         ardupilot = heartbeat is not None and heartbeat.is_ardupilot
         params = gcs_failsafe_params(ardupilot, self.gcs_failsafe_timeout_s, self._gcs_sysid)
+        await self._set_params("autopilot GCS failsafe", params)
+
+    async def _set_params(self, what: str, params: list[AutopilotParam]) -> None:
+        """Sets ``params`` in order where the autopilot has them: each read first, and the
+        rest left alone (logged) from the first whose read gets no answer (the embedded
+        sim vehicle knows only MIS_TAKEOFF_ALT and its link-loss parameters)."""
         done = []
         for p in params:
             get = self._param.get_param_int if p.integer else self._param.get_param_float
@@ -488,14 +507,74 @@ class MavsdkMobility:
                 await asyncio.wait_for(put(p.name, value), PARAM_TIMEOUT_S)
             except Exception as exc:  # ParamError, a timeout: the autopilot lacks it
                 self._log.warning(
-                    "autopilot GCS failsafe not set: the autopilot does not take the parameter",
+                    f"{what} not set: the autopilot does not take the parameter",
                     param=p.name,
                     error=f"{type(exc).__name__}: {exc}",
                 )
                 return
             done.append(f"{p.name}={value}")
         if done:
-            self._log.info("autopilot GCS failsafe set", params=done)
+            self._log.info(f"{what} set", params=done)
+
+    async def _fence_at_connect(self) -> None:
+        """Uploads the fence at connect (a drone restarted mid-flight re-applies it); a
+        failure is logged, and the next Arm tries again and refuses without it."""
+        try:
+            await self.upload_fence()
+        except StatusError as err:
+            self._log.warning("fence not uploaded at connect", reason=err.message)
+
+    async def upload_fence(self) -> None:
+        """Uploads the mission's fence through MAVSDK's Geofence plugin (the MAVLink
+        mission protocol, MAV_MISSION_TYPE_FENCE): its polygons and circles; the
+        ceiling is the drone's own check (the plugin carries no altitude)."""
+        async with self._fence_lock:
+            if not self._fence_held:  # the one before may have done it meanwhile
+                await self._upload_fence()
+
+    async def _upload_fence(self) -> None:
+        from mavsdk.plugins.geofence import (
+            Circle,
+            FenceType,
+            GeofenceData,
+            GeofenceError,
+            Point,
+            Polygon,
+        )
+
+        fence = self.fence
+        if fence is None or self._geofence is None:
+            return
+
+        def kind(inclusion: bool) -> Any:
+            return FenceType.INCLUSION if inclusion else FenceType.EXCLUSION
+
+        data = GeofenceData(
+            polygons=[
+                Polygon([Point(lat, lon) for lat, lon in p.vertices], kind(p.inclusion))
+                for p in fence.polygons
+            ],
+            circles=[
+                Circle(Point(c.latitude_deg, c.longitude_deg), c.radius_m, kind(c.inclusion))
+                for c in fence.circles
+            ],
+        )
+        try:
+            await asyncio.wait_for(self._geofence.upload_geofence(data), self.command_timeout_s)
+        except (GeofenceError, TimeoutError) as exc:
+            raise StatusError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"vehicle at {self.url} did not take the mission's fence "
+                f"({len(fence.polygons)} polygons, {len(fence.circles)} circles): "
+                f"{exc or type(exc).__name__}",
+            ) from exc
+        self._fence_held = True
+        self._log.info("fence uploaded", polygons=len(fence.polygons), circles=len(fence.circles))
+        heartbeat = self._heartbeat
+        params = fence_params(heartbeat is not None and heartbeat.is_ardupilot, fence)
+        self._tasks.append(
+            asyncio.create_task(self._set_params("autopilot fence", params), name="fence params")
+        )
 
     # --- helpers -----------------------------------------------------------------------
 
@@ -610,8 +689,11 @@ class MavsdkMobility:
     # --- Mobility RPCs -------------------------------------------------------------------
 
     async def Arm(self, request: api.ArmRequest) -> api.ArmReply:
-        """Arms the motors (in GUIDED on ArduPilot); a refusal says why the vehicle is not ready."""
+        """Arms the motors (in GUIDED on ArduPilot), the mission's fence uploaded first; a
+        refusal says why the vehicle is not ready."""
         self._require_connected()
+        if self.fence is not None and not self._fence_held:
+            await self.upload_fence()  # never armed without its fence
         started = time.monotonic()
         while True:
             try:

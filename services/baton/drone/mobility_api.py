@@ -66,3 +66,18 @@ class MobilityBackend(Protocol):
         self, request: api.SetRoiLocationRequest
     ) -> api.SetRoiLocationReply: ...
     async def ClearRoi(self, request: api.ClearRoiRequest) -> api.ClearRoiReply: ...
+
+
+async def command_action(vehicle: MobilityBackend, action: str) -> bool:
+    """Commands ``vehicle`` what a failsafe or an operator's command says: ``hold``,
+    ``land`` or ``rtl`` (StatusError if it refuses); False for any other action, which
+    the caller carries out itself."""
+    if action == "hold":
+        await vehicle.Hold(api.HoldRequest())
+    elif action == "land":
+        await vehicle.Land(api.LandRequest())
+    elif action == "rtl":
+        await vehicle.ReturnToLaunch(api.ReturnToLaunchRequest())
+    else:
+        return False
+    return True

@@ -58,6 +58,9 @@ from baton.v1 import drone_pb2
 
 # The policies a drone can run; "none" leaves the master to the script and the operator.
 POLICIES = ("none", "nearest", "predictive")
+# Mobility commands after which the vehicle flies no leg to resume (it lands, goes
+# home, holds or climbs on the master's word): a resume flies on only after a Goto.
+ENDS_A_LEG = frozenset({"Land", "ReturnToLaunch", "Hold", "Takeoff", "Disarm", "Arm"})
 
 # A decision's action: the contract's PolicyAction (GetStatus shows it as it is).
 STAY = drone_pb2.POLICY_ACTION_STAY

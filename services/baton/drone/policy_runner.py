@@ -52,6 +52,7 @@ from typing import TYPE_CHECKING
 from google.protobuf.message import Message
 
 from baton.drone.policy import (
+    ENDS_A_LEG,
     HANDOVER,
     HOLD,
     Decision,
@@ -82,9 +83,6 @@ DECISIONS_KEPT = 100
 DECISION_LOG_PERIOD_S = 5.0
 # Closer than this to the last Goto's target, a resume sends nothing.
 RESUME_MIN_M = 1.0
-# Mobility commands after which there is nothing to resume (the vehicle lands,
-# goes home, holds or climbs on the master's word).
-_ENDS_A_LEG = frozenset({"Land", "ReturnToLaunch", "Hold", "Takeoff", "Disarm", "Arm"})
 
 
 class PolicyRunner:
@@ -167,7 +165,7 @@ class PolicyRunner:
         if method_name == "Goto":
             assert isinstance(request, api.GotoRequest)
             self._last_goto = request
-        elif method_name in _ENDS_A_LEG:
+        elif method_name in ENDS_A_LEG:
             self._last_goto = None
         else:
             return
@@ -395,7 +393,7 @@ class PolicyRunner:
 
 def _changes_the_leg(method_name: str) -> bool:
     """Whether a Mobility command of the master sets the leg the vehicle flies."""
-    return method_name == "Goto" or method_name in _ENDS_A_LEG
+    return method_name == "Goto" or method_name in ENDS_A_LEG
 
 
 def _leg_to(goto: api.GotoRequest | None) -> tuple[float, float] | None:

@@ -16,8 +16,10 @@ from dataclasses import dataclass
 import grpc
 from google.protobuf.message import Message
 
+from baton.drone.fence import breach
 from baton.drone.policy import Fix, Station, distance_m
 from baton.rpc.errors import StatusError
+from baton.sdk.fence import Fence
 from baton.sdk.types import Position
 from baton.v1 import drone_api_pb2 as api
 
@@ -35,12 +37,13 @@ class SafetyParams:
     max_altitude_m: float = math.inf
     battery_reserve_pct: float = 0.0  # 0: no battery reserve
     battery_action: str = "rtl"
+    fence: Fence | None = None  # None: no fence (drone/fence.py)
 
 
 @dataclass(frozen=True)
 class Failsafe:
-    """The vehicle taken out of the mission's hands: why (``cause``: ``lost_link`` or
-    ``battery``),
+    """The vehicle taken out of the mission's hands: why (``cause``: ``lost_link``,
+    ``battery`` or ``fence``),
     what it does (``action``, and the ``station`` it flies to for nearest_station),
     since when (wall seconds) and the reason a person reads."""
 
@@ -94,6 +97,22 @@ def battery_failsafe(
         now,
         f"battery {percent:.1f} % below the reserve of {reserve:g} %: {action}{where}",
         station if action == "nearest_station" else None,
+    )
+
+
+def fence_failsafe(now: float, position: api.Position, fence: Fence | None) -> Failsafe | None:
+    """The fence failsafe due at ``now`` with the vehicle at ``position`` (its telemetry):
+    out of the fence (wind, a ground station's command), the fence's action; None while
+    it is inside or there is no fence."""
+    why = breach(fence, position)
+    if fence is None or why is None:
+        return None
+    at = (
+        f"({position.latitude_deg:.7f}, {position.longitude_deg:.7f}, "
+        f"{position.relative_altitude_m:.1f} m)"
+    )
+    return Failsafe(
+        "fence", fence.action, now, f"fence breach: the vehicle at {at} is {why}: {fence.action}"
     )
 
 
@@ -153,6 +172,30 @@ def gcs_failsafe_params(ardupilot: bool, timeout_s: float, gcs_sysid: int) -> li
     return [
         AutopilotParam("COM_DL_LOSS_T", max(5, math.ceil(timeout_s))),
         AutopilotParam("NAV_DLL_ACT", 2),
+    ]
+
+
+def fence_params(ardupilot: bool, fence: Fence) -> list[AutopilotParam]:
+    """The autopilot's own fence, beside the polygons and circles uploaded to it: its
+    ceiling and the action of a breach it finds itself (rtl: return, land: land), so a
+    vehicle out of its fence comes back even with the drone service gone.
+
+    ArduPilot: FENCE_TYPE 5 (maximum altitude and the uploaded polygons and circles),
+    FENCE_ALT_MAX, FENCE_ACTION (1: RTL or land, 2: land), then FENCE_ENABLE 1. PX4:
+    GF_MAX_VER_DIST (0: none), GF_ACTION (3: Return, 5: Land)."""
+    ceiling = fence.ceiling_m if math.isfinite(fence.ceiling_m) else 0.0
+    if ardupilot:
+        params = [AutopilotParam("FENCE_TYPE", 5 if ceiling else 4)]
+        if ceiling:
+            params.append(AutopilotParam("FENCE_ALT_MAX", ceiling, integer=False))
+        return [
+            *params,
+            AutopilotParam("FENCE_ACTION", 2 if fence.action == "land" else 1),
+            AutopilotParam("FENCE_ENABLE", 1),
+        ]
+    return [
+        AutopilotParam("GF_MAX_VER_DIST", ceiling, integer=False),
+        AutopilotParam("GF_ACTION", 5 if fence.action == "land" else 3),
     ]
 
 

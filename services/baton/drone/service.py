@@ -27,7 +27,8 @@ from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
 from baton.drone.dispatch import Dispatcher
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
-from baton.drone.mobility_api import MobilityBackend
+from baton.drone.mobility_api import MobilityBackend, command_action
+from baton.drone.operator_service import OperatorCommands, failsafe_proto, fill_status
 from baton.drone.policy import LinkBounds, LinkState, PolicyParams, Station
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.safety import Failsafe, SafetyParams, landing_due, nearest_station
@@ -40,7 +41,7 @@ from baton.rpc.labels import label
 from baton.rpc.outcomes import failure_of
 from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
-from baton.stalls import StallWatch
+from baton.stalls import StallWatch, Wait, drone_conditions, drone_judge, one_line
 from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -138,13 +139,16 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             }
         )
         self._stalls = StallWatch()
-        self.waiting = ""
+        self.waits: list[Wait] = []
+        self._reached = False  # a controller has reached this process (stalls.py)
         # Each controller's round trip, measured by pings on its standby stream.
         self.probes = LinkProbes(tuple(sequencer.ring), link_bounds or LinkBounds(), self.log)
         # The handover policy, when the drone runs one (build_service).
         self.policy: PolicyRunner | None = None
         # The request a restart cut off (store.py's intent), as found at start.
         self.cut_off: Intent | None = None
+        # Pause, Resume, Abort, LandNow (operator_service.py).
+        self.operator = OperatorCommands(self)
         if store is not None:
             self._restore(store)
 
@@ -172,18 +176,28 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """The newest served requests held in memory, in order."""
         return list(self.seq.audit)
 
+    @property
+    def waiting(self) -> str:
+        """The waits that need a person, as one line; empty when none does."""
+        return one_line(self.waits)
+
     async def watch(self) -> None:
-        """Every half second: stalls into GetStatus.waiting, and into the log when they begin."""
+        """Every half second: waits into GetStatus, and stalls into the log when they begin."""
         while True:
-            holding = {}
-            if not self.streams.master_connected:
-                holding["master"] = (
-                    f"the master, controller {self.seq.master}, holds no Connect stream"
-                )
+            reachable, connected = self.standby.reachable, self.streams.master_connected
+            self._reached = self._reached or bool(reachable) or connected
+            # Without a policy there is no map: every link should be up. With one,
+            # a position not known yet puts no station in range.
+            policy = self.policy
+            in_range = None if policy is None else (policy.in_range() or set())
+            holding = drone_conditions(
+                self.seq.master, connected, self.seq.ring, reachable, in_range, self._reached
+            )
+            holding.update(self.operator.waiting())
+            link_up_s = policy.params.link_up_s / policy.speedup if policy is not None else 0.0
             now = time.monotonic()
-            stalls = self._stalls.update(now, holding)
-            self.waiting = "; ".join(stalls)
-            if self._stalls.due_for_log(now, stalls):
+            self.waits = self._stalls.update(now, holding, drone_judge(link_up_s))
+            if self._stalls.due_for_log(now, self.waits):
                 self.log.warning("stalled", waiting=self.waiting)
             await asyncio.sleep(0.5)
 
@@ -247,14 +261,18 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             return None
 
     def _failsafe_due(self, state: api.GetFlightStateReply, here: api.Position) -> Failsafe | None:
-        """``DroneCore.battery_due``, else ``failsafe_due`` (the lost link), with the
-        battery and whether the vehicle is in the air (``state``), who holds a stream
-        now, who is in range, and the station nearest the vehicle (``here``)."""
+        """``DroneCore.battery_due``, else ``fence_due``, else ``failsafe_due`` (the lost
+        link), with the battery and whether the vehicle is in the air (``state``), who
+        holds a stream now, who is in range, and where the vehicle is (``here``: the
+        fence, the station nearest it)."""
         now, airborne = time.time(), state.in_air
         nearest = nearest_station(here, self.stations)
         battery = self.core.battery_due(now, state.battery_percent, airborne, nearest)
         if battery is not None:
             return battery
+        breach = self.core.fence_due(now, here, airborne)
+        if breach is not None:
+            return breach
         if self.core.failsafe is not None:
             return None
         in_range = self.policy.in_range() if self.policy is not None else None
@@ -266,7 +284,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         and the store first, so a request that comes next is refused whatever the
         vehicle answers, then the action commanded."""
         self.core.enter_failsafe(failsafe)
-        self._save_failsafe()
+        self.save_failsafe()
         self.log.warning(
             "failsafe",
             cause=failsafe.cause,
@@ -281,13 +299,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
 
     async def _command_failsafe(self, failsafe: Failsafe) -> None:
         vehicle = self.vehicle
-        if failsafe.action == "hold":
-            await vehicle.Hold(api.HoldRequest())
-        elif failsafe.action == "land":
-            await vehicle.Land(api.LandRequest())
-        elif failsafe.action == "rtl":
-            await vehicle.ReturnToLaunch(api.ReturnToLaunchRequest())
-        elif failsafe.station is not None:
+        if await command_action(vehicle, failsafe.action):
+            return
+        if failsafe.station is not None:
             here = await latest_position(vehicle)
             at = self.stations[failsafe.station].location
             await vehicle.Goto(
@@ -314,37 +328,31 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                     self._landing_for = None  # tried again at the next look
                     self.log.error("failsafe landing refused by the vehicle", reason=err.message)
 
-    def _save_failsafe(self) -> None:
+    def save_failsafe(self) -> None:
         if self.store is not None:
             self.store.save_failsafe(self.core.failsafe)
+
+    # -- an operator's commands (operator_service.py) --------------------------------
 
     async def Resume(
         self, request: drone_pb2.ResumeRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.ResumeReply:
-        """An operator gives the mission the vehicle back after a failsafe."""
-        try:
-            refusal = refused(
-                context,
-                self.authenticated,
-                "Resume",
-                f"only an operator ({OPERATOR.uri}) may give the mission the vehicle back",
-                lambda who: who == OPERATOR,
-            )
-            if refusal is not None:
-                raise refusal
-            async with self._lock:
-                cleared = self.core.resume_mission(time.time())
-                if cleared is None:
-                    raise StatusError(
-                        grpc.StatusCode.FAILED_PRECONDITION,
-                        "Resume: the vehicle is in no failsafe; the mission has it",
-                    )
-                self._save_failsafe()
-        except StatusError as err:
-            self.log.warning("resume rejected", reason=err.message)
-            await abort_with(context, err)
-        self.log.warning("failsafe cleared by the operator", cause=cleared.cause)
-        return drone_pb2.ResumeReply(cleared=failsafe_proto(cleared))
+        return await self.operator.resume(request, context)
+
+    async def Pause(
+        self, request: drone_pb2.PauseRequest, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.OperatorReply:
+        return await self.operator.pause(request, context)
+
+    async def Abort(
+        self, request: drone_pb2.AbortRequest, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.OperatorReply:
+        return await self.operator.abort(request, context)
+
+    async def LandNow(
+        self, request: drone_pb2.LandNowRequest, context: grpc.aio.ServicerContext
+    ) -> drone_pb2.OperatorReply:
+        return await self.operator.land_now(request, context)
 
     async def watch_links(self) -> None:
         """Every PING_PERIOD_S: pings each controller on its standby stream, and logs
@@ -515,6 +523,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         if failsafe is not None:
             self.core.enter_failsafe(failsafe)
             self.log.warning("still in failsafe", cause=failsafe.cause, reason=failsafe.reason)
+        self.operator.restore()
         counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
         self.core.resume(
             time.time(),
@@ -650,15 +659,23 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         cache, never executed again. A duplicate that arrives meanwhile
         waits for it (the lock) and gets its outcome.
         """
-        task = self._invocations.spawn(self._invoke_to_the_end(request, received_at))
-        task.add_done_callback(_retrieve_exception)
-        return await asyncio.shield(task)
+        while True:
+            await self.operator.wait_resumed(request)  # paused: waits, not admitted
+            task = self._invocations.spawn(self._invoke_to_the_end(request, received_at))
+            task.add_done_callback(_retrieve_exception)
+            reply = await asyncio.shield(task)
+            if reply is not None:
+                return reply
 
     async def _invoke_to_the_end(
         self, request: drone_pb2.InvokeRequest, received_at: float
-    ) -> drone_pb2.InvokeReply:
+    ) -> drone_pb2.InvokeReply | None:
+        """The request under the execution lock, to its end; None when a pause came before
+        it got the lock (it waits again, not admitted)."""
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         async with self._lock:
+            if self.core.holds(request):
+                return None
             digest = request_digest(method, request.payload)
             admitted = self.core.admit(request, digest, received_at)
             first = admitted.first
@@ -740,8 +757,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             raise StatusError(
                 grpc.StatusCode.INTERNAL, f"{request.method} failed on the drone: {exc!r}"
             ) from exc
-        if self.policy is not None and route.service == "Mobility":
-            self.policy.executed(route.name, message)
+        if route.service == "Mobility":
+            self.operator.executed(route.name, request.payload)
+            if self.policy is not None:
+                self.policy.executed(route.name, message)
         if self.store is not None and isinstance(message, api.SetSpeedRequest):
             # Commanded state the vehicle needs again after a restart (store.py).
             self.store.save_commanded(SPEED_KEY, message.speed_m_s)
@@ -886,7 +905,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                         )
                     )
             sent_prepare: drone_pb2.PrepareHandover | None = None
+            said = ""  # the operator's pause as this stream last told it
             while True:
+                word = self.operator.word()
+                if word.paused != said:
+                    yield drone_pb2.DroneEvent(operator=word)
+                    said = word.paused
                 notice = self.core.stream_event(cid, sent_prepare)
                 if isinstance(notice, drone_pb2.PrepareHandover):
                     yield drone_pb2.DroneEvent(prepare=notice)
@@ -1068,6 +1092,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             controllers=seq.controllers,
             vehicle=self.vehicle.link(),
             waiting=self.waiting,
+            waits=[w.to_proto() for w in self.waits],
             watermark_reqnr=seq.cache.watermark,
             reachable=[c for c in seq.ring if c in self.standby.reachable],
             takeover_after_s=self.takeover_after_s,
@@ -1079,6 +1104,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.policy.fill_status(status)
         if self.core.failsafe is not None:
             status.failsafe.CopyFrom(failsafe_proto(self.core.failsafe))
+        fill_status(status, self.operator)
         status.lost_link_s = self.core.safety.lost_link_s
         status.lost_link_action = self.core.safety.lost_link_action
         links, clock = self.link_states(), time.monotonic()
@@ -1116,17 +1142,6 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             status.audit_more = len(page) > limit
             status.audit.extend(page[:limit])
         return status
-
-
-def failsafe_proto(failsafe: Failsafe) -> drone_pb2.Failsafe:
-    """The failsafe as GetStatus and Resume show it."""
-    return drone_pb2.Failsafe(
-        cause=failsafe.cause,
-        action=failsafe.action,
-        since=failsafe.since,
-        reason=failsafe.reason,
-        station=-1 if failsafe.station is None else failsafe.station,
-    )
 
 
 @dataclass(frozen=True)
@@ -1228,6 +1243,7 @@ def safety_params(config: BatonConfig) -> SafetyParams:
         max_altitude_m=safety.max_altitude,
         battery_reserve_pct=safety.battery_reserve,
         battery_action=safety.battery_action,
+        fence=safety.fence.fence() if safety.fence is not None else None,
     )
 
 
@@ -1295,7 +1311,7 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         service.policy.restore()
     gcs = getattr(vehicle, "gcs", None)  # ground stations watching (drone/gcs.py)
     if gcs is not None:
-        gcs.on_override = service.core.pause_by_ground_station
+        gcs.on_override = service.operator.ground_station_paused
         gcs.controller = lambda: str(sequencer.master)
     return service
 

@@ -95,6 +95,12 @@ def parser() -> argparse.ArgumentParser:
         "Resume in half of them",
     )
     p.add_argument(
+        "--operator",
+        action="store_true",
+        help="issue 32: an operator's commands at a drawn moment: a pause then a resume "
+        "(or an abort), an abort (rtl or land), or a land-now",
+    )
+    p.add_argument(
         "--takeover-after",
         type=float,
         default=None,
@@ -139,6 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         policy=args.policy,
         stall_new_master=args.stall_new_master,
         failsafe=args.failsafe,
+        operator=args.operator,
         takeover_after=args.takeover_after,
         allow=args.allow,
         mutation=args.mutation,

@@ -41,7 +41,9 @@ from baton.controller.core import (
     Fail,
     Hold,
     Keep,
+    KeepMastership,
     Note,
+    Persist,
     Preparing,
     Reconnect,
     Rejoin,
@@ -195,7 +197,6 @@ class SimController:
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
         self.fenced_messages = 0
         self.route_held = False  # a route held back polls (_route_again)
-        self.sent_straight: dict[int, int] = {}  # node.py ControllerNode._sent_straight
         # And _acked_before_prepare: the target's stream then, and its acks then.
         self.acked_before_prepare: tuple[RingLink | None, int] = (None, 0)
 
@@ -249,21 +250,16 @@ class SimController:
 
     def _apply(self, effects: Sequence[CoreEffect]) -> None:
         unqueued = False
-        for effect in effects:
-            if isinstance(effect, SendLog):
+        session = self.session
+        for effect in self.core.ready(effects, session is not None and session.connected):
+            if isinstance(effect, Persist):
+                self.history.add(effect.message)
+                self.peer(self.protocol.successor).holds_changed()
+            elif isinstance(effect, SendLog):
                 message = effect.message
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
                 self.world.framings.setdefault(message.lognr, set()).add(message.epoch)
-                if effect.copy:  # a prepared handover's target: held once already
-                    session = self.session  # node.py: not while cut off from the drone
-                    if session is not None and session.connected:
-                        self.peer(effect.dest).send(message)
-                        self.sent_straight[effect.dest] = message.lognr
-                    continue
-                if not message.handover:  # it enters the history when it comes back round
-                    self.history.add(message)
-                    self.peer(self.protocol.successor).holds_changed()
-                self.peer(effect.dest).send(effect.message)
+                self.peer(effect.dest).send(message)
             elif isinstance(effect, ConnectDrone):
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
@@ -273,8 +269,6 @@ class SimController:
                     f"controller {self.id} diverged at log message {effect.lognr} (epoch "
                     f"{effect.ours_epoch} here, {effect.ring_epoch} on the ring): rejoins"
                 )
-                if self.core.rejoin():
-                    self._rejoin()
             elif isinstance(effect, Reconnect):
                 self._close_drone()
                 self._open_drone()
@@ -307,6 +301,8 @@ class SimController:
                     f"controller {self.id} drops log message {effect.lognr} of fenced "
                     f"{effect.origin} (epoch {effect.epoch})"
                 )
+            elif isinstance(effect, KeepMastership):
+                self.history.keep_mastership_epoch(effect.epoch)
             elif isinstance(effect, Unqueued):  # node.py: out of the history too
                 self.fenced_messages += 1
                 unqueued = True
@@ -593,12 +589,11 @@ class SimController:
             link.restart()
         link.start()
         link.holds_changed()
-        previous = route.previous
-        if previous != route.natural and previous not in route.skipped:
-            old = self.links.get(previous)
-            if old is not None and not old.unacked:
-                old.stop()
-                del self.links[previous]
+        retired = route.retired
+        old = None if retired is None else self.links.get(retired)
+        if retired is not None and old is not None and not old.unacked:
+            old.stop()
+            del self.links[retired]
         self.world.check_start()
 
     def _route_again(self) -> None:
@@ -667,15 +662,13 @@ class SimController:
         )
 
     def _send_catch_up(self, target: int) -> None:
-        """ControllerNode._send_catch_up: what the target may lack, straight to it."""
-        if target == self.protocol.successor:
-            return
-        link = self.peer(target)
-        sent = max(self.protocol.acked_lognr, self.sent_straight.get(target, 0))
-        for lognr in self.history.above(sent):
-            self.world.trace(f"controller {self.id} sends {lognr} straight to {target}")
-            link.send(self.history.get(lognr))
-            self.sent_straight[target] = lognr
+        """ControllerNode._send_catch_up (``ControllerCore.catch_up``)."""
+        messages = self.core.catch_up(target, self.history)
+        if messages is not None:
+            link = self.peer(target)
+            for message in messages:
+                self.world.trace(f"controller {self.id} sends {message.lognr} straight to {target}")
+                link.send(message)
 
     def on_log(self, message: ring_pb2.LogMessage) -> None:
         """ControllerNode.on_log (``ControllerCore.log_arrived``)."""

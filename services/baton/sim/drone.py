@@ -91,6 +91,9 @@ class SimVehicle:
         # apart), and the operator's resumes, as (time, what).
         self.failsafes: list[tuple[float, str]] = []
         self.resumes: list[float] = []
+        # Every operator command the drone took, as (time, command, what the vehicle
+        # was told): a pause holds, an abort returns or lands, a resume may fly on.
+        self.operator: list[tuple[float, str, str]] = []
         self._serial = 0
 
     def battery(self, now: float) -> float:
@@ -206,8 +209,12 @@ class FailsafeCheck:
 
 
 @dataclass(frozen=True)
-class ResumeOrder:
-    """The operator's Resume: takes the lock, then clears the failsafe."""
+class OperatorOrder:
+    """An operator's command (Drone.Pause, Resume, Abort, LandNow): takes the lock, then
+    asks the core (operator_service.OperatorCommands)."""
+
+    command: str  # operator.COMMANDS
+    action: str = ""  # an abort's: rtl or land
 
 
 @dataclass(frozen=True)
@@ -286,8 +293,12 @@ class SimDrone:
             | PolicyStep
             | FreshSelfConnect
             | FailsafeCheck
-            | ResumeOrder
+            | OperatorOrder
         ] = deque()
+        # Requests of a paused mission waiting for a resume, not admitted
+        # (OperatorCommands.wait_resumed): their callers may still go away.
+        self.parked: list[Request] = []
+        self.waited = 0  # requests that waited for a resume, over every incarnation
         self.busy: Execution | None = None
         self.streams: dict[int, Stream] = {}
         self.stats = DroneStats()
@@ -362,11 +373,8 @@ class SimDrone:
             elif isinstance(item, FailsafeCheck):
                 self._failsafe_queued = False
                 self._failsafe_check()
-            elif isinstance(item, ResumeOrder):
-                cleared = self.core.resume_mission(self.world.loop.now)
-                if cleared is not None:
-                    self.vehicle.resumes.append(self.world.loop.now)
-                    self.world.trace(f"failsafe cleared by the operator ({cleared.cause})")
+            elif isinstance(item, OperatorOrder):
+                self._operator(item)
             else:
                 self._start(item)
 
@@ -375,6 +383,10 @@ class SimDrone:
         seq, now = self.seq, self.world.loop.now
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         digest = request_digest(method, request.payload)
+        if self.core.holds(request.proto()):
+            self.parked.append(request)  # paused: waits for a resume, not admitted
+            self.waited += 1
+            return
         try:
             admitted = self.core.admit(request.proto(), digest, request.received_at)
         except StatusError as err:
@@ -439,6 +451,8 @@ class SimDrone:
             execution.reply = self.camera.take(now, request.reqnr, request.payload, size)
         else:
             execution.reply = self.vehicle.act(now, request.reqnr, request.method, request.payload)
+            # DroneService._execute: the leg a resume flies on (kept in the state file).
+            self.core.operator.executed(ROUTES[request.method].name, request.payload)
             if self.policy is not None:  # DroneService._execute: the leg it flies
                 self.policy.executed(ROUTES[request.method].name)
             if self.p_ack_lost and self.world.rng.random() < self.p_ack_lost:
@@ -543,6 +557,8 @@ class SimDrone:
             if request.call_id == call_id:
                 self._caller_gone(request)
                 return
+        # A request waiting for a resume: its wait ends with its call, nothing admitted.
+        self.parked = [r for r in self.parked if r.call_id != call_id]
 
     def _requests(self) -> list[Request]:
         requests = [item for item in self.queue if isinstance(item, Request)]
@@ -810,6 +826,9 @@ class SimDrone:
         for request in self._requests():
             if request.controller_id == cid and request.connection == connection:
                 self._caller_gone(request)
+        self.parked = [
+            r for r in self.parked if (r.controller_id, r.connection) != (cid, connection)
+        ]
 
     # -- restarts ------------------------------------------------------------------
 
@@ -818,6 +837,7 @@ class SimDrone:
         self.world.trace(f"drone crashes (executing {self.intent})")
         self.up = False
         self.queue.clear()
+        self.parked.clear()
         self.busy = None
         self.streams.clear()
         for controller in self.world.live_controllers():
@@ -863,6 +883,7 @@ class SimDrone:
         core = DroneCore(self._sequencer(), self.world.takeover_after, self.world.safety)
         if self.core.failsafe is not None:  # kept in the store (store.save_failsafe)
             core.enter_failsafe(self.core.failsafe)
+        core.operator = self.core.operator  # kept in the store (OperatorCommands._save)
         replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
         counts = (old.last_reqnr, old.executed, old.duplicates, old.rejected)
         core.resume(
@@ -960,12 +981,37 @@ class SimDrone:
             self.vehicle.failsafes.append((now, f"{due.cause} {due.action}"))
             self.world.trace(f"failsafe: {due.reason}")
 
-    def resume_rpc(self) -> None:
-        """Drone.Resume: takes the lock, then clears the failsafe (if any)."""
+    def operator_rpc(self, command: str, action: str = "") -> None:
+        """Drone.Pause, Resume, Abort or LandNow: takes the lock, then decides."""
         if not self.up:
             return  # the operator's call fails UNAVAILABLE
-        self.queue.append(ResumeOrder())
+        self.queue.append(OperatorOrder(command, action))
         self._next()
+
+    def _operator(self, order: OperatorOrder) -> None:
+        """OperatorCommands._command under the lock: the core decides (a refusal is the
+        operator's error, nothing changes); the vehicle is told; a pause's end lets the
+        requests that waited go on, to be executed or refused."""
+        now, operator = self.world.loop.now, self.core.operator
+        after = self.seq.last_reqnr
+        try:
+            if order.command == "pause":
+                taken = operator.pause(now, after)
+            elif order.command == "resume":
+                cleared, taken = self.core.resume_mission(now)
+                self.vehicle.resumes.append(now)
+                if cleared is not None:
+                    self.world.trace(f"failsafe cleared by the operator ({cleared.cause})")
+            else:
+                taken = operator.end(order.command, order.action or "rtl", now, after)
+        except StatusError as err:
+            self.world.trace(f"operator command refused: {err.message}")
+            return
+        self.vehicle.operator.append((now, taken.command, taken.action))
+        self.world.trace(f"operator: {taken.reason}")
+        if taken.command != "pause":
+            self.queue.extend(self.parked)  # their waits end: each takes the lock again
+            self.parked.clear()
 
     def _takeover_check(self) -> None:
         """watch_master under the lock: takeover_due again, then _take_over."""

@@ -73,6 +73,7 @@ class FaultPlan:
     lose_master: str = ""
     stall: str = ""
     failsafe: str = ""
+    operator: str = ""
 
     def describe(self) -> str:
         """One line: the counts that are not zero."""
@@ -100,6 +101,8 @@ class FaultPlan:
             parts.append(f"stall: {self.stall}")
         if self.failsafe:
             parts.append(f"failsafe: {self.failsafe}")
+        if self.operator:
+            parts.append(f"operator: {self.operator}")
         return ", ".join(parts)
 
 
@@ -159,7 +162,46 @@ def plan_faults(world: World) -> FaultPlan:
         plan_stall(world, plan)
     if world.options.failsafe:
         plan_failsafe(world, plan)
+    if world.options.operator:
+        plan_operator(world, plan)
     return plan
+
+
+# The operator's commands the --operator scenario draws from: a pause then a resume,
+# a pause then an abort, an abort, a land-now.
+OPERATOR_PLANS = ("pause, resume", "pause, resume", "pause, abort", "abort", "land_now")
+
+
+def plan_operator(world: World, plan: FaultPlan) -> None:
+    """The operator-command fault (issue 32, item 4), from a random stream of its own: at
+    a drawn moment an operator pauses the mission and resumes it 0 to 3 s later (or
+    aborts it instead), aborts it (rtl or land), or lands the vehicle now."""
+    rng = random.Random(f"operator {world.seed}")
+    kind = rng.choice(OPERATOR_PLANS)
+    start = rng.uniform(0.0, plan.fault_end)
+    action = rng.choice(("rtl", "land"))
+    first, _, then = kind.partition(", ")
+    steps = [(first, 0.0)] + ([(then, rng.uniform(0.0, 3.0))] if then else [])
+    plan.operator = f"{first} at {start:.2f}s" + (
+        f", {then} {steps[1][1]:.2f}s later" if then else ""
+    )
+    if "abort" in kind:
+        plan.operator += f" (abort: {action})"
+    world.loop.at(start, operator_commands, world, steps, action)
+
+
+def operator_commands(world: World, steps: list[tuple[str, float]], action: str) -> None:
+    """An operator's commands in turn (Drone.Pause, Resume, Abort, LandNow), each the
+    drawn delay after the one before went through: a call is sent again every 0.1 s
+    while the drone is down (it fails UNAVAILABLE), as a person would."""
+    if not world.drone.up:
+        world.loop.after(0.1, operator_commands, world, steps, action)
+        return
+    (command, _), rest = steps[0], steps[1:]
+    world.trace(f"operator: {command} {action if command == 'abort' else ''}".rstrip())
+    world.drone.operator_rpc(command, action)
+    if rest:
+        world.loop.after(rest[0][1], operator_commands, world, rest, action)
 
 
 def plan_failsafe(world: World, plan: FaultPlan) -> None:
@@ -196,7 +238,7 @@ def cut_every_station(world: World, length: float) -> None:
 def operator_resume(world: World) -> None:
     """The operator's Resume (Drone.Resume), whether or not the vehicle is in failsafe."""
     world.trace("operator resumes")
-    world.drone.resume_rpc()
+    world.drone.operator_rpc("resume")
 
 
 LOSE_MODES = ("any time", "mid-flush", "after handover", "drone link cut")

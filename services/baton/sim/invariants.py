@@ -39,19 +39,18 @@ The invariants (docs/simulation.md, "Invariants"):
    number it handled a framing no older than any live controller's, but
    those of masterships a takeover ended (the ring fences them: ``Fenced``;
    their holders rejoin). Not the newest ever sent (``World.framings``): a
-   master lost mid-flush sends a framing that may reach nobody alive
-   (--lose-master seed 956: taker 0 holds a handover message of epoch 4
-   whose number the lost taker 5 framed in epoch 5 and died with). And not
-   against a replaced mastership's (--policy nearest seed 984: taker 7,
-   epoch 8, holds an empty message 5 of epoch 3 where the replicas hold
-   taker 1's message 5 of epoch 5, requests 7-12, a mastership 7's own
-   takeover ended; 7 frames the same replies in message 6, and the replicas
-   rejoin on it, ``Diverged``). Not at every instant: a taker goes ACTIVE on the
+   master lost mid-flush sends a framing that may reach nobody alive, and
+   a taker may hold an older framing of a number the lost one framed again
+   and died with. And not against a replaced mastership's: a taker whose
+   own mastership a later takeover ended may hold an older, emptier
+   framing of a number the replicas hold from that later master; it frames
+   the same replies in its next message, and the replicas rejoin on it
+   (``Diverged``). Not at every instant: a taker goes ACTIVE on the
    drone's grant, and then compares its framing with the replies the drone
    retained (``ControllerProtocol.replaced_framing``); one that holds a
    framing a later takeover replaced rejoins with nothing before it sends a
-   request (--lose-master seeds 580 and 956: ACTIVE so for the one event
-   that finds it). With 5, a
+   request (ACTIVE so for the one event that finds it; the runs that found
+   each case: docs/simulation.md, "Invariants"). With 5, a
    controller's handled log forks from the ring's only where it holds an
    older framing of a number that a takeover framed again; such a
    controller is a replaced master or a replica that handled its messages,
@@ -65,7 +64,9 @@ The invariants (docs/simulation.md, "Invariants"):
    watermark).
    Only the entries the oracles hold an incarnation to
    (``oracles._observed``): what a failover-ended incarnation consumed
-   after its last request the drone accepted never left it.
+   after its last request the drone accepted never left it. Nor, of a killed
+   incarnation, a local answer above the drone's last request: a taker may
+   frame it anew, and the oracle then no longer holds the incarnation to it.
 8. ``at-most-once``: no command or picture acted on twice at the vehicle
    (the oracle's count, at the event that broke it).
 """
@@ -209,6 +210,12 @@ def replies_held(world: World, live: list[SimController]) -> str | None:
                 continue
             if intent is not None and intent.reqnr == reqnr:
                 continue  # the drone's store keeps it: booked when the drone comes back
+            if not c.alive and not c.ended_by and reqnr > seq.last_reqnr:
+                # A killed program's local answer (a Clock reading, a give-up) that no
+                # request took to the drone: a taker may frame it anew, and the oracle
+                # then holds the killed incarnation only to what the drone accepted
+                # (``oracles._would_have_rejoined``).
+                continue
             return (
                 f"request {reqnr}, consumed by controller {c.id} (incarnation "
                 f"{c.incarnation}), is held by no live controller (they hold up to {floor}) "

@@ -20,10 +20,11 @@ from baton.controller.protocol import ConnectDrone, ControllerProtocol, Effect, 
 from baton.drone import sequencer
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import ReplyCache
+from baton.drone.operator import Operator
 from baton.rpc.errors import StatusError
 from baton.sim.drone import Request, SimDrone
 from baton.sim.network import RingLink
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 MUTATIONS: dict[str, Mutation] = {}
 
@@ -212,8 +213,29 @@ def _flies_on_in_failsafe() -> list[tuple[Any, str, Any]]:
     return [(DroneCore, "refusal", refusal)]
 
 
+def _flies_on_while_paused() -> list[tuple[Any, str, Any]]:
+    """Issue 32: an operator's pause holds nothing back: the master's next request is
+    admitted and executed at once (``DroneCore.holds`` never says wait)."""
+
+    def holds(self: DroneCore, request: drone_pb2.InvokeRequest) -> bool:
+        return False
+
+    return [(DroneCore, "holds", holds)]
+
+
+def _flies_on_after_abort() -> list[tuple[Any, str, Any]]:
+    """Issue 32: an abort ends nothing: the mission's next call is executed instead of
+    refused (``Operator.refusal`` ignores the end)."""
+
+    def refusal(self: Operator, method: str) -> StatusError | None:
+        return None
+
+    return [(Operator, "refusal", refusal)]
+
+
 LOSE_MASTER = {"lose_master": True}
 FAILSAFE = {"failsafe": True}
+OPERATOR = {"operator": True}
 
 for _mutation in (
     Mutation("line44", "Algorithm 1 line 44: in-order message dropped during REPLAY", _line44),
@@ -235,6 +257,18 @@ for _mutation in (
         "a call after a failsafe executed without the operator's resume",
         _flies_on_in_failsafe,
         FAILSAFE,
+    ),
+    Mutation(
+        "flies-on-while-paused",
+        "a call of a paused mission executed at once",
+        _flies_on_while_paused,
+        OPERATOR,
+    ),
+    Mutation(
+        "flies-on-after-abort",
+        "a call after an abort executed",
+        _flies_on_after_abort,
+        OPERATOR,
     ),
 ):
     MUTATIONS[_mutation.name] = _mutation

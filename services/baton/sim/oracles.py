@@ -55,6 +55,9 @@ ORACLES = (
     "no-failure",
     "bounded",
     "prepared-record",
+    "nothing-in-failsafe",
+    "nothing-while-paused",
+    "nothing-after-abort",
 )
 
 
@@ -84,6 +87,7 @@ def check(world: World) -> list[Violation]:
         found += _bounded(world)
     found += _prepared_records(world)
     found += _nothing_in_failsafe(world)
+    found += _nothing_while_paused_or_ended(world)
     return found
 
 
@@ -91,24 +95,50 @@ def _nothing_in_failsafe(world: World) -> list[Violation]:
     """Nothing reaches the vehicle or the camera from a failsafe until the operator's next
     resume (drone/safety.py): the mission does not silently fly on."""
     drone, found = world.drone, []
+    for since, action in drone.vehicle.failsafes:
+        until = min((t for t in drone.vehicle.resumes if t >= since), default=float("inf"))
+        found += _acted_between(world, "nothing-in-failsafe", f"{action} failsafe", since, until)
+    return found
+
+
+def _nothing_while_paused_or_ended(world: World) -> list[Violation]:
+    """Nothing reaches the vehicle or the camera from an operator's pause until the next
+    command that ends it (a resume, an abort, a land-now), nor ever after an abort or a
+    land-now (drone/operator.py)."""
+    found = []
+    taken = world.drone.vehicle.operator
+    for since, command, action in taken:
+        if command == "pause":
+            later = (t for t, c, _ in taken if t >= since and c != "pause")
+            until = min(later, default=float("inf"))
+            found += _acted_between(world, "nothing-while-paused", "pause", since, until)
+        elif command in ("abort", "land_now"):
+            what = f"{command} ({action})"
+            found += _acted_between(world, "nothing-after-abort", what, since, float("inf"))
+    return found
+
+
+def _acted_between(
+    world: World, oracle: str, what: str, since: float, until: float
+) -> list[Violation]:
+    """The oracle's violation if any request was acted on from ``since`` to ``until``."""
+    drone = world.drone
     acted = [
         *drone.vehicle.commands,
         *drone.camera.pictures,
         *(a for reads in drone.vehicle.reads.values() for a in reads),
     ]
-    for since, action in drone.vehicle.failsafes:
-        until = min((t for t in drone.vehicle.resumes if t >= since), default=float("inf"))
-        inside = [a for a in acted if since <= a.time < until]
-        if inside:
-            found.append(
-                Violation(
-                    "nothing-in-failsafe",
-                    f"request {inside[0].reqnr} acted on at {inside[0].time:.3f}s, in the "
-                    f"{action} failsafe from {since:.3f}s, "
-                    + ("never resumed" if until == float("inf") else f"resumed at {until:.3f}s"),
-                )
-            )
-    return found
+    inside = [a for a in acted if since <= a.time < until]
+    if not inside:
+        return []
+    return [
+        Violation(
+            oracle,
+            f"request {inside[0].reqnr} acted on at {inside[0].time:.3f}s, in the {what} "
+            f"from {since:.3f}s, "
+            + ("never ended" if until == float("inf") else f"ended at {until:.3f}s"),
+        )
+    ]
 
 
 def _prepared_records(world: World) -> list[Violation]:

@@ -26,8 +26,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from baton.drone.policy import HANDOVER, HOLD, Decision, LinkState, PolicyState, decide, distance_m
-from baton.drone.policy_runner import _ENDS_A_LEG, POLICY_TICK_S, _changes_the_leg
+from baton.drone.policy import (
+    ENDS_A_LEG,
+    HANDOVER,
+    HOLD,
+    Decision,
+    LinkState,
+    PolicyState,
+    decide,
+    distance_m,
+)
+from baton.drone.policy_runner import POLICY_TICK_S, _changes_the_leg
 from baton.rpc.labels import label
 from baton.rpc.methods import drone_api
 from baton.v1 import drone_pb2
@@ -83,7 +92,7 @@ class SimPolicyRunner:
     def executed(self, method_name: str) -> None:
         """PolicyRunner.executed: a Goto, or a command that ends a leg, ends a hold (the
         vehicle leaves hold mode on it: ``Corridor.fly_on``)."""
-        if method_name == "Goto" or method_name in _ENDS_A_LEG:
+        if method_name == "Goto" or method_name in ENDS_A_LEG:
             self.corridor.fly_on()
             if self.holding:
                 self.holding = self._held_vehicle = False

@@ -83,6 +83,9 @@ class SimOptions:
     # Issue 32's lost-link failsafe on, and every station cut from the drone at a drawn
     # moment (faults.plan_failsafe).
     failsafe: bool = False
+    # Issue 32's operator commands at drawn moments: pause then resume, pause then
+    # abort, abort, land-now (faults.plan_operator).
+    operator: bool = False
     # Known findings (findings.py) whose scenarios this run lets in.
     allow: frozenset[str] = frozenset()
     mutation: str | None = None
@@ -109,6 +112,8 @@ class SimOptions:
             parts.append("--stall-new-master")
         if self.failsafe:
             parts.append("--failsafe")
+        if self.operator:
+            parts.append("--operator")
         if self.takeover_after is not None:
             parts.append(f"--takeover-after {self.takeover_after:g}")
         if self.allow:
@@ -330,14 +335,10 @@ class World:
         if self.controllers.get(controller.id) is not controller or not controller.alive:
             return
         controller.ended_by = "rejoin"
-        # ControllerNode.reset: a fenced controller's messages that went round the ring,
-        # a restarted master's whole log, then the handover messages that exist nowhere
-        # else.
+        # ControllerNode.reset: what the fresh self is given (``ControllerCore.kept_on_rejoin``).
         upto = controller.protocol.kept_history()
         fresh_core = controller.core.fresh_self()
-        history = controller.history
-        kept = [history.get(n) for n in history.above(0) if n <= upto]
-        kept += controller.protocol.kept_for_rejoin()
+        kept = controller.core.kept_on_rejoin(controller.history)
         controller.kill(
             "rejoins as a replica with nothing"
             if not upto

@@ -12,7 +12,11 @@ The set of messages and commands is the one that section found sufficient for
 MAVSDK 4.x (heartbeat with the PX4 custom mode, SYS_STATUS, position, home,
 extended state, GPS, battery; arm, takeoff, land, mode, reposition, speed,
 RTL, message requests and intervals; the parameter protocol for
-MIS_TAKEOFF_ALT). Unknown commands get COMMAND_ACK UNSUPPORTED.
+MIS_TAKEOFF_ALT and PX4's link-loss and geofence parameters; the mission protocol
+for fence uploads, ``fence_upload.py``, ``state().fence`` the fence held and each
+upload accepted counted as ``fence``, a breach acted on as GF_ACTION says and counted
+as ``fence_breach``).
+Unknown commands get COMMAND_ACK UNSUPPORTED.
 
 It has a gimbal, which it manages itself as an autopilot does: a region of
 interest (``MAV_CMD_DO_SET_ROI_LOCATION``, ``MAV_CMD_DO_SET_ROI`` in location
@@ -66,13 +70,15 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs, signing
 from baton.effects import EffectsFile
+from baton.sdk.fence import Fence
+from baton.sim_vehicle.fence_upload import FENCE, Ack, FenceUpload, Request
 from baton.sim_vehicle.kinematics import (
     ArmCheckFailed,
     FlightParams,
@@ -152,6 +158,8 @@ PARAM_TAKEOFF_ALT = "MIS_TAKEOFF_ALT"
 # air, NAV_DLL_ACT 2 returns home (0: nothing, PX4's default).
 PARAM_DL_LOSS_T, PARAM_DLL_ACT = "COM_DL_LOSS_T", "NAV_DLL_ACT"
 RETURN_ON_LINK_LOSS = 2
+PARAM_GF_MAX_VER_DIST, PARAM_GF_ACTION = "GF_MAX_VER_DIST", "GF_ACTION"
+GF_RETURN, GF_LAND = 3, 5  # GF_ACTION values it acts on (PX4's; 1, a warning, is its default)
 # The region-of-interest commands its gimbal obeys.
 ROI_COMMANDS = (
     mavlink.MAV_CMD_DO_SET_ROI_LOCATION,
@@ -181,6 +189,8 @@ class VehicleState:
     time_s: float
     peers: int
     looking_at: GeoPoint | None = None  # the gimbal's region of interest, if one is set
+    fence: Fence | None = None  # the fence a ground station uploaded (None: none)
+    fence_action: int = 1  # GF_ACTION: what it does out of the fence (1: warn only)
 
     def as_fields(self) -> dict[str, Any]:
         """The state as flat log fields."""
@@ -263,14 +273,22 @@ class SimVehicle:
         self._last_reported: tuple[Any, ...] | None = None
         # The gimbal's region of interest (AMSL); None: it looks where the vehicle goes.
         self._roi: GeoPoint | None = None
+        # The fence held (uploaded whole: fence_upload.py) and the upload under way.
+        self._fence: Fence | None = None
+        self._fence_upload = FenceUpload()
         self.port = 0
         self._log = logs.get_logger("sim_vehicle", system_id=system_id)
         # PX4's data-link loss parameters (PX4's defaults: 10 s, no action), when a
         # ground station's HEARTBEAT came last (None: never), and whether the vehicle
         # already returned for this loss.
         self._link_loss: dict[str, float] = {PARAM_DL_LOSS_T: 10.0, PARAM_DLL_ACT: 0.0}
+        # PX4's geofence parameters the drone sets beside a fence upload (safety.py
+        # fence_params; PX4's defaults: no ceiling, warn only), and whether the vehicle
+        # already acted on this breach.
+        self._geofence_params: dict[str, float] = {PARAM_GF_MAX_VER_DIST: 0.0, PARAM_GF_ACTION: 1.0}
         self._gcs_seen_at: float | None = None
         self._link_loss_acted = False
+        self._fence_acted = False
 
     # --- lifecycle ---------------------------------------------------------------
 
@@ -350,6 +368,8 @@ class SimVehicle:
             time_s=k.time_s,
             peers=len(self._sink.peers) if self._sink else 0,
             looking_at=self._roi,
+            fence=self._fence,
+            fence_action=round(self._geofence_params[PARAM_GF_ACTION]),
         )
 
     # --- the vehicle's thread ------------------------------------------------------
@@ -383,6 +403,7 @@ class SimVehicle:
                 with self._lock:
                     self._kinematics.step((now - last) * self.speedup)
                     self._watch_link_loss(now)
+                    self._watch_fence()
                     last = now
                     self._send_due(now)
                     self._report_if_changed()
@@ -594,6 +615,8 @@ class SimVehicle:
                 | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
                 | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
                 | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+                | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
             )
             mav.autopilot_version_send(
                 capabilities, 0x010F0000, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.system_id
@@ -616,6 +639,44 @@ class SimVehicle:
             self._param(msg, kind)
         elif kind == "HEARTBEAT" and msg.type == mavlink.MAV_TYPE_GCS:
             self._gcs_seen_at = time.monotonic()
+        elif kind in ("MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_CLEAR_ALL"):
+            self._mission(msg, kind)
+
+    def _mission(self, msg: Any, kind: str) -> None:
+        """The mission protocol, fence uploads only (fence_upload.py); a mission of another
+        type is refused MAV_MISSION_UNSUPPORTED (baton flies missions call by call)."""
+        assert self._mav is not None
+        to = (msg.get_srcSystem(), msg.get_srcComponent())
+        if msg.mission_type != FENCE:
+            if kind != "MISSION_ITEM_INT":
+                self._mav.mission_ack_send(*to, mavlink.MAV_MISSION_UNSUPPORTED, msg.mission_type)
+            return
+        upload = self._fence_upload
+        if kind == "MISSION_COUNT":
+            step: Request | Ack | None = upload.on_count(msg.count)
+        elif kind == "MISSION_ITEM_INT":
+            step = upload.on_item(msg)
+        else:
+            step = upload.on_clear()
+        if isinstance(step, Request):
+            self._mav.mission_request_int_send(*to, step.seq, FENCE)
+            return
+        if step is None:
+            return
+        if step.fence is not None or step.cleared:
+            self._fence = step.fence
+            fence = step.fence or Fence()
+            self.effects.record(
+                "fence",
+                system_id=self.system_id,
+                polygons=[[list(v) for v in p.vertices] for p in fence.polygons],
+                inclusion=[p.inclusion for p in fence.polygons],
+                circles=len(fence.circles),
+            )
+            self._log.info("fence held", polygons=len(fence.polygons), circles=len(fence.circles))
+        else:
+            self._log.info("fence upload refused", result=step.result)
+        self._mav.mission_ack_send(*to, step.result, FENCE)
 
     def _command(
         self,
@@ -839,6 +900,11 @@ class SimVehicle:
             name = _param_name(msg.param_id)
             if name in self._link_loss:
                 self._link_loss[name] = float(_int_from_bytewise(msg.param_value))
+            elif name == PARAM_GF_ACTION:
+                self._geofence_params[name] = float(_int_from_bytewise(msg.param_value))
+            elif name == PARAM_GF_MAX_VER_DIST:
+                if math.isfinite(msg.param_value) and msg.param_value >= 0:
+                    self._geofence_params[name] = float(msg.param_value)
             elif name != PARAM_TAKEOFF_ALT:
                 return  # PX4 stays silent about unknown parameters
             elif math.isfinite(msg.param_value) and msg.param_value > 0:
@@ -847,23 +913,26 @@ class SimVehicle:
             name = _param_name(msg.param_id)
             if msg.param_index == 0:
                 name = PARAM_TAKEOFF_ALT
-            elif name != PARAM_TAKEOFF_ALT and name not in self._link_loss:
+            elif name not in self._param_names():
                 return
         self._send_param(name)
 
+    def _param_names(self) -> list[str]:
+        """Every parameter it knows, in index order."""
+        return [PARAM_TAKEOFF_ALT, *self._link_loss, *self._geofence_params]
+
     def _send_param(self, name: str = PARAM_TAKEOFF_ALT) -> None:
         assert self._mav is not None
-        if name in self._link_loss:
+        value = self._kinematics.takeoff_altitude_m
+        kind = mavlink.MAV_PARAM_TYPE_REAL32
+        if name in self._link_loss or name == PARAM_GF_ACTION:
             kind = mavlink.MAV_PARAM_TYPE_INT32
-            value = _int_to_bytewise(round(self._link_loss[name]))
-            index = 1 + list(self._link_loss).index(name)
-        else:
-            value, kind, index = (
-                self._kinematics.takeoff_altitude_m,
-                mavlink.MAV_PARAM_TYPE_REAL32,
-                0,
-            )
-        self._mav.param_value_send(name.encode(), value, kind, 1 + len(self._link_loss), index)
+            held = {**self._link_loss, **self._geofence_params}[name]
+            value = _int_to_bytewise(round(held))
+        elif name == PARAM_GF_MAX_VER_DIST:
+            value = self._geofence_params[name]
+        names = self._param_names()
+        self._mav.param_value_send(name.encode(), value, kind, len(names), names.index(name))
 
     def _watch_link_loss(self, now: float) -> None:
         """PX4's data-link loss failsafe (COM_DL_LOSS_T, NAV_DLL_ACT): in the air with no
@@ -880,6 +949,28 @@ class SimVehicle:
             k.return_to_launch()
             self.effects.record("link_loss_return", system_id=self.system_id)
             self._log.warning("ground station lost: returning (NAV_DLL_ACT)")
+
+    def _watch_fence(self) -> None:
+        """PX4's geofence action (GF_ACTION, GF_MAX_VER_DIST over the uploaded fence): in
+        the air and out of the fence, Return (3) or Land (5), once per breach; the drone
+        service acts on the same breach from its telemetry, this is the vehicle's own."""
+        k, fence = self._kinematics, self._fence
+        action = round(self._geofence_params[PARAM_GF_ACTION])
+        if fence is None or action not in (GF_RETURN, GF_LAND) or not k.in_air:
+            return
+        here = k.geo_position()
+        ceiling = self._geofence_params[PARAM_GF_MAX_VER_DIST] or math.inf
+        bounded = replace(fence, ceiling_m=ceiling)
+        if bounded.outside(here.latitude_deg, here.longitude_deg, k.relative_altitude_m) is None:
+            self._fence_acted = False
+        elif not self._fence_acted and k.phase not in (Phase.RETURN, Phase.LAND):
+            self._fence_acted = True
+            if action == GF_RETURN:
+                k.return_to_launch()
+            else:
+                k.land()
+            self.effects.record("fence_breach", system_id=self.system_id, action=action)
+            self._log.warning("out of the fence: acting (GF_ACTION)", action=action)
 
 
 def _receive_stamped(sock: socket.socket) -> tuple[bytes, tuple[str, int], float]:

@@ -28,6 +28,7 @@ from typing import Any
 from baton.drone.camera import thumbnail_name
 from baton.testbed.faults import fault_lines
 from baton.testbed.report import HANDOVER_COLUMNS, handover_cells, run_succeeded
+from baton.testbed.waits import needed_a_person
 
 # Content-Security-Policy: images from the page itself only, inline style, nothing else.
 CSP = "default-src 'none'; img-src data:; style-src 'unsafe-inline'"
@@ -92,7 +93,8 @@ def run_passed(report: Mapping[str, Any]) -> bool:
 def warnings(report: Mapping[str, Any]) -> list[str]:
     """What a person should look at: problems with the side effects, planned handovers
     that did not happen, controllers' mission errors, forced preparations, the vehicle's
-    outages and refused MAVLink, faults injected and parts that died."""
+    outages and refused MAVLink, the waits that needed a person, faults injected and
+    parts that died."""
     found = [f"side effects: {p}" for p in report["side_effects"]["problems"]]
     found += [
         f"planned handover after request {reqnr} to controller {mid} did not happen"
@@ -117,6 +119,8 @@ def warnings(report: Mapping[str, Any]) -> list[str]:
     refused = report["setup"]["vehicle"].get("refused_frames")
     if refused:
         found.append(f"the drone refused {refused} unsigned or badly signed MAVLink frames")
+    if "waits" in report:  # the parts' stalls (baton.testbed.waits)
+        found += [f"waited: {line}" for line in needed_a_person(report["waits"])]
     # The faults injected (--fault) and every part that died, with what the mission did.
     found += fault_lines(report)
     return found

@@ -42,6 +42,7 @@ from baton.rpc.methods import path
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.tls import CA_CERT, DRONE, OPERATOR, Identity, Tls
 from baton.testbed.faults import Fault, FaultInjector, PartDeath, check_parts
+from baton.testbed.plan_fence import with_plan_fence
 from baton.testbed.supervisor import ManagedProcess, PartNotReady, Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
@@ -388,6 +389,11 @@ class LocalTestbed:
             check_parts(plan.faults, plan.part_names())
         except ValueError as exc:
             raise PartNotReady(str(exc)) from None
+        if plan.flight_plan is not None:  # flown in its fence (testbed/plan_fence.py)
+            try:
+                config = with_plan_fence(config, plan.flight_plan)
+            except ValueError as exc:
+                raise PartNotReady(str(exc)) from None
         if config.radio_range and (plan.vehicle != "sim" or not plan.emulate_links):
             raise PartNotReady(
                 "radio_range needs the sim vehicle (its position file) and the link emulators; "

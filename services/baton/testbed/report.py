@@ -25,6 +25,7 @@ from baton.rpc.labels import label
 from baton.rpc.methods import path
 from baton.sdk import Position, distance_m, offset
 from baton.testbed.local import TAKE_PICTURE, Effects, Snapshot
+from baton.testbed.waits import report_lines
 from baton.v1 import drone_pb2, ring_pb2
 
 REPORT_FORMAT = "baton.testbed.report/1"
@@ -79,12 +80,22 @@ def check_side_effects(
     return _effects(pictures, expected, commands, problems)
 
 
+def resent_gotos(snapshot: Snapshot) -> int:
+    """The gotos the drone sent again on its own: each resume of the drone's handover
+    policy (a leg flown on after a hold, ``DroneStatus.policy_resumes``, kept across the
+    drone's restarts) and each operator's resume that flew a leg on after a pause, shown
+    in the report's ``policy`` and ``operator_commands``."""
+    drone = snapshot.drone
+    return drone.policy_resumes + sum(
+        c.command == "resume" and c.action == "goto" and c.vehicle == "accepted"
+        for c in drone.operator_commands
+    )
+
+
 def _without_resumes(gotos: Effects, snapshot: Snapshot) -> Effects:
-    """The gotos the mission asked for: each resume of the drone's handover policy (a
-    leg flown on after a hold, ``DroneStatus.policy_resumes``, kept across the drone's
-    restarts) sent the last one again, and is shown in the report's ``policy``, not
-    counted against the mission."""
-    resumes = snapshot.drone.policy_resumes
+    """The gotos the mission asked for: each the drone sent again on its own
+    (``resent_gotos``: the last one again) is not counted against the mission."""
+    resumes = resent_gotos(snapshot)
     kept: Effects = []
     for goto in gotos:
         if resumes and kept and _same_target(kept[-1], goto):
@@ -304,6 +315,20 @@ def build_report(
                 if drone.HasField("failsafe")
                 else None
             ),
+            # Every operator command (docs/operating.md, "Operator commands"): when,
+            # after which request, what the vehicle was told and what it did.
+            "operator_commands": [
+                {
+                    "command": c.command,
+                    "at": c.at,
+                    "after_reqnr": c.after_reqnr,
+                    "action": c.action,
+                    "vehicle": c.vehicle,
+                    "by": c.by,
+                    "reason": c.reason,
+                }
+                for c in drone.operator_commands
+            ],
         },
         "controllers": [_controller(cid, c) for cid, c in sorted(snapshot.controllers.items())],
         "replicas_consistent": replicas_consistent(snapshot),
@@ -646,4 +671,6 @@ def summary_table(report: dict[str, Any]) -> str:
         )
         if c["mission_error"]:
             lines.append(f"{'':>10} error: {c['mission_error']}")
+    if "waits" in report:  # the run's waits (Progress's WaitLog): quiet, then loud
+        lines += ["", *report_lines(report["waits"])]
     return "\n".join(lines)

@@ -27,7 +27,7 @@ from baton.testbed.html_report import write_page
 from baton.testbed.local import LocalTestbed, MissionPlan, Snapshot, TestbedPlan, drone_status
 from baton.testbed.report import build_report, run_succeeded, summary_table
 from baton.testbed.supervisor import PartDied, PartNotReady
-from baton.testbed.waits import waits_line
+from baton.testbed.waits import WaitLog, part_waits, waits_line
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
 
@@ -47,8 +47,8 @@ class Progress:
         self.stream = stream
         self.started = time.monotonic()
         self._last = 0.0
-        # The testbed's configuration once known: which waits radio range explains.
-        self.config: BatonConfig | None = None
+        # Every part's waits over the run, for the report.
+        self.waits = WaitLog()
 
     def _due(self) -> bool:
         now = time.monotonic()
@@ -78,6 +78,8 @@ class Progress:
         )
 
     def __call__(self, snapshot: Snapshot) -> None:
+        waits = part_waits(snapshot.drone, snapshot.controllers)
+        self.waits.add(waits, time.monotonic() - self.started)
         if not self._due():
             return
         states = " ".join(
@@ -105,14 +107,13 @@ class Progress:
             if how in snapshot.absent.values()
         )
         vehicle += "" if drone.vehicle.healthy else f" | vehicle: {drone.vehicle.problem}"
-        vehicle += f" | drone waiting: {drone.waiting}" if drone.waiting else ""
         if drone.HasField("failsafe"):  # the safety net took the vehicle (docs/operating.md)
             vehicle += f" | FAILSAFE {drone.failsafe.action}: {drone.failsafe.reason}"
-        vehicle += waits_line(
-            self.config,
-            {cid: c.waiting for cid, c in snapshot.controllers.items() if c.waiting},
-            vehicle_position(drone),
-        )
+        if drone.HasField("paused"):  # an operator's pause (docs/operating.md)
+            vehicle += f" | PAUSED: {drone.paused.reason}"
+        if drone.HasField("ended"):
+            vehicle += f" | ENDED: {drone.ended.reason}"
+        vehicle += waits_line(waits)
         print(
             f"{self._stamp()} "
             + (
@@ -127,14 +128,6 @@ class Progress:
             file=self.stream,
             flush=True,
         )
-
-
-def vehicle_position(drone: drone_pb2.DroneStatus) -> tuple[float, float] | None:
-    """The vehicle's latitude and longitude by the drone's telemetry; None if unknown."""
-    position = drone.position
-    if position.latitude_deg == 0 and position.longitude_deg == 0:
-        return None
-    return position.latitude_deg, position.longitude_deg
 
 
 def files_note(files: dict[str, Any]) -> str:
@@ -208,7 +201,6 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
             track(snapshot, time.time())
 
         config = await testbed.start(progress.vehicle_wait)
-        progress.config = config
         write_atomically(
             workdir / "pids.json",
             json.dumps(
@@ -236,6 +228,7 @@ async def run_local(plan: TestbedPlan, workdir: Path, report_path: Path, timeout
         targets=targets if plan.mission.kind != "grid" else None,
     )
     report["files"] = files = testbed.files()
+    report["waits"] = progress.waits.to_json()
     add_faults(report, testbed)
     write_report(report, report_path)
     print(summary_table(report), flush=True)
@@ -292,7 +285,6 @@ async def follow_remote(
     rings = {cid: ring_pb2_grpc.ControllerRingStub(ch) for cid, ch in channels.items()}
     targets = mission.targets()
     progress = Progress(len(targets), len(handovers))
-    progress.config = config
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
     try:
@@ -328,6 +320,7 @@ async def follow_remote(
         handovers,
         targets=targets if mission.kind != "grid" else None,
     )
+    report["waits"] = progress.waits.to_json()
     write_report(report, report_path)
     print(summary_table(report), flush=True)
     return 0 if run_succeeded(report) else 1
