@@ -12,7 +12,7 @@ from pathlib import Path
 from baton.certs.make import ensure
 from baton.config import parse_config
 from baton.controller.app import ControllerApp
-from baton.rpc.tls import OPERATOR, Identity
+from baton.rpc.tls import DRONE, OPERATOR, Identity
 
 
 def test_generated_stubs_match_the_protos() -> None:
@@ -30,7 +30,7 @@ async def test_the_controller_serves_reflection_health_and_its_rpcs(
     """The ring port (mutual TLS, as docs/operating.md's grpcurl example) and the mission program's
     loopback port (plain, the drone API)."""
     certs = tmp_path / "certs"
-    ensure(certs, [Identity.controller(0), OPERATOR])
+    ensure(certs, [Identity.controller(0), DRONE, OPERATOR])  # drone.crt: its signatures
     config = parse_config(
         {"controllers": [{"id": 0, "address": "127.0.0.1:0"}], "tls": {"certs": str(certs)}}
     )

@@ -68,7 +68,7 @@ class Receiver(ring_pb2_grpc.ControllerRingServicer):
     def lognr(self) -> int:
         return max((m.lognr for m in self.messages), default=0)
 
-    async def deliver(self, message: ring_pb2.LogMessage) -> None:
+    async def deliver(self, message: ring_pb2.LogMessage, relayed_by: int = 0) -> None:
         if message.lognr not in {m.lognr for m in self.messages}:
             self.messages.append(message)
         self.arrived.set()
@@ -248,7 +248,7 @@ class Relaying(ring_pb2_grpc.ControllerRingServicer):
     def relay(self, head: ring_pb2.LogMessage, total: int):  # type: ignore[no-untyped-def]
         return self.link.relay(head.lognr, total) if self.forwards(head) else None
 
-    async def deliver(self, message: ring_pb2.LogMessage) -> None:
+    async def deliver(self, message: ring_pb2.LogMessage, relayed_by: int = 0) -> None:
         self.handling.set()
         await self.gate.wait()
         if message.lognr in self.handled:

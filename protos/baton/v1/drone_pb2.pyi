@@ -646,6 +646,8 @@ class InvokeReply(_message.Message):
     REQNR_FIELD_NUMBER: _builtins.int
     PAYLOAD_FIELD_NUMBER: _builtins.int
     DUPLICATE_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
+    SIGNATURE_FIELD_NUMBER: _builtins.int
     reqnr: _builtins.int
     """The request number answered."""
     payload: _builtins.bytes
@@ -654,16 +656,27 @@ class InvokeReply(_message.Message):
     """True if this reply came from the reply cache (the request had already
     been executed).
     """
+    epoch: _builtins.int
+    """The epoch the drone served the request in (the cached reply's, for a
+    duplicate): part of what it signs.
+    """
+    signature: _builtins.bytes
+    """The drone's signature of the reply (baton.authenticity.reply_statement:
+    reqnr, epoch, method, request digest, reply digest) with the key of its
+    certificate; empty on an insecure drone (no key).
+    """
     def __init__(
         self,
         *,
         reqnr: _builtins.int = ...,
         payload: _builtins.bytes = ...,
         duplicate: _builtins.bool = ...,
+        epoch: _builtins.int = ...,
+        signature: _builtins.bytes = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["duplicate", b"duplicate", "payload", b"payload", "reqnr", b"reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["duplicate", b"duplicate", "epoch", b"epoch", "payload", b"payload", "reqnr", b"reqnr", "signature", b"signature"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -1186,6 +1199,7 @@ class RetainedReply(_message.Message):
     STATUS_MESSAGE_FIELD_NUMBER: _builtins.int
     GIVEN_UP_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
+    SIGNATURE_FIELD_NUMBER: _builtins.int
     reqnr: _builtins.int
     """The request number."""
     method: _builtins.str
@@ -1207,6 +1221,11 @@ class RetainedReply(_message.Message):
     this to the drone: a taker that holds the request framed in an older
     epoch, with another outcome, holds a framing a later takeover replaced.
     """
+    signature: _builtins.bytes
+    """The drone's signature of a reply it made (InvokeReply.signature, over
+    this epoch); empty for what a master sent along, a failure, or an
+    insecure drone.
+    """
     def __init__(
         self,
         *,
@@ -1218,10 +1237,11 @@ class RetainedReply(_message.Message):
         status_message: _builtins.str = ...,
         given_up: _builtins.bool = ...,
         epoch: _builtins.int = ...,
+        signature: _builtins.bytes = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "given_up", b"given_up", "method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "given_up", b"given_up", "method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request_digest", b"request_digest", "signature", b"signature", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -251,6 +251,8 @@ class LogEntry(_message.Message):
     STATUS_CODE_FIELD_NUMBER: _builtins.int
     STATUS_MESSAGE_FIELD_NUMBER: _builtins.int
     GIVEN_UP_FIELD_NUMBER: _builtins.int
+    DRONE_EPOCH_FIELD_NUMBER: _builtins.int
+    DRONE_SIGNATURE_FIELD_NUMBER: _builtins.int
     reqnr: _builtins.int
     """The request number."""
     method: _builtins.str
@@ -271,6 +273,13 @@ class LogEntry(_message.Message):
     """The mission program gave up on the call (a deadline, a cancellation)
     and the master logged what it saw; the drone may have executed it.
     """
+    drone_epoch: _builtins.int
+    """The drone's word on a reply it made (InvokeReply.epoch and .signature):
+    every controller checks it on arrival, whoever relayed the message
+    (baton.authenticity); empty for Clock calls, failures and give-ups, and
+    on an insecure drone.
+    """
+    drone_signature: _builtins.bytes
     def __init__(
         self,
         *,
@@ -282,10 +291,12 @@ class LogEntry(_message.Message):
         status_code: _builtins.int = ...,
         status_message: _builtins.str = ...,
         given_up: _builtins.bool = ...,
+        drone_epoch: _builtins.int = ...,
+        drone_signature: _builtins.bytes = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["given_up", b"given_up", "method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request", b"request", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["drone_epoch", b"drone_epoch", "drone_signature", b"drone_signature", "given_up", b"given_up", "method", b"method", "reply", b"reply", "reqnr", b"reqnr", "request", b"request", "request_digest", b"request_digest", "status_code", b"status_code", "status_message", b"status_message"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -306,6 +317,7 @@ class LogMessage(_message.Message):
     EPOCH_FIELD_NUMBER: _builtins.int
     AFTER_REQNR_FIELD_NUMBER: _builtins.int
     AFTER_EPOCH_FIELD_NUMBER: _builtins.int
+    SIGNATURE_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The log number, from 1."""
     origin: _builtins.int
@@ -337,6 +349,13 @@ class LogMessage(_message.Message):
     the same request (a fenced master's give-up of a request the drone
     executed for the taker): it rejoins with nothing, like for after_reqnr.
     """
+    signature: _builtins.bytes
+    """Its creator's signature (the sender's certificate key) over what it says
+    and its entries, not its origin or handover flag
+    (baton.authenticity.message_statement): every receiver checks it, so a
+    relay can pass a message on but not forge or change one; empty on an
+    insecure ring.
+    """
     @_builtins.property
     def entries(self) -> _containers.RepeatedCompositeFieldContainer[Global___LogEntry]:
         """The entries, by increasing reqnr; may be empty."""
@@ -353,10 +372,11 @@ class LogMessage(_message.Message):
         epoch: _builtins.int = ...,
         after_reqnr: _builtins.int | None = ...,
         after_epoch: _builtins.int = ...,
+        signature: _builtins.bytes = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_reqnr", b"after_reqnr"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_epoch", b"after_epoch", "after_reqnr", b"after_reqnr", "created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_epoch", b"after_epoch", "after_reqnr", b"after_reqnr", "created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender", "signature", b"signature"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__after_reqnr: _TypeAlias = _typing.Literal["after_reqnr"]  # noqa: Y015
     _WhichOneofArgType__after_reqnr: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr"]  # noqa: Y015
@@ -608,6 +628,8 @@ class ControllerStatus(_message.Message):
     DRONE_CONNECTED_AT_FIELD_NUMBER: _builtins.int
     WAITS_FIELD_NUMBER: _builtins.int
     LOG_FILE_FIELD_NUMBER: _builtins.int
+    REFUSED_MESSAGES_FIELD_NUMBER: _builtins.int
+    LAST_REFUSED_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
     state: Global___ControllerState.ValueType
@@ -681,6 +703,13 @@ class ControllerStatus(_message.Message):
     gave up on a call (its own deadline or cancellation while it waited for
     the log) that the master's program did not give up on.
     """
+    refused_messages: _builtins.int
+    """Log messages refused on arrival (baton.authenticity): without a valid
+    signature of their creator, or with a reply the drone did not sign
+    (forged or altered by a station); and the last refusal: which station
+    relayed it, which log message and why.
+    """
+    last_refused: _builtins.str
     @_builtins.property
     def peers(self) -> _containers.RepeatedCompositeFieldContainer[Global___PeerStatus]:
         """The successor and the other peers this controller streams to."""
@@ -760,10 +789,12 @@ class ControllerStatus(_message.Message):
         drone_connected_at: _abc.Iterable[_builtins.float] | None = ...,
         waits: _abc.Iterable[_waits_pb2.Wait] | None = ...,
         log_file: Global___LogFileStatus | None = ...,
+        refused_messages: _builtins.int = ...,
+        last_refused: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["log_file", b"log_file"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "log_file", b"log_file", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "last_refused", b"last_refused", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "log_file", b"log_file", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "refused_messages", b"refused_messages", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

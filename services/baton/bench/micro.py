@@ -400,7 +400,7 @@ class _Sink(ring_pb2_grpc.ControllerRingServicer):
         self.arrived = asyncio.Event()
         self.receiver = RingReceiver(1, lambda: max(self.received, default=0), self._deliver, LOG)
 
-    async def _deliver(self, message: ring_pb2.LogMessage) -> None:
+    async def _deliver(self, message: ring_pb2.LogMessage, relayed_by: int = 0) -> None:
         self.received.setdefault(message.lognr, time.perf_counter())
         self.arrived.set()
 
@@ -431,7 +431,7 @@ class _Relaying(ring_pb2_grpc.ControllerRingServicer):
             relay=lambda head, total: self.link.relay(head.lognr, total),
         )
 
-    async def _deliver(self, message: ring_pb2.LogMessage) -> None:
+    async def _deliver(self, message: ring_pb2.LogMessage, relayed_by: int = 0) -> None:
         self.handled.add(message.lognr)
         self.link.send(message)
 

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import datetime
 import os
 import secrets
 import sys
 
+from baton.authenticity import AuthenticityError, Keys, Signer, Verifier
 from baton.config import BatonConfig
 from baton.controller.node import ControllerNode
 from baton.controller.service import ControllerRingService, mission_port, ring_receiver
@@ -15,11 +17,31 @@ from baton.rpc.methods import service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.ports import mission_policy, ring_policy
 from baton.rpc.server import BatonServer, servicer
-from baton.rpc.tls import INSECURE_WARNING, Identity
+from baton.rpc.tls import DRONE, INSECURE_WARNING, Identity, Tls, TlsError
 from baton.v1 import ring_pb2_grpc
 
 # How long a mission program has to end after SIGTERM before it is killed.
 MISSION_STOP_GRACE_S = 2.0
+
+
+def ring_keys(config: BatonConfig, tls: Tls) -> Keys:
+    """The drone's and every ring controller's key, from ``NAME.crt`` in the certificate
+    folder, each checked against the mission's CA now; TlsError naming the file and the
+    fix otherwise."""
+    certs, now = config.tls.certs, datetime.datetime.now(datetime.UTC)
+
+    def key(who: Identity) -> Verifier:
+        pem = Tls.read_certificate(certs, who)
+        try:
+            return Verifier.from_pem(pem, tls.ca, now, who)
+        except (AuthenticityError, ValueError) as exc:
+            raise TlsError(
+                f"{certs / (who.name + '.crt')}: {exc}; make it with `baton certs issue "
+                f"{certs} {who.name}` and copy {who.name}.crt to every controller"
+            ) from None
+
+    controllers = {cid: key(Identity.controller(cid)) for cid in config.ring_order}
+    return Keys(key(DRONE), controllers)
 
 
 class ControllerApp:
@@ -39,6 +61,9 @@ class ControllerApp:
         self.node = ControllerNode(config, cid, log_file, tls)
         if tls is None:
             self.node.log.warning(INSECURE_WARNING)
+        else:
+            self.node.core.keys = ring_keys(config, tls)
+            self.node.core.protocol.seal = Signer.from_pem(tls.key).seal
         # The mission program's token (rpc/mission.py): given in the environment
         # (a program started by hand), else made up for the program started here.
         self.token = os.environ.get(MISSION_TOKEN_ENV) or (

@@ -37,6 +37,7 @@ from typing import Any, Protocol
 
 import grpc
 
+from baton.authenticity import Keys, refusal
 from baton.config import GAP_REPAIR_MAX_S
 from baton.controller.protocol import (
     ControllerProtocol,
@@ -118,6 +119,8 @@ def from_retained(kept: drone_pb2.RetainedReply, method: str, request: bytes) ->
         status_code=kept.status_code,
         status_message=kept.status_message,
         given_up=kept.given_up,
+        drone_epoch=kept.epoch if kept.signature else 0,
+        drone_signature=kept.signature,
     )
 
 
@@ -415,12 +418,20 @@ class ControllerCore:
         # The last log number sent straight to each handover target (``catch_up`` and a
         # prepared handover's copies), so that none is sent to it twice.
         self.sent_straight: dict[int, int] = {}
+        # Checks every log message's creator's signature and the drone's of every
+        # reply it brings (baton.authenticity); None: insecure, a station's word is taken.
+        self.keys: Keys | None = None
+        # The log messages refused for it, and the last refusal in words.
+        self.refused_messages = 0
+        self.last_refused = ""
 
     def fresh_self(self) -> ControllerCore:
         """The core of this controller rejoining with nothing (``ControllerProtocol.
         fresh_self``), refusing the framing the drone replaced, if any."""
         fresh = ControllerCore(self.protocol.fresh_self(), self.cut_through, self.max_sleep_s)
         fresh.replaced = self.replaced
+        fresh.keys = self.keys
+        fresh.refused_messages, fresh.last_refused = self.refused_messages, self.last_refused
         if self.replaced is not None:
             fresh.protocol.refuse_replaced(self.replaced)
         return fresh
@@ -691,7 +702,10 @@ class ControllerCore:
         return [record, Note("info", "handing over", fields), *catch_up, *effects]
 
     def log_arrived(
-        self, message: ring_pb2.LogMessage, drone_reachable: Callable[[], bool]
+        self,
+        message: ring_pb2.LogMessage,
+        drone_reachable: Callable[[], bool],
+        relayed_by: int = 0,
     ) -> list[CoreEffect]:
         """A log message from the ring or from an old master (Algorithm 1, lines 30-47):
         kept in the history unless it is from a fenced master or diverged from ours;
@@ -700,6 +714,9 @@ class ControllerCore:
         a message that shows our mastership went on without us fences us if the drone
         is out of reach (``drone_reachable``, asked then: ``went_on_without_us``)."""
         p = self.protocol
+        refused = self.unsigned(message, relayed_by)
+        if refused:
+            return refused
         try:
             effects = p.on_log(message)
         except ProtocolError as exc:
@@ -710,6 +727,30 @@ class ControllerCore:
         if p.went_on_without_us(message):  # asked of the driver only then
             fenced = self.went_on_without_us(message, drone_reachable())
         return [*kept, *effects, SettleHandovers(), *fenced]
+
+    def unsigned(self, message: ring_pb2.LogMessage, relayed_by: int = 0) -> list[CoreEffect]:
+        """A log message its creator did not sign, or with a reply the drone did not sign
+        (forged or altered by a station): refused whole, before it touches the log, the
+        history or the ring (not forwarded: a relay of it is dropped), named by the
+        station that relayed it (``relayed_by``, the ring stream's; 0: our own history)
+        and why. Nothing if it is signed throughout, or we check no signatures."""
+        if self.keys is None:
+            return []
+        why = refusal(self.keys, message)
+        if why is None:
+            return []
+        self.refused_messages += 1
+        self.last_refused = (
+            f"log message {message.lognr} (origin {message.origin}, epoch {message.epoch}) "
+            f"relayed by controller {relayed_by}: {why}"
+        )
+        fields = {
+            "mlognr": message.lognr,
+            "origin": message.origin,
+            "relayed_by": relayed_by,
+            "why": why,
+        }
+        return [Note("error", "log message refused: not signed as it says", fields)]
 
     def went_on_without_us(
         self, message: ring_pb2.LogMessage | None, drone_reachable: bool

@@ -864,8 +864,9 @@ class ControllerNode:
         """The drone chose another master (``ControllerCore.handover_notice``)."""
         await self._apply(self.core.handover_notice(new_master, after_reqnr, epoch))
 
-    async def on_log(self, message: ring_pb2.LogMessage) -> None:
-        """A log message from the ring or from an old master (``ControllerCore.log_arrived``)."""
+    async def on_log(self, message: ring_pb2.LogMessage, relayed_by: int = 0) -> None:
+        """A log message from the ring or from an old master (``ControllerCore.log_arrived``),
+        relayed by controller ``relayed_by`` (0: our own history)."""
         self.log.debug(
             "log message received",
             mlognr=message.lognr,
@@ -875,7 +876,9 @@ class ControllerNode:
             entries=len(message.entries),
         )
         await self._apply(
-            self.core.log_arrived(message, lambda: self.drone_connected or self.standby_up)
+            self.core.log_arrived(
+                message, lambda: self.drone_connected or self.standby_up, relayed_by
+            )
         )
 
     async def _fence_by_the_ring(self, message: ring_pb2.LogMessage | None) -> None:
@@ -1155,6 +1158,8 @@ class ControllerNode:
                     reply=reply.payload,
                     request_digest=digest,
                     request=request,
+                    drone_epoch=reply.epoch,
+                    drone_signature=reply.signature,
                 )
             except grpc.aio.AioRpcError as exc:
                 refusal = refusal_of(exc)

@@ -282,6 +282,10 @@ class ProtocolError(Exception):
         self.effects: list[Effect] = list(effects or [])
 
 
+def _unsealed(message: ring_pb2.LogMessage) -> None:
+    """An insecure ring's seal: the message goes unsigned."""
+
+
 def entry_size(entry: ring_pb2.LogEntry) -> int:
     """Bytes that ``entry`` adds to a serialized log message (field tag and length included).
 
@@ -342,6 +346,9 @@ class ControllerProtocol:
         self.id = cid
         self.ring = list(ring)
         self.flush_limit = flush_limit
+        # Signs each log message we create once it is whole (``Signer.seal``, with this
+        # controller's key: baton.authenticity); a no-op on an insecure ring.
+        self.seal: Callable[[ring_pb2.LogMessage], None] = _unsealed
         # The target of the prepared handover under way (``on_prepare``), if any.
         self.preparing_for: int | None = None
         # The mission program ended (``on_mission_done``): an entry logged since (a
@@ -787,6 +794,7 @@ class ControllerProtocol:
         in an epoch that takeover ended gives the fresh self none (``_arrival``).
         """
         fresh = ControllerProtocol(self.id, self.ring, self.flush_limit)
+        fresh.seal = self.seal
         fresh.given_up_epoch = self.mastership_given_up()
         fresh._fenced_in = self._fenced_in
         return fresh
@@ -1065,6 +1073,7 @@ class ControllerProtocol:
         self._flushed_in = self.epoch
         message = self._message(self.lognr, origin=self.id, handover=False)
         message.epoch = self.epoch  # the mastership it was logged in, for diagnosis
+        self.seal(message)
         return SendLog(self.successor, message)
 
     def _message(self, lognr: int, origin: int, handover: bool) -> ring_pb2.LogMessage:
@@ -1121,6 +1130,7 @@ class ControllerProtocol:
         self._held(self.lognr, self.reqnr, epoch)
         message = self._message(self.lognr, origin=new_master, handover=True)
         message.epoch = epoch
+        self.seal(message)
         self._handed = ring_pb2.LogMessage()
         self._handed.CopyFrom(message)
         self._mastership_over = self.epoch

@@ -597,7 +597,7 @@ class RingReceiver:
         self,
         my_id: int,
         current_lognr: Callable[[], int],
-        deliver: Callable[[ring_pb2.LogMessage], Awaitable[None]],
+        deliver: Callable[[ring_pb2.LogMessage, int], Awaitable[None]],
         log: BoundLogger,
         max_message_bytes: int = MAX_LOG_MESSAGE_DEFAULT,
         synced: Callable[[int, int, int, int, int], Awaitable[None]] | None = None,
@@ -738,7 +738,7 @@ class RingReceiver:
                         ring_pb2.LogAck(lognr=message.lognr, receiver_id=self.my_id)
                     )
                     continue
-                await self._deliver(message)
+                await self._deliver(message, frame.from_id)
                 if relay is not None:
                     relay.settle()
                     relay = None

@@ -335,6 +335,8 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         standby_up=node.standby_up,
         answered_from_retained=node.answered_from_retained,
         log_file=node.history.status(),
+        refused_messages=node.core.refused_messages,
+        last_refused=node.core.last_refused,
         handovers=[
             ring_pb2.ControllerHandover(
                 role=h.role,

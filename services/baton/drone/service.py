@@ -19,6 +19,7 @@ from typing import Any
 
 import grpc
 
+from baton.authenticity import Signer, signed_reply, signed_retained
 from baton.config import BatonConfig, controllers_only, detection_time_s
 from baton.digest import request_digest
 from baton.drone.camera import DEFAULT_RESOLUTION, Camera
@@ -108,6 +109,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         stations: Mapping[int, Station] | None = None,
     ) -> None:
         self.race = race
+        # Signs every reply the drone makes (baton.authenticity); None: insecure, unsigned.
+        self.signer: Signer | None = None
         # Mutual TLS on the port: every call is checked against the caller's
         # certificate (docs/design.md, Security); False: anyone may call.
         self.authenticated = authenticated
@@ -709,13 +712,14 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                     self.store.abandon()
                 raise
             self._served(cid, reqnr, method, digest, reply, received_at)
+            epoch = self.seq.epoch
         if (
             self.race is not None
             and self.race.order == "notice-first"
             and self._handed_over_after == reqnr
         ):
             await asyncio.sleep(self.race.delay_s)
-        return drone_pb2.InvokeReply(reqnr=reqnr, payload=reply)
+        return signed_reply(self.signer, reqnr, epoch, method, digest, reply)
 
     def _answer_duplicate(
         self, request: drone_pb2.InvokeRequest, cached: CachedReply
@@ -733,7 +737,15 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 cached.error.message,
                 metadata=(*cached.error.metadata, ("baton-duplicate", "true")),
             )
-        return drone_pb2.InvokeReply(reqnr=request.reqnr, payload=cached.reply, duplicate=True)
+        return signed_reply(
+            self.signer,
+            request.reqnr,
+            cached.epoch,
+            cached.method,
+            cached.digest,
+            cached.reply,
+            duplicate=True,
+        )
 
     async def _execute(self, request: drone_pb2.InvokeRequest) -> bytes:
         route = self.dispatcher.route(request.method)
@@ -898,7 +910,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 for batch in batches:
                     yield drone_pb2.DroneEvent(
                         retained=drone_pb2.RetainedBatch(
-                            replies=[reply.to_proto() for reply in batch]
+                            replies=[signed_retained(self.signer, r.to_proto()) for r in batch]
                         )
                     )
             sent_prepare: drone_pb2.PrepareHandover | None = None
@@ -1308,6 +1320,8 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
         safety=safety_params(settings.config),
         stations=landing_stations(settings.config),
     )
+    if settings.tls is not None:
+        service.signer = Signer.from_pem(settings.tls.key)
     if settings.policy is not None:
         service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
         service.policy.restore()

@@ -140,6 +140,21 @@ class Tls:
             return self
         return replace(self, cert=cert, key=key)
 
+    @staticmethod
+    def read_certificate(directory: str | Path, identity: Identity) -> bytes:
+        """Another part's certificate (``NAME.crt``, public) from ``directory``: a
+        controller checks the drone's signatures against it (baton.authenticity)."""
+        path = Path(directory) / f"{identity.name}.crt"
+        try:
+            return path.read_bytes()
+        except OSError as exc:
+            raise TlsError(
+                f"{path}: cannot read the {identity.name} certificate ({exc.strerror}); "
+                f"every controller checks the {identity.name}'s signatures against it: "
+                f"copy {identity.name}.crt (not its key) into {directory}, or make the "
+                f"folder with `baton certs init {directory}`"
+            ) from None
+
     def server_credentials(self) -> grpc.ServerCredentials:
         """A server that requires a client certificate signed by the mission's CA, and
         presents its newest certificate (``current``) at every new connection."""

@@ -1,0 +1,315 @@
+"""Replies signed by the drone: what a station relays, it cannot invent or alter.
+
+The drone is the one source of every reply to a drone call, so it signs what
+it answered with its own key (the private key of its mutual-TLS certificate),
+and every controller checks the signature of every such reply that reaches
+it over the ring, whoever relayed it, against the drone's certificate, which
+it checks chained to the mission's CA and naming ``spiffe://baton/drone``
+(docs/design.md, "Replies signed by the drone").
+
+What is signed (``reply_statement``) is canonical bytes, never a serialized
+protobuf (whose encoding is not unique): a domain tag, the request number,
+the epoch the drone served it in, the method, the request digest
+(``baton.digest``) and the SHA-256 of the reply. So a signature binds a reply
+to its request: moved to another request number, another request or another
+reply, it no longer verifies.
+
+Which log entries need one (``needs_drone_signature``): a drone method's
+reply (status OK). A Clock call is answered by its controller, and a failure
+or a give-up is the controller's word (a failure the drone booked reaches
+the master as a gRPC status, which carries no signature); those stay the
+word of the station that logged them (issue 33, item 2).
+
+Pure: no files, sockets or clocks (the time to check a certificate against is
+an argument); the drone service signs, ``ControllerCore.log_arrived`` checks.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import struct
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+from cryptography import x509
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec, ed25519
+
+from baton.digest import request_digest
+from baton.rpc.methods import service_prefix
+from baton.rpc.tls import DRONE, Identity
+from baton.v1 import drone_pb2, ring_pb2
+
+# Names what the bytes mean, so a signature over a reply is never taken for one
+# over anything else the drone's key may sign later.
+REPLY_TAG = b"baton.v1 drone reply\0"
+MESSAGE_TAG = b"baton.v1 log message\0"
+_CLOCK = service_prefix("Clock")
+
+SigningKey = ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey
+VerifyingKey = ec.EllipticCurvePublicKey | ed25519.Ed25519PublicKey
+
+
+class AuthenticityError(ValueError):
+    """A key or certificate that cannot sign or check replies; the message says why."""
+
+
+def reply_statement(
+    reqnr: int, epoch: int, method: str, digest: bytes, reply: bytes, reply_sha256: bytes = b""
+) -> bytes:
+    """The canonical bytes the drone signs for the reply to request ``reqnr``
+    (``reply_sha256``: the reply's SHA-256, if the caller has it already)."""
+    name = method.encode()
+    return b"".join(
+        (
+            REPLY_TAG,
+            struct.pack(">QQI", reqnr, epoch, len(name)),
+            name,
+            struct.pack(">I", len(digest)),
+            bytes(digest),
+            reply_sha256 or hashlib.sha256(reply).digest(),
+        )
+    )
+
+
+def _sign(key: SigningKey, data: bytes) -> bytes:
+    if isinstance(key, ed25519.Ed25519PrivateKey):
+        return key.sign(data)
+    return key.sign(data, ec.ECDSA(hashes.SHA256()))
+
+
+def _verify(key: VerifyingKey, signature: bytes, data: bytes) -> bool:
+    try:
+        if isinstance(key, ed25519.Ed25519PublicKey):
+            key.verify(signature, data)
+        else:
+            key.verify(signature, data, ec.ECDSA(hashes.SHA256()))
+    except InvalidSignature:
+        return False
+    return True
+
+
+def reply_hashes(message: ring_pb2.LogMessage) -> list[bytes]:
+    """The SHA-256 of each entry's reply: hashed once for both signatures' checks (a
+    log message may carry 64 MB of pictures)."""
+    return [hashlib.sha256(entry.reply).digest() for entry in message.entries]
+
+
+def message_statement(message: ring_pb2.LogMessage, hashes: list[bytes] | None = None) -> bytes:
+    """The canonical bytes a controller signs for a log message it creates: what it says
+    of itself (sender, log number, epoch, where it follows) and every entry, each with
+    the drone's word on it. Not its origin or handover flag: a handover message's new
+    master sends it on as a normal message with itself as origin, and a history keeps
+    it without the flag; only the drone's word makes a controller master."""
+    parts = [
+        MESSAGE_TAG,
+        struct.pack(
+            ">iQQ?QQdI",
+            message.sender,
+            message.lognr,
+            message.epoch,
+            message.HasField("after_reqnr"),
+            message.after_reqnr,
+            message.after_epoch,
+            message.created_at,
+            len(message.entries),
+        ),
+    ]
+    for entry, reply_sha256 in zip(message.entries, hashes or reply_hashes(message), strict=True):
+        method, status = entry.method.encode(), entry.status_message.encode()
+        parts += [
+            struct.pack(
+                ">QiI?QI",
+                entry.reqnr,
+                entry.status_code,
+                len(method),
+                entry.given_up,
+                entry.drone_epoch,
+                len(status),
+            ),
+            method,
+            status,
+            hashlib.sha256(entry.request_digest).digest(),
+            reply_sha256,
+            hashlib.sha256(entry.request).digest(),
+            hashlib.sha256(entry.drone_signature).digest(),
+        ]
+    return b"".join(parts)
+
+
+@dataclass(frozen=True)
+class Signer:
+    """A part's own key: the drone signs its replies, a controller its log messages."""
+
+    key: SigningKey
+
+    @classmethod
+    def from_pem(cls, key_pem: bytes) -> Signer:
+        """From a part's private key (``NAME.key`` of its certificate folder)."""
+        key = serialization.load_pem_private_key(key_pem, password=None)
+        if not isinstance(key, ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey):
+            raise AuthenticityError(
+                f"the key is {type(key).__name__}; baton signs with an ECDSA or Ed25519 "
+                "key (`baton certs init` makes ECDSA P-256)"
+            )
+        return cls(key)
+
+    def sign(self, reqnr: int, epoch: int, method: str, digest: bytes, reply: bytes) -> bytes:
+        """The drone's signature of its reply to request ``reqnr``."""
+        return _sign(self.key, reply_statement(reqnr, epoch, method, digest, reply))
+
+    def seal(self, message: ring_pb2.LogMessage) -> None:
+        """Signs a log message this controller created (``LogMessage.signature``)."""
+        message.signature = _sign(self.key, message_statement(message))
+
+
+def _names(cert: x509.Certificate) -> list[Identity]:
+    try:
+        sans = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    except x509.ExtensionNotFound:
+        return []
+    uris = sans.get_values_for_type(x509.UniformResourceIdentifier)
+    return [who for who in map(Identity.from_uri, uris) if who is not None]
+
+
+@dataclass(frozen=True)
+class Verifier:
+    """One part's public key, from its certificate checked against the mission's CA."""
+
+    key: VerifyingKey
+
+    @classmethod
+    def from_pem(
+        cls, cert_pem: bytes, ca_pem: bytes, now: datetime.datetime, who: Identity = DRONE
+    ) -> Verifier:
+        """From ``who``'s certificate, once it is signed by the CA, valid at ``now`` and
+        names ``who``: another part's certificate would let that part sign as ``who``."""
+        cert = x509.load_pem_x509_certificate(cert_pem)
+        ca = x509.load_pem_x509_certificate(ca_pem)
+        try:
+            cert.verify_directly_issued_by(ca)
+        except (ValueError, TypeError, InvalidSignature):
+            raise AuthenticityError(
+                f"the {who.name} certificate is not signed by the mission's CA (ca.crt)"
+            ) from None
+        if not cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
+            raise AuthenticityError(
+                f"the {who.name} certificate is valid from {cert.not_valid_before_utc} to "
+                f"{cert.not_valid_after_utc}, not at {now}"
+            )
+        names = _names(cert)
+        if who not in names:
+            named = ", ".join(map(str, names)) or "no baton identity"
+            raise AuthenticityError(f"the {who.name} certificate names {named}, not {who}")
+        key = cert.public_key()
+        if not isinstance(key, ec.EllipticCurvePublicKey | ed25519.Ed25519PublicKey):
+            raise AuthenticityError(
+                f"the {who.name} certificate holds a {type(key).__name__}; baton signs "
+                "with an ECDSA or Ed25519 key"
+            )
+        return cls(key)
+
+    def verify(self, entry: ring_pb2.LogEntry, reply_sha256: bytes = b"") -> bool:
+        """Whether ``entry`` carries the drone's signature of its reply, and its request
+        bytes (shown when a program diverges) are the ones the signed digest names."""
+        if entry.request and request_digest(entry.method, entry.request) != entry.request_digest:
+            return False
+        statement = reply_statement(
+            entry.reqnr,
+            entry.drone_epoch,
+            entry.method,
+            entry.request_digest,
+            entry.reply,
+            reply_sha256,
+        )
+        return _verify(self.key, entry.drone_signature, statement)
+
+    def verify_message(
+        self, message: ring_pb2.LogMessage, hashes: list[bytes] | None = None
+    ) -> bool:
+        """Whether ``message`` carries its creator's signature (``Signer.seal``)."""
+        return _verify(self.key, message.signature, message_statement(message, hashes))
+
+
+@dataclass(frozen=True)
+class Keys:
+    """What a controller checks log messages against: the drone's key and every
+    controller's of the ring, from their certificates."""
+
+    drone: Verifier
+    controllers: Mapping[int, Verifier]
+
+
+def refusal(keys: Keys, message: ring_pb2.LogMessage) -> str | None:
+    """Why ``message`` is not what its creator and the drone said, or None if it is.
+
+    Its creator's signature first (``LogMessage.sender``, a controller of the ring):
+    a relay can pass a message on but not make one in another's name or change it;
+    then the drone's on every reply it made: its creator cannot invent one."""
+    creator = keys.controllers.get(message.sender)
+    if creator is None:
+        return f"its creator, controller {message.sender}, is not one of the ring"
+    hashes = reply_hashes(message)
+    if not creator.verify_message(message, hashes):
+        return f"it has no valid signature of its creator, controller {message.sender}"
+    entry = unsigned_reply(keys.drone, message.entries, hashes)
+    if entry is not None:
+        return f"request {entry.reqnr} ({entry.method}) has no valid drone signature"
+    return None
+
+
+class _Outcome(Protocol):
+    @property
+    def method(self) -> str: ...
+    @property
+    def status_code(self) -> int: ...
+    @property
+    def given_up(self) -> bool: ...
+
+
+def needs_drone_signature(outcome: _Outcome) -> bool:
+    """A reply the drone made: a call of any method but the Clock's, answered OK (the
+    drone refuses anything else among what a master sends along, ``master_answers``)."""
+    return not (outcome.given_up or outcome.status_code or outcome.method.startswith(_CLOCK))
+
+
+def signed_reply(
+    signer: Signer | None,
+    reqnr: int,
+    epoch: int,
+    method: str,
+    digest: bytes,
+    payload: bytes,
+    duplicate: bool = False,
+) -> drone_pb2.InvokeReply:
+    """The drone's InvokeReply, signed if it has a key."""
+    reply = drone_pb2.InvokeReply(reqnr=reqnr, payload=payload, duplicate=duplicate, epoch=epoch)
+    if signer is not None:
+        reply.signature = signer.sign(reqnr, epoch, method, digest, payload)
+    return reply
+
+
+def signed_retained(
+    signer: Signer | None, kept: drone_pb2.RetainedReply
+) -> drone_pb2.RetainedReply:
+    """A retained reply as the drone gives it to a taker: signed if the drone made it."""
+    if signer is not None and needs_drone_signature(kept):
+        kept.signature = signer.sign(
+            kept.reqnr, kept.epoch, kept.method, kept.request_digest, kept.reply
+        )
+    return kept
+
+
+def unsigned_reply(
+    verifier: Verifier, entries: Sequence[ring_pb2.LogEntry], hashes: Sequence[bytes] = ()
+) -> ring_pb2.LogEntry | None:
+    """The first entry whose reply needs the drone's signature and lacks a valid one
+    (``hashes``: the replies' SHA-256, ``reply_hashes``, if the caller has them)."""
+    for k, entry in enumerate(entries):
+        reply_sha256 = hashes[k] if hashes else b""
+        if needs_drone_signature(entry) and not verifier.verify(entry, reply_sha256):
+            return entry
+    return None
