@@ -129,11 +129,12 @@ def admit(
         stretches = tuple(
             Stretch(a, b, position_at(route, a), position_at(route, b)) for a, b in gaps
         )
+        count = "a stretch" if len(stretches) == 1 else f"{len(stretches)} stretches"
         return Refused(
             "route",
-            f"{len(stretches)} stretch(es) no station covers: "
+            f"{count} no station covers: "
             + "; ".join(s.describe() for s in stretches)
-            + ". Add a station there (baton fleet stations add) or change the route",
+            + ". Add a station whose range covers it, or change the route",
             stretches,
         )
     enters = {sid: spans[0][0] for sid, spans in intervals.items() if spans}
