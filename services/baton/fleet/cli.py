@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -81,9 +82,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="register every controller of a testbed file (location, range_m) as "
         "station controller-ID instead",
     )
-    add.set_defaults(run=_add_stations)
+    add.set_defaults(run=_guarded(_add_stations))
     station_actions.add_parser("list", parents=[common], help="the stations").set_defaults(
-        run=_list_stations
+        run=_guarded(_list_stations)
     )
 
     admit = actions.add_parser(
@@ -107,14 +108,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         metavar="LAT,LON",
         help="(--plan) the take-off point (default: the plan's planned home position)",
     )
-    admit.set_defaults(run=_admit)
+    admit.set_defaults(run=_guarded(_admit))
 
     actions.add_parser("missions", parents=[common], help="the admitted missions").set_defaults(
-        run=_missions
+        run=_guarded(_missions)
     )
     cancel = actions.add_parser("cancel", parents=[common], help="cancel an admitted mission")
     cancel.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
-    cancel.set_defaults(run=_cancel)
+    cancel.set_defaults(run=_guarded(_cancel))
+
+
+def _guarded(action: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``action`` with a registry that cannot be used said as a clear error."""
+
+    def run(args: argparse.Namespace) -> int:
+        from baton.fleet.registry import RegistryError
+
+        try:
+            return action(args)
+        except RegistryError as exc:
+            return _fail(args, str(exc))
+
+    return run
 
 
 def _fail(args: argparse.Namespace, message: str, status: int = 2) -> int:
@@ -155,30 +170,21 @@ def _add_stations(args: argparse.Namespace) -> int:
             field, why = problem
             return _fail(args, f"{STATION_FLAGS[field.partition('.')[0]]} {why}")
         named = [(args.name, station)]
-    try:
-        registry = Registry(args.registry)
-    except RegistryError as exc:
-        return _fail(args, str(exc))
-    try:
+    with Registry(args.registry) as registry:
         for name, station in named:
-            registry.add_station(name, station)
+            try:
+                registry.add_station(name, station)
+            except RegistryError as exc:
+                return _fail(args, f"station {name}: {exc}")
             print(f"station {name} (id {station.id}) added")
-    except RegistryError as exc:
-        return _fail(args, f"station {name}: {exc}")
-    finally:
-        registry.close()
     return 0
 
 
 def _list_stations(args: argparse.Namespace) -> int:
-    from baton.fleet.registry import Registry, RegistryError
+    from baton.fleet.registry import Registry
 
-    try:
-        registry = Registry(args.registry)
-    except RegistryError as exc:
-        return _fail(args, str(exc))
-    stations = registry.stations()
-    registry.close()
+    with Registry(args.registry) as registry:
+        stations = registry.stations()
     print(f"{'ID':>4}  {'NAME':<16} {'LATITUDE':>11} {'LONGITUDE':>11} {'RANGE_M':>8}")
     for s in stations:
         where = s.station.location
@@ -215,18 +221,15 @@ def _route(args: argparse.Namespace) -> list[Position]:
 
 def _admit(args: argparse.Namespace) -> int:
     from baton.fleet.admission import Refused
-    from baton.fleet.registry import Registry, RegistryError
+    from baton.fleet.registry import Registry
 
     try:
         route = _route(args)
-        registry = Registry(args.registry)
-    except (RegistryError, ValueError) as exc:
+    except ValueError as exc:
         return _fail(args, str(exc))
-    try:
-        names = {s.station.id: s.name for s in registry.stations()}
+    with Registry(args.registry) as registry:
         decision = registry.admit(args.drone, route)
-    finally:
-        registry.close()
+        names = {s.station.id: s.name for s in registry.stations()}
     if isinstance(decision, Refused):
         return _fail(args, f"refused: {decision.message()}", status=1)
     mission_id, admitted = decision
@@ -243,14 +246,10 @@ def _admit(args: argparse.Namespace) -> int:
 
 
 def _missions(args: argparse.Namespace) -> int:
-    from baton.fleet.registry import Registry, RegistryError
+    from baton.fleet.registry import Registry
 
-    try:
-        registry = Registry(args.registry)
-    except RegistryError as exc:
-        return _fail(args, str(exc))
-    missions = registry.missions()
-    registry.close()
+    with Registry(args.registry) as registry:
+        missions = registry.missions()
     print(f"{'ID':>4}  {'DRONE':<12} {'STATE':<10} {'FIRST':>6}  {'ADMITTED (UTC)':<20} RING")
     for m in missions:
         admitted_at = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(m.admitted_at))
@@ -262,15 +261,9 @@ def _missions(args: argparse.Namespace) -> int:
 
 
 def _cancel(args: argparse.Namespace) -> int:
-    from baton.fleet.registry import Registry, RegistryError
+    from baton.fleet.registry import Registry
 
-    try:
-        registry = Registry(args.registry)
-        try:
-            mission = registry.cancel(args.mission)
-        finally:
-            registry.close()
-    except RegistryError as exc:
-        return _fail(args, str(exc))
+    with Registry(args.registry) as registry:
+        mission = registry.cancel(args.mission)
     print(f"mission {mission.id} of drone {mission.drone} cancelled")
     return 0
