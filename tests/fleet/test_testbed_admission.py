@@ -5,11 +5,14 @@ from __future__ import annotations
 import pytest
 from helpers.testbed_runs import CORRIDOR
 
+from baton.cli import main
 from baton.config import ConfigError, load_config, parse_config
 from baton.fleet.routes import survey_route
 from baton.fleet.stations import stations_of
 from baton.sdk import Position
 from baton.testbed.admission import admitted_config, describe
+
+GRID_PROGRAM = CORRIDOR.parent / "grid_mission.py"
 
 
 def test_a_controller_without_a_place_is_named_with_the_fix() -> None:
@@ -52,3 +55,25 @@ def test_the_admitted_file_holds_the_ring_alone_from_the_nearest_to_take_off() -
     assert admitted.handover_policy == config.handover_policy and admitted.radio_range
     with pytest.raises(ValueError, match=r"--admit: the mission is refused: route: a stretch"):
         admitted_config(config, survey_route(home, [(0.0, -600.0)]), str(CORRIDOR))
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("--admit",), "--admit needs --config FILE: its controllers' locations and ranges"),
+        (
+            ("--config", str(CORRIDOR), "--admit", "--mission", str(GRID_PROGRAM)),
+            "--admit needs the mission's route before it flies",
+        ),
+        (
+            ("report", "--config", str(CORRIDOR), "--admit"),
+            "--admit is for a local run: 'report' follows the ring the file started",
+        ),
+    ],
+)
+def test_testbed_admit_without_a_route_or_stations_is_one_clear_line(
+    capsys: pytest.CaptureFixture[str], args: tuple[str, ...], message: str
+) -> None:
+    assert main(["testbed", *args]) == 2
+    out, err = capsys.readouterr()
+    assert message in err and "admission: ring" not in out, err

@@ -457,6 +457,8 @@ def run(args: argparse.Namespace) -> int:
     from baton.testbed import run as running
     from baton.testbed.faults import check_parts
 
+    if args.action == "report" and args.admit:
+        return _fail("--admit is for a local run: 'report' follows the ring the file started")
     try:
         _check_numbers(args)
         config, from_file = testbed_config(args)
