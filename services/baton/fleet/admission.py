@@ -38,9 +38,10 @@ flat Earth no longer holds there.
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 from baton.drone.policy import Station
@@ -122,13 +123,11 @@ def admit(
             f"{drone!r} already flies mission {in_flight[drone]}; cancel it first "
             "(baton fleet cancel), or submit for another drone",
         )
-    intervals = covered_intervals(route, stations)
-    length_m = _cumulative(_frame(route))[-1]
-    gaps = _gaps(sorted(span for spans in intervals.values() for span in spans), length_m)
+    flat = FlatRoute.of(route)
+    intervals = _covered(flat, stations)
+    gaps = _gaps(sorted(span for spans in intervals.values() for span in spans), flat.length_m)
     if gaps:
-        stretches = tuple(
-            Stretch(a, b, position_at(route, a), position_at(route, b)) for a, b in gaps
-        )
+        stretches = tuple(Stretch(a, b, flat.at(a), flat.at(b)) for a, b in gaps)
         count = "a stretch" if len(stretches) == 1 else f"{len(stretches)} stretches"
         return Refused(
             "route",
@@ -138,14 +137,15 @@ def admit(
             stretches,
         )
     enters = {sid: spans[0][0] for sid, spans in intervals.items() if spans}
-    by_id = {s.id: s for s in stations}
+    centres = {s.id: north_east_m(route[0], s.location) for s in stations}
 
     def order(sid: int) -> tuple[float, float, int]:
-        at = position_at(route, enters[sid])
-        return enters[sid], _distance_m(at, by_id[sid].location), sid
+        north, east = flat.flat_at(enters[sid])
+        centre = centres[sid]
+        return enters[sid], math.hypot(north - centre[0], east - centre[1]), sid
 
     ring = tuple(sorted(enters, key=order))
-    return Admitted(ring, ring[0], enters, length_m)
+    return Admitted(ring, ring[0], enters, flat.length_m)
 
 
 def check_submission(
@@ -200,33 +200,65 @@ def covered_intervals(
     """For each station, the parts of the route in its range, as (from, to) metres
     along the route, in route order (a route that leaves a range and comes back has
     two); a station the route never enters has none."""
-    points = _frame(route)
-    along = _cumulative(points)
-    origin = route[0]
+    return _covered(FlatRoute.of(route), stations)
+
+
+@dataclass(frozen=True)
+class FlatRoute:
+    """A route on the flat Earth around its take-off: its points as (north, east)
+    metres, and the metres along the route at each."""
+
+    origin: Position
+    points: tuple[tuple[float, float], ...]
+    along: tuple[float, ...]
+
+    @classmethod
+    def of(cls, route: Sequence[Position]) -> FlatRoute:
+        points = tuple(north_east_m(route[0], point) for point in route)
+        along = [0.0]
+        for (n0, e0), (n1, e1) in itertools.pairwise(points):
+            along.append(along[-1] + math.hypot(n1 - n0, e1 - e0))
+        return cls(route[0], points, tuple(along))
+
+    @property
+    def length_m(self) -> float:
+        return self.along[-1]
+
+    def legs(self) -> Iterator[tuple[float, tuple[float, float], tuple[float, float]]]:
+        """Each leg as (metres along the route at its start, start, end); a route of
+        one point is one leg of no length."""
+        if len(self.points) == 1:
+            yield 0.0, self.points[0], self.points[0]
+        for k in range(len(self.points) - 1):
+            yield self.along[k], self.points[k], self.points[k + 1]
+
+    def flat_at(self, at_m: float) -> tuple[float, float]:
+        """(north, east) metres of take-off of the point ``at_m`` along the route
+        (its ends outside it)."""
+        k = min(max(bisect.bisect_left(self.along, at_m), 1), len(self.points) - 1)
+        if k == 0:  # a route of one point
+            return self.points[0]
+        leg = self.along[k] - self.along[k - 1]
+        t = 0.0 if leg <= 0 else min(max((at_m - self.along[k - 1]) / leg, 0.0), 1.0)
+        (n0, e0), (n1, e1) = self.points[k - 1], self.points[k]
+        return n0 + t * (n1 - n0), e0 + t * (e1 - e0)
+
+    def at(self, at_m: float) -> Position:
+        """The position ``at_m`` metres along the route."""
+        return offset(self.origin, *self.flat_at(at_m))
+
+
+def _covered(flat: FlatRoute, stations: Sequence[Station]) -> dict[int, list[tuple[float, float]]]:
     spans: dict[int, list[tuple[float, float]]] = {}
     for station in stations:
-        centre = north_east_m(origin, station.location)
+        centre = north_east_m(flat.origin, station.location)
         found: list[tuple[float, float]] = []
-        for k in range(len(points)):
-            leg_end = points[k + 1] if k + 1 < len(points) else points[k]
-            hit = _leg_in_disc(points[k], leg_end, centre, station.range_m)
+        for along, start, end in flat.legs():
+            hit = _leg_in_disc(start, end, centre, station.range_m)
             if hit is not None:
-                found.append((along[k] + hit[0], along[k] + hit[1]))
+                found.append((along + hit[0], along + hit[1]))
         spans[station.id] = _merged(found)
     return spans
-
-
-def position_at(route: Sequence[Position], at_m: float) -> Position:
-    """The position ``at_m`` metres along the route (its ends outside it)."""
-    points = _frame(route)
-    along = _cumulative(points)
-    for k in range(1, len(points)):
-        if at_m <= along[k] or k == len(points) - 1:
-            leg = along[k] - along[k - 1]
-            t = 0.0 if leg <= 0 else min(max((at_m - along[k - 1]) / leg, 0.0), 1.0)
-            (n0, e0), (n1, e1) = points[k - 1], points[k]
-            return offset(route[0], n0 + t * (n1 - n0), e0 + t * (e1 - e0))
-    return route[0]
 
 
 def _bad_place(place: Position) -> tuple[str, str] | None:
@@ -238,19 +270,6 @@ def _bad_place(place: Position) -> tuple[str, str] | None:
         if not -bound <= value <= bound:  # nan too
             return name, f"{value!r}: must be a number in [-{bound:g}, {bound:g}], degrees"
     return None
-
-
-def _frame(route: Sequence[Position]) -> list[tuple[float, float]]:
-    """The route's points as (north, east) metres from take-off."""
-    return [north_east_m(route[0], point) for point in route]
-
-
-def _cumulative(points: Sequence[tuple[float, float]]) -> list[float]:
-    """Metres along the route at each point."""
-    along = [0.0]
-    for (n0, e0), (n1, e1) in itertools.pairwise(points):
-        along.append(along[-1] + math.hypot(n1 - n0, e1 - e0))
-    return along
 
 
 def _distance_m(a: Position, b: Position) -> float:
