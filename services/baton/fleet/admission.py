@@ -2,7 +2,7 @@
 
 The paper's deployment: "N edge nodes selected to host the instances of the
 mission controller so as to cover the entire path of the drone". This module
-is that choice, as a pure function (``admit``): it takes the stations (id,
+is that choice, as a pure function (``admit_mission``): it takes the stations (id,
 position, radio range, the handover policy's ``Station``), the drone and its
 route (take-off first, then the positions flown to in order), and the
 missions in flight by drone, and returns an ``Admitted`` (the ring and the
@@ -103,7 +103,7 @@ class Refused:
         return f"{self.field}: {self.reason}"
 
 
-def admit(
+def admit_mission(
     drone: str,
     route: Sequence[Position],
     stations: Sequence[Station],

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from baton.drone.policy import Station
-from baton.fleet.admission import Admitted, Refused, admit, station_problem
+from baton.fleet.admission import Admitted, Refused, admit_mission, station_problem
 from baton.sdk.types import Position
 
 SCHEMA_VERSION = 1
@@ -161,7 +161,7 @@ class Registry:
                     "SELECT id, drone FROM missions WHERE state = ?", (IN_FLIGHT,)
                 )
             }
-            decision = admit(drone, route, stations, in_flight)
+            decision = admit_mission(drone, route, stations, in_flight)
             if isinstance(decision, Refused):
                 return decision
             cursor = db.execute(

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from baton.config import BatonConfig
-from baton.fleet.admission import Admitted, Refused, admit
+from baton.fleet.admission import Admitted, Refused, admit_mission
 from baton.fleet.stations import stations_of
 from baton.sdk.types import Position
 
@@ -24,7 +24,7 @@ def admitted_config(
     """``config`` with the ring and the initial master admission chose for ``route``,
     and only the controllers in that ring; ValueError with the refusal (the uncovered
     stretches named) otherwise."""
-    decision = admit(TESTBED_DRONE, route, stations_of(config, source), {})
+    decision = admit_mission(TESTBED_DRONE, route, stations_of(config, source), {})
     if isinstance(decision, Refused):
         raise ValueError(f"--admit: the mission is refused: {decision.message()}")
     document = config.model_dump(exclude_unset=True)
