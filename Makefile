@@ -23,10 +23,11 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 # What `make demo` runs when no ARGS are given: the range-driven corridor (four
-# stations along 1.5 km, radio range, the nearest policy, no handover script).
+# stations along 1.5 km, radio range, the nearest policy, no handover script), its
+# ring and first master chosen by mission admission over the stations (--admit).
 # ARGS replace it: `make demo ARGS="--mission grid"` is the paper's grid with
 # scripted handovers (`baton testbed`'s defaults).
-DEMO_ARGS ?= --config examples/corridor.yaml --mission corridor --spacing 100
+DEMO_ARGS ?= --config examples/corridor.yaml --mission corridor --spacing 100 --admit
 
 demo: $(STAMP)
 	$(BIN)/baton testbed $(if $(ARGS),$(ARGS),$(DEMO_ARGS))

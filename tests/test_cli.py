@@ -11,7 +11,7 @@ import pytest
 
 from baton.cli import build_parser
 
-PROGRAMS = ["sim-vehicle", "drone", "controller", "link", "testbed", "bench"]
+PROGRAMS = ["sim-vehicle", "drone", "controller", "link", "testbed", "fleet", "bench"]
 
 
 def baton(*args: str) -> subprocess.CompletedProcess[str]:

@@ -29,6 +29,7 @@ PROGRAMS = [
     "baton.controller.cli",
     "baton.link.cli",
     "baton.testbed.cli",
+    "baton.fleet.cli",
     "baton.replay.cli",
     "baton.bench.cli",
     "baton.certs.cli",

@@ -8,6 +8,12 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+import yaml
+
+from baton.testbed.local import free_port
+
+CORRIDOR = Path(__file__).parents[2] / "examples" / "corridor.yaml"
+
 
 def baton(*args: str) -> list[str]:
     """The argv of ``baton ARGS`` in this interpreter."""
@@ -40,3 +46,28 @@ def fly_plan(tmp_path: Path, plan: Path, handovers: Sequence[str], *args: str) -
     its report (with ``stdout``)."""
     flags = [arg for h in handovers for arg in ("--handover", h)]
     return run_testbed(tmp_path, "--mission", str(plan), "--speedup", "20", *flags, *args)
+
+
+def corridor_on_free_ports(
+    tmp_path: Path,
+    policy: str,
+    max_rtt: str | None = None,
+    prepare_timeout: str | None = None,
+    lead: str | None = None,
+) -> Path:
+    """examples/corridor.yaml on free ports with the handover ``policy`` and the given
+    thresholds, written in ``tmp_path``; its path."""
+    document = yaml.safe_load(CORRIDOR.read_text())
+    document["drone"]["address"] = f"127.0.0.1:{free_port()}"
+    for controller in document["controllers"]:
+        controller["address"] = f"127.0.0.1:{free_port()}"
+    document["handover_policy"]["name"] = policy
+    if max_rtt is not None:
+        document["handover_policy"]["max_rtt"] = max_rtt
+    if lead is not None:
+        document["handover_policy"]["lead"] = lead
+    if prepare_timeout is not None:
+        document["prepare_timeout"] = prepare_timeout
+    config = tmp_path / "corridor.yaml"
+    config.write_text(yaml.safe_dump(document))
+    return config

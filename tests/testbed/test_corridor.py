@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers.testbed_runs import run_testbed
+from helpers.testbed_runs import CORRIDOR, corridor_on_free_ports, run_testbed
 from waiting import eventually
 
 from baton.config import LinkSpec, load_config
@@ -25,7 +25,6 @@ from baton.testbed.local import LocalTestbed, TestbedPlan, free_port
 from baton.testbed.report import build_report
 from baton.v1 import drone_pb2
 
-EXAMPLE = Path(__file__).parents[2] / "examples" / "corridor.yaml"
 MARGIN_M, SPEED_M_S = 50.0, 5.0
 # The predictive policy's lead, in mission seconds. The example's 10 s is 0.95 s
 # of wall time at the test's speed-up 10, while the preparation runs in wall time:
@@ -35,29 +34,6 @@ MARGIN_M, SPEED_M_S = 50.0, 5.0
 LEAD_S = 20.0
 # The waits about a link to the drone: a station's own, and the drone's about it.
 LINK_KEYS = ("standby", "drone", "link 0", "link 1", "link 2", "link 3")
-
-
-def corridor_on_free_ports(
-    tmp_path: Path,
-    policy: str,
-    max_rtt: str | None = None,
-    prepare_timeout: str | None = None,
-    lead: str | None = None,
-) -> Path:
-    document = yaml.safe_load(EXAMPLE.read_text())
-    document["drone"]["address"] = f"127.0.0.1:{free_port()}"
-    for controller in document["controllers"]:
-        controller["address"] = f"127.0.0.1:{free_port()}"
-    document["handover_policy"]["name"] = policy
-    if max_rtt is not None:
-        document["handover_policy"]["max_rtt"] = max_rtt
-    if lead is not None:
-        document["handover_policy"]["lead"] = lead
-    if prepare_timeout is not None:
-        document["prepare_timeout"] = prepare_timeout
-    config = tmp_path / "corridor.yaml"
-    config.write_text(yaml.safe_dump(document))
-    return config
 
 
 def link_lines(workdir: Path, cid: int) -> list[dict]:  # type: ignore[type-arg]
@@ -261,7 +237,7 @@ def gapped_corridor(tmp_path: Path) -> Path:
     and 800 m east only station 1 reaches the vehicle. A station flown into has 60 s
     of the mission (6 s of wall time) for its link to come up: the vehicle flies on
     meanwhile (a loaded CI box may take over 2 s, the default)."""
-    document = yaml.safe_load(EXAMPLE.read_text())
+    document = yaml.safe_load(CORRIDOR.read_text())
     home = document["drone"]["home"]
     document["drone"]["address"] = f"127.0.0.1:{free_port()}"
     controllers = document["controllers"][:3]

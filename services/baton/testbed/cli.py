@@ -111,6 +111,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--config", help="a full testbed YAML (endpoints, ring, initial master, locations, links)"
     )
     parser.add_argument(
+        "--admit",
+        action="store_true",
+        help="take the ring and the initial master from mission admission: the --config "
+        "file's controllers are the stations (location, range_m), the route is the mission's "
+        "(grid, corridor or a plan) from drone.home; the ring is the controllers covering it "
+        "in route order, the first master the nearest to take-off, the others are not "
+        "started; a route with a stretch no controller covers is refused, naming it, before "
+        "anything starts",
+    )
+    parser.add_argument(
         "--speedup",
         type=float,
         help="simulation speed-up, vehicle and clocks (default: the --config file's, else "
@@ -335,6 +345,41 @@ def testbed_config(args: argparse.Namespace) -> tuple[BatonConfig, bool]:
     return merge(config, flags, args.config or ""), bool(args.config)
 
 
+def _admitted(args: argparse.Namespace, config: BatonConfig) -> BatonConfig:
+    """``config`` with the ring and the initial master of mission admission over its
+    controllers (``--admit``), said on stdout; ValueError or ConfigError say why not."""
+    from baton.config import ConfigError
+    from baton.fleet.routes import plan_route, survey_route
+    from baton.missions.plan import load_plan
+    from baton.sdk.types import Position
+    from baton.testbed import admission
+
+    if not args.config:
+        raise ConfigError("--admit needs --config FILE: its controllers' locations and ranges")
+    home = Position(config.drone.home.latitude_deg, config.drone.home.longitude_deg)
+    if args.mission in ("grid", "corridor"):
+        route = survey_route(home, _survey(args).targets())
+    else:
+        _, _, flight_plan = _mission(args.mission, args.mission_arg)
+        if flight_plan is None:
+            raise ValueError(
+                "--admit needs the mission's route before it flies: --mission grid, corridor "
+                "or a QGroundControl plan; a mission program's route is known only as it flies"
+            )
+        route = plan_route(load_plan(str(flight_plan)), home)
+    admitted, decision = admission.admitted_config(config, route, args.config)
+    print(f"baton testbed: {admission.describe(admitted, config, decision)}")
+    return admitted
+
+
+def _survey(args: argparse.Namespace) -> MissionPlan:
+    """The survey flown (grid or corridor) with the flags' parameters."""
+    survey = {MISSION_FIELDS[f]: v for f in MISSION_FIELDS if (v := getattr(args, f)) is not None}
+    return MissionPlan(
+        **survey, kind=args.mission if args.mission in ("grid", "corridor") else "grid"
+    )
+
+
 def _check_numbers(args: argparse.Namespace) -> None:
     """The numeric flags, before anything starts; ValueError says which and why."""
     from baton.config import MAX_SPEEDUP
@@ -381,10 +426,7 @@ def _plan(
     from baton.testbed.local import TestbedPlan
 
     vehicle, sitl_binary = _vehicle(args, config)
-    survey = {MISSION_FIELDS[f]: v for f in MISSION_FIELDS if (v := getattr(args, f)) is not None}
-    mission = MissionPlan(
-        **survey, kind=args.mission if args.mission in ("grid", "corridor") else "grid"
-    )
+    mission = _survey(args)
     if args.mission == "corridor" and mission.spacing_m > mission.length_m:
         raise ValueError(f"--spacing {mission.spacing_m:g} is longer than the corridor (--length)")
     mission_file, mission_args, flight_plan = _mission(args.mission, args.mission_arg)
@@ -417,9 +459,13 @@ def run(args: argparse.Namespace) -> int:
     from baton.testbed import run as running
     from baton.testbed.faults import check_parts
 
+    if args.action == "report" and args.admit:
+        return _fail("--admit is for a local run: 'report' follows the ring the file started")
     try:
         _check_numbers(args)
         config, from_file = testbed_config(args)
+        if args.admit:
+            config = _admitted(args, config)
         handovers = _handovers(args, config)
         plan = _plan(args, config, from_file, handovers)
         check_parts(plan.faults, plan.part_names())

@@ -1,0 +1,269 @@
+"""``baton fleet``: the registry of stations and admitted missions (issue 34, item 2).
+
+    baton fleet stations add NAME --id N --at LAT,LON --range M
+    baton fleet stations add --from-config examples/corridor.yaml
+    baton fleet stations list
+    baton fleet admit --drone D --plan FILE [--home LAT,LON] | --route LAT,LON LAT,LON ...
+    baton fleet missions
+    baton fleet cancel ID
+
+Exit status: 0 done, 1 a mission refused, 2 a request that cannot be done (the
+message names the flag or field and the fix).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from baton.sdk.types import Position
+
+DEFAULT_REGISTRY = Path("baton-fleet.sqlite")
+# A station's fields (admission.station_problem) and the flags that set them.
+STATION_FLAGS = {"id": "--id", "location": "--at", "range_m": "--range"}
+
+
+def _place(text: str) -> tuple[float, float]:
+    """``LAT,LON`` in degrees, as typed (bounds are admission's to check)."""
+    parts = text.split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        return float(parts[0]), float(parts[1])
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected LAT,LON in degrees, e.g. 47.397742,8.545594"
+        ) from None
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Adds ``baton fleet stations add|list``, ``admit``, ``missions`` and ``cancel``."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--registry",
+        type=Path,
+        default=DEFAULT_REGISTRY,
+        metavar="FILE",
+        help=f"the registry's SQLite file, made if absent (default ./{DEFAULT_REGISTRY})",
+    )
+    parser = subparsers.add_parser(
+        "fleet",
+        help="stations and mission admission: which stations cover a route, the ring",
+        description=(
+            "The registry of stations (position, radio range) and admitted missions, in one "
+            "SQLite file. 'admit' decides which stations cover a drone's route: the ring is "
+            "the covering stations in route order, the first master the nearest to take-off; "
+            "a route with a stretch no station covers is refused, naming it. The registry "
+            "starts nothing yet: a station process hosting its missions is issue 34, item 1."
+        ),
+    )
+    actions = parser.add_subparsers(dest="fleet_action", metavar="ACTION", required=True)
+
+    stations = actions.add_parser("stations", help="add or list stations")
+    station_actions = stations.add_subparsers(
+        dest="stations_action", metavar="ACTION", required=True
+    )
+    add = station_actions.add_parser(
+        "add", parents=[common], help="register a station, or a testbed file's controllers"
+    )
+    add.add_argument("name", nargs="?", help="the station's name (unique)")
+    add.add_argument("--id", type=int, help="its controller id in rings (unique, >= 0)")
+    add.add_argument("--at", type=_place, metavar="LAT,LON", help="its antenna, degrees")
+    add.add_argument("--range", type=float, metavar="M", help="its radio range, metres")
+    add.add_argument(
+        "--from-config",
+        type=Path,
+        metavar="FILE",
+        help="register every controller of a testbed file (location, range_m) as "
+        "station controller-ID instead",
+    )
+    add.set_defaults(run=_guarded(_add_stations))
+    station_actions.add_parser("list", parents=[common], help="the stations").set_defaults(
+        run=_guarded(_list_stations)
+    )
+
+    admit = actions.add_parser(
+        "admit", parents=[common], help="admit a drone's mission: its ring and first master"
+    )
+    admit.add_argument("--drone", required=True, help="the drone's name")
+    route = admit.add_mutually_exclusive_group(required=True)
+    route.add_argument(
+        "--plan", type=Path, metavar="FILE", help="a QGroundControl plan (.plan or QGC WPL)"
+    )
+    route.add_argument(
+        "--route",
+        type=_place,
+        nargs="+",
+        metavar="LAT,LON",
+        help="the route: take-off first, then each position flown to",
+    )
+    admit.add_argument(
+        "--home",
+        type=_place,
+        metavar="LAT,LON",
+        help="(--plan) the take-off point (default: the plan's planned home position)",
+    )
+    admit.set_defaults(run=_guarded(_admit))
+
+    actions.add_parser("missions", parents=[common], help="the admitted missions").set_defaults(
+        run=_guarded(_missions)
+    )
+    cancel = actions.add_parser("cancel", parents=[common], help="cancel an admitted mission")
+    cancel.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
+    cancel.set_defaults(run=_guarded(_cancel))
+
+
+def _guarded(action: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``action`` with a registry that cannot be used said as a clear error."""
+
+    def run(args: argparse.Namespace) -> int:
+        from baton.fleet.registry import RegistryError
+
+        try:
+            return action(args)
+        except RegistryError as exc:
+            return _fail(args, str(exc))
+
+    return run
+
+
+def _fail(args: argparse.Namespace, message: str, status: int = 2) -> int:
+    action = (
+        args.fleet_action if args.fleet_action != "stations" else "stations " + args.stations_action
+    )
+    print(f"baton fleet {action}: {message}", file=sys.stderr)
+    return status
+
+
+def _add_stations(args: argparse.Namespace) -> int:
+    from baton.config import ConfigError, load_config
+    from baton.drone.policy import Station
+    from baton.fleet.admission import station_problem
+    from baton.fleet.registry import Registry, RegistryError
+    from baton.fleet.stations import stations_of
+    from baton.sdk.types import Position
+
+    flags = {"NAME": args.name, "--id": args.id, "--at": args.at, "--range": args.range}
+    if args.from_config is not None:
+        given = [flag for flag, value in flags.items() if value is not None]
+        if given:
+            return _fail(args, f"{', '.join(given)}: not with --from-config; give one or the other")
+        try:
+            config = load_config(args.from_config)
+            named = [(f"controller-{s.id}", s) for s in stations_of(config, str(args.from_config))]
+        except ConfigError as exc:
+            return _fail(args, str(exc))
+    else:
+        missing = [flag for flag, value in flags.items() if value is None]
+        if missing:
+            return _fail(
+                args, f"{', '.join(missing)}: missing; e.g. s0 --id 0 --at 47.398,8.546 --range 500"
+            )
+        station = Station(args.id, Position(*args.at), args.range)
+        problem = station_problem(station)
+        if problem is not None:
+            field, why = problem
+            return _fail(args, f"{STATION_FLAGS[field.partition('.')[0]]} {why}")
+        named = [(args.name, station)]
+    with Registry(args.registry) as registry:
+        for name, station in named:
+            try:
+                registry.add_station(name, station)
+            except RegistryError as exc:
+                return _fail(args, f"station {name}: {exc}")
+            print(f"station {name} (id {station.id}) added")
+    return 0
+
+
+def _list_stations(args: argparse.Namespace) -> int:
+    from baton.fleet.registry import Registry
+
+    with Registry(args.registry) as registry:
+        stations = registry.stations()
+    print(f"{'ID':>4}  {'NAME':<16} {'LATITUDE':>11} {'LONGITUDE':>11} {'RANGE_M':>8}")
+    for s in stations:
+        where = s.station.location
+        print(
+            f"{s.station.id:>4}  {s.name:<16} {where.latitude_deg:>11.6f} "
+            f"{where.longitude_deg:>11.6f} {s.station.range_m:>8g}"
+        )
+    return 0
+
+
+def _route(args: argparse.Namespace) -> list[Position]:
+    """The submitted route: --route's points, or the plan's from its take-off point;
+    ValueError names the flag and the fix."""
+    from baton.fleet.routes import plan_route, planned_home
+    from baton.missions.plan import PlanError, load_plan
+    from baton.sdk.types import Position
+
+    if args.route is not None:
+        if args.home is not None:
+            raise ValueError("--home: for --plan; --route's first point is the take-off")
+        return [Position(lat, lon) for lat, lon in args.route]
+    try:
+        plan = load_plan(str(args.plan))
+        home = Position(*args.home) if args.home is not None else planned_home(args.plan)
+    except PlanError as exc:
+        raise ValueError(f"--plan: {exc}") from None
+    if home is None:
+        raise ValueError(
+            f"--plan {args.plan}: the plan has no planned home position; give the take-off "
+            "point with --home LAT,LON"
+        )
+    return plan_route(plan, home)
+
+
+def _admit(args: argparse.Namespace) -> int:
+    from baton.fleet.admission import Refused
+    from baton.fleet.registry import Registry
+
+    try:
+        route = _route(args)
+    except ValueError as exc:
+        return _fail(args, str(exc))
+    with Registry(args.registry) as registry:
+        decision = registry.admit(args.drone, route)
+        names = {s.station.id: s.name for s in registry.stations()}
+    if isinstance(decision, Refused):
+        return _fail(args, f"refused: {decision.message()}", status=1)
+    mission_id, admitted = decision
+    print(
+        f"mission {mission_id} admitted for drone {args.drone}: a {admitted.length_m:.0f} m route"
+    )
+    ring = " -> ".join(
+        f"{names[sid]} (id {sid}, from {admitted.enters_at_m[sid]:.0f} m)" for sid in admitted.ring
+    )
+    print(f"ring: {ring}")
+    first = admitted.first_master
+    print(f"first master: {names[first]} (id {first}), the nearest to take-off")
+    return 0
+
+
+def _missions(args: argparse.Namespace) -> int:
+    from baton.fleet.registry import Registry
+
+    with Registry(args.registry) as registry:
+        missions = registry.missions()
+    print(f"{'ID':>4}  {'DRONE':<12} {'STATE':<10} {'FIRST':>6}  {'ADMITTED (UTC)':<20} RING")
+    for m in missions:
+        admitted_at = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(m.admitted_at))
+        ring = ",".join(map(str, m.ring))
+        print(
+            f"{m.id:>4}  {m.drone:<12} {m.state:<10} {m.first_master:>6}  {admitted_at:<20} {ring}"
+        )
+    return 0
+
+
+def _cancel(args: argparse.Namespace) -> int:
+    from baton.fleet.registry import Registry
+
+    with Registry(args.registry) as registry:
+        mission = registry.cancel(args.mission)
+    print(f"mission {mission.id} of drone {mission.drone} cancelled")
+    return 0
