@@ -955,6 +955,10 @@ class LocalTestbed:
             try:
                 snapshot = await self.snapshot()
             except grpc.aio.AioRpcError as exc:
+                if cancelling():
+                    # grpc.aio ends a call whose task is cancelled (Ctrl-C) with
+                    # CANCELLED, not CancelledError: the cancellation goes on.
+                    raise asyncio.CancelledError from exc
                 # A part that stops answering has usually just died: give the
                 # child watcher a moment, then say which one.
                 await asyncio.sleep(0.5)
@@ -997,3 +1001,9 @@ class LocalTestbed:
 
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()
+
+
+def cancelling() -> bool:
+    """Whether the running task is being cancelled (``Task.cancelling``)."""
+    task = asyncio.current_task()
+    return task is not None and task.cancelling() > 0
