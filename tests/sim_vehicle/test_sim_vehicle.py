@@ -282,7 +282,9 @@ async def test_speed_hold_and_return_to_launch_in_process() -> None:
         await mobility.Arm(api.ArmRequest())
         await mobility.Takeoff(api.TakeoffRequest(altitude_m=5))
         await eventually(lambda: phase("hold"), "holding after takeoff")
-        assert vehicle.state().relative_altitude_m == pytest.approx(5.0)
+        # Within a centimetre: the state may be read between the climb's last step and
+        # the hold's (4.9993 m once, under a loaded full run).
+        assert vehicle.state().relative_altitude_m == pytest.approx(5.0, abs=0.01)
 
         # In the air by MAVSDK's telemetry too (it trails the vehicle): a SetSpeed on
         # the ground is only kept for the next Goto (mobility.py SetSpeed).
