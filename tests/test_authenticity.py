@@ -20,6 +20,7 @@ from baton.authenticity import (
     refusal,
     signed_reply,
     signed_retained,
+    unbacked_claim,
     unsigned_reply,
 )
 from baton.certs.make import init, issue
@@ -32,6 +33,7 @@ from baton.v1 import drone_pb2, ring_pb2
 GET = "/baton.v1.Mobility/GetPosition"
 NOW = "/baton.v1.Clock/Now"
 REQUEST = b"\x08\x01"
+NOW_DIGEST = request_digest(NOW, b"")
 
 
 @pytest.fixture(scope="module")
@@ -167,7 +169,20 @@ def replica(ring_keys: Keys | None) -> ControllerCore:
     return core
 
 
-def sealed(signer: Signer, message: ring_pb2.LogMessage) -> ring_pb2.LogMessage:
+def grant(
+    signer: Signer, master: int, epoch: int, kind: int = drone_pb2.GRANT_KIND_FIRST
+) -> drone_pb2.Grant:
+    """The drone's grant of ``epoch`` to ``master``, signed."""
+    made = drone_pb2.Grant(master=master, epoch=epoch, kind=kind)  # type: ignore[arg-type]
+    signer.seal_grant(made)
+    return made
+
+
+def sealed(certs: Path, signer: Signer, message: ring_pb2.LogMessage) -> ring_pb2.LogMessage:
+    """``message`` sealed by its creator, with the drone's first grant of epoch 1 to its
+    sender when it claims that mastership and carries no grant."""
+    if message.epoch == 1 and not message.HasField("grant"):
+        message.grant.CopyFrom(grant(pair(certs)[0], message.sender, 1))
     signer.seal(message)
     return message
 
@@ -184,7 +199,7 @@ def test_a_message_with_a_reply_the_drone_did_not_sign_is_refused_whole(certs: P
     )
     core = replica(keys(certs))
     # Sealed by its creator, who cannot make the drone's word: refused all the same.
-    effects = core.log_arrived(sealed(master, message), lambda: True, relayed_by=2)
+    effects = core.log_arrived(sealed(certs, master, message), lambda: True, relayed_by=2)
     # Nothing kept, handled or forwarded: only the refusal, named.
     assert [type(e) for e in effects] == [Note]
     note = effects[0]
@@ -200,7 +215,7 @@ def test_a_message_with_a_reply_the_drone_did_not_sign_is_refused_whole(certs: P
     assert core.fresh_self().keys is core.keys  # a rejoin keeps checking
     # The same message as the drone signed it is taken, kept and forwarded.
     message.entries[1].CopyFrom(signed_entry(signer, reqnr=2))
-    taken = core.log_arrived(sealed(master, message), lambda: True, relayed_by=2)
+    taken = core.log_arrived(sealed(certs, master, message), lambda: True, relayed_by=2)
     assert any(isinstance(e, Keep) for e in taken)
     assert any(isinstance(e, SendLog) and e.dest == 2 for e in taken)
     assert core.protocol.lognr == 1 and core.refused_messages == 1
@@ -211,15 +226,21 @@ def test_a_relay_can_pass_a_message_on_but_not_make_or_change_one(certs: Path) -
     master, relay = station(certs, 0), station(certs, 1)
     clock = ring_pb2.LogEntry(reqnr=1, method=NOW, reply=b"t", request_digest=b"d")
     genuine = sealed(
+        certs,
         master,
         ring_pb2.LogMessage(lognr=4, origin=0, sender=0, epoch=1, entries=[clock], after_reqnr=0),
     )
-    assert refusal(ring_keys, genuine) is None
-    # What it may change on the way: a handover message's origin and flag.
+    assert refusal(ring_keys, genuine, 1) is None
+    # What it may change on the way: the origin (not the flag: that makes its
+    # receiver master, and needs the drone's handover grant naming it).
     moved = ring_pb2.LogMessage()
     moved.CopyFrom(genuine)
-    moved.origin, moved.handover = 2, True
-    assert refusal(ring_keys, moved) is None
+    moved.origin = 2
+    assert refusal(ring_keys, moved, 2) is None
+    moved.handover = True
+    assert "a handover message to controller 2 with the drone's GRANT_KIND_FIRST" in (
+        refusal(ring_keys, moved, 2) or ""
+    )
     changes: dict[str, object] = {
         "lognr": 9999,
         "epoch": 6,
@@ -232,34 +253,112 @@ def test_a_relay_can_pass_a_message_on_but_not_make_or_change_one(certs: Path) -
         altered = ring_pb2.LogMessage()
         altered.CopyFrom(genuine)
         setattr(altered, field, value)
-        assert refusal(ring_keys, altered) is not None, field
+        assert refusal(ring_keys, altered, 1) is not None, field
     for field, value in {"reply": b"later", "status_code": 2, "given_up": True}.items():
         altered = ring_pb2.LogMessage()
         altered.CopyFrom(genuine)
         setattr(altered.entries[0], field, value)
-        assert refusal(ring_keys, altered) is not None, field
+        assert refusal(ring_keys, altered, 1) is not None, field
     dropped = ring_pb2.LogMessage()
     dropped.CopyFrom(genuine)
     del dropped.entries[:]
-    assert "no valid signature of its creator, controller 0" in (refusal(ring_keys, dropped) or "")
+    assert "no valid signature of its creator, controller 0" in (
+        refusal(ring_keys, dropped, 1) or ""
+    )
     # In another's name, signed with its own key; and from outside the ring.
     forged = ring_pb2.LogMessage()
     forged.CopyFrom(genuine)
     relay.seal(forged)
-    assert "controller 0" in (refusal(ring_keys, forged) or "")
+    assert "controller 0" in (refusal(ring_keys, forged, 1) or "")
     stranger = ring_pb2.LogMessage(lognr=1, sender=7)
-    assert "controller 7, is not one of the ring" in (refusal(ring_keys, stranger) or "")
+    assert "controller 7, is not one of the ring" in (refusal(ring_keys, stranger, 1) or "")
 
 
 def test_the_protocol_seals_the_messages_it_creates(certs: Path) -> None:
     ring_keys = keys(certs)
+    drone = pair(certs)[0]
     master = ControllerCore(started(0, [0, 1, 2], 0))
     master.protocol.seal = station(certs, 0).seal
+    master.granted(1, grant=grant(drone, 0, 1))
     assert master.fresh_self().protocol.seal == master.protocol.seal
-    master.protocol.on_reply(ring_pb2.LogEntry(reqnr=1, method=NOW, reply=b"t"))
-    handover = master.handover_notice(2, 1, 2)
+    # With a flush limit of 0 every reply is flushed at once.
+    now_call = ring_pb2.LogEntry(reqnr=1, method=NOW, reply=b"t", request_digest=NOW_DIGEST)
+    replied = master.protocol.on_reply(now_call)
+    flushed = [e.message for e in replied if isinstance(e, SendLog)]
+    assert flushed and all(refusal(ring_keys, m, 1) is None for m in flushed)
+    assert all(m.grant.master == 0 and m.grant.epoch == 1 for m in flushed)
+    handed = grant(drone, 2, 2, drone_pb2.GRANT_KIND_HANDOVER)
+    handover = master.handover_notice(2, 1, 2, handed)
     sent = [e.message for e in handover if isinstance(e, SendLog)]
-    assert sent and all(refusal(ring_keys, m) is None for m in sent)
+    assert sent and all(refusal(ring_keys, m, 2) is None for m in sent)
+    # The new master carries the grant the handover message brought in what it flushes.
+    target = ControllerCore(started(2, [0, 1, 2], 0))
+    target.protocol.seal = station(certs, 2).seal
+    target.keys = ring_keys
+    for message in (*flushed, sent[-1]):
+        target.log_arrived(message, lambda: True, relayed_by=1)
+    assert target.refused_messages == 0, target.last_refused
+    target.protocol.replay(NOW, b"")  # its program replays request 1, then it takes the role
+    assert target.protocol.master and target.protocol.epoch == 2
+    replied = target.protocol.on_reply(ring_pb2.LogEntry(reqnr=2, method=NOW, reply=b"t"))
+    theirs = [e.message for e in replied if isinstance(e, SendLog)]
+    assert theirs and all(refusal(ring_keys, m, 0) is None for m in theirs)
+
+
+def test_a_mastership_is_believed_only_where_the_drones_grant_backs_it(certs: Path) -> None:
+    """Controller 1, a stolen station, signs messages in its own name claiming masterships
+    the drone never gave it: each refused, naming why; the genuine ones taken."""
+    drone, liar = pair(certs)[0], station(certs, 1)
+    verifier = pair(certs)[1]
+
+    def claim(epoch: int, backing: drone_pb2.Grant | None, **fields: object) -> str | None:
+        message = ring_pb2.LogMessage(lognr=9, origin=1, sender=1, epoch=epoch)
+        for name, value in fields.items():
+            setattr(message, name, value)
+        if backing is not None:
+            message.grant.CopyFrom(backing)
+        liar.seal(message)
+        return unbacked_claim(verifier, message, receiver=2)
+
+    handover = drone_pb2.GRANT_KIND_HANDOVER
+    assert claim(6, None) == "it claims a mastership (epoch 6) without the drone's grant"
+    # A grant made up, or the drone's to another controller, or of another epoch.
+    forged = drone_pb2.Grant(master=1, epoch=6, kind=handover)
+    liar.seal_grant(forged)
+    assert "grant of epoch 6 to controller 1 is not the drone's" in (claim(6, forged) or "")
+    assert "the drone granted it to controller 0" in (claim(6, grant(drone, 0, 6, handover)) or "")
+    # An old grant of its own played again: it backs its epoch, never a newer one.
+    old = grant(drone, 1, 2, handover)
+    assert claim(2, old) is None
+    assert "epoch 7 with the drone's grant of epoch 2" in (claim(7, old) or "")
+    # The handover flag makes its receiver master: a handover grant naming it, only.
+    to_two = grant(drone, 2, 3, handover)
+    assert claim(3, to_two, origin=2, handover=True) is None
+    assert "sent to 2" in (claim(3, grant(drone, 0, 3, handover), origin=0, handover=True) or "")
+    assert "GRANT_KIND_TAKEOVER grant" in (
+        claim(3, grant(drone, 2, 3, drone_pb2.GRANT_KIND_TAKEOVER), origin=2, handover=True) or ""
+    )
+    assert "without the drone's grant" in (claim(0, None, origin=2, handover=True) or "")
+    # Forwarded without its flag, a handover message is backed by its origin's grant.
+    assert claim(3, to_two, origin=2) is None
+    # Epoch 0 without the flag claims no mastership.
+    assert claim(0, None) is None
+
+
+def test_a_forged_claim_is_refused_by_the_core_and_leaves_the_log_untouched(
+    certs: Path,
+) -> None:
+    """The receiver's core refuses it like any forged frame, before the protocol sees
+    it: counted, named, nothing kept, handled or forwarded."""
+    core = replica(keys(certs))
+    liar = station(certs, 1)
+    claim = ring_pb2.LogMessage(lognr=1, origin=2, sender=1, epoch=6, handover=True)
+    liar.seal(claim)
+    effects = core.log_arrived(claim, lambda: True, relayed_by=0)
+    assert [type(e) for e in effects] == [Note]
+    assert core.refused_messages == 1 and core.protocol.lognr == 0
+    assert not core.protocol.master and core.protocol.epoch == 0
+    assert "without the drone's grant" in core.last_refused
 
 
 def test_without_keys_a_stations_word_is_taken() -> None:

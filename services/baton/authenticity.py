@@ -20,6 +20,14 @@ or a give-up is the controller's word (a failure the drone booked reaches
 the master as a gRPC status, which carries no signature); those stay the
 word of the station that logged them (issue 33, item 2).
 
+A mastership a log message claims (its epoch, or the handover flag, which
+makes its receiver master) is believed only where the drone's grant backs it
+(``unbacked_claim``): the drone signs each grant it makes (``grant_statement``:
+the controller, the epoch, how), the master carries it in every message of its
+mastership and the old master in its handover message, and every receiver
+checks it with the message. The grant travels with the claim, so a receiver
+never waits for one: a message is believed or refused on what it carries.
+
 Pure: no files, sockets or clocks (the time to check a certificate against is
 an argument); the drone service signs, ``ControllerCore.log_arrived`` checks.
 """
@@ -30,7 +38,7 @@ import datetime
 import hashlib
 import struct
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 from cryptography import x509
@@ -47,6 +55,7 @@ from baton.v1 import drone_pb2, ring_pb2
 # over anything else the drone's key may sign later.
 REPLY_TAG = b"baton.v1 drone reply\0"
 MESSAGE_TAG = b"baton.v1 log message\0"
+GRANT_TAG = b"baton.v1 mastership grant\0"
 _CLOCK = service_prefix("Clock")
 
 SigningKey = ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey
@@ -73,6 +82,11 @@ def reply_statement(
             reply_sha256 or hashlib.sha256(reply).digest(),
         )
     )
+
+
+def grant_statement(master: int, epoch: int, kind: int) -> bytes:
+    """The canonical bytes the drone signs for its grant of ``epoch`` to ``master``."""
+    return GRANT_TAG + struct.pack(">iQI", master, epoch, kind)
 
 
 def _sign(key: SigningKey, data: bytes) -> bytes:
@@ -161,6 +175,10 @@ class Signer:
         """The drone's signature of its reply to request ``reqnr``."""
         return _sign(self.key, reply_statement(reqnr, epoch, method, digest, reply))
 
+    def seal_grant(self, grant: drone_pb2.Grant) -> None:
+        """Signs the drone's grant (``Grant.signature``)."""
+        grant.signature = _sign(self.key, grant_statement(grant.master, grant.epoch, grant.kind))
+
     def seal(self, message: ring_pb2.LogMessage) -> None:
         """Signs a log message this controller created (``LogMessage.signature``)."""
         message.signature = _sign(self.key, message_statement(message))
@@ -180,6 +198,9 @@ class Verifier:
     """One part's public key, from its certificate checked against the mission's CA."""
 
     key: VerifyingKey
+    # The grants whose signature held (serialized): a mastership's grant comes with
+    # every message of it, and is checked once.
+    _grants: set[bytes] = field(default_factory=set, compare=False, repr=False)
 
     @classmethod
     def from_pem(
@@ -227,6 +248,17 @@ class Verifier:
         )
         return _verify(self.key, entry.drone_signature, statement)
 
+    def verify_grant(self, grant: drone_pb2.Grant) -> bool:
+        """Whether ``grant`` carries the drone's signature (``Signer.seal_grant``)."""
+        whole = grant.SerializeToString(deterministic=True)
+        if whole in self._grants:
+            return True
+        statement = grant_statement(grant.master, grant.epoch, grant.kind)
+        if not _verify(self.key, grant.signature, statement):
+            return False
+        self._grants.add(whole)
+        return True
+
     def verify_message(
         self, message: ring_pb2.LogMessage, hashes: list[bytes] | None = None
     ) -> bool:
@@ -243,21 +275,63 @@ class Keys:
     controllers: Mapping[int, Verifier]
 
 
-def refusal(keys: Keys, message: ring_pb2.LogMessage) -> str | None:
-    """Why ``message`` is not what its creator and the drone said, or None if it is.
+def refusal(keys: Keys, message: ring_pb2.LogMessage, receiver: int) -> str | None:
+    """Why ``message``, received by controller ``receiver``, is not what its creator and
+    the drone said, or None if it is.
 
     Its creator's signature first (``LogMessage.sender``, a controller of the ring):
     a relay can pass a message on but not make one in another's name or change it;
-    then the drone's on every reply it made: its creator cannot invent one."""
+    then the drone's grant of the mastership it claims (``unbacked_claim``): its
+    creator cannot make itself or another master; then the drone's signature on every
+    reply it made: its creator cannot invent one."""
     creator = keys.controllers.get(message.sender)
     if creator is None:
         return f"its creator, controller {message.sender}, is not one of the ring"
     hashes = reply_hashes(message)
     if not creator.verify_message(message, hashes):
         return f"it has no valid signature of its creator, controller {message.sender}"
+    unbacked = unbacked_claim(keys.drone, message, receiver)
+    if unbacked is not None:
+        return unbacked
     entry = unsigned_reply(keys.drone, message.entries, hashes)
     if entry is not None:
         return f"request {entry.reqnr} ({entry.method}) has no valid drone signature"
+    return None
+
+
+def unbacked_claim(drone: Verifier, message: ring_pb2.LogMessage, receiver: int) -> str | None:
+    """Why the mastership ``message`` claims is not the drone's word, or None if it is.
+
+    A message of epoch E > 0 says its sender was master in E, or, for a handover
+    message (also once forwarded without its flag), that its origin is: it must carry
+    the drone's grant of E naming one of them. The handover flag makes its receiver
+    master, so a flagged message needs a handover grant naming its origin, and only
+    the origin is its receiver (a relay forwards it without the flag). A grant of
+    another epoch backs nothing here: an old grant played again cannot raise an
+    epoch. A message of epoch 0 without the flag claims no mastership."""
+    if message.epoch == 0 and not message.handover:
+        return None
+    claimed = f"epoch {message.epoch}"
+    if not message.HasField("grant"):
+        return f"it claims a mastership ({claimed}) without the drone's grant"
+    grant = message.grant
+    if not drone.verify_grant(grant):
+        return f"its grant of epoch {grant.epoch} to controller {grant.master} is not the drone's"
+    if grant.epoch != message.epoch:
+        return f"it claims {claimed} with the drone's grant of epoch {grant.epoch}"
+    if message.handover:
+        if grant.kind != drone_pb2.GRANT_KIND_HANDOVER or grant.master != message.origin:
+            return (
+                f"a handover message to controller {message.origin} with the drone's "
+                f"{drone_pb2.GrantKind.Name(grant.kind)} grant to controller {grant.master}"
+            )
+        if message.origin != receiver:
+            return f"a handover message to controller {message.origin} sent to {receiver}"
+    elif grant.master not in (message.sender, message.origin):
+        return (
+            f"it claims {claimed} for controller {message.sender}; the drone granted it "
+            f"to controller {grant.master}"
+        )
     return None
 
 

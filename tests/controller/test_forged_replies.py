@@ -1,20 +1,19 @@
 """Issue 33 across real processes under mutual TLS: a station holding a valid certificate
-cannot invent or alter what the drone answered (baton.authenticity). Its forged log
-messages are refused and named by the receiver, and the mission completes exactly once
-(counted where the effects happen) with every replica's program seeing the same replies."""
+cannot invent or alter what the drone answered, nor claim a mastership the drone did not
+grant (baton.authenticity). Its forged log messages are refused and named by the
+receiver, and the mission completes exactly once (counted where the effects happen) with
+every replica's program seeing the same replies."""
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
 from pathlib import Path
 
+from helpers.forgery import copy, send, signed_message
 from helpers.missions import assert_mission_promises, three_on_fast_links
 from waiting import eventually
 
-from baton.authenticity import Signer, needs_drone_signature
-from baton.controller.history import read_log
-from baton.controller.ring import frames
+from baton.authenticity import Signer
 from baton.digest import request_digest
 from baton.rpc.channels import aio_channel
 from baton.rpc.methods import path
@@ -26,45 +25,7 @@ from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 GET_POSITION = path("Mobility.GetPosition")
 
 
-def signed_message(log: Path) -> ring_pb2.LogMessage | None:
-    """The newest message of a controller's log file with a reply the drone signed."""
-    for message in reversed(read_log(log)):
-        if any(needs_drone_signature(e) and e.drone_signature for e in message.entries):
-            return message
-    return None
-
-
-async def send(
-    address: str,
-    station: Tls,
-    receiver: int,
-    message: ring_pb2.LogMessage,
-    renumber: bool,
-    seal: Callable[[ring_pb2.LogMessage], None] | None = None,
-) -> None:
-    """Sends ``message`` on a LogRing stream from ``station``'s certificate (numbered
-    after what the receiver's hello says it holds if ``renumber``, then ``seal``ed) and
-    waits for its acknowledgement: a refused message is acknowledged too (dropped, not
-    asked again)."""
-    async with aio_channel(address, station, Identity.controller(receiver)) as channel:
-        call = ring_pb2_grpc.ControllerRingStub(channel).LogRing()
-        hello = await call.read()
-        assert isinstance(hello, ring_pb2.LogAck) and hello.hello
-        if renumber:
-            message.lognr = hello.lognr + 1
-        if seal is not None:
-            seal(message)
-        for frame in frames(message, station.identity.number or 0):
-            await call.write(frame)
-        while True:
-            ack = await call.read()
-            assert isinstance(ack, ring_pb2.LogAck), ack
-            if ack.lognr == message.lognr:
-                break
-        await call.done_writing()
-
-
-async def test_forged_and_altered_replies_on_the_ring_are_refused_and_the_mission_flies_once(
+async def test_forged_replies_and_masterships_on_the_ring_are_refused_and_the_mission_flies_once(
     tmp_path: Path,
 ) -> None:
     plan = three_on_fast_links()
@@ -80,20 +41,14 @@ async def test_forged_and_altered_replies_on_the_ring_are_refused_and_the_missio
         station = Tls.load(config.tls.certs, Identity.controller(1))  # stolen from a mast
         stolen_key = Signer.from_pem(station.key)
 
-        def copy(message: ring_pb2.LogMessage) -> ring_pb2.LogMessage:
-            copied = ring_pb2.LogMessage()
-            copied.CopyFrom(message)
-            return copied
-
-        # Invented replies in its own name, signed with its own key: GetPosition
-        # answered with a place the drone never was.
+        # Invented replies in its own name, signed with its own key, claiming no
+        # mastership: GetPosition answered with a place the drone never was.
         made_up = api.Position(latitude_deg=1.0, longitude_deg=2.0).SerializeToString()
         digest = request_digest(GET_POSITION, b"")
         last = max(e.reqnr for e in genuine.entries)
         invented = ring_pb2.LogMessage(
             origin=1,
             sender=1,
-            epoch=genuine.epoch,
             after_reqnr=last,
             entries=[
                 ring_pb2.LogEntry(
@@ -109,17 +64,49 @@ async def test_forged_and_altered_replies_on_the_ring_are_refused_and_the_missio
         # mastership in its name (log number 9999, a handover, 5 epochs on).
         newer = copy(genuine)
         newer.lognr, newer.handover, newer.epoch, newer.origin = 9999, True, genuine.epoch + 5, 2
+        # Masterships claimed in its own name, signed with its own key: master 5 epochs
+        # on; a handover making the victim master then; the same with the master's
+        # genuine grant of an older epoch played again; and the master's grant of this
+        # epoch for a mastership of its own.
+        ahead = genuine.epoch + 5
+
+        def claim(
+            origin: int, epoch: int, handover: bool = False, granted: bool = False
+        ) -> ring_pb2.LogMessage:
+            made = ring_pb2.LogMessage(
+                origin=origin, sender=1, epoch=epoch, handover=handover, after_reqnr=last
+            )
+            if granted:  # the master's grant, as every message of its mastership carries
+                made.grant.CopyFrom(genuine.grant)
+            return made
+
+        claims = [
+            claim(1, ahead),
+            claim(victim, ahead, handover=True),
+            claim(1, ahead, granted=True),
+            claim(1, genuine.epoch, granted=True),
+        ]
+        no_grant = f"it claims a mastership (epoch {ahead}) without the drone's grant"
         address = config.controller(victim).address
         cases = [
             (invented, True, f"request {last + 1} (/baton.v1.Mobility/GetPosition) has no valid"),
             (altered, True, "no valid signature of its creator, controller 0"),
             (copy(genuine), True, "no valid signature of its creator, controller 0"),
             (newer, False, "no valid signature of its creator, controller 0"),
+            (claims[0], True, no_grant),
+            (claims[1], True, no_grant),
+            (
+                claims[2],
+                True,
+                f"claims epoch {ahead} with the drone's grant of epoch {genuine.epoch}",
+            ),
+            (claims[3], True, "for controller 1; the drone granted it to controller 0"),
         ]
+        sealed = [invented, *claims]
         async with aio_channel(address, station, Identity.controller(victim)) as channel:
             ring = ring_pb2_grpc.ControllerRingStub(channel)
             for count, (message, renumber, why) in enumerate(cases, 1):
-                seal = stolen_key.seal if message is invented else None
+                seal = stolen_key.seal if any(message is m for m in sealed) else None
                 await send(address, station, victim, message, renumber, seal)
                 status = await ring.GetStatus(ring_pb2.GetControllerStatusRequest())
                 assert status.refused_messages == count, status
@@ -141,4 +128,4 @@ async def test_forged_and_altered_replies_on_the_ring_are_refused_and_the_missio
     assert snapshot.drone.master == victim
     # Every genuine message, handovers included, passed every controller's check.
     refused = {cid: c.refused_messages for cid, c in snapshot.controllers.items()}
-    assert refused == {0: 0, 1: 0, victim: 4}, refused
+    assert refused == {0: 0, 1: 0, victim: len(cases)}, refused

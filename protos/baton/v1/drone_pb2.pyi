@@ -26,6 +26,32 @@ else:
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
+class _GrantKind:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _GrantKindEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_GrantKind.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    GRANT_KIND_UNSPECIFIED: _GrantKind.ValueType  # 0
+    GRANT_KIND_FIRST: _GrantKind.ValueType  # 1
+    """The mission's initial master (epoch 1)."""
+    GRANT_KIND_HANDOVER: _GrantKind.ValueType  # 2
+    """A handover: the old master sends it its log in a handover message."""
+    GRANT_KIND_TAKEOVER: _GrantKind.ValueType  # 3
+    """A takeover of a lost master."""
+
+class GrantKind(_GrantKind, metaclass=_GrantKindEnumTypeWrapper):
+    """How the drone made a controller master."""
+
+GRANT_KIND_UNSPECIFIED: GrantKind.ValueType  # 0
+GRANT_KIND_FIRST: GrantKind.ValueType  # 1
+"""The mission's initial master (epoch 1)."""
+GRANT_KIND_HANDOVER: GrantKind.ValueType  # 2
+"""A handover: the old master sends it its log in a handover message."""
+GRANT_KIND_TAKEOVER: GrantKind.ValueType  # 3
+"""A takeover of a lost master."""
+Global___GrantKind: _TypeAlias = GrantKind  # noqa: Y015
+
 class _HandoverTrigger:
     ValueType = _typing.NewType("ValueType", _builtins.int)
     V: _TypeAlias = ValueType  # noqa: Y015
@@ -868,6 +894,7 @@ class Connected(_message.Message):
     TAKEOVER_FIELD_NUMBER: _builtins.int
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
     TAKEOVER_EPOCH_FIELD_NUMBER: _builtins.int
+    GRANT_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The master as the drone sees it (the caller)."""
     last_reqnr: _builtins.int
@@ -906,6 +933,13 @@ class Connected(_message.Message):
     and came back by a handover message or a grant), and rejoins with
     nothing instead of taking the grant (ControllerProtocol.log_given_up).
     """
+    @_builtins.property
+    def grant(self) -> Global___Grant:
+        """The drone's signed word that this controller is master in this epoch
+        (docs/design.md, "Mastership backed by the drone's grant"): the master
+        carries it in every log message of its mastership.
+        """
+
     def __init__(
         self,
         *,
@@ -916,14 +950,54 @@ class Connected(_message.Message):
         takeover: _builtins.bool = ...,
         watermark_reqnr: _builtins.int = ...,
         takeover_epoch: _builtins.int = ...,
+        grant: Global___Grant | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["grant", b"grant"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "last_reqnr", b"last_reqnr", "master", b"master", "retained_through", b"retained_through", "takeover", b"takeover", "takeover_epoch", b"takeover_epoch", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "grant", b"grant", "last_reqnr", b"last_reqnr", "master", b"master", "retained_through", b"retained_through", "takeover", b"takeover", "takeover_epoch", b"takeover_epoch", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___Connected: _TypeAlias = Connected  # noqa: Y015
+
+@_typing.final
+class Grant(_message.Message):
+    """The drone's word that a controller is master in an epoch, signed with the
+    drone's key (baton.authenticity.grant_statement; no signature on an
+    insecure drone). A log message that claims a mastership carries it, and
+    every controller believes the claim only if the grant names that
+    controller and that epoch and the drone's signature holds.
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    MASTER_FIELD_NUMBER: _builtins.int
+    EPOCH_FIELD_NUMBER: _builtins.int
+    KIND_FIELD_NUMBER: _builtins.int
+    SIGNATURE_FIELD_NUMBER: _builtins.int
+    master: _builtins.int
+    """The controller made master."""
+    epoch: _builtins.int
+    """The epoch of its mastership."""
+    kind: Global___GrantKind.ValueType
+    """How it became master."""
+    signature: _builtins.bytes
+    """The drone's signature over master, epoch and kind."""
+    def __init__(
+        self,
+        *,
+        master: _builtins.int = ...,
+        epoch: _builtins.int = ...,
+        kind: Global___GrantKind.ValueType = ...,
+        signature: _builtins.bytes = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "kind", b"kind", "master", b"master", "signature", b"signature"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___Grant: _TypeAlias = Grant  # noqa: Y015
 
 @_typing.final
 class RetainedBatch(_message.Message):
@@ -961,6 +1035,7 @@ class HandoverNotice(_message.Message):
     ENDED_EPOCH_FIELD_NUMBER: _builtins.int
     EPOCH_FIELD_NUMBER: _builtins.int
     TAKEOVER_FIELD_NUMBER: _builtins.int
+    GRANT_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """The controller that was master."""
     new_master: _builtins.int
@@ -977,6 +1052,12 @@ class HandoverNotice(_message.Message):
     replies from the drone. The old master drops what it has beyond the
     ring and rejoins as a replica.
     """
+    @_builtins.property
+    def grant(self) -> Global___Grant:
+        """The drone's grant of the new master's epoch: the old master carries it in
+        its handover message, which makes the new master master.
+        """
+
     def __init__(
         self,
         *,
@@ -986,10 +1067,11 @@ class HandoverNotice(_message.Message):
         ended_epoch: _builtins.int = ...,
         epoch: _builtins.int = ...,
         takeover: _builtins.bool = ...,
+        grant: Global___Grant | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["grant", b"grant"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "ended_epoch", b"ended_epoch", "epoch", b"epoch", "new_master", b"new_master", "old_master", b"old_master", "takeover", b"takeover"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "ended_epoch", b"ended_epoch", "epoch", b"epoch", "grant", b"grant", "new_master", b"new_master", "old_master", b"old_master", "takeover", b"takeover"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -12,6 +12,7 @@ holds so that nothing acknowledged is sent twice and nothing is lost.
 """
 
 from baton.v1 import drone_api_pb2 as _drone_api_pb2
+from baton.v1 import drone_pb2 as _drone_pb2
 from baton.v1 import waits_pb2 as _waits_pb2
 from collections import abc as _abc
 from google.protobuf import descriptor as _descriptor
@@ -318,6 +319,7 @@ class LogMessage(_message.Message):
     AFTER_REQNR_FIELD_NUMBER: _builtins.int
     AFTER_EPOCH_FIELD_NUMBER: _builtins.int
     SIGNATURE_FIELD_NUMBER: _builtins.int
+    GRANT_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The log number, from 1."""
     origin: _builtins.int
@@ -360,6 +362,15 @@ class LogMessage(_message.Message):
     def entries(self) -> _containers.RepeatedCompositeFieldContainer[Global___LogEntry]:
         """The entries, by increasing reqnr; may be empty."""
 
+    @_builtins.property
+    def grant(self) -> _drone_pb2.Grant:
+        """The drone's grant of the mastership the message claims (epoch above 0,
+        or the handover flag): of its epoch, naming its sender (the master that
+        logged it) or its origin (a handover message's new master). A receiver
+        refuses a claim the grant does not back (baton.authenticity.unbacked_claim);
+        absent on an insecure ring.
+        """
+
     def __init__(
         self,
         *,
@@ -373,10 +384,11 @@ class LogMessage(_message.Message):
         after_reqnr: _builtins.int | None = ...,
         after_epoch: _builtins.int = ...,
         signature: _builtins.bytes = ...,
+        grant: _drone_pb2.Grant | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_reqnr", b"after_reqnr"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_reqnr", b"after_reqnr", "grant", b"grant"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_epoch", b"after_epoch", "after_reqnr", b"after_reqnr", "created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender", "signature", b"signature"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr", "after_epoch", b"after_epoch", "after_reqnr", b"after_reqnr", "created_at", b"created_at", "entries", b"entries", "epoch", b"epoch", "grant", b"grant", "handover", b"handover", "lognr", b"lognr", "origin", b"origin", "sender", b"sender", "signature", b"signature"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__after_reqnr: _TypeAlias = _typing.Literal["after_reqnr"]  # noqa: Y015
     _WhichOneofArgType__after_reqnr: _TypeAlias = _typing.Literal["_after_reqnr", b"_after_reqnr"]  # noqa: Y015

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -135,6 +135,25 @@ class DroneRefusal:
     taken_over: bool = False
     # The epoch the drone's newest takeover granted (``baton-takeover-epoch``; 0: none).
     takeover_epoch: int = 0
+    # The drone's grant of ``epoch`` to ``master`` (``baton-grant``; None: not said).
+    grant: drone_pb2.Grant | None = None
+
+    @classmethod
+    def from_metadata(cls, metadata: Mapping[str, str | bytes]) -> DroneRefusal | None:
+        """The refusal a FAILED_PRECONDITION's trailing metadata states (None: it names
+        no master): the runtime's and the simulation's drone say it alike."""
+        master = metadata.get("baton-master")
+        if master is None:
+            return None
+        grant_hex = str(metadata.get("baton-grant", ""))
+        return cls(
+            int(str(master)),
+            int(str(metadata.get("baton-epoch", "0"))),
+            int(str(metadata.get("baton-after-reqnr", "0"))),
+            str(metadata.get("baton-takeover", "")) == "1",
+            int(str(metadata.get("baton-takeover-epoch", "0"))),
+            drone_pb2.Grant.FromString(bytes.fromhex(grant_hex)) if grant_hex else None,
+        )
 
     @property
     def fencing_epoch(self) -> int:
@@ -500,10 +519,12 @@ class ControllerCore:
         takeover: bool = False,
         watermark_reqnr: int = 0,
         takeover_epoch: int = 0,
+        grant: drone_pb2.Grant | None = None,
     ) -> list[CoreEffect]:
-        """The drone's Connected event: master in ``epoch``. The retained replies above
-        what we hold follow, up to ``retained_through`` (``retained_batch``); a takeover's
-        grant must hold every request up to the watermark before it goes ACTIVE.
+        """The drone's Connected event: master in ``epoch`` (``grant``: its word, signed).
+        The retained replies above what we hold follow, up to ``retained_through``
+        (``retained_batch``); a takeover's grant must hold every request up to the
+        watermark before it goes ACTIVE.
         Raises ProtocolError as ``ControllerProtocol.on_granted`` does."""
         p = self.protocol
         if p.log_given_up(takeover_epoch):
@@ -522,7 +543,7 @@ class ControllerCore:
         takeover = takeover or epoch == self.takeover_epoch
         self.first_new_call_due = takeover
         watermark = max(self.takeover_watermark, watermark_reqnr)
-        effects: list[CoreEffect] = list(p.on_granted(epoch, takeover, watermark))
+        effects: list[CoreEffect] = list(p.on_granted(epoch, takeover, watermark, grant))
         if not was_active:
             fields = {"epoch": epoch, "takeover": takeover, "caught_up": p.caught_up}
             effects.insert(0, Note("info", "the drone says this controller is master", fields))
@@ -627,7 +648,9 @@ class ControllerCore:
             return [note, Reconnect()]
         # Made master by a handover message, but the drone moved on meanwhile: the
         # log goes to the master it names.
-        return self.handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+        return self.handover_notice(
+            refusal.master, refusal.after_reqnr, refusal.epoch, refusal.grant
+        )
 
     def request_refused(
         self, sent_epoch: int, refusal: DroneRefusal, reqnr: int, method: str, detail: str
@@ -647,7 +670,9 @@ class ControllerCore:
         if verdict is Refusal.HANDED_OVER:
             if refusal.taken_over or p.log_given_up(refusal.takeover_epoch):
                 return self.fenced(refusal.master, refusal.fencing_epoch)
-            return self.handover_notice(refusal.master, refusal.after_reqnr, refusal.epoch)
+            return self.handover_notice(
+                refusal.master, refusal.after_reqnr, refusal.epoch, refusal.grant
+            )
         if verdict is Refusal.REGRANTED:
             fields = {"sent_epoch": sent_epoch, "drone_epoch": refusal.epoch}
             return [
@@ -658,25 +683,37 @@ class ControllerCore:
         return [Note("info", "stale request refused by the drone", fields)]
 
     def stream_notice(
-        self, new_master: int, after_reqnr: int, epoch: int, takeover: bool
+        self,
+        new_master: int,
+        after_reqnr: int,
+        epoch: int,
+        takeover: bool,
+        grant: drone_pb2.Grant | None = None,
     ) -> list[CoreEffect]:
         """A handover notice on the Connect stream (the drone owes at most one, the latest)."""
         if takeover:
             return self.fenced(new_master, epoch)
         if self.protocol.state is State.ACTIVE:
-            return self.handover_notice(new_master, after_reqnr, epoch)
+            return self.handover_notice(new_master, after_reqnr, epoch, grant)
         return [DisconnectDrone()]  # a notice for a mastership we no longer hold
 
-    def handover_notice(self, new_master: int, after_reqnr: int, epoch: int) -> list[CoreEffect]:
+    def handover_notice(
+        self,
+        new_master: int,
+        after_reqnr: int,
+        epoch: int,
+        grant: drone_pb2.Grant | None = None,
+    ) -> list[CoreEffect]:
         """The drone chose another master (Algorithm 1, lines 24-29): the unflushed log
-        goes to it with the handover flag, and with cut-through what it may lack of our
-        history first. Nothing for a stale notice, or when not ACTIVE."""
+        goes to it with the handover flag and the drone's ``grant`` of ``epoch`` to it,
+        and with cut-through what it may lack of our history first. Nothing for a stale
+        notice, or when not ACTIVE."""
         p = self.protocol
         if p.state is not State.ACTIVE:
             return []
         log_bytes = p.log.size
         try:
-            effects = p.on_handover_notice(new_master, epoch)
+            effects = p.on_handover_notice(new_master, epoch, grant)
         except ProtocolError as exc:
             return [Note("error", "bad handover notice", {"error": str(exc)})]
         if p.state is State.ACTIVE:
@@ -736,7 +773,7 @@ class ControllerCore:
         and why. Nothing if it is signed throughout, or we check no signatures."""
         if self.keys is None:
             return []
-        why = refusal(self.keys, message)
+        why = refusal(self.keys, message, self.protocol.id)
         if why is None:
             return []
         self.refused_messages += 1

@@ -47,17 +47,7 @@ def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
     """The drone's master, epoch and last reqnr from a FAILED_PRECONDITION that names them."""
     if error.code() is not grpc.StatusCode.FAILED_PRECONDITION:
         return None
-    metadata = {key: value for key, value in (error.trailing_metadata() or ())}
-    master = metadata.get("baton-master")
-    if master is None:
-        return None
-    return DroneRefusal(
-        int(str(master)),
-        int(str(metadata.get("baton-epoch", "0"))),
-        int(str(metadata.get("baton-after-reqnr", "0"))),
-        str(metadata.get("baton-takeover", "")) == "1",
-        int(str(metadata.get("baton-takeover-epoch", "0"))),
-    )
+    return DroneRefusal.from_metadata(dict(error.trailing_metadata() or ()))
 
 
 class DroneEvents(Protocol):

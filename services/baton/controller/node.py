@@ -787,13 +787,16 @@ class ControllerNode:
         takeover: bool = False,
         watermark_reqnr: int = 0,
         takeover_epoch: int = 0,
+        grant: drone_pb2.Grant | None = None,
     ) -> None:
         """The drone's Connected event: this controller is master in ``epoch``
         (``ControllerCore.granted``)."""
         if session is not self._drone:
             return  # a session closed meanwhile
         await self._apply(
-            self.core.granted(epoch, retained_through, takeover, watermark_reqnr, takeover_epoch)
+            self.core.granted(
+                epoch, retained_through, takeover, watermark_reqnr, takeover_epoch, grant
+            )
         )
 
     async def on_retained(
@@ -835,7 +838,11 @@ class ControllerNode:
             return
         await self._apply(
             self.core.stream_notice(
-                notice.new_master, notice.after_reqnr, notice.epoch, notice.takeover
+                notice.new_master,
+                notice.after_reqnr,
+                notice.epoch,
+                notice.takeover,
+                notice.grant if notice.HasField("grant") else None,
             )
         )
 
@@ -1237,6 +1244,7 @@ class _SessionEvents:
                 connected.takeover,
                 connected.watermark_reqnr,
                 connected.takeover_epoch,
+                connected.grant if connected.HasField("grant") else None,
             )
         )
 

@@ -459,6 +459,10 @@ class ControllerProtocol:
         # The newest word of an ACTIVE master the ring gave us: its epoch, and the
         # log number it held then (``on_sync``, ``master_word``); (0, 0): none.
         self._master_word = (0, 0)
+        # The drone's grants of the masterships we hold or held, by epoch (from
+        # Connected, or the handover message that made us master): every message
+        # we create carries the grant of the mastership it claims (``_backed``).
+        self._grants: dict[int, drone_pb2.Grant] = {}
 
     # -- lines 1-11 -------------------------------------------------------------
 
@@ -474,7 +478,11 @@ class ControllerProtocol:
     # -- the drone's word ---------------------------------------------------------
 
     def on_granted(
-        self, epoch: int, takeover: bool = False, watermark_reqnr: int = 0
+        self,
+        epoch: int,
+        takeover: bool = False,
+        watermark_reqnr: int = 0,
+        grant: drone_pb2.Grant | None = None,
     ) -> list[Effect]:
         """The drone's Connected event: this controller is master in ``epoch``.
 
@@ -488,8 +496,11 @@ class ControllerProtocol:
         left it). A taker that holds less than the drone's
         ``watermark_reqnr`` (it restarted or rejoined with nothing: the drone
         let go of the replies the others hold) waits until the ring gave it
-        that much.
+        that much. ``grant``: the drone's signed word of it, which our messages of
+        that epoch carry.
         """
+        if grant is not None:
+            self._grants[epoch] = grant
         self.epoch = self.granted_epoch = epoch
         if self.state is State.ACTIVE:
             return []
@@ -795,6 +806,7 @@ class ControllerProtocol:
         """
         fresh = ControllerProtocol(self.id, self.ring, self.flush_limit)
         fresh.seal = self.seal
+        fresh._grants = dict(self._grants)
         fresh.given_up_epoch = self.mastership_given_up()
         fresh._fenced_in = self._fenced_in
         return fresh
@@ -1073,8 +1085,16 @@ class ControllerProtocol:
         self._flushed_in = self.epoch
         message = self._message(self.lognr, origin=self.id, handover=False)
         message.epoch = self.epoch  # the mastership it was logged in, for diagnosis
+        self._backed(message, self._grants.get(self.epoch))
         self.seal(message)
         return SendLog(self.successor, message)
+
+    @staticmethod
+    def _backed(message: ring_pb2.LogMessage, grant: drone_pb2.Grant | None) -> None:
+        """``message`` carries the drone's grant of the mastership it claims, if we have it
+        (none on an insecure ring: nobody checks)."""
+        if grant is not None and grant.epoch == message.epoch:
+            message.grant.CopyFrom(grant)
 
     def _message(self, lognr: int, origin: int, handover: bool) -> ring_pb2.LogMessage:
         entries = self.log.take()
@@ -1105,13 +1125,17 @@ class ControllerProtocol:
 
     # -- lines 24-29: the drone's handover notice --------------------------------
 
-    def on_handover_notice(self, new_master: int, epoch: int = 0) -> list[Effect]:
+    def on_handover_notice(
+        self, new_master: int, epoch: int = 0, grant: drone_pb2.Grant | None = None
+    ) -> list[Effect]:
         """Hands the unflushed log to the new master directly, with the handover flag.
 
         A notice that arrives while a call is in flight (footnote 2) is handled
         the same way: the in-flight call's reply, if it comes later, is not
         logged here (the runtime discards it), and the new master re-sends that
         request number, which the drone answers from its reply cache.
+        ``grant``: the drone's grant of ``epoch`` to the new master, which the
+        handover message carries (it makes its receiver master).
         """
         if self.state is not State.ACTIVE:
             # A repeated notice (e.g. from an Invoke rejection after the stream's).
@@ -1130,6 +1154,7 @@ class ControllerProtocol:
         self._held(self.lognr, self.reqnr, epoch)
         message = self._message(self.lognr, origin=new_master, handover=True)
         message.epoch = epoch
+        self._backed(message, grant)
         self.seal(message)
         self._handed = ring_pb2.LogMessage()
         self._handed.CopyFrom(message)
@@ -1472,6 +1497,8 @@ class ControllerProtocol:
             self.master = False
             self.epoch = self._epoch_before_handover
         if message.handover:
+            if message.HasField("grant"):
+                self._grants[message.epoch] = message.grant
             if not self.master:
                 self._epoch_before_handover = self.epoch
             self.master = True

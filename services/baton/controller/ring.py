@@ -62,7 +62,11 @@ def head_of(message: ring_pb2.LogMessage) -> ring_pb2.LogMessage:
     """The message without its entries: what a first frame says of it."""
     head = ring_pb2.LogMessage()
     for field, value in message.ListFields():
-        if field.name != "entries":
+        if field.name == "entries":
+            continue
+        if field.message_type is not None:  # the grant
+            getattr(head, field.name).CopyFrom(value)
+        else:
             setattr(head, field.name, value)
     return head
 

@@ -406,6 +406,7 @@ class DroneCore:
             takeover=seq.granted_by_takeover,
             watermark_reqnr=seq.cache.watermark,
             takeover_epoch=seq.takeover_epoch,
+            grant=seq.signed_grant(seq.epoch),
         )
         return grant, retained_batches(retained, batch_bytes)
 

@@ -37,7 +37,7 @@ The rules (docs/design.md, "Epochs" and "Exactly once..."):
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import grpc
@@ -161,11 +161,52 @@ class Sequencer:
         # preparation: it prepares only when ACTIVE): ``takeover_due``. 0 after a
         # restart, as the store does not keep it; a request says as much.
         self.active_epoch = 0
+        # Signs a grant with the drone's key (``sign_grants_with``); None: insecure,
+        # grants go unsigned. The grants made, by epoch.
+        self._seal_grant: Callable[[drone_pb2.Grant], None] | None = None
+        self._grants: dict[int, drone_pb2.Grant] = {}
 
     @property
     def epoch(self) -> int:
         """The current master's epoch: 1, and one more at every switch."""
         return len(self.handovers) + 1
+
+    def sign_grants_with(self, seal: Callable[[drone_pb2.Grant], None]) -> None:
+        """Grants are signed by ``seal`` from now on (``authenticity.Signer.seal_grant``)."""
+        self._seal_grant = seal
+        self._grants.clear()
+
+    def signed_grant(self, epoch: int) -> drone_pb2.Grant | None:
+        """The drone's grant of ``epoch``, signed; None on an insecure drone (nobody checks
+        grants there, and its events and refusals say none)."""
+        return self.grant_of(epoch) if self._seal_grant is not None else None
+
+    def grant_of(self, epoch: int) -> drone_pb2.Grant:
+        """The drone's grant of ``epoch`` (one it made), signed if it has a key: who it
+        made master and how. The handover records say it for every epoch, also after a
+        restart, and the key is the drone's certificate's, so a grant signed again
+        verifies like the first."""
+        grant = self._grants.get(epoch)
+        if grant is None:
+            if epoch == 1:
+                first = self.handovers[0].old_master if self.handovers else self.master
+                grant = drone_pb2.Grant(master=first, epoch=1, kind=drone_pb2.GRANT_KIND_FIRST)
+            else:
+                record = self.handovers[epoch - 2]
+                takeover = record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
+                grant = drone_pb2.Grant(
+                    master=record.new_master,
+                    epoch=epoch,
+                    kind=drone_pb2.GRANT_KIND_TAKEOVER
+                    if takeover
+                    else drone_pb2.GRANT_KIND_HANDOVER,
+                )
+            if self._seal_grant is not None:
+                self._seal_grant(grant)
+            self._grants[epoch] = grant
+        copied = drone_pb2.Grant()
+        copied.CopyFrom(grant)
+        return copied
 
     # -- refusals -------------------------------------------------------------------
 
@@ -200,6 +241,10 @@ class Sequencer:
             ("baton-epoch", str(self.epoch)),
             ("baton-after-reqnr", str(self.last_reqnr)),
         )
+        grant = self.signed_grant(self.epoch)
+        if grant is not None:
+            # The master's grant: a refused old master hands its log over with it.
+            where += (("baton-grant", grant.SerializeToString().hex()),)
         if self.takeover_epoch:
             where += (("baton-takeover-epoch", str(self.takeover_epoch)),)
         if controller_id is not None and self.taken_over_since(controller_id, mastership_epoch):
@@ -503,6 +548,7 @@ class Sequencer:
         """
         self.master = master
         self.handovers[:] = handovers
+        self._grants.clear()
         self.last_reqnr, self.executed, self.duplicates, self.rejected = counts
         for reply in replies:
             self.cache.store(
@@ -584,6 +630,7 @@ class Sequencer:
             ended_epoch=ended,
             epoch=ended + 1,
             takeover=takeover,
+            grant=self.signed_grant(ended + 1),
         )
         return record
 

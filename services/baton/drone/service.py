@@ -1322,6 +1322,7 @@ def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneSer
     )
     if settings.tls is not None:
         service.signer = Signer.from_pem(settings.tls.key)
+        sequencer.sign_grants_with(service.signer.seal_grant)
     if settings.policy is not None:
         service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
         service.policy.restore()

@@ -94,17 +94,7 @@ def refusal_from(error: StatusError) -> DroneRefusal | None:
     """drone_link.refusal_of for the simulated drone's StatusError (its trailing metadata)."""
     if error.code is not grpc.StatusCode.FAILED_PRECONDITION:
         return None
-    metadata = dict(error.metadata)
-    master = metadata.get("baton-master")
-    if master is None:
-        return None
-    return DroneRefusal(
-        int(master),
-        int(metadata.get("baton-epoch", "0")),
-        int(metadata.get("baton-after-reqnr", "0")),
-        metadata.get("baton-takeover", "") == "1",
-        int(metadata.get("baton-takeover-epoch", "0")),
-    )
+    return DroneRefusal.from_metadata(dict(error.metadata))
 
 
 class Phase(enum.Enum):
@@ -413,6 +403,7 @@ class SimController:
         takeover: bool = False,
         watermark_reqnr: int = 0,
         takeover_epoch: int = 0,
+        grant: drone_pb2.Grant | None = None,
     ) -> None:
         """The Connected event: the session's epoch, then node.py's on_granted (which
         first rejoins with nothing if a takeover replaced the mastership we are ACTIVE in)."""
@@ -423,7 +414,7 @@ class SimController:
         self._startup_answer()
         try:
             effects = self.core.granted(
-                epoch, retained_through, takeover, watermark_reqnr, takeover_epoch
+                epoch, retained_through, takeover, watermark_reqnr, takeover_epoch, grant
             )
         except ProtocolError as exc:
             self._uncaught("on_granted", exc)
@@ -438,7 +429,13 @@ class SimController:
         self._apply(self.core.retained_batch(replies))
 
     def on_drone_notice(
-        self, sid: int, new_master: int, after_reqnr: int, epoch: int, takeover: bool
+        self,
+        sid: int,
+        new_master: int,
+        after_reqnr: int,
+        epoch: int,
+        takeover: bool,
+        grant: drone_pb2.Grant | None = None,
     ) -> None:
         """A HandoverNotice on the stream, which then ends."""
         session = self.session
@@ -446,7 +443,7 @@ class SimController:
             return
         session.ended, session.stream = True, None
         self._startup_answer()
-        self.on_stream_notice(new_master, after_reqnr, epoch, takeover)
+        self.on_stream_notice(new_master, after_reqnr, epoch, takeover, grant)
 
     def on_drone_prepare(self, sid: int, prepare: drone_pb2.PrepareHandover) -> None:
         """A PrepareHandover event on the stream: node.py's on_prepare."""
@@ -504,10 +501,15 @@ class SimController:
         self._apply(self.core.connect_refused(refusal))
 
     def on_stream_notice(
-        self, new_master: int, after_reqnr: int, epoch: int, takeover: bool = False
+        self,
+        new_master: int,
+        after_reqnr: int,
+        epoch: int,
+        takeover: bool = False,
+        grant: drone_pb2.Grant | None = None,
     ) -> None:
         """ControllerNode.on_stream_notice."""
-        self._apply(self.core.stream_notice(new_master, after_reqnr, epoch, takeover))
+        self._apply(self.core.stream_notice(new_master, after_reqnr, epoch, takeover, grant))
 
     def on_take_over(self, old_master: int, epoch: int, watermark_reqnr: int) -> None:
         """ControllerNode.on_take_over (the standby stream's TakeOver)."""

@@ -733,6 +733,7 @@ class SimDrone:
             notice.after_reqnr,
             notice.epoch,
             notice.takeover,
+            notice.grant,
             stream=True,
         )
         self.seq.delivered(cid, notice)
@@ -786,6 +787,7 @@ class SimDrone:
                 grant.takeover,
                 grant.watermark_reqnr,
                 grant.takeover_epoch,
+                grant.grant,
             )
             parts: list[tuple[int, Callable[..., None], tuple[Any, ...]]] = [
                 (0, owner.on_drone_connected, connected)

@@ -1,0 +1,58 @@
+"""A stolen station's frames: log messages sent on a LogRing stream from a valid
+controller certificate, as issue 33's attacker does (forged, altered, replayed)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+from baton.authenticity import needs_drone_signature
+from baton.controller.history import read_log
+from baton.controller.ring import frames
+from baton.rpc.channels import aio_channel
+from baton.rpc.tls import Identity, Tls
+from baton.v1 import ring_pb2, ring_pb2_grpc
+
+
+def signed_message(log: Path) -> ring_pb2.LogMessage | None:
+    """The newest message of a controller's log file with a reply the drone signed."""
+    for message in reversed(read_log(log)):
+        if any(needs_drone_signature(e) and e.drone_signature for e in message.entries):
+            return message
+    return None
+
+
+def copy(message: ring_pb2.LogMessage) -> ring_pb2.LogMessage:
+    copied = ring_pb2.LogMessage()
+    copied.CopyFrom(message)
+    return copied
+
+
+async def send(
+    address: str,
+    station: Tls,
+    receiver: int,
+    message: ring_pb2.LogMessage,
+    renumber: bool,
+    seal: Callable[[ring_pb2.LogMessage], None] | None = None,
+) -> None:
+    """Sends ``message`` on a LogRing stream from ``station``'s certificate (numbered
+    after what the receiver's hello says it holds if ``renumber``, then ``seal``ed) and
+    waits for its acknowledgement: a refused message is acknowledged too (dropped, not
+    asked again)."""
+    async with aio_channel(address, station, Identity.controller(receiver)) as channel:
+        call = ring_pb2_grpc.ControllerRingStub(channel).LogRing()
+        hello = await call.read()
+        assert isinstance(hello, ring_pb2.LogAck) and hello.hello
+        if renumber:
+            message.lognr = hello.lognr + 1
+        if seal is not None:
+            seal(message)
+        for frame in frames(message, station.identity.number or 0):
+            await call.write(frame)
+        while True:
+            ack = await call.read()
+            assert isinstance(ack, ring_pb2.LogAck), ack
+            if ack.lognr == message.lognr:
+                break
+        await call.done_writing()
