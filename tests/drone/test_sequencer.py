@@ -674,3 +674,36 @@ def test_a_masters_fresh_self_that_gave_its_mastership_up_is_granted_a_new_epoch
     with pytest.raises(StatusError) as fenced:
         seq.admit_connect(4, mastership_epoch=3)  # the earlier self's log: given up
     assert ("baton-takeover", "1") in fenced.value.metadata
+
+
+def seal(grant: drone_pb2.Grant) -> None:
+    """A stand-in for the drone's key: what it signed, readable."""
+    grant.signature = b"%d:%d:%d" % (grant.master, grant.epoch, grant.kind)
+
+
+def test_every_grant_is_signed_and_said_with_the_event_that_makes_a_master() -> None:
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    assert seq.signed_grant(1) is None  # an insecure drone says no grant
+    assert "baton-grant" not in dict(refused(seq, 1, 0, 1).metadata)
+    seq.sign_grants_with(seal)
+    assert seq.grant_of(1) == drone_pb2.Grant(
+        master=0, epoch=1, kind=drone_pb2.GRANT_KIND_FIRST, signature=b"0:1:1"
+    )
+    seq.switch(1, RPC, now=1.0)
+    # The old master's notice carries the new master's grant, for its handover message.
+    notice = seq.pending[0]
+    assert notice.grant == drone_pb2.Grant(
+        master=1, epoch=2, kind=drone_pb2.GRANT_KIND_HANDOVER, signature=b"1:2:2"
+    )
+    # A refusal names the master with its grant, so a refused old master hands over too.
+    said = dict(refused(seq, 0, 1, 1).metadata)
+    assert drone_pb2.Grant.FromString(bytes.fromhex(said["baton-grant"])) == notice.grant
+    seq.switch(2, LOST, now=2.0, takeover=True)
+    assert seq.grant_of(3).kind == drone_pb2.GRANT_KIND_TAKEOVER
+    # The first master's grant is still said right after it was replaced, and a drone
+    # restarted from its store grants each epoch as before (its key is its certificate's).
+    assert seq.grant_of(1).master == 0
+    restarted = Sequencer([0, 1, 2], initial_master=0)
+    restarted.sign_grants_with(seal)
+    restarted.resume(seq.master, seq.handovers, (0, 0, 0, 0), [], [], [])
+    assert [restarted.grant_of(e) for e in (1, 2, 3)] == [seq.grant_of(e) for e in (1, 2, 3)]
