@@ -18,6 +18,7 @@ import pytest
 
 from baton.sim import SimOptions, run_seed
 from baton.sim.cli import main
+from baton.sim.lying import LIES
 from baton.sim.mutations import MUTATIONS, mutated
 from baton.sim.world import Outcome, World, run_seeds
 
@@ -431,3 +432,22 @@ def test_operator_seeds_hold_every_oracle_and_the_commands_act() -> None:
     assert not any(o.failed for o in outcomes), _failures(outcomes)
     assert min(taken[c] for c in ("pause", "resume", "abort", "land_now")) >= 3, taken
     assert waited >= 10
+
+
+# Issue 33's lying station (--lying) in CI: about 15 s on one core.
+LYING_SEEDS = 40
+
+
+def test_lying_seeds_hold_every_oracle_and_refuse_every_forged_frame() -> None:
+    """Every part signs and checks with its key, and one station forges frames at drawn
+    moments: every oracle holds, each forged frame of every kind is refused by its
+    receiver's core (lies-refused), and the mission completes exactly once."""
+    options = SimOptions(lying=True)
+    outcomes = []
+    told: Counter[str] = Counter()
+    for seed in range(LYING_SEEDS):
+        world = World(seed, options)
+        outcomes.append(world.run())
+        told.update(lie.kind for lie in world.lies if lie.refused)
+    assert not any(o.failed for o in outcomes), _failures(outcomes)
+    assert min(told[kind] for kind in LIES) >= 3, told

@@ -101,6 +101,12 @@ def parser() -> argparse.ArgumentParser:
         "(or an abort), an abort (rtl or land), or a land-now",
     )
     p.add_argument(
+        "--lying",
+        action="store_true",
+        help="issue 33: every part signs and checks with its key, and one station forges "
+        "frames (newer masterships, invented or altered replies, replays) at drawn moments",
+    )
+    p.add_argument(
         "--takeover-after",
         type=float,
         default=None,
@@ -146,6 +152,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         stall_new_master=args.stall_new_master,
         failsafe=args.failsafe,
         operator=args.operator,
+        lying=args.lying,
         takeover_after=args.takeover_after,
         allow=args.allow,
         mutation=args.mutation,

@@ -161,6 +161,9 @@ class SimController:
         self.core = ControllerCore(
             ControllerProtocol(cid, world.ring, world.flush_limit), world.cut_through
         )
+        if world.keys is not None:  # ControllerApp: its key seals, the ring's keys check
+            self.core.keys = world.keys.keys
+            self.core.protocol.seal = world.keys.controllers[cid].seal
         self.history = LogHistory()
         self.links: dict[int, RingLink] = {}
         self.drone_link = DroneLink(world, self)
@@ -483,7 +486,7 @@ class SimController:
         inv = self.inv
         if inv is not None and inv.step is Step.IN_FLIGHT and inv.connection == connection:
             error = StatusError(grpc.StatusCode.UNAVAILABLE, "connection to the drone lost")
-            self._invoke_result(inv, b"", error)
+            self._invoke_result(inv, None, error)
         session = self.session
         if session is not None and session.stream == connection:
             self._reconnect_later(session)
@@ -680,6 +683,13 @@ class SimController:
         effects = self.core.log_arrived(message, self._drone_reachable)
         self.peak_log_queue = max(self.peak_log_queue, len(self.protocol.log_queue))
         self._apply(effects)
+
+    def receive_relayed(self, message: ring_pb2.LogMessage, relayed_by: int) -> None:
+        """A whole log message on a ring stream from ``relayed_by`` (a lying station's
+        frame, lying.py): ``ControllerCore.log_arrived``, as ``on_log``."""
+        if not self.alive:
+            return
+        self._apply(self.core.log_arrived(message, self._drone_reachable, relayed_by))
 
     def _drone_reachable(self) -> bool:
         """Either stream to the drone up (the standby stream is up exactly while the link
@@ -895,17 +905,24 @@ class SimController:
         )
         link.to_drone(len(call.request), self.world.drone.receive_invoke, request)
 
-    def on_invoke_reply(self, call_id: int, payload: bytes, error: StatusError | None) -> None:
+    def on_invoke_reply(
+        self, call_id: int, reply: drone_pb2.InvokeReply | None, error: StatusError | None
+    ) -> None:
         """The drone's answer to an Invoke (a reply, a refusal, a failure)."""
         inv = self.inv
         if inv is None or inv.step is not Step.IN_FLIGHT or inv.call_id != call_id:
             return  # a call the program gave up on
-        self._invoke_result(inv, payload, error)
+        self._invoke_result(inv, reply, error)
 
-    def _invoke_result(self, inv: Invocation, payload: bytes, error: StatusError | None) -> None:
+    def _invoke_result(
+        self, inv: Invocation, reply: drone_pb2.InvokeReply | None, error: StatusError | None
+    ) -> None:
         """ControllerNode._invoke_drone_retrying after drone.invoke returned or raised."""
         if error is None:
-            self._invoked(inv, self._entry(inv, payload))
+            assert reply is not None
+            entry = self._entry(inv, reply.payload)
+            entry.drone_epoch, entry.drone_signature = reply.epoch, reply.signature
+            self._invoked(inv, entry)
             return
         refusal = refusal_from(error)
         if refusal is not None:

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 import grpc
 
+from baton.authenticity import signed_reply, signed_retained
 from baton.digest import request_digest
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import CachedReply
@@ -278,6 +279,8 @@ class SimDrone:
         self.cache_window = cache_window
         self.p_ack_lost = p_ack_lost
         self.prepare_timeout_s = prepare_timeout_s
+        # Signs replies and grants (DroneService.signer); None without keys.
+        self.signer = world.keys.drone if world.keys is not None else None
         self.core = DroneCore(self._sequencer(), world.takeover_after, world.safety)
         self.vehicle = SimVehicle(world.battery_drain)
         self.camera = SimCamera()
@@ -491,7 +494,8 @@ class SimDrone:
                 None,
                 received,
             )
-            self._reply(request, execution.reply, None)
+            reply = execution.reply
+            self._reply(request, reply, None, execution.digest, self.seq.epoch)
         self._next()
 
     def _served(
@@ -525,18 +529,33 @@ class SimDrone:
             )
             self._reply(request, b"", error)
         else:
-            self._reply(request, cached.reply, None)
+            self._reply(request, cached.reply, None, cached.digest, cached.epoch, duplicate=True)
 
-    def _reply(self, request: Request, payload: bytes, error: StatusError | None) -> None:
+    def _reply(
+        self,
+        request: Request,
+        payload: bytes,
+        error: StatusError | None,
+        digest: bytes = b"",
+        epoch: int = 0,
+        duplicate: bool = False,
+    ) -> None:
+        """DroneService's answer: an InvokeReply (signed as ``signed_reply`` signs it, with
+        a key), or the error."""
         link = request.link
         if link is None:
             return  # nobody waits for it (a garbled request)
+        reply = None
+        if error is None:
+            reply = signed_reply(
+                self.signer, request.reqnr, epoch, request.method, digest, payload, duplicate
+            )
         link.to_controller(
             request.connection,
             len(payload),
             link.owner.on_invoke_reply,
             request.call_id,
-            payload,
+            reply,
             error,
             stream=False,
         )
@@ -796,7 +815,7 @@ class SimDrone:
                 (
                     sum(len(reply.reply) for reply in batch),
                     owner.on_drone_retained,
-                    (session, [reply.to_proto() for reply in batch]),
+                    (session, [signed_retained(self.signer, r.to_proto()) for r in batch]),
                 )
                 for batch in batches
             ]
@@ -873,13 +892,16 @@ class SimDrone:
 
     def _sequencer(self) -> Sequencer:
         """A new Sequencer as DroneService's factory makes it (nothing served yet)."""
-        return Sequencer(
+        seq = Sequencer(
             self.controllers,
             self.initial_master,
             self.script,
             self.cache_window,
             self.prepare_timeout_s,
         )
+        if self.signer is not None:
+            seq.sign_grants_with(self.signer.seal_grant)
+        return seq
 
     def _restored(self) -> DroneCore:
         """A new core holding what the store keeps (DroneService._restore): the sightings

@@ -45,6 +45,7 @@ import grpc
 
 from baton.controller.protocol import State
 from baton.sim.drone import HandoverOrder, Request
+from baton.sim.lying import plan_lying
 from baton.sim.mission import GET_POSITION
 from baton.sim.network import DRONE
 
@@ -71,6 +72,7 @@ class FaultPlan:
     end_handover: bool = False
     garbled: bool = False
     lose_master: str = ""
+    lying: str = ""
     stall: str = ""
     failsafe: str = ""
     operator: str = ""
@@ -103,6 +105,8 @@ class FaultPlan:
             parts.append(f"failsafe: {self.failsafe}")
         if self.operator:
             parts.append(f"operator: {self.operator}")
+        if self.lying:
+            parts.append(f"lying: {self.lying}")
         return ", ".join(parts)
 
 
@@ -164,6 +168,8 @@ def plan_faults(world: World) -> FaultPlan:
         plan_failsafe(world, plan)
     if world.options.operator:
         plan_operator(world, plan)
+    if world.options.lying:
+        plan_lying(world, plan)
     return plan
 
 

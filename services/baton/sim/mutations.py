@@ -15,6 +15,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+from baton import authenticity
+from baton.authenticity import Verifier
 from baton.controller.core import ControllerCore, CoreEffect
 from baton.controller.protocol import ConnectDrone, ControllerProtocol, Effect, Refusal, State
 from baton.drone import sequencer
@@ -233,9 +235,21 @@ def _flies_on_after_abort() -> list[tuple[Any, str, Any]]:
     return [(Operator, "refusal", refusal)]
 
 
+def _believes_unbacked_claims() -> list[tuple[Any, str, Any]]:
+    """Issue 33: a mastership a log message claims is believed without the drone's grant
+    (``authenticity.unbacked_claim``, which ``ControllerCore.log_arrived`` asks, backs
+    every claim)."""
+
+    def unbacked_claim(drone: Verifier, message: ring_pb2.LogMessage, receiver: int) -> None:
+        return None
+
+    return [(authenticity, "unbacked_claim", unbacked_claim)]
+
+
 LOSE_MASTER = {"lose_master": True}
 FAILSAFE = {"failsafe": True}
 OPERATOR = {"operator": True}
+LYING = {"lying": True}
 
 for _mutation in (
     Mutation("line44", "Algorithm 1 line 44: in-order message dropped during REPLAY", _line44),
@@ -269,6 +283,12 @@ for _mutation in (
         "a call after an abort executed",
         _flies_on_after_abort,
         OPERATOR,
+    ),
+    Mutation(
+        "believes-unbacked-claims",
+        "a mastership claimed without the drone's grant believed",
+        _believes_unbacked_claims,
+        LYING,
     ),
 ):
     MUTATIONS[_mutation.name] = _mutation

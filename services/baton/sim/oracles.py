@@ -23,6 +23,8 @@ in each epoch, and the virtual time at which programs finished.
 6. ``bounded``: once finished, every log queue, unacknowledged message,
    abandoned call and the received-numbers set beyond its watermark is
    empty, and the drone's reply cache never outgrew its window.
+7. ``lies-refused`` (``--lying``): every frame the lying station forged
+   was refused by its receiver's core (lying.py).
 
 Besides the oracles, a check of the drone's own word (not ground truth):
 ``prepared-record``: every handover the drone prepared is recorded as
@@ -58,6 +60,7 @@ ORACLES = (
     "nothing-in-failsafe",
     "nothing-while-paused",
     "nothing-after-abort",
+    "lies-refused",
 )
 
 
@@ -88,6 +91,15 @@ def check(world: World) -> list[Violation]:
     found += _prepared_records(world)
     found += _nothing_in_failsafe(world)
     found += _nothing_while_paused_or_ended(world)
+    found += [
+        Violation(
+            "lies-refused",
+            f"controller {lie.receiver} believed the {lie.kind} frame (log message "
+            f"{lie.lognr}) controller {lie.liar} forged at {lie.at:.3f}s",
+        )
+        for lie in world.lies
+        if not lie.refused
+    ]
     return found
 
 

@@ -32,6 +32,7 @@ from baton.sim.faults import FaultPlan, handover, plan_faults, stall_ring, survi
 from baton.sim.findings import FINDINGS
 from baton.sim.invariants import Invariants
 from baton.sim.loop import Loop
+from baton.sim.lying import Lie, SimKeys, sim_keys
 from baton.sim.mission import MissionCall, random_mission
 from baton.sim.mutations import mutated
 from baton.sim.network import DRONE, Network
@@ -86,6 +87,9 @@ class SimOptions:
     # Issue 32's operator commands at drawn moments: pause then resume, pause then
     # abort, abort, land-now (faults.plan_operator).
     operator: bool = False
+    # Issue 33's lying station: every part holds keys and checks them, and one station
+    # forges frames at drawn moments (lying.py).
+    lying: bool = False
     # Known findings (findings.py) whose scenarios this run lets in.
     allow: frozenset[str] = frozenset()
     mutation: str | None = None
@@ -114,6 +118,8 @@ class SimOptions:
             parts.append("--failsafe")
         if self.operator:
             parts.append("--operator")
+        if self.lying:
+            parts.append("--lying")
         if self.takeover_after is not None:
             parts.append(f"--takeover-after {self.takeover_after:g}")
         if self.allow:
@@ -251,6 +257,9 @@ class World:
         # Controllers killed for good (the lose-master fault), and what it did.
         self.lost: set[int] = set()
         self.failover: dict[str, object] = {}
+        # Every part's key (--lying), from the seed; None: no keys, nothing checked.
+        self.keys: SimKeys | None = sim_keys(seed, self.ring) if options.lying else None
+        self.lies: list[Lie] = []  # the lying station's frames (lying.py)
         self.net = Network(self, [*self.ring, DRONE])
         # The corridor and its radio (--policy), from a random stream of its own.
         self.corridor = Corridor(self, options.policy) if options.policy else None

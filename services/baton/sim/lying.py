@@ -1,0 +1,174 @@
+"""A lying station (issue 33): keys for every part, and one station's forged frames.
+
+With ``--lying`` the world's parts hold keys and use them as the runtime does,
+through the same interface (``baton.authenticity``: ``Signer``, ``Verifier``,
+``Keys``): the drone signs its replies and grants, each controller seals the
+log messages it creates, and every controller's core checks every message that
+arrives (``ControllerCore.log_arrived``). The keys are Ed25519, derived from the
+seed (a run replays exactly, and Ed25519 signatures are deterministic): the
+runtime's certificates carry ECDSA P-256 keys, which ``authenticity`` takes
+alike; no certificate is made, as the simulation has no TLS.
+
+One station (drawn from a random stream of its own) is stolen: at drawn moments
+in the fault window it sends a forged frame to another live controller, made
+from what it holds, as an attacker with its key could: a newer mastership in
+its own name without the drone's grant, a handover making the receiver master,
+a genuine old grant played again for a newer epoch, invented replies, a genuine
+message altered, or sent again under another number. Each is delivered to the
+receiver's core as a ring stream from the liar delivers it, and the
+``lies-refused`` oracle asks that every one was refused (counted in the
+receiver's ``refused_messages``), besides every other oracle.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import random
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from cryptography.hazmat.primitives.asymmetric import ed25519
+
+from baton.authenticity import Keys, Signer, Verifier
+from baton.digest import request_digest
+from baton.sim.mission import GET_POSITION
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import ring_pb2
+
+if TYPE_CHECKING:
+    from baton.sim.faults import FaultPlan
+    from baton.sim.world import World
+
+# What a lying station forges (``forge``).
+LIES = (
+    "newer-mastership",
+    "handover-to-receiver",
+    "old-grant-again",
+    "invented-replies",
+    "altered-reply",
+    "renumbered",
+)
+# How far ahead of the newest epoch it knows a forged mastership claims to be.
+EPOCHS_AHEAD = (1, 2, 5)
+
+
+@dataclass(frozen=True)
+class SimKeys:
+    """Every part's key and what the controllers check against."""
+
+    drone: Signer
+    controllers: dict[int, Signer]
+    keys: Keys
+
+
+def _key(seed: int, part: str) -> ed25519.Ed25519PrivateKey:
+    return ed25519.Ed25519PrivateKey.from_private_bytes(
+        hashlib.sha256(f"baton sim key {seed} {part}".encode()).digest()
+    )
+
+
+def sim_keys(seed: int, ring: list[int]) -> SimKeys:
+    """The seed's keys: the drone's and each controller's."""
+    drone = _key(seed, "drone")
+    controllers = {cid: _key(seed, f"controller {cid}") for cid in ring}
+    keys = Keys(
+        Verifier(drone.public_key()),
+        {cid: Verifier(key.public_key()) for cid, key in controllers.items()},
+    )
+    return SimKeys(Signer(drone), {cid: Signer(key) for cid, key in controllers.items()}, keys)
+
+
+@dataclass(frozen=True)
+class Lie:
+    """One forged frame and what its receiver did with it."""
+
+    at: float
+    kind: str
+    liar: int
+    receiver: int
+    lognr: int
+    refused: bool
+
+
+def plan_lying(world: World, plan: FaultPlan) -> None:
+    """Draws the stolen station and the moments it lies at (a random stream of its own)."""
+    rng = random.Random(f"lying {world.seed}")
+    liar = rng.choice(world.ring)
+    count = rng.randint(2, 6)
+    moments = sorted(rng.uniform(0.0, plan.fault_end) for _ in range(count))
+    plan.lying = f"controller {liar} forges {count} frames"
+    for at in moments:
+        world.loop.at(at, lie, world, rng, liar)
+
+
+def lie(world: World, rng: random.Random, liar: int) -> None:
+    """The liar, if it runs, sends one forged frame to another live controller."""
+    forger = world.controller(liar)
+    others = [c for c in world.live_controllers() if c.id != liar]
+    if not forger.alive or not others or world.keys is None:
+        return
+    receiver = rng.choice(others)
+    kind = rng.choice(LIES)
+    message = forge(world, rng, liar, receiver.id, kind)
+    if message is None:  # nothing to forge it from yet: a mastership ahead instead
+        kind = "newer-mastership"
+        message = forge(world, rng, liar, receiver.id, kind)
+    assert message is not None
+    before = receiver.core.refused_messages
+    receiver.receive_relayed(message, liar)
+    refused = receiver.core.refused_messages == before + 1
+    world.lies.append(Lie(world.loop.now, kind, liar, receiver.id, message.lognr, refused))
+    world.trace(
+        f"controller {liar} forges {kind} (log message {message.lognr}) to {receiver.id}: "
+        + ("refused" if refused else "BELIEVED")
+    )
+
+
+def forge(
+    world: World, rng: random.Random, liar: int, receiver: int, kind: str
+) -> ring_pb2.LogMessage | None:
+    """A frame of ``kind`` as the liar makes it from what it holds (None: it holds no
+    message to make it from)."""
+    assert world.keys is not None
+    forger = world.controller(liar)
+    p = forger.protocol
+    stolen = world.keys.controllers[liar]
+    held = [forger.history.get(n) for n in forger.history.above(0)]
+    granted = [m for m in held if m.HasField("grant")]
+    newest = max([p.epoch, world.controller(receiver).protocol.epoch, *(m.epoch for m in held)])
+    lognr = world.controller(receiver).protocol.lognr + 1
+    own = ring_pb2.LogMessage(lognr=lognr, origin=liar, sender=liar, after_reqnr=p.reqnr)
+    if kind == "newer-mastership":
+        own.epoch = newest + rng.choice(EPOCHS_AHEAD)
+    elif kind == "handover-to-receiver":
+        own.origin, own.handover = receiver, True
+        own.epoch = newest + rng.choice(EPOCHS_AHEAD)
+    elif kind == "old-grant-again":
+        if not granted:
+            return None
+        old = rng.choice(granted).grant
+        own.grant.CopyFrom(old)
+        own.epoch = max(newest, old.epoch) + rng.choice(EPOCHS_AHEAD)
+    elif kind == "invented-replies":
+        made_up = api.Position(latitude_deg=1.0, longitude_deg=2.0).SerializeToString()
+        own.entries.append(
+            ring_pb2.LogEntry(
+                reqnr=p.reqnr + 1,
+                method=GET_POSITION,
+                reply=made_up,
+                request_digest=request_digest(GET_POSITION, b""),
+            )
+        )
+    else:
+        if not held:
+            return None
+        genuine = ring_pb2.LogMessage()
+        genuine.CopyFrom(rng.choice(held))
+        if kind == "altered-reply" and genuine.entries:
+            genuine.entries[-1].reply += b"!"
+        else:  # renumbered, or a message without entries to alter
+            genuine.lognr = lognr + rng.randint(0, 3)
+            genuine.after_reqnr += 1
+        return genuine  # not sealed again: its creator's signature no longer holds
+    stolen.seal(own)
+    return own
