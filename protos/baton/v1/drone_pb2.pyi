@@ -935,9 +935,9 @@ class Connected(_message.Message):
     """
     @_builtins.property
     def grant(self) -> Global___Grant:
-        """The drone's signed word that this controller is master in this epoch
-        (docs/design.md, "Mastership backed by the drone's grant"): the master
-        carries it in every log message of its mastership.
+        """The drone's signed word that this controller is master in this epoch: the
+        master carries it in every log message of its mastership (docs/design.md,
+        "Replies signed by the drone, log messages by their creator").
         """
 
     def __init__(
