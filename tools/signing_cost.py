@@ -83,9 +83,16 @@ def main() -> None:
     claim = ring_pb2.LogMessage(lognr=1, sender=0, origin=0, epoch=1)
     claim.grant.CopyFrom(drone_pb2.Grant(master=0, epoch=1, kind=drone_pb2.GRANT_KIND_FIRST))
     sign = p50_ms(partial(signer.seal_grant, claim.grant), 1001)
-    assert unbacked_claim(keys.drone, claim, 1) is None
-    check = p50_ms(partial(unbacked_claim, keys.drone, claim, 1), 1001)
-    print(f"a mastership grant: the drone signs {sign:.3f} ms, a receiver checks {check:.3f} ms")
+
+    def first_check() -> None:  # a grant the receiver has not seen yet
+        assert unbacked_claim(Verifier(keys.drone.key), claim, 1) is None
+
+    first = p50_ms(first_check, 1001)
+    again = p50_ms(partial(unbacked_claim, keys.drone, claim, 1), 1001)
+    print(
+        f"a mastership grant: the drone signs {sign:.3f} ms, a receiver checks it "
+        f"{first:.3f} ms the first time, {again:.3f} ms on every message after"
+    )
 
 
 if __name__ == "__main__":
