@@ -4,6 +4,7 @@ check of every log message that arrives: the pure rule's corners, no sockets."""
 from __future__ import annotations
 
 import datetime
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -367,3 +368,42 @@ def test_without_keys_a_stations_word_is_taken() -> None:
     message = ring_pb2.LogMessage(lognr=1, origin=0, sender=0, epoch=1, entries=[unsigned])
     effects = replica(None).log_arrived(message, lambda: True)
     assert any(isinstance(e, Keep) for e in effects)
+
+
+def test_a_revoked_certificate_signs_nothing_and_a_rotated_ones_earlier_key_still_holds(
+    tmp_path: Path,
+) -> None:
+    folder = tmp_path / "certs"
+    init(folder, [DRONE, *map(Identity.controller, (0, 1))])
+    drone = Tls.load(folder, DRONE)
+    drone_key = Verifier.from_pem(drone.cert, drone.ca, now())
+
+    def verifier(cid: int) -> Verifier:
+        station = Tls.load(folder, Identity.controller(cid))
+        return Verifier.from_pem(station.cert, station.ca, now(), Identity.controller(cid))
+
+    old_key, old = station(folder, 1), verifier(1)
+    issue(folder, Identity.controller(1))  # rotated: a new key and certificate
+    new_key, new = station(folder, 1), verifier(1)
+    assert new.serial != old.serial
+    rotated = Keys(drone_key, {0: verifier(0), 1: new}, {1: (old,)})
+
+    def by(signer: Signer) -> ring_pb2.LogMessage:
+        message = ring_pb2.LogMessage(lognr=3, origin=1, sender=1)
+        signer.seal(message)
+        return message
+
+    # Rotated, not revoked: what the old key signed still holds, the new key's too.
+    assert refusal(rotated, by(old_key), 0) is None
+    assert refusal(rotated, by(new_key), 0) is None
+    revoked = replace(rotated, revoked=frozenset({old.serial}))
+    assert f"controller 1's revoked certificate (serial {old.serial:x})" in (
+        refusal(revoked, by(old_key), 0) or ""
+    )
+    assert refusal(revoked, by(new_key), 0) is None
+    # A revoked drone certificate backs no claim and no reply.
+    no_drone = replace(rotated, revoked=frozenset({drone_key.serial}))
+    claim = by(new_key)
+    claim.epoch = 1
+    new_key.seal(claim)
+    assert "the drone's certificate" in (refusal(no_drone, claim, 0) or "")

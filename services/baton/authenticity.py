@@ -198,6 +198,9 @@ class Verifier:
     """One part's public key, from its certificate checked against the mission's CA."""
 
     key: VerifyingKey
+    # The serial number of the certificate the key came from (0: none), which a
+    # revocation list names (``Keys.revoked``).
+    serial: int = 0
     # The grants whose signature held (serialized): a mastership's grant comes with
     # every message of it, and is checked once.
     _grants: set[bytes] = field(default_factory=set, compare=False, repr=False)
@@ -231,7 +234,7 @@ class Verifier:
                 f"the {who.name} certificate holds a {type(key).__name__}; baton signs "
                 "with an ECDSA or Ed25519 key"
             )
-        return cls(key)
+        return cls(key, cert.serial_number)
 
     def verify(self, entry: ring_pb2.LogEntry, reply_sha256: bytes = b"") -> bool:
         """Whether ``entry`` carries the drone's signature of its reply, and its request
@@ -269,10 +272,20 @@ class Verifier:
 @dataclass(frozen=True)
 class Keys:
     """What a controller checks log messages against: the drone's key and every
-    controller's of the ring, from their certificates."""
+    controller's of the ring, from their certificates; a controller's earlier
+    certificates (before a rotation), whose messages may still come round; and the
+    serials the revocation list names, whose signatures are not believed."""
 
     drone: Verifier
     controllers: Mapping[int, Verifier]
+    earlier: Mapping[int, tuple[Verifier, ...]] = field(default_factory=dict)
+    revoked: frozenset[int] = frozenset()
+
+    def of(self, cid: int) -> list[Verifier]:
+        """Controller ``cid``'s keys that are not revoked, the current first."""
+        current = self.controllers.get(cid)
+        held = ([current] if current is not None else []) + list(self.earlier.get(cid, ()))
+        return [verifier for verifier in held if verifier.serial not in self.revoked]
 
 
 def refusal(keys: Keys, message: ring_pb2.LogMessage, receiver: int) -> str | None:
@@ -284,12 +297,27 @@ def refusal(keys: Keys, message: ring_pb2.LogMessage, receiver: int) -> str | No
     then the drone's grant of the mastership it claims (``unbacked_claim``): its
     creator cannot make itself or another master; then the drone's signature on every
     reply it made: its creator cannot invent one."""
-    creator = keys.controllers.get(message.sender)
-    if creator is None:
+    if message.sender not in keys.controllers:
         return f"its creator, controller {message.sender}, is not one of the ring"
     hashes = reply_hashes(message)
-    if not creator.verify_message(message, hashes):
+    creators = keys.of(message.sender)
+    if not any(creator.verify_message(message, hashes) for creator in creators):
+        revoked = [
+            f"{v.serial:x}"
+            for v in (keys.controllers[message.sender], *keys.earlier.get(message.sender, ()))
+            if v.serial in keys.revoked and v.verify_message(message, hashes)
+        ]
+        if revoked:
+            return (
+                f"it is signed with controller {message.sender}'s revoked certificate "
+                f"(serial {revoked[0]})"
+            )
         return f"it has no valid signature of its creator, controller {message.sender}"
+    if keys.drone.serial in keys.revoked and (
+        message.epoch or message.handover or any(map(needs_drone_signature, message.entries))
+    ):
+        serial = f"{keys.drone.serial:x}"
+        return f"it needs the drone's word; the drone's certificate (serial {serial}) is revoked"
     unbacked = unbacked_claim(keys.drone, message, receiver)
     if unbacked is not None:
         return unbacked

@@ -1,8 +1,9 @@
 """Issue 33, item 4 across real processes: a running station's certificate rotated
 with `baton certs rotate` and the old one revoked with `baton certs revoke` is
 refused on every part at its next call and its live streams are cut, without
-re-keying or restarting anyone; the station, never restarted, reconnects with its
-new certificate and the mission completes exactly once."""
+re-keying or restarting anyone, and a log message signed with its old key is no
+longer believed, whoever relays it; the station, never restarted, reconnects with
+its new certificate and the mission completes exactly once."""
 
 from __future__ import annotations
 
@@ -15,8 +16,11 @@ from pathlib import Path
 import grpc
 import pytest
 from grpc_health.v1 import health_pb2
+from helpers.forgery import send
 from helpers.missions import assert_mission_promises, log_events, three_on_fast_links, until_served
+from waiting import eventually
 
+from baton.authenticity import Signer
 from baton.certs.make import init, revoke
 from baton.cli import main
 from baton.rpc.admission import RECHECK_S
@@ -24,7 +28,7 @@ from baton.rpc.channels import aio_channel
 from baton.rpc.revocation import REVOKED_CRL, RevocationList
 from baton.rpc.tls import CA_CERT, DRONE, OPERATOR, Identity, Tls
 from baton.testbed.local import LocalTestbed
-from baton.v1 import drone_pb2, drone_pb2_grpc
+from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
 STATION = Identity.controller(2)
 
@@ -95,6 +99,32 @@ async def test_a_revoked_certificate_is_refused_and_its_streams_cut(
                 )
         assert refused.value.code() is grpc.StatusCode.UNAUTHENTICATED
         assert f"serial {replaced}" in (refused.value.details() or "")
+        # A log message sealed with the revoked key (the thief's), relayed by another
+        # station, once the replica it reaches has read the list: refused, named.
+        replica = Identity.controller(1)
+        relay = Tls.load(certs, Identity.controller(0))
+
+        async def list_read() -> bool:
+            async with aio_channel(config.controller(1).address, old, replica) as channel:
+                try:
+                    await ring_pb2_grpc.ControllerRingStub(channel).GetStatus(
+                        ring_pb2.GetControllerStatusRequest(), timeout=10
+                    )
+                except grpc.aio.AioRpcError as err:
+                    return err.code() is grpc.StatusCode.UNAUTHENTICATED
+            return False
+
+        await eventually(list_read, "controller 1 read the revocation list", 4 * RECHECK_S + 5)
+        forged = ring_pb2.LogMessage(origin=2, sender=2)
+        address = config.controller(1).address
+        await send(address, relay, 1, forged, True, Signer.from_pem(old.key).seal)
+        async with aio_channel(address, relay, replica) as channel:
+            seen = await ring_pb2_grpc.ControllerRingStub(channel).GetStatus(
+                ring_pb2.GetControllerStatusRequest()
+            )
+        assert seen.refused_messages == 1, seen
+        assert f"controller 2's revoked certificate (serial {replaced})" in seen.last_refused
+
         # The new certificate is taken, by parts never restarted nor re-keyed.
         new = Tls.load(certs, STATION)
         async with aio_channel(config.drone.address, new, DRONE) as channel:

@@ -3,45 +3,25 @@
 from __future__ import annotations
 
 import asyncio
-import datetime
 import os
 import secrets
 import sys
 
-from baton.authenticity import AuthenticityError, Keys, Signer, Verifier
+from baton.authenticity import Signer
 from baton.config import BatonConfig
 from baton.controller.node import ControllerNode
+from baton.controller.peer_keys import PeerKeys
 from baton.controller.service import ControllerRingService, mission_port, ring_receiver
 from baton.lifecycle import announce, run_until_signalled
 from baton.rpc.methods import service_full_name
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.ports import mission_policy, ring_policy
 from baton.rpc.server import BatonServer, servicer
-from baton.rpc.tls import DRONE, INSECURE_WARNING, Identity, Tls, TlsError
+from baton.rpc.tls import INSECURE_WARNING, Identity
 from baton.v1 import ring_pb2_grpc
 
 # How long a mission program has to end after SIGTERM before it is killed.
 MISSION_STOP_GRACE_S = 2.0
-
-
-def ring_keys(config: BatonConfig, tls: Tls) -> Keys:
-    """The drone's and every ring controller's key, from ``NAME.crt`` in the certificate
-    folder, each checked against the mission's CA now; TlsError naming the file and the
-    fix otherwise."""
-    certs, now = config.tls.certs, datetime.datetime.now(datetime.UTC)
-
-    def key(who: Identity) -> Verifier:
-        pem = Tls.read_certificate(certs, who)
-        try:
-            return Verifier.from_pem(pem, tls.ca, now, who)
-        except (AuthenticityError, ValueError) as exc:
-            raise TlsError(
-                f"{certs / (who.name + '.crt')}: {exc}; make it with `baton certs issue "
-                f"{certs} {who.name}` and copy {who.name}.crt to every controller"
-            ) from None
-
-    controllers = {cid: key(Identity.controller(cid)) for cid in config.ring_order}
-    return Keys(key(DRONE), controllers)
 
 
 class ControllerApp:
@@ -62,7 +42,8 @@ class ControllerApp:
         if tls is None:
             self.node.log.warning(INSECURE_WARNING)
         else:
-            self.node.core.keys = ring_keys(config, tls)
+            self.peer_keys = PeerKeys(config, tls, self.node.log.warning)
+            self.node.core.keys = self.peer_keys.keys
             self.node.core.protocol.seal = Signer.from_pem(tls.key).seal
         # The mission program's token (rpc/mission.py): given in the environment
         # (a program started by hand), else made up for the program started here.
@@ -102,7 +83,22 @@ class ControllerApp:
         self.mission_process: asyncio.subprocess.Process | None = None
         self._watcher: asyncio.Task[None] | None = None
         self.node.on_rejoin = self.rejoin
+        if tls is not None:
+            self.server.gate.on_refresh = self._keys_refresh
         self.node.on_gap = self.receiver.drop_streams
+
+    def _keys_refresh(self, revoked: frozenset[int]) -> None:
+        """The ring port re-read the revocation list: the keys follow it and the folder
+        (``PeerKeys``), those of the core serving now."""
+        if self.peer_keys.refresh(revoked):
+            self.node.core.keys = self.peer_keys.keys
+            self.node.log.info(
+                "log message keys re-read", revoked=sorted(f"{s:x}" for s in revoked)
+            )
+        seal = self.peer_keys.seal()
+        if seal is not None:
+            self.node.core.protocol.seal = seal
+            self.node.log.info("sealing with the rotated key")
 
     async def start(self) -> None:
         """Serves, starts the protocol, and launches the mission program if there is one."""

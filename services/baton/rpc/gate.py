@@ -87,6 +87,9 @@ class Gate(grpc.aio.ServerInterceptor):
         self._in_flight: Counter[Caller] = Counter()
         self._live: dict[int, _Live] = {}
         self._next = 0
+        # Told the revocation list's serials after every refresh (a controller's log
+        # message keys follow it: controller/peer_keys.py).
+        self.on_refresh: Callable[[frozenset[int]], None] | None = None
         self.refresh()
 
     def refresh(self) -> None:
@@ -105,6 +108,8 @@ class Gate(grpc.aio.ServerInterceptor):
         live = {key: call.caller for key, call in self._live.items()}
         for key in to_cut(live, self.revocations.serials, time.time()):
             self._live[key].cut.set()
+        if self.on_refresh is not None:
+            self.on_refresh(self.revocations.serials)
 
     def _revoked(self) -> frozenset[int]:
         return self.revocations.serials if self.revocations is not None else frozenset()
