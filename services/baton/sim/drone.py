@@ -752,7 +752,7 @@ class SimDrone:
             notice.after_reqnr,
             notice.epoch,
             notice.takeover,
-            notice.grant,
+            notice.grant if notice.HasField("grant") else None,
             stream=True,
         )
         self.seq.delivered(cid, notice)
@@ -806,7 +806,7 @@ class SimDrone:
                 grant.takeover,
                 grant.watermark_reqnr,
                 grant.takeover_epoch,
-                grant.grant,
+                grant.grant if grant.HasField("grant") else None,
             )
             parts: list[tuple[int, Callable[..., None], tuple[Any, ...]]] = [
                 (0, owner.on_drone_connected, connected)
