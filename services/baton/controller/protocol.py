@@ -1336,9 +1336,19 @@ class ControllerProtocol:
         (``on_log``). Not at once: a message on its way (a partition, a
         reordering link) framed replies the programs may have seen already,
         Clock calls answered by its master among them.
+
+        A predecessor's word that it holds messages of an older epoch than ours
+        above what we hold is a word about that same framing (``_promised``):
+        it is taken back with them, or a word its sender cannot keep any more
+        (it was fenced and rejoined with nothing) would keep us from being
+        caught up for ever. The drone's watermark still binds
+        (``must_hold_reqnr``).
         """
-        ready = self.state is State.PASSIVE and self.master and self.caught_up
-        if not ready or self._took_over_in != self.epoch or not self.log_queue:
+        taker = self.state is State.PASSIVE and self.master and self._took_over_in == self.epoch
+        if not taker or not self.log_queue:
+            return []
+        self._take_back_stale_words(self.epoch)
+        if not self.caught_up:
             return []
         if (self.lognr + 1) in self.log_queue:
             return []
