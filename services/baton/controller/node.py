@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import os
 import time
 from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
@@ -72,6 +73,7 @@ from baton.controller.protocol import (
     Unqueued,
 )
 from baton.controller.ring import PeerLink, Relay
+from baton.drone.invariants import INVARIANT_EXIT, InvariantBroken
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
 from baton.rpc.tls import Tls
@@ -635,7 +637,13 @@ class ControllerNode:
     # -- effects --------------------------------------------------------------------
 
     async def _apply(self, effects: Sequence[CoreEffect]) -> None:
-        for effect in self.core.ready(effects, self.drone_connected):
+        try:
+            ready = self.core.ready(effects, self.drone_connected)
+        except InvariantBroken as broken:
+            # A defect of baton: stop as a kill -9 would, rather than go on.
+            self.log.error("invariant broken; the controller stops", problem=str(broken))
+            os._exit(INVARIANT_EXIT)
+        for effect in ready:
             if isinstance(effect, Persist):
                 self.history.add(effect.message)
                 self.peer(self.protocol.successor).holds_changed()
