@@ -30,6 +30,8 @@ from pydantic import (
 )
 
 from baton.drone.policy import LinkBounds, PolicyParams
+from baton.rpc.mission import MISSION_ID_PATTERN
+from baton.rpc.ports import MAX_FRAME_BYTES
 from baton.rpc.tls import Identity, Tls
 from baton.sdk.fence import Fence, FenceCircle, FencePolygon, open_ring
 from baton.sdk.fence import polygon_problem as fence_polygon_problem
@@ -234,7 +236,7 @@ class RingConfig(_Model):
     forwarding: Literal["cut-through", "store-and-forward"] = "cut-through"
     # The slice of a log message one frame carries: the per-hop delay of
     # cut-through is one frame's time on the link.
-    frame_bytes: Size = Field(default=16 * 2**10, ge=2**10, le=4 * 2**20)
+    frame_bytes: Size = Field(default=16 * 2**10, ge=2**10, le=MAX_FRAME_BYTES)
 
     @property
     def cut_through(self) -> bool:
@@ -494,6 +496,11 @@ class BatonConfig(_Model):
     radio_fade: RadioFadeConfig | None = None
     # Lost link, battery reserve and the limits a vehicle can fly (``SafetyConfig``).
     safety: SafetyConfig = SafetyConfig()
+    # The mission's id on a station network (``baton station``): a station serves
+    # every mission on one port, so each controller's ring streams name the mission
+    # (rpc/mission.py, the baton-mission metadata); absent for a controller that
+    # serves one mission on a port of its own.
+    mission_id: str | None = Field(default=None, pattern=MISSION_ID_PATTERN)
 
     @field_validator("ring", mode="before")
     @classmethod

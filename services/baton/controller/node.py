@@ -436,6 +436,7 @@ class ControllerNode:
                 history,
                 self.tls,
                 self.config.ring.frame_bytes,
+                self.config.mission_id,
             )
             link.on_handover_acked = self._handover_acked
             link.on_acked = self._target_acked
