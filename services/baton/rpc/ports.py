@@ -32,9 +32,9 @@ _RING = "/baton.v1.ControllerRing/"
 _STATION = "/baton.v1.Station/"
 # The largest ring frame any mission may choose (config.RingConfig.frame_bytes).
 MAX_FRAME_BYTES = 4 << 20
-# A peer station holds a ring stream or two per mission the two share: its calls
-# in flight on a station's port are the lone controller's cap per mission, up to
-# this many missions shared.
+# A peer station holds a ring stream or two per mission the two share: on a
+# station's port its calls in flight are capped per mission as a lone controller's
+# port caps them, and over all its missions at that cap times this many.
 SHARED_MISSIONS = 64
 
 
@@ -90,5 +90,5 @@ def station_policy() -> PortPolicy:
         "station's port",
         MAX_FRAME_BYTES + FRAME_HEAD_BYTES,
         rules,
-        calls_per_caller=CALLS_PER_CALLER * SHARED_MISSIONS,
+        calls_per_caller_all_missions=CALLS_PER_CALLER * SHARED_MISSIONS,
     )
