@@ -59,7 +59,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
             "SQLite file. 'admit' decides which stations cover a drone's route: the ring is "
             "the covering stations in route order, the first master the nearest to take-off; "
             "a route with a stretch no station covers is refused, naming it. The registry "
-            "starts nothing yet: a station process hosting its missions is issue 34, item 1."
+            "starts nothing yet: the operator starts the ring's sessions on its stations "
+            "(baton station, Station.StartMission)."
         ),
     )
     actions = parser.add_subparsers(dest="fleet_action", metavar="ACTION", required=True)
