@@ -71,8 +71,10 @@ class ControllerSession:
         else:
             self.node.core.keys = ring_keys(config, tls)
             self.node.core.protocol.seal = Signer.from_pem(tls.key).seal
-        self.token = token or os.environ.get(MISSION_TOKEN_ENV) or (
-            secrets.token_urlsafe(18) if mission else None
+        self.token = (
+            token
+            or os.environ.get(MISSION_TOKEN_ENV)
+            or (secrets.token_urlsafe(18) if mission else None)
         )
         if self.token is None:
             self.node.log.warning(
