@@ -108,6 +108,17 @@ async def test_two_missions_share_stations_exactly_once_and_a_crash_touches_neit
             with pytest.raises(grpc.aio.AioRpcError) as denied:
                 await call.read()
             assert denied.value.code() == grpc.StatusCode.PERMISSION_DENIED
+        # A malformed frame from a station of alpha's ring ends that stream only: both
+        # missions fly on (checked below, exactly once).
+        as_one = Tls.load(certs, Identity.controller(1))
+        async with aio_channel(stations[2].address, as_one, Identity.controller(2)) as channel:
+            raw: grpc.aio.StreamStreamMultiCallable[bytes, bytes]
+            raw = channel.stream_stream("/baton.v1.ControllerRing/LogRing")
+            garbage = raw(iter([b"\xff\xff not a LogFrame"]), metadata=mission_metadata("alpha"))
+            with pytest.raises(grpc.aio.AioRpcError) as malformed:
+                async for _ in garbage:
+                    pass
+            assert malformed.value.code() == grpc.StatusCode.INVALID_ARGUMENT
 
         async def ended(mission: str) -> dict[int, ring_pb2.ControllerStatus] | None:
             statuses = {sid: await stations[sid].status(mission) for sid in RINGS[mission]}
