@@ -15,9 +15,10 @@ nothing on the station.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import secrets
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import grpc
@@ -53,7 +54,9 @@ class Hosted:
     handlers: Handlers
     state: station_pb2.SessionState.ValueType = station_pb2.SESSION_STATE_HOSTING
     error: str = ""
-    ended: asyncio.Event = field(default_factory=asyncio.Event)
+    # Ending it after its program failed (``StationApp._end_failed``), and its stop.
+    ending: asyncio.Task[None] | None = None
+    stopping: asyncio.Future[None] | None = None
 
 
 class StationApp:
@@ -164,7 +167,7 @@ class StationApp:
         node = hosted.session.node
         hosted.error = node.mission_error or f"mission program exited with code {code}"
         self.log.warning("session failed", mission=hosted.mission_id, error=hosted.error)
-        self._tasks.spawn(self._end_failed(hosted), name=f"end-{hosted.mission_id}")
+        hosted.ending = self._tasks.spawn(self._end_failed(hosted), name=f"end-{hosted.mission_id}")
 
     async def _end_failed(self, hosted: Hosted) -> None:
         """Ends a failed session once its successor holds its log (or the flush bound)."""
@@ -175,9 +178,28 @@ class StationApp:
                 break
             await asyncio.sleep(FLUSH_POLL_S)
         hosted.state = station_pb2.SESSION_STATE_FAILED
-        await hosted.session.stop()
-        hosted.ended.set()
+        await self._stop_session(hosted)
         self.log.info("failed session ended", mission=hosted.mission_id)
+
+    async def _stop_session(self, hosted: Hosted) -> None:
+        """Stops a session's controller once, however many ask and if one is cancelled."""
+        if hosted.stopping is None:
+            hosted.stopping = asyncio.ensure_future(hosted.session.stop())
+        try:
+            await asyncio.shield(hosted.stopping)
+        except Exception as exc:
+            self.log.error("session did not stop cleanly", error=repr(exc))
+
+    async def _end(self, hosted: Hosted) -> bool:
+        """Ends a session now (a failed one's wait for its log to leave cut short);
+        whether it was hosting."""
+        was_running = hosted.state == station_pb2.SESSION_STATE_HOSTING
+        if hosted.ending is not None and not hosted.ending.done():
+            hosted.ending.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await hosted.ending
+        await self._stop_session(hosted)
+        return was_running
 
     async def stop_mission(self, mission_id: str) -> bool:
         """Ends a mission's session and removes its folder; whether it was hosting."""
@@ -185,12 +207,8 @@ class StationApp:
         if isinstance(found, StatusError):
             raise found
         del self.hosted[mission_id]
-        was_running = found.state == station_pb2.SESSION_STATE_HOSTING
-        if was_running:
-            await self._discard(found.session, found.folder)
-        else:
-            await found.ended.wait()
-            await self._discard(None, found.folder)
+        was_running = await self._end(found)
+        await self._discard(None, found.folder)
         self.log.info("session stopped", mission=mission_id)
         return was_running
 
@@ -217,8 +235,7 @@ class StationApp:
 
     async def stop(self) -> None:
         """Stops every session (their folders stay), then the port."""
-        sessions = [h.session for h in self.hosted.values()]
-        await asyncio.gather(*(s.stop() for s in sessions), return_exceptions=True)
+        await asyncio.gather(*(self._end(h) for h in self.hosted.values()))
         self._tasks.cancel()
         await self.server.stop()
 
