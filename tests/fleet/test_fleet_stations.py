@@ -91,7 +91,8 @@ async def test_a_mission_starts_on_its_whole_ring_or_none_and_a_cancel_leaves_no
         assert "started on stations 1 (first master), 2" in out
         for station in stations.values():
             assert await hosted(station) == {"1": station_pb2.SESSION_STATE_HOSTING}
-            assert (await station.status("1")).id == station.id
+            session = await station.status("1")
+            assert (session.id, session.mission_id) == (station.id, "1")
 
         status, out = await fleet(capsys, "cancel", "1", "--config", str(network), *registry)
         assert status == 0 and "cancelled" in out, out
