@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 import yaml
 from helpers.missions import SMALL_GRID
-from helpers.stations import StationPart, start_stations
 
 from baton.certs.make import init
 from baton.cli import main
 from baton.rpc.tls import DRONE, OPERATOR, Identity
+from baton.testbed.fleet import StationPart, start_stations
 from baton.testbed.supervisor import Supervisor
 from baton.v1 import station_pb2
 

@@ -4,20 +4,21 @@ service, while a third mission's program crashes on two of the same stations."""
 
 from __future__ import annotations
 
-import json
 from functools import partial
 from pathlib import Path
 
 import grpc
 import pytest
 from helpers.missions import SMALL_GRID, assert_mission_promises
-from helpers.stations import mission_config, start_mission_drone, start_stations
+from helpers.stations import as_text, mission_config
 from waiting import eventually
 
 from baton.certs.make import init
+from baton.config import BatonConfig
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import mission_metadata
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
+from baton.testbed.fleet import start_mission_drone, start_stations
 from baton.testbed.local import TestbedPlan
 from baton.testbed.supervisor import Supervisor
 from baton.v1 import ring_pb2, ring_pb2_grpc, station_pb2
@@ -28,10 +29,10 @@ CRASHING = "def mission(drone):\n    raise RuntimeError('charlie crashes on purp
 
 
 def start_request(
-    mission: str, config: dict[str, object], program: Path, args: list[str]
+    mission: str, config: BatonConfig, program: Path, args: list[str]
 ) -> station_pb2.StartMissionRequest:
     return station_pb2.StartMissionRequest(
-        mission_id=mission, config=json.dumps(config), program=str(program), args=args
+        mission_id=mission, config=as_text(config), program=str(program), args=args
     )
 
 
@@ -45,7 +46,9 @@ async def test_two_missions_share_stations_exactly_once_and_a_crash_touches_neit
     async with Supervisor(tmp_path / "parts") as supervisor:
         stations = await start_stations(supervisor, (1, 2, 3), certs)
         drones = {
-            m: await start_mission_drone(supervisor, m, stations, ring, HANDOVERS[m], certs)
+            m: await start_mission_drone(
+                supervisor, m, mission_config("127.0.0.1:0", stations, ring, certs), HANDOVERS[m]
+            )
             for m, ring in RINGS.items()
         }
         for drone in drones.values():
