@@ -144,6 +144,10 @@ async def test_a_port_holds_at_most_a_callers_share_and_frees_it_as_calls_end(
             await call(b"y" * (1 << 19), timeout=20)
         assert refused.value.code() is grpc.StatusCode.RESOURCE_EXHAUSTED
         assert "4 calls in flight on the test port" in (refused.value.details() or "")
+        # A port of one mission counts the caller's calls whatever mission they name.
+        with pytest.raises(grpc.aio.AioRpcError) as named:
+            await call(b"y", timeout=20, metadata=mission_metadata("another"))
+        assert named.value.code() is grpc.StatusCode.RESOURCE_EXHAUSTED
         release.set()
         assert await asyncio.gather(*held) == [b"x"] * 4
         assert await call(b"z", timeout=20) == b"z"

@@ -152,8 +152,10 @@ class Gate(grpc.aio.ServerInterceptor):
         if not self.enforced:
             return await run()
         who = caller_of(context)
-        mission = mission_in(context.invocation_metadata())
-        key = (who, mission)
+        # Only a port of many missions counts per mission: elsewhere a caller naming
+        # missions of its own choosing would take the cap again with each.
+        many = self.policy.calls_per_caller_all_missions is not None
+        key = (who, mission_in(context.invocation_metadata()) if many else None)
         revoked = self._revoked()
         refusal = admit(
             self.policy,
