@@ -1,5 +1,6 @@
 """``baton fleet start`` and ``cancel`` against real station processes: an admitted
-mission's sessions start on its whole ring or on none, and a cancel leaves nothing."""
+mission's sessions start on its whole ring or on none, a restarted station takes its
+session back from its history file, and a cancel leaves nothing."""
 
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ async def hosted(station: StationPart) -> dict[str, station_pb2.SessionState.Val
     return {m.mission_id: m.state for m in status.missions}
 
 
-async def test_a_mission_starts_on_its_whole_ring_or_none_and_a_cancel_leaves_nothing(
+async def test_a_ring_starts_whole_or_not_at_all_again_after_a_restart_and_cancels_to_nothing(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     certs = tmp_path / "certs"
@@ -71,20 +72,15 @@ async def test_a_mission_starts_on_its_whole_ring_or_none_and_a_cancel_leaves_no
         start = ["start", "1", "--config", str(network), "--mission", str(SMALL_GRID.file)]
         start += [f"--mission-arg={arg}" for arg in SMALL_GRID.args()] + registry
 
-        # Station 2 hosts a mission "1" already: the start is refused there and undone
-        # on station 1, which keeps nothing of it.
-        taken = station_pb2.StartMissionRequest(
-            mission_id="1",
-            config=network.read_text(),
-            program=str(SMALL_GRID.file),
-        )
-        await stations[2].stub.StartMission(taken)
+        # Station 2 is down: the start fails there and is undone on station 1, which
+        # keeps nothing of it.
+        await supervisor.kill("station-2")
         status, out = await fleet(capsys, *start)
         assert status == 1, out
-        assert "station 2" in out and "ALREADY_EXISTS" in out and "stopped on 1" in out
+        assert "station 2" in out and "UNAVAILABLE" in out and "stopped on 1" in out
         assert await hosted(stations[1]) == {}
         assert not (stations[1].state_dir / "missions" / "1").exists()
-        await stations[2].stub.StopMission(station_pb2.StopMissionRequest(mission_id="1"))
+        await supervisor.restart("station-2")
 
         status, out = await fleet(capsys, *start)
         assert status == 0, out
@@ -93,6 +89,19 @@ async def test_a_mission_starts_on_its_whole_ring_or_none_and_a_cancel_leaves_no
             assert await hosted(station) == {"1": station_pb2.SESSION_STATE_HOSTING}
             session = await station.status("1")
             assert (session.id, session.mission_id) == (station.id, "1")
+
+        # Station 2 restarted has no session but its history file: starting the mission
+        # again takes the session back there from it, and leaves station 1's running.
+        history = stations[2].state_dir / "missions" / "1" / "history.sqlite"
+        await supervisor.kill("station-2")
+        await supervisor.restart("station-2")
+        assert await hosted(stations[2]) == {} and history.exists()
+        before = (await stations[1].status("1")).log_file
+        status, out = await fleet(capsys, *start)
+        assert status == 0, out
+        assert (await stations[2].status("1")).log_file.path == str(history)
+        assert await hosted(stations[1]) == {"1": station_pb2.SESSION_STATE_HOSTING}
+        assert (await stations[1].status("1")).log_file == before
 
         status, out = await fleet(capsys, "cancel", "1", "--config", str(network), *registry)
         assert status == 0 and "cancelled" in out, out

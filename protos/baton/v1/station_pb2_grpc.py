@@ -58,10 +58,12 @@ class StationServicer:
 
     def StartMission(self, request, context):
         """Starts the session of a mission whose ring holds this station: its
-        controller, log, history file and mission program. ALREADY_EXISTS for a
-        mission it hosts already; INVALID_ARGUMENT naming the field of a malformed
-        request; FAILED_PRECONDITION for a ring without this station. A session
-        that fails to start leaves nothing on the station.
+        controller, log, history file and mission program; a folder its earlier
+        run left (the station restarted) is the same mission's, and the session
+        recovers from its history file. ALREADY_EXISTS for a mission it hosts
+        already; INVALID_ARGUMENT naming the field of a malformed request;
+        FAILED_PRECONDITION for a ring without this station. A session that fails
+        to start leaves nothing new on the station.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

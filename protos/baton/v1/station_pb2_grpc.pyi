@@ -45,10 +45,12 @@ class StationStub:
     def __new__(cls, channel: _aio.Channel) -> StationAsyncStub: ...
     StartMission: _grpc.UnaryUnaryMultiCallable[_station_pb2.StartMissionRequest, _station_pb2.StationMission]
     """Starts the session of a mission whose ring holds this station: its
-    controller, log, history file and mission program. ALREADY_EXISTS for a
-    mission it hosts already; INVALID_ARGUMENT naming the field of a malformed
-    request; FAILED_PRECONDITION for a ring without this station. A session
-    that fails to start leaves nothing on the station.
+    controller, log, history file and mission program; a folder its earlier
+    run left (the station restarted) is the same mission's, and the session
+    recovers from its history file. ALREADY_EXISTS for a mission it hosts
+    already; INVALID_ARGUMENT naming the field of a malformed request;
+    FAILED_PRECONDITION for a ring without this station. A session that fails
+    to start leaves nothing new on the station.
     """
     StopMission: _grpc.UnaryUnaryMultiCallable[_station_pb2.StopMissionRequest, _station_pb2.StopMissionReply]
     """Ends a mission's session (a cancel): its program, controller and ring
@@ -65,10 +67,12 @@ class StationAsyncStub(StationStub):
     def __init__(self, channel: _aio.Channel) -> None: ...
     StartMission: _aio.UnaryUnaryMultiCallable[_station_pb2.StartMissionRequest, _station_pb2.StationMission]  # type: ignore[assignment]
     """Starts the session of a mission whose ring holds this station: its
-    controller, log, history file and mission program. ALREADY_EXISTS for a
-    mission it hosts already; INVALID_ARGUMENT naming the field of a malformed
-    request; FAILED_PRECONDITION for a ring without this station. A session
-    that fails to start leaves nothing on the station.
+    controller, log, history file and mission program; a folder its earlier
+    run left (the station restarted) is the same mission's, and the session
+    recovers from its history file. ALREADY_EXISTS for a mission it hosts
+    already; INVALID_ARGUMENT naming the field of a malformed request;
+    FAILED_PRECONDITION for a ring without this station. A session that fails
+    to start leaves nothing new on the station.
     """
     StopMission: _aio.UnaryUnaryMultiCallable[_station_pb2.StopMissionRequest, _station_pb2.StopMissionReply]  # type: ignore[assignment]
     """Ends a mission's session (a cancel): its program, controller and ring
@@ -88,10 +92,12 @@ class StationServicer(metaclass=_abc_1.ABCMeta):
         context: _ServicerContext,
     ) -> _typing.Union[_station_pb2.StationMission, _abc.Awaitable[_station_pb2.StationMission]]:
         """Starts the session of a mission whose ring holds this station: its
-        controller, log, history file and mission program. ALREADY_EXISTS for a
-        mission it hosts already; INVALID_ARGUMENT naming the field of a malformed
-        request; FAILED_PRECONDITION for a ring without this station. A session
-        that fails to start leaves nothing on the station.
+        controller, log, history file and mission program; a folder its earlier
+        run left (the station restarted) is the same mission's, and the session
+        recovers from its history file. ALREADY_EXISTS for a mission it hosts
+        already; INVALID_ARGUMENT naming the field of a malformed request;
+        FAILED_PRECONDITION for a ring without this station. A session that fails
+        to start leaves nothing new on the station.
         """
 
     @_abc_1.abstractmethod

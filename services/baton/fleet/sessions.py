@@ -4,9 +4,12 @@ together (``baton fleet start`` and ``cancel``).
 The operator's side of ``Station.StartMission`` and ``StopMission``
 (baton/station/): every station of the ring is given the mission's
 configuration (its ring's stations at their ports, its drone) and program. A
-start that one station refuses is undone on the stations that had taken it,
-so a mission either starts on its whole ring or leaves nothing on any; a
-stop tolerates a station that hosts nothing of it already.
+start that one station refuses is undone on the stations it started, so a
+mission either starts on its whole ring or leaves nothing new on any. A
+station that hosts the mission already keeps it (mission ids are the
+registry's, never reused): starting again is how a restarted station takes
+its sessions back, from their history files. A stop tolerates a station
+that hosts nothing of it.
 """
 
 from __future__ import annotations
@@ -51,8 +54,9 @@ def _said(config: BatonConfig, sid: int, exc: grpc.RpcError) -> str:
 def start_sessions(
     config: BatonConfig, mission_id: str, program: str, args: Sequence[str], tls: Tls | None
 ) -> None:
-    """Starts the mission's session on every station of ``config``'s ring, in ring
-    order; SessionError naming the station that refused, after the others stopped it."""
+    """Starts the mission's session on every station of ``config``'s ring that does not
+    host it yet, in ring order; SessionError naming the station that refused, after
+    those this call started stopped it."""
     request = station_pb2.StartMissionRequest(
         mission_id=mission_id,
         config=json.dumps(config.model_dump(mode="json", exclude_unset=True)),
@@ -65,6 +69,8 @@ def start_sessions(
             with _station(config, sid, tls) as stub:
                 stub.StartMission(request, timeout=CALL_TIMEOUT_S)
         except grpc.RpcError as exc:
+            if _code(exc) == grpc.StatusCode.ALREADY_EXISTS:
+                continue
             problems = stop_sessions(config, mission_id, tls, started)
             undone = (f"; stopped on {', '.join(map(str, started))}" if started else "") + "".join(
                 f"; {p}" for p in problems

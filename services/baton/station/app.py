@@ -120,9 +120,12 @@ class StationApp:
             raise invalid("program", f"no file {request.program} on station {self.id}")
         self._starting.add(mid)
         folder = self.folder(mid)
+        # A folder left by this station's earlier run is the same mission's (ids are not
+        # reused): its session starts from the history file, as a restarted controller.
+        made = not folder.exists()
         session: ControllerSession | None = None
         try:
-            folder.mkdir(parents=True, exist_ok=False)
+            folder.mkdir(parents=True, exist_ok=True)
             session = ControllerSession(
                 config,
                 self.id,
@@ -136,14 +139,14 @@ class StationApp:
             session.on_program_end = lambda code: self._program_ended(hosted, code)
             await session.start()
         except (OSError, TlsError, ValueError) as exc:
-            await self._discard(session, folder)
+            await self._discard(session, folder if made else None)
+            left = "nothing of it is left here" if made else f"its earlier {folder} is kept"
             raise StatusError(
                 grpc.StatusCode.FAILED_PRECONDITION,
-                f"StartMission: mission {mid} did not start on station {self.id}: {exc}; "
-                "nothing of it is left here",
+                f"StartMission: mission {mid} did not start on station {self.id}: {exc}; {left}",
             ) from None
         except BaseException:
-            await self._discard(session, folder)
+            await self._discard(session, folder if made else None)
             raise
         finally:
             self._starting.discard(mid)
@@ -151,14 +154,15 @@ class StationApp:
         self.log.info("session started", mission=mid, ring=config.ring_order)
         return hosted
 
-    async def _discard(self, session: ControllerSession | None, folder: Path) -> None:
-        """Stops what a session started and removes its folder."""
+    async def _discard(self, session: ControllerSession | None, folder: Path | None) -> None:
+        """Stops what a session started and removes its folder (None: keeps it)."""
         if session is not None:
             try:
                 await session.stop()
             except Exception as exc:
                 self.log.error("session did not stop cleanly", error=repr(exc))
-        await asyncio.to_thread(shutil.rmtree, folder, True)
+        if folder is not None:
+            await asyncio.to_thread(shutil.rmtree, folder, True)
 
     async def _program_ended(self, hosted: Hosted, code: int) -> None:
         """A session's program ended on its own: a failure ends the session."""

@@ -38,7 +38,7 @@ from baton.effects import read_effects
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import MISSION_ID_PATTERN, mission_metadata
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
-from baton.testbed.local import MissionPlan, Snapshot
+from baton.testbed.local import MissionPlan, Snapshot, free_port
 from baton.testbed.supervisor import Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc, station_pb2_grpc
 
@@ -136,8 +136,9 @@ class StationPart:
 async def start_stations(
     supervisor: Supervisor, ids: Sequence[int], certs: Path | None
 ) -> dict[int, StationPart]:
-    """``baton station`` processes with ids ``ids``, each on a free port, and an
-    operator's channel to each (``certs`` None: insecure)."""
+    """``baton station`` processes with ids ``ids``, each on a free port (the same
+    again if the supervisor restarts it), and an operator's channel to each (``certs``
+    None: insecure)."""
     workdir = supervisor.workdir
     tls_flag = f"--certs={certs}" if certs is not None else "--insecure"
     parts = [
@@ -146,7 +147,7 @@ async def start_stations(
             baton_argv(
                 "station",
                 f"--id={sid}",
-                "--address=127.0.0.1:0",
+                f"--address=127.0.0.1:{free_port()}",
                 f"--address-file={workdir / f'station-{sid}.address'}",
                 f"--state-dir={workdir / f'station-{sid}'}",
                 tls_flag,
