@@ -686,18 +686,22 @@ def parse_config(data: Any, source: str = "<config>") -> BatonConfig:
         raise ConfigError(format_validation_error(source, exc)) from None
 
 
-def load_config(path: str | Path) -> BatonConfig:
-    """Reads and validates a testbed YAML file."""
-    path = Path(path)
+def read_yaml(path: Path, what: str = "configuration file") -> Any:
+    """The parsed YAML document of ``path``; ConfigError naming the file otherwise."""
     try:
         text = path.read_text()
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the configuration file: {exc.strerror}") from None
+        raise ConfigError(f"{path}: cannot read the {what}: {exc.strerror}") from None
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
-    config = parse_config(data, str(path))
+
+
+def load_config(path: str | Path) -> BatonConfig:
+    """Reads and validates a testbed YAML file."""
+    path = Path(path)
+    config = parse_config(read_yaml(path), str(path))
     key = config.drone.mavlink_key
     if key is not None and not key.is_absolute():
         drone = config.drone.model_copy(update={"mavlink_key": path.parent / key})

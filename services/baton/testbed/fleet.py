@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any, Literal
 
 import grpc
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from baton.config import (
@@ -33,6 +32,7 @@ from baton.config import (
     Location,
     PolicySetting,
     format_validation_error,
+    read_yaml,
 )
 from baton.effects import read_effects
 from baton.rpc.channels import aio_channel
@@ -102,12 +102,7 @@ class FleetFile(_Model):
 
 def load_fleet(path: Path) -> FleetFile:
     """Reads and validates a fleet file; ConfigError names the file, field and fix."""
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the fleet file: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML: {exc}") from None
+    data = read_yaml(path, "fleet file")
     try:
         return FleetFile.model_validate(data)
     except ValidationError as exc:
