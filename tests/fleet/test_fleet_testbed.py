@@ -11,7 +11,8 @@ from helpers.testbed_runs import baton_run
 
 from baton.cli import main
 
-FLEET = Path(__file__).parents[2] / "examples" / "fleet.yaml"
+EXAMPLES = Path(__file__).parents[2] / "examples"
+FLEET, FLEET_SIX = EXAMPLES / "fleet.yaml", EXAMPLES / "fleet-six.yaml"
 
 
 def test_the_example_fleet_flies_every_mission_exactly_once_over_shared_stations(
@@ -26,6 +27,14 @@ def test_the_example_fleet_flies_every_mission_exactly_once_over_shared_stations
     for drone in ("d1", "d2"):
         assert lines[drone][-2:] == ["True", "consistent"], result.stdout
     assert "fleet: 2/2 missions completed exactly once" in result.stdout
+
+
+@pytest.mark.slow
+def test_six_drones_over_four_stations_each_exactly_once(tmp_path: Path) -> None:
+    """About 2 minutes on 2 cores: the stations host up to five missions each."""
+    result = baton_run("testbed", "--fleet", str(FLEET_SIX), "--workdir", str(tmp_path))
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "fleet: 6/6 missions completed exactly once" in result.stdout
 
 
 def test_a_fleet_with_an_uncovered_route_or_a_bad_field_starts_nothing(
