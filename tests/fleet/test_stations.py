@@ -89,7 +89,7 @@ async def test_two_missions_share_stations_exactly_once_and_a_crash_touches_neit
                 assert states["charlie"].error
             return True
 
-        await eventually(charlie_failed, "charlie's sessions failed and ended", 30)
+        await eventually(charlie_failed, "charlie's sessions failed and ended", 60)
         for sid in (1, 3):
             stopped = await stations[sid].stub.StopMission(
                 station_pb2.StopMissionRequest(mission_id="charlie")
