@@ -167,6 +167,8 @@ class ControllerNode:
         self.history = LogHistory(log_file)
         self.clock = MissionClock(config.speedup)
         self.log = get_logger("controller").bind(context=self._log_context, id=cid)
+        if config.mission_id is not None:  # a station's session: its lines name the mission
+            self.log = self.log.bind(mission=config.mission_id)
         # Replaced on every change, so a waiter holds the event of the state it saw.
         self._changed = asyncio.Event()
         self._peers: dict[int, PeerLink] = {}
@@ -438,6 +440,7 @@ class ControllerNode:
                 history,
                 self.tls,
                 self.config.ring.frame_bytes,
+                self.config.mission_id,
             )
             link.on_handover_acked = self._handover_acked
             link.on_acked = self._target_acked
