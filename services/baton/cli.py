@@ -27,6 +27,7 @@ PROGRAMS = [
     "baton.drone.cli",
     "baton.drone.operator_cli",
     "baton.controller.cli",
+    "baton.station.cli",
     "baton.link.cli",
     "baton.testbed.cli",
     "baton.fleet.cli",

@@ -30,6 +30,8 @@ from pydantic import (
 )
 
 from baton.drone.policy import LinkBounds, PolicyParams
+from baton.rpc.mission import MISSION_ID_PATTERN
+from baton.rpc.ports import MAX_FRAME_BYTES
 from baton.rpc.tls import Identity, Tls
 from baton.sdk.fence import Fence, FenceCircle, FencePolygon, open_ring
 from baton.sdk.fence import polygon_problem as fence_polygon_problem
@@ -234,7 +236,7 @@ class RingConfig(_Model):
     forwarding: Literal["cut-through", "store-and-forward"] = "cut-through"
     # The slice of a log message one frame carries: the per-hop delay of
     # cut-through is one frame's time on the link.
-    frame_bytes: Size = Field(default=16 * 2**10, ge=2**10, le=4 * 2**20)
+    frame_bytes: Size = Field(default=16 * 2**10, ge=2**10, le=MAX_FRAME_BYTES)
 
     @property
     def cut_through(self) -> bool:
@@ -494,6 +496,11 @@ class BatonConfig(_Model):
     radio_fade: RadioFadeConfig | None = None
     # Lost link, battery reserve and the limits a vehicle can fly (``SafetyConfig``).
     safety: SafetyConfig = SafetyConfig()
+    # The mission's id on a station network (``baton station``): a station serves
+    # every mission on one port, so each controller's ring streams name the mission
+    # (rpc/mission.py, the baton-mission metadata); absent for a controller that
+    # serves one mission on a port of its own.
+    mission_id: str | None = Field(default=None, pattern=MISSION_ID_PATTERN)
 
     @field_validator("ring", mode="before")
     @classmethod
@@ -679,18 +686,22 @@ def parse_config(data: Any, source: str = "<config>") -> BatonConfig:
         raise ConfigError(format_validation_error(source, exc)) from None
 
 
-def load_config(path: str | Path) -> BatonConfig:
-    """Reads and validates a testbed YAML file."""
-    path = Path(path)
+def read_yaml(path: Path, what: str = "configuration file") -> Any:
+    """The parsed YAML document of ``path``; ConfigError naming the file otherwise."""
     try:
         text = path.read_text()
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the configuration file: {exc.strerror}") from None
+        raise ConfigError(f"{path}: cannot read the {what}: {exc.strerror}") from None
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML: {exc}") from None
-    config = parse_config(data, str(path))
+
+
+def load_config(path: str | Path) -> BatonConfig:
+    """Reads and validates a testbed YAML file."""
+    path = Path(path)
+    config = parse_config(read_yaml(path), str(path))
     key = config.drone.mavlink_key
     if key is not None and not key.is_absolute():
         drone = config.drone.model_copy(update={"mavlink_key": path.parent / key})

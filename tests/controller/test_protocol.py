@@ -899,6 +899,40 @@ def test_a_taker_drops_the_lost_masters_messages_queued_beyond_a_gap() -> None:
     assert p.state is State.ACTIVE and not p.log_queue and 4 not in p._received
 
 
+def test_a_taker_gives_up_a_gap_its_predecessor_promised_of_the_lost_masters_epoch() -> None:
+    """The predecessor said, after the takeover, that it held the lost master's messages
+    3-4 (epoch 1), then was fenced and rejoined with nothing: its word cannot be kept.
+    A word about the framing the gap gives up goes with it (it kept the taker from
+    being caught up for ever: ``--lose-master`` seed 14453)."""
+    p = started(1, [0, 1], 2**20)
+    p.on_log(framed(1, 0, [1], 1))
+    p.on_log(framed(2, 0, [2], 1))
+    p.on_log(framed(4, 0, [4], 1))
+    replay_all(p)
+    assert p.on_granted(2, takeover=True, watermark_reqnr=0) == []
+    p.on_sync(4, 1)  # the lost master holds 3-4; 3 never reaches us
+    assert not p.caught_up
+    effects = p.give_up_gap()
+    assert [(type(e).__name__, getattr(e, "lognr", None)) for e in effects] == [
+        ("Unqueued", 4),
+        ("ConnectDrone", None),
+    ]
+    assert p.state is State.ACTIVE and p.caught_up
+
+
+def test_a_takers_gap_give_up_keeps_the_drones_watermark() -> None:
+    """Giving up the lost master's words does not give up the drone's: a taker that
+    does not hold every request up to the watermark stays PASSIVE."""
+    p = started(1, [0, 1], 2**20)
+    p.on_log(framed(1, 0, [1], 1))
+    p.on_log(framed(4, 0, [4], 1))
+    replay_all(p)
+    p.on_granted(2, takeover=True, watermark_reqnr=3)
+    p.on_sync(4, 1)
+    assert [type(e).__name__ for e in p.give_up_gap()] == []
+    assert p.state is State.PASSIVE
+
+
 def test_a_replica_does_not_give_up_a_gap() -> None:
     p = started(1, [0, 1, 2], 2**20)
     p.on_log(framed(1, 0, [1], 1))

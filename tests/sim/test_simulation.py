@@ -122,6 +122,14 @@ def test_lose_master_prepared_seed_15328_holds_every_oracle() -> None:
     assert outcome.ok, outcome.report()
 
 
+def test_lose_master_seed_14453_a_taker_does_not_wait_on_a_word_its_sender_lost() -> None:
+    """Master 2's message 3 was on a reordering link when taker 3 re-opened the stream;
+    2, fenced, rejoined with nothing, and 3 waited for ever for the 3 that 2's earlier
+    word had promised (every controller then held 1-2 and queued 4)."""
+    outcome = run_seed(14453, SimOptions(lose_master=True))
+    assert outcome.ok, outcome.report()
+
+
 # Beyond CI's range, fixed: a new master's give-up of a retained reply (2456, 2707),
 # killed replicas held to a framing a takeover replaced (the oracle), the drone's watch
 # stopped while a program still had a given-up call to settle (2957, the sim).
@@ -242,6 +250,16 @@ def test_a_taker_after_a_drone_restart_holds_what_the_drone_let_go() -> None:
     watermark: the taker waits until the ring gave it request 3."""
     outcome = run_seed(201, SimOptions(policy="nearest"))
     assert not outcome.failed, _failures([outcome])
+
+
+def test_the_programs_start_once_a_station_that_never_answered_leaves_radio_range() -> None:
+    """--policy nearest 6960, --policy predictive 6651 (liveness, the simulation's own):
+    a controller restarted while cut from the drone never asked it, then left radio
+    range; the programs wait for the stations in range, but nothing asked again when
+    the range changed, so they never started."""
+    for seed, policy in ((6960, "nearest"), (6651, "predictive")):
+        outcome = run_seed(seed, SimOptions(policy=policy))
+        assert outcome.ok, outcome.report()
 
 
 def test_policy_seed_132_holds_every_oracle() -> None:

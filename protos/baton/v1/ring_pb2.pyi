@@ -642,6 +642,7 @@ class ControllerStatus(_message.Message):
     LOG_FILE_FIELD_NUMBER: _builtins.int
     REFUSED_MESSAGES_FIELD_NUMBER: _builtins.int
     LAST_REFUSED_FIELD_NUMBER: _builtins.int
+    MISSION_ID_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
     state: Global___ControllerState.ValueType
@@ -722,6 +723,10 @@ class ControllerStatus(_message.Message):
     relayed it, which log message and why.
     """
     last_refused: _builtins.str
+    mission_id: _builtins.str
+    """The mission it is the controller of, on a station that hosts several
+    (its configuration's mission_id); empty for a lone controller.
+    """
     @_builtins.property
     def peers(self) -> _containers.RepeatedCompositeFieldContainer[Global___PeerStatus]:
         """The successor and the other peers this controller streams to."""
@@ -803,10 +808,11 @@ class ControllerStatus(_message.Message):
         log_file: Global___LogFileStatus | None = ...,
         refused_messages: _builtins.int = ...,
         last_refused: _builtins.str = ...,
+        mission_id: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["log_file", b"log_file"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "last_refused", b"last_refused", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "log_file", b"log_file", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "refused_messages", b"refused_messages", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "last_refused", b"last_refused", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "log_file", b"log_file", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "mission_id", b"mission_id", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "refused_messages", b"refused_messages", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

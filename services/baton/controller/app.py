@@ -6,6 +6,7 @@ import asyncio
 import os
 import secrets
 import sys
+from collections.abc import Awaitable, Callable
 
 from baton.authenticity import Signer
 from baton.config import BatonConfig
@@ -24,8 +25,11 @@ from baton.v1 import ring_pb2_grpc
 MISSION_STOP_GRACE_S = 2.0
 
 
-class ControllerApp:
-    """A controller's server, node and (optional) mission program subprocess."""
+class ControllerSession:
+    """A controller's node, its mission program's port and (optional) mission program
+    subprocess: everything of one mission's controller but the ring's port, which is
+    its own (``ControllerApp``) or a station's, shared by many missions
+    (baton/station/), which serves ``ring_servicer``."""
 
     def __init__(
         self,
@@ -35,7 +39,10 @@ class ControllerApp:
         mission_args: list[str] | None = None,
         log_file: str | None = None,
         mission_python: str | None = None,
+        token: str | None = None,
     ) -> None:
+        """``token``: the mission program's (rpc/mission.py); by default the one in the
+        environment (a program started by hand), else one made up here."""
         self.config = config
         tls = config.tls_for(Identity.controller(cid))
         self.node = ControllerNode(config, cid, log_file, tls)
@@ -45,10 +52,10 @@ class ControllerApp:
             self.peer_keys = PeerKeys(config, tls, self.node.log.warning)
             self.node.core.keys = self.peer_keys.keys
             self.node.core.protocol.seal = Signer.from_pem(tls.key).seal
-        # The mission program's token (rpc/mission.py): given in the environment
-        # (a program started by hand), else made up for the program started here.
-        self.token = os.environ.get(MISSION_TOKEN_ENV) or (
-            secrets.token_urlsafe(18) if mission else None
+        self.token = (
+            token
+            or os.environ.get(MISSION_TOKEN_ENV)
+            or (secrets.token_urlsafe(18) if mission else None)
         )
         if self.token is None:
             self.node.log.warning(
@@ -57,15 +64,10 @@ class ControllerApp:
             )
         # Two ports: the ring's (log frames, status), with mutual TLS, and the
         # mission program's on loopback (the drone API), tied to it by the token.
-        ring = service_full_name("ControllerRing")
-        add_ring = ring_pb2_grpc.add_ControllerRingServicer_to_server
+        # The ring's is ControllerApp's, or a station's shared by its missions.
         self.receiver = ring_receiver(self.node)
-        peers = ControllerRingService(self.node, self.token, self.receiver, tls is not None)
-        self.server = BatonServer(
-            config.controller(cid).address,
-            [servicer(ring, add_ring, peers)],
-            tls=tls,
-            policy=ring_policy(config.ring_order, config.ring.frame_bytes),
+        self.ring_servicer = ControllerRingService(
+            self.node, self.token, self.receiver, tls is not None
         )
         self.mission_server = BatonServer(
             config.controller(cid).mission_address,
@@ -82,14 +84,17 @@ class ControllerApp:
         self.mission_python = [mission_python, "-E"] if mission_python else [sys.executable]
         self.mission_process: asyncio.subprocess.Process | None = None
         self._watcher: asyncio.Task[None] | None = None
+        # Called with its exit code when the program ends on its own (not stopped).
+        self.on_program_end: Callable[[int], Awaitable[None]] | None = None
         self.node.on_rejoin = self.rejoin
-        if tls is not None:
-            self.server.gate.on_refresh = self._keys_refresh
         self.node.on_gap = self.receiver.drop_streams
 
-    def _keys_refresh(self, revoked: frozenset[int]) -> None:
-        """The ring port re-read the revocation list: the keys follow it and the folder
-        (``PeerKeys``), those of the core serving now."""
+    def keys_refresh(self, revoked: frozenset[int]) -> None:
+        """The ring's port re-read the revocation list (``Gate.on_refresh``): the log
+        message keys follow it and the certificate folder (``PeerKeys``), those of the
+        core serving now. Nothing on an insecure ring."""
+        if self.node.tls is None:
+            return
         if self.peer_keys.refresh(revoked):
             self.node.core.keys = self.peer_keys.keys
             self.node.log.info(
@@ -101,8 +106,8 @@ class ControllerApp:
             self.node.log.info("sealing with the rotated key")
 
     async def start(self) -> None:
-        """Serves, starts the protocol, and launches the mission program if there is one."""
-        await self.server.start()
+        """Serves the program's port, starts the protocol, and launches the mission
+        program if there is one."""
         await self.mission_server.start()
         await self.node.start()
         await self._launch()
@@ -150,12 +155,52 @@ class ControllerApp:
         code = await process.wait()
         error = "" if code == 0 else f"mission program exited with code {code}"
         await self.node.mission_done(failed=code != 0, error=error)
+        if self.on_program_end is not None:
+            await self.on_program_end(code)
 
     async def stop(self) -> None:
-        """Stops the mission program, the node and the server."""
+        """Stops the mission program, the node and the program's port."""
         await self._stop_mission()
         await self.node.stop()
         await self.mission_server.stop()
+
+
+class ControllerApp(ControllerSession):
+    """A controller process's session and its own ring port (mutual TLS: the ring's
+    controllers only)."""
+
+    def __init__(
+        self,
+        config: BatonConfig,
+        cid: int,
+        mission: str | None = None,
+        mission_args: list[str] | None = None,
+        log_file: str | None = None,
+        mission_python: str | None = None,
+    ) -> None:
+        super().__init__(config, cid, mission, mission_args, log_file, mission_python)
+        self.server = BatonServer(
+            config.controller(cid).address,
+            [
+                servicer(
+                    service_full_name("ControllerRing"),
+                    ring_pb2_grpc.add_ControllerRingServicer_to_server,
+                    self.ring_servicer,
+                )
+            ],
+            tls=self.node.tls,
+            policy=ring_policy(config.ring_order, config.ring.frame_bytes),
+        )
+        self.server.gate.on_refresh = self.keys_refresh
+
+    async def start(self) -> None:
+        """Serves the ring's port, then starts the session."""
+        await self.server.start()
+        await super().start()
+
+    async def stop(self) -> None:
+        """Stops the session, then the ring's port."""
+        await super().stop()
         await self.server.stop()
 
 

@@ -54,6 +54,7 @@ from baton.controller.protocol import (
     ring_route,
 )
 from baton.digest import request_digest
+from baton.drone.invariants import InvariantBroken, checking
 from baton.drone.safety import sleep_refusal
 from baton.rpc.errors import StatusError
 from baton.rpc.methods import path, service_prefix
@@ -393,6 +394,8 @@ class ControllerCore:
         max_sleep_s: float = math.inf,
     ) -> None:
         self.protocol = protocol
+        # Check the masterships' legal combinations at every step (``ready``).
+        self.checking = checking()
         # The longest Clock.Sleep the mission may ask (``safety.max_sleep``).
         self.max_sleep_s = max_sleep_s
         # The ring forwards frames as they come: a handover's new master is sent
@@ -468,6 +471,10 @@ class ControllerCore:
           target up; a refused one fences us.
         - A log that diverged from the ring's makes us rejoin with nothing, once.
         - Last, the mastership whose log we hold is kept with the log.
+
+        With ``checking`` (``BATON_CHECK_INVARIANTS=1``), the masterships the step
+        left must be a legal combination (``Mastership.problems``), or
+        ``InvariantBroken``: a defect of baton, which the driver stops on.
         """
         out: list[CoreEffect] = []
         for effect in effects:
@@ -482,6 +489,13 @@ class ControllerCore:
             if isinstance(effect, Diverged):
                 out.extend(self.rejoin())
         out.append(KeepMastership(self.protocol.log_mastership_epoch))
+        if self.checking:
+            problems = self.protocol.mastership.problems()
+            if problems:
+                raise InvariantBroken(
+                    f"controller {self.protocol.id}: {'; '.join(problems)} "
+                    f"({self.protocol.mastership})"
+                )
         return out
 
     def catch_up(self, target: int, held: HeldLog) -> list[ring_pb2.LogMessage] | None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import os
 import time
 from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
@@ -72,6 +73,7 @@ from baton.controller.protocol import (
     Unqueued,
 )
 from baton.controller.ring import PeerLink, Relay
+from baton.drone.invariants import INVARIANT_EXIT, InvariantBroken
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
 from baton.rpc.tls import Tls
@@ -165,6 +167,8 @@ class ControllerNode:
         self.history = LogHistory(log_file)
         self.clock = MissionClock(config.speedup)
         self.log = get_logger("controller").bind(context=self._log_context, id=cid)
+        if config.mission_id is not None:  # a station's session: its lines name the mission
+            self.log = self.log.bind(mission=config.mission_id)
         # Replaced on every change, so a waiter holds the event of the state it saw.
         self._changed = asyncio.Event()
         self._peers: dict[int, PeerLink] = {}
@@ -436,6 +440,7 @@ class ControllerNode:
                 history,
                 self.tls,
                 self.config.ring.frame_bytes,
+                self.config.mission_id,
             )
             link.on_handover_acked = self._handover_acked
             link.on_acked = self._target_acked
@@ -635,7 +640,13 @@ class ControllerNode:
     # -- effects --------------------------------------------------------------------
 
     async def _apply(self, effects: Sequence[CoreEffect]) -> None:
-        for effect in self.core.ready(effects, self.drone_connected):
+        try:
+            ready = self.core.ready(effects, self.drone_connected)
+        except InvariantBroken as broken:
+            # A defect of baton: stop as a kill -9 would, rather than go on.
+            self.log.error("invariant broken; the controller stops", problem=str(broken))
+            os._exit(INVARIANT_EXIT)
+        for effect in ready:
             if isinstance(effect, Persist):
                 self.history.add(effect.message)
                 self.peer(self.protocol.successor).holds_changed()

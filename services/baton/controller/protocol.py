@@ -21,18 +21,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from baton.controller.mastership import Mastership, State
 from baton.digest import request_digest
 from baton.rpc.methods import describe_nondeterminism
 from baton.v1 import drone_pb2, ring_pb2
-
-
-class State(enum.Enum):
-    """The controller states of the paper's Figure 3 (named as the paper does;
-    the values are the contract's ``ControllerStatus.state``)."""
-
-    ACTIVE = ring_pb2.CONTROLLER_STATE_ACTIVE
-    PASSIVE = ring_pb2.CONTROLLER_STATE_PASSIVE
-    REPLAY = ring_pb2.CONTROLLER_STATE_REPLAY
 
 
 @dataclass(frozen=True)
@@ -503,6 +495,7 @@ class ControllerProtocol:
             self._grants[epoch] = grant
         self.epoch = self.granted_epoch = epoch
         if self.state is State.ACTIVE:
+            self._owed_epoch = 0  # ACTIVE already: whatever was owed came, or is moot
             return []
         self.master = True
         effects: list[Effect] = []
@@ -907,6 +900,24 @@ class ControllerProtocol:
         ACTIVE in an epoch long over.
         """
         return lognr in self._received
+
+    @property
+    def mastership(self) -> Mastership:
+        """Our masterships as one value, whose legal combinations ``Mastership.problems``
+        states."""
+        return Mastership(
+            state=self.state,
+            master=self.master,
+            epoch=self.epoch,
+            granted=self.granted_epoch,
+            took_over_in=self._took_over_in,
+            owed=self._owed_epoch,
+            over=self._mastership_over,
+            flushed_in=self._flushed_in,
+            fenced=self.fenced,
+            fenced_in=self._fenced_in,
+            before_handover=self._epoch_before_handover,
+        )
 
     def epoch_of(self, lognr: int) -> int:
         """The epoch of the message with ``lognr`` handled or queued here (0 if unknown):
@@ -1361,9 +1372,19 @@ class ControllerProtocol:
         (``on_log``). Not at once: a message on its way (a partition, a
         reordering link) framed replies the programs may have seen already,
         Clock calls answered by its master among them.
+
+        A predecessor's word that it holds messages of an older epoch than ours
+        above what we hold is a word about that same framing (``_promised``):
+        it is taken back with them, or a word its sender cannot keep any more
+        (it was fenced and rejoined with nothing) would keep us from being
+        caught up for ever. The drone's watermark still binds
+        (``must_hold_reqnr``).
         """
-        ready = self.state is State.PASSIVE and self.master and self.caught_up
-        if not ready or self._took_over_in != self.epoch or not self.log_queue:
+        taker = self.state is State.PASSIVE and self.master and self._took_over_in == self.epoch
+        if not taker or not self.log_queue:
+            return []
+        self._take_back_stale_words(self.epoch)
+        if not self.caught_up:
             return []
         if (self.lognr + 1) in self.log_queue:
             return []
@@ -1493,16 +1514,25 @@ class ControllerProtocol:
             # us again, flag set. Masters number log messages in the order of
             # their epochs: that role is not ours to take, nor the log of that
             # mastership ours (our Connect would be fenced for a takeover of a
-            # role we never took).
+            # role we never took). Made master by the drone's grant instead (a
+            # cooperative one whose handover message never came), that epoch is
+            # ours and over: we never acted in it. Owed nothing either way.
             self.master = False
-            self.epoch = self._epoch_before_handover
+            if self.granted_epoch < self.epoch:
+                self.epoch = max(self._epoch_before_handover, self.granted_epoch)
+            else:
+                self._mastership_over = self.epoch
+            self._owed_epoch = 0
         if message.handover:
             if message.HasField("grant"):
                 self._grants[message.epoch] = message.grant
             if not self.master:
                 self._epoch_before_handover = self.epoch
             self.master = True
-            self.epoch = max(self.epoch, message.epoch)
+            if message.epoch > self.epoch:
+                # A grant's handover message is owed no more once a newer one makes
+                # us master (and it would be handled by now: it is numbered below).
+                self.epoch, self._owed_epoch = message.epoch, 0
             effects.append(TookOver(message.sender, message.lognr, self.reqnr, message.ByteSize()))
         elif self.master and self.granted_epoch < self.epoch < message.epoch:
             # Made master by a handover message the drone never confirmed, and the

@@ -40,6 +40,7 @@ from baton.controller.history import LogHistory
 from baton.controller.outbox import Outbox
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
+from baton.rpc.mission import mission_metadata
 from baton.rpc.streams import read_message
 from baton.rpc.tls import Identity, Tls
 from baton.v1 import ring_pb2, ring_pb2_grpc
@@ -265,11 +266,14 @@ class PeerLink:
         history: LogHistory | None = None,
         tls: Tls | None = None,
         frame_bytes: int = FRAME_BYTES,
+        mission_id: str | None = None,
     ) -> None:
         self.my_id = my_id
         self.peer_id = peer_id
         self.address = address
         self.frame_bytes = frame_bytes
+        # A peer that is a station serves many missions on its port: the stream names ours.
+        self._metadata = mission_metadata(mission_id)
         self._tls = tls
         self._log = log.bind(peer=peer_id)
         self._history = history
@@ -420,7 +424,7 @@ class PeerLink:
             self.address, self._tls, Identity.controller(self.peer_id)
         ) as channel:
             stub = ring_pb2_grpc.ControllerRingStub(channel)
-            call = stub.LogRing(wait_for_ready=True)
+            call = stub.LogRing(wait_for_ready=True, metadata=self._metadata)
             hello = await read_message(call)
             if hello is None or not hello.hello:
                 raise ConnectionError(f"peer {self.peer_id} did not greet the ring stream")

@@ -356,4 +356,5 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         t_conn_s=node.all_t_conn_s,
         drone_connected_at=node.all_drone_connected_at,
         mission_address=node.mission_address,
+        mission_id=node.config.mission_id or "",
     )

@@ -1,11 +1,13 @@
-"""``baton fleet``: the registry of stations and admitted missions (issue 34, item 2).
+"""``baton fleet``: the registry of stations and admitted missions (issue 34, item 2),
+and an admitted mission's sessions on its stations (item 1).
 
     baton fleet stations add NAME --id N --at LAT,LON --range M
     baton fleet stations add --from-config examples/corridor.yaml
     baton fleet stations list
     baton fleet admit --drone D --plan FILE [--home LAT,LON] | --route LAT,LON LAT,LON ...
     baton fleet missions
-    baton fleet cancel ID
+    baton fleet start ID --config FILE --mission FILE [--mission-arg k=v ...]
+    baton fleet cancel ID [--config FILE]
 
 Exit status: 0 done, 1 a mission refused, 2 a request that cannot be done (the
 message names the flag or field and the fix).
@@ -20,7 +22,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from baton.certs.cli import add_tls_flags, tls_from_flags
+from baton.sdk.run import add_mission_arg
+
 if TYPE_CHECKING:
+    from baton.config import BatonConfig
+    from baton.fleet.registry import MissionRow
+    from baton.rpc.tls import Tls
     from baton.sdk.types import Position
 
 DEFAULT_REGISTRY = Path("baton-fleet.sqlite")
@@ -58,8 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
             "The registry of stations (position, radio range) and admitted missions, in one "
             "SQLite file. 'admit' decides which stations cover a drone's route: the ring is "
             "the covering stations in route order, the first master the nearest to take-off; "
-            "a route with a stretch no station covers is refused, naming it. The registry "
-            "starts nothing yet: a station process hosting its missions is issue 34, item 1."
+            "a route with a stretch no station covers is refused, naming it. 'start' starts an "
+            "admitted mission's sessions on its ring's stations (baton station), 'cancel "
+            "--config' stops them."
         ),
     )
     actions = parser.add_subparsers(dest="fleet_action", metavar="ACTION", required=True)
@@ -113,7 +122,40 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     actions.add_parser("missions", parents=[common], help="the admitted missions").set_defaults(
         run=_guarded(_missions)
     )
-    cancel = actions.add_parser("cancel", parents=[common], help="cancel an admitted mission")
+    network = argparse.ArgumentParser(add_help=False)
+    network.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="the network's testbed file: its controllers are the stations at their ports "
+        "(id, address), its drone the mission's (or --drone-address)",
+    )
+    add_tls_flags(network)
+    start = actions.add_parser(
+        "start",
+        parents=[common, network],
+        help="start an admitted mission's sessions on its ring's stations (baton station)",
+    )
+    start.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
+    start.add_argument(
+        "--mission",
+        dest="program",
+        required=True,
+        metavar="FILE",
+        help="the mission program, a path on the stations",
+    )
+    add_mission_arg(start)
+    start.add_argument(
+        "--drone-address",
+        metavar="HOST:PORT",
+        help="where the stations reach the mission's drone (default: the file's drone.address)",
+    )
+    start.set_defaults(run=_guarded(_start))
+    cancel = actions.add_parser(
+        "cancel",
+        parents=[common, network],
+        help="cancel an admitted mission; with --config, its sessions stopped on its stations",
+    )
     cancel.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
     cancel.set_defaults(run=_guarded(_cancel))
 
@@ -260,10 +302,73 @@ def _missions(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cancel(args: argparse.Namespace) -> int:
-    from baton.fleet.registry import Registry
+def _mission_network(args: argparse.Namespace) -> tuple[MissionRow, BatonConfig, Tls | None]:
+    """The admitted mission, the configuration its ring's sessions run with (the
+    network file's stations in the ring, admission's order and first master), and the
+    operator's certificate; ConfigError, TlsError or RegistryError saying why not."""
+    from baton.config import ConfigError, load_config, merge
+    from baton.fleet.registry import IN_FLIGHT, Registry, RegistryError
+    from baton.fleet.stations import ring_config
+    from baton.rpc.tls import OPERATOR
 
     with Registry(args.registry) as registry:
-        mission = registry.cancel(args.mission)
-    print(f"mission {mission.id} of drone {mission.drone} cancelled")
+        mission = registry.mission(args.mission)
+    if mission.state != IN_FLIGHT:
+        raise RegistryError(f"mission {mission.id}: {mission.state}, not admitted")
+    network = load_config(args.config)
+    address = getattr(args, "drone_address", None)
+    network = merge(network, [("--drone-address", "drone.address", address)], str(args.config))
+    missing = sorted(set(mission.ring) - {c.id for c in network.controllers})
+    if missing:
+        raise ConfigError(
+            f"{args.config}: controllers: no station {', '.join(map(str, missing))} of mission "
+            f"{mission.id}'s ring {list(mission.ring)}; add each with its id and address"
+        )
+    config = ring_config(network, mission.ring, mission.first_master)
+    return mission, config, tls_from_flags(args, network, OPERATOR)
+
+
+def _start(args: argparse.Namespace) -> int:
+    from baton.config import ConfigError
+    from baton.fleet.sessions import SessionError, start_sessions
+    from baton.rpc.tls import TlsError
+
+    if args.config is None:
+        return _fail(args, "--config: missing; the network's file with the stations' addresses")
+    try:
+        mission, config, tls = _mission_network(args)
+        start_sessions(config, str(mission.id), args.program, args.mission_arg, tls)
+    except (ConfigError, TlsError) as exc:
+        return _fail(args, str(exc))
+    except SessionError as exc:
+        return _fail(args, f"mission {args.mission}: {exc}", status=1)
+    ring = ", ".join(
+        f"{sid}{' (first master)' if sid == mission.first_master else ''}" for sid in mission.ring
+    )
+    print(f"mission {mission.id} of drone {mission.drone} started on stations {ring}")
+    return 0
+
+
+def _cancel(args: argparse.Namespace) -> int:
+    from baton.config import ConfigError
+    from baton.fleet.registry import Registry
+    from baton.fleet.sessions import stop_sessions
+    from baton.rpc.tls import TlsError
+
+    if args.config is not None:
+        try:
+            mission, config, tls = _mission_network(args)
+        except (ConfigError, TlsError) as exc:
+            return _fail(args, str(exc))
+        problems = stop_sessions(config, str(mission.id), tls)
+        if problems:
+            return _fail(
+                args,
+                f"mission {mission.id} not cancelled: its sessions did not all stop "
+                f"({'; '.join(problems)}); run cancel again once the stations answer",
+            )
+        print(f"mission {mission.id}: sessions stopped on stations {list(mission.ring)}")
+    with Registry(args.registry) as registry:
+        cancelled = registry.cancel(args.mission)
+    print(f"mission {cancelled.id} of drone {cancelled.drone} cancelled")
     return 0

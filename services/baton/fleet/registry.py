@@ -197,6 +197,15 @@ class Registry:
             )
         ]
 
+    def mission(self, mission_id: int) -> MissionRow:
+        """The mission with that id; RegistryError if there is none."""
+        for mission in self.missions():
+            if mission.id == mission_id:
+                return mission
+        raise RegistryError(
+            f"mission {mission_id}: no such mission; baton fleet missions lists them"
+        )
+
     def cancel(self, mission_id: int) -> MissionRow:
         """Cancels a mission in flight; RegistryError if there is none by that id."""
         with self._writing() as db:

@@ -1,7 +1,10 @@
 """Stations from a testbed file: its controllers, placed by their ``location`` and
-``range_m`` (examples/corridor.yaml's four)."""
+``range_m`` (examples/corridor.yaml's four); and the configuration a mission over
+some of them flies with."""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 from baton.config import BatonConfig, ConfigError
 from baton.drone.policy import Station
@@ -22,3 +25,14 @@ def stations_of(config: BatonConfig, source: str) -> list[Station]:
         where = Position(c.location.latitude_deg, c.location.longitude_deg)
         stations.append(Station(c.id, where, c.range_m))
     return stations
+
+
+def ring_config(config: BatonConfig, ring: Sequence[int], first_master: int) -> BatonConfig:
+    """``config`` flown by ``ring`` (admission's, in route order) from ``first_master``:
+    only the ring's controllers, the ring's order, the first master initial."""
+    document = config.model_dump(exclude_unset=True)
+    kept = set(ring)
+    document["controllers"] = [c for c in document["controllers"] if c["id"] in kept]
+    document["ring"] = {**document.get("ring", {}), "order": list(ring)}
+    document["initial_master"] = first_master
+    return BatonConfig.model_validate(document)

@@ -79,6 +79,11 @@ class PortPolicy:
     rules: Mapping[str, Rule] = field(default_factory=dict)
     default: Rule = ANY_PART
     calls_per_caller: int = CALLS_PER_CALLER
+    # A port of many missions (a station's): ``calls_per_caller`` counts a caller's
+    # calls per mission it names, so that its calls for one mission cannot hold the
+    # port's room for another's; this bounds them over all missions (None: no port
+    # of many missions).
+    calls_per_caller_all_missions: int | None = None
 
     def rule(self, method: str) -> Rule:
         return self.rules.get(method, self.default)
@@ -116,9 +121,12 @@ def admit(
     revoked: frozenset[int],
     in_flight: int,
     now: float,
+    in_flight_all_missions: int = 0,
 ) -> StatusError | None:
     """Why ``caller`` may not start ``method`` on this port at ``now``, or None if it
     may. Called on a port with mutual TLS only (an insecure port admits everyone).
+    ``in_flight``: the caller's calls in flight (for the mission the call names, on a
+    port of many missions); ``in_flight_all_missions``: for all of them.
 
     gRPC checks a certificate's validity at the handshake only; a connection made
     before the certificate expired is refused here from then on.
@@ -141,10 +149,19 @@ def admit(
             f"{rule.who} call it on the {policy.name}",
         )
     if in_flight >= policy.calls_per_caller:
+        of = " for this mission" if policy.calls_per_caller_all_missions is not None else ""
         return StatusError(
             grpc.StatusCode.RESOURCE_EXHAUSTED,
-            f"{name}: {caller.identity} has {in_flight} calls in flight on the "
+            f"{name}: {caller.identity} has {in_flight} calls in flight{of} on the "
             f"{policy.name}, the most one part may; end some or wait for them",
+        )
+    cap = policy.calls_per_caller_all_missions
+    if cap is not None and in_flight_all_missions >= cap:
+        return StatusError(
+            grpc.StatusCode.RESOURCE_EXHAUSTED,
+            f"{name}: {caller.identity} has {in_flight_all_missions} calls in flight for "
+            f"all its missions on the {policy.name}, the most one part may; end some or "
+            "wait for them",
         )
     return None
 

@@ -27,9 +27,9 @@ import functools
 import inspect
 import time
 from collections import Counter
-from collections.abc import AsyncGenerator, Awaitable, Callable
+from collections.abc import AsyncGenerator, Awaitable, Callable, Hashable
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any, TypeVar, cast
 
 import grpc
 from cryptography import x509
@@ -38,6 +38,7 @@ from google.protobuf.message import DecodeError
 from baton.logs import get_logger
 from baton.rpc.admission import RECHECK_S, Caller, PortPolicy, admit, invalid_error, to_cut
 from baton.rpc.errors import abort_with
+from baton.rpc.mission import mission_in
 from baton.rpc.revocation import REVOKED_CRL, RevocationList
 from baton.rpc.tls import Tls, caller
 
@@ -65,6 +66,16 @@ def caller_of(context: grpc.aio.ServicerContext[Any, Any]) -> Caller:
     return Caller(caller(context), serial, not_after)
 
 
+K = TypeVar("K", bound=Hashable)
+
+
+def _release(counter: Counter[K], key: K) -> None:
+    """One call of ``key`` fewer in flight; a key with none left is dropped."""
+    counter[key] -= 1
+    if counter[key] <= 0:
+        del counter[key]
+
+
 @dataclass
 class _Live:
     caller: Caller
@@ -84,7 +95,10 @@ class Gate(grpc.aio.ServerInterceptor):
             else None
         )
         self.log = get_logger("gate").bind(port=policy.name)
-        self._in_flight: Counter[Caller] = Counter()
+        # Calls in flight by caller and the mission it names (None on a port of one
+        # mission), and by caller.
+        self._in_flight: Counter[tuple[Caller, str | None]] = Counter()
+        self._in_flight_all: Counter[Caller] = Counter()
         self._live: dict[int, _Live] = {}
         self._next = 0
         # Told the revocation list's serials after every refresh (a controller's log
@@ -143,22 +157,34 @@ class Gate(grpc.aio.ServerInterceptor):
         if not self.enforced:
             return await run()
         who = caller_of(context)
+        # Only a port of many missions counts per mission: elsewhere a caller naming
+        # missions of its own choosing would take the cap again with each.
+        many = self.policy.calls_per_caller_all_missions is not None
+        key = (who, mission_in(context.invocation_metadata()) if many else None)
         revoked = self._revoked()
-        refusal = admit(self.policy, method, who, revoked, self._in_flight[who], time.time())
+        refusal = admit(
+            self.policy,
+            method,
+            who,
+            revoked,
+            self._in_flight[key],
+            time.time(),
+            self._in_flight_all[who],
+        )
         if refusal is not None:
             self.log.warning(
                 "call refused before its request", method=method, reason=refusal.message
             )
             await abort_with(context, refusal)
-        self._in_flight[who] += 1
+        self._in_flight[key] += 1
+        self._in_flight_all[who] += 1
         try:
             if not stream:
                 return await run()
             return await self._until_cut(method, context, who, run)
         finally:
-            self._in_flight[who] -= 1
-            if self._in_flight[who] <= 0:
-                del self._in_flight[who]
+            _release(self._in_flight, key)
+            _release(self._in_flight_all, who)
 
     async def _until_cut(
         self,

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from baton.rpc.admission import ANY_PART, PortPolicy, controllers, only
+from baton.rpc.admission import ANY_PART, CALLS_PER_CALLER, PortPolicy, Rule, controllers, only
 from baton.rpc.tls import OPERATOR
 
 DRONE_REQUEST_BYTES = 4 << 20
@@ -29,6 +29,13 @@ FRAME_HEAD_BYTES = 64 << 10
 
 _DRONE = "/baton.v1.Drone/"
 _RING = "/baton.v1.ControllerRing/"
+_STATION = "/baton.v1.Station/"
+# The largest ring frame any mission may choose (config.RingConfig.frame_bytes).
+MAX_FRAME_BYTES = 4 << 20
+# A peer station holds a ring stream or two per mission the two share: on a
+# station's port its calls in flight are capped per mission as a lone controller's
+# port caps them, and over all its missions at that cap times this many.
+SHARED_MISSIONS = 64
 
 
 def drone_policy(controller_ids: Iterable[int]) -> PortPolicy:
@@ -64,3 +71,24 @@ def ring_policy(ring_order: Iterable[int], frame_bytes: int) -> PortPolicy:
 def mission_policy() -> PortPolicy:
     """A controller's mission port: its program's calls (the token decides who)."""
     return PortPolicy("mission port", DRONE_REQUEST_BYTES)
+
+
+ANY_STATION = Rule(
+    "only a station (a controller certificate) may",
+    lambda who: who.role == "controller",
+)
+
+
+def station_policy() -> PortPolicy:
+    """A station's port: log frames from any station, each session then admitting only
+    its own ring's (controller/service.py); the sessions started and stopped by an
+    operator; any part reads a mission's status."""
+    operator = only(OPERATOR, "an operator")
+    rules = {_RING + "LogRing": ANY_STATION}
+    rules |= {_STATION + m: operator for m in ("StartMission", "StopMission", "GetStation")}
+    return PortPolicy(
+        "station's port",
+        MAX_FRAME_BYTES + FRAME_HEAD_BYTES,
+        rules,
+        calls_per_caller_all_missions=CALLS_PER_CALLER * SHARED_MISSIONS,
+    )

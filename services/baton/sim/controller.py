@@ -164,6 +164,9 @@ class SimController:
         if world.keys is not None:  # ControllerApp: its key seals, the ring's keys check
             self.core.keys = world.keys.keys
             self.core.protocol.seal = world.keys.controllers[cid].seal
+        # The simulation checks the masterships after every event and reports the
+        # event that broke them (invariant mastership-legal); the core does not stop.
+        self.core.checking = False
         self.history = LogHistory()
         self.links: dict[int, RingLink] = {}
         self.drone_link = DroneLink(world, self)

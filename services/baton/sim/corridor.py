@@ -185,7 +185,9 @@ class Corridor:
         for cid in sorted(covered - self.covered):
             world.trace(f"radio: {cid} in range ({self._where(cid)})")
             world.net.heal(cid, DRONE)
-        self.covered = covered
+        changed, self.covered = covered != self.covered, covered
+        if changed:  # the programs wait for the stations in range (World.check_start)
+            world.check_start()
         if world.mission_open() or world.drone.seq.preparing is not None or self.left_behind():
             self.tick()
 

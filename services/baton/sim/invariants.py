@@ -69,6 +69,9 @@ The invariants (docs/simulation.md, "Invariants"):
    frame it anew, and the oracle then no longer holds the incarnation to it.
 8. ``at-most-once``: no command or picture acted on twice at the vehicle
    (the oracle's count, at the event that broke it).
+9. ``mastership-legal``: every live controller's masterships are a legal
+   combination (``baton.controller.mastership.Mastership.problems``, which a
+   running controller checks too with ``BATON_CHECK_INVARIANTS=1``).
 """
 
 from __future__ import annotations
@@ -96,6 +99,7 @@ INVARIANTS = (
     "master-holds-the-ring-log",
     "replies-held",
     "at-most-once",
+    "mastership-legal",
 )
 
 
@@ -117,6 +121,16 @@ def one_active_master_per_epoch(live: list[SimController]) -> str | None:
             other = by_epoch.setdefault(p.epoch, c.id)
             if other != c.id:
                 return f"controllers {other} and {c.id} both ACTIVE as master in epoch {p.epoch}"
+    return None
+
+
+def mastership_legal(live: list[SimController]) -> str | None:
+    """Every live controller's masterships a legal combination (``Mastership.problems``)."""
+    for c in live:
+        mastership = c.protocol.mastership
+        problems = mastership.problems()
+        if problems:
+            return f"controller {c.id}: {'; '.join(problems)} ({mastership})"
     return None
 
 
@@ -246,6 +260,7 @@ class Invariants:
             ("one-active-master-per-epoch", one_active_master_per_epoch),
             ("epoch-granted", lambda live: epoch_granted(world, live)),
             ("replies-held", lambda live: replies_held(world, live)),
+            ("mastership-legal", mastership_legal),
         )
         self._drone_checks: tuple[tuple[str, Callable[[], str | None]], ...] = (
             ("drone-one-master-per-epoch", lambda: drone_one_master_per_epoch(world, b)),
@@ -298,6 +313,9 @@ class Invariants:
                     p,
                     p.state,
                     p.epoch,
+                    p.master,
+                    p.fenced,
+                    p.granted_epoch,
                     p.held_reqnr,
                     len(c.seen),
                     len(p.log.entries),

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 
 from baton.config import BatonConfig
 from baton.fleet.admission import Admitted, Refused, admit_mission
-from baton.fleet.stations import stations_of
+from baton.fleet.stations import ring_config, stations_of
 from baton.sdk.types import Position
 
 # The testbed flies one drone and keeps no registry: no other mission is in flight.
@@ -27,12 +27,7 @@ def admitted_config(
     decision = admit_mission(TESTBED_DRONE, route, stations_of(config, source), {})
     if isinstance(decision, Refused):
         raise ValueError(f"--admit: the mission is refused: {decision.message()}")
-    document = config.model_dump(exclude_unset=True)
-    kept = set(decision.ring)
-    document["controllers"] = [c for c in document["controllers"] if c["id"] in kept]
-    document["ring"] = {**document.get("ring", {}), "order": list(decision.ring)}
-    document["initial_master"] = decision.first_master
-    return BatonConfig.model_validate(document), decision
+    return ring_config(config, decision.ring, decision.first_master), decision
 
 
 def describe(config: BatonConfig, before: BatonConfig, decision: Admitted) -> str:

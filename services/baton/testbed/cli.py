@@ -8,6 +8,7 @@ import math
 import os
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -109,6 +110,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     parser.add_argument(
         "--config", help="a full testbed YAML (endpoints, ring, initial master, locations, links)"
+    )
+    parser.add_argument(
+        "--fleet",
+        type=Path,
+        metavar="FILE",
+        help="fly a fleet instead: the file's stations (baton station) and drones, each with "
+        "its sim vehicle, drone service and survey, every mission admitted over the stations "
+        "first (examples/fleet.yaml); per-mission results and a fleet summary; the other "
+        "mission options do not apply",
     )
     parser.add_argument(
         "--admit",
@@ -461,6 +471,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.action == "report" and args.admit:
         return _fail("--admit is for a local run: 'report' follows the ring the file started")
+    if args.fleet is not None:
+        return _run_fleet(args)
     try:
         _check_numbers(args)
         config, from_file = testbed_config(args)
@@ -490,3 +502,31 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("baton testbed: interrupted; every process stopped", file=sys.stderr)
         return 130
+
+
+def _run_fleet(args: argparse.Namespace) -> int:
+    """``--fleet FILE``: the fleet testbed (testbed/fleet.py) to its end."""
+    from baton.config import ConfigError
+    from baton.testbed.fleet import describe, load_fleet, run_fleet
+
+    if args.action == "report":
+        return _fail("--fleet is for a local run")
+    try:
+        fleet = load_fleet(args.fleet)
+    except ConfigError as exc:
+        return _fail(str(exc))
+    workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-fleet-"))
+    print(
+        f"baton testbed: fleet of {len(fleet.drones)} drones over {len(fleet.stations)} "
+        f"stations, speed-up {fleet.speedup:g}x; logs in {workdir / 'parts'}"
+    )
+    started = time.monotonic()
+    try:
+        results = asyncio.run(run_fleet(fleet, workdir, args.timeout))
+    except ValueError as exc:
+        return _fail(str(exc))
+    except KeyboardInterrupt:
+        print("baton testbed: interrupted; every process stopped", file=sys.stderr)
+        return 130
+    print(describe(results, time.monotonic() - started))
+    return 0 if all(r.ok for r in results) else 1

@@ -1,0 +1,426 @@
+"""``baton testbed --fleet FILE``: several drones, each with its sim vehicle, drone
+service and survey, over stations (``baton station``), on one machine.
+
+Every part is a real process under one ``Supervisor``. The missions are admitted
+first, all of them, over the file's stations by the registry (``fleet/``, a
+SQLite file in the workdir): a route no station covers refuses the fleet before
+anything starts. Then the stations, each drone's vehicle and drone service, and
+each mission's sessions on its ring's stations (``fleet/sessions.py``, the
+operator's ``baton fleet start``). The drones pick their masters from where
+they are (the file's ``handover_policy``, ``nearest`` by default). A mission's
+result is what the vehicle and the camera counted (exactly once) and whether
+its ring's replicas saw the same replies.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any, Literal
+
+import grpc
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from baton.config import (
+    BatonConfig,
+    ConfigError,
+    Location,
+    PolicySetting,
+    format_validation_error,
+    read_yaml,
+)
+from baton.effects import read_effects
+from baton.rpc.channels import aio_channel
+from baton.rpc.mission import MISSION_ID_PATTERN, mission_metadata
+from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
+from baton.testbed.local import MissionPlan, Snapshot, free_port
+from baton.testbed.supervisor import Supervisor, baton_argv
+from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc, station_pb2_grpc
+
+VEHICLE_EFFECTS, CAMERA_EFFECTS = "vehicle-effects.jsonl", "camera-effects.jsonl"
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class FleetStation(_Model):
+    """A station: its id (its controller id in every ring), antenna and range."""
+
+    id: int = Field(ge=0, le=2**31 - 1, strict=True)
+    location: Location
+    range_m: float = Field(gt=0)
+
+
+class FleetSurvey(_Model):
+    """The survey a drone flies from its home (``MissionPlan``'s fields)."""
+
+    kind: Literal["grid", "corridor"] = "corridor"
+    grid: int = Field(default=2, ge=1)
+    length_m: float = Field(default=1000.0, gt=0)
+    spacing_m: float = Field(default=100.0, gt=0)
+    altitude_m: float = Field(default=10.0, gt=0)
+    speed_m_s: float = Field(default=5.0, gt=0)
+    poll_s: float = Field(default=1.0, gt=0)
+
+    def plan(self) -> MissionPlan:
+        return MissionPlan(**self.model_dump())
+
+
+class FleetDrone(_Model):
+    """One drone of the fleet: its name, where it takes off and what it flies."""
+
+    name: str = Field(pattern=MISSION_ID_PATTERN)
+    home: Location
+    mission: FleetSurvey = FleetSurvey()
+
+
+class FleetFile(_Model):
+    """``--fleet FILE``: the stations, the drones, and what all the missions share."""
+
+    stations: list[FleetStation] = Field(min_length=1)
+    drones: list[FleetDrone] = Field(min_length=1)
+    speedup: float = Field(default=10.0, gt=0)
+    handover_policy: PolicySetting = "nearest"  # type: ignore[assignment]
+    takeover_after: float = Field(default=3.0, ge=0)
+
+    @model_validator(mode="after")
+    def _unique(self) -> FleetFile:
+        ids = [str(s.id) for s in self.stations]
+        names = [d.name for d in self.drones]
+        for what, values in (("stations[].id", ids), ("drones[].name", names)):
+            twice = sorted({v for v in values if values.count(v) > 1})
+            if twice:
+                raise ValueError(f"{what}: {', '.join(twice)} twice; give each its own")
+        return self
+
+
+def load_fleet(path: Path) -> FleetFile:
+    """Reads and validates a fleet file; ConfigError names the file, field and fix."""
+    data = read_yaml(path, "fleet file")
+    try:
+        return FleetFile.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(str(path), exc)) from None
+
+
+@dataclass
+class StationPart:
+    """A running station: its id, its port, its state folder, and an operator's stub."""
+
+    id: int
+    address: str
+    state_dir: Path
+    channel: grpc.aio.Channel
+    stub: station_pb2_grpc.StationAsyncStub
+
+    async def status(self, mission_id: str) -> ring_pb2.ControllerStatus:
+        """A hosted mission's ControllerStatus, asked on the station's port as any part
+        asks it: ControllerRing.GetStatus naming the mission."""
+        ring: ring_pb2_grpc.ControllerRingAsyncStub = ring_pb2_grpc.ControllerRingStub(self.channel)
+        return await ring.GetStatus(
+            ring_pb2.GetControllerStatusRequest(), metadata=mission_metadata(mission_id), timeout=5
+        )
+
+
+async def start_stations(
+    supervisor: Supervisor, ids: Sequence[int], certs: Path | None
+) -> dict[int, StationPart]:
+    """``baton station`` processes with ids ``ids``, each on a free port (the same
+    again if the supervisor restarts it), and an operator's channel to each (``certs``
+    None: insecure)."""
+    workdir = supervisor.workdir
+    tls_flag = f"--certs={certs}" if certs is not None else "--insecure"
+    parts = [
+        (
+            f"station-{sid}",
+            baton_argv(
+                "station",
+                f"--id={sid}",
+                f"--address=127.0.0.1:{free_port()}",
+                f"--address-file={workdir / f'station-{sid}.address'}",
+                f"--state-dir={workdir / f'station-{sid}'}",
+                tls_flag,
+            ),
+            workdir / f"station-{sid}.address",
+        )
+        for sid in ids
+    ]
+    addresses = await supervisor.start_ready_together(parts)
+    operator = Tls.load(certs, OPERATOR) if certs is not None else None
+    stations = {}
+    for sid, text in zip(ids, addresses, strict=True):
+        address = text.splitlines()[0]
+        channel = aio_channel(address, operator, Identity.controller(sid))
+        stub = station_pb2_grpc.StationStub(channel)
+        stations[sid] = StationPart(sid, address, workdir / f"station-{sid}", channel, stub)
+    return stations
+
+
+@dataclass
+class MissionDrone:
+    """A mission's sim vehicle and drone service, and where they count side effects."""
+
+    name: str
+    address: str
+    workdir: Path
+    channel: grpc.aio.Channel
+    stub: drone_pb2_grpc.DroneAsyncStub
+
+    async def status(self, audit: bool = False) -> drone_pb2.DroneStatus:
+        return await self.stub.GetStatus(
+            drone_pb2.GetDroneStatusRequest(include_audit=audit), timeout=5
+        )
+
+    async def ready(self) -> bool:
+        """Whether its vehicle is connected and ready to arm."""
+        status = await self.status()
+        return status.vehicle_connected and status.flight_state.ready
+
+    async def served(self, reqnr: int) -> bool:
+        """Whether it has served request ``reqnr``."""
+        return (await self.status()).last_reqnr >= reqnr
+
+    async def snapshot(self, controllers: dict[int, ring_pb2.ControllerStatus]) -> Snapshot:
+        """The drone's status with its audit, its ring's statuses and the effects counted."""
+        return Snapshot(
+            await self.status(audit=True),
+            controllers,
+            read_effects(self.workdir / VEHICLE_EFFECTS),
+            read_effects(self.workdir / CAMERA_EFFECTS),
+        )
+
+
+async def start_mission_drone(
+    supervisor: Supervisor,
+    name: str,
+    config: BatonConfig,
+    handovers: Sequence[tuple[int, int]] = (),
+) -> MissionDrone:
+    """A sim vehicle at ``config``'s drone home and a drone service for the mission
+    ``config`` describes (its ring, its policy), with the scripted ``handovers``."""
+    workdir = supervisor.workdir / name
+    workdir.mkdir()
+    home = config.drone.home
+    url = await supervisor.start_ready(
+        f"{name}-vehicle",
+        baton_argv(
+            "sim-vehicle",
+            f"--speedup={config.speedup}",
+            f"--url-file={workdir / 'vehicle.url'}",
+            f"--home={home.latitude_deg},{home.longitude_deg},{home.altitude_m}",
+            f"--effects-file={workdir / VEHICLE_EFFECTS}",
+        ),
+        workdir / "vehicle.url",
+    )
+    config_file = workdir / "drone.json"
+    config_file.write_text(json.dumps(config.model_dump(mode="json", exclude_unset=True)))
+    script = workdir / "handovers.txt"
+    script.write_text("".join(f"{after} {to}\n" for after, to in handovers))
+    address = await supervisor.start_ready(
+        f"{name}-drone",
+        baton_argv(
+            "drone",
+            f"--config={config_file}",
+            "--address=127.0.0.1:0",
+            f"--address-file={workdir / 'drone.address'}",
+            f"--vehicle-url={url.splitlines()[0]}",
+            f"--handover-file={script}",
+            f"--state={workdir / 'drone-state.sqlite'}",
+            f"--camera-effects-file={workdir / CAMERA_EFFECTS}",
+        ),
+        workdir / "drone.address",
+    )
+    address = address.splitlines()[0]
+    tls = None if config.tls.insecure else Tls.load(config.tls.certs, OPERATOR)
+    channel = aio_channel(address, tls, DRONE)
+    return MissionDrone(name, address, workdir, channel, drone_pb2_grpc.DroneStub(channel))
+
+
+@dataclass
+class MissionResult:
+    """One mission of the fleet at its end."""
+
+    drone: str
+    mission_id: str
+    ring: tuple[int, ...]
+    effects: dict[str, Any]
+    replicas_consistent: bool
+    masters: list[int] = field(default_factory=list)
+    failed: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return (
+            not self.failed
+            and self.effects.get("exactly_once") is True
+            and (self.replicas_consistent)
+        )
+
+
+def mission_result(
+    drone: str, mission_id: str, ring: Sequence[int], plan: MissionPlan, snapshot: Snapshot
+) -> MissionResult:
+    """What a mission's vehicle, camera and replicas say at its end."""
+    from baton.testbed.report import check_side_effects
+
+    effects = check_side_effects(snapshot, plan.grid, plan.spacing_m, plan.targets())
+    statuses = snapshot.controllers.values()
+    consistent = len({(s.reply_chain, s.reqnr) for s in statuses}) == 1
+    failed = "; ".join(
+        f"station {s.id}: {s.mission_error}"
+        for s in statuses
+        if s.mission == ring_pb2.MISSION_STATE_FAILED
+    )
+    masters = [h.new_master for h in snapshot.drone.handovers]
+    return MissionResult(drone, mission_id, tuple(ring), effects, consistent, masters, failed)
+
+
+async def mission_ended(
+    stations: dict[int, StationPart], drone: MissionDrone, mission_id: str, ring: Sequence[int]
+) -> dict[int, ring_pb2.ControllerStatus] | None:
+    """Its ring's statuses once every station's program ended and no prepared handover
+    is under way at the drone; None before."""
+    statuses = {sid: await stations[sid].status(mission_id) for sid in ring}
+    ended = all(
+        s.mission in (ring_pb2.MISSION_STATE_DONE, ring_pb2.MISSION_STATE_FAILED)
+        for s in statuses.values()
+    )
+    return statuses if ended and (await drone.status()).preparing_for < 0 else None
+
+
+def describe(results: Sequence[MissionResult], elapsed_s: float) -> str:
+    """The per-mission lines and the fleet's summary, for a person."""
+    lines = ["drone        mission  ring      masters        exactly once  replicas"]
+    for r in results:
+        ring = ",".join(map(str, r.ring))
+        masters = "->".join(map(str, r.masters)) or "-"
+        lines.append(
+            f"{r.drone:<12} {r.mission_id:>7}  {ring:<9} {masters:<14} "
+            f"{r.effects.get('exactly_once')!s:<13} "
+            f"{'consistent' if r.replicas_consistent else 'DIVERGED'}"
+            + (f"  FAILED: {r.failed}" if r.failed else "")
+        )
+    ok = sum(r.ok for r in results)
+    lines.append(
+        f"fleet: {ok}/{len(results)} missions completed exactly once with consistent "
+        f"replicas in {elapsed_s:.1f} s"
+    )
+    return "\n".join(lines)
+
+
+async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> list[MissionResult]:
+    """Admits every mission, starts the stations, vehicles, drones and sessions, and
+    waits for every mission's end; ValueError names a refused mission before anything
+    starts."""
+    from baton.certs.make import init
+    from baton.drone.policy import Station
+    from baton.fleet.admission import Refused
+    from baton.fleet.registry import Registry
+    from baton.fleet.routes import survey_route
+    from baton.fleet.sessions import start_sessions
+    from baton.fleet.stations import ring_config
+    from baton.sdk.types import Position
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    registry_file = workdir / "fleet.sqlite"
+    registry_file.unlink(missing_ok=True)
+    admitted: dict[str, tuple[int, tuple[int, ...], int]] = {}
+    with Registry(registry_file) as registry:
+        for s in fleet.stations:
+            where = Position(s.location.latitude_deg, s.location.longitude_deg)
+            registry.add_station(f"station-{s.id}", Station(s.id, where, s.range_m))
+        for d in fleet.drones:
+            take_off = Position(d.home.latitude_deg, d.home.longitude_deg)
+            route = survey_route(take_off, d.mission.plan().targets())
+            decision = registry.admit(d.name, route)
+            if isinstance(decision, Refused):
+                raise ValueError(f"drone {d.name}'s mission is refused: {decision.message()}")
+            number, how = decision
+            admitted[d.name] = (number, how.ring, how.first_master)
+
+    certs = workdir / "certs"
+    ids = [s.id for s in fleet.stations]
+    init(certs, [*(Identity.controller(i) for i in ids), DRONE, OPERATOR])
+    operator = Tls.load(certs, OPERATOR)
+    async with Supervisor(workdir / "parts") as supervisor:
+        stations = await start_stations(supervisor, ids, certs)
+        network = BatonConfig.model_validate(
+            {
+                "controllers": [
+                    {
+                        "id": s.id,
+                        "address": stations[s.id].address,
+                        "location": s.location.model_dump(),
+                        "range_m": s.range_m,
+                    }
+                    for s in fleet.stations
+                ],
+                "speedup": fleet.speedup,
+                "handover_policy": fleet.handover_policy.model_dump(),
+                "takeover_after": fleet.takeover_after,
+                "flush_limit": 0,
+                "tls": {"certs": str(certs)},
+            }
+        )
+        drones: dict[str, MissionDrone] = {}
+        configs: dict[str, BatonConfig] = {}
+        for d in fleet.drones:
+            _, ring, first = admitted[d.name]
+            mission = ring_config(network, ring, first)
+            # The drone's port is picked as it starts; its sessions are told where it is.
+            at_home = mission.drone.model_copy(update={"address": "127.0.0.1:0", "home": d.home})
+            drone = await start_mission_drone(
+                supervisor, d.name, mission.model_copy(update={"drone": at_home})
+            )
+            at = at_home.model_copy(update={"address": drone.address})
+            drones[d.name], configs[d.name] = drone, mission.model_copy(update={"drone": at})
+        await _every([d.ready for d in drones.values()], "every vehicle ready", 120)
+        for d in fleet.drones:
+            plan = d.mission.plan()
+            await asyncio.to_thread(
+                start_sessions,
+                configs[d.name],
+                str(admitted[d.name][0]),
+                str(plan.file),
+                plan.args(),
+                operator,
+            )
+        started = time.monotonic()
+        results = []
+        for d in fleet.drones:
+            number, ring, _ = admitted[d.name]
+            drone = drones[d.name]
+            left = max(1.0, timeout_s - (time.monotonic() - started))
+            statuses = await _until(
+                partial(mission_ended, stations, drone, str(number), ring),
+                f"drone {d.name}'s mission {number} ended",
+                left,
+            )
+            snapshot = await drone.snapshot(statuses)
+            results.append(mission_result(d.name, str(number), ring, d.mission.plan(), snapshot))
+        channels = [s.channel for s in stations.values()] + [d.channel for d in drones.values()]
+        for channel in channels:
+            await channel.close()
+    return results
+
+
+async def _until(check: Any, what: str, timeout_s: float) -> Any:
+    """``check()``'s first truthy answer, polled; TimeoutError naming ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        answer = await check()
+        if answer:
+            return answer
+        await asyncio.sleep(0.2)
+    raise TimeoutError(f"{what}: not within {timeout_s:.0f} s")
+
+
+async def _every(checks: Sequence[Any], what: str, timeout_s: float) -> None:
+    for check in checks:
+        await _until(check, what, timeout_s)

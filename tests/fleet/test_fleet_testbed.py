@@ -1,0 +1,56 @@
+"""``baton testbed --fleet FILE``: drones over stations on one machine, each mission
+exactly once at its vehicle and camera, with consistent replicas."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+from helpers.testbed_runs import baton_run
+
+from baton.cli import main
+
+EXAMPLES = Path(__file__).parents[2] / "examples"
+FLEET, FLEET_SIX = EXAMPLES / "fleet.yaml", EXAMPLES / "fleet-six.yaml"
+
+
+def test_the_example_fleet_flies_every_mission_exactly_once_over_shared_stations(
+    tmp_path: Path,
+) -> None:
+    result = baton_run("testbed", "--fleet", str(FLEET), "--workdir", str(tmp_path))
+    assert result.returncode == 0, result.stdout + result.stderr
+    lines = {line.split()[0]: line.split() for line in result.stdout.splitlines() if line}
+    # d1 crosses all three stations and hands over on the way; d2 shares two of them.
+    assert lines["d1"][2] == "1,2,3" and "->" in lines["d1"][3], result.stdout
+    assert lines["d2"][2] == "2,3", result.stdout
+    for drone in ("d1", "d2"):
+        assert lines[drone][-2:] == ["True", "consistent"], result.stdout
+    assert "fleet: 2/2 missions completed exactly once" in result.stdout
+
+
+@pytest.mark.slow
+def test_six_drones_over_four_stations_each_exactly_once(tmp_path: Path) -> None:
+    """About 2 minutes on 2 cores: the stations host up to five missions each."""
+    result = baton_run("testbed", "--fleet", str(FLEET_SIX), "--workdir", str(tmp_path))
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "fleet: 6/6 missions completed exactly once" in result.stdout
+
+
+def test_a_fleet_with_an_uncovered_route_or_a_bad_field_starts_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    fleet = yaml.safe_load(FLEET.read_text())
+    fleet["drones"][1]["mission"]["length_m"] = 3000  # far past station 3
+    too_far = tmp_path / "too-far.yaml"
+    too_far.write_text(yaml.safe_dump(fleet))
+    assert main(["testbed", "--fleet", str(too_far), "--workdir", str(tmp_path / "w")]) == 2
+    err = capsys.readouterr().err
+    assert "drone d2's mission is refused" in err and "a stretch no station covers" in err
+    assert not (tmp_path / "w" / "parts").exists()
+
+    fleet["drones"][1]["name"] = "d1"
+    twice = tmp_path / "twice.yaml"
+    twice.write_text(yaml.safe_dump(fleet))
+    assert main(["testbed", "--fleet", str(twice)]) == 2
+    assert f"{twice}: (top level): drones[].name: d1 twice" in capsys.readouterr().err
