@@ -97,3 +97,12 @@ def test_a_killed_programs_local_answer_the_drone_never_saw_is_not_a_lost_reply(
     what the drone accepted. The invariant fired at the fence, before the framing."""
     outcome = run_seed(14407, SimOptions())
     assert outcome.ok, outcome.report()
+
+
+def test_a_framing_in_an_older_epoch_that_shows_the_same_entries_is_the_ring_log() -> None:
+    """--lose-master 10451: taker 3 held message 1 as lost master 6 framed it in epoch 1
+    (a Clock.Sleep), controller 1 as master 4 framed it again in epoch 2, entry for
+    entry the same. The invariant compared epochs and fired; what matters to the
+    programs is what they see, which is the same (every oracle held)."""
+    outcome = run_seed(10451, SimOptions(lose_master=True))
+    assert outcome.ok, outcome.report()

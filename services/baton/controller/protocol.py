@@ -126,7 +126,7 @@ class _Outcome(Protocol):
     def given_up(self) -> bool: ...
 
 
-def _seen_as(outcome: _Outcome) -> tuple[bytes, int, bool, bytes]:
+def seen_as(outcome: _Outcome) -> tuple[bytes, int, bool, bytes]:
     """An outcome, to compare: the request, status, give-up and reply (by digest)."""
     reply = hashlib.sha256(outcome.reply).digest()
     return outcome.request_digest, outcome.status_code, outcome.given_up, reply
@@ -652,7 +652,7 @@ class ControllerProtocol:
         """``entries`` are held as framed in ``epoch``, in log message ``lognr`` (0: our
         log's, not flushed yet): ``replaced_framing``."""
         for entry in entries:
-            self._framed[entry.reqnr] = (epoch, lognr, _seen_as(entry))
+            self._framed[entry.reqnr] = (epoch, lognr, seen_as(entry))
         if entries and len(self._framed) > 2 * EPOCHS_KEPT:
             newest = entries[-1].reqnr
             for old in [n for n in self._framed if n <= newest - EPOCHS_KEPT]:
@@ -680,7 +680,7 @@ class ControllerProtocol:
             if framed is None or kept.reqnr > self.held_reqnr:
                 continue
             epoch, lognr, seen = framed
-            if epoch < kept.epoch and seen != _seen_as(kept):
+            if epoch < kept.epoch and seen != seen_as(kept):
                 return ReplacedFraming(kept.reqnr, lognr or self.lognr + 1, epoch, kept.epoch)
         return None
 

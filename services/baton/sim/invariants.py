@@ -36,7 +36,9 @@ The invariants (docs/simulation.md, "Invariants"):
    lost new master as origin.
 6. ``master-holds-the-ring-log``: whenever the drone accepts a new request,
    the master it serves (ACTIVE in the drone's epoch) holds at every log
-   number it handled a framing no older than any live controller's, but
+   number it handled a framing no older than any live controller's, or one
+   that shows the programs the same entries (a Clock.Sleep a lost master and
+   its taker both framed: the epoch differs, not what was seen), but
    those of masterships a takeover ended (the ring fences them: ``Fenced``;
    their holders rejoin). Not the newest ever sent (``World.framings``): a
    master lost mid-flush sends a framing that may reach nobody alive, and
@@ -81,7 +83,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from baton.controller.core import CoreEffect
-from baton.controller.protocol import SendLog, State
+from baton.controller.protocol import SendLog, State, seen_as
 from baton.drone.invariants import DroneWatch
 from baton.sim.oracles import Violation, _observed
 from baton.v1 import drone_pb2
@@ -175,14 +177,28 @@ def master_holds_the_ring_log(world: World) -> str | None:
     for lognr, epoch in p._epoch_at.items():
         if epoch >= max(world.framings.get(lognr, (epoch,))):
             continue  # the newest framing sent (the common case: nothing to look up)
+        ours = _seen_in(master, lognr)
         for c in live:
             theirs = c.protocol.epoch_of(lognr)
             if theirs > epoch and theirs not in replaced:
+                if ours is not None and ours == _seen_in(c, lognr):
+                    continue  # framed again, the same for every program
                 return (
                     f"master {master.id} (epoch {p.epoch}) holds log message {lognr} of "
                     f"epoch {epoch}, controller {c.id} holds it of epoch {theirs}"
                 )
     return None
+
+
+def _seen_in(c: SimController, lognr: int) -> tuple[object, ...] | None:
+    """What the programs see of log message ``lognr`` as ``c`` holds it (in its history
+    or queue): each entry's request number and outcome (``seen_as``); None if unknown."""
+    message = c.protocol.log_queue.get(lognr)
+    if message is None and lognr in c.history:
+        message = c.history.get(lognr)
+    if message is None:
+        return None
+    return tuple((entry.reqnr, seen_as(entry)) for entry in message.entries)
 
 
 def replies_held(world: World, live: list[SimController]) -> str | None:
