@@ -262,6 +262,26 @@ def test_the_programs_start_once_a_station_that_never_answered_leaves_radio_rang
         assert outcome.ok, outcome.report()
 
 
+def test_a_killed_replica_is_held_to_the_calls_the_drone_had_seen_when_it_died() -> None:
+    """--policy predictive 3569 (same-replies, the oracle's): replica 2 consumed master
+    4's Clock reading of request 16 and was killed; 4, fenced, died with it, and taker
+    0 framed 16 anew under another log number. The drone had executed nothing above 15:
+    the reading never left the dead replica, and nothing acted on it."""
+    outcome = run_seed(3569, SimOptions(policy="predictive"))
+    assert outcome.ok, outcome.report()
+
+
+def test_a_handover_notice_of_a_later_mastership_makes_a_stale_master_rejoin() -> None:
+    """--policy predictive 7057 (a ProtocolError that stopped a controller): master 2,
+    ACTIVE in epoch 1, never heard the drone hand over from it while it restarted; the
+    role went round and came back to it by a handover message of epoch 4, queued behind
+    the ring's log. The drone's notice of the switch to epoch 5 then made it hand over
+    its epoch-1 log as epoch 5's, a framing the ring had replaced; handling the queued
+    message later failed. A notice that ends a mastership after ours makes us rejoin."""
+    outcome = run_seed(7057, SimOptions(policy="predictive"))
+    assert outcome.ok, outcome.report()
+
+
 def test_policy_seed_132_holds_every_oracle() -> None:
     """--policy nearest seed 132 (same-replies): master 4, cut off by a forced handover
     it never heard, answered Clock calls 7-10 itself and flushed them to 2; a takeover

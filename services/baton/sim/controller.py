@@ -191,6 +191,9 @@ class SimController:
         # Takeover: node.py's fenced_messages.
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
+        # The drone's last request when this incarnation died (None: alive): what it
+        # consumed above it was decided where it ran (``oracles._observed``).
+        self.drone_last_at_death: int | None = None
         self.fenced_messages = 0
         self.route_held = False  # a route held back polls (_route_again)
         # And _acked_before_prepare: the target's stream then, and its acks then.
@@ -220,6 +223,7 @@ class SimController:
     def kill(self, why: str = "killed") -> None:
         """The process dies with everything it held."""
         self.alive = False
+        self.drone_last_at_death = self.world.drone.seq.last_reqnr
         self.world.trace(f"controller {self.id} {why}")
         self.drone_link.break_("controller killed")
         for other in self.world.live_controllers():

@@ -276,9 +276,19 @@ def _observed(controller: SimController, world: World) -> int:
     its last request the drone accepted, and been held to exactly that (a
     replica that consumed a give-up of a master cut off from the drone,
     killed before the taker's framing of that request reached it).
+
+    And any killed incarnation is held to the calls up to the drone's last
+    request when it died: above it, the drone had executed nothing, so what
+    it consumed there were answers decided where they ran (a master's Clock
+    reading or give-up, relayed or its own), which a taker may frame anew if
+    they died with it; a dead incarnation acts on nothing. Whatever the live
+    controllers consumed of the same calls is still compared.
     """
     if controller.ended_by or _would_have_rejoined(controller, world):
         return controller.accepted_upto
+    died = controller.drone_last_at_death
+    if died is not None and not controller.alive:
+        return max(controller.accepted_upto, min(len(controller.seen), died))
     return len(controller.seen)
 
 
