@@ -115,6 +115,8 @@ def test_landing_or_disarming_while_flown_is_a_takeover_once_seen_in_the_air() -
     assert disarmed[1] is not None and disarmed[1].action == "disarmed"
     returned = VehicleCommand((RTL,), 0.0, airborne=True)
     assert decide(returned, ModeSeen("LAND", armed=False, in_air=False)) is None
+    # Its link out (a reboot): back on the ground is the outage's, not a takeover.
+    assert decide(command.unseen(), on_ground) is None
     # A new flight's Arm on the ground starts unseen in the air again.
     rearmed = returned.commanding(FLY, 50.0).commanded(FLY, 50.1)
     assert decide(rearmed, on_ground, 50.1 + LATER) is None

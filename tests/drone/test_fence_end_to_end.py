@@ -76,7 +76,6 @@ def tlog_messages(workdir: Path, *types: str) -> list[Any]:
 # The breach races the autopilot's own fence action (GF_ACTION, set with the upload)
 # against the drone's look at the vehicle's position: whichever acts first, the mission
 # ends in failsafe, the drone's fence failsafe or the autopilot's takeover.
-@pytest.mark.slow
 @pytest.mark.parametrize("vehicle", ["sim", pytest.param("sitl", marks=pytest.mark.sitl)])
 async def test_a_goto_out_of_the_fence_is_refused_and_a_breach_returns_the_vehicle(
     vehicle: str, tmp_path: Path

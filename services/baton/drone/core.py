@@ -286,6 +286,11 @@ class DroneCore:
             return None
         return due
 
+    def vehicle_unseen(self) -> None:
+        """The vehicle did not say its state at the last look (``VehicleCommand.unseen``)."""
+        if self.vehicle_command is not None:
+            self.vehicle_command = self.vehicle_command.unseen()
+
     def commanding(self, action: str | None, now: float) -> None:
         """The drone is sending the vehicle a command for ``action`` (``safety.FLY``,
         ``HOLD``, ``LAND``, ``RTL``; None: one that changes no mode): either mode may

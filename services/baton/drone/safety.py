@@ -213,6 +213,12 @@ class VehicleCommand:
         at afresh (a new flight starts on the ground)."""
         return VehicleCommand((action,), now, tuple(dict.fromkeys((*self.before, *self.actions))))
 
+    def unseen(self) -> VehicleCommand:
+        """The vehicle's state is not known now (its link is out, or it rebooted): it
+        counts as seen in the air again only once it reports it; a vehicle that comes
+        back on the ground is the link's outage (GetStatus.vehicle), not a takeover."""
+        return replace(self, airborne=False)
+
     def allowed(self, now: float) -> tuple[str, ...]:
         """The actions whose modes the vehicle may be in at ``now``."""
         settling = now - self.at < MODE_SETTLE_S

@@ -249,7 +249,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         it at the station once a nearest_station failsafe has brought it there."""
         while True:
             state = await self._flight_state()
-            if state is not None:
+            if state is None:
+                self.core.vehicle_unseen()
+            else:
                 here = await latest_position(self.vehicle)
                 failsafe = self.core.failsafe
                 if failsafe is not None and failsafe.station is not None and state.in_air:
