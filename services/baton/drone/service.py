@@ -278,8 +278,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             return None
 
     def _failsafe_due(self, state: api.GetFlightStateReply, here: api.Position) -> Failsafe | None:
-        """``DroneCore.battery_due``, else ``fence_due``, else ``failsafe_due`` (the lost
-        link), with the battery and whether the vehicle is in the air (``state``), who
+        """``DroneCore.battery_due``, else ``fence_due``, else ``autopilot_due``, else
+        ``failsafe_due`` (the lost link), with the battery, the flight mode and whether the
+        vehicle is in the air (``state``), who
         holds a stream now, who is in range, and where the vehicle is (``here``: the
         fence, the station nearest it)."""
         now, airborne = time.time(), state.in_air
