@@ -9,13 +9,19 @@ import signal
 import time
 from pathlib import Path
 
-from helpers.missions import FAST_LINK, LONG_LEGS, flying_to_the_second_waypoint
+from helpers.missions import (
+    FAST_LINK,
+    LONG_LEGS,
+    flying_to_the_second_waypoint,
+    long_legs_on_fast_links,
+    mission_errors,
+)
 from helpers.pilot import PX4_AUTO_RTL, switch_mode
 from waiting import eventually
 
 from baton.effects import read_effects
 from baton.testbed.local import VEHICLE_EFFECTS_FILE, LocalTestbed, TestbedPlan, local_config
-from baton.v1 import drone_pb2, ring_pb2
+from baton.v1 import drone_pb2
 
 MISSIONS = Path(__file__).parent / "missions"
 SPEEDUP = 20.0
@@ -106,12 +112,7 @@ async def test_the_cruise_speed_survives_a_drone_killed_mid_mission(tmp_path: Pa
     """kill -9 of the drone mid-mission, restarted on its state file: every goto the
     vehicle flies after the restart is followed by the mission's speed, as before it
     (issue 32, item 6; ArduPilot resets the speed at every reposition)."""
-    plan = TestbedPlan(
-        config=local_config(
-            2, flush_limit=0, speedup=SPEEDUP, controller_link=FAST_LINK, drone_link=FAST_LINK
-        ),
-        mission=LONG_LEGS,
-    )
+    plan = long_legs_on_fast_links(2, SPEEDUP)
     effects = tmp_path / VEHICLE_EFFECTS_FILE
     async with LocalTestbed(plan, tmp_path) as testbed:
 
@@ -182,10 +183,7 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
         assert [e["effect"] for e in read_effects(effects) if e["seq"] > first] == []
 
         async def every_program_told() -> bool:
-            errors = [
-                (await stub.GetStatus(ring_pb2.GetControllerStatusRequest())).mission_error
-                for stub in testbed.controller_stubs.values()
-            ]
+            errors = await mission_errors(testbed)
             return all("in failsafe (battery" in error for error in errors)
 
         await eventually(every_program_told, "every program ended by the failsafe", 60)
@@ -195,12 +193,7 @@ async def test_the_drone_service_dead_for_good_the_autopilot_returns(tmp_path: P
     """kill -9 of the drone mid-flight, never restarted: the autopilot's own GCS failsafe
     (PX4's NAV_DLL_ACT and COM_DL_LOSS_T, set by the drone at connect) returns the vehicle
     once no ground station was heard for the timeout (5 s of wall time at least)."""
-    plan = TestbedPlan(
-        config=local_config(
-            2, flush_limit=0, speedup=SPEEDUP, controller_link=FAST_LINK, drone_link=FAST_LINK
-        ),
-        mission=LONG_LEGS,
-    )
+    plan = long_legs_on_fast_links(2, SPEEDUP)
     effects = tmp_path / VEHICLE_EFFECTS_FILE
     async with LocalTestbed(plan, tmp_path) as testbed:
 
@@ -232,12 +225,7 @@ async def test_the_autopilot_returning_on_its_own_is_a_failsafe(tmp_path: Path) 
     autopilot failsafe and commands nothing more; the program's next call fails with it
     on every controller alike (before, the mission polled for a target it never
     reached); GetStatus says what the autopilot did; an operator's Resume clears it."""
-    plan = TestbedPlan(
-        config=local_config(
-            2, flush_limit=0, speedup=SPEEDUP, controller_link=FAST_LINK, drone_link=FAST_LINK
-        ),
-        mission=LONG_LEGS,
-    )
+    plan = long_legs_on_fast_links(2, SPEEDUP)
     effects = tmp_path / VEHICLE_EFFECTS_FILE
     async with LocalTestbed(plan, tmp_path) as testbed:
         assert testbed.drone_stub is not None
@@ -250,10 +238,7 @@ async def test_the_autopilot_returning_on_its_own_is_a_failsafe(tmp_path: Path) 
         assert len(switched) == 1, switched
 
         async def every_program_told() -> list[str]:
-            errors = [
-                (await stub.GetStatus(ring_pb2.GetControllerStatusRequest())).mission_error
-                for stub in testbed.controller_stubs.values()
-            ]
+            errors = await mission_errors(testbed)
             told = all("in failsafe (autopilot: autopilot took over: " in e for e in errors)
             return errors if told else []
 
