@@ -244,8 +244,15 @@ async def test_the_autopilot_returning_on_its_own_is_a_failsafe(tmp_path: Path) 
 
         errors = await eventually(every_program_told, "every program ended by the takeover", 60)
         assert "RETURN_TO_LAUNCH" in errors[0] and len(set(errors)) == 1, errors
+        told_after_s = time.time() - float(switched[0]["time"])
         status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         assert (status.failsafe.cause, status.failsafe.action) == ("autopilot", "RETURN_TO_LAUNCH")
+        decided_after_s = status.failsafe.since - float(switched[0]["time"])
+        print(
+            f"autopilot's RTL to the drone's failsafe: {decided_after_s:.2f} s wall; "
+            f"every program told within {told_after_s:.2f} s"
+        )
+        assert 0 <= decided_after_s < 2.0
         # The drone commanded the vehicle nothing after the switch: no goto, no hold.
         after = [e["effect"] for e in read_effects(effects) if e["seq"] > switched[0]["seq"]]
         assert after == [], after
