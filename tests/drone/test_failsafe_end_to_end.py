@@ -9,12 +9,19 @@ import signal
 import time
 from pathlib import Path
 
-from helpers.missions import FAST_LINK, LONG_LEGS, flying_to_the_second_waypoint
+from helpers.missions import (
+    FAST_LINK,
+    LONG_LEGS,
+    flying_to_the_second_waypoint,
+    long_legs_on_fast_links,
+    mission_errors,
+)
+from helpers.pilot import PX4_AUTO_RTL, switch_mode
 from waiting import eventually
 
 from baton.effects import read_effects
 from baton.testbed.local import VEHICLE_EFFECTS_FILE, LocalTestbed, TestbedPlan, local_config
-from baton.v1 import drone_pb2, ring_pb2
+from baton.v1 import drone_pb2
 
 MISSIONS = Path(__file__).parent / "missions"
 SPEEDUP = 20.0
@@ -105,12 +112,7 @@ async def test_the_cruise_speed_survives_a_drone_killed_mid_mission(tmp_path: Pa
     """kill -9 of the drone mid-mission, restarted on its state file: every goto the
     vehicle flies after the restart is followed by the mission's speed, as before it
     (issue 32, item 6; ArduPilot resets the speed at every reposition)."""
-    plan = TestbedPlan(
-        config=local_config(
-            2, flush_limit=0, speedup=SPEEDUP, controller_link=FAST_LINK, drone_link=FAST_LINK
-        ),
-        mission=LONG_LEGS,
-    )
+    plan = long_legs_on_fast_links(2, SPEEDUP)
     effects = tmp_path / VEHICLE_EFFECTS_FILE
     async with LocalTestbed(plan, tmp_path) as testbed:
 
@@ -181,10 +183,7 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
         assert [e["effect"] for e in read_effects(effects) if e["seq"] > first] == []
 
         async def every_program_told() -> bool:
-            errors = [
-                (await stub.GetStatus(ring_pb2.GetControllerStatusRequest())).mission_error
-                for stub in testbed.controller_stubs.values()
-            ]
+            errors = await mission_errors(testbed)
             return all("in failsafe (battery" in error for error in errors)
 
         await eventually(every_program_told, "every program ended by the failsafe", 60)
@@ -194,12 +193,7 @@ async def test_the_drone_service_dead_for_good_the_autopilot_returns(tmp_path: P
     """kill -9 of the drone mid-flight, never restarted: the autopilot's own GCS failsafe
     (PX4's NAV_DLL_ACT and COM_DL_LOSS_T, set by the drone at connect) returns the vehicle
     once no ground station was heard for the timeout (5 s of wall time at least)."""
-    plan = TestbedPlan(
-        config=local_config(
-            2, flush_limit=0, speedup=SPEEDUP, controller_link=FAST_LINK, drone_link=FAST_LINK
-        ),
-        mission=LONG_LEGS,
-    )
+    plan = long_legs_on_fast_links(2, SPEEDUP)
     effects = tmp_path / VEHICLE_EFFECTS_FILE
     async with LocalTestbed(plan, tmp_path) as testbed:
 
@@ -223,3 +217,46 @@ async def test_the_drone_service_dead_for_good_the_autopilot_returns(tmp_path: P
         # Counted from the last GCS heartbeat the vehicle heard (sent each second, up to
         # 1 s before the kill, more on a loaded machine), not from the kill.
         assert after_s >= 5.0 - 1.5
+
+
+async def test_the_autopilot_returning_on_its_own_is_a_failsafe(tmp_path: Path) -> None:
+    """A mode switch the drone did not send (a pilot's, as the autopilot's own failsafe
+    or fence action would be) while the vehicle flies a leg: the drone enters the
+    autopilot failsafe and commands nothing more; the program's next call fails with it
+    on every controller alike (before, the mission polled for a target it never
+    reached); GetStatus says what the autopilot did; an operator's Resume clears it."""
+    plan = long_legs_on_fast_links(2, SPEEDUP)
+    effects = tmp_path / VEHICLE_EFFECTS_FILE
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        assert testbed.drone_stub is not None
+        await eventually(
+            lambda: flying_to_the_second_waypoint(testbed), "the vehicle between waypoints", 60
+        )
+        status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        await switch_mode(status.vehicle_url, PX4_AUTO_RTL)
+        switched = [e for e in read_effects(effects) if e.get("mode") == "RETURN_TO_LAUNCH"]
+        assert len(switched) == 1, switched
+
+        async def every_program_told() -> list[str]:
+            errors = await mission_errors(testbed)
+            told = all("in failsafe (autopilot: autopilot took over: " in e for e in errors)
+            return errors if told else []
+
+        errors = await eventually(every_program_told, "every program ended by the takeover", 60)
+        assert "RETURN_TO_LAUNCH" in errors[0] and len(set(errors)) == 1, errors
+        told_after_s = time.time() - float(switched[0]["time"])
+        status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert (status.failsafe.cause, status.failsafe.action) == ("autopilot", "RETURN_TO_LAUNCH")
+        decided_after_s = status.failsafe.since - float(switched[0]["time"])
+        print(
+            f"autopilot's RTL to the drone's failsafe: {decided_after_s:.2f} s wall; "
+            f"every program told within {told_after_s:.2f} s"
+        )
+        assert 0 <= decided_after_s < 2.0
+        # The drone commanded the vehicle nothing after the switch: no goto, no hold.
+        after = [e["effect"] for e in read_effects(effects) if e["seq"] > switched[0]["seq"]]
+        assert after == [], after
+        cleared = await testbed.drone_stub.Resume(drone_pb2.ResumeRequest())
+        assert cleared.cleared.cause == "autopilot"
+    log = (tmp_path / "logs" / "drone.log").read_text()
+    assert '"failsafe"' in log and "autopilot took over: RETURN_TO_LAUNCH" in log

@@ -89,6 +89,26 @@ async def fly(tmp_path: Path, plan: TestbedPlan, timeout: float = 240) -> Snapsh
 LONG_LEGS = MissionPlan(grid=2, spacing_m=100.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
 
 
+def long_legs_on_fast_links(controllers: int = 2, speedup: float = 20.0) -> TestbedPlan:
+    """LONG_LEGS flown by ``controllers`` (0 master) on fast links, sped up."""
+    config = local_config(
+        controllers,
+        flush_limit=0,
+        speedup=speedup,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+    )
+    return TestbedPlan(config=config, mission=LONG_LEGS)
+
+
+async def mission_errors(testbed: LocalTestbed) -> list[str]:
+    """Each controller's mission error now, in controller order ("" while none)."""
+    return [
+        (await stub.GetStatus(ring_pb2.GetControllerStatusRequest())).mission_error
+        for _, stub in sorted(testbed.controller_stubs.items())
+    ]
+
+
 def log_events(tmp_path: Path, part: str) -> list[dict[str, object]]:
     """The JSON log lines of one part, in order."""
     text = (tmp_path / "logs" / f"{part}.log").read_text()

@@ -489,3 +489,26 @@ def test_lying_seeds_hold_every_oracle_and_refuse_every_forged_frame() -> None:
         told.update(lie.kind for lie in world.lies if lie.refused)
     assert not any(o.failed for o in outcomes), _failures(outcomes)
     assert min(told[kind] for kind in LIES) >= 3, told
+
+
+# Issue 32's autopilot taking the vehicle over (--autopilot) in CI.
+AUTOPILOT_SEEDS = 120
+
+
+def test_autopilot_seeds_hold_every_oracle_and_the_takeover_fails_safe() -> None:
+    """The autopilot switches the vehicle to a return, a landing or a pilot's mode at a
+    drawn moment: exactly once and the replicas' replies hold, nothing reaches the vehicle
+    from the takeover until the operator's resume (nothing-in-failsafe), and the drone
+    takes the takeover for a failsafe in many seeds (not in those where the switch came
+    before the mission's first command or after its end)."""
+    options = SimOptions(autopilot=True)
+    outcomes = []
+    taken: Counter[str] = Counter()
+    for seed in range(AUTOPILOT_SEEDS):
+        world = World(seed, options)
+        outcomes.append(world.run())
+        taken.update(what for _, what in world.drone.vehicle.failsafes)
+    assert not any(o.failed for o in outcomes), _failures(outcomes)
+    modes = {what.removeprefix("autopilot ") for what in taken if what.startswith("autopilot ")}
+    assert modes == {"RETURN_TO_LAUNCH", "LAND", "POSCTL"}, taken
+    assert sum(taken.values()) >= 15, taken

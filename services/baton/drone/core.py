@@ -37,7 +37,10 @@ The rules it keeps (docs/design.md, "Takeover" and "Exactly once"):
   resumes. A call beyond a bound of the vehicle (speed, altitude) is refused
   INVALID_ARGUMENT the same way, and one that would move the vehicle out of the
   mission's fence (``fence.py``) OUT_OF_RANGE; the vehicle found out of the fence
-  is put in the fence's failsafe, once each time it leaves.
+  is put in the fence's failsafe, once each time it leaves. A flight mode the
+  drone did not command (or a landing, a disarm) while it flies the mission is
+  the autopilot taking the vehicle over (``safety.autopilot_takeover``): the
+  ``autopilot`` failsafe, in which the drone commands nothing.
 - An operator's commands (``operator.py``, docs/operating.md "Operator commands"):
   while paused, the master's next request waits at the drone before admission
   (``holds``); once an abort or a land-now ended the mission, every admitted
@@ -57,8 +60,12 @@ from baton.drone.invariants import DroneWatch, InvariantBroken
 from baton.drone.operator import Operator, OperatorCommand
 from baton.drone.safety import (
     Failsafe,
+    ModeSeen,
     SafetyParams,
+    VehicleCommand,
+    autopilot_takeover,
     battery_failsafe,
+    commanded_action,
     fence_failsafe,
     limit_refusal,
     lost_link_failsafe,
@@ -118,6 +125,12 @@ class DroneCore:
         self.last_usable: float | None = None
         # Whether the vehicle was out of the fence at the last look (a breach acts once).
         self.out_of_fence = False
+        # What the drone last commanded the vehicle (None: nothing yet, no mission flies
+        # it), the vehicle's mode at the last look, and whether a ground station took it
+        # over (its override: the station commands the vehicle until a resume).
+        self.vehicle_command: VehicleCommand | None = None
+        self.mode: ModeSeen | None = None
+        self.station_override = False
         # The master is lost after this long unseen; 0: never (only an operator's takeover).
         self.takeover_after_s = takeover_after_s
         self.routes: Mapping[str, Method] = drone_api()
@@ -258,11 +271,62 @@ class DroneCore:
             return None
         return due
 
+    def autopilot_due(self, now: float, seen: ModeSeen) -> Failsafe | None:
+        """The autopilot's takeover due now (``safety.autopilot_takeover``) with the vehicle
+        as it reports itself (``seen``), or None: none is due while no mission flies the
+        vehicle (nothing commanded yet), in a failsafe, while paused or ended by an
+        operator, or after a ground station's override."""
+        self.mode = seen
+        command = self.vehicle_command
+        operator = self.operator
+        if command is None or self.station_override:
+            return None
+        self.vehicle_command, due = autopilot_takeover(now, command, seen)
+        if self.failsafe is not None or operator.paused is not None or operator.ended is not None:
+            return None
+        return due
+
+    def vehicle_unseen(self) -> None:
+        """The vehicle did not say its state at the last look (``VehicleCommand.unseen``)."""
+        if self.vehicle_command is not None:
+            self.vehicle_command = self.vehicle_command.unseen()
+
+    def commanding(self, action: str | None, now: float) -> None:
+        """The drone is sending the vehicle a command for ``action`` (``safety.FLY``,
+        ``HOLD``, ``LAND``, ``RTL``; None: one that changes no mode): either mode may
+        follow until ``commanded``."""
+        if action is None:
+            return
+        command = self.vehicle_command
+        self.vehicle_command = (
+            VehicleCommand((action,), now) if command is None else command.commanding(action, now)
+        )
+
+    def commanded(self, action: str | None, now: float) -> bool:
+        """The vehicle accepted the command for ``action`` (``VehicleCommand.commanded``).
+        True if what is expected changed (the drone keeps it in its state file)."""
+        if action is None:
+            return False
+        before = self.vehicle_command
+        if before is None:
+            self.vehicle_command = VehicleCommand((action,), now)
+            return True
+        self.vehicle_command = before.commanded(action, now)
+        return before.actions != (action,)
+
+    def station_took_over(self) -> None:
+        """A ground station's override (passed to the autopilot as it came): the vehicle's
+        mode is the station's until an operator resumes."""
+        self.station_override = True
+
     def enter_failsafe(self, failsafe: Failsafe) -> None:
         """The vehicle is in ``failsafe`` from now: requests are refused until a resume."""
         self.failsafe = failsafe
         if failsafe.cause == "fence":
             self.out_of_fence = True
+        action = commanded_action(failsafe.action) if failsafe.drone_acts else None
+        if action is not None:
+            self.vehicle_command = VehicleCommand((action,), failsafe.since)
 
     def resume_mission(self, now: float) -> tuple[Failsafe | None, OperatorCommand]:
         """An operator gives the mission the vehicle back (``Operator.resume``: raises
@@ -272,6 +336,12 @@ class DroneCore:
         taken = self.operator.resume(now, self.seq.last_reqnr, self.failsafe)
         cleared, self.failsafe = self.failsafe, None
         self.last_usable = now
+        # The vehicle goes on in the mode it is in (the autopilot's, a station's) until
+        # the mission's next command: resumed, that mode is not a takeover.
+        command, self.station_override = self.vehicle_command, False
+        if command is not None:
+            accepted = "" if self.mode is None else self.mode.mode
+            self.vehicle_command = VehicleCommand(command.actions, now, accepted=accepted)
         return cleared, taken
 
     def holds(self, request: drone_pb2.InvokeRequest) -> bool:

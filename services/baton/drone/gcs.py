@@ -27,11 +27,12 @@ texts) is signed. The autopilot's own frames reach the station with the
 autopilot's signature.
 
 CONTROL_STATUS and MAV_CMD_REQUEST_OPERATOR_CONTROL (development.xml) are
-not in pymavlink 2.4.50's dialects (common, ardupilotmega, development), and
-the definitions are still moving upstream (mavlink/mavlink #2158, #2313), so
-the drone does not send CONTROL_STATUS: it says who controls the vehicle in
-a STATUSTEXT instead, and answers every command by the rule above (docs/
-operating.md, "A ground station watching live").
+not in pymavlink 2.4.50's dialects, and two layouts of message 512 with
+different CRC extras are in use upstream (mavlink/mavlink #2158, #2313): a
+station built on the other would drop every frame. So the drone does not
+send CONTROL_STATUS: it says who controls the vehicle in a STATUSTEXT
+instead, and answers every command by the rule above (docs/operating.md,
+"Who controls the vehicle").
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ import grpc
 
 from baton.drone.mobility_api import command_action
 from baton.drone.operator import Operator, OperatorCommand
-from baton.drone.safety import Failsafe
+from baton.drone.safety import Failsafe, commanded_action
 from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.tls import OPERATOR, refused
 from baton.tasks import TaskSet
@@ -141,6 +141,7 @@ class OperatorCommands:
         """A ground station's override (drone/gcs.py) pauses the mission, between two
         requests as any command; the station commands the vehicle itself. Called on the
         relay's datagram path: the pause is a task of its own."""
+        self.service.core.station_took_over()  # before its command reaches the vehicle
         self._tasks.spawn(self._ground_station_pause(station, what), name="gcs-pause")
 
     async def _ground_station_pause(self, station: str, what: str) -> None:
@@ -195,11 +196,14 @@ class OperatorCommands:
     async def _tell_vehicle(self, taken: OperatorCommand) -> OperatorCommand:
         """Commands the vehicle what ``taken`` says, and records its answer."""
         vehicle, operator = self.service.vehicle, self.service.core.operator
+        action = commanded_action(taken.action)
         try:
+            self.service.core.commanding(action, time.time())
             if taken.action == "goto" and operator.leg is not None:
                 await vehicle.Goto(api.GotoRequest.FromString(operator.leg))
             elif not await command_action(vehicle, taken.action):
                 return taken
+            self.service.commanded(action)
         except StatusError as err:
             self.service.log.error(
                 "operator command refused by the vehicle", command=taken.command, reason=err.message

@@ -67,6 +67,7 @@ from baton.drone.policy import (
     hold_due,
     resume_due,
 )
+from baton.drone.safety import FLY, HOLD
 from baton.drone.store import PolicyMemory
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
@@ -330,7 +331,9 @@ class PolicyRunner:
                 # (one restarted before it does holds it again).
                 self._save(held=True)
                 try:
+                    service.core.commanding(HOLD, time.time())
                     await service.vehicle.Hold(api.HoldRequest())
+                    service.commanded(HOLD)
                 except BaseException:
                     # It may hold or not: held as far as the drone knows, sent again next.
                     self.holding = self._held_vehicle = self._unsure = True
@@ -364,7 +367,9 @@ class PolicyRunner:
                 away = geo_distance_m(Position.from_proto(here.position), target)
                 if away > RESUME_MIN_M:
                     try:
+                        service.core.commanding(FLY, time.time())
                         await service.vehicle.Goto(goto)
+                        service.commanded(FLY)
                     except BaseException:
                         # It may fly on or hold still: resumed again at the next decision
                         # (or held again, if that is a hold).

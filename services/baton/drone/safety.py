@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import grpc
 from google.protobuf.message import Message
@@ -43,7 +43,7 @@ class SafetyParams:
 @dataclass(frozen=True)
 class Failsafe:
     """The vehicle taken out of the mission's hands: why (``cause``: ``lost_link``,
-    ``battery`` or ``fence``),
+    ``battery``, ``fence`` or ``autopilot``),
     what it does (``action``, and the ``station`` it flies to for nearest_station),
     since when (wall seconds) and the reason a person reads."""
 
@@ -52,6 +52,12 @@ class Failsafe:
     since: float
     reason: str
     station: int | None = None
+
+    @property
+    def drone_acts(self) -> bool:
+        """Whether the drone commands the vehicle the action: not when the autopilot took
+        the vehicle over (``AUTOPILOT``), which flies it already (or a pilot does)."""
+        return self.cause != AUTOPILOT
 
     def refusal(self, method: str) -> StatusError:
         """What a call gets while the vehicle is in this failsafe: refused before execution."""
@@ -113,6 +119,151 @@ def fence_failsafe(now: float, position: api.Position, fence: Fence | None) -> F
     )
     return Failsafe(
         "fence", fence.action, now, f"fence breach: the vehicle at {at} is {why}: {fence.action}"
+    )
+
+
+# -- the autopilot taking the vehicle over ------------------------------------------
+
+# The cause of the failsafe the autopilot's own decision puts the vehicle in.
+AUTOPILOT = "autopilot"
+# What the drone last commanded the vehicle, by the flight modes it may then be in.
+FLY, HOLD, LAND, RTL = "fly", "hold", "land", "rtl"
+# Flight modes by name: ArduPilot's own (its heartbeat's custom mode, as pymavlink names
+# it: MAVSDK names GUIDED "OFFBOARD" and both BRAKE and LOITER "HOLD"), else MAVSDK's
+# (PX4 and the sim vehicle). The drone flies a mission in these: ArduPilot's GUIDED;
+# PX4's Hold (it flies a reposition in it), Takeoff and Offboard.
+_FLYING = frozenset({"GUIDED", "GUIDED_NOGPS", "OFFBOARD", "HOLD", "TAKEOFF"})
+# MAVSDK's Hold is BRAKE on ArduCopter, LOITER on other frames; POSHOLD for safety.
+_HOLDING = _FLYING | {"BRAKE", "LOITER", "POSHOLD"}
+_LANDING = _FLYING | {"LAND", "QLAND"}
+# A return ends in a landing, in a mode of its own on some firmware.
+_RETURNING = _LANDING | {"RTL", "SMART_RTL", "AUTO_RTL", "QRTL", "RETURN_TO_LAUNCH"}
+EXPECTED_MODES = {FLY: _FLYING, HOLD: _HOLDING, LAND: _LANDING, RTL: _RETURNING}
+# Mode names that say nothing (not known yet, PX4's READY on the ground).
+_UNKNOWN_MODES = frozenset({"", "UNKNOWN", "READY"})
+# Each Mobility command the drone executes, by what it commands (reads and SetSpeed
+# change no mode).
+VEHICLE_ACTIONS = {
+    "Arm": FLY,
+    "Takeoff": FLY,
+    "Goto": FLY,
+    "Hold": HOLD,
+    "Land": LAND,
+    "Disarm": LAND,
+    "ReturnToLaunch": RTL,
+}
+# What a failsafe's or an operator's action commands (a resume flying on is a "goto").
+_ACTION_COMMANDS = {
+    "hold": HOLD,
+    "land": LAND,
+    "rtl": RTL,
+    "nearest_station": FLY,
+    "goto": FLY,
+}
+# After a command, the vehicle's reported mode is not read for this long (wall seconds):
+# ArduPilot says its mode in its heartbeat, once a second, and MAVSDK passes it on.
+MODE_SETTLE_S = 3.0
+
+
+def commanded_action(action: str) -> str | None:
+    """What a failsafe's or an operator's ``action`` commands the vehicle (``FLY``,
+    ``HOLD``, ``LAND``, ``RTL``); None when it commands nothing."""
+    return _ACTION_COMMANDS.get(action)
+
+
+@dataclass(frozen=True)
+class ModeSeen:
+    """The vehicle as the autopilot reports it: its flight mode, armed, in the air."""
+
+    mode: str
+    armed: bool
+    in_air: bool
+
+
+def mode_seen(state: api.GetFlightStateReply) -> ModeSeen:
+    """The vehicle's flight ``state`` as the takeover rule reads it: ArduPilot's own mode
+    name, else MAVSDK's."""
+    mode = state.autopilot_mode if state.autopilot == "ArduPilot" else state.flight_mode
+    return ModeSeen(mode, state.armed, state.in_air)
+
+
+@dataclass(frozen=True)
+class VehicleCommand:
+    """What the drone last commanded the vehicle: the ``actions`` whose modes it may be in
+    (two while a command executes, and after one that failed: the vehicle may have taken
+    it or not), since when (wall seconds), the ``before`` ones it may still be in for
+    ``MODE_SETTLE_S`` after (its mode is reported late), whether the vehicle was seen in
+    the air since, and a mode an operator's resume took as it was (``accepted``: a
+    ground station's or the autopilot's, until the next command)."""
+
+    actions: tuple[str, ...]
+    at: float
+    before: tuple[str, ...] = ()
+    airborne: bool = False
+    accepted: str = ""
+
+    def commanding(self, action: str, now: float) -> VehicleCommand:
+        """A command for ``action`` is being sent: either mode may follow."""
+        actions = tuple(dict.fromkeys((*self.actions, action)))
+        return VehicleCommand(actions, now, self.allowed(now), self.airborne)
+
+    def commanded(self, action: str, now: float) -> VehicleCommand:
+        """The vehicle accepted the command for ``action``: its modes are expected from
+        now, the earlier ones for ``MODE_SETTLE_S`` more. In the air or not is looked
+        at afresh (a new flight starts on the ground)."""
+        return VehicleCommand((action,), now, tuple(dict.fromkeys((*self.before, *self.actions))))
+
+    def unseen(self) -> VehicleCommand:
+        """The vehicle's state is not known now (its link is out, or it rebooted): it
+        counts as seen in the air again only once it reports it; a vehicle that comes
+        back on the ground is the link's outage (GetStatus.vehicle), not a takeover."""
+        return replace(self, airborne=False)
+
+    def allowed(self, now: float) -> tuple[str, ...]:
+        """The actions whose modes the vehicle may be in at ``now``."""
+        settling = now - self.at < MODE_SETTLE_S
+        return tuple(dict.fromkeys((*self.actions, *self.before))) if settling else self.actions
+
+    def expects(self, mode: str, now: float) -> bool:
+        """Whether the vehicle may be in ``mode`` at ``now`` for what the drone commanded."""
+        if mode in _UNKNOWN_MODES or mode == self.accepted:
+            return True
+        return any(mode in EXPECTED_MODES[a] for a in self.allowed(now))
+
+
+def autopilot_takeover(
+    now: float, command: VehicleCommand, seen: ModeSeen
+) -> tuple[VehicleCommand, Failsafe | None]:
+    """The autopilot taking the vehicle over, decided from what the drone ``command``ed
+    and what it reports (``seen``): in the air, a flight mode no command of the drone
+    explains, or a vehicle seen in the air since the command that lands or disarms
+    while the drone flies it, is the autopilot's own decision (its fence, battery or
+    GCS failsafe, a pilot's mode switch). Returns the command with what was seen (in
+    the air) and the failsafe due; None while none is."""
+    if seen.in_air and seen.armed and not command.airborne:
+        command = replace(command, airborne=True)
+    allowed = command.allowed(now)
+    said = "/".join(allowed)
+    # Landing is the vehicle's own once it was commanded to land or return, and after a
+    # resume took its mode as it was (that mode may land it).
+    flying = not set(allowed) & {LAND, RTL} and not command.accepted
+    if command.airborne and flying and not (seen.armed and seen.in_air):
+        what = "landed" if not seen.in_air else "disarmed"
+        return command, Failsafe(
+            AUTOPILOT,
+            what,
+            now,
+            f"autopilot took over: the vehicle {what} while the drone flew it ({said}); "
+            "the drone commands nothing",
+        )
+    if not seen.in_air or command.expects(seen.mode, now):
+        return command, None
+    return command, Failsafe(
+        AUTOPILOT,
+        seen.mode,
+        now,
+        f"autopilot took over: {seen.mode} (the drone commanded {said}); the drone "
+        "commands nothing",
     )
 
 

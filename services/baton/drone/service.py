@@ -33,7 +33,16 @@ from baton.drone.mobility_api import MobilityBackend, command_action
 from baton.drone.operator_service import OperatorCommands, failsafe_proto, fill_status
 from baton.drone.policy import LinkBounds, LinkState, PolicyParams, Station
 from baton.drone.policy_runner import PolicyRunner
-from baton.drone.safety import Failsafe, SafetyParams, landing_due, nearest_station
+from baton.drone.safety import (
+    LAND,
+    VEHICLE_ACTIONS,
+    Failsafe,
+    SafetyParams,
+    VehicleCommand,
+    landing_due,
+    mode_seen,
+    nearest_station,
+)
 from baton.drone.sequencer import ScriptedHandover, Sequencer, TakeoverDue
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.lifecycle import announce
@@ -51,6 +60,8 @@ from baton.v1 import drone_pb2, drone_pb2_grpc
 
 # The durable commanded state's key of the mission's cruise speed (store.py).
 SPEED_KEY = "speed_m_s"
+# ... and of what the drone last commanded the vehicle (DroneCore.vehicle_command).
+VEHICLE_COMMAND_KEY = "vehicle_command"
 # A status read must not hang on a vehicle that stopped answering.
 _STATUS_READ_TIMEOUT_S = 1.0
 # Audit entries in one GetStatus page: by default, and at most.
@@ -238,7 +249,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         it at the station once a nearest_station failsafe has brought it there."""
         while True:
             state = await self._flight_state()
-            if state is not None:
+            if state is None:
+                self.core.vehicle_unseen()
+            else:
                 here = await latest_position(self.vehicle)
                 failsafe = self.core.failsafe
                 if failsafe is not None and failsafe.station is not None and state.in_air:
@@ -265,8 +278,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             return None
 
     def _failsafe_due(self, state: api.GetFlightStateReply, here: api.Position) -> Failsafe | None:
-        """``DroneCore.battery_due``, else ``fence_due``, else ``failsafe_due`` (the lost
-        link), with the battery and whether the vehicle is in the air (``state``), who
+        """``DroneCore.battery_due``, else ``fence_due``, else ``autopilot_due``, else
+        ``failsafe_due`` (the lost link), with the battery, the flight mode and whether the
+        vehicle is in the air (``state``), who
         holds a stream now, who is in range, and where the vehicle is (``here``: the
         fence, the station nearest it)."""
         now, airborne = time.time(), state.in_air
@@ -277,6 +291,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         breach = self.core.fence_due(now, here, airborne)
         if breach is not None:
             return breach
+        taken_over = self.core.autopilot_due(now, mode_seen(state))
+        if taken_over is not None:
+            return taken_over
         if self.core.failsafe is not None:
             return None
         in_range = self.policy.in_range() if self.policy is not None else None
@@ -296,6 +313,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             station=failsafe.station,
             reason=failsafe.reason,
         )
+        if not failsafe.drone_acts:
+            return  # the autopilot flies the vehicle (or a pilot does)
         try:
             await self._command_failsafe(failsafe)
         except StatusError as err:
@@ -327,10 +346,20 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 self._landing_for = failsafe
                 self.log.warning("failsafe: landing at the station", station=failsafe.station)
                 try:
+                    self.core.commanding(LAND, time.time())
                     await self.vehicle.Land(api.LandRequest())
+                    self.commanded(LAND)
                 except StatusError as err:
                     self._landing_for = None  # tried again at the next look
                     self.log.error("failsafe landing refused by the vehicle", reason=err.message)
+
+    def commanded(self, action: str | None) -> None:
+        """The vehicle accepted a command for ``action`` (``DroneCore.commanded``; the
+        caller told the core ``commanding`` before sending it), kept in the state file."""
+        if self.core.commanded(action, time.time()) and self.store is not None:
+            command = self.core.vehicle_command
+            assert command is not None
+            self.store.save_commanded(VEHICLE_COMMAND_KEY, list(command.actions))
 
     def save_failsafe(self) -> None:
         if self.store is not None:
@@ -523,6 +552,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         if speed is not None:
             self.vehicle.restore_speed(float(speed))
             self.log.info("cruise speed restored", speed_m_s=speed)
+        commanded = store.load_commanded().get(VEHICLE_COMMAND_KEY)
+        if commanded is not None:
+            # Its modes read after the restart grace: the telemetry comes back meanwhile.
+            self.core.vehicle_command = VehicleCommand(
+                tuple(commanded), time.time() + RESTART_GRACE_S
+            )
         failsafe = store.load_failsafe()
         if failsafe is not None:
             self.core.enter_failsafe(failsafe)
@@ -757,6 +792,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 f"{self.vehicle.link().problem}",
             )
         handler = self.dispatcher.handler(route)
+        action = VEHICLE_ACTIONS.get(route.name) if route.service == "Mobility" else None
+        self.core.commanding(action, time.time())
         try:
             reply = await handler(message)
         except StatusError:
@@ -767,6 +804,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 grpc.StatusCode.INTERNAL, f"{request.method} failed on the drone: {exc!r}"
             ) from exc
         if route.service == "Mobility":
+            self.commanded(action)
             self.operator.executed(route.name, request.payload)
             if self.policy is not None:
                 self.policy.executed(route.name, message)

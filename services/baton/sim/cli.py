@@ -107,6 +107,13 @@ def parser() -> argparse.ArgumentParser:
         "frames (newer masterships, invented or altered replies, replays) at drawn moments",
     )
     p.add_argument(
+        "--autopilot",
+        action="store_true",
+        help="issue 32: the autopilot takes the vehicle over at a drawn moment (a return, "
+        "a landing or a pilot's mode the drone did not command), and an operator's Resume "
+        "in half the seeds",
+    )
+    p.add_argument(
         "--takeover-after",
         type=float,
         default=None,
@@ -153,6 +160,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         failsafe=args.failsafe,
         operator=args.operator,
         lying=args.lying,
+        autopilot=args.autopilot,
         takeover_after=args.takeover_after,
         allow=args.allow,
         mutation=args.mutation,

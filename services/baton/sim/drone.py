@@ -38,11 +38,21 @@ import grpc
 
 from baton.authenticity import signed_reply, signed_retained
 from baton.digest import request_digest
-from baton.drone.core import DroneCore
+from baton.drone.core import RESTART_GRACE_S, DroneCore
 from baton.drone.dedupe import CachedReply
 from baton.drone.invariants import DroneWatch
 from baton.drone.policy import PREPARE, SWITCH, Decision, handover_step
-from baton.drone.safety import Failsafe
+from baton.drone.safety import (
+    FLY,
+    HOLD,
+    LAND,
+    RTL,
+    VEHICLE_ACTIONS,
+    Failsafe,
+    ModeSeen,
+    VehicleCommand,
+    commanded_action,
+)
 from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
 from baton.drone.service import TAKEOVER_TICK_S
 from baton.drone.store import Intent
@@ -64,6 +74,9 @@ CAMERA = service_prefix("Camera")
 # stream can break between the Connected event and its last retained batch.
 RETAINED_BATCH_BYTES = 64
 RPC = drone_pb2.HANDOVER_TRIGGER_RPC  # an operator's Handover
+# The vehicle's flight mode after each command, as MAVSDK names the sim vehicle's (PX4's:
+# a reposition flies in Hold).
+MODE_AFTER = {FLY: "HOLD", HOLD: "HOLD", LAND: "LAND", RTL: "RETURN_TO_LAUNCH"}
 POLICY = drone_pb2.HANDOVER_TRIGGER_POLICY
 
 
@@ -96,7 +109,20 @@ class SimVehicle:
         # Every operator command the drone took, as (time, command, what the vehicle
         # was told): a pause holds, an abort returns or lands, a resume may fly on.
         self.operator: list[tuple[float, str, str]] = []
+        # Its flight mode, and each time the autopilot took it over (time, mode).
+        self.mode = "HOLD"
+        self.takeovers: list[tuple[float, str]] = []
         self._serial = 0
+
+    def obey(self, action: str | None) -> None:
+        """The flight mode a command for ``action`` (``safety.FLY``, ...) puts it in."""
+        if action is not None:
+            self.mode = MODE_AFTER[action]
+
+    def take_over(self, now: float, mode: str) -> None:
+        """The autopilot's own decision (a failsafe of its own, a pilot): ``mode``."""
+        self.mode = mode
+        self.takeovers.append((now, mode))
 
     def battery(self, now: float) -> float:
         """The battery left at ``now``, percent (drained at a constant rate from 100)."""
@@ -283,6 +309,8 @@ class SimDrone:
         self.signer = world.keys.drone if world.keys is not None else None
         self.core = DroneCore(self._sequencer(), world.takeover_after, world.safety)
         self.vehicle = SimVehicle(world.battery_drain)
+        # What the drone last commanded the vehicle, as its state file keeps it.
+        self.kept_command: tuple[str, ...] | None = None
         self.camera = SimCamera()
         self.up = True
         # Durable (store.py): the request being executed, as its intent.
@@ -454,9 +482,13 @@ class SimDrone:
             size = self.world.rng.randint(300, 3000)
             execution.reply = self.camera.take(now, request.reqnr, request.payload, size)
         else:
+            name = ROUTES[request.method].name
+            action = VEHICLE_ACTIONS.get(name)  # DroneService._execute: what it commands
+            self.core.commanding(action, now)
             execution.reply = self.vehicle.act(now, request.reqnr, request.method, request.payload)
+            self.vehicle.obey(action)
             # DroneService._execute: the leg a resume flies on (kept in the state file).
-            self.core.operator.executed(ROUTES[request.method].name, request.payload)
+            self.core.operator.executed(name, request.payload)
             if self.policy is not None:  # DroneService._execute: the leg it flies
                 self.policy.executed(ROUTES[request.method].name)
             if self.p_ack_lost and self.world.rng.random() < self.p_ack_lost:
@@ -464,6 +496,9 @@ class SimDrone:
                     grpc.StatusCode.DEADLINE_EXCEEDED,
                     f"{request.method}: no acknowledgement from the vehicle; it may have acted",
                 )
+            elif self.core.commanded(action, now) and self.core.vehicle_command is not None:
+                # DroneService.commanded: kept in the state file.
+                self.kept_command = self.core.vehicle_command.actions
 
     def _complete(self, execution: Execution) -> None:
         if execution is not self.busy:
@@ -908,6 +943,9 @@ class SimDrone:
         are not kept (``DroneCore.resume`` gives the master the restart grace)."""
         old = self.seq
         core = DroneCore(self._sequencer(), self.world.takeover_after, self.world.safety)
+        if self.kept_command is not None:  # kept in the store (VEHICLE_COMMAND_KEY)
+            grace = self.world.loop.now + RESTART_GRACE_S
+            core.vehicle_command = VehicleCommand(self.kept_command, grace)
         if self.core.failsafe is not None:  # kept in the store (store.save_failsafe)
             core.enter_failsafe(self.core.failsafe)
         core.operator = self.core.operator  # kept in the store (OperatorCommands._save)
@@ -989,13 +1027,17 @@ class SimDrone:
         return self.core.takeover_due(now, self.reachable(), connected, in_range)
 
     def _failsafe_due(self, now: float) -> Failsafe | None:
-        """``DroneCore.battery_due``, else ``failsafe_due``, as ``DroneService._failsafe_due``
-        asks them: the vehicle counts as in the air while the mission is open (the sim has
-        no flight state)."""
+        """``DroneCore.battery_due``, else ``autopilot_due``, else ``failsafe_due``, as
+        ``DroneService._failsafe_due`` asks them: the vehicle counts as armed and in the
+        air while the mission is open (the sim has no flight state), in the mode its
+        commands and the autopilot's takeover put it in."""
         airborne = self.world.mission_open()
         battery = self.core.battery_due(now, self.vehicle.battery(now), airborne)
         if battery is not None or self.core.failsafe is not None:
             return battery
+        taken_over = self.core.autopilot_due(now, ModeSeen(self.vehicle.mode, True, airborne))
+        if taken_over is not None:
+            return taken_over
         in_range = self.policy.in_range() if self.policy is not None else None
         return self.core.failsafe_due(now, self.reachable(), in_range, airborne)
 
@@ -1005,6 +1047,8 @@ class SimDrone:
         due = self._failsafe_due(now)
         if due is not None:
             self.core.enter_failsafe(due)
+            if due.drone_acts:
+                self.vehicle.obey(commanded_action(due.action))
             self.vehicle.failsafes.append((now, f"{due.cause} {due.action}"))
             self.world.trace(f"failsafe: {due.reason}")
 

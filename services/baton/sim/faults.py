@@ -76,6 +76,7 @@ class FaultPlan:
     stall: str = ""
     failsafe: str = ""
     operator: str = ""
+    autopilot: str = ""
 
     def describe(self) -> str:
         """One line: the counts that are not zero."""
@@ -107,6 +108,8 @@ class FaultPlan:
             parts.append(f"operator: {self.operator}")
         if self.lying:
             parts.append(f"lying: {self.lying}")
+        if self.autopilot:
+            parts.append(f"autopilot: {self.autopilot}")
         return ", ".join(parts)
 
 
@@ -170,6 +173,8 @@ def plan_faults(world: World) -> FaultPlan:
         plan_operator(world, plan)
     if world.options.lying:
         plan_lying(world, plan)
+    if world.options.autopilot:
+        plan_autopilot(world, plan)
     return plan
 
 
@@ -208,6 +213,32 @@ def operator_commands(world: World, steps: list[tuple[str, float]], action: str)
     world.drone.operator_rpc(command, action)
     if rest:
         world.loop.after(rest[0][1], operator_commands, world, rest, action)
+
+
+# The modes the autopilot takes the vehicle into (--autopilot), as MAVSDK names them: its
+# own return (fence, battery, GCS failsafe), its own landing, a pilot's position mode.
+AUTOPILOT_MODES = ("RETURN_TO_LAUNCH", "LAND", "POSCTL")
+
+
+def plan_autopilot(world: World, plan: FaultPlan) -> None:
+    """The autopilot-takeover fault (issue 32), from a random stream of its own: at a
+    drawn moment the vehicle switches to a drawn mode the drone did not command, and in
+    half the seeds an operator's Resume comes 0 to 3 s later."""
+    rng = random.Random(f"autopilot {world.seed}")
+    mode = rng.choice(AUTOPILOT_MODES)
+    start = rng.uniform(0.0, plan.fault_end)
+    plan.autopilot = f"{mode} at {start:.2f}s"
+    world.loop.at(start, autopilot_takes_over, world, mode)
+    if rng.random() < 0.5:
+        resume_at = start + rng.uniform(0.0, 3.0)
+        plan.autopilot += f", resumed at {resume_at:.2f}s"
+        world.loop.at(resume_at, operator_resume, world)
+
+
+def autopilot_takes_over(world: World, mode: str) -> None:
+    """The vehicle switches to ``mode`` on the autopilot's own decision."""
+    world.trace(f"the autopilot takes the vehicle over: {mode}")
+    world.drone.vehicle.take_over(world.loop.now, mode)
 
 
 def plan_failsafe(world: World, plan: FaultPlan) -> None:

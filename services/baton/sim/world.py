@@ -90,6 +90,9 @@ class SimOptions:
     # Issue 33's lying station: every part holds keys and checks them, and one station
     # forges frames at drawn moments (lying.py).
     lying: bool = False
+    # Issue 32's autopilot taking the vehicle over at a drawn moment: a return, a
+    # landing or a pilot's mode the drone did not command (faults.plan_autopilot).
+    autopilot: bool = False
     # Known findings (findings.py) whose scenarios this run lets in.
     allow: frozenset[str] = frozenset()
     mutation: str | None = None
@@ -120,6 +123,8 @@ class SimOptions:
             parts.append("--operator")
         if self.lying:
             parts.append("--lying")
+        if self.autopilot:
+            parts.append("--autopilot")
         if self.takeover_after is not None:
             parts.append(f"--takeover-after {self.takeover_after:g}")
         if self.allow:

@@ -1,0 +1,189 @@
+"""The autopilot taking the vehicle over, as the pure rule decides it
+(``safety.autopilot_takeover``, ``DroneCore.autopilot_due``): a flight mode, a landing
+or a disarm the drone did not command while it flies the mission is a failsafe; the
+modes the drone itself commands, the transients around a command and the arming are
+not. The end-to-end witness is tests/drone/test_failsafe_end_to_end.py."""
+
+from __future__ import annotations
+
+import grpc
+
+from baton.digest import request_digest
+from baton.drone.core import DroneCore
+from baton.drone.safety import (
+    AUTOPILOT,
+    FLY,
+    HOLD,
+    LAND,
+    MODE_SETTLE_S,
+    RTL,
+    Failsafe,
+    ModeSeen,
+    VehicleCommand,
+    autopilot_takeover,
+    mode_seen,
+)
+from baton.drone.sequencer import Sequencer
+from baton.v1 import drone_api_pb2 as api
+from baton.v1 import drone_pb2
+
+GET = "/baton.v1.Mobility/GetPosition"
+LATER = MODE_SETTLE_S + 1.0  # a look well after the command
+
+
+def flying(mode: str) -> ModeSeen:
+    return ModeSeen(mode, armed=True, in_air=True)
+
+
+def decide(command: VehicleCommand, seen: ModeSeen, now: float = LATER) -> Failsafe | None:
+    return autopilot_takeover(now, command, seen)[1]
+
+
+def drone() -> DroneCore:
+    return DroneCore(Sequencer([0, 1], initial_master=0))
+
+
+def test_a_return_or_landing_the_drone_did_not_command_is_the_autopilot_s() -> None:
+    """Flying a leg (ArduPilot GUIDED, PX4 and the sim vehicle HOLD), a return, a landing
+    or a pilot's mode is a takeover named after the mode; the drone commands nothing."""
+    leg = VehicleCommand((FLY,), 0.0)
+    for mode in ("RETURN_TO_LAUNCH", "LAND", "POSCTL", "MISSION", "RTL", "SMART_RTL", "LOITER"):
+        due = decide(leg, flying(mode))
+        assert due is not None, mode
+        assert (due.cause, due.action) == (AUTOPILOT, mode)
+        assert due.reason.startswith(f"autopilot took over: {mode} (the drone commanded fly)")
+        assert not due.drone_acts
+        assert "in failsafe (autopilot: autopilot took over: " in due.refusal("GetPosition").message
+
+
+def test_the_modes_the_drone_commands_are_never_a_takeover() -> None:
+    """GUIDED/OFFBOARD/HOLD/TAKEOFF while flying; a hold's BRAKE or LOITER; a landing's
+    LAND; a return's RTL and the landing it ends in; modes that say nothing."""
+    cases = {
+        FLY: ("GUIDED", "OFFBOARD", "HOLD", "TAKEOFF", "UNKNOWN", ""),
+        HOLD: ("BRAKE", "LOITER", "HOLD", "GUIDED"),
+        LAND: ("LAND", "GUIDED"),
+        RTL: ("RTL", "RETURN_TO_LAUNCH", "SMART_RTL", "LAND"),
+    }
+    for action, modes in cases.items():
+        for mode in modes:
+            assert decide(VehicleCommand((action,), 0.0), flying(mode)) is None, (action, mode)
+
+
+def test_a_mode_reported_late_after_a_command_is_not_a_takeover() -> None:
+    """After a return and a Goto back (a resume), RTL is still reported for a moment: the
+    earlier command's modes count for MODE_SETTLE_S, then only the new one's."""
+    command = VehicleCommand((RTL,), 0.0).commanding(FLY, 10.0)
+    assert decide(command, flying("RTL"), 10.1) is None  # while the Goto executes
+    command = command.commanded(FLY, 10.2)
+    assert command.actions == (FLY,) and RTL in command.before
+    assert decide(command, flying("RTL"), 10.2 + MODE_SETTLE_S - 0.1) is None
+    due = decide(command, flying("RTL"), 10.2 + MODE_SETTLE_S)
+    assert due is not None and due.action == "RTL"
+
+
+def test_a_return_at_once_after_a_goto_is_a_takeover() -> None:
+    """Modes no command explains count at once, even right after a command: an autopilot
+    that returns the vehicle a moment after the Goto is not hidden by the settling."""
+    command = VehicleCommand((FLY,), 0.0).commanding(FLY, 5.0).commanded(FLY, 5.1)
+    due = decide(command, flying("RETURN_TO_LAUNCH"), 5.2)
+    assert due is not None and due.action == "RETURN_TO_LAUNCH"
+
+
+def test_a_failed_command_leaves_both_modes_possible() -> None:
+    """A Land that failed (a timeout: the vehicle may have taken it) leaves LAND expected
+    beside the leg's modes, until the next command the vehicle accepts."""
+    command = VehicleCommand((FLY,), 0.0).commanding(LAND, 5.0)  # never commanded()
+    assert decide(command, flying("LAND"), 100.0) is None
+    assert decide(command, flying("GUIDED"), 100.0) is None
+    assert decide(command, flying("RETURN_TO_LAUNCH"), 100.0) is not None
+
+
+def test_landing_or_disarming_while_flown_is_a_takeover_once_seen_in_the_air() -> None:
+    """Armed on the ground waiting for the takeoff, or climbing: nothing. Once seen in the
+    air since the command, on the ground or disarmed is the autopilot's (a landing
+    commanded, or a return, is not)."""
+    command = VehicleCommand((FLY,), 0.0)
+    on_ground = ModeSeen("HOLD", armed=True, in_air=False)
+    command, due = autopilot_takeover(LATER, command, on_ground)
+    assert due is None and not command.airborne
+    command, due = autopilot_takeover(LATER, command, flying("HOLD"))
+    assert due is None and command.airborne
+    landed = autopilot_takeover(LATER, command, on_ground)[1]
+    assert landed is not None and landed.action == "landed"
+    disarmed = autopilot_takeover(LATER, command, ModeSeen("HOLD", armed=False, in_air=True))
+    assert disarmed[1] is not None and disarmed[1].action == "disarmed"
+    returned = VehicleCommand((RTL,), 0.0, airborne=True)
+    assert decide(returned, ModeSeen("LAND", armed=False, in_air=False)) is None
+    # Its link out (a reboot): back on the ground is the outage's, not a takeover.
+    assert decide(command.unseen(), on_ground) is None
+    # A new flight's Arm on the ground starts unseen in the air again.
+    rearmed = returned.commanding(FLY, 50.0).commanded(FLY, 50.1)
+    assert decide(rearmed, on_ground, 50.1 + LATER) is None
+
+
+def test_on_the_ground_a_mode_is_no_takeover() -> None:
+    """ArduCopter sits in LAND after a landing and switches to GUIDED to arm: on the
+    ground no mode counts."""
+    command = VehicleCommand((FLY,), 0.0)
+    assert decide(command, ModeSeen("LAND", armed=False, in_air=False)) is None
+    assert decide(command, ModeSeen("STABILIZE", armed=True, in_air=False)) is None
+
+
+def test_arduPilot_is_read_by_its_own_mode_names() -> None:
+    """MAVSDK names ArduPilot's GUIDED OFFBOARD and its BRAKE and LOITER both HOLD: the
+    rule reads ArduPilot's heartbeat name, MAVSDK's for PX4 and the sim vehicle."""
+    ardupilot = api.GetFlightStateReply(
+        armed=True, in_air=True, flight_mode="HOLD", autopilot_mode="LOITER", autopilot="ArduPilot"
+    )
+    assert mode_seen(ardupilot).mode == "LOITER"
+    assert decide(VehicleCommand((FLY,), 0.0), mode_seen(ardupilot)) is not None
+    px4 = api.GetFlightStateReply(
+        armed=True, in_air=True, flight_mode="HOLD", autopilot_mode="LOITER", autopilot="PX4"
+    )
+    assert decide(VehicleCommand((FLY,), 0.0), mode_seen(px4)) is None
+
+
+def test_the_core_takes_it_only_while_it_flies_the_mission() -> None:
+    """Nothing commanded yet, in a failsafe, paused, ended or after a ground station's
+    override: no takeover. Taken, every admitted request is refused and booked; an
+    operator's resume takes the mode as it is until the next command."""
+    core = drone()
+    assert core.autopilot_due(LATER, flying("RETURN_TO_LAUNCH")) is None  # nothing commanded
+    core.commanding(FLY, 0.0)
+    core.commanded(FLY, 0.0)
+    core.operator.pause(1.0, 0)
+    assert core.autopilot_due(LATER, flying("RETURN_TO_LAUNCH")) is None
+    assert core.autopilot_due(LATER, flying("HOLD")) is None  # the pause's hold, last seen
+    core.resume_mission(2.0)
+    due = core.autopilot_due(2.0 + LATER, flying("RETURN_TO_LAUNCH"))
+    assert due is not None
+    core.enter_failsafe(due)
+    assert core.vehicle_command is not None and core.vehicle_command.actions == (FLY,)
+    assert core.autopilot_due(3.0 + LATER, flying("RETURN_TO_LAUNCH")) is None  # in failsafe
+    admitted = core.admit(
+        drone_pb2.InvokeRequest(controller_id=0, epoch=1, reqnr=1, method=GET),
+        request_digest(GET, b""),
+        20.0,
+    )
+    assert admitted.refused is not None
+    assert admitted.refused.code is grpc.StatusCode.FAILED_PRECONDITION
+    assert "autopilot took over: RETURN_TO_LAUNCH" in admitted.refused.message
+    cleared, _ = core.resume_mission(30.0)
+    assert cleared is due
+    # Resumed in the autopilot's return: neither it nor the landing it ends in counts.
+    assert core.autopilot_due(30.0 + LATER, flying("RETURN_TO_LAUNCH")) is None
+    assert core.autopilot_due(30.0 + LATER, ModeSeen("LAND", False, False)) is None
+    core.station_took_over()
+    assert core.autopilot_due(30.0 + LATER, flying("POSCTL")) is None
+
+
+def test_a_failsafe_the_drone_commands_sets_what_it_expects() -> None:
+    """A lost-link rtl commands RTL: after a resume the vehicle returning is not a
+    takeover of the autopilot."""
+    core = drone()
+    core.commanded(FLY, 0.0)
+    core.enter_failsafe(Failsafe("lost_link", "rtl", 10.0, "no usable controller"))
+    assert core.vehicle_command is not None and core.vehicle_command.actions == (RTL,)
+    core.resume_mission(11.0)
+    assert core.autopilot_due(11.0 + LATER, flying("RETURN_TO_LAUNCH")) is None
