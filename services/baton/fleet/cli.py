@@ -72,7 +72,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
             "the covering stations in route order, the first master the nearest to take-off; "
             "a route with a stretch no station covers is refused, naming it. 'start' starts an "
             "admitted mission's sessions on its ring's stations (baton station), 'cancel "
-            "--config' stops them."
+            "--config' stops them. 'missions --config' and 'status' ask the stations and "
+            "drones; 'drain' takes a station out of every ring that can do without it."
         ),
     )
     actions = parser.add_subparsers(dest="fleet_action", metavar="ACTION", required=True)

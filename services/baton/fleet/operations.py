@@ -54,13 +54,16 @@ POLL_S = 0.2
 T = TypeVar("T")
 
 
+def _details(exc: grpc.RpcError) -> str:
+    return (exc.details() or "") if isinstance(exc, grpc.Call) else str(exc)
+
+
 def _asked(call: Callable[[], T], where: str) -> T | str:
     """``call()``'s answer, or what went wrong, one line naming ``where``."""
     try:
         return call()
     except grpc.RpcError as exc:
-        details = exc.details() if isinstance(exc, grpc.Call) else str(exc)
-        return f"{where}: no answer: {status_code(exc).name}: {details}"
+        return f"{where}: no answer: {status_code(exc).name}: {_details(exc)}"
 
 
 def ask_stations(
@@ -289,7 +292,7 @@ def _hand_over(
         except grpc.RpcError as exc:
             now = stub.GetStatus(drone_pb2.GetDroneStatusRequest(), timeout=ASK_TIMEOUT_S)
             if now.master == sid:
-                return f"the drone refused the handover to station {target}: {exc.details()}"  # type: ignore[attr-defined]
+                return f"the drone refused the handover to station {target}: {_details(exc)}"
             # The master moved away already (the drone's policy or a takeover).
             target, epoch = now.master, now.epoch
     deadline = time.monotonic() + bound
