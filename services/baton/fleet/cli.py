@@ -139,13 +139,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="the admitted missions; with --config, each one's master, state and progress "
         "as its stations say",
     ).set_defaults(run=_guarded(_missions))
-    status = actions.add_parser(
+
+    def on_mission(
+        name: str, what: str, run: Callable[[argparse.Namespace], int]
+    ) -> argparse.ArgumentParser:
+        """An action on one mission, by its id, with the network's file."""
+        action = actions.add_parser(name, parents=[common, network], help=what)
+        action.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
+        action.set_defaults(run=_guarded(run))
+        return action
+
+    on_mission(
         "status",
-        parents=[common, network],
-        help="one mission's full status: every session's ControllerStatus and the drone's, as JSON",
+        "one mission's full status: every session's ControllerStatus and the drone's, as JSON",
+        _status,
     )
-    status.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
-    status.set_defaults(run=_guarded(_status))
     drain = actions.add_parser(
         "drain",
         parents=[common, network],
@@ -159,12 +167,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     undrain.add_argument("station", help="the station's name or id")
     undrain.set_defaults(run=_guarded(_undrain))
-    start = actions.add_parser(
+    start = on_mission(
         "start",
-        parents=[common, network],
-        help="start an admitted mission's sessions on its ring's stations (baton station)",
+        "start an admitted mission's sessions on its ring's stations (baton station)",
+        _start,
     )
-    start.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
     start.add_argument(
         "--mission",
         dest="program",
@@ -178,14 +185,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         metavar="HOST:PORT",
         help="where the stations reach the mission's drone (default: the file's drone.address)",
     )
-    start.set_defaults(run=_guarded(_start))
-    cancel = actions.add_parser(
+    on_mission(
         "cancel",
-        parents=[common, network],
-        help="cancel an admitted mission; with --config, its sessions stopped on its stations",
+        "cancel an admitted mission; with --config, its sessions stopped on its stations",
+        _cancel,
     )
-    cancel.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
-    cancel.set_defaults(run=_guarded(_cancel))
 
 
 def _guarded(action: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
