@@ -95,6 +95,12 @@ def test_the_handover_target_is_the_next_covering_the_drone_or_the_rings_next() 
     assert handover_target(3, ring, STATIONS, None) == 1
     assert handover_target(2, ring, STATIONS, at(500, 0)) == 3  # none holds it: the next
     assert handover_target(2, ring, STATIONS, at(0, 900)) == 3  # wraps around
+    # A station drained already (it stays in rings that need it) comes after the
+    # others that hold the drone, never before one that holds it.
+    assert handover_target(3, ring, STATIONS, at(0, 300)) == 1
+    assert handover_target(3, ring, STATIONS, at(0, 300), frozenset({1})) == 2
+    assert handover_target(3, ring, STATIONS, at(0, 0), frozenset({1})) == 1
+    assert handover_target(3, ring, STATIONS, None, frozenset({1})) == 2
 
 
 def test_the_remaining_route_starts_at_the_earliest_nearest_leg() -> None:

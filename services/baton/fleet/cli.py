@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from baton.fleet.registry import MissionRow
     from baton.rpc.tls import Tls
     from baton.sdk.types import Position
+    from baton.v1.ring_pb2 import ControllerStatus
 
 DEFAULT_REGISTRY = Path("baton-fleet.sqlite")
 # A station's fields (admission.station_problem) and the flags that set them.
@@ -371,7 +372,7 @@ def _status(args: argparse.Namespace) -> int:
     from google.protobuf.json_format import MessageToDict
 
     from baton.config import ConfigError, load_config
-    from baton.fleet.operations import ask_drone, controller_status
+    from baton.fleet.operations import ask_drone, at_once, controller_status
     from baton.fleet.registry import Registry
     from baton.rpc.tls import OPERATOR, TlsError
 
@@ -385,14 +386,13 @@ def _status(args: argparse.Namespace) -> int:
     except (ConfigError, TlsError) as exc:
         return _fail(args, str(exc))
     known = {c.id for c in network.controllers}
-    sessions = {
-        str(sid): (
-            controller_status(network, sid, mission.id, tls)
-            if sid in known
-            else f"station {sid}: not in {args.config}; add it with its address"
-        )
-        for sid in mission.live_ring
-    }
+
+    def ask(sid: int) -> ControllerStatus | str:
+        if sid not in known:
+            return f"station {sid}: not in {args.config}; add it with its address"
+        return controller_status(network, sid, mission.id, tls)
+
+    sessions = at_once(ask, mission.live_ring)
     drone = ask_drone(mission.drone_address, tls)
     document = {
         "mission": mission.id,
@@ -402,7 +402,7 @@ def _status(args: argparse.Namespace) -> int:
         "departed": list(mission.departed),
         "first_master": mission.first_master,
         "sessions": {
-            sid: {"error": s} if isinstance(s, str) else MessageToDict(s)
+            str(sid): {"error": s} if isinstance(s, str) else MessageToDict(s)
             for sid, s in sessions.items()
         },
         "drone_status": {"error": drone} if isinstance(drone, str) else MessageToDict(drone),

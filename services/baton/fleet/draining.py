@@ -52,6 +52,8 @@ class MissionView:
     stations: Mapping[int, Station]
     master: int | None
     drone_at: Position | None
+    # Stations drained already that stay in this ring (it could not do without them).
+    drained: frozenset[int] = frozenset()
 
 
 @dataclass(frozen=True)
@@ -106,7 +108,9 @@ def drain_mission(station: int, mission: MissionView) -> Leave | Stay:
         )
     target = None
     if mission.master == station:
-        target = handover_target(station, mission.ring, mission.stations, mission.drone_at)
+        target = handover_target(
+            station, mission.ring, mission.stations, mission.drone_at, mission.drained
+        )
     return Leave(mission.mission_id, target)
 
 
@@ -115,12 +119,16 @@ def handover_target(
     ring: Sequence[int],
     stations: Mapping[int, Station],
     drone_at: Position | None,
+    drained: frozenset[int] = frozenset(),
 ) -> int:
     """Where a master on ``station`` goes: the next station after it in ring order
     whose range holds the drone now, or, with none (or the drone's position
-    unknown), the ring's next after it."""
+    unknown), the ring's next after it. Among those, stations drained already
+    come after the others (a master moved onto one would move again when it is
+    drained out), but before none that holds the drone."""
     k = ring.index(station)
     after = [ring[(k + step) % len(ring)] for step in range(1, len(ring))]
+    after.sort(key=lambda sid: sid in drained)  # stable: ring order otherwise
     if drone_at is not None:
         for sid in after:
             if _holds(stations[sid], drone_at):

@@ -50,6 +50,8 @@ ASK_TIMEOUT_S = 3.0
 # the drone's prepare timeout.
 HANDOVER_SETTLE_S = 30.0
 POLL_S = 0.2
+# How many times a drain reads a mission's master and moves it away before it gives up.
+MASTER_LOOKS = 3
 
 T = TypeVar("T")
 
@@ -64,6 +66,17 @@ def _asked(call: Callable[[], T], where: str) -> T | str:
         return call()
     except grpc.RpcError as exc:
         return f"{where}: no answer: {status_code(exc).name}: {_details(exc)}"
+
+
+K = TypeVar("K")
+
+
+def at_once(ask: Callable[[K], T], keys: Sequence[K]) -> dict[K, T]:
+    """``ask`` of every key, all at once (each call has its own deadline)."""
+    if not keys:
+        return {}
+    with ThreadPoolExecutor(max_workers=len(keys)) as pool:
+        return dict(zip(keys, pool.map(ask, keys), strict=True))
 
 
 def ask_stations(
@@ -86,10 +99,7 @@ def ask_stations(
 
         return _asked(call, f"station {sid} ({reach})")
 
-    if not sids:
-        return {}
-    with ThreadPoolExecutor(max_workers=len(sids)) as pool:
-        return dict(zip(sids, pool.map(ask, sids), strict=True))
+    return at_once(ask, sids)
 
 
 def ask_drone(address: str | None, tls: Tls | None) -> drone_pb2.DroneStatus | str:
@@ -204,12 +214,13 @@ def drain(registry: Registry, station: str, config: BatonConfig, tls: Tls | None
             "it with its address"
         )
     places = {s.station.id: s.station for s in registry.stations()}
+    drained = frozenset(s.station.id for s in registry.stations() if s.drained) - {sid}
     report = DrainReport(sid)
     for mission in registry.missions():
         if mission.state != IN_FLIGHT or sid not in mission.live_ring:
             continue
         try:
-            _drain_mission(registry, config, tls, sid, mission, places, report)
+            _drain_mission(registry, config, tls, sid, mission, places, drained, report)
         except grpc.RpcError as exc:
             report.failed.append(f"mission {mission.id}: {said(config, sid, exc)}")
     return report
@@ -220,6 +231,7 @@ def mission_view(
     places: dict[int, Station],
     sessions: dict[int, ring_pb2.ControllerStatus | str],
     drone: drone_pb2.DroneStatus | str,
+    drained: frozenset[int] = frozenset(),
 ) -> MissionView:
     """The drain rule's view of a mission: its ring without the stations that did not
     answer (they count as not there), the drone's word on where it is and who is
@@ -232,7 +244,7 @@ def mission_view(
         p = drone.position
         known = p.latitude_deg != 0 or p.longitude_deg != 0
         at = Position(p.latitude_deg, p.longitude_deg) if known else None
-    return MissionView(mission.id, answering, mission.route, places, master, at)
+    return MissionView(mission.id, answering, mission.route, places, master, at, drained)
 
 
 def _drain_mission(
@@ -242,20 +254,26 @@ def _drain_mission(
     sid: int,
     mission: MissionRow,
     places: dict[int, Station],
+    drained: frozenset[int],
     report: DrainReport,
 ) -> None:
-    sessions = session_statuses(mission, ask_stations(config, mission.live_ring, tls))
-    drone = ask_drone(mission.drone_address, tls)
-    if isinstance(sessions[sid], str):
-        report.failed.append(f"mission {mission.id}: {sessions[sid]}")
-        return
-    view = mission_view(mission, places, sessions, drone)
-    decision = drain_mission(sid, view)
-    if isinstance(decision, Stay):
-        report.stayed.append(decision)
-        return
-    target = decision.hand_over_to
-    if target is not None:
+    moved_to = None
+    # The drone's policy may move the master onto the station while the drain looks:
+    # the master is read again after a handover, and moved again if it is back.
+    for _ in range(MASTER_LOOKS):
+        sessions = session_statuses(mission, ask_stations(config, mission.live_ring, tls))
+        drone = ask_drone(mission.drone_address, tls)
+        if isinstance(sessions[sid], str):
+            report.failed.append(f"mission {mission.id}: {sessions[sid]}")
+            return
+        view = mission_view(mission, places, sessions, drone, drained)
+        decision = drain_mission(sid, view)
+        if isinstance(decision, Stay):
+            report.stayed.append(decision)
+            return
+        target = decision.hand_over_to
+        if target is None:
+            break
         if isinstance(drone, str):
             report.failed.append(
                 f"mission {mission.id}: its master is on station {sid} and {drone}; the "
@@ -266,13 +284,20 @@ def _drain_mission(
         if problem:
             report.failed.append(f"mission {mission.id}: {problem}")
             return
+        moved_to = target
+    else:
+        report.failed.append(
+            f"mission {mission.id}: its master came back to station {sid} after "
+            f"{MASTER_LOOKS} handovers away; its drone's policy keeps choosing it"
+        )
+        return
     with station_stub(config, sid, tls) as stub:
         stub.StopMission(
             station_pb2.StopMissionRequest(mission_id=str(mission.id)),
             timeout=ASK_TIMEOUT_S * 10,
         )
     registry.depart(mission.id, sid)
-    report.left.append((mission.id, target))
+    report.left.append((mission.id, moved_to))
 
 
 def _hand_over(
