@@ -114,12 +114,6 @@ async def test_a_station_drained_mid_mission_hands_its_master_over_and_leaves_bo
         rows = {line.split()[1]: line.split() for line in out.splitlines()[1:3]}
         assert rows["alpha"][2:4] == ["running", "1"] and rows["alpha"][5] == "1,2,3", out
         assert rows["bravo"][2:4] == ["running", "3"] and rows["bravo"][5] == "3,2,1", out
-        status, out = await fleet_cli(capsys, "status", "1", "--config", str(network), *registry)
-        assert status == 0, out
-        full = json.loads(out)
-        assert set(full["sessions"]) == {"1", "2", "3"}
-        assert full["sessions"]["1"]["master"] is True
-        assert full["drone_status"]["master"] == 1
 
         # Bad drains: an unknown station; then, further down, one that would break a ring.
         status, out = await fleet_cli(
@@ -141,6 +135,13 @@ async def test_a_station_drained_mid_mission_hands_its_master_over_and_leaves_bo
         assert await stations[1].stub.GetStation(station_pb2.GetStationRequest()) == (
             station_pb2.StationStatus(id=1, address=stations[1].address)
         )
+        status, out = await fleet_cli(capsys, "status", "1", "--config", str(network), *registry)
+        assert status == 0, out
+        full = json.loads(out)
+        assert (full["ring"], full["departed"]) == ([2, 3], [1])
+        assert set(full["sessions"]) == {"2", "3"}
+        assert full["sessions"]["2"]["master"] is True
+        assert full["drone_status"]["master"] == 2
 
         # Each ring keeps two stations now: draining one more would leave one.
         status, out = await fleet_cli(capsys, "drain", "2", "--config", str(network), *registry)
