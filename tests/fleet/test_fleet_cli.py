@@ -111,3 +111,22 @@ def test_a_plan_without_a_home_needs_one(
     assert (
         status == 2 and "has no planned home position; give the take-off point with --home" in err
     )
+
+
+def test_a_drain_names_what_is_missing_or_unknown(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    db = tmp_path / "fleet.sqlite"
+    fleet(capsys, db, "stations", "add", "--from-config", str(CORRIDOR))
+    status, _, err = fleet(capsys, db, "drain", "controller-1")
+    assert status == 2 and "baton fleet drain: --config: missing; the network's file" in err
+    status, _, err = fleet(capsys, db, "drain", "7", "--config", str(CORRIDOR), "--insecure")
+    assert status == 2
+    assert "station '7': no station by that name or id; the stations: controller-0 (id 0)" in err
+    status, _, err = fleet(capsys, db, "undrain", "nosuch")
+    assert status == 2 and "station 'nosuch': no station by that name or id" in err
+    # A drained station with no mission in flight is drained at once.
+    status, out, _ = fleet(capsys, db, "drain", "3", "--config", str(CORRIDOR), "--insecure")
+    assert status == 0 and out == "station 3 drained: admitted into no new ring\n"
+    status, out, _ = fleet(capsys, db, "stations", "list")
+    assert out.splitlines()[4].endswith("drained")

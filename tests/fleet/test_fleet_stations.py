@@ -4,15 +4,13 @@ session back from its history file, and a cancel leaves nothing."""
 
 from __future__ import annotations
 
-import asyncio
 from pathlib import Path
 
 import pytest
-import yaml
 from helpers.missions import SMALL_GRID
+from helpers.stations import fleet_cli, network_file
 
 from baton.certs.make import init
-from baton.cli import main
 from baton.rpc.tls import DRONE, OPERATOR, Identity
 from baton.testbed.fleet import StationPart, start_stations
 from baton.testbed.supervisor import Supervisor
@@ -20,12 +18,6 @@ from baton.v1 import station_pb2
 
 TAKE_OFF, EAST = "47.397742,8.545594", "47.397742,8.550"
 PLACES = {1: (47.398191, 8.545594), 2: (47.398191, 8.552229)}
-
-
-async def fleet(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
-    status = await asyncio.to_thread(main, ["fleet", *args])
-    out, err = capsys.readouterr()
-    return status, out + err
 
 
 async def hosted(station: StationPart) -> dict[str, station_pb2.SessionState.ValueType]:
@@ -41,31 +33,13 @@ async def test_a_ring_starts_whole_or_not_at_all_again_after_a_restart_and_cance
     registry = ["--registry", str(tmp_path / "fleet.sqlite")]
     async with Supervisor(tmp_path / "parts") as supervisor:
         stations = await start_stations(supervisor, (1, 2), certs)
-        network = tmp_path / "network.yaml"
-        network.write_text(
-            yaml.safe_dump(
-                {
-                    "drone": {"address": "127.0.0.1:1"},  # no drone: the sessions wait for it
-                    "controllers": [
-                        {
-                            "id": sid,
-                            "address": s.address,
-                            "location": {"latitude_deg": lat, "longitude_deg": lon},
-                            "range_m": 500,
-                        }
-                        for (sid, s), (lat, lon) in zip(
-                            stations.items(), PLACES.values(), strict=True
-                        )
-                    ],
-                    "tls": {"certs": str(certs)},
-                }
-            )
-        )
-        status, out = await fleet(
+        # No drone: the sessions wait for it.
+        network = network_file(tmp_path / "network.yaml", stations, PLACES, 500, certs)
+        status, out = await fleet_cli(
             capsys, "stations", "add", "--from-config", str(network), *registry
         )
         assert status == 0, out
-        status, out = await fleet(
+        status, out = await fleet_cli(
             capsys, "admit", "--drone", "d1", "--route", TAKE_OFF, EAST, *registry
         )
         assert status == 0 and "mission 1 admitted" in out, out
@@ -75,14 +49,14 @@ async def test_a_ring_starts_whole_or_not_at_all_again_after_a_restart_and_cance
         # Station 2 is down: the start fails there and is undone on station 1, which
         # keeps nothing of it.
         await supervisor.kill("station-2")
-        status, out = await fleet(capsys, *start)
+        status, out = await fleet_cli(capsys, *start)
         assert status == 1, out
         assert "station 2" in out and "UNAVAILABLE" in out and "stopped on 1" in out
         assert await hosted(stations[1]) == {}
         assert not (stations[1].state_dir / "missions" / "1").exists()
         await supervisor.restart("station-2")
 
-        status, out = await fleet(capsys, *start)
+        status, out = await fleet_cli(capsys, *start)
         assert status == 0, out
         assert "started on stations 1 (first master), 2" in out
         for station in stations.values():
@@ -97,18 +71,18 @@ async def test_a_ring_starts_whole_or_not_at_all_again_after_a_restart_and_cance
         await supervisor.restart("station-2")
         assert await hosted(stations[2]) == {} and history.exists()
         before = (await stations[1].status("1")).log_file
-        status, out = await fleet(capsys, *start)
+        status, out = await fleet_cli(capsys, *start)
         assert status == 0, out
         assert (await stations[2].status("1")).log_file.path == str(history)
         assert await hosted(stations[1]) == {"1": station_pb2.SESSION_STATE_HOSTING}
         assert (await stations[1].status("1")).log_file == before
 
-        status, out = await fleet(capsys, "cancel", "1", "--config", str(network), *registry)
+        status, out = await fleet_cli(capsys, "cancel", "1", "--config", str(network), *registry)
         assert status == 0 and "cancelled" in out, out
         for station in stations.values():
             assert await hosted(station) == {}
             assert not (station.state_dir / "missions" / "1").exists()
-        status, out = await fleet(capsys, "missions", *registry)
+        status, out = await fleet_cli(capsys, "missions", *registry)
         assert "cancelled" in out
         for station in stations.values():
             await station.channel.close()

@@ -104,3 +104,45 @@ def test_a_file_that_is_not_a_registry_is_named(tmp_path: Path) -> None:
     path.write_text("not a database, only words in a file " * 10)
     with pytest.raises(RegistryError, match=f"{path}: not a usable registry"):
         Registry(path)
+
+
+def test_a_drained_station_is_in_no_new_ring_until_undrained(tmp_path: Path) -> None:
+    with two_stations(tmp_path / "fleet.sqlite") as registry:
+        assert registry.set_drained("east", True).drained
+        refused = registry.admit("d1", ROUTE)
+        assert isinstance(refused, Refused) and refused.field == "route"
+        assert registry.set_drained("1", False) == registry.station("east")
+        admitted = registry.admit("d1", ROUTE)
+        assert not isinstance(admitted, Refused) and admitted[1].ring == (0, 1)
+        with pytest.raises(RegistryError, match=r"'north': no station by that name or id; "):
+            registry.set_drained("north", True)
+
+        # A station drained out of a ring leaves it; the admitted ring is kept.
+        registry.set_drone_address(admitted[0], "127.0.0.1:5")
+        registry.depart(admitted[0], 0)
+        [mission] = registry.missions()
+        assert (mission.ring, mission.live_ring, mission.departed) == ((0, 1), (1,), (0,))
+        assert mission.drone_address == "127.0.0.1:5"
+
+
+def test_a_schema_1_registry_is_upgraded_in_place(tmp_path: Path) -> None:
+    path = tmp_path / "fleet.sqlite"
+    db = sqlite3.connect(path)
+    db.executescript(
+        """
+        CREATE TABLE stations (id INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE,
+            latitude_deg REAL NOT NULL, longitude_deg REAL NOT NULL, range_m REAL NOT NULL);
+        CREATE TABLE missions (id INTEGER PRIMARY KEY AUTOINCREMENT, drone TEXT NOT NULL,
+            state TEXT NOT NULL, route TEXT NOT NULL, ring TEXT NOT NULL,
+            first_master INTEGER NOT NULL, admitted_at REAL NOT NULL);
+        INSERT INTO stations VALUES (0, 'west', 47.397742, 8.545594, 400);
+        INSERT INTO missions VALUES (1, 'd1', 'admitted', '[[47.397742, 8.545594]]', '[0]', 0, 0);
+        PRAGMA user_version = 1;
+        """
+    )
+    db.close()
+    with Registry(path) as registry:
+        [station] = registry.stations()
+        assert (station.name, station.drained) == ("west", False)
+        [mission] = registry.missions()
+        assert (mission.live_ring, mission.drone_address) == ((0,), None)

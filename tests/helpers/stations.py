@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Sequence
 from pathlib import Path
 
+import pytest
+import yaml
+
+from baton.cli import main
 from baton.config import BatonConfig
 from baton.testbed.fleet import StationPart
 
@@ -32,3 +37,39 @@ def mission_config(
 def as_text(config: BatonConfig) -> str:
     """The configuration as StartMission carries it (JSON, which YAML reads)."""
     return config.model_dump_json(exclude_unset=True)
+
+
+def network_file(
+    path: Path,
+    stations: dict[int, StationPart],
+    places: dict[int, tuple[float, float]],
+    range_m: float,
+    certs: Path,
+    **extra: object,
+) -> Path:
+    """The network's testbed file for ``baton fleet``: each station at its port, its
+    antenna at ``places`` and its range; ``extra`` top-level fields (drone, speedup)."""
+    document = {
+        "drone": {"address": "127.0.0.1:1"},
+        "controllers": [
+            {
+                "id": sid,
+                "address": stations[sid].address,
+                "location": {"latitude_deg": lat, "longitude_deg": lon},
+                "range_m": range_m,
+            }
+            for sid, (lat, lon) in places.items()
+        ],
+        "tls": {"certs": str(certs)},
+        **extra,
+    }
+    path.write_text(yaml.safe_dump(document))
+    return path
+
+
+async def fleet_cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
+    """``baton fleet ARGS`` run as an operator types it (off the event loop): its exit
+    status and what it printed, out and err."""
+    status = await asyncio.to_thread(main, ["fleet", *args])
+    out, err = capsys.readouterr()
+    return status, out + err

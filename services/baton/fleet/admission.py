@@ -125,9 +125,9 @@ def admit_mission(
         )
     flat = FlatRoute.of(route)
     intervals = _covered(flat, stations)
-    gaps = _gaps(sorted(span for spans in intervals.values() for span in spans), flat.length_m)
-    if gaps:
-        stretches = tuple(Stretch(a, b, flat.at(a), flat.at(b)) for a, b in gaps)
+    missing = gaps(sorted(span for spans in intervals.values() for span in spans), flat.length_m)
+    if missing:
+        stretches = tuple(Stretch(a, b, flat.at(a), flat.at(b)) for a, b in missing)
         count = "a stretch" if len(stretches) == 1 else f"{len(stretches)} stretches"
         return Refused(
             "route",
@@ -310,16 +310,16 @@ def _merged(spans: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
     return merged
 
 
-def _gaps(spans: Sequence[tuple[float, float]], length_m: float) -> list[tuple[float, float]]:
+def gaps(spans: Sequence[tuple[float, float]], length_m: float) -> list[tuple[float, float]]:
     """The parts of [0, length_m] no span covers."""
     if not spans:
         return [(0.0, length_m)]
-    gaps: list[tuple[float, float]] = []
+    found: list[tuple[float, float]] = []
     reached = 0.0
     for a, b in _merged(spans):
         if a > reached + TOUCHING_M:
-            gaps.append((reached, a))
+            found.append((reached, a))
         reached = max(reached, b)
     if reached < length_m - TOUCHING_M:
-        gaps.append((reached, length_m))
-    return gaps
+        found.append((reached, length_m))
+    return found

@@ -5,11 +5,15 @@ and an admitted mission's sessions on its stations (item 1).
     baton fleet stations add --from-config examples/corridor.yaml
     baton fleet stations list
     baton fleet admit --drone D --plan FILE [--home LAT,LON] | --route LAT,LON LAT,LON ...
-    baton fleet missions
+    baton fleet missions [--config FILE]
+    baton fleet status ID --config FILE
     baton fleet start ID --config FILE --mission FILE [--mission-arg k=v ...]
     baton fleet cancel ID [--config FILE]
+    baton fleet drain STATION --config FILE
+    baton fleet undrain STATION
 
-Exit status: 0 done, 1 a mission refused, 2 a request that cannot be done (the
+Exit status: 0 done, 1 a mission refused (or a drain that left the station in
+some ring: the report says why), 2 a request that cannot be done (the
 message names the flag or field and the fix).
 """
 
@@ -30,6 +34,7 @@ if TYPE_CHECKING:
     from baton.fleet.registry import MissionRow
     from baton.rpc.tls import Tls
     from baton.sdk.types import Position
+    from baton.v1.ring_pb2 import ControllerStatus
 
 DEFAULT_REGISTRY = Path("baton-fleet.sqlite")
 # A station's fields (admission.station_problem) and the flags that set them.
@@ -68,7 +73,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
             "the covering stations in route order, the first master the nearest to take-off; "
             "a route with a stretch no station covers is refused, naming it. 'start' starts an "
             "admitted mission's sessions on its ring's stations (baton station), 'cancel "
-            "--config' stops them."
+            "--config' stops them. 'missions --config' and 'status' ask the stations and "
+            "drones; 'drain' takes a station out of every ring that can do without it."
         ),
     )
     actions = parser.add_subparsers(dest="fleet_action", metavar="ACTION", required=True)
@@ -119,9 +125,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     admit.set_defaults(run=_guarded(_admit))
 
-    actions.add_parser("missions", parents=[common], help="the admitted missions").set_defaults(
-        run=_guarded(_missions)
-    )
     network = argparse.ArgumentParser(add_help=False)
     network.add_argument(
         "--config",
@@ -131,12 +134,45 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "(id, address), its drone the mission's (or --drone-address)",
     )
     add_tls_flags(network)
-    start = actions.add_parser(
-        "start",
+    actions.add_parser(
+        "missions",
         parents=[common, network],
-        help="start an admitted mission's sessions on its ring's stations (baton station)",
+        help="the admitted missions; with --config, each one's master, state and progress "
+        "as its stations say",
+    ).set_defaults(run=_guarded(_missions))
+
+    def on_mission(
+        name: str, what: str, run: Callable[[argparse.Namespace], int]
+    ) -> argparse.ArgumentParser:
+        """An action on one mission, by its id, with the network's file."""
+        action = actions.add_parser(name, parents=[common, network], help=what)
+        action.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
+        action.set_defaults(run=_guarded(run))
+        return action
+
+    on_mission(
+        "status",
+        "one mission's full status: every session's ControllerStatus and the drone's, as JSON",
+        _status,
     )
-    start.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
+    drain = actions.add_parser(
+        "drain",
+        parents=[common, network],
+        help="take a station out of service: in no new ring, its masters handed over, and "
+        "out of every ring that can do without it",
+    )
+    drain.add_argument("station", help="the station's name or id (baton fleet stations list)")
+    drain.set_defaults(run=_guarded(_drain))
+    undrain = actions.add_parser(
+        "undrain", parents=[common], help="admit a drained station into new rings again"
+    )
+    undrain.add_argument("station", help="the station's name or id")
+    undrain.set_defaults(run=_guarded(_undrain))
+    start = on_mission(
+        "start",
+        "start an admitted mission's sessions on its ring's stations (baton station)",
+        _start,
+    )
     start.add_argument(
         "--mission",
         dest="program",
@@ -150,14 +186,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         metavar="HOST:PORT",
         help="where the stations reach the mission's drone (default: the file's drone.address)",
     )
-    start.set_defaults(run=_guarded(_start))
-    cancel = actions.add_parser(
+    on_mission(
         "cancel",
-        parents=[common, network],
-        help="cancel an admitted mission; with --config, its sessions stopped on its stations",
+        "cancel an admitted mission; with --config, its sessions stopped on its stations",
+        _cancel,
     )
-    cancel.add_argument("mission", type=int, help="the mission's id (baton fleet missions)")
-    cancel.set_defaults(run=_guarded(_cancel))
 
 
 def _guarded(action: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
@@ -227,12 +260,13 @@ def _list_stations(args: argparse.Namespace) -> int:
 
     with Registry(args.registry) as registry:
         stations = registry.stations()
-    print(f"{'ID':>4}  {'NAME':<16} {'LATITUDE':>11} {'LONGITUDE':>11} {'RANGE_M':>8}")
+    print(f"{'ID':>4}  {'NAME':<16} {'LATITUDE':>11} {'LONGITUDE':>11} {'RANGE_M':>8}  STATE")
     for s in stations:
         where = s.station.location
         print(
             f"{s.station.id:>4}  {s.name:<16} {where.latitude_deg:>11.6f} "
-            f"{where.longitude_deg:>11.6f} {s.station.range_m:>8g}"
+            f"{where.longitude_deg:>11.6f} {s.station.range_m:>8g}  "
+            f"{'drained' if s.drained else 'in service'}"
         )
     return 0
 
@@ -288,17 +322,135 @@ def _admit(args: argparse.Namespace) -> int:
 
 
 def _missions(args: argparse.Namespace) -> int:
-    from baton.fleet.registry import Registry
+    from baton.config import ConfigError, load_config
+    from baton.fleet.operations import ask_stations, overview, session_statuses
+    from baton.fleet.registry import IN_FLIGHT, Registry
+    from baton.rpc.tls import OPERATOR, TlsError
 
     with Registry(args.registry) as registry:
         missions = registry.missions()
-    print(f"{'ID':>4}  {'DRONE':<12} {'STATE':<10} {'FIRST':>6}  {'ADMITTED (UTC)':<20} RING")
+    if args.config is None:
+        print(f"{'ID':>4}  {'DRONE':<12} {'STATE':<10} {'FIRST':>6}  {'ADMITTED (UTC)':<20} RING")
+        for m in missions:
+            admitted_at = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(m.admitted_at))
+            ring = ",".join(map(str, m.live_ring))
+            print(
+                f"{m.id:>4}  {m.drone:<12} {m.state:<10} {m.first_master:>6}  "
+                f"{admitted_at:<20} {ring}"
+            )
+        return 0
+    try:
+        network = load_config(args.config)
+        tls = tls_from_flags(args, network, OPERATOR)
+    except (ConfigError, TlsError) as exc:
+        return _fail(args, str(exc))
+    flying = [m for m in missions if m.state == IN_FLIGHT]
+    replies = ask_stations(network, sorted({s for m in flying for s in m.live_ring}), tls)
+    print(f"{'ID':>4}  {'DRONE':<12} {'STATE':<10} {'MASTER':>6} {'REQNR':>6}  RING")
+    silent: set[str] = set()
     for m in missions:
-        admitted_at = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(m.admitted_at))
-        ring = ",".join(map(str, m.ring))
-        print(
-            f"{m.id:>4}  {m.drone:<12} {m.state:<10} {m.first_master:>6}  {admitted_at:<20} {ring}"
+        if m.state != IN_FLIGHT:
+            ring = ",".join(map(str, m.live_ring))
+            print(f"{m.id:>4}  {m.drone:<12} {m.state:<10} {'-':>6} {'-':>6}  {ring}")
+            continue
+        seen = overview(session_statuses(m, replies))
+        silent.update(seen.silent)
+        # A station whose session did not answer is marked with '?'.
+        ring = ",".join(
+            f"{sid}{'?' if isinstance(replies.get(sid), str) else ''}" for sid in m.live_ring
         )
+        master = "?" if seen.master is None else str(seen.master)
+        print(f"{m.id:>4}  {m.drone:<12} {seen.state:<10} {master:>6} {seen.reqnr:>6}  {ring}")
+    for line in sorted(silent):
+        print(f"  {line}")
+    return 0
+
+
+def _status(args: argparse.Namespace) -> int:
+    import json
+
+    from google.protobuf.json_format import MessageToDict
+
+    from baton.config import ConfigError, load_config
+    from baton.fleet.operations import ask_drone, at_once, controller_status
+    from baton.fleet.registry import Registry
+    from baton.rpc.tls import OPERATOR, TlsError
+
+    if args.config is None:
+        return _fail(args, "--config: missing; the network's file with the stations' addresses")
+    with Registry(args.registry) as registry:
+        mission = registry.mission(args.mission)
+    try:
+        network = load_config(args.config)
+        tls = tls_from_flags(args, network, OPERATOR)
+    except (ConfigError, TlsError) as exc:
+        return _fail(args, str(exc))
+    known = {c.id for c in network.controllers}
+
+    def ask(sid: int) -> ControllerStatus | str:
+        if sid not in known:
+            return f"station {sid}: not in {args.config}; add it with its address"
+        return controller_status(network, sid, mission.id, tls)
+
+    sessions = at_once(ask, mission.live_ring)
+    drone = ask_drone(mission.drone_address, tls)
+    document = {
+        "mission": mission.id,
+        "drone": mission.drone,
+        "state": mission.state,
+        "ring": list(mission.live_ring),
+        "departed": list(mission.departed),
+        "first_master": mission.first_master,
+        "sessions": {
+            str(sid): {"error": s} if isinstance(s, str) else MessageToDict(s)
+            for sid, s in sessions.items()
+        },
+        "drone_status": {"error": drone} if isinstance(drone, str) else MessageToDict(drone),
+    }
+    print(json.dumps(document, indent=2))
+    return 0
+
+
+def _drain(args: argparse.Namespace) -> int:
+    from baton.config import ConfigError, load_config
+    from baton.fleet.operations import drain
+    from baton.fleet.registry import Registry
+    from baton.rpc.tls import OPERATOR, TlsError
+
+    if args.config is None:
+        return _fail(args, "--config: missing; the network's file with the stations' addresses")
+    try:
+        network = load_config(args.config)
+        tls = tls_from_flags(args, network, OPERATOR)
+    except (ConfigError, TlsError) as exc:
+        return _fail(args, str(exc))
+    with Registry(args.registry) as registry:
+        report = drain(registry, args.station, network, tls)
+    print(f"station {report.station} drained: admitted into no new ring")
+    for mission, target in report.left:
+        moved = f", its master handed over to station {target}" if target is not None else ""
+        print(f"mission {mission}: left its ring{moved}")
+    for stay in report.stayed:
+        print(f"mission {stay.mission_id}: stays in its ring: {stay.reason}")
+    for problem in report.failed:
+        print(f"{problem}")
+    if not report.done:
+        return _fail(
+            args,
+            f"station {report.station} still serves "
+            f"{len(report.stayed) + len(report.failed)} mission(s) (above); run drain again "
+            "later, or cancel them",
+            status=1,
+        )
+    return 0
+
+
+def _undrain(args: argparse.Namespace) -> int:
+    from baton.fleet.registry import Registry
+
+    with Registry(args.registry) as registry:
+        station = registry.set_drained(args.station, False)
+    print(f"station {station.name} (id {station.station.id}) admitted into new rings again")
     return 0
 
 
@@ -330,6 +482,7 @@ def _mission_network(args: argparse.Namespace) -> tuple[MissionRow, BatonConfig,
 
 def _start(args: argparse.Namespace) -> int:
     from baton.config import ConfigError
+    from baton.fleet.registry import Registry
     from baton.fleet.sessions import SessionError, start_sessions
     from baton.rpc.tls import TlsError
 
@@ -337,13 +490,19 @@ def _start(args: argparse.Namespace) -> int:
         return _fail(args, "--config: missing; the network's file with the stations' addresses")
     try:
         mission, config, tls = _mission_network(args)
-        start_sessions(config, str(mission.id), args.program, args.mission_arg, tls)
+        # A station drained out of the ring is not started again.
+        start_sessions(
+            config, str(mission.id), args.program, args.mission_arg, tls, mission.live_ring
+        )
     except (ConfigError, TlsError) as exc:
         return _fail(args, str(exc))
     except SessionError as exc:
         return _fail(args, f"mission {args.mission}: {exc}", status=1)
+    with Registry(args.registry) as registry:
+        registry.set_drone_address(mission.id, config.drone.address)
     ring = ", ".join(
-        f"{sid}{' (first master)' if sid == mission.first_master else ''}" for sid in mission.ring
+        f"{sid}{' (first master)' if sid == mission.first_master else ''}"
+        for sid in mission.live_ring
     )
     print(f"mission {mission.id} of drone {mission.drone} started on stations {ring}")
     return 0

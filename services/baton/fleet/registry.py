@@ -26,14 +26,15 @@ from baton.drone.policy import Station
 from baton.fleet.admission import Admitted, Refused, admit_mission, station_problem
 from baton.sdk.types import Position
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS stations (
     id INTEGER PRIMARY KEY,
     name TEXT NOT NULL UNIQUE,
     latitude_deg REAL NOT NULL,
     longitude_deg REAL NOT NULL,
-    range_m REAL NOT NULL
+    range_m REAL NOT NULL,
+    drained INTEGER NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS missions (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -42,10 +43,19 @@ CREATE TABLE IF NOT EXISTS missions (
     route TEXT NOT NULL,
     ring TEXT NOT NULL,
     first_master INTEGER NOT NULL,
-    admitted_at REAL NOT NULL
+    admitted_at REAL NOT NULL,
+    drone_address TEXT,
+    departed TEXT NOT NULL DEFAULT '[]'
 );
 CREATE UNIQUE INDEX IF NOT EXISTS one_mission_a_drone ON missions (drone)
     WHERE state = 'admitted';
+"""
+# Schema 1 to 2: drained stations (``baton fleet drain``), and a mission's drone
+# address (``baton fleet start``) and the stations drained out of its ring.
+UPGRADE_FROM_1 = """
+ALTER TABLE stations ADD COLUMN drained INTEGER NOT NULL DEFAULT 0;
+ALTER TABLE missions ADD COLUMN drone_address TEXT;
+ALTER TABLE missions ADD COLUMN departed TEXT NOT NULL DEFAULT '[]';
 """
 # The states a mission's row can be in: admitted (in flight, as far as the registry
 # knows) until cancelled.
@@ -62,11 +72,15 @@ class NamedStation:
 
     name: str
     station: Station
+    # Drained (baton fleet drain): admitted into no new ring until undrained.
+    drained: bool = False
 
 
 @dataclass(frozen=True)
 class MissionRow:
-    """An admitted mission as the registry holds it."""
+    """An admitted mission as the registry holds it: its ring as admitted, the
+    stations drained out of it since (``departed``), and its drone's address once
+    ``baton fleet start`` gave it."""
 
     id: int
     drone: str
@@ -75,6 +89,13 @@ class MissionRow:
     ring: tuple[int, ...]
     first_master: int
     admitted_at: float
+    drone_address: str | None = None
+    departed: tuple[int, ...] = ()
+
+    @property
+    def live_ring(self) -> tuple[int, ...]:
+        """Its ring now: admission's order without the stations drained out of it."""
+        return tuple(sid for sid in self.ring if sid not in self.departed)
 
 
 class Registry:
@@ -85,11 +106,13 @@ class Registry:
         try:
             self._db = sqlite3.connect(path, isolation_level=None, timeout=10.0)
             version = self._db.execute("PRAGMA user_version").fetchone()[0]
-            if version not in (0, SCHEMA_VERSION):
+            if version not in (0, 1, SCHEMA_VERSION):
                 raise RegistryError(
                     f"{path}: a registry of schema {version}, this baton reads "
                     f"{SCHEMA_VERSION}; use the baton that made it, or another --registry"
                 )
+            if version == 1:
+                self._db.executescript(f"BEGIN; {UPGRADE_FROM_1} COMMIT;")
             self._db.executescript(SCHEMA)
             self._db.execute(f"PRAGMA user_version = {SCHEMA_VERSION}")
         except sqlite3.DatabaseError as exc:
@@ -137,24 +160,68 @@ class Registry:
                         "choose another"
                     )
             db.execute(
-                "INSERT INTO stations VALUES (?, ?, ?, ?, ?)",
+                "INSERT INTO stations (id, name, latitude_deg, longitude_deg, range_m) "
+                "VALUES (?, ?, ?, ?, ?)",
                 (station.id, name, location.latitude_deg, location.longitude_deg, station.range_m),
             )
 
     def stations(self) -> list[NamedStation]:
         """Every station, by id."""
         return [
-            NamedStation(name, Station(sid, Position(lat, lon), range_m))
-            for sid, name, lat, lon, range_m in self._db.execute(
-                "SELECT id, name, latitude_deg, longitude_deg, range_m FROM stations ORDER BY id"
+            NamedStation(name, Station(sid, Position(lat, lon), range_m), bool(drained))
+            for sid, name, lat, lon, range_m, drained in self._db.execute(
+                "SELECT id, name, latitude_deg, longitude_deg, range_m, drained FROM stations "
+                "ORDER BY id"
             )
         ]
+
+    def station(self, name_or_id: str) -> NamedStation:
+        """The station by that name, or else by that id; RegistryError naming the
+        stations there are if there is none."""
+        stations = self.stations()
+        for s in stations:
+            if s.name == name_or_id:
+                return s
+        for s in stations:
+            if str(s.station.id) == name_or_id:
+                return s
+        known = ", ".join(f"{s.name} (id {s.station.id})" for s in stations) or "none"
+        raise RegistryError(
+            f"station {name_or_id!r}: no station by that name or id; the stations: {known}"
+        )
+
+    def set_drained(self, name_or_id: str, drained: bool) -> NamedStation:
+        """Marks a station drained (admitted into no new ring) or not; RegistryError if
+        there is no such station."""
+        station = self.station(name_or_id)
+        with self._writing() as db:
+            db.execute(
+                "UPDATE stations SET drained = ? WHERE id = ?", (int(drained), station.station.id)
+            )
+        return self.station(station.name)
+
+    def set_drone_address(self, mission_id: int, address: str) -> None:
+        """Records where the stations reach a mission's drone (``baton fleet start``)."""
+        with self._writing() as db:
+            db.execute("UPDATE missions SET drone_address = ? WHERE id = ?", (address, mission_id))
+
+    def depart(self, mission_id: int, station_id: int) -> None:
+        """Records that a station left a mission's ring (drained out of it)."""
+        with self._writing() as db:
+            row = db.execute("SELECT departed FROM missions WHERE id = ?", (mission_id,)).fetchone()
+            if row is None:
+                raise RegistryError(f"mission {mission_id}: no such mission")
+            departed = sorted({*json.loads(row[0]), station_id})
+            db.execute(
+                "UPDATE missions SET departed = ? WHERE id = ?", (json.dumps(departed), mission_id)
+            )
 
     def admit(self, drone: str, route: Sequence[Position]) -> tuple[int, Admitted] | Refused:
         """Runs the admission rule over the registered stations and the missions in
         flight, and records the mission if admitted: its id and the admission."""
         with self._writing() as db:
-            stations = [s.station for s in self.stations()]
+            # A drained station is admitted into no new ring.
+            stations = [s.station for s in self.stations() if not s.drained]
             in_flight = {
                 d: mid
                 for mid, d in db.execute(
@@ -190,10 +257,22 @@ class Registry:
                 tuple(json.loads(ring)),
                 first_master,
                 admitted_at,
+                drone_address,
+                tuple(json.loads(departed)),
             )
-            for mid, drone, state, route, ring, first_master, admitted_at in self._db.execute(
-                "SELECT id, drone, state, route, ring, first_master, admitted_at FROM missions "
-                "ORDER BY id"
+            for (
+                mid,
+                drone,
+                state,
+                route,
+                ring,
+                first_master,
+                admitted_at,
+                drone_address,
+                departed,
+            ) in self._db.execute(
+                "SELECT id, drone, state, route, ring, first_master, admitted_at, drone_address, "
+                "departed FROM missions ORDER BY id"
             )
         ]
 

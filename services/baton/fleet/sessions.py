@@ -35,28 +35,34 @@ class SessionError(RuntimeError):
 
 
 @contextmanager
-def _station(
+def station_stub(
     config: BatonConfig, sid: int, tls: Tls | None
 ) -> Iterator[station_pb2_grpc.StationStub]:
+    """The operator's Station stub to station ``sid`` at its address in ``config``."""
     with sync_channel(config.controller(sid).reach, tls, Identity.controller(sid)) as channel:
         yield station_pb2_grpc.StationStub(channel)
 
 
-def _code(exc: grpc.RpcError) -> grpc.StatusCode:
+def status_code(exc: grpc.RpcError) -> grpc.StatusCode:
     return cast(grpc.Call, exc).code()  # a failed call's error is the call
 
 
-def _said(config: BatonConfig, sid: int, exc: grpc.RpcError) -> str:
+def said(config: BatonConfig, sid: int, exc: grpc.RpcError) -> str:
     details = cast(grpc.Call, exc).details()
-    return f"station {sid} ({config.controller(sid).reach}): {_code(exc).name}: {details}"
+    return f"station {sid} ({config.controller(sid).reach}): {status_code(exc).name}: {details}"
 
 
 def start_sessions(
-    config: BatonConfig, mission_id: str, program: str, args: Sequence[str], tls: Tls | None
+    config: BatonConfig,
+    mission_id: str,
+    program: str,
+    args: Sequence[str],
+    tls: Tls | None,
+    stations: Sequence[int] | None = None,
 ) -> None:
-    """Starts the mission's session on every station of ``config``'s ring that does not
-    host it yet, in ring order; SessionError naming the station that refused, after
-    those this call started stopped it."""
+    """Starts the mission's session on every station of ``stations`` (default: the
+    whole ring, in ring order) that does not host it yet; SessionError naming the
+    station that refused, after those this call started stopped it."""
     request = station_pb2.StartMissionRequest(
         mission_id=mission_id,
         config=json.dumps(config.model_dump(mode="json", exclude_unset=True)),
@@ -64,18 +70,18 @@ def start_sessions(
         args=list(args),
     )
     started: list[int] = []
-    for sid in config.ring_order:
+    for sid in config.ring_order if stations is None else stations:
         try:
-            with _station(config, sid, tls) as stub:
+            with station_stub(config, sid, tls) as stub:
                 stub.StartMission(request, timeout=CALL_TIMEOUT_S)
         except grpc.RpcError as exc:
-            if _code(exc) == grpc.StatusCode.ALREADY_EXISTS:
+            if status_code(exc) == grpc.StatusCode.ALREADY_EXISTS:
                 continue
             problems = stop_sessions(config, mission_id, tls, started)
             undone = (f"; stopped on {', '.join(map(str, started))}" if started else "") + "".join(
                 f"; {p}" for p in problems
             )
-            raise SessionError(f"not started: {_said(config, sid, exc)}{undone}") from None
+            raise SessionError(f"not started: {said(config, sid, exc)}{undone}") from None
         started.append(sid)
 
 
@@ -89,9 +95,9 @@ def stop_sessions(
     request = station_pb2.StopMissionRequest(mission_id=mission_id)
     for sid in config.ring_order if stations is None else stations:
         try:
-            with _station(config, sid, tls) as stub:
+            with station_stub(config, sid, tls) as stub:
                 stub.StopMission(request, timeout=CALL_TIMEOUT_S)
         except grpc.RpcError as exc:
-            if _code(exc) != grpc.StatusCode.NOT_FOUND:
-                problems.append(_said(config, sid, exc))
+            if status_code(exc) != grpc.StatusCode.NOT_FOUND:
+                problems.append(said(config, sid, exc))
     return problems
