@@ -49,6 +49,9 @@ async def test_worst_case_quick(tmp_path: Path) -> None:
     assert "| forwarding | flush (MB) |" in (tmp_path / "worst_case.md").read_text()
 
 
+# On demand (pytest -m slow): 70-80 s of CI's 25 minutes; the worst-case and failover
+# quick runs keep the benchmark drivers exercised in CI.
+@pytest.mark.slow
 async def test_timeline_quick(tmp_path: Path) -> None:
     result = await run_timeline(TimelineSettings.quick(), tmp_path)
     for name in ("timeline.json", "timeline.csv", "timeline.png"):
@@ -72,6 +75,9 @@ async def test_timeline_quick(tmp_path: Path) -> None:
     assert [h["after_reqnr"] for h in handovers] == sorted(h["after_reqnr"] for h in handovers)
 
 
+# On demand (pytest -m slow): 70-80 s of CI's 25 minutes; the worst-case and failover
+# quick runs keep the benchmark drivers exercised in CI.
+@pytest.mark.slow
 async def test_micro_quick(tmp_path: Path) -> None:
     result = await run_micro(MicroSettings.quick(), tmp_path)
     assert (tmp_path / "micro.json").stat().st_size > 0

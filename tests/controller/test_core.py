@@ -245,18 +245,3 @@ def test_a_route_retires_a_successor_it_no_longer_needs() -> None:
     assert RouteTo(1, [], previous=2, natural=1).retired == 2
     assert RouteTo(2, [1], previous=1, natural=1).retired is None  # the natural one
     assert RouteTo(0, [1, 2], previous=2, natural=1).retired is None  # skipped now
-
-
-def test_a_handover_notice_past_the_mastership_after_ours_rejoins_instead_of_handing_over() -> None:
-    """The drone numbers every switch one more: a notice of epoch 5 ends epoch 4's
-    mastership. ACTIVE in epoch 1, ours is not it, and our log is not the ring's."""
-    p = started(0, [0, 1, 2], 2**20)
-    core = ControllerCore(p)
-    assert p.state is State.ACTIVE and p.epoch == 1
-    effects = core.handover_notice(new_master=1, after_reqnr=0, epoch=5)
-    assert any(isinstance(e, Rejoin) for e in effects)
-    assert not any(isinstance(e, SendLog) for e in effects)
-    assert p.fenced and not p.master
-    fresh = started(0, [0, 1, 2], 2**20)
-    handed = ControllerCore(fresh).handover_notice(new_master=1, after_reqnr=0, epoch=2)
-    assert any(isinstance(e, SendLog) and e.message.handover for e in handed)

@@ -55,7 +55,10 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     home = testbed.status().position
     stream = testbed.as_controller(0).Connect(drone_pb2.ConnectRequest(controller_id=0), timeout=60)
     first = next(stream)
-    assert first.connected == drone_pb2.Connected(master=0, last_reqnr=0, epoch=1)
+    connected = first.connected
+    assert (connected.master, connected.last_reqnr, connected.epoch) == (0, 0, 1)
+    # The drone's signed grant of that epoch, which the master's log messages carry.
+    assert (connected.grant.epoch, connected.grant.kind) == (1, drone_pb2.GRANT_KIND_FIRST)
     testbed.wait_until("master connected", lambda s: s.master_connected)
     c0 = Controller(testbed, 0)
 
@@ -94,7 +97,11 @@ def test_mission_with_scripted_and_rpc_handovers(testbed: DroneBed) -> None:
     _, duplicate = c0.invoke("/baton.v1.Mobility/Land", api.LandRequest(), api.LandReply)
     assert not duplicate
     notice = next(stream)
-    assert notice.handover == drone_pb2.HandoverNotice(
+    handover = drone_pb2.HandoverNotice()
+    handover.CopyFrom(notice.handover)
+    assert (handover.grant.master, handover.grant.epoch) == (1, 2)  # the new master's grant
+    handover.ClearField("grant")
+    assert handover == drone_pb2.HandoverNotice(
         old_master=0, new_master=1, after_reqnr=7, ended_epoch=1, epoch=2
     )
     assert next(stream, None) is None

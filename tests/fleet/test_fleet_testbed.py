@@ -15,6 +15,9 @@ EXAMPLES = Path(__file__).parents[2] / "examples"
 FLEET, FLEET_SIX = EXAMPLES / "fleet.yaml", EXAMPLES / "fleet-six.yaml"
 
 
+# On demand (pytest -m slow): 30-40 s; tests/fleet/test_stations.py flies two missions
+# over shared station processes in CI.
+@pytest.mark.slow
 def test_the_example_fleet_flies_every_mission_exactly_once_over_shared_stations(
     tmp_path: Path,
 ) -> None:

@@ -25,13 +25,13 @@ from baton.sim.world import Outcome, World, run_seeds
 # The default mix in CI: what fits CI's 25 minutes on 2 cores beside the end-to-end
 # tests (the sweeps take both cores while they run); the wider ranges (every mode's
 # 0-19999 in docs/simulation.md) are swept by hand with `baton.sim --seeds`.
-CI_SEEDS = 2_000
+CI_SEEDS = 1_500
 SLOW_SEEDS = 100_000
 # Each mutation must make some seed fail within this many.
 MUTATION_BUDGET = 300
 # Issue 10's scenario (--lose-master) in CI (docs/design.md, "The deterministic
 # simulation", the lose-the-master scenario).
-LOSE_MASTER_SEEDS = 1_200
+LOSE_MASTER_SEEDS = 900
 
 
 def _sweep(seeds: range, options: SimOptions | None = None, chunk: int = 250) -> list[Outcome]:
@@ -90,7 +90,7 @@ def test_lose_master_seeds_hold_every_oracle() -> None:
 
 
 # Prepared handovers (--prepared: every scripted handover is prepared) in CI.
-PREPARED_SEEDS = 600  # CI_SEEDS says why; wider ranges by hand
+PREPARED_SEEDS = 450  # CI_SEEDS says why; wider ranges by hand
 
 
 def test_prepared_handover_seeds_hold_every_oracle() -> None:
@@ -271,17 +271,6 @@ def test_a_killed_replica_is_held_to_the_calls_the_drone_had_seen_when_it_died()
     assert outcome.ok, outcome.report()
 
 
-def test_a_handover_notice_of_a_later_mastership_makes_a_stale_master_rejoin() -> None:
-    """--policy predictive 7057 (a ProtocolError that stopped a controller): master 2,
-    ACTIVE in epoch 1, never heard the drone hand over from it while it restarted; the
-    role went round and came back to it by a handover message of epoch 4, queued behind
-    the ring's log. The drone's notice of the switch to epoch 5 then made it hand over
-    its epoch-1 log as epoch 5's, a framing the ring had replaced; handling the queued
-    message later failed. A notice that ends a mastership after ours makes us rejoin."""
-    outcome = run_seed(7057, SimOptions(policy="predictive"))
-    assert outcome.ok, outcome.report()
-
-
 def test_policy_seed_132_holds_every_oracle() -> None:
     """--policy nearest seed 132 (same-replies): master 4, cut off by a forced handover
     it never heard, answered Clock calls 7-10 itself and flushed them to 2; a takeover
@@ -411,7 +400,7 @@ def test_policy_seeds_fence_a_master_whose_takeover_came_before_its_link_fell() 
 # The stall scenario (--stall-new-master) in CI: the ring cut from a new master right
 # after a cooperative switch, for about as long as the drone lets a master go without
 # serving, so that it is taken over while it keeps its standby stream.
-STALL_SEEDS = 600
+STALL_SEEDS = 450
 
 
 def test_stall_new_master_seeds_hold_every_oracle() -> None:

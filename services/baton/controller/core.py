@@ -725,14 +725,6 @@ class ControllerCore:
         p = self.protocol
         if p.state is not State.ACTIVE:
             return []
-        if p.mastership_passed_us(epoch):
-            note = Note(
-                "warning",
-                "handover notice of a later mastership than ours: ours went on without our "
-                "log; rejoining with nothing",
-                {"new_master": new_master, "notice_epoch": epoch, "epoch": p.epoch},
-            )
-            return [note, *self.fenced(new_master, epoch - 1)]
         log_bytes = p.log.size
         try:
             effects = p.on_handover_notice(new_master, epoch, grant)

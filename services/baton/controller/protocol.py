@@ -989,21 +989,6 @@ class ControllerProtocol:
         """
         return self.state is State.ACTIVE and takeover_epoch > self.epoch
 
-    def mastership_passed_us(self, notice_epoch: int) -> bool:
-        """Whether a handover notice to ``notice_epoch`` ends a mastership after ours.
-
-        The drone numbers every switch, one more each time, so the mastership a
-        notice ends is the one before its epoch. ACTIVE in an older one, we are
-        not that master as far as we know: the role went on without our log (a
-        switch we never heard, while the drone restarted) and came to us by a
-        handover message the ring has not given us yet. The log we hold is not
-        the ring's; handed over, it would put a framing a later master replaced
-        on the ring as the new master's log. We rejoin with nothing instead, as
-        when the drone says so (``log_given_up``); the new master, owed a handover
-        message that never comes, is taken over by the drone.
-        """
-        return self.state is State.ACTIVE and 0 < self.epoch and notice_epoch > self.epoch + 1
-
     def went_on_without_us(self, message: ring_pb2.LogMessage) -> bool:
         """Whether a ring message shows our mastership went on without our log.
 

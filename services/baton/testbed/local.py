@@ -986,9 +986,13 @@ class LocalTestbed:
             await asyncio.sleep(period)
 
     async def stop(self) -> None:
-        """Stops every process and closes the status channels."""
+        """Stops every process and closes the status channels: the drone service first,
+        so that the controllers stopping after the mission are not a lost link to it (its
+        failsafe would return a vehicle the mission left hovering), then the rest."""
         for channel in self._channels:
             await channel.close()
+        if "drone" in self.supervisor.parts:
+            await self.supervisor.stop_part("drone")
         await self.supervisor.stop_all()
 
     async def __aenter__(self) -> LocalTestbed:
