@@ -24,6 +24,8 @@ def _png(path: Path) -> bool:
     return path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+# On demand (pytest -m slow): 90 s of CI's 25 minutes.
+@pytest.mark.slow
 async def test_worst_case_quick(tmp_path: Path) -> None:
     settings = WorstCaseSettings.quick()
     result = await run_worst_case(settings, tmp_path)
@@ -49,8 +51,8 @@ async def test_worst_case_quick(tmp_path: Path) -> None:
     assert "| forwarding | flush (MB) |" in (tmp_path / "worst_case.md").read_text()
 
 
-# On demand (pytest -m slow): 70-80 s of CI's 25 minutes; the worst-case and failover
-# quick runs keep the benchmark drivers exercised in CI.
+# On demand (pytest -m slow): 70-80 s of CI's 25 minutes; the failover quick run keeps
+# the benchmark drivers exercised in CI.
 @pytest.mark.slow
 async def test_timeline_quick(tmp_path: Path) -> None:
     result = await run_timeline(TimelineSettings.quick(), tmp_path)
@@ -75,8 +77,8 @@ async def test_timeline_quick(tmp_path: Path) -> None:
     assert [h["after_reqnr"] for h in handovers] == sorted(h["after_reqnr"] for h in handovers)
 
 
-# On demand (pytest -m slow): 70-80 s of CI's 25 minutes; the worst-case and failover
-# quick runs keep the benchmark drivers exercised in CI.
+# On demand (pytest -m slow): 70-80 s of CI's 25 minutes; the failover quick run keeps
+# the benchmark drivers exercised in CI.
 @pytest.mark.slow
 async def test_micro_quick(tmp_path: Path) -> None:
     result = await run_micro(MicroSettings.quick(), tmp_path)

@@ -80,8 +80,10 @@ async def test_a_stream_without_the_token_or_on_the_ring_port_is_refused(
     call = ring_pb2.ProgramCall(call=1, method=GET_POSITION, request=b"")
     async with aio_channel(address) as channel:
         stream = ring_pb2_grpc.ControllerRingStub(channel).ProgramCalls()
-        await stream.write(call)
         with pytest.raises(grpc.aio.AioRpcError) as without:
+            # Refused from the metadata, before the body is read: the refusal may end
+            # the call before our write does.
+            await stream.write(call)
             await stream.read()
     assert without.value.code() is grpc.StatusCode.PERMISSION_DENIED
     assert MISSION_TOKEN_METADATA in (without.value.details() or "")
@@ -95,8 +97,8 @@ async def test_a_stream_without_the_token_or_on_the_ring_port_is_refused(
             stream = ring_pb2_grpc.ControllerRingStub(channel).ProgramCalls(
                 metadata=((MISSION_TOKEN_METADATA, TOKEN),)
             )
-            await stream.write(call)
             with pytest.raises(grpc.aio.AioRpcError) as on_ring:
+                await stream.write(call)
                 await stream.read()
     finally:
         await server.stop(0)
