@@ -71,6 +71,22 @@ def test_a_stale_handover_notice_hands_nothing_over_and_sends_no_catch_up() -> N
     assert core.protocol.state is State.ACTIVE
 
 
+def test_a_notice_after_a_takeover_that_replaced_our_log_fences_us() -> None:
+    """ACTIVE in epoch 1, a notice of a switch out of epoch 4 whose drone took over in
+    epoch 3: the takeover framed our unflushed requests anew, so handing our log over
+    would put a second framing of them on the ring; we rejoin with nothing instead.
+    Without a takeover since our mastership (back-to-back handovers), the log is the
+    ring's and goes to the new master."""
+    replaced = master().stream_notice(2, 2, 5, takeover=False, takeover_epoch=3)
+    assert kinds(replaced) == [Record, Note, DisconnectDrone, Rejoin]
+    assert SendLog not in kinds(replaced)
+    handed = master().stream_notice(2, 2, 5, takeover=False, takeover_epoch=0)
+    assert kinds(handed)[-1] is SendLog
+    older = master()
+    older.protocol.on_granted(3)  # the takeover that made us master: our own log
+    assert kinds(older.stream_notice(2, 2, 4, takeover=False, takeover_epoch=3))[-1] is SendLog
+
+
 def test_fenced_drops_the_log_and_rejoins_once() -> None:
     core = master()
     effects = core.fenced(1, 2)

@@ -271,6 +271,17 @@ def test_a_killed_replica_is_held_to_the_calls_the_drone_had_seen_when_it_died()
     assert outcome.ok, outcome.report()
 
 
+def test_an_old_master_whose_log_a_takeover_replaced_hands_nothing_over() -> None:
+    """--policy predictive 7057 (a ProtocolError stopped controller 2): master 2, ACTIVE
+    in epoch 1 with requests unflushed, never heard the drone hand over from it; a
+    takeover (epoch 3) framed those requests anew, and the role came back to 2 by a
+    handover message queued behind the ring's log. The notice of the next switch made 2
+    hand its epoch-1 log over as the new master's. The notice now carries the drone's
+    newest takeover epoch, and 2 rejoins with nothing."""
+    outcome = run_seed(7057, SimOptions(policy="predictive"))
+    assert outcome.ok, outcome.report()
+
+
 def test_policy_seed_132_holds_every_oracle() -> None:
     """--policy nearest seed 132 (same-replies): master 4, cut off by a forced handover
     it never heard, answered Clock calls 7-10 itself and flushed them to 2; a takeover

@@ -1036,6 +1036,7 @@ class HandoverNotice(_message.Message):
     EPOCH_FIELD_NUMBER: _builtins.int
     TAKEOVER_FIELD_NUMBER: _builtins.int
     GRANT_FIELD_NUMBER: _builtins.int
+    TAKEOVER_EPOCH_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """The controller that was master."""
     new_master: _builtins.int
@@ -1051,6 +1052,12 @@ class HandoverNotice(_message.Message):
     takeover): its unflushed log is not wanted; the new master got those
     replies from the drone. The old master drops what it has beyond the
     ring and rejoins as a replica.
+    """
+    takeover_epoch: _builtins.int
+    """The epoch the drone's newest takeover granted (0: none yet), as a
+    refusal's baton-takeover-epoch says: an old master still ACTIVE in an
+    older epoch holds a log that takeover replaced, and rejoins with nothing
+    rather than handing it over.
     """
     @_builtins.property
     def grant(self) -> Global___Grant:
@@ -1068,10 +1075,11 @@ class HandoverNotice(_message.Message):
         epoch: _builtins.int = ...,
         takeover: _builtins.bool = ...,
         grant: Global___Grant | None = ...,
+        takeover_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["grant", b"grant"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "ended_epoch", b"ended_epoch", "epoch", b"epoch", "grant", b"grant", "new_master", b"new_master", "old_master", b"old_master", "takeover", b"takeover"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "ended_epoch", b"ended_epoch", "epoch", b"epoch", "grant", b"grant", "new_master", b"new_master", "old_master", b"old_master", "takeover", b"takeover", "takeover_epoch", b"takeover_epoch"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -703,10 +703,18 @@ class ControllerCore:
         epoch: int,
         takeover: bool,
         grant: drone_pb2.Grant | None = None,
+        takeover_epoch: int = 0,
     ) -> list[CoreEffect]:
-        """A handover notice on the Connect stream (the drone owes at most one, the latest)."""
+        """A handover notice on the Connect stream (the drone owes at most one, the latest).
+
+        A takeover's notice fences us; so does one whose drone took over after our
+        mastership (``takeover_epoch``, ``ControllerProtocol.log_given_up``): our log
+        was replaced by the taker's framing, and handing it over would put a second
+        framing of the same requests on the ring."""
         if takeover:
             return self.fenced(new_master, epoch)
+        if self.protocol.log_given_up(takeover_epoch):
+            return self.fenced(new_master, takeover_epoch)
         if self.protocol.state is State.ACTIVE:
             return self.handover_notice(new_master, after_reqnr, epoch, grant)
         return [DisconnectDrone()]  # a notice for a mastership we no longer hold

@@ -854,6 +854,7 @@ class ControllerNode:
                 notice.epoch,
                 notice.takeover,
                 notice.grant if notice.HasField("grant") else None,
+                notice.takeover_epoch,
             )
         )
 

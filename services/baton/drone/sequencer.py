@@ -631,6 +631,7 @@ class Sequencer:
             epoch=ended + 1,
             takeover=takeover,
             grant=self.signed_grant(ended + 1),
+            takeover_epoch=self.takeover_epoch,
         )
         return record
 
