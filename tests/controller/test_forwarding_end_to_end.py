@@ -49,7 +49,10 @@ async def test_six_controllers_over_one_three_and_five_hops_in_each_mode(
         config=local_config(
             6,
             flush_limit=0,
-            speedup=20.0,
+            # A prepared handover waits for its target to be at most 0.25 s of wall time
+            # behind (PREPARED_BEHIND_S), which on two loaded cores comes only while a
+            # leg is flown; at 20x a leg took 0.2 s, and a preparation the whole mission.
+            speedup=5.0 if prepared else 20.0,
             controller_link=FAST_LINK,
             drone_link=FAST_LINK,
             ring={"forwarding": forwarding},

@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 from helpers.missions import FAST_LINK, LONG_LEGS, assert_mission_promises, log_events, until_served
 from waiting import eventually
@@ -29,11 +30,20 @@ LOST = drone_pb2.HANDOVER_TRIGGER_LOST
 
 
 def three_controllers(
-    flush_limit: int, handovers: tuple[tuple[int, int], ...] = (), drone_link: LinkSpec = FAST_LINK
+    flush_limit: int,
+    handovers: tuple[tuple[int, int], ...] = (),
+    drone_link: LinkSpec = FAST_LINK,
+    **fields: Any,
 ) -> TestbedPlan:
-    """Ring 0 -> 1 -> 2 -> 0, master 0, the long-legged mission at 20x, fast links."""
+    """Ring 0 -> 1 -> 2 -> 0, master 0, the long-legged mission at 20x, fast links;
+    ``fields``: more of the configuration (``local_config``)."""
     config = local_config(
-        3, flush_limit=flush_limit, speedup=20.0, controller_link=FAST_LINK, drone_link=drone_link
+        3,
+        flush_limit=flush_limit,
+        speedup=20.0,
+        controller_link=FAST_LINK,
+        drone_link=drone_link,
+        **fields,
     )
     return TestbedPlan(config=config, handovers=handovers, mission=LONG_LEGS)
 
@@ -361,7 +371,10 @@ async def test_a_master_that_dies_while_the_drone_restarts_is_taken_over(
     """The drone is killed, then the master; the drone restarts from its state file. It
     never sees the master again, yet counts it as there before the restart (plus a grace
     for the controllers to re-connect), so it is lost, not waited for for good."""
-    plan = three_controllers(0, handovers=((8, 1),))
+    # The drone is down for as long as its restart takes (7 s on two loaded cores):
+    # the autopilot's own GCS failsafe must not take that for its death and land the
+    # vehicle (test_failsafe_end_to_end.py covers that it does past its bound).
+    plan = three_controllers(0, handovers=((8, 1),), safety={"autopilot_gcs_timeout": "10min"})
     async with LocalTestbed(plan, tmp_path) as testbed:
 
         async def handed_over() -> bool:

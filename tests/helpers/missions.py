@@ -60,7 +60,10 @@ def assert_mission_promises(snapshot: Snapshot, plan: TestbedPlan) -> None:
     # Every scripted handover happened after the right request, and ended.
     # (A scripted reqnr that was a Clock call fires after the next drone request.)
     scripted = [h for h in drone.handovers if h.trigger == drone_pb2.HANDOVER_TRIGGER_SCRIPT]
-    assert [h.new_master for h in scripted] == [mid for _, mid in plan.handovers]
+    assert [h.new_master for h in scripted] == [mid for _, mid in plan.handovers], [
+        (h.after_reqnr, h.old_master, h.new_master, h.trigger, h.kind, h.reason)
+        for h in drone.handovers
+    ]
     for record, (planned, _) in zip(scripted, plan.handovers, strict=True):
         # A prepared handover moves the master once the target caught up, later.
         assert planned <= record.after_reqnr <= planned + (1000 if plan.prepared else 2)
