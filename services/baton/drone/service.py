@@ -11,27 +11,24 @@ from __future__ import annotations
 
 import asyncio
 import os
-import sys
 import time
-from collections.abc import AsyncIterator, Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import AsyncIterator, Mapping
 from typing import Any
 
 import grpc
 
 from baton.authenticity import Signer, signed_reply, signed_retained
-from baton.config import BatonConfig, controllers_only, detection_time_s
 from baton.digest import request_digest
-from baton.drone.camera import DEFAULT_RESOLUTION, Camera
+from baton.drone.camera import Camera
 from baton.drone.core import RESTART_GRACE_S, DroneCore
-from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
+from baton.drone.dedupe import CachedReply
 from baton.drone.dispatch import Dispatcher
 from baton.drone.invariants import INVARIANT_EXIT, DroneWatch, InvariantBroken, checking
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
 from baton.drone.mobility_api import MobilityBackend, command_action
 from baton.drone.operator_service import OperatorCommands, failsafe_proto, fill_status
-from baton.drone.policy import LinkBounds, LinkState, PolicyParams, Station
+from baton.drone.policy import LinkBounds, LinkState, Station
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.safety import (
     LAND,
@@ -43,16 +40,14 @@ from baton.drone.safety import (
     mode_seen,
     nearest_station,
 )
-from baton.drone.sequencer import ScriptedHandover, Sequencer, TakeoverDue
+from baton.drone.sequencer import Sequencer, TakeoverDue
+from baton.drone.settings import Race
 from baton.drone.store import Counters, DroneStore, Intent
-from baton.lifecycle import announce
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.labels import label
 from baton.rpc.outcomes import failure_of
-from baton.rpc.ports import drone_policy
-from baton.rpc.server import BatonServer, servicer
-from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
+from baton.rpc.tls import OPERATOR, Identity, refused, refused_status
 from baton.stalls import StallWatch, Wait, drone_conditions, drone_judge, one_line
 from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
@@ -68,14 +63,6 @@ _STATUS_READ_TIMEOUT_S = 1.0
 AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
 # How often the drone looks whether the master is lost (a fraction of the takeover time).
 TAKEOVER_TICK_S = 0.05
-# The drone pings every controller's connection each second and drops it
-# after 2 s without the answer: a controller behind a silent link (a radio
-# that fades without a reset, a frozen node) loses its streams within 3 s and
-# is then lost like a dead one (the project's 10 s + 5 s would add 15 s).
-# Only while takeovers are on: it is what finds a lost master behind such a
-# link, and it drops any link whose round trip exceeds 2 s, which a drone that
-# never takes over must keep (the 4 s uplink of the stale-request test).
-CONTROLLER_KEEPALIVE_S = (1.0, 2.0)
 
 
 async def latest_position(vehicle: MobilityBackend) -> api.Position:
@@ -1196,237 +1183,3 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             status.audit_more = len(page) > limit
             status.audit.extend(page[:limit])
         return status
-
-
-@dataclass(frozen=True)
-class Race:
-    """Forces footnote 2's race one way at scripted handovers (fault injection for tests).
-
-    ``notice-first`` holds the reply of the request after which the drone
-    hands over, so the old master gets the notice while its call is still in
-    flight; ``reply-first`` holds the notice, so the reply is logged first.
-    """
-
-    order: str
-    delay_s: float
-
-
-@dataclass(frozen=True)
-class DroneSettings:
-    """Everything ``baton drone`` runs with: the testbed model (``baton.config``: its
-    address, vehicle URL, controllers, master, speed-up, takeover and prepare times;
-    the --config file with the flags merged in) and what only the drone's flags give."""
-
-    config: BatonConfig = field(default_factory=lambda: controllers_only([0]))
-    handover_script: Mapping[int, ScriptedHandover] = field(default_factory=dict)
-    image_file: str | None = None
-    resolution: tuple[int, int] = DEFAULT_RESOLUTION
-    cache_window: int = DEFAULT_WINDOW
-    address_file: str | None = None
-    race: Race | None = None
-    state_file: str | None = None  # the durable state (store.py); None: memory only
-    camera_effects_file: str | None = None  # pictures counted (baton.effects); None: no file
-    thumbnails_dir: str | None = None  # a small JPEG of each picture kept here; None: none
-    # The drone's certificate (mutual TLS); None: an insecure port open to anyone.
-    tls: Tls | None = None
-    # The MAVLink signing key (signing.py), read from config.drone.mavlink_key;
-    # None: the autopilot link unsigned.
-    mavlink_key: bytes | None = None
-    # The handover policy (policy.py) and every controller's station; None: the
-    # script and the operator only.
-    policy: PolicyParams | None = None
-    stations: Mapping[int, Station] = field(default_factory=dict)
-
-    @property
-    def address(self) -> str:
-        """Where the drone serves."""
-        return self.config.drone.address
-
-    @property
-    def vehicle_url(self) -> str:
-        """The autopilot's MAVLink URL."""
-        return self.config.drone.vehicle_url
-
-    @property
-    def controllers(self) -> tuple[int, ...]:
-        """The controllers that may become master, in ring order."""
-        return tuple(self.config.ring_order)
-
-    @property
-    def master(self) -> int:
-        """The initial master: given, else the first controller."""
-        return self.config.master_id
-
-    @property
-    def speedup(self) -> float:
-        """The mission's speed-up."""
-        return self.config.speedup
-
-    @property
-    def takeover_after(self) -> float:
-        """The master is lost after this long without a stream or a request, in
-        mission seconds (divided by speedup); 0: never."""
-        return self.config.takeover_after
-
-    @property
-    def prepare_timeout_s(self) -> float:
-        """How long a prepared handover waits for its target (wall seconds)."""
-        return self.config.prepare_timeout
-
-    @property
-    def link_bounds(self) -> LinkBounds:
-        """What a healthy controller link is (GetStatus's links and the log, whatever the
-        policy; the policy's are the same, ``drone.cli.handover_policy``)."""
-        return link_bounds(self.config)
-
-
-def link_bounds(config: BatonConfig) -> LinkBounds:
-    """The model's bounds of a healthy controller link (``handover_policy.max_rtt`` and
-    ``rtt_stale``), as the policy and the link probes take them."""
-    return LinkBounds(config.handover_policy.max_rtt, config.handover_policy.rtt_stale)
-
-
-def safety_params(config: BatonConfig) -> SafetyParams:
-    """The model's safety net in wall seconds (mission seconds / speed-up)."""
-    safety = config.safety
-    return SafetyParams(
-        # At least the detection time in wall seconds, as a takeover's (its floor).
-        lost_link_s=detection_time_s(safety.lost_link, config.speedup),
-        lost_link_action=safety.lost_link_action,
-        max_speed_m_s=safety.max_speed,
-        max_altitude_m=safety.max_altitude,
-        battery_reserve_pct=safety.battery_reserve,
-        battery_action=safety.battery_action,
-        fence=safety.fence.fence() if safety.fence is not None else None,
-    )
-
-
-def autopilot_gcs_timeout_s(config: BatonConfig) -> float:
-    """The autopilot's own GCS failsafe time (its clock: mission seconds): the model's
-    ``safety.autopilot_gcs_timeout``, but never shorter than a restart of the drone
-    service takes (the restart grace, in wall seconds, times the speed-up), so that a
-    restart is not taken for the drone service's death; 0: left alone."""
-    configured = config.safety.autopilot_gcs_timeout
-    if configured <= 0:
-        return 0.0
-    return max(configured, RESTART_GRACE_S * config.speedup)
-
-
-def landing_stations(config: BatonConfig) -> dict[int, Station]:
-    """Every controller with a location, as a station to land at (nearest_station)."""
-    from baton.sdk.types import Position
-
-    return {
-        c.id: Station(c.id, Position(c.location.latitude_deg, c.location.longitude_deg), 0.0)
-        for c in config.controllers
-        if c.location is not None
-    }
-
-
-def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneService:
-    """The Drone servicer for ``settings`` over ``vehicle``."""
-
-    async def position() -> api.Position:
-        return await latest_position(vehicle)
-
-    camera = Camera(
-        position,
-        settings.image_file,
-        settings.resolution,
-        settings.camera_effects_file,
-        settings.thumbnails_dir,
-        aim=vehicle.looking_at,  # where the gimbal points: a picture records it
-    )
-    sequencer = Sequencer(
-        settings.controllers,
-        settings.master,
-        settings.handover_script,
-        settings.cache_window,
-        settings.prepare_timeout_s,
-    )
-    store = DroneStore(settings.state_file) if settings.state_file else None
-    takeover_after_s = detection_time_s(settings.takeover_after, settings.speedup)
-    service = DroneService(
-        vehicle,
-        camera,
-        sequencer,
-        settings.race,
-        store,
-        takeover_after_s,
-        authenticated=settings.tls is not None,
-        link_bounds=settings.link_bounds,
-        safety=safety_params(settings.config),
-        stations=landing_stations(settings.config),
-    )
-    if settings.tls is not None:
-        service.signer = Signer.from_pem(settings.tls.key)
-        sequencer.sign_grants_with(service.signer.seal_grant)
-    if settings.policy is not None:
-        service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
-        service.policy.restore()
-    gcs = getattr(vehicle, "gcs", None)  # ground stations watching (drone/gcs.py)
-    if gcs is not None:
-        gcs.on_override = service.operator.ground_station_paused
-        gcs.controller = lambda: str(sequencer.master)
-    return service
-
-
-async def serve(
-    settings: DroneSettings,
-    vehicle: MobilityBackend,
-    stop: asyncio.Event,
-    on_listening: Callable[[str], None] | None = None,
-) -> int:
-    """Runs the drone service until ``stop`` is set."""
-    service = build_service(settings, vehicle)
-    name = drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name
-    server = BatonServer(
-        settings.address,
-        [servicer(name, drone_pb2_grpc.add_DroneServicer_to_server, service)],
-        keepalive=CONTROLLER_KEEPALIVE_S if service.takeover_after_s > 0 else None,
-        tls=settings.tls,
-        policy=drone_policy(settings.controllers),
-    )
-    await vehicle.start()
-    await server.start()
-    log = get_logger("drone")
-    if settings.tls is None:
-        log.warning(INSECURE_WARNING)
-    log.info(
-        "listening",
-        address=server.address,
-        vehicle_url=vehicle.url,
-        controllers=list(settings.controllers),
-        master=settings.master,
-        scripted_handovers=len(settings.handover_script),
-        handover_policy=settings.policy.name if settings.policy is not None else "none",
-        speedup=settings.speedup,
-    )
-    announce(settings.address_file, [server.address], {"address": server.address})
-    if on_listening is not None:
-        on_listening(server.address)
-    watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
-    takeovers = asyncio.create_task(service.watch_master(), name="takeover-watch")
-    failsafes = asyncio.create_task(service.watch_failsafe(), name="failsafe-watch")
-    pings = asyncio.create_task(service.watch_links(), name="link-pings")
-    policy = (
-        asyncio.create_task(service.policy.run(), name="handover-policy")
-        if service.policy is not None
-        else None
-    )
-    try:
-        await stop.wait()
-    finally:
-        watchdog.cancel()
-        takeovers.cancel()
-        failsafes.cancel()
-        pings.cancel()
-        if policy is not None:
-            policy.cancel()
-        await server.stop()
-        await vehicle.close()
-        if service.store is not None:
-            service.store.close()
-        log.info("stopped", executed=service.seq.executed, last_reqnr=service.last_reqnr)
-    sys.stdout.flush()
-    return 0
