@@ -73,11 +73,6 @@ class OperatorCommands:
         if operator.leg != leg:
             self._save()
 
-    def word(self) -> drone_pb2.OperatorWord:
-        """The pause as the master's Connect stream says it (empty: not paused)."""
-        paused = self.service.core.operator.paused
-        return drone_pb2.OperatorWord(paused="" if paused is None else paused.reason)
-
     def _tell_master(self) -> None:
         """Wakes the master's Connect stream to say the pause began or ended."""
         self.service.streams.wake(self.service.seq.master)

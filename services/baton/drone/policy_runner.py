@@ -54,8 +54,6 @@ from google.protobuf.message import Message
 from baton.drone.policy import (
     ENDS_A_LEG,
     HANDOVER,
-    PREPARE,
-    SWITCH,
     Decision,
     Fix,
     PolicyParams,
@@ -63,7 +61,6 @@ from baton.drone.policy import (
     Station,
     decide,
     distance_m,
-    handover_step,
     hold_due,
     resume_due,
 )
@@ -235,29 +232,10 @@ class PolicyRunner:
         if decision.action == HANDOVER:
             assert decision.target is not None
             async with service.execution_lock:
-                preparing = service.seq.preparing
-                step = handover_step(
-                    decision,
-                    master,
-                    service.seq.master,
-                    service.can_prepare(decision.target),
-                    None if preparing is None else preparing.target,
+                _, effects = service.core.policy_handover(
+                    decision, master, service.streams.master_connected, time.time(), position
                 )
-                if step == SWITCH:
-                    service.hand_over(
-                        decision.target,
-                        drone_pb2.HANDOVER_TRIGGER_POLICY,
-                        decision.takeover,
-                        decision.reason,
-                        position,
-                    )
-                elif step == PREPARE:
-                    service.prepare_handover(
-                        decision.target,
-                        drone_pb2.HANDOVER_TRIGGER_POLICY,
-                        decision.reason,
-                        position,
-                    )
+                service.apply(effects)
         elif hold_due(decision, self.holding, self._unsure):
             await self._hold(decision)
         if resume_due(decision, self.holding):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import os
 import time
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Iterable, Mapping
 from typing import Any
 
 import grpc
@@ -20,9 +20,20 @@ import grpc
 from baton.authenticity import Signer, signed_reply, signed_retained
 from baton.digest import request_digest
 from baton.drone.camera import Camera
+from baton.drone.connects import ConnectStream
 from baton.drone.core import RESTART_GRACE_S, DroneCore
 from baton.drone.dedupe import CachedReply
 from baton.drone.dispatch import Dispatcher
+from baton.drone.effects import (
+    Book,
+    DroneEffect,
+    Preparing,
+    SaveCounters,
+    Switched,
+    TellTakeOver,
+    pins_policy,
+    take_over_event,
+)
 from baton.drone.invariants import INVARIANT_EXIT, DroneWatch, InvariantBroken, checking
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
@@ -204,31 +215,19 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             await asyncio.sleep(0.5)
 
     async def watch_master(self) -> None:
-        """Takes the master over when it is lost (``Sequencer.takeover_due``)."""
+        """Every tick: the master taken over when it is lost, a preparation forced at its
+        deadline (``DroneCore.master_watch``)."""
         while True:
-            due = self._takeover_due()
-            if due is not None:
+            if self._takeover_due() is not None or self.seq.preparing is not None:
                 async with self._lock:
-                    # Re-checked under the lock: a request may have come meanwhile.
-                    now = time.time()
-                    due = self._takeover_due(now)
-                    if due is not None:
-                        where = self.policy.position if self.policy is not None else None
-                        self._take_over(
-                            due.new_master,
-                            drone_pb2.HANDOVER_TRIGGER_LOST,
-                            now,
-                            due.lost_at,
-                            position=where,
-                            lost=due.lost,
+                    # Asked again under the lock: a request may have come meanwhile.
+                    in_range = self.policy.in_range() if self.policy is not None else None
+                    where = self.policy.position if self.policy is not None else None
+                    self.apply(
+                        self.core.master_watch(
+                            time.time(), *self._stream_holders(), in_range, where
                         )
-            if self.seq.preparing is not None:
-                async with self._lock:
-                    forced = self.seq.preparation_expired(time.time())
-                    if forced is not None:
-                        self._switched(forced)
-                        if self.store is not None:
-                            self.store.save(self._counters())
+                    )
             await asyncio.sleep(TAKEOVER_TICK_S)
 
     async def watch_failsafe(self) -> None:
@@ -402,115 +401,63 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             links[cid] = self.probes.state(cid, cid in up, down, clock)
         return links
 
-    def _takeover_due(self, now: float | None = None) -> TakeoverDue | None:
+    def _stream_holders(self) -> tuple[set[int], set[int]]:
+        """Who holds a stream now, and who holds the master's Connect stream."""
+        holders = self.standby.reachable | self.streams.holders
+        return holders, ({self.seq.master} if self.streams.master_connected else set())
+
+    def _takeover_due(self) -> TakeoverDue | None:
         """``DroneCore.takeover_due`` with who holds a stream now and who is in range."""
         in_range = self.policy.in_range() if self.policy is not None else None
-        holders = self.standby.reachable | self.streams.holders
-        connected = {self.seq.master} if self.streams.master_connected else set()
-        return self.core.takeover_due(
-            time.time() if now is None else now, holders, connected, in_range
+        return self.core.takeover_due(time.time(), *self._stream_holders(), in_range)
+
+    def apply(self, effects: Iterable[DroneEffect], notice_delay_s: float = 0.0) -> None:
+        """Carries out the core's effects in their order (``effects.py``), under the lock.
+        ``notice_delay_s`` holds a switch's notice back (``Race``)."""
+        for effect in effects:
+            if isinstance(effect, Book):
+                if self.store is not None:
+                    served = effect.served
+                    counters, oldest = self._counters(), self.seq.cache.reqnrs[0]
+                    self.store.served(counters, served.cached, served.audit, oldest)
+            elif isinstance(effect, SaveCounters):
+                if self.store is not None:
+                    self.store.save(self._counters())
+            elif isinstance(effect, Switched):
+                self._switched(effect.record, notice_delay_s)
+            elif isinstance(effect, Preparing):
+                self.log.info(
+                    "preparing a handover",
+                    target=effect.notice.target,
+                    timeout_s=effect.notice.timeout_s,
+                    master_connected=self.streams.master_connected,
+                )
+                self.streams.wake(self.seq.master)
+            elif isinstance(effect, TellTakeOver):
+                self._tell_take_over(effect)
+            else:
+                (self.log.warning if effect.level == "warning" else self.log.info)(
+                    effect.event, **effect.fields
+                )
+
+    def _tell_take_over(self, effect: TellTakeOver) -> None:
+        record, lost_at = effect.record, effect.lost_at
+        told = self.standby.tell(
+            record.new_master, drone_pb2.StandbyEvent(take_over=effect.take_over)
         )
-
-    def hand_over(
-        self,
-        new_master: int,
-        trigger: drone_pb2.HandoverTrigger.ValueType,
-        takeover: bool = False,
-        reason: str = "",
-        position: api.Position | None = None,
-    ) -> drone_pb2.HandoverRecord:
-        """Moves the master to ``new_master`` now, between two requests (the caller holds
-        the lock): the one path of the Handover RPC and of the handover policy.
-
-        A takeover when asked, or when the current master could not send its log
-        (``Sequencer.handover_must_take_over``); else the paper's cooperative handover.
-        """
-        now = time.time()
-        if self.core.must_take_over(new_master, takeover):
-            return self._take_over(new_master, trigger, now, reason=reason, position=position)
-        record = self.seq.switch(new_master, trigger, now, reason=reason, position=position)
-        self._switched(record)
-        if self.store is not None:
-            self.store.save(self._counters())
-        return record
-
-    def _take_over(
-        self,
-        new_master: int,
-        trigger: drone_pb2.HandoverTrigger.ValueType,
-        now: float,
-        lost_at: float = 0.0,
-        reason: str = "",
-        position: api.Position | None = None,
-        lost: int | None = None,
-    ) -> drone_pb2.HandoverRecord:
-        """Switches to ``new_master`` by takeover (under the lock) and tells it on its standby.
-
-        ``lost`` is the controller whose log is given up (``TakeoverDue.lost``; None: the
-        master, or the lost old master of the last switch when the master is granted
-        again)."""
-        record = self.seq.switch(
-            new_master,
-            trigger,
-            now,
-            takeover=True,
-            lost_at=lost_at,
-            reason=reason,
-            position=position,
-            lost=lost,
-        )
-        self._switched(record)
-        if self.store is not None:
-            self.store.save(self._counters())
-        told = self.standby.tell(new_master, self._take_over_event(record))
         retained, retained_bytes = self.seq.cache.retained
+        lost = record.trigger == drone_pb2.HANDOVER_TRIGGER_LOST
         self.log.warning(
-            "master lost: taken over" if trigger == drone_pb2.HANDOVER_TRIGGER_LOST else "takeover",
+            "master lost: taken over" if lost else "takeover",
             lost=record.old_master,
-            new_master=new_master,
+            new_master=record.new_master,
             epoch=record.epoch,
-            unseen_s=round(now - lost_at, 3) if lost_at else None,
+            unseen_s=round(record.decided_at - lost_at, 3) if lost_at else None,
             watermark_reqnr=self.seq.cache.watermark,
             retained_replies=retained,
             retained_bytes=retained_bytes,
             told_on_standby=told,
         )
-        return record
-
-    def _take_over_from_earlier_self(self, cid: int, given_up_epoch: int) -> None:
-        """A fresh self of the master that gave its mastership up (under the lock, checked
-        again: a second Connect of it finds the epoch moved on) is granted a new epoch by
-        a takeover of its earlier self (``Sequencer.fresh_self_due``); its Connected
-        says so. Nothing is told on its standby stream: this Connect carries it."""
-        if not self.seq.fresh_self_due(cid, 0, given_up_epoch):
-            return
-        record = self.seq.take_over_from_earlier_self(cid, time.time())
-        self._switched(record)
-        if self.store is not None:
-            self.store.save(self._counters())
-        self.log.warning(
-            "master's fresh self takes over from its earlier self",
-            controller=cid,
-            given_up_epoch=given_up_epoch,
-            epoch=record.epoch,
-        )
-
-    def _take_over_event(self, record: drone_pb2.HandoverRecord) -> drone_pb2.StandbyEvent:
-        """The TakeOver (small: the replies the taker lacks follow its Connected)."""
-        return drone_pb2.StandbyEvent(
-            take_over=drone_pb2.TakeOver(
-                old_master=record.old_master,
-                epoch=record.epoch,
-                after_reqnr=record.after_reqnr,
-                watermark_reqnr=self.seq.cache.watermark,
-            )
-        )
-
-    def _take_over_owed(self, cid: int) -> drone_pb2.StandbyEvent | None:
-        """The TakeOver again for a taker that has not sent a request since (the stream
-        that was to carry it may have broken first); None otherwise."""
-        record = self.core.takeover_owed(cid)
-        return None if record is None else self._take_over_event(record)
 
     # -- durable state (store.py) ---------------------------------------------------
 
@@ -580,9 +527,17 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.log.info("read cut off by the restart: will execute again", reqnr=cut.reqnr)
             return
         self.log.warning("request cut off by the restart", reqnr=cut.reqnr, method=cut.method)
-        self._served(
-            cut.controller_id, cut.reqnr, cut.method, cut.digest, b"", cut.received_at, error
+        served = self.core.served(
+            cut.controller_id,
+            cut.reqnr,
+            cut.method,
+            cut.digest,
+            b"",
+            cut.received_at,
+            time.time(),
+            error,
         )
+        self._served(cut.reqnr, served)
 
     async def Invoke(
         self, request: drone_pb2.InvokeRequest, context: grpc.aio.ServicerContext
@@ -722,18 +677,20 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 return self._answer_duplicate(request, admitted.cached)
             if self.store is not None:
                 self.store.begin(Intent(reqnr, method, digest, cid, received_at), admitted.kept)
-            if admitted.refused is not None:
-                self._served(cid, reqnr, method, digest, b"", received_at, admitted.refused)
-                raise admitted.refused
             try:
+                if admitted.refused is not None:
+                    raise admitted.refused
                 reply = await self._execute(request)
             except StatusError as err:
-                if self.core.books(err):
-                    self._served(cid, reqnr, method, digest, b"", received_at, err)
+                booked = self.core.failed(cid, reqnr, method, digest, received_at, time.time(), err)
+                if booked is not None:
+                    self._served(reqnr, booked)
                 elif self.store is not None:
                     self.store.abandon()
                 raise
-            self._served(cid, reqnr, method, digest, reply, received_at)
+            self._served(
+                reqnr, self.core.served(cid, reqnr, method, digest, reply, received_at, time.time())
+            )
             epoch = self.seq.epoch
         if (
             self.race is not None
@@ -809,38 +766,18 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
         return payload
 
-    def _served(
-        self,
-        cid: int,
-        reqnr: int,
-        method: str,
-        digest: bytes,
-        reply: bytes,
-        received_at: float,
-        error: StatusError | None = None,
-    ) -> None:
-        """Books a served request, saves it, and carries out the script's handover after it."""
-        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, time.time(), error)
-        if served.skipped is not None:
-            self.log.warning(
-                "scripted handover skipped: already the master",
-                new_master=served.skipped.new_master,
-                after_reqnr=reqnr,
-                script_line=served.skipped.line,
-            )
-        if served.handover is not None:
-            hold = self.race.delay_s if self.race and self.race.order == "reply-first" else 0.0
-            self._switched(served.handover, notice_delay_s=hold)
+    def _served(self, reqnr: int, effects: list[DroneEffect]) -> None:
+        """Applies a served request's effects (``DroneCore.served``): booked and saved, and
+        the script's handover or preparation after it."""
+        race = self.race
+        hold = race.delay_s if race is not None and race.order == "reply-first" else 0.0
+        self.apply(effects, notice_delay_s=hold)
+        if any(isinstance(effect, Switched) for effect in effects):
             self._handed_over_after = reqnr
-        if served.prepare is not None:
-            self._preparing(served.prepare)
-        if self.store is not None:
-            self.store.served(
-                self._counters(), served.cached, served.audit, self.seq.cache.reqnrs[0]
-            )
 
     def _switched(self, record: drone_pb2.HandoverRecord, notice_delay_s: float = 0.0) -> None:
-        """Logs a switch and wakes the old master's stream to carry the notice."""
+        """Logs a switch, pins the policy to a master the script or an operator chose, and
+        wakes the old master's stream to carry the notice and a prepared Handover call."""
         prepared = {}
         if record.prepare_started_at:
             prepared = {
@@ -861,42 +798,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             **prepared,
             reason=record.reason or None,
         )
-        if self.policy is not None and record.trigger in (
-            drone_pb2.HANDOVER_TRIGGER_SCRIPT,
-            drone_pb2.HANDOVER_TRIGGER_RPC,
-        ):
-            self.policy.pin(record.new_master)  # they override the policy
+        if self.policy is not None and pins_policy(record):
+            self.policy.pin(record.new_master)
         self.streams.wake(record.old_master, notice_delay_s)
         self._switch_seen.set()
         self._switch_seen = asyncio.Event()
-
-    def can_prepare(self, new_master: int) -> bool:
-        """Whether a handover to ``new_master`` can be prepared: the master holds its
-        Connect stream (to hear the PrepareHandover) and could send its log."""
-        return self.core.can_prepare(self.streams.master_connected, new_master)
-
-    def prepare_handover(
-        self,
-        new_master: int,
-        trigger: drone_pb2.HandoverTrigger.ValueType,
-        reason: str = "",
-        position: api.Position | None = None,
-    ) -> None:
-        """Begins a prepared handover (the caller holds the lock; ``can_prepare``)."""
-        notice = self.seq.prepare(
-            new_master, trigger, time.time(), reason=reason, position=position
-        )
-        self._preparing(notice)
-
-    def _preparing(self, notice: drone_pb2.PrepareHandover) -> None:
-        """Logs a prepared handover begun and wakes the master's stream to carry it."""
-        self.log.info(
-            "preparing a handover",
-            target=notice.target,
-            timeout_s=notice.timeout_s,
-            master_connected=self.streams.master_connected,
-        )
-        self.streams.wake(self.seq.master)
 
     def _not_as(self, context: grpc.aio.ServicerContext, what: str, cid: int) -> StatusError | None:
         """Why the caller may not make ``what`` as controller ``cid``, or None: the
@@ -913,7 +819,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     async def Connect(
         self, request: drone_pb2.ConnectRequest, context: grpc.aio.ServicerContext
     ) -> AsyncIterator[drone_pb2.DroneEvent]:
-        """The master's event stream: Connected, then a HandoverNotice at the switch."""
+        """The master's event stream: what ``connects.ConnectStream`` says, in order."""
         cid = request.controller_id
         try:
             refusal = self._not_as(context, "Connect", cid)
@@ -921,46 +827,39 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 raise refusal
             if self.seq.fresh_self_due(cid, request.mastership_epoch, request.given_up_epoch):
                 async with self._lock:
-                    self._take_over_from_earlier_self(cid, request.given_up_epoch)
+                    self.apply(
+                        self.core.fresh_self_connect(cid, request.given_up_epoch, time.time())
+                    )
             stream = self.streams.attach(cid, request.mastership_epoch)
         except StatusError as err:
             self.log.warning("connect rejected", controller=cid, reason=err.message)
             await abort_with(context, err)
         self.log.info("master connected", controller=cid)
+        said = ConnectStream(cid)
         try:
-            first = self.core.connected(cid, request.holds_reqnr)
-            if first is not None:
-                grant, batches = first
+            grant, batches = said.opened(self.core, request.holds_reqnr)
+            if grant is not None:
                 yield drone_pb2.DroneEvent(connected=grant)
-                for batch in batches:
-                    yield drone_pb2.DroneEvent(
-                        retained=drone_pb2.RetainedBatch(
-                            replies=[signed_retained(self.signer, r.to_proto()) for r in batch]
-                        )
-                    )
-            sent_prepare: drone_pb2.PrepareHandover | None = None
-            said = ""  # the operator's pause as this stream last told it
+            for batch in batches:
+                replies = [signed_retained(self.signer, r.to_proto()) for r in batch]
+                yield drone_pb2.DroneEvent(retained=drone_pb2.RetainedBatch(replies=replies))
             while True:
-                word = self.operator.word()
-                if word.paused != said:
-                    yield drone_pb2.DroneEvent(operator=word)
-                    said = word.paused
-                notice = self.core.stream_event(cid, sent_prepare)
-                if isinstance(notice, drone_pb2.PrepareHandover):
-                    yield drone_pb2.DroneEvent(prepare=notice)
-                    sent_prepare = notice
-                    continue
-                if notice is not None:
-                    yield drone_pb2.DroneEvent(handover=notice)
-                    self.seq.delivered(cid, notice)
-                    self.log.info(
-                        "handover notice delivered",
-                        controller=cid,
-                        new_master=notice.new_master,
-                        after_reqnr=notice.after_reqnr,
-                        epoch=notice.epoch,
-                    )
-                    return
+                for event in said.woken(self.core):
+                    if isinstance(event, drone_pb2.OperatorWord):
+                        yield drone_pb2.DroneEvent(operator=event)
+                    elif isinstance(event, drone_pb2.PrepareHandover):
+                        yield drone_pb2.DroneEvent(prepare=event)
+                    else:
+                        yield drone_pb2.DroneEvent(handover=event)
+                        self.core.delivered(cid, event)
+                        self.log.info(
+                            "handover notice delivered",
+                            controller=cid,
+                            new_master=event.new_master,
+                            after_reqnr=event.after_reqnr,
+                            epoch=event.epoch,
+                        )
+                        return
                 if stream.superseded:
                     return
                 await stream.wake.wait()
@@ -989,9 +888,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             yield drone_pb2.StandbyEvent(
                 held=drone_pb2.StandbyHeld(master=self.seq.master, epoch=self.seq.epoch)
             )
-            owed = self._take_over_owed(cid)
-            if owed is not None:
-                yield owed
+            owed = self.core.takeover_owed(cid)
+            if owed is not None:  # the stream that was to carry it may have broken first
+                told = take_over_event(owed, self.seq.cache.watermark)
+                yield drone_pb2.StandbyEvent(take_over=told)
             while True:
                 yield await stream.events.get()
         finally:
@@ -1012,7 +912,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     async def Handover(
         self, request: drone_pb2.HandoverRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.HandoverReply:
-        """Switches the master after the request being served, if any.
+        """Switches the master after the request being served, if any
+        (``DroneCore.handover_call``); a prepared one is answered once the master moved.
 
         INVALID_ARGUMENT for an unknown id; FAILED_PRECONDITION if the id
         already is the master (not a silent no-op: a caller asking for a
@@ -1030,13 +931,24 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             )
             if refusal is not None:
                 raise refusal
-            self.seq.check_known(request.new_master)
-            if request.prepared and not request.takeover:
-                return await self._prepared_handover(request.new_master)
+            new_master = request.new_master
             async with self._lock:
-                record = self.hand_over(
-                    request.new_master, drone_pb2.HANDOVER_TRIGGER_RPC, request.takeover
+                effects = self.core.handover_call(
+                    new_master,
+                    request.prepared,
+                    request.takeover,
+                    self.streams.master_connected,
+                    time.time(),
                 )
+                self.apply(effects)
+                preparation = self.seq.preparing
+            if any(isinstance(effect, Preparing) for effect in effects):
+                assert preparation is not None
+                while self.seq.preparing is preparation:
+                    await self._switch_seen.wait()
+                record = self.core.prepared_outcome(new_master, preparation.started_at)
+            else:
+                record = self.seq.handovers[-1]
         except StatusError as err:
             self.log.warning("handover rejected", new_master=request.new_master, reason=err.message)
             await abort_with(context, err)
@@ -1057,43 +969,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         if refusal is not None:
             await abort_with(context, refusal)
         async with self._lock:
-            record = self.seq.progress_between(cid, request.epoch, request.progress, time.time())
-            if record is not None:
-                self._switched(record)
-                if self.store is not None:
-                    self.store.save(self._counters())
-        return drone_pb2.PreparationReportReply(moved=record is not None)
-
-    async def _prepared_handover(self, new_master: int) -> drone_pb2.HandoverReply:
-        """Handover(prepared): begins the preparation and answers once the master moved
-        (caught up, or forced at the timeout). A master without its Connect stream
-        cannot prepare anything: the handover is forced at once, as without ``prepared``."""
-        async with self._lock:
-            if not self.can_prepare(new_master):
-                preparation = None
-                record = self.hand_over(new_master, drone_pb2.HANDOVER_TRIGGER_RPC)
-            else:
-                self.prepare_handover(new_master, drone_pb2.HANDOVER_TRIGGER_RPC)
-                preparation = self.seq.preparing
-        if preparation is not None:
-            while self.seq.preparing is preparation:
-                await self._switch_seen.wait()
-            record = self.seq.handovers[-1]
-            if record.prepare_started_at != preparation.started_at:
-                raise StatusError(
-                    grpc.StatusCode.ABORTED,
-                    f"the handover to controller {new_master} being prepared was replaced by "
-                    f"another switch (to controller {record.new_master}, "
-                    f"{label(drone_pb2.HandoverKind, record.kind)})",
-                )
-        if self.store is not None:
-            self.store.save(self._counters())
-        return drone_pb2.HandoverReply(
-            old_master=record.old_master,
-            new_master=record.new_master,
-            after_reqnr=record.after_reqnr,
-            epoch=record.epoch,
-        )
+            effects = self.core.preparation_word(cid, request.epoch, request.progress, time.time())
+            self.apply(effects)
+        return drone_pb2.PreparationReportReply(moved=bool(effects))
 
     async def GetStatus(
         self, request: drone_pb2.GetDroneStatusRequest, context: grpc.aio.ServicerContext
