@@ -259,6 +259,34 @@ class DroneCore:
             return None
         return lost_link_failsafe(now, self.last_usable, self.safety, nearest)
 
+    def failsafe_check(
+        self,
+        now: float,
+        airborne: bool,
+        battery_percent: float,
+        position: api.Position | None,
+        seen: ModeSeen,
+        holders: Iterable[int],
+        in_range: set[int] | None,
+        nearest: int | None = None,
+    ) -> Failsafe | None:
+        """A look at the vehicle: the failsafe due now, in this order of precedence: the
+        battery (``battery_due``), the fence at ``position`` (``fence_due``; None: the
+        position is not watched), the autopilot's takeover with the vehicle as it reports
+        itself (``autopilot_due``), the lost link (``failsafe_due``, none while already
+        in a failsafe). ``nearest`` is the station nearest the vehicle."""
+        battery = self.battery_due(now, battery_percent, airborne, nearest)
+        if battery is not None:
+            return battery
+        if position is not None:
+            breach = self.fence_due(now, position, airborne)
+            if breach is not None:
+                return breach
+        taken_over = self.autopilot_due(now, seen)
+        if taken_over is not None or self.failsafe is not None:
+            return taken_over
+        return self.failsafe_due(now, holders, in_range, airborne, nearest)
+
     def battery_due(
         self, now: float, percent: float, airborne: bool, nearest: int | None = None
     ) -> Failsafe | None:
@@ -355,6 +383,20 @@ class DroneCore:
             accepted = "" if self.mode is None else self.mode.mode
             self.vehicle_command = VehicleCommand(command.actions, now, accepted=accepted)
         return cleared, taken
+
+    def operator_command(
+        self, command: str, now: float, action: str = "", note: str = ""
+    ) -> tuple[OperatorCommand, Failsafe | None]:
+        """An operator's command (``operator.COMMANDS``) between two requests: what was
+        taken, and the failsafe a resume cleared (None: none). An abort returns home
+        unless ``action`` says land. StatusError to refuse it: nothing changes."""
+        after = self.seq.last_reqnr
+        if command == "pause":
+            return self.operator.pause(now, after, note=note), None
+        if command == "resume":
+            cleared, taken = self.resume_mission(now)
+            return taken, cleared
+        return self.operator.end(command, action or "rtl", now, after, note), None
 
     def holds(self, request: drone_pb2.InvokeRequest) -> bool:
         """Whether ``request`` waits at the drone before admission: the mission is paused

@@ -264,27 +264,21 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             return None
 
     def _failsafe_due(self, state: api.GetFlightStateReply, here: api.Position) -> Failsafe | None:
-        """``DroneCore.battery_due``, else ``fence_due``, else ``autopilot_due``, else
-        ``failsafe_due`` (the lost link), with the battery, the flight mode and whether the
-        vehicle is in the air (``state``), who
-        holds a stream now, who is in range, and where the vehicle is (``here``: the
-        fence, the station nearest it)."""
-        now, airborne = time.time(), state.in_air
-        nearest = nearest_station(here, self.stations)
-        battery = self.core.battery_due(now, state.battery_percent, airborne, nearest)
-        if battery is not None:
-            return battery
-        breach = self.core.fence_due(now, here, airborne)
-        if breach is not None:
-            return breach
-        taken_over = self.core.autopilot_due(now, mode_seen(state))
-        if taken_over is not None:
-            return taken_over
-        if self.core.failsafe is not None:
-            return None
+        """``DroneCore.failsafe_check`` with the vehicle's flight state and position, who
+        holds a stream now, who is in range, and the station nearest the vehicle."""
         in_range = self.policy.in_range() if self.policy is not None else None
         holders = self.standby.reachable | self.streams.holders
-        return self.core.failsafe_due(now, holders, in_range, airborne, nearest)
+        nearest = nearest_station(here, self.stations)
+        return self.core.failsafe_check(
+            time.time(),
+            state.in_air,
+            state.battery_percent,
+            here,
+            mode_seen(state),
+            holders,
+            in_range,
+            nearest,
+        )
 
     async def _enter_failsafe(self, failsafe: Failsafe) -> None:
         """Puts the vehicle in ``failsafe`` (the caller holds the lock): booked in the core
