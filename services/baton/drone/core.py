@@ -98,6 +98,9 @@ RESTART_GRACE_S = 5.0
 # a takeover at the start must not go to whichever came first. One that never
 # comes up is then lost, and the mission goes on without it.
 START_GRACE_S = 10.0
+# How often the drivers look whether the master is lost, a preparation is due, or a
+# failsafe is due (a fraction of the takeover time).
+WATCH_TICK_S = 0.05
 
 
 @dataclass(frozen=True)

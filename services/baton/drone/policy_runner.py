@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING
 
 from google.protobuf.message import Message
 
+from baton.drone.mobility_api import latest_position
 from baton.drone.policy import (
     ENDS_A_LEG,
     HANDOVER,
@@ -212,8 +213,6 @@ class PolicyRunner:
 
     async def tick(self) -> Decision | None:
         """One decision, carried out; None while the vehicle's position is not known."""
-        from baton.drone.service import latest_position
-
         service = self.service
         position = await latest_position(service.vehicle)
         if position.latitude_deg == 0 and position.longitude_deg == 0:

@@ -9,10 +9,10 @@ from collections.abc import Callable
 from baton.authenticity import Signer
 from baton.config import detection_time_s
 from baton.drone.camera import Camera
-from baton.drone.mobility_api import MobilityBackend
+from baton.drone.mobility_api import MobilityBackend, latest_position
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.sequencer import Sequencer
-from baton.drone.service import DroneService, latest_position
+from baton.drone.service import DroneService
 from baton.drone.settings import DroneSettings, landing_stations, safety_params
 from baton.drone.store import DroneStore
 from baton.lifecycle import announce
@@ -117,7 +117,7 @@ async def serve(
         on_listening(server.address)
     watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
     takeovers = asyncio.create_task(service.watch_master(), name="takeover-watch")
-    failsafes = asyncio.create_task(service.watch_failsafe(), name="failsafe-watch")
+    failsafes = asyncio.create_task(service.failsafes.run(), name="failsafe-watch")
     pings = asyncio.create_task(service.watch_links(), name="link-pings")
     policy = (
         asyncio.create_task(service.policy.run(), name="handover-policy")

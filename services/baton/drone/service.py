@@ -21,7 +21,7 @@ from baton.authenticity import Signer, signed_reply, signed_retained
 from baton.digest import request_digest
 from baton.drone.camera import Camera
 from baton.drone.connects import ConnectStream
-from baton.drone.core import RESTART_GRACE_S, DroneCore
+from baton.drone.core import RESTART_GRACE_S, WATCH_TICK_S, DroneCore
 from baton.drone.dedupe import CachedReply
 from baton.drone.dispatch import Dispatcher
 from baton.drone.effects import (
@@ -34,22 +34,18 @@ from baton.drone.effects import (
     pins_policy,
     take_over_event,
 )
+from baton.drone.failsafe_watch import FailsafeWatch
 from baton.drone.invariants import INVARIANT_EXIT, DroneWatch, InvariantBroken, checking
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
-from baton.drone.mobility_api import MobilityBackend, command_action
+from baton.drone.mobility_api import READ_TIMEOUT_S, MobilityBackend, latest_position
 from baton.drone.operator_service import OperatorCommands, failsafe_proto, fill_status
 from baton.drone.policy import LinkBounds, LinkState, Station
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.safety import (
-    LAND,
     VEHICLE_ACTIONS,
-    Failsafe,
     SafetyParams,
     VehicleCommand,
-    landing_due,
-    mode_seen,
-    nearest_station,
 )
 from baton.drone.sequencer import Sequencer, TakeoverDue
 from baton.drone.settings import Race
@@ -68,25 +64,8 @@ from baton.v1 import drone_pb2, drone_pb2_grpc
 SPEED_KEY = "speed_m_s"
 # ... and of what the drone last commanded the vehicle (DroneCore.vehicle_command).
 VEHICLE_COMMAND_KEY = "vehicle_command"
-# A status read must not hang on a vehicle that stopped answering.
-_STATUS_READ_TIMEOUT_S = 1.0
 # Audit entries in one GetStatus page: by default, and at most.
 AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
-# How often the drone looks whether the master is lost (a fraction of the takeover time).
-TAKEOVER_TICK_S = 0.05
-
-
-async def latest_position(vehicle: MobilityBackend) -> api.Position:
-    """The vehicle's position, or an all-zero Position if it is not known now."""
-    if not vehicle.connected:
-        return api.Position()
-    try:
-        reply = await asyncio.wait_for(
-            vehicle.GetPosition(api.GetPositionRequest()), _STATUS_READ_TIMEOUT_S
-        )
-    except (StatusError, TimeoutError):
-        return api.Position()
-    return reply.position
 
 
 def _retrieve_exception(task: asyncio.Task[Any]) -> None:
@@ -132,8 +111,6 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.core = DroneCore(sequencer, takeover_after_s, safety, watch)
         # Every controller's station: the landing points of nearest_station.
         self.stations: Mapping[int, Station] = stations or {}
-        # The nearest_station failsafe whose landing was commanded (at most once).
-        self._landing_for: Failsafe | None = None
         self.seq = sequencer
         self.streams = MasterStreams(sequencer)
         self.standby = StandbyStreams()
@@ -162,6 +139,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.cut_off: Intent | None = None
         # Pause, Resume, Abort, LandNow (operator_service.py).
         self.operator = OperatorCommands(self)
+        # The safety net's look at the vehicle (failsafe_watch.py).
+        self.failsafes = FailsafeWatch(self)
         if store is not None:
             self._restore(store)
 
@@ -228,110 +207,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                             time.time(), *self._stream_holders(), in_range, where
                         )
                     )
-            await asyncio.sleep(TAKEOVER_TICK_S)
-
-    async def watch_failsafe(self) -> None:
-        """Puts the vehicle in failsafe when ``DroneCore.failsafe_due`` says so, and lands
-        it at the station once a nearest_station failsafe has brought it there."""
-        while True:
-            state = await self._flight_state()
-            if state is None:
-                self.core.vehicle_unseen()
-            else:
-                here = await latest_position(self.vehicle)
-                failsafe = self.core.failsafe
-                if failsafe is not None and failsafe.station is not None and state.in_air:
-                    await self._land_at_station(failsafe, here)
-                else:
-                    due = self._failsafe_due(state, here)
-                    if due is not None:
-                        async with self._lock:
-                            # Re-checked under the lock: a request may have come meanwhile.
-                            due = self._failsafe_due(state, here)
-                            if due is not None:
-                                await self._enter_failsafe(due)
-            await asyncio.sleep(TAKEOVER_TICK_S)
-
-    async def _flight_state(self) -> api.GetFlightStateReply | None:
-        """The vehicle's flight state now; None while it is not connected or does not say."""
-        if not self.vehicle.connected:
-            return None
-        try:
-            return await asyncio.wait_for(
-                self.vehicle.GetFlightState(api.GetFlightStateRequest()), _STATUS_READ_TIMEOUT_S
-            )
-        except (StatusError, TimeoutError):
-            return None
-
-    def _failsafe_due(self, state: api.GetFlightStateReply, here: api.Position) -> Failsafe | None:
-        """``DroneCore.failsafe_check`` with the vehicle's flight state and position, who
-        holds a stream now, who is in range, and the station nearest the vehicle."""
-        in_range = self.policy.in_range() if self.policy is not None else None
-        holders = self.standby.reachable | self.streams.holders
-        nearest = nearest_station(here, self.stations)
-        return self.core.failsafe_check(
-            time.time(),
-            state.in_air,
-            state.battery_percent,
-            here,
-            mode_seen(state),
-            holders,
-            in_range,
-            nearest,
-        )
-
-    async def _enter_failsafe(self, failsafe: Failsafe) -> None:
-        """Puts the vehicle in ``failsafe`` (the caller holds the lock): booked in the core
-        and the store first, so a request that comes next is refused whatever the
-        vehicle answers, then the action commanded."""
-        self.core.enter_failsafe(failsafe)
-        self.save_failsafe()
-        self.log.warning(
-            "failsafe",
-            cause=failsafe.cause,
-            action=failsafe.action,
-            station=failsafe.station,
-            reason=failsafe.reason,
-        )
-        if not failsafe.drone_acts:
-            return  # the autopilot flies the vehicle (or a pilot does)
-        try:
-            await self._command_failsafe(failsafe)
-        except StatusError as err:
-            self.log.error("failsafe action refused by the vehicle", reason=err.message)
-
-    async def _command_failsafe(self, failsafe: Failsafe) -> None:
-        vehicle = self.vehicle
-        if await command_action(vehicle, failsafe.action):
-            return
-        if failsafe.station is not None:
-            here = await latest_position(vehicle)
-            at = self.stations[failsafe.station].location
-            await vehicle.Goto(
-                api.GotoRequest(
-                    latitude_deg=at.latitude_deg,
-                    longitude_deg=at.longitude_deg,
-                    relative_altitude_m=max(here.relative_altitude_m, 1.0),
-                )
-            )
-
-    async def _land_at_station(self, failsafe: Failsafe, here: api.Position) -> None:
-        """Lands once a nearest_station failsafe has brought the vehicle over its station
-        (``safety.landing_due``); once: the vehicle landing is no longer flying there."""
-        assert failsafe.station is not None
-        if failsafe is self._landing_for or not landing_due(here, self.stations[failsafe.station]):
-            return
-        async with self._lock:
-            if self.core.failsafe is failsafe:
-                self._landing_for = failsafe
-                self.log.warning("failsafe: landing at the station", station=failsafe.station)
-                try:
-                    self.core.commanding(LAND, time.time())
-                    await self.vehicle.Land(api.LandRequest())
-                    self.commanded(LAND)
-                except StatusError as err:
-                    self._landing_for = None  # tried again at the next look
-                    self.log.error("failsafe landing refused by the vehicle", reason=err.message)
+            await asyncio.sleep(WATCH_TICK_S)
 
     def commanded(self, action: str | None) -> None:
         """The vehicle accepted a command for ``action`` (``DroneCore.commanded``; the
@@ -1037,7 +913,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 status.flight_state.CopyFrom(
                     await asyncio.wait_for(
                         self.vehicle.GetFlightState(api.GetFlightStateRequest()),
-                        _STATUS_READ_TIMEOUT_S,
+                        READ_TIMEOUT_S,
                     )
                 )
             except (StatusError, TimeoutError):

@@ -39,7 +39,7 @@ import grpc
 from baton.authenticity import signed_reply, signed_retained
 from baton.digest import request_digest
 from baton.drone.connects import ConnectStream
-from baton.drone.core import RESTART_GRACE_S, DroneCore
+from baton.drone.core import RESTART_GRACE_S, WATCH_TICK_S, DroneCore
 from baton.drone.dedupe import CachedReply
 from baton.drone.effects import (
     Book,
@@ -65,7 +65,6 @@ from baton.drone.safety import (
     commanded_action,
 )
 from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
-from baton.drone.service import TAKEOVER_TICK_S
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.labels import label
@@ -243,7 +242,7 @@ class FreshSelfConnect:
 
 @dataclass(frozen=True)
 class FailsafeCheck:
-    """watch_failsafe's turn under the lock: the failsafe due checked again, then entered."""
+    """FailsafeWatch.run under the lock: the failsafe due checked again, then entered."""
 
 
 @dataclass(frozen=True)
@@ -945,7 +944,7 @@ class SimDrone:
         takeovers = self.core.takeover_after_s > 0 or self.core.safety.lost_link_s > 0
         if not self._watching and self.up and (takeovers or self.seq.preparing):
             self._watching = True
-            self.world.loop.after(TAKEOVER_TICK_S, self._watch_master)
+            self.world.loop.after(WATCH_TICK_S, self._watch_master)
 
     def _watch_master(self) -> None:
         """One turn of DroneService.watch_master: note who is reachable, ask takeover_due.
@@ -969,7 +968,7 @@ class SimDrone:
             self.queue.append(MasterCheck())
             self._next()
         if self._failsafe_due(now) is not None and not self._failsafe_queued:
-            self._failsafe_queued = True  # watch_failsafe: async with self._lock
+            self._failsafe_queued = True  # FailsafeWatch.run: async with the lock
             self.queue.append(FailsafeCheck())
             self._next()
         self.watch()
@@ -997,7 +996,7 @@ class SimDrone:
         )
 
     def _failsafe_check(self) -> None:
-        """watch_failsafe under the lock: failsafe_due again, then entered and commanded."""
+        """FailsafeWatch.run under the lock: failsafe_due again, then entered and commanded."""
         now = self.world.loop.now
         due = self._failsafe_due(now)
         if due is not None:
