@@ -11,8 +11,9 @@ import pytest
 
 from baton.digest import request_digest
 from baton.drone.connects import ConnectStream
-from baton.drone.core import DroneCore
+from baton.drone.core import RESTART_GRACE_S, DroneCore, Kept
 from baton.drone.effects import (
+    Abandon,
     Book,
     DroneEffect,
     Note,
@@ -25,6 +26,7 @@ from baton.drone.effects import (
 from baton.drone.policy import HANDOVER, MOVED, PREPARE, SWITCH, Decision
 from baton.drone.safety import ModeSeen, SafetyParams
 from baton.drone.sequencer import ScriptedHandover, Sequencer
+from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
@@ -183,10 +185,10 @@ def test_a_served_request_is_booked_before_the_script_s_handover() -> None:
 def test_a_failure_that_reached_nothing_is_not_booked() -> None:
     drone = core()
     unavailable = StatusError(grpc.StatusCode.UNAVAILABLE, "the vehicle is not connected")
-    assert drone.failed(0, 1, GET, b"", 0.0, 0.0, unavailable) is None
+    assert kinds(drone.failed(0, 1, GET, b"", 0.0, 0.0, unavailable)) == [Abandon]
     refused = StatusError(grpc.StatusCode.FAILED_PRECONDITION, "in failsafe")
     booked = drone.failed(0, 1, GET, b"", 0.0, 0.0, refused)
-    assert booked is not None and kinds(booked) == [Book]
+    assert kinds(booked) == [Book]
     assert the(Book, booked[0]).served.cached.error is not None
 
 
@@ -252,3 +254,25 @@ def test_a_look_at_the_vehicle_puts_the_battery_before_the_fence_and_the_lost_li
     assert drone.failsafe_check(11.0, True, 50.0, None, seen, set(), None) is None
     battery = drone.failsafe_check(12.0, True, 10.0, None, seen, set(), None)
     assert battery is not None and battery.cause == "battery"
+
+
+def kept(executing: Intent | None = None) -> Kept:
+    """A store that kept 3 requests served by master 0, a Goto commanded last."""
+    return Kept(0, [], (3, 3, 0, 0), [], [], [], 3, ("fly",), None, executing)
+
+
+def test_a_restart_abandons_a_read_it_cut_off_and_books_a_command() -> None:
+    read = core()
+    effects = read.restarted(100.0, kept(Intent(4, GET, b"", 0, 99.0)))
+    assert kinds(effects) == [Abandon, Note]
+    assert read.seq.last_reqnr == 3
+    assert read.vehicle_command is not None
+    assert read.vehicle_command.at == 100.0 + RESTART_GRACE_S  # read after the grace
+    goto = "/baton.v1.Mobility/Goto"
+    command = core()
+    effects = command.restarted(100.0, kept(Intent(4, goto, b"", 0, 99.0)))
+    assert kinds(effects) == [Note, Book]
+    cached = the(Book, effects[1]).served.cached
+    assert cached.error is not None and cached.error.code is grpc.StatusCode.UNKNOWN
+    assert command.seq.last_reqnr == 4
+    assert core().restarted(100.0, kept()) == []

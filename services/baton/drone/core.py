@@ -56,6 +56,7 @@ import grpc
 
 from baton.drone.dedupe import RETAINED_BATCH_BYTES, CachedReply, retained_batches
 from baton.drone.effects import (
+    Abandon,
     Book,
     DroneEffect,
     Note,
@@ -118,6 +119,25 @@ class Admitted:
     # Admitted but refused before execution (failsafe, a bound): the request's
     # outcome, booked like a failure of the vehicle, nothing executed.
     refused: StatusError | None = None
+
+
+@dataclass(frozen=True)
+class Kept:
+    """What the durable store keeps across a restart (``store.py``): the master, its
+    handovers, the counters (last reqnr, executed, duplicates, rejected), the replies,
+    the audit, the script lines fired, the watermark; the modes the drone last
+    commanded the vehicle, the failsafe it was in, and the request it was executing."""
+
+    master: int
+    handovers: Sequence[drone_pb2.HandoverRecord]
+    counts: tuple[int, int, int, int]
+    replies: Sequence[CachedReply]
+    audit: Sequence[drone_pb2.AuditEntry]
+    fired_script: Sequence[int]
+    watermark: int
+    commanded: tuple[str, ...] | None = None
+    failsafe: Failsafe | None = None
+    executing: Intent | None = None
 
 
 class DroneCore:
@@ -702,11 +722,11 @@ class DroneCore:
         received_at: float,
         now: float,
         error: StatusError,
-    ) -> list[DroneEffect] | None:
+    ) -> list[DroneEffect]:
         """An admitted request failed: its outcome booked (``served``) unless nothing
-        reached the vehicle (``books``); None: its intent is abandoned, the number unused."""
+        reached the vehicle (``books``): then its intent is abandoned, the number unused."""
         if not self.books(error):
-            return None
+            return [Abandon()]
         return self.served(controller_id, reqnr, method, digest, b"", received_at, now, error)
 
     # -- masters ---------------------------------------------------------------------
@@ -795,6 +815,40 @@ class DroneCore:
             # The lost-link time too counts from the end of the grace: the controllers
             # re-connect to a restarted drone meanwhile.
             self.last_usable = now + RESTART_GRACE_S
+
+    def restarted(self, now: float, kept: Kept) -> list[DroneEffect]:
+        """The drone started again from what its store kept: the modes it commanded read
+        after the restart grace (the telemetry comes back meanwhile), the failsafe it
+        was in, ``resume``; then the request the restart cut off (``cut_off``): a read
+        abandoned (executed again when re-sent), anything else booked with its failure."""
+        if kept.commanded is not None:
+            self.vehicle_command = VehicleCommand(kept.commanded, now + RESTART_GRACE_S)
+        if kept.failsafe is not None:
+            self.enter_failsafe(kept.failsafe)
+        self.resume(
+            now,
+            kept.master,
+            kept.handovers,
+            kept.counts,
+            kept.replies,
+            kept.audit,
+            kept.fired_script,
+            kept.watermark,
+        )
+        cut = kept.executing
+        if cut is None:
+            return []
+        error = self.cut_off(cut)
+        if error is None:
+            read = Note(
+                "info", "read cut off by the restart: will execute again", {"reqnr": cut.reqnr}
+            )
+            return [Abandon(), read]
+        said: dict[str, object] = {"reqnr": cut.reqnr, "method": cut.method}
+        booked = self.served(
+            cut.controller_id, cut.reqnr, cut.method, cut.digest, b"", cut.received_at, now, error
+        )
+        return [Note("warning", "request cut off by the restart", said), *booked]
 
     def cut_off(self, intent: Intent) -> StatusError | None:
         """The outcome of a request a restart cut off while it executed: None for a read

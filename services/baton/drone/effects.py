@@ -5,7 +5,7 @@ list of these effects. The driver (``drone/service.py``, the simulation's
 ``sim/drone.py``) applies them in the order given, under its execution lock,
 before it takes the next event; the core puts them in this order:
 
-1. ``Book`` / ``SaveCounters``: what to persist. A driver with a store writes
+1. ``Book`` / ``Abandon`` / ``SaveCounters``: what to persist. A driver with a store writes
    it before anything below reaches a controller, so a restart never
    forgets a switch or an outcome that a controller heard of.
 2. ``Switched`` / ``Preparing``: what changed for the Connect streams. The
@@ -34,6 +34,12 @@ class Book:
     audit entry, persisted in one transaction (``DroneStore.served``)."""
 
     served: Served
+
+
+@dataclass(frozen=True)
+class Abandon:
+    """The request being executed reached nothing (or is a read a restart cut off): its
+    intent is dropped, its number stays unused, the same request may come again."""
 
 
 @dataclass(frozen=True)
@@ -83,7 +89,7 @@ def pins_policy(record: drone_pb2.HandoverRecord) -> bool:
     return record.trigger in (drone_pb2.HANDOVER_TRIGGER_SCRIPT, drone_pb2.HANDOVER_TRIGGER_RPC)
 
 
-DroneEffect = Book | SaveCounters | Switched | Preparing | TellTakeOver | Note
+DroneEffect = Book | Abandon | SaveCounters | Switched | Preparing | TellTakeOver | Note
 
 
 def take_over_event(record: drone_pb2.HandoverRecord, watermark: int) -> drone_pb2.TakeOver:

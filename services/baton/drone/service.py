@@ -21,10 +21,11 @@ from baton.authenticity import Signer, signed_reply, signed_retained
 from baton.digest import request_digest
 from baton.drone.camera import Camera
 from baton.drone.connects import ConnectStream
-from baton.drone.core import RESTART_GRACE_S, WATCH_TICK_S, DroneCore
+from baton.drone.core import WATCH_TICK_S, DroneCore, Kept
 from baton.drone.dedupe import CachedReply
 from baton.drone.dispatch import Dispatcher
 from baton.drone.effects import (
+    Abandon,
     Book,
     DroneEffect,
     Preparing,
@@ -38,17 +39,17 @@ from baton.drone.failsafe_watch import FailsafeWatch
 from baton.drone.invariants import INVARIANT_EXIT, DroneWatch, InvariantBroken, checking
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
-from baton.drone.mobility_api import READ_TIMEOUT_S, MobilityBackend, latest_position
-from baton.drone.operator_service import OperatorCommands, failsafe_proto, fill_status
+from baton.drone.mobility_api import MobilityBackend
+from baton.drone.operator_service import OperatorCommands
 from baton.drone.policy import LinkBounds, LinkState, Station
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.safety import (
     VEHICLE_ACTIONS,
     SafetyParams,
-    VehicleCommand,
 )
 from baton.drone.sequencer import Sequencer, TakeoverDue
 from baton.drone.settings import Race
+from baton.drone.status import drone_status
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
@@ -64,8 +65,6 @@ from baton.v1 import drone_pb2, drone_pb2_grpc
 SPEED_KEY = "speed_m_s"
 # ... and of what the drone last commanded the vehicle (DroneCore.vehicle_command).
 VEHICLE_COMMAND_KEY = "vehicle_command"
-# Audit entries in one GetStatus page: by default, and at most.
-AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
 
 
 def _retrieve_exception(task: asyncio.Task[Any]) -> None:
@@ -285,7 +284,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """Carries out the core's effects in their order (``effects.py``), under the lock.
         ``notice_delay_s`` holds a switch's notice back (``Race``)."""
         for effect in effects:
-            if isinstance(effect, Book):
+            if isinstance(effect, Abandon):
+                if self.store is not None:
+                    self.store.abandon()
+            elif isinstance(effect, Book):
                 if self.store is not None:
                     served = effect.served
                     counters, oldest = self._counters(), self.seq.cache.reqnrs[0]
@@ -345,39 +347,37 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
 
     def _restore(self, store: DroneStore) -> None:
-        """Resumes from the store: master, counters, replies, audit, script, a request cut off."""
+        """Resumes from the store (``DroneCore.restarted``): master, counters, replies,
+        audit, script, the vehicle's commanded state, a failsafe, a request cut off."""
         state = store.load()
         if state is None:
             store.save(self._counters())
             self.log.info("new state file", path=str(store.path))
             return
-        c, seq = state.counters, self.seq
-        speed = store.load_commanded().get(SPEED_KEY)
+        c, seq, commanded = state.counters, self.seq, store.load_commanded()
+        speed = commanded.get(SPEED_KEY)
         if speed is not None:
             self.vehicle.restore_speed(float(speed))
             self.log.info("cruise speed restored", speed_m_s=speed)
-        commanded = store.load_commanded().get(VEHICLE_COMMAND_KEY)
-        if commanded is not None:
-            # Its modes read after the restart grace: the telemetry comes back meanwhile.
-            self.core.vehicle_command = VehicleCommand(
-                tuple(commanded), time.time() + RESTART_GRACE_S
-            )
+        modes = commanded.get(VEHICLE_COMMAND_KEY)
         failsafe = store.load_failsafe()
         if failsafe is not None:
-            self.core.enter_failsafe(failsafe)
             self.log.warning("still in failsafe", cause=failsafe.cause, reason=failsafe.reason)
         self.operator.restore()
-        counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
-        self.core.resume(
-            time.time(),
+        cut = self.cut_off = state.executing
+        kept = Kept(
             c.master,
             c.handovers,
-            counts,
+            (c.last_reqnr, c.executed, c.duplicates, c.rejected),
             state.replies,
             state.audit,
             c.fired_script,
             c.watermark,
+            None if modes is None else tuple(modes),
+            failsafe,
+            cut,
         )
+        effects = self.core.restarted(time.time(), kept)
         self.log.info(
             "state resumed",
             path=str(store.path),
@@ -388,26 +388,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             audit=len(state.audit),
             script_left=len(seq.script),
         )
-        cut = self.cut_off = state.executing
-        if cut is None:
-            return
-        error = self.core.cut_off(cut)
-        if error is None:
-            store.abandon()
-            self.log.info("read cut off by the restart: will execute again", reqnr=cut.reqnr)
-            return
-        self.log.warning("request cut off by the restart", reqnr=cut.reqnr, method=cut.method)
-        served = self.core.served(
-            cut.controller_id,
-            cut.reqnr,
-            cut.method,
-            cut.digest,
-            b"",
-            cut.received_at,
-            time.time(),
-            error,
-        )
-        self._served(cut.reqnr, served)
+        self._served(0 if cut is None else cut.reqnr, effects)
 
     async def Invoke(
         self, request: drone_pb2.InvokeRequest, context: grpc.aio.ServicerContext
@@ -552,11 +533,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                     raise admitted.refused
                 reply = await self._execute(request)
             except StatusError as err:
-                booked = self.core.failed(cid, reqnr, method, digest, received_at, time.time(), err)
-                if booked is not None:
-                    self._served(reqnr, booked)
-                elif self.store is not None:
-                    self.store.abandon()
+                now = time.time()
+                self._served(
+                    reqnr, self.core.failed(cid, reqnr, method, digest, received_at, now, err)
+                )
                 raise
             self._served(
                 reqnr, self.core.served(cid, reqnr, method, digest, reply, received_at, time.time())
@@ -857,77 +837,5 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     async def status(
         self, include_audit: bool = False, audit_after_reqnr: int = 0, audit_limit: int = 0
     ) -> drone_pb2.DroneStatus:
-        """GetStatus without gRPC; the audit one page at a time (in bounded memory)."""
-        seq = self.seq
-        status = drone_pb2.DroneStatus(
-            master=seq.master,
-            epoch=seq.epoch,
-            last_reqnr=seq.last_reqnr,
-            executed=seq.executed,
-            duplicates=seq.duplicates,
-            rejected=seq.rejected,
-            vehicle_connected=self.vehicle.connected,
-            vehicle_url=self.vehicle.url,
-            position=await latest_position(self.vehicle),
-            handovers=seq.handovers,
-            master_connected=self.streams.master_connected,
-            controllers=seq.controllers,
-            vehicle=self.vehicle.link(),
-            waiting="; ".join(
-                filter(None, (self.waiting, self.store.problem if self.store else ""))
-            ),
-            waits=[w.to_proto() for w in self.waits]
-            + (
-                [Wait("state file", self.store.problem, 0.0).to_proto()]
-                if self.store is not None and self.store.problem
-                else []
-            ),
-            watermark_reqnr=seq.cache.watermark,
-            reachable=[c for c in seq.ring if c in self.standby.reachable],
-            takeover_after_s=self.takeover_after_s,
-            preparing_for=seq.preparing.target if seq.preparing is not None else -1,
-            preparing_lacks_bytes=(seq.preparing.lacks_bytes or 0) if seq.preparing else 0,
-            handover_policy=drone_pb2.HANDOVER_POLICY_NONE,
-        )
-        if self.policy is not None:
-            self.policy.fill_status(status)
-        if self.core.failsafe is not None:
-            status.failsafe.CopyFrom(failsafe_proto(self.core.failsafe))
-        fill_status(status, self.operator)
-        status.lost_link_s = self.core.safety.lost_link_s
-        status.lost_link_action = self.core.safety.lost_link_action
-        links, clock = self.link_states(), time.monotonic()
-        for cid in seq.ring:
-            status.links.append(
-                self.probes.status(
-                    cid,
-                    cid in self.standby.reachable,
-                    self.streams.connected(cid),
-                    links[cid].down_for_s,
-                    clock,
-                )
-            )
-        status.retained_replies, status.retained_bytes = seq.cache.retained
-        if self.vehicle.connected:
-            try:
-                status.flight_state.CopyFrom(
-                    await asyncio.wait_for(
-                        self.vehicle.GetFlightState(api.GetFlightStateRequest()),
-                        READ_TIMEOUT_S,
-                    )
-                )
-            except (StatusError, TimeoutError):
-                pass  # unknown now: left empty
-        if self.store is not None:
-            status.audit_oldest_reqnr = self.store.oldest_audit_reqnr()
-        elif seq.audit:
-            status.audit_oldest_reqnr = seq.audit[0].reqnr
-        if include_audit:
-            limit = min(audit_limit or AUDIT_PAGE, AUDIT_PAGE_MAX)
-            if self.store is not None:
-                page = self.store.audit_page(audit_after_reqnr, limit + 1)
-            else:
-                page = [e for e in seq.audit if e.reqnr > audit_after_reqnr][: limit + 1]
-            status.audit_more = len(page) > limit
-            status.audit.extend(page[:limit])
-        return status
+        """GetStatus without gRPC (``status.drone_status``)."""
+        return await drone_status(self, include_audit, audit_after_reqnr, audit_limit)

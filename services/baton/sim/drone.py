@@ -39,9 +39,10 @@ import grpc
 from baton.authenticity import signed_reply, signed_retained
 from baton.digest import request_digest
 from baton.drone.connects import ConnectStream
-from baton.drone.core import RESTART_GRACE_S, WATCH_TICK_S, DroneCore
+from baton.drone.core import WATCH_TICK_S, DroneCore, Kept
 from baton.drone.dedupe import CachedReply
 from baton.drone.effects import (
+    Abandon,
     Book,
     DroneEffect,
     Note,
@@ -61,7 +62,6 @@ from baton.drone.safety import (
     VEHICLE_ACTIONS,
     Failsafe,
     ModeSeen,
-    VehicleCommand,
     commanded_action,
 )
 from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
@@ -466,12 +466,9 @@ class SimDrone:
     def _failed(self, request: Request, digest: bytes, error: StatusError) -> None:
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         now = self.world.loop.now
-        booked = self.core.failed(cid, reqnr, method, digest, request.received_at, now, error)
-        if booked is not None:
+        if self.core.books(error):
             _acted_on(request)
-            self._apply(booked)
-        else:
-            self.intent = None  # store.abandon()
+        self._apply(self.core.failed(cid, reqnr, method, digest, request.received_at, now, error))
         self._reply(request, b"", error)
 
     def _act(self, execution: Execution) -> None:
@@ -527,7 +524,9 @@ class SimDrone:
         The store is the core itself here (a restart copies it): a booked outcome only
         ends the request's intent. ``on_the_word``: the master's word moved it."""
         for effect in effects:
-            if isinstance(effect, Book):
+            if isinstance(effect, Abandon):
+                self.intent = None  # store.abandon()
+            elif isinstance(effect, Book):
                 self.intent = None
                 retained, _ = self.seq.cache.retained
                 self.stats.peak_cache = max(self.stats.peak_cache, len(self.seq.cache) - retained)
@@ -853,34 +852,17 @@ class SimDrone:
         """The drone service starts again from its durable state (DroneService._restore)."""
         self.up = True
         self.stats.restarts += 1
-        self.core = self._restored()
+        self.core, effects = self._restored()
         # PolicyRunner is built afresh, with the hold the store keeps (PolicyRunner.restore).
         held = self.policy is not None and self.policy.held_vehicle
         self.policy = self._policy_runner()
         if self.policy is not None:
             self.policy.restore(held, self.intent)
         self.watch()
-        cut, self.intent = self.intent, None
-        self.world.trace(f"drone restarts (cut off: {cut})")
-        if cut is None:
-            return
-        self.stats.cut_off.append(cut)
-        error = self.core.cut_off(cut)
-        if error is None:
-            return  # a read: the re-sent request executes it again
-        now = self.world.loop.now
-        self._apply(
-            self.core.served(
-                cut.controller_id,
-                cut.reqnr,
-                cut.method,
-                cut.digest,
-                b"",
-                cut.received_at,
-                now,
-                error,
-            )
-        )
+        self.world.trace(f"drone restarts (cut off: {self.intent})")
+        if self.intent is not None:
+            self.stats.cut_off.append(self.intent)
+        self._apply(effects)
 
     def _sequencer(self) -> Sequencer:
         """A new Sequencer as DroneService's factory makes it (nothing served yet)."""
@@ -895,30 +877,27 @@ class SimDrone:
             seq.sign_grants_with(self.signer.seal_grant)
         return seq
 
-    def _restored(self) -> DroneCore:
-        """A new core holding what the store keeps (DroneService._restore): the sightings
-        are not kept (``DroneCore.resume`` gives the master the restart grace)."""
-        old = self.seq
+    def _restored(self) -> tuple[DroneCore, list[DroneEffect]]:
+        """A new core holding what the store keeps (``DroneCore.restarted``, as
+        DroneService._restore), and the effects of the restart: the sightings are not
+        kept (the master gets the restart grace)."""
+        old, now = self.seq, self.world.loop.now
         core = DroneCore(self._sequencer(), self.world.takeover_after, self.world.safety)
-        if self.kept_command is not None:  # kept in the store (VEHICLE_COMMAND_KEY)
-            grace = self.world.loop.now + RESTART_GRACE_S
-            core.vehicle_command = VehicleCommand(self.kept_command, grace)
-        if self.core.failsafe is not None:  # kept in the store (store.save_failsafe)
-            core.enter_failsafe(self.core.failsafe)
         core.operator = self.core.operator  # kept in the store (OperatorCommands._save)
         replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
-        counts = (old.last_reqnr, old.executed, old.duplicates, old.rejected)
-        core.resume(
-            self.world.loop.now,
+        kept = Kept(
             old.master,
             old.handovers,
-            counts,
+            (old.last_reqnr, old.executed, old.duplicates, old.rejected),
             [r for r in replies if r is not None],
             old.audit,
             old.fired_script,
             old.cache.watermark,
+            self.kept_command,  # kept in the store (VEHICLE_COMMAND_KEY)
+            self.core.failsafe,  # kept in the store (store.save_failsafe)
+            self.intent,
         )
-        return core
+        return core, core.restarted(now, kept)
 
     # -- takeover (DroneService.watch_master, _take_over) ------------------------
 
