@@ -276,3 +276,13 @@ def test_a_restart_abandons_a_read_it_cut_off_and_books_a_command() -> None:
     assert cached.error is not None and cached.error.code is grpc.StatusCode.UNKNOWN
     assert command.seq.last_reqnr == 4
     assert core().restarted(100.0, kept()) == []
+
+
+def test_a_mobility_call_is_unavailable_while_the_vehicle_is_not_connected() -> None:
+    drone = core()
+    goto = "/baton.v1.Mobility/Goto"
+    refused = drone.unreachable(goto, False, "at udp://:14540 (no heartbeat)")
+    assert refused is not None and refused.code is grpc.StatusCode.UNAVAILABLE
+    assert "not connected" in refused.message and not drone.books(refused)
+    assert drone.unreachable(goto, True, "") is None
+    assert drone.unreachable("/baton.v1.Camera/TakePicture", False, "") is None

@@ -449,6 +449,16 @@ class DroneCore:
             route.rpc, message, self.safety.fence
         )
 
+    def unreachable(self, method: str, vehicle_connected: bool, why: str) -> StatusError | None:
+        """UNAVAILABLE for a Mobility call while the vehicle is not connected (``why``):
+        nothing reaches it, so the number stays unused (``books``); None otherwise."""
+        route = self.routes.get(method)
+        if route is None or route.service != "Mobility" or vehicle_connected:
+            return None
+        return StatusError(
+            grpc.StatusCode.UNAVAILABLE, f"{method}: the vehicle {why} is not connected"
+        )
+
     # -- requests --------------------------------------------------------------------
 
     def master_answers(

@@ -579,12 +579,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     async def _execute(self, request: drone_pb2.InvokeRequest) -> bytes:
         route = self.dispatcher.route(request.method)
         message = route.parse(request.payload)
-        if route.service == "Mobility" and not self.vehicle.connected:
-            raise StatusError(
-                grpc.StatusCode.UNAVAILABLE,
-                f"{request.method}: the vehicle at {self.vehicle.url} is not connected: "
-                f"{self.vehicle.link().problem}",
-            )
+        why = f"at {self.vehicle.url} ({self.vehicle.link().problem})"
+        unreachable = self.core.unreachable(request.method, self.vehicle.connected, why)
+        if unreachable is not None:
+            raise unreachable
         handler = self.dispatcher.handler(route)
         action = VEHICLE_ACTIONS.get(route.name) if route.service == "Mobility" else None
         self.core.commanding(action, time.time())

@@ -1,30 +1,24 @@
-"""The simulated drone: the real ``DroneCore`` over a simulated vehicle and camera.
+"""The simulated drone: a driver of the real ``DroneCore``, as ``drone/service.py`` is.
 
-``SimDrone`` is a driver of the drone's pure core, as ``drone/service.py``'s
-``DroneService`` is: one line of execution (its lock: requests and Handover
-calls are taken in arrival order, one at a time), every decision asked of
-``DroneCore`` and its ``Sequencer`` (``admit``, ``books``, ``served``,
-``switch``, ``admit_connect``, ``takeover_due``, ``resume``), the request's intent
-kept while it executes, Connect streams that carry the Connected grant,
-a prepared handover's PrepareHandover and the handover notice, the
-preparation's progress word on each Invoke and its deadline in
-``watch_master`` (docs/design.md, "Prepared handover"), and a restart
-that resumes from the durable state exactly as ``DroneService._restore``
-does (the reply cache, the counters, the audit and the script, not the
-pending notices nor a preparation; a command cut off by the restart is
-booked UNKNOWN and never executed again, a read cut off runs again when
-re-sent).
+``SimDrone`` keeps one line of execution (its queue: requests, Handover and
+operator calls, the master's word, the watches' turns, policy steps, each
+taken in arrival order, one at a time, as the service's lock takes them),
+turns the simulated network's calls and streams into the core's events
+(``admit``, ``served``, ``failed``, ``handover_call``, ``master_watch``,
+``preparation_word``, ``fresh_self_connect``, ``policy_handover``,
+``restarted``, ``failsafe_check``, ``operator_command``) and applies the
+effects they return (``_apply``, as ``DroneService.apply``); a Connect
+stream writes what ``connects.ConnectStream`` says. A restart builds a new
+core from what the store keeps (``Kept``): not the pending notices nor a
+preparation; a command cut off by it is booked, a read runs again.
 
-``SimVehicle`` and ``SimCamera`` are the ground truth: they record every
-read, flight command and picture they act on, by request, below every
-piece of baton's bookkeeping, as ``baton.effects`` does for the sim vehicle
-and the camera. The oracles count there, not in the audit.
-
+The vehicle and the camera are the ground truth (``sim/vehicle.py``).
 Simplifications: a request takes a drawn time to execute, and a command
 reaches the vehicle at a drawn point inside it (a drone restart before
 that point means the vehicle never saw it); the vehicle's own
 retransmission handling (``sim_vehicle/retransmissions.py``) is not
-modelled; GetStatus is not modelled.
+modelled; GetStatus, the fence and the station landing (no position) and
+the operator's word on the Connect stream are not modelled.
 """
 
 from __future__ import annotations
@@ -55,10 +49,6 @@ from baton.drone.effects import (
 from baton.drone.invariants import DroneWatch
 from baton.drone.policy import Decision
 from baton.drone.safety import (
-    FLY,
-    HOLD,
-    LAND,
-    RTL,
     VEHICLE_ACTIONS,
     Failsafe,
     ModeSeen,
@@ -71,6 +61,7 @@ from baton.rpc.labels import label
 from baton.rpc.methods import drone_api, service_prefix
 from baton.sim.mission import UNPARSABLE
 from baton.sim.policy_runner import PolicyStep, SimPolicyRunner
+from baton.sim.vehicle import SimCamera, SimVehicle
 from baton.v1 import drone_pb2
 
 if TYPE_CHECKING:
@@ -83,87 +74,7 @@ CAMERA = service_prefix("Camera")
 # The sim's replies are tens of bytes: batches of about one or two of them, so that a
 # stream can break between the Connected event and its last retained batch.
 RETAINED_BATCH_BYTES = 64
-# The vehicle's flight mode after each command, as MAVSDK names the sim vehicle's (PX4's:
-# a reposition flies in Hold).
-MODE_AFTER = {FLY: "HOLD", HOLD: "HOLD", LAND: "LAND", RTL: "RETURN_TO_LAUNCH"}
 POLICY = drone_pb2.HANDOVER_TRIGGER_POLICY
-
-
-@dataclass(frozen=True)
-class Acted:
-    """One thing the vehicle or the camera did: when, for which request, and what it answered."""
-
-    time: float
-    tag: bytes  # the request bytes (unique per mission call for commands and pictures)
-    reqnr: int
-    reply: bytes
-
-
-class SimVehicle:
-    """The autopilot: answers reads, acts on flight commands, and counts both.
-
-    ``connected`` is False during an outage: the drone then refuses every
-    Mobility request UNAVAILABLE without reaching the vehicle.
-    """
-
-    def __init__(self, battery_drain_pct_s: float = 0.0) -> None:
-        self.connected = True
-        self.battery_drain_pct_s = battery_drain_pct_s
-        self.commands: list[Acted] = []
-        self.reads: dict[int, list[Acted]] = {}
-        # The failsafe actions the drone commanded (no request's: the oracles keep them
-        # apart), and the operator's resumes, as (time, what).
-        self.failsafes: list[tuple[float, str]] = []
-        self.resumes: list[float] = []
-        # Every operator command the drone took, as (time, command, what the vehicle
-        # was told): a pause holds, an abort returns or lands, a resume may fly on.
-        self.operator: list[tuple[float, str, str]] = []
-        # Its flight mode, and each time the autopilot took it over (time, mode).
-        self.mode = "HOLD"
-        self.takeovers: list[tuple[float, str]] = []
-        self._serial = 0
-
-    def obey(self, action: str | None) -> None:
-        """The flight mode a command for ``action`` (``safety.FLY``, ...) puts it in."""
-        if action is not None:
-            self.mode = MODE_AFTER[action]
-
-    def take_over(self, now: float, mode: str) -> None:
-        """The autopilot's own decision (a failsafe of its own, a pilot): ``mode``."""
-        self.mode = mode
-        self.takeovers.append((now, mode))
-
-    def battery(self, now: float) -> float:
-        """The battery left at ``now``, percent (drained at a constant rate from 100)."""
-        return max(0.0, 100.0 - self.battery_drain_pct_s * now)
-
-    def act(self, now: float, reqnr: int, method: str, request: bytes) -> bytes:
-        """A flight command reaches the vehicle; the vehicle acts on it."""
-        self._serial += 1
-        reply = b"%s %s: done #%d" % (method.encode(), request, self._serial)
-        self.commands.append(Acted(now, request, reqnr, reply))
-        return reply
-
-    def read(self, now: float, reqnr: int, method: str) -> bytes:
-        """Telemetry read for request ``reqnr``."""
-        self._serial += 1
-        reply = b"%s @%.6f #%d" % (method.encode(), now, self._serial)
-        self.reads.setdefault(reqnr, []).append(Acted(now, b"", reqnr, reply))
-        return reply
-
-
-class SimCamera:
-    """The camera: takes a picture (a large reply) per request it is given, and counts it."""
-
-    def __init__(self) -> None:
-        self.pictures: list[Acted] = []
-
-    def take(self, now: float, reqnr: int, request: bytes, size: int) -> bytes:
-        """One picture of ``size`` bytes."""
-        head = b"picture for %s #%d;" % (request, len(self.pictures) + 1)
-        reply = head + bytes(max(0, size - len(head)))
-        self.pictures.append(Acted(now, request, reqnr, reply))
-        return reply
 
 
 @dataclass(eq=False)
@@ -444,11 +355,9 @@ class SimDrone:
             )
             self._failed(request, digest, bad)
             return
-        if route.service == "Mobility" and not self.vehicle.connected:
-            out = StatusError(
-                grpc.StatusCode.UNAVAILABLE, f"{method}: the vehicle is not connected"
-            )
-            self._failed(request, digest, out)
+        unreachable = self.core.unreachable(method, self.vehicle.connected, "(an outage)")
+        if unreachable is not None:
+            self._failed(request, digest, unreachable)
             return
         rng = self.world.rng
         if route.is_read:
