@@ -115,7 +115,7 @@ async def serve(
     announce(settings.address_file, [server.address], {"address": server.address})
     if on_listening is not None:
         on_listening(server.address)
-    watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
+    watchdog = asyncio.create_task(service.stalls.run(), name="stall-watchdog")
     takeovers = asyncio.create_task(service.watch_master(), name="takeover-watch")
     failsafes = asyncio.create_task(service.failsafes.run(), name="failsafe-watch")
     pings = asyncio.create_task(service.watch_links(), name="link-pings")

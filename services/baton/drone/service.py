@@ -49,14 +49,14 @@ from baton.drone.safety import (
 )
 from baton.drone.sequencer import Sequencer, TakeoverDue
 from baton.drone.settings import Race
-from baton.drone.status import drone_status
+from baton.drone.status import StallWatcher, drone_status
 from baton.drone.store import Counters, DroneStore, Intent
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.labels import label
 from baton.rpc.outcomes import failure_of
 from baton.rpc.tls import OPERATOR, Identity, refused, refused_status
-from baton.stalls import StallWatch, Wait, drone_conditions, drone_judge, one_line
+from baton.stalls import Wait, one_line
 from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -127,9 +127,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 "last_reqnr": self.seq.last_reqnr,
             }
         )
-        self._stalls = StallWatch()
-        self.waits: list[Wait] = []
-        self._reached = False  # a controller has reached this process (stalls.py)
+        # The waits into GetStatus, and the stalls into the log (status.StallWatcher).
+        self.stalls = StallWatcher(self)
         # Each controller's round trip, measured by pings on its standby stream.
         self.probes = LinkProbes(tuple(sequencer.ring), link_bounds or LinkBounds(), self.log)
         # The handover policy, when the drone runs one (build_service).
@@ -168,29 +167,14 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         return list(self.seq.audit)
 
     @property
+    def waits(self) -> list[Wait]:
+        """What the drone waits for now (``status.StallWatcher``)."""
+        return self.stalls.waits
+
+    @property
     def waiting(self) -> str:
         """The waits that need a person, as one line; empty when none does."""
         return one_line(self.waits)
-
-    async def watch(self) -> None:
-        """Every half second: waits into GetStatus, and stalls into the log when they begin."""
-        while True:
-            reachable, connected = self.standby.reachable, self.streams.master_connected
-            self._reached = self._reached or bool(reachable) or connected
-            # Without a policy there is no map: every link should be up. With one,
-            # a position not known yet puts no station in range.
-            policy = self.policy
-            in_range = None if policy is None else (policy.in_range() or set())
-            holding = drone_conditions(
-                self.seq.master, connected, self.seq.ring, reachable, in_range, self._reached
-            )
-            holding.update(self.operator.waiting())
-            link_up_s = policy.params.link_up_s / policy.speedup if policy is not None else 0.0
-            now = time.monotonic()
-            self.waits = self._stalls.update(now, holding, drone_judge(link_up_s))
-            if self._stalls.due_for_log(now, self.waits):
-                self.log.warning("stalled", waiting=self.waiting)
-            await asyncio.sleep(0.5)
 
     async def watch_master(self) -> None:
         """Every tick: the master taken over when it is lost, a preparation forced at its

@@ -9,12 +9,44 @@ from typing import TYPE_CHECKING
 from baton.drone.mobility_api import READ_TIMEOUT_S, latest_position
 from baton.drone.operator_service import failsafe_proto, fill_status
 from baton.rpc.errors import StatusError
-from baton.stalls import Wait
+from baton.stalls import StallWatch, Wait, drone_conditions, drone_judge
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
 if TYPE_CHECKING:
     from baton.drone.service import DroneService
+
+
+class StallWatcher:
+    """What one ``DroneService`` waits for (``stalls.drone_conditions``), kept for GetStatus."""
+
+    def __init__(self, service: DroneService) -> None:
+        self.service = service
+        self._stalls = StallWatch()
+        self.waits: list[Wait] = []
+        self._reached = False  # a controller has reached this process (stalls.py)
+
+    async def run(self) -> None:
+        """Every half second: waits into GetStatus, and stalls into the log when they begin."""
+        service = self.service
+        while True:
+            reachable, connected = service.standby.reachable, service.streams.master_connected
+            self._reached = self._reached or bool(reachable) or connected
+            # Without a policy there is no map: every link should be up. With one,
+            # a position not known yet puts no station in range.
+            policy = service.policy
+            in_range = None if policy is None else (policy.in_range() or set())
+            holding = drone_conditions(
+                service.seq.master, connected, service.seq.ring, reachable, in_range, self._reached
+            )
+            holding.update(service.operator.waiting())
+            link_up_s = policy.params.link_up_s / policy.speedup if policy is not None else 0.0
+            now = time.monotonic()
+            self.waits = self._stalls.update(now, holding, drone_judge(link_up_s))
+            if self._stalls.due_for_log(now, self.waits):
+                service.log.warning("stalled", waiting=service.waiting)
+            await asyncio.sleep(0.5)
+
 
 # Audit entries in one GetStatus page: by default, and at most.
 AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
