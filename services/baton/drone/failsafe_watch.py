@@ -33,7 +33,7 @@ class FailsafeWatch:
         self._landing_for: Failsafe | None = None
 
     async def run(self) -> None:
-        """Puts the vehicle in failsafe when ``DroneCore.failsafe_due`` says so, and lands
+        """Puts the vehicle in failsafe when ``DroneCore.failsafe_check`` says so, and lands
         it at the station once a nearest_station failsafe has brought it there."""
         service = self.service
         while True:

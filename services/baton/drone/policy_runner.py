@@ -7,13 +7,13 @@ standby or Connect stream is up, the drone's last sighting says for how long
 one has been down, and ``link_probe.py`` measures its round trip), asks the pure
 policy, and carries the decision out:
 
-- ``handover``: prepared (``DroneService.prepare_handover``, docs/design.md
-  "Prepared handover": the new master is caught up while the vehicle flies on,
-  and the drone moves the master once it has), or at once through
-  ``DroneService.hand_over``, the path of the Handover RPC, for a takeover or
-  a master that cannot prepare; under the execution lock, so the switch falls
-  between two requests; only if the master is still the one the policy
-  decided for.
+- ``handover``: ``DroneCore.policy_handover`` decides and the service applies
+  its effects: prepared (docs/design.md "Prepared handover": the new master is
+  caught up while the vehicle flies on, and the drone moves the master once it
+  has), or at once through ``DroneCore.hand_over``, the path of the Handover
+  RPC, for a takeover or a master that cannot prepare; under the execution
+  lock, so the switch falls between two requests; only if the master is still
+  the one the policy decided for.
 - ``fly_on``: no controller is usable, but the leg the vehicle flies (the
   master's last Goto) leads into a station's range: nothing is done, the
   vehicle flies on and the mission waits (no master can reach the drone);

@@ -561,7 +561,7 @@ class SimDrone:
 
     def _switched(self, record: drone_pb2.HandoverRecord, on_the_word: bool = False) -> None:
         """MasterStreams.wake: the old master's Connect handler resumes on a later loop turn;
-        a master the script or an operator chose pins the policy (DroneService._switched)."""
+        a master the script or an operator chose pins the policy (``effects.pins_policy``)."""
         if record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER:
             self.takeovers += 1
         if self.policy is not None and pins_policy(record):
@@ -588,7 +588,7 @@ class SimDrone:
         self.world.switched(record)  # where the lose-master fault may strike (faults.py)
 
     def _preparing(self, notice: drone_pb2.PrepareHandover) -> None:
-        """DroneService._preparing: wakes the master's stream to carry the notice."""
+        """A ``Preparing`` effect: wakes the master's stream to carry the notice."""
         self.preparations += 1
         self.world.trace(
             f"drone: preparing a handover from {self.seq.master} to {notice.target} "
@@ -871,7 +871,7 @@ class SimDrone:
         return self.reachable(), ({self.seq.master} if self.seq.master in self.streams else set())
 
     def _failsafe_due(self, now: float) -> Failsafe | None:
-        """``DroneCore.failsafe_check`` as ``DroneService._failsafe_due`` asks it: the
+        """``DroneCore.failsafe_check`` as ``FailsafeWatch.due`` asks it: the
         vehicle counts as armed and in the air while the mission is open (the sim has no
         flight state nor position: no fence, no nearest station), in the mode its
         commands and the autopilot's takeover put it in."""
