@@ -544,12 +544,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             method=request.method,
             failed=cached.error is not None,
         )
-        if cached.error is not None:
-            raise StatusError(
-                cached.error.code,
-                cached.error.message,
-                metadata=(*cached.error.metadata, ("baton-duplicate", "true")),
-            )
+        error = cached.duplicate_error()
+        if error is not None:
+            raise error
         return signed_reply(
             self.signer,
             request.reqnr,

@@ -450,12 +450,8 @@ class SimDrone:
                 self.world.trace(f"drone: {effect.event} {dict(effect.fields)}")
 
     def _answer_duplicate(self, request: Request, cached: CachedReply) -> None:
-        if cached.error is not None:
-            error = StatusError(
-                cached.error.code,
-                cached.error.message,
-                metadata=(*cached.error.metadata, ("baton-duplicate", "true")),
-            )
+        error = cached.duplicate_error()
+        if error is not None:
             self._reply(request, b"", error)
         else:
             self._reply(request, cached.reply, None, cached.digest, cached.epoch, duplicate=True)
