@@ -13,7 +13,9 @@ from drone_fakes import FakeMobility
 
 from baton.config import controllers_only
 from baton.drone.master import parse_handover_script
-from baton.drone.service import DroneService, DroneSettings, build_service
+from baton.drone.serve import build_service
+from baton.drone.service import DroneService
+from baton.drone.settings import DroneSettings
 from baton.rpc.channels import aio_channel
 from baton.rpc.server import BatonServer, servicer
 from baton.rpc.streams import next_message

@@ -20,7 +20,8 @@ from fuzzing import INPUTS_PER_METHOD, SEED, UNHANDLED, answer, mutants
 
 from baton.certs.make import ensure
 from baton.config import controllers_only
-from baton.drone.service import DroneSettings, build_service
+from baton.drone.serve import build_service
+from baton.drone.settings import DroneSettings
 from baton.rpc.channels import aio_channel
 from baton.rpc.server import BatonServer, servicer
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls

@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from baton.config import BatonConfig
     from baton.drone.gcs import GcsLink
     from baton.drone.policy import PolicyParams, Station
-    from baton.drone.service import DroneSettings
+    from baton.drone.settings import DroneSettings
 
 
 def _controller_ids(text: str) -> tuple[int, ...]:
@@ -221,7 +221,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     from baton.drone.dedupe import DEFAULT_WINDOW
     from baton.drone.master import load_handover_script
     from baton.drone.mavlink_relay import VehicleEndpoint
-    from baton.drone.service import DroneSettings, Race
+    from baton.drone.settings import DroneSettings, Race
     from baton.rpc.tls import DRONE
     from baton.signing import read_key
 
@@ -299,7 +299,7 @@ def handover_policy(config: BatonConfig) -> tuple[PolicyParams | None, dict[int,
     """The policy the drone runs (the model's, flag merged in) and every controller's
     station (the model has checked that each has a location and a range)."""
     from baton.drone.policy import PolicyParams, Station
-    from baton.drone.service import link_bounds
+    from baton.drone.settings import link_bounds
     from baton.sdk import Position
 
     chosen = config.handover_policy
@@ -348,7 +348,8 @@ def run(args: argparse.Namespace) -> int:
     from baton.config import ConfigError
     from baton.drone.master import HandoverScriptError
     from baton.drone.mobility import MavsdkMobility
-    from baton.drone.service import autopilot_gcs_timeout_s, safety_params, serve
+    from baton.drone.serve import serve
+    from baton.drone.settings import autopilot_gcs_timeout_s, safety_params
     from baton.lifecycle import run_until_signalled
     from baton.rpc.tls import TlsError
 

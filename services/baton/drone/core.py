@@ -55,9 +55,21 @@ from dataclasses import dataclass
 import grpc
 
 from baton.drone.dedupe import RETAINED_BATCH_BYTES, CachedReply, retained_batches
+from baton.drone.effects import (
+    Abandon,
+    Book,
+    DroneEffect,
+    Note,
+    Preparing,
+    SaveCounters,
+    Switched,
+    TellTakeOver,
+    take_over_event,
+)
 from baton.drone.fence import move_refusal
 from baton.drone.invariants import DroneWatch, InvariantBroken
 from baton.drone.operator import Operator, OperatorCommand
+from baton.drone.policy import PREPARE, SWITCH, Decision, handover_step
 from baton.drone.safety import (
     Failsafe,
     ModeSeen,
@@ -73,6 +85,7 @@ from baton.drone.safety import (
 from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
+from baton.rpc.labels import label
 from baton.rpc.methods import Method, drone_api
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
@@ -86,6 +99,9 @@ RESTART_GRACE_S = 5.0
 # a takeover at the start must not go to whichever came first. One that never
 # comes up is then lost, and the mission goes on without it.
 START_GRACE_S = 10.0
+# How often the drivers look whether the master is lost, a preparation is due, or a
+# failsafe is due (a fraction of the takeover time).
+WATCH_TICK_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -103,6 +119,25 @@ class Admitted:
     # Admitted but refused before execution (failsafe, a bound): the request's
     # outcome, booked like a failure of the vehicle, nothing executed.
     refused: StatusError | None = None
+
+
+@dataclass(frozen=True)
+class Kept:
+    """What the durable store keeps across a restart (``store.py``): the master, its
+    handovers, the counters (last reqnr, executed, duplicates, rejected), the replies,
+    the audit, the script lines fired, the watermark; the modes the drone last
+    commanded the vehicle, the failsafe it was in, and the request it was executing."""
+
+    master: int
+    handovers: Sequence[drone_pb2.HandoverRecord]
+    counts: tuple[int, int, int, int]
+    replies: Sequence[CachedReply]
+    audit: Sequence[drone_pb2.AuditEntry]
+    fired_script: Sequence[int]
+    watermark: int
+    commanded: tuple[str, ...] | None = None
+    failsafe: Failsafe | None = None
+    executing: Intent | None = None
 
 
 class DroneCore:
@@ -247,6 +282,34 @@ class DroneCore:
             return None
         return lost_link_failsafe(now, self.last_usable, self.safety, nearest)
 
+    def failsafe_check(
+        self,
+        now: float,
+        airborne: bool,
+        battery_percent: float,
+        position: api.Position | None,
+        seen: ModeSeen,
+        holders: Iterable[int],
+        in_range: set[int] | None,
+        nearest: int | None = None,
+    ) -> Failsafe | None:
+        """A look at the vehicle: the failsafe due now, in this order of precedence: the
+        battery (``battery_due``), the fence at ``position`` (``fence_due``; None: the
+        position is not watched), the autopilot's takeover with the vehicle as it reports
+        itself (``autopilot_due``), the lost link (``failsafe_due``, none while already
+        in a failsafe). ``nearest`` is the station nearest the vehicle."""
+        battery = self.battery_due(now, battery_percent, airborne, nearest)
+        if battery is not None:
+            return battery
+        if position is not None:
+            breach = self.fence_due(now, position, airborne)
+            if breach is not None:
+                return breach
+        taken_over = self.autopilot_due(now, seen)
+        if taken_over is not None or self.failsafe is not None:
+            return taken_over
+        return self.failsafe_due(now, holders, in_range, airborne, nearest)
+
     def battery_due(
         self, now: float, percent: float, airborne: bool, nearest: int | None = None
     ) -> Failsafe | None:
@@ -344,6 +407,20 @@ class DroneCore:
             self.vehicle_command = VehicleCommand(command.actions, now, accepted=accepted)
         return cleared, taken
 
+    def operator_command(
+        self, command: str, now: float, action: str = "", note: str = ""
+    ) -> tuple[OperatorCommand, Failsafe | None]:
+        """An operator's command (``operator.COMMANDS``) between two requests: what was
+        taken, and the failsafe a resume cleared (None: none). An abort returns home
+        unless ``action`` says land. StatusError to refuse it: nothing changes."""
+        after = self.seq.last_reqnr
+        if command == "pause":
+            return self.operator.pause(now, after, note=note), None
+        if command == "resume":
+            cleared, taken = self.resume_mission(now)
+            return taken, cleared
+        return self.operator.end(command, action or "rtl", now, after, note), None
+
     def holds(self, request: drone_pb2.InvokeRequest) -> bool:
         """Whether ``request`` waits at the drone before admission: the mission is paused
         and it is the master's next (``Operator.holds``)."""
@@ -370,6 +447,16 @@ class DroneCore:
             return None
         return limit_refusal(route.rpc, message, self.safety) or move_refusal(
             route.rpc, message, self.safety.fence
+        )
+
+    def unreachable(self, method: str, vehicle_connected: bool, why: str) -> StatusError | None:
+        """UNAVAILABLE for a Mobility call while the vehicle is not connected (``why``):
+        nothing reaches it, so the number stays unused (``books``); None otherwise."""
+        route = self.routes.get(method)
+        if route is None or route.service != "Mobility" or vehicle_connected:
+            return None
+        return StatusError(
+            grpc.StatusCode.UNAVAILABLE, f"{method}: the vehicle {why} is not connected"
         )
 
     # -- requests --------------------------------------------------------------------
@@ -442,6 +529,216 @@ class DroneCore:
         which means nothing reached the vehicle (the number stays unused)."""
         return error.code is not grpc.StatusCode.UNAVAILABLE
 
+    # -- moving the master: events, each returning its effects (effects.py) -----------
+
+    def hand_over(
+        self,
+        new_master: int,
+        trigger: drone_pb2.HandoverTrigger.ValueType,
+        now: float,
+        takeover: bool = False,
+        reason: str = "",
+        position: api.Position | None = None,
+    ) -> list[DroneEffect]:
+        """Moves the master to ``new_master`` now, between two requests: by takeover when
+        asked or when the master could not send its log (``must_take_over``), else the
+        paper's cooperative handover. StatusError if ``new_master`` may not be made
+        master (unknown, or already the master)."""
+        if self.must_take_over(new_master, takeover):
+            return self.take_over(new_master, trigger, now, reason=reason, position=position)
+        record = self.seq.switch(new_master, trigger, now, reason=reason, position=position)
+        return [SaveCounters(), Switched(record)]
+
+    def take_over(
+        self,
+        new_master: int,
+        trigger: drone_pb2.HandoverTrigger.ValueType,
+        now: float,
+        lost_at: float = 0.0,
+        reason: str = "",
+        position: api.Position | None = None,
+        lost: int | None = None,
+    ) -> list[DroneEffect]:
+        """Switches to ``new_master`` by takeover and tells it on its standby stream.
+        ``lost`` is the controller whose log is given up (``TakeoverDue.lost``; None: the
+        master, or the lost old master of the last switch when the master is granted
+        again)."""
+        record = self.seq.switch(
+            new_master,
+            trigger,
+            now,
+            takeover=True,
+            lost_at=lost_at,
+            reason=reason,
+            position=position,
+            lost=lost,
+        )
+        told = take_over_event(record, self.seq.cache.watermark)
+        return [SaveCounters(), Switched(record), TellTakeOver(record, told, lost_at)]
+
+    def handover_call(
+        self,
+        new_master: int,
+        prepared: bool,
+        takeover: bool,
+        master_connected: bool,
+        now: float,
+    ) -> list[DroneEffect]:
+        """An operator's Handover: prepared when asked (and not a takeover) and the master
+        can prepare (``can_prepare``: it holds its Connect stream to hear the
+        PrepareHandover); else at once, as ``hand_over``. StatusError to refuse it."""
+        self.seq.check_known(new_master)
+        rpc = drone_pb2.HANDOVER_TRIGGER_RPC
+        if prepared and not takeover and self.can_prepare(master_connected, new_master):
+            return [Preparing(self.seq.prepare(new_master, rpc, now))]
+        return self.hand_over(new_master, rpc, now, takeover)
+
+    def prepared_outcome(self, target: int, started_at: float) -> drone_pb2.HandoverRecord:
+        """How the prepared handover to ``target`` begun at ``started_at`` ended, once it is
+        no longer under way: its record, or ABORTED if another switch replaced it."""
+        record = self.seq.handovers[-1]
+        if record.prepare_started_at != started_at:
+            raise StatusError(
+                grpc.StatusCode.ABORTED,
+                f"the handover to controller {target} being prepared was replaced by "
+                f"another switch (to controller {record.new_master}, "
+                f"{label(drone_pb2.HandoverKind, record.kind)})",
+            )
+        return record
+
+    def policy_handover(
+        self,
+        decision: Decision,
+        decided_for: int,
+        master_connected: bool,
+        now: float,
+        position: api.Position | None = None,
+    ) -> tuple[str, list[DroneEffect]]:
+        """The handover policy's ``decision`` (made while ``decided_for`` was master),
+        carried out now (``policy.handover_step``): what was done, and its effects."""
+        target, seq = decision.target, self.seq
+        assert target is not None
+        preparing = seq.preparing
+        step = handover_step(
+            decision,
+            decided_for,
+            seq.master,
+            self.can_prepare(master_connected, target),
+            None if preparing is None else preparing.target,
+        )
+        trigger = drone_pb2.HANDOVER_TRIGGER_POLICY
+        if step == SWITCH:
+            effects = self.hand_over(
+                target, trigger, now, decision.takeover, decision.reason, position
+            )
+            return ("takeover" if decision.takeover else step), effects
+        if step == PREPARE:
+            notice = seq.prepare(target, trigger, now, reason=decision.reason, position=position)
+            return step, [Preparing(notice)]
+        return step, []
+
+    def master_watch(
+        self,
+        now: float,
+        holders: Iterable[int],
+        connected: Iterable[int],
+        in_range: set[int] | None,
+        position: api.Position | None = None,
+    ) -> list[DroneEffect]:
+        """A tick of the master watch: the master taken over if it is lost
+        (``takeover_due``), then a preparation past its deadline forced."""
+        effects: list[DroneEffect] = []
+        due = self.takeover_due(now, holders, connected, in_range)
+        if due is not None:
+            effects += self.take_over(
+                due.new_master,
+                drone_pb2.HANDOVER_TRIGGER_LOST,
+                now,
+                due.lost_at,
+                position=position,
+                lost=due.lost,
+            )
+        forced = self.seq.preparation_expired(now)
+        if forced is not None:
+            effects += [SaveCounters(), Switched(forced)]
+        return effects
+
+    def preparation_word(
+        self,
+        controller_id: int,
+        epoch: int,
+        progress: drone_pb2.PreparationProgress,
+        now: float,
+    ) -> list[DroneEffect]:
+        """The master's word on its preparation between requests: the master moves now if
+        the target caught up (``Sequencer.progress_between``)."""
+        record = self.seq.progress_between(controller_id, epoch, progress, now)
+        return [] if record is None else [SaveCounters(), Switched(record)]
+
+    def fresh_self_connect(
+        self, controller_id: int, given_up_epoch: int, now: float
+    ) -> list[DroneEffect]:
+        """A Connect of a fresh self of the master that gave its mastership up, under the
+        lock (checked again: a second Connect of it finds the epoch moved on): it is
+        granted a new epoch by a takeover of its earlier self
+        (``Sequencer.fresh_self_due``). Its Connected says so; nothing is told on its
+        standby stream."""
+        if not self.seq.fresh_self_due(controller_id, 0, given_up_epoch):
+            return []
+        record = self.seq.take_over_from_earlier_self(controller_id, now)
+        said = Note(
+            "warning",
+            "master's fresh self takes over from its earlier self",
+            {"controller": controller_id, "given_up_epoch": given_up_epoch, "epoch": record.epoch},
+        )
+        return [SaveCounters(), Switched(record), said]
+
+    def served(
+        self,
+        controller_id: int,
+        reqnr: int,
+        method: str,
+        digest: bytes,
+        reply: bytes,
+        received_at: float,
+        now: float,
+        error: StatusError | None = None,
+    ) -> list[DroneEffect]:
+        """A request's outcome (``error``: a failure booked): booked, then the script's
+        handover or preparation after it, if any (``Sequencer.served``)."""
+        served = self.seq.served(
+            controller_id, reqnr, method, digest, reply, received_at, now, error
+        )
+        effects: list[DroneEffect] = [Book(served)]
+        if served.skipped is not None:
+            fields = {
+                "new_master": served.skipped.new_master,
+                "after_reqnr": reqnr,
+                "script_line": served.skipped.line,
+            }
+            effects.append(Note("warning", "scripted handover skipped: already the master", fields))
+        if served.handover is not None:
+            effects.append(Switched(served.handover))
+        if served.prepare is not None:
+            effects.append(Preparing(served.prepare))
+        return effects
+
+    def failed(
+        self,
+        controller_id: int,
+        reqnr: int,
+        method: str,
+        digest: bytes,
+        received_at: float,
+        now: float,
+        error: StatusError,
+    ) -> list[DroneEffect]:
+        """An admitted request failed: its outcome booked (``served``) unless nothing
+        reached the vehicle (``books``): then its intent is abandoned, the number unused."""
+        if not self.books(error):
+            return [Abandon()]
+        return self.served(controller_id, reqnr, method, digest, b"", received_at, now, error)
+
     # -- masters ---------------------------------------------------------------------
 
     def must_take_over(self, new_master: int, takeover: bool) -> bool:
@@ -497,6 +794,15 @@ class DroneCore:
             return preparing.notice
         return seq.pending.get(controller_id)
 
+    def delivered(self, controller_id: int, notice: drone_pb2.HandoverNotice) -> None:
+        """The handover ``notice`` was written on ``controller_id``'s stream: no longer owed."""
+        self.seq.delivered(controller_id, notice)
+
+    def operator_word(self) -> drone_pb2.OperatorWord:
+        """The operator's pause as the master's Connect stream says it (empty: not paused)."""
+        paused = self.operator.paused
+        return drone_pb2.OperatorWord(paused="" if paused is None else paused.reason)
+
     # -- a restart -------------------------------------------------------------------
 
     def resume(
@@ -519,6 +825,40 @@ class DroneCore:
             # The lost-link time too counts from the end of the grace: the controllers
             # re-connect to a restarted drone meanwhile.
             self.last_usable = now + RESTART_GRACE_S
+
+    def restarted(self, now: float, kept: Kept) -> list[DroneEffect]:
+        """The drone started again from what its store kept: the modes it commanded read
+        after the restart grace (the telemetry comes back meanwhile), the failsafe it
+        was in, ``resume``; then the request the restart cut off (``cut_off``): a read
+        abandoned (executed again when re-sent), anything else booked with its failure."""
+        if kept.commanded is not None:
+            self.vehicle_command = VehicleCommand(kept.commanded, now + RESTART_GRACE_S)
+        if kept.failsafe is not None:
+            self.enter_failsafe(kept.failsafe)
+        self.resume(
+            now,
+            kept.master,
+            kept.handovers,
+            kept.counts,
+            kept.replies,
+            kept.audit,
+            kept.fired_script,
+            kept.watermark,
+        )
+        cut = kept.executing
+        if cut is None:
+            return []
+        error = self.cut_off(cut)
+        if error is None:
+            read = Note(
+                "info", "read cut off by the restart: will execute again", {"reqnr": cut.reqnr}
+            )
+            return [Abandon(), read]
+        said: dict[str, object] = {"reqnr": cut.reqnr, "method": cut.method}
+        booked = self.served(
+            cut.controller_id, cut.reqnr, cut.method, cut.digest, b"", cut.received_at, now, error
+        )
+        return [Note("warning", "request cut off by the restart", said), *booked]
 
     def cut_off(self, intent: Intent) -> StatusError | None:
         """The outcome of a request a restart cut off while it executed: None for a read

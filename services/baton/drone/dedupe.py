@@ -80,6 +80,16 @@ class CachedReply:
     # The epoch of the mastership that brought it (its request, or master_answers).
     epoch: int = 0
 
+    def duplicate_error(self) -> StatusError | None:
+        """The failure a duplicate of this request gets again, marked as a duplicate's
+        (``baton-duplicate``); None for a reply."""
+        error = self.error
+        if error is None:
+            return None
+        return StatusError(
+            error.code, error.message, metadata=(*error.metadata, ("baton-duplicate", "true"))
+        )
+
     def to_proto(self) -> drone_pb2.RetainedReply:
         """As the drone gives it to a taker."""
         error = self.error

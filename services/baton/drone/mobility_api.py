@@ -9,8 +9,10 @@ autopilot refusals, MAVSDK's own reason in the message.
 
 from __future__ import annotations
 
+import asyncio
 from typing import Protocol
 
+from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -81,3 +83,20 @@ async def command_action(vehicle: MobilityBackend, action: str) -> bool:
     else:
         return False
     return True
+
+
+# A read of the vehicle must not hang on a vehicle that stopped answering.
+READ_TIMEOUT_S = 1.0
+
+
+async def latest_position(vehicle: MobilityBackend) -> api.Position:
+    """The vehicle's position, or an all-zero Position if it is not known now."""
+    if not vehicle.connected:
+        return api.Position()
+    try:
+        reply = await asyncio.wait_for(
+            vehicle.GetPosition(api.GetPositionRequest()), READ_TIMEOUT_S
+        )
+    except (StatusError, TimeoutError):
+        return api.Position()
+    return reply.position

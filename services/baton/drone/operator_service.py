@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import grpc
@@ -73,11 +72,6 @@ class OperatorCommands:
         if operator.leg != leg:
             self._save()
 
-    def word(self) -> drone_pb2.OperatorWord:
-        """The pause as the master's Connect stream says it (empty: not paused)."""
-        paused = self.service.core.operator.paused
-        return drone_pb2.OperatorWord(paused="" if paused is None else paused.reason)
-
     def _tell_master(self) -> None:
         """Wakes the master's Connect stream to say the pause began or ended."""
         self.service.streams.wake(self.service.seq.master)
@@ -94,27 +88,13 @@ class OperatorCommands:
     async def pause(
         self, request: drone_pb2.PauseRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.OperatorReply:
-        def decide(now: float, after: int) -> OperatorCommand:
-            taken = self.service.core.operator.pause(now, after, note=request.note)
-            self._unpaused = asyncio.Event()
-            return taken
-
-        return drone_pb2.OperatorReply(command=await self._command(context, "Pause", decide))
+        taken, _ = await self._command(context, "Pause", "pause", note=request.note)
+        return drone_pb2.OperatorReply(command=taken)
 
     async def resume(
         self, request: drone_pb2.ResumeRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.ResumeReply:
-        cleared = None
-
-        def decide(now: float, _after: int) -> OperatorCommand:
-            nonlocal cleared
-            cleared, taken = self.service.core.resume_mission(now)
-            self.service.save_failsafe()
-            if cleared is not None:
-                self.service.log.warning("failsafe cleared by the operator", cause=cleared.cause)
-            return taken
-
-        taken = await self._command(context, "Resume", decide)
+        taken, cleared = await self._command(context, "Resume", "resume")
         reply = drone_pb2.ResumeReply(command=taken)
         if cleared is not None:
             reply.cleared.CopyFrom(failsafe_proto(cleared))
@@ -123,19 +103,14 @@ class OperatorCommands:
     async def abort(
         self, request: drone_pb2.AbortRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.OperatorReply:
-        def decide(now: float, after: int) -> OperatorCommand:
-            action = request.action or "rtl"
-            return self.service.core.operator.end("abort", action, now, after, request.note)
-
-        return drone_pb2.OperatorReply(command=await self._command(context, "Abort", decide))
+        taken, _ = await self._command(context, "Abort", "abort", request.action, request.note)
+        return drone_pb2.OperatorReply(command=taken)
 
     async def land_now(
         self, request: drone_pb2.LandNowRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.OperatorReply:
-        def decide(now: float, after: int) -> OperatorCommand:
-            return self.service.core.operator.end("land_now", "land", now, after, request.note)
-
-        return drone_pb2.OperatorReply(command=await self._command(context, "LandNow", decide))
+        taken, _ = await self._command(context, "LandNow", "land_now", note=request.note)
+        return drone_pb2.OperatorReply(command=taken)
 
     def ground_station_paused(self, station: str, what: str) -> None:
         """A ground station's override (drone/gcs.py) pauses the mission, between two
@@ -165,17 +140,27 @@ class OperatorCommands:
         self,
         context: grpc.aio.ServicerContext,
         name: str,
-        decide: Callable[[float, int], OperatorCommand],
-    ) -> drone_pb2.OperatorCommand:
-        """Checks the caller, decides under the execution lock, saves, tells the vehicle
-        (still under the lock: no request executes in between), and records what it did."""
+        command: str,
+        action: str = "",
+        note: str = "",
+    ) -> tuple[drone_pb2.OperatorCommand, Failsafe | None]:
+        """Checks the caller, decides under the execution lock (``DroneCore.
+        operator_command``), saves, tells the vehicle (still under the lock: no request
+        executes in between), and records what it did; with the failsafe a resume
+        cleared."""
         service = self.service
         try:
             refusal = refused(context, service.authenticated, name, RULE, lambda w: w == OPERATOR)
             if refusal is not None:
                 raise refusal
             async with service.execution_lock:
-                taken = decide(time.time(), service.seq.last_reqnr)
+                taken, cleared = service.core.operator_command(command, time.time(), action, note)
+                if command == "pause":
+                    self._unpaused = asyncio.Event()
+                if command == "resume":
+                    service.save_failsafe()
+                if cleared is not None:
+                    service.log.warning("failsafe cleared by the operator", cause=cleared.cause)
                 self._save()
                 service.log.warning(
                     "operator command",
@@ -191,7 +176,7 @@ class OperatorCommands:
         except StatusError as err:
             service.log.warning("operator command rejected", command=name, reason=err.message)
             await abort_with(context, err)
-        return command_proto(taken)
+        return command_proto(taken), cleared
 
     async def _tell_vehicle(self, taken: OperatorCommand) -> OperatorCommand:
         """Commands the vehicle what ``taken`` says, and records its answer."""

@@ -7,13 +7,13 @@ standby or Connect stream is up, the drone's last sighting says for how long
 one has been down, and ``link_probe.py`` measures its round trip), asks the pure
 policy, and carries the decision out:
 
-- ``handover``: prepared (``DroneService.prepare_handover``, docs/design.md
-  "Prepared handover": the new master is caught up while the vehicle flies on,
-  and the drone moves the master once it has), or at once through
-  ``DroneService.hand_over``, the path of the Handover RPC, for a takeover or
-  a master that cannot prepare; under the execution lock, so the switch falls
-  between two requests; only if the master is still the one the policy
-  decided for.
+- ``handover``: ``DroneCore.policy_handover`` decides and the service applies
+  its effects: prepared (docs/design.md "Prepared handover": the new master is
+  caught up while the vehicle flies on, and the drone moves the master once it
+  has), or at once through ``DroneCore.hand_over``, the path of the Handover
+  RPC, for a takeover or a master that cannot prepare; under the execution
+  lock, so the switch falls between two requests; only if the master is still
+  the one the policy decided for.
 - ``fly_on``: no controller is usable, but the leg the vehicle flies (the
   master's last Goto) leads into a station's range: nothing is done, the
   vehicle flies on and the mission waits (no master can reach the drone);
@@ -51,11 +51,10 @@ from typing import TYPE_CHECKING
 
 from google.protobuf.message import Message
 
+from baton.drone.mobility_api import latest_position
 from baton.drone.policy import (
     ENDS_A_LEG,
     HANDOVER,
-    PREPARE,
-    SWITCH,
     Decision,
     Fix,
     PolicyParams,
@@ -63,7 +62,6 @@ from baton.drone.policy import (
     Station,
     decide,
     distance_m,
-    handover_step,
     hold_due,
     resume_due,
 )
@@ -215,8 +213,6 @@ class PolicyRunner:
 
     async def tick(self) -> Decision | None:
         """One decision, carried out; None while the vehicle's position is not known."""
-        from baton.drone.service import latest_position
-
         service = self.service
         position = await latest_position(service.vehicle)
         if position.latitude_deg == 0 and position.longitude_deg == 0:
@@ -235,29 +231,10 @@ class PolicyRunner:
         if decision.action == HANDOVER:
             assert decision.target is not None
             async with service.execution_lock:
-                preparing = service.seq.preparing
-                step = handover_step(
-                    decision,
-                    master,
-                    service.seq.master,
-                    service.can_prepare(decision.target),
-                    None if preparing is None else preparing.target,
+                _, effects = service.core.policy_handover(
+                    decision, master, service.streams.master_connected, time.time(), position
                 )
-                if step == SWITCH:
-                    service.hand_over(
-                        decision.target,
-                        drone_pb2.HANDOVER_TRIGGER_POLICY,
-                        decision.takeover,
-                        decision.reason,
-                        position,
-                    )
-                elif step == PREPARE:
-                    service.prepare_handover(
-                        decision.target,
-                        drone_pb2.HANDOVER_TRIGGER_POLICY,
-                        decision.reason,
-                        position,
-                    )
+                service.apply(effects)
         elif hold_due(decision, self.holding, self._unsure):
             await self._hold(decision)
         if resume_due(decision, self.holding):

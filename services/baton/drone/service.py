@@ -11,49 +11,52 @@ from __future__ import annotations
 
 import asyncio
 import os
-import sys
 import time
-from collections.abc import AsyncIterator, Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import AsyncIterator, Iterable, Mapping
 from typing import Any
 
 import grpc
 
 from baton.authenticity import Signer, signed_reply, signed_retained
-from baton.config import BatonConfig, controllers_only, detection_time_s
 from baton.digest import request_digest
-from baton.drone.camera import DEFAULT_RESOLUTION, Camera
-from baton.drone.core import RESTART_GRACE_S, DroneCore
-from baton.drone.dedupe import DEFAULT_WINDOW, CachedReply
+from baton.drone.camera import Camera
+from baton.drone.connects import ConnectStream
+from baton.drone.core import WATCH_TICK_S, DroneCore, Kept
+from baton.drone.dedupe import CachedReply
 from baton.drone.dispatch import Dispatcher
+from baton.drone.effects import (
+    Abandon,
+    Book,
+    DroneEffect,
+    Preparing,
+    SaveCounters,
+    Switched,
+    TellTakeOver,
+    pins_policy,
+    take_over_event,
+)
+from baton.drone.failsafe_watch import FailsafeWatch
 from baton.drone.invariants import INVARIANT_EXIT, DroneWatch, InvariantBroken, checking
 from baton.drone.link_probe import PING_PERIOD_S, LinkProbes
 from baton.drone.master import MasterStreams, StandbyStreams
-from baton.drone.mobility_api import MobilityBackend, command_action
-from baton.drone.operator_service import OperatorCommands, failsafe_proto, fill_status
-from baton.drone.policy import LinkBounds, LinkState, PolicyParams, Station
+from baton.drone.mobility_api import MobilityBackend
+from baton.drone.operator_service import OperatorCommands
+from baton.drone.policy import LinkBounds, LinkState, Station
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.safety import (
-    LAND,
     VEHICLE_ACTIONS,
-    Failsafe,
     SafetyParams,
-    VehicleCommand,
-    landing_due,
-    mode_seen,
-    nearest_station,
 )
-from baton.drone.sequencer import ScriptedHandover, Sequencer, TakeoverDue
+from baton.drone.sequencer import Sequencer, TakeoverDue
+from baton.drone.settings import Race
+from baton.drone.status import StallWatcher, drone_status
 from baton.drone.store import Counters, DroneStore, Intent
-from baton.lifecycle import announce
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.labels import label
 from baton.rpc.outcomes import failure_of
-from baton.rpc.ports import drone_policy
-from baton.rpc.server import BatonServer, servicer
-from baton.rpc.tls import INSECURE_WARNING, OPERATOR, Identity, Tls, refused, refused_status
-from baton.stalls import StallWatch, Wait, drone_conditions, drone_judge, one_line
+from baton.rpc.tls import OPERATOR, Identity, refused, refused_status
+from baton.stalls import Wait, one_line
 from baton.tasks import TaskSet
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -62,33 +65,6 @@ from baton.v1 import drone_pb2, drone_pb2_grpc
 SPEED_KEY = "speed_m_s"
 # ... and of what the drone last commanded the vehicle (DroneCore.vehicle_command).
 VEHICLE_COMMAND_KEY = "vehicle_command"
-# A status read must not hang on a vehicle that stopped answering.
-_STATUS_READ_TIMEOUT_S = 1.0
-# Audit entries in one GetStatus page: by default, and at most.
-AUDIT_PAGE, AUDIT_PAGE_MAX = 1_000, 10_000
-# How often the drone looks whether the master is lost (a fraction of the takeover time).
-TAKEOVER_TICK_S = 0.05
-# The drone pings every controller's connection each second and drops it
-# after 2 s without the answer: a controller behind a silent link (a radio
-# that fades without a reset, a frozen node) loses its streams within 3 s and
-# is then lost like a dead one (the project's 10 s + 5 s would add 15 s).
-# Only while takeovers are on: it is what finds a lost master behind such a
-# link, and it drops any link whose round trip exceeds 2 s, which a drone that
-# never takes over must keep (the 4 s uplink of the stale-request test).
-CONTROLLER_KEEPALIVE_S = (1.0, 2.0)
-
-
-async def latest_position(vehicle: MobilityBackend) -> api.Position:
-    """The vehicle's position, or an all-zero Position if it is not known now."""
-    if not vehicle.connected:
-        return api.Position()
-    try:
-        reply = await asyncio.wait_for(
-            vehicle.GetPosition(api.GetPositionRequest()), _STATUS_READ_TIMEOUT_S
-        )
-    except (StatusError, TimeoutError):
-        return api.Position()
-    return reply.position
 
 
 def _retrieve_exception(task: asyncio.Task[Any]) -> None:
@@ -134,8 +110,6 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.core = DroneCore(sequencer, takeover_after_s, safety, watch)
         # Every controller's station: the landing points of nearest_station.
         self.stations: Mapping[int, Station] = stations or {}
-        # The nearest_station failsafe whose landing was commanded (at most once).
-        self._landing_for: Failsafe | None = None
         self.seq = sequencer
         self.streams = MasterStreams(sequencer)
         self.standby = StandbyStreams()
@@ -153,9 +127,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 "last_reqnr": self.seq.last_reqnr,
             }
         )
-        self._stalls = StallWatch()
-        self.waits: list[Wait] = []
-        self._reached = False  # a controller has reached this process (stalls.py)
+        # The waits into GetStatus, and the stalls into the log (status.StallWatcher).
+        self.stalls = StallWatcher(self)
         # Each controller's round trip, measured by pings on its standby stream.
         self.probes = LinkProbes(tuple(sequencer.ring), link_bounds or LinkBounds(), self.log)
         # The handover policy, when the drone runs one (build_service).
@@ -164,6 +137,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.cut_off: Intent | None = None
         # Pause, Resume, Abort, LandNow (operator_service.py).
         self.operator = OperatorCommands(self)
+        # The safety net's look at the vehicle (failsafe_watch.py).
+        self.failsafes = FailsafeWatch(self)
         if store is not None:
             self._restore(store)
 
@@ -192,166 +167,30 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         return list(self.seq.audit)
 
     @property
+    def waits(self) -> list[Wait]:
+        """What the drone waits for now (``status.StallWatcher``)."""
+        return self.stalls.waits
+
+    @property
     def waiting(self) -> str:
         """The waits that need a person, as one line; empty when none does."""
         return one_line(self.waits)
 
-    async def watch(self) -> None:
-        """Every half second: waits into GetStatus, and stalls into the log when they begin."""
-        while True:
-            reachable, connected = self.standby.reachable, self.streams.master_connected
-            self._reached = self._reached or bool(reachable) or connected
-            # Without a policy there is no map: every link should be up. With one,
-            # a position not known yet puts no station in range.
-            policy = self.policy
-            in_range = None if policy is None else (policy.in_range() or set())
-            holding = drone_conditions(
-                self.seq.master, connected, self.seq.ring, reachable, in_range, self._reached
-            )
-            holding.update(self.operator.waiting())
-            link_up_s = policy.params.link_up_s / policy.speedup if policy is not None else 0.0
-            now = time.monotonic()
-            self.waits = self._stalls.update(now, holding, drone_judge(link_up_s))
-            if self._stalls.due_for_log(now, self.waits):
-                self.log.warning("stalled", waiting=self.waiting)
-            await asyncio.sleep(0.5)
-
     async def watch_master(self) -> None:
-        """Takes the master over when it is lost (``Sequencer.takeover_due``)."""
+        """Every tick: the master taken over when it is lost, a preparation forced at its
+        deadline (``DroneCore.master_watch``)."""
         while True:
-            due = self._takeover_due()
-            if due is not None:
+            if self._takeover_due() is not None or self.seq.preparing is not None:
                 async with self._lock:
-                    # Re-checked under the lock: a request may have come meanwhile.
-                    now = time.time()
-                    due = self._takeover_due(now)
-                    if due is not None:
-                        where = self.policy.position if self.policy is not None else None
-                        self._take_over(
-                            due.new_master,
-                            drone_pb2.HANDOVER_TRIGGER_LOST,
-                            now,
-                            due.lost_at,
-                            position=where,
-                            lost=due.lost,
+                    # Asked again under the lock: a request may have come meanwhile.
+                    in_range = self.policy.in_range() if self.policy is not None else None
+                    where = self.policy.position if self.policy is not None else None
+                    self.apply(
+                        self.core.master_watch(
+                            time.time(), *self._stream_holders(), in_range, where
                         )
-            if self.seq.preparing is not None:
-                async with self._lock:
-                    forced = self.seq.preparation_expired(time.time())
-                    if forced is not None:
-                        self._switched(forced)
-                        if self.store is not None:
-                            self.store.save(self._counters())
-            await asyncio.sleep(TAKEOVER_TICK_S)
-
-    async def watch_failsafe(self) -> None:
-        """Puts the vehicle in failsafe when ``DroneCore.failsafe_due`` says so, and lands
-        it at the station once a nearest_station failsafe has brought it there."""
-        while True:
-            state = await self._flight_state()
-            if state is None:
-                self.core.vehicle_unseen()
-            else:
-                here = await latest_position(self.vehicle)
-                failsafe = self.core.failsafe
-                if failsafe is not None and failsafe.station is not None and state.in_air:
-                    await self._land_at_station(failsafe, here)
-                else:
-                    due = self._failsafe_due(state, here)
-                    if due is not None:
-                        async with self._lock:
-                            # Re-checked under the lock: a request may have come meanwhile.
-                            due = self._failsafe_due(state, here)
-                            if due is not None:
-                                await self._enter_failsafe(due)
-            await asyncio.sleep(TAKEOVER_TICK_S)
-
-    async def _flight_state(self) -> api.GetFlightStateReply | None:
-        """The vehicle's flight state now; None while it is not connected or does not say."""
-        if not self.vehicle.connected:
-            return None
-        try:
-            return await asyncio.wait_for(
-                self.vehicle.GetFlightState(api.GetFlightStateRequest()), _STATUS_READ_TIMEOUT_S
-            )
-        except (StatusError, TimeoutError):
-            return None
-
-    def _failsafe_due(self, state: api.GetFlightStateReply, here: api.Position) -> Failsafe | None:
-        """``DroneCore.battery_due``, else ``fence_due``, else ``autopilot_due``, else
-        ``failsafe_due`` (the lost link), with the battery, the flight mode and whether the
-        vehicle is in the air (``state``), who
-        holds a stream now, who is in range, and where the vehicle is (``here``: the
-        fence, the station nearest it)."""
-        now, airborne = time.time(), state.in_air
-        nearest = nearest_station(here, self.stations)
-        battery = self.core.battery_due(now, state.battery_percent, airborne, nearest)
-        if battery is not None:
-            return battery
-        breach = self.core.fence_due(now, here, airborne)
-        if breach is not None:
-            return breach
-        taken_over = self.core.autopilot_due(now, mode_seen(state))
-        if taken_over is not None:
-            return taken_over
-        if self.core.failsafe is not None:
-            return None
-        in_range = self.policy.in_range() if self.policy is not None else None
-        holders = self.standby.reachable | self.streams.holders
-        return self.core.failsafe_due(now, holders, in_range, airborne, nearest)
-
-    async def _enter_failsafe(self, failsafe: Failsafe) -> None:
-        """Puts the vehicle in ``failsafe`` (the caller holds the lock): booked in the core
-        and the store first, so a request that comes next is refused whatever the
-        vehicle answers, then the action commanded."""
-        self.core.enter_failsafe(failsafe)
-        self.save_failsafe()
-        self.log.warning(
-            "failsafe",
-            cause=failsafe.cause,
-            action=failsafe.action,
-            station=failsafe.station,
-            reason=failsafe.reason,
-        )
-        if not failsafe.drone_acts:
-            return  # the autopilot flies the vehicle (or a pilot does)
-        try:
-            await self._command_failsafe(failsafe)
-        except StatusError as err:
-            self.log.error("failsafe action refused by the vehicle", reason=err.message)
-
-    async def _command_failsafe(self, failsafe: Failsafe) -> None:
-        vehicle = self.vehicle
-        if await command_action(vehicle, failsafe.action):
-            return
-        if failsafe.station is not None:
-            here = await latest_position(vehicle)
-            at = self.stations[failsafe.station].location
-            await vehicle.Goto(
-                api.GotoRequest(
-                    latitude_deg=at.latitude_deg,
-                    longitude_deg=at.longitude_deg,
-                    relative_altitude_m=max(here.relative_altitude_m, 1.0),
-                )
-            )
-
-    async def _land_at_station(self, failsafe: Failsafe, here: api.Position) -> None:
-        """Lands once a nearest_station failsafe has brought the vehicle over its station
-        (``safety.landing_due``); once: the vehicle landing is no longer flying there."""
-        assert failsafe.station is not None
-        if failsafe is self._landing_for or not landing_due(here, self.stations[failsafe.station]):
-            return
-        async with self._lock:
-            if self.core.failsafe is failsafe:
-                self._landing_for = failsafe
-                self.log.warning("failsafe: landing at the station", station=failsafe.station)
-                try:
-                    self.core.commanding(LAND, time.time())
-                    await self.vehicle.Land(api.LandRequest())
-                    self.commanded(LAND)
-                except StatusError as err:
-                    self._landing_for = None  # tried again at the next look
-                    self.log.error("failsafe landing refused by the vehicle", reason=err.message)
+                    )
+            await asyncio.sleep(WATCH_TICK_S)
 
     def commanded(self, action: str | None) -> None:
         """The vehicle accepted a command for ``action`` (``DroneCore.commanded``; the
@@ -415,115 +254,66 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             links[cid] = self.probes.state(cid, cid in up, down, clock)
         return links
 
-    def _takeover_due(self, now: float | None = None) -> TakeoverDue | None:
+    def _stream_holders(self) -> tuple[set[int], set[int]]:
+        """Who holds a stream now, and who holds the master's Connect stream."""
+        holders = self.standby.reachable | self.streams.holders
+        return holders, ({self.seq.master} if self.streams.master_connected else set())
+
+    def _takeover_due(self) -> TakeoverDue | None:
         """``DroneCore.takeover_due`` with who holds a stream now and who is in range."""
         in_range = self.policy.in_range() if self.policy is not None else None
-        holders = self.standby.reachable | self.streams.holders
-        connected = {self.seq.master} if self.streams.master_connected else set()
-        return self.core.takeover_due(
-            time.time() if now is None else now, holders, connected, in_range
+        return self.core.takeover_due(time.time(), *self._stream_holders(), in_range)
+
+    def apply(self, effects: Iterable[DroneEffect], notice_delay_s: float = 0.0) -> None:
+        """Carries out the core's effects in their order (``effects.py``), under the lock.
+        ``notice_delay_s`` holds a switch's notice back (``Race``)."""
+        for effect in effects:
+            if isinstance(effect, Abandon):
+                if self.store is not None:
+                    self.store.abandon()
+            elif isinstance(effect, Book):
+                if self.store is not None:
+                    served = effect.served
+                    counters, oldest = self._counters(), self.seq.cache.reqnrs[0]
+                    self.store.served(counters, served.cached, served.audit, oldest)
+            elif isinstance(effect, SaveCounters):
+                if self.store is not None:
+                    self.store.save(self._counters())
+            elif isinstance(effect, Switched):
+                self._switched(effect.record, notice_delay_s)
+            elif isinstance(effect, Preparing):
+                self.log.info(
+                    "preparing a handover",
+                    target=effect.notice.target,
+                    timeout_s=effect.notice.timeout_s,
+                    master_connected=self.streams.master_connected,
+                )
+                self.streams.wake(self.seq.master)
+            elif isinstance(effect, TellTakeOver):
+                self._tell_take_over(effect)
+            else:
+                (self.log.warning if effect.level == "warning" else self.log.info)(
+                    effect.event, **effect.fields
+                )
+
+    def _tell_take_over(self, effect: TellTakeOver) -> None:
+        record, lost_at = effect.record, effect.lost_at
+        told = self.standby.tell(
+            record.new_master, drone_pb2.StandbyEvent(take_over=effect.take_over)
         )
-
-    def hand_over(
-        self,
-        new_master: int,
-        trigger: drone_pb2.HandoverTrigger.ValueType,
-        takeover: bool = False,
-        reason: str = "",
-        position: api.Position | None = None,
-    ) -> drone_pb2.HandoverRecord:
-        """Moves the master to ``new_master`` now, between two requests (the caller holds
-        the lock): the one path of the Handover RPC and of the handover policy.
-
-        A takeover when asked, or when the current master could not send its log
-        (``Sequencer.handover_must_take_over``); else the paper's cooperative handover.
-        """
-        now = time.time()
-        if self.core.must_take_over(new_master, takeover):
-            return self._take_over(new_master, trigger, now, reason=reason, position=position)
-        record = self.seq.switch(new_master, trigger, now, reason=reason, position=position)
-        self._switched(record)
-        if self.store is not None:
-            self.store.save(self._counters())
-        return record
-
-    def _take_over(
-        self,
-        new_master: int,
-        trigger: drone_pb2.HandoverTrigger.ValueType,
-        now: float,
-        lost_at: float = 0.0,
-        reason: str = "",
-        position: api.Position | None = None,
-        lost: int | None = None,
-    ) -> drone_pb2.HandoverRecord:
-        """Switches to ``new_master`` by takeover (under the lock) and tells it on its standby.
-
-        ``lost`` is the controller whose log is given up (``TakeoverDue.lost``; None: the
-        master, or the lost old master of the last switch when the master is granted
-        again)."""
-        record = self.seq.switch(
-            new_master,
-            trigger,
-            now,
-            takeover=True,
-            lost_at=lost_at,
-            reason=reason,
-            position=position,
-            lost=lost,
-        )
-        self._switched(record)
-        if self.store is not None:
-            self.store.save(self._counters())
-        told = self.standby.tell(new_master, self._take_over_event(record))
         retained, retained_bytes = self.seq.cache.retained
+        lost = record.trigger == drone_pb2.HANDOVER_TRIGGER_LOST
         self.log.warning(
-            "master lost: taken over" if trigger == drone_pb2.HANDOVER_TRIGGER_LOST else "takeover",
+            "master lost: taken over" if lost else "takeover",
             lost=record.old_master,
-            new_master=new_master,
+            new_master=record.new_master,
             epoch=record.epoch,
-            unseen_s=round(now - lost_at, 3) if lost_at else None,
+            unseen_s=round(record.decided_at - lost_at, 3) if lost_at else None,
             watermark_reqnr=self.seq.cache.watermark,
             retained_replies=retained,
             retained_bytes=retained_bytes,
             told_on_standby=told,
         )
-        return record
-
-    def _take_over_from_earlier_self(self, cid: int, given_up_epoch: int) -> None:
-        """A fresh self of the master that gave its mastership up (under the lock, checked
-        again: a second Connect of it finds the epoch moved on) is granted a new epoch by
-        a takeover of its earlier self (``Sequencer.fresh_self_due``); its Connected
-        says so. Nothing is told on its standby stream: this Connect carries it."""
-        if not self.seq.fresh_self_due(cid, 0, given_up_epoch):
-            return
-        record = self.seq.take_over_from_earlier_self(cid, time.time())
-        self._switched(record)
-        if self.store is not None:
-            self.store.save(self._counters())
-        self.log.warning(
-            "master's fresh self takes over from its earlier self",
-            controller=cid,
-            given_up_epoch=given_up_epoch,
-            epoch=record.epoch,
-        )
-
-    def _take_over_event(self, record: drone_pb2.HandoverRecord) -> drone_pb2.StandbyEvent:
-        """The TakeOver (small: the replies the taker lacks follow its Connected)."""
-        return drone_pb2.StandbyEvent(
-            take_over=drone_pb2.TakeOver(
-                old_master=record.old_master,
-                epoch=record.epoch,
-                after_reqnr=record.after_reqnr,
-                watermark_reqnr=self.seq.cache.watermark,
-            )
-        )
-
-    def _take_over_owed(self, cid: int) -> drone_pb2.StandbyEvent | None:
-        """The TakeOver again for a taker that has not sent a request since (the stream
-        that was to carry it may have broken first); None otherwise."""
-        record = self.core.takeover_owed(cid)
-        return None if record is None else self._take_over_event(record)
 
     # -- durable state (store.py) ---------------------------------------------------
 
@@ -541,39 +331,37 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
 
     def _restore(self, store: DroneStore) -> None:
-        """Resumes from the store: master, counters, replies, audit, script, a request cut off."""
+        """Resumes from the store (``DroneCore.restarted``): master, counters, replies,
+        audit, script, the vehicle's commanded state, a failsafe, a request cut off."""
         state = store.load()
         if state is None:
             store.save(self._counters())
             self.log.info("new state file", path=str(store.path))
             return
-        c, seq = state.counters, self.seq
-        speed = store.load_commanded().get(SPEED_KEY)
+        c, seq, commanded = state.counters, self.seq, store.load_commanded()
+        speed = commanded.get(SPEED_KEY)
         if speed is not None:
             self.vehicle.restore_speed(float(speed))
             self.log.info("cruise speed restored", speed_m_s=speed)
-        commanded = store.load_commanded().get(VEHICLE_COMMAND_KEY)
-        if commanded is not None:
-            # Its modes read after the restart grace: the telemetry comes back meanwhile.
-            self.core.vehicle_command = VehicleCommand(
-                tuple(commanded), time.time() + RESTART_GRACE_S
-            )
+        modes = commanded.get(VEHICLE_COMMAND_KEY)
         failsafe = store.load_failsafe()
         if failsafe is not None:
-            self.core.enter_failsafe(failsafe)
             self.log.warning("still in failsafe", cause=failsafe.cause, reason=failsafe.reason)
         self.operator.restore()
-        counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
-        self.core.resume(
-            time.time(),
+        cut = self.cut_off = state.executing
+        kept = Kept(
             c.master,
             c.handovers,
-            counts,
+            (c.last_reqnr, c.executed, c.duplicates, c.rejected),
             state.replies,
             state.audit,
             c.fired_script,
             c.watermark,
+            None if modes is None else tuple(modes),
+            failsafe,
+            cut,
         )
+        effects = self.core.restarted(time.time(), kept)
         self.log.info(
             "state resumed",
             path=str(store.path),
@@ -584,18 +372,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             audit=len(state.audit),
             script_left=len(seq.script),
         )
-        cut = self.cut_off = state.executing
-        if cut is None:
-            return
-        error = self.core.cut_off(cut)
-        if error is None:
-            store.abandon()
-            self.log.info("read cut off by the restart: will execute again", reqnr=cut.reqnr)
-            return
-        self.log.warning("request cut off by the restart", reqnr=cut.reqnr, method=cut.method)
-        self._served(
-            cut.controller_id, cut.reqnr, cut.method, cut.digest, b"", cut.received_at, error
-        )
+        self._served(0 if cut is None else cut.reqnr, effects)
 
     async def Invoke(
         self, request: drone_pb2.InvokeRequest, context: grpc.aio.ServicerContext
@@ -735,18 +512,19 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 return self._answer_duplicate(request, admitted.cached)
             if self.store is not None:
                 self.store.begin(Intent(reqnr, method, digest, cid, received_at), admitted.kept)
-            if admitted.refused is not None:
-                self._served(cid, reqnr, method, digest, b"", received_at, admitted.refused)
-                raise admitted.refused
             try:
+                if admitted.refused is not None:
+                    raise admitted.refused
                 reply = await self._execute(request)
             except StatusError as err:
-                if self.core.books(err):
-                    self._served(cid, reqnr, method, digest, b"", received_at, err)
-                elif self.store is not None:
-                    self.store.abandon()
+                now = time.time()
+                self._served(
+                    reqnr, self.core.failed(cid, reqnr, method, digest, received_at, now, err)
+                )
                 raise
-            self._served(cid, reqnr, method, digest, reply, received_at)
+            self._served(
+                reqnr, self.core.served(cid, reqnr, method, digest, reply, received_at, time.time())
+            )
             epoch = self.seq.epoch
         if (
             self.race is not None
@@ -766,12 +544,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             method=request.method,
             failed=cached.error is not None,
         )
-        if cached.error is not None:
-            raise StatusError(
-                cached.error.code,
-                cached.error.message,
-                metadata=(*cached.error.metadata, ("baton-duplicate", "true")),
-            )
+        error = cached.duplicate_error()
+        if error is not None:
+            raise error
         return signed_reply(
             self.signer,
             request.reqnr,
@@ -785,12 +560,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     async def _execute(self, request: drone_pb2.InvokeRequest) -> bytes:
         route = self.dispatcher.route(request.method)
         message = route.parse(request.payload)
-        if route.service == "Mobility" and not self.vehicle.connected:
-            raise StatusError(
-                grpc.StatusCode.UNAVAILABLE,
-                f"{request.method}: the vehicle at {self.vehicle.url} is not connected: "
-                f"{self.vehicle.link().problem}",
-            )
+        why = f"at {self.vehicle.url} ({self.vehicle.link().problem})"
+        unreachable = self.core.unreachable(request.method, self.vehicle.connected, why)
+        if unreachable is not None:
+            raise unreachable
         handler = self.dispatcher.handler(route)
         action = VEHICLE_ACTIONS.get(route.name) if route.service == "Mobility" else None
         self.core.commanding(action, time.time())
@@ -822,38 +595,18 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         )
         return payload
 
-    def _served(
-        self,
-        cid: int,
-        reqnr: int,
-        method: str,
-        digest: bytes,
-        reply: bytes,
-        received_at: float,
-        error: StatusError | None = None,
-    ) -> None:
-        """Books a served request, saves it, and carries out the script's handover after it."""
-        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, time.time(), error)
-        if served.skipped is not None:
-            self.log.warning(
-                "scripted handover skipped: already the master",
-                new_master=served.skipped.new_master,
-                after_reqnr=reqnr,
-                script_line=served.skipped.line,
-            )
-        if served.handover is not None:
-            hold = self.race.delay_s if self.race and self.race.order == "reply-first" else 0.0
-            self._switched(served.handover, notice_delay_s=hold)
+    def _served(self, reqnr: int, effects: list[DroneEffect]) -> None:
+        """Applies a served request's effects (``DroneCore.served``): booked and saved, and
+        the script's handover or preparation after it."""
+        race = self.race
+        hold = race.delay_s if race is not None and race.order == "reply-first" else 0.0
+        self.apply(effects, notice_delay_s=hold)
+        if any(isinstance(effect, Switched) for effect in effects):
             self._handed_over_after = reqnr
-        if served.prepare is not None:
-            self._preparing(served.prepare)
-        if self.store is not None:
-            self.store.served(
-                self._counters(), served.cached, served.audit, self.seq.cache.reqnrs[0]
-            )
 
     def _switched(self, record: drone_pb2.HandoverRecord, notice_delay_s: float = 0.0) -> None:
-        """Logs a switch and wakes the old master's stream to carry the notice."""
+        """Logs a switch, pins the policy to a master the script or an operator chose, and
+        wakes the old master's stream to carry the notice and a prepared Handover call."""
         prepared = {}
         if record.prepare_started_at:
             prepared = {
@@ -874,42 +627,11 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             **prepared,
             reason=record.reason or None,
         )
-        if self.policy is not None and record.trigger in (
-            drone_pb2.HANDOVER_TRIGGER_SCRIPT,
-            drone_pb2.HANDOVER_TRIGGER_RPC,
-        ):
-            self.policy.pin(record.new_master)  # they override the policy
+        if self.policy is not None and pins_policy(record):
+            self.policy.pin(record.new_master)
         self.streams.wake(record.old_master, notice_delay_s)
         self._switch_seen.set()
         self._switch_seen = asyncio.Event()
-
-    def can_prepare(self, new_master: int) -> bool:
-        """Whether a handover to ``new_master`` can be prepared: the master holds its
-        Connect stream (to hear the PrepareHandover) and could send its log."""
-        return self.core.can_prepare(self.streams.master_connected, new_master)
-
-    def prepare_handover(
-        self,
-        new_master: int,
-        trigger: drone_pb2.HandoverTrigger.ValueType,
-        reason: str = "",
-        position: api.Position | None = None,
-    ) -> None:
-        """Begins a prepared handover (the caller holds the lock; ``can_prepare``)."""
-        notice = self.seq.prepare(
-            new_master, trigger, time.time(), reason=reason, position=position
-        )
-        self._preparing(notice)
-
-    def _preparing(self, notice: drone_pb2.PrepareHandover) -> None:
-        """Logs a prepared handover begun and wakes the master's stream to carry it."""
-        self.log.info(
-            "preparing a handover",
-            target=notice.target,
-            timeout_s=notice.timeout_s,
-            master_connected=self.streams.master_connected,
-        )
-        self.streams.wake(self.seq.master)
 
     def _not_as(self, context: grpc.aio.ServicerContext, what: str, cid: int) -> StatusError | None:
         """Why the caller may not make ``what`` as controller ``cid``, or None: the
@@ -926,7 +648,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     async def Connect(
         self, request: drone_pb2.ConnectRequest, context: grpc.aio.ServicerContext
     ) -> AsyncIterator[drone_pb2.DroneEvent]:
-        """The master's event stream: Connected, then a HandoverNotice at the switch."""
+        """The master's event stream: what ``connects.ConnectStream`` says, in order."""
         cid = request.controller_id
         try:
             refusal = self._not_as(context, "Connect", cid)
@@ -934,46 +656,39 @@ class DroneService(drone_pb2_grpc.DroneServicer):
                 raise refusal
             if self.seq.fresh_self_due(cid, request.mastership_epoch, request.given_up_epoch):
                 async with self._lock:
-                    self._take_over_from_earlier_self(cid, request.given_up_epoch)
+                    self.apply(
+                        self.core.fresh_self_connect(cid, request.given_up_epoch, time.time())
+                    )
             stream = self.streams.attach(cid, request.mastership_epoch)
         except StatusError as err:
             self.log.warning("connect rejected", controller=cid, reason=err.message)
             await abort_with(context, err)
         self.log.info("master connected", controller=cid)
+        said = ConnectStream(cid)
         try:
-            first = self.core.connected(cid, request.holds_reqnr)
-            if first is not None:
-                grant, batches = first
+            grant, batches = said.opened(self.core, request.holds_reqnr)
+            if grant is not None:
                 yield drone_pb2.DroneEvent(connected=grant)
-                for batch in batches:
-                    yield drone_pb2.DroneEvent(
-                        retained=drone_pb2.RetainedBatch(
-                            replies=[signed_retained(self.signer, r.to_proto()) for r in batch]
-                        )
-                    )
-            sent_prepare: drone_pb2.PrepareHandover | None = None
-            said = ""  # the operator's pause as this stream last told it
+            for batch in batches:
+                replies = [signed_retained(self.signer, r.to_proto()) for r in batch]
+                yield drone_pb2.DroneEvent(retained=drone_pb2.RetainedBatch(replies=replies))
             while True:
-                word = self.operator.word()
-                if word.paused != said:
-                    yield drone_pb2.DroneEvent(operator=word)
-                    said = word.paused
-                notice = self.core.stream_event(cid, sent_prepare)
-                if isinstance(notice, drone_pb2.PrepareHandover):
-                    yield drone_pb2.DroneEvent(prepare=notice)
-                    sent_prepare = notice
-                    continue
-                if notice is not None:
-                    yield drone_pb2.DroneEvent(handover=notice)
-                    self.seq.delivered(cid, notice)
-                    self.log.info(
-                        "handover notice delivered",
-                        controller=cid,
-                        new_master=notice.new_master,
-                        after_reqnr=notice.after_reqnr,
-                        epoch=notice.epoch,
-                    )
-                    return
+                for event in said.woken(self.core):
+                    if isinstance(event, drone_pb2.OperatorWord):
+                        yield drone_pb2.DroneEvent(operator=event)
+                    elif isinstance(event, drone_pb2.PrepareHandover):
+                        yield drone_pb2.DroneEvent(prepare=event)
+                    else:
+                        yield drone_pb2.DroneEvent(handover=event)
+                        self.core.delivered(cid, event)
+                        self.log.info(
+                            "handover notice delivered",
+                            controller=cid,
+                            new_master=event.new_master,
+                            after_reqnr=event.after_reqnr,
+                            epoch=event.epoch,
+                        )
+                        return
                 if stream.superseded:
                     return
                 await stream.wake.wait()
@@ -1002,9 +717,10 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             yield drone_pb2.StandbyEvent(
                 held=drone_pb2.StandbyHeld(master=self.seq.master, epoch=self.seq.epoch)
             )
-            owed = self._take_over_owed(cid)
-            if owed is not None:
-                yield owed
+            owed = self.core.takeover_owed(cid)
+            if owed is not None:  # the stream that was to carry it may have broken first
+                told = take_over_event(owed, self.seq.cache.watermark)
+                yield drone_pb2.StandbyEvent(take_over=told)
             while True:
                 yield await stream.events.get()
         finally:
@@ -1025,7 +741,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     async def Handover(
         self, request: drone_pb2.HandoverRequest, context: grpc.aio.ServicerContext
     ) -> drone_pb2.HandoverReply:
-        """Switches the master after the request being served, if any.
+        """Switches the master after the request being served, if any
+        (``DroneCore.handover_call``); a prepared one is answered once the master moved.
 
         INVALID_ARGUMENT for an unknown id; FAILED_PRECONDITION if the id
         already is the master (not a silent no-op: a caller asking for a
@@ -1043,13 +760,24 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             )
             if refusal is not None:
                 raise refusal
-            self.seq.check_known(request.new_master)
-            if request.prepared and not request.takeover:
-                return await self._prepared_handover(request.new_master)
+            new_master = request.new_master
             async with self._lock:
-                record = self.hand_over(
-                    request.new_master, drone_pb2.HANDOVER_TRIGGER_RPC, request.takeover
+                effects = self.core.handover_call(
+                    new_master,
+                    request.prepared,
+                    request.takeover,
+                    self.streams.master_connected,
+                    time.time(),
                 )
+                self.apply(effects)
+                preparation = self.seq.preparing
+            if any(isinstance(effect, Preparing) for effect in effects):
+                assert preparation is not None
+                while self.seq.preparing is preparation:
+                    await self._switch_seen.wait()
+                record = self.core.prepared_outcome(new_master, preparation.started_at)
+            else:
+                record = self.seq.handovers[-1]
         except StatusError as err:
             self.log.warning("handover rejected", new_master=request.new_master, reason=err.message)
             await abort_with(context, err)
@@ -1070,43 +798,9 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         if refusal is not None:
             await abort_with(context, refusal)
         async with self._lock:
-            record = self.seq.progress_between(cid, request.epoch, request.progress, time.time())
-            if record is not None:
-                self._switched(record)
-                if self.store is not None:
-                    self.store.save(self._counters())
-        return drone_pb2.PreparationReportReply(moved=record is not None)
-
-    async def _prepared_handover(self, new_master: int) -> drone_pb2.HandoverReply:
-        """Handover(prepared): begins the preparation and answers once the master moved
-        (caught up, or forced at the timeout). A master without its Connect stream
-        cannot prepare anything: the handover is forced at once, as without ``prepared``."""
-        async with self._lock:
-            if not self.can_prepare(new_master):
-                preparation = None
-                record = self.hand_over(new_master, drone_pb2.HANDOVER_TRIGGER_RPC)
-            else:
-                self.prepare_handover(new_master, drone_pb2.HANDOVER_TRIGGER_RPC)
-                preparation = self.seq.preparing
-        if preparation is not None:
-            while self.seq.preparing is preparation:
-                await self._switch_seen.wait()
-            record = self.seq.handovers[-1]
-            if record.prepare_started_at != preparation.started_at:
-                raise StatusError(
-                    grpc.StatusCode.ABORTED,
-                    f"the handover to controller {new_master} being prepared was replaced by "
-                    f"another switch (to controller {record.new_master}, "
-                    f"{label(drone_pb2.HandoverKind, record.kind)})",
-                )
-        if self.store is not None:
-            self.store.save(self._counters())
-        return drone_pb2.HandoverReply(
-            old_master=record.old_master,
-            new_master=record.new_master,
-            after_reqnr=record.after_reqnr,
-            epoch=record.epoch,
-        )
+            effects = self.core.preparation_word(cid, request.epoch, request.progress, time.time())
+            self.apply(effects)
+        return drone_pb2.PreparationReportReply(moved=bool(effects))
 
     async def GetStatus(
         self, request: drone_pb2.GetDroneStatusRequest, context: grpc.aio.ServicerContext
@@ -1122,311 +816,5 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     async def status(
         self, include_audit: bool = False, audit_after_reqnr: int = 0, audit_limit: int = 0
     ) -> drone_pb2.DroneStatus:
-        """GetStatus without gRPC; the audit one page at a time (in bounded memory)."""
-        seq = self.seq
-        status = drone_pb2.DroneStatus(
-            master=seq.master,
-            epoch=seq.epoch,
-            last_reqnr=seq.last_reqnr,
-            executed=seq.executed,
-            duplicates=seq.duplicates,
-            rejected=seq.rejected,
-            vehicle_connected=self.vehicle.connected,
-            vehicle_url=self.vehicle.url,
-            position=await latest_position(self.vehicle),
-            handovers=seq.handovers,
-            master_connected=self.streams.master_connected,
-            controllers=seq.controllers,
-            vehicle=self.vehicle.link(),
-            waiting="; ".join(
-                filter(None, (self.waiting, self.store.problem if self.store else ""))
-            ),
-            waits=[w.to_proto() for w in self.waits]
-            + (
-                [Wait("state file", self.store.problem, 0.0).to_proto()]
-                if self.store is not None and self.store.problem
-                else []
-            ),
-            watermark_reqnr=seq.cache.watermark,
-            reachable=[c for c in seq.ring if c in self.standby.reachable],
-            takeover_after_s=self.takeover_after_s,
-            preparing_for=seq.preparing.target if seq.preparing is not None else -1,
-            preparing_lacks_bytes=(seq.preparing.lacks_bytes or 0) if seq.preparing else 0,
-            handover_policy=drone_pb2.HANDOVER_POLICY_NONE,
-        )
-        if self.policy is not None:
-            self.policy.fill_status(status)
-        if self.core.failsafe is not None:
-            status.failsafe.CopyFrom(failsafe_proto(self.core.failsafe))
-        fill_status(status, self.operator)
-        status.lost_link_s = self.core.safety.lost_link_s
-        status.lost_link_action = self.core.safety.lost_link_action
-        links, clock = self.link_states(), time.monotonic()
-        for cid in seq.ring:
-            status.links.append(
-                self.probes.status(
-                    cid,
-                    cid in self.standby.reachable,
-                    self.streams.connected(cid),
-                    links[cid].down_for_s,
-                    clock,
-                )
-            )
-        status.retained_replies, status.retained_bytes = seq.cache.retained
-        if self.vehicle.connected:
-            try:
-                status.flight_state.CopyFrom(
-                    await asyncio.wait_for(
-                        self.vehicle.GetFlightState(api.GetFlightStateRequest()),
-                        _STATUS_READ_TIMEOUT_S,
-                    )
-                )
-            except (StatusError, TimeoutError):
-                pass  # unknown now: left empty
-        if self.store is not None:
-            status.audit_oldest_reqnr = self.store.oldest_audit_reqnr()
-        elif seq.audit:
-            status.audit_oldest_reqnr = seq.audit[0].reqnr
-        if include_audit:
-            limit = min(audit_limit or AUDIT_PAGE, AUDIT_PAGE_MAX)
-            if self.store is not None:
-                page = self.store.audit_page(audit_after_reqnr, limit + 1)
-            else:
-                page = [e for e in seq.audit if e.reqnr > audit_after_reqnr][: limit + 1]
-            status.audit_more = len(page) > limit
-            status.audit.extend(page[:limit])
-        return status
-
-
-@dataclass(frozen=True)
-class Race:
-    """Forces footnote 2's race one way at scripted handovers (fault injection for tests).
-
-    ``notice-first`` holds the reply of the request after which the drone
-    hands over, so the old master gets the notice while its call is still in
-    flight; ``reply-first`` holds the notice, so the reply is logged first.
-    """
-
-    order: str
-    delay_s: float
-
-
-@dataclass(frozen=True)
-class DroneSettings:
-    """Everything ``baton drone`` runs with: the testbed model (``baton.config``: its
-    address, vehicle URL, controllers, master, speed-up, takeover and prepare times;
-    the --config file with the flags merged in) and what only the drone's flags give."""
-
-    config: BatonConfig = field(default_factory=lambda: controllers_only([0]))
-    handover_script: Mapping[int, ScriptedHandover] = field(default_factory=dict)
-    image_file: str | None = None
-    resolution: tuple[int, int] = DEFAULT_RESOLUTION
-    cache_window: int = DEFAULT_WINDOW
-    address_file: str | None = None
-    race: Race | None = None
-    state_file: str | None = None  # the durable state (store.py); None: memory only
-    camera_effects_file: str | None = None  # pictures counted (baton.effects); None: no file
-    thumbnails_dir: str | None = None  # a small JPEG of each picture kept here; None: none
-    # The drone's certificate (mutual TLS); None: an insecure port open to anyone.
-    tls: Tls | None = None
-    # The MAVLink signing key (signing.py), read from config.drone.mavlink_key;
-    # None: the autopilot link unsigned.
-    mavlink_key: bytes | None = None
-    # The handover policy (policy.py) and every controller's station; None: the
-    # script and the operator only.
-    policy: PolicyParams | None = None
-    stations: Mapping[int, Station] = field(default_factory=dict)
-
-    @property
-    def address(self) -> str:
-        """Where the drone serves."""
-        return self.config.drone.address
-
-    @property
-    def vehicle_url(self) -> str:
-        """The autopilot's MAVLink URL."""
-        return self.config.drone.vehicle_url
-
-    @property
-    def controllers(self) -> tuple[int, ...]:
-        """The controllers that may become master, in ring order."""
-        return tuple(self.config.ring_order)
-
-    @property
-    def master(self) -> int:
-        """The initial master: given, else the first controller."""
-        return self.config.master_id
-
-    @property
-    def speedup(self) -> float:
-        """The mission's speed-up."""
-        return self.config.speedup
-
-    @property
-    def takeover_after(self) -> float:
-        """The master is lost after this long without a stream or a request, in
-        mission seconds (divided by speedup); 0: never."""
-        return self.config.takeover_after
-
-    @property
-    def prepare_timeout_s(self) -> float:
-        """How long a prepared handover waits for its target (wall seconds)."""
-        return self.config.prepare_timeout
-
-    @property
-    def link_bounds(self) -> LinkBounds:
-        """What a healthy controller link is (GetStatus's links and the log, whatever the
-        policy; the policy's are the same, ``drone.cli.handover_policy``)."""
-        return link_bounds(self.config)
-
-
-def link_bounds(config: BatonConfig) -> LinkBounds:
-    """The model's bounds of a healthy controller link (``handover_policy.max_rtt`` and
-    ``rtt_stale``), as the policy and the link probes take them."""
-    return LinkBounds(config.handover_policy.max_rtt, config.handover_policy.rtt_stale)
-
-
-def safety_params(config: BatonConfig) -> SafetyParams:
-    """The model's safety net in wall seconds (mission seconds / speed-up)."""
-    safety = config.safety
-    return SafetyParams(
-        # At least the detection time in wall seconds, as a takeover's (its floor).
-        lost_link_s=detection_time_s(safety.lost_link, config.speedup),
-        lost_link_action=safety.lost_link_action,
-        max_speed_m_s=safety.max_speed,
-        max_altitude_m=safety.max_altitude,
-        battery_reserve_pct=safety.battery_reserve,
-        battery_action=safety.battery_action,
-        fence=safety.fence.fence() if safety.fence is not None else None,
-    )
-
-
-def autopilot_gcs_timeout_s(config: BatonConfig) -> float:
-    """The autopilot's own GCS failsafe time (its clock: mission seconds): the model's
-    ``safety.autopilot_gcs_timeout``, but never shorter than a restart of the drone
-    service takes (the restart grace, in wall seconds, times the speed-up), so that a
-    restart is not taken for the drone service's death; 0: left alone."""
-    configured = config.safety.autopilot_gcs_timeout
-    if configured <= 0:
-        return 0.0
-    return max(configured, RESTART_GRACE_S * config.speedup)
-
-
-def landing_stations(config: BatonConfig) -> dict[int, Station]:
-    """Every controller with a location, as a station to land at (nearest_station)."""
-    from baton.sdk.types import Position
-
-    return {
-        c.id: Station(c.id, Position(c.location.latitude_deg, c.location.longitude_deg), 0.0)
-        for c in config.controllers
-        if c.location is not None
-    }
-
-
-def build_service(settings: DroneSettings, vehicle: MobilityBackend) -> DroneService:
-    """The Drone servicer for ``settings`` over ``vehicle``."""
-
-    async def position() -> api.Position:
-        return await latest_position(vehicle)
-
-    camera = Camera(
-        position,
-        settings.image_file,
-        settings.resolution,
-        settings.camera_effects_file,
-        settings.thumbnails_dir,
-        aim=vehicle.looking_at,  # where the gimbal points: a picture records it
-    )
-    sequencer = Sequencer(
-        settings.controllers,
-        settings.master,
-        settings.handover_script,
-        settings.cache_window,
-        settings.prepare_timeout_s,
-    )
-    store = DroneStore(settings.state_file) if settings.state_file else None
-    takeover_after_s = detection_time_s(settings.takeover_after, settings.speedup)
-    service = DroneService(
-        vehicle,
-        camera,
-        sequencer,
-        settings.race,
-        store,
-        takeover_after_s,
-        authenticated=settings.tls is not None,
-        link_bounds=settings.link_bounds,
-        safety=safety_params(settings.config),
-        stations=landing_stations(settings.config),
-    )
-    if settings.tls is not None:
-        service.signer = Signer.from_pem(settings.tls.key)
-        sequencer.sign_grants_with(service.signer.seal_grant)
-    if settings.policy is not None:
-        service.policy = PolicyRunner(service, settings.policy, settings.stations, settings.speedup)
-        service.policy.restore()
-    gcs = getattr(vehicle, "gcs", None)  # ground stations watching (drone/gcs.py)
-    if gcs is not None:
-        gcs.on_override = service.operator.ground_station_paused
-        gcs.controller = lambda: str(sequencer.master)
-    return service
-
-
-async def serve(
-    settings: DroneSettings,
-    vehicle: MobilityBackend,
-    stop: asyncio.Event,
-    on_listening: Callable[[str], None] | None = None,
-) -> int:
-    """Runs the drone service until ``stop`` is set."""
-    service = build_service(settings, vehicle)
-    name = drone_pb2.DESCRIPTOR.services_by_name["Drone"].full_name
-    server = BatonServer(
-        settings.address,
-        [servicer(name, drone_pb2_grpc.add_DroneServicer_to_server, service)],
-        keepalive=CONTROLLER_KEEPALIVE_S if service.takeover_after_s > 0 else None,
-        tls=settings.tls,
-        policy=drone_policy(settings.controllers),
-    )
-    await vehicle.start()
-    await server.start()
-    log = get_logger("drone")
-    if settings.tls is None:
-        log.warning(INSECURE_WARNING)
-    log.info(
-        "listening",
-        address=server.address,
-        vehicle_url=vehicle.url,
-        controllers=list(settings.controllers),
-        master=settings.master,
-        scripted_handovers=len(settings.handover_script),
-        handover_policy=settings.policy.name if settings.policy is not None else "none",
-        speedup=settings.speedup,
-    )
-    announce(settings.address_file, [server.address], {"address": server.address})
-    if on_listening is not None:
-        on_listening(server.address)
-    watchdog = asyncio.create_task(service.watch(), name="stall-watchdog")
-    takeovers = asyncio.create_task(service.watch_master(), name="takeover-watch")
-    failsafes = asyncio.create_task(service.watch_failsafe(), name="failsafe-watch")
-    pings = asyncio.create_task(service.watch_links(), name="link-pings")
-    policy = (
-        asyncio.create_task(service.policy.run(), name="handover-policy")
-        if service.policy is not None
-        else None
-    )
-    try:
-        await stop.wait()
-    finally:
-        watchdog.cancel()
-        takeovers.cancel()
-        failsafes.cancel()
-        pings.cancel()
-        if policy is not None:
-            policy.cancel()
-        await server.stop()
-        await vehicle.close()
-        if service.store is not None:
-            service.store.close()
-        log.info("stopped", executed=service.seq.executed, last_reqnr=service.last_reqnr)
-    sys.stdout.flush()
-    return 0
+        """GetStatus without gRPC (``status.drone_status``)."""
+        return await drone_status(self, include_audit, audit_after_reqnr, audit_limit)

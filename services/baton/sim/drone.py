@@ -1,30 +1,24 @@
-"""The simulated drone: the real ``DroneCore`` over a simulated vehicle and camera.
+"""The simulated drone: a driver of the real ``DroneCore``, as ``drone/service.py`` is.
 
-``SimDrone`` is a driver of the drone's pure core, as ``drone/service.py``'s
-``DroneService`` is: one line of execution (its lock: requests and Handover
-calls are taken in arrival order, one at a time), every decision asked of
-``DroneCore`` and its ``Sequencer`` (``admit``, ``books``, ``served``,
-``switch``, ``admit_connect``, ``takeover_due``, ``resume``), the request's intent
-kept while it executes, Connect streams that carry the Connected grant,
-a prepared handover's PrepareHandover and the handover notice, the
-preparation's progress word on each Invoke and its deadline in
-``watch_master`` (docs/design.md, "Prepared handover"), and a restart
-that resumes from the durable state exactly as ``DroneService._restore``
-does (the reply cache, the counters, the audit and the script, not the
-pending notices nor a preparation; a command cut off by the restart is
-booked UNKNOWN and never executed again, a read cut off runs again when
-re-sent).
+``SimDrone`` keeps one line of execution (its queue: requests, Handover and
+operator calls, the master's word, the watches' turns, policy steps, each
+taken in arrival order, one at a time, as the service's lock takes them),
+turns the simulated network's calls and streams into the core's events
+(``admit``, ``served``, ``failed``, ``handover_call``, ``master_watch``,
+``preparation_word``, ``fresh_self_connect``, ``policy_handover``,
+``restarted``, ``failsafe_check``, ``operator_command``) and applies the
+effects they return (``_apply``, as ``DroneService.apply``); a Connect
+stream writes what ``connects.ConnectStream`` says. A restart builds a new
+core from what the store keeps (``Kept``): not the pending notices nor a
+preparation; a command cut off by it is booked, a read runs again.
 
-``SimVehicle`` and ``SimCamera`` are the ground truth: they record every
-read, flight command and picture they act on, by request, below every
-piece of baton's bookkeeping, as ``baton.effects`` does for the sim vehicle
-and the camera. The oracles count there, not in the audit.
-
+The vehicle and the camera are the ground truth (``sim/vehicle.py``).
 Simplifications: a request takes a drawn time to execute, and a command
 reaches the vehicle at a drawn point inside it (a drone restart before
 that point means the vehicle never saw it); the vehicle's own
 retransmission handling (``sim_vehicle/retransmissions.py``) is not
-modelled; GetStatus is not modelled.
+modelled; GetStatus, the fence and the station landing (no position) and
+the operator's word on the Connect stream are not modelled.
 """
 
 from __future__ import annotations
@@ -38,29 +32,36 @@ import grpc
 
 from baton.authenticity import signed_reply, signed_retained
 from baton.digest import request_digest
-from baton.drone.core import RESTART_GRACE_S, DroneCore
+from baton.drone.connects import ConnectStream
+from baton.drone.core import WATCH_TICK_S, DroneCore, Kept
 from baton.drone.dedupe import CachedReply
+from baton.drone.effects import (
+    Abandon,
+    Book,
+    DroneEffect,
+    Note,
+    Preparing,
+    Switched,
+    TellTakeOver,
+    pins_policy,
+    take_over_event,
+)
 from baton.drone.invariants import DroneWatch
-from baton.drone.policy import PREPARE, SWITCH, Decision, handover_step
+from baton.drone.policy import Decision
 from baton.drone.safety import (
-    FLY,
-    HOLD,
-    LAND,
-    RTL,
     VEHICLE_ACTIONS,
     Failsafe,
     ModeSeen,
-    VehicleCommand,
     commanded_action,
 )
 from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
-from baton.drone.service import TAKEOVER_TICK_S
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.labels import label
 from baton.rpc.methods import drone_api, service_prefix
 from baton.sim.mission import UNPARSABLE
 from baton.sim.policy_runner import PolicyStep, SimPolicyRunner
+from baton.sim.vehicle import SimCamera, SimVehicle
 from baton.v1 import drone_pb2
 
 if TYPE_CHECKING:
@@ -73,88 +74,7 @@ CAMERA = service_prefix("Camera")
 # The sim's replies are tens of bytes: batches of about one or two of them, so that a
 # stream can break between the Connected event and its last retained batch.
 RETAINED_BATCH_BYTES = 64
-RPC = drone_pb2.HANDOVER_TRIGGER_RPC  # an operator's Handover
-# The vehicle's flight mode after each command, as MAVSDK names the sim vehicle's (PX4's:
-# a reposition flies in Hold).
-MODE_AFTER = {FLY: "HOLD", HOLD: "HOLD", LAND: "LAND", RTL: "RETURN_TO_LAUNCH"}
 POLICY = drone_pb2.HANDOVER_TRIGGER_POLICY
-
-
-@dataclass(frozen=True)
-class Acted:
-    """One thing the vehicle or the camera did: when, for which request, and what it answered."""
-
-    time: float
-    tag: bytes  # the request bytes (unique per mission call for commands and pictures)
-    reqnr: int
-    reply: bytes
-
-
-class SimVehicle:
-    """The autopilot: answers reads, acts on flight commands, and counts both.
-
-    ``connected`` is False during an outage: the drone then refuses every
-    Mobility request UNAVAILABLE without reaching the vehicle.
-    """
-
-    def __init__(self, battery_drain_pct_s: float = 0.0) -> None:
-        self.connected = True
-        self.battery_drain_pct_s = battery_drain_pct_s
-        self.commands: list[Acted] = []
-        self.reads: dict[int, list[Acted]] = {}
-        # The failsafe actions the drone commanded (no request's: the oracles keep them
-        # apart), and the operator's resumes, as (time, what).
-        self.failsafes: list[tuple[float, str]] = []
-        self.resumes: list[float] = []
-        # Every operator command the drone took, as (time, command, what the vehicle
-        # was told): a pause holds, an abort returns or lands, a resume may fly on.
-        self.operator: list[tuple[float, str, str]] = []
-        # Its flight mode, and each time the autopilot took it over (time, mode).
-        self.mode = "HOLD"
-        self.takeovers: list[tuple[float, str]] = []
-        self._serial = 0
-
-    def obey(self, action: str | None) -> None:
-        """The flight mode a command for ``action`` (``safety.FLY``, ...) puts it in."""
-        if action is not None:
-            self.mode = MODE_AFTER[action]
-
-    def take_over(self, now: float, mode: str) -> None:
-        """The autopilot's own decision (a failsafe of its own, a pilot): ``mode``."""
-        self.mode = mode
-        self.takeovers.append((now, mode))
-
-    def battery(self, now: float) -> float:
-        """The battery left at ``now``, percent (drained at a constant rate from 100)."""
-        return max(0.0, 100.0 - self.battery_drain_pct_s * now)
-
-    def act(self, now: float, reqnr: int, method: str, request: bytes) -> bytes:
-        """A flight command reaches the vehicle; the vehicle acts on it."""
-        self._serial += 1
-        reply = b"%s %s: done #%d" % (method.encode(), request, self._serial)
-        self.commands.append(Acted(now, request, reqnr, reply))
-        return reply
-
-    def read(self, now: float, reqnr: int, method: str) -> bytes:
-        """Telemetry read for request ``reqnr``."""
-        self._serial += 1
-        reply = b"%s @%.6f #%d" % (method.encode(), now, self._serial)
-        self.reads.setdefault(reqnr, []).append(Acted(now, b"", reqnr, reply))
-        return reply
-
-
-class SimCamera:
-    """The camera: takes a picture (a large reply) per request it is given, and counts it."""
-
-    def __init__(self) -> None:
-        self.pictures: list[Acted] = []
-
-    def take(self, now: float, reqnr: int, request: bytes, size: int) -> bytes:
-        """One picture of ``size`` bytes."""
-        head = b"picture for %s #%d;" % (request, len(self.pictures) + 1)
-        reply = head + bytes(max(0, size - len(head)))
-        self.pictures.append(Acted(now, request, reqnr, reply))
-        return reply
 
 
 @dataclass(eq=False)
@@ -214,8 +134,8 @@ class PreparationWord:
 
 
 @dataclass(frozen=True)
-class TakeoverCheck:
-    """``watch_master``'s re-check under the execution lock (a takeover waits its turn)."""
+class MasterCheck:
+    """``watch_master``'s turn under the execution lock (``DroneCore.master_watch``)."""
 
 
 @dataclass(frozen=True)
@@ -233,7 +153,7 @@ class FreshSelfConnect:
 
 @dataclass(frozen=True)
 class FailsafeCheck:
-    """watch_failsafe's turn under the lock: the failsafe due checked again, then entered."""
+    """FailsafeWatch.run under the lock: the failsafe due checked again, then entered."""
 
 
 @dataclass(frozen=True)
@@ -243,11 +163,6 @@ class OperatorOrder:
 
     command: str  # operator.COMMANDS
     action: str = ""  # an abort's: rtl or land
-
-
-@dataclass(frozen=True)
-class PreparationCheck:
-    """``watch_master``'s ``preparation_expired`` under the execution lock."""
 
 
 @dataclass(eq=False)
@@ -269,8 +184,8 @@ class Stream:
     session: int
     link: DroneLink
     connection: int
-    # The PrepareHandover last sent on it (DroneService.Connect's ``sent_prepare``).
-    sent_prepare: drone_pb2.PrepareHandover | None = None
+    # What it already said (connects.ConnectStream).
+    said: ConnectStream
 
 
 @dataclass
@@ -319,8 +234,7 @@ class SimDrone:
         self.queue: deque[
             Request
             | HandoverOrder
-            | TakeoverCheck
-            | PreparationCheck
+            | MasterCheck
             | PreparationWord
             | PolicyStep
             | FreshSelfConnect
@@ -337,7 +251,6 @@ class SimDrone:
         self.takeovers = 0
         self._watching = False
         self._check_queued = False
-        self._expiry_queued = False
         self._failsafe_queued = False
         # Every prepared handover the drone carried out or forced (the record check).
         self.prepared_records: list[drone_pb2.HandoverRecord] = []
@@ -385,21 +298,20 @@ class SimDrone:
             if isinstance(item, HandoverOrder):
                 self._handover(item)
             elif isinstance(item, PreparationWord):
-                record = self.seq.progress_between(
-                    item.controller_id, item.epoch, item.progress, self.world.loop.now
+                now = self.world.loop.now
+                moved = self.core.preparation_word(
+                    item.controller_id, item.epoch, item.progress, now
                 )
-                if record is not None:
-                    self.words_moved += 1
-                    self._switched(record, on_the_word=True)
+                self.words_moved += bool(moved)
+                self._apply(moved, on_the_word=True)
             elif isinstance(item, PolicyStep):
                 if self.policy is not None:
                     self.policy.carry_out(item)
-            elif isinstance(item, TakeoverCheck):
+            elif isinstance(item, MasterCheck):
                 self._check_queued = False
-                self._takeover_check()
-            elif isinstance(item, PreparationCheck):
-                self._expiry_queued = False
-                self._preparation_check()
+                in_range = self.policy.in_range() if self.policy is not None else None
+                now = self.world.loop.now
+                self._apply(self.core.master_watch(now, *self._holders(), in_range))
             elif isinstance(item, FreshSelfConnect):
                 self._fresh_self_connect(item)
             elif isinstance(item, FailsafeCheck):
@@ -443,11 +355,9 @@ class SimDrone:
             )
             self._failed(request, digest, bad)
             return
-        if route.service == "Mobility" and not self.vehicle.connected:
-            out = StatusError(
-                grpc.StatusCode.UNAVAILABLE, f"{method}: the vehicle is not connected"
-            )
-            self._failed(request, digest, out)
+        unreachable = self.core.unreachable(method, self.vehicle.connected, "(an outage)")
+        if unreachable is not None:
+            self._failed(request, digest, unreachable)
             return
         rng = self.world.rng
         if route.is_read:
@@ -463,12 +373,11 @@ class SimDrone:
         loop.at(now + duration, self._complete, execution)
 
     def _failed(self, request: Request, digest: bytes, error: StatusError) -> None:
+        cid, reqnr, method = request.controller_id, request.reqnr, request.method
+        now = self.world.loop.now
         if self.core.books(error):
             _acted_on(request)
-            cid, reqnr, method = request.controller_id, request.reqnr, request.method
-            self._served(cid, reqnr, method, digest, b"", error, request.received_at)
-        else:
-            self.intent = None  # store.abandon()
+        self._apply(self.core.failed(cid, reqnr, method, digest, request.received_at, now, error))
         self._reply(request, b"", error)
 
     def _act(self, execution: Execution) -> None:
@@ -508,60 +417,41 @@ class SimDrone:
         _acted_on(request)
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         received = request.received_at
+        now, digest = self.world.loop.now, execution.digest
         if execution.error is not None:
-            self._served(
-                cid,
-                reqnr,
-                method,
-                execution.digest,
-                b"",
-                execution.error,
-                received,
-            )
+            error = execution.error
+            self._apply(self.core.served(cid, reqnr, method, digest, b"", received, now, error))
             self._reply(request, b"", execution.error)
         else:
-            self._served(
-                cid,
-                reqnr,
-                method,
-                execution.digest,
-                execution.reply,
-                None,
-                received,
-            )
             reply = execution.reply
+            self._apply(self.core.served(cid, reqnr, method, digest, reply, received, now))
             self._reply(request, reply, None, execution.digest, self.seq.epoch)
         self._next()
 
-    def _served(
-        self,
-        cid: int,
-        reqnr: int,
-        method: str,
-        digest: bytes,
-        reply: bytes,
-        error: StatusError | None,
-        received_at: float,
-    ) -> None:
-        """DroneService._served: books the outcome (the store's transaction), fires the script."""
-        now = self.world.loop.now
-        served = self.seq.served(cid, reqnr, method, digest, reply, received_at, now, error)
-        self.intent = None
-        retained, _ = self.seq.cache.retained
-        self.stats.peak_cache = max(self.stats.peak_cache, len(self.seq.cache) - retained)
-        self.stats.peak_retained = max(self.stats.peak_retained, retained)
-        if served.handover is not None:
-            self._switched(served.handover)
-        if served.prepare is not None:
-            self._preparing(served.prepare)
+    def _apply(self, effects: list[DroneEffect], on_the_word: bool = False) -> None:
+        """DroneService.apply: the core's effects in their order (``drone/effects.py``).
+        The store is the core itself here (a restart copies it): a booked outcome only
+        ends the request's intent. ``on_the_word``: the master's word moved it."""
+        for effect in effects:
+            if isinstance(effect, Abandon):
+                self.intent = None  # store.abandon()
+            elif isinstance(effect, Book):
+                self.intent = None
+                retained, _ = self.seq.cache.retained
+                self.stats.peak_cache = max(self.stats.peak_cache, len(self.seq.cache) - retained)
+                self.stats.peak_retained = max(self.stats.peak_retained, retained)
+            elif isinstance(effect, Switched):
+                self._switched(effect.record, on_the_word)
+            elif isinstance(effect, Preparing):
+                self._preparing(effect.notice)
+            elif isinstance(effect, TellTakeOver):
+                self._tell_take_over(effect.record.new_master, effect.take_over)
+            elif isinstance(effect, Note):
+                self.world.trace(f"drone: {effect.event} {dict(effect.fields)}")
 
     def _answer_duplicate(self, request: Request, cached: CachedReply) -> None:
-        if cached.error is not None:
-            error = StatusError(
-                cached.error.code,
-                cached.error.message,
-                metadata=(*cached.error.metadata, ("baton-duplicate", "true")),
-            )
+        error = cached.duplicate_error()
+        if error is not None:
             self._reply(request, b"", error)
         else:
             self._reply(request, cached.reply, None, cached.digest, cached.epoch, duplicate=True)
@@ -628,33 +518,16 @@ class SimDrone:
     # -- masters and streams -----------------------------------------------------
 
     def _handover(self, order: HandoverOrder) -> None:
-        """DroneService.Handover: cooperative, or a takeover while the master is a taker
-        that has not connected yet (``Sequencer.handover_must_take_over``). Prepared
-        (``_prepared_handover``) if the master can prepare (``can_prepare``)."""
+        """DroneService.Handover under the lock (``DroneCore.handover_call``); a refusal is
+        the operator's error, nothing changes."""
         try:
-            if order.prepared and self._can_prepare(order.new_master):
-                self.seq.check_known(order.new_master)
-                notice = self.seq.prepare(order.new_master, RPC, self.world.loop.now)
-                self._preparing(notice)
-                return
-            self._hand_over(order.new_master, RPC)
+            connected = self.seq.master in self.streams
+            now = self.world.loop.now
+            self._apply(
+                self.core.handover_call(order.new_master, order.prepared, False, connected, now)
+            )
         except StatusError:
             return
-
-    def _hand_over(
-        self,
-        new_master: int,
-        trigger: drone_pb2.HandoverTrigger.ValueType,
-        takeover: bool = False,
-    ) -> None:
-        """DroneService.hand_over: by takeover when asked or when the master could not
-        send its log (``Sequencer.handover_must_take_over``), else cooperative."""
-        now = self.world.loop.now
-        if self.core.must_take_over(new_master, takeover):
-            self.seq.check_known(new_master)
-            self._take_over(new_master, trigger, now, 0.0)
-            return
-        self._switched(self.seq.switch(new_master, trigger, now))
 
     # -- the handover policy (drone/policy_runner.py; sim/policy_runner.py) ----------
 
@@ -671,39 +544,23 @@ class SimDrone:
         """PolicyRunner.tick's handover under the lock: only if the master is still the one
         decided for; prepared if the master can prepare, else at once (a takeover if the
         decision says so). What it did, for the counts."""
-        seq, target = self.seq, decision.target
-        assert target is not None
-        preparing = seq.preparing
+        connected = self.seq.master in self.streams
         try:
-            step = handover_step(
-                decision,
-                master,
-                seq.master,
-                self._can_prepare(target),
-                None if preparing is None else preparing.target,
+            step, effects = self.core.policy_handover(
+                decision, master, connected, self.world.loop.now
             )
-            if step == SWITCH:
-                self._hand_over(target, POLICY, decision.takeover)
-                return "takeover" if decision.takeover else step
-            if step == PREPARE:
-                self._preparing(seq.prepare(target, POLICY, self.world.loop.now))
-            return step
         except StatusError as err:  # PolicyRunner.run: "policy step failed"
             self.world.trace(f"drone: policy step failed: {err.message}")
             return "failed"
-
-    def _can_prepare(self, new_master: int) -> bool:
-        """DroneService.can_prepare: the master holds its Connect stream (to hear the
-        PrepareHandover) and could send its log."""
-        return self.core.can_prepare(self.seq.master in self.streams, new_master)
+        self._apply(effects)
+        return step
 
     def _switched(self, record: drone_pb2.HandoverRecord, on_the_word: bool = False) -> None:
         """MasterStreams.wake: the old master's Connect handler resumes on a later loop turn;
-        a master the script or an operator chose pins the policy (DroneService._switched)."""
-        if self.policy is not None and record.trigger in (
-            drone_pb2.HANDOVER_TRIGGER_SCRIPT,
-            RPC,
-        ):
+        a master the script or an operator chose pins the policy (``effects.pins_policy``)."""
+        if record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER:
+            self.takeovers += 1
+        if self.policy is not None and pins_policy(record):
             self.policy.pin(record.new_master)
         if record.trigger == POLICY:
             self.policy_switches[_ending(record, on_the_word)] += 1
@@ -727,7 +584,7 @@ class SimDrone:
         self.world.switched(record)  # where the lose-master fault may strike (faults.py)
 
     def _preparing(self, notice: drone_pb2.PrepareHandover) -> None:
-        """DroneService._preparing: wakes the master's stream to carry the notice."""
+        """A ``Preparing`` effect: wakes the master's stream to carry the notice."""
         self.preparations += 1
         self.world.trace(
             f"drone: preparing a handover from {self.seq.master} to {notice.target} "
@@ -763,35 +620,32 @@ class SimDrone:
         stream = self.streams.get(cid)
         if stream is None or not self.up:
             return
-        event = self.core.stream_event(cid, stream.sent_prepare)
-        if isinstance(event, drone_pb2.PrepareHandover):
-            stream.sent_prepare = event
-            stream.link.to_controller(
-                stream.connection,
-                0,
-                stream.link.owner.on_drone_prepare,
-                stream.session,
-                event,
-                stream=True,
-            )
-            event = self.core.stream_event(cid, stream.sent_prepare)
-        notice = event
-        if notice is None or isinstance(notice, drone_pb2.PrepareHandover):
-            return
-        stream.link.to_controller(
-            stream.connection,
-            0,
-            stream.link.owner.on_drone_notice,
-            stream.session,
-            notice.new_master,
-            notice.after_reqnr,
-            notice.epoch,
-            notice.takeover,
-            notice.grant if notice.HasField("grant") else None,
-            stream=True,
-        )
-        self.seq.delivered(cid, notice)
-        del self.streams[cid]
+        # The simulated controllers take no operator's word on the stream.
+        for event in stream.said.woken(self.core, operator_words=False):
+            if isinstance(event, drone_pb2.PrepareHandover):
+                stream.link.to_controller(
+                    stream.connection,
+                    0,
+                    stream.link.owner.on_drone_prepare,
+                    stream.session,
+                    event,
+                    stream=True,
+                )
+            elif isinstance(event, drone_pb2.HandoverNotice):
+                stream.link.to_controller(
+                    stream.connection,
+                    0,
+                    stream.link.owner.on_drone_notice,
+                    stream.session,
+                    event.new_master,
+                    event.after_reqnr,
+                    event.epoch,
+                    event.takeover,
+                    event.grant if event.HasField("grant") else None,
+                    stream=True,
+                )
+                self.core.delivered(cid, event)
+                del self.streams[cid]
 
     def receive_connect(
         self,
@@ -829,10 +683,10 @@ class SimDrone:
                 previous.session,
                 stream=True,
             )
-        self.streams[cid] = Stream(cid, session, link, connection)
-        first = self.core.connected(cid, holds_reqnr, RETAINED_BATCH_BYTES)
-        if first is not None:  # Connected, then the replies retained above its holds
-            grant, batches = first
+        said = ConnectStream(cid)
+        self.streams[cid] = Stream(cid, session, link, connection, said)
+        grant, batches = said.opened(self.core, holds_reqnr, RETAINED_BATCH_BYTES)
+        if grant is not None:  # Connected, then the replies retained above its holds
             owner = link.owner
             connected = (
                 session,
@@ -864,10 +718,7 @@ class SimDrone:
         link, cid = item.link, item.link.owner.id
         if not link.owner.alive or link.generation != item.connection:
             return
-        if self.seq.fresh_self_due(cid, 0, item.given_up_epoch):
-            record = self.seq.take_over_from_earlier_self(cid, self.world.loop.now)
-            self.takeovers += 1
-            self._switched(record)
+        self._apply(self.core.fresh_self_connect(cid, item.given_up_epoch, self.world.loop.now))
         self.receive_connect(link, item.session, item.connection, 0, item.holds_reqnr)
 
     def receive_stream_closed(self, cid: int, session: int) -> None:
@@ -906,24 +757,17 @@ class SimDrone:
         """The drone service starts again from its durable state (DroneService._restore)."""
         self.up = True
         self.stats.restarts += 1
-        self.core = self._restored()
+        self.core, effects = self._restored()
         # PolicyRunner is built afresh, with the hold the store keeps (PolicyRunner.restore).
         held = self.policy is not None and self.policy.held_vehicle
         self.policy = self._policy_runner()
         if self.policy is not None:
             self.policy.restore(held, self.intent)
         self.watch()
-        cut, self.intent = self.intent, None
-        self.world.trace(f"drone restarts (cut off: {cut})")
-        if cut is None:
-            return
-        self.stats.cut_off.append(cut)
-        error = self.core.cut_off(cut)
-        if error is None:
-            return  # a read: the re-sent request executes it again
-        self._served(
-            cut.controller_id, cut.reqnr, cut.method, cut.digest, b"", error, cut.received_at
-        )
+        self.world.trace(f"drone restarts (cut off: {self.intent})")
+        if self.intent is not None:
+            self.stats.cut_off.append(self.intent)
+        self._apply(effects)
 
     def _sequencer(self) -> Sequencer:
         """A new Sequencer as DroneService's factory makes it (nothing served yet)."""
@@ -938,30 +782,27 @@ class SimDrone:
             seq.sign_grants_with(self.signer.seal_grant)
         return seq
 
-    def _restored(self) -> DroneCore:
-        """A new core holding what the store keeps (DroneService._restore): the sightings
-        are not kept (``DroneCore.resume`` gives the master the restart grace)."""
-        old = self.seq
+    def _restored(self) -> tuple[DroneCore, list[DroneEffect]]:
+        """A new core holding what the store keeps (``DroneCore.restarted``, as
+        DroneService._restore), and the effects of the restart: the sightings are not
+        kept (the master gets the restart grace)."""
+        old, now = self.seq, self.world.loop.now
         core = DroneCore(self._sequencer(), self.world.takeover_after, self.world.safety)
-        if self.kept_command is not None:  # kept in the store (VEHICLE_COMMAND_KEY)
-            grace = self.world.loop.now + RESTART_GRACE_S
-            core.vehicle_command = VehicleCommand(self.kept_command, grace)
-        if self.core.failsafe is not None:  # kept in the store (store.save_failsafe)
-            core.enter_failsafe(self.core.failsafe)
         core.operator = self.core.operator  # kept in the store (OperatorCommands._save)
         replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
-        counts = (old.last_reqnr, old.executed, old.duplicates, old.rejected)
-        core.resume(
-            self.world.loop.now,
+        kept = Kept(
             old.master,
             old.handovers,
-            counts,
+            (old.last_reqnr, old.executed, old.duplicates, old.rejected),
             [r for r in replies if r is not None],
             old.audit,
             old.fired_script,
             old.cache.watermark,
+            self.kept_command,  # kept in the store (VEHICLE_COMMAND_KEY)
+            self.core.failsafe,  # kept in the store (store.save_failsafe)
+            self.intent,
         )
-        return core
+        return core, core.restarted(now, kept)
 
     # -- takeover (DroneService.watch_master, _take_over) ------------------------
 
@@ -987,7 +828,7 @@ class SimDrone:
         takeovers = self.core.takeover_after_s > 0 or self.core.safety.lost_link_s > 0
         if not self._watching and self.up and (takeovers or self.seq.preparing):
             self._watching = True
-            self.world.loop.after(TAKEOVER_TICK_S, self._watch_master)
+            self.world.loop.after(WATCH_TICK_S, self._watch_master)
 
     def _watch_master(self) -> None:
         """One turn of DroneService.watch_master: note who is reachable, ask takeover_due.
@@ -1002,47 +843,44 @@ class SimDrone:
         if not self.up or not (self.world.mission_open() or self.seq.preparing):
             return
         now = self.world.loop.now
-        due = self._takeover_due(now)
-        if due is not None and not self._check_queued:
-            self._check_queued = True  # async with self._lock: re-checked there
-            self.queue.append(TakeoverCheck())
+        preparing = self.seq.preparing
+        expired = preparing is not None and now >= preparing.deadline
+        if (self._takeover_due(now) is not None or expired) and not self._check_queued:
+            # async with self._lock: asked again there. The service takes the lock at
+            # every turn while preparing; only a turn at or past the deadline can force.
+            self._check_queued = True
+            self.queue.append(MasterCheck())
             self._next()
         if self._failsafe_due(now) is not None and not self._failsafe_queued:
-            self._failsafe_queued = True  # watch_failsafe: async with self._lock
+            self._failsafe_queued = True  # FailsafeWatch.run: async with the lock
             self.queue.append(FailsafeCheck())
-            self._next()
-        preparing = self.seq.preparing
-        if preparing is not None and now >= preparing.deadline and not self._expiry_queued:
-            # watch_master takes the lock at every turn while preparing; only a turn
-            # at or past the deadline can force anything.
-            self._expiry_queued = True
-            self.queue.append(PreparationCheck())
             self._next()
         self.watch()
 
     def _takeover_due(self, now: float) -> TakeoverDue | None:
         """``DroneCore.takeover_due`` with who holds a stream now and who is in range."""
         in_range = self.policy.in_range() if self.policy is not None else None
-        connected = {self.seq.master} if self.seq.master in self.streams else set()
-        return self.core.takeover_due(now, self.reachable(), connected, in_range)
+        return self.core.takeover_due(now, *self._holders(), in_range)
+
+    def _holders(self) -> tuple[set[int], set[int]]:
+        """Who holds a stream now, and who holds the master's Connect stream."""
+        return self.reachable(), ({self.seq.master} if self.seq.master in self.streams else set())
 
     def _failsafe_due(self, now: float) -> Failsafe | None:
-        """``DroneCore.battery_due``, else ``autopilot_due``, else ``failsafe_due``, as
-        ``DroneService._failsafe_due`` asks them: the vehicle counts as armed and in the
-        air while the mission is open (the sim has no flight state), in the mode its
+        """``DroneCore.failsafe_check`` as ``FailsafeWatch.due`` asks it: the
+        vehicle counts as armed and in the air while the mission is open (the sim has no
+        flight state nor position: no fence, no nearest station), in the mode its
         commands and the autopilot's takeover put it in."""
         airborne = self.world.mission_open()
-        battery = self.core.battery_due(now, self.vehicle.battery(now), airborne)
-        if battery is not None or self.core.failsafe is not None:
-            return battery
-        taken_over = self.core.autopilot_due(now, ModeSeen(self.vehicle.mode, True, airborne))
-        if taken_over is not None:
-            return taken_over
+        seen = ModeSeen(self.vehicle.mode, True, airborne)
         in_range = self.policy.in_range() if self.policy is not None else None
-        return self.core.failsafe_due(now, self.reachable(), in_range, airborne)
+        battery = self.vehicle.battery(now)
+        return self.core.failsafe_check(
+            now, airborne, battery, None, seen, self.reachable(), in_range
+        )
 
     def _failsafe_check(self) -> None:
-        """watch_failsafe under the lock: failsafe_due again, then entered and commanded."""
+        """FailsafeWatch.run under the lock: failsafe_due again, then entered and commanded."""
         now = self.world.loop.now
         due = self._failsafe_due(now)
         if due is not None:
@@ -1063,78 +901,42 @@ class SimDrone:
         """OperatorCommands._command under the lock: the core decides (a refusal is the
         operator's error, nothing changes); the vehicle is told; a pause's end lets the
         requests that waited go on, to be executed or refused."""
-        now, operator = self.world.loop.now, self.core.operator
-        after = self.seq.last_reqnr
+        now = self.world.loop.now
         try:
-            if order.command == "pause":
-                taken = operator.pause(now, after)
-            elif order.command == "resume":
-                cleared, taken = self.core.resume_mission(now)
-                self.vehicle.resumes.append(now)
-                if cleared is not None:
-                    self.world.trace(f"failsafe cleared by the operator ({cleared.cause})")
-            else:
-                taken = operator.end(order.command, order.action or "rtl", now, after)
+            taken, cleared = self.core.operator_command(order.command, now, order.action)
         except StatusError as err:
             self.world.trace(f"operator command refused: {err.message}")
             return
+        if order.command == "resume":
+            self.vehicle.resumes.append(now)
+        if cleared is not None:
+            self.world.trace(f"failsafe cleared by the operator ({cleared.cause})")
         self.vehicle.operator.append((now, taken.command, taken.action))
         self.world.trace(f"operator: {taken.reason}")
         if taken.command != "pause":
             self.queue.extend(self.parked)  # their waits end: each takes the lock again
             self.parked.clear()
 
-    def _takeover_check(self) -> None:
-        """watch_master under the lock: takeover_due again, then _take_over."""
-        now = self.world.loop.now
-        due = self._takeover_due(now)
-        if due is not None:
-            self._take_over(
-                due.new_master, drone_pb2.HANDOVER_TRIGGER_LOST, now, due.lost_at, due.lost
-            )
-
-    def _preparation_check(self) -> None:
-        """watch_master under the lock: a preparation past its deadline is forced."""
-        forced = self.seq.preparation_expired(self.world.loop.now)
-        if forced is not None:
-            self._switched(forced)
-
     def standby_opened(self, cid: int) -> None:
         """DroneService.Standby: a controller's standby stream (re)opens; a TakeOver still
         owed to it is told on it (the stream that was to carry it may have broken)."""
         record = self.core.takeover_owed(cid) if self.up else None
         if record is not None:
-            self._tell_take_over(record)
+            self._tell_take_over(cid, take_over_event(record, self.seq.cache.watermark))
 
-    def _take_over(
-        self,
-        new_master: int,
-        trigger: drone_pb2.HandoverTrigger.ValueType,
-        now: float,
-        lost_at: float,
-        lost: int | None = None,
-    ) -> None:
-        """DroneService._take_over: switch by takeover, tell the new master on its standby."""
-        record = self.seq.switch(
-            new_master, trigger, now, takeover=True, lost_at=lost_at, lost=lost
-        )
-        self.takeovers += 1
-        self._switched(record)
-        self._tell_take_over(record)
-
-    def _tell_take_over(self, record: drone_pb2.HandoverRecord) -> None:
-        """StandbyStreams.tell of DroneService._take_over_event, on the taker's newest
-        stream if it holds one (the retained replies follow its Connected)."""
-        link = self.world.controller(record.new_master).drone_link
+    def _tell_take_over(self, taker: int, told: drone_pb2.TakeOver) -> None:
+        """StandbyStreams.tell of the TakeOver, on the taker's newest stream if it holds
+        one (the retained replies follow its Connected)."""
+        link = self.world.controller(taker).drone_link
         if not link.usable():
             return
         link.to_controller(
             link.generation,
             0,
             link.owner.on_take_over,
-            record.old_master,
-            record.epoch,
-            self.seq.cache.watermark,
+            told.old_master,
+            told.epoch,
+            told.watermark_reqnr,
             stream=True,
         )
 

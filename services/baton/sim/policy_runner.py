@@ -8,11 +8,11 @@ at 1x) ``tick`` builds the vehicle's ``Fix`` from the corridor's ground truth
 stream, else down since the drone last saw it), asks ``decide``, and carries
 the decision out as ``PolicyRunner.tick`` does, under the drone's execution
 lock (a ``PolicyStep`` queued behind the requests, taken by
-``SimDrone._policy_step``): a handover prepared if the master can prepare
-(``DroneService.prepare_handover``), else at once (``DroneService.hand_over``,
-a takeover when the decision says so), only if the master is still the one
-decided for; ``hold`` stops the vehicle, and the first decision that is not
-``hold`` resumes it. As in the runner, the next tick waits for the step.
+``SimDrone.policy_handover``): ``DroneCore.policy_handover``, a handover
+prepared if the master can prepare, else at once (a takeover when the
+decision says so), only if the master is still the one decided for;
+``hold`` stops the vehicle, and the first decision that is not ``hold``
+resumes it. As in the runner, the next tick waits for the step.
 
 Not mirrored: the link's round trip (``link_probe.py``: the simulated links
 are never slow enough to matter, so ``rtt_s`` stays unknown and a link that
