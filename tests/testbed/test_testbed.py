@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
-from chromium import render, require_chromium
+from helpers.chromium import render, require_chromium
 from helpers.testbed_runs import baton, run_testbed
 
 from baton.testbed.local import (

@@ -507,7 +507,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_fleet(args: argparse.Namespace) -> int:
     """``--fleet FILE``: the fleet testbed (testbed/fleet.py) to its end."""
     from baton.config import ConfigError
-    from baton.testbed.fleet import describe, load_fleet, run_fleet
+    from baton.testbed.fleet import NETWORK_FILE, REGISTRY_FILE, describe, load_fleet, run_fleet
 
     if args.action == "report":
         return _fail("--fleet is for a local run")
@@ -518,7 +518,10 @@ def _run_fleet(args: argparse.Namespace) -> int:
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-fleet-"))
     print(
         f"baton testbed: fleet of {len(fleet.drones)} drones over {len(fleet.stations)} "
-        f"stations, speed-up {fleet.speedup:g}x; logs in {workdir / 'parts'}"
+        f"stations, speed-up {fleet.speedup:g}x; logs in {workdir / 'parts'}\n"
+        f"baton testbed: watch it live: baton fleet view --registry {workdir / REGISTRY_FILE} "
+        f"--config {workdir / NETWORK_FILE}",
+        flush=True,
     )
     started = time.monotonic()
     try:

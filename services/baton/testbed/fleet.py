@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import grpc
+import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from baton.config import (
@@ -43,6 +44,9 @@ from baton.testbed.supervisor import Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc, station_pb2_grpc
 
 VEHICLE_EFFECTS, CAMERA_EFFECTS = "vehicle-effects.jsonl", "camera-effects.jsonl"
+# In the workdir: the registry and the network's file (the stations' addresses), as an
+# operator's; ``baton fleet view`` watches the running fleet with them.
+REGISTRY_FILE, NETWORK_FILE = "fleet.sqlite", "network.yaml"
 
 
 class _Model(BaseModel):
@@ -328,7 +332,7 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> list[M
     from baton.sdk.types import Position
 
     workdir.mkdir(parents=True, exist_ok=True)
-    registry_file = workdir / "fleet.sqlite"
+    registry_file = workdir / REGISTRY_FILE
     registry_file.unlink(missing_ok=True)
     admitted: dict[str, tuple[int, tuple[int, ...], int]] = {}
     with Registry(registry_file) as registry:
@@ -380,6 +384,7 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> list[M
             )
             at = at_home.model_copy(update={"address": drone.address})
             drones[d.name], configs[d.name] = drone, mission.model_copy(update={"drone": at})
+        _write_network(workdir, network, registry_file, drones, admitted)
         await _every([d.ready for d in drones.values()], "every vehicle ready", 120)
         for d in fleet.drones:
             plan = d.mission.plan()
@@ -408,6 +413,26 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> list[M
         for channel in channels:
             await channel.close()
     return results
+
+
+def _write_network(
+    workdir: Path,
+    network: BatonConfig,
+    registry_file: Path,
+    drones: dict[str, MissionDrone],
+    admitted: dict[str, tuple[int, tuple[int, ...], int]],
+) -> None:
+    """Records each drone's address in the registry and writes the network's file
+    (``NETWORK_FILE``, last: its being there says the rest is), as ``baton fleet start``
+    leaves them: ``baton fleet missions|status|view`` work on the running fleet."""
+    from baton.fleet.registry import Registry
+    from baton.lifecycle import write_atomically
+
+    with Registry(registry_file) as registry:
+        for name, drone in drones.items():
+            registry.set_drone_address(admitted[name][0], drone.address)
+    document = network.model_dump(mode="json", exclude_unset=True)
+    write_atomically(workdir / NETWORK_FILE, yaml.safe_dump(document, sort_keys=False))
 
 
 async def _until(check: Any, what: str, timeout_s: float) -> Any:
