@@ -1,16 +1,17 @@
 """``baton fleet view`` across real processes: a fleet testbed (2 drones, 3 stations,
 each drone's corridor crossing a handover) watched in headless Chromium through the
-view's page, as an operator opens it."""
+view's page, as an operator opens it; and the testbed's fleet map and page at its end."""
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 from pathlib import Path
 from typing import Any
 
 import yaml
-from helpers.chromium import live_tab, require_chromium
+from helpers.chromium import live_tab, render, require_chromium
 from helpers.testbed_runs import baton
 from playwright.sync_api import TimeoutError as PlaywrightTimeout
 from waiting import until
@@ -22,8 +23,9 @@ FLEET = Path(__file__).parents[2] / "examples" / "fleet.yaml"
 # so that the nearest-station policy hands over once on the way; as short as that.
 CORRIDOR_M = 600
 # Slow enough that the view and the browser, started once the fleet's network file is
-# written (its parts are up), see the drones before their handovers on a loaded machine.
-SPEEDUP = 6
+# written (its stations are up, its drones starting), see the drones before their
+# handovers on a loaded machine.
+SPEEDUP = 10
 # The page notes each drone's master (consecutive repeats dropped) and where it was
 # drawn, every time the drones are drawn again.
 RECORDER = """() => {
@@ -64,7 +66,15 @@ def test_the_live_view_shows_every_drone_moving_and_its_master_changing(tmp_path
     fleet_file.write_text(yaml.safe_dump(fleet))
     workdir = tmp_path / "w"
     testbed = subprocess.Popen(
-        baton("testbed", "--fleet", str(fleet_file), "--workdir", str(workdir)),
+        baton(
+            "testbed",
+            "--fleet",
+            str(fleet_file),
+            "--workdir",
+            str(workdir),
+            "--report",
+            str(tmp_path / "fleet.json"),
+        ),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -118,6 +128,14 @@ def test_the_live_view_shows_every_drone_moving_and_its_master_changing(tmp_path
             on_page = [int(m) for m in seen[drone]["masters"]]
             assert _contiguous(on_page, recorded), (drone, on_page, recorded)
         assert (tmp_path / "fleet-view.png").read_bytes()[:4] == b"\x89PNG"
+        # At its end, the testbed drew the whole fleet on one map, and in its page.
+        features = json.loads((tmp_path / "fleet.geojson").read_text())["features"]
+        kinds = [(f["properties"]["kind"], f["properties"].get("drone")) for f in features]
+        assert kinds.count(("station", None)) == 3 and kinds.count(("range", None)) == 3
+        assert {("path", "d1"), ("path", "d2"), ("handover", "d1")} <= set(kinds)
+        page = render(tmp_path / "fleet.html", ["#map-image", "tr.mission"], executable=chromium)
+        assert page.console == [] and page.page_errors == [] and page.requests == [], page
+        assert page.counts == {"#map-image": 1, "tr.mission": 2} and page.images_decoded
     finally:
         said = {}
         for name, process in (("view", view), ("testbed", testbed)):

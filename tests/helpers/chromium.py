@@ -10,7 +10,7 @@ image decoded, and a screenshot. ``live_tab`` opens a page served over HTTP
 recording: requests to its own server pass, any other is refused and noted.
 
     python tests/helpers/chromium.py reports/testbed-report.html docs/report.png
-    python tests/helpers/chromium.py http://127.0.0.1:8470/ docs/fleet-view.png
+    python tests/helpers/chromium.py http://127.0.0.1:8470/ docs/fleet-view.png 20
 
 take the screenshots that docs/operating.md shows.
 """
@@ -169,13 +169,16 @@ def live_tab(
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 3:
+    if len(sys.argv) not in (3, 4):
         sys.exit(
-            "usage: python tests/helpers/chromium.py PAGE.html|http://HOST:PORT/ SCREENSHOT.png"
+            "usage: python tests/helpers/chromium.py PAGE.html SCREENSHOT.png\n"
+            "       python tests/helpers/chromium.py http://HOST:PORT/ SCREENSHOT.png [SECONDS]"
         )
     if sys.argv[1].startswith("http"):
+        # A live page: the screenshot once a drone is drawn and SECONDS later (its trail).
         with live_tab(sys.argv[1]) as (tab, seen):
-            tab.wait_for_selector(".drone", timeout=30_000)
+            tab.wait_for_selector(".drone", timeout=60_000)
+            tab.wait_for_timeout(1000 * float(sys.argv[3] if len(sys.argv) == 4 else 0))
             tab.screenshot(path=sys.argv[2], full_page=True)
         print(seen)
     else:
