@@ -175,9 +175,12 @@ if __name__ == "__main__":
             "       python tests/helpers/chromium.py http://HOST:PORT/ SCREENSHOT.png [SECONDS]"
         )
     if sys.argv[1].startswith("http"):
-        # A live page: the screenshot once a drone is drawn and SECONDS later (its trail).
+        # A live page: the screenshot once a drone is drawn flying, SECONDS later (trails).
         with live_tab(sys.argv[1]) as (tab, seen):
-            tab.wait_for_selector(".drone", timeout=60_000)
+            tab.wait_for_function(
+                "() => document.querySelector('.drone[data-state=running]') !== null",
+                timeout=300_000,
+            )
             tab.wait_for_timeout(1000 * float(sys.argv[3] if len(sys.argv) == 4 else 0))
             tab.screenshot(path=sys.argv[2], full_page=True)
         print(seen)

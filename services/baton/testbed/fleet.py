@@ -447,21 +447,22 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> FleetR
             for name, drone in drones.items():
                 registry.set_drone_address(admitted[name][0], drone.address)
         await _every([d.ready for d in drones.values()], "every vehicle ready", 120)
-        for d in fleet.drones:
-            plan = d.mission.plan()
-            await asyncio.to_thread(
-                start_sessions,
-                configs[d.name],
-                str(admitted[d.name][0]),
-                str(plan.file),
-                plan.args(),
-                operator,
-            )
-        started = time.monotonic()
-        results, flights = [], []
+        # Followed from before the first mission starts: the others start while it flies.
         tracks = {name: Track() for name in drones}
         following = asyncio.create_task(_follow(drones, tracks))
+        results, flights = [], []
         try:
+            for d in fleet.drones:
+                plan = d.mission.plan()
+                await asyncio.to_thread(
+                    start_sessions,
+                    configs[d.name],
+                    str(admitted[d.name][0]),
+                    str(plan.file),
+                    plan.args(),
+                    operator,
+                )
+            started = time.monotonic()
             for d in fleet.drones:
                 number, ring, _ = admitted[d.name]
                 drone = drones[d.name]

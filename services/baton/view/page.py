@@ -33,8 +33,7 @@ th { background: #f3f3f3; }
           margin-right: 0.3em; vertical-align: middle; }
 #live.ok { color: #2ca02c; } #live.lost { color: #d62728; }
 ul#problems li { color: #a33; }
-svg text { font: 12px system-ui, sans-serif; paint-order: stroke; stroke: #fff;
-           stroke-width: 3px; }
+svg text { font-family: system-ui, sans-serif; paint-order: stroke; stroke: #fff; }
 </style></head>
 <body>
 <svg id="map" xmlns="http://www.w3.org/2000/svg" preserveAspectRatio="xMidYMid meet">
@@ -93,6 +92,7 @@ function draw(view) {
   // North up: y is minus north.
   map.setAttribute("viewBox", `${west} ${-north} ${width} ${height}`);
   const unit = Math.max(width, height) / 400;  // one "pixel" of lines and dots
+  const text = {"font-size": 5 * unit, "stroke-width": 1.2 * unit};
 
   const grid = clear("grid");
   const step = Math.pow(10, Math.floor(Math.log10(Math.max(width, height) / 2)));
@@ -116,7 +116,7 @@ function draw(view) {
     const r = 6 * unit;
     g.appendChild(el("path", {d: `M ${s.east_m} ${-s.north_m - r} l ${r} ${1.7 * r} ` +
                                  `l ${-2 * r} 0 z`, fill: colour}));
-    g.appendChild(el("text", {x: s.east_m + 1.5 * r, y: -s.north_m - r},
+    g.appendChild(el("text", {x: s.east_m + 1.5 * r, y: -s.north_m - r, ...text},
                      `station ${s.id}` + (s.answering ? "" : " (silent)")));
     stations.appendChild(g);
     const row = stationRows.insertRow();
@@ -155,7 +155,8 @@ function draw(view) {
       "data-north": d.place.north_m});
     g.appendChild(el("circle", {cx: d.place.east_m, cy: -d.place.north_m, r: 5 * unit,
       fill: d.colour, stroke: "#222", "stroke-width": unit / 2}));
-    g.appendChild(el("text", {x: d.place.east_m + 7 * unit, y: -d.place.north_m + 14 * unit},
+    g.appendChild(el("text", {x: d.place.east_m + 7 * unit, y: -d.place.north_m + 14 * unit,
+                              ...text},
       `${d.drone}: master ${master}, ${d.state}`));
     drones.appendChild(g);
   }
