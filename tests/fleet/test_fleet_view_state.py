@@ -117,7 +117,14 @@ async def _get(address: str, path: str, method: str = "GET") -> tuple[str, bytes
 
 async def test_the_server_serves_the_page_the_document_and_its_changes_as_events() -> None:
     documents: list[dict[str, Any]] = [{"format": VIEW_FORMAT, "at": 0, "n": 0}]
-    server = FleetViewServer(lambda: documents[-1], poll_s=0.01)
+    failures = ["the registry is locked"]
+
+    def read() -> dict[str, Any]:
+        if failures:  # a failed read is said and tried again
+            raise RuntimeError(failures.pop())
+        return documents[-1]
+
+    server = FleetViewServer(read, poll_s=0.01)
     address = await server.start("127.0.0.1", 0)
     try:
         head, page = await _get(address, "/")

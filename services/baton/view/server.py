@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import sys
 from collections.abc import Callable
 from functools import partial
 from typing import Any
@@ -72,7 +73,15 @@ class FleetViewServer:
 
     async def _poll(self) -> None:
         while True:
-            document = await asyncio.to_thread(self.read)
+            try:
+                document = await asyncio.to_thread(self.read)
+            except Exception as exc:
+                # The view outlives a failed read (the registry being written, say): the
+                # pages keep the last document, whose time says how old it is, and the
+                # next read tries again.
+                print(f"baton fleet view: reading the network: {exc!r}", file=sys.stderr)
+                await asyncio.sleep(self.poll_s)
+                continue
             if changed(self.document, document):
                 async with self._fresh:
                     self.document = document
