@@ -12,7 +12,7 @@ from typing import Any
 
 import yaml
 from helpers.chromium import live_tab, render, require_chromium
-from helpers.testbed_runs import baton
+from helpers.testbed_runs import baton_process
 from playwright.sync_api import TimeoutError as PlaywrightTimeout
 from waiting import until
 
@@ -65,41 +65,31 @@ def test_the_live_view_shows_every_drone_moving_and_its_master_changing(tmp_path
     fleet_file = tmp_path / "fleet.yaml"
     fleet_file.write_text(yaml.safe_dump(fleet))
     workdir = tmp_path / "w"
-    testbed = subprocess.Popen(
-        baton(
-            "testbed",
-            "--fleet",
-            str(fleet_file),
-            "--workdir",
-            str(workdir),
-            "--report",
-            str(tmp_path / "fleet.json"),
-        ),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    testbed = baton_process(
+        "testbed",
+        "--fleet",
+        str(fleet_file),
+        "--workdir",
+        str(workdir),
+        "--report",
+        str(tmp_path / "fleet.json"),
     )
     view: subprocess.Popen[str] | None = None
     try:
         network = workdir / NETWORK_FILE
         until(network.is_file, "the fleet's network file", 60)
         address_file = tmp_path / "view.address"
-        view = subprocess.Popen(
-            baton(
-                "fleet",
-                "view",
-                "--registry",
-                str(workdir / REGISTRY_FILE),
-                "--config",
-                str(network),
-                "--listen",
-                "127.0.0.1:0",
-                "--address-file",
-                str(address_file),
-            ),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
+        view = baton_process(
+            "fleet",
+            "view",
+            "--registry",
+            str(workdir / REGISTRY_FILE),
+            "--config",
+            str(network),
+            "--listen",
+            "127.0.0.1:0",
+            "--address-file",
+            str(address_file),
         )
         until(address_file.is_file, "the view's address", 60)
         url = f"http://{address_file.read_text().split()[0]}/"
