@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Debian's chromium, for the HTML report's browser test (tests/testbed/chromium.py,
+# Debian's chromium, for the HTML report's browser test (tests/helpers/chromium.py,
 # driven by playwright, which never downloads a browser of its own). `make test`
 # runs this before pytest: nothing to do (and no time spent) when chromium is
 # there; as root, installs it quietly with apt-get (and a font for the page's

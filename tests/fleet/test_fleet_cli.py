@@ -130,3 +130,21 @@ def test_a_drain_names_what_is_missing_or_unknown(
     assert status == 0 and out == "station 3 drained: admitted into no new ring\n"
     status, out, _ = fleet(capsys, db, "stations", "list")
     assert out.splitlines()[4].endswith("drained")
+
+
+def test_the_view_refuses_bad_flags_naming_each_and_the_fix(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    db = tmp_path / "fleet.sqlite"
+    status, _, err = fleet(capsys, db, "view")
+    assert status == 2 and "baton fleet view: --config: missing" in err
+    args = ("view", "--config", str(CORRIDOR))
+    status, _, err = fleet(capsys, db, *args, "--listen", "8470")
+    assert status == 2 and "--listen '8470': expected HOST:PORT" in err
+    status, _, err = fleet(capsys, db, *args, "--poll", "0")
+    assert status == 2 and "--poll 0.0: a number of seconds above 0" in err
+    status, _, err = fleet(capsys, db, *args)
+    assert status == 2 and f"--registry {db}: no such file" in err
+    fleet(capsys, db, "stations", "list")  # makes the registry
+    status, _, err = fleet(capsys, db, *args, "--certs", str(tmp_path / "none"))
+    assert status == 2 and str(tmp_path / "none") in err

@@ -3,6 +3,7 @@ exactly once at its vehicle and camera, with consistent replicas."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -21,7 +22,10 @@ FLEET, FLEET_SIX = EXAMPLES / "fleet.yaml", EXAMPLES / "fleet-six.yaml"
 def test_the_example_fleet_flies_every_mission_exactly_once_over_shared_stations(
     tmp_path: Path,
 ) -> None:
-    result = baton_run("testbed", "--fleet", str(FLEET), "--workdir", str(tmp_path))
+    report = tmp_path / "fleet.json"
+    result = baton_run(
+        "testbed", "--fleet", str(FLEET), "--workdir", str(tmp_path), "--report", str(report)
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     lines = {line.split()[0]: line.split() for line in result.stdout.splitlines() if line}
     # d1 crosses all three stations and hands over on the way; d2 shares two of them.
@@ -30,12 +34,21 @@ def test_the_example_fleet_flies_every_mission_exactly_once_over_shared_stations
     for drone in ("d1", "d2"):
         assert lines[drone][-2:] == ["True", "consistent"], result.stdout
     assert "fleet: 2/2 missions completed exactly once" in result.stdout
+    assert json.loads(report.read_text())["summary"] == {"missions": 2, "ok": 2}
 
 
 @pytest.mark.slow
 def test_six_drones_over_four_stations_each_exactly_once(tmp_path: Path) -> None:
     """About 2 minutes on 2 cores: the stations host up to five missions each."""
-    result = baton_run("testbed", "--fleet", str(FLEET_SIX), "--workdir", str(tmp_path))
+    result = baton_run(
+        "testbed",
+        "--fleet",
+        str(FLEET_SIX),
+        "--workdir",
+        str(tmp_path),
+        "--report",
+        str(tmp_path / "fleet.json"),
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     assert "fleet: 6/6 missions completed exactly once" in result.stdout
 

@@ -20,6 +20,11 @@ def baton(*args: str) -> list[str]:
     return [sys.executable, "-m", "baton.cli", *args]
 
 
+def baton_process(*args: str) -> subprocess.Popen[str]:
+    """``baton ARGS`` started in this interpreter, its output piped (text)."""
+    return subprocess.Popen(baton(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
 def run_testbed(tmp_path: Path, *args: str) -> dict:  # type: ignore[type-arg]
     """Runs `baton testbed ARGS` to the end; expects success and returns its report."""
     report_path = tmp_path / "report.json"

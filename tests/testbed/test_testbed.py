@@ -10,8 +10,8 @@ import time
 from pathlib import Path
 
 import pytest
-from chromium import render, require_chromium
-from helpers.testbed_runs import baton, run_testbed
+from helpers.chromium import render, require_chromium
+from helpers.testbed_runs import baton, baton_process, run_testbed
 
 from baton.testbed.local import (
     PAPER_CONTROLLER_LINK,
@@ -127,23 +127,18 @@ def start_testbed_cli(tmp_path: Path, *more: str) -> tuple[subprocess.Popen[str]
     """A long testbed run (``more``: options over its own); returns it once every part
     runs, with all their pids."""
     workdir = tmp_path / "w"
-    process = subprocess.Popen(
-        baton(
-            "testbed",
-            "--grid",
-            "4",
-            "--speedup",
-            "5",
-            "--no-links",
-            "--workdir",
-            str(workdir),
-            "--report",
-            str(tmp_path / "r.json"),
-            *more,
-        ),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    process = baton_process(
+        "testbed",
+        "--grid",
+        "4",
+        "--speedup",
+        "5",
+        "--no-links",
+        "--workdir",
+        str(workdir),
+        "--report",
+        str(tmp_path / "r.json"),
+        *more,
     )
     pids_file = workdir / "pids.json"
     deadline = time.monotonic() + 120

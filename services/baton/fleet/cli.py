@@ -11,6 +11,7 @@ and an admitted mission's sessions on its stations (item 1).
     baton fleet cancel ID [--config FILE]
     baton fleet drain STATION --config FILE
     baton fleet undrain STATION
+    baton fleet view --config FILE [--listen HOST:PORT]
 
 Exit status: 0 done, 1 a mission refused (or a drain that left the station in
 some ring: the report says why), 2 a request that cannot be done (the
@@ -186,6 +187,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         metavar="HOST:PORT",
         help="where the stations reach the mission's drone (default: the file's drone.address)",
     )
+    view = actions.add_parser(
+        "view",
+        parents=[common, network],
+        help="a live web page of the stations, their ranges and the drones moving, with "
+        "each mission's master and state",
+    )
+    view.add_argument(
+        "--listen",
+        default="127.0.0.1:8470",
+        metavar="HOST:PORT",
+        help="where the page is served; port 0 picks a free one (default 127.0.0.1:8470)",
+    )
+    view.add_argument("--address-file", help="write the bound HOST:PORT to this file")
+    view.add_argument(
+        "--poll",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="how often the stations and drones are asked, seconds (default 0.5)",
+    )
+    view.set_defaults(run=_guarded(_view))
     on_mission(
         "cancel",
         "cancel an admitted mission; with --config, its sessions stopped on its stations",
@@ -531,3 +553,34 @@ def _cancel(args: argparse.Namespace) -> int:
         cancelled = registry.cancel(args.mission)
     print(f"mission {cancelled.id} of drone {cancelled.drone} cancelled")
     return 0
+
+
+def _view(args: argparse.Namespace) -> int:
+    from functools import partial
+
+    from baton import lifecycle
+    from baton.config import ConfigError, load_config
+    from baton.rpc.tls import OPERATOR, TlsError
+    from baton.view.network import read_network
+    from baton.view.server import serve_view
+
+    if args.config is None:
+        return _fail(args, "--config: missing; the network's file with the stations' addresses")
+    host, _, port = args.listen.rpartition(":")
+    if not host or not port.isdigit() or int(port) > 65_535:
+        return _fail(args, f"--listen {args.listen!r}: expected HOST:PORT, e.g. 127.0.0.1:8470")
+    if not args.poll > 0:
+        return _fail(args, f"--poll {args.poll}: a number of seconds above 0, e.g. 0.5")
+    if not args.registry.is_file():
+        return _fail(
+            args,
+            f"--registry {args.registry}: no such file; give the registry the missions were "
+            "admitted in (baton fleet admit)",
+        )
+    try:
+        network = load_config(args.config)
+        tls = tls_from_flags(args, network, OPERATOR)
+    except (ConfigError, TlsError) as exc:
+        return _fail(args, str(exc))
+    read = partial(read_network, args.registry, network, tls)
+    return lifecycle.run(serve_view(read, args.listen, args.poll, args.address_file))

@@ -26,6 +26,8 @@ from baton.testbed.local import (
 if TYPE_CHECKING:
     from baton.testbed.local import TestbedPlan
 
+# Where the run writes its report (and the map and page beside it), by default.
+DEFAULT_REPORT, DEFAULT_FLEET_REPORT = "reports/testbed-report.json", "reports/fleet-report.json"
 DEFAULT_HANDOVER_REQNRS = (90, 180, 270)
 # For --help: BatonConfig's flush limit default (in MiB, as 2MB parses), the testbed's too.
 DEFAULT_FLUSH_LIMIT = f"{BatonConfig.model_fields['flush_limit'].default / 2**20:g}MB"
@@ -198,8 +200,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--report",
         "--out",
         dest="report",
-        default="reports/testbed-report.json",
-        help="where to write the JSON report (default reports/testbed-report.json)",
+        default=None,
+        help=f"where to write the JSON report, the map (.geojson, .png) and the HTML page "
+        f"beside it (default {DEFAULT_REPORT}; with --fleet, {DEFAULT_FLEET_REPORT})",
     )
     parser.add_argument(
         "--workdir", help="folder for logs and generated files (default: a new temp folder)"
@@ -485,7 +488,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail(str(exc))
     if args.action == "report" and (plan.faults or args.restart_parts):
         return _fail("--fault and --restart-parts are for a local run, not 'report'")
-    report_path = Path(args.report)
+    report_path = Path(args.report or DEFAULT_REPORT)
     if args.insecure:
         print(f"baton testbed: WARNING: {INSECURE_WARNING}", file=sys.stderr)
     if args.action == "report":
@@ -507,7 +510,15 @@ def run(args: argparse.Namespace) -> int:
 def _run_fleet(args: argparse.Namespace) -> int:
     """``--fleet FILE``: the fleet testbed (testbed/fleet.py) to its end."""
     from baton.config import ConfigError
-    from baton.testbed.fleet import describe, load_fleet, run_fleet
+    from baton.testbed.fleet import (
+        NETWORK_FILE,
+        REGISTRY_FILE,
+        describe,
+        fleet_report,
+        load_fleet,
+        run_fleet,
+    )
+    from baton.testbed.fleet_report import write_fleet_report
 
     if args.action == "report":
         return _fail("--fleet is for a local run")
@@ -518,15 +529,24 @@ def _run_fleet(args: argparse.Namespace) -> int:
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-fleet-"))
     print(
         f"baton testbed: fleet of {len(fleet.drones)} drones over {len(fleet.stations)} "
-        f"stations, speed-up {fleet.speedup:g}x; logs in {workdir / 'parts'}"
+        f"stations, speed-up {fleet.speedup:g}x; logs in {workdir / 'parts'}\n"
+        f"baton testbed: watch it live: baton fleet view --registry {workdir / REGISTRY_FILE} "
+        f"--config {workdir / NETWORK_FILE}",
+        flush=True,
     )
     started = time.monotonic()
     try:
-        results = asyncio.run(run_fleet(fleet, workdir, args.timeout))
+        run = asyncio.run(run_fleet(fleet, workdir, args.timeout))
     except ValueError as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
         print("baton testbed: interrupted; every process stopped", file=sys.stderr)
         return 130
-    print(describe(results, time.monotonic() - started))
-    return 0 if all(r.ok for r in results) else 1
+    elapsed = time.monotonic() - started
+    print(describe(run.results, elapsed), flush=True)
+    report_path = Path(args.report or DEFAULT_FLEET_REPORT)
+    map_path, png_path, page = write_fleet_report(
+        report_path, fleet_report(fleet, run, elapsed), run.network, run.flights
+    )
+    print(f"report: {report_path}\nmap: {map_path} (GeoJSON), {png_path}\nHTML report: {page}")
+    return 0 if all(r.ok for r in run.results) else 1

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import grpc
+import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from baton.config import (
@@ -38,11 +39,19 @@ from baton.effects import read_effects
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import MISSION_ID_PATTERN, mission_metadata
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
+from baton.testbed.fleet_report import FLEET_REPORT_FORMAT, Flight
+from baton.testbed.flight_map import Track
 from baton.testbed.local import MissionPlan, Snapshot, free_port
+from baton.testbed.report import build_report, check_side_effects
 from baton.testbed.supervisor import Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc, station_pb2_grpc
 
 VEHICLE_EFFECTS, CAMERA_EFFECTS = "vehicle-effects.jsonl", "camera-effects.jsonl"
+# In the workdir: the registry and the network's file (the stations' addresses), as an
+# operator's; ``baton fleet view`` watches the running fleet with them.
+REGISTRY_FILE, NETWORK_FILE = "fleet.sqlite", "network.yaml"
+# How often each drone's position is noted for the fleet's map, seconds.
+TRACK_PERIOD_S = 0.5
 
 
 class _Model(BaseModel):
@@ -267,8 +276,6 @@ def mission_result(
     drone: str, mission_id: str, ring: Sequence[int], plan: MissionPlan, snapshot: Snapshot
 ) -> MissionResult:
     """What a mission's vehicle, camera and replicas say at its end."""
-    from baton.testbed.report import check_side_effects
-
     effects = check_side_effects(snapshot, plan.grid, plan.spacing_m, plan.targets())
     statuses = snapshot.controllers.values()
     consistent = len({(s.reply_chain, s.reqnr) for s in statuses}) == 1
@@ -314,10 +321,61 @@ def describe(results: Sequence[MissionResult], elapsed_s: float) -> str:
     return "\n".join(lines)
 
 
-async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> list[MissionResult]:
+@dataclass
+class FleetRun:
+    """A fleet's run at its end: each mission's result and its flight (its report, its
+    track, its pictures), and the network the stations formed."""
+
+    results: list[MissionResult]
+    flights: list[Flight]
+    network: BatonConfig
+
+
+def fleet_report(fleet: FleetFile, run: FleetRun, duration_s: float) -> dict[str, Any]:
+    """The fleet's JSON report: the stations, each mission's result with its own
+    single-mission report, and the summary."""
+    reports = {f.drone: f.report for f in run.flights}
+    missions = [
+        {
+            "drone": r.drone,
+            "mission_id": r.mission_id,
+            "ring": list(r.ring),
+            "masters": reports[r.drone]["masters"],
+            "handovers": reports[r.drone]["handovers"],
+            "exactly_once": r.effects.get("exactly_once") is True,
+            "replicas_consistent": r.replicas_consistent,
+            "failed": r.failed,
+            "ok": r.ok,
+            "report": reports[r.drone],
+        }
+        for r in run.results
+    ]
+    return {
+        "format": FLEET_REPORT_FORMAT,
+        "duration_s": round(duration_s, 3),
+        "speedup": fleet.speedup,
+        "stations": [s.model_dump(mode="json") for s in fleet.stations],
+        "missions": missions,
+        "summary": {"missions": len(missions), "ok": sum(r.ok for r in run.results)},
+    }
+
+
+async def _follow(drones: dict[str, MissionDrone], tracks: dict[str, Track]) -> None:
+    """Notes where each drone is, twice a second (as the single-mission testbed does);
+    a drone that does not answer is skipped that time."""
+    while True:
+        for name, drone in drones.items():
+            try:
+                tracks[name].note(await drone.status(), time.time())
+            except grpc.aio.AioRpcError:
+                pass
+        await asyncio.sleep(TRACK_PERIOD_S)
+
+
+async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> FleetRun:
     """Admits every mission, starts the stations, vehicles, drones and sessions, and
-    waits for every mission's end; ValueError names a refused mission before anything
-    starts."""
+    waits for every mission's end, following each drone's track; ValueError names a
+    refused mission before anything starts."""
     from baton.certs.make import init
     from baton.drone.policy import Station
     from baton.fleet.admission import Refused
@@ -325,10 +383,11 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> list[M
     from baton.fleet.routes import survey_route
     from baton.fleet.sessions import start_sessions
     from baton.fleet.stations import ring_config
+    from baton.lifecycle import write_atomically
     from baton.sdk.types import Position
 
     workdir.mkdir(parents=True, exist_ok=True)
-    registry_file = workdir / "fleet.sqlite"
+    registry_file = workdir / REGISTRY_FILE
     registry_file.unlink(missing_ok=True)
     admitted: dict[str, tuple[int, tuple[int, ...], int]] = {}
     with Registry(registry_file) as registry:
@@ -368,6 +427,10 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> list[M
                 "tls": {"certs": str(certs)},
             }
         )
+        # As an operator's: the network's file and the registry (the drones' addresses
+        # as they start) are what baton fleet missions|status|view read.
+        document = network.model_dump(mode="json", exclude_unset=True)
+        write_atomically(workdir / NETWORK_FILE, yaml.safe_dump(document, sort_keys=False))
         drones: dict[str, MissionDrone] = {}
         configs: dict[str, BatonConfig] = {}
         for d in fleet.drones:
@@ -380,34 +443,55 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> list[M
             )
             at = at_home.model_copy(update={"address": drone.address})
             drones[d.name], configs[d.name] = drone, mission.model_copy(update={"drone": at})
+        with Registry(registry_file) as registry:
+            for name, drone in drones.items():
+                registry.set_drone_address(admitted[name][0], drone.address)
         await _every([d.ready for d in drones.values()], "every vehicle ready", 120)
-        for d in fleet.drones:
-            plan = d.mission.plan()
-            await asyncio.to_thread(
-                start_sessions,
-                configs[d.name],
-                str(admitted[d.name][0]),
-                str(plan.file),
-                plan.args(),
-                operator,
-            )
-        started = time.monotonic()
-        results = []
-        for d in fleet.drones:
-            number, ring, _ = admitted[d.name]
-            drone = drones[d.name]
-            left = max(1.0, timeout_s - (time.monotonic() - started))
-            statuses = await _until(
-                partial(mission_ended, stations, drone, str(number), ring),
-                f"drone {d.name}'s mission {number} ended",
-                left,
-            )
-            snapshot = await drone.snapshot(statuses)
-            results.append(mission_result(d.name, str(number), ring, d.mission.plan(), snapshot))
+        # Followed from before the first mission starts: the others start while it flies.
+        tracks = {name: Track() for name in drones}
+        following = asyncio.create_task(_follow(drones, tracks))
+        results, flights = [], []
+        try:
+            for d in fleet.drones:
+                plan = d.mission.plan()
+                await asyncio.to_thread(
+                    start_sessions,
+                    configs[d.name],
+                    str(admitted[d.name][0]),
+                    str(plan.file),
+                    plan.args(),
+                    operator,
+                )
+            started = time.monotonic()
+            for d in fleet.drones:
+                number, ring, _ = admitted[d.name]
+                drone = drones[d.name]
+                left = max(1.0, timeout_s - (time.monotonic() - started))
+                statuses = await _until(
+                    partial(mission_ended, stations, drone, str(number), ring),
+                    f"drone {d.name}'s mission {number} ended",
+                    left,
+                )
+                snapshot = await drone.snapshot(statuses)
+                plan = d.mission.plan()
+                results.append(mission_result(d.name, str(number), ring, plan, snapshot))
+                report = build_report(
+                    configs[d.name],
+                    snapshot,
+                    plan.grid,
+                    time.monotonic() - started,
+                    [],
+                    plan.spacing_m,
+                    targets=plan.targets() if plan.kind != "grid" else None,
+                )
+                taken = snapshot.camera_effects or []
+                flights.append(Flight(d.name, report, tracks[d.name].points, taken))
+        finally:
+            following.cancel()
         channels = [s.channel for s in stations.values()] + [d.channel for d in drones.values()]
         for channel in channels:
             await channel.close()
-    return results
+    return FleetRun(results, flights, network)
 
 
 async def _until(check: Any, what: str, timeout_s: float) -> Any:

@@ -24,6 +24,7 @@ from baton.config import BatonConfig
 from baton.sdk import Position, offset
 from baton.sdk.geo import north_east_m
 from baton.testbed.local import Snapshot
+from baton.v1 import drone_pb2
 
 # One colour per controller (matplotlib's tab10), by id.
 PALETTE = (
@@ -65,12 +66,14 @@ class Track:
 
     def __call__(self, snapshot: Snapshot, now: float) -> None:
         """Notes the vehicle's position (skipped while unknown: all zero)."""
-        here = snapshot.drone.position
+        self.note(snapshot.drone, now)
+
+    def note(self, drone: drone_pb2.DroneStatus, now: float) -> None:
+        """Notes where the drone's status says the vehicle is (skipped while unknown)."""
+        here = drone.position
         if here.latitude_deg == 0 and here.longitude_deg == 0:
             return
-        self.points.append(
-            TrackPoint(now, here.latitude_deg, here.longitude_deg, snapshot.drone.master)
-        )
+        self.points.append(TrackPoint(now, here.latitude_deg, here.longitude_deg, drone.master))
 
 
 def _lon_lat(latitude_deg: float, longitude_deg: float) -> list[float]:
@@ -253,6 +256,7 @@ def draw_flight(
                 fontsize=8,
             )
     masters_drawn: set[int] = set()
+    drones_named: set[str] = set()
     for f in features:
         props = f["properties"]
         if props["kind"] != "path":
@@ -260,6 +264,17 @@ def draw_flight(
         east, north = metres(f["geometry"]["coordinates"])
         label = None if props["master"] in masters_drawn else f"master {props['master']}"
         masters_drawn.add(props["master"])
+        # A fleet's map: each drone's name where its path starts.
+        if props.get("drone") is not None and props["drone"] not in drones_named:
+            drones_named.add(props["drone"])
+            ax.annotate(
+                props["drone"],
+                (east[0], north[0]),
+                textcoords="offset points",
+                xytext=(-4, -14),
+                fontsize=9,
+                fontweight="bold",
+            )
         ax.plot(east, north, color=props["stroke"], linewidth=2.5, label=label)
     for f in features:
         props = f["properties"]
