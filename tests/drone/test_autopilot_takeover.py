@@ -187,3 +187,40 @@ def test_a_failsafe_the_drone_commands_sets_what_it_expects() -> None:
     assert core.vehicle_command is not None and core.vehicle_command.actions == (RTL,)
     core.resume_mission(11.0)
     assert core.autopilot_due(11.0 + LATER, flying("RETURN_TO_LAUNCH")) is None
+
+
+def test_a_vehicle_flown_before_a_restart_and_found_landed_is_the_autopilot_s() -> None:
+    """The state file keeps the command and that the vehicle was seen in the air
+    (``kept_command``). Restored from it, the first sight of the vehicle on the ground
+    or disarmed is the autopilot's landing while the drone was down; one found still
+    flying, or one the drone had sent home or down, is not. The look is repeated until a
+    failsafe holds it (the driver looks again under its lock)."""
+    before = drone()
+    before.commanded(FLY, 0.0)
+    before.autopilot_due(LATER, flying("GUIDED"))
+    kept = before.kept_command()
+    assert kept == {"actions": [FLY], "airborne": True}
+
+    restarted = drone()
+    restarted.restore_command(kept, 100.0)
+    on_ground = ModeSeen("LOITER", armed=False, in_air=False)
+    dues = [restarted.autopilot_due(100.5, on_ground) for _ in range(2)]
+    for due in dues:
+        assert due is not None and (due.cause, due.action) == (AUTOPILOT, "landed")
+        assert "while the drone service was down (it flew fly)" in due.reason
+    assert dues[0] is not None
+    restarted.enter_failsafe(dues[0])
+    assert restarted.autopilot_due(101.0, on_ground) is None
+
+    still_flying = drone()
+    still_flying.restore_command(kept, 100.0)
+    assert still_flying.autopilot_due(100.5, flying("GUIDED")) is None
+    assert not still_flying.airborne_before_restart  # the ordinary rule from here
+
+    sent_home = drone()
+    sent_home.restore_command({"actions": [RTL], "airborne": True}, 100.0)
+    assert sent_home.autopilot_due(100.5, on_ground) is None
+
+    older_file = drone()  # a list of actions: never seen in the air as far as it says
+    older_file.restore_command([FLY], 100.0)
+    assert older_file.autopilot_due(100.5, on_ground) is None

@@ -13,6 +13,7 @@ from helpers.missions import (
     FAST_LINK,
     LONG_LEGS,
     flying_to_the_second_waypoint,
+    log_events,
     long_legs_on_fast_links,
     mission_errors,
 )
@@ -217,6 +218,43 @@ async def test_the_drone_service_dead_for_good_the_autopilot_returns(tmp_path: P
         # Counted from the last GCS heartbeat the vehicle heard (sent each second, up to
         # 1 s before the kill, more on a loaded machine), not from the kill.
         assert after_s >= 5.0 - 1.5
+
+
+async def test_a_drone_restarted_after_the_autopilot_landed_the_vehicle_ends_the_mission(
+    tmp_path: Path,
+) -> None:
+    """kill -9 of the drone mid-leg, restarted only once the autopilot's own GCS failsafe
+    has returned and landed the vehicle: the restarted drone holds the vehicle it had
+    seen in the air to it (the state file keeps that), so its first sight of it on the
+    ground is the autopilot failsafe, and every program is told. Before, the mission
+    polled for a waypoint the landed vehicle would never reach, and the drone blamed a
+    controller's standby stream."""
+    plan = long_legs_on_fast_links(2, SPEEDUP)
+    effects = tmp_path / VEHICLE_EFFECTS_FILE
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        await eventually(
+            lambda: flying_to_the_second_waypoint(testbed), "the vehicle between waypoints", 60
+        )
+        await testbed.supervisor.kill("drone")
+
+        def landed() -> bool:
+            returned = any(e["effect"] == "link_loss_return" for e in read_effects(effects))
+            states = [e for e in log_events(tmp_path, "sim-vehicle") if "phase" in e]
+            return returned and states[-1]["phase"] == "on_ground" and not states[-1]["armed"]
+
+        await eventually(landed, "the autopilot returning and landing by itself", 60)
+        await testbed.supervisor.restart("drone")
+
+        async def every_program_told() -> list[str]:
+            errors = await mission_errors(testbed)
+            told = all("the vehicle landed while the drone service was down" in e for e in errors)
+            return errors if told else []
+
+        errors = await eventually(every_program_told, "every program ended by the landing", 60)
+        assert len(set(errors)) == 1, errors
+        assert testbed.drone_stub is not None
+        status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+        assert (status.failsafe.cause, status.failsafe.action) == ("autopilot", "landed")
 
 
 async def test_the_autopilot_returning_on_its_own_is_a_failsafe(tmp_path: Path) -> None:

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import grpc
 
@@ -79,6 +80,7 @@ from baton.drone.safety import (
     battery_failsafe,
     commanded_action,
     fence_failsafe,
+    landed_while_down,
     limit_refusal,
     lost_link_failsafe,
 )
@@ -135,7 +137,7 @@ class Kept:
     audit: Sequence[drone_pb2.AuditEntry]
     fired_script: Sequence[int]
     watermark: int
-    commanded: tuple[str, ...] | None = None
+    commanded: Any = None  # as ``DroneCore.kept_command`` gave it (an older file: a list)
     failsafe: Failsafe | None = None
     executing: Intent | None = None
 
@@ -166,6 +168,9 @@ class DroneCore:
         self.vehicle_command: VehicleCommand | None = None
         self.mode: ModeSeen | None = None
         self.station_override = False
+        # The state file said the vehicle was in the air when the drone stopped: its
+        # first sight since says whether it landed meanwhile (``restore_command``).
+        self.airborne_before_restart = False
         # The master is lost after this long unseen; 0: never (only an operator's takeover).
         self.takeover_after_s = takeover_after_s
         self.routes: Mapping[str, Method] = drone_api()
@@ -344,10 +349,39 @@ class DroneCore:
         operator = self.operator
         if command is None or self.station_override:
             return None
-        self.vehicle_command, due = autopilot_takeover(now, command, seen)
+        due = None
+        if self.airborne_before_restart:
+            # Until the vehicle is seen flying, or a failsafe holds it: due at every look
+            # (the driver looks again under its lock before it enters the failsafe).
+            due = landed_while_down(now, command, seen)
+            self.airborne_before_restart = due is not None and self.failsafe is None
+        if due is None:
+            self.vehicle_command, due = autopilot_takeover(now, command, seen)
         if self.failsafe is not None or operator.paused is not None or operator.ended is not None:
             return None
         return due
+
+    def kept_command(self) -> dict[str, Any] | None:
+        """What the state file keeps of the vehicle command: its actions, and whether the
+        vehicle was seen in the air since (a restarted drone holds the vehicle to it,
+        ``restore_command``); None while nothing was commanded."""
+        command = self.vehicle_command
+        if command is None:
+            return None
+        return {"actions": list(command.actions), "airborne": command.airborne}
+
+    def restore_command(self, kept: Any, now: float) -> None:
+        """The vehicle command the state file kept (``kept_command``; a list of actions in
+        an older file), its modes read from the restart grace on (the telemetry comes
+        back meanwhile). Seen in the air before the restart, the vehicle's first sight
+        decides whether it landed meanwhile (``safety.landed_while_down``)."""
+        if kept is None:
+            return
+        if not isinstance(kept, dict):
+            kept = {"actions": kept}
+        actions = tuple(str(a) for a in kept["actions"])
+        self.vehicle_command = VehicleCommand(actions, now + RESTART_GRACE_S)
+        self.airborne_before_restart = bool(kept.get("airborne", False))
 
     def vehicle_unseen(self) -> None:
         """The vehicle did not say its state at the last look (``VehicleCommand.unseen``)."""
@@ -831,8 +865,7 @@ class DroneCore:
         after the restart grace (the telemetry comes back meanwhile), the failsafe it
         was in, ``resume``; then the request the restart cut off (``cut_off``): a read
         abandoned (executed again when re-sent), anything else booked with its failure."""
-        if kept.commanded is not None:
-            self.vehicle_command = VehicleCommand(kept.commanded, now + RESTART_GRACE_S)
+        self.restore_command(kept.commanded, now)
         if kept.failsafe is not None:
             self.enter_failsafe(kept.failsafe)
         self.resume(

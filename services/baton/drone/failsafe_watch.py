@@ -74,7 +74,7 @@ class FailsafeWatch:
         in_range = service.policy.in_range() if service.policy is not None else None
         holders = service.standby.reachable | service.streams.holders
         nearest = nearest_station(here, service.stations)
-        return service.core.failsafe_check(
+        due = service.core.failsafe_check(
             time.time(),
             state.in_air,
             state.battery_percent,
@@ -84,6 +84,8 @@ class FailsafeWatch:
             in_range,
             nearest,
         )
+        service.keep_command()  # the vehicle seen in the air since the command
+        return due
 
     async def enter(self, failsafe: Failsafe) -> None:
         """Puts the vehicle in ``failsafe`` (the caller holds the lock): booked in the core

@@ -267,6 +267,24 @@ def autopilot_takeover(
     )
 
 
+def landed_while_down(now: float, command: VehicleCommand, seen: ModeSeen) -> Failsafe | None:
+    """The first sight of the vehicle after a restart of the drone service, which had seen
+    it in the air flying the mission (``command``): on the ground or disarmed, the
+    autopilot took it over meanwhile (its own GCS failsafe, with no drone speaking to it),
+    and the mission must not poll a vehicle that will never arrive; None otherwise, or
+    if the drone had commanded it to land or return."""
+    if set(command.actions) & {LAND, RTL} or (seen.armed and seen.in_air):
+        return None
+    what = "landed" if not seen.in_air else "disarmed"
+    return Failsafe(
+        AUTOPILOT,
+        what,
+        now,
+        f"autopilot took over: the vehicle {what} while the drone service was down (it "
+        f"flew {'/'.join(command.actions)}); the drone commands nothing",
+    )
+
+
 def _landing_action(action: str, station: int | None) -> tuple[str, str]:
     """The action and its words: nearest_station needs a station, else home (rtl)."""
     if action != "nearest_station":

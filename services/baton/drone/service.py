@@ -108,6 +108,8 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         # stream or a request; 0: never (only an operator's takeover).
         watch = DroneWatch() if checking() else None  # BATON_CHECK_INVARIANTS=1
         self.core = DroneCore(sequencer, takeover_after_s, safety, watch)
+        # The vehicle command as the state file keeps it (``keep_command``).
+        self._kept_command: dict[str, Any] | None = None
         # Every controller's station: the landing points of nearest_station.
         self.stations: Mapping[int, Station] = stations or {}
         self.seq = sequencer
@@ -195,10 +197,16 @@ class DroneService(drone_pb2_grpc.DroneServicer):
     def commanded(self, action: str | None) -> None:
         """The vehicle accepted a command for ``action`` (``DroneCore.commanded``; the
         caller told the core ``commanding`` before sending it), kept in the state file."""
-        if self.core.commanded(action, time.time()) and self.store is not None:
-            command = self.core.vehicle_command
-            assert command is not None
-            self.store.save_commanded(VEHICLE_COMMAND_KEY, list(command.actions))
+        self.core.commanded(action, time.time())
+        self.keep_command()
+
+    def keep_command(self) -> None:
+        """Keeps the vehicle command in the state file when it changed
+        (``DroneCore.kept_command``): its actions, and the vehicle seen in the air."""
+        kept = self.core.kept_command()
+        if kept != self._kept_command and self.store is not None:
+            self.store.save_commanded(VEHICLE_COMMAND_KEY, kept)
+            self._kept_command = kept
 
     def save_failsafe(self) -> None:
         if self.store is not None:
@@ -357,11 +365,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             state.audit,
             c.fired_script,
             c.watermark,
-            None if modes is None else tuple(modes),
+            modes,
             failsafe,
             cut,
         )
         effects = self.core.restarted(time.time(), kept)
+        self._kept_command = self.core.kept_command()
         self.log.info(
             "state resumed",
             path=str(store.path),

@@ -224,8 +224,6 @@ class SimDrone:
         self.signer = world.keys.drone if world.keys is not None else None
         self.core = DroneCore(self._sequencer(), world.takeover_after, world.safety)
         self.vehicle = SimVehicle(world.battery_drain)
-        # What the drone last commanded the vehicle, as its state file keeps it.
-        self.kept_command: tuple[str, ...] | None = None
         self.camera = SimCamera()
         self.up = True
         # Durable (store.py): the request being executed, as its intent.
@@ -405,9 +403,8 @@ class SimDrone:
                     grpc.StatusCode.DEADLINE_EXCEEDED,
                     f"{request.method}: no acknowledgement from the vehicle; it may have acted",
                 )
-            elif self.core.commanded(action, now) and self.core.vehicle_command is not None:
-                # DroneService.commanded: kept in the state file.
-                self.kept_command = self.core.vehicle_command.actions
+            else:
+                self.core.commanded(action, now)
 
     def _complete(self, execution: Execution) -> None:
         if execution is not self.busy:
@@ -642,6 +639,7 @@ class SimDrone:
                     event.epoch,
                     event.takeover,
                     event.grant if event.HasField("grant") else None,
+                    event.takeover_epoch,
                     stream=True,
                 )
                 self.core.delivered(cid, event)
@@ -798,7 +796,8 @@ class SimDrone:
             old.audit,
             old.fired_script,
             old.cache.watermark,
-            self.kept_command,  # kept in the store (VEHICLE_COMMAND_KEY)
+            # Kept in the store (VEHICLE_COMMAND_KEY) whenever it changed.
+            self.core.kept_command(),
             self.core.failsafe,  # kept in the store (store.save_failsafe)
             self.intent,
         )
