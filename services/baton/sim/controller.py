@@ -1,11 +1,12 @@
-"""One simulated mission controller: the real ``ControllerProtocol`` and node.py's decisions.
+"""One simulated mission controller: a driver of the shipped controller cores.
 
-``SimController`` is ``controller/node.py``'s ``ControllerNode`` with the
-asyncio taken out: each method names the node.py function whose decisions
-it copies, and keeps the copy minimal. The protocol (Algorithm 1, epochs,
-grants, sync) is the project's own object; the ring history is the
-project's own ``LogHistory``; ``_given_up`` and the retry constants are
-imported from node.py.
+``SimController`` drives what ``controller/node.py``'s ``ControllerNode``
+drives, with the asyncio taken out: ``ControllerCore`` (and its
+``ControllerProtocol``), the ring links' ``RingLinks`` and ``LinkCore``
+(through ``sim/network.py``'s ``RingLink``), ``status.recover`` and
+``status.holding``, ``invoking.failed`` for a drone call's outcome and
+``notes.note_of`` for what an effect says. It owns only the virtual I/O:
+the drone session, the program's calls and the timers.
 
 How asyncio maps onto events: node.py's ``_changed`` event (set on every
 ``_apply``) becomes ``_notify``, which schedules one ``_pump`` on the next
@@ -15,10 +16,11 @@ A drone call in flight is an ``Invocation`` that a reply, a broken
 connection, a back-off timer or a give-up moves on.
 
 Simplifications: the drone session's events run at once where node.py
-posts them as tasks; the stall watchdog, the status and the logging are
-left out; a program call's deadline is modelled only as the explicit
-give-up fault (``give_up``), not as gRPC deadlines on drone calls (the
-retry limit, node.py's ``drone_retry_limit``, is far beyond any fault).
+posts them as tasks; the stall watchdog and the logging are left out (its
+waits go into the liveness report, ``holding``); a program call's deadline
+is modelled only as the explicit give-up fault (``give_up``), not as gRPC
+deadlines on drone calls (the retry limit, node.py's ``drone_retry_limit``,
+is far beyond any fault).
 """
 
 from __future__ import annotations
