@@ -24,9 +24,9 @@ SEEDS: dict[str, range | list[int]] = {
     "F1": range(100),
 }
 # Findings whose scenario no longer fails in seeds 0-2999 but whose cause was not
-# diagnosed: a non-strict xfail until it is (docs/simulation.md). F1's last seed, 33,
-# passes since the simulation's ring link says the master's word whenever it changed,
-# as the runtime's PeerLink does (LinkCore.sync_due), not only after a dropped message.
+# diagnosed: a non-strict xfail until it is (docs/simulation.md). F1's one seed of
+# 0-1499, 33, passes since the simulation's ring link says the master's word whenever
+# it changed, as the runtime's PeerLink does (LinkCore.sync_due): a moved trajectory.
 NOT_REPRODUCED = {"F1"}
 # The scenario a finding needs besides its allow flag (issue 10's are off by default).
 OPTIONS: dict[str, dict[str, object]] = {}
