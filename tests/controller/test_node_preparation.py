@@ -59,29 +59,6 @@ def test_an_older_preparations_time_does_not_end_a_newer_one() -> None:
     assert [type(e) for e in over] == [Note] and core.protocol.preparing_for is None
 
 
-async def test_the_progress_word_counts_the_acks_of_a_stream_opened_since_it_began() -> None:
-    """--lose-master --prepared seed 816 (the simulation): the master's stream to the
-    target was dropped (the ring routed back past it, ``_route``) and opened again, and
-    its acknowledgements counted from 0: the word's ``acked`` was the new stream's count
-    less the old one's, negative, and building the Invoke raised ValueError. A stream
-    opened since the preparation began counts all its acknowledgements."""
-    node = await active_master()
-    old = node.peer(2)
-    old.counters.acked = 5  # acknowledgements of messages sent before
-    await node.on_prepare(drone_pb2.PrepareHandover(target=2, epoch=1, timeout_s=10.0))
-    assert node.protocol.preparing_for == 2
-    progress = node._preparation_progress()
-    assert progress is not None and progress.acked == 0  # none since it began
-    await old.stop()
-    del node._peers[2]  # as _route drops a stream that holds nothing unacknowledged
-    new = node.peer(2)
-    new.counters.acked = 2
-    progress = node._preparation_progress()
-    assert progress is not None and progress.target == 2 and progress.acked == 2
-    node._drone = None
-    await node.stop()
-
-
 async def test_a_master_cut_off_from_the_drone_sends_the_target_no_copies() -> None:
     """--lose-master --prepared seed 844 (the simulation): master 0 prepared a handover
     to 2, the drone restarted and gave the role to another controller by takeover;

@@ -23,6 +23,11 @@ from baton.v1 import ring_pb2
 SEEDS: dict[str, range | list[int]] = {
     "F1": range(100),
 }
+# Findings whose scenario no longer fails in seeds 0-2999 but whose cause was not
+# diagnosed: a non-strict xfail until it is (docs/simulation.md). F1's one seed of
+# 0-1499, 33, passes since the simulation's ring link says the master's word whenever
+# it changed, as the runtime's PeerLink does (LinkCore.sync_due): a moved trajectory.
+NOT_REPRODUCED = {"F1"}
 # The scenario a finding needs besides its allow flag (issue 10's are off by default).
 OPTIONS: dict[str, dict[str, object]] = {}
 
@@ -30,7 +35,10 @@ OPTIONS: dict[str, dict[str, object]] = {}
 @pytest.mark.parametrize(
     "code",
     [
-        pytest.param(code, marks=pytest.mark.xfail(strict=True, reason=finding.title))
+        pytest.param(
+            code,
+            marks=pytest.mark.xfail(strict=code not in NOT_REPRODUCED, reason=finding.title),
+        )
         for code, finding in FINDINGS.items()
     ],
 )

@@ -156,6 +156,15 @@ class DroneRefusal:
             drone_pb2.Grant.FromString(bytes.fromhex(grant_hex)) if grant_hex else None,
         )
 
+    @classmethod
+    def of_status(
+        cls, code: grpc.StatusCode, metadata: Mapping[str, str | bytes]
+    ) -> DroneRefusal | None:
+        """The refusal a failed drone call states: a FAILED_PRECONDITION naming a master."""
+        if code is not grpc.StatusCode.FAILED_PRECONDITION:
+            return None
+        return cls.from_metadata(metadata)
+
     @property
     def fencing_epoch(self) -> int:
         """The epoch of the takeover that fences the refused controller (``on_fenced``):
@@ -201,7 +210,7 @@ class Record:
 @dataclass(frozen=True)
 class Note:
     """Effect: something a person may want to read (the runtime's log, the simulation's
-    trace); ``level`` is ``info``, ``warning`` or ``error``."""
+    trace); ``level`` is ``debug``, ``info``, ``warning`` or ``error``."""
 
     level: str
     text: str

@@ -19,6 +19,7 @@ import contextlib
 import itertools
 import time
 from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import grpc
@@ -28,6 +29,7 @@ from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.rpc.outcomes import error_of
 from baton.rpc.tls import DRONE, Tls
+from baton.stalls import StallWatch
 from baton.tasks import TaskSet
 from baton.v1 import drone_pb2, drone_pb2_grpc
 
@@ -45,9 +47,29 @@ PING_ANSWERS_IN_FLIGHT = 4
 
 def refusal_of(error: grpc.aio.AioRpcError) -> DroneRefusal | None:
     """The drone's master, epoch and last reqnr from a FAILED_PRECONDITION that names them."""
-    if error.code() is not grpc.StatusCode.FAILED_PRECONDITION:
-        return None
-    return DroneRefusal.from_metadata(dict(error.trailing_metadata() or ()))
+    return DroneRefusal.of_status(error.code(), dict(error.trailing_metadata() or ()))
+
+
+@dataclass
+class Retry:
+    """A drone call re-sent with back-off (``invoking.failed``: when, and for how long),
+    for at most ``limit_s`` of wall time; its wait is logged at once and again every
+    5 s (stalls.py)."""
+
+    limit_s: float
+    started: float = field(default_factory=time.monotonic)
+    attempts: int = 0  # the pauses so far
+    _log_watch: StallWatch = field(default_factory=lambda: StallWatch(threshold_s=0.0))
+
+    def waited(self) -> float:
+        """Seconds since the first try."""
+        return time.monotonic() - self.started
+
+    def should_log(self) -> bool:
+        """True on the first retry and then every 5 s (StallWatch's rhythm)."""
+        now = time.monotonic()
+        waits = self._log_watch.update(now, {"retry": "drone unavailable"})
+        return self._log_watch.due_for_log(now, waits)
 
 
 class DroneEvents(Protocol):

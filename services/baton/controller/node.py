@@ -18,7 +18,6 @@ import hashlib
 import os
 import time
 from collections.abc import Callable, Coroutine, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import grpc
@@ -33,7 +32,6 @@ from baton.controller.core import (
     ControllerCore,
     CoreEffect,
     Fail,
-    FirstNewCall,
     Hold,
     Keep,
     KeepMastership,
@@ -41,7 +39,6 @@ from baton.controller.core import (
     Persist,
     Preparing,
     Reconnect,
-    Record,
     Rejoin,
     RepairGap,
     ReplayAgain,
@@ -56,23 +53,26 @@ from baton.controller.drone_link import (
     DroneRefusal,
     DroneSession,
     DroneStandby,
+    Retry,
     WarmChannel,
     refusal_of,
 )
 from baton.controller.history import LogHistory
+from baton.controller.invoking import Sent, failed, replied
+from baton.controller.links import RingLinks
+from baton.controller.notes import Handovers, note_of, replay_again
 from baton.controller.protocol import (
     ConnectDrone,
     ControllerProtocol,
     DisconnectDrone,
-    Diverged,
     Fenced,
-    ProtocolError,
     SendLog,
     State,
-    TookOver,
     Unqueued,
 )
 from baton.controller.ring import PeerLink, Relay
+from baton.controller.session_events import SessionEvents
+from baton.controller.status import Sight, holding, recover
 from baton.drone.invariants import INVARIANT_EXIT, InvariantBroken
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
@@ -87,58 +87,6 @@ from baton.v1 import drone_pb2, ring_pb2
 # a cancelled stream) makes its next one at once, and that one can reach the
 # controller first (on another stream or connection, in no fixed order).
 BUSY_GRACE_S = 2.0
-# Re-sending a request the drone could not take (drone unreachable, vehicle
-# link down): the same reqnr, so the drone's duplicate detection keeps it
-# safe, after a pause that doubles up to a cap, for the configuration's
-# drone_retry_limit; the wait is logged at once and again every 5 s (stalls.py).
-RETRY_FIRST_S, RETRY_MAX_S = 0.2, 2.0
-
-
-@dataclass
-class Retry:
-    """Re-sending with back-off for at most ``limit_s`` (wall time)."""
-
-    limit_s: float
-    started: float = field(default_factory=time.monotonic)
-    attempts: int = 0
-    _log_watch: StallWatch = field(default_factory=lambda: StallWatch(threshold_s=0.0))
-
-    def waited(self) -> float:
-        """Seconds since the first try."""
-        return time.monotonic() - self.started
-
-    def exhausted(self) -> bool:
-        """The limit has passed."""
-        return self.waited() >= self.limit_s
-
-    def should_log(self) -> bool:
-        """True on the first retry and then every 5 s (StallWatch's rhythm)."""
-        now = time.monotonic()
-        waits = self._log_watch.update(now, {"retry": "drone unavailable"})
-        return self._log_watch.due_for_log(now, waits)
-
-    async def pause(self) -> None:
-        """Waits before the next try: RETRY_FIRST_S, doubling up to RETRY_MAX_S."""
-        delay = min(RETRY_MAX_S, RETRY_FIRST_S * 2**self.attempts)
-        self.attempts += 1
-        await asyncio.sleep(min(delay, max(0.0, self.limit_s - self.waited())))
-
-
-@dataclass
-class HandoverEvent:
-    """A handover as this controller saw it, for the status and the report."""
-
-    role: ring_pb2.HandoverRole.ValueType  # ControllerHandover.role
-    peer: int
-    lognr: int
-    reqnr: int
-    log_bytes: int
-    at: float = field(default_factory=time.time)
-    epoch: int = 0
-    drone_after_reqnr: int = 0
-    holds_reqnr: int = 0  # a taker's
-    first_new_reqnr: int = 0  # a taker's first call beyond the retained replies
-    first_new_at: float = 0.0
 
 
 class ControllerNode:
@@ -171,11 +119,8 @@ class ControllerNode:
             self.log = self.log.bind(mission=config.mission_id)
         # Replaced on every change, so a waiter holds the event of the state it saw.
         self._changed = asyncio.Event()
-        self._peers: dict[int, PeerLink] = {}
-        # The highest log number sent straight to each handover target (_send_catch_up).
-        # The stream to the target when the preparation began, and the acknowledgements
-        # it had counted then (a stream opened since counts from 0: ``_route`` drops one).
-        self._acked_before_prepare: tuple[PeerLink | None, int] = (None, 0)
+        # The ring streams this controller keeps, by peer id.
+        self.ring = RingLinks(self.history, lambda: self.protocol.successor, self._make_link)
         # The word to the drone on a prepared handover in flight (``_target_acked``).
         self._reporting: asyncio.Task[None] | None = None
         self._report_again = False
@@ -198,7 +143,7 @@ class ControllerNode:
         self._failure: StatusError | None = None
         self._reply_chain = hashlib.sha256()
         self._drone_calls = 0
-        self.handovers: list[HandoverEvent] = []
+        self.handovers = Handovers()
         self.t_conn_s: list[float] = []
         self.drone_connected_at: list[float] = []  # of closed connections (all_drone_...)
         # The standby stream: the drone's way to reach us for a takeover.
@@ -245,7 +190,7 @@ class ControllerNode:
 
     async def start(self) -> None:
         """Recovers the log file, opens the stream to the successor, asks the drone."""
-        self._recover()
+        await self._apply(recover(self.core, self.history, self.id))
         self._open_links()
         self._standby.start()
         await self._apply(self.protocol.start())
@@ -253,35 +198,6 @@ class ControllerNode:
         self._watchdog = asyncio.create_task(self._watch(), name="stall-watchdog")
         self._router = asyncio.create_task(self._route_watch(), name="ring-router")
         self.log.info("controller started; asking the drone who the master is")
-
-    def _recover(self) -> None:
-        """Handles the messages the log file held, as if received: a restart with what it had.
-
-        Their forwards are not sent: the successor says what it lacks when its
-        stream opens, and is given that from the history.
-        """
-        lognrs = list(self.history.above(0))
-        # The mastership whose log the file holds: told on Connect, so that the
-        # drone fences it if a takeover gave that log up while we were down.
-        self.protocol.epoch = self.history.mastership_epoch
-        for lognr in lognrs:
-            try:
-                self.protocol.on_log(self.history.get(lognr))
-            except ProtocolError as exc:
-                self._fail(
-                    StatusError(
-                        grpc.StatusCode.DATA_LOSS,
-                        f"controller {self.id}: log file {self.history.path}: {exc}",
-                    )
-                )
-                return
-        if lognrs:
-            self.log.info(
-                "recovered from the log file",
-                path=str(self.history.path),
-                messages=len(lognrs),
-                up_to_lognr=self.protocol.lognr,
-            )
 
     @property
     def waits(self) -> list[Wait]:
@@ -295,55 +211,16 @@ class ControllerNode:
 
     def stall_conditions(self) -> dict[str, str]:
         """What holds now that would be a stall if it lasted (stalls.py)."""
-        p = self.protocol
-        holding = {}
-        missing = p.missing_lognr
-        if missing is not None and p.log_queue:
-            holding["gap"] = (
-                f"log message {missing} missing while {len(p.log_queue)} later ones "
-                f"are queued (up to {max(p.log_queue)})"
-            )
-        elif missing is not None:
-            holding["gap"] = (
-                f"our handover message {missing} has not come back round, though we "
-                f"handled up to {p.lognr}: our history lacks it"
-            )
-        drone = self._drone
-        if drone is not None and not drone.connected.is_set():
-            holding["drone"] = f"no Connect stream to the drone at {drone.address}"
-        if not self._standby.up:
-            holding["standby"] = (
-                f"no standby stream to the drone at {self._standby.address}: the drone "
-                "cannot make this controller master if the master is lost"
-            )
-        if p.master and not p.caught_up:
-            holding["catch-up"] = (
-                f"master by the drone's word (epoch {p.epoch}) but catching up with the ring: "
-                + (
-                    f"handled log message {p.lognr} of {p.catch_up_to}"
-                    if p.catch_up_to is not None
-                    else f"controller {p.predecessor} has not said what it holds"
-                )
-            )
-        if self._in_flight is not None:
-            reqnr, method = self._in_flight
-            sent = f"request {reqnr} ({method}) sent, no answer yet"
-            if drone is not None and drone.operator_pause:
-                holding["paused"] = f"{sent}: it waits at the drone, {drone.operator_pause}"
-            else:
-                holding[f"request {reqnr}"] = sent
-        link = self._peers.get(p.successor)
-        if link is not None and not link.stream_up:
-            holding["ring"] = (
-                f"ring stream to controller {p.successor} down "
-                f"({link.unacked} messages not acknowledged)"
-            )
-        if self.routed_around:
-            skipped = ", ".join(str(cid) for cid in self.routed_around)
-            holding["routed"] = (
-                f"ring routed around controller {skipped} (unreachable) to controller {p.successor}"
-            )
-        return holding
+        drone, link = self._drone, self.ring.get(self.protocol.successor)
+        sight = Sight(
+            drone=None if drone is None else (drone.address, drone.connected.is_set()),
+            standby_address=self._standby.address,
+            standby_up=self._standby.up,
+            in_flight=self._in_flight,
+            operator_pause=drone.operator_pause if drone is not None else "",
+            successor_link=None if link is None else (link.stream_up, link.unacked),
+        )
+        return holding(self.protocol, self.routed_around, sight)
 
     async def _watch(self) -> None:
         """Every half second: stalls into the status, and into the log when they begin."""
@@ -375,7 +252,7 @@ class ControllerNode:
             await self._drone.close(grace=STOP_GRACE_S)
             self._drone = None
         await self._warm_channel.close()
-        for link in self._peers.values():
+        for link in self.ring.links.values():
             await link.stop()
         self.history.close()
 
@@ -393,9 +270,8 @@ class ControllerNode:
         kept = self.core.kept_on_rejoin(self.history)
         fresh = self.core.fresh_self()
         await self._close_drone()
-        for link in self._peers.values():
+        for link in self.ring.drop_all():
             await link.stop()
-        self._peers = {}
         self.history.clear()
         self.core = fresh
         if self._settler is not None:
@@ -424,28 +300,23 @@ class ControllerNode:
                 self.peer(pid).start()
 
     def peer(self, pid: int) -> PeerLink:
-        """The kept stream to controller ``pid``, created on first use.
+        """The kept stream to controller ``pid``, created on first use (``RingLinks.peer``)."""
+        return self.ring.peer(pid)
 
-        A stream to the successor (or to the one we route to around a dead
-        successor) carries the history: the receiver is given what it lacks.
-        """
-        link = self._peers.get(pid)
-        if link is None:
-            history = self.history if pid == self.protocol.successor else None
-            link = PeerLink(
-                self.id,
-                pid,
-                self.config.controller(pid).reach,
-                self.log,
-                history,
-                self.tls,
-                self.config.ring.frame_bytes,
-                self.config.mission_id,
-            )
-            link.on_handover_acked = self._handover_acked
-            link.on_acked = self._target_acked
-            link.master_word = lambda: self.protocol.master_word
-            self._peers[pid] = link
+    def _make_link(self, pid: int, history: LogHistory | None) -> PeerLink:
+        link = PeerLink(
+            self.id,
+            pid,
+            self.config.controller(pid).reach,
+            self.log,
+            history,
+            self.tls,
+            self.config.ring.frame_bytes,
+            self.config.mission_id,
+        )
+        link.on_handover_acked = self.ring.handover_acked
+        link.on_acked = self._target_acked
+        link.master_word = lambda: self.protocol.master_word
         return link
 
     def relay_for(self, head: ring_pb2.LogMessage, total_bytes: int) -> Relay | None:
@@ -462,14 +333,6 @@ class ControllerNode:
         if len(self._arriving) > 64:
             del self._arriving[min(self._arriving)]
 
-    def _send_catch_up(self, target: int) -> None:
-        """What a handover's target may lack, straight to it (``ControllerCore.catch_up``)."""
-        messages = self.core.catch_up(target, self.history)
-        if messages is not None:
-            link = self.peer(target)
-            for message in messages:
-                link.send(message)
-
     async def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
         """The drone plans a handover (``ControllerCore.prepare``)."""
         now = asyncio.get_running_loop().time()
@@ -482,8 +345,7 @@ class ControllerNode:
     def _preparing(self, preparing: Preparing) -> None:
         """A preparation began: the stream to its target counts acknowledgements from
         now; its time is up at ``preparing.until`` (loop time)."""
-        link = self.peer(preparing.target)
-        self._acked_before_prepare = (link, link.counters.acked)
+        self.ring.preparing(preparing.target)
         loop = asyncio.get_running_loop()
         loop.call_at(preparing.until, self._preparation_over, preparing)
 
@@ -495,19 +357,8 @@ class ControllerNode:
                 getattr(self.log, effect.level)(effect.text, **effect.fields)
 
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
-        """How far a prepared handover's target is behind us (``ControllerCore.progress``).
-        Only the acknowledgements of the stream the count was taken on: a stream opened
-        since (the ring routed back past the target) counts from 0."""
-        target = self.protocol.preparing_for
-        link = self._peers.get(target) if target is not None else None
-        if link is None:
-            return self.core.progress(None)
-        before, acked = self._acked_before_prepare
-        return self.core.progress(
-            link.unacked_bytes,
-            link.waiting_for_ack_s(time.monotonic()),
-            link.counters.acked - (acked if link is before else 0),
-        )
+        """How far a prepared handover's target is behind us (``RingLinks.progress``)."""
+        return self.ring.progress(self.core, time.monotonic())
 
     def _target_acked(self, peer_id: int) -> None:
         """An acknowledgement from ``peer_id``: a word to the drone between requests if it
@@ -535,24 +386,6 @@ class ControllerNode:
                 self.log.info("drone moves the master on our word", target=progress.target)
                 return
 
-    def _handover_acked(self, message: ring_pb2.LogMessage) -> None:
-        """The new master acknowledged our handover message: it enters our history now.
-
-        Not before (a history copy re-sent ahead of it would overtake it, and
-        its new master would take the copy for a normal message), and not only
-        when it comes back round: the ring may go on past it
-        without giving it back to us (the new master handed over again before
-        its stream to its successor carried it, or the message went to a
-        controller that then rejoined and gave it on to a dead successor). Our
-        hello counts it then (``holds_lognr``), so a predecessor never gives it
-        again, and our history must hold it for our successor, or the
-        successor misses its log number for good.
-        """
-        if message.lognr in self.history:
-            return
-        self.history.add(message)
-        self.peer(self.protocol.successor).holds_changed()
-
     async def _route_watch(self) -> None:
         """Every 0.1 s: routes the ring around a successor down for the detection time,
         repairs a gap in what we received, and fences us on a queued message of a
@@ -574,12 +407,7 @@ class ControllerNode:
 
     async def _route(self) -> None:
         """Where the ring's messages go (``ControllerCore.route_due``); the links follow."""
-        now = time.monotonic()
-
-        def down_for(pid: int) -> float | None:
-            link = self._peers.get(pid)
-            return None if link is None or not link.used else link.down_for(now)
-
+        down_for = self.ring.down_for(time.monotonic())
         await self._apply(
             self.core.route_due(down_for, self.config.detection_s, self.drone_connected)
         )
@@ -588,22 +416,18 @@ class ControllerNode:
         """The ring now sends to ``route.successor``: its stream carries the history; the
         stream to a successor routed to before, and not skipped now, ends once it has
         nothing unacknowledged."""
-        link = self.peer(route.successor)
-        if not link.has_history:
-            link.give_history(self.history)
-            await link.stop()
-        link.start()
-        link.holds_changed()
-        retired = route.retired
-        old = None if retired is None else self._peers.get(retired)
-        if retired is not None and old is not None and old.unacked == 0:
-            await old.stop()
-            del self._peers[retired]
+        plan = self.ring.rerouted(route)
+        if plan.needs_history:
+            await plan.link.stop()
+        plan.link.start()
+        plan.link.holds_changed()
+        if plan.retired is not None:
+            await plan.retired.stop()
 
     @property
     def peers(self) -> dict[int, PeerLink]:
         """Streams this controller keeps, by peer id."""
-        return dict(self._peers)
+        return dict(self.ring.links)
 
     @property
     def standby_up(self) -> bool:
@@ -647,70 +471,31 @@ class ControllerNode:
             self.log.error("invariant broken; the controller stops", problem=str(broken))
             os._exit(INVARIANT_EXIT)
         for effect in ready:
-            if isinstance(effect, Persist):
-                self.history.add(effect.message)
-                self.peer(self.protocol.successor).holds_changed()
+            note = effect if isinstance(effect, Note) else note_of(effect, self.protocol.epoch)
+            if note is not None:
+                getattr(self.log, note.level)(note.text, **note.fields)
+            self.handovers.take(effect, time.time())
+            if isinstance(effect, Persist | Keep):
+                self.ring.keep(effect.message)
             elif isinstance(effect, SendLog):
                 self.peer(effect.dest).send(effect.message)
-                self.log.debug(
-                    "log message sent",
-                    dest=effect.dest,
-                    mlognr=effect.message.lognr,
-                    entries=len(effect.message.entries),
-                    handover=effect.message.handover,
-                )
             elif isinstance(effect, ConnectDrone):
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
                 await self._close_drone()
-            elif isinstance(effect, Diverged):
-                self.log.warning(
-                    "the ring's log differs from ours: a takeover framed the same replies in "
-                    "messages of its own; rejoining as a replica",
-                    mlognr=effect.lognr,
-                    our_epoch=effect.ours_epoch,
-                    ring_epoch=effect.ring_epoch,
-                )
             elif isinstance(effect, Reconnect):
                 await self._close_drone()
                 self._open_drone()
             elif isinstance(effect, Rejoin):
                 self._background.spawn(self._rejoin(), name="rejoin")
             elif isinstance(effect, SendCatchUp):
-                self._send_catch_up(effect.target)
-            elif isinstance(effect, Record):
-                self.handovers.append(
-                    HandoverEvent(
-                        effect.role,
-                        effect.other,
-                        effect.lognr,
-                        effect.reqnr,
-                        effect.log_bytes,
-                        epoch=effect.epoch,
-                        drone_after_reqnr=effect.drone_after_reqnr,
-                        holds_reqnr=effect.holds_reqnr,
-                    )
-                )
-            elif isinstance(effect, Note):
-                getattr(self.log, effect.level)(effect.text, **effect.fields)
+                self.ring.send_catch_up(self.core, effect.target)
             elif isinstance(effect, Fail):
                 self._fail(StatusError(effect.code, effect.text))
             elif isinstance(effect, Seen):
                 self._seen(effect.entry)
-            elif isinstance(effect, Keep):
-                self._held(effect.message)
             elif isinstance(effect, SettleHandovers):
-                self._settle_handovers()
-            elif isinstance(effect, FirstNewCall):
-                takers = [h for h in self.handovers if h.role == ring_pb2.HANDOVER_ROLE_TAKER]
-                if takers:
-                    takers[-1].first_new_reqnr, takers[-1].first_new_at = effect.reqnr, time.time()
-                self.log.info(
-                    "first new call after the takeover",
-                    reqnr=effect.reqnr,
-                    method=effect.method,
-                    epoch=effect.epoch,
-                )
+                self.ring.settle_handovers(self.protocol.handover_settled)
             elif isinstance(effect, RepairGap):
                 if self.on_gap is not None:
                     self.on_gap()
@@ -720,36 +505,9 @@ class ControllerNode:
                 self._preparing(effect)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
-                self.log.warning(
-                    "log message from a fenced master dropped",
-                    mlognr=effect.lognr,
-                    origin=effect.origin,
-                    message_epoch=effect.epoch,
-                    epoch=self.protocol.epoch,
-                )
             elif isinstance(effect, Unqueued):
                 self.fenced_messages += 1
-                self.history.discard(effect.lognr, effect.epoch)
-                # The successor may hold the same: our sync frame says the master's
-                # word again (``ControllerProtocol.on_sync``).
-                self.peer(self.protocol.successor).holds_changed()
-                self.log.warning(
-                    "queued log message of a replaced framing dropped",
-                    mlognr=effect.lognr,
-                    origin=effect.origin,
-                    message_epoch=effect.epoch,
-                )
-            elif isinstance(effect, TookOver):
-                self.handovers.append(
-                    HandoverEvent(
-                        ring_pb2.HANDOVER_ROLE_NEW,
-                        effect.old_master,
-                        effect.lognr,
-                        effect.reqnr,
-                        effect.message_bytes,
-                    )
-                )
-                self.log.info("taking over as master", old_master=effect.old_master)
+                self.ring.discard(effect.lognr, effect.epoch)
             elif isinstance(effect, KeepMastership):
                 self.history.keep_mastership_epoch(effect.epoch)
         self._notify()
@@ -762,7 +520,7 @@ class ControllerNode:
         if self._drone is not None:
             return
         address = self.config.drone_address_for(self.id)
-        events = _SessionEvents(self, self._background)
+        events = SessionEvents(self, self._background)
         channel, warm = self._warm_channel.take()
         self._drone = DroneSession(
             self.id,
@@ -907,22 +665,6 @@ class ControllerNode:
         0.1 s (``_route_watch``)."""
         reachable = self.drone_connected or self.standby_up
         await self._apply(self.core.went_on_without_us(message, reachable))
-
-    def _settle_handovers(self) -> None:
-        """Our handover messages still unacknowledged whose role is settled (the ring
-        went on past them) lose their flag and enter our history, as on an
-        acknowledgement (``PeerLink.settle_handovers``): a receiver restarted with
-        nothing must not take that role again."""
-        for link in list(self._peers.values()):
-            for message in link.settle_handovers(self.protocol.handover_settled):
-                self._handover_acked(message)
-
-    def _held(self, message: ring_pb2.LogMessage) -> None:
-        """Keeps a received message in the history; the successor's link says what we hold."""
-        self.history.add(message)
-        link = self._peers.get(self.protocol.successor)
-        if link is not None:
-            link.holds_changed()
 
     async def mission_done(self, failed: bool, error: str) -> bool:
         """The local mission program ended; the master flushes its last entries."""
@@ -1092,34 +834,11 @@ class ControllerNode:
             raise self._failure
 
     def _replay_again(self, again: ReplayAgain) -> None:
-        """The program gave up on a call that the master's program did not: it starts again
-        from the log (``ReplayAgain``; the rejoin comes with it), its call ABORTED.
-
-        A replica's program gives up on its own clock while it waits for the log (a
-        deadline, a cancellation); the master's program may have had its reply. The
-        program has run on an answer the mission never had, but a replica's program
-        has acted on nothing: it is restarted and replays the log from the start, as
-        Temporal retries a workflow task from its history.
-        """
-        entry, method, code = again.entry, again.method, again.code
-        master_saw = "a reply" if entry.status_code == 0 else f"status {entry.status_code}"
+        """The program starts again from the log, its call ABORTED (``notes.replay_again``)."""
         self.program_restarts += 1
-        self.log.warning(
-            "the mission program gave up on a call the master's program did not; it starts "
-            "again and replays the log (a deadline on a drone call makes a mission "
-            "non-deterministic: wait for the log instead)",
-            reqnr=entry.reqnr,
-            method=method,
-            gave_up=code.name,
-            master_saw=master_saw,
-            restarts=self.program_restarts,
-        )
-        raise StatusError(
-            grpc.StatusCode.ABORTED,
-            f"controller {self.id}: the program gave up on request {entry.reqnr} ({method}, "
-            f"{code.name}) but the master's program got {master_saw}: the program starts "
-            "again and replays the log",
-        )
+        note, aborted = replay_again(self.id, again, self.program_restarts)
+        getattr(self.log, note.level)(note.text, **note.fields)
+        raise StatusError(grpc.StatusCode.ABORTED, aborted)
 
     async def _clock_call(self, method: str, request: bytes) -> bytes:
         """Clock calls are answered here and logged like drone replies.
@@ -1149,6 +868,7 @@ class ControllerNode:
     async def _invoke_drone_retrying(
         self, reqnr: int, method: str, request: bytes, digest: bytes
     ) -> ring_pb2.LogEntry | None:
+        """Sends the request until it has an outcome (``invoking.failed``'s rules)."""
         retry = Retry(self.config.drone_retry_limit)
         while True:
             drone = self._drone
@@ -1157,71 +877,56 @@ class ControllerNode:
             if not drone.connected.is_set():
                 await self._wait_connected(drone)
                 continue
-            sent_epoch = drone.epoch
+            sent = Sent(reqnr, method, request, digest, drone.epoch)
             try:
                 self._in_flight = (reqnr, method)
-                budget = max(1.0, retry.limit_s - retry.waited())
                 reply = await drone.invoke(
                     reqnr,
                     method,
                     request,
-                    timeout_s=budget,
+                    timeout_s=max(1.0, retry.limit_s - retry.waited()),
                     watermark_reqnr=self.protocol.watermark_reqnr,
                     master_answers=[to_retained(entry) for entry in self.core.answered_here],
                     preparation=self._preparation_progress(),
                     adopted_from_reqnr=self.core.adopted_from(),
                 )
-                return ring_pb2.LogEntry(
-                    reqnr=reqnr,
-                    method=method,
-                    reply=reply.payload,
-                    request_digest=digest,
-                    request=request,
-                    drone_epoch=reply.epoch,
-                    drone_signature=reply.signature,
-                )
+                return replied(sent, reply.payload, reply.epoch, reply.signature)
             except grpc.aio.AioRpcError as exc:
-                refusal = refusal_of(exc)
-                if refusal is not None:
-                    await self._apply(
-                        self.core.request_refused(
-                            sent_epoch, refusal, reqnr, method, exc.details() or ""
-                        )
-                    )
-                    return None
-                if exc.code() is grpc.StatusCode.UNAVAILABLE and not retry.exhausted():
-                    # The drone could not be reached, or its vehicle is not
-                    # connected: nothing was executed, so the same reqnr is
-                    # re-sent (the drone left it unused).
-                    self._drone_wait = Wait(
-                        "retry",
-                        f"request {reqnr} ({method}): drone unavailable ({exc.details()})",
-                        retry.waited(),
-                    )
-                    if retry.should_log():
-                        self.log.warning(
-                            "drone unavailable; re-sending",
-                            reqnr=reqnr,
-                            waited_s=round(retry.waited(), 1),
-                            limit_s=retry.limit_s,
-                            detail=exc.details(),
-                        )
-                    await retry.pause()
-                    continue
-                if retry.attempts:
-                    self.log.warning(
-                        "drone still unavailable; the call fails",
-                        reqnr=reqnr,
-                        waited_s=round(retry.waited(), 1),
-                    )
-                return ring_pb2.LogEntry(
-                    reqnr=reqnr,
-                    method=method,
-                    request_digest=digest,
-                    request=request,
-                    status_code=exc.code().value[0],
-                    status_message=exc.details() or "",
+                detail, waited = exc.details() or "", retry.waited()
+                outcome = failed(
+                    self.core,
+                    sent,
+                    exc.code(),
+                    detail,
+                    refusal_of(exc),
+                    waited,
+                    retry.limit_s,
+                    retry.attempts,
                 )
+            if outcome.pause is not None:
+                self._drone_wait = Wait(
+                    "retry", f"request {reqnr} ({method}): drone unavailable ({detail})", waited
+                )
+                if retry.should_log():
+                    self.log.warning(
+                        "drone unavailable; re-sending",
+                        reqnr=reqnr,
+                        waited_s=round(waited, 1),
+                        limit_s=retry.limit_s,
+                        detail=detail,
+                    )
+                retry.attempts += 1
+                await asyncio.sleep(outcome.pause)
+                continue
+            if outcome.entry is None:  # a refusal: the core judged it
+                await self._apply(outcome.effects)
+            elif retry.attempts:
+                self.log.warning(
+                    "drone still unavailable; the call fails",
+                    reqnr=reqnr,
+                    waited_s=round(waited, 1),
+                )
+            return outcome.entry
 
     async def _wait_connected(self, drone: DroneSession) -> None:
         waiters = {
@@ -1233,46 +938,3 @@ class ControllerNode:
         finally:
             for waiter in waiters:
                 waiter.cancel()
-
-
-class _SessionEvents:
-    """A drone session's events, handed to the node on its event loop with the session."""
-
-    def __init__(self, node: ControllerNode, tasks: TaskSet) -> None:
-        self._node = node
-        self._tasks = tasks  # the node's: each event runs as a task of its own
-        self.session: DroneSession | None = None
-
-    def _run(self, event: Coroutine[Any, Any, None]) -> None:
-        self._tasks.spawn(event, name="drone-event")
-
-    def granted(self, connected: drone_pb2.Connected) -> None:
-        assert self.session is not None
-        self._run(
-            self._node.on_granted(
-                self.session,
-                connected.epoch,
-                connected.retained_through,
-                connected.takeover,
-                connected.watermark_reqnr,
-                connected.takeover_epoch,
-                connected.grant if connected.HasField("grant") else None,
-            )
-        )
-
-    def retained(self, replies: Sequence[drone_pb2.RetainedReply]) -> None:
-        assert self.session is not None
-        # A task like granted's: tasks start in the order they are made, so the
-        # batch is taken after the Connected event's on_granted began (and reset).
-        self._run(self._node.on_retained(self.session, replies))
-
-    def notice(self, notice: drone_pb2.HandoverNotice) -> None:
-        assert self.session is not None
-        self._run(self._node.on_stream_notice(self.session, notice))
-
-    def prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
-        self._run(self._node.on_prepare(prepare))
-
-    def refused(self, refusal: DroneRefusal) -> None:
-        assert self.session is not None
-        self._run(self._node.on_connect_refused(self.session, refusal))

@@ -28,16 +28,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections import deque
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine
 from dataclasses import dataclass
+from typing import Any
 
 import grpc
 from google.protobuf.message import DecodeError
 
 from baton.config import MAX_LOG_MESSAGE_DEFAULT
 from baton.controller.history import LogHistory
-from baton.controller.outbox import Outbox
+from baton.controller.link_core import LinkCore, PeerCounters, RelayCore, SyncWord
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import mission_metadata
@@ -51,8 +51,6 @@ FRAME_BYTES = 16 << 10
 # A relay holds at most this many frames not yet written on while its peer's
 # stream writes it: the stream it comes on waits for room (``Relay.room``).
 RELAY_WINDOW_FRAMES = 4
-BACKOFF_INITIAL_S = 0.05
-BACKOFF_MAX_S = 2.0
 
 # A LogRing stream, as its sender holds it (Call) and as its receiver serves it (Context).
 LogRingCall = grpc.aio.StreamStreamCall[ring_pb2.LogFrame, ring_pb2.LogAck]
@@ -160,61 +158,36 @@ class Reassembler:
             raise ValueError(f"log message {frame.lognr} is not a LogMessage: {exc}") from None
 
 
-class Relay:
-    """One log message's frames passed on to a peer as they arrive (cut-through).
-
-    The receiving stream adds each frame; the peer's ``PeerLink`` writes them
-    and lets them go (its memory is the frames not yet written, never the
-    message). The last frame waits for ``confirm`` (the protocol forwarded the
-    whole message: ``PeerLink.send``); ``settle`` without it, or ``abort``, and
-    the peer is told to drop what it got.
-    """
+class Relay(RelayCore):
+    """A ``RelayCore`` whose writer and sender wait on each other: the stream the message
+    comes on goes at the pace of the one it goes on (``room``), and the peer's stream
+    waits for the next frame (``changed``)."""
 
     def __init__(self, lognr: int, total_bytes: int) -> None:
-        self.lognr = lognr
-        self.total_bytes = total_bytes
-        self._frames: deque[ring_pb2.LogFrame] = deque()
-        self._received = 0
-        self.confirmed = False
-        self.aborted = False
+        super().__init__(lognr, total_bytes)
         self.changed = asyncio.Event()
-        # Written on the current stream, bytes and frames (by the PeerLink), and
-        # whether a stream is writing it now.
-        self.written = 0
-        self.frames_written = 0
+        # Whether a stream is writing it now.
         self.writing = False
         self._drained = asyncio.Event()
-        self.peak_buffered = 0
 
     def add(self, frame: ring_pb2.LogFrame) -> None:
-        """A frame of the message arrived (in order: the Reassembler checked it)."""
-        self._frames.append(frame)
-        self._received += len(frame.data)
-        self.peak_buffered = max(self.peak_buffered, len(self._frames))
+        super().add(frame)
         self.changed.set()
 
     async def room(self) -> None:
         """Waits while the frames not yet written fill the window and a stream is
-        writing them: the stream the message comes on goes at the pace of the one it
-        goes on, and a relay holds a few frames, not the message. A relay no stream
+        writing them: a relay holds a few frames, not the message. A relay no stream
         writes (the peer's stream down, or busy) does not hold its sender back."""
-        while len(self._frames) >= RELAY_WINDOW_FRAMES and self.writing and not self.aborted:
+        while len(self.frames) >= RELAY_WINDOW_FRAMES and self.writing and not self.aborted:
             self._drained.clear()
             await self._drained.wait()
 
     def confirm(self) -> None:
-        """The protocol forwarded the whole message to this peer: the last frame may go."""
-        self.confirmed = True
+        super().confirm()
         self.changed.set()
 
-    def settle(self) -> None:
-        """The whole message was handled: unless confirmed, it is not forwarded."""
-        if not self.confirmed:
-            self.abort()
-
     def abort(self) -> None:
-        """The message is not passed on (its stream broke, or it is not forwarded)."""
-        self.aborted = True
+        super().abort()
         self.changed.set()
         self._drained.set()
 
@@ -224,37 +197,19 @@ class Relay:
         self._drained.set()
 
     def ready(self) -> ring_pb2.LogFrame | None:
-        """The next frame that may be written now, taken off the relay."""
-        if not self._frames or self.aborted:
-            return None
-        last = len(self._frames) == 1 and self._received >= self.total_bytes
-        if last and not self.confirmed:
-            return None
-        self._drained.set()
-        return self._frames.popleft()
-
-
-@dataclass
-class PeerCounters:
-    """What a PeerLink has done, for GetStatus and the benchmarks."""
-
-    connects: int = 0
-    sent_messages: int = 0
-    sent_bytes: int = 0
-    acked: int = 0
-    relayed_messages: int = 0  # written on frame by frame as they came (cut-through)
-    relays_aborted: int = 0  # given up part-way (not forwarded, or a stream broke)
-    peak_relay_frames: int = 0  # the most frames a relay held not yet written on
+        frame = super().ready()
+        if frame is not None:
+            self._drained.set()
+        return frame
 
 
 class PeerLink:
-    """The kept LogRing stream from this controller to one peer.
+    """The kept LogRing stream from this controller to one peer, driving its ``LinkCore``.
 
     ``send`` never blocks the caller (the mission program's call returns while
-    the message travels). Messages are kept in memory until acknowledged and
-    re-sent on a new stream. The link to the successor also has the
-    controller's ``history`` (on disk), so that a successor that restarted
-    with nothing is given all of it again.
+    the message travels). The link to the successor also has the controller's
+    ``history`` (on disk), so that a successor that restarted with nothing is
+    given all of it again.
     """
 
     def __init__(
@@ -276,9 +231,7 @@ class PeerLink:
         self._metadata = mission_metadata(mission_id)
         self._tls = tls
         self._log = log.bind(peer=peer_id)
-        self._history = history
-        # What the peer has not acknowledged yet, and what a new stream re-sends.
-        self._outbox = Outbox()
+        self.core = LinkCore(peer_id, time.monotonic(), history)
         # Messages being passed on frame by frame as they arrive (cut-through).
         self._relays: dict[int, Relay] = {}
         # Called with a handover message its receiver acknowledged (set by the node).
@@ -287,14 +240,18 @@ class PeerLink:
         self.on_acked: Callable[[int], None] | None = None
         # The master's word our sync frames say (``ControllerProtocol.master_word``).
         self.master_word: Callable[[], tuple[int, int]] = lambda: (0, 0)
-        # Written on the current stream (a new stream writes every unacked one).
-        self._sent: set[int] = set()
         self._wakeup = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
-        self.stream_up = False
-        # Since when the stream has not been up (monotonic); None while it is.
-        self.down_since: float | None = time.monotonic()
-        self.counters = PeerCounters()
+
+    @property
+    def counters(self) -> PeerCounters:
+        """What the link has done (the core's counters)."""
+        return self.core.counters
+
+    @property
+    def stream_up(self) -> bool:
+        """Whether the stream is up."""
+        return self.core.up
 
     def start(self) -> None:
         """Starts keeping the stream."""
@@ -308,19 +265,14 @@ class PeerLink:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
             self._task = None
+        self.core.restarted(time.monotonic())
 
     def send(self, message: ring_pb2.LogMessage) -> None:
-        """Queues ``message`` for the peer.
-
-        A log number sent before is written again (a former master sends its
-        handover message on after a takeover, protocol.py ``_resend_handed``):
-        the receiver ignores a duplicate by log number and acknowledges it.
-        """
-        self._outbox.put(message, time.monotonic())
+        """Queues ``message`` for the peer (``LinkCore.queue``); a relay of it may end."""
+        self.core.queue(message, time.monotonic())
         relay = self._relays.get(message.lognr)
         if relay is not None:
             relay.confirm()
-        self._sent.discard(message.lognr)
         self._wakeup.set()
         self.start()
 
@@ -337,37 +289,31 @@ class PeerLink:
         return relay
 
     def settle_handovers(self, settled: Callable[[int], bool]) -> list[ring_pb2.LogMessage]:
-        """Our unacknowledged handover messages whose role is settled, written from now
-        on without the flag (``Outbox.settle_handovers``); returns them as they were.
-        Written on the current stream already, they are not written again."""
-        return self._outbox.settle_handovers(settled)
+        """``LinkCore.settle_handovers``."""
+        return self.core.settle_handovers(settled)
 
     @property
     def has_history(self) -> bool:
         """Whether this stream gives its receiver the history it lacks (a successor's)."""
-        return self._history is not None
+        return self.core.history is not None
 
     def give_history(self, history: LogHistory) -> None:
         """Makes this a successor's stream (routed to around a dead one); from its next start."""
-        self._history = history
+        self.core.history = history
 
     def down_for(self, now: float) -> float:
         """Seconds the stream has not been up (0 while it is)."""
-        return 0.0 if self.down_since is None else now - self.down_since
+        return self.core.down_for(now)
 
     def holds_changed(self) -> None:
-        """The history grew: the successor is told what we hold (a sync frame).
-
-        What the master's predecessor holds, every controller holds: that is
-        the replication watermark the master gives the drone.
-        """
-        if self._history is not None:
+        """The history grew: the successor is told what we hold (``LinkCore.sync_due``)."""
+        if self.core.history is not None:
             self._wakeup.set()
 
     @property
     def unacked(self) -> int:
         """Messages sent and not yet acknowledged."""
-        return len(self._outbox.unacked)
+        return len(self.core.unacked)
 
     @property
     def relaying(self) -> int:
@@ -377,31 +323,24 @@ class PeerLink:
 
     def waiting_for_ack_s(self, now: float) -> float:
         """How long the oldest unacknowledged message has waited (0: none waits)."""
-        return self._outbox.waiting_for_ack_s(now)
+        return self.core.outbox.waiting_for_ack_s(now)
 
     @property
     def unacked_bytes(self) -> int:
         """The serialized size of the messages sent and not yet acknowledged."""
-        return self._outbox.unacked_bytes
+        return self.core.outbox.unacked_bytes
 
     @property
     def used(self) -> bool:
-        """Whether the link carries anything: the successor's, or one a message was sent
-        on (not only kept open for a handover to come, ``ControllerNode.start``)."""
-        return (
-            self._history is not None
-            or bool(self._outbox.unacked)
-            or self.counters.sent_messages > 0
-        )
+        """``LinkCore.used``."""
+        return self.core.used
 
     async def _run(self) -> None:
-        backoff = BACKOFF_INITIAL_S
         while True:
             # Said once per outage (then at debug level), unless it carries something.
-            log = self._log.warning if self.stream_up or self.used else self._log.debug
+            log = self._log.warning if self.core.up or self.used else self._log.debug
             try:
                 await self._stream_once()
-                backoff = BACKOFF_INITIAL_S
             except asyncio.CancelledError:
                 raise
             except grpc.aio.AioRpcError as exc:
@@ -409,15 +348,11 @@ class PeerLink:
                     "ring stream down; reconnecting",
                     code=exc.code().name,
                     detail=exc.details(),
-                    retry_in_s=backoff,
+                    retry_in_s=self.core.backoff,
                 )
             except Exception as exc:
                 self._log.error("ring stream failed; reconnecting", error=repr(exc), exc_info=True)
-            self.stream_up = False
-            if self.down_since is None:
-                self.down_since = time.monotonic()
-            await asyncio.sleep(backoff)
-            backoff = min(backoff * 2, BACKOFF_MAX_S)
+            await asyncio.sleep(self.core.broken(time.monotonic()))
 
     async def _stream_once(self) -> None:
         async with aio_channel(
@@ -428,63 +363,35 @@ class PeerLink:
             hello = await read_message(call)
             if hello is None or not hello.hello:
                 raise ConnectionError(f"peer {self.peer_id} did not greet the ring stream")
-            self.stream_up, self.down_since = True, None
-            self.counters.connects += 1
-            history = self._history
-            holds = history.holds_lognr if history is not None else 0
-            self._log.info("ring stream up", peer_lognr=hello.lognr, holds_lognr=holds)
-            if history is not None:
-                # Only a stream that carries the history says what it holds:
-                # the receiver's catch-up and watermark take any sender's word
-                # (a stream routed around a dead predecessor), and a direct
-                # handover stream's "0" would tell a restarted new master it
-                # had caught up with nothing.
-                await call.write(_sync_frame(history, holds, self.my_id, self.master_word()))
-            synced, word = holds, self.master_word()
+            core = self.core
+            greeting = core.connected(hello.lognr, hello.epoch, self.master_word())
+            self._log.info("ring stream up", peer_lognr=hello.lognr, holds_lognr=core.synced)
+            if greeting.sync is not None:
+                await call.write(_sync_frame(greeting.sync, self.my_id))
             acks = asyncio.create_task(self._read_acks(call))
             try:
-                # Whatever the successor does not hold yet is re-sent from the
-                # history, read back one message at a time (a restarted peer
-                # holds nothing and gets all of it).
-                if history is not None:
-                    ours = history.get(hello.lognr).epoch if hello.lognr in history else None
-                    after = self._outbox.resend_from(hello.lognr, hello.epoch, ours)
-                    for lognr in self._outbox.history_to_resend(history.above(after)):
+                history = core.history
+                for lognr in greeting.from_history:
+                    if history is not None:  # read back one message at a time
                         await self._write(call, history.get(lognr))
-                self._sent = set()
-                sent = self._sent
                 while True:
                     # Cleared before looking, so a wake-up during a write is not lost.
                     self._wakeup.clear()
-                    grew = history is not None and history.holds_lognr > synced
-                    if history is not None and (grew or self.master_word() != word):
-                        synced, word = max(synced, history.holds_lognr), self.master_word()
-                        await call.write(_sync_frame(history, synced, self.my_id, word))
-                    pending = sorted(
-                        {n for n in self._outbox.unacked if n not in sent} | set(self._relays)
-                    )
+                    sync = core.sync_due(self.master_word())
+                    if sync is not None:
+                        await call.write(_sync_frame(sync, self.my_id))
+                    pending = sorted(set(core.pending()) | set(self._relays))
                     if not pending:
-                        waiter = asyncio.create_task(self._wakeup.wait())
-                        try:
-                            done, _ = await asyncio.wait(
-                                {waiter, acks}, return_when=asyncio.FIRST_COMPLETED
-                            )
-                        finally:
-                            waiter.cancel()
-                        if acks in done:
-                            acks.result()  # raises the stream's error
-                            raise ConnectionError(f"peer {self.peer_id} closed the ring stream")
+                        await _first(self._wakeup.wait(), acks, self.peer_id)
                         continue
                     for lognr in pending:
                         relay = self._relays.get(lognr)
                         if relay is not None and await self._write_relay(call, relay, acks):
-                            sent.add(lognr)
                             continue
-                        message = self._outbox.unacked.get(lognr)
+                        message = core.unacked.get(lognr)
                         if message is None:
                             continue  # acknowledged meanwhile (an earlier write of it)
                         await self._write(call, message)
-                        sent.add(lognr)
             finally:
                 acks.cancel()
                 call.cancel()
@@ -529,13 +436,12 @@ class PeerLink:
                 if frame.HasField("head"):
                     out.head.CopyFrom(frame.head)
                 await call.write(out)
-                relay.written += len(frame.data)
-                relay.frames_written += 1
+                relay.wrote(frame)
                 self.counters.sent_bytes += len(frame.data)
                 frame = relay.ready()
-            if relay.frames_written and relay.written >= relay.total_bytes:
+            if relay.done:
                 self._relays.pop(relay.lognr, None)
-                self.counters.sent_messages += 1
+                self.core.written(relay.lognr)
                 self.counters.relayed_messages += 1
                 return True
             if relay.aborted:
@@ -546,47 +452,44 @@ class PeerLink:
                         ring_pb2.LogFrame(lognr=relay.lognr, abort=True, from_id=self.my_id)
                     )
                 return False
-            waiter = asyncio.create_task(relay.changed.wait())
-            try:
-                done, _ = await asyncio.wait({waiter, acks}, return_when=asyncio.FIRST_COMPLETED)
-            finally:
-                waiter.cancel()
-            if acks in done:
-                acks.result()  # raises the stream's error
-                raise ConnectionError(f"peer {self.peer_id} closed the ring stream")
+            await _first(relay.changed.wait(), acks, self.peer_id)
 
     async def _write(self, call: LogRingCall, message: ring_pb2.LogMessage) -> None:
         for frame in frames(message, self.my_id, self.frame_bytes):
             await call.write(frame)
             self.counters.sent_bytes += len(frame.data)
-        self.counters.sent_messages += 1
+        self.core.written(message.lognr)
 
     async def _read_acks(self, call: LogRingCall) -> None:
         async for ack in _acks(call):
-            message = self._outbox.ack(ack.lognr)
-            self.counters.acked += 1
-            if message is not None and message.handover and self.on_handover_acked is not None:
-                self.on_handover_acked(message)
+            acked = self.core.acked(ack.lognr)
+            if acked.handover and acked.message and self.on_handover_acked is not None:
+                self.on_handover_acked(acked.message)
             if self.on_acked is not None:
                 self.on_acked(self.peer_id)
 
 
-def _sync_frame(
-    history: LogHistory, holds: int, my_id: int, word: tuple[int, int]
-) -> ring_pb2.LogFrame:
-    """The sync frame: the history holds every message up to ``holds``, and the epoch
-    of its message with that number (a receiver that handled a newer one knows this
-    history is of a framing a takeover replaced, ``ControllerProtocol.on_sync``), and
-    the newest ACTIVE master's ``word`` (its epoch and the log number it held)."""
-    epoch = history.get(holds).epoch if holds and holds in history else 0
-    master_epoch, master_lognr = word
+async def _first(wake: Coroutine[Any, Any, Any], acks: asyncio.Task[None], peer_id: int) -> None:
+    """Waits for ``wake`` or the end of the stream's acknowledgements, which raises."""
+    waiter = asyncio.create_task(wake)
+    try:
+        done, _ = await asyncio.wait({waiter, acks}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        waiter.cancel()
+    if acks in done:
+        acks.result()  # raises the stream's error
+        raise ConnectionError(f"peer {peer_id} closed the ring stream")
+
+
+def _sync_frame(word: SyncWord, my_id: int) -> ring_pb2.LogFrame:
+    """The sync frame saying ``word`` (``link_core.SyncWord``)."""
     return ring_pb2.LogFrame(
         sync=True,
-        holds_lognr=holds,
-        holds_epoch=epoch,
+        holds_lognr=word.holds,
+        holds_epoch=word.holds_epoch,
         from_id=my_id,
-        master_epoch=master_epoch,
-        master_lognr=master_lognr,
+        master_epoch=word.master_epoch,
+        master_lognr=word.master_lognr,
     )
 
 

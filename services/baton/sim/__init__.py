@@ -10,8 +10,8 @@ one command that replays it exactly.
 
 - ``loop``: virtual time, the event heap.
 - ``mission``: random deterministic mission programs.
-- ``network``: ring streams (ring.py's PeerLink decisions) and drone links.
-- ``controller``: node.py's decisions around the protocol.
+- ``network``: ring streams (driving the shipped ``LinkCore``) and drone links.
+- ``controller``: a driver of the shipped controller cores, as node.py is.
 - ``drone``: service.py's decisions around the sequencer; vehicle, camera.
 - ``faults``: what breaks, per seed.
 - ``oracles``: what must hold.

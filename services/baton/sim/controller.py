@@ -1,11 +1,12 @@
-"""One simulated mission controller: the real ``ControllerProtocol`` and node.py's decisions.
+"""One simulated mission controller: a driver of the shipped controller cores.
 
-``SimController`` is ``controller/node.py``'s ``ControllerNode`` with the
-asyncio taken out: each method names the node.py function whose decisions
-it copies, and keeps the copy minimal. The protocol (Algorithm 1, epochs,
-grants, sync) is the project's own object; the ring history is the
-project's own ``LogHistory``; ``_given_up`` and the retry constants are
-imported from node.py.
+``SimController`` drives what ``controller/node.py``'s ``ControllerNode``
+drives, with the asyncio taken out: ``ControllerCore`` (and its
+``ControllerProtocol``), the ring links' ``RingLinks`` and ``LinkCore``
+(through ``sim/network.py``'s ``RingLink``), ``status.recover`` and
+``status.holding``, ``invoking.failed`` for a drone call's outcome and
+``notes.note_of`` for what an effect says. It owns only the virtual I/O:
+the drone session, the program's calls and the timers.
 
 How asyncio maps onto events: node.py's ``_changed`` event (set on every
 ``_apply``) becomes ``_notify``, which schedules one ``_pump`` on the next
@@ -15,10 +16,11 @@ A drone call in flight is an ``Invocation`` that a reply, a broken
 connection, a back-off timer or a give-up moves on.
 
 Simplifications: the drone session's events run at once where node.py
-posts them as tasks; the stall watchdog, the status and the logging are
-left out; a program call's deadline is modelled only as the explicit
-give-up fault (``give_up``), not as gRPC deadlines on drone calls (the
-retry limit, node.py's ``drone_retry_limit``, is far beyond any fault).
+posts them as tasks; the stall watchdog and the logging are left out (its
+waits go into the liveness report, ``holding``); a program call's deadline
+is modelled only as the explicit give-up fault (``give_up``), not as gRPC
+deadlines on drone calls (the retry limit, node.py's ``drone_retry_limit``,
+is far beyond any fault).
 """
 
 from __future__ import annotations
@@ -56,12 +58,13 @@ from baton.controller.core import (
     to_retained,
 )
 from baton.controller.history import LogHistory
-from baton.controller.node import RETRY_FIRST_S, RETRY_MAX_S
+from baton.controller.invoking import Sent, failed, replied
+from baton.controller.links import RingLinks
+from baton.controller.notes import note_of, replay_again
 from baton.controller.protocol import (
     ConnectDrone,
     ControllerProtocol,
     DisconnectDrone,
-    Diverged,
     Fenced,
     ProtocolError,
     SendLog,
@@ -69,6 +72,7 @@ from baton.controller.protocol import (
     Unqueued,
     ring_route,
 )
+from baton.controller.status import Sight, holding, recover
 from baton.digest import request_digest
 from baton.rpc.errors import StatusError
 from baton.sim.drone import Request
@@ -88,13 +92,6 @@ SESSION_BACKOFF_FIRST_S, SESSION_BACKOFF_MAX_S = 0.05, 1.0
 MISSION_START_UNIX = 1.8e9
 # ControllerNode._route_watch's period: a route held back is asked again this often.
 ROUTE_POLL_S = 0.1
-
-
-def refusal_from(error: StatusError) -> DroneRefusal | None:
-    """drone_link.refusal_of for the simulated drone's StatusError (its trailing metadata)."""
-    if error.code is not grpc.StatusCode.FAILED_PRECONDITION:
-        return None
-    return DroneRefusal.from_metadata(dict(error.metadata))
 
 
 class Phase(enum.Enum):
@@ -168,7 +165,12 @@ class SimController:
         # event that broke them (invariant mastership-legal); the core does not stop.
         self.core.checking = False
         self.history = LogHistory()
-        self.links: dict[int, RingLink] = {}
+        # The ring links (the shipped RingLinks, as ControllerNode's).
+        self.ring = RingLinks(
+            self.history,
+            lambda: self.protocol.successor,
+            lambda pid, history: RingLink(world, self, pid, history),
+        )
         self.drone_link = DroneLink(world, self)
         self.session: Session | None = None
         # The mission program: the next call, the current one, and where it is.
@@ -196,8 +198,6 @@ class SimController:
         self.drone_last_at_death: int | None = None
         self.fenced_messages = 0
         self.route_held = False  # a route held back polls (_route_again)
-        # And _acked_before_prepare: the target's stream then, and its acks then.
-        self.acked_before_prepare: tuple[RingLink | None, int] = (None, 0)
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -213,6 +213,9 @@ class SimController:
 
     def start(self) -> None:
         """Opens the stream to the successor and asks the drone (node.py start)."""
+        recovered = recover(self.core, self.history, self.id)  # a history held: none yet
+        if recovered:
+            self._apply(recovered)
         self.peer(self.protocol.successor).start()
         self._apply(self.protocol.start())
 
@@ -237,24 +240,25 @@ class SimController:
         if self.alive:
             self.history.close()
 
+    @property
+    def links(self) -> dict[int, RingLink]:
+        """The ring links, by peer id."""
+        return self.ring.links
+
     def peer(self, pid: int) -> RingLink:
-        """ControllerNode.peer: the kept stream to ``pid``; the successor's has the history."""
-        link = self.links.get(pid)
-        if link is None:
-            history = self.history if pid == self.protocol.successor else None
-            link = RingLink(self.world, self, pid, history)
-            self.links[pid] = link
-        return link
+        """ControllerNode.peer (``RingLinks.peer``)."""
+        return self.ring.peer(pid)
 
     # -- effects (ControllerNode._apply) ------------------------------------------
 
     def _apply(self, effects: Sequence[CoreEffect]) -> None:
-        unqueued = False
         session = self.session
         for effect in self.core.ready(effects, session is not None and session.connected):
-            if isinstance(effect, Persist):
-                self.history.add(effect.message)
-                self.peer(self.protocol.successor).holds_changed()
+            note = effect if isinstance(effect, Note) else note_of(effect, self.protocol.epoch)
+            if note is not None and note.level != "debug":
+                self._say(note)
+            if isinstance(effect, Persist | Keep):
+                self.ring.keep(effect.message)
             elif isinstance(effect, SendLog):
                 message = effect.message
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
@@ -264,29 +268,22 @@ class SimController:
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
                 self._close_drone()
-            elif isinstance(effect, Diverged):
-                self.world.trace(
-                    f"controller {self.id} diverged at log message {effect.lognr} (epoch "
-                    f"{effect.ours_epoch} here, {effect.ring_epoch} on the ring): rejoins"
-                )
             elif isinstance(effect, Reconnect):
                 self._close_drone()
                 self._open_drone()
             elif isinstance(effect, Rejoin):
                 self._rejoin()
             elif isinstance(effect, SendCatchUp):
-                self._send_catch_up(effect.target)
-            elif isinstance(effect, Note):
-                fields = " ".join(f"{k}={v}" for k, v in effect.fields.items())
-                self.world.trace(f"controller {self.id}: {effect.text} ({fields})")
+                for message in self.ring.send_catch_up(self.core, effect.target):
+                    self.world.trace(
+                        f"controller {self.id} sends {message.lognr} straight to {effect.target}"
+                    )
             elif isinstance(effect, Fail):
                 self._fail(effect.text)
             elif isinstance(effect, Seen):
                 self._seen(effect.entry)
-            elif isinstance(effect, Keep):
-                self._held(effect.message)
             elif isinstance(effect, SettleHandovers):
-                self._settle_handovers()
+                self.ring.settle_handovers(self.protocol.handover_settled)
             elif isinstance(effect, ReplayAgain):
                 self._replayed_again(effect)
             elif isinstance(effect, RepairGap):
@@ -297,27 +294,19 @@ class SimController:
                 self._preparing(effect)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
-                self.world.trace(
-                    f"controller {self.id} drops log message {effect.lognr} of fenced "
-                    f"{effect.origin} (epoch {effect.epoch})"
-                )
             elif isinstance(effect, KeepMastership):
                 self.history.keep_mastership_epoch(effect.epoch)
-            elif isinstance(effect, Unqueued):  # node.py: out of the history too
+            elif isinstance(effect, Unqueued):
                 self.fenced_messages += 1
-                unqueued = True
-                self.history.discard(effect.lognr, effect.epoch)
-                self.world.trace(
-                    f"controller {self.id} drops queued log message {effect.lognr} of a "
-                    f"replaced framing ({effect.origin}, epoch {effect.epoch})"
-                )
-        if unqueued and self.alive:
-            # node.py: the successor's stream says the master's word again, which may
-            # drop the same messages there (ControllerProtocol.on_sync).
-            self.peer(self.protocol.successor).word_changed()
+                self.ring.discard(effect.lognr, effect.epoch)
         self.world.after_apply(self, effects)
         self._gap_check_later()
         self._notify()
+
+    def _say(self, note: Note) -> None:
+        """A Note into the trace (the runtime logs it)."""
+        fields = " ".join(f"{k}={v}" for k, v in note.fields.items())
+        self.world.trace(f"controller {self.id}: {note.text} ({fields})")
 
     def _notify(self) -> None:
         """ControllerNode._notify: wakes whatever waits on _changed, on the next loop turn."""
@@ -468,7 +457,7 @@ class SimController:
         session = self.session
         if session is None or session.sid != sid:
             return
-        refusal = refusal_from(error)
+        refusal = DroneRefusal.of_status(error.code, dict(error.metadata))
         if refusal is None:
             self._reconnect_later(session)
             return
@@ -575,12 +564,7 @@ class SimController:
         """ControllerNode._route: ``ControllerCore.route_due``; the links follow."""
         if not self.alive:
             return
-        now = self.world.loop.now
-
-        def down_for(pid: int) -> float | None:
-            link = self.links.get(pid)
-            return None if link is None else link.down_for(now)
-
+        down_for = self.ring.down_for(self.world.loop.now)
         session = self.session
         connected = session is not None and session.connected
         successor = self.protocol.successor
@@ -599,17 +583,13 @@ class SimController:
 
     def _routed(self, route: RouteTo) -> None:
         """ControllerNode._routed: the new successor's stream carries the history."""
-        link = self.peer(route.successor)
-        if link.history is None:
-            link.history = self.history
-            link.restart()
-        link.start()
-        link.holds_changed()
-        retired = route.retired
-        old = None if retired is None else self.links.get(retired)
-        if retired is not None and old is not None and not old.unacked:
-            old.stop()
-            del self.links[retired]
+        plan = self.ring.rerouted(route)
+        if plan.needs_history:
+            plan.link.restart()
+        plan.link.start()
+        plan.link.holds_changed()
+        if plan.retired is not None:
+            plan.retired.stop()
         self.world.check_start()
 
     def _route_again(self) -> None:
@@ -654,8 +634,7 @@ class SimController:
 
     def _preparing(self, preparing: Preparing) -> None:
         """ControllerNode._preparing: acknowledgements counted from now; the timer."""
-        link = self.peer(preparing.target)
-        self.acked_before_prepare = (link, link.acked)
+        self.ring.preparing(preparing.target)
         self.world.loop.at(preparing.until, self._preparation_over, preparing)
 
     def _preparation_over(self, preparing: Preparing) -> None:
@@ -665,26 +644,8 @@ class SimController:
             )
 
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
-        """ControllerNode._preparation_progress (``ControllerCore.progress``)."""
-        target = self.protocol.preparing_for
-        link = self.links.get(target) if target is not None else None
-        if link is None:
-            return self.core.progress(None)
-        before, acked = self.acked_before_prepare
-        return self.core.progress(
-            link.unacked_bytes,
-            link.waiting_for_ack_s(self.world.loop.now),
-            link.acked - (acked if link is before else 0),
-        )
-
-    def _send_catch_up(self, target: int) -> None:
-        """ControllerNode._send_catch_up (``ControllerCore.catch_up``)."""
-        messages = self.core.catch_up(target, self.history)
-        if messages is not None:
-            link = self.peer(target)
-            for message in messages:
-                self.world.trace(f"controller {self.id} sends {message.lognr} straight to {target}")
-                link.send(message)
+        """ControllerNode._preparation_progress (``RingLinks.progress``)."""
+        return self.ring.progress(self.core, self.world.loop.now)
 
     def on_log(self, message: ring_pb2.LogMessage) -> None:
         """ControllerNode.on_log (``ControllerCore.log_arrived``)."""
@@ -717,13 +678,6 @@ class SimController:
             return
         self._apply(self.core.went_on_without_us(message, self._drone_reachable()))
 
-    def _settle_handovers(self) -> None:
-        """ControllerNode._settle_handovers: a settled handover message loses its flag on
-        the direct link and enters the history, as on an acknowledgement."""
-        for link in list(self.links.values()):
-            for message in link.settle_handovers(self.protocol.handover_settled):
-                self.handover_acked(message)
-
     def target_acked(self, peer_id: int) -> None:
         """ControllerNode._target_acked: a target within the drone's bound is reported
         between requests (ReportPreparation). Every such ack sends a word here, where
@@ -743,17 +697,8 @@ class SimController:
         )
 
     def handover_acked(self, message: ring_pb2.LogMessage) -> None:
-        """ControllerNode._handover_acked: the new master has our handover message; it
-        enters our history (it may never come back round)."""
-        if message.lognr in self.history:
-            return
-        self.history.add(message)
-        self.peer(self.protocol.successor).holds_changed()
-
-    def _held(self, message: ring_pb2.LogMessage) -> None:
-        """ControllerNode._held: into the history; the successor's link syncs."""
-        self.history.add(message)
-        self.peer(self.protocol.successor).holds_changed()
+        """PeerLink.on_handover_acked (``RingLinks.handover_acked``)."""
+        self.ring.handover_acked(message)
 
     # -- the mission program (ControllerNode.call) --------------------------------
 
@@ -823,10 +768,7 @@ class SimController:
     def _replayed_again(self, again: ReplayAgain) -> None:
         """node.py _replay_again: the program starts again (the rejoin came with it)."""
         entry = again.entry
-        self.world.trace(
-            f"controller {self.id}: the program gave up on request {entry.reqnr} "
-            f"({again.code.name}) but the entry has status {entry.status_code}: it starts again"
-        )
+        self._say(replay_again(self.id, again, 0)[0])
         # What it answered before the give-up came from the log and must match; from
         # the give-up on it ran on its own answer.
         self.accepted_upto = max(self.accepted_upto, entry.reqnr - 1)
@@ -928,35 +870,34 @@ class SimController:
     def _invoke_result(
         self, inv: Invocation, reply: drone_pb2.InvokeReply | None, error: StatusError | None
     ) -> None:
-        """ControllerNode._invoke_drone_retrying after drone.invoke returned or raised."""
+        """ControllerNode._invoke_drone_retrying after drone.invoke returned or raised
+        (``invoking.replied``, ``invoking.failed``)."""
+        call = inv.call
+        sent = Sent(inv.reqnr, call.method, call.request, inv.digest, inv.sent_epoch)
         if error is None:
             assert reply is not None
-            entry = self._entry(inv, reply.payload)
-            entry.drone_epoch, entry.drone_signature = reply.epoch, reply.signature
-            self._invoked(inv, entry)
+            self._invoked(inv, replied(sent, reply.payload, reply.epoch, reply.signature))
             return
-        refusal = refusal_from(error)
-        if refusal is not None:
-            self._apply(
-                self.core.request_refused(
-                    inv.sent_epoch, refusal, inv.reqnr, inv.call.method, error.message
-                )
-            )
-            self._invoked(inv, None)
-            return
+        refusal = DroneRefusal.of_status(error.code, dict(error.metadata))
         waited = self.world.loop.now - inv.started
-        if error.code is grpc.StatusCode.UNAVAILABLE and waited < DRONE_RETRY_LIMIT_S:
-            # Retry.pause: nothing was executed, the same reqnr goes again.
-            delay = min(RETRY_MAX_S, RETRY_FIRST_S * 2**inv.pauses)
+        outcome = failed(
+            self.core,
+            sent,
+            error.code,
+            error.message,
+            refusal,
+            waited,
+            DRONE_RETRY_LIMIT_S,
+            inv.pauses,
+        )
+        if outcome.pause is not None:
             inv.pauses += 1
             inv.step = Step.PAUSE
-            delay = min(delay, max(0.0, DRONE_RETRY_LIMIT_S - waited))
-            self.world.loop.after(delay, self._paused, inv, inv.pauses)
+            self.world.loop.after(outcome.pause, self._paused, inv, inv.pauses)
             return
-        entry = self._entry(inv, b"")
-        entry.status_code = error.code.value[0]
-        entry.status_message = error.message
-        self._invoked(inv, entry)
+        if outcome.entry is None:
+            self._apply(outcome.effects)
+        self._invoked(inv, outcome.entry)
 
     def _paused(self, inv: Invocation, pauses: int) -> None:
         if self.alive and self.inv is inv and inv.pauses == pauses and inv.step is Step.PAUSE:
@@ -1030,6 +971,20 @@ class SimController:
             for link in self.links.values()
             for message in link.unacked.values()
         )
+
+    def holding(self) -> dict[str, str]:
+        """ControllerNode.stall_conditions (``status.holding``): what it waits for now."""
+        session, inv = self.session, self.inv
+        link = self.ring.get(self.protocol.successor)
+        in_flight = inv is not None and inv.step is Step.IN_FLIGHT
+        sight = Sight(
+            drone=None if session is None else ("the drone", session.connected),
+            standby_address="the drone",
+            standby_up=self.drone_link.usable(),
+            in_flight=(inv.reqnr, inv.call.method) if in_flight and inv is not None else None,
+            successor_link=None if link is None else (link.up, len(link.unacked)),
+        )
+        return holding(self.protocol, self.routed_around, sight)
 
     def waiting_call_reqnr(self) -> int | None:
         """The reqnr of the call held while PASSIVE, if the program is held."""

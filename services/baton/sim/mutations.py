@@ -18,6 +18,7 @@ from typing import Any
 from baton import authenticity
 from baton.authenticity import Verifier
 from baton.controller.core import ControllerCore, CoreEffect
+from baton.controller.link_core import Greeting, LinkCore
 from baton.controller.protocol import ConnectDrone, ControllerProtocol, Effect, Refusal, State
 from baton.drone import sequencer
 from baton.drone.core import DroneCore
@@ -25,7 +26,6 @@ from baton.drone.dedupe import ReplyCache
 from baton.drone.operator import Operator
 from baton.rpc.errors import StatusError
 from baton.sim.drone import Request, SimDrone
-from baton.sim.network import RingLink
 from baton.v1 import drone_pb2, ring_pb2
 
 MUTATIONS: dict[str, Mutation] = {}
@@ -129,17 +129,20 @@ def _defect3_resend() -> list[tuple[Any, str, Any]]:
     """Issue 9, defect 3: a predecessor re-sends a restarted successor only others' messages.
 
     As ring.py did: the successor's own messages stopped at the predecessor
-    and were never given back. Patched in the simulation's ring link, where the
-    history's origins are at hand (both links ask ``Outbox.history_to_resend``).
+    and were never given back. Patched in the shipped ``LinkCore.connected``,
+    the greeting both links write.
     """
-    original = RingLink._history_to_resend
+    original = LinkCore.connected
 
-    def history_to_resend(self: RingLink, hello: int) -> list[int]:
+    def connected(self: LinkCore, hello: int, epoch: int, word: tuple[int, int]) -> Greeting:
+        greeting = original(self, hello, epoch, word)
         history = self.history
-        assert history is not None or not original(self, hello)
-        return [n for n in original(self, hello) if history and history.get(n).origin != self.dest]
+        if history is None:
+            return greeting
+        others = [n for n in greeting.from_history if history.get(n).origin != self.peer]
+        return Greeting(greeting.sync, others)
 
-    return [(RingLink, "_history_to_resend", history_to_resend)]
+    return [(LinkCore, "connected", connected)]
 
 
 def _defect4() -> list[tuple[Any, str, Any]]:

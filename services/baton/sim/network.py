@@ -6,12 +6,10 @@ asymmetric), and both break: a partition, a dropped connection, a lost
 message (which resets the stream it was on, as TCP would), or an end
 that died. A broken stream loses everything in flight on it.
 
-``RingLink`` mirrors ``controller/ring.py``'s ``PeerLink`` decisions: a
-stream kept to one peer and re-opened with its back-off; on every new
-stream the receiver first says the log number it has handled, the sender
-answers with a sync frame naming the highest log number its history holds,
-re-sends to its successor every history message above the receiver's
-number and then every message not yet acknowledged; messages are
+``RingLink`` drives the shipped ``LinkCore`` (``controller/link_core.py``), as
+``controller/ring.py``'s ``PeerLink`` does: what a new stream writes, what is
+kept until acknowledged, when a sync frame is due and the back-off are the
+core's; the link only carries frames over the virtual network. Messages are
 acknowledged one by one after the receiver handled them.
 
 ``DroneLink`` is the gRPC channel between one controller and the drone
@@ -34,8 +32,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from baton.controller.history import LogHistory
-from baton.controller.outbox import Outbox
-from baton.controller.ring import BACKOFF_INITIAL_S, BACKOFF_MAX_S
+from baton.controller.link_core import LinkCore, SyncWord
 from baton.v1 import ring_pb2
 
 if TYPE_CHECKING:
@@ -132,7 +129,8 @@ class Network:
 
 
 class RingLink:
-    """The kept LogRing stream from one controller to one peer (ring.py ``PeerLink``).
+    """The kept LogRing stream from one controller to one peer, driving its ``LinkCore``
+    (as ring.py's ``PeerLink`` does) over the virtual network.
 
     Owned by one controller incarnation: a killed controller's links die
     with it, unacknowledged messages included.
@@ -144,27 +142,31 @@ class RingLink:
         self.world = world
         self.owner = owner
         self.dest = dest
-        self.history = history
-        # What the peer has not acknowledged yet (the shipped Outbox, as PeerLink's);
-        # and PeerCounters.acked (a prepared handover's progress word).
-        self.outbox = Outbox()
-        self.acked = 0
-        self.up = False
+        self.core = LinkCore(dest, world.loop.now, history)
         self.generation = 0
-        self._synced = 0  # the last sync frame's holds_lognr
-        self._synced_word = (0, 0)  # and the master's word it said
         self._peer: SimController | None = None
         self._started = False
-        self._backoff = BACKOFF_INITIAL_S
-        self._sent: set[int] = set()
         self._tx_free = 0.0
         self._fifo = 0.0
-        self.connects = 0
         self.peak_unacked = 0
         self.stopped = False  # PeerLink.stop: no more attempts
         self._try = 0  # the connection attempt under way; a restart supersedes it
-        self.down_since: float | None = world.loop.now  # PeerLink.down_since
         owner.route_check_later()
+
+    @property
+    def up(self) -> bool:
+        """Whether the stream is up."""
+        return self.core.up
+
+    @property
+    def history(self) -> LogHistory | None:
+        """The history this stream gives (a successor's), or None."""
+        return self.core.history
+
+    @property
+    def unacked(self) -> dict[int, ring_pb2.LogMessage]:
+        """The messages sent and not yet acknowledged, by log number."""
+        return self.core.unacked
 
     def start(self) -> None:
         """Starts keeping the stream (PeerLink.start)."""
@@ -173,72 +175,44 @@ class RingLink:
             self._attempt()
 
     def send(self, message: ring_pb2.LogMessage) -> None:
-        """PeerLink.send: kept until acknowledged; written at once if the stream is up."""
-        self.outbox.put(message, self.world.loop.now)
+        """PeerLink.send (``LinkCore.queue``); written at once if the stream is up."""
+        self.core.queue(message, self.world.loop.now)
         self.peak_unacked = max(self.peak_unacked, len(self.unacked))
-        if self.up:  # written again if sent before (PeerLink.send)
-            self._sent.add(message.lognr)
-            self._write(message)
+        self._write_pending()
         self.start()
-
-    def settle_handovers(self, settled: Callable[[int], bool]) -> list[ring_pb2.LogMessage]:
-        """PeerLink.settle_handovers (``Outbox.settle_handovers``)."""
-        return self.outbox.settle_handovers(settled)
-
-    @property
-    def unacked(self) -> dict[int, ring_pb2.LogMessage]:
-        """The messages sent and not yet acknowledged, by log number."""
-        return self.outbox.unacked
 
     def break_(self, why: str) -> None:
         """The stream broke: everything in flight is lost; reconnect after the back-off."""
         if not self.up:
             return  # a connection attempt in progress sees it for itself
-        self.up = False
         self.generation = self.world.next_id()
-        self.down_since = self.world.loop.now
         self.world.trace(f"ring {self.owner.id}->{self.dest} down ({why})")
         self.owner.route_check_later()
         self._retry()
-
-    def waiting_for_ack_s(self, now: float) -> float:
-        """PeerLink.waiting_for_ack_s: how long the oldest unacknowledged message has
-        waited (0: none waits)."""
-        return self.outbox.waiting_for_ack_s(now)
-
-    @property
-    def unacked_bytes(self) -> int:
-        """PeerLink.unacked_bytes: the serialized size of the unacknowledged messages."""
-        return self.outbox.unacked_bytes
-
-    def down_for(self, now: float) -> float:
-        """PeerLink.down_for: seconds the stream has not been up (0 while it is)."""
-        return 0.0 if self.down_since is None else now - self.down_since
 
     def stop(self) -> None:
         """PeerLink.stop: the stream ends, no more attempts, unacknowledged messages dropped."""
         self.stopped = True
         self._try += 1
         if self.up:
-            self.up = False
+            self.core.restarted(self.world.loop.now)
             self.generation = self.world.next_id()
 
     def restart(self) -> None:
-        """PeerLink.stop then start (node.py _route after give_history): a new stream,
-        whose hello and history re-send use the history given. A stream not up
+        """PeerLink.stop and start (node.py ``_routed``): a new stream, whose hello and
+        history re-send use the history given (``RingLinks.rerouted``). A stream not up
         yet reads the history when it comes up."""
         if self.up:
-            self.up = False
+            self.core.restarted(self.world.loop.now)
             self.generation = self.world.next_id()
-            self.down_since = self.world.loop.now
             self._try += 1
             self._attempt(self._try)
 
     # -- connecting ---------------------------------------------------------------
 
     def _retry(self) -> None:
-        self.world.loop.after(self._backoff, self._attempt, self._try)
-        self._backoff = min(self._backoff * 2, BACKOFF_MAX_S)
+        wait = self.core.broken(self.world.loop.now)
+        self.world.loop.after(wait, self._attempt, self._try)
 
     def _usable_peer(self) -> SimController | None:
         world, me = self.world, self.owner
@@ -278,75 +252,47 @@ class RingLink:
         )
 
     def _greeted(self, peer: SimController, hello: int, attempt: int, epoch: int = 0) -> None:
-        """PeerLink._stream_once after the hello: sync frame, history above it (and the
-        hello's own message if ours is of a newer epoch: resend_after), unacked."""
+        """PeerLink._stream_once after the hello: the core's greeting, then the kept ones."""
         if not self.owner.alive or attempt != self._try:
             return
         if self._usable_peer() is not peer:
             self._retry()
             return
-        self.up, self._peer = True, peer
-        self.down_since = None
+        self._peer = peer
         self.generation = self.world.next_id()
-        self._backoff = BACKOFF_INITIAL_S
-        self._sent = set()
         self._tx_free = self._fifo = self.world.loop.now
-        self.connects += 1
-        holds = self.history.holds_lognr if self.history is not None else 0
-        self._synced = holds
-        self.world.trace(f"ring {self.owner.id}->{self.dest} up (hello {hello}, holds {holds})")
+        greeting = self.core.connected(hello, epoch, self.owner.protocol.master_word)
+        self.world.trace(
+            f"ring {self.owner.id}->{self.dest} up (hello {hello}, holds {self.core.synced})"
+        )
         self.world.check_start()
-        if self.history is not None:  # PeerLink: only a history stream says what it holds
-            self._deliver_later(0, self._sync_frame, self._sync(holds))
-        if self.history is not None:
-            ours = self.history.get(hello).epoch if hello in self.history else None
-            hello = self.outbox.resend_from(hello, epoch, ours)
-        for lognr in self._history_to_resend(hello):
-            if self.history is not None:
-                self._write(self.history.get(lognr))
-        for lognr in sorted(self.unacked):
-            self._sent.add(lognr)
-            self._write(self.unacked[lognr])
+        if greeting.sync is not None:
+            self._deliver_later(0, self._sync_frame, greeting.sync)
+        history = self.history
+        for lognr in greeting.from_history:
+            if history is not None and self.up:
+                self._write(history.get(lognr))
+        self._write_pending()
         self.owner.route_check_later(0.0)  # back to a natural successor that is up again
 
     def holds_changed(self) -> None:
-        """PeerLink.holds_changed: a sync frame when the history's top grew."""
-        if not self.up or self.history is None or not self.owner.alive:
+        """PeerLink.holds_changed: a sync frame when the core says one is due."""
+        if not self.owner.alive:
             return
-        holds = self.history.holds_lognr
-        if holds > self._synced:
-            self._synced = holds
-            self._deliver_later(0, self._sync_frame, self._sync(holds))
-
-    def word_changed(self) -> None:
-        """PeerLink's sync frame when the master's word changed (``ControllerProtocol.
-        master_word``). node.py looks at every wake-up; here when the owner dropped
-        queued messages, the one moment the successor may hold the same ones."""
-        if not self.up or self.history is None or not self.owner.alive:
-            return
-        if self.owner.protocol.master_word != self._synced_word:
-            self._deliver_later(0, self._sync_frame, self._sync(self.history.holds_lognr))
-
-    def _sync(self, holds: int) -> tuple[int, int, int, int]:
-        """PeerLink's sync frame: what we hold, its epoch, and the master's word."""
-        self._synced_word = word = self.owner.protocol.master_word
-        return holds, self._epoch_of(holds), *word
-
-    def _epoch_of(self, holds: int) -> int:
-        """PeerLink's sync frame: the epoch of the history's message ``holds`` (0 for none)."""
-        if self.history is None or not holds or holds not in self.history:
-            return 0
-        return self.history.get(holds).epoch
-
-    def _history_to_resend(self, hello: int) -> list[int]:
-        """PeerLink's re-send from the history (``Outbox.history_to_resend``)."""
-        if self.history is None:
-            return []
-        return self.outbox.history_to_resend(self.history.above(hello))
+        sync = self.core.sync_due(self.owner.protocol.master_word)
+        if sync is not None:
+            self._deliver_later(0, self._sync_frame, sync)
 
     # -- frames -------------------------------------------------------------------
 
+    def _write_pending(self) -> None:
+        for lognr in self.core.pending():
+            if not self.up:
+                return  # a lost message broke the stream
+            self._write(self.unacked[lognr])
+
     def _write(self, message: ring_pb2.LogMessage) -> None:
+        self.core.written(message.lognr)
         if self.world.net.lose(self):
             self.world.trace(f"ring {self.owner.id}->{self.dest} lost message {message.lognr}")
             self.break_("message lost")
@@ -376,8 +322,10 @@ class RingLink:
             return
         handler(peer, arg)
 
-    def _sync_frame(self, peer: SimController, holds: tuple[int, int, int, int]) -> None:
-        peer.on_sync(self.owner.id, *holds)
+    def _sync_frame(self, peer: SimController, sync: SyncWord) -> None:
+        peer.on_sync(
+            self.owner.id, sync.holds, sync.holds_epoch, sync.master_epoch, sync.master_lognr
+        )
 
     def _message_frame(self, peer: SimController, data: bytes) -> None:
         message = ring_pb2.LogMessage.FromString(data)
@@ -391,10 +339,9 @@ class RingLink:
 
     def _ack(self, generation: int, lognr: int) -> None:
         if generation == self.generation and self.up and self.owner.alive:
-            message = self.outbox.ack(lognr)
-            self.acked += 1  # PeerLink._read_acks
-            if message is not None and message.handover:  # PeerLink.on_handover_acked
-                self.owner.handover_acked(message)
+            acked = self.core.acked(lognr)
+            if acked.handover and acked.message is not None:  # PeerLink.on_handover_acked
+                self.owner.handover_acked(acked.message)
             self.owner.target_acked(self.dest)  # PeerLink.on_acked
 
 

@@ -329,7 +329,8 @@ def _liveness(world: World) -> list[Violation]:
                 f"epoch {p.epoch}, reqnr {p.reqnr}, lognr {p.lognr}, queued "
                 f"{sorted(p.log_queue)[:8]}, caught up {p.caught_up} "
                 f"(to {p.catch_up_to}); drone master {world.drone.seq.master} "
-                f"epoch {world.drone.seq.epoch} last reqnr {world.drone.seq.last_reqnr}",
+                f"epoch {world.drone.seq.epoch} last reqnr {world.drone.seq.last_reqnr}; "
+                f"waiting: {'; '.join(controller.holding().values()) or 'nothing it knows of'}",
             )
         )
     return found

@@ -1,0 +1,277 @@
+"""One ring link's send side as a pure object: what it owes its peer, what a new
+stream writes, what an acknowledgement releases, and when it says what it holds.
+
+The runtime's ``PeerLink`` (``ring.py``, gRPC streams and frames) and the
+simulation's ``RingLink`` (``sim/network.py``, a virtual network) both drive one
+``LinkCore``: they turn a stream that opens, breaks or acknowledges into calls
+here and write what it returns. Times are arguments; nothing here awaits.
+
+The rules, decided here once:
+
+- A message queued is kept (``Outbox``) until its peer acknowledges it, and
+  written on the current stream once; a number queued again is written again
+  (its receiver ignores a duplicate by log number and acknowledges it).
+- A new stream to a successor (a link that carries the ``history``) first says
+  what the history holds (a sync frame), then gives the history above the
+  peer's hello (``resend_after``) except what is kept unacknowledged, then the
+  unacknowledged messages in log-number order. A stream to any other peer
+  (a handover's target) carries only what was queued on it: its "holds 0"
+  would tell a restarted new master it had caught up with nothing.
+- A successor's stream says what the history holds again whenever the history
+  grew past what it said or the master's word changed
+  (``ControllerProtocol.master_word``): what the master's predecessor holds,
+  every controller holds, which is the watermark the master gives the drone.
+- A broken stream forgets what it wrote (the next writes everything kept) and
+  tries again after a back-off that doubles up to ``BACKOFF_MAX_S``; a stream
+  that comes up starts the back-off over.
+- A message being passed on frame by frame (cut-through, ``RelayCore``) may
+  end only once the protocol forwarded it whole (``confirm``); a relay given
+  up, or one a broken stream wrote part of, is not resumed: the message goes
+  whole once forwarded.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from baton.controller.history import LogHistory
+from baton.controller.outbox import Outbox
+from baton.v1 import ring_pb2
+
+BACKOFF_INITIAL_S = 0.05
+BACKOFF_MAX_S = 2.0
+
+
+@dataclass(frozen=True)
+class SyncWord:
+    """A sync frame's words: the history holds every message up to ``holds``;
+    ``holds_epoch`` is the epoch of its message with that number (a receiver that
+    handled a newer one knows this history is of a framing a takeover replaced,
+    ``ControllerProtocol.on_sync``); the newest ACTIVE master's epoch and the log
+    number it held."""
+
+    holds: int
+    holds_epoch: int
+    master_epoch: int
+    master_lognr: int
+
+
+@dataclass(frozen=True)
+class Greeting:
+    """What a stream writes when its peer's hello arrived, in this order: the sync
+    word (None: not a successor's stream), the history's messages to give again
+    (log numbers), then the unacknowledged ones (``LinkCore.pending``)."""
+
+    sync: SyncWord | None
+    from_history: list[int]
+
+
+@dataclass(frozen=True)
+class Acked:
+    """What an acknowledgement released: the message (None: not kept, a duplicate's
+    acknowledgement) and whether it was a handover message, which enters the
+    sender's history only now (``ControllerNode._handover_acked``)."""
+
+    message: ring_pb2.LogMessage | None
+
+    @property
+    def handover(self) -> bool:
+        """The released message was a handover message with its flag."""
+        return self.message is not None and self.message.handover
+
+
+@dataclass
+class PeerCounters:
+    """What a link has done, for GetStatus, the benchmarks and a preparation's progress."""
+
+    connects: int = 0
+    sent_messages: int = 0
+    sent_bytes: int = 0
+    acked: int = 0
+    relayed_messages: int = 0  # written on frame by frame as they came (cut-through)
+    relays_aborted: int = 0  # given up part-way (not forwarded, or a stream broke)
+    peak_relay_frames: int = 0  # the most frames a relay held not yet written on
+
+
+def sync_word(history: LogHistory, holds: int, word: tuple[int, int]) -> SyncWord:
+    """The sync frame for a history that holds up to ``holds`` and the master's ``word``."""
+    epoch = history.get(holds).epoch if holds and holds in history else 0
+    return SyncWord(holds, epoch, *word)
+
+
+class LinkCore:
+    """The send side of one ring link to one peer (the module's rules)."""
+
+    def __init__(self, peer: int, now: float, history: LogHistory | None = None) -> None:
+        self.peer = peer
+        # The successor's link gives its peer the history; None for other peers.
+        self.history = history
+        self.outbox = Outbox()
+        # Written on the current stream (a new stream writes every unacked one).
+        self.sent: set[int] = set()
+        self.up = False
+        # Since when the stream has not been up; None while it is.
+        self.down_since: float | None = now
+        self.backoff = BACKOFF_INITIAL_S
+        self.counters = PeerCounters()
+        # What the last sync frame said: the history's top and the master's word.
+        self.synced = 0
+        self.synced_word = (0, 0)
+
+    # -- events -------------------------------------------------------------------
+
+    def queue(self, message: ring_pb2.LogMessage, now: float) -> None:
+        """``message`` is to go to the peer: kept until acknowledged, and written (again,
+        if it was written on this stream before) with the next ``pending``."""
+        self.outbox.put(message, now)
+        self.sent.discard(message.lognr)
+
+    def connected(self, hello_lognr: int, hello_epoch: int, word: tuple[int, int]) -> Greeting:
+        """The stream is up and the peer's hello said it handled up to ``hello_lognr``
+        (``hello_epoch``: that message's epoch there): what to write first."""
+        self.up, self.down_since = True, None
+        self.backoff = BACKOFF_INITIAL_S
+        self.counters.connects += 1
+        self.sent = set()
+        history = self.history
+        if history is None:
+            return Greeting(None, [])
+        holds = history.holds_lognr
+        self.synced, self.synced_word = holds, word
+        ours = history.get(hello_lognr).epoch if hello_lognr in history else None
+        after = self.outbox.resend_from(hello_lognr, hello_epoch, ours)
+        again = self.outbox.history_to_resend(history.above(after))
+        return Greeting(sync_word(history, holds, word), again)
+
+    def broken(self, now: float) -> float:
+        """The stream broke (or never came up): what was written on it is forgotten.
+        Returns how long to wait before the next attempt."""
+        if self.up or self.down_since is None:
+            self.down_since = now
+        self.up = False
+        self.sent = set()
+        wait, self.backoff = self.backoff, min(self.backoff * 2, BACKOFF_MAX_S)
+        return wait
+
+    def restarted(self, now: float) -> None:
+        """The driver ended the stream on purpose (it carries a history from now on, or
+        the link is stopped): what was written is forgotten, the back-off starts over."""
+        if self.up:
+            self.down_since = now
+        self.up = False
+        self.sent = set()
+        self.backoff = BACKOFF_INITIAL_S
+
+    def acked(self, lognr: int) -> Acked:
+        """The peer acknowledged ``lognr``: the message is released."""
+        self.counters.acked += 1
+        return Acked(self.outbox.ack(lognr))
+
+    def sync_due(self, word: tuple[int, int]) -> SyncWord | None:
+        """The sync frame to write now on an up successor's stream (the history grew, or
+        the master's ``word`` changed since the last one); None: nothing to say."""
+        history = self.history
+        if history is None or not self.up:
+            return None
+        holds = history.holds_lognr
+        if holds <= self.synced and word == self.synced_word:
+            return None
+        self.synced, self.synced_word = max(self.synced, holds), word
+        return sync_word(history, self.synced, word)
+
+    def pending(self) -> list[int]:
+        """The kept messages not yet written on the current stream, in log-number order."""
+        return sorted(n for n in self.outbox.unacked if n not in self.sent)
+
+    def written(self, lognr: int) -> None:
+        """Message ``lognr`` went out whole on the current stream (kept, from the history
+        or relayed)."""
+        self.sent.add(lognr)
+        self.counters.sent_messages += 1
+
+    def settle_handovers(self, settled: Callable[[int], bool]) -> list[ring_pb2.LogMessage]:
+        """``Outbox.settle_handovers``: settled handover messages kept from now on without
+        their flag (returned as they were). Written on this stream already, they are not
+        written again."""
+        return self.outbox.settle_handovers(settled)
+
+    # -- what it holds --------------------------------------------------------------
+
+    @property
+    def unacked(self) -> dict[int, ring_pb2.LogMessage]:
+        """The messages sent and not yet acknowledged, by log number."""
+        return self.outbox.unacked
+
+    @property
+    def used(self) -> bool:
+        """Whether the link carries anything: the successor's, or one a message was sent
+        on (not only kept open for a handover to come)."""
+        return (
+            self.history is not None or bool(self.outbox.unacked) or self.counters.sent_messages > 0
+        )
+
+    def down_for(self, now: float) -> float:
+        """Seconds the stream has not been up (0 while it is)."""
+        return 0.0 if self.down_since is None else now - self.down_since
+
+
+class RelayCore:
+    """One log message's frames passed on to a peer as they arrive (cut-through).
+
+    The receiving stream adds each frame; the peer's link takes them as they
+    may go (``ready``). The last frame waits for ``confirm`` (the protocol
+    forwarded the whole message); ``settle`` without it, or ``abort``, and the
+    peer is told to drop what it got.
+    """
+
+    def __init__(self, lognr: int, total_bytes: int) -> None:
+        self.lognr = lognr
+        self.total_bytes = total_bytes
+        self.frames: deque[ring_pb2.LogFrame] = deque()
+        self.received = 0
+        self.confirmed = False
+        self.aborted = False
+        # Written on the current stream, bytes and frames.
+        self.written = 0
+        self.frames_written = 0
+        self.peak_buffered = 0
+
+    def add(self, frame: ring_pb2.LogFrame) -> None:
+        """A frame of the message arrived (in order: the Reassembler checked it)."""
+        self.frames.append(frame)
+        self.received += len(frame.data)
+        self.peak_buffered = max(self.peak_buffered, len(self.frames))
+
+    def confirm(self) -> None:
+        """The protocol forwarded the whole message to this peer: the last frame may go."""
+        self.confirmed = True
+
+    def settle(self) -> None:
+        """The whole message was handled: unless confirmed, it is not forwarded."""
+        if not self.confirmed:
+            self.abort()
+
+    def abort(self) -> None:
+        """The message is not passed on (its stream broke, or it is not forwarded)."""
+        self.aborted = True
+
+    def ready(self) -> ring_pb2.LogFrame | None:
+        """The next frame that may be written now, taken off the relay."""
+        if not self.frames or self.aborted:
+            return None
+        last = len(self.frames) == 1 and self.received >= self.total_bytes
+        if last and not self.confirmed:
+            return None
+        return self.frames.popleft()
+
+    def wrote(self, frame: ring_pb2.LogFrame) -> None:
+        """``frame`` went out on the current stream."""
+        self.written += len(frame.data)
+        self.frames_written += 1
+
+    @property
+    def done(self) -> bool:
+        """Every frame was written: the message went whole."""
+        return self.frames_written > 0 and self.written >= self.total_bytes
