@@ -190,59 +190,42 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
         await eventually(every_program_told, "every program ended by the failsafe", 60)
 
 
-async def test_the_drone_service_dead_for_good_the_autopilot_returns(tmp_path: Path) -> None:
-    """kill -9 of the drone mid-flight, never restarted: the autopilot's own GCS failsafe
-    (PX4's NAV_DLL_ACT and COM_DL_LOSS_T, set by the drone at connect) returns the vehicle
-    once no ground station was heard for the timeout (5 s of wall time at least)."""
-    plan = long_legs_on_fast_links(2, SPEEDUP)
-    effects = tmp_path / VEHICLE_EFFECTS_FILE
-    async with LocalTestbed(plan, tmp_path) as testbed:
-
-        def gotos() -> int:
-            return sum(e["effect"] == "goto" for e in read_effects(effects))
-
-        await eventually(lambda: gotos() >= 2, "the vehicle flying its second leg", 60)
-        log = (tmp_path / "logs" / "drone.log").read_text()
-        assert '"autopilot GCS failsafe set"' in log and "NAV_DLL_ACT=2" in log
-        part = testbed.supervisor.parts["drone"]
-        assert part.process is not None
-        os.kill(part.process.pid, signal.SIGKILL)
-        killed_at = time.time()
-
-        def returned() -> list[dict[str, object]]:
-            return [e for e in read_effects(effects) if e["effect"] == "link_loss_return"]
-
-        await eventually(lambda: bool(returned()), "the autopilot returning by itself", 30)
-        after_s = float(returned()[0]["time"]) - killed_at  # type: ignore[arg-type]
-        print(f"drone killed to the autopilot's return: {after_s:.2f} s wall")
-        # Counted from the last GCS heartbeat the vehicle heard (sent each second, up to
-        # 1 s before the kill, more on a loaded machine), not from the kill.
-        assert after_s >= 5.0 - 1.5
-
-
-async def test_a_drone_restarted_after_the_autopilot_landed_the_vehicle_ends_the_mission(
+async def test_the_drone_service_dead_the_autopilot_returns_and_a_restart_ends_the_mission(
     tmp_path: Path,
 ) -> None:
-    """kill -9 of the drone mid-leg, restarted only once the autopilot's own GCS failsafe
-    has returned and landed the vehicle: the restarted drone holds the vehicle it had
-    seen in the air to it (the state file keeps that), so its first sight of it on the
-    ground is the autopilot failsafe, and every program is told. Before, the mission
-    polled for a waypoint the landed vehicle would never reach, and the drone blamed a
-    controller's standby stream."""
+    """kill -9 of the drone mid-leg: the autopilot's own GCS failsafe (PX4's NAV_DLL_ACT
+    and COM_DL_LOSS_T, set by the drone at connect) returns the vehicle once no ground
+    station was heard for the timeout (5 s of wall time at least), and lands it. The
+    drone restarted only then holds the vehicle it had seen in the air to it (the state
+    file keeps that), so its first sight of it on the ground is the autopilot failsafe,
+    and every program is told. Before, the mission polled for a waypoint the landed
+    vehicle would never reach, and the drone blamed a controller's standby stream."""
     plan = long_legs_on_fast_links(2, SPEEDUP)
     effects = tmp_path / VEHICLE_EFFECTS_FILE
     async with LocalTestbed(plan, tmp_path) as testbed:
         await eventually(
             lambda: flying_to_the_second_waypoint(testbed), "the vehicle between waypoints", 60
         )
+        log = (tmp_path / "logs" / "drone.log").read_text()
+        assert '"autopilot GCS failsafe set"' in log and "NAV_DLL_ACT=2" in log
         await testbed.supervisor.kill("drone")
+        killed_at = time.time()
+
+        def returned() -> list[dict[str, object]]:
+            return [e for e in read_effects(effects) if e["effect"] == "link_loss_return"]
 
         def landed() -> bool:
-            returned = any(e["effect"] == "link_loss_return" for e in read_effects(effects))
             states = [e for e in log_events(tmp_path, "sim-vehicle") if "phase" in e]
-            return returned and states[-1]["phase"] == "on_ground" and not states[-1]["armed"]
+            return (
+                bool(returned()) and states[-1]["phase"] == "on_ground" and not states[-1]["armed"]
+            )
 
         await eventually(landed, "the autopilot returning and landing by itself", 60)
+        after_s = float(returned()[0]["time"]) - killed_at  # type: ignore[arg-type]
+        print(f"drone killed to the autopilot's return: {after_s:.2f} s wall")
+        # Counted from the last GCS heartbeat the vehicle heard (sent each second, up to
+        # 1 s before the kill, more on a loaded machine), not from the kill.
+        assert after_s >= 5.0 - 1.5
         await testbed.supervisor.restart("drone")
 
         async def every_program_told() -> list[str]:
