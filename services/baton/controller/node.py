@@ -471,6 +471,10 @@ class ControllerNode:
             self.log.error("invariant broken; the controller stops", problem=str(broken))
             os._exit(INVARIANT_EXIT)
         for effect in ready:
+            if isinstance(effect, Seen):
+                # The program's answer, most effects of a replay: nothing to report or keep.
+                self._seen(effect.entry)
+                continue
             note = effect if isinstance(effect, Note) else note_of(effect, self.protocol.epoch)
             if note is not None:
                 getattr(self.log, note.level)(note.text, **note.fields)
@@ -492,8 +496,6 @@ class ControllerNode:
                 self.ring.send_catch_up(self.core, effect.target)
             elif isinstance(effect, Fail):
                 self._fail(StatusError(effect.code, effect.text))
-            elif isinstance(effect, Seen):
-                self._seen(effect.entry)
             elif isinstance(effect, SettleHandovers):
                 self.ring.settle_handovers(self.protocol.handover_settled)
             elif isinstance(effect, RepairGap):
