@@ -130,9 +130,18 @@ def test_the_drone_killed_is_restarted_with_its_state_and_the_mission_completes_
 ) -> None:
     """--restart-parts: the drone service back with its state file (same command line);
     the controllers re-send what was in flight and nothing runs twice, by the vehicle's
-    own count."""
+    own count. The autopilot's own GCS failsafe is given 10 min: a restart on two loaded
+    cores took longer than its 5 s wall floor, and the vehicle landed meanwhile (which
+    the restarted drone rightly reports as the autopilot's failsafe)."""
     report = run_testbed(
-        tmp_path, *SMALL, "--no-handovers", "--restart-parts", "--fault", "kill:drone@reqnr=20"
+        tmp_path,
+        *SMALL,
+        "--no-handovers",
+        "--restart-parts",
+        "--autopilot-gcs-timeout",
+        "10min",
+        "--fault",
+        "kill:drone@reqnr=20",
     )
     [death] = report["parts_died"]
     assert death["part"] == "drone" and death["restarted_at_s"] > death["at_s"]

@@ -244,6 +244,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="a ground station's command is an operator override that pauses the mission",
     )
     parser.add_argument(
+        "--autopilot-gcs-timeout",
+        metavar="DURATION",
+        help="the autopilot's own GCS failsafe (it returns the vehicle when the drone service "
+        "is silent this long, in mission time; never under a restart of the drone service): "
+        "e.g. 30s, 10min; 0 leaves the autopilot's own setting (default: the --config file's "
+        "safety.autopilot_gcs_timeout, else 10s)",
+    )
+    parser.add_argument(
         "--restart-parts",
         action="store_true",
         help="start a part that dies (killed from outside or by --fault kill) again with its "
@@ -354,6 +362,7 @@ def testbed_config(args: argparse.Namespace) -> tuple[BatonConfig, bool]:
         ("--insecure", "tls.insecure", True if args.insecure else None),
         ("--gcs", "drone.gcs", args.gcs),
         ("--gcs-override", "drone.gcs_override", True if args.gcs_override else None),
+        ("--autopilot-gcs-timeout", "safety.autopilot_gcs_timeout", args.autopilot_gcs_timeout),
     ]
     return merge(config, flags, args.config or ""), bool(args.config)
 
