@@ -112,8 +112,9 @@ async def test_a_speed_and_a_sleep_beyond_the_bounds_are_refused_and_nothing_exe
 async def test_the_cruise_speed_survives_a_drone_killed_mid_mission(tmp_path: Path) -> None:
     """kill -9 of the drone mid-mission, restarted on its state file: every goto the
     vehicle flies after the restart is followed by the mission's speed, as before it
-    (issue 32, item 6; ArduPilot resets the speed at every reposition)."""
-    plan = long_legs_on_fast_links(2, SPEEDUP)
+    (issue 32, item 6; ArduPilot resets the speed at every reposition). The autopilot's
+    own GCS failsafe is given 10 min: a loaded restart may outlast its 5 s wall floor."""
+    plan = long_legs_on_fast_links(2, SPEEDUP, safety={"autopilot_gcs_timeout": "10min"})
     effects = tmp_path / VEHICLE_EFFECTS_FILE
     async with LocalTestbed(plan, tmp_path) as testbed:
 

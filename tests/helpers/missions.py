@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 from waiting import eventually
 
@@ -92,14 +93,18 @@ async def fly(tmp_path: Path, plan: TestbedPlan, timeout: float = 240) -> Snapsh
 LONG_LEGS = MissionPlan(grid=2, spacing_m=100.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
 
 
-def long_legs_on_fast_links(controllers: int = 2, speedup: float = 20.0) -> TestbedPlan:
-    """LONG_LEGS flown by ``controllers`` (0 master) on fast links, sped up."""
+def long_legs_on_fast_links(
+    controllers: int = 2, speedup: float = 20.0, **fields: Any
+) -> TestbedPlan:
+    """LONG_LEGS flown by ``controllers`` (0 master) on fast links, sped up; ``fields``:
+    more of the configuration (``local_config``)."""
     config = local_config(
         controllers,
         flush_limit=0,
         speedup=speedup,
         controller_link=FAST_LINK,
         drone_link=FAST_LINK,
+        **fields,
     )
     return TestbedPlan(config=config, mission=LONG_LEGS)
 
