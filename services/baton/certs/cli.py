@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import asyncio
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from baton.rpc.tls import Identity, Tls
+from baton.rpc.tls import Identity, Tls, TlsError
 
 if TYPE_CHECKING:
     from baton.config import BatonConfig
@@ -59,6 +60,17 @@ def add_tls_flags(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_renew_flag(parser: argparse.ArgumentParser) -> None:
+    """``--renew-from``, on every program that serves (its certificate kept short-lived)."""
+    parser.add_argument(
+        "--renew-from",
+        metavar="ADDRESS",
+        help="host:port of the certificate issuer (baton certs issuer): the part asks it for "
+        "its next certificate halfway through the one it holds, and takes it without a "
+        "restart (default: none; the certificate lives as long as it was issued for)",
+    )
+
+
 def tls_from_flags(
     args: argparse.Namespace, config: BatonConfig | None, identity: Identity
 ) -> Tls | None:
@@ -81,6 +93,18 @@ def _hours(text: str) -> int:
     if not 1 <= hours <= 24 * 90:
         raise argparse.ArgumentTypeError(f"{text!r}: hours of validity, 1 to 2160")
     return hours
+
+
+def _lifetime(text: str) -> float:
+    from baton.config import parse_duration
+
+    try:
+        seconds = parse_duration(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{text!r}: {exc}") from None
+    if seconds < 10:
+        raise argparse.ArgumentTypeError(f"{text!r}: a lifetime of 10s to a day (24h)")
+    return seconds
 
 
 def _folder_and_part(parser: argparse.ArgumentParser) -> None:
@@ -155,6 +179,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "what", help="controller-N, drone or operator, or a certificate's serial (hexadecimal)"
     )
     revoke.set_defaults(run=_run_revoke)
+    issuer = actions.add_parser(
+        "issuer",
+        help="serve short-lived certificates to running parts (--renew-from)",
+        description=(
+            "Serves baton.v1.Issuer under mutual TLS on the machine that holds the folder's "
+            "ca.key: a part started with --renew-from ADDRESS asks it for its next "
+            "certificate halfway through the one it holds, over a key it has just made, and "
+            "gets one naming the identity it called with, valid for --lifetime. A revoked "
+            "certificate (baton certs revoke) renews nothing. In the spirit of SPIFFE's "
+            "short-lived SVIDs."
+        ),
+    )
+    issuer.add_argument("dir", type=Path, help="a folder made by `baton certs init` (with ca.key)")
+    issuer.add_argument(
+        "--listen", default="127.0.0.1:8471", help="host:port to serve on (default 127.0.0.1:8471)"
+    )
+    issuer.add_argument(
+        "--lifetime",
+        type=_lifetime,
+        default=3600.0,
+        help="how long each certificate it issues is valid, e.g. 1h, 30min "
+        "(default 1h; 10s to 24h)",
+    )
+    issuer.add_argument(
+        "--address-file", type=Path, help="write the address it listens on here, once it does"
+    )
+    issuer.set_defaults(run=_run_issuer)
     key = actions.add_parser(
         "mavlink-key",
         help="a new random MAVLink 2 signing key, for the drone and its autopilot",
@@ -188,6 +239,35 @@ def _run_init(args: argparse.Namespace) -> int:
         init(args.dir, parts, args.days)
     print(f"{args.dir}: CA and certificates for {', '.join(p.name for p in parts)}")
     return 0
+
+
+def _run_issuer(args: argparse.Namespace) -> int:
+    import datetime
+
+    from baton import lifecycle
+    from baton.certs.issuer import issuer_server
+    from baton.logs import get_logger
+
+    async def serve(stop: asyncio.Event) -> int:
+        try:
+            server, service = issuer_server(
+                args.dir, args.listen, datetime.timedelta(seconds=args.lifetime)
+            )
+        except (TlsError, OSError) as exc:
+            print(f"baton certs issuer: {exc}", file=sys.stderr)
+            return 2
+        log = get_logger("issuer", lifetime_s=args.lifetime)
+        await server.start()
+        lifecycle.announce(args.address_file, [server.address], {"address": server.address})
+        log.info("issuing certificates", address=server.address, folder=str(args.dir))
+        try:
+            await stop.wait()
+        finally:
+            await server.stop()
+            log.info("issuer stopped", issued=service.issued)
+        return 0
+
+    return lifecycle.run(lifecycle.run_until_signalled(serve))
 
 
 def _run_mavlink_key(args: argparse.Namespace) -> int:
@@ -233,7 +313,6 @@ def _say_issued(args: argparse.Namespace, serial: int, replaced: int | None) -> 
 
 def _run_revoke(args: argparse.Namespace) -> int:
     from baton.certs.make import revoke, serial_of
-    from baton.rpc.tls import TlsError
 
     try:
         part: Identity | None = _identity(args.what)

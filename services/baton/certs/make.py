@@ -26,7 +26,7 @@ DEFAULT_DAYS = 365
 _SKEW = datetime.timedelta(minutes=5)  # clocks of edge nodes are not exact
 
 
-def _write(path: Path, data: bytes, private: bool = False) -> None:
+def write_file(path: Path, data: bytes, private: bool = False) -> None:
     """Replaces ``path`` atomically: a running part that re-reads it (a rotation, a
     revocation list) sees the old file or the new one, never a part of one."""
     partial = path.with_name(path.name + ".new")
@@ -37,7 +37,7 @@ def _write(path: Path, data: bytes, private: bool = False) -> None:
     os.replace(partial, path)
 
 
-def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
+def key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
     return key.private_bytes(
         serialization.Encoding.PEM,
         serialization.PrivateFormat.PKCS8,
@@ -85,11 +85,11 @@ def make_ca(directory: Path, days: int = DEFAULT_DAYS) -> None:
         .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
         .sign(key, hashes.SHA256())
     )
-    _write(directory / CA_CERT, cert.public_bytes(serialization.Encoding.PEM))
-    _write(directory / CA_KEY, _key_pem(key), private=True)
+    write_file(directory / CA_CERT, cert.public_bytes(serialization.Encoding.PEM))
+    write_file(directory / CA_KEY, key_pem(key), private=True)
 
 
-def _load_ca(directory: Path) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
+def load_ca(directory: Path) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
     try:
         cert = x509.load_pem_x509_certificate((directory / CA_CERT).read_bytes())
         key = serialization.load_pem_private_key((directory / CA_KEY).read_bytes(), None)
@@ -113,21 +113,44 @@ def issue(
     """Writes ``NAME.crt`` and ``NAME.key`` for ``identity``, signed by the folder's CA;
     returns the serial of the certificate it replaced (None: none) and the new one's.
 
-    ``not_before`` moves the validity window (tests make expired certificates);
-    ``valid_for`` replaces ``days`` (a short-lived certificate, ``rotate``).
+    Valid for ``days`` from now (``valid_for`` instead: a short-lived certificate,
+    ``rotate``), or from ``not_before`` (tests make expired certificates).
     """
-    ca_cert, ca_key = _load_ca(directory)
+    ca_cert, ca_key = load_ca(directory)
     replaced = serial_of(directory / f"{identity.name}.crt")
     key = ec.generate_private_key(ec.SECP256R1())
-    start = not_before or datetime.datetime.now(datetime.UTC) - _SKEW
-    cert = (
+    now = datetime.datetime.now(datetime.UTC)
+    valid = valid_for or datetime.timedelta(days=days)
+    # Valid from a little before now (clock skew) for ``valid`` from now, or from
+    # ``not_before`` for ``valid`` from then.
+    start, end = (
+        (now - _SKEW, now + valid) if not_before is None else (not_before, not_before + valid)
+    )
+    cert = sign_certificate(ca_cert, ca_key, identity, key.public_key(), start, end)
+    write_file(directory / f"{identity.name}.crt", cert.public_bytes(serialization.Encoding.PEM))
+    write_file(directory / f"{identity.name}.key", key_pem(key), private=True)
+    return replaced, cert.serial_number
+
+
+def sign_certificate(
+    ca_cert: x509.Certificate,
+    ca_key: ec.EllipticCurvePrivateKey,
+    identity: Identity,
+    public_key: ec.EllipticCurvePublicKey,
+    not_before: datetime.datetime,
+    not_after: datetime.datetime,
+) -> x509.Certificate:
+    """A certificate naming ``identity`` (URI and DNS SANs) over ``public_key``, usable
+    as a server and as a client, signed by the CA: ``issue`` and the issuer's
+    ``Renew`` (issuer.py) both make theirs here."""
+    return (
         x509.CertificateBuilder()
         .subject_name(_name(identity.name))
         .issuer_name(ca_cert.subject)
-        .public_key(key.public_key())
+        .public_key(public_key)
         .serial_number(x509.random_serial_number())
-        .not_valid_before(start)
-        .not_valid_after(start + (valid_for or datetime.timedelta(days=days)))
+        .not_valid_before(not_before)
+        .not_valid_after(not_after)
         .add_extension(
             x509.SubjectAlternativeName(
                 [
@@ -150,9 +173,6 @@ def issue(
         )
         .sign(ca_key, hashes.SHA256())
     )
-    _write(directory / f"{identity.name}.crt", cert.public_bytes(serialization.Encoding.PEM))
-    _write(directory / f"{identity.name}.key", _key_pem(key), private=True)
-    return replaced, cert.serial_number
 
 
 def serial_of(path: Path) -> int | None:
@@ -166,7 +186,7 @@ def serial_of(path: Path) -> int | None:
 def revoke(directory: Path, serial: int) -> frozenset[int]:
     """Adds ``serial`` to the folder's revocation list (``revoked.crl``, signed by its
     CA) and returns every serial it revokes."""
-    ca_cert, ca_key = _load_ca(directory)
+    ca_cert, ca_key = load_ca(directory)
     path = directory / REVOKED_CRL
     now = datetime.datetime.now(datetime.UTC)
     builder = (
@@ -189,7 +209,7 @@ def revoke(directory: Path, serial: int) -> frozenset[int]:
             x509.RevokedCertificateBuilder().serial_number(number).revocation_date(when).build()
         )
     crl = builder.sign(ca_key, hashes.SHA256())
-    _write(path, crl.public_bytes(serialization.Encoding.PEM))
+    write_file(path, crl.public_bytes(serialization.Encoding.PEM))
     return frozenset(revoked)
 
 

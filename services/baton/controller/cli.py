@@ -8,7 +8,7 @@ import subprocess
 import sys
 
 from baton import lifecycle
-from baton.certs.cli import add_tls_flags
+from baton.certs.cli import add_renew_flag, add_tls_flags
 from baton.sdk.run import add_mission_arg
 
 # What a --mission-python interpreter must be able to import.
@@ -78,11 +78,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "default: a temporary file that goes with the process",
     )
     add_tls_flags(parser)
+    add_renew_flag(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Loads and checks the configuration, then serves."""
+    from baton.certs.renewal import renewing
     from baton.config import ConfigError, load_config, merge
     from baton.controller.app import serve
     from baton.rpc.tls import Identity, TlsError
@@ -98,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
         ]
         config = merge(load_config(args.config), flags, args.config)
         config.controller(args.id)
-        config.tls_for(Identity.controller(args.id))  # the files are there
+        own = config.tls_for(Identity.controller(args.id))  # the files are there
         if args.mission_python is not None:
             check_mission_python(args.mission_python)
     except (ConfigError, TlsError, ValueError) as exc:
@@ -107,14 +109,13 @@ def run(args: argparse.Namespace) -> int:
     except KeyError as exc:
         print(f"baton controller: --id {args.id}: {exc.args[0]}", file=sys.stderr)
         return 2
-    return lifecycle.run(
-        serve(
-            config,
-            args.id,
-            args.mission,
-            args.mission_arg,
-            args.address_file,
-            args.log_file,
-            args.mission_python,
-        )
+    main = serve(
+        config,
+        args.id,
+        args.mission,
+        args.mission_arg,
+        args.address_file,
+        args.log_file,
+        args.mission_python,
     )
+    return lifecycle.run(renewing(main, own, args.renew_from))

@@ -51,7 +51,10 @@ class Rule:
     allowed: Callable[[Identity], bool]
 
 
-ANY_PART = Rule("any part of the mission may, with its certificate", lambda who: True)
+# The certificate issuer is no part of a mission: it mints certificates and acts on none.
+ANY_PART = Rule(
+    "any part of the mission may, with its certificate", lambda who: who.role != "issuer"
+)
 
 
 def only(identity: Identity, as_: str) -> Rule:

@@ -31,19 +31,21 @@ from baton.rpc.errors import StatusError
 
 SPIFFE_PREFIX = "spiffe://baton/"
 DNS_SUFFIX = ".baton"
-ROLES = ("controller", "drone", "operator")
+ROLES = ("controller", "drone", "operator", "issuer")
 CA_CERT = "ca.crt"
 CA_KEY = "ca.key"
 INSECURE_WARNING = (
     "running insecure: every port is plain and anyone on the network may call it, "
     "the drone included; for debugging only (drop --insecure / tls.insecure)"
 )
-_URI = re.compile(r"spiffe://baton/(controller/(0|[1-9][0-9]{0,9})|drone|operator)")
+_URI = re.compile(r"spiffe://baton/(controller/(0|[1-9][0-9]{0,9})|drone|operator|issuer)")
 
 
 @dataclass(frozen=True, order=True)
 class Identity:
-    """One part of a mission: a controller (with its id), the drone, an operator."""
+    """One part of a mission: a controller (with its id), the drone, an operator, or
+    the certificate issuer (baton/certs/issuer.py), which no port lets act on a
+    mission."""
 
     role: str
     number: int | None = None
@@ -89,6 +91,7 @@ class Identity:
 
 DRONE = Identity("drone")
 OPERATOR = Identity("operator")
+ISSUER = Identity("issuer")
 
 
 class TlsError(OSError):

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from baton import lifecycle
-from baton.certs.cli import add_tls_flags
+from baton.certs.cli import add_renew_flag, add_tls_flags
 from baton.controller.cli import add_mission_python, check_mission_python
 
 
@@ -46,35 +46,37 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     add_mission_python(parser)
     add_tls_flags(parser)
+    add_renew_flag(parser)
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Checks the certificate and the interpreter, then serves."""
+    from baton.certs.renewal import renewing
     from baton.config import TlsConfig
     from baton.rpc.tls import Identity, Tls, TlsError
     from baton.station.app import serve
 
     tls = TlsConfig(certs=args.certs or Path("certs"), insecure=args.insecure)
+    own: Tls | None = None
     try:
         if args.id < 0:
             raise ValueError(f"--id {args.id}: a station id is 0 or more")
         if not tls.insecure:
             tls = TlsConfig(certs=tls.certs.resolve())
-            Tls.load(tls.certs, Identity.controller(args.id))  # the files are there
+            own = Tls.load(tls.certs, Identity.controller(args.id))  # the files are there
         if args.mission_python is not None:
             check_mission_python(args.mission_python)
         args.state_dir.mkdir(parents=True, exist_ok=True)
     except (TlsError, ValueError, OSError) as exc:
         print(f"baton station: {exc}", file=sys.stderr)
         return 2
-    return lifecycle.run(
-        serve(
-            args.id,
-            args.address,
-            tls,
-            args.state_dir.resolve(),
-            args.address_file,
-            args.mission_python,
-        )
+    main = serve(
+        args.id,
+        args.address,
+        tls,
+        args.state_dir.resolve(),
+        args.address_file,
+        args.mission_python,
     )
+    return lifecycle.run(renewing(main, own, args.renew_from))

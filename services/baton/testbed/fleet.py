@@ -15,6 +15,7 @@ its ring's replicas saw the same replies.
 from __future__ import annotations
 
 import asyncio
+import datetime
 import json
 import time
 from collections.abc import Sequence
@@ -27,9 +28,11 @@ import grpc
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from baton.certs.make import issue
 from baton.config import (
     BatonConfig,
     ConfigError,
+    Duration,
     Location,
     PolicySetting,
     format_validation_error,
@@ -97,6 +100,9 @@ class FleetFile(_Model):
     speedup: float = Field(default=10.0, gt=0)
     handover_policy: PolicySetting = "nearest"  # type: ignore[assignment]
     takeover_after: float = Field(default=3.0, ge=0)
+    # Each station's certificate lives this long and is renewed halfway through from
+    # the testbed's certificate issuer (docs/security.md, "Short-lived certificates").
+    station_cert_lifetime: Duration = Field(default=3600.0, ge=10.0)
 
     @model_validator(mode="after")
     def _unique(self) -> FleetFile:
@@ -138,14 +144,36 @@ class StationPart:
 
 
 async def start_stations(
-    supervisor: Supervisor, ids: Sequence[int], certs: Path | None
+    supervisor: Supervisor,
+    ids: Sequence[int],
+    certs: Path | None,
+    *,
+    cert_lifetime_s: float | None = None,
 ) -> dict[int, StationPart]:
     """``baton station`` processes with ids ``ids``, each on a free port (the same
     again if the supervisor restarts it), and an operator's channel to each (``certs``
-    None: insecure)."""
+    None: insecure). With ``cert_lifetime_s``, a certificate issuer (``baton certs
+    issuer``) starts beside them and each station holds a certificate of that lifetime,
+    renewed from it halfway through (``--renew-from``)."""
     workdir = supervisor.workdir
-    tls_flag = f"--certs={certs}" if certs is not None else "--insecure"
-    parts = [
+    tls_flags = [f"--certs={certs}"] if certs is not None else ["--insecure"]
+    parts = []
+    if certs is not None and cert_lifetime_s is not None:
+        issuer = f"127.0.0.1:{free_port()}"
+        lifetime = datetime.timedelta(seconds=cert_lifetime_s)
+        for sid in ids:
+            issue(certs, Identity.controller(sid), valid_for=lifetime)
+        tls_flags.append(f"--renew-from={issuer}")
+        argv = baton_argv(
+            "certs",
+            "issuer",
+            str(certs),
+            f"--listen={issuer}",
+            f"--lifetime={cert_lifetime_s}s",
+            f"--address-file={workdir / 'issuer.address'}",
+        )
+        parts.append(("issuer", argv, workdir / "issuer.address"))
+    parts += [
         (
             f"station-{sid}",
             baton_argv(
@@ -154,13 +182,13 @@ async def start_stations(
                 f"--address=127.0.0.1:{free_port()}",
                 f"--address-file={workdir / f'station-{sid}.address'}",
                 f"--state-dir={workdir / f'station-{sid}'}",
-                tls_flag,
+                *tls_flags,
             ),
             workdir / f"station-{sid}.address",
         )
         for sid in ids
     ]
-    addresses = await supervisor.start_ready_together(parts)
+    addresses = (await supervisor.start_ready_together(parts))[len(parts) - len(ids) :]
     operator = Tls.load(certs, OPERATOR) if certs is not None else None
     stations = {}
     for sid, text in zip(ids, addresses, strict=True):
@@ -408,7 +436,9 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> FleetR
     init(certs, [*(Identity.controller(i) for i in ids), DRONE, OPERATOR])
     operator = Tls.load(certs, OPERATOR)
     async with Supervisor(workdir / "parts") as supervisor:
-        stations = await start_stations(supervisor, ids, certs)
+        stations = await start_stations(
+            supervisor, ids, certs, cert_lifetime_s=fleet.station_cert_lifetime
+        )
         network = BatonConfig.model_validate(
             {
                 "controllers": [
