@@ -32,7 +32,7 @@ from pydantic import (
 from baton.drone.policy import LinkBounds, PolicyParams
 from baton.rpc.mission import MISSION_ID_PATTERN
 from baton.rpc.ports import MAX_FRAME_BYTES
-from baton.rpc.tls import Identity, Tls
+from baton.rpc.tls import DRONE_NAME_PATTERN, Identity, Tls
 from baton.sdk.fence import Fence, FenceCircle, FencePolygon, open_ring
 from baton.sdk.fence import polygon_problem as fence_polygon_problem
 
@@ -196,6 +196,10 @@ class DroneConfig(_Model):
     """The drone service."""
 
     address: Address = "127.0.0.1:50051"
+    # The drone's name in its certificate, in a fleet where each drone has its own
+    # (spiffe://baton/drone/NAME, files drone-NAME.crt/.key); "" for the mission's
+    # one drone (spiffe://baton/drone, drone.crt). Its controllers accept no other.
+    name: str = Field(default="", pattern=f"^(|{DRONE_NAME_PATTERN})$")
     vehicle_url: str = "udpin://127.0.0.1:14540"
     # MAVLink 2 signing between the drone service and the autopilot (off by
     # default: usually a serial cable on the airframe); a key file made by
@@ -619,6 +623,11 @@ class BatonConfig(_Model):
     def master_id(self) -> int:
         """The initial master: configured, else the first in ring order (the paper's n_0)."""
         return self.initial_master if self.initial_master is not None else self.ring_order[0]
+
+    @property
+    def drone_identity(self) -> Identity:
+        """The identity of this mission's drone (``drone.name``)."""
+        return Identity.drone(self.drone.name)
 
     def tls_for(self, identity: Identity) -> Tls | None:
         """The certificate ``identity`` presents, or None when the file says insecure;

@@ -9,9 +9,13 @@ from pathlib import Path
 
 import grpc
 import pytest
+from grpc_health.v1 import health_pb2
+from pydantic import ValidationError
 
-from baton.certs.make import init, issue
+from baton.certs.make import init, issue, serial_of
 from baton.cli import main
+from baton.config import BatonConfig
+from baton.controller.peer_keys import ring_keys
 from baton.rpc.channels import aio_channel
 from baton.rpc.server import BatonServer, generic
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls, TlsError, caller
@@ -118,12 +122,69 @@ def test_a_missing_certificate_names_the_file_and_the_fix(certs: Path) -> None:
 
 
 def test_identities_round_trip_through_their_uri() -> None:
-    for identity in (CONTROLLER_1, Identity.controller(0), DRONE, OPERATOR):
+    alpha = Identity.drone("alpha")
+    for identity in (CONTROLLER_1, Identity.controller(0), DRONE, alpha, OPERATOR):
         assert Identity.from_uri(identity.uri) == identity
-    for stranger in ("spiffe://baton/controller/01", "spiffe://baton/pilot", "https://x", ""):
+    assert (alpha.uri, alpha.name, alpha.dns_name) == (
+        "spiffe://baton/drone/alpha",
+        "drone-alpha",
+        "drone-alpha.baton",
+    )
+    strangers = ("spiffe://baton/controller/01", "spiffe://baton/pilot", "https://x", "")
+    for stranger in (*strangers, "spiffe://baton/drone/Alpha", "spiffe://baton/drone/a_b"):
         assert Identity.from_uri(stranger) is None
     with pytest.raises(ValueError):
         Identity("controller")
+    for bad in ("Alpha", "a_b", "-a", "a" * 64):
+        with pytest.raises(ValueError, match="one DNS label"):
+            Identity.drone(bad)
+
+
+async def test_a_fleets_drone_is_reached_only_with_its_own_certificate(
+    tmp_path: Path, certs: Path
+) -> None:
+    """Each drone of a fleet has its own identity: a station that means to reach drone
+    alpha refuses a server holding drone bravo's certificate (another drone of the same
+    CA, a compromised one at alpha's address), and reaches alpha's."""
+    alpha, bravo = Identity.drone("alpha"), Identity.drone("bravo")
+    issue(certs, alpha)
+    issue(certs, bravo)
+    station = Tls.load(certs, CONTROLLER_1)
+    for held, reached in ((bravo, False), (alpha, True)):
+        server = BatonServer("127.0.0.1:0", [], tls=Tls.load(certs, held))
+        await server.start()
+        try:
+            async with aio_channel(server.address, station, alpha) as channel:
+                check = channel.unary_unary(
+                    "/grpc.health.v1.Health/Check",
+                    request_serializer=health_pb2.HealthCheckRequest.SerializeToString,
+                    response_deserializer=health_pb2.HealthCheckResponse.FromString,
+                )
+                try:
+                    await check(health_pb2.HealthCheckRequest(), timeout=5)
+                    answered = True
+                except grpc.aio.AioRpcError as err:
+                    assert err.code() is grpc.StatusCode.UNAVAILABLE
+                    answered = False
+            assert answered is reached, held
+        finally:
+            await server.stop(0)
+    # A mission names its drone (drone.name): its controllers check the drone's
+    # replies against that drone's certificate, and no other.
+    config = BatonConfig.model_validate(
+        {
+            "drone": {"name": "alpha"},
+            "controllers": [{"id": 1, "address": "127.0.0.1:1"}],
+            "tls": {"certs": str(certs)},
+        }
+    )
+    assert config.drone_identity == alpha
+    keys = ring_keys(config, station)
+    assert keys.drone.serial == serial_of(certs / "drone-alpha.crt")
+    with pytest.raises(ValidationError, match=r"drone\.name"):
+        BatonConfig.model_validate(
+            {"drone": {"name": "Alpha"}, "controllers": [{"id": 1, "address": "127.0.0.1:1"}]}
+        )
 
 
 def test_certs_init_writes_every_part_and_refuses_to_replace_a_ca(

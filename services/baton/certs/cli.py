@@ -15,12 +15,15 @@ if TYPE_CHECKING:
 
 
 def _identity(text: str) -> Identity:
-    role, _, number = text.partition("-")
+    role, _, rest = text.partition("-")
     try:
-        return Identity(role, int(number)) if number else Identity(role)
+        if role == "drone":
+            return Identity.drone(rest)
+        return Identity(role, int(rest)) if rest else Identity(role)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(
-            f"{text!r}: {exc}; a part is controller-N, drone or operator"
+            f"{text!r}: {exc}; a part is controller-N, drone, drone-NAME (a fleet's drone) "
+            "or operator"
         ) from None
 
 
@@ -109,7 +112,9 @@ def _lifetime(text: str) -> float:
 
 def _folder_and_part(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dir", type=Path, help="a folder made by `baton certs init`")
-    parser.add_argument("part", type=_identity, help="controller-N, drone or operator")
+    parser.add_argument(
+        "part", type=_identity, help="controller-N, drone, drone-NAME (a fleet's) or operator"
+    )
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

@@ -28,7 +28,7 @@ from baton.controller.core import DroneRefusal
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.rpc.outcomes import error_of
-from baton.rpc.tls import DRONE, Tls
+from baton.rpc.tls import DRONE, Identity, Tls
 from baton.stalls import StallWatch
 from baton.tasks import TaskSet
 from baton.v1 import drone_pb2, drone_pb2_grpc
@@ -195,16 +195,17 @@ class WarmChannel:
     would without this one: never slower than connecting then.
     """
 
-    def __init__(self, address: str, tls: Tls | None = None) -> None:
+    def __init__(self, address: str, tls: Tls | None = None, drone: Identity = DRONE) -> None:
         self.address = address
         self._tls = tls
+        self._drone = drone  # the identity the drone's certificate must name
         self._spare: grpc.aio.Channel | None = None
         self._closing = TaskSet()
         self.warm = 0  # sessions given a channel connected in advance
         self.cold = 0  # and a fresh one
 
     def _connecting(self) -> grpc.aio.Channel:
-        channel = aio_channel(self.address, self._tls, DRONE, keep_idle=True)
+        channel = aio_channel(self.address, self._tls, self._drone, keep_idle=True)
         channel.get_state(try_to_connect=True)
         return channel
 
@@ -223,7 +224,7 @@ class WarmChannel:
         if spare is not None:
             self._closing.spawn(spare.close(), name="drone-spare-close")
         self.cold += 1
-        return aio_channel(self.address, self._tls, DRONE), False
+        return aio_channel(self.address, self._tls, self._drone), False
 
     async def close(self) -> None:
         """Closes the spare."""
@@ -407,10 +408,12 @@ class DroneStandby:
         on_take_over: Callable[[drone_pb2.TakeOver], Awaitable[None]],
         log: BoundLogger,
         tls: Tls | None = None,
+        drone: Identity = DRONE,
     ) -> None:
         self.controller_id = controller_id
         self.address = address
         self._tls = tls
+        self._drone = drone  # the identity the drone's certificate must name
         self._on_take_over = on_take_over
         self._log = log
         self.up = False
@@ -425,7 +428,7 @@ class DroneStandby:
 
     async def _hold(self) -> None:
         backoff = 0.05
-        async with aio_channel(self.address, self._tls, DRONE) as channel:
+        async with aio_channel(self.address, self._tls, self._drone) as channel:
             stub = drone_pb2_grpc.DroneStub(channel)
             while True:
                 try:

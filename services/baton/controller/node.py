@@ -148,10 +148,15 @@ class ControllerNode:
         self.drone_connected_at: list[float] = []  # of closed connections (all_drone_...)
         # The standby stream: the drone's way to reach us for a takeover.
         self._standby = DroneStandby(
-            cid, config.drone_address_for(cid), self.on_take_over, self.log, tls
+            cid,
+            config.drone_address_for(cid),
+            self.on_take_over,
+            self.log,
+            tls,
+            config.drone_identity,
         )
         # A channel to the drone connected in advance, for the next session.
-        self._warm_channel = WarmChannel(config.drone_address_for(cid), tls)
+        self._warm_channel = WarmChannel(config.drone_address_for(cid), tls, config.drone_identity)
         self._router: asyncio.Task[None] | None = None
         # What the node starts and does not await (rejoins, closing a replaced drone
         # session, the session's events), held until each ends.

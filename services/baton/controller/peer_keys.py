@@ -21,7 +21,7 @@ from pathlib import Path
 
 from baton.authenticity import AuthenticityError, Keys, Signer, Verifier
 from baton.config import BatonConfig
-from baton.rpc.tls import DRONE, Identity, Tls, TlsError
+from baton.rpc.tls import Identity, Tls, TlsError
 from baton.v1 import ring_pb2
 
 
@@ -30,7 +30,7 @@ def ring_keys(config: BatonConfig, tls: Tls) -> Keys:
     folder, each checked against the mission's CA now; TlsError naming the file and the
     fix otherwise."""
     return Keys(
-        _verifier(config, tls, DRONE),
+        _verifier(config, tls, config.drone_identity),
         {cid: _verifier(config, tls, Identity.controller(cid)) for cid in config.ring_order},
     )
 
@@ -61,7 +61,7 @@ class PeerKeys:
         self._seen = self._stats()
 
     def _who(self) -> list[Identity]:
-        return [DRONE, *map(Identity.controller, self.config.ring_order)]
+        return [self.config.drone_identity, *map(Identity.controller, self.config.ring_order)]
 
     def _stats(self) -> dict[Path, tuple[int, int, int] | None]:
         stats: dict[Path, tuple[int, int, int] | None] = {}
@@ -92,7 +92,7 @@ class PeerKeys:
                 except TlsError as exc:
                     self._warn(f"{exc}; its key read before still holds")
                     continue
-                if who == DRONE:
+                if who.role == "drone":
                     drone = new if new.serial != drone.serial else drone
                     continue
                 cid = who.number

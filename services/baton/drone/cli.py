@@ -222,7 +222,6 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
     from baton.drone.master import load_handover_script
     from baton.drone.mavlink_relay import VehicleEndpoint
     from baton.drone.settings import DroneSettings, Race
-    from baton.rpc.tls import DRONE
     from baton.signing import read_key
 
     if args.config:
@@ -288,7 +287,7 @@ def settings_from_args(args: argparse.Namespace) -> DroneSettings:
         state_file=args.state,
         camera_effects_file=args.camera_effects_file,
         thumbnails_dir=args.thumbnails_dir,
-        tls=tls_from_flags(args, config, DRONE),
+        tls=tls_from_flags(args, config, config.drone_identity),
         mavlink_key=mavlink_key,
         policy=policy,
         stations=stations,

@@ -415,7 +415,7 @@ def _status(args: argparse.Namespace) -> int:
         return controller_status(network, sid, mission.id, tls)
 
     sessions = at_once(ask, mission.live_ring)
-    drone = ask_drone(mission.drone_address, tls)
+    drone = ask_drone(mission, tls)
     document = {
         "mission": mission.id,
         "drone": mission.drone,
@@ -481,6 +481,7 @@ def _mission_network(args: argparse.Namespace) -> tuple[MissionRow, BatonConfig,
     network file's stations in the ring, admission's order and first master), and the
     operator's certificate; ConfigError, TlsError or RegistryError saying why not."""
     from baton.config import ConfigError, load_config, merge
+    from baton.fleet.operations import drone_of
     from baton.fleet.registry import IN_FLIGHT, Registry, RegistryError
     from baton.fleet.stations import ring_config
     from baton.rpc.tls import OPERATOR
@@ -499,7 +500,10 @@ def _mission_network(args: argparse.Namespace) -> tuple[MissionRow, BatonConfig,
             f"{mission.id}'s ring {list(mission.ring)}; add each with its id and address"
         )
     config = ring_config(network, mission.ring, mission.first_master)
-    return mission, config, tls_from_flags(args, network, OPERATOR)
+    tls = tls_from_flags(args, network, OPERATOR)
+    # The drone's own identity where the folder gives it one: its sessions take no other.
+    drone = config.drone.model_copy(update={"name": drone_of(mission, tls).label})
+    return mission, config.model_copy(update={"drone": drone}), tls
 
 
 def _start(args: argparse.Namespace) -> int:

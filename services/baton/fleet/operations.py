@@ -102,13 +102,29 @@ def ask_stations(
     return at_once(ask, sids)
 
 
-def ask_drone(address: str | None, tls: Tls | None) -> drone_pb2.DroneStatus | str:
-    """The drone's GetStatus, or why there is none."""
+def drone_of(mission: MissionRow, tls: Tls | None) -> Identity:
+    """The identity a mission's drone presents: its own, ``spiffe://baton/drone/NAME``
+    for the registry's drone NAME, where the operator's certificate folder holds
+    ``drone-NAME.crt`` (the fleet testbed gives each drone its own), else the one
+    drone's of a mission, ``spiffe://baton/drone``."""
+    if tls is None or tls.folder is None:
+        return DRONE
+    try:
+        own = Identity.drone(mission.drone)
+    except ValueError:
+        return DRONE
+    return own if (tls.folder / f"{own.name}.crt").exists() else DRONE
+
+
+def ask_drone(mission: MissionRow, tls: Tls | None) -> drone_pb2.DroneStatus | str:
+    """The mission's drone's GetStatus, or why there is none."""
+    address = mission.drone_address
     if not address:
         return "drone: its address is not known (baton fleet start records it)"
+    drone = drone_of(mission, tls)
 
     def call() -> drone_pb2.DroneStatus:
-        with sync_channel(address, tls, DRONE) as channel:
+        with sync_channel(address, tls, drone) as channel:
             reply: drone_pb2.DroneStatus = drone_pb2_grpc.DroneStub(channel).GetStatus(
                 drone_pb2.GetDroneStatusRequest(), timeout=ASK_TIMEOUT_S
             )
@@ -262,7 +278,7 @@ def _drain_mission(
     # the master is read again after a handover, and moved again if it is back.
     for _ in range(MASTER_LOOKS):
         sessions = session_statuses(mission, ask_stations(config, mission.live_ring, tls))
-        drone = ask_drone(mission.drone_address, tls)
+        drone = ask_drone(mission, tls)
         if isinstance(sessions[sid], str):
             report.failed.append(f"mission {mission.id}: {sessions[sid]}")
             return
@@ -307,7 +323,7 @@ def _hand_over(
     session is ACTIVE in the new epoch; what went wrong, or empty."""
     assert mission.drone_address is not None
     bound = config.prepare_timeout + HANDOVER_SETTLE_S
-    with sync_channel(mission.drone_address, tls, DRONE) as channel:
+    with sync_channel(mission.drone_address, tls, drone_of(mission, tls)) as channel:
         stub = drone_pb2_grpc.DroneStub(channel)
         try:
             reply = stub.Handover(

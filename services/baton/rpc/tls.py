@@ -38,38 +38,63 @@ INSECURE_WARNING = (
     "running insecure: every port is plain and anyone on the network may call it, "
     "the drone included; for debugging only (drop --insecure / tls.insecure)"
 )
-_URI = re.compile(r"spiffe://baton/(controller/(0|[1-9][0-9]{0,9})|drone|operator|issuer)")
+# A drone's own name in a fleet (spiffe://baton/drone/NAME): one DNS label.
+DRONE_NAME_PATTERN = r"[a-z0-9](?:[a-z0-9-]{0,61}[a-z0-9])?"
+_URI = re.compile(
+    r"spiffe://baton/(controller/(0|[1-9][0-9]{0,9})|drone(?:/(" + DRONE_NAME_PATTERN + r"))?"
+    r"|operator|issuer)"
+)
 
 
 @dataclass(frozen=True, order=True)
 class Identity:
-    """One part of a mission: a controller (with its id), the drone, an operator, or
-    the certificate issuer (baton/certs/issuer.py), which no port lets act on a
-    mission."""
+    """One part of a mission: a controller (with its id), the drone (with its name in a
+    fleet, where each drone has its own certificate), an operator, or the certificate
+    issuer (baton/certs/issuer.py), which no port lets act on a mission."""
 
     role: str
     number: int | None = None
+    # A drone's name (``Identity.drone``): "" for a mission's one drone.
+    label: str = ""
 
     def __post_init__(self) -> None:
         if self.role not in ROLES:
             raise ValueError(f"unknown role {self.role!r}; one of {', '.join(ROLES)}")
         if (self.role == "controller") != (self.number is not None):
             raise ValueError("a controller identity has a number, the others none")
+        if self.label and (
+            self.role != "drone" or not re.fullmatch(DRONE_NAME_PATTERN, self.label)
+        ):
+            raise ValueError(
+                f"drone name {self.label!r}: a drone's name in its certificate is one DNS "
+                "label: lower-case letters, digits and inner hyphens, at most 63"
+            )
 
     @classmethod
     def controller(cls, cid: int) -> Identity:
         return cls("controller", cid)
 
+    @classmethod
+    def drone(cls, name: str = "") -> Identity:
+        """A drone: the mission's one drone (``name`` ""), or a fleet's drone ``name``."""
+        return cls("drone", label=name)
+
+    @property
+    def _tail(self) -> str:
+        if self.number is not None:
+            return f"{self.role}/{self.number}"
+        return f"{self.role}/{self.label}" if self.label else self.role
+
     @property
     def uri(self) -> str:
         """The URI SAN of its certificate: ``spiffe://baton/controller/1``."""
-        tail = self.role if self.number is None else f"{self.role}/{self.number}"
-        return SPIFFE_PREFIX + tail
+        return SPIFFE_PREFIX + self._tail
 
     @property
     def name(self) -> str:
-        """Its file name stem and the first label of its DNS name: ``controller-1``."""
-        return self.role if self.number is None else f"{self.role}-{self.number}"
+        """Its file name stem and the first label of its DNS name: ``controller-1``,
+        ``drone``, ``drone-d1``."""
+        return self._tail.replace("/", "-")
 
     @property
     def dns_name(self) -> str:
@@ -83,13 +108,15 @@ class Identity:
             return None
         if match.group(2) is not None:
             return cls.controller(int(match.group(2)))
+        if match.group(3) is not None:
+            return cls.drone(match.group(3))
         return cls(uri.removeprefix(SPIFFE_PREFIX))
 
     def __str__(self) -> str:
         return self.uri
 
 
-DRONE = Identity("drone")
+DRONE = Identity.drone()
 OPERATOR = Identity("operator")
 ISSUER = Identity("issuer")
 

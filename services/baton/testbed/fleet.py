@@ -40,8 +40,8 @@ from baton.config import (
 )
 from baton.effects import read_effects
 from baton.rpc.channels import aio_channel
-from baton.rpc.mission import MISSION_ID_PATTERN, mission_metadata
-from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
+from baton.rpc.mission import mission_metadata
+from baton.rpc.tls import DRONE_NAME_PATTERN, OPERATOR, Identity, Tls
 from baton.testbed.fleet_report import FLEET_REPORT_FORMAT, Flight
 from baton.testbed.flight_map import Track
 from baton.testbed.local import MissionPlan, Snapshot, free_port
@@ -87,7 +87,8 @@ class FleetSurvey(_Model):
 class FleetDrone(_Model):
     """One drone of the fleet: its name, where it takes off and what it flies."""
 
-    name: str = Field(pattern=MISSION_ID_PATTERN)
+    # Also its name in its certificate (spiffe://baton/drone/NAME): one DNS label.
+    name: str = Field(pattern=f"^{DRONE_NAME_PATTERN}$")
     home: Location
     mission: FleetSurvey = FleetSurvey()
 
@@ -275,7 +276,7 @@ async def start_mission_drone(
     )
     address = address.splitlines()[0]
     tls = None if config.tls.insecure else Tls.load(config.tls.certs, OPERATOR)
-    channel = aio_channel(address, tls, DRONE)
+    channel = aio_channel(address, tls, config.drone_identity)
     return MissionDrone(name, address, workdir, channel, drone_pb2_grpc.DroneStub(channel))
 
 
@@ -433,7 +434,10 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> FleetR
 
     certs = workdir / "certs"
     ids = [s.id for s in fleet.stations]
-    init(certs, [*(Identity.controller(i) for i in ids), DRONE, OPERATOR])
+    # Each drone its own identity (spiffe://baton/drone/NAME): its missions' stations
+    # take no other drone's certificate for it, and check its replies with its own key.
+    identities = [Identity.drone(d.name) for d in fleet.drones]
+    init(certs, [*(Identity.controller(i) for i in ids), *identities, OPERATOR])
     operator = Tls.load(certs, OPERATOR)
     async with Supervisor(workdir / "parts") as supervisor:
         stations = await start_stations(
@@ -467,7 +471,9 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> FleetR
             _, ring, first = admitted[d.name]
             mission = ring_config(network, ring, first)
             # The drone's port is picked as it starts; its sessions are told where it is.
-            at_home = mission.drone.model_copy(update={"address": "127.0.0.1:0", "home": d.home})
+            at_home = mission.drone.model_copy(
+                update={"address": "127.0.0.1:0", "home": d.home, "name": d.name}
+            )
             drone = await start_mission_drone(
                 supervisor, d.name, mission.model_copy(update={"drone": at_home})
             )

@@ -40,7 +40,7 @@ from baton.rpc.channels import aio_channel
 from baton.rpc.labels import label
 from baton.rpc.methods import path
 from baton.rpc.mission import MISSION_TOKEN_ENV
-from baton.rpc.tls import CA_CERT, DRONE, OPERATOR, Identity, Tls
+from baton.rpc.tls import CA_CERT, OPERATOR, Identity, Tls
 from baton.testbed.faults import Fault, FaultInjector, PartDeath, check_parts
 from baton.testbed.plan_fence import with_plan_fence
 from baton.testbed.supervisor import ManagedProcess, PartNotReady, Supervisor, baton_argv
@@ -488,7 +488,8 @@ class LocalTestbed:
         folder = self.workdir / "certs"
         if self.plan.from_file and (tls.certs / CA_CERT).exists():
             folder = tls.certs
-        ensure(folder, [*(Identity.controller(cid) for cid in ids), DRONE, OPERATOR])
+        drone = self.plan.config.drone_identity
+        ensure(folder, [*(Identity.controller(cid) for cid in ids), drone, OPERATOR])
         self.tls = Tls.load(folder, OPERATOR)
         return {"certs": str(folder.resolve())}
 
@@ -623,7 +624,7 @@ class LocalTestbed:
             argv += ["--resolution", self.plan.resolution]
         argv += self.plan.drone_args
         address = await self.supervisor.start_ready("drone", argv, ready)
-        channel = aio_channel(address, self.tls, DRONE)
+        channel = aio_channel(address, self.tls, self.plan.config.drone_identity)
         self._channels.append(channel)
         self.drone_stub = drone_pb2_grpc.DroneStub(channel)
 

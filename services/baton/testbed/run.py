@@ -20,7 +20,7 @@ from baton.lifecycle import write_atomically
 from baton.missions.plan import load_plan
 from baton.rpc.channels import aio_channel
 from baton.rpc.labels import label
-from baton.rpc.tls import DRONE, OPERATOR, Identity
+from baton.rpc.tls import OPERATOR, Identity
 from baton.testbed.faults import fault_lines, fault_outcomes
 from baton.testbed.flight_map import Track, flight_geojson
 from baton.testbed.html_report import write_page
@@ -282,7 +282,7 @@ async def follow_remote(
     corridor its controllers were given), then reports."""
     started = time.monotonic()
     tls = config.tls_for(OPERATOR)
-    drone_channel = aio_channel(config.drone.address, tls, DRONE)
+    drone_channel = aio_channel(config.drone.address, tls, config.drone_identity)
     channels = {
         c.id: aio_channel(c.reach, tls, Identity.controller(c.id)) for c in config.controllers
     }

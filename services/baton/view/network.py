@@ -27,6 +27,6 @@ def read_network(registry_path: Path, network: BatonConfig, tls: Tls | None) -> 
         missions = registry.missions()
     flying = [m for m in missions if m.state == IN_FLIGHT]
     station_replies = ask_stations(network, [s.station.id for s in stations], tls)
-    drones = at_once(lambda m: ask_drone(m.drone_address, tls), flying)
+    drones = at_once(lambda m: ask_drone(m, tls), flying)
     drone_replies = {m.id: reply for m, reply in drones.items()}
     return fleet_view(stations, missions, station_replies, drone_replies, time.time())
