@@ -251,4 +251,4 @@ def _run_fleet(args: argparse.Namespace) -> int:
     settings = FleetSettings.quick() if args.quick else FleetSettings()
     result = asyncio.run(run_fleet_bench(settings.with_missions(args.missions), args.out))
     print(table(result))
-    return 0
+    return 1 if result["stopped"] else 0

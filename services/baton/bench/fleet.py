@@ -37,6 +37,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import grpc
+
 from baton.bench.cpu import SAMPLE_S, CpuSampler, ProcessUsage, child_pids, process_usage
 from baton.bench.runner import machine, markdown_table, say, write_json
 from baton.bench.script import BENCH_MISSION, GET_POSITION, bench_mission_args
@@ -49,6 +51,7 @@ from baton.testbed.fleet import (
     MissionDrone,
     StationPart,
     mission_ended,
+    poll_until,
     start_mission_drone,
     start_stations,
 )
@@ -65,9 +68,8 @@ REPLICA_MB_TARGET = 40.0
 # A background mission polls for this long at most (its script is written out).
 BACKGROUND_S = 4 * 3600
 # Parts started at once while a level's missions are added.
-START_BATCH = 5
+START_BATCH = 3
 READY_S = 180.0
-WAIT_POLL_S = 0.2
 
 
 @dataclass(frozen=True)
@@ -199,11 +201,15 @@ async def start_mission(
     config = ring_config(network.config, RING, first_master)
     at_home = config.drone.model_copy(update={"address": "127.0.0.1:0"})
     drone = await start_mission_drone(
-        network.supervisor, mission_id, config.model_copy(update={"drone": at_home}), handovers
+        network.supervisor,
+        mission_id,
+        config.model_copy(update={"drone": at_home}),
+        handovers,
+        READY_S,
     )
     at = at_home.model_copy(update={"address": drone.address})
     config = config.model_copy(update={"drone": at})
-    await until(drone.ready, f"mission {mission_id}'s vehicle ready", READY_S)
+    await poll_until(drone.ready, f"mission {mission_id}'s vehicle ready", READY_S)
     await asyncio.to_thread(
         start_sessions,
         config,
@@ -225,17 +231,6 @@ async def stop_mission(network: Network, mission: Mission) -> None:
     await mission.drone.channel.close()
     for part in ("drone", "vehicle"):
         await network.supervisor.stop_part(f"{mission.mission_id}-{part}")
-
-
-async def until(check: Any, what: str, timeout_s: float) -> Any:
-    """``check()``'s first truthy answer, polled; TimeoutError naming ``what``."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        answer = await check()
-        if answer:
-            return answer
-        await asyncio.sleep(WAIT_POLL_S)
-    raise TimeoutError(f"{what}: not within {timeout_s:.0f} s")
 
 
 async def move_masters(missions: Sequence[Mission], to: int) -> float:
@@ -311,7 +306,7 @@ async def run_probe(network: Network, settings: FleetSettings, label: str) -> di
     say(f"fleet: probe {mission_id}: {len(handovers)} handovers")
     probe = await start_mission(network, mission_id, OTHER, script, handovers)
     try:
-        statuses = await until(
+        statuses = await poll_until(
             lambda: mission_ended(network.stations, probe.drone, mission_id, RING),
             f"probe {mission_id} ended",
             READY_S,
@@ -380,78 +375,103 @@ async def start_network(workdir: Path) -> tuple[Supervisor, Network]:
 
 
 async def run_fleet_bench(settings: FleetSettings, out: Path) -> dict[str, Any]:
-    """Every level in one run; writes fleet.json, fleet.md and fleet.png under ``out``."""
+    """Every level in one run; writes fleet.json, fleet.md and fleet.png under ``out``
+    after each level. A level that cannot be reached (a part not ready, a probe that
+    failed) ends the run there: ``stopped`` says which and why, the levels before stay."""
     out.mkdir(parents=True, exist_ok=True)
-    workdir = out / "fleet-run"
+    workdir = out / "fleet-runs"
     started = time.monotonic()
     say(f"fleet: starting two stations in {workdir} (load {os.getloadavg()[0]:.2f})")
     supervisor, network = await start_network(workdir)
-    levels: list[dict[str, Any]] = []
     background: list[Mission] = []
+    result: dict[str, Any] = {
+        "settings": {
+            "missions": list(settings.missions),
+            "window_s": settings.window_s,
+            "poll_s": settings.poll_s,
+            "probe_handovers": settings.handovers,
+            "probe_reads_between": settings.reads_between,
+        },
+        "machine": machine(),
+        "load_at_start": [round(x, 2) for x in os.getloadavg()],
+        "levels": [],
+        "stopped": None,
+    }
     async with supervisor:
-        empty = await measure_window(network, settings.window_s)
-        lone = await run_probe(network, settings, "lone")
+        result["empty_station"] = empty = await measure_window(network, settings.window_s)
+        result["lone"] = lone = await run_probe(network, settings, "lone")
         say(
             f"fleet: lone mission: handover p50 {lone['handover_p50_ms']} ms, "
             f"round trip p50 {lone['round_trip_p50_ms']} ms"
         )
-        script = background_script(settings.poll_s)
         for n in settings.missions:
-            adding = [f"m{k}" for k in range(len(background) + 1, n + 1)]
-            say(f"fleet: {n} missions: adding {len(adding)} (load {os.getloadavg()[0]:.2f})")
-            added = time.monotonic()
-            for first in range(0, len(adding), START_BATCH):
-                batch = adding[first : first + START_BATCH]
-                background += await asyncio.gather(
-                    *(start_mission(network, mid, STATION, script) for mid in batch)
-                )
-            for m in background:
-                await until(lambda m=m: m.drone.served(2), f"mission {m.mission_id} polling", 60)
-            add_s = time.monotonic() - added
-            to_station_s = await move_masters(background, STATION)
-            as_master = await measure_window(network, settings.window_s)
-            away_s = await move_masters(background, OTHER)
-            as_replica = await measure_window(network, settings.window_s)
-            probe = await run_probe(network, settings, str(n))
-            takeovers = await count_takeovers(background)
-            level = {
-                "missions": n,
-                "start_s": round(add_s, 1),
-                "move_masters_to_station_s": round(to_station_s, 3),
-                "move_masters_away_s": round(away_s, 3),
-                "as_master": as_master,
-                "as_replica": as_replica,
-                "probe": probe,
-                "takeovers": takeovers,
-                **per_mission(n, empty, as_master, as_replica, lone, probe),
-            }
-            levels.append(level)
+            try:
+                level = await run_level(network, settings, background, n, empty, lone)
+            except (RuntimeError, TimeoutError, grpc.aio.AioRpcError) as exc:
+                say(f"fleet: {n} missions not reached: {exc}")
+                result["stopped"] = {"missions": n, "error": str(exc)}
+                break
+            result["levels"].append(level)
             say(f"fleet: {n} missions: " + level_line(level))
-        result = {
-            "settings": {
-                "missions": list(settings.missions),
-                "window_s": settings.window_s,
-                "poll_s": settings.poll_s,
-                "probe_handovers": settings.handovers,
-                "probe_reads_between": settings.reads_between,
-            },
-            "machine": machine(),
-            "empty_station": empty,
-            "lone": lone,
-            "levels": levels,
-            "duration_s": round(time.monotonic() - started, 1),
-            "load_at_end": [round(x, 2) for x in os.getloadavg()],
-        }
+            result["duration_s"] = round(time.monotonic() - started, 1)
+            result["load_at_end"] = [round(x, 2) for x in os.getloadavg()]
+            write_results(result, out)
         for m in background:
             await m.drone.channel.close()
         for part in network.stations.values():
             await part.channel.close()
-    write_json(out / "fleet.json", result)
-    (out / "fleet.md").write_text(table(result))
+    write_results(result, out)
+    return result
+
+
+async def run_level(
+    network: Network,
+    settings: FleetSettings,
+    background: list[Mission],
+    n: int,
+    empty: dict[str, Any],
+    lone: dict[str, Any],
+) -> dict[str, Any]:
+    """Adds missions to ``background`` up to ``n``, then measures: the station master
+    of all, replica of all, and the probe."""
+    adding = [f"m{k}" for k in range(len(background) + 1, n + 1)]
+    say(f"fleet: {n} missions: adding {len(adding)} (load {os.getloadavg()[0]:.2f})")
+    added = time.monotonic()
+    script = background_script(settings.poll_s)
+    for first in range(0, len(adding), START_BATCH):
+        batch = adding[first : first + START_BATCH]
+        background += await asyncio.gather(
+            *(start_mission(network, mid, STATION, script) for mid in batch)
+        )
+    for m in background:
+        await poll_until(lambda m=m: m.drone.served(2), f"mission {m.mission_id} polling", READY_S)
+    add_s = time.monotonic() - added
+    to_station_s = await move_masters(background, STATION)
+    as_master = await measure_window(network, settings.window_s)
+    away_s = await move_masters(background, OTHER)
+    as_replica = await measure_window(network, settings.window_s)
+    probe = await run_probe(network, settings, str(n))
+    return {
+        "missions": n,
+        "start_s": round(add_s, 1),
+        "move_masters_to_station_s": round(to_station_s, 3),
+        "move_masters_away_s": round(away_s, 3),
+        "as_master": as_master,
+        "as_replica": as_replica,
+        "probe": probe,
+        "takeovers": await count_takeovers(background),
+        **per_mission(n, empty, as_master, as_replica, lone, probe),
+    }
+
+
+def write_results(result: dict[str, Any], out: Path) -> None:
+    """fleet.json, fleet.md and fleet.png from the levels measured so far."""
     from baton.bench.plots import plot_fleet
 
-    plot_fleet(result, out / "fleet.png")
-    return result
+    write_json(out / "fleet.json", result)
+    (out / "fleet.md").write_text(table(result))
+    if result["levels"]:
+        plot_fleet(result, out / "fleet.png")
 
 
 def per_mission(
@@ -555,4 +575,6 @@ def table(result: dict[str, Any]) -> str:
                 f"{master['load']} / {replica['load']}",
             ]
         )
-    return markdown_table(header, rows)
+    stopped = result.get("stopped")
+    after = f"\nStopped at {stopped['missions']} missions: {stopped['error']}\n" if stopped else ""
+    return markdown_table(header, rows) + after
