@@ -100,6 +100,11 @@ def _window(cpu: float, rss: float, program_pss: float | None = None) -> dict[st
         "program_rss_mb": None if program_pss is None else program_pss + 20,
         "program_pss_mb": program_pss,
         "programs": 0,
+        "drones_cpu": 0.3,
+        "vehicles_cpu": 0.4,
+        "all_programs_cpu": 0.25,
+        "bench_cpu": 0.5,
+        "others_cpu": 0.5,
         "cores_busy": 0.5,
         "load": 3.0,
     }
@@ -139,4 +144,6 @@ def test_the_figures_per_mission_and_the_table() -> None:
     text = table(result)
     assert "| lone | 0.010 (idle) |" in text
     assert "| 10 | 0.210 / 0.110 | 20.0 / 10.0 | 100 | 2.0 + 20.0 (40.0) |" in text
+    # Where the master window's CPU went: stations, programs, drones, vehicles, the rest.
+    assert "| 0.31 / 0.25 / 0.30 / 0.40 / 0.50 |" in text
     assert text.endswith("Stopped at 25 missions: m13-drone not ready after 180 s\n")

@@ -62,6 +62,7 @@ from baton.v1 import drone_pb2, ring_pb2
 STATION, OTHER = 0, 1
 RING = (STATION, OTHER)
 MB = 1024 * 1024
+CORES = os.cpu_count() or 1
 # The issue's targets.
 HANDOVER_RATIO_TARGET = 1.5
 REPLICA_MB_TARGET = 40.0
@@ -179,6 +180,14 @@ class Network:
         assert process is not None
         return process.pid
 
+    def running(self, kind: str) -> list[int]:
+        """The running missions' parts of ``kind`` ("drone", "vehicle"): their pids."""
+        return [
+            part.process.pid
+            for name, part in self.supervisor.parts.items()
+            if name.endswith(f"-{kind}") and part.process is not None and part.returncode is None
+        ]
+
 
 @dataclass
 class Mission:
@@ -266,15 +275,21 @@ def mean_mb(sizes: Sequence[int]) -> float | None:
 
 async def measure_window(network: Network, seconds: float) -> dict[str, Any]:
     """The measured station's and its programs' CPU (s per s of wall) and RSS over
-    ``seconds``, the second station's CPU, and how busy the machine's cores were."""
+    ``seconds``; the CPU of the second station, of the drones and of the vehicles;
+    and how busy the machine's cores were, the share of the bench's processes
+    taken out (``others_cpu``: what else runs on the machine)."""
     station, other = network.pid(STATION), network.pid(OTHER)
     programs = child_pids(station)
+    other_programs = child_pids(other)
+    drones, vehicles = network.running("drone"), network.running("vehicle")
+    bench = os.getpid()
+    everything = [station, other, bench, *programs, *other_programs, *drones, *vehicles]
     with CpuSampler() as cores:
         start = time.time()
-        before = _usage([station, other, *programs])
+        before = _usage(everything)
         # A measurement window: the processes run on while their counters advance.
         await asyncio.sleep(seconds)
-        after = _usage([station, other, *programs])
+        after = _usage(everything)
         end = time.time()
         # The sampler's next sample closes the window.
         await asyncio.sleep(3 * SAMPLE_S)
@@ -285,6 +300,8 @@ async def measure_window(network: Network, seconds: float) -> dict[str, Any]:
         return sum(after[p].cpu_s - before[p].cpu_s for p in common) / wall
 
     measured = [p for p in programs if p in after]
+    busy = cores.busy(start, end)
+    ours = cpu(everything)
     return {
         "station_cpu": round(cpu([station]), 4),
         "other_station_cpu": round(cpu([other]), 4),
@@ -294,7 +311,12 @@ async def measure_window(network: Network, seconds: float) -> dict[str, Any]:
         "program_rss_mb": mean_mb([after[p].rss_bytes for p in measured]),
         "program_pss_mb": mean_mb([after[p].pss_bytes for p in measured]),
         "programs": len(measured),
-        "cores_busy": cores.busy(start, end),
+        "drones_cpu": round(cpu(drones), 4),
+        "vehicles_cpu": round(cpu(vehicles), 4),
+        "all_programs_cpu": round(cpu([*programs, *other_programs]), 4),
+        "bench_cpu": round(ours, 4),
+        "others_cpu": None if busy is None else round(busy * CORES - ours, 4),
+        "cores_busy": busy,
         "load": round(os.getloadavg()[0], 2),
     }
 
@@ -517,6 +539,15 @@ def _busy(window: dict[str, Any]) -> str:
     return "-" if busy is None else f"{busy:.0%}"
 
 
+def cores_line(window: dict[str, Any]) -> str:
+    """Where a window's CPU went: both stations, all programs, the drones, the
+    vehicles, and everything else on the machine."""
+    stations = window["station_cpu"] + window["other_station_cpu"]
+    parts = [stations, window["all_programs_cpu"], window["drones_cpu"], window["vehicles_cpu"]]
+    rest = window["others_cpu"]
+    return " / ".join(f"{x:.2f}" for x in parts) + (" / -" if rest is None else f" / {rest:.2f}")
+
+
 def table(result: dict[str, Any]) -> str:
     """The summary table, markdown, with the lone mission's row first."""
     lone, empty = result["lone"], result["empty_station"]
@@ -531,8 +562,7 @@ def table(result: dict[str, Any]) -> str:
         "x lone",
         "round trip p50 (ms)",
         "x lone",
-        "programs CPU (s/s)",
-        "second station CPU (s/s)",
+        "the cores' time, master window: stations, programs, drones, vehicles, else (s/s)",
         "cores busy",
         "load",
     ]
@@ -548,8 +578,7 @@ def table(result: dict[str, Any]) -> str:
             "1.00",
             f"{lone['round_trip_p50_ms']:.2f}",
             "1.00",
-            "",
-            "",
+            cores_line(empty),
             _busy(empty),
             empty["load"],
         ]
@@ -569,8 +598,7 @@ def table(result: dict[str, Any]) -> str:
                 f"{level['handover_ratio']:.2f}",
                 f"{probe['round_trip_p50_ms']:.2f}",
                 f"{level['round_trip_ratio']:.2f}",
-                f"{master['programs_cpu']:.2f} / {replica['programs_cpu']:.2f}",
-                f"{master['other_station_cpu']:.2f} / {replica['other_station_cpu']:.2f}",
+                cores_line(master),
                 f"{_busy(master)} / {_busy(replica)}",
                 f"{master['load']} / {replica['load']}",
             ]

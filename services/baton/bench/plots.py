@@ -157,8 +157,10 @@ def plot_fleet(result: dict[str, Any], path: Path) -> None:
         "^:",
         label="its mission programs (master window)",
     )
+    for key, label in (("drones_cpu", "all drones"), ("vehicles_cpu", "all sim vehicles")):
+        cpu.plot(n, [lv["as_master"][key] for lv in levels], ".--", label=label)
     cpu.axhline(result["machine"]["nproc"] or 2, color="black", linestyle="--", linewidth=1)
-    cpu.set_title("Station CPU (s of CPU per s; dashed: all cores)")
+    cpu.set_title("CPU (s of CPU per s; black: all cores)")
     cpu.set_xlabel("missions hosted")
     memory.plot(n, [lv["station_mb_per_mission"] for lv in levels], "o-", label="station")
     memory.plot(
