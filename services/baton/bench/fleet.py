@@ -460,11 +460,13 @@ async def run_level(
     say(f"fleet: {n} missions: adding {len(adding)} (load {os.getloadavg()[0]:.2f})")
     added = time.monotonic()
     script = background_script(settings.poll_s)
-    for first in range(0, len(adding), START_BATCH):
-        batch = adding[first : first + START_BATCH]
-        background += await asyncio.gather(
-            *(start_mission(network, mid, STATION, script) for mid in batch)
-        )
+    # One wave: the level's drones and vehicles stop together at the end of the run.
+    with network.supervisor.together():
+        for first in range(0, len(adding), START_BATCH):
+            batch = adding[first : first + START_BATCH]
+            background += await asyncio.gather(
+                *(start_mission(network, mid, STATION, script) for mid in batch)
+            )
     for m in background:
         await poll_until(lambda m=m: m.drone.served(2), f"mission {m.mission_id} polling", READY_S)
     add_s = time.monotonic() - added

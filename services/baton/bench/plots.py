@@ -158,9 +158,10 @@ def plot_fleet(result: dict[str, Any], path: Path) -> None:
         label="its mission programs (master window)",
     )
     for key, label in (("drones_cpu", "all drones"), ("vehicles_cpu", "all sim vehicles")):
-        cpu.plot(n, [lv["as_master"][key] for lv in levels], ".--", label=label)
+        if all(key in lv["as_master"] for lv in levels):  # runs before they were measured
+            cpu.plot(n, [lv["as_master"][key] for lv in levels], ".--", label=label)
     cpu.axhline(result["machine"]["nproc"] or 2, color="black", linestyle="--", linewidth=1)
-    cpu.set_title("CPU (s of CPU per s; black: all cores)")
+    cpu.set_title("CPU (s of CPU per s; dashed: all cores)")
     cpu.set_xlabel("missions hosted")
     memory.plot(n, [lv["station_mb_per_mission"] for lv in levels], "o-", label="station")
     memory.plot(
@@ -175,12 +176,14 @@ def plot_fleet(result: dict[str, Any], path: Path) -> None:
     ratio.plot(n, [lv["handover_max_ratio"] for lv in levels], "o:", label="handover max")
     ratio.plot(n, [lv["round_trip_ratio"] for lv in levels], "s-", label="round trip p50")
     ratio.axhline(1.5, color="tab:red", linestyle="--", linewidth=1, label="target")
-    ratio.set_title("Probe mission against a lone mission (x)")
+    ratio.set_yscale("log")
+    ratio.set_title("Probe mission against a lone mission (x, log)")
     ratio.set_xlabel("missions hosted besides the probe")
     for ax in (cpu, memory, ratio):
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
-        ax.set_ylim(bottom=0)
+    cpu.set_ylim(bottom=0)
+    memory.set_ylim(bottom=0)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
