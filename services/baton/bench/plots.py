@@ -146,6 +146,8 @@ def plot_failover(runs: Sequence[dict[str, Any]], detection_s: float, path: Path
 def plot_fleet(result: dict[str, Any], path: Path) -> None:
     """``baton bench fleet``: the measured station's CPU and memory per hosted mission,
     and the probe's handover delay and round trip against the lone mission's."""
+    from baton.bench.fleet import HANDOVER_RATIO_TARGET, REPLICA_MB_TARGET
+
     levels = result["levels"]
     n = [level["missions"] for level in levels]
     fig, (cpu, memory, ratio) = plt.subplots(1, 3, figsize=(14, 4.2))
@@ -169,13 +171,15 @@ def plot_fleet(result: dict[str, Any], path: Path) -> None:
     )
     memory.plot(n, [lv["replica_mb"] for lv in levels], "k^-", label="replica: both")
     memory.plot(n, [lv["replica_rss_mb"] for lv in levels], "k^:", label="replica, program RSS")
-    memory.axhline(40, color="tab:red", linestyle="--", linewidth=1, label="target")
+    memory.axhline(REPLICA_MB_TARGET, color="tab:red", linestyle="--", linewidth=1, label="target")
     memory.set_title("Memory per hosted mission (MB)")
     memory.set_xlabel("missions hosted")
     ratio.plot(n, [lv["handover_ratio"] for lv in levels], "o-", label="handover p50")
     ratio.plot(n, [lv["handover_max_ratio"] for lv in levels], "o:", label="handover max")
     ratio.plot(n, [lv["round_trip_ratio"] for lv in levels], "s-", label="round trip p50")
-    ratio.axhline(1.5, color="tab:red", linestyle="--", linewidth=1, label="target")
+    ratio.axhline(
+        HANDOVER_RATIO_TARGET, color="tab:red", linestyle="--", linewidth=1, label="target"
+    )
     ratio.set_yscale("log")
     ratio.set_title("Probe mission against a lone mission (x, log)")
     ratio.set_xlabel("missions hosted besides the probe")
