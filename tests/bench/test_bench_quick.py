@@ -190,3 +190,27 @@ def test_cli_registers_three_benchmarks() -> None:
     assert parser.parse_args(["bench", "micro"]).out == Path("out/bench")
     failover = parser.parse_args(["bench", "failover", "--kills", "4", "--controllers", "3"])
     assert (failover.kills, failover.controllers) == (4, "3")
+
+
+# On demand (pytest -m slow): about 2 minutes on the loaded 2 cores (the lone probe,
+# then 1 and 5 missions, each with its windows and its probe).
+@pytest.mark.slow
+async def test_fleet_quick(tmp_path: Path) -> None:
+    from baton.bench.fleet import FleetSettings, run_fleet_bench
+
+    settings = FleetSettings.quick()
+    result = await run_fleet_bench(settings, tmp_path)
+    assert result["stopped"] is None, result["stopped"]
+    assert _png(tmp_path / "fleet.png")
+    saved = json.loads((tmp_path / "fleet.json").read_text())
+    assert [level["missions"] for level in saved["levels"]] == list(settings.missions)
+    assert len(result["lone"]["handovers"]) == settings.handovers
+    for level in saved["levels"]:
+        n = level["missions"]
+        # The station's programs: one per background mission (the probe's are stopped).
+        assert level["as_master"]["programs"] == n and level["as_replica"]["programs"] == n
+        assert level["as_master"]["station_cpu"] > 0 and level["replica_mb"] > 0
+        assert len(level["probe"]["handovers"]) == settings.handovers
+        assert {h["new_master"] for h in level["probe"]["handovers"]} == {0, 1}
+        assert math.isfinite(level["handover_ratio"]) and level["round_trip_ratio"] > 0
+    assert "| lone |" in (tmp_path / "fleet.md").read_text()

@@ -45,3 +45,37 @@ async def test_the_sampler_samples_this_machine_while_entered() -> None:
     # One core was busy all through the window; how large a share of the machine that
     # is depends on how many cores /proc/stat counts (a container may see the host's).
     assert busy is not None and 0 < busy <= 1
+
+
+def test_a_process_usage_is_read_from_its_stat_and_status(tmp_path: Path) -> None:
+    from baton.bench.cpu import CLOCK_TICKS, process_usage
+
+    folder = tmp_path / "42"
+    folder.mkdir()
+    # A command name with spaces and a parenthesis: the fields are counted after its end.
+    before = "42 (a (b) c) S " + " ".join(["0"] * 10)
+    (folder / "stat").write_text(f"{before} {3 * CLOCK_TICKS} {CLOCK_TICKS} 0 0\n")
+    (folder / "status").write_text("Name:\tx\nVmRSS:\t   2048 kB\n")
+    (folder / "smaps_rollup").write_text("Rss:  2048 kB\nPss:   512 kB\n")
+    usage = process_usage(42, tmp_path)
+    assert usage is not None
+    assert (usage.cpu_s, usage.rss_bytes, usage.pss_bytes) == (4.0, 2048 * 1024, 512 * 1024)
+    assert process_usage(43, tmp_path) is None  # gone
+
+
+async def test_this_process_and_its_children_are_found_in_proc() -> None:
+    import asyncio
+    import os
+
+    from baton.bench.cpu import child_pids, process_usage
+
+    usage = process_usage(os.getpid())
+    assert usage is not None and usage.cpu_s > 0 and usage.pss_bytes > 0
+    assert usage.rss_bytes >= usage.pss_bytes
+    child = await asyncio.create_subprocess_exec("sleep", "30")
+    try:
+        assert child.pid in child_pids(os.getpid())
+    finally:
+        child.kill()
+        await child.wait()
+    assert child.pid not in child_pids(os.getpid())

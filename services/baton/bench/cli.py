@@ -4,6 +4,7 @@
     baton bench worst-case [--out DIR] [--repeat 3] [--quick]  # Figure 6
     baton bench micro      [--out DIR] [--quick]            # proxy, replay, ring, T_conn
     baton bench failover   [--out DIR] [--kills 10] [--quick]  # kill -9 of the master
+    baton bench fleet      [--out DIR] [--missions 1,5,10,25,50] [--quick]  # N per station
 
 Each writes its figures, JSON and a markdown table under --out and prints the
 table at the end. See docs/benchmarks.md for the results and their reading.
@@ -133,6 +134,30 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     failover.add_argument("--seed", type=int, default=None, help="kill points' seed (default 1)")
     failover.set_defaults(run=_run_failover)
 
+    fleet = benches.add_parser(
+        "fleet",
+        help="one station hosting 1 to 50 missions: its CPU and memory per mission, and the "
+        "handover delay and proxy round trip of a mission it hosts against a lone mission's",
+    )
+    common(fleet)
+    fleet.add_argument(
+        "--missions",
+        type=_missions,
+        default=None,
+        help="comma-separated, rising mission counts hosted by the measured station "
+        "(default 1,5,10,25,50; --quick 1,5)",
+    )
+    fleet.set_defaults(run=_run_fleet)
+
+
+def _missions(text: str) -> tuple[int, ...]:
+    from baton.bench.fleet import parse_missions
+
+    try:
+        return parse_missions(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
 
 def _run_timeline(args: argparse.Namespace) -> int:
     from baton.bench.timeline import TimelineSettings, run_timeline, table
@@ -218,3 +243,12 @@ def _run_replay(args: argparse.Namespace) -> int:
         f"< {result['target_s']:.1f} s)\nby hand: time {result['command']}"
     )
     return 0 if result["median_s"] < result["target_s"] else 1
+
+
+def _run_fleet(args: argparse.Namespace) -> int:
+    from baton.bench.fleet import FleetSettings, run_fleet_bench, table
+
+    settings = FleetSettings.quick() if args.quick else FleetSettings()
+    result = asyncio.run(run_fleet_bench(settings.with_missions(args.missions), args.out))
+    print(table(result))
+    return 1 if result["stopped"] else 0

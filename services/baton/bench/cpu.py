@@ -9,13 +9,19 @@ and ``busy`` gives the share of the cores' time that was busy between two
 wall-clock instants (a handover's decision and its first request, as the
 drone records them). The kernel counts in ticks of 10 ms per core, so a
 window shorter than about 0.2 s is not given (None).
+
+``process_usage`` reads one process's CPU time and memory (``/proc/PID``), and
+``child_pids`` the processes it started: what ``baton bench fleet`` charges to
+a station and its mission programs.
 """
 
 from __future__ import annotations
 
 import bisect
+import os
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 
@@ -23,6 +29,8 @@ SAMPLE_S = 0.02
 # A window shorter than this holds too few ticks to say anything.
 MIN_WINDOW_S = 0.2
 PROC_STAT = Path("/proc/stat")
+# The kernel counts a process's CPU time in these ticks per second.
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
 
 def read_cpu_ticks(path: Path = PROC_STAT) -> tuple[int, int] | None:
@@ -92,3 +100,54 @@ class CpuSampler:
         busy = self._ticks[last][0] - self._ticks[first][0]
         total = self._ticks[last][1] - self._ticks[first][1]
         return busy / total if total > 0 else None
+
+
+@dataclass(frozen=True)
+class ProcessUsage:
+    """One process's CPU time so far (user and system, seconds), its resident set, and
+    its proportional share of it (PSS: each page shared with other processes, such as
+    the interpreter's and the libraries' code, counted in equal parts; 0 where the
+    kernel does not say)."""
+
+    cpu_s: float
+    rss_bytes: int
+    pss_bytes: int
+
+
+def process_usage(pid: int, proc: Path = Path("/proc")) -> ProcessUsage | None:
+    """What process ``pid`` has used, from ``/proc/PID/stat`` and ``status``; None once
+    it is gone (or where the kernel does not say)."""
+    try:
+        stat = (proc / str(pid) / "stat").read_text()
+        status = (proc / str(pid) / "status").read_text()
+    except OSError:
+        return None
+    try:
+        rollup = (proc / str(pid) / "smaps_rollup").read_text()
+    except OSError:
+        rollup = ""
+    # The command name (field 2) is in parentheses and may hold spaces: count after it.
+    fields = stat[stat.rindex(")") + 2 :].split()
+    utime, stime = int(fields[11]), int(fields[12])
+    return ProcessUsage(
+        (utime + stime) / CLOCK_TICKS, _kib_field(status, "VmRSS:"), _kib_field(rollup, "Pss:")
+    )
+
+
+def _kib_field(text: str, name: str) -> int:
+    """The bytes of a ``/proc`` line ``name  N kB``; 0 without one."""
+    for line in text.splitlines():
+        if line.startswith(name):
+            return int(line.split()[1]) * 1024
+    return 0
+
+
+def child_pids(pid: int, proc: Path = Path("/proc")) -> list[int]:
+    """The processes ``pid`` started that still run (its mission programs)."""
+    children: list[int] = []
+    try:
+        for task in (proc / str(pid) / "task").iterdir():
+            children += [int(c) for c in (task / "children").read_text().split()]
+    except OSError:
+        return []
+    return children

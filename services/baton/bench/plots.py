@@ -141,3 +141,53 @@ def plot_failover(runs: Sequence[dict[str, Any]], detection_s: float, path: Path
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def plot_fleet(result: dict[str, Any], path: Path) -> None:
+    """``baton bench fleet``: the measured station's CPU and memory per hosted mission,
+    and the probe's handover delay and round trip against the lone mission's."""
+    from baton.bench.fleet import HANDOVER_RATIO_TARGET, REPLICA_MB_TARGET
+
+    levels = result["levels"]
+    n = [level["missions"] for level in levels]
+    fig, (cpu, memory, ratio) = plt.subplots(1, 3, figsize=(14, 4.2))
+    cpu.plot(n, [lv["as_master"]["station_cpu"] for lv in levels], "o-", label="as master")
+    cpu.plot(n, [lv["as_replica"]["station_cpu"] for lv in levels], "s-", label="as replica")
+    cpu.plot(
+        n,
+        [lv["as_master"]["programs_cpu"] for lv in levels],
+        "^:",
+        label="its mission programs (master window)",
+    )
+    for key, label in (("drones_cpu", "all drones"), ("vehicles_cpu", "all sim vehicles")):
+        if all(key in lv["as_master"] for lv in levels):  # runs before they were measured
+            cpu.plot(n, [lv["as_master"][key] for lv in levels], ".--", label=label)
+    cpu.axhline(result["machine"]["nproc"] or 2, color="black", linestyle="--", linewidth=1)
+    cpu.set_title("CPU (s of CPU per s; dashed: all cores)")
+    cpu.set_xlabel("missions hosted")
+    memory.plot(n, [lv["station_mb_per_mission"] for lv in levels], "o-", label="station")
+    memory.plot(
+        n, [lv["as_replica"]["program_pss_mb"] or 0 for lv in levels], "s-", label="program (PSS)"
+    )
+    memory.plot(n, [lv["replica_mb"] for lv in levels], "k^-", label="replica: both")
+    memory.plot(n, [lv["replica_rss_mb"] for lv in levels], "k^:", label="replica, program RSS")
+    memory.axhline(REPLICA_MB_TARGET, color="tab:red", linestyle="--", linewidth=1, label="target")
+    memory.set_title("Memory per hosted mission (MB)")
+    memory.set_xlabel("missions hosted")
+    ratio.plot(n, [lv["handover_ratio"] for lv in levels], "o-", label="handover p50")
+    ratio.plot(n, [lv["handover_max_ratio"] for lv in levels], "o:", label="handover max")
+    ratio.plot(n, [lv["round_trip_ratio"] for lv in levels], "s-", label="round trip p50")
+    ratio.axhline(
+        HANDOVER_RATIO_TARGET, color="tab:red", linestyle="--", linewidth=1, label="target"
+    )
+    ratio.set_yscale("log")
+    ratio.set_title("Probe mission against a lone mission (x, log)")
+    ratio.set_xlabel("missions hosted besides the probe")
+    for ax in (cpu, memory, ratio):
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+    cpu.set_ylim(bottom=0)
+    memory.set_ylim(bottom=0)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

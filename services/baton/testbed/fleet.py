@@ -239,9 +239,11 @@ async def start_mission_drone(
     name: str,
     config: BatonConfig,
     handovers: Sequence[tuple[int, int]] = (),
+    ready_s: float = 30.0,
 ) -> MissionDrone:
     """A sim vehicle at ``config``'s drone home and a drone service for the mission
-    ``config`` describes (its ring, its policy), with the scripted ``handovers``."""
+    ``config`` describes (its ring, its policy), with the scripted ``handovers``; each
+    given ``ready_s`` to announce itself."""
     workdir = supervisor.workdir / name
     workdir.mkdir()
     home = config.drone.home
@@ -255,6 +257,7 @@ async def start_mission_drone(
             f"--effects-file={workdir / VEHICLE_EFFECTS}",
         ),
         workdir / "vehicle.url",
+        ready_s,
     )
     config_file = workdir / "drone.json"
     config_file.write_text(json.dumps(config.model_dump(mode="json", exclude_unset=True)))
@@ -273,6 +276,7 @@ async def start_mission_drone(
             f"--camera-effects-file={workdir / CAMERA_EFFECTS}",
         ),
         workdir / "drone.address",
+        ready_s,
     )
     address = address.splitlines()[0]
     tls = None if config.tls.insecure else Tls.load(config.tls.certs, OPERATOR)
@@ -503,7 +507,7 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> FleetR
                 number, ring, _ = admitted[d.name]
                 drone = drones[d.name]
                 left = max(1.0, timeout_s - (time.monotonic() - started))
-                statuses = await _until(
+                statuses = await poll_until(
                     partial(mission_ended, stations, drone, str(number), ring),
                     f"drone {d.name}'s mission {number} ended",
                     left,
@@ -530,7 +534,7 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> FleetR
     return FleetRun(results, flights, network)
 
 
-async def _until(check: Any, what: str, timeout_s: float) -> Any:
+async def poll_until(check: Any, what: str, timeout_s: float) -> Any:
     """``check()``'s first truthy answer, polled; TimeoutError naming ``what``."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -543,4 +547,4 @@ async def _until(check: Any, what: str, timeout_s: float) -> Any:
 
 async def _every(checks: Sequence[Any], what: str, timeout_s: float) -> None:
     for check in checks:
-        await _until(check, what, timeout_s)
+        await poll_until(check, what, timeout_s)
