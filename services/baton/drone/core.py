@@ -72,6 +72,7 @@ from baton.drone.invariants import DroneWatch, InvariantBroken
 from baton.drone.operator import Operator, OperatorCommand
 from baton.drone.policy import PREPARE, SWITCH, Decision, handover_step
 from baton.drone.safety import (
+    VEHICLE_ACTIONS,
     Failsafe,
     ModeSeen,
     SafetyParams,
@@ -85,7 +86,7 @@ from baton.drone.safety import (
     lost_link_failsafe,
 )
 from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
-from baton.drone.store import Intent
+from baton.drone.store import DroneState, Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.labels import label
 from baton.rpc.methods import Method, drone_api
@@ -140,6 +141,25 @@ class Kept:
     commanded: Any = None  # as ``DroneCore.kept_command`` gave it (an older file: a list)
     failsafe: Failsafe | None = None
     executing: Intent | None = None
+
+    @classmethod
+    def of(cls, state: DroneState, commanded: Any, failsafe: Failsafe | None) -> Kept:
+        """What a restarted drone resumes from: the store's ``state``, the vehicle command
+        it kept (``DroneCore.kept_command``) and the failsafe the vehicle was in."""
+        c = state.counters
+        counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
+        return cls(
+            c.master,
+            c.handovers,
+            counts,
+            state.replies,
+            state.audit,
+            c.fired_script,
+            c.watermark,
+            commanded,
+            failsafe,
+            state.executing,
+        )
 
 
 class DroneCore:
@@ -398,6 +418,26 @@ class DroneCore:
         self.vehicle_command = (
             VehicleCommand((action,), now) if command is None else command.commanding(action, now)
         )
+
+    def sending(self, method: str, now: float) -> str | None:
+        """A call of ``method`` is about to reach the vehicle: the action a Mobility command
+        commands (``VEHICLE_ACTIONS``; None for a read, the camera, or a command that
+        changes no mode), noted as being sent (``commanding``)."""
+        route = self.routes[method]
+        action = VEHICLE_ACTIONS.get(route.name) if route.service == "Mobility" else None
+        self.commanding(action, now)
+        return action
+
+    def acknowledged(self, method: str, payload: bytes, now: float) -> bool:
+        """The vehicle acknowledged a call of ``method``: a Mobility command's modes are
+        expected from now (``commanded``) and the leg a resume flies on follows it
+        (``Operator.executed``). True if what is expected changed (the state file keeps
+        it, ``kept_command``)."""
+        route = self.routes[method]
+        if route.service != "Mobility":
+            return False
+        self.operator.executed(route.name, payload)
+        return self.commanded(VEHICLE_ACTIONS.get(route.name), now)
 
     def commanded(self, action: str | None, now: float) -> bool:
         """The vehicle accepted the command for ``action`` (``VehicleCommand.commanded``).

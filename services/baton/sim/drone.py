@@ -49,13 +49,12 @@ from baton.drone.effects import (
 from baton.drone.invariants import DroneWatch
 from baton.drone.policy import Decision
 from baton.drone.safety import (
-    VEHICLE_ACTIONS,
     Failsafe,
     ModeSeen,
     commanded_action,
 )
 from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
-from baton.drone.store import Intent
+from baton.drone.store import DroneState, Intent, counters_of
 from baton.rpc.errors import StatusError
 from baton.rpc.labels import label
 from baton.rpc.methods import drone_api, service_prefix
@@ -388,23 +387,19 @@ class SimDrone:
         elif request.method.startswith(CAMERA):
             size = self.world.rng.randint(300, 3000)
             execution.reply = self.camera.take(now, request.reqnr, request.payload, size)
-        else:
-            name = ROUTES[request.method].name
-            action = VEHICLE_ACTIONS.get(name)  # DroneService._execute: what it commands
-            self.core.commanding(action, now)
+        else:  # Invocations._execute: the core told what is sent, then what is acknowledged
+            action = self.core.sending(request.method, now)
             execution.reply = self.vehicle.act(now, request.reqnr, request.method, request.payload)
             self.vehicle.obey(action)
-            # DroneService._execute: the leg a resume flies on (kept in the state file).
-            self.core.operator.executed(name, request.payload)
-            if self.policy is not None:  # DroneService._execute: the leg it flies
-                self.policy.executed(ROUTES[request.method].name)
             if self.p_ack_lost and self.world.rng.random() < self.p_ack_lost:
                 execution.error = StatusError(
                     grpc.StatusCode.DEADLINE_EXCEEDED,
                     f"{request.method}: no acknowledgement from the vehicle; it may have acted",
                 )
-            else:
-                self.core.commanded(action, now)
+                return
+            self.core.acknowledged(request.method, request.payload, now)
+            if self.policy is not None:  # the leg it flies
+                self.policy.executed(ROUTES[request.method].name)
 
     def _complete(self, execution: Execution) -> None:
         if execution is not self.busy:
@@ -788,19 +783,11 @@ class SimDrone:
         core = DroneCore(self._sequencer(), self.world.takeover_after, self.world.safety)
         core.operator = self.core.operator  # kept in the store (OperatorCommands._save)
         replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
-        kept = Kept(
-            old.master,
-            old.handovers,
-            (old.last_reqnr, old.executed, old.duplicates, old.rejected),
-            [r for r in replies if r is not None],
-            old.audit,
-            old.fired_script,
-            old.cache.watermark,
-            # Kept in the store (VEHICLE_COMMAND_KEY) whenever it changed.
-            self.core.kept_command(),
-            self.core.failsafe,  # kept in the store (store.save_failsafe)
-            self.intent,
+        stored = DroneState(
+            counters_of(old), [r for r in replies if r is not None], list(old.audit), self.intent
         )
+        # The vehicle command and the failsafe are kept in the store whenever they change.
+        kept = Kept.of(stored, self.core.kept_command(), self.core.failsafe)
         return core, core.restarted(now, kept)
 
     # -- takeover (DroneService.watch_master, _take_over) ------------------------
