@@ -388,7 +388,9 @@ class DroneCore:
         command = self.vehicle_command
         if command is None:
             return None
-        return {"actions": list(command.actions), "airborne": command.airborne}
+        # Not looked at since a restart, the vehicle is still last known in the air.
+        airborne = command.airborne or self.airborne_before_restart
+        return {"actions": list(command.actions), "airborne": airborne}
 
     def restore_command(self, kept: Any, now: float) -> None:
         """The vehicle command the state file kept (``kept_command``; a list of actions in
@@ -524,14 +526,24 @@ class DroneCore:
         )
 
     def unreachable(self, method: str, vehicle_connected: bool, why: str) -> StatusError | None:
-        """UNAVAILABLE for a Mobility call while the vehicle is not connected (``why``):
-        nothing reaches it, so the number stays unused (``books``); None otherwise."""
+        """UNAVAILABLE for a Mobility call while the vehicle is not connected (``why``), or
+        while a drone restarted with the vehicle in the air has not looked at it yet (its
+        autopilot may have landed it meanwhile: ``autopilot_due`` decides at the first
+        look): nothing reaches it, so the number stays unused (``books``); None otherwise."""
         route = self.routes.get(method)
-        if route is None or route.service != "Mobility" or vehicle_connected:
+        if route is None or route.service != "Mobility":
             return None
-        return StatusError(
-            grpc.StatusCode.UNAVAILABLE, f"{method}: the vehicle {why} is not connected"
-        )
+        if not vehicle_connected:
+            return StatusError(
+                grpc.StatusCode.UNAVAILABLE, f"{method}: the vehicle {why} is not connected"
+            )
+        if self.airborne_before_restart and self.mode is None:
+            return StatusError(
+                grpc.StatusCode.UNAVAILABLE,
+                f"{method}: the vehicle was in the air when the drone service stopped and "
+                "the restarted service has not seen its flight state yet; nothing was executed",
+            )
+        return None
 
     # -- requests --------------------------------------------------------------------
 
