@@ -31,7 +31,9 @@ class SimVehicle:
     """The autopilot: answers reads, acts on flight commands, and counts both.
 
     ``connected`` is False during an outage: the drone then refuses every
-    Mobility request UNAVAILABLE without reaching the vehicle.
+    Mobility request UNAVAILABLE without reaching the vehicle. With a GCS time
+    (``gcs_timeout_s``) it keeps the autopilot's own GCS failsafe: a drone service
+    silent that long finds it returned and landed (``gcs_failsafe``, ``land``).
     """
 
     def __init__(self, battery_drain_pct_s: float = 0.0, gcs_timeout_s: float = 0.0) -> None:
