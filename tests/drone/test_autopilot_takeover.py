@@ -24,6 +24,7 @@ from baton.drone.safety import (
     mode_seen,
 )
 from baton.drone.sequencer import Sequencer
+from baton.rpc.methods import path
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -224,3 +225,37 @@ def test_a_vehicle_flown_before_a_restart_and_found_landed_is_the_autopilot_s() 
     older_file = drone()  # a list of actions: never seen in the air as far as it says
     older_file.restore_command([FLY], 100.0)
     assert older_file.autopilot_due(100.5, on_ground) is None
+
+
+def test_a_vehicle_seen_in_the_air_stays_so_through_the_commands_that_fly_it_on() -> None:
+    """What the state file keeps right after a Goto or a Hold acknowledged in the air
+    still says the vehicle flew (a kill of the drone then must not forget it); after a
+    Land or a return, a new flight is looked at afresh."""
+    command = VehicleCommand((FLY,), 0.0, airborne=True)
+    for action in (FLY, HOLD, FLY):
+        command = command.commanding(action, 1.0).commanded(action, 1.1)
+        assert command.airborne, action
+    landed = command.commanding(LAND, 2.0).commanded(LAND, 2.1)
+    assert not landed.airborne
+    assert not landed.commanding(FLY, 9.0).commanded(FLY, 9.1).airborne
+
+
+def test_a_drone_restarted_with_the_vehicle_in_the_air_commands_it_only_after_a_look() -> None:
+    """Until the restarted drone has seen the vehicle's flight state, a Mobility call is
+    UNAVAILABLE (nothing executed, the number stays unused): the autopilot may have
+    landed the vehicle meanwhile. After the look, the ordinary rules."""
+    restarted = drone()
+    restarted.restore_command({"actions": [FLY], "airborne": True}, 100.0)
+    goto = path("Mobility.Goto")
+    refused = restarted.unreachable(goto, True, "")
+    assert refused is not None and refused.code is grpc.StatusCode.UNAVAILABLE
+    assert "has not seen its flight state yet" in refused.message
+    assert restarted.unreachable(path("Camera.TakePicture"), True, "") is None
+    assert restarted.autopilot_due(100.1, flying("GUIDED")) is None
+    assert restarted.unreachable(goto, True, "") is None
+    again = drone()  # killed again before its first look: it still knows the vehicle flew
+    again.restore_command(restarted_before_look := {"actions": [FLY], "airborne": True}, 100.0)
+    assert again.kept_command() == restarted_before_look
+    never_flown = drone()
+    never_flown.restore_command({"actions": [FLY], "airborne": False}, 100.0)
+    assert never_flown.unreachable(goto, True, "") is None

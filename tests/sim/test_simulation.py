@@ -500,15 +500,27 @@ def test_autopilot_seeds_hold_every_oracle_and_the_takeover_fails_safe() -> None
     drawn moment: exactly once and the replicas' replies hold, nothing reaches the vehicle
     from the takeover until the operator's resume (nothing-in-failsafe), and the drone
     takes the takeover for a failsafe in many seeds (not in those where the switch came
-    before the mission's first command or after its end)."""
+    before the mission's first command or after its end). Its own GCS failsafe: a drone
+    dead longer than the GCS time finds the vehicle returning or landed when it restarts,
+    and ends the mission with the autopilot failsafe."""
     options = SimOptions(autopilot=True)
     outcomes = []
     taken: Counter[str] = Counter()
+    after_gcs: Counter[str] = Counter()
     for seed in range(AUTOPILOT_SEEDS):
         world = World(seed, options)
         outcomes.append(world.run())
-        taken.update(what for _, what in world.drone.vehicle.failsafes)
+        vehicle = world.drone.vehicle
+        taken.update(what for _, what in vehicle.failsafes)
+        if vehicle.gcs_failsafes:
+            after_gcs["seeds"] += 1
+            since = vehicle.gcs_failsafes[0]
+            after_gcs.update(what for at, what in vehicle.failsafes if at >= since)
     assert not any(o.failed for o in outcomes), _failures(outcomes)
     modes = {what.removeprefix("autopilot ") for what in taken if what.startswith("autopilot ")}
-    assert modes == {"RETURN_TO_LAUNCH", "LAND", "POSCTL"}, taken
+    # "landed": the vehicle its GCS failsafe landed while the drone was dead.
+    assert modes == {"RETURN_TO_LAUNCH", "LAND", "POSCTL", "landed"}, taken
     assert sum(taken.values()) >= 15, taken
+    assert after_gcs["seeds"] >= 5, after_gcs
+    assert after_gcs["autopilot landed"] >= 1, after_gcs
+    assert after_gcs["autopilot RETURN_TO_LAUNCH"] >= 1, after_gcs

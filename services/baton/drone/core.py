@@ -72,6 +72,7 @@ from baton.drone.invariants import DroneWatch, InvariantBroken
 from baton.drone.operator import Operator, OperatorCommand
 from baton.drone.policy import PREPARE, SWITCH, Decision, handover_step
 from baton.drone.safety import (
+    VEHICLE_ACTIONS,
     Failsafe,
     ModeSeen,
     SafetyParams,
@@ -85,7 +86,7 @@ from baton.drone.safety import (
     lost_link_failsafe,
 )
 from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
-from baton.drone.store import Intent
+from baton.drone.store import DroneState, Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.labels import label
 from baton.rpc.methods import Method, drone_api
@@ -140,6 +141,25 @@ class Kept:
     commanded: Any = None  # as ``DroneCore.kept_command`` gave it (an older file: a list)
     failsafe: Failsafe | None = None
     executing: Intent | None = None
+
+    @classmethod
+    def of(cls, state: DroneState, commanded: Any, failsafe: Failsafe | None) -> Kept:
+        """What a restarted drone resumes from: the store's ``state``, the vehicle command
+        it kept (``DroneCore.kept_command``) and the failsafe the vehicle was in."""
+        c = state.counters
+        counts = (c.last_reqnr, c.executed, c.duplicates, c.rejected)
+        return cls(
+            c.master,
+            c.handovers,
+            counts,
+            state.replies,
+            state.audit,
+            c.fired_script,
+            c.watermark,
+            commanded,
+            failsafe,
+            state.executing,
+        )
 
 
 class DroneCore:
@@ -368,7 +388,9 @@ class DroneCore:
         command = self.vehicle_command
         if command is None:
             return None
-        return {"actions": list(command.actions), "airborne": command.airborne}
+        # Not looked at since a restart, the vehicle is still last known in the air.
+        airborne = command.airborne or self.airborne_before_restart
+        return {"actions": list(command.actions), "airborne": airborne}
 
     def restore_command(self, kept: Any, now: float) -> None:
         """The vehicle command the state file kept (``kept_command``; a list of actions in
@@ -398,6 +420,26 @@ class DroneCore:
         self.vehicle_command = (
             VehicleCommand((action,), now) if command is None else command.commanding(action, now)
         )
+
+    def sending(self, method: str, now: float) -> str | None:
+        """A call of ``method`` is about to reach the vehicle: the action a Mobility command
+        commands (``VEHICLE_ACTIONS``; None for a read, the camera, or a command that
+        changes no mode), noted as being sent (``commanding``)."""
+        route = self.routes[method]
+        action = VEHICLE_ACTIONS.get(route.name) if route.service == "Mobility" else None
+        self.commanding(action, now)
+        return action
+
+    def acknowledged(self, method: str, payload: bytes, now: float) -> bool:
+        """The vehicle acknowledged a call of ``method``: a Mobility command's modes are
+        expected from now (``commanded``) and the leg a resume flies on follows it
+        (``Operator.executed``). True if what is expected changed (the state file keeps
+        it, ``kept_command``)."""
+        route = self.routes[method]
+        if route.service != "Mobility":
+            return False
+        self.operator.executed(route.name, payload)
+        return self.commanded(VEHICLE_ACTIONS.get(route.name), now)
 
     def commanded(self, action: str | None, now: float) -> bool:
         """The vehicle accepted the command for ``action`` (``VehicleCommand.commanded``).
@@ -484,14 +526,24 @@ class DroneCore:
         )
 
     def unreachable(self, method: str, vehicle_connected: bool, why: str) -> StatusError | None:
-        """UNAVAILABLE for a Mobility call while the vehicle is not connected (``why``):
-        nothing reaches it, so the number stays unused (``books``); None otherwise."""
+        """UNAVAILABLE for a Mobility call while the vehicle is not connected (``why``), or
+        while a drone restarted with the vehicle in the air has not looked at it yet (its
+        autopilot may have landed it meanwhile: ``autopilot_due`` decides at the first
+        look): nothing reaches it, so the number stays unused (``books``); None otherwise."""
         route = self.routes.get(method)
-        if route is None or route.service != "Mobility" or vehicle_connected:
+        if route is None or route.service != "Mobility":
             return None
-        return StatusError(
-            grpc.StatusCode.UNAVAILABLE, f"{method}: the vehicle {why} is not connected"
-        )
+        if not vehicle_connected:
+            return StatusError(
+                grpc.StatusCode.UNAVAILABLE, f"{method}: the vehicle {why} is not connected"
+            )
+        if self.airborne_before_restart and self.mode is None:
+            return StatusError(
+                grpc.StatusCode.UNAVAILABLE,
+                f"{method}: the vehicle was in the air when the drone service stopped and "
+                "the restarted service has not seen its flight state yet; nothing was executed",
+            )
+        return None
 
     # -- requests --------------------------------------------------------------------
 

@@ -63,13 +63,11 @@ class OperatorCommands:
             )
             await self._unpaused.wait()
 
-    def executed(self, method_name: str, payload: bytes) -> None:
-        """A Mobility command of the master was executed (``Operator.executed``): the leg
-        kept in the state file, so a restarted drone's resume flies it on too."""
-        operator = self.service.core.operator
-        leg = operator.leg
-        operator.executed(method_name, payload)
-        if operator.leg != leg:
+    def keep_leg(self, before: bytes | None) -> None:
+        """Keeps the leg a resume flies on in the state file when an executed command changed
+        it from ``before`` (``DroneCore.acknowledged``), so a restarted drone's resume flies
+        it on too."""
+        if self.service.core.operator.leg != before:
             self._save()
 
     def _tell_master(self) -> None:

@@ -209,9 +209,13 @@ class VehicleCommand:
 
     def commanded(self, action: str, now: float) -> VehicleCommand:
         """The vehicle accepted the command for ``action``: its modes are expected from
-        now, the earlier ones for ``MODE_SETTLE_S`` more. In the air or not is looked
-        at afresh (a new flight starts on the ground)."""
-        return VehicleCommand((action,), now, tuple(dict.fromkeys((*self.before, *self.actions))))
+        now, the earlier ones for ``MODE_SETTLE_S`` more. A vehicle seen in the air stays
+        so through a command that keeps it flying or holding (a kill of the drone right
+        after it must still know it flew: ``landed_while_down``); after a landing or a
+        return in the air or not is looked at afresh (a new flight starts on the ground)."""
+        earlier = tuple(dict.fromkeys((*self.before, *self.actions)))
+        flies_on = self.airborne and action in (FLY, HOLD) and not {LAND, RTL} & set(earlier)
+        return VehicleCommand((action,), now, earlier, flies_on)
 
     def unseen(self) -> VehicleCommand:
         """The vehicle's state is not known now (its link is out, or it rebooted): it

@@ -44,7 +44,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from baton.drone.dedupe import CachedReply
 from baton.drone.safety import Failsafe
@@ -60,6 +60,9 @@ from baton.logs import get_logger
 from baton.rpc.errors import StatusError, status_of
 from baton.v1 import drone_pb2
 from baton.wal import describe_write_error, open_wal, roll_back
+
+if TYPE_CHECKING:
+    from baton.drone.sequencer import Sequencer
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS state (
@@ -115,6 +118,20 @@ class Counters:
     fired_script: list[int] = field(default_factory=list)  # script reqnrs already fired
     # The reply cache's watermark: the replies at or below it are let go (dedupe.py).
     watermark: int = 0
+
+
+def counters_of(seq: Sequencer) -> Counters:
+    """What the store keeps of ``seq``: its counters and position in the mission."""
+    return Counters(
+        master=seq.master,
+        last_reqnr=seq.last_reqnr,
+        executed=seq.executed,
+        duplicates=seq.duplicates,
+        rejected=seq.rejected,
+        handovers=list(seq.handovers),
+        fired_script=list(seq.fired_script),
+        watermark=seq.cache.watermark,
+    )
 
 
 @dataclass(frozen=True)

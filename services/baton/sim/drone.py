@@ -12,7 +12,11 @@ stream writes what ``connects.ConnectStream`` says. A restart builds a new
 core from what the store keeps (``Kept``): not the pending notices nor a
 preparation; a command cut off by it is booked, a read runs again.
 
-The vehicle and the camera are the ground truth (``sim/vehicle.py``).
+The vehicle and the camera are the ground truth (``sim/vehicle.py``); the
+vehicle keeps the autopilot's own GCS failsafe: a drone service dead longer
+than ``World.autopilot_gcs_timeout`` finds it returned or landed when it
+restarts (``SimVehicle.gcs_failsafe``), and reads that through the same core
+calls as the service (``DroneCore.restarted``, ``failsafe_check``).
 Simplifications: a request takes a drawn time to execute, and a command
 reaches the vehicle at a drawn point inside it (a drone restart before
 that point means the vehicle never saw it); the vehicle's own
@@ -49,13 +53,12 @@ from baton.drone.effects import (
 from baton.drone.invariants import DroneWatch
 from baton.drone.policy import Decision
 from baton.drone.safety import (
-    VEHICLE_ACTIONS,
     Failsafe,
     ModeSeen,
     commanded_action,
 )
 from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
-from baton.drone.store import Intent
+from baton.drone.store import DroneState, Intent, counters_of
 from baton.rpc.errors import StatusError
 from baton.rpc.labels import label
 from baton.rpc.methods import drone_api, service_prefix
@@ -223,7 +226,7 @@ class SimDrone:
         # Signs replies and grants (DroneService.signer); None without keys.
         self.signer = world.keys.drone if world.keys is not None else None
         self.core = DroneCore(self._sequencer(), world.takeover_after, world.safety)
-        self.vehicle = SimVehicle(world.battery_drain)
+        self.vehicle = SimVehicle(world.battery_drain, world.autopilot_gcs_timeout)
         self.camera = SimCamera()
         self.up = True
         # Durable (store.py): the request being executed, as its intent.
@@ -388,23 +391,19 @@ class SimDrone:
         elif request.method.startswith(CAMERA):
             size = self.world.rng.randint(300, 3000)
             execution.reply = self.camera.take(now, request.reqnr, request.payload, size)
-        else:
-            name = ROUTES[request.method].name
-            action = VEHICLE_ACTIONS.get(name)  # DroneService._execute: what it commands
-            self.core.commanding(action, now)
+        else:  # Invocations._execute: the core told what is sent, then what is acknowledged
+            action = self.core.sending(request.method, now)
             execution.reply = self.vehicle.act(now, request.reqnr, request.method, request.payload)
             self.vehicle.obey(action)
-            # DroneService._execute: the leg a resume flies on (kept in the state file).
-            self.core.operator.executed(name, request.payload)
-            if self.policy is not None:  # DroneService._execute: the leg it flies
-                self.policy.executed(ROUTES[request.method].name)
             if self.p_ack_lost and self.world.rng.random() < self.p_ack_lost:
                 execution.error = StatusError(
                     grpc.StatusCode.DEADLINE_EXCEEDED,
                     f"{request.method}: no acknowledgement from the vehicle; it may have acted",
                 )
-            else:
-                self.core.commanded(action, now)
+                return
+            self.core.acknowledged(request.method, request.payload, now)
+            if self.policy is not None:  # the leg it flies
+                self.policy.executed(ROUTES[request.method].name)
 
     def _complete(self, execution: Execution) -> None:
         if execution is not self.busy:
@@ -744,7 +743,14 @@ class SimDrone:
         """The drone service dies: calls in flight and streams are lost, the store stays."""
         self.world.trace(f"drone crashes (executing {self.intent})")
         self.up = False
+        now = self.world.loop.now
+        due = self.vehicle.gcs_silent(now)
+        if due is not None:  # the autopilot's own GCS failsafe, if the silence lasts
+            self.world.loop.at(due, self._gcs_failsafe, now)
         self.queue.clear()
+        # The watches' turns queued are gone with the queue: the restarted service's
+        # watches queue their own (as a new process's tasks do).
+        self._check_queued = self._failsafe_queued = False
         self.parked.clear()
         self.busy = None
         self.streams.clear()
@@ -754,6 +760,7 @@ class SimDrone:
     def restart(self) -> None:
         """The drone service starts again from its durable state (DroneService._restore)."""
         self.up = True
+        self.vehicle.gcs_heard()
         self.stats.restarts += 1
         self.core, effects = self._restored()
         # PolicyRunner is built afresh, with the hold the store keeps (PolicyRunner.restore).
@@ -766,6 +773,19 @@ class SimDrone:
         if self.intent is not None:
             self.stats.cut_off.append(self.intent)
         self._apply(effects)
+
+    def _gcs_failsafe(self, silent_since: float) -> None:
+        """The autopilot's GCS failsafe timer ran out: if the drone service is silent since
+        ``silent_since`` still, the vehicle returns, and lands after a drawn while."""
+        now = self.world.loop.now
+        if self.vehicle.gcs_failsafe(now, silent_since, self.world.mission_open()):
+            self.world.trace("the autopilot's GCS failsafe: the vehicle returns")
+            landing = self.world.gcs_rng.uniform(0.05, 1.0)
+            self.world.loop.after(landing, self._landed_by_itself)
+
+    def _landed_by_itself(self) -> None:
+        self.vehicle.land(self.world.loop.now)
+        self.world.trace("the vehicle landed by itself (its GCS failsafe)")
 
     def _sequencer(self) -> Sequencer:
         """A new Sequencer as DroneService's factory makes it (nothing served yet)."""
@@ -788,19 +808,11 @@ class SimDrone:
         core = DroneCore(self._sequencer(), self.world.takeover_after, self.world.safety)
         core.operator = self.core.operator  # kept in the store (OperatorCommands._save)
         replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
-        kept = Kept(
-            old.master,
-            old.handovers,
-            (old.last_reqnr, old.executed, old.duplicates, old.rejected),
-            [r for r in replies if r is not None],
-            old.audit,
-            old.fired_script,
-            old.cache.watermark,
-            # Kept in the store (VEHICLE_COMMAND_KEY) whenever it changed.
-            self.core.kept_command(),
-            self.core.failsafe,  # kept in the store (store.save_failsafe)
-            self.intent,
+        stored = DroneState(
+            counters_of(old), [r for r in replies if r is not None], list(old.audit), self.intent
         )
+        # The vehicle command and the failsafe are kept in the store whenever they change.
+        kept = Kept.of(stored, self.core.kept_command(), self.core.failsafe)
         return core, core.restarted(now, kept)
 
     # -- takeover (DroneService.watch_master, _take_over) ------------------------
@@ -867,11 +879,12 @@ class SimDrone:
 
     def _failsafe_due(self, now: float) -> Failsafe | None:
         """``DroneCore.failsafe_check`` as ``FailsafeWatch.due`` asks it: the
-        vehicle counts as armed and in the air while the mission is open (the sim has no
-        flight state nor position: no fence, no nearest station), in the mode its
-        commands and the autopilot's takeover put it in."""
-        airborne = self.world.mission_open()
-        seen = ModeSeen(self.vehicle.mode, True, airborne)
+        vehicle counts as armed and in the air while the mission is open, unless its GCS
+        failsafe landed it (the sim has no position: no fence, no nearest station), in
+        the mode its commands and the autopilot's takeover put it in."""
+        vehicle = self.vehicle
+        airborne = vehicle.in_air(self.world.mission_open())
+        seen = ModeSeen(vehicle.mode, not vehicle.landed, airborne)
         in_range = self.policy.in_range() if self.policy is not None else None
         battery = self.vehicle.battery(now)
         return self.core.failsafe_check(

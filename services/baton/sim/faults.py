@@ -223,7 +223,9 @@ AUTOPILOT_MODES = ("RETURN_TO_LAUNCH", "LAND", "POSCTL")
 def plan_autopilot(world: World, plan: FaultPlan) -> None:
     """The autopilot-takeover fault (issue 32), from a random stream of its own: at a
     drawn moment the vehicle switches to a drawn mode the drone did not command, and in
-    half the seeds an operator's Resume comes 0 to 3 s later."""
+    half the seeds an operator's Resume comes 0 to 3 s later; and, from the GCS
+    failsafe's stream, in half the seeds the drone service dies for longer or shorter
+    than the autopilot's GCS failsafe time (``SimVehicle.gcs_failsafe``)."""
     rng = random.Random(f"autopilot {world.seed}")
     mode = rng.choice(AUTOPILOT_MODES)
     start = rng.uniform(0.0, plan.fault_end)
@@ -233,6 +235,17 @@ def plan_autopilot(world: World, plan: FaultPlan) -> None:
         resume_at = start + rng.uniform(0.0, 3.0)
         plan.autopilot += f", resumed at {resume_at:.2f}s"
         world.loop.at(resume_at, operator_resume, world)
+    # The drone service dead for 0.5 to 2.5 times the autopilot's GCS failsafe time in
+    # half the seeds (the mix's drone restarts may outlast it too): the vehicle returns
+    # and lands by itself, and the restarted drone must end the mission.
+    grng = world.gcs_rng
+    timeout = world.autopilot_gcs_timeout
+    plan.autopilot += f", GCS failsafe after {timeout:.2f}s"
+    if grng.random() < 0.5:
+        dead = timeout * grng.uniform(0.5, 2.5)
+        start = grng.uniform(0.0, plan.fault_end)
+        plan.autopilot += f", drone dead {dead:.2f}s at {start:.2f}s"
+        world.loop.at(start, drone_crash, world, start + dead)
 
 
 def autopilot_takes_over(world: World, mode: str) -> None:

@@ -238,6 +238,20 @@ def _flies_on_after_abort() -> list[tuple[Any, str, Any]]:
     return [(Operator, "refusal", refusal)]
 
 
+def _forgets_it_flew() -> list[tuple[Any, str, Any]]:
+    """Issue 32: a restarted drone forgets that the vehicle was in the air when it stopped
+    (``DroneCore.restore_command`` drops the state file's ``airborne``), so a vehicle the
+    autopilot's GCS failsafe landed meanwhile is flown on, not put in the autopilot
+    failsafe (``safety.landed_while_down``)."""
+    original = DroneCore.restore_command
+
+    def restore_command(self: DroneCore, kept: Any, now: float) -> None:
+        original(self, kept, now)
+        self.airborne_before_restart = False
+
+    return [(DroneCore, "restore_command", restore_command)]
+
+
 def _believes_unbacked_claims() -> list[tuple[Any, str, Any]]:
     """Issue 33: a mastership a log message claims is believed without the drone's grant
     (``authenticity.unbacked_claim``, which ``ControllerCore.log_arrived`` asks, backs
@@ -253,6 +267,7 @@ LOSE_MASTER = {"lose_master": True}
 FAILSAFE = {"failsafe": True}
 OPERATOR = {"operator": True}
 LYING = {"lying": True}
+AUTOPILOT = {"autopilot": True}
 
 for _mutation in (
     Mutation("line44", "Algorithm 1 line 44: in-order message dropped during REPLAY", _line44),
@@ -286,6 +301,12 @@ for _mutation in (
         "a call after an abort executed",
         _flies_on_after_abort,
         OPERATOR,
+    ),
+    Mutation(
+        "forgets-it-flew",
+        "a restarted drone flies on a vehicle its GCS failsafe landed",
+        _forgets_it_flew,
+        AUTOPILOT,
     ),
     Mutation(
         "believes-unbacked-claims",

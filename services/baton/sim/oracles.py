@@ -105,10 +105,13 @@ def check(world: World) -> list[Violation]:
 
 def _nothing_in_failsafe(world: World) -> list[Violation]:
     """Nothing reaches the vehicle or the camera from a failsafe until the operator's next
-    resume (drone/safety.py): the mission does not silently fly on."""
-    drone, found = world.drone, []
-    for since, action in drone.vehicle.failsafes:
-        until = min((t for t in drone.vehicle.resumes if t >= since), default=float("inf"))
+    resume (drone/safety.py): the mission does not silently fly on. The autopilot's own GCS
+    failsafe counts from when the vehicle took itself over: the drone service was dead
+    then, and the restarted one looks at the vehicle before it commands it."""
+    vehicle, found = world.drone.vehicle, []
+    starts = [*vehicle.failsafes, *((t, "autopilot GCS") for t in vehicle.gcs_failsafes)]
+    for since, action in starts:
+        until = min((t for t in vehicle.resumes if t >= since), default=float("inf"))
         found += _acted_between(world, "nothing-in-failsafe", f"{action} failsafe", since, until)
     return found
 

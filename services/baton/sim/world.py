@@ -52,6 +52,9 @@ MAX_EVENTS = 2_000_000
 # --prepared makes them all prepared), and the drone's prepare timeouts drawn.
 PREPARED_SHARE = 0.25
 PREPARE_TIMEOUTS_S = (0.3, 1.0, 3.0, 10.0)
+# The range the autopilot's GCS failsafe time is drawn from (--autopilot), mission
+# seconds: about the drone restarts' dead times (faults.plan_faults), so that some outlast it.
+GCS_TIMEOUTS_S = (0.2, 1.0)
 
 
 @dataclass(frozen=True)
@@ -259,6 +262,12 @@ class World:
             self.safety = SafetyParams(
                 lost_link, action, battery_reserve_pct=20.0, battery_action=battery_action
             )
+        # The autopilot's own GCS failsafe (--autopilot): the vehicle returns and lands
+        # when the drone service is dead this long (0: never), from a stream of its own.
+        self.gcs_rng = random.Random(f"gcs {seed}")
+        self.autopilot_gcs_timeout = 0.0
+        if options.autopilot:
+            self.autopilot_gcs_timeout = self.gcs_rng.uniform(*GCS_TIMEOUTS_S)
         # Controllers killed for good (the lose-master fault), and what it did.
         self.lost: set[int] = set()
         self.failover: dict[str, object] = {}
