@@ -264,6 +264,10 @@ class Timer(enum.Enum):
     PREPARATION = "preparation"
 
 
+# In the order ``ControllerCore._arm`` compares their deadlines.
+TIMERS = (Timer.GAP, Timer.ROUTE, Timer.PREPARATION)
+
+
 @dataclass(frozen=True)
 class Arm:
     """Effect: call ``ControllerCore.timer_fired(timer, ...)`` at ``at`` (the driver's
@@ -452,8 +456,10 @@ class ControllerCore:
         # and how long a gap stays before its repair (``gap_repair_s``).
         self.detection_s = detection_s
         self.repair_s = gap_repair_s(detection_s)
-        # The deadline of each timer armed (``Arm``), as the driver holds it.
+        # The deadline of each timer armed (``Arm``), as the driver holds it; and the
+        # deadlines a step last left (GAP, ROUTE, PREPARATION), while ``armed`` is them.
         self.armed: dict[Timer, float] = {}
+        self._deadlines: tuple[float | None, ...] | None = (None, None, None)
         # Check the masterships' legal combinations at every step (``ready``).
         self.checking = checking()
         # The longest Clock.Sleep the mission may ask (``safety.max_sleep``).
@@ -1222,11 +1228,15 @@ class ControllerCore:
             self.route_held = False
             self.route_at = now
         preparing = self.prepared is not None and p.preparing_for is not None
-        for timer, at in (
-            (Timer.GAP, None if self.gap is None else self.gap[2]),
-            (Timer.ROUTE, self.route_at),
-            (Timer.PREPARATION, self.prepare_until if preparing else None),
-        ):
+        deadlines = (
+            None if self.gap is None else self.gap[2],
+            self.route_at,
+            self.prepare_until if preparing else None,
+        )
+        if deadlines == self._deadlines:
+            return  # most steps: nothing moved
+        self._deadlines = deadlines
+        for timer, at in zip(TIMERS, deadlines, strict=True):
             if at is None:
                 if self.armed.pop(timer, None) is not None:
                     out.append(Disarm(timer))
@@ -1242,6 +1252,7 @@ class ControllerCore:
         at = self.armed.pop(timer, None)
         if at is None:
             return []
+        self._deadlines = None  # ``armed`` changed: the next step compares it whole
         now = max(now, at)
         if timer is Timer.GAP:
             missing = self.protocol.missing_lognr
