@@ -471,12 +471,9 @@ class ControllerNode:
 
     async def _apply(self, effects: Sequence[CoreEffect]) -> None:
         try:
-            ready = self.core.ready(
-                effects,
-                self.drone_connected,
-                time.monotonic(),
-                self.drone_connected or self.standby_up,
-            )
+            connected = self.drone_connected
+            reachable = connected or self._standby.up
+            ready = self.core.ready(effects, connected, time.monotonic(), reachable)
         except InvariantBroken as broken:
             # A defect of baton: stop as a kill -9 would, rather than go on.
             self.log.error("invariant broken; the controller stops", problem=str(broken))
