@@ -146,7 +146,7 @@ GAP_REPAIR_MAX_S = 8.0
 def gap_repair_s(detection_s: float) -> float:
     """How long a log message may be missing while later ones are queued before the
     controller has its predecessors re-send from its hello: the detection time, or its
-    floor when takeovers are off (node.py ``_repair_gap``)."""
+    floor when takeovers are off (``ControllerCore.gap_due``)."""
     return max(detection_s, DETECTION_FLOOR_S)
 
 

@@ -7,9 +7,12 @@ from helpers.protocol import started
 
 from baton.controller.core import (
     CLOCK_SLEEP,
+    PREPARE_GRACE_S,
     Answer,
+    Arm,
     AskClock,
     ControllerCore,
+    Disarm,
     DroneRefusal,
     Fail,
     KeepMastership,
@@ -19,8 +22,10 @@ from baton.controller.core import (
     Record,
     Rejoin,
     RepairGap,
+    RingSight,
     RouteTo,
     SendCatchUp,
+    Timer,
 )
 from baton.controller.protocol import DisconnectDrone, Diverged, SendLog, State
 from baton.digest import request_digest
@@ -196,6 +201,105 @@ def test_the_ring_routes_around_a_successor_down_for_the_detection_time() -> Non
     assert two.route_due(lambda pid: 99.0, 1.0, drone_connected=False) == []
 
 
+def timers(effects: list) -> list:
+    return [effect for effect in effects if isinstance(effect, Arm | Disarm)]
+
+
+def test_a_gap_arms_its_repair_when_noted_again_on_a_later_gap_and_disarms_when_filled() -> None:
+    """The gap's repair is armed when a step leaves a message missing (``ready``), fired
+    once (twice as late after a repair), moved by a later gap, cancelled by the fill."""
+    core = ControllerCore(started(1, [0, 1, 2], 0), detection_s=2.0)
+    assert core.repair_s == 2.0
+    effects = core.log_arrived(ring_pb2.LogMessage(lognr=1, origin=0, sender=0), lambda: True)
+    assert timers(core.ready(effects, False, now=9.0)) == []  # nothing missing
+    effects = core.log_arrived(ring_pb2.LogMessage(lognr=3, origin=0, sender=0), lambda: True)
+    assert timers(core.ready(effects, False, now=10.0)) == [Arm(Timer.GAP, 12.0)]
+    assert timers(core.ready([], False, now=11.0)) == []  # the same gap: armed already
+    sight = RingSight({}, drone_connected=False)
+    fired = core.timer_fired(Timer.GAP, 12.0, sight)
+    assert kinds(fired) == [Note, RepairGap]
+    assert timers(core.ready(fired, False, now=12.0)) == [Arm(Timer.GAP, 16.0)]  # twice as late
+    assert core.timer_fired(Timer.ROUTE, 16.0, sight) == []  # not armed: nothing
+    # Message 2 fills it, 5 opens another (4 missing): armed anew from now.
+    for lognr in (2, 5):
+        message = ring_pb2.LogMessage(lognr=lognr, origin=0, sender=0)
+        effects = core.log_arrived(message, lambda: True)
+    assert timers(core.ready(effects, False, now=14.5)) == [Arm(Timer.GAP, 16.5)]
+    assert core.gap == (4, 14.5, 16.5)
+    effects = core.log_arrived(ring_pb2.LogMessage(lognr=4, origin=0, sender=0), lambda: True)
+    assert timers(core.ready(effects, False, now=15.0)) == [Disarm(Timer.GAP)]
+    assert core.gap is None and core.armed == {}
+
+
+def test_a_gap_whose_frames_are_arriving_is_armed_again_not_repaired() -> None:
+    core = ControllerCore(started(1, [0, 1, 2], 0), detection_s=1.0)
+    for lognr in (1, 3):
+        core.log_arrived(ring_pb2.LogMessage(lognr=lognr, origin=0, sender=0), lambda: True)
+    assert timers(core.ready([], False, now=10.0)) == [Arm(Timer.GAP, 11.0)]
+    sight = RingSight({}, drone_connected=False, frames_at={2: 10.8})
+    assert core.timer_fired(Timer.GAP, 11.0, sight) == []
+    assert timers(core.ready([], False, now=11.0)) == [Arm(Timer.GAP, 12.0)]
+
+
+def test_a_ring_stream_down_arms_the_route_at_its_detection_time() -> None:
+    core = ControllerCore(started(1, [0, 1, 2], 0), detection_s=1.0)
+    down = RingSight({2: 4.5}, drone_connected=False)  # the successor's, since 4.5
+    assert core.ring_changed(5.0, down) == []
+    assert timers(core.ready([], False, now=5.0)) == [Arm(Timer.ROUTE, 5.5)]
+    fired = core.timer_fired(Timer.ROUTE, 5.5, down)
+    assert kinds(fired) == [Note, RouteTo] and core.protocol.successor == 0
+    assert timers(core.ready(fired, False, now=5.5)) == []  # nothing left to wait for
+    up = RingSight({}, drone_connected=False)
+    back = core.ring_changed(6.0, up)  # its stream is up again: back at once
+    assert kinds(back) == [Note, RouteTo] and core.protocol.successor == 2
+    # Two streams down at different times: armed for the first to reach it, then the next.
+    two = RingSight({2: 7.0, 0: 7.4}, drone_connected=False)
+    core.ring_changed(7.0, two)
+    assert timers(core.ready([], False, now=7.0)) == [Arm(Timer.ROUTE, 8.0)]
+    core.timer_fired(Timer.ROUTE, 8.0, two)
+    assert core.protocol.successor == 0
+    assert timers(core.ready([], False, now=8.0)) == [Arm(Timer.ROUTE, 8.4)]
+
+
+def test_a_route_held_back_is_decided_again_when_the_hold_ends() -> None:
+    """An ACTIVE master cut off from the drone does not route around its successor
+    (``may_route_around``); the drone's stream up again ends the hold, and the route is
+    decided at once."""
+    core = master()
+    core.detection_s = 1.0
+    down = RingSight({1: 0.0}, drone_connected=False)
+    assert core.ring_changed(2.0, down) == [] and core.route_held
+    assert timers(core.ready([], False, now=2.0)) == []  # nothing in time ends it
+    assert timers(core.ready([], True, now=3.0)) == [Arm(Timer.ROUTE, 3.0)]
+    fired = core.timer_fired(Timer.ROUTE, 3.0, RingSight({1: 0.0}, drone_connected=True))
+    assert kinds(fired) == [Note, RouteTo] and core.protocol.successor == 2
+
+
+def test_a_preparation_arms_its_end_and_a_handover_disarms_it() -> None:
+    core = master()
+    effects = core.ready(core.prepare(2, 1, 3.0, 0, now=10.0), True, now=10.0)
+    end = 13.0 + PREPARE_GRACE_S
+    assert timers(effects) == [Arm(Timer.PREPARATION, end)]
+    over = core.timer_fired(Timer.PREPARATION, end, RingSight({}, drone_connected=True))
+    assert kinds(over) == [Note] and core.protocol.preparing_for is None
+    assert timers(core.ready(over, True, now=end)) == []
+    core.ready(core.prepare(2, 1, 3.0, 0, now=20.0), True, now=20.0)
+    handed = core.handover_notice(2, 0, 2)
+    assert timers(core.ready(handed, False, now=21.0)) == [Disarm(Timer.PREPARATION)]
+
+
+def test_a_master_cut_off_with_a_newer_mastership_queued_is_fenced_by_any_step() -> None:
+    """A message of a newer mastership came while a stream to the drone was up, and was
+    queued; the first step after both streams are down fences the master."""
+    core = master()
+    taker = ring_pb2.LogMessage(lognr=2, origin=1, sender=1, epoch=3)
+    assert Rejoin not in kinds(core.ready(core.log_arrived(taker, lambda: True), True, 1.0))
+    assert 2 in core.protocol.log_queue
+    fenced = core.ready([], False, now=2.0, drone_reachable=False)
+    assert Rejoin in kinds(fenced) and core.rejoining
+    assert Rejoin not in kinds(core.ready([], False, now=3.0, drone_reachable=False))
+
+
 def test_a_sleep_beyond_the_missions_bound_is_logged_as_refused() -> None:
     core = ControllerCore(started(0, [0, 1, 2], 0), max_sleep_s=600.0)
     core.protocol.granted_epoch = core.protocol.epoch
@@ -226,20 +330,20 @@ def test_ready_persists_before_sending_and_holds_a_copy_back_while_cut_off() -> 
     normal = SendLog(1, ring_pb2.LogMessage(lognr=5, origin=0, epoch=1))
     handover = SendLog(2, ring_pb2.LogMessage(lognr=6, origin=0, epoch=1, handover=True))
     copy = SendLog(2, ring_pb2.LogMessage(lognr=5, origin=0, epoch=1), copy=True)
-    ready = core.ready([normal, handover, copy], drone_connected=False)
+    ready = core.ready([normal, handover, copy], drone_connected=False, now=0.0)
     # A normal message enters the history first; a handover message when it comes back
     # round; a copy for a prepared target not at all while the drone's stream is down.
     assert kinds(ready) == [Persist, SendLog, SendLog, KeepMastership]
     assert ready[0] == Persist(normal.message) and ready[1] is normal and ready[2] is handover
-    assert kinds(core.ready([copy], drone_connected=True)) == [SendLog, KeepMastership]
+    assert kinds(core.ready([copy], drone_connected=True, now=0.0)) == [SendLog, KeepMastership]
     assert core.sent_straight == {2: 5}
 
 
 def test_ready_rejoins_once_on_a_diverged_log() -> None:
     core = master()
     diverged = Diverged(4, 1, 3)
-    assert kinds(core.ready([diverged], True)) == [Diverged, Rejoin, KeepMastership]
-    assert kinds(core.ready([diverged], True)) == [Diverged, KeepMastership]
+    assert kinds(core.ready([diverged], True, 0.0)) == [Diverged, Rejoin, KeepMastership]
+    assert kinds(core.ready([diverged], True, 0.0)) == [Diverged, KeepMastership]
 
 
 def test_the_catch_up_sends_each_message_once_and_nothing_to_the_successor() -> None:

@@ -77,7 +77,7 @@ def test_the_core_stops_on_an_illegal_mastership_when_checking() -> None:
     p = started(0, [0, 1, 2], 2**20)
     core = ControllerCore(p)
     core.checking = True
-    assert core.ready([], drone_connected=True)  # legal: the mastership is kept
+    assert core.ready([], drone_connected=True, now=0.0)  # legal: the mastership is kept
     p.fenced, p._fenced_in = True, 2  # ACTIVE though fenced: never made by the protocol
     with pytest.raises(InvariantBroken, match="ACTIVE though fenced"):
-        core.ready([], drone_connected=True)
+        core.ready([], drone_connected=True, now=0.0)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from helpers.protocol import connected_session, started
 
 from baton.config import parse_config
-from baton.controller.core import PREPARE_GRACE_S, ControllerCore, Note, Preparing
+from baton.controller.core import PREPARE_GRACE_S, Arm, ControllerCore, Note, RingSight, Timer
 from baton.controller.node import ControllerNode
 from baton.controller.protocol import State
 from baton.digest import request_digest
@@ -40,22 +40,20 @@ async def active_master() -> ControllerNode:
 
 def test_an_older_preparations_time_does_not_end_a_newer_one() -> None:
     """The drone replaced a preparation for 2 by one for 1, then by one for 2 again (a
-    script's lines, each after a request). The first one's timer ended the third
-    (same target, same epoch) long before its timeout: the master stopped flushing
-    every entry and sent no progress word, so the drone could only force it. Timers
-    at chosen times on the pure core, not wall-clock ones."""
+    script's lines, each after a request). Each arms the preparation's end anew,
+    replacing the older deadline (a driver's ``TimerTable`` never fires a replaced
+    one): the third runs its own time, not the first one's."""
     core = ControllerCore(started(0, [0, 1, 2], 0))
-    timers = []
+    arms = []
     for target, at, timeout_s in ((2, 0.0, 0.01), (1, 1.0, 0.01), (2, 2.0, 30.0)):
-        effects = core.prepare(target, 1, timeout_s, 0, now=at)
-        timers += [e for e in effects if isinstance(e, Preparing)]
-    assert [t.until for t in timers] == [0.01 + PREPARE_GRACE_S, 1.01 + PREPARE_GRACE_S, 34.0]
-    for timer in timers[:2]:  # the first two's time is up, in order
-        assert core.preparation_over(timer.target, timer.epoch, timer.until) == []
-    assert core.protocol.preparing_for == 2
+        effects = core.ready(core.prepare(target, 1, timeout_s, 0, now=at), True, now=at)
+        arms += [e for e in effects if isinstance(e, Arm)]
+    ends = [0.01 + PREPARE_GRACE_S, 1.01 + PREPARE_GRACE_S, 34.0]
+    assert arms == [Arm(Timer.PREPARATION, end) for end in ends]
+    assert core.armed == {Timer.PREPARATION: 34.0} and core.protocol.preparing_for == 2
     progress = core.progress(0)
     assert progress is not None and progress.target == 2
-    over = core.preparation_over(2, 1, timers[2].until)  # the third's own time
+    over = core.timer_fired(Timer.PREPARATION, 34.0, RingSight({}, drone_connected=True))
     assert [type(e) for e in over] == [Note] and core.protocol.preparing_for is None
 
 

@@ -891,7 +891,7 @@ def test_a_taker_drops_the_lost_masters_messages_queued_beyond_a_gap() -> None:
     replay_all(p)
     assert p.on_granted(2, takeover=True, watermark_reqnr=0) == []
     assert p.state is State.PASSIVE  # 3 may be on its way: the gap repair asks first
-    effects = p.give_up_gap()  # the repair did not bring it (node.py _repair_gap)
+    effects = p.give_up_gap()  # the repair did not bring it (ControllerCore.gap_due)
     assert [(type(e).__name__, getattr(e, "lognr", None)) for e in effects] == [
         ("Unqueued", 4),
         ("ConnectDrone", None),
@@ -1247,7 +1247,7 @@ def test_a_queued_message_of_a_newer_mastership_fences_a_master_once_cut_off() -
     takeover in a newer epoch, and 0's next message came while 1's Connect stream still looked up
     (a silent link, not yet found by keepalive), so the ring's fence did not apply then.
     Queued, the message was never looked at again and 1 stayed ACTIVE for ever. The
-    runtime asks ``went_on_in_queue`` every 0.1 s, and fences us once cut off."""
+    core asks ``went_on_in_queue`` after every event while cut off (``ControllerCore.ready``)."""
     p = started(1, [0, 1], 2**20, initial_master=1)
     p.on_reply(entry(1))
     p.on_reply(entry(2))  # unflushed: the log never left us

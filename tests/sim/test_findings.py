@@ -87,7 +87,7 @@ def test_f7_a_handover_message_is_never_overtaken_by_a_history_copy() -> None:
 
 
 def test_f3_a_restarted_controller_gets_what_its_predecessor_did_not_forward() -> None:
-    """Found by the simulation (F3), fixed in node.py _repair_gap: a gap in what a
+    """Found by the simulation (F3), fixed in ControllerCore.gap_due: a gap in what a
     controller received has its predecessors re-send from its hello. These seeds showed
     it with the kill keep-out lifted."""
     options = SimOptions(allow=frozenset({"F3"}))

@@ -29,6 +29,7 @@ The rules (docs/design.md, "Takeover", "Epochs" and "Restarts"):
 
 from __future__ import annotations
 
+import enum
 import math
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -38,7 +39,7 @@ from typing import Any, Protocol
 import grpc
 
 from baton.authenticity import Keys, refusal
-from baton.config import GAP_REPAIR_MAX_S
+from baton.config import GAP_REPAIR_MAX_S, gap_repair_s
 from baton.controller.protocol import (
     ControllerProtocol,
     DisconnectDrone,
@@ -245,12 +246,57 @@ class RouteTo:
 @dataclass(frozen=True)
 class Preparing:
     """Effect: a prepared handover to ``target`` began (``ControllerCore.prepare``): count
-    the acknowledgements of the stream to it from now, and call ``preparation_over``
-    at ``until`` (the drone's timeout and a grace)."""
+    the acknowledgements of the stream to it from now (its end is a ``Timer.PREPARATION``)."""
 
     target: int
     epoch: int
-    until: float
+
+
+class Timer(enum.Enum):
+    """A decision the core takes at a time it knows in advance (``Arm``)."""
+
+    # A log message missing while later ones are queued: its repair (``gap_due``).
+    GAP = "gap"
+    # A ring stream down: when it has been down for the detection time; a route held
+    # back: when the hold ends (``route``).
+    ROUTE = "route"
+    # A prepared handover: its time is up (``preparation_over``).
+    PREPARATION = "preparation"
+
+
+# In the order ``ControllerCore._arm`` compares their deadlines.
+TIMERS = (Timer.GAP, Timer.ROUTE, Timer.PREPARATION)
+
+
+@dataclass(frozen=True)
+class Arm:
+    """Effect: call ``ControllerCore.timer_fired(timer, ...)`` at ``at`` (the driver's
+    monotonic clock, as every time the core is given). One deadline per timer: arming
+    it again replaces the pending one."""
+
+    timer: Timer
+    at: float
+
+
+@dataclass(frozen=True)
+class Disarm:
+    """Effect: the pending deadline of ``timer`` is moot; it must not fire."""
+
+    timer: Timer
+
+
+@dataclass(frozen=True)
+class RingSight:
+    """What a driver sees of its links when the core decides about the route or a gap
+    (``ring_changed``, ``timer_fired``): nothing the core could know by itself."""
+
+    # The ring links that carry something (``LinkCore.used``) and are down, and since
+    # when (``LinkCore.down_since``); an up or unused link is absent.
+    down_since: Mapping[int, float]
+    # Whether the drone's Connect stream is up.
+    drone_connected: bool
+    # When a frame of each log message on its way last arrived (cut-through).
+    frames_at: Mapping[int, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -372,6 +418,8 @@ CoreEffect = (
     | RepairGap
     | RouteTo
     | Preparing
+    | Arm
+    | Disarm
     | Keep
     | SettleHandovers
     | Seen
@@ -401,8 +449,17 @@ class ControllerCore:
         protocol: ControllerProtocol,
         cut_through: bool = False,
         max_sleep_s: float = math.inf,
+        detection_s: float = 0.0,
     ) -> None:
         self.protocol = protocol
+        # How long a ring stream is down before the ring routes around it (0: never),
+        # and how long a gap stays before its repair (``gap_repair_s``).
+        self.detection_s = detection_s
+        self.repair_s = gap_repair_s(detection_s)
+        # The deadline of each timer armed (``Arm``), as the driver holds it; and the
+        # deadlines a step last left (GAP, ROUTE, PREPARATION), while ``armed`` is them.
+        self.armed: dict[Timer, float] = {}
+        self._deadlines: tuple[float | None, ...] | None = (None, None, None)
         # Check the masterships' legal combinations at every step (``ready``).
         self.checking = checking()
         # The longest Clock.Sleep the mission may ask (``safety.max_sleep``).
@@ -430,12 +487,18 @@ class ControllerCore:
         # The gap in what we received being repaired (``gap_due``): the missing log
         # number, since when it is missing, when to act next.
         self.gap: tuple[int, float, float] | None = None
-        # The successors the ring routes around now (``route_due``).
+        # The successors the ring routes around now (``route_due``); when the route is
+        # to be decided again (a down stream reaching the detection time); whether a
+        # route around is held back (``ControllerProtocol.may_route_around``).
         self.routed_around: list[int] = []
+        self.route_at: float | None = None
+        self.route_held = False
         # The prepared handover under way (``prepare``): the drone's bound for its
         # target (0: no words between requests), and when we stop on our own.
         self.prepare_bound = 0
         self.prepare_until = 0.0
+        # The preparation whose end is armed: its target and epoch (None: none, or spent).
+        self.prepared: tuple[int, int] | None = None
         # The program's calls given up while this controller waited, in order: each is
         # settled by the next call (``settle``) with the entry the log gives it.
         self.abandoned: deque[tuple[str, bytes, grpc.StatusCode]] = deque()
@@ -459,7 +522,9 @@ class ControllerCore:
     def fresh_self(self) -> ControllerCore:
         """The core of this controller rejoining with nothing (``ControllerProtocol.
         fresh_self``), refusing the framing the drone replaced, if any."""
-        fresh = ControllerCore(self.protocol.fresh_self(), self.cut_through, self.max_sleep_s)
+        fresh = ControllerCore(
+            self.protocol.fresh_self(), self.cut_through, self.max_sleep_s, self.detection_s
+        )
         fresh.replaced = self.replaced
         fresh.keys = self.keys
         fresh.refused_messages, fresh.last_refused = self.refused_messages, self.last_refused
@@ -467,8 +532,15 @@ class ControllerCore:
             fresh.protocol.refuse_replaced(self.replaced)
         return fresh
 
-    def ready(self, effects: Sequence[CoreEffect], drone_connected: bool) -> list[CoreEffect]:
-        """What a driver carries out for ``effects``, in this order (etcd raft's ``Ready``).
+    def ready(
+        self,
+        effects: Sequence[CoreEffect],
+        drone_connected: bool,
+        now: float,
+        drone_reachable: bool = True,
+    ) -> list[CoreEffect]:
+        """What a driver carries out for ``effects``, in this order (etcd raft's ``Ready``);
+        ``drone_reachable``: either stream to the drone is up (the Connect or the standby).
 
         - A log message we send enters the history first (``Persist``), except a
           handover message: it enters when it comes back round, once its new master
@@ -479,13 +551,18 @@ class ControllerCore:
           taker's fence on the ring. A new stream's PrepareHandover catches the
           target up; a refused one fences us.
         - A log that diverged from the ring's makes us rejoin with nothing, once.
-        - Last, the mastership whose log we hold is kept with the log.
+        - Cut off from the drone, a queued message of a newer mastership fences us
+          (``went_on_without_us``): the state after any event may show it.
+        - Then the mastership whose log we hold is kept with the log.
+        - Last, the timers whose deadline the step changed (``Arm``, ``Disarm``).
 
         With ``checking`` (``BATON_CHECK_INVARIANTS=1``), the masterships the step
         left must be a legal combination (``Mastership.problems``), or
         ``InvariantBroken``: a defect of baton, which the driver stops on.
         """
         out: list[CoreEffect] = []
+        if not drone_reachable and not self.rejoining:
+            effects = [*effects, *self.went_on_without_us(self.protocol.went_on_in_queue(), False)]
         for effect in effects:
             if isinstance(effect, SendLog):
                 if effect.copy and not drone_connected:
@@ -498,6 +575,7 @@ class ControllerCore:
             if isinstance(effect, Diverged):
                 out.extend(self.rejoin())
         out.append(KeepMastership(self.protocol.log_mastership_epoch))
+        self._arm(now, drone_connected, out)
         if self.checking:
             problems = self.protocol.mastership.problems()
             if problems:
@@ -862,9 +940,10 @@ class ControllerCore:
         if p.preparing_for != target:
             return []
         self.prepare_bound = bound_bytes
-        until = self.prepare_until = now + timeout_s + PREPARE_GRACE_S
+        self.prepare_until = now + timeout_s + PREPARE_GRACE_S
+        self.prepared = (target, epoch)
         note = Note("info", "preparing a handover", {"target": target, "timeout_s": timeout_s})
-        return [note, Preparing(target, epoch, until), SendCatchUp(target), *effects]
+        return [note, Preparing(target, epoch), SendCatchUp(target), *effects]
 
     def preparation_over(self, target: int, epoch: int, until: float) -> list[CoreEffect]:
         """The time of the preparation for ``target`` in ``epoch`` is up, unless a newer
@@ -1129,6 +1208,91 @@ class ControllerCore:
 
     # -- timers ------------------------------------------------------------------------
 
+    def _arm(self, now: float, drone_connected: bool, out: list[CoreEffect]) -> None:
+        """The deadlines the state makes due, against those armed: an ``Arm`` for each new
+        or moved one, a ``Disarm`` for each moot one.
+
+        - A gap is noted when it opens (another message missing, another gap), and
+          its repair armed ``repair_s`` later; a gap that fills disarms it.
+        - A route held back is decided again as soon as the hold ends (no longer
+          ACTIVE, or the drone's Connect stream up): nothing else ends it.
+        - A preparation's end stays armed while it is under way.
+        """
+        p = self.protocol
+        missing = p.missing_lognr
+        if missing is None:
+            self.gap = None
+        elif self.gap is None or self.gap[0] != missing:
+            self.gap = (missing, now, now + self.repair_s)
+        if self.route_held and (p.state is not State.ACTIVE or drone_connected):
+            self.route_held = False
+            self.route_at = now
+        preparing = self.prepared is not None and p.preparing_for is not None
+        deadlines = (
+            None if self.gap is None else self.gap[2],
+            self.route_at,
+            self.prepare_until if preparing else None,
+        )
+        if deadlines == self._deadlines:
+            return  # most steps: nothing moved
+        self._deadlines = deadlines
+        for timer, at in zip(TIMERS, deadlines, strict=True):
+            if at is None:
+                if self.armed.pop(timer, None) is not None:
+                    out.append(Disarm(timer))
+            elif self.armed.get(timer) != at:
+                self.armed[timer] = at
+                out.append(Arm(timer, at))
+
+    def timer_fired(self, timer: Timer, now: float, sight: RingSight) -> list[CoreEffect]:
+        """The deadline armed for ``timer`` came (the driver fires only the one armed
+        last): the decision it was armed for, with what the driver sees now. A timer
+        fires at its deadline, never before: a runtime's loop may run it up to its
+        clock's resolution early."""
+        at = self.armed.pop(timer, None)
+        if at is None:
+            return []
+        self._deadlines = None  # ``armed`` changed: the next step compares it whole
+        now = max(now, at)
+        if timer is Timer.GAP:
+            missing = self.protocol.missing_lognr
+            frames = None if missing is None else sight.frames_at.get(missing)
+            return self.gap_due(now, self.repair_s, frames)
+        if timer is Timer.ROUTE:
+            return self.route(now, sight)
+        prepared, self.prepared = self.prepared, None
+        if prepared is None:
+            return []
+        return self.preparation_over(*prepared, self.prepare_until)
+
+    def ring_changed(self, now: float, sight: RingSight) -> list[CoreEffect]:
+        """A ring stream came up, went down or was opened: the route decided now, and
+        armed for when a stream down reaches the detection time (``route``)."""
+        return self.route(now, sight)
+
+    def route(self, now: float, sight: RingSight) -> list[CoreEffect]:
+        """Where the ring's messages go now (``route_due``), and when that may change by
+        itself: the first moment a stream down now has been down for the detection
+        time (``Timer.ROUTE``). A stream counts as down for it from that moment on,
+        as the timer is armed."""
+        self.route_held = False
+        self.route_at = None
+        detection_s = self.detection_s
+        if detection_s <= 0 or len(self.protocol.ring) < 3:
+            return []
+        down_since = sight.down_since
+
+        def down_for(pid: int) -> float | None:
+            since = down_since.get(pid)
+            if since is None:
+                return None
+            return detection_s if now >= since + detection_s else now - since
+
+        effects = self.route_due(down_for, detection_s, sight.drone_connected)
+        later = [since + detection_s for since in down_since.values() if since + detection_s > now]
+        self.route_at = min(later, default=None)
+        return effects
+
     def gap_due(
         self, now: float, repair_s: float, frames_seen_at: float | None = None
     ) -> list[CoreEffect]:
@@ -1196,6 +1360,7 @@ class ControllerCore:
         if chosen == p.successor:
             return []
         if not p.may_route_around(skipped, self.routed_around, drone_connected):
+            self.route_held = True
             return []
         natural = p.ring[(p.ring.index(p.id) + 1) % len(p.ring)]
         if chosen == natural:

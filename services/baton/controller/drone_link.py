@@ -92,6 +92,9 @@ class DroneEvents(Protocol):
     def refused(self, refusal: DroneRefusal) -> None:
         """Connect refused: another controller is master, and no notice is owed to this one."""
 
+    def down(self) -> None:
+        """The Connect stream broke (it is connected again after a back-off)."""
+
 
 _InvokeStream = grpc.aio.StreamStreamCall[drone_pb2.InvokeCall, drone_pb2.InvokeOutcome]
 
@@ -331,6 +334,7 @@ class DroneSession:
             except ConnectionError as exc:
                 self._log.warning("drone stream down; reconnecting", error=str(exc))
             self.connected.clear()
+            self._events_to.down()
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, 1.0)
 
@@ -409,12 +413,14 @@ class DroneStandby:
         log: BoundLogger,
         tls: Tls | None = None,
         drone: Identity = DRONE,
+        on_down: Callable[[], None] = lambda: None,
     ) -> None:
         self.controller_id = controller_id
         self.address = address
         self._tls = tls
         self._drone = drone  # the identity the drone's certificate must name
         self._on_take_over = on_take_over
+        self._on_down = on_down  # called when the stream, once up, broke
         self._log = log
         self.up = False
         self._task: asyncio.Task[None] | None = None
@@ -452,7 +458,9 @@ class DroneStandby:
                             code=exc.code().name,
                             detail=exc.details(),
                         )
-                self.up = False
+                was_up, self.up = self.up, False
+                if was_up:
+                    self._on_down()
                 await asyncio.sleep(backoff)
                 backoff = min(backoff * 2, 1.0)
 

@@ -131,14 +131,14 @@ class RingLinks(Generic[L]):
 
     # -- the route ------------------------------------------------------------------
 
-    def down_for(self, now: float) -> Callable[[int], float | None]:
-        """For ``ControllerCore.route_due``: how long each used link has been down."""
-
-        def down_for(pid: int) -> float | None:
-            link = self.links.get(pid)
-            return None if link is None or not link.core.used else link.core.down_for(now)
-
-        return down_for
+    def down_since(self) -> dict[int, float]:
+        """For ``ControllerCore.route`` (``RingSight``): since when each link that carries
+        something (``LinkCore.used``) has been down; links up or unused are absent."""
+        return {
+            pid: link.core.down_since
+            for pid, link in self.links.items()
+            if link.core.down_since is not None and link.core.used
+        }
 
     def rerouted(self, route: RouteTo) -> Rerouted[L]:
         """The ring now sends to ``route.successor``: its link carries the history; the

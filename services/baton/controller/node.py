@@ -22,15 +22,17 @@ from typing import Any
 
 import grpc
 
-from baton.config import BatonConfig, gap_repair_s
+from baton.config import BatonConfig
 from baton.controller.clock import MissionClock
 from baton.controller.core import (
     CLOCK_NOW,
     CLOCK_SERVICE,
     Answer,
+    Arm,
     AskClock,
     ControllerCore,
     CoreEffect,
+    Disarm,
     Fail,
     Hold,
     Keep,
@@ -42,10 +44,12 @@ from baton.controller.core import (
     Rejoin,
     RepairGap,
     ReplayAgain,
+    RingSight,
     RouteTo,
     Seen,
     SendCatchUp,
     SettleHandovers,
+    Timer,
     to_retained,
 )
 from baton.controller.drone_link import (
@@ -73,6 +77,7 @@ from baton.controller.protocol import (
 from baton.controller.ring import PeerLink, Relay
 from baton.controller.session_events import SessionEvents
 from baton.controller.status import Sight, holding, recover
+from baton.controller.timers import TimerTable
 from baton.drone.invariants import INVARIANT_EXIT, InvariantBroken
 from baton.logs import get_logger
 from baton.rpc.errors import StatusError
@@ -109,6 +114,12 @@ class ControllerNode:
             ControllerProtocol(cid, config.ring_order, config.flush_limit),
             cut_through=config.ring.cut_through,
             max_sleep_s=config.safety.max_sleep,
+            detection_s=config.detection_s,
+        )
+        # The deadlines the core armed (``Arm``), on the event loop's clock (monotonic).
+        self._timers = TimerTable(
+            lambda at, fire, *args: asyncio.get_running_loop().call_at(at, fire, *args),
+            self._timer_due,
         )
         # Every log message this controller holds: what it recovers after a
         # restart (with a file of its own) and gives a successor that restarts.
@@ -154,10 +165,10 @@ class ControllerNode:
             self.log,
             tls,
             config.drone_identity,
+            on_down=self.drone_streams_changed,
         )
         # A channel to the drone connected in advance, for the next session.
         self._warm_channel = WarmChannel(config.drone_address_for(cid), tls, config.drone_identity)
-        self._router: asyncio.Task[None] | None = None
         # What the node starts and does not await (rejoins, closing a replaced drone
         # session, the session's events), held until each ends.
         self._background = TaskSet()
@@ -201,7 +212,6 @@ class ControllerNode:
         await self._apply(self.protocol.start())
         self._warm_channel.start()
         self._watchdog = asyncio.create_task(self._watch(), name="stall-watchdog")
-        self._router = asyncio.create_task(self._route_watch(), name="ring-router")
         self.log.info("controller started; asking the drone who the master is")
 
     @property
@@ -248,8 +258,7 @@ class ControllerNode:
             self._watchdog.cancel()
         if self._reporting is not None:
             self._reporting.cancel()
-        if self._router is not None:
-            self._router.cancel()
+        self._timers.close()
         if self._settler is not None:
             self._settler.cancel()
         await self._standby.stop()
@@ -278,6 +287,7 @@ class ControllerNode:
         for link in self.ring.drop_all():
             await link.stop()
         self.history.clear()
+        self._timers.clear()
         self.core = fresh
         if self._settler is not None:
             self._settler.cancel()
@@ -321,7 +331,9 @@ class ControllerNode:
         )
         link.on_handover_acked = self.ring.handover_acked
         link.on_acked = self._target_acked
+        link.on_up_down = self._ring_changed
         link.master_word = lambda: self.protocol.master_word
+        self._ring_changed()  # down from its start, until it comes up
         return link
 
     def relay_for(self, head: ring_pb2.LogMessage, total_bytes: int) -> Relay | None:
@@ -346,20 +358,6 @@ class ControllerNode:
                 prepare.target, prepare.epoch, prepare.timeout_s, prepare.bound_bytes, now
             )
         )
-
-    def _preparing(self, preparing: Preparing) -> None:
-        """A preparation began: the stream to its target counts acknowledgements from
-        now; its time is up at ``preparing.until`` (loop time)."""
-        self.ring.preparing(preparing.target)
-        loop = asyncio.get_running_loop()
-        loop.call_at(preparing.until, self._preparation_over, preparing)
-
-    def _preparation_over(self, preparing: Preparing) -> None:
-        for effect in self.core.preparation_over(
-            preparing.target, preparing.epoch, preparing.until
-        ):
-            if isinstance(effect, Note):
-                getattr(self.log, effect.level)(effect.text, **effect.fields)
 
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
         """How far a prepared handover's target is behind us (``RingLinks.progress``)."""
@@ -391,31 +389,34 @@ class ControllerNode:
                 self.log.info("drone moves the master on our word", target=progress.target)
                 return
 
-    async def _route_watch(self) -> None:
-        """Every 0.1 s: routes the ring around a successor down for the detection time,
-        repairs a gap in what we received, and fences us on a queued message of a
-        newer mastership once the drone is out of reach (``_fence_by_the_ring``)."""
-        while True:
-            await self._repair_gap()
-            await self._route()
-            went_on = self.protocol.went_on_in_queue()
-            if went_on is not None:
-                await self._fence_by_the_ring(went_on)
-            await asyncio.sleep(0.1)
+    # -- timers and what changes them ------------------------------------------------
 
-    async def _repair_gap(self) -> None:
-        """A gap in what we received, repaired (``ControllerCore.gap_due``)."""
-        repair_s = gap_repair_s(self.config.detection_s)
-        missing = self.protocol.missing_lognr
-        frames = self._arriving.get(missing) if missing is not None else None
-        await self._apply(self.core.gap_due(time.monotonic(), repair_s, frames))
+    def _sight(self) -> RingSight:
+        """What the core is given of the links when it decides the route or a gap."""
+        return RingSight(self.ring.down_since(), self.drone_connected, self._arriving)
 
-    async def _route(self) -> None:
-        """Where the ring's messages go (``ControllerCore.route_due``); the links follow."""
-        down_for = self.ring.down_for(time.monotonic())
-        await self._apply(
-            self.core.route_due(down_for, self.config.detection_s, self.drone_connected)
-        )
+    def _timer_due(self, timer: Timer) -> None:
+        """A deadline the core armed came (``ControllerCore.timer_fired``): given to the
+        core that armed it, not to a fresh self that replaced it meanwhile."""
+        core = self.core
+        self._background.spawn(self._timer_fired(core, timer), name=f"timer-{timer.value}")
+
+    async def _timer_fired(self, core: ControllerCore, timer: Timer) -> None:
+        if core is self.core:
+            await self._apply(core.timer_fired(timer, time.monotonic(), self._sight()))
+
+    def _ring_changed(self) -> None:
+        """A ring stream came up, went down, or began to carry something while down
+        (``ControllerCore.ring_changed``)."""
+        self._background.spawn(self._route_now(), name="ring-changed")
+
+    async def _route_now(self) -> None:
+        await self._apply(self.core.ring_changed(time.monotonic(), self._sight()))
+
+    def drone_streams_changed(self) -> None:
+        """A stream to the drone broke: cut off from it, a queued message of a newer
+        mastership fences us (``ControllerCore.ready``, told the drone's reach)."""
+        self._background.spawn(self._apply([]), name="drone-streams")
 
     async def _routed(self, route: RouteTo) -> None:
         """The ring now sends to ``route.successor``: its stream carries the history; the
@@ -470,7 +471,9 @@ class ControllerNode:
 
     async def _apply(self, effects: Sequence[CoreEffect]) -> None:
         try:
-            ready = self.core.ready(effects, self.drone_connected)
+            connected = self.drone_connected
+            reachable = connected or self._standby.up
+            ready = self.core.ready(effects, connected, time.monotonic(), reachable)
         except InvariantBroken as broken:
             # A defect of baton: stop as a kill -9 would, rather than go on.
             self.log.error("invariant broken; the controller stops", problem=str(broken))
@@ -487,7 +490,11 @@ class ControllerNode:
             if isinstance(effect, Persist | Keep):
                 self.ring.keep(effect.message)
             elif isinstance(effect, SendLog):
-                self.peer(effect.dest).send(effect.message)
+                link = self.peer(effect.dest)
+                unused = not link.used
+                link.send(effect.message)
+                if unused and not link.stream_up:
+                    self._ring_changed()  # a link down counts for the route once used
             elif isinstance(effect, ConnectDrone):
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
@@ -509,7 +516,9 @@ class ControllerNode:
             elif isinstance(effect, RouteTo):
                 await self._routed(effect)
             elif isinstance(effect, Preparing):
-                self._preparing(effect)
+                self.ring.preparing(effect.target)
+            elif isinstance(effect, Arm | Disarm):
+                self._timers.apply(effect)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
             elif isinstance(effect, Unqueued):
@@ -545,6 +554,8 @@ class ControllerNode:
 
     async def _close_drone(self) -> None:
         drone, self._drone = self._drone, None
+        if drone is not None and not self.standby_up:
+            self.drone_streams_changed()
         if drone is not None:
             if drone.t_conn_s is not None:
                 self.t_conn_s.append(drone.t_conn_s)
@@ -664,14 +675,6 @@ class ControllerNode:
                 message, lambda: self.drone_connected or self.standby_up, relayed_by
             )
         )
-
-    async def _fence_by_the_ring(self, message: ring_pb2.LogMessage | None) -> None:
-        """``message`` shows our mastership went on without our log: fenced if we are cut
-        off from the drone (``ControllerCore.went_on_without_us``). Asked on the
-        message's arrival and, for one queued while a stream still looked up, every
-        0.1 s (``_route_watch``)."""
-        reachable = self.drone_connected or self.standby_up
-        await self._apply(self.core.went_on_without_us(message, reachable))
 
     async def mission_done(self, failed: bool, error: str) -> bool:
         """The local mission program ended; the master flushes its last entries."""

@@ -1359,7 +1359,7 @@ class ControllerProtocol:
 
     def give_up_gap(self) -> list[Effect]:
         """A taker, caught up, whose queued messages wait for a number that the gap
-        repair did not bring (``ControllerNode._repair_gap``, once it had the
+        repair did not bring (``ControllerCore.gap_due``, once it had the
         predecessors re-send and the gap stayed): they are dropped (``Unqueued``),
         and it goes ACTIVE on what it holds.
 

@@ -238,6 +238,8 @@ class PeerLink:
         self.on_handover_acked: Callable[[ring_pb2.LogMessage], None] | None = None
         # Called with the peer's id after each acknowledgement it sends.
         self.on_acked: Callable[[int], None] | None = None
+        # Called when the stream comes up or goes down (the ring's route may change).
+        self.on_up_down: Callable[[], None] | None = None
         # The master's word our sync frames say (``ControllerProtocol.master_word``).
         self.master_word: Callable[[], tuple[int, int]] = lambda: (0, 0)
         self._wakeup = asyncio.Event()
@@ -266,6 +268,11 @@ class PeerLink:
                 await self._task
             self._task = None
         self.core.restarted(time.monotonic())
+        self._up_down()
+
+    def _up_down(self) -> None:
+        if self.on_up_down is not None:
+            self.on_up_down()
 
     def send(self, message: ring_pb2.LogMessage) -> None:
         """Queues ``message`` for the peer (``LinkCore.queue``); a relay of it may end."""
@@ -300,10 +307,6 @@ class PeerLink:
     def give_history(self, history: LogHistory) -> None:
         """Makes this a successor's stream (routed to around a dead one); from its next start."""
         self.core.history = history
-
-    def down_for(self, now: float) -> float:
-        """Seconds the stream has not been up (0 while it is)."""
-        return self.core.down_for(now)
 
     def holds_changed(self) -> None:
         """The history grew: the successor is told what we hold (``LinkCore.sync_due``)."""
@@ -352,7 +355,9 @@ class PeerLink:
                 )
             except Exception as exc:
                 self._log.error("ring stream failed; reconnecting", error=repr(exc), exc_info=True)
-            await asyncio.sleep(self.core.broken(time.monotonic()))
+            backoff = self.core.broken(time.monotonic())
+            self._up_down()
+            await asyncio.sleep(backoff)
 
     async def _stream_once(self) -> None:
         async with aio_channel(
@@ -365,6 +370,7 @@ class PeerLink:
                 raise ConnectionError(f"peer {self.peer_id} did not greet the ring stream")
             core = self.core
             greeting = core.connected(hello.lognr, hello.epoch, self.master_word())
+            self._up_down()
             self._log.info("ring stream up", peer_lognr=hello.lognr, holds_lognr=core.synced)
             if greeting.sync is not None:
                 await call.write(_sync_frame(greeting.sync, self.my_id))
@@ -522,7 +528,7 @@ class RingReceiver:
         # hold it: ``ControllerProtocol.holds``), so its frames need not be kept.
         self._held = held
         # Told the log number of every frame of a message as it arrives (a message
-        # on its way is not missing: ``ControllerNode._repair_gap``).
+        # on its way is not missing: ``ControllerCore.gap_due``).
         self._arriving = arriving
         # Given a first frame's head and the message's size: the Relay that passes
         # its frames on as they come (cut-through), or None (store-and-forward).

@@ -57,3 +57,6 @@ class SessionEvents:
     def refused(self, refusal: DroneRefusal) -> None:
         assert self.session is not None
         self._run(self._node.on_connect_refused(self.session, refusal))
+
+    def down(self) -> None:
+        self._node.drone_streams_changed()

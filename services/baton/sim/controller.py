@@ -32,13 +32,14 @@ from typing import TYPE_CHECKING
 
 import grpc
 
-from baton.config import gap_repair_s
 from baton.controller.core import (
     CLOCK_NOW,
     Answer,
+    Arm,
     AskClock,
     ControllerCore,
     CoreEffect,
+    Disarm,
     DroneRefusal,
     Fail,
     Hold,
@@ -51,10 +52,12 @@ from baton.controller.core import (
     Rejoin,
     RepairGap,
     ReplayAgain,
+    RingSight,
     RouteTo,
     Seen,
     SendCatchUp,
     SettleHandovers,
+    Timer,
     to_retained,
 )
 from baton.controller.history import LogHistory
@@ -70,9 +73,9 @@ from baton.controller.protocol import (
     SendLog,
     State,
     Unqueued,
-    ring_route,
 )
 from baton.controller.status import Sight, holding, recover
+from baton.controller.timers import TimerTable
 from baton.digest import request_digest
 from baton.rpc.errors import StatusError
 from baton.sim.drone import Request
@@ -90,8 +93,6 @@ DRONE_RETRY_LIMIT_S = 300.0
 SESSION_BACKOFF_FIRST_S, SESSION_BACKOFF_MAX_S = 0.05, 1.0
 # Clock.Now answers in Unix time; the mission starts here.
 MISSION_START_UNIX = 1.8e9
-# ControllerNode._route_watch's period: a route held back is asked again this often.
-ROUTE_POLL_S = 0.1
 
 
 class Phase(enum.Enum):
@@ -156,8 +157,12 @@ class SimController:
         self.alive = True
         # The shipped core: the protocol and the decisions about the drone session.
         self.core = ControllerCore(
-            ControllerProtocol(cid, world.ring, world.flush_limit), world.cut_through
+            ControllerProtocol(cid, world.ring, world.flush_limit),
+            world.cut_through,
+            detection_s=world.detection_s,
         )
+        # The deadlines the core armed (``Arm``), on the virtual clock.
+        self._timers = TimerTable(world.loop.at, self._timer_due)
         if world.keys is not None:  # ControllerApp: its key seals, the ring's keys check
             self.core.keys = world.keys.keys
             self.core.protocol.seal = world.keys.controllers[cid].seal
@@ -197,7 +202,6 @@ class SimController:
         # consumed above it was decided where it ran (``oracles._observed``).
         self.drone_last_at_death: int | None = None
         self.fenced_messages = 0
-        self.route_held = False  # a route held back polls (_route_again)
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -253,7 +257,9 @@ class SimController:
 
     def _apply(self, effects: Sequence[CoreEffect]) -> None:
         session = self.session
-        for effect in self.core.ready(effects, session is not None and session.connected):
+        connected = session is not None and session.connected
+        ready = self.core.ready(effects, connected, self.world.loop.now, self._drone_reachable())
+        for effect in ready:
             note = effect if isinstance(effect, Note) else note_of(effect, self.protocol.epoch)
             if note is not None and note.level != "debug":
                 self._say(note)
@@ -263,7 +269,11 @@ class SimController:
                 message = effect.message
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
                 self.world.framings.setdefault(message.lognr, set()).add(message.epoch)
-                self.peer(effect.dest).send(message)
+                link = self.peer(effect.dest)
+                unused = not link.core.used
+                link.send(message)
+                if unused and not link.up:
+                    self.ring_changed()  # a link down counts for the route once used
             elif isinstance(effect, ConnectDrone):
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
@@ -291,7 +301,9 @@ class SimController:
             elif isinstance(effect, RouteTo):
                 self._routed(effect)
             elif isinstance(effect, Preparing):
-                self._preparing(effect)
+                self.ring.preparing(effect.target)
+            elif isinstance(effect, Arm | Disarm):
+                self._timers.apply(effect)
             elif isinstance(effect, Fenced):
                 self.fenced_messages += 1
             elif isinstance(effect, KeepMastership):
@@ -300,7 +312,6 @@ class SimController:
                 self.fenced_messages += 1
                 self.ring.discard(effect.lognr, effect.epoch)
         self.world.after_apply(self, effects)
-        self._gap_check_later()
         self._notify()
 
     def _say(self, note: Note) -> None:
@@ -392,7 +403,7 @@ class SimController:
         session.stream, session.connected = None, False
         self.world.loop.after(session.backoff, self._connect, session)
         session.backoff = min(session.backoff * 2, SESSION_BACKOFF_MAX_S)
-        self._fence_by_the_ring(self.protocol.went_on_in_queue())
+        self.drone_streams_changed()
 
     def on_drone_connected(
         self,
@@ -488,7 +499,7 @@ class SimController:
         if session is not None and session.stream == connection:
             self._reconnect_later(session)
         else:
-            self._fence_by_the_ring(self.protocol.went_on_in_queue())
+            self.drone_streams_changed()
 
     # -- events (ControllerNode.on_*) ---------------------------------------------
 
@@ -525,61 +536,33 @@ class SimController:
         streams dropped, the program starts again), as a restart with nothing."""
         self.world.loop.after(0.0, self.world.rejoin, self)
 
-    # -- a gap in what we received (ControllerNode._repair_gap) -------------------
+    # -- timers and what changes them (ControllerNode's) ---------------------------
 
-    def _gap_check_later(self) -> None:
-        """``ControllerCore.gap_due`` now, and again when the gap it notes falls due
-        (node.py asks every 0.1 s; the decisions are the same, taken when they can
-        change). The simulation's messages arrive whole: no frames to wait for."""
-        if not self.alive:
-            return
-        before = self.core.gap
-        self._apply_gap()
-        gap = self.core.gap
-        if gap is not None and gap != before:
-            self.world.loop.at(gap[2], self._gap_due, gap)
-
-    def _gap_due(self, gap: tuple[int, float, float]) -> None:
-        if self.alive and self.core.gap == gap:
-            self._gap_check_later()
-
-    def _apply_gap(self) -> None:
-        repair_s = gap_repair_s(self.world.detection_s)
-        effects = self.core.gap_due(self.world.loop.now, repair_s)
-        if effects:
-            self._apply(effects)
-
-    # -- the ring routes around the dead (ControllerNode._route) -------------------
-
-    def route_check_later(self, delay: float | None = None) -> None:
-        """When _route could decide something new: a stream down for the detection time
-        (``delay`` None), or one up again (0). node.py asks every 0.1 s; the decisions
-        are the same, taken at the moments they can change."""
-        detection = self.world.detection_s
-        if detection <= 0 or len(self.protocol.ring) < 3 or not self.alive:
-            return
-        self.world.loop.after(detection + 1e-6 if delay is None else delay, self._route)
-
-    def _route(self) -> None:
-        """ControllerNode._route: ``ControllerCore.route_due``; the links follow."""
-        if not self.alive:
-            return
-        down_for = self.ring.down_for(self.world.loop.now)
+    def _sight(self) -> RingSight:
+        """ControllerNode._sight (the simulation's messages arrive whole: no frames)."""
         session = self.session
         connected = session is not None and session.connected
-        successor = self.protocol.successor
-        effects = self.core.route_due(down_for, self.world.detection_s, connected)
-        if effects:
-            self._apply(effects)
-            return
-        chosen, _ = ring_route(
-            self.protocol.ring, self.id, down_for, self.world.detection_s, successor
-        )
-        if chosen != successor and not self.route_held:
-            # Held back (an ACTIVE master cut off from the drone): node.py asks again
-            # every 0.1 s, until connected or no longer ACTIVE.
-            self.route_held = True
-            self.world.loop.after(ROUTE_POLL_S, self._route_again)
+        return RingSight(self.ring.down_since(), connected)
+
+    def _timer_due(self, timer: Timer) -> None:
+        """ControllerNode._timer_due (``ControllerCore.timer_fired``)."""
+        if self.alive:
+            self._apply(self.core.timer_fired(timer, self.world.loop.now, self._sight()))
+
+    def ring_changed(self) -> None:
+        """ControllerNode._ring_changed: decided on the next turn, as the node's task."""
+        if self.alive:
+            self.world.loop.after(0.0, self._route_now)
+
+    def _route_now(self) -> None:
+        if self.alive:
+            self._apply(self.core.ring_changed(self.world.loop.now, self._sight()))
+
+    def drone_streams_changed(self) -> None:
+        """ControllerNode.drone_streams_changed (the standby stream is up exactly while
+        the link is usable here)."""
+        if self.alive:
+            self._apply([])
 
     def _routed(self, route: RouteTo) -> None:
         """ControllerNode._routed: the new successor's stream carries the history."""
@@ -591,10 +574,6 @@ class SimController:
         if plan.retired is not None:
             plan.retired.stop()
         self.world.check_start()
-
-    def _route_again(self) -> None:
-        self.route_held = False
-        self._route()
 
     def on_sync(
         self,
@@ -632,17 +611,6 @@ class SimController:
             )
         )
 
-    def _preparing(self, preparing: Preparing) -> None:
-        """ControllerNode._preparing: acknowledgements counted from now; the timer."""
-        self.ring.preparing(preparing.target)
-        self.world.loop.at(preparing.until, self._preparation_over, preparing)
-
-    def _preparation_over(self, preparing: Preparing) -> None:
-        if self.alive:
-            self._apply(
-                self.core.preparation_over(preparing.target, preparing.epoch, preparing.until)
-            )
-
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
         """ControllerNode._preparation_progress (``RingLinks.progress``)."""
         return self.ring.progress(self.core, self.world.loop.now)
@@ -668,15 +636,6 @@ class SimController:
         is usable here)."""
         session = self.session
         return (session is not None and session.connected) or self.drone_link.usable()
-
-    def _fence_by_the_ring(self, message: ring_pb2.LogMessage | None) -> None:
-        """ControllerNode._fence_by_the_ring (the standby stream is up exactly while the
-        link is usable here). node.py also asks every 0.1 s of a queued message
-        (``went_on_in_queue``); here when a stream goes down (``_reconnect_later``,
-        ``on_drone_link_broken``), the moments the answer can change."""
-        if not self.alive:
-            return
-        self._apply(self.core.went_on_without_us(message, self._drone_reachable()))
 
     def target_acked(self, peer_id: int) -> None:
         """ControllerNode._target_acked: a target within the drone's bound is reported

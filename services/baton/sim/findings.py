@@ -31,7 +31,7 @@ lost incarnation to everything up to its last drone call.
 
 F3 (a controller restarted or rejoined with nothing never got the messages
 whose origin was itself or its predecessor unless its predecessor held them
-when their stream opened) was fixed in node.py ``_repair_gap``: a log
+when their stream opened) was fixed in ``ControllerCore.gap_due``: a log
 message missing while later ones are queued, for the detection time (at
 least 1 s), has the controller drop its incoming streams, and its
 predecessors re-send from its hello. The kill keep-out in faults.py

@@ -151,7 +151,7 @@ class RingLink:
         self.peak_unacked = 0
         self.stopped = False  # PeerLink.stop: no more attempts
         self._try = 0  # the connection attempt under way; a restart supersedes it
-        owner.route_check_later()
+        owner.ring_changed()
 
     @property
     def up(self) -> bool:
@@ -187,7 +187,7 @@ class RingLink:
             return  # a connection attempt in progress sees it for itself
         self.generation = self.world.next_id()
         self.world.trace(f"ring {self.owner.id}->{self.dest} down ({why})")
-        self.owner.route_check_later()
+        self.owner.ring_changed()
         self._retry()
 
     def stop(self) -> None:
@@ -273,7 +273,7 @@ class RingLink:
             if history is not None and self.up:
                 self._write(history.get(lognr))
         self._write_pending()
-        self.owner.route_check_later(0.0)  # back to a natural successor that is up again
+        self.owner.ring_changed()  # back to a natural successor that is up again
 
     def holds_changed(self) -> None:
         """PeerLink.holds_changed: a sync frame when the core says one is due."""
