@@ -10,12 +10,11 @@ from functools import partial
 from pathlib import Path
 
 from helpers.missions import SMALL_GRID, assert_mission_promises
-from helpers.stations import as_text, mission_config
+from helpers.stations import as_text, mission_config, stations_and_drones
 from waiting import eventually
 
 from baton.certs.make import init
 from baton.rpc.tls import DRONE, OPERATOR, Identity
-from baton.testbed.fleet import start_mission_drone, start_stations
 from baton.testbed.local import TestbedPlan
 from baton.testbed.supervisor import Supervisor
 from baton.v1 import drone_pb2, ring_pb2, station_pb2
@@ -31,15 +30,7 @@ async def test_a_station_killed_mid_run_its_missions_taken_over_the_others_unawa
     certs = tmp_path / "certs"
     init(certs, [*(Identity.controller(s) for s in (1, 2, 3)), DRONE, OPERATOR])
     async with Supervisor(tmp_path / "parts") as supervisor:
-        stations = await start_stations(supervisor, (1, 2, 3), certs)
-        drones = {
-            m: await start_mission_drone(
-                supervisor, m, mission_config("127.0.0.1:0", stations, ring, certs), HANDOVERS[m]
-            )
-            for m, ring in RINGS.items()
-        }
-        for drone in drones.values():
-            await eventually(drone.ready, f"{drone.name}'s vehicle ready to arm", 120)
+        stations, drones = await stations_and_drones(supervisor, certs, RINGS, HANDOVERS)
         for mission, ring in RINGS.items():
             config = mission_config(drones[mission].address, stations, ring, certs)
             for sid in ring:

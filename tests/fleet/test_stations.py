@@ -10,7 +10,7 @@ from pathlib import Path
 import grpc
 import pytest
 from helpers.missions import SMALL_GRID, assert_mission_promises
-from helpers.stations import as_text, mission_config
+from helpers.stations import as_text, mission_config, stations_and_drones
 from waiting import eventually
 
 from baton.certs.make import init
@@ -18,7 +18,6 @@ from baton.config import BatonConfig
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import mission_metadata
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
-from baton.testbed.fleet import start_mission_drone, start_stations
 from baton.testbed.local import TestbedPlan
 from baton.testbed.supervisor import Supervisor
 from baton.v1 import ring_pb2, ring_pb2_grpc, station_pb2
@@ -44,15 +43,7 @@ async def test_two_missions_share_stations_exactly_once_and_a_crash_touches_neit
     crash = tmp_path / "crash.py"
     crash.write_text(CRASHING)
     async with Supervisor(tmp_path / "parts") as supervisor:
-        stations = await start_stations(supervisor, (1, 2, 3), certs)
-        drones = {
-            m: await start_mission_drone(
-                supervisor, m, mission_config("127.0.0.1:0", stations, ring, certs), HANDOVERS[m]
-            )
-            for m, ring in RINGS.items()
-        }
-        for drone in drones.values():
-            await eventually(drone.ready, f"{drone.name}'s vehicle ready to arm", 120)
+        stations, drones = await stations_and_drones(supervisor, certs, RINGS, HANDOVERS)
 
         # A station outside a mission's ring is refused it, and keeps nothing of it.
         config = {

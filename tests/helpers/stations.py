@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import pytest
 import yaml
+from waiting import eventually
 
 from baton.cli import main
 from baton.config import BatonConfig
-from baton.testbed.fleet import StationPart
+from baton.testbed.fleet import MissionDrone, StationPart, start_mission_drone, start_stations
+from baton.testbed.supervisor import Supervisor
 
 
 def mission_config(
@@ -32,6 +34,26 @@ def mission_config(
             "tls": {"certs": str(certs)},
         }
     )
+
+
+async def stations_and_drones(
+    supervisor: Supervisor,
+    certs: Path,
+    rings: Mapping[str, Sequence[int]],
+    handovers: Mapping[str, Sequence[tuple[int, int]]],
+) -> tuple[dict[int, StationPart], dict[str, MissionDrone]]:
+    """Stations 1, 2 and 3, and for each mission of ``rings`` its sim vehicle and drone
+    service (its scripted ``handovers``), every vehicle ready to arm."""
+    stations = await start_stations(supervisor, (1, 2, 3), certs)
+    drones = {
+        m: await start_mission_drone(
+            supervisor, m, mission_config("127.0.0.1:0", stations, ring, certs), handovers[m]
+        )
+        for m, ring in rings.items()
+    }
+    for drone in drones.values():
+        await eventually(drone.ready, f"{drone.name}'s vehicle ready to arm", 120)
+    return stations, drones
 
 
 def as_text(config: BatonConfig) -> str:
