@@ -61,11 +61,11 @@ def test_a_break_forgets_what_was_written_and_the_backoff_doubles_until_up() -> 
     core.queue(message(1), now=0.0)
     core.connected(0, 0, (0, 0))
     core.written(1)
-    assert core.down_for(5.0) == 0.0
+    assert core.down_since is None  # up
     waits = [core.broken(now=10.0) for _ in range(8)]
     assert waits[:3] == [BACKOFF_INITIAL_S, 2 * BACKOFF_INITIAL_S, 4 * BACKOFF_INITIAL_S]
     assert waits[-1] == BACKOFF_MAX_S
-    assert core.down_for(12.5) == 2.5  # down since the first break, not the last
+    assert core.down_since == 10.0  # down since the first break, not the last
     assert core.pending() == [1]  # written again on the next stream
     core.connected(0, 0, (0, 0))
     assert core.broken(now=20.0) == BACKOFF_INITIAL_S  # a stream that came up starts over

@@ -212,10 +212,6 @@ class LinkCore:
             self.history is not None or bool(self.outbox.unacked) or self.counters.sent_messages > 0
         )
 
-    def down_for(self, now: float) -> float:
-        """Seconds the stream has not been up (0 while it is)."""
-        return 0.0 if self.down_since is None else now - self.down_since
-
 
 class RelayCore:
     """One log message's frames passed on to a peer as they arrive (cut-through).
