@@ -56,6 +56,8 @@ from baton.v1 import drone_pb2, ring_pb2
 REPLY_TAG = b"baton.v1 drone reply\0"
 MESSAGE_TAG = b"baton.v1 log message\0"
 GRANT_TAG = b"baton.v1 mastership grant\0"
+WORD_TAG = b"baton.v1 master word\0"
+PROOF_TAG = b"baton.v1 holds message\0"
 _CLOCK = service_prefix("Clock")
 
 SigningKey = ec.EllipticCurvePrivateKey | ed25519.Ed25519PrivateKey
@@ -87,6 +89,22 @@ def reply_statement(
 def grant_statement(master: int, epoch: int, kind: int) -> bytes:
     """The canonical bytes the drone signs for its grant of ``epoch`` to ``master``."""
     return GRANT_TAG + struct.pack(">iQI", master, epoch, kind)
+
+
+def word_statement(master: int, epoch: int, lognr: int) -> bytes:
+    """The canonical bytes a master signs for its word that it went ACTIVE in ``epoch``
+    holding every log message up to ``lognr`` (``ring_pb2.MasterWord``)."""
+    return WORD_TAG + struct.pack(">iQQ", master, epoch, lognr)
+
+
+def holding_proof(message: ring_pb2.LogMessage) -> bytes:
+    """What a sync frame says to show its sender holds ``message`` (``LogFrame.holds_proof``):
+    the SHA-256 of the canonical bytes its creator signed. Those cover every entry's
+    reply, request and drone signature through their hashes, so only a holder of the
+    whole message computes it; its signature, in the head a cut-through relay passes on
+    first, does not give it away. Its creator keeps it (``ControllerProtocol._flush``)
+    and compares."""
+    return hashlib.sha256(PROOF_TAG + message_statement(message)).digest()
 
 
 def _sign(key: SigningKey, data: bytes) -> bytes:
@@ -179,9 +197,14 @@ class Signer:
         """Signs the drone's grant (``Grant.signature``)."""
         grant.signature = _sign(self.key, grant_statement(grant.master, grant.epoch, grant.kind))
 
-    def seal(self, message: ring_pb2.LogMessage) -> None:
-        """Signs a log message this controller created (``LogMessage.signature``)."""
-        message.signature = _sign(self.key, message_statement(message))
+    def seal(self, message: ring_pb2.LogMessage | ring_pb2.MasterWord) -> None:
+        """Signs what this controller says in its own name: a log message it created
+        (``LogMessage.signature``), or its word as master (``MasterWord.signature``)."""
+        if isinstance(message, ring_pb2.MasterWord):
+            statement = word_statement(message.master, message.epoch, message.lognr)
+        else:
+            statement = message_statement(message)
+        message.signature = _sign(self.key, statement)
 
 
 def _names(cert: x509.Certificate) -> list[Identity]:
@@ -267,6 +290,11 @@ class Verifier:
     ) -> bool:
         """Whether ``message`` carries its creator's signature (``Signer.seal``)."""
         return _verify(self.key, message.signature, message_statement(message, hashes))
+
+    def verify_word(self, word: ring_pb2.MasterWord) -> bool:
+        """Whether ``word`` carries its master's signature (``Signer.seal``)."""
+        statement = word_statement(word.master, word.epoch, word.lognr)
+        return _verify(self.key, word.signature, statement)
 
 
 @dataclass(frozen=True)
@@ -360,6 +388,37 @@ def unbacked_claim(drone: Verifier, message: ring_pb2.LogMessage, receiver: int)
             f"it claims {claimed} for controller {message.sender}; the drone granted it "
             f"to controller {grant.master}"
         )
+    return None
+
+
+def unbacked_word(keys: Keys, word: ring_pb2.MasterWord | None) -> str | None:
+    """Why a sync frame's word on the newest master (``LogFrame.master_word``) is not
+    believed, or None if it is: it must be signed by the master it names, with the
+    drone's grant of its epoch to that master. A relay says the word on unchanged and
+    cannot make one: the grant alone (in every message of the mastership) would let it
+    name any log number."""
+    if word is None:
+        return "it names a master without the master's signed word"
+    if not any(verifier.verify_word(word) for verifier in keys.of(word.master)):
+        return f"its word of epoch {word.epoch} has no valid signature of controller {word.master}"
+    if not word.HasField("grant"):
+        return f"controller {word.master}'s word of epoch {word.epoch} has no grant"
+    return unbacked_grant(keys, word.grant, word.epoch, word.master)
+
+
+def unbacked_grant(
+    keys: Keys, grant: drone_pb2.Grant | None, epoch: int, master: int | None = None
+) -> str | None:
+    """Why ``grant`` is not the drone's word that ``epoch`` was granted (to ``master``, if
+    given), or None if it is."""
+    if grant is None:
+        return f"epoch {epoch} without the drone's grant"
+    if keys.drone.serial in keys.revoked or not keys.drone.verify_grant(grant):
+        return f"its grant of epoch {grant.epoch} to controller {grant.master} is not the drone's"
+    if grant.epoch != epoch:
+        return f"epoch {epoch} with the drone's grant of epoch {grant.epoch}"
+    if master is not None and grant.master != master:
+        return f"epoch {epoch} for controller {master}; the drone granted it to {grant.master}"
     return None
 
 

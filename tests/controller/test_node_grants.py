@@ -9,6 +9,7 @@ import grpc
 from helpers.protocol import connected_session
 
 from baton.config import parse_config
+from baton.controller.link_core import SyncWord
 from baton.controller.node import ControllerNode
 from baton.controller.protocol import State
 from baton.digest import request_digest
@@ -48,7 +49,7 @@ async def test_a_taker_with_nothing_is_granted_by_the_connected_event_alone() ->
     assert p.master and p.state is State.PASSIVE and not p.caught_up
     # Holding nothing, it holds the log number it must (0): only the watermark holds it.
     assert p.catch_up_to == 0 and p.must_hold_reqnr == 2 and p.state is State.PASSIVE
-    await node.on_sync(1, 1)
+    await node.on_sync(1, SyncWord(1, 0, 0, 0))
     message = ring_pb2.LogMessage(lognr=1, origin=0, epoch=1, entries=[entry(1), entry(2)])
     await node.on_log(message)
     assert p.held_reqnr == 2 and p.caught_up  # no handover message owed
@@ -97,7 +98,7 @@ async def taker_of_three() -> tuple[ControllerNode, Any, list[int]]:
     node.on_rejoin = on_rejoin
     session: Any = NoDrone()
     node._drone = session
-    await node.on_sync(0, 0)
+    await node.on_sync(0, SyncWord(0, 0, 0, 0))
     return node, session, rejoins
 
 
@@ -112,7 +113,7 @@ async def test_a_taker_answers_its_program_from_each_retained_batch_as_it_comes(
     node = ControllerNode(config, 1)
     session: Any = NoDrone()
     node._drone = session
-    await node.on_sync(0, 0)
+    await node.on_sync(0, SyncWord(0, 0, 0, 0))
     await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
     p = node.protocol
     assert p.state is State.ACTIVE and node.core.retained_through == 3
@@ -210,7 +211,7 @@ async def test_a_give_up_of_the_last_retained_reply_is_logged() -> None:
     node = ControllerNode(config, 1)
     session: Any = NoDrone()
     node._drone = session
-    await node.on_sync(0, 0)
+    await node.on_sync(0, SyncWord(0, 0, 0, 0))
     await node.on_granted(session, 2, 1, takeover=True, watermark_reqnr=0)
     p = node.protocol
     first = asyncio.create_task(node.call(POSITION, b""))

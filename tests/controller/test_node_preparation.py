@@ -7,6 +7,7 @@ from helpers.protocol import connected_session, started
 
 from baton.config import parse_config
 from baton.controller.core import PREPARE_GRACE_S, Arm, ControllerCore, Note, RingSight, Timer
+from baton.controller.link_core import SyncWord
 from baton.controller.node import ControllerNode
 from baton.controller.protocol import State
 from baton.digest import request_digest
@@ -32,7 +33,7 @@ async def active_master() -> ControllerNode:
     node = ControllerNode(config, 0)
     session = connected_session()
     node._drone = session
-    await node.on_sync(2, 0)  # the predecessor holds nothing: caught up
+    await node.on_sync(2, SyncWord(0, 0, 0, 0))  # the predecessor holds nothing: caught up
     await node.on_granted(session, 1, 0)
     assert node.protocol.state is State.ACTIVE
     return node

@@ -8,6 +8,7 @@ import grpc
 import pytest
 
 from baton.controller.history import LogHistory
+from baton.controller.link_core import SyncWord
 from baton.controller.ring import FRAME_BYTES, PeerLink, Reassembler, RingReceiver, frames
 from baton.logs import get_logger
 from baton.rpc.server import BatonServer, Servicer, servicer
@@ -59,11 +60,9 @@ class Receiver(ring_pb2_grpc.ControllerRingServicer):
         self.words: list[tuple[int, ...]] = []  # the sync frames' master words
         self.receiver = RingReceiver(1, self.lognr, self.deliver, LOG, synced=self.synced)
 
-    async def synced(
-        self, from_id: int, holds_lognr: int, holds_epoch: int, *master_word: int
-    ) -> None:
-        self.syncs.append((from_id, holds_lognr, holds_epoch))
-        self.words.append(master_word)
+    async def synced(self, from_id: int, word: SyncWord) -> None:
+        self.syncs.append((from_id, word.holds, word.holds_epoch))
+        self.words.append((word.master_epoch, word.master_lognr))
 
     def lognr(self) -> int:
         return max((m.lognr for m in self.messages), default=0)

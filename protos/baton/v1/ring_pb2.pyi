@@ -414,6 +414,9 @@ class LogFrame(_message.Message):
     ABORT_FIELD_NUMBER: _builtins.int
     MASTER_EPOCH_FIELD_NUMBER: _builtins.int
     MASTER_LOGNR_FIELD_NUMBER: _builtins.int
+    HOLDS_PROOF_FIELD_NUMBER: _builtins.int
+    HOLDS_GRANT_FIELD_NUMBER: _builtins.int
+    MASTER_WORD_FIELD_NUMBER: _builtins.int
     lognr: _builtins.int
     """The message's log number (repeated on every frame)."""
     total_bytes: _builtins.int
@@ -456,12 +459,34 @@ class LogFrame(_message.Message):
     it (docs/design.md, "Takeover"). The receiver says the newest word on.
     """
     master_lognr: _builtins.int
+    holds_proof: _builtins.bytes
+    """On the sync frame of a signed ring: what makes its words believed
+    (docs/design.md, "A sync frame's words, believed on evidence"). The
+    SHA-256 of the canonical bytes of the sender's message holds_lognr as its
+    creator signed them (authenticity.holding_proof): computed only from the
+    whole message, so it shows the sender holds it; the master moves the
+    watermark only over its own messages whose proof came back.
+    """
     @_builtins.property
     def head(self) -> Global___LogMessage:
         """On a message's first frame (offset 0): the message without its entries
         (lognr, origin, handover, epoch, ...), so that a receiver can decide to
         forward it before the rest arrives (cut-through, docs/design.md "The
         ring's forwarding"). Absent from a sender that does not say it.
+        """
+
+    @_builtins.property
+    def holds_grant(self) -> _drone_pb2.Grant:
+        """The drone's grant of holds_epoch that the sender's message holds_lognr
+        carries: a word that the message is of a newer epoch than the receiver's
+        needs it.
+        """
+
+    @_builtins.property
+    def master_word(self) -> Global___MasterWord:
+        """The newest master's own signed word (master_epoch and master_lognr say it
+        too), said on unchanged: believed only with its master's signature and
+        the drone's grant of that epoch to it.
         """
 
     def __init__(
@@ -479,14 +504,57 @@ class LogFrame(_message.Message):
         abort: _builtins.bool = ...,
         master_epoch: _builtins.int = ...,
         master_lognr: _builtins.int = ...,
+        holds_proof: _builtins.bytes = ...,
+        holds_grant: _drone_pb2.Grant | None = ...,
+        master_word: Global___MasterWord | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["head", b"head"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["head", b"head", "holds_grant", b"holds_grant", "master_word", b"master_word"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["abort", b"abort", "data", b"data", "from_id", b"from_id", "head", b"head", "holds_epoch", b"holds_epoch", "holds_lognr", b"holds_lognr", "lognr", b"lognr", "master_epoch", b"master_epoch", "master_lognr", b"master_lognr", "offset", b"offset", "sync", b"sync", "total_bytes", b"total_bytes"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["abort", b"abort", "data", b"data", "from_id", b"from_id", "head", b"head", "holds_epoch", b"holds_epoch", "holds_grant", b"holds_grant", "holds_lognr", b"holds_lognr", "holds_proof", b"holds_proof", "lognr", b"lognr", "master_epoch", b"master_epoch", "master_lognr", b"master_lognr", "master_word", b"master_word", "offset", b"offset", "sync", b"sync", "total_bytes", b"total_bytes"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___LogFrame: _TypeAlias = LogFrame  # noqa: Y015
+
+@_typing.final
+class MasterWord(_message.Message):
+    """A master's word that it went ACTIVE in epoch holding every log message up to
+    lognr: it numbers every message above lognr in that epoch or a newer one.
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    EPOCH_FIELD_NUMBER: _builtins.int
+    LOGNR_FIELD_NUMBER: _builtins.int
+    MASTER_FIELD_NUMBER: _builtins.int
+    SIGNATURE_FIELD_NUMBER: _builtins.int
+    GRANT_FIELD_NUMBER: _builtins.int
+    epoch: _builtins.int
+    lognr: _builtins.int
+    master: _builtins.int
+    """The master, who signs it."""
+    signature: _builtins.bytes
+    """The master's signature over master, epoch and lognr (authenticity.word_statement)."""
+    @_builtins.property
+    def grant(self) -> _drone_pb2.Grant:
+        """The drone's grant of epoch to master."""
+
+    def __init__(
+        self,
+        *,
+        epoch: _builtins.int = ...,
+        lognr: _builtins.int = ...,
+        master: _builtins.int = ...,
+        signature: _builtins.bytes = ...,
+        grant: _drone_pb2.Grant | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["grant", b"grant"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "grant", b"grant", "lognr", b"lognr", "master", b"master", "signature", b"signature"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___MasterWord: _TypeAlias = MasterWord  # noqa: Y015
 
 @_typing.final
 class LogAck(_message.Message):
@@ -642,6 +710,8 @@ class ControllerStatus(_message.Message):
     LOG_FILE_FIELD_NUMBER: _builtins.int
     REFUSED_MESSAGES_FIELD_NUMBER: _builtins.int
     LAST_REFUSED_FIELD_NUMBER: _builtins.int
+    REFUSED_WORDS_FIELD_NUMBER: _builtins.int
+    LAST_REFUSED_WORD_FIELD_NUMBER: _builtins.int
     MISSION_ID_FIELD_NUMBER: _builtins.int
     id: _builtins.int
     """The controller's id."""
@@ -723,6 +793,13 @@ class ControllerStatus(_message.Message):
     relayed it, which log message and why.
     """
     last_refused: _builtins.str
+    refused_words: _builtins.int
+    """Sync frames whose words were not believed (a master word without its
+    master's signature and the drone's grant, an epoch without the drone's
+    grant: docs/design.md, "A sync frame's words, believed on evidence"); and
+    the last one: which station sent it and why.
+    """
+    last_refused_word: _builtins.str
     mission_id: _builtins.str
     """The mission it is the controller of, on a station that hosts several
     (its configuration's mission_id); empty for a lone controller.
@@ -808,11 +885,13 @@ class ControllerStatus(_message.Message):
         log_file: Global___LogFileStatus | None = ...,
         refused_messages: _builtins.int = ...,
         last_refused: _builtins.str = ...,
+        refused_words: _builtins.int = ...,
+        last_refused_word: _builtins.str = ...,
         mission_id: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["log_file", b"log_file"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "last_refused", b"last_refused", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "log_file", b"log_file", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "mission_id", b"mission_id", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "refused_messages", b"refused_messages", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["answered_from_retained", b"answered_from_retained", "catching_up_to", b"catching_up_to", "drone_calls", b"drone_calls", "drone_connected", b"drone_connected", "drone_connected_at", b"drone_connected_at", "epoch", b"epoch", "fenced_messages", b"fenced_messages", "handovers", b"handovers", "id", b"id", "invoked", b"invoked", "last_refused", b"last_refused", "last_refused_word", b"last_refused_word", "log_bytes", b"log_bytes", "log_entries", b"log_entries", "log_file", b"log_file", "lognr", b"lognr", "master", b"master", "mission", b"mission", "mission_address", b"mission_address", "mission_error", b"mission_error", "mission_id", b"mission_id", "peers", b"peers", "predecessor", b"predecessor", "program_restarts", b"program_restarts", "queue_length", b"queue_length", "refused_messages", b"refused_messages", "refused_words", b"refused_words", "replayed", b"replayed", "reply_chain", b"reply_chain", "reqnr", b"reqnr", "routed_around", b"routed_around", "standby_up", b"standby_up", "state", b"state", "successor", b"successor", "t_conn_s", b"t_conn_s", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

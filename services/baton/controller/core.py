@@ -40,6 +40,7 @@ import grpc
 
 from baton.authenticity import Keys, refusal
 from baton.config import GAP_REPAIR_MAX_S, gap_repair_s
+from baton.controller.link_core import SyncWord
 from baton.controller.protocol import (
     ControllerProtocol,
     DisconnectDrone,
@@ -54,6 +55,7 @@ from baton.controller.protocol import (
     State,
     ring_route,
 )
+from baton.controller.sync_words import believe
 from baton.digest import request_digest
 from baton.drone.invariants import InvariantBroken, checking
 from baton.drone.safety import sleep_refusal
@@ -518,6 +520,11 @@ class ControllerCore:
         # The log messages refused for it, and the last refusal in words.
         self.refused_messages = 0
         self.last_refused = ""
+        # Sync frames whose words were not believed (``sync_arrived``), the last one in
+        # words, and the stations already named in the log for it (once each).
+        self.refused_words = 0
+        self.last_refused_word = ""
+        self._named_liars: set[int] = set()
 
     def fresh_self(self) -> ControllerCore:
         """The core of this controller rejoining with nothing (``ControllerProtocol.
@@ -528,6 +535,8 @@ class ControllerCore:
         fresh.replaced = self.replaced
         fresh.keys = self.keys
         fresh.refused_messages, fresh.last_refused = self.refused_messages, self.last_refused
+        fresh.refused_words, fresh.last_refused_word = self.refused_words, self.last_refused_word
+        fresh._named_liars = self._named_liars
         if self.replaced is not None:
             fresh.protocol.refuse_replaced(self.replaced)
         return fresh
@@ -897,6 +906,34 @@ class ControllerCore:
             "why": why,
         }
         return [Note("error", "log message refused: not signed as it says", fields)]
+
+    def sync_arrived(self, sender: int, word: SyncWord) -> list[CoreEffect]:
+        """A ring stream's sync frame from controller ``sender``: what it holds and the
+        newest master it knows of, handled as far as they are believed
+        (``sync_words.believe``; ``ControllerProtocol.on_sync``). A word not believed is
+        counted (``refused_words``, ``last_refused_word``) and logged once per station:
+        it changes nothing, so a station that keeps lying costs a counter, not a log."""
+        belief = believe(self.keys, word)
+        effects: list[CoreEffect] = []
+        if belief.refused:
+            self.refused_words += 1
+            self.last_refused_word = f"sync frame from controller {sender}: " + "; ".join(
+                belief.refused
+            )
+            if sender not in self._named_liars:
+                self._named_liars.add(sender)
+                fields = {"sender": sender, "why": "; ".join(belief.refused)}
+                effects.append(Note("error", "sync frame's words not believed", fields))
+        w = belief.word
+        return effects + self.protocol.on_sync(
+            w.holds,
+            w.holds_epoch,
+            w.master_epoch,
+            w.master_lognr,
+            w.holds_proof,
+            w.master_proof,
+            belief.holds_backed,
+        )
 
     def went_on_without_us(
         self, message: ring_pb2.LogMessage | None, drone_reachable: bool

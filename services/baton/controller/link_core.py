@@ -36,9 +36,10 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from baton.authenticity import holding_proof
 from baton.controller.history import LogHistory
 from baton.controller.outbox import Outbox
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 BACKOFF_INITIAL_S = 0.05
 BACKOFF_MAX_S = 2.0
@@ -50,12 +51,18 @@ class SyncWord:
     ``holds_epoch`` is the epoch of its message with that number (a receiver that
     handled a newer one knows this history is of a framing a takeover replaced,
     ``ControllerProtocol.on_sync``); the newest ACTIVE master's epoch and the log
-    number it held."""
+    number it held. On a signed ring, what makes them believed
+    (``ControllerCore.sync_arrived``): the proof that the sender holds its message
+    ``holds`` (``authenticity.holding_proof``), the drone's grant of ``holds_epoch``
+    that message carries, and the master's own signed word."""
 
     holds: int
     holds_epoch: int
     master_epoch: int
     master_lognr: int
+    holds_proof: bytes = b""
+    holds_grant: drone_pb2.Grant | None = None
+    master_proof: ring_pb2.MasterWord | None = None
 
 
 @dataclass(frozen=True)
@@ -95,10 +102,27 @@ class PeerCounters:
     peak_relay_frames: int = 0  # the most frames a relay held not yet written on
 
 
-def sync_word(history: LogHistory, holds: int, word: tuple[int, int]) -> SyncWord:
-    """The sync frame for a history that holds up to ``holds`` and the master's ``word``."""
-    epoch = history.get(holds).epoch if holds and holds in history else 0
-    return SyncWord(holds, epoch, *word)
+def sync_word(
+    history: LogHistory,
+    holds: int,
+    word: tuple[int, int],
+    proof: ring_pb2.MasterWord | None = None,
+) -> SyncWord:
+    """The sync frame for a history that holds up to ``holds`` and the master's ``word``
+    (``proof``: its signed form). A signed message gives its proof of holding and its
+    grant; an insecure ring's gives neither."""
+    if not (holds and holds in history):
+        return SyncWord(holds, 0, *word, master_proof=proof)
+    top = history.get(holds)
+    signed = bool(top.signature)
+    return SyncWord(
+        holds,
+        top.epoch,
+        *word,
+        holds_proof=holding_proof(top) if signed else b"",
+        holds_grant=top.grant if signed and top.HasField("grant") else None,
+        master_proof=proof,
+    )
 
 
 class LinkCore:
@@ -128,7 +152,13 @@ class LinkCore:
         self.outbox.put(message, now)
         self.sent.discard(message.lognr)
 
-    def connected(self, hello_lognr: int, hello_epoch: int, word: tuple[int, int]) -> Greeting:
+    def connected(
+        self,
+        hello_lognr: int,
+        hello_epoch: int,
+        word: tuple[int, int],
+        proof: ring_pb2.MasterWord | None = None,
+    ) -> Greeting:
         """The stream is up and the peer's hello said it handled up to ``hello_lognr``
         (``hello_epoch``: that message's epoch there): what to write first."""
         self.up, self.down_since = True, None
@@ -143,7 +173,7 @@ class LinkCore:
         ours = history.get(hello_lognr).epoch if hello_lognr in history else None
         after = self.outbox.resend_from(hello_lognr, hello_epoch, ours)
         again = self.outbox.history_to_resend(history.above(after))
-        return Greeting(sync_word(history, holds, word), again)
+        return Greeting(sync_word(history, holds, word, proof), again)
 
     def broken(self, now: float) -> float:
         """The stream broke (or never came up): what was written on it is forgotten.
@@ -169,9 +199,12 @@ class LinkCore:
         self.counters.acked += 1
         return Acked(self.outbox.ack(lognr))
 
-    def sync_due(self, word: tuple[int, int]) -> SyncWord | None:
+    def sync_due(
+        self, word: tuple[int, int], proof: ring_pb2.MasterWord | None = None
+    ) -> SyncWord | None:
         """The sync frame to write now on an up successor's stream (the history grew, or
-        the master's ``word`` changed since the last one); None: nothing to say."""
+        the master's ``word`` changed since the last one; ``proof``: its signed form);
+        None: nothing to say."""
         history = self.history
         if history is None or not self.up:
             return None
@@ -179,7 +212,7 @@ class LinkCore:
         if holds <= self.synced and word == self.synced_word:
             return None
         self.synced, self.synced_word = max(self.synced, holds), word
-        return sync_word(history, self.synced, word)
+        return sync_word(history, self.synced, word, proof)
 
     def pending(self) -> list[int]:
         """The kept messages not yet written on the current stream, in log-number order."""

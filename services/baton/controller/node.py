@@ -63,6 +63,7 @@ from baton.controller.drone_link import (
 )
 from baton.controller.history import LogHistory
 from baton.controller.invoking import Sent, failed, replied
+from baton.controller.link_core import SyncWord
 from baton.controller.links import RingLinks
 from baton.controller.notes import Handovers, note_of, replay_again
 from baton.controller.protocol import (
@@ -333,6 +334,7 @@ class ControllerNode:
         link.on_acked = self._target_acked
         link.on_up_down = self._ring_changed
         link.master_word = lambda: self.protocol.master_word
+        link.master_proof = lambda: self.protocol.master_proof
         self._ring_changed()  # down from its start, until it comes up
         return link
 
@@ -634,26 +636,11 @@ class ControllerNode:
             )
         )
 
-    async def on_sync(
-        self,
-        from_id: int,
-        holds_lognr: int,
-        holds_epoch: int = 0,
-        master_epoch: int = 0,
-        master_lognr: int = 0,
-    ) -> None:
-        """A ring stream's sync frame: what its sender holds, and the epoch of its
-        message with that number (a word of a framing a takeover replaced is not
-        taken, ``ControllerProtocol.on_sync``), and the newest ACTIVE master's word
-        (a queued message older than it above what it held is dropped).
-
-        Only a stream that carries the history sends more than 0: the one
-        from our predecessor, or from the one before a dead predecessor that
-        routes around it; so any sender's word counts.
-        """
-        await self._apply(
-            self.protocol.on_sync(holds_lognr, holds_epoch, master_epoch, master_lognr)
-        )
+    async def on_sync(self, from_id: int, word: SyncWord) -> None:
+        """A ring stream's sync frame from controller ``from_id``: what it holds, and the
+        newest ACTIVE master's word, as far as the core believes them
+        (``ControllerCore.sync_arrived``)."""
+        await self._apply(self.core.sync_arrived(from_id, word))
 
     async def on_handover_notice(self, new_master: int, after_reqnr: int, epoch: int = 0) -> None:
         """The drone chose another master (``ControllerCore.handover_notice``)."""

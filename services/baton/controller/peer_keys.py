@@ -21,8 +21,8 @@ from pathlib import Path
 
 from baton.authenticity import AuthenticityError, Keys, Signer, Verifier
 from baton.config import BatonConfig
+from baton.controller.protocol import Sealable
 from baton.rpc.tls import Identity, Tls, TlsError
-from baton.v1 import ring_pb2
 
 
 def ring_keys(config: BatonConfig, tls: Tls) -> Keys:
@@ -104,7 +104,7 @@ class PeerKeys:
         self.keys = Keys(drone, controllers, earlier, revoked)
         return True
 
-    def seal(self) -> Callable[[ring_pb2.LogMessage], None] | None:
+    def seal(self) -> Callable[[Sealable], None] | None:
         """This controller's newest key's seal, if its folder holds a newer pair than the
         one it seals with (``Tls.current``), else None."""
         current = self.tls.current()

@@ -21,6 +21,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from baton.authenticity import holding_proof
 from baton.controller.mastership import Mastership, State
 from baton.digest import request_digest
 from baton.rpc.methods import describe_nondeterminism
@@ -274,7 +275,10 @@ class ProtocolError(Exception):
         self.effects: list[Effect] = list(effects or [])
 
 
-def _unsealed(message: ring_pb2.LogMessage) -> None:
+Sealable = ring_pb2.LogMessage | ring_pb2.MasterWord
+
+
+def _unsealed(message: Sealable) -> None:
     """An insecure ring's seal: the message goes unsigned."""
 
 
@@ -340,7 +344,7 @@ class ControllerProtocol:
         self.flush_limit = flush_limit
         # Signs each log message we create once it is whole (``Signer.seal``, with this
         # controller's key: baton.authenticity); a no-op on an insecure ring.
-        self.seal: Callable[[ring_pb2.LogMessage], None] = _unsealed
+        self.seal: Callable[[Sealable], None] = _unsealed
         # The target of the prepared handover under way (``on_prepare``), if any.
         self.preparing_for: int | None = None
         # The mission program ended (``on_mission_done``): an entry logged since (a
@@ -451,6 +455,14 @@ class ControllerProtocol:
         # The newest word of an ACTIVE master the ring gave us: its epoch, and the
         # log number it held then (``on_sync``, ``master_word``); (0, 0): none.
         self._master_word = (0, 0)
+        # On a signed ring, that word as its master signed it (``on_sync``), and ours
+        # since we went ACTIVE (``master_proof``); None: none.
+        self._master_proof: ring_pb2.MasterWord | None = None
+        self._own_word: ring_pb2.MasterWord | None = None
+        # On a signed ring, the proof of holding each of our own messages above the
+        # watermark that went to our successor only (``holding_proof``): a word that a
+        # controller holds one moves the watermark only with it (``_on_holds``).
+        self._proofs: dict[int, bytes] = {}
         # The drone's grants of the masterships we hold or held, by epoch (from
         # Connected, or the handover message that made us master): every message
         # we create carries the grant of the mastership it claims (``_backed``).
@@ -536,7 +548,14 @@ class ControllerProtocol:
         return [SendLog(self.successor, message)]
 
     def on_sync(
-        self, holds_lognr: int, holds_epoch: int = 0, master_epoch: int = 0, master_lognr: int = 0
+        self,
+        holds_lognr: int,
+        holds_epoch: int = 0,
+        master_epoch: int = 0,
+        master_lognr: int = 0,
+        holds_proof: bytes = b"",
+        master_proof: ring_pb2.MasterWord | None = None,
+        holds_backed: bool = True,
     ) -> list[Effect]:
         """A sync frame: the sender's word on what it holds (``_on_holds``), and on the
         newest ACTIVE master it knows of (``master_epoch``, ``master_lognr``: 0 for none).
@@ -550,15 +569,19 @@ class ControllerProtocol:
         earlier self flushed on a framing it gave up): without the word, every
         controller would hold that stale message queued above the ring's top
         for ever. The newest word is said on again in our own sync frames
-        (``master_word``).
+        (``master_word``), with its master's signed word on a signed ring
+        (``master_proof``; the driver's core believes a word only with it,
+        ``ControllerCore.sync_arrived``). ``holds_proof`` and ``holds_backed``:
+        ``_on_holds``.
         """
         effects: list[Effect] = []
         if master_epoch > 0:
             newest, at = self._master_word
             if master_epoch > newest or (master_epoch == newest and master_lognr < at):
                 self._master_word = (master_epoch, master_lognr)
+                self._master_proof = master_proof
             effects = self._drop_stale_queued(master_lognr, master_epoch)
-        return effects + self._on_holds(holds_lognr, holds_epoch)
+        return effects + self._on_holds(holds_lognr, holds_epoch, holds_proof, holds_backed)
 
     @property
     def master_word(self) -> tuple[int, int]:
@@ -568,6 +591,30 @@ class ControllerProtocol:
         if self.state is State.ACTIVE:
             return self.epoch, self.lognr
         return self._master_word
+
+    @property
+    def master_proof(self) -> ring_pb2.MasterWord | None:
+        """On a signed ring, the master's signed word our sync frames carry with
+        ``master_word`` (None: none, or an insecure ring): ours while ACTIVE, signed
+        when we went ACTIVE (every message above its log number is ours or newer, so
+        it holds for the whole mastership), else the one the ring gave us."""
+        if self.state is State.ACTIVE:
+            return self._own_word
+        return self._master_proof
+
+    def _went_active(self) -> None:
+        """We go ACTIVE: on a signed ring, our word as master is signed once, with the
+        drone's grant of the epoch (``master_proof``)."""
+        self.state = State.ACTIVE
+        self._own_word = None
+        if self.seal is _unsealed:
+            return
+        word = ring_pb2.MasterWord(epoch=self.epoch, lognr=self.lognr, master=self.id)
+        grant = self._grants.get(self.epoch)
+        if grant is not None:
+            word.grant.CopyFrom(grant)
+        self.seal(word)
+        self._own_word = word
 
     def mastership_given_up(self) -> int:
         """The epoch of a mastership of ours whose log a rejoin now gives up (0: none), for
@@ -590,7 +637,9 @@ class ControllerProtocol:
             ours = 0
         return max(ours, self.given_up_epoch)
 
-    def _on_holds(self, holds_lognr: int, holds_epoch: int) -> list[Effect]:
+    def _on_holds(
+        self, holds_lognr: int, holds_epoch: int, proof: bytes = b"", backed: bool = True
+    ) -> list[Effect]:
         """The predecessor holds every log message up to ``holds_lognr`` and sends what we lack.
 
         Also moves the watermark: every controller holds what the predecessor does.
@@ -603,9 +652,17 @@ class ControllerProtocol:
         does a sender whose message with a number we hold is older than ours:
         it holds the framing ours replaced, not ours, and the watermark stays
         (``_replaced_word``).
+
+        On a signed ring the word is one station's, which may lie (docs/design.md,
+        "A sync frame's words, believed on evidence"): the watermark moves only up
+        to a message of our own whose ``proof`` of holding came back
+        (``_watermark_credit``), and a message of a newer epoch than ours rejoins
+        us only ``backed`` by the drone's grant of that epoch, never while ACTIVE.
         """
         ours = self._epoch_at.get(holds_lognr, 0) if 0 < holds_lognr <= self.lognr else 0
         if 0 < holds_epoch < ours:
+            return self._replaced_word(holds_lognr)
+        if 0 < ours < holds_epoch and not self._believes_newer(backed):
             return self._replaced_word(holds_lognr)
         if 0 < ours < holds_epoch:
             # The sender's message with that number is of a newer epoch than ours:
@@ -625,11 +682,45 @@ class ControllerProtocol:
         self.catch_up_to = max(self.catch_up_to or 0, holds_lognr)
         if holds_lognr > self.lognr:
             self._promised[holds_lognr] = max(self._promised.get(holds_lognr, 0), holds_epoch)
-        while self._ends and self._ends[0][0] <= holds_lognr:
+        credit = self._watermark_credit(holds_lognr, proof)
+        while self._ends and self._ends[0][0] <= credit:
             acked, reqnr = self._ends.popleft()
             self.watermark_reqnr = max(self.watermark_reqnr, reqnr)
             self.acked_lognr = max(self.acked_lognr, acked)
         return self._drain()
+
+    def _believes_newer(self, backed: bool) -> bool:
+        """Whether a word that the sender's message with one of our numbers is of a newer
+        epoch than ours counts (it rejoins us with nothing). On an insecure ring, yes. On a
+        signed one only with the drone's grant of that epoch (``backed``), and not while
+        ACTIVE: only the drone fences a master, and a station could claim a genuine newer
+        epoch for a number below our mastership's first message."""
+        if self.seal is _unsealed:
+            return True
+        return backed and self.state is not State.ACTIVE
+
+    def _watermark_credit(self, holds_lognr: int, proof: bytes) -> int:
+        """The log number up to which a predecessor's word that it holds ``holds_lognr``
+        moves the watermark.
+
+        On an insecure ring, all of it. On a signed ring, only a message of our own
+        whose holding ``proof`` is the one we kept when we sent it to our successor:
+        an honest controller passes a message on only once it holds it whole, so
+        the proof shows every controller from our successor round to the sender
+        holds it (and, the links delivering in order, what we sent before it); a
+        station that lies cannot make the proof of a message it does not hold, nor
+        of one made by another, nor forge ours. Not one we also sent straight to a
+        prepared handover's target, which holds it without the ring. A word
+        without a proof that counts moves nothing: the drone retains the replies
+        a little longer.
+        """
+        if self.seal is _unsealed:
+            return holds_lognr
+        if not proof or self._proofs.get(holds_lognr) != proof:
+            return 0
+        for kept in [n for n in self._proofs if n <= holds_lognr]:
+            del self._proofs[kept]
+        return holds_lognr
 
     def _replaced_word(self, holds_lognr: int) -> list[Effect]:
         """The predecessor holds message ``holds_lognr`` of an older epoch than ours: a
@@ -1084,6 +1175,7 @@ class ControllerProtocol:
         target = self.preparing_for
         if target is None or target == self.successor:
             return [sent]
+        self._proofs.pop(sent.message.lognr, None)  # held without the ring: no proof
         return [sent, SendLog(target, sent.message, copy=True)]
 
     def _flush(self) -> SendLog:
@@ -1098,6 +1190,8 @@ class ControllerProtocol:
         message.epoch = self.epoch  # the mastership it was logged in, for diagnosis
         self._backed(message, self._grants.get(self.epoch))
         self.seal(message)
+        if message.signature:
+            self._proofs[self.lognr] = holding_proof(message)
         return SendLog(self.successor, message)
 
     @staticmethod
@@ -1161,6 +1255,7 @@ class ControllerProtocol:
             raise ProtocolError(f"handover notice names controller {new_master}")
         self.state, self.master = State.PASSIVE, False
         self.preparing_for = None
+        self._proofs.clear()  # a word can only name a newer master's top from now on
         self.lognr += 1
         self._held(self.lognr, self.reqnr, epoch)
         message = self._message(self.lognr, origin=new_master, handover=True)
@@ -1353,7 +1448,7 @@ class ControllerProtocol:
             effects.extend(self._handle(self.log_queue.pop(self.lognr + 1)))
         if self.state is State.PASSIVE and self.master and not self.log_queue and self.caught_up:
             # The master's own log ran out with nothing queued: lines 54-56.
-            self.state = State.ACTIVE
+            self._went_active()
             effects.append(ConnectDrone())
         return effects
 

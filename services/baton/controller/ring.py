@@ -242,6 +242,7 @@ class PeerLink:
         self.on_up_down: Callable[[], None] | None = None
         # The master's word our sync frames say (``ControllerProtocol.master_word``).
         self.master_word: Callable[[], tuple[int, int]] = lambda: (0, 0)
+        self.master_proof: Callable[[], ring_pb2.MasterWord | None] = lambda: None
         self._wakeup = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
 
@@ -369,7 +370,9 @@ class PeerLink:
             if hello is None or not hello.hello:
                 raise ConnectionError(f"peer {self.peer_id} did not greet the ring stream")
             core = self.core
-            greeting = core.connected(hello.lognr, hello.epoch, self.master_word())
+            greeting = core.connected(
+                hello.lognr, hello.epoch, self.master_word(), self.master_proof()
+            )
             self._up_down()
             self._log.info("ring stream up", peer_lognr=hello.lognr, holds_lognr=core.synced)
             if greeting.sync is not None:
@@ -383,7 +386,7 @@ class PeerLink:
                 while True:
                     # Cleared before looking, so a wake-up during a write is not lost.
                     self._wakeup.clear()
-                    sync = core.sync_due(self.master_word())
+                    sync = core.sync_due(self.master_word(), self.master_proof())
                     if sync is not None:
                         await call.write(_sync_frame(sync, self.my_id))
                     pending = sorted(set(core.pending()) | set(self._relays))
@@ -496,6 +499,22 @@ def _sync_frame(word: SyncWord, my_id: int) -> ring_pb2.LogFrame:
         from_id=my_id,
         master_epoch=word.master_epoch,
         master_lognr=word.master_lognr,
+        holds_proof=word.holds_proof,
+        holds_grant=word.holds_grant,
+        master_word=word.master_proof,
+    )
+
+
+def sync_word_of(frame: ring_pb2.LogFrame) -> SyncWord:
+    """What a sync frame says (``_sync_frame`` read back)."""
+    return SyncWord(
+        frame.holds_lognr,
+        frame.holds_epoch,
+        frame.master_epoch,
+        frame.master_lognr,
+        frame.holds_proof,
+        frame.holds_grant if frame.HasField("holds_grant") else None,
+        frame.master_word if frame.HasField("master_word") else None,
     )
 
 
@@ -517,7 +536,7 @@ class RingReceiver:
         deliver: Callable[[ring_pb2.LogMessage, int], Awaitable[None]],
         log: BoundLogger,
         max_message_bytes: int = MAX_LOG_MESSAGE_DEFAULT,
-        synced: Callable[[int, int, int, int, int], Awaitable[None]] | None = None,
+        synced: Callable[[int, SyncWord], Awaitable[None]] | None = None,
         epoch_of: Callable[[int], int] | None = None,
         relay: Callable[[ring_pb2.LogMessage, int], Relay | None] | None = None,
         arriving: Callable[[int], None] | None = None,
@@ -607,13 +626,7 @@ class RingReceiver:
                     return
                 if frame.sync:
                     if self._synced is not None:
-                        await self._synced(
-                            frame.from_id,
-                            frame.holds_lognr,
-                            frame.holds_epoch,
-                            frame.master_epoch,
-                            frame.master_lognr,
-                        )
+                        await self._synced(frame.from_id, sync_word_of(frame))
                     continue
                 if frame.abort:
                     reassembler.drop(frame.lognr)

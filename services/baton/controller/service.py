@@ -337,6 +337,8 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         log_file=node.history.status(),
         refused_messages=node.core.refused_messages,
         last_refused=node.core.last_refused,
+        refused_words=node.core.refused_words,
+        last_refused_word=node.core.last_refused_word,
         handovers=[
             ring_pb2.ControllerHandover(
                 role=h.role,

@@ -62,6 +62,7 @@ from baton.controller.core import (
 )
 from baton.controller.history import LogHistory
 from baton.controller.invoking import Sent, failed, replied
+from baton.controller.link_core import SyncWord
 from baton.controller.links import RingLinks
 from baton.controller.notes import note_of, replay_again
 from baton.controller.protocol import (
@@ -575,19 +576,12 @@ class SimController:
             plan.retired.stop()
         self.world.check_start()
 
-    def on_sync(
-        self,
-        from_id: int,
-        holds_lognr: int,
-        holds_epoch: int = 0,
-        master_epoch: int = 0,
-        master_lognr: int = 0,
-    ) -> None:
-        """ControllerNode.on_sync: any sender's word counts (only history streams sync)."""
+    def on_sync(self, from_id: int, word: SyncWord) -> None:
+        """ControllerNode.on_sync (``ControllerCore.sync_arrived``)."""
         if not self.alive:
             return
         try:
-            effects = self.protocol.on_sync(holds_lognr, holds_epoch, master_epoch, master_lognr)
+            effects = self.core.sync_arrived(from_id, word)
         except ProtocolError as exc:
             self._uncaught("on_sync", exc)
             return

@@ -134,8 +134,14 @@ def _defect3_resend() -> list[tuple[Any, str, Any]]:
     """
     original = LinkCore.connected
 
-    def connected(self: LinkCore, hello: int, epoch: int, word: tuple[int, int]) -> Greeting:
-        greeting = original(self, hello, epoch, word)
+    def connected(
+        self: LinkCore,
+        hello: int,
+        epoch: int,
+        word: tuple[int, int],
+        proof: ring_pb2.MasterWord | None = None,
+    ) -> Greeting:
+        greeting = original(self, hello, epoch, word, proof)
         history = self.history
         if history is None:
             return greeting

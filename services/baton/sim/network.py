@@ -261,7 +261,8 @@ class RingLink:
         self._peer = peer
         self.generation = self.world.next_id()
         self._tx_free = self._fifo = self.world.loop.now
-        greeting = self.core.connected(hello, epoch, self.owner.protocol.master_word)
+        p = self.owner.protocol
+        greeting = self.core.connected(hello, epoch, p.master_word, p.master_proof)
         self.world.trace(
             f"ring {self.owner.id}->{self.dest} up (hello {hello}, holds {self.core.synced})"
         )
@@ -279,7 +280,7 @@ class RingLink:
         """PeerLink.holds_changed: a sync frame when the core says one is due."""
         if not self.owner.alive:
             return
-        sync = self.core.sync_due(self.owner.protocol.master_word)
+        sync = self.core.sync_due(self.owner.protocol.master_word, self.owner.protocol.master_proof)
         if sync is not None:
             self._deliver_later(0, self._sync_frame, sync)
 
@@ -323,9 +324,7 @@ class RingLink:
         handler(peer, arg)
 
     def _sync_frame(self, peer: SimController, sync: SyncWord) -> None:
-        peer.on_sync(
-            self.owner.id, sync.holds, sync.holds_epoch, sync.master_epoch, sync.master_lognr
-        )
+        peer.on_sync(self.owner.id, sync)
 
     def _message_frame(self, peer: SimController, data: bytes) -> None:
         message = ring_pb2.LogMessage.FromString(data)
