@@ -222,3 +222,20 @@ def test_a_newer_epoch_of_a_held_number_is_believed_only_with_the_drones_grant(
     master.protocol.on_granted(2, grant=grant(keys, 0, 2))
     effects = master.sync_arrived(2, SyncWord(1, 2, 0, 0, holds_grant=grant(keys, 2, 2)))
     assert not [e for e in effects if isinstance(e, Diverged)]
+
+
+def test_a_promise_above_what_we_hold_is_waited_for_only_in_a_granted_epoch(
+    keys: SimKeys,
+) -> None:
+    """A word that the sender holds more than we do holds a master granted the role until
+    it handled that much. A station promising what it never sends would hold it for ever:
+    on a signed ring the promise counts only in an epoch the drone granted (taken back once
+    a newer one is handled), never with no epoch or an ungranted one."""
+    replica = signed_core(keys, 1)
+    queued_behind_a_gap(replica, keys)
+    p = replica.protocol
+    for lie in (SyncWord(9, 0, 0, 0), SyncWord(9, 8, 0, 0)):
+        replica.sync_arrived(2, lie)
+        assert p.catch_up_to == p.lognr == 1
+    replica.sync_arrived(2, SyncWord(9, 1, 0, 0, holds_grant=grant(keys, 0, 1)))
+    assert p.catch_up_to == 9

@@ -656,8 +656,10 @@ class ControllerProtocol:
         On a signed ring the word is one station's, which may lie (docs/design.md,
         "A sync frame's words, believed on evidence"): the watermark moves only up
         to a message of our own whose ``proof`` of holding came back
-        (``_watermark_credit``), and a message of a newer epoch than ours rejoins
-        us only ``backed`` by the drone's grant of that epoch, never while ACTIVE.
+        (``_watermark_credit``), a message of a newer epoch than ours rejoins
+        us only ``backed`` by the drone's grant of that epoch, never while ACTIVE
+        (``_believes_newer``), and a promise above what we hold is waited for only
+        so backed (``_believes_promise``).
         """
         ours = self._epoch_at.get(holds_lognr, 0) if 0 < holds_lognr <= self.lognr else 0
         if 0 < holds_epoch < ours:
@@ -679,8 +681,9 @@ class ControllerProtocol:
             if self.catch_up_to is None:
                 self.catch_up_to = 0  # the sender holds nothing of the ring's above ours
             return self._drain()
-        self.catch_up_to = max(self.catch_up_to or 0, holds_lognr)
-        if holds_lognr > self.lognr:
+        promise = holds_lognr if self._believes_promise(holds_epoch, backed) else self.lognr
+        self.catch_up_to = max(self.catch_up_to or 0, min(holds_lognr, promise))
+        if holds_lognr > self.lognr and promise == holds_lognr:
             self._promised[holds_lognr] = max(self._promised.get(holds_lognr, 0), holds_epoch)
         credit = self._watermark_credit(holds_lognr, proof)
         while self._ends and self._ends[0][0] <= credit:
@@ -688,6 +691,19 @@ class ControllerProtocol:
             self.watermark_reqnr = max(self.watermark_reqnr, reqnr)
             self.acked_lognr = max(self.acked_lognr, acked)
         return self._drain()
+
+    def _believes_promise(self, holds_epoch: int, backed: bool) -> bool:
+        """Whether a word that the sender holds messages above ours is waited for
+        (``catch_up_to``: a master granted the role goes ACTIVE only once it handled
+        them). On an insecure ring, yes. On a signed one only of an epoch the drone
+        granted (``backed``; every message of a signed ring is of one, and carries its
+        grant): a promise of an older epoch is taken back once we handle a message of
+        a newer one (``_take_back_stale_words``), so a station that promises what it
+        never sends holds a new master up until its handover message at most, where
+        a promise of no epoch, or of one never granted, would hold it for ever."""
+        if self.seal is _unsealed:
+            return True
+        return backed and holds_epoch > 0
 
     def _believes_newer(self, backed: bool) -> bool:
         """Whether a word that the sender's message with one of our numbers is of a newer
