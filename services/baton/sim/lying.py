@@ -18,24 +18,35 @@ message altered, or sent again under another number. Each is delivered to the
 receiver's core as a ring stream from the liar delivers it, and the
 ``lies-refused`` oracle asks that every one was refused (counted in the
 receiver's ``refused_messages``), besides every other oracle.
+
+It also lies in sync frames (``SYNC_LIES``, ``forge_sync``), delivered as a sync
+frame from it is (``SimController.on_sync``): that it holds the receiver's top
+message without the proof of holding it, that it holds more than the receiver
+(the truth's shape: its own top's epoch, grant and proof, the number inflated),
+a newer master in its own name, a genuine master word with its numbers
+changed, and a newer epoch of a message the receiver holds. Such a frame is
+refused when it changed nothing it must not: the receiver's watermark, the master
+word it believes and says on, its queue, its log (a rejoin).
 """
 
 from __future__ import annotations
 
 import hashlib
 import random
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from baton.authenticity import Keys, Signer, Verifier
+from baton.controller.link_core import SyncWord, sync_word
 from baton.digest import request_digest
 from baton.sim.mission import GET_POSITION
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import ring_pb2
 
 if TYPE_CHECKING:
+    from baton.sim.controller import SimController
     from baton.sim.faults import FaultPlan
     from baton.sim.world import World
 
@@ -47,7 +58,14 @@ LIES = (
     "invented-replies",
     "altered-reply",
     "renumbered",
+    # Sync frames (``forge_sync``).
+    "holds-unproved",
+    "holds-inflated",
+    "master-word-forged",
+    "master-word-altered",
+    "holds-epoch-newer",
 )
+SYNC_LIES = frozenset(LIES[6:])
 # How far ahead of the newest epoch it knows a forged mastership claims to be.
 EPOCHS_AHEAD = (1, 2, 5)
 
@@ -109,6 +127,9 @@ def lie(world: World, rng: random.Random, liar: int) -> None:
         return
     receiver = rng.choice(others)
     kind = rng.choice(LIES)
+    if kind in SYNC_LIES:
+        lie_in_sync(world, rng, liar, receiver, kind)
+        return
     message = forge(world, rng, liar, receiver.id, kind)
     if message is None:  # nothing to forge it from yet: a mastership ahead instead
         kind = "newer-mastership"
@@ -122,6 +143,77 @@ def lie(world: World, rng: random.Random, liar: int) -> None:
         f"controller {liar} forges {kind} (log message {message.lognr}) to {receiver.id}: "
         + ("refused" if refused else "BELIEVED")
     )
+
+
+def lie_in_sync(
+    world: World, rng: random.Random, liar: int, receiver: SimController, kind: str
+) -> None:
+    """The liar sends ``receiver`` a forged sync frame of ``kind``: refused if it moved
+    neither the watermark, nor the master word the receiver believes, nor its queue,
+    nor its log."""
+    word = forge_sync(world, rng, liar, receiver, kind)
+    p = receiver.protocol
+    before = (p.watermark_reqnr, p.master_word, sorted(p.log_queue), receiver.core.rejoining)
+    receiver.on_sync(liar, word)
+    p = receiver.protocol  # the same object unless a rejoin replaced it
+    after = (p.watermark_reqnr, p.master_word, sorted(p.log_queue), receiver.core.rejoining)
+    refused = after == before or not receiver.alive
+    world.lies.append(Lie(world.loop.now, kind, liar, receiver.id, word.holds, refused))
+    world.trace(
+        f"controller {liar} forges a {kind} sync frame (holds {word.holds}, epoch "
+        f"{word.holds_epoch}, master {word.master_epoch}/{word.master_lognr}) to "
+        f"{receiver.id}: " + ("refused" if refused else f"BELIEVED {before} -> {after}")
+    )
+
+
+def forge_sync(
+    world: World, rng: random.Random, liar: int, receiver: SimController, kind: str
+) -> SyncWord:
+    """A sync frame of ``kind`` as the liar makes it from what it holds."""
+    assert world.keys is not None
+    forger = world.controller(liar)
+    stolen = world.keys.controllers[liar]
+    p, theirs = forger.protocol, receiver.protocol
+    top = forger.history.holds_lognr
+    held = forger.history.get(top) if top and top in forger.history else None
+    # Each lie says one thing: the rest of the frame says nothing that could count.
+    own = sync_word(forger.history, top, (0, 0))
+    nothing_held = SyncWord(0, 0, 0, 0)
+    newest = max(p.epoch, theirs.epoch, held.epoch if held is not None else 0)
+    if kind in ("holds-unproved", "holds-inflated"):
+        # At least what the receiver waits for already: a word that it holds less
+        # would not move the watermark, and is not this lie.
+        holds = max(theirs.lognr, theirs.catch_up_to or 0)
+        holds += rng.randint(1, 5) if kind == "holds-inflated" else 0
+        if holds == top:
+            return replace(own, holds_proof=b"")  # the one it holds: without its proof
+        return replace(own, holds=holds)  # its own top's epoch, grant and proof
+    if kind == "master-word-forged":
+        word = ring_pb2.MasterWord(
+            epoch=newest + rng.choice(EPOCHS_AHEAD), lognr=rng.randint(0, theirs.lognr), master=liar
+        )
+        if held is not None and held.HasField("grant"):
+            word.grant.CopyFrom(held.grant)  # a genuine grant of another epoch
+        stolen.seal(word)
+        return replace(
+            nothing_held, master_epoch=word.epoch, master_lognr=word.lognr, master_proof=word
+        )
+    if kind == "master-word-altered":
+        genuine = own.master_proof or theirs.master_proof
+        word = ring_pb2.MasterWord()
+        if genuine is not None:
+            word.CopyFrom(genuine)  # its master's signature, no longer over what it says
+        if word.lognr > 0 and rng.random() < 0.5:
+            word.lognr -= rng.randint(1, word.lognr)
+        else:
+            word.epoch += rng.choice(EPOCHS_AHEAD)
+        return replace(
+            nothing_held, master_epoch=word.epoch, master_lognr=word.lognr, master_proof=word
+        )
+    # holds-epoch-newer: a message the receiver holds, said to be of a newer epoch.
+    holds = theirs.lognr
+    epoch = theirs.epoch_of(holds) + rng.choice(EPOCHS_AHEAD)
+    return replace(nothing_held, holds=holds, holds_epoch=epoch)
 
 
 def forge(

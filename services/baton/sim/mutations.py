@@ -16,10 +16,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from baton import authenticity
-from baton.authenticity import Verifier
+from baton.authenticity import Keys, Verifier
+from baton.controller import core as core_module
 from baton.controller.core import ControllerCore, CoreEffect
-from baton.controller.link_core import Greeting, LinkCore
+from baton.controller.link_core import Greeting, LinkCore, SyncWord
 from baton.controller.protocol import ConnectDrone, ControllerProtocol, Effect, Refusal, State
+from baton.controller.sync_words import Belief
 from baton.drone import sequencer
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import ReplyCache
@@ -269,6 +271,28 @@ def _believes_unbacked_claims() -> list[tuple[Any, str, Any]]:
     return [(authenticity, "unbacked_claim", unbacked_claim)]
 
 
+def _believes_sync_words() -> list[tuple[Any, str, Any]]:
+    """Issue 33: a sync frame's words believed as they were before they needed evidence
+    (``sync_words.believe`` takes every word; the protocol moves the watermark, waits
+    and rejoins on any)."""
+
+    def believe(keys: Keys | None, word: SyncWord) -> Belief:
+        return Belief(word, True)
+
+    def credit(self: ControllerProtocol, holds_lognr: int, proof: bytes) -> int:
+        return holds_lognr
+
+    def believes(self: ControllerProtocol, *args: object) -> bool:
+        return True
+
+    return [
+        (core_module, "believe", believe),
+        (ControllerProtocol, "_watermark_credit", credit),
+        (ControllerProtocol, "_believes_newer", believes),
+        (ControllerProtocol, "_believes_promise", believes),
+    ]
+
+
 LOSE_MASTER = {"lose_master": True}
 FAILSAFE = {"failsafe": True}
 OPERATOR = {"operator": True}
@@ -318,6 +342,12 @@ for _mutation in (
         "believes-unbacked-claims",
         "a mastership claimed without the drone's grant believed",
         _believes_unbacked_claims,
+        LYING,
+    ),
+    Mutation(
+        "believes-sync-words",
+        "a sync frame's words believed without evidence",
+        _believes_sync_words,
         LYING,
     ),
 ):
