@@ -70,10 +70,11 @@ def test_the_watermark_moves_only_over_the_masters_own_messages_proved_held(
     def word(holds: int, proof: bytes = b"") -> SyncWord:
         return SyncWord(holds, 1, 0, 0, holds_proof=proof, holds_grant=one.grant)
 
-    master.sync_arrived(2, word(3))  # inflated: no proof
+    master.sync_arrived(2, word(3))  # no proof
     master.sync_arrived(2, word(3, holding_proof(one)))  # another message's proof
+    assert master.refused_words == 2 and "holds our message 3 without" in master.last_refused_word
     master.sync_arrived(2, word(9, holding_proof(three)))  # a number it never made
-    assert p.watermark_reqnr == 0 and master.refused_words == 0
+    assert p.watermark_reqnr == 0 and master.refused_words == 2
     assert p.catch_up_to == 9  # the number is still a promise: not a watermark
     master.sync_arrived(2, word(2, holding_proof(two)))
     assert p.watermark_reqnr == 2

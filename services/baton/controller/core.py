@@ -914,15 +914,19 @@ class ControllerCore:
         counted (``refused_words``, ``last_refused_word``) and logged once per station:
         it changes nothing, so a station that keeps lying costs a counter, not a log."""
         belief = believe(self.keys, word)
+        refused = list(belief.refused)
+        if self.keys is not None and self.protocol.unproved_word(
+            word.holds, word.holds_epoch, word.holds_proof
+        ):
+            refused.append(f"it says it holds our message {word.holds} without the proof")
         effects: list[CoreEffect] = []
-        if belief.refused:
+        if refused:
             self.refused_words += 1
-            self.last_refused_word = f"sync frame from controller {sender}: " + "; ".join(
-                belief.refused
-            )
+            why = "; ".join(refused)
+            self.last_refused_word = f"sync frame from controller {sender}: {why}"
             if sender not in self._named_liars:
                 self._named_liars.add(sender)
-                fields = {"sender": sender, "why": "; ".join(belief.refused)}
+                fields = {"sender": sender, "why": why}
                 effects.append(Note("error", "sync frame's words not believed", fields))
         w = belief.word
         return effects + self.protocol.on_sync(

@@ -692,6 +692,13 @@ class ControllerProtocol:
             self.acked_lognr = max(self.acked_lognr, acked)
         return self._drain()
 
+    def unproved_word(self, holds_lognr: int, holds_epoch: int, proof: bytes) -> bool:
+        """Whether a word that its sender holds our own message ``holds_lognr`` (of the
+        epoch we framed it in) came without the proof of holding it that we kept: an
+        honest holder of it computes it (``_watermark_credit``), so the sender lies."""
+        kept = self._proofs.get(holds_lognr)
+        return kept is not None and proof != kept and holds_epoch == self.epoch_of(holds_lognr)
+
     def _believes_promise(self, holds_epoch: int, backed: bool) -> bool:
         """Whether a word that the sender holds messages above ours is waited for
         (``catch_up_to``: a master granted the role goes ACTIVE only once it handled
