@@ -6,6 +6,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+import grpc
+
 from baton.authenticity import needs_drone_signature
 from baton.controller.history import read_log
 from baton.controller.ring import frames
@@ -56,3 +58,24 @@ async def send(
             if ack.lognr == message.lognr:
                 break
         await call.done_writing()
+
+
+async def say(
+    address: str,
+    station: Tls,
+    receiver: int,
+    words: Callable[[ring_pb2.LogAck], list[ring_pb2.LogFrame]],
+) -> None:
+    """Writes the sync frames ``words`` makes from the receiver's hello on a LogRing stream
+    from ``station``'s certificate, in order, and ends the stream once the receiver has
+    read them all (it ends its side then; a sync frame is not acknowledged)."""
+    async with aio_channel(address, station, Identity.controller(receiver)) as channel:
+        call = ring_pb2_grpc.ControllerRingStub(channel).LogRing()
+        hello = await call.read()
+        assert isinstance(hello, ring_pb2.LogAck) and hello.hello
+        for frame in words(hello):
+            frame.sync, frame.from_id = True, station.identity.number or 0
+            await call.write(frame)
+        await call.done_writing()
+        while await call.read() is not grpc.aio.EOF:
+            pass
