@@ -593,6 +593,11 @@ class ControllerProtocol:
         return self._master_word
 
     @property
+    def heard_master_word(self) -> tuple[int, int]:
+        """The newest master word the ring gave us (``on_sync``), ours aside."""
+        return self._master_word
+
+    @property
     def master_proof(self) -> ring_pb2.MasterWord | None:
         """On a signed ring, the master's signed word our sync frames carry with
         ``master_word`` (None: none, or an insecure ring): ours while ACTIVE, signed

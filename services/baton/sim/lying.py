@@ -148,22 +148,46 @@ def lie(world: World, rng: random.Random, liar: int) -> None:
 def lie_in_sync(
     world: World, rng: random.Random, liar: int, receiver: SimController, kind: str
 ) -> None:
-    """The liar sends ``receiver`` a forged sync frame of ``kind``: refused if it moved
-    neither the watermark, nor the master word the receiver believes, nor its queue,
-    nor its log."""
+    """The liar sends ``receiver`` a forged sync frame of ``kind``: refused if it changed
+    nothing the lie is about (``believed``)."""
     word = forge_sync(world, rng, liar, receiver, kind)
-    p = receiver.protocol
-    before = (p.watermark_reqnr, p.master_word, sorted(p.log_queue), receiver.core.rejoining)
+    before = _what_words_move(receiver)
     receiver.on_sync(liar, word)
-    p = receiver.protocol  # the same object unless a rejoin replaced it
-    after = (p.watermark_reqnr, p.master_word, sorted(p.log_queue), receiver.core.rejoining)
-    refused = after == before or not receiver.alive
+    after = _what_words_move(receiver)
+    refused = not receiver.alive or not believed(kind, before, after)
     world.lies.append(Lie(world.loop.now, kind, liar, receiver.id, word.holds, refused))
     world.trace(
         f"controller {liar} forges a {kind} sync frame (holds {word.holds}, epoch "
         f"{word.holds_epoch}, master {word.master_epoch}/{word.master_lognr}) to "
         f"{receiver.id}: " + ("refused" if refused else f"BELIEVED {before} -> {after}")
     )
+
+
+@dataclass(frozen=True)
+class _Moved:
+    """What a sync frame's words can move at a receiver."""
+
+    watermark: int
+    heard: tuple[int, int]  # the newest master word the ring gave it
+    queued: frozenset[int]
+    rejoining: bool
+
+
+def _what_words_move(receiver: SimController) -> _Moved:
+    p = receiver.protocol
+    heard = p.heard_master_word
+    return _Moved(p.watermark_reqnr, heard, frozenset(p.log_queue), receiver.core.rejoining)
+
+
+def believed(kind: str, before: _Moved, after: _Moved) -> bool:
+    """Whether the receiver acted on a forged sync frame of ``kind``: the watermark moved
+    on a word of holding, the master word it says on changed or a queued message was
+    dropped on a master word, it rejoins on an epoch."""
+    if kind in ("holds-unproved", "holds-inflated"):
+        return after.watermark != before.watermark
+    if kind.startswith("master-word"):
+        return after.heard != before.heard or not before.queued <= after.queued
+    return after.rejoining and not before.rejoining
 
 
 def forge_sync(
