@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
-from helpers.forgery import copy, send, signed_message
+from helpers.forgery import copy, operator_hands_over, send, signed_message
 from helpers.missions import assert_mission_promises, three_on_fast_links
 from waiting import eventually
 
@@ -17,10 +17,10 @@ from baton.authenticity import Signer
 from baton.digest import request_digest
 from baton.rpc.channels import aio_channel
 from baton.rpc.methods import path
-from baton.rpc.tls import DRONE, Identity, Tls
+from baton.rpc.tls import Identity, Tls
 from baton.testbed.local import LocalTestbed
 from baton.v1 import drone_api_pb2 as api
-from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
+from baton.v1 import ring_pb2, ring_pb2_grpc
 
 GET_POSITION = path("Mobility.GetPosition")
 
@@ -118,11 +118,7 @@ async def test_forged_replies_and_masterships_on_the_ring_are_refused_and_the_mi
             assert status.refused_messages == len(cases), status
 
         # An operator hands over to the victim, whose log the forgeries did not touch.
-        async with aio_channel(config.drone.address, testbed.tls, DRONE) as channel:
-            moved = await drone_pb2_grpc.DroneStub(channel).Handover(
-                drone_pb2.HandoverRequest(new_master=victim)
-            )
-            assert moved.new_master == victim
+        await operator_hands_over(config.drone.address, testbed.tls, victim)
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
     assert snapshot.drone.master == victim

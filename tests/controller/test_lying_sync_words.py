@@ -10,16 +10,16 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
-from helpers.forgery import say, signed_message
+from helpers.forgery import operator_hands_over, say, signed_message
 from helpers.missions import assert_mission_promises, three_on_fast_links
 from waiting import eventually
 
 from baton.authenticity import Signer
 from baton.config import LinkSpec
 from baton.rpc.channels import aio_channel
-from baton.rpc.tls import DRONE, Identity, Tls
+from baton.rpc.tls import Identity, Tls
 from baton.testbed.local import LocalTestbed
-from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
+from baton.v1 import ring_pb2, ring_pb2_grpc
 
 # The ring behind the master slowed, so its own messages wait this long for the proof
 # that its predecessor holds them: a lie about holding one comes first.
@@ -126,11 +126,7 @@ async def test_lying_sync_words_are_not_believed_and_the_mission_flies_once(
 
         # An operator hands over to the victim: it goes ACTIVE on the ring's log, not
         # waiting for the promised messages.
-        async with aio_channel(config.drone.address, testbed.tls, DRONE) as channel:
-            moved = await drone_pb2_grpc.DroneStub(channel).Handover(
-                drone_pb2.HandoverRequest(new_master=victim)
-            )
-            assert moved.new_master == victim
+        await operator_hands_over(config.drone.address, testbed.tls, victim)
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
     assert snapshot.drone.master == victim

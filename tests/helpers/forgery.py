@@ -12,8 +12,8 @@ from baton.authenticity import needs_drone_signature
 from baton.controller.history import read_log
 from baton.controller.ring import frames
 from baton.rpc.channels import aio_channel
-from baton.rpc.tls import Identity, Tls
-from baton.v1 import ring_pb2, ring_pb2_grpc
+from baton.rpc.tls import DRONE, Identity, Tls
+from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc
 
 
 def signed_message(log: Path) -> ring_pb2.LogMessage | None:
@@ -79,3 +79,13 @@ async def say(
         await call.done_writing()
         while await call.read() is not grpc.aio.EOF:
             pass
+
+
+async def operator_hands_over(drone_address: str, tls: Tls, new_master: int) -> None:
+    """An operator asks the drone to make ``new_master`` master (``Drone.Handover``), as
+    after a forgery: the controller that was lied to takes the role."""
+    async with aio_channel(drone_address, tls, DRONE) as channel:
+        moved = await drone_pb2_grpc.DroneStub(channel).Handover(
+            drone_pb2.HandoverRequest(new_master=new_master)
+        )
+    assert moved.new_master == new_master, moved
