@@ -43,12 +43,36 @@ def test_a_subcommand_that_does_not_import_is_a_clear_error_not_a_missing_comman
     leaving that subcommand out of `baton --help`."""
     import baton.cli
 
-    monkeypatch.setattr(baton.cli, "PROGRAMS", [*baton.cli.PROGRAMS, "baton.absent.cli"])
+    monkeypatch.setattr(baton.cli, "PROGRAMS", {**baton.cli.PROGRAMS, "absent": "baton.absent.cli"})
     with pytest.raises(SystemExit) as exited:
         build_parser()
     message = str(exited.value.code)
     assert "baton.absent.cli" in message and "No module named 'baton.absent'" in message
     assert "reinstall" in message
+
+
+def test_a_program_loads_its_own_modules_and_not_the_others() -> None:
+    """A part the testbed starts (``baton link ...``) imports its program's module
+    only; ``baton --help`` and a word that names no program load every one, to list
+    them or to refuse the word with the list."""
+    from baton.cli import PROGRAMS, program_named
+
+    assert program_named(["--log-level", "warning", "link", "--listen", "x"]) == "link"
+    assert program_named(["--die-with-parent", "7", "controller", "--help"]) == "controller"
+    assert program_named(["--help"]) is None and program_named(["lnk"]) is None
+    (programs,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    assert set(programs.choices) == set(PROGRAMS), "every program a module registers is named"
+    others = [m for name, m in PROGRAMS.items() if name != "link" and m != "baton.link.cli"]
+    probe = (
+        "import sys, baton.cli\n"
+        "try:\n    baton.cli.main(['--log-level', 'warning', 'link', '--help'])\n"
+        "except SystemExit:\n    pass\n"
+        f"print(sorted(m for m in {others!r} if m in sys.modules))"
+    )
+    loaded = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert loaded.stdout.strip().splitlines()[-1] == "[]", loaded.stdout
 
 
 def assert_documented(parser: argparse.ArgumentParser, name: str) -> None:
