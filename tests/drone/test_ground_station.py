@@ -20,9 +20,10 @@ from typing import Any
 
 from helpers.missions import FAST_LINK
 from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink2
 from waiting import eventually
 
-from baton.drone.gcs import GcsEndpoint, GcsEndpointError
+from baton.drone.gcs import GcsEndpoint, GcsEndpointError, GcsLink
 from baton.effects import read_effects
 from baton.signing import enable, write_key
 from baton.testbed.local import (
@@ -219,3 +220,53 @@ def test_a_bad_gcs_option_names_it_and_the_fix() -> None:
             result.stderr
         )
         assert "udp:HOST:PORT, e.g. udp:127.0.0.1:14550" in result.stderr
+
+
+# MAV_CMD_REQUEST_OPERATOR_CONTROL (development.xml): not in pymavlink's common
+# dialect, so it comes as a bare COMMAND_LONG number.
+REQUEST_OPERATOR_CONTROL = 32100
+
+
+class _Sent:
+    """A station's socket, as the drone writes to it: the frames, parsed back."""
+
+    def __init__(self) -> None:
+        self.frames: list[Any] = []
+        self._parser = mavlink2.MAVLink(None)
+
+    def sendto(self, frame: bytes, addr: object = None) -> None:
+        self.frames.extend(self._parser.parse_buffer(frame) or [])
+
+
+def _request_control(station_system: int = 255) -> bytes:
+    """A ground station asking for control of the vehicle (system 1)."""
+    out = mavlink2.MAVLink(None, srcSystem=station_system, srcComponent=190)
+    request = out.command_long_encode(1, 1, REQUEST_OPERATOR_CONTROL, 0, 0, 0, 0, 0, 0, 0, 0)
+    return bytes(request.pack(out))
+
+
+def test_a_request_for_control_is_denied_watching_and_an_override_with_override() -> None:
+    """A station's MAV_CMD_REQUEST_OPERATOR_CONTROL follows the rule of every command:
+    watch only, a COMMAND_ACK DENIED naming that command, a status text saying who
+    controls the vehicle, and nothing to the autopilot; with override, the request
+    is the operator taking over (the mission pauses) and goes on to the autopilot."""
+    watching = GcsLink([])
+    watching.controller = lambda: "2"
+    to_vehicle: list[bytes] = []
+    watching.to_vehicle = to_vehicle.append
+    sent = _Sent()
+    watching.received(_request_control(), sent)  # type: ignore[arg-type]
+    [ack, text] = sent.frames
+    assert ack.get_type() == "COMMAND_ACK" and ack.command == REQUEST_OPERATOR_CONTROL
+    assert ack.result == mavlink2.MAV_RESULT_DENIED and ack.target_system == 255
+    assert text.get_type() == "STATUSTEXT" and "master 2; GCS watch only" in text.text
+    assert (watching.denied, watching.overrides, to_vehicle) == (1, 0, [])
+
+    overriding = GcsLink([], override=True)
+    paused: list[tuple[str, str]] = []
+    overriding.on_override = lambda station, what: paused.append((station, what))
+    overriding.to_vehicle = to_vehicle.append
+    sent = _Sent()
+    overriding.received(_request_control(), sent)  # type: ignore[arg-type]
+    assert paused == [("ground station 255", "COMMAND_LONG")] and sent.frames == []
+    assert len(to_vehicle) == 1 and overriding.overrides == 1
