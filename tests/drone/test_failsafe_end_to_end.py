@@ -4,6 +4,7 @@ not by baton's word (issue 32, items 1 and 7)."""
 
 from __future__ import annotations
 
+import io
 import os
 import signal
 import time
@@ -22,6 +23,8 @@ from waiting import eventually
 
 from baton.effects import read_effects
 from baton.testbed.local import VEHICLE_EFFECTS_FILE, LocalTestbed, TestbedPlan, local_config
+from baton.testbed.report import build_report
+from baton.testbed.run import Progress
 from baton.v1 import drone_pb2
 
 MISSIONS = Path(__file__).parent / "missions"
@@ -180,6 +183,16 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
         status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         assert (status.failsafe.cause, status.failsafe.action) == ("battery", "rtl")
         assert "below the reserve of 80 %" in status.failsafe.reason
+        # The operator sees it where a run shows it: the progress line and the report.
+        snapshot = await testbed.snapshot()
+        line = io.StringIO()
+        Progress(waypoints=4, planned_handovers=0, stream=line)(snapshot)
+        assert "| FAILSAFE rtl: " in line.getvalue() and "80 %" in line.getvalue()
+        report = build_report(plan.config, snapshot, grid=2, duration_s=1.0, planned_handovers=[])
+        assert (report["drone"]["failsafe"]["cause"], report["drone"]["failsafe"]["action"]) == (
+            "battery",
+            "rtl",
+        )
         # Nothing after the return reached the vehicle: every later call refused.
         first = int(returned()[0]["seq"])  # type: ignore[call-overload]
         assert [e["effect"] for e in read_effects(effects) if e["seq"] > first] == []

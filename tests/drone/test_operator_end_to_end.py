@@ -5,6 +5,7 @@ baton's word (issue 32, item 4)."""
 from __future__ import annotations
 
 import asyncio
+import io
 import re
 from pathlib import Path
 
@@ -18,6 +19,8 @@ from baton.effects import read_effects
 from baton.rpc.channels import aio_channel
 from baton.rpc.tls import DRONE, Identity, Tls
 from baton.testbed.local import VEHICLE_EFFECTS_FILE, LocalTestbed, TestbedPlan, local_config
+from baton.testbed.report import build_report
+from baton.testbed.run import Progress
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2
 
 SPEEDUP = 20.0
@@ -118,6 +121,9 @@ async def test_paused_the_vehicle_holds_and_no_call_reaches_it_until_resumed(
         assert not during.HasField("failsafe")
         assert during.paused.after_reqnr == paused.after_reqnr
         assert [e for e in effects(tmp_path) if int(e["seq"]) > held_seq] == []  # type: ignore[call-overload]
+        line = io.StringIO()  # the run's progress line says it, as GetStatus does
+        Progress(waypoints=4, planned_handovers=0, stream=line)(await testbed.snapshot())
+        assert "| PAUSED: " in line.getvalue(), line.getvalue()
 
         cli = await asyncio.create_subprocess_exec(
             *baton("operator", "resume", "--address", drone_address, "--certs", str(certs)),
@@ -133,6 +139,8 @@ async def test_paused_the_vehicle_holds_and_no_call_reaches_it_until_resumed(
     assert_mission_promises(snapshot, bed)
     commands = [(c.command, c.action, c.vehicle) for c in snapshot.drone.operator_commands]
     assert commands == [("pause", "hold", "accepted"), ("resume", "goto", "accepted")]
+    report = build_report(bed.config, snapshot, grid=2, duration_s=1.0, planned_handovers=[])
+    assert [c["command"] for c in report["drone"]["operator_commands"]] == ["pause", "resume"]
 
 
 async def test_abort_returns_the_vehicle_and_every_program_ends_with_the_same_error(
