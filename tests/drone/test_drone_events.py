@@ -285,4 +285,16 @@ def test_a_mobility_call_is_unavailable_while_the_vehicle_is_not_connected() -> 
     assert refused is not None and refused.code is grpc.StatusCode.UNAVAILABLE
     assert "not connected" in refused.message and not drone.books(refused)
     assert drone.unreachable(goto, True, "") is None
-    assert drone.unreachable("/baton.v1.Camera/TakePicture", False, "") is None
+    assert drone.unreachable("/baton.v1.Camera/SetResolution", False, "") is None
+
+
+def test_a_picture_is_unavailable_while_the_vehicle_is_not_connected() -> None:
+    """A picture is taken where the vehicle is and says where: with the vehicle not
+    connected its place is unknown, so none is taken and the number stays unused (the
+    master sends it again)."""
+    drone = core()
+    picture = "/baton.v1.Camera/TakePicture"
+    refused = drone.unreachable(picture, False, "at udp://:14540 (no heartbeat)")
+    assert refused is not None and refused.code is grpc.StatusCode.UNAVAILABLE
+    assert "not connected" in refused.message and not drone.books(refused)
+    assert drone.unreachable(picture, True, "") is None
