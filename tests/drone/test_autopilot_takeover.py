@@ -24,6 +24,7 @@ from baton.drone.safety import (
     mode_seen,
 )
 from baton.drone.sequencer import Sequencer
+from baton.rpc.errors import StatusError
 from baton.rpc.methods import path
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
@@ -42,6 +43,17 @@ def decide(command: VehicleCommand, seen: ModeSeen, now: float = LATER) -> Fails
 
 def drone() -> DroneCore:
     return DroneCore(Sequencer([0, 1], initial_master=0))
+
+
+def refusal_of_first(core: DroneCore, method: str, now: float) -> StatusError:
+    """Why ``core`` refused master 0's first request, a ``method`` call, when admitted."""
+    admitted = core.admit(
+        drone_pb2.InvokeRequest(controller_id=0, epoch=1, reqnr=1, method=method),
+        request_digest(method, b""),
+        now,
+    )
+    assert admitted.refused is not None
+    return admitted.refused
 
 
 def test_a_return_or_landing_the_drone_did_not_command_is_the_autopilot_s() -> None:
@@ -162,14 +174,9 @@ def test_the_core_takes_it_only_while_it_flies_the_mission() -> None:
     core.enter_failsafe(due)
     assert core.vehicle_command is not None and core.vehicle_command.actions == (FLY,)
     assert core.autopilot_due(3.0 + LATER, flying("RETURN_TO_LAUNCH")) is None  # in failsafe
-    admitted = core.admit(
-        drone_pb2.InvokeRequest(controller_id=0, epoch=1, reqnr=1, method=GET),
-        request_digest(GET, b""),
-        20.0,
-    )
-    assert admitted.refused is not None
-    assert admitted.refused.code is grpc.StatusCode.FAILED_PRECONDITION
-    assert "autopilot took over: RETURN_TO_LAUNCH" in admitted.refused.message
+    refused = refusal_of_first(core, GET, 20.0)
+    assert refused.code is grpc.StatusCode.FAILED_PRECONDITION
+    assert "autopilot took over: RETURN_TO_LAUNCH" in refused.message
     cleared, _ = core.resume_mission(30.0)
     assert cleared is due
     # Resumed in the autopilot's return: neither it nor the landing it ends in counts.
@@ -279,11 +286,5 @@ def test_a_picture_re_sent_to_a_drone_restarted_while_its_autopilot_returned_is_
     assert due is not None and (due.cause, due.action) == (AUTOPILOT, "RETURN_TO_LAUNCH")
     restarted.enter_failsafe(due)
     assert restarted.unreachable(picture, True, "") is None
-    admitted = restarted.admit(
-        drone_pb2.InvokeRequest(controller_id=0, epoch=1, reqnr=1, method=picture),
-        request_digest(picture, b""),
-        100.2,
-    )
-    assert admitted.refused is not None
-    assert admitted.refused.code is grpc.StatusCode.FAILED_PRECONDITION
-    assert restarted.books(admitted.refused)
+    refused = refusal_of_first(restarted, picture, 100.2)
+    assert refused.code is grpc.StatusCode.FAILED_PRECONDITION and restarted.books(refused)

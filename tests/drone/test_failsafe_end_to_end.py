@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from helpers.missions import (
@@ -293,15 +294,8 @@ async def test_a_picture_re_sent_to_a_restarted_drone_waits_for_the_vehicle(
     refused UNAVAILABLE (nothing taken, the number unused), not taken with no place.
     Once the vehicle is back and looked at, the picture is taken at the waypoint, once.
     The autopilot's GCS failsafe is given 10 min: the vehicle stays where it was sent."""
-    plan = TestbedPlan(
-        config=local_config(
-            2,
-            flush_limit=0,
-            speedup=SPEEDUP,
-            controller_link=FAST_LINK,
-            drone_link=FAST_LINK,
-            safety={"autopilot_gcs_timeout": "10min"},
-        ),
+    plan = replace(
+        long_legs_on_fast_links(2, SPEEDUP, safety={"autopilot_gcs_timeout": "10min"}),
         mission_file=MISSIONS / "picture_after_a_wait.py",
     )
     pictures = tmp_path / "camera-effects.jsonl"
