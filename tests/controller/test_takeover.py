@@ -147,21 +147,24 @@ async def test_a_master_killed_after_the_drone_decided_a_handover_before_its_log
     tmp_path: Path,
 ) -> None:
     """The drone hands over from 0 to 1 after request 12; 0's log (16 MB flush limit:
-    never flushed before) cannot reach 1, whose ring link is cut, and 0 is killed as
-    soon as the drone decided. 1, master by the drone's word, waits for a log that will
-    never come, until the drone, not seeing 0, grants 1 again by takeover in a newer
-    epoch; 1 gets every reply from the drone."""
-    plan = three_controllers(16 * 2**20, handovers=((12, 1),))
+    never flushed before) cannot leave it: the ring links into 1 and into 2 are cut
+    before the mission starts. Cut once the mission runs, the cut may come after the
+    log left (a loaded machine); cut into 1 only, 0 routes around it to 2 after the
+    detection time, and 2 gives 1 the log once 0 is dead. 0 is killed once the drone
+    decided. 1, master by the drone's word, waits for a log that will never come, until
+    the drone, not seeing 0, grants 1 again by takeover in a newer epoch; 1 gets every
+    reply from the drone."""
+    cut = ("link-ring-1", "link-ring-2")
+    plan = replace(three_controllers(16 * 2**20, handovers=((12, 1),)), links_cut=cut)
     async with LocalTestbed(plan, tmp_path) as testbed:
-        await until_served(testbed, 6)
-        await testbed.cut_link("link-ring-1")
 
         async def decided() -> bool:
             return (await testbed.snapshot(audit=False)).drone.master == 1
 
         await eventually(decided, "the drone decided the handover", 120)
         await testbed.kill_controller(0)
-        await testbed.restore_link("link-ring-1")
+        for link in cut:
+            await testbed.restore_link(link)
         snapshot = await testbed.run_mission(240)
     assert_mission_promises(snapshot, plan)
     assert takeovers(snapshot) == [(0, 1, LOST)]

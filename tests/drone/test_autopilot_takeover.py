@@ -24,6 +24,7 @@ from baton.drone.safety import (
     mode_seen,
 )
 from baton.drone.sequencer import Sequencer
+from baton.rpc.errors import StatusError
 from baton.rpc.methods import path
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
@@ -42,6 +43,17 @@ def decide(command: VehicleCommand, seen: ModeSeen, now: float = LATER) -> Fails
 
 def drone() -> DroneCore:
     return DroneCore(Sequencer([0, 1], initial_master=0))
+
+
+def refusal_of_first(core: DroneCore, method: str, now: float) -> StatusError:
+    """Why ``core`` refused master 0's first request, a ``method`` call, when admitted."""
+    admitted = core.admit(
+        drone_pb2.InvokeRequest(controller_id=0, epoch=1, reqnr=1, method=method),
+        request_digest(method, b""),
+        now,
+    )
+    assert admitted.refused is not None
+    return admitted.refused
 
 
 def test_a_return_or_landing_the_drone_did_not_command_is_the_autopilot_s() -> None:
@@ -162,14 +174,9 @@ def test_the_core_takes_it_only_while_it_flies_the_mission() -> None:
     core.enter_failsafe(due)
     assert core.vehicle_command is not None and core.vehicle_command.actions == (FLY,)
     assert core.autopilot_due(3.0 + LATER, flying("RETURN_TO_LAUNCH")) is None  # in failsafe
-    admitted = core.admit(
-        drone_pb2.InvokeRequest(controller_id=0, epoch=1, reqnr=1, method=GET),
-        request_digest(GET, b""),
-        20.0,
-    )
-    assert admitted.refused is not None
-    assert admitted.refused.code is grpc.StatusCode.FAILED_PRECONDITION
-    assert "autopilot took over: RETURN_TO_LAUNCH" in admitted.refused.message
+    refused = refusal_of_first(core, GET, 20.0)
+    assert refused.code is grpc.StatusCode.FAILED_PRECONDITION
+    assert "autopilot took over: RETURN_TO_LAUNCH" in refused.message
     cleared, _ = core.resume_mission(30.0)
     assert cleared is due
     # Resumed in the autopilot's return: neither it nor the landing it ends in counts.
@@ -241,21 +248,43 @@ def test_a_vehicle_seen_in_the_air_stays_so_through_the_commands_that_fly_it_on(
 
 
 def test_a_drone_restarted_with_the_vehicle_in_the_air_commands_it_only_after_a_look() -> None:
-    """Until the restarted drone has seen the vehicle's flight state, a Mobility call is
-    UNAVAILABLE (nothing executed, the number stays unused): the autopilot may have
-    landed the vehicle meanwhile. After the look, the ordinary rules."""
+    """Until the restarted drone has seen the vehicle's flight state, a Mobility call or a
+    picture is UNAVAILABLE (nothing executed, the number stays unused): the autopilot may
+    have landed the vehicle or sent it home meanwhile, and a picture re-sent then would be
+    taken away from its waypoint. After the look, the ordinary rules."""
     restarted = drone()
     restarted.restore_command({"actions": [FLY], "airborne": True}, 100.0)
-    goto = path("Mobility.Goto")
-    refused = restarted.unreachable(goto, True, "")
-    assert refused is not None and refused.code is grpc.StatusCode.UNAVAILABLE
-    assert "has not seen its flight state yet" in refused.message
-    assert restarted.unreachable(path("Camera.TakePicture"), True, "") is None
+    goto, picture = path("Mobility.Goto"), path("Camera.TakePicture")
+    for method in (goto, picture):
+        refused = restarted.unreachable(method, True, "")
+        assert refused is not None and refused.code is grpc.StatusCode.UNAVAILABLE
+        assert "has not seen its flight state yet" in refused.message
+    assert restarted.unreachable(path("Camera.SetResolution"), True, "") is None
     assert restarted.autopilot_due(100.1, flying("GUIDED")) is None
     assert restarted.unreachable(goto, True, "") is None
+    assert restarted.unreachable(picture, True, "") is None
     again = drone()  # killed again before its first look: it still knows the vehicle flew
     again.restore_command(restarted_before_look := {"actions": [FLY], "airborne": True}, 100.0)
     assert again.kept_command() == restarted_before_look
     never_flown = drone()
     never_flown.restore_command({"actions": [FLY], "airborne": False}, 100.0)
     assert never_flown.unreachable(goto, True, "") is None
+
+
+def test_a_picture_re_sent_to_a_drone_restarted_while_its_autopilot_returned_is_refused() -> None:
+    """The drone killed with a picture in flight; the autopilot's own GCS failsafe sends
+    the vehicle home while the drone service is down. The picture re-sent after the
+    restart is not taken before the first look (UNAVAILABLE: nothing executed), and the
+    first look finds the return: the autopilot failsafe, in which the picture is refused
+    and booked (FAILED_PRECONDITION), never taken on the way home."""
+    restarted = drone()
+    restarted.restore_command({"actions": [FLY], "airborne": True}, 100.0)
+    picture = path("Camera.TakePicture")
+    before_look = restarted.unreachable(picture, True, "")
+    assert before_look is not None and not restarted.books(before_look)
+    due = restarted.autopilot_due(100.1, flying("RETURN_TO_LAUNCH"))
+    assert due is not None and (due.cause, due.action) == (AUTOPILOT, "RETURN_TO_LAUNCH")
+    restarted.enter_failsafe(due)
+    assert restarted.unreachable(picture, True, "") is None
+    refused = refusal_of_first(restarted, picture, 100.2)
+    assert refused.code is grpc.StatusCode.FAILED_PRECONDITION and restarted.books(refused)

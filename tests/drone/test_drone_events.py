@@ -278,11 +278,16 @@ def test_a_restart_abandons_a_read_it_cut_off_and_books_a_command() -> None:
     assert core().restarted(100.0, kept()) == []
 
 
-def test_a_mobility_call_is_unavailable_while_the_vehicle_is_not_connected() -> None:
+@pytest.mark.parametrize("method", ["/baton.v1.Mobility/Goto", "/baton.v1.Camera/TakePicture"])
+def test_a_call_that_needs_the_vehicle_is_unavailable_while_it_is_not_connected(
+    method: str,
+) -> None:
+    """A Mobility call reaches the vehicle; a picture is taken where it is and says where,
+    so with the vehicle not connected none is taken either. Nothing executed: the number
+    stays unused (the master sends it again). Setting the resolution needs no vehicle."""
     drone = core()
-    goto = "/baton.v1.Mobility/Goto"
-    refused = drone.unreachable(goto, False, "at udp://:14540 (no heartbeat)")
+    refused = drone.unreachable(method, False, "at udp://:14540 (no heartbeat)")
     assert refused is not None and refused.code is grpc.StatusCode.UNAVAILABLE
     assert "not connected" in refused.message and not drone.books(refused)
-    assert drone.unreachable(goto, True, "") is None
-    assert drone.unreachable("/baton.v1.Camera/TakePicture", False, "") is None
+    assert drone.unreachable(method, True, "") is None
+    assert drone.unreachable("/baton.v1.Camera/SetResolution", False, "") is None

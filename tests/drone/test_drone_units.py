@@ -257,16 +257,22 @@ async def test_the_camera_keeps_a_small_thumbnail_of_each_picture_and_where_it_w
     assert sorted(p.name for p in folder.iterdir()) == sorted(thumbnail_name(k) for k in (1, 2, 3))
 
 
-async def test_a_picture_taken_where_the_position_is_unknown_says_no_place(
+async def test_no_picture_is_taken_where_the_position_is_unknown(
     tmp_path,  # type: ignore[no-untyped-def]
 ) -> None:
+    """The vehicle connected but its position not reported yet (no global position, a
+    read that timed out): UNAVAILABLE, and the camera took and counted nothing."""
+
     async def unknown() -> api.Position:
         return api.Position()
 
     effects = tmp_path / "camera-effects.jsonl"
     camera = Camera(unknown, resolution=(16, 16), effects_file=effects)
-    await camera.TakePicture(api.TakePictureRequest())
-    assert "latitude_deg" not in read_effects(effects)[0]
+    with pytest.raises(StatusError) as refused:
+        await camera.TakePicture(api.TakePictureRequest())
+    assert refused.value.code is grpc.StatusCode.UNAVAILABLE
+    assert "position is not known now; no picture was taken" in refused.value.message
+    assert read_effects(effects) == [] and camera.sequence == 0
 
 
 def test_thumbnails_of_a_static_png_and_of_bytes_that_are_no_image(tmp_path) -> None:  # type: ignore[no-untyped-def]

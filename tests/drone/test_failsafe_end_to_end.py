@@ -8,6 +8,7 @@ import io
 import os
 import signal
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from helpers.missions import (
@@ -295,3 +296,51 @@ async def test_the_autopilot_returning_on_its_own_is_a_failsafe(tmp_path: Path) 
         assert cleared.cleared.cause == "autopilot"
     log = (tmp_path / "logs" / "drone.log").read_text()
     assert '"failsafe"' in log and "autopilot took over: RETURN_TO_LAUNCH" in log
+
+
+async def test_a_picture_re_sent_to_a_restarted_drone_waits_for_the_vehicle(
+    tmp_path: Path,
+) -> None:
+    """kill -9 of the drone after the Goto and before the picture (the mission sleeps at
+    the waypoint meanwhile), restarted while the vehicle's process is stopped: the
+    restarted drone does not know where the vehicle is, so the picture it is sent is
+    refused UNAVAILABLE (nothing taken, the number unused), not taken with no place.
+    Once the vehicle is back and looked at, the picture is taken at the waypoint, once.
+    The autopilot's GCS failsafe is given 10 min: the vehicle stays where it was sent."""
+    plan = replace(
+        long_legs_on_fast_links(2, SPEEDUP, safety={"autopilot_gcs_timeout": "10min"}),
+        mission_file=MISSIONS / "picture_after_a_wait.py",
+    )
+    pictures = tmp_path / "camera-effects.jsonl"
+    async with LocalTestbed(plan, tmp_path) as testbed:
+
+        async def waiting_at_the_waypoint() -> bool:
+            audit = (await testbed.snapshot()).drone.audit
+            return bool(audit) and audit[-1].method.endswith("/Goto")
+
+        await eventually(waiting_at_the_waypoint, "the Goto served, the mission waiting", 60)
+        supervisor = testbed.supervisor
+        drone = supervisor.parts["drone"]
+        assert drone.process is not None
+        os.kill(drone.process.pid, signal.SIGKILL)
+        await drone.process.wait()
+        assert read_effects(pictures) == []  # the premise: the picture comes next
+        supervisor.freeze("sim-vehicle")
+        await supervisor.restart("drone")
+
+        def picture_asked() -> str:
+            for event in log_events(tmp_path, "drone"):
+                if str(event.get("method", "")).endswith("/TakePicture"):
+                    return str(event.get("msg"))
+            return ""
+
+        first = await eventually(picture_asked, "the picture asked of the restarted drone", 60)
+        assert first == "invoke rejected", read_effects(pictures)
+        supervisor.thaw("sim-vehicle")
+        snapshot = await testbed.run_mission(120)
+    errors = [c.mission_error for c in snapshot.controllers.values()]
+    assert errors == ["", ""], errors
+    [picture] = read_effects(pictures)
+    assert "latitude_deg" in picture, picture  # taken where the vehicle was known to be
+    rejected = [e for e in log_events(tmp_path, "drone") if e.get("msg") == "invoke rejected"]
+    assert {e["code"] for e in rejected} == {"UNAVAILABLE"}, rejected

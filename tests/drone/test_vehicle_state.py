@@ -6,7 +6,13 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton.drone.vehicle_state import Health as VehicleHealth
-from baton.drone.vehicle_state import Heartbeat, LinkMonitor, is_prearm_text, readiness
+from baton.drone.vehicle_state import (
+    Heartbeat,
+    LinkMonitor,
+    flight_state_missing,
+    is_prearm_text,
+    readiness,
+)
 
 
 def Health(
@@ -172,3 +178,14 @@ def test_streams_are_requested_when_another_station_asked_for_the_position_only(
     link.position(5.5)  # SYS_STATUS stopped (a reboot that kept someone's position stream)
     assert not link.wants_streams(4.9)  # 2.9 s old: within its bound
     assert link.wants_streams(5.5)
+
+
+def test_a_flight_state_is_known_only_once_armed_and_in_air_both_arrived() -> None:
+    """Position telemetry (the link counts as up) may come before the landed state: a flight
+    state then would say "on the ground" for a vehicle that hovers (a restarted drone's
+    first look took it for one its autopilot landed). It is not known until both came."""
+    assert flight_state_missing({"position"}) == (
+        "armed state (HEARTBEAT) and landed state (EXTENDED_SYS_STATE)"
+    )
+    assert flight_state_missing({"position", "armed"}) == "landed state (EXTENDED_SYS_STATE)"
+    assert flight_state_missing({"armed", "in_air"}) is None

@@ -11,6 +11,8 @@ import pytest
 from helpers.testbed_runs import baton, run_testbed
 
 from baton.testbed.faults import Fault, check_parts, parse_fault
+from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.testbed.supervisor import PartNotReady
 from baton.testbed.waits import LOUD
 
 SMALL = ["--grid", "3", "--spacing", "20", "--altitude", "5", "--speedup", "20"]
@@ -61,6 +63,20 @@ def test_a_fault_on_a_part_the_testbed_lacks_is_refused_before_anything_starts()
     )
     assert result.returncode == 2
     assert "--fault 'cut:link-ring-0@reqnr=3': this testbed has no link-ring-0" in result.stderr
+
+
+async def test_a_link_cut_from_the_start_must_be_one_of_the_testbed_s(tmp_path: Path) -> None:
+    """``TestbedPlan.links_cut`` names link emulators: anything else is refused before a
+    part starts, naming the links there are."""
+    for plan, links in (
+        (TestbedPlan(links_cut=("link-ring-9",)), "link-ring-0, link-drone-0, "),
+        (TestbedPlan(links_cut=("link-ring-0",), emulate_links=False), "none (emulate_links"),
+    ):
+        name = plan.links_cut[0]
+        with pytest.raises(PartNotReady) as caught:
+            await LocalTestbed(plan, tmp_path).start()
+        expected = f"TestbedPlan.links_cut: {name} is no link emulator of this testbed; "
+        assert str(caught.value).startswith(f"{expected}its links: {links}"), caught.value
 
 
 def test_the_master_killed_by_a_fault_is_taken_over_and_the_mission_completes_once(

@@ -234,8 +234,16 @@ class Camera:
 
     async def TakePicture(self, request: api.TakePictureRequest) -> api.TakePictureReply:
         """A picture with the vehicle's position, where the gimbal pointed (if at a region
-        of interest) and its sequence number."""
+        of interest) and its sequence number. UNAVAILABLE, nothing taken, while the
+        vehicle's position is not known (the source's all-zero Position): a picture is
+        the mission's at a place, and one of no known place cannot be told to be the
+        waypoint's (the caller sends it again)."""
         position = await self._position()
+        if not (position.latitude_deg or position.longitude_deg):
+            raise StatusError(
+                grpc.StatusCode.UNAVAILABLE,
+                "Camera.TakePicture: the vehicle's position is not known now; no picture was taken",
+            )
         looking_at = self._aim() if self._aim is not None else None
         image, seq = self.picture(position, looking_at)
         width, height = self.resolution

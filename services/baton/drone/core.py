@@ -27,6 +27,11 @@ The rules it keeps (docs/design.md, "Takeover" and "Exactly once"):
 - A failure after admission is the request's outcome and is booked, except
   UNAVAILABLE, which means nothing reached the vehicle: the number stays
   unused and the same request may be sent again.
+- A call that needs the vehicle (a Mobility call, a picture: ``needs_vehicle``)
+  is UNAVAILABLE while the vehicle is not connected, and after a restart with
+  the vehicle in the air until the first look at it (``unreachable``): a
+  picture is never taken where the vehicle's place is unknown, nor on a way
+  home its autopilot chose while the drone service was down.
 - The safety net (``safety.py``, docs/operating.md "The safety net"): with no
   usable controller (no request, no stream from one the drone could make
   master) for ``lost_link_s`` while the vehicle is in the air, or with the
@@ -89,7 +94,7 @@ from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
 from baton.drone.store import DroneState, Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.labels import label
-from baton.rpc.methods import Method, drone_api
+from baton.rpc.methods import Method, drone_api, path
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -105,6 +110,19 @@ START_GRACE_S = 10.0
 # How often the drivers look whether the master is lost, a preparation is due, or a
 # failsafe is due (a fraction of the takeover time).
 WATCH_TICK_S = 0.05
+
+
+# A picture is taken where the vehicle is and its reply says where: it needs the vehicle
+# as a Mobility call does, the connection for the place, and after a restart the first
+# look for whether the autopilot moved the vehicle while the drone service was down.
+PLACED = path("Camera.TakePicture")
+
+
+def needs_vehicle(route: Method) -> bool:
+    """Whether a call of ``route`` needs the vehicle connected and, after a restart with
+    it in the air, looked at first: Mobility calls reach it; a picture is taken where it
+    is (``PLACED``)."""
+    return route.service == "Mobility" or route.path == PLACED
 
 
 @dataclass(frozen=True)
@@ -526,12 +544,13 @@ class DroneCore:
         )
 
     def unreachable(self, method: str, vehicle_connected: bool, why: str) -> StatusError | None:
-        """UNAVAILABLE for a Mobility call while the vehicle is not connected (``why``), or
-        while a drone restarted with the vehicle in the air has not looked at it yet (its
-        autopilot may have landed it meanwhile: ``autopilot_due`` decides at the first
-        look): nothing reaches it, so the number stays unused (``books``); None otherwise."""
+        """UNAVAILABLE for a call that needs the vehicle (``needs_vehicle``) while the
+        vehicle is not connected (``why``), or while a drone restarted with the vehicle in
+        the air has not looked at it yet (its autopilot may have landed it or sent it home
+        meanwhile: ``autopilot_due`` decides at the first look): nothing reaches it, so
+        the number stays unused (``books``); None otherwise."""
         route = self.routes.get(method)
-        if route is None or route.service != "Mobility":
+        if route is None or not needs_vehicle(route):
             return None
         if not vehicle_connected:
             return StatusError(

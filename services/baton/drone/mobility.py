@@ -55,6 +55,7 @@ from baton.drone.vehicle_state import (
     Heartbeat,
     LinkMonitor,
     Readiness,
+    flight_state_missing,
     is_prearm_text,
     readiness,
 )
@@ -828,9 +829,18 @@ class MavsdkMobility:
         return api.GetHomeReply(home=_position(self._cached("home")))
 
     async def GetFlightState(self, request: api.GetFlightStateRequest) -> api.GetFlightStateReply:
-        """Armed, in air, modes, battery, readiness and why not, from the telemetry cache."""
+        """Armed, in air, modes, battery, readiness and why not, from the telemetry cache;
+        UNAVAILABLE until the autopilot has said whether it is armed and in the air
+        (``flight_state_missing``)."""
         self._require_connected()
         latest = self._latest
+        missing = flight_state_missing(latest)
+        if missing is not None:
+            raise StatusError(
+                grpc.StatusCode.UNAVAILABLE,
+                f"vehicle at {self.url} has not sent its {missing} yet: its flight state "
+                "is not known",
+            )
         battery = latest.get("battery")
         mode = latest.get("flight_mode")
         landed = latest.get("landed_state")

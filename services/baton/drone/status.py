@@ -117,7 +117,9 @@ async def drone_status(
                     READ_TIMEOUT_S,
                 )
             )
-        except (StatusError, TimeoutError):
+        except StatusError as err:  # unknown now: not ready, and why
+            status.flight_state.not_ready_reason = err.message
+        except TimeoutError:
             pass  # unknown now: left empty
     if service.store is not None:
         status.audit_oldest_reqnr = service.store.oldest_audit_reqnr()

@@ -25,6 +25,7 @@ autopilot"):
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 from types import SimpleNamespace
 
@@ -167,6 +168,23 @@ def readiness(
     if prearm_text and not armed:
         reason = f"{prearm_text} ({reason})"
     return Readiness(False, armable, reason)
+
+
+# What a flight state is made of, by the telemetry cache's name, and the message that
+# brings it. Until each has arrived MAVSDK's cache holds nothing for it, and a default
+# (disarmed, on the ground) would be an answer the autopilot never gave: a restarted
+# drone's first look would take a hovering vehicle for one its autopilot landed.
+FLIGHT_STATE_PARTS = (
+    ("armed", "armed state (HEARTBEAT)"),
+    ("in_air", "landed state (EXTENDED_SYS_STATE)"),
+)
+
+
+def flight_state_missing(heard: Collection[str]) -> str | None:
+    """What of the flight state the autopilot has not sent yet (``FLIGHT_STATE_PARTS``
+    not in ``heard``), for a person; None once it is all known."""
+    missing = [what for name, what in FLIGHT_STATE_PARTS if name not in heard]
+    return " and ".join(missing) or None
 
 
 def is_prearm_text(text: str) -> bool:

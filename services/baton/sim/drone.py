@@ -177,6 +177,8 @@ class Execution:
     is_read: bool
     reply: bytes = b""
     error: StatusError | None = None
+    # The vehicle's link was up when the execution began (where a picture reads its place).
+    vehicle_known: bool = True
 
 
 @dataclass(eq=False)
@@ -367,7 +369,7 @@ class SimDrone:
             duration = rng.uniform(0.05, 0.3)
         else:
             duration = rng.uniform(0.02, 0.3)
-        execution = Execution(request, digest, route.is_read)
+        execution = Execution(request, digest, route.is_read, vehicle_known=self.vehicle.connected)
         self.busy = execution
         loop = self.world.loop
         loop.at(now + duration * rng.uniform(0.1, 0.9), self._act, execution)
@@ -390,7 +392,9 @@ class SimDrone:
             execution.reply = self.vehicle.read(now, request.reqnr, request.method)
         elif request.method.startswith(CAMERA):
             size = self.world.rng.randint(300, 3000)
-            execution.reply = self.camera.take(now, request.reqnr, request.payload, size)
+            execution.reply = self.camera.take(
+                now, request.reqnr, request.payload, size, execution.vehicle_known
+            )
         else:  # Invocations._execute: the core told what is sent, then what is acknowledged
             action = self.core.sending(request.method, now)
             execution.reply = self.vehicle.act(now, request.reqnr, request.method, request.payload)

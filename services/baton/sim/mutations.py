@@ -22,6 +22,7 @@ from baton.controller.core import ControllerCore, CoreEffect
 from baton.controller.link_core import Greeting, LinkCore, SyncWord
 from baton.controller.protocol import ConnectDrone, ControllerProtocol, Effect, Refusal, State
 from baton.controller.sync_words import Belief
+from baton.drone import core as drone_core
 from baton.drone import sequencer
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import ReplyCache
@@ -260,6 +261,13 @@ def _forgets_it_flew() -> list[tuple[Any, str, Any]]:
     return [(DroneCore, "restore_command", restore_command)]
 
 
+def _pictures_unplaced() -> list[tuple[Any, str, Any]]:
+    """A picture needs nothing of the vehicle (``core.needs_vehicle``: Mobility only), so
+    one sent while the vehicle's link is out, or to a drone restarted before its first
+    look, is taken where the vehicle's place is unknown."""
+    return [(drone_core, "needs_vehicle", lambda route: route.service == "Mobility")]
+
+
 def _believes_unbacked_claims() -> list[tuple[Any, str, Any]]:
     """Issue 33: a mastership a log message claims is believed without the drone's grant
     (``authenticity.unbacked_claim``, which ``ControllerCore.log_arrived`` asks, backs
@@ -337,6 +345,11 @@ for _mutation in (
         "a restarted drone flies on a vehicle its GCS failsafe landed",
         _forgets_it_flew,
         AUTOPILOT,
+    ),
+    Mutation(
+        "pictures-unplaced",
+        "a picture taken while the vehicle's place is unknown",
+        _pictures_unplaced,
     ),
     Mutation(
         "believes-unbacked-claims",

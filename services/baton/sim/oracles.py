@@ -25,6 +25,9 @@ in each epoch, and the virtual time at which programs finished.
    empty, and the drone's reply cache never outgrew its window.
 7. ``lies-refused`` (``--lying``): every frame the lying station forged
    was refused by its receiver's core (lying.py).
+8. ``picture-placed``: no picture taken while the vehicle's link was out:
+   its place unknown, it cannot be told to be the waypoint's (the drone
+   refuses it UNAVAILABLE and the master sends it again).
 
 Besides the oracles, a check of the drone's own word (not ground truth):
 ``prepared-record``: every handover the drone prepared is recorded as
@@ -61,6 +64,7 @@ ORACLES = (
     "nothing-while-paused",
     "nothing-after-abort",
     "lies-refused",
+    "picture-placed",
 )
 
 
@@ -91,6 +95,14 @@ def check(world: World) -> list[Violation]:
     found += _prepared_records(world)
     found += _nothing_in_failsafe(world)
     found += _nothing_while_paused_or_ended(world)
+    found += [
+        Violation(
+            "picture-placed",
+            f"picture of request {picture.reqnr} taken at {picture.time:.3f}s with the "
+            "vehicle's link out: its place unknown",
+        )
+        for picture in world.drone.camera.unplaced
+    ]
     found += [
         Violation(
             "lies-refused",

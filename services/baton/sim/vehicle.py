@@ -132,14 +132,19 @@ class SimVehicle:
 
 
 class SimCamera:
-    """The camera: takes a picture (a large reply) per request it is given, and counts it."""
+    """The camera: takes a picture (a large reply) per request it is given, and counts it,
+    and those taken where the vehicle's place was not known (its link out when the
+    camera read it, as ``Camera.TakePicture`` reads it first)."""
 
     def __init__(self) -> None:
         self.pictures: list[Acted] = []
+        self.unplaced: list[Acted] = []
 
-    def take(self, now: float, reqnr: int, request: bytes, size: int) -> bytes:
-        """One picture of ``size`` bytes."""
+    def take(self, now: float, reqnr: int, request: bytes, size: int, placed: bool) -> bytes:
+        """One picture of ``size`` bytes; ``placed``: the vehicle's place was known."""
         head = b"picture for %s #%d;" % (request, len(self.pictures) + 1)
         reply = head + bytes(max(0, size - len(head)))
         self.pictures.append(Acted(now, request, reqnr, reply))
+        if not placed:
+            self.unplaced.append(self.pictures[-1])
         return reply

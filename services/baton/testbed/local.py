@@ -148,6 +148,10 @@ class TestbedPlan:
     # Extra `baton link` options by link name ("link-drone-0", "link-ring-1"),
     # e.g. an asymmetric link: (("link-drone-0", ("--up-latency", "3s")),).
     link_args: tuple[tuple[str, tuple[str, ...]], ...] = ()
+    # Link emulators cut before the controllers start ("link-ring-1"): what must not get
+    # through from the mission's first request on, whatever the machine's speed
+    # (``restore_link`` brings one back).
+    links_cut: tuple[str, ...] = ()
     # Extra `baton sim-vehicle` options (e.g. --battery-capacity-wh 8).
     vehicle_args: tuple[str, ...] = ()
     mission_args: tuple[str, ...] = ()  # extra mission parameters, key=value
@@ -389,6 +393,13 @@ class LocalTestbed:
             check_parts(plan.faults, plan.part_names())
         except ValueError as exc:
             raise PartNotReady(str(exc)) from None
+        links = [name for name in plan.part_names() if name.startswith("link-")]
+        unknown = sorted(set(plan.links_cut) - set(links))
+        if unknown:
+            raise PartNotReady(
+                f"TestbedPlan.links_cut: {', '.join(unknown)} is no link emulator of this "
+                f"testbed; its links: {', '.join(links) or 'none (emulate_links is off)'}"
+            )
         if plan.flight_plan is not None:  # flown in its fence (testbed/plan_fence.py)
             try:
                 config = with_plan_fence(config, plan.flight_plan)
@@ -475,6 +486,8 @@ class LocalTestbed:
         self.config = parse_config(document, str(self.config_path))
         await self._start_drone()
         await self.wait_vehicle_ready(VEHICLE_READY_TIMEOUT_S, vehicle_wait)
+        for name in plan.links_cut:
+            await self.cut_link(name)
         await self._start_controllers()
         self.started_at = time.monotonic()
         return self.config
