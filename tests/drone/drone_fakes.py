@@ -6,6 +6,7 @@ import asyncio
 
 import grpc
 
+from baton.drone.safety import VehicleLimits
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
@@ -33,6 +34,8 @@ class FakeMobility:
         self.roi: api.Position | None = None
         # The cruise speed a restarted drone gave back from its state file.
         self.restored_speed: float | None = None
+        # The bounds the fake autopilot says (None: not asked yet).
+        self.limits: VehicleLimits | None = None
 
     @property
     def connected(self) -> bool:
@@ -97,6 +100,9 @@ class FakeMobility:
         self.position.longitude_deg = request.longitude_deg
         self.position.relative_altitude_m = request.relative_altitude_m
         return api.GotoReply()
+
+    def autopilot_limits(self) -> VehicleLimits | None:
+        return self.limits
 
     def restore_speed(self, speed_m_s: float) -> None:
         self.restored_speed = speed_m_s

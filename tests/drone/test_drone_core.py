@@ -10,13 +10,19 @@ from baton.digest import request_digest
 from baton.drone.core import RESTART_GRACE_S, START_GRACE_S, DroneCore
 from baton.drone.policy import Station
 from baton.drone.safety import (
+    CONFIGURED,
+    FROM_AUTOPILOT,
+    Bound,
     Failsafe,
     SafetyParams,
+    VehicleLimits,
     gcs_failsafe_params,
     landing_due,
+    limit_params,
     limit_refusal,
     nearest_station,
     sleep_refusal,
+    vehicle_limits,
 )
 from baton.drone.sequencer import Sequencer
 from baton.drone.store import Intent
@@ -270,6 +276,88 @@ def test_limits_of_altitude_and_sleep() -> None:
     assert too_long is not None and too_long.code is grpc.StatusCode.INVALID_ARGUMENT
     assert "safety.max_sleep = 600" in too_long.message
     assert sleep_refusal(600.0, 600.0) is None
+
+
+SET_SPEED_AT = "Mobility.SetSpeed"
+
+
+def speed_refusal(speed_m_s: float, params: SafetyParams, vehicle: VehicleLimits) -> str | None:
+    refused = limit_refusal(SET_SPEED_AT, api.SetSpeedRequest(speed_m_s=speed_m_s), params, vehicle)
+    assert refused is None or refused.code is grpc.StatusCode.INVALID_ARGUMENT
+    return None if refused is None else refused.message
+
+
+def test_the_speed_bound_is_the_configured_one_the_vehicle_s_or_the_smaller() -> None:
+    configured, unbounded = SafetyParams(max_speed_m_s=15.0), SafetyParams()
+    says_12 = VehicleLimits(speed_m_s=12.0, speed_param="MPC_XY_VEL_MAX")
+    says_none = VehicleLimits()
+    # configured only
+    assert speed_refusal(15.0, configured, says_none) is None
+    assert speed_refusal(16.0, configured, says_none) == (
+        "Mobility.SetSpeed: speed_m_s 16 is beyond the bound safety.max_speed = 15; "
+        "nothing was executed"
+    )
+    # the vehicle's only
+    assert speed_refusal(12.0, unbounded, says_12) is None
+    assert speed_refusal(30.0, unbounded, says_12) == (
+        "Mobility.SetSpeed: speed_m_s 30 is beyond the vehicle's bound MPC_XY_VEL_MAX = 12 "
+        "(read from the autopilot); nothing was executed"
+    )
+    # both: the smaller wins, whichever it is
+    assert "MPC_XY_VEL_MAX = 12" in (speed_refusal(13.0, configured, says_12) or "")
+    says_20 = VehicleLimits(speed_m_s=20.0, speed_param="MPC_XY_VEL_MAX")
+    assert "safety.max_speed = 15" in (speed_refusal(16.0, configured, says_20) or "")
+    # neither: nothing is refused
+    assert speed_refusal(1e9, unbounded, says_none) is None
+
+
+def test_the_altitude_bound_names_the_autopilot_s_ceiling_when_it_is_smaller() -> None:
+    params = SafetyParams(max_altitude_m=120.0)
+    ceiling = VehicleLimits(altitude_m=60.0, altitude_param="GF_MAX_VER_DIST")
+    goto = api.GotoRequest(latitude_deg=1, longitude_deg=1, relative_altitude_m=61)
+    refused = limit_refusal("Mobility.Goto", goto, params, ceiling)
+    assert refused is not None and "relative_altitude_m 61" in refused.message
+    assert "the vehicle's bound GF_MAX_VER_DIST = 60 (read from the autopilot)" in refused.message
+    takeoff = api.TakeoffRequest(altitude_m=60)
+    assert limit_refusal("Mobility.Takeoff", takeoff, params, ceiling) is None
+
+
+def test_the_core_refuses_beyond_what_the_autopilot_said_and_shows_the_bounds() -> None:
+    drone = safe_core()
+    fast = api.SetSpeedRequest(speed_m_s=14.0).SerializeToString()
+    assert drone.refusal(SET_SPEED, fast) is None
+    assert drone.bounds()[0] == Bound(15.0, "safety.max_speed", CONFIGURED)
+    drone.limits_read(VehicleLimits(speed_m_s=10.0, speed_param="MPC_XY_VEL_MAX"))
+    refused = drone.refusal(SET_SPEED, fast)
+    assert refused is not None and "MPC_XY_VEL_MAX = 10" in refused.message
+    speed, altitude = drone.bounds()
+    assert speed == Bound(10.0, "MPC_XY_VEL_MAX", FROM_AUTOPILOT)
+    assert altitude == Bound(120.0, "safety.max_altitude", CONFIGURED)
+
+
+def test_the_autopilot_s_bounds_from_its_parameters() -> None:
+    # PX4: its horizontal maximum and its geofence ceiling (0: none)
+    px4 = vehicle_limits(False, {"MPC_XY_VEL_MAX": 12.0, "GF_MAX_VER_DIST": 0.0})
+    assert px4 == VehicleLimits(12.0, "MPC_XY_VEL_MAX")
+    assert vehicle_limits(False, {"GF_MAX_VER_DIST": 80.0}).altitude_param == "GF_MAX_VER_DIST"
+    # a parameter the autopilot lacks is absent: no bound from it
+    assert vehicle_limits(False, {}) == VehicleLimits()
+    # ArduPilot: FENCE_ALT_MAX only where the fence is on with its altitude bit
+    on = {"FENCE_ENABLE": 1.0, "FENCE_TYPE": 7.0, "FENCE_ALT_MAX": 100.0}
+    assert vehicle_limits(True, on) == VehicleLimits(
+        altitude_m=100.0, altitude_param="FENCE_ALT_MAX"
+    )
+    assert vehicle_limits(True, {**on, "FENCE_ENABLE": 0.0}) == VehicleLimits()
+    assert vehicle_limits(True, {**on, "FENCE_TYPE": 6.0}) == VehicleLimits()
+    # ArduPilot says no horizontal maximum (WPNAV_SPEED is a default): none is read
+    assert [p.name for p in limit_params(True, own_fence=False)] == [
+        "FENCE_ENABLE",
+        "FENCE_TYPE",
+        "FENCE_ALT_MAX",
+    ]
+    # the ceiling the drone's own fence sets is not read back as the vehicle's
+    assert limit_params(True, own_fence=True) == []
+    assert [p.name for p in limit_params(False, own_fence=True)] == ["MPC_XY_VEL_MAX"]
 
 
 def test_nearest_station_and_landing_over_it() -> None:

@@ -22,6 +22,7 @@ from helpers.missions import (
 from helpers.pilot import PX4_AUTO_RTL, switch_mode
 from waiting import eventually
 
+from baton.drone.safety import FROM_AUTOPILOT
 from baton.effects import read_effects
 from baton.testbed.local import VEHICLE_EFFECTS_FILE, LocalTestbed, TestbedPlan, local_config
 from baton.testbed.report import build_report
@@ -95,22 +96,43 @@ async def test_every_station_killed_mid_flight_is_the_failsafe_after_lost_link(
 async def test_a_speed_and_a_sleep_beyond_the_bounds_are_refused_and_nothing_executed(
     tmp_path: Path,
 ) -> None:
-    """SetSpeed(1e9) refused INVALID_ARGUMENT naming safety.max_speed, and the vehicle
-    never told it; Sleep(1e12) refused naming safety.max_sleep (the mission ends)."""
+    """The sim vehicle says MPC_XY_VEL_MAX = 8 (under safety.max_speed = 15): GetStatus
+    shows it as the speed bound in force, read from the autopilot; SetSpeed(1e9) and
+    SetSpeed(10) are refused INVALID_ARGUMENT naming it, and the vehicle never told
+    either; Sleep(1e12) refused naming safety.max_sleep; SetSpeed(3) reaches it."""
     plan = TestbedPlan(
         config=local_config(2, flush_limit=0, speedup=SPEEDUP),
         mission_file=MISSIONS / "beyond_bounds.py",
+        vehicle_args=("--max-speed", "8"),
     )
     async with LocalTestbed(plan, tmp_path) as testbed:
+        assert testbed.drone_stub is not None
+        stub = testbed.drone_stub
+
+        async def bounds() -> dict[str, drone_pb2.FlightBound]:
+            status = await stub.GetStatus(drone_pb2.GetDroneStatusRequest())
+            return {b.bound: b for b in status.bounds}
+
+        async def vehicle_said() -> bool:
+            return (await bounds())["max_speed"].name == "MPC_XY_VEL_MAX"
+
+        await eventually(vehicle_said, "the drone read the vehicle's MPC_XY_VEL_MAX", 30)
+        said = await bounds()
+        assert (said["max_speed"].value, said["max_speed"].source) == (8.0, FROM_AUTOPILOT)
+        assert (said["max_altitude"].name, said["max_altitude"].value) == (
+            "safety.max_altitude",
+            120.0,
+        )
         await testbed.run_mission(120)
     speeds = [
         e["speed_m_s"]
         for e in read_effects(tmp_path / VEHICLE_EFFECTS_FILE)
         if e["effect"] == "set_speed"
     ]
-    assert speeds == [3.0]  # the sane one only: 1e9 never reached the vehicle
+    assert speeds == [3.0]  # the sane one only: 1e9 and 10 never reached the vehicle
     logs = " ".join(p.read_text() for p in (tmp_path / "logs").glob("*.log"))
-    assert "safety.max_speed = 15" in logs and "safety.max_sleep = 600" in logs
+    assert "speed_m_s 10 is beyond the vehicle's bound MPC_XY_VEL_MAX = 8 (read from" in logs
+    assert "safety.max_sleep = 600" in logs
 
 
 async def test_the_cruise_speed_survives_a_drone_killed_mid_mission(tmp_path: Path) -> None:

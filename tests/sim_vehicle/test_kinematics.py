@@ -94,6 +94,14 @@ def test_set_speed_changes_the_cruise_speed() -> None:
         k.set_speed(0.0)
 
 
+def test_no_speed_asked_flies_faster_than_the_maximum() -> None:
+    k = airborne()  # PX4's MPC_XY_VEL_MAX default: 12 m/s
+    k.set_speed(30.0)
+    k.goto(LocalPoint(100.0, 0.0, 10.0))
+    run(k, 2.0)
+    assert k.position.north_m == pytest.approx(24.0)
+
+
 def test_goto_geo_uses_amsl_altitude() -> None:
     k = airborne()
     k.goto_geo(GeoPoint(HOME.latitude_deg, HOME.longitude_deg, HOME.altitude_amsl_m + 16.0))

@@ -382,6 +382,42 @@ class OperatorCommand(_message.Message):
 Global___OperatorCommand: _TypeAlias = OperatorCommand  # noqa: Y015
 
 @_typing.final
+class FlightBound(_message.Message):
+    """One bound of what a call may ask the vehicle (DroneStatus.bounds)."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    BOUND_FIELD_NUMBER: _builtins.int
+    VALUE_FIELD_NUMBER: _builtins.int
+    NAME_FIELD_NUMBER: _builtins.int
+    SOURCE_FIELD_NUMBER: _builtins.int
+    bound: _builtins.str
+    """What it bounds: "max_speed" (m/s) or "max_altitude" (m above home)."""
+    value: _builtins.float
+    """Its value; infinite: no bound."""
+    name: _builtins.str
+    """What names it: the configuration's field ("safety.max_speed") or the
+    autopilot's parameter ("MPC_XY_VEL_MAX").
+    """
+    source: _builtins.str
+    """Where it came from: "configured" or "read from the autopilot"."""
+    def __init__(
+        self,
+        *,
+        bound: _builtins.str = ...,
+        value: _builtins.float = ...,
+        name: _builtins.str = ...,
+        source: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["bound", b"bound", "name", b"name", "source", b"source", "value", b"value"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___FlightBound: _TypeAlias = FlightBound  # noqa: Y015
+
+@_typing.final
 class Failsafe(_message.Message):
     """The vehicle taken out of the mission's hands by the safety net."""
 
@@ -1657,6 +1693,7 @@ class DroneStatus(_message.Message):
     PAUSED_FIELD_NUMBER: _builtins.int
     ENDED_FIELD_NUMBER: _builtins.int
     OPERATOR_COMMANDS_FIELD_NUMBER: _builtins.int
+    BOUNDS_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The current master."""
     last_reqnr: _builtins.int
@@ -1799,6 +1836,13 @@ class DroneStatus(_message.Message):
         file.
         """
 
+    @_builtins.property
+    def bounds(self) -> _containers.RepeatedCompositeFieldContainer[Global___FlightBound]:
+        """The bounds a call may not ask beyond, in force now: max_speed (a SetSpeed)
+        and max_altitude (a Takeoff's or a Goto's, metres above home), each the
+        smaller of the configured one and the autopilot's own where it says one.
+        """
+
     def __init__(
         self,
         *,
@@ -1840,10 +1884,11 @@ class DroneStatus(_message.Message):
         paused: Global___OperatorCommand | None = ...,
         ended: Global___OperatorCommand | None = ...,
         operator_commands: _abc.Iterable[Global___OperatorCommand] | None = ...,
+        bounds: _abc.Iterable[Global___FlightBound] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["ended", b"ended", "failsafe", b"failsafe", "flight_state", b"flight_state", "paused", b"paused", "policy_decision", b"policy_decision", "position", b"position", "vehicle", b"vehicle"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "controllers", b"controllers", "duplicates", b"duplicates", "ended", b"ended", "epoch", b"epoch", "executed", b"executed", "failsafe", b"failsafe", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "lost_link_action", b"lost_link_action", "lost_link_s", b"lost_link_s", "master", b"master", "master_connected", b"master_connected", "operator_commands", b"operator_commands", "paused", b"paused", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "policy_resumes", b"policy_resumes", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["audit", b"audit", "audit_more", b"audit_more", "audit_oldest_reqnr", b"audit_oldest_reqnr", "bounds", b"bounds", "controllers", b"controllers", "duplicates", b"duplicates", "ended", b"ended", "epoch", b"epoch", "executed", b"executed", "failsafe", b"failsafe", "flight_state", b"flight_state", "handover_policy", b"handover_policy", "handovers", b"handovers", "holding", b"holding", "last_reqnr", b"last_reqnr", "links", b"links", "lost_link_action", b"lost_link_action", "lost_link_s", b"lost_link_s", "master", b"master", "master_connected", b"master_connected", "operator_commands", b"operator_commands", "paused", b"paused", "policy_decision", b"policy_decision", "policy_decisions", b"policy_decisions", "policy_resumes", b"policy_resumes", "position", b"position", "preparing_for", b"preparing_for", "preparing_lacks_bytes", b"preparing_lacks_bytes", "reachable", b"reachable", "rejected", b"rejected", "retained_bytes", b"retained_bytes", "retained_replies", b"retained_replies", "takeover_after_s", b"takeover_after_s", "vehicle", b"vehicle", "vehicle_connected", b"vehicle_connected", "vehicle_url", b"vehicle_url", "waiting", b"waiting", "waits", b"waits", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -78,10 +78,13 @@ from baton.drone.operator import Operator, OperatorCommand
 from baton.drone.policy import PREPARE, SWITCH, Decision, handover_step
 from baton.drone.safety import (
     VEHICLE_ACTIONS,
+    Bound,
     Failsafe,
     ModeSeen,
     SafetyParams,
     VehicleCommand,
+    VehicleLimits,
+    altitude_bound,
     autopilot_takeover,
     battery_failsafe,
     commanded_action,
@@ -89,6 +92,7 @@ from baton.drone.safety import (
     landed_while_down,
     limit_refusal,
     lost_link_failsafe,
+    speed_bound,
 )
 from baton.drone.sequencer import Sequencer, TakeoverDue, cut_off_outcome
 from baton.drone.store import DroneState, Intent
@@ -198,6 +202,9 @@ class DroneCore:
         # controller was last there (None: not looked yet).
         self.failsafe: Failsafe | None = None
         self.last_usable: float | None = None
+        # The bounds the autopilot said at its last read (``limits_read``): a call is
+        # refused beyond the smaller of them and the configured ones.
+        self.vehicle_limits = VehicleLimits()
         # Whether the vehicle was out of the fence at the last look (a breach acts once).
         self.out_of_fence = False
         # What the drone last commanded the vehicle (None: nothing yet, no mission flies
@@ -298,6 +305,19 @@ class DroneCore:
         return record
 
     # -- the safety net ---------------------------------------------------------------
+
+    def limits_read(self, limits: VehicleLimits) -> None:
+        """The autopilot said its bounds (read at connect and after its reboot); kept until
+        it says them again (the link lost or the autopilot rebooting changes none)."""
+        self.vehicle_limits = limits
+
+    def bounds(self) -> tuple[Bound, Bound]:
+        """The bounds in force, speed and altitude (``safety.speed_bound``,
+        ``safety.altitude_bound``)."""
+        return (
+            speed_bound(self.safety, self.vehicle_limits),
+            altitude_bound(self.safety, self.vehicle_limits),
+        )
 
     def failsafe_due(
         self,
@@ -539,7 +559,7 @@ class DroneCore:
             message = route.parse(payload)
         except StatusError:
             return None
-        return limit_refusal(route.rpc, message, self.safety) or move_refusal(
+        return limit_refusal(route.rpc, message, self.safety, self.vehicle_limits) or move_refusal(
             route.rpc, message, self.safety.fence
         )
 

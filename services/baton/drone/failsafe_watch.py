@@ -37,6 +37,9 @@ class FailsafeWatch:
         it at the station once a nearest_station failsafe has brought it there."""
         service = self.service
         while True:
+            limits = service.vehicle.autopilot_limits()
+            if limits is not None:
+                service.core.limits_read(limits)
             state = await self.flight_state()
             if state is None:
                 service.core.vehicle_unseen()

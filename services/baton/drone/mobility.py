@@ -46,7 +46,14 @@ from pymavlink.dialects.v20 import common as mavlink
 from baton import logs
 from baton.drone.gcs import GcsLink
 from baton.drone.mavlink_relay import MavlinkRelay
-from baton.drone.safety import AutopilotParam, fence_params, gcs_failsafe_params
+from baton.drone.safety import (
+    AutopilotParam,
+    VehicleLimits,
+    fence_params,
+    gcs_failsafe_params,
+    limit_params,
+    vehicle_limits,
+)
 from baton.drone.tlog import TlogWriter, tlog_path
 from baton.drone.vehicle_state import (
     ARDUPILOT_COMMAND_MODE,
@@ -229,6 +236,8 @@ class MavsdkMobility:
         self.gcs_failsafe_timeout_s = gcs_failsafe_timeout_s
         self._param: Any = None
         self._gcs_sysid = 245
+        # The bounds the autopilot said at its last connect (None: not read yet).
+        self._limits: VehicleLimits | None = None
         self._runtime = runtime
         # Ground stations watching live (drone/gcs.py), fed by the relay.
         self.gcs = gcs
@@ -452,6 +461,9 @@ class MavsdkMobility:
                 self._tasks.append(
                     asyncio.create_task(self._set_gcs_failsafe(), name="gcs-failsafe params")
                 )
+                self._tasks.append(
+                    asyncio.create_task(self._read_limits(), name="autopilot limits")
+                )
                 if self.fence is not None and not self._fence_held:
                     self._tasks.append(
                         asyncio.create_task(self._fence_at_connect(), name="fence upload")
@@ -493,6 +505,29 @@ class MavsdkMobility:
         ardupilot = heartbeat is not None and heartbeat.is_ardupilot
         params = gcs_failsafe_params(ardupilot, self.gcs_failsafe_timeout_s, self._gcs_sysid)
         await self._set_params("autopilot GCS failsafe", params)
+
+    def autopilot_limits(self) -> VehicleLimits | None:
+        """The bounds the autopilot said at its last connect (``safety.vehicle_limits``)."""
+        return self._limits
+
+    async def _read_limits(self) -> None:
+        """Reads the parameters that say the autopilot's bounds (``safety.limit_params``);
+        one it does not answer within PARAM_TIMEOUT_S says no bound (logged)."""
+        heartbeat = self._heartbeat
+        ardupilot = heartbeat is not None and heartbeat.is_ardupilot
+        values: dict[str, float] = {}
+        for p in limit_params(ardupilot, own_fence=self.fence is not None):
+            get = self._param.get_param_int if p.integer else self._param.get_param_float
+            try:
+                values[p.name] = float(await asyncio.wait_for(get(p.name), PARAM_TIMEOUT_S))
+            except Exception as exc:  # ParamError, a timeout: the autopilot lacks it
+                self._log.info(
+                    "autopilot bound not read: the autopilot does not have the parameter",
+                    param=p.name,
+                    error=f"{type(exc).__name__}: {exc}",
+                )
+        self._limits = vehicle_limits(ardupilot, values)
+        self._log.info("autopilot bounds read", params=values, limits=str(self._limits))
 
     async def _set_params(self, what: str, params: list[AutopilotParam]) -> None:
         """Sets ``params`` in order where the autopilot has them: each read first, and the

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 from typing import Protocol
 
+from baton.drone.safety import VehicleLimits
 from baton.rpc.errors import StatusError
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
@@ -42,6 +43,10 @@ class MobilityBackend(Protocol):
     def looking_at(self) -> api.Position | None:
         """The region of interest the gimbal points at (Gimbal.SetRoiLocation accepted
         last, not cleared since); None if none is set. The camera records it."""
+
+    def autopilot_limits(self) -> VehicleLimits | None:
+        """The bounds the autopilot said at its last connect (``safety.vehicle_limits``);
+        None until it was asked."""
 
     def restore_speed(self, speed_m_s: float) -> None:
         """The cruise speed the mission set before the drone restarted (its durable

@@ -372,22 +372,125 @@ def fence_params(ardupilot: bool, fence: Fence) -> list[AutopilotParam]:
     ]
 
 
-def limit_refusal(method: str, request: Message, params: SafetyParams) -> StatusError | None:
-    """INVALID_ARGUMENT naming the bound a call asks beyond (a SetSpeed faster than
-    ``max_speed_m_s``, a Takeoff or Goto higher than ``max_altitude_m``); None if none."""
-    if isinstance(request, api.SetSpeedRequest) and request.speed_m_s > params.max_speed_m_s:
-        return _beyond(method, "speed_m_s", request.speed_m_s, "max_speed", params.max_speed_m_s)
-    if isinstance(request, api.TakeoffRequest) and request.altitude_m > params.max_altitude_m:
-        return _beyond(
-            method, "altitude_m", request.altitude_m, "max_altitude", params.max_altitude_m
-        )
-    if isinstance(request, api.GotoRequest) and request.relative_altitude_m > params.max_altitude_m:
+# Where a bound in force comes from (``Bound.source``).
+CONFIGURED, FROM_AUTOPILOT = "configured", "read from the autopilot"
+
+
+@dataclass(frozen=True)
+class VehicleLimits:
+    """The bounds the autopilot says it flies within, each with the parameter that says
+    it (inf, "": it says none): its horizontal speed, its ceiling above home."""
+
+    speed_m_s: float = math.inf
+    speed_param: str = ""
+    altitude_m: float = math.inf
+    altitude_param: str = ""
+
+
+@dataclass(frozen=True)
+class Bound:
+    """One bound in force: its value (inf: none), what names it (``safety.max_speed``,
+    an autopilot parameter) and where it came from (``CONFIGURED``, ``FROM_AUTOPILOT``)."""
+
+    value: float
+    name: str
+    source: str
+
+    def words(self) -> str:
+        """The bound as a refusal names it."""
+        if self.source == CONFIGURED:
+            return f"the bound {self.name} = {self.value:g}"
+        return f"the vehicle's bound {self.name} = {self.value:g} ({self.source})"
+
+
+def _smaller(configured: Bound, vehicle_value: float, param: str) -> Bound:
+    """The configured bound, or the vehicle's where it is smaller (a tie: the
+    configuration's, which the operator wrote)."""
+    if param and vehicle_value < configured.value:
+        return Bound(vehicle_value, param, FROM_AUTOPILOT)
+    return configured
+
+
+def speed_bound(params: SafetyParams, vehicle: VehicleLimits) -> Bound:
+    """The fastest a SetSpeed may ask: ``safety.max_speed`` or the autopilot's, the smaller."""
+    configured = Bound(params.max_speed_m_s, "safety.max_speed", CONFIGURED)
+    return _smaller(configured, vehicle.speed_m_s, vehicle.speed_param)
+
+
+def altitude_bound(params: SafetyParams, vehicle: VehicleLimits) -> Bound:
+    """The highest a Takeoff or Goto may ask (metres above home): ``safety.max_altitude``
+    or the autopilot's ceiling, the smaller."""
+    configured = Bound(params.max_altitude_m, "safety.max_altitude", CONFIGURED)
+    return _smaller(configured, vehicle.altitude_m, vehicle.altitude_param)
+
+
+def limit_params(ardupilot: bool, own_fence: bool) -> list[AutopilotParam]:
+    """The parameters that say the autopilot's bounds (``vehicle_limits`` reads them).
+
+    PX4: MPC_XY_VEL_MAX (m/s, the absolute maximum of every velocity-controlled mode),
+    GF_MAX_VER_DIST (m above home, 0: none). ArduPilot: FENCE_ALT_MAX where FENCE_ENABLE
+    is 1 and FENCE_TYPE has its maximum-altitude bit (1); ArduPilot has no hard maximum
+    of horizontal speed (WPNAV_SPEED is the default a reposition flies at). With
+    ``own_fence`` the drone sets the ceiling parameters itself (``fence_params``) from
+    the mission's fence, which refuses above it already: they are not read again."""
+    if ardupilot:
+        if own_fence:
+            return []
+        return [
+            AutopilotParam("FENCE_ENABLE", 0),
+            AutopilotParam("FENCE_TYPE", 0),
+            AutopilotParam("FENCE_ALT_MAX", 0, integer=False),
+        ]
+    speed = [AutopilotParam("MPC_XY_VEL_MAX", 0, integer=False)]
+    return speed if own_fence else [*speed, AutopilotParam("GF_MAX_VER_DIST", 0, integer=False)]
+
+
+# FENCE_TYPE's bit of the maximum-altitude fence (ArduPilot's AC_FENCE_TYPE_ALT_MAX).
+_ALT_MAX = 1
+
+
+def vehicle_limits(ardupilot: bool, values: Mapping[str, float]) -> VehicleLimits:
+    """The autopilot's bounds from the ``values`` of ``limit_params`` it answered (a
+    parameter it lacks is absent: it says no bound there); a value of 0 or less, or not
+    finite, is no bound."""
+
+    def positive(name: str) -> float | None:
+        value = values.get(name)
+        return value if value is not None and math.isfinite(value) and value > 0 else None
+
+    speed = None if ardupilot else positive("MPC_XY_VEL_MAX")
+    if ardupilot:
+        fenced = values.get("FENCE_ENABLE") == 1 and int(values.get("FENCE_TYPE", 0)) & _ALT_MAX
+        ceiling_param = "FENCE_ALT_MAX"
+        ceiling = positive(ceiling_param) if fenced else None
+    else:
+        ceiling_param = "GF_MAX_VER_DIST"
+        ceiling = positive(ceiling_param)
+    return VehicleLimits(
+        speed if speed is not None else math.inf,
+        "MPC_XY_VEL_MAX" if speed is not None else "",
+        ceiling if ceiling is not None else math.inf,
+        ceiling_param if ceiling is not None else "",
+    )
+
+
+def limit_refusal(
+    method: str, request: Message, params: SafetyParams, vehicle: VehicleLimits | None = None
+) -> StatusError | None:
+    """INVALID_ARGUMENT naming the bound a call asks beyond and where it came from (a
+    SetSpeed faster than ``speed_bound``, a Takeoff or Goto higher than
+    ``altitude_bound``); None if none."""
+    vehicle = vehicle or VehicleLimits()
+    if isinstance(request, api.SetSpeedRequest):
+        return _beyond(method, "speed_m_s", request.speed_m_s, speed_bound(params, vehicle))
+    if isinstance(request, api.TakeoffRequest):
+        return _beyond(method, "altitude_m", request.altitude_m, altitude_bound(params, vehicle))
+    if isinstance(request, api.GotoRequest):
         return _beyond(
             method,
             "relative_altitude_m",
             request.relative_altitude_m,
-            "max_altitude",
-            params.max_altitude_m,
+            altitude_bound(params, vehicle),
         )
     return None
 
@@ -396,14 +499,16 @@ def sleep_refusal(seconds: float, max_sleep_s: float) -> StatusError | None:
     """INVALID_ARGUMENT for a Clock.Sleep longer than the mission's ``max_sleep``; None
     if the controller may sleep it (a sleep not finite or negative is refused before it
     takes a request number: ``controller.service``)."""
-    if seconds > max_sleep_s:
-        return _beyond("Clock.Sleep", "seconds", seconds, "max_sleep", max_sleep_s)
-    return None
+    return _beyond(
+        "Clock.Sleep", "seconds", seconds, Bound(max_sleep_s, "safety.max_sleep", CONFIGURED)
+    )
 
 
-def _beyond(method: str, field: str, value: float, bound: str, limit: float) -> StatusError:
+def _beyond(method: str, field: str, value: float, bound: Bound) -> StatusError | None:
+    """INVALID_ARGUMENT naming ``bound`` when ``value`` is beyond it; None otherwise."""
+    if not value > bound.value:  # NaN is the execution's to refuse (not finite)
+        return None
     return StatusError(
         grpc.StatusCode.INVALID_ARGUMENT,
-        f"{method}: {field} {value:g} is beyond the bound safety.{bound} = {limit:g}; "
-        "nothing was executed",
+        f"{method}: {field} {value:g} is beyond {bound.words()}; nothing was executed",
     )

@@ -97,6 +97,8 @@ async def drone_status(
     fill_status(status, service.operator)
     status.lost_link_s = service.core.safety.lost_link_s
     status.lost_link_action = service.core.safety.lost_link_action
+    for what, bound in zip(("max_speed", "max_altitude"), service.core.bounds(), strict=True):
+        status.bounds.add(bound=what, value=bound.value, name=bound.name, source=bound.source)
     links, clock = service.link_states(), time.monotonic()
     for cid in seq.ring:
         status.links.append(

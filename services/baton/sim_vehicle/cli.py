@@ -105,6 +105,13 @@ def register(subparsers: Any) -> None:
         help="default horizontal cruise speed, m/s (default 5; DO_CHANGE_SPEED changes it)",
     )
     parser.add_argument(
+        "--max-speed",
+        type=_positive,
+        default=12.0,
+        help="the fastest it flies horizontally, m/s, whatever it is asked; said as PX4's "
+        "MPC_XY_VEL_MAX (default 12, PX4's)",
+    )
+    parser.add_argument(
         "--climb-rate", type=_positive, default=3.0, help="climb and descent rate, m/s (default 3)"
     )
     parser.add_argument(
@@ -201,6 +208,7 @@ def run(args: argparse.Namespace) -> int:
         climb_rate_m_s=args.climb_rate,
         descent_rate_m_s=args.climb_rate,
         cruise_speed_m_s=args.speed,
+        max_speed_m_s=args.max_speed,
         warmup_s=args.warmup,
         battery_capacity_wh=args.battery_capacity_wh,
         hover_power_w=args.hover_power_w,

@@ -84,6 +84,9 @@ class FlightParams:
     descent_rate_m_s: float = 3.0
     cruise_speed_m_s: float = 5.0
     takeoff_altitude_m: float = 2.5  # PX4's MIS_TAKEOFF_ALT default
+    # The fastest it flies horizontally whatever it is asked (PX4's MPC_XY_VEL_MAX and
+    # its default: PX4 truncates a faster setpoint to it).
+    max_speed_m_s: float = 12.0
     # The battery: its energy, and the power drawn while armed: hover power
     # plus a term growing with the square of the ground speed (drag), in
     # watts. 100 Wh at 200 W hover and 2 W/(m/s)^2 last 24 min at 5 m/s,
@@ -144,6 +147,7 @@ class Kinematics:
         self._arm_refusals_left = self.params.arm_refusals
         self.speed_m_s = self.params.cruise_speed_m_s
         self.takeoff_altitude_m = self.params.takeoff_altitude_m
+        self.max_speed_m_s = self.params.max_speed_m_s
         self.position = LocalPoint(0.0, 0.0, 0.0)
         self.home = self.position
         self.velocity = LocalPoint(0.0, 0.0, 0.0)  # m/s, per axis
@@ -325,7 +329,7 @@ class Kinematics:
         here = self.position
         distance = here.horizontal_distance_to(target)
         north, east = target.north_m, target.east_m
-        reach = self.speed_m_s * dt
+        reach = min(self.speed_m_s, self.max_speed_m_s) * dt
         if distance > reach:
             fraction = reach / distance
             north = here.north_m + (target.north_m - here.north_m) * fraction

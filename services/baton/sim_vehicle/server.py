@@ -12,10 +12,10 @@ The set of messages and commands is the one that section found sufficient for
 MAVSDK 4.x (heartbeat with the PX4 custom mode, SYS_STATUS, position, home,
 extended state, GPS, battery; arm, takeoff, land, mode, reposition, speed,
 RTL, message requests and intervals; the parameter protocol for
-MIS_TAKEOFF_ALT and PX4's link-loss and geofence parameters; the mission protocol
-for fence uploads, ``fence_upload.py``, ``state().fence`` the fence held and each
-upload accepted counted as ``fence``, a breach acted on as GF_ACTION says and counted
-as ``fence_breach``).
+MIS_TAKEOFF_ALT, PX4's link-loss and geofence parameters and MPC_XY_VEL_MAX (the
+fastest it flies); the mission protocol for fence uploads, ``fence_upload.py``,
+``state().fence`` the fence held and each upload accepted counted as ``fence``, a
+breach acted on as GF_ACTION says and counted as ``fence_breach``).
 Unknown commands get COMMAND_ACK UNSUPPORTED.
 
 It has a gimbal, which it manages itself as an autopilot does: a region of
@@ -159,6 +159,8 @@ PARAM_TAKEOFF_ALT = "MIS_TAKEOFF_ALT"
 PARAM_DL_LOSS_T, PARAM_DLL_ACT = "COM_DL_LOSS_T", "NAV_DLL_ACT"
 RETURN_ON_LINK_LOSS = 2
 PARAM_GF_MAX_VER_DIST, PARAM_GF_ACTION = "GF_MAX_VER_DIST", "GF_ACTION"
+# PX4's absolute maximum horizontal speed (m/s): the vehicle flies no faster.
+PARAM_XY_VEL_MAX = "MPC_XY_VEL_MAX"
 GF_RETURN, GF_LAND = 3, 5  # GF_ACTION values it acts on (PX4's; 1, a warning, is its default)
 # The region-of-interest commands its gimbal obeys.
 ROI_COMMANDS = (
@@ -905,6 +907,9 @@ class SimVehicle:
             elif name == PARAM_GF_MAX_VER_DIST:
                 if math.isfinite(msg.param_value) and msg.param_value >= 0:
                     self._geofence_params[name] = float(msg.param_value)
+            elif name == PARAM_XY_VEL_MAX:
+                if math.isfinite(msg.param_value) and msg.param_value > 0:
+                    self._kinematics.max_speed_m_s = float(msg.param_value)
             elif name != PARAM_TAKEOFF_ALT:
                 return  # PX4 stays silent about unknown parameters
             elif math.isfinite(msg.param_value) and msg.param_value > 0:
@@ -919,7 +924,7 @@ class SimVehicle:
 
     def _param_names(self) -> list[str]:
         """Every parameter it knows, in index order."""
-        return [PARAM_TAKEOFF_ALT, *self._link_loss, *self._geofence_params]
+        return [PARAM_TAKEOFF_ALT, *self._link_loss, *self._geofence_params, PARAM_XY_VEL_MAX]
 
     def _send_param(self, name: str = PARAM_TAKEOFF_ALT) -> None:
         assert self._mav is not None
@@ -931,6 +936,8 @@ class SimVehicle:
             value = _int_to_bytewise(round(held))
         elif name == PARAM_GF_MAX_VER_DIST:
             value = self._geofence_params[name]
+        elif name == PARAM_XY_VEL_MAX:
+            value = self._kinematics.max_speed_m_s
         names = self._param_names()
         self._mav.param_value_send(name.encode(), value, kind, len(names), names.index(name))
 
