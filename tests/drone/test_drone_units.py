@@ -22,10 +22,13 @@ from baton.drone.camera import (
 from baton.drone.dedupe import CachedReply, ReplyCache, retained_batches
 from baton.drone.dispatch import Dispatcher
 from baton.drone.master import HandoverScriptError, load_handover_script, parse_handover_script
+from baton.drone.mobility import MavsdkMobility
+from baton.drone.safety import VehicleLimits
 from baton.effects import read_effects
 from baton.rpc.errors import StatusError
 from baton.rpc.methods import drone_api
 from baton.rpc.tls import DRONE, TlsError
+from baton.sdk.fence import Fence
 from baton.v1 import drone_api_pb2 as api
 
 ALL_METHODS = sorted(drone_api())
@@ -380,3 +383,37 @@ def test_cli_handover_policy_from_the_config_or_the_flag(tmp_path) -> None:  # t
     bare.write_text("controllers: [{id: 0, address: '127.0.0.1:7000'}]\ntls: {insecure: true}\n")
     with pytest.raises(ValueError, match="controller 0 has no location"):
         settings_from_args(_drone_args("--config", str(bare), "--handover-policy", "nearest"))
+
+
+class _Params:
+    """MAVSDK's param plugin on an autopilot that has only ``values``: a read of any
+    other is refused as MAVSDK refuses it (ParamError)."""
+
+    def __init__(self, values: dict[str, float]) -> None:
+        self.values = values
+        self.asked: list[str] = []
+
+    async def get_param_float(self, name: str) -> float:
+        self.asked.append(name)
+        if name not in self.values:
+            raise RuntimeError(f"ParamError: {name}: PARAM_NOT_FOUND")
+        return self.values[name]
+
+    async def get_param_int(self, name: str) -> int:
+        return round(await self.get_param_float(name))
+
+
+async def test_the_autopilot_s_bounds_read_where_it_has_the_parameters() -> None:
+    """A PX4 without GF_MAX_VER_DIST: its speed bound read, no ceiling; with the
+    mission's fence, the ceiling the drone sets itself is not asked."""
+    mobility = MavsdkMobility("udpin://127.0.0.1:0")
+    assert mobility.autopilot_limits() is None  # not read yet
+    mobility._param = params = _Params({"MPC_XY_VEL_MAX": 9.0})
+    await mobility._read_limits()
+    assert mobility.autopilot_limits() == VehicleLimits(9.0, "MPC_XY_VEL_MAX")
+    assert params.asked == ["MPC_XY_VEL_MAX", "GF_MAX_VER_DIST"]
+    fenced = MavsdkMobility("udpin://127.0.0.1:0", fence=Fence(ceiling_m=50.0))
+    fenced._param = params = _Params({"MPC_XY_VEL_MAX": 9.0, "GF_MAX_VER_DIST": 50.0})
+    await fenced._read_limits()
+    assert fenced.autopilot_limits() == VehicleLimits(9.0, "MPC_XY_VEL_MAX")
+    assert params.asked == ["MPC_XY_VEL_MAX"]

@@ -111,6 +111,10 @@ def test_autopilot_killed_mid_flight_and_restarted(kind: str, tmp_path: Path) ->
             bed.wait_until("climbing", lambda s: s.position.relative_altitude_m > 3)
             healthy = bed.status().vehicle
             assert healthy.healthy and healthy.outages == 0 and healthy.stream_requests >= 1
+            if isinstance(autopilot, SimAutopilot):  # PX4's MPC_XY_VEL_MAX (ArduPilot: none)
+                said = bed.wait_until("its bounds read", lambda s: s.bounds[0].value == 12, 10)
+                assert said.bounds[0].name == "MPC_XY_VEL_MAX"
+                autopilot.extra = ["--max-speed", "7"]  # what the rebooted one says
 
             autopilot.kill()
             killed_at = time.monotonic()
@@ -145,6 +149,8 @@ def test_autopilot_killed_mid_flight_and_restarted(kind: str, tmp_path: Path) ->
             assert "no global position" in (early.value.details() or "")
             reqnr += 1
             bed.wait_until("ready again", lambda s: s.flight_state.ready, 120)
+            if isinstance(autopilot, SimAutopilot):  # the rebooted autopilot's bounds read
+                bed.wait_until("its bounds read again", lambda s: s.bounds[0].value == 7, 10)
             reply = invoke(bed, reqnr, "/baton.v1.Mobility/GetPosition", api.GetPositionRequest())
             position = api.GetPositionReply.FromString(reply.payload).position
             assert position.latitude_deg != 0
