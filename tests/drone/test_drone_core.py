@@ -350,14 +350,14 @@ def test_the_autopilot_s_bounds_from_its_parameters() -> None:
     assert vehicle_limits(True, {**on, "FENCE_ENABLE": 0.0}) == VehicleLimits()
     assert vehicle_limits(True, {**on, "FENCE_TYPE": 6.0}) == VehicleLimits()
     # ArduPilot says no horizontal maximum (WPNAV_SPEED is a default): none is read
-    assert [p.name for p in limit_params(True, own_fence=False)] == [
+    assert [p.name for p in limit_params(True, own_ceiling=False)] == [
         "FENCE_ENABLE",
         "FENCE_TYPE",
         "FENCE_ALT_MAX",
     ]
     # the ceiling the drone's own fence sets is not read back as the vehicle's
-    assert limit_params(True, own_fence=True) == []
-    assert [p.name for p in limit_params(False, own_fence=True)] == ["MPC_XY_VEL_MAX"]
+    assert limit_params(True, own_ceiling=True) == []
+    assert [p.name for p in limit_params(False, own_ceiling=True)] == ["MPC_XY_VEL_MAX"]
 
 
 def test_nearest_station_and_landing_over_it() -> None:

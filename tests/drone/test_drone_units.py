@@ -23,12 +23,12 @@ from baton.drone.dedupe import CachedReply, ReplyCache, retained_batches
 from baton.drone.dispatch import Dispatcher
 from baton.drone.master import HandoverScriptError, load_handover_script, parse_handover_script
 from baton.drone.mobility import MavsdkMobility
-from baton.drone.safety import VehicleLimits
+from baton.drone.safety import VehicleLimits, fence_params
 from baton.effects import read_effects
 from baton.rpc.errors import StatusError
 from baton.rpc.methods import drone_api
 from baton.rpc.tls import DRONE, TlsError
-from baton.sdk.fence import Fence
+from baton.sdk.fence import Fence, FencePolygon
 from baton.v1 import drone_api_pb2 as api
 
 ALL_METHODS = sorted(drone_api())
@@ -402,6 +402,12 @@ class _Params:
     async def get_param_int(self, name: str) -> int:
         return round(await self.get_param_float(name))
 
+    async def set_param_float(self, name: str, value: float) -> None:
+        self.values[name] = value
+
+    async def set_param_int(self, name: str, value: int) -> None:
+        self.values[name] = value
+
 
 async def test_the_autopilot_s_bounds_read_where_it_has_the_parameters() -> None:
     """A PX4 without GF_MAX_VER_DIST: its speed bound read, no ceiling; with the
@@ -417,3 +423,20 @@ async def test_the_autopilot_s_bounds_read_where_it_has_the_parameters() -> None
     await fenced._read_limits()
     assert fenced.autopilot_limits() == VehicleLimits(9.0, "MPC_XY_VEL_MAX")
     assert params.asked == ["MPC_XY_VEL_MAX"]
+    # A mission's fence without a ceiling: the autopilot's own ceiling is its bound.
+    open_sky = MavsdkMobility("udpin://127.0.0.1:0", fence=Fence(polygons=(FencePolygon(()),)))
+    open_sky._param = params = _Params({"MPC_XY_VEL_MAX": 9.0, "GF_MAX_VER_DIST": 80.0})
+    await open_sky._read_limits()
+    assert params.asked == ["MPC_XY_VEL_MAX", "GF_MAX_VER_DIST"]
+    assert open_sky.autopilot_limits() == VehicleLimits(
+        9.0, "MPC_XY_VEL_MAX", 80.0, "GF_MAX_VER_DIST"
+    )
+
+
+async def test_the_fence_sets_its_bits_of_fence_type_and_keeps_the_autopilot_s() -> None:
+    """ArduPilot's FENCE_TYPE is a bitmask: the drone's polygon bit is set over the
+    altitude and circle bits the autopilot had (3), not written over them."""
+    mobility = MavsdkMobility("udpin://127.0.0.1:0")
+    mobility._param = params = _Params({"FENCE_TYPE": 3, "FENCE_ACTION": 0, "FENCE_ENABLE": 0})
+    await mobility._set_params("autopilot fence", fence_params(True, Fence()))
+    assert params.values == {"FENCE_TYPE": 7, "FENCE_ACTION": 1, "FENCE_ENABLE": 1}

@@ -230,14 +230,23 @@ def test_a_configured_fence_is_the_drone_s() -> None:
 
 def test_the_autopilot_s_own_fence_parameters() -> None:
     ardupilot = fence_params(True, fence(action="land"))
-    assert [(p.name, p.value) for p in ardupilot] == [
-        ("FENCE_TYPE", 5),
-        ("FENCE_ALT_MAX", 60.0),
-        ("FENCE_ACTION", 2),
-        ("FENCE_ENABLE", 1),
+    assert [(p.name, p.value, p.bits) for p in ardupilot] == [
+        ("FENCE_TYPE", 5, True),  # set over the autopilot's own bits
+        ("FENCE_ALT_MAX", 60.0, False),
+        ("FENCE_ACTION", 2, False),
+        ("FENCE_ENABLE", 1, False),
     ]
     px4 = fence_params(False, fence())
     assert [(p.name, p.value) for p in px4] == [("GF_MAX_VER_DIST", 60.0), ("GF_ACTION", 3)]
+    # A fence without a ceiling leaves the autopilot's ceiling alone: PX4's
+    # GF_MAX_VER_DIST unwritten, ArduPilot's altitude bit and FENCE_ALT_MAX untouched.
+    open_sky = Fence((FencePolygon(SQUARE),))
+    assert [(p.name, p.value) for p in fence_params(False, open_sky)] == [("GF_ACTION", 3)]
+    assert [(p.name, p.value, p.bits) for p in fence_params(True, open_sky)] == [
+        ("FENCE_TYPE", 4, True),
+        ("FENCE_ACTION", 1, False),
+        ("FENCE_ENABLE", 1, False),
+    ]
 
 
 class _Item:

@@ -516,7 +516,8 @@ class MavsdkMobility:
         heartbeat = self._heartbeat
         ardupilot = heartbeat is not None and heartbeat.is_ardupilot
         values: dict[str, float] = {}
-        for p in limit_params(ardupilot, own_fence=self.fence is not None):
+        own_ceiling = self.fence is not None and math.isfinite(self.fence.ceiling_m)
+        for p in limit_params(ardupilot, own_ceiling=own_ceiling):
             get = self._param.get_param_int if p.integer else self._param.get_param_float
             try:
                 values[p.name] = float(await asyncio.wait_for(get(p.name), PARAM_TIMEOUT_S))
@@ -539,7 +540,9 @@ class MavsdkMobility:
             put = self._param.set_param_int if p.integer else self._param.set_param_float
             value = int(p.value) if p.integer else float(p.value)
             try:
-                await asyncio.wait_for(get(p.name), PARAM_TIMEOUT_S)
+                held = await asyncio.wait_for(get(p.name), PARAM_TIMEOUT_S)
+                if p.bits:  # set these bits, keep the autopilot's others
+                    value = int(held) | int(p.value)
                 await asyncio.wait_for(put(p.name, value), PARAM_TIMEOUT_S)
             except Exception as exc:  # ParamError, a timeout: the autopilot lacks it
                 self._log.warning(

@@ -320,11 +320,14 @@ def landing_due(position: api.Position, station: Station) -> bool:
 
 @dataclass(frozen=True)
 class AutopilotParam:
-    """One parameter of the autopilot's own GCS failsafe (``gcs_failsafe_params``)."""
+    """One parameter the drone sets on the autopilot (``gcs_failsafe_params``,
+    ``fence_params``) or reads (``limit_params``). ``bits``: an integer bitmask whose
+    bits of ``value`` are set over what the autopilot holds, its other bits kept."""
 
     name: str
     value: float
     integer: bool = True
+    bits: bool = False
 
 
 def gcs_failsafe_params(ardupilot: bool, timeout_s: float, gcs_sysid: int) -> list[AutopilotParam]:
@@ -348,17 +351,23 @@ def gcs_failsafe_params(ardupilot: bool, timeout_s: float, gcs_sysid: int) -> li
     ]
 
 
+# FENCE_TYPE's bit of the maximum-altitude fence (ArduPilot's AC_FENCE_TYPE_ALT_MAX).
+_ALT_MAX = 1
+
+
 def fence_params(ardupilot: bool, fence: Fence) -> list[AutopilotParam]:
     """The autopilot's own fence, beside the polygons and circles uploaded to it: its
     ceiling and the action of a breach it finds itself (rtl: return, land: land), so a
     vehicle out of its fence comes back even with the drone service gone.
 
-    ArduPilot: FENCE_TYPE 5 (maximum altitude and the uploaded polygons and circles),
-    FENCE_ALT_MAX, FENCE_ACTION (1: RTL or land, 2: land), then FENCE_ENABLE 1. PX4:
-    GF_MAX_VER_DIST (0: none), GF_ACTION (3: Return, 5: Land)."""
+    ArduPilot: FENCE_TYPE's polygon bit (4) and, with a ceiling, its maximum-altitude
+    bit (1) set over the bits it has, FENCE_ALT_MAX, FENCE_ACTION (1: RTL or land,
+    2: land), then FENCE_ENABLE 1. PX4: GF_MAX_VER_DIST, GF_ACTION (3: Return, 5: Land).
+    A fence without a ceiling leaves the autopilot's own ceiling as it is (the drone
+    then reads it as the vehicle's bound: ``limit_params``)."""
     ceiling = fence.ceiling_m if math.isfinite(fence.ceiling_m) else 0.0
     if ardupilot:
-        params = [AutopilotParam("FENCE_TYPE", 5 if ceiling else 4)]
+        params = [AutopilotParam("FENCE_TYPE", 4 | (_ALT_MAX if ceiling else 0), bits=True)]
         if ceiling:
             params.append(AutopilotParam("FENCE_ALT_MAX", ceiling, integer=False))
         return [
@@ -366,10 +375,8 @@ def fence_params(ardupilot: bool, fence: Fence) -> list[AutopilotParam]:
             AutopilotParam("FENCE_ACTION", 2 if fence.action == "land" else 1),
             AutopilotParam("FENCE_ENABLE", 1),
         ]
-    return [
-        AutopilotParam("GF_MAX_VER_DIST", ceiling, integer=False),
-        AutopilotParam("GF_ACTION", 5 if fence.action == "land" else 3),
-    ]
+    params = [AutopilotParam("GF_MAX_VER_DIST", ceiling, integer=False)] if ceiling else []
+    return [*params, AutopilotParam("GF_ACTION", 5 if fence.action == "land" else 3)]
 
 
 # Where a bound in force comes from (``Bound.source``).
@@ -424,17 +431,17 @@ def altitude_bound(params: SafetyParams, vehicle: VehicleLimits) -> Bound:
     return _smaller(configured, vehicle.altitude_m, vehicle.altitude_param)
 
 
-def limit_params(ardupilot: bool, own_fence: bool) -> list[AutopilotParam]:
+def limit_params(ardupilot: bool, own_ceiling: bool) -> list[AutopilotParam]:
     """The parameters that say the autopilot's bounds (``vehicle_limits`` reads them).
 
     PX4: MPC_XY_VEL_MAX (m/s, the absolute maximum of every velocity-controlled mode),
     GF_MAX_VER_DIST (m above home, 0: none). ArduPilot: FENCE_ALT_MAX where FENCE_ENABLE
     is 1 and FENCE_TYPE has its maximum-altitude bit (1); ArduPilot has no hard maximum
     of horizontal speed (WPNAV_SPEED is the default a reposition flies at). With
-    ``own_fence`` the drone sets the ceiling parameters itself (``fence_params``) from
+    ``own_ceiling`` the drone sets the ceiling parameters itself (``fence_params``) from
     the mission's fence, which refuses above it already: they are not read again."""
     if ardupilot:
-        if own_fence:
+        if own_ceiling:
             return []
         return [
             AutopilotParam("FENCE_ENABLE", 0),
@@ -442,11 +449,7 @@ def limit_params(ardupilot: bool, own_fence: bool) -> list[AutopilotParam]:
             AutopilotParam("FENCE_ALT_MAX", 0, integer=False),
         ]
     speed = [AutopilotParam("MPC_XY_VEL_MAX", 0, integer=False)]
-    return speed if own_fence else [*speed, AutopilotParam("GF_MAX_VER_DIST", 0, integer=False)]
-
-
-# FENCE_TYPE's bit of the maximum-altitude fence (ArduPilot's AC_FENCE_TYPE_ALT_MAX).
-_ALT_MAX = 1
+    return speed if own_ceiling else [*speed, AutopilotParam("GF_MAX_VER_DIST", 0, integer=False)]
 
 
 def vehicle_limits(ardupilot: bool, values: Mapping[str, float]) -> VehicleLimits:
