@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from pathlib import Path
 
 import grpc
 import pytest
@@ -167,6 +168,19 @@ def test_dispatch_unknown_method_and_bad_payload() -> None:
 
 async def _zero_position() -> api.Position:
     return api.Position(latitude_deg=1.5)
+
+
+async def test_a_restarted_camera_numbers_its_pictures_on_from_its_effects_file(
+    tmp_path: Path,
+) -> None:
+    """Pictures 1 and 2, the drone killed, pictures 3 and 4 from a new process on the
+    same effects file: no number twice (it restarted at 1 before)."""
+    effects = tmp_path / "camera.jsonl"
+    first = Camera(_zero_position, resolution=(16, 16), effects_file=effects)
+    taken = [(await first.TakePicture(api.TakePictureRequest())).sequence for _ in range(2)]
+    again = Camera(_zero_position, resolution=(16, 16), effects_file=effects)
+    taken += [(await again.TakePicture(api.TakePictureRequest())).sequence for _ in range(2)]
+    assert taken == [1, 2, 3, 4]
 
 
 async def test_generated_picture_is_about_one_megabyte_and_varies() -> None:

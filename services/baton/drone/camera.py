@@ -150,7 +150,10 @@ class Camera:
             self.thumbnails = sum(1 for _ in self.thumbnails_dir.glob(THUMBNAIL_GLOB))
         self._position = position
         self.effects = EffectsFile(effects_file, "--camera-effects-file")
-        self.sequence = 0
+        # The picture number, as a camera numbers its pictures: a drone restarted on
+        # the same effects file (every line of it a picture) goes on from its count,
+        # so no two pictures of a run carry one number.
+        self.sequence = self.effects.seq
         self.resolution = resolution
         self._static: bytes | None = None
         self.format = "ppm"
