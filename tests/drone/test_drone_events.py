@@ -278,12 +278,21 @@ def test_a_restart_abandons_a_read_it_cut_off_and_books_a_command() -> None:
     assert core().restarted(100.0, kept()) == []
 
 
-@pytest.mark.parametrize("method", ["/baton.v1.Mobility/Goto", "/baton.v1.Camera/TakePicture"])
+@pytest.mark.parametrize(
+    "method",
+    [
+        "/baton.v1.Mobility/Goto",
+        "/baton.v1.Camera/TakePicture",
+        "/baton.v1.Gimbal/SetRoiLocation",
+        "/baton.v1.Gimbal/ClearRoi",
+    ],
+)
 def test_a_call_that_needs_the_vehicle_is_unavailable_while_it_is_not_connected(
     method: str,
 ) -> None:
-    """A Mobility call reaches the vehicle; a picture is taken where it is and says where,
-    so with the vehicle not connected none is taken either. Nothing executed: the number
+    """A Mobility or Gimbal call reaches the vehicle (the gimbal is commanded over the
+    vehicle's link); a picture is taken where it is and says where, so with the vehicle
+    not connected none is taken either. Nothing executed: the number
     stays unused (the master sends it again). Setting the resolution needs no vehicle."""
     drone = core()
     refused = drone.unreachable(method, False, "at udp://:14540 (no heartbeat)")

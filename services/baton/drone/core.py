@@ -27,7 +27,7 @@ The rules it keeps (docs/design.md, "Takeover" and "Exactly once"):
 - A failure after admission is the request's outcome and is booked, except
   UNAVAILABLE, which means nothing reached the vehicle: the number stays
   unused and the same request may be sent again.
-- A call that needs the vehicle (a Mobility call, a picture: ``needs_vehicle``)
+- A call that needs the vehicle (a Mobility or Gimbal call, a picture: ``needs_vehicle``)
   is UNAVAILABLE while the vehicle is not connected, and after a restart with
   the vehicle in the air until the first look at it (``unreachable``): a
   picture is never taken where the vehicle's place is unknown, nor on a way
@@ -124,9 +124,9 @@ PLACED = path("Camera.TakePicture")
 
 def needs_vehicle(route: Method) -> bool:
     """Whether a call of ``route`` needs the vehicle connected and, after a restart with
-    it in the air, looked at first: Mobility calls reach it; a picture is taken where it
-    is (``PLACED``)."""
-    return route.service == "Mobility" or route.path == PLACED
+    it in the air, looked at first: Mobility and Gimbal calls reach it (the gimbal is
+    commanded over the vehicle's link); a picture is taken where it is (``PLACED``)."""
+    return route.service in ("Mobility", "Gimbal") or route.path == PLACED
 
 
 @dataclass(frozen=True)
