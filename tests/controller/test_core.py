@@ -24,6 +24,7 @@ from baton.controller.core import (
     RepairGap,
     RingSight,
     RouteTo,
+    Seen,
     SendCatchUp,
     Timer,
 )
@@ -337,6 +338,31 @@ def test_ready_persists_before_sending_and_holds_a_copy_back_while_cut_off() -> 
     assert ready[0] == Persist(normal.message) and ready[1] is normal and ready[2] is handover
     assert kinds(core.ready([copy], drone_connected=True, now=0.0)) == [SendLog, KeepMastership]
     assert core.sent_straight == {2: 5}
+
+
+def test_a_replayed_answer_is_carried_out_as_it_is_and_moves_no_deadline() -> None:
+    """A step that only answers a replayed call skips the deadlines' comparison: a full
+    step right after it arms and disarms nothing. The log's last entry ends REPLAY and
+    takes the full way."""
+    core = ControllerCore(started(1, [0, 1, 2], 0), detection_s=1.0)
+    digest = request_digest(GET, b"")
+    entries = [ring_pb2.LogEntry(reqnr=k, method=GET, request_digest=digest) for k in (1, 2, 3)]
+    logged = ring_pb2.LogMessage(lognr=1, origin=0, sender=0, entries=entries)
+    core.ready(core.log_arrived(logged, lambda: True), False, now=1.0)
+    core.log_arrived(ring_pb2.LogMessage(lognr=3, origin=0, sender=0), lambda: True)  # 2 lacks
+    core.ring_changed(1.0, RingSight({2: 0.5}, drone_connected=False))
+    armed = timers(core.ready([], False, now=1.0))
+    assert armed == [Arm(Timer.GAP, 2.0), Arm(Timer.ROUTE, 1.5)]
+    assert core.protocol.state is State.REPLAY
+    for now in (1.1, 1.2):
+        step, effects = core.answer(GET, b"")
+        assert isinstance(step, Answer) and effects == [Seen(step.entry, replayed=True)]
+        assert core.ready(effects, False, now) == effects  # nothing persisted, kept or armed
+        assert timers(core.ready([], False, now)) == []  # nothing the step skipped was due
+    step, effects = core.answer(GET, b"")  # the last entry: REPLAY ends
+    assert isinstance(step, Answer) and effects[0] == Seen(step.entry)
+    assert core.protocol.state is not State.REPLAY
+    assert KeepMastership in kinds(core.ready(effects, False, now=1.3))
 
 
 def test_ready_rejoins_once_on_a_diverged_log() -> None:

@@ -328,9 +328,14 @@ class SettleHandovers:
 class Seen:
     """Effect: the protocol consumed ``entry``: it is the program's answer, on every
     replica (counted into the reply chain where it is consumed, not where the program
-    gets it, so a call cancelled after that counts as on every replica)."""
+    gets it, so a call cancelled after that counts as on every replica).
+
+    ``replayed``: consumed from the replayed log, which holds more after it. Such a
+    step changes only the log's entries and the request number, which no deadline
+    and no mastership reads (``ready``)."""
 
     entry: ring_pb2.LogEntry
+    replayed: bool = False
 
 
 @dataclass(frozen=True)
@@ -564,14 +569,33 @@ class ControllerCore:
           (``went_on_without_us``): the state after any event may show it.
         - Then the mastership whose log we hold is kept with the log.
         - Last, the timers whose deadline the step changed (``Arm``, ``Disarm``).
+        - A step that only answers a replayed call (``Seen.replayed``) is carried out
+          as it is: it moved no deadline and no mastership.
 
         With ``checking`` (``BATON_CHECK_INVARIANTS=1``), the masterships the step
         left must be a legal combination (``Mastership.problems``), or
         ``InvariantBroken``: a defect of baton, which the driver stops on.
         """
-        out: list[CoreEffect] = []
         if not drone_reachable and not self.rejoining:
             effects = [*effects, *self.went_on_without_us(self.protocol.went_on_in_queue(), False)]
+        if len(effects) == 1 and isinstance(effects[0], Seen) and effects[0].replayed:
+            # A replayed answer alone: nothing to persist, keep or arm (``Seen.replayed``).
+            out = list(effects)
+        else:
+            out = self._ready(effects, drone_connected, now)
+        if self.checking:
+            problems = self.protocol.mastership.problems()
+            if problems:
+                raise InvariantBroken(
+                    f"controller {self.protocol.id}: {'; '.join(problems)} "
+                    f"({self.protocol.mastership})"
+                )
+        return out
+
+    def _ready(
+        self, effects: Sequence[CoreEffect], drone_connected: bool, now: float
+    ) -> list[CoreEffect]:
+        out: list[CoreEffect] = []
         for effect in effects:
             if isinstance(effect, SendLog):
                 if effect.copy and not drone_connected:
@@ -585,13 +609,6 @@ class ControllerCore:
                 out.extend(self.rejoin())
         out.append(KeepMastership(self.protocol.log_mastership_epoch))
         self._arm(now, drone_connected, out)
-        if self.checking:
-            problems = self.protocol.mastership.problems()
-            if problems:
-                raise InvariantBroken(
-                    f"controller {self.protocol.id}: {'; '.join(problems)} "
-                    f"({self.protocol.mastership})"
-                )
         return out
 
     def catch_up(self, target: int, held: HeldLog) -> list[ring_pb2.LogMessage] | None:
@@ -1032,14 +1049,14 @@ class ControllerCore:
 
     # -- the mission program's calls ---------------------------------------------------
 
-    def consume(self, entry: ring_pb2.LogEntry) -> Seen:
+    def consume(self, entry: ring_pb2.LogEntry, replayed: bool = False) -> Seen:
         """The protocol consumed ``entry`` as the program's answer: a Clock answer or a
         give-up goes along with the next drone call, a drone call clears them."""
         if entry.method.startswith(CLOCK_SERVICE) or entry.given_up:
             self.answered_here.append(entry)
         else:
             self.answered_here.clear()
-        return Seen(entry)
+        return Seen(entry, replayed)
 
     def ours_to_log(self, reqnr: int) -> bool:
         """Still ACTIVE, with ``reqnr`` the next request to log."""
@@ -1080,12 +1097,13 @@ class ControllerCore:
         self, method: str, request: bytes
     ) -> tuple[ring_pb2.LogEntry | None, list[CoreEffect]]:
         """The log's entry for the call (REPLAY); None and a Fail if it is another call."""
+        more = len(self.protocol.log) > 1  # REPLAY goes on after this entry
         try:
             entry, effects = self.protocol.replay(method, request)
         except NonDeterminismError as exc:
             text = f"controller {self.protocol.id}: {exc}"
             return None, [Fail(text, grpc.StatusCode.FAILED_PRECONDITION)]
-        return entry, [self.consume(entry), *effects]
+        return entry, [self.consume(entry, more), *effects]
 
     def _again(
         self, entry: ring_pb2.LogEntry, method: str, code: grpc.StatusCode
