@@ -152,10 +152,10 @@ async def test_the_controller_refuses_a_second_concurrent_call() -> None:
         {"controllers": [{"id": 0, "address": "127.0.0.1:1"}, {"id": 1, "address": "127.0.0.1:2"}]}
     )
     node = ControllerNode(config, 1)  # PASSIVE: its first call is held
-    held = asyncio.create_task(node.call("/baton.v1.Mobility/GetPosition", b""))
+    held = asyncio.create_task(node.program.call("/baton.v1.Mobility/GetPosition", b""))
     await asyncio.sleep(0)  # let the first call reach its wait
     with pytest.raises(StatusError) as refused:
-        await node.call("/baton.v1.Mobility/GetHome", b"")
+        await node.program.call("/baton.v1.Mobility/GetHome", b"")
     assert refused.value.code is grpc.StatusCode.FAILED_PRECONDITION
     assert "concurrent call /baton.v1.Mobility/GetHome" in refused.value.message
     held.cancel()
@@ -171,16 +171,16 @@ async def test_a_call_that_overtakes_the_give_up_of_the_pending_one_waits_for_it
     )
     node = ControllerNode(config, 1)  # PASSIVE: its calls are held until the log comes
     position, home = "/baton.v1.Mobility/GetPosition", "/baton.v1.Mobility/GetHome"
-    held = asyncio.create_task(node.call(position, b""))
-    await eventually(lambda: node._busy == position, "the first call held")
-    second = asyncio.create_task(node.call(home, b""))
+    held = asyncio.create_task(node.program.call(position, b""))
+    await eventually(lambda: node.program.busy == position, "the first call held")
+    second = asyncio.create_task(node.program.call(home, b""))
     # The barrier: the next call is in, waiting for the pending one to end, before
     # the give-up.
-    await eventually(lambda: node._idle._waiters, "the next call waiting for the first")
+    await eventually(lambda: node.program.idle._waiters, "the next call waiting for the first")
     held.cancel()
     with pytest.raises(asyncio.CancelledError):
         await held
-    await eventually(lambda: node._busy == home, "the next call held in its turn")
+    await eventually(lambda: node.program.busy == home, "the next call held in its turn")
     assert not second.done()
     second.cancel()
     await node.stop()
@@ -195,13 +195,13 @@ async def test_calls_a_replicas_program_gave_up_on_take_their_own_log_entries() 
     node = ControllerNode(config, 1)  # PASSIVE: its calls are held until the log comes
     position, home = "/baton.v1.Mobility/GetPosition", "/baton.v1.Mobility/GetHome"
     for method in (position, home):
-        held = asyncio.create_task(node.call(method, b""))
-        await eventually(lambda m=method: node._busy == m, "the call held for the log")
+        held = asyncio.create_task(node.program.call(method, b""))
+        await eventually(lambda m=method: node.program.busy == m, "the call held for the log")
         held.cancel()
         with pytest.raises(asyncio.CancelledError):
             await held
-    third = asyncio.create_task(node.call(position, b""))
-    await eventually(lambda: node._busy == position, "the third call held")
+    third = asyncio.create_task(node.program.call(position, b""))
+    await eventually(lambda: node.program.busy == position, "the third call held")
     cancelled = grpc.StatusCode.CANCELLED.value[0]
     entries = [
         ring_pb2.LogEntry(
@@ -216,7 +216,7 @@ async def test_calls_a_replicas_program_gave_up_on_take_their_own_log_entries() 
     await node.on_log(ring_pb2.LogMessage(lognr=1, origin=0, entries=entries))
     entry = await asyncio.wait_for(third, 5)
     assert entry.reqnr == 3 and entry.reply == b"third"
-    assert node.protocol.reqnr == 3 and node.mission != ring_pb2.MISSION_STATE_FAILED
+    assert node.protocol.reqnr == 3 and node.program.mission != ring_pb2.MISSION_STATE_FAILED
     await node.stop()
 
 

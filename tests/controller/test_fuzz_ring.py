@@ -59,7 +59,7 @@ async def test_malformed_requests_to_a_controllers_ring_port(tmp_path: Path) -> 
                 grpc.StatusCode.OK
             )
         assert (protocol.lognr, protocol.reqnr, protocol.state) == before
-        assert app.node.mission == ring_pb2.MISSION_STATE_NONE
+        assert app.node.program.mission == ring_pb2.MISSION_STATE_NONE
     finally:
         await app.server.stop(0)
 

@@ -39,7 +39,7 @@ async def test_a_taker_with_nothing_is_granted_by_the_connected_event_alone() ->
     )
     node = ControllerNode(config, 2)
     session = connected_session()
-    node._drone = session  # the session the Connected came on
+    node.drone = session  # the session the Connected came on
     retained = [
         drone_pb2.RetainedReply(reqnr=3, method=POSITION, request_digest=DIGEST, reply=b"3")
     ]
@@ -55,7 +55,7 @@ async def test_a_taker_with_nothing_is_granted_by_the_connected_event_alone() ->
     assert p.held_reqnr == 2 and p.caught_up  # no handover message owed
     assert p.state is State.REPLAY  # the program replays 1 and 2, then goes ACTIVE
     assert list(node.core.retained) == [3]
-    node._drone = None
+    node.drone = None
     await node.stop()
 
 
@@ -97,7 +97,7 @@ async def taker_of_three() -> tuple[ControllerNode, Any, list[int]]:
 
     node.on_rejoin = on_rejoin
     session: Any = NoDrone()
-    node._drone = session
+    node.drone = session
     await node.on_sync(0, SyncWord(0, 0, 0, 0))
     return node, session, rejoins
 
@@ -112,28 +112,28 @@ async def test_a_taker_answers_its_program_from_each_retained_batch_as_it_comes(
     )
     node = ControllerNode(config, 1)
     session: Any = NoDrone()
-    node._drone = session
+    node.drone = session
     await node.on_sync(0, SyncWord(0, 0, 0, 0))
     await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
     p = node.protocol
     assert p.state is State.ACTIVE and node.core.retained_through == 3
 
-    first = asyncio.create_task(node.call(POSITION, b""))
+    first = asyncio.create_task(node.program.call(POSITION, b""))
     await settle()
     assert not first.done()  # its batch has not come
     await node.on_retained(session, [kept(1)])
     assert (await asyncio.wait_for(first, 5)).reply == b"1"
 
-    second = asyncio.create_task(node.call(POSITION, b""))
+    second = asyncio.create_task(node.program.call(POSITION, b""))
     await settle()
     assert not second.done()
     # The stream broke before the next batch: the Connect again says 2 and 3 are to come.
     await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
     await node.on_retained(session, [kept(2), kept(3)])
     assert (await asyncio.wait_for(second, 5)).reply == b"2"
-    assert (await node.call(POSITION, b"")).reply == b"3"
+    assert (await node.program.call(POSITION, b"")).reply == b"3"
     assert node.answered_from_retained == 3 and p.reqnr == 3
-    node._drone = None
+    node.drone = None
     await node.stop()
 
 
@@ -148,10 +148,10 @@ async def test_a_taker_holding_a_replaced_framing_rejoins_before_it_sends_a_requ
     await node.on_log(ring_pb2.LogMessage(lognr=2, origin=0, epoch=1, entries=[entry(2)]))
     await node.on_granted(session, 7, 2, takeover=True, watermark_reqnr=0)
     p = node.protocol
-    assert (await node.call(POSITION, b"")).reply == b"1"  # replayed from the log
-    assert (await node.call(POSITION, b"")).reply == b"2"
+    assert (await node.program.call(POSITION, b"")).reply == b"1"  # replayed from the log
+    assert (await node.program.call(POSITION, b"")).reply == b"2"
     assert p.state is State.ACTIVE and p.held_reqnr == 2
-    third = asyncio.create_task(node.call(POSITION, b""))
+    third = asyncio.create_task(node.program.call(POSITION, b""))
     await settle()
     assert not third.done()  # the batches of the replies we hold have not come
     await node.on_retained(session, [kept(1)])
@@ -163,7 +163,7 @@ async def test_a_taker_holding_a_replaced_framing_rejoins_before_it_sends_a_requ
     await settle()
     assert rejoins == [2]
     third.cancel()
-    node._drone = None
+    node.drone = None
     await node.stop()
 
 
@@ -180,24 +180,24 @@ async def test_a_give_up_of_a_retained_reply_a_lost_master_acted_on_is_not_logge
     p = node.protocol
     assert p.state is State.ACTIVE and node.core.retained_through == 3
 
-    first = asyncio.create_task(node.call(POSITION, b""))
+    first = asyncio.create_task(node.program.call(POSITION, b""))
     await settle()
     first.cancel()  # the program gives up while the batch crosses
     await settle()
     assert p.reqnr == 0  # not logged as given up
     await node.on_retained(session, [kept(1), kept(2), kept(3)])
-    second = asyncio.create_task(node.call(POSITION, b""))
+    second = asyncio.create_task(node.program.call(POSITION, b""))
     try:
         await asyncio.wait_for(second, 5)
         raise AssertionError("the program went on past a give-up the log contradicts")
     except StatusError as err:
         assert err.code is grpc.StatusCode.ABORTED
     await settle()
-    assert p.reqnr == 1 and node.program_restarts == 1 and rejoins == [1]
+    assert p.reqnr == 1 and node.program.restarts == 1 and rejoins == [1]
     assert not p.log and p.lognr == 1 and p.kept_history() == 1
     flushed = node.history.get(1).entries
     assert not flushed[-1].given_up and flushed[-1].reply == b"1"
-    node._drone = None
+    node.drone = None
     await node.stop()
 
 
@@ -210,17 +210,17 @@ async def test_a_give_up_of_the_last_retained_reply_is_logged() -> None:
     )
     node = ControllerNode(config, 1)
     session: Any = NoDrone()
-    node._drone = session
+    node.drone = session
     await node.on_sync(0, SyncWord(0, 0, 0, 0))
     await node.on_granted(session, 2, 1, takeover=True, watermark_reqnr=0)
     p = node.protocol
-    first = asyncio.create_task(node.call(POSITION, b""))
+    first = asyncio.create_task(node.program.call(POSITION, b""))
     await settle()
     first.cancel()
     await settle()
     assert p.reqnr == 1 and p.log.entries[-1].given_up
-    assert node.program_restarts == 0 and 1 not in node.core.retained
-    node._drone = None
+    assert node.program.restarts == 0 and 1 not in node.core.retained
+    node.drone = None
     await node.stop()
 
 
@@ -236,14 +236,14 @@ async def test_a_give_up_before_the_connected_event_waits_for_what_the_drone_ret
     p = node.protocol
     assert p.state is State.ACTIVE and p.granted_epoch != p.epoch
 
-    first = asyncio.create_task(node.call(POSITION, b""))
+    first = asyncio.create_task(node.program.call(POSITION, b""))
     await settle()
     first.cancel()
     await settle()
     assert p.reqnr == 0  # not logged: the drone may retain an answer
     await node.on_granted(session, 3, 3, takeover=False, watermark_reqnr=0)
     await node.on_retained(session, [kept(1), kept(2), kept(3)])
-    second = asyncio.create_task(node.call(POSITION, b""))
+    second = asyncio.create_task(node.program.call(POSITION, b""))
     try:
         await asyncio.wait_for(second, 5)
         raise AssertionError("the program went on past a give-up the log contradicts")
@@ -252,5 +252,5 @@ async def test_a_give_up_before_the_connected_event_waits_for_what_the_drone_ret
     await settle()
     assert p.reqnr == 1 and rejoins == [1] and p.kept_history() == p.lognr == 2
     assert not node.history.get(2).entries[-1].given_up  # flushed for the fresh self
-    node._drone = None
+    node.drone = None
     await node.stop()

@@ -32,7 +32,7 @@ async def active_master() -> ControllerNode:
     )
     node = ControllerNode(config, 0)
     session = connected_session()
-    node._drone = session
+    node.drone = session
     await node.on_sync(2, SyncWord(0, 0, 0, 0))  # the predecessor holds nothing: caught up
     await node.on_granted(session, 1, 0)
     assert node.protocol.state is State.ACTIVE
@@ -68,8 +68,8 @@ async def test_a_master_cut_off_from_the_drone_sends_the_target_no_copies() -> N
     stream's PrepareHandover catches the target up (or a refusal fences us)."""
     node = await active_master()
     await node.on_prepare(drone_pb2.PrepareHandover(target=2, epoch=1, timeout_s=10.0))
-    node._drone = None  # the Connect stream broke: the session reconnects
-    await node._apply(node.protocol.on_reply(entry(1)))
+    node.drone = None  # the Connect stream broke: the session reconnects
+    await node.apply(node.protocol.on_reply(entry(1)))
     assert node.peer(1).unacked == 1  # the ring has it
     assert node.peer(2).unacked == 0  # the target gets no copy
     await node.stop()

@@ -314,7 +314,7 @@ async def measure_replay_node(entries: int) -> dict[str, Any]:
         assert node.protocol.state is State.REPLAY
         start = time.perf_counter()
         for _ in range(entries):
-            await node.call(GET_POSITION, b"")
+            await node.program.call(GET_POSITION, b"")
         elapsed = time.perf_counter() - start
     finally:
         await node.stop()

@@ -154,7 +154,7 @@ class ControllerSession:
     async def _watch_mission(self, process: asyncio.subprocess.Process) -> None:
         code = await process.wait()
         error = "" if code == 0 else f"mission program exited with code {code}"
-        await self.node.mission_done(failed=code != 0, error=error)
+        await self.node.program.mission_done(failed=code != 0, error=error)
         if self.on_program_end is not None:
             await self.on_program_end(code)
 

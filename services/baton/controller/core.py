@@ -383,6 +383,16 @@ class AskClock:
     reqnr: int
     digest: bytes
 
+    def entry(self, method: str, request: bytes, reply: bytes) -> ring_pb2.LogEntry:
+        """The log entry of the Clock's ``reply`` to the call."""
+        return ring_pb2.LogEntry(
+            reqnr=self.reqnr,
+            method=method,
+            reply=reply,
+            request_digest=self.digest,
+            request=request,
+        )
+
 
 @dataclass(frozen=True)
 class AskDrone:

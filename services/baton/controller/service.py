@@ -105,7 +105,7 @@ class DroneApiProxy(grpc.GenericRpcHandler):
                 f"{method}: payload is not a {request_class.__name__}: {exc}",
             ) from None
         check_request(method, parsed)
-        entry = await self._node.call(method, request, lambda: _gave_up(context))
+        entry = await self._node.program.call(method, request, lambda: _gave_up(context))
         if entry.status_code != 0:
             raise StatusError(status_of(entry.status_code), entry.status_message)
         return bytes(entry.reply)
@@ -116,7 +116,7 @@ class DroneApiProxy(grpc.GenericRpcHandler):
         """ControllerRing.ProgramCalls: the program's calls on its kept stream, answered in
         turn as the unary methods answer them. The stream ending (the program cancels it,
         or dies) while a call is at the node cancels that call: the node logs the give-up
-        as for a unary call's (``ControllerNode.call``)."""
+        as for a unary call's (``ProgramCalls.call``)."""
         refused = caller_refused(self._node.id, self._token, context, "ProgramCalls")
         if refused is not None:
             await abort_with(context, refused)
@@ -251,7 +251,7 @@ class ControllerRingService(ring_pb2_grpc.ControllerRingServicer):
         refused = caller_refused(self._node.id, self._token, context, "MissionDone")
         if refused is not None:
             await abort_with(context, refused)
-        flushed = await self._node.mission_done(request.failed, request.error)
+        flushed = await self._node.program.mission_done(request.failed, request.error)
         return ring_pb2.MissionDoneReply(flushed=flushed, lognr=self._node.protocol.lognr)
 
     async def ProgramCalls(  # type: ignore[override]
@@ -317,20 +317,20 @@ def controller_status(node: ControllerNode) -> ring_pb2.ControllerStatus:
         ],
         predecessor=p.predecessor,
         successor=p.successor,
-        mission=node.mission,
-        mission_error=node.mission_error,
+        mission=node.program.mission,
+        mission_error=node.program.mission_error,
         replayed=p.replayed,
         invoked=p.invoked,
-        reply_chain=node.reply_chain,
+        reply_chain=node.program.reply_chain,
         drone_connected=node.drone_connected,
-        drone_calls=node.drone_calls,
+        drone_calls=node.program.drone_calls,
         waiting=node.waiting,
         waits=[w.to_proto() for w in node.waits],
         epoch=p.epoch,
         catching_up_to=0 if p.caught_up else (p.catch_up_to or 0),
         watermark_reqnr=p.watermark_reqnr,
-        fenced_messages=node.fenced_messages,
-        program_restarts=node.program_restarts,
+        fenced_messages=node.books.fenced_messages,
+        program_restarts=node.program.restarts,
         routed_around=node.routed_around,
         standby_up=node.standby_up,
         answered_from_retained=node.answered_from_retained,

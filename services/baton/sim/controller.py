@@ -4,14 +4,15 @@
 drives, with the asyncio taken out: ``ControllerCore`` (and its
 ``ControllerProtocol``), the ring links' ``RingLinks`` and ``LinkCore``
 (through ``sim/network.py``'s ``RingLink``), ``status.recover`` and
-``status.holding``, ``invoking.failed`` for a drone call's outcome and
-``notes.note_of`` for what an effect says. It owns only the virtual I/O:
+``status.holding``, ``invoking.failed`` for a drone call's outcome,
+``notes.note_of`` for what an effect says and ``bookkeeping.Bookkeeping`` for
+the effects on the ring links, the history and the timers. It owns only the virtual I/O:
 the drone session, the program's calls and the timers.
 
-How asyncio maps onto events: node.py's ``_changed`` event (set on every
-``_apply``) becomes ``_notify``, which schedules one ``_pump`` on the next
-turn of the loop; a program call parked in node.py's ``await
-self._changed.wait()`` is ``Phase.WAITING`` and re-runs its loop there.
+How asyncio maps onto events: node.py's ``changed`` event (set on every
+``apply``) becomes ``_notify``, which schedules one ``_pump`` on the next
+turn of the loop; a program call parked in ``ProgramCalls``' ``await
+changed.wait()`` is ``Phase.WAITING`` and re-runs its loop there.
 A drone call in flight is an ``Invocation`` that a reply, a broken
 connection, a back-off timer or a give-up moves on.
 
@@ -32,22 +33,17 @@ from typing import TYPE_CHECKING
 
 import grpc
 
+from baton.controller.bookkeeping import Bookkeeping
 from baton.controller.core import (
     CLOCK_NOW,
     Answer,
-    Arm,
     AskClock,
     ControllerCore,
     CoreEffect,
-    Disarm,
     DroneRefusal,
     Fail,
     Hold,
-    Keep,
-    KeepMastership,
     Note,
-    Persist,
-    Preparing,
     Reconnect,
     Rejoin,
     RepairGap,
@@ -56,7 +52,6 @@ from baton.controller.core import (
     RouteTo,
     Seen,
     SendCatchUp,
-    SettleHandovers,
     Timer,
     to_retained,
 )
@@ -69,11 +64,9 @@ from baton.controller.protocol import (
     ConnectDrone,
     ControllerProtocol,
     DisconnectDrone,
-    Fenced,
     ProtocolError,
     SendLog,
     State,
-    Unqueued,
 )
 from baton.controller.status import Sight, holding, recover
 from baton.controller.timers import TimerTable
@@ -100,12 +93,12 @@ class Phase(enum.Enum):
     """Where the program's current call is parked."""
 
     RUNNING = "running"  # being worked on in this event
-    WAITING = "waiting"  # held while PASSIVE: node.py awaits _changed
-    INVOKING = "invoking"  # inside node.py's _invoke: the Clock or the drone
+    WAITING = "waiting"  # held while PASSIVE: ProgramCalls awaits the node's changed
+    INVOKING = "invoking"  # inside ProgramCalls._answer: the Clock or the drone
 
 
 class Step(enum.Enum):
-    """Where an Invocation is (node.py _invoke and _invoke_drone_retrying)."""
+    """Where an Invocation is (ProgramCalls._answer and _invoke_drone_retrying)."""
 
     CLOCK = "clock"  # a Sleep
     WAIT_CONNECTED = "wait connected"  # _wait_connected
@@ -177,6 +170,8 @@ class SimController:
             lambda: self.protocol.successor,
             lambda pid, history: RingLink(world, self, pid, history),
         )
+        # What the ring links, the history and the timers are told (as ControllerNode's).
+        self.books = Bookkeeping(self.ring, self.history, self._timers, lambda: self.protocol)
         self.drone_link = DroneLink(world, self)
         self.session: Session | None = None
         # The mission program: the next call, the current one, and where it is.
@@ -187,7 +182,7 @@ class SimController:
         self.inv: Invocation | None = None
         self.failure: str | None = None
         self.program_failed = False
-        # What the protocol consumed (node.py _seen) and what the program saw, in order.
+        # What the protocol consumed (ProgramCalls.seen) and what the program saw, in order.
         self.seen: list[tuple[int, int, bytes]] = []
         self.view: list[tuple[int, bytes]] = []
         self.done_at: float | None = None
@@ -196,13 +191,11 @@ class SimController:
         # Whether the drone has answered its start-up question (granted, refused, a notice).
         self.answered = False
         self._pump_due = False
-        # Takeover: node.py's fenced_messages.
         self.accepted_upto = 0  # calls consumed before its last request the drone accepted
         self.ended_by = ""  # "rejoin" or "lost": how a failover ended this incarnation
         # The drone's last request when this incarnation died (None: alive): what it
         # consumed above it was decided where it ran (``oracles._observed``).
         self.drone_last_at_death: int | None = None
-        self.fenced_messages = 0
 
     # -- life cycle (ControllerNode.start / stop) ---------------------------------
 
@@ -254,7 +247,7 @@ class SimController:
         """ControllerNode.peer (``RingLinks.peer``)."""
         return self.ring.peer(pid)
 
-    # -- effects (ControllerNode._apply) ------------------------------------------
+    # -- effects (ControllerNode.apply) -------------------------------------------
 
     def _apply(self, effects: Sequence[CoreEffect]) -> None:
         session = self.session
@@ -264,9 +257,9 @@ class SimController:
             note = effect if isinstance(effect, Note) else note_of(effect, self.protocol.epoch)
             if note is not None and note.level != "debug":
                 self._say(note)
-            if isinstance(effect, Persist | Keep):
-                self.ring.keep(effect.message)
-            elif isinstance(effect, SendLog):
+            if self.books.apply(effect):
+                continue
+            if isinstance(effect, SendLog):
                 message = effect.message
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
                 self.world.framings.setdefault(message.lognr, set()).add(message.epoch)
@@ -293,25 +286,12 @@ class SimController:
                 self._fail(effect.text)
             elif isinstance(effect, Seen):
                 self._seen(effect.entry)
-            elif isinstance(effect, SettleHandovers):
-                self.ring.settle_handovers(self.protocol.handover_settled)
             elif isinstance(effect, ReplayAgain):
                 self._replayed_again(effect)
             elif isinstance(effect, RepairGap):
                 self.world.drop_streams_to(self)
             elif isinstance(effect, RouteTo):
                 self._routed(effect)
-            elif isinstance(effect, Preparing):
-                self.ring.preparing(effect.target)
-            elif isinstance(effect, Arm | Disarm):
-                self._timers.apply(effect)
-            elif isinstance(effect, Fenced):
-                self.fenced_messages += 1
-            elif isinstance(effect, KeepMastership):
-                self.history.keep_mastership_epoch(effect.epoch)
-            elif isinstance(effect, Unqueued):
-                self.fenced_messages += 1
-                self.ring.discard(effect.lognr, effect.epoch)
         self.world.after_apply(self, effects)
         self._notify()
 
@@ -321,7 +301,7 @@ class SimController:
         self.world.trace(f"controller {self.id}: {note.text} ({fields})")
 
     def _notify(self) -> None:
-        """ControllerNode._notify: wakes whatever waits on _changed, on the next loop turn."""
+        """The end of ControllerNode.apply: wakes what waits for a change, on the next turn."""
         if not self._pump_due:
             self._pump_due = True
             self.world.loop.after(0.0, self._pump)
@@ -331,7 +311,7 @@ class SimController:
         if not self.alive:
             return
         if self.call is None:
-            if self.done and self.core.abandoned:  # node.py _settle_after_the_end
+            if self.done and self.core.abandoned:  # ProgramCalls._settle_after_the_end
                 self._settle()
             return
         inv = self.inv
@@ -346,7 +326,7 @@ class SimController:
             self._step()
 
     def _fail(self, text: str) -> None:
-        """ControllerNode._fail: the mission stops on this controller."""
+        """ProgramCalls.fail: the mission stops on this controller."""
         if self.failure is None:
             self.failure = text
             self.world.trace(f"controller {self.id} FAILED: {text}")
@@ -606,7 +586,7 @@ class SimController:
         )
 
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
-        """ControllerNode._preparation_progress (``RingLinks.progress``)."""
+        """ControllerNode.preparation_progress (``RingLinks.progress``)."""
         return self.ring.progress(self.core, self.world.loop.now)
 
     def on_log(self, message: ring_pb2.LogMessage) -> None:
@@ -653,7 +633,7 @@ class SimController:
         """PeerLink.on_handover_acked (``RingLinks.handover_acked``)."""
         self.ring.handover_acked(message)
 
-    # -- the mission program (ControllerNode.call) --------------------------------
+    # -- the mission program (ProgramCalls.call) ----------------------------------
 
     def _schedule_call(self) -> None:
         if self.pc < len(self.program):
@@ -667,7 +647,7 @@ class SimController:
         self._step()
 
     def _step(self) -> None:
-        """node.py call(): _settle_abandoned, then _answer's loop, up to the next wait."""
+        """ProgramCalls.call: _settle_abandoned, then _answer's loop, up to the next wait."""
         call = self.call
         assert call is not None
         self.phase = Phase.RUNNING
@@ -704,7 +684,7 @@ class SimController:
             self._drone_step(inv)
 
     def _settle(self) -> bool:
-        """node.py _settle_abandoned (``ControllerCore.settle``): True once every abandoned
+        """ProgramCalls._settle_abandoned (``ControllerCore.settle``): True once every abandoned
         call has its entry; False to wait for the log, or when the mission failed or the
         program starts again."""
         if self.failure is not None or self.core.rejoining:
@@ -715,11 +695,11 @@ class SimController:
         return done and self.failure is None
 
     def _seen(self, entry: ring_pb2.LogEntry) -> None:
-        """ControllerNode._seen: the entries the protocol consumed, in order (the reply chain)."""
+        """ProgramCalls.seen: the entries the protocol consumed, in order (the reply chain)."""
         self.seen.append((entry.reqnr, entry.status_code, bytes(entry.reply)))
 
     def _replayed_again(self, again: ReplayAgain) -> None:
-        """node.py _replay_again: the program starts again (the rejoin came with it)."""
+        """ProgramCalls._replay_again: the program starts again (the rejoin came with it)."""
         entry = again.entry
         self._say(replay_again(self.id, again, 0)[0])
         # What it answered before the give-up came from the log and must match; from
@@ -733,7 +713,7 @@ class SimController:
         self.pc += 1
         if self.pc == len(self.program):
             self.done_at = self.world.loop.now
-            self._apply(self.protocol.on_mission_done())  # ControllerNode.mission_done
+            self._apply(self.protocol.on_mission_done())  # ProgramCalls.mission_done
             self.world.program_done(self)
         else:
             self._schedule_call()
@@ -744,10 +724,10 @@ class SimController:
         self.call, self.inv, self.phase = None, None, Phase.RUNNING
         self._apply(self.protocol.on_mission_done())
 
-    # -- ACTIVE: the Clock and the drone (ControllerNode._invoke) -----------------
+    # -- ACTIVE: the Clock and the drone (ProgramCalls._answer) ------------------
 
     def _clock(self, inv: Invocation) -> None:
-        """node.py _clock_call: Now at once, Sleep after its virtual time."""
+        """ProgramCalls._clock_call: Now at once, Sleep after its virtual time."""
         call = inv.call
         if call.method == CLOCK_NOW:
             now = MISSION_START_UNIX + self.world.loop.now
@@ -757,20 +737,15 @@ class SimController:
         self.world.loop.after(seconds, self._slept, inv)
 
     def _entry(self, inv: Invocation, reply: bytes) -> ring_pb2.LogEntry:
-        return ring_pb2.LogEntry(
-            reqnr=inv.reqnr,
-            method=inv.call.method,
-            reply=reply,
-            request_digest=inv.digest,
-            request=inv.call.request,
-        )
+        """The Clock's reply logged (``AskClock.entry``)."""
+        return AskClock(inv.reqnr, inv.digest).entry(inv.call.method, inv.call.request, reply)
 
     def _slept(self, inv: Invocation) -> None:
         if self.alive and self.inv is inv:
             self._invoked(inv, self._entry(inv, api.SleepReply().SerializeToString()))
 
     def _drone_step(self, inv: Invocation) -> None:
-        """One turn of ControllerNode._invoke_drone_retrying's loop, up to the send."""
+        """One turn of ProgramCalls._invoke_drone_retrying's loop, up to the send."""
         session = self.session
         if session is None or self.protocol.state is not State.ACTIVE:
             self._invoked(inv, None)
@@ -823,7 +798,7 @@ class SimController:
     def _invoke_result(
         self, inv: Invocation, reply: drone_pb2.InvokeReply | None, error: StatusError | None
     ) -> None:
-        """ControllerNode._invoke_drone_retrying after drone.invoke returned or raised
+        """ProgramCalls._invoke_drone_retrying after drone.invoke returned or raised
         (``invoking.replied``, ``invoking.failed``)."""
         call = inv.call
         sent = Sent(inv.reqnr, call.method, call.request, inv.digest, inv.sent_epoch)
@@ -857,7 +832,7 @@ class SimController:
             self._drone_step(inv)
 
     def _invoked(self, inv: Invocation, entry: ring_pb2.LogEntry | None) -> None:
-        """The end of ControllerNode._answer's turn: log the entry if it is still ours."""
+        """The end of ProgramCalls._answer's turn: log the entry if it is still ours."""
         self.inv = None
         if entry is None:
             self._step()  # _answer's loop: the state changed
@@ -872,7 +847,7 @@ class SimController:
     # -- the program gives up on a call (a deadline, a cancellation) --------------
 
     def give_up(self, code: grpc.StatusCode) -> bool:
-        """The program's call is cancelled; node.py's except CancelledError branches.
+        """The program's call is cancelled; ProgramCalls' except CancelledError branches.
 
         Inside _invoke, the master logs the give-up as the call's outcome if
         the call is still its to log (``_ours_to_log``); otherwise a handover

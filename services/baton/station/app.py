@@ -176,7 +176,7 @@ class StationApp:
         if code == 0:
             return
         node = hosted.session.node
-        hosted.error = node.mission_error or f"mission program exited with code {code}"
+        hosted.error = node.program.mission_error or f"mission program exited with code {code}"
         self.log.warning("session failed", mission=hosted.mission_id, error=hosted.error)
         hosted.ending = self._tasks.spawn(self._end_failed(hosted), name=f"end-{hosted.mission_id}")
 
