@@ -1086,6 +1086,19 @@ class ControllerCore:
         from the retained replies (0: none)."""
         return self.adopted[1] if self.adopted[0] == self.protocol.epoch else 0
 
+    def carried(self, preparation: drone_pb2.PreparationProgress | None) -> drone_pb2.InvokeRequest:
+        """What a drone call carries beside the request (InvokeRequest's fields): the
+        watermark the drone must not go below, the answers we gave the program ourselves
+        since our last drone call (the drone keeps them for a taker), the first request of
+        this mastership answered from the retained replies, and a prepared handover's
+        ``preparation`` progress."""
+        return drone_pb2.InvokeRequest(
+            watermark_reqnr=self.protocol.watermark_reqnr,
+            master_answers=[to_retained(entry) for entry in self.answered_here],
+            preparation=preparation,
+            adopted_from_reqnr=self.adopted_from(),
+        )
+
     def _adopt(self, reqnr: int) -> None:
         if self.adopted[0] != self.protocol.epoch:
             self.adopted = (self.protocol.epoch, reqnr)

@@ -344,12 +344,10 @@ class DroneSession:
         method: str,
         payload: bytes,
         timeout_s: float | None = None,
-        watermark_reqnr: int = 0,
-        master_answers: Sequence[drone_pb2.RetainedReply] = (),
-        preparation: drone_pb2.PreparationProgress | None = None,
-        adopted_from_reqnr: int = 0,
+        carried: drone_pb2.InvokeRequest | None = None,
     ) -> drone_pb2.InvokeReply:
-        """Sends request ``reqnr`` in this session's epoch; raises grpc.aio.AioRpcError.
+        """Sends request ``reqnr`` in this session's epoch, with what it ``carried``
+        (``ControllerCore.carried``); raises grpc.aio.AioRpcError.
 
         It waits for the drone to be reachable (``wait_for_ready``) for at
         most ``timeout_s``, then fails DEADLINE_EXCEEDED.
@@ -360,11 +358,9 @@ class DroneSession:
             method=method,
             payload=payload,
             epoch=self.epoch,
-            watermark_reqnr=watermark_reqnr,
-            master_answers=master_answers,
-            preparation=preparation,
-            adopted_from_reqnr=adopted_from_reqnr,
         )
+        if carried is not None:
+            request.MergeFrom(carried)
         return await self._calls.invoke(request, timeout_s)
 
     async def report_preparation(self, progress: drone_pb2.PreparationProgress) -> bool:

@@ -26,7 +26,6 @@ from baton.controller.core import (
     CoreEffect,
     Hold,
     ReplayAgain,
-    to_retained,
 )
 from baton.controller.drone_link import DroneSession, Retry, refusal_of
 from baton.controller.invoking import Sent, failed, replied
@@ -306,10 +305,7 @@ class ProgramCalls:
                     method,
                     request,
                     timeout_s=max(1.0, retry.limit_s - retry.waited()),
-                    watermark_reqnr=node.protocol.watermark_reqnr,
-                    master_answers=[to_retained(entry) for entry in node.core.answered_here],
-                    preparation=node.preparation_progress(),
-                    adopted_from_reqnr=node.core.adopted_from(),
+                    carried=node.core.carried(node.preparation_progress()),
                 )
                 return replied(sent, reply.payload, reply.epoch, reply.signature)
             except grpc.aio.AioRpcError as exc:

@@ -53,7 +53,6 @@ from baton.controller.core import (
     Seen,
     SendCatchUp,
     Timer,
-    to_retained,
 )
 from baton.controller.history import LogHistory
 from baton.controller.invoking import Sent, failed, replied
@@ -777,10 +776,7 @@ class SimController:
             inv.call_id,
             link,
             link.generation,
-            watermark=self.protocol.watermark_reqnr,
-            master_answers=tuple(to_retained(entry) for entry in self.core.answered_here),
-            preparation=self._preparation_progress(),
-            adopted_from=self.core.adopted_from(),
+            carried=self.core.carried(self._preparation_progress()),
             sender=self,
             consumed=len(self.seen),
         )

@@ -93,10 +93,8 @@ class Request:
     link: DroneLink | None
     connection: int
     received_at: float = 0.0
-    watermark: int = 0  # InvokeRequest.watermark_reqnr
-    master_answers: tuple[drone_pb2.RetainedReply, ...] = ()  # InvokeRequest's
-    preparation: drone_pb2.PreparationProgress | None = None  # InvokeRequest's
-    adopted_from: int = 0  # InvokeRequest.adopted_from_reqnr
+    # What the request carries beside itself (``ControllerCore.carried``).
+    carried: drone_pb2.InvokeRequest | None = None
     # For the oracles: the sender's incarnation, and how many calls its program
     # had consumed when it sent this (the drone acting on it depends on them).
     sender: SimController | None = None
@@ -110,12 +108,9 @@ class Request:
             reqnr=self.reqnr,
             method=self.method,
             payload=self.payload,
-            watermark_reqnr=self.watermark,
-            master_answers=self.master_answers,
-            adopted_from_reqnr=self.adopted_from,
         )
-        if self.preparation is not None:
-            request.preparation.CopyFrom(self.preparation)
+        if self.carried is not None:
+            request.MergeFrom(self.carried)
         return request
 
 
