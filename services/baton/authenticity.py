@@ -97,14 +97,20 @@ def word_statement(master: int, epoch: int, lognr: int) -> bytes:
     return WORD_TAG + struct.pack(">iQQ", master, epoch, lognr)
 
 
-def holding_proof(message: ring_pb2.LogMessage) -> bytes:
+def holding_proof(message: ring_pb2.LogMessage, hashes: list[bytes] | None = None) -> bytes:
     """What a sync frame says to show its sender holds ``message`` (``LogFrame.holds_proof``):
     the SHA-256 of the canonical bytes its creator signed. Those cover every entry's
     reply, request and drone signature through their hashes, so only a holder of the
     whole message computes it; its signature, in the head a cut-through relay passes on
     first, does not give it away. Its creator keeps it (``ControllerProtocol._flush``)
-    and compares."""
-    return hashlib.sha256(PROOF_TAG + message_statement(message)).digest()
+    and compares. ``hashes``: the replies' SHA-256 (``reply_hashes``) if the caller has
+    them, as the signature's check does: a message may carry 64 MB of pictures."""
+    return proof_of(message_statement(message, hashes))
+
+
+def proof_of(statement: bytes) -> bytes:
+    """``holding_proof`` of the message whose canonical bytes are ``statement``."""
+    return hashlib.sha256(PROOF_TAG + statement).digest()
 
 
 def _sign(key: SigningKey, data: bytes) -> bytes:
@@ -197,14 +203,17 @@ class Signer:
         """Signs the drone's grant (``Grant.signature``)."""
         grant.signature = _sign(self.key, grant_statement(grant.master, grant.epoch, grant.kind))
 
-    def seal(self, message: ring_pb2.LogMessage | ring_pb2.MasterWord) -> None:
+    def seal(self, message: ring_pb2.LogMessage | ring_pb2.MasterWord) -> bytes:
         """Signs what this controller says in its own name: a log message it created
-        (``LogMessage.signature``), or its word as master (``MasterWord.signature``)."""
+        (``LogMessage.signature``), or its word as master (``MasterWord.signature``).
+        Returns the canonical bytes signed (a log message's ``holding_proof`` is their
+        hash: computed once, with the signature)."""
         if isinstance(message, ring_pb2.MasterWord):
             statement = word_statement(message.master, message.epoch, message.lognr)
         else:
             statement = message_statement(message)
         message.signature = _sign(self.key, statement)
+        return statement
 
 
 def _names(cert: x509.Certificate) -> list[Identity]:
@@ -316,7 +325,9 @@ class Keys:
         return [verifier for verifier in held if verifier.serial not in self.revoked]
 
 
-def refusal(keys: Keys, message: ring_pb2.LogMessage, receiver: int) -> str | None:
+def refusal(
+    keys: Keys, message: ring_pb2.LogMessage, receiver: int, hashes: list[bytes] | None = None
+) -> str | None:
     """Why ``message``, received by controller ``receiver``, is not what its creator and
     the drone said, or None if it is.
 
@@ -324,10 +335,11 @@ def refusal(keys: Keys, message: ring_pb2.LogMessage, receiver: int) -> str | No
     a relay can pass a message on but not make one in another's name or change it;
     then the drone's grant of the mastership it claims (``unbacked_claim``): its
     creator cannot make itself or another master; then the drone's signature on every
-    reply it made: its creator cannot invent one."""
+    reply it made: its creator cannot invent one. ``hashes``: the replies' SHA-256
+    (``reply_hashes``) if the caller has them."""
     if message.sender not in keys.controllers:
         return f"its creator, controller {message.sender}, is not one of the ring"
-    hashes = reply_hashes(message)
+    hashes = hashes or reply_hashes(message)
     creators = keys.of(message.sender)
     if not any(creator.verify_message(message, hashes) for creator in creators):
         revoked = [

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -214,3 +216,16 @@ async def test_fleet_quick(tmp_path: Path) -> None:
         assert {h["new_master"] for h in level["probe"]["handovers"]} == {0, 1}
         assert math.isfinite(level["handover_ratio"]) and level["round_trip_ratio"] > 0
     assert "| lone |" in (tmp_path / "fleet.md").read_text()
+
+
+def test_the_proof_cost_bench_takes_its_message_and_prints_the_figure() -> None:
+    """``python -m baton.bench.proof_cost``, small: the replica takes the signed message
+    (a refused one ends the run) and the figure is printed."""
+    done = subprocess.run(
+        [sys.executable, "-m", "baton.bench.proof_cost", "--passes", "2", "--replies", "3"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    assert done.stdout.startswith("after  CPU per 3 MB message: min "), done.stdout

@@ -3,11 +3,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from helpers.protocol import started
 
 from baton.authenticity import holding_proof
-from baton.controller.core import ControllerCore, Note
+from baton.controller.core import ControllerCore, Keep, Note, Persist
 from baton.controller.history import LogHistory
 from baton.controller.link_core import SyncWord, sync_word
 from baton.controller.protocol import ControllerProtocol, Diverged, SendLog, State, Unqueued
@@ -124,6 +126,48 @@ def test_a_sync_frame_proves_what_its_history_holds(keys: SimKeys) -> None:
     plain.add(ring_pb2.LogMessage(lognr=1, origin=0, sender=0, epoch=1))
     said = sync_word(plain, 1, (0, 0))
     assert said.holds_proof == b"" and said.holds_grant is None
+
+
+class NoReadBack(LogHistory):
+    """A history whose messages cannot be read back: what a sync word needs is kept."""
+
+    def get(self, lognr: int) -> ring_pb2.LogMessage:
+        raise AssertionError(f"log message {lognr} read back for a sync word")
+
+
+def test_the_proof_is_computed_once_with_the_signature_or_the_check_never_read_back(
+    keys: SimKeys,
+) -> None:
+    """The master's proof comes with its signature (``Persist.proof``), a receiver's with
+    its check (``Keep.proof``); the history keeps them beside the message, so a sync word
+    (one per message on the successor's stream) neither reads back nor hashes again a
+    message that may carry 64 MB of pictures."""
+    master = signed_core(keys, 0)
+    sent = [e for e in master.protocol.on_reply(clock(1)) if isinstance(e, SendLog)]
+    persisted = [e for e in master.ready(sent, True, 0.0) if isinstance(e, Persist)]
+    assert [p.proof for p in persisted] == [holding_proof(sent[0].message)]
+    replica = signed_core(keys, 1)
+    kept = [e for e in replica.log_arrived(sent[0].message, lambda: True) if isinstance(e, Keep)]
+    assert [k.proof for k in kept] == [holding_proof(sent[0].message)]
+    history = NoReadBack()
+    history.add(kept[0].message, kept[0].proof)
+    said = sync_word(history, 1, (0, 1))
+    assert said.holds_proof == kept[0].proof and said.holds_grant == sent[0].message.grant
+    assert history.heading(1).epoch == sent[0].message.epoch
+
+
+def test_a_history_recovered_from_its_file_proves_what_it_holds(
+    keys: SimKeys, tmp_path: Path
+) -> None:
+    """A restarted controller's history computes a recovered message's heading from the
+    file once, when first asked."""
+    message = flushed(signed_core(keys, 0), 1)
+    first = LogHistory(tmp_path / "log.sqlite")
+    first.add(message)
+    first.close()
+    again = LogHistory(tmp_path / "log.sqlite")
+    said = sync_word(again, 1, (0, 1))
+    assert said.holds_proof == holding_proof(message) and said.holds_epoch == message.epoch
 
 
 def queued_behind_a_gap(core: ControllerCore, keys: SimKeys) -> None:

@@ -36,7 +36,7 @@ async def send(
     receiver: int,
     message: ring_pb2.LogMessage,
     renumber: bool,
-    seal: Callable[[ring_pb2.LogMessage], None] | None = None,
+    seal: Callable[[ring_pb2.LogMessage], object] | None = None,
 ) -> None:
     """Sends ``message`` on a LogRing stream from ``station``'s certificate (numbered
     after what the receiver's hello says it holds if ``renumber``, then ``seal``ed) and

@@ -46,7 +46,7 @@ class Bookkeeping:
     def apply(self, effect: CoreEffect) -> bool:
         """Carries out ``effect`` if it is one of these; False for the driver's own."""
         if isinstance(effect, Persist | Keep):
-            self.ring.keep(effect.message)
+            self.ring.keep(effect.message, effect.proof)
         elif isinstance(effect, KeepMastership):
             self.history.keep_mastership_epoch(effect.epoch)
         elif isinstance(effect, Arm | Disarm):

@@ -38,7 +38,7 @@ from typing import Any, Protocol
 
 import grpc
 
-from baton.authenticity import Keys, refusal
+from baton.authenticity import Keys, holding_proof, refusal, reply_hashes
 from baton.config import GAP_REPAIR_MAX_S, gap_repair_s
 from baton.controller.link_core import SyncWord
 from baton.controller.protocol import (
@@ -315,6 +315,7 @@ class Keep:
     again); the successor's stream then says what we hold."""
 
     message: ring_pb2.LogMessage
+    proof: bytes = b""  # its holding_proof, computed with its check (b"": not computed)
 
 
 @dataclass(frozen=True)
@@ -412,6 +413,7 @@ class Persist:
     hold now), before it is sent (``ControllerCore.ready``)."""
 
     message: ring_pb2.LogMessage
+    proof: bytes = b""  # its holding_proof, computed with its signature (SendLog.proof)
 
 
 @dataclass(frozen=True)
@@ -613,7 +615,7 @@ class ControllerCore:
                 if effect.copy:
                     self.sent_straight[effect.dest] = effect.message.lognr
                 elif not effect.message.handover:
-                    out.append(Persist(effect.message))
+                    out.append(Persist(effect.message, effect.proof))
             out.append(effect)
             if isinstance(effect, Diverged):
                 out.extend(self.rejoin())
@@ -896,29 +898,38 @@ class ControllerCore:
         a message that shows our mastership went on without us fences us if the drone
         is out of reach (``drone_reachable``, asked then: ``went_on_without_us``)."""
         p = self.protocol
-        refused = self.unsigned(message, relayed_by)
+        # The replies hashed once, for the signatures' check and the proof of holding.
+        hashes = reply_hashes(message) if self.keys is not None else None
+        refused = self.unsigned(message, relayed_by, hashes)
         if refused:
             return refused
+        proof = holding_proof(message, hashes) if hashes is not None else b""
         try:
             effects = p.on_log(message)
         except ProtocolError as exc:
-            return [Keep(message), Fail(f"controller {p.id}: {exc}"), *exc.effects]
+            return [Keep(message, proof), Fail(f"controller {p.id}: {exc}"), *exc.effects]
         dropped = any(isinstance(effect, Fenced | Diverged) for effect in effects)
-        kept: list[CoreEffect] = [] if dropped else [Keep(message)]
+        kept: list[CoreEffect] = [] if dropped else [Keep(message, proof)]
         fenced: list[CoreEffect] = []
         if p.went_on_without_us(message):  # asked of the driver only then
             fenced = self.went_on_without_us(message, drone_reachable())
         return [*kept, *effects, SettleHandovers(), *fenced]
 
-    def unsigned(self, message: ring_pb2.LogMessage, relayed_by: int = 0) -> list[CoreEffect]:
+    def unsigned(
+        self,
+        message: ring_pb2.LogMessage,
+        relayed_by: int = 0,
+        hashes: list[bytes] | None = None,
+    ) -> list[CoreEffect]:
         """A log message its creator did not sign, or with a reply the drone did not sign
         (forged or altered by a station): refused whole, before it touches the log, the
         history or the ring (not forwarded: a relay of it is dropped), named by the
         station that relayed it (``relayed_by``, the ring stream's; 0: our own history)
-        and why. Nothing if it is signed throughout, or we check no signatures."""
+        and why. Nothing if it is signed throughout, or we check no signatures.
+        ``hashes``: the replies' SHA-256 (``reply_hashes``) if the caller has them."""
         if self.keys is None:
             return []
-        why = refusal(self.keys, message, self.protocol.id)
+        why = refusal(self.keys, message, self.protocol.id, hashes)
         if why is None:
             return []
         self.refused_messages += 1

@@ -48,10 +48,11 @@ from pathlib import Path
 
 from google.protobuf.message import DecodeError
 
+from baton.authenticity import holding_proof
 from baton.controller.protocol import SeenNumbers
 from baton.durability import FileHealth, held_whole, write_failed
 from baton.logs import get_logger
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
 from baton.wal import Checkpointer, describe_write_error, open_wal, roll_back
 
 SCHEMA = "CREATE TABLE IF NOT EXISTS messages (lognr INTEGER PRIMARY KEY, message BLOB NOT NULL)"
@@ -65,6 +66,27 @@ META_SCHEMA = "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTE
 # What the start's probe writes (and deletes): a disk that cannot take this much more
 # is said to be full at start. One picture's log message is larger.
 PROBE_BYTES = 64 << 10
+
+
+@dataclass(frozen=True)
+class Heading:
+    """What a ring stream's greeting and sync words say of a held message, kept in
+    memory beside it so that it is never read back for them (a message may carry
+    64 MB of pictures): the epoch it was framed in, the drone's grant it carries, and
+    its proof of holding (``authenticity.holding_proof``; b"" unsigned)."""
+
+    epoch: int
+    grant: drone_pb2.Grant | None
+    proof: bytes
+
+    @classmethod
+    def of(cls, message: ring_pb2.LogMessage, proof: bytes = b"") -> Heading:
+        """``message``'s heading; ``proof``: its holding proof if the caller computed it
+        (with its signature or its check), else computed here if it is signed."""
+        if message.signature and not proof:
+            proof = holding_proof(message)
+        grant = message.grant if message.HasField("grant") else None
+        return cls(message.epoch, grant, proof if message.signature else b"")
 
 
 class LogHistory:
@@ -103,6 +125,9 @@ class LogHistory:
             self._held.add(lognr)
         # Messages the file could not take, by log number, serialized (memory only).
         self._memory: dict[int, bytes] = {}
+        # The headings of the messages held (``heading``); one recovered from the file
+        # is read once, when first asked for.
+        self._headings: dict[int, Heading] = {}
         self.health = FileHealth(str(self.path) if self.path else "(a temporary file)")
         self._log = get_logger("history", file=self.health.path)
         if self.path is not None:  # a temporary file claims nothing to probe for
@@ -202,6 +227,7 @@ class LogHistory:
         if self._write("clearing the log", "DELETE FROM messages"):
             self._write("clearing the log", "DELETE FROM meta")
         self._memory.clear()
+        self._headings.clear()
         self._lognrs.clear()
         self._held = SeenNumbers()
         self._mastership_epoch = 0
@@ -239,12 +265,13 @@ class LogHistory:
         """Every log number up to this one is held."""
         return self._held.upto
 
-    def add(self, message: ring_pb2.LogMessage) -> None:
+    def add(self, message: ring_pb2.LogMessage, proof: bytes = b"") -> None:
         """Keeps ``message`` unless a message with its log number is held already,
         from the same or a newer epoch (one from an older epoch is replaced: a
         takeover numbered the log again, and a controller keeps the ring's framing
-        of a message it has not handled yet, ``ControllerProtocol.on_log``)."""
-        if message.lognr in self._lognrs and self.get(message.lognr).epoch >= message.epoch:
+        of a message it has not handled yet, ``ControllerProtocol.on_log``).
+        ``proof``: its holding proof, if the caller computed it (``Heading.of``)."""
+        if message.lognr in self._lognrs and self.heading(message.lognr).epoch >= message.epoch:
             return
         if message.handover:
             kept = ring_pb2.LogMessage()
@@ -262,11 +289,12 @@ class LogHistory:
             self._memory[message.lognr] = blob
         self._lognrs.add(message.lognr)
         self._held.add(message.lognr)
+        self._headings[message.lognr] = Heading.of(message, proof)
 
     def discard(self, lognr: int, epoch: int) -> None:
         """Forgets the message ``lognr`` if it is of ``epoch``: one received and dropped
         unhandled, of a framing a takeover replaced (protocol.py ``Unqueued``)."""
-        if lognr not in self._lognrs or self.get(lognr).epoch != epoch:
+        if lognr not in self._lognrs or self.heading(lognr).epoch != epoch:
             return
         if self._memory.pop(lognr, None) is None:
             self._write(
@@ -274,6 +302,7 @@ class LogHistory:
             )
         self._lognrs.discard(lognr)
         self._held.discard(lognr)
+        self._headings.pop(lognr, None)
 
     def get(self, lognr: int) -> ring_pb2.LogMessage:
         """The message with ``lognr``; KeyError if it is not held."""
@@ -284,6 +313,14 @@ class LogHistory:
         if row is None:
             raise KeyError(lognr)
         return ring_pb2.LogMessage.FromString(row[0])
+
+    def heading(self, lognr: int) -> Heading:
+        """What the ring's greetings and sync words say of message ``lognr`` (``Heading``);
+        KeyError if it is not held."""
+        heading = self._headings.get(lognr)
+        if heading is None:
+            heading = self._headings[lognr] = Heading.of(self.get(lognr))
+        return heading
 
     def above(self, lognr: int) -> Iterator[int]:
         """The held log numbers above ``lognr``, in order."""

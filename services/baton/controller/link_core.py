@@ -36,7 +36,6 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from baton.authenticity import holding_proof
 from baton.controller.history import LogHistory
 from baton.controller.outbox import Outbox
 from baton.v1 import drone_pb2, ring_pb2
@@ -113,14 +112,13 @@ def sync_word(
     grant; an insecure ring's gives neither."""
     if not (holds and holds in history):
         return SyncWord(holds, 0, *word, master_proof=proof)
-    top = history.get(holds)
-    signed = bool(top.signature)
+    top = history.heading(holds)
     return SyncWord(
         holds,
         top.epoch,
         *word,
-        holds_proof=holding_proof(top) if signed else b"",
-        holds_grant=top.grant if signed and top.HasField("grant") else None,
+        holds_proof=top.proof,
+        holds_grant=top.grant if top.proof else None,
         master_proof=proof,
     )
 
@@ -170,7 +168,7 @@ class LinkCore:
             return Greeting(None, [])
         holds = history.holds_lognr
         self.synced, self.synced_word = holds, word
-        ours = history.get(hello_lognr).epoch if hello_lognr in history else None
+        ours = history.heading(hello_lognr).epoch if hello_lognr in history else None
         after = self.outbox.resend_from(hello_lognr, hello_epoch, ours)
         again = self.outbox.history_to_resend(history.above(after))
         return Greeting(sync_word(history, holds, word, proof), again)

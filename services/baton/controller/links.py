@@ -94,9 +94,10 @@ class RingLinks(Generic[L]):
 
     # -- the history --------------------------------------------------------------
 
-    def keep(self, message: ring_pb2.LogMessage) -> None:
-        """``message`` enters the history; the successor's link says what we hold."""
-        self.history.add(message)
+    def keep(self, message: ring_pb2.LogMessage, proof: bytes = b"") -> None:
+        """``message`` enters the history (``proof``: its holding proof, if computed);
+        the successor's link says what we hold."""
+        self.history.add(message, proof)
         self.peer(self._successor()).holds_changed()
 
     def discard(self, lognr: int, epoch: int) -> None:

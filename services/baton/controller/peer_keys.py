@@ -104,7 +104,7 @@ class PeerKeys:
         self.keys = Keys(drone, controllers, earlier, revoked)
         return True
 
-    def seal(self) -> Callable[[Sealable], None] | None:
+    def seal(self) -> Callable[[Sealable], bytes] | None:
         """This controller's newest key's seal, if its folder holds a newer pair than the
         one it seals with (``Tls.current``), else None."""
         current = self.tls.current()

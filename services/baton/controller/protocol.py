@@ -21,7 +21,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from baton.authenticity import holding_proof
+from baton.authenticity import proof_of
 from baton.controller.mastership import Mastership, State
 from baton.digest import request_digest
 from baton.rpc.methods import describe_nondeterminism
@@ -37,6 +37,9 @@ class SendLog:
     # A copy of a message also sent to the successor (to a prepared handover's
     # target): held once, with the successor's.
     copy: bool = False
+    # Our own message's ``authenticity.holding_proof``, computed with its signature
+    # (b"": unsigned, or not computed): the history keeps it for the sync words.
+    proof: bytes = b""
 
 
 @dataclass(frozen=True)
@@ -278,8 +281,9 @@ class ProtocolError(Exception):
 Sealable = ring_pb2.LogMessage | ring_pb2.MasterWord
 
 
-def _unsealed(message: Sealable) -> None:
-    """An insecure ring's seal: the message goes unsigned."""
+def _unsealed(message: Sealable) -> bytes:
+    """An insecure ring's seal: the message goes unsigned (nothing signed)."""
+    return b""
 
 
 def entry_size(entry: ring_pb2.LogEntry) -> int:
@@ -344,7 +348,7 @@ class ControllerProtocol:
         self.flush_limit = flush_limit
         # Signs each log message we create once it is whole (``Signer.seal``, with this
         # controller's key: baton.authenticity); a no-op on an insecure ring.
-        self.seal: Callable[[Sealable], None] = _unsealed
+        self.seal: Callable[[Sealable], bytes] = _unsealed
         # The target of the prepared handover under way (``on_prepare``), if any.
         self.preparing_for: int | None = None
         # The mission program ended (``on_mission_done``): an entry logged since (a
@@ -1217,10 +1221,11 @@ class ControllerProtocol:
         message = self._message(self.lognr, origin=self.id, handover=False)
         message.epoch = self.epoch  # the mastership it was logged in, for diagnosis
         self._backed(message, self._grants.get(self.epoch))
-        self.seal(message)
-        if message.signature:
-            self._proofs[self.lognr] = holding_proof(message)
-        return SendLog(self.successor, message)
+        statement = self.seal(message)
+        if not message.signature:
+            return SendLog(self.successor, message)
+        proof = self._proofs[self.lognr] = proof_of(statement)
+        return SendLog(self.successor, message, proof=proof)
 
     @staticmethod
     def _backed(message: ring_pb2.LogMessage, grant: drone_pb2.Grant | None) -> None:
