@@ -67,6 +67,24 @@ def test_the_waiting_lines_name_what_holds() -> None:
     assert lines["paused"].startswith("request 7")
 
 
+def test_a_taker_waiting_for_replies_the_drone_let_go_says_so() -> None:
+    """A taker granted with the drone's watermark above all it holds, whose predecessor
+    holds nothing more, does not say it "handled log message 0 of 0": it says which
+    requests it lacks and what would give them."""
+    p = started(2, [1, 0, 2], 1)
+    p.on_granted(3, takeover=True, watermark_reqnr=7)
+    p.on_sync(0)
+    assert p.master and not p.caught_up
+    line = holding(p, [], Sight())["catch-up"]
+    assert "up to request 7 (its watermark at the takeover)" in line, line
+    assert "we hold up to request 0" in line and "our predecessor holds no more" in line, line
+    assert "log file" in line, line
+    unsaid = started(2, [1, 0, 2], 1)
+    unsaid.on_granted(3, takeover=True, watermark_reqnr=7)
+    unsaid.catch_up_to = None
+    assert "controller 0 has not said what it holds" in holding(unsaid, [], Sight())["catch-up"]
+
+
 def test_a_drone_calls_outcome_follows_its_status() -> None:
     core = ControllerCore(started(0, [0, 1, 2], 0))
     sent = Sent(3, POSITION, b"", b"d", 1)

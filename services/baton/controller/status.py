@@ -67,6 +67,30 @@ class Sight:
     successor_link: tuple[bool, int] | None = None
 
 
+def catch_up_wait(p: ControllerProtocol) -> str:
+    """What a master that has not caught up (``ControllerProtocol.caught_up``) waits for,
+    the first of its conditions that does not hold."""
+    if p.catch_up_to is None:
+        return f"controller {p.predecessor} has not said what it holds"
+    if p.lognr < p.catch_up_to:
+        return f"handled log message {p.lognr} of {p.catch_up_to}"
+    if p.held_reqnr < p.must_hold_reqnr:
+        # The drone let go of the replies below its watermark when every controller
+        # held them; no live one says it holds them now. A controller restarted with
+        # its log file gives them to the ring again.
+        return (
+            f"the drone let go of its replies up to request {p.must_hold_reqnr} (its "
+            f"watermark at the takeover), and we hold up to request {p.held_reqnr}; "
+            f"our predecessor holds no more (log message {p.catch_up_to}): "
+            "waiting for a controller that holds them (one restarted with its log file "
+            "gives them again)"
+        )
+    return (
+        f"waiting for the old master's handover message of epoch {p.mastership.owed}, "
+        "which carries its log"
+    )
+
+
 def holding(protocol: ControllerProtocol, routed_around: list[int], sight: Sight) -> dict[str, str]:
     """What holds now that would be a stall if it lasted, by watchdog key."""
     p = protocol
@@ -92,11 +116,7 @@ def holding(protocol: ControllerProtocol, routed_around: list[int], sight: Sight
     if p.master and not p.caught_up:
         held["catch-up"] = (
             f"master by the drone's word (epoch {p.epoch}) but catching up with the ring: "
-            + (
-                f"handled log message {p.lognr} of {p.catch_up_to}"
-                if p.catch_up_to is not None
-                else f"controller {p.predecessor} has not said what it holds"
-            )
+            + catch_up_wait(p)
         )
     if sight.in_flight is not None:
         reqnr, method = sight.in_flight
