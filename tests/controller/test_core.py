@@ -391,3 +391,23 @@ def test_a_route_retires_a_successor_it_no_longer_needs() -> None:
     assert RouteTo(1, [], previous=2, natural=1).retired == 2
     assert RouteTo(2, [1], previous=1, natural=1).retired is None  # the natural one
     assert RouteTo(0, [1, 2], previous=2, natural=1).retired is None  # skipped now
+
+
+def test_a_drone_reply_says_the_drone_took_the_watermark_its_call_carried() -> None:
+    """The drone raises its watermark to what a call of its master carries before it
+    answers it: a reply the drone signed for it (``drone_epoch``) tells the master the
+    drone took at least the watermark it had when it asked (every attempt carries that
+    or more); a give-up after the retries, which the drone may never have seen, does not."""
+    core = master()
+    p = core.protocol
+    p.watermark_reqnr = 4  # as the ring's proofs moved it
+    step, _ = core.answer(GET, b"")
+    assert step.reqnr == 1 and core.asked_with == (1, 4)
+    p.watermark_reqnr = 6  # a retry carries more
+    gave_up = ring_pb2.LogEntry(reqnr=1, method=GET, status_code=14)
+    core.logged(1, gave_up)
+    assert p.told_watermark == 0
+    step, _ = core.answer(GET, b"")
+    reply = ring_pb2.LogEntry(reqnr=2, method=GET, reply=b"at", drone_epoch=1)
+    core.logged(2, reply)
+    assert p.told_watermark == 6

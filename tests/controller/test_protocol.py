@@ -993,6 +993,30 @@ def test_a_fenced_master_keeps_the_messages_that_went_round_the_ring() -> None:
     assert q.acked_lognr == 1 and q.kept_when_fenced() == 0
 
 
+def test_in_a_longer_ring_a_fenced_master_keeps_what_the_drone_took_as_let_go() -> None:
+    """--lose-master seed 13253: in a ring of three, what went round by the predecessor's
+    word may have skipped a taker that lacks it, so that alone keeps nothing; but the
+    requests up to a watermark the drone took (a call that carried it answered, or the
+    drone's watermark at the takeover, as its refusal or notice says) are never framed
+    anew by any later master, so a fenced master keeps its messages up to it (the only
+    copy left when the others restarted or rejoined with nothing)."""
+    q = started(0, [0, 1, 2], 0)
+    for reqnr in (1, 2, 3):
+        q.on_reply(entry(reqnr))  # messages 1-3, flushed at once
+    q.on_sync(2)  # the predecessor holds messages 1-2: the watermark is request 2
+    assert q.watermark_reqnr == 2 and q.acked_lognr == 2
+    q.drone_took_watermark(1)  # a call carrying watermark 1 was answered
+    q.on_fenced(2)
+    assert q.kept_when_fenced() == 1
+    r = started(0, [0, 1, 2], 0)
+    for reqnr in (1, 2, 3):
+        r.on_reply(entry(reqnr))
+    r.on_sync(2)
+    r.on_fenced(2, watermark=2)  # the drone's watermark at the takeover
+    assert r.kept_when_fenced() == 2  # message 3 is above it: the taker framed it anew
+    assert started(0, [0, 1, 2], 0).kept_when_fenced() == 0
+
+
 def test_a_fenced_master_keeps_the_takers_messages_it_queued() -> None:
     """--policy seed 882 (a ring of two): master 0, cut off, flushed message 1, which went
     round; 1 took over (epoch 2) and its messages 2-3 came to 0, still ACTIVE, which

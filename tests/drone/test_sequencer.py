@@ -244,6 +244,25 @@ def test_replies_above_the_masters_watermark_are_retained_past_the_window() -> N
     assert seq.cache.watermark == 6
 
 
+def test_a_takeover_says_the_watermark_it_was_granted_at_to_the_master_it_fenced() -> None:
+    """The takeover's record keeps the drone's watermark then (what the taker must hold);
+    the old master's notice and every refusal of its mastership say it, and a later
+    rise of the watermark (the taker's own calls) does not change what they say."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    for reqnr in (1, 2, 3):
+        serve(seq, 0, 1, reqnr)
+    assert seq.admit(0, 1, 4, GET, DIGEST, watermark=2) is None
+    record = seq.switch(1, LOST, now=4.0, takeover=True, lost_at=1.0)
+    assert record.watermark_reqnr == 2 and seq.pending[0].takeover_watermark_reqnr == 2
+    serve(seq, 1, 2, 4)
+    assert seq.admit(1, 2, 5, GET, DIGEST, watermark=4) is None
+    error = refused(seq, 0, 1, 5)
+    assert ("baton-takeover", "1") in error.metadata
+    assert ("baton-takeover-watermark", "2") in error.metadata
+    cooperative = seq.switch(2, RPC, now=5.0)
+    assert cooperative.watermark_reqnr == 0 and not seq.pending[1].takeover_watermark_reqnr
+
+
 def test_a_taker_is_given_every_retained_reply_with_the_epoch_that_brought_it() -> None:
     """--policy nearest seed 132: the policy's taker is the nearest station, and may hold
     a framing an earlier takeover replaced. It is given the retained replies it says it

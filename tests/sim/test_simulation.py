@@ -130,6 +130,16 @@ def test_lose_master_seed_14453_a_taker_does_not_wait_on_a_word_its_sender_lost(
     assert outcome.ok, outcome.report()
 
 
+def test_lose_master_seed_13253_a_fenced_master_keeps_what_the_drone_let_go() -> None:
+    """Master 1 was taken over (watermark 3, which its call carried though the reply was
+    lost), the taker died for good, and the replica restarted with nothing: 1, fenced,
+    dropped its whole log, and the next taker waited for ever for requests 1-3 that no
+    live controller held. A fenced master now keeps its log up to the drone's watermark
+    at the takeover (``kept_when_fenced``, ``baton-takeover-watermark``)."""
+    outcome = run_seed(13253, SimOptions(lose_master=True))
+    assert outcome.ok, outcome.report()
+
+
 # Beyond CI's range, fixed: a new master's give-up of a retained reply (2456, 2707),
 # killed replicas held to a framing a takeover replaced (the oracle), the drone's watch
 # stopped while a program still had a given-up call to settle (2957, the sim).

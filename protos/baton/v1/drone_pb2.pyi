@@ -1073,6 +1073,7 @@ class HandoverNotice(_message.Message):
     TAKEOVER_FIELD_NUMBER: _builtins.int
     GRANT_FIELD_NUMBER: _builtins.int
     TAKEOVER_EPOCH_FIELD_NUMBER: _builtins.int
+    TAKEOVER_WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """The controller that was master."""
     new_master: _builtins.int
@@ -1095,6 +1096,12 @@ class HandoverNotice(_message.Message):
     older epoch holds a log that takeover replaced, and rejoins with nothing
     rather than handing it over.
     """
+    takeover_watermark_reqnr: _builtins.int
+    """A takeover's: the drone's watermark when it granted the role (what the
+    taker must hold before it acts). No later master frames a request up to
+    it anew, so the old master keeps its log messages up to it when it
+    rejoins (it may hold the only copy left).
+    """
     @_builtins.property
     def grant(self) -> Global___Grant:
         """The drone's grant of the new master's epoch: the old master carries it in
@@ -1112,10 +1119,11 @@ class HandoverNotice(_message.Message):
         takeover: _builtins.bool = ...,
         grant: Global___Grant | None = ...,
         takeover_epoch: _builtins.int = ...,
+        takeover_watermark_reqnr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["grant", b"grant"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "ended_epoch", b"ended_epoch", "epoch", b"epoch", "grant", b"grant", "new_master", b"new_master", "old_master", b"old_master", "takeover", b"takeover", "takeover_epoch", b"takeover_epoch"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "ended_epoch", b"ended_epoch", "epoch", b"epoch", "grant", b"grant", "new_master", b"new_master", "old_master", b"old_master", "takeover", b"takeover", "takeover_epoch", b"takeover_epoch", "takeover_watermark_reqnr", b"takeover_watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -1532,6 +1540,7 @@ class HandoverRecord(_message.Message):
     PREPARE_STARTED_AT_FIELD_NUMBER: _builtins.int
     PREPARE_TIMED_OUT_FIELD_NUMBER: _builtins.int
     PREPARE_LACKED_BYTES_FIELD_NUMBER: _builtins.int
+    WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """Master before."""
     new_master: _builtins.int
@@ -1568,6 +1577,11 @@ class HandoverRecord(_message.Message):
     """What the target lacked, by the master's last word, when the drone
     moved the master (bytes; with the reply served last).
     """
+    watermark_reqnr: _builtins.int
+    """For a takeover: the drone's watermark when it granted the role (the
+    taker holds every request up to it before it acts; a refusal of the old
+    master says it as baton-takeover-watermark).
+    """
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
         """Where the vehicle was when the drone decided (zero if unknown)."""
@@ -1590,10 +1604,11 @@ class HandoverRecord(_message.Message):
         prepare_started_at: _builtins.float = ...,
         prepare_timed_out: _builtins.bool = ...,
         prepare_lacked_bytes: _builtins.int = ...,
+        watermark_reqnr: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["position", b"position"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "position", b"position", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "reason", b"reason", "trigger", b"trigger"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "position", b"position", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "reason", b"reason", "trigger", b"trigger", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

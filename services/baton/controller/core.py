@@ -141,6 +141,9 @@ class DroneRefusal:
     takeover_epoch: int = 0
     # The drone's grant of ``epoch`` to ``master`` (``baton-grant``; None: not said).
     grant: drone_pb2.Grant | None = None
+    # The drone's watermark at the takeover of the refused controller's mastership
+    # (``baton-takeover-watermark``; 0: not said).
+    takeover_watermark: int = 0
 
     @classmethod
     def from_metadata(cls, metadata: Mapping[str, str | bytes]) -> DroneRefusal | None:
@@ -157,6 +160,7 @@ class DroneRefusal:
             str(metadata.get("baton-takeover", "")) == "1",
             int(str(metadata.get("baton-takeover-epoch", "0"))),
             drone_pb2.Grant.FromString(bytes.fromhex(grant_hex)) if grant_hex else None,
+            int(str(metadata.get("baton-takeover-watermark", "0"))),
         )
 
     @classmethod
@@ -528,6 +532,9 @@ class ControllerCore:
         # along with the next Invoke, so the drone keeps them for a taker.
         self.answered_here: list[ring_pb2.LogEntry] = []
         self.answered_from_retained = 0
+        # The drone call asked last, and the watermark it carries at the least: the
+        # drone's reply to it says the drone took that much (``logged``).
+        self.asked_with = (0, 0)
         # The last log number sent straight to each handover target (``catch_up`` and a
         # prepared handover's copies), so that none is sent to it twice.
         self.sent_straight: dict[int, int] = {}
@@ -751,9 +758,11 @@ class ControllerCore:
             Reconnect(),
         ]
 
-    def fenced(self, new_master: int, epoch: int) -> list[CoreEffect]:
-        """Our mastership was taken over (in ``epoch``): stop acting as master, then
-        rejoin as a replica with nothing; nothing if a rejoin is under way."""
+    def fenced(self, new_master: int, epoch: int, watermark: int = 0) -> list[CoreEffect]:
+        """Our mastership was taken over (in ``epoch``; ``watermark``: the drone's at that
+        takeover, 0 if not said): stop acting as master, then rejoin as a replica with
+        nothing but what ``ControllerProtocol.kept_when_fenced`` keeps; nothing if a
+        rejoin is under way."""
         if self.rejoining:
             return []
         p = self.protocol
@@ -764,7 +773,7 @@ class ControllerCore:
             {"new_master": new_master, "epoch": epoch, "unflushed_entries": len(p.log)},
         )
         record = Record(ring_pb2.HANDOVER_ROLE_FENCED, new_master, p.lognr, p.reqnr, p.log.size)
-        return [record, note, *p.on_fenced(epoch), *self.rejoin()]
+        return [record, note, *p.on_fenced(epoch, watermark), *self.rejoin()]
 
     def rejoin(self) -> list[CoreEffect]:
         """A rejoin with nothing, unless one is under way."""
@@ -777,7 +786,7 @@ class ControllerCore:
         """Connect refused: another controller is master, and no notice is owed to us."""
         p = self.protocol
         if refusal.taken_over or p.log_given_up(refusal.takeover_epoch):
-            return self.fenced(refusal.master, refusal.fencing_epoch)
+            return self.fenced(refusal.master, refusal.fencing_epoch, refusal.takeover_watermark)
         if p.state is not State.ACTIVE:
             fields = {"master": refusal.master, "epoch": refusal.epoch}
             return [Note("info", "not the master", fields), DisconnectDrone()]
@@ -808,7 +817,9 @@ class ControllerCore:
             ]
         if verdict is Refusal.HANDED_OVER:
             if refusal.taken_over or p.log_given_up(refusal.takeover_epoch):
-                return self.fenced(refusal.master, refusal.fencing_epoch)
+                return self.fenced(
+                    refusal.master, refusal.fencing_epoch, refusal.takeover_watermark
+                )
             return self.handover_notice(
                 refusal.master, refusal.after_reqnr, refusal.epoch, refusal.grant
             )
@@ -829,15 +840,17 @@ class ControllerCore:
         takeover: bool,
         grant: drone_pb2.Grant | None = None,
         takeover_epoch: int = 0,
+        takeover_watermark: int = 0,
     ) -> list[CoreEffect]:
         """A handover notice on the Connect stream (the drone owes at most one, the latest).
 
-        A takeover's notice fences us; so does one whose drone took over after our
-        mastership (``takeover_epoch``, ``ControllerProtocol.log_given_up``): our log
-        was replaced by the taker's framing, and handing it over would put a second
-        framing of the same requests on the ring."""
+        A takeover's notice fences us (``takeover_watermark``: the drone's at that
+        takeover); so does one whose drone took over after our mastership
+        (``takeover_epoch``, ``ControllerProtocol.log_given_up``): our log was replaced
+        by the taker's framing, and handing it over would put a second framing of the
+        same requests on the ring."""
         if takeover:
-            return self.fenced(new_master, epoch)
+            return self.fenced(new_master, epoch, takeover_watermark)
         if self.protocol.log_given_up(takeover_epoch):
             return self.fenced(new_master, takeover_epoch)
         if self.protocol.state is State.ACTIVE:
@@ -1250,6 +1263,8 @@ class ControllerCore:
             return Answer(entry), [*effects, *self._log(entry)]
         if method in (CLOCK_NOW, CLOCK_SLEEP):
             return AskClock(reqnr, digest), effects
+        # Every attempt of the call carries this watermark or a higher one (``carried``).
+        self.asked_with = (reqnr, p.watermark_reqnr)
         return AskDrone(reqnr, digest), effects
 
     def _clock_refusal(self, method: str, request: bytes) -> StatusError | None:
@@ -1269,6 +1284,8 @@ class ControllerCore:
             return None, [
                 Note("info", "reply discarded after handover", {"discarded_reqnr": reqnr})
             ]
+        if entry.drone_epoch and self.asked_with[0] == reqnr:  # the drone's own reply
+            self.protocol.drone_took_watermark(self.asked_with[1])
         return entry, self._log(entry)
 
     def gave_up(

@@ -532,6 +532,7 @@ class ControllerNode:
                 notice.takeover,
                 notice.grant if notice.HasField("grant") else None,
                 notice.takeover_epoch,
+                notice.takeover_watermark_reqnr,
             )
         )
 

@@ -440,6 +440,15 @@ class ControllerProtocol:
         # The highest log number we held that the predecessor's word says every
         # controller held (the watermark's log number): ``kept_when_fenced``.
         self.acked_lognr = 0
+        # The watermark the drone took from us as master (a call that carried it, or
+        # more, answered: ``drone_took_watermark``), and the highest log number whose
+        # requests are all at or below it; the (log number, request number) pairs the
+        # watermark passed that it has not reached yet.
+        self.told_watermark = 0
+        self.told_lognr = 0
+        self._passed: deque[tuple[int, int]] = deque()
+        # The drone's watermark at the takeover that fenced us (on_fenced; 0: not said).
+        self._fenced_watermark = 0
         # Our program starts again by a rejoin (``restart_program``): like fenced,
         # nothing queued is handled here any more (the fresh self handles it); and
         # the log number up to which a master keeps its history for its fresh self.
@@ -699,7 +708,21 @@ class ControllerProtocol:
             acked, reqnr = self._ends.popleft()
             self.watermark_reqnr = max(self.watermark_reqnr, reqnr)
             self.acked_lognr = max(self.acked_lognr, acked)
+            self._passed.append((acked, reqnr))
+        self._reach_told()
         return self._drain()
+
+    def drone_took_watermark(self, watermark: int) -> None:
+        """The drone answered a call of ours that carried ``watermark`` or more: it let go
+        of its replies up to it (``ReplyCache.raise_watermark``), and grants the role to
+        no taker with a lower one from now on, so no taker frames a request up to it
+        anew (it must hold them before it acts, ``must_hold_reqnr``)."""
+        self.told_watermark = max(self.told_watermark, watermark)
+        self._reach_told()
+
+    def _reach_told(self) -> None:
+        while self._passed and self._passed[0][1] <= self.told_watermark:
+            self.told_lognr = max(self.told_lognr, self._passed.popleft()[0])
 
     def unproved_word(self, holds_lognr: int, holds_epoch: int, proof: bytes) -> bool:
         """Whether a word that its sender holds our own message ``holds_lognr`` (of the
@@ -948,7 +971,16 @@ class ControllerProtocol:
 
     def kept_when_fenced(self) -> int:
         """The log numbers (every one up to this) that a controller fenced by a takeover
-        keeps from its history when it rejoins, in a ring of two only.
+        keeps from its history when it rejoins.
+
+        - In any ring, those whose requests are all at or below the watermark
+          the drone took from us as master (``told_lognr``): the drone let go of
+          their replies, and every taker since must hold them before it acts, so
+          none framed them anew; the fenced master may hold the only copy left
+          (the others lost, or restarted or rejoined with nothing), and dropped,
+          the taker would wait for ever for them.
+
+        In a ring of two, also:
 
         - Those that went round the whole ring (``acked_lognr``): the drone let
           go of their replies, and the fenced master may hold the only copy
@@ -966,18 +998,30 @@ class ControllerProtocol:
 
         In a longer ring the predecessor's word may come from a controller that
         routes around one that lacks them, which may then take over without
-        them: the fenced controller would keep a give-up the taker replaced.
+        them, with the drone's watermark below ours: the fenced controller would
+        keep a give-up the taker replaced. Not below the watermark the drone
+        took, which binds that taker too.
         The fresh self handles what is kept like ring messages
         (``ControllerNode.reset``) and gives it to its successor again.
         """
-        if not (self._fenced_in and len(self.ring) == 2):
+        if not self._fenced_in:
             return 0
+        if len(self.ring) != 2:
+            return self._taken_lognr()
         upto = self.acked_lognr
         while (queued := self.log_queue.get(upto + 1)) is not None:
             if queued.handover or queued.epoch < self._fenced_in:
                 break
             upto += 1
-        return upto
+        return max(upto, self._taken_lognr())
+
+    def _taken_lognr(self) -> int:
+        """The highest log number whose requests are all at or below a watermark the
+        drone took: one it answered a call of ours with (``told_watermark``), or the
+        one it had when it took our mastership over (``_fenced_watermark``)."""
+        taken = max(self.told_watermark, self._fenced_watermark)
+        passed = [lognr for lognr, reqnr in self._passed if reqnr <= taken]
+        return max([self.told_lognr, *passed])
 
     def restart_program(self) -> list[Effect]:
         """Our program starts again by a rejoin (it gave up on a call whose entry, from
@@ -1300,14 +1344,17 @@ class ControllerProtocol:
         self._mastership_over = self.epoch
         return [DisconnectDrone(), SendLog(new_master, message)]
 
-    def on_fenced(self, epoch: int = 0) -> list[Effect]:
-        """The drone gave our mastership to another controller by takeover.
+    def on_fenced(self, epoch: int = 0, watermark: int = 0) -> list[Effect]:
+        """The drone gave our mastership to another controller by takeover (in ``epoch``,
+        with its watermark at ``watermark``: 0 if not said).
 
         Not in Algorithm 1, whose masters never fail: our unflushed log is not
         wanted (the new master got those replies from the drone), so nothing
         is sent; we stop acting as master. The runtime then rejoins as a
-        replica with nothing (``ControllerNode.reset``).
+        replica with nothing but what ``kept_when_fenced`` keeps
+        (``ControllerNode.reset``).
         """
+        self._fenced_watermark = max(self._fenced_watermark, watermark)
         was_active = self.state is State.ACTIVE
         self.state, self.master = State.PASSIVE, False
         self.fenced = True

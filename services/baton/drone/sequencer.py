@@ -227,6 +227,10 @@ class Sequencer:
         it holds (``mastership_epoch``: the epoch its request or Connect
         carries) was taken over: its log is not wanted; it rejoins as a
         replica with nothing (``taken_over_since``).
+        ``baton-takeover-watermark`` goes with it: the drone's watermark at that
+        takeover (``HandoverRecord.watermark_reqnr``), below which no later master
+        frames a request anew, so the controller keeps its log up to it
+        (``ControllerProtocol.kept_when_fenced``).
         ``baton-takeover-epoch`` is the epoch the newest takeover granted
         (absent: none yet). A controller still ACTIVE in an older epoch holds a log
         that never left it, and that takeover framed the same replies from
@@ -247,8 +251,13 @@ class Sequencer:
             where += (("baton-grant", grant.SerializeToString().hex()),)
         if self.takeover_epoch:
             where += (("baton-takeover-epoch", str(self.takeover_epoch)),)
-        if controller_id is not None and self.taken_over_since(controller_id, mastership_epoch):
+        taken = None
+        if controller_id is not None:
+            taken = self.taken_over_since(controller_id, mastership_epoch)
+        if taken is not None:
             where += (("baton-takeover", "1"),)
+            if taken.watermark_reqnr:
+                where += (("baton-takeover-watermark", str(taken.watermark_reqnr)),)
         return where
 
     @property
@@ -611,6 +620,7 @@ class Sequencer:
             lost_at=lost_at,
             reason=reason,
             position=position,
+            watermark_reqnr=self.cache.watermark if takeover else 0,
         )
         self.handovers.append(record)
         self.master = new_master
@@ -632,6 +642,7 @@ class Sequencer:
             takeover=takeover,
             grant=self.signed_grant(ended + 1),
             takeover_epoch=self.takeover_epoch,
+            takeover_watermark_reqnr=record.watermark_reqnr,
         )
         return record
 

@@ -427,6 +427,7 @@ class SimController:
         takeover: bool,
         grant: drone_pb2.Grant | None = None,
         takeover_epoch: int = 0,
+        takeover_watermark: int = 0,
     ) -> None:
         """A HandoverNotice on the stream, which then ends."""
         session = self.session
@@ -434,7 +435,9 @@ class SimController:
             return
         session.ended, session.stream = True, None
         self._startup_answer()
-        self.on_stream_notice(new_master, after_reqnr, epoch, takeover, grant, takeover_epoch)
+        self.on_stream_notice(
+            new_master, after_reqnr, epoch, takeover, grant, takeover_epoch, takeover_watermark
+        )
 
     def on_drone_prepare(self, sid: int, prepare: drone_pb2.PrepareHandover) -> None:
         """A PrepareHandover event on the stream: node.py's on_prepare."""
@@ -499,10 +502,13 @@ class SimController:
         takeover: bool = False,
         grant: drone_pb2.Grant | None = None,
         takeover_epoch: int = 0,
+        takeover_watermark: int = 0,
     ) -> None:
         """ControllerNode.on_stream_notice."""
         self._apply(
-            self.core.stream_notice(new_master, after_reqnr, epoch, takeover, grant, takeover_epoch)
+            self.core.stream_notice(
+                new_master, after_reqnr, epoch, takeover, grant, takeover_epoch, takeover_watermark
+            )
         )
 
     def on_take_over(self, old_master: int, epoch: int, watermark_reqnr: int) -> None:

@@ -638,6 +638,7 @@ class SimDrone:
                     event.takeover,
                     event.grant if event.HasField("grant") else None,
                     event.takeover_epoch,
+                    event.takeover_watermark_reqnr,
                     stream=True,
                 )
                 self.core.delivered(cid, event)
