@@ -89,7 +89,18 @@ def test_the_corridor_stations_admit_a_route_and_refuse_one_beyond_them(
             "refused: drone: '': give the drone's name",
         ),
         (("admit", "--drone", "d1", "--route", TAKE_OFF, "91,8"), "route[1].latitude_deg: 91.0"),
-        (("admit", "--drone", "d1", "--route", TAKE_OFF, "--home", TAKE_OFF), "--home: for --plan"),
+        (
+            ("admit", "--drone", "d1", "--route", TAKE_OFF, "--home", TAKE_OFF),
+            "--home: only with a plan",
+        ),
+        (
+            ("admit", "--drone", "d1", "--route", TAKE_OFF, "--start"),
+            "--config: missing; --start needs --config and --mission",
+        ),
+        (
+            ("admit", "--drone", "d1", "--route", TAKE_OFF, "--mission", "grid.py"),
+            "--mission: only with --start",
+        ),
         (("cancel", "4"), "mission 4: no such mission"),
     ],
 )
@@ -109,7 +120,8 @@ def test_a_plan_without_a_home_needs_one(
         capsys, tmp_path / "fleet.sqlite", "admit", "--drone", "d1", "--plan", str(plan)
     )
     assert (
-        status == 2 and "has no planned home position; give the take-off point with --home" in err
+        status == 2
+        and f"--home: missing: plan {plan} has no planned home position; give the take-off" in err
     )
 
 
