@@ -95,11 +95,21 @@ def status_of(exc: Exception) -> StatusError | None:
     elif isinstance(exc, NotInFlight | RegistryError | ConfigError | TlsError):
         code = grpc.StatusCode.FAILED_PRECONDITION
     elif isinstance(exc, SessionError):
-        reached = exc.code not in _NOT_REACHED
-        code = grpc.StatusCode.FAILED_PRECONDITION if reached else grpc.StatusCode.UNAVAILABLE
+        code = _session_code(exc.code)
     else:
         return None
     return StatusError(code, str(exc))
+
+
+def _session_code(said: grpc.StatusCode) -> grpc.StatusCode:
+    """A session that did not start or stop, by what its station answered: not reached
+    is UNAVAILABLE; a field of the request it named (the program: no such file there)
+    INVALID_ARGUMENT; any other refusal a state of that station's, FAILED_PRECONDITION."""
+    if said in _NOT_REACHED:
+        return grpc.StatusCode.UNAVAILABLE
+    if said == grpc.StatusCode.INVALID_ARGUMENT:
+        return said
+    return grpc.StatusCode.FAILED_PRECONDITION
 
 
 def invalid(field: str, why: str) -> StatusError:
@@ -127,7 +137,10 @@ def submitted(request: fleet_pb2.AdmitRequest) -> list[Position]:
         try:
             return submitted_route(points, path, home)
         except RouteError as exc:
-            raise RouteError(exc.field, exc.reason.replace(str(path), "(the request's)")) from None
+            sent = exc.reason.replace(f"plan {path}", "the plan sent").replace(
+                str(path), "the plan sent"
+            )
+            raise RouteError(exc.field, sent) from None
 
 
 def summary(line: MissionLine) -> fleet_pb2.MissionSummary:
