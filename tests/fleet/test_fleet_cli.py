@@ -102,6 +102,8 @@ def test_the_corridor_stations_admit_a_route_and_refuse_one_beyond_them(
             "--mission: only with --start",
         ),
         (("cancel", "4"), "mission 4: no such mission"),
+        (("serve", "--listen", "8470", "--insecure"), "--listen '8470': expected HOST:PORT"),
+        (("serve", "--certs", "/nonexistent"), "/nonexistent"),
     ],
 )
 def test_a_bad_request_says_which_flag_or_field_and_the_fix(

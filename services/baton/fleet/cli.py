@@ -191,13 +191,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="a live web page of the stations, their ranges and the drones moving, with "
         "each mission's master and state",
     )
-    view.add_argument(
-        "--listen",
-        default="127.0.0.1:8470",
-        metavar="HOST:PORT",
-        help="where the page is served; port 0 picks a free one (default 127.0.0.1:8470)",
-    )
-    view.add_argument("--address-file", help="write the bound HOST:PORT to this file")
+    _add_listen(view, "127.0.0.1:8470", "the page is served")
     view.add_argument(
         "--poll",
         type=float,
@@ -224,14 +218,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
             "the calls that need them are refused FAILED_PRECONDITION."
         ),
     )
-    serve.add_argument(
-        "--listen",
-        default="127.0.0.1:50090",
-        metavar="HOST:PORT",
-        help="where the service listens; port 0 picks a free one (default 127.0.0.1:50090)",
-    )
-    serve.add_argument("--address-file", help="write the bound HOST:PORT to this file")
+    _add_listen(serve, "127.0.0.1:50090", "the service listens")
     serve.set_defaults(run=_guarded(_serve))
+
+
+def _add_listen(parser: argparse.ArgumentParser, default: str, what: str) -> None:
+    """``--listen`` (checked by ``_listen_problem``) and ``--address-file``."""
+    parser.add_argument(
+        "--listen",
+        default=default,
+        metavar="HOST:PORT",
+        help=f"where {what}; port 0 picks a free one (default {default})",
+    )
+    parser.add_argument("--address-file", help="write the bound HOST:PORT to this file")
+
+
+def _listen_problem(listen: str) -> str | None:
+    """What is wrong with a ``--listen`` value, or None."""
+    host, _, port = listen.rpartition(":")
+    if not host or not port.isdigit() or int(port) > 65_535:
+        return f"--listen {listen!r}: expected HOST:PORT, e.g. 127.0.0.1:8470"
+    return None
 
 
 def _add_start_flags(parser: argparse.ArgumentParser, required: bool) -> None:
@@ -600,9 +607,8 @@ def _view(args: argparse.Namespace) -> int:
 
     if args.config is None:
         return _fail(args, "--config: missing; the network's file with the stations' addresses")
-    host, _, port = args.listen.rpartition(":")
-    if not host or not port.isdigit() or int(port) > 65_535:
-        return _fail(args, f"--listen {args.listen!r}: expected HOST:PORT, e.g. 127.0.0.1:8470")
+    if (problem := _listen_problem(args.listen)) is not None:
+        return _fail(args, problem)
     if not args.poll > 0:
         return _fail(args, f"--poll {args.poll}: a number of seconds above 0, e.g. 0.5")
     if not args.registry.is_file():
@@ -627,10 +633,17 @@ def _serve(args: argparse.Namespace) -> int:
     from baton.fleet.service import serve_fleet
     from baton.rpc.tls import OPERATOR, TlsError
 
+    if (problem := _listen_problem(args.listen)) is not None:
+        return _fail(args, problem)
     try:
         network = _network(args) if args.config is not None else None
         tls = network.tls if network is not None else tls_from_flags(args, None, OPERATOR)
     except (ConfigError, TlsError) as exc:
         return _fail(args, str(exc))
     Registry(args.registry).close()  # a registry that cannot be used is said now
-    return lifecycle.run(serve_fleet(args.registry, network, tls, args.listen, args.address_file))
+    try:
+        return lifecycle.run(
+            serve_fleet(args.registry, network, tls, args.listen, args.address_file)
+        )
+    except OSError as exc:  # the address cannot be bound: BatonServer says why
+        return _fail(args, str(exc))
