@@ -102,7 +102,7 @@ def test_the_corridor_stations_admit_a_route_and_refuse_one_beyond_them(
             "--mission: only with --start",
         ),
         (("cancel", "4"), "mission 4: no such mission"),
-        (("serve", "--listen", "8470", "--insecure"), "--listen '8470': expected HOST:PORT"),
+        (("serve", "--listen", "8470", "--insecure"), "--listen '8470': expected host:port"),
         (("serve", "--certs", "/nonexistent"), "/nonexistent"),
     ],
 )
@@ -154,7 +154,7 @@ def test_the_view_refuses_bad_flags_naming_each_and_the_fix(
     assert status == 2 and "baton fleet view: --config: missing" in err
     args = ("view", "--config", str(CORRIDOR))
     status, _, err = fleet(capsys, db, *args, "--listen", "8470")
-    assert status == 2 and "--listen '8470': expected HOST:PORT" in err
+    assert status == 2 and "--listen '8470': expected host:port" in err
     status, _, err = fleet(capsys, db, *args, "--poll", "0")
     assert status == 2 and "--poll 0.0: a number of seconds above 0" in err
     status, _, err = fleet(capsys, db, *args)

@@ -120,6 +120,9 @@ async def test_requests_refused_before_any_station_is_asked_name_the_field(
          Code.INVALID_ARGUMENT, "program: only with start"),
         (fleet.Admit(fleet_pb2.AdmitRequest(drone="d1", route=[take_off], start=True)),
          Code.INVALID_ARGUMENT, "program: missing"),
+        (fleet.Admit(fleet_pb2.AdmitRequest(
+            drone="d1", route=[take_off], start=True, program="g", drone_address="d1")),
+         Code.INVALID_ARGUMENT, "drone_address: expected host:port like '127.0.0.1:7100'"),
         (fleet.Admit(fleet_pb2.AdmitRequest(drone="d1", route=[take_off], start=True, program="g")),
          Code.FAILED_PRECONDITION, "start: this fleet service has no network file"),
         (fleet.Admit(fleet_pb2.AdmitRequest(drone="d1", plan=BARE_PLAN)),

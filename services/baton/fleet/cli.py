@@ -235,9 +235,12 @@ def _add_listen(parser: argparse.ArgumentParser, default: str, what: str) -> Non
 
 def _listen_problem(listen: str) -> str | None:
     """What is wrong with a ``--listen`` value, or None."""
-    host, _, port = listen.rpartition(":")
-    if not host or not port.isdigit() or int(port) > 65_535:
-        return f"--listen {listen!r}: expected HOST:PORT, e.g. 127.0.0.1:8470"
+    from baton.config import parse_address
+
+    try:
+        parse_address(listen)
+    except ValueError as exc:
+        return f"--listen {listen!r}: {exc}"
     return None
 
 

@@ -24,7 +24,7 @@ from typing import TypeVar
 
 import grpc
 
-from baton.config import ConfigError
+from baton.config import ConfigError, parse_address
 from baton.drone.policy import Station
 from baton.fleet.actions import (
     Admission,
@@ -265,6 +265,11 @@ class FleetService(fleet_pb2_grpc.FleetServicer):
                 return admit_reply(admission, None)
             if not request.program:
                 raise invalid("program", "missing: start needs the mission program's path")
+            if request.drone_address:
+                try:
+                    parse_address(request.drone_address)
+                except ValueError as exc:
+                    raise invalid("drone_address", str(exc)) from None
             network = self._needs_network("start")
             both = admit_and_start(
                 self.registry,
