@@ -101,6 +101,10 @@ def test_the_corridor_stations_admit_a_route_and_refuse_one_beyond_them(
             ("admit", "--drone", "d1", "--route", TAKE_OFF, "--mission", "grid.py"),
             "--mission: only with --start",
         ),
+        (
+            ("admit", "--drone", "d1", "--route", TAKE_OFF, "--drone-config", "d1.json"),
+            "--drone-config: only with --start",
+        ),
         (("cancel", "4"), "mission 4: no such mission"),
         (("serve", "--listen", "8470", "--insecure"), "--listen '8470': expected host:port"),
         (("serve", "--certs", "/nonexistent"), "/nonexistent"),

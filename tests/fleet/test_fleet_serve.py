@@ -98,7 +98,8 @@ async def test_the_fleet_service_admits_starts_refuses_lists_and_cancels(
                 )
             )
             assert code == grpc.StatusCode.UNAVAILABLE, details
-            assert "station 2" in details and "stopped on 1" in details
+            assert details.startswith("not admitted: not started: station 2"), details
+            assert "stopped on 1" in details
             assert await hosted(stations[1]) == {}
             missions = await fleet.ListMissions(fleet_pb2.ListMissionsRequest())
             assert list(missions.missions) == []

@@ -162,9 +162,16 @@ def admit_and_start(
             registry, admission.mission_id, network, program, args, drone_address
         )
     except SessionError as exc:
-        if not exc.leftover:
-            _withdraw(registry, admission.mission_id)
-        raise
+        mission_id = admission.mission_id
+        if exc.leftover:
+            raise SessionError(
+                f"mission {mission_id}: {exc}; it stays admitted: cancel it (baton fleet "
+                "cancel ID --config FILE) once the stations answer",
+                exc.code,
+                exc.leftover,
+            ) from None
+        _withdraw(registry, mission_id)
+        raise SessionError(f"not admitted: {exc}", exc.code) from None
     except BaseException:
         _withdraw(registry, admission.mission_id)
         raise

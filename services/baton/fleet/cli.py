@@ -33,7 +33,8 @@ from baton.certs.cli import add_tls_flags, tls_from_flags
 from baton.sdk.run import add_mission_arg
 
 if TYPE_CHECKING:
-    from baton.fleet.actions import Network, Started
+    from baton.fleet.actions import Admission, Network, Started
+    from baton.fleet.admission import Refused
     from baton.sdk.types import Position
 
 DEFAULT_REGISTRY = Path("baton-fleet.sqlite")
@@ -381,22 +382,28 @@ def _admit(args: argparse.Namespace) -> int:
         route = _route(args)
     except RouteError as exc:
         return _fail(args, f"--{exc.field}: {exc.reason}")
+    started: Started | None = None
     if not args.start:
-        for flag, given in (("--mission", args.program), ("--config", args.config)):
-            if given is not None:
+        for flag, given in (
+            ("--mission", args.program),
+            ("--config", args.config),
+            ("--mission-arg", args.mission_arg),
+            ("--drone-address", args.drone_address),
+            ("--drone-config", args.drone_config),
+        ):
+            if given:
                 return _fail(args, f"{flag}: only with --start")
-        decision = admit(args.registry, args.drone, route)
+        decision: Admission | Refused = admit(args.registry, args.drone, route)
     else:
         if args.config is None or args.program is None:
             missing = "--config" if args.config is None else "--mission"
             return _fail(args, f"{missing}: missing; --start needs --config and --mission")
         try:
-            network = _network(args)
-            started = admit_and_start(
+            both = admit_and_start(
                 args.registry,
                 args.drone,
                 route,
-                network,
+                _network(args),
                 args.program,
                 args.mission_arg,
                 args.drone_address,
@@ -404,8 +411,8 @@ def _admit(args: argparse.Namespace) -> int:
         except (ConfigError, TlsError) as exc:
             return _fail(args, f"not admitted: {exc}")
         except SessionError as exc:
-            return _fail(args, f"not admitted: {exc}", status=1)
-        decision = started if isinstance(started, Refused) else started[0]
+            return _fail(args, str(exc), status=1)
+        decision, started = (both, None) if isinstance(both, Refused) else both
     if isinstance(decision, Refused):
         return _fail(args, f"refused: {decision.message()}", status=1)
     names, admitted = decision.stations, decision.admitted
@@ -419,8 +426,8 @@ def _admit(args: argparse.Namespace) -> int:
     print(f"ring: {ring}")
     first = admitted.first_master
     print(f"first master: {names[first]} (id {first}), the nearest to take-off")
-    if args.start and not isinstance(started, Refused):
-        _print_started(started[1], args.drone_config)
+    if started is not None:
+        _print_started(started, args.drone_config)
     return 0
 
 
