@@ -1,6 +1,7 @@
-"""The Fleet service's pure corners: each failure of the fleet's operations mapped to
-the status a gRPC caller expects, and the requests it refuses before any station is
-asked, served in this process (insecure, no network file)."""
+"""The Fleet service's corners: each failure of the fleet's operations mapped to the
+status a gRPC caller expects; the requests it refuses before any station is asked,
+served in this process (insecure, no network file); and what a failed start leaves of
+an admission."""
 
 from __future__ import annotations
 
@@ -152,3 +153,41 @@ async def test_requests_refused_before_any_station_is_asked_name_the_field(
     assert cancelled.mission.state == "cancelled" and list(cancelled.stopped_on) == []
     said = await refused(fleet.CancelMission(fleet_pb2.CancelMissionRequest(mission_id=1)))
     assert said == (Code.FAILED_PRECONDITION, "mission 1: already cancelled")
+
+
+@pytest.mark.parametrize("undone", [True, False])
+def test_a_start_that_fails_withdraws_the_admission_unless_a_station_kept_a_session(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, undone: bool
+) -> None:
+    """Admission that starts: withdrawn when the start was undone everywhere (the drone is
+    free, the id not given again); kept for a cancel when a station could not undo it."""
+    from baton.config import parse_config
+    from baton.fleet import actions
+    from baton.fleet.actions import Network, admit_and_start
+    from baton.fleet.registry import Registry
+
+    registry = tmp_path / "fleet.sqlite"
+    with Registry(registry) as open_registry:
+        open_registry.add_station("s1", STATION)
+    leftover = () if undone else ("station 1 (127.0.0.1:1): UNAVAILABLE: no answer",)
+
+    def refused_start(*_: object) -> actions.Started:
+        raise SessionError("not started: station 2: UNAVAILABLE", Code.UNAVAILABLE, leftover)
+
+    monkeypatch.setattr(actions, "start_mission", refused_start)
+    network = Network(
+        parse_config({"controllers": [{"id": 1, "address": "127.0.0.1:1"}]}), "n", None
+    )
+    with pytest.raises(SessionError) as caught:
+        admit_and_start(registry, "d1", [TAKE_OFF], network, "grid.py", [])
+    with Registry(registry) as open_registry:
+        missions = open_registry.missions()
+        again = open_registry.admit("d1", [TAKE_OFF])
+    if undone:
+        assert str(caught.value).startswith("not admitted: not started: station 2")
+        assert missions == [] and not isinstance(again, Refused) and again[0] == 2
+    else:
+        assert "mission 1: not started: station 2" in str(caught.value)
+        assert "it stays admitted: cancel it" in str(caught.value)
+        assert [m.id for m in missions] == [1] and isinstance(again, Refused)
+        assert again.kind == Refusal.BUSY
