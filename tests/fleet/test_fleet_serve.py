@@ -7,19 +7,20 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from pathlib import Path
 
 import grpc
 import pytest
+from helpers.drone_calls import refused_details
 from helpers.missions import SMALL_GRID
-from helpers.stations import fleet_cli, network_file, start_fleet_service
+from helpers.stations import fleet_cli, hosted, network_file, start_fleet_service
 
 from baton.certs.make import init
 from baton.config import BatonConfig
 from baton.rpc.channels import aio_channel
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
-from baton.testbed.fleet import StationPart, start_stations
+from baton.testbed.fleet import start_stations
 from baton.testbed.supervisor import Supervisor
 from baton.v1 import fleet_pb2, fleet_pb2_grpc, station_pb2
 
@@ -33,17 +34,6 @@ HOSTING = station_pb2.SESSION_STATE_HOSTING
 
 def place(at: tuple[float, float]) -> fleet_pb2.Place:
     return fleet_pb2.Place(latitude_deg=at[0], longitude_deg=at[1])
-
-
-async def hosted(station: StationPart) -> dict[str, int]:
-    status = await station.stub.GetStation(station_pb2.GetStationRequest(), timeout=5)
-    return {m.mission_id: m.state for m in status.missions}
-
-
-async def refused(call: Awaitable[object]) -> tuple[grpc.StatusCode, str]:
-    with pytest.raises(grpc.aio.AioRpcError) as caught:
-        await call
-    return caught.value.code(), caught.value.details() or ""
 
 
 async def test_the_fleet_service_admits_starts_refuses_lists_and_cancels(
@@ -79,10 +69,12 @@ async def test_the_fleet_service_admits_starts_refuses_lists_and_cancels(
             ]
 
             # A stretch no station covers: refused, the stretch named, nothing admitted.
-            code, details = await refused(
-                fleet.Admit(fleet_pb2.AdmitRequest(drone="d1", route=[place(TAKE_OFF), place(FAR)]))
+            details = await refused_details(
+                fleet.Admit(
+                    fleet_pb2.AdmitRequest(drone="d1", route=[place(TAKE_OFF), place(FAR)])
+                ),
+                grpc.StatusCode.FAILED_PRECONDITION,
             )
-            assert code == grpc.StatusCode.FAILED_PRECONDITION, details
             assert "refused: route: a stretch no station covers: from (47.397742, 8.5" in details
             assert "to (47.397742, 8.590000) at 3346 m" in details
 
@@ -90,14 +82,14 @@ async def test_the_fleet_service_admits_starts_refuses_lists_and_cancels(
             # not admitted: the drone is free again.
             await supervisor.kill("station-2")
             route = [place(TAKE_OFF), place(EAST)]
-            code, details = await refused(
+            details = await refused_details(
                 fleet.Admit(
                     fleet_pb2.AdmitRequest(
                         drone="d1", route=route, start=True, program=program, args=args
                     )
-                )
+                ),
+                grpc.StatusCode.UNAVAILABLE,
             )
-            assert code == grpc.StatusCode.UNAVAILABLE, details
             assert details.startswith("not admitted: not started: station 2"), details
             assert "stopped on 1" in details
             assert await hosted(stations[1]) == {}
@@ -126,10 +118,10 @@ async def test_the_fleet_service_admits_starts_refuses_lists_and_cancels(
             for station in stations.values():
                 assert await hosted(station) == {"2": HOSTING}
 
-            code, details = await refused(
-                fleet.Admit(fleet_pb2.AdmitRequest(drone="d1", route=route))
+            details = await refused_details(
+                fleet.Admit(fleet_pb2.AdmitRequest(drone="d1", route=route)),
+                grpc.StatusCode.ALREADY_EXISTS,
             )
-            assert code == grpc.StatusCode.ALREADY_EXISTS
             assert "refused: drone: 'd1' already flies mission 2" in details
 
             missions = await fleet.ListMissions(fleet_pb2.ListMissionsRequest())
@@ -147,10 +139,11 @@ async def test_the_fleet_service_admits_starts_refuses_lists_and_cancels(
                 assert session.WhichOneof("answer") == "status", session
                 assert (session.status.id, session.status.mission_id) == (sid, "2")
             assert status.WhichOneof("drone") == "drone_error"  # no drone at its address
-            code, details = await refused(
-                fleet.GetMission(fleet_pb2.GetMissionRequest(mission_id=7))
+            details = await refused_details(
+                fleet.GetMission(fleet_pb2.GetMissionRequest(mission_id=7)),
+                grpc.StatusCode.NOT_FOUND,
             )
-            assert code == grpc.StatusCode.NOT_FOUND and "mission 7: no such mission" in details
+            assert "mission 7: no such mission" in details
 
             cancelled = json.loads(
                 await curl("-d", '{"mission_id": 2}', address, "baton.v1.Fleet/CancelMission")
@@ -165,8 +158,10 @@ async def test_the_fleet_service_admits_starts_refuses_lists_and_cancels(
         controller = Tls.load(certs, Identity.controller(1))
         async with aio_channel(address, controller, OPERATOR) as channel:
             stub: fleet_pb2_grpc.FleetAsyncStub = fleet_pb2_grpc.FleetStub(channel)  # type: ignore[no-untyped-call]
-            code, details = await refused(stub.ListStations(fleet_pb2.ListStationsRequest()))
-            assert code == grpc.StatusCode.PERMISSION_DENIED
+            details = await refused_details(
+                stub.ListStations(fleet_pb2.ListStationsRequest()),
+                grpc.StatusCode.PERMISSION_DENIED,
+            )
             assert "only an operator (spiffe://baton/operator) may" in details
 
         # The command admits and starts over the same registry the service serves, and

@@ -14,6 +14,7 @@ from baton.cli import main
 from baton.config import BatonConfig
 from baton.testbed.fleet import MissionDrone, StationPart, start_mission_drone, start_stations
 from baton.testbed.supervisor import Supervisor, baton_argv
+from baton.v1 import station_pb2
 
 
 def mission_config(
@@ -113,3 +114,9 @@ async def start_fleet_service(
         *([f"--config={network}"] if network is not None else []),
     )
     return await supervisor.start_ready("fleet", argv, ready)
+
+
+async def hosted(station: StationPart) -> dict[str, station_pb2.SessionState.ValueType]:
+    """The missions a station hosts, each with its session's state."""
+    status = await station.stub.GetStation(station_pb2.GetStationRequest(), timeout=5)
+    return {m.mission_id: m.state for m in status.missions}
