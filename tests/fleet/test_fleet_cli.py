@@ -89,8 +89,25 @@ def test_the_corridor_stations_admit_a_route_and_refuse_one_beyond_them(
             "refused: drone: '': give the drone's name",
         ),
         (("admit", "--drone", "d1", "--route", TAKE_OFF, "91,8"), "route[1].latitude_deg: 91.0"),
-        (("admit", "--drone", "d1", "--route", TAKE_OFF, "--home", TAKE_OFF), "--home: for --plan"),
+        (
+            ("admit", "--drone", "d1", "--route", TAKE_OFF, "--home", TAKE_OFF),
+            "--home: only with a plan",
+        ),
+        (
+            ("admit", "--drone", "d1", "--route", TAKE_OFF, "--start"),
+            "--config: missing; --start needs --config and --mission",
+        ),
+        (
+            ("admit", "--drone", "d1", "--route", TAKE_OFF, "--mission", "grid.py"),
+            "--mission: only with --start",
+        ),
+        (
+            ("admit", "--drone", "d1", "--route", TAKE_OFF, "--drone-config", "d1.json"),
+            "--drone-config: only with --start",
+        ),
         (("cancel", "4"), "mission 4: no such mission"),
+        (("serve", "--listen", "8470", "--insecure"), "--listen '8470': expected host:port"),
+        (("serve", "--certs", "/nonexistent"), "/nonexistent"),
     ],
 )
 def test_a_bad_request_says_which_flag_or_field_and_the_fix(
@@ -109,7 +126,8 @@ def test_a_plan_without_a_home_needs_one(
         capsys, tmp_path / "fleet.sqlite", "admit", "--drone", "d1", "--plan", str(plan)
     )
     assert (
-        status == 2 and "has no planned home position; give the take-off point with --home" in err
+        status == 2
+        and f"--home: missing: plan {plan} has no planned home position; give the take-off" in err
     )
 
 
@@ -140,7 +158,7 @@ def test_the_view_refuses_bad_flags_naming_each_and_the_fix(
     assert status == 2 and "baton fleet view: --config: missing" in err
     args = ("view", "--config", str(CORRIDOR))
     status, _, err = fleet(capsys, db, *args, "--listen", "8470")
-    assert status == 2 and "--listen '8470': expected HOST:PORT" in err
+    assert status == 2 and "--listen '8470': expected host:port" in err
     status, _, err = fleet(capsys, db, *args, "--poll", "0")
     assert status == 2 and "--poll 0.0: a number of seconds above 0" in err
     status, _, err = fleet(capsys, db, *args)

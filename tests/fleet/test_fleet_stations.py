@@ -8,21 +8,16 @@ from pathlib import Path
 
 import pytest
 from helpers.missions import SMALL_GRID
-from helpers.stations import fleet_cli, network_file
+from helpers.stations import fleet_cli, hosted, network_file
 
 from baton.certs.make import init
 from baton.rpc.tls import DRONE, OPERATOR, Identity
-from baton.testbed.fleet import StationPart, start_stations
+from baton.testbed.fleet import start_stations
 from baton.testbed.supervisor import Supervisor
 from baton.v1 import station_pb2
 
 TAKE_OFF, EAST = "47.397742,8.545594", "47.397742,8.550"
 PLACES = {1: (47.398191, 8.545594), 2: (47.398191, 8.552229)}
-
-
-async def hosted(station: StationPart) -> dict[str, station_pb2.SessionState.ValueType]:
-    status = await station.stub.GetStation(station_pb2.GetStationRequest())
-    return {m.mission_id: m.state for m in status.missions}
 
 
 async def test_a_ring_starts_whole_or_not_at_all_again_after_a_restart_and_cancels_to_nothing(

@@ -36,3 +36,8 @@ async def expect_error(call: Awaitable[object], code: grpc.StatusCode) -> grpc.a
         await call
     assert info.value.code() == code, info.value.details()
     return info.value
+
+
+async def refused_details(call: Awaitable[object], code: grpc.StatusCode) -> str:
+    """What a call that ends with ``code`` said (``expect_error``'s details)."""
+    return (await expect_error(call, code)).details() or ""

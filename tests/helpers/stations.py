@@ -13,7 +13,8 @@ from waiting import eventually
 from baton.cli import main
 from baton.config import BatonConfig
 from baton.testbed.fleet import MissionDrone, StationPart, start_mission_drone, start_stations
-from baton.testbed.supervisor import Supervisor
+from baton.testbed.supervisor import Supervisor, baton_argv
+from baton.v1 import station_pb2
 
 
 def mission_config(
@@ -95,3 +96,27 @@ async def fleet_cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int
     status = await asyncio.to_thread(main, ["fleet", *args])
     out, err = capsys.readouterr()
     return status, out + err
+
+
+async def start_fleet_service(
+    supervisor: Supervisor, registry: Path, network: Path | None, certs: Path
+) -> str:
+    """``baton fleet serve`` over ``registry`` (and the ``network`` file) as the operator
+    of ``certs``, on a free port: its address."""
+    ready = supervisor.workdir / "fleet.address"
+    argv = baton_argv(
+        "fleet",
+        "serve",
+        f"--registry={registry}",
+        "--listen=127.0.0.1:0",
+        f"--address-file={ready}",
+        f"--certs={certs}",
+        *([f"--config={network}"] if network is not None else []),
+    )
+    return await supervisor.start_ready("fleet", argv, ready)
+
+
+async def hosted(station: StationPart) -> dict[str, station_pb2.SessionState.ValueType]:
+    """The missions a station hosts, each with its session's state."""
+    status = await station.stub.GetStation(station_pb2.GetStationRequest(), timeout=5)
+    return {m.mission_id: m.state for m in status.missions}

@@ -39,6 +39,7 @@ flat Earth no longer holds there.
 from __future__ import annotations
 
 import bisect
+import enum
 import itertools
 import math
 from collections.abc import Iterator, Mapping, Sequence
@@ -89,6 +90,18 @@ class Admitted:
     length_m: float
 
 
+class Refusal(enum.Enum):
+    """What kind of refusal: a submission that can never be admitted as sent
+    (``MALFORMED``), a drone that flies a mission already (``BUSY``), a route the
+    stations do not cover (``UNCOVERED``), or no station to cover anything
+    (``NO_STATIONS``); the last two could be admitted once stations are added."""
+
+    MALFORMED = "malformed"
+    BUSY = "busy"
+    UNCOVERED = "uncovered"
+    NO_STATIONS = "no stations"
+
+
 @dataclass(frozen=True)
 class Refused:
     """Why a submission is refused: the field at fault and what is wrong with it;
@@ -97,6 +110,7 @@ class Refused:
     field: str
     reason: str
     uncovered: tuple[Stretch, ...] = ()
+    kind: Refusal = Refusal.MALFORMED
 
     def message(self) -> str:
         """One line for a person: ``FIELD: what is wrong``."""
@@ -122,6 +136,7 @@ def admit_mission(
             "drone",
             f"{drone!r} already flies mission {in_flight[drone]}; cancel it first "
             "(baton fleet cancel), or submit for another drone",
+            kind=Refusal.BUSY,
         )
     flat = FlatRoute.of(route)
     intervals = _covered(flat, stations)
@@ -135,6 +150,7 @@ def admit_mission(
             + "; ".join(s.describe() for s in stretches)
             + ". Add a station whose range covers it, or change the route",
             stretches,
+            Refusal.UNCOVERED,
         )
     enters = {sid: spans[0][0] for sid, spans in intervals.items() if spans}
     centres = {s.id: north_east_m(route[0], s.location) for s in stations}
@@ -168,7 +184,9 @@ def check_submission(
             )
     if not stations:
         return Refused(
-            "stations", "none registered; add the stations first (baton fleet stations add)"
+            "stations",
+            "none registered; add the stations first (baton fleet stations add)",
+            kind=Refusal.NO_STATIONS,
         )
     seen: set[int] = set()
     for k, station in enumerate(stations):

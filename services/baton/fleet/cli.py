@@ -9,6 +9,8 @@ and an admitted mission's sessions on its stations (item 1).
     baton fleet status ID --config FILE
     baton fleet start ID --config FILE --mission FILE [--mission-arg k=v ...]
     baton fleet cancel ID [--config FILE]
+    baton fleet admit ... --start --config FILE --mission FILE [--drone-config FILE]
+    baton fleet serve [--config FILE] [--listen HOST:PORT]
     baton fleet drain STATION --config FILE
     baton fleet undrain STATION
     baton fleet view --config FILE [--listen HOST:PORT]
@@ -31,11 +33,9 @@ from baton.certs.cli import add_tls_flags, tls_from_flags
 from baton.sdk.run import add_mission_arg
 
 if TYPE_CHECKING:
-    from baton.config import BatonConfig
-    from baton.fleet.registry import MissionRow
-    from baton.rpc.tls import Tls
+    from baton.fleet.actions import Admission, Network, Started
+    from baton.fleet.admission import Refused
     from baton.sdk.types import Position
-    from baton.v1.ring_pb2 import ControllerStatus
 
 DEFAULT_REGISTRY = Path("baton-fleet.sqlite")
 # A station's fields (admission.station_problem) and the flags that set them.
@@ -103,8 +103,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         run=_guarded(_list_stations)
     )
 
+    network = argparse.ArgumentParser(add_help=False)
+    network.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="the network's testbed file: its controllers are the stations at their ports "
+        "(id, address), its drone the mission's (or --drone-address)",
+    )
+    add_tls_flags(network)
+
     admit = actions.add_parser(
-        "admit", parents=[common], help="admit a drone's mission: its ring and first master"
+        "admit",
+        parents=[common, network],
+        help="admit a drone's mission: its ring and first master; with --start, its "
+        "sessions started on the ring's stations too",
     )
     admit.add_argument("--drone", required=True, help="the drone's name")
     route = admit.add_mutually_exclusive_group(required=True)
@@ -124,17 +137,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         metavar="LAT,LON",
         help="(--plan) the take-off point (default: the plan's planned home position)",
     )
+    admit.add_argument(
+        "--start",
+        action="store_true",
+        help="start the mission's sessions on its ring's stations too (needs --config and "
+        "--mission); a start that fails leaves the mission not admitted",
+    )
+    _add_start_flags(admit, required=False)
     admit.set_defaults(run=_guarded(_admit))
 
-    network = argparse.ArgumentParser(add_help=False)
-    network.add_argument(
-        "--config",
-        type=Path,
-        metavar="FILE",
-        help="the network's testbed file: its controllers are the stations at their ports "
-        "(id, address), its drone the mission's (or --drone-address)",
-    )
-    add_tls_flags(network)
     actions.add_parser(
         "missions",
         parents=[common, network],
@@ -174,32 +185,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "start an admitted mission's sessions on its ring's stations (baton station)",
         _start,
     )
-    start.add_argument(
-        "--mission",
-        dest="program",
-        required=True,
-        metavar="FILE",
-        help="the mission program, a path on the stations",
-    )
-    add_mission_arg(start)
-    start.add_argument(
-        "--drone-address",
-        metavar="HOST:PORT",
-        help="where the stations reach the mission's drone (default: the file's drone.address)",
-    )
+    _add_start_flags(start, required=True)
     view = actions.add_parser(
         "view",
         parents=[common, network],
         help="a live web page of the stations, their ranges and the drones moving, with "
         "each mission's master and state",
     )
-    view.add_argument(
-        "--listen",
-        default="127.0.0.1:8470",
-        metavar="HOST:PORT",
-        help="where the page is served; port 0 picks a free one (default 127.0.0.1:8470)",
-    )
-    view.add_argument("--address-file", help="write the bound HOST:PORT to this file")
+    _add_listen(view, "127.0.0.1:8470", "the page is served")
     view.add_argument(
         "--poll",
         type=float,
@@ -212,6 +205,68 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "cancel",
         "cancel an admitted mission; with --config, its sessions stopped on its stations",
         _cancel,
+    )
+    serve = actions.add_parser(
+        "serve",
+        parents=[common, network],
+        help="serve these operations over gRPC (the Fleet service) for the operator",
+        description=(
+            "Serves the Fleet gRPC service (protos/baton/v1/fleet.proto) over the registry: "
+            "stations, admission (and start), missions, status, cancel and drain, by the same "
+            "code as these commands. Only the operator's certificate may call it, and it "
+            "presents that certificate (call it with -servername operator.baton). With "
+            "--config (the network's file) it reaches the stations and drones; without, "
+            "the calls that need them are refused FAILED_PRECONDITION."
+        ),
+    )
+    _add_listen(serve, "127.0.0.1:50090", "the service listens")
+    serve.set_defaults(run=_guarded(_serve))
+
+
+def _add_listen(parser: argparse.ArgumentParser, default: str, what: str) -> None:
+    """``--listen`` (checked by ``_listen_problem``) and ``--address-file``."""
+    parser.add_argument(
+        "--listen",
+        default=default,
+        metavar="HOST:PORT",
+        help=f"where {what}; port 0 picks a free one (default {default})",
+    )
+    parser.add_argument("--address-file", help="write the bound HOST:PORT to this file")
+
+
+def _listen_problem(listen: str) -> str | None:
+    """What is wrong with a ``--listen`` value, or None."""
+    from baton.config import parse_address
+
+    try:
+        parse_address(listen)
+    except ValueError as exc:
+        return f"--listen {listen!r}: {exc}"
+    return None
+
+
+def _add_start_flags(parser: argparse.ArgumentParser, required: bool) -> None:
+    """What starting a mission's sessions takes: its program and arguments, where its
+    drone is, and where to write the configuration its drone takes its ring from."""
+    parser.add_argument(
+        "--mission",
+        dest="program",
+        required=required,
+        metavar="FILE",
+        help="the mission program, a path on the stations",
+    )
+    add_mission_arg(parser)
+    parser.add_argument(
+        "--drone-address",
+        metavar="HOST:PORT",
+        help="where the stations reach the mission's drone (default: the file's drone.address)",
+    )
+    parser.add_argument(
+        "--drone-config",
+        type=Path,
+        metavar="FILE",
+        help="write the mission's configuration here (JSON): its ring's stations with their "
+        "addresses, locations and ranges, in order; the drone's baton drone --config",
     )
 
 
@@ -295,44 +350,75 @@ def _list_stations(args: argparse.Namespace) -> int:
 
 def _route(args: argparse.Namespace) -> list[Position]:
     """The submitted route: --route's points, or the plan's from its take-off point;
-    ValueError names the flag and the fix."""
-    from baton.fleet.routes import plan_route, planned_home
-    from baton.missions.plan import PlanError, load_plan
+    RouteError names the field (its flag)."""
+    from baton.fleet.routes import submitted_route
     from baton.sdk.types import Position
 
-    if args.route is not None:
-        if args.home is not None:
-            raise ValueError("--home: for --plan; --route's first point is the take-off")
-        return [Position(lat, lon) for lat, lon in args.route]
-    try:
-        plan = load_plan(str(args.plan))
-        home = Position(*args.home) if args.home is not None else planned_home(args.plan)
-    except PlanError as exc:
-        raise ValueError(f"--plan: {exc}") from None
-    if home is None:
-        raise ValueError(
-            f"--plan {args.plan}: the plan has no planned home position; give the take-off "
-            "point with --home LAT,LON"
-        )
-    return plan_route(plan, home)
+    points = [Position(lat, lon) for lat, lon in args.route or ()]
+    home = Position(*args.home) if args.home is not None else None
+    return submitted_route(points, args.plan, home)
+
+
+def _network(args: argparse.Namespace) -> Network:
+    """The network's file (--config) and the operator's certificate; ConfigError or
+    TlsError saying why not."""
+    from baton.config import load_config
+    from baton.fleet.actions import Network
+    from baton.rpc.tls import OPERATOR
+
+    config = load_config(args.config)
+    return Network(config, str(args.config), tls_from_flags(args, config, OPERATOR))
 
 
 def _admit(args: argparse.Namespace) -> int:
+    from baton.config import ConfigError
+    from baton.fleet.actions import admit, admit_and_start
     from baton.fleet.admission import Refused
-    from baton.fleet.registry import Registry
+    from baton.fleet.routes import RouteError
+    from baton.fleet.sessions import SessionError
+    from baton.rpc.tls import TlsError
 
     try:
         route = _route(args)
-    except ValueError as exc:
-        return _fail(args, str(exc))
-    with Registry(args.registry) as registry:
-        decision = registry.admit(args.drone, route)
-        names = {s.station.id: s.name for s in registry.stations()}
+    except RouteError as exc:
+        return _fail(args, f"--{exc.field}: {exc.reason}")
+    started: Started | None = None
+    if not args.start:
+        for flag, given in (
+            ("--mission", args.program),
+            ("--config", args.config),
+            ("--mission-arg", args.mission_arg),
+            ("--drone-address", args.drone_address),
+            ("--drone-config", args.drone_config),
+        ):
+            if given:
+                return _fail(args, f"{flag}: only with --start")
+        decision: Admission | Refused = admit(args.registry, args.drone, route)
+    else:
+        if args.config is None or args.program is None:
+            missing = "--config" if args.config is None else "--mission"
+            return _fail(args, f"{missing}: missing; --start needs --config and --mission")
+        try:
+            both = admit_and_start(
+                args.registry,
+                args.drone,
+                route,
+                _network(args),
+                args.program,
+                args.mission_arg,
+                args.drone_address,
+            )
+        except (ConfigError, TlsError) as exc:
+            return _fail(args, f"not admitted: {exc}")
+        except SessionError as exc:
+            return _fail(args, str(exc), status=1)
+        decision, started = (both, None) if isinstance(both, Refused) else both
     if isinstance(decision, Refused):
         return _fail(args, f"refused: {decision.message()}", status=1)
-    mission_id, admitted = decision
+    names, admitted = decision.stations, decision.admitted
     print(
-        f"mission {mission_id} admitted for drone {args.drone}: a {admitted.length_m:.0f} m route"
+        f"mission {decision.mission_id} admitted for drone {args.drone}: a "
+        f"{admitted.length_m:.0f} m route"
     )
     ring = " -> ".join(
         f"{names[sid]} (id {sid}, from {admitted.enters_at_m[sid]:.0f} m)" for sid in admitted.ring
@@ -340,20 +426,44 @@ def _admit(args: argparse.Namespace) -> int:
     print(f"ring: {ring}")
     first = admitted.first_master
     print(f"first master: {names[first]} (id {first}), the nearest to take-off")
+    if started is not None:
+        _print_started(started, args.drone_config)
     return 0
 
 
-def _missions(args: argparse.Namespace) -> int:
-    from baton.config import ConfigError, load_config
-    from baton.fleet.operations import ask_stations, overview, session_statuses
-    from baton.fleet.registry import IN_FLIGHT, Registry
-    from baton.rpc.tls import OPERATOR, TlsError
+def _print_started(started: Started, drone_config: Path | None) -> None:
+    """Says where a mission started, and writes the configuration its drone takes its
+    ring from (``baton drone --config``) where asked."""
+    import json
 
-    with Registry(args.registry) as registry:
-        missions = registry.missions()
-    if args.config is None:
+    mission = started.mission
+    ring = ", ".join(
+        f"{sid}{' (first master)' if sid == mission.first_master else ''}"
+        for sid in mission.live_ring
+    )
+    print(f"mission {mission.id} of drone {mission.drone} started on stations {ring}")
+    if drone_config is not None:
+        from baton.lifecycle import write_atomically
+
+        document = started.config.model_dump(mode="json", exclude_unset=True)
+        write_atomically(drone_config, json.dumps(document, indent=2) + "\n")
+        print(f"the drone's configuration (its ring): {drone_config} (baton drone --config)")
+
+
+def _missions(args: argparse.Namespace) -> int:
+    from baton.config import ConfigError
+    from baton.fleet.actions import mission_lines
+    from baton.rpc.tls import TlsError
+
+    try:
+        network = _network(args) if args.config is not None else None
+    except (ConfigError, TlsError) as exc:
+        return _fail(args, str(exc))
+    lines = mission_lines(args.registry, network)
+    if network is None:
         print(f"{'ID':>4}  {'DRONE':<12} {'STATE':<10} {'FIRST':>6}  {'ADMITTED (UTC)':<20} RING")
-        for m in missions:
+        for line in lines:
+            m = line.mission
             admitted_at = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(m.admitted_at))
             ring = ",".join(map(str, m.live_ring))
             print(
@@ -361,30 +471,21 @@ def _missions(args: argparse.Namespace) -> int:
                 f"{admitted_at:<20} {ring}"
             )
         return 0
-    try:
-        network = load_config(args.config)
-        tls = tls_from_flags(args, network, OPERATOR)
-    except (ConfigError, TlsError) as exc:
-        return _fail(args, str(exc))
-    flying = [m for m in missions if m.state == IN_FLIGHT]
-    replies = ask_stations(network, sorted({s for m in flying for s in m.live_ring}), tls)
     print(f"{'ID':>4}  {'DRONE':<12} {'STATE':<10} {'MASTER':>6} {'REQNR':>6}  RING")
     silent: set[str] = set()
-    for m in missions:
-        if m.state != IN_FLIGHT:
+    for line in lines:
+        m, seen = line.mission, line.seen
+        if seen is None:
             ring = ",".join(map(str, m.live_ring))
             print(f"{m.id:>4}  {m.drone:<12} {m.state:<10} {'-':>6} {'-':>6}  {ring}")
             continue
-        seen = overview(session_statuses(m, replies))
         silent.update(seen.silent)
         # A station whose session did not answer is marked with '?'.
-        ring = ",".join(
-            f"{sid}{'?' if isinstance(replies.get(sid), str) else ''}" for sid in m.live_ring
-        )
+        ring = ",".join(f"{sid}{'?' if sid in line.silent_stations else ''}" for sid in m.live_ring)
         master = "?" if seen.master is None else str(seen.master)
         print(f"{m.id:>4}  {m.drone:<12} {seen.state:<10} {master:>6} {seen.reqnr:>6}  {ring}")
-    for line in sorted(silent):
-        print(f"  {line}")
+    for said in sorted(silent):
+        print(f"  {said}")
     return 0
 
 
@@ -393,29 +494,18 @@ def _status(args: argparse.Namespace) -> int:
 
     from google.protobuf.json_format import MessageToDict
 
-    from baton.config import ConfigError, load_config
-    from baton.fleet.operations import ask_drone, at_once, controller_status
-    from baton.fleet.registry import Registry
-    from baton.rpc.tls import OPERATOR, TlsError
+    from baton.config import ConfigError
+    from baton.fleet.actions import mission_report
+    from baton.rpc.tls import TlsError
 
     if args.config is None:
         return _fail(args, "--config: missing; the network's file with the stations' addresses")
-    with Registry(args.registry) as registry:
-        mission = registry.mission(args.mission)
     try:
-        network = load_config(args.config)
-        tls = tls_from_flags(args, network, OPERATOR)
+        network = _network(args)
     except (ConfigError, TlsError) as exc:
         return _fail(args, str(exc))
-    known = {c.id for c in network.controllers}
-
-    def ask(sid: int) -> ControllerStatus | str:
-        if sid not in known:
-            return f"station {sid}: not in {args.config}; add it with its address"
-        return controller_status(network, sid, mission.id, tls)
-
-    sessions = at_once(ask, mission.live_ring)
-    drone = ask_drone(mission, tls)
+    report = mission_report(args.registry, args.mission, network)
+    mission, drone = report.mission, report.drone
     document = {
         "mission": mission.id,
         "drone": mission.drone,
@@ -425,7 +515,7 @@ def _status(args: argparse.Namespace) -> int:
         "first_master": mission.first_master,
         "sessions": {
             str(sid): {"error": s} if isinstance(s, str) else MessageToDict(s)
-            for sid, s in sessions.items()
+            for sid, s in report.sessions.items()
         },
         "drone_status": {"error": drone} if isinstance(drone, str) else MessageToDict(drone),
     }
@@ -434,20 +524,17 @@ def _status(args: argparse.Namespace) -> int:
 
 
 def _drain(args: argparse.Namespace) -> int:
-    from baton.config import ConfigError, load_config
-    from baton.fleet.operations import drain
-    from baton.fleet.registry import Registry
-    from baton.rpc.tls import OPERATOR, TlsError
+    from baton.config import ConfigError
+    from baton.fleet.actions import drain_station
+    from baton.rpc.tls import TlsError
 
     if args.config is None:
         return _fail(args, "--config: missing; the network's file with the stations' addresses")
     try:
-        network = load_config(args.config)
-        tls = tls_from_flags(args, network, OPERATOR)
+        network = _network(args)
     except (ConfigError, TlsError) as exc:
         return _fail(args, str(exc))
-    with Registry(args.registry) as registry:
-        report = drain(registry, args.station, network, tls)
+    report = drain_station(args.registry, args.station, network)
     print(f"station {report.station} drained: admitted into no new ring")
     for mission, target in report.left:
         moved = f", its master handed over to station {target}" if target is not None else ""
@@ -476,86 +563,46 @@ def _undrain(args: argparse.Namespace) -> int:
     return 0
 
 
-def _mission_network(args: argparse.Namespace) -> tuple[MissionRow, BatonConfig, Tls | None]:
-    """The admitted mission, the configuration its ring's sessions run with (the
-    network file's stations in the ring, admission's order and first master), and the
-    operator's certificate; ConfigError, TlsError or RegistryError saying why not."""
-    from baton.config import ConfigError, load_config, merge
-    from baton.fleet.operations import drone_of
-    from baton.fleet.registry import IN_FLIGHT, Registry, RegistryError
-    from baton.fleet.stations import ring_config
-    from baton.rpc.tls import OPERATOR
-
-    with Registry(args.registry) as registry:
-        mission = registry.mission(args.mission)
-    if mission.state != IN_FLIGHT:
-        raise RegistryError(f"mission {mission.id}: {mission.state}, not admitted")
-    network = load_config(args.config)
-    address = getattr(args, "drone_address", None)
-    network = merge(network, [("--drone-address", "drone.address", address)], str(args.config))
-    missing = sorted(set(mission.ring) - {c.id for c in network.controllers})
-    if missing:
-        raise ConfigError(
-            f"{args.config}: controllers: no station {', '.join(map(str, missing))} of mission "
-            f"{mission.id}'s ring {list(mission.ring)}; add each with its id and address"
-        )
-    config = ring_config(network, mission.ring, mission.first_master)
-    tls = tls_from_flags(args, network, OPERATOR)
-    # The drone's own identity where the folder gives it one: its sessions take no other.
-    drone = config.drone.model_copy(update={"name": drone_of(mission, tls).label})
-    return mission, config.model_copy(update={"drone": drone}), tls
-
-
 def _start(args: argparse.Namespace) -> int:
     from baton.config import ConfigError
-    from baton.fleet.registry import Registry
-    from baton.fleet.sessions import SessionError, start_sessions
+    from baton.fleet.actions import start_mission
+    from baton.fleet.sessions import SessionError
     from baton.rpc.tls import TlsError
 
     if args.config is None:
         return _fail(args, "--config: missing; the network's file with the stations' addresses")
     try:
-        mission, config, tls = _mission_network(args)
-        # A station drained out of the ring is not started again.
-        start_sessions(
-            config, str(mission.id), args.program, args.mission_arg, tls, mission.live_ring
+        started = start_mission(
+            args.registry,
+            args.mission,
+            _network(args),
+            args.program,
+            args.mission_arg,
+            args.drone_address,
         )
     except (ConfigError, TlsError) as exc:
         return _fail(args, str(exc))
     except SessionError as exc:
         return _fail(args, f"mission {args.mission}: {exc}", status=1)
-    with Registry(args.registry) as registry:
-        registry.set_drone_address(mission.id, config.drone.address)
-    ring = ", ".join(
-        f"{sid}{' (first master)' if sid == mission.first_master else ''}"
-        for sid in mission.live_ring
-    )
-    print(f"mission {mission.id} of drone {mission.drone} started on stations {ring}")
+    _print_started(started, args.drone_config)
     return 0
 
 
 def _cancel(args: argparse.Namespace) -> int:
     from baton.config import ConfigError
-    from baton.fleet.registry import Registry
-    from baton.fleet.sessions import stop_sessions
+    from baton.fleet.actions import cancel_mission
+    from baton.fleet.sessions import SessionError
     from baton.rpc.tls import TlsError
 
-    if args.config is not None:
-        try:
-            mission, config, tls = _mission_network(args)
-        except (ConfigError, TlsError) as exc:
-            return _fail(args, str(exc))
-        problems = stop_sessions(config, str(mission.id), tls)
-        if problems:
-            return _fail(
-                args,
-                f"mission {mission.id} not cancelled: its sessions did not all stop "
-                f"({'; '.join(problems)}); run cancel again once the stations answer",
-            )
-        print(f"mission {mission.id}: sessions stopped on stations {list(mission.ring)}")
-    with Registry(args.registry) as registry:
-        cancelled = registry.cancel(args.mission)
-    print(f"mission {cancelled.id} of drone {cancelled.drone} cancelled")
+    try:
+        network = _network(args) if args.config is not None else None
+        cancelled = cancel_mission(args.registry, args.mission, network)
+    except (ConfigError, TlsError, SessionError) as exc:
+        return _fail(args, str(exc))
+    mission = cancelled.mission
+    if cancelled.stopped_on:
+        print(f"mission {mission.id}: sessions stopped on stations {list(cancelled.stopped_on)}")
+    print(f"mission {mission.id} of drone {mission.drone} cancelled")
     return 0
 
 
@@ -570,9 +617,8 @@ def _view(args: argparse.Namespace) -> int:
 
     if args.config is None:
         return _fail(args, "--config: missing; the network's file with the stations' addresses")
-    host, _, port = args.listen.rpartition(":")
-    if not host or not port.isdigit() or int(port) > 65_535:
-        return _fail(args, f"--listen {args.listen!r}: expected HOST:PORT, e.g. 127.0.0.1:8470")
+    if (problem := _listen_problem(args.listen)) is not None:
+        return _fail(args, problem)
     if not args.poll > 0:
         return _fail(args, f"--poll {args.poll}: a number of seconds above 0, e.g. 0.5")
     if not args.registry.is_file():
@@ -588,3 +634,26 @@ def _view(args: argparse.Namespace) -> int:
         return _fail(args, str(exc))
     read = partial(read_network, args.registry, network, tls)
     return lifecycle.run(serve_view(read, args.listen, args.poll, args.address_file))
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from baton import lifecycle
+    from baton.config import ConfigError
+    from baton.fleet.registry import Registry
+    from baton.fleet.service import serve_fleet
+    from baton.rpc.tls import OPERATOR, TlsError
+
+    if (problem := _listen_problem(args.listen)) is not None:
+        return _fail(args, problem)
+    try:
+        network = _network(args) if args.config is not None else None
+        tls = network.tls if network is not None else tls_from_flags(args, None, OPERATOR)
+    except (ConfigError, TlsError) as exc:
+        return _fail(args, str(exc))
+    Registry(args.registry).close()  # a registry that cannot be used is said now
+    try:
+        return lifecycle.run(
+            serve_fleet(args.registry, network, tls, args.listen, args.address_file)
+        )
+    except OSError as exc:  # the address cannot be bound: BatonServer says why
+        return _fail(args, str(exc))

@@ -63,7 +63,25 @@ IN_FLIGHT = "admitted"
 
 
 class RegistryError(ValueError):
-    """A registry request that cannot be done; the message says why and the fix."""
+    """A registry request that cannot be done; the message says why and the fix. The
+    subclasses say which kind, for a caller that answers each its own way (the Fleet
+    service's status codes); this class itself: a file that is no usable registry."""
+
+
+class Malformed(RegistryError):
+    """A field that can never be taken as given (a station's name, its range)."""
+
+
+class Taken(RegistryError):
+    """A station's name or id that another station holds."""
+
+
+class Unknown(RegistryError):
+    """No station or mission by that name or id."""
+
+
+class NotInFlight(RegistryError):
+    """A mission that is no longer in flight (cancelled) for a request that needs it."""
 
 
 @dataclass(frozen=True)
@@ -144,10 +162,10 @@ class Registry:
         """Registers a station; RegistryError if its name or id is taken or a field is
         malformed."""
         if not name.strip() or name != name.strip():
-            raise RegistryError(f"name {name!r}: give the station a name, no surrounding blanks")
+            raise Malformed(f"name {name!r}: give the station a name, no surrounding blanks")
         problem = station_problem(station)
         if problem is not None:
-            raise RegistryError(f"{problem[0]}: {problem[1]}")
+            raise Malformed(f"{problem[0]}: {problem[1]}")
         location = station.location
         with self._writing() as db:
             for column, value in (("id", station.id), ("name", name)):
@@ -155,7 +173,7 @@ class Registry:
                     f"SELECT id, name FROM stations WHERE {column} = ?", (value,)
                 ).fetchone()
                 if row is not None:
-                    raise RegistryError(
+                    raise Taken(
                         f"{column} {value!r} is taken by station {row[1]} (id {row[0]}); "
                         "choose another"
                     )
@@ -186,7 +204,7 @@ class Registry:
             if str(s.station.id) == name_or_id:
                 return s
         known = ", ".join(f"{s.name} (id {s.station.id})" for s in stations) or "none"
-        raise RegistryError(
+        raise Unknown(
             f"station {name_or_id!r}: no station by that name or id; the stations: {known}"
         )
 
@@ -210,7 +228,7 @@ class Registry:
         with self._writing() as db:
             row = db.execute("SELECT departed FROM missions WHERE id = ?", (mission_id,)).fetchone()
             if row is None:
-                raise RegistryError(f"mission {mission_id}: no such mission")
+                raise Unknown(f"mission {mission_id}: no such mission")
             departed = sorted({*json.loads(row[0]), station_id})
             db.execute(
                 "UPDATE missions SET departed = ? WHERE id = ?", (json.dumps(departed), mission_id)
@@ -245,6 +263,13 @@ class Registry:
             )
             assert cursor.lastrowid is not None
             return cursor.lastrowid, decision
+
+    def withdraw(self, mission_id: int) -> None:
+        """Forgets a mission admitted a moment ago whose sessions did not start (admit
+        with start): it was never in flight. Its id is not given again (AUTOINCREMENT),
+        so a station folder named after it can only be its own."""
+        with self._writing() as db:
+            db.execute("DELETE FROM missions WHERE id = ? AND state = ?", (mission_id, IN_FLIGHT))
 
     def missions(self) -> list[MissionRow]:
         """Every mission ever admitted, by id."""
@@ -281,19 +306,17 @@ class Registry:
         for mission in self.missions():
             if mission.id == mission_id:
                 return mission
-        raise RegistryError(
-            f"mission {mission_id}: no such mission; baton fleet missions lists them"
-        )
+        raise Unknown(f"mission {mission_id}: no such mission; baton fleet missions lists them")
 
     def cancel(self, mission_id: int) -> MissionRow:
         """Cancels a mission in flight; RegistryError if there is none by that id."""
         with self._writing() as db:
             row = db.execute("SELECT state FROM missions WHERE id = ?", (mission_id,)).fetchone()
             if row is None:
-                raise RegistryError(
+                raise Unknown(
                     f"mission {mission_id}: no such mission; baton fleet missions lists them"
                 )
             if row[0] != IN_FLIGHT:
-                raise RegistryError(f"mission {mission_id}: already {row[0]}")
+                raise NotInFlight(f"mission {mission_id}: already {row[0]}")
             db.execute("UPDATE missions SET state = 'cancelled' WHERE id = ?", (mission_id,))
         return next(m for m in self.missions() if m.id == mission_id)

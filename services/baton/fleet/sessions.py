@@ -31,7 +31,19 @@ CALL_TIMEOUT_S = 30.0
 
 
 class SessionError(RuntimeError):
-    """A station that did not start or stop a session: which, and what it said."""
+    """A station that did not start or stop a session: which, and what it said;
+    ``code``: the status it answered (UNAVAILABLE: not reached); ``leftover``: the
+    stations a start that failed could not undo, what each said."""
+
+    def __init__(
+        self,
+        message: str,
+        code: grpc.StatusCode = grpc.StatusCode.UNAVAILABLE,
+        leftover: Sequence[str] = (),
+    ) -> None:
+        super().__init__(message)
+        self.code = code
+        self.leftover = tuple(leftover)
 
 
 @contextmanager
@@ -81,7 +93,9 @@ def start_sessions(
             undone = (f"; stopped on {', '.join(map(str, started))}" if started else "") + "".join(
                 f"; {p}" for p in problems
             )
-            raise SessionError(f"not started: {said(config, sid, exc)}{undone}") from None
+            raise SessionError(
+                f"not started: {said(config, sid, exc)}{undone}", status_code(exc), problems
+            ) from None
         started.append(sid)
 
 

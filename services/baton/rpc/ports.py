@@ -14,6 +14,9 @@ make a port read (and hold) more than that per call:
   message's first frame, the message's head without its entries.
 - The mission port (loopback, the mission token): the program's drone-API
   calls, as small as the drone's.
+- The fleet's port (``baton fleet serve``): what the largest call carries is an
+  Admit's QGroundControl plan, its text, a few hundred bytes a waypoint;
+  4 MiB holds some 10,000 waypoints.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from baton.rpc.admission import ANY_PART, CALLS_PER_CALLER, PortPolicy, Rule, co
 from baton.rpc.tls import OPERATOR
 
 DRONE_REQUEST_BYTES = 4 << 20
+FLEET_REQUEST_BYTES = 4 << 20
 # Room beside a frame's slice for its head (a log message without its entries).
 FRAME_HEAD_BYTES = 64 << 10
 
@@ -92,3 +96,10 @@ def station_policy() -> PortPolicy:
         rules,
         calls_per_caller_all_missions=CALLS_PER_CALLER * SHARED_MISSIONS,
     )
+
+
+def fleet_policy() -> PortPolicy:
+    """The fleet's port (baton fleet serve): the operator only, for every method
+    (health and reflection too): it admits missions and starts, stops and drains
+    them on the stations as the operator."""
+    return PortPolicy("fleet's port", FLEET_REQUEST_BYTES, default=only(OPERATOR, "an operator"))
