@@ -11,6 +11,7 @@ from baton.controller.core import (
     Answer,
     Arm,
     AskClock,
+    AskDrone,
     ControllerCore,
     Disarm,
     DroneRefusal,
@@ -402,7 +403,7 @@ def test_a_drone_reply_says_the_drone_took_the_watermark_its_call_carried() -> N
     p = core.protocol
     p.watermark_reqnr = 4  # as the ring's proofs moved it
     step, _ = core.answer(GET, b"")
-    assert step.reqnr == 1 and core.asked_with == (1, 4)
+    assert isinstance(step, AskDrone) and step.reqnr == 1 and core.asked_with == (1, 4)
     p.watermark_reqnr = 6  # a retry carries more
     gave_up = ring_pb2.LogEntry(reqnr=1, method=GET, status_code=14)
     core.logged(1, gave_up)
