@@ -168,13 +168,9 @@ def test_f4_a_cooperative_grant_waits_for_its_handover_message() -> None:
         assert outcome.ok and not outcome.known, outcome.report()
 
 
-def test_f5_a_program_that_gave_up_on_an_overtaken_call_starts_again() -> None:
-    """Found by the simulation (F5), fixed in node.py _replay_again: a replica whose program
-    gave up on a call the master's program did not restarts the program to replay the log;
-    these seeds showed it when the scenario was let in, and it is in the default mix now."""
-    for seed in range(400):
-        outcome = run_seed(seed)
-        assert outcome.ok and not outcome.known, outcome.report()
+# F5 (a program that gave up on a call whose reply a handover overtook restarts to
+# replay the log) has no test of its own: its scenario is in the default mix, whose
+# seeds 0-999 tests/sim/test_simulation.py's test_ci_seeds_hold_every_oracle runs.
 
 
 def test_a_clock_call_waits_for_the_drones_word_after_a_handover_message() -> None:
