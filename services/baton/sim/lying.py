@@ -24,9 +24,12 @@ frame from it is (``SimController.on_sync``): that it holds the receiver's top
 message without the proof of holding it, that it holds more than the receiver
 (the truth's shape: its own top's epoch, grant and proof, the number inflated),
 a newer master in its own name, a genuine master word with its numbers
-changed, and a newer epoch of a message the receiver holds. Such a frame is
-refused when it changed nothing it must not: the receiver's watermark, the master
-word it believes and says on, its queue, its log (a rejoin).
+changed, a newer epoch of a message the receiver holds, and that it holds less
+than it does (``holds-deflated``). Such a frame is refused when it changed
+nothing it must not: the receiver's watermark, the master word it believes and
+says on, its queue, its log (a rejoin). A word that it holds less may be
+believed (the receiver takes itself for caught up): what acting on it can do is
+bounded by the drone's word, and every other oracle judges the run.
 """
 
 from __future__ import annotations
@@ -64,6 +67,7 @@ LIES = (
     "master-word-forged",
     "master-word-altered",
     "holds-epoch-newer",
+    "holds-deflated",
 )
 SYNC_LIES = frozenset(LIES[6:])
 # How far ahead of the newest epoch it knows a forged mastership claims to be.
@@ -171,12 +175,15 @@ class _Moved:
     heard: tuple[int, int]  # the newest master word the ring gave it
     queued: frozenset[int]
     rejoining: bool
+    caught_up: bool
 
 
 def _what_words_move(receiver: SimController) -> _Moved:
     p = receiver.protocol
     heard = p.heard_master_word
-    return _Moved(p.watermark_reqnr, heard, frozenset(p.log_queue), receiver.core.rejoining)
+    return _Moved(
+        p.watermark_reqnr, heard, frozenset(p.log_queue), receiver.core.rejoining, p.caught_up
+    )
 
 
 def believed(kind: str, before: _Moved, after: _Moved) -> bool:
@@ -187,6 +194,12 @@ def believed(kind: str, before: _Moved, after: _Moved) -> bool:
         return after.watermark != before.watermark
     if kind.startswith("master-word"):
         return after.heard != before.heard or not before.queued <= after.queued
+    if kind == "holds-deflated":
+        # Believing it is allowed: it can only make a controller take what it holds for
+        # all there is (caught up), and acting on that is bounded by the drone's word
+        # (a taker's watermark, the handover message a cooperative grant owes, a master
+        # that persists what it creates before sending it). The other oracles judge it.
+        return False
     return after.rejoining and not before.rejoining
 
 
@@ -234,6 +247,11 @@ def forge_sync(
         return replace(
             nothing_held, master_epoch=word.epoch, master_lognr=word.lognr, master_proof=word
         )
+    if kind == "holds-deflated":
+        # Less than the liar holds (its own message's epoch, grant and proof, as far
+        # as they go), at most what the receiver handled: "you have all I have".
+        holds = rng.randint(0, min(top, theirs.lognr))
+        return sync_word(forger.history, holds, (0, 0)) if holds else nothing_held
     # holds-epoch-newer: a message the receiver holds, said to be of a newer epoch.
     holds = theirs.lognr
     epoch = theirs.epoch_of(holds) + rng.choice(EPOCHS_AHEAD)
