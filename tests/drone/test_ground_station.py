@@ -45,8 +45,6 @@ from baton.v1 import drone_pb2, ring_pb2
 
 mavlink = mavutil.mavlink
 MISSION = MissionPlan(grid=3, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
-
-
 STATION_SYSTEM = 255  # the pymavlink ground station's MAVLink system id
 
 
