@@ -176,7 +176,8 @@ async def test_paused_the_vehicle_holds_and_no_call_reaches_it_until_resumed(
         after = [e for e in effects(tmp_path) if int(e["seq"]) > held_seq]  # type: ignore[call-overload]
         assert after and after[0]["effect"] == "goto"  # the leg flown on, the resume's
     else:  # the leg flown on, in ArduCopter's command mode, only once resumed
-        assert tlog.sent(after=held_at)[0].at > resumed_at
+        sent = tlog.sent(after=held_at)
+        assert sent and sent[0].at > resumed_at, sent
         assert tlog.first_mode("GUIDED", after=resumed_at) is not None
     assert_mission_promises(snapshot, bed)
     commands = [(c.command, c.action, c.vehicle) for c in snapshot.drone.operator_commands]
