@@ -21,6 +21,7 @@ import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 from pymavlink import mavutil
 
@@ -125,9 +126,31 @@ class Sample:
     boot_s: float = 0.0  # the vehicle's own clock (time_boot_ms), in its simulated seconds
 
 
+@dataclass(frozen=True)
+class ModeReport:
+    """An autopilot's HEARTBEAT: its flight mode by pymavlink's name (ArduCopter's
+    custom_mode: GUIDED, RTL, LAND, BRAKE...) and whether it is armed, at a wall time."""
+
+    at: float
+    mode: str
+    armed: bool
+
+
+def mode_report(heartbeat: Any, at: float) -> ModeReport | None:
+    """The autopilot's own HEARTBEAT as a ModeReport; None for anyone else's (a ground
+    station's, the drone's, another component's)."""
+    if heartbeat.autopilot == mavutil.mavlink.MAV_AUTOPILOT_INVALID:
+        return None
+    if heartbeat.get_srcComponent() != mavutil.mavlink.MAV_COMP_ID_AUTOPILOT1:
+        return None
+    armed = bool(heartbeat.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+    return ModeReport(at, mavutil.mode_string_v10(heartbeat), armed)
+
+
 @dataclass
 class TelemetryMonitor:
-    """Records an autopilot's GLOBAL_POSITION_INT and HOME_POSITION with pymavlink.
+    """Records an autopilot's GLOBAL_POSITION_INT, HOME_POSITION and its HEARTBEATs'
+    flight modes (``modes``) with pymavlink.
 
     SITL's SERIAL1 (``tcp:HOST:PORT``) or the sim vehicle's port (``udpout:HOST:PORT``).
     """
@@ -136,6 +159,7 @@ class TelemetryMonitor:
     speedup: float = 1.0  # the vehicle's simulated seconds per wall second
     samples: list[Sample] = field(default_factory=list)
     homes: list[tuple[float, float, float]] = field(default_factory=list)  # (at, lat, lon)
+    modes: list[ModeReport] = field(default_factory=list)
     _stop: threading.Event = field(default_factory=threading.Event)
     _thread: threading.Thread | None = None
 
@@ -184,7 +208,9 @@ class TelemetryMonitor:
                     beat()
                 beaten = time.monotonic()
             try:
-                msg = link.recv_match(type=["GLOBAL_POSITION_INT", "HOME_POSITION"], timeout=0.5)
+                msg = link.recv_match(
+                    type=["GLOBAL_POSITION_INT", "HOME_POSITION", "HEARTBEAT"], timeout=0.5
+                )
             except OSError:
                 break  # SITL stopped at the end of the run
             if msg is None:
@@ -201,8 +227,10 @@ class TelemetryMonitor:
                         msg.time_boot_ms / 1000,
                     )
                 )
-            else:
+            elif msg.get_type() == "HOME_POSITION":
                 self.homes.append((now, msg.latitude / 1e7, msg.longitude / 1e7))
+            elif (report := mode_report(msg, now)) is not None:
+                self.modes.append(report)
         with contextlib.suppress(AttributeError, OSError):  # already gone with SITL
             link.close()
 

@@ -4,8 +4,10 @@ on PATH; where there is none, every caller says how to point baton at a build.""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -15,10 +17,15 @@ from baton.sitl.launcher import (
     BUILD_INSTRUCTIONS,
     HOW_TO_POINT_AT_A_BUILD,
     NOT_FOUND,
+    PARAMS_FILE,
     SitlBinaryNotFound,
+    SitlParamError,
+    SitlSettings,
     find_binary,
     find_defaults,
+    parse_param,
 )
+from baton.testbed.local import LocalTestbed, TestbedPlan
 
 
 def fake_build(root: Path) -> Path:
@@ -118,3 +125,79 @@ def test_the_command_line_without_a_binary_says_how_to_point_at_one(argv: tuple[
     assert done.returncode == 2
     assert NOT_FOUND in done.stderr, done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_a_runs_own_parameters_follow_the_defaults(tmp_path: Path) -> None:
+    """SitlSettings.params: a parameter file of the run, named after the defaults in
+    --defaults' comma-separated list (ArduPilot applies them in order: the run's win)."""
+    binary = fake_build(tmp_path / "ardupilot")
+    settings = SitlSettings(binary, params=(("BATT_CAPACITY", 1000.0), ("SIM_BATT_CAP_AH", 1.5)))
+    argv = settings.argv(3)
+    defaults = argv[argv.index("--defaults") + 1]
+    assert defaults == f"{find_defaults(binary)},{PARAMS_FILE}"
+    assert settings.params_text() == "BATT_CAPACITY 1000\nSIM_BATT_CAP_AH 1.5\n"
+    # None of the run's own: the defaults alone, as before.
+    plain = SitlSettings(binary).argv(3)
+    assert plain[plain.index("--defaults") + 1] == str(find_defaults(binary))
+    (binary.parents[3] / "Tools" / "autotest" / "default_params" / "copter.parm").unlink()
+    assert settings.argv(3)[-2:] == ["--defaults", PARAMS_FILE]
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("BATT_CAPACITY", "expected NAME=VALUE, e.g. BATT_CAPACITY=1000"),
+        ("batt_capacity=1000", "'batt_capacity' is no ArduPilot parameter name"),
+        ("A_NAME_OF_17_CHARS=1", "at most 16"),
+        ("BATT_CAPACITY=lots", "'lots' is not a finite number"),
+        ("BATT_CAPACITY=nan", "'nan' is not a finite number"),
+    ],
+)
+def test_a_bad_parameter_says_what_is_wrong(text: str, says: str) -> None:
+    with pytest.raises(SitlParamError, match=re.escape(says)):
+        parse_param(text)
+    assert parse_param("FS_GCS_TIMEOUT=2.5") == ("FS_GCS_TIMEOUT", 2.5)
+
+
+def test_baton_sitl_writes_the_runs_parameters_where_sitl_runs(tmp_path: Path) -> None:
+    """``baton sitl --param`` with a stand-in binary that says what it was given, prints
+    SITL's listening line and waits: the file is in the workdir, named in --defaults."""
+    binary = fake_build(tmp_path / "ardupilot")
+    binary.write_text(
+        '#!/bin/sh\necho "$@" > argv.txt\necho "SERIAL0 on TCP port 5760"\nexec sleep 60\n'
+    )
+    workdir, url_file = tmp_path / "run", tmp_path / "sitl.url"
+    params = ["--param", "BATT_CAPACITY=1000", "--param", "BATT_LOW_MAH=0"]
+    where = ["--workdir", str(workdir), "--url-file", str(url_file), "--instance", "41"]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "baton.cli", "sitl", "--sitl-binary", str(binary), *params, *where],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while not url_file.exists():
+            assert process.poll() is None, process.communicate()[1]
+            assert time.monotonic() < deadline, "baton sitl did not announce its ports"
+            time.sleep(0.05)
+    finally:
+        process.terminate()
+        process.wait(10)
+    assert (workdir / PARAMS_FILE).read_text() == "BATT_CAPACITY 1000\nBATT_LOW_MAH 0\n"
+    given = (workdir / "argv.txt").read_text().split()
+    assert given[given.index("--defaults") + 1].endswith(f"copter.parm,{PARAMS_FILE}")
+
+
+def test_a_bad_parameter_on_the_command_line_names_the_option() -> None:
+    done = run_baton({}, "sitl", "--param", "BATT_CAPACITY")
+    assert done.returncode == 2
+    assert "argument --param: 'BATT_CAPACITY': expected NAME=VALUE" in done.stderr
+
+
+def test_the_testbed_gives_sitl_the_plans_parameters(tmp_path: Path) -> None:
+    plan = TestbedPlan(vehicle="sitl", sitl_params=(("BATT_CAPACITY", 1000.0),))
+    part = LocalTestbed(plan, tmp_path)._vehicle_part()
+    assert part is not None
+    name, argv, _ = part
+    assert name == "sitl" and argv[argv.index("--param") + 1] == "BATT_CAPACITY=1000"

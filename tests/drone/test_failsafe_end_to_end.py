@@ -1,6 +1,8 @@
-"""The operator's safety net across real processes (the local testbed: sim vehicle,
-drone service, controllers), each promise witnessed by the sim vehicle's effects file,
-not by baton's word (issue 32, items 1 and 7)."""
+"""The operator's safety net across real processes (the local testbed: vehicle, drone
+service, controllers), each promise witnessed by the vehicle, not by baton's word (issue
+32, items 1, 2, 6 and 7): on the sim vehicle its effects file; on ArduPilot SITL (where
+``BATON_SITL_BINARY`` points at a build; helpers/vehicles.py) the autopilot's own frames
+in the drone's telemetry log, or a monitor on its second port while the drone is dead."""
 
 from __future__ import annotations
 
@@ -11,6 +13,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import pytest
+from autopilots import TelemetryMonitor
 from helpers.missions import (
     FAST_LINK,
     LONG_LEGS,
@@ -19,7 +23,8 @@ from helpers.missions import (
     long_legs_on_fast_links,
     mission_errors,
 )
-from helpers.pilot import PX4_AUTO_RTL, switch_mode
+from helpers.pilot import PX4_AUTO_RTL, switch_ardupilot_mode, switch_mode
+from helpers.vehicles import VEHICLES, Tlog, gotos_served, on_vehicle
 from waiting import eventually
 
 from baton.drone.safety import FROM_AUTOPILOT
@@ -32,14 +37,21 @@ from baton.v1 import drone_pb2
 MISSIONS = Path(__file__).parent / "missions"
 SPEEDUP = 20.0
 LOST_LINK_S = 60.0  # mission seconds: 3 wall seconds at speed-up 20
+# SITL's battery for the reserve test: ArduPilot's remaining percentage is its consumed
+# charge against BATT_CAPACITY, and SITL's "+" copter draws about 29 A in a hover (its
+# frame model's reference current), so 1000 mAh is about 2 minutes of flight: the sim
+# vehicle's 8 Wh. SITL's own battery stays unlimited (SIM_BATT_CAP_AH 0): the voltage
+# holds, and no voltage failsafe of the autopilot's races the drone's reserve.
+SITL_BATTERY = (("BATT_CAPACITY", 1000.0),)
 
 
+@pytest.mark.parametrize("vehicle", VEHICLES)
 async def test_every_station_killed_mid_flight_is_the_failsafe_after_lost_link(
-    tmp_path: Path,
+    vehicle: str, tmp_path: Path
 ) -> None:
     """Every controller killed while the vehicle flies a leg: after lost_link the drone
-    commands the configured action (rtl), the vehicle counts it, GetStatus says why;
-    an operator's Resume clears it."""
+    commands the configured action (rtl), the vehicle counts it (SITL: ArduPilot says RTL
+    in its heartbeat), GetStatus says why; an operator's Resume clears it."""
     plan = TestbedPlan(
         config=local_config(
             3,
@@ -51,14 +63,23 @@ async def test_every_station_killed_mid_flight_is_the_failsafe_after_lost_link(
         ),
         mission=LONG_LEGS,
     )
+    plan = on_vehicle(plan, vehicle)
     async with LocalTestbed(plan, tmp_path) as testbed:
         assert testbed.drone_stub is not None
         effects = tmp_path / VEHICLE_EFFECTS_FILE
+        tlog = Tlog(tmp_path)
 
         def gotos() -> int:
             return sum(e["effect"] == "goto" for e in read_effects(effects))
 
-        await eventually(lambda: gotos() >= 2, "the vehicle flying its second leg", 60)
+        if vehicle == "sim":
+            await eventually(lambda: gotos() >= 2, "the vehicle flying its second leg", 60)
+        else:
+
+            async def second_leg() -> bool:
+                return await gotos_served(testbed) >= 2
+
+            await eventually(second_leg, "the vehicle flying its second leg", 60)
         for cid in (0, 1, 2):
             process = testbed.supervisor.parts[f"controller-{cid}"].process
             assert process is not None
@@ -73,8 +94,14 @@ async def test_every_station_killed_mid_flight_is_the_failsafe_after_lost_link(
                 or e.get("mode") == "RETURN_TO_LAUNCH"  # PX4's mode, as MAVSDK sets it
             ]
 
-        await eventually(lambda: bool(returned()), "the vehicle told to return", 30)
-        acted_after_s = float(returned()[0]["time"]) - killed_at  # type: ignore[arg-type]
+        if vehicle == "sim":
+            await eventually(lambda: bool(returned()), "the vehicle told to return", 30)
+            acted_after_s = float(returned()[0]["time"]) - killed_at  # type: ignore[arg-type]
+        else:  # ArduCopter's own heartbeat saying RTL (custom_mode 6), as the drone heard it
+            rtl = await eventually(
+                lambda: tlog.first_mode("RTL", after=killed_at), "ArduPilot in RTL", 30
+            )
+            acted_after_s = rtl.at - killed_at
         print(
             f"lost link to rtl at the vehicle: {acted_after_s:.2f} s wall, "
             f"{acted_after_s * SPEEDUP:.1f} mission s (lost_link {LOST_LINK_S:g})"
@@ -173,9 +200,13 @@ async def test_the_cruise_speed_survives_a_drone_killed_mid_mission(tmp_path: Pa
     assert "cruise speed restored" in log
 
 
-async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) -> None:
-    """A small battery (8 Wh: about 2 min of flight) and an 80 % reserve: early in the
-    mission the drone commands the return, the vehicle counts it, and the program's next
+@pytest.mark.parametrize("vehicle", VEHICLES)
+async def test_a_drained_battery_ends_the_mission_with_a_return(
+    vehicle: str, tmp_path: Path
+) -> None:
+    """A small battery (8 Wh: about 2 min of flight; SITL: SITL_BATTERY) and an 80 %
+    reserve: early in the mission the drone commands the return, the vehicle counts it
+    (SITL: ArduPilot, having said it was below 80 %, says RTL), and the program's next
     call fails FAILED_PRECONDITION on every controller (issue 32, item 2). The reserve is
     crossed early so that a loaded machine's late battery reading still falls while the
     vehicle flies (at 50 % it fell after the last waypoint, with the vehicle landing)."""
@@ -190,10 +221,13 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
         ),
         mission=LONG_LEGS,
         vehicle_args=("--battery-capacity-wh", "8"),
+        sitl_params=SITL_BATTERY,
     )
+    plan = on_vehicle(plan, vehicle)
     async with LocalTestbed(plan, tmp_path) as testbed:
         assert testbed.drone_stub is not None
         effects = tmp_path / VEHICLE_EFFECTS_FILE
+        tlog = Tlog(tmp_path)
 
         def returned() -> list[dict[str, object]]:
             return [
@@ -202,7 +236,13 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
                 if e["effect"] == "return_to_launch" or e.get("mode") == "RETURN_TO_LAUNCH"
             ]
 
-        await eventually(lambda: bool(returned()), "the vehicle told to return", 120)
+        if vehicle == "sim":
+            await eventually(lambda: bool(returned()), "the vehicle told to return", 120)
+        else:
+            rtl = await eventually(lambda: tlog.first_mode("RTL"), "ArduPilot in RTL", 120)
+            # The autopilot's own estimate crossed the reserve before it returned.
+            said = [pct for at, pct in tlog.battery_remaining() if at <= rtl.at]
+            assert said and min(said) < 80 <= max(said), said
         status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         assert (status.failsafe.cause, status.failsafe.action) == ("battery", "rtl")
         assert "below the reserve of 80 %" in status.failsafe.reason
@@ -217,8 +257,13 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
             "rtl",
         )
         # Nothing after the return reached the vehicle: every later call refused.
-        first = int(returned()[0]["seq"])  # type: ignore[call-overload]
-        assert [e["effect"] for e in read_effects(effects) if e["seq"] > first] == []
+        if vehicle == "sim":
+            first = int(returned()[0]["seq"])  # type: ignore[call-overload]
+            assert [e["effect"] for e in read_effects(effects) if e["seq"] > first] == []
+        else:
+            sent = tlog.sent()
+            first = next(i for i, c in enumerate(sent) if c.returns)
+            assert [c.what for c in sent[first:] if not c.returns] == [], sent
 
         async def every_program_told() -> bool:
             errors = await mission_errors(testbed)
@@ -227,24 +272,34 @@ async def test_a_drained_battery_ends_the_mission_with_a_return(tmp_path: Path) 
         await eventually(every_program_told, "every program ended by the failsafe", 60)
 
 
+@pytest.mark.parametrize("vehicle", VEHICLES)
 async def test_the_drone_service_dead_the_autopilot_returns_and_a_restart_ends_the_mission(
-    tmp_path: Path,
+    vehicle: str, tmp_path: Path
 ) -> None:
     """kill -9 of the drone mid-leg: the autopilot's own GCS failsafe (PX4's NAV_DLL_ACT
-    and COM_DL_LOSS_T, set by the drone at connect) returns the vehicle once no ground
-    station was heard for the timeout (5 s of wall time at least), and lands it. The
-    drone restarted only then holds the vehicle it had seen in the air to it (the state
-    file keeps that), so its first sight of it on the ground is the autopilot failsafe,
-    and every program is told. Before, the mission polled for a waypoint the landed
-    vehicle would never reach, and the drone blamed a controller's standby stream."""
-    plan = long_legs_on_fast_links(2, SPEEDUP)
+    and COM_DL_LOSS_T; ArduPilot's FS_GCS_ENABLE, FS_GCS_TIMEOUT and SYSID_MYGCS; set by
+    the drone at connect) returns the vehicle once no ground station was heard for the
+    timeout (5 s of wall time at least), and lands it. The drone restarted only then
+    holds the vehicle it had seen in the air to it (the state file keeps that), so its
+    first sight of it on the ground is the autopilot failsafe, and every program is told.
+    Before, the mission polled for a waypoint the landed vehicle would never reach, and
+    the drone blamed a controller's standby stream. On SITL the witness is a monitor on
+    its second port (the drone's telemetry log dies with the drone), a ground station
+    ArduPilot does not count as its own (SYSID_MYGCS names the drone's)."""
+    plan = on_vehicle(long_legs_on_fast_links(2, SPEEDUP), vehicle)
     effects = tmp_path / VEHICLE_EFFECTS_FILE
+    monitor: TelemetryMonitor | None = None
     async with LocalTestbed(plan, tmp_path) as testbed:
+        if vehicle == "sitl":
+            assert testbed.sitl_monitor_url is not None
+            monitor = TelemetryMonitor(testbed.sitl_monitor_url, speedup=SPEEDUP)
+            monitor.start()
         await eventually(
             lambda: flying_to_the_second_waypoint(testbed), "the vehicle between waypoints", 60
         )
         log = (tmp_path / "logs" / "drone.log").read_text()
-        assert '"autopilot GCS failsafe set"' in log and "NAV_DLL_ACT=2" in log
+        set_by_the_drone = "NAV_DLL_ACT=2" if vehicle == "sim" else "FS_GCS_ENABLE=1"
+        assert '"autopilot GCS failsafe set"' in log and set_by_the_drone in log
         await testbed.supervisor.kill("drone")
         killed_at = time.time()
 
@@ -257,8 +312,22 @@ async def test_the_drone_service_dead_the_autopilot_returns_and_a_restart_ends_t
                 bool(returned()) and states[-1]["phase"] == "on_ground" and not states[-1]["armed"]
             )
 
-        await eventually(landed, "the autopilot returning and landing by itself", 60)
-        after_s = float(returned()[0]["time"]) - killed_at  # type: ignore[arg-type]
+        if monitor is None:
+            await eventually(landed, "the autopilot returning and landing by itself", 60)
+            after_s = float(returned()[0]["time"]) - killed_at  # type: ignore[arg-type]
+        else:  # ArduCopter's RTL lands at home and disarms there, still in RTL
+            sitl = monitor
+
+            def rtl_then_disarmed() -> float | None:
+                rtl = next((r for r in sitl.modes if r.mode == "RTL" and r.at > killed_at), None)
+                if rtl is None or sitl.modes[-1].armed:
+                    return None
+                return rtl.at
+
+            returned_at = await eventually(
+                rtl_then_disarmed, "ArduPilot returning and landing by itself", 120
+            )
+            after_s = returned_at - killed_at
         print(f"drone killed to the autopilot's return: {after_s:.2f} s wall")
         # Counted from the last GCS heartbeat the vehicle heard (sent each second, up to
         # 1 s before the kill, more on a loaded machine), not from the kill.
@@ -275,25 +344,45 @@ async def test_the_drone_service_dead_the_autopilot_returns_and_a_restart_ends_t
         assert testbed.drone_stub is not None
         status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
         assert (status.failsafe.cause, status.failsafe.action) == ("autopilot", "landed")
+    if monitor is not None:
+        monitor.stop()
 
 
-async def test_the_autopilot_returning_on_its_own_is_a_failsafe(tmp_path: Path) -> None:
+@pytest.mark.parametrize("vehicle", VEHICLES)
+async def test_the_autopilot_returning_on_its_own_is_a_failsafe(
+    vehicle: str, tmp_path: Path
+) -> None:
     """A mode switch the drone did not send (a pilot's, as the autopilot's own failsafe
     or fence action would be) while the vehicle flies a leg: the drone enters the
     autopilot failsafe and commands nothing more; the program's next call fails with it
     on every controller alike (before, the mission polled for a target it never
-    reached); GetStatus says what the autopilot did; an operator's Resume clears it."""
-    plan = long_legs_on_fast_links(2, SPEEDUP)
+    reached); GetStatus says what the autopilot did; an operator's Resume clears it.
+    On SITL the pilot switches ArduCopter to RTL through its second port, and the
+    drone names the mode as ArduPilot does (RTL)."""
+    plan = on_vehicle(long_legs_on_fast_links(2, SPEEDUP), vehicle)
     effects = tmp_path / VEHICLE_EFFECTS_FILE
+    tlog = Tlog(tmp_path)
+    mode = "RETURN_TO_LAUNCH" if vehicle == "sim" else "RTL"
     async with LocalTestbed(plan, tmp_path) as testbed:
         assert testbed.drone_stub is not None
         await eventually(
             lambda: flying_to_the_second_waypoint(testbed), "the vehicle between waypoints", 60
         )
         status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
-        await switch_mode(status.vehicle_url, PX4_AUTO_RTL)
-        switched = [e for e in read_effects(effects) if e.get("mode") == "RETURN_TO_LAUNCH"]
-        assert len(switched) == 1, switched
+        if vehicle == "sim":
+            await switch_mode(status.vehicle_url, PX4_AUTO_RTL)
+            switched = [e for e in read_effects(effects) if e.get("mode") == "RETURN_TO_LAUNCH"]
+            assert len(switched) == 1, switched
+            switched_at = float(switched[0]["time"])  # type: ignore[arg-type]
+        else:
+            assert testbed.sitl_monitor_url is not None
+            asked_at = time.time()
+            await switch_ardupilot_mode(testbed.sitl_monitor_url, "RTL")
+            # When the drone heard ArduPilot say it: the drone cannot decide before that.
+            rtl = await eventually(
+                lambda: tlog.first_mode("RTL", after=asked_at), "ArduPilot saying RTL", 10
+            )
+            switched_at = rtl.at
 
         async def every_program_told() -> list[str]:
             errors = await mission_errors(testbed)
@@ -301,23 +390,26 @@ async def test_the_autopilot_returning_on_its_own_is_a_failsafe(tmp_path: Path) 
             return errors if told else []
 
         errors = await eventually(every_program_told, "every program ended by the takeover", 60)
-        assert "RETURN_TO_LAUNCH" in errors[0] and len(set(errors)) == 1, errors
-        told_after_s = time.time() - float(switched[0]["time"])
+        assert mode in errors[0] and len(set(errors)) == 1, errors
+        told_after_s = time.time() - switched_at
         status = await testbed.drone_stub.GetStatus(drone_pb2.GetDroneStatusRequest())
-        assert (status.failsafe.cause, status.failsafe.action) == ("autopilot", "RETURN_TO_LAUNCH")
-        decided_after_s = status.failsafe.since - float(switched[0]["time"])
+        assert (status.failsafe.cause, status.failsafe.action) == ("autopilot", mode)
+        decided_after_s = status.failsafe.since - switched_at
         print(
             f"autopilot's RTL to the drone's failsafe: {decided_after_s:.2f} s wall; "
             f"every program told within {told_after_s:.2f} s"
         )
         assert 0 <= decided_after_s < 2.0
         # The drone commanded the vehicle nothing after the switch: no goto, no hold.
-        after = [e["effect"] for e in read_effects(effects) if e["seq"] > switched[0]["seq"]]
-        assert after == [], after
+        if vehicle == "sim":
+            after = [e["effect"] for e in read_effects(effects) if e["seq"] > switched[0]["seq"]]
+            assert after == [], after
+        else:
+            assert tlog.sent(after=switched_at) == []
         cleared = await testbed.drone_stub.Resume(drone_pb2.ResumeRequest())
         assert cleared.cleared.cause == "autopilot"
     log = (tmp_path / "logs" / "drone.log").read_text()
-    assert '"failsafe"' in log and "autopilot took over: RETURN_TO_LAUNCH" in log
+    assert '"failsafe"' in log and f"autopilot took over: {mode}" in log
 
 
 async def test_a_picture_re_sent_to_a_restarted_drone_waits_for_the_vehicle(

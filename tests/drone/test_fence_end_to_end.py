@@ -9,11 +9,11 @@ from __future__ import annotations
 import os
 import signal
 from pathlib import Path
-from typing import Any
 
 import pytest
 from autopilots import SKIP_REASON, sitl_binary
 from helpers.missions import FAST_LINK
+from helpers.vehicles import Tlog
 from pymavlink import mavutil
 from waiting import eventually
 
@@ -21,7 +21,6 @@ from baton.effects import read_effects
 from baton.sdk import Position
 from baton.sdk.geo import north_east_m, offset
 from baton.testbed.local import (
-    TLOG_GLOB,
     VEHICLE_EFFECTS_FILE,
     LocalTestbed,
     TestbedPlan,
@@ -61,16 +60,6 @@ def fenced_plan(vehicle: str) -> TestbedPlan:
         vehicle=vehicle,
         sitl_binary=sitl_binary() if vehicle == "sitl" else None,
     )
-
-
-def tlog_messages(workdir: Path, *types: str) -> list[Any]:
-    """The MAVLink messages of ``types`` in the drone's telemetry logs, in order."""
-    found = []
-    for path in sorted(workdir.glob(TLOG_GLOB)):
-        log = mavutil.mavlink_connection(str(path))
-        while (message := log.recv_match(type=list(types))) is not None:
-            found.append(message)
-    return found
 
 
 # The breach races the autopilot's own fence action (GF_ACTION, set with the upload)
@@ -140,7 +129,8 @@ async def test_a_goto_out_of_the_fence_is_refused_and_a_breach_returns_the_vehic
     else:
         # The autopilot accepted the fence upload, and its own positions never went
         # beyond the north arm's end towards the refused target.
-        acks = tlog_messages(tmp_path, "MISSION_ACK")
+        tlog = Tlog(tmp_path)
+        acks = tlog.messages("MISSION_ACK")
         fence_type = mavutil.mavlink.MAV_MISSION_TYPE_FENCE
         assert any(
             a.mission_type == fence_type and a.type == mavutil.mavlink.MAV_MISSION_ACCEPTED
@@ -148,7 +138,7 @@ async def test_a_goto_out_of_the_fence_is_refused_and_a_breach_returns_the_vehic
         ), acks
         norths = [
             north_east_m(HOME, Position(m.lat / 1e7, m.lon / 1e7))[0]
-            for m in tlog_messages(tmp_path, "GLOBAL_POSITION_INT")
+            for m in tlog.messages("GLOBAL_POSITION_INT")
             if m.lat or m.lon
         ]
         assert norths and max(norths) < 240.0 < OUT_NORTH_M

@@ -7,6 +7,11 @@ commands are refused by default (watch only: a COMMAND_ACK DENIED, and the
 vehicle acts on nothing it sent, by the vehicle's own effects file), or, with
 ``gcs_override``, taken as an operator override that pauses the mission: the
 master's next call waits at the drone until an operator resumes or ends it.
+
+On ArduPilot SITL (where ``BATON_SITL_BINARY`` points at a build; helpers/vehicles.py)
+the positions are ArduPilot's own, and the witness of what the vehicle acted on is its
+own flight mode in the drone's telemetry log: LAND once (the mission's) watching; LAND
+after the station's with override.
 """
 
 from __future__ import annotations
@@ -18,7 +23,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
 from helpers.missions import FAST_LINK
+from helpers.vehicles import VEHICLES, Tlog, on_vehicle, skip_without_sitl
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
 from waiting import eventually
@@ -38,6 +45,7 @@ from baton.v1 import drone_pb2, ring_pb2
 
 mavlink = mavutil.mavlink
 MISSION = MissionPlan(grid=3, spacing_m=20.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
+STATION_SYSTEM = 255  # the pymavlink ground station's MAVLink system id
 
 
 class Station:
@@ -46,7 +54,9 @@ class Station:
 
     def __init__(self, key: bytes | None = None) -> None:
         self.port = free_port()
-        self.link = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}", source_system=255)
+        self.link = mavutil.mavlink_connection(
+            f"udpin:127.0.0.1:{self.port}", source_system=STATION_SYSTEM
+        )
         self.key = key
         if key is not None:
             enable(self.link.mav, key, sign_outgoing=True)
@@ -83,7 +93,9 @@ class Station:
         self.link.close()
 
 
-def plan(station: Station, override: bool, key_file: Path | None = None) -> TestbedPlan:
+def plan(
+    station: Station, override: bool, key_file: Path | None = None, vehicle: str = "sim"
+) -> TestbedPlan:
     config = local_config(3, flush_limit=0, speedup=10.0, drone_link=FAST_LINK)
     drone = config.drone.model_copy(
         update={
@@ -93,7 +105,8 @@ def plan(station: Station, override: bool, key_file: Path | None = None) -> Test
         }
     )
     config = config.model_copy(update={"drone": drone})
-    return TestbedPlan(config=config, handovers=((20, 1), (45, 2)), mission=MISSION)
+    sim = TestbedPlan(config=config, handovers=((20, 1), (45, 2)), mission=MISSION)
+    return on_vehicle(sim, vehicle)
 
 
 def test_a_gcs_endpoint_is_checked() -> None:
@@ -108,12 +121,15 @@ def test_a_gcs_endpoint_is_checked() -> None:
             raise AssertionError(f"{bad} accepted")
 
 
+@pytest.mark.parametrize("vehicle", VEHICLES)
 async def test_a_ground_station_watches_a_whole_flight_and_its_land_is_refused(
-    tmp_path: Path,
+    vehicle: str, tmp_path: Path
 ) -> None:
+    skip_without_sitl(vehicle)
     station = Station()
     try:
-        async with LocalTestbed(plan(station, override=False), tmp_path) as testbed:
+        bed = plan(station, override=False, vehicle=vehicle)
+        async with LocalTestbed(bed, tmp_path) as testbed:
 
             async def airborne() -> bool:
                 return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 10
@@ -129,8 +145,13 @@ async def test_a_ground_station_watches_a_whole_flight_and_its_land_is_refused(
     assert any(t.startswith("baton in control, master ") for t in station.texts), station.texts
     assert any(t.endswith("; GCS watch only") for t in station.texts)
     # Watch only, by the vehicle's own count: the mission's one land, none of the station's.
-    effects = read_effects(tmp_path / VEHICLE_EFFECTS_FILE) or []
-    assert [e["effect"] for e in effects].count("land") == 1
+    if vehicle == "sim":
+        effects = read_effects(tmp_path / VEHICLE_EFFECTS_FILE) or []
+        assert [e["effect"] for e in effects].count("land") == 1
+    else:  # ArduCopter entered LAND once, and heard no command of the station's system
+        tlog = Tlog(tmp_path)
+        assert len(tlog.entered("LAND")) == 1, tlog.entered("LAND")
+        assert [c for c in tlog.sent() if c.system == STATION_SYSTEM] == []
     assert all(c.mission == ring_pb2.MISSION_STATE_DONE for c in snapshot.controllers.values())
     assert [h.new_master for h in snapshot.drone.handovers] == [1, 2]
     # Positions at 1 Hz or more through the whole flight, handovers included.
@@ -138,18 +159,27 @@ async def test_a_ground_station_watches_a_whole_flight_and_its_land_is_refused(
     assert len(station.positions) > 20 and max(gaps) < 1.0, max(gaps)
 
 
-async def test_with_override_a_ground_stations_land_pauses_the_mission(tmp_path: Path) -> None:
+@pytest.mark.parametrize("vehicle", VEHICLES)
+async def test_with_override_a_ground_stations_land_pauses_the_mission(
+    vehicle: str, tmp_path: Path
+) -> None:
+    skip_without_sitl(vehicle)
     station = Station()
+    tlog = Tlog(tmp_path)
     try:
-        async with LocalTestbed(plan(station, override=True), tmp_path) as testbed:
+        bed = plan(station, override=True, vehicle=vehicle)
+        async with LocalTestbed(bed, tmp_path) as testbed:
 
             async def airborne() -> bool:
                 return (await testbed.snapshot(audit=False)).drone.last_reqnr >= 10
 
             await eventually(airborne, "the vehicle flying", 60)
+            asked_at = time.time()
             station.land()
 
             def landed_by_station() -> bool:
+                if vehicle == "sitl":  # ArduCopter's own word: LAND, after the station's
+                    return tlog.first_mode("LAND", after=asked_at) is not None
                 effects = read_effects(tmp_path / VEHICLE_EFFECTS_FILE) or []
                 return "land" in [e["effect"] for e in effects]
 
@@ -180,7 +210,7 @@ async def test_with_override_a_ground_stations_land_pauses_the_mission(tmp_path:
             errors = await eventually(ended, "every program ended by the land-now", 60)
     finally:
         station.close()
-    assert (pause.by, pause.action) == ("ground station 255", "")  # the station flies it
+    assert (pause.by, pause.action) == (f"ground station {STATION_SYSTEM}", "")  # it flies it
     assert "MAV_CMD_NAV_LAND" in pause.reason
     assert status.last_reqnr == pause.after_reqnr  # nothing admitted while paused
     assert all("the mission has ended (told to land now by the operator" in e for e in errors)

@@ -1,4 +1,5 @@
-"""A pilot switching the sim vehicle's flight mode behind the drone's back.
+"""A pilot switching the vehicle's flight mode behind the drone's back (the sim vehicle,
+or ArduPilot SITL through its second MAVLink port).
 
 As the autopilot sees it, a pilot's RC mode switch, a second ground station's mode
 command and the autopilot's own failsafe are the same thing: a mode change the drone
@@ -55,3 +56,11 @@ async def switch_mode(url: str, sub: int, timeout_s: float = STEP_TIMEOUT_S) -> 
     """Switches the sim vehicle at ``url`` (udpout://HOST:PORT) to PX4's AUTO ``sub`` mode
     (``PX4_AUTO_RTL``, ``PX4_AUTO_LAND``), as a pilot would; fails unless it accepts."""
     await asyncio.to_thread(_switch, url, PX4_AUTO, sub, timeout_s)
+
+
+async def switch_ardupilot_mode(url: str, mode: str, timeout_s: float = STEP_TIMEOUT_S) -> None:
+    """Switches ArduCopter at ``url`` (pymavlink's ``tcp:HOST:PORT``: SITL's SERIAL1, not
+    the drone's port) to its flight ``mode`` by name ("RTL", "LAND"), as a pilot would;
+    fails unless it accepts."""
+    number = mavutil.mode_mapping_byname(mavlink.MAV_TYPE_QUADROTOR)[mode]
+    await asyncio.to_thread(_switch, url, number, 0, timeout_s)

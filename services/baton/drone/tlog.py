@@ -31,6 +31,31 @@ _V2_SIGNED = 0x01
 FLUSH_S = 0.5
 
 
+def frame_size(head: bytes | bytearray) -> int | None:
+    """The whole size of the MAVLink packet ``head`` starts with (a magic byte first, its
+    header read from the first 3 bytes); None while fewer than 3 are there."""
+    if len(head) < 3:
+        return None
+    if head[0] == V1_MAGIC:
+        return _V1_OVERHEAD + head[1]
+    if head[0] != V2_MAGIC:
+        raise ValueError(f"no MAVLink packet starts here (byte {head[0]:#04x})")
+    return _V2_OVERHEAD + head[1] + (_V2_SIGNATURE if head[2] & _V2_SIGNED else 0)
+
+
+def tlog_records(data: bytes) -> tuple[list[tuple[float, bytes]], int]:
+    """The whole records at the start of ``data`` (a ``.tlog``'s bytes from a record's
+    start), each (Unix seconds, packet), and the bytes they take: a record still being
+    written is left for a later read, so a log can be read as it grows."""
+    records: list[tuple[float, bytes]] = []
+    at = 0
+    while (size := frame_size(data[at + 8 : at + 11])) is not None and at + 8 + size <= len(data):
+        (micros,) = struct.unpack_from(">Q", data, at)
+        records.append((micros / 1e6, data[at + 8 : at + 8 + size]))
+        at += 8 + size
+    return records, at
+
+
 class MavlinkFramer:
     """Whole MAVLink 1 and 2 packets out of a byte stream, across chunk boundaries."""
 
@@ -48,14 +73,8 @@ class MavlinkFramer:
                 buffer.clear()
                 break
             del buffer[: min(starts)]
-            if len(buffer) < 3:
-                break
-            if buffer[0] == V1_MAGIC:
-                size = _V1_OVERHEAD + buffer[1]
-            else:
-                size = _V2_OVERHEAD + buffer[1]
-                size += _V2_SIGNATURE if buffer[2] & _V2_SIGNED else 0
-            if len(buffer) < size:
+            size = frame_size(buffer)
+            if size is None or len(buffer) < size:
                 break
             frames.append(bytes(buffer[:size]))
             del buffer[:size]

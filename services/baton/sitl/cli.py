@@ -27,7 +27,7 @@ from typing import Any
 
 from baton.lifecycle import announce
 from baton.sim_vehicle.cli import DEFAULT_HOME, parse_home
-from baton.sitl.launcher import LISTENING_MARK
+from baton.sitl.launcher import LISTENING_MARK, PARAMS_FILE
 
 # Wall seconds for SITL to open SERIAL0 after it starts (it takes ~0.1 s here).
 START_TIMEOUT_S = 20.0
@@ -43,6 +43,15 @@ def _speedup(text: str) -> float:
     if not 0 < value <= 100:
         raise argparse.ArgumentTypeError(f"must be in (0, 100], got {text!r}")
     return value
+
+
+def _param(text: str) -> tuple[str, float]:
+    from baton.sitl.launcher import SitlParamError, parse_param
+
+    try:
+        return parse_param(text)
+    except SitlParamError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def register(subparsers: Any) -> None:
@@ -68,6 +77,16 @@ def register(subparsers: Any) -> None:
         "--defaults",
         metavar="FILE",
         help="parameter defaults (default: copter.parm beside the binary, if present)",
+    )
+    parser.add_argument(
+        "--param",
+        dest="params",
+        action="append",
+        type=_param,
+        default=[],
+        metavar="NAME=VALUE",
+        help="a parameter of this run over the defaults (repeatable), e.g. BATT_CAPACITY=1000: "
+        f"written to {PARAMS_FILE} in the workdir and given after the defaults",
     )
     parser.add_argument(
         "--instance",
@@ -177,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
         speedup=args.speedup,
         home=args.home,
         defaults=Path(args.defaults).resolve() if args.defaults else None,
+        params=tuple(args.params),
     )
     key = None
     if args.mavlink_key:
@@ -189,6 +209,8 @@ def run(args: argparse.Namespace) -> int:
             return 2
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-sitl-"))
     workdir.mkdir(parents=True, exist_ok=True)
+    if settings.params:
+        (workdir / PARAMS_FILE).write_text(settings.params_text())
     stopping = threading.Event()
 
     def on_signal(signum: int, frame: object) -> None:

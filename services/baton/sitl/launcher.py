@@ -14,10 +14,17 @@ and 5763+10N (SERIAL2), and binds UDP 5501+10N for RC input; two instances
 with one number clash, so ``free_instance`` picks a number whose ports are
 free. ``--serial0 tcp:0`` starts the simulation at once instead of waiting
 for a client on SERIAL0.
+
+Parameters of one run beyond the defaults file (a small battery, say) are
+written to ``PARAMS_FILE`` in SITL's workdir and named after the defaults:
+``--defaults`` takes a comma-separated list of parameter files, applied in
+order, so the run's own come last and win.
 """
 
 from __future__ import annotations
 
+import math
+import re
 import shutil
 import socket
 from collections.abc import Mapping
@@ -39,6 +46,35 @@ HOW_TO_POINT_AT_A_BUILD = (
     f"writes build/sitl/bin/arducopter; see {BUILD_INSTRUCTIONS})"
 )
 NOT_FOUND = f"no ArduPilot Copter SITL binary found: {HOW_TO_POINT_AT_A_BUILD}"
+# The run's own parameters (``SitlSettings.params``), in SITL's workdir, where it runs.
+PARAMS_FILE = "baton-params.parm"
+# An ArduPilot parameter name: capitals, digits and underscores, at most 16 characters.
+_PARAM_NAME = re.compile(r"[A-Z][A-Z0-9_]{0,15}")
+
+
+class SitlParamError(ValueError):
+    """A parameter for SITL that is not ``NAME=VALUE`` with an ArduPilot name and a number."""
+
+
+def parse_param(text: str) -> tuple[str, float]:
+    """``NAME=VALUE`` (``BATT_CAPACITY=1000``) as a parameter for SITL; SitlParamError
+    says what is wrong and the form expected."""
+    name, sep, value = text.partition("=")
+    expected = "expected NAME=VALUE, e.g. BATT_CAPACITY=1000"
+    if not sep:
+        raise SitlParamError(f"{text!r}: {expected}")
+    if not _PARAM_NAME.fullmatch(name):
+        raise SitlParamError(
+            f"{text!r}: {name!r} is no ArduPilot parameter name (capitals, digits and "
+            f"underscores, at most 16); {expected}"
+        )
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not math.isfinite(number):
+        raise SitlParamError(f"{text!r}: {value!r} is not a finite number; {expected}")
+    return name, number
 
 
 class SitlBinaryNotFound(LookupError):
@@ -127,6 +163,8 @@ class SitlSettings:
     home: tuple[float, float, float] = (47.397742, 8.545594, 488.0)
     defaults: Path | None = None  # default: find_defaults(binary)
     heading_deg: float = 0.0
+    # The run's own parameters over the defaults, (name, value) in order: PARAMS_FILE.
+    params: tuple[tuple[str, float], ...] = ()
 
     def defaults_file(self) -> Path | None:
         """The parameter defaults: given, else ``find_defaults`` of the binary."""
@@ -152,10 +190,16 @@ class SitlSettings:
             # A fresh eeprom: parameters and home from this command line only.
             "--wipe",
         ]
-        defaults = self.defaults_file()
-        if defaults is not None:
-            argv += ["--defaults", str(defaults)]
+        files = [str(f) for f in (self.defaults_file(),) if f is not None]
+        if self.params:
+            files.append(PARAMS_FILE)  # written in the workdir by params_text
+        if files:
+            argv += ["--defaults", ",".join(files)]
         return argv
+
+    def params_text(self) -> str:
+        """PARAMS_FILE's text: one ``NAME VALUE`` a line, as ArduPilot's parameter files."""
+        return "".join(f"{name} {value:.10g}\n" for name, value in self.params)
 
 
 def _port_free(kind: int, port: int) -> bool:

@@ -167,6 +167,9 @@ class TestbedPlan:
     vehicle: str = "sim"
     # None: ``baton sitl`` finds one (baton.sitl.launcher.find_binary).
     sitl_binary: Path | None = None
+    # SITL's own parameters of this run over its defaults (``baton sitl --param``), e.g.
+    # (("BATT_CAPACITY", 1000.0),): what vehicle_args are to the sim vehicle.
+    sitl_params: tuple[tuple[str, float], ...] = ()
     # A QGroundControl plan the mission file flies (baton.missions.plan), for the
     # report's side-effect check; None for the grid or another mission.
     flight_plan: Path | None = None
@@ -549,6 +552,8 @@ class LocalTestbed:
         argv += ["--workdir", str(self.workdir / "sitl"), "--url-file", str(ready)]
         if self.plan.sitl_binary is not None:
             argv += ["--sitl-binary", str(self.plan.sitl_binary)]
+        for name, value in self.plan.sitl_params:
+            argv += ["--param", f"{name}={value:.10g}"]
         argv += self._mavlink_key_args()
         return "sitl", argv, ready
 
