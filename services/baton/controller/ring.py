@@ -41,7 +41,7 @@ from baton.controller.link_core import LinkCore, PeerCounters, RelayCore, SyncWo
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import mission_metadata
-from baton.rpc.streams import read_message
+from baton.rpc.streams import read_message, write_message
 from baton.rpc.tls import Identity, Tls
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
@@ -373,7 +373,7 @@ class PeerLink:
             self._up_down()
             self._log.info("ring stream up", peer_lognr=hello.lognr, holds_lognr=core.synced)
             if greeting.sync is not None:
-                await _send(call, _sync_frame(greeting.sync, self.my_id))
+                await write_message(call, _sync_frame(greeting.sync, self.my_id))
             acks = asyncio.create_task(self._read_acks(call))
             try:
                 history = core.history
@@ -385,7 +385,7 @@ class PeerLink:
                     self._wakeup.clear()
                     sync = core.sync_due(self.master_word(), self.master_proof())
                     if sync is not None:
-                        await _send(call, _sync_frame(sync, self.my_id))
+                        await write_message(call, _sync_frame(sync, self.my_id))
                     pending = core.pending()
                     if not pending:
                         await _first(self._wakeup.wait(), acks, self.peer_id)
@@ -434,7 +434,7 @@ class PeerLink:
                 )
                 if frame.HasField("head"):
                     out.head.CopyFrom(frame.head)
-                await _send(call, out)
+                await write_message(call, out)
                 relay.wrote(frame)
                 self.counters.sent_bytes += len(frame.data)
                 frame = relay.ready()
@@ -444,7 +444,7 @@ class PeerLink:
             if relay.aborted:
                 self.core.relay_given_up(relay)
                 if relay.frames_written:
-                    await _send(
+                    await write_message(
                         call, ring_pb2.LogFrame(lognr=relay.lognr, abort=True, from_id=self.my_id)
                     )
                 return False
@@ -452,7 +452,7 @@ class PeerLink:
 
     async def _write(self, call: LogRingCall, message: ring_pb2.LogMessage) -> None:
         for frame in frames(message, self.my_id, self.frame_bytes):
-            await _send(call, frame)
+            await write_message(call, frame)
             self.counters.sent_bytes += len(frame.data)
         self.core.written(message.lognr)
 
@@ -463,23 +463,6 @@ class PeerLink:
                 self.on_handover_acked(acked.message)
             if self.on_acked is not None:
                 self.on_acked(self.peer_id)
-
-
-async def _send(call: LogRingCall, frame: ring_pb2.LogFrame) -> None:
-    """Writes ``frame`` on the stream. A call that finished before the write (its peer
-    ended it, or it broke: grpc raises InvalidStateError, 'RPC already finished') is a
-    stream down like any other: raised as the AioRpcError of the call's status."""
-    try:
-        await call.write(frame)
-    except asyncio.InvalidStateError:
-        if not call.done():
-            raise  # a write after the end of writing: a fault of ours, not the stream's
-        raise grpc.aio.AioRpcError(
-            await call.code(),
-            await call.initial_metadata(),
-            await call.trailing_metadata(),
-            await call.details(),
-        ) from None
 
 
 async def _first(wake: Coroutine[Any, Any, Any], acks: asyncio.Task[None], peer_id: int) -> None:
