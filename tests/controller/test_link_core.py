@@ -129,6 +129,89 @@ def test_a_relay_not_forwarded_is_aborted_when_settled() -> None:
     assert relay.aborted and relay.ready() is None
 
 
+def frame_of(lognr: int, offset: int = 0, total: int = 3) -> ring_pb2.LogFrame:
+    return ring_pb2.LogFrame(lognr=lognr, total_bytes=total, offset=offset, data=b"abc")
+
+
+def forwarded(core: LinkCore, relay: RelayCore) -> None:
+    """The protocol forwarded the relayed message whole (``PeerLink.send``)."""
+    core.queue(message(relay.lognr), now=0.0)
+    relay.confirm()
+
+
+def test_a_relay_a_stream_took_a_frame_of_ends_with_it_and_its_message_goes_whole() -> None:
+    """The stream ends between taking the relayed message's frame and writing it (grpc
+    refuses a write on a call that finished): the frame is gone with it, so the relay
+    is given up, and the next stream writes the message whole, kept unacknowledged."""
+    core = LinkCore(1, now=0.0, history=history_of(1, 2))
+    core.connected(hello_lognr=1, hello_epoch=1, word=(1, 0))
+    relay = RelayCore(2, total_bytes=3)
+    assert core.relay(relay)
+    relay.add(frame_of(2))
+    forwarded(core, relay)
+    assert core.pending() == [2]
+    assert relay.ready() is not None  # taken; its write fails
+    core.broken(now=1.0)
+    assert relay.aborted and core.relays == {}
+    assert core.counters.relays_aborted == 1
+    greeting = core.connected(hello_lognr=1, hello_epoch=1, word=(1, 0))
+    assert greeting.from_history == [] and core.pending() == [2]
+
+
+def test_a_relay_a_stream_ended_mid_way_of_is_given_up_and_its_message_goes_whole() -> None:
+    """A relay part-written on a stream that broke (or was restarted) cannot go on
+    from where it was on the next: the receiver dropped its part with the stream."""
+    for end in ("broken", "restarted"):
+        core = LinkCore(1, now=0.0, history=history_of(1))
+        core.connected(hello_lognr=1, hello_epoch=1, word=(1, 0))
+        relay = RelayCore(2, total_bytes=6)
+        core.relay(relay)
+        relay.add(frame_of(2))
+        first = relay.ready()
+        assert first is not None
+        relay.wrote(first)
+        getattr(core, end)(1.0)
+        assert relay.aborted and core.relays == {}, end
+        relay.add(frame_of(2, offset=3))  # the rest arrives, and is forwarded whole
+        core.queue(message(2), now=1.0)
+        core.connected(hello_lognr=1, hello_epoch=1, word=(1, 0))
+        assert core.pending() == [2], end
+
+
+def test_a_relay_no_stream_took_a_frame_of_is_written_on_the_next_stream() -> None:
+    core = LinkCore(1, now=0.0, history=history_of(1))
+    core.connected(hello_lognr=1, hello_epoch=1, word=(1, 0))
+    relay = RelayCore(2, total_bytes=3)
+    core.relay(relay)
+    relay.add(frame_of(2))  # its last frame: waits for the forward, so nothing is taken
+    assert relay.ready() is None
+    core.broken(now=1.0)
+    assert not relay.aborted and core.relays == {2: relay}
+    core.connected(hello_lognr=1, hello_epoch=1, word=(1, 0))
+    forwarded(core, relay)
+    assert core.pending() == [2]
+    last = relay.ready()
+    assert last is not None and last.offset == 0
+    relay.wrote(last)
+    assert relay.done
+    core.relay_written(relay)
+    assert core.pending() == [] and core.relays == {}
+    assert (core.counters.relayed_messages, core.counters.relays_aborted) == (1, 0)
+
+
+def test_a_message_is_relayed_by_one_stream_at_a_time() -> None:
+    """A second copy of a message being relayed is not relayed; once that relay is
+    given up, a new copy takes its place, and the old one's end leaves it there."""
+    core = LinkCore(1, now=0.0)
+    old, new = RelayCore(2, total_bytes=3), RelayCore(2, total_bytes=3)
+    assert core.relay(old)
+    assert not core.relay(new)
+    old.abort()
+    assert core.relay(new)
+    core.relay_given_up(old)
+    assert core.relays == {2: new} and core.pending() == [2]
+
+
 class FakeLink:
     """A link as ``RingLinks`` sees one: its core, what was sent, how often it synced."""
 

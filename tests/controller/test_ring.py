@@ -3,13 +3,24 @@
 from __future__ import annotations
 
 import asyncio
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import grpc
 import pytest
 
 from baton.controller.history import LogHistory
 from baton.controller.link_core import SyncWord
-from baton.controller.ring import FRAME_BYTES, PeerLink, Reassembler, RingReceiver, frames
+from baton.controller.ring import (
+    FRAME_BYTES,
+    LogRingCall,
+    PeerLink,
+    Reassembler,
+    RingReceiver,
+    frames,
+)
 from baton.logs import get_logger
 from baton.rpc.server import BatonServer, Servicer, servicer
 from baton.rpc.streams import next_message
@@ -406,3 +417,71 @@ async def test_a_message_let_go_as_held_and_no_longer_held_is_sent_again() -> No
     finally:
         await link.stop()
         await server.stop(0)
+
+
+class EndedBeforeFrame:
+    """A real LogRing call whose receiver ends the RPC (``end``, once of all the calls
+    it wraps) just before the first frame of message ``lognr`` is written: the write
+    meets a finished call, as when a stream ends between a frame taken off a relay and
+    its write."""
+
+    def __init__(self, call: LogRingCall, lognr: int, end: list[Callable[[], None]]) -> None:
+        self._call = call
+        self._lognr = lognr
+        self._end = end
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._call, name)
+
+    async def write(self, frame: ring_pb2.LogFrame) -> None:
+        if self._end and frame.lognr == self._lognr and frame.offset == 0 and not frame.sync:
+            self._end.pop()()
+            await self._call.code()  # the RPC finished: its status arrived
+        await self._call.write(frame)
+
+
+async def test_a_relay_whose_frame_meets_a_finished_stream_goes_whole_on_the_next(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """B passes message 2 on to its successor C cut-through; C ends the stream (it
+    rejoined with nothing: ``drop_streams``) as B takes the message's one frame off the
+    relay, and grpc refuses the write ('RPC already finished'). The frame is gone with
+    the stream: the relay is given up, and the next stream gives C the message whole.
+    The stream's end is a stream down (a warning), not an unexpected error."""
+    caplog.set_level(logging.INFO, logger="baton.test")
+    server, c = await start_receiver("127.0.0.1:0")
+    stub = ring_pb2_grpc.ControllerRingStub
+    end = [c.receiver.drop_streams]
+
+    class Stub:
+        def __init__(self, channel: grpc.aio.Channel) -> None:
+            self._stub = stub(channel)
+
+        def LogRing(self, *args: Any, **kwargs: Any) -> EndedBeforeFrame:
+            return EndedBeforeFrame(self._stub.LogRing(*args, **kwargs), 2, end)
+
+    monkeypatch.setattr(ring_pb2_grpc, "ControllerRingStub", Stub)
+    history = LogHistory(tmp_path / "history.sqlite")
+    link = PeerLink(1, 2, server.address, LOG, history)
+    try:
+        first, second = big_message(1, 10), big_message(2, 10)
+        history.add(first)
+        link.send(first)
+        await wait_for(lambda: link.unacked == 0 and c.messages)
+        (frame,) = frames(second, from_id=0)
+        relay = link.relay(2, frame.total_bytes)
+        assert relay is not None
+        relay.add(frame)
+        history.add(second)
+        link.send(second)  # forwarded whole: the relay's last frame may go
+        await wait_for(lambda: link.unacked == 0 and len(c.messages) == 2)
+        assert [m.lognr for m in c.messages] == [1, 2]
+        assert (link.counters.relayed_messages, link.counters.relays_aborted) == (0, 1)
+        assert link.counters.connects == 2 and not end
+        said = [(r.levelname, r.getMessage()) for r in caplog.records if r.name == "baton.test"]
+        assert ("WARNING", "ring stream down; reconnecting") in said
+        assert not [line for line in said if line[0] == "ERROR"]
+    finally:
+        await link.stop()
+        await server.stop(0)
+        history.close()

@@ -24,10 +24,14 @@ The rules, decided here once:
 - A broken stream forgets what it wrote (the next writes everything kept) and
   tries again after a back-off that doubles up to ``BACKOFF_MAX_S``; a stream
   that comes up starts the back-off over.
-- A message being passed on frame by frame (cut-through, ``RelayCore``) may
-  end only once the protocol forwarded it whole (``confirm``); a relay given
-  up, or one a broken stream wrote part of, is not resumed: the message goes
-  whole once forwarded.
+- A message being passed on frame by frame (cut-through, ``RelayCore``) is
+  written in its log number's turn (``pending``) and may end only once the
+  protocol forwarded it whole (``confirm``). A relay given up, or one a stream
+  took a frame of and then ended, is not resumed: a frame taken is gone from
+  the relay whether or not its write went out (grpc refuses a write on a call
+  that finished), and the receiver drops what it got of the message with the
+  stream. The message goes whole once forwarded, kept until acknowledged like
+  any other (``pending``), or from the history above the next hello.
 """
 
 from __future__ import annotations
@@ -141,6 +145,8 @@ class LinkCore:
         # What the last sync frame said: the history's top and the master's word.
         self.synced = 0
         self.synced_word = (0, 0)
+        # Messages being passed on frame by frame as they arrive (cut-through).
+        self.relays: dict[int, RelayCore] = {}
 
     # -- events -------------------------------------------------------------------
 
@@ -179,7 +185,7 @@ class LinkCore:
         if self.up or self.down_since is None:
             self.down_since = now
         self.up = False
-        self.sent = set()
+        self._stream_ended()
         wait, self.backoff = self.backoff, min(self.backoff * 2, BACKOFF_MAX_S)
         return wait
 
@@ -189,8 +195,17 @@ class LinkCore:
         if self.up:
             self.down_since = now
         self.up = False
-        self.sent = set()
+        self._stream_ended()
         self.backoff = BACKOFF_INITIAL_S
+
+    def _stream_ended(self) -> None:
+        """What was written on the stream is forgotten, and so is every relay it took a
+        frame of (the module's rules): the message goes whole once forwarded."""
+        self.sent = set()
+        for relay in list(self.relays.values()):
+            if relay.taken:
+                relay.abort()
+                self.relay_given_up(relay)
 
     def acked(self, lognr: int) -> Acked:
         """The peer acknowledged ``lognr``: the message is released."""
@@ -213,8 +228,36 @@ class LinkCore:
         return sync_word(history, self.synced, word, proof)
 
     def pending(self) -> list[int]:
-        """The kept messages not yet written on the current stream, in log-number order."""
-        return sorted(n for n in self.outbox.unacked if n not in self.sent)
+        """What the current stream writes next, in log-number order: the kept messages
+        not yet written on it, and the messages being relayed (``relays``; one whose
+        relay was given up goes whole if it is kept)."""
+        kept = {n for n in self.outbox.unacked if n not in self.sent}
+        return sorted(kept | self.relays.keys())
+
+    def relay(self, relay: RelayCore) -> bool:
+        """``relay``'s message is to be passed on frame by frame as it arrives; False (not
+        taken) if another stream's copy of it is being passed on already."""
+        old = self.relays.get(relay.lognr)
+        if old is not None and not old.aborted:
+            return False
+        self.relays[relay.lognr] = relay
+        return True
+
+    def relay_written(self, relay: RelayCore) -> None:
+        """Every frame of ``relay`` went out on the current stream: its message is written."""
+        self._end_relay(relay)
+        self.written(relay.lognr)
+        self.counters.relayed_messages += 1
+
+    def relay_given_up(self, relay: RelayCore) -> None:
+        """``relay`` was aborted: its message goes whole if it is forwarded."""
+        self._end_relay(relay)
+        self.counters.relays_aborted += 1
+
+    def _end_relay(self, relay: RelayCore) -> None:
+        # Another stream's copy may have taken an aborted relay's place meanwhile.
+        if self.relays.get(relay.lognr) is relay:
+            del self.relays[relay.lognr]
 
     def written(self, lognr: int) -> None:
         """Message ``lognr`` went out whole on the current stream (kept, from the history
@@ -260,7 +303,10 @@ class RelayCore:
         self.received = 0
         self.confirmed = False
         self.aborted = False
-        # Written on the current stream, bytes and frames.
+        # Frames taken off to be written (``ready``): a stream that ends after taking
+        # one ends the relay (``LinkCore._stream_ended``).
+        self.taken = 0
+        # Written on the stream, bytes and frames.
         self.written = 0
         self.frames_written = 0
         self.peak_buffered = 0
@@ -291,10 +337,11 @@ class RelayCore:
         last = len(self.frames) == 1 and self.received >= self.total_bytes
         if last and not self.confirmed:
             return None
+        self.taken += 1
         return self.frames.popleft()
 
     def wrote(self, frame: ring_pb2.LogFrame) -> None:
-        """``frame`` went out on the current stream."""
+        """``frame`` went out on the stream."""
         self.written += len(frame.data)
         self.frames_written += 1
 

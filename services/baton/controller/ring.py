@@ -30,7 +30,7 @@ import contextlib
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import grpc
 from google.protobuf.message import DecodeError
@@ -41,7 +41,7 @@ from baton.controller.link_core import LinkCore, PeerCounters, RelayCore, SyncWo
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import mission_metadata
-from baton.rpc.streams import read_message
+from baton.rpc.streams import read_message, write_message
 from baton.rpc.tls import Identity, Tls
 from baton.v1 import ring_pb2, ring_pb2_grpc
 
@@ -232,8 +232,6 @@ class PeerLink:
         self._tls = tls
         self._log = log.bind(peer=peer_id)
         self.core = LinkCore(peer_id, time.monotonic(), history)
-        # Messages being passed on frame by frame as they arrive (cut-through).
-        self._relays: dict[int, Relay] = {}
         # Called with a handover message its receiver acknowledged (set by the node).
         self.on_handover_acked: Callable[[ring_pb2.LogMessage], None] | None = None
         # Called with the peer's id after each acknowledgement it sends.
@@ -278,7 +276,7 @@ class PeerLink:
     def send(self, message: ring_pb2.LogMessage) -> None:
         """Queues ``message`` for the peer (``LinkCore.queue``); a relay of it may end."""
         self.core.queue(message, time.monotonic())
-        relay = self._relays.get(message.lognr)
+        relay = self.core.relays.get(message.lognr)
         if relay is not None:
             relay.confirm()
         self._wakeup.set()
@@ -286,12 +284,11 @@ class PeerLink:
 
     def relay(self, lognr: int, total_bytes: int) -> Relay | None:
         """Starts passing message ``lognr`` on as its frames arrive (the caller adds
-        them); None if another stream's copy of it is being passed on already."""
-        old = self._relays.get(lognr)
-        if old is not None and not old.aborted:
-            return None
+        them); None if another stream's copy of it is being passed on already
+        (``LinkCore.relay``)."""
         relay = Relay(lognr, total_bytes)
-        self._relays[lognr] = relay
+        if not self.core.relay(relay):
+            return None
         self._wakeup.set()
         self.start()
         return relay
@@ -322,7 +319,7 @@ class PeerLink:
     @property
     def relaying(self) -> int:
         """The log number of the message being passed on frame by frame (0: none)."""
-        written = [lognr for lognr, relay in self._relays.items() if relay.frames_written]
+        written = [lognr for lognr, relay in self.core.relays.items() if relay.frames_written]
         return written[0] if written else 0
 
     def waiting_for_ack_s(self, now: float) -> float:
@@ -376,7 +373,7 @@ class PeerLink:
             self._up_down()
             self._log.info("ring stream up", peer_lognr=hello.lognr, holds_lognr=core.synced)
             if greeting.sync is not None:
-                await call.write(_sync_frame(greeting.sync, self.my_id))
+                await write_message(call, _sync_frame(greeting.sync, self.my_id))
             acks = asyncio.create_task(self._read_acks(call))
             try:
                 history = core.history
@@ -388,13 +385,14 @@ class PeerLink:
                     self._wakeup.clear()
                     sync = core.sync_due(self.master_word(), self.master_proof())
                     if sync is not None:
-                        await call.write(_sync_frame(sync, self.my_id))
-                    pending = sorted(set(core.pending()) | set(self._relays))
+                        await write_message(call, _sync_frame(sync, self.my_id))
+                    pending = core.pending()
                     if not pending:
                         await _first(self._wakeup.wait(), acks, self.peer_id)
                         continue
                     for lognr in pending:
-                        relay = self._relays.get(lognr)
+                        # The core's relays are this link's (``relay``).
+                        relay = cast("Relay | None", core.relays.get(lognr))
                         if relay is not None and await self._write_relay(call, relay, acks):
                             continue
                         message = core.unacked.get(lognr)
@@ -404,13 +402,6 @@ class PeerLink:
             finally:
                 acks.cancel()
                 call.cancel()
-                # A relay part-written on this stream cannot start again on the next
-                # (its written frames are gone): the message goes whole once forwarded.
-                for lognr, relay in list(self._relays.items()):
-                    if relay.frames_written:
-                        relay.abort()
-                        del self._relays[lognr]
-                        self.counters.relays_aborted += 1
 
     async def _write_relay(self, call: LogRingCall, relay: Relay, acks: asyncio.Task[None]) -> bool:
         """Writes a relayed message's frames as they come; True once all are written.
@@ -418,7 +409,6 @@ class PeerLink:
         False if it was given up: the peer is told to drop what it got, and the
         message goes whole if the protocol forwards it after all.
         """
-        relay.written = relay.frames_written = 0
         relay.writing = True
         try:
             return await self._write_relay_frames(call, relay, acks)
@@ -444,28 +434,25 @@ class PeerLink:
                 )
                 if frame.HasField("head"):
                     out.head.CopyFrom(frame.head)
-                await call.write(out)
+                await write_message(call, out)
                 relay.wrote(frame)
                 self.counters.sent_bytes += len(frame.data)
                 frame = relay.ready()
             if relay.done:
-                self._relays.pop(relay.lognr, None)
-                self.core.written(relay.lognr)
-                self.counters.relayed_messages += 1
+                self.core.relay_written(relay)
                 return True
             if relay.aborted:
-                self._relays.pop(relay.lognr, None)
-                self.counters.relays_aborted += 1
+                self.core.relay_given_up(relay)
                 if relay.frames_written:
-                    await call.write(
-                        ring_pb2.LogFrame(lognr=relay.lognr, abort=True, from_id=self.my_id)
+                    await write_message(
+                        call, ring_pb2.LogFrame(lognr=relay.lognr, abort=True, from_id=self.my_id)
                     )
                 return False
             await _first(relay.changed.wait(), acks, self.peer_id)
 
     async def _write(self, call: LogRingCall, message: ring_pb2.LogMessage) -> None:
         for frame in frames(message, self.my_id, self.frame_bytes):
-            await call.write(frame)
+            await write_message(call, frame)
             self.counters.sent_bytes += len(frame.data)
         self.core.written(message.lognr)
 
