@@ -154,3 +154,27 @@ async def test_close_waits_for_the_call_in_flight(
     drone.vehicle.gate.set()
     assert (await asyncio.wait_for(pending, 10)).reqnr == 1
     await asyncio.wait_for(closing, 10)
+
+
+async def test_a_call_written_on_a_stream_that_just_finished_fails_unavailable(
+    drone: DroneUnderTest,
+) -> None:
+    """The stream ended (here: cancelled) and its reader has not taken it away yet: the
+    next call's write meets a finished call (grpc's InvalidStateError, 'RPC already
+    finished'). It fails as a dropped Invoke does, UNAVAILABLE (the program's call is
+    sent again), not with an exception the call loop does not expect; sent again once
+    the reader took the ended stream away, it goes on a new one."""
+    calls = InvokeCalls(drone.stub, LOG)
+    try:
+        await calls.invoke(invoke(0, 1, POSITION), timeout_s=10)
+        stream = calls._stream
+        assert stream is not None
+        stream.cancel()  # no await between: the reader has not run
+        with pytest.raises(grpc.aio.AioRpcError) as info:
+            await calls.invoke(invoke(0, 2, POSITION), timeout_s=10)
+        assert info.value.code() == grpc.StatusCode.UNAVAILABLE, info.value
+        # Sent again once the reader has taken the stream away, on a new one.
+        await eventually(lambda: calls._stream is not stream, "the ended stream taken away")
+        assert (await calls.invoke(invoke(0, 2, POSITION), timeout_s=10)).reqnr == 2
+    finally:
+        await calls.close(1)

@@ -28,6 +28,7 @@ from baton.controller.core import DroneRefusal
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.rpc.outcomes import error_of
+from baton.rpc.streams import write_message
 from baton.rpc.tls import DRONE, Identity, Tls
 from baton.stalls import StallWatch
 from baton.tasks import TaskSet
@@ -133,7 +134,7 @@ class InvokeCalls:
         try:
             async with asyncio.timeout(timeout_s):
                 async with self._writing:
-                    await self._open().write(drone_pb2.InvokeCall(call=number, request=request))
+                    await self._write(drone_pb2.InvokeCall(call=number, request=request))
                 outcome = await waiter
         except TimeoutError:
             raise grpc.aio.AioRpcError(
@@ -147,6 +148,24 @@ class InvokeCalls:
         if outcome.HasField("failure"):
             raise error_of(outcome.failure)
         return outcome.reply
+
+    async def _write(self, call: drone_pb2.InvokeCall) -> None:
+        """Writes ``call`` on the stream. One that finished before its reader took it away
+        fails the call as ``_read`` fails the calls it ends (UNAVAILABLE for a stream
+        cancelled or ended, else its own status)."""
+        try:
+            await write_message(self._open(), call)
+        except grpc.aio.AioRpcError as exc:
+            # The reader takes the stream away, failing the calls it carried; until it has,
+            # a call fails here too (its caller sends it again after a pause).
+            if exc.code() is not grpc.StatusCode.CANCELLED:
+                raise
+            raise grpc.aio.AioRpcError(
+                grpc.StatusCode.UNAVAILABLE,
+                grpc.aio.Metadata(),
+                grpc.aio.Metadata(),
+                f"the invoke stream ended: {exc.code().name}: {exc.details()}",
+            ) from None
 
     def _open(self) -> _InvokeStream:
         if self._stream is None:
