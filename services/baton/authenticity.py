@@ -371,8 +371,9 @@ def unbacked_claim(drone: Verifier, message: ring_pb2.LogMessage, receiver: int)
     """Why the mastership ``message`` claims is not the drone's word, or None if it is.
 
     A message of epoch E > 0 says its sender was master in E, or, for a handover
-    message (also once forwarded without its flag), that its origin is: it must carry
-    the drone's grant of E naming one of them. The handover flag makes its receiver
+    message (also once forwarded without its flag, or sent on by its creator in its
+    own name), that its origin is: it must carry the drone's grant of E naming one of
+    them (a handover grant, for one its creator sent on). The handover flag makes its receiver
     master, so a flagged message needs a handover grant naming its origin, and only
     the origin is its receiver (a relay forwards it without the flag). A grant of
     another epoch backs nothing here: an old grant played again cannot raise an
@@ -395,12 +396,23 @@ def unbacked_claim(drone: Verifier, message: ring_pb2.LogMessage, receiver: int)
             )
         if message.origin != receiver:
             return f"a handover message to controller {message.origin} sent to {receiver}"
-    elif grant.master not in (message.sender, message.origin):
+    elif grant.master not in (message.sender, message.origin) and not _sent_on_by_its_creator(
+        message
+    ):
         return (
             f"it claims {claimed} for controller {message.sender}; the drone granted it "
             f"to controller {grant.master}"
         )
     return None
+
+
+def _sent_on_by_its_creator(message: ring_pb2.LogMessage) -> bool:
+    """A handover message its creator, the old master, sent on to the ring itself as a
+    normal message in its own name (``ControllerProtocol._resend_handed``: its new master
+    was lost before it did). It claims no more than the same message forwarded by the
+    new master (origin the new master, sender its creator), which the rule above
+    believes: the drone's handover grant of its epoch, signed by its creator."""
+    return message.grant.kind == drone_pb2.GRANT_KIND_HANDOVER and message.sender == message.origin
 
 
 def unbacked_word(keys: Keys, word: ring_pb2.MasterWord | None) -> str | None:
