@@ -22,6 +22,7 @@ from autopilots import SKIP_REASON, sitl_binary
 from helpers.compose import argv as _argv
 from helpers.compose import expand as _expand
 from helpers.compose import option as _option
+from helpers.compose import parsed as _parsed
 
 from baton.cli import build_parser
 from baton.config import BatonConfig, LinkSpec, load_config, parse_duration, parse_rate
@@ -152,11 +153,7 @@ BATON_SERVICES = sorted(s for s in SERVICES if _command(s)[:1] == ["baton"])
 
 @pytest.mark.parametrize("service", BATON_SERVICES)
 def test_baton_command_parses(service: str) -> None:
-    argv = _command(service)[1:]
-    try:
-        build_parser().parse_args(argv)
-    except SystemExit as exc:  # argparse printed the reason on stderr
-        pytest.fail(f"{service}: `baton {shlex.join(argv)}` does not parse (exit {exc.code})")
+    _parsed(_command(service), service)
 
 
 @pytest.mark.parametrize("service", BATON_SERVICES)
@@ -735,11 +732,7 @@ CI_BATON_SERVICES = sorted(s for s in CI_SERVICES if s != "ardupilot-sitl")
 @pytest.mark.parametrize("service", CI_BATON_SERVICES)
 def test_ci_baton_command_parses(service: str) -> None:
     argv = _ci_command(service)
-    assert argv[0] == "baton"
-    try:
-        build_parser().parse_args(argv[1:])
-    except SystemExit as exc:
-        pytest.fail(f"{service}: `baton {shlex.join(argv[1:])}` does not parse (exit {exc.code})")
+    _parsed(argv, service)
     if "--config" in argv:
         assert _option(argv, "--config") == CONFIG_IN_CONTAINER
         assert f"./testbed.ci.yaml:{CONFIG_IN_CONTAINER}:ro" in CI_SERVICES[service]["volumes"]
@@ -914,14 +907,6 @@ CI_RADIO_OVERRIDE: dict[str, Any] = yaml.safe_load(
 CI_RADIO_SERVICES = _merged(CI_COMPOSE, CI_RADIO_OVERRIDE)
 CI_RADIO_CONFIG: BatonConfig = load_config(DEPLOY / "testbed.ci.radio.yaml")
 RADIO_SIDECARS = {f"radio-{cid}": cid for cid in RADIO_CONFIG.ring_order}
-
-
-def _parsed(argv: list[str]) -> Any:
-    assert argv[0] == "baton", argv
-    try:
-        return build_parser().parse_args(argv[1:])
-    except SystemExit as exc:
-        pytest.fail(f"`baton {shlex.join(argv[1:])}` does not parse (exit {exc.code})")
 
 
 def _station_range(config: BatonConfig, cid: int) -> tuple[float, float, float]:

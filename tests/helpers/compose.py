@@ -8,6 +8,7 @@ import shlex
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
@@ -35,3 +36,16 @@ def option(args: list[str], name: str) -> str:
     """The value after ``name`` in ``args``; fails the test if it is missing."""
     assert name in args, f"{name} missing from {args}"
     return args[args.index(name) + 1]
+
+
+def parsed(args: list[str], service: str = "") -> Any:
+    """``baton ARGS`` (``args[0]`` is ``baton``) parsed by baton's own parser; fails the
+    test, naming the service, if it does not parse (argparse printed why on stderr)."""
+    from baton.cli import build_parser
+
+    assert args[:1] == ["baton"], args
+    try:
+        return build_parser().parse_args(args[1:])
+    except SystemExit as exc:
+        where = f"{service}: " if service else ""
+        pytest.fail(f"{where}`baton {shlex.join(args[1:])}` does not parse (exit {exc.code})")
