@@ -190,7 +190,7 @@ run_mission() {
     rm -f "$report"
     timeout "$DOWN_DEADLINE" "${COMPOSE[@]}" down -v --remove-orphans >/dev/null 2>&1 || true
     compose_up=1
-    say "$name: compose up ($VEHICLE): $("${COMPOSE[@]}" config --services | tr '\n' ' ')"
+    say "$name: compose up ($VEHICLE): $*"
     if ! timeout "$UP_DEADLINE" "${COMPOSE[@]}" up -d --no-build; then
         "${COMPOSE[@]}" ps >&2 || true
         "${COMPOSE[@]}" logs --no-color --tail 20 >&2 || true
@@ -265,7 +265,11 @@ CHECK
             fi
         done
     fi
-    say "$name: PASS: completed, exactly once, replicas consistent ($report)"
+    if [ "$name" = fleet ]; then
+        say "$name: PASS: every mission exactly once, replicas consistent ($report)"
+    else
+        say "$name: PASS: completed, exactly once, replicas consistent ($report)"
+    fi
     bring_down
 }
 
