@@ -10,6 +10,13 @@ operator's ``baton fleet start``). The drones pick their masters from where
 they are (the file's ``handover_policy``, ``nearest`` by default). A mission's
 result is what the vehicle and the camera counted (exactly once) and whether
 its ring's replicas saw the same replies.
+
+The steps that work over addresses (``admit_fleet``, ``fleet_network``,
+``mission_config``, ``fly_fleet``: every vehicle ready, the sessions started,
+every mission's end, the judging) are apart from those that start processes
+(``start_stations``, ``start_mission_drone``): ``run_fleet`` does both, and
+``fleet_external.run_external_fleet`` flies the same steps on parts that run
+elsewhere (the compose fleet).
 """
 
 from __future__ import annotations
