@@ -58,8 +58,8 @@ image: $(STAMP)
 	PYTHON=$(BIN)/python deploy/images.sh
 
 # The compose testbed for real (deploy/compose-test.sh): installs Docker and
-# what it needs, builds the images, runs the grid mission and the range-driven
-# corridor, fails unless both pass.
+# what it needs, builds the images, runs the grid mission, the range-driven
+# corridor and a fleet (BATON_COMPOSE_RUNS), fails unless every run passes.
 compose-test: $(STAMP)
 	PYTHON=$(BIN)/python deploy/compose-test.sh
 

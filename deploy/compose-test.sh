@@ -14,16 +14,21 @@
 #     a 1 km corridor, 3 stations of 500 m range, the nearest policy, no
 #     handover script, each link to the drone up only while the sim vehicle
 #     is within its station's range
+#  7. a fleet (compose.ci.fleet.yml): examples/fleet.yaml's 3 stations, each a
+#     `baton station`, its 2 drones, each a sim vehicle and a drone service,
+#     and the fleet job that admits, starts and judges every mission
 #
-# BATON_COMPOSE_RUNS chooses the runs (default "grid radio"; the radio run
-# needs the sim vehicle). Exits 0 only if every report is a pass (completed,
-# exactly once, replicas consistent; the radio run also masters 0, 1, 2 by the
-# policy alone); reports/report.json and reports/report-radio.json hold them.
+# BATON_COMPOSE_RUNS chooses the runs (default "grid radio fleet"; the radio and
+# fleet runs need the sim vehicle). Exits 0 only if every report is a pass
+# (completed, exactly once, replicas consistent; the radio run also masters 0,
+# 1, 2 by the policy alone; the fleet run every mission exactly once at its
+# vehicle and camera with consistent replicas); reports/report.json,
+# reports/report-radio.json and reports/report-fleet.json hold them.
 # Every wait has a deadline (in seconds, from the environment):
 #   BATON_DOCKERD_DEADLINE (60)   for a started dockerd to answer
 #   BATON_BUILD_DEADLINE (1500)   for the images to build
 #   BATON_UP_DEADLINE (300)       for `compose up` (the drone healthy, the links listening)
-#   BATON_REPORT_DEADLINE (420)   for the report service to exit
+#   BATON_REPORT_DEADLINE (420)   for the report service (the fleet job) to exit
 #   BATON_DOWN_DEADLINE (120)     for `compose down`, and for dockerd to stop
 # BATON_DOCKERD_STORAGE: storage drivers to try in order (default "overlay2 vfs").
 set -euo pipefail
@@ -36,13 +41,14 @@ REPORT_DEADLINE=${BATON_REPORT_DEADLINE:-420}
 DOWN_DEADLINE=${BATON_DOWN_DEADLINE:-120}
 STORAGE_DRIVERS=${BATON_DOCKERD_STORAGE:-overlay2 vfs}
 VEHICLE=${BATON_COMPOSE_VEHICLE:-sim}
-RUNS=${BATON_COMPOSE_RUNS:-grid radio}
+RUNS=${BATON_COMPOSE_RUNS:-grid radio fleet}
 PROJECT=baton-ci
-BASE_COMPOSE=(docker-compose -f deploy/compose.ci.yml -p "$PROJECT")
+BASE_COMPOSE=(docker-compose -p "$PROJECT")
+CI_COMPOSE=(-f deploy/compose.ci.yml)
 case $VEHICLE in
 sim) ;;
 ardupilot)
-    BASE_COMPOSE+=(--profile ardupilot)
+    CI_COMPOSE+=(--profile ardupilot)
     export BATON_VEHICLE_URL=tcpout://127.0.0.1:5760
     ;;
 *)
@@ -52,9 +58,9 @@ ardupilot)
 esac
 for run in $RUNS; do
     case $run in
-    grid | radio) ;;
+    grid | radio | fleet) ;;
     *)
-        echo "compose-test: BATON_COMPOSE_RUNS lists grid and/or radio, not '$run'" >&2
+        echo "compose-test: BATON_COMPOSE_RUNS lists grid, radio and/or fleet, not '$run'" >&2
         exit 2
         ;;
     esac
@@ -64,7 +70,12 @@ if [ "$VEHICLE" = ardupilot ] && [[ " $RUNS " == *" radio "* ]]; then
         "BATON_COMPOSE_VEHICLE=ardupilot set BATON_COMPOSE_RUNS=grid" >&2
     exit 2
 fi
-COMPOSE=("${BASE_COMPOSE[@]}")
+if [ "$VEHICLE" = ardupilot ] && [[ " $RUNS " == *" fleet "* ]]; then
+    echo "compose-test: the fleet run flies a sim vehicle per drone: with" \
+        "BATON_COMPOSE_VEHICLE=ardupilot set BATON_COMPOSE_RUNS=grid" >&2
+    exit 2
+fi
+COMPOSE=("${BASE_COMPOSE[@]}" "${CI_COMPOSE[@]}")
 
 started_at=$(date +%s)
 say() { echo "compose-test: [$(($(date +%s) - started_at)) s] $*" >&2; }
@@ -169,52 +180,65 @@ if [ "$VEHICLE" = ardupilot ] && ! docker image inspect baton-ardupilot-sitl:dev
 fi
 mkdir -p reports
 
-# run_mission NAME REPORT [COMPOSE OPTION]...: one mission from compose up to its
-# verdict (the report service's exit and its file), then compose down.
+# run_mission NAME REPORT SERVICE COMPOSE-OPTION...: one run from compose up to its
+# verdict (SERVICE's exit, the report service or the fleet job, and its file REPORT),
+# then compose down.
 run_mission() {
-    local name=$1 report=$2
-    shift 2
+    local name=$1 report=$2 service=$3
+    shift 3
     COMPOSE=("${BASE_COMPOSE[@]}" "$@")
     rm -f "$report"
     timeout "$DOWN_DEADLINE" "${COMPOSE[@]}" down -v --remove-orphans >/dev/null 2>&1 || true
     compose_up=1
-    say "$name: compose up ($VEHICLE): certs, sim vehicle, drone, 6 links, 3 controllers, report"
+    say "$name: compose up ($VEHICLE): $*"
     if ! timeout "$UP_DEADLINE" "${COMPOSE[@]}" up -d --no-build; then
         "${COMPOSE[@]}" ps >&2 || true
         "${COMPOSE[@]}" logs --no-color --tail 20 >&2 || true
-        say "$name: the testbed did not come up within ${UP_DEADLINE} s (the drone healthy, every link listening)"
+        say "$name: the testbed did not come up within ${UP_DEADLINE} s (what each part waits for: its depends_on)"
         exit 1
     fi
     local report_id verdict waited
-    report_id=$("${COMPOSE[@]}" ps -q report)
-    say "$name: waiting for the report service's verdict (container ${report_id:0:12}, at most ${REPORT_DEADLINE} s)"
+    report_id=$("${COMPOSE[@]}" ps -q "$service")
+    say "$name: waiting for the $service service's verdict (container ${report_id:0:12}, at most ${REPORT_DEADLINE} s)"
     set +e
     verdict=$(timeout "$REPORT_DEADLINE" docker wait "$report_id")
     waited=$?
     set -e
-    "${COMPOSE[@]}" logs --no-color report >&2 || true
+    "${COMPOSE[@]}" logs --no-color "$service" >&2 || true
     if [ "$waited" -ne 0 ]; then
         "${COMPOSE[@]}" logs --no-color --tail 30 >&2 || true
-        say "$name: no verdict: the report service did not exit within ${REPORT_DEADLINE} s"
+        say "$name: no verdict: the $service service did not exit within ${REPORT_DEADLINE} s"
         exit 1
     fi
     if [ "$verdict" != 0 ]; then
         "${COMPOSE[@]}" logs --no-color --tail 30 >&2 || true
-        say "$name: FAILED: the report service exited $verdict (not a pass; $report if it got that far)"
+        say "$name: FAILED: the $service service exited $verdict (not a pass; $report if it got that far)"
         exit 1
     fi
     if [ ! -s "$report" ]; then
-        say "$name: FAILED: the report service exited 0 but wrote no $report"
+        say "$name: FAILED: the $service service exited 0 but wrote no $report"
         exit 1
     fi
-    # The verdict once more, from the file: the report's own three promises; for
-    # the radio run also its story: no script, the policy handing over along the
-    # corridor (masters 0, 1, 2), and the links' radio range seen in their logs.
+    # The verdict once more, from the file: the report's own three promises (the
+    # fleet's: each mission's, and every mission there); for the radio run also its
+    # story: no script, the policy handing over along the corridor (masters 0, 1,
+    # 2), and the links' radio range seen in their logs.
     if ! python3 - "$report" "$name" <<'CHECK'; then
 import json, sys
 path, name = sys.argv[1], sys.argv[2]
 report = json.load(open(path))
-failed = [k for k in ("completed", "exactly_once", "replicas_consistent") if report.get(k) is not True]
+if name == "fleet":
+    missions = report.get("missions", [])
+    failed = [
+        f"drone {m.get('drone')}: {k}"
+        for m in missions
+        for k in ("exactly_once", "replicas_consistent", "ok")
+        if m.get(k) is not True
+    ]
+    if not missions or report.get("summary", {}).get("ok") != len(missions):
+        failed.append(f"summary {report.get('summary')} (expected every mission ok)")
+else:
+    failed = [k for k in ("completed", "exactly_once", "replicas_consistent") if report.get(k) is not True]
 if name == "radio":
     if report.get("masters") != [0, 1, 2]:
         failed.append(f"masters {report.get('masters')} (expected [0, 1, 2])")
@@ -241,14 +265,19 @@ CHECK
             fi
         done
     fi
-    say "$name: PASS: completed, exactly once, replicas consistent ($report)"
+    if [ "$name" = fleet ]; then
+        say "$name: PASS: every mission exactly once, replicas consistent ($report)"
+    else
+        say "$name: PASS: completed, exactly once, replicas consistent ($report)"
+    fi
     bring_down
 }
 
 for run in $RUNS; do
     case $run in
-    grid) run_mission grid reports/report.json ;;
-    radio) run_mission radio reports/report-radio.json -f deploy/compose.ci.radio.yml ;;
+    grid) run_mission grid reports/report.json report "${CI_COMPOSE[@]}" ;;
+    radio) run_mission radio reports/report-radio.json report "${CI_COMPOSE[@]}" -f deploy/compose.ci.radio.yml ;;
+    fleet) run_mission fleet reports/report-fleet.json fleet -f deploy/compose.ci.fleet.yml ;;
     esac
 done
 say "PASS: ${RUNS// /, }"

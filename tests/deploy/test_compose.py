@@ -19,6 +19,10 @@ from urllib.parse import SplitResult, urlsplit
 import pytest
 import yaml
 from autopilots import SKIP_REASON, sitl_binary
+from helpers.compose import argv as _argv
+from helpers.compose import expand as _expand
+from helpers.compose import option as _option
+from helpers.compose import parsed as _parsed
 
 from baton.cli import build_parser
 from baton.config import BatonConfig, LinkSpec, load_config, parse_duration, parse_rate
@@ -34,11 +38,6 @@ SOURCE_IN_CONTAINER = "/opt/baton"  # the Dockerfile's WORKDIR, where it copies 
 CONTROLLER_SERVICES = ["controller-0", "controller-1", "controller-2"]
 
 
-def _expand(text: str) -> str:
-    """Compose's ``${VAR:-default}`` interpolation, with every variable unset."""
-    return re.sub(r"\$\{[A-Za-z_][A-Za-z0-9_]*:?-([^}]*)\}", r"\1", text)
-
-
 def _load_compose() -> dict[str, Any]:
     return yaml.safe_load(_expand((DEPLOY / "docker-compose.yml").read_text()))
 
@@ -52,20 +51,8 @@ SITL_PROFILES = {"px4": "px4-sitl", "ardupilot": "ardupilot-sitl"}
 STAGED_SITL = REPO / "build" / "sitl"
 
 
-def _argv(value: str | list[str] | None) -> list[str]:
-    if value is None:
-        return []
-    return shlex.split(value) if isinstance(value, str) else [str(v) for v in value]
-
-
 def _command(service: str) -> list[str]:
     return _argv(SERVICES[service].get("command"))
-
-
-def _option(argv: list[str], name: str) -> str:
-    """The value after ``name`` in ``argv``; fails the test if it is missing."""
-    assert name in argv, f"{name} missing from {argv}"
-    return argv[argv.index(name) + 1]
 
 
 def _host_port(address: str) -> tuple[str, int]:
@@ -166,11 +153,7 @@ BATON_SERVICES = sorted(s for s in SERVICES if _command(s)[:1] == ["baton"])
 
 @pytest.mark.parametrize("service", BATON_SERVICES)
 def test_baton_command_parses(service: str) -> None:
-    argv = _command(service)[1:]
-    try:
-        build_parser().parse_args(argv)
-    except SystemExit as exc:  # argparse printed the reason on stderr
-        pytest.fail(f"{service}: `baton {shlex.join(argv)}` does not parse (exit {exc.code})")
+    _parsed(_command(service), service)
 
 
 @pytest.mark.parametrize("service", BATON_SERVICES)
@@ -740,7 +723,7 @@ def test_ci_ardupilot_sitl_runs_like_the_users_on_the_host_network() -> None:
     assert url.port == _serial_tcp_port(0, 0)
     text = (DEPLOY / "compose-test.sh").read_text()
     assert f"export BATON_VEHICLE_URL={url.geturl()}" in text
-    assert "COMPOSE+=(--profile ardupilot)" in text
+    assert "CI_COMPOSE+=(--profile ardupilot)" in text
 
 
 CI_BATON_SERVICES = sorted(s for s in CI_SERVICES if s != "ardupilot-sitl")
@@ -749,11 +732,7 @@ CI_BATON_SERVICES = sorted(s for s in CI_SERVICES if s != "ardupilot-sitl")
 @pytest.mark.parametrize("service", CI_BATON_SERVICES)
 def test_ci_baton_command_parses(service: str) -> None:
     argv = _ci_command(service)
-    assert argv[0] == "baton"
-    try:
-        build_parser().parse_args(argv[1:])
-    except SystemExit as exc:
-        pytest.fail(f"{service}: `baton {shlex.join(argv[1:])}` does not parse (exit {exc.code})")
+    _parsed(argv, service)
     if "--config" in argv:
         assert _option(argv, "--config") == CONFIG_IN_CONTAINER
         assert f"./testbed.ci.yaml:{CONFIG_IN_CONTAINER}:ro" in CI_SERVICES[service]["volumes"]
@@ -833,7 +812,7 @@ def test_ci_controllers_start_once_the_drone_and_their_links_are_ready() -> None
 
 def test_compose_test_runs_the_ci_file_and_fails_on_anything_but_a_pass() -> None:
     text = (DEPLOY / "compose-test.sh").read_text()
-    assert "COMPOSE=(docker-compose -f deploy/compose.ci.yml" in text
+    assert "CI_COMPOSE=(-f deploy/compose.ci.yml)" in text
     assert "deploy/images.sh" in text
     out = _option(_ci_command("report"), "--out")
     assert ("../reports:" + str(Path(out).parent)) in CI_SERVICES["report"]["volumes"]
@@ -859,12 +838,17 @@ def _compose_cli() -> list[str] | None:
 
 def test_compose_files_validate_with_the_compose_at_hand() -> None:
     """The users' file needs Compose v2 (`name:`, `additional_contexts`); the CI file
-    must load in Debian's docker-compose 1.29 too, alone and under its radio override.
+    must load in Debian's docker-compose 1.29 too, alone and under its radio override,
+    and so must the fleet's.
     Skipped where neither is installed (make compose-test installs docker-compose)."""
     cli = _compose_cli()
     if cli is None:
         pytest.skip("no docker compose / docker-compose on this machine")
-    files = [["compose.ci.yml"], ["compose.ci.yml", "compose.ci.radio.yml"]]
+    files = [
+        ["compose.ci.yml"],
+        ["compose.ci.yml", "compose.ci.radio.yml"],
+        ["compose.ci.fleet.yml"],
+    ]
     if cli == ["docker", "compose"]:
         files += [["docker-compose.yml"], ["docker-compose.yml", "radio.yml"]]
     for names in files:
@@ -923,14 +907,6 @@ CI_RADIO_OVERRIDE: dict[str, Any] = yaml.safe_load(
 CI_RADIO_SERVICES = _merged(CI_COMPOSE, CI_RADIO_OVERRIDE)
 CI_RADIO_CONFIG: BatonConfig = load_config(DEPLOY / "testbed.ci.radio.yaml")
 RADIO_SIDECARS = {f"radio-{cid}": cid for cid in RADIO_CONFIG.ring_order}
-
-
-def _parsed(argv: list[str]) -> Any:
-    assert argv[0] == "baton", argv
-    try:
-        return build_parser().parse_args(argv[1:])
-    except SystemExit as exc:
-        pytest.fail(f"`baton {shlex.join(argv[1:])}` does not parse (exit {exc.code})")
 
 
 def _station_range(config: BatonConfig, cid: int) -> tuple[float, float, float]:
@@ -1128,13 +1104,14 @@ def test_netem_sh_drops_a_subnet_then_runs_the_service(tmp_path: Path) -> None:
 
 def test_compose_test_runs_the_grid_then_the_radio_run_and_checks_its_story() -> None:
     text = (DEPLOY / "compose-test.sh").read_text()
-    assert "RUNS=${BATON_COMPOSE_RUNS:-grid radio}" in text
+    assert "RUNS=${BATON_COMPOSE_RUNS:-grid radio fleet}" in text
     grid_out = _option(_ci_command("report"), "--out")
     radio_out = _option(_argv(CI_RADIO_SERVICES["report"]["command"]), "--out")
     assert grid_out != radio_out
     assert f"run_mission grid reports/{Path(grid_out).name}" in text
     assert (
-        f"run_mission radio reports/{Path(radio_out).name} -f deploy/compose.ci.radio.yml" in text
+        f"run_mission radio reports/{Path(radio_out).name} report "
+        '"${CI_COMPOSE[@]}" -f deploy/compose.ci.radio.yml' in text
     )
     assert 'report.get("masters") != [0, 1, 2]' in text
     # Each link to the drone logged the vehicle crossing its circle (proxy.py's words).

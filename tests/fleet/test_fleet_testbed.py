@@ -70,3 +70,21 @@ def test_a_fleet_with_an_uncovered_route_or_a_bad_field_starts_nothing(
     twice.write_text(yaml.safe_dump(fleet))
     assert main(["testbed", "--fleet", str(twice)]) == 2
     assert f"{twice}: (top level): drones[].name: d1 twice" in capsys.readouterr().err
+
+
+def test_external_parts_need_a_fleet_and_must_name_its_parts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    parts = tmp_path / "parts.yaml"
+    parts.write_text(yaml.safe_dump({"certs": "c", "stations": {1: "127.0.0.1:1"}, "drones": {}}))
+    assert main(["testbed", "--external", str(parts)]) == 2
+    assert "give --fleet FILE too" in capsys.readouterr().err
+    assert main(["testbed", "--fleet", str(FLEET), "--external", str(parts)]) == 2
+    assert f"{parts}: drones: needs at least 1 entry; add one" in capsys.readouterr().err
+    parts.write_text(
+        yaml.safe_dump({"certs": "c", "stations": {1: "h:1"}, "drones": {"d1": "h:2"}})
+    )
+    assert main(["testbed", "--fleet", str(FLEET), "--external", str(parts)]) == 2
+    assert f"{parts}: stations: no address for 2, 3; add where each runs" in (
+        capsys.readouterr().err
+    )

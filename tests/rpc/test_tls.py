@@ -187,6 +187,23 @@ async def test_a_fleets_drone_is_reached_only_with_its_own_certificate(
         )
 
 
+def test_certs_init_for_a_fleet_gives_each_station_and_drone_its_own(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    fleet = Path(__file__).parents[2] / "examples" / "fleet.yaml"
+    folder = tmp_path / "c"
+    assert main(["certs", "init", str(folder), "--fleet", str(fleet)]) == 0
+    crts = sorted(p.stem for p in folder.glob("*.crt"))
+    assert crts == sorted(
+        ["ca", "controller-1", "controller-2", "controller-3", "drone-d1", "drone-d2", "operator"]
+    )
+    both = ["certs", "init", str(tmp_path / "d"), "--fleet", str(fleet), "--config", str(fleet)]
+    assert main(both) == 2
+    assert "--config or --fleet, not both" in capsys.readouterr().err
+    assert main(["certs", "init", str(tmp_path / "e"), "--fleet", str(tmp_path / "none.yaml")]) == 2
+    assert "none.yaml" in capsys.readouterr().err
+
+
 def test_certs_init_writes_every_part_and_refuses_to_replace_a_ca(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -134,6 +134,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     init.add_argument("dir", type=Path, help="the folder to create")
     init.add_argument("--config", help="testbed YAML whose controllers get certificates")
     init.add_argument(
+        "--fleet",
+        help="a fleet file (baton testbed --fleet) instead: each station gets its controller "
+        "certificate, each drone its own (drone-NAME), and the operator",
+    )
+    init.add_argument(
         "--controllers",
         type=_ids,
         default=[0, 1, 2],
@@ -229,15 +234,23 @@ def _run_init(args: argparse.Namespace) -> int:
     from baton.certs.make import ensure, init
     from baton.config import ConfigError, load_config
     from baton.rpc.tls import DRONE, OPERATOR
+    from baton.testbed.fleet import fleet_identities, load_fleet
 
+    if args.config and args.fleet:
+        print("baton certs: --config or --fleet, not both", file=sys.stderr)
+        return 2
     ids = args.controllers
-    if args.config:
-        try:
+    try:
+        if args.config:
             ids = load_config(args.config).ring_order
-        except ConfigError as exc:
-            print(f"baton certs: {exc}", file=sys.stderr)
-            return 2
-    parts = [*(Identity.controller(cid) for cid in ids), DRONE, OPERATOR]
+        fleet = load_fleet(Path(args.fleet)) if args.fleet else None
+    except ConfigError as exc:
+        print(f"baton certs: {exc}", file=sys.stderr)
+        return 2
+    if fleet is not None:
+        parts = fleet_identities(fleet)
+    else:
+        parts = [*(Identity.controller(cid) for cid in ids), DRONE, OPERATOR]
     if args.keep_ca:
         ensure(args.dir, parts, args.days)
     else:

@@ -123,6 +123,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "mission options do not apply",
     )
     parser.add_argument(
+        "--external",
+        type=Path,
+        metavar="FILE",
+        help="with --fleet: fly it on stations and drone services that run already (the "
+        "compose fleet, deploy/compose.ci.fleet.yml) at the addresses FILE gives (certs: the "
+        "folder, stations: id -> HOST:PORT, drones: name -> HOST:PORT); the workdir, shared "
+        "with the drones and their vehicles, gets each drone's configuration (NAME/drone.json) "
+        "and then network.yaml, and is where they count their effects",
+    )
+    parser.add_argument(
         "--admit",
         action="store_true",
         help="take the ring and the initial master from mission admission: the --config "
@@ -483,6 +493,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.action == "report" and args.admit:
         return _fail("--admit is for a local run: 'report' follows the ring the file started")
+    if args.external is not None and args.fleet is None:
+        return _fail("--external FILE names where a fleet's parts run: give --fleet FILE too")
     if args.fleet is not None:
         return _run_fleet(args)
     try:
@@ -519,6 +531,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_fleet(args: argparse.Namespace) -> int:
     """``--fleet FILE``: the fleet testbed (testbed/fleet.py) to its end."""
     from baton.config import ConfigError
+    from baton.fleet.sessions import SessionError
     from baton.testbed.fleet import (
         NETWORK_FILE,
         REGISTRY_FILE,
@@ -527,27 +540,36 @@ def _run_fleet(args: argparse.Namespace) -> int:
         load_fleet,
         run_fleet,
     )
+    from baton.testbed.fleet_external import load_external, run_external_fleet
     from baton.testbed.fleet_report import write_fleet_report
 
     if args.action == "report":
         return _fail("--fleet is for a local run")
     try:
         fleet = load_fleet(args.fleet)
+        parts = load_external(args.external, fleet) if args.external is not None else None
     except ConfigError as exc:
         return _fail(str(exc))
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="baton-fleet-"))
     print(
         f"baton testbed: fleet of {len(fleet.drones)} drones over {len(fleet.stations)} "
-        f"stations, speed-up {fleet.speedup:g}x; logs in {workdir / 'parts'}\n"
-        f"baton testbed: watch it live: baton fleet view --registry {workdir / REGISTRY_FILE} "
+        f"stations, speed-up {fleet.speedup:g}x; "
+        + (f"logs in {workdir / 'parts'}\n" if parts is None else f"parts at {args.external}\n")
+        + f"baton testbed: watch it live: baton fleet view --registry {workdir / REGISTRY_FILE} "
         f"--config {workdir / NETWORK_FILE}",
         flush=True,
     )
     started = time.monotonic()
     try:
-        run = asyncio.run(run_fleet(fleet, workdir, args.timeout))
+        if parts is None:
+            run = asyncio.run(run_fleet(fleet, workdir, args.timeout))
+        else:
+            run = asyncio.run(run_external_fleet(fleet, parts, workdir, args.timeout))
     except ValueError as exc:
         return _fail(str(exc))
+    except (TimeoutError, SessionError) as exc:
+        print(f"baton testbed: the fleet did not fly: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("baton testbed: interrupted; every process stopped", file=sys.stderr)
         return 130

@@ -10,6 +10,13 @@ operator's ``baton fleet start``). The drones pick their masters from where
 they are (the file's ``handover_policy``, ``nearest`` by default). A mission's
 result is what the vehicle and the camera counted (exactly once) and whether
 its ring's replicas saw the same replies.
+
+The steps that work over addresses (``admit_fleet``, ``fleet_network``,
+``mission_config``, ``fly_fleet``: every vehicle ready, the sessions started,
+every mission's end, the judging) are apart from those that start processes
+(``start_stations``, ``start_mission_drone``): ``run_fleet`` does both, and
+``fleet_external.run_external_fleet`` flies the same steps on parts that run
+elsewhere (the compose fleet).
 """
 
 from __future__ import annotations
@@ -18,7 +25,7 @@ import asyncio
 import datetime
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -49,12 +56,17 @@ from baton.testbed.report import build_report, check_side_effects
 from baton.testbed.supervisor import Supervisor, baton_argv
 from baton.v1 import drone_pb2, drone_pb2_grpc, ring_pb2, ring_pb2_grpc, station_pb2_grpc
 
+# In each drone's folder of the workdir: what its vehicle and camera counted, and the
+# configuration its drone service flies with.
 VEHICLE_EFFECTS, CAMERA_EFFECTS = "vehicle-effects.jsonl", "camera-effects.jsonl"
+DRONE_CONFIG = "drone.json"
 # In the workdir: the registry and the network's file (the stations' addresses), as an
 # operator's; ``baton fleet view`` watches the running fleet with them.
 REGISTRY_FILE, NETWORK_FILE = "fleet.sqlite", "network.yaml"
 # How often each drone's position is noted for the fleet's map, seconds.
 TRACK_PERIOD_S = 0.5
+# How long every vehicle has to be ready to arm once the fleet flies, seconds.
+READY_S = 120.0
 
 
 class _Model(BaseModel):
@@ -191,13 +203,17 @@ async def start_stations(
     ]
     addresses = (await supervisor.start_ready_together(parts))[len(parts) - len(ids) :]
     operator = Tls.load(certs, OPERATOR) if certs is not None else None
-    stations = {}
-    for sid, text in zip(ids, addresses, strict=True):
-        address = text.splitlines()[0]
-        channel = aio_channel(address, operator, Identity.controller(sid))
-        stub = station_pb2_grpc.StationStub(channel)
-        stations[sid] = StationPart(sid, address, workdir / f"station-{sid}", channel, stub)
-    return stations
+    return {
+        sid: connect_station(sid, text.splitlines()[0], workdir / f"station-{sid}", operator)
+        for sid, text in zip(ids, addresses, strict=True)
+    }
+
+
+def connect_station(sid: int, address: str, state_dir: Path, operator: Tls | None) -> StationPart:
+    """An operator's channel to station ``sid`` at ``address`` (``operator`` None:
+    insecure), whoever started it."""
+    channel = aio_channel(address, operator, Identity.controller(sid))
+    return StationPart(sid, address, state_dir, channel, station_pb2_grpc.StationStub(channel))
 
 
 @dataclass
@@ -216,8 +232,14 @@ class MissionDrone:
         )
 
     async def ready(self) -> bool:
-        """Whether its vehicle is connected and ready to arm."""
-        status = await self.status()
+        """Whether its vehicle is connected and ready to arm; False too while the drone
+        service does not answer yet (one started elsewhere may still be starting)."""
+        try:
+            status = await self.status()
+        except grpc.aio.AioRpcError as exc:
+            if exc.code() == grpc.StatusCode.UNAVAILABLE:
+                return False
+            raise
         return status.vehicle_connected and status.flight_state.ready
 
     async def served(self, reqnr: int) -> bool:
@@ -259,8 +281,7 @@ async def start_mission_drone(
         workdir / "vehicle.url",
         ready_s,
     )
-    config_file = workdir / "drone.json"
-    config_file.write_text(json.dumps(config.model_dump(mode="json", exclude_unset=True)))
+    config_file = write_drone_config(workdir, config)
     script = workdir / "handovers.txt"
     script.write_text("".join(f"{after} {to}\n" for after, to in handovers))
     address = await supervisor.start_ready(
@@ -278,7 +299,22 @@ async def start_mission_drone(
         workdir / "drone.address",
         ready_s,
     )
-    address = address.splitlines()[0]
+    return connect_drone(name, address.splitlines()[0], workdir, config)
+
+
+def write_drone_config(workdir: Path, config: BatonConfig) -> Path:
+    """The mission's configuration as its drone service reads it (``--config``), in
+    the drone's folder ``workdir``."""
+    from baton.lifecycle import write_atomically
+
+    path = workdir / DRONE_CONFIG
+    write_atomically(path, json.dumps(config.model_dump(mode="json", exclude_unset=True)))
+    return path
+
+
+def connect_drone(name: str, address: str, workdir: Path, config: BatonConfig) -> MissionDrone:
+    """An operator's channel to the drone service of ``config`` at ``address``, whose
+    vehicle and camera count their effects in ``workdir``, whoever started them."""
     tls = None if config.tls.insecure else Tls.load(config.tls.certs, OPERATOR)
     channel = aio_channel(address, tls, config.drone_identity)
     return MissionDrone(name, address, workdir, channel, drone_pb2_grpc.DroneStub(channel))
@@ -322,7 +358,7 @@ def mission_result(
 
 
 async def mission_ended(
-    stations: dict[int, StationPart], drone: MissionDrone, mission_id: str, ring: Sequence[int]
+    stations: Mapping[int, StationPart], drone: MissionDrone, mission_id: str, ring: Sequence[int]
 ) -> dict[int, ring_pb2.ControllerStatus] | None:
     """Its ring's statuses once every station's program ended and no prepared handover
     is under way at the drone; None before."""
@@ -393,7 +429,7 @@ def fleet_report(fleet: FleetFile, run: FleetRun, duration_s: float) -> dict[str
     }
 
 
-async def _follow(drones: dict[str, MissionDrone], tracks: dict[str, Track]) -> None:
+async def _follow(drones: Mapping[str, MissionDrone], tracks: dict[str, Track]) -> None:
     """Notes where each drone is, twice a second (as the single-mission testbed does);
     a drone that does not answer is skipped that time."""
     while True:
@@ -405,24 +441,27 @@ async def _follow(drones: dict[str, MissionDrone], tracks: dict[str, Track]) -> 
         await asyncio.sleep(TRACK_PERIOD_S)
 
 
-async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> FleetRun:
-    """Admits every mission, starts the stations, vehicles, drones and sessions, and
-    waits for every mission's end, following each drone's track; ValueError names a
-    refused mission before anything starts."""
-    from baton.certs.make import init
+@dataclass(frozen=True)
+class Admission:
+    """A drone's admitted mission: its number in the registry, its ring (station ids in
+    route order) and its first master."""
+
+    number: int
+    ring: tuple[int, ...]
+    first_master: int
+
+
+def admit_fleet(fleet: FleetFile, registry_file: Path) -> dict[str, Admission]:
+    """A new registry in ``registry_file`` holding the file's stations, and every
+    drone's mission admitted over them; ValueError names a refused mission."""
     from baton.drone.policy import Station
     from baton.fleet.admission import Refused
     from baton.fleet.registry import Registry
     from baton.fleet.routes import survey_route
-    from baton.fleet.sessions import start_sessions
-    from baton.fleet.stations import ring_config
-    from baton.lifecycle import write_atomically
     from baton.sdk.types import Position
 
-    workdir.mkdir(parents=True, exist_ok=True)
-    registry_file = workdir / REGISTRY_FILE
     registry_file.unlink(missing_ok=True)
-    admitted: dict[str, tuple[int, tuple[int, ...], int]] = {}
+    admitted = {}
     with Registry(registry_file) as registry:
         for s in fleet.stations:
             where = Position(s.location.latitude_deg, s.location.longitude_deg)
@@ -434,103 +473,182 @@ async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> FleetR
             if isinstance(decision, Refused):
                 raise ValueError(f"drone {d.name}'s mission is refused: {decision.message()}")
             number, how = decision
-            admitted[d.name] = (number, how.ring, how.first_master)
+            admitted[d.name] = Admission(number, how.ring, how.first_master)
+    return admitted
 
+
+def fleet_identities(fleet: FleetFile) -> list[Identity]:
+    """Who gets a certificate: each station (its controller id), each drone its own
+    identity (spiffe://baton/drone/NAME: its missions' stations take no other drone's
+    certificate for it, and check its replies with its own key), and the operator."""
+    return [
+        *(Identity.controller(s.id) for s in fleet.stations),
+        *(Identity.drone(d.name) for d in fleet.drones),
+        OPERATOR,
+    ]
+
+
+def fleet_network(fleet: FleetFile, addresses: Mapping[int, str], certs: Path) -> BatonConfig:
+    """The network the stations form: each at its address, placed with its range, and
+    what every mission over them shares (speed-up, handover policy, takeover)."""
+    return BatonConfig.model_validate(
+        {
+            "controllers": [
+                {
+                    "id": s.id,
+                    "address": addresses[s.id],
+                    "location": s.location.model_dump(),
+                    "range_m": s.range_m,
+                }
+                for s in fleet.stations
+            ],
+            "speedup": fleet.speedup,
+            "handover_policy": fleet.handover_policy.model_dump(),
+            "takeover_after": fleet.takeover_after,
+            "flush_limit": 0,
+            "tls": {"certs": str(certs)},
+        }
+    )
+
+
+def write_network(workdir: Path, network: BatonConfig) -> Path:
+    """The network's file in ``workdir``, as an operator's: with the registry, what
+    ``baton fleet missions|status|view`` read."""
+    from baton.lifecycle import write_atomically
+
+    document = network.model_dump(mode="json", exclude_unset=True)
+    path = workdir / NETWORK_FILE
+    write_atomically(path, yaml.safe_dump(document, sort_keys=False))
+    return path
+
+
+def mission_config(
+    network: BatonConfig, drone: FleetDrone, admission: Admission, address: str
+) -> BatonConfig:
+    """The configuration drone ``drone``'s mission flies with, on its stations and
+    its drone service alike: admission's ring from its first master, the drone named,
+    at home, at ``address``."""
+    from baton.fleet.stations import ring_config
+
+    mission = ring_config(network, admission.ring, admission.first_master)
+    at = mission.drone.model_copy(
+        update={"address": address, "home": drone.home, "name": drone.name}
+    )
+    return mission.model_copy(update={"drone": at})
+
+
+def note_drone_addresses(
+    registry_file: Path, admitted: Mapping[str, Admission], drones: Mapping[str, MissionDrone]
+) -> None:
+    """Each mission's drone address in the registry, as ``baton fleet start`` notes it."""
+    from baton.fleet.registry import Registry
+
+    with Registry(registry_file) as registry:
+        for name, drone in drones.items():
+            registry.set_drone_address(admitted[name].number, drone.address)
+
+
+async def run_fleet(fleet: FleetFile, workdir: Path, timeout_s: float) -> FleetRun:
+    """Admits every mission, starts the stations, vehicles and drones as processes, and
+    flies the fleet (``fly_fleet``); ValueError names a refused mission before anything
+    starts."""
+    from baton.certs.make import init
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    admitted = admit_fleet(fleet, workdir / REGISTRY_FILE)
     certs = workdir / "certs"
-    ids = [s.id for s in fleet.stations]
-    # Each drone its own identity (spiffe://baton/drone/NAME): its missions' stations
-    # take no other drone's certificate for it, and check its replies with its own key.
-    identities = [Identity.drone(d.name) for d in fleet.drones]
-    init(certs, [*(Identity.controller(i) for i in ids), *identities, OPERATOR])
-    operator = Tls.load(certs, OPERATOR)
+    init(certs, fleet_identities(fleet))
     async with Supervisor(workdir / "parts") as supervisor:
         stations = await start_stations(
-            supervisor, ids, certs, cert_lifetime_s=fleet.station_cert_lifetime
+            supervisor,
+            [s.id for s in fleet.stations],
+            certs,
+            cert_lifetime_s=fleet.station_cert_lifetime,
         )
-        network = BatonConfig.model_validate(
-            {
-                "controllers": [
-                    {
-                        "id": s.id,
-                        "address": stations[s.id].address,
-                        "location": s.location.model_dump(),
-                        "range_m": s.range_m,
-                    }
-                    for s in fleet.stations
-                ],
-                "speedup": fleet.speedup,
-                "handover_policy": fleet.handover_policy.model_dump(),
-                "takeover_after": fleet.takeover_after,
-                "flush_limit": 0,
-                "tls": {"certs": str(certs)},
-            }
-        )
-        # As an operator's: the network's file and the registry (the drones' addresses
-        # as they start) are what baton fleet missions|status|view read.
-        document = network.model_dump(mode="json", exclude_unset=True)
-        write_atomically(workdir / NETWORK_FILE, yaml.safe_dump(document, sort_keys=False))
+        network = fleet_network(fleet, {sid: s.address for sid, s in stations.items()}, certs)
+        write_network(workdir, network)
         drones: dict[str, MissionDrone] = {}
         configs: dict[str, BatonConfig] = {}
         for d in fleet.drones:
-            _, ring, first = admitted[d.name]
-            mission = ring_config(network, ring, first)
             # The drone's port is picked as it starts; its sessions are told where it is.
-            at_home = mission.drone.model_copy(
-                update={"address": "127.0.0.1:0", "home": d.home, "name": d.name}
-            )
-            drone = await start_mission_drone(
-                supervisor, d.name, mission.model_copy(update={"drone": at_home})
-            )
-            at = at_home.model_copy(update={"address": drone.address})
-            drones[d.name], configs[d.name] = drone, mission.model_copy(update={"drone": at})
-        with Registry(registry_file) as registry:
-            for name, drone in drones.items():
-                registry.set_drone_address(admitted[name][0], drone.address)
-        await _every([d.ready for d in drones.values()], "every vehicle ready", 120)
-        # Followed from before the first mission starts: the others start while it flies.
-        tracks = {name: Track() for name in drones}
-        following = asyncio.create_task(_follow(drones, tracks))
-        results, flights = [], []
+            at_home = mission_config(network, d, admitted[d.name], "127.0.0.1:0")
+            drone = await start_mission_drone(supervisor, d.name, at_home)
+            drones[d.name] = drone
+            configs[d.name] = mission_config(network, d, admitted[d.name], drone.address)
+        note_drone_addresses(workdir / REGISTRY_FILE, admitted, drones)
         try:
-            for d in fleet.drones:
-                plan = d.mission.plan()
-                await asyncio.to_thread(
-                    start_sessions,
-                    configs[d.name],
-                    str(admitted[d.name][0]),
-                    str(plan.file),
-                    plan.args(),
-                    operator,
-                )
-            started = time.monotonic()
-            for d in fleet.drones:
-                number, ring, _ = admitted[d.name]
-                drone = drones[d.name]
-                left = max(1.0, timeout_s - (time.monotonic() - started))
-                statuses = await poll_until(
-                    partial(mission_ended, stations, drone, str(number), ring),
-                    f"drone {d.name}'s mission {number} ended",
-                    left,
-                )
-                snapshot = await drone.snapshot(statuses)
-                plan = d.mission.plan()
-                results.append(mission_result(d.name, str(number), ring, plan, snapshot))
-                report = build_report(
-                    configs[d.name],
-                    snapshot,
-                    plan.grid,
-                    time.monotonic() - started,
-                    [],
-                    plan.spacing_m,
-                    targets=plan.targets() if plan.kind != "grid" else None,
-                )
-                taken = snapshot.camera_effects or []
-                flights.append(Flight(d.name, report, tracks[d.name].points, taken))
+            return await fly_fleet(fleet, admitted, configs, network, stations, drones, timeout_s)
         finally:
-            following.cancel()
-        channels = [s.channel for s in stations.values()] + [d.channel for d in drones.values()]
-        for channel in channels:
-            await channel.close()
+            await close_parts(stations, drones)
+
+
+async def close_parts(
+    stations: Mapping[int, StationPart], drones: Mapping[str, MissionDrone]
+) -> None:
+    """Closes the operator's channels to the stations and the drones."""
+    for channel in [s.channel for s in stations.values()] + [d.channel for d in drones.values()]:
+        await channel.close()
+
+
+async def fly_fleet(
+    fleet: FleetFile,
+    admitted: Mapping[str, Admission],
+    configs: Mapping[str, BatonConfig],
+    network: BatonConfig,
+    stations: Mapping[int, StationPart],
+    drones: Mapping[str, MissionDrone],
+    timeout_s: float,
+) -> FleetRun:
+    """Flies the admitted fleet on stations and drones that run already, wherever they
+    run: waits for every vehicle to be ready, starts each mission's sessions on its
+    ring's stations, waits for every mission's end following each drone's track, and
+    judges each mission from its vehicle's and camera's effects and its replicas."""
+    from baton.fleet.sessions import start_sessions
+
+    operator = network.tls_for(OPERATOR)
+    await _every([d.ready for d in drones.values()], "every vehicle ready", READY_S)
+    # Followed from before the first mission starts: the others start while it flies.
+    tracks = {name: Track() for name in drones}
+    following = asyncio.create_task(_follow(drones, tracks))
+    results, flights = [], []
+    try:
+        for d in fleet.drones:
+            plan = d.mission.plan()
+            await asyncio.to_thread(
+                start_sessions,
+                configs[d.name],
+                str(admitted[d.name].number),
+                str(plan.file),
+                plan.args(),
+                operator,
+            )
+        started = time.monotonic()
+        for d in fleet.drones:
+            admission, drone = admitted[d.name], drones[d.name]
+            left = max(1.0, timeout_s - (time.monotonic() - started))
+            statuses = await poll_until(
+                partial(mission_ended, stations, drone, str(admission.number), admission.ring),
+                f"drone {d.name}'s mission {admission.number} ended",
+                left,
+            )
+            snapshot = await drone.snapshot(statuses)
+            plan = d.mission.plan()
+            results.append(
+                mission_result(d.name, str(admission.number), admission.ring, plan, snapshot)
+            )
+            report = build_report(
+                configs[d.name],
+                snapshot,
+                plan.grid,
+                time.monotonic() - started,
+                [],
+                plan.spacing_m,
+                targets=plan.targets() if plan.kind != "grid" else None,
+            )
+            taken = snapshot.camera_effects or []
+            flights.append(Flight(d.name, report, tracks[d.name].points, taken))
+    finally:
+        following.cancel()
     return FleetRun(results, flights, network)
 
 
