@@ -192,6 +192,9 @@ def _on_this_machine(args: list[str], paths: dict[str, Path]) -> list[str]:
     return out
 
 
+# On demand (pytest -m slow), about 34 s: CI's compose run (deploy/compose-test.sh, the
+# fleet run) flies these very commands in their containers.
+@pytest.mark.slow
 def test_the_compose_fleet_s_commands_fly_every_mission_exactly_once(tmp_path: Path) -> None:
     parts = yaml.safe_load((DEPLOY / "fleet.ci.yaml").read_text())
     parts["certs"] = str(tmp_path / "certs")
