@@ -412,3 +412,22 @@ def test_a_drone_reply_says_the_drone_took_the_watermark_its_call_carried() -> N
     reply = ring_pb2.LogEntry(reqnr=2, method=GET, reply=b"at", drone_epoch=1)
     core.logged(2, reply)
     assert p.told_watermark == 6
+
+
+def test_a_takeover_that_gives_the_role_back_keeps_the_log_no_takeover_replaced() -> None:
+    """--lose-master --prepared seed 198: master 1, ACTIVE in epoch 5, never heard of the
+    forced handover to the dead controller 0 (epoch 6), which waited for its handover
+    message; the drone took the role back to 1 (epoch 7). 1 took the grant for one of a
+    mastership a takeover replaced and rejoined with nothing, dropping the only copy of
+    requests 1-14, and waited for ever. The takeover two epochs on, to us, replaced
+    nothing of ours: we stay ACTIVE with our log. One later than that may follow another
+    master's takeover that framed our requests anew: fenced, as before."""
+    core = master()
+    core.protocol.on_reply(ring_pb2.LogEntry(reqnr=1, method=GET, reply=b"r"))
+    effects = core.granted(3, takeover=True, takeover_epoch=3)
+    assert Rejoin not in kinds(effects) and core.protocol.state is State.ACTIVE
+    assert core.protocol.epoch == 3 and core.protocol.held_reqnr == 1
+    later = master()
+    assert Rejoin in kinds(later.granted(4, takeover=True, takeover_epoch=4))
+    handed_back = master()  # a handover grant after another's takeover: replaced
+    assert Rejoin in kinds(handed_back.granted(4, takeover_epoch=3))

@@ -140,6 +140,21 @@ def test_lose_master_seed_13253_a_fenced_master_keeps_what_the_drone_let_go() ->
     assert outcome.ok, outcome.report()
 
 
+def test_lose_master_prepared_seed_198_a_takeover_back_to_us_keeps_our_log() -> None:
+    """Master 1, ACTIVE in epoch 5, never heard of the forced handover to the dead 0; the
+    drone took the role back to it (epoch 7), and it rejoined with nothing, dropping the
+    only copy of the log (``ControllerProtocol.taken_back``)."""
+    outcome = run_seed(198, SimOptions(lose_master=True, prepared=True))
+    assert outcome.ok, outcome.report()
+
+
+def test_lose_master_lying_seeds_a_takers_own_handover_message_is_believed() -> None:
+    """On a signed ring, a taker's own handover message sent on in its own name was
+    refused by every replica (``authenticity._sent_on_by_its_creator``)."""
+    outcomes = [run_seed(seed, SimOptions(lose_master=True, lying=True)) for seed in (22, 100)]
+    assert not any(o.failed for o in outcomes), _failures(outcomes)
+
+
 # Beyond CI's range, fixed: a new master's give-up of a retained reply (2456, 2707),
 # killed replicas held to a framing a takeover replaced (the oracle), the drone's watch
 # stopped while a program still had a given-up call to settle (2957, the sim).

@@ -673,7 +673,7 @@ class ControllerCore:
         watermark before it goes ACTIVE.
         Raises ProtocolError as ``ControllerProtocol.on_granted`` does."""
         p = self.protocol
-        if p.log_given_up(takeover_epoch):
+        if p.log_given_up(takeover_epoch) and not p.taken_back(epoch, takeover, takeover_epoch):
             note = Note(
                 "warning",
                 "granted while ACTIVE in a mastership a takeover replaced: rejoining with "

@@ -1156,6 +1156,17 @@ class ControllerProtocol:
         """
         return self.state is State.ACTIVE and takeover_epoch > self.epoch
 
+    def taken_back(self, epoch: int, takeover: bool, takeover_epoch: int) -> bool:
+        """Whether the drone's grant of ``epoch``, its newest takeover, gives the role back
+        to us with the log we hold, which no takeover replaced (``log_given_up`` does not
+        apply): ACTIVE in the epoch two before it, we never sent the handover message of
+        the epoch between, so that epoch's master (a cooperative grant: a takeover of our
+        mastership would have fenced us first, ``Sequencer.taken_over_since``) never
+        acted, waiting for it; the drone lost it and took the role back to us, and gives
+        us the replies it retains above what we hold. Fenced instead, we would drop the
+        only copy of our log (the others may hold none of it)."""
+        return takeover and self.state is State.ACTIVE and epoch == takeover_epoch == self.epoch + 2
+
     def went_on_without_us(self, message: ring_pb2.LogMessage) -> bool:
         """Whether a ring message shows our mastership went on without our log.
 
