@@ -100,6 +100,11 @@ class DroneEvents(Protocol):
 _InvokeStream = grpc.aio.StreamStreamCall[drone_pb2.InvokeCall, drone_pb2.InvokeOutcome]
 
 
+def _failure(code: grpc.StatusCode, details: str) -> grpc.aio.AioRpcError:
+    """A drone call's failure as its unary Invoke raises it, without metadata."""
+    return grpc.aio.AioRpcError(code, grpc.aio.Metadata(), grpc.aio.Metadata(), details)
+
+
 class InvokeCalls:
     """Drone calls as messages on one kept InvokeStream (drone.proto), each
     raising what its unary Invoke would: its reply, or grpc.aio.AioRpcError.
@@ -137,10 +142,8 @@ class InvokeCalls:
                     await self._write(drone_pb2.InvokeCall(call=number, request=request))
                 outcome = await waiter
         except TimeoutError:
-            raise grpc.aio.AioRpcError(
+            raise _failure(
                 grpc.StatusCode.DEADLINE_EXCEEDED,
-                grpc.aio.Metadata(),
-                grpc.aio.Metadata(),
                 f"no outcome for request {request.reqnr} in {timeout_s:g} s",
             ) from None
         finally:
@@ -160,10 +163,8 @@ class InvokeCalls:
             # a call fails here too (its caller sends it again after a pause).
             if exc.code() is not grpc.StatusCode.CANCELLED:
                 raise
-            raise grpc.aio.AioRpcError(
+            raise _failure(
                 grpc.StatusCode.UNAVAILABLE,
-                grpc.aio.Metadata(),
-                grpc.aio.Metadata(),
                 f"the invoke stream ended: {exc.code().name}: {exc.details()}",
             ) from None
 
@@ -187,7 +188,7 @@ class InvokeCalls:
         finally:
             if self._stream is stream:
                 self._stream = None
-            error = grpc.aio.AioRpcError(code, grpc.aio.Metadata(), grpc.aio.Metadata(), details)
+            error = _failure(code, details)
             for waiter in self._waiting.values():
                 if not waiter.done():
                     waiter.set_exception(error)
