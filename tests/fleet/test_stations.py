@@ -1,6 +1,7 @@
 """``baton station`` across real processes: three stations host two missions with
 different rings, sharing a station, each flown by its own sim vehicle and drone
-service, while a third mission's program crashes on two of the same stations."""
+service, while a third mission's program crashes on two of the same stations and a
+fourth stalls there (its drone never answers)."""
 
 from __future__ import annotations
 
@@ -81,6 +82,24 @@ async def test_two_missions_share_stations_exactly_once_and_a_crash_touches_neit
             return True
 
         await eventually(charlie_failed, "charlie's sessions failed and ended", 60)
+        # A fourth mission on the same stations stalls: its drone never answers. Its
+        # status says why it waits; the others fly on (below), and its stop ends it.
+        delta = mission_config("127.0.0.1:1", stations, (1, 3), certs)
+        for sid in (1, 3):
+            await stations[sid].stub.StartMission(
+                start_request("delta", delta, SMALL_GRID.file, SMALL_GRID.args())
+            )
+
+        async def delta_waits() -> ring_pb2.ControllerStatus | None:
+            status = await stations[1].status("delta")
+            return (
+                status
+                if "no Connect stream to the drone at 127.0.0.1:1" in status.waiting
+                else None
+            )
+
+        stalled = await eventually(delta_waits, "delta's master saying what it waits for", 60)
+        assert stalled.mission == ring_pb2.MISSION_STATE_RUNNING, stalled
         for sid in (1, 3):
             stopped = await stations[sid].stub.StopMission(
                 station_pb2.StopMissionRequest(mission_id="charlie")
@@ -127,7 +146,7 @@ async def test_two_missions_share_stations_exactly_once_and_a_crash_touches_neit
             assert_mission_promises(snapshot, plan)
             assert {a.controller_id for a in snapshot.drone.audit} == set(RINGS[mission])
 
-        for mission, ring in RINGS.items():
+        for mission, ring in [*RINGS.items(), ("delta", (1, 3))]:
             for sid in ring:
                 await stations[sid].stub.StopMission(
                     station_pb2.StopMissionRequest(mission_id=mission)
