@@ -27,6 +27,9 @@ def test_faults_parse_with_their_time_and_duration() -> None:
     )
     cut = parse_fault("cut:link-ring-1@t=30s,for=500ms")
     assert (cut.kind, cut.part, cut.at_s, cut.for_s) == ("cut", "link-ring-1", 30.0, 0.5)
+    pause = parse_fault("pause:drone@reqnr=20,for=5s")
+    assert (pause.kind, pause.part, pause.reqnr, pause.for_s) == ("pause", "drone", 20, 5.0)
+    assert parse_fault("land-now:drone@t=30s").kind == "land-now"
 
 
 @pytest.mark.parametrize(
@@ -42,6 +45,8 @@ def test_faults_parse_with_their_time_and_duration() -> None:
         ("stop:drone@t=3s,for=soon", "expected a duration like '20ms'"),
         ("stop:drone@t=3s,for=0s", "must be longer than 0"),
         ("stop:drone@t=3s,when=now", "'when=now' is not reqnr=N, t=DURATION or for=DURATION"),
+        ("pause:controller-0@reqnr=3", "pause is the operator's command to the drone"),
+        ("abort:drone@reqnr=3,for=2s", "abort ends the mission: it takes no for="),
     ],
 )
 def test_a_bad_fault_names_the_option_and_the_fix(text: str, why: str) -> None:
@@ -107,8 +112,9 @@ def test_the_master_killed_by_a_fault_is_taken_over_and_the_mission_completes_on
 
 
 def test_stop_cut_and_a_kill_restarted_by_restart_parts(tmp_path: Path) -> None:
-    """A frozen replica thawed, a ring link cut and restored, and the master killed with
-    --restart-parts (back with its log file): every fault ends, the mission completes
+    """A frozen replica thawed, a ring link cut and restored, the master killed with
+    --restart-parts (back with its log file), and the operator's pause resumed a second
+    later (the drone's own record says both): every fault ends, the mission completes
     once, and every controller, the restarted one too, ends with the same replies. The
     cut ring link is a stall that needs a person: the progress line and the report say
     so loudly."""
@@ -123,9 +129,14 @@ def test_stop_cut_and_a_kill_restarted_by_restart_parts(tmp_path: Path) -> None:
         "cut:link-ring-2@reqnr=60,for=6s",
         "--fault",
         "kill:controller-0@reqnr=40",
+        "--fault",
+        "pause:drone@reqnr=20,for=1s",
     )
-    stop, cut, kill = report["faults"]
-    assert all(f["fired"] and not f["problem"] for f in (stop, cut, kill))
+    stop, cut, kill, pause = report["faults"]
+    assert all(f["fired"] and not f["problem"] for f in (stop, cut, kill, pause))
+    assert pause["ended_at_s"] >= pause["fired_at_s"] + 1.0
+    commands = report["drone"]["operator_commands"]
+    assert [c["command"] for c in commands] == ["pause", "resume"], commands
     assert stop["ended_at_s"] >= stop["fired_at_s"] + 2.0
     assert cut["ended_at_s"] >= cut["fired_at_s"] + 6.0
     # Controller 1 (ring 0 -> 1 -> 2, master since the kill) lost its successor for

@@ -16,7 +16,7 @@ from baton.certs.cli import add_tls_flags, tls_from_flags
 
 if TYPE_CHECKING:
     from baton.rpc.tls import Tls
-    from baton.v1 import drone_pb2
+    from baton.v1 import drone_pb2, drone_pb2_grpc
 
 COMMANDS = ("pause", "resume", "abort", "land-now")
 # An operator's call must not hang on a drone out of reach.
@@ -89,27 +89,12 @@ async def _send(args: argparse.Namespace, address: str, tls: Tls | None) -> int:
 
     from baton.rpc.channels import aio_channel
     from baton.rpc.tls import DRONE
-    from baton.v1 import drone_pb2, drone_pb2_grpc
+    from baton.v1 import drone_pb2_grpc
 
     async with aio_channel(address, tls, DRONE if tls is not None else None) as channel:
         stub = drone_pb2_grpc.DroneStub(channel)
         try:
-            if args.command == "pause":
-                reply = await stub.Pause(
-                    drone_pb2.PauseRequest(note=args.note), timeout=CALL_TIMEOUT_S
-                )
-                taken = reply.command
-            elif args.command == "resume":
-                resumed = await stub.Resume(drone_pb2.ResumeRequest(), timeout=CALL_TIMEOUT_S)
-                taken = resumed.command
-            elif args.command == "abort":
-                request = drone_pb2.AbortRequest(
-                    action="land" if args.land else "rtl", note=args.note
-                )
-                taken = (await stub.Abort(request, timeout=CALL_TIMEOUT_S)).command
-            else:
-                request_now = drone_pb2.LandNowRequest(note=args.note)
-                taken = (await stub.LandNow(request_now, timeout=CALL_TIMEOUT_S)).command
+            taken = await send_command(stub, args.command, args.note, args.land)
         except grpc.aio.AioRpcError as exc:
             print(
                 f"baton operator {args.command}: refused by the drone at {address}: "
@@ -119,6 +104,26 @@ async def _send(args: argparse.Namespace, address: str, tls: Tls | None) -> int:
             return 1
     print(describe(taken))
     return 0
+
+
+async def send_command(
+    stub: drone_pb2_grpc.DroneAsyncStub, command: str, note: str = "", land: bool = False
+) -> drone_pb2.OperatorCommand:
+    """The operator's ``command`` (pause, resume, abort: a return, or a landing with
+    ``land``; land-now) to the drone, as the drone took it; AioRpcError if it refused."""
+    from baton.v1 import drone_pb2
+
+    if command == "pause":
+        paused = await stub.Pause(drone_pb2.PauseRequest(note=note), timeout=CALL_TIMEOUT_S)
+        return paused.command
+    if command == "resume":
+        resumed = await stub.Resume(drone_pb2.ResumeRequest(), timeout=CALL_TIMEOUT_S)
+        return resumed.command
+    if command == "abort":
+        request = drone_pb2.AbortRequest(action="land" if land else "rtl", note=note)
+        return (await stub.Abort(request, timeout=CALL_TIMEOUT_S)).command
+    landing = drone_pb2.LandNowRequest(note=note)
+    return (await stub.LandNow(landing, timeout=CALL_TIMEOUT_S)).command
 
 
 def describe(taken: drone_pb2.OperatorCommand) -> str:

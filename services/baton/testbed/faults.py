@@ -13,6 +13,10 @@ A fault is ``KIND:PART@WHEN[,for=DURATION]``:
   file (``--log-file``; the drone's: its state file) takes no more bytes, and
   every write that would grow it fails with EFBIG as a full disk fails it with
   ENOSPC (``fill_disk``); 10 s later the disk has room again.
+- ``pause:drone@reqnr=20,for=5s``, ``abort:drone@reqnr=40``,
+  ``land-now:drone@t=30s``: the operator's command to the drone (its
+  Pause, Abort with a return, LandNow, as ``baton operator`` sends them, with
+  the operator's certificate); a pause with ``for=`` is resumed after it.
 
 WHEN is ``reqnr=N`` (the drone's ``last_reqnr``, polled) or ``t=DURATION`` (after
 the mission's start: once every controller runs). Without ``for=`` a stop or a
@@ -38,7 +42,9 @@ from baton.config import parse_duration
 if TYPE_CHECKING:
     from baton.testbed.local import LocalTestbed
 
-FAULT_KINDS = ("kill", "stop", "cut", "full")
+FAULT_KINDS = ("kill", "stop", "cut", "full", "pause", "abort", "land-now")
+# The operator's commands to the drone, as faults (``LocalTestbed.operator``).
+OPERATOR_KINDS = ("pause", "abort", "land-now")
 FAULT_EXAMPLE = (
     "kill:controller-1@reqnr=130, stop:controller-0@reqnr=60,for=20s or "
     "cut:link-ring-1@t=30s,for=10s"
@@ -115,6 +121,8 @@ def parse_fault(text: str) -> Fault:
             f"full is for a controller's log file (controller-N) or the drone's state file "
             f"(drone), not {part}"
         )
+    if kind in OPERATOR_KINDS and part != "drone":
+        raise bad(f"{kind} is the operator's command to the drone (drone), not {part}")
     if kind == "cut" and not part.startswith("link-"):
         raise bad(
             f"cut is for a link emulator (link-ring-N, link-drone-N), not {part}; "
@@ -142,6 +150,8 @@ def parse_fault(text: str) -> Fault:
                 raise ValueError(f"for={options['for']!r} must be longer than 0")
     except ValueError as exc:
         raise bad(str(exc)) from None
+    if for_s is not None and kind in ("abort", "land-now"):
+        raise bad(f"{kind} ends the mission: it takes no for= (a pause does: it is resumed)")
     return Fault(text, kind, part, reqnr, at_s, for_s)
 
 
@@ -281,7 +291,14 @@ class FaultInjector:
             return
         record.fired_at_s, record.fired_wall = self._since(), time.time()
         where = f"reqnr {record.fired_at_reqnr}, master {record.master_before}"
-        if fault.kind == "kill":
+        if fault.kind in OPERATOR_KINDS:
+            try:
+                what = await testbed.operator(fault.kind, note=f"--fault {fault.text}")
+            except Exception as exc:  # refused or unreachable: the report says so
+                record.problem = f"the drone did not take it: {exc}"
+                self.say(f"fault {fault.text}: {record.problem}")
+                return
+        elif fault.kind == "kill":
             await testbed.kill_part(
                 fault.part,
                 cause=fault.text,
@@ -319,6 +336,8 @@ class FaultInjector:
             if fault.kind == "stop":
                 testbed.supervisor.thaw(fault.part)
                 what = f"{fault.part} continued (SIGCONT)"
+            elif fault.kind == "pause":
+                what = await testbed.operator("resume", note=f"--fault {fault.text}")
             elif fault.kind == "cut":
                 await testbed.restore_link(fault.part)
                 what = f"{fault.part} restored"

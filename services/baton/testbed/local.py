@@ -755,6 +755,15 @@ class LocalTestbed:
         await self.supervisor.restart(f"controller-{cid}")
         self.dead.discard(cid)
 
+    async def operator(self, command: str, note: str = "") -> str:
+        """The operator's ``command`` to the drone (``baton operator``'s, with the
+        testbed's operator certificate): one line of what the drone took; AioRpcError if
+        it refused."""
+        from baton.drone.operator_cli import describe, send_command
+
+        assert self.drone_stub is not None, "the drone is not started"
+        return describe(await send_command(self.drone_stub, command, note))
+
     async def cut_link(self, name: str) -> None:
         """Stops link emulator ``name`` (e.g. ``link-drone-0``): every connection through
         it breaks and none can be made, while the parts on both sides live on (until
