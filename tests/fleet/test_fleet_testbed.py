@@ -88,3 +88,38 @@ def test_external_parts_need_a_fleet_and_must_name_its_parts(
     assert f"{parts}: stations: no address for 2, 3; add where each runs" in (
         capsys.readouterr().err
     )
+
+
+def test_a_corridor_flies_its_bearing_and_the_six_drone_example_crosses() -> None:
+    """A corridor's ``bearing_deg`` turns its waypoints and reaches its program; in
+    examples/fleet-six.yaml two corridors cross the line the others fly and each other."""
+    from baton.testbed.fleet import FleetFile
+    from baton.testbed.local import MissionPlan
+
+    west = MissionPlan(kind="corridor", length_m=200, spacing_m=100, bearing_deg=270)
+    assert [(round(n, 6), round(e, 6)) for n, e in west.targets()] == [
+        (0, 0),
+        (0, -100),
+        (0, -200),
+    ]
+    assert (
+        "bearing_deg=270" in west.args() and west.describe() == "corridor of 200 m toward 270 deg"
+    )
+    fleet = FleetFile.model_validate(yaml.safe_load(FLEET_SIX.read_text()))
+    bearings = {d.name: d.mission.bearing_deg for d in fleet.drones if d.mission.kind == "corridor"}
+    assert sorted(set(bearings.values())) == [60.0, 90.0, 215.0], bearings
+    with pytest.raises(ValueError, match="bearing_deg"):
+        FleetFile.model_validate(
+            {
+                "stations": [
+                    {"id": 1, "location": {"latitude_deg": 47, "longitude_deg": 8}, "range_m": 5}
+                ],
+                "drones": [
+                    {
+                        "name": "d1",
+                        "home": {"latitude_deg": 47, "longitude_deg": 8},
+                        "mission": {"bearing_deg": 360},
+                    }
+                ],
+            }
+        )

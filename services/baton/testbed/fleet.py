@@ -87,6 +87,8 @@ class FleetSurvey(_Model):
     kind: Literal["grid", "corridor"] = "corridor"
     grid: int = Field(default=2, ge=1)
     length_m: float = Field(default=1000.0, gt=0)
+    # A corridor's direction from home, degrees clockwise from north (90: east).
+    bearing_deg: float = Field(default=90.0, ge=0, lt=360)
     spacing_m: float = Field(default=100.0, gt=0)
     altitude_m: float = Field(default=10.0, gt=0)
     speed_m_s: float = Field(default=5.0, gt=0)

@@ -93,6 +93,7 @@ class MissionPlan:
     poll_s: float = 1.0
     kind: str = "grid"  # or "corridor"
     length_m: float = 1500.0  # the corridor's
+    bearing_deg: float = 90.0  # the corridor's direction from the take-off point (east)
 
     def __post_init__(self) -> None:
         if self.kind not in MISSION_KINDS:
@@ -105,7 +106,11 @@ class MissionPlan:
 
     def args(self) -> list[str]:
         """``--mission-arg`` values for ``baton controller``."""
-        shape = {"grid": self.grid} if self.kind == "grid" else {"length_m": self.length_m}
+        shape: dict[str, float] = (
+            {"grid": self.grid}
+            if self.kind == "grid"
+            else {"length_m": self.length_m, "bearing_deg": self.bearing_deg}
+        )
         common = ("spacing_m", "altitude_m", "speed_m_s", "poll_s")
         values = {**shape, **{name: getattr(self, name) for name in common}}
         return [f"{name}={value}" for name, value in values.items()]
@@ -114,13 +119,14 @@ class MissionPlan:
         """The waypoints, metres (north, east) of the take-off point, in flying order."""
         if self.kind == "grid":
             return grid_mission.waypoints(self.grid, self.spacing_m)
-        return corridor_mission.waypoints(self.length_m, self.spacing_m)
+        return corridor_mission.waypoints(self.length_m, self.spacing_m, self.bearing_deg)
 
     def describe(self) -> str:
         """For a person: "5x5 grid", "corridor of 1500 m"."""
         if self.kind == "grid":
             return f"{self.grid}x{self.grid} grid"
-        return f"corridor of {self.length_m:g} m"
+        toward = "" if self.bearing_deg == 90.0 else f" toward {self.bearing_deg:g} deg"
+        return f"corridor of {self.length_m:g} m{toward}"
 
 
 @dataclass(frozen=True)
