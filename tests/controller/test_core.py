@@ -133,7 +133,7 @@ def test_a_refused_request_is_judged_by_epoch() -> None:
 
 def test_a_takeover_reconnects_and_its_grant_counts_as_a_takeover() -> None:
     core = ControllerCore(started(1, [0, 1, 2], 0))
-    effects = core.take_over(0, 2, 7, watermark_reqnr=0)
+    effects = core.take_over(drone_pb2.TakeOver(old_master=0, epoch=2, after_reqnr=7))
     assert kinds(effects) == [Record, Note, Reconnect]
     # The grant does not say takeover: its epoch is the TakeOver's.
     core.granted(2, retained_through=0, takeover=False, watermark_reqnr=0)
@@ -142,7 +142,7 @@ def test_a_takeover_reconnects_and_its_grant_counts_as_a_takeover() -> None:
 
 def test_retained_replies_above_what_we_hold_are_kept_for_the_program() -> None:
     core = ControllerCore(started(1, [0, 1, 2], 0))
-    core.take_over(0, 2, 2, watermark_reqnr=0)
+    core.take_over(drone_pb2.TakeOver(old_master=0, epoch=2, after_reqnr=2))
     core.granted(2, retained_through=2, takeover=True)
     digest = request_digest(GET, b"")
     replies = [

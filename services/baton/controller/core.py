@@ -728,12 +728,12 @@ class ControllerCore:
             return [note, *self.rejoin()]
         return []
 
-    def take_over(
-        self, old_master: int, epoch: int, after_reqnr: int, watermark_reqnr: int
-    ) -> list[CoreEffect]:
+    def take_over(self, event: drone_pb2.TakeOver) -> list[CoreEffect]:
         """The drone made us master by takeover (the standby stream's TakeOver): connect
         again to learn the epoch; the replies we lack follow the Connected."""
         p = self.protocol
+        old_master, epoch = event.old_master, event.epoch
+        after_reqnr, watermark_reqnr = event.after_reqnr, event.watermark_reqnr
         self.takeover_epoch = epoch
         self.takeover_watermark = watermark_reqnr
         fields = {
@@ -1109,6 +1109,19 @@ class ControllerCore:
         """InvokeRequest.adopted_from_reqnr: the first request of this mastership answered
         from the retained replies (0: none)."""
         return self.adopted[1] if self.adopted[0] == self.protocol.epoch else 0
+
+    def connect_request(self) -> drone_pb2.ConnectRequest:
+        """The Connect we send now, read at every (re)connect: the epoch of the mastership
+        whose log we may hold alone (the drone fences us if a takeover gave it up), the
+        request number that log holds up to, and a mastership an earlier self gave up
+        (its fresh self is granted a new epoch)."""
+        p = self.protocol
+        return drone_pb2.ConnectRequest(
+            controller_id=p.id,
+            mastership_epoch=p.log_mastership_epoch,
+            holds_reqnr=p.held_reqnr,
+            given_up_epoch=p.given_up_epoch,
+        )
 
     def carried(self, preparation: drone_pb2.PreparationProgress | None) -> drone_pb2.InvokeRequest:
         """What a drone call carries beside the request (InvokeRequest's fields): the

@@ -445,9 +445,7 @@ class ControllerNode:
             channel,
             events,
             self.log,
-            mastership_epoch=lambda: self.protocol.log_mastership_epoch,
-            holds_reqnr=lambda: self.protocol.held_reqnr,
-            given_up_epoch=lambda: self.protocol.given_up_epoch,
+            connect_request=lambda: self.core.connect_request(),
         )
         events.session = self.drone
         self.drone.open()
@@ -497,11 +495,7 @@ class ControllerNode:
 
     async def on_take_over(self, event: drone_pb2.TakeOver) -> None:
         """The drone made us master by takeover (``ControllerCore.take_over``)."""
-        await self.apply(
-            self.core.take_over(
-                event.old_master, event.epoch, event.after_reqnr, event.watermark_reqnr
-            )
-        )
+        await self.apply(self.core.take_over(event))
 
     async def _rejoin(self) -> None:
         try:

@@ -361,18 +361,9 @@ class SimController:
             link.when_usable(self._channel_ready, session)
             return
         session.stream = link.generation
-        # ConnectRequest.mastership_epoch, read at every (re)connect as DroneSession does.
-        # (node.py keeps it in the history file for a restart from the file; a
-        # simulated restart has nothing, so 0.)
+        request = self.core.connect_request()
         link.to_drone(
-            0,
-            self.world.drone.receive_connect,
-            link,
-            session.sid,
-            link.generation,
-            self.protocol.log_mastership_epoch,
-            self.protocol.held_reqnr,
-            self.protocol.given_up_epoch,
+            0, self.world.drone.receive_connect, link, session.sid, link.generation, request
         )
 
     def _channel_ready(self, session: Session) -> None:
@@ -511,11 +502,10 @@ class SimController:
             )
         )
 
-    def on_take_over(self, old_master: int, epoch: int, watermark_reqnr: int) -> None:
-        """ControllerNode.on_take_over (the standby stream's TakeOver)."""
-        if not self.alive:
-            return
-        self._apply(self.core.take_over(old_master, epoch, 0, watermark_reqnr))
+    def on_take_over(self, event: drone_pb2.TakeOver) -> None:
+        """The standby stream's TakeOver (``ControllerCore.take_over``)."""
+        if self.alive:
+            self._apply(self.core.take_over(event))
 
     def _rejoin(self) -> None:
         """A rejoin as ControllerApp.rejoin does it (the program stops, reset, incoming
