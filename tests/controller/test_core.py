@@ -48,6 +48,15 @@ def kinds(effects: list) -> list[type]:
     return [type(effect) for effect in effects]
 
 
+def notice(
+    new_master: int, after_reqnr: int, epoch: int, takeover_epoch: int = 0
+) -> drone_pb2.HandoverNotice:
+    """A cooperative handover's notice on the Connect stream."""
+    return drone_pb2.HandoverNotice(
+        new_master=new_master, after_reqnr=after_reqnr, epoch=epoch, takeover_epoch=takeover_epoch
+    )
+
+
 def test_a_handover_notice_sends_the_log_and_with_cut_through_the_catch_up_first() -> None:
     core = master()
     effects = core.handover_notice(2, 0, 2)
@@ -84,14 +93,14 @@ def test_a_notice_after_a_takeover_that_replaced_our_log_fences_us() -> None:
     would put a second framing of them on the ring; we rejoin with nothing instead.
     Without a takeover since our mastership (back-to-back handovers), the log is the
     ring's and goes to the new master."""
-    replaced = master().stream_notice(2, 2, 5, takeover=False, takeover_epoch=3)
+    replaced = master().stream_notice(notice(2, 2, 5, takeover_epoch=3))
     assert kinds(replaced) == [Record, Note, DisconnectDrone, Rejoin]
     assert SendLog not in kinds(replaced)
-    handed = master().stream_notice(2, 2, 5, takeover=False, takeover_epoch=0)
+    handed = master().stream_notice(notice(2, 2, 5))
     assert kinds(handed)[-1] is SendLog
     older = master()
     older.protocol.on_granted(3)  # the takeover that made us master: our own log
-    assert kinds(older.stream_notice(2, 2, 4, takeover=False, takeover_epoch=3))[-1] is SendLog
+    assert kinds(older.stream_notice(notice(2, 2, 4, takeover_epoch=3)))[-1] is SendLog
 
 
 def test_fenced_drops_the_log_and_rejoins_once() -> None:
@@ -136,14 +145,14 @@ def test_a_takeover_reconnects_and_its_grant_counts_as_a_takeover() -> None:
     effects = core.take_over(drone_pb2.TakeOver(old_master=0, epoch=2, after_reqnr=7))
     assert kinds(effects) == [Record, Note, Reconnect]
     # The grant does not say takeover: its epoch is the TakeOver's.
-    core.granted(2, retained_through=0, takeover=False, watermark_reqnr=0)
+    core.granted(drone_pb2.Connected(epoch=2))
     assert core.first_new_call_due and core.protocol.state is State.ACTIVE
 
 
 def test_retained_replies_above_what_we_hold_are_kept_for_the_program() -> None:
     core = ControllerCore(started(1, [0, 1, 2], 0))
     core.take_over(drone_pb2.TakeOver(old_master=0, epoch=2, after_reqnr=2))
-    core.granted(2, retained_through=2, takeover=True)
+    core.granted(drone_pb2.Connected(epoch=2, retained_through=2, takeover=True))
     digest = request_digest(GET, b"")
     replies = [
         drone_pb2.RetainedReply(reqnr=n, method=GET, request_digest=digest, reply=b"r", epoch=1)

@@ -34,7 +34,7 @@ async def active_master() -> ControllerNode:
     session = connected_session()
     node.drone = session
     await node.on_sync(2, SyncWord(0, 0, 0, 0))  # the predecessor holds nothing: caught up
-    await node.on_granted(session, 1, 0)
+    await node.on_granted(session, drone_pb2.Connected(epoch=1))
     assert node.protocol.state is State.ACTIVE
     return node
 

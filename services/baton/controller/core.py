@@ -658,21 +658,16 @@ class ControllerCore:
 
     # -- the drone's word ------------------------------------------------------------
 
-    def granted(
-        self,
-        epoch: int,
-        retained_through: int = 0,
-        takeover: bool = False,
-        watermark_reqnr: int = 0,
-        takeover_epoch: int = 0,
-        grant: drone_pb2.Grant | None = None,
-    ) -> list[CoreEffect]:
-        """The drone's Connected event: master in ``epoch`` (``grant``: its word, signed).
-        The retained replies above what we hold follow, up to ``retained_through``
-        (``retained_batch``); a takeover's grant must hold every request up to the
-        watermark before it goes ACTIVE.
+    def granted(self, connected: drone_pb2.Connected) -> list[CoreEffect]:
+        """The drone's Connected event: master in its ``epoch`` (``grant``: its word,
+        signed). The retained replies above what we hold follow, up to
+        ``retained_through`` (``retained_batch``); a takeover's grant must hold every
+        request up to the watermark before it goes ACTIVE.
         Raises ProtocolError as ``ControllerProtocol.on_granted`` does."""
         p = self.protocol
+        epoch, retained_through = connected.epoch, connected.retained_through
+        takeover, takeover_epoch = connected.takeover, connected.takeover_epoch
+        grant = connected.grant if connected.HasField("grant") else None
         if p.log_given_up(takeover_epoch) and not p.taken_back(epoch, takeover, takeover_epoch):
             note = Note(
                 "warning",
@@ -688,7 +683,7 @@ class ControllerCore:
         was_active = p.state is State.ACTIVE
         takeover = takeover or epoch == self.takeover_epoch
         self.first_new_call_due = takeover
-        watermark = max(self.takeover_watermark, watermark_reqnr)
+        watermark = max(self.takeover_watermark, connected.watermark_reqnr)
         effects: list[CoreEffect] = list(p.on_granted(epoch, takeover, watermark, grant))
         if not was_active:
             fields = {"epoch": epoch, "takeover": takeover, "caught_up": p.caught_up}
@@ -832,23 +827,18 @@ class ControllerCore:
         fields = {"reqnr": reqnr, "sent_epoch": sent_epoch, "drone_epoch": refusal.epoch}
         return [Note("info", "stale request refused by the drone", fields)]
 
-    def stream_notice(
-        self,
-        new_master: int,
-        after_reqnr: int,
-        epoch: int,
-        takeover: bool,
-        grant: drone_pb2.Grant | None = None,
-        takeover_epoch: int = 0,
-        takeover_watermark: int = 0,
-    ) -> list[CoreEffect]:
+    def stream_notice(self, notice: drone_pb2.HandoverNotice) -> list[CoreEffect]:
         """A handover notice on the Connect stream (the drone owes at most one, the latest).
 
-        A takeover's notice fences us (``takeover_watermark``: the drone's at that
+        A takeover's notice fences us (``takeover_watermark_reqnr``: the drone's at that
         takeover); so does one whose drone took over after our mastership
         (``takeover_epoch``, ``ControllerProtocol.log_given_up``): our log was replaced
         by the taker's framing, and handing it over would put a second framing of the
         same requests on the ring."""
+        new_master, after_reqnr, epoch = notice.new_master, notice.after_reqnr, notice.epoch
+        takeover, takeover_epoch = notice.takeover, notice.takeover_epoch
+        takeover_watermark = notice.takeover_watermark_reqnr
+        grant = notice.grant if notice.HasField("grant") else None
         if takeover:
             return self.fenced(new_master, epoch, takeover_watermark)
         if self.protocol.log_given_up(takeover_epoch):

@@ -465,25 +465,12 @@ class ControllerNode:
 
     # -- events -----------------------------------------------------------------------
 
-    async def on_granted(
-        self,
-        session: DroneSession,
-        epoch: int,
-        retained_through: int = 0,
-        takeover: bool = False,
-        watermark_reqnr: int = 0,
-        takeover_epoch: int = 0,
-        grant: drone_pb2.Grant | None = None,
-    ) -> None:
-        """The drone's Connected event: this controller is master in ``epoch``
+    async def on_granted(self, session: DroneSession, connected: drone_pb2.Connected) -> None:
+        """The drone's Connected event: this controller is master in its epoch
         (``ControllerCore.granted``)."""
         if session is not self.drone:
             return  # a session closed meanwhile
-        await self.apply(
-            self.core.granted(
-                epoch, retained_through, takeover, watermark_reqnr, takeover_epoch, grant
-            )
-        )
+        await self.apply(self.core.granted(connected))
 
     async def on_retained(
         self, session: DroneSession, replies: Sequence[drone_pb2.RetainedReply]
@@ -518,17 +505,7 @@ class ControllerNode:
         """A handover notice on the Connect stream (``ControllerCore.stream_notice``)."""
         if session is not self.drone:
             return
-        await self.apply(
-            self.core.stream_notice(
-                notice.new_master,
-                notice.after_reqnr,
-                notice.epoch,
-                notice.takeover,
-                notice.grant if notice.HasField("grant") else None,
-                notice.takeover_epoch,
-                notice.takeover_watermark_reqnr,
-            )
-        )
+        await self.apply(self.core.stream_notice(notice))
 
     async def on_sync(self, from_id: int, word: SyncWord) -> None:
         """A ring stream's sync frame from controller ``from_id``: what it holds, and the

@@ -16,7 +16,7 @@ from typing import Any
 
 import grpc
 
-from baton.authenticity import Signer, signed_retained
+from baton.authenticity import Signer
 from baton.drone.applier import Applier
 from baton.drone.camera import Camera
 from baton.drone.connects import ConnectStream
@@ -295,14 +295,13 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.log.warning("connect rejected", controller=cid, reason=err.message)
             await abort_with(context, err)
         self.log.info("master connected", controller=cid)
-        said = ConnectStream(cid)
+        said = ConnectStream(cid, self.signer)
         try:
             grant, batches = said.opened(self.core, request.holds_reqnr)
             if grant is not None:
                 yield drone_pb2.DroneEvent(connected=grant)
             for batch in batches:
-                replies = [signed_retained(self.signer, r.to_proto()) for r in batch]
-                yield drone_pb2.DroneEvent(retained=drone_pb2.RetainedBatch(replies=replies))
+                yield drone_pb2.DroneEvent(retained=drone_pb2.RetainedBatch(replies=batch))
             while True:
                 for event in said.woken(self.core):
                     if isinstance(event, drone_pb2.OperatorWord):

@@ -376,27 +376,15 @@ class SimController:
         session.backoff = min(session.backoff * 2, SESSION_BACKOFF_MAX_S)
         self.drone_streams_changed()
 
-    def on_drone_connected(
-        self,
-        sid: int,
-        epoch: int,
-        retained_through: int,
-        takeover: bool = False,
-        watermark_reqnr: int = 0,
-        takeover_epoch: int = 0,
-        grant: drone_pb2.Grant | None = None,
-    ) -> None:
-        """The Connected event: the session's epoch, then node.py's on_granted (which
-        first rejoins with nothing if a takeover replaced the mastership we are ACTIVE in)."""
+    def on_drone_connected(self, sid: int, connected: drone_pb2.Connected) -> None:
+        """The Connected event (``ControllerCore.granted``)."""
         session = self.session
         if session is None or session.sid != sid:
             return
-        session.epoch, session.connected = epoch, True
+        session.epoch, session.connected = connected.epoch, True
         self._startup_answer()
         try:
-            effects = self.core.granted(
-                epoch, retained_through, takeover, watermark_reqnr, takeover_epoch, grant
-            )
+            effects = self.core.granted(connected)
         except ProtocolError as exc:
             self._uncaught("on_granted", exc)
             return
@@ -409,26 +397,14 @@ class SimController:
             return
         self._apply(self.core.retained_batch(replies))
 
-    def on_drone_notice(
-        self,
-        sid: int,
-        new_master: int,
-        after_reqnr: int,
-        epoch: int,
-        takeover: bool,
-        grant: drone_pb2.Grant | None = None,
-        takeover_epoch: int = 0,
-        takeover_watermark: int = 0,
-    ) -> None:
-        """A HandoverNotice on the stream, which then ends."""
+    def on_drone_notice(self, sid: int, notice: drone_pb2.HandoverNotice) -> None:
+        """A HandoverNotice on the stream, which then ends (``ControllerCore.stream_notice``)."""
         session = self.session
         if session is None or session.sid != sid:
             return
         session.ended, session.stream = True, None
         self._startup_answer()
-        self.on_stream_notice(
-            new_master, after_reqnr, epoch, takeover, grant, takeover_epoch, takeover_watermark
-        )
+        self._apply(self.core.stream_notice(notice))
 
     def on_drone_prepare(self, sid: int, prepare: drone_pb2.PrepareHandover) -> None:
         """A PrepareHandover event on the stream: node.py's on_prepare."""
@@ -484,23 +460,6 @@ class SimController:
     def on_connect_refused(self, refusal: DroneRefusal) -> None:
         """ControllerNode.on_connect_refused."""
         self._apply(self.core.connect_refused(refusal))
-
-    def on_stream_notice(
-        self,
-        new_master: int,
-        after_reqnr: int,
-        epoch: int,
-        takeover: bool = False,
-        grant: drone_pb2.Grant | None = None,
-        takeover_epoch: int = 0,
-        takeover_watermark: int = 0,
-    ) -> None:
-        """ControllerNode.on_stream_notice."""
-        self._apply(
-            self.core.stream_notice(
-                new_master, after_reqnr, epoch, takeover, grant, takeover_epoch, takeover_watermark
-            )
-        )
 
     def on_take_over(self, event: drone_pb2.TakeOver) -> None:
         """The standby stream's TakeOver (``ControllerCore.take_over``)."""

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import grpc
 
-from baton.authenticity import signed_reply, signed_retained
+from baton.authenticity import signed_reply
 from baton.digest import request_digest
 from baton.drone.connects import ConnectStream
 from baton.drone.core import WATCH_TICK_S, DroneCore, Kept
@@ -622,13 +622,7 @@ class SimDrone:
                     0,
                     stream.link.owner.on_drone_notice,
                     stream.session,
-                    event.new_master,
-                    event.after_reqnr,
-                    event.epoch,
-                    event.takeover,
-                    event.grant if event.HasField("grant") else None,
-                    event.takeover_epoch,
-                    event.takeover_watermark_reqnr,
+                    event,
                     stream=True,
                 )
                 self.core.delivered(cid, event)
@@ -670,28 +664,19 @@ class SimDrone:
                 previous.session,
                 stream=True,
             )
-        said = ConnectStream(cid)
+        said = ConnectStream(cid, self.signer)
         self.streams[cid] = Stream(cid, session, link, connection, said)
         grant, batches = said.opened(self.core, request.holds_reqnr, RETAINED_BATCH_BYTES)
         if grant is not None:  # Connected, then the replies retained above its holds
             owner = link.owner
-            connected = (
-                session,
-                grant.epoch,
-                grant.retained_through,
-                grant.takeover,
-                grant.watermark_reqnr,
-                grant.takeover_epoch,
-                grant.grant if grant.HasField("grant") else None,
-            )
             parts: list[tuple[int, Callable[..., None], tuple[Any, ...]]] = [
-                (0, owner.on_drone_connected, connected)
+                (0, owner.on_drone_connected, (session, grant))
             ]
             parts += [
                 (
                     sum(len(reply.reply) for reply in batch),
                     owner.on_drone_retained,
-                    (session, [signed_retained(self.signer, r.to_proto()) for r in batch]),
+                    (session, batch),
                 )
                 for batch in batches
             ]
