@@ -144,6 +144,8 @@ def test_a_takeover_reconnects_and_its_grant_counts_as_a_takeover() -> None:
     core = ControllerCore(started(1, [0, 1, 2], 0))
     effects = core.take_over(drone_pb2.TakeOver(old_master=0, epoch=2, after_reqnr=7))
     assert kinds(effects) == [Record, Note, Reconnect]
+    record = effects[0]
+    assert isinstance(record, Record) and (record.epoch, record.drone_after_reqnr) == (2, 7)
     # The grant does not say takeover: its epoch is the TakeOver's.
     core.granted(drone_pb2.Connected(epoch=2))
     assert core.first_new_call_due and core.protocol.state is State.ACTIVE
@@ -433,10 +435,25 @@ def test_a_takeover_that_gives_the_role_back_keeps_the_log_no_takeover_replaced(
     master's takeover that framed our requests anew: fenced, as before."""
     core = master()
     core.protocol.on_reply(ring_pb2.LogEntry(reqnr=1, method=GET, reply=b"r"))
-    effects = core.granted(3, takeover=True, takeover_epoch=3)
+    effects = core.granted(drone_pb2.Connected(epoch=3, takeover=True, takeover_epoch=3))
     assert Rejoin not in kinds(effects) and core.protocol.state is State.ACTIVE
     assert core.protocol.epoch == 3 and core.protocol.held_reqnr == 1
     later = master()
-    assert Rejoin in kinds(later.granted(4, takeover=True, takeover_epoch=4))
+    assert Rejoin in kinds(
+        later.granted(drone_pb2.Connected(epoch=4, takeover=True, takeover_epoch=4))
+    )
     handed_back = master()  # a handover grant after another's takeover: replaced
-    assert Rejoin in kinds(handed_back.granted(4, takeover_epoch=3))
+    assert Rejoin in kinds(handed_back.granted(drone_pb2.Connected(epoch=4, takeover_epoch=3)))
+
+
+def test_the_connect_names_the_mastership_whose_log_we_hold_and_what_it_holds() -> None:
+    """ConnectRequest as both drivers send it (``ControllerCore.connect_request``): a
+    replica names no mastership; the master its epoch and the request its log holds."""
+    replica = ControllerCore(started(1, [0, 1, 2], 0))
+    assert replica.connect_request() == drone_pb2.ConnectRequest(controller_id=1)
+    core = master()
+    entry = ring_pb2.LogEntry(reqnr=1, method=GET, request_digest=request_digest(GET, b""))
+    core.protocol.on_reply(entry)
+    request = core.connect_request()
+    assert (request.controller_id, request.mastership_epoch) == (0, 1)
+    assert (request.holds_reqnr, request.given_up_epoch) == (1, 0)

@@ -52,6 +52,7 @@ from baton.drone.effects import (
 )
 from baton.drone.invariants import DroneWatch
 from baton.drone.invocations import answered_again
+from baton.drone.operator import Operator
 from baton.drone.policy import Decision
 from baton.drone.safety import (
     Failsafe,
@@ -784,7 +785,8 @@ class SimDrone:
         kept (the master gets the restart grace)."""
         old, now = self.seq, self.world.loop.now
         core = DroneCore(self._sequencer(), self.world.takeover_after, self.world.safety)
-        core.operator = self.core.operator  # kept in the store (OperatorCommands._save)
+        # The operator's state as the store keeps it (OperatorCommands._save, .restore).
+        core.operator = Operator.from_json(self.core.operator.to_json())
         replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
         stored = DroneState(
             counters_of(old), [r for r in replies if r is not None], list(old.audit), self.intent
