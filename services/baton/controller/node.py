@@ -407,11 +407,8 @@ class ControllerNode:
             if self.books.apply(effect):
                 continue
             if isinstance(effect, SendLog):
-                link = self.peer(effect.dest)
-                unused = not link.used
-                link.send(effect.message)
-                if unused and not link.stream_up:
-                    self._ring_changed()  # a link down counts for the route once used
+                if self.ring.send(effect.dest, effect.message):
+                    self._ring_changed()
             elif isinstance(effect, ConnectDrone):
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):

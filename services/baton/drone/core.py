@@ -293,8 +293,8 @@ class DroneCore:
             self.serve_within_s,
         )
 
-    def takeover_owed(self, controller_id: int) -> drone_pb2.HandoverRecord | None:
-        """The takeover to tell ``controller_id`` again on a new standby stream: it is the
+    def takeover_owed(self, controller_id: int) -> drone_pb2.TakeOver | None:
+        """The TakeOver to tell ``controller_id`` again on a new standby stream: it is the
         taker and has sent no request since (the stream that carried it may have broken)."""
         seq = self.seq
         if controller_id != seq.master or not seq.handovers:
@@ -302,7 +302,7 @@ class DroneCore:
         record = seq.handovers[-1]
         if record.kind != drone_pb2.HANDOVER_KIND_TAKEOVER or record.first_request_at:
             return None
-        return record
+        return take_over_event(record, seq.cache.watermark)
 
     # -- the safety net ---------------------------------------------------------------
 

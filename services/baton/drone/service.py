@@ -22,7 +22,7 @@ from baton.drone.camera import Camera
 from baton.drone.connects import ConnectStream
 from baton.drone.core import WATCH_TICK_S, DroneCore
 from baton.drone.dispatch import Dispatcher
-from baton.drone.effects import DroneEffect, Preparing, take_over_event
+from baton.drone.effects import DroneEffect, Preparing
 from baton.drone.failsafe_watch import FailsafeWatch
 from baton.drone.invariants import DroneWatch, checking
 from baton.drone.invocations import Invocations
@@ -349,8 +349,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             )
             owed = self.core.takeover_owed(cid)
             if owed is not None:  # the stream that was to carry it may have broken first
-                told = take_over_event(owed, self.seq.cache.watermark)
-                yield drone_pb2.StandbyEvent(take_over=told)
+                yield drone_pb2.StandbyEvent(take_over=owed)
             while True:
                 yield await stream.events.get()
         finally:

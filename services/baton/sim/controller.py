@@ -262,11 +262,8 @@ class SimController:
                 message = effect.message
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
                 self.world.framings.setdefault(message.lognr, set()).add(message.epoch)
-                link = self.peer(effect.dest)
-                unused = not link.core.used
-                link.send(message)
-                if unused and not link.up:
-                    self.ring_changed()  # a link down counts for the route once used
+                if self.ring.send(effect.dest, message):
+                    self.ring_changed()
             elif isinstance(effect, ConnectDrone):
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):

@@ -48,7 +48,6 @@ from baton.drone.effects import (
     Switched,
     TellTakeOver,
     pins_policy,
-    take_over_event,
 )
 from baton.drone.invariants import DroneWatch
 from baton.drone.invocations import answered_again
@@ -905,9 +904,9 @@ class SimDrone:
     def standby_opened(self, cid: int) -> None:
         """DroneService.Standby: a controller's standby stream (re)opens; a TakeOver still
         owed to it is told on it (the stream that was to carry it may have broken)."""
-        record = self.core.takeover_owed(cid) if self.up else None
-        if record is not None:
-            self._tell_take_over(cid, take_over_event(record, self.seq.cache.watermark))
+        owed = self.core.takeover_owed(cid) if self.up else None
+        if owed is not None:
+            self._tell_take_over(cid, owed)
 
     def _tell_take_over(self, taker: int, told: drone_pb2.TakeOver) -> None:
         """StandbyStreams.tell of the TakeOver, on the taker's newest stream if it holds
