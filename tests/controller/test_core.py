@@ -48,6 +48,11 @@ def kinds(effects: list) -> list[type]:
     return [type(effect) for effect in effects]
 
 
+def prepare(target: int, epoch: int, timeout_s: float) -> drone_pb2.PrepareHandover:
+    """The drone's word that it prepares a handover to ``target`` (no bound on the bytes)."""
+    return drone_pb2.PrepareHandover(target=target, epoch=epoch, timeout_s=timeout_s)
+
+
 def notice(
     new_master: int, after_reqnr: int, epoch: int, takeover_epoch: int = 0
 ) -> drone_pb2.HandoverNotice:
@@ -290,13 +295,13 @@ def test_a_route_held_back_is_decided_again_when_the_hold_ends() -> None:
 
 def test_a_preparation_arms_its_end_and_a_handover_disarms_it() -> None:
     core = master()
-    effects = core.ready(core.prepare(2, 1, 3.0, 0, now=10.0), True, now=10.0)
+    effects = core.ready(core.prepare(prepare(2, 1, 3.0), now=10.0), True, now=10.0)
     end = 13.0 + PREPARE_GRACE_S
     assert timers(effects) == [Arm(Timer.PREPARATION, end)]
     over = core.timer_fired(Timer.PREPARATION, end, RingSight({}, drone_connected=True))
     assert kinds(over) == [Note] and core.protocol.preparing_for is None
     assert timers(core.ready(over, True, now=end)) == []
-    core.ready(core.prepare(2, 1, 3.0, 0, now=20.0), True, now=20.0)
+    core.ready(core.prepare(prepare(2, 1, 3.0), now=20.0), True, now=20.0)
     handed = core.handover_notice(2, 0, 2)
     assert timers(core.ready(handed, False, now=21.0)) == [Disarm(Timer.PREPARATION)]
 

@@ -1005,16 +1005,16 @@ class ControllerCore:
 
     # -- a prepared handover (docs/design.md, "Prepared handover") ----------------------
 
-    def prepare(
-        self, target: int, epoch: int, timeout_s: float, bound_bytes: int, now: float
-    ) -> list[CoreEffect]:
-        """The drone plans a handover to ``target``: it is caught up straight from us while
-        the mission goes on; the drone moves the master once it lacks at most
+    def prepare(self, prepare: drone_pb2.PrepareHandover, now: float) -> list[CoreEffect]:
+        """The drone plans a handover to its ``target``: it is caught up straight from us
+        while the mission goes on; the drone moves the master once it lacks at most
         ``bound_bytes`` (``progress`` on every Invoke, ``report_due`` between them). If
         we hear nothing by the drone's timeout and a grace (its notice is owed on our
         stream), we stop flushing every entry (``preparation_over``). Nothing if we are
-        not ACTIVE in ``epoch`` (the drone's word came late)."""
+        not ACTIVE in its ``epoch`` (the drone's word came late)."""
         p = self.protocol
+        target, epoch, timeout_s = prepare.target, prepare.epoch, prepare.timeout_s
+        bound_bytes = prepare.bound_bytes
         try:
             effects = p.on_prepare(target, epoch)
         except ProtocolError as exc:

@@ -28,7 +28,6 @@ from baton.controller.core import (
     ControllerCore,
     CoreEffect,
     Fail,
-    Note,
     Reconnect,
     Rejoin,
     RepairGap,
@@ -278,11 +277,7 @@ class ControllerNode:
     async def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
         """The drone plans a handover (``ControllerCore.prepare``)."""
         now = asyncio.get_running_loop().time()
-        await self.apply(
-            self.core.prepare(
-                prepare.target, prepare.epoch, prepare.timeout_s, prepare.bound_bytes, now
-            )
-        )
+        await self.apply(self.core.prepare(prepare, now))
 
     def preparation_progress(self) -> drone_pb2.PreparationProgress | None:
         """How far a prepared handover's target is behind us (``RingLinks.progress``)."""
@@ -400,7 +395,7 @@ class ControllerNode:
                 # The program's answer, most effects of a replay: nothing to report or keep.
                 self.program.seen(effect.entry)
                 continue
-            note = effect if isinstance(effect, Note) else note_of(effect, self.protocol.epoch)
+            note = note_of(effect, self.protocol.epoch)
             if note is not None:
                 getattr(self.log, note.level)(note.text, **note.fields)
             self.handovers.take(effect, time.time())

@@ -253,7 +253,7 @@ class SimController:
         connected = session is not None and session.connected
         ready = self.core.ready(effects, connected, self.world.loop.now, self._drone_reachable())
         for effect in ready:
-            note = effect if isinstance(effect, Note) else note_of(effect, self.protocol.epoch)
+            note = note_of(effect, self.protocol.epoch)
             if note is not None and note.level != "debug":
                 self._say(note)
             if self.books.apply(effect):
@@ -404,11 +404,11 @@ class SimController:
         self._apply(self.core.stream_notice(notice))
 
     def on_drone_prepare(self, sid: int, prepare: drone_pb2.PrepareHandover) -> None:
-        """A PrepareHandover event on the stream: node.py's on_prepare."""
+        """A PrepareHandover event on the stream (``ControllerCore.prepare``)."""
         session = self.session
         if session is None or session.sid != sid:
             return
-        self.on_prepare(prepare)
+        self._apply(self.core.prepare(prepare, self.world.loop.now))
 
     def on_drone_refused(self, sid: int, error: StatusError) -> None:
         """Connect refused: node.py's on_connect_refused if it names a master, else reconnect."""
@@ -523,18 +523,6 @@ class SimController:
         self._apply(self.core.handover_notice(new_master, after_reqnr, epoch))
 
     # -- a prepared handover (docs/design.md, "Prepared handover") ----------------
-
-    def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
-        """ControllerNode.on_prepare (``ControllerCore.prepare``)."""
-        self._apply(
-            self.core.prepare(
-                prepare.target,
-                prepare.epoch,
-                prepare.timeout_s,
-                prepare.bound_bytes,
-                self.world.loop.now,
-            )
-        )
 
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
         """ControllerNode.preparation_progress (``RingLinks.progress``)."""
