@@ -320,7 +320,7 @@ class SimDrone:
 
     def _start(self, request: Request) -> None:
         """DroneService._invoke_to_the_end up to the execution."""
-        seq, now = self.seq, self.world.loop.now
+        now = self.world.loop.now
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         digest = request_digest(method, request.payload)
         if self.core.holds(request.proto()):
@@ -330,7 +330,6 @@ class SimDrone:
         try:
             admitted = self.core.admit(request.proto(), digest, request.received_at)
         except StatusError as err:
-            seq.rejected += 1  # DroneService.Invoke
             self._reply(request, None, err)
             return
         self._note_epoch(cid, request.epoch, reqnr)
@@ -455,7 +454,10 @@ class SimDrone:
         reply: drone_pb2.InvokeReply | None,
         error: StatusError | None = None,
     ) -> None:
-        """The reply (or the error) on its way back to the caller."""
+        """The reply (or the error) on its way back to the caller; every failure counts as
+        rejected (``Invocations.for_caller``)."""
+        if error is not None:
+            self.seq.rejected += 1
         link = request.link
         if link is None:
             return  # nobody waits for it (a garbled request)
