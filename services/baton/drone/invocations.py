@@ -23,7 +23,6 @@ from baton.digest import request_digest
 from baton.drone.dedupe import CachedReply
 from baton.drone.effects import DroneEffect, Switched
 from baton.drone.invariants import INVARIANT_EXIT, InvariantBroken
-from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.outcomes import failure_of
 from baton.tasks import TaskSet
@@ -182,8 +181,8 @@ class Invocations:
                 )
             if admitted.cached is not None:
                 return self._answer_duplicate(request, admitted.cached)
-            if store is not None:
-                store.begin(Intent(reqnr, method, digest, cid, received_at), admitted.kept)
+            if store is not None and admitted.intent is not None:
+                store.begin(admitted.intent, admitted.kept)
             try:
                 if admitted.refused is not None:
                     raise admitted.refused

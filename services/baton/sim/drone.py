@@ -338,7 +338,7 @@ class SimDrone:
             self._answer_duplicate(request, admitted.cached)
             return
         # admitted.kept is stored with the intent, in one transaction (store.begin)
-        self.intent = Intent(reqnr, method, digest, cid, request.received_at)
+        self.intent = admitted.intent
         if admitted.refused is not None:  # in failsafe, or beyond a bound: nothing executed
             self._failed(request, digest, admitted.refused)
             return
