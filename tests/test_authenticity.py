@@ -316,7 +316,7 @@ def test_a_takers_own_handover_message_sent_on_to_the_ring_is_believed(certs: Pa
     ring_keys, drone = keys(certs), pair(certs)[0]
     old = ControllerCore(started(0, [0, 1, 2], 1 << 20))
     old.protocol.seal = station(certs, 0).seal
-    old.granted(1, grant=grant(drone, 0, 1))
+    old.granted(drone_pb2.Connected(epoch=1, grant=grant(drone, 0, 1)))
     old.protocol.on_reply(
         ring_pb2.LogEntry(reqnr=1, method=NOW, reply=b"t", request_digest=NOW_DIGEST)
     )
