@@ -280,7 +280,7 @@ def test_the_protocol_seals_the_messages_it_creates(certs: Path) -> None:
     drone = pair(certs)[0]
     master = ControllerCore(started(0, [0, 1, 2], 0))
     master.protocol.seal = station(certs, 0).seal
-    master.granted(1, grant=grant(drone, 0, 1))
+    master.granted(drone_pb2.Connected(epoch=1, grant=grant(drone, 0, 1)))
     assert master.fresh_self().protocol.seal == master.protocol.seal
     # With a flush limit of 0 every reply is flushed at once.
     now_call = ring_pb2.LogEntry(reqnr=1, method=NOW, reply=b"t", request_digest=NOW_DIGEST)
@@ -316,7 +316,7 @@ def test_a_takers_own_handover_message_sent_on_to_the_ring_is_believed(certs: Pa
     ring_keys, drone = keys(certs), pair(certs)[0]
     old = ControllerCore(started(0, [0, 1, 2], 1 << 20))
     old.protocol.seal = station(certs, 0).seal
-    old.granted(1, grant=grant(drone, 0, 1))
+    old.granted(drone_pb2.Connected(epoch=1, grant=grant(drone, 0, 1)))
     old.protocol.on_reply(
         ring_pb2.LogEntry(reqnr=1, method=NOW, reply=b"t", request_digest=NOW_DIGEST)
     )

@@ -48,6 +48,20 @@ def kinds(effects: list) -> list[type]:
     return [type(effect) for effect in effects]
 
 
+def prepare(target: int, epoch: int, timeout_s: float) -> drone_pb2.PrepareHandover:
+    """The drone's word that it prepares a handover to ``target`` (no bound on the bytes)."""
+    return drone_pb2.PrepareHandover(target=target, epoch=epoch, timeout_s=timeout_s)
+
+
+def notice(
+    new_master: int, after_reqnr: int, epoch: int, takeover_epoch: int = 0
+) -> drone_pb2.HandoverNotice:
+    """A cooperative handover's notice on the Connect stream."""
+    return drone_pb2.HandoverNotice(
+        new_master=new_master, after_reqnr=after_reqnr, epoch=epoch, takeover_epoch=takeover_epoch
+    )
+
+
 def test_a_handover_notice_sends_the_log_and_with_cut_through_the_catch_up_first() -> None:
     core = master()
     effects = core.handover_notice(2, 0, 2)
@@ -84,14 +98,14 @@ def test_a_notice_after_a_takeover_that_replaced_our_log_fences_us() -> None:
     would put a second framing of them on the ring; we rejoin with nothing instead.
     Without a takeover since our mastership (back-to-back handovers), the log is the
     ring's and goes to the new master."""
-    replaced = master().stream_notice(2, 2, 5, takeover=False, takeover_epoch=3)
+    replaced = master().stream_notice(notice(2, 2, 5, takeover_epoch=3))
     assert kinds(replaced) == [Record, Note, DisconnectDrone, Rejoin]
     assert SendLog not in kinds(replaced)
-    handed = master().stream_notice(2, 2, 5, takeover=False, takeover_epoch=0)
+    handed = master().stream_notice(notice(2, 2, 5))
     assert kinds(handed)[-1] is SendLog
     older = master()
     older.protocol.on_granted(3)  # the takeover that made us master: our own log
-    assert kinds(older.stream_notice(2, 2, 4, takeover=False, takeover_epoch=3))[-1] is SendLog
+    assert kinds(older.stream_notice(notice(2, 2, 4, takeover_epoch=3)))[-1] is SendLog
 
 
 def test_fenced_drops_the_log_and_rejoins_once() -> None:
@@ -133,17 +147,19 @@ def test_a_refused_request_is_judged_by_epoch() -> None:
 
 def test_a_takeover_reconnects_and_its_grant_counts_as_a_takeover() -> None:
     core = ControllerCore(started(1, [0, 1, 2], 0))
-    effects = core.take_over(0, 2, 7, watermark_reqnr=0)
+    effects = core.take_over(drone_pb2.TakeOver(old_master=0, epoch=2, after_reqnr=7))
     assert kinds(effects) == [Record, Note, Reconnect]
+    record = effects[0]
+    assert isinstance(record, Record) and (record.epoch, record.drone_after_reqnr) == (2, 7)
     # The grant does not say takeover: its epoch is the TakeOver's.
-    core.granted(2, retained_through=0, takeover=False, watermark_reqnr=0)
+    core.granted(drone_pb2.Connected(epoch=2))
     assert core.first_new_call_due and core.protocol.state is State.ACTIVE
 
 
 def test_retained_replies_above_what_we_hold_are_kept_for_the_program() -> None:
     core = ControllerCore(started(1, [0, 1, 2], 0))
-    core.take_over(0, 2, 2, watermark_reqnr=0)
-    core.granted(2, retained_through=2, takeover=True)
+    core.take_over(drone_pb2.TakeOver(old_master=0, epoch=2, after_reqnr=2))
+    core.granted(drone_pb2.Connected(epoch=2, retained_through=2, takeover=True))
     digest = request_digest(GET, b"")
     replies = [
         drone_pb2.RetainedReply(reqnr=n, method=GET, request_digest=digest, reply=b"r", epoch=1)
@@ -279,13 +295,13 @@ def test_a_route_held_back_is_decided_again_when_the_hold_ends() -> None:
 
 def test_a_preparation_arms_its_end_and_a_handover_disarms_it() -> None:
     core = master()
-    effects = core.ready(core.prepare(2, 1, 3.0, 0, now=10.0), True, now=10.0)
+    effects = core.ready(core.prepare(prepare(2, 1, 3.0), now=10.0), True, now=10.0)
     end = 13.0 + PREPARE_GRACE_S
     assert timers(effects) == [Arm(Timer.PREPARATION, end)]
     over = core.timer_fired(Timer.PREPARATION, end, RingSight({}, drone_connected=True))
     assert kinds(over) == [Note] and core.protocol.preparing_for is None
     assert timers(core.ready(over, True, now=end)) == []
-    core.ready(core.prepare(2, 1, 3.0, 0, now=20.0), True, now=20.0)
+    core.ready(core.prepare(prepare(2, 1, 3.0), now=20.0), True, now=20.0)
     handed = core.handover_notice(2, 0, 2)
     assert timers(core.ready(handed, False, now=21.0)) == [Disarm(Timer.PREPARATION)]
 
@@ -424,10 +440,25 @@ def test_a_takeover_that_gives_the_role_back_keeps_the_log_no_takeover_replaced(
     master's takeover that framed our requests anew: fenced, as before."""
     core = master()
     core.protocol.on_reply(ring_pb2.LogEntry(reqnr=1, method=GET, reply=b"r"))
-    effects = core.granted(3, takeover=True, takeover_epoch=3)
+    effects = core.granted(drone_pb2.Connected(epoch=3, takeover=True, takeover_epoch=3))
     assert Rejoin not in kinds(effects) and core.protocol.state is State.ACTIVE
     assert core.protocol.epoch == 3 and core.protocol.held_reqnr == 1
     later = master()
-    assert Rejoin in kinds(later.granted(4, takeover=True, takeover_epoch=4))
+    assert Rejoin in kinds(
+        later.granted(drone_pb2.Connected(epoch=4, takeover=True, takeover_epoch=4))
+    )
     handed_back = master()  # a handover grant after another's takeover: replaced
-    assert Rejoin in kinds(handed_back.granted(4, takeover_epoch=3))
+    assert Rejoin in kinds(handed_back.granted(drone_pb2.Connected(epoch=4, takeover_epoch=3)))
+
+
+def test_the_connect_names_the_mastership_whose_log_we_hold_and_what_it_holds() -> None:
+    """ConnectRequest as both drivers send it (``ControllerCore.connect_request``): a
+    replica names no mastership; the master its epoch and the request its log holds."""
+    replica = ControllerCore(started(1, [0, 1, 2], 0))
+    assert replica.connect_request() == drone_pb2.ConnectRequest(controller_id=1)
+    core = master()
+    entry = ring_pb2.LogEntry(reqnr=1, method=GET, request_digest=request_digest(GET, b""))
+    core.protocol.on_reply(entry)
+    request = core.connect_request()
+    assert (request.controller_id, request.mastership_epoch) == (0, 1)
+    assert (request.holds_reqnr, request.given_up_epoch) == (1, 0)

@@ -10,7 +10,7 @@ from baton.controller.core import ControllerCore, RouteTo
 from baton.controller.history import LogHistory
 from baton.controller.link_core import BACKOFF_INITIAL_S, BACKOFF_MAX_S, LinkCore, RelayCore
 from baton.controller.links import RingLinks
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 
 def message(lognr: int, epoch: int = 1, handover: bool = False) -> ring_pb2.LogMessage:
@@ -273,7 +273,7 @@ def test_the_progress_word_counts_the_acks_of_a_stream_opened_since_it_began() -
     links = RingLinks(LogHistory(), lambda: core.protocol.successor, FakeLink)
     old = links.peer(2)
     old.core.counters.acked = 5  # acknowledgements of messages sent before
-    core.prepare(2, 1, 10.0, 0, now=0.0)
+    core.prepare(drone_pb2.PrepareHandover(target=2, epoch=1, timeout_s=10.0), now=0.0)
     links.preparing(2)
     progress = links.progress(core, now=0.0)
     assert progress is not None and progress.acked == 0  # none since it began

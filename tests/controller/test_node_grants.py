@@ -43,7 +43,9 @@ async def test_a_taker_with_nothing_is_granted_by_the_connected_event_alone() ->
     retained = [
         drone_pb2.RetainedReply(reqnr=3, method=POSITION, request_digest=DIGEST, reply=b"3")
     ]
-    await node.on_granted(session, 6, 3, takeover=True, watermark_reqnr=2)
+    await node.on_granted(
+        session, drone_pb2.Connected(epoch=6, retained_through=3, takeover=True, watermark_reqnr=2)
+    )
     await node.on_retained(session, retained)
     p = node.protocol
     assert p.master and p.state is State.PASSIVE and not p.caught_up
@@ -114,7 +116,9 @@ async def test_a_taker_answers_its_program_from_each_retained_batch_as_it_comes(
     session: Any = NoDrone()
     node.drone = session
     await node.on_sync(0, SyncWord(0, 0, 0, 0))
-    await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
+    await node.on_granted(
+        session, drone_pb2.Connected(epoch=2, retained_through=3, takeover=True, watermark_reqnr=0)
+    )
     p = node.protocol
     assert p.state is State.ACTIVE and node.core.retained_through == 3
 
@@ -128,7 +132,9 @@ async def test_a_taker_answers_its_program_from_each_retained_batch_as_it_comes(
     await settle()
     assert not second.done()
     # The stream broke before the next batch: the Connect again says 2 and 3 are to come.
-    await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
+    await node.on_granted(
+        session, drone_pb2.Connected(epoch=2, retained_through=3, takeover=True, watermark_reqnr=0)
+    )
     await node.on_retained(session, [kept(2), kept(3)])
     assert (await asyncio.wait_for(second, 5)).reply == b"2"
     assert (await node.program.call(POSITION, b"")).reply == b"3"
@@ -146,7 +152,9 @@ async def test_a_taker_holding_a_replaced_framing_rejoins_before_it_sends_a_requ
     node, session, rejoins = await taker_of_three()
     await node.on_log(ring_pb2.LogMessage(lognr=1, origin=0, epoch=1, entries=[entry(1)]))
     await node.on_log(ring_pb2.LogMessage(lognr=2, origin=0, epoch=1, entries=[entry(2)]))
-    await node.on_granted(session, 7, 2, takeover=True, watermark_reqnr=0)
+    await node.on_granted(
+        session, drone_pb2.Connected(epoch=7, retained_through=2, takeover=True, watermark_reqnr=0)
+    )
     p = node.protocol
     assert (await node.program.call(POSITION, b"")).reply == b"1"  # replayed from the log
     assert (await node.program.call(POSITION, b"")).reply == b"2"
@@ -176,7 +184,9 @@ async def test_a_give_up_of_a_retained_reply_a_lost_master_acted_on_is_not_logge
     The master's log is flushed first and kept for its fresh self (``restart_program``):
     it may be the only copy left (--lose-master seeds 10688, 11795)."""
     node, session, rejoins = await taker_of_three()
-    await node.on_granted(session, 2, 3, takeover=True, watermark_reqnr=0)
+    await node.on_granted(
+        session, drone_pb2.Connected(epoch=2, retained_through=3, takeover=True, watermark_reqnr=0)
+    )
     p = node.protocol
     assert p.state is State.ACTIVE and node.core.retained_through == 3
 
@@ -212,7 +222,9 @@ async def test_a_give_up_of_the_last_retained_reply_is_logged() -> None:
     session: Any = NoDrone()
     node.drone = session
     await node.on_sync(0, SyncWord(0, 0, 0, 0))
-    await node.on_granted(session, 2, 1, takeover=True, watermark_reqnr=0)
+    await node.on_granted(
+        session, drone_pb2.Connected(epoch=2, retained_through=1, takeover=True, watermark_reqnr=0)
+    )
     p = node.protocol
     first = asyncio.create_task(node.program.call(POSITION, b""))
     await settle()
@@ -241,7 +253,9 @@ async def test_a_give_up_before_the_connected_event_waits_for_what_the_drone_ret
     first.cancel()
     await settle()
     assert p.reqnr == 0  # not logged: the drone may retain an answer
-    await node.on_granted(session, 3, 3, takeover=False, watermark_reqnr=0)
+    await node.on_granted(
+        session, drone_pb2.Connected(epoch=3, retained_through=3, takeover=False, watermark_reqnr=0)
+    )
     await node.on_retained(session, [kept(1), kept(2), kept(3)])
     second = asyncio.create_task(node.program.call(POSITION, b""))
     try:

@@ -34,7 +34,7 @@ async def active_master() -> ControllerNode:
     session = connected_session()
     node.drone = session
     await node.on_sync(2, SyncWord(0, 0, 0, 0))  # the predecessor holds nothing: caught up
-    await node.on_granted(session, 1, 0)
+    await node.on_granted(session, drone_pb2.Connected(epoch=1))
     assert node.protocol.state is State.ACTIVE
     return node
 
@@ -47,7 +47,13 @@ def test_an_older_preparations_time_does_not_end_a_newer_one() -> None:
     core = ControllerCore(started(0, [0, 1, 2], 0))
     arms = []
     for target, at, timeout_s in ((2, 0.0, 0.01), (1, 1.0, 0.01), (2, 2.0, 30.0)):
-        effects = core.ready(core.prepare(target, 1, timeout_s, 0, now=at), True, now=at)
+        effects = core.ready(
+            core.prepare(
+                drone_pb2.PrepareHandover(target=target, epoch=1, timeout_s=timeout_s), now=at
+            ),
+            True,
+            now=at,
+        )
         arms += [e for e in effects if isinstance(e, Arm)]
     ends = [0.01 + PREPARE_GRACE_S, 1.01 + PREPARE_GRACE_S, 34.0]
     assert arms == [Arm(Timer.PREPARATION, end) for end in ends]

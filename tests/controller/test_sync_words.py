@@ -48,7 +48,7 @@ def signed_core(keys: SimKeys, cid: int, initial_master: int = 0) -> ControllerC
     core = ControllerCore(p)
     core.keys = keys.keys
     if cid == initial_master:
-        core.granted(1, grant=grant(keys, cid, 1))
+        core.granted(drone_pb2.Connected(epoch=1, grant=grant(keys, cid, 1)))
     return core
 
 

@@ -9,9 +9,11 @@ from typing import TypeVar
 import grpc
 import pytest
 
+from baton.authenticity import signed_reply, signed_retained
 from baton.digest import request_digest
 from baton.drone.connects import ConnectStream
 from baton.drone.core import RESTART_GRACE_S, DroneCore, Kept
+from baton.drone.dedupe import CachedReply
 from baton.drone.effects import (
     Abandon,
     Book,
@@ -23,11 +25,14 @@ from baton.drone.effects import (
     TellTakeOver,
     pins_policy,
 )
+from baton.drone.invocations import answered_again
 from baton.drone.policy import HANDOVER, MOVED, PREPARE, SWITCH, Decision
 from baton.drone.safety import ModeSeen, SafetyParams
 from baton.drone.sequencer import ScriptedHandover, Sequencer
+from baton.drone.sight import DroneSight
 from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
+from baton.sim.lying import sim_keys
 from baton.v1 import drone_api_pb2 as api
 from baton.v1 import drone_pb2
 
@@ -300,3 +305,54 @@ def test_a_call_that_needs_the_vehicle_is_unavailable_while_it_is_not_connected(
     assert "not connected" in refused.message and not drone.books(refused)
     assert drone.unreachable(method, True, "") is None
     assert drone.unreachable("/baton.v1.Camera/SetResolution", False, "") is None
+
+
+def test_a_connect_stream_signs_the_retained_replies_the_drone_made() -> None:
+    """The retained replies leave in batches signed with the drone's key
+    (``ConnectStream.opened``, for the service and the simulation alike); unsigned
+    without one."""
+    drone = core()
+    digest = request_digest(GET, b"")
+    for reqnr in (1, 2):
+        drone.seq.admit(0, 1, reqnr, GET, digest)
+        drone.seq.served(0, reqnr, GET, digest, b"x" * 40, float(reqnr), float(reqnr))
+    signer = sim_keys(0, [0, 1, 2]).drone
+    _, signed = ConnectStream(0, signer).opened(drone, holds_reqnr=0, batch_bytes=64)
+    assert [[reply.reqnr for reply in batch] for batch in signed] == [[1], [2]]
+    kept = drone.seq.cache.get(1)
+    assert kept is not None
+    assert signed[0][0] == signed_retained(signer, kept.to_proto())
+    assert signed[0][0].signature
+    _, unsigned = ConnectStream(0).opened(drone, holds_reqnr=0, batch_bytes=64)
+    assert not unsigned[0][0].signature
+
+
+def test_a_duplicate_is_answered_with_the_cached_reply_or_its_failure_again() -> None:
+    """``invocations.answered_again``: the reply as served, marked a duplicate and signed;
+    a cached failure raised again, marked a duplicate's."""
+    signer = sim_keys(0, [0, 1, 2]).drone
+    digest = request_digest(GET, b"")
+    reply = answered_again(signer, 3, CachedReply(3, GET, digest, b"here", epoch=2))
+    assert (reply.reqnr, reply.payload, reply.epoch, reply.duplicate) == (3, b"here", 2, True)
+    assert reply == signed_reply(signer, 3, 2, GET, digest, b"here", duplicate=True)
+    failure = StatusError(grpc.StatusCode.ABORTED, "the vehicle refused")
+    with pytest.raises(StatusError) as raised:
+        answered_again(signer, 3, CachedReply(3, GET, digest, b"", failure, epoch=2))
+    assert raised.value.code is grpc.StatusCode.ABORTED
+    assert ("baton-duplicate", "true") in raised.value.metadata
+
+
+def test_the_watches_see_the_master_serve_only_while_it_holds_its_connect_stream() -> None:
+    """``DroneSight``: the master watch is given the master as serving exactly when the
+    sight says it holds its Connect stream; the failsafe watch the same holders."""
+    drone = core()
+    drone.seq.switch(1, RPC, 10.0)
+    connected = DroneSight({0, 1, 2}, master_connected=True)
+    assert connected.connected(drone) == {1}
+    assert connected.takeover_due(drone, 12.0) is None  # served at 12
+    unconnected = DroneSight({0, 1, 2}, master_connected=False)
+    assert unconnected.connected(drone) == set()
+    assert unconnected.takeover_due(drone, 15.9) is None
+    due = unconnected.takeover_due(drone, 16.0)
+    assert due is not None and (due.new_master, due.lost) == (2, 1)
+    assert kinds(unconnected.master_watch(drone, 16.0))[:2] == [SaveCounters, Switched]

@@ -658,21 +658,16 @@ class ControllerCore:
 
     # -- the drone's word ------------------------------------------------------------
 
-    def granted(
-        self,
-        epoch: int,
-        retained_through: int = 0,
-        takeover: bool = False,
-        watermark_reqnr: int = 0,
-        takeover_epoch: int = 0,
-        grant: drone_pb2.Grant | None = None,
-    ) -> list[CoreEffect]:
-        """The drone's Connected event: master in ``epoch`` (``grant``: its word, signed).
-        The retained replies above what we hold follow, up to ``retained_through``
-        (``retained_batch``); a takeover's grant must hold every request up to the
-        watermark before it goes ACTIVE.
+    def granted(self, connected: drone_pb2.Connected) -> list[CoreEffect]:
+        """The drone's Connected event: master in its ``epoch`` (``grant``: its word,
+        signed). The retained replies above what we hold follow, up to
+        ``retained_through`` (``retained_batch``); a takeover's grant must hold every
+        request up to the watermark before it goes ACTIVE.
         Raises ProtocolError as ``ControllerProtocol.on_granted`` does."""
         p = self.protocol
+        epoch, retained_through = connected.epoch, connected.retained_through
+        takeover, takeover_epoch = connected.takeover, connected.takeover_epoch
+        grant = connected.grant if connected.HasField("grant") else None
         if p.log_given_up(takeover_epoch) and not p.taken_back(epoch, takeover, takeover_epoch):
             note = Note(
                 "warning",
@@ -688,7 +683,7 @@ class ControllerCore:
         was_active = p.state is State.ACTIVE
         takeover = takeover or epoch == self.takeover_epoch
         self.first_new_call_due = takeover
-        watermark = max(self.takeover_watermark, watermark_reqnr)
+        watermark = max(self.takeover_watermark, connected.watermark_reqnr)
         effects: list[CoreEffect] = list(p.on_granted(epoch, takeover, watermark, grant))
         if not was_active:
             fields = {"epoch": epoch, "takeover": takeover, "caught_up": p.caught_up}
@@ -728,12 +723,12 @@ class ControllerCore:
             return [note, *self.rejoin()]
         return []
 
-    def take_over(
-        self, old_master: int, epoch: int, after_reqnr: int, watermark_reqnr: int
-    ) -> list[CoreEffect]:
+    def take_over(self, event: drone_pb2.TakeOver) -> list[CoreEffect]:
         """The drone made us master by takeover (the standby stream's TakeOver): connect
         again to learn the epoch; the replies we lack follow the Connected."""
         p = self.protocol
+        old_master, epoch = event.old_master, event.epoch
+        after_reqnr, watermark_reqnr = event.after_reqnr, event.watermark_reqnr
         self.takeover_epoch = epoch
         self.takeover_watermark = watermark_reqnr
         fields = {
@@ -832,23 +827,18 @@ class ControllerCore:
         fields = {"reqnr": reqnr, "sent_epoch": sent_epoch, "drone_epoch": refusal.epoch}
         return [Note("info", "stale request refused by the drone", fields)]
 
-    def stream_notice(
-        self,
-        new_master: int,
-        after_reqnr: int,
-        epoch: int,
-        takeover: bool,
-        grant: drone_pb2.Grant | None = None,
-        takeover_epoch: int = 0,
-        takeover_watermark: int = 0,
-    ) -> list[CoreEffect]:
+    def stream_notice(self, notice: drone_pb2.HandoverNotice) -> list[CoreEffect]:
         """A handover notice on the Connect stream (the drone owes at most one, the latest).
 
-        A takeover's notice fences us (``takeover_watermark``: the drone's at that
+        A takeover's notice fences us (``takeover_watermark_reqnr``: the drone's at that
         takeover); so does one whose drone took over after our mastership
         (``takeover_epoch``, ``ControllerProtocol.log_given_up``): our log was replaced
         by the taker's framing, and handing it over would put a second framing of the
         same requests on the ring."""
+        new_master, after_reqnr, epoch = notice.new_master, notice.after_reqnr, notice.epoch
+        takeover, takeover_epoch = notice.takeover, notice.takeover_epoch
+        takeover_watermark = notice.takeover_watermark_reqnr
+        grant = notice.grant if notice.HasField("grant") else None
         if takeover:
             return self.fenced(new_master, epoch, takeover_watermark)
         if self.protocol.log_given_up(takeover_epoch):
@@ -1015,16 +1005,16 @@ class ControllerCore:
 
     # -- a prepared handover (docs/design.md, "Prepared handover") ----------------------
 
-    def prepare(
-        self, target: int, epoch: int, timeout_s: float, bound_bytes: int, now: float
-    ) -> list[CoreEffect]:
-        """The drone plans a handover to ``target``: it is caught up straight from us while
-        the mission goes on; the drone moves the master once it lacks at most
+    def prepare(self, prepare: drone_pb2.PrepareHandover, now: float) -> list[CoreEffect]:
+        """The drone plans a handover to its ``target``: it is caught up straight from us
+        while the mission goes on; the drone moves the master once it lacks at most
         ``bound_bytes`` (``progress`` on every Invoke, ``report_due`` between them). If
         we hear nothing by the drone's timeout and a grace (its notice is owed on our
         stream), we stop flushing every entry (``preparation_over``). Nothing if we are
-        not ACTIVE in ``epoch`` (the drone's word came late)."""
+        not ACTIVE in its ``epoch`` (the drone's word came late)."""
         p = self.protocol
+        target, epoch, timeout_s = prepare.target, prepare.epoch, prepare.timeout_s
+        bound_bytes = prepare.bound_bytes
         try:
             effects = p.on_prepare(target, epoch)
         except ProtocolError as exc:
@@ -1109,6 +1099,19 @@ class ControllerCore:
         """InvokeRequest.adopted_from_reqnr: the first request of this mastership answered
         from the retained replies (0: none)."""
         return self.adopted[1] if self.adopted[0] == self.protocol.epoch else 0
+
+    def connect_request(self) -> drone_pb2.ConnectRequest:
+        """The Connect we send now, read at every (re)connect: the epoch of the mastership
+        whose log we may hold alone (the drone fences us if a takeover gave it up), the
+        request number that log holds up to, and a mastership an earlier self gave up
+        (its fresh self is granted a new epoch)."""
+        p = self.protocol
+        return drone_pb2.ConnectRequest(
+            controller_id=p.id,
+            mastership_epoch=p.log_mastership_epoch,
+            holds_reqnr=p.held_reqnr,
+            given_up_epoch=p.given_up_epoch,
+        )
 
     def carried(self, preparation: drone_pb2.PreparationProgress | None) -> drone_pb2.InvokeRequest:
         """What a drone call carries beside the request (InvokeRequest's fields): the

@@ -267,19 +267,15 @@ class DroneSession:
         channel: grpc.aio.Channel,
         events: DroneEvents,
         log: BoundLogger,
-        mastership_epoch: Callable[[], int] = lambda: 0,
-        holds_reqnr: Callable[[], int] = lambda: 0,
-        given_up_epoch: Callable[[], int] = lambda: 0,
+        connect_request: Callable[[], drone_pb2.ConnectRequest] | None = None,
     ) -> None:
         """``channel``: the session's own to ``address`` (it closes it), connected in
         advance or not (``WarmChannel.take``)."""
         self.controller_id = controller_id
-        # Read at every (re)connect: the epoch of the mastership whose log the
-        # controller holds, which the drone fences if a takeover gave it up.
-        self._mastership_epoch = mastership_epoch
-        self._holds_reqnr = holds_reqnr  # and the request number its log holds up to
-        # and the mastership an earlier self gave up (a new epoch for its fresh self)
-        self._given_up_epoch = given_up_epoch
+        # The Connect, read at every (re)connect (``ControllerCore.connect_request``).
+        self._connect_request = connect_request or (
+            lambda: drone_pb2.ConnectRequest(controller_id=controller_id)
+        )
         self.address = address
         self._events_to = events
         self._log = log
@@ -306,15 +302,7 @@ class DroneSession:
         backoff = 0.05
         while True:
             try:
-                call = self._stub.Connect(
-                    drone_pb2.ConnectRequest(
-                        controller_id=self.controller_id,
-                        mastership_epoch=self._mastership_epoch(),
-                        holds_reqnr=self._holds_reqnr(),
-                        given_up_epoch=self._given_up_epoch(),
-                    ),
-                    wait_for_ready=True,
-                )
+                call = self._stub.Connect(self._connect_request(), wait_for_ready=True)
                 async for event in call:
                     if event.HasField("connected"):
                         if self.t_conn_s is None:

@@ -16,6 +16,8 @@ The rules:
   or the ring went on past it (``settle_handovers``), never before: a history
   copy re-sent ahead of it would overtake it.
 - A link routed away from is let go once it owes nothing.
+- A link down counts for the route once it carries something: one kept open only
+  for a handover to come is not routed around.
 - A preparation's progress counts the acknowledgements of the stream the count
   began on: a link made since counts from 0.
 """
@@ -120,6 +122,14 @@ class RingLinks(Generic[L]):
         for link in list(self.links.values()):
             for message in link.core.settle_handovers(settled):
                 self.handover_acked(message)
+
+    def send(self, dest: int, message: ring_pb2.LogMessage) -> bool:
+        """Sends ``message`` on the link to ``dest``; True when the route must be judged
+        again: a link down counts for the route once it carries something."""
+        link = self.peer(dest)
+        unused = not link.core.used
+        link.send(message)
+        return unused and not link.core.up
 
     def send_catch_up(self, core: ControllerCore, target: int) -> list[ring_pb2.LogMessage]:
         """What a handover's target may lack, straight to it (``ControllerCore.catch_up``)."""

@@ -28,7 +28,6 @@ from baton.controller.core import (
     ControllerCore,
     CoreEffect,
     Fail,
-    Note,
     Reconnect,
     Rejoin,
     RepairGap,
@@ -278,11 +277,7 @@ class ControllerNode:
     async def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
         """The drone plans a handover (``ControllerCore.prepare``)."""
         now = asyncio.get_running_loop().time()
-        await self.apply(
-            self.core.prepare(
-                prepare.target, prepare.epoch, prepare.timeout_s, prepare.bound_bytes, now
-            )
-        )
+        await self.apply(self.core.prepare(prepare, now))
 
     def preparation_progress(self) -> drone_pb2.PreparationProgress | None:
         """How far a prepared handover's target is behind us (``RingLinks.progress``)."""
@@ -400,18 +395,15 @@ class ControllerNode:
                 # The program's answer, most effects of a replay: nothing to report or keep.
                 self.program.seen(effect.entry)
                 continue
-            note = effect if isinstance(effect, Note) else note_of(effect, self.protocol.epoch)
+            note = note_of(effect, self.protocol.epoch)
             if note is not None:
                 getattr(self.log, note.level)(note.text, **note.fields)
             self.handovers.take(effect, time.time())
             if self.books.apply(effect):
                 continue
             if isinstance(effect, SendLog):
-                link = self.peer(effect.dest)
-                unused = not link.used
-                link.send(effect.message)
-                if unused and not link.stream_up:
-                    self._ring_changed()  # a link down counts for the route once used
+                if self.ring.send(effect.dest, effect.message):
+                    self._ring_changed()
             elif isinstance(effect, ConnectDrone):
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
@@ -445,9 +437,7 @@ class ControllerNode:
             channel,
             events,
             self.log,
-            mastership_epoch=lambda: self.protocol.log_mastership_epoch,
-            holds_reqnr=lambda: self.protocol.held_reqnr,
-            given_up_epoch=lambda: self.protocol.given_up_epoch,
+            connect_request=lambda: self.core.connect_request(),
         )
         events.session = self.drone
         self.drone.open()
@@ -467,25 +457,12 @@ class ControllerNode:
 
     # -- events -----------------------------------------------------------------------
 
-    async def on_granted(
-        self,
-        session: DroneSession,
-        epoch: int,
-        retained_through: int = 0,
-        takeover: bool = False,
-        watermark_reqnr: int = 0,
-        takeover_epoch: int = 0,
-        grant: drone_pb2.Grant | None = None,
-    ) -> None:
-        """The drone's Connected event: this controller is master in ``epoch``
+    async def on_granted(self, session: DroneSession, connected: drone_pb2.Connected) -> None:
+        """The drone's Connected event: this controller is master in its epoch
         (``ControllerCore.granted``)."""
         if session is not self.drone:
             return  # a session closed meanwhile
-        await self.apply(
-            self.core.granted(
-                epoch, retained_through, takeover, watermark_reqnr, takeover_epoch, grant
-            )
-        )
+        await self.apply(self.core.granted(connected))
 
     async def on_retained(
         self, session: DroneSession, replies: Sequence[drone_pb2.RetainedReply]
@@ -497,11 +474,7 @@ class ControllerNode:
 
     async def on_take_over(self, event: drone_pb2.TakeOver) -> None:
         """The drone made us master by takeover (``ControllerCore.take_over``)."""
-        await self.apply(
-            self.core.take_over(
-                event.old_master, event.epoch, event.after_reqnr, event.watermark_reqnr
-            )
-        )
+        await self.apply(self.core.take_over(event))
 
     async def _rejoin(self) -> None:
         try:
@@ -524,17 +497,7 @@ class ControllerNode:
         """A handover notice on the Connect stream (``ControllerCore.stream_notice``)."""
         if session is not self.drone:
             return
-        await self.apply(
-            self.core.stream_notice(
-                notice.new_master,
-                notice.after_reqnr,
-                notice.epoch,
-                notice.takeover,
-                notice.grant if notice.HasField("grant") else None,
-                notice.takeover_epoch,
-                notice.takeover_watermark_reqnr,
-            )
-        )
+        await self.apply(self.core.stream_notice(notice))
 
     async def on_sync(self, from_id: int, word: SyncWord) -> None:
         """A ring stream's sync frame from controller ``from_id``: what it holds, and the

@@ -16,7 +16,10 @@ from baton.v1 import ring_pb2
 
 
 def note_of(effect: CoreEffect, epoch: int) -> Note | None:
-    """The line ``effect`` is reported with; ``epoch``: the controller's now."""
+    """The line ``effect`` is reported with (a ``Note`` is its own); ``epoch``: the
+    controller's now."""
+    if isinstance(effect, Note):
+        return effect
     if isinstance(effect, SendLog):
         message = effect.message
         return Note(

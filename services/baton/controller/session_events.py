@@ -29,17 +29,7 @@ class SessionEvents:
 
     def granted(self, connected: drone_pb2.Connected) -> None:
         assert self.session is not None
-        self._run(
-            self._node.on_granted(
-                self.session,
-                connected.epoch,
-                connected.retained_through,
-                connected.takeover,
-                connected.watermark_reqnr,
-                connected.takeover_epoch,
-                connected.grant if connected.HasField("grant") else None,
-            )
-        )
+        self._run(self._node.on_granted(self.session, connected))
 
     def retained(self, replies: Sequence[drone_pb2.RetainedReply]) -> None:
         assert self.session is not None

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from baton.authenticity import Signer, signed_retained
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import RETAINED_BATCH_BYTES, CachedReply
 from baton.v1 import drone_pb2
@@ -30,17 +31,26 @@ class ConnectStream:
     """One Connect stream's state: what it already said."""
 
     controller_id: int
+    # Signs the retained replies the drone made (``authenticity.signed_retained``);
+    # None: unsigned.
+    signer: Signer | None = None
     # The PrepareHandover last sent on it, and the operator's pause as it last told it.
     sent_prepare: drone_pb2.PrepareHandover | None = None
     said_paused: str = ""
 
     def opened(
         self, core: DroneCore, holds_reqnr: int, batch_bytes: int = RETAINED_BATCH_BYTES
-    ) -> tuple[drone_pb2.Connected | None, list[list[CachedReply]]]:
+    ) -> tuple[drone_pb2.Connected | None, list[list[drone_pb2.RetainedReply]]]:
         """What the stream carries first: the grant and the retained replies in batches
         for the master; (None, []) for an old master owed a notice."""
         first = core.connected(self.controller_id, holds_reqnr, batch_bytes)
-        return (None, []) if first is None else first
+        if first is None:
+            return None, []
+        grant, batches = first
+        return grant, [[self._retained(kept) for kept in batch] for batch in batches]
+
+    def _retained(self, kept: CachedReply) -> drone_pb2.RetainedReply:
+        return signed_retained(self.signer, kept.to_proto())
 
     def woken(self, core: DroneCore, operator_words: bool = True) -> list[StreamEvent]:
         """What to write now, in order; a HandoverNotice, if any, is last and ends the

@@ -133,8 +133,9 @@ def needs_vehicle(route: Method) -> bool:
 class Admitted:
     """A request the drone admitted: answered from the cache (``cached``), or to execute.
 
-    ``kept`` are the master's own answers (and adopted replies) to store with
-    the request's intent, in one transaction; ``first`` the handover record the
+    ``intent`` is what the store keeps of it until its outcome is booked (a
+    restart finds it cut off), with ``kept``, the master's own answers (and
+    adopted replies), in one transaction; ``first`` the handover record the
     request completed as its new master's first, if it did.
     """
 
@@ -144,6 +145,7 @@ class Admitted:
     # Admitted but refused before execution (failsafe, a bound): the request's
     # outcome, booked like a failure of the vehicle, nothing executed.
     refused: StatusError | None = None
+    intent: Intent | None = None  # None for one answered from the cache
 
 
 @dataclass(frozen=True)
@@ -293,8 +295,8 @@ class DroneCore:
             self.serve_within_s,
         )
 
-    def takeover_owed(self, controller_id: int) -> drone_pb2.HandoverRecord | None:
-        """The takeover to tell ``controller_id`` again on a new standby stream: it is the
+    def takeover_owed(self, controller_id: int) -> drone_pb2.TakeOver | None:
+        """The TakeOver to tell ``controller_id`` again on a new standby stream: it is the
         taker and has sent no request since (the stream that carried it may have broken)."""
         seq = self.seq
         if controller_id != seq.master or not seq.handovers:
@@ -302,7 +304,7 @@ class DroneCore:
         record = seq.handovers[-1]
         if record.kind != drone_pb2.HANDOVER_KIND_TAKEOVER or record.first_request_at:
             return None
-        return record
+        return take_over_event(record, seq.cache.watermark)
 
     # -- the safety net ---------------------------------------------------------------
 
@@ -636,7 +638,9 @@ class DroneCore:
         kept = seq.keep(answers) + tuple(
             seq.adopt(cid, request.epoch, request.adopted_from_reqnr, request.reqnr)
         )
-        return Admitted(None, kept, first, self.refusal(request.method, request.payload))
+        refused = self.refusal(request.method, request.payload)
+        intent = Intent(request.reqnr, request.method, digest, cid, received_at)
+        return Admitted(None, kept, first, refused, intent)
 
     def _check(self, cid: int, epoch: int, reqnr: int) -> None:
         """The drone's invariants after an admission (``invariants.DroneWatch``)."""

@@ -74,17 +74,14 @@ class FailsafeWatch:
         """``DroneCore.failsafe_check`` with the vehicle's flight state and position, who
         holds a stream now, who is in range, and the station nearest the vehicle."""
         service = self.service
-        in_range = service.policy.in_range() if service.policy is not None else None
-        holders = service.standby.reachable | service.streams.holders
         nearest = nearest_station(here, service.stations)
-        due = service.core.failsafe_check(
+        due = service.sight().failsafe_check(
+            service.core,
             time.time(),
             state.in_air,
             state.battery_percent,
             here,
             mode_seen(state),
-            holders,
-            in_range,
             nearest,
         )
         service.keep_command()  # the vehicle seen in the air since the command

@@ -18,12 +18,11 @@ from typing import TYPE_CHECKING, Any
 
 import grpc
 
-from baton.authenticity import signed_reply
+from baton.authenticity import Signer, signed_reply
 from baton.digest import request_digest
 from baton.drone.dedupe import CachedReply
 from baton.drone.effects import DroneEffect, Switched
 from baton.drone.invariants import INVARIANT_EXIT, InvariantBroken
-from baton.drone.store import Intent
 from baton.rpc.errors import StatusError
 from baton.rpc.outcomes import failure_of
 from baton.tasks import TaskSet
@@ -182,8 +181,8 @@ class Invocations:
                 )
             if admitted.cached is not None:
                 return self._answer_duplicate(request, admitted.cached)
-            if store is not None:
-                store.begin(Intent(reqnr, method, digest, cid, received_at), admitted.kept)
+            if store is not None and admitted.intent is not None:
+                store.begin(admitted.intent, admitted.kept)
             try:
                 if admitted.refused is not None:
                     raise admitted.refused
@@ -211,18 +210,7 @@ class Invocations:
             method=request.method,
             failed=cached.error is not None,
         )
-        error = cached.duplicate_error()
-        if error is not None:
-            raise error
-        return signed_reply(
-            self.service.signer,
-            request.reqnr,
-            cached.epoch,
-            cached.method,
-            cached.digest,
-            cached.reply,
-            duplicate=True,
-        )
+        return answered_again(self.service.signer, request.reqnr, cached)
 
     async def _execute(self, request: drone_pb2.InvokeRequest) -> bytes:
         service = self.service
@@ -272,3 +260,14 @@ class Invocations:
         self.service.apply(effects, notice_delay_s=hold)
         if any(isinstance(effect, Switched) for effect in effects):
             self.handed_over_after = reqnr
+
+
+def answered_again(signer: Signer | None, reqnr: int, cached: CachedReply) -> drone_pb2.InvokeReply:
+    """A duplicate of request ``reqnr`` answered from the reply cache: its failure raised
+    again (StatusError), or its reply as it was served, signed as a duplicate."""
+    error = cached.duplicate_error()
+    if error is not None:
+        raise error
+    return signed_reply(
+        signer, reqnr, cached.epoch, cached.method, cached.digest, cached.reply, duplicate=True
+    )

@@ -16,13 +16,13 @@ from typing import Any
 
 import grpc
 
-from baton.authenticity import Signer, signed_retained
+from baton.authenticity import Signer
 from baton.drone.applier import Applier
 from baton.drone.camera import Camera
 from baton.drone.connects import ConnectStream
 from baton.drone.core import WATCH_TICK_S, DroneCore
 from baton.drone.dispatch import Dispatcher
-from baton.drone.effects import DroneEffect, Preparing, take_over_event
+from baton.drone.effects import DroneEffect, Preparing
 from baton.drone.failsafe_watch import FailsafeWatch
 from baton.drone.invariants import DroneWatch, checking
 from baton.drone.invocations import Invocations
@@ -34,8 +34,9 @@ from baton.drone.policy import LinkBounds, LinkState, Station
 from baton.drone.policy_runner import PolicyRunner
 from baton.drone.restore import VEHICLE_COMMAND_KEY, restore
 from baton.drone.safety import SafetyParams
-from baton.drone.sequencer import Sequencer, TakeoverDue
+from baton.drone.sequencer import Sequencer
 from baton.drone.settings import Race
+from baton.drone.sight import DroneSight
 from baton.drone.status import StallWatcher, drone_status
 from baton.drone.store import DroneStore, Intent
 from baton.logs import get_logger
@@ -153,16 +154,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         """Every tick: the master taken over when it is lost, a preparation forced at its
         deadline (``DroneCore.master_watch``)."""
         while True:
-            if self._takeover_due() is not None or self.seq.preparing is not None:
+            due = self.sight().takeover_due(self.core, time.time())
+            if due is not None or self.seq.preparing is not None:
                 async with self._lock:
                     # Asked again under the lock: a request may have come meanwhile.
-                    in_range = self.policy.in_range() if self.policy is not None else None
                     where = self.policy.position if self.policy is not None else None
-                    self.apply(
-                        self.core.master_watch(
-                            time.time(), *self._stream_holders(), in_range, where
-                        )
-                    )
+                    self.apply(self.sight().master_watch(self.core, time.time(), where))
             await asyncio.sleep(WATCH_TICK_S)
 
     def commanded(self, action: str | None) -> None:
@@ -223,7 +220,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         start-up grace (``unseen_from``), as the takeover watch counts it: the
         controllers come up one by one, and the first to come must not take the
         master over from one still starting."""
-        up = self.standby.reachable | self.streams.holders
+        up = self.sight().holders
         now, clock = time.time(), time.monotonic()
         links = {}
         for cid in self.seq.ring:
@@ -233,15 +230,12 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             links[cid] = self.probes.state(cid, cid in up, down, clock)
         return links
 
-    def _stream_holders(self) -> tuple[set[int], set[int]]:
-        """Who holds a stream now, and who holds the master's Connect stream."""
-        holders = self.standby.reachable | self.streams.holders
-        return holders, ({self.seq.master} if self.streams.master_connected else set())
-
-    def _takeover_due(self) -> TakeoverDue | None:
-        """``DroneCore.takeover_due`` with who holds a stream now and who is in range."""
+    def sight(self) -> DroneSight:
+        """The controllers as the watches see them now: who holds a standby or a Connect
+        stream, the master's Connect stream, who is in range (``sight.DroneSight``)."""
         in_range = self.policy.in_range() if self.policy is not None else None
-        return self.core.takeover_due(time.time(), *self._stream_holders(), in_range)
+        holders = self.standby.reachable | self.streams.holders
+        return DroneSight(holders, self.streams.master_connected, in_range)
 
     def apply(self, effects: Iterable[DroneEffect], notice_delay_s: float = 0.0) -> None:
         """Carries out the core's effects in their order (``Applier.apply``), under the lock."""
@@ -301,14 +295,13 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             self.log.warning("connect rejected", controller=cid, reason=err.message)
             await abort_with(context, err)
         self.log.info("master connected", controller=cid)
-        said = ConnectStream(cid)
+        said = ConnectStream(cid, self.signer)
         try:
             grant, batches = said.opened(self.core, request.holds_reqnr)
             if grant is not None:
                 yield drone_pb2.DroneEvent(connected=grant)
             for batch in batches:
-                replies = [signed_retained(self.signer, r.to_proto()) for r in batch]
-                yield drone_pb2.DroneEvent(retained=drone_pb2.RetainedBatch(replies=replies))
+                yield drone_pb2.DroneEvent(retained=drone_pb2.RetainedBatch(replies=batch))
             while True:
                 for event in said.woken(self.core):
                     if isinstance(event, drone_pb2.OperatorWord):
@@ -356,8 +349,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
             )
             owed = self.core.takeover_owed(cid)
             if owed is not None:  # the stream that was to carry it may have broken first
-                told = take_over_event(owed, self.seq.cache.watermark)
-                yield drone_pb2.StandbyEvent(take_over=told)
+                yield drone_pb2.StandbyEvent(take_over=owed)
             while True:
                 yield await stream.events.get()
         finally:

@@ -253,7 +253,7 @@ class SimController:
         connected = session is not None and session.connected
         ready = self.core.ready(effects, connected, self.world.loop.now, self._drone_reachable())
         for effect in ready:
-            note = effect if isinstance(effect, Note) else note_of(effect, self.protocol.epoch)
+            note = note_of(effect, self.protocol.epoch)
             if note is not None and note.level != "debug":
                 self._say(note)
             if self.books.apply(effect):
@@ -262,11 +262,8 @@ class SimController:
                 message = effect.message
                 self.world.by_origin.setdefault(message.origin, set()).add(message.lognr)
                 self.world.framings.setdefault(message.lognr, set()).add(message.epoch)
-                link = self.peer(effect.dest)
-                unused = not link.core.used
-                link.send(message)
-                if unused and not link.up:
-                    self.ring_changed()  # a link down counts for the route once used
+                if self.ring.send(effect.dest, message):
+                    self.ring_changed()
             elif isinstance(effect, ConnectDrone):
                 self._open_drone()
             elif isinstance(effect, DisconnectDrone):
@@ -361,18 +358,9 @@ class SimController:
             link.when_usable(self._channel_ready, session)
             return
         session.stream = link.generation
-        # ConnectRequest.mastership_epoch, read at every (re)connect as DroneSession does.
-        # (node.py keeps it in the history file for a restart from the file; a
-        # simulated restart has nothing, so 0.)
+        request = self.core.connect_request()
         link.to_drone(
-            0,
-            self.world.drone.receive_connect,
-            link,
-            session.sid,
-            link.generation,
-            self.protocol.log_mastership_epoch,
-            self.protocol.held_reqnr,
-            self.protocol.given_up_epoch,
+            0, self.world.drone.receive_connect, link, session.sid, link.generation, request
         )
 
     def _channel_ready(self, session: Session) -> None:
@@ -385,27 +373,15 @@ class SimController:
         session.backoff = min(session.backoff * 2, SESSION_BACKOFF_MAX_S)
         self.drone_streams_changed()
 
-    def on_drone_connected(
-        self,
-        sid: int,
-        epoch: int,
-        retained_through: int,
-        takeover: bool = False,
-        watermark_reqnr: int = 0,
-        takeover_epoch: int = 0,
-        grant: drone_pb2.Grant | None = None,
-    ) -> None:
-        """The Connected event: the session's epoch, then node.py's on_granted (which
-        first rejoins with nothing if a takeover replaced the mastership we are ACTIVE in)."""
+    def on_drone_connected(self, sid: int, connected: drone_pb2.Connected) -> None:
+        """The Connected event (``ControllerCore.granted``)."""
         session = self.session
         if session is None or session.sid != sid:
             return
-        session.epoch, session.connected = epoch, True
+        session.epoch, session.connected = connected.epoch, True
         self._startup_answer()
         try:
-            effects = self.core.granted(
-                epoch, retained_through, takeover, watermark_reqnr, takeover_epoch, grant
-            )
+            effects = self.core.granted(connected)
         except ProtocolError as exc:
             self._uncaught("on_granted", exc)
             return
@@ -418,33 +394,21 @@ class SimController:
             return
         self._apply(self.core.retained_batch(replies))
 
-    def on_drone_notice(
-        self,
-        sid: int,
-        new_master: int,
-        after_reqnr: int,
-        epoch: int,
-        takeover: bool,
-        grant: drone_pb2.Grant | None = None,
-        takeover_epoch: int = 0,
-        takeover_watermark: int = 0,
-    ) -> None:
-        """A HandoverNotice on the stream, which then ends."""
+    def on_drone_notice(self, sid: int, notice: drone_pb2.HandoverNotice) -> None:
+        """A HandoverNotice on the stream, which then ends (``ControllerCore.stream_notice``)."""
         session = self.session
         if session is None or session.sid != sid:
             return
         session.ended, session.stream = True, None
         self._startup_answer()
-        self.on_stream_notice(
-            new_master, after_reqnr, epoch, takeover, grant, takeover_epoch, takeover_watermark
-        )
+        self._apply(self.core.stream_notice(notice))
 
     def on_drone_prepare(self, sid: int, prepare: drone_pb2.PrepareHandover) -> None:
-        """A PrepareHandover event on the stream: node.py's on_prepare."""
+        """A PrepareHandover event on the stream (``ControllerCore.prepare``)."""
         session = self.session
         if session is None or session.sid != sid:
             return
-        self.on_prepare(prepare)
+        self._apply(self.core.prepare(prepare, self.world.loop.now))
 
     def on_drone_refused(self, sid: int, error: StatusError) -> None:
         """Connect refused: node.py's on_connect_refused if it names a master, else reconnect."""
@@ -494,28 +458,10 @@ class SimController:
         """ControllerNode.on_connect_refused."""
         self._apply(self.core.connect_refused(refusal))
 
-    def on_stream_notice(
-        self,
-        new_master: int,
-        after_reqnr: int,
-        epoch: int,
-        takeover: bool = False,
-        grant: drone_pb2.Grant | None = None,
-        takeover_epoch: int = 0,
-        takeover_watermark: int = 0,
-    ) -> None:
-        """ControllerNode.on_stream_notice."""
-        self._apply(
-            self.core.stream_notice(
-                new_master, after_reqnr, epoch, takeover, grant, takeover_epoch, takeover_watermark
-            )
-        )
-
-    def on_take_over(self, old_master: int, epoch: int, watermark_reqnr: int) -> None:
-        """ControllerNode.on_take_over (the standby stream's TakeOver)."""
-        if not self.alive:
-            return
-        self._apply(self.core.take_over(old_master, epoch, 0, watermark_reqnr))
+    def on_take_over(self, event: drone_pb2.TakeOver) -> None:
+        """The standby stream's TakeOver (``ControllerCore.take_over``)."""
+        if self.alive:
+            self._apply(self.core.take_over(event))
 
     def _rejoin(self) -> None:
         """A rejoin as ControllerApp.rejoin does it (the program stops, reset, incoming
@@ -577,18 +523,6 @@ class SimController:
         self._apply(self.core.handover_notice(new_master, after_reqnr, epoch))
 
     # -- a prepared handover (docs/design.md, "Prepared handover") ----------------
-
-    def on_prepare(self, prepare: drone_pb2.PrepareHandover) -> None:
-        """ControllerNode.on_prepare (``ControllerCore.prepare``)."""
-        self._apply(
-            self.core.prepare(
-                prepare.target,
-                prepare.epoch,
-                prepare.timeout_s,
-                prepare.bound_bytes,
-                self.world.loop.now,
-            )
-        )
 
     def _preparation_progress(self) -> drone_pb2.PreparationProgress | None:
         """ControllerNode.preparation_progress (``RingLinks.progress``)."""

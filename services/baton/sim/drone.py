@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import grpc
 
-from baton.authenticity import signed_reply, signed_retained
+from baton.authenticity import signed_reply
 from baton.digest import request_digest
 from baton.drone.connects import ConnectStream
 from baton.drone.core import WATCH_TICK_S, DroneCore, Kept
@@ -48,16 +48,18 @@ from baton.drone.effects import (
     Switched,
     TellTakeOver,
     pins_policy,
-    take_over_event,
 )
 from baton.drone.invariants import DroneWatch
+from baton.drone.invocations import answered_again
+from baton.drone.operator import Operator
 from baton.drone.policy import Decision
 from baton.drone.safety import (
     Failsafe,
     ModeSeen,
     commanded_action,
 )
-from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer, TakeoverDue
+from baton.drone.sequencer import PREPARE_TIMEOUT_S, ScriptedHandover, Sequencer
+from baton.drone.sight import DroneSight
 from baton.drone.store import DroneState, Intent, counters_of
 from baton.rpc.errors import StatusError
 from baton.rpc.labels import label
@@ -139,14 +141,12 @@ class MasterCheck:
 @dataclass(frozen=True)
 class FreshSelfConnect:
     """A Connect from a fresh self of the master that gave its mastership up
-    (``Sequencer.fresh_self_due``): DroneService.Connect takes the execution lock for
-    the takeover from its earlier self, then goes on as any Connect."""
+    (``Sequencer.fresh_self_due``): it takes the execution lock first."""
 
     link: DroneLink
     session: int
     connection: int
-    holds_reqnr: int
-    given_up_epoch: int
+    request: drone_pb2.ConnectRequest
 
 
 @dataclass(frozen=True)
@@ -307,9 +307,7 @@ class SimDrone:
                     self.policy.carry_out(item)
             elif isinstance(item, MasterCheck):
                 self._check_queued = False
-                in_range = self.policy.in_range() if self.policy is not None else None
-                now = self.world.loop.now
-                self._apply(self.core.master_watch(now, *self._holders(), in_range))
+                self._apply(self.sight().master_watch(self.core, self.world.loop.now))
             elif isinstance(item, FreshSelfConnect):
                 self._fresh_self_connect(item)
             elif isinstance(item, FailsafeCheck):
@@ -322,7 +320,7 @@ class SimDrone:
 
     def _start(self, request: Request) -> None:
         """DroneService._invoke_to_the_end up to the execution."""
-        seq, now = self.seq, self.world.loop.now
+        now = self.world.loop.now
         cid, reqnr, method = request.controller_id, request.reqnr, request.method
         digest = request_digest(method, request.payload)
         if self.core.holds(request.proto()):
@@ -332,8 +330,7 @@ class SimDrone:
         try:
             admitted = self.core.admit(request.proto(), digest, request.received_at)
         except StatusError as err:
-            seq.rejected += 1  # DroneService.Invoke
-            self._reply(request, b"", err)
+            self._reply(request, None, err)
             return
         self._note_epoch(cid, request.epoch, reqnr)
         if admitted.cached is not None:
@@ -341,7 +338,7 @@ class SimDrone:
             self._answer_duplicate(request, admitted.cached)
             return
         # admitted.kept is stored with the intent, in one transaction (store.begin)
-        self.intent = Intent(reqnr, method, digest, cid, request.received_at)
+        self.intent = admitted.intent
         if admitted.refused is not None:  # in failsafe, or beyond a bound: nothing executed
             self._failed(request, digest, admitted.refused)
             return
@@ -376,7 +373,7 @@ class SimDrone:
         if self.core.books(error):
             _acted_on(request)
         self._apply(self.core.failed(cid, reqnr, method, digest, request.received_at, now, error))
-        self._reply(request, b"", error)
+        self._reply(request, None, error)
 
     def _act(self, execution: Execution) -> None:
         """The command reaches the vehicle (or the camera, or a read is answered)."""
@@ -416,11 +413,12 @@ class SimDrone:
         if execution.error is not None:
             error = execution.error
             self._apply(self.core.served(cid, reqnr, method, digest, b"", received, now, error))
-            self._reply(request, b"", execution.error)
+            self._reply(request, None, execution.error)
         else:
             reply = execution.reply
             self._apply(self.core.served(cid, reqnr, method, digest, reply, received, now))
-            self._reply(request, reply, None, execution.digest, self.seq.epoch)
+            signed = signed_reply(self.signer, reqnr, self.seq.epoch, method, digest, reply)
+            self._reply(request, signed)
         self._next()
 
     def _apply(self, effects: list[DroneEffect], on_the_word: bool = False) -> None:
@@ -445,34 +443,28 @@ class SimDrone:
                 self.world.trace(f"drone: {effect.event} {dict(effect.fields)}")
 
     def _answer_duplicate(self, request: Request, cached: CachedReply) -> None:
-        error = cached.duplicate_error()
-        if error is not None:
-            self._reply(request, b"", error)
-        else:
-            self._reply(request, cached.reply, None, cached.digest, cached.epoch, duplicate=True)
+        try:
+            self._reply(request, answered_again(self.signer, request.reqnr, cached))
+        except StatusError as err:
+            self._reply(request, None, err)
 
     def _reply(
         self,
         request: Request,
-        payload: bytes,
-        error: StatusError | None,
-        digest: bytes = b"",
-        epoch: int = 0,
-        duplicate: bool = False,
+        reply: drone_pb2.InvokeReply | None,
+        error: StatusError | None = None,
     ) -> None:
-        """DroneService's answer: an InvokeReply (signed as ``signed_reply`` signs it, with
-        a key), or the error."""
+        """The reply (or the error) on its way back to the caller; every failure counts as
+        rejected (``Invocations.for_caller``)."""
+        if error is not None:
+            self.seq.rejected += 1
         link = request.link
         if link is None:
             return  # nobody waits for it (a garbled request)
-        reply = None
-        if error is None:
-            reply = signed_reply(
-                self.signer, request.reqnr, epoch, request.method, digest, payload, duplicate
-            )
+        size = 0 if reply is None else len(reply.payload)
         link.to_controller(
             request.connection,
-            len(payload),
+            size,
             link.owner.on_invoke_reply,
             request.call_id,
             reply,
@@ -632,40 +624,34 @@ class SimDrone:
                     0,
                     stream.link.owner.on_drone_notice,
                     stream.session,
-                    event.new_master,
-                    event.after_reqnr,
-                    event.epoch,
-                    event.takeover,
-                    event.grant if event.HasField("grant") else None,
-                    event.takeover_epoch,
-                    event.takeover_watermark_reqnr,
+                    event,
                     stream=True,
                 )
                 self.core.delivered(cid, event)
                 del self.streams[cid]
 
     def receive_connect(
-        self,
-        link: DroneLink,
-        session: int,
-        connection: int,
-        mastership_epoch: int = 0,
-        holds_reqnr: int = 0,
-        given_up_epoch: int = 0,
+        self, link: DroneLink, session: int, connection: int, request: drone_pb2.ConnectRequest
     ) -> None:
-        """DroneService.Connect: refused, or attached; Connected for the master; a notice owed.
-
-        A fresh self of the master that gave its mastership up waits for the
-        execution lock first (``FreshSelfConnect``)."""
-        cid = link.owner.id
-        if self.seq.fresh_self_due(cid, mastership_epoch, given_up_epoch):
-            self.queue.append(
-                FreshSelfConnect(link, session, connection, holds_reqnr, given_up_epoch)
-            )
+        """A Connect arrives; a fresh self of the master that gave its mastership up waits
+        for the execution lock first (``FreshSelfConnect``)."""
+        due = self.seq.fresh_self_due(
+            request.controller_id, request.mastership_epoch, request.given_up_epoch
+        )
+        if due:
+            self.queue.append(FreshSelfConnect(link, session, connection, request))
             self._next()
-            return
+        else:
+            self._attach(link, session, connection, request)
+
+    def _attach(
+        self, link: DroneLink, session: int, connection: int, request: drone_pb2.ConnectRequest
+    ) -> None:
+        """The Connect refused, or attached: Connected for the master, then the replies
+        retained above what it holds; a notice owed."""
+        cid = request.controller_id
         try:
-            self.seq.admit_connect(cid, mastership_epoch)
+            self.seq.admit_connect(cid, request.mastership_epoch)
         except StatusError as err:
             link.to_controller(
                 connection, 0, link.owner.on_drone_refused, session, err, stream=True
@@ -680,28 +666,19 @@ class SimDrone:
                 previous.session,
                 stream=True,
             )
-        said = ConnectStream(cid)
+        said = ConnectStream(cid, self.signer)
         self.streams[cid] = Stream(cid, session, link, connection, said)
-        grant, batches = said.opened(self.core, holds_reqnr, RETAINED_BATCH_BYTES)
+        grant, batches = said.opened(self.core, request.holds_reqnr, RETAINED_BATCH_BYTES)
         if grant is not None:  # Connected, then the replies retained above its holds
             owner = link.owner
-            connected = (
-                session,
-                grant.epoch,
-                grant.retained_through,
-                grant.takeover,
-                grant.watermark_reqnr,
-                grant.takeover_epoch,
-                grant.grant if grant.HasField("grant") else None,
-            )
             parts: list[tuple[int, Callable[..., None], tuple[Any, ...]]] = [
-                (0, owner.on_drone_connected, connected)
+                (0, owner.on_drone_connected, (session, grant))
             ]
             parts += [
                 (
                     sum(len(reply.reply) for reply in batch),
                     owner.on_drone_retained,
-                    (session, [signed_retained(self.signer, r.to_proto()) for r in batch]),
+                    (session, batch),
                 )
                 for batch in batches
             ]
@@ -712,11 +689,14 @@ class SimDrone:
         """DroneService.Connect under the lock: the takeover from the earlier self if it is
         still due, then the Connect as any other (a handler whose call ended meanwhile is
         gone)."""
-        link, cid = item.link, item.link.owner.id
+        link, request = item.link, item.request
         if not link.owner.alive or link.generation != item.connection:
             return
-        self._apply(self.core.fresh_self_connect(cid, item.given_up_epoch, self.world.loop.now))
-        self.receive_connect(link, item.session, item.connection, 0, item.holds_reqnr)
+        now = self.world.loop.now
+        self._apply(
+            self.core.fresh_self_connect(request.controller_id, request.given_up_epoch, now)
+        )
+        self._attach(link, item.session, item.connection, request)
 
     def receive_stream_closed(self, cid: int, session: int) -> None:
         """The controller closed its session's Connect stream."""
@@ -806,7 +786,8 @@ class SimDrone:
         kept (the master gets the restart grace)."""
         old, now = self.seq, self.world.loop.now
         core = DroneCore(self._sequencer(), self.world.takeover_after, self.world.safety)
-        core.operator = self.core.operator  # kept in the store (OperatorCommands._save)
+        # The operator's state as the store keeps it (OperatorCommands._save, .restore).
+        core.operator = Operator.from_json(self.core.operator.to_json())
         replies = [old.cache.get(reqnr) for reqnr in old.cache.reqnrs]
         stored = DroneState(
             counters_of(old), [r for r in replies if r is not None], list(old.audit), self.intent
@@ -856,7 +837,8 @@ class SimDrone:
         now = self.world.loop.now
         preparing = self.seq.preparing
         expired = preparing is not None and now >= preparing.deadline
-        if (self._takeover_due(now) is not None or expired) and not self._check_queued:
+        due = self.sight().takeover_due(self.core, now)
+        if (due is not None or expired) and not self._check_queued:
             # async with self._lock: asked again there. The service takes the lock at
             # every turn while preparing; only a turn at or past the deadline can force.
             self._check_queued = True
@@ -868,28 +850,20 @@ class SimDrone:
             self._next()
         self.watch()
 
-    def _takeover_due(self, now: float) -> TakeoverDue | None:
-        """``DroneCore.takeover_due`` with who holds a stream now and who is in range."""
+    def sight(self) -> DroneSight:
+        """The controllers as the watches see them (``DroneService.sight``)."""
         in_range = self.policy.in_range() if self.policy is not None else None
-        return self.core.takeover_due(now, *self._holders(), in_range)
-
-    def _holders(self) -> tuple[set[int], set[int]]:
-        """Who holds a stream now, and who holds the master's Connect stream."""
-        return self.reachable(), ({self.seq.master} if self.seq.master in self.streams else set())
+        return DroneSight(self.reachable(), self.seq.master in self.streams, in_range)
 
     def _failsafe_due(self, now: float) -> Failsafe | None:
-        """``DroneCore.failsafe_check`` as ``FailsafeWatch.due`` asks it: the
-        vehicle counts as armed and in the air while the mission is open, unless its GCS
-        failsafe landed it (the sim has no position: no fence, no nearest station), in
-        the mode its commands and the autopilot's takeover put it in."""
+        """The failsafe due for the vehicle as it is: armed and in the air while the
+        mission is open, unless its GCS failsafe landed it, in the mode its commands and
+        the autopilot's takeover put it in; no position (no fence, no nearest station)."""
         vehicle = self.vehicle
         airborne = vehicle.in_air(self.world.mission_open())
         seen = ModeSeen(vehicle.mode, not vehicle.landed, airborne)
-        in_range = self.policy.in_range() if self.policy is not None else None
-        battery = self.vehicle.battery(now)
-        return self.core.failsafe_check(
-            now, airborne, battery, None, seen, self.reachable(), in_range
-        )
+        battery = vehicle.battery(now)
+        return self.sight().failsafe_check(self.core, now, airborne, battery, None, seen)
 
     def _failsafe_check(self) -> None:
         """FailsafeWatch.run under the lock: failsafe_due again, then entered and commanded."""
@@ -932,9 +906,9 @@ class SimDrone:
     def standby_opened(self, cid: int) -> None:
         """DroneService.Standby: a controller's standby stream (re)opens; a TakeOver still
         owed to it is told on it (the stream that was to carry it may have broken)."""
-        record = self.core.takeover_owed(cid) if self.up else None
-        if record is not None:
-            self._tell_take_over(cid, take_over_event(record, self.seq.cache.watermark))
+        owed = self.core.takeover_owed(cid) if self.up else None
+        if owed is not None:
+            self._tell_take_over(cid, owed)
 
     def _tell_take_over(self, taker: int, told: drone_pb2.TakeOver) -> None:
         """StandbyStreams.tell of the TakeOver, on the taker's newest stream if it holds
@@ -942,15 +916,7 @@ class SimDrone:
         link = self.world.controller(taker).drone_link
         if not link.usable():
             return
-        link.to_controller(
-            link.generation,
-            0,
-            link.owner.on_take_over,
-            told.old_master,
-            told.epoch,
-            told.watermark_reqnr,
-            stream=True,
-        )
+        link.to_controller(link.generation, 0, link.owner.on_take_over, told, stream=True)
 
 
 def _ending(record: drone_pb2.HandoverRecord, on_the_word: bool) -> str:

@@ -204,7 +204,9 @@ def _no_fencing() -> list[tuple[Any, str, Any]]:
     stays a replica with everything it held, instead of ``on_fenced`` and a rejoin with
     nothing (``ControllerCore.fenced``, the core of node.py and the simulation)."""
 
-    def fenced(self: ControllerCore, new_master: int, epoch: int) -> list[CoreEffect]:
+    def fenced(
+        self: ControllerCore, new_master: int, epoch: int, watermark: int = 0
+    ) -> list[CoreEffect]:
         if self.protocol.state is not State.ACTIVE:
             return []
         return self.handover_notice(new_master, 0, epoch)
