@@ -85,7 +85,12 @@ class Heading:
         (with its signature or its check), else computed here if it is signed."""
         if message.signature and not proof:
             proof = holding_proof(message)
-        grant = message.grant if message.HasField("grant") else None
+        grant = None
+        if message.HasField("grant"):
+            # A copy: a sub-message keeps its whole message alive (upb's arena), and a
+            # heading outlives the message it heads, pictures and all.
+            grant = drone_pb2.Grant()
+            grant.CopyFrom(message.grant)
         return cls(message.epoch, grant, proof if message.signature else b"")
 
 
