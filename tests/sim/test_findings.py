@@ -61,13 +61,10 @@ def test_f9_a_handover_message_sent_again_gives_no_role_handed_on() -> None:
         assert outcome.ok and not outcome.known, outcome.report()
 
 
-def test_f2_a_master_again_in_a_newer_epoch_connects_again() -> None:
-    """Found by the simulation (F2), fixed in protocol.py judge_refusal (REGRANTED): a
-    Handover there and back before the old master heard was a livelock; the scenario is
-    in the default mix now, and these seeds showed it."""
-    for seed in range(300):
-        outcome = run_seed(seed)
-        assert outcome.ok and not outcome.known, outcome.report()
+# F2 (a Handover there and back before the old master heard was a livelock; fixed in
+# protocol.py judge_refusal, REGRANTED) has no test of its own: its scenario is in the
+# default mix, whose seeds 0-999 test_simulation.py's test_ci_seeds_hold_every_oracle
+# runs (this test ran 0-299 of them again).
 
 
 def test_f8_a_last_call_given_up_while_waiting_is_settled() -> None:
@@ -163,7 +160,7 @@ def test_f4_a_cooperative_grant_waits_for_its_handover_message() -> None:
     for the handover message of its epoch. Its scenario (kept out of the mix) on the seeds
     where it struck."""
     options = SimOptions(allow=frozenset({"F4"}))
-    for seed in range(600):
+    for seed in range(300):  # 166, which a later fix first broke, among them
         outcome = run_seed(seed, options)
         assert outcome.ok and not outcome.known, outcome.report()
 
