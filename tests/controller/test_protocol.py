@@ -993,6 +993,28 @@ def test_a_fenced_master_keeps_the_messages_that_went_round_the_ring() -> None:
     assert q.acked_lognr == 1 and q.kept_when_fenced() == 0
 
 
+def test_a_word_above_our_top_of_a_newer_mastership_moves_no_watermark() -> None:
+    """--policy nearest seed 12952 (a ring of two): taker 1 (epoch 2) flushed messages 1-2,
+    the last a give-up of request 12 made while cut off; 0 restarted with nothing and took
+    over (epoch 3), framing requests 1-11 anew in messages 1-3. Its word "I hold message 3
+    of epoch 3" counted as 1's messages 1-2 gone round the ring: fenced, 1 kept them, its
+    program saw the give-up where the master's saw a reply, and it rejoined for ever. Such
+    a word is built on ours by a handover or framed anew by a takeover: it proves nothing."""
+    p = started(0, [0, 1], 0)
+    p.on_reply(entry(1))
+    p.on_reply(entry(2))  # messages 1-2 of epoch 1
+    p.on_sync(3, holds_epoch=2)
+    assert p.acked_lognr == 0 and p.watermark_reqnr == 0
+    p.on_fenced(2)
+    assert p.kept_when_fenced() == 0
+    # Of our own mastership, above our top (a handover's target went on in our epoch's
+    # numbering only after handling ours): it holds ours.
+    q = started(0, [0, 1], 0)
+    q.on_reply(entry(1))
+    q.on_sync(2, holds_epoch=1)
+    assert q.acked_lognr == 1 and q.watermark_reqnr == 1
+
+
 def test_in_a_longer_ring_a_fenced_master_keeps_what_the_drone_took_as_let_go() -> None:
     """--lose-master seed 13253: in a ring of three, what went round by the predecessor's
     word may have skipped a taker that lacks it, so that alone keeps nothing; but the

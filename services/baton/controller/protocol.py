@@ -703,7 +703,7 @@ class ControllerProtocol:
         self.catch_up_to = max(self.catch_up_to or 0, min(holds_lognr, promise))
         if holds_lognr > self.lognr and promise == holds_lognr:
             self._promised[holds_lognr] = max(self._promised.get(holds_lognr, 0), holds_epoch)
-        credit = self._watermark_credit(holds_lognr, proof)
+        credit = self._watermark_credit(holds_lognr, holds_epoch, proof)
         while self._ends and self._ends[0][0] <= credit:
             acked, reqnr = self._ends.popleft()
             self.watermark_reqnr = max(self.watermark_reqnr, reqnr)
@@ -754,9 +754,9 @@ class ControllerProtocol:
             return True
         return backed and self.state is not State.ACTIVE
 
-    def _watermark_credit(self, holds_lognr: int, proof: bytes) -> int:
+    def _watermark_credit(self, holds_lognr: int, holds_epoch: int, proof: bytes) -> int:
         """The log number up to which a predecessor's word that it holds ``holds_lognr``
-        moves the watermark.
+        (of ``holds_epoch``) moves the watermark.
 
         On an insecure ring, all of it. On a signed ring, only a message of our own
         whose holding ``proof`` is the one we kept when we sent it to our successor:
@@ -770,6 +770,13 @@ class ControllerProtocol:
         a little longer.
         """
         if self.seal is _unsealed:
+            if holds_lognr > self.lognr and holds_epoch > self._epoch_at.get(self.lognr, 0):
+                # Above our top, of a mastership newer than it: built on ours by a
+                # handover, or framed anew by a takeover that never held ours (policy
+                # seed 12952: counted as gone round, a fenced master kept its own
+                # give-up the taker replaced, and its program saw it). Nothing
+                # tells which; a signed ring has no proof for it either.
+                return 0
             return holds_lognr
         if not proof or self._proofs.get(holds_lognr) != proof:
             return 0

@@ -289,7 +289,7 @@ def _believes_sync_words() -> list[tuple[Any, str, Any]]:
     def believe(keys: Keys | None, word: SyncWord) -> Belief:
         return Belief(word, True)
 
-    def credit(self: ControllerProtocol, holds_lognr: int, proof: bytes) -> int:
+    def credit(self: ControllerProtocol, holds_lognr: int, holds_epoch: int, proof: bytes) -> int:
         return holds_lognr
 
     def believes(self: ControllerProtocol, *args: object) -> bool:
