@@ -121,6 +121,9 @@ async def test_a_killed_ex_master_restarts_catches_up_and_is_master_again(
     assert (int(str(first_after["peer_lognr"])) > 0) is keeps_its_log
 
 
+# On demand (~50 s, the whole long-legs mission; CI's 25 minutes): in CI the drone's refusal
+# is tests/drone/test_sequencer.py's and the simulation's (a request of an earlier mastership).
+@pytest.mark.slow
 async def test_a_stale_request_after_a_hand_back_is_ignored_not_fatal(tmp_path: Path) -> None:
     """Controller 0's uplink to the drone takes 4 s: its request 4 (Takeoff) is still on the
     wire when the drone hands over to 1, which flies on past the drone's reply cache (16

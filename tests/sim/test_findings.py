@@ -63,7 +63,7 @@ def test_f9_a_handover_message_sent_again_gives_no_role_handed_on() -> None:
 
 # F2 (a Handover there and back before the old master heard was a livelock; fixed in
 # protocol.py judge_refusal, REGRANTED) has no test of its own: its scenario is in the
-# default mix, whose seeds 0-999 test_simulation.py's test_ci_seeds_hold_every_oracle
+# default mix, whose seeds 0-499 test_simulation.py's test_ci_seeds_hold_every_oracle
 # runs (this test ran 0-299 of them again).
 
 
@@ -88,7 +88,7 @@ def test_f3_a_restarted_controller_gets_what_its_predecessor_did_not_forward() -
     controller received has its predecessors re-send from its hello. These seeds showed
     it with the kill keep-out lifted."""
     options = SimOptions(allow=frozenset({"F3"}))
-    for seed in range(300):
+    for seed in range(150):
         outcome = run_seed(seed, options)
         assert outcome.ok and not outcome.known, outcome.report()
 
@@ -160,14 +160,14 @@ def test_f4_a_cooperative_grant_waits_for_its_handover_message() -> None:
     for the handover message of its epoch. Its scenario (kept out of the mix) on the seeds
     where it struck."""
     options = SimOptions(allow=frozenset({"F4"}))
-    for seed in range(300):  # 166, which a later fix first broke, among them
+    for seed in range(170):  # 166, which a later fix first broke, among them
         outcome = run_seed(seed, options)
         assert outcome.ok and not outcome.known, outcome.report()
 
 
 # F5 (a program that gave up on a call whose reply a handover overtook restarts to
 # replay the log) has no test of its own: its scenario is in the default mix, whose
-# seeds 0-999 tests/sim/test_simulation.py's test_ci_seeds_hold_every_oracle runs.
+# seeds 0-499 tests/sim/test_simulation.py's test_ci_seeds_hold_every_oracle runs.
 
 
 def test_a_clock_call_waits_for_the_drones_word_after_a_handover_message() -> None:

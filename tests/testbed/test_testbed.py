@@ -307,6 +307,8 @@ def test_the_testbed_flies_the_vehicle_its_file_names(tmp_path: Path) -> None:
     assert "vehicle " + url in report["stdout"]
 
 
+# On demand (~18 s; CI's 25 minutes): tests/drone/test_signing.py flies a signed link in CI.
+@pytest.mark.slow
 def test_a_testbed_file_with_a_mavlink_key_flies_signed(tmp_path: Path) -> None:
     """drone.mavlink_key: the sim vehicle holds the key and the drone signs; exactly once."""
     import yaml
@@ -397,6 +399,8 @@ def test_a_flag_given_with_its_default_value_wins_over_the_file(
     )
 
 
+# On demand (~18 s; CI's 25 minutes): the precedence itself is checked in CI just above.
+@pytest.mark.slow
 def test_an_explicit_flush_limit_wins_over_the_file_across_a_real_testbed(tmp_path: Path) -> None:
     """The same across a real `baton testbed` process: the report's setup says what ran."""
     config = _file(tmp_path, flush_limit=0, speedup=40)
