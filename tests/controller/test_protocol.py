@@ -9,6 +9,7 @@ from baton.controller.protocol import (
     ConnectDrone,
     ControllerProtocol,
     DisconnectDrone,
+    Diverged,
     NonDeterminismError,
     ProtocolError,
     Refusal,
@@ -1013,6 +1014,24 @@ def test_a_word_above_our_top_of_a_newer_mastership_moves_no_watermark() -> None
     q.on_reply(entry(1))
     q.on_sync(2, holds_epoch=1)
     assert q.acked_lognr == 1 and q.watermark_reqnr == 1
+
+
+def test_a_master_that_hands_over_looks_at_what_it_queued_while_active() -> None:
+    """--lose-master --prepared seed 4860: master 1, ACTIVE in epoch 3, queued the ring's
+    messages 14-15 of a takeover's epoch 5, which framed request 13 anew after message 13;
+    then the drone's late notice of an epoch-4 handover came, and 1 handed over as message
+    14. PASSIVE, it never looked at its queue again: the takeover's 15 waited behind our
+    14 for ever. It looks at once, and rejoins on the diverged framing."""
+    p = started(0, [0, 1, 2], 0)
+    p.on_reply(entry(1))  # message 1 of epoch 1
+    theirs = [_of_epoch(message(2, 2, [2]), 3), _of_epoch(message(3, 2, [3]), 3)]
+    theirs[0].after_epoch, theirs[1].after_epoch = 1, 3
+    for m in theirs:
+        p.on_log(m)
+    assert p.state is State.ACTIVE and sorted(p.log_queue) == [2, 3]
+    effects = p.on_handover_notice(1, epoch=2)
+    assert sends(effects) == [(1, 2, True)]
+    assert [e for e in effects if isinstance(e, Diverged)] == [Diverged(2, 2, 3)]
 
 
 def test_in_a_longer_ring_a_fenced_master_keeps_what_the_drone_took_as_let_go() -> None:

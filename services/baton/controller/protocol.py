@@ -1360,7 +1360,15 @@ class ControllerProtocol:
         self._handed = ring_pb2.LogMessage()
         self._handed.CopyFrom(message)
         self._mastership_over = self.epoch
-        return [DisconnectDrone(), SendLog(new_master, message)]
+        effects: list[Effect] = [DisconnectDrone(), SendLog(new_master, message)]
+        # PASSIVE now, we look at the message queued next while we were ACTIVE
+        # (--lose-master --prepared 4860: the ring went on in a takeover's epoch past
+        # the one this notice is of; its messages, queued behind our handover
+        # message's number, waited there for ever, PASSIVE handling only what
+        # arrives). One that shows our framing diverged rejoins us now.
+        following = self.log_queue.get(self.lognr + 1)
+        diverged = self._diverged_before(following) if following is not None else None
+        return [*effects, diverged] if diverged is not None else effects
 
     def on_fenced(self, epoch: int = 0, watermark: int = 0) -> list[Effect]:
         """The drone gave our mastership to another controller by takeover (in ``epoch``,
