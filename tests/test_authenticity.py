@@ -171,10 +171,19 @@ def replica(ring_keys: Keys | None) -> ControllerCore:
 
 
 def grant(
-    signer: Signer, master: int, epoch: int, kind: int = drone_pb2.GRANT_KIND_FIRST
+    signer: Signer,
+    master: int,
+    epoch: int,
+    kind: int = drone_pb2.GRANT_KIND_FIRST,
+    old_master: int = 0,
 ) -> drone_pb2.Grant:
-    """The drone's grant of ``epoch`` to ``master``, signed."""
-    made = drone_pb2.Grant(master=master, epoch=epoch, kind=kind)  # type: ignore[arg-type]
+    """The drone's grant of ``epoch`` to ``master`` (from ``old_master``), signed."""
+    made = drone_pb2.Grant(
+        master=master,
+        epoch=epoch,
+        kind=kind,  # type: ignore[arg-type]
+        old_master=old_master,
+    )
     signer.seal_grant(made)
     return made
 
@@ -359,18 +368,28 @@ def test_a_mastership_is_believed_only_where_the_drones_grant_backs_it(certs: Pa
     assert claim(2, old) is None
     assert "epoch 7 with the drone's grant of epoch 2" in (claim(7, old) or "")
     # The handover flag makes its receiver master: a handover grant naming it, only.
-    to_two = grant(drone, 2, 3, handover)
+    to_two = grant(drone, 2, 3, handover, old_master=1)
     assert claim(3, to_two, origin=2, handover=True) is None
     assert "sent to 2" in (claim(3, grant(drone, 0, 3, handover), origin=0, handover=True) or "")
     assert "GRANT_KIND_TAKEOVER grant" in (
         claim(3, grant(drone, 2, 3, drone_pb2.GRANT_KIND_TAKEOVER), origin=2, handover=True) or ""
     )
     assert "without the drone's grant" in (claim(0, None, origin=2, handover=True) or "")
-    # Forwarded without its flag, a handover message is backed by its origin's grant;
-    # sent on by its creator in its own name (a taker whose new master was lost), by the
-    # same grant (no more than the forwarded one claims: the open item of security.md).
+    # Forwarded without its flag, a handover message is backed by the grant of its epoch;
+    # sent on by its creator in its own name (a taker whose new master was lost), too.
     assert claim(3, to_two, origin=2) is None
     assert claim(3, to_two) is None
+    # A genuine handover grant of a handover between two others backs nothing the liar
+    # makes: every message of the epoch carries it, so any station holds one.
+    others = grant(drone, 2, 3, handover, old_master=0)
+    for origin in (1, 2, 0):
+        assert "the drone granted it to controller 2 from controller 0" in (
+            claim(3, others, origin=origin) or ""
+        ), origin
+    assert "from controller 0" in (claim(3, others, origin=2, handover=True) or "")
+    # Nor a takeover's grant, whatever origin a message of its epoch says.
+    taken = grant(drone, 2, 4, drone_pb2.GRANT_KIND_TAKEOVER, old_master=1)
+    assert "the drone granted it to controller 2" in (claim(4, taken, origin=2) or "")
     # Epoch 0 without the flag claims no mastership.
     assert claim(0, None) is None
 

@@ -86,9 +86,10 @@ def reply_statement(
     )
 
 
-def grant_statement(master: int, epoch: int, kind: int) -> bytes:
-    """The canonical bytes the drone signs for its grant of ``epoch`` to ``master``."""
-    return GRANT_TAG + struct.pack(">iQI", master, epoch, kind)
+def grant_statement(master: int, epoch: int, kind: int, old_master: int) -> bytes:
+    """The canonical bytes the drone signs for its grant of ``epoch`` to ``master``, taken
+    from ``old_master``."""
+    return GRANT_TAG + struct.pack(">iQIi", master, epoch, kind, old_master)
 
 
 def word_statement(master: int, epoch: int, lognr: int) -> bytes:
@@ -201,7 +202,9 @@ class Signer:
 
     def seal_grant(self, grant: drone_pb2.Grant) -> None:
         """Signs the drone's grant (``Grant.signature``)."""
-        grant.signature = _sign(self.key, grant_statement(grant.master, grant.epoch, grant.kind))
+        grant.signature = _sign(
+            self.key, grant_statement(grant.master, grant.epoch, grant.kind, grant.old_master)
+        )
 
     def seal(self, message: ring_pb2.LogMessage | ring_pb2.MasterWord) -> bytes:
         """Signs what this controller says in its own name: a log message it created
@@ -288,7 +291,7 @@ class Verifier:
         whole = grant.SerializeToString(deterministic=True)
         if whole in self._grants:
             return True
-        statement = grant_statement(grant.master, grant.epoch, grant.kind)
+        statement = grant_statement(grant.master, grant.epoch, grant.kind, grant.old_master)
         if not _verify(self.key, grant.signature, statement):
             return False
         self._grants.add(whole)
@@ -372,12 +375,13 @@ def unbacked_claim(drone: Verifier, message: ring_pb2.LogMessage, receiver: int)
 
     A message of epoch E > 0 says its sender was master in E, or, for a handover
     message (also once forwarded without its flag, or sent on by its creator in its
-    own name), that its origin is: it must carry the drone's grant of E naming one of
-    them (a handover grant, for one its creator sent on). The handover flag makes its receiver
-    master, so a flagged message needs a handover grant naming its origin, and only
-    the origin is its receiver (a relay forwards it without the flag). A grant of
-    another epoch backs nothing here: an old grant played again cannot raise an
-    epoch. A message of epoch 0 without the flag claims no mastership."""
+    own name), that its origin is: it must carry the drone's grant of E, and be made
+    by the controllers that grant names (``_made_by_the_granted``). The handover flag
+    makes its receiver master, so a flagged message needs a handover grant to its
+    origin from its sender, and only the origin is its receiver (a relay forwards it
+    without the flag). A grant of another epoch backs nothing here: an old grant
+    played again cannot raise an epoch. A message of epoch 0 without the flag claims
+    no mastership."""
     if message.epoch == 0 and not message.handover:
         return None
     claimed = f"epoch {message.epoch}"
@@ -396,23 +400,30 @@ def unbacked_claim(drone: Verifier, message: ring_pb2.LogMessage, receiver: int)
             )
         if message.origin != receiver:
             return f"a handover message to controller {message.origin} sent to {receiver}"
-    elif grant.master not in (message.sender, message.origin) and not _sent_on_by_its_creator(
-        message
-    ):
+    if not _made_by_the_granted(grant, message):
+        granted = f"to controller {grant.master}"
+        if grant.kind == drone_pb2.GRANT_KIND_HANDOVER:
+            granted += f" from controller {grant.old_master}"
         return (
-            f"it claims {claimed} for controller {message.sender}; the drone granted it "
-            f"to controller {grant.master}"
+            f"it claims {claimed} for controller {message.sender}; the drone granted it {granted}"
         )
     return None
 
 
-def _sent_on_by_its_creator(message: ring_pb2.LogMessage) -> bool:
-    """A handover message its creator, the old master, sent on to the ring itself as a
-    normal message in its own name (``ControllerProtocol._resend_handed``: its new master
-    was lost before it did). It claims no more than the same message forwarded by the
-    new master (origin the new master, sender its creator), which the rule above
-    believes: the drone's handover grant of its epoch, signed by its creator."""
-    return message.grant.kind == drone_pb2.GRANT_KIND_HANDOVER and message.sender == message.origin
+def _made_by_the_granted(grant: drone_pb2.Grant, message: ring_pb2.LogMessage) -> bool:
+    """Whether ``message``, of ``grant``'s epoch, was made (``sender``, whose signature
+    it carries; a relay may change the origin) by a controller the grant names.
+
+    A first or takeover grant: its master alone makes the messages of its epoch. A
+    handover grant also names the old master, whose handover message is of the new
+    epoch: sent straight with its flag, forwarded by the new master without it, or
+    sent on in the old master's own name when the new master was lost before it
+    could (``ControllerProtocol._resend_handed``). Any other station holding the
+    grant (every message of the epoch carries it) makes nothing of that epoch.
+    """
+    if grant.kind == drone_pb2.GRANT_KIND_HANDOVER:
+        return message.sender in (grant.master, grant.old_master)
+    return message.sender == grant.master
 
 
 def unbacked_word(keys: Keys, word: ring_pb2.MasterWord | None) -> str | None:

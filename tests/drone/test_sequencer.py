@@ -706,19 +706,20 @@ def test_every_grant_is_signed_and_said_with_the_event_that_makes_a_master() -> 
     assert "baton-grant" not in dict(refused(seq, 1, 0, 1).metadata)
     seq.sign_grants_with(seal)
     assert seq.grant_of(1) == drone_pb2.Grant(
-        master=0, epoch=1, kind=drone_pb2.GRANT_KIND_FIRST, signature=b"0:1:1"
+        master=0, epoch=1, kind=drone_pb2.GRANT_KIND_FIRST, signature=b"0:1:1", old_master=0
     )
     seq.switch(1, RPC, now=1.0)
     # The old master's notice carries the new master's grant, for its handover message.
     notice = seq.pending[0]
     assert notice.grant == drone_pb2.Grant(
-        master=1, epoch=2, kind=drone_pb2.GRANT_KIND_HANDOVER, signature=b"1:2:2"
+        master=1, epoch=2, kind=drone_pb2.GRANT_KIND_HANDOVER, signature=b"1:2:2", old_master=0
     )
     # A refusal names the master with its grant, so a refused old master hands over too.
     said = dict(refused(seq, 0, 1, 1).metadata)
     assert drone_pb2.Grant.FromString(bytes.fromhex(said["baton-grant"])) == notice.grant
     seq.switch(2, LOST, now=2.0, takeover=True)
     assert seq.grant_of(3).kind == drone_pb2.GRANT_KIND_TAKEOVER
+    assert (seq.grant_of(3).master, seq.grant_of(3).old_master) == (2, 1)  # taken from 1
     # The first master's grant is still said right after it was replaced, and a drone
     # restarted from its store grants each epoch as before (its key is its certificate's).
     assert seq.grant_of(1).master == 0

@@ -150,7 +150,7 @@ def test_lose_master_prepared_seed_198_a_takeover_back_to_us_keeps_our_log() -> 
 
 def test_lose_master_lying_seeds_a_takers_own_handover_message_is_believed() -> None:
     """On a signed ring, a taker's own handover message sent on in its own name was
-    refused by every replica (``authenticity._sent_on_by_its_creator``)."""
+    refused by every replica (``authenticity._made_by_the_granted``)."""
     outcomes = [run_seed(seed, SimOptions(lose_master=True, lying=True)) for seed in (22, 100)]
     assert not any(o.failed for o in outcomes), _failures(outcomes)
 

@@ -1011,6 +1011,7 @@ class Grant(_message.Message):
     EPOCH_FIELD_NUMBER: _builtins.int
     KIND_FIELD_NUMBER: _builtins.int
     SIGNATURE_FIELD_NUMBER: _builtins.int
+    OLD_MASTER_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The controller made master."""
     epoch: _builtins.int
@@ -1018,7 +1019,12 @@ class Grant(_message.Message):
     kind: Global___GrantKind.ValueType
     """How it became master."""
     signature: _builtins.bytes
-    """The drone's signature over master, epoch and kind."""
+    """The drone's signature over master, epoch, kind and old_master."""
+    old_master: _builtins.int
+    """The master it took the role from (epoch 1: the first master itself). A
+    handover grant backs messages of its epoch from these two only: the new
+    master's, and the old master's handover message, forwarded or sent on.
+    """
     def __init__(
         self,
         *,
@@ -1026,10 +1032,11 @@ class Grant(_message.Message):
         epoch: _builtins.int = ...,
         kind: Global___GrantKind.ValueType = ...,
         signature: _builtins.bytes = ...,
+        old_master: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "kind", b"kind", "master", b"master", "signature", b"signature"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "kind", b"kind", "master", b"master", "old_master", b"old_master", "signature", b"signature"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -190,12 +190,15 @@ class Sequencer:
         if grant is None:
             if epoch == 1:
                 first = self.handovers[0].old_master if self.handovers else self.master
-                grant = drone_pb2.Grant(master=first, epoch=1, kind=drone_pb2.GRANT_KIND_FIRST)
+                grant = drone_pb2.Grant(
+                    master=first, epoch=1, kind=drone_pb2.GRANT_KIND_FIRST, old_master=first
+                )
             else:
                 record = self.handovers[epoch - 2]
                 takeover = record.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
                 grant = drone_pb2.Grant(
                     master=record.new_master,
+                    old_master=record.old_master,
                     epoch=epoch,
                     kind=drone_pb2.GRANT_KIND_TAKEOVER
                     if takeover

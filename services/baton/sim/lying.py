@@ -13,7 +13,10 @@ One station (drawn from a random stream of its own) is stolen: at drawn moments
 in the fault window it sends a forged frame to another live controller, made
 from what it holds, as an attacker with its key could: a newer mastership in
 its own name without the drone's grant, a handover making the receiver master,
-a genuine old grant played again for a newer epoch, invented replies, a genuine
+a genuine old grant played again for a newer epoch, a genuine handover grant of
+another station's handover carried by a message of its epoch in the liar's
+name or its new master's (every message of the epoch carries the grant),
+invented replies, a genuine
 message altered, or sent again under another number. Each is delivered to the
 receiver's core as a ring stream from the liar delivers it, and the
 ``lies-refused`` oracle asks that every one was refused (counted in the
@@ -46,7 +49,7 @@ from baton.controller.link_core import SyncWord, sync_word
 from baton.digest import request_digest
 from baton.sim.mission import GET_POSITION
 from baton.v1 import drone_api_pb2 as api
-from baton.v1 import ring_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 if TYPE_CHECKING:
     from baton.sim.controller import SimController
@@ -58,6 +61,7 @@ LIES = (
     "newer-mastership",
     "handover-to-receiver",
     "old-grant-again",
+    "borrowed-handover-grant",
     "invented-replies",
     "altered-reply",
     "renumbered",
@@ -69,7 +73,7 @@ LIES = (
     "holds-epoch-newer",
     "holds-deflated",
 )
-SYNC_LIES = frozenset(LIES[6:])
+SYNC_LIES = frozenset(LIES[7:])
 # How far ahead of the newest epoch it knows a forged mastership claims to be.
 EPOCHS_AHEAD = (1, 2, 5)
 
@@ -283,6 +287,20 @@ def forge(
         old = rng.choice(granted).grant
         own.grant.CopyFrom(old)
         own.epoch = max(newest, old.epoch) + rng.choice(EPOCHS_AHEAD)
+    elif kind == "borrowed-handover-grant":
+        borrowed = [
+            m.grant
+            for m in held
+            if m.grant.kind == drone_pb2.GRANT_KIND_HANDOVER
+            and liar not in (m.grant.master, m.grant.old_master)
+        ]
+        if not borrowed:
+            return None
+        grant = rng.choice(borrowed)
+        own.grant.CopyFrom(grant)
+        own.epoch = grant.epoch
+        if rng.random() < 0.5:
+            own.origin = grant.master  # as if its new master forwarded it
     elif kind == "invented-replies":
         made_up = api.Position(latitude_deg=1.0, longitude_deg=2.0).SerializeToString()
         own.entries.append(
