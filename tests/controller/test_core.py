@@ -119,6 +119,19 @@ def test_fenced_drops_the_log_and_rejoins_once() -> None:
     assert core.rejoin() == []
 
 
+def test_a_takeover_older_than_our_mastership_fences_nothing() -> None:
+    """--policy nearest seed 712: master 1 (epoch 5) took epoch 7 from a handover message
+    handed back to it (``_take_handed_back``); the drone's refusal of its earlier Connect
+    then named the takeover of epoch 6, and fenced it (mastership-legal: fenced by an
+    epoch not newer than ours). A takeover older than our mastership is moot: it
+    connects again in its epoch."""
+    core = master()
+    core.protocol.epoch = 7  # as the handover message handed back made it
+    assert kinds(core.fenced(1, 6)) == [Note, Reconnect]
+    assert not core.protocol.fenced and not core.rejoining
+    assert Rejoin in kinds(core.fenced(1, 8))
+
+
 def test_a_connect_refusal_decides_by_what_the_drone_says() -> None:
     taken = master().connect_refused(DroneRefusal(1, 2, 5, taken_over=True))
     assert Rejoin in kinds(taken)

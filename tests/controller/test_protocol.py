@@ -1034,6 +1034,33 @@ def test_a_master_that_hands_over_looks_at_what_it_queued_while_active() -> None
     assert [e for e in effects if isinstance(e, Diverged)] == [Diverged(2, 2, 3)]
 
 
+def test_an_empty_handover_message_handing_the_role_back_to_an_active_master_is_handled() -> None:
+    """--policy nearest seed 1866: master 5, ACTIVE in epoch 3, never heard that the drone
+    took the role over (epoch 4) and its taker handed it back (epoch 5) with nothing
+    framed in between. The handover message, next to our top, stayed queued for ever;
+    the ring took it as that number, so our own message numbered like it would be taken
+    for one seen. It is handled, as a PASSIVE controller handles it."""
+    p = started(0, [0, 1], 0)
+    p.on_reply(entry(1))  # message 1, epoch 1
+    back = ring_pb2.LogMessage(
+        lognr=2, origin=0, sender=1, handover=True, epoch=3, after_reqnr=1, after_epoch=1
+    )
+    p.on_log(back)
+    assert (p.state, p.lognr, p.epoch, dict(p.log_queue)) == (State.ACTIVE, 2, 3, {})
+    flushed = p.on_reply(entry(2))  # our next message is numbered after it, in its epoch
+    assert sends(flushed) == [(1, 3, False)]
+    assert [e.message.epoch for e in flushed if isinstance(e, SendLog)] == [3]
+    # One with entries went on without us (the core fences us on it): left queued.
+    q = started(0, [0, 1], 0)
+    q.on_reply(entry(1))
+    went_on = ring_pb2.LogMessage(
+        lognr=2, origin=0, sender=1, handover=True, epoch=3, after_reqnr=1, after_epoch=1
+    )
+    went_on.entries.append(entry(2))
+    q.on_log(went_on)
+    assert (q.lognr, q.epoch, sorted(q.log_queue)) == (1, 1, [2])
+
+
 def test_in_a_longer_ring_a_fenced_master_keeps_what_the_drone_took_as_let_go() -> None:
     """--lose-master seed 13253: in a ring of three, what went round by the predecessor's
     word may have skipped a taker that lacks it, so that alone keeps nothing; but the

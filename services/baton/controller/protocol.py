@@ -1536,6 +1536,41 @@ class ControllerProtocol:
             return [SendLog(self.successor, forwarded)]
         return []
 
+    def _take_handed_back(self) -> list[Effect]:
+        """While ACTIVE, the next message queued, if it is a handover message to us of a
+        newer epoch than ours, with nothing in it, following our log at once (its number
+        next to ours, its requests after ours, its epoch newer than our top's): handled.
+
+        The drone took our mastership over and its taker handed it back before we
+        heard of either (--policy nearest 1866): the taker framed nothing new, so its
+        handover message is our log's next number, empty. ACTIVE, we queued it, and
+        it stayed there for ever (the drone's grant of its epoch, if it came, found us
+        ACTIVE already), while the ring, which took it as that number, would take our
+        own message numbered like it for one seen. Handled, it makes us master in its
+        epoch, as it makes a PASSIVE controller (``_handle``); the drone's word of the
+        takeover between, if it comes later, is older than that mastership
+        (``ControllerCore.fenced``). One with entries, or not next, is a mastership
+        that went on without us, which fences us (``went_on_without_us``)."""
+        queued = self.log_queue.get(self.lognr + 1)
+        if (
+            queued is None
+            or not queued.handover
+            or queued.origin != self.id
+            or queued.epoch <= self.epoch
+            or queued.epoch <= self._epoch_at.get(self.lognr, 0)
+            or queued.entries
+            or queued.after_reqnr != self.reqnr
+        ):
+            return []
+        del self.log_queue[queued.lognr]
+        self.lognr = queued.lognr
+        self.epoch = queued.epoch
+        self._handled_epoch = max(self._handled_epoch, queued.epoch)
+        self._held(queued.lognr, 0, queued.epoch)
+        if queued.HasField("grant"):
+            self._grants[queued.epoch] = queued.grant
+        return self._drop_stale_queued(queued.lognr, queued.epoch)
+
     def _drain(self) -> list[Effect]:
         """Handles queued messages while PASSIVE and the next one is there (lines 34-43, 57-59).
 
@@ -1547,6 +1582,8 @@ class ControllerProtocol:
         effects: list[Effect] = []
         if self.fenced or self.restarting:
             return effects
+        if self.state is State.ACTIVE:
+            effects.extend(self._take_handed_back())
         while self.state is State.PASSIVE and (self.lognr + 1) in self.log_queue:
             diverged = self._diverged_before(self.log_queue[self.lognr + 1])
             if diverged is not None:
