@@ -762,9 +762,9 @@ class ControllerCore:
             return []
         p = self.protocol
         if p.state is State.ACTIVE and 0 < epoch <= p.epoch:
-            # The takeover fenced a mastership older than the one we hold now (one
-            # handed back to us by a handover message since: ``_take_handed_back``):
-            # moot. Connect again, in our epoch, to hear the drone's word of it.
+            # A takeover of a mastership older than the one we hold now (handed back
+            # to us by a handover message since, ``_take_handed_back``) fences
+            # nothing: connect again, in our epoch, to hear the drone's word of it.
             fields = {"fencing_epoch": epoch, "epoch": p.epoch}
             return [
                 Note("info", "a takeover older than our mastership; connecting again", fields),

@@ -772,10 +772,10 @@ class ControllerProtocol:
         if self.seal is _unsealed:
             if holds_lognr > self.lognr and holds_epoch > self._epoch_at.get(self.lognr, 0):
                 # Above our top, of a mastership newer than it: built on ours by a
-                # handover, or framed anew by a takeover that never held ours (policy
-                # seed 12952: counted as gone round, a fenced master kept its own
-                # give-up the taker replaced, and its program saw it). Nothing
-                # tells which; a signed ring has no proof for it either.
+                # handover, or framed anew by a takeover that never held ours, and
+                # nothing tells which. Counted, a fenced master would keep as gone
+                # round what the taker replaced (``kept_when_fenced``). A signed
+                # ring has no proof for it either.
                 return 0
             return holds_lognr
         if not proof or self._proofs.get(holds_lognr) != proof:
@@ -1361,11 +1361,10 @@ class ControllerProtocol:
         self._handed.CopyFrom(message)
         self._mastership_over = self.epoch
         effects: list[Effect] = [DisconnectDrone(), SendLog(new_master, message)]
-        # PASSIVE now, we look at the message queued next while we were ACTIVE
-        # (--lose-master --prepared 4860: the ring went on in a takeover's epoch past
-        # the one this notice is of; its messages, queued behind our handover
-        # message's number, waited there for ever, PASSIVE handling only what
-        # arrives). One that shows our framing diverged rejoins us now.
+        # PASSIVE now, we look at the message queued next while we were ACTIVE: a
+        # PASSIVE controller handles only what arrives, and a takeover's messages
+        # queued behind our handover message's number would wait there for ever.
+        # One that shows our framing diverged rejoins us now.
         following = self.log_queue.get(self.lognr + 1)
         diverged = self._diverged_before(following) if following is not None else None
         return [*effects, diverged] if diverged is not None else effects
@@ -1541,13 +1540,11 @@ class ControllerProtocol:
         newer epoch than ours, with nothing in it, following our log at once (its number
         next to ours, its requests after ours, its epoch newer than our top's): handled.
 
-        The drone took our mastership over and its taker handed it back before we
-        heard of either (--policy nearest 1866): the taker framed nothing new, so its
-        handover message is our log's next number, empty. ACTIVE, we queued it, and
-        it stayed there for ever (the drone's grant of its epoch, if it came, found us
-        ACTIVE already), while the ring, which took it as that number, would take our
-        own message numbered like it for one seen. Handled, it makes us master in its
-        epoch, as it makes a PASSIVE controller (``_handle``); the drone's word of the
+        Such a message is the drone taking our mastership over and its taker handing
+        it back before we heard of either, with nothing framed in between: the ring
+        takes it as our log's next number, so queued for ever it would make our own
+        message numbered like it one seen. Handled, it makes us master in its epoch,
+        as it makes a PASSIVE controller (``_handle``); the drone's word of the
         takeover between, if it comes later, is older than that mastership
         (``ControllerCore.fenced``). One with entries, or not next, is a mastership
         that went on without us, which fences us (``went_on_without_us``)."""
@@ -1557,19 +1554,26 @@ class ControllerProtocol:
             or not queued.handover
             or queued.origin != self.id
             or queued.epoch <= self.epoch
-            or queued.epoch <= self._epoch_at.get(self.lognr, 0)
             or queued.entries
             or queued.after_reqnr != self.reqnr
         ):
             return []
         del self.log_queue[queued.lognr]
-        self.lognr = queued.lognr
         self.epoch = queued.epoch
-        self._handled_epoch = max(self._handled_epoch, queued.epoch)
-        self._held(queued.lognr, 0, queued.epoch)
         if queued.HasField("grant"):
             self._grants[queued.epoch] = queued.grant
-        return self._drop_stale_queued(queued.lognr, queued.epoch)
+        return self._take_in(queued)
+
+    def _take_in(self, message: ring_pb2.LogMessage) -> list[Effect]:
+        """Message ``message``, next in order, is handled: held (its entries already in
+        our log, if any), with its number and epoch; queued messages it outdates go."""
+        self.lognr = message.lognr
+        self._framing(message.entries, message.epoch, message.lognr)
+        self._handled_epoch = max(self._handled_epoch, message.epoch)
+        self._held(
+            message.lognr, message.entries[-1].reqnr if message.entries else 0, message.epoch
+        )
+        return self._drop_stale_queued(message.lognr, message.epoch)
 
     def _drain(self) -> list[Effect]:
         """Handles queued messages while PASSIVE and the next one is there (lines 34-43, 57-59).
@@ -1732,12 +1736,7 @@ class ControllerProtocol:
             )
         for entry in message.entries:
             self.log.append(entry)
-        self._framing(message.entries, message.epoch, message.lognr)
-        self._handled_epoch = max(self._handled_epoch, message.epoch)
-        self._held(
-            message.lognr, message.entries[-1].reqnr if message.entries else 0, message.epoch
-        )
-        effects: list[Effect] = self._drop_stale_queued(message.lognr, message.epoch)
+        effects = self._take_in(message)
         self._take_back_stale_words(message.epoch)
         if (
             self.master
