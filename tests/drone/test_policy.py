@@ -141,7 +141,23 @@ def test_nearest_waits_for_the_margin_and_the_dwell() -> None:
     decision, state = decide(NEAREST, placed, fix(550.0), {0: UP, 1: UP}, 0, state, 3.0)
     assert decision == Decision(HANDOVER, decision.reason, target=1)
     assert "1 nearer (450 m) than master 0 (550 m of 600 m)" in decision.reason
-    assert state == PolicyState(entered=((0, -math.inf), (1, -math.inf)))
+
+
+def test_a_nearest_handover_stands_until_the_master_has_moved() -> None:
+    """A prepared handover takes its time (under load, longer than the dwell): while
+    the master has not moved, the next decision is the same handover, not a new dwell
+    and a second decision (the corridor testbed counted two for one crossing)."""
+    placed = stations((0.0, 600.0), (1000.0, 600.0))
+    state = PolicyState()
+    decision, state = decide(NEAREST, placed, fix(540.0), {0: UP, 1: UP}, 0, state, 1.0)
+    decision, state = decide(NEAREST, placed, fix(550.0), {0: UP, 1: UP}, 0, state, 3.0)
+    assert decision.action == HANDOVER and decision.target == 1
+    for now in (3.1, 3.5, 4.0):
+        again, state = decide(NEAREST, placed, fix(551.0), {0: UP, 1: UP}, 0, state, now)
+        assert (again.action, again.target) == (HANDOVER, 1), again.reason
+    # Moved: the candidate was the new master, forgotten; the margin counts from 1 now.
+    decision, state = decide(NEAREST, placed, fix(552.0), {0: UP, 1: UP}, 1, state, 4.1)
+    assert decision.action == STAY and state.candidate is None
 
 
 def test_overlapping_ranges_pick_the_nearest_usable() -> None:

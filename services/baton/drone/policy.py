@@ -460,9 +460,11 @@ def _nearest(
             Decision(STAY, f"{nearer} for {held:.1f} s of {params.dwell_s:g} s"),
             state,
         )
+    # The candidate is kept: until the master has moved (a prepared handover takes its
+    # time), the decision stays this handover, not a new dwell and a second decision.
     return (
         Decision(HANDOVER, f"{nearer} by over {params.margin_m:g} m for {held:.1f} s", best.id),
-        PolicyState(),
+        state,
     )
 
 
