@@ -506,6 +506,41 @@ def test_a_message_numbered_like_ours_from_a_newer_epoch_means_we_must_rejoin() 
     assert old.on_log(again) == []
 
 
+def test_a_rejoin_keeps_what_our_framing_shares_with_the_diverging_message() -> None:
+    """A message and its epoch name it (one master frames a number once in its
+    epoch): a diverging message whose creator's message before it is ours was built
+    on our log up to there, which the rejoin keeps. Dropped with the rest, the ring
+    may hold no copy of replies the drone let go of (--policy nearest 2810: every
+    controller rejoined with messages 1-2 below a taker's 13, and waited for ever
+    for 3)."""
+
+    def at(lognr: int, reqnrs: list[int], epoch: int, after_epoch: int = 0) -> ring_pb2.LogMessage:
+        m = message(lognr, 0, reqnrs)
+        m.epoch, m.after_epoch = epoch, after_epoch
+        return m
+
+    def replica_with(*messages: ring_pb2.LogMessage) -> ControllerProtocol:
+        replica = started(1, [0, 1, 2], 0)
+        for m in messages:
+            replica.on_log(m)
+        replay_all(replica)
+        return replica
+
+    ours = [at(1, [1], 5), at(2, [2], 5, 5), at(3, [3], 5, 5), at(4, [4], 5, 5)]
+    built_on_ours = at(3, [3, 4], 6, after_epoch=5)  # the taker held our 1-2
+    replica = replica_with(*ours)
+    assert [type(e).__name__ for e in replica.on_log(built_on_ours)] == ["Diverged"]
+    assert replica.kept_history() == 2
+    # Its next message, built on its own 3, differs from our 4 too: that changes
+    # nothing below 3 (--policy nearest 2943: two in one step).
+    assert [type(e).__name__ for e in replica.on_log(at(4, [5], 6, 6))] == ["Diverged"]
+    assert replica.kept_history() == 2
+    # Built on another message 2: nothing is known common.
+    replica = replica_with(*ours)
+    assert [type(e).__name__ for e in replica.on_log(at(3, [2, 3], 6, 4))] == ["Diverged"]
+    assert replica.kept_history() == 0
+
+
 def test_the_ring_routes_to_the_first_successor_not_down_for_the_detection_time() -> None:
     down = {1: 5.0, 2: 0.4}  # seconds down; 3 has no stream tried yet
     ring = [0, 1, 2, 3]
@@ -1085,6 +1120,28 @@ def test_in_a_longer_ring_a_fenced_master_keeps_what_the_drone_took_as_let_go() 
     assert started(0, [0, 1, 2], 0).kept_when_fenced() == 0
 
 
+def test_a_fenced_master_keeps_its_messages_up_to_the_one_its_taker_built_on() -> None:
+    """--lose-master --prepared seed 14590 (a ring of two): taker 0 held the fenced
+    master 1's log up to message 10 and was then lost for good; 1, fenced, kept nothing
+    of it (none of it had gone round from 1, nor was below a watermark 1 was told), and
+    the drone had let go of the replies. The taker's first Connect said the message it
+    built on; the drone's refusal says it, and a fenced master that holds that message
+    of that epoch keeps its messages up to it, in any ring."""
+    for ring in ([0, 1], [0, 1, 2]):
+        q = started(0, ring, 0)
+        for reqnr in (1, 2, 3):
+            q.on_reply(entry(reqnr))  # messages 1-3 of epoch 1, none gone round
+        assert q.epoch_of(2) == 1
+        q.on_fenced(2, taker_holds=(2, 1))
+        assert q.kept_when_fenced() == 2
+    for other in ((2, 5), (7, 1), (0, 0)):  # another message 2, one we lack, not said
+        q = started(0, [0, 1], 0)
+        for reqnr in (1, 2, 3):
+            q.on_reply(entry(reqnr))
+        q.on_fenced(2, taker_holds=other)
+        assert q.kept_when_fenced() == 0, other
+
+
 def test_a_fenced_master_keeps_the_takers_messages_it_queued() -> None:
     """--policy seed 882 (a ring of two): master 0, cut off, flushed message 1, which went
     round; 1 took over (epoch 2) and its messages 2-3 came to 0, still ACTIVE, which
@@ -1117,7 +1174,10 @@ def test_a_master_whose_program_starts_again_keeps_its_log_for_its_fresh_self() 
     the entry is that reply, and the program starts again by a rejoin. The rejoin dropped
     everything, and nobody else held the requests below the drone's watermark: the fresh
     taker waited for them for ever. The master flushes its log, and its fresh self is fed
-    every message up to it; a replica, or a master fenced since, keeps what it did."""
+    every message up to it; a master fenced since keeps what that keeps. A replica keeps
+    what it handled: --lose-master --prepared 9935 (a ring of two), the new master of a
+    prepared handover, not yet ACTIVE, restarted its program and rejoined with nothing;
+    its old master was lost for good, and the drone had let go of the replies."""
     p = started(1, [1, 0], 2**20, initial_master=1)
     p.on_reply(entry(1))
     p.on_reply(entry(2))
@@ -1126,7 +1186,9 @@ def test_a_master_whose_program_starts_again_keeps_its_log_for_its_fresh_self() 
     p.on_fenced(2)
     assert p.kept_history() == p.kept_when_fenced() == 0
     replica = started(0, [1, 0], 2**20, initial_master=1)
-    assert replica.restart_program() == [] and replica.kept_history() == 0
+    replica.on_log(_of_epoch(message(1, 1, [1, 2]), 1))
+    replay_all(replica)
+    assert replica.restart_program() == [] and replica.kept_history() == 1
     # The fresh self holds the log again and goes ACTIVE on it when granted.
     fresh = ControllerProtocol(1, [1, 0], 2**20)
     fresh.start()
@@ -1151,7 +1213,7 @@ def test_a_program_that_starts_again_keeps_a_handover_message_for_the_fresh_self
     p.on_log(_of_epoch(message(1, 0, [1, 2]), 1))
     assert p.state is State.REPLAY
     p.replay(GET, b"")  # the call the program gave up on: the log says it was served
-    assert p.restart_program() == [] and p.kept_history() == 0  # a replica: nothing kept
+    assert p.restart_program() == [] and p.kept_history() == 1  # what it handled
     replay_all(p)
     handover = _of_epoch(message(2, 1, [3], handover=True, sender=0), 2)
     p.on_log(handover)

@@ -147,8 +147,11 @@ def test_a_masters_connect_carries_the_grant_then_the_retained_replies_in_batche
     for reqnr in (1, 2, 3):
         drone.seq.admit(0, 1, reqnr, GET, digest)
         drone.seq.served(0, reqnr, GET, digest, b"x" * 40, float(reqnr), float(reqnr))
-    assert drone.connected(1, 0) is None  # not the master: nothing but a notice owed
-    first = drone.connected(0, holds_reqnr=1, batch_bytes=64)
+    not_master = drone_pb2.ConnectRequest(controller_id=1)
+    assert drone.connected(not_master) is None  # not the master: nothing but a notice owed
+    first = drone.connected(
+        drone_pb2.ConnectRequest(controller_id=0, holds_reqnr=1), batch_bytes=64
+    )
     assert first is not None
     grant, batches = first
     assert (grant.master, grant.epoch, grant.last_reqnr, grant.retained_through) == (0, 1, 3, 3)

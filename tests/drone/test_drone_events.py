@@ -226,7 +226,7 @@ def test_the_policy_switches_or_prepares_only_for_the_master_it_decided_for() ->
 def test_a_connect_carries_the_grant_then_the_operator_s_word_when_it_changes() -> None:
     drone = core()
     stream = ConnectStream(0)
-    grant, batches = stream.opened(drone, holds_reqnr=0)
+    grant, batches = stream.opened(drone, drone_pb2.ConnectRequest(controller_id=0))
     assert grant is not None and grant.master == 0 and batches == []
     assert stream.woken(drone) == []
     drone.operator.pause(1.0, 0, note="a person on the field")
@@ -240,7 +240,7 @@ def test_an_old_master_s_connect_carries_only_its_notice() -> None:
     connected_master(drone)
     drone.hand_over(1, RPC, 2.0)
     stream = ConnectStream(0)
-    assert stream.opened(drone, holds_reqnr=0) == (None, [])
+    assert stream.opened(drone, drone_pb2.ConnectRequest(controller_id=0)) == (None, [])
     (notice,) = stream.woken(drone)
     assert isinstance(notice, drone_pb2.HandoverNotice) and notice.new_master == 1
     drone.delivered(0, notice)
@@ -317,13 +317,17 @@ def test_a_connect_stream_signs_the_retained_replies_the_drone_made() -> None:
         drone.seq.admit(0, 1, reqnr, GET, digest)
         drone.seq.served(0, reqnr, GET, digest, b"x" * 40, float(reqnr), float(reqnr))
     signer = sim_keys(0, [0, 1, 2]).drone
-    _, signed = ConnectStream(0, signer).opened(drone, holds_reqnr=0, batch_bytes=64)
+    _, signed = ConnectStream(0, signer).opened(
+        drone, drone_pb2.ConnectRequest(controller_id=0), batch_bytes=64
+    )
     assert [[reply.reqnr for reply in batch] for batch in signed] == [[1], [2]]
     kept = drone.seq.cache.get(1)
     assert kept is not None
     assert signed[0][0] == signed_retained(signer, kept.to_proto())
     assert signed[0][0].signature
-    _, unsigned = ConnectStream(0).opened(drone, holds_reqnr=0, batch_bytes=64)
+    _, unsigned = ConnectStream(0).opened(
+        drone, drone_pb2.ConnectRequest(controller_id=0), batch_bytes=64
+    )
     assert not unsigned[0][0].signature
 
 

@@ -263,6 +263,29 @@ def test_a_takeover_says_the_watermark_it_was_granted_at_to_the_master_it_fenced
     assert cooperative.watermark_reqnr == 0 and not seq.pending[1].takeover_watermark_reqnr
 
 
+def test_a_takeover_says_the_message_its_taker_built_on_once_it_connected() -> None:
+    """The taker's first Connect in its epoch says the log message it handled last; its
+    own messages follow that one, and every refusal of the old master's mastership says
+    it (``baton-takeover-holds``). A later Connect changes nothing (the taker framed
+    messages of its own by then), nor does a Connect of another controller."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    serve(seq, 0, 1, 1)
+    seq.switch(1, LOST, now=4.0, takeover=True, lost_at=1.0)
+    assert "baton-takeover-holds" not in dict(refused(seq, 0, 1, 2).metadata)
+    seq.taker_connected(
+        drone_pb2.ConnectRequest(controller_id=2, holds_lognr=9, holds_lognr_epoch=1)
+    )
+    seq.taker_connected(
+        drone_pb2.ConnectRequest(controller_id=1, holds_lognr=3, holds_lognr_epoch=1)
+    )
+    seq.taker_connected(
+        drone_pb2.ConnectRequest(controller_id=1, holds_lognr=5, holds_lognr_epoch=2)
+    )
+    record = seq.handovers[-1]
+    assert (record.taker_lognr, record.taker_lognr_epoch) == (3, 1)
+    assert ("baton-takeover-holds", "3/1") in refused(seq, 0, 1, 2).metadata
+
+
 def test_a_taker_is_given_every_retained_reply_with_the_epoch_that_brought_it() -> None:
     """--policy nearest seed 132: the policy's taker is the nearest station, and may hold
     a framing an earlier takeover replaced. It is given the retained replies it says it

@@ -754,6 +754,8 @@ class ConnectRequest(_message.Message):
     MASTERSHIP_EPOCH_FIELD_NUMBER: _builtins.int
     HOLDS_REQNR_FIELD_NUMBER: _builtins.int
     GIVEN_UP_EPOCH_FIELD_NUMBER: _builtins.int
+    HOLDS_LOGNR_FIELD_NUMBER: _builtins.int
+    HOLDS_LOGNR_EPOCH_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The connecting controller's id; must be the current master."""
     mastership_epoch: _builtins.int
@@ -778,6 +780,14 @@ class ConnectRequest(_message.Message):
     saying the same is granted the new epoch as it is (docs/design.md,
     "Takeover").
     """
+    holds_lognr: _builtins.int
+    """The highest log number the controller handled, every one below it too,
+    and that message's epoch (0, 0: none). A takeover's record keeps a
+    taker's (HandoverRecord.taker_lognr): the taker builds its own messages on
+    that one, so the master it fenced keeps its messages up to it when it
+    holds that message of that epoch (it may hold the only copy left).
+    """
+    holds_lognr_epoch: _builtins.int
     def __init__(
         self,
         *,
@@ -785,10 +795,12 @@ class ConnectRequest(_message.Message):
         mastership_epoch: _builtins.int = ...,
         holds_reqnr: _builtins.int = ...,
         given_up_epoch: _builtins.int = ...,
+        holds_lognr: _builtins.int = ...,
+        holds_lognr_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "given_up_epoch", b"given_up_epoch", "holds_reqnr", b"holds_reqnr", "mastership_epoch", b"mastership_epoch"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["controller_id", b"controller_id", "given_up_epoch", b"given_up_epoch", "holds_lognr", b"holds_lognr", "holds_lognr_epoch", b"holds_lognr_epoch", "holds_reqnr", b"holds_reqnr", "mastership_epoch", b"mastership_epoch"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -1548,6 +1560,8 @@ class HandoverRecord(_message.Message):
     PREPARE_TIMED_OUT_FIELD_NUMBER: _builtins.int
     PREPARE_LACKED_BYTES_FIELD_NUMBER: _builtins.int
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
+    TAKER_LOGNR_FIELD_NUMBER: _builtins.int
+    TAKER_LOGNR_EPOCH_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """Master before."""
     new_master: _builtins.int
@@ -1589,6 +1603,14 @@ class HandoverRecord(_message.Message):
     taker holds every request up to it before it acts; a refusal of the old
     master says it as baton-takeover-watermark).
     """
+    taker_lognr: _builtins.int
+    """For a takeover: the log message the taker's first Connect in that epoch
+    said it held (ConnectRequest.holds_lognr, holds_lognr_epoch; 0, 0: not yet
+    connected, or it held none). Its own messages follow it, so the ring's log
+    up to it is that message's lineage; a refusal of the old master says it as
+    baton-takeover-holds ("lognr/epoch").
+    """
+    taker_lognr_epoch: _builtins.int
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
         """Where the vehicle was when the drone decided (zero if unknown)."""
@@ -1612,10 +1634,12 @@ class HandoverRecord(_message.Message):
         prepare_timed_out: _builtins.bool = ...,
         prepare_lacked_bytes: _builtins.int = ...,
         watermark_reqnr: _builtins.int = ...,
+        taker_lognr: _builtins.int = ...,
+        taker_lognr_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["position", b"position"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "position", b"position", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "reason", b"reason", "trigger", b"trigger", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "position", b"position", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "reason", b"reason", "taker_lognr", b"taker_lognr", "taker_lognr_epoch", b"taker_lognr_epoch", "trigger", b"trigger", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -144,6 +144,9 @@ class DroneRefusal:
     # The drone's watermark at the takeover of the refused controller's mastership
     # (``baton-takeover-watermark``; 0: not said).
     takeover_watermark: int = 0
+    # The log message that takeover's taker built on, (lognr, epoch)
+    # (``baton-takeover-holds``; (0, 0): not said).
+    taker_holds: tuple[int, int] = (0, 0)
 
     @classmethod
     def from_metadata(cls, metadata: Mapping[str, str | bytes]) -> DroneRefusal | None:
@@ -153,6 +156,7 @@ class DroneRefusal:
         if master is None:
             return None
         grant_hex = str(metadata.get("baton-grant", ""))
+        lognr, _, epoch = str(metadata.get("baton-takeover-holds", "0/0")).partition("/")
         return cls(
             int(str(master)),
             int(str(metadata.get("baton-epoch", "0"))),
@@ -161,6 +165,7 @@ class DroneRefusal:
             int(str(metadata.get("baton-takeover-epoch", "0"))),
             drone_pb2.Grant.FromString(bytes.fromhex(grant_hex)) if grant_hex else None,
             int(str(metadata.get("baton-takeover-watermark", "0"))),
+            (int(lognr or 0), int(epoch or 0)),
         )
 
     @classmethod
@@ -753,11 +758,18 @@ class ControllerCore:
             Reconnect(),
         ]
 
-    def fenced(self, new_master: int, epoch: int, watermark: int = 0) -> list[CoreEffect]:
+    def fenced(
+        self,
+        new_master: int,
+        epoch: int,
+        watermark: int = 0,
+        taker_holds: tuple[int, int] = (0, 0),
+    ) -> list[CoreEffect]:
         """Our mastership was taken over (in ``epoch``; ``watermark``: the drone's at that
-        takeover, 0 if not said): stop acting as master, then rejoin as a replica with
-        nothing but what ``ControllerProtocol.kept_when_fenced`` keeps; nothing if a
-        rejoin is under way."""
+        takeover, 0 if not said; ``taker_holds``: the message the taker built on):
+        stop acting as master, then rejoin as a replica with nothing but what
+        ``ControllerProtocol.kept_when_fenced`` keeps; nothing if a rejoin is under
+        way."""
         if self.rejoining:
             return []
         p = self.protocol
@@ -777,7 +789,7 @@ class ControllerCore:
             {"new_master": new_master, "epoch": epoch, "unflushed_entries": len(p.log)},
         )
         record = Record(ring_pb2.HANDOVER_ROLE_FENCED, new_master, p.lognr, p.reqnr, p.log.size)
-        return [record, note, *p.on_fenced(epoch, watermark), *self.rejoin()]
+        return [record, note, *p.on_fenced(epoch, watermark, taker_holds), *self.rejoin()]
 
     def rejoin(self) -> list[CoreEffect]:
         """A rejoin with nothing, unless one is under way."""
@@ -790,7 +802,12 @@ class ControllerCore:
         """Connect refused: another controller is master, and no notice is owed to us."""
         p = self.protocol
         if refusal.taken_over or p.log_given_up(refusal.takeover_epoch):
-            return self.fenced(refusal.master, refusal.fencing_epoch, refusal.takeover_watermark)
+            return self.fenced(
+                refusal.master,
+                refusal.fencing_epoch,
+                refusal.takeover_watermark,
+                refusal.taker_holds,
+            )
         if p.state is not State.ACTIVE:
             fields = {"master": refusal.master, "epoch": refusal.epoch}
             return [Note("info", "not the master", fields), DisconnectDrone()]
@@ -822,7 +839,10 @@ class ControllerCore:
         if verdict is Refusal.HANDED_OVER:
             if refusal.taken_over or p.log_given_up(refusal.takeover_epoch):
                 return self.fenced(
-                    refusal.master, refusal.fencing_epoch, refusal.takeover_watermark
+                    refusal.master,
+                    refusal.fencing_epoch,
+                    refusal.takeover_watermark,
+                    refusal.taker_holds,
                 )
             return self.handover_notice(
                 refusal.master, refusal.after_reqnr, refusal.epoch, refusal.grant
@@ -1112,14 +1132,17 @@ class ControllerCore:
     def connect_request(self) -> drone_pb2.ConnectRequest:
         """The Connect we send now, read at every (re)connect: the epoch of the mastership
         whose log we may hold alone (the drone fences us if a takeover gave it up), the
-        request number that log holds up to, and a mastership an earlier self gave up
-        (its fresh self is granted a new epoch)."""
+        request number that log holds up to, a mastership an earlier self gave up
+        (its fresh self is granted a new epoch), and the log message we handled last
+        (a taker's own follow it)."""
         p = self.protocol
         return drone_pb2.ConnectRequest(
             controller_id=p.id,
             mastership_epoch=p.log_mastership_epoch,
             holds_reqnr=p.held_reqnr,
             given_up_epoch=p.given_up_epoch,
+            holds_lognr=p.lognr,
+            holds_lognr_epoch=p.epoch_of(p.lognr) if p.lognr else 0,
         )
 
     def carried(self, preparation: drone_pb2.PreparationProgress | None) -> drone_pb2.InvokeRequest:

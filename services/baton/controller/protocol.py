@@ -365,6 +365,12 @@ class ControllerProtocol:
         # A handover message whose log number diverged from ours (on_log): kept for
         # the controller's fresh self (``kept_for_rejoin``).
         self._diverging_handover: ring_pb2.LogMessage | None = None
+        # What a divergence from the ring's framing showed (``Diverged``): the log
+        # numbers, every one up to this, our framing shares with the ring's
+        # (``_note_common``), and the lowest number at which ours differs. The rejoin
+        # keeps what lies below both (``kept_history``).
+        self._common_lognr = 0
+        self._differs_at = 0
         # Our handover message's log number, counted as received when the ring went
         # on past it before it came back (on_log): forwarded if it comes.
         self._passed_handed = 0
@@ -389,6 +395,8 @@ class ControllerProtocol:
         # Our epoch before a handover message made us master: ours again if the
         # ring shows that role was handed on before we took it (``_handle``).
         self._epoch_before_handover = 0
+        # The log number of the handover message that made us master last (0: none).
+        self._made_master_at = 0
         # The epoch of the drone's last Connected event: a controller made ACTIVE by
         # a handover message has not heard from the drone in its epoch yet.
         self.granted_epoch = 0
@@ -449,9 +457,12 @@ class ControllerProtocol:
         self._passed: deque[tuple[int, int]] = deque()
         # The drone's watermark at the takeover that fenced us (on_fenced; 0: not said).
         self._fenced_watermark = 0
+        # Our log messages, every one up to this, that the taker which fenced us built
+        # its own on (on_fenced: it held the last of them, of the same epoch).
+        self._taker_built_on = 0
         # Our program starts again by a rejoin (``restart_program``): like fenced,
         # nothing queued is handled here any more (the fresh self handles it); and
-        # the log number up to which a master keeps its history for its fresh self.
+        # the log number up to which it keeps its history for its fresh self.
         self.restarting = False
         self._restart_keeps = 0
         # The last handover message we created, until it comes back round: if
@@ -691,7 +702,7 @@ class ControllerProtocol:
             # that holds less than we do: it gives us nothing above our hello,
             # so its message with that number would never come, and a later
             # taker holding ours would build on the replaced framing.
-            return [Diverged(holds_lognr, ours, holds_epoch)]
+            return [self._diverged(holds_lognr, ours, holds_epoch)]
         if holds_lognr > self.lognr and (
             0 < holds_epoch < self.epoch_of(self.lognr)
             or self._replaced_framing_of(holds_lognr, holds_epoch)
@@ -980,6 +991,9 @@ class ControllerProtocol:
         """The log numbers (every one up to this) that a controller fenced by a takeover
         keeps from its history when it rejoins.
 
+        - In any ring, those up to the message the taker built its own on, when
+          we hold that message of the same epoch (``on_fenced``): a message is
+          known by its number and epoch, and the taker's log is its lineage.
         - In any ring, those whose requests are all at or below the watermark
           the drone took from us as master (``told_lognr``): the drone let go of
           their replies, and every taker since must hold them before it acts, so
@@ -1014,13 +1028,13 @@ class ControllerProtocol:
         if not self._fenced_in:
             return 0
         if len(self.ring) != 2:
-            return self._taken_lognr()
+            return max(self._taken_lognr(), self._taker_built_on)
         upto = self.acked_lognr
         while (queued := self.log_queue.get(upto + 1)) is not None:
             if queued.handover or queued.epoch < self._fenced_in:
                 break
             upto += 1
-        return max(upto, self._taken_lognr())
+        return max(upto, self._taken_lognr(), self._taker_built_on)
 
     def _taken_lognr(self) -> int:
         """The highest log number whose requests are all at or below a watermark the
@@ -1033,16 +1047,22 @@ class ControllerProtocol:
     def restart_program(self) -> list[Effect]:
         """Our program starts again by a rejoin (it gave up on a call whose entry, from
         the log or a reply the drone retains, is not a give-up: node.py
-        ``_replay_again``). Nothing queued is handled here any more, and a master in
+        ``_replay_again``). Nothing queued is handled here any more; a master in
         the drone's epoch flushes its log and keeps every message up to it for its
-        fresh self (``kept_history``).
+        fresh self (``kept_history``), and a replica keeps what it handled.
 
-        A rejoin drops everything, as for a replica whose log diverged; but a
-        master's log is the ring's (it frames the drone's replies in the
-        drone's epoch), and it may be the only copy left (the other
-        controllers lost or restarted with nothing, the replies below the
-        watermark let go by the drone): dropped, the fresh taker would wait
-        for ever for requests nobody holds. And until the rejoin the controller handles
+        A rejoin drops everything, as for a replica whose log diverged; but only
+        the program went astray here, not the log. A master's log is the ring's
+        (it frames the drone's replies in the drone's epoch), and so is what a
+        replica handled (from the ring, as far as it knows: a framing the drone
+        replaced is found again by the fresh self, ``Diverged``), up to the
+        handover message that made it master, if one did: the fresh self must take
+        that one again, flag and all. Either may be
+        the only copy left (the other controllers lost or restarted with nothing,
+        the replies below the watermark let go by the drone): dropped, a taker
+        would wait for ever for requests nobody holds. A master ACTIVE in an epoch
+        the drone has not granted it keeps nothing: what it logged past the ring
+        may be a framing a takeover replaced. And until the rejoin the controller handles
         nothing queued: a handover message that made it master would otherwise
         be neither queued (``kept_for_rejoin``) nor anywhere else with its
         flag, the fresh self given the old master's history copy would be no
@@ -1050,7 +1070,12 @@ class ControllerProtocol:
         would wait for ever for its handover.
         """
         self.restarting = True
-        if self.state is not State.ACTIVE or self.granted_epoch != self.epoch:
+        if self.state is not State.ACTIVE:
+            # Not past a handover message that made us master (F7, ``kept_history``).
+            made = self._made_master_at if self.master else 0
+            self._restart_keeps = made - 1 if made else self.lognr
+            return []
+        if self.granted_epoch != self.epoch:
             return []
         effects = self._flush_to_all() if self.log else []
         self._restart_keeps = self.lognr
@@ -1059,9 +1084,16 @@ class ControllerProtocol:
     def kept_history(self) -> int:
         """The log numbers (every one up to this) a controller that rejoins keeps from its
         history for its fresh self: a master's whose program starts again
-        (``restart_program``) unless fenced since, else ``kept_when_fenced``."""
+        (``restart_program``) unless fenced since, what ``kept_when_fenced`` keeps, and
+        what our framing shares with the ring's message that diverged from it
+        (``_note_common``). Nothing from a handover message the fresh self is given
+        (``kept_for_rejoin``) on: a history copy of it, handled first, would take its
+        number without its flag, and the role it gives would be lost (F7)."""
         restarted = 0 if self.fenced else self._restart_keeps
-        return max(restarted, self.kept_when_fenced())
+        common = min(self._common_lognr, self._differs_at - 1) if self._differs_at else 0
+        upto = max(restarted, self.kept_when_fenced(), common)
+        handed = [m.lognr for m in self.kept_for_rejoin()]
+        return min([upto, *(lognr - 1 for lognr in handed)])
 
     def handover_settled(self, lognr: int) -> bool:
         """Whether our handover message ``lognr`` no longer gives its receiver the role.
@@ -1369,9 +1401,12 @@ class ControllerProtocol:
         diverged = self._diverged_before(following) if following is not None else None
         return [*effects, diverged] if diverged is not None else effects
 
-    def on_fenced(self, epoch: int = 0, watermark: int = 0) -> list[Effect]:
+    def on_fenced(
+        self, epoch: int = 0, watermark: int = 0, taker_holds: tuple[int, int] = (0, 0)
+    ) -> list[Effect]:
         """The drone gave our mastership to another controller by takeover (in ``epoch``,
-        with its watermark at ``watermark``: 0 if not said).
+        with its watermark at ``watermark``: 0 if not said; ``taker_holds``: the log
+        message, (lognr, epoch), the taker built on, (0, 0) if not said).
 
         Not in Algorithm 1, whose masters never fail: our unflushed log is not
         wanted (the new master got those replies from the drone), so nothing
@@ -1380,6 +1415,9 @@ class ControllerProtocol:
         (``ControllerNode.reset``).
         """
         self._fenced_watermark = max(self._fenced_watermark, watermark)
+        lognr, of_epoch = taker_holds
+        if 0 < lognr <= self.lognr and 0 < of_epoch == self.epoch_of(lognr):
+            self._taker_built_on = max(self._taker_built_on, lognr)
         was_active = self.state is State.ACTIVE
         self.state, self.master = State.PASSIVE, False
         self.fenced = True
@@ -1404,7 +1442,8 @@ class ControllerProtocol:
         if arrival is _Arrival.DIVERGED:
             if message.handover:
                 self._diverging_handover = message
-            return [Diverged(message.lognr, self._epoch_at[message.lognr], message.epoch)]
+            self._note_common(message)
+            return [self._diverged(message.lognr, self._epoch_at[message.lognr], message.epoch)]
         if arrival is _Arrival.FENCED:
             return [Fenced(message.lognr, message.origin, message.epoch)]
         if arrival is _Arrival.SEEN:
@@ -1641,6 +1680,26 @@ class ControllerProtocol:
         self._queued_epochs = (min(epochs), max(epochs)) if epochs else (0, 0)
         return effects + self._drain() if effects else []
 
+    def _note_common(self, message: ring_pb2.LogMessage) -> None:
+        """``message`` diverged from ours at its log number: what comes before it is
+        common to both framings if its creator's message before it is ours.
+
+        One master frames each log number once in its epoch, so a message is
+        known by its number and epoch: when the creator's message before it
+        (``after_epoch``) is of our epoch at that number, the creator built on
+        our messages up to it, and they are the ring's (the creator holds them,
+        and so did every controller its messages passed). A rejoin keeps them:
+        dropped, they may leave the ring with no copy of replies the drone let
+        go of (``kept_history``)."""
+        before = message.lognr - 1
+        if before > 0 and 0 < self._epoch_at.get(before, 0) == message.after_epoch:
+            self._common_lognr = max(self._common_lognr, before)
+
+    def _diverged(self, lognr: int, ours: int, ring: int) -> Diverged:
+        """Our message ``lognr`` (of epoch ``ours``) is not the ring's (of ``ring``)."""
+        self._differs_at = min(self._differs_at or lognr, lognr)
+        return Diverged(lognr, ours, ring)
+
     def _diverged_before(self, message: ring_pb2.LogMessage) -> Diverged | None:
         """Whether the next message in order, from a newer epoch than our last one, does
         not continue our requests: our last message is one a takeover renumbered.
@@ -1659,7 +1718,7 @@ class ControllerProtocol:
             # framing, which a takeover made of the replies ours holds, even if it
             # ends at the same request (a fenced master's give-up of a request the
             # drone executed for the taker).
-            return Diverged(self.lognr, ours, message.after_epoch)
+            return self._diverged(self.lognr, ours, message.after_epoch)
         if message.HasField("after_reqnr"):
             # Also on a message without entries: a new master's handover message
             # that continues a framing other than ours.
@@ -1669,7 +1728,7 @@ class ControllerProtocol:
         else:
             return None
         if start != self.reqnr + 1 and self.lognr > 0 and message.epoch > ours:
-            return Diverged(self.lognr, ours, message.epoch)
+            return self._diverged(self.lognr, ours, message.epoch)
         return None
 
     def _queue(self, message: ring_pb2.LogMessage) -> None:
@@ -1766,6 +1825,7 @@ class ControllerProtocol:
             if not self.master:
                 self._epoch_before_handover = self.epoch
             self.master = True
+            self._made_master_at = message.lognr
             if message.epoch > self.epoch:
                 # A grant's handover message is owed no more once a newer one makes
                 # us master (and it would be handled by now: it is numbered below).

@@ -39,11 +39,15 @@ class ConnectStream:
     said_paused: str = ""
 
     def opened(
-        self, core: DroneCore, holds_reqnr: int, batch_bytes: int = RETAINED_BATCH_BYTES
+        self,
+        core: DroneCore,
+        request: drone_pb2.ConnectRequest,
+        batch_bytes: int = RETAINED_BATCH_BYTES,
     ) -> tuple[drone_pb2.Connected | None, list[list[drone_pb2.RetainedReply]]]:
-        """What the stream carries first: the grant and the retained replies in batches
-        for the master; (None, []) for an old master owed a notice."""
-        first = core.connected(self.controller_id, holds_reqnr, batch_bytes)
+        """What the stream opened by ``request`` carries first: the grant and the
+        retained replies in batches for the master; (None, []) for an old master owed
+        a notice."""
+        first = core.connected(request, batch_bytes)
         if first is None:
             return None, []
         grant, batches = first

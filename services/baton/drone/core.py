@@ -883,17 +883,20 @@ class DroneCore:
     # -- the master's Connect stream ---------------------------------------------------
 
     def connected(
-        self, controller_id: int, holds_reqnr: int, batch_bytes: int = RETAINED_BATCH_BYTES
+        self, request: drone_pb2.ConnectRequest, batch_bytes: int = RETAINED_BATCH_BYTES
     ) -> tuple[drone_pb2.Connected, list[list[CachedReply]]] | None:
-        """What a Connect of ``controller_id`` (admitted: ``Sequencer.admit_connect``)
-        carries first, if it is the master: the Connected grant, then the replies the
-        drone retains above what it holds (``holds_reqnr``), in batches of about
+        """What a Connect (admitted: ``Sequencer.admit_connect``) carries first, if its
+        controller is the master: the Connected grant, then the replies the drone
+        retains above what it holds (``holds_reqnr``), in batches of about
         ``batch_bytes`` (the master answers its program from the first while the rest
-        crosses). None for a controller that is not the master (owed a notice)."""
+        crosses). None for a controller that is not the master (owed a notice). A
+        taker's first Connect says what its messages follow (``taker_connected``)."""
         seq = self.seq
-        if controller_id != seq.master:
+        if request.controller_id != seq.master:
             return None
-        retained = seq.replies_for_master(holds_reqnr)
+        seq.taker_connected(request)
+        controller_id = request.controller_id
+        retained = seq.replies_for_master(request.holds_reqnr)
         grant = drone_pb2.Connected(
             master=controller_id,
             last_reqnr=seq.last_reqnr,

@@ -234,6 +234,9 @@ class Sequencer:
         takeover (``HandoverRecord.watermark_reqnr``), below which no later master
         frames a request anew, so the controller keeps its log up to it
         (``ControllerProtocol.kept_when_fenced``).
+        ``baton-takeover-holds`` goes with it once the taker has connected: the log
+        message its own follow (``taker_connected``), as ``lognr/epoch``; the
+        controller keeps its messages up to it if it holds that one.
         ``baton-takeover-epoch`` is the epoch the newest takeover granted
         (absent: none yet). A controller still ACTIVE in an older epoch holds a log
         that never left it, and that takeover framed the same replies from
@@ -261,7 +264,24 @@ class Sequencer:
             where += (("baton-takeover", "1"),)
             if taken.watermark_reqnr:
                 where += (("baton-takeover-watermark", str(taken.watermark_reqnr)),)
+            if taken.taker_lognr_epoch:
+                holds = f"{taken.taker_lognr}/{taken.taker_lognr_epoch}"
+                where += (("baton-takeover-holds", holds),)
         return where
+
+    def taker_connected(self, request: drone_pb2.ConnectRequest) -> None:
+        """The master's Connect, granted: a taker's first in its epoch records the log
+        message it holds (``HandoverRecord.taker_lognr``), on which its own follow."""
+        last = self.handovers[-1] if self.handovers else None
+        if (
+            last is not None
+            and last.kind == drone_pb2.HANDOVER_KIND_TAKEOVER
+            and last.new_master == request.controller_id == self.master
+            and last.epoch == self.epoch
+            and not last.taker_lognr_epoch
+        ):
+            last.taker_lognr = request.holds_lognr
+            last.taker_lognr_epoch = request.holds_lognr_epoch
 
     @property
     def takeover_epoch(self) -> int:

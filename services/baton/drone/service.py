@@ -297,7 +297,7 @@ class DroneService(drone_pb2_grpc.DroneServicer):
         self.log.info("master connected", controller=cid)
         said = ConnectStream(cid, self.signer)
         try:
-            grant, batches = said.opened(self.core, request.holds_reqnr)
+            grant, batches = said.opened(self.core, request)
             if grant is not None:
                 yield drone_pb2.DroneEvent(connected=grant)
             for batch in batches:

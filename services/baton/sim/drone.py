@@ -668,7 +668,7 @@ class SimDrone:
             )
         said = ConnectStream(cid, self.signer)
         self.streams[cid] = Stream(cid, session, link, connection, said)
-        grant, batches = said.opened(self.core, request.holds_reqnr, RETAINED_BATCH_BYTES)
+        grant, batches = said.opened(self.core, request, RETAINED_BATCH_BYTES)
         if grant is not None:  # Connected, then the replies retained above its holds
             owner = link.owner
             parts: list[tuple[int, Callable[..., None], tuple[Any, ...]]] = [

@@ -38,7 +38,10 @@ The invariants (docs/simulation.md, "Invariants"):
    the master it serves (ACTIVE in the drone's epoch) holds at every log
    number it handled a framing no older than any live controller's, or one
    that shows the programs the same entries (a Clock.Sleep a lost master and
-   its taker both framed: the epoch differs, not what was seen), but
+   its taker both framed: the epoch differs, not what was seen), or whose
+   requests it holds, in whatever messages, with the outcomes the newer
+   framing gives them (numbered otherwise, the same for every program:
+   ``_agrees``), but
    those of masterships a takeover ended (the ring fences them: ``Fenced``;
    their holders rejoin). Not the newest ever sent (``World.framings``): a
    master lost mid-flush sends a framing that may reach nobody alive, and
@@ -181,8 +184,11 @@ def master_holds_the_ring_log(world: World) -> str | None:
         for c in live:
             theirs = c.protocol.epoch_of(lognr)
             if theirs > epoch and theirs not in replaced:
-                if ours is not None and ours == _seen_in(c, lognr):
+                seen = _seen_in(c, lognr)
+                if ours is not None and ours == seen:
                     continue  # framed again, the same for every program
+                if seen is not None and _agrees(master, seen):
+                    continue  # framed in other numbers, the same for every program
                 return (
                     f"master {master.id} (epoch {p.epoch}) holds log message {lognr} of "
                     f"epoch {epoch}, controller {c.id} holds it of epoch {theirs}"
@@ -190,7 +196,18 @@ def master_holds_the_ring_log(world: World) -> str | None:
     return None
 
 
-def _seen_in(c: SimController, lognr: int) -> tuple[object, ...] | None:
+def _agrees(master: SimController, seen: tuple[tuple[int, object], ...]) -> bool:
+    """Whether every request of ``seen`` (``_seen_in``) the master holds, it holds with
+    the same outcome: in a message it handled, queued or flushed, or in its unflushed
+    log (a taker's retained replies). A request it lacks it has still to get."""
+    p = master.protocol
+    messages = [master.history.get(n) for n in master.history.above(0)]
+    entries = [e for m in [*messages, *p.log_queue.values()] for e in m.entries]
+    held = {e.reqnr: seen_as(e) for e in [*entries, *p.log.entries]}
+    return all(held.get(reqnr, outcome) == outcome for reqnr, outcome in seen)
+
+
+def _seen_in(c: SimController, lognr: int) -> tuple[tuple[int, object], ...] | None:
     """What the programs see of log message ``lognr`` as ``c`` holds it (in its history
     or queue): each entry's request number and outcome (``seen_as``); None if unknown."""
     message = c.protocol.log_queue.get(lognr)

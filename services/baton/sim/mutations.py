@@ -205,7 +205,11 @@ def _no_fencing() -> list[tuple[Any, str, Any]]:
     nothing (``ControllerCore.fenced``, the core of node.py and the simulation)."""
 
     def fenced(
-        self: ControllerCore, new_master: int, epoch: int, watermark: int = 0
+        self: ControllerCore,
+        new_master: int,
+        epoch: int,
+        watermark: int = 0,
+        taker_holds: tuple[int, int] = (0, 0),
     ) -> list[CoreEffect]:
         if self.protocol.state is not State.ACTIVE:
             return []
