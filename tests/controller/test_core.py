@@ -412,6 +412,19 @@ def test_the_catch_up_sends_each_message_once_and_nothing_to_the_successor() -> 
     assert core.catch_up(2, held) == []
 
 
+def test_the_catch_up_leaves_out_the_messages_of_earlier_masterships() -> None:
+    """A master in epoch 2 holds messages of epoch 1 it passed on as a replica: they
+    went on along the ring before its own, and a signed ring's ``acked_lognr`` counts
+    only its own. Sent straight too, each crossed the target's link a second time
+    ahead of the master's own: a 1 MB cut-through handover over 3 hops took 1.39 s
+    against 0.76 s (``baton bench worst-case --quick``: 2.1 MB more into the target)."""
+    core = master()
+    core.protocol.epoch = 2
+    held = _Held(1, 2, 3)
+    held.messages[3].epoch = 2
+    assert [m.lognr for m in core.catch_up(2, held) or []] == [3]
+
+
 def test_a_rejoin_keeps_what_went_round_and_the_handover_messages_nowhere_else() -> None:
     core = master()
     assert core.kept_on_rejoin(_Held(1, 2)) == []  # a master that was not fenced keeps nothing

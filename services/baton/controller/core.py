@@ -639,15 +639,24 @@ class ControllerCore:
         """What a handover's target is sent straight from us (``SendCatchUp``), or None
         when the target is our successor, whose ring stream gives it everything in order.
 
-        Our messages the ring has not yet brought back to us (above ``acked_lognr``)
-        and not sent to it already, before what follows (the handover message, or a
-        prepared handover's flushes): one link's time, not one per hop
-        (docs/design.md, "The ring's forwarding"). The target ignores what it has.
+        Our messages the ring has not yet brought back to us (above ``acked_lognr``),
+        of our mastership, and not sent to it already, before what follows (the
+        handover message, or a prepared handover's flushes): one link's time, not one
+        per hop (docs/design.md, "The ring's forwarding"). The target ignores what it
+        has. Not the messages of earlier masterships we passed on: they went on along
+        the ring before ours, and a copy of each would cross the target's link a second
+        time, ahead of ours (a signed ring's ``acked_lognr`` counts our own messages
+        only, so nothing else bounds them).
         """
-        if target == self.protocol.successor:
+        p = self.protocol
+        if target == p.successor:
             return None
-        sent = max(self.protocol.acked_lognr, self.sent_straight.get(target, 0))
-        messages = [held.get(lognr) for lognr in held.above(sent)]
+        sent = max(p.acked_lognr, self.sent_straight.get(target, 0))
+        messages = [
+            message
+            for message in (held.get(lognr) for lognr in held.above(sent))
+            if message.epoch >= p.epoch
+        ]
         if messages:
             self.sent_straight[target] = messages[-1].lognr
         return messages
