@@ -13,11 +13,11 @@ import pytest
 
 from baton.controller.history import LogHistory
 from baton.controller.link_core import SyncWord
+from baton.controller.receiver_core import Reassembler
 from baton.controller.ring import (
     FRAME_BYTES,
     LogRingCall,
     PeerLink,
-    Reassembler,
     RingReceiver,
     frames,
 )
@@ -234,6 +234,51 @@ async def test_a_settled_handover_message_is_sent_again_without_its_flag() -> No
         await link.stop()
         if server is not None:
             await server.stop(0)
+
+
+class Certified(Receiver):
+    """A receiver whose streams come from controller 0, as a certificate would say."""
+
+    async def LogRing(self, request_iterator, context):  # type: ignore[no-untyped-def, override]
+        await self.receiver.serve(context, sender=0)
+
+
+async def refusal_of(address: str, sent: list[ring_pb2.LogFrame]) -> grpc.aio.AioRpcError:
+    """How a LogRing stream that writes ``sent`` ends (the receiver's refusal)."""
+    async with grpc.aio.insecure_channel(address) as channel:
+        call = ring_pb2_grpc.ControllerRingStub(channel).LogRing()
+        assert (await next_message(call)).hello
+        for frame in sent:
+            await call.write(frame)
+        with pytest.raises(grpc.aio.AioRpcError) as ended:
+            await next_message(call)
+        return ended.value
+
+
+async def test_the_receivers_refusals_end_the_stream_with_their_status_and_words() -> None:
+    """The driver carries out ``ReceiverCore``'s refusals as they are: the caller reads
+    the status and the text that names what was wrong."""
+    receiver = Certified()  # type: ignore[abstract]
+    server = BatonServer("127.0.0.1:0", [_ring(receiver)])
+    await server.start()
+    try:
+        (foreign,) = frames(big_message(1, 10), from_id=2)
+        denied = await refusal_of(server.address, [foreign])
+        assert denied.code() is grpc.StatusCode.PERMISSION_DENIED
+        assert denied.details() == (
+            "LogRing: controller 0's certificate sent a frame from_id 2; a controller sends "
+            "its own frames only"
+        )
+        first, _, third = frames(big_message(1, 2 * FRAME_BYTES), from_id=0)
+        unordered = await refusal_of(server.address, [first, third])
+        assert unordered.code() is grpc.StatusCode.INVALID_ARGUMENT
+        assert unordered.details() == (
+            f"frame of log message 1 at offset {2 * FRAME_BYTES} does not follow message 1 "
+            f"at offset {FRAME_BYTES}"
+        )
+        assert receiver.messages == []
+    finally:
+        await server.stop(0)
 
 
 # -- cut-through (docs/design.md, "The ring's forwarding") ---------------------------

@@ -21,6 +21,12 @@ once the whole message was handled and the protocol forwarded it; otherwise
 the successor is told to drop it (an abort frame). So a successor gets whole
 exactly the messages it would get from store-and-forward, in the same order,
 one frame's time behind its predecessor instead of one message's.
+
+Both ends here are drivers: a ``PeerLink`` carries out its ``LinkCore``
+(``link_core.py``), and each stream a ``RingReceiver`` serves feeds its frames
+to a ``ReceiverCore`` (``receiver_core.py``) and carries out the actions it
+returns; what a stream refuses, delivers, acknowledges or passes on is decided
+there.
 """
 
 from __future__ import annotations
@@ -29,7 +35,6 @@ import asyncio
 import contextlib
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine
-from dataclasses import dataclass
 from typing import Any, cast
 
 import grpc
@@ -38,6 +43,19 @@ from google.protobuf.message import DecodeError
 from baton.config import MAX_LOG_MESSAGE_DEFAULT
 from baton.controller.history import LogHistory
 from baton.controller.link_core import LinkCore, PeerCounters, RelayCore, SyncWord
+from baton.controller.receiver_core import (
+    AbortRelay,
+    Ack,
+    Arriving,
+    Deliver,
+    ReceiverCore,
+    Refuse,
+    RelayFrame,
+    SettleRelay,
+    StartRelay,
+    Synced,
+    WaitForRoom,
+)
 from baton.logs import BoundLogger
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import mission_metadata
@@ -89,73 +107,6 @@ def frames(
     ]
     out[0].head.CopyFrom(head_of(message))
     return out
-
-
-@dataclass(frozen=True)
-class Skipped:
-    """A message whose frames were counted, not kept (``Reassembler.skip``): complete."""
-
-    lognr: int
-
-
-class Reassembler:
-    """Puts frames back together into whole log messages, checking their order and size.
-
-    ``max_bytes`` bounds a message (the configuration's max_log_message): a
-    first frame claiming more is refused before anything is buffered.
-    """
-
-    def __init__(self, max_bytes: int = MAX_LOG_MESSAGE_DEFAULT) -> None:
-        self.max_bytes = max_bytes
-        self._lognr: int | None = None
-        self._parts: list[bytes] = []
-        self._received = 0
-        self._skipping = False
-
-    def drop(self, lognr: int) -> None:
-        """Forgets what arrived of message ``lognr`` (its sender gave it up)."""
-        if self._lognr == lognr:
-            self._lognr, self._parts, self._received = None, [], 0
-
-    def skip(self, lognr: int) -> None:
-        """Message ``lognr``, part-way through, is held already (its other copy came
-        whole): what arrived is let go, the rest only counted, and its last frame
-        gives ``Skipped`` rather than a message parsed for nothing."""
-        if self._lognr == lognr:
-            self._parts, self._skipping = [], True
-
-    def add(self, frame: ring_pb2.LogFrame) -> ring_pb2.LogMessage | Skipped | None:
-        """Adds a frame; returns the message when its last frame arrived."""
-        if frame.total_bytes > self.max_bytes:
-            raise ValueError(
-                f"log message {frame.lognr} claims {frame.total_bytes} bytes, above "
-                f"max_log_message ({self.max_bytes} bytes); raise it in the testbed file if "
-                "missions log larger entries"
-            )
-        if frame.offset == 0:
-            self._lognr, self._parts, self._received = frame.lognr, [], 0
-            self._skipping = False
-        elif frame.lognr != self._lognr or frame.offset != self._received:
-            raise ValueError(
-                f"frame of log message {frame.lognr} at offset {frame.offset} does not follow "
-                f"message {self._lognr} at offset {self._received}"
-            )
-        if not self._skipping:
-            self._parts.append(frame.data)
-        self._received += len(frame.data)
-        if self._received < frame.total_bytes:
-            return None
-        if self._received > frame.total_bytes:
-            raise ValueError(f"log message {frame.lognr} overran its {frame.total_bytes} bytes")
-        data = b"".join(self._parts)
-        self._lognr, self._parts, self._received = None, [], 0
-        if self._skipping:
-            self._skipping = False
-            return Skipped(frame.lognr)
-        try:
-            return ring_pb2.LogMessage.FromString(data)
-        except DecodeError as exc:  # a malformed frame names itself (test_fuzz_ring.py)
-            raise ValueError(f"log message {frame.lognr} is not a LogMessage: {exc}") from None
 
 
 class Relay(RelayCore):
@@ -478,7 +429,8 @@ async def _first(wake: Coroutine[Any, Any, Any], acks: asyncio.Task[None], peer_
 
 
 def _sync_frame(word: SyncWord, my_id: int) -> ring_pb2.LogFrame:
-    """The sync frame saying ``word`` (``link_core.SyncWord``)."""
+    """The sync frame saying ``word`` (``link_core.SyncWord``; read back by
+    ``receiver_core.sync_word_of``)."""
     return ring_pb2.LogFrame(
         sync=True,
         holds_lognr=word.holds,
@@ -492,19 +444,6 @@ def _sync_frame(word: SyncWord, my_id: int) -> ring_pb2.LogFrame:
     )
 
 
-def sync_word_of(frame: ring_pb2.LogFrame) -> SyncWord:
-    """What a sync frame says (``_sync_frame`` read back)."""
-    return SyncWord(
-        frame.holds_lognr,
-        frame.holds_epoch,
-        frame.master_epoch,
-        frame.master_lognr,
-        frame.holds_proof,
-        frame.holds_grant if frame.HasField("holds_grant") else None,
-        frame.master_word if frame.HasField("master_word") else None,
-    )
-
-
 async def _acks(call: LogRingCall) -> AsyncIterator[ring_pb2.LogAck]:
     while True:
         ack = await read_message(call)
@@ -514,7 +453,8 @@ async def _acks(call: LogRingCall) -> AsyncIterator[ring_pb2.LogAck]:
 
 
 class RingReceiver:
-    """The receiving end of LogRing streams: reassembles frames, hands messages on, acks."""
+    """The receiving end of LogRing streams: each stream's frames go to a ``ReceiverCore``,
+    whose actions it carries out (reassembled messages handed on, acks, relays)."""
 
     def __init__(
         self,
@@ -535,7 +475,7 @@ class RingReceiver:
         self._held = held
         # Told the log number of every frame of a message as it arrives (a message
         # on its way is not missing: ``ControllerCore.gap_due``).
-        self._arriving = arriving
+        self._arriving = arriving or _told_nothing
         # Given a first frame's head and the message's size: the Relay that passes
         # its frames on as they come (cut-through), or None (store-and-forward).
         self._relay = relay
@@ -544,7 +484,7 @@ class RingReceiver:
         # The epoch of the message with a log number we hold (the hello's, resend_after).
         self._epoch_of = epoch_of
         self._deliver = deliver
-        self._synced = synced
+        self._synced = synced or _synced_nowhere
         self._log = log
         # Set (and replaced) by ``drop_streams``: every incoming stream ends.
         self._dropped = asyncio.Event()
@@ -563,9 +503,12 @@ class RingReceiver:
 
         ``sender``: the controller the caller's certificate names (mutual TLS);
         every frame must then say it comes from that controller."""
+        core = ReceiverCore(
+            self.my_id, sender, self.max_message_bytes, self._relay is not None, self._held
+        )
         dropped = self._dropped
         waiter = asyncio.create_task(dropped.wait())
-        serving = asyncio.create_task(self._serve(context, sender))
+        serving = asyncio.create_task(self._serve(context, core))
         try:
             done, _ = await asyncio.wait({waiter, serving}, return_when=asyncio.FIRST_COMPLETED)
         finally:
@@ -576,101 +519,71 @@ class RingReceiver:
         serving.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await serving
-        await context.abort(
-            grpc.StatusCode.UNAVAILABLE,
-            f"controller {self.my_id} rejoined the ring with nothing: connect again",
-        )
+        refusal = core.dropped()
+        await context.abort(refusal.code, refusal.message)
 
-    async def _serve(self, context: LogRingContext, sender: int | None) -> None:
-        lognr = self._current_lognr()
-        epoch = self._epoch_of(lognr) if self._epoch_of is not None and lognr else 0
+    async def _serve(self, context: LogRingContext, core: ReceiverCore) -> None:
+        """Reads the stream's frames into ``core`` and carries out its actions, in order
+        (``receiver_core``'s module comment)."""
+        hello = core.opened(self._current_lognr(), self._epoch_of)
         await context.write(
-            ring_pb2.LogAck(lognr=lognr, hello=True, receiver_id=self.my_id, epoch=epoch)
+            ring_pb2.LogAck(
+                lognr=hello.lognr, hello=True, receiver_id=self.my_id, epoch=hello.epoch
+            )
         )
-        reassembler = Reassembler(self.max_message_bytes)
-        # The relay of the message part-way through, if it is passed on (cut-through).
+        # The relay the core started and has not ended (its AbortRelay, SettleRelay).
         relay: Relay | None = None
-        # And its head (from its first frame), to ask whether we hold it already.
-        head: ring_pb2.LogMessage | None = None
         try:
             while True:
                 try:
                     frame = await context.read()
                 except DecodeError as exc:  # gRPC would end the stream UNKNOWN
-                    await context.abort(
-                        grpc.StatusCode.INVALID_ARGUMENT,
-                        f"LogRing: a frame that is not a LogFrame ({exc}); nothing of it was taken",
-                    )
-                    return
-                if frame is grpc.aio.EOF:
-                    return
-                if sender is not None and frame.from_id != sender:
-                    await context.abort(
-                        grpc.StatusCode.PERMISSION_DENIED,
-                        f"LogRing: controller {sender}'s certificate sent a frame from_id "
-                        f"{frame.from_id}; a controller sends its own frames only",
-                    )
-                    return
-                if frame.sync:
-                    if self._synced is not None:
-                        await self._synced(frame.from_id, sync_word_of(frame))
-                    continue
-                if frame.abort:
-                    reassembler.drop(frame.lognr)
-                    if relay is not None:
+                    actions = core.undecodable(exc)
+                else:
+                    if frame is grpc.aio.EOF:
+                        return
+                    actions = core.frame(frame)
+                # StartRelay is last of its list, and its answer continues the list.
+                for action in actions:
+                    if isinstance(action, Arriving):
+                        self._arriving(action.lognr)
+                    elif isinstance(action, RelayFrame):
+                        assert relay is not None
+                        relay.add(action.frame)
+                    elif isinstance(action, WaitForRoom):
+                        assert relay is not None
+                        await relay.room()
+                    elif isinstance(action, Deliver):
+                        await self._deliver(action.message, action.relayed_by)
+                    elif isinstance(action, Ack):
+                        await context.write(
+                            ring_pb2.LogAck(lognr=action.lognr, receiver_id=self.my_id)
+                        )
+                    elif isinstance(action, StartRelay):
+                        assert self._relay is not None
+                        relay = self._relay(action.head, action.total_bytes)
+                        actions.extend(core.relay_started(relay is not None))
+                    elif isinstance(action, SettleRelay):
+                        assert relay is not None
+                        relay.settle()
+                        relay = None
+                    elif isinstance(action, AbortRelay):
+                        assert relay is not None
                         relay.abort()
                         relay = None
-                    continue
-                if frame.offset == 0:
-                    if relay is not None:
-                        relay.abort()  # a new message: the one part-way through was given up
-                    relay = self._start_relay(frame)
-                    head = frame.head if frame.HasField("head") else None
-                try:
-                    message = reassembler.add(frame)
-                except ValueError as exc:
-                    await context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc))
-                    return
-                if relay is not None:
-                    relay.add(frame)
-                if self._arriving is not None:
-                    self._arriving(frame.lognr)
-                if message is None:
-                    if relay is not None:
-                        await relay.room()
-                    elif self._holds(head):
-                        # Its other copy came whole meanwhile (a handover's target
-                        # gets the old master's straight and the ring's): not parsed.
-                        reassembler.skip(frame.lognr)
-                    continue
-                if isinstance(message, Skipped):
-                    if not self._holds(head):  # we rejoined with nothing meanwhile
-                        await context.abort(
-                            grpc.StatusCode.UNAVAILABLE,
-                            f"controller {self.my_id} let message {message.lognr} go as held, "
-                            "and no longer holds it: send it again",
-                        )
+                    elif isinstance(action, Synced):
+                        await self._synced(action.sender, action.word)
+                    elif isinstance(action, Refuse):
+                        await context.abort(action.code, action.message)
                         return
-                    await context.write(
-                        ring_pb2.LogAck(lognr=message.lognr, receiver_id=self.my_id)
-                    )
-                    continue
-                await self._deliver(message, frame.from_id)
-                if relay is not None:
-                    relay.settle()
-                    relay = None
-                await context.write(ring_pb2.LogAck(lognr=message.lognr, receiver_id=self.my_id))
         finally:
             if relay is not None:
                 relay.abort()
 
-    def _holds(self, head: ring_pb2.LogMessage | None) -> bool:
-        return head is not None and self._held is not None and self._held(head)
 
-    def _start_relay(self, first: ring_pb2.LogFrame) -> Relay | None:
-        """The relay for a message whose first frame this is, if it is passed on as it comes."""
-        if self._relay is None or not first.HasField("head"):
-            return None
-        if first.total_bytes > self.max_message_bytes or first.head.lognr != first.lognr:
-            return None  # refused by the reassembler, or not what it says: nothing passed on
-        return self._relay(first.head, first.total_bytes)
+def _told_nothing(lognr: int) -> None:
+    """No one is told of frames arriving."""
+
+
+async def _synced_nowhere(sender: int, word: SyncWord) -> None:
+    """No one hears sync frames."""
