@@ -24,7 +24,7 @@ from waiting import eventually
 from baton.effects import EffectsFile, read_effects
 from baton.sim_vehicle.kinematics import FlightParams, GeoPoint
 from baton.sim_vehicle.retransmissions import CommandKey, Retransmissions
-from baton.sim_vehicle.server import SimVehicle
+from baton.sim_vehicle.server import MAV_CMD_BATTERY_RESET, SimVehicle
 from baton.v1 import drone_api_pb2 as api
 
 from .ground_station import UNSET, GroundStation, mavlink
@@ -36,6 +36,8 @@ TAKEOFF = mavlink.MAV_CMD_NAV_TAKEOFF
 REPOSITION = mavlink.MAV_CMD_DO_REPOSITION
 SPEED = mavlink.MAV_CMD_DO_CHANGE_SPEED
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
+BATTERY_RESET = MAV_CMD_BATTERY_RESET  # ardupilotmega.xml's, not in common.xml
+REQUEST_MESSAGE = mavlink.MAV_CMD_REQUEST_MESSAGE
 
 
 @pytest.fixture
@@ -94,6 +96,32 @@ def test_a_refused_command_is_not_counted_and_its_retransmission_is_new(
         assert again.result == ACCEPTED
     assert [e["effect"] for e in counted(vehicle)] == ["arm", "takeoff"]
     assert counted(vehicle)[1]["relative_altitude_m"] == pytest.approx(2.5)  # MIS_TAKEOFF_ALT
+
+
+def test_a_battery_reset_is_read_back_counted_once_and_a_bad_one_denied(
+    vehicle: SimVehicle,
+) -> None:
+    """ArduPilot's MAV_CMD_BATTERY_RESET (param1 the battery mask, param2 the percentage),
+    the testbed's battery fault: the vehicle reads that percentage in BATTERY_STATUS and
+    SYS_STATUS, and counts the reset once (a copy with a confirmation is not acted on
+    again); a mask without its battery, or a percentage that is not one, is DENIED and
+    changes nothing."""
+    with GroundStation(vehicle.port) as gcs:
+        gcs.say_hello()
+        assert gcs.command(BATTERY_RESET, 1, 15).result == ACCEPTED
+        assert gcs.command(BATTERY_RESET, 1, 15, confirmation=1).result == ACCEPTED
+        for mask, percent in ((0, 40), (1, 101), (1, UNSET), (UNSET, 40)):
+            refused = gcs.command(BATTERY_RESET, mask, percent)
+            assert refused.result == mavlink.MAV_RESULT_DENIED, (mask, percent)
+        assert gcs.command(REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_BATTERY_STATUS).result == (
+            ACCEPTED
+        )
+        assert gcs.receive("BATTERY_STATUS").battery_remaining == 15
+        assert gcs.command(REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_SYS_STATUS).result == ACCEPTED
+        assert gcs.receive("SYS_STATUS").battery_remaining == 15
+    [reset] = counted(vehicle)
+    assert (reset["effect"], reset["percent"], reset["was_percent"]) == ("battery_reset", 15, 100)
+    assert vehicle.state().battery_pct == 15.0
 
 
 def test_a_goto_sent_again_once_acknowledged_is_counted_twice(vehicle: SimVehicle) -> None:

@@ -187,6 +187,22 @@ def test_the_battery_drains_by_hover_and_by_speed() -> None:
     assert k.power_w() == pytest.approx(200.0 + 2.0 * 5.0**2)  # cruising at 5 m/s
 
 
+def test_a_battery_reset_reads_its_percentage_and_drains_on_from_there() -> None:
+    """MAV_CMD_BATTERY_RESET's effect: the reading is set, the draw goes on as before;
+    a percentage that is not one is refused and changes nothing."""
+    k = Kinematics(HOME, FlightParams(battery_capacity_wh=36.0, warmup_s=0.0))
+    k.arm()
+    run(k, 5.0)
+    k.reset_battery(15.0)
+    assert k.battery_pct == 15.0
+    run(k, 2.0)
+    assert k.battery_pct == pytest.approx(15.0 - 2 * 20.0 / 1296.0)
+    for bad in (-0.5, 100.5, math.nan, math.inf):
+        with pytest.raises(Refused, match="is not from 0 to 100 %"):
+            k.reset_battery(bad)
+    assert k.battery_pct == pytest.approx(15.0 - 2 * 20.0 / 1296.0)
+
+
 def test_not_armable_until_the_estimator_has_warmed_up() -> None:
     k = Kinematics(HOME, FlightParams(warmup_s=40.0))
     assert not k.estimator_ready

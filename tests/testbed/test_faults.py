@@ -4,18 +4,46 @@ through what baton lives through, across real processes."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
+from helpers.missions import FAST_LINK, log_events
 from helpers.testbed_runs import baton, run_testbed
+from waiting import eventually
 
-from baton.testbed.faults import Fault, check_parts, parse_fault
-from baton.testbed.local import LocalTestbed, TestbedPlan
+from baton.config import merge
+from baton.effects import read_effects
+from baton.sdk import Position, distance_m
+from baton.signing import write_key
+from baton.sim_vehicle.kinematics import FlightParams, GeoPoint
+from baton.sim_vehicle.server import SimVehicle
+from baton.testbed.battery import BatteryResetError, reset_battery
+from baton.testbed.faults import (
+    Fault,
+    FaultRecord,
+    check_parts,
+    fault_lines,
+    fault_outcomes,
+    parse_fault,
+)
+from baton.testbed.local import (
+    VEHICLE_EFFECTS_FILE,
+    LocalTestbed,
+    MissionPlan,
+    TestbedPlan,
+    local_config,
+)
+from baton.testbed.report import build_report
+from baton.testbed.run import add_faults
 from baton.testbed.supervisor import PartNotReady
 from baton.testbed.waits import LOUD
 
 SMALL = ["--grid", "3", "--spacing", "20", "--altitude", "5", "--speedup", "20"]
+HOME = GeoPoint(47.397742, 8.545594, 488.0)
+BATTERY = "battery:sim-vehicle@reqnr=20,to=15%"
 
 
 def test_faults_parse_with_their_time_and_duration() -> None:
@@ -30,6 +58,19 @@ def test_faults_parse_with_their_time_and_duration() -> None:
     pause = parse_fault("pause:drone@reqnr=20,for=5s")
     assert (pause.kind, pause.part, pause.reqnr, pause.for_s) == ("pause", "drone", 20, 5.0)
     assert parse_fault("land-now:drone@t=30s").kind == "land-now"
+    battery = parse_fault(BATTERY)
+    assert (battery.kind, battery.part, battery.reqnr, battery.to_pct) == (
+        "battery",
+        "sim-vehicle",
+        20,
+        15.0,
+    )
+    assert battery.to_json()["to_pct"] == 15.0
+    assert [parse_fault(f"battery:sim-vehicle@t=1s,to={to}").to_pct for to in ("0", "100%")] == [
+        0.0,
+        100.0,
+    ]
+    assert "to_pct" not in parse_fault("kill:drone@t=1s").to_json()
 
 
 @pytest.mark.parametrize(
@@ -44,9 +85,21 @@ def test_faults_parse_with_their_time_and_duration() -> None:
         ("kill:controller-1@reqnr=3,t=4s", "give the time once"),
         ("stop:drone@t=3s,for=soon", "expected a duration like '20ms'"),
         ("stop:drone@t=3s,for=0s", "must be longer than 0"),
-        ("stop:drone@t=3s,when=now", "'when=now' is not reqnr=N, t=DURATION or for=DURATION"),
+        (
+            "stop:drone@t=3s,when=now",
+            "'when=now' is not reqnr=N, t=DURATION, for=DURATION or to=PERCENT",
+        ),
         ("pause:controller-0@reqnr=3", "pause is the operator's command to the drone"),
         ("abort:drone@reqnr=3,for=2s", "abort ends the mission: it takes no for="),
+        ("battery:drone@reqnr=3,to=15%", "battery is the vehicle's (sim-vehicle), not drone"),
+        ("battery:sim-vehicle@reqnr=3", "battery needs the percentage it drops to: add to="),
+        ("battery:sim-vehicle@reqnr=3,to=150%", "to='150%' is not a percentage from 0 to 100"),
+        ("battery:sim-vehicle@reqnr=3,to=-1", "to='-1' is not a percentage from 0 to 100"),
+        ("battery:sim-vehicle@reqnr=3,to=nan", "to='nan' is not a percentage from 0 to 100"),
+        ("battery:sim-vehicle@reqnr=3,to=half", "to='half' is not a percentage from 0 to 100"),
+        ("battery:sim-vehicle@t=3s,to=15%,for=5s", "a battery is not recharged in flight"),
+        ("kill:controller-1@reqnr=3,to=15%", "to= is the battery's percentage"),
+        ("battery:sitl@reqnr=3,to=15%", "battery is not supported on sitl: "),
     ],
 )
 def test_a_bad_fault_names_the_option_and_the_fix(text: str, why: str) -> None:
@@ -55,6 +108,27 @@ def test_a_bad_fault_names_the_option_and_the_fix(text: str, why: str) -> None:
     message = str(caught.value)
     assert message.startswith(f"--fault {text!r}: ") and why in message, message
     assert "e.g. kill:controller-1@reqnr=130" in message
+
+
+def test_a_failsafe_is_listed_under_the_fault_it_followed() -> None:
+    """The failsafe the vehicle is in at the end goes with the last fault fired before the
+    drone entered it, as the handovers do; the summary line says it."""
+    first, second = (FaultRecord(parse_fault(text)) for text in ("pause:drone@t=1s", BATTERY))
+    first.fired_at_s, first.fired_wall = 1.0, 1000.0
+    second.fired_at_s, second.fired_wall = 2.0, 1001.0
+    failsafe = {"cause": "battery", "action": "rtl", "since": 1001.25, "reason": "battery 15 %"}
+    report = {"drone": {"failsafe": failsafe}, "handovers": []}
+    entries = fault_outcomes([first, second], report, "NOT COMPLETED")
+    assert entries[0]["failsafe_after"] is None
+    assert entries[1]["failsafe_after"] == {
+        "cause": "battery",
+        "action": "rtl",
+        "reason": "battery 15 %",
+        "entered_after_s": 0.25,
+    }
+    line = fault_lines({"faults": entries})[1]
+    assert line.startswith(f"fault {BATTERY}: at 2.0 s, "), line
+    assert "; no handover; failsafe battery (rtl) 0.2 s later; mission NOT COMPLETED" in line
 
 
 def test_a_fault_on_a_part_the_testbed_lacks_is_refused_before_anything_starts() -> None:
@@ -263,3 +337,115 @@ def test_a_controller_whose_disk_fills_says_so_at_once_and_the_mission_completes
     ends = f"in log message {whole}: a file saved before the mission ended" in replay.stdout
     assert marked or ends, replay.stdout
     assert "Traceback" not in replay.stdout + replay.stderr
+
+
+def test_the_battery_fault_signs_its_command_with_the_vehicle_s_key(tmp_path: Path) -> None:
+    """The battery fault's way into the vehicle (testbed/battery.py), against one that
+    holds a MAVLink key: signed with the key, the reset is taken and the vehicle reads the
+    percentage back; unsigned, or signed with another key, the vehicle ignores it, the
+    error says why, and the battery stays as it was."""
+    key = write_key(tmp_path / "vehicle.key")
+    other = write_key(tmp_path / "other.key")
+    with SimVehicle(HOME, params=FlightParams(warmup_s=0.0), signing_key=key) as vehicle:
+        assert reset_battery(vehicle.url, 15.0, key) == 15
+        assert vehicle.state().battery_pct == 15.0
+        with pytest.raises(BatteryResetError, match=r"ignores unsigned frames: drone\.mavlink_key"):
+            reset_battery(vehicle.url, 40.0, None, timeout_s=1.0)
+        with pytest.raises(BatteryResetError, match="not signed with the testbed's MAVLink key"):
+            reset_battery(vehicle.url, 40.0, other, timeout_s=1.0)
+        assert vehicle.state().battery_pct == 15.0 and vehicle.refused_frames > 0
+        with pytest.raises(ValueError, match="is not from 0 to 100 %"):
+            reset_battery(vehicle.url, 101.0, key)
+        with pytest.raises(ValueError, match="expected udpout://HOST:PORT"):
+            reset_battery("tcp:127.0.0.1:5760", 15.0, key)
+
+
+# 8 legs of 100 m at 5 m/s: 160 mission seconds, 8 s of wall time at 20x. The fault fires
+# on the first leg, and the drone reads the battery once a second: the vehicle still flies
+# a leg when it does, on a loaded machine too.
+BATTERY_GRID = MissionPlan(grid=3, spacing_m=100.0, altitude_m=5.0, speed_m_s=5.0, poll_s=1.0)
+RESERVE_PCT = 20.0
+
+
+def returning(effect: dict[str, object]) -> bool:
+    """A return the vehicle acted on: MAV_CMD_NAV_RETURN_TO_LAUNCH, or PX4's mode."""
+    return effect["effect"] == "return_to_launch" or effect.get("mode") == "RETURN_TO_LAUNCH"
+
+
+async def test_a_battery_below_the_reserve_returns_the_vehicle_and_ends_the_mission(
+    tmp_path: Path,
+) -> None:
+    """``battery:sim-vehicle@reqnr=20,to=15%`` on a signed link (drone.mavlink_key): the
+    testbed sets the vehicle's battery through the vehicle's own MAVLink port, the drone
+    reads it in the vehicle's telemetry below the mission's 20 % reserve and commands the
+    return. The vehicle's own records say so: its effects file has the reset, then one
+    return and no flight command after it, and its log has it landed at home. Every
+    controller's program ends with the failsafe's error, and the report lists the fault
+    with when it fired, what the vehicle read and the failsafe it led to."""
+    key = tmp_path / "mavlink.key"
+    write_key(key)
+    config = local_config(
+        2,
+        flush_limit=0,
+        speedup=20.0,
+        controller_link=FAST_LINK,
+        drone_link=FAST_LINK,
+        safety={"battery_reserve": RESERVE_PCT, "battery_action": "rtl"},
+    )
+    config = merge(config, [("drone.mavlink_key", "drone.mavlink_key", str(key))])
+    fault = parse_fault(BATTERY)
+    plan = TestbedPlan(config=config, mission=BATTERY_GRID, faults=(fault,))
+    started = time.monotonic()
+    async with LocalTestbed(plan, tmp_path) as testbed:
+        assert testbed.config is not None
+        snapshot = await testbed.run_mission(120)
+
+        def landed_after_the_return() -> dict[str, object] | None:
+            states = [
+                e for e in log_events(tmp_path, "sim-vehicle") if e.get("msg") == "vehicle state"
+            ]
+            phases = [state["phase"] for state in states]
+            last = states[-1]
+            done = "return" in phases and last["phase"] == "on_ground" and not last["armed"]
+            return last if done else None
+
+        landed = await eventually(landed_after_the_return, "the vehicle landed after its return")
+        report = build_report(
+            testbed.config,
+            snapshot,
+            BATTERY_GRID.grid,
+            time.monotonic() - started,
+            [],
+            BATTERY_GRID.spacing_m,
+        )
+        add_faults(report, testbed)
+    where = Position(float(landed["lat"]), float(landed["lon"]))  # type: ignore[arg-type]
+    assert distance_m(where, Position(HOME.latitude_deg, HOME.longitude_deg)) < 1.0, landed
+    effects = read_effects(tmp_path / VEHICLE_EFFECTS_FILE)
+    [reset] = [e for e in effects if e["effect"] == "battery_reset"]
+    assert reset["percent"] == 15.0 and reset["was_percent"] > RESERVE_PCT, reset
+    [back] = [e for e in effects if returning(e)]
+    assert back["seq"] > reset["seq"] and back["seq"] == effects[-1]["seq"], effects
+    errors = [c.mission_error for c in snapshot.controllers.values()]
+    assert len(errors) == 2 and all(
+        "in failsafe (battery: battery " in e and f"below the reserve of {RESERVE_PCT:g} %" in e
+        for e in errors
+    ), errors
+    assert (
+        report["setup"]["vehicle"]["signing"] and report["setup"]["vehicle"]["refused_frames"] == 0
+    )
+    assert "MAVLink frames refused" not in (tmp_path / "logs" / "sim-vehicle.log").read_text()
+    [entry] = report["faults"]
+    assert entry["fired"] and not entry["problem"] and entry["fired_at_reqnr"] >= 20, entry
+    # What the vehicle read back at once: 15 %, less what it drained meanwhile (1.4 % a
+    # second of wall time at 20x).
+    reads = re.search(r"the vehicle reads (\d+) %", entry["applied"])
+    assert reads is not None and 10 <= int(reads[1]) <= 15, entry["applied"]
+    failsafe = entry["failsafe_after"]
+    assert (failsafe["cause"], failsafe["action"]) == ("battery", "rtl"), entry
+    # The drone booked the failsafe before it commanded the return the vehicle counted.
+    assert failsafe["entered_after_s"] >= 0 and report["drone"]["failsafe"]["since"] <= back["time"]
+    assert entry["mission_verdict"].startswith("NOT COMPLETED"), entry
+    [line] = [text for text in fault_lines(report) if text.startswith(f"fault {fault.text}: ")]
+    assert "failsafe battery (rtl)" in line and "mission NOT COMPLETED" in line, line
+    print(f"battery fault to the drone's failsafe: {failsafe['entered_after_s']:.2f} s wall")

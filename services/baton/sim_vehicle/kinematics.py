@@ -283,6 +283,14 @@ class Kinematics:
         self.target = replace(self.home, up_m=self.position.up_m)
         self.phase = Phase.RETURN
 
+    def reset_battery(self, percent: float) -> None:
+        """The battery reads ``percent`` from now on and drains on from there as before: a
+        battery monitor's charge count set anew, as ArduPilot's MAV_CMD_BATTERY_RESET sets
+        it (a pack swapped, or a fault tried on purpose). Refused unless 0-100 %."""
+        if not (math.isfinite(percent) and 0.0 <= percent <= 100.0):
+            raise Refused(f"battery percentage {percent} is not from 0 to 100 %")
+        self.battery_pct = percent
+
     def set_speed(self, speed_m_s: float) -> None:
         """Sets the horizontal cruise speed of this and later gotos."""
         if not math.isfinite(speed_m_s) or speed_m_s <= 0:

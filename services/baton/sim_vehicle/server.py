@@ -46,11 +46,19 @@ Command parameters may be NaN, MAVLink's "unset": it means the default, and
 a parameter without one makes the command DENIED. One datagram that cannot be
 handled is logged and skipped; the vehicle's thread never dies of it.
 
+Its battery is set anew by ArduPilot's ``MAV_CMD_BATTERY_RESET`` (ardupilotmega.xml:
+param1 the batteries, bit 0 its one; param2 the percentage): it reads that from then
+on and drains on from there (``Kinematics.reset_battery``), as an ArduPilot battery
+monitor that counts the charge spent does (ArduPilot's own autotest lowers SITL's
+battery so). The testbed's battery fault sends it (``baton.testbed.battery``); it is
+the one command of ardupilotmega.xml the vehicle takes beside PX4's dialect.
+
 Every flight command the vehicle acts on (arm, disarm, takeoff, land, return
 to launch, mode, reposition, speed) is counted where it happens, one line in
 its effects file (``baton.effects``, ``--effects-file``), for the testbed's
-exactly-once check; telemetry requests and parameter writes change no flight
-and are not counted. A retransmission of a command it already acted on is
+exactly-once check, and so is a battery reset (``battery_reset``: the percentage
+and what it read before); telemetry requests and parameter writes change no
+flight and are not counted. A retransmission of a command it already acted on is
 acknowledged again but neither acted on nor counted (``retransmissions.py``
 has the rule and its limit; it reads the kernel's arrival stamp of each
 datagram).
@@ -73,6 +81,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
+from pymavlink.dialects.v20 import ardupilotmega
 from pymavlink.dialects.v20 import common as mavlink
 
 from baton import logs, signing
@@ -169,6 +178,8 @@ ROI_COMMANDS = (
     mavlink.MAV_CMD_DO_SET_ROI_NONE,
 )
 FORCE_DISARM_MAGIC = 21196
+# ArduPilot's command that sets a battery's remaining percentage (not in common.xml).
+MAV_CMD_BATTERY_RESET = ardupilotmega.MAV_CMD_BATTERY_RESET
 
 
 @dataclass(frozen=True)
@@ -778,6 +789,8 @@ class SimVehicle:
                 )
             elif command in ROI_COMMANDS:
                 effect = self._point_gimbal(command, p, p7, frame, x, y)
+            elif command == MAV_CMD_BATTERY_RESET:
+                effect = self._reset_battery(p)
             elif command == mavlink.MAV_CMD_DO_CHANGE_SPEED:
                 if p[1] > 0:
                     k.set_speed(p[1])
@@ -841,6 +854,21 @@ class SimVehicle:
                 "altitude_amsl_m": round(target.altitude_amsl_m, 3),
             },
         )
+
+    def _reset_battery(self, p: list[float]) -> tuple[str, dict[str, Any]]:
+        """MAV_CMD_BATTERY_RESET: its one battery (bit 0 of param1) reads param2 percent
+        from now on; the effect to count. Refused for no battery of its own, or a
+        percentage that is not one (ArduPilot clamps it; the sim vehicle says so)."""
+        k = self._kinematics
+        mask = _required_int(p[0], "param1 (battery mask)")
+        if not mask & 1:
+            raise Refused(f"battery mask {mask} names no battery of the sim vehicle (1: its one)")
+        was = k.battery_pct
+        k.reset_battery(p[1])
+        self._log.warning(
+            "battery reset", percent=round(k.battery_pct, 3), was_percent=round(was, 3)
+        )
+        return ("battery_reset", {"percent": k.battery_pct, "was_percent": round(was, 3)})
 
     def _set_mode(self, main: int, sub: int) -> None:
         k = self._kinematics

@@ -230,16 +230,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--fault",
         action="append",
         default=[],
-        metavar="KIND:PART@WHEN[,for=DURATION]",
+        metavar="KIND:PART@WHEN[,for=DURATION][,to=PERCENT]",
         help="inject a fault, repeatable: kill (kill -9), stop (SIGSTOP, then SIGCONT after "
         "for=), cut (a link emulator: link-ring-N, link-drone-N) or full (controller-N's disk "
         "fills: its log file can grow no more) of a part (controller-N, "
         "drone, sim-vehicle, a link), or the operator's pause (resumed after for=), abort or "
-        "land-now to the drone, after the drone served request N (@reqnr=N) or at a "
+        "land-now to the drone, or battery (the sim vehicle's battery reads to=PERCENT from "
+        "then on: the drone's battery failsafe acts below safety.battery_reserve), after the "
+        "drone served request N (@reqnr=N) or at a "
         "time after the mission started (@t=30s); for=DURATION ends it (a killed part is "
         "restarted); e.g. kill:controller-1@reqnr=130, stop:controller-0@reqnr=60,for=20s, "
-        "cut:link-ring-1@reqnr=90,for=10s, full:controller-1@reqnr=40. Each is in the report "
-        "with the mission's verdict",
+        "cut:link-ring-1@reqnr=90,for=10s, full:controller-1@reqnr=40, "
+        "battery:sim-vehicle@reqnr=20,to=15%%. Each is in the report with the mission's verdict",
     )
     parser.add_argument(
         "--gcs",

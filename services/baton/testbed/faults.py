@@ -1,6 +1,6 @@
 """Faults the testbed injects on purpose (``baton testbed --fault``), and the parts that die.
 
-A fault is ``KIND:PART@WHEN[,for=DURATION]``:
+A fault is ``KIND:PART@WHEN[,for=DURATION]`` (a battery: ``,to=PERCENT``):
 
 - ``kill:controller-1@reqnr=130``: kill -9 of a part once the drone has served
   request 130 (``for=10s``: started again 10 s later, with the same command line);
@@ -17,18 +17,26 @@ A fault is ``KIND:PART@WHEN[,for=DURATION]``:
   ``land-now:drone@t=30s``: the operator's command to the drone (its
   Pause, Abort with a return, LandNow, as ``baton operator`` sends them, with
   the operator's certificate); a pause with ``for=`` is resumed after it.
+- ``battery:sim-vehicle@reqnr=20,to=15%``: the vehicle's battery reads 15 % from then
+  on and drains on from there, set by ArduPilot's MAV_CMD_BATTERY_RESET sent to the
+  vehicle's own MAVLink port, signed with its key if it holds one (``battery.py``); the
+  drone learns it from the vehicle's telemetry, and its battery failsafe acts below the
+  mission's reserve (``safety.battery_reserve``). The sim vehicle only: on ``sitl`` it is
+  refused, naming what to do instead. A battery is not recharged: no ``for=``.
 
 WHEN is ``reqnr=N`` (the drone's ``last_reqnr``, polled) or ``t=DURATION`` (after
 the mission's start: once every controller runs). Without ``for=`` a stop or a
 cut lasts to the end of the run, and a killed part stays dead unless
 ``--restart-parts`` restarts it. ``FaultInjector`` fires each fault once, and
 every fault and every death of a part (by a fault or from outside the testbed)
-is kept for the report, with what the mission did meanwhile.
+is kept for the report, with what the mission did meanwhile: the handovers the drone
+decided and the failsafe it entered before the next fault, and the mission's verdict.
 """
 
 from __future__ import annotations
 
 import asyncio
+import math
 import re
 import resource
 import time
@@ -42,12 +50,13 @@ from baton.config import parse_duration
 if TYPE_CHECKING:
     from baton.testbed.local import LocalTestbed
 
-FAULT_KINDS = ("kill", "stop", "cut", "full", "pause", "abort", "land-now")
+FAULT_KINDS = ("kill", "stop", "cut", "full", "pause", "abort", "land-now", "battery")
 # The operator's commands to the drone, as faults (``LocalTestbed.operator``).
 OPERATOR_KINDS = ("pause", "abort", "land-now")
+BATTERY_EXAMPLE = "battery:sim-vehicle@reqnr=20,to=15%"
 FAULT_EXAMPLE = (
-    "kill:controller-1@reqnr=130, stop:controller-0@reqnr=60,for=20s or "
-    "cut:link-ring-1@t=30s,for=10s"
+    "kill:controller-1@reqnr=130, stop:controller-0@reqnr=60,for=20s, "
+    f"cut:link-ring-1@t=30s,for=10s or {BATTERY_EXAMPLE}"
 )
 _PART = re.compile(r"^(sim-vehicle|sitl|drone|(controller|link-ring|link-drone)-\d+)$")
 # How often the injector reads the drone's last request number.
@@ -79,7 +88,8 @@ def free_disk(pid: int) -> None:
 @dataclass(frozen=True)
 class Fault:
     """One ``--fault``: what (``kind``), to which part, when (after ``reqnr``, or ``at_s``
-    seconds after the mission started) and for how long (``for_s``; None: to the end)."""
+    seconds after the mission started), for how long (``for_s``; None: to the end) and,
+    for a battery, the percentage it reads from then on (``to_pct``)."""
 
     text: str
     kind: str
@@ -87,15 +97,19 @@ class Fault:
     reqnr: int | None = None
     at_s: float | None = None
     for_s: float | None = None
+    to_pct: float | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        entry = {
             "fault": self.text,
             "kind": self.kind,
             "part": self.part,
             "at": {"reqnr": self.reqnr} if self.reqnr is not None else {"t_s": self.at_s},
             "for_s": self.for_s,
         }
+        if self.to_pct is not None:
+            entry["to_pct"] = self.to_pct
+        return entry
 
 
 def parse_fault(text: str) -> Fault:
@@ -128,11 +142,22 @@ def parse_fault(text: str) -> Fault:
             f"cut is for a link emulator (link-ring-N, link-drone-N), not {part}; "
             f"stop:{part} freezes a part, kill:{part} kills it"
         )
+    if kind == "battery" and part == "sitl":
+        raise bad(
+            "battery is not supported on sitl: the testbed sets the sim vehicle's battery "
+            f"only: run --vehicle sim and {BATTERY_EXAMPLE}, or on SITL send ArduPilot's "
+            "MAV_CMD_BATTERY_RESET (param1 1, param2 the percentage) from a ground station "
+            "on its second port"
+        )
+    if kind == "battery" and part != "sim-vehicle":
+        raise bad(f"battery is the vehicle's (sim-vehicle), not {part}")
     options: dict[str, str] = {}
     for item in when.split(","):
         key, eq, value = item.partition("=")
-        if not eq or key not in ("reqnr", "t", "for") or key in options:
-            raise bad(f"{item!r} is not reqnr=N, t=DURATION or for=DURATION (each once)")
+        if not eq or key not in ("reqnr", "t", "for", "to") or key in options:
+            raise bad(
+                f"{item!r} is not reqnr=N, t=DURATION, for=DURATION or to=PERCENT (each once)"
+            )
         options[key] = value
     if ("reqnr" in options) == ("t" in options):
         raise bad("give the time once: @reqnr=N or @t=DURATION")
@@ -152,7 +177,27 @@ def parse_fault(text: str) -> Fault:
         raise bad(str(exc)) from None
     if for_s is not None and kind in ("abort", "land-now"):
         raise bad(f"{kind} ends the mission: it takes no for= (a pause does: it is resumed)")
-    return Fault(text, kind, part, reqnr, at_s, for_s)
+    to_pct = None
+    if kind == "battery":
+        if for_s is not None:
+            raise bad("a battery is not recharged in flight: battery takes no for=")
+        if "to" not in options:
+            raise bad("battery needs the percentage it drops to: add to=PERCENT (to=15%)")
+        to_pct = _percentage(options["to"])
+        if to_pct is None:
+            raise bad(f"to={options['to']!r} is not a percentage from 0 to 100 (to=15%)")
+    elif "to" in options:
+        raise bad(f"to= is the battery's percentage, not {kind}'s")
+    return Fault(text, kind, part, reqnr, at_s, for_s, to_pct)
+
+
+def _percentage(text: str) -> float | None:
+    """``15%`` or ``15`` (0-100, finite) as a number; None if it is not one."""
+    try:
+        value = float(text.removesuffix("%"))
+    except ValueError:
+        return None
+    return value if math.isfinite(value) and 0.0 <= value <= 100.0 else None
 
 
 def check_parts(faults: Collection[Fault], parts: Collection[str]) -> None:
@@ -215,6 +260,7 @@ class FaultRecord:
     fired_at_reqnr: int | None = None
     master_before: int | None = None
     ended_at_s: float | None = None  # thawed, restored or restarted by for=
+    applied: str = ""  # what was done, and what the part said ("the vehicle reads 15 %")
     problem: str = ""  # why it could not be applied
 
     def to_json(self) -> dict[str, Any]:
@@ -225,6 +271,7 @@ class FaultRecord:
             "fired_at_reqnr": self.fired_at_reqnr,
             "master_before": self.master_before,
             "ended_at_s": None if self.ended_at_s is None else round(self.ended_at_s, 3),
+            "applied": self.applied,
             "problem": self.problem,
         }
 
@@ -291,11 +338,12 @@ class FaultInjector:
             return
         record.fired_at_s, record.fired_wall = self._since(), time.time()
         where = f"reqnr {record.fired_at_reqnr}, master {record.master_before}"
-        if fault.kind in OPERATOR_KINDS:
+        if fault.kind in OPERATOR_KINDS or fault.kind == "battery":
             try:
-                what = await testbed.operator(fault.kind, note=f"--fault {fault.text}")
+                what = await self._command(fault)
             except Exception as exc:  # refused or unreachable: the report says so
-                record.problem = f"the drone did not take it: {exc}"
+                whom = "drone" if fault.kind in OPERATOR_KINDS else "vehicle"
+                record.problem = f"the {whom} did not take it: {exc}"
                 self.say(f"fault {fault.text}: {record.problem}")
                 return
         elif fault.kind == "kill":
@@ -322,10 +370,23 @@ class FaultInjector:
         else:
             await testbed.cut_link(fault.part)
             what = f"cut {fault.part}"
+        record.applied = what
         lasting = f" for {fault.for_s:g} s" if fault.for_s is not None else ""
         self.say(f"fault {fault.text}: {what}{lasting} at {where}")
         if fault.for_s is not None:
             self._tasks.append(asyncio.create_task(self._end_later(record)))
+
+    async def _command(self, fault: Fault) -> str:
+        """An operator's command to the drone, or the battery set on the vehicle: what the
+        part took, in a line; raises if it refused or did not answer."""
+        if fault.kind in OPERATOR_KINDS:
+            return await self.testbed.operator(fault.kind, note=f"--fault {fault.text}")
+        assert fault.to_pct is not None
+        reads = await self.testbed.set_battery(fault.to_pct)
+        return (
+            f"set the battery of {fault.part} to {fault.to_pct:g} % (MAV_CMD_BATTERY_RESET); "
+            f"the vehicle reads {reads} %"
+        )
 
     async def _end_later(self, record: FaultRecord) -> None:
         fault = record.fault
@@ -361,14 +422,25 @@ def fault_outcomes(
     records: list[FaultRecord], report: dict[str, Any], verdict: str
 ) -> list[dict[str, Any]]:
     """Each fault for the report: when it fired, the handovers the drone decided between
-    it and the next fault (a takeover of a killed master, say), and the mission's verdict."""
+    it and the next fault (a takeover of a killed master, say), the failsafe the vehicle
+    is in at the end if the drone entered it meanwhile (a battery's below the reserve),
+    and the mission's verdict."""
     fired = sorted(r.fired_wall for r in records if r.fired_wall is not None)
+    failsafe = report["drone"].get("failsafe")
     entries = []
     for record in records:
         entry = record.to_json()
+        entry["failsafe_after"] = None
         if record.fired_wall is not None:
             later = [w for w in fired if w > record.fired_wall]
             until = later[0] if later else float("inf")
+            if failsafe is not None and record.fired_wall <= failsafe["since"] < until:
+                entry["failsafe_after"] = {
+                    "cause": failsafe["cause"],
+                    "action": failsafe["action"],
+                    "reason": failsafe["reason"],
+                    "entered_after_s": round(failsafe["since"] - record.fired_wall, 3),
+                }
             entry["handovers_after"] = [
                 {
                     "from": h["from"],
@@ -401,9 +473,16 @@ def fault_lines(report: Mapping[str, Any]) -> list[str]:
             for h in f["handovers_after"]
         )
         ended = f", over at {f['ended_at_s']:.1f} s" if f["ended_at_s"] is not None else ""
+        failsafe = f.get("failsafe_after")
+        entered = (
+            f"; failsafe {failsafe['cause']} ({failsafe['action']}) "
+            f"{failsafe['entered_after_s']:.1f} s later"
+            if failsafe
+            else ""
+        )
         lines.append(
             f"fault {f['fault']}: at {f['fired_at_s']:.1f} s, reqnr {f['fired_at_reqnr']}, "
-            f"master {f['master_before']}{ended}; {moved or 'no handover'}; "
+            f"master {f['master_before']}{ended}; {moved or 'no handover'}{entered}; "
             f"mission {f['mission_verdict']}" + (f" ({f['problem']})" if f["problem"] else "")
         )
     for death in report.get("parts_died", []):

@@ -41,6 +41,8 @@ from baton.rpc.labels import label
 from baton.rpc.methods import path
 from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.rpc.tls import CA_CERT, OPERATOR, Identity, Tls
+from baton.signing import read_key
+from baton.testbed.battery import reset_battery
 from baton.testbed.faults import Fault, FaultInjector, PartDeath, check_parts
 from baton.testbed.plan_fence import with_plan_fence
 from baton.testbed.supervisor import ManagedProcess, PartNotReady, Supervisor, baton_argv
@@ -769,6 +771,17 @@ class LocalTestbed:
 
         assert self.drone_stub is not None, "the drone is not started"
         return describe(await send_command(self.drone_stub, command, note))
+
+    async def set_battery(self, percent: float) -> int:
+        """Sets the sim vehicle's battery to ``percent``: it reads that from then on and
+        drains on from there (ArduPilot's MAV_CMD_BATTERY_RESET to the vehicle's own port,
+        signed with its key if it holds one: ``testbed/battery.py``). Returns what the
+        vehicle reads then; BatteryResetError if it refused or did not answer."""
+        part = self.supervisor.parts["sim-vehicle"]
+        url = part.ready_text.splitlines()[0]
+        key_file = self._mavlink_key()
+        key = read_key(key_file) if key_file is not None else None
+        return await asyncio.to_thread(reset_battery, url, percent, key)
 
     async def cut_link(self, name: str) -> None:
         """Stops link emulator ``name`` (e.g. ``link-drone-0``): every connection through
