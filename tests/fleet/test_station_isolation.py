@@ -1,5 +1,5 @@
-"""Issue 34: one mission's stall touches no other mission on the stations they share,
-measured at the other mission. Across real processes:
+"""Issue 34: one mission's stall or malformed input touches no other mission on the
+stations they share, each measured at the other mission. Across real processes:
 three `baton station`s, two missions (alpha on stations 1 and 2, bravo on 1 and 3),
 each with its sim vehicle and drone service; station 1 is the master of both, and
 every fault is alpha's, on station 1."""
@@ -10,19 +10,25 @@ import asyncio
 import os
 import signal
 import time
+from collections.abc import Awaitable
 from functools import partial
 from pathlib import Path
+from typing import Any
 
+import grpc
+from helpers.drone_calls import refused_details
 from helpers.missions import SMALL_GRID, assert_mission_promises
-from helpers.stations import program_pid, start_on_rings, stations_and_drones
+from helpers.stations import program_pid, program_token, start_on_rings, stations_and_drones
 from waiting import eventually
 
 from baton.certs.make import init
-from baton.rpc.channels import KEEPALIVE_MS, KEEPALIVE_TIMEOUT_MS
-from baton.rpc.tls import DRONE, OPERATOR, Identity
+from baton.rpc.channels import KEEPALIVE_MS, KEEPALIVE_TIMEOUT_MS, aio_channel
+from baton.rpc.mission import MISSION_TOKEN_METADATA, mission_metadata
+from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
 from baton.testbed.fleet import MissionDrone, StationPart, mission_ended
 from baton.testbed.local import TestbedPlan
 from baton.testbed.supervisor import Supervisor
+from baton.v1 import drone_api_pb2, ring_pb2
 
 RINGS = {"alpha": (1, 2), "bravo": (1, 3)}
 NO_HANDOVERS: dict[str, tuple[tuple[int, int], ...]] = {m: () for m in RINGS}
@@ -90,4 +96,107 @@ async def test_a_stopped_program_stalls_its_own_mission_only(tmp_path: Path) -> 
             snapshot = await drones[mission].snapshot(statuses)
             assert_mission_promises(snapshot, TestbedPlan(mission=SMALL_GRID))
             assert list(snapshot.drone.handovers) == []  # no takeover either
+        await close_all(stations, drones)
+
+
+async def read_to_end(call: grpc.aio.StreamStreamCall[bytes, bytes]) -> None:
+    """Reads a stream's replies until it ends (with its status)."""
+    async for _ in call:
+        pass
+
+
+async def test_malformed_input_for_one_mission_is_refused_naming_the_fault(
+    tmp_path: Path,
+) -> None:
+    async with Supervisor(tmp_path / "parts") as supervisor:
+        certs, stations, drones = await both_started(tmp_path, supervisor)
+        await start_on_rings(stations, drones, RINGS, certs, SMALL_GRID.file, GRIDS)
+        for drone in drones.values():
+            await eventually(partial(drone.served, 3), f"{drone.name} served request 3", 60)
+
+        # On station 1's port, as alpha's other station (a certificate its ring admits).
+        alpha = mission_metadata("alpha")
+        invalid, denied = grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.PERMISSION_DENIED
+        as_two = Tls.load(certs, Identity.controller(2))
+        async with aio_channel(stations[SHARED].address, as_two, Identity.controller(1)) as ch:
+            log_ring: grpc.aio.StreamStreamMultiCallable[bytes, bytes]
+            log_ring = ch.stream_stream("/baton.v1.ControllerRing/LogRing")
+            get_status: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes]
+            get_status = ch.unary_unary("/baton.v1.ControllerRing/GetStatus")
+
+            def frames(**fields: Any) -> Awaitable[None]:
+                sent = ring_pb2.LogFrame(**fields).SerializeToString()
+                return read_to_end(log_ring(iter([sent]), metadata=alpha))
+
+            refusals: list[tuple[Awaitable[object], grpc.StatusCode, str]] = [
+                (
+                    read_to_end(log_ring(iter([b"\xff\xff not a LogFrame"]), metadata=alpha)),
+                    invalid,
+                    "LogRing: a frame that is not a LogFrame",
+                ),
+                (
+                    frames(from_id=2, lognr=9, total_bytes=2**40),
+                    invalid,
+                    "log message 9 claims 1099511627776 bytes, above max_log_message",
+                ),
+                (
+                    frames(from_id=2, lognr=9, offset=5, total_bytes=9),
+                    invalid,
+                    "frame of log message 9 at offset 5 does not follow",
+                ),
+                (
+                    frames(from_id=2, lognr=9, total_bytes=4, data=b"\xff\xff\xff\xff"),
+                    invalid,
+                    "log message 9 is not a LogMessage",
+                ),
+                (
+                    frames(from_id=3, lognr=9),
+                    denied,
+                    "controller 2's certificate sent a frame from_id 3",
+                ),
+                (
+                    get_status(b"\xff\xff", metadata=alpha),
+                    invalid,
+                    "GetStatus: the request is not a valid message of this method",
+                ),
+                (
+                    get_status(b"", metadata=mission_metadata("../alpha")),
+                    invalid,
+                    "GetStatus: the baton-mission metadata '../alpha' is not a mission id",
+                ),
+            ]
+            for call, code, words in refusals:
+                details = await refused_details(call, code)
+                assert words in details, details
+
+        # On alpha's program port, with its program's token: a request that does not
+        # parse, and one no controller takes a request number for.
+        status = await stations[SHARED].status("alpha")
+        program = await program_pid(supervisor, stations[SHARED], "alpha")
+        as_program = ((MISSION_TOKEN_METADATA, program_token(program)),)
+        async with aio_channel(status.mission_address) as ch:
+            position: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes]
+            position = ch.unary_unary("/baton.v1.Mobility/GetPosition")
+            details = await refused_details(position(b"\xff\xff", metadata=as_program), invalid)
+            assert "payload is not a GetPositionRequest" in details, details
+            sleep: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes]
+            sleep = ch.unary_unary("/baton.v1.Clock/Sleep")
+            nan = drone_api_pb2.SleepRequest(seconds=float("nan")).SerializeToString()
+            details = await refused_details(sleep(nan, metadata=as_program), invalid)
+            assert "seconds must be finite and >= 0, got nan" in details, details
+
+        # Both fly on to their ends, exactly once, on the same station processes, with
+        # no handover (a takeover) and nothing refused in their logs.
+        for mission, ring in RINGS.items():
+            statuses = await eventually(
+                lambda m=mission, r=ring: mission_ended(stations, drones[m], m, r),
+                f"{mission} done",
+                120,
+            )
+            snapshot = await drones[mission].snapshot(statuses)
+            assert_mission_promises(snapshot, TestbedPlan(mission=SMALL_GRID))
+            assert list(snapshot.drone.handovers) == []
+            assert {s.refused_messages for s in statuses.values()} == {0}
+        for sid in (1, 2, 3):
+            assert supervisor.parts[f"station-{sid}"].returncode is None
         await close_all(stations, drones)

@@ -14,6 +14,7 @@ from waiting import eventually
 from baton.bench.cpu import child_pids
 from baton.cli import main
 from baton.config import BatonConfig
+from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.testbed.fleet import MissionDrone, StationPart, start_mission_drone, start_stations
 from baton.testbed.supervisor import Supervisor, baton_argv
 from baton.v1 import station_pb2
@@ -90,6 +91,14 @@ async def program_pid(supervisor: Supervisor, station: StationPart, mission: str
         if address in argv:
             return pid
     raise AssertionError(f"station {station.id} runs no program for {mission} on {address!r}")
+
+
+def program_token(pid: int) -> str:
+    """The mission token a program process was started with (in its environment): what
+    its calls on its program's port carry (rpc/mission.py)."""
+    environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    prefix = f"{MISSION_TOKEN_ENV}=".encode()
+    return next(v[len(prefix) :].decode() for v in environ if v.startswith(prefix))
 
 
 def as_text(config: BatonConfig) -> str:
