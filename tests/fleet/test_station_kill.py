@@ -10,14 +10,14 @@ from functools import partial
 from pathlib import Path
 
 from helpers.missions import SMALL_GRID, assert_mission_promises
-from helpers.stations import as_text, mission_config, stations_and_drones
+from helpers.stations import start_on_rings, stations_and_drones
 from waiting import eventually
 
 from baton.certs.make import init
 from baton.rpc.tls import DRONE, OPERATOR, Identity
 from baton.testbed.local import TestbedPlan
 from baton.testbed.supervisor import Supervisor
-from baton.v1 import drone_pb2, ring_pb2, station_pb2
+from baton.v1 import drone_pb2, ring_pb2
 
 RINGS = {"alpha": (1, 2, 3), "bravo": (1, 3)}
 HANDOVERS = {"alpha": ((3, 2),), "bravo": ()}
@@ -31,17 +31,8 @@ async def test_a_station_killed_mid_run_its_missions_taken_over_the_others_unawa
     init(certs, [*(Identity.controller(s) for s in (1, 2, 3)), DRONE, OPERATOR])
     async with Supervisor(tmp_path / "parts") as supervisor:
         stations, drones = await stations_and_drones(supervisor, certs, RINGS, HANDOVERS)
-        for mission, ring in RINGS.items():
-            config = mission_config(drones[mission].address, stations, ring, certs)
-            for sid in ring:
-                await stations[sid].stub.StartMission(
-                    station_pb2.StartMissionRequest(
-                        mission_id=mission,
-                        config=as_text(config),
-                        program=str(SMALL_GRID.file),
-                        args=SMALL_GRID.args(),
-                    )
-                )
+        grids = {m: SMALL_GRID.args() for m in RINGS}
+        await start_on_rings(stations, drones, RINGS, certs, SMALL_GRID.file, grids)
 
         async def alpha_mastered_by_the_doomed() -> bool:
             status = await drones["alpha"].status()

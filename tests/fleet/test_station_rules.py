@@ -34,6 +34,18 @@ def test_a_call_goes_to_the_session_it_names_and_to_no_other() -> None:
     assert "baton-mission" in unnamed.message
 
 
+@pytest.mark.parametrize("named", ["../alpha", "", "a" * 65, "x" * 8000])
+def test_a_call_naming_what_is_not_a_mission_id_is_invalid_and_says_so_briefly(
+    named: str,
+) -> None:
+    refused = route({"alpha": "A"}, named, 2, "/baton.v1.ControllerRing/LogRing")
+    assert isinstance(refused, StatusError)
+    assert refused.code == grpc.StatusCode.INVALID_ARGUMENT
+    assert refused.message.startswith("LogRing: the baton-mission metadata ")
+    assert "is not a mission id" in refused.message and "hosts: alpha" in refused.message
+    assert len(refused.message) < 400  # a value kilobytes long is not echoed whole
+
+
 @pytest.mark.parametrize(
     ("mission", "config", "program", "code", "named"),
     [

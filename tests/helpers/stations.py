@@ -1,4 +1,5 @@
-"""A mission's configuration over stations started by ``baton.testbed.fleet``."""
+"""A mission's configuration over stations started by ``baton.testbed.fleet``, its
+sessions started on them, and its mission programs there."""
 
 from __future__ import annotations
 
@@ -10,8 +11,10 @@ import pytest
 import yaml
 from waiting import eventually
 
+from baton.bench.cpu import child_pids
 from baton.cli import main
 from baton.config import BatonConfig
+from baton.rpc.mission import MISSION_TOKEN_ENV
 from baton.testbed.fleet import MissionDrone, StationPart, start_mission_drone, start_stations
 from baton.testbed.supervisor import Supervisor, baton_argv
 from baton.v1 import station_pb2
@@ -55,6 +58,47 @@ async def stations_and_drones(
     for drone in drones.values():
         await eventually(drone.ready, f"{drone.name}'s vehicle ready to arm", 120)
     return stations, drones
+
+
+async def start_on_rings(
+    stations: dict[int, StationPart],
+    drones: Mapping[str, MissionDrone],
+    rings: Mapping[str, Sequence[int]],
+    certs: Path,
+    program: Path,
+    args: Mapping[str, Sequence[str]],
+) -> None:
+    """Each mission of ``rings`` started on its ring's stations, in ring order, flying
+    ``program`` with its ``args``."""
+    for mission, ring in rings.items():
+        config = as_text(mission_config(drones[mission].address, stations, ring, certs))
+        for sid in ring:
+            await stations[sid].stub.StartMission(
+                station_pb2.StartMissionRequest(
+                    mission_id=mission, config=config, program=str(program), args=args[mission]
+                )
+            )
+
+
+async def program_pid(supervisor: Supervisor, station: StationPart, mission: str) -> int:
+    """The process of the mission program that ``station`` runs for ``mission``: the
+    station's child started on that session's program port."""
+    address = (await station.status(mission)).mission_address.encode()
+    process = supervisor.parts[f"station-{station.id}"].process
+    assert process is not None
+    for pid in child_pids(process.pid):
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        if address in argv:
+            return pid
+    raise AssertionError(f"station {station.id} runs no program for {mission} on {address!r}")
+
+
+def program_token(pid: int) -> str:
+    """The mission token a program process was started with (in its environment): what
+    its calls on its program's port carry (rpc/mission.py)."""
+    environ = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    prefix = f"{MISSION_TOKEN_ENV}=".encode()
+    return next(v[len(prefix) :].decode() for v in environ if v.startswith(prefix))
 
 
 def as_text(config: BatonConfig) -> str:

@@ -12,10 +12,17 @@ import grpc
 import pytest
 
 from baton.certs.make import init
-from baton.rpc.admission import Caller, PortPolicy, admit, to_cut
+from baton.rpc.admission import Caller, PortPolicy, admit, port_full, to_cut
 from baton.rpc.channels import aio_channel
 from baton.rpc.mission import mission_metadata
-from baton.rpc.ports import DRONE_REQUEST_BYTES, drone_policy, ring_policy, station_policy
+from baton.rpc.ports import (
+    DRONE_REQUEST_BYTES,
+    PROGRAM_PORT_CALLS,
+    drone_policy,
+    mission_policy,
+    ring_policy,
+    station_policy,
+)
 from baton.rpc.server import BatonServer, generic
 from baton.rpc.tls import DRONE, OPERATOR, Identity, Tls
 
@@ -102,12 +109,25 @@ def test_the_timer_cuts_exactly_the_streams_whose_certificates_no_longer_count()
     assert to_cut(live, frozenset(), NOW + 61) == ["b"]
 
 
+def test_a_mission_port_takes_at_most_its_calls_in_flight_whoever_makes_them() -> None:
+    port, get_position = mission_policy(), "/baton.v1.Mobility/GetPosition"
+    cap = port.calls_in_flight
+    assert cap is not None and cap == PROGRAM_PORT_CALLS
+    assert port_full(port, get_position, cap - 1) is None
+    refusal = port_full(port, get_position, cap)
+    assert refusal is not None and refusal.code is grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert refusal.message.startswith(f"GetPosition: the mission port has {cap} calls in flight")
+    # A port of many callers bounds each caller's share instead.
+    assert port_full(station_policy(), get_position, 10_000) is None
+
+
 @contextlib.asynccontextmanager
 async def holding_port(
-    tmp_path: Path, policy: PortPolicy
+    tmp_path: Path, policy: PortPolicy, insecure: bool = False
 ) -> AsyncIterator[tuple[grpc.aio.UnaryUnaryMultiCallable[bytes, bytes], asyncio.Event, Queue]]:
     """A real server with ``policy`` whose one method holds each call until released,
-    and controller 1's way to call it: (the call, the release, a queue of arrivals)."""
+    and controller 1's way to call it (``insecure``: anyone's, on a port without TLS):
+    (the call, the release, a queue of arrivals)."""
     certs = tmp_path / "certs"
     init(certs, [Identity.controller(1), DRONE])
     release, arrived = asyncio.Event(), Queue()
@@ -119,11 +139,12 @@ async def holding_port(
 
     handler: grpc.RpcMethodHandler[bytes, bytes] = grpc.unary_unary_rpc_method_handler(hold)
     served = generic(grpc.method_handlers_generic_handler("test.Hold", {"Hold": handler}))
-    server = BatonServer("127.0.0.1:0", [served], tls=Tls.load(certs, DRONE), policy=policy)
+    own = None if insecure else Tls.load(certs, DRONE)
+    server = BatonServer("127.0.0.1:0", [served], tls=own, policy=policy)
     await server.start()
     try:
-        tls = Tls.load(certs, Identity.controller(1))
-        async with aio_channel(server.address, tls, DRONE) as channel:
+        tls = None if insecure else Tls.load(certs, Identity.controller(1))
+        async with aio_channel(server.address, tls, None if insecure else DRONE) as channel:
             yield channel.unary_unary("/test.Hold/Hold"), release, arrived
     finally:
         release.set()
@@ -173,3 +194,24 @@ async def test_a_port_of_many_missions_counts_a_callers_calls_per_mission_it_nam
             assert why in (refused.value.details() or "")
         release.set()
         assert await asyncio.gather(*held) == [b"x"] * 3
+
+
+async def test_a_port_without_tls_holds_at_most_its_calls_in_flight_and_frees_them(
+    tmp_path: Path,
+) -> None:
+    """Through a real server without TLS (a mission port's): the calls above the port's
+    cap are refused before they are read, whoever makes them, until calls end."""
+    policy = PortPolicy("test port", 1 << 20, calls_in_flight=3)
+    async with holding_port(tmp_path, policy, insecure=True) as (call, release, arrived):
+        held = [asyncio.ensure_future(call(b"x", timeout=20)) for _ in range(3)]
+        for _ in held:
+            await asyncio.wait_for(arrived.get(), 20)
+        for _ in range(2):
+            with pytest.raises(grpc.aio.AioRpcError) as refused:
+                await call(b"y", timeout=20)
+            assert refused.value.code() is grpc.StatusCode.RESOURCE_EXHAUSTED
+            assert "the test port has 3 calls in flight" in (refused.value.details() or "")
+        assert arrived.empty()  # the refused calls never reached the method
+        release.set()
+        assert await asyncio.gather(*held) == [b"x"] * 3
+        assert await call(b"z", timeout=20) == b"z"

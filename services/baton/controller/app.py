@@ -23,6 +23,12 @@ from baton.v1 import ring_pb2_grpc
 
 # How long a mission program has to end after SIGTERM before it is killed.
 MISSION_STOP_GRACE_S = 2.0
+# The program's port pings its program as seldom as gRPC does by default (every two
+# hours), not every 10 s with 5 s for the answer as a port pings a peer that may have
+# gone silent: the program's end is its process's (``_watch_mission``), and a
+# program stopped for a while (SIGSTOP, a debugger, a core it waits for) must find
+# its stream and its call where it left them when it goes on.
+PROGRAM_KEEPALIVE_S = (2 * 3600.0, 20.0)
 
 
 class ControllerSession:
@@ -72,6 +78,7 @@ class ControllerSession:
         self.mission_server = BatonServer(
             config.controller(cid).mission_address,
             mission_port(self.node, self.token),
+            keepalive=PROGRAM_KEEPALIVE_S,
             policy=mission_policy(),
         )
         self.node.mission_address = self.mission_server.address  # bound already

@@ -10,6 +10,12 @@ Pure decisions, applied by the gate (baton/rpc/gate.py) on every port:
   request has been read then, so a refused caller costs the port what gRPC
   buffers before the refusal reaches it (its flow-control window), not its
   message.
+- ``port_full``: a port of one caller known by no certificate (a controller's
+  mission port, whose caller is its mission program, known by its token) takes
+  at most ``calls_in_flight`` calls at a time, whoever makes them, TLS or not.
+  A program makes one drone call at a time; the calls above that would each
+  wait for the one pending and be refused together when it ends, a burst that
+  holds the event loop every session of a station shares.
 - ``to_cut``: the live streams whose certificates a newer revocation list
   names, or which expired since the stream opened, re-checked by a timer: a
   revoked station loses the streams it held within that timer's period, not
@@ -87,6 +93,9 @@ class PortPolicy:
     # port's room for another's; this bounds them over all missions (None: no port
     # of many missions).
     calls_per_caller_all_missions: int | None = None
+    # The port's calls in flight, whoever makes them, with or without TLS (``port_full``;
+    # None: no bound but each caller's).
+    calls_in_flight: int | None = None
 
     def rule(self, method: str) -> Rule:
         return self.rules.get(method, self.default)
@@ -167,6 +176,20 @@ def admit(
             "wait for them",
         )
     return None
+
+
+def port_full(policy: PortPolicy, method: str, in_flight: int) -> StatusError | None:
+    """RESOURCE_EXHAUSTED if the port holds ``policy.calls_in_flight`` calls already
+    (``in_flight``), before anything of the call is read; None if it has room."""
+    cap = policy.calls_in_flight
+    if cap is None or in_flight < cap:
+        return None
+    return StatusError(
+        grpc.StatusCode.RESOURCE_EXHAUSTED,
+        f"{method.rsplit('/', 1)[-1]}: the {policy.name} has {in_flight} calls in flight, the "
+        "most it takes; a mission program makes one drone call at a time (on its "
+        "ProgramCalls stream); nothing of this call was read",
+    )
 
 
 def invalid_error(name: str, caller: Caller, why: str) -> StatusError:

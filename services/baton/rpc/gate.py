@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import functools
 import inspect
+import math
 import time
 from collections import Counter
 from collections.abc import AsyncGenerator, Awaitable, Callable, Hashable
@@ -36,12 +37,22 @@ from cryptography import x509
 from google.protobuf.message import DecodeError
 
 from baton.logs import get_logger
-from baton.rpc.admission import RECHECK_S, Caller, PortPolicy, admit, invalid_error, to_cut
-from baton.rpc.errors import abort_with
+from baton.rpc.admission import (
+    RECHECK_S,
+    Caller,
+    PortPolicy,
+    admit,
+    invalid_error,
+    port_full,
+    to_cut,
+)
+from baton.rpc.errors import StatusError, abort_with
 from baton.rpc.mission import mission_in
 from baton.rpc.revocation import REVOKED_CRL, RevocationList
 from baton.rpc.tls import Tls, caller
 
+# How often a port refusing calls for being full says so, at most.
+FULL_LOG_EVERY_S = 10.0
 # A grpc.aio server's method behaviour: a coroutine function, or an async generator
 # of a stream's replies. grpc's stubs type RpcMethodHandler's as the blocking server's.
 _AioBehaviour = Callable[[Any, grpc.aio.ServicerContext[Any, Any]], Any]
@@ -99,6 +110,11 @@ class Gate(grpc.aio.ServerInterceptor):
         # mission), and by caller.
         self._in_flight: Counter[tuple[Caller, str | None]] = Counter()
         self._in_flight_all: Counter[Caller] = Counter()
+        # Calls in flight on the port, whoever makes them; the calls refused for a full
+        # port since it last said so, and when (``admission.port_full``).
+        self._on_port = 0
+        self._full_refusals = 0
+        self._full_said_at = -math.inf
         self._live: dict[int, _Live] = {}
         self._next = 0
         # Told the revocation list's serials after every refresh (a controller's log
@@ -152,10 +168,41 @@ class Gate(grpc.aio.ServerInterceptor):
         run: Callable[[], Awaitable[Any]],
         stream: bool,
     ) -> Any:
-        """Runs ``run`` (which reads the request) if the caller is admitted; a stream
-        as a task that a revocation ends."""
-        if not self.enforced:
-            return await run()
+        """Runs ``run`` (which reads the request) if the port has room and the caller is
+        admitted; a stream as a task that a revocation ends."""
+        full = port_full(self.policy, method, self._on_port)
+        if full is not None:
+            self._refused_full(full)
+            await abort_with(context, full)
+        self._on_port += 1
+        try:
+            if not self.enforced:
+                return await run()
+            return await self._admitted(method, context, run, stream)
+        finally:
+            self._on_port -= 1
+
+    def _refused_full(self, refusal: StatusError) -> None:
+        """Counts a call refused for a full port, and says so at once, then at most every
+        ``FULL_LOG_EVERY_S`` with the count: a flood of refusals is not a flood of lines."""
+        self._full_refusals += 1
+        now = time.monotonic()
+        if now - self._full_said_at >= FULL_LOG_EVERY_S:
+            self.log.warning(
+                "calls refused before their requests: the port is full",
+                reason=refusal.message,
+                refused=self._full_refusals,
+            )
+            self._full_refusals, self._full_said_at = 0, now
+
+    async def _admitted(
+        self,
+        method: str,
+        context: grpc.aio.ServicerContext[Any, Any],
+        run: Callable[[], Awaitable[Any]],
+        stream: bool,
+    ) -> Any:
+        """Runs ``run`` if the caller's certificate admits it (``admission.admit``)."""
         who = caller_of(context)
         # Only a port of many missions counts per mission: elsewhere a caller naming
         # missions of its own choosing would take the cap again with each.

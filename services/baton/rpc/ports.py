@@ -13,7 +13,8 @@ make a port read (and hold) more than that per call:
   (``ring.frame_bytes``, 16 KiB by default, at most 4 MiB) and, on a
   message's first frame, the message's head without its entries.
 - The mission port (loopback, the mission token): the program's drone-API
-  calls, as small as the drone's.
+  calls, as small as the drone's; and at most ``PROGRAM_PORT_CALLS`` calls in
+  flight, whoever makes them (admission.port_full).
 - The fleet's port (``baton fleet serve``): what the largest call carries is an
   Admit's QGroundControl plan, its text, a few hundred bytes a waypoint;
   4 MiB holds some 10,000 waypoints.
@@ -34,6 +35,10 @@ FRAME_HEAD_BYTES = 64 << 10
 _DRONE = "/baton.v1.Drone/"
 _RING = "/baton.v1.ControllerRing/"
 _STATION = "/baton.v1.Station/"
+# A mission port's calls in flight: its program's stream of calls, a call it gave up
+# and the next (controller/program_calls.py BUSY_GRACE_S), its MissionDone, and a few
+# GetStatus, health or grpcurl calls beside them.
+PROGRAM_PORT_CALLS = 16
 # The largest ring frame any mission may choose (config.RingConfig.frame_bytes).
 MAX_FRAME_BYTES = 4 << 20
 # A peer station holds a ring stream or two per mission the two share: on a
@@ -74,7 +79,7 @@ def ring_policy(ring_order: Iterable[int], frame_bytes: int) -> PortPolicy:
 
 def mission_policy() -> PortPolicy:
     """A controller's mission port: its program's calls (the token decides who)."""
-    return PortPolicy("mission port", DRONE_REQUEST_BYTES)
+    return PortPolicy("mission port", DRONE_REQUEST_BYTES, calls_in_flight=PROGRAM_PORT_CALLS)
 
 
 ANY_STATION = Rule(

@@ -28,15 +28,32 @@ from baton.rpc.mission import MISSION_ID_METADATA, MISSION_ID_PATTERN
 S = TypeVar("S")
 
 
+# What a refusal quotes of a value that is not a mission id, at most (the metadata
+# can be kilobytes long).
+SHOWN_CHARS = 80
+
+
 def _hosted(sessions: Mapping[str, object]) -> str:
     return ", ".join(sorted(sessions)) or "none"
+
+
+def not_a_mission_id(value: str) -> str | None:
+    """Why ``value`` is not a mission id (MISSION_ID_PATTERN), quoting it; None if it is."""
+    if re.fullmatch(MISSION_ID_PATTERN, value) is not None:
+        return None
+    shown = value if len(value) <= SHOWN_CHARS else f"{value[:SHOWN_CHARS]}... ({len(value)} chars)"
+    return (
+        f"{shown!r} is not a mission id: letters, digits, '.', '_' and '-', at most 64, "
+        "starting with a letter or a digit"
+    )
 
 
 def route(
     sessions: Mapping[str, S], mission_id: str | None, station_id: int, method: str
 ) -> S | StatusError:
     """The session ``method``'s call is for, or why there is none: INVALID_ARGUMENT
-    for a call that names no mission, NOT_FOUND naming one the station does not host."""
+    for a call that names no mission or names it with what is not a mission id,
+    NOT_FOUND naming one the station does not host."""
     name = method.rsplit("/", 1)[-1]
     if mission_id is None:
         return StatusError(
@@ -44,6 +61,13 @@ def route(
             f"{name}: station {station_id} serves several missions on this port; name one in "
             f"the {MISSION_ID_METADATA} metadata (grpcurl -H '{MISSION_ID_METADATA}: ID'); "
             f"it hosts: {_hosted(sessions)}",
+        )
+    malformed = not_a_mission_id(mission_id)
+    if malformed is not None:
+        return StatusError(
+            grpc.StatusCode.INVALID_ARGUMENT,
+            f"{name}: the {MISSION_ID_METADATA} metadata {malformed}; station {station_id} "
+            f"hosts: {_hosted(sessions)}; nothing was done",
         )
     session = sessions.get(mission_id)
     if session is None:
@@ -70,12 +94,9 @@ def mission_config(
 ) -> BatonConfig | StatusError:
     """The configuration a mission's session runs with on station ``station_id``, or
     why it may not start here (the field named, and the fix)."""
-    if re.fullmatch(MISSION_ID_PATTERN, mission_id) is None:
-        return invalid(
-            "mission_id",
-            f"{mission_id!r} is not a mission id: letters, digits, '.', '_' and '-', at most "
-            "64, starting with a letter or a digit",
-        )
+    malformed = not_a_mission_id(mission_id)
+    if malformed is not None:
+        return invalid("mission_id", malformed)
     if mission_id in sessions:
         return StatusError(
             grpc.StatusCode.ALREADY_EXISTS,
