@@ -506,41 +506,6 @@ def test_a_message_numbered_like_ours_from_a_newer_epoch_means_we_must_rejoin() 
     assert old.on_log(again) == []
 
 
-def test_a_rejoin_keeps_what_our_framing_shares_with_the_diverging_message() -> None:
-    """A message and its epoch name it (one master frames a number once in its
-    epoch): a diverging message whose creator's message before it is ours was built
-    on our log up to there, which the rejoin keeps. Dropped with the rest, the ring
-    may hold no copy of replies the drone let go of (--policy nearest 2810: every
-    controller rejoined with messages 1-2 below a taker's 13, and waited for ever
-    for 3)."""
-
-    def at(lognr: int, reqnrs: list[int], epoch: int, after_epoch: int = 0) -> ring_pb2.LogMessage:
-        m = message(lognr, 0, reqnrs)
-        m.epoch, m.after_epoch = epoch, after_epoch
-        return m
-
-    def replica_with(*messages: ring_pb2.LogMessage) -> ControllerProtocol:
-        replica = started(1, [0, 1, 2], 0)
-        for m in messages:
-            replica.on_log(m)
-        replay_all(replica)
-        return replica
-
-    ours = [at(1, [1], 5), at(2, [2], 5, 5), at(3, [3], 5, 5), at(4, [4], 5, 5)]
-    built_on_ours = at(3, [3, 4], 6, after_epoch=5)  # the taker held our 1-2
-    replica = replica_with(*ours)
-    assert [type(e).__name__ for e in replica.on_log(built_on_ours)] == ["Diverged"]
-    assert replica.kept_history() == 2
-    # Its next message, built on its own 3, differs from our 4 too: that changes
-    # nothing below 3 (--policy nearest 2943: two in one step).
-    assert [type(e).__name__ for e in replica.on_log(at(4, [5], 6, 6))] == ["Diverged"]
-    assert replica.kept_history() == 2
-    # Built on another message 2: nothing is known common.
-    replica = replica_with(*ours)
-    assert [type(e).__name__ for e in replica.on_log(at(3, [2, 3], 6, 4))] == ["Diverged"]
-    assert replica.kept_history() == 0
-
-
 def test_the_ring_routes_to_the_first_successor_not_down_for_the_detection_time() -> None:
     down = {1: 5.0, 2: 0.4}  # seconds down; 3 has no stream tried yet
     ring = [0, 1, 2, 3]

@@ -365,12 +365,6 @@ class ControllerProtocol:
         # A handover message whose log number diverged from ours (on_log): kept for
         # the controller's fresh self (``kept_for_rejoin``).
         self._diverging_handover: ring_pb2.LogMessage | None = None
-        # What a divergence from the ring's framing showed (``Diverged``): the log
-        # numbers, every one up to this, our framing shares with the ring's
-        # (``_note_common``), and the lowest number at which ours differs. The rejoin
-        # keeps what lies below both (``kept_history``).
-        self._common_lognr = 0
-        self._differs_at = 0
         # Our handover message's log number, counted as received when the ring went
         # on past it before it came back (on_log): forwarded if it comes.
         self._passed_handed = 0
@@ -702,7 +696,7 @@ class ControllerProtocol:
             # that holds less than we do: it gives us nothing above our hello,
             # so its message with that number would never come, and a later
             # taker holding ours would build on the replaced framing.
-            return [self._diverged(holds_lognr, ours, holds_epoch)]
+            return [Diverged(holds_lognr, ours, holds_epoch)]
         if holds_lognr > self.lognr and (
             0 < holds_epoch < self.epoch_of(self.lognr)
             or self._replaced_framing_of(holds_lognr, holds_epoch)
@@ -1084,14 +1078,12 @@ class ControllerProtocol:
     def kept_history(self) -> int:
         """The log numbers (every one up to this) a controller that rejoins keeps from its
         history for its fresh self: a master's whose program starts again
-        (``restart_program``) unless fenced since, what ``kept_when_fenced`` keeps, and
-        what our framing shares with the ring's message that diverged from it
-        (``_note_common``). Nothing from a handover message the fresh self is given
+        (``restart_program``) unless fenced since, and what ``kept_when_fenced``
+        keeps. Nothing from a handover message the fresh self is given
         (``kept_for_rejoin``) on: a history copy of it, handled first, would take its
         number without its flag, and the role it gives would be lost (F7)."""
         restarted = 0 if self.fenced else self._restart_keeps
-        common = min(self._common_lognr, self._differs_at - 1) if self._differs_at else 0
-        upto = max(restarted, self.kept_when_fenced(), common)
+        upto = max(restarted, self.kept_when_fenced())
         handed = [m.lognr for m in self.kept_for_rejoin()]
         return min([upto, *(lognr - 1 for lognr in handed)])
 
@@ -1442,8 +1434,7 @@ class ControllerProtocol:
         if arrival is _Arrival.DIVERGED:
             if message.handover:
                 self._diverging_handover = message
-            self._note_common(message)
-            return [self._diverged(message.lognr, self._epoch_at[message.lognr], message.epoch)]
+            return [Diverged(message.lognr, self._epoch_at[message.lognr], message.epoch)]
         if arrival is _Arrival.FENCED:
             return [Fenced(message.lognr, message.origin, message.epoch)]
         if arrival is _Arrival.SEEN:
@@ -1680,26 +1671,6 @@ class ControllerProtocol:
         self._queued_epochs = (min(epochs), max(epochs)) if epochs else (0, 0)
         return effects + self._drain() if effects else []
 
-    def _note_common(self, message: ring_pb2.LogMessage) -> None:
-        """``message`` diverged from ours at its log number: what comes before it is
-        common to both framings if its creator's message before it is ours.
-
-        One master frames each log number once in its epoch, so a message is
-        known by its number and epoch: when the creator's message before it
-        (``after_epoch``) is of our epoch at that number, the creator built on
-        our messages up to it, and they are the ring's (the creator holds them,
-        and so did every controller its messages passed). A rejoin keeps them:
-        dropped, they may leave the ring with no copy of replies the drone let
-        go of (``kept_history``)."""
-        before = message.lognr - 1
-        if before > 0 and 0 < self._epoch_at.get(before, 0) == message.after_epoch:
-            self._common_lognr = max(self._common_lognr, before)
-
-    def _diverged(self, lognr: int, ours: int, ring: int) -> Diverged:
-        """Our message ``lognr`` (of epoch ``ours``) is not the ring's (of ``ring``)."""
-        self._differs_at = min(self._differs_at or lognr, lognr)
-        return Diverged(lognr, ours, ring)
-
     def _diverged_before(self, message: ring_pb2.LogMessage) -> Diverged | None:
         """Whether the next message in order, from a newer epoch than our last one, does
         not continue our requests: our last message is one a takeover renumbered.
@@ -1718,7 +1689,7 @@ class ControllerProtocol:
             # framing, which a takeover made of the replies ours holds, even if it
             # ends at the same request (a fenced master's give-up of a request the
             # drone executed for the taker).
-            return self._diverged(self.lognr, ours, message.after_epoch)
+            return Diverged(self.lognr, ours, message.after_epoch)
         if message.HasField("after_reqnr"):
             # Also on a message without entries: a new master's handover message
             # that continues a framing other than ours.
@@ -1728,7 +1699,7 @@ class ControllerProtocol:
         else:
             return None
         if start != self.reqnr + 1 and self.lognr > 0 and message.epoch > ours:
-            return self._diverged(self.lognr, ours, message.epoch)
+            return Diverged(self.lognr, ours, message.epoch)
         return None
 
     def _queue(self, message: ring_pb2.LogMessage) -> None:
