@@ -68,10 +68,15 @@ async def test_lying_sync_words_are_not_believed_and_the_mission_flies_once(
         # mastership's genuine grant but without the proof of holding it. Believed, it
         # moved the watermark over messages its successors did not hold yet.
         testbed.reshape_link("link-ring-1", LinkSpec(latency=SLOW_RING_S))
+        # The emulator takes its new shape on a signal: what the master logged until
+        # about now may still cross at the old speed, and its proof move the watermark
+        # honestly (CI saw it reach the request the test had taken as lagging: 2 < 2).
+        # Three requests later, the lie's "your newest" lies beyond that.
+        shaped = (await status(master)).reqnr
 
         async def lagging() -> ring_pb2.ControllerStatus | None:
             s = await status(master)
-            return s if s.reqnr >= s.watermark_reqnr + 2 else None
+            return s if s.reqnr >= max(s.watermark_reqnr, shaped) + 3 else None
 
         before = await eventually(lagging, "the master's watermark lagging", 60)
         await say(
