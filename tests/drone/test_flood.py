@@ -111,7 +111,10 @@ async def test_a_stations_flood_is_refused_before_the_drone_reads_it(tmp_path: P
             f"{peak_before / MB:.0f} -> {peak_after / MB:.0f} MB; heartbeat age at most "
             f"{max(heartbeat_ages):.2f} s over {len(heartbeat_ages)} looks"
         )
-        assert peak_after - max(peak_before, rss_before) < 64 * MB
+        # Read whole, even one request would raise the peak by its size; what does grow
+        # meanwhile is the mission's own work beside the flood and gRPC's windows (64
+        # MiB was too tight: a clean-clone CI run saw 90 MB, peak 130 -> 220 MB).
+        assert peak_after - max(peak_before, rss_before) < FLOOD_BYTES
         assert after.vehicle.outages == before.vehicle.outages
         assert after.vehicle.healthy and max(heartbeat_ages) < 2.0
         assert after.rejected == before.rejected, "a refused call reached the servicer"
