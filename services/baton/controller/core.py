@@ -652,11 +652,16 @@ class ControllerCore:
         if target == p.successor:
             return None
         sent = max(p.acked_lognr, self.sent_straight.get(target, 0))
-        messages = [
-            message
-            for message in (held.get(lognr) for lognr in held.above(sent))
-            if message.epoch >= p.epoch
-        ]
+        # Masters number log messages in the order of their epochs: read from the top
+        # down, the first of an earlier mastership ends ours (the history is not read
+        # whole at every handover).
+        messages: list[ring_pb2.LogMessage] = []
+        for lognr in sorted(held.above(sent), reverse=True):
+            message = held.get(lognr)
+            if message.epoch < p.epoch:
+                break
+            messages.append(message)
+        messages.reverse()
         if messages:
             self.sent_straight[target] = messages[-1].lognr
         return messages
