@@ -1436,3 +1436,37 @@ def test_a_newer_masters_word_drops_an_older_message_queued_above_its_top() -> N
     assert p.master_word == (16, 9)
     p.on_sync(9, 14, 15, 8)  # an older word is not relayed
     assert p.master_word == (16, 9)
+
+
+def test_a_mastership_handed_back_owes_no_handover_message_of_the_grant_before() -> None:
+    """A cooperative grant owes us its epoch's handover message; once that came, or a
+    newer handover message made us master, nothing is owed (``Mastership.problems``,
+    rule 4). Handed back to an ACTIVE master (``_take_handed_back``), its new epoch
+    owes nothing either."""
+    p = started(0, [0, 1], 0, initial_master=1)
+    p.on_granted(2)  # cooperative: its handover message is owed
+    assert p.mastership.owed == 2
+    p.on_log(ring_pb2.LogMessage(lognr=1, origin=1, sender=1, handover=True, epoch=2))
+    assert p.state is State.ACTIVE
+    back = ring_pb2.LogMessage(
+        lognr=2, origin=0, sender=1, handover=True, epoch=5, after_reqnr=0, after_epoch=2
+    )
+    p.on_log(back)
+    assert (p.state, p.epoch) == (State.ACTIVE, 5)
+    assert p.mastership.problems() == []
+
+
+def test_a_role_handed_back_in_another_framing_of_our_requests_means_we_must_rejoin() -> None:
+    """An ACTIVE master that never heard of a takeover between (cut off, it logged
+    give-ups) is handed the role back by the taker's handover message, which follows
+    the taker's framing of the same requests (``after_epoch``): ours was replaced, so
+    the message is not taken as ours to continue (``_take_handed_back``); we rejoin."""
+    p = started(0, [0, 1], 0)
+    p.on_reply(entry(1))
+    p.on_reply(entry(2))  # messages 1 and 2, epoch 1
+    back = ring_pb2.LogMessage(
+        lognr=3, origin=0, sender=1, handover=True, epoch=3, after_reqnr=2, after_epoch=2
+    )
+    effects = p.on_log(back)
+    assert [e for e in effects if isinstance(e, Diverged)] == [Diverged(2, 1, 2)]
+    assert p.epoch == 1

@@ -1588,11 +1588,22 @@ class ControllerProtocol:
             or queued.after_reqnr != self.reqnr
         ):
             return []
+        diverged = self._diverged_before(queued)
+        if diverged is not None:
+            # It hands back a role that went on in another framing of our requests:
+            # a takeover between replaced ours, and the ring's is the taker's.
+            return [diverged]
         del self.log_queue[queued.lognr]
-        self.epoch = queued.epoch
+        self._master_by_handover_in(queued.epoch)
         if queued.HasField("grant"):
             self._grants[queued.epoch] = queued.grant
         return self._take_in(queued)
+
+    def _master_by_handover_in(self, epoch: int) -> None:
+        """A handover message of ``epoch``, newer than ours, makes us master in it. A
+        grant's handover message is owed no more (``Mastership`` rule 4): it is numbered
+        below this one, so it was handled, or its mastership was handed on without us."""
+        self.epoch, self._owed_epoch = epoch, 0
 
     def _take_in(self, message: ring_pb2.LogMessage) -> list[Effect]:
         """Message ``message``, next in order, is handled: held (its entries already in
@@ -1798,9 +1809,7 @@ class ControllerProtocol:
             self.master = True
             self._made_master_at = message.lognr
             if message.epoch > self.epoch:
-                # A grant's handover message is owed no more once a newer one makes
-                # us master (and it would be handled by now: it is numbered below).
-                self.epoch, self._owed_epoch = message.epoch, 0
+                self._master_by_handover_in(message.epoch)
             effects.append(TookOver(message.sender, message.lognr, self.reqnr, message.ByteSize()))
         elif self.master and self.granted_epoch < self.epoch < message.epoch:
             # Made master by a handover message the drone never confirmed, and the
