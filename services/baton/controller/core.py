@@ -1217,9 +1217,12 @@ class ControllerCore:
         grant of the mastership, the reply the drone retains for it if a lost
         master's program acted on it (the drone served it a later request), else
         our give-up, logged. An entry that is not that give-up makes the program
-        start again.
+        start again. Nothing while this controller rejoins: its program is to start
+        again from the log.
         """
-        p, effects = self.protocol, []
+        p, effects = self.protocol, list[CoreEffect]()
+        if self.rejoining:
+            return not self.abandoned, effects
         while self.abandoned:
             method, request, code = self.abandoned[0]
             if p.state is State.REPLAY:

@@ -13,24 +13,29 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+import time
+from collections.abc import Callable, Generator, Sequence
+from typing import TYPE_CHECKING, TypeVar
 
 import grpc
 
-from baton.controller.core import (
-    CLOCK_NOW,
-    CLOCK_SERVICE,
-    Answer,
-    AskClock,
-    CoreEffect,
-    Hold,
-    ReplayAgain,
+from baton.controller.call_flow import (
+    Apply,
+    CallFlow,
+    Invoke,
+    Invoked,
+    Io,
+    LookAtSession,
+    Pause,
+    ReadClock,
+    RetriesEnded,
+    SessionSeen,
+    WaitConnected,
+    WaitForChange,
 )
+from baton.controller.core import CLOCK_NOW, CLOCK_SERVICE, CoreEffect, ReplayAgain
 from baton.controller.drone_link import DroneSession, Retry, refusal_of
-from baton.controller.invoking import Sent, failed, replied
 from baton.controller.notes import replay_again
-from baton.controller.protocol import State
 from baton.rpc.errors import StatusError
 from baton.stalls import Wait
 from baton.v1 import drone_api_pb2 as api
@@ -44,6 +49,9 @@ if TYPE_CHECKING:
 # a cancelled stream) makes its next one at once, and that one can reach the
 # controller first (on another stream or connection, in no fixed order).
 BUSY_GRACE_S = 2.0
+# What a flow yields while a drone request is being re-sent (``ProgramCalls.drone_wait``).
+_RETRYING = (Pause, LookAtSession, WaitConnected, Invoke)
+_T = TypeVar("_T")
 
 
 class ProgramCalls:
@@ -68,6 +76,7 @@ class ProgramCalls:
         # mission program from before then are refused, not answered.
         self.incarnation = 0
         self._settler: asyncio.Task[None] | None = None  # for those left when the program ended
+        self._retry_log = Retry(0.0)  # when a request's re-sending is logged (stalls.py)
 
     @property
     def reply_chain(self) -> bytes:
@@ -125,12 +134,6 @@ class ProgramCalls:
             self._settler = asyncio.create_task(self._settle_after_the_end())
         return bool(effects)
 
-    async def _settle_after_the_end(self) -> None:
-        try:
-            await self._settle_abandoned()
-        except StatusError:
-            pass  # the mission's failure, already recorded by fail
-
     async def call(
         self,
         method: str,
@@ -164,30 +167,25 @@ class ProgramCalls:
         try:
             if self.mission == ring_pb2.MISSION_STATE_NONE:
                 self.mission = ring_pb2.MISSION_STATE_RUNNING
+            flow = CallFlow(self.node.core, method, request, self.node.config.drone_retry_limit)
             try:
-                await self._settle_abandoned()
+                return await self._drive(flow.run(), incarnation)
             except asyncio.CancelledError:
-                if incarnation == self.incarnation:
-                    self.node.core.gave_up(0, method, request, gave_up())
+                given_up = flow.gave_up(gave_up()) if incarnation == self.incarnation else []
+                if given_up:
+                    await asyncio.shield(self._apply(given_up))
                 raise
-            return await self._answer(method, request, gave_up, incarnation)
         finally:
             if incarnation == self.incarnation:
-                self.busy = None
+                self.busy, self.drone_wait = None, None
                 self.idle.set()
 
-    async def _settle_abandoned(self) -> None:
-        """Gives the log's entry to each call the program gave up on while this controller
-        waited (``ControllerCore.settle``), waiting for the log or the drone's word."""
-        while True:
-            if self.failure is not None:
-                raise self.failure
-            changed = self.node.changed
-            done, effects = self.node.core.settle()
-            await self._apply(effects)
-            if done:
-                return
-            await changed.wait()
+    async def _settle_after_the_end(self) -> None:
+        flow = CallFlow(self.node.core, "", b"", self.node.config.drone_retry_limit)
+        try:
+            await self._drive(flow.settle(), self.incarnation)
+        except StatusError:
+            pass  # the mission's failure, already recorded by fail
 
     def _check_incarnation(self, incarnation: int) -> None:
         """ABORTED for a call of the mission program from before a rejoin."""
@@ -198,46 +196,93 @@ class ProgramCalls:
                 "mission program is restarted, and this call of the one before is not answered",
             )
 
-    async def _answer(
-        self,
-        method: str,
-        request: bytes,
-        gave_up: Callable[[], grpc.StatusCode],
-        incarnation: int,
-    ) -> ring_pb2.LogEntry:
-        """The program's call answered (``ControllerCore.answer``): from the log, the
-        retained replies, the Clock or the drone, waiting for a change as it says."""
-        node = self.node
+    async def _drive(self, flow: Generator[Io, object, _T], incarnation: int) -> _T:
+        """Runs ``flow`` (``call_flow.CallFlow``): carries out what it yields and sends it
+        the result, until it returns. The call ends with the mission's failure, or ABORTED
+        once the controller rejoined (a call of the program from before)."""
+        result: object = None
+        io: Io | None = None
+        changed = self.node.changed
         while True:
             self._check_incarnation(incarnation)
             if self.failure is not None:
                 raise self.failure
-            changed = node.changed
-            step, effects = node.core.answer(method, request)
-            await self._apply(effects)
+            if not isinstance(io, Apply):
+                # A wait is for a change since the core was last asked: one made while
+                # what it asked for was applied counts (it may be another task's).
+                changed = self.node.changed
             try:
-                if isinstance(step, Answer):
-                    return step.entry
-                if isinstance(step, Hold):
-                    await changed.wait()
-                    continue
-                if isinstance(step, AskClock):
-                    reply = await self._clock_call(method, request)
-                    entry: ring_pb2.LogEntry | None = step.entry(method, request, reply)
-                else:
-                    entry = await self._invoke_drone(step.reqnr, method, request, step.digest)
-            except asyncio.CancelledError:
-                if incarnation == self.incarnation:
-                    reqnr = 0 if isinstance(step, Answer) else step.reqnr
-                    given_up = node.core.gave_up(reqnr, method, request, gave_up())
-                    await asyncio.shield(self._apply(given_up))
-                raise
-            if entry is None:
-                continue  # the state changed: asked again
-            logged, effects = node.core.logged(step.reqnr, entry)
-            await self._apply(effects)
-            if logged is not None:
-                return logged
+                io = flow.send(result)
+            except StopIteration as stop:
+                return stop.value  # type: ignore[no-any-return]
+            result = await self._perform(io, changed)
+
+    async def _perform(self, io: Io, changed: asyncio.Event) -> object:
+        """What one turn of a call's flow asks for, done; ``changed``: the node's change
+        event as it was when the core was last asked."""
+        node = self.node
+        if not isinstance(io, _RETRYING):
+            self.drone_wait = None  # the request's re-sending is over
+        if isinstance(io, Apply):
+            await self._apply(io.effects)
+        elif isinstance(io, WaitForChange):
+            await changed.wait()
+        elif isinstance(io, ReadClock):
+            return await self._clock_call(io.method, io.request)
+        elif isinstance(io, LookAtSession):
+            drone = node.drone
+            connected = drone is not None and drone.connected.is_set()
+            epoch = drone.epoch if drone is not None and connected else 0
+            return SessionSeen(drone is not None, connected, epoch, time.monotonic())
+        elif isinstance(io, WaitConnected):
+            assert node.drone is not None
+            await self._wait_connected(node.drone)
+        elif isinstance(io, Invoke):
+            return await self._invoke(io)
+        elif isinstance(io, Pause):
+            self.drone_wait = Wait(
+                "retry",
+                f"request {io.reqnr} ({io.method}): drone unavailable ({io.details})",
+                io.waited,
+            )
+            if io.attempts == 0:
+                self._retry_log = Retry(node.config.drone_retry_limit)
+            if self._retry_log.should_log():
+                node.log.warning(
+                    "drone unavailable; re-sending",
+                    reqnr=io.reqnr,
+                    waited_s=round(io.waited, 1),
+                    limit_s=node.config.drone_retry_limit,
+                    detail=io.details,
+                )
+            await asyncio.sleep(io.seconds)
+        elif isinstance(io, RetriesEnded):
+            node.log.warning(
+                "drone still unavailable; the call fails",
+                reqnr=io.reqnr,
+                waited_s=round(io.waited, 1),
+            )
+        return None
+
+    async def _invoke(self, io: Invoke) -> Invoked:
+        """The request to the drone, and what came of it."""
+        node, sent = self.node, io.sent
+        drone = node.drone
+        assert drone is not None
+        self.in_flight = (sent.reqnr, sent.method)
+        try:
+            reply = await drone.invoke(
+                sent.reqnr,
+                sent.method,
+                sent.request,
+                timeout_s=io.timeout_s,
+                carried=node.core.carried(node.preparation_progress()),
+            )
+        except grpc.aio.AioRpcError as exc:
+            return Invoked(time.monotonic(), None, exc.code(), exc.details() or "", refusal_of(exc))
+        finally:
+            self.in_flight = None
+        return Invoked(time.monotonic(), (reply.payload, reply.epoch, reply.signature))
 
     async def _apply(self, effects: Sequence[CoreEffect]) -> None:
         """``ControllerNode.apply`` for the call path: a mission stopped (``Fail``) or a
@@ -274,76 +319,6 @@ class ProgramCalls:
             return api.NowReply(unix_time_s=clock.now()).SerializeToString()
         await clock.sleep(api.SleepRequest.FromString(request).seconds)
         return api.SleepReply().SerializeToString()
-
-    async def _invoke_drone(
-        self, reqnr: int, method: str, request: bytes, digest: bytes
-    ) -> ring_pb2.LogEntry | None:
-        try:
-            return await self._invoke_drone_retrying(reqnr, method, request, digest)
-        finally:
-            self.drone_wait = None
-            self.in_flight = None
-
-    async def _invoke_drone_retrying(
-        self, reqnr: int, method: str, request: bytes, digest: bytes
-    ) -> ring_pb2.LogEntry | None:
-        """Sends the request until it has an outcome (``invoking.failed``'s rules)."""
-        node = self.node
-        retry = Retry(node.config.drone_retry_limit)
-        while True:
-            drone = node.drone
-            if drone is None or node.protocol.state is not State.ACTIVE:
-                return None
-            if not drone.connected.is_set():
-                await self._wait_connected(drone)
-                continue
-            sent = Sent(reqnr, method, request, digest, drone.epoch)
-            try:
-                self.in_flight = (reqnr, method)
-                reply = await drone.invoke(
-                    reqnr,
-                    method,
-                    request,
-                    timeout_s=max(1.0, retry.limit_s - retry.waited()),
-                    carried=node.core.carried(node.preparation_progress()),
-                )
-                return replied(sent, reply.payload, reply.epoch, reply.signature)
-            except grpc.aio.AioRpcError as exc:
-                detail, waited = exc.details() or "", retry.waited()
-                outcome = failed(
-                    node.core,
-                    sent,
-                    exc.code(),
-                    detail,
-                    refusal_of(exc),
-                    waited,
-                    retry.limit_s,
-                    retry.attempts,
-                )
-            if outcome.pause is not None:
-                self.drone_wait = Wait(
-                    "retry", f"request {reqnr} ({method}): drone unavailable ({detail})", waited
-                )
-                if retry.should_log():
-                    node.log.warning(
-                        "drone unavailable; re-sending",
-                        reqnr=reqnr,
-                        waited_s=round(waited, 1),
-                        limit_s=retry.limit_s,
-                        detail=detail,
-                    )
-                retry.attempts += 1
-                await asyncio.sleep(outcome.pause)
-                continue
-            if outcome.entry is None:  # a refusal: the core judged it
-                await node.apply(outcome.effects)
-            elif retry.attempts:
-                node.log.warning(
-                    "drone still unavailable; the call fails",
-                    reqnr=reqnr,
-                    waited_s=round(waited, 1),
-                )
-            return outcome.entry
 
     async def _wait_connected(self, drone: DroneSession) -> None:
         waiters = {

@@ -4,17 +4,17 @@
 drives, with the asyncio taken out: ``ControllerCore`` (and its
 ``ControllerProtocol``), the ring links' ``RingLinks`` and ``LinkCore``
 (through ``sim/network.py``'s ``RingLink``), ``status.recover`` and
-``status.holding``, ``invoking.failed`` for a drone call's outcome,
-``notes.note_of`` for what an effect says and ``bookkeeping.Bookkeeping`` for
-the effects on the ring links, the history and the timers. It owns only the virtual I/O:
-the drone session, the program's calls and the timers.
+``status.holding``, ``notes.note_of`` for what an effect says and
+``bookkeeping.Bookkeeping`` for the effects on the ring links, the history
+and the timers; each program call runs the same ``call_flow.CallFlow`` as
+``ProgramCalls``. It owns only the virtual I/O: the drone session, what a
+call's flow asks for, and the timers.
 
 How asyncio maps onto events: node.py's ``changed`` event (set on every
 ``apply``) becomes ``_notify``, which schedules one ``_pump`` on the next
-turn of the loop; a program call parked in ``ProgramCalls``' ``await
-changed.wait()`` is ``Phase.WAITING`` and re-runs its loop there.
-A drone call in flight is an ``Invocation`` that a reply, a broken
-connection, a back-off timer or a give-up moves on.
+turn of the loop, and the pump wakes a flow that waits for a change. A
+Sleep, a pause before a re-send and the drone's answer are events of
+their own.
 
 Simplifications: the drone session's events run at once where node.py
 posts them as tasks; the stall watchdog and the logging are left out (its
@@ -26,23 +26,32 @@ is far beyond any fault).
 
 from __future__ import annotations
 
-import enum
-from collections.abc import Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import grpc
 
 from baton.controller.bookkeeping import Bookkeeping
+from baton.controller.call_flow import (
+    Apply,
+    CallFlow,
+    Invoke,
+    Invoked,
+    Io,
+    LookAtSession,
+    Pause,
+    ReadClock,
+    SessionSeen,
+    WaitConnected,
+    WaitForChange,
+)
 from baton.controller.core import (
     CLOCK_NOW,
-    Answer,
-    AskClock,
     ControllerCore,
     CoreEffect,
     DroneRefusal,
     Fail,
-    Hold,
     Note,
     Reconnect,
     Rejoin,
@@ -55,7 +64,6 @@ from baton.controller.core import (
     Timer,
 )
 from baton.controller.history import LogHistory
-from baton.controller.invoking import Sent, failed, replied
 from baton.controller.link_core import SyncWord
 from baton.controller.links import RingLinks
 from baton.controller.notes import note_of, replay_again
@@ -69,7 +77,6 @@ from baton.controller.protocol import (
 )
 from baton.controller.status import Sight, holding, recover
 from baton.controller.timers import TimerTable
-from baton.digest import request_digest
 from baton.rpc.errors import StatusError
 from baton.sim.drone import Request
 from baton.sim.mission import MissionCall
@@ -88,36 +95,16 @@ SESSION_BACKOFF_FIRST_S, SESSION_BACKOFF_MAX_S = 0.05, 1.0
 MISSION_START_UNIX = 1.8e9
 
 
-class Phase(enum.Enum):
-    """Where the program's current call is parked."""
-
-    RUNNING = "running"  # being worked on in this event
-    WAITING = "waiting"  # held while PASSIVE: ProgramCalls awaits the node's changed
-    INVOKING = "invoking"  # inside ProgramCalls._answer: the Clock or the drone
-
-
-class Step(enum.Enum):
-    """Where an Invocation is (ProgramCalls._answer and _invoke_drone_retrying)."""
-
-    CLOCK = "clock"  # a Sleep
-    WAIT_CONNECTED = "wait connected"  # _wait_connected
-    HOLD = "hold"  # ControllerCore.answer's Hold: the drone's grant or retained replies
-    WAIT_READY = "wait ready"  # drone.invoke waiting for the channel (wait_for_ready)
-    IN_FLIGHT = "in flight"  # the Invoke is on its way or being executed
-    PAUSE = "pause"  # Retry.pause after UNAVAILABLE
-
-
 @dataclass(eq=False)
-class Invocation:
-    """One call being answered while ACTIVE: its reqnr and where it is."""
+class Turn:
+    """The program's call being answered (``call_flow.CallFlow``), and what its flow
+    waits for; ``call`` None: the calls given up before the program ended, settled."""
 
-    reqnr: int
-    call: MissionCall
-    digest: bytes
-    started: float
-    step: Step = Step.CLOCK
-    sent_epoch: int = 0
-    call_id: int = 0
+    call: MissionCall | None
+    flow: CallFlow
+    steps: Generator[Io, object, ring_pb2.LogEntry | None]
+    io: Io | None = None
+    call_id: int = 0  # an Invoke on its way or being executed, and its connection
     connection: int = 0
     pauses: int = 0
 
@@ -176,9 +163,7 @@ class SimController:
         # The mission program: the next call, the current one, and where it is.
         self.program = world.program
         self.pc = 0
-        self.call: MissionCall | None = None
-        self.phase = Phase.RUNNING
-        self.inv: Invocation | None = None
+        self.turn: Turn | None = None  # the call being answered
         self.failure: str | None = None
         self.program_failed = False
         # What the protocol consumed (ProgramCalls.seen) and what the program saw, in order.
@@ -303,23 +288,19 @@ class SimController:
             self.world.loop.after(0.0, self._pump)
 
     def _pump(self) -> None:
+        """The node's change wakes a flow waiting for it (``WaitForChange``, ``WaitConnected``);
+        a program that ended with calls given up while waiting settles them."""
         self._pump_due = False
         if not self.alive:
             return
-        if self.call is None:
-            if self.done and self.core.abandoned:  # ProgramCalls._settle_after_the_end
-                self._settle()
+        turn = self.turn
+        if turn is None:
+            if self.done and self.core.abandoned:  # ProgramCalls.mission_done's settler
+                flow = CallFlow(self.core, "", b"", DRONE_RETRY_LIMIT_S)
+                self._run(Turn(None, flow, flow.settle()))
             return
-        inv = self.inv
-        if inv is not None:
-            if inv.step is Step.WAIT_CONNECTED:
-                self._drone_step(inv)
-            elif inv.step is Step.HOLD:
-                self.inv = None
-                self._step()
-            return
-        if self.phase is Phase.WAITING:
-            self._step()
+        if isinstance(turn.io, WaitForChange | WaitConnected):
+            self._advance(turn, None)
 
     def _fail(self, text: str) -> None:
         """ProgramCalls.fail: the mission stops on this controller."""
@@ -438,10 +419,10 @@ class SimController:
         """The connection broke: the call in flight fails UNAVAILABLE, the stream reconnects."""
         if not self.alive:
             return
-        inv = self.inv
-        if inv is not None and inv.step is Step.IN_FLIGHT and inv.connection == connection:
+        turn = self.turn
+        if turn is not None and turn.call_id and turn.connection == connection:
             error = StatusError(grpc.StatusCode.UNAVAILABLE, "connection to the drone lost")
-            self._invoke_result(inv, None, error)
+            self._invoked(turn, None, error)
         session = self.session
         if session is not None and session.stream == connection:
             self._reconnect_later(session)
@@ -572,7 +553,7 @@ class SimController:
         """PeerLink.on_handover_acked (``RingLinks.handover_acked``)."""
         self.ring.handover_acked(message)
 
-    # -- the mission program (ProgramCalls.call) ----------------------------------
+    # -- the mission program: its calls' flows (call_flow.CallFlow) ----------------
 
     def _schedule_call(self) -> None:
         if self.pc < len(self.program):
@@ -580,58 +561,106 @@ class SimController:
             self.world.loop.after(think, self._begin_call, self.pc)
 
     def _begin_call(self, pc: int) -> None:
-        if not self.alive or self.pc != pc or self.call is not None or self.program_failed:
+        if not self.alive or self.pc != pc or self.turn is not None or self.program_failed:
             return
-        self.call = self.program[pc]
-        self._step()
+        call = self.program[pc]
+        flow = CallFlow(self.core, call.method, call.request, DRONE_RETRY_LIMIT_S)
+        self._run(Turn(call, flow, flow.run()))
 
-    def _step(self) -> None:
-        """ProgramCalls.call: _settle_abandoned, then _answer's loop, up to the next wait."""
-        call = self.call
-        assert call is not None
-        self.phase = Phase.RUNNING
-        if not self._settle():
+    def _run(self, turn: Turn) -> None:
+        self.turn = turn
+        self._advance(turn, None)
+
+    def _advance(self, turn: Turn, result: object) -> None:
+        """Sends ``result`` to the turn's flow and carries out what it yields, up to a wait
+        (``ProgramCalls._drive`` and ``_perform``, on the virtual clock and network)."""
+        while self.alive and self.turn is turn:
             if self.failure is not None:
                 self._stop()
-            else:
-                self.phase = Phase.WAITING
-            return
-        if self.failure is not None:  # _answer
-            self._stop()
-            return
-        step, effects = self.core.answer(call.method, call.request)
-        if effects:  # nothing to apply wakes nobody: a call that waits must not wake itself
-            self._apply(effects)
-        if self.failure is not None:
-            self._stop()
-            return
-        if isinstance(step, Answer):
-            self._answered(step.entry.status_code, step.entry.reply)
-            return
-        if isinstance(step, Hold) and not step.reqnr:
-            self.phase = Phase.WAITING
-            return
-        inv = Invocation(
-            step.reqnr, call, request_digest(call.method, call.request), self.world.loop.now
-        )
-        self.inv, self.phase = inv, Phase.INVOKING
-        if isinstance(step, Hold):
-            inv.step = Step.HOLD  # the drone's grant, or its retained replies, to come
-        elif isinstance(step, AskClock):
-            self._clock(inv)
-        else:
-            self._drone_step(inv)
+                return
+            turn.io, turn.call_id = None, 0
+            try:
+                io = turn.steps.send(result)
+            except StopIteration as stop:
+                self._answered(turn, stop.value)
+                return
+            turn.io, result = io, None
+            if isinstance(io, Apply):
+                self._apply(io.effects)
+            elif isinstance(io, LookAtSession):
+                session = self.session
+                connected = session is not None and session.connected
+                epoch = session.epoch if session is not None else 0
+                result = SessionSeen(session is not None, connected, epoch, self.world.loop.now)
+            elif isinstance(io, ReadClock) and io.method == CLOCK_NOW:
+                result = api.NowReply(unix_time_s=MISSION_START_UNIX + self.world.loop.now)
+                result = result.SerializeToString()
+            elif isinstance(io, ReadClock):
+                seconds = api.SleepRequest.FromString(io.request).seconds
+                self.world.loop.after(seconds, self._slept, turn, io)
+                return
+            elif isinstance(io, Invoke):
+                self._send(turn, io)
+                return
+            elif isinstance(io, Pause):
+                turn.pauses += 1
+                self.world.loop.after(io.seconds, self._paused, turn, turn.pauses)
+                return
+            elif isinstance(io, WaitForChange | WaitConnected):
+                return  # woken by _pump
+            # RetriesEnded: logged by the runtime; nothing to do here
 
-    def _settle(self) -> bool:
-        """ProgramCalls._settle_abandoned (``ControllerCore.settle``): True once every abandoned
-        call has its entry; False to wait for the log, or when the mission failed or the
-        program starts again."""
-        if self.failure is not None or self.core.rejoining:
-            return False
-        done, effects = self.core.settle()
-        if effects:
-            self._apply(effects)
-        return done and self.failure is None
+    def _slept(self, turn: Turn, io: ReadClock) -> None:
+        if turn.io is io:
+            self._advance(turn, api.SleepReply().SerializeToString())
+
+    def _paused(self, turn: Turn, pauses: int) -> None:
+        if isinstance(turn.io, Pause) and turn.pauses == pauses:
+            self._advance(turn, None)
+
+    def _send(self, turn: Turn, io: Invoke) -> None:
+        """DroneSession.invoke: with wait_for_ready, the call waits for the channel."""
+        if not self.alive or self.turn is not turn or turn.io is not io:
+            return
+        link = self.drone_link
+        if not link.usable():
+            link.when_usable(self._send, turn, io)
+            return
+        turn.call_id, turn.connection = self.world.next_id(), link.generation
+        sent = io.sent
+        request = Request(
+            self.id,
+            sent.epoch,
+            sent.reqnr,
+            sent.method,
+            sent.request,
+            turn.call_id,
+            link,
+            link.generation,
+            carried=self.core.carried(self._preparation_progress()),
+            sender=self,
+            consumed=len(self.seen),
+        )
+        link.to_drone(len(sent.request), self.world.drone.receive_invoke, request)
+
+    def on_invoke_reply(
+        self, call_id: int, reply: drone_pb2.InvokeReply | None, error: StatusError | None
+    ) -> None:
+        """The drone's answer to an Invoke (a reply, a refusal, a failure)."""
+        turn = self.turn
+        if turn is not None and turn.call_id == call_id:  # else one the program gave up on
+            self._invoked(turn, reply, error)
+
+    def _invoked(
+        self, turn: Turn, reply: drone_pb2.InvokeReply | None, error: StatusError | None
+    ) -> None:
+        now = self.world.loop.now
+        if error is None:
+            assert reply is not None
+            self._advance(turn, Invoked(now, (reply.payload, reply.epoch, reply.signature)))
+            return
+        refusal = DroneRefusal.of_status(error.code, dict(error.metadata))
+        self._advance(turn, Invoked(now, None, error.code, error.message, refusal))
 
     def _seen(self, entry: ring_pb2.LogEntry) -> None:
         """ProgramCalls.seen: the entries the protocol consumed, in order (the reply chain)."""
@@ -645,10 +674,17 @@ class SimController:
         # the give-up on it ran on its own answer.
         self.accepted_upto = max(self.accepted_upto, entry.reqnr - 1)
 
-    def _answered(self, status: int, reply: bytes) -> None:
-        """The program gets its answer (or gives up) and goes on to its next call."""
-        self.view.append((status, bytes(reply)))
-        self.call, self.inv, self.phase = None, None, Phase.RUNNING
+    def _answered(self, turn: Turn, entry: ring_pb2.LogEntry | None, code: int = 0) -> None:
+        """The program gets its answer (``entry``, or the ``code`` it gave up with) and goes
+        on to its next call; a settling turn just ends."""
+        if self.turn is turn:
+            self.turn = None
+        if turn.call is None:
+            return
+        if entry is None:
+            self.view.append((code, b""))
+        else:
+            self.view.append((entry.status_code, bytes(entry.reply)))
         self.pc += 1
         if self.pc == len(self.program):
             self.done_at = self.world.loop.now
@@ -659,160 +695,36 @@ class SimController:
 
     def _stop(self) -> None:
         """The call raised the mission's failure: the program ends (failed)."""
-        self.program_failed = True
-        self.call, self.inv, self.phase = None, None, Phase.RUNNING
-        self._apply(self.protocol.on_mission_done())
-
-    # -- ACTIVE: the Clock and the drone (ProgramCalls._answer) ------------------
-
-    def _clock(self, inv: Invocation) -> None:
-        """ProgramCalls._clock_call: Now at once, Sleep after its virtual time."""
-        call = inv.call
-        if call.method == CLOCK_NOW:
-            now = MISSION_START_UNIX + self.world.loop.now
-            self._invoked(inv, self._entry(inv, api.NowReply(unix_time_s=now).SerializeToString()))
-            return
-        seconds = api.SleepRequest.FromString(call.request).seconds
-        self.world.loop.after(seconds, self._slept, inv)
-
-    def _entry(self, inv: Invocation, reply: bytes) -> ring_pb2.LogEntry:
-        """The Clock's reply logged (``AskClock.entry``)."""
-        return AskClock(inv.reqnr, inv.digest).entry(inv.call.method, inv.call.request, reply)
-
-    def _slept(self, inv: Invocation) -> None:
-        if self.alive and self.inv is inv:
-            self._invoked(inv, self._entry(inv, api.SleepReply().SerializeToString()))
-
-    def _drone_step(self, inv: Invocation) -> None:
-        """One turn of ProgramCalls._invoke_drone_retrying's loop, up to the send."""
-        session = self.session
-        if session is None or self.protocol.state is not State.ACTIVE:
-            self._invoked(inv, None)
-            return
-        if not session.connected:
-            inv.step = Step.WAIT_CONNECTED
-            return
-        inv.sent_epoch = session.epoch
-        self._send(inv, inv.pauses)
-
-    def _send(self, inv: Invocation, attempt: int) -> None:
-        """DroneSession.invoke: with wait_for_ready, the call waits for the channel."""
-        if not self.alive or self.inv is not inv or inv.pauses != attempt:
-            return
-        link = self.drone_link
-        if not link.usable():
-            inv.step = Step.WAIT_READY
-            link.when_usable(self._send, inv, attempt)
-            return
-        inv.step = Step.IN_FLIGHT
-        inv.call_id, inv.connection = self.world.next_id(), link.generation
-        call = inv.call
-        request = Request(
-            self.id,
-            inv.sent_epoch,
-            inv.reqnr,
-            call.method,
-            call.request,
-            inv.call_id,
-            link,
-            link.generation,
-            carried=self.core.carried(self._preparation_progress()),
-            sender=self,
-            consumed=len(self.seen),
-        )
-        link.to_drone(len(call.request), self.world.drone.receive_invoke, request)
-
-    def on_invoke_reply(
-        self, call_id: int, reply: drone_pb2.InvokeReply | None, error: StatusError | None
-    ) -> None:
-        """The drone's answer to an Invoke (a reply, a refusal, a failure)."""
-        inv = self.inv
-        if inv is None or inv.step is not Step.IN_FLIGHT or inv.call_id != call_id:
-            return  # a call the program gave up on
-        self._invoke_result(inv, reply, error)
-
-    def _invoke_result(
-        self, inv: Invocation, reply: drone_pb2.InvokeReply | None, error: StatusError | None
-    ) -> None:
-        """ProgramCalls._invoke_drone_retrying after drone.invoke returned or raised
-        (``invoking.replied``, ``invoking.failed``)."""
-        call = inv.call
-        sent = Sent(inv.reqnr, call.method, call.request, inv.digest, inv.sent_epoch)
-        if error is None:
-            assert reply is not None
-            self._invoked(inv, replied(sent, reply.payload, reply.epoch, reply.signature))
-            return
-        refusal = DroneRefusal.of_status(error.code, dict(error.metadata))
-        waited = self.world.loop.now - inv.started
-        outcome = failed(
-            self.core,
-            sent,
-            error.code,
-            error.message,
-            refusal,
-            waited,
-            DRONE_RETRY_LIMIT_S,
-            inv.pauses,
-        )
-        if outcome.pause is not None:
-            inv.pauses += 1
-            inv.step = Step.PAUSE
-            self.world.loop.after(outcome.pause, self._paused, inv, inv.pauses)
-            return
-        if outcome.entry is None:
-            self._apply(outcome.effects)
-        self._invoked(inv, outcome.entry)
-
-    def _paused(self, inv: Invocation, pauses: int) -> None:
-        if self.alive and self.inv is inv and inv.pauses == pauses and inv.step is Step.PAUSE:
-            self._drone_step(inv)
-
-    def _invoked(self, inv: Invocation, entry: ring_pb2.LogEntry | None) -> None:
-        """The end of ProgramCalls._answer's turn: log the entry if it is still ours."""
-        self.inv = None
-        if entry is None:
-            self._step()  # _answer's loop: the state changed
-            return
-        logged, effects = self.core.logged(inv.reqnr, entry)
-        self._apply(effects)
-        if logged is None:
-            self._step()  # footnote 2: a handover overtook the reply
-            return
-        self._answered(logged.status_code, logged.reply)
+        turn, self.turn = self.turn, None
+        if turn is not None and turn.call is not None:
+            self.program_failed = True
+            self._apply(self.protocol.on_mission_done())
 
     # -- the program gives up on a call (a deadline, a cancellation) --------------
 
     def give_up(self, code: grpc.StatusCode) -> bool:
-        """The program's call is cancelled; ProgramCalls' except CancelledError branches.
-
-        Inside _invoke, the master logs the give-up as the call's outcome if
-        the call is still its to log (``_ours_to_log``); otherwise a handover
-        overtook the reply, and the call is queued as abandoned, settled from
-        the log by the next call (a mismatch restarts the program).
-        A call held while PASSIVE is queued as abandoned (``_abandoned``).
-        False if nothing was cancelled.
-        """
-        call, inv = self.call, self.inv
-        if call is None or not self.alive:
+        """The program's call is cancelled (``ProgramCalls.call``'s CancelledError): an
+        Invoke on its way is cancelled at the drone, and the core told (``CallFlow.gave_up``:
+        logged as the call's outcome if it is still ours to log, else queued as abandoned,
+        settled from the log by the next call). False if nothing was cancelled."""
+        turn = self.turn
+        if turn is None or turn.call is None or not self.alive:
             return False
-        if inv is not None:
-            link = self.drone_link
-            if inv.step is Step.IN_FLIGHT and inv.connection == link.generation and link.usable():
-                link.to_drone(0, self.world.drone.receive_cancel, inv.call_id)
-            self.inv = None
-            effects = self.core.gave_up(inv.reqnr, call.method, call.request, code)
-            if any(isinstance(e, Seen) and e.entry.given_up for e in effects):
-                self.world.given_up[inv.reqnr] = code
-            self._apply(effects)
-            self.world.trace(f"controller {self.id} gives up on request {inv.reqnr} ({code.name})")
-            self._answered(code.value[0], b"")
-            return True
-        if self.phase is Phase.WAITING:
-            self.core.gave_up(0, call.method, call.request, code)
-            self.world.trace(f"controller {self.id} gives up on call {call.index} while waiting")
-            self._answered(code.value[0], b"")
-            return True
-        return False
+        link = self.drone_link
+        if turn.call_id and turn.connection == link.generation and link.usable():
+            link.to_drone(0, self.world.drone.receive_cancel, turn.call_id)
+        self.turn = None  # what was under way for it is let go
+        effects, reqnr = turn.flow.gave_up(code), turn.flow.reqnr
+        if any(isinstance(e, Seen) and e.entry.given_up for e in effects):
+            self.world.given_up[reqnr] = code
+        self._apply(effects)
+        if reqnr:
+            self.world.trace(f"controller {self.id} gives up on request {reqnr} ({code.name})")
+        else:
+            call = turn.call.index
+            self.world.trace(f"controller {self.id} gives up on call {call} while waiting")
+        self._answered(turn, None, code.value[0])
+        return True
 
     # -- for the fault injector and the oracles -----------------------------------
 
@@ -838,20 +750,35 @@ class SimController:
 
     def holding(self) -> dict[str, str]:
         """ControllerNode.stall_conditions (``status.holding``): what it waits for now."""
-        session, inv = self.session, self.inv
+        session, turn = self.session, self.turn
         link = self.ring.get(self.protocol.successor)
-        in_flight = inv is not None and inv.step is Step.IN_FLIGHT
+        in_flight = None
+        if turn is not None and isinstance(turn.io, Invoke):
+            in_flight = (turn.io.sent.reqnr, turn.io.sent.method)
         sight = Sight(
             drone=None if session is None else ("the drone", session.connected),
             standby_address="the drone",
             standby_up=self.drone_link.usable(),
-            in_flight=(inv.reqnr, inv.call.method) if in_flight and inv is not None else None,
+            in_flight=in_flight,
             successor_link=None if link is None else (link.up, len(link.unacked)),
         )
         return holding(self.protocol, self.routed_around, sight)
 
+    @property
+    def waits_for(self) -> str:
+        """What the program's call waits for now ("" : no call), for the explorer's states."""
+        turn = self.turn
+        return "" if turn is None else type(turn.io).__name__
+
+    @property
+    def answering(self) -> int:
+        """The request number the program's call is being answered with (0: none)."""
+        turn = self.turn
+        return 0 if turn is None or turn.call is None else turn.flow.reqnr
+
     def waiting_call_reqnr(self) -> int | None:
         """The reqnr of the call held while PASSIVE, if the program is held."""
-        if self.call is not None and self.inv is None and self.phase is Phase.WAITING:
-            return self.call.reqnr
+        turn = self.turn
+        if turn is not None and turn.call is not None and isinstance(turn.io, WaitForChange):
+            return turn.call.reqnr if not turn.flow.reqnr else None
         return None

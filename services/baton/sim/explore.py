@@ -337,7 +337,7 @@ def fingerprint(world: World, fault_used: bool) -> str:
                 (p._received.upto, tuple(sorted(p._received.above))),
                 tuple(sorted(p._epoch_at.items())),
                 len(p.log),
-                (c.pc, c.phase.name, c.inv is not None, len(c.seen), c.done, c.failure),
+                (c.pc, c.waits_for, c.answering, len(c.seen), c.done, c.failure),
                 (c.session is not None and c.session.connected, c.answered),
                 tuple(
                     (d, link.up, tuple(sorted(link.unacked)), round(link._fifo - now, 6))

@@ -531,7 +531,7 @@ def give_up(world: World, code: grpc.StatusCode) -> None:
     """
     candidates: list[tuple[int, grpc.StatusCode]] = []
     for c in world.live_controllers():
-        if c.inv is not None:
+        if c.answering:
             candidates.append((c.id, code))
         reqnr = c.waiting_call_reqnr()
         if reqnr is not None and reqnr in world.given_up:
