@@ -58,6 +58,7 @@ def test_an_unavailable_drone_is_sent_the_same_request_after_growing_pauses_then
     steps = CallFlow(core, POSITION, b"", retry_limit_s=1.0).run()
     next(steps)
     sent = steps.send(up(0.0))
+    assert isinstance(sent, Invoke)
     pauses = []
     io = steps.send(Invoked(0.0, None, grpc.StatusCode.UNAVAILABLE, "no vehicle"))
     while isinstance(io, Pause):

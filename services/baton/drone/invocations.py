@@ -1,7 +1,7 @@
 """The Invoke path of the drone service: a request admitted, executed and booked.
 
-A driver of ``DroneCore``'s request events (``holds``, ``admit``, ``sending``,
-``acknowledged``, ``served``, ``failed``): each request runs under the
+A driver of ``request_flow.RequestFlow`` (``DroneCore``'s request events in
+their order, which the simulation runs too): each request runs under the
 service's execution lock as a task of its own, so what the vehicle did is
 always booked whatever its caller does; the outcome is saved (``store.py``)
 before the reply leaves, and the effects of the booking (a scripted switch, a
@@ -14,6 +14,7 @@ import asyncio
 import os
 import time
 from collections.abc import AsyncIterator
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import grpc
@@ -23,6 +24,24 @@ from baton.digest import request_digest
 from baton.drone.dedupe import CachedReply
 from baton.drone.effects import DroneEffect, Switched
 from baton.drone.invariants import INVARIANT_EXIT, InvariantBroken
+from baton.drone.request_flow import (
+    Acknowledged,
+    Begin,
+    Booking,
+    Duplicate,
+    Execute,
+    Executed,
+    Failed,
+    FirstOfMaster,
+    Io,
+    LookAtVehicle,
+    Now,
+    Parked,
+    Parse,
+    RequestFlow,
+    Send,
+    VehicleSeen,
+)
 from baton.rpc.errors import StatusError
 from baton.rpc.outcomes import failure_of
 from baton.tasks import TaskSet
@@ -34,6 +53,13 @@ if TYPE_CHECKING:
 
 # The durable commanded state's key of the mission's cruise speed (store.py).
 SPEED_KEY = "speed_m_s"
+
+
+@dataclass
+class _Parsed:
+    """The request's payload as its method's message, once parsed."""
+
+    message: Any = None
 
 
 def _retrieve_exception(task: asyncio.Task[Any]) -> None:
@@ -155,50 +181,115 @@ class Invocations:
     async def _to_the_end(
         self, request: drone_pb2.InvokeRequest, received_at: float
     ) -> drone_pb2.InvokeReply | None:
-        """The request under the execution lock, to its end; None when a pause came before
-        it got the lock (it waits again, not admitted)."""
+        """The request under the execution lock, to its end (``request_flow.RequestFlow``);
+        None when a pause came before it got the lock (it waits again, not admitted)."""
         service = self.service
-        core, log, store = service.core, service.log, service.store
-        cid, reqnr, method = request.controller_id, request.reqnr, request.method
         async with service.execution_lock:
-            if core.holds(request):
-                return None
-            digest = request_digest(method, request.payload)
-            try:
-                admitted = core.admit(request, digest, received_at)
-            except InvariantBroken as broken:
-                # A defect of baton: stop as a kill -9 would, rather than fly on.
-                log.error("invariant broken; the drone service stops", problem=str(broken))
-                os._exit(INVARIANT_EXIT)
-            first = admitted.first
-            if first is not None:
-                log.info(
-                    "first request of new master",
-                    master=cid,
-                    epoch=first.epoch,
-                    after_reqnr=first.after_reqnr,
-                    delay_s=round(first.delay_s, 6),
-                )
-            if admitted.cached is not None:
-                return self._answer_duplicate(request, admitted.cached)
-            if store is not None and admitted.intent is not None:
-                store.begin(admitted.intent, admitted.kept)
-            try:
-                if admitted.refused is not None:
-                    raise admitted.refused
-                reply = await self._execute(request)
-            except StatusError as err:
-                now = time.time()
-                self.served(reqnr, core.failed(cid, reqnr, method, digest, received_at, now, err))
-                raise
-            self.served(
-                reqnr, core.served(cid, reqnr, method, digest, reply, received_at, time.time())
-            )
-            epoch = service.seq.epoch
+            steps = RequestFlow(service.core, request, received_at).run()
+            parsed = _Parsed()
+            result: object = None
+            while True:
+                try:
+                    io = steps.send(result)
+                except StopIteration as stop:
+                    outcome = stop.value
+                    break
+                except InvariantBroken as broken:
+                    # A defect of baton: stop as a kill -9 would, rather than fly on.
+                    service.log.error(
+                        "invariant broken; the drone service stops", problem=str(broken)
+                    )
+                    os._exit(INVARIANT_EXIT)
+                result = await self._perform(request, io, parsed)
+        if isinstance(outcome, Parked):
+            return None
+        if isinstance(outcome, Duplicate):
+            return self._answer_duplicate(request, outcome.cached)
+        if isinstance(outcome, Failed):
+            raise outcome.error
         race = service.race
+        reqnr = request.reqnr
         if race is not None and race.order == "notice-first" and self.handed_over_after == reqnr:
             await asyncio.sleep(race.delay_s)
-        return signed_reply(service.signer, reqnr, epoch, method, digest, reply)
+        digest = request_digest(request.method, request.payload)
+        return signed_reply(
+            service.signer, reqnr, outcome.epoch, request.method, digest, outcome.reply
+        )
+
+    async def _perform(self, request: drone_pb2.InvokeRequest, io: Io, parsed: _Parsed) -> object:
+        """What one turn of a request's flow asks for, done."""
+        service = self.service
+        if isinstance(io, FirstOfMaster):
+            first = io.record
+            service.log.info(
+                "first request of new master",
+                master=request.controller_id,
+                epoch=first.epoch,
+                after_reqnr=first.after_reqnr,
+                delay_s=round(first.delay_s, 6),
+            )
+        elif isinstance(io, Begin):
+            if service.store is not None:
+                service.store.begin(io.intent, io.kept)
+        elif isinstance(io, Parse):
+            try:
+                route = service.dispatcher.route(request.method)
+                parsed.message = route.parse(request.payload)
+            except StatusError as err:
+                return err
+        elif isinstance(io, LookAtVehicle):
+            vehicle = service.vehicle
+            return VehicleSeen(vehicle.connected, f"at {vehicle.url} ({vehicle.link().problem})")
+        elif isinstance(io, Send | Now):
+            return time.time()
+        elif isinstance(io, Execute):
+            return await self._execute(request, parsed.message)
+        elif isinstance(io, Acknowledged):
+            self._acknowledged(request, parsed.message, io.leg_before)
+        elif isinstance(io, Booking):
+            self.served(request.reqnr, io.effects)
+        return None
+
+    async def _execute(self, request: drone_pb2.InvokeRequest, message: Any) -> Executed:
+        """The handler of the request's method, on the vehicle: what it came to."""
+        service = self.service
+        route = service.dispatcher.route(request.method)
+        handler = service.dispatcher.handler(route)
+        try:
+            reply = await handler(message)
+        except StatusError as err:
+            return Executed(time.time(), error=err)
+        except Exception as exc:
+            service.log.error("handler failed", method=request.method, exc_info=True)
+            failure = StatusError(
+                grpc.StatusCode.INTERNAL, f"{request.method} failed on the drone: {exc!r}"
+            )
+            return Executed(time.time(), error=failure)
+        payload = reply.SerializeToString()
+        log = service.log.debug if route.is_read else service.log.info
+        log(
+            "executed",
+            controller=request.controller_id,
+            reqnr=request.reqnr,
+            method=request.method,
+            reply_bytes=len(payload),
+        )
+        return Executed(time.time(), payload)
+
+    def _acknowledged(
+        self, request: drone_pb2.InvokeRequest, message: Any, leg_before: bytes | None
+    ) -> None:
+        """What the vehicle's acknowledgement changed, kept: the command it follows, the
+        leg a resume flies on, the cruise speed; the policy told the leg it flies."""
+        service = self.service
+        route = service.dispatcher.route(request.method)
+        service.keep_command()
+        service.operator.keep_leg(leg_before)
+        if route.service == "Mobility" and service.policy is not None:
+            service.policy.executed(route.name, message)
+        if service.store is not None and isinstance(message, api.SetSpeedRequest):
+            # Commanded state the vehicle needs again after a restart (store.py).
+            service.store.save_commanded(SPEED_KEY, message.speed_m_s)
 
     def _answer_duplicate(
         self, request: drone_pb2.InvokeRequest, cached: CachedReply
@@ -211,46 +302,6 @@ class Invocations:
             failed=cached.error is not None,
         )
         return answered_again(self.service.signer, request.reqnr, cached)
-
-    async def _execute(self, request: drone_pb2.InvokeRequest) -> bytes:
-        service = self.service
-        core, vehicle = service.core, service.vehicle
-        route = service.dispatcher.route(request.method)
-        message = route.parse(request.payload)
-        why = f"at {vehicle.url} ({vehicle.link().problem})"
-        unreachable = core.unreachable(request.method, vehicle.connected, why)
-        if unreachable is not None:
-            raise unreachable
-        handler = service.dispatcher.handler(route)
-        core.sending(request.method, time.time())
-        try:
-            reply = await handler(message)
-        except StatusError:
-            raise
-        except Exception as exc:
-            service.log.error("handler failed", method=request.method, exc_info=True)
-            raise StatusError(
-                grpc.StatusCode.INTERNAL, f"{request.method} failed on the drone: {exc!r}"
-            ) from exc
-        leg = core.operator.leg
-        core.acknowledged(request.method, request.payload, time.time())
-        service.keep_command()
-        service.operator.keep_leg(leg)
-        if route.service == "Mobility" and service.policy is not None:
-            service.policy.executed(route.name, message)
-        if service.store is not None and isinstance(message, api.SetSpeedRequest):
-            # Commanded state the vehicle needs again after a restart (store.py).
-            service.store.save_commanded(SPEED_KEY, message.speed_m_s)
-        payload = reply.SerializeToString()
-        log = service.log.debug if route.is_read else service.log.info
-        log(
-            "executed",
-            controller=request.controller_id,
-            reqnr=request.reqnr,
-            method=request.method,
-            reply_bytes=len(payload),
-        )
-        return payload
 
     def served(self, reqnr: int, effects: list[DroneEffect]) -> None:
         """Applies a served request's effects (``DroneCore.served``): booked and saved, and

@@ -4,10 +4,11 @@
 operator calls, the master's word, the watches' turns, policy steps, each
 taken in arrival order, one at a time, as the service's lock takes them),
 turns the simulated network's calls and streams into the core's events
-(``admit``, ``served``, ``failed``, ``handover_call``, ``master_watch``,
-``preparation_word``, ``fresh_self_connect``, ``policy_handover``,
-``restarted``, ``failsafe_check``, ``operator_command``) and applies the
-effects they return (``_apply``, as ``DroneService.apply``); a Connect
+(``handover_call``, ``master_watch``, ``preparation_word``,
+``fresh_self_connect``, ``policy_handover``, ``restarted``,
+``failsafe_check``, ``operator_command``) and applies the effects they
+return (``_apply``, as ``DroneService.apply``); each request runs the same
+``request_flow.RequestFlow`` as the service's ``Invocations``; a Connect
 stream writes what ``connects.ConnectStream`` says. A restart builds a new
 core from what the store keeps (``Kept``): not the pending notices nor a
 preparation; a command cut off by it is booked, a read runs again.
@@ -53,6 +54,24 @@ from baton.drone.invariants import DroneWatch
 from baton.drone.invocations import answered_again
 from baton.drone.operator import Operator
 from baton.drone.policy import Decision
+from baton.drone.request_flow import (
+    Acknowledged,
+    Begin,
+    Booking,
+    Duplicate,
+    Execute,
+    Executed,
+    Failed,
+    LookAtVehicle,
+    Now,
+    Outcome,
+    Parked,
+    Parse,
+    RequestFlow,
+    Send,
+    VehicleSeen,
+)
+from baton.drone.request_flow import Flow as RequestSteps
 from baton.drone.safety import (
     Failsafe,
     ModeSeen,
@@ -165,15 +184,17 @@ class OperatorOrder:
 
 @dataclass(eq=False)
 class Execution:
-    """The request the drone is executing now."""
+    """A request under the execution lock (``request_flow.RequestFlow``), and where its
+    flow is: executing on the vehicle from ``Send`` until ``ends_at``."""
 
     request: Request
-    digest: bytes
-    is_read: bool
+    steps: RequestSteps
+    admitted: bool = False
     reply: bytes = b""
     error: StatusError | None = None
     # The vehicle's link was up when the execution began (where a picture reads its place).
     vehicle_known: bool = True
+    ends_at: float = 0.0
 
 
 @dataclass(eq=False)
@@ -319,76 +340,84 @@ class SimDrone:
                 self._start(item)
 
     def _start(self, request: Request) -> None:
-        """DroneService._invoke_to_the_end up to the execution."""
-        now = self.world.loop.now
-        cid, reqnr, method = request.controller_id, request.reqnr, request.method
-        digest = request_digest(method, request.payload)
-        if self.core.holds(request.proto()):
-            self.parked.append(request)  # paused: waits for a resume, not admitted
-            self.waited += 1
-            return
-        try:
-            admitted = self.core.admit(request.proto(), digest, request.received_at)
-        except StatusError as err:
-            self._reply(request, None, err)
-            return
-        self._note_epoch(cid, request.epoch, reqnr)
-        if admitted.cached is not None:
-            _acted_on(request)
-            self._answer_duplicate(request, admitted.cached)
-            return
-        # admitted.kept is stored with the intent, in one transaction (store.begin)
-        self.intent = admitted.intent
-        if admitted.refused is not None:  # in failsafe, or beyond a bound: nothing executed
-            self._failed(request, digest, admitted.refused)
-            return
-        route = ROUTES[method]
-        # DroneService._execute: the payload must parse, Mobility needs the vehicle.
-        if request.payload.startswith(UNPARSABLE):
-            bad = StatusError(
-                grpc.StatusCode.INVALID_ARGUMENT, f"payload of {method} does not parse"
-            )
-            self._failed(request, digest, bad)
-            return
-        unreachable = self.core.unreachable(method, self.vehicle.connected, "(an outage)")
-        if unreachable is not None:
-            self._failed(request, digest, unreachable)
-            return
-        rng = self.world.rng
+        """DroneService._invoke_to_the_end: the request's flow, up to the execution."""
+        steps = RequestFlow(self.core, request.proto(), request.received_at).run()
+        self._advance(Execution(request, steps), None)
+
+    def _advance(self, execution: Execution, result: object) -> None:
+        """Sends ``result`` to the request's flow and carries out what it yields, up to the
+        vehicle's turn (``Invocations._perform``, on the virtual clock)."""
+        request, now = execution.request, self.world.loop.now
+        while True:
+            try:
+                io = execution.steps.send(result)
+            except StatusError as err:  # refused at admission: nothing booked
+                self._reply(request, None, err)
+                return
+            except StopIteration as stop:
+                self._admitted(execution, stop.value)
+                self._outcome(execution, stop.value)
+                return
+            self._admitted(execution, io)
+            result = None
+            if isinstance(io, Begin):
+                self.intent = io.intent  # with what the admission keeps (store.begin)
+            elif isinstance(io, Parse) and request.payload.startswith(UNPARSABLE):
+                result = StatusError(
+                    grpc.StatusCode.INVALID_ARGUMENT, f"payload of {request.method} does not parse"
+                )
+            elif isinstance(io, LookAtVehicle):
+                result = VehicleSeen(self.vehicle.connected, "(an outage)")
+            elif isinstance(io, Now):
+                result = now
+            elif isinstance(io, Send):
+                self._executing(execution)
+                return
+            elif isinstance(io, Execute):
+                self._act(execution, io.action)
+                self.world.loop.at(execution.ends_at, self._complete, execution)
+                return
+            elif isinstance(io, Acknowledged) and self.policy is not None:
+                self.policy.executed(ROUTES[request.method].name)  # the leg it flies
+            elif isinstance(io, Booking):
+                self._apply(io.effects)
+
+    def _admitted(self, execution: Execution, turn: object) -> None:
+        """Oracle 4's record, once the request passed admission (``_note_epoch``)."""
+        if not execution.admitted and not isinstance(turn, Parked):
+            execution.admitted = True
+            request = execution.request
+            self._note_epoch(request.controller_id, request.epoch, request.reqnr)
+
+    def _executing(self, execution: Execution) -> None:
+        """The request takes a drawn time to execute; its command reaches the vehicle at a
+        drawn point inside it."""
+        route, rng, now = ROUTES[execution.request.method], self.world.rng, self.world.loop.now
         if route.is_read:
             duration = rng.uniform(0.002, 0.02)
         elif route.service == "Camera":
             duration = rng.uniform(0.05, 0.3)
         else:
             duration = rng.uniform(0.02, 0.3)
-        execution = Execution(request, digest, route.is_read, vehicle_known=self.vehicle.connected)
+        execution.vehicle_known, execution.ends_at = self.vehicle.connected, now + duration
         self.busy = execution
-        loop = self.world.loop
-        loop.at(now + duration * rng.uniform(0.1, 0.9), self._act, execution)
-        loop.at(now + duration, self._complete, execution)
+        self.world.loop.at(now + duration * rng.uniform(0.1, 0.9), self._reaches, execution)
 
-    def _failed(self, request: Request, digest: bytes, error: StatusError) -> None:
-        cid, reqnr, method = request.controller_id, request.reqnr, request.method
-        now = self.world.loop.now
-        if self.core.books(error):
-            _acted_on(request)
-        self._apply(self.core.failed(cid, reqnr, method, digest, request.received_at, now, error))
-        self._reply(request, None, error)
+    def _reaches(self, execution: Execution) -> None:
+        if execution is self.busy:  # else the drone restarted first: the vehicle never saw it
+            self._advance(execution, self.world.loop.now)
 
-    def _act(self, execution: Execution) -> None:
+    def _act(self, execution: Execution, action: str | None) -> None:
         """The command reaches the vehicle (or the camera, or a read is answered)."""
-        if execution is not self.busy:
-            return  # the drone restarted first: the vehicle never saw it
         request, now = execution.request, self.world.loop.now
-        if execution.is_read:
+        if ROUTES[request.method].is_read:
             execution.reply = self.vehicle.read(now, request.reqnr, request.method)
         elif request.method.startswith(CAMERA):
             size = self.world.rng.randint(300, 3000)
             execution.reply = self.camera.take(
                 now, request.reqnr, request.payload, size, execution.vehicle_known
             )
-        else:  # Invocations._execute: the core told what is sent, then what is acknowledged
-            action = self.core.sending(request.method, now)
+        else:
             execution.reply = self.vehicle.act(now, request.reqnr, request.method, request.payload)
             self.vehicle.obey(action)
             if self.p_ack_lost and self.world.rng.random() < self.p_ack_lost:
@@ -396,30 +425,35 @@ class SimDrone:
                     grpc.StatusCode.DEADLINE_EXCEEDED,
                     f"{request.method}: no acknowledgement from the vehicle; it may have acted",
                 )
-                return
-            self.core.acknowledged(request.method, request.payload, now)
-            if self.policy is not None:  # the leg it flies
-                self.policy.executed(ROUTES[request.method].name)
 
     def _complete(self, execution: Execution) -> None:
-        if execution is not self.busy:
-            return
-        self.busy = None
+        if execution is self.busy:
+            now = self.world.loop.now
+            self._advance(execution, Executed(now, execution.reply, execution.error))
+
+    def _outcome(self, execution: Execution, outcome: Outcome) -> None:
+        """The caller's answer; the lock goes to the next in line."""
         request = execution.request
-        _acted_on(request)
-        cid, reqnr, method = request.controller_id, request.reqnr, request.method
-        received = request.received_at
-        now, digest = self.world.loop.now, execution.digest
-        if execution.error is not None:
-            error = execution.error
-            self._apply(self.core.served(cid, reqnr, method, digest, b"", received, now, error))
-            self._reply(request, None, execution.error)
+        if isinstance(outcome, Parked):
+            self.parked.append(request)  # paused: waits for a resume, not admitted
+            self.waited += 1
+            return
+        if not isinstance(outcome, Failed) or outcome.booked:
+            _acted_on(request)
+        if isinstance(outcome, Duplicate):
+            self._answer_duplicate(request, outcome.cached)
+        elif isinstance(outcome, Failed):
+            self._reply(request, None, outcome.error)
         else:
-            reply = execution.reply
-            self._apply(self.core.served(cid, reqnr, method, digest, reply, received, now))
-            signed = signed_reply(self.signer, reqnr, self.seq.epoch, method, digest, reply)
-            self._reply(request, signed)
-        self._next()
+            method, reqnr = request.method, request.reqnr
+            digest = request_digest(method, request.payload)
+            reply = outcome.reply
+            self._reply(
+                request, signed_reply(self.signer, reqnr, outcome.epoch, method, digest, reply)
+            )
+        if execution is self.busy:
+            self.busy = None
+            self._next()
 
     def _apply(self, effects: list[DroneEffect], on_the_word: bool = False) -> None:
         """DroneService.apply: the core's effects in their order (``drone/effects.py``).
