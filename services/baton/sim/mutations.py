@@ -17,6 +17,7 @@ from typing import Any
 
 from baton import authenticity
 from baton.authenticity import Keys, Verifier
+from baton.controller import call_flow
 from baton.controller import core as core_module
 from baton.controller.core import ControllerCore, CoreEffect
 from baton.controller.link_core import Greeting, LinkCore, SyncWord
@@ -27,6 +28,7 @@ from baton.drone import sequencer
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import ReplyCache
 from baton.drone.operator import Operator
+from baton.drone.request_flow import Begin, Duplicate, FirstOfMaster, Parked, RequestFlow
 from baton.rpc.errors import StatusError
 from baton.sim.drone import Request, SimDrone
 from baton.v1 import drone_pb2, ring_pb2
@@ -307,6 +309,43 @@ def _believes_sync_words() -> list[tuple[Any, str, Any]]:
     ]
 
 
+def _intent_after_execution() -> list[tuple[Any, str, Any]]:
+    """A request's intent stored only once the vehicle's turn is over
+    (``RequestFlow.run`` yields ``Begin`` after ``_execute``): a drone restarted while
+    the vehicle acts finds nothing cut off, and the re-sent request executes again."""
+
+    def run(self: RequestFlow) -> Any:
+        core, request = self.core, self.request
+        if core.holds(request):
+            return Parked()
+        admitted = core.admit(request, self.digest, self.received_at)
+        if admitted.first is not None:
+            yield FirstOfMaster(admitted.first)
+        if admitted.cached is not None:
+            return Duplicate(admitted.cached)
+        error = admitted.refused
+        if error is None:
+            error = yield from self._execute()
+        if admitted.intent is not None:
+            yield Begin(admitted.intent, admitted.kept)
+        return (yield from self._book(error))
+
+    return [(RequestFlow, "run", run)]
+
+
+def _no_resend() -> list[tuple[Any, str, Any]]:
+    """A drone call that found the drone unavailable is not sent again: its UNAVAILABLE is
+    the call's outcome at once (``CallFlow`` asks ``invoking.failed`` with no time left),
+    though nothing reached the vehicle and the number stays unused."""
+    original = call_flow.failed
+
+    def failed(core: ControllerCore, sent: Any, code: Any, *args: Any) -> Any:
+        details, refusal, waited, _limit, attempts = args
+        return original(core, sent, code, details, refusal, waited, 0.0, attempts)
+
+    return [(call_flow, "failed", failed)]
+
+
 LOSE_MASTER = {"lose_master": True}
 FAILSAFE = {"failsafe": True}
 OPERATOR = {"operator": True}
@@ -362,6 +401,12 @@ for _mutation in (
         "a mastership claimed without the drone's grant believed",
         _believes_unbacked_claims,
         LYING,
+    ),
+    Mutation("no-resend", "a drone call found unavailable failed, not sent again", _no_resend),
+    Mutation(
+        "intent-after-execution",
+        "a request's intent stored after the vehicle acted",
+        _intent_after_execution,
     ),
     Mutation(
         "believes-sync-words",

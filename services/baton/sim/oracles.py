@@ -19,7 +19,8 @@ in each epoch, and the virtual time at which programs finished.
 5. ``liveness``: after the fault window, every controller's program
    finished within the quiet bound; ``no-failure``: no controller stopped
    its mission (a refusal judged DISAGREE, a non-determinism error, a
-   protocol error).
+   protocol error), and no program was answered UNAVAILABLE (nothing reached
+   the vehicle: the master sends the request again, for longer than any fault).
 6. ``bounded``: once finished, every log queue, unacknowledged message,
    abandoned call and the received-numbers set beyond its watermark is
    empty, and the drone's reply cache never outgrew its window.
@@ -42,10 +43,14 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import grpc
+
 from baton.drone.sequencer import PREPARED_BOUND_BYTES
 from baton.rpc.labels import label
 from baton.sim.mission import Kind
 from baton.v1 import drone_pb2
+
+UNAVAILABLE = grpc.StatusCode.UNAVAILABLE.value[0]
 
 if TYPE_CHECKING:
     from baton.sim.controller import SimController
@@ -324,7 +329,22 @@ def _brief(item: tuple[int | bytes, ...]) -> str:
 
 
 def _failures(world: World) -> list[Violation]:
-    return [Violation("no-failure", c.failure) for c in world.incarnations if c.failure is not None]
+    found = [
+        Violation("no-failure", c.failure) for c in world.incarnations if c.failure is not None
+    ]
+    for c in world.incarnations:
+        # Nothing reached the vehicle, and the master sends it again for far longer than
+        # any fault here lasts (the retry limit): no program is shown UNAVAILABLE.
+        unavailable = [i for i, (status, _) in enumerate(c.view) if status == UNAVAILABLE]
+        if unavailable:
+            found.append(
+                Violation(
+                    "no-failure",
+                    f"controller {c.id} (incarnation {c.incarnation}): the program was "
+                    f"answered UNAVAILABLE at call {unavailable[0]}",
+                )
+            )
+    return found
 
 
 def _liveness(world: World) -> list[Violation]:
