@@ -28,7 +28,7 @@ from baton.drone import sequencer
 from baton.drone.core import DroneCore
 from baton.drone.dedupe import ReplyCache
 from baton.drone.operator import Operator
-from baton.drone.request_flow import Begin, Duplicate, FirstOfMaster, Parked, RequestFlow
+from baton.drone.request_flow import Begin, Booking, Execute, RequestFlow
 from baton.rpc.errors import StatusError
 from baton.sim.drone import Request, SimDrone
 from baton.v1 import drone_pb2, ring_pb2
@@ -310,25 +310,28 @@ def _believes_sync_words() -> list[tuple[Any, str, Any]]:
 
 
 def _intent_after_execution() -> list[tuple[Any, str, Any]]:
-    """A request's intent stored only once the vehicle's turn is over
-    (``RequestFlow.run`` yields ``Begin`` after ``_execute``): a drone restarted while
-    the vehicle acts finds nothing cut off, and the re-sent request executes again."""
+    """A request's intent stored only once the vehicle's turn is over (``RequestFlow.run``'s
+    ``Begin`` held back until after ``Execute``): a drone restarted while the vehicle acts
+    finds nothing cut off, and the re-sent request executes again."""
+    original = RequestFlow.run
 
     def run(self: RequestFlow) -> Any:
-        core, request = self.core, self.request
-        if core.holds(request):
-            return Parked()
-        admitted = core.admit(request, self.digest, self.received_at)
-        if admitted.first is not None:
-            yield FirstOfMaster(admitted.first)
-        if admitted.cached is not None:
-            return Duplicate(admitted.cached)
-        error = admitted.refused
-        if error is None:
-            error = yield from self._execute()
-        if admitted.intent is not None:
-            yield Begin(admitted.intent, admitted.kept)
-        return (yield from self._book(error))
+        steps, held, result = original(self), None, None
+        while True:
+            try:
+                io = steps.send(result)
+            except StopIteration as stop:
+                return stop.value
+            if isinstance(io, Begin):
+                held, result = io, None
+                continue
+            if isinstance(io, Booking) and held is not None:
+                yield held
+                held = None
+            result = yield io
+            if isinstance(io, Execute) and held is not None:
+                yield held
+                held = None
 
     return [(RequestFlow, "run", run)]
 
