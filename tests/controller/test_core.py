@@ -132,6 +132,19 @@ def test_a_takeover_older_than_our_mastership_fences_nothing() -> None:
     assert Rejoin in kinds(core.fenced(1, 8))
 
 
+def test_a_takeover_older_than_the_mastership_a_handover_message_gave_fences_nothing() -> None:
+    """The same while catching up for it: made master in epoch 5 by a handover message and
+    not ACTIVE yet, a controller told of the takeover of epoch 4 (of its mastership of
+    epoch 3) connects again in its epoch (``Mastership`` rule 5: the takeover that fences
+    us is newer than our mastership)."""
+    core = ControllerCore(started(2, [0, 1, 2], 0), True)
+    core.protocol.master, core.protocol.epoch = True, 5  # as the handover message made it
+    assert core.protocol.state is State.PASSIVE
+    assert kinds(core.fenced(1, 4)) == [Note, Reconnect]
+    assert not core.protocol.fenced and not core.rejoining
+    assert core.protocol.mastership.problems() == []
+
+
 def test_a_connect_refusal_decides_by_what_the_drone_says() -> None:
     taken = master().connect_refused(DroneRefusal(1, 2, 5, taken_over=True))
     assert Rejoin in kinds(taken)

@@ -787,10 +787,11 @@ class ControllerCore:
         if self.rejoining:
             return []
         p = self.protocol
-        if p.state is State.ACTIVE and 0 < epoch <= p.epoch:
+        if p.master and 0 < epoch <= p.epoch:
             # A takeover of a mastership older than the one we hold now (handed back
-            # to us by a handover message since, ``_take_handed_back``) fences
-            # nothing: connect again, in our epoch, to hear the drone's word of it.
+            # to us by a handover message since, ``_take_handed_back``, or one that
+            # made us master and we are catching up for) fences nothing: connect
+            # again, in our epoch, to hear the drone's word of it.
             fields = {"fencing_epoch": epoch, "epoch": p.epoch}
             return [
                 Note("info", "a takeover older than our mastership; connecting again", fields),
