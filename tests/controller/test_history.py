@@ -153,10 +153,13 @@ def test_a_restarted_controller_that_cannot_write_its_file_says_so_at_start(
 def test_a_failed_checkpoint_is_the_files_failure_said_within_a_second(tmp_path: Path) -> None:
     """On a disk that fills (RLIMIT_FSIZE in a process of its own: 600 kB, room for the
     write-ahead log's use between checkpoints, the start's probe included), the
-    checkpoint that must grow the file fails first while the log still takes messages: that
-    failure, seen on the checkpoint's thread, ends durability at the next write or poll
-    (the controller polls every 0.5 s); the ERROR says how late it came, and the file
-    read afterwards holds every message up to the stated one."""
+    checkpoint that must grow the file usually fails first while the log still takes
+    messages: that failure, seen on the checkpoint's thread, ends durability at the next
+    write or poll (the controller polls every 0.5 s); the ERROR says how late it came, and
+    the file read afterwards holds every message up to the stated one. On a loaded
+    machine the checkpoint may lag and a message's own insert fail first (the
+    write-ahead log reached the limit): then durability ends at that message, and the
+    file holds every one before it (a CI run: message 11 failed, 10 whole)."""
     path = tmp_path / "controller-1-log.sqlite"
     script = (
         "import json, resource, time\n"
@@ -181,7 +184,10 @@ def test_a_failed_checkpoint_is_the_files_failure_said_within_a_second(tmp_path:
     assert result.returncode == 0, result.stderr
     *logged, last = (result.stderr + result.stdout).strip().splitlines()
     failed_write, whole, added = json.loads(last)
-    assert failed_write == "a checkpoint" and whole == added, result.stdout
+    if failed_write == "a checkpoint":
+        assert whole == added, result.stdout
+    else:
+        assert (failed_write, whole) == (f"log message {added}", added - 1), result.stdout
     [error] = [json.loads(line) for line in logged if '"level": "error"' in line]
     assert "RLIMIT_FSIZE" in error["error"] and error["said_after_s"] < 1.0, error
     saved = read_saved_log(path)
