@@ -6,6 +6,7 @@ from __future__ import annotations
 import grpc
 import pytest
 
+from baton.digest import request_digest
 from baton.drone.core import DroneCore
 from baton.drone.effects import Book
 from baton.drone.request_flow import (
@@ -69,7 +70,7 @@ def test_a_request_is_stored_before_it_executes_and_booked_before_it_is_answered
     }
     taken, outcome = drive(RequestFlow(drone, request(1), 0.9).run(), answers)
     assert taken == [Begin, Parse, LookAtVehicle, Send, Execute, Acknowledged, Now, Booking]
-    assert outcome == Replied(b"here", 1)
+    assert outcome == Replied(b"here", 1, request_digest(GET, b""))
     assert drone.seq.last_reqnr == 1
     # Sent again, it is answered from the cache: nothing executes twice.
     again, duplicate = drive(RequestFlow(drone, request(1), 2.0).run(), answers)

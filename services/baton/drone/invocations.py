@@ -20,7 +20,6 @@ from typing import TYPE_CHECKING, Any
 import grpc
 
 from baton.authenticity import Signer, signed_reply
-from baton.digest import request_digest
 from baton.drone.dedupe import CachedReply
 from baton.drone.effects import DroneEffect, Switched
 from baton.drone.invariants import INVARIANT_EXIT, InvariantBroken
@@ -211,9 +210,8 @@ class Invocations:
         reqnr = request.reqnr
         if race is not None and race.order == "notice-first" and self.handed_over_after == reqnr:
             await asyncio.sleep(race.delay_s)
-        digest = request_digest(request.method, request.payload)
         return signed_reply(
-            service.signer, reqnr, outcome.epoch, request.method, digest, outcome.reply
+            service.signer, reqnr, outcome.epoch, request.method, outcome.digest, outcome.reply
         )
 
     async def _perform(self, request: drone_pb2.InvokeRequest, io: Io, parsed: _Parsed) -> object:

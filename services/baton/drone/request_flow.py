@@ -131,10 +131,12 @@ class Duplicate:
 
 @dataclass(frozen=True)
 class Replied:
-    """Executed and booked: ``reply``, in ``epoch``."""
+    """Executed and booked: ``reply``, in ``epoch``, to the request of ``digest`` (what
+    the reply's signature covers)."""
 
     reply: bytes
     epoch: int
+    digest: bytes
 
 
 @dataclass(frozen=True)
@@ -213,4 +215,4 @@ class RequestFlow:
             return Failed(error, booked)
         effects = core.served(cid, reqnr, method, self.digest, self.reply, self.received_at, now)
         yield Booking(effects, None)
-        return Replied(self.reply, core.seq.epoch)
+        return Replied(self.reply, core.seq.epoch, self.digest)

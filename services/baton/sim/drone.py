@@ -36,7 +36,6 @@ from typing import TYPE_CHECKING, Any
 import grpc
 
 from baton.authenticity import signed_reply
-from baton.digest import request_digest
 from baton.drone.connects import ConnectStream
 from baton.drone.core import WATCH_TICK_S, DroneCore, Kept
 from baton.drone.dedupe import CachedReply
@@ -445,8 +444,7 @@ class SimDrone:
         elif isinstance(outcome, Failed):
             self._reply(request, None, outcome.error)
         else:
-            method, reqnr = request.method, request.reqnr
-            digest = request_digest(method, request.payload)
+            method, reqnr, digest = request.method, request.reqnr, outcome.digest
             reply = outcome.reply
             self._reply(
                 request, signed_reply(self.signer, reqnr, outcome.epoch, method, digest, reply)
