@@ -189,3 +189,29 @@ def test_a_flight_state_is_known_only_once_armed_and_in_air_both_arrived() -> No
     )
     assert flight_state_missing({"position", "armed"}) == "landed state (EXTENDED_SYS_STATE)"
     assert flight_state_missing({"armed", "in_air"}) is None
+
+
+def test_the_set_up_is_due_at_each_contact_whether_or_not_the_streams_flow() -> None:
+    # A restarted drone service: the autopilot streams at the rates the one before asked
+    # for, so the streams are not asked for; fence, failsafe and bounds are due all the same.
+    link = LinkMonitor(heartbeat_timeout_s=3.0, position_max_age_s=1.0, stream_retry_s=2.0)
+    assert not link.wants_set_up(0.0)  # nobody to set up
+    link.heard(0.0)
+    link.position(0.0)
+    link.status(0.0)
+    assert not link.wants_streams(0.0)
+    assert link.wants_set_up(0.0)
+    link.setting_up()
+    assert link.update(0.5) is None and not link.wants_set_up(0.5)  # once per contact
+    # Streams asked for again (a reboot, a station asking for the position alone): the
+    # set-up is due again, for an autopilot that did not answer the last one.
+    link.streams_requested(0.6)
+    assert link.wants_set_up(0.6)
+    link.setting_up()
+    # An outage ends the contact: the next one is set up again, streams or not.
+    assert link.update(5.0) == "outage"
+    assert not link.wants_set_up(5.0)  # no heartbeat: nobody to set up
+    link.heard(6.0)
+    link.position(6.0)
+    link.status(6.0)
+    assert link.update(6.0) == "recovered" and link.wants_set_up(6.0)

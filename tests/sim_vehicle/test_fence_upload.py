@@ -80,6 +80,48 @@ async def test_the_fence_is_uploaded_at_connect_and_again_by_a_restarted_drone(
         vehicle.stop()
 
 
+class LateLook(MavsdkMobility):
+    """Its link watch looks first once position and SYS_STATUS flow already: the order a
+    restarted drone service meets when the autopilot still streams at the rates the one
+    before asked for (an autopilot sends what one asked to all)."""
+
+    async def _watch(self) -> None:
+        await eventually(
+            lambda: self.monitor.position_at is not None and self.monitor.status_at is not None,
+            "the streams flowing before the first look",
+            20,
+        )
+        await super()._watch()
+
+
+async def test_a_drone_restarted_while_the_streams_flow_still_uploads_its_fence(
+    tmp_path: Path,
+) -> None:
+    """The connect-time set-up (fence, GCS failsafe, bounds) is due at each contact, not
+    only when the streams must be asked for: a restarted drone whose autopilot streams
+    already uploads the fence all the same."""
+    fence = Fence((square(200.0),), ceiling_m=60.0)
+    effects = tmp_path / "effects.jsonl"
+    vehicle = sim_vehicle(effects)
+    try:
+        first = MavsdkMobility(vehicle.url, fence=fence)
+        await first.start()
+        try:
+            await eventually(lambda: uploads(effects) == 1, "the first drone's fence", 20)
+            restarted = LateLook(vehicle.url, fence=fence)
+            await restarted.start()
+            try:
+                await eventually(lambda: uploads(effects) == 2, "the restarted drone's fence", 20)
+                assert restarted.monitor.stream_requests == 0  # the streams were never asked
+                assert restarted.autopilot_limits() is not None
+            finally:
+                await restarted.close()
+        finally:
+            await first.close()
+    finally:
+        vehicle.stop()
+
+
 async def test_an_arm_is_refused_when_the_vehicle_does_not_take_the_fence(
     tmp_path: Path,
 ) -> None:

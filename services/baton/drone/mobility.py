@@ -456,8 +456,10 @@ class MavsdkMobility:
             if self.monitor.wants_streams(now):
                 self.monitor.streams_requested(now)
                 await self._request_rates()
-                # At connect and after a reboot, beside the streams; in the background:
-                # an autopilot without the parameters answers nothing (timeouts).
+            if self.monitor.wants_set_up(now):
+                self.monitor.setting_up()
+                # In the background: an autopilot without the parameters answers
+                # nothing (timeouts).
                 self._tasks.append(
                     asyncio.create_task(self._set_gcs_failsafe(), name="gcs-failsafe params")
                 )

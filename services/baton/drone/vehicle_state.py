@@ -217,6 +217,8 @@ class LinkMonitor:
     stream_requests: int = 0
     last_stream_request_at: float | None = None
     was_healthy: bool = False
+    # The connect-time set-up (fence, GCS failsafe, bounds) ran in this contact.
+    set_up: bool = False
 
     def heard(self, now: float) -> None:
         """A heartbeat arrived from the autopilot."""
@@ -271,6 +273,7 @@ class LinkMonitor:
         if self.was_healthy and self.outage_since is None:
             self.outage_since = self._went_bad_at(now)
             self.outages += 1
+            self.set_up = False  # a rebooted autopilot may have lost what it was given
             return "outage"
         return None
 
@@ -307,10 +310,26 @@ class LinkMonitor:
         last = self.last_stream_request_at
         return last is None or now - last >= self.stream_retry_s
 
+    def wants_set_up(self, now: float) -> bool:
+        """The autopilot is there and was not set up in this contact: at first contact and
+        after each outage, whether or not its streams flow. A restarted drone service
+        finds them flowing at the rates the one before asked for; the set-up is due all
+        the same. Due again whenever the streams are asked for (``streams_requested``):
+        an autopilot that did not answer the last set-up may answer this one."""
+        heartbeat = self.heartbeat_age(now)
+        if heartbeat is None or heartbeat > self.heartbeat_timeout_s:
+            return False  # nobody to set up
+        return not self.set_up
+
+    def setting_up(self) -> None:
+        """The set-up starts now (``wants_set_up``)."""
+        self.set_up = True
+
     def streams_requested(self, now: float) -> None:
         """The streams were just requested."""
         self.stream_requests += 1
         self.last_stream_request_at = now
+        self.set_up = False
 
     def snapshot(self, now: float) -> drone_pb2.VehicleLink:
         """The link as GetStatus reports it (call ``update`` first)."""
