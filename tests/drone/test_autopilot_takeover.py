@@ -234,6 +234,27 @@ def test_a_vehicle_flown_before_a_restart_and_found_landed_is_the_autopilot_s() 
     assert older_file.autopilot_due(100.5, on_ground) is None
 
 
+def test_a_vehicle_seen_in_the_air_before_the_first_command_is_kept_as_flown() -> None:
+    """A mission that finds the vehicle flying (its first command a Goto): the look before
+    that command saw it in the air, so the state file says it flew, and a restart that
+    finds it landed (the autopilot's GCS failsafe, with no drone speaking to it) is the
+    autopilot's landing. Seen first on the ground, the first command flies nothing yet."""
+    in_the_air = drone()
+    assert in_the_air.autopilot_due(0.0, flying("HOLD")) is None  # nothing commanded yet
+    in_the_air.commanding(FLY, 1.0)  # killed right after: no look since
+    kept = in_the_air.kept_command()
+    assert kept == {"actions": [FLY], "airborne": True}
+    restarted = drone()
+    restarted.restore_command(kept, 100.0)
+    due = restarted.autopilot_due(100.5, ModeSeen("LAND", armed=False, in_air=False))
+    assert due is not None and (due.cause, due.action) == (AUTOPILOT, "landed")
+
+    on_the_ground = drone()
+    on_the_ground.autopilot_due(0.0, ModeSeen("HOLD", armed=False, in_air=False))
+    on_the_ground.commanding(FLY, 1.0)
+    assert on_the_ground.kept_command() == {"actions": [FLY], "airborne": False}
+
+
 def test_a_vehicle_seen_in_the_air_stays_so_through_the_commands_that_fly_it_on() -> None:
     """What the state file keeps right after a Goto or a Hold acknowledged in the air
     still says the vehicle flew (a kill of the drone then must not forget it); after a

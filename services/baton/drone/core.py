@@ -457,9 +457,14 @@ class DroneCore:
         if action is None:
             return
         command = self.vehicle_command
-        self.vehicle_command = (
-            VehicleCommand((action,), now) if command is None else command.commanding(action, now)
-        )
+        if command is None:
+            # The first command: a vehicle the last look saw in the air flies from now
+            # (a mission may find it flying), as a look would have said had one come.
+            seen = self.mode
+            airborne = seen is not None and seen.armed and seen.in_air
+            self.vehicle_command = VehicleCommand((action,), now, airborne=airborne)
+        else:
+            self.vehicle_command = command.commanding(action, now)
 
     def sending(self, method: str, now: float) -> str | None:
         """A call of ``method`` is about to reach the vehicle: the action a Mobility command
