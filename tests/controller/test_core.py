@@ -25,10 +25,12 @@ from baton.controller.core import (
     RepairGap,
     RingSight,
     RouteTo,
+    SayWord,
     Seen,
     SendCatchUp,
     Timer,
 )
+from baton.controller.link_core import SyncWord
 from baton.controller.protocol import DisconnectDrone, Diverged, SendLog, State
 from baton.digest import request_digest
 from baton.v1 import drone_api_pb2 as api
@@ -377,7 +379,8 @@ def test_ready_persists_before_sending_and_holds_a_copy_back_while_cut_off() -> 
     ready = core.ready([normal, handover, copy], drone_connected=False, now=0.0)
     # A normal message enters the history first; a handover message when it comes back
     # round; a copy for a prepared target not at all while the drone's stream is down.
-    assert kinds(ready) == [Persist, SendLog, SendLog, KeepMastership]
+    # The master's first step says its word (``SayWord``).
+    assert kinds(ready) == [Persist, SendLog, SendLog, KeepMastership, SayWord]
     assert ready[0] == Persist(normal.message) and ready[1] is normal and ready[2] is handover
     assert kinds(core.ready([copy], drone_connected=True, now=0.0)) == [SendLog, KeepMastership]
     assert core.sent_straight == {2: 5}
@@ -411,7 +414,8 @@ def test_a_replayed_answer_is_carried_out_as_it_is_and_moves_no_deadline() -> No
 def test_ready_rejoins_once_on_a_diverged_log() -> None:
     core = master()
     diverged = Diverged(4, 1, 3)
-    assert kinds(core.ready([diverged], True, 0.0)) == [Diverged, Rejoin, KeepMastership]
+    first = [Diverged, Rejoin, KeepMastership, SayWord]  # the master's first step: its word
+    assert kinds(core.ready([diverged], True, 0.0)) == first
     assert kinds(core.ready([diverged], True, 0.0)) == [Diverged, KeepMastership]
 
 
@@ -501,3 +505,56 @@ def test_the_connect_names_the_mastership_whose_log_we_hold_and_what_it_holds() 
     request = core.connect_request()
     assert (request.controller_id, request.mastership_epoch) == (0, 1)
     assert (request.holds_reqnr, request.given_up_epoch) == (1, 0)
+
+
+def test_a_master_word_heard_is_said_on_though_it_drops_nothing_here() -> None:
+    """A replica holding no stale message hears of a newer ACTIVE master: the word goes
+    on to its successor all the same, for a controller further on whose stale queued
+    message it drops (else that one repairs a gap every few seconds for ever)."""
+    replica = ControllerCore(started(1, [0, 1, 2], 0), True)
+    replica.ready([], False, 0.0)
+    word = SyncWord(holds=4, holds_epoch=10, master_epoch=12, master_lognr=4)
+    said = replica.ready(replica.sync_arrived(0, word), False, 1.0)
+    assert SayWord in kinds(said)
+    assert replica.protocol.master_word == (12, 4)
+    # The same word again, or an older one: nothing new to say.
+    again = replica.ready(replica.sync_arrived(0, word), False, 2.0)
+    older = SyncWord(holds=4, holds_epoch=10, master_epoch=11, master_lognr=3)
+    assert SayWord not in kinds(again + replica.ready(replica.sync_arrived(0, older), False, 3.0))
+
+
+def test_a_master_gone_active_says_its_word_though_it_logs_nothing() -> None:
+    core = ControllerCore(started(0, [0, 1, 2], 0), True)
+    assert core.protocol.state is State.ACTIVE
+    assert SayWord in kinds(core.ready([], True, 0.0))
+    assert SayWord not in kinds(core.ready([], True, 1.0))
+
+
+def test_an_adoption_no_drone_call_carried_is_carried_by_our_next_mastership() -> None:
+    """A taker answered requests 1-2 from the retained replies; the call that would have
+    told the drone so (``adopted_from_reqnr``) was overtaken by a handover. The drone
+    gives the role back to us by takeover in epoch 4: our calls there still say it (the
+    drone counts those replies as brought in epoch 4, newer than a lost master's
+    give-up of one of them the ring may hold), until the drone answered one."""
+    core = ControllerCore(started(1, [0, 1, 2], 0))
+    core.take_over(drone_pb2.TakeOver(old_master=0, epoch=2, after_reqnr=2))
+    core.granted(drone_pb2.Connected(epoch=2, retained_through=2, takeover=True))
+    digest = request_digest(GET, b"")
+    core.retained_batch(
+        [
+            drone_pb2.RetainedReply(reqnr=n, method=GET, request_digest=digest, reply=b"r", epoch=1)
+            for n in (1, 2)
+        ]
+    )
+    for _ in (1, 2):
+        assert isinstance(core.answer(GET, b"")[0], Answer)
+    assert isinstance(core.answer(GET, b"")[0], AskDrone)
+    assert core.carried(None).adopted_from_reqnr == 1
+    # No answer to request 3 in epoch 2: the drone took the role away, and back.
+    core.take_over(drone_pb2.TakeOver(old_master=0, epoch=4, after_reqnr=2))
+    core.granted(drone_pb2.Connected(epoch=4, retained_through=2, takeover=True))
+    assert core.protocol.epoch == 4
+    assert core.carried(None).adopted_from_reqnr == 1
+    answered = ring_pb2.LogEntry(reqnr=3, method=GET, request_digest=digest, drone_epoch=4)
+    assert core.logged(3, answered)[0] is not None
+    assert core.carried(None).adopted_from_reqnr == 0

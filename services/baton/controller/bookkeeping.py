@@ -19,6 +19,7 @@ from baton.controller.core import (
     KeepMastership,
     Persist,
     Preparing,
+    SayWord,
     SettleHandovers,
 )
 from baton.controller.history import LogHistory
@@ -57,6 +58,8 @@ class Bookkeeping:
             self.ring.preparing(effect.target)
         elif isinstance(effect, Fenced):
             self.fenced_messages += 1
+        elif isinstance(effect, SayWord):
+            self.ring.say_word()
         elif isinstance(effect, Unqueued):
             self.fenced_messages += 1
             self.ring.discard(effect.lognr, effect.epoch)

@@ -236,6 +236,12 @@ class RepairGap:
 
 
 @dataclass(frozen=True)
+class SayWord:
+    """Effect: the master's word we say on changed (``ControllerProtocol.master_word``):
+    our successor's stream says it in a sync frame (``LinkCore.sync_due``)."""
+
+
+@dataclass(frozen=True)
 class RouteTo:
     """Effect: send the ring's messages to ``successor`` from now on, skipping ``skipped``
     (the links follow: the new successor's stream carries the history)."""
@@ -444,6 +450,7 @@ CoreEffect = (
     | Note
     | Fail
     | RepairGap
+    | SayWord
     | RouteTo
     | Preparing
     | Arm
@@ -530,9 +537,11 @@ class ControllerCore:
         # The program's calls given up while this controller waited, in order: each is
         # settled by the next call (``settle``) with the entry the log gives it.
         self.abandoned: deque[tuple[str, bytes, grpc.StatusCode]] = deque()
-        # The epoch, and the first request answered from the retained replies in it:
-        # InvokeRequest.adopted_from_reqnr (the drone counts them as brought in it).
-        self.adopted = (0, 0)
+        # The first request answered from the retained replies in a mastership of ours
+        # and not yet carried to the drone by a call it answered:
+        # InvokeRequest.adopted_from_reqnr (the drone counts them as brought in the
+        # call's epoch). 0: none.
+        self.adopted = 0
         # The Clock calls (and give-ups) consumed since the last drone call: sent
         # along with the next Invoke, so the drone keeps them for a taker.
         self.answered_here: list[ring_pb2.LogEntry] = []
@@ -543,6 +552,8 @@ class ControllerCore:
         # The last log number sent straight to each handover target (``catch_up`` and a
         # prepared handover's copies), so that none is sent to it twice.
         self.sent_straight: dict[int, int] = {}
+        # The master's word as the last step left it (``SayWord``).
+        self._word = (0, 0)
         # Checks every log message's creator's signature and the drone's of every
         # reply it brings (baton.authenticity); None: insecure, a station's word is taken.
         self.keys: Keys | None = None
@@ -591,7 +602,8 @@ class ControllerCore:
         - A log that diverged from the ring's makes us rejoin with nothing, once.
         - Cut off from the drone, a queued message of a newer mastership fences us
           (``went_on_without_us``): the state after any event may show it.
-        - Then the mastership whose log we hold is kept with the log.
+        - Then the mastership whose log we hold is kept with the log, and a changed
+          master's word is said on to the successor (``SayWord``).
         - Last, the timers whose deadline the step changed (``Arm``, ``Disarm``).
         - A step that only answers a replayed call (``Seen.replayed``) is carried out
           as it is: it moved no deadline and no mastership.
@@ -632,6 +644,13 @@ class ControllerCore:
             if isinstance(effect, Diverged):
                 out.extend(self.rejoin())
         out.append(KeepMastership(self.protocol.log_mastership_epoch))
+        word = self.protocol.master_word
+        if word != self._word:
+            # Said on whatever else the step did: a word heard from the ring that drops
+            # nothing here may drop a stale queued message further on, and a taker gone
+            # ACTIVE with nothing to log has no message to carry its word.
+            self._word = word
+            out.append(SayWord())
         self._arm(now, drone_connected, out)
         return out
 
@@ -1140,9 +1159,16 @@ class ControllerCore:
         return self.retained_came < self.retained_due
 
     def adopted_from(self) -> int:
-        """InvokeRequest.adopted_from_reqnr: the first request of this mastership answered
-        from the retained replies (0: none)."""
-        return self.adopted[1] if self.adopted[0] == self.protocol.epoch else 0
+        """InvokeRequest.adopted_from_reqnr: the first request we answered from the
+        retained replies that no drone call of ours carried yet (0: none).
+
+        Carried until the drone answers a call that carried it, in whichever
+        mastership of ours that is: the adopting mastership's calls may all be refused
+        (a handover overtook them), and the drone would count those replies as brought
+        by the master that lost them, older than a give-up of that master's the ring
+        may hold. Our later mastership frames them as we adopted them (a rejoin would
+        have dropped our framing and this core with it)."""
+        return self.adopted
 
     def connect_request(self) -> drone_pb2.ConnectRequest:
         """The Connect we send now, read at every (re)connect: the epoch of the mastership
@@ -1174,8 +1200,8 @@ class ControllerCore:
         )
 
     def _adopt(self, reqnr: int) -> None:
-        if self.adopted[0] != self.protocol.epoch:
-            self.adopted = (self.protocol.epoch, reqnr)
+        if not self.adopted:
+            self.adopted = reqnr
 
     def _log(self, entry: ring_pb2.LogEntry) -> list[CoreEffect]:
         """The master logs ``entry`` as the program's answer."""
@@ -1339,6 +1365,8 @@ class ControllerCore:
             ]
         if entry.drone_epoch and self.asked_with[0] == reqnr:  # the drone's own reply
             self.protocol.drone_took_watermark(self.asked_with[1])
+            if self.adopted and self.adopted < reqnr:
+                self.adopted = 0  # carried by this call (``adopted_from``)
         return entry, self._log(entry)
 
     def gave_up(

@@ -109,6 +109,10 @@ class RingLinks(Generic[L]):
         self.history.discard(lognr, epoch)
         self.peer(self._successor()).holds_changed()
 
+    def say_word(self) -> None:
+        """The master's word we say on changed: the successor's link says it."""
+        self.peer(self._successor()).holds_changed()
+
     def handover_acked(self, message: ring_pb2.LogMessage) -> None:
         """Our handover message reached its new master, or the ring went past it: it
         enters our history now (it may never come back round, and our hello counts
