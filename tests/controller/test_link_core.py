@@ -260,6 +260,8 @@ def test_a_reroute_gives_the_history_and_retires_a_link_that_owes_nothing() -> N
     owing = links.peer(2)
     owing.send(message(1))
     assert links.rerouted(back).retired is None  # it owes one
+    # It carries what it owes, not the history: only the successor's link gives that.
+    assert owing.core.history is None and links.peer(1).core.history is links.history
     owing.core.acked(1)
     plan = links.rerouted(back)
     assert plan.retired is owing and not plan.needs_history and 2 not in links.links

@@ -15,7 +15,8 @@ The rules:
 - A handover message enters our history once its new master acknowledged it
   or the ring went on past it (``settle_handovers``), never before: a history
   copy re-sent ahead of it would overtake it.
-- A link routed away from is let go once it owes nothing.
+- A link routed away from is let go if it owes nothing, and else carries only
+  what it owes.
 - A link down counts for the route once it carries something: one kept open only
   for a handover to come is not routed around.
 - A preparation's progress counts the acknowledgements of the stream the count
@@ -157,16 +158,22 @@ class RingLinks(Generic[L]):
 
     def rerouted(self, route: RouteTo) -> Rerouted[L]:
         """The ring now sends to ``route.successor``: its link carries the history; the
-        link to a successor routed to before, and not skipped now, is let go once it
-        owes nothing."""
+        link to a successor routed to before, and not skipped now, is let go if it owes
+        nothing, and else carries only what it owes (the history is the successor's:
+        kept, it would give its peer our history again at every new stream, a framing
+        the ring replaced among it, and a peer that rejoins on seeing the ring's would
+        be given the old one again for ever)."""
         link = self.peer(route.successor)
         needs_history = link.core.history is None
         if needs_history:
             link.core.history = self.history
         retired = None
         old = self.get(route.retired)
-        if route.retired is not None and old is not None and not old.core.unacked:
-            retired = self.links.pop(route.retired)
+        if route.retired is not None and old is not None:
+            if old.core.unacked:
+                old.core.history = None
+            else:
+                retired = self.links.pop(route.retired)
         return Rerouted(link, needs_history, retired)
 
     # -- a prepared handover --------------------------------------------------------
