@@ -324,13 +324,26 @@ def test_policy_seed_132_holds_every_oracle() -> None:
 
 
 def test_lose_master_seed_3166_holds_every_oracle() -> None:
-    """--lose-master seed 3166 (liveness), broken by seed 132's fix: taker 4 holds
-    request 17 framed in an older epoch than the one the drone keeps (a taker lost with
-    its messages, epoch 5). Rejoining with nothing, it got the same old framing again
-    from the ring, the only copy left: it was granted, found it, rejoined, for ever.
-    Its fresh self now refuses that framing from the message that holds 17 on, is
-    answered from the drone's retained replies, and its messages replace the old."""
+    """--lose-master seed 3166. First (liveness), broken by seed 132's fix: a taker
+    holding a request framed in an older epoch than the one the drone keeps rejoined,
+    got the same old framing again from the ring, for ever; its fresh self now refuses
+    that framing. Since the sync frames that say the master's word on (SayWord) moved
+    its events (same-replies): taker 3 adopted requests 11-12 from the drone's retained
+    replies in epoch 3, but its one call saying so was refused (a handover overtook
+    it); its next mastership (epoch 5) did not say it, and a later taker took the lost
+    master's give-up of 12 for the ring's. An adoption is now said until the drone
+    answered a call that carried it."""
     outcome = run_seed(3166, SimOptions(lose_master=True))
+    assert outcome.ok, outcome.report()
+
+
+def test_lose_master_seed_3872_holds_every_oracle() -> None:
+    """--lose-master seed 3872 (liveness): controller 3 routed around 2 to 6 and back;
+    its link to 6, which still owed an acknowledgement, kept carrying the history and
+    gave 6 a fenced master's message 1 again at every new stream, so 6 rejoined on
+    seeing the ring's message 1 for ever, and message 2 never got past it. A link
+    routed away from now carries only what it owes."""
+    outcome = run_seed(3872, SimOptions(lose_master=True))
     assert outcome.ok, outcome.report()
 
 
