@@ -283,3 +283,22 @@ def test_the_progress_word_counts_the_acks_of_a_stream_opened_since_it_began() -
     links.peer(2).core.counters.acked = 2
     progress = links.progress(core, now=0.0)
     assert progress is not None and progress.target == 2 and progress.acked == 2
+
+
+def test_a_link_routed_away_from_carries_no_history_and_starts_again_when_routed_back() -> None:
+    """Controller 0 of ring 0 -> 1 -> 2 -> 3 routes around 1 to 2, then around 1 and 2
+    to 3 (2 skipped), then back to 2: 2's stream, up all along, must start again and
+    give 2 what the history gained meanwhile (a link that kept the history was taken
+    for the successor's and never gave it, and a taker behind it waited for ever)."""
+    links = links_of(ring=(0, 1, 2, 3))
+    natural = links.peer(1)
+    to_2 = RouteTo(successor=2, skipped=[1], previous=1, natural=1)
+    plan = links.rerouted(to_2)
+    assert plan.needs_history and natural.core.history is None and plan.retired is None
+    to_3 = RouteTo(successor=3, skipped=[1, 2], previous=2, natural=1)
+    plan = links.rerouted(to_3)
+    assert plan.link.core.history is links.history and links.peer(2).core.history is None
+    back_to_2 = RouteTo(successor=2, skipped=[1], previous=3, natural=1)
+    plan = links.rerouted(back_to_2)
+    assert plan.link is links.peer(2) and plan.needs_history
+    assert plan.retired is not None and 3 not in links.links  # it owed nothing

@@ -347,6 +347,17 @@ def test_lose_master_seed_3872_holds_every_oracle() -> None:
     assert outcome.ok, outcome.report()
 
 
+def test_lose_master_prepared_seed_8669_holds_every_oracle() -> None:
+    """--lose-master --prepared seed 8669 (liveness): controller 3 routed around 0 to 2,
+    around 0 and 2 to 1, back to 0, and (0 lost for good) around 0 to 2 again. Its
+    stream to 2, up since before 3 held anything, still carried the history (kept
+    while 2 was skipped), so it was taken for the successor's and not started again:
+    2, the drone's taker, never got messages 1-3 and waited for them for ever. Only the
+    successor's link carries the history now; routed back to, a link starts again."""
+    outcome = run_seed(8669, SimOptions(lose_master=True, prepared=True))
+    assert outcome.ok, outcome.report()
+
+
 def test_lose_master_seeds_of_two_switches_at_once_hold_every_oracle() -> None:
     """--lose-master seeds 2407, 2535, 5120, 6027 (liveness, F1's pattern): the drone
     switched twice at one instant (the script's handover, then an RPC's: 0 -> 2 -> 4 in

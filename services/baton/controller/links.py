@@ -15,8 +15,10 @@ The rules:
 - A handover message enters our history once its new master acknowledged it
   or the ring went on past it (``settle_handovers``), never before: a history
   copy re-sent ahead of it would overtake it.
-- A link routed away from is let go if it owes nothing, and else carries only
-  what it owes.
+- Only the successor's link carries the history: a link routed away from is
+  let go if it owes nothing and is not the natural successor or skipped, and
+  else carries only what it owes; routed back to, it starts again and gives
+  what its peer lacks.
 - A link down counts for the route once it carries something: one kept open only
   for a handover to come is not routed around.
 - A preparation's progress counts the acknowledgements of the stream the count
@@ -157,23 +159,29 @@ class RingLinks(Generic[L]):
         }
 
     def rerouted(self, route: RouteTo) -> Rerouted[L]:
-        """The ring now sends to ``route.successor``: its link carries the history; the
-        link to a successor routed to before, and not skipped now, is let go if it owes
-        nothing, and else carries only what it owes (the history is the successor's:
-        kept, it would give its peer our history again at every new stream, a framing
-        the ring replaced among it, and a peer that rejoins on seeing the ring's would
-        be given the old one again for ever)."""
+        """The ring now sends to ``route.successor``: its link carries the history, and
+        the previous successor's no longer does. That one is let go if it is neither
+        the natural successor nor skipped now and owes nothing (``RouteTo.retired``);
+        else it carries only what it owes.
+
+        Only the successor's link may carry the history. One that kept it after the
+        route moved on would give its peer our history again at every new stream (a
+        framing the ring replaced among it, to a peer that rejoins on seeing the
+        ring's, for ever), and, up all along, would be taken for the successor's
+        stream when the route came back to it: not started again, it would never
+        give the messages kept meanwhile, and a taker behind it would wait for them
+        for ever."""
         link = self.peer(route.successor)
         needs_history = link.core.history is None
         if needs_history:
             link.core.history = self.history
         retired = None
-        old = self.get(route.retired)
-        if route.retired is not None and old is not None:
-            if old.core.unacked:
-                old.core.history = None
+        old = self.get(route.previous) if route.previous != route.successor else None
+        if old is not None:
+            if route.retired is not None and not old.core.unacked:
+                retired = self.links.pop(route.previous)
             else:
-                retired = self.links.pop(route.retired)
+                old.core.history = None
         return Rerouted(link, needs_history, retired)
 
     # -- a prepared handover --------------------------------------------------------
