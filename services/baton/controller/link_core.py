@@ -134,6 +134,11 @@ class LinkCore:
         self.peer = peer
         # The successor's link gives its peer the history; None for other peers.
         self.history = history
+        # It carried the history once (``let_history_go``): it still counts as used.
+        self.carried_history = history is not None
+        # The history's top when the route moved on from this link and it kept the
+        # history (``RingLinks.rerouted``); None while it is the successor's.
+        self.left_at: int | None = None
         self.outbox = Outbox()
         # Written on the current stream (a new stream writes every unacked one).
         self.sent: set[int] = set()
@@ -280,11 +285,20 @@ class LinkCore:
 
     @property
     def used(self) -> bool:
-        """Whether the link carries anything: the successor's, or one a message was sent
-        on (not only kept open for a handover to come)."""
-        return (
-            self.history is not None or bool(self.outbox.unacked) or self.counters.sent_messages > 0
-        )
+        """Whether the link carries anything: the successor's now or before, or one a
+        message was sent on (not only kept open for a handover to come). A successor's
+        routed away from stays used: its stream being down is what the route reads, and
+        taken for a link never tried it would be routed back to at once, for ever."""
+        return self.carried_history or bool(self.outbox.unacked) or self.counters.sent_messages > 0
+
+    def carry_history(self, history: LogHistory) -> None:
+        """This link is the successor's now: it gives its peer ``history``."""
+        self.history = history
+        self.carried_history = True
+
+    def let_history_go(self) -> None:
+        """The route moved on from this link: it carries only what it owes."""
+        self.history = None
 
 
 class RelayCore:

@@ -15,10 +15,10 @@ The rules:
 - A handover message enters our history once its new master acknowledged it
   or the ring went on past it (``settle_handovers``), never before: a history
   copy re-sent ahead of it would overtake it.
-- Only the successor's link carries the history: a link routed away from is
-  let go if it owes nothing and is not the natural successor or skipped, and
-  else carries only what it owes; routed back to, it starts again and gives
-  what its peer lacks.
+- A link routed away from is let go if it owes nothing and is neither the
+  natural successor nor skipped; owing, it carries only what it owes. The
+  natural or a skipped successor's keeps the history; routed back to while
+  up, it is given what the history gained since.
 - A link down counts for the route once it carries something: one kept open only
   for a handover to come is not routed around.
 - A preparation's progress counts the acknowledgements of the stream the count
@@ -159,29 +159,38 @@ class RingLinks(Generic[L]):
         }
 
     def rerouted(self, route: RouteTo) -> Rerouted[L]:
-        """The ring now sends to ``route.successor``: its link carries the history, and
-        the previous successor's no longer does. That one is let go if it is neither
-        the natural successor nor skipped now and owes nothing (``RouteTo.retired``);
-        else it carries only what it owes.
+        """The ring now sends to ``route.successor``: its link carries the history. The
+        previous successor's link is let go if ``RouteTo.retired`` and it owes
+        nothing; retired and owing, it carries only what it owes; the natural
+        successor's or a skipped one's keeps the history for when the route comes back
+        (down, its next stream's greeting gives its peer what it lacks).
 
-        Only the successor's link may carry the history. One that kept it after the
-        route moved on would give its peer our history again at every new stream (a
-        framing the ring replaced among it, to a peer that rejoins on seeing the
-        ring's, for ever), and, up all along, would be taken for the successor's
-        stream when the route came back to it: not started again, it would never
-        give the messages kept meanwhile, and a taker behind it would wait for them
-        for ever."""
+        A retired link that kept the history would give its peer our history again
+        at every new stream (a framing the ring replaced among it, to a peer that
+        rejoins on seeing the ring's, for ever). A link routed back to that kept the
+        history and stayed up is given what the history gained since the route left
+        it: no greeting gives it, and a taker behind it would wait for it for ever.
+        Not by starting its stream again: a stream slower to come up than the
+        detection time would be routed around again, and back, for ever."""
         link = self.peer(route.successor)
         needs_history = link.core.history is None
         if needs_history:
-            link.core.history = self.history
+            link.core.carry_history(self.history)
+        elif link.core.left_at is not None and link.core.up:
+            for lognr in list(self.history.above(link.core.left_at)):
+                link.send(self.history.get(lognr))
+        link.core.left_at = None
         retired = None
         old = self.get(route.previous) if route.previous != route.successor else None
-        if old is not None:
-            if route.retired is not None and not old.core.unacked:
-                retired = self.links.pop(route.previous)
+        if old is not None and old.core.history is not None:
+            if route.retired is None:
+                old.core.left_at = self.history.holds_lognr
+            elif old.core.unacked:
+                old.core.let_history_go()
             else:
-                old.core.history = None
+                retired = self.links.pop(route.previous)
+        elif old is not None and route.retired is not None and not old.core.unacked:
+            retired = self.links.pop(route.previous)
         return Rerouted(link, needs_history, retired)
 
     # -- a prepared handover --------------------------------------------------------

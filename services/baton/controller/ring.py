@@ -253,10 +253,6 @@ class PeerLink:
         """Whether this stream gives its receiver the history it lacks (a successor's)."""
         return self.core.history is not None
 
-    def give_history(self, history: LogHistory) -> None:
-        """Makes this a successor's stream (routed to around a dead one); from its next start."""
-        self.core.history = history
-
     def holds_changed(self) -> None:
         """The history grew: the successor is told what we hold (``LinkCore.sync_due``)."""
         if self.core.history is not None:
