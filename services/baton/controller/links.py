@@ -182,15 +182,13 @@ class RingLinks(Generic[L]):
         link.core.left_at = None
         retired = None
         old = self.get(route.previous) if route.previous != route.successor else None
-        if old is not None and old.core.history is not None:
-            if route.retired is None:
-                old.core.left_at = self.history.holds_lognr
-            elif old.core.unacked:
+        if old is not None and route.retired is not None:
+            if old.core.unacked:
                 old.core.let_history_go()
             else:
                 retired = self.links.pop(route.previous)
-        elif old is not None and route.retired is not None and not old.core.unacked:
-            retired = self.links.pop(route.previous)
+        elif old is not None and old.core.history is not None:
+            old.core.left_at = self.history.holds_lognr
         return Rerouted(link, needs_history, retired)
 
     # -- a prepared handover --------------------------------------------------------
