@@ -1470,3 +1470,44 @@ def test_a_role_handed_back_in_another_framing_of_our_requests_means_we_must_rej
     effects = p.on_log(back)
     assert [e for e in effects if isinstance(e, Diverged)] == [Diverged(2, 1, 2)]
     assert p.epoch == 1
+
+
+def _handover_after(reqnr: int, m: ring_pb2.LogMessage) -> ring_pb2.LogMessage:
+    m.after_reqnr = reqnr
+    return m
+
+
+def test_a_queued_message_that_follows_fewer_requests_than_we_hold_is_dropped() -> None:
+    """A message cannot follow our log if it follows fewer requests than our log holds
+    already: within one lineage a message numbered above ours follows at least every
+    request ours holds. Such a message is of a framing that left ours before (the same
+    replies numbered otherwise by a takeover's taker), and the message between it and
+    ours that it waits for exists only in that framing: queued, it stood for a gap no
+    predecessor could fill, repaired every few seconds for ever."""
+    replica = started(1, [0, 1, 2], 2**20)
+    replica.on_log(_of_epoch(message(1, 0, range(1, 8)), 4))
+    replica.on_log(_handover_after(7, _of_epoch(message(2, 0, []), 7)))
+    replay_all(replica)
+    assert (replica.lognr, replica.held_reqnr) == (2, 7)
+    # Message 4 of the other framing: it follows request 5 (its 3 holds 4-5).
+    other = _of_epoch(message(4, 2, [6, 7]), 9)
+    effects = replica.on_log(other)
+    assert "Unqueued" in [type(e).__name__ for e in effects]
+    assert replica.log_queue == {} and replica.missing_lognr is None
+    # The ring's own 3 and 4 are taken after it.
+    replica.on_log(_of_epoch(message(3, 0, [8]), 9))
+    replica.on_log(_of_epoch(message(4, 0, [9]), 9))
+    replay_all(replica)
+    assert (replica.lognr, replica.held_reqnr) == (4, 9)
+
+
+def test_a_queued_message_is_dropped_once_the_log_below_it_holds_more_than_it_follows() -> None:
+    """The same rule when the other framing's message came first, while we held less:
+    it is dropped once the ring's messages below it are handled."""
+    replica = started(1, [0, 1, 2], 2**20)
+    replica.on_log(_of_epoch(message(4, 2, [6, 7]), 9))
+    assert 4 in replica.log_queue
+    replica.on_log(_of_epoch(message(1, 0, range(1, 8)), 4))
+    replay_all(replica)
+    replica.on_log(_handover_after(7, _of_epoch(message(2, 0, []), 7)))
+    assert replica.log_queue == {} and replica.missing_lognr is None

@@ -358,6 +358,18 @@ def test_lose_master_prepared_seed_8669_holds_every_oracle() -> None:
     assert outcome.ok, outcome.report()
 
 
+def test_policy_predictive_seed_19072_holds_every_oracle() -> None:
+    """--policy predictive seed 19072 (bounded): taker 1 (epoch 8) held a framing of
+    requests 17-19 (messages 13-15 of epoch 3) that the takeover of epoch 4 had
+    numbered otherwise (13 of epoch 4, then 14 of epoch 7), and handed over in message
+    16 (after request 19), then rejoined. Every controller held the ring's 14 (through
+    request 23) with 16 queued above a gap at 15 that only the other framing had, and
+    repaired it every 8 s for ever. A queued message that follows fewer requests than
+    our log holds is dropped."""
+    outcome = run_seed(19072, SimOptions(policy="predictive"))
+    assert outcome.ok, outcome.report()
+
+
 def test_lose_master_seeds_of_two_switches_at_once_hold_every_oracle() -> None:
     """--lose-master seeds 2407, 2535, 5120, 6027 (liveness, F1's pattern): the drone
     switched twice at one instant (the script's handover, then an RPC's: 0 -> 2 -> 4 in

@@ -1634,6 +1634,7 @@ class ControllerProtocol:
             if diverged is not None:
                 return [*effects, diverged]
             effects.extend(self._handle(self.log_queue.pop(self.lognr + 1)))
+        effects.extend(self._drop_unfollowing_queued())
         if self.state is State.PASSIVE and self.master and not self.log_queue and self.caught_up:
             # The master's own log ran out with nothing queued: lines 54-56.
             self._went_active()
@@ -1671,15 +1672,7 @@ class ControllerProtocol:
             return []
         if (self.lognr + 1) in self.log_queue:
             return []
-        effects: list[Effect] = []
-        for queued_nr in sorted(self.log_queue):
-            queued = self.log_queue[queued_nr]
-            if queued.epoch < self.epoch:
-                del self.log_queue[queued_nr]
-                self._received.discard(queued_nr)
-                effects.append(Unqueued(queued_nr, queued.origin, queued.epoch))
-        epochs = [queued.epoch for queued in self.log_queue.values() if queued.epoch]
-        self._queued_epochs = (min(epochs), max(epochs)) if epochs else (0, 0)
+        effects = self._unqueue(lambda _, queued: queued.epoch < self.epoch)
         return effects + self._drain() if effects else []
 
     def _diverged_before(self, message: ring_pb2.LogMessage) -> Diverged | None:
@@ -1740,13 +1733,38 @@ class ControllerProtocol:
         ``epoch``: the on_log rule for a message that came before the newer one below it
         (a framing a takeover replaced, queued while we held nothing). Their
         numbers are no longer received: the ring's messages with them must be taken."""
-        effects: list[Effect] = []
         oldest = self._queued_epochs[0]
         if not self.log_queue or not oldest or epoch <= oldest:
-            return effects
+            return []
+        return self._unqueue(lambda nr, queued: nr > lognr and 0 < queued.epoch < epoch)
+
+    def _drop_unfollowing_queued(self) -> list[Effect]:
+        """Drops the queued messages that follow fewer requests than our log holds: within
+        one lineage a message numbered above ours follows every request ours holds
+        (``after_reqnr``), so one that follows fewer is of a framing that left ours
+        before (the same replies numbered otherwise by a takeover's taker), and the
+        message between ours and it exists only in that framing: kept, it would stand
+        for a gap no predecessor can fill. Its number is the ring's to give again.
+
+        Not while ACTIVE: a master's count includes what it logged and has not
+        flushed, and a newer mastership queued above its log fences it
+        (``went_on_without_us``)."""
+        if self.state is State.ACTIVE or not self.log_queue:
+            return []
+        held = self.held_reqnr
+        return self._unqueue(
+            lambda nr, queued: (
+                nr > self.lognr and queued.HasField("after_reqnr") and queued.after_reqnr < held
+            )
+        )
+
+    def _unqueue(self, dropped: Callable[[int, ring_pb2.LogMessage], bool]) -> list[Effect]:
+        """Drops the queued messages ``dropped`` picks (``Unqueued``): their numbers are no
+        longer received, so the ring's messages with them are taken."""
+        effects: list[Effect] = []
         for queued_nr in sorted(self.log_queue):
             queued = self.log_queue[queued_nr]
-            if queued_nr > lognr and 0 < queued.epoch < epoch:
+            if dropped(queued_nr, queued):
                 del self.log_queue[queued_nr]
                 self._received.discard(queued_nr)
                 effects.append(Unqueued(queued_nr, queued.origin, queued.epoch))
