@@ -558,3 +558,51 @@ def test_an_adoption_no_drone_call_carried_is_carried_by_our_next_mastership() -
     answered = ring_pb2.LogEntry(reqnr=3, method=GET, request_digest=digest, drone_epoch=4)
     assert core.logged(3, answered)[0] is not None
     assert core.carried(None).adopted_from_reqnr == 0
+
+
+def test_a_takers_drone_calls_say_the_log_number_its_own_messages_follow() -> None:
+    """A taker's messages follow what it held when it went ACTIVE; its drone calls say
+    so (``framed_after_lognr``), for the drone to refuse a later taker that holds
+    another framing of those numbers. A master granted otherwise says nothing."""
+    cooperative = master()
+    assert not cooperative.carried(None).HasField("framed_after_lognr")
+    taker = ControllerCore(started(1, [0, 1, 2], 0))
+    taker.protocol.on_log(
+        ring_pb2.LogMessage(
+            lognr=1, origin=0, sender=0, epoch=1, after_reqnr=0, entries=[_entry(1), _entry(2)]
+        )
+    )
+    for _ in (1, 2):  # the program replays the log
+        assert isinstance(taker.answer(GET, b"")[0], Answer)
+    assert taker.protocol.lognr == 1
+    taker.take_over(drone_pb2.TakeOver(old_master=0, epoch=2, after_reqnr=2))
+    taker.granted(drone_pb2.Connected(epoch=2, takeover=True))
+    assert taker.protocol.state is State.ACTIVE
+    assert taker.carried(None).framed_after_lognr == 1
+
+
+def test_a_grant_that_says_our_framing_was_replaced_makes_us_rejoin_refusing_it() -> None:
+    """--policy predictive 19072: taker 1 held messages 13-15 of epoch 3, which the
+    takeover of epoch 4 had numbered otherwise from 13 on; built on, its messages could
+    not follow the ring's. The drone's grant says so: we rejoin before acting, and our
+    fresh self refuses those numbers in every epoch older than the one that replaced
+    them, while the ring's (of that epoch or newer) are taken."""
+    taker = ControllerCore(started(1, [0, 1, 2], 0))
+    taker.take_over(drone_pb2.TakeOver(old_master=0, epoch=8, after_reqnr=21))
+    effects = taker.granted(
+        drone_pb2.Connected(epoch=8, takeover=True, replaced_from_lognr=13, replaced_by_epoch=4)
+    )
+    assert kinds(effects) == [Note, Rejoin]
+    assert taker.protocol.state is not State.ACTIVE
+    fresh = taker.fresh_self().protocol
+    fresh.start()
+    ours = ring_pb2.LogMessage(lognr=13, origin=0, sender=0, epoch=3, after_reqnr=16)
+    assert [type(e).__name__ for e in fresh.on_log(ours)] == ["Fenced"]
+    rings = ring_pb2.LogMessage(lognr=13, origin=0, sender=0, epoch=4, after_reqnr=16)
+    assert [type(e).__name__ for e in fresh.on_log(rings)] == ["SendLog"]
+
+
+def _entry(reqnr: int) -> ring_pb2.LogEntry:
+    return ring_pb2.LogEntry(
+        reqnr=reqnr, method=GET, reply=b"r", request_digest=request_digest(GET, b"")
+    )

@@ -422,3 +422,29 @@ def test_a_low_battery_ends_a_lost_link_hold_but_not_a_return() -> None:
     )
     due = near.battery_due(0.0, 20.0, True, nearest=None)
     assert due is not None and due.action == "rtl" and "no station known" in due.reason
+
+
+def test_a_taker_holding_a_framing_a_takeover_replaced_is_told_so_by_its_grant() -> None:
+    """--policy predictive 19072: the drone granted the takeover of epoch 3 to a taker
+    whose top message (15, of epoch 1) an earlier taker (epoch 2, framing after message
+    12) had numbered otherwise. Its Connected now says from which number and by which
+    epoch, and the drone does not take that holding for the log the taker builds on
+    (``taker_lognr``); a taker on the ring's framing is granted as before."""
+    drone = core()
+    digest = request_digest(GET, b"")
+    drone.seq.admit(0, 1, 1, GET, digest)
+    drone.seq.served(0, 1, GET, digest, b"x", 1.0, 1.0)
+    drone.seq.switch(1, drone_pb2.HANDOVER_TRIGGER_LOST, now=4.0, takeover=True, lost_at=1.0)
+    framing = request(2, cid=1, epoch=2)
+    framing.framed_after_lognr = 12
+    drone.admit(framing, digest, received_at=5.0)
+    drone.seq.switch(2, drone_pb2.HANDOVER_TRIGGER_LOST, now=6.0, takeover=True, lost_at=5.0)
+    replaced = drone_pb2.ConnectRequest(controller_id=2, holds_lognr=15, holds_lognr_epoch=1)
+    said = drone.connected(replaced)
+    assert said is not None
+    assert (said[0].replaced_from_lognr, said[0].replaced_by_epoch) == (13, 2)
+    assert not drone.seq.handovers[-1].taker_lognr_epoch
+    ours = drone_pb2.ConnectRequest(controller_id=2, holds_lognr=13, holds_lognr_epoch=2)
+    said = drone.connected(ours)
+    assert said is not None and not said[0].replaced_from_lognr
+    assert drone.seq.handovers[-1].taker_lognr == 13

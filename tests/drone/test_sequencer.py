@@ -750,3 +750,32 @@ def test_every_grant_is_signed_and_said_with_the_event_that_makes_a_master() -> 
     restarted.sign_grants_with(seal)
     restarted.resume(seq.master, seq.handovers, (0, 0, 0, 0), [], [], [])
     assert [restarted.grant_of(e) for e in (1, 2, 3)] == [seq.grant_of(e) for e in (1, 2, 3)]
+
+
+def test_a_framing_a_takeover_replaced_is_known_by_the_log_numbers_its_taker_framed() -> None:
+    """--policy predictive 19072 and the 2810 kind: the taker of epoch 2 said its own
+    messages follow message 12 (``framed_after_lognr``): from 13 on the ring's log is
+    of epoch 2 or newer. A later taker whose top message is numbered 13 or more and
+    older than epoch 2 holds another framing of those numbers; one below 13, or of
+    epoch 2 or newer, does not. A later takeover that frames from a lower number
+    takes over the numbers above it."""
+    seq = Sequencer([0, 1, 2], initial_master=0)
+    serve(seq, 0, 1, 1)
+    seq.switch(1, LOST, now=4.0, takeover=True, lost_at=1.0)  # epoch 2
+    assert seq.replaced_framing(15, 1) is None  # nobody said where its framing starts
+    seq.note_framing(0, 2, 9)  # not the master: nothing
+    seq.note_framing(1, 1, 9)  # not its epoch: nothing
+    seq.note_framing(1, 2, 12)
+    seq.note_framing(1, 2, 14)  # only the first counts
+    assert seq.handovers[-1].framed_after_lognr == 12
+    assert seq.replaced_framing(15, 1) == (13, 2)
+    assert seq.replaced_framing(13, 1) == (13, 2)
+    assert seq.replaced_framing(12, 1) is None
+    assert seq.replaced_framing(15, 2) is None and seq.replaced_framing(15, 3) is None
+    seq.switch(2, LOST, now=6.0, takeover=True, lost_at=5.0)  # epoch 3
+    seq.note_framing(2, 3, 10)
+    assert seq.replaced_framing(11, 2) == (11, 3)  # epoch 2's 11 and 12 are replaced too
+    assert seq.replaced_framing(10, 1) is None
+    seq.switch(0, RPC, now=7.0)  # cooperative: frames nothing anew
+    seq.note_framing(0, 4, 3)
+    assert seq.replaced_framing(11, 2) == (11, 3)

@@ -352,8 +352,9 @@ def test_lose_master_prepared_seed_8669_holds_every_oracle() -> None:
     around 0 and 2 to 1, back to 0, and (0 lost for good) around 0 to 2 again. Its
     stream to 2, up since before 3 held anything, still carried the history (kept
     while 2 was skipped), so it was taken for the successor's and not started again:
-    2, the drone's taker, never got messages 1-3 and waited for them for ever. Only the
-    successor's link carries the history now; routed back to, a link starts again."""
+    2, the drone's taker, never got messages 1-3 and waited for them for ever. A link
+    the route leaves notes the history's top (``LinkCore.left_at``); routed back to
+    while up, it is sent every message kept since."""
     outcome = run_seed(8669, SimOptions(lose_master=True, prepared=True))
     assert outcome.ok, outcome.report()
 

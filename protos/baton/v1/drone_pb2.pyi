@@ -470,6 +470,7 @@ class InvokeRequest(_message.Message):
     MASTER_ANSWERS_FIELD_NUMBER: _builtins.int
     PREPARATION_FIELD_NUMBER: _builtins.int
     ADOPTED_FROM_REQNR_FIELD_NUMBER: _builtins.int
+    FRAMED_AFTER_LOGNR_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The calling controller's id."""
     reqnr: _builtins.int
@@ -495,6 +496,13 @@ class InvokeRequest(_message.Message):
     answer the master took from the drone's retained replies (0: none). It
     held none of them; the drone counts those up to this request as brought
     in this epoch (docs/design.md, "A taker that holds a replaced framing").
+    """
+    framed_after_lognr: _builtins.int
+    """In a mastership granted by takeover: the log number the master's own
+    messages follow (what it held when it went ACTIVE; every message above
+    it is of this epoch or a newer one). The drone keeps it on the
+    takeover's record (HandoverRecord.framed_after_lognr) and refuses a later
+    taker's grant on a framing it replaced (Connected.replaced_from_lognr).
     """
     @_builtins.property
     def master_answers(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
@@ -525,12 +533,15 @@ class InvokeRequest(_message.Message):
         master_answers: _abc.Iterable[Global___RetainedReply] | None = ...,
         preparation: Global___PreparationProgress | None = ...,
         adopted_from_reqnr: _builtins.int = ...,
+        framed_after_lognr: _builtins.int | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["preparation", b"preparation"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr", "framed_after_lognr", b"framed_after_lognr", "preparation", b"preparation"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["adopted_from_reqnr", b"adopted_from_reqnr", "controller_id", b"controller_id", "epoch", b"epoch", "master_answers", b"master_answers", "method", b"method", "payload", b"payload", "preparation", b"preparation", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr", "adopted_from_reqnr", b"adopted_from_reqnr", "controller_id", b"controller_id", "epoch", b"epoch", "framed_after_lognr", b"framed_after_lognr", "master_answers", b"master_answers", "method", b"method", "payload", b"payload", "preparation", b"preparation", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    def WhichOneof(self, oneof_group: _Never) -> None: ...
+    _WhichOneofReturnType__framed_after_lognr: _TypeAlias = _typing.Literal["framed_after_lognr"]  # noqa: Y015
+    _WhichOneofArgType__framed_after_lognr: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr"]  # noqa: Y015
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__framed_after_lognr) -> _WhichOneofReturnType__framed_after_lognr | None: ...
 
 Global___InvokeRequest: _TypeAlias = InvokeRequest  # noqa: Y015
 
@@ -943,6 +954,8 @@ class Connected(_message.Message):
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
     TAKEOVER_EPOCH_FIELD_NUMBER: _builtins.int
     GRANT_FIELD_NUMBER: _builtins.int
+    REPLACED_FROM_LOGNR_FIELD_NUMBER: _builtins.int
+    REPLACED_BY_EPOCH_FIELD_NUMBER: _builtins.int
     master: _builtins.int
     """The master as the drone sees it (the caller)."""
     last_reqnr: _builtins.int
@@ -981,6 +994,17 @@ class Connected(_message.Message):
     and came back by a handover message or a grant), and rejoins with
     nothing instead of taking the grant (ControllerProtocol.log_given_up).
     """
+    replaced_from_lognr: _builtins.int
+    """For a mastership granted by takeover, when the log message the Connect
+    said it holds (ConnectRequest.holds_lognr, holds_lognr_epoch) is of a
+    framing an earlier takeover replaced (0: it is not): from log number
+    replaced_from_lognr on the ring's messages are of epoch
+    replaced_by_epoch or newer (HandoverRecord.framed_after_lognr), and the
+    controller's are older. It rejoins refusing its framing from there,
+    then connects again (docs/design.md, "A taker that holds a replaced
+    framing").
+    """
+    replaced_by_epoch: _builtins.int
     @_builtins.property
     def grant(self) -> Global___Grant:
         """The drone's signed word that this controller is master in this epoch: the
@@ -999,10 +1023,12 @@ class Connected(_message.Message):
         watermark_reqnr: _builtins.int = ...,
         takeover_epoch: _builtins.int = ...,
         grant: Global___Grant | None = ...,
+        replaced_from_lognr: _builtins.int = ...,
+        replaced_by_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["grant", b"grant"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "grant", b"grant", "last_reqnr", b"last_reqnr", "master", b"master", "retained_through", b"retained_through", "takeover", b"takeover", "takeover_epoch", b"takeover_epoch", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["epoch", b"epoch", "grant", b"grant", "last_reqnr", b"last_reqnr", "master", b"master", "replaced_by_epoch", b"replaced_by_epoch", "replaced_from_lognr", b"replaced_from_lognr", "retained_through", b"retained_through", "takeover", b"takeover", "takeover_epoch", b"takeover_epoch", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -1562,6 +1588,7 @@ class HandoverRecord(_message.Message):
     WATERMARK_REQNR_FIELD_NUMBER: _builtins.int
     TAKER_LOGNR_FIELD_NUMBER: _builtins.int
     TAKER_LOGNR_EPOCH_FIELD_NUMBER: _builtins.int
+    FRAMED_AFTER_LOGNR_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """Master before."""
     new_master: _builtins.int
@@ -1606,11 +1633,19 @@ class HandoverRecord(_message.Message):
     taker_lognr: _builtins.int
     """For a takeover: the log message the taker's first Connect in that epoch
     said it held (ConnectRequest.holds_lognr, holds_lognr_epoch; 0, 0: not yet
-    connected, or it held none). Its own messages follow it, so the ring's log
+    connected, or it held none). Its own messages follow it, or the ring's
+    messages it caught up after it (up to the watermark), so the ring's log
     up to it is that message's lineage; a refusal of the old master says it as
     baton-takeover-holds ("lognr/epoch").
     """
     taker_lognr_epoch: _builtins.int
+    framed_after_lognr: _builtins.int
+    """For a takeover: the log number its master's own messages follow, as its
+    drone calls said it (InvokeRequest.framed_after_lognr; absent: no call
+    said it yet). From the next number on, the ring's log is of this
+    record's epoch or a newer one, until a later takeover frames from a
+    lower number.
+    """
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
         """Where the vehicle was when the drone decided (zero if unknown)."""
@@ -1636,12 +1671,15 @@ class HandoverRecord(_message.Message):
         watermark_reqnr: _builtins.int = ...,
         taker_lognr: _builtins.int = ...,
         taker_lognr_epoch: _builtins.int = ...,
+        framed_after_lognr: _builtins.int | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["position", b"position"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr", "framed_after_lognr", b"framed_after_lognr", "position", b"position"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "position", b"position", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "reason", b"reason", "taker_lognr", b"taker_lognr", "taker_lognr_epoch", b"taker_lognr_epoch", "trigger", b"trigger", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr", "after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "framed_after_lognr", b"framed_after_lognr", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "position", b"position", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "reason", b"reason", "taker_lognr", b"taker_lognr", "taker_lognr_epoch", b"taker_lognr_epoch", "trigger", b"trigger", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    def WhichOneof(self, oneof_group: _Never) -> None: ...
+    _WhichOneofReturnType__framed_after_lognr: _TypeAlias = _typing.Literal["framed_after_lognr"]  # noqa: Y015
+    _WhichOneofArgType__framed_after_lognr: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr"]  # noqa: Y015
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__framed_after_lognr) -> _WhichOneofReturnType__framed_after_lognr | None: ...
 
 Global___HandoverRecord: _TypeAlias = HandoverRecord  # noqa: Y015
 

@@ -706,6 +706,10 @@ class ControllerCore:
         epoch, retained_through = connected.epoch, connected.retained_through
         takeover, takeover_epoch = connected.takeover, connected.takeover_epoch
         grant = connected.grant if connected.HasField("grant") else None
+        if connected.replaced_from_lognr:
+            by = connected.replaced_by_epoch
+            replaced = ReplacedFraming(0, connected.replaced_from_lognr, by - 1, by)
+            return self._rejoin_refusing(replaced, "the drone")
         if p.log_given_up(takeover_epoch) and not p.taken_back(epoch, takeover, takeover_epoch):
             note = Note(
                 "warning",
@@ -743,23 +747,29 @@ class ControllerCore:
         """A rejoin refusing our framing of a request the drone keeps in a newer one
         (``ControllerProtocol.replaced_framing``); nothing if there is none."""
         replaced = self.protocol.replaced_framing(list(replies))
-        if replaced is not None:
-            self.replaced = replaced
-            note = Note(
-                "warning",
-                "we hold a request in a framing a later takeover replaced (the drone keeps "
-                "another outcome, brought in a newer epoch); rejoining as a replica that "
-                "refuses that framing from its log message on",
-                {
-                    "reqnr": replaced.reqnr,
-                    "lognr": replaced.lognr,
-                    "framed_in": replaced.ours_epoch,
-                    "drone_epoch": replaced.epoch,
-                    "epoch": self.protocol.epoch,
-                },
-            )
-            return [note, *self.rejoin()]
-        return []
+        return [] if replaced is None else self._rejoin_refusing(replaced, "the retained replies")
+
+    def _rejoin_refusing(self, replaced: ReplacedFraming, said_by: str) -> list[CoreEffect]:
+        """A rejoin whose fresh self refuses our framing from ``replaced.lognr`` on
+        (``ControllerProtocol.refuse_replaced``): a later takeover replaced it, as the
+        drone's retained replies (another outcome of a request, brought in a newer
+        epoch) or its grant (the ring's messages numbered from there are of a newer
+        epoch) say."""
+        self.replaced = replaced
+        note = Note(
+            "warning",
+            "we hold a framing a later takeover replaced; rejoining as a replica that "
+            "refuses that framing from its log message on",
+            {
+                "said_by": said_by,
+                "reqnr": replaced.reqnr,
+                "lognr": replaced.lognr,
+                "framed_in": replaced.ours_epoch,
+                "drone_epoch": replaced.epoch,
+                "epoch": self.protocol.epoch,
+            },
+        )
+        return [note, *self.rejoin()]
 
     def take_over(self, event: drone_pb2.TakeOver) -> list[CoreEffect]:
         """The drone made us master by takeover (the standby stream's TakeOver): connect
@@ -1197,6 +1207,7 @@ class ControllerCore:
             master_answers=[to_retained(entry) for entry in self.answered_here],
             preparation=preparation,
             adopted_from_reqnr=self.adopted_from(),
+            framed_after_lognr=self.protocol.framed_after,
         )
 
     def _adopt(self, reqnr: int) -> None:

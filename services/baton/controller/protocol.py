@@ -71,7 +71,9 @@ class ReplacedFraming:
     framing, of ``ours_epoch``) ours is not the drone's; the drone's outcome
     of ``reqnr`` was brought in ``epoch``. The taker rejoins refusing that
     framing from there on (``ControllerProtocol.refuse_replaced``):
-    docs/design.md, "A taker that holds a replaced framing".
+    docs/design.md, "A taker that holds a replaced framing". ``reqnr`` 0: the
+    drone's grant named the framing by its log numbers (``Connected.
+    replaced_from_lognr``), every epoch up to ``ours_epoch`` refused there.
     """
 
     reqnr: int
@@ -416,6 +418,9 @@ class ControllerProtocol:
         self._mastership_over = 0
         # The epoch of our takeover grant (0: none), while it is our mastership.
         self._took_over_in = 0
+        # The epoch we last went ACTIVE in and the log number we held then: our own
+        # messages of that mastership follow it (``framed_after``).
+        self._active_from: tuple[int, int] = (0, 0)
         # Log numbers received over the ring, so that a message re-sent after a
         # reconnect is neither forwarded nor handled twice.
         self._received = SeenNumbers()
@@ -630,6 +635,8 @@ class ControllerProtocol:
         drone's grant of the epoch (``master_proof``)."""
         self.state = State.ACTIVE
         self._own_word = None
+        if self._active_from[0] != self.epoch:
+            self._active_from = (self.epoch, self.lognr)
         if self.seal is _unsealed:
             return
         word = ring_pb2.MasterWord(epoch=self.epoch, lognr=self.lognr, master=self.id)
@@ -638,6 +645,19 @@ class ControllerProtocol:
             word.grant.CopyFrom(grant)
         self.seal(word)
         self._own_word = word
+
+    @property
+    def framed_after(self) -> int | None:
+        """In an ACTIVE mastership granted by takeover, the log number our own messages
+        follow (None otherwise): what we held when we went ACTIVE. Above it, the
+        ring's log is ours, in our epoch, or newer: messages of an older epoch that
+        come after are fenced (``_arrival``). Our drone calls say it
+        (``InvokeRequest.framed_after_lognr``), so that the drone can refuse a later
+        taker that holds another framing of those numbers."""
+        epoch, lognr = self._active_from
+        if self.state is not State.ACTIVE or epoch != self.epoch:
+            return None
+        return lognr if self._took_over_in == self.epoch else None
 
     def mastership_given_up(self) -> int:
         """The epoch of a mastership of ours whose log a rejoin now gives up (0: none), for

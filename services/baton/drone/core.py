@@ -638,6 +638,8 @@ class DroneCore:
         if request.HasField("preparation"):
             seq.note_progress(cid, request.epoch, request.preparation)
         first = seq.note_request(cid, received_at)
+        if request.HasField("framed_after_lognr"):
+            seq.note_framing(cid, request.epoch, request.framed_after_lognr)
         if cached is not None:
             return Admitted(cached, (), first)
         kept = seq.keep(answers) + tuple(
@@ -895,11 +897,18 @@ class DroneCore:
         retains above what it holds (``holds_reqnr``), in batches of about
         ``batch_bytes`` (the master answers its program from the first while the rest
         crosses). None for a controller that is not the master (owed a notice). A
-        taker's first Connect says what its messages follow (``taker_connected``)."""
+        taker's first Connect says what its messages follow (``taker_connected``),
+        unless what it holds is of a framing an earlier takeover replaced
+        (``Sequencer.replaced_framing``): its Connected says from where, and it
+        rejoins refusing that framing before it acts."""
         seq = self.seq
         if request.controller_id != seq.master:
             return None
-        seq.taker_connected(request)
+        replaced = None
+        if seq.granted_by_takeover:
+            replaced = seq.replaced_framing(request.holds_lognr, request.holds_lognr_epoch)
+        if replaced is None:
+            seq.taker_connected(request)  # not on a framing it will refuse
         controller_id = request.controller_id
         retained = seq.replies_for_master(request.holds_reqnr)
         grant = drone_pb2.Connected(
@@ -912,6 +921,8 @@ class DroneCore:
             takeover_epoch=seq.takeover_epoch,
             grant=seq.signed_grant(seq.epoch),
         )
+        if replaced is not None:
+            grant.replaced_from_lognr, grant.replaced_by_epoch = replaced
         return grant, retained_batches(retained, batch_bytes)
 
     def stream_event(

@@ -474,6 +474,49 @@ class Sequencer:
             return []
         return self.cache.restamp(adopted_from, reqnr, epoch)
 
+    def note_framing(self, controller_id: int, epoch: int, framed_after: int) -> None:
+        """A taker's request says the log number its own messages follow
+        (``InvokeRequest.framed_after_lognr``): kept on its takeover's record, the first
+        time (``replaced_framing`` reads it)."""
+        if not self.granted_by_takeover:
+            return
+        record = self.handovers[-1]
+        if controller_id != self.master or epoch != self.epoch or record.epoch != epoch:
+            return
+        if not record.HasField("framed_after_lognr"):
+            record.framed_after_lognr = framed_after
+
+    def replaced_framing(self, holds_lognr: int, holds_epoch: int) -> tuple[int, int] | None:
+        """Whether log message ``holds_lognr`` of ``holds_epoch`` (a taker's top, its
+        Connect's) is of a framing a takeover replaced: the log number that framing is
+        replaced from and the epoch that replaced it, or None.
+
+        A taker's messages follow what it held when it went ACTIVE
+        (``framed_after_lognr``), so from the next number on the ring's log is of
+        its epoch or newer, until a later taker frames from a lower number (each
+        taker holds a prefix of the ring's log and builds on it). Along a lineage
+        epochs never go down, so a top message numbered at or above such a start
+        and older than its epoch is another framing of those numbers: the same
+        replies numbered otherwise by a master the takeover replaced. A taker
+        that built on it would lead the ring into a lineage whose messages the
+        others cannot follow, and the others would rejoin on the ring's newer
+        numbering, dropping what the drone let go of on its word.
+        """
+        starts: list[tuple[int, int]] = []  # (first log number, epoch), ascending numbers
+        for record in self.handovers:
+            if record.kind != drone_pb2.HANDOVER_KIND_TAKEOVER:
+                continue
+            if not record.HasField("framed_after_lognr"):
+                continue
+            first = record.framed_after_lognr + 1
+            while starts and starts[-1][0] >= first:
+                starts.pop()
+            starts.append((first, record.epoch))
+        for first, epoch in reversed(starts):
+            if first <= holds_lognr:
+                return (first, epoch) if 0 < holds_epoch < epoch else None
+        return None
+
     def _fresh(self, kept: CachedReply) -> bool:
         """Whether ``served`` keeps a call the master answered (``admit`` accepted it):
         above the last request served, or a give-up of one served that we still hold as
