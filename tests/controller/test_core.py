@@ -578,7 +578,8 @@ def test_a_takers_drone_calls_say_the_log_number_its_own_messages_follow() -> No
     taker.take_over(drone_pb2.TakeOver(old_master=0, epoch=2, after_reqnr=2))
     taker.granted(drone_pb2.Connected(epoch=2, takeover=True))
     assert taker.protocol.state is State.ACTIVE
-    assert taker.carried(None).framed_after_lognr == 1
+    carried = taker.carried(None)
+    assert (carried.framed_after_lognr, carried.framed_after_epoch) == (1, 1)
 
 
 def test_a_grant_that_says_our_framing_was_replaced_makes_us_rejoin_refusing_it() -> None:

@@ -436,7 +436,7 @@ def test_a_taker_holding_a_framing_a_takeover_replaced_is_told_so_by_its_grant()
     drone.seq.served(0, 1, GET, digest, b"x", 1.0, 1.0)
     drone.seq.switch(1, drone_pb2.HANDOVER_TRIGGER_LOST, now=4.0, takeover=True, lost_at=1.0)
     framing = request(2, cid=1, epoch=2)
-    framing.framed_after_lognr = 12
+    framing.framed_after_lognr, framing.framed_after_epoch = 12, 1
     drone.admit(framing, digest, received_at=5.0)
     drone.seq.switch(2, drone_pb2.HANDOVER_TRIGGER_LOST, now=6.0, takeover=True, lost_at=5.0)
     replaced = drone_pb2.ConnectRequest(controller_id=2, holds_lognr=15, holds_lognr_epoch=1)

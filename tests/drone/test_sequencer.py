@@ -763,19 +763,37 @@ def test_a_framing_a_takeover_replaced_is_known_by_the_log_numbers_its_taker_fra
     serve(seq, 0, 1, 1)
     seq.switch(1, LOST, now=4.0, takeover=True, lost_at=1.0)  # epoch 2
     assert seq.replaced_framing(15, 1) is None  # nobody said where its framing starts
-    seq.note_framing(0, 2, 9)  # not the master: nothing
-    seq.note_framing(1, 1, 9)  # not its epoch: nothing
-    seq.note_framing(1, 2, 12)
-    seq.note_framing(1, 2, 14)  # only the first counts
+    seq.note_framing(0, 2, (9, 1))  # not the master: nothing
+    seq.note_framing(1, 1, (9, 1))  # not its epoch: nothing
+    seq.note_framing(1, 2, (12, 1))
+    seq.note_framing(1, 2, (14, 2))  # only the first counts
     assert seq.handovers[-1].framed_after_lognr == 12
     assert seq.replaced_framing(15, 1) == (13, 2)
     assert seq.replaced_framing(13, 1) == (13, 2)
     assert seq.replaced_framing(12, 1) is None
     assert seq.replaced_framing(15, 2) is None and seq.replaced_framing(15, 3) is None
     seq.switch(2, LOST, now=6.0, takeover=True, lost_at=5.0)  # epoch 3
-    seq.note_framing(2, 3, 10)
+    seq.note_framing(2, 3, (10, 1))
     assert seq.replaced_framing(11, 2) == (11, 3)  # epoch 2's 11 and 12 are replaced too
     assert seq.replaced_framing(10, 1) is None
     seq.switch(0, RPC, now=7.0)  # cooperative: frames nothing anew
-    seq.note_framing(0, 4, 3)
+    seq.note_framing(0, 4, (3, 1))
     assert seq.replaced_framing(11, 2) == (11, 3)
+
+
+def test_a_takers_start_that_did_not_last_no_longer_counts() -> None:
+    """--policy nearest 13594: taker 1 (epoch 2) framed from message 6, and its messages
+    never left it (cut off, then fenced). Taker 3 (epoch 3) went ACTIVE on the lost
+    master's messages 6-7 of epoch 1, which the ring still held, and built on them:
+    those are the ring's, and a later taker holding them (7 of epoch 1) is not told
+    they were replaced. Judged by epoch 2's start alone, it was refused, refused the
+    ring's 6-7, and waited for them for ever."""
+    seq = Sequencer([0, 1, 2, 3], initial_master=0)
+    serve(seq, 0, 1, 1)
+    seq.switch(1, LOST, now=4.0, takeover=True, lost_at=1.0)  # epoch 2
+    seq.note_framing(1, 2, (5, 1))
+    assert seq.replaced_framing(7, 1) == (6, 2)
+    seq.switch(3, LOST, now=6.0, takeover=True, lost_at=5.0)  # epoch 3
+    seq.note_framing(3, 3, (7, 1))
+    assert seq.replaced_framing(7, 1) is None
+    assert seq.replaced_framing(9, 1) == (8, 3)

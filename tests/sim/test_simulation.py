@@ -371,6 +371,17 @@ def test_policy_predictive_seed_19072_holds_every_oracle() -> None:
     assert outcome.ok, outcome.report()
 
 
+def test_policy_nearest_seed_13594_holds_every_oracle() -> None:
+    """--policy nearest seed 13594 (liveness), found by the sweep of the drone's first
+    rule on replaced numberings: taker 1 (epoch 8) framed from message 6 and was fenced
+    before its messages left; taker 3 (epoch 9) built on the ring's 6-7 of epoch 6.
+    The drone still judged by epoch 8's start, refused the next taker that held them,
+    and it refused the ring's 6-7 and waited for them for ever. A start that a later
+    taker's base contradicts no longer counts."""
+    outcome = run_seed(13594, SimOptions(policy="nearest"))
+    assert outcome.ok, outcome.report()
+
+
 def test_lose_master_seeds_of_two_switches_at_once_hold_every_oracle() -> None:
     """--lose-master seeds 2407, 2535, 5120, 6027 (liveness, F1's pattern): the drone
     switched twice at one instant (the script's handover, then an RPC's: 0 -> 2 -> 4 in

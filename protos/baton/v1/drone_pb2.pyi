@@ -471,6 +471,7 @@ class InvokeRequest(_message.Message):
     PREPARATION_FIELD_NUMBER: _builtins.int
     ADOPTED_FROM_REQNR_FIELD_NUMBER: _builtins.int
     FRAMED_AFTER_LOGNR_FIELD_NUMBER: _builtins.int
+    FRAMED_AFTER_EPOCH_FIELD_NUMBER: _builtins.int
     controller_id: _builtins.int
     """The calling controller's id."""
     reqnr: _builtins.int
@@ -504,6 +505,10 @@ class InvokeRequest(_message.Message):
     takeover's record (HandoverRecord.framed_after_lognr) and refuses a later
     taker's grant on a framing it replaced (Connected.replaced_from_lognr).
     """
+    framed_after_epoch: _builtins.int
+    """The epoch of that message (0: none held): the ring's log holds it, so a
+    takeover's start above it whose epoch is newer did not last.
+    """
     @_builtins.property
     def master_answers(self) -> _containers.RepeatedCompositeFieldContainer[Global___RetainedReply]:
         """The calls the master answered without the drone since the last drone
@@ -534,10 +539,11 @@ class InvokeRequest(_message.Message):
         preparation: Global___PreparationProgress | None = ...,
         adopted_from_reqnr: _builtins.int = ...,
         framed_after_lognr: _builtins.int | None = ...,
+        framed_after_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr", "framed_after_lognr", b"framed_after_lognr", "preparation", b"preparation"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr", "adopted_from_reqnr", b"adopted_from_reqnr", "controller_id", b"controller_id", "epoch", b"epoch", "framed_after_lognr", b"framed_after_lognr", "master_answers", b"master_answers", "method", b"method", "payload", b"payload", "preparation", b"preparation", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr", "adopted_from_reqnr", b"adopted_from_reqnr", "controller_id", b"controller_id", "epoch", b"epoch", "framed_after_epoch", b"framed_after_epoch", "framed_after_lognr", b"framed_after_lognr", "master_answers", b"master_answers", "method", b"method", "payload", b"payload", "preparation", b"preparation", "reqnr", b"reqnr", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__framed_after_lognr: _TypeAlias = _typing.Literal["framed_after_lognr"]  # noqa: Y015
     _WhichOneofArgType__framed_after_lognr: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr"]  # noqa: Y015
@@ -1589,6 +1595,7 @@ class HandoverRecord(_message.Message):
     TAKER_LOGNR_FIELD_NUMBER: _builtins.int
     TAKER_LOGNR_EPOCH_FIELD_NUMBER: _builtins.int
     FRAMED_AFTER_LOGNR_FIELD_NUMBER: _builtins.int
+    FRAMED_AFTER_EPOCH_FIELD_NUMBER: _builtins.int
     old_master: _builtins.int
     """Master before."""
     new_master: _builtins.int
@@ -1646,6 +1653,7 @@ class HandoverRecord(_message.Message):
     record's epoch or a newer one, until a later takeover frames from a
     lower number.
     """
+    framed_after_epoch: _builtins.int
     @_builtins.property
     def position(self) -> _drone_api_pb2.Position:
         """Where the vehicle was when the drone decided (zero if unknown)."""
@@ -1672,10 +1680,11 @@ class HandoverRecord(_message.Message):
         taker_lognr: _builtins.int = ...,
         taker_lognr_epoch: _builtins.int = ...,
         framed_after_lognr: _builtins.int | None = ...,
+        framed_after_epoch: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr", "framed_after_lognr", b"framed_after_lognr", "position", b"position"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr", "after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "framed_after_lognr", b"framed_after_lognr", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "position", b"position", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "reason", b"reason", "taker_lognr", b"taker_lognr", "taker_lognr_epoch", b"taker_lognr_epoch", "trigger", b"trigger", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr", "after_reqnr", b"after_reqnr", "decided_at", b"decided_at", "delay_s", b"delay_s", "epoch", b"epoch", "first_request_at", b"first_request_at", "framed_after_epoch", b"framed_after_epoch", "framed_after_lognr", b"framed_after_lognr", "kind", b"kind", "lost_at", b"lost_at", "new_master", b"new_master", "old_master", b"old_master", "position", b"position", "prepare_lacked_bytes", b"prepare_lacked_bytes", "prepare_started_at", b"prepare_started_at", "prepare_timed_out", b"prepare_timed_out", "reason", b"reason", "taker_lognr", b"taker_lognr", "taker_lognr_epoch", b"taker_lognr_epoch", "trigger", b"trigger", "watermark_reqnr", b"watermark_reqnr"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__framed_after_lognr: _TypeAlias = _typing.Literal["framed_after_lognr"]  # noqa: Y015
     _WhichOneofArgType__framed_after_lognr: _TypeAlias = _typing.Literal["_framed_after_lognr", b"_framed_after_lognr"]  # noqa: Y015

@@ -1202,13 +1202,16 @@ class ControllerCore:
         since our last drone call (the drone keeps them for a taker), the first request of
         this mastership answered from the retained replies, and a prepared handover's
         ``preparation`` progress."""
-        return drone_pb2.InvokeRequest(
+        framed_after = self.protocol.framed_after
+        carried = drone_pb2.InvokeRequest(
             watermark_reqnr=self.protocol.watermark_reqnr,
             master_answers=[to_retained(entry) for entry in self.answered_here],
             preparation=preparation,
             adopted_from_reqnr=self.adopted_from(),
-            framed_after_lognr=self.protocol.framed_after,
         )
+        if framed_after is not None:
+            carried.framed_after_lognr, carried.framed_after_epoch = framed_after
+        return carried
 
     def _adopt(self, reqnr: int) -> None:
         if not self.adopted:

@@ -647,9 +647,10 @@ class ControllerProtocol:
         self._own_word = word
 
     @property
-    def framed_after(self) -> int | None:
-        """In an ACTIVE mastership granted by takeover, the log number our own messages
-        follow (None otherwise): what we held when we went ACTIVE. Above it, the
+    def framed_after(self) -> tuple[int, int] | None:
+        """In an ACTIVE mastership granted by takeover, the log message our own messages
+        follow, (lognr, epoch) (None otherwise): what we held when we went ACTIVE
+        (``(0, 0)``: nothing). Above it, the
         ring's log is ours, in our epoch, or newer: messages of an older epoch that
         come after are fenced (``_arrival``). Our drone calls say it
         (``InvokeRequest.framed_after_lognr``), so that the drone can refuse a later
@@ -657,7 +658,9 @@ class ControllerProtocol:
         epoch, lognr = self._active_from
         if self.state is not State.ACTIVE or epoch != self.epoch:
             return None
-        return lognr if self._took_over_in == self.epoch else None
+        if self._took_over_in != self.epoch:
+            return None
+        return lognr, self.epoch_of(lognr) if lognr else 0
 
     def mastership_given_up(self) -> int:
         """The epoch of a mastership of ours whose log a rejoin now gives up (0: none), for

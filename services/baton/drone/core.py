@@ -639,7 +639,8 @@ class DroneCore:
             seq.note_progress(cid, request.epoch, request.preparation)
         first = seq.note_request(cid, received_at)
         if request.HasField("framed_after_lognr"):
-            seq.note_framing(cid, request.epoch, request.framed_after_lognr)
+            framed_after = (request.framed_after_lognr, request.framed_after_epoch)
+            seq.note_framing(cid, request.epoch, framed_after)
         if cached is not None:
             return Admitted(cached, (), first)
         kept = seq.keep(answers) + tuple(

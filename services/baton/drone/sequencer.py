@@ -474,17 +474,17 @@ class Sequencer:
             return []
         return self.cache.restamp(adopted_from, reqnr, epoch)
 
-    def note_framing(self, controller_id: int, epoch: int, framed_after: int) -> None:
-        """A taker's request says the log number its own messages follow
-        (``InvokeRequest.framed_after_lognr``): kept on its takeover's record, the first
-        time (``replaced_framing`` reads it)."""
+    def note_framing(self, controller_id: int, epoch: int, framed_after: tuple[int, int]) -> None:
+        """A taker's request says the log message, (lognr, epoch), its own messages follow
+        (``InvokeRequest.framed_after_lognr``, ``framed_after_epoch``): kept on its
+        takeover's record, the first time (``replaced_framing`` reads it)."""
         if not self.granted_by_takeover:
             return
         record = self.handovers[-1]
         if controller_id != self.master or epoch != self.epoch or record.epoch != epoch:
             return
         if not record.HasField("framed_after_lognr"):
-            record.framed_after_lognr = framed_after
+            record.framed_after_lognr, record.framed_after_epoch = framed_after
 
     def replaced_framing(self, holds_lognr: int, holds_epoch: int) -> tuple[int, int] | None:
         """Whether log message ``holds_lognr`` of ``holds_epoch`` (a taker's top, its
@@ -494,7 +494,10 @@ class Sequencer:
         A taker's messages follow what it held when it went ACTIVE
         (``framed_after_lognr``), so from the next number on the ring's log is of
         its epoch or newer, until a later taker frames from a lower number (each
-        taker holds a prefix of the ring's log and builds on it). Along a lineage
+        taker holds a prefix of the ring's log and builds on it). The message a
+        later taker built on is the ring's: an earlier start at or below its
+        number whose epoch is newer than that message's did not last (its
+        taker's messages never left it), and no longer counts. Along a lineage
         epochs never go down, so a top message numbered at or above such a start
         and older than its epoch is another framing of those numbers: the same
         replies numbered otherwise by a master the takeover replaced. A taker
@@ -508,10 +511,10 @@ class Sequencer:
                 continue
             if not record.HasField("framed_after_lognr"):
                 continue
-            first = record.framed_after_lognr + 1
-            while starts and starts[-1][0] >= first:
+            base, base_epoch = record.framed_after_lognr, record.framed_after_epoch
+            while starts and (starts[-1][0] > base or starts[-1][1] > base_epoch):
                 starts.pop()
-            starts.append((first, record.epoch))
+            starts.append((base + 1, record.epoch))
         for first, epoch in reversed(starts):
             if first <= holds_lognr:
                 return (first, epoch) if 0 < holds_epoch < epoch else None
