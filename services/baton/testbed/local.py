@@ -938,22 +938,27 @@ class LocalTestbed:
                 self.ended_early = "every controller died: the mission cannot go on"
 
     async def snapshot(self, audit: bool = True) -> Snapshot:
-        """The drone's and every live controller's status now, and the side effects counted."""
+        """Every live controller's status now, then the drone's, and the side effects
+        counted. The drone and the effects are read after the controllers: a snapshot
+        whose controllers say the missions ended holds every drone call they made
+        (read first, a drone's status could be older than a mission that ended meanwhile,
+        and its audit miss the calls)."""
         assert self.drone_stub is not None
-        drone = await drone_status(self.drone_stub, audit)
-        snapshot = Snapshot(drone)
+        absent: dict[str, str] = {}
         for name, part in self.supervisor.parts.items():
             if part.returncode is not None and not part.expect_exit:
                 cut = name.startswith("link-") and name in self.held_down
-                snapshot.absent[name] = "cut" if cut else "dead"
+                absent[name] = "cut" if cut else "dead"
             elif part.frozen:
-                snapshot.absent[name] = "stopped"
+                absent[name] = "stopped"
+        controllers: dict[int, ring_pb2.ControllerStatus] = {}
         for cid, stub in self.controller_stubs.items():
-            if cid in self.dead or f"controller-{cid}" in snapshot.absent:
+            if cid in self.dead or f"controller-{cid}" in absent:
                 continue
-            snapshot.controllers[cid] = await stub.GetStatus(
+            controllers[cid] = await stub.GetStatus(
                 ring_pb2.GetControllerStatusRequest(), timeout=10
             )
+        snapshot = Snapshot(await drone_status(self.drone_stub, audit), controllers, absent=absent)
         snapshot.vehicle_effects, snapshot.camera_effects = await asyncio.to_thread(
             self.counted_effects
         )
