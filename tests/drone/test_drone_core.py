@@ -448,3 +448,17 @@ def test_a_taker_holding_a_framing_a_takeover_replaced_is_told_so_by_its_grant()
     said = drone.connected(ours)
     assert said is not None and not said[0].replaced_from_lognr
     assert drone.seq.handovers[-1].taker_lognr == 13
+
+
+def test_a_framing_said_to_follow_a_newer_mastership_is_refused_and_admits_nothing() -> None:
+    """``framed_after_epoch`` newer than the request's own epoch cannot be: INVALID_ARGUMENT
+    naming both, before anything is admitted or kept on the record."""
+    drone = core()
+    digest = request_digest(GET, b"")
+    bad = request(1)
+    bad.framed_after_lognr, bad.framed_after_epoch = 3, 2
+    with pytest.raises(StatusError) as info:
+        drone.admit(bad, digest, received_at=1.0)
+    assert info.value.code is grpc.StatusCode.INVALID_ARGUMENT
+    assert "framed_after_epoch 2 is newer than the request's epoch 1" in info.value.message
+    assert drone.seq.last_reqnr == 0

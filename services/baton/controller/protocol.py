@@ -1784,13 +1784,14 @@ class ControllerProtocol:
     def _unqueue(self, dropped: Callable[[int, ring_pb2.LogMessage], bool]) -> list[Effect]:
         """Drops the queued messages ``dropped`` picks (``Unqueued``): their numbers are no
         longer received, so the ring's messages with them are taken."""
+        picked = sorted(nr for nr, queued in self.log_queue.items() if dropped(nr, queued))
+        if not picked:
+            return []  # the bounds below are gates only: stale ones cost a look, no more
         effects: list[Effect] = []
-        for queued_nr in sorted(self.log_queue):
-            queued = self.log_queue[queued_nr]
-            if dropped(queued_nr, queued):
-                del self.log_queue[queued_nr]
-                self._received.discard(queued_nr)
-                effects.append(Unqueued(queued_nr, queued.origin, queued.epoch))
+        for queued_nr in picked:
+            queued = self.log_queue.pop(queued_nr)
+            self._received.discard(queued_nr)
+            effects.append(Unqueued(queued_nr, queued.origin, queued.epoch))
         epochs = [queued.epoch for queued in self.log_queue.values() if queued.epoch]
         self._queued_epochs = (min(epochs), max(epochs)) if epochs else (0, 0)
         return effects

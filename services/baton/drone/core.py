@@ -623,6 +623,15 @@ class DroneCore:
         seq, cid = self.seq, request.controller_id
         self.seen(cid, received_at)
         answers = self.master_answers(request.reqnr, request.master_answers)
+        if request.framed_after_epoch > request.epoch:
+            # The message a mastership builds on is never of a newer mastership.
+            raise StatusError(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"Invoke reqnr {request.reqnr}: framed_after_epoch "
+                f"{request.framed_after_epoch} is newer than the request's epoch "
+                f"{request.epoch}; a master's own messages follow a message of its epoch or "
+                "an older one",
+            )
         cached = seq.admit(
             cid,
             request.epoch,
